@@ -1,0 +1,144 @@
+//! Cameras with glTF conventions: the camera looks down its local -Z with +Y up, and its
+//! placement is the world transform of the node that holds it.
+
+use glam::{Mat4, Vec2, Vec3};
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Projection {
+    /// `yfov` in radians; `aspect` from the file if given, else the image's.
+    Perspective { yfov: f32, aspect: Option<f32> },
+    /// Half-extents of the view volume.
+    Orthographic { xmag: f32, ymag: f32 },
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct Camera {
+    pub name: String,
+    /// Camera-to-world transform (may contain scale; directions are renormalised).
+    pub transform: Mat4,
+    pub projection: Projection,
+    /// Near clip distance along the view axis (glTF `znear`); rays start there.
+    pub znear: f32,
+}
+
+/// A camera ray before it is given pixel and sample bookkeeping.
+#[derive(Clone, Copy, Debug)]
+pub struct CameraRay {
+    pub origin: Vec3,
+    pub dir: Vec3,
+}
+
+impl Camera {
+    /// A perspective camera at `eye` looking at `target`.
+    pub fn look_at(name: &str, eye: Vec3, target: Vec3, up: Vec3, yfov: f32) -> Camera {
+        // Camera-to-world with the camera looking down its local -Z.
+        let forward = (target - eye).normalize_or(Vec3::NEG_Z);
+        let mut right = forward.cross(up);
+        if right.length_squared() < 1e-12 {
+            right = forward.any_orthonormal_vector();
+        }
+        let right = right.normalize();
+        let true_up = right.cross(forward);
+        let transform = Mat4::from_cols(
+            right.extend(0.0),
+            true_up.extend(0.0),
+            (-forward).extend(0.0),
+            eye.extend(1.0),
+        );
+        Camera {
+            name: name.to_string(),
+            transform,
+            projection: Projection::Perspective { yfov, aspect: None },
+            znear: 0.0,
+        }
+    }
+
+    /// A camera that frames a bounding box from a three-quarter view, so a scene without
+    /// a camera still gives a useful picture.
+    pub fn framing(min: Vec3, max: Vec3, image_aspect: f32) -> Camera {
+        let center = (min + max) * 0.5;
+        let radius = ((max - min).length() * 0.5).max(1e-6);
+        let yfov = 40f32.to_radians();
+        let half = (yfov * 0.5).tan();
+        // The bounding sphere must fit both vertically and horizontally.
+        let fit = half.min(half * image_aspect.max(1e-3));
+        let dist = radius / (fit.atan()).sin();
+        let dir = Vec3::new(0.55, 0.45, 1.0).normalize();
+        let eye = center + dir * dist;
+        Camera::look_at("auto", eye, center, Vec3::Y, yfov)
+    }
+
+    /// The ray through film position `film` in [0,1]^2 (x right, y down), for an image of
+    /// the given aspect (width / height).
+    pub fn generate(&self, film: Vec2, image_aspect: f32) -> CameraRay {
+        let sx = film.x * 2.0 - 1.0;
+        let sy = 1.0 - film.y * 2.0;
+        let (o_local, d_local) = match self.projection {
+            Projection::Perspective { yfov, aspect } => {
+                let aspect = aspect.unwrap_or(image_aspect);
+                let th = (yfov * 0.5).tan();
+                let d = Vec3::new(sx * th * aspect, sy * th, -1.0);
+                (d * self.znear.max(0.0), d)
+            }
+            Projection::Orthographic { xmag, ymag } => (
+                Vec3::new(sx * xmag, sy * ymag, -self.znear.max(0.0)),
+                Vec3::new(0.0, 0.0, -1.0),
+            ),
+        };
+        let origin = self.transform.transform_point3(o_local);
+        let dir = self
+            .transform
+            .transform_vector3(d_local)
+            .normalize_or_zero();
+        CameraRay { origin, dir }
+    }
+
+    /// True when the camera gives finite, non-degenerate rays.
+    pub fn is_valid(&self) -> bool {
+        let t_ok = self.transform.is_finite() && self.transform.determinant().abs() > 0.0;
+        let p_ok = match self.projection {
+            Projection::Perspective { yfov, aspect } => {
+                yfov.is_finite()
+                    && yfov > 0.0
+                    && yfov < std::f32::consts::PI
+                    && aspect.is_none_or(|a| a.is_finite() && a > 0.0)
+            }
+            Projection::Orthographic { xmag, ymag } => {
+                xmag.is_finite() && ymag.is_finite() && xmag != 0.0 && ymag != 0.0
+            }
+        };
+        t_ok && p_ok && self.znear.is_finite()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn center_ray_looks_down_minus_z() {
+        let cam = Camera {
+            name: "c".into(),
+            transform: Mat4::from_translation(Vec3::new(0.5, 0.5, 3.0)),
+            projection: Projection::Perspective {
+                yfov: 0.7,
+                aspect: Some(1.0),
+            },
+            znear: 0.01,
+        };
+        let r = cam.generate(Vec2::new(0.5, 0.5), 1.0);
+        assert!((r.dir - Vec3::new(0.0, 0.0, -1.0)).length() < 1e-6);
+        assert!((r.origin - Vec3::new(0.5, 0.5, 2.99)).length() < 1e-5);
+        // Top of the film goes up.
+        let top = cam.generate(Vec2::new(0.5, 0.0), 1.0);
+        assert!(top.dir.y > 0.0);
+    }
+
+    #[test]
+    fn framing_sees_the_box_centre() {
+        let cam = Camera::framing(Vec3::splat(-1.0), Vec3::splat(1.0), 1.5);
+        let r = cam.generate(Vec2::new(0.5, 0.5), 1.5);
+        let to_center = (-r.origin).normalize();
+        assert!(r.dir.dot(to_center) > 0.9999);
+    }
+}

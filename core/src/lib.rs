@@ -1,0 +1,16 @@
+//! dray's tracing core.
+//!
+//! Everything a single ray needs lives here: the scene representation every actor shares
+//! ([`scene`]), the BVH and the one watertight leaf test ([`bvh`], [`intersect`]),
+//! counter-based sampling ([`sampling`]), materials and BSDFs ([`material`], [`bsdf`]),
+//! lights ([`light`]), cameras ([`camera`]), the integrators' per-ray steps
+//! ([`integrator`]) and the exact, order-free film ([`film`]).
+
+pub mod camera;
+pub mod effects;
+pub mod light;
+pub mod material;
+pub mod scene;
+pub mod texture;
+
+pub use glam::{Mat4, Vec2, Vec3, Vec4};

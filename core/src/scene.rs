@@ -1,0 +1,133 @@
+//! The scene every actor shares: world-space triangles with per-vertex attributes,
+//! materials, textures, punctual lights and cameras.
+//!
+//! Loaders flatten the node hierarchy into one world-space [`Mesh`]; instancing is
+//! expanded. Attributes a primitive lacks are stored as zero vectors, which shading reads
+//! as "absent" (zero normal: use the geometric normal; zero tangent: build a frame).
+
+use glam::{Vec2, Vec3, Vec4};
+
+use crate::camera::Camera;
+use crate::light::Light;
+use crate::material::Material;
+use crate::texture::Texture;
+
+/// Indexed triangles in world space.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Mesh {
+    pub positions: Vec<Vec3>,
+    /// Per-vertex shading normals; zero where the source had none.
+    pub normals: Vec<Vec3>,
+    /// Per-vertex tangents (xyz, w = bitangent sign); zero where the source had none.
+    pub tangents: Vec<Vec4>,
+    /// Per-vertex `TEXCOORD_0`; zero where the source had none.
+    pub uvs: Vec<Vec2>,
+    pub indices: Vec<[u32; 3]>,
+    /// Per-triangle index into `Scene::materials`.
+    pub material: Vec<u32>,
+}
+
+impl Mesh {
+    pub fn triangle_count(&self) -> usize {
+        self.indices.len()
+    }
+
+    /// Append vertices with no attributes other than position and return the index of the
+    /// first one.
+    pub fn push_vertices(&mut self, positions: &[Vec3]) -> u32 {
+        let base = self.positions.len() as u32;
+        self.positions.extend_from_slice(positions);
+        self.normals.resize(self.positions.len(), Vec3::ZERO);
+        self.tangents.resize(self.positions.len(), Vec4::ZERO);
+        self.uvs.resize(self.positions.len(), Vec2::ZERO);
+        base
+    }
+
+    /// The three corner positions of triangle `tri`.
+    #[inline]
+    pub fn corners(&self, tri: usize) -> [Vec3; 3] {
+        let [a, b, c] = self.indices[tri];
+        [
+            self.positions[a as usize],
+            self.positions[b as usize],
+            self.positions[c as usize],
+        ]
+    }
+
+    /// Axis-aligned bounds of all vertices referenced by triangles.
+    pub fn bounds(&self) -> (Vec3, Vec3) {
+        let mut lo = Vec3::splat(f32::INFINITY);
+        let mut hi = Vec3::splat(f32::NEG_INFINITY);
+        for tri in &self.indices {
+            for &i in tri {
+                let p = self.positions[i as usize];
+                lo = lo.min(p);
+                hi = hi.max(p);
+            }
+        }
+        if lo.x > hi.x {
+            (Vec3::ZERO, Vec3::ZERO)
+        } else {
+            (lo, hi)
+        }
+    }
+
+    /// Append another mesh, offsetting its material indices by `material_offset`.
+    pub fn append(&mut self, other: &Mesh, material_offset: u32) {
+        let base = self.positions.len() as u32;
+        self.positions.extend_from_slice(&other.positions);
+        self.normals.extend_from_slice(&other.normals);
+        self.tangents.extend_from_slice(&other.tangents);
+        self.uvs.extend_from_slice(&other.uvs);
+        self.indices
+            .extend(other.indices.iter().map(|t| t.map(|i| i + base)));
+        self.material
+            .extend(other.material.iter().map(|m| m + material_offset));
+    }
+}
+
+/// Counts a loader reports about what it read.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct LoadStats {
+    /// Triangles dropped because they had zero area (or repeated indices).
+    pub degenerate_triangles: u64,
+    /// Human-readable warnings (ignored optional extensions, unsupported features).
+    pub warnings: Vec<String>,
+}
+
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Scene {
+    pub name: String,
+    pub mesh: Mesh,
+    pub materials: Vec<Material>,
+    pub textures: Vec<Texture>,
+    pub lights: Vec<Light>,
+    pub cameras: Vec<Camera>,
+    /// Constant environment radiance the scene asks for, if any. `None` lets the renderer
+    /// choose its default (black with lights or emitters, a constant sky otherwise).
+    pub environment: Option<Vec3>,
+    pub stats: LoadStats,
+}
+
+impl Scene {
+    pub fn bounds(&self) -> (Vec3, Vec3) {
+        self.mesh.bounds()
+    }
+
+    /// Translate every vertex, light and camera by `offset` (in f32, as a scene authored
+    /// far from the origin would be stored).
+    pub fn translate(&mut self, offset: Vec3) {
+        for p in &mut self.mesh.positions {
+            *p += offset;
+        }
+        for l in &mut self.lights {
+            match l {
+                Light::Point { position, .. } | Light::Spot { position, .. } => *position += offset,
+                Light::Directional { .. } => {}
+            }
+        }
+        for c in &mut self.cameras {
+            c.transform = glam::Mat4::from_translation(offset) * c.transform;
+        }
+    }
+}

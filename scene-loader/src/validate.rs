@@ -1,0 +1,207 @@
+//! The one gate every loader pushes primitives through: it checks positions and indices,
+//! drops degenerate triangles (counting them) and appends the rest to the scene mesh.
+
+use std::path::Path;
+
+use dray_core::scene::{LoadStats, Mesh};
+use glam::{Vec2, Vec3, Vec4};
+
+use crate::error::{Result, SceneError};
+
+/// Where a primitive came from, for error messages.
+#[derive(Clone, Copy, Debug)]
+pub struct Origin<'a> {
+    pub path: &'a Path,
+    pub mesh: &'a str,
+    pub primitive: usize,
+}
+
+impl Origin<'_> {
+    pub fn error(&self, message: impl Into<String>) -> SceneError {
+        SceneError::Primitive {
+            path: self.path.to_path_buf(),
+            mesh: self.mesh.to_string(),
+            primitive: self.primitive,
+            message: message.into(),
+        }
+    }
+}
+
+/// One primitive's data, already in world space. Optional attributes, when present, must
+/// have one entry per position.
+pub struct Primitive<'a> {
+    pub positions: &'a [Vec3],
+    pub normals: Option<&'a [Vec3]>,
+    pub tangents: Option<&'a [Vec4]>,
+    pub uvs: Option<&'a [Vec2]>,
+    /// Triangle-list indices (three per triangle).
+    pub indices: &'a [u32],
+    pub material: u32,
+}
+
+/// Validate `prim` and append it to `mesh`. Non-finite normals, tangents and UVs are
+/// replaced by zero ("absent"); non-finite positions and bad indices are errors.
+pub fn add_primitive(
+    mesh: &mut Mesh,
+    stats: &mut LoadStats,
+    origin: Origin<'_>,
+    prim: Primitive<'_>,
+) -> Result<()> {
+    let n = prim.positions.len();
+    if let Some((i, p)) = prim
+        .positions
+        .iter()
+        .enumerate()
+        .find(|(_, p)| !p.is_finite())
+    {
+        return Err(origin.error(format!("vertex {i} has a non-finite position {p}")));
+    }
+    let check_len = |name: &str, len: Option<usize>| -> Result<()> {
+        match len {
+            Some(l) if l != n => Err(origin.error(format!(
+                "attribute {name} has {l} entries but POSITION has {n}"
+            ))),
+            _ => Ok(()),
+        }
+    };
+    check_len("NORMAL", prim.normals.map(<[_]>::len))?;
+    check_len("TANGENT", prim.tangents.map(<[_]>::len))?;
+    check_len("TEXCOORD_0", prim.uvs.map(<[_]>::len))?;
+    if prim.indices.len() % 3 != 0 {
+        return Err(origin.error(format!(
+            "index count {} is not a multiple of 3",
+            prim.indices.len()
+        )));
+    }
+    if let Some((i, &v)) = prim
+        .indices
+        .iter()
+        .enumerate()
+        .find(|&(_, &v)| v as usize >= n)
+    {
+        return Err(origin.error(format!(
+            "index {i} refers to vertex {v} but there are only {n} vertices"
+        )));
+    }
+    if mesh.positions.len() + n > u32::MAX as usize {
+        return Err(origin.error("scene exceeds 4 billion vertices"));
+    }
+
+    let base = mesh.positions.len() as u32;
+    mesh.positions.extend_from_slice(prim.positions);
+    let finite3 = |v: Vec3| if v.is_finite() { v } else { Vec3::ZERO };
+    match prim.normals {
+        Some(ns) => mesh
+            .normals
+            .extend(ns.iter().map(|&v| finite3(v).normalize_or_zero())),
+        None => mesh.normals.resize(mesh.positions.len(), Vec3::ZERO),
+    }
+    match prim.tangents {
+        Some(ts) => mesh.tangents.extend(
+            ts.iter()
+                .map(|&v| if v.is_finite() { v } else { Vec4::ZERO }),
+        ),
+        None => mesh.tangents.resize(mesh.positions.len(), Vec4::ZERO),
+    }
+    match prim.uvs {
+        Some(us) => mesh.uvs.extend(
+            us.iter()
+                .map(|&v| if v.is_finite() { v } else { Vec2::ZERO }),
+        ),
+        None => mesh.uvs.resize(mesh.positions.len(), Vec2::ZERO),
+    }
+    for tri in prim.indices.chunks_exact(3) {
+        let [a, b, c] = [tri[0], tri[1], tri[2]];
+        let (pa, pb, pc) = (
+            prim.positions[a as usize],
+            prim.positions[b as usize],
+            prim.positions[c as usize],
+        );
+        if a == b || b == c || a == c || (pb - pa).cross(pc - pa) == Vec3::ZERO {
+            stats.degenerate_triangles += 1;
+            continue;
+        }
+        mesh.indices.push([a + base, b + base, c + base]);
+        mesh.material.push(prim.material);
+    }
+    Ok(())
+}
+
+/// Convert a triangle strip into a triangle list, keeping winding consistent.
+pub fn strip_to_list(strip: &[u32]) -> Vec<u32> {
+    let mut out = Vec::with_capacity(strip.len().saturating_sub(2) * 3);
+    for i in 2..strip.len() {
+        if i % 2 == 0 {
+            out.extend_from_slice(&[strip[i - 2], strip[i - 1], strip[i]]);
+        } else {
+            out.extend_from_slice(&[strip[i - 1], strip[i - 2], strip[i]]);
+        }
+    }
+    out
+}
+
+/// Convert a triangle fan into a triangle list.
+pub fn fan_to_list(fan: &[u32]) -> Vec<u32> {
+    let mut out = Vec::with_capacity(fan.len().saturating_sub(2) * 3);
+    for i in 2..fan.len() {
+        out.extend_from_slice(&[fan[0], fan[i - 1], fan[i]]);
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn origin() -> Origin<'static> {
+        Origin {
+            path: Path::new("test.gltf"),
+            mesh: "m",
+            primitive: 0,
+        }
+    }
+
+    #[test]
+    fn rejects_nan_and_bad_index_and_drops_degenerates() {
+        let mut mesh = Mesh::default();
+        let mut stats = LoadStats::default();
+        let p = [Vec3::ZERO, Vec3::X, Vec3::Y, Vec3::new(2.0, 0.0, 0.0)];
+        let prim = |idx: &'static [u32]| Primitive {
+            positions: &[],
+            normals: None,
+            tangents: None,
+            uvs: None,
+            indices: idx,
+            material: 0,
+        };
+        let mut ok = prim(&[0, 1, 2, 0, 1, 3, 0, 0, 1]);
+        ok.positions = &p;
+        add_primitive(&mut mesh, &mut stats, origin(), ok).unwrap();
+        assert_eq!(mesh.indices.len(), 1);
+        assert_eq!(stats.degenerate_triangles, 2);
+
+        let mut bad = prim(&[0, 1, 7]);
+        bad.positions = &p;
+        let err = add_primitive(&mut mesh, &mut stats, origin(), bad).unwrap_err();
+        assert!(
+            err.to_string().contains("index 2 refers to vertex 7"),
+            "{err}"
+        );
+
+        let nan = [Vec3::ZERO, Vec3::new(f32::NAN, 0.0, 0.0), Vec3::Y];
+        let mut bad = prim(&[0, 1, 2]);
+        bad.positions = &nan;
+        let err = add_primitive(&mut mesh, &mut stats, origin(), bad).unwrap_err();
+        assert!(
+            err.to_string()
+                .contains("vertex 1 has a non-finite position"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn strips_and_fans() {
+        assert_eq!(strip_to_list(&[0, 1, 2, 3]), vec![0, 1, 2, 2, 1, 3]);
+        assert_eq!(fan_to_list(&[0, 1, 2, 3]), vec![0, 1, 2, 0, 2, 3]);
+    }
+}
