@@ -67,7 +67,7 @@ pub fn add_primitive(
     check_len("NORMAL", prim.normals.map(<[_]>::len))?;
     check_len("TANGENT", prim.tangents.map(<[_]>::len))?;
     check_len("TEXCOORD_0", prim.uvs.map(<[_]>::len))?;
-    if prim.indices.len() % 3 != 0 {
+    if !prim.indices.len().is_multiple_of(3) {
         return Err(origin.error(format!(
             "index count {} is not a multiple of 3",
             prim.indices.len()
