@@ -1,0 +1,1297 @@
+//! glTF 2.0 import (`.gltf` with external or embedded resources, and `.glb`).
+//!
+//! The `gltf` crate parses and validates the JSON, but dray resolves buffers and images
+//! and decodes accessors itself: the crate's importer and accessor readers give generic
+//! messages and can panic or silently stop on malformed data (short buffers, bad strides,
+//! zero counts), while a renderer fed arbitrary files must answer with an error that
+//! names the file, the URI, the mesh and the primitive at fault.
+//!
+//! The node hierarchy of the chosen scene is flattened into one world-space mesh with
+//! instancing expanded; every primitive passes through [`crate::validate::add_primitive`].
+
+use std::borrow::Cow;
+use std::panic::AssertUnwindSafe;
+use std::path::{Path, PathBuf};
+
+use dray_core::camera::{Camera, Projection};
+use dray_core::light::Light;
+use dray_core::material::{AlphaMode, Material, TexRef};
+use dray_core::scene::Scene;
+use dray_core::texture::{Filter, Sampler, Texture, Wrap};
+use glam::{DMat3, DMat4, DQuat, DVec3, Vec2, Vec3, Vec4};
+use gltf::json;
+use gltf::json::validation::Checked;
+
+use crate::error::{Result, SceneError};
+use crate::validate::{self, Origin, Primitive};
+
+/// Extensions dray understands. A file that *requires* anything else is refused; a file
+/// that merely *uses* something else loads with a warning (the extension is ignored).
+pub const SUPPORTED_EXTENSIONS: &[&str] = &[
+    "KHR_lights_punctual",
+    "KHR_materials_emissive_strength",
+    "KHR_materials_transmission",
+    "KHR_materials_ior",
+    "KHR_materials_specular",
+];
+
+/// Deeper hierarchies than this are treated as cycles (the JSON validator does not
+/// detect a node that is its own ancestor, and walking one would never end).
+const MAX_NODE_DEPTH: usize = 1024;
+
+/// Upper bound on node visits while expanding instances, so a small file whose nodes
+/// share children exponentially cannot make the loader run out of memory.
+const MAX_NODE_VISITS: usize = 1 << 22;
+
+/// Upper bound on components of an accessor with no buffer view (all zeros, possibly
+/// patched by sparse values); without it a tiny file could ask for a huge allocation.
+const MAX_ZERO_FILLED_COMPONENTS: usize = 1 << 28;
+
+/// How many characters of a URI go into an error message (data URIs can be megabytes).
+const URI_DISPLAY_LEN: usize = 60;
+
+/// Load a glTF 2.0 file (`.gltf` or `.glb`) into a flattened world-space [`Scene`].
+///
+/// The default scene is used (or the first scene; with no scenes, every root node).
+/// Buffers and images are resolved relative to the file's folder; `data:` URIs and the
+/// GLB binary chunk are supported. Problems in the file are errors that name the file and,
+/// where they apply, the URI, mesh and primitive; ignored features are listed in
+/// `scene.stats.warnings`.
+pub fn load_gltf(path: &Path) -> Result<Scene> {
+    // The loader checks every offset itself, but it still calls into the `gltf` crate,
+    // whose validator and wrappers index and unwrap internally. A panic there on some
+    // input we did not foresee must not take down a render node: it becomes an error
+    // naming the file.
+    match std::panic::catch_unwind(AssertUnwindSafe(|| load_unguarded(path))) {
+        Ok(result) => result,
+        Err(payload) => {
+            let what = payload
+                .downcast_ref::<&str>()
+                .map(|s| (*s).to_string())
+                .or_else(|| payload.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "unknown panic".to_string());
+            Err(format_error(
+                path,
+                format!("internal error while reading the glTF file: {what}"),
+            ))
+        }
+    }
+}
+
+fn format_error(path: &Path, message: impl Into<String>) -> SceneError {
+    SceneError::Format {
+        path: path.to_path_buf(),
+        message: message.into(),
+    }
+}
+
+fn load_unguarded(path: &Path) -> Result<Scene> {
+    let bytes = std::fs::read(path).map_err(|source| SceneError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    check_glb_header(&bytes).map_err(|m| format_error(path, m))?;
+    // serde_json refuses a UTF-8 byte order mark, which some exporters write.
+    let text = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(&bytes);
+    let gltf::Gltf { document, blob } = gltf::Gltf::from_slice_without_validation(text)
+        .map_err(|e| format_error(path, format!("not a valid glTF file: {e}")))?;
+    let mut root = document.into_json();
+
+    for ext in &root.extensions_required {
+        if !SUPPORTED_EXTENSIONS.contains(&ext.as_str()) {
+            return Err(SceneError::UnsupportedExtension {
+                path: path.to_path_buf(),
+                extension: ext.clone(),
+            });
+        }
+    }
+    let mut warnings = Vec::new();
+    for ext in &root.extensions_used {
+        if !SUPPORTED_EXTENSIONS.contains(&ext.as_str()) {
+            warnings.push(format!(
+                "{}: extension {ext} is used but not supported; it is ignored",
+                path.display()
+            ));
+        }
+    }
+    precheck(&root).map_err(|m| format_error(path, m))?;
+    // The crate's validator rejects required extensions it does not know itself (such as
+    // KHR_materials_specular, which it parses but does not list); dray has already
+    // checked the required list against what it supports, so hide the rest from it.
+    root.extensions_required
+        .retain(|e| json::extensions::ENABLED_EXTENSIONS.contains(&e.as_str()));
+    let document = gltf::Document::from_json(root)
+        .map_err(|e| format_error(path, format!("invalid glTF: {e}")))?;
+
+    let base = path.parent().unwrap_or(Path::new("."));
+    let buffers = load_buffers(path, base, document.as_json(), blob)?;
+
+    let mut loader = Loader {
+        path,
+        base,
+        doc: &document,
+        root: document.as_json(),
+        buffers,
+        scene: Scene {
+            name: path
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            ..Scene::default()
+        },
+        default_material: None,
+    };
+    for w in warnings {
+        loader.warn(w);
+    }
+    loader.load()?;
+    if loader.scene.mesh.triangle_count() == 0 {
+        return Err(SceneError::Empty {
+            path: path.to_path_buf(),
+        });
+    }
+    Ok(loader.scene)
+}
+
+/// Reject GLB headers the `gltf` crate would mishandle: it subtracts the header size
+/// from the declared length without checking, which panics (debug) or wraps (release).
+fn check_glb_header(bytes: &[u8]) -> std::result::Result<(), String> {
+    if !bytes.starts_with(b"glTF") {
+        return Ok(());
+    }
+    let word = |at: usize| -> Option<u32> {
+        let b: [u8; 4] = bytes.get(at..at + 4)?.try_into().ok()?;
+        Some(u32::from_le_bytes(b))
+    };
+    let (Some(version), Some(length)) = (word(4), word(8)) else {
+        return Err("GLB file is shorter than its 12-byte header".into());
+    };
+    if version != 2 {
+        return Err(format!(
+            "GLB version {version} is not supported (expected 2)"
+        ));
+    }
+    // Header (12 bytes) plus at least the JSON chunk header (8 bytes).
+    if length < 20 || length as usize > bytes.len() {
+        return Err(format!(
+            "GLB header declares {length} bytes but the file has {} (truncated or corrupt)",
+            bytes.len()
+        ));
+    }
+    Ok(())
+}
+
+/// Checks the crate's validator relies on without making them itself: it indexes the
+/// accessor list with each primitive's POSITION index before checking that index.
+fn precheck(root: &json::Root) -> std::result::Result<(), String> {
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (p, prim) in mesh.primitives.iter().enumerate() {
+            for (semantic, index) in &prim.attributes {
+                if index.value() >= root.accessors.len() {
+                    let name = match semantic {
+                        Checked::Valid(s) => s.to_string(),
+                        Checked::Invalid => "attribute".to_string(),
+                    };
+                    return Err(format!(
+                        "mesh {m} primitive {p}: {name} refers to accessor {} but there are \
+                         only {} accessors",
+                        index.value(),
+                        root.accessors.len()
+                    ));
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Read every buffer: the GLB binary chunk, a `data:` URI or a file next to the glTF.
+fn load_buffers(
+    path: &Path,
+    base: &Path,
+    root: &json::Root,
+    mut blob: Option<Vec<u8>>,
+) -> Result<Vec<Vec<u8>>> {
+    let mut out = Vec::with_capacity(root.buffers.len());
+    for (i, buffer) in root.buffers.iter().enumerate() {
+        let what = match &buffer.uri {
+            Some(uri) => format!("buffer {i} ({})", display_uri(uri)),
+            None => format!("buffer {i} (GLB binary chunk)"),
+        };
+        let declared = usize::try_from(buffer.byte_length.0).map_err(|_| {
+            format_error(
+                path,
+                format!("{what}: byteLength {} is too large", buffer.byte_length.0),
+            )
+        })?;
+        let mut data = match &buffer.uri {
+            Some(uri) => {
+                read_uri(base, uri).map_err(|m| format_error(path, format!("{what}: {m}")))?
+            }
+            // Only the first buffer may refer to the GLB binary chunk.
+            None => match (i, blob.take()) {
+                (0, Some(b)) => b,
+                _ => {
+                    return Err(format_error(
+                        path,
+                        format!("{what}: buffer has no uri and the file has no GLB binary chunk"),
+                    ));
+                }
+            },
+        };
+        if data.len() < declared {
+            return Err(format_error(
+                path,
+                format!(
+                    "{what}: has {} bytes but its byteLength is {declared} (truncated file?)",
+                    data.len()
+                ),
+            ));
+        }
+        // Accessors may only read within byteLength; anything past it (GLB padding) goes.
+        data.truncate(declared);
+        out.push(data);
+    }
+    Ok(out)
+}
+
+/// A URI shortened for messages.
+fn display_uri(uri: &str) -> String {
+    if uri.chars().count() <= URI_DISPLAY_LEN {
+        format!("{uri:?}")
+    } else {
+        let head: String = uri.chars().take(URI_DISPLAY_LEN).collect();
+        format!("{head:?}…")
+    }
+}
+
+/// Resolve a buffer or image URI: `data:`, `file:` or a path relative to `base`.
+fn read_uri(base: &Path, uri: &str) -> std::result::Result<Vec<u8>, String> {
+    if let Some(rest) = uri.strip_prefix("data:") {
+        let (header, payload) = rest
+            .split_once(',')
+            .ok_or_else(|| "data URI has no ',' before its payload".to_string())?;
+        return if header.ends_with(";base64") {
+            decode_base64(payload).map_err(|m| format!("data URI: {m}"))
+        } else {
+            percent_decode(payload).map_err(|m| format!("data URI: {m}"))
+        };
+    }
+    let file: PathBuf = match uri_scheme(uri) {
+        Some(scheme) if scheme.eq_ignore_ascii_case("file") => {
+            let rest = &uri[scheme.len() + 1..];
+            let rest = rest.strip_prefix("//").unwrap_or(rest);
+            PathBuf::from(utf8(percent_decode(rest)?)?)
+        }
+        Some(scheme) => {
+            return Err(format!(
+                "URI scheme {scheme:?} is not supported (only relative paths, file: and \
+                 data: URIs)"
+            ));
+        }
+        None => base.join(utf8(percent_decode(uri)?)?),
+    };
+    std::fs::read(&file).map_err(|e| format!("cannot read {}: {e}", file.display()))
+}
+
+fn utf8(bytes: Vec<u8>) -> std::result::Result<String, String> {
+    String::from_utf8(bytes).map_err(|_| "URI is not valid UTF-8 after percent-decoding".into())
+}
+
+/// The scheme of an absolute URI (RFC 3986: a letter, then letters, digits, `+-.`),
+/// or `None` for a relative reference. One-letter schemes are taken as Windows drives.
+fn uri_scheme(uri: &str) -> Option<&str> {
+    let (scheme, _) = uri.split_once(':')?;
+    let mut chars = scheme.chars();
+    let first = chars.next()?;
+    let ok = first.is_ascii_alphabetic()
+        && chars.all(|c| c.is_ascii_alphanumeric() || matches!(c, '+' | '-' | '.'));
+    (ok && scheme.len() > 1).then_some(scheme)
+}
+
+fn percent_decode(s: &str) -> std::result::Result<Vec<u8>, String> {
+    let bytes = s.as_bytes();
+    let mut out = Vec::with_capacity(bytes.len());
+    let mut i = 0;
+    while let Some(&b) = bytes.get(i) {
+        if b == b'%' {
+            let hex = |at: usize| bytes.get(at).and_then(|&c| (c as char).to_digit(16));
+            match (hex(i + 1), hex(i + 2)) {
+                (Some(h), Some(l)) => out.push((h * 16 + l) as u8),
+                _ => return Err(format!("malformed percent-encoding at byte {i}")),
+            }
+            i += 3;
+        } else {
+            out.push(b);
+            i += 1;
+        }
+    }
+    Ok(out)
+}
+
+/// Standard (and URL-safe) base64, padding optional, ASCII whitespace ignored. Written
+/// here rather than adding a dependency for one small function.
+fn decode_base64(s: &str) -> std::result::Result<Vec<u8>, String> {
+    let mut out = Vec::with_capacity(s.len() / 4 * 3 + 3);
+    let mut acc: u32 = 0;
+    let mut bits = 0u32;
+    let mut digits = 0usize;
+    for (i, c) in s.bytes().enumerate() {
+        let v = match c {
+            b'A'..=b'Z' => c - b'A',
+            b'a'..=b'z' => c - b'a' + 26,
+            b'0'..=b'9' => c - b'0' + 52,
+            b'+' | b'-' => 62,
+            b'/' | b'_' => 63,
+            b'=' => break,
+            c if c.is_ascii_whitespace() => continue,
+            _ => return Err(format!("invalid base64 character {:?} at {i}", c as char)),
+        };
+        acc = (acc << 6) | u32::from(v);
+        bits += 6;
+        digits += 1;
+        if bits >= 8 {
+            bits -= 8;
+            out.push((acc >> bits) as u8);
+            acc &= (1 << bits) - 1;
+        }
+    }
+    if digits % 4 == 1 {
+        return Err("base64 payload is truncated".into());
+    }
+    Ok(out)
+}
+
+/// Conversion from a decoded accessor component.
+trait FromComponent: Copy + Default {
+    fn from_component(v: f64) -> Self;
+}
+
+impl FromComponent for f32 {
+    fn from_component(v: f64) -> Self {
+        v as f32
+    }
+}
+
+impl FromComponent for u32 {
+    fn from_component(v: f64) -> Self {
+        // Only reached with integer component types, whose values f64 holds exactly.
+        v as u32
+    }
+}
+
+/// One component at the start of `bytes`, normalised to [0,1] / [-1,1] if asked.
+fn read_component(
+    bytes: &[u8],
+    ty: json::accessor::ComponentType,
+    normalized: bool,
+) -> Option<f64> {
+    use json::accessor::ComponentType as C;
+    fn arr<const N: usize>(b: &[u8]) -> Option<[u8; N]> {
+        b.get(..N)?.try_into().ok()
+    }
+    let norm = |v: f64, max: f64| {
+        if normalized { (v / max).max(-1.0) } else { v }
+    };
+    Some(match ty {
+        C::I8 => norm(f64::from(i8::from_le_bytes(arr(bytes)?)), 127.0),
+        C::U8 => norm(f64::from(u8::from_le_bytes(arr(bytes)?)), 255.0),
+        C::I16 => norm(f64::from(i16::from_le_bytes(arr(bytes)?)), 32767.0),
+        C::U16 => norm(f64::from(u16::from_le_bytes(arr(bytes)?)), 65535.0),
+        C::U32 => f64::from(u32::from_le_bytes(arr(bytes)?)),
+        C::F32 => f64::from(f32::from_le_bytes(arr(bytes)?)),
+    })
+}
+
+/// One mesh primitive decoded into local-space arrays, ready to be instanced.
+struct DecodedPrimitive {
+    index: usize,
+    positions: Vec<Vec3>,
+    normals: Option<Vec<Vec3>>,
+    tangents: Option<Vec<Vec4>>,
+    uvs: Option<Vec<Vec2>>,
+    /// Triangle list (strips and fans already converted).
+    indices: Vec<u32>,
+    material: u32,
+}
+
+/// An image decoded to RGBA8, shared by the textures that use it.
+#[derive(Clone)]
+struct DecodedImage {
+    width: u32,
+    height: u32,
+    texels: Vec<[u8; 4]>,
+}
+
+/// Everything the node walk found.
+#[derive(Default)]
+struct Placements {
+    /// (mesh index, world matrix) per mesh instance.
+    meshes: Vec<(usize, DMat4)>,
+}
+
+struct Loader<'a> {
+    path: &'a Path,
+    base: &'a Path,
+    doc: &'a gltf::Document,
+    root: &'a json::Root,
+    buffers: Vec<Vec<u8>>,
+    scene: Scene,
+    /// Index of the default material once a primitive without one has needed it.
+    default_material: Option<u32>,
+}
+
+impl Loader<'_> {
+    fn warn(&mut self, message: String) {
+        tracing::warn!("{message}");
+        self.scene.stats.warnings.push(message);
+    }
+
+    fn error(&self, message: impl Into<String>) -> SceneError {
+        format_error(self.path, message)
+    }
+
+    fn load(&mut self) -> Result<()> {
+        self.load_textures()?;
+        self.load_materials();
+        let placements = self.walk_nodes()?;
+        self.load_meshes(placements)?;
+        Ok(())
+    }
+
+    // ----- textures --------------------------------------------------------------------
+
+    /// One [`Texture`] per glTF texture, in order, so a material's texture index can be
+    /// used as is. Each image is decoded once even when several textures share it.
+    fn load_textures(&mut self) -> Result<()> {
+        let mut images: Vec<Option<DecodedImage>> = vec![None; self.root.images.len()];
+        let mut textures = Vec::with_capacity(self.root.textures.len());
+        for (t, texture) in self.root.textures.iter().enumerate() {
+            let image_index = texture.source.value();
+            let slot = images.get_mut(image_index).ok_or_else(|| {
+                self.error(format!(
+                    "texture {t} refers to image {image_index}, which does not exist"
+                ))
+            })?;
+            if slot.is_none() {
+                *slot = Some(self.decode_image(image_index)?);
+            }
+            let Some(DecodedImage {
+                width,
+                height,
+                texels,
+            }) = slot.clone()
+            else {
+                return Err(self.error(format!("texture {t}: image {image_index} was not decoded")));
+            };
+            let image = self.root.images.get(image_index);
+            let name = texture
+                .name
+                .clone()
+                .or_else(|| image.and_then(|i| i.name.clone()))
+                .or_else(|| {
+                    image
+                        .and_then(|i| i.uri.as_deref())
+                        .filter(|u| !u.starts_with("data:"))
+                        .map(str::to_string)
+                })
+                .unwrap_or_else(|| format!("texture #{t}"));
+            let sampler = texture
+                .sampler
+                .and_then(|s| self.root.samplers.get(s.value()))
+                .map(convert_sampler)
+                .unwrap_or_default();
+            textures.push(Texture {
+                name,
+                width,
+                height,
+                texels,
+                sampler,
+            });
+        }
+        self.scene.textures = textures;
+        Ok(())
+    }
+
+    fn decode_image(&self, index: usize) -> Result<DecodedImage> {
+        let image = self
+            .root
+            .images
+            .get(index)
+            .ok_or_else(|| self.error(format!("image {index} does not exist")))?;
+        let (what, bytes): (String, Cow<'_, [u8]>) = match (&image.uri, image.buffer_view) {
+            (Some(uri), _) => {
+                let what = format!("image {index} ({})", display_uri(uri));
+                let bytes =
+                    read_uri(self.base, uri).map_err(|m| self.error(format!("{what}: {m}")))?;
+                (what, Cow::Owned(bytes))
+            }
+            (None, Some(view)) => {
+                let what = format!("image {index} (buffer view {})", view.value());
+                let (bytes, _) = self
+                    .view_bytes(view.value())
+                    .map_err(|m| self.error(format!("{what}: {m}")))?;
+                (what, Cow::Borrowed(bytes))
+            }
+            (None, None) => {
+                return Err(self.error(format!("image {index} has neither a uri nor a bufferView")));
+            }
+        };
+        let decoded = image::load_from_memory(&bytes)
+            .map_err(|e| self.error(format!("{what}: cannot decode image: {e}")))?
+            .into_rgba8();
+        let (width, height) = decoded.dimensions();
+        let texels = decoded
+            .into_raw()
+            .chunks_exact(4)
+            .map(|c| [c[0], c[1], c[2], c[3]])
+            .collect();
+        Ok(DecodedImage {
+            width,
+            height,
+            texels,
+        })
+    }
+
+    // ----- materials -------------------------------------------------------------------
+
+    /// Convert every glTF material, in order, so glTF material `i` is scene material `i`.
+    fn load_materials(&mut self) {
+        let doc = self.doc;
+        for m in doc.materials() {
+            let name = m
+                .name()
+                .map(str::to_string)
+                .unwrap_or_else(|| format!("material #{}", m.index().unwrap_or(0)));
+            let pbr = m.pbr_metallic_roughness();
+            let mut mat = Material {
+                name: name.clone(),
+                base_color: Vec4::from(pbr.base_color_factor()),
+                metallic: pbr.metallic_factor(),
+                roughness: pbr.roughness_factor(),
+                emissive: Vec3::from(m.emissive_factor()) * m.emissive_strength().unwrap_or(1.0),
+                alpha_mode: match m.alpha_mode() {
+                    gltf::material::AlphaMode::Opaque => AlphaMode::Opaque,
+                    gltf::material::AlphaMode::Mask => AlphaMode::Mask {
+                        cutoff: m.alpha_cutoff().unwrap_or(0.5),
+                    },
+                    gltf::material::AlphaMode::Blend => AlphaMode::Blend,
+                },
+                double_sided: m.double_sided(),
+                ..Material::default()
+            };
+            mat.base_color_tex = self.tex_ref(&name, "baseColorTexture", pbr.base_color_texture());
+            mat.metallic_roughness_tex = self.tex_ref(
+                &name,
+                "metallicRoughnessTexture",
+                pbr.metallic_roughness_texture(),
+            );
+            if let Some(normal) = m.normal_texture() {
+                mat.normal_scale = normal.scale();
+                mat.normal_tex = self.tex_slot(
+                    &name,
+                    "normalTexture",
+                    normal.texture().index(),
+                    normal.tex_coord(),
+                );
+            }
+            mat.emissive_tex = self.tex_ref(&name, "emissiveTexture", m.emissive_texture());
+            if let Some(t) = m.transmission() {
+                mat.transmission = t.transmission_factor();
+                mat.transmission_tex =
+                    self.tex_ref(&name, "transmissionTexture", t.transmission_texture());
+            }
+            if let Some(ior) = m.ior() {
+                mat.ior = ior;
+            }
+            if let Some(s) = m.specular() {
+                mat.specular = s.specular_factor();
+                mat.specular_tex = self.tex_ref(&name, "specularTexture", s.specular_texture());
+                mat.specular_color = Vec3::from(s.specular_color_factor());
+                mat.specular_color_tex =
+                    self.tex_ref(&name, "specularColorTexture", s.specular_color_texture());
+            }
+            self.scene.materials.push(mat);
+        }
+    }
+
+    fn tex_ref(
+        &mut self,
+        material: &str,
+        slot: &str,
+        info: Option<gltf::texture::Info<'_>>,
+    ) -> Option<TexRef> {
+        let info = info?;
+        self.tex_slot(material, slot, info.texture().index(), info.tex_coord())
+    }
+
+    fn tex_slot(
+        &mut self,
+        material: &str,
+        slot: &str,
+        texture: usize,
+        tex_coord: u32,
+    ) -> Option<TexRef> {
+        if tex_coord != 0 {
+            self.warn(format!(
+                "{}: material {material:?} {slot} uses TEXCOORD_{tex_coord}; dray reads \
+                 TEXCOORD_0 only",
+                self.path.display()
+            ));
+        }
+        Some(TexRef {
+            texture: u32::try_from(texture).ok()?,
+            tex_coord,
+        })
+    }
+
+    fn default_material(&mut self) -> u32 {
+        if let Some(i) = self.default_material {
+            return i;
+        }
+        let i = self.scene.materials.len() as u32;
+        self.scene.materials.push(Material::default());
+        self.default_material = Some(i);
+        i
+    }
+
+    // ----- node hierarchy --------------------------------------------------------------
+
+    /// Walk the chosen scene, composing transforms in f64, and collect mesh instances,
+    /// cameras and lights.
+    fn walk_nodes(&mut self) -> Result<Placements> {
+        let doc = self.doc;
+        let roots: Vec<gltf::Node<'_>> = match doc.default_scene().or_else(|| doc.scenes().next()) {
+            Some(scene) => scene.nodes().collect(),
+            None => {
+                let mut is_child = vec![false; self.root.nodes.len()];
+                for node in doc.nodes() {
+                    for child in node.children() {
+                        if let Some(c) = is_child.get_mut(child.index()) {
+                            *c = true;
+                        }
+                    }
+                }
+                doc.nodes()
+                    .filter(|n| !is_child.get(n.index()).copied().unwrap_or(false))
+                    .collect()
+            }
+        };
+
+        let mut placements = Placements::default();
+        let mut skinned_warned = false;
+        let mut visits = 0usize;
+        // Reverse so that popping visits nodes in document order.
+        let mut stack: Vec<(gltf::Node<'_>, DMat4, usize)> = roots
+            .into_iter()
+            .rev()
+            .map(|n| (n, DMat4::IDENTITY, 0))
+            .collect();
+        while let Some((node, parent, depth)) = stack.pop() {
+            visits += 1;
+            let node_name = node
+                .name()
+                .map(|n| format!("{n:?}"))
+                .unwrap_or_else(|| format!("#{}", node.index()));
+            if depth > MAX_NODE_DEPTH {
+                return Err(self.error(format!(
+                    "node {node_name}: hierarchy is deeper than {MAX_NODE_DEPTH} levels (does it \
+                     contain a cycle?)"
+                )));
+            }
+            if visits > MAX_NODE_VISITS {
+                return Err(self.error(format!(
+                    "node hierarchy expands to more than {MAX_NODE_VISITS} node instances"
+                )));
+            }
+            let world = parent * local_matrix(&node);
+            if !world.is_finite() {
+                return Err(self.error(format!(
+                    "node {node_name}: transform is not finite (check matrix, rotation, scale)"
+                )));
+            }
+            if let Some(mesh) = node.mesh() {
+                placements.meshes.push((mesh.index(), world));
+                if node.skin().is_some() && !skinned_warned {
+                    skinned_warned = true;
+                    self.warn(format!(
+                        "{}: skinning is not supported; skinned meshes are placed by their node \
+                         transform in bind pose",
+                        self.path.display()
+                    ));
+                }
+            }
+            if let Some(camera) = node.camera() {
+                self.add_camera(&camera, world);
+            }
+            if let Some(light) = node.light() {
+                self.add_light(&light, &node_name, world);
+            }
+            let children: Vec<_> = node.children().collect();
+            stack.extend(children.into_iter().rev().map(|c| (c, world, depth + 1)));
+        }
+        Ok(placements)
+    }
+
+    fn add_camera(&mut self, camera: &gltf::Camera<'_>, world: DMat4) {
+        let name = camera
+            .name()
+            .map(str::to_string)
+            .unwrap_or_else(|| format!("camera #{}", camera.index()));
+        let (projection, znear) = match camera.projection() {
+            gltf::camera::Projection::Perspective(p) => (
+                Projection::Perspective {
+                    yfov: p.yfov(),
+                    aspect: p.aspect_ratio(),
+                },
+                p.znear(),
+            ),
+            gltf::camera::Projection::Orthographic(o) => (
+                Projection::Orthographic {
+                    xmag: o.xmag(),
+                    ymag: o.ymag(),
+                },
+                o.znear(),
+            ),
+        };
+        self.scene.cameras.push(Camera {
+            name,
+            transform: world.as_mat4(),
+            projection,
+            znear,
+        });
+    }
+
+    fn add_light(
+        &mut self,
+        light: &gltf::khr_lights_punctual::Light<'_>,
+        node_name: &str,
+        world: DMat4,
+    ) {
+        use gltf::khr_lights_punctual::Kind;
+        let power = Vec3::from(light.color()) * light.intensity();
+        let position = world.transform_point3(DVec3::ZERO).as_vec3();
+        let direction = world
+            .transform_vector3(DVec3::NEG_Z)
+            .normalize_or_zero()
+            .as_vec3();
+        let needs_direction = !matches!(light.kind(), Kind::Point);
+        if needs_direction && direction == Vec3::ZERO {
+            self.warn(format!(
+                "{}: light on node {node_name} has a degenerate orientation; skipped",
+                self.path.display()
+            ));
+            return;
+        }
+        let light = match light.kind() {
+            Kind::Directional => Light::Directional {
+                direction,
+                irradiance: power,
+            },
+            Kind::Point => Light::Point {
+                position,
+                intensity: power,
+            },
+            Kind::Spot {
+                inner_cone_angle,
+                outer_cone_angle,
+            } => Light::Spot {
+                position,
+                direction,
+                intensity: power,
+                inner_cone: inner_cone_angle,
+                outer_cone: outer_cone_angle,
+            },
+        };
+        self.scene.lights.push(light);
+    }
+
+    // ----- meshes ----------------------------------------------------------------------
+
+    /// Decode each instanced mesh once and emit it for each of its instances.
+    fn load_meshes(&mut self, mut placements: Placements) -> Result<()> {
+        // Group instances by mesh (stable, so instances keep their walk order) so each
+        // mesh is decoded once and dropped before the next.
+        placements.meshes.sort_by_key(|&(mesh, _)| mesh);
+        let doc = self.doc;
+        let mut start = 0;
+        while let Some(&(mesh_index, _)) = placements.meshes.get(start) {
+            let end = placements
+                .meshes
+                .get(start..)
+                .unwrap_or_default()
+                .iter()
+                .position(|&(m, _)| m != mesh_index)
+                .map_or(placements.meshes.len(), |n| start + n);
+            let mesh = doc
+                .meshes()
+                .nth(mesh_index)
+                .ok_or_else(|| self.error(format!("mesh {mesh_index} does not exist")))?;
+            let name = mesh
+                .name()
+                .map(str::to_string)
+                .unwrap_or_else(|| format!("mesh #{mesh_index}"));
+            let prims = self.decode_mesh(&mesh, &name)?;
+            for &(_, world) in placements.meshes.get(start..end).unwrap_or_default() {
+                for prim in &prims {
+                    self.emit(&name, prim, world)?;
+                }
+            }
+            start = end;
+        }
+        Ok(())
+    }
+
+    fn decode_mesh(&mut self, mesh: &gltf::Mesh<'_>, name: &str) -> Result<Vec<DecodedPrimitive>> {
+        use gltf::mesh::{Mode, Semantic};
+        let mut out = Vec::new();
+        for prim in mesh.primitives() {
+            let origin = Origin {
+                path: self.path,
+                mesh: name,
+                primitive: prim.index(),
+            };
+            let mode = prim.mode();
+            if !matches!(
+                mode,
+                Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan
+            ) {
+                self.warn(format!(
+                    "{}: mesh {name:?} primitive {}: mode {mode:?} is not triangles; skipped",
+                    self.path.display(),
+                    prim.index()
+                ));
+                continue;
+            }
+            let attr = |semantic: Semantic| prim.get(&semantic).map(|a| a.index());
+            let err = |what: &str, m: String| origin.error(format!("{what}: {m}"));
+
+            let pos_acc = attr(Semantic::Positions)
+                .ok_or_else(|| origin.error("primitive has no POSITION attribute"))?;
+            let positions: Vec<Vec3> = self
+                .read_accessor::<f32>(pos_acc, 3)
+                .map_err(|m| err("POSITION", m))?
+                .chunks_exact(3)
+                .map(Vec3::from_slice)
+                .collect();
+            let normals = match attr(Semantic::Normals) {
+                Some(a) => Some(
+                    self.read_accessor::<f32>(a, 3)
+                        .map_err(|m| err("NORMAL", m))?
+                        .chunks_exact(3)
+                        .map(Vec3::from_slice)
+                        .collect::<Vec<_>>(),
+                ),
+                None => None,
+            };
+            let tangents = match attr(Semantic::Tangents) {
+                Some(a) => Some(
+                    self.read_accessor::<f32>(a, 4)
+                        .map_err(|m| err("TANGENT", m))?
+                        .chunks_exact(4)
+                        .map(Vec4::from_slice)
+                        .collect::<Vec<_>>(),
+                ),
+                None => None,
+            };
+            let uvs = match attr(Semantic::TexCoords(0)) {
+                Some(a) => Some(
+                    self.read_accessor::<f32>(a, 2)
+                        .map_err(|m| err("TEXCOORD_0", m))?
+                        .chunks_exact(2)
+                        .map(Vec2::from_slice)
+                        .collect::<Vec<_>>(),
+                ),
+                None => None,
+            };
+            let raw_indices = match prim.indices() {
+                Some(acc) => self
+                    .read_indices(acc.index())
+                    .map_err(|m| err("indices", m))?,
+                None => {
+                    let n = u32::try_from(positions.len())
+                        .map_err(|_| origin.error("too many vertices for 32-bit indices"))?;
+                    (0..n).collect()
+                }
+            };
+            let indices = match mode {
+                Mode::TriangleStrip => validate::strip_to_list(&raw_indices),
+                Mode::TriangleFan => validate::fan_to_list(&raw_indices),
+                _ => raw_indices,
+            };
+            let material = match prim.material().index() {
+                Some(i) => u32::try_from(i)
+                    .ok()
+                    .filter(|&i| (i as usize) < self.root.materials.len())
+                    .ok_or_else(|| origin.error(format!("material {i} does not exist")))?,
+                None => self.default_material(),
+            };
+            out.push(DecodedPrimitive {
+                index: prim.index(),
+                positions,
+                normals,
+                tangents,
+                uvs,
+                indices,
+                material,
+            });
+        }
+        Ok(out)
+    }
+
+    /// Transform one decoded primitive by `world` and push it through the validation gate.
+    fn emit(&mut self, mesh_name: &str, prim: &DecodedPrimitive, world: DMat4) -> Result<()> {
+        // Most instances sit under identity transforms; keep their data bit for bit.
+        let identity = world == DMat4::IDENTITY;
+        let linear = DMat3::from_mat4(world);
+        let det = linear.determinant();
+        // Normals follow the inverse transpose; a singular matrix gives non-finite
+        // normals, which the gate turns into "absent".
+        let normal_matrix = linear.inverse().transpose();
+        let positions: Cow<'_, [Vec3]> = if identity {
+            Cow::Borrowed(&prim.positions)
+        } else {
+            prim.positions
+                .iter()
+                .map(|p| world.transform_point3(p.as_dvec3()).as_vec3())
+                .collect()
+        };
+        let normals: Option<Cow<'_, [Vec3]>> = prim.normals.as_ref().map(|ns| {
+            if identity {
+                Cow::Borrowed(ns.as_slice())
+            } else {
+                ns.iter()
+                    .map(|n| (normal_matrix * n.as_dvec3()).as_vec3())
+                    .collect()
+            }
+        });
+        // A mirroring transform flips handedness, so the bitangent sign flips with it.
+        let w_sign = if det < 0.0 { -1.0 } else { 1.0 };
+        let tangents: Option<Cow<'_, [Vec4]>> = prim.tangents.as_ref().map(|ts| {
+            if identity {
+                Cow::Borrowed(ts.as_slice())
+            } else {
+                ts.iter()
+                    .map(|t| {
+                        let xyz = (linear * t.truncate().as_dvec3())
+                            .normalize_or_zero()
+                            .as_vec3();
+                        xyz.extend(t.w * w_sign)
+                    })
+                    .collect()
+            }
+        });
+        // Mirroring also turns counter-clockwise triangles clockwise; swap two corners
+        // so front faces stay front faces.
+        let indices: Cow<'_, [u32]> = if det < 0.0 {
+            let mut flipped = prim.indices.clone();
+            for tri in flipped.chunks_exact_mut(3) {
+                tri.swap(1, 2);
+            }
+            Cow::Owned(flipped)
+        } else {
+            Cow::Borrowed(&prim.indices)
+        };
+        let origin = Origin {
+            path: self.path,
+            mesh: mesh_name,
+            primitive: prim.index,
+        };
+        validate::add_primitive(
+            &mut self.scene.mesh,
+            &mut self.scene.stats,
+            origin,
+            Primitive {
+                positions: &positions,
+                normals: normals.as_deref(),
+                tangents: tangents.as_deref(),
+                uvs: prim.uvs.as_deref(),
+                indices: &indices,
+                material: prim.material,
+            },
+        )
+    }
+
+    // ----- accessors -------------------------------------------------------------------
+
+    /// The bytes of buffer view `index` and its stride, bounds-checked against its buffer.
+    fn view_bytes(&self, index: usize) -> std::result::Result<(&[u8], Option<usize>), String> {
+        let view = self
+            .root
+            .buffer_views
+            .get(index)
+            .ok_or_else(|| format!("buffer view {index} does not exist"))?;
+        let b = view.buffer.value();
+        let buffer = self
+            .buffers
+            .get(b)
+            .ok_or_else(|| format!("buffer view {index} refers to missing buffer {b}"))?;
+        let offset = view.byte_offset.map_or(0, |o| o.0);
+        let end = offset.checked_add(view.byte_length.0);
+        let slice = end
+            .and_then(|end| buffer.get(usize::try_from(offset).ok()?..usize::try_from(end).ok()?));
+        let slice = slice.ok_or_else(|| {
+            format!(
+                "buffer view {index} covers bytes {offset}..{} but buffer {b} has only {} bytes",
+                end.map_or_else(|| "overflow".to_string(), |e| e.to_string()),
+                buffer.len()
+            )
+        })?;
+        Ok((slice, view.byte_stride.map(|s| s.0).filter(|&s| s > 0)))
+    }
+
+    /// Decode accessor `index`, which must have `dims` components per element, into a
+    /// flat array. Every offset is checked, so a bad file gives a message, never a panic.
+    fn read_accessor<T: FromComponent>(
+        &self,
+        index: usize,
+        dims: usize,
+    ) -> std::result::Result<Vec<T>, String> {
+        let acc = self
+            .root
+            .accessors
+            .get(index)
+            .ok_or_else(|| format!("accessor {index} does not exist"))?;
+        let Checked::Valid(json::accessor::GenericComponentType(ty)) = acc.component_type else {
+            return Err(format!("accessor {index} has an invalid componentType"));
+        };
+        let Checked::Valid(kind) = acc.type_ else {
+            return Err(format!("accessor {index} has an invalid type"));
+        };
+        if kind.multiplicity() != dims {
+            return Err(format!(
+                "accessor {index} has type {kind:?} but {dims} components per element are required"
+            ));
+        }
+        let count = usize::try_from(acc.count.0)
+            .map_err(|_| format!("accessor {index}: count {} is too large", acc.count.0))?;
+        let comp_size = ty.size();
+        let elem_size = comp_size * dims;
+        let total = count
+            .checked_mul(dims)
+            .ok_or_else(|| format!("accessor {index}: count {count} is too large"))?;
+
+        let mut out: Vec<T> = Vec::new();
+        match acc.buffer_view {
+            Some(view) => {
+                let (bytes, stride) = self
+                    .view_bytes(view.value())
+                    .map_err(|m| format!("accessor {index}: {m}"))?;
+                let stride = stride.unwrap_or(elem_size);
+                if stride < elem_size {
+                    return Err(format!(
+                        "accessor {index}: byteStride {stride} is smaller than the element size \
+                         {elem_size}"
+                    ));
+                }
+                let offset = usize::try_from(acc.byte_offset.map_or(0, |o| o.0))
+                    .map_err(|_| format!("accessor {index}: byteOffset is too large"))?;
+                if count > 0 {
+                    let end = (count - 1)
+                        .checked_mul(stride)
+                        .and_then(|x| x.checked_add(offset))
+                        .and_then(|x| x.checked_add(elem_size));
+                    match end {
+                        Some(end) if end <= bytes.len() => {}
+                        _ => {
+                            return Err(format!(
+                                "accessor {index} ({count} elements of {elem_size} bytes, stride \
+                                 {stride}, offset {offset}) reads past the end of buffer view {} \
+                                 ({} bytes)",
+                                view.value(),
+                                bytes.len()
+                            ));
+                        }
+                    }
+                }
+                out.reserve_exact(total);
+                for e in 0..count {
+                    let at = offset + e * stride;
+                    for c in 0..dims {
+                        let v = bytes
+                            .get(at + c * comp_size..)
+                            .and_then(|b| read_component(b, ty, acc.normalized))
+                            .ok_or_else(|| {
+                                format!("accessor {index}: element {e} is out of range")
+                            })?;
+                        out.push(T::from_component(v));
+                    }
+                }
+            }
+            None => {
+                if total > MAX_ZERO_FILLED_COMPONENTS {
+                    return Err(format!(
+                        "accessor {index} has no buffer view and {count} elements (too many)"
+                    ));
+                }
+                out.resize(total, T::default());
+            }
+        }
+        if let Some(sparse) = &acc.sparse {
+            self.apply_sparse(index, sparse, ty, acc.normalized, dims, count, &mut out)?;
+        }
+        Ok(out)
+    }
+
+    #[allow(clippy::too_many_arguments)] // all describe the one accessor being patched
+    fn apply_sparse<T: FromComponent>(
+        &self,
+        index: usize,
+        sparse: &json::accessor::sparse::Sparse,
+        ty: json::accessor::ComponentType,
+        normalized: bool,
+        dims: usize,
+        count: usize,
+        out: &mut [T],
+    ) -> std::result::Result<(), String> {
+        let n = usize::try_from(sparse.count.0)
+            .map_err(|_| format!("accessor {index}: sparse count is too large"))?;
+        let Checked::Valid(json::accessor::IndexComponentType(ity)) = sparse.indices.component_type
+        else {
+            return Err(format!(
+                "accessor {index}: sparse indices have an invalid componentType"
+            ));
+        };
+        let isize_ = ity.size();
+        let elem_size = ty.size() * dims;
+        let region = |view: usize, offset: u64, elem: usize, what: &str| {
+            let (bytes, _) = self
+                .view_bytes(view)
+                .map_err(|m| format!("accessor {index}: sparse {what}: {m}"))?;
+            let offset = usize::try_from(offset).ok();
+            let end = offset.and_then(|o| n.checked_mul(elem)?.checked_add(o));
+            match (offset, end) {
+                (Some(o), Some(e)) if e <= bytes.len() => Ok(bytes.get(o..e).unwrap_or_default()),
+                _ => Err(format!(
+                    "accessor {index}: sparse {what} ({n} x {elem} bytes) read past the end of \
+                     buffer view {view} ({} bytes)",
+                    bytes.len()
+                )),
+            }
+        };
+        let ibytes = region(
+            sparse.indices.buffer_view.value(),
+            sparse.indices.byte_offset.0,
+            isize_,
+            "indices",
+        )?;
+        let vbytes = region(
+            sparse.values.buffer_view.value(),
+            sparse.values.byte_offset.0,
+            elem_size,
+            "values",
+        )?;
+        for k in 0..n {
+            let target = ibytes
+                .get(k * isize_..)
+                .and_then(|b| read_component(b, ity, false))
+                .ok_or_else(|| format!("accessor {index}: sparse index {k} is out of range"))?;
+            let target = target as usize;
+            if target >= count {
+                return Err(format!(
+                    "accessor {index}: sparse index {k} targets element {target} but the accessor \
+                     has {count}"
+                ));
+            }
+            for c in 0..dims {
+                let v = vbytes
+                    .get(k * elem_size + c * ty.size()..)
+                    .and_then(|b| read_component(b, ty, normalized))
+                    .ok_or_else(|| format!("accessor {index}: sparse value {k} is out of range"))?;
+                if let Some(slot) = out.get_mut(target * dims + c) {
+                    *slot = T::from_component(v);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Read an index accessor (unsigned 8, 16 or 32-bit scalars).
+    fn read_indices(&self, index: usize) -> std::result::Result<Vec<u32>, String> {
+        use json::accessor::ComponentType as C;
+        let acc = self
+            .root
+            .accessors
+            .get(index)
+            .ok_or_else(|| format!("accessor {index} does not exist"))?;
+        match acc.component_type {
+            Checked::Valid(json::accessor::GenericComponentType(C::U8 | C::U16 | C::U32)) => {}
+            _ => {
+                return Err(format!(
+                    "accessor {index} must hold unsigned 8, 16 or 32-bit integers to be used as \
+                     indices"
+                ));
+            }
+        }
+        self.read_accessor::<u32>(index, 1)
+    }
+}
+
+/// A node's local transform in f64. Rotations are renormalised: exporters write
+/// quaternions rounded to a few digits.
+fn local_matrix(node: &gltf::Node<'_>) -> DMat4 {
+    match node.transform() {
+        gltf::scene::Transform::Matrix { matrix } => {
+            DMat4::from_cols_array_2d(&matrix.map(|col| col.map(f64::from)))
+        }
+        gltf::scene::Transform::Decomposed {
+            translation,
+            rotation,
+            scale,
+        } => {
+            let [x, y, z, w] = rotation.map(f64::from);
+            DMat4::from_scale_rotation_translation(
+                DVec3::from(scale.map(f64::from)),
+                DQuat::from_xyzw(x, y, z, w).normalize(),
+                DVec3::from(translation.map(f64::from)),
+            )
+        }
+    }
+}
+
+fn convert_sampler(s: &json::texture::Sampler) -> Sampler {
+    use json::texture::{MagFilter, WrappingMode};
+    let wrap = |w: Checked<WrappingMode>| match w {
+        Checked::Valid(WrappingMode::ClampToEdge) => Wrap::ClampToEdge,
+        Checked::Valid(WrappingMode::MirroredRepeat) => Wrap::MirroredRepeat,
+        _ => Wrap::Repeat,
+    };
+    Sampler {
+        wrap_s: wrap(s.wrap_s),
+        wrap_t: wrap(s.wrap_t),
+        filter: match s.mag_filter {
+            Some(Checked::Valid(MagFilter::Nearest)) => Filter::Nearest,
+            _ => Filter::Linear,
+        },
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn base64_round_trips() {
+        assert_eq!(decode_base64("aGVsbG8=").unwrap(), b"hello");
+        assert_eq!(decode_base64("aGVsbG8").unwrap(), b"hello");
+        assert_eq!(decode_base64("AAECAw==").unwrap(), [0, 1, 2, 3]);
+        assert!(decode_base64("a$b").is_err());
+        assert!(decode_base64("aGVsb").is_err());
+    }
+
+    #[test]
+    fn uri_helpers() {
+        assert_eq!(percent_decode("a%20b").unwrap(), b"a b");
+        assert!(percent_decode("a%2").is_err());
+        assert_eq!(uri_scheme("http://x"), Some("http"));
+        assert_eq!(uri_scheme("dir/file.bin"), None);
+        assert_eq!(uri_scheme("C:/dir/file.bin"), None);
+    }
+
+    #[test]
+    fn bad_glb_header_is_an_error() {
+        assert!(check_glb_header(b"glTF\x02\0\0\0\x05\0\0\0").is_err());
+        assert!(check_glb_header(b"glTF").is_err());
+        assert!(check_glb_header(b"{}").is_ok());
+    }
+}

@@ -1,0 +1,828 @@
+//! Integration tests for the glTF importer: small files written to a temporary folder,
+//! plus every glTF in the shared scenes folder when it is present.
+
+use std::path::{Path, PathBuf};
+
+use dray_core::camera::Projection;
+use dray_core::light::Light;
+use dray_core::material::AlphaMode;
+use dray_core::scene::Scene;
+use dray_core::texture::{Filter, Wrap};
+use dray_scene::SceneError;
+use dray_scene::gltf::load_gltf;
+use glam::{Vec3, Vec4};
+
+/// A fresh folder for one test (tests run in parallel, so each gets its own).
+fn test_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("dray-gltf-test-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// Builds the binary buffer, buffer views and accessors of a test file.
+#[derive(Default)]
+struct Builder {
+    bin: Vec<u8>,
+    views: Vec<String>,
+    accessors: Vec<String>,
+}
+
+impl Builder {
+    fn view(&mut self, bytes: &[u8]) -> usize {
+        while !self.bin.len().is_multiple_of(4) {
+            self.bin.push(0);
+        }
+        let offset = self.bin.len();
+        self.bin.extend_from_slice(bytes);
+        self.views.push(format!(
+            r#"{{"buffer":0,"byteOffset":{offset},"byteLength":{}}}"#,
+            bytes.len()
+        ));
+        self.views.len() - 1
+    }
+
+    /// A float accessor of `ty` ("VEC3", ...); VEC3 ones get min/max (POSITION needs them).
+    fn floats(&mut self, data: &[f32], ty: &str) -> usize {
+        let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let view = self.view(&bytes);
+        let dims = match ty {
+            "SCALAR" => 1,
+            "VEC2" => 2,
+            "VEC3" => 3,
+            _ => 4,
+        };
+        let minmax = if dims == 3 {
+            let mut lo = [f32::INFINITY; 3];
+            let mut hi = [f32::NEG_INFINITY; 3];
+            for v in data.chunks(3) {
+                for c in 0..3 {
+                    if v[c].is_finite() {
+                        lo[c] = lo[c].min(v[c]);
+                        hi[c] = hi[c].max(v[c]);
+                    }
+                }
+            }
+            format!(r#","min":{lo:?},"max":{hi:?}"#)
+        } else {
+            String::new()
+        };
+        self.accessors.push(format!(
+            r#"{{"bufferView":{view},"componentType":5126,"count":{},"type":"{ty}"{minmax}}}"#,
+            data.len() / dims
+        ));
+        self.accessors.len() - 1
+    }
+
+    fn indices(&mut self, data: &[u16]) -> usize {
+        let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let view = self.view(&bytes);
+        self.accessors.push(format!(
+            r#"{{"bufferView":{view},"componentType":5123,"count":{},"type":"SCALAR"}}"#,
+            data.len()
+        ));
+        self.accessors.len() - 1
+    }
+
+    /// The complete JSON with one buffer at `uri` and the given extra top-level members.
+    fn json(&self, uri: Option<&str>, rest: &str) -> String {
+        let uri = uri.map(|u| format!(r#""uri":"{u}","#)).unwrap_or_default();
+        format!(
+            r#"{{"asset":{{"version":"2.0"}},"buffers":[{{{uri}"byteLength":{}}}],"bufferViews":[{}],"accessors":[{}],{rest}}}"#,
+            self.bin.len(),
+            self.views.join(","),
+            self.accessors.join(",")
+        )
+    }
+
+    /// Write `name.gltf` and `name.bin` into `dir` and return the .gltf path.
+    fn write(&self, dir: &Path, name: &str, rest: &str) -> PathBuf {
+        std::fs::write(dir.join(format!("{name}.bin")), &self.bin).unwrap();
+        let path = dir.join(format!("{name}.gltf"));
+        std::fs::write(&path, self.json(Some(&format!("{name}.bin")), rest)).unwrap();
+        path
+    }
+}
+
+const TRI_POS: [f32; 9] = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0];
+
+fn approx(a: Vec3, b: Vec3) -> bool {
+    (a - b).length() < 1e-5
+}
+
+/// One triangle mesh "Tri" with POSITION (0), NORMAL (1), TANGENT (2) and indices (3).
+fn triangle_builder() -> Builder {
+    let mut b = Builder::default();
+    b.floats(&TRI_POS, "VEC3");
+    b.floats(&[0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0], "VEC3");
+    b.floats(&[1.0, 0.0, 0.0, 1.0].repeat(3), "VEC4");
+    b.indices(&[0, 1, 2]);
+    b
+}
+
+const TRI_MESH: &str = r#""meshes":[{"name":"Tri","primitives":[{"attributes":{"POSITION":0,"NORMAL":1,"TANGENT":2},"indices":3}]}]"#;
+
+#[test]
+fn matrix_and_trs_transforms_with_instancing_and_mirroring() {
+    let dir = test_dir("transforms");
+    let s = std::f32::consts::FRAC_1_SQRT_2;
+    let rest = format!(
+        r#"{TRI_MESH},
+        "nodes":[
+          {{"matrix":[2,0,0,0, 0,2,0,0, 0,0,2,0, 10,0,0,1],"children":[1]}},
+          {{"translation":[0,1,0],"rotation":[0,0,{s},{s}],"mesh":0}},
+          {{"scale":[-1,1,1],"mesh":0}}
+        ],
+        "scenes":[{{"nodes":[0,2]}}],"scene":0"#
+    );
+    let path = triangle_builder().write(&dir, "transforms", &rest);
+    let scene = load_gltf(&path).unwrap();
+    assert_eq!(scene.name, "transforms");
+    assert_eq!(scene.mesh.triangle_count(), 2);
+    // Primitives without a material share one appended default material.
+    assert_eq!(scene.materials.len(), 1);
+    assert_eq!(scene.materials[0].name, "default");
+    assert!(scene.mesh.material.iter().all(|&m| m == 0));
+
+    // First instance: parent scale 2 and translation 10, child rotation 90° about Z and
+    // translation +1 Y.
+    let [a, b, c] = scene.mesh.corners(0);
+    assert!(approx(a, Vec3::new(10.0, 2.0, 0.0)), "{a}");
+    assert!(approx(b, Vec3::new(10.0, 4.0, 0.0)), "{b}");
+    assert!(approx(c, Vec3::new(8.0, 2.0, 0.0)), "{c}");
+    let t = scene.mesh.tangents[scene.mesh.indices[0][0] as usize];
+    assert!((t - Vec4::new(0.0, 1.0, 0.0, 1.0)).length() < 1e-5, "{t}");
+
+    // Second instance is mirrored: winding is flipped so the geometric normal still
+    // agrees with the shading normal, and the bitangent sign flips.
+    for tri in 0..2 {
+        let [a, b, c] = scene.mesh.corners(tri);
+        let geometric = (b - a).cross(c - a).normalize();
+        let n = scene.mesh.normals[scene.mesh.indices[tri][0] as usize];
+        assert!(
+            geometric.dot(n) > 0.99,
+            "triangle {tri}: {geometric} vs {n}"
+        );
+    }
+    let t = scene.mesh.tangents[scene.mesh.indices[1][0] as usize];
+    assert!((t - Vec4::new(-1.0, 0.0, 0.0, -1.0)).length() < 1e-5, "{t}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn strips_fans_non_indexed_and_skipped_points() {
+    let dir = test_dir("modes");
+    let mut b = Builder::default();
+    // A unit square as a strip (0), a pentagon fan (1), two non-indexed triangles (2).
+    b.floats(&[0., 0., 0., 1., 0., 0., 0., 1., 0., 1., 1., 0.], "VEC3");
+    b.floats(
+        &[0., 0., 0., 1., 0., 0., 1., 1., 0., 0., 1., 0., -1., 0.5, 0.],
+        "VEC3",
+    );
+    b.floats(
+        &[
+            0., 0., 1., 1., 0., 1., 0., 1., 1., 0., 0., 2., 1., 0., 2., 0., 1., 2.,
+        ],
+        "VEC3",
+    );
+    let rest = r#""meshes":[{"name":"Modes","primitives":[
+        {"attributes":{"POSITION":0},"mode":5},
+        {"attributes":{"POSITION":1},"mode":6},
+        {"attributes":{"POSITION":2}},
+        {"attributes":{"POSITION":2},"mode":0}
+      ]}],
+      "nodes":[{"mesh":0}],"scenes":[{"nodes":[0]}]"#;
+    let path = b.write(&dir, "modes", rest);
+    let scene = load_gltf(&path).unwrap();
+    assert_eq!(scene.mesh.triangle_count(), 2 + 3 + 2);
+    assert_eq!(scene.stats.degenerate_triangles, 0);
+    assert!(
+        scene
+            .stats
+            .warnings
+            .iter()
+            .any(|w| w.contains("primitive 3") && w.contains("Points")),
+        "{:?}",
+        scene.stats.warnings
+    );
+    // Strip winding stays consistent: both square triangles face +Z.
+    for tri in 0..2 {
+        let [a, b, c] = scene.mesh.corners(tri);
+        assert!((b - a).cross(c - a).z > 0.0);
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn missing_bin_names_the_uri() {
+    let dir = test_dir("missing");
+    let b = triangle_builder();
+    let path = dir.join("missing.gltf");
+    let rest = format!(r#"{TRI_MESH},"nodes":[{{"mesh":0}}]"#);
+    std::fs::write(&path, b.json(Some("no_such_file.bin"), &rest)).unwrap();
+    let err = load_gltf(&path).unwrap_err();
+    let msg = err.to_string();
+    println!("{msg}");
+    assert!(msg.contains("no_such_file.bin"), "{msg}");
+    assert!(msg.contains("missing.gltf"), "{msg}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn index_out_of_range_names_mesh_and_primitive() {
+    let dir = test_dir("badindex");
+    let mut b = triangle_builder();
+    b.indices(&[0, 1, 7]);
+    let rest = r#""meshes":[{"name":"BadMesh","primitives":[
+        {"attributes":{"POSITION":0},"indices":3},
+        {"attributes":{"POSITION":0},"indices":4}]}],
+      "nodes":[{"mesh":0}]"#;
+    let path = b.write(&dir, "badindex", rest);
+    let err = load_gltf(&path).unwrap_err();
+    assert!(
+        matches!(err, SceneError::Primitive { primitive: 1, .. }),
+        "{err}"
+    );
+    let msg = err.to_string();
+    println!("{msg}");
+    assert!(
+        msg.contains("BadMesh") && msg.contains("primitive 1"),
+        "{msg}"
+    );
+    assert!(msg.contains("vertex 7"), "{msg}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn nan_position_is_an_error() {
+    let dir = test_dir("nan");
+    let mut b = Builder::default();
+    b.floats(&[0.0, 0.0, 0.0, f32::NAN, 0.0, 0.0, 0.0, 1.0, 0.0], "VEC3");
+    let rest = r#""meshes":[{"primitives":[{"attributes":{"POSITION":0}}]}],"nodes":[{"mesh":0}]"#;
+    let path = b.write(&dir, "nan", rest);
+    let msg = load_gltf(&path).unwrap_err().to_string();
+    println!("{msg}");
+    assert!(
+        msg.contains("non-finite") && msg.contains("mesh #0"),
+        "{msg}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn truncated_buffers_are_errors_not_panics() {
+    let dir = test_dir("truncated");
+    let rest = format!(r#"{TRI_MESH},"nodes":[{{"mesh":0}}]"#);
+
+    // The .bin file is shorter than the buffer's byteLength.
+    let b = triangle_builder();
+    let path = b.write(&dir, "short_file", &rest);
+    std::fs::write(dir.join("short_file.bin"), &b.bin[..20]).unwrap();
+    let msg = load_gltf(&path).unwrap_err().to_string();
+    println!("{msg}");
+    assert!(
+        msg.contains("short_file.bin") && msg.contains("byteLength"),
+        "{msg}"
+    );
+
+    // byteLength (and the file) too short for the buffer views.
+    let mut b = triangle_builder();
+    b.bin.truncate(30);
+    let path = b.write(&dir, "short_length", &rest);
+    let msg = load_gltf(&path).unwrap_err().to_string();
+    println!("{msg}");
+    assert!(msg.contains("Tri") && msg.contains("primitive 0"), "{msg}");
+
+    // An accessor whose count runs past the end of its buffer view.
+    let mut b = triangle_builder();
+    b.accessors[0] = b.accessors[0].replace(r#""count":3"#, r#""count":3000"#);
+    let path = b.write(&dir, "long_accessor", &rest);
+    let msg = load_gltf(&path).unwrap_err().to_string();
+    println!("{msg}");
+    assert!(msg.contains("Tri") && msg.contains("POSITION"), "{msg}");
+
+    // A stride smaller than the element.
+    let mut b = triangle_builder();
+    b.views[0] = b.views[0].replace(r#""buffer":0"#, r#""buffer":0,"byteStride":4"#);
+    let path = b.write(&dir, "bad_stride", &rest);
+    assert!(load_gltf(&path).is_err());
+
+    // A GLB whose header lies about its length.
+    let path = dir.join("bad.glb");
+    std::fs::write(&path, b"glTF\x02\0\0\0\x04\0\0\0").unwrap();
+    assert!(matches!(
+        load_gltf(&path).unwrap_err(),
+        SceneError::Format { .. }
+    ));
+
+    // Not JSON at all.
+    let path = dir.join("garbage.gltf");
+    std::fs::write(&path, b"{ not json").unwrap();
+    assert!(matches!(
+        load_gltf(&path).unwrap_err(),
+        SceneError::Format { .. }
+    ));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn extensions_required_and_used() {
+    let dir = test_dir("extensions");
+    let b = triangle_builder();
+    let rest = format!(
+        r#"{TRI_MESH},"nodes":[{{"mesh":0}}],
+        "extensionsUsed":["KHR_draco_mesh_compression"],
+        "extensionsRequired":["KHR_draco_mesh_compression"]"#
+    );
+    let path = b.write(&dir, "required", &rest);
+    let err = load_gltf(&path).unwrap_err();
+    assert!(
+        matches!(&err, SceneError::UnsupportedExtension { extension, .. } if extension == "KHR_draco_mesh_compression"),
+        "{err}"
+    );
+
+    // Used but not required: loads, with one warning.
+    let rest = format!(
+        r#"{TRI_MESH},"nodes":[{{"mesh":0}}],
+        "extensionsUsed":["KHR_materials_clearcoat"]"#
+    );
+    let path = b.write(&dir, "used", &rest);
+    let scene = load_gltf(&path).unwrap();
+    assert_eq!(
+        scene
+            .stats
+            .warnings
+            .iter()
+            .filter(|w| w.contains("KHR_materials_clearcoat"))
+            .count(),
+        1
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn materials_and_extensions_are_converted() {
+    let dir = test_dir("materials");
+    let b = triangle_builder();
+    let rest = r#""meshes":[{"primitives":[
+        {"attributes":{"POSITION":0},"material":0},
+        {"attributes":{"POSITION":0},"material":1}]}],
+      "nodes":[{"mesh":0}],
+      "extensionsUsed":["KHR_materials_specular","KHR_materials_emissive_strength",
+        "KHR_materials_transmission","KHR_materials_ior"],
+      "extensionsRequired":["KHR_materials_specular"],
+      "materials":[
+        {"name":"Glass","pbrMetallicRoughness":{"baseColorFactor":[0.5,0.6,0.7,0.8],
+           "metallicFactor":0.25,"roughnessFactor":0.75},
+         "emissiveFactor":[1,0.5,0.25],
+         "alphaMode":"MASK","doubleSided":true,
+         "extensions":{
+           "KHR_materials_emissive_strength":{"emissiveStrength":4},
+           "KHR_materials_transmission":{"transmissionFactor":0.9},
+           "KHR_materials_ior":{"ior":1.33},
+           "KHR_materials_specular":{"specularFactor":0.5,"specularColorFactor":[1,0.5,0.25]}}},
+        {"name":"Blend","alphaMode":"BLEND"}
+      ]"#;
+    let path = b.write(&dir, "materials", rest);
+    let scene = load_gltf(&path).unwrap();
+    assert_eq!(scene.materials.len(), 2);
+    let m = &scene.materials[0];
+    assert_eq!(m.name, "Glass");
+    assert_eq!(m.base_color, Vec4::new(0.5, 0.6, 0.7, 0.8));
+    assert_eq!((m.metallic, m.roughness), (0.25, 0.75));
+    assert_eq!(m.emissive, Vec3::new(4.0, 2.0, 1.0));
+    assert_eq!(m.alpha_mode, AlphaMode::Mask { cutoff: 0.5 });
+    assert!(m.double_sided);
+    assert_eq!(m.transmission, 0.9);
+    assert_eq!(m.ior, 1.33);
+    assert_eq!(m.specular, 0.5);
+    assert_eq!(m.specular_color, Vec3::new(1.0, 0.5, 0.25));
+    assert_eq!(scene.materials[1].alpha_mode, AlphaMode::Blend);
+    assert_eq!(scene.mesh.material, vec![0, 1]);
+    assert!(
+        scene.stats.warnings.is_empty(),
+        "{:?}",
+        scene.stats.warnings
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn base64(data: &[u8]) -> String {
+    const T: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut out = String::new();
+    for chunk in data.chunks(3) {
+        let n = chunk.len();
+        let v = (u32::from(chunk[0]) << 16)
+            | (u32::from(*chunk.get(1).unwrap_or(&0)) << 8)
+            | u32::from(*chunk.get(2).unwrap_or(&0));
+        for i in 0..4 {
+            if i <= n {
+                out.push(T[((v >> (18 - 6 * i)) & 63) as usize] as char);
+            } else {
+                out.push('=');
+            }
+        }
+    }
+    out
+}
+
+fn png_2x1() -> Vec<u8> {
+    let img = image::RgbaImage::from_raw(2, 1, vec![255, 0, 0, 255, 0, 0, 255, 128]).unwrap();
+    let mut out = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut out, image::ImageFormat::Png).unwrap();
+    out.into_inner()
+}
+
+/// Wrap JSON and a binary chunk into a GLB container.
+fn glb(json: &str, bin: &[u8]) -> Vec<u8> {
+    let mut json = json.as_bytes().to_vec();
+    while !json.len().is_multiple_of(4) {
+        json.push(b' ');
+    }
+    let mut bin = bin.to_vec();
+    while !bin.len().is_multiple_of(4) {
+        bin.push(0);
+    }
+    let total = 12 + 8 + json.len() + 8 + bin.len();
+    let mut out = Vec::new();
+    out.extend_from_slice(b"glTF");
+    out.extend_from_slice(&2u32.to_le_bytes());
+    out.extend_from_slice(&(total as u32).to_le_bytes());
+    out.extend_from_slice(&(json.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"JSON");
+    out.extend_from_slice(&json);
+    out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"BIN\0");
+    out.extend_from_slice(&bin);
+    out
+}
+
+const TEXTURED_REST: &str = r#""meshes":[{"primitives":[{"attributes":{"POSITION":0},"material":0}]}],
+  "nodes":[{"mesh":0}],
+  "materials":[{"pbrMetallicRoughness":{"baseColorTexture":{"index":0},
+     "metallicRoughnessTexture":{"index":1,"texCoord":1}},
+     "normalTexture":{"index":1,"scale":0.5}}],
+  "samplers":[{"magFilter":9728,"wrapS":33071,"wrapT":33648}],
+  "textures":[{"source":0,"sampler":0},{"source":0}],"#;
+
+#[test]
+fn glb_with_image_in_buffer_view() {
+    let dir = test_dir("glb");
+    let mut b = Builder::default();
+    b.floats(&TRI_POS, "VEC3");
+    let png = png_2x1();
+    let view = b.view(&png);
+    let rest =
+        format!(r#"{TEXTURED_REST}"images":[{{"bufferView":{view},"mimeType":"image/png"}}]"#);
+    let path = dir.join("textured.glb");
+    std::fs::write(&path, glb(&b.json(None, &rest), &b.bin)).unwrap();
+    let scene = load_gltf(&path).unwrap();
+    check_textured(&scene);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn data_uris_for_buffer_and_image() {
+    let dir = test_dir("datauri");
+    let mut b = Builder::default();
+    b.floats(&TRI_POS, "VEC3");
+    let rest = format!(
+        r#"{TEXTURED_REST}"images":[{{"uri":"data:image/png;base64,{}"}}]"#,
+        base64(&png_2x1())
+    );
+    let uri = format!("data:application/octet-stream;base64,{}", base64(&b.bin));
+    let path = dir.join("embedded.gltf");
+    std::fs::write(&path, b.json(Some(&uri), &rest)).unwrap();
+    let scene = load_gltf(&path).unwrap();
+    check_textured(&scene);
+
+    // A broken image is an error naming the image URI.
+    let rest = format!(r#"{TEXTURED_REST}"images":[{{"uri":"broken.png"}}]"#);
+    std::fs::write(dir.join("broken.png"), b"not a png").unwrap();
+    std::fs::write(&path, b.json(Some(&uri), &rest)).unwrap();
+    let msg = load_gltf(&path).unwrap_err().to_string();
+    println!("{msg}");
+    assert!(
+        msg.contains("broken.png") && msg.contains("embedded.gltf"),
+        "{msg}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn check_textured(scene: &Scene) {
+    assert_eq!(scene.textures.len(), 2);
+    let t = &scene.textures[0];
+    assert_eq!((t.width, t.height), (2, 1));
+    assert_eq!(t.texels, vec![[255, 0, 0, 255], [0, 0, 255, 128]]);
+    assert_eq!(t.sampler.filter, Filter::Nearest);
+    assert_eq!(t.sampler.wrap_s, Wrap::ClampToEdge);
+    assert_eq!(t.sampler.wrap_t, Wrap::MirroredRepeat);
+    assert_eq!(scene.textures[1].sampler.filter, Filter::Linear);
+    assert_eq!(scene.textures[1].sampler.wrap_s, Wrap::Repeat);
+    let m = &scene.materials[0];
+    assert_eq!(m.base_color_tex.map(|t| t.texture), Some(0));
+    assert_eq!(
+        m.metallic_roughness_tex.map(|t| (t.texture, t.tex_coord)),
+        Some((1, 1))
+    );
+    assert_eq!(m.normal_tex.map(|t| t.texture), Some(1));
+    assert_eq!(m.normal_scale, 0.5);
+    assert!(
+        scene
+            .stats
+            .warnings
+            .iter()
+            .any(|w| w.contains("TEXCOORD_1")),
+        "{:?}",
+        scene.stats.warnings
+    );
+}
+
+#[test]
+fn spot_light_and_cameras() {
+    let dir = test_dir("lights");
+    let b = triangle_builder();
+    let s = std::f32::consts::FRAC_1_SQRT_2;
+    // Rotating -Z by -90° about X gives -Y: the spot points down.
+    let rest = format!(
+        r#"{TRI_MESH},
+        "extensionsUsed":["KHR_lights_punctual"],
+        "extensions":{{"KHR_lights_punctual":{{"lights":[
+            {{"type":"spot","color":[1,0.5,0.25],"intensity":8,"spot":{{"outerConeAngle":0.6}}}},
+            {{"type":"point","intensity":2}}]}}}},
+        "cameras":[
+            {{"name":"Persp","type":"perspective","perspective":{{"yfov":0.7,"znear":0.05}}}},
+            {{"type":"orthographic","orthographic":{{"xmag":2,"ymag":1,"znear":0.1,"zfar":10}}}}],
+        "nodes":[
+            {{"mesh":0,"children":[1,2,3,4]}},
+            {{"translation":[1,5,2],"rotation":[{ns},0,0,{s}],
+              "extensions":{{"KHR_lights_punctual":{{"light":0}}}}}},
+            {{"translation":[0,1,0],"extensions":{{"KHR_lights_punctual":{{"light":1}}}}}},
+            {{"translation":[0,0,3],"camera":0}},
+            {{"camera":1}}],
+        "scenes":[{{"nodes":[0]}}]"#,
+        ns = -s
+    );
+    let path = b.write(&dir, "lights", &rest);
+    let scene = load_gltf(&path).unwrap();
+    assert_eq!(scene.lights.len(), 2);
+    match &scene.lights[0] {
+        Light::Spot {
+            position,
+            direction,
+            intensity,
+            inner_cone,
+            outer_cone,
+        } => {
+            assert!(approx(*position, Vec3::new(1.0, 5.0, 2.0)), "{position}");
+            assert!(approx(*direction, Vec3::NEG_Y), "{direction}");
+            assert!(approx(*intensity, Vec3::new(8.0, 4.0, 2.0)));
+            assert_eq!(*inner_cone, 0.0);
+            assert_eq!(*outer_cone, 0.6);
+        }
+        other => panic!("expected a spot light, got {other:?}"),
+    }
+    assert_eq!(
+        scene.lights[1],
+        Light::Point {
+            position: Vec3::Y,
+            intensity: Vec3::splat(2.0)
+        }
+    );
+    assert_eq!(scene.cameras.len(), 2);
+    let c = &scene.cameras[0];
+    assert_eq!(c.name, "Persp");
+    assert_eq!(
+        c.projection,
+        Projection::Perspective {
+            yfov: 0.7,
+            aspect: None
+        }
+    );
+    assert_eq!(c.znear, 0.05);
+    assert!(approx(
+        c.transform.w_axis.truncate(),
+        Vec3::new(0.0, 0.0, 3.0)
+    ));
+    let c = &scene.cameras[1];
+    assert_eq!(c.name, "camera #1");
+    assert_eq!(
+        c.projection,
+        Projection::Orthographic {
+            xmag: 2.0,
+            ymag: 1.0
+        }
+    );
+    assert!(c.is_valid());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn scene_without_triangles_is_empty() {
+    let dir = test_dir("empty");
+    let b = triangle_builder();
+    let rest = format!(r#"{TRI_MESH},"nodes":[{{"name":"nothing"}}],"scenes":[{{"nodes":[0]}}]"#);
+    let path = b.write(&dir, "empty", &rest);
+    assert!(matches!(
+        load_gltf(&path).unwrap_err(),
+        SceneError::Empty { .. }
+    ));
+
+    // A node that is its own child must not hang the loader.
+    let rest =
+        format!(r#"{TRI_MESH},"nodes":[{{"mesh":0,"children":[0]}}],"scenes":[{{"nodes":[0]}}]"#);
+    let path = b.write(&dir, "cycle", &rest);
+    let msg = load_gltf(&path).unwrap_err().to_string();
+    println!("{msg}");
+    assert!(msg.contains("cycle"), "{msg}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The shared scenes folder: `DRAY_SCENES`, else `/work/shared/scenes` relative to this
+/// crate.
+fn scenes_dir() -> PathBuf {
+    std::env::var_os("DRAY_SCENES")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/scenes"))
+}
+
+fn within(actual: usize, expected: usize, tolerance: f64) -> bool {
+    (actual as f64 - expected as f64).abs() <= expected as f64 * tolerance
+}
+
+#[test]
+fn shared_scenes_load_with_manifest_counts() {
+    let dir = scenes_dir();
+    if !dir.is_dir() {
+        println!(
+            "shared scenes folder {} not found (set DRAY_SCENES); skipping",
+            dir.display()
+        );
+        return;
+    }
+    let mut files = Vec::new();
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let sub = entry.unwrap().path();
+        if !sub.is_dir() {
+            continue;
+        }
+        for f in std::fs::read_dir(&sub).unwrap() {
+            let f = f.unwrap().path();
+            let ext = f.extension().and_then(|e| e.to_str()).unwrap_or("");
+            if ext.eq_ignore_ascii_case("gltf") || ext.eq_ignore_ascii_case("glb") {
+                files.push(f);
+            }
+        }
+    }
+    files.sort();
+    assert!(!files.is_empty(), "no glTF files under {}", dir.display());
+    for f in &files {
+        let scene = load_gltf(f).unwrap_or_else(|e| panic!("{e}"));
+        let tris = scene.mesh.triangle_count();
+        let folder = f
+            .parent()
+            .and_then(|p| p.file_name())
+            .and_then(|n| n.to_str())
+            .unwrap_or("");
+        println!(
+            "{}: {tris} triangles, {} materials, {} textures, {} lights, {} cameras, {} degenerate, warnings {:?}",
+            f.display(),
+            scene.materials.len(),
+            scene.textures.len(),
+            scene.lights.len(),
+            scene.cameras.len(),
+            scene.stats.degenerate_triangles,
+            scene.stats.warnings
+        );
+        assert!(
+            scene.mesh.positions.iter().all(|p| p.is_finite()),
+            "{}",
+            f.display()
+        );
+        match folder {
+            "box" => {
+                assert_eq!(tris, 12, "{}", f.display());
+                let (lo, hi) = scene.bounds();
+                assert!(approx(lo, Vec3::splat(-0.5)) && approx(hi, Vec3::splat(0.5)));
+            }
+            "water_bottle" => assert!(within(tris, 4510, 0.01), "{tris}"),
+            "clearcoat_test" => assert!(within(tris, 37116, 0.01), "{tris}"),
+            "flight_helmet" => assert!(within(tris, 94722, 0.01), "{tris}"),
+            "palm_tree" => assert!(within(tris, 10124, 0.01), "{tris}"),
+            "volumetric_fog_room" => {
+                assert_eq!(tris, 360);
+                assert_eq!(scene.lights.len(), 1);
+                match scene.lights[0] {
+                    Light::Directional {
+                        direction,
+                        irradiance,
+                    } => {
+                        assert!((direction.length() - 1.0).abs() < 1e-5);
+                        assert!((irradiance.x - 68300.0).abs() < 1.0, "{irradiance}");
+                    }
+                    ref other => panic!("expected a directional light, got {other:?}"),
+                }
+            }
+            "cornell_box" => {
+                assert_eq!(tris, 36);
+                let (lo, hi) = scene.bounds();
+                assert!(
+                    (lo - Vec3::new(-556.0, 0.0, -559.2)).abs().max_element() < 1.0,
+                    "{lo}"
+                );
+                assert!(
+                    hi.abs().max_element() < 549.0 && (hi.y - 548.8).abs() < 1.0,
+                    "{hi}"
+                );
+                assert!(
+                    scene
+                        .materials
+                        .iter()
+                        .any(|m| (m.emissive - Vec3::splat(100.0)).abs().max_element() < 1e-3),
+                    "{:?}",
+                    scene
+                        .materials
+                        .iter()
+                        .map(|m| m.emissive)
+                        .collect::<Vec<_>>()
+                );
+            }
+            "cameras" => {
+                assert_eq!(tris, 2);
+                assert_eq!(scene.cameras.len(), 2);
+                assert!(scene.cameras.iter().any(|c| matches!(
+                    c.projection,
+                    Projection::Perspective { yfov, .. } if (yfov - 0.7).abs() < 1e-6
+                )));
+                assert!(
+                    scene
+                        .cameras
+                        .iter()
+                        .any(|c| matches!(c.projection, Projection::Orthographic { .. }))
+                );
+            }
+            other => println!("no expectations for {other}"),
+        }
+        // Every texture reference resolves.
+        for m in &scene.materials {
+            for t in m.texture_refs() {
+                assert!((t.texture as usize) < scene.textures.len());
+            }
+        }
+    }
+}
+
+/// Corrupt a small GLB byte by byte (deterministically) and check that every outcome is
+/// a clean load or an ordinary error, never a panic caught by the loader's safety net.
+#[test]
+fn corrupted_glb_never_panics() {
+    let dir = test_dir("fuzz");
+    let mut b = triangle_builder();
+    b.floats(&[0.0, 0.0, 1.0, 1.0, 0.5, 0.5], "VEC2");
+    let png = png_2x1();
+    let view = b.view(&png);
+    let rest = format!(
+        r#""meshes":[{{"name":"Tri","primitives":[{{"attributes":{{"POSITION":0,"NORMAL":1,"TANGENT":2,"TEXCOORD_0":4}},"indices":3,"material":0}}]}}],
+        "nodes":[{{"mesh":0,"children":[1]}},{{"mesh":0,"scale":[1,-1,1]}}],
+        "materials":[{{"pbrMetallicRoughness":{{"baseColorTexture":{{"index":0}}}}}}],
+        "textures":[{{"source":0}}],
+        "images":[{{"bufferView":{view},"mimeType":"image/png"}}]"#
+    );
+    let original = glb(&b.json(None, &rest), &b.bin);
+    let path = dir.join("fuzz.glb");
+    let mut state: u64 = 0x9E37_79B9_7F4A_7C15;
+    let mut next = || {
+        state = state
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        (state >> 33) as usize
+    };
+    // DRAY_FUZZ_ITERS raises the count for a longer manual run.
+    let iters: usize = std::env::var("DRAY_FUZZ_ITERS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1500);
+    let mut loaded = 0;
+    for _ in 0..iters {
+        let mut bytes = original.clone();
+        for _ in 0..1 + next() % 4 {
+            let at = next() % bytes.len();
+            bytes[at] = match next() % 4 {
+                0 => 0,
+                1 => 0xFF,
+                2 => bytes[at] ^ (1 << (next() % 8)),
+                _ => b"0123456789-.e,[]{}\""[next() % 19],
+            };
+        }
+        if next() % 8 == 0 {
+            bytes.truncate(next() % bytes.len());
+        }
+        std::fs::write(&path, &bytes).unwrap();
+        match load_gltf(&path) {
+            Ok(_) => loaded += 1,
+            Err(e) => assert!(!e.to_string().contains("internal error"), "{e}"),
+        }
+    }
+    println!("{loaded} of {iters} corrupted files still loaded");
+    let _ = std::fs::remove_dir_all(&dir);
+}
