@@ -6,6 +6,7 @@
 //! lights ([`light`]), cameras ([`camera`]), the integrators' per-ray steps
 //! ([`integrator`]) and the exact, order-free film ([`film`]).
 
+pub mod bsdf;
 pub mod camera;
 pub mod effects;
 pub mod light;
@@ -14,3 +15,11 @@ pub mod scene;
 pub mod texture;
 
 pub use glam::{Mat4, Vec2, Vec3, Vec4};
+pub mod bvh;
+pub mod film;
+pub mod integrator;
+pub mod intersect;
+pub mod light_sampler;
+pub mod render;
+pub mod sampling;
+pub mod surface;

@@ -1,7 +1,14 @@
 //! Scene import for dray: glTF 2.0, PLY and OBJ files and procedural scenes, with
 //! validation and effect analysis.
 
+pub mod effects;
 pub mod error;
+pub mod gltf;
+mod load;
+pub mod obj;
+pub mod ply;
+pub mod procedural;
 pub mod validate;
 
 pub use error::{Result, SceneError};
+pub use load::load;

@@ -1,0 +1,171 @@
+"""Shared plumbing for the comparison benchmarks in benches/.
+
+- `ensure_venv()` re-executes the calling script inside benches/.venv, creating the venv
+  and installing benches/requirements.txt first (nothing is installed by hand).
+- `dray_binary()` finds target/release/dray (or $DRAY_BIN).
+- `machine_info()` describes the machine for the report.
+- `run_timed()` runs a child process and measures its wall and CPU time.
+
+Only the standard library is imported at module level, so this works before the venv exists.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import platform
+import resource
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+BENCH_DIR = Path(__file__).resolve().parent
+ROOT = BENCH_DIR.parent
+VENV = BENCH_DIR / ".venv"
+REQUIREMENTS = BENCH_DIR / "requirements.txt"
+OUT = BENCH_DIR / "out"
+
+
+def log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
+
+
+def _in_venv() -> bool:
+    try:
+        return Path(sys.prefix).resolve() == VENV.resolve()
+    except OSError:
+        return False
+
+
+def ensure_venv() -> None:
+    """Make sure we run inside benches/.venv with requirements.txt installed; re-exec if not."""
+    if _in_venv():
+        return
+    py = VENV / "bin" / "python"
+    if not py.exists():
+        log(f"creating venv {VENV}")
+        subprocess.run([sys.executable, "-m", "venv", str(VENV)], check=True)
+    stamp = VENV / ".requirements.installed"
+    wanted = REQUIREMENTS.read_text()
+    if not stamp.exists() or stamp.read_text() != wanted:
+        log(f"pip install -r {REQUIREMENTS.relative_to(ROOT)} into {VENV.relative_to(ROOT)}")
+        subprocess.run(
+            [str(py), "-m", "pip", "install", "--disable-pip-version-check", "-q", "-r", str(REQUIREMENTS)],
+            check=True,
+        )
+        stamp.write_text(wanted)
+    os.execv(str(py), [str(py), *sys.argv])
+
+
+def dray_binary() -> Path:
+    p = Path(os.environ.get("DRAY_BIN", ROOT / "target" / "release" / "dray"))
+    if not p.exists():
+        sys.exit(f"dray binary {p} not found: build it with `cargo build --release -p dray` (or set DRAY_BIN)")
+    return p
+
+
+def scenes_dir() -> Path:
+    return Path(os.environ.get("DRAY_SCENES", ROOT.parent / "shared" / "scenes")).resolve()
+
+
+def have_taskset() -> bool:
+    return shutil.which("taskset") is not None
+
+
+def pin(cores: str, cmd: list) -> list:
+    """Prefix `cmd` with `taskset -c cores`."""
+    if not have_taskset():
+        sys.exit("taskset not found (util-linux); it is needed to pin both sides to the same cores")
+    return ["taskset", "-c", cores, *map(str, cmd)]
+
+
+def run_timed(cmd: list, env: dict | None = None, check: bool = True) -> dict:
+    """Run `cmd`; return wall time, child CPU time (user+sys), stdout, stderr and return code."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    p = subprocess.run([str(c) for c in cmd], capture_output=True, text=True, env=env)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    res = {"cmd": " ".join(map(str, cmd)), "wall_s": wall, "cpu_s": cpu, "rc": p.returncode,
+           "stdout": p.stdout, "stderr": p.stderr}
+    if check and p.returncode != 0:
+        tail = "\n".join(p.stderr.strip().splitlines()[-15:])
+        raise RuntimeError(f"command failed (exit {p.returncode}): {res['cmd']}\n{tail}")
+    return res
+
+
+def last_json_line(text: str) -> dict:
+    for line in reversed(text.strip().splitlines()):
+        line = line.strip()
+        if line.startswith("{"):
+            return json.loads(line)
+    raise ValueError(f"no JSON line in output:\n{text}")
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def cpu_flags() -> list[str]:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("flags"):
+                flags = set(line.split(":", 1)[1].split())
+                return [f for f in ("sse4_2", "avx", "avx2", "fma", "avx512f") if f in flags]
+    except OSError:
+        pass
+    return []
+
+
+def git_rev() -> str:
+    try:
+        p = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+        rev = p.stdout.strip() or "unknown"
+        d = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain"], capture_output=True, text=True)
+        return rev + ("+dirty" if d.stdout.strip() else "")
+    except OSError:
+        return "unknown"
+
+
+def package_versions(names: list[str]) -> dict:
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for n in names:
+        try:
+            out[n] = version(n)
+        except PackageNotFoundError:
+            out[n] = None
+    return out
+
+
+def machine_info() -> dict:
+    mem_gib = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal"):
+                mem_gib = round(int(line.split()[1]) / 2**20, 1)
+    except OSError:
+        pass
+    return {
+        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "nproc": os.cpu_count(),
+        "affinity": sorted(os.sched_getaffinity(0)),
+        "cpu_model": cpu_model(),
+        "cpu_flags": cpu_flags(),
+        "mem_gib": mem_gib,
+        "kernel": platform.release(),
+        "python": platform.python_version(),
+        "loadavg_at_start": [round(x, 2) for x in os.getloadavg()],
+        "dray_git": git_rev(),
+    }

@@ -1,0 +1,201 @@
+//! `dray bench-rays`: closest-hit throughput on a fixed, reproducible workload, printed as
+//! one JSON line so another ray tracer can be measured on exactly the same rays
+//! (`--dump-rays` and `--dump-mesh` write them as little-endian f32 arrays).
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, ValueEnum};
+use dray_core::bvh::{Accel, QueryRay};
+use dray_core::camera::Camera;
+use dray_core::sampling::{PathKey, Purpose, uniform_sphere};
+use glam::{Vec2, Vec3};
+use rayon::prelude::*;
+use serde::Serialize;
+
+#[derive(Clone, Copy, Debug, ValueEnum, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RayKindArg {
+    /// Pinhole camera rays through pixel centres, framing the mesh.
+    Primary,
+    /// Origins uniform in the bounds, directions uniform on the sphere.
+    Incoherent,
+}
+
+#[derive(Args, Debug)]
+pub struct BenchArgs {
+    /// A mesh file or procedural scene.
+    pub mesh: String,
+    #[arg(long, value_enum, default_value = "primary")]
+    pub kind: RayKindArg,
+    /// Number of incoherent rays.
+    #[arg(long, default_value_t = 1_000_000)]
+    pub rays: usize,
+    /// Image side for primary rays (res x res rays).
+    #[arg(long, default_value_t = 1024)]
+    pub res: u32,
+    /// Threads (0 = all cores).
+    #[arg(long, default_value_t = 1)]
+    pub threads: usize,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Timed passes over the rays; the median is reported.
+    #[arg(long, default_value_t = 5)]
+    pub repeat: usize,
+    /// Write the rays as f32 [ox, oy, oz, dx, dy, dz] records.
+    #[arg(long)]
+    pub dump_rays: Option<PathBuf>,
+    /// Write the triangles as f32 [x0, y0, z0, x1, …, z2] records.
+    #[arg(long)]
+    pub dump_mesh: Option<PathBuf>,
+}
+
+#[derive(Serialize)]
+struct Report<'a> {
+    mesh: &'a str,
+    triangles: usize,
+    build_s: f64,
+    kind: RayKindArg,
+    rays: usize,
+    threads: usize,
+    repeat: usize,
+    median_s: f64,
+    mrays_per_s: f64,
+    hits: u64,
+    /// Sum of hit distances, to compare answers between ray tracers.
+    t_sum: f64,
+}
+
+fn make_rays(a: &BenchArgs, lo: Vec3, hi: Vec3) -> Vec<(Vec3, Vec3)> {
+    match a.kind {
+        RayKindArg::Primary => {
+            let cam = Camera::framing(lo, hi, 1.0);
+            let r = a.res;
+            (0..r * r)
+                .map(|i| {
+                    let film = Vec2::new(
+                        ((i % r) as f32 + 0.5) / r as f32,
+                        ((i / r) as f32 + 0.5) / r as f32,
+                    );
+                    let c = cam.generate(film, 1.0);
+                    (c.origin, c.dir)
+                })
+                .collect()
+        }
+        RayKindArg::Incoherent => (0..a.rays as u32)
+            .map(|i| {
+                let k = PathKey {
+                    seed: a.seed,
+                    pixel: i,
+                    sample: 0,
+                };
+                let u = k.uniform2(0, Purpose::Film, 0);
+                let v = k.uniform2(0, Purpose::Film, 1);
+                let w = k.uniform(0, Purpose::Film, 2);
+                let o = lo + (hi - lo) * Vec3::new(u.x, u.y, w);
+                (o, uniform_sphere(v))
+            })
+            .collect(),
+    }
+}
+
+fn write_f32s(path: &PathBuf, values: impl Iterator<Item = f32>) -> Result<()> {
+    let f =
+        std::fs::File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
+    let mut w = std::io::BufWriter::new(f);
+    for v in values {
+        w.write_all(&v.to_le_bytes())?;
+    }
+    w.flush()
+        .with_context(|| format!("cannot write {}", path.display()))
+}
+
+pub fn run(a: BenchArgs) -> Result<()> {
+    if a.repeat == 0 || a.rays == 0 || a.res == 0 {
+        bail!("--repeat, --rays and --res must be positive");
+    }
+    if a.rays > u32::MAX as usize {
+        bail!("--rays must be below 2^32");
+    }
+    let scene =
+        dray_scene::load(&a.mesh).with_context(|| format!("cannot load mesh {:?}", a.mesh))?;
+    let t0 = Instant::now();
+    let accel = Accel::build(&scene.mesh);
+    let build_s = t0.elapsed().as_secs_f64();
+    let (lo, hi) = scene.bounds();
+    let rays = make_rays(&a, lo, hi);
+    if let Some(p) = &a.dump_rays {
+        write_f32s(
+            p,
+            rays.iter()
+                .flat_map(|(o, d)| [o.x, o.y, o.z, d.x, d.y, d.z]),
+        )?;
+    }
+    if let Some(p) = &a.dump_mesh {
+        let m = &scene.mesh;
+        write_f32s(
+            p,
+            (0..m.indices.len())
+                .flat_map(|t| m.corners(t).into_iter().flat_map(|v| [v.x, v.y, v.z])),
+        )?;
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(a.threads)
+        .build()
+        .context("cannot start the thread pool")?;
+    let threads = pool.current_num_threads();
+    let mut times = Vec::with_capacity(a.repeat);
+    let hits = AtomicU64::new(0);
+    let mut t_sum = 0.0;
+    for _ in 0..a.repeat {
+        hits.store(0, Ordering::Relaxed);
+        let start = Instant::now();
+        let sum: f64 = pool.install(|| {
+            rays.par_chunks(4096)
+                .map(|chunk| {
+                    let mut s = 0.0f64;
+                    let mut h = 0u64;
+                    for (o, d) in chunk {
+                        let q = QueryRay {
+                            origin: *o,
+                            dir: *d,
+                            tmin: 0.0,
+                            tmax: f32::INFINITY,
+                        };
+                        if let Some(hit) = accel.closest(&q, |_, _| true) {
+                            h += 1;
+                            s += hit.t as f64;
+                        }
+                    }
+                    hits.fetch_add(h, Ordering::Relaxed);
+                    s
+                })
+                .sum()
+        });
+        times.push(start.elapsed().as_secs_f64());
+        t_sum = sum;
+    }
+    times.sort_by(f64::total_cmp);
+    let median_s = times[times.len() / 2];
+    let report = Report {
+        mesh: &a.mesh,
+        triangles: scene.mesh.triangle_count(),
+        build_s,
+        kind: a.kind,
+        rays: rays.len(),
+        threads,
+        repeat: a.repeat,
+        median_s,
+        mrays_per_s: rays.len() as f64 / median_s / 1e6,
+        hits: hits.load(Ordering::Relaxed),
+        t_sum,
+    };
+    println!(
+        "{}",
+        serde_json::to_string(&report).context("cannot encode the report")?
+    );
+    Ok(())
+}

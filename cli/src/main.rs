@@ -1,0 +1,54 @@
+//! `dray`: a distributed renderer for scenes larger than one machine's memory.
+//!
+//! This binary hosts the embedded mode (`dray render`, all actors in one process) and the
+//! ray-throughput benchmark (`dray bench-rays`).
+
+mod bench_rays;
+mod options;
+mod render_cmd;
+mod summary;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(
+    name = "dray",
+    version,
+    about = "dray: a distributed ray tracer for scenes larger than one machine"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render a scene in this process (embedded mode).
+    Render(render_cmd::RenderArgs),
+    /// Build the BVH of a mesh and measure closest-hit ray throughput.
+    BenchRays(bench_rays::BenchArgs),
+}
+
+fn main() -> std::process::ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_env("DRAY_LOG")
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Render(a) => render_cmd::run(a),
+        Command::BenchRays(a) => bench_rays::run(a),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            // One line: the error and its causes.
+            let msg: Vec<String> = e.chain().map(|c| c.to_string()).collect();
+            eprintln!("dray: error: {}", msg.join(": "));
+            std::process::ExitCode::FAILURE
+        }
+    }
+}

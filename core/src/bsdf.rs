@@ -1,0 +1,1315 @@
+//! The glTF 2.0 BSDF: Lambert diffuse + GGX (Trowbridge-Reitz) specular, metallic/roughness,
+//! `KHR_materials_specular`, and dielectric transmission (`KHR_materials_transmission` with
+//! `KHR_materials_ior`).
+//!
+//! # Model
+//!
+//! Following the glTF 2.0 specification, Appendix B ("BRDF implementation") and the
+//! `KHR_materials_specular` / `KHR_materials_transmission` extensions:
+//!
+//! ```text
+//! F_d(c)     = f0 + (1 - f0) (1 - c)^5,  f0 = min(((ior-1)/(ior+1))^2 * specular_color, 1)
+//! F_m(c)     = base + (1 - base) (1 - c)^5                         (conductor Fresnel)
+//! reflection = ((1-metallic) specular F_d + metallic F_m) * GGX(alpha = roughness^2)
+//! diffuse    = (1-metallic) (1-transmission) base/pi
+//!              * (1 - specular max(F_d(wo.n))) (1 - specular max(F_d(wi.n)))
+//! transmit   = (1-metallic) transmission base * BTDF * (1 - specular max(F_d))
+//! ```
+//!
+//! `c` is `wo . m` for the microfacet normal `m`. Both dielectric and metal reflection
+//! share one GGX distribution, so they form one reflection lobe with an RGB Fresnel.
+//! `specular = 0` removes the dielectric reflection entirely (F90 = specular in the
+//! extension), so a non-metal with `specular = 0` is pure Lambert and its sampler never
+//! leaves the diffuse lobe.
+//!
+//! **Deviation:** Appendix B's `fresnel_mix` attenuates the diffuse base by
+//! `1 - F(VdotH)` with `h` the half vector of `wo` and `wi`. Under a smooth (delta) coat
+//! that gains energy (albedo ~1.35 at 80 degrees: the mirror reflects `F(wo.n)` while the
+//! base loses only `F(VdotH)`), so dray attenuates the base by the layer's Fresnel
+//! transmittance on the way in and on the way out, which is reciprocal and keeps the albedo
+//! below 1 for every roughness. Transmission keeps the per-microfacet `1 - F(wo.m)`, which
+//! pairs exactly with the reflection on the same microfacet.
+//!
+//! GGX uses the Smith *height-correlated* masking-shadowing `G2 = 1 / (1 + Λ(wo) + Λ(wi))`
+//! and is sampled with the distribution of visible normals (Heitz 2018, "Sampling the GGX
+//! Distribution of Visible Normals", JCGT 7(4)); with it the reflection throughput is
+//! `F G2 / G1(wo)` and never exceeds the Fresnel term.
+//!
+//! # Transmission
+//!
+//! Transmission is a *solid* dielectric interface (refraction with Snell's law, total internal
+//! reflection), not the thin-walled default of `KHR_materials_transmission` without
+//! `KHR_materials_volume`: dray renders glass objects as closed volumes. Which side is the
+//! inside is taken from the geometric normal **as passed to [`Bsdf::new`]**: `ng` points to
+//! the outside (ior 1), so callers pass the winding normal, not one flipped toward the ray
+//! (with [`crate::surface::Surface`]: `if surf.front { surf.ng } else { -surf.ng }`). Rough transmission (alpha >= [`DELTA_ALPHA`]) is GGX microfacet
+//! refraction (Walter, Marschner, Li, Torrance 2007, "Microfacet Models for Refraction
+//! through Rough Surfaces"), sampled through visible normals. Reflection and refraction on
+//! a sampled microfacet are chosen by their Fresnel weights, as in pbrt-v4's dielectric.
+//!
+//! The Fresnel term of the dielectric stays glTF's Schlick form; when the ray is inside the
+//! denser medium Schlick is evaluated with the cosine on the outside of the interface and
+//! returns 1 past the critical angle, so total internal reflection is exact and the
+//! reflectance is the same from both sides. (With `specular < 1` the part of a totally
+//! reflected ray that the weakened coat does not reflect is absorbed, never transmitted.)
+//!
+//! The BTDF omits the `1/eta^2` radiance compression: it cancels on every closed object
+//! whose camera and lights are outside, and without it the throughput of every sample is
+//! bounded by 1 (`T G2 / G1` for rough, `T` for smooth refraction). The base colour tints
+//! each crossing of the interface (entering and leaving), which keeps the BSDF stateless.
+//!
+//! # Delta lobes
+//!
+//! Below `alpha = roughness^2 <` [`DELTA_ALPHA`] reflection and transmission are perfect
+//! mirror / perfect refraction. Transmission is also delta when `ior` is within
+//! [`IOR_PASS_THROUGH_EPS`] of 1: microfacets do not bend light at an index-matched
+//! interface, so the refracted lobe collapses onto `-wo` whatever the roughness.
+//! [`Bsdf::eval`] and [`Bsdf::pdf`] cover the non-delta lobes only; a delta sample returns
+//! `pdf` = the discrete probability of choosing it and `f = weight / |wi . n|` (with `n` the
+//! shading normal passed to [`Bsdf::new`]), so `f |wi . n| / pdf` is the throughput.
+//!
+//! # Robustness
+//!
+//! Reflection lobes are zero when `wi` is below the geometric surface on `wo`'s side, and
+//! transmission lobes are zero unless `wi` is on the other side of the geometric surface:
+//! darkening is preferred over light leaks. When `wo` is below the shading hemisphere (but
+//! above the geometric one) the geometric normal is used as the shading normal. Every
+//! division is guarded; `eval`/`pdf` return 0 and `sample` returns `None` rather than any
+//! NaN or infinity. All functions are pure.
+
+// `!(x > 0.0)` is used on purpose throughout: it also rejects NaN.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
+use glam::{Vec2, Vec3};
+use std::f32::consts::{FRAC_1_PI, PI, TAU};
+
+use crate::material::Material;
+
+/// GGX alpha (`roughness^2`) below which the specular lobes are delta (perfect mirror /
+/// perfect refraction). Corresponds to roughness ~0.032.
+pub const DELTA_ALPHA: f32 = 1e-3;
+/// Smallest GGX alpha used by non-delta evaluation.
+pub const MIN_ALPHA: f32 = 1e-4;
+/// Roughness below which [`Bsdf::mirror`] treats the reflection lobe as a mirror (Whitted).
+pub const WHITTED_MAX_ROUGHNESS: f32 = 0.2;
+/// Transmission is delta (straight through) when `|ior - 1|` is below this.
+pub const IOR_PASS_THROUGH_EPS: f32 = 1e-3;
+/// Largest refraction index used for ray bending (`KHR_materials_ior` allows `inf`).
+pub const MAX_IOR: f32 = 10.0;
+
+/// Cosines below this are treated as zero (grazing/tangent directions carry no energy).
+const COS_EPS: f32 = 1e-6;
+/// Selection-probability floor for a lobe that exists, as a fraction of its maximal weight:
+/// lobe weights are estimated at `wo`, and a floor keeps every lobe with a non-zero `eval`
+/// samplable (so the one-sample estimator stays unbiased).
+const SELECT_FLOOR: f32 = 0.05;
+/// The largest `f32` below 1.
+const ONE_MINUS_EPS: f32 = 1.0 - f32::EPSILON / 2.0;
+
+/// Shading inputs of the BSDF at one point (factors already multiplied by textures).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BsdfParams {
+    /// Linear base colour (albedo for dielectrics, F0 for metals, transmission tint).
+    pub base_color: Vec3,
+    pub metallic: f32,
+    /// Perceptual roughness; GGX alpha is its square.
+    pub roughness: f32,
+    /// `KHR_materials_specular` factor: scales the dielectric specular lobe (F90).
+    pub specular: f32,
+    /// `KHR_materials_specular` colour: tints the dielectric F0.
+    pub specular_color: Vec3,
+    /// `KHR_materials_transmission` factor.
+    pub transmission: f32,
+    /// `KHR_materials_ior`.
+    pub ior: f32,
+}
+
+impl Default for BsdfParams {
+    /// glTF defaults: white, fully metallic, fully rough, specular 1, ior 1.5.
+    fn default() -> Self {
+        BsdfParams {
+            base_color: Vec3::ONE,
+            metallic: 1.0,
+            roughness: 1.0,
+            specular: 1.0,
+            specular_color: Vec3::ONE,
+            transmission: 0.0,
+            ior: 1.5,
+        }
+    }
+}
+
+impl BsdfParams {
+    /// The material's factors, ignoring textures (callers with UVs multiply textures in).
+    pub fn from_material(m: &Material) -> BsdfParams {
+        BsdfParams {
+            base_color: m.base_color.truncate(),
+            metallic: m.metallic,
+            roughness: m.roughness,
+            specular: m.specular,
+            specular_color: m.specular_color,
+            transmission: m.transmission,
+            ior: m.ior,
+        }
+    }
+}
+
+/// Which lobe produced a sample.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Lobe {
+    Diffuse,
+    GlossyReflection,
+    SpecularReflection,
+    SpecularTransmission,
+    GlossyTransmission,
+}
+
+/// One sampled direction.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BsdfSample {
+    /// Sampled direction (unit, world space), toward the light / next vertex.
+    pub wi: Vec3,
+    /// For non-delta lobes the full BSDF value `eval(wo, wi)` (no cosine). For delta lobes
+    /// the weight such that `f * |wi . n| / pdf` is the throughput factor (`n` the shading
+    /// normal given to [`Bsdf::new`]).
+    pub f: Vec3,
+    /// For non-delta lobes the solid-angle density `pdf(wo, wi)` of [`Bsdf::sample`]
+    /// (all non-delta lobes combined); for delta lobes the discrete probability of the lobe.
+    pub pdf: f32,
+    pub lobe: Lobe,
+    pub delta: bool,
+}
+
+/// The BSDF at one shading point. Cheap to build; holds no references.
+#[derive(Clone, Copy, Debug)]
+pub struct Bsdf {
+    /// Shading normal as passed (unit): the cosine of delta samples refers to it.
+    n_in: Vec3,
+    /// Shading normal flipped to `ng`'s side.
+    n: Vec3,
+    /// Geometric normal as passed: its side is the outside of a transmissive object.
+    ng: Vec3,
+    valid: bool,
+    base: Vec3,
+    metallic: f32,
+    roughness: f32,
+    specular: f32,
+    /// GGX alpha, clamped to >= [`MIN_ALPHA`].
+    alpha: f32,
+    /// Dielectric F0: `min(((ior-1)/(ior+1))^2 * specular_color, 1)`.
+    f0: Vec3,
+    /// Refraction index used for bending (>= 1).
+    eta: f32,
+    /// `base (1-metallic) (1-transmission)`.
+    diffuse_tint: Vec3,
+    /// `base (1-metallic) transmission`.
+    trans_tint: Vec3,
+    /// Maximal reflectance (at grazing): `(1-metallic) specular + metallic`.
+    refl_max: f32,
+    has_refl: bool,
+    transmissive: bool,
+    refl_delta: bool,
+    trans_delta: bool,
+}
+
+/// Local shading frame for one `wo`: `n` is the shading normal on `wo`'s side.
+#[derive(Clone, Copy, Debug)]
+struct Frame {
+    t: Vec3,
+    b: Vec3,
+    n: Vec3,
+    /// Geometric normal on `wo`'s side.
+    ng: Vec3,
+    /// `eta(wi side) / eta(wo side)` for refraction.
+    etap: f32,
+}
+
+impl Frame {
+    fn local(&self, v: Vec3) -> Vec3 {
+        Vec3::new(v.dot(self.t), v.dot(self.b), v.dot(self.n))
+    }
+
+    fn world(&self, v: Vec3) -> Vec3 {
+        self.t * v.x + self.b * v.y + self.n * v.z
+    }
+}
+
+/// Lobe weights for one microfacet cosine `c = wo . m`.
+#[derive(Clone, Copy, Debug)]
+struct Weights {
+    /// Reflection Fresnel (dielectric + metal), RGB.
+    refl: Vec3,
+    /// `1 - specular max(F_d)`: what the dielectric layer leaves to the base.
+    base_scale: f32,
+    /// Transmission weight (0 on total internal reflection), RGB.
+    trans: Vec3,
+}
+
+/// Lobe selection probabilities for one `wo`.
+#[derive(Clone, Copy, Debug)]
+struct Selection {
+    p_diffuse: f32,
+    /// Probability of the specular group (reflection + transmission).
+    p_spec: f32,
+    /// Reflection-vs-transmission split at the macro normal, used when transmission is delta.
+    pr_macro: f32,
+}
+
+impl Bsdf {
+    /// `n`: shading normal (unit), `ng`: geometric normal (unit), both may face either side;
+    /// the BSDF orients itself to `wo`. For transmission the side `ng` points to is the
+    /// outside (ior 1): pass the triangle's unflipped (winding) geometric normal, e.g.
+    /// `if surf.front { surf.ng } else { -surf.ng }`; a normal flipped toward the ray makes
+    /// every hit look like an entry (no exit refraction, no total internal reflection).
+    ///
+    /// Parameters are sanitised: factors clamped to [0, 1] (NaN becomes 0), `specular_color`
+    /// clamped to be non-negative, a NaN `ior` becomes 1.5; `ior` 0 or inf give F0 = 1 (the
+    /// spec-gloss conversion of `KHR_materials_specular`) and bend rays with ior 1 resp.
+    /// [`MAX_IOR`].
+    pub fn new(params: &BsdfParams, n: Vec3, ng: Vec3) -> Bsdf {
+        let (n_u, ng_u) = (unit(n), unit(ng));
+        let (valid, n_in, ng) = match (n_u, ng_u) {
+            (Some(n), Some(ng)) => (true, n, ng),
+            (Some(n), None) => (true, n, n),
+            (None, Some(ng)) => (true, ng, ng),
+            (None, None) => (false, Vec3::Z, Vec3::Z),
+        };
+        let n = if n_in.dot(ng) < 0.0 { -n_in } else { n_in };
+
+        let base = sat3(params.base_color);
+        let metallic = sat(params.metallic);
+        let roughness = sat(params.roughness);
+        let specular = sat(params.specular);
+        let specular_color = params
+            .specular_color
+            .to_array()
+            .map(|c| if c.is_nan() { 0.0 } else { c.clamp(0.0, 1e6) });
+        let transmission = sat(params.transmission);
+        let ior = params.ior;
+        let f0_ior = if ior.is_nan() {
+            0.04
+        } else if ior.is_infinite() {
+            1.0
+        } else {
+            let i = ior.max(0.0);
+            let r = (i - 1.0) / (i + 1.0);
+            r * r
+        };
+        let f0 = (Vec3::from_array(specular_color) * f0_ior).min(Vec3::ONE);
+        let eta = if ior.is_nan() {
+            1.5
+        } else {
+            ior.clamp(1.0, MAX_IOR)
+        };
+
+        let a = roughness * roughness;
+        let dielectric = (1.0 - metallic) * specular;
+        let diffuse_tint = base * ((1.0 - metallic) * (1.0 - transmission));
+        let trans_tint = base * ((1.0 - metallic) * transmission);
+        let refl_delta = a < DELTA_ALPHA;
+        Bsdf {
+            n_in,
+            n,
+            ng,
+            valid,
+            base,
+            metallic,
+            roughness,
+            specular,
+            alpha: a.max(MIN_ALPHA),
+            f0,
+            eta,
+            diffuse_tint,
+            trans_tint,
+            refl_max: dielectric + metallic,
+            has_refl: dielectric > 0.0 || metallic > 0.0,
+            transmissive: trans_tint.max_element() > 0.0,
+            refl_delta,
+            trans_delta: refl_delta || eta - 1.0 < IOR_PASS_THROUGH_EPS,
+        }
+    }
+
+    /// `f(wo, wi)` of the non-delta lobes, without the cosine.
+    pub fn eval(&self, wo: Vec3, wi: Vec3) -> Vec3 {
+        self.eval_pdf(wo, wi).0
+    }
+
+    /// Solid-angle density with which [`Bsdf::sample`] produces `wi` through its non-delta
+    /// lobes: `sum over lobes of p_lobe * pdf_lobe`.
+    pub fn pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
+        self.eval_pdf(wo, wi).1
+    }
+
+    /// Samples a direction: `u_lobe` picks the lobe, `u` the direction within it.
+    /// Returns `None` for an absorbed/invalid sample (below the surface, total internal
+    /// reflection of a sampled refraction, zero pdf or zero value).
+    pub fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
+        let (fr, wo_l) = self.frame(wo)?;
+        let sel = self.selection(wo_l.z, fr.etap);
+        let ul = sanitize_u(u_lobe);
+        let u = Vec2::new(sanitize_u(u.x), sanitize_u(u.y));
+        if !(sel.p_diffuse + sel.p_spec > 0.0) {
+            return None;
+        }
+        if ul < sel.p_diffuse || sel.p_spec <= 0.0 {
+            let wi_l = cosine_hemisphere(u);
+            return self.finish(&fr, wo, fr.world(wi_l), Lobe::Diffuse);
+        }
+        // Reuse the lobe number for the reflection/transmission split.
+        let u2 = ((ul - sel.p_diffuse) / sel.p_spec).clamp(0.0, ONE_MINUS_EPS);
+
+        if self.refl_delta || (self.trans_delta && u2 >= sel.pr_macro) {
+            let w = self.weights(wo_l.z, fr.etap);
+            if self.refl_delta && u2 < sel.pr_macro {
+                let wi = fr.world(Vec3::new(-wo_l.x, -wo_l.y, wo_l.z));
+                if wi.dot(fr.ng) <= 0.0 {
+                    return None;
+                }
+                return self.delta_sample(
+                    wi,
+                    w.refl,
+                    sel.p_spec * sel.pr_macro,
+                    Lobe::SpecularReflection,
+                );
+            }
+            let wi_l = refract(wo_l, Vec3::Z, fr.etap)?;
+            let wi = fr.world(wi_l);
+            if wi.dot(fr.ng) >= 0.0 {
+                return None;
+            }
+            return self.delta_sample(
+                wi,
+                w.trans,
+                sel.p_spec * (1.0 - sel.pr_macro),
+                Lobe::SpecularTransmission,
+            );
+        }
+
+        let m = sample_vndf(wo_l, self.alpha, u)?;
+        let c = wo_l.dot(m);
+        if !(c > 0.0) {
+            return None;
+        }
+        let reflect = if self.trans_delta {
+            true // u2 < pr_macro here
+        } else {
+            u2 < self.pr(&self.weights(c, fr.etap))
+        };
+        if reflect {
+            let wi_l = m * (2.0 * c) - wo_l;
+            self.finish(&fr, wo, fr.world(wi_l), Lobe::GlossyReflection)
+        } else {
+            let wi_l = refract(wo_l, m, fr.etap)?;
+            self.finish(&fr, wo, fr.world(wi_l), Lobe::GlossyTransmission)
+        }
+    }
+
+    /// True when the material has a (non-zero) Lambert lobe.
+    pub fn has_diffuse(&self) -> bool {
+        self.valid && self.diffuse_tint.max_element() > 0.0
+    }
+
+    /// True when the material has a reflection lobe (metal or dielectric specular).
+    /// Unlike [`Material::has_specular`] a black `specular_color` still counts: glTF keeps
+    /// F90 = `specular`, so grazing reflection remains.
+    pub fn has_specular_lobe(&self) -> bool {
+        self.valid && self.has_refl
+    }
+
+    /// True when the material transmits (non-zero transmission tint).
+    pub fn has_transmission(&self) -> bool {
+        self.valid && self.transmissive
+    }
+
+    /// Every lobe is delta (perfect mirror/glass): light sampling cannot contribute.
+    /// False for a material with no lobe at all (black Lambert).
+    pub fn is_delta_only(&self) -> bool {
+        let any = self.has_refl || self.transmissive;
+        self.valid
+            && any
+            && !self.has_diffuse()
+            && (!self.has_refl || self.refl_delta)
+            && (!self.transmissive || self.trans_delta)
+    }
+
+    /// `base_color (1-metallic) (1-transmission)`, for ambient/AO-style shading.
+    pub fn diffuse_albedo(&self) -> Vec3 {
+        self.diffuse_tint
+    }
+
+    /// For Whitted: the perfect mirror direction and its weight (the Fresnel-weighted
+    /// specular reflectance at `wo`, no cosine), if the reflection lobe is smooth enough
+    /// (roughness < [`WHITTED_MAX_ROUGHNESS`]; rougher lobes are left to the diffuse/ambient
+    /// term) and the mirror direction is above the geometric surface.
+    pub fn mirror(&self, wo: Vec3) -> Option<(Vec3, Vec3)> {
+        if !self.has_refl || self.roughness >= WHITTED_MAX_ROUGHNESS {
+            return None;
+        }
+        let (fr, wo_l) = self.frame(wo)?;
+        let wi = unit(fr.world(Vec3::new(-wo_l.x, -wo_l.y, wo_l.z)))?;
+        if wi.dot(fr.ng) <= 0.0 {
+            return None;
+        }
+        let w = self.weights(wo_l.z, fr.etap);
+        (w.refl.max_element() > 0.0 && w.refl.is_finite()).then_some((wi, w.refl))
+    }
+
+    /// For Whitted: the refracted direction through the macro surface and its weight (the
+    /// transmission weight `(1 - specular max F) base (1-metallic) transmission`, no
+    /// cosine). Returned for any roughness (rough glass is traced as smooth glass rather
+    /// than rendered black); `None` when opaque or on total internal reflection.
+    pub fn refraction(&self, wo: Vec3) -> Option<(Vec3, Vec3)> {
+        if !self.transmissive {
+            return None;
+        }
+        let (fr, wo_l) = self.frame(wo)?;
+        let wi = unit(fr.world(refract(wo_l, Vec3::Z, fr.etap)?))?;
+        if wi.dot(fr.ng) >= 0.0 {
+            return None;
+        }
+        let w = self.weights(wo_l.z, fr.etap);
+        (w.trans.max_element() > 0.0 && w.trans.is_finite()).then_some((wi, w.trans))
+    }
+
+    /// The local frame for `wo`, or `None` when `wo` is degenerate or tangent to the surface.
+    fn frame(&self, wo: Vec3) -> Option<(Frame, Vec3)> {
+        if !self.valid {
+            return None;
+        }
+        let wo = unit(wo)?;
+        let cg = wo.dot(self.ng);
+        if !(cg.abs() >= COS_EPS) {
+            return None;
+        }
+        let outside = cg > 0.0;
+        let (ng, mut n) = if outside {
+            (self.ng, self.n)
+        } else {
+            (-self.ng, -self.n)
+        };
+        if wo.dot(n) < COS_EPS {
+            // wo below the shading hemisphere: fall back to the geometric normal.
+            n = ng;
+        }
+        let (t, b) = n.any_orthonormal_pair();
+        let etap = if outside { self.eta } else { 1.0 / self.eta };
+        let fr = Frame { t, b, n, ng, etap };
+        let wo_l = fr.local(wo);
+        if !(wo_l.z >= COS_EPS) {
+            return None;
+        }
+        Some((fr, wo_l))
+    }
+
+    /// Cosine on the outer (less dense) side for a wo-side cosine `c`; `None` on total
+    /// internal reflection. Opaque materials have no inside: always `c`.
+    fn outer_cos(&self, c: f32, etap: f32) -> Option<f32> {
+        if !self.transmissive || etap >= 1.0 {
+            return Some(c);
+        }
+        let sin2_t = (1.0 - c * c).max(0.0) / (etap * etap);
+        if sin2_t >= 1.0 {
+            None
+        } else {
+            Some((1.0 - sin2_t).sqrt())
+        }
+    }
+
+    fn weights(&self, c: f32, etap: f32) -> Weights {
+        let c = c.clamp(0.0, 1.0);
+        let outer = self.outer_cos(c, etap);
+        let fd = match outer {
+            Some(co) => self.f0 + (Vec3::ONE - self.f0) * schlick_w(co),
+            None => Vec3::ONE,
+        };
+        let fm = self.base + (Vec3::ONE - self.base) * schlick_w(c);
+        let refl = fd * ((1.0 - self.metallic) * self.specular) + fm * self.metallic;
+        let base_scale = (1.0 - self.specular * fd.max_element()).max(0.0);
+        let trans = if outer.is_some() {
+            self.trans_tint * base_scale
+        } else {
+            Vec3::ZERO
+        };
+        Weights {
+            refl,
+            base_scale,
+            trans,
+        }
+    }
+
+    /// `1 - specular max(F_d(c))`: what the dielectric layer lets through to the base at
+    /// cosine `c` (0 on total internal reflection when `specular` is 1).
+    fn base_scale(&self, c: f32, etap: f32) -> f32 {
+        self.weights(c, etap).base_scale
+    }
+
+    /// Probability of reflecting (vs refracting) on a microfacet with weights `w`.
+    fn pr(&self, w: &Weights) -> f32 {
+        let r = if self.has_refl { lum(w.refl) } else { 0.0 };
+        let t = lum(w.trans);
+        if t <= 0.0 {
+            1.0
+        } else if r <= 0.0 {
+            0.0
+        } else {
+            r / (r + t)
+        }
+    }
+
+    /// Lobe selection from the lobe weights at the macro normal (luminance), with floors.
+    fn selection(&self, cos_o: f32, etap: f32) -> Selection {
+        let w = self.weights(cos_o, etap);
+        let wd = lum(self.diffuse_tint) * w.base_scale.max(SELECT_FLOOR);
+        let r = if self.has_refl {
+            lum(w.refl).max(SELECT_FLOOR * self.refl_max)
+        } else {
+            0.0
+        };
+        let t0 = lum(w.trans);
+        let t = if self.transmissive && !self.trans_delta {
+            // Rough refraction may succeed on microfacets even past the macro critical angle.
+            t0.max(SELECT_FLOOR * lum(self.trans_tint))
+        } else {
+            t0
+        };
+        let total = wd + r + t;
+        if !(total > 0.0) || !total.is_finite() {
+            return Selection {
+                p_diffuse: 0.0,
+                p_spec: 0.0,
+                pr_macro: 1.0,
+            };
+        }
+        let p_diffuse = wd / total;
+        Selection {
+            p_diffuse,
+            p_spec: 1.0 - p_diffuse,
+            pr_macro: if r + t0 > 0.0 { r / (r + t0) } else { 1.0 },
+        }
+    }
+
+    /// BSDF value and pdf of the non-delta lobes.
+    fn eval_pdf(&self, wo: Vec3, wi: Vec3) -> (Vec3, f32) {
+        let zero = (Vec3::ZERO, 0.0);
+        let Some((fr, wo_l)) = self.frame(wo) else {
+            return zero;
+        };
+        let Some(wi) = unit(wi) else {
+            return zero;
+        };
+        let wi_l = fr.local(wi);
+        let gi = wi.dot(fr.ng);
+        let sel = self.selection(wo_l.z, fr.etap);
+        let a2 = self.alpha * self.alpha;
+        let (cos_o, cos_i) = (wo_l.z, wi_l.z);
+        let mut f = Vec3::ZERO;
+        let mut pdf = 0.0;
+
+        if cos_i >= COS_EPS && gi > 0.0 {
+            let Some(h) = unit(wo_l + wi_l) else {
+                return zero;
+            };
+            let c = wo_l.dot(h);
+            let w = self.weights(c, fr.etap);
+            // The base is attenuated by the dielectric layer's Fresnel on the way in and out
+            // (not at VdotH as in glTF Appendix B, which gains energy under a smooth layer).
+            let base_scale = self.base_scale(cos_o, fr.etap) * self.base_scale(cos_i, fr.etap);
+            f += self.diffuse_tint * (base_scale * FRAC_1_PI);
+            pdf += sel.p_diffuse * cos_i * FRAC_1_PI;
+            if self.has_refl && !self.refl_delta {
+                let d = ggx_d(h, a2);
+                let lo = ggx_lambda(wo_l, a2);
+                let li = ggx_lambda(wi_l, a2);
+                let g2 = 1.0 / (1.0 + lo + li);
+                let g1 = 1.0 / (1.0 + lo);
+                f += w.refl * (d * g2 / (4.0 * cos_o * cos_i));
+                let pr = if self.trans_delta {
+                    sel.pr_macro
+                } else {
+                    self.pr(&w)
+                };
+                // VNDF pdf G1 D (wo.h) / cos_o times the reflection Jacobian 1 / (4 wo.h).
+                pdf += sel.p_spec * pr * g1 * d / (4.0 * cos_o);
+            }
+        } else if cos_i <= -COS_EPS && gi < 0.0 && self.transmissive && !self.trans_delta {
+            // Walter et al. 2007: generalized half vector, facing wo's side.
+            let etap = fr.etap;
+            let Some(mut m) = unit(wi_l * etap + wo_l) else {
+                return zero;
+            };
+            if m.z < 0.0 {
+                m = -m;
+            }
+            let c_o = wo_l.dot(m);
+            let c_i = wi_l.dot(m);
+            if !(c_o > 0.0 && c_i < 0.0) {
+                return zero;
+            }
+            let w = self.weights(c_o, etap);
+            let denom = c_i + c_o / etap;
+            let den2 = denom * denom;
+            if !(den2 > 1e-12) || w.trans.max_element() <= 0.0 {
+                return zero;
+            }
+            let d = ggx_d(m, a2);
+            let lo = ggx_lambda(wo_l, a2);
+            let li = ggx_lambda(wi_l, a2);
+            let g2 = 1.0 / (1.0 + lo + li);
+            let g1 = 1.0 / (1.0 + lo);
+            f += w.trans * (d * g2 * (-c_i) * c_o / (-cos_i * cos_o * den2));
+            let vndf = g1 * c_o * d / cos_o;
+            pdf += sel.p_spec * (1.0 - self.pr(&w)) * vndf * (-c_i) / den2;
+        }
+
+        if f.is_finite() && pdf.is_finite() && pdf >= 0.0 {
+            (f.max(Vec3::ZERO), pdf)
+        } else {
+            zero
+        }
+    }
+
+    /// A non-delta sample: value and pdf are those of `eval`/`pdf`, so MIS is consistent.
+    /// A direction that lands on the wrong side for its lobe (a microfacet reflection below
+    /// the surface, a rough refraction back above it) is rejected: `pdf` would not count the
+    /// technique that produced it, and accepting it would bias the estimate upward.
+    fn finish(&self, fr: &Frame, wo: Vec3, wi: Vec3, lobe: Lobe) -> Option<BsdfSample> {
+        let wi = unit(wi)?;
+        let (cs, cg) = (wi.dot(fr.n), wi.dot(fr.ng));
+        let right_side = match lobe {
+            Lobe::GlossyTransmission | Lobe::SpecularTransmission => cs < 0.0 && cg < 0.0,
+            _ => cs > 0.0 && cg > 0.0,
+        };
+        if !right_side {
+            return None;
+        }
+        let (f, pdf) = self.eval_pdf(wo, wi);
+        if !(pdf > 0.0) || !pdf.is_finite() || !f.is_finite() || f.max_element() <= 0.0 {
+            return None;
+        }
+        Some(BsdfSample {
+            wi,
+            f,
+            pdf,
+            lobe,
+            delta: false,
+        })
+    }
+
+    /// A delta sample with throughput `weight / prob`.
+    fn delta_sample(&self, wi: Vec3, weight: Vec3, prob: f32, lobe: Lobe) -> Option<BsdfSample> {
+        let wi = unit(wi)?;
+        let cos = wi.dot(self.n_in).abs();
+        if !(cos >= COS_EPS) || !(prob > 0.0) || !(weight.max_element() > 0.0) {
+            return None;
+        }
+        let f = weight / cos;
+        if !f.is_finite() || !prob.is_finite() {
+            return None;
+        }
+        Some(BsdfSample {
+            wi,
+            f,
+            pdf: prob,
+            lobe,
+            delta: true,
+        })
+    }
+}
+
+/// Unit vector or `None` for zero-length / non-finite input.
+fn unit(v: Vec3) -> Option<Vec3> {
+    let l = v.length();
+    if l.is_finite() && l > 1e-20 {
+        Some(v / l)
+    } else {
+        None
+    }
+}
+
+fn sat(x: f32) -> f32 {
+    if x.is_nan() { 0.0 } else { x.clamp(0.0, 1.0) }
+}
+
+fn sat3(v: Vec3) -> Vec3 {
+    Vec3::new(sat(v.x), sat(v.y), sat(v.z))
+}
+
+fn sanitize_u(x: f32) -> f32 {
+    if x.is_nan() {
+        0.0
+    } else {
+        x.clamp(0.0, ONE_MINUS_EPS)
+    }
+}
+
+fn lum(c: Vec3) -> f32 {
+    c.x * 0.2126 + c.y * 0.7152 + c.z * 0.0722
+}
+
+/// Schlick's `(1 - c)^5`.
+fn schlick_w(c: f32) -> f32 {
+    let m = (1.0 - c).clamp(0.0, 1.0);
+    let m2 = m * m;
+    m2 * m2 * m
+}
+
+/// GGX normal distribution in the local frame, written with `x^2 + y^2 + a^2 z^2`
+/// (= `cos^2 (a^2 - 1) + 1`) so it stays accurate for tiny alpha near the normal.
+fn ggx_d(m: Vec3, a2: f32) -> f32 {
+    if !(m.z > 0.0) {
+        return 0.0;
+    }
+    let x = m.x * m.x + m.y * m.y + a2 * m.z * m.z;
+    if !(x > 0.0) {
+        return 0.0;
+    }
+    a2 / (PI * x * x)
+}
+
+/// Smith Λ for GGX.
+fn ggx_lambda(w: Vec3, a2: f32) -> f32 {
+    let z2 = w.z * w.z;
+    if !(z2 > 1e-30) {
+        return f32::INFINITY;
+    }
+    let t2 = (w.x * w.x + w.y * w.y) / z2;
+    0.5 * ((1.0 + a2 * t2).sqrt() - 1.0)
+}
+
+/// Heitz 2018, "Sampling the GGX Distribution of Visible Normals": a microfacet normal
+/// distributed as `G1(wo) max(0, wo.m) D(m) / wo.z`. `wo.z > 0`.
+fn sample_vndf(wo: Vec3, alpha: f32, u: Vec2) -> Option<Vec3> {
+    let vh = unit(Vec3::new(alpha * wo.x, alpha * wo.y, wo.z))?;
+    let lensq = vh.x * vh.x + vh.y * vh.y;
+    let t1 = if lensq > 0.0 {
+        Vec3::new(-vh.y, vh.x, 0.0) / lensq.sqrt()
+    } else {
+        Vec3::X
+    };
+    let t2 = vh.cross(t1);
+    let r = u.x.sqrt();
+    let phi = TAU * u.y;
+    let p1 = r * phi.cos();
+    let s = 0.5 * (1.0 + vh.z);
+    let p2 = (1.0 - s) * (1.0 - p1 * p1).max(0.0).sqrt() + s * (r * phi.sin());
+    let nh = t1 * p1 + t2 * p2 + vh * (1.0 - p1 * p1 - p2 * p2).max(0.0).sqrt();
+    unit(Vec3::new(alpha * nh.x, alpha * nh.y, nh.z.max(0.0)))
+}
+
+/// Refracts `wo` (pointing away, `wo.m > 0`) through the interface with normal `m`;
+/// `etap = eta(transmitted side) / eta(wo side)`. `None` on total internal reflection.
+fn refract(wo: Vec3, m: Vec3, etap: f32) -> Option<Vec3> {
+    let c = wo.dot(m);
+    if !(c > 0.0) || !(etap > 0.0) {
+        return None;
+    }
+    let sin2_t = (1.0 - c * c).max(0.0) / (etap * etap);
+    if sin2_t >= 1.0 {
+        return None;
+    }
+    let cos_t = (1.0 - sin2_t).sqrt();
+    unit(-wo / etap + m * (c / etap - cos_t))
+}
+
+/// Cosine-weighted hemisphere direction around +z.
+fn cosine_hemisphere(u: Vec2) -> Vec3 {
+    let r = u.x.sqrt();
+    let phi = TAU * u.y;
+    Vec3::new(r * phi.cos(), r * phi.sin(), (1.0 - u.x).max(0.0).sqrt())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// splitmix64: a tiny deterministic generator for the Monte Carlo tests.
+    struct Rng(u64);
+
+    impl Rng {
+        fn next_u64(&mut self) -> u64 {
+            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut z = self.0;
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            z ^ (z >> 31)
+        }
+
+        fn f32(&mut self) -> f32 {
+            (self.next_u64() >> 40) as f32 * (1.0 / (1u64 << 24) as f32)
+        }
+
+        fn vec2(&mut self) -> Vec2 {
+            Vec2::new(self.f32(), self.f32())
+        }
+
+        fn sphere(&mut self) -> Vec3 {
+            uniform_sphere(self.vec2())
+        }
+
+        /// The `i`-th of `side^2` jittered-stratified uniform sphere directions.
+        fn sphere_strat(&mut self, i: usize, side: usize) -> Vec3 {
+            let (a, b) = ((i % side) as f32, (i / side) as f32);
+            let u = Vec2::new(
+                (a + self.f32()) / side as f32,
+                (b + self.f32()) / side as f32,
+            );
+            uniform_sphere(u.min(Vec2::splat(ONE_MINUS_EPS)))
+        }
+    }
+
+    const STRAT_SIDE: usize = 700;
+
+    fn uniform_sphere(u: Vec2) -> Vec3 {
+        let z = 1.0 - 2.0 * u.x;
+        let r = (1.0 - z * z).max(0.0).sqrt();
+        let phi = TAU * u.y;
+        Vec3::new(r * phi.cos(), r * phi.sin(), z)
+    }
+
+    /// Direction at polar angle `deg` from +z, in the xz plane.
+    fn dir(deg: f32) -> Vec3 {
+        let t = deg.to_radians();
+        Vec3::new(t.sin(), 0.0, t.cos())
+    }
+
+    fn p(base: f32, metallic: f32, roughness: f32, specular: f32, transmission: f32) -> BsdfParams {
+        BsdfParams {
+            base_color: Vec3::splat(base),
+            metallic,
+            roughness,
+            specular,
+            specular_color: Vec3::ONE,
+            transmission,
+            ior: 1.5,
+        }
+    }
+
+    fn flat(params: &BsdfParams) -> Bsdf {
+        Bsdf::new(params, Vec3::Z, Vec3::Z)
+    }
+
+    /// Albedo estimate `E[f |cos| / pdf]` through `sample()` (None counts as 0).
+    fn albedo(b: &Bsdf, wo: Vec3, n: usize, rng: &mut Rng) -> Vec3 {
+        let mut sum = Vec3::ZERO;
+        for _ in 0..n {
+            if let Some(s) = b.sample(wo, rng.f32(), rng.vec2()) {
+                sum += s.f * s.wi.z.abs() / s.pdf;
+            }
+        }
+        sum / n as f32
+    }
+
+    /// `integral of f |cos|` over the sphere by uniform sphere sampling of `eval`.
+    fn albedo_uniform(b: &Bsdf, wo: Vec3, rng: &mut Rng) -> Vec3 {
+        let n = STRAT_SIDE * STRAT_SIDE;
+        let mut sum = Vec3::ZERO;
+        for i in 0..n {
+            let wi = rng.sphere_strat(i, STRAT_SIDE);
+            sum += b.eval(wo, wi) * wi.z.abs();
+        }
+        sum * (4.0 * PI / n as f32)
+    }
+
+    fn rel_eq(a: f32, b: f32, tol: f32) -> bool {
+        (a - b).abs() <= tol * a.abs().max(b.abs()).max(1e-6)
+    }
+
+    #[test]
+    fn white_furnace_lambert() {
+        let b = flat(&p(1.0, 0.0, 1.0, 0.0, 0.0));
+        let mut rng = Rng(1);
+        for deg in [0.0, 30.0, 60.0, 85.0] {
+            let wo = dir(deg);
+            let a = albedo(&b, wo, 50_000, &mut rng);
+            assert!((a - Vec3::ONE).abs().max_element() < 0.01, "{deg}: {a}");
+            // Uniform hemisphere sampling of eval.
+            let n = 400_000;
+            let mut sum = Vec3::ZERO;
+            for _ in 0..n {
+                let mut wi = rng.sphere();
+                wi.z = wi.z.abs();
+                sum += b.eval(wo, wi) * wi.z;
+            }
+            let a = sum * (2.0 * PI / n as f32);
+            assert!((a - Vec3::ONE).abs().max_element() < 0.01, "{deg}: {a}");
+        }
+    }
+
+    #[test]
+    fn energy_bounded() {
+        let mut rng = Rng(2);
+        for roughness in [0.0, 0.05, 0.2, 0.5, 1.0] {
+            for metallic in [0.0, 0.5, 1.0] {
+                for specular in [1.0, 0.5] {
+                    for (transmission, ior) in [(0.0, 1.5), (0.5, 1.5), (1.0, 1.5), (1.0, 1.0)] {
+                        let b = flat(&BsdfParams {
+                            ior,
+                            ..p(1.0, metallic, roughness, specular, transmission)
+                        });
+                        for wo in [dir(0.0), dir(45.0), dir(80.0), -dir(30.0), -dir(60.0)] {
+                            let a = albedo(&b, wo, 20_000, &mut rng);
+                            assert!(
+                                a.max_element() <= 1.01 && a.min_element() > 0.0,
+                                "r {roughness} m {metallic} s {specular} t {transmission} \
+                                 ior {ior} wo {wo}: {a}"
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn smooth_glass_conserves_energy() {
+        let b = flat(&p(1.0, 0.0, 0.0, 1.0, 1.0));
+        let mut rng = Rng(3);
+        for wo in [dir(0.0), dir(50.0), dir(85.0), -dir(20.0), -dir(60.0)] {
+            let a = albedo(&b, wo, 20_000, &mut rng);
+            assert!((a - Vec3::ONE).abs().max_element() < 0.01, "{wo}: {a}");
+        }
+    }
+
+    /// Sampling and evaluation agree: E_sample[f cos / pdf] equals the uniform-sphere
+    /// estimate of the integral of f |cos|, and the pdf integrates to the fraction of
+    /// successful samples.
+    #[test]
+    fn sampling_matches_eval() {
+        let mats = [
+            p(0.8, 0.0, 0.5, 1.0, 0.0),
+            p(0.9, 1.0, 0.4, 1.0, 0.0),
+            p(0.7, 0.3, 0.7, 0.6, 0.0),
+            p(1.0, 0.0, 0.5, 1.0, 1.0),
+            p(0.9, 0.0, 0.6, 1.0, 0.5),
+            // Index-matched: rough reflection, delta pass-through transmission.
+            BsdfParams {
+                ior: 1.0,
+                ..p(0.9, 0.0, 0.4, 1.0, 0.5)
+            },
+            // Tinted specular colour over a coloured base.
+            BsdfParams {
+                base_color: Vec3::new(0.9, 0.4, 0.1),
+                specular_color: Vec3::new(2.0, 1.0, 0.2),
+                ior: 1.8,
+                ..p(1.0, 0.2, 0.45, 0.8, 0.0)
+            },
+        ];
+        let mut rng = Rng(4);
+        for (k, m) in mats.iter().enumerate() {
+            let b = flat(m);
+            for wo in [dir(10.0), dir(60.0), -dir(40.0)] {
+                // Non-delta samples only: eval/pdf cover the non-delta lobes.
+                let n = 400_000;
+                let mut a_s = Vec3::ZERO;
+                let mut ok = 0usize;
+                for _ in 0..n {
+                    if let Some(s) = b.sample(wo, rng.f32(), rng.vec2()).filter(|s| !s.delta) {
+                        a_s += s.f * s.wi.z.abs() / s.pdf;
+                        ok += 1;
+                    }
+                }
+                let a_s = a_s / n as f32;
+                let a_u = albedo_uniform(&b, wo, &mut rng);
+                assert!(
+                    (a_s - a_u).abs().max_element() < 0.015,
+                    "mat {k} wo {wo}: sampled {a_s} uniform {a_u}"
+                );
+                let mut pdf_sum = 0.0f64;
+                let ns = STRAT_SIDE * STRAT_SIDE;
+                for i in 0..ns {
+                    pdf_sum += b.pdf(wo, rng.sphere_strat(i, STRAT_SIDE)) as f64;
+                }
+                let integral = (pdf_sum * 4.0 * std::f64::consts::PI / ns as f64) as f32;
+                let frac = ok as f32 / n as f32;
+                assert!(integral <= 1.02, "mat {k} wo {wo}: pdf integral {integral}");
+                assert!(
+                    (integral - frac).abs() < 0.01,
+                    "mat {k} wo {wo}: pdf integral {integral} vs accepted {frac}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn pdf_integral_lambert_is_one() {
+        let b = flat(&p(0.5, 0.0, 1.0, 0.0, 0.0));
+        let mut rng = Rng(5);
+        let n = 400_000;
+        let mut sum = 0.0f64;
+        for _ in 0..n {
+            sum += b.pdf(dir(35.0), rng.sphere()) as f64;
+        }
+        let integral = sum * 4.0 * std::f64::consts::PI / n as f64;
+        assert!((integral - 1.0).abs() < 0.01, "{integral}");
+    }
+
+    #[test]
+    fn sample_consistent_with_eval_and_pdf() {
+        let mut rng = Rng(6);
+        let mut checked = 0;
+        for _ in 0..20_000 {
+            let m = BsdfParams {
+                base_color: Vec3::new(rng.f32(), rng.f32(), rng.f32()),
+                metallic: rng.f32(),
+                roughness: 0.05 + rng.f32() * 0.95,
+                specular: rng.f32(),
+                specular_color: Vec3::new(rng.f32(), rng.f32(), rng.f32()) * 2.0,
+                transmission: if rng.f32() < 0.5 { 0.0 } else { rng.f32() },
+                ior: 1.1 + rng.f32(),
+            };
+            let b = flat(&m);
+            let wo = rng.sphere();
+            if let Some(s) = b.sample(wo, rng.f32(), rng.vec2()) {
+                if s.delta {
+                    continue;
+                }
+                let f = b.eval(wo, s.wi);
+                let pdf = b.pdf(wo, s.wi);
+                assert!(rel_eq(s.pdf, pdf, 1e-3), "{m:?} {wo}: {} vs {pdf}", s.pdf);
+                for c in 0..3 {
+                    assert!(rel_eq(s.f[c], f[c], 1e-3), "{m:?} {wo}: {} vs {f}", s.f);
+                }
+                checked += 1;
+            }
+        }
+        assert!(checked > 10_000, "{checked}");
+    }
+
+    #[test]
+    fn reciprocity() {
+        let mut rng = Rng(7);
+        let mats = [
+            p(0.8, 0.0, 0.3, 1.0, 0.0),
+            p(0.8, 1.0, 0.1, 1.0, 0.0),
+            BsdfParams {
+                base_color: Vec3::new(0.9, 0.5, 0.2),
+                metallic: 0.4,
+                roughness: 0.6,
+                specular: 0.7,
+                specular_color: Vec3::new(1.0, 0.5, 2.0),
+                transmission: 0.0,
+                ior: 1.8,
+            },
+        ];
+        for m in &mats {
+            let b = flat(m);
+            for _ in 0..2_000 {
+                let mut wo = rng.sphere();
+                let mut wi = rng.sphere();
+                wo.z = wo.z.abs();
+                wi.z = wi.z.abs();
+                let a = b.eval(wo, wi);
+                let c = b.eval(wi, wo);
+                for k in 0..3 {
+                    assert!(rel_eq(a[k], c[k], 1e-3), "{m:?}: {a} vs {c}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn pure_lambert_never_leaves_diffuse() {
+        let b = flat(&p(0.6, 0.0, 0.0, 0.0, 0.0));
+        assert!(!b.has_specular_lobe() && b.has_diffuse() && !b.is_delta_only());
+        let mut rng = Rng(8);
+        for _ in 0..10_000 {
+            let mut wo = rng.sphere();
+            wo.z = wo.z.abs().max(1e-3);
+            if let Some(s) = b.sample(wo, rng.f32(), rng.vec2()) {
+                assert_eq!(s.lobe, Lobe::Diffuse);
+                assert!(!s.delta);
+            }
+        }
+        assert!(b.mirror(dir(10.0)).is_none() && b.refraction(dir(10.0)).is_none());
+    }
+
+    #[test]
+    fn smooth_glass_is_delta_and_obeys_snell() {
+        let ior = 1.5;
+        let b = Bsdf::new(
+            &BsdfParams {
+                ior,
+                ..p(1.0, 0.0, 0.0, 1.0, 1.0)
+            },
+            Vec3::Z,
+            Vec3::Z,
+        );
+        assert!(b.is_delta_only() && b.has_transmission() && !b.has_diffuse());
+        let mut rng = Rng(9);
+        for _ in 0..10_000 {
+            let wo = rng.sphere();
+            if let Some(s) = b.sample(wo, rng.f32(), rng.vec2()) {
+                assert!(s.delta);
+                assert!(matches!(
+                    s.lobe,
+                    Lobe::SpecularReflection | Lobe::SpecularTransmission
+                ));
+            }
+            assert_eq!(b.eval(wo, rng.sphere()), Vec3::ZERO);
+            assert_eq!(b.pdf(wo, rng.sphere()), 0.0);
+        }
+        // Entering: sin_i = ior sin_t.
+        for deg in [0.0f32, 20.0, 45.0, 70.0, 89.0] {
+            let wo = dir(deg);
+            let (wi, w) = b.refraction(wo).unwrap();
+            let sin_t = (1.0 - wi.z * wi.z).sqrt();
+            assert!(wi.z < 0.0 && wi.x <= 1e-6);
+            assert!((deg.to_radians().sin() - ior * sin_t).abs() < 1e-4, "{deg}");
+            assert!(w.max_element() <= 1.0 && w.min_element() > 0.0);
+        }
+        // Leaving: ior sin_i = sin_t below the critical angle, TIR above it.
+        let critical = (1.0 / ior).asin().to_degrees();
+        for deg in [0.0f32, 20.0, 40.0, critical - 0.5] {
+            let wo = -dir(deg);
+            let (wi, _) = b.refraction(wo).unwrap();
+            let sin_t = (1.0 - wi.z * wi.z).sqrt();
+            assert!(wi.z > 0.0);
+            assert!((ior * deg.to_radians().sin() - sin_t).abs() < 1e-3, "{deg}");
+        }
+        for deg in [critical + 0.5, 60.0, 85.0] {
+            let wo = -dir(deg);
+            assert!(b.refraction(wo).is_none(), "{deg}");
+            let (wi, w) = b.mirror(wo).unwrap();
+            assert!((w - Vec3::ONE).abs().max_element() < 1e-6 && wi.z < 0.0);
+            for _ in 0..1_000 {
+                let s = b.sample(wo, rng.f32(), rng.vec2()).unwrap();
+                assert_eq!(s.lobe, Lobe::SpecularReflection);
+                assert!(rel_eq(s.f.x * s.wi.z.abs() / s.pdf, 1.0, 1e-5));
+            }
+        }
+    }
+
+    #[test]
+    fn reflection_below_geometric_surface_is_zero() {
+        // Shading normal tilted 30 degrees from the geometric normal.
+        let n = dir(30.0);
+        let mut rng = Rng(10);
+        for m in [p(0.8, 0.0, 0.5, 1.0, 0.0), p(0.8, 1.0, 0.3, 1.0, 0.0)] {
+            let b = Bsdf::new(&m, n, Vec3::Z);
+            let wo = dir(40.0);
+            // Above the shading hemisphere, below the geometric one.
+            let wi = dir(100.0);
+            assert!(wi.dot(n) > 0.0 && wi.z < 0.0);
+            assert_eq!(b.eval(wo, wi), Vec3::ZERO);
+            assert_eq!(b.pdf(wo, wi), 0.0);
+            for _ in 0..5_000 {
+                if let Some(s) = b.sample(wo, rng.f32(), rng.vec2()) {
+                    assert!(s.wi.z > 0.0, "{s:?}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn mirror_and_orientation() {
+        let b = Bsdf::new(&p(0.9, 1.0, 0.0, 1.0, 0.0), -Vec3::Z, Vec3::Z);
+        assert!(b.is_delta_only() && b.has_specular_lobe());
+        let (wi, w) = b.mirror(dir(30.0)).unwrap();
+        assert!((wi - Vec3::new(-0.5, 0.0, 3f32.sqrt() / 2.0)).length() < 1e-5);
+        assert!(w.min_element() >= 0.9 - 1e-6 && w.max_element() <= 1.0);
+        // Same from the back side.
+        let (wi, _) = b.mirror(-dir(30.0)).unwrap();
+        assert!((wi - Vec3::new(0.5, 0.0, -(3f32.sqrt()) / 2.0)).length() < 1e-5);
+        // Rough metal: no Whitted mirror.
+        assert!(
+            flat(&p(0.9, 1.0, 0.5, 1.0, 0.0))
+                .mirror(dir(30.0))
+                .is_none()
+        );
+        assert!(!flat(&p(0.9, 1.0, 0.5, 1.0, 0.0)).is_delta_only());
+    }
+
+    #[test]
+    fn stress_no_nan() {
+        let mut rng = Rng(11);
+        let specials = [0.0, 1e-7, 1e-4, 0.03, 0.5, 1.0];
+        let iors = [1.0, 1.0005, 1.5, 0.0, f32::INFINITY, 2.4, 1.0 + 1e-6];
+        for i in 0..100_000 {
+            let pick = |rng: &mut Rng, xs: &[f32]| xs[(rng.next_u64() % xs.len() as u64) as usize];
+            let m = BsdfParams {
+                base_color: Vec3::new(rng.f32(), rng.f32(), rng.f32()),
+                metallic: pick(&mut rng, &[0.0, 1.0, 0.5, 0.999]),
+                roughness: if i % 2 == 0 {
+                    pick(&mut rng, &specials)
+                } else {
+                    rng.f32()
+                },
+                specular: pick(&mut rng, &[0.0, 1.0, 0.3]),
+                specular_color: Vec3::new(rng.f32(), rng.f32(), rng.f32()) * 3.0,
+                transmission: pick(&mut rng, &[0.0, 1.0, 0.5]),
+                ior: pick(&mut rng, &iors),
+            };
+            let ng = rng.sphere();
+            let n = match i % 4 {
+                0 => ng,
+                1 => -ng,
+                2 => (ng + rng.sphere() * 0.5).normalize_or(ng),
+                _ => rng.sphere(),
+            };
+            let b = Bsdf::new(&m, n, ng);
+            let wo = match i % 5 {
+                0 => {
+                    // Grazing / tangent to the geometric surface.
+                    let t = ng.any_orthonormal_pair().0;
+                    let eps = pick(&mut rng, &[0.0, 1e-8, 1e-6, 1e-4, -1e-6]);
+                    (t + ng * eps).normalize()
+                }
+                1 => {
+                    // Grazing to the shading normal.
+                    let t = n.any_orthonormal_pair().0;
+                    (t + n * pick(&mut rng, &[0.0, 1e-7, -1e-7])).normalize()
+                }
+                _ => rng.sphere(),
+            };
+            let u = match i % 7 {
+                0 => Vec2::new(0.0, 0.0),
+                1 => Vec2::new(ONE_MINUS_EPS, ONE_MINUS_EPS),
+                _ => rng.vec2(),
+            };
+            let ul = if i % 11 == 0 { 1.0 } else { rng.f32() };
+            if let Some(s) = b.sample(wo, ul, u) {
+                assert!(
+                    s.f.is_finite() && s.pdf.is_finite() && s.pdf > 0.0,
+                    "{m:?} {s:?}"
+                );
+                assert!(s.wi.is_finite() && (s.wi.length() - 1.0).abs() < 1e-3);
+                assert!(s.f.min_element() >= 0.0);
+                let e = b.eval(wo, s.wi);
+                assert!(e.is_finite() && b.pdf(wo, s.wi).is_finite());
+            }
+            let wi = if i % 3 == 0 { -wo } else { rng.sphere() };
+            let e = b.eval(wo, wi);
+            let pd = b.pdf(wo, wi);
+            assert!(
+                e.is_finite() && pd.is_finite() && pd >= 0.0,
+                "{m:?} {wo} {wi}"
+            );
+            assert!(e.min_element() >= 0.0);
+            if let Some((d, w)) = b.mirror(wo) {
+                assert!(d.is_finite() && w.is_finite());
+            }
+            if let Some((d, w)) = b.refraction(wo) {
+                assert!(d.is_finite() && w.is_finite());
+            }
+            assert!(b.diffuse_albedo().is_finite());
+        }
+        // Degenerate inputs.
+        let b = Bsdf::new(&BsdfParams::default(), Vec3::ZERO, Vec3::ZERO);
+        assert!(b.sample(Vec3::Z, 0.5, Vec2::splat(0.5)).is_none());
+        let b = flat(&BsdfParams {
+            base_color: Vec3::NAN,
+            metallic: f32::NAN,
+            roughness: f32::NAN,
+            specular: f32::INFINITY,
+            specular_color: Vec3::INFINITY,
+            transmission: f32::NAN,
+            ior: f32::NAN,
+        });
+        for wo in [Vec3::Z, Vec3::X, Vec3::NAN, Vec3::ZERO, dir(89.999)] {
+            let _ = b
+                .sample(wo, f32::NAN, Vec2::NAN)
+                .map(|s| assert!(s.f.is_finite()));
+            assert!(b.eval(wo, Vec3::Z).is_finite() && b.pdf(wo, Vec3::NAN).is_finite());
+        }
+    }
+}

@@ -1,0 +1,199 @@
+//! The film: per-pixel sums in fixed point, so accumulation is exact and independent of
+//! the order contributions arrive in (the same job gives the same bits on 1 thread or 16,
+//! on 1 worker or many). Box filter: a sample counts for the pixel it was taken in.
+//!
+//! A contribution is converted once, deterministically, to an integer with 24 fractional
+//! bits; integer addition is associative, so sums never depend on order. Non-finite or
+//! negative contributions are counted and dropped: NaN and Inf never reach the image.
+
+use std::path::Path;
+
+use glam::Vec3;
+
+/// Fixed-point scale: 2^24 steps per unit of radiance.
+pub const FIXED_SCALE: f64 = (1u64 << 24) as f64;
+/// Largest contribution component accepted (radiance units); larger values are clamped
+/// so that a pixel sum cannot overflow an i64 over 2^16 samples.
+pub const MAX_CONTRIBUTION: f32 = 1.0e7;
+
+/// Convert one contribution to fixed point. Returns `None` for non-finite input.
+#[inline]
+pub fn to_fixed(v: Vec3) -> Option<[i64; 3]> {
+    if !v.is_finite() {
+        return None;
+    }
+    let c = v.clamp(Vec3::ZERO, Vec3::splat(MAX_CONTRIBUTION));
+    Some([c.x, c.y, c.z].map(|x| (x as f64 * FIXED_SCALE).round() as i64))
+}
+
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Film {
+    pub width: u32,
+    pub height: u32,
+    sums: Vec<[i64; 3]>,
+    /// Contributions dropped because they were NaN or infinite.
+    pub nonfinite: u64,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum FilmError {
+    #[error("{path}: cannot write PNG: {message}")]
+    Png { path: String, message: String },
+    #[error("{path}: cannot write EXR: {message}")]
+    Exr { path: String, message: String },
+}
+
+impl Film {
+    pub fn new(width: u32, height: u32) -> Film {
+        Film {
+            width,
+            height,
+            sums: vec![[0; 3]; width as usize * height as usize],
+            nonfinite: 0,
+        }
+    }
+
+    /// Add a contribution to pixel `pixel` (row-major index). Out-of-range pixels are ignored.
+    #[inline]
+    pub fn add(&mut self, pixel: u32, value: Vec3) {
+        match to_fixed(value) {
+            Some(f) => {
+                if let Some(s) = self.sums.get_mut(pixel as usize) {
+                    for c in 0..3 {
+                        s[c] = s[c].wrapping_add(f[c]);
+                    }
+                }
+            }
+            None => self.nonfinite += 1,
+        }
+    }
+
+    /// Add an already-converted fixed-point sum (from another film or a remote worker).
+    #[inline]
+    pub fn add_fixed(&mut self, pixel: u32, value: [i64; 3]) {
+        if let Some(s) = self.sums.get_mut(pixel as usize) {
+            for c in 0..3 {
+                s[c] = s[c].wrapping_add(value[c]);
+            }
+        }
+    }
+
+    /// Merge another film of the same size (exact, order-free).
+    pub fn merge(&mut self, other: &Film) {
+        for (a, b) in self.sums.iter_mut().zip(&other.sums) {
+            for c in 0..3 {
+                a[c] = a[c].wrapping_add(b[c]);
+            }
+        }
+        self.nonfinite += other.nonfinite;
+    }
+
+    pub fn sum_fixed(&self, pixel: u32) -> [i64; 3] {
+        self.sums.get(pixel as usize).copied().unwrap_or([0; 3])
+    }
+
+    /// Linear radiance of every pixel: the sum divided by `spp`.
+    pub fn linear(&self, spp: u32) -> Vec<Vec3> {
+        let k = 1.0 / (FIXED_SCALE * spp.max(1) as f64);
+        self.sums
+            .iter()
+            .map(|s| {
+                Vec3::new(
+                    (s[0] as f64 * k) as f32,
+                    (s[1] as f64 * k) as f32,
+                    (s[2] as f64 * k) as f32,
+                )
+            })
+            .collect()
+    }
+
+    /// 8-bit sRGB pixels (clamped to [0,1] before encoding).
+    pub fn srgb8(&self, spp: u32) -> Vec<u8> {
+        let mut out = Vec::with_capacity(self.sums.len() * 3);
+        for p in self.linear(spp) {
+            for c in [p.x, p.y, p.z] {
+                out.push(linear_to_srgb8(c));
+            }
+        }
+        out
+    }
+
+    pub fn write_png(&self, path: &Path, spp: u32) -> Result<(), FilmError> {
+        let buf = self.srgb8(spp);
+        image::save_buffer(
+            path,
+            &buf,
+            self.width,
+            self.height,
+            image::ExtendedColorType::Rgb8,
+        )
+        .map_err(|e| FilmError::Png {
+            path: path.display().to_string(),
+            message: e.to_string(),
+        })
+    }
+
+    pub fn write_exr(&self, path: &Path, spp: u32) -> Result<(), FilmError> {
+        let lin = self.linear(spp);
+        let w = self.width as usize;
+        exr::prelude::write_rgb_file(path, w, self.height as usize, |x, y| {
+            let p = lin[y * w + x];
+            (p.x, p.y, p.z)
+        })
+        .map_err(|e| FilmError::Exr {
+            path: path.display().to_string(),
+            message: e.to_string(),
+        })
+    }
+}
+
+/// The sRGB transfer function, clamped, rounded to 8 bits.
+pub fn linear_to_srgb8(c: f32) -> u8 {
+    let c = if c.is_finite() {
+        c.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    let s = if c <= 0.003_130_8 {
+        c * 12.92
+    } else {
+        1.055 * c.powf(1.0 / 2.4) - 0.055
+    };
+    (s * 255.0 + 0.5).clamp(0.0, 255.0) as u8
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn order_free_and_nan_dropped() {
+        let vals = [
+            Vec3::new(0.1, 0.2, 0.3),
+            Vec3::splat(1e-7),
+            Vec3::splat(12345.678),
+            Vec3::new(0.3, 0.0, 1.0),
+        ];
+        let mut a = Film::new(1, 1);
+        let mut b = Film::new(1, 1);
+        for v in vals {
+            a.add(0, v);
+        }
+        for v in vals.iter().rev() {
+            b.add(0, *v);
+        }
+        b.add(0, Vec3::new(f32::NAN, 0.0, 0.0));
+        b.add(0, Vec3::splat(f32::INFINITY));
+        assert_eq!(a.sum_fixed(0), b.sum_fixed(0));
+        assert_eq!(b.nonfinite, 2);
+        assert!(a.linear(1)[0].is_finite());
+    }
+
+    #[test]
+    fn srgb_encoding() {
+        assert_eq!(linear_to_srgb8(0.0), 0);
+        assert_eq!(linear_to_srgb8(1.0), 255);
+        assert_eq!(linear_to_srgb8(f32::NAN), 0);
+        assert_eq!(linear_to_srgb8(0.2158605), 128);
+    }
+}

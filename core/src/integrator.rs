@@ -1,0 +1,557 @@
+//! The integrators' per-ray steps.
+//!
+//! Rays are non-recursive and self-contained ([`RayState`]): whoever traces a ray calls
+//! [`Integrator::shade_hit`], [`Integrator::shade_miss`] or
+//! [`Integrator::shadow_result`], which add contributions to pixels and spawn children
+//! through a [`Sink`]. The single-process renderer and the distributed workers drive the
+//! same steps; only where the ray is traced differs.
+//!
+//! Only the ray kinds the scene's [`Effects`] call for are ever spawned.
+
+use glam::{Vec2, Vec3};
+use serde::Serialize;
+
+use crate::bsdf::{Bsdf, BsdfParams, Lobe};
+use crate::bvh::{Accel, Hit, QueryRay};
+use crate::camera::Camera;
+use crate::effects::{Effect, Effects};
+use crate::intersect::offset_ray_origin;
+use crate::light_sampler::{LightRef, LightSample, LightSampler};
+use crate::sampling::{PathKey, Purpose, cosine_hemisphere};
+use crate::scene::Scene;
+use crate::surface::{Surface, alpha_passes, interpolate_uv};
+
+/// The kinds of rays, counted separately in every summary.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RayKind {
+    Camera = 0,
+    Shadow = 1,
+    Reflection = 2,
+    Refraction = 3,
+    Diffuse = 4,
+    AmbientOcclusion = 5,
+}
+
+impl RayKind {
+    pub const COUNT: usize = 6;
+    pub const ALL: [RayKind; 6] = [
+        RayKind::Camera,
+        RayKind::Shadow,
+        RayKind::Reflection,
+        RayKind::Refraction,
+        RayKind::Diffuse,
+        RayKind::AmbientOcclusion,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            RayKind::Camera => "camera",
+            RayKind::Shadow => "shadow",
+            RayKind::Reflection => "reflection",
+            RayKind::Refraction => "refraction",
+            RayKind::Diffuse => "diffuse",
+            RayKind::AmbientOcclusion => "ambient_occlusion",
+        }
+    }
+
+    /// Shadow and AO rays only ask "is anything in the way?".
+    pub fn is_occlusion(self) -> bool {
+        matches!(self, RayKind::Shadow | RayKind::AmbientOcclusion)
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum IntegratorKind {
+    /// Primary rays, direct light and shadow rays (the ray-cache thesis's mode).
+    Raycast,
+    /// Shadows plus perfect mirror reflection and refraction to the maximum depth.
+    Whitted,
+    /// Unidirectional path tracing with next-event estimation, MIS and Russian roulette.
+    Path,
+    /// Ambient occlusion with N rays per hit.
+    Ao,
+}
+
+impl IntegratorKind {
+    pub fn from_name(s: &str) -> Option<IntegratorKind> {
+        match s {
+            "raycast" => Some(IntegratorKind::Raycast),
+            "whitted" => Some(IntegratorKind::Whitted),
+            "path" => Some(IntegratorKind::Path),
+            "ao" => Some(IntegratorKind::Ao),
+            _ => None,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            IntegratorKind::Raycast => "raycast",
+            IntegratorKind::Whitted => "whitted",
+            IntegratorKind::Path => "path",
+            IntegratorKind::Ao => "ao",
+        }
+    }
+}
+
+/// Everything about a render that is not the scene.
+#[derive(Clone, Debug)]
+pub struct RenderSettings {
+    pub width: u32,
+    pub height: u32,
+    pub spp: u32,
+    pub integrator: IntegratorKind,
+    pub max_depth: u32,
+    pub seed: u64,
+    /// Constant environment radiance.
+    pub environment: Vec3,
+    pub effects: Effects,
+    /// Rays per hit for the `ao` integrator.
+    pub ao_samples: u32,
+    /// Occlusion distance for `ao`, in scene units (infinite by default).
+    pub ao_distance: f32,
+}
+
+/// One ray in flight. Self-contained: it can be traced anywhere, in any order.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RayState {
+    pub origin: Vec3,
+    pub dir: Vec3,
+    pub tmax: f32,
+    pub pixel: u32,
+    pub sample: u32,
+    /// Number of surface interactions before this ray.
+    pub depth: u32,
+    pub kind: RayKind,
+    /// Path throughput; for shadow and AO rays, the contribution added if unoccluded.
+    pub weight: Vec3,
+    /// Solid-angle pdf of the BSDF sample that made this ray, for MIS against light
+    /// sampling when it hits an emitter; 0 means no MIS (camera or delta bounce, or no
+    /// light sample was taken at the previous vertex).
+    pub bsdf_pdf: f32,
+}
+
+/// Where the steps put their results.
+pub trait Sink {
+    fn contribute(&mut self, pixel: u32, value: Vec3);
+    fn spawn(&mut self, ray: RayState);
+}
+
+/// The scene-wide state the steps read: the scene, its lights and the settings.
+pub struct Integrator<'a> {
+    pub scene: &'a Scene,
+    pub lights: LightSampler,
+    pub settings: RenderSettings,
+    pub camera: Camera,
+}
+
+fn power_heuristic(a: f32, b: f32) -> f32 {
+    let (a2, b2) = (a * a, b * b);
+    if a2 + b2 > 0.0 && (a2 + b2).is_finite() {
+        a2 / (a2 + b2)
+    } else if a > b {
+        1.0
+    } else {
+        0.0
+    }
+}
+
+impl<'a> Integrator<'a> {
+    pub fn new(scene: &'a Scene, camera: Camera, settings: RenderSettings) -> Integrator<'a> {
+        let lights = LightSampler::new(scene, settings.effects.contains(Effect::Emission));
+        Integrator {
+            scene,
+            lights,
+            settings,
+            camera,
+        }
+    }
+
+    fn key(&self, ray: &RayState) -> PathKey {
+        PathKey {
+            seed: self.settings.seed,
+            pixel: ray.pixel,
+            sample: ray.sample,
+        }
+    }
+
+    fn env(&self) -> Vec3 {
+        if self.settings.effects.contains(Effect::Environment) {
+            self.settings.environment
+        } else {
+            Vec3::ZERO
+        }
+    }
+
+    /// The camera ray for `pixel` (row-major) and `sample`.
+    pub fn camera_ray(&self, pixel: u32, sample: u32) -> RayState {
+        let w = self.settings.width.max(1);
+        let (x, y) = (pixel % w, pixel / w);
+        let key = PathKey {
+            seed: self.settings.seed,
+            pixel,
+            sample,
+        };
+        let j = key.uniform2(0, Purpose::Film, 0);
+        let film = Vec2::new(
+            (x as f32 + j.x) / w as f32,
+            (y as f32 + j.y) / self.settings.height.max(1) as f32,
+        );
+        let aspect = w as f32 / self.settings.height.max(1) as f32;
+        let r = self.camera.generate(film, aspect);
+        RayState {
+            origin: r.origin,
+            dir: r.dir,
+            tmax: f32::INFINITY,
+            pixel,
+            sample,
+            depth: 0,
+            kind: RayKind::Camera,
+            weight: Vec3::ONE,
+            bsdf_pdf: 0.0,
+        }
+    }
+
+    /// Whether a hit on `tri` counts, given alpha cut-outs and stochastic blending.
+    fn accept(&self, ray: &RayState, tri: u32, b: [f32; 3]) -> bool {
+        if !self.settings.effects.contains(Effect::Alpha) {
+            return true;
+        }
+        let scene = self.scene;
+        let opaque = scene
+            .mesh
+            .material
+            .get(tri as usize)
+            .and_then(|&m| scene.materials.get(m as usize))
+            .is_none_or(|m| !m.has_alpha());
+        if opaque {
+            return true;
+        }
+        let uv = interpolate_uv(scene, tri, b);
+        let u = self.key(ray).uniform(ray.depth, Purpose::Alpha, tri);
+        alpha_passes(scene, tri, uv, u)
+    }
+
+    fn query(ray: &RayState) -> QueryRay {
+        QueryRay {
+            origin: ray.origin,
+            dir: ray.dir,
+            tmin: 0.0,
+            tmax: ray.tmax,
+        }
+    }
+
+    /// Closest accepted hit of `ray` in `accel`.
+    pub fn intersect(&self, accel: &Accel, ray: &RayState) -> Option<Hit> {
+        accel.closest(&Self::query(ray), |tri, h| {
+            self.accept(ray, tri, [h.b0, h.b1, h.b2])
+        })
+    }
+
+    /// Whether anything accepted blocks `ray` in `accel`.
+    pub fn occluded(&self, accel: &Accel, ray: &RayState) -> bool {
+        accel.occluded(&Self::query(ray), |tri, h| {
+            self.accept(ray, tri, [h.b0, h.b1, h.b2])
+        })
+    }
+
+    /// An occlusion ray came back: add its carried contribution if nothing blocked it.
+    pub fn shadow_result(&self, ray: &RayState, occluded: bool, sink: &mut impl Sink) {
+        if !occluded {
+            sink.contribute(ray.pixel, ray.weight);
+        }
+    }
+
+    /// A camera or bounce ray left the scene: it sees the environment.
+    pub fn shade_miss(&self, ray: &RayState, sink: &mut impl Sink) {
+        let env = self.env();
+        if env != Vec3::ZERO {
+            sink.contribute(ray.pixel, ray.weight * env);
+        }
+    }
+
+    /// A camera or bounce ray hit a surface.
+    pub fn shade_hit(&self, ray: &RayState, hit: &Hit, sink: &mut impl Sink) {
+        let effects = self.settings.effects;
+        let surf = Surface::new(self.scene, hit, ray.dir, effects);
+        let sv = surf.shading(self.scene, effects);
+        let wo = -ray.dir;
+        let key = self.key(ray);
+
+        // Emission seen directly (or by a bounce, weighted against light sampling).
+        if sv.emission != Vec3::ZERO {
+            let mut w = 1.0;
+            if ray.bsdf_pdf > 0.0 {
+                let pl = self
+                    .lights
+                    .pdf_triangle(self.scene, surf.tri, ray.origin, surf.p);
+                w = power_heuristic(ray.bsdf_pdf, pl);
+            }
+            sink.contribute(ray.pixel, ray.weight * sv.emission * w);
+        }
+
+        if self.settings.integrator == IntegratorKind::Ao {
+            let n = self.settings.ao_samples.max(1);
+            let origin = offset_ray_origin(surf.p, surf.ng);
+            for i in 0..n {
+                let u = key.uniform2(ray.depth, Purpose::AmbientOcclusion, i);
+                let dir = cosine_hemisphere(surf.ng, u);
+                sink.spawn(RayState {
+                    origin,
+                    dir,
+                    tmax: self.settings.ao_distance,
+                    depth: ray.depth + 1,
+                    kind: RayKind::AmbientOcclusion,
+                    weight: ray.weight / n as f32,
+                    bsdf_pdf: 0.0,
+                    ..*ray
+                });
+            }
+            return;
+        }
+
+        let params = BsdfParams {
+            base_color: sv.base_color,
+            metallic: sv.metallic,
+            roughness: sv.roughness,
+            specular: sv.specular,
+            specular_color: sv.specular_color,
+            transmission: sv.transmission,
+            ior: sv.ior,
+        };
+        // The BSDF tells inside from outside by the outward (winding) normal.
+        let outward = if surf.front { surf.ng } else { -surf.ng };
+        let bsdf = Bsdf::new(&params, surf.n, outward);
+        match self.settings.integrator {
+            IntegratorKind::Path => self.path_step(ray, &surf, &bsdf, wo, key, sink),
+            IntegratorKind::Raycast | IntegratorKind::Whitted => {
+                self.direct_all(ray, &surf, &bsdf, wo, key, sink);
+                // Unshadowed ambient light from the constant environment: raycast and
+                // Whitted trace no rays toward the sky, so this keeps unlit scenes legible.
+                let env = self.env();
+                if env != Vec3::ZERO {
+                    let facing = surf.n.dot(wo).abs();
+                    let ambient = bsdf.diffuse_albedo() * env * (0.25 + 0.75 * facing);
+                    sink.contribute(ray.pixel, ray.weight * ambient);
+                }
+                if self.settings.integrator == IntegratorKind::Whitted
+                    && ray.depth + 1 < self.settings.max_depth
+                {
+                    self.whitted_children(ray, &surf, &bsdf, wo, sink);
+                }
+            }
+            IntegratorKind::Ao => {}
+        }
+    }
+
+    /// A shadow ray from `surf` toward light sample `ls`, carrying `contribution`.
+    fn shadow_ray(
+        &self,
+        ray: &RayState,
+        surf: &Surface,
+        ls: &LightSample,
+        contribution: Vec3,
+    ) -> Option<RayState> {
+        if !contribution.is_finite() || contribution.max_element() <= 0.0 {
+            return None;
+        }
+        let side = if surf.ng.dot(ls.wi) >= 0.0 {
+            surf.ng
+        } else {
+            -surf.ng
+        };
+        let origin = offset_ray_origin(surf.p, side);
+        let (dir, tmax) = if ls.dist.is_finite() {
+            let target = if ls.delta {
+                ls.light_p
+            } else {
+                offset_ray_origin(ls.light_p, ls.light_n)
+            };
+            let d = target - origin;
+            let len = d.length();
+            (d / len, len)
+        } else {
+            (ls.wi, f32::INFINITY)
+        };
+        if !dir.is_finite() || tmax.is_nan() || tmax <= 0.0 {
+            return None;
+        }
+        Some(RayState {
+            origin,
+            dir,
+            tmax,
+            depth: ray.depth + 1,
+            kind: RayKind::Shadow,
+            weight: contribution,
+            bsdf_pdf: 0.0,
+            ..*ray
+        })
+    }
+
+    /// Raycast and Whitted direct light: every punctual light plus one emissive-triangle
+    /// sample, each with its own shadow ray.
+    fn direct_all(
+        &self,
+        ray: &RayState,
+        surf: &Surface,
+        bsdf: &Bsdf,
+        wo: Vec3,
+        key: PathKey,
+        sink: &mut impl Sink,
+    ) {
+        if !self.settings.effects.contains(Effect::DirectLight) || bsdf.is_delta_only() {
+            return;
+        }
+        for (e, r) in self.lights.entries().iter().enumerate() {
+            if let LightRef::Punctual(_) = r
+                && let Some(ls) = self
+                    .lights
+                    .sample_entry(self.scene, e, 1.0, surf.p, Vec2::ZERO)
+            {
+                let c =
+                    ray.weight * bsdf.eval(wo, ls.wi) * surf.n.dot(ls.wi).abs() * ls.li / ls.pdf;
+                if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
+                    sink.spawn(s);
+                }
+            }
+        }
+        let u_sel = key.uniform(ray.depth, Purpose::LightSelect, 0);
+        if let Some((e, p)) = self.lights.choose_area(u_sel) {
+            let u = key.uniform2(ray.depth, Purpose::LightPoint, 0);
+            if let Some(ls) = self.lights.sample_entry(self.scene, e, p, surf.p, u) {
+                let c =
+                    ray.weight * bsdf.eval(wo, ls.wi) * surf.n.dot(ls.wi).abs() * ls.li / ls.pdf;
+                if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
+                    sink.spawn(s);
+                }
+            }
+        }
+    }
+
+    fn whitted_children(
+        &self,
+        ray: &RayState,
+        surf: &Surface,
+        bsdf: &Bsdf,
+        wo: Vec3,
+        sink: &mut impl Sink,
+    ) {
+        let effects = self.settings.effects;
+        if effects.contains(Effect::Specular)
+            && let Some((wi, w)) = bsdf.mirror(wo)
+        {
+            self.spawn_bounce(
+                ray,
+                surf,
+                wi,
+                ray.weight * w,
+                RayKind::Reflection,
+                0.0,
+                sink,
+            );
+        }
+        if effects.contains(Effect::Transmission)
+            && let Some((wi, w)) = bsdf.refraction(wo)
+        {
+            self.spawn_bounce(
+                ray,
+                surf,
+                wi,
+                ray.weight * w,
+                RayKind::Refraction,
+                0.0,
+                sink,
+            );
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn spawn_bounce(
+        &self,
+        ray: &RayState,
+        surf: &Surface,
+        wi: Vec3,
+        weight: Vec3,
+        kind: RayKind,
+        pdf: f32,
+        sink: &mut impl Sink,
+    ) {
+        if !weight.is_finite() || weight.max_element() <= 0.0 || !wi.is_finite() {
+            return;
+        }
+        let side = if surf.ng.dot(wi) >= 0.0 {
+            surf.ng
+        } else {
+            -surf.ng
+        };
+        sink.spawn(RayState {
+            origin: offset_ray_origin(surf.p, side),
+            dir: wi,
+            tmax: f32::INFINITY,
+            depth: ray.depth + 1,
+            kind,
+            weight,
+            bsdf_pdf: pdf,
+            ..*ray
+        });
+    }
+
+    /// Path tracing: one light sample (MIS-weighted), then one BSDF sample with Russian
+    /// roulette.
+    fn path_step(
+        &self,
+        ray: &RayState,
+        surf: &Surface,
+        bsdf: &Bsdf,
+        wo: Vec3,
+        key: PathKey,
+        sink: &mut impl Sink,
+    ) {
+        let depth = ray.depth;
+        if depth + 1 > self.settings.max_depth {
+            return;
+        }
+        let effects = self.settings.effects;
+        let nee = effects.contains(Effect::DirectLight)
+            && !bsdf.is_delta_only()
+            && !self.lights.is_empty();
+        if nee {
+            let u_sel = key.uniform(depth, Purpose::LightSelect, 0);
+            let u = key.uniform2(depth, Purpose::LightPoint, 0);
+            if let Some(ls) = self.lights.sample(self.scene, surf.p, u_sel, u) {
+                let f = bsdf.eval(wo, ls.wi);
+                let w = if ls.delta {
+                    1.0
+                } else {
+                    power_heuristic(ls.pdf, bsdf.pdf(wo, ls.wi))
+                };
+                let c = ray.weight * f * surf.n.dot(ls.wi).abs() * ls.li * (w / ls.pdf);
+                if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
+                    sink.spawn(s);
+                }
+            }
+        }
+        let u_lobe = key.uniform(depth, Purpose::BsdfLobe, 0);
+        let u = key.uniform2(depth, Purpose::BsdfDirection, 0);
+        let Some(bs) = bsdf.sample(wo, u_lobe, u) else {
+            return;
+        };
+        let mut weight = ray.weight * bs.f * surf.n.dot(bs.wi).abs() / bs.pdf;
+        // Russian roulette after three bounces.
+        if depth >= 3 {
+            let q = weight.max_element().min(0.95);
+            if key.uniform(depth, Purpose::Roulette, 0) >= q {
+                return;
+            }
+            weight /= q;
+        }
+        let kind = match bs.lobe {
+            Lobe::Diffuse => RayKind::Diffuse,
+            Lobe::GlossyReflection | Lobe::SpecularReflection => RayKind::Reflection,
+            Lobe::SpecularTransmission | Lobe::GlossyTransmission => RayKind::Refraction,
+        };
+        let pdf = if bs.delta || !nee { 0.0 } else { bs.pdf };
+        self.spawn_bounce(ray, surf, bs.wi, weight, kind, pdf, sink);
+    }
+}

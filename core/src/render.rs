@@ -1,0 +1,172 @@
+//! The single-process driver: deals tiles to a thread pool and runs every ray of a tile
+//! through the integrator's steps against one BVH. Tiles accumulate into their own
+//! fixed-point buffers and merge into the film with integer additions, so the image is
+//! identical for any thread count.
+
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use crate::bvh::Accel;
+use crate::film::{Film, to_fixed};
+use crate::integrator::{Integrator, RayKind, RayState, Sink};
+
+/// Tile edge in pixels.
+pub const TILE: u32 = 32;
+
+/// Rays traced, by kind.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct RayCounts(pub [u64; RayKind::COUNT]);
+
+impl RayCounts {
+    pub fn total(&self) -> u64 {
+        self.0.iter().sum()
+    }
+    pub fn get(&self, k: RayKind) -> u64 {
+        self.0[k as usize]
+    }
+}
+
+#[derive(Clone, Debug)]
+pub struct RenderOutput {
+    pub film: Film,
+    pub rays: RayCounts,
+    pub render_time: Duration,
+}
+
+/// A rectangle of pixels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Tile {
+    pub x0: u32,
+    pub y0: u32,
+    pub w: u32,
+    pub h: u32,
+}
+
+/// Cut a `width` x `height` image into tiles of at most `TILE` pixels a side, row-major.
+pub fn tiles(width: u32, height: u32) -> Vec<Tile> {
+    let mut out = Vec::new();
+    for y0 in (0..height).step_by(TILE as usize) {
+        for x0 in (0..width).step_by(TILE as usize) {
+            out.push(Tile {
+                x0,
+                y0,
+                w: TILE.min(width - x0),
+                h: TILE.min(height - y0),
+            });
+        }
+    }
+    out
+}
+
+struct TileSink {
+    tile: Tile,
+    width: u32,
+    sums: Vec<[i64; 3]>,
+    nonfinite: u64,
+    stack: Vec<RayState>,
+}
+
+impl Sink for TileSink {
+    fn contribute(&mut self, pixel: u32, value: Vec3) {
+        let (x, y) = (pixel % self.width, pixel / self.width);
+        let (lx, ly) = (x.wrapping_sub(self.tile.x0), y.wrapping_sub(self.tile.y0));
+        if lx >= self.tile.w || ly >= self.tile.h {
+            return;
+        }
+        match to_fixed(value) {
+            Some(f) => {
+                let s = &mut self.sums[(ly * self.tile.w + lx) as usize];
+                for c in 0..3 {
+                    s[c] = s[c].wrapping_add(f[c]);
+                }
+            }
+            None => self.nonfinite += 1,
+        }
+    }
+
+    fn spawn(&mut self, ray: RayState) {
+        self.stack.push(ray);
+    }
+}
+
+/// Render the whole image with `threads` worker threads (0 = all cores).
+/// `progress` is called with (tiles done, tiles total) after every tile.
+pub fn render(
+    integrator: &Integrator<'_>,
+    accel: &Accel,
+    threads: usize,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<RenderOutput, rayon::ThreadPoolBuildError> {
+    let s = &integrator.settings;
+    let (width, height, spp) = (s.width, s.height, s.spp);
+    let tiles = tiles(width, height);
+    let film = Mutex::new(Film::new(width, height));
+    let counts: Vec<AtomicU64> = (0..RayKind::COUNT).map(|_| AtomicU64::new(0)).collect();
+    let done = AtomicU64::new(0);
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()?;
+    let start = Instant::now();
+    pool.install(|| {
+        tiles.par_iter().for_each(|tile| {
+            let _span = tracing::trace_span!("tile", x = tile.x0, y = tile.y0).entered();
+            let mut sink = TileSink {
+                tile: *tile,
+                width,
+                sums: vec![[0; 3]; (tile.w * tile.h) as usize],
+                nonfinite: 0,
+                stack: Vec::with_capacity(64),
+            };
+            let mut local = [0u64; RayKind::COUNT];
+            for y in tile.y0..tile.y0 + tile.h {
+                for x in tile.x0..tile.x0 + tile.w {
+                    let pixel = y * width + x;
+                    for sample in 0..spp {
+                        sink.stack.push(integrator.camera_ray(pixel, sample));
+                        while let Some(ray) = sink.stack.pop() {
+                            local[ray.kind as usize] += 1;
+                            if ray.kind.is_occlusion() {
+                                let occ = integrator.occluded(accel, &ray);
+                                integrator.shadow_result(&ray, occ, &mut sink);
+                            } else {
+                                match integrator.intersect(accel, &ray) {
+                                    Some(hit) => integrator.shade_hit(&ray, &hit, &mut sink),
+                                    None => integrator.shade_miss(&ray, &mut sink),
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+            for (c, n) in counts.iter().zip(local) {
+                c.fetch_add(n, Ordering::Relaxed);
+            }
+            {
+                let mut f = film.lock().unwrap_or_else(|p| p.into_inner());
+                for ly in 0..tile.h {
+                    for lx in 0..tile.w {
+                        let pixel = (tile.y0 + ly) * width + tile.x0 + lx;
+                        f.add_fixed(pixel, sink.sums[(ly * tile.w + lx) as usize]);
+                    }
+                }
+                f.nonfinite += sink.nonfinite;
+            }
+            let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+            progress(d as usize, tiles.len());
+        });
+    });
+    let render_time = start.elapsed();
+    let mut rays = RayCounts::default();
+    for (i, c) in counts.iter().enumerate() {
+        rays.0[i] = c.load(Ordering::Relaxed);
+    }
+    Ok(RenderOutput {
+        film: film.into_inner().unwrap_or_else(|p| p.into_inner()),
+        rays,
+        render_time,
+    })
+}

@@ -1,0 +1,187 @@
+//! What a ray sees where it hits: position, normals, texture coordinates and the material
+//! evaluated there (textures applied).
+
+use glam::{Vec2, Vec3, Vec4};
+
+use crate::bvh::Hit;
+use crate::effects::{Effect, Effects};
+use crate::material::{AlphaMode, Material, TexRef};
+use crate::scene::Scene;
+
+/// A hit point with everything shading needs.
+#[derive(Clone, Copy, Debug)]
+pub struct Surface {
+    /// World position, from barycentrics (more accurate than origin + t * dir).
+    pub p: Vec3,
+    /// Unit geometric normal, facing the incoming ray's origin.
+    pub ng: Vec3,
+    /// Unit shading normal on the same side as `ng`.
+    pub n: Vec3,
+    pub uv: Vec2,
+    /// Whether the ray hit the front face (counter-clockwise winding, glTF convention).
+    pub front: bool,
+    pub tri: u32,
+    pub material: u32,
+}
+
+/// Material values at a surface point, after textures.
+#[derive(Clone, Copy, Debug)]
+pub struct ShadingValues {
+    pub base_color: Vec3,
+    pub alpha: f32,
+    pub metallic: f32,
+    pub roughness: f32,
+    pub specular: f32,
+    pub specular_color: Vec3,
+    pub transmission: f32,
+    pub ior: f32,
+    pub emission: Vec3,
+}
+
+fn tex(scene: &Scene, r: Option<TexRef>, uv: Vec2, srgb: bool) -> Vec4 {
+    match r.and_then(|r| scene.textures.get(r.texture as usize)) {
+        Some(t) => t.sample(uv, srgb),
+        None => Vec4::ONE,
+    }
+}
+
+/// Interpolated UV of triangle `tri` at barycentrics.
+pub fn interpolate_uv(scene: &Scene, tri: u32, b: [f32; 3]) -> Vec2 {
+    let idx = scene.mesh.indices[tri as usize];
+    let uvs = &scene.mesh.uvs;
+    uvs[idx[0] as usize] * b[0] + uvs[idx[1] as usize] * b[1] + uvs[idx[2] as usize] * b[2]
+}
+
+/// Alpha of a surface point (base colour alpha times texture alpha).
+pub fn alpha_at(scene: &Scene, m: &Material, uv: Vec2) -> f32 {
+    m.base_color.w * tex(scene, m.base_color_tex, uv, true).w
+}
+
+impl Surface {
+    /// Build the surface for `hit` on a ray travelling along `dir`.
+    pub fn new(scene: &Scene, hit: &Hit, dir: Vec3, effects: Effects) -> Surface {
+        let mesh = &scene.mesh;
+        let idx = mesh.indices[hit.tri as usize];
+        let [a, b, c] = idx.map(|i| mesh.positions[i as usize]);
+        let bary = [hit.b0, hit.b1, hit.b2];
+        let p = a * bary[0] + b * bary[1] + c * bary[2];
+        let mut ng = (b - a).cross(c - a).normalize_or_zero();
+        if ng == Vec3::ZERO {
+            ng = -dir;
+        }
+        let front = ng.dot(dir) < 0.0;
+        if !front {
+            ng = -ng;
+        }
+        let ns = idx.map(|i| mesh.normals[i as usize]);
+        let mut n = (ns[0] * bary[0] + ns[1] * bary[1] + ns[2] * bary[2]).normalize_or_zero();
+        let uv = interpolate_uv(scene, hit.tri, bary);
+        let material = mesh.material[hit.tri as usize];
+        if let Some(m) = scene.materials.get(material as usize)
+            && effects.contains(Effect::Textures)
+            && let Some(nt) = m.normal_tex
+            && n != Vec3::ZERO
+        {
+            let ts = idx.map(|i| mesh.tangents[i as usize]);
+            let t4 = ts[0] * bary[0] + ts[1] * bary[1] + ts[2] * bary[2];
+            let t = (t4.truncate() - n * n.dot(t4.truncate())).normalize_or_zero();
+            if t != Vec3::ZERO {
+                let sign = if ts[0].w < 0.0 { -1.0 } else { 1.0 };
+                let bt = n.cross(t) * sign;
+                let s = tex(scene, Some(nt), uv, false);
+                let k = Vec3::new(
+                    (s.x * 2.0 - 1.0) * m.normal_scale,
+                    (s.y * 2.0 - 1.0) * m.normal_scale,
+                    s.z * 2.0 - 1.0,
+                );
+                let mapped = (t * k.x + bt * k.y + n * k.z).normalize_or_zero();
+                if mapped != Vec3::ZERO {
+                    n = mapped;
+                }
+            }
+        }
+        if n == Vec3::ZERO {
+            n = ng;
+        } else if n.dot(ng) < 0.0 {
+            n = -n;
+        }
+        Surface {
+            p,
+            ng,
+            n,
+            uv,
+            front,
+            tri: hit.tri,
+            material,
+        }
+    }
+
+    /// Evaluate the material at this point. Effects switched off are removed here, so
+    /// no integrator can spawn their rays.
+    pub fn shading(&self, scene: &Scene, effects: Effects) -> ShadingValues {
+        let fallback = Material::default();
+        let m = scene
+            .materials
+            .get(self.material as usize)
+            .unwrap_or(&fallback);
+        let textured = effects.contains(Effect::Textures);
+        let t = |r: Option<TexRef>, srgb: bool| {
+            if textured {
+                tex(scene, r, self.uv, srgb)
+            } else {
+                Vec4::ONE
+            }
+        };
+        let bc = m.base_color * t(m.base_color_tex, true);
+        let mr = t(m.metallic_roughness_tex, false);
+        let mut v = ShadingValues {
+            base_color: bc.truncate().max(Vec3::ZERO),
+            alpha: bc.w,
+            metallic: (m.metallic * mr.z).clamp(0.0, 1.0),
+            roughness: (m.roughness * mr.y).clamp(0.0, 1.0),
+            specular: (m.specular * t(m.specular_tex, false).w).clamp(0.0, 1.0),
+            specular_color: (m.specular_color * t(m.specular_color_tex, true).truncate())
+                .max(Vec3::ZERO),
+            transmission: (m.transmission * t(m.transmission_tex, false).x).clamp(0.0, 1.0),
+            ior: if m.ior.is_finite() && m.ior >= 1.0 {
+                m.ior
+            } else {
+                1.5
+            },
+            emission: (m.emissive * t(m.emissive_tex, true).truncate()).max(Vec3::ZERO),
+        };
+        if !m.double_sided && !self.front {
+            // Back faces of single-sided surfaces do not emit.
+            v.emission = Vec3::ZERO;
+        }
+        if !effects.contains(Effect::Emission) {
+            v.emission = Vec3::ZERO;
+        }
+        if !effects.contains(Effect::Specular) {
+            v.metallic = 0.0;
+            v.specular = 0.0;
+        }
+        if !effects.contains(Effect::Transmission) {
+            v.transmission = 0.0;
+        }
+        v
+    }
+}
+
+/// Whether a hit on triangle `tri` at `uv` is a real surface, given its material's alpha
+/// mode. `u` is the stochastic-alpha random number for blended materials.
+pub fn alpha_passes(scene: &Scene, tri: u32, uv: Vec2, u: f32) -> bool {
+    let Some(m) = scene
+        .mesh
+        .material
+        .get(tri as usize)
+        .and_then(|&i| scene.materials.get(i as usize))
+    else {
+        return true;
+    };
+    match m.alpha_mode {
+        AlphaMode::Opaque => true,
+        AlphaMode::Mask { cutoff } => alpha_at(scene, m, uv) >= cutoff,
+        AlphaMode::Blend => u < alpha_at(scene, m, uv),
+    }
+}

@@ -1,0 +1,158 @@
+//! `grid:SPEC:XxYxZ`: any scene replicated on a regular grid.
+//!
+//! The way to turn one model into a scene of chosen size with real spatial structure
+//! (like the bunny grids of ray-cache studies): copies are spaced 1.2x the model's extent
+//! per axis, so they never touch and rays cross many copies.
+
+use dray_core::light::Light;
+use dray_core::scene::Scene;
+use glam::Vec3;
+
+use super::{MAX_TRIANGLES, frame, parse_count, spec_error};
+use crate::error::Result;
+
+/// At most a million copies, whatever the model: beyond that the per-copy overhead alone
+/// is unreasonable and the spec is almost certainly a typo.
+const MAX_COPIES: u64 = 1_000_000;
+/// How many grids may be nested (`grid:grid:...`). The inner scene is loaded through the
+/// caller's recursive `load`, so without a bound a long enough spec would overflow the
+/// stack; two or three levels are all anyone needs.
+const MAX_NESTING: usize = 4;
+/// Gap factor between copies.
+const SPACING: f32 = 1.2;
+
+/// Parse `XxYxZ`.
+fn parse_dims(spec: &str, text: &str) -> Result<[u64; 3]> {
+    let parts: Vec<&str> = text.split('x').collect();
+    let [x, y, z] = parts.as_slice() else {
+        return Err(spec_error(
+            spec,
+            format!("grid size must be XxYxZ (e.g. 3x3x3), got {text:?}"),
+        ));
+    };
+    let mut dims = [0; 3];
+    for (d, (part, axis)) in dims.iter_mut().zip([(x, "X"), (y, "Y"), (z, "Z")]) {
+        *d = parse_count(spec, &format!("grid size {axis}"), part, 1, MAX_COPIES)?;
+    }
+    Ok(dims)
+}
+
+pub(super) fn generate(
+    spec: &str,
+    args: Option<&str>,
+    load: &dyn Fn(&str) -> Result<Scene>,
+) -> Result<Scene> {
+    let usage = "expected grid:<scene>:XxYxZ, e.g. grid:cornell:3x3x3";
+    let mut nesting = 0;
+    let mut rest = spec;
+    while let Some(inner) = rest.strip_prefix("grid:") {
+        nesting += 1;
+        rest = inner;
+        if nesting > MAX_NESTING {
+            return Err(spec_error(
+                spec,
+                format!("grids nest at most {MAX_NESTING} deep"),
+            ));
+        }
+    }
+    let Some((inner, dims)) = args.and_then(|a| a.rsplit_once(':')) else {
+        return Err(spec_error(spec, usage));
+    };
+    if inner.is_empty() {
+        return Err(spec_error(
+            spec,
+            format!("missing scene to replicate; {usage}"),
+        ));
+    }
+    let dims = parse_dims(spec, dims)?;
+    let copies = dims
+        .iter()
+        .try_fold(1u64, |acc, &d| acc.checked_mul(d))
+        .filter(|&c| c <= MAX_COPIES)
+        .ok_or_else(|| {
+            spec_error(
+                spec,
+                format!(
+                    "{}x{}x{} copies exceed the cap of {MAX_COPIES}",
+                    dims[0], dims[1], dims[2]
+                ),
+            )
+        })?;
+
+    let base = load(inner)?;
+    let tris = base.mesh.triangle_count() as u64;
+    if tris == 0 {
+        return Err(spec_error(
+            spec,
+            format!("scene {inner:?} has no triangles"),
+        ));
+    }
+    let total = copies.saturating_mul(tris);
+    if total > MAX_TRIANGLES {
+        return Err(spec_error(
+            spec,
+            format!(
+                "{copies} copies of {tris} triangles is {total}, over the cap of {MAX_TRIANGLES}"
+            ),
+        ));
+    }
+    let verts = base.mesh.positions.len() as u64;
+    if copies.saturating_mul(verts) > u32::MAX as u64 {
+        return Err(spec_error(
+            spec,
+            format!("{copies} copies of {verts} vertices exceed 2^32 vertices"),
+        ));
+    }
+
+    let (lo, hi) = base.bounds();
+    // A flat model (a single quad) would otherwise get zero spacing on its thin axis.
+    let extent = (hi - lo).max(Vec3::splat((hi - lo).max_element() * 0.1));
+    let step = extent * SPACING;
+
+    let mut scene = Scene {
+        name: spec.to_string(),
+        materials: base.materials,
+        textures: base.textures,
+        lights: base.lights,
+        environment: base.environment,
+        stats: base.stats,
+        ..Scene::default()
+    };
+    let mesh = &mut scene.mesh;
+    let n = base.mesh.positions.len();
+    mesh.positions.reserve(n * copies as usize);
+    mesh.normals.reserve(n * copies as usize);
+    mesh.tangents.reserve(n * copies as usize);
+    mesh.uvs.reserve(n * copies as usize);
+    mesh.indices
+        .reserve(base.mesh.indices.len() * copies as usize);
+    mesh.material
+        .reserve(base.mesh.material.len() * copies as usize);
+    for iz in 0..dims[2] {
+        for iy in 0..dims[1] {
+            for ix in 0..dims[0] {
+                let offset = Vec3::new(ix as f32, iy as f32, iz as f32) * step;
+                let start = mesh.positions.len();
+                // All copies share the model's materials, hence offset 0.
+                mesh.append(&base.mesh, 0);
+                for p in &mut mesh.positions[start..] {
+                    *p += offset;
+                }
+            }
+        }
+    }
+
+    // Lights are kept once (at the first copy): replicating them would multiply the light
+    // count with the grid and change the lighting problem, not just its size.
+    if scene.lights.is_empty() {
+        scene.lights.push(Light::Directional {
+            direction: Vec3::new(-0.4, -1.0, -0.5).normalize(),
+            irradiance: Vec3::splat(3.0),
+        });
+    }
+    let (lo, hi) = scene.bounds();
+    scene
+        .cameras
+        .push(frame("grid", lo, hi, Vec3::new(0.55, 0.45, 1.0), 40.0));
+    Ok(scene)
+}
