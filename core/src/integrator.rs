@@ -326,7 +326,9 @@ impl<'a> Integrator<'a> {
         match self.settings.integrator {
             IntegratorKind::Path => self.path_step(ray, &surf, &bsdf, wo, key, sink),
             IntegratorKind::Raycast | IntegratorKind::Whitted => {
-                self.direct_all(ray, &surf, &bsdf, wo, key, sink);
+                if self.settings.effects.contains(Effect::DirectLight) && !bsdf.is_delta_only() {
+                    self.direct_light(ray, &surf, &bsdf, wo, key, false, sink);
+                }
                 // Unshadowed ambient light from the constant environment: raycast and
                 // Whitted trace no rays toward the sky, so this keeps unlit scenes legible.
                 let env = self.env();
@@ -389,28 +391,17 @@ impl<'a> Integrator<'a> {
         })
     }
 
-    /// Raycast and Whitted direct light: every punctual light plus one emissive-triangle
-    /// sample, each with its own shadow ray.
-    fn direct_all(
-        &self,
-        ray: &RayState,
-        surf: &Surface,
-        bsdf: &Bsdf,
-        wo: Vec3,
-        key: PathKey,
-        sink: &mut impl Sink,
-    ) {
-        if !self.settings.effects.contains(Effect::DirectLight) || bsdf.is_delta_only() {
-            return;
-        }
+    /// Direct light: every punctual light with its own shadow ray (they are few and
+    /// cheap, and sampling one by power starves dim-but-near lights), plus one
+    /// emissive-triangle sample chosen by power. With `mis`, the area sample is weighted
+    /// against BSDF sampling (path tracing); raycast and Whitted take it at full weight.
+    #[allow(clippy::too_many_arguments)]
+    fn direct_light(&self, ray: &RayState, surf: &Surface, bsdf: &Bsdf, wo: Vec3, key: PathKey, mis: bool, sink: &mut impl Sink) {
         for (e, r) in self.lights.entries().iter().enumerate() {
             if let LightRef::Punctual(_) = r
-                && let Some(ls) = self
-                    .lights
-                    .sample_entry(self.scene, e, 1.0, surf.p, Vec2::ZERO)
+                && let Some(ls) = self.lights.sample_entry(self.scene, e, 1.0, surf.p, Vec2::ZERO)
             {
-                let c =
-                    ray.weight * bsdf.eval(wo, ls.wi) * surf.n.dot(ls.wi).abs() * ls.li / ls.pdf;
+                let c = ray.weight * bsdf.eval(wo, ls.wi) * surf.n.dot(ls.wi).abs() * ls.li / ls.pdf;
                 if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
                     sink.spawn(s);
                 }
@@ -420,8 +411,8 @@ impl<'a> Integrator<'a> {
         if let Some((e, p)) = self.lights.choose_area(u_sel) {
             let u = key.uniform2(ray.depth, Purpose::LightPoint, 0);
             if let Some(ls) = self.lights.sample_entry(self.scene, e, p, surf.p, u) {
-                let c =
-                    ray.weight * bsdf.eval(wo, ls.wi) * surf.n.dot(ls.wi).abs() * ls.li / ls.pdf;
+                let w = if mis { power_heuristic(ls.pdf, bsdf.pdf(wo, ls.wi)) } else { 1.0 };
+                let c = ray.weight * bsdf.eval(wo, ls.wi) * surf.n.dot(ls.wi).abs() * ls.li * (w / ls.pdf);
                 if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
                     sink.spawn(s);
                 }
@@ -517,20 +508,7 @@ impl<'a> Integrator<'a> {
             && !bsdf.is_delta_only()
             && !self.lights.is_empty();
         if nee {
-            let u_sel = key.uniform(depth, Purpose::LightSelect, 0);
-            let u = key.uniform2(depth, Purpose::LightPoint, 0);
-            if let Some(ls) = self.lights.sample(self.scene, surf.p, u_sel, u) {
-                let f = bsdf.eval(wo, ls.wi);
-                let w = if ls.delta {
-                    1.0
-                } else {
-                    power_heuristic(ls.pdf, bsdf.pdf(wo, ls.wi))
-                };
-                let c = ray.weight * f * surf.n.dot(ls.wi).abs() * ls.li * (w / ls.pdf);
-                if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
-                    sink.spawn(s);
-                }
-            }
+            self.direct_light(ray, surf, bsdf, wo, key, true, sink);
         }
         let u_lobe = key.uniform(depth, Purpose::BsdfLobe, 0);
         let u = key.uniform2(depth, Purpose::BsdfDirection, 0);

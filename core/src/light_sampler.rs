@@ -267,14 +267,18 @@ impl LightSampler {
         self.sample_entry(scene, e, pmf, p, u)
     }
 
-    /// The solid-angle pdf with which [`LightSampler::sample`] would have produced the
+    /// The solid-angle pdf with which the area-light sample of the integrators
+    /// ([`LightSampler::choose_area`] then [`LightSampler::sample_entry`]) would have produced the
     /// point `q` (normal `nq`) on emissive triangle `tri`, seen from `p`. Zero when the
     /// triangle is not in the table.
     pub fn pdf_triangle(&self, scene: &Scene, tri: u32, p: Vec3, q: Vec3) -> f32 {
         let Ok(k) = self.tri_entry.binary_search_by_key(&tri, |&(t, _)| t) else {
             return 0.0;
         };
-        let entry = self.tri_entry[k].1 as usize;
+        let entry = self.tri_entry[k].1;
+        let Ok(ai) = self.area_entries.binary_search(&entry) else {
+            return 0.0;
+        };
         let [a, b, c] = scene.mesh.corners(tri as usize);
         let cross = (b - a).cross(c - a);
         let area = 0.5 * cross.length();
@@ -285,7 +289,7 @@ impl LightSampler {
         if area <= 0.0 || cos_l <= 1e-7 {
             return 0.0;
         }
-        let pdf = self.pmf[entry] * dist2 / (area * cos_l);
+        let pdf = self.area_pmf[ai] * dist2 / (area * cos_l);
         if pdf.is_finite() { pdf } else { 0.0 }
     }
 
