@@ -169,3 +169,48 @@ def machine_info() -> dict:
         "loadavg_at_start": [round(x, 2) for x in os.getloadavg()],
         "dray_git": git_rev(),
     }
+
+
+def _cpu_jiffies() -> tuple[int, int]:
+    """(busy, total) jiffies over all cores from /proc/stat."""
+    with open("/proc/stat") as f:
+        vals = [int(x) for x in f.readline().split()[1:]]
+    idle = vals[3] + (vals[4] if len(vals) > 4 else 0)
+    total = sum(vals[:8])
+    return total - idle, total
+
+
+class OtherLoad:
+    """How busy the machine was with processes other than this one and its children.
+
+    Reported as the average number of cores used by others while the benchmark ran:
+    (all CPU time on the machine - ours) / wall time. Anything well above 0 means the
+    timings were disturbed by other work on the machine.
+    """
+
+    def __init__(self) -> None:
+        self.t0 = time.perf_counter()
+        self.busy0, _ = _cpu_jiffies()
+        self.ours0 = self._ours()
+
+    @staticmethod
+    def _ours() -> float:
+        s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+        return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
+
+    def cores(self) -> float:
+        wall = time.perf_counter() - self.t0
+        busy = (_cpu_jiffies()[0] - self.busy0) / os.sysconf("SC_CLK_TCK")
+        return max(0.0, (busy - (self._ours() - self.ours0)) / max(wall, 1e-9))
+
+
+def idle_check(seconds: float = 2.0) -> float:
+    """Cores busy (all processes) over `seconds` before we start; warns when the machine is not idle."""
+    b0, t0 = _cpu_jiffies()
+    time.sleep(seconds)
+    b1, t1 = _cpu_jiffies()
+    busy_cores = (b1 - b0) / max(t1 - t0, 1) * (os.cpu_count() or 1)
+    if busy_cores > 0.15:
+        log(f"WARNING: the machine is not idle ({busy_cores:.2f} cores busy before the start); "
+            "timings will be disturbed")
+    return busy_cores

@@ -266,7 +266,8 @@ def fetch_llvm(dest: Path) -> tuple[Path | None, str]:
     p = subprocess.run(["apt-get", "download", LLVM_DEB], cwd=dest, capture_output=True, text=True)
     debs = list(dest.glob(f"{LLVM_DEB}_*.deb"))
     if p.returncode != 0 or not debs:
-        return None, f"`apt-get download {LLVM_DEB}` failed (exit {p.returncode}): {p.stderr.strip()[-300:]}"
+        return None, (f"`apt-get download {LLVM_DEB}` failed (exit {p.returncode}; run `apt-get update` first?): "
+                      f"{p.stderr.strip()[-300:]}")
     subprocess.run(["dpkg-deb", "-x", str(debs[0]), str(dest)], check=True)
     debs[0].unlink()
     lib = next(dest.glob("usr/lib/*/libLLVM.so.19*"), None)
@@ -355,6 +356,8 @@ def main() -> None:
     base_cfg = {"ply": str(mesh["ply"]), "camera": [list(v) for v in cam]}
 
     info = env.machine_info()
+    info["busy_cores_before_start"] = round(env.idle_check(), 2)
+    load = env.OtherLoad()
     info["packages"] = env.package_versions(["mitsuba", "drjit", "flip-evaluator", "numpy"])
     res = {"machine": info, "scene": {"mesh": spec, "triangles": mesh["triangles"], "width": WIDTH,
                                       "height": HEIGHT, "spp": args.spp, "ref_spp": args.ref_spp,
@@ -457,6 +460,7 @@ def main() -> None:
     for h in args.out.glob("drjit_home_*"):
         shutil.rmtree(h, ignore_errors=True)
 
+    info["other_processes_cores_during_run"] = round(load.cores(), 2)
     (args.out / "results.json").write_text(json.dumps(res, indent=2, default=str) + "\n")
     report(res, args)
 
@@ -467,6 +471,8 @@ def report(res: dict, args) -> None:
           f"{WIDTH}x{HEIGHT}, {args.spp} spp, Mitsuba max_depth {MITSUBA_MAX_DEPTH} = dray --max-depth {DRAY_MAX_DEPTH}")
     print(f"# {m['cpu_model']}, nproc {m['nproc']}, {m['date']}, cores {args.cores}, {args.threads} threads each, "
           f"dray {m['dray_git']}, mitsuba {m['packages']['mitsuba']}, drjit {m['packages']['drjit']}")
+    print(f"# other processes used {m['other_processes_cores_during_run']:.2f} cores on average during the run "
+          f"({m['busy_cores_before_start']:.2f} busy just before it)")
     d = res["dray"]
     print("| renderer | cold (s) | warm (s) | warm render only (s) | CPU/wall (cores busy) | note |")
     print("|---|---:|---:|---:|---:|---|")

@@ -58,7 +58,7 @@ pub struct RenderArgs {
     pub stats: Option<PathBuf>,
     /// Force effects on or off, e.g. "+specular,-transmission" (names: direct_light,
     /// specular, transmission, emission, textures, alpha, environment).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     pub effects: Option<String>,
     /// Rays per hit for the ao integrator.
     #[arg(long, default_value_t = 16)]
@@ -66,6 +66,10 @@ pub struct RenderArgs {
     /// Occlusion distance for the ao integrator (default: unlimited).
     #[arg(long)]
     pub ao_distance: Option<f32>,
+    /// Exposure in stops for the PNG (radiance is scaled by 2^EV; the EXR stays linear).
+    /// Scenes in photometric units, such as a 68000-lux sun, want about -16.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub exposure: f32,
     /// Move the whole scene by "X,Y,Z" before rendering (tests precision far from the origin).
     #[arg(long)]
     pub translate: Option<String>,
@@ -88,11 +92,14 @@ fn check_args(a: &RenderArgs) -> Result<IntegratorKind> {
     if a.max_depth == 0 || a.max_depth > 1024 {
         bail!("--max-depth {} is out of range (1..=1024)", a.max_depth);
     }
+    if !a.exposure.is_finite() || a.exposure.abs() > 64.0 {
+        bail!("--exposure {} is out of range (-64..=64 stops)", a.exposure);
+    }
     if a.ao_samples == 0 || a.ao_samples > 4096 {
         bail!("--ao-samples {} is out of range (1..=4096)", a.ao_samples);
     }
     if let Some(d) = a.ao_distance
-        && !(d > 0.0)
+        && (d.is_nan() || d <= 0.0)
     {
         bail!("--ao-distance must be positive, got {d}");
     }
@@ -220,7 +227,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         b.finish_and_clear();
     }
     out.film
-        .write_png(&a.output, a.spp)
+        .write_png(&a.output, a.spp, 2f32.powf(a.exposure))
         .with_context(|| format!("cannot write {}", a.output.display()))?;
     if let Some(p) = &a.exr {
         out.film

@@ -107,10 +107,11 @@ impl Film {
             .collect()
     }
 
-    /// 8-bit sRGB pixels (clamped to [0,1] before encoding).
-    pub fn srgb8(&self, spp: u32) -> Vec<u8> {
+    /// 8-bit sRGB pixels of radiance times `scale` (clamped to [0,1] before encoding).
+    pub fn srgb8(&self, spp: u32, scale: f32) -> Vec<u8> {
         let mut out = Vec::with_capacity(self.sums.len() * 3);
         for p in self.linear(spp) {
+            let p = p * scale;
             for c in [p.x, p.y, p.z] {
                 out.push(linear_to_srgb8(c));
             }
@@ -118,8 +119,9 @@ impl Film {
         out
     }
 
-    pub fn write_png(&self, path: &Path, spp: u32) -> Result<(), FilmError> {
-        let buf = self.srgb8(spp);
+    /// Write an 8-bit sRGB PNG of radiance times `scale` (2^exposure).
+    pub fn write_png(&self, path: &Path, spp: u32, scale: f32) -> Result<(), FilmError> {
+        let buf = self.srgb8(spp, scale);
         image::save_buffer(
             path,
             &buf,

@@ -396,12 +396,24 @@ impl<'a> Integrator<'a> {
     /// emissive-triangle sample chosen by power. With `mis`, the area sample is weighted
     /// against BSDF sampling (path tracing); raycast and Whitted take it at full weight.
     #[allow(clippy::too_many_arguments)]
-    fn direct_light(&self, ray: &RayState, surf: &Surface, bsdf: &Bsdf, wo: Vec3, key: PathKey, mis: bool, sink: &mut impl Sink) {
+    fn direct_light(
+        &self,
+        ray: &RayState,
+        surf: &Surface,
+        bsdf: &Bsdf,
+        wo: Vec3,
+        key: PathKey,
+        mis: bool,
+        sink: &mut impl Sink,
+    ) {
         for (e, r) in self.lights.entries().iter().enumerate() {
             if let LightRef::Punctual(_) = r
-                && let Some(ls) = self.lights.sample_entry(self.scene, e, 1.0, surf.p, Vec2::ZERO)
+                && let Some(ls) = self
+                    .lights
+                    .sample_entry(self.scene, e, 1.0, surf.p, Vec2::ZERO)
             {
-                let c = ray.weight * bsdf.eval(wo, ls.wi) * surf.n.dot(ls.wi).abs() * ls.li / ls.pdf;
+                let c =
+                    ray.weight * bsdf.eval(wo, ls.wi) * surf.n.dot(ls.wi).abs() * ls.li / ls.pdf;
                 if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
                     sink.spawn(s);
                 }
@@ -411,8 +423,16 @@ impl<'a> Integrator<'a> {
         if let Some((e, p)) = self.lights.choose_area(u_sel) {
             let u = key.uniform2(ray.depth, Purpose::LightPoint, 0);
             if let Some(ls) = self.lights.sample_entry(self.scene, e, p, surf.p, u) {
-                let w = if mis { power_heuristic(ls.pdf, bsdf.pdf(wo, ls.wi)) } else { 1.0 };
-                let c = ray.weight * bsdf.eval(wo, ls.wi) * surf.n.dot(ls.wi).abs() * ls.li * (w / ls.pdf);
+                let w = if mis {
+                    power_heuristic(ls.pdf, bsdf.pdf(wo, ls.wi))
+                } else {
+                    1.0
+                };
+                let c = ray.weight
+                    * bsdf.eval(wo, ls.wi)
+                    * surf.n.dot(ls.wi).abs()
+                    * ls.li
+                    * (w / ls.pdf);
                 if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
                     sink.spawn(s);
                 }

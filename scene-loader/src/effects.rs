@@ -47,11 +47,20 @@ pub fn analyze(scene: &Scene, environment: Vec3) -> Effects {
     fx
 }
 
-/// The default environment: black when the scene has lights or emitters (they light
-/// it), otherwise a uniform white sky of radiance [`DEFAULT_SKY`] so an unlit model still
-/// renders.
+/// The default environment: what the scene asks for if anything (procedural scenes set
+/// a dim sky); otherwise black when the scene has lights or emitters (they light it), and
+/// a uniform white sky of radiance [`DEFAULT_SKY`] so an unlit model still renders.
+///
+/// Emission driven by a texture (a glowing label, a screen) is surface detail rather than
+/// a light source: a model whose only emission is textured still gets the default sky.
 pub fn default_environment(scene: &Scene) -> Vec3 {
-    let emitters = scene.materials.iter().any(|m| m.has_emission());
+    if let Some(env) = scene.environment {
+        return env;
+    }
+    let emitters = scene
+        .materials
+        .iter()
+        .any(|m| m.has_emission() && m.emissive_tex.is_none());
     if scene.lights.is_empty() && !emitters {
         Vec3::splat(DEFAULT_SKY)
     } else {

@@ -1,0 +1,95 @@
+//! Shared helpers for the CLI tests: run the real `dray` binary, read what it wrote.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+pub struct Run {
+    pub ok: bool,
+    pub stderr: String,
+    pub stats: Option<serde_json::Value>,
+    pub png: Option<PathBuf>,
+}
+
+/// A fresh directory for one test.
+pub fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("dray-cli-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).expect("temp dir");
+    d
+}
+
+/// `dray render SCENE ARGS… --output DIR/TAG.png --stats DIR/TAG.json -q`.
+pub fn render(dir: &Path, tag: &str, scene: &str, args: &[&str]) -> Run {
+    let png = dir.join(format!("{tag}.png"));
+    let stats = dir.join(format!("{tag}.json"));
+    let out = Command::new(env!("CARGO_BIN_EXE_dray"))
+        .arg("render")
+        .arg(scene)
+        .args(args)
+        .arg("--output")
+        .arg(&png)
+        .arg("--stats")
+        .arg(&stats)
+        .arg("-q")
+        .output()
+        .expect("run dray");
+    let ok = out.status.success();
+    Run {
+        ok,
+        stderr: String::from_utf8_lossy(&out.stderr).into_owned(),
+        stats: ok
+            .then(|| std::fs::read_to_string(&stats).ok())
+            .flatten()
+            .and_then(|s| serde_json::from_str(&s).ok()),
+        png: ok.then_some(png),
+    }
+}
+
+pub fn rgb(path: &Path) -> image::RgbImage {
+    image::open(path).expect("decode png").to_rgb8()
+}
+
+pub fn rays(stats: &serde_json::Value, kind: &str) -> u64 {
+    stats["rays"][kind]
+        .as_u64()
+        .unwrap_or_else(|| panic!("no ray count {kind} in {stats}"))
+}
+
+/// An ASCII PLY of a closed box with a ground quad (no lights, no materials).
+pub fn write_box_ply(path: &Path) {
+    let v = [
+        (-1.0, 0.0, -1.0),
+        (1.0, 0.0, -1.0),
+        (1.0, 2.0, -1.0),
+        (-1.0, 2.0, -1.0),
+        (-1.0, 0.0, 1.0),
+        (1.0, 0.0, 1.0),
+        (1.0, 2.0, 1.0),
+        (-1.0, 2.0, 1.0),
+        (-5.0, 0.0, -5.0),
+        (5.0, 0.0, -5.0),
+        (5.0, 0.0, 5.0),
+        (-5.0, 0.0, 5.0),
+    ];
+    let f = [
+        [0, 3, 2, 1],
+        [4, 5, 6, 7],
+        [0, 4, 7, 3],
+        [1, 2, 6, 5],
+        [3, 7, 6, 2],
+        [8, 11, 10, 9],
+    ];
+    let mut s = format!(
+        "ply\nformat ascii 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nelement face {}\nproperty list uchar int vertex_indices\nend_header\n",
+        v.len(),
+        f.len()
+    );
+    for (x, y, z) in v {
+        s += &format!("{x} {y} {z}\n");
+    }
+    for q in f {
+        s += &format!("4 {} {} {} {}\n", q[0], q[1], q[2], q[3]);
+    }
+    std::fs::write(path, s).expect("write ply");
+}
