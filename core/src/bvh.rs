@@ -122,13 +122,29 @@ impl Accel {
         } else {
             f32::INFINITY
         };
-        let r = Ray::new(
-            Vec3A::from(o),
-            Vec3A::from(ray.dir),
-            ray.tmin * self.scale,
+        // obvhs picks slab order from `direction < 0` but its own inverse uses the sign
+        // bit, so -0.0 would flip a slab and lose the box: fold signed zeros to +0.0.
+        // Its inverse also caps at 1/f32::EPSILON, which under-estimates slab distances
+        // for nearly axis-parallel rays; use the true inverse, capped far beyond any
+        // distance in accelerator space (and far from f32 overflow after quantisation).
+        let dir = ray.dir + Vec3::ZERO;
+        let inv = |d: f32| {
+            if d.abs() >= 1e-28 {
+                1.0 / d
+            } else if d < 0.0 {
+                -1e28
+            } else {
+                1e28
+            }
+        };
+        let r = Ray {
+            origin: Vec3A::from(o),
+            direction: Vec3A::from(dir),
+            inv_direction: Vec3A::new(inv(dir.x), inv(dir.y), inv(dir.z)),
+            tmin: ray.tmin * self.scale,
             tmax,
-        );
-        (r, WatertightRay::new(o, ray.dir))
+        };
+        (r, WatertightRay::new(o, dir))
     }
 
     /// The closest hit in (tmin, tmax) that `accept` agrees to. Ties in distance go to the
