@@ -64,8 +64,15 @@ pub struct Accel {
 }
 
 impl Accel {
-    /// Build over every triangle of `mesh`.
+    /// Build over every triangle of `mesh`; hits report the mesh's triangle indices.
     pub fn build(mesh: &Mesh) -> Accel {
+        Accel::build_with_ids(mesh, None)
+    }
+
+    /// Build over every triangle of `mesh`, reporting triangle `i` as `ids[i]`. A domain's
+    /// mesh holds part of a scene; with the scene-wide ids, hits and distance ties resolve
+    /// exactly as in one BVH over the whole scene.
+    pub fn build_with_ids(mesh: &Mesh, global_ids: Option<&[u32]>) -> Accel {
         let start = std::time::Instant::now();
         let (lo, hi) = mesh.bounds();
         let extent = (hi - lo).max_element().max(f32::MIN_POSITIVE);
@@ -98,8 +105,19 @@ impl Accel {
         let mut core = Duration::default();
         let bvh =
             obvhs::cwbvh::builder::build_cwbvh(&prims, BvhBuildParams::medium_build(), &mut core);
-        let ids = bvh.primitive_indices.clone();
-        let tris = ids.iter().map(|&i| prims[i as usize].v).collect();
+        let ids = match global_ids {
+            Some(g) => bvh
+                .primitive_indices
+                .iter()
+                .map(|&i| g.get(i as usize).copied().unwrap_or(i))
+                .collect(),
+            None => bvh.primitive_indices.clone(),
+        };
+        let tris = bvh
+            .primitive_indices
+            .iter()
+            .map(|&i| prims[i as usize].v)
+            .collect();
         Accel {
             bvh,
             tris,

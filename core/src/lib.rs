@@ -16,6 +16,7 @@ pub mod texture;
 
 pub use glam::{Mat4, Vec2, Vec3, Vec4};
 pub mod bvh;
+pub mod domain;
 pub mod film;
 pub mod integrator;
 pub mod intersect;
