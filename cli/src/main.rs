@@ -5,6 +5,7 @@
 
 mod bench_rays;
 mod options;
+mod partition_cmd;
 mod render_cmd;
 mod summary;
 
@@ -27,6 +28,8 @@ enum Command {
     Render(render_cmd::RenderArgs),
     /// Build the BVH of a mesh and measure closest-hit ray throughput.
     BenchRays(bench_rays::BenchArgs),
+    /// Cut a scene into domains and write a scene package (manifest + one file per domain).
+    Partition(partition_cmd::PartitionArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -67,6 +70,7 @@ fn main() -> std::process::ExitCode {
     let result = match cli.command {
         Command::Render(a) => render_cmd::run(a),
         Command::BenchRays(a) => bench_rays::run(a),
+        Command::Partition(a) => partition_cmd::run(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -12,7 +12,7 @@ use glam::{Vec2, Vec3};
 use serde::Serialize;
 
 use crate::bsdf::{Bsdf, BsdfParams, Lobe};
-use crate::bvh::{Accel, Hit, QueryRay};
+use crate::bvh::{Hit, QueryRay};
 use crate::camera::Camera;
 use crate::effects::{Effect, Effects};
 use crate::intersect::offset_ray_origin;
@@ -20,6 +20,7 @@ use crate::light_sampler::{LightRef, LightSample, LightSampler};
 use crate::sampling::{PathKey, Purpose, cosine_hemisphere};
 use crate::scene::Scene;
 use crate::surface::{Surface, alpha_passes, interpolate_uv};
+use crate::trace::Trace;
 
 /// The kinds of rays, counted separately in every summary.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize)]
@@ -242,16 +243,16 @@ impl<'a> Integrator<'a> {
         }
     }
 
-    /// Closest accepted hit of `ray` in `accel`.
-    pub fn intersect(&self, accel: &Accel, ray: &RayState) -> Option<Hit> {
-        accel.closest(&Self::query(ray), |tri, h| {
+    /// Closest accepted hit of `ray` in `geometry`.
+    pub fn intersect(&self, geometry: &dyn Trace, ray: &RayState) -> Option<Hit> {
+        geometry.closest(&Self::query(ray), &mut |tri, h| {
             self.accept(ray, tri, [h.b0, h.b1, h.b2])
         })
     }
 
-    /// Whether anything accepted blocks `ray` in `accel`.
-    pub fn occluded(&self, accel: &Accel, ray: &RayState) -> bool {
-        accel.occluded(&Self::query(ray), |tri, h| {
+    /// Whether anything accepted blocks `ray` in `geometry`.
+    pub fn occluded(&self, geometry: &dyn Trace, ray: &RayState) -> bool {
+        geometry.occluded(&Self::query(ray), &mut |tri, h| {
             self.accept(ray, tri, [h.b0, h.b1, h.b2])
         })
     }

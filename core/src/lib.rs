@@ -24,3 +24,4 @@ pub mod light_sampler;
 pub mod render;
 pub mod sampling;
 pub mod surface;
+pub mod trace;

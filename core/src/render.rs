@@ -10,9 +10,9 @@ use std::time::{Duration, Instant};
 use glam::Vec3;
 use rayon::prelude::*;
 
-use crate::bvh::Accel;
 use crate::film::{Film, to_fixed};
 use crate::integrator::{Integrator, RayKind, RayState, Sink};
+use crate::trace::Trace;
 
 /// Tile edge in pixels.
 pub const TILE: u32 = 32;
@@ -97,7 +97,7 @@ impl Sink for TileSink {
 /// `progress` is called with (tiles done, tiles total) after every tile.
 pub fn render(
     integrator: &Integrator<'_>,
-    accel: &Accel,
+    geometry: &dyn Trace,
     threads: usize,
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<RenderOutput, rayon::ThreadPoolBuildError> {
@@ -130,10 +130,10 @@ pub fn render(
                         while let Some(ray) = sink.stack.pop() {
                             local[ray.kind as usize] += 1;
                             if ray.kind.is_occlusion() {
-                                let occ = integrator.occluded(accel, &ray);
+                                let occ = integrator.occluded(geometry, &ray);
                                 integrator.shadow_result(&ray, occ, &mut sink);
                             } else {
-                                match integrator.intersect(accel, &ray) {
+                                match integrator.intersect(geometry, &ray) {
                                     Some(hit) => integrator.shade_hit(&ray, &hit, &mut sink),
                                     None => integrator.shade_miss(&ray, &mut sink),
                                 }

@@ -2,10 +2,11 @@
 //! its (slightly expanded) box, finds exactly the hit one BVH over the whole scene finds:
 //! the same distance, bit for bit, and the same triangle.
 
-use dray_core::bvh::{Accel, Hit, QueryRay};
+use dray_core::bvh::{Accel, QueryRay};
 use dray_core::domain::{DomainNode, DomainTree};
 use dray_core::sampling::{PathKey, Purpose, uniform_sphere};
 use dray_core::scene::Mesh;
+use dray_core::trace::{DomainSet, Trace};
 use glam::Vec3;
 
 fn key(i: u32) -> PathKey {
@@ -78,25 +79,15 @@ fn split(mesh: &Mesh, tree: &DomainTree, pad: f32) -> Vec<Accel> {
         .collect()
 }
 
-fn walk_closest(tree: &DomainTree, accels: &[Accel], q: &QueryRay, pad: f32) -> Option<Hit> {
-    let mut found = None;
-    tree.walk(q.origin, q.dir, q.tmin, q.tmax, pad, |span| {
-        let sub = QueryRay {
-            tmin: span.t0,
-            tmax: span.t1,
-            ..*q
-        };
-        found = accels[span.domain as usize].closest(&sub, |_, _| true);
-        found.is_none()
-    });
-    found
-}
-
 fn check(tree: &DomainTree, mesh: &Mesh) {
     let (lo, hi) = mesh.bounds();
     let pad = (hi - lo).max_element() * (1.0 / (1 << 18) as f32);
     let whole = Accel::build(mesh);
-    let accels = split(mesh, tree, pad);
+    let set = DomainSet {
+        tree: tree.clone(),
+        accels: split(mesh, tree, pad),
+        pad,
+    };
     let dirs = [Vec3::X, -Vec3::X, Vec3::Y, -Vec3::Y, Vec3::Z, -Vec3::Z];
     let mut hits = 0;
     for i in 0..100_000u32 {
@@ -130,11 +121,21 @@ fn check(tree: &DomainTree, mesh: &Mesh) {
             tmax: f32::INFINITY,
         };
         let a = whole.closest(&q, |_, _| true);
-        let b = walk_closest(tree, &accels, &q, pad);
+        let b = set.closest(&q, &mut |_, _| true);
         assert_eq!(
             a.map(|h| (h.t.to_bits(), h.tri)),
             b.map(|h| (h.t.to_bits(), h.tri)),
             "ray {i}: {origin} {dir}"
+        );
+        // Shadow rays of random length agree too.
+        let short = QueryRay {
+            tmax: k.uniform(5, Purpose::Film, 0) * 12.0,
+            ..q
+        };
+        assert_eq!(
+            whole.occluded(&short, |_, _| true),
+            set.occluded(&short, &mut |_, _| true),
+            "shadow ray {i}"
         );
         hits += a.is_some() as u32;
     }
