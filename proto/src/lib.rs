@@ -1,0 +1,39 @@
+//! dray's gRPC protocol, `dray.v1`, compiled at build time without a system `protoc`.
+//!
+//! - [`dray::v1`]: messages, clients and servers generated from `proto/dray/v1/*.proto`:
+//!   the public `RenderService`, the internal `ClusterService` (registration, heartbeats,
+//!   assignments and routing tables, queue reports, contributions) and the worker-to-worker
+//!   `RayExchangeService` (bidirectional ray stream).
+//! - [`FILE_DESCRIPTOR_SET`]: the encoded descriptors (with comments), for gRPC server
+//!   reflection: `tonic_reflection::server::Builder::configure()
+//!   .register_encoded_file_descriptor_set(dray_proto::FILE_DESCRIPTOR_SET)`.
+//! - [`ray_record`]: the packed 64-byte ray record that `RayBatch.records` carries.
+
+pub mod ray_record;
+
+pub use ray_record::{
+    RAY_RECORD_BYTES, RAY_RECORD_FORMAT, RayRecord, RecordError, decode_rays, encode_rays,
+};
+
+/// Generated protobuf code, in its package's module path.
+pub mod dray {
+    /// Package `dray.v1`.
+    pub mod v1 {
+        #![allow(clippy::all, missing_docs)]
+        tonic::include_proto!("dray.v1");
+    }
+}
+
+pub use dray::v1;
+
+/// The encoded `google.protobuf.FileDescriptorSet` of `dray.v1` (with its imports and
+/// source comments), for gRPC server reflection and for tools that inspect the protocol.
+pub const FILE_DESCRIPTOR_SET: &[u8] =
+    include_bytes!(concat!(env!("OUT_DIR"), "/dray_descriptor.bin"));
+
+/// Fully qualified name of the public render service, for health status and reflection.
+pub const RENDER_SERVICE: &str = "dray.v1.RenderService";
+/// Fully qualified name of the internal cluster-control service.
+pub const CLUSTER_SERVICE: &str = "dray.v1.ClusterService";
+/// Fully qualified name of the worker-to-worker ray exchange service.
+pub const RAY_EXCHANGE_SERVICE: &str = "dray.v1.RayExchangeService";
