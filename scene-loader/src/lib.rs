@@ -6,6 +6,7 @@ pub mod error;
 pub mod gltf;
 mod load;
 pub mod obj;
+pub mod partition;
 pub mod ply;
 pub mod procedural;
 pub mod validate;

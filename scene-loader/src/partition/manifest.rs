@@ -1,0 +1,787 @@
+//! The package manifest: everything about a partitioned scene except the triangles.
+//!
+//! `manifest.json` is an envelope around the body:
+//!
+//! ```json
+//! {
+//!   "format": "dray-scene-package",
+//!   "version": 1,
+//!   "body_xxh3": "0123456789abcdef",
+//!   "body": { "scene_name": ..., "layout": ..., "materials": ..., "domains": [...] }
+//! }
+//! ```
+//!
+//! The version sits outside the body so a reader can refuse another version before it
+//! tries to understand the rest, and `body_xxh3` is the checksum of the body's exact bytes
+//! as written (kept verbatim with serde_json's `RawValue`), so a flipped digit in a
+//! material or a wall is caught as corruption rather than rendered. The body names each
+//! domain file with its triangle and vertex counts, size and checksum, so the domain files
+//! are covered too.
+//!
+//! The body uses mirror structs of the core types (`MaterialDesc` for `Material`, …)
+//! rather than serde derives in `dray-core`: the on-disk format is this module's promise,
+//! versioned here, and core stays free to change its in-memory types.
+//!
+//! Every `f32` is written through [`Real`], exactly: see there.
+
+use std::fmt;
+use std::path::Path;
+
+use dray_core::camera::{Camera, Projection};
+use dray_core::light::Light;
+use dray_core::material::{AlphaMode, Material, TexRef};
+use dray_core::texture::{Filter, Sampler, Wrap};
+use glam::{Mat4, Vec3, Vec4};
+use serde::de::{self, Visitor};
+use serde::{Deserialize, Deserializer, Serialize, Serializer};
+use serde_json::value::RawValue;
+
+use super::checksum::{checksum, from_hex, to_hex};
+use super::layout::{BoxDesc, DomainLayout};
+use crate::error::{Result, SceneError};
+
+/// The `format` field of every manifest.
+pub const FORMAT_NAME: &str = "dray-scene-package";
+/// The package format version this code reads and writes (manifest and binary files).
+/// Bump it on any change a reader of the previous version would misread.
+pub const FORMAT_VERSION: u32 = 1;
+/// The manifest's file name inside a package directory.
+pub const MANIFEST_FILE: &str = "manifest.json";
+
+/// An `f32` that survives JSON exactly.
+///
+/// Written as the f64 of the same value (exact), so any JSON reader, even one that rounds
+/// the last f64 digit, gets back a double within a few f64 ulps of an f32, which rounds
+/// back to that very f32. Non-finite values, which JSON numbers cannot hold, are written
+/// as the strings `"inf"`, `"-inf"` and `"nan"`. Exactness matters: workers that load a
+/// package must shade with the same bits as the embedded renderer that never wrote one.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Real(pub f32);
+
+impl Serialize for Real {
+    fn serialize<S: Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        let v = self.0;
+        if v.is_finite() {
+            s.serialize_f64(v as f64)
+        } else if v.is_nan() {
+            s.serialize_str("nan")
+        } else if v > 0.0 {
+            s.serialize_str("inf")
+        } else {
+            s.serialize_str("-inf")
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for Real {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        struct V;
+        impl Visitor<'_> for V {
+            type Value = Real;
+            fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+                f.write_str("a number, \"inf\", \"-inf\" or \"nan\"")
+            }
+            fn visit_f64<E: de::Error>(self, v: f64) -> std::result::Result<Real, E> {
+                let r = v as f32;
+                if v.is_finite() && !r.is_finite() {
+                    return Err(E::custom(format!("{v} is out of f32 range")));
+                }
+                Ok(Real(r))
+            }
+            fn visit_u64<E: de::Error>(self, v: u64) -> std::result::Result<Real, E> {
+                Ok(Real(v as f32))
+            }
+            fn visit_i64<E: de::Error>(self, v: i64) -> std::result::Result<Real, E> {
+                Ok(Real(v as f32))
+            }
+            fn visit_str<E: de::Error>(self, v: &str) -> std::result::Result<Real, E> {
+                match v {
+                    "inf" => Ok(Real(f32::INFINITY)),
+                    "-inf" => Ok(Real(f32::NEG_INFINITY)),
+                    "nan" => Ok(Real(f32::NAN)),
+                    _ => Err(E::invalid_value(de::Unexpected::Str(v), &self)),
+                }
+            }
+        }
+        d.deserialize_any(V)
+    }
+}
+
+fn v3(v: Vec3) -> [Real; 3] {
+    v.to_array().map(Real)
+}
+
+fn from_v3(v: [Real; 3]) -> Vec3 {
+    Vec3::from_array(v.map(|r| r.0))
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TexRefDesc {
+    pub texture: u32,
+    pub tex_coord: u32,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "mode", rename_all = "snake_case")]
+pub enum AlphaModeDesc {
+    Opaque,
+    Mask { cutoff: Real },
+    Blend,
+}
+
+/// Mirror of [`Material`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MaterialDesc {
+    pub name: String,
+    pub base_color: [Real; 4],
+    pub base_color_tex: Option<TexRefDesc>,
+    pub metallic: Real,
+    pub roughness: Real,
+    pub metallic_roughness_tex: Option<TexRefDesc>,
+    pub normal_tex: Option<TexRefDesc>,
+    pub normal_scale: Real,
+    pub emissive: [Real; 3],
+    pub emissive_tex: Option<TexRefDesc>,
+    pub transmission: Real,
+    pub transmission_tex: Option<TexRefDesc>,
+    pub ior: Real,
+    pub specular: Real,
+    pub specular_tex: Option<TexRefDesc>,
+    pub specular_color: [Real; 3],
+    pub specular_color_tex: Option<TexRefDesc>,
+    pub alpha_mode: AlphaModeDesc,
+    pub double_sided: bool,
+}
+
+fn tex_out(t: Option<TexRef>) -> Option<TexRefDesc> {
+    t.map(|t| TexRefDesc {
+        texture: t.texture,
+        tex_coord: t.tex_coord,
+    })
+}
+
+fn tex_in(t: Option<TexRefDesc>) -> Option<TexRef> {
+    t.map(|t| TexRef {
+        texture: t.texture,
+        tex_coord: t.tex_coord,
+    })
+}
+
+impl From<&Material> for MaterialDesc {
+    fn from(m: &Material) -> Self {
+        MaterialDesc {
+            name: m.name.clone(),
+            base_color: m.base_color.to_array().map(Real),
+            base_color_tex: tex_out(m.base_color_tex),
+            metallic: Real(m.metallic),
+            roughness: Real(m.roughness),
+            metallic_roughness_tex: tex_out(m.metallic_roughness_tex),
+            normal_tex: tex_out(m.normal_tex),
+            normal_scale: Real(m.normal_scale),
+            emissive: v3(m.emissive),
+            emissive_tex: tex_out(m.emissive_tex),
+            transmission: Real(m.transmission),
+            transmission_tex: tex_out(m.transmission_tex),
+            ior: Real(m.ior),
+            specular: Real(m.specular),
+            specular_tex: tex_out(m.specular_tex),
+            specular_color: v3(m.specular_color),
+            specular_color_tex: tex_out(m.specular_color_tex),
+            alpha_mode: match m.alpha_mode {
+                AlphaMode::Opaque => AlphaModeDesc::Opaque,
+                AlphaMode::Mask { cutoff } => AlphaModeDesc::Mask {
+                    cutoff: Real(cutoff),
+                },
+                AlphaMode::Blend => AlphaModeDesc::Blend,
+            },
+            double_sided: m.double_sided,
+        }
+    }
+}
+
+impl MaterialDesc {
+    pub fn to_core(&self) -> Material {
+        Material {
+            name: self.name.clone(),
+            base_color: Vec4::from_array(self.base_color.map(|r| r.0)),
+            base_color_tex: tex_in(self.base_color_tex),
+            metallic: self.metallic.0,
+            roughness: self.roughness.0,
+            metallic_roughness_tex: tex_in(self.metallic_roughness_tex),
+            normal_tex: tex_in(self.normal_tex),
+            normal_scale: self.normal_scale.0,
+            emissive: from_v3(self.emissive),
+            emissive_tex: tex_in(self.emissive_tex),
+            transmission: self.transmission.0,
+            transmission_tex: tex_in(self.transmission_tex),
+            ior: self.ior.0,
+            specular: self.specular.0,
+            specular_tex: tex_in(self.specular_tex),
+            specular_color: from_v3(self.specular_color),
+            specular_color_tex: tex_in(self.specular_color_tex),
+            alpha_mode: match self.alpha_mode {
+                AlphaModeDesc::Opaque => AlphaMode::Opaque,
+                AlphaModeDesc::Mask { cutoff } => AlphaMode::Mask { cutoff: cutoff.0 },
+                AlphaModeDesc::Blend => AlphaMode::Blend,
+            },
+            double_sided: self.double_sided,
+        }
+    }
+
+    fn tex_refs(&self) -> impl Iterator<Item = TexRefDesc> + '_ {
+        [
+            self.base_color_tex,
+            self.metallic_roughness_tex,
+            self.normal_tex,
+            self.emissive_tex,
+            self.transmission_tex,
+            self.specular_tex,
+            self.specular_color_tex,
+        ]
+        .into_iter()
+        .flatten()
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum WrapDesc {
+    Repeat,
+    ClampToEdge,
+    MirroredRepeat,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FilterDesc {
+    Nearest,
+    Linear,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SamplerDesc {
+    pub wrap_s: WrapDesc,
+    pub wrap_t: WrapDesc,
+    pub filter: FilterDesc,
+}
+
+fn wrap_out(w: Wrap) -> WrapDesc {
+    match w {
+        Wrap::Repeat => WrapDesc::Repeat,
+        Wrap::ClampToEdge => WrapDesc::ClampToEdge,
+        Wrap::MirroredRepeat => WrapDesc::MirroredRepeat,
+    }
+}
+
+fn wrap_in(w: WrapDesc) -> Wrap {
+    match w {
+        WrapDesc::Repeat => Wrap::Repeat,
+        WrapDesc::ClampToEdge => Wrap::ClampToEdge,
+        WrapDesc::MirroredRepeat => Wrap::MirroredRepeat,
+    }
+}
+
+impl From<Sampler> for SamplerDesc {
+    fn from(s: Sampler) -> Self {
+        SamplerDesc {
+            wrap_s: wrap_out(s.wrap_s),
+            wrap_t: wrap_out(s.wrap_t),
+            filter: match s.filter {
+                Filter::Nearest => FilterDesc::Nearest,
+                Filter::Linear => FilterDesc::Linear,
+            },
+        }
+    }
+}
+
+impl From<SamplerDesc> for Sampler {
+    fn from(s: SamplerDesc) -> Self {
+        Sampler {
+            wrap_s: wrap_in(s.wrap_s),
+            wrap_t: wrap_in(s.wrap_t),
+            filter: match s.filter {
+                FilterDesc::Nearest => Filter::Nearest,
+                FilterDesc::Linear => Filter::Linear,
+            },
+        }
+    }
+}
+
+/// A texture's description; its RGBA8 texels are `bytes` bytes at `offset` in
+/// `textures.bin`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TextureDesc {
+    pub name: String,
+    pub width: u32,
+    pub height: u32,
+    pub sampler: SamplerDesc,
+    pub offset: u64,
+    pub bytes: u64,
+}
+
+/// Mirror of [`Light`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum LightDesc {
+    Point {
+        position: [Real; 3],
+        intensity: [Real; 3],
+    },
+    Spot {
+        position: [Real; 3],
+        direction: [Real; 3],
+        intensity: [Real; 3],
+        inner_cone: Real,
+        outer_cone: Real,
+    },
+    Directional {
+        direction: [Real; 3],
+        irradiance: [Real; 3],
+    },
+}
+
+impl From<&Light> for LightDesc {
+    fn from(l: &Light) -> Self {
+        match *l {
+            Light::Point {
+                position,
+                intensity,
+            } => LightDesc::Point {
+                position: v3(position),
+                intensity: v3(intensity),
+            },
+            Light::Spot {
+                position,
+                direction,
+                intensity,
+                inner_cone,
+                outer_cone,
+            } => LightDesc::Spot {
+                position: v3(position),
+                direction: v3(direction),
+                intensity: v3(intensity),
+                inner_cone: Real(inner_cone),
+                outer_cone: Real(outer_cone),
+            },
+            Light::Directional {
+                direction,
+                irradiance,
+            } => LightDesc::Directional {
+                direction: v3(direction),
+                irradiance: v3(irradiance),
+            },
+        }
+    }
+}
+
+impl LightDesc {
+    pub fn to_core(&self) -> Light {
+        match *self {
+            LightDesc::Point {
+                position,
+                intensity,
+            } => Light::Point {
+                position: from_v3(position),
+                intensity: from_v3(intensity),
+            },
+            LightDesc::Spot {
+                position,
+                direction,
+                intensity,
+                inner_cone,
+                outer_cone,
+            } => Light::Spot {
+                position: from_v3(position),
+                direction: from_v3(direction),
+                intensity: from_v3(intensity),
+                inner_cone: inner_cone.0,
+                outer_cone: outer_cone.0,
+            },
+            LightDesc::Directional {
+                direction,
+                irradiance,
+            } => Light::Directional {
+                direction: from_v3(direction),
+                irradiance: from_v3(irradiance),
+            },
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum ProjectionDesc {
+    Perspective { yfov: Real, aspect: Option<Real> },
+    Orthographic { xmag: Real, ymag: Real },
+}
+
+/// Mirror of [`Camera`]; `transform` is column-major, as glam and glTF store it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CameraDesc {
+    pub name: String,
+    pub transform: [Real; 16],
+    pub projection: ProjectionDesc,
+    pub znear: Real,
+}
+
+impl From<&Camera> for CameraDesc {
+    fn from(c: &Camera) -> Self {
+        CameraDesc {
+            name: c.name.clone(),
+            transform: c.transform.to_cols_array().map(Real),
+            projection: match c.projection {
+                Projection::Perspective { yfov, aspect } => ProjectionDesc::Perspective {
+                    yfov: Real(yfov),
+                    aspect: aspect.map(Real),
+                },
+                Projection::Orthographic { xmag, ymag } => ProjectionDesc::Orthographic {
+                    xmag: Real(xmag),
+                    ymag: Real(ymag),
+                },
+            },
+            znear: Real(c.znear),
+        }
+    }
+}
+
+impl CameraDesc {
+    pub fn to_core(&self) -> Camera {
+        Camera {
+            name: self.name.clone(),
+            transform: Mat4::from_cols_array(&self.transform.map(|r| r.0)),
+            projection: match self.projection {
+                ProjectionDesc::Perspective { yfov, aspect } => Projection::Perspective {
+                    yfov: yfov.0,
+                    aspect: aspect.map(|a| a.0),
+                },
+                ProjectionDesc::Orthographic { xmag, ymag } => Projection::Orthographic {
+                    xmag: xmag.0,
+                    ymag: ymag.0,
+                },
+            },
+            znear: self.znear.0,
+        }
+    }
+}
+
+/// A file of the package with its size and checksum.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FileEntry {
+    pub file: String,
+    pub bytes: u64,
+    /// XXH3-64 of the whole file, 16 hex digits.
+    pub xxh3: String,
+}
+
+/// One domain's file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DomainEntry {
+    pub file: String,
+    pub triangles: u64,
+    pub vertices: u64,
+    pub bytes: u64,
+    pub xxh3: String,
+}
+
+/// What the loader reported (kept so a package tells the same story as its source).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct StatsDesc {
+    pub degenerate_triangles: u64,
+    pub warnings: Vec<String>,
+}
+
+/// The manifest body.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    pub scene_name: String,
+    /// The scene bounds (the same as the layout's).
+    pub bounds: BoxDesc,
+    pub layout: DomainLayout,
+    /// Triangles in the unpartitioned scene; global ids are below this.
+    pub source_triangles: u64,
+    /// Sum of the domains' triangle counts (triangles on walls count once per domain).
+    pub assigned_triangles: u64,
+    /// Per material, how many source triangles use it (effect analysis ignores unused
+    /// materials, and a package has no single mesh to count them in).
+    pub material_triangles: Vec<u64>,
+    pub materials: Vec<MaterialDesc>,
+    pub textures: Vec<TextureDesc>,
+    /// `textures.bin`, present when there are textures.
+    pub textures_file: Option<FileEntry>,
+    pub lights: Vec<LightDesc>,
+    pub cameras: Vec<CameraDesc>,
+    pub environment: Option<[Real; 3]>,
+    pub stats: StatsDesc,
+    pub domains: Vec<DomainEntry>,
+}
+
+/// The file name of domain `d`'s triangles.
+pub fn domain_file_name(d: u32) -> String {
+    format!("domain-{d:05}.bin")
+}
+
+/// The file name of the texture blob.
+pub const TEXTURES_FILE: &str = "textures.bin";
+
+#[derive(Serialize)]
+struct EnvelopeOut<'a> {
+    format: &'static str,
+    version: u32,
+    body_xxh3: String,
+    body: &'a RawValue,
+}
+
+/// Just the fields every version shares, read first so a version mismatch is reported as
+/// such however different the rest is.
+#[derive(Deserialize)]
+struct Head {
+    format: Option<String>,
+    version: Option<serde_json::Value>,
+}
+
+#[derive(Deserialize)]
+struct EnvelopeIn<'a> {
+    body_xxh3: String,
+    #[serde(borrow)]
+    body: &'a RawValue,
+}
+
+/// The text of `manifest.json` for `m`.
+pub fn encode(m: &Manifest) -> std::result::Result<String, serde_json::Error> {
+    // Compact: every worker parses it, and a kd layout of thousands of domains in
+    // pretty JSON is mostly whitespace. `jq` makes it readable.
+    let body = serde_json::to_string(m)?;
+    let body_xxh3 = to_hex(checksum(body.as_bytes()));
+    let raw = RawValue::from_string(body)?;
+    let mut text = serde_json::to_string_pretty(&EnvelopeOut {
+        format: FORMAT_NAME,
+        version: FORMAT_VERSION,
+        body_xxh3,
+        body: &raw,
+    })?;
+    text.push('\n');
+    Ok(text)
+}
+
+/// Parse and check `manifest.json`'s text (`path` is for messages): format name, version,
+/// body checksum, then the body itself, then its internal consistency.
+pub fn decode(text: &str, path: &Path) -> Result<Manifest> {
+    let err = |message: String| SceneError::Format {
+        path: path.to_path_buf(),
+        message,
+    };
+    let head: Head = serde_json::from_str(text).map_err(|e| {
+        err(format!(
+            "not a dray scene package manifest (invalid JSON: {e})"
+        ))
+    })?;
+    if head.format.as_deref() != Some(FORMAT_NAME) {
+        return Err(err(format!(
+            "not a dray scene package manifest (format is {:?}, expected {FORMAT_NAME:?})",
+            head.format.unwrap_or_default()
+        )));
+    }
+    match head.version.as_ref().and_then(|v| v.as_u64()) {
+        Some(v) if v == FORMAT_VERSION as u64 => {}
+        Some(v) => {
+            return Err(err(format!(
+                "package format version {v} is not supported (this dray reads version \
+                 {FORMAT_VERSION}); partition the scene again with this dray"
+            )));
+        }
+        None => {
+            return Err(err(format!(
+                "package format version is missing or not a number (got {}); expected {FORMAT_VERSION}",
+                head.version
+                    .map_or("nothing".to_string(), |v| v.to_string())
+            )));
+        }
+    }
+    let env: EnvelopeIn =
+        serde_json::from_str(text).map_err(|e| err(format!("malformed manifest: {e}")))?;
+    let expected = from_hex(&env.body_xxh3)
+        .ok_or_else(|| err(format!("malformed body checksum {:?}", env.body_xxh3)))?;
+    let actual = checksum(env.body.get().as_bytes());
+    if actual != expected {
+        return Err(err(format!(
+            "checksum mismatch: the manifest body hashes to {} but the manifest records {}; \
+             the manifest is corrupt or was edited",
+            to_hex(actual),
+            to_hex(expected)
+        )));
+    }
+    let m: Manifest = serde_json::from_str(env.body.get())
+        .map_err(|e| err(format!("malformed manifest body: {e}")))?;
+    m.check().map_err(err)?;
+    Ok(m)
+}
+
+impl Manifest {
+    /// Internal consistency: every count, name and reference a reader will index with.
+    pub fn check(&self) -> std::result::Result<(), String> {
+        let n = self.layout.domain_count() as usize;
+        if self.domains.len() != n {
+            return Err(format!(
+                "the layout has {n} domains but {} domain files are listed",
+                self.domains.len()
+            ));
+        }
+        let lb = self.layout.scene_bounds();
+        let mb: super::layout::Aabb = self.bounds.into();
+        if lb.min.to_array().map(f32::to_bits) != mb.min.to_array().map(f32::to_bits)
+            || lb.max.to_array().map(f32::to_bits) != mb.max.to_array().map(f32::to_bits)
+        {
+            return Err("the scene bounds differ from the layout's".into());
+        }
+        if self.source_triangles > u32::MAX as u64 + 1 {
+            return Err(format!(
+                "{} source triangles is too many",
+                self.source_triangles
+            ));
+        }
+        let mut sum = 0u64;
+        for (d, e) in self.domains.iter().enumerate() {
+            let name = domain_file_name(d as u32);
+            if e.file != name {
+                return Err(format!(
+                    "domain {d} is stored as {:?}, expected {name:?}",
+                    e.file
+                ));
+            }
+            if from_hex(&e.xxh3).is_none() {
+                return Err(format!("domain {d}: malformed checksum {:?}", e.xxh3));
+            }
+            if e.triangles > self.source_triangles || e.vertices > 3 * e.triangles {
+                return Err(format!(
+                    "domain {d}: {} triangles and {} vertices are impossible for a scene of {} triangles",
+                    e.triangles, e.vertices, self.source_triangles
+                ));
+            }
+            sum += e.triangles;
+        }
+        if sum != self.assigned_triangles {
+            return Err(format!(
+                "domains hold {sum} triangles but the manifest says {}",
+                self.assigned_triangles
+            ));
+        }
+        if self.material_triangles.len() != self.materials.len() {
+            return Err("material_triangles does not have one count per material".into());
+        }
+        let tex_count = self.textures.len();
+        for (i, m) in self.materials.iter().enumerate() {
+            if let Some(t) = m.tex_refs().find(|t| t.texture as usize >= tex_count) {
+                return Err(format!(
+                    "material {i} ({:?}) refers to texture {} but there are {tex_count}",
+                    m.name, t.texture
+                ));
+            }
+        }
+        match (&self.textures_file, tex_count) {
+            (None, 0) => {}
+            (None, _) => return Err("textures are listed but textures.bin is not".into()),
+            (Some(f), _) => {
+                if f.file != TEXTURES_FILE || from_hex(&f.xxh3).is_none() {
+                    return Err(format!("malformed texture file entry {:?}", f.file));
+                }
+                for (i, t) in self.textures.iter().enumerate() {
+                    let texels = (t.width as u64)
+                        .checked_mul(t.height as u64)
+                        .and_then(|n| n.checked_mul(4));
+                    let end = t.offset.checked_add(t.bytes);
+                    if texels != Some(t.bytes) || end.is_none_or(|e| e > f.bytes) {
+                        return Err(format!(
+                            "texture {i} ({:?}): {}x{} texels do not fit {} bytes at offset {} of {}",
+                            t.name, t.width, t.height, t.bytes, t.offset, f.bytes
+                        ));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    pub fn materials(&self) -> Vec<Material> {
+        self.materials.iter().map(MaterialDesc::to_core).collect()
+    }
+
+    pub fn lights(&self) -> Vec<Light> {
+        self.lights.iter().map(LightDesc::to_core).collect()
+    }
+
+    pub fn cameras(&self) -> Vec<Camera> {
+        self.cameras.iter().map(CameraDesc::to_core).collect()
+    }
+
+    pub fn environment(&self) -> Option<Vec3> {
+        self.environment.map(from_v3)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reals_round_trip_exactly() {
+        let mut x = 0x1234_5678u32;
+        let mut values = vec![
+            0.0,
+            -0.0,
+            1.0,
+            0.1,
+            f32::MAX,
+            f32::MIN_POSITIVE,
+            1.0e-45,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+        ];
+        for _ in 0..20_000 {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            let v = f32::from_bits(x);
+            if !v.is_nan() {
+                values.push(v);
+            }
+        }
+        let reals: Vec<Real> = values.iter().map(|&v| Real(v)).collect();
+        let json = serde_json::to_string(&reals).unwrap();
+        let back: Vec<Real> = serde_json::from_str(&json).unwrap();
+        for (a, b) in values.iter().zip(&back) {
+            assert_eq!(a.to_bits(), b.0.to_bits(), "{a}");
+        }
+        let nan: Real =
+            serde_json::from_str(&serde_json::to_string(&Real(f32::NAN)).unwrap()).unwrap();
+        assert!(nan.0.is_nan());
+        assert!(serde_json::from_str::<Real>("1e300").is_err());
+        assert!(serde_json::from_str::<Real>("\"lots\"").is_err());
+    }
+
+    #[test]
+    fn core_types_round_trip() {
+        let mut m = Material::glass("g", 1.33);
+        m.alpha_mode = AlphaMode::Mask { cutoff: 0.25 };
+        m.normal_tex = Some(TexRef {
+            texture: 2,
+            tex_coord: 0,
+        });
+        assert_eq!(MaterialDesc::from(&m).to_core(), m);
+        let c = Camera::look_at("c", Vec3::new(1.0, 2.0, 3.0), Vec3::ZERO, Vec3::Y, 0.7);
+        assert_eq!(CameraDesc::from(&c).to_core(), c);
+        let l = Light::Spot {
+            position: Vec3::ONE,
+            direction: -Vec3::Y,
+            intensity: Vec3::splat(5.0),
+            inner_cone: 0.1,
+            outer_cone: 0.5,
+        };
+        assert_eq!(LightDesc::from(&l).to_core(), l);
+        let s = Sampler {
+            wrap_s: Wrap::MirroredRepeat,
+            wrap_t: Wrap::ClampToEdge,
+            filter: Filter::Nearest,
+        };
+        assert_eq!(Sampler::from(SamplerDesc::from(s)), s);
+    }
+}

@@ -1,0 +1,1117 @@
+//! Writing and reading scene packages.
+//!
+//! # Layout on disk
+//! A package is a directory:
+//!
+//! ```text
+//! manifest.json        envelope + body (see `manifest`): layout, materials, lights,
+//!                      cameras, environment, textures, per-domain counts/size/checksum
+//! domain-00000.bin     one file per domain, format below
+//! domain-00001.bin
+//! ...
+//! textures.bin         present when the scene has textures
+//! ```
+//!
+//! Domain file, all little-endian, no padding:
+//!
+//! ```text
+//! offset  size      field
+//! 0       8         magic "DRAYDOM\0"
+//! 8       4         u32 format version (= FORMAT_VERSION)
+//! 12      4         u32 domain index
+//! 16      8         u64 vertex count V
+//! 24      8         u64 triangle count T
+//! 32      12 V      positions   [f32; 3]
+//!         12 V      normals     [f32; 3]   (zero = absent)
+//!         16 V      tangents    [f32; 4]   (zero = absent)
+//!          8 V      uvs         [f32; 2]
+//!         12 T      indices     [u32; 3]   (into this file's vertices)
+//!          4 T      material    u32        (into the manifest's materials)
+//!          4 T      global id   u32        (index in the unpartitioned scene)
+//! ```
+//!
+//! so a domain file is exactly `32 + 48 V + 20 T` bytes. Sections rather than records keep
+//! each attribute contiguous, as the BVH builder and shading want them.
+//!
+//! `textures.bin`: magic `"DRAYTEX\0"`, u32 version, u32 texture count, then each
+//! texture's RGBA8 texels at the offset the manifest gives.
+//!
+//! # Reading safely
+//! Nothing read from a file is trusted before it is checked: the manifest's body checksum
+//! and consistency first ([`open_package`]), then for each domain the file size against
+//! the manifest (which fixes every count, so no allocation exceeds the file), the header
+//! against the manifest, the checksum of every byte, and finally every index. A bad
+//! package is a [`SceneError`] naming the file and what is wrong, never a panic.
+
+use std::fs::{self, File, OpenOptions};
+use std::io::{self, BufReader, BufWriter, Read, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::time::Instant;
+
+use dray_core::camera::Camera;
+use dray_core::light::Light;
+use dray_core::material::Material;
+use dray_core::scene::{LoadStats, Mesh, Scene};
+use dray_core::texture::Texture;
+use glam::{Vec2, Vec3, Vec4};
+
+use super::checksum::{HashingReader, HashingWriter, from_hex, to_hex};
+use super::layout::{DomainLayout, LayoutSpec};
+use super::manifest::{
+    self, DomainEntry, FORMAT_VERSION, FileEntry, MANIFEST_FILE, Manifest, StatsDesc,
+    TEXTURES_FILE, TextureDesc, domain_file_name,
+};
+use super::{
+    DEFAULT_SAMPLE_CAPACITY, DomainBuilder, DomainMesh, SourceTriangle, TriangleSource, survey,
+    unassigned_error,
+};
+use crate::error::{Result, SceneError};
+
+const DOMAIN_MAGIC: [u8; 8] = *b"DRAYDOM\0";
+const TEXTURE_MAGIC: [u8; 8] = *b"DRAYTEX\0";
+const DOMAIN_HEADER_BYTES: u64 = 32;
+const TEXTURE_HEADER_BYTES: u64 = 16;
+const VERTEX_BYTES: u64 = 48;
+const TRIANGLE_BYTES: u64 = 20;
+/// A triangle in a spill file: id, material, then per corner position, normal, tangent
+/// and uv (12 f32).
+const RECORD_BYTES: usize = 8 + 3 * 48;
+const IO_BUFFER: usize = 1 << 20;
+
+/// The size of a domain file with `vertices` and `triangles`, or `None` on overflow.
+pub fn domain_file_bytes(vertices: u64, triangles: u64) -> Option<u64> {
+    vertices
+        .checked_mul(VERTEX_BYTES)?
+        .checked_add(triangles.checked_mul(TRIANGLE_BYTES)?)?
+        .checked_add(DOMAIN_HEADER_BYTES)
+}
+
+fn format_error(path: &Path, message: impl Into<String>) -> SceneError {
+    SceneError::Format {
+        path: path.to_path_buf(),
+        message: message.into(),
+    }
+}
+
+fn io_error(path: &Path) -> impl FnOnce(io::Error) -> SceneError + '_ {
+    move |source| SceneError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+/// Knobs for [`write_package`].
+#[derive(Clone, Debug)]
+pub struct WriteOptions {
+    /// Total memory for the per-domain spill buffers of pass 2. Each domain gets an equal
+    /// share, at least 4 KiB and at most 1 MiB.
+    pub buffer_bytes: usize,
+    /// Centroids kept for the kd quantiles.
+    pub sample_capacity: usize,
+    /// Threads compacting domains into their files; each holds one domain in memory, so
+    /// peak memory grows with this.
+    pub threads: usize,
+}
+
+impl Default for WriteOptions {
+    fn default() -> Self {
+        WriteOptions {
+            buffer_bytes: 64 << 20,
+            sample_capacity: DEFAULT_SAMPLE_CAPACITY,
+            // Compaction is hash-map bound; a few threads help, many would only
+            // multiply the memory of the largest domain.
+            threads: std::thread::available_parallelism().map_or(1, |n| n.get().min(4)),
+        }
+    }
+}
+
+/// Everything but the triangles: what the manifest stores. Borrowed, so writing a package
+/// from a loaded scene copies nothing.
+#[derive(Clone, Copy, Debug)]
+pub struct SceneParts<'a> {
+    pub name: &'a str,
+    pub materials: &'a [Material],
+    pub textures: &'a [Texture],
+    pub lights: &'a [Light],
+    pub cameras: &'a [Camera],
+    pub environment: Option<Vec3>,
+    pub stats: &'a LoadStats,
+}
+
+impl<'a> SceneParts<'a> {
+    pub fn of(scene: &'a Scene) -> Self {
+        SceneParts {
+            name: &scene.name,
+            materials: &scene.materials,
+            textures: &scene.textures,
+            lights: &scene.lights,
+            cameras: &scene.cameras,
+            environment: scene.environment,
+            stats: &scene.stats,
+        }
+    }
+}
+
+/// What [`write_package`] did.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PackageSummary {
+    pub domains: u32,
+    /// `"grid"` or `"kd"`.
+    pub layout: &'static str,
+    pub source_triangles: u64,
+    /// Sum over domains; larger than `source_triangles` by the triangles on walls.
+    pub assigned_triangles: u64,
+    pub min_domain_triangles: u64,
+    pub max_domain_triangles: u64,
+    /// All files of the package.
+    pub bytes: u64,
+    pub seconds: f64,
+}
+
+impl PackageSummary {
+    /// The share of stored triangles that are copies: `(assigned - source) / source`.
+    pub fn duplicated_share(&self) -> f64 {
+        if self.source_triangles == 0 {
+            0.0
+        } else {
+            (self.assigned_triangles - self.source_triangles) as f64 / self.source_triangles as f64
+        }
+    }
+}
+
+/// Partition an in-memory scene into a package at `dir` with default options.
+pub fn write_scene_package(dir: &Path, scene: &Scene, spec: &LayoutSpec) -> Result<PackageSummary> {
+    write_package(
+        dir,
+        SceneParts::of(scene),
+        scene,
+        spec,
+        &WriteOptions::default(),
+    )
+}
+
+/// Partition `source` by `spec` and write the package to `dir`.
+///
+/// `dir` is created if needed; an existing package there is replaced, but a directory
+/// holding anything else is refused (so a typo cannot clobber a home directory). The old
+/// manifest is removed first and the new one written last (atomically, by rename), so an
+/// interrupted write never leaves a package that opens.
+pub fn write_package(
+    dir: &Path,
+    parts: SceneParts<'_>,
+    source: &dyn TriangleSource,
+    spec: &LayoutSpec,
+    options: &WriteOptions,
+) -> Result<PackageSummary> {
+    let start = Instant::now();
+    let _span = tracing::info_span!("write_package", dir = %dir.display()).entered();
+    spec.check().map_err(|m| format_error(dir, m))?;
+    prepare_dir(dir)?;
+
+    // Pass 1: bounds, material use and the centroid sample.
+    let capacity = if spec.needs_centroids() {
+        options.sample_capacity
+    } else {
+        0
+    };
+    let mut s = survey(source, capacity)?;
+    if s.triangles == 0 {
+        return Err(format_error(dir, "the scene has no triangles to partition"));
+    }
+    if s.triangles > u32::MAX as u64 {
+        return Err(format_error(dir, "more than 4 billion triangles"));
+    }
+    if s.material_triangles.len() > parts.materials.len() {
+        return Err(format_error(
+            dir,
+            format!(
+                "triangles use material {} but the scene has {} materials",
+                s.material_triangles.len() - 1,
+                parts.materials.len()
+            ),
+        ));
+    }
+    s.material_triangles.resize(parts.materials.len(), 0);
+    let layout = DomainLayout::build(s.bounds, spec, &mut s.centroids)?;
+    drop(std::mem::take(&mut s.centroids));
+    tracing::info!(%layout, triangles = s.triangles, "pass 1 done");
+
+    let mut cleanup = SpillCleanup {
+        paths: (0..layout.domain_count())
+            .map(|d| dir.join(spill_file_name(d)))
+            .collect(),
+    };
+
+    // Pass 2: every triangle to the spill buffers of its domains.
+    let domain_count = layout.domain_count() as usize;
+    let per_domain = (options.buffer_bytes / domain_count).clamp(4096, 1 << 20);
+    let per_domain = per_domain.div_ceil(RECORD_BYTES) * RECORD_BYTES;
+    let mut spills: Vec<Spill> = cleanup
+        .paths
+        .iter()
+        .map(|p| Spill {
+            path: p.clone(),
+            buf: Vec::new(),
+            triangles: 0,
+        })
+        .collect();
+    let mut seen = 0u64;
+    let mut domains = Vec::new();
+    let mut record = Vec::with_capacity(RECORD_BYTES);
+    source.for_each_triangle(&mut |t| {
+        seen += 1;
+        if seen > s.triangles || t.id as u64 >= s.triangles {
+            return Err(format_error(
+                dir,
+                format!(
+                    "the source changed between passes (triangle id {} of {})",
+                    t.id, s.triangles
+                ),
+            ));
+        }
+        layout.assign(&t.positions, &mut domains);
+        if domains.is_empty() {
+            return Err(unassigned_error(t));
+        }
+        record.clear();
+        encode_record(t, &mut record);
+        for &d in &domains {
+            let spill = &mut spills[d as usize];
+            if spill.buf.capacity() == 0 {
+                // Exactly one buffer's worth, not a doubling Vec's overshoot.
+                spill.buf.reserve_exact(per_domain);
+            }
+            spill.buf.extend_from_slice(&record);
+            spill.triangles += 1;
+            if spill.buf.len() >= per_domain {
+                spill.flush()?;
+            }
+        }
+        Ok(())
+    })?;
+    if seen != s.triangles {
+        return Err(format_error(
+            dir,
+            format!(
+                "the source changed between passes ({} triangles, then {seen})",
+                s.triangles
+            ),
+        ));
+    }
+    for spill in &mut spills {
+        spill.flush()?;
+        spill.buf = Vec::new();
+    }
+    tracing::info!("pass 2 done");
+
+    // Compact each domain into its file, a few at a time.
+    let entries = finalize_domains(dir, &spills, &layout, options.threads)?;
+    cleanup.paths.clear();
+    tracing::info!("domain files written");
+
+    let (textures, textures_file) = write_textures(dir, parts.textures)?;
+    let assigned: u64 = entries.iter().map(|e| e.triangles).sum();
+    let data_bytes: u64 = entries.iter().map(|e| e.bytes).sum::<u64>()
+        + textures_file.as_ref().map_or(0, |f| f.bytes);
+    let summary_counts = entries.iter().map(|e| e.triangles);
+    let min_domain = summary_counts.clone().min().unwrap_or(0);
+    let max_domain = summary_counts.max().unwrap_or(0);
+    let m = Manifest {
+        scene_name: parts.name.to_string(),
+        bounds: layout.scene_bounds().into(),
+        layout,
+        source_triangles: s.triangles,
+        assigned_triangles: assigned,
+        material_triangles: s.material_triangles,
+        materials: parts.materials.iter().map(Into::into).collect(),
+        textures,
+        textures_file,
+        lights: parts.lights.iter().map(Into::into).collect(),
+        cameras: parts.cameras.iter().map(Into::into).collect(),
+        environment: parts.environment.map(|e| e.to_array().map(manifest::Real)),
+        stats: StatsDesc {
+            degenerate_triangles: parts.stats.degenerate_triangles,
+            warnings: parts.stats.warnings.clone(),
+        },
+        domains: entries,
+    };
+    // What we write, we must be able to read.
+    m.check()
+        .map_err(|e| format_error(dir, format!("internal error: inconsistent manifest: {e}")))?;
+    let text = manifest::encode(&m)
+        .map_err(|e| format_error(dir, format!("cannot encode the manifest: {e}")))?;
+    let tmp = dir.join(format!("{MANIFEST_FILE}.tmp"));
+    fs::write(&tmp, &text).map_err(io_error(&tmp))?;
+    let final_path = dir.join(MANIFEST_FILE);
+    fs::rename(&tmp, &final_path).map_err(io_error(&final_path))?;
+
+    Ok(PackageSummary {
+        domains: m.layout.domain_count(),
+        layout: m.layout.kind_name(),
+        source_triangles: m.source_triangles,
+        assigned_triangles: m.assigned_triangles,
+        min_domain_triangles: min_domain,
+        max_domain_triangles: max_domain,
+        bytes: data_bytes + text.len() as u64,
+        seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+/// Turn every spill file into its domain file, on up to `threads` threads (each holds
+/// one domain in memory at a time). Domain files do not depend on the thread count.
+fn finalize_domains(
+    dir: &Path,
+    spills: &[Spill],
+    layout: &DomainLayout,
+    threads: usize,
+) -> Result<Vec<DomainEntry>> {
+    let threads = threads.clamp(1, spills.len());
+    let next = AtomicUsize::new(0);
+    let failed = AtomicBool::new(false);
+    let per_thread: Vec<Result<Vec<(usize, DomainEntry)>>> = std::thread::scope(|scope| {
+        let handles: Vec<_> = (0..threads)
+            .map(|_| {
+                scope.spawn(|| {
+                    let mut done = Vec::new();
+                    while !failed.load(Ordering::Relaxed) {
+                        let d = next.fetch_add(1, Ordering::Relaxed);
+                        let Some(spill) = spills.get(d) else { break };
+                        match finalize_domain(dir, d as u32, spill, layout) {
+                            Ok(e) => done.push((d, e)),
+                            Err(e) => {
+                                failed.store(true, Ordering::Relaxed);
+                                return Err(e);
+                            }
+                        }
+                    }
+                    Ok(done)
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
+            .collect()
+    });
+    let mut entries: Vec<Option<DomainEntry>> = vec![None; spills.len()];
+    for r in per_thread {
+        for (d, e) in r? {
+            entries[d] = Some(e);
+        }
+    }
+    Ok(entries.into_iter().flatten().collect())
+}
+
+/// Read one domain's spill file, share its vertices, write its domain file.
+fn finalize_domain(
+    dir: &Path,
+    d: u32,
+    spill: &Spill,
+    layout: &DomainLayout,
+) -> Result<DomainEntry> {
+    let mut builder = DomainBuilder::with_capacity(spill.triangles as usize);
+    if spill.triangles > 0 {
+        read_spill(&spill.path, &mut |t| builder.push(t))?;
+    }
+    if builder.triangle_count() as u64 != spill.triangles {
+        return Err(format_error(
+            &spill.path,
+            format!(
+                "spill file holds {} triangles, expected {}",
+                builder.triangle_count(),
+                spill.triangles
+            ),
+        ));
+    }
+    let mesh = builder.finish(d, layout.bounds(d));
+    let file = domain_file_name(d);
+    let (bytes, sum) = write_domain_file(&dir.join(&file), &mesh)?;
+    let _ = fs::remove_file(&spill.path);
+    Ok(DomainEntry {
+        file,
+        triangles: mesh.triangle_count() as u64,
+        vertices: mesh.mesh.positions.len() as u64,
+        bytes,
+        xxh3: to_hex(sum),
+    })
+}
+
+fn spill_file_name(d: u32) -> String {
+    format!(".domain-{d:05}.spill")
+}
+
+/// True for the names a package (or an interrupted write of one) consists of.
+fn is_package_file(name: &str) -> bool {
+    let numbered = |prefix: &str, suffix: &str| {
+        name.strip_prefix(prefix)
+            .and_then(|r| r.strip_suffix(suffix))
+            .is_some_and(|n| n.len() == 5 && n.bytes().all(|b| b.is_ascii_digit()))
+    };
+    name == MANIFEST_FILE
+        || name == format!("{MANIFEST_FILE}.tmp")
+        || name == TEXTURES_FILE
+        || numbered("domain-", ".bin")
+        || numbered(".domain-", ".spill")
+}
+
+/// Create `dir`, or empty it of a previous package; refuse a directory with other files.
+fn prepare_dir(dir: &Path) -> Result<()> {
+    if !dir.exists() {
+        return fs::create_dir_all(dir).map_err(io_error(dir));
+    }
+    if !dir.is_dir() {
+        return Err(format_error(dir, "exists and is not a directory"));
+    }
+    let mut names = Vec::new();
+    for entry in fs::read_dir(dir).map_err(io_error(dir))? {
+        let entry = entry.map_err(io_error(dir))?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if !is_package_file(&name) {
+            return Err(format_error(
+                dir,
+                format!(
+                    "is not empty and holds {name:?}, which is not part of a scene package; \
+                     refusing to overwrite (choose an empty or new directory)"
+                ),
+            ));
+        }
+        names.push(name);
+    }
+    // The manifest goes first, so a half-replaced package never opens.
+    names.sort_by_key(|n| n != MANIFEST_FILE);
+    for name in names {
+        let p = dir.join(name);
+        fs::remove_file(&p).map_err(io_error(&p))?;
+    }
+    Ok(())
+}
+
+/// Removes spill files left by a write that failed part way.
+struct SpillCleanup {
+    paths: Vec<PathBuf>,
+}
+
+impl Drop for SpillCleanup {
+    fn drop(&mut self) {
+        for p in &self.paths {
+            let _ = fs::remove_file(p);
+        }
+    }
+}
+
+/// One domain's pass-2 buffer; full buffers are appended to the domain's spill file,
+/// which is opened only for the append, so thousands of domains never hold thousands of
+/// file handles.
+struct Spill {
+    path: PathBuf,
+    buf: Vec<u8>,
+    triangles: u64,
+}
+
+impl Spill {
+    fn flush(&mut self) -> Result<()> {
+        if self.buf.is_empty() {
+            return Ok(());
+        }
+        let mut f = OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&self.path)
+            .map_err(io_error(&self.path))?;
+        f.write_all(&self.buf).map_err(io_error(&self.path))?;
+        self.buf.clear();
+        Ok(())
+    }
+}
+
+fn encode_record(t: &SourceTriangle, out: &mut Vec<u8>) {
+    out.extend_from_slice(&t.id.to_le_bytes());
+    out.extend_from_slice(&t.material.to_le_bytes());
+    for k in 0..3 {
+        let (p, n, g, u) = (t.positions[k], t.normals[k], t.tangents[k], t.uvs[k]);
+        for x in [p.x, p.y, p.z, n.x, n.y, n.z, g.x, g.y, g.z, g.w, u.x, u.y] {
+            out.extend_from_slice(&x.to_le_bytes());
+        }
+    }
+}
+
+fn decode_record(b: &[u8]) -> SourceTriangle {
+    let u = |i: usize| u32::from_le_bytes(b[i..i + 4].try_into().unwrap());
+    let f = |i: usize| f32::from_bits(u(i));
+    let corner = |k: usize| 8 + 48 * k;
+    SourceTriangle {
+        id: u(0),
+        material: u(4),
+        positions: std::array::from_fn(|k| {
+            let o = corner(k);
+            Vec3::new(f(o), f(o + 4), f(o + 8))
+        }),
+        normals: std::array::from_fn(|k| {
+            let o = corner(k) + 12;
+            Vec3::new(f(o), f(o + 4), f(o + 8))
+        }),
+        tangents: std::array::from_fn(|k| {
+            let o = corner(k) + 24;
+            Vec4::new(f(o), f(o + 4), f(o + 8), f(o + 12))
+        }),
+        uvs: std::array::from_fn(|k| {
+            let o = corner(k) + 40;
+            Vec2::new(f(o), f(o + 4))
+        }),
+    }
+}
+
+fn read_spill(path: &Path, f: &mut dyn FnMut(&SourceTriangle)) -> Result<()> {
+    let mut r = BufReader::with_capacity(IO_BUFFER, File::open(path).map_err(io_error(path))?);
+    let mut chunk = vec![0u8; RECORD_BYTES * 1024];
+    loop {
+        let n = read_full(&mut r, &mut chunk).map_err(io_error(path))?;
+        if n % RECORD_BYTES != 0 {
+            return Err(format_error(path, "spill file ends inside a record"));
+        }
+        for rec in chunk[..n].chunks_exact(RECORD_BYTES) {
+            f(&decode_record(rec));
+        }
+        if n < chunk.len() {
+            return Ok(());
+        }
+    }
+}
+
+/// Read until `buf` is full or the reader ends; the number of bytes read.
+fn read_full(r: &mut impl Read, buf: &mut [u8]) -> io::Result<usize> {
+    let mut n = 0;
+    while n < buf.len() {
+        match r.read(&mut buf[n..]) {
+            Ok(0) => break,
+            Ok(k) => n += k,
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(n)
+}
+
+/// Write `mesh` as a domain file; its size and checksum.
+pub fn write_domain_file(path: &Path, mesh: &DomainMesh) -> Result<(u64, u64)> {
+    let file = File::create(path).map_err(io_error(path))?;
+    // The buffer sits outside the hasher, so the hasher sees large chunks.
+    let mut w = BufWriter::with_capacity(IO_BUFFER, HashingWriter::new(file));
+    let m = &mesh.mesh;
+    let result = (|| -> io::Result<()> {
+        w.write_all(&DOMAIN_MAGIC)?;
+        w.write_all(&FORMAT_VERSION.to_le_bytes())?;
+        w.write_all(&mesh.domain.to_le_bytes())?;
+        w.write_all(&(m.positions.len() as u64).to_le_bytes())?;
+        w.write_all(&(m.indices.len() as u64).to_le_bytes())?;
+        let mut put = |x: u32| w.write_all(&x.to_le_bytes());
+        for v in &m.positions {
+            v.to_array().iter().try_for_each(|x| put(x.to_bits()))?;
+        }
+        for v in &m.normals {
+            v.to_array().iter().try_for_each(|x| put(x.to_bits()))?;
+        }
+        for v in &m.tangents {
+            v.to_array().iter().try_for_each(|x| put(x.to_bits()))?;
+        }
+        for v in &m.uvs {
+            v.to_array().iter().try_for_each(|x| put(x.to_bits()))?;
+        }
+        for t in &m.indices {
+            t.iter().try_for_each(|&i| put(i))?;
+        }
+        m.material.iter().try_for_each(|&x| put(x))?;
+        mesh.global_ids.iter().try_for_each(|&x| put(x))?;
+        Ok(())
+    })();
+    result.map_err(io_error(path))?;
+    let hashing = w.into_inner().map_err(|e| io_error(path)(e.into_error()))?;
+    let (_, bytes, sum) = hashing.finish().map_err(io_error(path))?;
+    Ok((bytes, sum))
+}
+
+/// Write `textures.bin` (when there are textures) and describe each texture.
+fn write_textures(
+    dir: &Path,
+    textures: &[Texture],
+) -> Result<(Vec<TextureDesc>, Option<FileEntry>)> {
+    if textures.is_empty() {
+        return Ok((Vec::new(), None));
+    }
+    let path = dir.join(TEXTURES_FILE);
+    let mut descs = Vec::with_capacity(textures.len());
+    let file = File::create(&path).map_err(io_error(&path))?;
+    let mut w = BufWriter::with_capacity(IO_BUFFER, HashingWriter::new(file));
+    let mut offset = TEXTURE_HEADER_BYTES;
+    let result = (|| -> io::Result<()> {
+        w.write_all(&TEXTURE_MAGIC)?;
+        w.write_all(&FORMAT_VERSION.to_le_bytes())?;
+        w.write_all(&(textures.len() as u32).to_le_bytes())?;
+        for t in textures {
+            for px in &t.texels {
+                w.write_all(px)?;
+            }
+        }
+        Ok(())
+    })();
+    result.map_err(io_error(&path))?;
+    for (i, t) in textures.iter().enumerate() {
+        let bytes = t.texels.len() as u64 * 4;
+        if t.width as u64 * t.height as u64 != t.texels.len() as u64 {
+            return Err(format_error(
+                &path,
+                format!(
+                    "texture {i} ({:?}) is {}x{} but has {} texels",
+                    t.name,
+                    t.width,
+                    t.height,
+                    t.texels.len()
+                ),
+            ));
+        }
+        descs.push(TextureDesc {
+            name: t.name.clone(),
+            width: t.width,
+            height: t.height,
+            sampler: t.sampler.into(),
+            offset,
+            bytes,
+        });
+        offset += bytes;
+    }
+    let hashing = w
+        .into_inner()
+        .map_err(|e| io_error(&path)(e.into_error()))?;
+    let (_, bytes, sum) = hashing.finish().map_err(io_error(&path))?;
+    Ok((
+        descs,
+        Some(FileEntry {
+            file: TEXTURES_FILE.to_string(),
+            bytes,
+            xxh3: to_hex(sum),
+        }),
+    ))
+}
+
+/// An opened scene package: the checked manifest, and domains and textures on demand.
+#[derive(Clone, Debug)]
+pub struct Package {
+    dir: PathBuf,
+    manifest: Manifest,
+    materials: Vec<Material>,
+    lights: Vec<Light>,
+    cameras: Vec<Camera>,
+}
+
+/// Read and check the manifest of the package at `dir`. Domain files are not touched (a
+/// worker reads only its own); [`Package::verify`] checks them all.
+pub fn open_package(dir: &Path) -> Result<Package> {
+    let path = dir.join(MANIFEST_FILE);
+    let file = File::open(&path).map_err(io_error(&path))?;
+    let len = file.metadata().map_err(io_error(&path))?.len();
+    // A manifest is a few bytes per material and domain; anything this large is not one.
+    const MAX_MANIFEST: u64 = 1 << 30;
+    if len > MAX_MANIFEST {
+        return Err(format_error(
+            &path,
+            format!("{len} bytes is too large for a manifest"),
+        ));
+    }
+    let mut text = String::with_capacity(len as usize);
+    file.take(MAX_MANIFEST)
+        .read_to_string(&mut text)
+        .map_err(|e| match e.kind() {
+            io::ErrorKind::InvalidData => format_error(&path, "is not UTF-8 text"),
+            _ => io_error(&path)(e),
+        })?;
+    let manifest = manifest::decode(&text, &path)?;
+    for (d, e) in manifest.domains.iter().enumerate() {
+        if domain_file_bytes(e.vertices, e.triangles) != Some(e.bytes) {
+            return Err(format_error(
+                &path,
+                format!(
+                    "domain {d}: {} bytes cannot hold {} vertices and {} triangles",
+                    e.bytes, e.vertices, e.triangles
+                ),
+            ));
+        }
+    }
+    if let Some(f) = &manifest.textures_file
+        && f.bytes < TEXTURE_HEADER_BYTES
+    {
+        return Err(format_error(
+            &path,
+            "textures.bin is too small for its header",
+        ));
+    }
+    Ok(Package {
+        dir: dir.to_path_buf(),
+        materials: manifest.materials(),
+        lights: manifest.lights(),
+        cameras: manifest.cameras(),
+        manifest,
+    })
+}
+
+impl Package {
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    pub fn manifest(&self) -> &Manifest {
+        &self.manifest
+    }
+
+    pub fn layout(&self) -> &DomainLayout {
+        &self.manifest.layout
+    }
+
+    pub fn domain_count(&self) -> u32 {
+        self.manifest.layout.domain_count()
+    }
+
+    pub fn name(&self) -> &str {
+        &self.manifest.scene_name
+    }
+
+    pub fn materials(&self) -> &[Material] {
+        &self.materials
+    }
+
+    pub fn lights(&self) -> &[Light] {
+        &self.lights
+    }
+
+    pub fn cameras(&self) -> &[Camera] {
+        &self.cameras
+    }
+
+    pub fn environment(&self) -> Option<Vec3> {
+        self.manifest.environment()
+    }
+
+    /// Load domain `d`, checking its size, header, checksum and indices.
+    pub fn load_domain(&self, d: u32) -> Result<DomainMesh> {
+        let Some(entry) = self.manifest.domains.get(d as usize) else {
+            return Err(format_error(
+                &self.dir,
+                format!(
+                    "domain {d} does not exist (the package has {})",
+                    self.domain_count()
+                ),
+            ));
+        };
+        let path = self.dir.join(&entry.file);
+        let file = File::open(&path).map_err(io_error(&path))?;
+        let len = file.metadata().map_err(io_error(&path))?.len();
+        if len != entry.bytes {
+            return Err(format_error(
+                &path,
+                format!(
+                    "{} bytes, but the manifest records {}: the file is {}",
+                    len,
+                    entry.bytes,
+                    if len < entry.bytes {
+                        "truncated"
+                    } else {
+                        "too long"
+                    }
+                ),
+            ));
+        }
+        let mut r = BufReader::with_capacity(IO_BUFFER, HashingReader::new(file));
+        let mesh = decode_domain(&mut r, &path, d, entry)?;
+        // Everything was read, so the hasher has seen the whole file.
+        let mut probe = [0u8; 1];
+        if r.read(&mut probe).map_err(io_error(&path))? != 0 {
+            return Err(format_error(&path, "the file grew while it was read"));
+        }
+        let actual = r.get_ref().digest();
+        let expected = from_hex(&entry.xxh3).unwrap_or_default();
+        if actual != expected {
+            return Err(format_error(
+                &path,
+                format!(
+                    "checksum mismatch: the file hashes to {} but the manifest records {}; \
+                     the file is corrupt",
+                    to_hex(actual),
+                    entry.xxh3
+                ),
+            ));
+        }
+        self.check_domain(&mesh, &path)?;
+        Ok(DomainMesh {
+            domain: d,
+            bounds: self.layout().bounds(d),
+            mesh: mesh.0,
+            global_ids: mesh.1,
+        })
+    }
+
+    /// Index checks on a decoded domain (after its checksum matched, so a failure here
+    /// means the package was written wrong, not damaged).
+    fn check_domain(&self, (mesh, ids): &(Mesh, Vec<u32>), path: &Path) -> Result<()> {
+        let v = mesh.positions.len() as u32;
+        if let Some((i, t)) = mesh
+            .indices
+            .iter()
+            .enumerate()
+            .find(|(_, t)| t.iter().any(|&x| x >= v))
+        {
+            return Err(format_error(
+                path,
+                format!("triangle {i} refers to vertex {t:?} but there are {v} vertices"),
+            ));
+        }
+        let materials = self.materials.len() as u32;
+        if let Some((i, m)) = mesh
+            .material
+            .iter()
+            .enumerate()
+            .find(|(_, m)| **m >= materials)
+        {
+            return Err(format_error(
+                path,
+                format!("triangle {i} uses material {m} but there are {materials}"),
+            ));
+        }
+        let n = self.manifest.source_triangles;
+        if let Some((i, g)) = ids.iter().enumerate().find(|(_, g)| **g as u64 >= n) {
+            return Err(format_error(
+                path,
+                format!("triangle {i} has global id {g} but the scene has {n} triangles"),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Load and check all textures.
+    pub fn load_textures(&self) -> Result<Vec<Texture>> {
+        let Some(entry) = &self.manifest.textures_file else {
+            return Ok(Vec::new());
+        };
+        let path = self.dir.join(&entry.file);
+        let bytes = read_checked(&path, entry.bytes, &entry.xxh3)?;
+        let header_ok = bytes[..8] == TEXTURE_MAGIC;
+        let version = u32::from_le_bytes(bytes[8..12].try_into().unwrap());
+        let count = u32::from_le_bytes(bytes[12..16].try_into().unwrap());
+        if !header_ok {
+            return Err(format_error(&path, "not a dray texture file (bad magic)"));
+        }
+        if version != FORMAT_VERSION {
+            return Err(format_error(
+                &path,
+                format!(
+                    "texture file format version {version} is not supported (expected {FORMAT_VERSION})"
+                ),
+            ));
+        }
+        if count as usize != self.manifest.textures.len() {
+            return Err(format_error(
+                &path,
+                format!(
+                    "holds {count} textures, the manifest lists {}",
+                    self.manifest.textures.len()
+                ),
+            ));
+        }
+        // Offsets and sizes were checked against the file size when the manifest was read.
+        Ok(self
+            .manifest
+            .textures
+            .iter()
+            .map(|t| {
+                let b = &bytes[t.offset as usize..(t.offset + t.bytes) as usize];
+                Texture {
+                    name: t.name.clone(),
+                    width: t.width,
+                    height: t.height,
+                    texels: b
+                        .chunks_exact(4)
+                        .map(|p| [p[0], p[1], p[2], p[3]])
+                        .collect(),
+                    sampler: t.sampler.into(),
+                }
+            })
+            .collect())
+    }
+
+    /// Check every file of the package: each domain loads (size, header, checksum,
+    /// indices) and the textures load. Reads the whole package.
+    pub fn verify(&self) -> Result<()> {
+        for d in 0..self.domain_count() {
+            self.load_domain(d)?;
+        }
+        self.load_textures()?;
+        Ok(())
+    }
+}
+
+/// Read a whole file whose size and checksum the manifest gives.
+fn read_checked(path: &Path, size: u64, xxh3: &str) -> Result<Vec<u8>> {
+    let file = File::open(path).map_err(io_error(path))?;
+    let len = file.metadata().map_err(io_error(path))?.len();
+    if len != size {
+        return Err(format_error(
+            path,
+            format!(
+                "{len} bytes, but the manifest records {size}: the file is truncated or replaced"
+            ),
+        ));
+    }
+    let mut bytes = Vec::with_capacity(len as usize);
+    file.take(size)
+        .read_to_end(&mut bytes)
+        .map_err(io_error(path))?;
+    if bytes.len() as u64 != size {
+        return Err(format_error(path, "the file shrank while it was read"));
+    }
+    let actual = super::checksum::checksum(&bytes);
+    if Some(actual) != from_hex(xxh3) {
+        return Err(format_error(
+            path,
+            format!(
+                "checksum mismatch: the file hashes to {} but the manifest records {xxh3}; \
+                 the file is corrupt",
+                to_hex(actual)
+            ),
+        ));
+    }
+    Ok(bytes)
+}
+
+/// Decode a domain file whose size already matched `entry`; the caller verifies the
+/// checksum afterwards.
+fn decode_domain(
+    r: &mut impl Read,
+    path: &Path,
+    d: u32,
+    entry: &DomainEntry,
+) -> Result<(Mesh, Vec<u32>)> {
+    let mut header = [0u8; DOMAIN_HEADER_BYTES as usize];
+    read_exact(r, &mut header, path)?;
+    if header[..8] != DOMAIN_MAGIC {
+        return Err(format_error(
+            path,
+            "not a dray domain file (bad magic); the file is corrupt",
+        ));
+    }
+    let u32_at = |i: usize| u32::from_le_bytes(header[i..i + 4].try_into().unwrap());
+    let u64_at = |i: usize| u64::from_le_bytes(header[i..i + 8].try_into().unwrap());
+    let version = u32_at(8);
+    if version != FORMAT_VERSION {
+        return Err(format_error(
+            path,
+            format!(
+                "domain file format version {version} is not supported (expected {FORMAT_VERSION})"
+            ),
+        ));
+    }
+    let (domain, vertices, triangles) = (u32_at(12), u64_at(16), u64_at(24));
+    if domain != d || vertices != entry.vertices || triangles != entry.triangles {
+        return Err(format_error(
+            path,
+            format!(
+                "header says domain {domain} with {vertices} vertices and {triangles} triangles, \
+                 the manifest says domain {d} with {} and {}; the file is corrupt",
+                entry.vertices, entry.triangles
+            ),
+        ));
+    }
+    // Counts now equal the manifest's, whose sizes matched the file: allocations are
+    // bounded by the file's real size.
+    let (v, t) = (vertices as usize, triangles as usize);
+    let f = |b: &[u8], i: usize| f32::from_le_bytes(b[4 * i..4 * i + 4].try_into().unwrap());
+    let u = |b: &[u8], i: usize| u32::from_le_bytes(b[4 * i..4 * i + 4].try_into().unwrap());
+    let positions = read_items(r, v, 12, path, |b| Vec3::new(f(b, 0), f(b, 1), f(b, 2)))?;
+    let normals = read_items(r, v, 12, path, |b| Vec3::new(f(b, 0), f(b, 1), f(b, 2)))?;
+    let tangents = read_items(r, v, 16, path, |b| {
+        Vec4::new(f(b, 0), f(b, 1), f(b, 2), f(b, 3))
+    })?;
+    let uvs = read_items(r, v, 8, path, |b| Vec2::new(f(b, 0), f(b, 1)))?;
+    let indices = read_items(r, t, 12, path, |b| [u(b, 0), u(b, 1), u(b, 2)])?;
+    let material = read_items(r, t, 4, path, |b| u(b, 0))?;
+    let ids = read_items(r, t, 4, path, |b| u(b, 0))?;
+    Ok((
+        Mesh {
+            positions,
+            normals,
+            tangents,
+            uvs,
+            indices,
+            material,
+        },
+        ids,
+    ))
+}
+
+fn read_exact(r: &mut impl Read, buf: &mut [u8], path: &Path) -> Result<()> {
+    r.read_exact(buf).map_err(|e| {
+        if e.kind() == io::ErrorKind::UnexpectedEof {
+            format_error(path, "the file ends early: it is truncated")
+        } else {
+            io_error(path)(e)
+        }
+    })
+}
+
+/// Read `count` items of `size` bytes each, decoding with `f`.
+fn read_items<T>(
+    r: &mut impl Read,
+    count: usize,
+    size: usize,
+    path: &Path,
+    f: impl Fn(&[u8]) -> T,
+) -> Result<Vec<T>> {
+    let mut out = Vec::with_capacity(count);
+    let per_chunk = (64 * 1024 / size).max(1);
+    let mut buf = vec![0u8; per_chunk * size];
+    let mut left = count;
+    while left > 0 {
+        let k = left.min(per_chunk);
+        let b = &mut buf[..k * size];
+        read_exact(r, b, path)?;
+        out.extend(b.chunks_exact(size).map(&f));
+        left -= k;
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn records_round_trip() {
+        let t = SourceTriangle {
+            id: 77,
+            material: 3,
+            positions: [Vec3::new(1.0, 2.0, 3.0), Vec3::X, -Vec3::Y],
+            normals: [Vec3::Z; 3],
+            tangents: [Vec4::new(1.0, 0.0, 0.0, -1.0); 3],
+            uvs: [Vec2::new(0.25, 0.75), Vec2::ZERO, Vec2::ONE],
+        };
+        let mut b = Vec::new();
+        encode_record(&t, &mut b);
+        assert_eq!(b.len(), RECORD_BYTES);
+        assert_eq!(decode_record(&b), t);
+    }
+
+    #[test]
+    fn package_file_names() {
+        assert!(is_package_file("manifest.json"));
+        assert!(is_package_file("domain-00017.bin"));
+        assert!(is_package_file(".domain-00017.spill"));
+        assert!(is_package_file("textures.bin"));
+        assert!(!is_package_file("domain-17.bin"));
+        assert!(!is_package_file("notes.txt"));
+    }
+
+    #[test]
+    fn file_size_formula_overflows_safely() {
+        assert_eq!(domain_file_bytes(0, 0), Some(32));
+        assert_eq!(domain_file_bytes(3, 1), Some(32 + 144 + 20));
+        assert_eq!(domain_file_bytes(u64::MAX / 2, 1), None);
+    }
+}

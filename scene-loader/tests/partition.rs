@@ -1,0 +1,695 @@
+//! Partitioning and scene packages: layouts tile the bounds, every triangle is in every
+//! domain it touches, kd domains are balanced, a package round trip is exact, and a
+//! damaged package is a clear error naming the file.
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+
+use dray_core::material::{Material, TexRef};
+use dray_core::scene::{Mesh, Scene};
+use dray_core::texture::{Filter, Sampler, Texture, Wrap};
+use dray_scene::partition::overlap::triangle_overlaps_box;
+use dray_scene::partition::package::WriteOptions;
+use dray_scene::partition::{
+    Aabb, DomainLayout, DomainMesh, LayoutSpec, SceneParts, open_package, partition_in_memory,
+    write_package, write_scene_package,
+};
+use glam::{Vec2, Vec3, Vec4};
+
+fn load(spec: &str) -> Scene {
+    dray_scene::load(spec).unwrap_or_else(|e| panic!("{spec}: {e}"))
+}
+
+/// A fresh directory for one test (removed on success).
+struct TmpDir(PathBuf);
+
+impl TmpDir {
+    fn new(name: &str) -> TmpDir {
+        let d = std::env::temp_dir().join(format!("dray-partition-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        TmpDir(d)
+    }
+}
+
+impl Drop for TmpDir {
+    fn drop(&mut self) {
+        if !std::thread::panicking() {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+}
+
+/// Deterministic points for probing.
+struct Rng(u64);
+impl Rng {
+    fn f(&mut self) -> f32 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 40) as f32 / (1u64 << 24) as f32
+    }
+}
+
+fn layout_for(scene: &Scene, spec: LayoutSpec) -> DomainLayout {
+    DomainLayout::for_source(scene, &spec).unwrap()
+}
+
+fn bounds_of(scene: &Scene) -> Aabb {
+    let (lo, hi) = scene.bounds();
+    Aabb::new(lo, hi)
+}
+
+#[test]
+fn layouts_tile_the_bounds_and_locate_agrees() {
+    let mut rng = Rng(1);
+    for spec_name in ["soup:2000", "cornell"] {
+        let scene = load(spec_name);
+        let b = bounds_of(&scene);
+        for spec in [
+            LayoutSpec::Grid([3, 2, 4]),
+            LayoutSpec::GridCount(6),
+            LayoutSpec::Kd(1),
+            LayoutSpec::Kd(7),
+            LayoutSpec::Kd(8),
+        ] {
+            let l = layout_for(&scene, spec);
+            let what = format!("{spec_name} {spec:?}");
+            assert_eq!(l.domain_count() as u64, spec.domain_count(), "{what}");
+            assert_eq!(l.scene_bounds(), b, "{what}");
+            // Boxes lie in the bounds, their volumes add up, and interiors are disjoint.
+            let mut volume = 0.0;
+            for (i, bi) in l.boxes().iter().enumerate() {
+                assert!(
+                    !bi.is_empty() && b.contains(bi.min) && b.contains(bi.max),
+                    "{what}"
+                );
+                volume += bi.volume();
+                for bj in &l.boxes()[i + 1..] {
+                    let lo = bi.min.max(bj.min);
+                    let hi = bi.max.min(bj.max);
+                    let e = (hi - lo).max(Vec3::ZERO);
+                    assert!(
+                        e.x * e.y * e.z == 0.0,
+                        "{what}: boxes {bi:?} and {bj:?} overlap"
+                    );
+                }
+            }
+            assert!(
+                (volume - b.volume()).abs() <= 1e-5 * b.volume(),
+                "{what}: domains cover {volume} of {}",
+                b.volume()
+            );
+            // The core's ray walker sees the same domains.
+            let tree = l.to_domain_tree();
+            let tree_boxes: Vec<Aabb> = tree
+                .domain_bounds()
+                .into_iter()
+                .map(|(lo, hi)| Aabb::new(lo, hi))
+                .collect();
+            assert_eq!(tree_boxes, l.boxes(), "{what}");
+            if let LayoutSpec::Grid(dims) = spec {
+                let core = dray_core::domain::DomainTree::grid(b.min, b.max, dims);
+                assert_eq!(core, tree, "{what}");
+            }
+            // Random points, box corners and wall points all locate to a box holding them.
+            let mut probes: Vec<Vec3> = (0..5000)
+                .map(|_| b.min + b.extent() * Vec3::new(rng.f(), rng.f(), rng.f()))
+                .collect();
+            for bx in l.boxes() {
+                probes.push(bx.min);
+                probes.push(bx.max);
+                probes.push((bx.min + bx.max) * 0.5);
+                probes.push(Vec3::new(bx.min.x, (bx.min.y + bx.max.y) * 0.5, bx.max.z));
+            }
+            for p in probes {
+                let d = l
+                    .locate(p)
+                    .unwrap_or_else(|| panic!("{what}: {p} in the bounds has no domain"));
+                assert_eq!(tree.locate(p), Some(d), "{what}: {p}");
+                assert!(l.bounds(d).contains(p), "{what}: {p} located in {d}");
+                // Strictly inside a box: located there.
+                for (k, bx) in l.boxes().iter().enumerate() {
+                    if p.cmpgt(bx.min).all() && p.cmplt(bx.max).all() {
+                        assert_eq!(d, k as u32, "{what}: {p}");
+                    }
+                }
+            }
+            for p in [
+                b.min - Vec3::splat(1.0),
+                b.max + Vec3::new(0.0, 1.0, 0.0),
+                Vec3::NAN,
+            ] {
+                assert_eq!(l.locate(p), None, "{what}: {p}");
+            }
+        }
+    }
+}
+
+/// The domains of each global triangle id.
+fn domains_by_triangle(parts: &[DomainMesh], n: usize) -> Vec<BTreeSet<u32>> {
+    let mut by = vec![BTreeSet::new(); n];
+    for dm in parts {
+        for &g in &dm.global_ids {
+            assert!(
+                by[g as usize].insert(dm.domain),
+                "triangle {g} twice in one domain"
+            );
+        }
+    }
+    by
+}
+
+fn check_assignment(scene: &Scene, layout: &DomainLayout, what: &str) {
+    let parts = partition_in_memory(scene, layout).unwrap();
+    assert_eq!(parts.len() as u32, layout.domain_count());
+    let n = scene.mesh.triangle_count();
+    // Stored triangles are the source's, bit for bit.
+    for dm in &parts {
+        assert_eq!(dm.global_ids.len(), dm.mesh.indices.len());
+        for (t, &g) in dm.global_ids.iter().enumerate() {
+            let local = dm.mesh.corners(t);
+            let global = scene.mesh.corners(g as usize);
+            assert_eq!(
+                local.map(|p| p.to_array().map(f32::to_bits)),
+                global.map(|p| p.to_array().map(f32::to_bits))
+            );
+            assert_eq!(dm.mesh.material[t], scene.mesh.material[g as usize]);
+        }
+    }
+    let by = domains_by_triangle(&parts, n);
+    let eps = layout.epsilon();
+    let mut rng = Rng(9);
+    for (g, set) in by.iter().enumerate() {
+        assert!(!set.is_empty(), "{what}: triangle {g} is in no domain");
+        let tri = scene.mesh.corners(g);
+        let tb = Aabb::of_triangle(&tri);
+        for d in 0..layout.domain_count() {
+            let grown = layout.bounds(d).expanded(eps);
+            // Exactly the domains the (brute-force) overlap test picks…
+            assert_eq!(
+                set.contains(&d),
+                triangle_overlaps_box(&tri, &grown),
+                "{what}: triangle {g} vs domain {d}"
+            );
+            // …which are among those its bounds touch…
+            if set.contains(&d) {
+                assert!(
+                    grown.overlaps(&tb),
+                    "{what}: triangle {g} in far domain {d}"
+                );
+            }
+        }
+        // …and include every domain that holds any point of the triangle (independent of
+        // the separating-axis code).
+        for _ in 0..8 {
+            let (mut u, mut v) = (rng.f(), rng.f());
+            if u + v > 1.0 {
+                (u, v) = (1.0 - u, 1.0 - v);
+            }
+            let p = tri[0] + (tri[1] - tri[0]) * u + (tri[2] - tri[0]) * v;
+            for d in 0..layout.domain_count() {
+                if layout.bounds(d).expanded(eps * 0.5).contains(p) {
+                    assert!(set.contains(&d), "{what}: triangle {g} has a point in {d}");
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn every_triangle_is_in_every_domain_it_overlaps() {
+    let scene = load("soup:3000");
+    for spec in [LayoutSpec::Grid([3, 3, 3]), LayoutSpec::Kd(9)] {
+        let l = layout_for(&scene, spec);
+        check_assignment(&scene, &l, &format!("soup {spec:?}"));
+    }
+    // Far from the origin rounding grows with the coordinates; so does the epsilon.
+    let mut far = load("spheres:4");
+    far.translate(Vec3::new(1.0e5, -2.0e4, 3.0e3));
+    let l = layout_for(&far, LayoutSpec::Kd(6));
+    assert!(l.epsilon() >= 1.0e5 * dray_scene::partition::layout::EPSILON_FRACTION);
+    check_assignment(&far, &l, "far spheres kd 6");
+}
+
+fn tri_scene(tris: &[[Vec3; 3]]) -> Scene {
+    let mut mesh = Mesh::default();
+    for t in tris {
+        let b = mesh.push_vertices(t);
+        mesh.indices.push([b, b + 1, b + 2]);
+        mesh.material.push(0);
+    }
+    Scene {
+        name: "tris".into(),
+        mesh,
+        materials: vec![Material::default()],
+        ..Scene::default()
+    }
+}
+
+#[test]
+fn triangles_on_or_near_a_wall_are_in_both_neighbours() {
+    let big = [
+        [
+            Vec3::ZERO,
+            Vec3::new(2.0, 0.0, 0.0),
+            Vec3::new(0.0, 2.0, 2.0),
+        ],
+        [
+            Vec3::new(2.0, 2.0, 2.0),
+            Vec3::new(0.0, 2.0, 2.0),
+            Vec3::new(2.0, 0.0, 0.0),
+        ],
+    ];
+    let wall = |x: f32| {
+        [
+            Vec3::new(x, 0.5, 0.5),
+            Vec3::new(x, 0.6, 0.5),
+            Vec3::new(x, 0.5, 0.6),
+        ]
+    };
+    let above = f32::from_bits(1.0f32.to_bits() + 1);
+    let below = f32::from_bits(1.0f32.to_bits() - 1);
+    let scene = tri_scene(&[
+        big[0],
+        big[1],
+        wall(1.0),
+        wall(above),
+        wall(below),
+        wall(1.01),
+        wall(0.99),
+    ]);
+    let layout = layout_for(&scene, LayoutSpec::Grid([2, 1, 1]));
+    let by = domains_by_triangle(&partition_in_memory(&scene, &layout).unwrap(), 7);
+    let both: BTreeSet<u32> = [0, 1].into();
+    assert_eq!(by[2], both, "on the wall");
+    assert_eq!(by[3], both, "one ulp above");
+    assert_eq!(by[4], both, "one ulp below");
+    assert_eq!(by[5], [1].into(), "clearly above");
+    assert_eq!(by[6], [0].into(), "clearly below");
+    // A diagonal triangle whose bounds touch a domain it does not cross stays out of it.
+    let diag = [
+        Vec3::ZERO,
+        Vec3::new(1.8, 0.0, 0.0),
+        Vec3::new(0.0, 1.8, 0.0),
+    ];
+    let corner = [
+        Vec3::new(2.0, 2.0, 0.0),
+        Vec3::new(1.9, 2.0, 0.0),
+        Vec3::new(2.0, 1.9, 0.0),
+    ];
+    let scene = tri_scene(&[
+        diag,
+        corner,
+        [Vec3::ZERO, Vec3::splat(2.0), Vec3::new(0.0, 2.0, 2.0)],
+    ]);
+    let layout = layout_for(&scene, LayoutSpec::Grid([2, 2, 1]));
+    let by = domains_by_triangle(&partition_in_memory(&scene, &layout).unwrap(), 3);
+    assert_eq!(by[0], [0, 1, 2].into(), "the diagonal skips the far cell");
+}
+
+#[test]
+fn kd_domains_are_balanced() {
+    let scene = load("soup:20000");
+    let layout = layout_for(&scene, LayoutSpec::Kd(8));
+    let parts = partition_in_memory(&scene, &layout).unwrap();
+    let counts: Vec<usize> = parts.iter().map(|p| p.triangle_count()).collect();
+    let mean = counts.iter().sum::<usize>() as f64 / counts.len() as f64;
+    let (min, max) = (*counts.iter().min().unwrap(), *counts.iter().max().unwrap());
+    eprintln!("kd 8 on soup:20000: {counts:?}");
+    // Centroids split exactly 2500 per domain; triangles straddling planes add copies.
+    assert!(
+        min as f64 >= 0.85 * mean && max as f64 <= 1.15 * mean,
+        "{counts:?}"
+    );
+    assert!(min >= 2500, "{counts:?}");
+    // Odd counts split proportionally too.
+    let layout = layout_for(&scene, LayoutSpec::Kd(5));
+    let parts = partition_in_memory(&scene, &layout).unwrap();
+    let counts: Vec<usize> = parts.iter().map(|p| p.triangle_count()).collect();
+    let mean = counts.iter().sum::<usize>() as f64 / 5.0;
+    assert!(
+        counts
+            .iter()
+            .all(|&c| (c as f64 - mean).abs() <= 0.15 * mean),
+        "{counts:?}"
+    );
+}
+
+/// A small scene with everything a manifest stores: a texture, textured and masked
+/// materials, attributes, lights, cameras and an environment.
+fn rich_scene() -> Scene {
+    let mut scene = load("cornell:glass");
+    let n = scene.mesh.positions.len();
+    for i in 0..n {
+        scene.mesh.normals[i] = Vec3::new(0.0, 1.0, 0.0);
+        scene.mesh.uvs[i] = Vec2::new(i as f32 * 0.1, 0.3);
+        scene.mesh.tangents[i] = Vec4::new(1.0, 0.0, 0.0, -1.0);
+    }
+    scene.textures.push(Texture {
+        name: "checker".into(),
+        width: 2,
+        height: 3,
+        texels: (0..6).map(|i| [i * 40, 255 - i * 40, 7, 255]).collect(),
+        sampler: Sampler {
+            wrap_s: Wrap::MirroredRepeat,
+            wrap_t: Wrap::ClampToEdge,
+            filter: Filter::Nearest,
+        },
+    });
+    scene.materials.push(Material {
+        base_color_tex: Some(TexRef {
+            texture: 0,
+            tex_coord: 0,
+        }),
+        alpha_mode: dray_core::material::AlphaMode::Mask { cutoff: 0.3 },
+        roughness: 0.1,
+        ..Material::default()
+    });
+    let m = scene.materials.len() as u32 - 1;
+    scene.mesh.material[0] = m;
+    scene.environment = Some(Vec3::new(0.1, 0.2, 0.3));
+    scene.stats.warnings.push("a warning".into());
+    scene
+}
+
+/// Every vertex attribute of `m` as raw bits (so -0.0 and NaN payloads count), with the
+/// vertex count first.
+fn bits(m: &Mesh) -> Vec<u32> {
+    let mut out = vec![m.positions.len() as u32];
+    out.extend(
+        m.positions
+            .iter()
+            .flat_map(|v| v.to_array())
+            .map(f32::to_bits),
+    );
+    out.extend(
+        m.normals
+            .iter()
+            .flat_map(|v| v.to_array())
+            .map(f32::to_bits),
+    );
+    out.extend(
+        m.tangents
+            .iter()
+            .flat_map(|v| v.to_array())
+            .map(f32::to_bits),
+    );
+    out.extend(m.uvs.iter().flat_map(|v| v.to_array()).map(f32::to_bits));
+    out
+}
+
+fn write(dir: &Path, scene: &Scene, spec: LayoutSpec) {
+    // A tiny spill buffer forces many flushes per domain.
+    let options = WriteOptions {
+        buffer_bytes: 1,
+        ..WriteOptions::default()
+    };
+    write_package(dir, SceneParts::of(scene), scene, &spec, &options).unwrap();
+}
+
+#[test]
+fn package_round_trip_is_exact() {
+    for (name, scene, spec) in [
+        ("rich-kd", rich_scene(), LayoutSpec::Kd(5)),
+        ("rich-grid", rich_scene(), LayoutSpec::Grid([2, 2, 1])),
+        ("soup-kd", load("soup:5000"), LayoutSpec::Kd(6)),
+    ] {
+        let tmp = TmpDir::new(name);
+        write(&tmp.0, &scene, spec);
+        let pkg = open_package(&tmp.0).unwrap();
+        pkg.verify().unwrap();
+        let layout = layout_for(&scene, spec);
+        assert_eq!(pkg.layout(), &layout, "{name}");
+        assert_eq!(pkg.name(), scene.name);
+        assert_eq!(pkg.materials(), scene.materials.as_slice());
+        assert_eq!(pkg.lights(), scene.lights.as_slice());
+        assert_eq!(pkg.cameras(), scene.cameras.as_slice());
+        assert_eq!(pkg.environment(), scene.environment);
+        assert_eq!(pkg.load_textures().unwrap(), scene.textures);
+        let m = pkg.manifest();
+        assert_eq!(m.source_triangles, scene.mesh.triangle_count() as u64);
+        assert_eq!(m.stats.warnings, scene.stats.warnings);
+        assert_eq!(m.material_triangles.iter().sum::<u64>(), m.source_triangles);
+        let memory = partition_in_memory(&scene, &layout).unwrap();
+        let mut assigned = 0;
+        for (d, mem) in memory.iter().enumerate() {
+            let disk = pkg.load_domain(d as u32).unwrap();
+            assert_eq!(bits(&disk.mesh), bits(&mem.mesh), "{name} domain {d}");
+            assert_eq!(disk.mesh.indices, mem.mesh.indices);
+            assert_eq!(disk.mesh.material, mem.mesh.material);
+            assert_eq!(disk.global_ids, mem.global_ids);
+            assert_eq!(disk.bounds, mem.bounds);
+            assigned += disk.triangle_count() as u64;
+        }
+        assert_eq!(assigned, m.assigned_triangles);
+        assert!(pkg.load_domain(pkg.domain_count()).is_err());
+    }
+}
+
+#[test]
+fn rewriting_replaces_a_package_but_never_clobbers_other_files() {
+    let tmp = TmpDir::new("rewrite");
+    let scene = load("soup:500");
+    write_scene_package(&tmp.0, &scene, &LayoutSpec::Kd(4)).unwrap();
+    let s = write_scene_package(&tmp.0, &scene, &LayoutSpec::Grid([2, 1, 1])).unwrap();
+    assert_eq!(s.domains, 2);
+    assert!(
+        !tmp.0.join("domain-00003.bin").exists(),
+        "stale domain file left"
+    );
+    let pkg = open_package(&tmp.0).unwrap();
+    pkg.verify().unwrap();
+    std::fs::write(tmp.0.join("notes.txt"), "mine").unwrap();
+    let e = write_scene_package(&tmp.0, &scene, &LayoutSpec::Kd(2))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("notes.txt") && e.contains("refusing"), "{e}");
+    assert!(tmp.0.join("notes.txt").exists());
+}
+
+/// A written package to damage.
+fn damaged(name: &str) -> (TmpDir, Scene) {
+    let tmp = TmpDir::new(name);
+    let scene = rich_scene();
+    write(&tmp.0, &scene, LayoutSpec::Kd(4));
+    (tmp, scene)
+}
+
+fn load_err(dir: &Path, d: u32) -> String {
+    let pkg = open_package(dir).unwrap();
+    pkg.load_domain(d).unwrap_err().to_string()
+}
+
+#[test]
+fn a_flipped_byte_in_a_domain_is_a_checksum_error_naming_the_file() {
+    let (tmp, _) = damaged("flip");
+    let f = tmp.0.join("domain-00001.bin");
+    let mut bytes = std::fs::read(&f).unwrap();
+    let mid = bytes.len() / 2;
+    bytes[mid] ^= 0x10;
+    std::fs::write(&f, bytes).unwrap();
+    let e = load_err(&tmp.0, 1);
+    assert!(
+        e.contains("domain-00001.bin") && e.contains("checksum mismatch"),
+        "{e}"
+    );
+    assert!(open_package(&tmp.0).unwrap().verify().is_err());
+    // Other domains still load.
+    open_package(&tmp.0).unwrap().load_domain(0).unwrap();
+}
+
+#[test]
+fn a_truncated_domain_is_an_error_naming_the_file() {
+    let (tmp, _) = damaged("truncate");
+    let f = tmp.0.join("domain-00002.bin");
+    let bytes = std::fs::read(&f).unwrap();
+    std::fs::write(&f, &bytes[..bytes.len() - 7]).unwrap();
+    let e = load_err(&tmp.0, 2);
+    assert!(
+        e.contains("domain-00002.bin") && e.contains("truncated"),
+        "{e}"
+    );
+    std::fs::write(&f, &bytes[..10]).unwrap();
+    let e = load_err(&tmp.0, 2);
+    assert!(
+        e.contains("domain-00002.bin") && e.contains("truncated"),
+        "{e}"
+    );
+}
+
+#[test]
+fn a_bogus_header_count_is_refused_without_allocating() {
+    let (tmp, _) = damaged("header");
+    let f = tmp.0.join("domain-00000.bin");
+    let mut bytes = std::fs::read(&f).unwrap();
+    bytes[24..32].copy_from_slice(&u64::MAX.to_le_bytes());
+    std::fs::write(&f, &bytes).unwrap();
+    let e = load_err(&tmp.0, 0);
+    assert!(
+        e.contains("domain-00000.bin") && e.contains("corrupt"),
+        "{e}"
+    );
+    bytes[..8].copy_from_slice(b"NOTDRAY!");
+    std::fs::write(&f, &bytes).unwrap();
+    let e = load_err(&tmp.0, 0);
+    assert!(e.contains("domain-00000.bin") && e.contains("magic"), "{e}");
+}
+
+#[test]
+fn a_missing_domain_file_is_an_error_naming_it() {
+    let (tmp, _) = damaged("missing");
+    std::fs::remove_file(tmp.0.join("domain-00003.bin")).unwrap();
+    let e = load_err(&tmp.0, 3);
+    assert!(e.contains("domain-00003.bin"), "{e}");
+    let e = open_package(&tmp.0)
+        .unwrap()
+        .verify()
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("domain-00003.bin"), "{e}");
+}
+
+fn edit_manifest(dir: &Path, f: impl FnOnce(&mut serde_json::Value)) {
+    let p = dir.join("manifest.json");
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+    f(&mut v);
+    std::fs::write(&p, serde_json::to_string_pretty(&v).unwrap()).unwrap();
+}
+
+#[test]
+fn a_wrong_version_is_a_version_error() {
+    let (tmp, _) = damaged("version");
+    edit_manifest(&tmp.0, |v| v["version"] = 2.into());
+    let e = open_package(&tmp.0).unwrap_err().to_string();
+    assert!(
+        e.contains("manifest.json") && e.contains("version 2 is not supported"),
+        "{e}"
+    );
+    edit_manifest(&tmp.0, |v| v["format"] = "something-else".into());
+    let e = open_package(&tmp.0).unwrap_err().to_string();
+    assert!(e.contains("not a dray scene package"), "{e}");
+    // A domain file of another version.
+    let (tmp, _) = damaged("version-domain");
+    let f = tmp.0.join("domain-00000.bin");
+    let mut bytes = std::fs::read(&f).unwrap();
+    bytes[8..12].copy_from_slice(&7u32.to_le_bytes());
+    std::fs::write(&f, &bytes).unwrap();
+    let e = load_err(&tmp.0, 0);
+    assert!(
+        e.contains("domain-00000.bin") && e.contains("version 7"),
+        "{e}"
+    );
+}
+
+#[test]
+fn a_damaged_manifest_is_refused() {
+    let (tmp, _) = damaged("manifest");
+    let p = tmp.0.join("manifest.json");
+    let text = std::fs::read_to_string(&p).unwrap();
+    // Change one digit of the first material's roughness in the body.
+    let key = "\"roughness\":";
+    let at = text.find(key).unwrap() + key.len();
+    let at = at + text[at..].find(|c: char| c.is_ascii_digit()).unwrap();
+    let mut bytes = text.into_bytes();
+    bytes[at] = if bytes[at] == b'0' { b'1' } else { b'0' };
+    std::fs::write(&p, &bytes).unwrap();
+    let e = open_package(&tmp.0).unwrap_err().to_string();
+    assert!(
+        e.contains("manifest.json") && e.contains("checksum mismatch"),
+        "{e}"
+    );
+    std::fs::write(&p, "{ not json").unwrap();
+    let e = open_package(&tmp.0).unwrap_err().to_string();
+    assert!(
+        e.contains("manifest.json") && e.contains("invalid JSON"),
+        "{e}"
+    );
+    std::fs::remove_file(&p).unwrap();
+    let e = open_package(&tmp.0).unwrap_err().to_string();
+    assert!(e.contains("manifest.json"), "{e}");
+}
+
+/// Edit the manifest body and re-sign it, as a buggy or hostile writer would.
+fn resign(dir: &Path, f: impl FnOnce(&mut serde_json::Value)) {
+    use dray_scene::partition::checksum::{checksum, to_hex};
+    let p = dir.join("manifest.json");
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+    f(&mut v["body"]);
+    let body = serde_json::to_string_pretty(&v["body"]).unwrap();
+    let text = format!(
+        "{{\"format\": {}, \"version\": {}, \"body_xxh3\": \"{}\", \"body\": {body}}}",
+        v["format"],
+        v["version"],
+        to_hex(checksum(body.as_bytes()))
+    );
+    std::fs::write(&p, text).unwrap();
+}
+
+#[test]
+fn a_signed_but_inconsistent_manifest_is_refused() {
+    // Counts no file could hold: refused when opening, before any allocation.
+    let (tmp, _) = damaged("lying-counts");
+    resign(&tmp.0, |b| {
+        b["domains"][0]["triangles"] = (1u64 << 40).into()
+    });
+    let e = open_package(&tmp.0).unwrap_err().to_string();
+    assert!(e.contains("manifest.json") && e.contains("domain 0"), "{e}");
+    // A path instead of a domain file name.
+    let (tmp, _) = damaged("traversal");
+    resign(&tmp.0, |b| {
+        b["domains"][1]["file"] = "../../etc/passwd".into()
+    });
+    let e = open_package(&tmp.0).unwrap_err().to_string();
+    assert!(e.contains("domain 1"), "{e}");
+    // A material pointing at a texture that does not exist.
+    let (tmp, _) = damaged("texref");
+    resign(&tmp.0, |b| {
+        let last = b["materials"].as_array().unwrap().len() - 1;
+        b["materials"][last]["base_color_tex"]["texture"] = 9.into();
+    });
+    let e = open_package(&tmp.0).unwrap_err().to_string();
+    assert!(e.contains("texture 9"), "{e}");
+    // A layout whose tree is not a tree.
+    let (tmp, _) = damaged("tree");
+    resign(&tmp.0, |b| {
+        b["layout"]["nodes"][0]["split"]["left"] = 0.into()
+    });
+    let e = open_package(&tmp.0).unwrap_err().to_string();
+    assert!(e.contains("layout"), "{e}");
+    // The signed manifest itself still opens when nothing was changed.
+    let (tmp, _) = damaged("resigned");
+    resign(&tmp.0, |_| {});
+    open_package(&tmp.0).unwrap().verify().unwrap();
+}
+
+#[test]
+fn corrupt_textures_are_refused() {
+    let (tmp, _) = damaged("textures");
+    let f = tmp.0.join("textures.bin");
+    let mut bytes = std::fs::read(&f).unwrap();
+    let last = bytes.len() - 1;
+    bytes[last] ^= 1;
+    std::fs::write(&f, &bytes).unwrap();
+    let e = open_package(&tmp.0)
+        .unwrap()
+        .load_textures()
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("textures.bin") && e.contains("checksum mismatch"),
+        "{e}"
+    );
+}
+
+#[test]
+fn layout_json_is_compact_enough_for_every_worker() {
+    let scene = load("soup:2000");
+    let l = layout_for(&scene, LayoutSpec::Kd(64));
+    let json = serde_json::to_string(&l).unwrap();
+    assert!(json.len() < 64 * 400, "{} bytes", json.len());
+    let back: DomainLayout = serde_json::from_str(&json).unwrap();
+    assert_eq!(back, l);
+}
