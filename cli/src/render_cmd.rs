@@ -10,6 +10,8 @@ use dray_core::camera::Camera;
 use dray_core::integrator::{Integrator, IntegratorKind, RenderSettings};
 use dray_core::render::{self, RenderOutput};
 use dray_core::scene::Scene;
+use dray_core::trace::{DomainSet, Trace};
+use dray_scene::partition::{DomainLayout, LayoutSpec, partition_in_memory};
 
 use crate::options::{apply_effects, parse_vec3};
 use crate::summary::{Summary, print_summary};
@@ -73,6 +75,13 @@ pub struct RenderArgs {
     /// Move the whole scene by "X,Y,Z" before rendering (tests precision far from the origin).
     #[arg(long)]
     pub translate: Option<String>,
+    /// Cut the scene into N spatial domains, each with its own BVH, and walk every ray
+    /// through them as workers will (the image is bit-identical to 1 domain).
+    #[arg(long, default_value_t = 1)]
+    pub domains: u32,
+    /// Domain layout for --domains: a uniform grid or a kd split balanced by triangle count.
+    #[arg(long, default_value = "kd")]
+    pub layout: String,
     /// No progress bar or summary table.
     #[arg(long, short)]
     pub quiet: bool,
@@ -94,6 +103,9 @@ fn check_args(a: &RenderArgs) -> Result<IntegratorKind> {
     }
     if !a.exposure.is_finite() || a.exposure.abs() > 64.0 {
         bail!("--exposure {} is out of range (-64..=64 stops)", a.exposure);
+    }
+    if a.domains == 0 || a.domains > 65536 {
+        bail!("--domains {} is out of range (1..=65536)", a.domains);
     }
     if a.ao_samples == 0 || a.ao_samples > 4096 {
         bail!("--ao-samples {} is out of range (1..=4096)", a.ao_samples);
@@ -154,6 +166,35 @@ pub fn choose_camera(scene: &Scene, which: Option<&str>, aspect: f32) -> Result<
     Ok(cam)
 }
 
+/// One BVH over the scene, or with `domains > 1` a BVH per spatial domain walked front to
+/// back (the embedded stand-in for workers owning domains).
+fn build_geometry(scene: &Scene, domains: u32, layout: &str) -> Result<Box<dyn Trace>> {
+    if domains <= 1 {
+        return Ok(Box::new(Accel::build(&scene.mesh)));
+    }
+    let spec = match layout {
+        "grid" => LayoutSpec::GridCount(domains),
+        "kd" => LayoutSpec::Kd(domains),
+        other => bail!("unknown --layout {other:?} (expected grid or kd)"),
+    };
+    let layout = DomainLayout::for_source(scene, &spec).context("cannot lay out the domains")?;
+    let parts = partition_in_memory(scene, &layout).context("cannot partition the scene")?;
+    let mut accels: Vec<Option<Accel>> = (0..layout.domain_count()).map(|_| None).collect();
+    for part in &parts {
+        if let Some(slot) = accels.get_mut(part.domain as usize) {
+            *slot = Some(Accel::build_with_ids(&part.mesh, Some(&part.global_ids)));
+        }
+    }
+    Ok(Box::new(DomainSet {
+        tree: layout.to_domain_tree(),
+        accels: accels
+            .into_iter()
+            .map(|a| a.unwrap_or_else(|| Accel::build(&Default::default())))
+            .collect(),
+        pad: layout.epsilon(),
+    }))
+}
+
 pub fn run(a: RenderArgs) -> Result<()> {
     let start = Instant::now();
     let integrator_kind = check_args(&a)?;
@@ -186,7 +227,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
     let camera = choose_camera(&scene, a.camera.as_deref(), aspect)?;
 
     let build_start = Instant::now();
-    let accel = Accel::build(&scene.mesh);
+    let geometry = build_geometry(&scene, a.domains, &a.layout)?;
     let build_time = build_start.elapsed();
 
     let settings = RenderSettings {
@@ -220,7 +261,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
     };
     let out: RenderOutput = {
         let _span = tracing::info_span!("job", scene = %a.scene).entered();
-        render::render(&integrator, &accel, a.threads, &progress)
+        render::render(&integrator, geometry.as_ref(), a.threads, &progress)
             .context("cannot start the thread pool")?
     };
     if let Some(b) = &bar {
@@ -239,7 +280,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
     } else {
         a.threads
     };
-    let summary = Summary::new(
+    let mut summary = Summary::new(
         &a.scene,
         &scene,
         &integrator.settings,
@@ -249,6 +290,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         build_time,
         start.elapsed(),
     );
+    summary.domains = a.domains;
     if let Some(p) = &a.stats {
         let json = serde_json::to_string_pretty(&summary).context("cannot encode statistics")?;
         std::fs::write(p, json + "\n").with_context(|| format!("cannot write {}", p.display()))?;

@@ -24,6 +24,8 @@ pub struct Summary {
     pub rays: BTreeMap<&'static str, u64>,
     pub rays_total: u64,
     pub threads: usize,
+    /// Spatial domains the scene was cut into (1 = one BVH).
+    pub domains: u32,
     pub load_time_s: f64,
     pub build_time_s: f64,
     pub render_time_s: f64,
@@ -65,6 +67,7 @@ impl Summary {
             rays,
             rays_total: out.rays.total(),
             threads,
+            domains: 1,
             load_time_s: load.as_secs_f64(),
             build_time_s: build.as_secs_f64(),
             render_time_s: secs,
