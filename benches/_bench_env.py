@@ -171,26 +171,45 @@ def machine_info() -> dict:
     }
 
 
-def _cpu_jiffies() -> tuple[int, int]:
-    """(busy, total) jiffies over all cores from /proc/stat."""
+def _cpu_jiffies(cores: list[int] | None = None) -> tuple[int, int]:
+    """(busy, total) jiffies from /proc/stat, over all cores or just `cores`."""
+    busy = total = 0
     with open("/proc/stat") as f:
-        vals = [int(x) for x in f.readline().split()[1:]]
-    idle = vals[3] + (vals[4] if len(vals) > 4 else 0)
-    total = sum(vals[:8])
-    return total - idle, total
+        for line in f:
+            if not line.startswith("cpu"):
+                break
+            name, *rest = line.split()
+            if (cores is None and name != "cpu") or (cores is not None and name[3:] not in {str(c) for c in cores}):
+                continue
+            vals = [int(x) for x in rest]
+            idle = vals[3] + (vals[4] if len(vals) > 4 else 0)
+            busy += sum(vals[:8]) - idle
+            total += sum(vals[:8])
+    return busy, total
+
+
+def parse_cores(spec: str) -> list[int]:
+    """'0,1' or '0-1' (taskset -c syntax, simple forms) -> [0, 1]."""
+    out: list[int] = []
+    for part in spec.split(","):
+        a, _, b = part.partition("-")
+        out.extend(range(int(a), int(b or a) + 1))
+    return out
 
 
 class OtherLoad:
-    """How busy the machine was with processes other than this one and its children.
+    """How busy the machine (or the given cores) was with processes other than ours.
 
     Reported as the average number of cores used by others while the benchmark ran:
-    (all CPU time on the machine - ours) / wall time. Anything well above 0 means the
-    timings were disturbed by other work on the machine.
+    (CPU time spent on those cores by anyone - CPU time of this process and its children)
+    / wall time. With `cores`, our own work must be pinned to those cores. Anything well
+    above 0 means the timings were disturbed by other work on the machine.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, cores: list[int] | None = None) -> None:
+        self.cores_sel = cores
         self.t0 = time.perf_counter()
-        self.busy0, _ = _cpu_jiffies()
+        self.busy0, _ = _cpu_jiffies(cores)
         self.ours0 = self._ours()
 
     @staticmethod
@@ -200,8 +219,17 @@ class OtherLoad:
 
     def cores(self) -> float:
         wall = time.perf_counter() - self.t0
-        busy = (_cpu_jiffies()[0] - self.busy0) / os.sysconf("SC_CLK_TCK")
+        busy = (_cpu_jiffies(self.cores_sel)[0] - self.busy0) / os.sysconf("SC_CLK_TCK")
         return max(0.0, (busy - (self._ours() - self.ours0)) / max(wall, 1e-9))
+
+
+def binary_info(path: Path) -> dict:
+    import hashlib
+
+    st = path.stat()
+    return {"path": str(path), "size": st.st_size,
+            "mtime": datetime.datetime.fromtimestamp(st.st_mtime, datetime.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"),
+            "sha256": hashlib.sha256(path.read_bytes()).hexdigest()[:16]}
 
 
 def idle_check(seconds: float = 2.0) -> float:

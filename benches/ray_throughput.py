@@ -149,6 +149,7 @@ def main() -> None:
     info["busy_cores_before_start"] = round(env.idle_check(), 2)
     load = env.OtherLoad()
     info["packages"] = env.package_versions(["embreex", "numpy"])
+    info["dray_binary"] = env.binary_info(dray)
     results = []
     for spec in meshes:
         tag = slug(spec)
@@ -160,7 +161,9 @@ def main() -> None:
             if kind == "primary" or not mesh_f.exists():
                 cmd += ["--dump-mesh", mesh_f]
             env.log(f"dray bench-rays {spec} --kind {kind}")
+            o = env.OtherLoad(env.parse_cores(args.core))
             r = env.run_timed(env.pin(args.core, cmd))
+            dray_others = o.cores()
             d = env.last_json_line(r["stdout"])
             d["cmd"] = r["cmd"]
             env.log(f"  dray: {d['triangles']} triangles, {d['rays']} rays, {d['mrays_per_s']:.3f} Mrays/s, "
@@ -169,7 +172,9 @@ def main() -> None:
             env.log("  embree (embreex) on the same triangles and rays")
             ecmd = [sys.executable, Path(__file__).resolve(), "--embree-worker", mesh_f, rays_f,
                     "--repeat", args.repeat]
+            o = env.OtherLoad(env.parse_cores(args.core))
             er = env.run_timed(env.pin(args.core, ecmd))
+            embree_others = o.cores()
             e = env.last_json_line(er["stdout"])
             e["cmd"] = er["cmd"]
             env.log(f"  embree: {e['mrays_per_s']:.3f} Mrays/s, {e['hits']} hits, build {e['build_s']:.2f} s, "
@@ -188,6 +193,7 @@ def main() -> None:
                 "hit_count_agreement_pct": agree,
                 "t_sum_rel_diff": tsum_rel,
                 "embree_miss_floor_share_pct": 100.0 * e["miss_floor_ns_per_ray"] / per_ray_ns,
+                "other_load_on_core": {"dray": dray_others, "embree": embree_others},
             })
             if not args.keep_dumps:
                 rays_f.unlink(missing_ok=True)
@@ -206,13 +212,14 @@ def main() -> None:
     print(f"# other processes used {info['other_processes_cores_during_run']:.2f} cores on average during the run "
           f"({info['busy_cores_before_start']:.2f} busy just before it)")
     print("| mesh | triangles | rays | kind | dray Mrays/s | Embree Mrays/s | dray/Embree | hits dray | hits Embree "
-          "| hit agreement | t_sum rel. diff | build dray s | build Embree s |")
-    print("|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+          "| hit agreement | t_sum rel. diff | build dray s | build Embree s | other load on core |")
+    print("|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in results:
         print(f"| `{r['mesh']}` | {r['triangles']:,} | {r['rays']:,} | {r['kind']} | {r['dray']['mrays_per_s']:.3f} | "
               f"{r['embree']['mrays_per_s']:.3f} | {r['ratio_dray_over_embree']:.2f} | {r['dray']['hits']:,} | "
               f"{r['embree']['hits']:,} | {r['hit_count_agreement_pct']:.4f}% | {r['t_sum_rel_diff']:.2e} | "
-              f"{r['dray']['build_s']:.2f} | {r['embree']['build_s']:.2f} |")
+              f"{r['dray']['build_s']:.2f} | {r['embree']['build_s']:.2f} | "
+              f"{max(r['other_load_on_core'].values()):.2f} |")
     print()
     print("| mesh | kind | Embree ns/ray | embreex 1-ray call (us) | embreex miss floor (ns/ray) | floor share of Embree time |")
     print("|---|---|---:|---:|---:|---:|")

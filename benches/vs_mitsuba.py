@@ -66,7 +66,7 @@ def parse_args() -> argparse.Namespace:
     ap.add_argument("--mesh", help="mesh spec for dray (default: the Stanford bunny, else " + FALLBACK_MESH + ")")
     ap.add_argument("--spp", type=int, default=16, help="samples per pixel of the timed renders (default 16)")
     ap.add_argument("--ref-spp", type=int, default=256, help="samples per pixel of the FLIP renders (default 256)")
-    ap.add_argument("--runs", type=int, default=3, help="timed runs per renderer (first = cold)")
+    ap.add_argument("--runs", type=int, default=5, help="interleaved timing rounds (default 5)")
     ap.add_argument("--cores", default="0,1", help="cores for both renderers (taskset -c)")
     ap.add_argument("--threads", type=int, default=2, help="threads for both renderers")
     ap.add_argument("--seed", type=int, default=1)
@@ -336,6 +336,10 @@ def main() -> None:
     import numpy as np
 
     args.out.mkdir(parents=True, exist_ok=True)
+    for pattern in ("dray_*", "mitsuba_*", "flip_*", "results.json", "mesh.*", "scene.gltf"):
+        for f in args.out.glob(pattern):  # outputs of an earlier run
+            if f.is_file():
+                f.unlink()
     dray = env.dray_binary()
     scenes = env.scenes_dir()
     bunny = scenes / "stanford_bunny" / "bun_zipper.ply"
@@ -359,6 +363,7 @@ def main() -> None:
     info["busy_cores_before_start"] = round(env.idle_check(), 2)
     load = env.OtherLoad()
     info["packages"] = env.package_versions(["mitsuba", "drjit", "flip-evaluator", "numpy"])
+    info["dray_binary"] = env.binary_info(dray)
     res = {"machine": info, "scene": {"mesh": spec, "triangles": mesh["triangles"], "width": WIDTH,
                                       "height": HEIGHT, "spp": args.spp, "ref_spp": args.ref_spp,
                                       "mitsuba_max_depth": MITSUBA_MAX_DEPTH, "dray_max_depth": DRAY_MAX_DEPTH,
@@ -367,56 +372,73 @@ def main() -> None:
                                       "yfov_deg": YFOV_DEG},
            "cores": args.cores, "threads": args.threads}
 
-    # 2. dray, timed.
-    env.log(f"dray: {args.runs} x {args.spp} spp")
-    dr_runs = [run_dray(args, dray, gltf, args.spp, f"{args.spp}spp_run{i}", args.seed) for i in range(args.runs)]
-    res["dray"] = {"runs": dr_runs, "cold_wall_s": dr_runs[0]["wall_s"],
-                   "warm_wall_s": statistics.median(r["wall_s"] for r in dr_runs[1:] or dr_runs),
-                   "warm_render_s": statistics.median(r["stats"]["render_time_s"] for r in dr_runs[1:] or dr_runs)}
-    env.log(f"  dray wall cold {res['dray']['cold_wall_s']:.2f} s, warm {res['dray']['warm_wall_s']:.2f} s, "
-            f"render {res['dray']['warm_render_s']:.2f} s")
-
-    # 3. Mitsuba variants, timed (each in its own pinned process).
-    timed_runs = [{"spp": args.spp, "seed": args.seed} for _ in range(args.runs)]
-    res["mitsuba"] = {}
+    # 2. Timed renders, interleaved round by round (dray, Mitsuba llvm_ad_rgb, Mitsuba scalar_rgb)
+    # so that any other load on the machine hits all of them alike. Each Mitsuba round is a
+    # fresh process (fresh HOME, so an empty Dr.Jit kernel cache) doing two load+render
+    # passes: the first is "cold" (includes JIT compilation for llvm), the second "warm".
     llvm_env: dict = {}
     if os.environ.get("DRJIT_LIBLLVM_PATH"):
         llvm_env["DRJIT_LIBLLVM_PATH"] = os.environ["DRJIT_LIBLLVM_PATH"]
-    attempts = []
-    env.log("mitsuba llvm_ad_rgb" + (f" with {llvm_env}" if llvm_env else " with the system LLVM"))
-    m = run_mitsuba(args, base_cfg, "llvm_ad_rgb", timed_runs, "llvm", llvm_env)
-    if not m["ok"]:
-        attempts.append({k: m[k] for k in ("variant", "rc", "error", "env")})
-        env.log(f"  failed: {m['error']}")
-        if not llvm_env and not args.no_llvm_fetch:
-            lib, how = fetch_llvm(env.VENV / "llvm")
-            attempts.append({"fetch": how})
-            env.log(f"  {how}")
-            if lib:
-                llvm_env = {"DRJIT_LIBLLVM_PATH": str(lib)}
-                m = run_mitsuba(args, base_cfg, "llvm_ad_rgb", timed_runs, "llvm", llvm_env)
-                if not m["ok"]:
-                    attempts.append({k: m[k] for k in ("variant", "rc", "error", "env")})
-                    env.log(f"  failed again: {m['error']}")
-    res["mitsuba"]["llvm_attempts"] = attempts
-    if m["ok"]:
-        res["mitsuba"]["llvm_ad_rgb"] = m
-    env.log("mitsuba scalar_rgb")
-    s = run_mitsuba(args, base_cfg, "scalar_rgb", timed_runs, "scalar", {})
-    res["mitsuba"]["scalar_rgb"] = s
-    if not s["ok"]:
-        env.log(f"  failed: {s['error']}")
-    for v in ("llvm_ad_rgb", "scalar_rgb"):
-        d = res["mitsuba"].get(v)
-        if d and d["ok"]:
-            rs = d["runs"]
-            warm = rs[1:] or rs
-            d["cold_total_s"] = rs[0]["total_s"]
-            d["warm_total_s"] = statistics.median(r["total_s"] for r in warm)
-            d["warm_render_s"] = statistics.median(r["render_s"] for r in warm)
-            env.log(f"  {v}: cold {d['cold_total_s']:.2f} s, warm {d['warm_total_s']:.2f} s "
-                    f"(render {d['warm_render_s']:.2f} s), import {d['import_s']:.2f} s")
-    ran = [v for v in ("llvm_ad_rgb", "scalar_rgb") if res["mitsuba"].get(v, {}).get("ok")]
+    attempts: list = []
+    pair = [{"spp": args.spp, "seed": args.seed}, {"spp": args.spp, "seed": args.seed}]
+    dray_runs: list = []
+    mruns: dict = {"llvm_ad_rgb": [], "scalar_rgb": []}
+    failed: dict = {}
+    for rnd in range(args.runs):
+        env.log(f"round {rnd + 1}/{args.runs}: dray, {args.spp} spp")
+        o = env.OtherLoad(env.parse_cores(args.cores))
+        x = run_dray(args, dray, gltf, args.spp, f"{args.spp}spp_round{rnd}", args.seed)
+        x["other_cores"] = o.cores()
+        dray_runs.append(x)
+        env.log(f"  dray: wall {x['wall_s']:.2f} s, render {x['stats']['render_time_s']:.2f} s, "
+                f"cpu/wall {x['cpu_s'] / x['wall_s']:.2f}, others {x['other_cores']:.2f} cores")
+        for v in ("llvm_ad_rgb", "scalar_rgb"):
+            if v in failed:
+                continue
+            venv_extra = llvm_env if v == "llvm_ad_rgb" else {}
+            env.log(f"round {rnd + 1}/{args.runs}: mitsuba {v}" + (f" {venv_extra}" if venv_extra else ""))
+            o = env.OtherLoad(env.parse_cores(args.cores))
+            m = run_mitsuba(args, base_cfg, v, pair, v, venv_extra)
+            if not m["ok"] and v == "llvm_ad_rgb" and not llvm_env and not args.no_llvm_fetch:
+                attempts.append({k: m[k] for k in ("variant", "rc", "error", "env")})
+                env.log(f"  failed with the system LLVM: {m['error']}")
+                lib, how = fetch_llvm(env.VENV / "llvm")
+                attempts.append({"fetch": how})
+                env.log(f"  {how}")
+                if lib:
+                    llvm_env = {"DRJIT_LIBLLVM_PATH": str(lib)}
+                    o = env.OtherLoad(env.parse_cores(args.cores))
+                    m = run_mitsuba(args, base_cfg, v, pair, v, llvm_env)
+            if not m["ok"]:
+                attempts.append({k: m[k] for k in ("variant", "rc", "error", "env")})
+                env.log(f"  {v} failed: {m['error']}")
+                failed[v] = m
+                continue
+            m["other_cores"] = o.cores()
+            mruns[v].append(m)
+            env.log(f"  {v}: cold {m['runs'][0]['total_s']:.2f} s, warm {m['runs'][1]['total_s']:.2f} s, "
+                    f"cpu/wall {m['runs'][1]['cpu_s'] / m['runs'][1]['total_s']:.2f}, others {m['other_cores']:.2f} cores")
+
+    warm_dray = dray_runs[1:] or dray_runs
+    res["dray"] = {"runs": dray_runs, "cold_wall_s": dray_runs[0]["wall_s"],
+                   "warm_wall_s": statistics.median(r["wall_s"] for r in warm_dray),
+                   "warm_render_s": statistics.median(r["stats"]["render_time_s"] for r in warm_dray),
+                   "cpu_per_wall": statistics.median(r["cpu_s"] / r["wall_s"] for r in dray_runs),
+                   "max_other_cores": max(r["other_cores"] for r in dray_runs)}
+    res["mitsuba"] = {"llvm_attempts": attempts}
+    for v, ms in mruns.items():
+        if not ms:
+            res["mitsuba"][v] = failed.get(v, {"ok": False, "error": "not run"})
+            continue
+        res["mitsuba"][v] = {
+            "ok": True, "rounds": ms, "import_s": statistics.median(m["import_s"] for m in ms),
+            "cold_total_s": statistics.median(m["runs"][0]["total_s"] for m in ms),
+            "warm_total_s": statistics.median(m["runs"][1]["total_s"] for m in ms),
+            "warm_render_s": statistics.median(m["runs"][1]["render_s"] for m in ms),
+            "cpu_per_wall": statistics.median(m["runs"][1]["cpu_s"] / m["runs"][1]["total_s"] for m in ms),
+            "max_other_cores": max(m["other_cores"] for m in ms),
+            "libllvm": ms[0]["libllvm"], "thread_count": ms[0]["thread_count"]}
+    ran = [v for v in ("llvm_ad_rgb", "scalar_rgb") if res["mitsuba"][v].get("ok")]
     res["mitsuba"]["ran"] = ran
 
     # 4. Quality at ref spp: FLIP between the LDR images.
@@ -474,19 +496,20 @@ def report(res: dict, args) -> None:
     print(f"# other processes used {m['other_processes_cores_during_run']:.2f} cores on average during the run "
           f"({m['busy_cores_before_start']:.2f} busy just before it)")
     d = res["dray"]
-    print("| renderer | cold (s) | warm (s) | warm render only (s) | CPU/wall (cores busy) | note |")
-    print("|---|---:|---:|---:|---:|---|")
-    util = statistics.median(r["cpu_s"] / r["wall_s"] for r in d["runs"])
-    print(f"| dray | {d['cold_wall_s']:.2f} | {d['warm_wall_s']:.2f} | {d['warm_render_s']:.2f} | {util:.2f} | "
-          "whole process wall time; render = stats render_time_s |")
+    print(f"# {args.runs} interleaved rounds; cold = first, warm = median of the rest (dray) or of each round's "
+          "second pass (Mitsuba)")
+    print("| renderer | cold (s) | warm (s) | warm render only (s) | CPU/wall | max other load (cores) | what is timed |")
+    print("|---|---:|---:|---:|---:|---:|---|")
+    print(f"| dray | {d['cold_wall_s']:.2f} | {d['warm_wall_s']:.2f} | {d['warm_render_s']:.2f} | {d['cpu_per_wall']:.2f} | "
+          f"{d['max_other_cores']:.2f} | whole `dray render` process; render only = stats render_time_s |")
     for v in ("llvm_ad_rgb", "scalar_rgb"):
         x = res["mitsuba"].get(v)
         if x and x.get("ok"):
-            util = statistics.median(r["cpu_s"] / r["total_s"] for r in x["runs"])
             print(f"| Mitsuba {v} | {x['cold_total_s']:.2f} | {x['warm_total_s']:.2f} | {x['warm_render_s']:.2f} | "
-                  f"{util:.2f} | load_dict + render, excl. interpreter start + import ({x['import_s']:.2f} s) |")
+                  f"{x['cpu_per_wall']:.2f} | {x['max_other_cores']:.2f} | load_dict + render + to numpy; "
+                  f"not counted: interpreter start + import ({x['import_s']:.2f} s) |")
         elif x:
-            print(f"| Mitsuba {v} | failed | | | | {x.get('error')} |")
+            print(f"| Mitsuba {v} | failed | | | | | {x.get('error')} |")
     for a in res["mitsuba"]["llvm_attempts"]:
         print(f"# llvm attempt: {a}")
     sc = res["mitsuba"].get("scalar_rgb", {})

@@ -4,6 +4,7 @@
 //! ray-throughput benchmark (`dray bench-rays`).
 
 mod bench_rays;
+mod coordinator_cmd;
 mod options;
 mod partition_cmd;
 mod render_cmd;
@@ -30,6 +31,9 @@ enum Command {
     BenchRays(bench_rays::BenchArgs),
     /// Cut a scene into domains and write a scene package (manifest + one file per domain).
     Partition(partition_cmd::PartitionArgs),
+    /// Serve the dray.v1.RenderService over gRPC (with reflection and health); jobs render
+    /// in this process for now (workers are not wired yet).
+    Coordinator(coordinator_cmd::CoordinatorArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -71,6 +75,7 @@ fn main() -> std::process::ExitCode {
         Command::Render(a) => render_cmd::run(a),
         Command::BenchRays(a) => bench_rays::run(a),
         Command::Partition(a) => partition_cmd::run(a),
+        Command::Coordinator(a) => coordinator_cmd::run(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -4,7 +4,7 @@
 //! identical for any thread count.
 
 use std::sync::Mutex;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use glam::Vec3;
@@ -101,6 +101,25 @@ pub fn render(
     threads: usize,
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<RenderOutput, rayon::ThreadPoolBuildError> {
+    render_cancellable(
+        integrator,
+        geometry,
+        threads,
+        progress,
+        &AtomicBool::new(false),
+    )
+}
+
+/// [`render`] with a cooperative cancel flag: once `cancel` is set, tiles not yet started
+/// are skipped (a tile already being traced finishes), so the call returns soon with an
+/// incomplete film. The caller checks `cancel` afterwards to know whether the film is whole.
+pub fn render_cancellable(
+    integrator: &Integrator<'_>,
+    geometry: &dyn Trace,
+    threads: usize,
+    progress: &(dyn Fn(usize, usize) + Sync),
+    cancel: &AtomicBool,
+) -> Result<RenderOutput, rayon::ThreadPoolBuildError> {
     let s = &integrator.settings;
     let (width, height, spp) = (s.width, s.height, s.spp);
     let tiles = tiles(width, height);
@@ -113,6 +132,9 @@ pub fn render(
     let start = Instant::now();
     pool.install(|| {
         tiles.par_iter().for_each(|tile| {
+            if cancel.load(Ordering::Relaxed) {
+                return;
+            }
             let _span = tracing::trace_span!("tile", x = tile.x0, y = tile.y0).entered();
             let mut sink = TileSink {
                 tile: *tile,

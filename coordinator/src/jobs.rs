@@ -1,0 +1,344 @@
+//! The job table: every job the server accepted, its state and progress, and the finished
+//! film (fixed-point sums, so GetImage can encode PNG at any exposure, or EXR).
+//!
+//! Jobs run one at a time, in submission order, in this process (workers are not wired
+//! yet): a job waits QUEUED for the render gate, builds its geometry (PREPARING), then
+//! traces tiles on a blocking thread (RUNNING). Cancellation is cooperative: a flag the
+//! render loop checks before each tile.
+
+use std::io::Cursor;
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant, SystemTime};
+
+use dray_core::bvh::Accel;
+use dray_core::film::Film;
+use dray_core::integrator::{Integrator, RayKind};
+use dray_core::render;
+use dray_core::scene::Scene;
+use dray_core::trace::{DomainSet, Trace};
+use dray_proto::v1::{Job, JobProgress, JobSpec, JobState, JobStats, RayCounts};
+use dray_scene::partition::{DomainLayout, LayoutSpec, partition_in_memory};
+use tokio::sync::Semaphore;
+
+use crate::validate::{Prepared, Validated};
+
+/// One job.
+pub struct JobEntry {
+    /// Opaque id.
+    pub id: String,
+    /// The spec with defaults filled in.
+    pub spec: JobSpec,
+    /// When SubmitJob accepted it.
+    pub submitted_at: SystemTime,
+    /// Tiles in the image.
+    pub tiles_total: u32,
+    cancel: AtomicBool,
+    tiles_done: AtomicU32,
+    inner: Mutex<Inner>,
+}
+
+struct Inner {
+    state: JobState,
+    started: Option<Instant>,
+    elapsed_final: Option<Duration>,
+    finished_at: Option<SystemTime>,
+    error: String,
+    stats: JobStats,
+    film: Option<Arc<Film>>,
+}
+
+fn terminal(s: JobState) -> bool {
+    matches!(
+        s,
+        JobState::Succeeded | JobState::Failed | JobState::Cancelled
+    )
+}
+
+impl JobEntry {
+    fn lock(&self) -> MutexGuard<'_, Inner> {
+        self.inner.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Current state.
+    pub fn state(&self) -> JobState {
+        self.lock().state
+    }
+
+    /// The finished film, once the job SUCCEEDED.
+    pub fn film(&self) -> Option<Arc<Film>> {
+        self.lock().film.clone()
+    }
+
+    /// Progress as WatchJob and GetJob report it.
+    pub fn progress(&self) -> JobProgress {
+        let g = self.lock();
+        let done = self.tiles_done.load(Ordering::Relaxed);
+        let elapsed = g
+            .elapsed_final
+            .or_else(|| g.started.map(|s| s.elapsed()))
+            .unwrap_or_default();
+        let eta = (g.state == JobState::Running && done > 0 && done < self.tiles_total)
+            .then(|| elapsed.mul_f64(f64::from(self.tiles_total - done) / f64::from(done)));
+        let rays = g.stats.rays.unwrap_or_default();
+        JobProgress {
+            job_id: self.id.clone(),
+            state: g.state as i32,
+            tiles_done: done,
+            tiles_total: self.tiles_total,
+            rays_traced: rays.camera
+                + rays.shadow
+                + rays.reflection
+                + rays.refraction
+                + rays.diffuse
+                + rays.ambient_occlusion,
+            rays_in_flight: 0,
+            elapsed: prost_types::Duration::try_from(elapsed).ok(),
+            eta: eta.and_then(|d| prost_types::Duration::try_from(d).ok()),
+            error: g.error.clone(),
+        }
+    }
+
+    /// The job as GetJob, ListJobs and CancelJob report it.
+    pub fn to_job(&self) -> Job {
+        let progress = self.progress();
+        let g = self.lock();
+        Job {
+            job_id: self.id.clone(),
+            spec: Some(self.spec.clone()),
+            progress: Some(progress),
+            stats: Some(g.stats.clone()),
+            submitted_at: Some(self.submitted_at.into()),
+            finished_at: g.finished_at.map(Into::into),
+        }
+    }
+
+    /// Ask the job to stop. A queued or running job becomes CANCELLED at once (a running
+    /// render stops before its next tile); a finished job keeps its state.
+    pub fn cancel(&self) {
+        self.cancel.store(true, Ordering::Relaxed);
+        self.finish(JobState::Cancelled, String::new(), None);
+    }
+
+    fn set_state(&self, s: JobState) {
+        let mut g = self.lock();
+        if !terminal(g.state) {
+            g.state = s;
+            if g.started.is_none() {
+                g.started = Some(Instant::now());
+            }
+        }
+    }
+
+    /// Move to a terminal state unless the job is already in one.
+    fn finish(&self, s: JobState, error: String, film: Option<Film>) {
+        let mut g = self.lock();
+        if terminal(g.state) {
+            return;
+        }
+        g.state = s;
+        g.error = error;
+        g.film = film.map(Arc::new);
+        g.elapsed_final = Some(g.started.map(|t| t.elapsed()).unwrap_or_default());
+        g.finished_at = Some(SystemTime::now());
+    }
+}
+
+/// All jobs the server knows, and the gate that runs them one at a time.
+pub struct JobTable {
+    jobs: Mutex<Vec<Arc<JobEntry>>>,
+    next_id: AtomicU64,
+    gate: Arc<Semaphore>,
+    threads: usize,
+}
+
+impl JobTable {
+    /// An empty table whose renders use `threads` threads (0 = all cores).
+    pub fn new(threads: usize) -> JobTable {
+        JobTable {
+            jobs: Mutex::new(Vec::new()),
+            next_id: AtomicU64::new(1),
+            gate: Arc::new(Semaphore::new(1)),
+            threads,
+        }
+    }
+
+    fn jobs(&self) -> MutexGuard<'_, Vec<Arc<JobEntry>>> {
+        self.jobs.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Accept a validated, prepared job: add it QUEUED and start its task. Must be called
+    /// within a tokio runtime.
+    pub fn submit(&self, v: Validated, prepared: Prepared) -> Arc<JobEntry> {
+        let n = self.next_id.fetch_add(1, Ordering::Relaxed);
+        let entry = Arc::new(JobEntry {
+            id: format!("job-{n}"),
+            tiles_total: render::tiles(v.spec.width, v.spec.height).len() as u32,
+            spec: v.spec,
+            submitted_at: SystemTime::now(),
+            cancel: AtomicBool::new(false),
+            tiles_done: AtomicU32::new(0),
+            inner: Mutex::new(Inner {
+                state: JobState::Queued,
+                started: None,
+                elapsed_final: None,
+                finished_at: None,
+                error: String::new(),
+                stats: JobStats::default(),
+                film: None,
+            }),
+        });
+        self.jobs().push(entry.clone());
+        let (gate, threads, job) = (self.gate.clone(), self.threads, entry.clone());
+        tokio::spawn(async move {
+            let Ok(_permit) = gate.acquire_owned().await else {
+                job.finish(JobState::Failed, "the server is shutting down".into(), None);
+                return;
+            };
+            if job.cancel.load(Ordering::Relaxed) {
+                return;
+            }
+            job.set_state(JobState::Preparing);
+            let worker = job.clone();
+            let joined = tokio::task::spawn_blocking(move || run(&worker, prepared, threads)).await;
+            if let Err(e) = joined {
+                job.finish(JobState::Failed, format!("render task died: {e}"), None);
+            }
+        });
+        entry
+    }
+
+    /// The job with id `id`.
+    pub fn get(&self, id: &str) -> Option<Arc<JobEntry>> {
+        self.jobs().iter().find(|j| j.id == id).cloned()
+    }
+
+    /// All jobs, newest first.
+    pub fn list(&self) -> Vec<Arc<JobEntry>> {
+        self.jobs().iter().rev().cloned().collect()
+    }
+}
+
+/// Build the geometry, trace the image, and record the outcome. Blocking.
+fn run(job: &JobEntry, p: Prepared, threads: usize) {
+    let _span = tracing::info_span!("job", id = %job.id, scene = %job.spec.scene).entered();
+    let geometry = match build_geometry(&p.scene, job.spec.domains, &job.spec.layout) {
+        Ok(g) => g,
+        Err(e) => return job.finish(JobState::Failed, e, None),
+    };
+    {
+        let mut g = job.lock();
+        g.stats.triangles = p.scene.mesh.triangle_count() as u64;
+        g.stats.domains = job.spec.domains;
+        g.stats.effects = p
+            .settings
+            .effects
+            .names()
+            .into_iter()
+            .map(String::from)
+            .collect();
+    }
+    job.set_state(JobState::Running);
+    let integrator = Integrator::new(&p.scene, p.camera, p.settings);
+    let progress = |done: usize, _total: usize| {
+        job.tiles_done.fetch_max(done as u32, Ordering::Relaxed);
+    };
+    let out = render::render_cancellable(
+        &integrator,
+        geometry.as_ref(),
+        threads,
+        &progress,
+        &job.cancel,
+    );
+    match out {
+        Err(e) => job.finish(
+            JobState::Failed,
+            format!("cannot start the thread pool: {e}"),
+            None,
+        ),
+        Ok(_) if job.cancel.load(Ordering::Relaxed) => {
+            job.finish(JobState::Cancelled, String::new(), None)
+        }
+        Ok(out) => {
+            {
+                let mut g = job.lock();
+                let r = |k: RayKind| out.rays.get(k);
+                g.stats.rays = Some(RayCounts {
+                    camera: r(RayKind::Camera),
+                    shadow: r(RayKind::Shadow),
+                    reflection: r(RayKind::Reflection),
+                    refraction: r(RayKind::Refraction),
+                    diffuse: r(RayKind::Diffuse),
+                    ambient_occlusion: r(RayKind::AmbientOcclusion),
+                });
+                g.stats.nonfinite = out.film.nonfinite;
+            }
+            job.finish(JobState::Succeeded, String::new(), Some(out.film));
+        }
+    }
+}
+
+/// One BVH over the scene, or with `domains > 1` a BVH per spatial domain walked front to
+/// back, as `dray render --domains` does (the image is the same bits either way).
+pub fn build_geometry(scene: &Scene, domains: u32, layout: &str) -> Result<Box<dyn Trace>, String> {
+    if domains <= 1 {
+        return Ok(Box::new(Accel::build(&scene.mesh)));
+    }
+    let spec = match layout {
+        "grid" => LayoutSpec::GridCount(domains),
+        _ => LayoutSpec::Kd(domains),
+    };
+    let layout = DomainLayout::for_source(scene, &spec)
+        .map_err(|e| format!("cannot lay out the domains: {e}"))?;
+    let parts = partition_in_memory(scene, &layout)
+        .map_err(|e| format!("cannot partition the scene: {e}"))?;
+    let mut accels: Vec<Option<Accel>> = (0..layout.domain_count()).map(|_| None).collect();
+    for part in &parts {
+        if let Some(slot) = accels.get_mut(part.domain as usize) {
+            *slot = Some(Accel::build_with_ids(&part.mesh, Some(&part.global_ids)));
+        }
+    }
+    Ok(Box::new(DomainSet {
+        tree: layout.to_domain_tree(),
+        accels: accels
+            .into_iter()
+            .map(|a| a.unwrap_or_else(|| Accel::build(&Default::default())))
+            .collect(),
+        pad: layout.epsilon(),
+    }))
+}
+
+/// The film as an 8-bit sRGB PNG of radiance times 2^`exposure`: the same bytes
+/// `dray render --output` writes.
+pub fn encode_png(film: &Film, spp: u32, exposure: f32) -> Result<Vec<u8>, String> {
+    use image::ImageEncoder;
+    let buf = film.srgb8(spp, 2f32.powf(exposure));
+    let mut out = Vec::new();
+    image::codecs::png::PngEncoder::new(&mut out)
+        .write_image(
+            &buf,
+            film.width,
+            film.height,
+            image::ExtendedColorType::Rgb8,
+        )
+        .map_err(|e| format!("cannot encode PNG: {e}"))?;
+    Ok(out)
+}
+
+/// The film as linear f32 RGB OpenEXR, as `dray render --exr` writes it.
+pub fn encode_exr(film: &Film, spp: u32) -> Result<Vec<u8>, String> {
+    use exr::prelude::*;
+    let lin = film.linear(spp);
+    let w = film.width as usize;
+    let channels = SpecificChannels::rgb(|pos: Vec2<usize>| {
+        let p = lin[pos.y() * w + pos.x()];
+        (p.x, p.y, p.z)
+    });
+    let image = Image::from_channels((w, film.height as usize), channels);
+    let mut out = Cursor::new(Vec::new());
+    image
+        .write()
+        .to_buffered(&mut out)
+        .map_err(|e| format!("cannot encode EXR: {e}"))?;
+    Ok(out.into_inner())
+}

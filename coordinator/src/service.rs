@@ -1,0 +1,261 @@
+//! The tonic `dray.v1.RenderService`, and [`serve`], which adds gRPC server reflection
+//! and the standard health service beside it.
+
+use std::future::Future;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
+
+use dray_proto::v1::render_service_server::{RenderService, RenderServiceServer};
+use dray_proto::v1::{
+    CancelJobRequest, CancelJobResponse, GetImageRequest, GetImageResponse, GetJobRequest,
+    GetJobResponse, ImageFormat, JobProgress, JobState, ListJobsRequest, ListJobsResponse,
+    SubmitJobRequest, SubmitJobResponse, WatchJobRequest,
+};
+use tokio::net::TcpListener;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Request, Response, Status};
+
+use crate::jobs::{JobEntry, JobTable, encode_exr, encode_png};
+use crate::validate::{Limits, prepare, validate};
+
+/// Default least time between two WatchJob messages.
+pub const DEFAULT_WATCH_INTERVAL: Duration = Duration::from_millis(250);
+/// Default and largest ListJobs page.
+pub const DEFAULT_PAGE_SIZE: usize = 50;
+const MAX_PAGE_SIZE: usize = 1000;
+
+/// The coordinator's RenderService: the job table, the limits and the scene root.
+#[derive(Clone)]
+pub struct Coordinator {
+    table: Arc<JobTable>,
+    limits: Limits,
+    scene_root: PathBuf,
+}
+
+impl Coordinator {
+    /// A coordinator serving scene files under `scene_root` (which must exist), rendering
+    /// with `threads` threads (0 = all cores).
+    pub fn new(scene_root: &Path, threads: usize) -> std::io::Result<Coordinator> {
+        let scene_root = scene_root.canonicalize()?;
+        Ok(Coordinator {
+            table: Arc::new(JobTable::new(threads)),
+            limits: Limits::default(),
+            scene_root,
+        })
+    }
+
+    /// The canonical scene root.
+    pub fn scene_root(&self) -> &Path {
+        &self.scene_root
+    }
+
+    fn job(&self, id: &str) -> Result<Arc<JobEntry>, Status> {
+        self.table
+            .get(id)
+            .ok_or_else(|| Status::not_found(format!("no job {id:?}")))
+    }
+}
+
+fn is_terminal(s: i32) -> bool {
+    matches!(
+        JobState::try_from(s),
+        Ok(JobState::Succeeded | JobState::Failed | JobState::Cancelled)
+    )
+}
+
+#[tonic::async_trait]
+impl RenderService for Coordinator {
+    async fn submit_job(
+        &self,
+        r: Request<SubmitJobRequest>,
+    ) -> Result<Response<SubmitJobResponse>, Status> {
+        let spec = r
+            .into_inner()
+            .spec
+            .ok_or_else(|| Status::invalid_argument("spec: missing"))?;
+        let v = validate(&spec, &self.limits, &self.scene_root)?;
+        // Loading the scene checks the scene spec and the camera; it may take a while for
+        // large scenes, so it runs off the async threads.
+        let v2 = v.clone();
+        let prepared = tokio::task::spawn_blocking(move || prepare(&v2))
+            .await
+            .map_err(|e| Status::internal(format!("scene loading task died: {e}")))??;
+        let job = self.table.submit(v, prepared);
+        tracing::info!(id = %job.id, scene = %job.spec.scene, "job accepted");
+        Ok(Response::new(SubmitJobResponse {
+            job_id: job.id.clone(),
+            spec: Some(job.spec.clone()),
+        }))
+    }
+
+    type WatchJobStream = ReceiverStream<Result<JobProgress, Status>>;
+
+    async fn watch_job(
+        &self,
+        r: Request<WatchJobRequest>,
+    ) -> Result<Response<Self::WatchJobStream>, Status> {
+        let r = r.into_inner();
+        let job = self.job(&r.job_id)?;
+        let interval = r
+            .min_interval
+            .and_then(|d| Duration::try_from(d).ok())
+            .filter(|d| !d.is_zero())
+            .unwrap_or(DEFAULT_WATCH_INTERVAL)
+            .clamp(Duration::from_millis(10), Duration::from_secs(60));
+        let (tx, rx) = tokio::sync::mpsc::channel(4);
+        tokio::spawn(async move {
+            let mut last: Option<(i32, u32, u64)> = None;
+            loop {
+                let p = job.progress();
+                let key = (p.state, p.tiles_done, p.rays_traced);
+                let done = is_terminal(p.state);
+                if last != Some(key) {
+                    if tx.send(Ok(p)).await.is_err() {
+                        return;
+                    }
+                    last = Some(key);
+                }
+                if done {
+                    return;
+                }
+                tokio::select! {
+                    _ = tokio::time::sleep(interval) => {}
+                    _ = tx.closed() => return,
+                }
+            }
+        });
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+
+    async fn get_job(&self, r: Request<GetJobRequest>) -> Result<Response<GetJobResponse>, Status> {
+        let job = self.job(&r.get_ref().job_id)?;
+        Ok(Response::new(GetJobResponse {
+            job: Some(job.to_job()),
+        }))
+    }
+
+    async fn list_jobs(
+        &self,
+        r: Request<ListJobsRequest>,
+    ) -> Result<Response<ListJobsResponse>, Status> {
+        let r = r.into_inner();
+        let size = match r.page_size as usize {
+            0 => DEFAULT_PAGE_SIZE,
+            n => n.min(MAX_PAGE_SIZE),
+        };
+        let start = if r.page_token.is_empty() {
+            0
+        } else {
+            r.page_token.parse::<usize>().map_err(|_| {
+                Status::invalid_argument(format!("page_token: {:?} is not valid", r.page_token))
+            })?
+        };
+        let all = self.table.list();
+        let end = (start + size).min(all.len());
+        let jobs = all
+            .get(start..end)
+            .unwrap_or_default()
+            .iter()
+            .map(|j| j.to_job())
+            .collect();
+        Ok(Response::new(ListJobsResponse {
+            jobs,
+            next_page_token: if end < all.len() {
+                end.to_string()
+            } else {
+                String::new()
+            },
+        }))
+    }
+
+    async fn cancel_job(
+        &self,
+        r: Request<CancelJobRequest>,
+    ) -> Result<Response<CancelJobResponse>, Status> {
+        let job = self.job(&r.get_ref().job_id)?;
+        job.cancel();
+        Ok(Response::new(CancelJobResponse {
+            job: Some(job.to_job()),
+        }))
+    }
+
+    async fn get_image(
+        &self,
+        r: Request<GetImageRequest>,
+    ) -> Result<Response<GetImageResponse>, Status> {
+        let r = r.into_inner();
+        if !r.exposure.is_finite() || r.exposure.abs() > 64.0 {
+            return Err(Status::invalid_argument(format!(
+                "exposure: {} is out of range (-64..=64 stops)",
+                r.exposure
+            )));
+        }
+        let format = match ImageFormat::try_from(r.format) {
+            Ok(ImageFormat::Unspecified | ImageFormat::Png) => ImageFormat::Png,
+            Ok(ImageFormat::Exr) => ImageFormat::Exr,
+            Err(_) => {
+                return Err(Status::invalid_argument(format!(
+                    "format: unknown image format {}",
+                    r.format
+                )));
+            }
+        };
+        let job = self.job(&r.job_id)?;
+        let Some(film) = job.film() else {
+            return Err(Status::failed_precondition(format!(
+                "job {:?} is {}; its image is available once it has SUCCEEDED",
+                job.id,
+                job.state().as_str_name()
+            )));
+        };
+        let spp = job.spec.spp;
+        let exposure = r.exposure;
+        let data = tokio::task::spawn_blocking(move || match format {
+            ImageFormat::Exr => encode_exr(&film, spp),
+            _ => encode_png(&film, spp, exposure),
+        })
+        .await
+        .map_err(|e| Status::internal(format!("image encoding task died: {e}")))?
+        .map_err(Status::internal)?;
+        Ok(Response::new(GetImageResponse {
+            data,
+            format: format as i32,
+            content_type: match format {
+                ImageFormat::Exr => "image/x-exr",
+                _ => "image/png",
+            }
+            .into(),
+            width: job.spec.width,
+            height: job.spec.height,
+        }))
+    }
+}
+
+/// Serve `coordinator` on `listener` with gRPC reflection and health until `shutdown`
+/// completes. GetImage replies may exceed 4 MiB, so the encoding limit is raised.
+pub async fn serve(
+    listener: TcpListener,
+    coordinator: Coordinator,
+    shutdown: impl Future<Output = ()> + Send,
+) -> Result<(), tonic::transport::Error> {
+    let (health_reporter, health_service) = tonic_health::server::health_reporter();
+    health_reporter
+        .set_serving::<RenderServiceServer<Coordinator>>()
+        .await;
+    let reflection = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(dray_proto::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1()
+        .expect("the built-in descriptor sets are valid");
+    let render = RenderServiceServer::new(coordinator).max_encoding_message_size(usize::MAX);
+    tonic::transport::Server::builder()
+        .add_service(health_service)
+        .add_service(reflection)
+        .add_service(render)
+        .serve_with_incoming_shutdown(
+            tonic::transport::server::TcpIncoming::from(listener),
+            shutdown,
+        )
+        .await
+}

@@ -1,0 +1,385 @@
+//! Job validation: a [`JobSpec`] is checked against the server's limits and scene root
+//! before it is accepted. Every rejection is `INVALID_ARGUMENT` with a message that starts
+//! with the offending field's name, and leaves the server as it was.
+//!
+//! Checks that need no scene run in [`validate`] (cheap, on the request task); checks that
+//! need the loaded scene (the scene spec itself, the camera, the effect analysis) run in
+//! [`prepare`], which the server calls on a blocking thread before it answers SubmitJob.
+
+use std::path::{Path, PathBuf};
+
+use dray_core::camera::Camera;
+use dray_core::effects::Effect;
+use dray_core::integrator::{IntegratorKind, RenderSettings};
+use dray_core::scene::Scene;
+use dray_proto::v1::JobSpec;
+use glam::Vec3;
+use tonic::Status;
+
+/// Limits a job must respect. The defaults are those of `dray render`.
+#[derive(Clone, Debug)]
+pub struct Limits {
+    /// Largest image side in pixels.
+    pub max_side: u32,
+    /// Largest samples per pixel.
+    pub max_spp: u32,
+    /// Largest `max_depth`.
+    pub max_depth: u32,
+    /// Largest `ao_samples`.
+    pub max_ao_samples: u32,
+    /// Largest number of domains.
+    pub max_domains: u32,
+    /// Longest label, in bytes.
+    pub max_label: usize,
+}
+
+impl Default for Limits {
+    fn default() -> Limits {
+        Limits {
+            max_side: 16384,
+            max_spp: 1 << 16,
+            max_depth: 1024,
+            max_ao_samples: 4096,
+            max_domains: 65536,
+            max_label: 256,
+        }
+    }
+}
+
+/// Default `max_depth` (as `dray render`).
+pub const DEFAULT_MAX_DEPTH: u32 = 5;
+/// Default `ao_samples` (as `dray render`).
+pub const DEFAULT_AO_SAMPLES: u32 = 16;
+/// Default domain layout.
+pub const DEFAULT_LAYOUT: &str = "kd";
+
+/// A spec that passed [`validate`]: the spec with defaults filled in, plus parsed values.
+#[derive(Clone, Debug)]
+pub struct Validated {
+    /// The spec as submitted, with defaults filled in (what GetJob shows).
+    pub spec: JobSpec,
+    /// What to hand to `dray_scene::load`: a procedural spec, or a canonical path inside
+    /// the scene root.
+    pub scene_spec: String,
+    /// The integrator.
+    pub integrator: IntegratorKind,
+    /// Effect overrides, in order.
+    pub effects: Vec<(Effect, bool)>,
+    /// Explicit environment radiance.
+    pub env: Option<Vec3>,
+    /// Scene offset.
+    pub translate: Option<Vec3>,
+}
+
+fn bad(msg: String) -> Status {
+    Status::invalid_argument(msg)
+}
+
+fn check_range(field: &str, v: u32, max: u32) -> Result<(), Status> {
+    if v == 0 || v > max {
+        return Err(bad(format!("{field}: {v} is out of range (1..={max})")));
+    }
+    Ok(())
+}
+
+/// Check `spec` against `limits` and resolve its scene against `scene_root` (which must
+/// be canonical). Procedural scene names are accepted as they are; a path must name an
+/// existing file inside the root.
+pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Validated, Status> {
+    let mut spec = spec.clone();
+    check_range("width", spec.width, limits.max_side)?;
+    check_range("height", spec.height, limits.max_side)?;
+    check_range("spp", spec.spp, limits.max_spp)?;
+    if spec.integrator.is_empty() {
+        spec.integrator = "path".into();
+    }
+    let integrator = IntegratorKind::from_name(&spec.integrator).ok_or_else(|| {
+        bad(format!(
+            "integrator: unknown integrator {:?} (expected raycast, whitted, path or ao)",
+            spec.integrator
+        ))
+    })?;
+    let max_depth = *spec.max_depth.get_or_insert(DEFAULT_MAX_DEPTH);
+    check_range("max_depth", max_depth, limits.max_depth)?;
+    let ao = *spec.ao_samples.get_or_insert(DEFAULT_AO_SAMPLES);
+    check_range("ao_samples", ao, limits.max_ao_samples)?;
+    if let Some(d) = spec.ao_distance
+        && (d.is_nan() || d <= 0.0)
+    {
+        return Err(bad(format!("ao_distance: must be positive, got {d}")));
+    }
+    if let Some(c) = &spec.camera
+        && c.trim().is_empty()
+    {
+        return Err(bad(
+            "camera: empty camera name (omit the field for the scene's first camera)".into(),
+        ));
+    }
+    let env = spec
+        .env
+        .map(|e| {
+            let v = Vec3::new(e.r, e.g, e.b);
+            if !v.is_finite() || v.min_element() < 0.0 {
+                Err(bad(format!(
+                    "env: radiance must be finite and non-negative, got ({}, {}, {})",
+                    e.r, e.g, e.b
+                )))
+            } else {
+                Ok(v)
+            }
+        })
+        .transpose()?;
+    let translate = spec
+        .translate
+        .map(|t| {
+            let v = Vec3::new(t.x, t.y, t.z);
+            if v.is_finite() {
+                Ok(v)
+            } else {
+                Err(bad(format!(
+                    "translate: must be finite, got ({}, {}, {})",
+                    t.x, t.y, t.z
+                )))
+            }
+        })
+        .transpose()?;
+    let effects = parse_effects(&spec.effects)?;
+    if spec.domains == 0 {
+        spec.domains = 1;
+    }
+    check_range("domains", spec.domains, limits.max_domains)?;
+    if spec.layout.is_empty() {
+        spec.layout = DEFAULT_LAYOUT.into();
+    }
+    if spec.layout != "grid" && spec.layout != "kd" {
+        return Err(bad(format!(
+            "layout: unknown layout {:?} (expected grid or kd)",
+            spec.layout
+        )));
+    }
+    if spec.label.len() > limits.max_label {
+        return Err(bad(format!(
+            "label: {} bytes is longer than {}",
+            spec.label.len(),
+            limits.max_label
+        )));
+    }
+    let scene_spec = resolve_scene(&spec.scene, scene_root)?;
+    Ok(Validated {
+        spec,
+        scene_spec,
+        integrator,
+        effects,
+        env,
+        translate,
+    })
+}
+
+/// Parse effect overrides such as "+specular,-transmission" (a bare name means on).
+pub fn parse_effects(spec: &str) -> Result<Vec<(Effect, bool)>, Status> {
+    let mut out = Vec::new();
+    for item in spec.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+        let (on, name) = if let Some(n) = item.strip_prefix('+') {
+            (true, n)
+        } else if let Some(n) = item.strip_prefix('-') {
+            (false, n)
+        } else {
+            (true, item)
+        };
+        let Some(e) = Effect::from_name(name) else {
+            let known: Vec<&str> = Effect::ALL.iter().map(|e| e.name()).collect();
+            return Err(bad(format!(
+                "effects: unknown effect {name:?} (known: {})",
+                known.join(", ")
+            )));
+        };
+        out.push((e, on));
+    }
+    Ok(out)
+}
+
+/// Resolve a scene spec: procedural names pass (a `grid:` spec has its inner scene
+/// resolved too); a path, relative to `root` or absolute, must exist and lie inside
+/// `root` once symlinks and `..` are resolved.
+pub fn resolve_scene(scene: &str, root: &Path) -> Result<String, Status> {
+    if scene.trim().is_empty() {
+        return Err(bad("scene: empty scene".into()));
+    }
+    if dray_scene::procedural::is_procedural(scene) {
+        if let Some(rest) = scene.strip_prefix("grid:")
+            && let Some((inner, dims)) = rest.rsplit_once(':')
+            && !inner.is_empty()
+        {
+            return Ok(format!("grid:{}:{dims}", resolve_scene(inner, root)?));
+        }
+        return Ok(scene.to_string());
+    }
+    let joined: PathBuf = root.join(scene);
+    let canon = joined.canonicalize().map_err(|e| {
+        bad(format!(
+            "scene: {scene:?} is not a procedural scene name (cornell, cornell:mirror, \
+             cornell:glass, spheres:N, soup:N, grid:<scene>:XxYxZ, city:N, iso:<field>:<res>) \
+             nor a file under the scene root ({e})"
+        ))
+    })?;
+    if !canon.starts_with(root) {
+        return Err(bad(format!(
+            "scene: path {scene:?} is outside the scene root"
+        )));
+    }
+    if !canon.is_file() {
+        return Err(bad(format!(
+            "scene: {scene:?} is not a file (scene packages are not served yet)"
+        )));
+    }
+    canon
+        .to_str()
+        .map(str::to_string)
+        .ok_or_else(|| bad(format!("scene: path {scene:?} is not valid UTF-8")))
+}
+
+/// A job ready to render: the loaded scene, its camera and the render settings.
+pub struct Prepared {
+    /// The loaded (and translated) scene.
+    pub scene: Scene,
+    /// The camera chosen by the spec.
+    pub camera: Camera,
+    /// Everything the integrator needs.
+    pub settings: RenderSettings,
+}
+
+/// Load the scene and make the scene-dependent checks (camera, effects), exactly as
+/// `dray render` does, so the same spec gives the same image. Blocking.
+pub fn prepare(v: &Validated) -> Result<Prepared, Status> {
+    let s = &v.spec;
+    let mut scene = dray_scene::load(&v.scene_spec)
+        .map_err(|e| bad(format!("scene: cannot load {:?}: {e}", s.scene)))?;
+    if let Some(t) = v.translate {
+        scene.translate(t);
+    }
+    let environment = v
+        .env
+        .unwrap_or_else(|| dray_scene::effects::default_environment(&scene));
+    let mut effects = dray_scene::effects::analyze(&scene, environment);
+    for (e, on) in &v.effects {
+        effects.set(*e, *on);
+    }
+    let aspect = s.width as f32 / s.height as f32;
+    let camera = choose_camera(&scene, s.camera.as_deref(), aspect)?;
+    let settings = RenderSettings {
+        width: s.width,
+        height: s.height,
+        spp: s.spp,
+        integrator: v.integrator,
+        max_depth: s.max_depth.unwrap_or(DEFAULT_MAX_DEPTH),
+        seed: s.seed,
+        environment,
+        effects,
+        ao_samples: s.ao_samples.unwrap_or(DEFAULT_AO_SAMPLES),
+        ao_distance: s.ao_distance.unwrap_or(f32::INFINITY),
+    };
+    Ok(Prepared {
+        scene,
+        camera,
+        settings,
+    })
+}
+
+/// The camera named by `which` (a name or an index), the scene's first, or one framing
+/// the bounds; the same choice as `dray render --camera`.
+pub fn choose_camera(scene: &Scene, which: Option<&str>, aspect: f32) -> Result<Camera, Status> {
+    let cam = match which {
+        Some(w) => {
+            let by_index = w.parse::<usize>().ok().and_then(|i| scene.cameras.get(i));
+            match by_index.or_else(|| scene.cameras.iter().find(|c| c.name == w)) {
+                Some(c) => c.clone(),
+                None => {
+                    let names: Vec<String> = scene
+                        .cameras
+                        .iter()
+                        .enumerate()
+                        .map(|(i, c)| format!("{i}:{}", c.name))
+                        .collect();
+                    return Err(bad(format!(
+                        "camera: {w:?} not found in the scene (cameras: {})",
+                        if names.is_empty() {
+                            "none".to_string()
+                        } else {
+                            names.join(", ")
+                        }
+                    )));
+                }
+            }
+        }
+        None => match scene.cameras.first() {
+            Some(c) => c.clone(),
+            None => {
+                let (lo, hi) = scene.bounds();
+                Camera::framing(lo, hi, aspect)
+            }
+        },
+    };
+    if !cam.is_valid() {
+        return Err(bad(format!(
+            "camera: {:?} is malformed (non-finite or degenerate transform or projection)",
+            cam.name
+        )));
+    }
+    Ok(cam)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec() -> JobSpec {
+        JobSpec {
+            scene: "cornell".into(),
+            width: 8,
+            height: 8,
+            spp: 1,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn defaults_and_rejections() {
+        let root = std::env::temp_dir().canonicalize().unwrap();
+        let l = Limits::default();
+        let v = validate(&spec(), &l, &root).unwrap();
+        assert_eq!(v.spec.integrator, "path");
+        assert_eq!(v.spec.max_depth, Some(5));
+        assert_eq!(v.spec.layout, "kd");
+        assert_eq!(v.spec.domains, 1);
+        let field = |s: JobSpec| validate(&s, &l, &root).unwrap_err().message().to_string();
+        assert!(field(JobSpec { width: 0, ..spec() }).starts_with("width:"));
+        assert!(
+            field(JobSpec {
+                height: 20000,
+                ..spec()
+            })
+            .starts_with("height:")
+        );
+        assert!(field(JobSpec { spp: 0, ..spec() }).starts_with("spp:"));
+        let bogus = JobSpec {
+            integrator: "bogus".into(),
+            ..spec()
+        };
+        assert!(field(bogus).starts_with("integrator:"));
+        let fx = JobSpec {
+            effects: "+nope".into(),
+            ..spec()
+        };
+        assert!(field(fx).starts_with("effects:"));
+        let esc = JobSpec {
+            scene: "../../etc/passwd".into(),
+            ..spec()
+        };
+        assert!(field(esc).starts_with("scene:"));
+        let unknown = JobSpec {
+            scene: "no-such-scene.glb".into(),
+            ..spec()
+        };
+        assert!(field(unknown).starts_with("scene:"));
+    }
+}

@@ -1,0 +1,310 @@
+//! The ray stream end to end: a real tonic server on 127.0.0.1:0 and a real client.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Duration;
+
+use dray_core::integrator::RayKind;
+use dray_proto::RayRecord;
+use dray_proto::ray_record::FLAG_TICKETED;
+use dray_proto::v1::{RayBatch, RayStreamRequest, ray_stream_request};
+use dray_worker::{
+    BatchKey, PeerClientConfig, PeerError, PeerSender, PeerServer, PeerServerConfig, RayQueues,
+};
+use glam::Vec3;
+use tokio::net::TcpListener;
+use tokio::task::JoinHandle;
+use tokio_stream::wrappers::TcpListenerStream;
+use tonic::transport::{Channel, Endpoint, Server};
+
+/// Aborts the task on drop, so a failing test still stops its server or sender.
+struct AbortOnDrop<T>(JoinHandle<T>);
+
+impl<T> Drop for AbortOnDrop<T> {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
+async fn start_server(
+    queues: Arc<RayQueues>,
+    config: PeerServerConfig,
+) -> (Channel, AbortOnDrop<()>) {
+    let listener = TcpListener::bind("127.0.0.1:0").await.expect("bind");
+    let addr = listener.local_addr().expect("local addr");
+    let service = PeerServer::new(queues, config).into_service();
+    let server = AbortOnDrop(tokio::spawn(async move {
+        let _ = Server::builder()
+            .add_service(service)
+            .serve_with_incoming(TcpListenerStream::new(listener))
+            .await;
+    }));
+    let channel = Endpoint::from_shared(format!("http://{addr}"))
+        .expect("endpoint")
+        .connect()
+        .await
+        .expect("connect");
+    (channel, server)
+}
+
+/// SplitMix64, so the rays are varied but reproducible.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+    fn finite(&mut self) -> f32 {
+        loop {
+            let f = f32::from_bits(self.next() as u32);
+            if f.is_finite() {
+                return f;
+            }
+        }
+    }
+    fn vec3(&mut self) -> Vec3 {
+        Vec3::new(self.finite(), self.finite(), self.finite())
+    }
+}
+
+fn rays(n: usize, seed: u64, ticket_every: usize) -> Vec<RayRecord> {
+    let mut rng = Rng(seed);
+    (0..n)
+        .map(|i| RayRecord {
+            credit: rng.next(),
+            origin: rng.vec3(),
+            dir: rng.vec3(),
+            tmax: if i % 3 == 0 {
+                f32::INFINITY
+            } else {
+                rng.finite()
+            },
+            weight: rng.vec3(),
+            bsdf_pdf: rng.finite(),
+            pixel: rng.next() as u32,
+            sample: rng.next() as u32,
+            depth: rng.next() as u16,
+            kind: RayKind::ALL[(rng.next() % RayKind::COUNT as u64) as usize],
+            flags: if ticket_every > 0 && i % ticket_every == 0 {
+                FLAG_TICKETED
+            } else {
+                0
+            },
+        })
+        .collect()
+}
+
+fn key(domain: u32) -> BatchKey {
+    BatchKey {
+        job_id: "job-1".into(),
+        domain,
+        routing_version: 3,
+    }
+}
+
+const LIMIT: Duration = Duration::from_secs(10);
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rays_arrive_bit_exact_in_their_domain_queues() {
+    tokio::time::timeout(LIMIT, async {
+        let queues = Arc::new(RayQueues::new([3, 7], 100_000));
+        let (channel, _server) =
+            start_server(Arc::clone(&queues), PeerServerConfig::default()).await;
+        let config = PeerClientConfig {
+            sender_id: "w0".into(),
+            batch_rays: 500,
+            ..PeerClientConfig::default()
+        };
+        let mut sender = PeerSender::open(channel, config).await.expect("open");
+        let to3 = rays(2000, 1, 7);
+        let to7 = rays(1500, 2, 0);
+        // Interleave the two destinations in uneven chunks (16 chunks each).
+        assert_eq!(to3.chunks(130).len(), to7.chunks(97).len());
+        let mut ticket = 0u64;
+        for (c3, c7) in to3.chunks(130).zip(to7.chunks(97)) {
+            let tickets: Vec<u64> = c3
+                .iter()
+                .filter(|r| r.flags & FLAG_TICKETED != 0)
+                .map(|_| {
+                    ticket += 1;
+                    ticket
+                })
+                .collect();
+            sender.send(&key(3), c3, &tickets).await.expect("send 3");
+            sender.send(&key(7), c7, &[]).await.expect("send 7");
+        }
+        sender.close().await.expect("close");
+
+        assert_eq!(queues.lengths(), vec![(3, 2000), (7, 1500)]);
+        for (domain, sent) in [(3u32, &to3), (7, &to7)] {
+            let mut got = Vec::new();
+            let mut got_tickets = Vec::new();
+            while let Some(b) = queues.pop(domain) {
+                assert_eq!(&*b.job_id, "job-1");
+                assert_eq!(b.routing_version, 3);
+                for t in &b.tickets {
+                    let r = &b.rays[t.record as usize];
+                    assert!(r.flags & FLAG_TICKETED != 0);
+                    got_tickets.push(t.ticket);
+                }
+                got.extend(b.rays);
+            }
+            assert_eq!(got.len(), sent.len(), "domain {domain}");
+            for (a, b) in sent.iter().zip(&got) {
+                assert_eq!(a.to_bytes(), b.to_bytes(), "domain {domain}");
+            }
+            if domain == 3 {
+                let expected: Vec<u64> = (1..=ticket).collect();
+                assert_eq!(got_tickets, expected);
+            }
+        }
+        assert!(queues.is_empty());
+    })
+    .await
+    .expect("test timed out");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn full_queue_stalls_the_sender_until_drained() {
+    tokio::time::timeout(LIMIT, async {
+        const CAPACITY: usize = 256;
+        const TOTAL: usize = 4000;
+        let queues = Arc::new(RayQueues::new([0], CAPACITY));
+        let (channel, _server) =
+            start_server(Arc::clone(&queues), PeerServerConfig::default()).await;
+        let config = PeerClientConfig {
+            batch_rays: 64,
+            ..PeerClientConfig::default()
+        };
+        let mut sender = PeerSender::open(channel, config).await.expect("open");
+        let window = sender.rays_granted();
+        assert_eq!(
+            window, CAPACITY as u64,
+            "window is clamped to the queue capacity"
+        );
+        let all = rays(TOTAL, 5, 0);
+        let progress = Arc::new(AtomicU64::new(0));
+        let sending = {
+            let all = all.clone();
+            let progress = Arc::clone(&progress);
+            AbortOnDrop(tokio::spawn(async move {
+                for chunk in all.chunks(50) {
+                    sender.send(&key(0), chunk, &[]).await?;
+                    progress.store(sender.rays_sent(), Ordering::SeqCst);
+                }
+                sender.close().await?;
+                Ok::<(), PeerError>(())
+            }))
+        };
+
+        // Nobody drains: the sender must stop within one window past the queue.
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        assert!(
+            !sending.0.is_finished(),
+            "sender finished despite a full queue"
+        );
+        let sent = progress.load(Ordering::SeqCst);
+        assert!(
+            sent <= (CAPACITY as u64) + window,
+            "sender sent {sent} rays beyond its grant"
+        );
+        assert_eq!(queues.len(0), CAPACITY);
+
+        // Drain slowly; the rest arrives, and the queue never exceeds its capacity.
+        let mut got = Vec::new();
+        while got.len() < TOTAL {
+            assert!(queues.len(0) <= CAPACITY);
+            match queues.pop(0) {
+                Some(b) => got.extend(b.rays),
+                None => tokio::time::sleep(Duration::from_millis(1)).await,
+            }
+        }
+        let mut sending = sending;
+        let done = tokio::time::timeout(Duration::from_secs(5), &mut sending.0)
+            .await
+            .expect("sender finished");
+        done.expect("sender task").expect("sender ok");
+        assert_eq!(got.len(), TOTAL);
+        for (a, b) in all.iter().zip(&got) {
+            assert_eq!(a.to_bytes(), b.to_bytes());
+        }
+    })
+    .await
+    .expect("test timed out");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn malformed_batch_is_refused_and_the_server_keeps_serving() {
+    tokio::time::timeout(LIMIT, async {
+        let queues = Arc::new(RayQueues::new([1], 10_000));
+        let (channel, _server) =
+            start_server(Arc::clone(&queues), PeerServerConfig::default()).await;
+
+        // 100 bytes: one record and a truncated one.
+        let mut bad = PeerSender::open(channel.clone(), PeerClientConfig::default())
+            .await
+            .expect("open");
+        let mut records = Vec::new();
+        dray_proto::encode_rays(&rays(1, 9, 0), &mut records);
+        records.extend_from_slice(&[0u8; 36]);
+        bad.send_raw(RayStreamRequest {
+            msg: Some(ray_stream_request::Msg::Batch(RayBatch {
+                job_id: "job-1".into(),
+                domain: 1,
+                routing_version: 1,
+                sequence: 1,
+                count: 1,
+                records,
+                tickets: Vec::new(),
+                forwards: 0,
+            })),
+        })
+        .await
+        .expect("send raw");
+        match bad.closed().await {
+            Err(PeerError::Status(s)) => {
+                assert_eq!(s.code(), tonic::Code::InvalidArgument, "{s:?}");
+                assert!(
+                    s.message()
+                        .contains("not a whole number of 64-byte records"),
+                    "{}",
+                    s.message()
+                );
+            }
+            other => panic!("expected an error status, got {other:?}"),
+        }
+
+        // A batch for a domain this worker does not own is refused by name.
+        let mut stray = PeerSender::open(channel.clone(), PeerClientConfig::default())
+            .await
+            .expect("open");
+        stray
+            .send(&key(42), &rays(3, 10, 0), &[])
+            .await
+            .expect("buffer");
+        let _ = stray.flush().await;
+        match stray.closed().await {
+            Err(PeerError::Status(s)) => {
+                assert_eq!(s.code(), tonic::Code::InvalidArgument, "{s:?}");
+                assert!(s.message().contains("domain 42"), "{}", s.message());
+            }
+            other => panic!("expected an error status, got {other:?}"),
+        }
+        assert!(queues.is_empty());
+
+        // The server still serves a well-formed stream on the same connection.
+        let good = rays(300, 11, 0);
+        let mut sender = PeerSender::open(channel, PeerClientConfig::default())
+            .await
+            .expect("open");
+        sender.send(&key(1), &good, &[]).await.expect("send");
+        sender.close().await.expect("close");
+        assert_eq!(queues.len(1), 300);
+    })
+    .await
+    .expect("test timed out");
+}
