@@ -120,7 +120,22 @@ impl JobEntry {
         self.finish(JobState::Cancelled, String::new(), None);
     }
 
-    fn set_state(&self, s: JobState) {
+    /// Set the number of committed tiles (distributed jobs count them in the ledger).
+    pub(crate) fn set_tiles_done(&self, done: u32) {
+        self.tiles_done.store(done, Ordering::Relaxed);
+    }
+
+    /// Update the statistics in place.
+    pub(crate) fn update_stats(&self, f: impl FnOnce(&mut JobStats)) {
+        f(&mut self.lock().stats);
+    }
+
+    /// Whether the job reached SUCCEEDED, FAILED or CANCELLED.
+    pub fn is_terminal(&self) -> bool {
+        terminal(self.lock().state)
+    }
+
+    pub(crate) fn set_state(&self, s: JobState) {
         let mut g = self.lock();
         if !terminal(g.state) {
             g.state = s;
@@ -131,7 +146,7 @@ impl JobEntry {
     }
 
     /// Move to a terminal state unless the job is already in one.
-    fn finish(&self, s: JobState, error: String, film: Option<Film>) {
+    pub(crate) fn finish(&self, s: JobState, error: String, film: Option<Film>) {
         let mut g = self.lock();
         if terminal(g.state) {
             return;
@@ -167,14 +182,14 @@ impl JobTable {
         self.jobs.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// Accept a validated, prepared job: add it QUEUED and start its task. Must be called
-    /// within a tokio runtime.
-    pub fn submit(&self, v: Validated, prepared: Prepared) -> Arc<JobEntry> {
+    /// Add a job QUEUED, without starting anything: the caller runs it (in process with
+    /// [`JobTable::submit`], or on workers through the dispatcher).
+    pub fn insert(&self, spec: JobSpec) -> Arc<JobEntry> {
         let n = self.next_id.fetch_add(1, Ordering::Relaxed);
         let entry = Arc::new(JobEntry {
             id: format!("job-{n}"),
-            tiles_total: render::tiles(v.spec.width, v.spec.height).len() as u32,
-            spec: v.spec,
+            tiles_total: render::tiles(spec.width, spec.height).len() as u32,
+            spec,
             submitted_at: SystemTime::now(),
             cancel: AtomicBool::new(false),
             tiles_done: AtomicU32::new(0),
@@ -189,6 +204,13 @@ impl JobTable {
             }),
         });
         self.jobs().push(entry.clone());
+        entry
+    }
+
+    /// Accept a validated, prepared job: add it QUEUED and start its in-process render
+    /// task. Must be called within a tokio runtime.
+    pub fn submit(&self, v: Validated, prepared: Prepared) -> Arc<JobEntry> {
+        let entry = self.insert(v.spec);
         let (gate, threads, job) = (self.gate.clone(), self.threads, entry.clone());
         tokio::spawn(async move {
             let Ok(_permit) = gate.acquire_owned().await else {

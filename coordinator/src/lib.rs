@@ -12,7 +12,12 @@
 //! - [`jobs`]: the job table, the render task, cancellation, and image encoding.
 //! - [`service`]: the tonic `RenderService` implementation and [`serve`].
 
+pub mod cluster;
+pub mod dispatch;
 pub mod jobs;
+pub mod ledger;
+pub mod membership;
+pub mod routing;
 pub mod service;
 pub mod validate;
 

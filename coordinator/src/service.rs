@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
+use dray_proto::v1::cluster_service_server::ClusterServiceServer;
 use dray_proto::v1::render_service_server::{RenderService, RenderServiceServer};
 use dray_proto::v1::{
     CancelJobRequest, CancelJobResponse, GetImageRequest, GetImageResponse, GetJobRequest,
@@ -16,6 +17,8 @@ use tokio::net::TcpListener;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status};
 
+use crate::cluster::{Cluster, ClusterApi, ClusterOptions};
+use crate::dispatch;
 use crate::jobs::{JobEntry, JobTable, encode_exr, encode_png};
 use crate::validate::{Limits, prepare, validate};
 
@@ -25,24 +28,40 @@ pub const DEFAULT_WATCH_INTERVAL: Duration = Duration::from_millis(250);
 pub const DEFAULT_PAGE_SIZE: usize = 50;
 const MAX_PAGE_SIZE: usize = 1000;
 
-/// The coordinator's RenderService: the job table, the limits and the scene root.
+/// The coordinator's RenderService: the job table, the limits, the scene root, and the
+/// cluster of workers jobs run on when any is registered.
 #[derive(Clone)]
 pub struct Coordinator {
     table: Arc<JobTable>,
     limits: Limits,
     scene_root: PathBuf,
+    cluster: Arc<Cluster>,
 }
 
 impl Coordinator {
     /// A coordinator serving scene files under `scene_root` (which must exist), rendering
-    /// with `threads` threads (0 = all cores).
+    /// with `threads` threads (0 = all cores) while no worker is registered, with the
+    /// default [`ClusterOptions`].
     pub fn new(scene_root: &Path, threads: usize) -> std::io::Result<Coordinator> {
         let scene_root = scene_root.canonicalize()?;
         Ok(Coordinator {
             table: Arc::new(JobTable::new(threads)),
             limits: Limits::default(),
             scene_root,
+            cluster: Arc::new(Cluster::new(ClusterOptions::default())),
         })
+    }
+
+    /// The same coordinator with other cluster settings (heartbeats, work directory).
+    /// Call before serving: workers and jobs on workers start afresh.
+    pub fn with_cluster_options(mut self, options: ClusterOptions) -> Coordinator {
+        self.cluster = Arc::new(Cluster::new(options));
+        self
+    }
+
+    /// The cluster state (registered workers, jobs on workers).
+    pub fn cluster(&self) -> &Arc<Cluster> {
+        &self.cluster
     }
 
     /// The canonical scene root.
@@ -81,8 +100,26 @@ impl RenderService for Coordinator {
         let prepared = tokio::task::spawn_blocking(move || prepare(&v2))
             .await
             .map_err(|e| Status::internal(format!("scene loading task died: {e}")))??;
-        let job = self.table.submit(v, prepared);
-        tracing::info!(id = %job.id, scene = %job.spec.scene, "job accepted");
+        let workers = self.cluster.membership.len();
+        let job = if workers == 0 {
+            self.table.submit(v, prepared)
+        } else {
+            // On workers: the spec shows the domain count and layout the package is cut
+            // with, so GetJob says what ran.
+            let mut spec = v.spec.clone();
+            spec.domains = dispatch::choose_domains(
+                (!v.domains_auto).then_some(spec.domains),
+                workers,
+                prepared.scene.mesh.triangle_count() as u64,
+                self.limits.max_domains,
+            );
+            let layout = dispatch::layout_spec(&spec.layout, spec.domains);
+            let planned = dispatch::plan(prepared, spec.clone(), layout);
+            let entry = self.table.insert(spec);
+            dispatch::spawn(self.cluster.clone(), entry.clone(), planned);
+            entry
+        };
+        tracing::info!(id = %job.id, scene = %job.spec.scene, workers, "job accepted");
         Ok(Response::new(SubmitJobResponse {
             job_id: job.id.clone(),
             spec: Some(job.spec.clone()),
@@ -174,7 +211,9 @@ impl RenderService for Coordinator {
         r: Request<CancelJobRequest>,
     ) -> Result<Response<CancelJobResponse>, Status> {
         let job = self.job(&r.get_ref().job_id)?;
+        // Mark it first: a dispatch racing with this sees the state and does not start.
         job.cancel();
+        self.cluster.ledger.cancel(&job.id);
         Ok(Response::new(CancelJobResponse {
             job: Some(job.to_job()),
         }))
@@ -232,8 +271,20 @@ impl RenderService for Coordinator {
     }
 }
 
-/// Serve `coordinator` on `listener` with gRPC reflection and health until `shutdown`
-/// completes. GetImage replies may exceed 4 MiB, so the encoding limit is raised.
+/// Aborts a task when dropped, so the heartbeat reaper stops with the server however
+/// `serve` ends (returned, failed, or its future dropped).
+struct AbortOnDrop(tokio::task::JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
+/// Serve `coordinator` on `listener` (RenderService and ClusterService) with gRPC
+/// reflection and health until `shutdown` completes. GetImage replies may exceed 4 MiB,
+/// so the encoding limit is raised. On shutdown the workers' assignment streams are
+/// ended, so a graceful shutdown does not wait for them forever.
 pub async fn serve(
     listener: TcpListener,
     coordinator: Coordinator,
@@ -243,6 +294,18 @@ pub async fn serve(
     health_reporter
         .set_serving::<RenderServiceServer<Coordinator>>()
         .await;
+    health_reporter
+        .set_serving::<ClusterServiceServer<ClusterApi>>()
+        .await;
+    let cluster = coordinator.cluster.clone();
+    let _reaper = AbortOnDrop(tokio::spawn(cluster.clone().reaper()));
+    let shutdown = async move {
+        shutdown.await;
+        cluster.membership.close_all();
+    };
+    let cluster_api = ClusterServiceServer::new(ClusterApi {
+        cluster: coordinator.cluster.clone(),
+    });
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(dray_proto::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
@@ -253,6 +316,7 @@ pub async fn serve(
         .add_service(health_service)
         .add_service(reflection)
         .add_service(render)
+        .add_service(cluster_api)
         .serve_with_incoming_shutdown(
             tonic::transport::server::TcpIncoming::from(listener),
             shutdown,

@@ -69,6 +69,9 @@ pub struct Validated {
     pub env: Option<Vec3>,
     /// Scene offset.
     pub translate: Option<Vec3>,
+    /// The spec left `domains` at 0: in process that means one BVH (`spec.domains` is
+    /// 1); on workers the coordinator chooses the count.
+    pub domains_auto: bool,
 }
 
 fn bad(msg: String) -> Status {
@@ -144,6 +147,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         })
         .transpose()?;
     let effects = parse_effects(&spec.effects)?;
+    let domains_auto = spec.domains == 0;
     if spec.domains == 0 {
         spec.domains = 1;
     }
@@ -172,6 +176,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         effects,
         env,
         translate,
+        domains_auto,
     })
 }
 

@@ -1,0 +1,429 @@
+//! Dispatch: turn an accepted job into work for the registered workers.
+//!
+//! For a job, the coordinator makes (or reuses) a scene package, assigns its domains with
+//! the [`Router`](crate::routing::Router), and queues on each of the job's workers'
+//! WatchAssignments streams, in this order:
+//!
+//! 1. one `JobSetup`: the spec with every default filled in, the environment and the
+//!    effects after analysis and overrides, the package path and checksum, the domain
+//!    count, `tile_size` ([`TILE_SIZE`]), `tile_credit` ([`TILE_CREDIT`]) and the routing
+//!    table (version 1);
+//! 2. one or more `TileAssignment`s with the tiles dealt to that worker: the image is cut
+//!    row-major into `tile_size` squares (edge tiles smaller), tile `i` (index
+//!    `(y0 / tile_size) * tiles_x + x0 / tile_size`) goes to `workers[i % n]`, each with
+//!    `credit = tile_credit` and `attempt = 0`;
+//! 3. later, exactly one `finish` (every tile's credit came back) or `cancel` (CancelJob,
+//!    a worker's failure report, a lost worker, or a credit error) `JobRelease`.
+//!
+//! The JobSetup's spec is what the worker must render, resolved so every worker reads the
+//! same thing: `camera` is always set, to the index (as a decimal string) of the camera in
+//! the package's camera list; `translate` is cleared because the package was written from
+//! the already translated scene; `domains` and `layout` say how the package was cut.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use dray_core::render;
+use dray_core::scene::Scene;
+use dray_proto::v1::{
+    Assignment, JobSetup, JobSpec, JobState, Rgb, Tile, TileAssignment, WorkerEndpoint,
+    assignment::Command,
+};
+use dray_scene::partition::checksum::{checksum, to_hex};
+use dray_scene::partition::manifest::MANIFEST_FILE;
+use dray_scene::partition::{LayoutSpec, write_scene_package};
+use tracing::Instrument;
+
+use crate::cluster::Cluster;
+use crate::jobs::JobEntry;
+use crate::ledger::{DistJob, remove_package};
+use crate::validate::Prepared;
+
+/// Tile edge in pixels: the same tiles as `dray render`, so progress reads the same.
+pub const TILE_SIZE: u32 = render::TILE;
+
+/// Credit each tile starts with. Large, so a tile's camera rays and their descendants
+/// can split it many times before a share reaches 1 (a ray whose share cannot be split
+/// further fails the job rather than losing count); below 2^63 so sums of returned
+/// credit never overflow a u64 however they are grouped.
+pub const TILE_CREDIT: u64 = 1 << 62;
+
+/// Tiles per TileAssignment message, to stay well below gRPC's default 4 MiB message
+/// limit on the worker's side even for a 16384x16384 image on one worker.
+pub const TILES_PER_MESSAGE: usize = 4096;
+
+/// Domains per worker when the job does not say: the dynamic-scheduling paper found
+/// several times more domains than processes best, and it gives a later dynamic
+/// scheduler something to move.
+pub const DOMAINS_PER_WORKER: u32 = 4;
+
+/// Fewest triangles worth a domain of their own when the coordinator chooses the count:
+/// below this a domain's BVH and the hops between domains cost more than they save.
+pub const MIN_TRIANGLES_PER_DOMAIN: u64 = 64;
+
+/// Errors preparing a job for workers.
+#[derive(Debug, thiserror::Error)]
+pub enum DispatchError {
+    /// The work directory could not be created.
+    #[error("cannot create the work directory {dir}: {source}")]
+    WorkDir {
+        /// The directory.
+        dir: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// Partitioning or writing the package failed.
+    #[error("cannot write the scene package to {dir}: {message}")]
+    Package {
+        /// The package directory.
+        dir: PathBuf,
+        /// Why.
+        message: String,
+    },
+    /// The package manifest could not be read back for its checksum.
+    #[error("cannot read the package manifest {path}: {source}")]
+    Manifest {
+        /// The manifest file.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// Every worker left before the job could start.
+    #[error("no worker is registered any more")]
+    NoWorkers,
+    /// A blocking task died.
+    #[error("the package task died: {0}")]
+    Task(String),
+}
+
+/// The number of domains for a job on `workers` workers: `requested` when the job says,
+/// otherwise [`DOMAINS_PER_WORKER`] per worker, at most one per
+/// [`MIN_TRIANGLES_PER_DOMAIN`] triangles and at most `max`, and at least 1.
+pub fn choose_domains(requested: Option<u32>, workers: usize, triangles: u64, max: u32) -> u32 {
+    if let Some(n) = requested {
+        return n;
+    }
+    let wanted = (workers as u64).saturating_mul(u64::from(DOMAINS_PER_WORKER));
+    let by_size = triangles / MIN_TRIANGLES_PER_DOMAIN;
+    wanted.min(by_size).min(u64::from(max)).max(1) as u32
+}
+
+/// The package a job renders from.
+pub enum PackageSource {
+    /// Partition this (loaded, translated) scene into a fresh package.
+    Write {
+        /// The scene (boxed: it is large and moved between tasks).
+        scene: Box<Scene>,
+        /// How to cut it.
+        layout: LayoutSpec,
+    },
+    /// A package that already exists (the job's scene was one).
+    Existing(PathBuf),
+}
+
+/// The layout spec for `layout` ("grid" or "kd") and `domains`.
+pub fn layout_spec(layout: &str, domains: u32) -> LayoutSpec {
+    match layout {
+        "grid" => LayoutSpec::GridCount(domains),
+        _ => LayoutSpec::Kd(domains),
+    }
+}
+
+/// The package as the job's workers will see it.
+struct PackageInfo {
+    dir: PathBuf,
+    checksum: String,
+    domains: u32,
+    owned: bool,
+}
+
+/// Write (or check) the package. Blocking.
+fn make_package(src: PackageSource, dir: &Path) -> Result<PackageInfo, DispatchError> {
+    let (dir, owned) = match src {
+        PackageSource::Write { scene, layout } => {
+            if let Some(parent) = dir.parent() {
+                std::fs::create_dir_all(parent).map_err(|source| DispatchError::WorkDir {
+                    dir: parent.to_path_buf(),
+                    source,
+                })?;
+            }
+            write_scene_package(dir, &scene, &layout).map_err(|e| DispatchError::Package {
+                dir: dir.to_path_buf(),
+                message: e.to_string(),
+            })?;
+            (dir.to_path_buf(), true)
+        }
+        PackageSource::Existing(d) => (d, false),
+    };
+    let pkg = dray_scene::partition::open_package(&dir).map_err(|e| DispatchError::Package {
+        dir: dir.clone(),
+        message: e.to_string(),
+    })?;
+    let path = dir.join(MANIFEST_FILE);
+    let bytes = std::fs::read(&path).map_err(|source| DispatchError::Manifest {
+        path: path.clone(),
+        source,
+    })?;
+    let dir = std::path::absolute(&dir).unwrap_or(dir);
+    Ok(PackageInfo {
+        dir,
+        checksum: package_checksum(&bytes),
+        domains: pkg.domain_count(),
+        owned,
+    })
+}
+
+/// `JobSetup.package_checksum`: XXH3-64 of the bytes of the package's `manifest.json`, as
+/// 16 lowercase hex digits. The manifest records every domain file's checksum, so this
+/// one value pins the whole package.
+pub fn package_checksum(manifest_bytes: &[u8]) -> String {
+    to_hex(checksum(manifest_bytes))
+}
+
+/// The tiles of a `width` x `height` image, row-major, each with [`TILE_CREDIT`].
+pub fn image_tiles(width: u32, height: u32) -> Vec<Tile> {
+    render::tiles(width, height)
+        .into_iter()
+        .enumerate()
+        .map(|(i, t)| Tile {
+            index: i as u32,
+            x0: t.x0,
+            y0: t.y0,
+            width: t.w,
+            height: t.h,
+            credit: TILE_CREDIT,
+            attempt: 0,
+        })
+        .collect()
+}
+
+/// What dispatch keeps of [`Prepared`] (the scene itself goes into the package).
+pub struct PreparedSummary {
+    /// Environment radiance after defaults.
+    pub environment: glam::Vec3,
+    /// Effect names after analysis and overrides.
+    pub effects: Vec<String>,
+    /// Triangles in the scene.
+    pub triangles: u64,
+}
+
+/// Plan a prepared job for workers: resolve `spec` (camera index, no translate) and keep
+/// the scene for the package. A scene without cameras gets the framing camera `prepare`
+/// chose, so the package's camera list holds exactly the camera the job renders with.
+pub fn plan(mut p: Prepared, mut spec: JobSpec, layout: LayoutSpec) -> Planned {
+    let index = camera_index(&p.scene, spec.camera.as_deref()).unwrap_or_else(|| {
+        p.scene.cameras.push(p.camera.clone());
+        p.scene.cameras.len() - 1
+    });
+    spec.camera = Some(index.to_string());
+    spec.translate = None;
+    let summary = PreparedSummary {
+        environment: p.settings.environment,
+        effects: p
+            .settings
+            .effects
+            .names()
+            .into_iter()
+            .map(String::from)
+            .collect(),
+        triangles: p.scene.mesh.triangle_count() as u64,
+    };
+    Planned {
+        setup_spec: spec,
+        prepared: summary,
+        package: PackageSource::Write {
+            scene: Box::new(p.scene),
+            layout,
+        },
+    }
+}
+
+/// A job ready for dispatch, before it has an entry in the job table.
+pub struct Planned {
+    /// The spec workers receive in JobSetup (resolved camera, no translate).
+    pub setup_spec: JobSpec,
+    /// Settings and statistics of the loaded scene.
+    pub prepared: PreparedSummary,
+    /// Where the package comes from.
+    pub package: PackageSource,
+}
+
+/// The index of the camera `which` names (an index first, then a name, as
+/// `validate::choose_camera` resolves it), or of the first camera; None when the scene
+/// has no cameras (the framing camera is used).
+fn camera_index(scene: &Scene, which: Option<&str>) -> Option<usize> {
+    match which {
+        Some(w) => w
+            .parse::<usize>()
+            .ok()
+            .filter(|&i| i < scene.cameras.len())
+            .or_else(|| scene.cameras.iter().position(|c| c.name == w)),
+        None => (!scene.cameras.is_empty()).then_some(0),
+    }
+}
+
+/// Run job `entry` on the cluster's workers: make the package, then queue the setup and
+/// tiles on the workers' streams. Returns at once; the work runs on a task.
+pub fn spawn(cluster: Arc<Cluster>, entry: Arc<JobEntry>, planned: Planned) {
+    let span = tracing::info_span!("job", id = %entry.id, scene = %entry.spec.scene);
+    tokio::spawn(
+        async move {
+            if let Err(e) = run(&cluster, &entry, planned).await {
+                tracing::warn!("job failed before it started: {e}");
+                entry.finish(JobState::Failed, e.to_string(), None);
+            }
+        }
+        .instrument(span),
+    );
+}
+
+async fn run(
+    cluster: &Arc<Cluster>,
+    entry: &Arc<JobEntry>,
+    planned: Planned,
+) -> Result<(), DispatchError> {
+    let Planned {
+        setup_spec,
+        prepared,
+        package,
+    } = planned;
+    entry.set_state(JobState::Preparing);
+    let dir = cluster.options.work_dir.join(&entry.id);
+    let dir2 = dir.clone();
+    let info = tokio::task::spawn_blocking(move || make_package(package, &dir2))
+        .await
+        .map_err(|e| DispatchError::Task(e.to_string()));
+    let info = match info {
+        Ok(Ok(i)) => i,
+        Ok(Err(e)) | Err(e) => {
+            remove_package(Some(&dir));
+            return Err(e);
+        }
+    };
+    let owned = info.owned.then(|| info.dir.clone());
+    if entry.is_terminal() {
+        // Cancelled while the package was being written.
+        remove_package(owned.as_ref());
+        return Ok(());
+    }
+    let workers: Vec<WorkerEndpoint> = cluster
+        .membership
+        .workers()
+        .iter()
+        .map(|w| w.endpoint())
+        .collect();
+    if workers.is_empty() {
+        remove_package(owned.as_ref());
+        return Err(DispatchError::NoWorkers);
+    }
+    let routing = cluster.router.initial(&entry.id, info.domains, &workers);
+    let env = prepared.environment;
+    let setup = JobSetup {
+        job_id: entry.id.clone(),
+        spec: Some(setup_spec),
+        environment: Some(Rgb {
+            r: env.x,
+            g: env.y,
+            b: env.z,
+        }),
+        effects: prepared.effects.clone(),
+        package_path: info.dir.to_string_lossy().into_owned(),
+        package_checksum: info.checksum.clone(),
+        domain_count: info.domains,
+        tile_size: TILE_SIZE,
+        tile_credit: TILE_CREDIT,
+        routing: Some(routing.clone()),
+    };
+    let tiles = image_tiles(entry.spec.width, entry.spec.height);
+    let n = workers.len();
+    let mut per_worker: Vec<Vec<Tile>> = vec![Vec::new(); n];
+    for t in &tiles {
+        per_worker[t.index as usize % n].push(*t);
+    }
+    let mut commands = Vec::new();
+    for (w, mine) in workers.iter().zip(per_worker) {
+        commands.push((
+            w.worker_id.clone(),
+            Assignment {
+                command: Some(Command::Setup(setup.clone())),
+            },
+        ));
+        for chunk in mine.chunks(TILES_PER_MESSAGE) {
+            commands.push((
+                w.worker_id.clone(),
+                Assignment {
+                    command: Some(Command::Tiles(TileAssignment {
+                        job_id: entry.id.clone(),
+                        tiles: chunk.to_vec(),
+                    })),
+                },
+            ));
+        }
+    }
+    entry.update_stats(|s| {
+        s.triangles = prepared.triangles;
+        s.domains = info.domains;
+        s.workers = n as u32;
+        s.effects = prepared.effects.clone();
+    });
+    let job = DistJob::new(
+        entry.clone(),
+        routing,
+        tiles.len(),
+        TILE_CREDIT,
+        owned.clone(),
+    );
+    match cluster.ledger.start(job, commands) {
+        Ok(()) => {
+            tracing::info!(
+                workers = n,
+                domains = info.domains,
+                tiles = tiles.len(),
+                package = %info.dir.display(),
+                "job dispatched"
+            );
+            Ok(())
+        }
+        Err(msg) => {
+            remove_package(owned.as_ref());
+            if entry.is_terminal() {
+                return Ok(());
+            }
+            entry.finish(JobState::Failed, msg, None);
+            Ok(())
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn domain_choice() {
+        assert_eq!(choose_domains(Some(7), 3, 10, 100), 7);
+        assert_eq!(choose_domains(None, 3, 1_000_000, 65536), 12);
+        // A tiny scene is not cut finer than MIN_TRIANGLES_PER_DOMAIN allows.
+        assert_eq!(choose_domains(None, 4, 200, 65536), 3);
+        assert_eq!(choose_domains(None, 4, 10, 65536), 1);
+        assert_eq!(choose_domains(None, 100_000, u64::MAX, 65536), 65536);
+    }
+
+    #[test]
+    fn tiles_are_row_major_with_the_documented_index() {
+        let t = image_tiles(70, 40);
+        let tiles_x = 70u32.div_ceil(TILE_SIZE);
+        assert_eq!(t.len(), 3 * 2);
+        for tile in &t {
+            assert_eq!(
+                tile.index,
+                (tile.y0 / TILE_SIZE) * tiles_x + tile.x0 / TILE_SIZE
+            );
+            assert_eq!(tile.credit, TILE_CREDIT);
+        }
+        assert_eq!((t[2].width, t[2].height), (6, 32));
+        assert_eq!((t[5].width, t[5].height), (6, 8));
+        let px: u32 = t.iter().map(|t| t.width * t.height).sum();
+        assert_eq!(px, 70 * 40);
+    }
+}

@@ -1,0 +1,334 @@
+//! Cluster membership: which workers are registered, when each was last heard from, and
+//! the outbox of commands ([`Assignment`]s) waiting for each worker's WatchAssignments
+//! stream.
+//!
+//! Workers dial the coordinator, never the other way round (cluster.proto), so the only
+//! way to tell a worker something is the one long-lived server stream it opens. Commands
+//! are queued in a per-worker [`Outbox`] rather than written to the stream directly, so
+//! that a command issued before the worker opened its stream (or while it reconnects) is
+//! delivered when the stream (re)opens instead of being lost.
+//!
+//! Liveness is by heartbeat: a worker not heard from for `heartbeat_timeout` is dropped
+//! by [`Membership::expire`]; what happens to its jobs is the ledger's business.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant, SystemTime};
+
+use dray_proto::v1::{Assignment, RegisterWorkerRequest, WorkerEndpoint};
+use tokio::sync::Notify;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::Status;
+
+/// The dray version every worker must have been built from: rays, packages and settings
+/// are only guaranteed bit-compatible within one build of the workspace.
+pub const VERSION: &str = env!("CARGO_PKG_VERSION");
+
+/// Commands buffered between a worker's outbox and its gRPC stream. Small, so that
+/// commands stay in the outbox (where a reconnecting stream finds them) rather than in
+/// a channel that dies with the old stream.
+const STREAM_BUFFER: usize = 4;
+
+/// How often workers heartbeat, and how long silence is tolerated.
+#[derive(Clone, Copy, Debug)]
+pub struct HeartbeatConfig {
+    /// Told to workers in RegisterWorkerResponse.
+    pub interval: Duration,
+    /// Silence after which a worker is dropped.
+    pub timeout: Duration,
+}
+
+impl Default for HeartbeatConfig {
+    /// One beat a second; five missed beats declare the worker lost. Long enough that a
+    /// worker busy building a BVH (its heartbeat runs on its own task) is not dropped,
+    /// short enough that a job does not hang for long on a dead machine.
+    fn default() -> HeartbeatConfig {
+        HeartbeatConfig {
+            interval: Duration::from_secs(1),
+            timeout: Duration::from_secs(5),
+        }
+    }
+}
+
+/// Commands for one worker, in order, waiting to be written to its stream.
+#[derive(Default)]
+pub struct Outbox {
+    queue: Mutex<VecDeque<Assignment>>,
+    notify: Notify,
+    /// Bumped when a new stream takes over, so the previous stream's task stops.
+    generation: AtomicU64,
+    /// Set when the worker is dropped or the server shuts down: streams end.
+    closed: std::sync::atomic::AtomicBool,
+}
+
+impl Outbox {
+    fn lock(&self) -> MutexGuard<'_, VecDeque<Assignment>> {
+        self.queue.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Queue a command.
+    pub fn push(&self, a: Assignment) {
+        self.lock().push_back(a);
+        self.notify.notify_waiters();
+    }
+
+    /// End the stream that reads this outbox (after it has written what is queued).
+    pub fn close(&self) {
+        self.closed.store(true, Ordering::SeqCst);
+        self.notify.notify_waiters();
+    }
+
+    /// Commands queued and not yet handed to a stream (for tests and logs).
+    pub fn pending(&self) -> usize {
+        self.lock().len()
+    }
+
+    /// A stream of this outbox's commands. A later call takes over: the earlier stream
+    /// ends (a worker that reconnects must not have two streams splitting its commands).
+    pub fn stream(self: &Arc<Self>) -> ReceiverStream<Result<Assignment, Status>> {
+        let generation = self.generation.fetch_add(1, Ordering::SeqCst) + 1;
+        self.notify.notify_waiters();
+        let (tx, rx) = tokio::sync::mpsc::channel(STREAM_BUFFER);
+        let outbox = self.clone();
+        tokio::spawn(async move {
+            loop {
+                let notified = outbox.notify.notified();
+                tokio::pin!(notified);
+                // Register for wake-ups before looking, so a push between the look and
+                // the wait is not missed.
+                notified.as_mut().enable();
+                if outbox.generation.load(Ordering::SeqCst) != generation {
+                    return;
+                }
+                let next = outbox.lock().pop_front();
+                match next {
+                    Some(a) => {
+                        if let Err(e) = tx.send(Ok(a)).await {
+                            // The worker went away: keep the command for its next stream.
+                            if let Ok(a) = e.0 {
+                                outbox.lock().push_front(a);
+                            }
+                            return;
+                        }
+                    }
+                    None if outbox.closed.load(Ordering::SeqCst) => return,
+                    None => {
+                        tokio::select! {
+                            _ = &mut notified => {}
+                            _ = tx.closed() => return,
+                        }
+                    }
+                }
+            }
+        });
+        ReceiverStream::new(rx)
+    }
+}
+
+/// One registered worker.
+#[derive(Clone)]
+pub struct WorkerRecord {
+    /// Id minted at registration.
+    pub id: String,
+    /// Its RayExchangeService endpoint.
+    pub endpoint: String,
+    /// Tracing threads.
+    pub threads: u32,
+    /// Memory budget for resident domains (0 = unlimited).
+    pub memory_budget_bytes: u64,
+    /// Host name, for logs.
+    pub hostname: String,
+    /// Last heartbeat (or registration).
+    pub last_seen: Instant,
+    /// From the last heartbeat.
+    pub memory_used_bytes: u64,
+    /// From the last heartbeat.
+    pub rays_queued: u64,
+    /// Commands for it.
+    pub outbox: Arc<Outbox>,
+}
+
+impl WorkerRecord {
+    /// Its id and endpoint, as routing tables list them.
+    pub fn endpoint(&self) -> WorkerEndpoint {
+        WorkerEndpoint {
+            worker_id: self.id.clone(),
+            endpoint: self.endpoint.clone(),
+        }
+    }
+}
+
+/// A worker [`Membership::expire`] dropped.
+#[derive(Clone, Debug)]
+pub struct LostWorker {
+    /// Its id.
+    pub id: String,
+    /// Its endpoint, so messages can say which machine it was.
+    pub endpoint: String,
+    /// How long it had been silent.
+    pub silent_for: Duration,
+}
+
+/// The registered workers.
+pub struct Membership {
+    workers: Mutex<BTreeMap<String, WorkerRecord>>,
+    next: AtomicU64,
+    /// Distinguishes this coordinator's ids from those of an earlier run, so a worker
+    /// that outlived a coordinator restart is told to re-register instead of being
+    /// mistaken for a new worker that got the same number.
+    nonce: u32,
+    /// Heartbeat settings.
+    pub heartbeat: HeartbeatConfig,
+}
+
+impl Membership {
+    /// No workers yet.
+    pub fn new(heartbeat: HeartbeatConfig) -> Membership {
+        let t = SystemTime::now()
+            .duration_since(SystemTime::UNIX_EPOCH)
+            .unwrap_or_default();
+        let nonce = (t.subsec_nanos() ^ (t.as_secs() as u32).rotate_left(16))
+            ^ std::process::id().rotate_left(8);
+        Membership {
+            workers: Mutex::new(BTreeMap::new()),
+            next: AtomicU64::new(1),
+            nonce,
+            heartbeat,
+        }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, BTreeMap<String, WorkerRecord>> {
+        self.workers.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Check a registration and add the worker. A version or record-format mismatch is
+    /// FAILED_PRECONDITION (the worker must be rebuilt, retrying cannot help); a missing
+    /// endpoint is INVALID_ARGUMENT.
+    pub fn register(&self, r: &RegisterWorkerRequest) -> Result<WorkerRecord, Status> {
+        if r.version != VERSION {
+            return Err(Status::failed_precondition(format!(
+                "version: the worker is dray {:?} but the coordinator is dray {VERSION:?}; \
+                 rays are only compatible within one build, so run the same dray everywhere",
+                r.version
+            )));
+        }
+        if r.record_format != dray_proto::RAY_RECORD_FORMAT {
+            return Err(Status::failed_precondition(format!(
+                "record_format: the worker uses ray record format {} but the coordinator \
+                 expects {}",
+                r.record_format,
+                dray_proto::RAY_RECORD_FORMAT
+            )));
+        }
+        let endpoint = r.endpoint.trim();
+        if !(endpoint.starts_with("http://") || endpoint.starts_with("https://"))
+            || endpoint.len() <= "https://".len()
+        {
+            return Err(Status::invalid_argument(format!(
+                "endpoint: {:?} is not a URL such as http://10.0.0.7:7001 that peers can reach",
+                r.endpoint
+            )));
+        }
+        let n = self.next.fetch_add(1, Ordering::Relaxed);
+        let rec = WorkerRecord {
+            id: format!("w{n}-{:08x}", self.nonce),
+            endpoint: endpoint.to_string(),
+            threads: r.threads,
+            memory_budget_bytes: r.memory_budget_bytes,
+            hostname: r.hostname.clone(),
+            last_seen: Instant::now(),
+            memory_used_bytes: 0,
+            rays_queued: 0,
+            outbox: Arc::new(Outbox::default()),
+        };
+        self.lock().insert(rec.id.clone(), rec.clone());
+        tracing::info!(worker = %rec.id, endpoint = %rec.endpoint, host = %rec.hostname, "worker registered");
+        Ok(rec)
+    }
+
+    /// Record a heartbeat. False when the worker is unknown (it must re-register).
+    pub fn heartbeat(&self, id: &str, memory_used_bytes: u64, rays_queued: u64) -> bool {
+        match self.lock().get_mut(id) {
+            Some(w) => {
+                w.last_seen = Instant::now();
+                w.memory_used_bytes = memory_used_bytes;
+                w.rays_queued = rays_queued;
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// Note that `id` was heard from (any call counts as a sign of life).
+    pub fn touch(&self, id: &str) {
+        if let Some(w) = self.lock().get_mut(id) {
+            w.last_seen = Instant::now();
+        }
+    }
+
+    /// The worker with id `id`.
+    pub fn get(&self, id: &str) -> Option<WorkerRecord> {
+        self.lock().get(id).cloned()
+    }
+
+    /// Every registered worker, ordered by id (so dispatch is deterministic).
+    pub fn workers(&self) -> Vec<WorkerRecord> {
+        self.lock().values().cloned().collect()
+    }
+
+    /// Number of registered workers.
+    pub fn len(&self) -> usize {
+        self.lock().len()
+    }
+
+    /// True when no worker is registered.
+    pub fn is_empty(&self) -> bool {
+        self.lock().is_empty()
+    }
+
+    /// Queue `a` for worker `id`. False when the worker is gone.
+    pub fn send(&self, id: &str, a: Assignment) -> bool {
+        let outbox = self.lock().get(id).map(|w| w.outbox.clone());
+        match outbox {
+            Some(o) => {
+                o.push(a);
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// Drop every worker silent for longer than the heartbeat timeout at `now`, ending
+    /// their streams, and return them.
+    pub fn expire(&self, now: Instant) -> Vec<LostWorker> {
+        let mut g = self.lock();
+        let timeout = self.heartbeat.timeout;
+        let dead: Vec<String> = g
+            .values()
+            .filter(|w| now.saturating_duration_since(w.last_seen) > timeout)
+            .map(|w| w.id.clone())
+            .collect();
+        dead.into_iter()
+            .filter_map(|id| g.remove(&id))
+            .map(|w| {
+                w.outbox.close();
+                let silent_for = now.saturating_duration_since(w.last_seen);
+                tracing::warn!(worker = %w.id, endpoint = %w.endpoint, ?silent_for, "worker lost: no heartbeat");
+                LostWorker {
+                    id: w.id,
+                    endpoint: w.endpoint,
+                    silent_for,
+                }
+            })
+            .collect()
+    }
+
+    /// End every worker's stream (server shutdown), so a graceful shutdown does not wait
+    /// forever on streams that never end by themselves.
+    pub fn close_all(&self) {
+        for w in self.lock().values() {
+            w.outbox.close();
+        }
+    }
+}
