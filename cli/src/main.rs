@@ -4,10 +4,12 @@
 //! ray-throughput benchmark (`dray bench-rays`).
 
 mod bench_rays;
+mod cluster_cmd;
 mod coordinator_cmd;
 mod options;
 mod partition_cmd;
 mod render_cmd;
+mod submit_cmd;
 mod summary;
 
 use clap::{Parser, Subcommand};
@@ -34,6 +36,11 @@ enum Command {
     /// Serve the dray.v1.RenderService over gRPC (with reflection and health); jobs render
     /// in this process for now (workers are not wired yet).
     Coordinator(coordinator_cmd::CoordinatorArgs),
+    /// Submit a job to a coordinator, follow its progress and write the image.
+    Submit(submit_cmd::SubmitArgs),
+    /// Run a coordinator and N workers as local processes on consecutive ports, until
+    /// Ctrl-C.
+    Cluster(cluster_cmd::ClusterArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -76,6 +83,8 @@ fn main() -> std::process::ExitCode {
         Command::BenchRays(a) => bench_rays::run(a),
         Command::Partition(a) => partition_cmd::run(a),
         Command::Coordinator(a) => coordinator_cmd::run(a),
+        Command::Submit(a) => submit_cmd::run(a),
+        Command::Cluster(a) => cluster_cmd::run(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

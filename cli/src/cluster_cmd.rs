@@ -1,0 +1,392 @@
+//! `dray cluster`: a coordinator and N workers as local processes on consecutive ports,
+//! for trying dray on one machine and for tests that need real processes.
+//!
+//! The children are this same executable (`dray coordinator`, `dray worker`), so a cluster
+//! always runs the code it was built with. The cluster owns its children's lifetime:
+//! - Ctrl-C, SIGTERM or SIGHUP stops them all (SIGTERM, then SIGKILL after a grace time);
+//! - a child that exits on its own stops the others, and the cluster exits non-zero naming
+//!   it, because a cluster missing a member would hang or fail jobs in confusing ways;
+//! - if the cluster is killed outright, the kernel sends each child SIGTERM
+//!   (PR_SET_PDEATHSIG on Linux), and if the cluster's own parent dies (a test harness, a
+//!   terminal closed) the cluster notices through `getppid` and stops them: nothing is
+//!   left holding the ports.
+//!
+//! Children run in their own process group, so a Ctrl-C typed at the terminal reaches
+//! only the cluster, which then stops the children in order, instead of every process
+//! dying at once and the cluster reporting them as crashed.
+
+use std::net::{Ipv4Addr, SocketAddr, TcpListener};
+use std::os::unix::process::CommandExt;
+use std::path::PathBuf;
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use tokio::signal::unix::{Signal, SignalKind, signal};
+use tonic::transport::Endpoint;
+use tonic_health::pb::HealthCheckRequest;
+use tonic_health::pb::health_check_response::ServingStatus;
+use tonic_health::pb::health_client::HealthClient;
+
+/// How long the members get to become ready.
+const READY_TIMEOUT: Duration = Duration::from_secs(60);
+/// How long a member gets to exit after SIGTERM before it is killed.
+const STOP_GRACE: Duration = Duration::from_secs(5);
+/// How often children and the parent are checked.
+const POLL: Duration = Duration::from_millis(200);
+
+#[derive(Args, Debug)]
+pub struct ClusterArgs {
+    /// Worker processes to start (0 runs a coordinator alone).
+    #[arg(long)]
+    pub workers: u16,
+    /// The coordinator listens on 127.0.0.1:P, worker i on 127.0.0.1:P+i.
+    #[arg(long, default_value_t = 50051)]
+    pub base_port: u16,
+    /// The coordinator's scene root (scene paths in jobs are resolved against it).
+    #[arg(long)]
+    pub scene_root: Option<PathBuf>,
+}
+
+/// One child process of the cluster.
+struct Member {
+    name: String,
+    addr: SocketAddr,
+    child: Child,
+    /// Set once the member answered its health check.
+    ready: bool,
+    /// Set once it has been reaped.
+    exited: Option<ExitStatus>,
+}
+
+/// The running members. Dropping it stops every member still running, so an early
+/// return (an error while starting, a panic) never leaves processes behind.
+struct Cluster {
+    members: Vec<Member>,
+}
+
+impl Cluster {
+    /// A member that exited, with its status (reaped here).
+    fn exited(&mut self) -> Option<(String, ExitStatus)> {
+        for m in &mut self.members {
+            if m.exited.is_none()
+                && let Ok(Some(status)) = m.child.try_wait()
+            {
+                m.exited = Some(status);
+                return Some((
+                    format!("{} (pid {}, {})", m.name, m.child.id(), m.addr),
+                    status,
+                ));
+            }
+        }
+        None
+    }
+
+    /// SIGTERM to every member still running (workers first, so they do not see the
+    /// coordinator vanish), then SIGKILL to any that outlive the grace time.
+    fn stop(&mut self) {
+        for m in self.members.iter_mut().rev() {
+            if m.exited.is_none() {
+                if let Ok(Some(s)) = m.child.try_wait() {
+                    m.exited = Some(s);
+                    continue;
+                }
+                if let Ok(pid) = libc::pid_t::try_from(m.child.id()) {
+                    // SAFETY: kill(2) with a pid we spawned and have not reaped yet, so it
+                    // cannot name a recycled process.
+                    unsafe {
+                        libc::kill(pid, libc::SIGTERM);
+                    }
+                }
+            }
+        }
+        let deadline = Instant::now() + STOP_GRACE;
+        loop {
+            let mut running = 0;
+            for m in &mut self.members {
+                if m.exited.is_none() {
+                    match m.child.try_wait() {
+                        Ok(Some(s)) => m.exited = Some(s),
+                        _ => running += 1,
+                    }
+                }
+            }
+            if running == 0 {
+                return;
+            }
+            if Instant::now() >= deadline {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        for m in &mut self.members {
+            if m.exited.is_none() {
+                eprintln!(
+                    "dray cluster: {} did not stop within {:?}; killing it",
+                    m.name, STOP_GRACE
+                );
+                let _ = m.child.kill();
+                m.exited = m.child.wait().ok();
+            }
+        }
+    }
+}
+
+impl Drop for Cluster {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+/// Ctrl-C, SIGTERM and SIGHUP, registered before any child starts so that a signal during
+/// start-up is not lost.
+struct Signals {
+    int: Signal,
+    term: Signal,
+    hup: Signal,
+}
+
+impl Signals {
+    fn new() -> Result<Signals> {
+        let reg = |k: SignalKind, name: &str| {
+            signal(k).with_context(|| format!("cannot install the {name} handler"))
+        };
+        Ok(Signals {
+            int: reg(SignalKind::interrupt(), "SIGINT")?,
+            term: reg(SignalKind::terminate(), "SIGTERM")?,
+            hup: reg(SignalKind::hangup(), "SIGHUP")?,
+        })
+    }
+
+    async fn next(&mut self) -> &'static str {
+        tokio::select! {
+            _ = self.int.recv() => "interrupted",
+            _ = self.term.recv() => "terminated",
+            _ = self.hup.recv() => "hung up",
+        }
+    }
+}
+
+/// Fail early, naming the port, when something already listens there: otherwise the
+/// child would fail on its own and the message would arrive second-hand.
+fn check_port_free(port: u16, name: &str) -> Result<()> {
+    match TcpListener::bind((Ipv4Addr::LOCALHOST, port)) {
+        Ok(_) => Ok(()),
+        Err(e) if e.kind() == std::io::ErrorKind::AddrInUse => bail!(
+            "port {port} (for the {name}) is already in use on 127.0.0.1; stop what holds it \
+             or choose another --base-port"
+        ),
+        Err(e) => Err(e).with_context(|| format!("cannot use port {port} for the {name}")),
+    }
+}
+
+/// Start `exe args…` as a member: in its own process group, stdout discarded (the
+/// cluster prints the endpoints), stderr shared so its errors reach the user.
+fn spawn(exe: &PathBuf, name: String, addr: SocketAddr, args: &[String]) -> Result<Member> {
+    let mut cmd = Command::new(exe);
+    cmd.args(args)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::inherit())
+        .process_group(0);
+    #[cfg(target_os = "linux")]
+    {
+        let parent = std::process::id();
+        // SAFETY: the closure runs between fork and exec and calls only prctl(2) and
+        // getppid(2), which are async-signal-safe, and builds an io::Error from a raw code
+        // without allocating. The death signal is tied to the thread that forks: this is
+        // the main thread (the cluster runs on a current-thread runtime), which lives as
+        // long as the cluster.
+        unsafe {
+            cmd.pre_exec(move || {
+                if libc::prctl(
+                    libc::PR_SET_PDEATHSIG,
+                    libc::SIGTERM as libc::c_ulong,
+                    0,
+                    0,
+                    0,
+                ) == -1
+                {
+                    return Err(std::io::Error::last_os_error());
+                }
+                // The cluster may have died before prctl took effect.
+                if libc::getppid() as u32 != parent {
+                    return Err(std::io::Error::from_raw_os_error(libc::ESRCH));
+                }
+                Ok(())
+            });
+        }
+    }
+    let child = cmd
+        .spawn()
+        .with_context(|| format!("cannot start the {name} ({})", exe.display()))?;
+    Ok(Member {
+        name,
+        addr,
+        child,
+        ready: false,
+        exited: None,
+    })
+}
+
+/// Whether the gRPC server at `addr` reports `service` as SERVING. A worker without the
+/// health service (UNIMPLEMENTED) still proves its gRPC server is up.
+async fn healthy(addr: SocketAddr, service: &str, unimplemented_ok: bool) -> bool {
+    let Ok(endpoint) = Endpoint::from_shared(format!("http://{addr}")) else {
+        return false;
+    };
+    let Ok(channel) = endpoint
+        .connect_timeout(Duration::from_secs(1))
+        .timeout(Duration::from_secs(2))
+        .connect()
+        .await
+    else {
+        return false;
+    };
+    let request = HealthCheckRequest {
+        service: service.to_string(),
+    };
+    match HealthClient::new(channel).check(request).await {
+        Ok(r) => r.into_inner().status == ServingStatus::Serving as i32,
+        Err(s) => unimplemented_ok && s.code() == tonic::Code::Unimplemented,
+    }
+}
+
+pub fn run(a: ClusterArgs) -> Result<()> {
+    if a.base_port == 0 {
+        bail!("--base-port 0: the cluster needs fixed ports (workers are told the coordinator's)");
+    }
+    if u32::from(a.base_port) + u32::from(a.workers) > 65535 {
+        bail!(
+            "--base-port {} with --workers {} needs ports up to {}, past 65535",
+            a.base_port,
+            a.workers,
+            u32::from(a.base_port) + u32::from(a.workers)
+        );
+    }
+    if let Some(root) = &a.scene_root
+        && !root.is_dir()
+    {
+        bail!("--scene-root {}: not a directory", root.display());
+    }
+    let coordinator_addr = SocketAddr::from((Ipv4Addr::LOCALHOST, a.base_port));
+    let worker_addrs: Vec<SocketAddr> = (1..=a.workers)
+        .map(|i| SocketAddr::from((Ipv4Addr::LOCALHOST, a.base_port + i)))
+        .collect();
+    check_port_free(a.base_port, "coordinator")?;
+    for (i, w) in worker_addrs.iter().enumerate() {
+        check_port_free(w.port(), &format!("worker {}", i + 1))?;
+    }
+    let exe = std::env::current_exe().context("cannot find the dray executable to start")?;
+
+    // Current-thread: children are forked from the main thread (see `spawn`).
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    rt.block_on(async move {
+        let mut signals = Signals::new()?;
+        let parent = std::os::unix::process::parent_id();
+        let mut cluster = Cluster {
+            members: Vec::new(),
+        };
+
+        let mut args = vec![
+            "coordinator".to_string(),
+            "--listen".to_string(),
+            coordinator_addr.to_string(),
+        ];
+        if let Some(root) = &a.scene_root {
+            args.push("--scene-root".into());
+            args.push(root.display().to_string());
+        }
+        cluster
+            .members
+            .push(spawn(&exe, "coordinator".into(), coordinator_addr, &args)?);
+        let coordinator_url = format!("http://{coordinator_addr}");
+        for (i, w) in worker_addrs.iter().enumerate() {
+            let args = [
+                "worker".to_string(),
+                "--coordinator".to_string(),
+                coordinator_url.clone(),
+                "--listen".to_string(),
+                w.to_string(),
+            ];
+            cluster
+                .members
+                .push(spawn(&exe, format!("worker {}", i + 1), *w, &args)?);
+        }
+
+        // Wait until every member answers its health check.
+        let start = Instant::now();
+        let mut tick = tokio::time::interval(POLL);
+        while cluster.members.iter().any(|m| !m.ready) {
+            tokio::select! {
+                why = signals.next() => {
+                    eprintln!("dray cluster: {why} while starting; stopping");
+                    return Ok(());
+                }
+                _ = tick.tick() => {}
+            }
+            if let Some((name, status)) = cluster.exited() {
+                bail!("{name} exited while starting ({status}); stopped the others");
+            }
+            if start.elapsed() > READY_TIMEOUT {
+                let waiting: Vec<&str> = cluster
+                    .members
+                    .iter()
+                    .filter(|m| !m.ready)
+                    .map(|m| m.name.as_str())
+                    .collect();
+                bail!(
+                    "not ready after {:?}: {}; stopped them all",
+                    READY_TIMEOUT,
+                    waiting.join(", ")
+                );
+            }
+            for (i, m) in cluster.members.iter_mut().enumerate() {
+                if !m.ready {
+                    m.ready = if i == 0 {
+                        healthy(m.addr, "dray.v1.RenderService", false).await
+                    } else {
+                        healthy(m.addr, "", true).await
+                    };
+                }
+            }
+        }
+
+        for m in &cluster.members {
+            println!("{:<12} http://{}  pid {}", m.name, m.addr, m.child.id());
+        }
+        println!(
+            "example: dray submit --coordinator {coordinator_addr} cornell --width 320 --height 240 --output cornell.png"
+        );
+        println!("example: grpcurl -plaintext {coordinator_addr} list");
+        println!(
+            "dray cluster ready: 1 coordinator, {} worker{}; Ctrl-C stops them all",
+            a.workers,
+            if a.workers == 1 { "" } else { "s" }
+        );
+
+        loop {
+            tokio::select! {
+                why = signals.next() => {
+                    eprintln!("dray cluster: {why}; stopping {} processes", cluster.members.len());
+                    cluster.stop();
+                    return Ok(());
+                }
+                _ = tick.tick() => {}
+            }
+            if let Some((name, status)) = cluster.exited() {
+                cluster.stop();
+                bail!("{name} exited unexpectedly ({status}); stopped the others");
+            }
+            if std::os::unix::process::parent_id() != parent {
+                eprintln!("dray cluster: the parent process is gone; stopping");
+                cluster.stop();
+                return Ok(());
+            }
+        }
+    })
+}

@@ -1,0 +1,459 @@
+//! `dray submit`: send a job to a coordinator over the public `dray.v1.RenderService`,
+//! follow its progress and write the image it returns.
+//!
+//! The flags are `dray render`'s wherever `JobSpec` has a field for them, with the same
+//! defaults, so `dray submit` and `dray render` with the same flags give the same bits.
+//! Validation is the server's job: it answers `INVALID_ARGUMENT` with a message naming the
+//! field, which is printed as it is, so the rules live in one place. Only what never
+//! reaches the server (the address, `--env`/`--translate` syntax, exposure, which is
+//! applied at fetch time) is checked here, before anything is submitted.
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, anyhow, bail};
+use clap::Args;
+use dray_proto::v1::render_service_client::RenderServiceClient;
+use dray_proto::v1::{
+    CancelJobRequest, GetImageRequest, GetJobRequest, ImageFormat, JobProgress, JobSpec, JobState,
+    Rgb, SubmitJobRequest, Vec3, WatchJobRequest,
+};
+use tonic::transport::{Channel, Endpoint};
+
+use crate::options::parse_vec3;
+
+#[derive(Args, Debug)]
+pub struct SubmitArgs {
+    /// The coordinator's gRPC address: host:port or http://host:port.
+    #[arg(long)]
+    pub coordinator: String,
+    /// A scene file or package path relative to the coordinator's --scene-root (it is
+    /// read by the coordinator, not by this command), or a procedural scene: cornell,
+    /// cornell:mirror, cornell:glass, spheres:N, soup:N, grid:<scene>:XxYxZ, city:N,
+    /// iso:<field>:<res>.
+    pub scene: String,
+    #[arg(long, default_value_t = 640)]
+    pub width: u32,
+    #[arg(long, default_value_t = 480)]
+    pub height: u32,
+    /// Samples per pixel.
+    #[arg(long, default_value_t = 16)]
+    pub spp: u32,
+    /// raycast | whitted | path | ao
+    #[arg(long, default_value = "path")]
+    pub integrator: String,
+    /// Maximum number of surface interactions along a path.
+    #[arg(long, default_value_t = 5)]
+    pub max_depth: u32,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// A camera of the scene, by name or index (default: the first, or one framing the bounds).
+    #[arg(long)]
+    pub camera: Option<String>,
+    /// Constant environment radiance "R,G,B" (default: black with lights or emitters, 1.0 otherwise).
+    #[arg(long)]
+    pub env: Option<String>,
+    /// Force effects on or off, e.g. "+specular,-transmission" (names: direct_light,
+    /// specular, transmission, emission, textures, alpha, environment).
+    #[arg(long, allow_hyphen_values = true)]
+    pub effects: Option<String>,
+    /// Rays per hit for the ao integrator.
+    #[arg(long, default_value_t = 16)]
+    pub ao_samples: u32,
+    /// Occlusion distance for the ao integrator (default: unlimited).
+    #[arg(long)]
+    pub ao_distance: Option<f32>,
+    /// Move the whole scene by "X,Y,Z" before rendering.
+    #[arg(long, allow_hyphen_values = true)]
+    pub translate: Option<String>,
+    /// Spatial domains to cut the scene into (default: the coordinator chooses; ignored
+    /// for scene packages, which carry their own).
+    #[arg(long)]
+    pub domains: Option<u32>,
+    /// Domain layout: grid or kd (default: the coordinator's).
+    #[arg(long)]
+    pub layout: Option<String>,
+    /// A label shown by ListJobs; no effect on the image.
+    #[arg(long)]
+    pub label: Option<String>,
+    /// Exposure in stops for the PNG (applied when the image is fetched; the EXR stays linear).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub exposure: f32,
+    /// 8-bit sRGB PNG to write.
+    #[arg(long, default_value = "dray.png")]
+    pub output: PathBuf,
+    /// Also write linear radiance as OpenEXR.
+    #[arg(long)]
+    pub exr: Option<PathBuf>,
+    /// No progress bar or progress lines.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+/// `host:port` or `http://host:port` as the URL tonic wants. Plaintext only: dray's
+/// servers do not speak TLS, and saying so beats a handshake error.
+pub fn endpoint_url(addr: &str) -> Result<String> {
+    let addr = addr.trim();
+    if addr.is_empty() {
+        bail!("--coordinator: empty address (expected host:port or http://host:port)");
+    }
+    if addr.starts_with("https://") {
+        bail!("--coordinator {addr}: https is not supported (dray serves plaintext gRPC)");
+    }
+    let url = if addr.starts_with("http://") {
+        addr.to_string()
+    } else if addr.contains("://") {
+        bail!("--coordinator {addr}: expected host:port or http://host:port");
+    } else {
+        format!("http://{addr}")
+    };
+    Ok(url)
+}
+
+/// The job spec the flags describe. `max_depth` and `ao_samples` are always sent (with
+/// `dray render`'s defaults), so the job does not depend on the server's defaults.
+fn job_spec(a: &SubmitArgs) -> Result<JobSpec> {
+    let env = a
+        .env
+        .as_deref()
+        .map(|s| parse_vec3("--env", s))
+        .transpose()?
+        .map(|v| Rgb {
+            r: v.x,
+            g: v.y,
+            b: v.z,
+        });
+    let translate = a
+        .translate
+        .as_deref()
+        .map(|s| parse_vec3("--translate", s))
+        .transpose()?
+        .map(|v| Vec3 {
+            x: v.x,
+            y: v.y,
+            z: v.z,
+        });
+    Ok(JobSpec {
+        scene: a.scene.clone(),
+        width: a.width,
+        height: a.height,
+        spp: a.spp,
+        integrator: a.integrator.clone(),
+        max_depth: Some(a.max_depth),
+        seed: a.seed,
+        camera: a.camera.clone(),
+        env,
+        effects: a.effects.clone().unwrap_or_default(),
+        ao_samples: Some(a.ao_samples),
+        ao_distance: a.ao_distance,
+        translate,
+        domains: a.domains.unwrap_or(0),
+        layout: a.layout.clone().unwrap_or_default(),
+        label: a.label.clone().unwrap_or_default(),
+    })
+}
+
+/// A gRPC failure as one line: what was being done and what the server said.
+fn rpc_error(what: &str, url: &str, s: tonic::Status) -> anyhow::Error {
+    let msg = s.message().replace('\n', " ");
+    match s.code() {
+        tonic::Code::InvalidArgument => anyhow!("the coordinator rejected the job: {msg}"),
+        tonic::Code::Unavailable => {
+            anyhow!("{what}: the coordinator at {url} is unavailable: {msg}")
+        }
+        tonic::Code::Unimplemented => anyhow!(
+            "{what}: {url} does not serve dray.v1.RenderService (is it a dray coordinator?): {msg}"
+        ),
+        code => anyhow!("{what} failed ({code:?}): {msg}"),
+    }
+}
+
+pub fn run(a: SubmitArgs) -> Result<()> {
+    let spec = job_spec(&a)?;
+    if !a.exposure.is_finite() || a.exposure.abs() > 64.0 {
+        bail!("--exposure {} is out of range (-64..=64 stops)", a.exposure);
+    }
+    let url = endpoint_url(&a.coordinator)?;
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    rt.block_on(submit(a, spec, url))
+}
+
+async fn connect(url: &str) -> Result<RenderServiceClient<Channel>> {
+    let channel = Endpoint::from_shared(url.to_string())
+        .with_context(|| format!("--coordinator: {url} is not a valid address"))?
+        .connect_timeout(Duration::from_secs(10))
+        .connect()
+        .await
+        .with_context(|| format!("cannot connect to the coordinator at {url}"))?;
+    // Images are one message each: a large EXR is far beyond tonic's 4 MiB default.
+    Ok(RenderServiceClient::new(channel).max_decoding_message_size(usize::MAX))
+}
+
+async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
+    let mut client = connect(&url).await?;
+
+    // SubmitJob answers after the scene is loaded, which can take a while; a Ctrl-C in
+    // that window must still cancel the job the server is about to accept.
+    let submit = client.clone();
+    let mut submitting = Box::pin(async move {
+        let mut c = submit;
+        c.submit_job(SubmitJobRequest { spec: Some(spec) }).await
+    });
+    let response = tokio::select! {
+        r = &mut submitting => r,
+        _ = tokio::signal::ctrl_c() => {
+            eprintln!("dray submit: interrupted; waiting for the job id to cancel it (Ctrl-C again to leave it)");
+            tokio::select! {
+                r = &mut submitting => {
+                    if let Ok(resp) = r {
+                        let id = resp.into_inner().job_id;
+                        cancel(&mut client, &id).await;
+                        bail!("interrupted: job {id} cancelled");
+                    }
+                    bail!("interrupted before the job was accepted");
+                }
+                _ = tokio::signal::ctrl_c() => bail!("interrupted; the job may still run on the coordinator"),
+            }
+        }
+    }
+    .map_err(|s| rpc_error("SubmitJob", &url, s))?;
+    let id = response.into_inner().job_id;
+    if !a.quiet {
+        eprintln!("dray submit: job {id} accepted by {url}");
+    }
+
+    let watcher = client.clone();
+    let last = tokio::select! {
+        r = watch(watcher, &id, &url, a.quiet) => r?,
+        _ = tokio::signal::ctrl_c() => {
+            cancel(&mut client, &id).await;
+            bail!("interrupted: job {id} cancelled");
+        }
+    };
+    match last.state() {
+        JobState::Succeeded => {}
+        JobState::Failed => bail!("job {id} failed: {}", last.error.replace('\n', " ")),
+        JobState::Cancelled => bail!("job {id} was cancelled"),
+        other => bail!("job {id} ended in unexpected state {}", other.as_str_name()),
+    }
+
+    let png = fetch(&mut client, &id, ImageFormat::Png, a.exposure, &url).await?;
+    std::fs::write(&a.output, &png)
+        .with_context(|| format!("cannot write {}", a.output.display()))?;
+    if let Some(path) = &a.exr {
+        let exr = fetch(&mut client, &id, ImageFormat::Exr, 0.0, &url).await?;
+        std::fs::write(path, &exr).with_context(|| format!("cannot write {}", path.display()))?;
+    }
+    if !a.quiet {
+        let secs = last
+            .elapsed
+            .map(|d| d.seconds as f64 + f64::from(d.nanos) * 1e-9)
+            .unwrap_or(0.0);
+        eprintln!(
+            "dray submit: job {id} done in {secs:.2} s, {} rays traced; wrote {}{}",
+            last.rays_traced,
+            a.output.display(),
+            a.exr
+                .as_ref()
+                .map(|p| format!(" and {}", p.display()))
+                .unwrap_or_default()
+        );
+    }
+    Ok(())
+}
+
+/// Best effort: the user asked to stop, so a failure to cancel is reported, not fatal.
+async fn cancel(client: &mut RenderServiceClient<Channel>, id: &str) {
+    let req = CancelJobRequest {
+        job_id: id.to_string(),
+    };
+    match tokio::time::timeout(Duration::from_secs(10), client.cancel_job(req)).await {
+        Ok(Ok(_)) => {}
+        Ok(Err(s)) => eprintln!("dray submit: could not cancel job {id}: {}", s.message()),
+        Err(_) => eprintln!("dray submit: could not cancel job {id}: no answer within 10 s"),
+    }
+}
+
+async fn fetch(
+    client: &mut RenderServiceClient<Channel>,
+    id: &str,
+    format: ImageFormat,
+    exposure: f32,
+    url: &str,
+) -> Result<Vec<u8>> {
+    let req = GetImageRequest {
+        job_id: id.to_string(),
+        format: format as i32,
+        exposure,
+    };
+    Ok(client
+        .get_image(req)
+        .await
+        .map_err(|s| rpc_error("GetImage", url, s))?
+        .into_inner()
+        .data)
+}
+
+fn is_terminal(s: JobState) -> bool {
+    matches!(
+        s,
+        JobState::Succeeded | JobState::Failed | JobState::Cancelled
+    )
+}
+
+/// Human name of a state: "running" for JOB_STATE_RUNNING.
+fn state_name(s: JobState) -> String {
+    s.as_str_name()
+        .trim_start_matches("JOB_STATE_")
+        .to_ascii_lowercase()
+}
+
+/// Follow WatchJob to a terminal state and return the last progress message. A stream
+/// that ends early (a proxy timeout, a restart) is not the job's end: GetJob tells.
+async fn watch(
+    mut client: RenderServiceClient<Channel>,
+    id: &str,
+    url: &str,
+    quiet: bool,
+) -> Result<JobProgress> {
+    let mut stream = client
+        .watch_job(WatchJobRequest {
+            job_id: id.to_string(),
+            min_interval: None,
+        })
+        .await
+        .map_err(|s| rpc_error("WatchJob", url, s))?
+        .into_inner();
+    let mut view = ProgressView::new(quiet);
+    let mut last: Option<JobProgress> = None;
+    loop {
+        match stream.message().await {
+            Ok(Some(p)) => {
+                view.show(&p);
+                let done = is_terminal(p.state());
+                last = Some(p);
+                if done {
+                    break;
+                }
+            }
+            Ok(None) => break,
+            Err(s) => {
+                view.finish();
+                return Err(rpc_error("WatchJob", url, s));
+            }
+        }
+    }
+    view.finish();
+    match last {
+        Some(p) if is_terminal(p.state()) => Ok(p),
+        _ => {
+            let job = client
+                .get_job(GetJobRequest {
+                    job_id: id.to_string(),
+                })
+                .await
+                .map_err(|s| rpc_error("GetJob", url, s))?
+                .into_inner()
+                .job
+                .and_then(|j| j.progress)
+                .with_context(|| format!("GetJob: no progress for job {id}"))?;
+            if !is_terminal(job.state()) {
+                bail!(
+                    "the progress stream of job {id} ended while it was {}",
+                    state_name(job.state())
+                );
+            }
+            Ok(job)
+        }
+    }
+}
+
+/// A progress bar on a terminal, plain lines (state changes and at most one a second)
+/// when stderr is a file or a pipe, nothing with `--quiet`.
+enum ProgressView {
+    Quiet,
+    Bar(indicatif::ProgressBar),
+    Lines {
+        last_state: Option<JobState>,
+        last_line: Option<Instant>,
+    },
+}
+
+impl ProgressView {
+    fn new(quiet: bool) -> ProgressView {
+        if quiet {
+            ProgressView::Quiet
+        } else if std::io::stderr().is_terminal() {
+            let b = indicatif::ProgressBar::new(0);
+            b.set_style(
+                indicatif::ProgressStyle::with_template(
+                    "{spinner} {msg:10} [{bar:40}] {pos}/{len} tiles {elapsed} eta {eta}",
+                )
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+                .progress_chars("=> "),
+            );
+            b.enable_steady_tick(Duration::from_millis(120));
+            ProgressView::Bar(b)
+        } else {
+            ProgressView::Lines {
+                last_state: None,
+                last_line: None,
+            }
+        }
+    }
+
+    fn show(&mut self, p: &JobProgress) {
+        match self {
+            ProgressView::Quiet => {}
+            ProgressView::Bar(b) => {
+                b.set_length(u64::from(p.tiles_total));
+                b.set_position(u64::from(p.tiles_done));
+                b.set_message(state_name(p.state()));
+            }
+            ProgressView::Lines {
+                last_state,
+                last_line,
+            } => {
+                let changed = *last_state != Some(p.state());
+                let due = last_line.is_none_or(|t| t.elapsed() >= Duration::from_secs(1));
+                if changed || due {
+                    eprintln!(
+                        "job {}: {}, {}/{} tiles, {} rays traced, {} in flight",
+                        p.job_id,
+                        state_name(p.state()),
+                        p.tiles_done,
+                        p.tiles_total,
+                        p.rays_traced,
+                        p.rays_in_flight
+                    );
+                    *last_state = Some(p.state());
+                    *last_line = Some(Instant::now());
+                }
+            }
+        }
+    }
+
+    fn finish(&mut self) {
+        if let ProgressView::Bar(b) = self {
+            b.finish_and_clear();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn addresses() {
+        assert_eq!(endpoint_url("127.0.0.1:1").unwrap(), "http://127.0.0.1:1");
+        assert_eq!(endpoint_url("http://h:2").unwrap(), "http://h:2");
+        assert!(endpoint_url("https://h:2").is_err());
+        assert!(endpoint_url("ftp://h:2").is_err());
+        assert!(endpoint_url(" ").is_err());
+    }
+}
