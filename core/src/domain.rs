@@ -243,3 +243,77 @@ impl DomainTree {
         }
     }
 }
+
+/// One domain's part of a ray and where the ray goes after it: what a worker that owns
+/// `span.domain` needs to trace a ray it received, with no state carried on the ray.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Hop {
+    /// The ray's interval inside the domain.
+    pub span: Span,
+    /// The next domain on the ray that `wanted` accepts, if any; `None` means the ray
+    /// leaves the scene after this domain.
+    pub next: Option<u32>,
+}
+
+impl DomainTree {
+    /// The first domain on the ray that `wanted` accepts (e.g. "has triangles"). Skipping
+    /// empty domains changes no result: they can neither hit nor block.
+    pub fn first_domain(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        tmin: f32,
+        tmax: f32,
+        pad: f32,
+        wanted: impl Fn(u32) -> bool,
+    ) -> Option<u32> {
+        let mut first = None;
+        self.walk(origin, dir, tmin, tmax, pad, |s| {
+            if wanted(s.domain) {
+                first = Some(s.domain);
+                false
+            } else {
+                true
+            }
+        });
+        first
+    }
+
+    /// Where `domain` lies on the ray, and the next wanted domain after it. The walk is
+    /// redone from the ray's own origin, so the span is bit for bit the one a walk over
+    /// every domain gives ([`crate::trace::DomainSet`]), wherever the ray is traced.
+    /// `None` when the ray does not pass through `domain`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn hop(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        tmin: f32,
+        tmax: f32,
+        pad: f32,
+        domain: u32,
+        wanted: impl Fn(u32) -> bool,
+    ) -> Option<Hop> {
+        let mut found: Option<Hop> = None;
+        self.walk(origin, dir, tmin, tmax, pad, |s| match &mut found {
+            None => {
+                if s.domain == domain {
+                    found = Some(Hop {
+                        span: s,
+                        next: None,
+                    });
+                }
+                true
+            }
+            Some(h) => {
+                if wanted(s.domain) {
+                    h.next = Some(s.domain);
+                    false
+                } else {
+                    true
+                }
+            }
+        });
+        found
+    }
+}

@@ -8,6 +8,8 @@
 //!
 //! Only the ray kinds the scene's [`Effects`] call for are ever spawned.
 
+use std::sync::Arc;
+
 use glam::{Vec2, Vec3};
 use serde::Serialize;
 
@@ -142,9 +144,15 @@ pub trait Sink {
 /// The scene-wide state the steps read: the scene, its lights and the settings.
 pub struct Integrator<'a> {
     pub scene: &'a Scene,
-    pub lights: LightSampler,
+    /// Shared, so a worker builds the table once per job and an integrator per batch.
+    pub lights: Arc<LightSampler>,
     pub settings: RenderSettings,
     pub camera: Camera,
+    /// Scene-wide id of each triangle of `scene` when it holds only part of the scene (a
+    /// worker's domains and the emitters, in scene order); `None` when it is whole.
+    /// Random numbers keyed by a triangle use the scene-wide id, so they are the same
+    /// wherever the triangle is shaded.
+    pub global_ids: Option<&'a [u32]>,
 }
 
 fn power_heuristic(a: f32, b: f32) -> f32 {
@@ -160,12 +168,37 @@ fn power_heuristic(a: f32, b: f32) -> f32 {
 
 impl<'a> Integrator<'a> {
     pub fn new(scene: &'a Scene, camera: Camera, settings: RenderSettings) -> Integrator<'a> {
-        let lights = LightSampler::new(scene, settings.effects.contains(Effect::Emission));
+        let lights = Arc::new(LightSampler::new(
+            scene,
+            settings.effects.contains(Effect::Emission),
+        ));
         Integrator {
             scene,
             lights,
             settings,
             camera,
+            global_ids: None,
+        }
+    }
+
+    /// The steps over part of a scene: `scene` holds a subset of the triangles in
+    /// scene order (with every emitter), `global_ids` their scene-wide ids, and `lights`
+    /// was made by [`LightSampler::with_bounds`] with the whole scene's bounds. Every
+    /// result is bit for bit the one over the whole scene for rays whose hits lie in the
+    /// subset.
+    pub fn partial(
+        scene: &'a Scene,
+        camera: Camera,
+        settings: RenderSettings,
+        lights: Arc<LightSampler>,
+        global_ids: &'a [u32],
+    ) -> Integrator<'a> {
+        Integrator {
+            scene,
+            lights,
+            settings,
+            camera,
+            global_ids: Some(global_ids),
         }
     }
 
@@ -230,7 +263,11 @@ impl<'a> Integrator<'a> {
             return true;
         }
         let uv = interpolate_uv(scene, tri, b);
-        let u = self.key(ray).uniform(ray.depth, Purpose::Alpha, tri);
+        let id = self
+            .global_ids
+            .and_then(|g| g.get(tri as usize).copied())
+            .unwrap_or(tri);
+        let u = self.key(ray).uniform(ray.depth, Purpose::Alpha, id);
         alpha_passes(scene, tri, uv, u)
     }
 

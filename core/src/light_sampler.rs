@@ -70,7 +70,14 @@ fn luminance(c: Vec3) -> f32 {
 
 impl LightSampler {
     pub fn new(scene: &Scene, use_emission: bool) -> LightSampler {
-        let (lo, hi) = scene.bounds();
+        LightSampler::with_bounds(scene, use_emission, scene.bounds())
+    }
+
+    /// [`LightSampler::new`] with the whole scene's bounds given, for a worker whose
+    /// `scene` holds only its own domains and the emitters: the light powers (which read
+    /// the scene radius) then match those of the whole scene exactly.
+    pub fn with_bounds(scene: &Scene, use_emission: bool, bounds: (Vec3, Vec3)) -> LightSampler {
+        let (lo, hi) = bounds;
         let scene_radius = ((hi - lo).length() * 0.5).max(1e-6);
         let mut entries = Vec::new();
         let mut weights = Vec::new();

@@ -3,7 +3,7 @@
 //! set of domains, each with its own BVH, walked front to back — with the same answers.
 
 use crate::bvh::{Accel, Hit, QueryRay};
-use crate::domain::DomainTree;
+use crate::domain::{DomainTree, Span};
 use crate::intersect::TriangleHit;
 
 pub trait Trace: Sync {
@@ -51,12 +51,7 @@ impl Trace for DomainSet {
         self.tree
             .walk(ray.origin, ray.dir, ray.tmin, ray.tmax, self.pad, |span| {
                 if let Some(a) = self.accels.get(span.domain as usize) {
-                    let sub = QueryRay {
-                        tmin: span.t0,
-                        tmax: span.t1,
-                        ..*ray
-                    };
-                    found = a.closest(&sub, &mut *accept);
+                    found = closest_in_span(a, ray, &span, &mut *accept);
                 }
                 found.is_none()
             });
@@ -68,22 +63,70 @@ impl Trace for DomainSet {
         self.tree
             .walk(ray.origin, ray.dir, ray.tmin, ray.tmax, self.pad, |span| {
                 if let Some(a) = self.accels.get(span.domain as usize) {
-                    // Occlusion tests are open at both ends, but a hit exactly on a wall
-                    // between two spans must still count: close every span but the last.
-                    let tmax = if span.t1 < ray.tmax && span.t1.is_finite() && span.t1 >= 0.0 {
-                        f32::from_bits(span.t1.to_bits() + 1)
-                    } else {
-                        span.t1
-                    };
-                    let sub = QueryRay {
-                        tmin: span.t0,
-                        tmax,
-                        ..*ray
-                    };
-                    blocked = a.occluded(&sub, &mut *accept);
+                    blocked = occluded_in_span(a, ray, &span, &mut *accept);
                 }
                 !blocked
             });
         blocked
+    }
+}
+
+/// The closest accepted hit of `ray` inside one domain's span: the one test both the
+/// embedded [`DomainSet`] and a worker owning the domain run, so they agree bit for bit.
+pub fn closest_in_span(
+    accel: &Accel,
+    ray: &QueryRay,
+    span: &Span,
+    accept: &mut dyn FnMut(u32, &TriangleHit) -> bool,
+) -> Option<Hit> {
+    let sub = QueryRay {
+        tmin: span.t0,
+        tmax: span.t1,
+        ..*ray
+    };
+    accel.closest(&sub, accept)
+}
+
+/// Whether anything accepted blocks `ray` inside one domain's span. Occlusion tests are
+/// open at both ends, but a hit exactly on a wall between two spans must still count, so
+/// every span but the ray's last is closed by one ulp.
+pub fn occluded_in_span(
+    accel: &Accel,
+    ray: &QueryRay,
+    span: &Span,
+    accept: &mut dyn FnMut(u32, &TriangleHit) -> bool,
+) -> bool {
+    let tmax = if span.t1 < ray.tmax && span.t1.is_finite() && span.t1 >= 0.0 {
+        f32::from_bits(span.t1.to_bits() + 1)
+    } else {
+        span.t1
+    };
+    let sub = QueryRay {
+        tmin: span.t0,
+        tmax,
+        ..*ray
+    };
+    accel.occluded(&sub, accept)
+}
+
+/// One domain's BVH limited to the ray's span inside that domain: what a worker owning
+/// the domain traces a ray against. It answers exactly as [`DomainSet`] does for that
+/// span, because both call [`closest_in_span`] and [`occluded_in_span`].
+pub struct SpanTrace<'a> {
+    pub accel: &'a Accel,
+    pub span: Span,
+}
+
+impl Trace for SpanTrace<'_> {
+    fn closest(
+        &self,
+        ray: &QueryRay,
+        accept: &mut dyn FnMut(u32, &TriangleHit) -> bool,
+    ) -> Option<Hit> {
+        closest_in_span(self.accel, ray, &self.span, accept)
+    }
+
+    fn occluded(&self, ray: &QueryRay, accept: &mut dyn FnMut(u32, &TriangleHit) -> bool) -> bool {
+        occluded_in_span(self.accel, ray, &self.span, accept)
     }
 }

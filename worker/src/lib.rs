@@ -15,10 +15,13 @@
 //!   `dray_proto::ray_record`) into one batch per destination domain, sent when full or
 //!   when a short delay passes, and never beyond the receiver's grant.
 
+pub mod credit;
 pub mod peer_client;
 pub mod peer_server;
 pub mod queue;
+pub mod tracer;
 
 pub use peer_client::{BatchKey, PeerClientConfig, PeerError, PeerSender};
 pub use peer_server::{PeerServer, PeerServerConfig, StreamError};
 pub use queue::{QueueError, QueuedBatch, RayQueues};
+pub use tracer::{JobTracer, Outbox, TileRef, TraceError};

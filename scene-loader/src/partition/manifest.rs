@@ -44,7 +44,7 @@ use crate::error::{Result, SceneError};
 pub const FORMAT_NAME: &str = "dray-scene-package";
 /// The package format version this code reads and writes (manifest and binary files).
 /// Bump it on any change a reader of the previous version would misread.
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
 /// The manifest's file name inside a package directory.
 pub const MANIFEST_FILE: &str = "manifest.json";
 
@@ -513,6 +513,8 @@ pub struct Manifest {
     pub environment: Option<[Real; 3]>,
     pub stats: StatsDesc,
     pub domains: Vec<DomainEntry>,
+    /// [`EMITTERS_FILE`], present when some triangle has an emissive material.
+    pub emitters: Option<DomainEntry>,
 }
 
 /// The file name of domain `d`'s triangles.
@@ -522,6 +524,14 @@ pub fn domain_file_name(d: u32) -> String {
 
 /// The file name of the texture blob.
 pub const TEXTURES_FILE: &str = "textures.bin";
+
+/// The file name of the emitters: every triangle with an emissive material, in the domain
+/// file format. A worker shades with light samples on emitters anywhere in the scene, so
+/// it loads them beside its own domains.
+pub const EMITTERS_FILE: &str = "emitters.bin";
+
+/// The domain index written in the header of [`EMITTERS_FILE`].
+pub const EMITTERS_DOMAIN: u32 = u32::MAX;
 
 #[derive(Serialize)]
 struct EnvelopeOut<'a> {
@@ -638,6 +648,23 @@ impl Manifest {
                 "{} source triangles is too many",
                 self.source_triangles
             ));
+        }
+        if let Some(e) = &self.emitters {
+            if e.file != EMITTERS_FILE {
+                return Err(format!(
+                    "the emitters are stored as {:?}, expected {EMITTERS_FILE:?}",
+                    e.file
+                ));
+            }
+            if from_hex(&e.xxh3).is_none() {
+                return Err(format!("emitters: malformed checksum {:?}", e.xxh3));
+            }
+            if e.triangles > self.source_triangles || e.vertices > 3 * e.triangles {
+                return Err(format!(
+                    "emitters: {} triangles and {} vertices are impossible for a scene of {} triangles",
+                    e.triangles, e.vertices, self.source_triangles
+                ));
+            }
         }
         let mut sum = 0u64;
         for (d, e) in self.domains.iter().enumerate() {

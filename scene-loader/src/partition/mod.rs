@@ -44,6 +44,7 @@ pub mod layout;
 pub mod manifest;
 pub mod overlap;
 pub mod package;
+pub mod resident;
 
 pub use layout::{Aabb, DomainLayout, LayoutSpec, MAX_DOMAINS};
 pub use manifest::{FORMAT_VERSION, Manifest};
@@ -51,6 +52,7 @@ pub use package::{
     Package, PackageSummary, SceneParts, WriteOptions, open_package, write_package,
     write_scene_package,
 };
+pub use resident::{ResidentDomain, ResidentScene, load_resident};
 
 /// One triangle as a source hands it over: corners with all attributes, its material and
 /// its global id.

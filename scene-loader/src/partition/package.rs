@@ -10,6 +10,8 @@
 //! domain-00001.bin
 //! ...
 //! textures.bin         present when the scene has textures
+//! emitters.bin         present when some material is emissive: every emissive triangle,
+//!                      in the domain file format (domain index u32::MAX)
 //! ```
 //!
 //! Domain file, all little-endian, no padding:
@@ -57,10 +59,10 @@ use dray_core::texture::Texture;
 use glam::{Vec2, Vec3, Vec4};
 
 use super::checksum::{HashingReader, HashingWriter, from_hex, to_hex};
-use super::layout::{DomainLayout, LayoutSpec};
+use super::layout::{Aabb, DomainLayout, LayoutSpec};
 use super::manifest::{
-    self, DomainEntry, FORMAT_VERSION, FileEntry, MANIFEST_FILE, Manifest, StatsDesc,
-    TEXTURES_FILE, TextureDesc, domain_file_name,
+    self, DomainEntry, EMITTERS_DOMAIN, EMITTERS_FILE, FORMAT_VERSION, FileEntry, MANIFEST_FILE,
+    Manifest, StatsDesc, TEXTURES_FILE, TextureDesc, domain_file_name,
 };
 use super::{
     DEFAULT_SAMPLE_CAPACITY, DomainBuilder, DomainMesh, SourceTriangle, TriangleSource, survey,
@@ -258,6 +260,8 @@ pub fn write_package(
         .collect();
     let mut seen = 0u64;
     let mut domains = Vec::new();
+    // Emitters are few next to the scene (they are lights), so they are kept in memory.
+    let mut emitters = DomainBuilder::new();
     let mut record = Vec::with_capacity(RECORD_BYTES);
     source.for_each_triangle(&mut |t| {
         seen += 1;
@@ -273,6 +277,13 @@ pub fn write_package(
         layout.assign(&t.positions, &mut domains);
         if domains.is_empty() {
             return Err(unassigned_error(t));
+        }
+        if parts
+            .materials
+            .get(t.material as usize)
+            .is_some_and(|m| m.has_emission())
+        {
+            emitters.push(t);
         }
         record.clear();
         encode_record(t, &mut record);
@@ -310,10 +321,24 @@ pub fn write_package(
     cleanup.paths.clear();
     tracing::info!("domain files written");
 
+    let emitters = if emitters.triangle_count() > 0 {
+        let mesh = emitters.finish(EMITTERS_DOMAIN, layout.scene_bounds());
+        let (bytes, sum) = write_domain_file(&dir.join(EMITTERS_FILE), &mesh)?;
+        Some(DomainEntry {
+            file: EMITTERS_FILE.to_string(),
+            triangles: mesh.triangle_count() as u64,
+            vertices: mesh.mesh.positions.len() as u64,
+            bytes,
+            xxh3: to_hex(sum),
+        })
+    } else {
+        None
+    };
     let (textures, textures_file) = write_textures(dir, parts.textures)?;
     let assigned: u64 = entries.iter().map(|e| e.triangles).sum();
     let data_bytes: u64 = entries.iter().map(|e| e.bytes).sum::<u64>()
-        + textures_file.as_ref().map_or(0, |f| f.bytes);
+        + textures_file.as_ref().map_or(0, |f| f.bytes)
+        + emitters.as_ref().map_or(0, |f| f.bytes);
     let summary_counts = entries.iter().map(|e| e.triangles);
     let min_domain = summary_counts.clone().min().unwrap_or(0);
     let max_domain = summary_counts.max().unwrap_or(0);
@@ -335,6 +360,7 @@ pub fn write_package(
             warnings: parts.stats.warnings.clone(),
         },
         domains: entries,
+        emitters,
     };
     // What we write, we must be able to read.
     m.check()
@@ -451,6 +477,7 @@ fn is_package_file(name: &str) -> bool {
     name == MANIFEST_FILE
         || name == format!("{MANIFEST_FILE}.tmp")
         || name == TEXTURES_FILE
+        || name == EMITTERS_FILE
         || numbered("domain-", ".bin")
         || numbered(".domain-", ".spill")
 }
@@ -726,12 +753,23 @@ pub fn open_package(dir: &Path) -> Result<Package> {
             _ => io_error(&path)(e),
         })?;
     let manifest = manifest::decode(&text, &path)?;
-    for (d, e) in manifest.domains.iter().enumerate() {
+    let named = manifest
+        .domains
+        .iter()
+        .enumerate()
+        .map(|(d, e)| (format!("domain {d}"), e))
+        .chain(
+            manifest
+                .emitters
+                .iter()
+                .map(|e| ("emitters".to_string(), e)),
+        );
+    for (what, e) in named {
         if domain_file_bytes(e.vertices, e.triangles) != Some(e.bytes) {
             return Err(format_error(
                 &path,
                 format!(
-                    "domain {d}: {} bytes cannot hold {} vertices and {} triangles",
+                    "{what}: {} bytes cannot hold {} vertices and {} triangles",
                     e.bytes, e.vertices, e.triangles
                 ),
             ));
@@ -802,6 +840,24 @@ impl Package {
                 ),
             ));
         };
+        self.load_entry(d, entry, self.layout().bounds(d))
+    }
+
+    /// Load the emitters (every triangle with an emissive material, in scene order), with
+    /// the same checks as a domain; an empty mesh when the scene has none.
+    pub fn load_emitters(&self) -> Result<DomainMesh> {
+        match &self.manifest.emitters {
+            Some(entry) => self.load_entry(EMITTERS_DOMAIN, entry, self.layout().scene_bounds()),
+            None => Ok(DomainMesh {
+                domain: EMITTERS_DOMAIN,
+                bounds: self.layout().scene_bounds(),
+                mesh: Mesh::default(),
+                global_ids: Vec::new(),
+            }),
+        }
+    }
+
+    fn load_entry(&self, d: u32, entry: &DomainEntry, bounds: Aabb) -> Result<DomainMesh> {
         let path = self.dir.join(&entry.file);
         let file = File::open(&path).map_err(io_error(&path))?;
         let len = file.metadata().map_err(io_error(&path))?.len();
@@ -843,7 +899,7 @@ impl Package {
         self.check_domain(&mesh, &path)?;
         Ok(DomainMesh {
             domain: d,
-            bounds: self.layout().bounds(d),
+            bounds,
             mesh: mesh.0,
             global_ids: mesh.1,
         })
@@ -943,6 +999,7 @@ impl Package {
         for d in 0..self.domain_count() {
             self.load_domain(d)?;
         }
+        self.load_emitters()?;
         self.load_textures()?;
         Ok(())
     }

@@ -1,0 +1,375 @@
+//! Tracing one job's rays in the domains this worker owns.
+//!
+//! [`JobTracer`] is the worker's compute step, with no I/O: it takes a batch of rays
+//! queued for one owned domain (or a range of a tile's camera rays) and puts into an
+//! [`Outbox`] everything that comes out: pixel sums in fixed point, credit handed back
+//! per tile, and rays bound for other domains. The gRPC side moves batches and outboxes
+//! around; this file decides what happens to each ray.
+//!
+//! Each ray is traced against the domain's BVH clipped to the ray's span inside the
+//! domain ([`SpanTrace`]); the span is found by walking the domain layout from the ray's
+//! own origin ([`DomainTree::hop`]), so it is the very span the embedded renderer's
+//! [`dray_core::trace::DomainSet`] uses, and the image is the same bit for bit. Empty
+//! domains are skipped: they can neither hit nor block a ray.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use dray_core::camera::Camera;
+use dray_core::domain::DomainTree;
+use dray_core::effects::Effect;
+use dray_core::film::to_fixed;
+use dray_core::integrator::{Integrator, RayKind, RayState, RenderSettings, Sink};
+use dray_core::light_sampler::LightSampler;
+use dray_core::trace::SpanTrace;
+use dray_proto::RayRecord;
+use dray_scene::partition::ResidentScene;
+use glam::Vec3;
+
+use crate::credit::{self, CreditError};
+
+/// Why a batch could not be traced. Each is a reason to fail the job: it means a routing
+/// bug, a corrupt ray or an exhausted credit, never a transient condition.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum TraceError {
+    #[error("received rays for domain {domain}, which this worker does not hold")]
+    NotResident { domain: u32 },
+    #[error("a ray sent to domain {domain} does not pass through it")]
+    Misrouted { domain: u32 },
+    #[error("ray for pixel {pixel} is outside the {width}x{height} image")]
+    BadPixel { pixel: u32, width: u32, height: u32 },
+    #[error(transparent)]
+    Credit(#[from] CreditError),
+    #[error(
+        "tile {tile} ({w}x{h} px, {spp} spp) has credit {credit}, too little for its camera rays"
+    )]
+    TileCredit {
+        tile: u32,
+        w: u32,
+        h: u32,
+        spp: u32,
+        credit: u64,
+    },
+}
+
+/// A rectangle of the image whose camera rays this worker generates.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TileRef {
+    pub index: u32,
+    pub x0: u32,
+    pub y0: u32,
+    pub width: u32,
+    pub height: u32,
+    pub credit: u64,
+}
+
+impl TileRef {
+    /// Camera rays in the tile: pixels times samples.
+    pub fn camera_rays(&self, spp: u32) -> u64 {
+        self.width as u64 * self.height as u64 * spp as u64
+    }
+}
+
+/// Everything that comes out of tracing, to be reported or sent on.
+#[derive(Debug, Default)]
+pub struct Outbox {
+    /// Per pixel, the fixed-point sum of its contributions.
+    pub sums: HashMap<u32, [i64; 3]>,
+    /// Per tile, credit handed back by rays that terminated.
+    pub credits: HashMap<u32, u64>,
+    /// Rays to trace next, by the domain they enter next.
+    pub rays: HashMap<u32, Vec<RayRecord>>,
+    /// Rays made here (camera rays and children), by kind: each ray is counted once,
+    /// where it is made, so the totals equal the single-process renderer's.
+    pub traced: [u64; RayKind::COUNT],
+    /// Non-finite contributions dropped.
+    pub nonfinite: u64,
+}
+
+impl Outbox {
+    /// Whether nothing is waiting to be reported or sent.
+    pub fn is_empty(&self) -> bool {
+        self.sums.is_empty()
+            && self.credits.is_empty()
+            && self.rays.values().all(Vec::is_empty)
+            && self.traced.iter().all(|&n| n == 0)
+            && self.nonfinite == 0
+    }
+
+    /// Rays waiting to be sent.
+    pub fn ray_count(&self) -> usize {
+        self.rays.values().map(Vec::len).sum()
+    }
+
+    fn add(&mut self, pixel: u32, value: Vec3) {
+        match to_fixed(value) {
+            Some(f) => {
+                let s = self.sums.entry(pixel).or_insert([0; 3]);
+                for c in 0..3 {
+                    s[c] = s[c].wrapping_add(f[c]);
+                }
+            }
+            None => self.nonfinite += 1,
+        }
+    }
+
+    fn give_back(&mut self, tile: u32, credit: u64) {
+        if credit > 0 {
+            *self.credits.entry(tile).or_insert(0) += credit;
+        }
+    }
+}
+
+/// Collects what one shading step produces.
+#[derive(Default)]
+struct StepSink {
+    contributions: Vec<(u32, Vec3)>,
+    children: Vec<RayState>,
+}
+
+impl Sink for StepSink {
+    fn contribute(&mut self, pixel: u32, value: Vec3) {
+        self.contributions.push((pixel, value));
+    }
+    fn spawn(&mut self, ray: RayState) {
+        self.children.push(ray);
+    }
+}
+
+/// One job on one worker: the resident part of the scene and the job's settings.
+pub struct JobTracer {
+    resident: ResidentScene,
+    lights: Arc<LightSampler>,
+    camera: Camera,
+    settings: RenderSettings,
+    tree: DomainTree,
+    pad: f32,
+    /// Per domain of the layout, whether it holds any triangle.
+    nonempty: Vec<bool>,
+    tile_size: u32,
+    tiles_x: u32,
+}
+
+impl JobTracer {
+    /// `domain_triangles` has one entry per domain of the layout (all of them, not only
+    /// the resident ones); `tile_size` is the edge of the job's row-major tiles.
+    pub fn new(
+        resident: ResidentScene,
+        settings: RenderSettings,
+        camera: Camera,
+        tree: DomainTree,
+        pad: f32,
+        domain_triangles: &[u64],
+        tile_size: u32,
+    ) -> JobTracer {
+        let lights = Arc::new(LightSampler::with_bounds(
+            &resident.scene,
+            settings.effects.contains(Effect::Emission),
+            resident.bounds,
+        ));
+        let tile_size = tile_size.max(1);
+        JobTracer {
+            tiles_x: settings.width.div_ceil(tile_size),
+            resident,
+            lights,
+            camera,
+            settings,
+            tree,
+            pad,
+            nonempty: domain_triangles.iter().map(|&n| n > 0).collect(),
+            tile_size,
+        }
+    }
+
+    pub fn settings(&self) -> &RenderSettings {
+        &self.settings
+    }
+
+    pub fn resident(&self) -> &ResidentScene {
+        &self.resident
+    }
+
+    fn integrator(&self) -> Integrator<'_> {
+        Integrator::partial(
+            &self.resident.scene,
+            self.camera.clone(),
+            self.settings.clone(),
+            self.lights.clone(),
+            &self.resident.global_ids,
+        )
+    }
+
+    /// The tile holding `pixel`.
+    pub fn tile_of(&self, pixel: u32) -> u32 {
+        let w = self.settings.width.max(1);
+        let (x, y) = (pixel % w, pixel / w);
+        (y / self.tile_size) * self.tiles_x + x / self.tile_size
+    }
+
+    fn wanted(&self) -> impl Fn(u32) -> bool + '_ {
+        |d| self.nonempty.get(d as usize).copied().unwrap_or(false)
+    }
+
+    /// Camera rays `start..start + count` of `tile` (ray i is pixel i / spp of the tile,
+    /// row-major, sample i % spp), each sent to the first domain it enters.
+    pub fn camera_rays(
+        &self,
+        tile: &TileRef,
+        start: u64,
+        count: u64,
+        out: &mut Outbox,
+    ) -> Result<(), TraceError> {
+        let spp = self.settings.spp.max(1) as u64;
+        let total = tile.camera_rays(spp as u32);
+        if credit::camera_share(tile.credit, total, 0).is_none() {
+            return Err(TraceError::TileCredit {
+                tile: tile.index,
+                w: tile.width,
+                h: tile.height,
+                spp: spp as u32,
+                credit: tile.credit,
+            });
+        }
+        let integrator = self.integrator();
+        let end = start.saturating_add(count).min(total);
+        for i in start..end {
+            let (p, sample) = (i / spp, (i % spp) as u32);
+            let (lx, ly) = (
+                (p % tile.width as u64) as u32,
+                (p / tile.width as u64) as u32,
+            );
+            let pixel = (tile.y0 + ly) * self.settings.width + tile.x0 + lx;
+            let share = credit::camera_share(tile.credit, total, i).unwrap_or(0);
+            let ray = integrator.camera_ray(pixel, sample);
+            out.traced[RayKind::Camera as usize] += 1;
+            self.route_new(&integrator, ray, share, tile.index, out);
+        }
+        Ok(())
+    }
+
+    /// Send a ray that was just made to the first domain on its path, or finish it at
+    /// once when it meets no domain with triangles.
+    fn route_new(
+        &self,
+        integrator: &Integrator<'_>,
+        ray: RayState,
+        credit: u64,
+        tile: u32,
+        out: &mut Outbox,
+    ) {
+        let first =
+            self.tree
+                .first_domain(ray.origin, ray.dir, 0.0, ray.tmax, self.pad, self.wanted());
+        match first {
+            Some(d) => self.forward(ray, credit, d, tile, out),
+            None => self.finish_unblocked(integrator, &ray, credit, tile, out),
+        }
+    }
+
+    fn forward(&self, ray: RayState, credit: u64, domain: u32, tile: u32, out: &mut Outbox) {
+        match RayRecord::from_state(&ray, credit) {
+            Ok(r) => out.rays.entry(domain).or_default().push(r),
+            // Depth beyond 16 bits: no valid job gets here (max_depth <= 1024); end the
+            // ray rather than lose its credit.
+            Err(_) => out.give_back(tile, credit),
+        }
+    }
+
+    /// A ray that left the scene without being blocked: occlusion rays add what they
+    /// carry, others see the environment.
+    fn finish_unblocked(
+        &self,
+        integrator: &Integrator<'_>,
+        ray: &RayState,
+        credit: u64,
+        tile: u32,
+        out: &mut Outbox,
+    ) {
+        let mut sink = StepSink::default();
+        if ray.kind.is_occlusion() {
+            integrator.shadow_result(ray, false, &mut sink);
+        } else {
+            integrator.shade_miss(ray, &mut sink);
+        }
+        for (p, v) in sink.contributions {
+            out.add(p, v);
+        }
+        out.give_back(tile, credit);
+    }
+
+    /// Trace `rays`, all queued for `domain`, which must be resident here.
+    pub fn trace_batch(
+        &self,
+        domain: u32,
+        rays: &[RayRecord],
+        out: &mut Outbox,
+    ) -> Result<(), TraceError> {
+        let resident = self
+            .resident
+            .domain(domain)
+            .ok_or(TraceError::NotResident { domain })?;
+        let integrator = self.integrator();
+        let pixels = self.settings.width as u64 * self.settings.height as u64;
+        let mut sink = StepSink::default();
+        let mut kinds = Vec::new();
+        for rec in rays {
+            if rec.pixel as u64 >= pixels {
+                return Err(TraceError::BadPixel {
+                    pixel: rec.pixel,
+                    width: self.settings.width,
+                    height: self.settings.height,
+                });
+            }
+            let ray = rec.to_state();
+            let tile = self.tile_of(ray.pixel);
+            let hop = self
+                .tree
+                .hop(
+                    ray.origin,
+                    ray.dir,
+                    0.0,
+                    ray.tmax,
+                    self.pad,
+                    domain,
+                    self.wanted(),
+                )
+                .ok_or(TraceError::Misrouted { domain })?;
+            let geometry = SpanTrace {
+                accel: &resident.accel,
+                span: hop.span,
+            };
+            if ray.kind.is_occlusion() {
+                if integrator.occluded(&geometry, &ray) {
+                    out.give_back(tile, rec.credit);
+                } else if let Some(next) = hop.next {
+                    self.forward(ray, rec.credit, next, tile, out);
+                } else {
+                    self.finish_unblocked(&integrator, &ray, rec.credit, tile, out);
+                }
+                continue;
+            }
+            let Some(hit) = integrator.intersect(&geometry, &ray) else {
+                match hop.next {
+                    Some(next) => self.forward(ray, rec.credit, next, tile, out),
+                    None => self.finish_unblocked(&integrator, &ray, rec.credit, tile, out),
+                }
+                continue;
+            };
+            sink.contributions.clear();
+            sink.children.clear();
+            integrator.shade_hit(&ray, &hit, &mut sink);
+            for &(p, v) in &sink.contributions {
+                out.add(p, v);
+            }
+            kinds.clear();
+            kinds.extend(sink.children.iter().map(|c| c.kind));
+            let (shares, back) = credit::split(rec.credit, &kinds)?;
+            out.give_back(tile, back);
+            for (child, share) in sink.children.drain(..).zip(shares) {
+                out.traced[child.kind as usize] += 1;
+                self.route_new(&integrator, child, share, tile, out);
+            }
+        }
+        Ok(())
+    }
+}

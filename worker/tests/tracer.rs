@@ -1,0 +1,272 @@
+//! The worker's tracing step gives the single-process image bit for bit.
+//!
+//! Several [`JobTracer`]s, each holding only its own domains (and the emitters), trade
+//! rays through in-memory queues in a scrambled order, exactly as workers trade them over
+//! gRPC; their pixel sums must equal `dray_core::render` over one BVH for every
+//! integrator and both layouts, their ray counts must match, and every tile's credit
+//! must come back whole.
+
+use std::collections::{BTreeMap, HashMap};
+
+use dray_core::bvh::Accel;
+use dray_core::camera::Camera;
+use dray_core::film::Film;
+use dray_core::integrator::{Integrator, IntegratorKind, RenderSettings};
+use dray_core::render;
+use dray_core::scene::Scene;
+use dray_proto::RayRecord;
+use dray_scene::partition::resident::resident_in_memory;
+use dray_scene::partition::{
+    DomainLayout, LayoutSpec, ResidentScene, load_resident, open_package, partition_in_memory,
+    write_scene_package,
+};
+use dray_worker::{JobTracer, Outbox, TileRef};
+
+const TILE: u32 = 16;
+const TILE_CREDIT: u64 = 1 << 62;
+
+fn settings(scene: &Scene, kind: IntegratorKind, w: u32, h: u32, spp: u32) -> RenderSettings {
+    let environment = dray_scene::effects::default_environment(scene);
+    RenderSettings {
+        width: w,
+        height: h,
+        spp,
+        integrator: kind,
+        max_depth: 5,
+        seed: 7,
+        environment,
+        effects: dray_scene::effects::analyze(scene, environment),
+        ao_samples: 4,
+        ao_distance: f32::INFINITY,
+    }
+}
+
+fn camera(scene: &Scene, s: &RenderSettings) -> Camera {
+    scene.cameras.first().cloned().unwrap_or_else(|| {
+        let (lo, hi) = scene.bounds();
+        Camera::framing(lo, hi, s.width as f32 / s.height as f32)
+    })
+}
+
+struct Distributed {
+    film: Film,
+    rays: [u64; 6],
+}
+
+/// Trace the job on `workers` tracers, domains dealt round-robin, tiles too.
+fn distributed(
+    scene: &Scene,
+    s: &RenderSettings,
+    spec: &LayoutSpec,
+    workers: u32,
+    scramble: u64,
+) -> Distributed {
+    let layout = DomainLayout::for_source(scene, spec).unwrap();
+    distributed_with(scene, s, &layout, workers, scramble, &|owned| {
+        resident_in_memory(scene, &layout, owned).unwrap()
+    })
+}
+
+fn distributed_with(
+    scene: &Scene,
+    s: &RenderSettings,
+    layout: &DomainLayout,
+    workers: u32,
+    scramble: u64,
+    load: &dyn Fn(&[u32]) -> ResidentScene,
+) -> Distributed {
+    let n = layout.domain_count();
+    let mut counts = vec![0u64; n as usize];
+    for p in partition_in_memory(scene, layout).unwrap() {
+        counts[p.domain as usize] = p.triangle_count() as u64;
+    }
+    let owner = |d: u32| d % workers;
+    let tracers: Vec<JobTracer> = (0..workers)
+        .map(|w| {
+            let owned: Vec<u32> = (0..n).filter(|&d| owner(d) == w).collect();
+            let resident = load(&owned);
+            // A worker holds its own domains and the emitters, never the whole scene
+            // (unless it owns every domain).
+            if workers > 1 && n > 1 {
+                assert!(resident.scene.mesh.indices.len() < scene.mesh.indices.len());
+            }
+            JobTracer::new(
+                resident,
+                s.clone(),
+                camera(scene, s),
+                layout.to_domain_tree(),
+                layout.epsilon(),
+                &counts,
+                TILE,
+            )
+        })
+        .collect();
+
+    let mut film = Film::new(s.width, s.height);
+    let mut rays = [0u64; 6];
+    let mut credit: BTreeMap<u32, u64> = BTreeMap::new();
+    let mut queues: HashMap<u32, Vec<RayRecord>> = HashMap::new();
+    let mut absorb = |out: Outbox, queues: &mut HashMap<u32, Vec<RayRecord>>| {
+        for (p, v) in out.sums {
+            film.add_fixed(p, v);
+        }
+        for (t, c) in out.credits {
+            *credit.entry(t).or_insert(0) += c;
+        }
+        for (k, n) in out.traced.iter().enumerate() {
+            rays[k] += n;
+        }
+        film.nonfinite += out.nonfinite;
+        for (d, mut r) in out.rays {
+            queues.entry(d).or_default().append(&mut r);
+        }
+    };
+
+    let tiles = render::tiles(s.width, s.height);
+    let tiles_x = s.width.div_ceil(TILE);
+    let mut tile_refs = Vec::new();
+    for y0 in (0..s.height).step_by(TILE as usize) {
+        for x0 in (0..s.width).step_by(TILE as usize) {
+            tile_refs.push(TileRef {
+                index: (y0 / TILE) * tiles_x + x0 / TILE,
+                x0,
+                y0,
+                width: TILE.min(s.width - x0),
+                height: TILE.min(s.height - y0),
+                credit: TILE_CREDIT,
+            });
+        }
+    }
+    assert!(!tiles.is_empty());
+    for (i, t) in tile_refs.iter().enumerate() {
+        let w = &tracers[i % workers as usize];
+        // Camera rays in two ranges, as a worker generating them lazily would.
+        let total = t.camera_rays(s.spp);
+        let half = total / 2;
+        let mut out = Outbox::default();
+        w.camera_rays(t, 0, half, &mut out).unwrap();
+        w.camera_rays(t, half, total - half, &mut out).unwrap();
+        absorb(out, &mut queues);
+    }
+    // Trade rays until none is left, in an order that depends on `scramble`.
+    let mut step = scramble;
+    loop {
+        let mut pending: Vec<u32> = queues
+            .iter()
+            .filter(|(_, v)| !v.is_empty())
+            .map(|(d, _)| *d)
+            .collect();
+        if pending.is_empty() {
+            break;
+        }
+        pending.sort_unstable();
+        step = step
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        let d = pending[(step >> 33) as usize % pending.len()];
+        let q = queues.get_mut(&d).unwrap();
+        let take = q.len().min(1 + (step >> 40) as usize % 300);
+        let batch: Vec<RayRecord> = q.drain(q.len() - take..).collect();
+        let mut out = Outbox::default();
+        tracers[owner(d) as usize]
+            .trace_batch(d, &batch, &mut out)
+            .unwrap();
+        absorb(out, &mut queues);
+    }
+    for t in &tile_refs {
+        assert_eq!(
+            credit.get(&t.index).copied(),
+            Some(TILE_CREDIT),
+            "tile {} credit",
+            t.index
+        );
+    }
+    Distributed { film, rays }
+}
+
+fn reference(scene: &Scene, s: &RenderSettings) -> (Film, [u64; 6]) {
+    let integrator = Integrator::new(scene, camera(scene, s), s.clone());
+    let accel = Accel::build(&scene.mesh);
+    let out = render::render(&integrator, &accel, 1, &|_, _| {}).unwrap();
+    (out.film, out.rays.0)
+}
+
+fn check(scene_name: &str, kinds: &[IntegratorKind], spp: u32) {
+    let scene = dray_scene::load(scene_name).unwrap();
+    for &kind in kinds {
+        let s = settings(&scene, kind, 40, 30, spp);
+        let (film, rays) = reference(&scene, &s);
+        assert!(rays.iter().sum::<u64>() > 0);
+        for spec in [LayoutSpec::Kd(6), LayoutSpec::GridCount(8)] {
+            for workers in [1u32, 2, 4] {
+                let d = distributed(&scene, &s, &spec, workers, workers as u64 * 31 + 5);
+                assert_eq!(
+                    d.rays, rays,
+                    "{scene_name} {kind:?} {spec:?} {workers} workers: ray counts"
+                );
+                assert!(
+                    d.film == film,
+                    "{scene_name} {kind:?} {spec:?} {workers} workers: image differs"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn cornell_every_integrator_matches_one_bvh() {
+    check(
+        "cornell",
+        &[
+            IntegratorKind::Path,
+            IntegratorKind::Raycast,
+            IntegratorKind::Ao,
+        ],
+        4,
+    );
+}
+
+#[test]
+fn glass_and_mirror_match_one_bvh() {
+    check(
+        "cornell:glass",
+        &[IntegratorKind::Whitted, IntegratorKind::Path],
+        3,
+    );
+    check("cornell:mirror", &[IntegratorKind::Whitted], 2);
+}
+
+#[test]
+fn triangle_soup_and_city_match_one_bvh() {
+    check("soup:2000", &[IntegratorKind::Path], 2);
+    check("city:3", &[IntegratorKind::Raycast], 2);
+}
+
+/// Workers that load their domains and the emitters from a package on disk trace the
+/// same image as those holding them in memory, and as one BVH.
+#[test]
+fn a_package_on_disk_gives_the_same_image() {
+    let scene = dray_scene::load("cornell:glass").unwrap();
+    let s = settings(&scene, IntegratorKind::Path, 32, 24, 2);
+    let (film, _) = reference(&scene, &s);
+    let dir = std::env::temp_dir().join(format!("dray-tracer-pkg-{}", std::process::id()));
+    let spec = LayoutSpec::Kd(5);
+    write_scene_package(&dir, &scene, &spec).unwrap();
+    let package = open_package(&dir).unwrap();
+    assert!(
+        package.manifest().emitters.is_some(),
+        "cornell has an area light"
+    );
+    let layout = package.layout().clone();
+    for owned in [vec![0u32, 3], vec![1], vec![0, 1, 2, 3, 4]] {
+        let a = load_resident(&package, &owned).unwrap();
+        let b = resident_in_memory(&scene, &layout, &owned).unwrap();
+        assert_eq!(a.global_ids, b.global_ids, "{owned:?}");
+        assert!(a.scene.mesh == b.scene.mesh, "{owned:?}");
+    }
+    let d = distributed_with(&scene, &s, &layout, 3, 11, &|owned| {
+        load_resident(&package, owned).unwrap()
+    });
+    let _ = std::fs::remove_dir_all(&dir);
+    assert!(d.film == film, "image from the package differs");
+}
