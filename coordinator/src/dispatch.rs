@@ -210,13 +210,9 @@ pub struct PreparedSummary {
 /// Plan a prepared job for workers: resolve `spec` (camera index, no translate) and keep
 /// the scene for the package. A scene without cameras gets the framing camera `prepare`
 /// chose, so the package's camera list holds exactly the camera the job renders with.
+/// A scene package is used as it is: a package without cameras leaves `spec.camera`
+/// unset, meaning the camera framing the manifest's bounds.
 pub fn plan(mut p: Prepared, mut spec: JobSpec, layout: LayoutSpec) -> Planned {
-    let index = camera_index(&p.scene, spec.camera.as_deref()).unwrap_or_else(|| {
-        p.scene.cameras.push(p.camera.clone());
-        p.scene.cameras.len() - 1
-    });
-    spec.camera = Some(index.to_string());
-    spec.translate = None;
     let summary = PreparedSummary {
         environment: p.settings.environment,
         effects: p
@@ -226,15 +222,31 @@ pub fn plan(mut p: Prepared, mut spec: JobSpec, layout: LayoutSpec) -> Planned {
             .into_iter()
             .map(String::from)
             .collect(),
-        triangles: p.scene.mesh.triangle_count() as u64,
+        triangles: p.triangles,
+    };
+    spec.translate = None;
+    let index = camera_index(&p.scene, spec.camera.as_deref());
+    let package = match p.package {
+        Some(pkg) => {
+            spec.camera = index.map(|i| i.to_string());
+            PackageSource::Existing(pkg.dir().to_path_buf())
+        }
+        None => {
+            let index = index.unwrap_or_else(|| {
+                p.scene.cameras.push(p.camera.clone());
+                p.scene.cameras.len() - 1
+            });
+            spec.camera = Some(index.to_string());
+            PackageSource::Write {
+                scene: Box::new(p.scene),
+                layout,
+            }
+        }
     };
     Planned {
         setup_spec: spec,
         prepared: summary,
-        package: PackageSource::Write {
-            scene: Box::new(p.scene),
-            layout,
-        },
+        package,
     }
 }
 

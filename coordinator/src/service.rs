@@ -102,17 +102,32 @@ impl RenderService for Coordinator {
             .map_err(|e| Status::internal(format!("scene loading task died: {e}")))??;
         let workers = self.cluster.membership.len();
         let job = if workers == 0 {
+            if v.package.is_some() {
+                return Err(Status::failed_precondition(format!(
+                    "scene: {:?} is a scene package, which renders on workers, and no \
+                     worker is registered",
+                    v.spec.scene
+                )));
+            }
             self.table.submit(v, prepared)
         } else {
             // On workers: the spec shows the domain count and layout the package is cut
             // with, so GetJob says what ran.
             let mut spec = v.spec.clone();
-            spec.domains = dispatch::choose_domains(
-                (!v.domains_auto).then_some(spec.domains),
-                workers,
-                prepared.scene.mesh.triangle_count() as u64,
-                self.limits.max_domains,
-            );
+            match &prepared.package {
+                Some(pkg) => {
+                    spec.domains = pkg.domain_count();
+                    spec.layout = pkg.layout().kind_name().to_string();
+                }
+                None => {
+                    spec.domains = dispatch::choose_domains(
+                        (!v.domains_auto).then_some(spec.domains),
+                        workers,
+                        prepared.triangles,
+                        self.limits.max_domains,
+                    );
+                }
+            }
             let layout = dispatch::layout_spec(&spec.layout, spec.domains);
             let planned = dispatch::plan(prepared, spec.clone(), layout);
             let entry = self.table.insert(spec);

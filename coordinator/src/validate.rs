@@ -11,8 +11,10 @@ use std::path::{Path, PathBuf};
 use dray_core::camera::Camera;
 use dray_core::effects::Effect;
 use dray_core::integrator::{IntegratorKind, RenderSettings};
-use dray_core::scene::Scene;
+use dray_core::scene::{Mesh, Scene};
 use dray_proto::v1::JobSpec;
+use dray_scene::partition::manifest::MANIFEST_FILE;
+use dray_scene::partition::open_package;
 use glam::Vec3;
 use tonic::Status;
 
@@ -69,6 +71,8 @@ pub struct Validated {
     pub env: Option<Vec3>,
     /// Scene offset.
     pub translate: Option<Vec3>,
+    /// The scene is a scene package at this (canonical) directory.
+    pub package: Option<PathBuf>,
     /// The spec left `domains` at 0: in process that means one BVH (`spec.domains` is
     /// 1); on workers the coordinator chooses the count.
     pub domains_auto: bool,
@@ -169,7 +173,14 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         )));
     }
     let scene_spec = resolve_scene(&spec.scene, scene_root)?;
+    let package = Some(PathBuf::from(&scene_spec)).filter(|p| p.is_dir());
+    if package.is_some() && translate.is_some() {
+        return Err(bad(
+            "translate: a scene package cannot be moved (partition the moved scene instead)".into(),
+        ));
+    }
     Ok(Validated {
+        package,
         spec,
         scene_spec,
         integrator,
@@ -205,7 +216,8 @@ pub fn parse_effects(spec: &str) -> Result<Vec<(Effect, bool)>, Status> {
 
 /// Resolve a scene spec: procedural names pass (a `grid:` spec has its inner scene
 /// resolved too); a path, relative to `root` or absolute, must exist and lie inside
-/// `root` once symlinks and `..` are resolved.
+/// `root` once symlinks and `..` are resolved. A path may name a scene file or a scene
+/// package directory (one with a manifest).
 pub fn resolve_scene(scene: &str, root: &Path) -> Result<String, Status> {
     if scene.trim().is_empty() {
         return Err(bad("scene: empty scene".into()));
@@ -232,10 +244,15 @@ pub fn resolve_scene(scene: &str, root: &Path) -> Result<String, Status> {
             "scene: path {scene:?} is outside the scene root"
         )));
     }
-    if !canon.is_file() {
-        return Err(bad(format!(
-            "scene: {scene:?} is not a file (scene packages are not served yet)"
-        )));
+    if canon.is_dir() {
+        if !canon.join(MANIFEST_FILE).is_file() {
+            return Err(bad(format!(
+                "scene: {scene:?} is a directory but not a scene package (no {MANIFEST_FILE}; \
+                 make one with `dray partition`)"
+            )));
+        }
+    } else if !canon.is_file() {
+        return Err(bad(format!("scene: {scene:?} is not a file")));
     }
     canon
         .to_str()
@@ -245,8 +262,14 @@ pub fn resolve_scene(scene: &str, root: &Path) -> Result<String, Status> {
 
 /// A job ready to render: the loaded scene, its camera and the render settings.
 pub struct Prepared {
-    /// The loaded (and translated) scene.
+    /// The loaded (and translated) scene. For a scene package: everything but the
+    /// triangles (materials, lights, cameras, environment), with `mesh.material` listing
+    /// the materials some triangle uses, which is all effect analysis reads.
     pub scene: Scene,
+    /// Triangles in the scene.
+    pub triangles: u64,
+    /// For a scene package: the opened package.
+    pub package: Option<dray_scene::partition::Package>,
     /// The camera chosen by the spec.
     pub camera: Camera,
     /// Everything the integrator needs.
@@ -257,11 +280,25 @@ pub struct Prepared {
 /// `dray render` does, so the same spec gives the same image. Blocking.
 pub fn prepare(v: &Validated) -> Result<Prepared, Status> {
     let s = &v.spec;
-    let mut scene = dray_scene::load(&v.scene_spec)
-        .map_err(|e| bad(format!("scene: cannot load {:?}: {e}", s.scene)))?;
+    let (mut scene, package) = match &v.package {
+        Some(dir) => {
+            let pkg = open_package(dir)
+                .map_err(|e| bad(format!("scene: cannot open the package {:?}: {e}", s.scene)))?;
+            (package_scene(&pkg), Some(pkg))
+        }
+        None => {
+            let scene = dray_scene::load(&v.scene_spec)
+                .map_err(|e| bad(format!("scene: cannot load {:?}: {e}", s.scene)))?;
+            (scene, None)
+        }
+    };
     if let Some(t) = v.translate {
         scene.translate(t);
     }
+    let triangles = match &package {
+        Some(p) => p.manifest().source_triangles,
+        None => scene.mesh.triangle_count() as u64,
+    };
     let environment = v
         .env
         .unwrap_or_else(|| dray_scene::effects::default_environment(&scene));
@@ -270,7 +307,14 @@ pub fn prepare(v: &Validated) -> Result<Prepared, Status> {
         effects.set(*e, *on);
     }
     let aspect = s.width as f32 / s.height as f32;
-    let camera = choose_camera(&scene, s.camera.as_deref(), aspect)?;
+    let camera = match &package {
+        // The package has no mesh to take bounds from; its manifest has them.
+        Some(p) if scene.cameras.is_empty() && s.camera.is_none() => {
+            let b = p.layout().scene_bounds();
+            Camera::framing(b.min, b.max, aspect)
+        }
+        _ => choose_camera(&scene, s.camera.as_deref(), aspect)?,
+    };
     let settings = RenderSettings {
         width: s.width,
         height: s.height,
@@ -285,9 +329,38 @@ pub fn prepare(v: &Validated) -> Result<Prepared, Status> {
     };
     Ok(Prepared {
         scene,
+        triangles,
+        package,
         camera,
         settings,
     })
+}
+
+/// A package's scene without its triangles, for the checks and the effect analysis
+/// `prepare` makes: materials, lights, cameras and environment from the manifest, and
+/// `mesh.material` holding each material some triangle uses, once.
+fn package_scene(p: &dray_scene::partition::Package) -> Scene {
+    let used = p
+        .manifest()
+        .material_triangles
+        .iter()
+        .enumerate()
+        .filter(|(_, n)| **n > 0)
+        .map(|(m, _)| m as u32)
+        .collect();
+    Scene {
+        name: p.name().to_string(),
+        mesh: Mesh {
+            material: used,
+            ..Mesh::default()
+        },
+        materials: p.materials().to_vec(),
+        textures: Vec::new(),
+        lights: p.lights().to_vec(),
+        cameras: p.cameras().to_vec(),
+        environment: p.environment(),
+        stats: Default::default(),
+    }
 }
 
 /// The camera named by `which` (a name or an index), the scene's first, or one framing

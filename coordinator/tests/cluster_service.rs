@@ -39,12 +39,16 @@ struct Server {
 
 impl Server {
     async fn start(name: &str, heartbeat: HeartbeatConfig) -> Server {
+        Server::start_in(name, heartbeat, &std::env::temp_dir()).await
+    }
+
+    async fn start_in(name: &str, heartbeat: HeartbeatConfig, root: &Path) -> Server {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let addr = listener.local_addr().unwrap();
         let work_dir =
             std::env::temp_dir().join(format!("dray-cluster-test-{}-{name}", std::process::id()));
         let _ = std::fs::remove_dir_all(&work_dir);
-        let coordinator = Coordinator::new(&std::env::temp_dir(), 1)
+        let coordinator = Coordinator::new(root, 1)
             .unwrap()
             .with_cluster_options(ClusterOptions {
                 heartbeat,
@@ -742,4 +746,175 @@ async fn a_silent_worker_is_dropped_and_its_jobs_fail_naming_it() {
         .expect("the dropped worker's stream did not end")
         .unwrap();
     assert!(end.is_none(), "unexpected command {end:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_scene_package_is_used_as_it_is_and_kept() {
+    let root =
+        std::env::temp_dir().join(format!("dray-cluster-test-{}-pkgroot", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    std::fs::create_dir_all(&root).unwrap();
+    struct Cleanup(PathBuf);
+    impl Drop for Cleanup {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+    let _cleanup = Cleanup(root.clone());
+    let scene = dray_scene::load("cornell").unwrap();
+    let pkg = root.join("cornell-pkg");
+    dray_scene::partition::write_scene_package(
+        &pkg,
+        &scene,
+        &dray_scene::partition::LayoutSpec::GridCount(2),
+    )
+    .unwrap();
+    let server = Server::start_in("pkg", slow_heartbeat(), &root).await;
+    let channel = server.channel().await;
+    let mut render = RenderServiceClient::new(channel.clone());
+    let package_spec = JobSpec {
+        scene: "cornell-pkg".into(),
+        ..spec(32, 32, 0)
+    };
+
+    // Without workers a package cannot render (the in-process path needs a whole mesh).
+    let e = render
+        .submit_job(SubmitJobRequest {
+            spec: Some(package_spec.clone()),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::FailedPrecondition, "{}", e.message());
+    // A package cannot be moved.
+    let moved = JobSpec {
+        translate: Some(dray_proto::v1::Vec3 {
+            x: 1.0,
+            y: 0.0,
+            z: 0.0,
+        }),
+        ..package_spec.clone()
+    };
+    let e = render
+        .submit_job(SubmitJobRequest { spec: Some(moved) })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(e.message().starts_with("translate:"), "{}", e.message());
+    // A directory that is not a package is refused.
+    std::fs::create_dir_all(root.join("empty")).unwrap();
+    let e = render
+        .submit_job(SubmitJobRequest {
+            spec: Some(JobSpec {
+                scene: "empty".into(),
+                ..spec(32, 32, 0)
+            }),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument);
+
+    let mut w = FakeWorker::join(channel.clone(), "http://127.0.0.1:7001").await;
+    let id = submit(&channel, package_spec).await;
+    let (setup, tiles) = w.setup_and_tiles(1).await;
+    assert_eq!(
+        PathBuf::from(&setup.package_path),
+        pkg.canonicalize().unwrap()
+    );
+    assert_eq!(setup.domain_count, 2);
+    let s = setup.spec.unwrap();
+    assert_eq!((s.domains, s.layout.as_str()), (2, "grid"));
+    assert_eq!(s.camera.as_deref(), Some("0"));
+    let manifest = std::fs::read(pkg.join("manifest.json")).unwrap();
+    assert_eq!(setup.package_checksum, package_checksum(&manifest));
+    let r = ReportContributionsRequest {
+        job_id: id.clone(),
+        sequence: 1,
+        credits: vec![TileCredit {
+            tile: tiles[0].index,
+            credit: TILE_CREDIT,
+        }],
+        ..Default::default()
+    };
+    w.report(r).await.unwrap();
+    wait_state(&channel, &id, JobState::Succeeded).await;
+    assert!(
+        pkg.join("manifest.json").is_file(),
+        "the user's package must not be removed"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cluster_service_is_listed_and_healthy_and_shutdown_ends_worker_streams() {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let coordinator = Coordinator::new(&std::env::temp_dir(), 1).unwrap();
+    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+    let mut task = tokio::spawn(dray_coordinator::serve(listener, coordinator, async {
+        rx.await.ok();
+    }));
+    struct Abort(tokio::task::AbortHandle);
+    impl Drop for Abort {
+        fn drop(&mut self) {
+            self.0.abort();
+        }
+    }
+    let _abort = Abort(task.abort_handle());
+    let channel = tonic::transport::Endpoint::from_shared(format!("http://{addr}"))
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+
+    let mut health = tonic_health::pb::health_client::HealthClient::new(channel.clone());
+    let h = health
+        .check(tonic_health::pb::HealthCheckRequest {
+            service: "dray.v1.ClusterService".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(
+        h.status(),
+        tonic_health::pb::health_check_response::ServingStatus::Serving
+    );
+    use tonic_reflection::pb::v1::server_reflection_client::ServerReflectionClient;
+    use tonic_reflection::pb::v1::server_reflection_request::MessageRequest;
+    use tonic_reflection::pb::v1::server_reflection_response::MessageResponse;
+    let mut reflect = ServerReflectionClient::new(channel.clone());
+    let req = tonic_reflection::pb::v1::ServerReflectionRequest {
+        host: String::new(),
+        message_request: Some(MessageRequest::ListServices(String::new())),
+    };
+    let mut replies = reflect
+        .server_reflection_info(tokio_stream::iter([req]))
+        .await
+        .unwrap()
+        .into_inner();
+    match replies.message().await.unwrap().unwrap().message_response {
+        Some(MessageResponse::ListServicesResponse(l)) => {
+            let names: Vec<String> = l.service.into_iter().map(|s| s.name).collect();
+            for want in ["dray.v1.RenderService", "dray.v1.ClusterService"] {
+                assert!(names.iter().any(|n| n == want), "{want} not in {names:?}");
+            }
+        }
+        other => panic!("unexpected reflection reply {other:?}"),
+    }
+    drop(replies);
+    drop(reflect);
+
+    // A worker's stream is open; shutting down must still finish.
+    let mut w = FakeWorker::join(channel.clone(), "http://127.0.0.1:7001").await;
+    tx.send(()).unwrap();
+    let end = tokio::time::timeout(PATIENCE, w.stream.message())
+        .await
+        .expect("the stream did not end on shutdown");
+    assert!(matches!(end, Ok(None)), "{end:?}");
+    drop(w);
+    drop(health);
+    drop(channel);
+    tokio::time::timeout(PATIENCE, &mut task)
+        .await
+        .expect("serve did not return after shutdown")
+        .unwrap()
+        .unwrap();
 }
