@@ -372,7 +372,11 @@ pub fn run(a: ClusterArgs) -> Result<()> {
         loop {
             tokio::select! {
                 why = signals.next() => {
-                    eprintln!("dray cluster: {why}; stopping {} processes", cluster.members.len());
+                    eprintln!(
+                        "dray cluster: {why}; stopping the coordinator and {} worker{}",
+                        a.workers,
+                        if a.workers == 1 { "" } else { "s" }
+                    );
                     cluster.stop();
                     return Ok(());
                 }
