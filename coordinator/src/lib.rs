@@ -1,16 +1,24 @@
-//! The dray coordinator: the public `dray.v1.RenderService` over gRPC, with server
-//! reflection and the standard health service, so `grpcurl` works without .proto files.
+//! The dray coordinator: the public `dray.v1.RenderService` and the internal
+//! `dray.v1.ClusterService` over gRPC, with server reflection and the standard health
+//! service, so `grpcurl` works without .proto files.
 //!
-//! **This slice does not wire workers yet.** An accepted job is rendered in this process
-//! with the single-process path of `dray render` (`dray_core::render` over one BVH, or a
-//! [`dray_core::trace::DomainSet`] when `domains > 1`), on a blocking thread so the server
-//! keeps answering. Jobs run one at a time in submission order; the others wait QUEUED.
-//! The image is the same, bit for bit, as `dray render` with the same settings.
+//! **Where a job runs.** While no worker is registered, an accepted job is rendered in
+//! this process with the single-process path of `dray render` (`dray_core::render` over
+//! one BVH, or a [`dray_core::trace::DomainSet`] when `domains > 1`), one job at a time;
+//! the image is the same, bit for bit, as `dray render` with the same settings. Once at
+//! least one worker is registered, a job runs on the workers: the coordinator writes (or
+//! reuses) a scene package, deals domains and tiles, counts credit and sums the pixels
+//! the workers send back (see [`dispatch`] for exactly what a worker receives).
 //!
 //! - [`validate`]: checks a [`JobSpec`](dray_proto::v1::JobSpec) against the limits and
 //!   the scene root; every rejection is `INVALID_ARGUMENT` naming the field.
-//! - [`jobs`]: the job table, the render task, cancellation, and image encoding.
-//! - [`service`]: the tonic `RenderService` implementation and [`serve`].
+//! - [`jobs`]: the job table, the in-process render task, cancellation, image encoding.
+//! - [`membership`]: registered workers, heartbeats, per-worker command outboxes.
+//! - [`dispatch`]: a job's package, JobSetup and tiles, queued for its workers.
+//! - [`routing`]: domain ownership behind the [`routing::Router`] trait (round robin).
+//! - [`ledger`]: credit per tile, the exact fixed-point film, releases.
+//! - [`cluster`]: the tonic `ClusterService` over the above.
+//! - [`service`]: the tonic `RenderService` and [`serve`].
 
 pub mod cluster;
 pub mod dispatch;

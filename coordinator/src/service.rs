@@ -313,6 +313,7 @@ pub async fn serve(
         .set_serving::<ClusterServiceServer<ClusterApi>>()
         .await;
     let cluster = coordinator.cluster.clone();
+    let work_dir = cluster.options.work_dir.clone();
     let _reaper = AbortOnDrop(tokio::spawn(cluster.clone().reaper()));
     let shutdown = async move {
         shutdown.await;
@@ -327,7 +328,7 @@ pub async fn serve(
         .build_v1()
         .expect("the built-in descriptor sets are valid");
     let render = RenderServiceServer::new(coordinator).max_encoding_message_size(usize::MAX);
-    tonic::transport::Server::builder()
+    let served = tonic::transport::Server::builder()
         .add_service(health_service)
         .add_service(reflection)
         .add_service(render)
@@ -336,5 +337,8 @@ pub async fn serve(
             tonic::transport::server::TcpIncoming::from(listener),
             shutdown,
         )
-        .await
+        .await;
+    // Job packages are removed as jobs end; the work directory itself goes if empty.
+    let _ = std::fs::remove_dir(&work_dir);
+    served
 }
