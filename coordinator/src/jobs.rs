@@ -35,6 +35,7 @@ pub struct JobEntry {
     pub tiles_total: u32,
     cancel: AtomicBool,
     tiles_done: AtomicU32,
+    rays_in_flight: AtomicU64,
     inner: Mutex<Inner>,
 }
 
@@ -92,7 +93,11 @@ impl JobEntry {
                 + rays.refraction
                 + rays.diffuse
                 + rays.ambient_occlusion,
-            rays_in_flight: 0,
+            rays_in_flight: if terminal(g.state) {
+                0
+            } else {
+                self.rays_in_flight.load(Ordering::Relaxed)
+            },
             elapsed: prost_types::Duration::try_from(elapsed).ok(),
             eta: eta.and_then(|d| prost_types::Duration::try_from(d).ok()),
             error: g.error.clone(),
@@ -123,6 +128,11 @@ impl JobEntry {
     /// Set the number of committed tiles (distributed jobs count them in the ledger).
     pub(crate) fn set_tiles_done(&self, done: u32) {
         self.tiles_done.store(done, Ordering::Relaxed);
+    }
+
+    /// Set the rays waiting at workers (from their latest queue reports).
+    pub(crate) fn set_rays_in_flight(&self, n: u64) {
+        self.rays_in_flight.store(n, Ordering::Relaxed);
     }
 
     /// Update the statistics in place.
@@ -193,6 +203,7 @@ impl JobTable {
             submitted_at: SystemTime::now(),
             cancel: AtomicBool::new(false),
             tiles_done: AtomicU32::new(0),
+            rays_in_flight: AtomicU64::new(0),
             inner: Mutex::new(Inner {
                 state: JobState::Queued,
                 started: None,

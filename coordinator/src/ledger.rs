@@ -398,12 +398,24 @@ impl Ledger {
     }
 
     /// Store a queue report; returns the job's routing version, or None when the job is
-    /// not running.
+    /// not running (or the worker is not one of its workers).
     pub fn report_queues(&self, r: ReportQueuesRequest) -> Option<u64> {
         let mut g = self.lock();
         let job = g.get_mut(&r.job_id)?;
+        if !job.workers.contains(&r.worker_id) {
+            return None;
+        }
         let v = job.routing.version;
         job.queues.insert(r.worker_id.clone(), r);
+        // Rays queued at the job's workers, as of each one's latest report: what
+        // JobProgress.rays_in_flight shows (rays on the wire are not counted).
+        let queued: u64 = job
+            .queues
+            .values()
+            .flat_map(|q| &q.queues)
+            .map(|d| d.rays_queued)
+            .sum();
+        job.entry.set_rays_in_flight(queued);
         Some(v)
     }
 

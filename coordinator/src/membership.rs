@@ -222,9 +222,10 @@ impl Membership {
             )));
         }
         let endpoint = r.endpoint.trim();
-        if !(endpoint.starts_with("http://") || endpoint.starts_with("https://"))
-            || endpoint.len() <= "https://".len()
-        {
+        let host = endpoint
+            .strip_prefix("http://")
+            .or_else(|| endpoint.strip_prefix("https://"));
+        if host.is_none_or(|h| h.is_empty() || h.starts_with('/')) {
             return Err(Status::invalid_argument(format!(
                 "endpoint: {:?} is not a URL such as http://10.0.0.7:7001 that peers can reach",
                 r.endpoint

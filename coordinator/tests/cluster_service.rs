@@ -332,7 +332,20 @@ async fn a_job_runs_on_a_registered_worker_and_returns_its_sums() {
             worker_id: w.id.clone(),
             job_id: id.clone(),
             routing_version: 1,
-            queues: vec![],
+            queues: vec![
+                dray_proto::v1::DomainQueue {
+                    domain: 0,
+                    rays_queued: 40,
+                    resident: true,
+                    resident_bytes: 1000,
+                },
+                dray_proto::v1::DomainQueue {
+                    domain: 2,
+                    rays_queued: 2,
+                    resident: true,
+                    resident_bytes: 1000,
+                },
+            ],
             memory_used_bytes: 1,
         })
         .await
@@ -340,6 +353,8 @@ async fn a_job_runs_on_a_registered_worker_and_returns_its_sums() {
         .into_inner()
         .routing_version;
     assert_eq!(v, 1);
+    let p = get_job(&channel, &id).await.progress.unwrap();
+    assert_eq!(p.rays_in_flight, 42, "rays queued at the workers");
 
     // Report 1: two pixel sums (one pixel twice) and half of every tile's credit.
     let half = TILE_CREDIT / 2;
@@ -681,6 +696,14 @@ async fn registration_refuses_mismatches_and_heartbeats_ask_strangers_to_reregis
         .await
         .unwrap_err();
     assert_eq!(e.code(), Code::InvalidArgument);
+    for bad in ["http://", "https:///x", ""] {
+        let e = c.register_worker(register_request(bad)).await.unwrap_err();
+        assert_eq!(e.code(), Code::InvalidArgument, "{bad:?}");
+    }
+    // A short host name is fine.
+    c.register_worker(register_request("http://w"))
+        .await
+        .unwrap();
 
     let hb = |id: &str| HeartbeatRequest {
         worker_id: id.into(),
