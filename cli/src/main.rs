@@ -11,6 +11,7 @@ mod partition_cmd;
 mod render_cmd;
 mod submit_cmd;
 mod summary;
+mod worker_cmd;
 
 use clap::{Parser, Subcommand};
 
@@ -41,6 +42,8 @@ enum Command {
     /// Run a coordinator and N workers as local processes on consecutive ports, until
     /// Ctrl-C.
     Cluster(cluster_cmd::ClusterArgs),
+    /// Join a coordinator as a worker: own domains, trace rays, stream them to peers.
+    Worker(worker_cmd::WorkerArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -83,6 +86,7 @@ fn main() -> std::process::ExitCode {
         Command::BenchRays(a) => bench_rays::run(a),
         Command::Partition(a) => partition_cmd::run(a),
         Command::Coordinator(a) => coordinator_cmd::run(a),
+        Command::Worker(a) => worker_cmd::run(a),
         Command::Submit(a) => submit_cmd::run(a),
         Command::Cluster(a) => cluster_cmd::run(a),
     };

@@ -30,20 +30,28 @@ pub struct CreditError {
 /// The shares of `kinds` (the children, in spawn order) from a parent's `credit`, and
 /// what the parent itself hands back. The shares and the remainder always sum to
 /// `credit`.
+///
+/// A parent with children keeps one unit for itself and hands it back in the same
+/// report as its own contributions (emission, ambient light). Without that, its
+/// children's credit could reach the coordinator from another worker first, the tile
+/// would look complete, and the parent's contributions would arrive too late for the
+/// image.
 pub fn split(credit: u64, kinds: &[RayKind]) -> Result<(Vec<u64>, u64), CreditError> {
+    if kinds.is_empty() {
+        return Ok((Vec::new(), credit));
+    }
     let terminal = kinds.iter().filter(|k| k.is_occlusion()).count() as u64;
     let continuing = kinds.len() as u64 - terminal;
-    let err = CreditError {
-        credit,
-        children: kinds.len(),
-    };
-    if credit < terminal + continuing {
-        return Err(err);
+    if credit < terminal + continuing + 1 {
+        return Err(CreditError {
+            credit,
+            children: kinds.len(),
+        });
     }
     if continuing == 0 {
         return Ok((vec![1; kinds.len()], credit - terminal));
     }
-    let rest = credit - terminal;
+    let rest = credit - terminal - 1;
     let (each, extra) = (rest / continuing, rest % continuing);
     let mut first = true;
     let shares = kinds
@@ -59,7 +67,7 @@ pub fn split(credit: u64, kinds: &[RayKind]) -> Result<(Vec<u64>, u64), CreditEr
             }
         })
         .collect();
-    Ok((shares, 0))
+    Ok((shares, 1))
 }
 
 /// The share of camera ray `index` (0-based, of `count`) of a tile with `credit`: equal
@@ -83,7 +91,7 @@ mod tests {
     #[test]
     fn shares_sum_to_the_credit() {
         use RayKind::*;
-        for credit in [3u64, 10, 1 << 40, u64::MAX] {
+        for credit in [5u64, 10, 1 << 40, u64::MAX] {
             for kinds in [
                 vec![],
                 vec![Shadow],
@@ -95,6 +103,7 @@ mod tests {
                 let (shares, back) = split(credit, &kinds).unwrap();
                 assert_eq!(shares.len(), kinds.len());
                 assert!(shares.iter().all(|&s| s > 0));
+                assert!(kinds.is_empty() || back > 0, "the parent keeps a unit");
                 let total: u128 = shares.iter().map(|&s| s as u128).sum::<u128>() + back as u128;
                 assert_eq!(total, credit as u128, "{credit} {kinds:?}");
             }
@@ -108,18 +117,18 @@ mod tests {
         for _ in 0..1000 {
             let (s, back) =
                 split(c, &[RayKind::Shadow, RayKind::Shadow, RayKind::Diffuse]).unwrap();
-            assert_eq!(back, 0);
+            assert_eq!(back, 1);
             c = s[2];
         }
-        assert_eq!(c, (1u64 << 36) - 2000);
+        assert_eq!(c, (1u64 << 36) - 3000);
     }
 
     #[test]
     fn exhausted_credit_is_an_error() {
         assert_eq!(
-            split(1, &[RayKind::Reflection, RayKind::Refraction]),
+            split(2, &[RayKind::Reflection, RayKind::Refraction]),
             Err(CreditError {
-                credit: 1,
+                credit: 2,
                 children: 2
             })
         );

@@ -16,11 +16,14 @@
 //!   when a short delay passes, and never beyond the receiver's grant.
 
 pub mod credit;
+pub mod job;
+pub mod node;
 pub mod peer_client;
 pub mod peer_server;
 pub mod queue;
 pub mod tracer;
 
+pub use node::{NodeError, WorkerConfig, run};
 pub use peer_client::{BatchKey, PeerClientConfig, PeerError, PeerSender};
 pub use peer_server::{PeerServer, PeerServerConfig, StreamError};
 pub use queue::{QueueError, QueuedBatch, RayQueues};

@@ -1,0 +1,62 @@
+//! `dray worker`: join a coordinator, own the domains it assigns, and trace rays with the
+//! other workers until Ctrl-C or until the coordinator is lost.
+
+use std::time::Duration;
+
+use anyhow::{Context, Result};
+use clap::Args;
+
+#[derive(Args, Debug)]
+pub struct WorkerArgs {
+    /// The coordinator's address, e.g. http://127.0.0.1:50051 (or host:port).
+    #[arg(long)]
+    pub coordinator: String,
+    /// Address to serve the worker-to-worker ray stream on, e.g. 127.0.0.1:50052 (port 0
+    /// picks a free port).
+    #[arg(long)]
+    pub listen: String,
+    /// Address other workers use to reach this one (default: http:// + the listening
+    /// address); set it when listening on 0.0.0.0 or behind a Kubernetes service.
+    #[arg(long)]
+    pub advertise: Option<String>,
+    /// Tracing threads (0 = all cores).
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// Memory for resident domains in bytes (0 = unlimited), reported to the scheduler.
+    #[arg(long, default_value_t = 0)]
+    pub memory_budget: u64,
+    /// Seconds to keep trying to reach the coordinator at start.
+    #[arg(long, default_value_t = 10)]
+    pub connect_timeout: u64,
+}
+
+pub fn run(a: WorkerArgs) -> Result<()> {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    rt.block_on(async {
+        let listener = tokio::net::TcpListener::bind(&a.listen)
+            .await
+            .with_context(|| format!("cannot listen on {}", a.listen))?;
+        let addr = listener
+            .local_addr()
+            .context("cannot read the bound address")?;
+        // One line on stdout, so scripts and tests can find the port.
+        println!("dray worker listening on {addr}");
+        let config = dray_worker::WorkerConfig {
+            coordinator: a.coordinator.clone(),
+            advertise: a.advertise.clone(),
+            threads: a.threads,
+            memory_budget: a.memory_budget,
+            connect_timeout: Duration::from_secs(a.connect_timeout),
+            ..dray_worker::WorkerConfig::default()
+        };
+        let shutdown = async {
+            let _ = tokio::signal::ctrl_c().await;
+        };
+        dray_worker::run(config, listener, shutdown)
+            .await
+            .context("worker stopped")
+    })
+}
