@@ -6,8 +6,9 @@
 //!   that is quicker to load can already send rays), then loads the domains on a blocking
 //!   thread; tiles, cancellations and finishes follow in order.
 //! - **tracer**: the only place rays are traced. It takes, in this order, rays it sent
-//!   to itself, batches from peers, then camera rays of its tiles, and traces them on the
-//!   rayon pool. **Tracing never waits for the network**: outgoing rays go to per-peer
+//!   to itself, batches from peers, then camera rays of its tiles, and traces them on
+//!   `threads` plain OS threads, each pulling its own work (no per-batch task hand-off,
+//!   which cost more than tracing small batches). **Tracing never waits for the network**: outgoing rays go to per-peer
 //!   outboxes. So no cycle of workers waiting on each other's full queues can form.
 //!   Memory stays bounded because camera rays, the only source of new work, are made only
 //!   while the rays in flight here (queued, looped back and waiting for peers) are below
@@ -24,7 +25,7 @@
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::Duration;
 
 use dray_core::integrator::RayKind;
@@ -35,9 +36,8 @@ use dray_proto::v1::{
     WatchAssignmentsRequest, assignment::Command,
 };
 use dray_proto::{RAY_RECORD_BYTES, RAY_RECORD_FORMAT, RayRecord};
-use rayon::prelude::*;
 use tokio::net::TcpListener;
-use tokio::sync::{Notify, mpsc};
+use tokio::sync::mpsc;
 use tonic::transport::{Channel, Endpoint};
 
 use crate::job::{build_tracer, owned_domains};
@@ -51,8 +51,6 @@ pub const VERSION: &str = env!("CARGO_PKG_VERSION");
 
 /// Camera rays made in one tracing step.
 const CAMERA_CHUNK: u64 = 4096;
-/// Rays traced by one rayon task.
-const TRACE_CHUNK: usize = 128;
 /// How often accumulated results are reported.
 const REPORT_INTERVAL: Duration = Duration::from_millis(10);
 /// How often queue lengths are reported (the scheduler's input).
@@ -189,8 +187,10 @@ struct Node {
     peers: Mutex<HashMap<String, mpsc::UnboundedSender<PeerMessage>>>,
     /// Rays looped back or waiting for a peer.
     outgoing: AtomicUsize,
-    wake: Notify,
-    pool: rayon::ThreadPool,
+    /// Wakes idle tracing threads when work arrives.
+    wake: (Mutex<u64>, Condvar),
+    /// The async runtime, for tasks started from tracing threads (peer streams).
+    runtime: tokio::runtime::Handle,
     config: WorkerConfig,
 }
 
@@ -232,11 +232,6 @@ pub async fn run(
         .heartbeat_interval
         .and_then(|d| Duration::try_from(d).ok())
         .unwrap_or(Duration::from_secs(1));
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .thread_name(|i| format!("dray-trace-{i}"))
-        .build()
-        .map_err(|e| NodeError::Threads(e.to_string()))?;
     let queues = Arc::new(RayQueues::new([], config.queue_capacity.max(1)));
     let node = Arc::new(Node {
         id: id.clone(),
@@ -248,8 +243,8 @@ pub async fn run(
         local: Mutex::new(VecDeque::new()),
         peers: Mutex::new(HashMap::new()),
         outgoing: AtomicUsize::new(0),
-        wake: Notify::new(),
-        pool,
+        wake: (Mutex::new(0), Condvar::new()),
+        runtime: tokio::runtime::Handle::current(),
         config,
     });
 
@@ -284,7 +279,16 @@ pub async fn run(
             ),
     );
 
-    let tracer = tokio::spawn(node.clone().tracer_loop(stop_rx.clone()));
+    let stopping = Arc::new(AtomicBool::new(false));
+    let mut tracers = Vec::new();
+    for i in 0..threads {
+        let (node, stopping) = (node.clone(), stopping.clone());
+        let t = std::thread::Builder::new()
+            .name(format!("dray-trace-{i}"))
+            .spawn(move || node.tracer_thread(&stopping))
+            .map_err(|e| NodeError::Threads(e.to_string()))?;
+        tracers.push(t);
+    }
     let reporter = tokio::spawn(node.clone().report_loop(stop_rx.clone()));
     let beats = tokio::spawn(node.clone().heartbeat_loop(heartbeat, stop_rx.clone()));
     let assignments = node.clone().assignment_loop();
@@ -295,7 +299,11 @@ pub async fn run(
         _ = shutdown => Ok(()),
     };
     let _ = stop_tx.send(true);
-    tracer.abort();
+    stopping.store(true, Ordering::Relaxed);
+    node.notify();
+    for t in tracers {
+        let _ = t.join();
+    }
     reporter.abort();
     match server.await {
         Ok(Err(e)) if result.is_ok() => return Err(NodeError::Serve(e.to_string())),
@@ -438,7 +446,7 @@ impl Node {
             "job loaded"
         );
         lock(&self.jobs).insert(job_id, job);
-        self.wake.notify_one();
+        self.notify();
     }
 
     async fn report_setup_failure(&self, job_id: &str, message: String) {
@@ -476,7 +484,7 @@ impl Node {
             ));
         }
         drop(tiles);
-        self.wake.notify_one();
+        self.notify();
     }
 
     fn release(&self, job_id: &str, reason: &str) {
@@ -557,29 +565,34 @@ impl Node {
         None
     }
 
-    async fn tracer_loop(self: Arc<Self>, mut stop: tokio::sync::watch::Receiver<bool>) {
-        loop {
-            if *stop.borrow() {
-                return;
-            }
-            let Some(work) = self.next_work() else {
-                tokio::select! {
-                    _ = self.wake.notified() => {}
-                    _ = tokio::time::sleep(Duration::from_millis(2)) => {}
-                    _ = stop.changed() => {}
+    /// Wake the tracing threads.
+    fn notify(&self) {
+        let (m, c) = &self.wake;
+        *lock(m) += 1;
+        c.notify_all();
+    }
+
+    /// One tracing thread: take work, trace it, hand the results on; sleep briefly when
+    /// there is none (peer batches arrive without a wake-up, so the wait is short).
+    fn tracer_thread(self: Arc<Self>, stopping: &AtomicBool) {
+        let (m, c) = &self.wake;
+        while !stopping.load(Ordering::Relaxed) {
+            let seen = *lock(m);
+            match self.next_work() {
+                Some(work) => self.trace(work),
+                None => {
+                    let g = lock(m);
+                    if *g == seen {
+                        let _ = c.wait_timeout(g, Duration::from_millis(1));
+                    }
                 }
-                continue;
-            };
-            let node = self.clone();
-            let done = tokio::task::spawn_blocking(move || node.trace(work)).await;
-            if let Err(e) = done {
-                tracing::error!("tracing task failed: {e}");
             }
         }
     }
 
-    /// Trace one piece of work on the rayon pool and hand the results on.
+    /// Trace one piece of work and hand the results on.
     fn trace(self: &Arc<Self>, work: Work) {
+        let mut out = Outbox::default();
         let (job, result) = match work {
             Work::Rays(job, d, rays) => {
                 if !job.active.load(Ordering::Relaxed) {
@@ -588,19 +601,8 @@ impl Node {
                 let _span =
                     tracing::trace_span!("batch", job = %job.id, domain = d, rays = rays.len())
                         .entered();
-                let tracer = &job.tracer;
-                let outs: Vec<Result<Outbox, String>> = self.pool.install(|| {
-                    rays.par_chunks(TRACE_CHUNK)
-                        .map(|chunk| {
-                            let mut out = Outbox::default();
-                            tracer
-                                .trace_batch(d, chunk, &mut out)
-                                .map(|()| out)
-                                .map_err(|e| e.to_string())
-                        })
-                        .collect()
-                });
-                (job.clone(), outs)
+                let r = job.tracer.trace_batch(d, &rays, &mut out);
+                (job, r)
             }
             Work::Camera(job, tile, start, count) => {
                 if !job.active.load(Ordering::Relaxed) {
@@ -608,39 +610,20 @@ impl Node {
                 }
                 let _span =
                     tracing::trace_span!("tile", job = %job.id, tile = tile.index, start).entered();
-                let tracer = &job.tracer;
-                let step = TRACE_CHUNK as u64;
-                let outs: Vec<Result<Outbox, String>> = self.pool.install(|| {
-                    (0..count.div_ceil(step))
-                        .into_par_iter()
-                        .map(|k| {
-                            let mut out = Outbox::default();
-                            let s = start + k * step;
-                            let n = step.min(start + count - s);
-                            tracer
-                                .camera_rays(&tile, s, n, &mut out)
-                                .map(|()| out)
-                                .map_err(|e| e.to_string())
-                        })
-                        .collect()
-                });
-                (job.clone(), outs)
+                let r = job.tracer.camera_rays(&tile, start, count, &mut out);
+                (job, r)
             }
         };
-        for out in result {
-            match out {
-                Ok(o) => self.deliver(&job, o),
-                Err(e) => {
-                    job.fail(format!("worker {}: {e}", self.id));
-                    return;
-                }
-            }
+        match result {
+            Ok(()) => self.deliver(&job, out),
+            Err(e) => job.fail(format!("worker {}: {e}", self.id)),
         }
     }
 
     /// Results into the job's report; rays to their domains' owners.
     fn deliver(self: &Arc<Self>, job: &Arc<Job>, out: Outbox) {
         let mut bytes = 0u64;
+        let mut looped = false;
         for (d, rays) in out.rays {
             if rays.is_empty() {
                 continue;
@@ -655,6 +638,7 @@ impl Node {
             self.outgoing.fetch_add(n, Ordering::Relaxed);
             if *owner == self.id {
                 lock(&self.local).push_back((job.clone(), d, rays));
+                looped = true;
                 continue;
             }
             bytes += (n * RAY_RECORD_BYTES) as u64;
@@ -692,6 +676,10 @@ impl Node {
         }
         r.nonfinite += out.nonfinite;
         r.bytes += bytes;
+        drop(r);
+        if looped {
+            self.notify();
+        }
     }
 
     /// The outbox of the stream to `worker_id` at `endpoint`, opening it if needed.
@@ -708,11 +696,10 @@ impl Node {
         }
         let (tx, rx) = mpsc::unbounded_channel();
         peers.insert(endpoint.to_string(), tx.clone());
-        tokio::runtime::Handle::current().spawn(self.clone().peer_loop(
-            endpoint.to_string(),
-            worker_id.to_string(),
-            rx,
-        ));
+        self.runtime.spawn(
+            self.clone()
+                .peer_loop(endpoint.to_string(), worker_id.to_string(), rx),
+        );
         tx
     }
 
