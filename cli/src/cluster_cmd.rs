@@ -47,6 +47,15 @@ pub struct ClusterArgs {
     /// The coordinator's scene root (scene paths in jobs are resolved against it).
     #[arg(long)]
     pub scene_root: Option<PathBuf>,
+    /// The coordinator's --work-dir: where job scene packages are written for the workers.
+    #[arg(long, value_name = "DIR")]
+    pub work_dir: Option<PathBuf>,
+    /// The coordinator's --heartbeat-interval-ms.
+    #[arg(long, value_name = "MS")]
+    pub heartbeat_interval_ms: Option<u64>,
+    /// The coordinator's --heartbeat-timeout-ms.
+    #[arg(long, value_name = "MS")]
+    pub heartbeat_timeout_ms: Option<u64>,
 }
 
 /// One child process of the cluster.
@@ -300,6 +309,18 @@ pub fn run(a: ClusterArgs) -> Result<()> {
         if let Some(root) = &a.scene_root {
             args.push("--scene-root".into());
             args.push(root.display().to_string());
+        }
+        if let Some(dir) = &a.work_dir {
+            args.push("--work-dir".into());
+            args.push(dir.display().to_string());
+        }
+        if let Some(ms) = a.heartbeat_interval_ms {
+            args.push("--heartbeat-interval-ms".into());
+            args.push(ms.to_string());
+        }
+        if let Some(ms) = a.heartbeat_timeout_ms {
+            args.push("--heartbeat-timeout-ms".into());
+            args.push(ms.to_string());
         }
         cluster
             .members

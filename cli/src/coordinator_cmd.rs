@@ -1,16 +1,35 @@
-//! `dray coordinator`: serve the public `dray.v1.RenderService` (with gRPC reflection and
-//! health) on `--listen`.
+//! `dray coordinator`: serve the public `dray.v1.RenderService` and the internal
+//! `dray.v1.ClusterService` (both with gRPC reflection and health) on `--listen`.
 //!
-//! Workers are not wired yet: accepted jobs render in this process, one at a time, with
-//! the same code path as `dray render`, so an image fetched with GetImage has the same
-//! bits as `dray render` with the same settings.
+//! Where a job runs: while no worker is registered, an accepted job renders in this
+//! process, one at a time, with the same code path as `dray render`; once at least one
+//! worker (`dray worker --coordinator ADDR`) is registered, jobs run on the workers, which
+//! read the job's scene package from `--work-dir`. Either way the image fetched with
+//! GetImage has the same bits as `dray render` with the same settings.
+//!
+//! Ctrl-C or SIGTERM stops the server: the workers' assignment streams are ended and the
+//! work directory is removed if no job left anything in it.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use clap::Args;
+use dray_coordinator::cluster::ClusterOptions;
+use dray_coordinator::membership::HeartbeatConfig;
 
+/// How long a graceful shutdown may take before the process exits anyway (a client still
+/// watching a job would otherwise hold it open).
+const SHUTDOWN_GRACE: Duration = Duration::from_secs(2);
+
+/// Serve the render API; jobs run on the registered workers, or in this process while
+/// none is registered.
 #[derive(Args, Debug)]
+#[command(
+    about = "Serve the dray.v1 render API (with reflection and health); jobs run on the \
+             registered workers, or in this process while none is registered",
+    long_about = None
+)]
 pub struct CoordinatorArgs {
     /// Address to serve gRPC on, e.g. 127.0.0.1:7070 (port 0 picks a free port).
     #[arg(long)]
@@ -19,14 +38,102 @@ pub struct CoordinatorArgs {
     /// rejected. Procedural scenes (cornell, spheres:N, ...) need no files.
     #[arg(long, default_value = ".")]
     pub scene_root: PathBuf,
-    /// Render threads (0 = all cores).
+    /// Render threads for jobs rendered in this process, while no worker is registered
+    /// (0 = all cores).
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
+    /// Directory where the scene packages of jobs on workers are written (one
+    /// subdirectory per job, removed when the job ends). Workers read the packages at the
+    /// same path, so on several machines it must be a shared file system mounted at the
+    /// same place. Created if missing; use one directory per coordinator.
+    /// [default: a new directory in the system temp directory]
+    #[arg(long, value_name = "DIR")]
+    pub work_dir: Option<PathBuf>,
+    /// How often workers send heartbeats, in milliseconds.
+    #[arg(long, value_name = "MS", default_value_t = default_heartbeat().interval.as_millis() as u64)]
+    pub heartbeat_interval_ms: u64,
+    /// Silence after which a worker is declared lost, in milliseconds: its jobs fail and
+    /// new jobs no longer go to it. Must exceed the interval (several intervals is wise:
+    /// a worker busy loading a large domain still beats, but late beats happen).
+    #[arg(long, value_name = "MS", default_value_t = default_heartbeat().timeout.as_millis() as u64)]
+    pub heartbeat_timeout_ms: u64,
+}
+
+fn default_heartbeat() -> HeartbeatConfig {
+    HeartbeatConfig::default()
+}
+
+/// The cluster options the flags ask for, checked.
+fn cluster_options(a: &CoordinatorArgs) -> Result<ClusterOptions> {
+    if a.heartbeat_interval_ms == 0 {
+        bail!("--heartbeat-interval-ms 0: the interval must be at least 1 ms");
+    }
+    if a.heartbeat_timeout_ms <= a.heartbeat_interval_ms {
+        bail!(
+            "--heartbeat-timeout-ms {} must be longer than --heartbeat-interval-ms {}, or \
+             every worker would be declared lost between two beats",
+            a.heartbeat_timeout_ms,
+            a.heartbeat_interval_ms
+        );
+    }
+    let mut options = ClusterOptions {
+        heartbeat: HeartbeatConfig {
+            interval: Duration::from_millis(a.heartbeat_interval_ms),
+            timeout: Duration::from_millis(a.heartbeat_timeout_ms),
+        },
+        ..ClusterOptions::default()
+    };
+    if let Some(dir) = &a.work_dir {
+        options.work_dir = prepare_work_dir(dir)?;
+    }
+    Ok(options)
+}
+
+/// Create `dir` if needed, check it is a writable directory, and make it absolute:
+/// workers, which run elsewhere, are given this path.
+fn prepare_work_dir(dir: &Path) -> Result<PathBuf> {
+    if dir.as_os_str().is_empty() {
+        bail!("--work-dir: empty path");
+    }
+    std::fs::create_dir_all(dir)
+        .with_context(|| format!("--work-dir {}: cannot create it", dir.display()))?;
+    let abs = dir
+        .canonicalize()
+        .with_context(|| format!("--work-dir {}", dir.display()))?;
+    if !abs.is_dir() {
+        bail!("--work-dir {}: not a directory", dir.display());
+    }
+    let probe = abs.join(format!(".dray-write-test-{}", std::process::id()));
+    std::fs::write(&probe, b"")
+        .with_context(|| format!("--work-dir {}: cannot write there", abs.display()))?;
+    let _ = std::fs::remove_file(&probe);
+    Ok(abs)
+}
+
+/// Completes on the first Ctrl-C or SIGTERM.
+async fn stop_signal() {
+    use tokio::signal::unix::{SignalKind, signal};
+    let term = signal(SignalKind::terminate());
+    let int = signal(SignalKind::interrupt());
+    match (term, int) {
+        (Ok(mut term), Ok(mut int)) => {
+            tokio::select! {
+                _ = term.recv() => {}
+                _ = int.recv() => {}
+            }
+        }
+        // Without handlers the default action (exit) applies: never complete.
+        _ => std::future::pending().await,
+    }
 }
 
 pub fn run(a: CoordinatorArgs) -> Result<()> {
+    let options = cluster_options(&a)?;
+    let heartbeat = options.heartbeat;
+    let work_dir = options.work_dir.clone();
     let coordinator = dray_coordinator::Coordinator::new(&a.scene_root, a.threads)
-        .with_context(|| format!("--scene-root {}", a.scene_root.display()))?;
+        .with_context(|| format!("--scene-root {}", a.scene_root.display()))?
+        .with_cluster_options(options);
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -41,11 +148,35 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
         // One line on stdout, so scripts and tests can find the port.
         println!("dray coordinator listening on {addr}");
         eprintln!(
-            "scene root {} (workers are not wired yet: jobs render in this process)",
-            coordinator.scene_root().display()
+            "dray coordinator: scene root {}, work dir {}, heartbeats every {} ms (lost after \
+             {} ms); jobs run on the registered workers, or in this process while none is \
+             registered",
+            coordinator.scene_root().display(),
+            work_dir.display(),
+            heartbeat.interval.as_millis(),
+            heartbeat.timeout.as_millis(),
         );
-        dray_coordinator::serve(listener, coordinator, std::future::pending())
-            .await
-            .context("the gRPC server stopped")
+        let (stopping_tx, stopping_rx) = tokio::sync::oneshot::channel::<()>();
+        let shutdown = async move {
+            stop_signal().await;
+            let _ = stopping_tx.send(());
+        };
+        let served = dray_coordinator::serve(listener, coordinator, shutdown);
+        tokio::pin!(served);
+        // Serve until a signal; then give the graceful shutdown a bounded time.
+        let result = tokio::select! {
+            r = &mut served => r,
+            _ = async {
+                let _ = stopping_rx.await;
+                tokio::time::sleep(SHUTDOWN_GRACE).await;
+            } => {
+                eprintln!(
+                    "dray coordinator: clients still connected after {SHUTDOWN_GRACE:?}; \
+                     exiting anyway"
+                );
+                Ok(())
+            }
+        };
+        result.context("the gRPC server stopped")
     })
 }
