@@ -124,3 +124,186 @@ pub fn gone_within(pid: i32, secs: f64) -> bool {
     }
     !alive(pid)
 }
+
+// ---------------------------------------------------------------------------------------
+// A `dray cluster` with workers (cli/tests/workers.rs).
+
+/// A `dray cluster --workers N` whose workers have all registered with its coordinator.
+/// Dropping it sends SIGTERM to the cluster (which stops its members), then SIGKILLs
+/// whatever is left, members included.
+pub struct WorkerCluster {
+    pub proc: Proc,
+    /// host:port of the coordinator.
+    pub addr: String,
+    pub coordinator_pid: i32,
+    pub worker_pids: Vec<i32>,
+    /// Everything the cluster and its members wrote to stderr so far.
+    pub log: std::sync::Arc<std::sync::Mutex<String>>,
+}
+
+/// Ports below the kernel's ephemeral range (32768..) so that outgoing connections of
+/// other tests cannot take them; each test passes its own `slot` (0..8), and the pid
+/// spreads concurrent test binaries apart. Five ports per slot (a coordinator, 4 workers).
+pub fn cluster_base_port(slot: u16, attempt: u32) -> u16 {
+    let spread = (std::process::id().wrapping_add(attempt.wrapping_mul(7919))) % 550;
+    10_000 + (spread as u16) * 40 + slot * 5
+}
+
+impl WorkerCluster {
+    /// Start `dray cluster --workers n` with `extra` cluster flags on a base port of
+    /// `slot`, and wait (up to 60 s) until every worker has registered.
+    pub fn start(n: u16, slot: u16, scene_root: &Path, extra: &[&str]) -> WorkerCluster {
+        assert!(slot < 8 && n <= 4, "eight slots of five ports");
+        let mut last_err = String::new();
+        for attempt in 0..8 {
+            let port = cluster_base_port(slot, attempt);
+            let ports_free =
+                (0..=n).all(|i| std::net::TcpListener::bind(("127.0.0.1", port + i)).is_ok());
+            if !ports_free {
+                last_err = format!("ports {port}..={} not all free", port + n);
+                continue;
+            }
+            match WorkerCluster::try_start(n, port, scene_root, extra) {
+                Ok(c) => return c,
+                Err(e) if e.contains("already in use") => last_err = e,
+                Err(e) => panic!("dray cluster --workers {n} did not start: {e}"),
+            }
+        }
+        panic!("dray cluster --workers {n}: no free ports: {last_err}");
+    }
+
+    fn try_start(
+        n: u16,
+        port: u16,
+        scene_root: &Path,
+        extra: &[&str],
+    ) -> Result<WorkerCluster, String> {
+        use std::io::Read;
+        use std::sync::{Arc, Mutex};
+        let mut cmd = dray();
+        cmd.args(["cluster", "--workers", &n.to_string()])
+            .args(["--base-port", &port.to_string(), "--scene-root"])
+            .arg(scene_root)
+            .args(extra)
+            // Registrations are logged at info: that is how readiness is seen from here.
+            .env("DRAY_LOG", "warn,dray_coordinator::membership=info")
+            .env("NO_COLOR", "1")
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped());
+        let mut proc = Proc::spawn(cmd);
+        let log = Arc::new(Mutex::new(String::new()));
+        {
+            let mut err = proc.child.stderr.take().expect("cluster stderr");
+            let log = log.clone();
+            std::thread::spawn(move || {
+                let mut buf = [0u8; 4096];
+                while let Ok(k) = err.read(&mut buf) {
+                    if k == 0 {
+                        break;
+                    }
+                    log.lock()
+                        .unwrap_or_else(|p| p.into_inner())
+                        .push_str(&String::from_utf8_lossy(&buf[..k]));
+                }
+            });
+        }
+        let stdout = proc.child.stdout.take().expect("cluster stdout");
+        let mut lines = Vec::new();
+        for line in BufReader::new(stdout).lines() {
+            let Ok(line) = line else { break };
+            let ready = line.starts_with("dray cluster ready");
+            lines.push(line);
+            if ready {
+                break;
+            }
+        }
+        let text = |log: &Arc<Mutex<String>>| log.lock().unwrap_or_else(|p| p.into_inner()).clone();
+        if !lines
+            .last()
+            .is_some_and(|l| l.starts_with("dray cluster ready"))
+        {
+            let _ = proc.wait_timeout(10.0);
+            return Err(format!("stdout {lines:?}, stderr {}", text(&log)));
+        }
+        let pid_of = |name: &str| -> i32 {
+            lines
+                .iter()
+                .find(|l| l.starts_with(name))
+                .and_then(|l| l.rsplit(' ').next())
+                .and_then(|p| p.parse().ok())
+                .unwrap_or_else(|| panic!("no pid for {name} in {lines:?}"))
+        };
+        let coordinator_pid = pid_of("coordinator ");
+        let worker_pids = (1..=n).map(|i| pid_of(&format!("worker {i} "))).collect();
+        let c = WorkerCluster {
+            proc,
+            addr: format!("127.0.0.1:{port}"),
+            coordinator_pid,
+            worker_pids,
+            log,
+        };
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+        loop {
+            let registered = c.log().matches("worker registered").count();
+            if registered >= usize::from(n) {
+                return Ok(c);
+            }
+            if std::time::Instant::now() >= deadline {
+                panic!(
+                    "{registered} of {n} workers registered within 60 s; log:\n{}",
+                    c.log()
+                );
+            }
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+    }
+
+    /// The stderr of the cluster and its members so far.
+    pub fn log(&self) -> String {
+        self.log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    /// Every member is still running.
+    pub fn all_alive(&self) -> bool {
+        alive(self.coordinator_pid) && self.worker_pids.iter().all(|&p| alive(p))
+    }
+}
+
+impl Drop for WorkerCluster {
+    fn drop(&mut self) {
+        self.proc.signal(libc::SIGTERM);
+        if self.proc.wait_timeout(15.0).is_none() {
+            let _ = self.proc.child.kill();
+        }
+        for &pid in std::iter::once(&self.coordinator_pid).chain(&self.worker_pids) {
+            if alive(pid) {
+                // SAFETY: kill(2) on a member of the cluster this test started (best
+                // effort; the cluster already had its chance to stop it).
+                unsafe {
+                    libc::kill(pid, libc::SIGKILL);
+                }
+            }
+        }
+    }
+}
+
+/// A line of /proc/PID/status in kB (VmHWM, VmRSS, ...).
+pub fn proc_status_kb(pid: i32, field: &str) -> Option<u64> {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    s.lines()
+        .find(|l| l.starts_with(field) && l[field.len()..].starts_with(':'))?
+        .split_whitespace()
+        .nth(1)?
+        .parse()
+        .ok()
+}
+
+/// CPU time (user + system) of `pid` in clock ticks.
+pub fn cpu_ticks(pid: i32) -> Option<u64> {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    let rest = s.rsplit(')').next()?;
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    // After the name: state(0) ... utime(11) stime(12).
+    Some(f.get(11)?.parse::<u64>().ok()? + f.get(12)?.parse::<u64>().ok()?)
+}
