@@ -322,15 +322,15 @@ pub async fn serve(
     let cluster_api = ClusterServiceServer::new(ClusterApi {
         cluster: coordinator.cluster.clone(),
     });
-    let reflection = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(dray_proto::FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-        .build_v1()
+    let reflection =
+        dray_proto::reflection::reflection_v1().expect("the built-in descriptor sets are valid");
+    let reflection_alpha = dray_proto::reflection::reflection_v1alpha()
         .expect("the built-in descriptor sets are valid");
     let render = RenderServiceServer::new(coordinator).max_encoding_message_size(usize::MAX);
     let served = tonic::transport::Server::builder()
         .add_service(health_service)
         .add_service(reflection)
+        .add_service(reflection_alpha)
         .add_service(render)
         .add_service(cluster_api)
         .serve_with_incoming_shutdown(

@@ -10,6 +10,7 @@
 //! - [`ray_record`]: the packed 64-byte ray record that `RayBatch.records` carries.
 
 pub mod ray_record;
+pub mod reflection;
 
 pub use ray_record::{
     RAY_RECORD_BYTES, RAY_RECORD_FORMAT, RayRecord, RecordError, decode_rays, encode_rays,

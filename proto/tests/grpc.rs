@@ -157,11 +157,7 @@ async fn reflection_and_health_on_a_live_server() {
     health_reporter
         .set_serving::<RenderServiceServer<NoJobs>>()
         .await;
-    let reflection = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(dray_proto::FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-        .build_v1()
-        .unwrap();
+    let reflection = dray_proto::reflection::reflection_v1().unwrap();
     let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
     let server = tokio::spawn(
         tonic::transport::Server::builder()

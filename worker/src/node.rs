@@ -252,10 +252,9 @@ pub async fn run(
     health_reporter
         .set_serving::<dray_proto::v1::ray_exchange_service_server::RayExchangeServiceServer<PeerServer>>()
         .await;
-    let reflection = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(dray_proto::FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-        .build_v1()
+    let reflection =
+        dray_proto::reflection::reflection_v1().map_err(|e| NodeError::Serve(e.to_string()))?;
+    let reflection_alpha = dray_proto::reflection::reflection_v1alpha()
         .map_err(|e| NodeError::Serve(e.to_string()))?;
     let peer_server = PeerServer::new(
         queues.clone(),
@@ -270,6 +269,7 @@ pub async fn run(
         tonic::transport::Server::builder()
             .add_service(health_service)
             .add_service(reflection)
+            .add_service(reflection_alpha)
             .add_service(peer_server.into_service())
             .serve_with_incoming_shutdown(
                 tonic::transport::server::TcpIncoming::from(listener),
