@@ -189,7 +189,7 @@ impl DomainTree {
         }
         // The first span starts at the ray's own tmin (exclusive) when the origin is inside.
         let start = if t0 <= tmin { tmin } else { t0 };
-        let mut stack: Vec<(u32, f32, f32)> = Vec::with_capacity(16);
+        let mut stack = WalkStack::new();
         stack.push((0, start, t1));
         while let Some((n, a, b)) = stack.pop() {
             match self.nodes.get(n as usize) {
@@ -315,5 +315,46 @@ impl DomainTree {
             }
         });
         found
+    }
+}
+
+/// The walk's stack of (node, t0, t1): on the call stack while it is as deep as any
+/// balanced tree of 2^32 domains gets, on the heap only beyond. A walk runs once or twice
+/// for every ray a worker traces, so it must not allocate.
+struct WalkStack {
+    inline: [(u32, f32, f32); 34],
+    len: usize,
+    spill: Vec<(u32, f32, f32)>,
+}
+
+impl WalkStack {
+    fn new() -> WalkStack {
+        WalkStack {
+            inline: [(0, 0.0, 0.0); 34],
+            len: 0,
+            spill: Vec::new(),
+        }
+    }
+
+    #[inline]
+    fn push(&mut self, e: (u32, f32, f32)) {
+        if self.len < self.inline.len() {
+            self.inline[self.len] = e;
+            self.len += 1;
+        } else {
+            self.spill.push(e);
+        }
+    }
+
+    #[inline]
+    fn pop(&mut self) -> Option<(u32, f32, f32)> {
+        if let Some(e) = self.spill.pop() {
+            return Some(e);
+        }
+        if self.len == 0 {
+            return None;
+        }
+        self.len -= 1;
+        Some(self.inline[self.len])
     }
 }

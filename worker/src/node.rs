@@ -53,6 +53,8 @@ pub const VERSION: &str = env!("CARGO_PKG_VERSION");
 const CAMERA_CHUNK: u64 = 4096;
 /// How often accumulated results are reported.
 const REPORT_INTERVAL: Duration = Duration::from_millis(10);
+/// Contributions per ReportContributions message: about 2 MB, half gRPC's default limit.
+const MAX_SUMS_PER_REPORT: usize = 64 * 1024;
 /// How often queue lengths are reported (the scheduler's input).
 const QUEUE_REPORT_INTERVAL: Duration = Duration::from_millis(250);
 
@@ -114,8 +116,8 @@ pub enum NodeError {
 /// Results of one job waiting to be reported.
 #[derive(Default)]
 struct Report {
-    sums: HashMap<u32, [i64; 3]>,
-    credits: HashMap<u32, u64>,
+    sums: Vec<(u32, [i64; 3])>,
+    credits: Vec<(u32, u64)>,
     traced: [u64; RayKind::COUNT],
     nonfinite: u64,
     bytes: u64,
@@ -662,15 +664,10 @@ impl Node {
             }
         }
         let mut r = lock(&job.report);
-        for (p, v) in out.sums {
-            let s = r.sums.entry(p).or_insert([0; 3]);
-            for c in 0..3 {
-                s[c] = s[c].wrapping_add(v[c]);
-            }
-        }
-        for (t, c) in out.credits {
-            *r.credits.entry(t).or_insert(0) += c;
-        }
+        let mut sums = out.sums;
+        r.sums.append(&mut sums);
+        let mut credits = out.credits;
+        r.credits.append(&mut credits);
         for (k, n) in out.traced.iter().enumerate() {
             r.traced[k] += n;
         }
@@ -816,31 +813,59 @@ impl Node {
         }
     }
 
+    /// Send what `job` accumulated. Contributions go in chunks that stay well inside
+    /// gRPC's message limit; the credit travels in the last one, so no credit reaches
+    /// the coordinator before the contributions of the same rays.
     async fn report(&self, job: &Arc<Job>) {
-        let report = std::mem::take(&mut *lock(&job.report));
+        let mut report = std::mem::take(&mut *lock(&job.report));
         if report.is_empty() {
             return;
         }
-        let sequence = job.sequence.fetch_add(1, Ordering::Relaxed) + 1;
-        let mut pixels: Vec<u32> = report.sums.keys().copied().collect();
-        pixels.sort_unstable();
-        let sums = pixels
-            .iter()
-            .flat_map(|p| report.sums.get(p).copied().unwrap_or([0; 3]))
-            .collect();
-        let mut credits: Vec<TileCredit> = report
-            .credits
-            .iter()
-            .map(|(&tile, &credit)| TileCredit { tile, credit })
-            .collect();
-        credits.sort_unstable_by_key(|c| c.tile);
-        let t = report.traced;
-        let request = ReportContributionsRequest {
+        while report.sums.len() > MAX_SUMS_PER_REPORT {
+            let rest = report.sums.split_off(MAX_SUMS_PER_REPORT);
+            let chunk = std::mem::replace(&mut report.sums, rest);
+            let request = self.request(job, chunk, Vec::new(), [0; RayKind::COUNT], 0, 0, None);
+            if !self.send_report(job, request).await {
+                return;
+            }
+        }
+        report.credits.sort_unstable_by_key(|c| c.0);
+        let mut credits: Vec<TileCredit> = Vec::new();
+        for (tile, credit) in report.credits {
+            match credits.last_mut() {
+                Some(c) if c.tile == tile => c.credit += credit,
+                _ => credits.push(TileCredit { tile, credit }),
+            }
+        }
+        let request = self.request(
+            job,
+            report.sums,
+            credits,
+            report.traced,
+            report.nonfinite,
+            report.bytes,
+            report.failure,
+        );
+        self.send_report(job, request).await;
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn request(
+        &self,
+        job: &Job,
+        sums: Vec<(u32, [i64; 3])>,
+        credits: Vec<TileCredit>,
+        t: [u64; RayKind::COUNT],
+        nonfinite: u64,
+        bytes: u64,
+        failure: Option<String>,
+    ) -> ReportContributionsRequest {
+        ReportContributionsRequest {
             worker_id: self.id.clone(),
             job_id: job.id.to_string(),
-            sequence,
-            pixels,
-            sums,
+            sequence: job.sequence.fetch_add(1, Ordering::Relaxed) + 1,
+            pixels: sums.iter().map(|(p, _)| *p).collect(),
+            sums: sums.iter().flat_map(|(_, v)| *v).collect(),
             credits,
             traced: Some(RayCounts {
                 camera: t[RayKind::Camera as usize],
@@ -850,19 +875,24 @@ impl Node {
                 diffuse: t[RayKind::Diffuse as usize],
                 ambient_occlusion: t[RayKind::AmbientOcclusion as usize],
             }),
-            nonfinite: report.nonfinite,
-            ray_bytes_sent: report.bytes,
-            failure: report.failure.unwrap_or_default(),
-        };
+            nonfinite,
+            ray_bytes_sent: bytes,
+            failure: failure.unwrap_or_default(),
+        }
+    }
+
+    /// Send one report, retrying with the same sequence number (the coordinator applies
+    /// it once). False when the job is over or the coordinator cannot be reached.
+    async fn send_report(&self, job: &Arc<Job>, request: ReportContributionsRequest) -> bool {
         let mut client = self.client.clone();
-        // The same sequence number on every try: the coordinator applies it once.
         for attempt in 0..20u32 {
             match client.report_contributions(request.clone()).await {
                 Ok(r) => {
                     if !r.into_inner().job_active {
                         self.release(&job.id, "the coordinator says the job is over");
+                        return false;
                     }
-                    return;
+                    return true;
                 }
                 Err(s) => {
                     tracing::warn!(job = %job.id, attempt, "report failed: {}", s.message());
@@ -871,6 +901,7 @@ impl Node {
             }
         }
         tracing::error!(job = %job.id, "giving up reporting to the coordinator");
+        false
     }
 
     async fn report_queues(&self, job: &Arc<Job>) {

@@ -73,10 +73,12 @@ impl TileRef {
 /// Everything that comes out of tracing, to be reported or sent on.
 #[derive(Debug, Default)]
 pub struct Outbox {
-    /// Per pixel, the fixed-point sum of its contributions.
-    pub sums: HashMap<u32, [i64; 3]>,
-    /// Per tile, credit handed back by rays that terminated.
-    pub credits: HashMap<u32, u64>,
+    /// Contributions in fixed point, by pixel; a pixel may repeat (the coordinator's sums
+    /// are exact in any grouping, so nothing is summed here).
+    pub sums: Vec<(u32, [i64; 3])>,
+    /// Credit handed back by rays that terminated, by tile; a tile may repeat, but
+    /// consecutive returns to one tile share an entry.
+    pub credits: Vec<(u32, u64)>,
     /// Rays to trace next, by the domain they enter next.
     pub rays: HashMap<u32, Vec<RayRecord>>,
     /// Rays made here (camera rays and children), by kind: each ray is counted once,
@@ -103,19 +105,18 @@ impl Outbox {
 
     fn add(&mut self, pixel: u32, value: Vec3) {
         match to_fixed(value) {
-            Some(f) => {
-                let s = self.sums.entry(pixel).or_insert([0; 3]);
-                for c in 0..3 {
-                    s[c] = s[c].wrapping_add(f[c]);
-                }
-            }
+            Some(f) => self.sums.push((pixel, f)),
             None => self.nonfinite += 1,
         }
     }
 
     fn give_back(&mut self, tile: u32, credit: u64) {
-        if credit > 0 {
-            *self.credits.entry(tile).or_insert(0) += credit;
+        if credit == 0 {
+            return;
+        }
+        match self.credits.last_mut() {
+            Some((t, c)) if *t == tile => *c += credit,
+            _ => self.credits.push((tile, credit)),
         }
     }
 }
