@@ -249,6 +249,12 @@ pub async fn run(
         runtime: tokio::runtime::Handle::current(),
         config,
     });
+    let weak = Arc::downgrade(&node);
+    queues.on_data(move || {
+        if let Some(n) = weak.upgrade() {
+            n.notify();
+        }
+    });
 
     let (health_reporter, health_service) = tonic_health::server::health_reporter();
     health_reporter
@@ -574,8 +580,8 @@ impl Node {
         c.notify_all();
     }
 
-    /// One tracing thread: take work, trace it, hand the results on; sleep briefly when
-    /// there is none (peer batches arrive without a wake-up, so the wait is short).
+    /// One tracing thread: take work, trace it, hand the results on; sleep when there is
+    /// none, until new rays or tiles arrive (the timeout is only a safety net).
     fn tracer_thread(self: Arc<Self>, stopping: &AtomicBool) {
         let (m, c) = &self.wake;
         while !stopping.load(Ordering::Relaxed) {
@@ -585,7 +591,7 @@ impl Node {
                 None => {
                     let g = lock(m);
                     if *g == seen {
-                        let _ = c.wait_timeout(g, Duration::from_millis(1));
+                        let _ = c.wait_timeout(g, Duration::from_millis(50));
                     }
                 }
             }
@@ -763,6 +769,8 @@ impl Node {
                 Ok(())
             };
             self.outgoing.fetch_sub(n, Ordering::Relaxed);
+            // Room for camera rays again, perhaps.
+            self.notify();
             if let Err(e) = sent {
                 m.job.fail(format!(
                     "worker {}: cannot send rays to worker {worker_id} at {endpoint}: {e}",

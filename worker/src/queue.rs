@@ -65,6 +65,9 @@ pub struct RayQueues {
     space: Notify,
     /// Woken whenever rays enter a queue (work for waiting pops).
     data: Notify,
+    /// Called after every push, for consumers on plain threads (the worker's tracers)
+    /// that cannot await `data`.
+    on_data: std::sync::OnceLock<Box<dyn Fn() + Send + Sync>>,
 }
 
 impl RayQueues {
@@ -80,6 +83,7 @@ impl RayQueues {
             ),
             space: Notify::new(),
             data: Notify::new(),
+            on_data: std::sync::OnceLock::new(),
         }
     }
 
@@ -102,6 +106,11 @@ impl RayQueues {
         // A panic while holding the lock cannot leave a queue half-updated (every update
         // is a single push or pop), so a poisoned lock is still consistent.
         self.queues.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Have `f` called after every push that queues rays (once; later calls are ignored).
+    pub fn on_data(&self, f: impl Fn() + Send + Sync + 'static) {
+        let _ = self.on_data.set(Box::new(f));
     }
 
     /// Queue `batch` for `domain` if it fits now.
@@ -140,6 +149,9 @@ impl RayQueues {
             q.batches.push_back(batch);
             drop(queues);
             self.data.notify_waiters();
+            if let Some(f) = self.on_data.get() {
+                f();
+            }
         }
         Ok(())
     }
