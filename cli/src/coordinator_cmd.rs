@@ -23,13 +23,9 @@ use dray_coordinator::membership::HeartbeatConfig;
 const SHUTDOWN_GRACE: Duration = Duration::from_secs(2);
 
 /// Serve the render API; jobs run on the registered workers, or in this process while
-/// none is registered.
+/// none is registered. (The one-line help of `dray coordinator` is the doc comment of
+/// `Command::Coordinator` in main.rs, which clap puts over this one.)
 #[derive(Args, Debug)]
-#[command(
-    about = "Serve the dray.v1 render API (with reflection and health); jobs run on the \
-             registered workers, or in this process while none is registered",
-    long_about = None
-)]
 pub struct CoordinatorArgs {
     /// Address to serve gRPC on, e.g. 127.0.0.1:7070 (port 0 picks a free port).
     #[arg(long)]

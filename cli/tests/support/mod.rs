@@ -128,8 +128,8 @@ pub fn gone_within(pid: i32, secs: f64) -> bool {
 // ---------------------------------------------------------------------------------------
 // A `dray cluster` with workers (cli/tests/workers.rs).
 
-/// A `dray cluster --workers N` whose workers have all registered with its coordinator.
-/// Dropping it sends SIGTERM to the cluster (which stops its members), then SIGKILLs
+/// A `dray cluster --workers N` whose workers have all registered with its coordinator,
+/// with a 30 s heartbeat timeout unless the caller sets one. Dropping it sends SIGTERM to the cluster (which stops its members), then SIGKILLs
 /// whatever is left, members included.
 pub struct WorkerCluster {
     pub proc: Proc,
@@ -178,13 +178,18 @@ impl WorkerCluster {
         scene_root: &Path,
         extra: &[&str],
     ) -> Result<WorkerCluster, String> {
-        use std::io::Read;
         use std::sync::{Arc, Mutex};
         let mut cmd = dray();
         cmd.args(["cluster", "--workers", &n.to_string()])
             .args(["--base-port", &port.to_string(), "--scene-root"])
             .arg(scene_root)
-            .args(extra)
+            .args(extra);
+        // Tests share a small machine with builds and benchmarks: a worker whose beats
+        // arrive late must not fail a job here (the heartbeat test sets its own timeout).
+        if !extra.contains(&"--heartbeat-timeout-ms") {
+            cmd.args(["--heartbeat-timeout-ms", "30000"]);
+        }
+        cmd
             // Registrations are logged at info: that is how readiness is seen from here.
             .env("DRAY_LOG", "warn,dray_coordinator::membership=info")
             .env("NO_COLOR", "1")
@@ -192,22 +197,7 @@ impl WorkerCluster {
             .stdout(Stdio::piped())
             .stderr(Stdio::piped());
         let mut proc = Proc::spawn(cmd);
-        let log = Arc::new(Mutex::new(String::new()));
-        {
-            let mut err = proc.child.stderr.take().expect("cluster stderr");
-            let log = log.clone();
-            std::thread::spawn(move || {
-                let mut buf = [0u8; 4096];
-                while let Ok(k) = err.read(&mut buf) {
-                    if k == 0 {
-                        break;
-                    }
-                    log.lock()
-                        .unwrap_or_else(|p| p.into_inner())
-                        .push_str(&String::from_utf8_lossy(&buf[..k]));
-                }
-            });
-        }
+        let log = capture_stderr(&mut proc.child);
         let stdout = proc.child.stdout.take().expect("cluster stdout");
         let mut lines = Vec::new();
         for line in BufReader::new(stdout).lines() {
@@ -306,4 +296,24 @@ pub fn cpu_ticks(pid: i32) -> Option<u64> {
     let f: Vec<&str> = rest.split_whitespace().collect();
     // After the name: state(0) ... utime(11) stime(12).
     Some(f.get(11)?.parse::<u64>().ok()? + f.get(12)?.parse::<u64>().ok()?)
+}
+
+/// Collect a child's piped stderr on a thread, as it comes.
+pub fn capture_stderr(child: &mut Child) -> std::sync::Arc<std::sync::Mutex<String>> {
+    use std::io::Read;
+    let log = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
+    let mut err = child.stderr.take().expect("piped stderr");
+    let sink = log.clone();
+    std::thread::spawn(move || {
+        let mut buf = [0u8; 4096];
+        while let Ok(k) = err.read(&mut buf) {
+            if k == 0 {
+                break;
+            }
+            sink.lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .push_str(&String::from_utf8_lossy(&buf[..k]));
+        }
+    });
+    log
 }
