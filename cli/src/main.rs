@@ -6,6 +6,8 @@
 mod bench_rays;
 mod cluster_cmd;
 mod coordinator_cmd;
+mod embedded;
+mod job_flags;
 mod options;
 mod partition_cmd;
 mod render_cmd;

@@ -23,58 +23,14 @@ pub const MAX_SPP: u32 = 1 << 16;
 
 #[derive(Args, Debug)]
 pub struct RenderArgs {
-    /// A .gltf, .glb, .ply or .obj file, or a procedural scene: cornell, cornell:mirror,
-    /// cornell:glass, spheres:N, soup:N, grid:<scene>:XxYxZ, city:N, iso:<field>:<res>.
-    pub scene: String,
-    #[arg(long, default_value_t = 640)]
-    pub width: u32,
-    #[arg(long, default_value_t = 480)]
-    pub height: u32,
-    /// Samples per pixel.
-    #[arg(long, default_value_t = 16)]
-    pub spp: u32,
-    /// raycast | whitted | path | ao
-    #[arg(long, default_value = "path")]
-    pub integrator: String,
-    /// Maximum number of surface interactions along a path.
-    #[arg(long, default_value_t = 5)]
-    pub max_depth: u32,
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    /// A camera of the scene, by name or index (default: the first, or one framing the bounds).
-    #[arg(long)]
-    pub camera: Option<String>,
-    /// Constant environment radiance "R,G,B" (default: black with lights or emitters, 1.0 otherwise).
-    #[arg(long)]
-    pub env: Option<String>,
+    #[command(flatten)]
+    pub job: crate::job_flags::JobFlags,
     /// Worker threads (0 = all cores).
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
-    #[arg(long, default_value = "dray.png")]
-    pub output: PathBuf,
-    /// Also write linear radiance as OpenEXR.
-    #[arg(long)]
-    pub exr: Option<PathBuf>,
     /// Write run statistics as JSON.
     #[arg(long)]
     pub stats: Option<PathBuf>,
-    /// Force effects on or off, e.g. "+specular,-transmission" (names: direct_light,
-    /// specular, transmission, emission, textures, alpha, environment).
-    #[arg(long, allow_hyphen_values = true)]
-    pub effects: Option<String>,
-    /// Rays per hit for the ao integrator.
-    #[arg(long, default_value_t = 16)]
-    pub ao_samples: u32,
-    /// Occlusion distance for the ao integrator (default: unlimited).
-    #[arg(long)]
-    pub ao_distance: Option<f32>,
-    /// Exposure in stops for the PNG (radiance is scaled by 2^EV; the EXR stays linear).
-    /// Scenes in photometric units, such as a 68000-lux sun, want about -16.
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    pub exposure: f32,
-    /// Move the whole scene by "X,Y,Z" before rendering (tests precision far from the origin).
-    #[arg(long)]
-    pub translate: Option<String>,
     /// Cut the scene into N spatial domains, each with its own BVH, and walk every ray
     /// through them as workers will (the image is bit-identical to 1 domain).
     #[arg(long, default_value_t = 1)]
@@ -82,43 +38,51 @@ pub struct RenderArgs {
     /// Domain layout for --domains: a uniform grid or a kd split balanced by triangle count.
     #[arg(long, default_value = "kd")]
     pub layout: String,
-    /// No progress bar or summary table.
-    #[arg(long, short)]
-    pub quiet: bool,
+    /// Run the job on N worker actors in this process (with a coordinator, over loopback
+    /// gRPC, exactly as `dray cluster` does) instead of the single-process tile renderer;
+    /// the image is the same, bit for bit. 0: the tile renderer.
+    #[arg(long, default_value_t = 0)]
+    pub workers: usize,
 }
 
 fn check_args(a: &RenderArgs) -> Result<IntegratorKind> {
-    if a.width == 0 || a.height == 0 || a.width > MAX_SIDE || a.height > MAX_SIDE {
+    if a.job.width == 0 || a.job.height == 0 || a.job.width > MAX_SIDE || a.job.height > MAX_SIDE {
         bail!(
             "image size {}x{} is out of range (1..={MAX_SIDE} per side)",
-            a.width,
-            a.height
+            a.job.width,
+            a.job.height
         );
     }
-    if a.spp == 0 || a.spp > MAX_SPP {
-        bail!("--spp {} is out of range (1..={MAX_SPP})", a.spp);
+    if a.job.spp == 0 || a.job.spp > MAX_SPP {
+        bail!("--spp {} is out of range (1..={MAX_SPP})", a.job.spp);
     }
-    if a.max_depth == 0 || a.max_depth > 1024 {
-        bail!("--max-depth {} is out of range (1..=1024)", a.max_depth);
+    if a.job.max_depth == 0 || a.job.max_depth > 1024 {
+        bail!("--max-depth {} is out of range (1..=1024)", a.job.max_depth);
     }
-    if !a.exposure.is_finite() || a.exposure.abs() > 64.0 {
-        bail!("--exposure {} is out of range (-64..=64 stops)", a.exposure);
+    if !a.job.exposure.is_finite() || a.job.exposure.abs() > 64.0 {
+        bail!(
+            "--exposure {} is out of range (-64..=64 stops)",
+            a.job.exposure
+        );
     }
     if a.domains == 0 || a.domains > 65536 {
         bail!("--domains {} is out of range (1..=65536)", a.domains);
     }
-    if a.ao_samples == 0 || a.ao_samples > 4096 {
-        bail!("--ao-samples {} is out of range (1..=4096)", a.ao_samples);
+    if a.job.ao_samples == 0 || a.job.ao_samples > 4096 {
+        bail!(
+            "--ao-samples {} is out of range (1..=4096)",
+            a.job.ao_samples
+        );
     }
-    if let Some(d) = a.ao_distance
+    if let Some(d) = a.job.ao_distance
         && (d.is_nan() || d <= 0.0)
     {
         bail!("--ao-distance must be positive, got {d}");
     }
-    IntegratorKind::from_name(&a.integrator).with_context(|| {
+    IntegratorKind::from_name(&a.job.integrator).with_context(|| {
         format!(
             "unknown integrator {:?} (expected raycast, whitted, path or ao)",
-            a.integrator
+            a.job.integrator
         )
     })
 }
@@ -199,18 +163,20 @@ pub fn run(a: RenderArgs) -> Result<()> {
     let start = Instant::now();
     let integrator_kind = check_args(&a)?;
     let env_arg = a
+        .job
         .env
         .as_deref()
         .map(|s| parse_vec3("--env", s))
         .transpose()?;
     let translate = a
+        .job
         .translate
         .as_deref()
         .map(|s| parse_vec3("--translate", s))
         .transpose()?;
 
-    let mut scene =
-        dray_scene::load(&a.scene).with_context(|| format!("cannot load scene {:?}", a.scene))?;
+    let mut scene = dray_scene::load(&a.job.scene)
+        .with_context(|| format!("cannot load scene {:?}", a.job.scene))?;
     if let Some(t) = translate {
         scene.translate(t);
     }
@@ -220,31 +186,31 @@ pub fn run(a: RenderArgs) -> Result<()> {
     let load_time = start.elapsed();
     let environment = env_arg.unwrap_or_else(|| dray_scene::effects::default_environment(&scene));
     let mut effects = dray_scene::effects::analyze(&scene, environment);
-    if let Some(spec) = &a.effects {
+    if let Some(spec) = &a.job.effects {
         effects = apply_effects(effects, spec)?;
     }
-    let aspect = a.width as f32 / a.height as f32;
-    let camera = choose_camera(&scene, a.camera.as_deref(), aspect)?;
+    let aspect = a.job.width as f32 / a.job.height as f32;
+    let camera = choose_camera(&scene, a.job.camera.as_deref(), aspect)?;
 
     let build_start = Instant::now();
     let geometry = build_geometry(&scene, a.domains, &a.layout)?;
     let build_time = build_start.elapsed();
 
     let settings = RenderSettings {
-        width: a.width,
-        height: a.height,
-        spp: a.spp,
+        width: a.job.width,
+        height: a.job.height,
+        spp: a.job.spp,
         integrator: integrator_kind,
-        max_depth: a.max_depth,
-        seed: a.seed,
+        max_depth: a.job.max_depth,
+        seed: a.job.seed,
         environment,
         effects,
-        ao_samples: a.ao_samples,
-        ao_distance: a.ao_distance.unwrap_or(f32::INFINITY),
+        ao_samples: a.job.ao_samples,
+        ao_distance: a.job.ao_distance.unwrap_or(f32::INFINITY),
     };
     let integrator = Integrator::new(&scene, camera, settings);
-    let bar = (!a.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr())).then(|| {
-        let b = indicatif::ProgressBar::new(render::tiles(a.width, a.height).len() as u64);
+    let bar = (!a.job.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr())).then(|| {
+        let b = indicatif::ProgressBar::new(render::tiles(a.job.width, a.job.height).len() as u64);
         b.set_style(
             indicatif::ProgressStyle::with_template(
                 "{spinner} rendering [{bar:40}] {pos}/{len} tiles {elapsed} eta {eta}",
@@ -259,8 +225,16 @@ pub fn run(a: RenderArgs) -> Result<()> {
             b.set_position(done as u64);
         }
     };
-    let out: RenderOutput = {
-        let _span = tracing::info_span!("job", scene = %a.scene).entered();
+    let out: RenderOutput = if a.workers > 0 {
+        let _span = tracing::info_span!("job", scene = %a.job.scene, workers = a.workers).entered();
+        crate::embedded::render_on_actors(&a, a.workers, &|done, total| {
+            if let Some(b) = &bar {
+                b.set_length(total as u64);
+                b.set_position(done as u64);
+            }
+        })?
+    } else {
+        let _span = tracing::info_span!("job", scene = %a.job.scene).entered();
         render::render(&integrator, geometry.as_ref(), a.threads, &progress)
             .context("cannot start the thread pool")?
     };
@@ -268,11 +242,11 @@ pub fn run(a: RenderArgs) -> Result<()> {
         b.finish_and_clear();
     }
     out.film
-        .write_png(&a.output, a.spp, 2f32.powf(a.exposure))
-        .with_context(|| format!("cannot write {}", a.output.display()))?;
-    if let Some(p) = &a.exr {
+        .write_png(&a.job.output, a.job.spp, 2f32.powf(a.job.exposure))
+        .with_context(|| format!("cannot write {}", a.job.output.display()))?;
+    if let Some(p) = &a.job.exr {
         out.film
-            .write_exr(p, a.spp)
+            .write_exr(p, a.job.spp)
             .with_context(|| format!("cannot write {}", p.display()))?;
     }
     let threads = if a.threads == 0 {
@@ -281,7 +255,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         a.threads
     };
     let mut summary = Summary::new(
-        &a.scene,
+        &a.job.scene,
         &scene,
         &integrator.settings,
         &out,
@@ -295,7 +269,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         let json = serde_json::to_string_pretty(&summary).context("cannot encode statistics")?;
         std::fs::write(p, json + "\n").with_context(|| format!("cannot write {}", p.display()))?;
     }
-    if !a.quiet {
+    if !a.job.quiet {
         print_summary(&summary);
     }
     Ok(())

@@ -9,7 +9,6 @@
 //! applied at fetch time) is checked here, before anything is submitted.
 
 use std::io::IsTerminal;
-use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
@@ -17,56 +16,17 @@ use clap::Args;
 use dray_proto::v1::render_service_client::RenderServiceClient;
 use dray_proto::v1::{
     CancelJobRequest, GetImageRequest, GetJobRequest, ImageFormat, JobProgress, JobSpec, JobState,
-    Rgb, SubmitJobRequest, Vec3, WatchJobRequest,
+    SubmitJobRequest, WatchJobRequest,
 };
 use tonic::transport::{Channel, Endpoint};
 
-use crate::options::parse_vec3;
-
 #[derive(Args, Debug)]
 pub struct SubmitArgs {
+    #[command(flatten)]
+    pub job: crate::job_flags::JobFlags,
     /// The coordinator's gRPC address: host:port or http://host:port.
     #[arg(long)]
     pub coordinator: String,
-    /// A scene file or package path relative to the coordinator's --scene-root (it is
-    /// read by the coordinator, not by this command), or a procedural scene: cornell,
-    /// cornell:mirror, cornell:glass, spheres:N, soup:N, grid:<scene>:XxYxZ, city:N,
-    /// iso:<field>:<res>.
-    pub scene: String,
-    #[arg(long, default_value_t = 640)]
-    pub width: u32,
-    #[arg(long, default_value_t = 480)]
-    pub height: u32,
-    /// Samples per pixel.
-    #[arg(long, default_value_t = 16)]
-    pub spp: u32,
-    /// raycast | whitted | path | ao
-    #[arg(long, default_value = "path")]
-    pub integrator: String,
-    /// Maximum number of surface interactions along a path.
-    #[arg(long, default_value_t = 5)]
-    pub max_depth: u32,
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    /// A camera of the scene, by name or index (default: the first, or one framing the bounds).
-    #[arg(long)]
-    pub camera: Option<String>,
-    /// Constant environment radiance "R,G,B" (default: black with lights or emitters, 1.0 otherwise).
-    #[arg(long)]
-    pub env: Option<String>,
-    /// Force effects on or off, e.g. "+specular,-transmission" (names: direct_light,
-    /// specular, transmission, emission, textures, alpha, environment).
-    #[arg(long, allow_hyphen_values = true)]
-    pub effects: Option<String>,
-    /// Rays per hit for the ao integrator.
-    #[arg(long, default_value_t = 16)]
-    pub ao_samples: u32,
-    /// Occlusion distance for the ao integrator (default: unlimited).
-    #[arg(long)]
-    pub ao_distance: Option<f32>,
-    /// Move the whole scene by "X,Y,Z" before rendering.
-    #[arg(long, allow_hyphen_values = true)]
-    pub translate: Option<String>,
     /// Spatial domains to cut the scene into (default: the coordinator chooses; ignored
     /// for scene packages, which carry their own).
     #[arg(long)]
@@ -77,18 +37,6 @@ pub struct SubmitArgs {
     /// A label shown by ListJobs; no effect on the image.
     #[arg(long)]
     pub label: Option<String>,
-    /// Exposure in stops for the PNG (applied when the image is fetched; the EXR stays linear).
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    pub exposure: f32,
-    /// 8-bit sRGB PNG to write.
-    #[arg(long, default_value = "dray.png")]
-    pub output: PathBuf,
-    /// Also write linear radiance as OpenEXR.
-    #[arg(long)]
-    pub exr: Option<PathBuf>,
-    /// No progress bar or progress lines.
-    #[arg(long, short)]
-    pub quiet: bool,
 }
 
 /// `host:port` or `http://host:port` as the URL tonic wants. Plaintext only: dray's
@@ -111,47 +59,14 @@ pub fn endpoint_url(addr: &str) -> Result<String> {
     Ok(url)
 }
 
-/// The job spec the flags describe. `max_depth` and `ao_samples` are always sent (with
-/// `dray render`'s defaults), so the job does not depend on the server's defaults.
+/// The job spec the flags describe.
 fn job_spec(a: &SubmitArgs) -> Result<JobSpec> {
-    let env = a
-        .env
-        .as_deref()
-        .map(|s| parse_vec3("--env", s))
-        .transpose()?
-        .map(|v| Rgb {
-            r: v.x,
-            g: v.y,
-            b: v.z,
-        });
-    let translate = a
-        .translate
-        .as_deref()
-        .map(|s| parse_vec3("--translate", s))
-        .transpose()?
-        .map(|v| Vec3 {
-            x: v.x,
-            y: v.y,
-            z: v.z,
-        });
-    Ok(JobSpec {
-        scene: a.scene.clone(),
-        width: a.width,
-        height: a.height,
-        spp: a.spp,
-        integrator: a.integrator.clone(),
-        max_depth: Some(a.max_depth),
-        seed: a.seed,
-        camera: a.camera.clone(),
-        env,
-        effects: a.effects.clone().unwrap_or_default(),
-        ao_samples: Some(a.ao_samples),
-        ao_distance: a.ao_distance,
-        translate,
-        domains: a.domains.unwrap_or(0),
-        layout: a.layout.clone().unwrap_or_default(),
-        label: a.label.clone().unwrap_or_default(),
-    })
+    a.job.job_spec(
+        a.job.scene.clone(),
+        a.domains.unwrap_or(0),
+        a.layout.as_deref().unwrap_or_default(),
+        a.label.as_deref().unwrap_or_default(),
+    )
 }
 
 /// A gRPC failure as one line: what was being done and what the server said.
@@ -171,8 +86,11 @@ fn rpc_error(what: &str, url: &str, s: tonic::Status) -> anyhow::Error {
 
 pub fn run(a: SubmitArgs) -> Result<()> {
     let spec = job_spec(&a)?;
-    if !a.exposure.is_finite() || a.exposure.abs() > 64.0 {
-        bail!("--exposure {} is out of range (-64..=64 stops)", a.exposure);
+    if !a.job.exposure.is_finite() || a.job.exposure.abs() > 64.0 {
+        bail!(
+            "--exposure {} is out of range (-64..=64 stops)",
+            a.job.exposure
+        );
     }
     let url = endpoint_url(&a.coordinator)?;
     let rt = tokio::runtime::Builder::new_current_thread()
@@ -222,13 +140,13 @@ async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
     }
     .map_err(|s| rpc_error("SubmitJob", &url, s))?;
     let id = response.into_inner().job_id;
-    if !a.quiet {
+    if !a.job.quiet {
         eprintln!("dray submit: job {id} accepted by {url}");
     }
 
     let watcher = client.clone();
     let last = tokio::select! {
-        r = watch(watcher, &id, &url, a.quiet) => r?,
+        r = watch(watcher, &id, &url, a.job.quiet) => r?,
         _ = tokio::signal::ctrl_c() => {
             cancel(&mut client, &id).await;
             bail!("interrupted: job {id} cancelled");
@@ -241,14 +159,14 @@ async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
         other => bail!("job {id} ended in unexpected state {}", other.as_str_name()),
     }
 
-    let png = fetch(&mut client, &id, ImageFormat::Png, a.exposure, &url).await?;
-    std::fs::write(&a.output, &png)
-        .with_context(|| format!("cannot write {}", a.output.display()))?;
-    if let Some(path) = &a.exr {
+    let png = fetch(&mut client, &id, ImageFormat::Png, a.job.exposure, &url).await?;
+    std::fs::write(&a.job.output, &png)
+        .with_context(|| format!("cannot write {}", a.job.output.display()))?;
+    if let Some(path) = &a.job.exr {
         let exr = fetch(&mut client, &id, ImageFormat::Exr, 0.0, &url).await?;
         std::fs::write(path, &exr).with_context(|| format!("cannot write {}", path.display()))?;
     }
-    if !a.quiet {
+    if !a.job.quiet {
         let secs = last
             .elapsed
             .map(|d| d.seconds as f64 + f64::from(d.nanos) * 1e-9)
@@ -256,8 +174,9 @@ async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
         eprintln!(
             "dray submit: job {id} done in {secs:.2} s, {} rays traced; wrote {}{}",
             last.rays_traced,
-            a.output.display(),
-            a.exr
+            a.job.output.display(),
+            a.job
+                .exr
                 .as_ref()
                 .map(|p| format!(" and {}", p.display()))
                 .unwrap_or_default()

@@ -88,3 +88,61 @@ fn partition_writes_a_package_and_rejects_bad_input() {
     assert_eq!(err.lines().count(), 1, "{err}");
     assert!(err.starts_with("dray: error:"), "{err}");
 }
+
+/// `dray render --workers N` runs the job on in-process worker actors (coordinator,
+/// package, gRPC ray streams, credit, reports): the image is the tile renderer's, bit for
+/// bit, and the rays counted by kind are the same.
+#[test]
+fn in_process_actors_give_the_tile_renderers_bits() {
+    let d = tmp("actors");
+    for (scene, integ, extra) in [
+        (
+            "cornell:glass",
+            "path",
+            &["--domains", "6", "--layout", "kd"][..],
+        ),
+        (
+            "cornell:mirror",
+            "whitted",
+            &["--domains", "4", "--layout", "grid"][..],
+        ),
+        ("city:3", "ao", &[][..]),
+        ("spheres:40", "raycast", &["--domains", "5"][..]),
+    ] {
+        let args = [
+            &[
+                "--width",
+                "56",
+                "--height",
+                "40",
+                "--spp",
+                "2",
+                "--integrator",
+                integ,
+            ][..],
+            extra,
+        ]
+        .concat();
+        let one = render(&d, "tiles", scene, &args);
+        assert!(one.ok, "{}", one.stderr);
+        let reference = std::fs::read(one.png.unwrap()).unwrap();
+        let rays = |stats: &Option<serde_json::Value>| stats.as_ref().unwrap()["rays"].clone();
+        let reference_rays = rays(&one.stats);
+        assert!(reference_rays.is_object(), "{:?}", one.stats);
+        for workers in ["1", "3"] {
+            let r = render(
+                &d,
+                "actors",
+                scene,
+                &[&args[..], &["--workers", workers]].concat(),
+            );
+            assert!(r.ok, "{scene} {workers} workers: {}", r.stderr);
+            let png = std::fs::read(r.png.clone().unwrap()).unwrap();
+            assert!(
+                png == reference,
+                "{scene} {integ} on {workers} in-process workers differs from the tile renderer"
+            );
+            assert_eq!(rays(&r.stats), reference_rays, "{scene} rays");
+        }
+    }
+}

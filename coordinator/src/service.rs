@@ -69,6 +69,12 @@ impl Coordinator {
         &self.scene_root
     }
 
+    /// A job's entry (state, progress, film), for a process that hosts the coordinator
+    /// itself (the embedded mode) and reads the result without a GetImage round trip.
+    pub fn job_entry(&self, id: &str) -> Option<Arc<JobEntry>> {
+        self.table.get(id)
+    }
+
     fn job(&self, id: &str) -> Result<Arc<JobEntry>, Status> {
         self.table
             .get(id)

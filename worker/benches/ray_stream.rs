@@ -63,6 +63,7 @@ fn ray_stream(c: &mut Criterion) {
             PeerServerConfig {
                 worker_id: "bench".into(),
                 stream_window: WINDOW,
+                ..PeerServerConfig::default()
             },
         )
         .into_service();

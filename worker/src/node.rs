@@ -268,6 +268,7 @@ pub async fn run(
         queues.clone(),
         PeerServerConfig {
             worker_id: id.clone(),
+            accept_unknown_domains: true,
             ..PeerServerConfig::default()
         },
     );
@@ -313,8 +314,11 @@ pub async fn run(
         let _ = t.join();
     }
     reporter.abort();
-    match server.await {
-        Ok(Err(e)) if result.is_ok() => return Err(NodeError::Serve(e.to_string())),
+    // End the streams to peers, so their servers can stop too, and give our own server
+    // a moment to finish its streams before it is dropped.
+    lock(&node.peers).clear();
+    match tokio::time::timeout(Duration::from_secs(2), server).await {
+        Ok(Ok(Err(e))) if result.is_ok() => return Err(NodeError::Serve(e.to_string())),
         _ => {}
     }
     result
@@ -401,7 +405,6 @@ impl Node {
 
     async fn setup(self: &Arc<Self>, setup: JobSetup) {
         let job_id = setup.job_id.clone();
-        let _span = tracing::info_span!("job_setup", job = %job_id).entered();
         let Some(routing) = setup.routing.clone() else {
             self.report_setup_failure(&job_id, "job setup has no routing table".into())
                 .await;
@@ -449,6 +452,7 @@ impl Node {
             active: AtomicBool::new(true),
         });
         tracing::info!(
+            job = %job.id,
             triangles = job.tracer.resident().scene.mesh.indices.len(),
             domains = job.tracer.resident().domains.len(),
             "job loaded"

@@ -41,6 +41,9 @@ pub struct PeerServerConfig {
     /// Rays a sender may have in flight on one stream (queued-but-unacknowledged plus on
     /// the wire). Clamped to the queue capacity, so one batch always fits a queue.
     pub stream_window: u64,
+    /// Queue rays for domains that have no queue yet (their job's setup may still be on
+    /// its way here) instead of refusing the stream.
+    pub accept_unknown_domains: bool,
 }
 
 impl Default for PeerServerConfig {
@@ -48,6 +51,7 @@ impl Default for PeerServerConfig {
         PeerServerConfig {
             worker_id: String::new(),
             stream_window: 16 * 1024,
+            accept_unknown_domains: false,
         }
     }
 }
@@ -189,6 +193,7 @@ impl RayExchangeService for PeerServer {
         // Cannot fail: the receiver is alive and the buffer empty.
         let _ = tx.try_send(Ok(accept));
         let receiver = StreamReceiver {
+            accept_unknown_domains: self.config.accept_unknown_domains,
             queues: Arc::clone(&self.queues),
             granted: window,
             sent: 0,
@@ -202,6 +207,7 @@ impl RayExchangeService for PeerServer {
 
 /// The state of one incoming stream.
 struct StreamReceiver {
+    accept_unknown_domains: bool,
     queues: Arc<RayQueues>,
     /// Cumulative grant sent to the peer.
     granted: u64,
@@ -297,6 +303,11 @@ impl StreamReceiver {
                 granted: self.granted,
                 sent: self.sent,
             });
+        }
+        if !self.queues.owns(batch.domain) && self.accept_unknown_domains {
+            // A peer that loaded its job sooner than this worker received the job's
+            // setup: keep the rays; the tracer checks ownership per job when it pops.
+            self.queues.add_domain(batch.domain);
         }
         if !self.queues.owns(batch.domain) {
             // Forwarding to the domain's new owner needs the routing table; until the

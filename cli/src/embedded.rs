@@ -1,0 +1,172 @@
+//! `dray render --workers N`: the distributed actors, all in this process.
+//!
+//! A coordinator and N workers start on loopback ports inside one async runtime and run
+//! the job exactly as `dray cluster` would: the coordinator partitions the scene into a
+//! package, deals domains and tiles, the workers trace and stream rays to each other over
+//! gRPC, and the image is assembled from their reports. Only the submission skips the
+//! network (the coordinator's RenderService is called directly). So the embedded mode and
+//! a cluster share one code path, and the tests hold it to the same bits as the
+//! single-process tile renderer that `dray render` uses without `--workers`.
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use dray_coordinator::Coordinator;
+use dray_coordinator::cluster::ClusterOptions;
+use dray_core::integrator::RayKind;
+use dray_core::render::{RayCounts, RenderOutput};
+use dray_proto::v1::render_service_server::RenderService;
+use dray_proto::v1::{JobState, SubmitJobRequest};
+
+use crate::render_cmd::RenderArgs;
+
+/// A scene spec with its file paths made absolute, since the in-process coordinator
+/// resolves scenes against `/`. Procedural names pass unchanged; `grid:` specs have
+/// their inner scene resolved.
+fn absolute_scene(spec: &str) -> String {
+    if let Some(rest) = spec.strip_prefix("grid:")
+        && let Some((inner, dims)) = rest.rsplit_once(':')
+    {
+        return format!("grid:{}:{dims}", absolute_scene(inner));
+    }
+    match Path::new(spec).canonicalize() {
+        Ok(p) if p.is_file() || p.is_dir() => p.to_string_lossy().into_owned(),
+        _ => spec.to_string(),
+    }
+}
+
+/// Removes the in-process coordinator's work directory however the render ends.
+struct WorkDir(PathBuf);
+
+impl Drop for WorkDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// Render `a` on `workers` in-process worker actors; `progress` gets (tiles done, total).
+pub fn render_on_actors(
+    a: &RenderArgs,
+    workers: usize,
+    progress: &dyn Fn(usize, usize),
+) -> Result<RenderOutput> {
+    let spec = a.job.job_spec(
+        absolute_scene(&a.job.scene),
+        if a.domains > 1 { a.domains } else { 0 },
+        &a.layout,
+        "dray render --workers",
+    )?;
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let threads = if a.threads == 0 { cores } else { a.threads };
+    let per_worker = threads.div_ceil(workers).max(1);
+    let work_dir = WorkDir(std::env::temp_dir().join(format!(
+        "dray-embedded-{}-{}",
+        std::process::id(),
+        Instant::now().elapsed().as_nanos()
+    )));
+    let coordinator = Coordinator::new(Path::new("/"), threads)
+        .context("cannot start the coordinator")?
+        .with_cluster_options(ClusterOptions {
+            work_dir: work_dir.0.clone(),
+            ..ClusterOptions::default()
+        });
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    rt.block_on(async {
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let stopped = |mut rx: tokio::sync::watch::Receiver<bool>| async move {
+            let _ = rx.wait_for(|s| *s).await;
+        };
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+            .await
+            .context("cannot listen on a loopback port")?;
+        let addr = listener
+            .local_addr()
+            .context("cannot read the bound address")?;
+        let server = tokio::spawn(dray_coordinator::serve(
+            listener,
+            coordinator.clone(),
+            stopped(stop_rx.clone()),
+        ));
+        let mut nodes = Vec::new();
+        for _ in 0..workers {
+            let l = tokio::net::TcpListener::bind("127.0.0.1:0")
+                .await
+                .context("cannot listen on a loopback port")?;
+            let config = dray_worker::WorkerConfig {
+                coordinator: format!("http://{addr}"),
+                threads: per_worker,
+                ..dray_worker::WorkerConfig::default()
+            };
+            nodes.push(tokio::spawn(dray_worker::run(
+                config,
+                l,
+                stopped(stop_rx.clone()),
+            )));
+        }
+        let result = async {
+            let deadline = Instant::now() + Duration::from_secs(20);
+            while coordinator.cluster().membership.workers().len() < workers {
+                if Instant::now() > deadline {
+                    bail!("the in-process workers did not register within 20 s");
+                }
+                if let Some(n) = nodes.iter().position(|n| n.is_finished()) {
+                    bail!("in-process worker {} stopped while starting", n + 1);
+                }
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+            let start = Instant::now();
+            let id = RenderService::submit_job(
+                &coordinator,
+                tonic::Request::new(SubmitJobRequest { spec: Some(spec) }),
+            )
+            .await
+            .map_err(|s| anyhow::anyhow!("{}", s.message()))?
+            .into_inner()
+            .job_id;
+            let entry = coordinator
+                .job_entry(&id)
+                .context("the coordinator lost the job")?;
+            loop {
+                let p = entry.progress();
+                progress(p.tiles_done as usize, p.tiles_total as usize);
+                match JobState::try_from(p.state) {
+                    Ok(JobState::Succeeded) => break,
+                    Ok(JobState::Failed | JobState::Cancelled) => bail!("{}", p.error),
+                    _ => tokio::time::sleep(Duration::from_millis(10)).await,
+                }
+            }
+            let render_time = start.elapsed();
+            let film = entry.film().context("the job has no image")?;
+            let job = entry.to_job();
+            let r = job.stats.and_then(|s| s.rays).unwrap_or_default();
+            let mut rays = RayCounts::default();
+            rays.0[RayKind::Camera as usize] = r.camera;
+            rays.0[RayKind::Shadow as usize] = r.shadow;
+            rays.0[RayKind::Reflection as usize] = r.reflection;
+            rays.0[RayKind::Refraction as usize] = r.refraction;
+            rays.0[RayKind::Diffuse as usize] = r.diffuse;
+            rays.0[RayKind::AmbientOcclusion as usize] = r.ambient_occlusion;
+            Ok(RenderOutput {
+                film: (*film).clone(),
+                rays,
+                render_time,
+            })
+        }
+        .await;
+        let _ = stop_tx.send(true);
+        // The image is in hand: give the actors a moment to stop cleanly, no more.
+        let stop_all = async {
+            for n in nodes {
+                let _ = n.await;
+            }
+            let _ = server.await;
+        };
+        let _ = tokio::time::timeout(Duration::from_secs(5), stop_all).await;
+        result
+    })
+}

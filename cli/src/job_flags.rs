@@ -1,0 +1,117 @@
+//! The flags that describe a job's image, shared by `dray render` (which renders it here)
+//! and `dray submit` (which sends it to a coordinator), so the two take the same words
+//! and turn them into the same `dray.v1.JobSpec`.
+
+use anyhow::Result;
+use clap::Args;
+use dray_proto::v1::{JobSpec, Rgb, Vec3};
+
+use crate::options::parse_vec3;
+
+#[derive(Args, Debug, Clone)]
+pub struct JobFlags {
+    /// A .gltf, .glb, .ply or .obj file, or a procedural scene: cornell, cornell:mirror,
+    /// cornell:glass, spheres:N, soup:N, grid:<scene>:XxYxZ, city:N, iso:<field>:<res>.
+    /// With `dray submit`, paths are relative to the coordinator's --scene-root, and a
+    /// scene package directory works too.
+    pub scene: String,
+    #[arg(long, default_value_t = 640)]
+    pub width: u32,
+    #[arg(long, default_value_t = 480)]
+    pub height: u32,
+    /// Samples per pixel.
+    #[arg(long, default_value_t = 16)]
+    pub spp: u32,
+    /// raycast | whitted | path | ao
+    #[arg(long, default_value = "path")]
+    pub integrator: String,
+    /// Maximum number of surface interactions along a path.
+    #[arg(long, default_value_t = 5)]
+    pub max_depth: u32,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// A camera of the scene, by name or index (default: the first, or one framing the bounds).
+    #[arg(long)]
+    pub camera: Option<String>,
+    /// Constant environment radiance "R,G,B" (default: black with lights or emitters, 1.0 otherwise).
+    #[arg(long)]
+    pub env: Option<String>,
+    /// Force effects on or off, e.g. "+specular,-transmission" (names: direct_light,
+    /// specular, transmission, emission, textures, alpha, environment).
+    #[arg(long, allow_hyphen_values = true)]
+    pub effects: Option<String>,
+    /// Rays per hit for the ao integrator.
+    #[arg(long, default_value_t = 16)]
+    pub ao_samples: u32,
+    /// Occlusion distance for the ao integrator (default: unlimited).
+    #[arg(long)]
+    pub ao_distance: Option<f32>,
+    /// Move the whole scene by "X,Y,Z" before rendering (tests precision far from the origin).
+    #[arg(long, allow_hyphen_values = true)]
+    pub translate: Option<String>,
+    /// Exposure in stops for the PNG (radiance is scaled by 2^EV; the EXR stays linear).
+    /// Scenes in photometric units, such as a 68000-lux sun, want about -16.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub exposure: f32,
+    /// 8-bit sRGB PNG to write.
+    #[arg(long, default_value = "dray.png")]
+    pub output: std::path::PathBuf,
+    /// Also write linear radiance as OpenEXR.
+    #[arg(long)]
+    pub exr: Option<std::path::PathBuf>,
+    /// No progress bar or summary.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+impl JobFlags {
+    /// The job spec these flags describe, with `scene` as given. `max_depth` and
+    /// `ao_samples` are always sent (with `dray render`'s defaults), so the job does not
+    /// depend on a server's defaults.
+    pub fn job_spec(
+        &self,
+        scene: String,
+        domains: u32,
+        layout: &str,
+        label: &str,
+    ) -> Result<JobSpec> {
+        let env = self
+            .env
+            .as_deref()
+            .map(|s| parse_vec3("--env", s))
+            .transpose()?
+            .map(|v| Rgb {
+                r: v.x,
+                g: v.y,
+                b: v.z,
+            });
+        let translate = self
+            .translate
+            .as_deref()
+            .map(|s| parse_vec3("--translate", s))
+            .transpose()?
+            .map(|v| Vec3 {
+                x: v.x,
+                y: v.y,
+                z: v.z,
+            });
+        Ok(JobSpec {
+            scene,
+            width: self.width,
+            height: self.height,
+            spp: self.spp,
+            integrator: self.integrator.clone(),
+            max_depth: Some(self.max_depth),
+            seed: self.seed,
+            camera: self.camera.clone(),
+            env,
+            effects: self.effects.clone().unwrap_or_default(),
+            ao_samples: Some(self.ao_samples),
+            ao_distance: self.ao_distance,
+            translate,
+            domains,
+            layout: layout.to_string(),
+            label: label.to_string(),
+        })
+    }
+}
