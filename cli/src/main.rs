@@ -1,7 +1,8 @@
 //! `dray`: a distributed renderer for scenes larger than one machine's memory.
 //!
-//! This binary hosts the embedded mode (`dray render`, all actors in one process) and the
-//! ray-throughput benchmark (`dray bench-rays`).
+//! This binary hosts every actor: the embedded mode (`dray render`), the coordinator,
+//! the worker, a local cluster of processes, the job client (`dray submit`), the
+//! partitioner and the ray-throughput benchmark (`dray bench-rays`).
 
 mod bench_rays;
 mod cluster_cmd;
@@ -36,8 +37,8 @@ enum Command {
     BenchRays(bench_rays::BenchArgs),
     /// Cut a scene into domains and write a scene package (manifest + one file per domain).
     Partition(partition_cmd::PartitionArgs),
-    /// Serve the dray.v1.RenderService over gRPC (with reflection and health); jobs render
-    /// in this process for now (workers are not wired yet).
+    /// Serve the dray.v1 render API (with reflection and health); jobs run on the
+    /// registered workers, or in this process while none is registered.
     Coordinator(coordinator_cmd::CoordinatorArgs),
     /// Submit a job to a coordinator, follow its progress and write the image.
     Submit(submit_cmd::SubmitArgs),

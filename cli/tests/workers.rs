@@ -909,7 +909,6 @@ fn a_silent_worker_is_dropped_after_the_heartbeat_timeout() {
 /// `in_flight_limit` and no camera ray is ever made again: the next job stays RUNNING
 /// with 0 rays traced. Run with `--ignored` to reproduce.
 #[test]
-#[ignore = "worker bug: a surviving worker makes no camera rays after its peer was lost"]
 fn after_a_lost_worker_the_next_job_runs_on_the_worker_that_is_left() {
     let l = lose_a_worker("workers-after-lost");
     let text = || l.log.lock().unwrap_or_else(|p| p.into_inner()).clone();

@@ -1,9 +1,10 @@
 //! The job table: every job the server accepted, its state and progress, and the finished
 //! film (fixed-point sums, so GetImage can encode PNG at any exposure, or EXR).
 //!
-//! Jobs run one at a time, in submission order, in this process (workers are not wired
-//! yet): a job waits QUEUED for the render gate, builds its geometry (PREPARING), then
-//! traces tiles on a blocking thread (RUNNING). Cancellation is cooperative: a flag the
+//! With workers registered, a job runs on them (`dispatch`, `ledger`). With none, jobs
+//! run one at a time, in submission order, in this process: a job waits QUEUED for the
+//! render gate, builds its geometry (PREPARING), then traces tiles on a blocking thread
+//! (RUNNING). Cancellation is cooperative: a flag the
 //! render loop checks before each tile.
 
 use std::io::Cursor;

@@ -40,13 +40,14 @@ pub struct HeartbeatConfig {
 }
 
 impl Default for HeartbeatConfig {
-    /// One beat a second; five missed beats declare the worker lost. Long enough that a
-    /// worker busy building a BVH (its heartbeat runs on its own task) is not dropped,
-    /// short enough that a job does not hang for long on a dead machine.
+    /// One beat a second; twenty missed beats declare the worker lost. Long enough that a
+    /// worker on an overloaded machine (its tracing threads compete with the task that
+    /// beats) is not dropped mid-job, which fails the job; short enough that a job does
+    /// not hang for long on a dead machine.
     fn default() -> HeartbeatConfig {
         HeartbeatConfig {
             interval: Duration::from_secs(1),
-            timeout: Duration::from_secs(5),
+            timeout: Duration::from_secs(20),
         }
     }
 }

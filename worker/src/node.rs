@@ -149,6 +149,9 @@ struct Job {
     report: Mutex<Report>,
     sequence: AtomicU64,
     active: AtomicBool,
+    /// Rays of this job looped back or waiting for a peer. Counted per job, so rays
+    /// stuck on the way to a lost peer stop counting once their job is released.
+    outgoing: AtomicUsize,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -187,8 +190,6 @@ struct Node {
     /// Rays this worker sent to itself.
     local: Mutex<VecDeque<LocalBatch>>,
     peers: Mutex<HashMap<String, mpsc::UnboundedSender<PeerMessage>>>,
-    /// Rays looped back or waiting for a peer.
-    outgoing: AtomicUsize,
     /// Wakes idle tracing threads when work arrives.
     wake: (Mutex<u64>, Condvar),
     /// The async runtime, for tasks started from tracing threads (peer streams).
@@ -244,7 +245,6 @@ pub async fn run(
         parked: Mutex::new(Vec::new()),
         local: Mutex::new(VecDeque::new()),
         peers: Mutex::new(HashMap::new()),
-        outgoing: AtomicUsize::new(0),
         wake: (Mutex::new(0), Condvar::new()),
         runtime: tokio::runtime::Handle::current(),
         config,
@@ -346,7 +346,11 @@ async fn connect(config: &WorkerConfig) -> Result<Channel, NodeError> {
                     let mut message = e.to_string();
                     let mut source = std::error::Error::source(&e);
                     while let Some(s) = source {
-                        message = format!("{message}: {s}");
+                        // tonic's messages often repeat their source's text already.
+                        let text = s.to_string();
+                        if !message.contains(&text) {
+                            message = format!("{message}: {text}");
+                        }
                         source = s.source();
                     }
                     return Err(NodeError::Unreachable {
@@ -450,6 +454,7 @@ impl Node {
             report: Mutex::new(Report::default()),
             sequence: AtomicU64::new(0),
             active: AtomicBool::new(true),
+            outgoing: AtomicUsize::new(0),
         });
         tracing::info!(
             job = %job.id,
@@ -506,24 +511,25 @@ impl Node {
             job.active.store(false, Ordering::Relaxed);
         }
         lock(&self.parked).retain(|(_, b)| &*b.job_id != job_id);
-        let mut local = lock(&self.local);
-        let before: usize = local.iter().map(|(_, _, r)| r.len()).sum();
-        local.retain(|(j, _, _)| &*j.id != job_id);
-        let after: usize = local.iter().map(|(_, _, r)| r.len()).sum();
-        self.outgoing.fetch_sub(before - after, Ordering::Relaxed);
+        lock(&self.local).retain(|(j, _, _)| &*j.id != job_id);
+        self.notify();
     }
 
-    /// Rays waiting here in any form.
+    /// Rays waiting here in any form, for the jobs still running.
     fn in_flight(&self) -> usize {
         let queued: usize = self.queues.lengths().iter().map(|(_, n)| n).sum();
-        queued + self.outgoing.load(Ordering::Relaxed)
+        let outgoing: usize = lock(&self.jobs)
+            .values()
+            .map(|j| j.outgoing.load(Ordering::Relaxed))
+            .sum();
+        queued + outgoing
     }
 
     /// The next piece of work, if any: looped-back rays, then peers' batches, then
     /// camera rays.
     fn next_work(&self) -> Option<Work> {
         if let Some((job, d, rays)) = lock(&self.local).pop_front() {
-            self.outgoing.fetch_sub(rays.len(), Ordering::Relaxed);
+            job.outgoing.fetch_sub(rays.len(), Ordering::Relaxed);
             return Some(Work::Rays(job, d, rays));
         }
         // Parked batches whose job has arrived since.
@@ -647,7 +653,7 @@ impl Node {
                 ));
                 return;
             };
-            self.outgoing.fetch_add(n, Ordering::Relaxed);
+            job.outgoing.fetch_add(n, Ordering::Relaxed);
             if *owner == self.id {
                 lock(&self.local).push_back((job.clone(), d, rays));
                 looped = true;
@@ -667,7 +673,7 @@ impl Node {
                 })
                 .is_err()
             {
-                self.outgoing.fetch_sub(n, Ordering::Relaxed);
+                job.outgoing.fetch_sub(n, Ordering::Relaxed);
                 job.fail(format!(
                     "the stream to worker {owner} at {endpoint} is closed"
                 ));
@@ -767,12 +773,19 @@ impl Node {
                 domain: m.domain,
                 routing_version: m.job.routing_version,
             };
+            // A peer that stops granting room (it was lost) must not hold this stream
+            // forever: once the job is released, its rays are dropped with the stream.
             let sent = if m.job.active.load(Ordering::Relaxed) {
-                sender.send(&key, &m.rays, &[]).await
+                tokio::select! {
+                    r = sender.send(&key, &m.rays, &[]) => r.map_err(|e| e.to_string()),
+                    _ = released(&m.job) => {
+                        Err("the job was released while its rays waited for the peer".to_string())
+                    }
+                }
             } else {
                 Ok(())
             };
-            self.outgoing.fetch_sub(n, Ordering::Relaxed);
+            m.job.outgoing.fetch_sub(n, Ordering::Relaxed);
             // Room for camera rays again, perhaps.
             self.notify();
             if let Err(e) = sent {
@@ -780,7 +793,7 @@ impl Node {
                     "worker {}: cannot send rays to worker {worker_id} at {endpoint}: {e}",
                     self.id
                 ));
-                self.peer_failed(&mut rx, &endpoint, &worker_id, &e.to_string());
+                self.peer_failed(&mut rx, &endpoint, &worker_id, &e);
                 return;
             }
         }
@@ -797,7 +810,7 @@ impl Node {
         lock(&self.peers).remove(endpoint);
         rx.close();
         while let Ok(m) = rx.try_recv() {
-            self.outgoing.fetch_sub(m.rays.len(), Ordering::Relaxed);
+            m.job.outgoing.fetch_sub(m.rays.len(), Ordering::Relaxed);
             m.job.fail(format!(
                 "worker {}: cannot send rays to worker {worker_id} at {endpoint}: {error}",
                 self.id
@@ -989,6 +1002,14 @@ impl Node {
                 }
             }
         }
+    }
+}
+
+/// Resolves once `job` is released (polled: release is rare and this only runs while
+/// a send is blocked on a peer).
+async fn released(job: &Job) {
+    while job.active.load(Ordering::Relaxed) {
+        tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }
 

@@ -627,6 +627,31 @@ pub fn decode(text: &str, path: &Path) -> Result<Manifest> {
 }
 
 impl Manifest {
+    /// One listed binary file (`what` names it in messages): its name, checksum and counts.
+    fn check_entry(
+        &self,
+        what: &str,
+        e: &DomainEntry,
+        name: &str,
+    ) -> std::result::Result<(), String> {
+        if e.file != name {
+            return Err(format!(
+                "{what} is stored as {:?}, expected {name:?}",
+                e.file
+            ));
+        }
+        if from_hex(&e.xxh3).is_none() {
+            return Err(format!("{what}: malformed checksum {:?}", e.xxh3));
+        }
+        if e.triangles > self.source_triangles || e.vertices > 3 * e.triangles {
+            return Err(format!(
+                "{what}: {} triangles and {} vertices are impossible for a scene of {} triangles",
+                e.triangles, e.vertices, self.source_triangles
+            ));
+        }
+        Ok(())
+    }
+
     /// Internal consistency: every count, name and reference a reader will index with.
     pub fn check(&self) -> std::result::Result<(), String> {
         let n = self.layout.domain_count() as usize;
@@ -650,40 +675,11 @@ impl Manifest {
             ));
         }
         if let Some(e) = &self.emitters {
-            if e.file != EMITTERS_FILE {
-                return Err(format!(
-                    "the emitters are stored as {:?}, expected {EMITTERS_FILE:?}",
-                    e.file
-                ));
-            }
-            if from_hex(&e.xxh3).is_none() {
-                return Err(format!("emitters: malformed checksum {:?}", e.xxh3));
-            }
-            if e.triangles > self.source_triangles || e.vertices > 3 * e.triangles {
-                return Err(format!(
-                    "emitters: {} triangles and {} vertices are impossible for a scene of {} triangles",
-                    e.triangles, e.vertices, self.source_triangles
-                ));
-            }
+            self.check_entry("the emitters", e, EMITTERS_FILE)?;
         }
         let mut sum = 0u64;
         for (d, e) in self.domains.iter().enumerate() {
-            let name = domain_file_name(d as u32);
-            if e.file != name {
-                return Err(format!(
-                    "domain {d} is stored as {:?}, expected {name:?}",
-                    e.file
-                ));
-            }
-            if from_hex(&e.xxh3).is_none() {
-                return Err(format!("domain {d}: malformed checksum {:?}", e.xxh3));
-            }
-            if e.triangles > self.source_triangles || e.vertices > 3 * e.triangles {
-                return Err(format!(
-                    "domain {d}: {} triangles and {} vertices are impossible for a scene of {} triangles",
-                    e.triangles, e.vertices, self.source_triangles
-                ));
-            }
+            self.check_entry(&format!("domain {d}"), e, &domain_file_name(d as u32))?;
             sum += e.triangles;
         }
         if sum != self.assigned_triangles {
