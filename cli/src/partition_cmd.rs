@@ -9,7 +9,9 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::{ArgGroup, Args, ValueEnum};
-use dray_scene::partition::{LayoutSpec, write_scene_package};
+use dray_scene::partition::{
+    LayoutSpec, SceneParts, WriteOptions, write_package, write_scene_package,
+};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum LayoutArg {
@@ -60,13 +62,35 @@ pub fn layout_spec(a: &PartitionArgs) -> Result<LayoutSpec> {
 pub fn run(a: PartitionArgs) -> Result<()> {
     let start = Instant::now();
     let spec = layout_spec(&a)?;
-    let scene =
-        dray_scene::load(&a.scene).with_context(|| format!("cannot load scene {:?}", a.scene))?;
-    for w in &scene.stats.warnings {
+    let cannot_load = || format!("cannot load scene {:?}", a.scene);
+    // A grid is streamed copy by copy, so only its base model is ever in memory.
+    let stream =
+        dray_scene::procedural::stream(&a.scene, &dray_scene::load).with_context(cannot_load)?;
+    let scene = match &stream {
+        Some(_) => None,
+        None => Some(dray_scene::load(&a.scene).with_context(cannot_load)?),
+    };
+    let tables = match (&stream, &scene) {
+        (Some(g), _) => g.tables(),
+        (None, Some(s)) => s,
+        (None, None) => bail!("internal error: no scene"),
+    };
+    for w in &tables.stats.warnings {
         tracing::warn!("{w}");
     }
     let load_seconds = start.elapsed().as_secs_f64();
-    let s = write_scene_package(&a.out, &scene, &spec)
+    let written = match (&stream, &scene) {
+        (Some(g), _) => write_package(
+            &a.out,
+            SceneParts::of(g.tables()),
+            g,
+            &spec,
+            &WriteOptions::default(),
+        ),
+        (None, Some(s)) => write_scene_package(&a.out, s, &spec),
+        (None, None) => bail!("internal error: no scene"),
+    };
+    let s = written
         .with_context(|| format!("cannot write the scene package to {}", a.out.display()))?;
     let line = serde_json::json!({
         "package": a.out.display().to_string(),

@@ -5,7 +5,9 @@
 //! per axis, so they never touch and rays cross many copies.
 
 use dray_core::light::Light;
-use dray_core::scene::Scene;
+use dray_core::scene::{Mesh, Scene};
+
+use crate::partition::{SourceTriangle, TriangleSource};
 use glam::Vec3;
 
 use super::{MAX_TRIANGLES, frame, parse_count, spec_error};
@@ -37,11 +39,12 @@ fn parse_dims(spec: &str, text: &str) -> Result<[u64; 3]> {
     Ok(dims)
 }
 
-pub(super) fn generate(
+/// Check the spec, load the base scene, and describe the grid without making it.
+pub(super) fn plan(
     spec: &str,
     args: Option<&str>,
     load: &dyn Fn(&str) -> Result<Scene>,
-) -> Result<Scene> {
+) -> Result<GridSource> {
     let usage = "expected grid:<scene>:XxYxZ, e.g. grid:cornell:3x3x3";
     let mut nesting = 0;
     let mut rest = spec;
@@ -108,8 +111,22 @@ pub(super) fn generate(
     // A flat model (a single quad) would otherwise get zero spacing on its thin axis.
     let extent = (hi - lo).max(Vec3::splat((hi - lo).max_element() * 0.1));
     let step = extent * SPACING;
+    let offsets: Vec<Vec3> = (0..dims[2])
+        .flat_map(|iz| {
+            (0..dims[1]).flat_map(move |iy| {
+                (0..dims[0]).map(move |ix| Vec3::new(ix as f32, iy as f32, iz as f32) * step)
+            })
+        })
+        .collect();
+    // The grid's bounds without making it: rounding is monotonic, so the least p + o over
+    // a copy is exactly (least p) + o, and these are the bounds of the made mesh, bit for
+    // bit.
+    let (glo, ghi) = offsets.iter().fold(
+        (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+        |(a, b), o| (a.min(lo + *o), b.max(hi + *o)),
+    );
 
-    let mut scene = Scene {
+    let mut tables = Scene {
         name: spec.to_string(),
         materials: base.materials,
         textures: base.textures,
@@ -118,41 +135,89 @@ pub(super) fn generate(
         stats: base.stats,
         ..Scene::default()
     };
-    let mesh = &mut scene.mesh;
-    let n = base.mesh.positions.len();
-    mesh.positions.reserve(n * copies as usize);
-    mesh.normals.reserve(n * copies as usize);
-    mesh.tangents.reserve(n * copies as usize);
-    mesh.uvs.reserve(n * copies as usize);
-    mesh.indices
-        .reserve(base.mesh.indices.len() * copies as usize);
-    mesh.material
-        .reserve(base.mesh.material.len() * copies as usize);
-    for iz in 0..dims[2] {
-        for iy in 0..dims[1] {
-            for ix in 0..dims[0] {
-                let offset = Vec3::new(ix as f32, iy as f32, iz as f32) * step;
-                let start = mesh.positions.len();
-                // All copies share the model's materials, hence offset 0.
-                mesh.append(&base.mesh, 0);
-                for p in &mut mesh.positions[start..] {
-                    *p += offset;
-                }
-            }
-        }
-    }
-
     // Lights are kept once (at the first copy): replicating them would multiply the light
     // count with the grid and change the lighting problem, not just its size.
-    if scene.lights.is_empty() {
-        scene.lights.push(Light::Directional {
+    if tables.lights.is_empty() {
+        tables.lights.push(Light::Directional {
             direction: Vec3::new(-0.4, -1.0, -0.5).normalize(),
             irradiance: Vec3::splat(3.0),
         });
     }
-    let (lo, hi) = scene.bounds();
-    scene
+    tables
         .cameras
-        .push(frame("grid", lo, hi, Vec3::new(0.55, 0.45, 1.0), 40.0));
-    Ok(scene)
+        .push(frame("grid", glo, ghi, Vec3::new(0.55, 0.45, 1.0), 40.0));
+    Ok(GridSource {
+        base: base.mesh,
+        offsets,
+        tables,
+    })
+}
+
+/// A grid scene as a stream: the base mesh once and the copies' offsets. Partitioning
+/// reads it as a [`TriangleSource`], so a grid far larger than memory can be cut into a
+/// package; [`GridSource::into_scene`] makes the same scene in memory.
+pub struct GridSource {
+    base: Mesh,
+    /// One per copy, x fastest, then y, then z.
+    offsets: Vec<Vec3>,
+    /// Everything but the mesh: materials, textures, lights, the framing camera.
+    tables: Scene,
+}
+
+impl GridSource {
+    /// The scene without its triangles.
+    pub fn tables(&self) -> &Scene {
+        &self.tables
+    }
+
+    /// The whole grid in memory: copy `c` of base triangle `i` is triangle
+    /// `c * base_triangles + i`, as the stream numbers it.
+    pub fn into_scene(self) -> Scene {
+        let mut scene = self.tables;
+        let mesh = &mut scene.mesh;
+        let copies = self.offsets.len();
+        let n = self.base.positions.len();
+        mesh.positions.reserve(n * copies);
+        mesh.normals.reserve(n * copies);
+        mesh.tangents.reserve(n * copies);
+        mesh.uvs.reserve(n * copies);
+        mesh.indices.reserve(self.base.indices.len() * copies);
+        mesh.material.reserve(self.base.material.len() * copies);
+        for offset in &self.offsets {
+            let start = mesh.positions.len();
+            // All copies share the model's materials, hence offset 0.
+            mesh.append(&self.base, 0);
+            for p in &mut mesh.positions[start..] {
+                *p += *offset;
+            }
+        }
+        scene
+    }
+}
+
+impl TriangleSource for GridSource {
+    fn for_each_triangle(&self, f: &mut dyn FnMut(&SourceTriangle) -> Result<()>) -> Result<()> {
+        let per_copy = self.base.indices.len() as u64;
+        for (c, offset) in self.offsets.iter().enumerate() {
+            let first = c as u64 * per_copy;
+            self.base.for_each_triangle(&mut |t| {
+                let mut t = *t;
+                t.id = (first + t.id as u64) as u32;
+                for p in &mut t.positions {
+                    *p += *offset;
+                }
+                f(&t)
+            })?;
+        }
+        Ok(())
+    }
+}
+
+/// `grid:SPEC:XxYxZ` in memory.
+pub(super) fn generate(
+    spec: &str,
+    args: Option<&str>,
+    load: &dyn Fn(&str) -> Result<Scene>,
+) -> Result<Scene> {
+    Ok(plan(spec, args, load)?.into_scene())
 }

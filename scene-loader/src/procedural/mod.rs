@@ -44,7 +44,7 @@ use crate::validate::{Origin, Primitive, add_primitive};
 
 mod city;
 mod cornell;
-mod grid;
+pub mod grid;
 mod iso;
 pub mod shapes;
 mod soup;
@@ -84,6 +84,18 @@ pub fn generate(spec: &str, load: &dyn Fn(&str) -> Result<Scene>) -> Result<Opti
         _ => return Ok(None),
     };
     Ok(Some(scene))
+}
+
+/// A procedural scene that can be streamed instead of made (today: `grid:`), for
+/// partitioning scenes larger than memory; `None` for every other spec.
+pub fn stream(
+    spec: &str,
+    load: &dyn Fn(&str) -> Result<Scene>,
+) -> Result<Option<grid::GridSource>> {
+    match spec.split_once(':') {
+        Some(("grid", args)) => Ok(Some(grid::plan(spec, Some(args), load)?)),
+        _ => Ok(None),
+    }
 }
 
 /// A [`SceneError::Procedural`] for `spec`.
