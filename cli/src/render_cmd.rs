@@ -89,45 +89,9 @@ fn check_args(a: &RenderArgs) -> Result<IntegratorKind> {
 
 /// Pick the camera named by `--camera`, the scene's first, or one framing the bounds.
 pub fn choose_camera(scene: &Scene, which: Option<&str>, aspect: f32) -> Result<Camera> {
-    let cam = match which {
-        Some(w) => {
-            let by_index = w.parse::<usize>().ok().and_then(|i| scene.cameras.get(i));
-            let found = by_index.or_else(|| scene.cameras.iter().find(|c| c.name == w));
-            match found {
-                Some(c) => c.clone(),
-                None => {
-                    let names: Vec<String> = scene
-                        .cameras
-                        .iter()
-                        .enumerate()
-                        .map(|(i, c)| format!("{i}:{}", c.name))
-                        .collect();
-                    bail!(
-                        "camera {w:?} not found in the scene (cameras: {})",
-                        if names.is_empty() {
-                            "none".to_string()
-                        } else {
-                            names.join(", ")
-                        }
-                    );
-                }
-            }
-        }
-        None => match scene.cameras.first() {
-            Some(c) => c.clone(),
-            None => {
-                let (lo, hi) = scene.bounds();
-                Camera::framing(lo, hi, aspect)
-            }
-        },
-    };
-    if !cam.is_valid() {
-        bail!(
-            "camera {:?} is malformed (non-finite or degenerate transform or projection)",
-            cam.name
-        );
-    }
-    Ok(cam)
+    scene
+        .choose_camera(which, scene.bounds(), aspect)
+        .map_err(|e| anyhow::anyhow!("camera {e}"))
 }
 
 /// One BVH over the scene, or with `domains > 1` a BVH per spatial domain walked front to

@@ -366,44 +366,9 @@ fn package_scene(p: &dray_scene::partition::Package) -> Scene {
 /// The camera named by `which` (a name or an index), the scene's first, or one framing
 /// the bounds; the same choice as `dray render --camera`.
 pub fn choose_camera(scene: &Scene, which: Option<&str>, aspect: f32) -> Result<Camera, Status> {
-    let cam = match which {
-        Some(w) => {
-            let by_index = w.parse::<usize>().ok().and_then(|i| scene.cameras.get(i));
-            match by_index.or_else(|| scene.cameras.iter().find(|c| c.name == w)) {
-                Some(c) => c.clone(),
-                None => {
-                    let names: Vec<String> = scene
-                        .cameras
-                        .iter()
-                        .enumerate()
-                        .map(|(i, c)| format!("{i}:{}", c.name))
-                        .collect();
-                    return Err(bad(format!(
-                        "camera: {w:?} not found in the scene (cameras: {})",
-                        if names.is_empty() {
-                            "none".to_string()
-                        } else {
-                            names.join(", ")
-                        }
-                    )));
-                }
-            }
-        }
-        None => match scene.cameras.first() {
-            Some(c) => c.clone(),
-            None => {
-                let (lo, hi) = scene.bounds();
-                Camera::framing(lo, hi, aspect)
-            }
-        },
-    };
-    if !cam.is_valid() {
-        return Err(bad(format!(
-            "camera: {:?} is malformed (non-finite or degenerate transform or projection)",
-            cam.name
-        )));
-    }
-    Ok(cam)
+    scene
+        .choose_camera(which, scene.bounds(), aspect)
+        .map_err(|e| bad(format!("camera: {e}")))
 }
 
 #[cfg(test)]

@@ -131,3 +131,57 @@ impl Scene {
         }
     }
 }
+
+/// Why a scene has no camera to give.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CameraChoiceError {
+    #[error("{which:?} not found in the scene (cameras: {known})")]
+    NotFound { which: String, known: String },
+    #[error("{name:?} is malformed (non-finite or degenerate transform or projection)")]
+    Malformed { name: String },
+}
+
+impl Scene {
+    /// The camera `which` names (an index or a name), the scene's first, or one framing
+    /// `bounds` when the scene has none: the one choice `dray render` and the coordinator
+    /// make, so a job renders through the same camera wherever it runs.
+    pub fn choose_camera(
+        &self,
+        which: Option<&str>,
+        bounds: (Vec3, Vec3),
+        aspect: f32,
+    ) -> Result<Camera, CameraChoiceError> {
+        let cam = match which {
+            Some(w) => {
+                let by_index = w.parse::<usize>().ok().and_then(|i| self.cameras.get(i));
+                match by_index.or_else(|| self.cameras.iter().find(|c| c.name == w)) {
+                    Some(c) => c.clone(),
+                    None => {
+                        let names: Vec<String> = self
+                            .cameras
+                            .iter()
+                            .enumerate()
+                            .map(|(i, c)| format!("{i}:{}", c.name))
+                            .collect();
+                        return Err(CameraChoiceError::NotFound {
+                            which: w.to_string(),
+                            known: if names.is_empty() {
+                                "none".to_string()
+                            } else {
+                                names.join(", ")
+                            },
+                        });
+                    }
+                }
+            }
+            None => match self.cameras.first() {
+                Some(c) => c.clone(),
+                None => Camera::framing(bounds.0, bounds.1, aspect),
+            },
+        };
+        if !cam.is_valid() {
+            return Err(CameraChoiceError::Malformed { name: cam.name });
+        }
+        Ok(cam)
+    }
+}
