@@ -10,8 +10,8 @@ use dray_core::camera::Camera;
 use dray_core::integrator::{Integrator, IntegratorKind, RenderSettings};
 use dray_core::render::{self, RenderOutput};
 use dray_core::scene::Scene;
-use dray_core::trace::{DomainSet, Trace};
-use dray_scene::partition::{DomainLayout, LayoutSpec, partition_in_memory};
+use dray_core::trace::Trace;
+use dray_scene::partition::LayoutSpec;
 
 use crate::options::{apply_effects, parse_vec3};
 use crate::summary::{Summary, print_summary};
@@ -105,22 +105,9 @@ fn build_geometry(scene: &Scene, domains: u32, layout: &str) -> Result<Box<dyn T
         "kd" => LayoutSpec::Kd(domains),
         other => bail!("unknown --layout {other:?} (expected grid or kd)"),
     };
-    let layout = DomainLayout::for_source(scene, &spec).context("cannot lay out the domains")?;
-    let parts = partition_in_memory(scene, &layout).context("cannot partition the scene")?;
-    let mut accels: Vec<Option<Accel>> = (0..layout.domain_count()).map(|_| None).collect();
-    for part in &parts {
-        if let Some(slot) = accels.get_mut(part.domain as usize) {
-            *slot = Some(Accel::build_with_ids(&part.mesh, Some(&part.global_ids)));
-        }
-    }
-    Ok(Box::new(DomainSet {
-        tree: layout.to_domain_tree(),
-        accels: accels
-            .into_iter()
-            .map(|a| a.unwrap_or_else(|| Accel::build(&Default::default())))
-            .collect(),
-        pad: layout.epsilon(),
-    }))
+    let set = dray_scene::partition::resident::domain_set(scene, &spec)
+        .context("cannot cut the scene into domains")?;
+    Ok(Box::new(set))
 }
 
 pub fn run(a: RenderArgs) -> Result<()> {

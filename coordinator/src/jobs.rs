@@ -17,9 +17,9 @@ use dray_core::film::Film;
 use dray_core::integrator::{Integrator, RayKind};
 use dray_core::render;
 use dray_core::scene::Scene;
-use dray_core::trace::{DomainSet, Trace};
+use dray_core::trace::Trace;
 use dray_proto::v1::{Job, JobProgress, JobSpec, JobState, JobStats, RayCounts};
-use dray_scene::partition::{DomainLayout, LayoutSpec, partition_in_memory};
+use dray_scene::partition::LayoutSpec;
 use tokio::sync::Semaphore;
 
 use crate::validate::{Prepared, Validated};
@@ -322,24 +322,9 @@ pub fn build_geometry(scene: &Scene, domains: u32, layout: &str) -> Result<Box<d
         "grid" => LayoutSpec::GridCount(domains),
         _ => LayoutSpec::Kd(domains),
     };
-    let layout = DomainLayout::for_source(scene, &spec)
-        .map_err(|e| format!("cannot lay out the domains: {e}"))?;
-    let parts = partition_in_memory(scene, &layout)
-        .map_err(|e| format!("cannot partition the scene: {e}"))?;
-    let mut accels: Vec<Option<Accel>> = (0..layout.domain_count()).map(|_| None).collect();
-    for part in &parts {
-        if let Some(slot) = accels.get_mut(part.domain as usize) {
-            *slot = Some(Accel::build_with_ids(&part.mesh, Some(&part.global_ids)));
-        }
-    }
-    Ok(Box::new(DomainSet {
-        tree: layout.to_domain_tree(),
-        accels: accels
-            .into_iter()
-            .map(|a| a.unwrap_or_else(|| Accel::build(&Default::default())))
-            .collect(),
-        pad: layout.epsilon(),
-    }))
+    let set = dray_scene::partition::resident::domain_set(scene, &spec)
+        .map_err(|e| format!("cannot cut the scene into domains: {e}"))?;
+    Ok(Box::new(set))
 }
 
 /// The film as an 8-bit sRGB PNG of radiance times 2^`exposure`: the same bytes

@@ -200,3 +200,25 @@ pub fn resident_in_memory(
         emitters.finish(super::manifest::EMITTERS_DOMAIN, b),
     ))
 }
+
+/// All domains of `scene` cut by `spec`, each with its own BVH over scene-wide triangle
+/// ids, walked front to back: the embedded stand-in for workers owning domains, with the
+/// same answers as one BVH over the whole scene.
+pub fn domain_set(scene: &Scene, spec: &super::LayoutSpec) -> Result<dray_core::trace::DomainSet> {
+    let layout = super::DomainLayout::for_source(scene, spec)?;
+    let parts = super::partition_in_memory(scene, &layout)?;
+    let mut accels: Vec<Option<Accel>> = (0..layout.domain_count()).map(|_| None).collect();
+    for part in &parts {
+        if let Some(slot) = accels.get_mut(part.domain as usize) {
+            *slot = Some(Accel::build_with_ids(&part.mesh, Some(&part.global_ids)));
+        }
+    }
+    Ok(dray_core::trace::DomainSet {
+        tree: layout.to_domain_tree(),
+        accels: accels
+            .into_iter()
+            .map(|a| a.unwrap_or_else(|| Accel::build(&Mesh::default())))
+            .collect(),
+        pad: layout.epsilon(),
+    })
+}
