@@ -63,7 +63,8 @@ pub fn run(a: PartitionArgs) -> Result<()> {
     let start = Instant::now();
     let spec = layout_spec(&a)?;
     let cannot_load = || format!("cannot load scene {:?}", a.scene);
-    // A grid is streamed copy by copy, so only its base model is ever in memory.
+    // Procedural scenes that can be large (grid, soup, city, iso) are streamed, so only a
+    // grid's base model or one generator chunk is ever in memory.
     let stream =
         dray_scene::procedural::stream(&a.scene, &dray_scene::load).with_context(cannot_load)?;
     let scene = match &stream {

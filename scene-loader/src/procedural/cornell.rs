@@ -16,7 +16,7 @@ use dray_core::scene::Scene;
 use glam::{Affine3A, Vec3};
 
 use super::shapes::{MeshData, icosphere, quad};
-use super::{Builder, spec_error};
+use super::{Builder, Sink, spec_error};
 use crate::error::Result;
 
 /// Reflectances of the white, red and green paints (the RGB values renderers commonly

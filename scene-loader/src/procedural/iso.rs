@@ -22,18 +22,19 @@
 //! Vertex normals are the normalised field gradient (central differences), so shading is
 //! smooth and independent of the triangulation.
 
+use dray_core::camera::Camera;
 use dray_core::light::Light;
 use dray_core::material::Material;
 use dray_core::scene::Scene;
 use glam::{DVec3, Vec3};
 
-use super::{Builder, MAX_TRIANGLES, Rng, frame, parse_count, spec_error};
+use super::{Builder, Generator, MAX_TRIANGLES, Rng, Sink, frame, parse_count, spec_error};
 use crate::error::Result;
 
 const DEFAULT_FIELD: &str = "sphere";
 const DEFAULT_RES: &str = "64";
-/// 2048^3 cells is 8.6 G field samples: minutes of work and tens of millions of triangles.
-/// Larger grids would be streaming territory.
+/// 2048^3 cells is 8.6 G field samples: minutes of work per pass and tens of millions of
+/// triangles. Streaming keeps memory bounded at any size; the cap bounds the time.
 const MAX_RES: u64 = 2048;
 /// Two cells per axis is the smallest grid with an interior sample.
 const MIN_RES: u64 = 2;
@@ -330,11 +331,32 @@ impl Field {
     }
 }
 
-/// The mesh being extracted: shared vertices with gradient normals, and triangles.
+/// The mesh being extracted: shared vertices with gradient normals, and triangles whose
+/// indices number the vertices over the whole surface.
+#[derive(Default)]
 struct Surface {
     positions: Vec<Vec3>,
     normals: Vec<Vec3>,
     indices: Vec<u32>,
+}
+
+impl Surface {
+    fn clear(&mut self) {
+        self.positions.clear();
+        self.normals.clear();
+        self.indices.clear();
+    }
+}
+
+/// What one slab of cells (between sample layers k and k+1) adds to the surface: the
+/// vertices made while extracting it, the first being surface vertex `first_vertex`, and
+/// its triangles, indexed over the whole surface. They use only this slab's vertices and
+/// the previous slab's: a vertex on the layer two slabs share is made by the lower slab.
+struct Slab<'a> {
+    first_vertex: u32,
+    positions: &'a [Vec3],
+    normals: &'a [Vec3],
+    indices: &'a [u32],
 }
 
 /// Vertex indices of the grid edges around one slab of cells (between sample layers k
@@ -402,13 +424,16 @@ fn gradient(f: &dyn Fn(DVec3) -> f64, p: DVec3, h: f64) -> DVec3 {
     DVec3::new(d(DVec3::X), d(DVec3::Y), d(DVec3::Z))
 }
 
-/// Run marching cubes over `res^3` cells of the box `lo..hi` for the field `f`.
+/// Run marching cubes over `res^3` cells of the box `lo..hi` for the field `f`, handing
+/// the surface to `out` slab by slab, bottom (z = lo) to top; memory is a few layers of
+/// samples and one slab of output.
 fn extract(
     spec: &str,
     f: &dyn Fn(DVec3) -> f64,
     (lo, hi): (DVec3, DVec3),
     res: usize,
-) -> Result<Surface> {
+    out: &mut dyn FnMut(Slab<'_>) -> Result<()>,
+) -> Result<()> {
     let step = (hi - lo) / res as f64;
     let h = step.min_element() * 0.1;
     let n = res + 1;
@@ -424,13 +449,14 @@ fn extract(
     let mut above = vec![0.0; n * n];
     fill(&mut below, 0);
     let mut edges = SlabEdges::new(res);
-    let mut surface = Surface {
-        positions: Vec::new(),
-        normals: Vec::new(),
-        indices: Vec::new(),
-    };
+    let mut slab = Surface::default();
+    // Vertices and triangles made so far, over all slabs.
+    let mut vertices = 0u64;
+    let mut triangles = 0u64;
     for k in 0..res {
         fill(&mut above, k + 1);
+        slab.clear();
+        let first_vertex = vertices;
         for j in 0..res {
             for i in 0..res {
                 let mut values = [0.0; 8];
@@ -454,7 +480,7 @@ fn extract(
                     }
                     let slot = edges.slot(e, i, j);
                     if *slot == NO_VERTEX {
-                        if surface.positions.len() >= NO_VERTEX as usize {
+                        if vertices >= NO_VERTEX as u64 {
                             return Err(spec_error(spec, "surface exceeds 4 billion vertices"));
                         }
                         let [a, b] = EDGES[e];
@@ -466,9 +492,11 @@ fn extract(
                         let t = (va / (va - vb)).clamp(T_MARGIN, 1.0 - T_MARGIN);
                         let p = corner(a).lerp(corner(b), t);
                         let g = gradient(f, p, h);
-                        surface.positions.push(p.as_vec3());
-                        surface.normals.push(g.normalize_or_zero().as_vec3());
-                        *slot = (surface.positions.len() - 1) as u32;
+                        slab.positions.push(p.as_vec3());
+                        slab.normals.push(g.normalize_or_zero().as_vec3());
+                        // Below NO_VERTEX, checked above.
+                        *slot = vertices as u32;
+                        vertices += 1;
                     }
                     *slot_out = *slot;
                 }
@@ -476,54 +504,168 @@ fn extract(
                     if tri[0] < 0 {
                         break;
                     }
-                    surface
-                        .indices
-                        .extend(tri.iter().map(|&e| vertex[e as usize]));
+                    slab.indices.extend(tri.iter().map(|&e| vertex[e as usize]));
                 }
             }
         }
-        if (surface.indices.len() / 3) as u64 > MAX_TRIANGLES {
+        triangles += (slab.indices.len() / 3) as u64;
+        if triangles > MAX_TRIANGLES {
             return Err(spec_error(
                 spec,
                 format!("the surface exceeds the cap of {MAX_TRIANGLES} triangles"),
             ));
         }
+        out(Slab {
+            // At most NO_VERTEX, checked before every vertex made.
+            first_vertex: first_vertex as u32,
+            positions: &slab.positions,
+            normals: &slab.normals,
+            indices: &slab.indices,
+        })?;
         std::mem::swap(&mut below, &mut above);
         edges.advance();
     }
+    Ok(())
+}
+
+/// The whole surface of [`extract`] in memory, every vertex once.
+fn extract_surface(
+    spec: &str,
+    f: &dyn Fn(DVec3) -> f64,
+    domain: (DVec3, DVec3),
+    res: usize,
+) -> Result<Surface> {
+    let mut surface = Surface::default();
+    extract(spec, f, domain, res, &mut |slab| {
+        surface.positions.extend_from_slice(slab.positions);
+        surface.normals.extend_from_slice(slab.normals);
+        surface.indices.extend_from_slice(slab.indices);
+        Ok(())
+    })?;
     Ok(surface)
 }
 
-pub(super) fn generate(spec: &str, args: Option<&str>) -> Result<Scene> {
-    let (name, res) = match args {
-        None => (DEFAULT_FIELD, DEFAULT_RES),
-        Some(a) => a.split_once(':').unwrap_or((a, DEFAULT_RES)),
-    };
-    let field = Field::parse(name).ok_or_else(|| {
-        spec_error(
-            spec,
-            format!("unknown field {name:?} (expected one of {FIELDS})"),
-        )
-    })?;
-    let res = parse_count(spec, "grid resolution", res, MIN_RES, MAX_RES)? as usize;
+/// Streams slabs to a sink as primitives. A slab's triangles may use the previous slab's
+/// vertices, so each primitive carries both slabs' vertices, renumbered from the older
+/// one: two slabs are all streaming ever holds. The triangles are those of the whole
+/// surface in memory: renumbering is one-to-one (so the validation gate's repeated-index
+/// test agrees) and positions and normals are the same values.
+#[derive(Default)]
+struct SlabWindow {
+    /// Surface index of the first vertex held.
+    start: u32,
+    /// Surface index of the latest slab's first vertex.
+    latest: u32,
+    positions: Vec<Vec3>,
+    normals: Vec<Vec3>,
+    local: Vec<u32>,
+}
 
-    let surface = extract(spec, &|p| field.value(p), field.domain(), res)?;
-    let mut b = Builder::new(spec, "iso");
-    let material = b.material(Material::lambert(&format!("iso {name}"), field.albedo()));
-    b.add_triangles(
-        &surface.positions,
-        Some(&surface.normals),
-        &surface.indices,
-        material,
-    )?;
-    b.light(Light::Directional {
-        direction: Vec3::new(-0.4, -1.0, -0.6).normalize(),
-        irradiance: Vec3::splat(3.0),
-    });
-    b.environment(Vec3::new(0.12, 0.14, 0.18));
-    let (lo, hi) = b.bounds();
-    b.camera(frame("iso", lo, hi, Vec3::new(0.55, 0.45, 1.0), 40.0));
-    b.finish()
+impl SlabWindow {
+    fn push(
+        &mut self,
+        spec: &str,
+        slab: Slab<'_>,
+        material: u32,
+        sink: &mut dyn Sink,
+    ) -> Result<()> {
+        // Forget the vertices of the slab before the previous one.
+        let stale = (self.latest - self.start) as usize;
+        self.positions.drain(..stale);
+        self.normals.drain(..stale);
+        self.start = self.latest;
+        self.latest = slab.first_vertex;
+        self.positions.extend_from_slice(slab.positions);
+        self.normals.extend_from_slice(slab.normals);
+        if slab.indices.is_empty() {
+            return Ok(());
+        }
+        self.local.clear();
+        for &v in slab.indices {
+            let Some(l) = v.checked_sub(self.start) else {
+                return Err(spec_error(
+                    spec,
+                    "internal error: a slab uses a vertex older than the previous slab",
+                ));
+            };
+            self.local.push(l);
+        }
+        sink.add_triangles(&self.positions, Some(&self.normals), &self.local, material)
+    }
+}
+
+/// `iso:FIELD:RES`, parsed.
+pub(super) struct Iso {
+    name: String,
+    field: Field,
+    res: usize,
+}
+
+/// The one material; triangles refer to it by this index.
+const MATERIAL: u32 = 0;
+
+impl Iso {
+    pub(super) fn parse(spec: &str, args: Option<&str>) -> Result<Iso> {
+        let (name, res) = match args {
+            None => (DEFAULT_FIELD, DEFAULT_RES),
+            Some(a) => a.split_once(':').unwrap_or((a, DEFAULT_RES)),
+        };
+        let field = Field::parse(name).ok_or_else(|| {
+            spec_error(
+                spec,
+                format!("unknown field {name:?} (expected one of {FIELDS})"),
+            )
+        })?;
+        let res = parse_count(spec, "grid resolution", res, MIN_RES, MAX_RES)? as usize;
+        Ok(Iso {
+            name: name.to_string(),
+            field,
+            res,
+        })
+    }
+}
+
+impl Generator for Iso {
+    fn name(&self) -> &'static str {
+        "iso"
+    }
+
+    fn tables(&self, spec: &str) -> Scene {
+        Scene {
+            name: spec.to_string(),
+            materials: vec![Material::lambert(
+                &format!("iso {}", self.name),
+                self.field.albedo(),
+            )],
+            lights: vec![Light::Directional {
+                direction: Vec3::new(-0.4, -1.0, -0.6).normalize(),
+                irradiance: Vec3::splat(3.0),
+            }],
+            environment: Some(Vec3::new(0.12, 0.14, 0.18)),
+            ..Scene::default()
+        }
+    }
+
+    /// Slab by slab, one primitive each (see [`SlabWindow`]).
+    fn emit(&self, spec: &str, sink: &mut dyn Sink) -> Result<()> {
+        let mut window = SlabWindow::default();
+        let f = |p| self.field.value(p);
+        extract(spec, &f, self.field.domain(), self.res, &mut |slab| {
+            window.push(spec, slab, MATERIAL, sink)
+        })
+    }
+
+    /// In memory the surface is one primitive, so every vertex is stored once (slab
+    /// primitives would store the vertices on each shared layer twice).
+    fn build(&self, spec: &str, builder: &mut Builder<'_>) -> Result<()> {
+        let f = |p| self.field.value(p);
+        let s = extract_surface(spec, &f, self.field.domain(), self.res)?;
+        builder.add_triangles(&s.positions, Some(&s.normals), &s.indices, MATERIAL)
+    }
+
+    fn cameras(&self, lo: Vec3, hi: Vec3) -> Vec<Camera> {
+        vec![frame("iso", lo, hi, Vec3::new(0.55, 0.45, 1.0), 40.0)]
+    }
 }
 
 #[cfg(test)]
@@ -556,7 +698,7 @@ mod tests {
     fn triangles_face_along_the_gradient() {
         for name in ["sphere", "torus", "metaballs", "heart"] {
             let field = Field::parse(name).unwrap();
-            let s = extract("t", &|p| field.value(p), field.domain(), 24).unwrap();
+            let s = extract_surface("t", &|p| field.value(p), field.domain(), 24).unwrap();
             let mut agree = 0;
             for t in s.indices.chunks_exact(3) {
                 let [a, b, c] = [0, 1, 2].map(|k| s.positions[t[k] as usize]);
@@ -587,7 +729,7 @@ mod tests {
                 Rng::new(key as u64).f32() as f64 - 0.5
             };
             let box_ = (DVec3::ZERO, DVec3::splat(res as f64));
-            let s = extract("t", &noise, box_, res).unwrap();
+            let s = extract_surface("t", &noise, box_, res).unwrap();
             // Closed and consistently oriented: every directed edge is used exactly once
             // and its reverse exists (so each undirected edge has exactly two triangles).
             let mut directed = std::collections::HashMap::new();

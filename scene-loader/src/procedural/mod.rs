@@ -27,9 +27,12 @@
 //! fixed constant, so the same spec gives bit-identical scenes on every machine, which
 //! distributed rendering and reference comparisons rely on.
 //!
-//! Generators emit triangles primitive by primitive through [`Builder`], which is the only
-//! place that touches the [`Scene`]; a later streaming loader can replace it with a sink
-//! that forwards chunks without changing the generators.
+//! Generators emit triangles primitive by primitive into a [`Sink`]: a [`Builder`] that
+//! makes the [`Scene`] in memory, or a [`StreamSink`] that hands each primitive's
+//! triangles to the partitioner and forgets them. Both push every primitive through the
+//! same validation gate, so a scene streamed by [`stream`] is the scene [`generate`]
+//! makes, triangle for triangle; `dray partition` streams, so a scene larger than memory
+//! can be cut into a package.
 
 use std::path::Path;
 
@@ -44,13 +47,20 @@ use crate::validate::{Origin, Primitive, add_primitive};
 
 mod city;
 mod cornell;
+mod generated;
 pub mod grid;
 mod iso;
 pub mod shapes;
 mod soup;
+mod source;
 mod spheres;
+mod stream_sink;
 
+pub use generated::GeneratedSource;
+use generated::Generator;
 use shapes::MeshData;
+pub use source::ProceduralSource;
+use stream_sink::StreamSink;
 
 /// The largest scene any generator will build. 200M triangles is about 10 GB of mesh in
 /// memory: large enough for the streaming experiments, small enough that a stray zero in
@@ -74,28 +84,50 @@ pub fn generate(spec: &str, load: &dyn Fn(&str) -> Result<Scene>) -> Result<Opti
         Some((h, a)) => (h, Some(a)),
         None => (spec, None),
     };
+    if let Some(g) = generator(spec, head, args)? {
+        return Ok(Some(generated::make(spec, g.as_ref())?));
+    }
     let scene = match head {
         "cornell" => cornell::generate(spec, args)?,
         "spheres" => spheres::generate(spec, args)?,
-        "soup" => soup::generate(spec, args)?,
-        "city" => city::generate(spec, args)?,
-        "iso" => iso::generate(spec, args)?,
         "grid" => grid::generate(spec, args, load)?,
         _ => return Ok(None),
     };
     Ok(Some(scene))
 }
 
-/// A procedural scene that can be streamed instead of made (today: `grid:`), for
-/// partitioning scenes larger than memory; `None` for every other spec.
+/// A procedural scene that can be streamed instead of made, for partitioning scenes
+/// larger than memory: `grid:` (copy by copy), `soup:`, `city:` and `iso:` (primitive by
+/// primitive); `None` for every other spec, which is small or a file and is loaded whole.
+///
+/// Planning a generated scene runs its generator once without keeping the triangles,
+/// because the manifest needs the degenerate count and the camera framed on the bounds
+/// before the partitioner's own passes.
 pub fn stream(
     spec: &str,
     load: &dyn Fn(&str) -> Result<Scene>,
-) -> Result<Option<grid::GridSource>> {
-    match spec.split_once(':') {
-        Some(("grid", args)) => Ok(Some(grid::plan(spec, Some(args), load)?)),
-        _ => Ok(None),
+) -> Result<Option<ProceduralSource>> {
+    let (head, args) = match spec.split_once(':') {
+        Some((h, a)) => (h, Some(a)),
+        None => (spec, None),
+    };
+    if head == "grid" {
+        return Ok(Some(ProceduralSource::Grid(grid::plan(spec, args, load)?)));
     }
+    Ok(match generator(spec, head, args)? {
+        Some(g) => Some(ProceduralSource::Generated(GeneratedSource::plan(spec, g)?)),
+        None => None,
+    })
+}
+
+/// The generators that can stream, parsed from their arguments; `None` for any other head.
+fn generator(spec: &str, head: &str, args: Option<&str>) -> Result<Option<Box<dyn Generator>>> {
+    Ok(Some(match head {
+        "soup" => Box::new(soup::Soup::parse(spec, args)?),
+        "city" => Box::new(city::City::parse(spec, args)?),
+        "iso" => Box::new(iso::Iso::parse(spec, args)?),
+        _ => return Ok(None),
+    }))
 }
 
 /// A [`SceneError::Procedural`] for `spec`.
@@ -120,9 +152,27 @@ pub(crate) fn parse_count(spec: &str, what: &str, text: &str, min: u64, max: u64
     Ok(n)
 }
 
-/// The sink generators emit into: it owns the scene under construction and pushes every
-/// primitive through [`add_primitive`], so degenerate triangles are dropped and counted
-/// exactly as for files.
+/// Where generators put their triangles, one primitive (triangle list) at a time.
+pub(crate) trait Sink {
+    /// Emit one primitive with optional per-vertex normals; degenerate triangles are
+    /// dropped and counted, so ids number only the triangles kept.
+    fn add_triangles(
+        &mut self,
+        positions: &[Vec3],
+        normals: Option<&[Vec3]>,
+        indices: &[u32],
+        material: u32,
+    ) -> Result<()>;
+
+    fn add_mesh(&mut self, mesh: &MeshData, material: u32) -> Result<()> {
+        let normals = (!mesh.normals.is_empty()).then_some(mesh.normals.as_slice());
+        self.add_triangles(&mesh.positions, normals, &mesh.indices, material)
+    }
+}
+
+/// The sink that makes the scene in memory: it owns the scene under construction and
+/// pushes every primitive through [`add_primitive`], so degenerate triangles are dropped
+/// and counted exactly as for files.
 pub(crate) struct Builder<'a> {
     spec: &'a str,
     generator: &'static str,
@@ -139,6 +189,16 @@ impl<'a> Builder<'a> {
                 name: spec.to_string(),
                 ..Scene::default()
             },
+            primitives: 0,
+        }
+    }
+
+    /// A builder starting from `tables` (materials, lights, ...) made beforehand.
+    pub(crate) fn with_tables(spec: &'a str, generator: &'static str, tables: Scene) -> Self {
+        Builder {
+            spec,
+            generator,
+            scene: tables,
             primitives: 0,
         }
     }
@@ -161,13 +221,28 @@ impl<'a> Builder<'a> {
         self.scene.environment = Some(radiance);
     }
 
-    pub(crate) fn add_mesh(&mut self, mesh: &MeshData, material: u32) -> Result<()> {
-        let normals = (!mesh.normals.is_empty()).then_some(mesh.normals.as_slice());
-        self.add_triangles(&mesh.positions, normals, &mesh.indices, material)
+    /// Bounds of everything emitted so far (zero when nothing was).
+    pub(crate) fn bounds(&self) -> (Vec3, Vec3) {
+        self.scene.bounds()
     }
 
-    /// Emit one primitive (triangle list) with optional per-vertex normals.
-    pub(crate) fn add_triangles(
+    /// The finished scene; a scene without triangles is an error because every consumer
+    /// (BVH, camera framing) needs at least one.
+    pub(crate) fn finish(self) -> Result<Scene> {
+        if self.scene.mesh.indices.is_empty() {
+            return Err(no_triangles(self.spec));
+        }
+        Ok(self.scene)
+    }
+}
+
+/// The error for a generator that produced no triangles at all.
+pub(crate) fn no_triangles(spec: &str) -> SceneError {
+    spec_error(spec, "the generator produced no triangles")
+}
+
+impl Sink for Builder<'_> {
+    fn add_triangles(
         &mut self,
         positions: &[Vec3],
         normals: Option<&[Vec3]>,
@@ -193,20 +268,6 @@ impl<'a> Builder<'a> {
                 material,
             },
         )
-    }
-
-    /// Bounds of everything emitted so far.
-    pub(crate) fn bounds(&self) -> (Vec3, Vec3) {
-        self.scene.bounds()
-    }
-
-    /// The finished scene; a scene without triangles is an error because every consumer
-    /// (BVH, camera framing) needs at least one.
-    pub(crate) fn finish(self) -> Result<Scene> {
-        if self.scene.mesh.indices.is_empty() {
-            return Err(spec_error(self.spec, "the generator produced no triangles"));
-        }
-        Ok(self.scene)
     }
 }
 

@@ -10,7 +10,7 @@ use dray_core::scene::Scene;
 use glam::{Affine3A, Quat, Vec3};
 
 use super::shapes::{icosphere, quad};
-use super::{Builder, MAX_TRIANGLES, Rng, frame, parse_count};
+use super::{Builder, MAX_TRIANGLES, Rng, Sink, frame, parse_count};
 use crate::error::Result;
 
 const DEFAULT_COUNT: &str = "100";

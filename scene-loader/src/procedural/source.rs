@@ -1,0 +1,36 @@
+//! [`ProceduralSource`]: whichever streaming form a procedural spec has, behind one type,
+//! so `dray partition` hands any of them to the package writer the same way.
+
+use dray_core::scene::Scene;
+
+use super::GeneratedSource;
+use super::grid::GridSource;
+use crate::error::Result;
+use crate::partition::{SourceTriangle, TriangleSource};
+
+/// A procedural scene as a stream (see [`stream`](super::stream)).
+pub enum ProceduralSource {
+    /// `grid:SPEC:XxYxZ`: the base scene in memory once, copies made as they are read.
+    Grid(GridSource),
+    /// `soup:`, `city:`, `iso:`: the generator re-run on every read.
+    Generated(GeneratedSource),
+}
+
+impl ProceduralSource {
+    /// The scene without its triangles: what the package manifest stores.
+    pub fn tables(&self) -> &Scene {
+        match self {
+            ProceduralSource::Grid(g) => g.tables(),
+            ProceduralSource::Generated(g) => g.tables(),
+        }
+    }
+}
+
+impl TriangleSource for ProceduralSource {
+    fn for_each_triangle(&self, f: &mut dyn FnMut(&SourceTriangle) -> Result<()>) -> Result<()> {
+        match self {
+            ProceduralSource::Grid(g) => g.for_each_triangle(f),
+            ProceduralSource::Generated(g) => g.for_each_triangle(f),
+        }
+    }
+}
