@@ -74,7 +74,7 @@ impl TileRef {
 #[derive(Debug, Default)]
 pub struct Outbox {
     /// Contributions in fixed point, by pixel; a pixel may repeat (the coordinator's sums
-    /// are exact in any grouping, so nothing is summed here).
+    /// are exact in any grouping; the worker merges them per report, see `pixel_sums`).
     pub sums: Vec<(u32, [i64; 3])>,
     /// Credit handed back by rays that terminated, by tile; a tile may repeat, but
     /// consecutive returns to one tile share an entry.
