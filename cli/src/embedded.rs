@@ -1,4 +1,4 @@
-//! `dray render --workers N`: the distributed actors, all in this process.
+//! `dray render`: the distributed actors, all in this process (embedded mode).
 //!
 //! A coordinator and N workers start on loopback ports inside one async runtime and run
 //! the job exactly as `dray cluster` would: the coordinator partitions the scene into a
@@ -6,9 +6,10 @@
 //! gRPC, and the image is assembled from their reports. Only the submission skips the
 //! network (the coordinator's RenderService is called directly). So the embedded mode and
 //! a cluster share one code path, and the tests hold it to the same bits as the
-//! single-process tile renderer that `dray render` uses without `--workers`.
+//! reference renderer (`dray render --workers 0`), which traces tiles with no actors.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
@@ -16,8 +17,9 @@ use dray_coordinator::Coordinator;
 use dray_coordinator::cluster::ClusterOptions;
 use dray_core::integrator::RayKind;
 use dray_core::render::{RayCounts, RenderOutput};
-use dray_proto::v1::render_service_server::RenderService;
-use dray_proto::v1::{JobState, SubmitJobRequest};
+use dray_core::scene::Scene;
+use dray_proto::v1::JobState;
+use dray_scene::partition::memory::MemoryPackages;
 
 use crate::render_cmd::RenderArgs;
 
@@ -45,18 +47,26 @@ impl Drop for WorkDir {
     }
 }
 
-/// Render `a` on `workers` in-process worker actors; `progress` gets (tiles done, total).
+/// Render `a` on `workers` in-process worker actors; `scene` is the job's scene, loaded
+/// and translated by the caller. `progress` gets (tiles done, total).
+/// Returns the image and the number of domains the scene was cut into.
 pub fn render_on_actors(
     a: &RenderArgs,
     workers: usize,
+    scene: Scene,
     progress: &dyn Fn(usize, usize),
-) -> Result<RenderOutput> {
-    let spec = a.job.job_spec(
+) -> Result<(RenderOutput, u32)> {
+    // One worker renders best from one domain (no hops); several want the coordinator's
+    // choice (0), several domains each.
+    let domains = a.domains.unwrap_or(if workers <= 1 { 1 } else { 0 });
+    let mut spec = a.job.job_spec(
         absolute_scene(&a.job.scene),
-        if a.domains > 1 { a.domains } else { 0 },
+        domains,
         &a.layout,
-        "dray render --workers",
+        "dray render",
     )?;
+    // The caller translated the scene it hands over.
+    spec.translate = None;
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let threads = if a.threads == 0 { cores } else { a.threads };
     let per_worker = threads.div_ceil(workers).max(1);
@@ -65,10 +75,14 @@ pub fn render_on_actors(
         std::process::id(),
         Instant::now().elapsed().as_nanos()
     )));
+    // The coordinator cuts the scene into this store and the workers read it: no package
+    // is written to disk for a scene this process already holds.
+    let memory = Arc::new(MemoryPackages::default());
     let coordinator = Coordinator::new(Path::new("/"), threads)
         .context("cannot start the coordinator")?
         .with_cluster_options(ClusterOptions {
             work_dir: work_dir.0.clone(),
+            memory_packages: Some(memory.clone()),
             ..ClusterOptions::default()
         });
     let rt = tokio::runtime::Builder::new_multi_thread()
@@ -100,6 +114,7 @@ pub fn render_on_actors(
             let config = dray_worker::WorkerConfig {
                 coordinator: format!("http://{addr}"),
                 threads: per_worker,
+                memory_packages: Some(memory.clone()),
                 ..dray_worker::WorkerConfig::default()
             };
             nodes.push(tokio::spawn(dray_worker::run(
@@ -120,14 +135,10 @@ pub fn render_on_actors(
                 tokio::time::sleep(Duration::from_millis(5)).await;
             }
             let start = Instant::now();
-            let id = RenderService::submit_job(
-                &coordinator,
-                tonic::Request::new(SubmitJobRequest { spec: Some(spec) }),
-            )
-            .await
-            .map_err(|s| anyhow::anyhow!("{}", s.message()))?
-            .into_inner()
-            .job_id;
+            let id = coordinator
+                .submit_loaded(spec, scene)
+                .await
+                .map_err(|s| anyhow::anyhow!("{}", s.message()))?;
             let entry = coordinator
                 .job_entry(&id)
                 .context("the coordinator lost the job")?;
@@ -143,7 +154,9 @@ pub fn render_on_actors(
             let render_time = start.elapsed();
             let film = entry.film().context("the job has no image")?;
             let job = entry.to_job();
-            let r = job.stats.and_then(|s| s.rays).unwrap_or_default();
+            let stats = job.stats.unwrap_or_default();
+            let domains = stats.domains;
+            let r = stats.rays.unwrap_or_default();
             let mut rays = RayCounts::default();
             rays.0[RayKind::Camera as usize] = r.camera;
             rays.0[RayKind::Shadow as usize] = r.shadow;
@@ -151,11 +164,14 @@ pub fn render_on_actors(
             rays.0[RayKind::Refraction as usize] = r.refraction;
             rays.0[RayKind::Diffuse as usize] = r.diffuse;
             rays.0[RayKind::AmbientOcclusion as usize] = r.ambient_occlusion;
-            Ok(RenderOutput {
-                film: (*film).clone(),
-                rays,
-                render_time,
-            })
+            Ok((
+                RenderOutput {
+                    film: (*film).clone(),
+                    rays,
+                    render_time,
+                },
+                domains,
+            ))
         }
         .await;
         let _ = stop_tx.send(true);

@@ -14,12 +14,14 @@ use dray_core::trace::Trace;
 use dray_scene::partition::LayoutSpec;
 
 use crate::options::{apply_effects, parse_vec3};
-use crate::summary::{Summary, print_summary};
+use crate::summary::{SceneFacts, Summary, print_summary};
 
 /// Largest image side accepted.
 pub const MAX_SIDE: u32 = 16384;
 /// Largest samples per pixel accepted.
 pub const MAX_SPP: u32 = 1 << 16;
+/// Most in-process worker actors: each has its own threads, queues and loopback server.
+pub const MAX_WORKERS: usize = 64;
 
 #[derive(Args, Debug)]
 pub struct RenderArgs {
@@ -32,16 +34,18 @@ pub struct RenderArgs {
     #[arg(long)]
     pub stats: Option<PathBuf>,
     /// Cut the scene into N spatial domains, each with its own BVH, and walk every ray
-    /// through them as workers will (the image is bit-identical to 1 domain).
-    #[arg(long, default_value_t = 1)]
-    pub domains: u32,
+    /// through them (the image is bit-identical to 1 domain). Default: 1 domain on one
+    /// worker; with several workers, the coordinator's choice (4 per worker).
+    #[arg(long)]
+    pub domains: Option<u32>,
     /// Domain layout for --domains: a uniform grid or a kd split balanced by triangle count.
     #[arg(long, default_value = "kd")]
     pub layout: String,
-    /// Run the job on N worker actors in this process (with a coordinator, over loopback
-    /// gRPC, exactly as `dray cluster` does) instead of the single-process tile renderer;
-    /// the image is the same, bit for bit. 0: the tile renderer.
-    #[arg(long, default_value_t = 0)]
+    /// Worker actors to run the job on, all in this process with a coordinator, talking
+    /// over loopback gRPC exactly as `dray cluster` does. 0: the reference renderer,
+    /// which traces tiles straight through the domains with no actors (the image is the
+    /// same, bit for bit).
+    #[arg(long, default_value_t = 1)]
     pub workers: usize,
 }
 
@@ -65,8 +69,16 @@ fn check_args(a: &RenderArgs) -> Result<IntegratorKind> {
             a.job.exposure
         );
     }
-    if a.domains == 0 || a.domains > 65536 {
-        bail!("--domains {} is out of range (1..=65536)", a.domains);
+    if let Some(d) = a.domains
+        && (d == 0 || d > 65536)
+    {
+        bail!("--domains {d} is out of range (1..=65536)");
+    }
+    if a.workers > MAX_WORKERS {
+        bail!(
+            "--workers {} is out of range (0..={MAX_WORKERS})",
+            a.workers
+        );
     }
     if a.job.ao_samples == 0 || a.job.ao_samples > 4096 {
         bail!(
@@ -143,10 +155,6 @@ pub fn run(a: RenderArgs) -> Result<()> {
     let aspect = a.job.width as f32 / a.job.height as f32;
     let camera = choose_camera(&scene, a.job.camera.as_deref(), aspect)?;
 
-    let build_start = Instant::now();
-    let geometry = build_geometry(&scene, a.domains, &a.layout)?;
-    let build_time = build_start.elapsed();
-
     let settings = RenderSettings {
         width: a.job.width,
         height: a.job.height,
@@ -159,7 +167,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         ao_samples: a.job.ao_samples,
         ao_distance: a.job.ao_distance.unwrap_or(f32::INFINITY),
     };
-    let integrator = Integrator::new(&scene, camera, settings);
+    let facts = SceneFacts::of(&scene);
     let bar = (!a.job.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr())).then(|| {
         let b = indicatif::ProgressBar::new(render::tiles(a.job.width, a.job.height).len() as u64);
         b.set_style(
@@ -176,9 +184,12 @@ pub fn run(a: RenderArgs) -> Result<()> {
             b.set_position(done as u64);
         }
     };
-    let out: RenderOutput = if a.workers > 0 {
+    let mut build_time = std::time::Duration::ZERO;
+    let (out, domains): (RenderOutput, u32) = if a.workers > 0 {
         let _span = tracing::info_span!("job", scene = %a.job.scene, workers = a.workers).entered();
-        crate::embedded::render_on_actors(&a, a.workers, &|done, total| {
+        // The scene goes to the in-process coordinator as it is (translated), so it is
+        // not loaded twice; the coordinator repeats the checks made above.
+        crate::embedded::render_on_actors(&a, a.workers, scene, &|done, total| {
             if let Some(b) = &bar {
                 b.set_length(total as u64);
                 b.set_position(done as u64);
@@ -186,8 +197,14 @@ pub fn run(a: RenderArgs) -> Result<()> {
         })?
     } else {
         let _span = tracing::info_span!("job", scene = %a.job.scene).entered();
-        render::render(&integrator, geometry.as_ref(), a.threads, &progress)
-            .context("cannot start the thread pool")?
+        let domains = a.domains.unwrap_or(1);
+        let build_start = Instant::now();
+        let geometry = build_geometry(&scene, domains, &a.layout)?;
+        build_time = build_start.elapsed();
+        let integrator = Integrator::new(&scene, camera, settings.clone());
+        let out = render::render(&integrator, geometry.as_ref(), a.threads, &progress)
+            .context("cannot start the thread pool")?;
+        (out, domains)
     };
     if let Some(b) = &bar {
         b.finish_and_clear();
@@ -207,15 +224,15 @@ pub fn run(a: RenderArgs) -> Result<()> {
     };
     let mut summary = Summary::new(
         &a.job.scene,
-        &scene,
-        &integrator.settings,
+        &facts,
+        &settings,
         &out,
         threads,
         load_time,
         build_time,
         start.elapsed(),
     );
-    summary.domains = a.domains;
+    summary.domains = domains;
     if let Some(p) = &a.stats {
         let json = serde_json::to_string_pretty(&summary).context("cannot encode statistics")?;
         std::fs::write(p, json + "\n").with_context(|| format!("cannot write {}", p.display()))?;

@@ -35,11 +35,30 @@ pub struct Summary {
     pub warnings: Vec<String>,
 }
 
+/// What the summary says about the scene, taken before the scene is handed to the
+/// in-process coordinator.
+#[derive(Clone, Debug)]
+pub struct SceneFacts {
+    pub triangles: usize,
+    pub degenerate_triangles: u64,
+    pub warnings: Vec<String>,
+}
+
+impl SceneFacts {
+    pub fn of(scene: &Scene) -> SceneFacts {
+        SceneFacts {
+            triangles: scene.mesh.triangle_count(),
+            degenerate_triangles: scene.stats.degenerate_triangles,
+            warnings: scene.stats.warnings.clone(),
+        }
+    }
+}
+
 impl Summary {
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         spec: &str,
-        scene: &Scene,
+        scene: &SceneFacts,
         s: &RenderSettings,
         out: &RenderOutput,
         threads: usize,
@@ -54,8 +73,8 @@ impl Summary {
         let secs = out.render_time.as_secs_f64();
         Summary {
             scene: spec.to_string(),
-            triangles: scene.mesh.triangle_count(),
-            degenerate_triangles_dropped: scene.stats.degenerate_triangles,
+            triangles: scene.triangles,
+            degenerate_triangles_dropped: scene.degenerate_triangles,
             width: s.width,
             height: s.height,
             spp: s.spp,
@@ -78,7 +97,7 @@ impl Summary {
                 0.0
             },
             nonfinite_contributions: out.film.nonfinite,
-            warnings: scene.stats.warnings.clone(),
+            warnings: scene.warnings.clone(),
         }
     }
 }

@@ -89,9 +89,10 @@ fn partition_writes_a_package_and_rejects_bad_input() {
     assert!(err.starts_with("dray: error:"), "{err}");
 }
 
-/// `dray render --workers N` runs the job on in-process worker actors (coordinator,
-/// package, gRPC ray streams, credit, reports): the image is the tile renderer's, bit for
-/// bit, and the rays counted by kind are the same.
+/// `dray render` runs the job on in-process worker actors (coordinator, in-memory
+/// package, gRPC ray streams, credit, reports): the image is the reference renderer's
+/// (`--workers 0`, tiles traced with no actors), bit for bit, and the rays counted by
+/// kind are the same, on 1 (the default) and 3 workers.
 #[test]
 fn in_process_actors_give_the_tile_renderers_bits() {
     let d = tmp("actors");
@@ -123,19 +124,24 @@ fn in_process_actors_give_the_tile_renderers_bits() {
             extra,
         ]
         .concat();
-        let one = render(&d, "tiles", scene, &args);
+        let one = render(
+            &d,
+            "tiles",
+            scene,
+            &[&args[..], &["--workers", "0"]].concat(),
+        );
         assert!(one.ok, "{}", one.stderr);
         let reference = std::fs::read(one.png.unwrap()).unwrap();
         let rays = |stats: &Option<serde_json::Value>| stats.as_ref().unwrap()["rays"].clone();
         let reference_rays = rays(&one.stats);
         assert!(reference_rays.is_object(), "{:?}", one.stats);
-        for workers in ["1", "3"] {
-            let r = render(
-                &d,
-                "actors",
-                scene,
-                &[&args[..], &["--workers", workers]].concat(),
-            );
+        for workers in ["default", "3"] {
+            let flags: &[&str] = if workers == "default" {
+                &[]
+            } else {
+                &["--workers", workers]
+            };
+            let r = render(&d, "actors", scene, &[&args[..], flags].concat());
             assert!(r.ok, "{scene} {workers} workers: {}", r.stderr);
             let png = std::fs::read(r.png.clone().unwrap()).unwrap();
             assert!(

@@ -16,6 +16,7 @@ use dray_proto::v1::{
     ReportContributionsResponse, ReportQueuesRequest, ReportQueuesResponse,
     WatchAssignmentsRequest,
 };
+use dray_scene::partition::memory::MemoryPackages;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status};
 
@@ -31,6 +32,10 @@ pub struct ClusterOptions {
     /// Where per-job scene packages are written (a directory per job, removed when the
     /// job is released). Must be readable by the workers at the same path.
     pub work_dir: PathBuf,
+    /// When set, packages for scenes are cut into this in-memory store instead of the
+    /// work directory: for workers in the coordinator's own process (`dray render`),
+    /// which read the same store. Workers elsewhere cannot, so a cluster leaves it unset.
+    pub memory_packages: Option<Arc<MemoryPackages>>,
 }
 
 impl Default for ClusterOptions {
@@ -38,6 +43,7 @@ impl Default for ClusterOptions {
         ClusterOptions {
             heartbeat: HeartbeatConfig::default(),
             work_dir: std::env::temp_dir().join(format!("dray-coordinator-{}", std::process::id())),
+            memory_packages: None,
         }
     }
 }

@@ -31,12 +31,14 @@ use dray_proto::v1::{
 };
 use dray_scene::partition::checksum::{checksum, to_hex};
 use dray_scene::partition::manifest::MANIFEST_FILE;
+use dray_scene::partition::memory::{MemoryPackage, MemoryPackages};
 use dray_scene::partition::{LayoutSpec, write_scene_package};
 use tracing::Instrument;
 
 use crate::cluster::Cluster;
 use crate::jobs::JobEntry;
-use crate::ledger::{DistJob, remove_package};
+use crate::ledger::DistJob;
+use crate::owned_package::{OwnedPackage, remove_package};
 use crate::validate::Prepared;
 
 /// Tile edge in pixels: the same tiles as `dray render`, so progress reads the same.
@@ -131,14 +133,38 @@ pub fn layout_spec(layout: &str, domains: u32) -> LayoutSpec {
 
 /// The package as the job's workers will see it.
 struct PackageInfo {
-    dir: PathBuf,
+    /// `JobSetup.package_path`: a directory, or an in-memory package's name.
+    path: String,
     checksum: String,
     domains: u32,
-    owned: bool,
+    /// Set when the package was made for this job (and goes with it).
+    owned: Option<OwnedPackage>,
 }
 
-/// Write (or check) the package. Blocking.
-fn make_package(src: PackageSource, dir: &Path) -> Result<PackageInfo, DispatchError> {
+/// Write (or check) the package: into `memory` when given, else into `dir`. Blocking.
+fn make_package(
+    src: PackageSource,
+    dir: &Path,
+    memory: Option<&Arc<MemoryPackages>>,
+) -> Result<PackageInfo, DispatchError> {
+    if let (PackageSource::Write { scene, layout }, Some(store)) = (&src, memory) {
+        let pkg = MemoryPackage::new(scene, layout).map_err(|e| DispatchError::Package {
+            dir: dir.to_path_buf(),
+            message: e.to_string(),
+        })?;
+        let domains = pkg.domain_count();
+        let name = store.insert(pkg);
+        return Ok(PackageInfo {
+            path: name.clone(),
+            // The name is unique in the process that holds it; there are no bytes to pin.
+            checksum: String::new(),
+            domains,
+            owned: Some(OwnedPackage::Memory {
+                store: store.clone(),
+                name,
+            }),
+        });
+    }
     let (dir, owned) = match src {
         PackageSource::Write { scene, layout } => {
             if let Some(parent) = dir.parent() {
@@ -166,10 +192,10 @@ fn make_package(src: PackageSource, dir: &Path) -> Result<PackageInfo, DispatchE
     })?;
     let dir = std::path::absolute(&dir).unwrap_or(dir);
     Ok(PackageInfo {
-        dir,
+        path: dir.to_string_lossy().into_owned(),
         checksum: package_checksum(&bytes),
         domains: pkg.domain_count(),
-        owned,
+        owned: owned.then_some(OwnedPackage::Dir(dir)),
     })
 }
 
@@ -302,17 +328,18 @@ async fn run(
     entry.set_state(JobState::Preparing);
     let dir = cluster.options.work_dir.join(&entry.id);
     let dir2 = dir.clone();
-    let info = tokio::task::spawn_blocking(move || make_package(package, &dir2))
+    let memory = cluster.options.memory_packages.clone();
+    let info = tokio::task::spawn_blocking(move || make_package(package, &dir2, memory.as_ref()))
         .await
         .map_err(|e| DispatchError::Task(e.to_string()));
     let info = match info {
         Ok(Ok(i)) => i,
         Ok(Err(e)) | Err(e) => {
-            remove_package(Some(&dir));
+            remove_package(Some(&OwnedPackage::Dir(dir)));
             return Err(e);
         }
     };
-    let owned = info.owned.then(|| info.dir.clone());
+    let owned = info.owned.clone();
     if entry.is_terminal() {
         // Cancelled while the package was being written.
         remove_package(owned.as_ref());
@@ -339,7 +366,7 @@ async fn run(
             b: env.z,
         }),
         effects: prepared.effects.clone(),
-        package_path: info.dir.to_string_lossy().into_owned(),
+        package_path: info.path.clone(),
         package_checksum: info.checksum.clone(),
         domain_count: info.domains,
         tile_size: TILE_SIZE,
@@ -391,7 +418,7 @@ async fn run(
                 workers = n,
                 domains = info.domains,
                 tiles = tiles.len(),
-                package = %info.dir.display(),
+                package = %info.path,
                 "job dispatched"
             );
             Ok(())

@@ -16,7 +16,6 @@
 //! moment the last credit arrives.
 
 use std::collections::{BTreeSet, HashMap};
-use std::path::PathBuf;
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use dray_core::film::Film;
@@ -28,6 +27,7 @@ use tonic::Status;
 
 use crate::jobs::JobEntry;
 use crate::membership::Membership;
+use crate::owned_package::{OwnedPackage, remove_package};
 
 /// Sequences of one (worker, job) already applied: everything up to `upto`, plus the
 /// ones above it that arrived out of order. Stays small when reports arrive in order.
@@ -63,7 +63,7 @@ pub struct DistJob {
     pub routing: RoutingTable,
     /// Package directory to delete when the job is released (None for a package the
     /// user supplied).
-    pub owned_package: Option<PathBuf>,
+    pub owned_package: Option<OwnedPackage>,
     tile_start: Vec<u64>,
     tile_back: Vec<u64>,
     tiles_done: u32,
@@ -84,7 +84,7 @@ impl DistJob {
         routing: RoutingTable,
         tiles: usize,
         tile_credit: u64,
-        owned_package: Option<PathBuf>,
+        owned_package: Option<OwnedPackage>,
     ) -> DistJob {
         let (w, h) = (entry.spec.width, entry.spec.height);
         DistJob {
@@ -432,17 +432,6 @@ impl Ledger {
     /// Whether `job` is running on workers.
     pub fn contains(&self, job: &str) -> bool {
         self.lock().contains_key(job)
-    }
-}
-
-/// Delete a package the coordinator wrote for a job. Failure only costs disk space, so it
-/// is logged, not raised.
-pub(crate) fn remove_package(dir: Option<&PathBuf>) {
-    if let Some(d) = dir
-        && let Err(e) = std::fs::remove_dir_all(d)
-        && e.kind() != std::io::ErrorKind::NotFound
-    {
-        tracing::warn!(dir = %d.display(), "cannot remove the job's scene package: {e}");
     }
 }
 

@@ -25,6 +25,7 @@ pub mod dispatch;
 pub mod jobs;
 pub mod ledger;
 pub mod membership;
+pub mod owned_package;
 pub mod routing;
 pub mod service;
 pub mod validate;

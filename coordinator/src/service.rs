@@ -6,11 +6,12 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
+use dray_core::scene::Scene;
 use dray_proto::v1::cluster_service_server::ClusterServiceServer;
 use dray_proto::v1::render_service_server::{RenderService, RenderServiceServer};
 use dray_proto::v1::{
     CancelJobRequest, CancelJobResponse, GetImageRequest, GetImageResponse, GetJobRequest,
-    GetJobResponse, ImageFormat, JobProgress, JobState, ListJobsRequest, ListJobsResponse,
+    GetJobResponse, ImageFormat, JobProgress, JobSpec, JobState, ListJobsRequest, ListJobsResponse,
     SubmitJobRequest, SubmitJobResponse, WatchJobRequest,
 };
 use tokio::net::TcpListener;
@@ -75,35 +76,21 @@ impl Coordinator {
         self.table.get(id)
     }
 
-    fn job(&self, id: &str) -> Result<Arc<JobEntry>, Status> {
-        self.table
-            .get(id)
-            .ok_or_else(|| Status::not_found(format!("no job {id:?}")))
+    /// Submit a job whose scene this process has already loaded: `scene` is the scene
+    /// `spec.scene` names (untranslated; `spec.translate` still applies). The spec is
+    /// validated as SubmitJob validates it, and the job runs exactly as if submitted, but
+    /// the scene is not read again. Returns the job id.
+    pub async fn submit_loaded(&self, spec: JobSpec, scene: Scene) -> Result<String, Status> {
+        self.submit(spec, Some(scene)).await
     }
-}
 
-fn is_terminal(s: i32) -> bool {
-    matches!(
-        JobState::try_from(s),
-        Ok(JobState::Succeeded | JobState::Failed | JobState::Cancelled)
-    )
-}
-
-#[tonic::async_trait]
-impl RenderService for Coordinator {
-    async fn submit_job(
-        &self,
-        r: Request<SubmitJobRequest>,
-    ) -> Result<Response<SubmitJobResponse>, Status> {
-        let spec = r
-            .into_inner()
-            .spec
-            .ok_or_else(|| Status::invalid_argument("spec: missing"))?;
+    /// SubmitJob, with the scene already loaded or not.
+    async fn submit(&self, spec: JobSpec, loaded: Option<Scene>) -> Result<String, Status> {
         let v = validate(&spec, &self.limits, &self.scene_root)?;
         // Loading the scene checks the scene spec and the camera; it may take a while for
         // large scenes, so it runs off the async threads.
         let v2 = v.clone();
-        let prepared = tokio::task::spawn_blocking(move || prepare(&v2))
+        let prepared = tokio::task::spawn_blocking(move || prepare(&v2, loaded))
             .await
             .map_err(|e| Status::internal(format!("scene loading task died: {e}")))??;
         let workers = self.cluster.membership.len();
@@ -141,8 +128,37 @@ impl RenderService for Coordinator {
             entry
         };
         tracing::info!(id = %job.id, scene = %job.spec.scene, workers, "job accepted");
+        Ok(job.id.clone())
+    }
+
+    fn job(&self, id: &str) -> Result<Arc<JobEntry>, Status> {
+        self.table
+            .get(id)
+            .ok_or_else(|| Status::not_found(format!("no job {id:?}")))
+    }
+}
+
+fn is_terminal(s: i32) -> bool {
+    matches!(
+        JobState::try_from(s),
+        Ok(JobState::Succeeded | JobState::Failed | JobState::Cancelled)
+    )
+}
+
+#[tonic::async_trait]
+impl RenderService for Coordinator {
+    async fn submit_job(
+        &self,
+        r: Request<SubmitJobRequest>,
+    ) -> Result<Response<SubmitJobResponse>, Status> {
+        let spec = r
+            .into_inner()
+            .spec
+            .ok_or_else(|| Status::invalid_argument("spec: missing"))?;
+        let id = self.submit(spec, None).await?;
+        let job = self.job(&id)?;
         Ok(Response::new(SubmitJobResponse {
-            job_id: job.id.clone(),
+            job_id: id,
             spec: Some(job.spec.clone()),
         }))
     }

@@ -277,16 +277,20 @@ pub struct Prepared {
 }
 
 /// Load the scene and make the scene-dependent checks (camera, effects), exactly as
-/// `dray render` does, so the same spec gives the same image. Blocking.
-pub fn prepare(v: &Validated) -> Result<Prepared, Status> {
+/// `dray render` does, so the same spec gives the same image. `loaded` is the scene
+/// already in memory (a process hosting the coordinator, as `dray render` does, hands
+/// over the scene it loaded instead of having it read twice); it is translated here like
+/// a loaded one. Blocking.
+pub fn prepare(v: &Validated, loaded: Option<Scene>) -> Result<Prepared, Status> {
     let s = &v.spec;
-    let (mut scene, package) = match &v.package {
-        Some(dir) => {
+    let (mut scene, package) = match (&v.package, loaded) {
+        (_, Some(scene)) => (scene, None),
+        (Some(dir), None) => {
             let pkg = open_package(dir)
                 .map_err(|e| bad(format!("scene: cannot open the package {:?}: {e}", s.scene)))?;
             (package_scene(&pkg), Some(pkg))
         }
-        None => {
+        (None, None) => {
             let scene = dray_scene::load(&v.scene_spec)
                 .map_err(|e| bad(format!("scene: cannot load {:?}: {e}", s.scene)))?;
             (scene, None)

@@ -53,6 +53,7 @@ impl Server {
             .with_cluster_options(ClusterOptions {
                 heartbeat,
                 work_dir: work_dir.clone(),
+                memory_packages: None,
             });
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
         let task = tokio::spawn(async move {

@@ -189,6 +189,15 @@ impl DomainTree {
         }
         // The first span starts at the ray's own tmin (exclusive) when the origin is inside.
         let start = if t0 <= tmin { tmin } else { t0 };
+        if let [DomainNode::Leaf { domain }] = self.nodes.as_slice() {
+            // One domain (the embedded default): no stack to set up.
+            visit(Span {
+                domain: *domain,
+                t0: start,
+                t1,
+            });
+            return;
+        }
         let mut stack = WalkStack::new();
         stack.push((0, start, t1));
         while let Some((n, a, b)) = stack.pop() {
@@ -277,6 +286,40 @@ impl DomainTree {
             }
         });
         first
+    }
+
+    /// The first wanted domain on the ray with its span, and the next wanted domain
+    /// after it: [`DomainTree::first_domain`] and [`DomainTree::hop`] of its answer in
+    /// one walk, with the same span `hop` gives.
+    pub fn first_hop(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        tmin: f32,
+        tmax: f32,
+        pad: f32,
+        wanted: impl Fn(u32) -> bool,
+    ) -> Option<Hop> {
+        let mut found: Option<Hop> = None;
+        self.walk(origin, dir, tmin, tmax, pad, |s| {
+            if !wanted(s.domain) {
+                return true;
+            }
+            match &mut found {
+                None => {
+                    found = Some(Hop {
+                        span: s,
+                        next: None,
+                    });
+                    true
+                }
+                Some(h) => {
+                    h.next = Some(s.domain);
+                    false
+                }
+            }
+        });
+        found
     }
 
     /// Where `domain` lies on the ray, and the next wanted domain after it. The walk is

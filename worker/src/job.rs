@@ -14,7 +14,8 @@ use dray_core::integrator::{IntegratorKind, RenderSettings};
 use dray_proto::v1::{JobSetup, RoutingTable};
 use dray_scene::partition::checksum::{checksum, to_hex};
 use dray_scene::partition::manifest::MANIFEST_FILE;
-use dray_scene::partition::{load_resident, open_package};
+use dray_scene::partition::memory::{MemoryPackages, is_memory_package};
+use dray_scene::partition::{Aabb, load_resident, open_package};
 use glam::Vec3;
 
 use crate::tracer::JobTracer;
@@ -92,12 +93,20 @@ pub fn settings(setup: &JobSetup) -> Result<RenderSettings, JobError> {
     })
 }
 
-/// Load what `worker_id` needs of the job and make its tracer. Blocking (reads files
-/// and builds BVHs).
-pub fn build_tracer(setup: &JobSetup, worker_id: &str) -> Result<JobTracer, JobError> {
+/// Load what `worker_id` needs of the job and make its tracer: from the package
+/// directory, or from `memory` when the package is an in-memory one of this process.
+/// Blocking (reads files and builds BVHs).
+pub fn build_tracer(
+    setup: &JobSetup,
+    worker_id: &str,
+    memory: Option<&MemoryPackages>,
+) -> Result<JobTracer, JobError> {
     let settings = settings(setup)?;
     let routing = setup.routing.as_ref().ok_or(JobError::Missing("routing"))?;
     let owned = owned_domains(routing, worker_id);
+    if is_memory_package(&setup.package_path) {
+        return memory_tracer(setup, settings, &owned, memory);
+    }
     let dir = Path::new(&setup.package_path);
     let pkg_err = |message: String| JobError::Package {
         path: setup.package_path.clone(),
@@ -114,30 +123,9 @@ pub fn build_tracer(setup: &JobSetup, worker_id: &str) -> Result<JobTracer, JobE
         });
     }
     let package = open_package(dir).map_err(|e| pkg_err(e.to_string()))?;
-    if package.domain_count() != setup.domain_count {
-        return Err(JobError::Invalid(format!(
-            "the package has {} domains, the setup says {}",
-            package.domain_count(),
-            setup.domain_count
-        )));
-    }
-    let spec = setup.spec.as_ref().ok_or(JobError::Missing("spec"))?;
-    let aspect = settings.width as f32 / settings.height as f32;
+    check_domain_count(package.domain_count(), setup)?;
     let bounds = package.layout().scene_bounds();
-    let camera = match spec.camera.as_deref() {
-        Some(c) => {
-            let i: usize = c.parse().map_err(|_| {
-                JobError::Invalid(format!("camera {c:?} is not an index into the package"))
-            })?;
-            package.cameras().get(i).cloned().ok_or_else(|| {
-                JobError::Invalid(format!(
-                    "camera {i} does not exist (the package has {})",
-                    package.cameras().len()
-                ))
-            })?
-        }
-        None => Camera::framing(bounds.min, bounds.max, aspect),
-    };
+    let camera = job_camera(setup, &settings, package.cameras(), bounds)?;
     let counts: Vec<u64> = package
         .manifest()
         .domains
@@ -155,4 +143,142 @@ pub fn build_tracer(setup: &JobSetup, worker_id: &str) -> Result<JobTracer, JobE
         &counts,
         setup.tile_size,
     ))
+}
+
+/// [`build_tracer`] for a package in this process's memory.
+fn memory_tracer(
+    setup: &JobSetup,
+    settings: RenderSettings,
+    owned: &[u32],
+    memory: Option<&MemoryPackages>,
+) -> Result<JobTracer, JobError> {
+    let pkg_err = |message: String| JobError::Package {
+        path: setup.package_path.clone(),
+        message,
+    };
+    let package = memory
+        .and_then(|m| m.get(&setup.package_path))
+        .ok_or_else(|| {
+            pkg_err(
+                "it is held in the memory of the coordinator's process, and this worker runs in \
+             another"
+                    .into(),
+            )
+        })?;
+    check_domain_count(package.domain_count(), setup)?;
+    let layout = package.layout();
+    let camera = job_camera(
+        setup,
+        &settings,
+        &package.tables().cameras,
+        layout.scene_bounds(),
+    )?;
+    let resident = package
+        .resident(owned)
+        .map_err(|e| pkg_err(e.to_string()))?;
+    Ok(JobTracer::new(
+        resident,
+        settings,
+        camera,
+        layout.to_domain_tree(),
+        layout.epsilon(),
+        &package.triangle_counts(),
+        setup.tile_size,
+    ))
+}
+
+/// The package must be cut as the coordinator said.
+fn check_domain_count(found: u32, setup: &JobSetup) -> Result<(), JobError> {
+    if found != setup.domain_count {
+        return Err(JobError::Invalid(format!(
+            "the package has {found} domains, the setup says {}",
+            setup.domain_count
+        )));
+    }
+    Ok(())
+}
+
+/// The job's camera: by index into the package's cameras, or framing its bounds.
+fn job_camera(
+    setup: &JobSetup,
+    settings: &RenderSettings,
+    cameras: &[Camera],
+    bounds: Aabb,
+) -> Result<Camera, JobError> {
+    let spec = setup.spec.as_ref().ok_or(JobError::Missing("spec"))?;
+    let aspect = settings.width as f32 / settings.height as f32;
+    match spec.camera.as_deref() {
+        Some(c) => {
+            let i: usize = c.parse().map_err(|_| {
+                JobError::Invalid(format!("camera {c:?} is not an index into the package"))
+            })?;
+            cameras.get(i).cloned().ok_or_else(|| {
+                JobError::Invalid(format!(
+                    "camera {i} does not exist (the package has {})",
+                    cameras.len()
+                ))
+            })
+        }
+        None => Ok(Camera::framing(bounds.min, bounds.max, aspect)),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use dray_proto::v1::{DomainRoute, JobSpec, Rgb};
+    use dray_scene::partition::LayoutSpec;
+    use dray_scene::partition::memory::MemoryPackage;
+
+    use super::*;
+
+    fn setup(package_path: &str, domain_count: u32) -> JobSetup {
+        JobSetup {
+            job_id: "j".into(),
+            spec: Some(JobSpec {
+                width: 8,
+                height: 8,
+                spp: 1,
+                integrator: "raycast".into(),
+                max_depth: Some(2),
+                ao_samples: Some(1),
+                ..JobSpec::default()
+            }),
+            environment: Some(Rgb::default()),
+            package_path: package_path.into(),
+            domain_count,
+            tile_size: 32,
+            routing: Some(RoutingTable {
+                routes: (0..domain_count)
+                    .map(|d| DomainRoute {
+                        domain: d,
+                        worker_id: "w".into(),
+                    })
+                    .collect(),
+                ..RoutingTable::default()
+            }),
+            ..JobSetup::default()
+        }
+    }
+
+    #[test]
+    fn an_in_memory_package_loads_only_in_its_own_process() {
+        let scene = dray_scene::load("cornell").unwrap();
+        let store = MemoryPackages::default();
+        let name = store.insert(MemoryPackage::new(&scene, &LayoutSpec::Kd(3)).unwrap());
+        let s = setup(&name, 3);
+        let t = build_tracer(&s, "w", Some(&store)).expect("loads from the store");
+        drop(t);
+        let err = build_tracer(&s, "w", None)
+            .err()
+            .expect("no store")
+            .to_string();
+        assert!(err.contains(&name) && err.contains("another"), "{err}");
+        let wrong = build_tracer(&setup(&name, 4), "w", Some(&store))
+            .err()
+            .expect("domain count mismatch")
+            .to_string();
+        assert!(wrong.contains("3 domains"), "{wrong}");
+        store.remove(&name);
+        assert!(build_tracer(&s, "w", Some(&store)).is_err());
+    }
 }

@@ -20,6 +20,7 @@ pub mod job;
 pub mod node;
 pub mod peer_client;
 pub mod peer_server;
+pub mod pixel_sums;
 pub mod queue;
 pub mod tracer;
 

@@ -36,6 +36,7 @@ use dray_proto::v1::{
     WatchAssignmentsRequest, assignment::Command,
 };
 use dray_proto::{RAY_RECORD_BYTES, RAY_RECORD_FORMAT, RayRecord};
+use dray_scene::partition::memory::MemoryPackages;
 use tokio::net::TcpListener;
 use tokio::sync::mpsc;
 use tonic::transport::{Channel, Endpoint};
@@ -43,6 +44,7 @@ use tonic::transport::{Channel, Endpoint};
 use crate::job::{build_tracer, owned_domains};
 use crate::peer_client::{BatchKey, PeerClientConfig, PeerSender};
 use crate::peer_server::{PeerServer, PeerServerConfig};
+use crate::pixel_sums::PixelSums;
 use crate::queue::{QueuedBatch, RayQueues};
 use crate::tracer::{JobTracer, Outbox, TileRef};
 
@@ -76,6 +78,9 @@ pub struct WorkerConfig {
     pub in_flight_limit: usize,
     /// How long to keep trying to reach the coordinator at start.
     pub connect_timeout: Duration,
+    /// The in-memory package store of the coordinator in this process, when there is
+    /// one (`dray render`): jobs whose package is `memory:N` read their domains from it.
+    pub memory_packages: Option<Arc<MemoryPackages>>,
 }
 
 impl Default for WorkerConfig {
@@ -88,6 +93,7 @@ impl Default for WorkerConfig {
             queue_capacity: 1 << 18,
             in_flight_limit: 1 << 18,
             connect_timeout: Duration::from_secs(10),
+            memory_packages: None,
         }
     }
 }
@@ -116,7 +122,7 @@ pub enum NodeError {
 /// Results of one job waiting to be reported.
 #[derive(Default)]
 struct Report {
-    sums: Vec<(u32, [i64; 3])>,
+    sums: PixelSums,
     credits: Vec<(u32, u64)>,
     traced: [u64; RayKind::COUNT],
     nonfinite: u64,
@@ -420,7 +426,10 @@ impl Node {
         }
         let id = self.id.clone();
         let setup2 = setup.clone();
-        let built = tokio::task::spawn_blocking(move || build_tracer(&setup2, &id)).await;
+        let memory = self.config.memory_packages.clone();
+        let built =
+            tokio::task::spawn_blocking(move || build_tracer(&setup2, &id, memory.as_deref()))
+                .await;
         let tracer = match built {
             Ok(Ok(t)) => t,
             Ok(Err(e)) => {
@@ -680,8 +689,7 @@ impl Node {
             }
         }
         let mut r = lock(&job.report);
-        let mut sums = out.sums;
-        r.sums.append(&mut sums);
+        r.sums.extend(&out.sums);
         let mut credits = out.credits;
         r.credits.append(&mut credits);
         for (k, n) in out.traced.iter().enumerate() {
@@ -846,9 +854,10 @@ impl Node {
         if report.is_empty() {
             return;
         }
-        while report.sums.len() > MAX_SUMS_PER_REPORT {
-            let rest = report.sums.split_off(MAX_SUMS_PER_REPORT);
-            let chunk = std::mem::replace(&mut report.sums, rest);
+        let mut sums = report.sums.drain();
+        while sums.len() > MAX_SUMS_PER_REPORT {
+            let rest = sums.split_off(MAX_SUMS_PER_REPORT);
+            let chunk = std::mem::replace(&mut sums, rest);
             let request = self.request(job, chunk, Vec::new(), [0; RayKind::COUNT], 0, 0, None);
             if !self.send_report(job, request).await {
                 return;
@@ -864,7 +873,7 @@ impl Node {
         }
         let request = self.request(
             job,
-            report.sums,
+            sums,
             credits,
             report.traced,
             report.nonfinite,

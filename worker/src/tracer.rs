@@ -11,12 +11,20 @@
 //! own origin ([`DomainTree::hop`]), so it is the very span the embedded renderer's
 //! [`dray_core::trace::DomainSet`] uses, and the image is the same bit for bit. Empty
 //! domains are skipped: they can neither hit nor block a ray.
+//!
+//! A ray bound for another domain that is resident here is traced in the same step,
+//! not queued: only rays for other workers' domains leave the step. The results are the
+//! same bits either way (sums are exact in any order and credit is split when a ray is
+//! made), and a one-worker render pays no queue round trip per ray.
 
 use std::collections::HashMap;
 use std::sync::Arc;
 
+/// A deterministic fast hash for domain keys.
+type FastState = foldhash::fast::FixedState;
+
 use dray_core::camera::Camera;
-use dray_core::domain::DomainTree;
+use dray_core::domain::{DomainTree, Hop};
 use dray_core::effects::Effect;
 use dray_core::film::to_fixed;
 use dray_core::integrator::{Integrator, RayKind, RayState, RenderSettings, Sink};
@@ -74,13 +82,18 @@ impl TileRef {
 #[derive(Debug, Default)]
 pub struct Outbox {
     /// Contributions in fixed point, by pixel; a pixel may repeat (the coordinator's sums
-    /// are exact in any grouping, so nothing is summed here).
+    /// are exact in any grouping; the worker merges them per report, see `pixel_sums`).
     pub sums: Vec<(u32, [i64; 3])>,
     /// Credit handed back by rays that terminated, by tile; a tile may repeat, but
     /// consecutive returns to one tile share an entry.
     pub credits: Vec<(u32, u64)>,
-    /// Rays to trace next, by the domain they enter next.
-    pub rays: HashMap<u32, Vec<RayRecord>>,
+    /// Rays to trace next on other workers, by the domain they enter next.
+    pub rays: HashMap<u32, Vec<RayRecord>, FastState>,
+    /// Rays bound for a domain resident here, traced before the step ends (depth first,
+    /// so the stack stays as small as one camera ray's descendants).
+    /// A ray made in this step carries the hop found when it was routed, so its
+    /// domain walk is not done twice.
+    local: Vec<(u32, RayRecord, Option<Hop>)>,
     /// Rays made here (camera rays and children), by kind: each ray is counted once,
     /// where it is made, so the totals equal the single-process renderer's.
     pub traced: [u64; RayKind::COUNT],
@@ -137,6 +150,26 @@ impl Sink for StepSink {
     }
 }
 
+/// The sink of a ray's last step (a miss, an unblocked occlusion ray): contributions go
+/// straight to the outbox, with no buffer to allocate. Those steps make no rays.
+struct ContributionsOnly<'a>(&'a mut Outbox);
+
+impl Sink for ContributionsOnly<'_> {
+    fn contribute(&mut self, pixel: u32, value: Vec3) {
+        self.0.add(pixel, value);
+    }
+    fn spawn(&mut self, _ray: RayState) {
+        debug_assert!(false, "a miss or an occlusion result made a ray");
+    }
+}
+
+/// Scratch space reused across the rays of one step.
+#[derive(Default)]
+struct Step {
+    sink: StepSink,
+    kinds: Vec<RayKind>,
+}
+
 /// One job on one worker: the resident part of the scene and the job's settings.
 pub struct JobTracer {
     resident: ResidentScene,
@@ -147,6 +180,8 @@ pub struct JobTracer {
     pad: f32,
     /// Per domain of the layout, whether it holds any triangle.
     nonempty: Vec<bool>,
+    /// Per domain of the layout, its index in `resident.domains` when resident here.
+    local: Vec<Option<u32>>,
     tile_size: u32,
     tiles_x: u32,
 }
@@ -169,7 +204,14 @@ impl JobTracer {
             resident.bounds,
         ));
         let tile_size = tile_size.max(1);
+        let mut local = vec![None; domain_triangles.len()];
+        for (i, d) in resident.domains.iter().enumerate() {
+            if let Some(slot) = local.get_mut(d.domain as usize) {
+                *slot = Some(i as u32);
+            }
+        }
         JobTracer {
+            local,
             tiles_x: settings.width.div_ceil(tile_size),
             resident,
             lights,
@@ -245,7 +287,12 @@ impl JobTracer {
             out.traced[RayKind::Camera as usize] += 1;
             self.route_new(&integrator, ray, share, tile.index, out);
         }
-        Ok(())
+        self.trace_local(&integrator, out)
+    }
+
+    /// Whether `domain` is resident here.
+    fn is_local(&self, domain: u32) -> bool {
+        matches!(self.local.get(domain as usize), Some(Some(_)))
     }
 
     /// Send a ray that was just made to the first domain on its path, or finish it at
@@ -260,15 +307,26 @@ impl JobTracer {
     ) {
         let first =
             self.tree
-                .first_domain(ray.origin, ray.dir, 0.0, ray.tmax, self.pad, self.wanted());
+                .first_hop(ray.origin, ray.dir, 0.0, ray.tmax, self.pad, self.wanted());
         match first {
-            Some(d) => self.forward(ray, credit, d, tile, out),
+            Some(h) => self.forward(ray, credit, h.span.domain, Some(h), tile, out),
             None => self.finish_unblocked(integrator, &ray, credit, tile, out),
         }
     }
 
-    fn forward(&self, ray: RayState, credit: u64, domain: u32, tile: u32, out: &mut Outbox) {
+    /// Send `ray` on to `domain`: traced in this step when the domain is resident here
+    /// (with `hop`, its span there, when already known), else to the domain's owner.
+    fn forward(
+        &self,
+        ray: RayState,
+        credit: u64,
+        domain: u32,
+        hop: Option<Hop>,
+        tile: u32,
+        out: &mut Outbox,
+    ) {
         match RayRecord::from_state(&ray, credit) {
+            Ok(r) if self.is_local(domain) => out.local.push((domain, r, hop)),
             Ok(r) => out.rays.entry(domain).or_default().push(r),
             // Depth beyond 16 bits: no valid job gets here (max_depth <= 1024); end the
             // ray rather than lose its credit.
@@ -286,44 +344,82 @@ impl JobTracer {
         tile: u32,
         out: &mut Outbox,
     ) {
-        let mut sink = StepSink::default();
+        let mut sink = ContributionsOnly(out);
         if ray.kind.is_occlusion() {
             integrator.shadow_result(ray, false, &mut sink);
         } else {
             integrator.shade_miss(ray, &mut sink);
         }
-        for (p, v) in sink.contributions {
-            out.add(p, v);
-        }
         out.give_back(tile, credit);
     }
 
-    /// Trace `rays`, all queued for `domain`, which must be resident here.
+    /// Trace `rays`, all queued for `domain`, which must be resident here, and every ray
+    /// they lead to in domains resident here.
     pub fn trace_batch(
         &self,
         domain: u32,
         rays: &[RayRecord],
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
-        let resident = self
-            .resident
-            .domain(domain)
-            .ok_or(TraceError::NotResident { domain })?;
+        if !self.is_local(domain) {
+            return Err(TraceError::NotResident { domain });
+        }
         let integrator = self.integrator();
-        let pixels = self.settings.width as u64 * self.settings.height as u64;
-        let mut sink = StepSink::default();
-        let mut kinds = Vec::new();
+        let mut step = Step::default();
         for rec in rays {
-            if rec.pixel as u64 >= pixels {
-                return Err(TraceError::BadPixel {
-                    pixel: rec.pixel,
-                    width: self.settings.width,
-                    height: self.settings.height,
-                });
-            }
-            let ray = rec.to_state();
-            let tile = self.tile_of(ray.pixel);
-            let hop = self
+            self.trace_one(&integrator, domain, rec, None, &mut step, out)?;
+        }
+        self.trace_local_with(&integrator, &mut step, out)
+    }
+
+    /// Trace the rays the step sent to resident domains, and theirs, until none is left.
+    fn trace_local(&self, integrator: &Integrator<'_>, out: &mut Outbox) -> Result<(), TraceError> {
+        self.trace_local_with(integrator, &mut Step::default(), out)
+    }
+
+    fn trace_local_with(
+        &self,
+        integrator: &Integrator<'_>,
+        step: &mut Step,
+        out: &mut Outbox,
+    ) -> Result<(), TraceError> {
+        while let Some((domain, rec, hop)) = out.local.pop() {
+            self.trace_one(integrator, domain, &rec, hop, step, out)?;
+        }
+        Ok(())
+    }
+
+    /// Trace one ray in `domain` (resident here; `hop` is its span there if known) and
+    /// hand on what it makes.
+    fn trace_one(
+        &self,
+        integrator: &Integrator<'_>,
+        domain: u32,
+        rec: &RayRecord,
+        hop: Option<Hop>,
+        step: &mut Step,
+        out: &mut Outbox,
+    ) -> Result<(), TraceError> {
+        let index = self
+            .local
+            .get(domain as usize)
+            .copied()
+            .flatten()
+            .ok_or(TraceError::NotResident { domain })?;
+        let resident = &self.resident.domains[index as usize];
+        let pixels = self.settings.width as u64 * self.settings.height as u64;
+        if rec.pixel as u64 >= pixels {
+            return Err(TraceError::BadPixel {
+                pixel: rec.pixel,
+                width: self.settings.width,
+                height: self.settings.height,
+            });
+        }
+        let ray = rec.to_state();
+        let tile = self.tile_of(ray.pixel);
+        let hop = match hop {
+            Some(h) => h,
+            None => self
                 .tree
                 .hop(
                     ray.origin,
@@ -334,42 +430,43 @@ impl JobTracer {
                     domain,
                     self.wanted(),
                 )
-                .ok_or(TraceError::Misrouted { domain })?;
-            let geometry = SpanTrace {
-                accel: &resident.accel,
-                span: hop.span,
-            };
-            if ray.kind.is_occlusion() {
-                if integrator.occluded(&geometry, &ray) {
-                    out.give_back(tile, rec.credit);
-                } else if let Some(next) = hop.next {
-                    self.forward(ray, rec.credit, next, tile, out);
-                } else {
-                    self.finish_unblocked(&integrator, &ray, rec.credit, tile, out);
-                }
-                continue;
+                .ok_or(TraceError::Misrouted { domain })?,
+        };
+        let geometry = SpanTrace {
+            accel: &resident.accel,
+            span: hop.span,
+        };
+        if ray.kind.is_occlusion() {
+            if integrator.occluded(&geometry, &ray) {
+                out.give_back(tile, rec.credit);
+            } else if let Some(next) = hop.next {
+                self.forward(ray, rec.credit, next, None, tile, out);
+            } else {
+                self.finish_unblocked(integrator, &ray, rec.credit, tile, out);
             }
-            let Some(hit) = integrator.intersect(&geometry, &ray) else {
-                match hop.next {
-                    Some(next) => self.forward(ray, rec.credit, next, tile, out),
-                    None => self.finish_unblocked(&integrator, &ray, rec.credit, tile, out),
-                }
-                continue;
-            };
-            sink.contributions.clear();
-            sink.children.clear();
-            integrator.shade_hit(&ray, &hit, &mut sink);
-            for &(p, v) in &sink.contributions {
-                out.add(p, v);
+            return Ok(());
+        }
+        let Some(hit) = integrator.intersect(&geometry, &ray) else {
+            match hop.next {
+                Some(next) => self.forward(ray, rec.credit, next, None, tile, out),
+                None => self.finish_unblocked(integrator, &ray, rec.credit, tile, out),
             }
-            kinds.clear();
-            kinds.extend(sink.children.iter().map(|c| c.kind));
-            let (shares, back) = credit::split(rec.credit, &kinds)?;
-            out.give_back(tile, back);
-            for (child, share) in sink.children.drain(..).zip(shares) {
-                out.traced[child.kind as usize] += 1;
-                self.route_new(&integrator, child, share, tile, out);
-            }
+            return Ok(());
+        };
+        let sink = &mut step.sink;
+        sink.contributions.clear();
+        sink.children.clear();
+        integrator.shade_hit(&ray, &hit, sink);
+        for &(p, v) in &sink.contributions {
+            out.add(p, v);
+        }
+        step.kinds.clear();
+        step.kinds.extend(sink.children.iter().map(|c| c.kind));
+        let (shares, back) = credit::split(rec.credit, &step.kinds)?;
+        out.give_back(tile, back);
+        for (child, share) in sink.children.drain(..).zip(shares) {
+            out.traced[child.kind as usize] += 1;
+            self.route_new(integrator, child, share, tile, out);
         }
         Ok(())
     }

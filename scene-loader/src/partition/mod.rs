@@ -42,6 +42,7 @@ pub mod grid;
 pub mod kd;
 pub mod layout;
 pub mod manifest;
+pub mod memory;
 pub mod overlap;
 pub mod package;
 pub mod resident;

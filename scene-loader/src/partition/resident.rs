@@ -16,8 +16,8 @@ use dray_core::bvh::Accel;
 use dray_core::scene::{Mesh, Scene};
 use glam::Vec3;
 
+use super::DomainMesh;
 use super::package::Package;
-use super::{DomainMesh, TriangleSource};
 use crate::error::Result;
 
 /// One owned domain, ready to trace.
@@ -160,45 +160,13 @@ pub fn assemble(
 }
 
 /// The resident scene a worker owning `owned` would load from a package of `scene` cut
-/// by `layout`, made in memory: for tests and the embedded mode, with the same bits as
-/// [`load_resident`] gives.
+/// by `layout`, made in memory: for tests, with the same bits as [`load_resident`] gives.
 pub fn resident_in_memory(
     scene: &Scene,
     layout: &super::DomainLayout,
     owned: &[u32],
 ) -> Result<ResidentScene> {
-    let parts: Vec<DomainMesh> = super::partition_in_memory(scene, layout)?
-        .into_iter()
-        .filter(|p| owned.contains(&p.domain))
-        .collect();
-    let mut emitters = super::DomainBuilder::new();
-    scene.mesh.for_each_triangle(&mut |t| {
-        if scene
-            .materials
-            .get(t.material as usize)
-            .is_some_and(|m| m.has_emission())
-        {
-            emitters.push(t);
-        }
-        Ok(())
-    })?;
-    let b = layout.scene_bounds();
-    let tables = Scene {
-        name: scene.name.clone(),
-        mesh: Mesh::default(),
-        materials: scene.materials.clone(),
-        textures: scene.textures.clone(),
-        lights: scene.lights.clone(),
-        cameras: scene.cameras.clone(),
-        environment: scene.environment,
-        stats: scene.stats.clone(),
-    };
-    Ok(assemble(
-        tables,
-        (b.min, b.max),
-        parts,
-        emitters.finish(super::manifest::EMITTERS_DOMAIN, b),
-    ))
+    super::memory::MemoryPackage::with_layout(scene, layout.clone())?.resident(owned)
 }
 
 /// All domains of `scene` cut by `spec`, each with its own BVH over scene-wide triangle
