@@ -2,8 +2,10 @@
 """Issue 3's benchmarks: the distributed runtime on one machine.
 
 Sections (--sections, default all, in this order):
-- overhead:  the same scene and settings with `dray render` (embedded, same --domains, and
-             --domains 1 for reference) and with `dray submit` to a `dray cluster --workers 4`;
+- overhead:  the same scene and settings with `dray render` (embedded: coordinator and one
+             worker actor in one process; same --domains, and --domains 1), with the
+             reference renderer (`dray render --workers 0`, no actors, same --domains) and
+             with `dray submit` to a `dray cluster --workers 4`;
              wall time of each process, the ratio of medians, the job's ray_bytes_sent /
              rays traced (read with GetJob over gRPC reflection), and whether the PNGs are
              the same bytes.
@@ -298,6 +300,9 @@ def overhead(a, dray: Path, work: Path) -> dict:
             r["embedded"] = timed([dray, "render", absolute, *flags, "--domains", a.domains, "--layout", a.layout,
                                    "--stats", work / f"emb{i}.json", "--output", work / f"emb{i}.png", "-q"])
             r["embedded"]["stats"] = json.loads((work / f"emb{i}.json").read_text())
+            env.log(f"overhead round {i + 1}/{a.runs}: reference renderer (--workers 0) --domains {a.domains}")
+            r["reference"] = timed([dray, "render", absolute, *flags, "--domains", a.domains, "--layout", a.layout,
+                                    "--workers", "0", "--output", work / f"ref{i}.png", "-q"])
             env.log(f"overhead round {i + 1}/{a.runs}: embedded --domains 1")
             r["embedded_1"] = timed([dray, "render", absolute, *flags, "--stats", work / f"emb1_{i}.json",
                                      "--output", work / f"emb1_{i}.png", "-q"])
@@ -305,7 +310,7 @@ def overhead(a, dray: Path, work: Path) -> dict:
             env.log(f"overhead round {i + 1}/{a.runs}: cluster ({a.workers} workers) --domains {a.domains}")
             r["cluster"] = submit(dray, cl, rel, [*flags, "--domains", a.domains, "--layout", a.layout],
                                   work / f"sub{i}.png")
-            r["same_png"] = sha(work / f"emb{i}.png") == sha(work / f"sub{i}.png")
+            r["same_png"] = sha(work / f"emb{i}.png") == sha(work / f"sub{i}.png") == sha(work / f"ref{i}.png")
             r["same_png_as_1_domain"] = sha(work / f"emb1_{i}.png") == sha(work / f"sub{i}.png")
             env.log(f"  embedded {r['embedded']['wall_s']:.2f} s, 1 domain {r['embedded_1']['wall_s']:.2f} s, "
                     f"cluster {r['cluster']['wall_s']:.2f} s, {r['cluster'].get('bytes_per_ray', 0):.2f} B/ray, "
@@ -318,6 +323,8 @@ def overhead(a, dray: Path, work: Path) -> dict:
     summary = {
         "scene_embedded": absolute, "scene_cluster": rel, "cluster_cmd": " ".join(cl.cmd),
         "embedded_median_s": med("embedded"), "embedded_1_domain_median_s": med("embedded_1"),
+        "reference_median_s": med("reference"),
+        "ratio_vs_reference": med("cluster") / med("reference"),
         "cluster_median_s": med("cluster"),
         "ratio_vs_same_domains": med("cluster") / med("embedded"),
         "ratio_vs_1_domain": med("cluster") / med("embedded_1"),
@@ -328,7 +335,7 @@ def overhead(a, dray: Path, work: Path) -> dict:
         "cluster_cpu_s": [round(sum(r["cluster"]["cluster_cpu_s"].values()), 1) for r in rounds],
         "embedded_cpu_s": [round(r["embedded"]["cpu_s"], 1) for r in rounds],
         "other_load": {k: [round(r[k]["other_load_cores"], 2) for r in rounds]
-                       for k in ("embedded", "embedded_1", "cluster")},
+                       for k in ("embedded", "embedded_1", "reference", "cluster")},
         "cluster_mem_mib_at_end": mem,
     }
     return {"rounds": rounds, "summary": summary}

@@ -147,24 +147,12 @@ fn make_package(
     dir: &Path,
     memory: Option<&Arc<MemoryPackages>>,
 ) -> Result<PackageInfo, DispatchError> {
-    if let (PackageSource::Write { scene, layout }, Some(store)) = (&src, memory) {
-        let pkg = MemoryPackage::new(scene, layout).map_err(|e| DispatchError::Package {
-            dir: dir.to_path_buf(),
-            message: e.to_string(),
-        })?;
-        let domains = pkg.domain_count();
-        let name = store.insert(pkg);
-        return Ok(PackageInfo {
-            path: name.clone(),
-            // The name is unique in the process that holds it; there are no bytes to pin.
-            checksum: String::new(),
-            domains,
-            owned: Some(OwnedPackage::Memory {
-                store: store.clone(),
-                name,
-            }),
-        });
-    }
+    let src = match (src, memory) {
+        (PackageSource::Write { scene, layout }, Some(store)) => {
+            return memory_package(*scene, &layout, store, dir);
+        }
+        (src, _) => src,
+    };
     let (dir, owned) = match src {
         PackageSource::Write { scene, layout } => {
             if let Some(parent) = dir.parent() {
@@ -196,6 +184,31 @@ fn make_package(
         checksum: package_checksum(&bytes),
         domains: pkg.domain_count(),
         owned: owned.then_some(OwnedPackage::Dir(dir)),
+    })
+}
+
+/// Cut `scene` into the in-memory `store` (the workers share this process).
+fn memory_package(
+    scene: Scene,
+    layout: &LayoutSpec,
+    store: &Arc<MemoryPackages>,
+    dir: &Path,
+) -> Result<PackageInfo, DispatchError> {
+    let pkg = MemoryPackage::new(scene, layout).map_err(|e| DispatchError::Package {
+        dir: dir.to_path_buf(),
+        message: e.to_string(),
+    })?;
+    let domains = pkg.domain_count();
+    let name = store.insert(pkg);
+    Ok(PackageInfo {
+        path: name.clone(),
+        // The name is unique in the process that holds it; there are no bytes to pin.
+        checksum: String::new(),
+        domains,
+        owned: Some(OwnedPackage::Memory {
+            store: store.clone(),
+            name,
+        }),
     })
 }
 

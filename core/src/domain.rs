@@ -156,6 +156,7 @@ impl DomainTree {
     /// Call `visit` for each domain the ray (origin, dir) passes through within
     /// (tmin, tmax], in order along the ray, until `visit` returns false. The bounds are
     /// widened by `pad` (scene units) so rounding cannot drop the first or last domain.
+    /// A layout of one domain visits it with the whole (tmin, tmax], hit or miss.
     pub fn walk(
         &self,
         origin: Vec3,
@@ -165,6 +166,16 @@ impl DomainTree {
         pad: f32,
         mut visit: impl FnMut(Span) -> bool,
     ) {
+        if let [DomainNode::Leaf { domain }] = self.nodes.as_slice() {
+            // One domain (the embedded default) holds the whole scene: the ray's whole
+            // interval is its span, as in one BVH over the scene, and no box is clipped.
+            visit(Span {
+                domain: *domain,
+                t0: tmin,
+                t1: tmax,
+            });
+            return;
+        }
         let dir = dir + Vec3::ZERO; // fold -0.0 so signs agree with comparisons
         let inv = Vec3::ONE / dir;
         let lo = self.lo - Vec3::splat(pad);
@@ -189,15 +200,6 @@ impl DomainTree {
         }
         // The first span starts at the ray's own tmin (exclusive) when the origin is inside.
         let start = if t0 <= tmin { tmin } else { t0 };
-        if let [DomainNode::Leaf { domain }] = self.nodes.as_slice() {
-            // One domain (the embedded default): no stack to set up.
-            visit(Span {
-                domain: *domain,
-                t0: start,
-                t1,
-            });
-            return;
-        }
         let mut stack = WalkStack::new();
         stack.push((0, start, t1));
         while let Some((n, a, b)) = stack.pop() {

@@ -264,7 +264,7 @@ mod tests {
     fn an_in_memory_package_loads_only_in_its_own_process() {
         let scene = dray_scene::load("cornell").unwrap();
         let store = MemoryPackages::default();
-        let name = store.insert(MemoryPackage::new(&scene, &LayoutSpec::Kd(3)).unwrap());
+        let name = store.insert(MemoryPackage::new(scene, &LayoutSpec::Kd(3)).unwrap());
         let s = setup(&name, 3);
         let t = build_tracer(&s, "w", Some(&store)).expect("loads from the store");
         drop(t);

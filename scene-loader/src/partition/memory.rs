@@ -45,16 +45,17 @@ pub struct MemoryPackage {
 }
 
 impl MemoryPackage {
-    /// Cut `scene` by `spec`. The scene's triangles are copied into the domains, so the
-    /// caller may drop the scene afterwards.
-    pub fn new(scene: &Scene, spec: &LayoutSpec) -> Result<MemoryPackage> {
-        let layout = DomainLayout::for_source(scene, spec)?;
+    /// Cut `scene` by `spec`. The scene is consumed: one domain takes its mesh as it is,
+    /// several get copies of their triangles.
+    pub fn new(scene: Scene, spec: &LayoutSpec) -> Result<MemoryPackage> {
+        let layout = DomainLayout::for_source(&scene, spec)?;
         MemoryPackage::with_layout(scene, layout)
     }
 
     /// Cut `scene` by an existing `layout`.
-    pub fn with_layout(scene: &Scene, layout: DomainLayout) -> Result<MemoryPackage> {
+    pub fn with_layout(mut scene: Scene, layout: DomainLayout) -> Result<MemoryPackage> {
         let b = layout.scene_bounds();
+        let mut emitters = DomainBuilder::new();
         let mut domains: Vec<DomainMesh> = (0..layout.domain_count())
             .map(|d| DomainMesh {
                 domain: d,
@@ -63,32 +64,21 @@ impl MemoryPackage {
                 global_ids: Vec::new(),
             })
             .collect();
-        for part in super::partition_in_memory(scene, &layout)? {
-            if let Some(slot) = domains.get_mut(part.domain as usize) {
-                *slot = part;
+        if let [only] = domains.as_mut_slice() {
+            // One domain holds every triangle, as the scene has them: no assignment to do.
+            only.global_ids = (0..scene.mesh.triangle_count() as u32).collect();
+            only.mesh = std::mem::take(&mut scene.mesh);
+            emitters_of(&only.mesh, &scene, &mut emitters)?;
+        } else {
+            for part in super::partition_in_memory(&scene, &layout)? {
+                if let Some(slot) = domains.get_mut(part.domain as usize) {
+                    *slot = part;
+                }
             }
+            emitters_of(&scene.mesh, &scene, &mut emitters)?;
         }
-        let mut emitters = DomainBuilder::new();
-        scene.mesh.for_each_triangle(&mut |t| {
-            if scene
-                .materials
-                .get(t.material as usize)
-                .is_some_and(|m| m.has_emission())
-            {
-                emitters.push(t);
-            }
-            Ok(())
-        })?;
-        let tables = Scene {
-            name: scene.name.clone(),
-            mesh: Mesh::default(),
-            materials: scene.materials.clone(),
-            textures: scene.textures.clone(),
-            lights: scene.lights.clone(),
-            cameras: scene.cameras.clone(),
-            environment: scene.environment,
-            stats: scene.stats.clone(),
-        };
+        scene.mesh = Mesh::default();
+        let tables = scene;
         Ok(MemoryPackage {
             tables,
             layout,
@@ -143,6 +133,20 @@ impl MemoryPackage {
             self.emitters.clone(),
         ))
     }
+}
+
+/// Push every emissive triangle of `mesh` (whose materials are `scene`'s) to `out`.
+fn emitters_of(mesh: &Mesh, scene: &Scene, out: &mut DomainBuilder) -> Result<()> {
+    mesh.for_each_triangle(&mut |t| {
+        if scene
+            .materials
+            .get(t.material as usize)
+            .is_some_and(|m| m.has_emission())
+        {
+            out.push(t);
+        }
+        Ok(())
+    })
 }
 
 /// The in-memory packages of one process, by name.

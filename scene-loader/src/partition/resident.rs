@@ -166,7 +166,7 @@ pub fn resident_in_memory(
     layout: &super::DomainLayout,
     owned: &[u32],
 ) -> Result<ResidentScene> {
-    super::memory::MemoryPackage::with_layout(scene, layout.clone())?.resident(owned)
+    super::memory::MemoryPackage::with_layout(scene.clone(), layout.clone())?.resident(owned)
 }
 
 /// All domains of `scene` cut by `spec`, each with its own BVH over scene-wide triangle
