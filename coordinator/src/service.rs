@@ -356,7 +356,9 @@ pub async fn serve(
         .add_service(render)
         .add_service(cluster_api)
         .serve_with_incoming_shutdown(
-            tonic::transport::server::TcpIncoming::from(listener),
+            // TCP_NODELAY: without it every small reply (registration, job setup,
+            // reports) waited out the peer's 40 ms delayed ACK.
+            tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
             shutdown,
         )
         .await;

@@ -287,7 +287,9 @@ pub async fn run(
             .add_service(reflection_alpha)
             .add_service(peer_server.into_service())
             .serve_with_incoming_shutdown(
-                tonic::transport::server::TcpIncoming::from(listener),
+                // TCP_NODELAY: without it every small reply (registration, job setup,
+                // reports) waited out the peer's 40 ms delayed ACK.
+                tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
                 async move {
                     let _ = stop_server.wait_for(|s| *s).await;
                 },
