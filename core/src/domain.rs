@@ -267,32 +267,10 @@ pub struct Hop {
 }
 
 impl DomainTree {
-    /// The first domain on the ray that `wanted` accepts (e.g. "has triangles"). Skipping
-    /// empty domains changes no result: they can neither hit nor block.
-    pub fn first_domain(
-        &self,
-        origin: Vec3,
-        dir: Vec3,
-        tmin: f32,
-        tmax: f32,
-        pad: f32,
-        wanted: impl Fn(u32) -> bool,
-    ) -> Option<u32> {
-        let mut first = None;
-        self.walk(origin, dir, tmin, tmax, pad, |s| {
-            if wanted(s.domain) {
-                first = Some(s.domain);
-                false
-            } else {
-                true
-            }
-        });
-        first
-    }
-
-    /// The first wanted domain on the ray with its span, and the next wanted domain
-    /// after it: [`DomainTree::first_domain`] and [`DomainTree::hop`] of its answer in
-    /// one walk, with the same span `hop` gives.
+    /// The first domain on the ray that `wanted` accepts (e.g. "has triangles") with its
+    /// span, and the next wanted domain after it: the same [`Hop`] that
+    /// [`DomainTree::hop`] gives for that domain, in one walk. Skipping empty domains
+    /// changes no result: they can neither hit nor block.
     pub fn first_hop(
         &self,
         origin: Vec3,

@@ -15,7 +15,7 @@ use dray_proto::v1::{JobSetup, RoutingTable};
 use dray_scene::partition::checksum::{checksum, to_hex};
 use dray_scene::partition::manifest::MANIFEST_FILE;
 use dray_scene::partition::memory::{MemoryPackages, is_memory_package};
-use dray_scene::partition::{Aabb, load_resident, open_package};
+use dray_scene::partition::{Aabb, DomainLayout, ResidentScene, load_resident, open_package};
 use glam::Vec3;
 
 use crate::tracer::JobTracer;
@@ -132,16 +132,14 @@ pub fn build_tracer(
         .iter()
         .map(|d| d.triangles)
         .collect();
-    let layout = package.layout().clone();
     let resident = load_resident(&package, &owned).map_err(|e| pkg_err(e.to_string()))?;
-    Ok(JobTracer::new(
+    Ok(tracer(
         resident,
         settings,
         camera,
-        layout.to_domain_tree(),
-        layout.epsilon(),
+        package.layout(),
         &counts,
-        setup.tile_size,
+        setup,
     ))
 }
 
@@ -176,15 +174,28 @@ fn memory_tracer(
     let resident = package
         .resident(owned)
         .map_err(|e| pkg_err(e.to_string()))?;
-    Ok(JobTracer::new(
+    let counts = package.triangle_counts();
+    Ok(tracer(resident, settings, camera, layout, &counts, setup))
+}
+
+/// The tracer over `resident`, walking rays with `layout` (`counts`: triangles per domain).
+fn tracer(
+    resident: ResidentScene,
+    settings: RenderSettings,
+    camera: Camera,
+    layout: &DomainLayout,
+    counts: &[u64],
+    setup: &JobSetup,
+) -> JobTracer {
+    JobTracer::new(
         resident,
         settings,
         camera,
         layout.to_domain_tree(),
         layout.epsilon(),
-        &package.triangle_counts(),
+        counts,
         setup.tile_size,
-    ))
+    )
 }
 
 /// The package must be cut as the coordinator said.
