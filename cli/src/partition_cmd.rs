@@ -4,14 +4,15 @@
 //! scene: a manifest and one file per domain, so each worker reads only its own domains.
 //! The command prints one line of JSON so scripts and benchmarks can read the result.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::{ArgGroup, Args, ValueEnum};
-use dray_scene::partition::{
-    LayoutSpec, SceneParts, WriteOptions, write_package, write_scene_package,
-};
+use dray_core::scene::Scene;
+use dray_scene::partition::{LayoutSpec, SceneParts, TriangleSource, WriteOptions, write_package};
+use dray_scene::ply_stream::PlySource;
+use dray_scene::procedural::ProceduralSource;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum LayoutArg {
@@ -59,38 +60,54 @@ pub fn layout_spec(a: &PartitionArgs) -> Result<LayoutSpec> {
     Ok(spec)
 }
 
+/// Where the triangles come from.
+enum Input {
+    Procedural(ProceduralSource),
+    Ply(PlySource),
+    Scene(Scene),
+}
+
+/// An existing `.ply` file (a missing one goes to [`dray_scene::load`], whose error
+/// explains procedural names too).
+fn is_ply_file(spec: &str) -> bool {
+    let path = Path::new(spec);
+    path.extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("ply"))
+        && path.is_file()
+}
+
 pub fn run(a: PartitionArgs) -> Result<()> {
     let start = Instant::now();
     let spec = layout_spec(&a)?;
     let cannot_load = || format!("cannot load scene {:?}", a.scene);
-    // Procedural scenes that can be large (grid, soup, city, iso) are streamed, so only a
-    // grid's base model or one generator chunk is ever in memory.
-    let stream =
-        dray_scene::procedural::stream(&a.scene, &dray_scene::load).with_context(cannot_load)?;
-    let scene = match &stream {
-        Some(_) => None,
-        None => Some(dray_scene::load(&a.scene).with_context(cannot_load)?),
+    // Procedural scenes that can be large (grid, soup, city, iso) and PLY files are
+    // streamed, so only a grid's base model, one generator chunk or a PLY's vertex
+    // attributes are ever in memory; other files are loaded whole.
+    let input = match dray_scene::procedural::stream(&a.scene, &dray_scene::load)
+        .with_context(cannot_load)?
+    {
+        Some(g) => Input::Procedural(g),
+        None if is_ply_file(&a.scene) => {
+            Input::Ply(PlySource::open(Path::new(&a.scene)).with_context(cannot_load)?)
+        }
+        None => Input::Scene(dray_scene::load(&a.scene).with_context(cannot_load)?),
     };
-    let tables = match (&stream, &scene) {
-        (Some(g), _) => g.tables(),
-        (None, Some(s)) => s,
-        (None, None) => bail!("internal error: no scene"),
+    let (tables, source): (&Scene, &dyn TriangleSource) = match &input {
+        Input::Procedural(g) => (g.tables(), g),
+        Input::Ply(p) => (p.tables(), p),
+        Input::Scene(s) => (s, s),
     };
     for w in &tables.stats.warnings {
         tracing::warn!("{w}");
     }
     let load_seconds = start.elapsed().as_secs_f64();
-    let written = match (&stream, &scene) {
-        (Some(g), _) => write_package(
-            &a.out,
-            SceneParts::of(g.tables()),
-            g,
-            &spec,
-            &WriteOptions::default(),
-        ),
-        (None, Some(s)) => write_scene_package(&a.out, s, &spec),
-        (None, None) => bail!("internal error: no scene"),
-    };
+    let written = write_package(
+        &a.out,
+        SceneParts::of(tables),
+        source,
+        &spec,
+        &WriteOptions::default(),
+    );
     let s = written
         .with_context(|| format!("cannot write the scene package to {}", a.out.display()))?;
     let line = serde_json::json!({

@@ -89,6 +89,60 @@ fn partition_writes_a_package_and_rejects_bad_input() {
     assert!(err.starts_with("dray: error:"), "{err}");
 }
 
+/// `dray partition` streams a PLY file (same package as the loaded scene, checked in
+/// dray-scene's tests) and a malformed one is a one-line error naming the file and face.
+#[test]
+fn partition_streams_a_ply_and_rejects_a_malformed_one() {
+    let d = tmp("partition-ply");
+    let run = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_dray"))
+            .arg("partition")
+            .args(args)
+            .output()
+            .expect("run dray")
+    };
+    let ply = "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n\
+               property float z\nelement face 2\nproperty list uchar int vertex_indices\n\
+               end_header\n0 0 0\n1 0 0\n1 1 0\n0 1 1\n3 0 1 2\n4 0 2 3 1\n";
+    let good = d.join("good.ply");
+    std::fs::write(&good, ply).unwrap();
+    let out = d.join("pkg");
+    let ok = run(&[
+        good.to_str().unwrap(),
+        "--domains",
+        "2",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(String::from_utf8_lossy(&ok.stdout).trim()).expect("one JSON line");
+    assert_eq!(v["triangles"], 3);
+    assert!(out.join("manifest.json").is_file());
+
+    let bad = d.join("bad.ply");
+    std::fs::write(&bad, ply.replace("4 0 2 3 1", "4 0 2 7 1")).unwrap();
+    let r = run(&[
+        bad.to_str().unwrap(),
+        "--domains",
+        "2",
+        "--out",
+        d.join("x").to_str().unwrap(),
+    ]);
+    assert!(!r.status.success());
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert_eq!(err.lines().count(), 1, "{err}");
+    assert!(
+        err.contains("bad.ply") && err.contains("face 1") && err.contains("out of range"),
+        "{err}"
+    );
+    assert!(!d.join("x").exists(), "nothing written for a bad file");
+}
+
 /// `dray render` runs the job on in-process worker actors (coordinator, in-memory
 /// package, gRPC ray streams, credit, reports): the image is the reference renderer's
 /// (`--workers 0`, tiles traced with no actors), bit for bit, and the rays counted by

@@ -8,6 +8,7 @@ mod load;
 pub mod obj;
 pub mod partition;
 pub mod ply;
+pub mod ply_stream;
 pub mod procedural;
 pub mod validate;
 

@@ -3,8 +3,11 @@
 //! The parser is our own rather than a crate's so that every malformed input, from a
 //! bad header to a truncated binary body or a bogus list count, becomes a
 //! [`SceneError`] that names the element row at fault instead of a panic or a huge
-//! allocation. The whole file is read into memory (scan files are a few MB) and parsed
-//! in one pass over the bytes.
+//! allocation. The file is read through a small window ([`CHUNK`]-sized refills) rather
+//! than whole, so that `dray partition` can stream a scan larger than memory (see
+//! [`crate::ply_stream`]) through the very same code the in-memory loader uses: both
+//! drive [`read_body`] and differ only in what their [`Body`] does with the vertices and
+//! triangles it hands over.
 //!
 //! What is read: the `vertex` element's `x`, `y`, `z`, optional `nx`, `ny`, `nz` and
 //! one texture coordinate pair (`u`/`v`, `s`/`t`, `texture_u`/`texture_v` or
@@ -12,6 +15,8 @@
 //! `vertex_index`) list, with polygons triangulated as fans. Every other property and
 //! element is parsed past (so binary offsets stay right) and dropped.
 
+use std::io::Read;
+use std::ops::Range;
 use std::path::Path;
 
 use dray_core::material::Material;
@@ -28,25 +33,11 @@ use crate::validate::{self, Origin, Primitive};
 /// flipped in v (PLY, like OBJ, puts v = 0 at the bottom of the image; dray's textures
 /// put the first row at v = 0, as glTF does).
 pub fn load_ply(path: &Path) -> Result<Scene> {
-    let bytes = std::fs::read(path).map_err(|source| SceneError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let data = parse(&bytes).map_err(|message| SceneError::Format {
-        path: path.to_path_buf(),
-        message,
-    })?;
-
-    let stem = path
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "ply".to_string());
-    let mut scene = Scene {
-        name: stem.clone(),
-        materials: vec![Material::lambert("ply", Vec3::splat(0.8))],
-        ..Scene::default()
-    };
-    scene.stats.warnings.extend(data.warnings);
+    let mut body = Collect::default();
+    let warnings = read_file(path, &mut body)?;
+    let stem = mesh_name(path);
+    let mut scene = tables(path, warnings);
+    let vertices = body.vertices.unwrap_or_default();
     validate::add_primitive(
         &mut scene.mesh,
         &mut scene.stats,
@@ -56,11 +47,11 @@ pub fn load_ply(path: &Path) -> Result<Scene> {
             primitive: 0,
         },
         Primitive {
-            positions: &data.positions,
-            normals: data.normals.as_deref(),
+            positions: &vertices.positions,
+            normals: vertices.normals.as_deref(),
             tangents: None,
-            uvs: data.uvs.as_deref(),
-            indices: &data.indices,
+            uvs: vertices.uvs.as_deref(),
+            indices: &body.indices,
             material: 0,
         },
     )?;
@@ -72,14 +63,121 @@ pub fn load_ply(path: &Path) -> Result<Scene> {
     Ok(scene)
 }
 
-/// Everything the importer keeps from a PLY file.
-struct PlyData {
-    positions: Vec<Vec3>,
-    normals: Option<Vec<Vec3>>,
-    uvs: Option<Vec<Vec2>>,
+/// The mesh (and scene) name a PLY file gets: its file stem.
+pub(crate) fn mesh_name(path: &Path) -> String {
+    path.file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "ply".to_string())
+}
+
+/// Everything of a PLY scene but its mesh: name, the one material and the parse
+/// warnings. Shared with the stream so both report the same tables.
+pub(crate) fn tables(path: &Path, warnings: Vec<String>) -> Scene {
+    let mut scene = Scene {
+        name: mesh_name(path),
+        materials: vec![Material::lambert("ply", Vec3::splat(0.8))],
+        ..Scene::default()
+    };
+    scene.stats.warnings = warnings;
+    scene
+}
+
+/// Open `path` and run one pass of [`read_body`] over it, returning the parse warnings.
+pub(crate) fn read_file(path: &Path, body: &mut dyn Body) -> Result<Vec<String>> {
+    let io = |source| SceneError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut file = std::fs::File::open(path).map_err(io)?;
+    let len = file.metadata().map_err(io)?.len();
+    let len = usize::try_from(len).unwrap_or(usize::MAX);
+    read_body(&mut file, len, body).map_err(|stop| match stop {
+        Stop::Format(message) => SceneError::Format {
+            path: path.to_path_buf(),
+            message,
+        },
+        Stop::Scene(e) => e,
+    })
+}
+
+/// Whether `path`'s header declares its face element before its vertex element (legal
+/// PLY, but a stream cannot resolve indices to vertices it has not read yet).
+pub(crate) fn faces_before_vertices(path: &Path) -> Result<bool> {
+    let io = |source| SceneError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut file = std::fs::File::open(path).map_err(io)?;
+    let len = file.metadata().map_err(io)?.len();
+    let mut cur = Cursor::new(&mut file, usize::try_from(len).unwrap_or(usize::MAX));
+    let header = parse_header(&mut cur).map_err(|message| SceneError::Format {
+        path: path.to_path_buf(),
+        message,
+    })?;
+    let at = |name: &str| header.elements.iter().position(|e| e.name == name);
+    Ok(matches!((at("face"), at("vertex")), (Some(f), Some(v)) if f < v))
+}
+
+/// The vertex attributes a PLY file has, as read (normals not yet normalized, v already
+/// flipped).
+#[derive(Default)]
+pub(crate) struct Vertices {
+    pub positions: Vec<Vec3>,
+    pub normals: Option<Vec<Vec3>>,
+    pub uvs: Option<Vec<Vec2>>,
+}
+
+/// Why a pass stopped: a malformed file (the message, to be given the path), or an error
+/// the [`Body`] raised.
+pub(crate) enum Stop {
+    Format(String),
+    Scene(SceneError),
+}
+
+impl From<String> for Stop {
+    fn from(message: String) -> Stop {
+        Stop::Format(message)
+    }
+}
+
+impl From<SceneError> for Stop {
+    fn from(e: SceneError) -> Stop {
+        Stop::Scene(e)
+    }
+}
+
+/// What a pass does with the data [`read_body`] parses.
+pub(crate) trait Body {
+    /// The vertex element, once, when it has been read.
+    fn vertices(&mut self, vertices: Vertices) -> std::result::Result<(), Stop>;
+    /// A hint before the face element: it has `rows` rows (capped by what the data can
+    /// hold, so a bogus count cannot make a reservation huge).
+    fn reserve_faces(&mut self, _rows: usize) {}
+    /// One triangle of a face's fan, in file order, indices already range-checked.
+    fn triangle(&mut self, tri: [u32; 3]) -> std::result::Result<(), Stop>;
+}
+
+/// The in-memory loader's body: keeps the vertices and every index.
+#[derive(Default)]
+struct Collect {
+    vertices: Option<Vertices>,
     /// Triangle-list indices, already range-checked against the vertex count.
     indices: Vec<u32>,
-    warnings: Vec<String>,
+}
+
+impl Body for Collect {
+    fn vertices(&mut self, vertices: Vertices) -> std::result::Result<(), Stop> {
+        self.vertices = Some(vertices);
+        Ok(())
+    }
+    fn reserve_faces(&mut self, rows: usize) {
+        // Most faces are triangles.
+        self.indices.reserve(rows.saturating_mul(3));
+    }
+    fn triangle(&mut self, tri: [u32; 3]) -> std::result::Result<(), Stop> {
+        self.indices.extend_from_slice(&tri);
+        Ok(())
+    }
 }
 
 type ParseResult<T> = std::result::Result<T, String>;
@@ -204,32 +302,34 @@ impl Element {
 struct Header {
     format: Format,
     elements: Vec<Element>,
-    /// Byte offset of the first data byte (just past the `end_header` line).
-    data_start: usize,
-    /// Lines in the header, so ASCII data errors can give file line numbers.
-    lines: usize,
 }
 
-fn parse_header(bytes: &[u8]) -> ParseResult<Header> {
-    let mut pos = 0usize;
+/// Header lines longer than this are refused rather than buffered: a real header line is
+/// a few dozen bytes, and a binary file misnamed `.ply` may have no newline for a long way.
+const MAX_HEADER_LINE: usize = 64 * 1024;
+
+/// Read the header, leaving `cur` at the first data byte and on the first data line.
+fn parse_header(cur: &mut Cursor<'_>) -> ParseResult<Header> {
     let mut line_no = 0usize;
     let mut format = None;
     let mut elements: Vec<Element> = Vec::new();
     loop {
-        let rest = bytes.get(pos..).unwrap_or_default();
-        if rest.is_empty() {
+        let Some(raw) = cur.read_line(MAX_HEADER_LINE)? else {
             return Err(if line_no == 0 {
                 "empty file (expected a PLY header)".to_string()
             } else {
                 "header has no end_header line".to_string()
             });
-        }
-        let (raw, next) = match rest.iter().position(|&b| b == b'\n') {
-            Some(i) => (rest.get(..i).unwrap_or_default(), pos + i + 1),
-            None => (rest, bytes.len()),
         };
         line_no += 1;
-        let line = std::str::from_utf8(raw)
+        let Some(raw) = raw else {
+            return Err(if line_no == 1 {
+                "not a PLY file (the first line must be \"ply\")".to_string()
+            } else {
+                format!("header line {line_no} is longer than {MAX_HEADER_LINE} bytes")
+            });
+        };
+        let line = std::str::from_utf8(&raw)
             .map_err(|_| format!("header line {line_no} is not text"))?
             .trim();
         let at = |msg: String| format!("header line {line_no}: {msg}");
@@ -237,7 +337,6 @@ fn parse_header(bytes: &[u8]) -> ParseResult<Header> {
             if line != "ply" {
                 return Err("not a PLY file (the first line must be \"ply\")".to_string());
             }
-            pos = next;
             continue;
         }
         let mut words = line.split_ascii_whitespace();
@@ -314,16 +413,12 @@ fn parse_header(bytes: &[u8]) -> ParseResult<Header> {
             }
             Some("end_header") => {
                 let format = format.ok_or("header has no format line")?;
-                return Ok(Header {
-                    format,
-                    elements,
-                    data_start: next,
-                    lines: line_no,
-                });
+                cur.format = format;
+                cur.line = line_no + 1;
+                return Ok(Header { format, elements });
             }
             Some(other) => return Err(at(format!("unknown keyword {other:?}"))),
         }
-        pos = next;
     }
 }
 
@@ -343,64 +438,202 @@ impl Num {
     }
 }
 
-/// Reads values from the body in either encoding, always bounds-checked.
-struct Cursor<'a> {
-    bytes: &'a [u8],
-    pos: usize,
+/// How much the cursor reads at a time: big enough that refills cost nothing next to
+/// parsing, small enough that a pass over a multi-GB file holds next to none of it.
+const CHUNK: usize = 1 << 20;
+
+/// Reads values from the input in either encoding, always bounds-checked, through a
+/// window of the input that is refilled as it is consumed.
+struct Cursor<'r> {
+    reader: &'r mut dyn Read,
+    /// The window: input bytes from offset `base` on.
+    buf: Vec<u8>,
+    /// Index in `buf` of the next unread byte.
+    at: usize,
+    /// Input offset of `buf[0]`.
+    base: usize,
+    /// Length of the whole input (the file's size), for "remaining" checks that keep a
+    /// bogus count from causing a long loop or a huge allocation.
+    len: usize,
+    /// The reader has nothing more.
+    eof: bool,
     format: Format,
     /// Current line, for ASCII error messages.
     line: usize,
 }
 
-impl<'a> Cursor<'a> {
+impl<'r> Cursor<'r> {
+    fn new(reader: &'r mut dyn Read, len: usize) -> Self {
+        Cursor {
+            reader,
+            buf: Vec::new(),
+            at: 0,
+            base: 0,
+            len,
+            eof: false,
+            format: Format::Ascii,
+            line: 1,
+        }
+    }
+
+    /// Input offset of the next unread byte.
+    fn pos(&self) -> usize {
+        self.base + self.at
+    }
+
     fn remaining(&self) -> usize {
-        self.bytes.len().saturating_sub(self.pos)
+        self.len.saturating_sub(self.pos())
+    }
+
+    /// Bytes in the window not yet consumed.
+    fn available(&self) -> usize {
+        self.buf.len().saturating_sub(self.at)
+    }
+
+    /// Make the window hold at least `need` unread bytes, or everything that is left.
+    /// Consumed bytes are dropped first, so the window stays about [`CHUNK`] in size.
+    fn fill(&mut self, need: usize) -> ParseResult<()> {
+        while self.available() < need && !self.eof {
+            if self.at > 0 {
+                self.buf.drain(..self.at);
+                self.base += self.at;
+                self.at = 0;
+            }
+            let old = self.buf.len();
+            self.buf.resize(old + (need - old).max(CHUNK), 0);
+            let got = loop {
+                match self
+                    .reader
+                    .read(self.buf.get_mut(old..).unwrap_or_default())
+                {
+                    Ok(n) => break Ok(n),
+                    Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                    Err(e) => break Err(e),
+                }
+            };
+            let n = match got {
+                Ok(n) => n,
+                Err(e) => {
+                    self.buf.truncate(old);
+                    return Err(format!("cannot read at byte {}: {e}", self.base + old));
+                }
+            };
+            self.buf.truncate(old + n);
+            self.eof = n == 0;
+        }
+        Ok(())
     }
 
     /// Where the cursor is, for error messages.
     fn location(&self) -> String {
         match self.format {
             Format::Ascii => format!("line {}", self.line),
-            _ => format!("byte {}", self.pos),
+            _ => format!("byte {}", self.pos()),
         }
     }
 
-    fn next_token(&mut self) -> Option<&'a [u8]> {
-        while let Some(&b) = self.bytes.get(self.pos) {
-            if !b.is_ascii_whitespace() {
-                break;
+    /// The next line without its `\n`: `None` at the end of the input, `Some(None)` when
+    /// it is longer than `limit`.
+    fn read_line(&mut self, limit: usize) -> ParseResult<Option<Option<Vec<u8>>>> {
+        let mut scanned = 0;
+        loop {
+            let window = self.buf.get(self.at..).unwrap_or_default();
+            if let Some(i) = window.iter().skip(scanned).position(|&b| b == b'\n') {
+                let end = scanned + i;
+                if end > limit {
+                    return Ok(Some(None));
+                }
+                let line = window.get(..end).unwrap_or_default().to_vec();
+                self.at += end + 1;
+                return Ok(Some(Some(line)));
             }
-            if b == b'\n' {
-                self.line += 1;
+            scanned = window.len();
+            if scanned > limit {
+                return Ok(Some(None));
             }
-            self.pos += 1;
-        }
-        let start = self.pos;
-        while let Some(&b) = self.bytes.get(self.pos) {
-            if b.is_ascii_whitespace() {
-                break;
+            self.fill(scanned + 1)?;
+            if self.available() == scanned {
+                // The last line has no newline.
+                if scanned == 0 {
+                    return Ok(None);
+                }
+                let line = self.buf.get(self.at..).unwrap_or_default().to_vec();
+                self.at = self.buf.len();
+                return Ok(Some(Some(line)));
             }
-            self.pos += 1;
-        }
-        if self.pos == start {
-            None
-        } else {
-            self.bytes.get(start..self.pos)
         }
     }
 
-    fn take(&mut self, n: usize) -> ParseResult<&'a [u8]> {
-        let end = self.pos.checked_add(n).filter(|&e| e <= self.bytes.len());
-        match end.and_then(|e| self.bytes.get(self.pos..e)) {
-            Some(s) => {
-                self.pos += n;
-                Ok(s)
+    /// The next whitespace-separated token, as a range of `buf` valid until the next read.
+    fn next_token(&mut self) -> ParseResult<Option<Range<usize>>> {
+        loop {
+            self.fill(1)?;
+            match self.buf.get(self.at) {
+                Some(&b) if b.is_ascii_whitespace() => {
+                    if b == b'\n' {
+                        self.line += 1;
+                    }
+                    self.at += 1;
+                }
+                Some(_) => break,
+                None => return Ok(None),
             }
-            None => Err(format!(
-                "data ends at byte {} but {n} more bytes are needed at byte {} (truncated file?)",
-                self.bytes.len(),
-                self.pos
-            )),
+        }
+        let mut len = 0;
+        loop {
+            match self.buf.get(self.at + len) {
+                Some(b) if !b.is_ascii_whitespace() => len += 1,
+                Some(_) => break,
+                None => {
+                    // Refilling keeps the unread bytes (the token so far) in the window.
+                    self.fill(len + 1)?;
+                    if self.available() <= len {
+                        break;
+                    }
+                }
+            }
+        }
+        let token = self.at..self.at + len;
+        self.at += len;
+        Ok(Some(token))
+    }
+
+    fn truncated(&self, n: usize) -> String {
+        format!(
+            "data ends at byte {} but {n} more bytes are needed at byte {} (truncated file?)",
+            if self.eof {
+                self.base + self.buf.len()
+            } else {
+                self.len
+            },
+            self.pos()
+        )
+    }
+
+    fn take(&mut self, n: usize) -> ParseResult<&[u8]> {
+        self.fill(n)?;
+        if self.available() < n {
+            return Err(self.truncated(n));
+        }
+        let start = self.at;
+        self.at += n;
+        Ok(self.buf.get(start..start + n).unwrap_or_default())
+    }
+
+    /// Consume `n` bytes without keeping them (a whole skipped element can be large).
+    fn skip_bytes(&mut self, n: usize) -> ParseResult<()> {
+        let mut left = n;
+        loop {
+            let k = self.available().min(left);
+            self.at += k;
+            left -= k;
+            if left == 0 {
+                return Ok(());
+            }
+            self.fill(left.min(CHUNK))?;
+            if self.available() == 0 {
+                return Err(self.truncated(left));
+            }
         }
     }
 
@@ -441,9 +674,10 @@ impl<'a> Cursor<'a> {
     }
 
     fn read_ascii(&mut self, ty: Scalar) -> ParseResult<Num> {
-        let tok = self
-            .next_token()
-            .ok_or_else(|| format!("data ends at line {} (truncated file?)", self.line))?;
+        let Some(range) = self.next_token()? else {
+            return Err(format!("data ends at line {} (truncated file?)", self.line));
+        };
+        let tok = self.buf.get(range).unwrap_or_default();
         let show = || {
             let s = String::from_utf8_lossy(tok);
             if s.chars().count() > 32 {
@@ -519,50 +753,43 @@ impl<'a> Cursor<'a> {
                 let n = self.read_list_len(count, item)?;
                 (0..n).try_for_each(|_| self.read(item).map(drop))
             }
-            (_, Kind::Scalar(ty)) => self.take(ty.size()).map(drop),
+            (_, Kind::Scalar(ty)) => self.skip_bytes(ty.size()),
             (_, Kind::List { count, item }) => {
                 let n = self.read_list_len(count, item)?;
-                self.take(n.saturating_mul(item.size())).map(drop)
+                self.skip_bytes(n.saturating_mul(item.size()))
             }
         }
     }
 }
 
-fn parse(bytes: &[u8]) -> ParseResult<PlyData> {
-    let header = parse_header(bytes)?;
-    let format = header.format;
+/// One pass over a PLY input of `len` bytes: the header, then every element in file
+/// order, with the vertex element and each face's triangles handed to `body`. Returns the
+/// warnings (ignored elements, short faces, trailing data).
+pub(crate) fn read_body(
+    reader: &mut dyn Read,
+    len: usize,
+    body: &mut dyn Body,
+) -> std::result::Result<Vec<String>, Stop> {
+    let mut cur = Cursor::new(reader, len);
+    let header = parse_header(&mut cur)?;
     let vertex_count = header
         .elements
         .iter()
         .find(|e| e.name == "vertex")
         .map(|e| e.count)
-        .ok_or("header declares no vertex element")?;
+        .ok_or("header declares no vertex element".to_string())?;
     if vertex_count > u32::MAX as usize {
-        return Err(format!(
-            "{vertex_count} vertices exceed the 32-bit index limit"
-        ));
+        return Err(format!("{vertex_count} vertices exceed the 32-bit index limit").into());
     }
-    let mut cur = Cursor {
-        bytes,
-        pos: header.data_start,
-        format,
-        line: header.lines + 1,
-    };
-    let mut data = PlyData {
-        positions: Vec::new(),
-        normals: None,
-        uvs: None,
-        indices: Vec::new(),
-        warnings: Vec::new(),
-    };
+    let mut warnings = Vec::new();
     for element in &header.elements {
         match element.name.as_str() {
-            "vertex" => read_vertices(&mut cur, element, &mut data)?,
-            "face" => read_faces(&mut cur, element, vertex_count, &mut data)?,
+            "vertex" => body.vertices(read_vertices(&mut cur, element)?)?,
+            "face" => read_faces(&mut cur, element, vertex_count, body, &mut warnings)?,
             _ => {
                 skip_element(&mut cur, element)?;
                 if element.count > 0 {
-                    data.warnings.push(format!(
+                    warnings.push(format!(
                         "PLY element {:?} ({} rows) ignored",
                         element.name, element.count
                     ));
@@ -570,17 +797,17 @@ fn parse(bytes: &[u8]) -> ParseResult<PlyData> {
             }
         }
     }
-    let trailing = match format {
-        Format::Ascii => cur.next_token().is_some(),
+    let trailing = match header.format {
+        Format::Ascii => cur.next_token()?.is_some(),
         _ => cur.remaining() > 0,
     };
     if trailing {
-        data.warnings.push(format!(
+        warnings.push(format!(
             "data after the last PLY element ignored (from {})",
             cur.location()
         ));
     }
-    Ok(data)
+    Ok(warnings)
 }
 
 fn skip_element(cur: &mut Cursor<'_>, element: &Element) -> ParseResult<()> {
@@ -600,7 +827,7 @@ fn skip_element(cur: &mut Cursor<'_>, element: &Element) -> ParseResult<()> {
         // Fixed-size binary rows: skip the whole element at once.
         let total = element.count.checked_mul(row);
         return match total {
-            Some(t) if t <= cur.remaining() => cur.take(t).map(drop),
+            Some(t) if t <= cur.remaining() => cur.skip_bytes(t),
             _ => Err(format!(
                 "element {}: {} rows of {row} bytes do not fit in the {} bytes left \
                  (truncated file?)",
@@ -625,7 +852,7 @@ const NX: usize = 3;
 const U: usize = 6;
 const SLOTS: usize = 8;
 
-fn read_vertices(cur: &mut Cursor<'_>, element: &Element, data: &mut PlyData) -> ParseResult<()> {
+fn read_vertices(cur: &mut Cursor<'_>, element: &Element) -> ParseResult<Vertices> {
     let has_scalar = |name: &str| {
         element
             .props
@@ -696,24 +923,28 @@ fn read_vertices(cur: &mut Cursor<'_>, element: &Element, data: &mut PlyData) ->
             uvs.push(Vec2::new(u, 1.0 - v));
         }
     }
-    data.positions = positions;
-    data.normals = has_normals.then_some(normals);
-    data.uvs = has_uvs.then_some(uvs);
-    Ok(())
+    Ok(Vertices {
+        positions,
+        normals: has_normals.then_some(normals),
+        uvs: has_uvs.then_some(uvs),
+    })
 }
 
 fn read_faces(
     cur: &mut Cursor<'_>,
     element: &Element,
     vertex_count: usize,
-    data: &mut PlyData,
-) -> ParseResult<()> {
+    body: &mut dyn Body,
+    warnings: &mut Vec<String>,
+) -> std::result::Result<(), Stop> {
     let list = element.props.iter().position(|p| {
         (p.name == "vertex_indices" || p.name == "vertex_index")
             && matches!(p.kind, Kind::List { .. })
     });
     let Some(list) = list else {
-        return Err("face element has no vertex_indices list property".to_string());
+        return Err("face element has no vertex_indices list property"
+            .to_string()
+            .into());
     };
     if let Some(Property {
         kind: Kind::List { item, .. },
@@ -724,12 +955,11 @@ fn read_faces(
         return Err(format!(
             "face property {name} has non-integer item type {}",
             item.name()
-        ));
+        )
+        .into());
     }
 
-    // Most faces are triangles; reserve for that, capped by what the data can hold.
-    let cap = element.capped_reserve(cur.format, cur.remaining());
-    data.indices.reserve(cap.saturating_mul(3));
+    body.reserve_faces(element.capped_reserve(cur.format, cur.remaining()));
     let mut poly: Vec<u32> = Vec::new();
     let mut short_faces = 0u64;
     for row in 0..element.count {
@@ -742,7 +972,9 @@ fn read_faces(
                     for _ in 0..n {
                         let i = match cur.read(item).map_err(at)? {
                             Num::Int(i) => i,
-                            Num::Float(_) => return Err(at("index is not an integer".into())),
+                            Num::Float(_) => {
+                                return Err(at("index is not an integer".into()).into());
+                            }
                         };
                         let idx = usize::try_from(i)
                             .ok()
@@ -760,7 +992,7 @@ fn read_faces(
                         Some((&first, rest)) if rest.len() >= 2 => {
                             for w in rest.windows(2) {
                                 if let [b, c] = *w {
-                                    data.indices.extend_from_slice(&[first, b, c]);
+                                    body.triangle([first, b, c])?;
                                 }
                             }
                         }
@@ -772,7 +1004,7 @@ fn read_faces(
         }
     }
     if short_faces > 0 {
-        data.warnings.push(format!(
+        warnings.push(format!(
             "{short_faces} PLY faces with fewer than 3 vertices ignored"
         ));
     }
@@ -782,6 +1014,15 @@ fn read_faces(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Parse `bytes` as the in-memory loader does, errors as their messages.
+    fn parse(bytes: &[u8]) -> ParseResult<Vec<String>> {
+        let mut input = bytes;
+        read_body(&mut input, bytes.len(), &mut Collect::default()).map_err(|e| match e {
+            Stop::Format(m) => m,
+            Stop::Scene(e) => e.to_string(),
+        })
+    }
 
     #[test]
     fn header_rejects_garbage() {
@@ -806,5 +1047,65 @@ mod tests {
         f.extend_from_slice(&[0u8; 12]);
         let err = parse(&f).err().unwrap_or_default();
         assert!(err.contains("exceed"), "{err}");
+    }
+
+    /// Hands out at most one byte per read, so every window refill path (mid-token,
+    /// mid-value, mid-line) is taken.
+    struct Trickle<'a>(&'a [u8]);
+
+    impl Read for Trickle<'_> {
+        fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+            match (self.0.split_first(), buf.first_mut()) {
+                (Some((&b, rest)), Some(slot)) => {
+                    *slot = b;
+                    self.0 = rest;
+                    Ok(1)
+                }
+                _ => Ok(0),
+            }
+        }
+    }
+
+    fn collect(bytes: &[u8], trickle: bool) -> (Vec<Vec3>, Vec<u32>, Vec<String>) {
+        let mut body = Collect::default();
+        let warnings = if trickle {
+            read_body(&mut Trickle(bytes), bytes.len(), &mut body)
+        } else {
+            let mut input = bytes;
+            read_body(&mut input, bytes.len(), &mut body)
+        };
+        let warnings = match warnings {
+            Ok(w) => w,
+            Err(Stop::Format(m)) => vec![format!("error: {m}")],
+            Err(Stop::Scene(e)) => vec![format!("error: {e}")],
+        };
+        let positions = body.vertices.map(|v| v.positions).unwrap_or_default();
+        (positions, body.indices, warnings)
+    }
+
+    #[test]
+    fn a_trickling_reader_parses_the_same() {
+        let ascii = b"ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\n\
+                      property float y\nproperty float z\nelement face 2\n\
+                      property list uchar int vertex_indices\nend_header\n\
+                      0 0 0\n1.5 0 0\n1 1 0\n0 1 0.25\n4 0 1 2 3\n3 0 2 3\n9\n";
+        let mut binary = b"ply\nformat binary_big_endian 1.0\nelement vertex 3\n\
+                           property double x\nproperty double y\nproperty double z\n\
+                           element face 1\nproperty list uchar uint vertex_indices\n\
+                           end_header\n"
+            .to_vec();
+        for c in [0.0f64, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0] {
+            binary.extend_from_slice(&c.to_be_bytes());
+        }
+        binary.push(3);
+        for i in [0u32, 1, 2] {
+            binary.extend_from_slice(&i.to_be_bytes());
+        }
+        for bytes in [&ascii[..], &binary[..], &binary[..binary.len() - 2]] {
+            let whole = collect(bytes, false);
+            assert_eq!(collect(bytes, true), whole);
+            assert!(!whole.0.is_empty(), "{whole:?}");
+        }
+        assert_eq!(collect(ascii, false).1, vec![0, 1, 2, 0, 2, 3, 0, 2, 3]);
     }
 }

@@ -48,14 +48,7 @@ pub fn add_primitive(
     prim: Primitive<'_>,
 ) -> Result<()> {
     let n = prim.positions.len();
-    if let Some((i, p)) = prim
-        .positions
-        .iter()
-        .enumerate()
-        .find(|(_, p)| !p.is_finite())
-    {
-        return Err(origin.error(format!("vertex {i} has a non-finite position {p}")));
-    }
+    check_positions(origin, prim.positions)?;
     let check_len = |name: &str, len: Option<usize>| -> Result<()> {
         match len {
             Some(l) if l != n => Err(origin.error(format!(
@@ -89,11 +82,8 @@ pub fn add_primitive(
 
     let base = mesh.positions.len() as u32;
     mesh.positions.extend_from_slice(prim.positions);
-    let finite3 = |v: Vec3| if v.is_finite() { v } else { Vec3::ZERO };
     match prim.normals {
-        Some(ns) => mesh
-            .normals
-            .extend(ns.iter().map(|&v| finite3(v).normalize_or_zero())),
+        Some(ns) => mesh.normals.extend(ns.iter().map(|&v| clean_normal(v))),
         None => mesh.normals.resize(mesh.positions.len(), Vec3::ZERO),
     }
     match prim.tangents {
@@ -104,20 +94,17 @@ pub fn add_primitive(
         None => mesh.tangents.resize(mesh.positions.len(), Vec4::ZERO),
     }
     match prim.uvs {
-        Some(us) => mesh.uvs.extend(
-            us.iter()
-                .map(|&v| if v.is_finite() { v } else { Vec2::ZERO }),
-        ),
+        Some(us) => mesh.uvs.extend(us.iter().map(|&v| clean_uv(v))),
         None => mesh.uvs.resize(mesh.positions.len(), Vec2::ZERO),
     }
     for tri in prim.indices.chunks_exact(3) {
         let [a, b, c] = [tri[0], tri[1], tri[2]];
-        let (pa, pb, pc) = (
+        let corners = [
             prim.positions[a as usize],
             prim.positions[b as usize],
             prim.positions[c as usize],
-        );
-        if a == b || b == c || a == c || (pb - pa).cross(pc - pa) == Vec3::ZERO {
+        ];
+        if is_degenerate([a, b, c], corners) {
             stats.degenerate_triangles += 1;
             continue;
         }
@@ -125,6 +112,35 @@ pub fn add_primitive(
         mesh.material.push(prim.material);
     }
     Ok(())
+}
+
+/// The error for the first vertex with a NaN or infinite position, if any: such a
+/// vertex would poison bounds and BVH builds, so it is refused rather than dropped.
+pub fn check_positions(origin: Origin<'_>, positions: &[Vec3]) -> Result<()> {
+    match positions.iter().enumerate().find(|(_, p)| !p.is_finite()) {
+        Some((i, p)) => Err(origin.error(format!("vertex {i} has a non-finite position {p}"))),
+        None => Ok(()),
+    }
+}
+
+/// A shading normal as the mesh stores it: unit length, or zero ("absent") when it is
+/// not finite or has no direction. Loaders that stream triangles use it too, so they
+/// store exactly what [`add_primitive`] would.
+pub fn clean_normal(v: Vec3) -> Vec3 {
+    if v.is_finite() { v } else { Vec3::ZERO }.normalize_or_zero()
+}
+
+/// A texture coordinate as the mesh stores it: zero ("absent") when not finite.
+pub fn clean_uv(v: Vec2) -> Vec2 {
+    if v.is_finite() { v } else { Vec2::ZERO }
+}
+
+/// Whether a triangle is dropped as degenerate: a repeated index, or zero area in f32.
+/// (One definition, so every loader and stream drops and counts the same triangles.)
+pub fn is_degenerate(indices: [u32; 3], corners: [Vec3; 3]) -> bool {
+    let [a, b, c] = indices;
+    let [pa, pb, pc] = corners;
+    a == b || b == c || a == c || (pb - pa).cross(pc - pa) == Vec3::ZERO
 }
 
 /// Convert a triangle strip into a triangle list, keeping winding consistent.
