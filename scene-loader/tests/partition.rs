@@ -704,25 +704,41 @@ fn a_streamed_grid_writes_the_same_package_as_the_grid_in_memory() {
             .unwrap()
             .expect("grid specs stream");
         let scene = dray_scene::load(spec).unwrap();
-        let (a, b) = (
-            TmpDir::new(&format!("grid-stream-{}", spec.len())),
-            TmpDir::new(&format!("grid-memory-{}", spec.len())),
-        );
-        let layout = LayoutSpec::Kd(7);
-        write_package(
-            &a.0,
-            SceneParts::of(source.tables()),
-            &source,
-            &layout,
-            &WriteOptions::default(),
-        )
-        .unwrap();
-        write_scene_package(&b.0, &scene, &layout).unwrap();
-        let ma = std::fs::read_to_string(a.0.join("manifest.json")).unwrap();
-        let mb = std::fs::read_to_string(b.0.join("manifest.json")).unwrap();
-        assert_eq!(ma, mb, "{spec}");
         assert!(scene.mesh.triangle_count() > 0);
+        assert_streams_like_memory(
+            &source,
+            source.tables(),
+            &scene,
+            &LayoutSpec::Kd(7),
+            &format!("grid-{}", spec.len()),
+        );
     }
+}
+
+/// Write a package from the streaming `source` (whose tables are `tables`) and one from
+/// `scene` in memory, both cut by `layout`, into fresh directories tagged `tag`, and
+/// check every file has the same bytes.
+fn assert_streams_like_memory(
+    source: &dyn TriangleSource,
+    tables: &Scene,
+    scene: &Scene,
+    layout: &LayoutSpec,
+    tag: &str,
+) {
+    let (a, b) = (
+        TmpDir::new(&format!("stream-{tag}")),
+        TmpDir::new(&format!("memory-{tag}")),
+    );
+    write_package(
+        &a.0,
+        SceneParts::of(tables),
+        source,
+        layout,
+        &WriteOptions::default(),
+    )
+    .unwrap();
+    write_scene_package(&b.0, scene, layout).unwrap();
+    assert_same_package(&a.0, &b.0, &format!("{tag} {layout:?}"));
 }
 
 /// Every file of package `a` has the same bytes in package `b`, and no file is extra.
@@ -758,22 +774,8 @@ fn streamed_generators_write_the_same_package_as_their_scenes_in_memory() {
         let scene = load(spec);
         assert!(scene.mesh.triangle_count() > 1000, "{spec}");
         for layout in [LayoutSpec::Kd(7), LayoutSpec::GridCount(8)] {
-            let what = format!("{spec} {layout:?}");
             let name = spec.replace(':', "-");
-            let (a, b) = (
-                TmpDir::new(&format!("stream-{name}")),
-                TmpDir::new(&format!("memory-{name}")),
-            );
-            write_package(
-                &a.0,
-                SceneParts::of(source.tables()),
-                &source,
-                &layout,
-                &WriteOptions::default(),
-            )
-            .unwrap();
-            write_scene_package(&b.0, &scene, &layout).unwrap();
-            assert_same_package(&a.0, &b.0, &what);
+            assert_streams_like_memory(&source, source.tables(), &scene, &layout, &name);
         }
     }
 }
@@ -899,21 +901,8 @@ fn streamed_ply_writes_the_same_package_as_the_loaded_scene() {
             .unwrap();
         assert!(streamed == loaded, "binary={binary}: triangles differ");
         for layout in [LayoutSpec::Kd(7), LayoutSpec::GridCount(8)] {
-            let what = format!("binary={binary} {layout:?}");
-            let (a, b) = (
-                TmpDir::new(&format!("ply-stream-{binary}")),
-                TmpDir::new(&format!("ply-memory-{binary}")),
-            );
-            write_package(
-                &a.0,
-                SceneParts::of(source.tables()),
-                &source,
-                &layout,
-                &WriteOptions::default(),
-            )
-            .unwrap();
-            write_scene_package(&b.0, &scene, &layout).unwrap();
-            assert_same_package(&a.0, &b.0, &what);
+            let tag = format!("ply-binary-{binary}");
+            assert_streams_like_memory(&source, source.tables(), &scene, &layout, &tag);
         }
     }
 
