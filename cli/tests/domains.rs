@@ -47,17 +47,20 @@ fn domains_do_not_change_a_single_bit() {
     }
 }
 
+/// `dray partition ARGS`, run to the end.
+fn partition(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_dray"))
+        .arg("partition")
+        .args(args)
+        .output()
+        .expect("run dray")
+}
+
 #[test]
 fn partition_writes_a_package_and_rejects_bad_input() {
     let d = tmp("partition");
     let out = d.join("pkg");
-    let run = |args: &[&str]| {
-        Command::new(env!("CARGO_BIN_EXE_dray"))
-            .arg("partition")
-            .args(args)
-            .output()
-            .expect("run dray")
-    };
+    let run = partition;
     let ok = run(&[
         "soup:5000",
         "--domains",
@@ -94,13 +97,7 @@ fn partition_writes_a_package_and_rejects_bad_input() {
 #[test]
 fn partition_streams_a_ply_and_rejects_a_malformed_one() {
     let d = tmp("partition-ply");
-    let run = |args: &[&str]| {
-        Command::new(env!("CARGO_BIN_EXE_dray"))
-            .arg("partition")
-            .args(args)
-            .output()
-            .expect("run dray")
-    };
+    let run = partition;
     let ply = "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n\
                property float z\nelement face 2\nproperty list uchar int vertex_indices\n\
                end_header\n0 0 0\n1 0 0\n1 1 0\n0 1 1\n3 0 1 2\n4 0 2 3 1\n";
