@@ -1,9 +1,10 @@
 //! `dray.v1.ClusterService`: the calls workers make to the coordinator, over the
-//! [`Membership`], the [`Ledger`] and the [`Router`].
+//! [`Membership`], the [`Ledger`] and the [`Scheduler`].
 //!
 //! Workers dial out; the coordinator answers and pushes commands on each worker's
 //! WatchAssignments stream. See cluster.proto for the protocol and [`crate::dispatch`] for
-//! what a job's workers receive, in order.
+//! what a job's workers receive, in order. Registrations, queue reports and lost workers
+//! become [`SchedulerEvent`]s; the RPCs answer without waiting for the scheduler.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -22,7 +23,7 @@ use tonic::{Request, Response, Status};
 
 use crate::ledger::Ledger;
 use crate::membership::{HeartbeatConfig, Membership};
-use crate::routing::{RoundRobin, Router};
+use crate::scheduler::{Scheduler, SchedulerEvent, SchedulerOptions};
 
 /// Settings of the cluster side of the coordinator.
 #[derive(Clone, Debug)]
@@ -36,6 +37,8 @@ pub struct ClusterOptions {
     /// work directory: for workers in the coordinator's own process (`dray render`),
     /// which read the same store. Workers elsewhere cannot, so a cluster leaves it unset.
     pub memory_packages: Option<Arc<MemoryPackages>>,
+    /// Scheduler pacing.
+    pub scheduler: SchedulerOptions,
 }
 
 impl Default for ClusterOptions {
@@ -44,42 +47,45 @@ impl Default for ClusterOptions {
             heartbeat: HeartbeatConfig::default(),
             work_dir: std::env::temp_dir().join(format!("dray-coordinator-{}", std::process::id())),
             memory_packages: None,
+            scheduler: SchedulerOptions::default(),
         }
     }
 }
 
-/// Membership, accounting and routing of the coordinator's workers.
+/// Membership, accounting and scheduling of the coordinator's workers.
 pub struct Cluster {
     /// Registered workers and their command outboxes.
     pub membership: Arc<Membership>,
-    /// Jobs running on workers.
-    pub ledger: Ledger,
-    /// Domain assignment.
-    pub router: Box<dyn Router>,
+    /// Jobs running on workers: credit, film, and each job's scheduling state.
+    pub ledger: Arc<Ledger>,
+    /// The scheduler's event loop (run by [`crate::serve`]).
+    pub scheduler: Scheduler,
     /// Settings.
     pub options: ClusterOptions,
 }
 
 impl Cluster {
-    /// A cluster with no workers, routing round robin.
+    /// A cluster with no workers.
     pub fn new(options: ClusterOptions) -> Cluster {
         let membership = Arc::new(Membership::new(options.heartbeat));
+        let ledger = Arc::new(Ledger::new(membership.clone()));
         Cluster {
-            ledger: Ledger::new(membership.clone()),
+            scheduler: Scheduler::new(ledger.clone(), options.scheduler),
+            ledger,
             membership,
-            router: Box::new(RoundRobin),
             options,
         }
     }
 
-    /// Drop workers silent for too long and fail their jobs. Returns how many were
-    /// dropped.
+    /// Drop workers silent for too long; the scheduler restarts their jobs on the
+    /// survivors (or fails them when none is left). Returns how many were dropped.
     pub fn reap(&self, now: Instant) -> usize {
         let lost = self.membership.expire(now);
-        for w in &lost {
-            self.ledger.worker_lost(&w.id, &w.endpoint, w.silent_for);
+        let n = lost.len();
+        for w in lost {
+            self.scheduler.post(SchedulerEvent::WorkerLost(w));
         }
-        lost.len()
+        n
     }
 
     /// Call [`Cluster::reap`] periodically, forever (the server aborts it on shutdown).
@@ -114,8 +120,10 @@ impl ClusterService for ClusterApi {
     ) -> Result<Response<RegisterWorkerResponse>, Status> {
         let w = self.cluster.membership.register(r.get_ref())?;
         let hb = self.cluster.membership.heartbeat;
+        let id = w.id.clone();
+        self.cluster.scheduler.post(SchedulerEvent::WorkerJoined(w));
         Ok(Response::new(RegisterWorkerResponse {
-            worker_id: w.id,
+            worker_id: id,
             heartbeat_interval: duration(hb.interval),
             heartbeat_timeout: duration(hb.timeout),
         }))
@@ -169,8 +177,15 @@ impl ClusterService for ClusterApi {
     ) -> Result<Response<ReportQueuesResponse>, Status> {
         let r = r.into_inner();
         self.cluster.membership.touch(&r.worker_id);
-        // 0 tells the worker the job is no longer running (versions start at 1).
-        let routing_version = self.cluster.ledger.report_queues(r).unwrap_or(0);
+        // 0 tells the worker the job is not running at that attempt (versions start at
+        // 1): it is over, or a lost worker made it start again (the release of the old
+        // attempt is then on its way).
+        let routing_version = self.cluster.ledger.report_queues(&r).unwrap_or(0);
+        if routing_version != 0 {
+            self.cluster
+                .scheduler
+                .post(SchedulerEvent::QueueReport { job_id: r.job_id });
+        }
         Ok(Response::new(ReportQueuesResponse { routing_version }))
     }
 
@@ -181,6 +196,29 @@ impl ClusterService for ClusterApi {
         let r = r.into_inner();
         self.cluster.membership.touch(&r.worker_id);
         let outcome = self.cluster.ledger.report(&r)?;
+        // Peers this worker could not send rays to are lost to the job (their rays were
+        // dropped): the job restarts on the others, as after a missed heartbeat. Only
+        // peers of a job still running, named by one of its workers, count.
+        if outcome.job_active() {
+            for peer in r.unreachable_peers.iter().take(16) {
+                if peer != &r.worker_id
+                    && self.cluster.ledger.has_worker(&r.job_id, peer)
+                    && let Some(lost) =
+                        self.cluster
+                            .membership
+                            .drop_unreachable(peer, &r.worker_id, Instant::now())
+                {
+                    self.cluster
+                        .scheduler
+                        .post(SchedulerEvent::WorkerLost(lost));
+                }
+            }
+        }
+        if outcome.ended() {
+            self.cluster
+                .scheduler
+                .post(SchedulerEvent::JobEnded { job_id: r.job_id });
+        }
         Ok(Response::new(ReportContributionsResponse {
             job_active: outcome.job_active(),
         }))

@@ -1,19 +1,32 @@
 //! Dispatch: turn an accepted job into work for the registered workers.
 //!
-//! For a job, the coordinator makes (or reuses) a scene package, assigns its domains with
-//! the [`Router`](crate::routing::Router), and queues on each of the job's workers'
-//! WatchAssignments streams, in this order:
+//! For a job, the coordinator makes (or reuses) a scene package, sets up the job's
+//! [schedule](crate::scheduler) over the registered workers, and queues on each worker's
+//! WatchAssignments stream, in this order:
 //!
-//! 1. one `JobSetup`: the spec with every default filled in, the environment and the
-//!    effects after analysis and overrides, the package path and checksum, the domain
-//!    count, `tile_size` ([`TILE_SIZE`]), `tile_credit` ([`TILE_CREDIT`]) and the routing
-//!    table (version 1);
+//! 1. one `JobSetup`: the spec with every default filled in (`schedule` resolved), the
+//!    environment and the effects after analysis and overrides, the package path and
+//!    checksum, the domain count, `tile_size` ([`TILE_SIZE`]), `tile_credit`
+//!    ([`TILE_CREDIT`]), `attempt` 0, the resolved `schedule` and the routing table
+//!    (version 1, attempt 0): round robin (domain `d` to `workers[d % n]`) for the
+//!    domain and dynamic schedules, `local` with no routes for image-plane;
 //! 2. one or more `TileAssignment`s with the tiles dealt to that worker: the image is cut
-//!    row-major into `tile_size` squares (edge tiles smaller), tile `i` (index
-//!    `(y0 / tile_size) * tiles_x + x0 / tile_size`) goes to `workers[i % n]`, each with
-//!    `credit = tile_credit` and `attempt = 0`;
-//! 3. later, exactly one `finish` (every tile's credit came back) or `cancel` (CancelJob,
-//!    a worker's failure report, a lost worker, or a credit error) `JobRelease`.
+//!    row-major into `tile_size` squares (edge tiles smaller, tile `i` has index
+//!    `(y0 / tile_size) * tiles_x + x0 / tile_size`), each with `credit = tile_credit` and
+//!    `attempt = 0`. Image-plane deals contiguous blocks (worker `i` of `n` gets tiles
+//!    `[i*T/n, (i+1)*T/n)`); domain and dynamic deal round robin (tile `i` to
+//!    `workers[i % n]`);
+//! 3. while the job runs: `routing` tables with higher versions when the dynamic
+//!    scheduler moves or replicates domains, or when a worker joins a dynamic job;
+//! 4. when a worker of the job is lost: `cancel` of the old attempt, then a new
+//!    `JobSetup` (attempt + 1, a new table over the survivors) and the tiles that were
+//!    not complete, dealt by the same rule over the survivors (see [`crate::ledger`]);
+//! 5. at the end, exactly one `finish` (every tile's credit came back) or `cancel`
+//!    (CancelJob, a worker's failure report, a credit error, or the last worker lost)
+//!    `JobRelease` of the current attempt.
+//!
+//! A worker that registers while a dynamic job runs gets that job's `JobSetup` (current
+//! attempt and table, listing it) and no tiles; rounds then give it domains.
 //!
 //! The JobSetup's spec is what the worker must render, resolved so every worker reads the
 //! same thing: `camera` is always set, to the index (as a decimal string) of the camera in
@@ -25,10 +38,7 @@ use std::sync::Arc;
 
 use dray_core::render;
 use dray_core::scene::Scene;
-use dray_proto::v1::{
-    Assignment, JobSetup, JobSpec, JobState, Rgb, Tile, TileAssignment, WorkerEndpoint,
-    assignment::Command,
-};
+use dray_proto::v1::{JobSetup, JobSpec, JobState, Rgb, Tile};
 use dray_scene::partition::checksum::{checksum, to_hex};
 use dray_scene::partition::manifest::MANIFEST_FILE;
 use dray_scene::partition::memory::{MemoryPackage, MemoryPackages};
@@ -39,6 +49,8 @@ use crate::cluster::Cluster;
 use crate::jobs::JobEntry;
 use crate::ledger::DistJob;
 use crate::owned_package::{OwnedPackage, remove_package};
+use crate::scheduler::Schedule;
+use crate::scheduler::state::{JobSchedule, JobWorker};
 use crate::validate::Prepared;
 
 /// Tile edge in pixels: the same tiles as `dray render`, so progress reads the same.
@@ -55,8 +67,8 @@ pub const TILE_CREDIT: u64 = 1 << 62;
 pub const TILES_PER_MESSAGE: usize = 4096;
 
 /// Domains per worker when the job does not say: the dynamic-scheduling paper found
-/// several times more domains than processes best, and it gives a later dynamic
-/// scheduler something to move.
+/// several times more domains than processes best, and it gives the dynamic scheduler
+/// something to move.
 pub const DOMAINS_PER_WORKER: u32 = 4;
 
 /// Fewest triangles worth a domain of their own when the coordinator chooses the count:
@@ -251,7 +263,7 @@ pub struct PreparedSummary {
 /// chose, so the package's camera list holds exactly the camera the job renders with.
 /// A scene package is used as it is: a package without cameras leaves `spec.camera`
 /// unset, meaning the camera framing the manifest's bounds.
-pub fn plan(mut p: Prepared, mut spec: JobSpec, layout: LayoutSpec) -> Planned {
+pub fn plan(mut p: Prepared, mut spec: JobSpec, layout: LayoutSpec, schedule: Schedule) -> Planned {
     let summary = PreparedSummary {
         environment: p.settings.environment,
         effects: p
@@ -286,6 +298,7 @@ pub fn plan(mut p: Prepared, mut spec: JobSpec, layout: LayoutSpec) -> Planned {
         setup_spec: spec,
         prepared: summary,
         package,
+        schedule,
     }
 }
 
@@ -297,6 +310,8 @@ pub struct Planned {
     pub prepared: PreparedSummary,
     /// Where the package comes from.
     pub package: PackageSource,
+    /// How domains and rays are placed on the workers.
+    pub schedule: Schedule,
 }
 
 /// The index of the camera `which` names (an index first, then a name, as
@@ -337,6 +352,7 @@ async fn run(
         setup_spec,
         prepared,
         package,
+        schedule,
     } = planned;
     entry.set_state(JobState::Preparing);
     let dir = cluster.options.work_dir.join(&entry.id);
@@ -358,17 +374,20 @@ async fn run(
         remove_package(owned.as_ref());
         return Ok(());
     }
-    let workers: Vec<WorkerEndpoint> = cluster
+    let workers: Vec<JobWorker> = cluster
         .membership
         .workers()
         .iter()
-        .map(|w| w.endpoint())
+        .map(|w| JobWorker {
+            endpoint: w.endpoint(),
+            budget: w.memory_budget_bytes,
+        })
         .collect();
     if workers.is_empty() {
         remove_package(owned.as_ref());
         return Err(DispatchError::NoWorkers);
     }
-    let routing = cluster.router.initial(&entry.id, info.domains, &workers);
+    let sched = JobSchedule::new(&entry.id, schedule, info.domains, &workers);
     let env = prepared.environment;
     let setup = JobSetup {
         job_id: entry.id.clone(),
@@ -384,53 +403,29 @@ async fn run(
         domain_count: info.domains,
         tile_size: TILE_SIZE,
         tile_credit: TILE_CREDIT,
-        routing: Some(routing.clone()),
+        // Filled in from the schedule each time the setup is sent.
+        routing: None,
+        attempt: 0,
+        schedule: schedule.name().to_string(),
     };
     let tiles = image_tiles(entry.spec.width, entry.spec.height);
     let n = workers.len();
-    let mut per_worker: Vec<Vec<Tile>> = vec![Vec::new(); n];
-    for t in &tiles {
-        per_worker[t.index as usize % n].push(*t);
-    }
-    let mut commands = Vec::new();
-    for (w, mine) in workers.iter().zip(per_worker) {
-        commands.push((
-            w.worker_id.clone(),
-            Assignment {
-                command: Some(Command::Setup(setup.clone())),
-            },
-        ));
-        for chunk in mine.chunks(TILES_PER_MESSAGE) {
-            commands.push((
-                w.worker_id.clone(),
-                Assignment {
-                    command: Some(Command::Tiles(TileAssignment {
-                        job_id: entry.id.clone(),
-                        tiles: chunk.to_vec(),
-                    })),
-                },
-            ));
-        }
-    }
     entry.update_stats(|s| {
         s.triangles = prepared.triangles;
         s.domains = info.domains;
         s.workers = n as u32;
         s.effects = prepared.effects.clone();
+        s.schedule = schedule.name().to_string();
     });
-    let job = DistJob::new(
-        entry.clone(),
-        routing,
-        tiles.len(),
-        TILE_CREDIT,
-        owned.clone(),
-    );
-    match cluster.ledger.start(job, commands) {
+    let tile_count = tiles.len();
+    let job = DistJob::new(entry.clone(), setup, sched, tiles, owned.clone());
+    match cluster.ledger.start(job) {
         Ok(()) => {
             tracing::info!(
                 workers = n,
                 domains = info.domains,
-                tiles = tiles.len(),
+                tiles = tile_count,
+                schedule = schedule.name(),
                 package = %info.path,
                 "job dispatched"
             );

@@ -174,6 +174,9 @@ impl JobEntry {
 pub struct JobTable {
     jobs: Mutex<Vec<Arc<JobEntry>>>,
     next_id: AtomicU64,
+    /// Makes this coordinator's job ids differ from an earlier run's: a worker that
+    /// outlived a coordinator restart must not take a new `job-1` for the old one.
+    nonce: u32,
     gate: Arc<Semaphore>,
     threads: usize,
 }
@@ -184,6 +187,13 @@ impl JobTable {
         JobTable {
             jobs: Mutex::new(Vec::new()),
             next_id: AtomicU64::new(1),
+            nonce: {
+                let t = SystemTime::now()
+                    .duration_since(SystemTime::UNIX_EPOCH)
+                    .unwrap_or_default();
+                (t.subsec_nanos() ^ (t.as_secs() as u32).rotate_left(13))
+                    ^ std::process::id().rotate_left(7)
+            },
             gate: Arc::new(Semaphore::new(1)),
             threads,
         }
@@ -198,7 +208,7 @@ impl JobTable {
     pub fn insert(&self, spec: JobSpec) -> Arc<JobEntry> {
         let n = self.next_id.fetch_add(1, Ordering::Relaxed);
         let entry = Arc::new(JobEntry {
-            id: format!("job-{n}"),
+            id: format!("job-{n}-{:08x}", self.nonce),
             tiles_total: render::tiles(spec.width, spec.height).len() as u32,
             spec,
             submitted_at: SystemTime::now(),

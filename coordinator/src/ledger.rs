@@ -1,4 +1,5 @@
-//! The ledger: credit accounting and image assembly for jobs running on workers.
+//! The ledger: credit accounting and image assembly for jobs running on workers, and
+//! each job's scheduling state beside it.
 //!
 //! Every tile starts with a fixed credit (DESIGN.md, "Counting: credit"); workers hand
 //! credit back with the contributions of terminated rays. A tile is complete when all of
@@ -9,26 +10,44 @@
 //! Pixel sums arrive in fixed point and are added with integer arithmetic into one
 //! [`Film`] per job: addition is associative, so the image does not depend on which
 //! worker reported what, or in which order. A report is applied at most once per
-//! `(worker, job, sequence)`, so a worker may retry a call whose answer it lost.
+//! `(worker, job, attempt, sequence)`, so a worker may retry a call whose answer it lost.
+//!
+//! **Attempts.** When a worker of a running job is lost, the job starts its next attempt
+//! on the survivors ([`Ledger::worker_lost`]): every tile whose credit is not all back is
+//! cleared (its pixels set back to exactly zero by subtracting their integer sums, its
+//! returned credit to 0) and dealt again, and everything a worker sends for an older
+//! attempt is ignored from then on. Complete tiles keep their pixels: their credit is all
+//! back, so (by the contract below) so is every contribution they will ever have. Since
+//! a pixel belongs to one tile and its rays only add to that tile's pixels, the final
+//! film is bit for bit that of an undisturbed run. Ray counters, non-finite counts and
+//! scheduling counters of the dropped attempt stay counted (that work was done), so those
+//! statistics, unlike the image, show the loss.
 //!
 //! Contract for workers: a ray's contribution must be reported in the same report as the
 //! credit it returns, or an earlier one: the job succeeds (and its film is frozen) the
-//! moment the last credit arrives.
+//! moment the last credit arrives. Sequences start at 1 for each attempt.
+//!
+//! Every change to a job (credit, attempt, table) and the commands it causes are made
+//! under one lock, so a worker never sees a table or tiles of an attempt the ledger does
+//! not know yet, and a report never sees half a restart.
 
 use std::collections::{BTreeSet, HashMap};
 use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
 
 use dray_core::film::Film;
 use dray_proto::v1::{
-    Assignment, JobRelease, JobState, RayCounts, ReportContributionsRequest, ReportQueuesRequest,
-    RoutingTable, assignment::Command,
+    Assignment, JobRelease, JobSetup, JobState, RayCounts, ReportContributionsRequest,
+    ReportQueuesRequest, RoutingTable, Tile, TileAssignment, assignment::Command,
 };
 use tonic::Status;
 
+use crate::dispatch::TILES_PER_MESSAGE;
 use crate::jobs::JobEntry;
-use crate::membership::Membership;
+use crate::membership::{LostWorker, Membership, WorkerRecord};
+use crate::metrics::{self, JobMetrics};
 use crate::owned_package::{OwnedPackage, remove_package};
-
+use crate::scheduler::state::{JobSchedule, JobWorker, RoundOutcome};
 /// Sequences of one (worker, job) already applied: everything up to `upto`, plus the
 /// ones above it that arrived out of order. Stays small when reports arrive in order.
 #[derive(Default, Debug)]
@@ -57,56 +76,132 @@ impl SeqWindow {
 pub struct DistJob {
     /// The public job record (state, progress, stats, film when done).
     pub entry: Arc<JobEntry>,
-    /// Workers of the job, ordered as in the routing table.
-    pub workers: Vec<String>,
-    /// Current routing table.
-    pub routing: RoutingTable,
-    /// Package directory to delete when the job is released (None for a package the
-    /// user supplied).
+    /// Package to delete when the job is released (None for a package the user
+    /// supplied).
     pub owned_package: Option<OwnedPackage>,
-    tile_start: Vec<u64>,
+    /// What every worker of the job is told to set up; `attempt`, `routing` and
+    /// `schedule` are filled from `sched` each time it is sent.
+    setup: JobSetup,
+    sched: JobSchedule,
+    /// Every tile of the image (rectangle and starting credit), by index.
+    tiles: Vec<Tile>,
     tile_back: Vec<u64>,
     tiles_done: u32,
+    tiles_retried: u32,
     film: Film,
+    /// Sequences applied per worker, this attempt.
     seen: HashMap<String, SeqWindow>,
     rays: RayCounts,
     nonfinite: u64,
     ray_bytes_sent: u64,
-    /// Latest queue report per worker (input for a future dynamic scheduler).
-    queues: HashMap<String, ReportQueuesRequest>,
+    metrics: JobMetrics,
 }
 
 impl DistJob {
-    /// A job whose `tiles` tiles each start with `tile_credit`, on an image of
-    /// `width` x `height`.
+    /// A job whose workers get `setup` (the template) and `tiles` (every tile of the
+    /// `entry.spec` image, each with its starting credit), scheduled by `sched`.
     pub fn new(
         entry: Arc<JobEntry>,
-        routing: RoutingTable,
-        tiles: usize,
-        tile_credit: u64,
+        setup: JobSetup,
+        sched: JobSchedule,
+        tiles: Vec<Tile>,
         owned_package: Option<OwnedPackage>,
     ) -> DistJob {
         let (w, h) = (entry.spec.width, entry.spec.height);
+        let mut metrics = JobMetrics::default();
+        for id in sched.worker_ids() {
+            metrics.add_worker(&id);
+        }
         DistJob {
-            workers: routing
-                .workers
-                .iter()
-                .map(|w| w.worker_id.clone())
-                .collect(),
             entry,
-            routing,
             owned_package,
-            tile_start: vec![tile_credit; tiles],
-            tile_back: vec![0; tiles],
+            setup,
+            sched,
+            tile_back: vec![0; tiles.len()],
+            tiles,
             tiles_done: 0,
+            tiles_retried: 0,
             film: Film::new(w, h),
             seen: HashMap::new(),
             rays: RayCounts::default(),
             nonfinite: 0,
             ray_bytes_sent: 0,
-            queues: HashMap::new(),
+            metrics,
         }
     }
+
+    /// The scheduling state.
+    pub fn schedule(&self) -> &JobSchedule {
+        &self.sched
+    }
+
+    /// The JobSetup of the current attempt and table.
+    fn current_setup(&self) -> JobSetup {
+        JobSetup {
+            attempt: self.sched.attempt(),
+            routing: Some(self.sched.table()),
+            schedule: self.sched.schedule().name().to_string(),
+            ..self.setup.clone()
+        }
+    }
+
+    /// For each worker of the current attempt, in job order: its JobSetup, then `tiles`
+    /// dealt by the schedule's rule, in messages of at most [`TILES_PER_MESSAGE`].
+    fn start_commands(&self, tiles: &[Tile]) -> Vec<(String, Assignment)> {
+        let setup = self.current_setup();
+        let mut out = Vec::new();
+        for (w, mine) in self.sched.deal(tiles) {
+            out.push((w.clone(), command(Command::Setup(setup.clone()))));
+            for chunk in mine.chunks(TILES_PER_MESSAGE) {
+                out.push((
+                    w.clone(),
+                    command(Command::Tiles(TileAssignment {
+                        job_id: self.entry.id.clone(),
+                        tiles: chunk.to_vec(),
+                    })),
+                ));
+            }
+        }
+        out
+    }
+
+    fn tile_complete(&self, t: usize) -> bool {
+        self.tile_back[t] == self.tiles[t].credit
+    }
+
+    /// Set every pixel of tile `t` back to zero, exactly (wrapping integer sums: adding
+    /// the negated sum gives 0 whatever the sum was).
+    fn clear_tile(&mut self, t: usize) {
+        let tile = self.tiles[t];
+        let width = self.film.width;
+        for y in tile.y0..tile.y0.saturating_add(tile.height).min(self.film.height) {
+            for x in tile.x0..tile.x0.saturating_add(tile.width).min(width) {
+                let p = y * width + x;
+                let s = self.film.sum_fixed(p);
+                self.film.add_fixed(p, s.map(i64::wrapping_neg));
+            }
+        }
+        self.tile_back[t] = 0;
+    }
+
+    /// Copy counters and scheduling figures into the public job record.
+    fn publish(&self) {
+        self.entry.set_tiles_done(self.tiles_done);
+        self.entry.update_stats(|s| {
+            s.rays = Some(self.rays);
+            s.nonfinite = self.nonfinite;
+            s.ray_bytes_sent = self.ray_bytes_sent;
+            self.metrics.fill(s);
+            s.tiles_retried = self.tiles_retried;
+            s.scheduler_rounds = self.sched.rounds();
+            s.routing_version = self.sched.version();
+            s.schedule = self.sched.schedule().name().to_string();
+        });
+    }
+}
+
+fn command(c: Command) -> Assignment {
+    Assignment { command: Some(c) }
 }
 
 /// What happened to a report (for logs and tests).
@@ -122,12 +217,20 @@ pub enum ReportOutcome {
     Failed,
     /// The job is not running (unknown, finished, cancelled or failed).
     Inactive,
+    /// The report belongs to an attempt the job has dropped (a worker was lost since);
+    /// nothing was counted and the worker should release that attempt.
+    Stale,
 }
 
 impl ReportOutcome {
     /// `ReportContributionsResponse.job_active`.
     pub fn job_active(self) -> bool {
         matches!(self, ReportOutcome::Applied | ReportOutcome::Duplicate)
+    }
+
+    /// Whether the job left the ledger with this report.
+    pub fn ended(self) -> bool {
+        matches!(self, ReportOutcome::Completed | ReportOutcome::Failed)
     }
 }
 
@@ -144,7 +247,7 @@ enum Release {
 }
 
 impl Ledger {
-    /// No jobs; releases go out through `membership`.
+    /// No jobs; commands go out through `membership`.
     pub fn new(membership: Arc<Membership>) -> Ledger {
         Ledger {
             jobs: Mutex::new(HashMap::new()),
@@ -156,25 +259,23 @@ impl Ledger {
         self.jobs.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// Start accounting `job` and, under the same lock, queue `commands` for its workers
-    /// (worker id, command), so that a cancel racing with the start either sees the job
-    /// or is seen by it. Fails (sending nothing) when the job was cancelled meanwhile,
-    /// or names the first worker that is gone.
-    pub fn start(&self, job: DistJob, commands: Vec<(String, Assignment)>) -> Result<(), String> {
+    /// Start accounting `job` and, under the same lock, send each of its workers its
+    /// JobSetup and tiles, so that a cancel racing with the start either sees the job or
+    /// is seen by it. Fails (sending nothing) when the job was cancelled meanwhile, or
+    /// names the first worker that is gone. A dynamic job also takes on the workers that
+    /// registered after its workers were chosen.
+    pub fn start(&self, job: DistJob) -> Result<(), String> {
         let mut g = self.lock();
         if job.entry.is_terminal() {
             return Err(format!("job {} ended before it started", job.entry.id));
         }
-        if let Some(w) = job
-            .workers
-            .iter()
-            .find(|w| self.membership.get(w).is_none())
-        {
+        let workers = job.sched.worker_ids();
+        if let Some(w) = workers.iter().find(|w| self.membership.get(w).is_none()) {
             return Err(format!(
                 "worker {w} left the cluster while the job was being prepared"
             ));
         }
-        for (w, a) in commands {
+        for (w, a) in job.start_commands(&job.tiles) {
             if !self.membership.send(&w, a) {
                 // Cannot happen while we hold the ledger lock unless the worker expired
                 // between the check above and here; the job cannot run without it.
@@ -187,7 +288,15 @@ impl Ledger {
             }
         }
         job.entry.set_state(JobState::Running);
-        g.insert(job.entry.id.clone(), job);
+        job.publish();
+        let id = job.entry.id.clone();
+        let job = g.entry(id).insert_entry(job).into_mut();
+        if job.sched.schedule().is_dynamic() {
+            // Their WorkerJoined events found no job to join; this is the join.
+            for w in self.membership.workers() {
+                self.join(job, &w);
+            }
+        }
         Ok(())
     }
 
@@ -200,7 +309,17 @@ impl Ledger {
         if job.entry.is_terminal() {
             return Ok(ReportOutcome::Inactive);
         }
-        if !job.workers.contains(&r.worker_id) {
+        let attempt = job.sched.attempt();
+        if r.attempt < attempt {
+            return Ok(ReportOutcome::Stale);
+        }
+        if r.attempt > attempt {
+            return Err(Status::invalid_argument(format!(
+                "attempt: {} is newer than job {:?}'s attempt {attempt}",
+                r.attempt, r.job_id
+            )));
+        }
+        if !job.sched.has_worker(&r.worker_id) {
             return Err(Status::permission_denied(format!(
                 "worker_id: {:?} is not a worker of job {:?}",
                 r.worker_id, r.job_id
@@ -218,7 +337,7 @@ impl Ledger {
         {
             return Ok(ReportOutcome::Duplicate);
         }
-        let _span = tracing::info_span!("job", id = %r.job_id).entered();
+        let _span = tracing::info_span!("job", id = %r.job_id, attempt).entered();
         // Check everything before changing anything, so a malformed report leaves the
         // ledger as it was (and may be sent again, fixed, under the same sequence).
         if r.sums.len() != 3 * r.pixels.len() {
@@ -238,13 +357,16 @@ impl Ledger {
         if let Some(c) = r
             .credits
             .iter()
-            .find(|c| c.tile as usize >= job.tile_start.len())
+            .find(|c| c.tile as usize >= job.tiles.len())
         {
             return Err(Status::invalid_argument(format!(
                 "credits: tile {} does not exist (the job has {} tiles)",
                 c.tile,
-                job.tile_start.len()
+                job.tiles.len()
             )));
+        }
+        if let Some(c) = &r.counters {
+            metrics::check(c).map_err(|e| Status::invalid_argument(e.to_string()))?;
         }
         job.seen
             .entry(r.worker_id.clone())
@@ -267,12 +389,12 @@ impl Ledger {
         let mut overdrawn = None;
         for c in &r.credits {
             let t = c.tile as usize;
-            let back = job.tile_back[t].checked_add(c.credit);
-            match back {
-                Some(b) if b <= job.tile_start[t] => {
-                    let was = job.tile_back[t] == job.tile_start[t];
+            let start = job.tiles[t].credit;
+            match job.tile_back[t].checked_add(c.credit) {
+                Some(b) if b <= start => {
+                    let was = job.tile_back[t] == start;
                     job.tile_back[t] = b;
-                    if !was && b == job.tile_start[t] {
+                    if !was && b == start {
                         job.tiles_done += 1;
                     }
                 }
@@ -293,19 +415,15 @@ impl Ledger {
         }
         job.nonfinite += r.nonfinite;
         job.ray_bytes_sent += r.ray_bytes_sent;
-        job.entry.set_tiles_done(job.tiles_done);
-        let (rays, nonfinite, bytes) = (job.rays, job.nonfinite, job.ray_bytes_sent);
-        job.entry.update_stats(|s| {
-            s.rays = Some(rays);
-            s.nonfinite = nonfinite;
-            s.ray_bytes_sent = bytes;
-        });
+        job.metrics
+            .add(&r.worker_id, r.counters.as_ref(), r.traced.as_ref());
+        job.publish();
         if let Some((tile, credit)) = overdrawn {
             let t = tile as usize;
             let msg = format!(
                 "credit accounting error: worker {} returned {credit} credit to tile {tile}, \
                  which already had {} of its {} back; rays were counted twice",
-                r.worker_id, job.tile_back[t], job.tile_start[t]
+                r.worker_id, job.tile_back[t], job.tiles[t].credit
             );
             tracing::error!("{msg}");
             let job = g.remove(&r.job_id);
@@ -315,14 +433,13 @@ impl Ledger {
             }
             return Ok(ReportOutcome::Failed);
         }
-        if job.tiles_done as usize == job.tile_start.len() {
+        if job.tiles_done as usize == job.tiles.len() {
             let Some(job) = g.remove(&r.job_id) else {
                 return Ok(ReportOutcome::Inactive);
             };
             drop(g);
-            tracing::info!(tiles = job.tile_start.len(), "job complete");
+            tracing::info!(tiles = job.tiles.len(), "job complete");
             self.release_workers(&job, Release::Finish, "completed");
-            job.entry.update_stats(|s| s.nonfinite = job.nonfinite);
             let mut film = job.film;
             film.nonfinite = job.nonfinite;
             job.entry
@@ -340,21 +457,18 @@ impl Ledger {
     }
 
     fn release_workers(&self, job: &DistJob, how: Release, reason: &str) {
-        for w in &job.workers {
+        let attempt = job.sched.attempt();
+        for w in job.sched.worker_ids() {
             let release = JobRelease {
                 job_id: job.entry.id.clone(),
                 reason: reason.to_string(),
+                attempt,
             };
-            let command = match how {
+            let c = match how {
                 Release::Finish => Command::Finish(release),
                 Release::Cancel => Command::Cancel(release),
             };
-            self.membership.send(
-                w,
-                Assignment {
-                    command: Some(command),
-                },
-            );
+            self.membership.send(&w, command(c));
         }
     }
 
@@ -374,59 +488,211 @@ impl Ledger {
         }
     }
 
-    /// A worker was dropped: fail every job it was part of, naming it. (Tracing its lost
-    /// tiles again is a later issue.)
-    pub fn worker_lost(&self, id: &str, endpoint: &str, silent_for: std::time::Duration) {
-        let lost: Vec<DistJob> = {
-            let mut g = self.lock();
-            let ids: Vec<String> = g
-                .iter()
-                .filter(|(_, j)| j.workers.iter().any(|w| w == id))
-                .map(|(k, _)| k.clone())
-                .collect();
-            ids.iter().filter_map(|k| g.remove(k)).collect()
-        };
-        for job in lost {
+    /// Worker `lost` was dropped (no heartbeat). Each job it was part of starts its next
+    /// attempt on the survivors: they are told to cancel the old attempt, then get a
+    /// JobSetup with the new attempt and table, then the tiles that were not complete,
+    /// dealt by the job's schedule. A job with no survivor fails, naming the worker. A
+    /// worker that joined a dynamic job and was never given a domain held no credit: the
+    /// job only sends the others a table without it.
+    pub fn worker_lost(&self, lost: &LostWorker) {
+        let mut g = self.lock();
+        let mut ids: Vec<String> = g
+            .iter()
+            .filter(|(_, j)| j.sched.has_worker(&lost.id))
+            .map(|(k, _)| k.clone())
+            .collect();
+        ids.sort();
+        for id in ids {
+            let Some(job) = g.get_mut(&id) else { continue };
+            if let Some(table) = job.sched.remove_unused(&lost.id) {
+                // It joined and was given nothing: no credit was with it.
+                tracing::info!(
+                    job = %id,
+                    worker = %lost.id,
+                    endpoint = %lost.endpoint,
+                    version = table.version,
+                    "worker lost before it was given work; the job goes on without it"
+                );
+                for w in job.sched.worker_ids() {
+                    self.membership
+                        .send(&w, command(Command::Routing(table.clone())));
+                }
+                job.publish();
+                continue;
+            }
+            let old = job.sched.attempt();
+            if job.sched.restart_without(&lost.id).is_some() {
+                self.retrace(job, old, lost);
+                continue;
+            }
+            let Some(job) = g.remove(&id) else { continue };
             let msg = format!(
-                "worker {id} ({endpoint}) was lost: no heartbeat for {:.1} s; the tiles it \
-                 held cannot be traced again yet",
-                silent_for.as_secs_f64()
+                "worker {} ({}) was lost ({}), and no worker is left to trace its tiles again",
+                lost.id, lost.endpoint, lost.cause
             );
-            tracing::warn!(job = %job.entry.id, "{msg}");
+            tracing::warn!(job = %id, worker = %lost.id, endpoint = %lost.endpoint, "{msg}");
             self.fail(job, msg);
         }
     }
 
-    /// Store a queue report; returns the job's routing version, or None when the job is
-    /// not running (or the worker is not one of its workers).
-    pub fn report_queues(&self, r: ReportQueuesRequest) -> Option<u64> {
-        let mut g = self.lock();
-        let job = g.get_mut(&r.job_id)?;
-        if !job.workers.contains(&r.worker_id) {
-            return None;
+    /// Clear and re-deal the incomplete tiles of `job`, whose schedule has just moved to
+    /// a new attempt without `lost` (`old` is the attempt dropped).
+    fn retrace(&self, job: &mut DistJob, old: u32, lost: &LostWorker) {
+        let incomplete: Vec<usize> = (0..job.tiles.len())
+            .filter(|&t| !job.tile_complete(t))
+            .collect();
+        for &t in &incomplete {
+            job.clear_tile(t);
         }
-        let v = job.routing.version;
-        job.queues.insert(r.worker_id.clone(), r);
-        // Rays queued at the job's workers, as of each one's latest report: what
-        // JobProgress.rays_in_flight shows (rays on the wire are not counted).
-        let queued: u64 = job
-            .queues
-            .values()
-            .flat_map(|q| &q.queues)
-            .map(|d| d.rays_queued)
-            .sum();
-        job.entry.set_rays_in_flight(queued);
-        Some(v)
+        job.seen.clear();
+        job.tiles_retried = job.tiles_retried.saturating_add(incomplete.len() as u32);
+        let attempt = job.sched.attempt();
+        let reason = format!(
+            "worker {} ({}) was lost ({}); {} tiles are traced again as attempt {attempt}",
+            lost.id,
+            lost.endpoint,
+            lost.cause,
+            incomplete.len()
+        );
+        tracing::warn!(
+            job = %job.entry.id,
+            worker = %lost.id,
+            endpoint = %lost.endpoint,
+            attempt,
+            tiles = incomplete.len(),
+            workers = job.sched.worker_ids().len(),
+            "{reason}"
+        );
+        for w in job.sched.worker_ids() {
+            let release = JobRelease {
+                job_id: job.entry.id.clone(),
+                reason: reason.clone(),
+                attempt: old,
+            };
+            self.membership.send(&w, command(Command::Cancel(release)));
+        }
+        let tiles: Vec<Tile> = incomplete.iter().map(|&t| job.tiles[t]).collect();
+        for (w, a) in job.start_commands(&tiles) {
+            // A survivor that is gone too has its own loss event queued: it restarts
+            // the job again then.
+            if !self.membership.send(&w, a) {
+                tracing::debug!(worker = %w, "survivor gone before its new attempt");
+            }
+        }
+        job.entry.set_rays_in_flight(0);
+        job.publish();
     }
 
-    /// The latest queue report of `worker` for `job`.
-    pub fn queues(&self, job: &str, worker: &str) -> Option<ReportQueuesRequest> {
-        self.lock().get(job)?.queues.get(worker).cloned()
+    /// Worker `w` registered: every running dynamic job takes it on (static schedules
+    /// deal work once, so a joiner waits for the next job).
+    pub fn worker_joined(&self, w: &WorkerRecord) {
+        let mut g = self.lock();
+        let mut ids: Vec<String> = g.keys().cloned().collect();
+        ids.sort();
+        for id in ids {
+            if let Some(job) = g.get_mut(&id)
+                && job.sched.schedule().is_dynamic()
+                && !job.entry.is_terminal()
+            {
+                self.join(job, w);
+            }
+        }
+    }
+
+    /// Add `w` to dynamic `job` if it is not a worker of it yet: the others get the new
+    /// table (listing it), it gets a JobSetup of the current attempt. It has no tiles and
+    /// owns nothing; being idle, it gets domains from the next rounds.
+    fn join(&self, job: &mut DistJob, w: &WorkerRecord) {
+        if self.membership.get(&w.id).is_none() {
+            // Lost before its join was handled (its loss event comes next).
+            return;
+        }
+        let Some(table) = job.sched.add_worker(JobWorker {
+            endpoint: w.endpoint(),
+            budget: w.memory_budget_bytes,
+        }) else {
+            return;
+        };
+        job.metrics.add_worker(&w.id);
+        for other in job.sched.worker_ids().iter().filter(|o| **o != w.id) {
+            self.membership
+                .send(other, command(Command::Routing(table.clone())));
+        }
+        self.membership
+            .send(&w.id, command(Command::Setup(job.current_setup())));
+        tracing::info!(
+            job = %job.entry.id,
+            worker = %w.id,
+            endpoint = %w.endpoint,
+            version = table.version,
+            "worker joined the running job"
+        );
+        job.publish();
+    }
+
+    /// Run `job`'s scheduling round if one is due at `now` (at most one per `interval`),
+    /// sending a changed table to every worker of the job. None when the job is not
+    /// running.
+    pub fn round(&self, job: &str, now: Instant, interval: Duration) -> Option<RoundOutcome> {
+        let mut g = self.lock();
+        let job = g.get_mut(job)?;
+        if job.entry.is_terminal() {
+            return None;
+        }
+        let out = job.sched.round(now, interval);
+        match &out {
+            RoundOutcome::Changed(table, changes) => {
+                tracing::debug!(
+                    job = %job.entry.id,
+                    version = table.version,
+                    ?changes,
+                    "routing table changed"
+                );
+                for w in job.sched.worker_ids() {
+                    self.membership
+                        .send(&w, command(Command::Routing(table.clone())));
+                }
+                job.publish();
+            }
+            RoundOutcome::Unchanged => job.publish(),
+            RoundOutcome::NotBefore(_) | RoundOutcome::Waiting => {}
+        }
+        Some(out)
+    }
+
+    /// Store a queue report; returns the job's routing version, or None when the job is
+    /// not running at the report's attempt (or the worker is not one of its workers).
+    pub fn report_queues(&self, r: &ReportQueuesRequest) -> Option<u64> {
+        let mut g = self.lock();
+        let job = g.get_mut(&r.job_id)?;
+        if job.entry.is_terminal()
+            || r.attempt != job.sched.attempt()
+            || !job.sched.has_worker(&r.worker_id)
+        {
+            return None;
+        }
+        job.sched.record_queues(r);
+        // Rays queued at the job's workers, as of each one's latest report: what
+        // JobProgress.rays_in_flight shows (rays on the wire are not counted).
+        job.entry.set_rays_in_flight(job.sched.rays_queued());
+        Some(job.sched.version())
+    }
+
+    /// A copy of `job`'s scheduling state (for tests and introspection).
+    pub fn schedule(&self, job: &str) -> Option<JobSchedule> {
+        self.lock().get(job).map(|j| j.sched.clone())
     }
 
     /// The current routing table of `job`.
     pub fn routing(&self, job: &str) -> Option<RoutingTable> {
-        self.lock().get(job).map(|j| j.routing.clone())
+        self.lock().get(job).map(|j| j.sched.table())
+    }
+
+    /// Whether `worker` is one of the workers of running job `job`.
+    pub fn has_worker(&self, job: &str, worker: &str) -> bool {
+        self.lock()
+            .get(job)
+            .is_some_and(|j| j.sched.has_worker(worker))
     }
 
     /// Whether `job` is running on workers.

@@ -7,16 +7,21 @@
 //! one BVH, or a [`dray_core::trace::DomainSet`] when `domains > 1`), one job at a time;
 //! the image is the same, bit for bit, as `dray render` with the same settings. Once at
 //! least one worker is registered, a job runs on the workers: the coordinator writes (or
-//! reuses) a scene package, deals domains and tiles, counts credit and sums the pixels
-//! the workers send back (see [`dispatch`] for exactly what a worker receives).
+//! reuses) a scene package, places domains and tiles by the job's schedule (image-plane,
+//! domain or dynamic), moves domains towards the rays that wait for them, counts credit
+//! and sums the pixels the workers send back, and traces again the tiles a lost worker
+//! took with it (see [`dispatch`] for exactly what a worker receives).
 //!
 //! - [`validate`]: checks a [`JobSpec`](dray_proto::v1::JobSpec) against the limits and
 //!   the scene root; every rejection is `INVALID_ARGUMENT` naming the field.
 //! - [`jobs`]: the job table, the in-process render task, cancellation, image encoding.
 //! - [`membership`]: registered workers, heartbeats, per-worker command outboxes.
 //! - [`dispatch`]: a job's package, JobSetup and tiles, queued for its workers.
-//! - [`routing`]: domain ownership behind the [`routing::Router`] trait (round robin).
-//! - [`ledger`]: credit per tile, the exact fixed-point film, releases.
+//! - [`scheduler`]: the event loop over queue reports, joins and losses, the schedules
+//!   as pure policies, versioned routing tables.
+//! - [`ledger`]: credit per tile, the exact fixed-point film, attempts (restarting a
+//!   job's unfinished tiles without a lost worker), releases.
+//! - [`metrics`]: the workers' scheduling counters summed into JobStats.
 //! - [`cluster`]: the tonic `ClusterService` over the above.
 //! - [`service`]: the tonic `RenderService` and [`serve`].
 
@@ -25,8 +30,9 @@ pub mod dispatch;
 pub mod jobs;
 pub mod ledger;
 pub mod membership;
+pub mod metrics;
 pub mod owned_package;
-pub mod routing;
+pub mod scheduler;
 pub mod service;
 pub mod validate;
 

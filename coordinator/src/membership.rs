@@ -9,7 +9,8 @@
 //! delivered when the stream (re)opens instead of being lost.
 //!
 //! Liveness is by heartbeat: a worker not heard from for `heartbeat_timeout` is dropped
-//! by [`Membership::expire`]; what happens to its jobs is the ledger's business.
+//! by [`Membership::expire`]; what happens to its jobs is the scheduler's business (the
+//! reaper posts a `WorkerLost` event, see [`crate::scheduler`]).
 
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -42,8 +43,9 @@ pub struct HeartbeatConfig {
 impl Default for HeartbeatConfig {
     /// One beat a second; twenty missed beats declare the worker lost. Long enough that a
     /// worker on an overloaded machine (its tracing threads compete with the task that
-    /// beats) is not dropped mid-job, which fails the job; short enough that a job does
-    /// not hang for long on a dead machine.
+    /// beats) is not dropped mid-job, which costs the job a new attempt (its unfinished
+    /// tiles traced again); short enough that a job does not hang for long on a dead
+    /// machine.
     fn default() -> HeartbeatConfig {
         HeartbeatConfig {
             interval: Duration::from_secs(1),
@@ -150,6 +152,18 @@ pub struct WorkerRecord {
     pub outbox: Arc<Outbox>,
 }
 
+impl std::fmt::Debug for WorkerRecord {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("WorkerRecord")
+            .field("id", &self.id)
+            .field("endpoint", &self.endpoint)
+            .field("threads", &self.threads)
+            .field("memory_budget_bytes", &self.memory_budget_bytes)
+            .field("hostname", &self.hostname)
+            .finish_non_exhaustive()
+    }
+}
+
 impl WorkerRecord {
     /// Its id and endpoint, as routing tables list them.
     pub fn endpoint(&self) -> WorkerEndpoint {
@@ -169,6 +183,9 @@ pub struct LostWorker {
     pub endpoint: String,
     /// How long it had been silent.
     pub silent_for: Duration,
+    /// Why it was declared lost, for messages: "no heartbeat for 2.1 s", or a peer that
+    /// could not reach it.
+    pub cause: String,
 }
 
 /// The registered workers.
@@ -321,9 +338,27 @@ impl Membership {
                     id: w.id,
                     endpoint: w.endpoint,
                     silent_for,
+                    cause: format!("no heartbeat for {:.1} s", silent_for.as_secs_f64()),
                 }
             })
             .collect()
+    }
+
+    /// Drop worker `id` because a peer could not send it rays (`by` names that peer):
+    /// a worker its peers cannot reach cannot take part in a job, whatever its
+    /// heartbeats say. If it is alive it is told to register again at its next
+    /// heartbeat, and joins as a new worker.
+    pub fn drop_unreachable(&self, id: &str, by: &str, now: Instant) -> Option<LostWorker> {
+        let w = self.lock().remove(id)?;
+        w.outbox.close();
+        let silent_for = now.saturating_duration_since(w.last_seen);
+        tracing::warn!(worker = %w.id, endpoint = %w.endpoint, peer = %by, "worker lost: a peer cannot reach it");
+        Some(LostWorker {
+            id: w.id,
+            endpoint: w.endpoint,
+            silent_for,
+            cause: format!("worker {by} could not send it rays"),
+        })
     }
 
     /// End every worker's stream (server shutdown), so a graceful shutdown does not wait
@@ -347,6 +382,7 @@ mod tests {
             command: Some(Command::Finish(JobRelease {
                 job_id: id.into(),
                 reason: String::new(),
+                attempt: 0,
             })),
         }
     }

@@ -21,6 +21,7 @@ use tonic::{Request, Response, Status};
 use crate::cluster::{Cluster, ClusterApi, ClusterOptions};
 use crate::dispatch;
 use crate::jobs::{JobEntry, JobTable, encode_exr, encode_png};
+use crate::scheduler::SchedulerEvent;
 use crate::validate::{Limits, prepare, validate};
 
 /// Default least time between two WatchJob messages.
@@ -122,7 +123,7 @@ impl Coordinator {
                 }
             }
             let layout = dispatch::layout_spec(&spec.layout, spec.domains);
-            let planned = dispatch::plan(prepared, spec.clone(), layout);
+            let planned = dispatch::plan(prepared, spec.clone(), layout, v.schedule);
             let entry = self.table.insert(spec);
             dispatch::spawn(self.cluster.clone(), entry.clone(), planned);
             entry
@@ -250,7 +251,11 @@ impl RenderService for Coordinator {
         let job = self.job(&r.get_ref().job_id)?;
         // Mark it first: a dispatch racing with this sees the state and does not start.
         job.cancel();
-        self.cluster.ledger.cancel(&job.id);
+        if self.cluster.ledger.cancel(&job.id) {
+            self.cluster.scheduler.post(SchedulerEvent::JobEnded {
+                job_id: job.id.clone(),
+            });
+        }
         Ok(Response::new(CancelJobResponse {
             job: Some(job.to_job()),
         }))
@@ -308,8 +313,8 @@ impl RenderService for Coordinator {
     }
 }
 
-/// Aborts a task when dropped, so the heartbeat reaper stops with the server however
-/// `serve` ends (returned, failed, or its future dropped).
+/// Aborts a task when dropped, so the heartbeat reaper and the scheduler stop with the
+/// server however `serve` ends (returned, failed, or its future dropped).
 struct AbortOnDrop(tokio::task::JoinHandle<()>);
 
 impl Drop for AbortOnDrop {
@@ -337,6 +342,7 @@ pub async fn serve(
     let cluster = coordinator.cluster.clone();
     let work_dir = cluster.options.work_dir.clone();
     let _reaper = AbortOnDrop(tokio::spawn(cluster.clone().reaper()));
+    let _scheduler = AbortOnDrop(tokio::spawn(cluster.scheduler.run()));
     let shutdown = async move {
         shutdown.await;
         cluster.membership.close_all();

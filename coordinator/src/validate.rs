@@ -18,6 +18,8 @@ use dray_scene::partition::open_package;
 use glam::Vec3;
 use tonic::Status;
 
+use crate::scheduler::Schedule;
+
 /// Limits a job must respect. The defaults are those of `dray render`.
 #[derive(Clone, Debug)]
 pub struct Limits {
@@ -76,6 +78,9 @@ pub struct Validated {
     /// The spec left `domains` at 0: in process that means one BVH (`spec.domains` is
     /// 1); on workers the coordinator chooses the count.
     pub domains_auto: bool,
+    /// The schedule on workers (`spec.schedule` holds its name; the in-process path
+    /// ignores it).
+    pub schedule: Schedule,
 }
 
 fn bad(msg: String) -> Status {
@@ -165,6 +170,9 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
             spec.layout
         )));
     }
+    let schedule =
+        Schedule::parse(&spec.schedule, spec.replicate).map_err(|e| bad(e.to_string()))?;
+    spec.schedule = schedule.name().to_string();
     if spec.label.len() > limits.max_label {
         return Err(bad(format!(
             "label: {} bytes is longer than {}",
@@ -188,6 +196,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         env,
         translate,
         domains_auto,
+        schedule,
     })
 }
 
@@ -398,6 +407,8 @@ mod tests {
         assert_eq!(v.spec.max_depth, Some(5));
         assert_eq!(v.spec.layout, "kd");
         assert_eq!(v.spec.domains, 1);
+        assert_eq!(v.spec.schedule, "dynamic");
+        assert_eq!(v.schedule, Schedule::Dynamic { replicate: false });
         let field = |s: JobSpec| validate(&s, &l, &root).unwrap_err().message().to_string();
         assert!(field(JobSpec { width: 0, ..spec() }).starts_with("width:"));
         assert!(
@@ -428,5 +439,38 @@ mod tests {
             ..spec()
         };
         assert!(field(unknown).starts_with("scene:"));
+        let sched = JobSpec {
+            schedule: "round-robin".into(),
+            ..spec()
+        };
+        let msg = field(sched);
+        assert!(
+            msg.starts_with("schedule:") && msg.contains("image-plane, domain or dynamic"),
+            "{msg}"
+        );
+        let rep = JobSpec {
+            schedule: "image-plane".into(),
+            replicate: true,
+            ..spec()
+        };
+        assert!(field(rep).starts_with("replicate:"));
+        for (name, want) in [
+            ("image-plane", Schedule::ImagePlane),
+            ("domain", Schedule::Domain),
+            ("dynamic", Schedule::Dynamic { replicate: false }),
+        ] {
+            let s = JobSpec {
+                schedule: name.into(),
+                ..spec()
+            };
+            let v = validate(&s, &l, &root).unwrap();
+            assert_eq!((v.schedule, v.spec.schedule.as_str()), (want, name));
+        }
+        let s = JobSpec {
+            replicate: true,
+            ..spec()
+        };
+        let v = validate(&s, &l, &root).unwrap();
+        assert_eq!(v.schedule, Schedule::Dynamic { replicate: true });
     }
 }

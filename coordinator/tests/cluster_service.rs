@@ -2,261 +2,28 @@
 //! the worker through the generated tonic client: registration (and its refusals),
 //! heartbeats, the assignment stream (JobSetup, tiles, releases), contribution reports
 //! with credit and fixed-point pixel sums (dedupe by sequence, failures, over-returned
-//! credit), cancellation, and a worker lost to silence.
+//! credit), the workers' counters in JobStats, cancellation, and the last worker of a job
+//! lost to silence.
+
+mod support;
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use dray_coordinator::Coordinator;
-use dray_coordinator::cluster::ClusterOptions;
 use dray_coordinator::dispatch::{TILE_CREDIT, package_checksum};
 use dray_coordinator::membership::{HeartbeatConfig, VERSION};
 use dray_proto::v1::assignment::Command;
 use dray_proto::v1::cluster_service_client::ClusterServiceClient;
 use dray_proto::v1::render_service_client::RenderServiceClient;
 use dray_proto::v1::{
-    Assignment, CancelJobRequest, GetImageRequest, GetJobRequest, GetRoutingTableRequest,
-    HeartbeatRequest, ImageFormat, Job, JobSetup, JobSpec, JobState, RayCounts,
-    RegisterWorkerRequest, ReportContributionsRequest, ReportQueuesRequest, SubmitJobRequest, Tile,
-    TileCredit, WatchAssignmentsRequest,
+    CancelJobRequest, GetImageRequest, GetRoutingTableRequest, HeartbeatRequest, ImageFormat,
+    JobSpec, JobState, RayCounts, RegisterWorkerRequest, ReportContributionsRequest,
+    SubmitJobRequest, TileCredit, WatchAssignmentsRequest, WorkerCounters,
 };
 use tonic::Code;
-use tonic::codec::Streaming;
-use tonic::transport::Channel;
 
-/// Longest wait for anything the coordinator should do promptly; only reached when a
-/// test fails.
-const PATIENCE: Duration = Duration::from_secs(20);
-
-/// A coordinator on a free port; stopped (and its work directory removed) when dropped,
-/// even if the test panics.
-struct Server {
-    addr: std::net::SocketAddr,
-    work_dir: PathBuf,
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    task: tokio::task::JoinHandle<()>,
-}
-
-impl Server {
-    async fn start(name: &str, heartbeat: HeartbeatConfig) -> Server {
-        Server::start_in(name, heartbeat, &std::env::temp_dir()).await
-    }
-
-    async fn start_in(name: &str, heartbeat: HeartbeatConfig, root: &Path) -> Server {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let addr = listener.local_addr().unwrap();
-        let work_dir =
-            std::env::temp_dir().join(format!("dray-cluster-test-{}-{name}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&work_dir);
-        let coordinator = Coordinator::new(root, 1)
-            .unwrap()
-            .with_cluster_options(ClusterOptions {
-                heartbeat,
-                work_dir: work_dir.clone(),
-                memory_packages: None,
-            });
-        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-        let task = tokio::spawn(async move {
-            dray_coordinator::serve(listener, coordinator, async {
-                rx.await.ok();
-            })
-            .await
-            .unwrap();
-        });
-        Server {
-            addr,
-            work_dir,
-            stop: Some(tx),
-            task,
-        }
-    }
-
-    async fn channel(&self) -> Channel {
-        tonic::transport::Endpoint::from_shared(format!("http://{}", self.addr))
-            .unwrap()
-            .connect()
-            .await
-            .unwrap()
-    }
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        if let Some(tx) = self.stop.take() {
-            let _ = tx.send(());
-        }
-        self.task.abort();
-        let _ = std::fs::remove_dir_all(&self.work_dir);
-    }
-}
-
-fn slow_heartbeat() -> HeartbeatConfig {
-    HeartbeatConfig {
-        interval: Duration::from_secs(1),
-        timeout: Duration::from_secs(60),
-    }
-}
-
-fn register_request(endpoint: &str) -> RegisterWorkerRequest {
-    RegisterWorkerRequest {
-        endpoint: endpoint.into(),
-        threads: 2,
-        memory_budget_bytes: 0,
-        version: VERSION.into(),
-        record_format: dray_proto::RAY_RECORD_FORMAT,
-        hostname: "test".into(),
-    }
-}
-
-/// A test playing one worker.
-struct FakeWorker {
-    id: String,
-    client: ClusterServiceClient<Channel>,
-    stream: Streaming<Assignment>,
-}
-
-impl FakeWorker {
-    async fn join(channel: Channel, endpoint: &str) -> FakeWorker {
-        let mut client = ClusterServiceClient::new(channel);
-        let r = client
-            .register_worker(register_request(endpoint))
-            .await
-            .unwrap()
-            .into_inner();
-        assert!(!r.worker_id.is_empty());
-        assert!(r.heartbeat_interval.is_some() && r.heartbeat_timeout.is_some());
-        let stream = client
-            .watch_assignments(WatchAssignmentsRequest {
-                worker_id: r.worker_id.clone(),
-            })
-            .await
-            .unwrap()
-            .into_inner();
-        FakeWorker {
-            id: r.worker_id,
-            client,
-            stream,
-        }
-    }
-
-    async fn next(&mut self) -> Command {
-        tokio::time::timeout(PATIENCE, self.stream.message())
-            .await
-            .expect("no assignment in time")
-            .expect("assignment stream failed")
-            .expect("assignment stream ended")
-            .command
-            .expect("assignment without a command")
-    }
-
-    /// The JobSetup, then tiles until `tiles_total` are accounted for.
-    async fn setup_and_tiles(&mut self, expect_tiles: usize) -> (JobSetup, Vec<Tile>) {
-        let setup = match self.next().await {
-            Command::Setup(s) => s,
-            other => panic!("expected a JobSetup first, got {other:?}"),
-        };
-        let mut tiles = Vec::new();
-        while tiles.len() < expect_tiles {
-            match self.next().await {
-                Command::Tiles(t) => {
-                    assert_eq!(t.job_id, setup.job_id);
-                    tiles.extend(t.tiles);
-                }
-                other => panic!("expected tiles, got {other:?}"),
-            }
-        }
-        (setup, tiles)
-    }
-
-    async fn report(&mut self, r: ReportContributionsRequest) -> Result<bool, tonic::Status> {
-        self.client
-            .report_contributions(ReportContributionsRequest {
-                worker_id: self.id.clone(),
-                ..r
-            })
-            .await
-            .map(|r| r.into_inner().job_active)
-    }
-}
-
-fn spec(width: u32, height: u32, domains: u32) -> JobSpec {
-    JobSpec {
-        scene: "cornell".into(),
-        width,
-        height,
-        spp: 1,
-        domains,
-        ..Default::default()
-    }
-}
-
-async fn submit(channel: &Channel, spec: JobSpec) -> String {
-    RenderServiceClient::new(channel.clone())
-        .submit_job(SubmitJobRequest { spec: Some(spec) })
-        .await
-        .unwrap()
-        .into_inner()
-        .job_id
-}
-
-async fn get_job(channel: &Channel, id: &str) -> Job {
-    RenderServiceClient::new(channel.clone())
-        .get_job(GetJobRequest { job_id: id.into() })
-        .await
-        .unwrap()
-        .into_inner()
-        .job
-        .unwrap()
-}
-
-/// Poll GetJob until the job is in `state` (the ledger updates synchronously with each
-/// report, so this returns at once unless something is wrong).
-async fn wait_state(channel: &Channel, id: &str, state: JobState) -> Job {
-    let deadline = tokio::time::Instant::now() + PATIENCE;
-    loop {
-        let job = get_job(channel, id).await;
-        let p = job.progress.clone().unwrap();
-        if p.state() == state {
-            return job;
-        }
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "job {id} is {:?} ({}), expected {state:?}",
-            p.state(),
-            p.error
-        );
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
-}
-
-fn fixed(v: f64) -> i64 {
-    (v * (1u64 << 24) as f64) as i64
-}
-
-/// Read an EXR file's RGB as (width, pixels).
-fn read_exr(bytes: &[u8]) -> (usize, Vec<[f32; 3]>) {
-    use exr::prelude::*;
-    let image = read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .rgb_channels(
-            |res, _| (res.width(), vec![[0f32; 3]; res.width() * res.height()]),
-            |(w, px), pos, (r, g, b): (f32, f32, f32)| px[pos.y() * *w + pos.x()] = [r, g, b],
-        )
-        .first_valid_layer()
-        .all_attributes()
-        .from_buffered(std::io::Cursor::new(bytes))
-        .unwrap();
-    image.layer_data.channel_data.pixels
-}
-
-fn assert_dir_gone(dir: &Path) {
-    assert!(
-        !dir.exists(),
-        "the job's package {} was not removed",
-        dir.display()
-    );
-}
+use support::*;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_job_runs_on_a_registered_worker_and_returns_its_sums() {
@@ -297,8 +64,13 @@ async fn a_job_runs_on_a_registered_worker_and_returns_its_sums() {
     let opened = dray_scene::partition::open_package(&pkg).unwrap();
     assert_eq!(opened.domain_count(), 3);
     // Routing: version 1, every domain to the only worker.
+    assert_eq!((setup.attempt, setup.schedule.as_str()), (0, "dynamic"));
+    assert_eq!(s.schedule, "dynamic", "the resolved schedule");
     let routing = setup.routing.clone().unwrap();
-    assert_eq!(routing.version, 1);
+    assert_eq!(
+        (routing.version, routing.attempt, routing.local),
+        (1, 0, false)
+    );
     assert_eq!(routing.workers.len(), 1);
     assert_eq!(routing.workers[0].worker_id, w.id);
     assert_eq!(routing.workers[0].endpoint, "http://127.0.0.1:7001");
@@ -328,34 +100,15 @@ async fn a_job_runs_on_a_registered_worker_and_returns_its_sums() {
 
     // Queue reports are stored and answered with the routing version.
     let v = w
-        .client
-        .report_queues(ReportQueuesRequest {
-            worker_id: w.id.clone(),
-            job_id: id.clone(),
-            routing_version: 1,
-            queues: vec![
-                dray_proto::v1::DomainQueue {
-                    domain: 0,
-                    rays_queued: 40,
-                    resident: true,
-                    resident_bytes: 1000,
-                },
-                dray_proto::v1::DomainQueue {
-                    domain: 2,
-                    rays_queued: 2,
-                    resident: true,
-                    resident_bytes: 1000,
-                },
-            ],
-            memory_used_bytes: 1,
-        })
-        .await
-        .unwrap()
-        .into_inner()
-        .routing_version;
+        .report_queues(&id, 0, 1, &[(0, 40, true, 1000), (2, 2, true, 1000)])
+        .await;
     assert_eq!(v, 1);
     let p = get_job(&channel, &id).await.progress.unwrap();
     assert_eq!(p.rays_in_flight, 42, "rays queued at the workers");
+    // A report for an attempt the job is not at is answered 0 and not stored.
+    assert_eq!(w.report_queues(&id, 1, 1, &[(1, 1000, false, 1)]).await, 0);
+    let p = get_job(&channel, &id).await.progress.unwrap();
+    assert_eq!(p.rays_in_flight, 42);
 
     // Report 1: two pixel sums (one pixel twice) and half of every tile's credit.
     let half = TILE_CREDIT / 2;
@@ -387,6 +140,15 @@ async fn a_job_runs_on_a_registered_worker_and_returns_its_sums() {
         }),
         nonfinite: 1,
         ray_bytes_sent: 640,
+        counters: Some(WorkerCounters {
+            domain_loads: 2,
+            domain_load_seconds: 0.5,
+            evictions: 1,
+            rays_sent: 30,
+            rays_forwarded: 4,
+            idle_seconds: 0.25,
+            queue_peak: 40,
+        }),
         ..Default::default()
     };
     assert!(w.report(first.clone()).await.unwrap());
@@ -424,6 +186,33 @@ async fn a_job_runs_on_a_registered_worker_and_returns_its_sums() {
         w.report(outside).await.unwrap_err().code(),
         Code::InvalidArgument
     );
+    let nan = ReportContributionsRequest {
+        job_id: id.clone(),
+        sequence: 2,
+        counters: Some(WorkerCounters {
+            idle_seconds: f64::NAN,
+            ..Default::default()
+        }),
+        ..Default::default()
+    };
+    let e = w.report(nan).await.unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(
+        e.message().starts_with("counters.idle_seconds:"),
+        "{}",
+        e.message()
+    );
+    let ahead = ReportContributionsRequest {
+        job_id: id.clone(),
+        sequence: 2,
+        attempt: 1,
+        ..Default::default()
+    };
+    assert_eq!(
+        w.report(ahead).await.unwrap_err().code(),
+        Code::InvalidArgument,
+        "an attempt the coordinator never started"
+    );
 
     // Report 3 arrives before report 2 (out of order is fine): tiles 0..3 complete.
     let third = ReportContributionsRequest {
@@ -439,6 +228,14 @@ async fn a_job_runs_on_a_registered_worker_and_returns_its_sums() {
             .collect(),
         traced: Some(RayCounts {
             diffuse: 5,
+            ..Default::default()
+        }),
+        counters: Some(WorkerCounters {
+            domain_loads: 1,
+            domain_load_seconds: 0.25,
+            rays_sent: 3,
+            idle_seconds: 0.5,
+            queue_peak: 12,
             ..Default::default()
         }),
         ..Default::default()
@@ -474,6 +271,21 @@ async fn a_job_runs_on_a_registered_worker_and_returns_its_sums() {
             ..Default::default()
         }
     );
+    // The workers' counters: deltas summed, the queue peak the largest.
+    assert_eq!(
+        (stats.domain_loads, stats.evictions, stats.queue_peak),
+        (3, 1, 40)
+    );
+    assert_eq!((stats.rays_exchanged, stats.rays_forwarded), (33, 4));
+    assert_eq!(stats.domain_load_seconds, 0.75);
+    assert_eq!(stats.schedule, "dynamic");
+    assert_eq!((stats.routing_version, stats.tiles_retried), (1, 0));
+    assert!(stats.scheduler_rounds >= 1, "the queue report made a round");
+    assert_eq!(stats.workers_detail.len(), 1);
+    let d = &stats.workers_detail[0];
+    assert_eq!(d.worker_id, w.id);
+    assert_eq!((d.domain_loads, d.queue_peak, d.rays_traced), (3, 40, 22));
+    assert_eq!((d.idle_seconds, d.evictions), (0.75, 1));
     match w.next().await {
         Command::Finish(r) => assert_eq!(r.job_id, id),
         other => panic!("expected a finish release, got {other:?}"),
@@ -732,7 +544,7 @@ async fn registration_refuses_mismatches_and_heartbeats_ask_strangers_to_reregis
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_silent_worker_is_dropped_and_its_jobs_fail_naming_it() {
+async fn a_job_whose_only_worker_goes_silent_fails_naming_it() {
     let server = Server::start(
         "lost",
         HeartbeatConfig {
@@ -745,11 +557,14 @@ async fn a_silent_worker_is_dropped_and_its_jobs_fail_naming_it() {
     let mut w = FakeWorker::join(channel.clone(), "http://127.0.0.1:7009").await;
     let id = submit(&channel, spec(32, 32, 1)).await;
     w.setup_and_tiles(1).await;
-    // The worker never heartbeats: within ~1.25 timeouts it is dropped.
+    // The worker never heartbeats: within ~1.25 timeouts it is dropped, and with no
+    // worker left to trace its tiles again, the job fails.
     let job = wait_state(&channel, &id, JobState::Failed).await;
     let err = job.progress.unwrap().error;
     assert!(
-        err.contains(&w.id) && err.contains("http://127.0.0.1:7009"),
+        err.contains(&w.id)
+            && err.contains("http://127.0.0.1:7009")
+            && err.contains("no worker is left"),
         "{err}"
     );
     let r = w

@@ -21,6 +21,7 @@ pub mod film;
 pub mod integrator;
 pub mod intersect;
 pub mod light_sampler;
+pub mod ray;
 pub mod render;
 pub mod sampling;
 pub mod surface;

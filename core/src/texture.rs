@@ -44,7 +44,9 @@ pub struct Texture {
     pub width: u32,
     pub height: u32,
     /// Row-major RGBA8, `width * height` entries, first row at v = 0 (glTF convention).
-    pub texels: Vec<[u8; 4]>,
+    /// Shared, because every resident domain of a worker carries the scene's textures:
+    /// a copy is a pointer, not the image.
+    pub texels: std::sync::Arc<[[u8; 4]]>,
     pub sampler: Sampler,
 }
 
@@ -144,7 +146,8 @@ mod tests {
                 [0, 255, 0, 255],
                 [0, 0, 255, 255],
                 [255, 255, 255, 0],
-            ],
+            ]
+            .into(),
             sampler: Sampler {
                 filter: Filter::Nearest,
                 ..Sampler::default()

@@ -7,14 +7,19 @@
 //! - [`FILE_DESCRIPTOR_SET`]: the encoded descriptors (with comments), for gRPC server
 //!   reflection: `tonic_reflection::server::Builder::configure()
 //!   .register_encoded_file_descriptor_set(dray_proto::FILE_DESCRIPTOR_SET)`.
-//! - [`ray_record`]: the packed 64-byte ray record that `RayBatch.records` carries.
+//! - [`RAY_RECORD_BYTES`], [`RAY_RECORD_FORMAT`]: the ray record's size and format
+//!   number; the record itself is an engine type (`dray_core::ray`), not part of this
+//!   crate, which needs no engine.
 
-pub mod ray_record;
 pub mod reflection;
 
-pub use ray_record::{
-    RAY_RECORD_BYTES, RAY_RECORD_FORMAT, RayRecord, RecordError, decode_rays, encode_rays,
-};
+/// Bytes per ray in `RayBatch.records` (the layout is in rays.proto; `dray_core::ray`
+/// encodes and decodes it).
+pub const RAY_RECORD_BYTES: usize = 64;
+
+/// The ray record format of this protocol version (`RayStreamOpen.record_format`,
+/// `RegisterWorkerRequest.record_format`).
+pub const RAY_RECORD_FORMAT: u32 = 1;
 
 /// Generated protobuf code, in its package's module path.
 pub mod dray {

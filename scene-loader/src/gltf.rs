@@ -420,7 +420,7 @@ struct DecodedPrimitive {
 struct DecodedImage {
     width: u32,
     height: u32,
-    texels: Vec<[u8; 4]>,
+    texels: std::sync::Arc<[[u8; 4]]>,
 }
 
 /// Everything the node walk found.

@@ -513,7 +513,7 @@ fn check_textured(scene: &Scene) {
     assert_eq!(scene.textures.len(), 2);
     let t = &scene.textures[0];
     assert_eq!((t.width, t.height), (2, 1));
-    assert_eq!(t.texels, vec![[255, 0, 0, 255], [0, 0, 255, 128]]);
+    assert_eq!(*t.texels, [[255, 0, 0, 255], [0, 0, 255, 128]]);
     assert_eq!(t.sampler.filter, Filter::Nearest);
     assert_eq!(t.sampler.wrap_s, Wrap::ClampToEdge);
     assert_eq!(t.sampler.wrap_t, Wrap::MirroredRepeat);

@@ -403,7 +403,7 @@ fn obj_with_mtl_and_texture() {
     let tex = textured.base_color_tex.expect("map_Kd becomes a texture");
     let t = &scene.textures[tex.texture as usize];
     assert_eq!((t.width, t.height), (2, 1));
-    assert_eq!(t.texels, vec![[255, 0, 0, 255], [0, 0, 255, 128]]);
+    assert_eq!(*t.texels, [[255, 0, 0, 255], [0, 0, 255, 128]]);
     assert_eq!(textured.base_color, Vec4::ONE);
 
     // Quad triangulated as a fan, uvs flipped in v, normals kept.

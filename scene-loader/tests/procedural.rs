@@ -57,12 +57,14 @@ fn assert_closed(spec: &str, scene: &Scene) {
     assert_eq!(scene.stats.degenerate_triangles, 0, "{spec}");
 }
 
-const SPECS: [&str; 17] = [
+const SPECS: [&str; 19] = [
     "cornell",
     "cornell:mirror",
     "cornell:glass",
     "spheres",
     "spheres:10",
+    "spheres:12:mirror",
+    "grid:spheres:3:mirror:2x1x2",
     "soup",
     "soup:1000",
     "city",
@@ -126,6 +128,16 @@ fn triangle_counts_scale() {
     assert_eq!(count("cornell"), 32);
     assert_eq!(count("spheres:1"), 320 + 2);
     assert_eq!(count("spheres:50"), 50 * 320 + 2);
+    assert_eq!(count("spheres:50:mirror"), 50 * 320 + 2);
+    let mirrors = load("spheres:6:mirror").unwrap();
+    assert!(
+        mirrors.materials.iter().any(|m| m.has_specular()),
+        "spheres:N:mirror has mirrors"
+    );
+    assert!(
+        load("spheres:6:chrome").is_err(),
+        "an unknown variant is an error"
+    );
     let soup = load("soup:1000").unwrap();
     let kept = soup.mesh.triangle_count() as u64;
     assert_eq!(kept + soup.stats.degenerate_triangles, 1000);

@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use dray_core::integrator::RayKind;
-use dray_proto::RayRecord;
+use dray_core::ray::RayRecord;
 use dray_proto::v1::{RayBatch, RayStreamRequest, ray_stream_request};
 use dray_worker::{
     BatchKey, PeerClientConfig, PeerSender, PeerServer, PeerServerConfig, RayQueues,
@@ -53,7 +53,7 @@ fn ray_stream(c: &mut Criterion) {
         .enable_all()
         .build()
         .expect("runtime");
-    let queues = Arc::new(RayQueues::new([0], 4 * WINDOW as usize));
+    let queues = Arc::new(RayQueues::new(4 * WINDOW as usize));
     let drained = Arc::new(AtomicU64::new(0));
     let (mut sender, server, drainer) = rt.block_on(async {
         let listener = TcpListener::bind("127.0.0.1:0").await.expect("bind");
@@ -63,7 +63,6 @@ fn ray_stream(c: &mut Criterion) {
             PeerServerConfig {
                 worker_id: "bench".into(),
                 stream_window: WINDOW,
-                ..PeerServerConfig::default()
             },
         )
         .into_service();
@@ -111,6 +110,8 @@ fn ray_stream(c: &mut Criterion) {
         job_id: "bench-job".into(),
         domain: 0,
         routing_version: 1,
+        attempt: 0,
+        forwards: 0,
     };
 
     let mut group = c.benchmark_group("ray_stream");
@@ -138,7 +139,7 @@ fn ray_stream(c: &mut Criterion) {
     // Bytes per ray on the wire: the records plus the protobuf header of a full batch
     // and gRPC's 5-byte message prefix (HTTP/2 frame headers not counted).
     let mut records = Vec::new();
-    dray_proto::encode_rays(&input[..BATCH_RAYS], &mut records);
+    dray_core::ray::encode_rays(&input[..BATCH_RAYS], &mut records);
     let message = RayStreamRequest {
         msg: Some(ray_stream_request::Msg::Batch(RayBatch {
             job_id: key.job_id.clone(),
@@ -149,6 +150,7 @@ fn ray_stream(c: &mut Criterion) {
             records,
             tickets: Vec::new(),
             forwards: 0,
+            attempt: 0,
         })),
     };
     let wire = message.encoded_len() + 5;
@@ -157,7 +159,7 @@ fn ray_stream(c: &mut Criterion) {
          on the wire ({} header), {:.4} bytes per ray",
         sender.rays_sent(),
         drained.load(Ordering::Relaxed),
-        wire - BATCH_RAYS * dray_proto::RAY_RECORD_BYTES,
+        wire - BATCH_RAYS * dray_core::ray::RAY_RECORD_BYTES,
         wire as f64 / BATCH_RAYS as f64,
     );
     drop(sender);

@@ -1,23 +1,29 @@
-//! Turning the coordinator's `JobSetup` into a [`JobTracer`]: open the package, check it
-//! is the one the coordinator partitioned, load the owned domains and the emitters, and
-//! rebuild the render settings from the resolved spec.
+//! Turning the coordinator's `JobSetup` into a [`JobPlan`]: open the package, check it
+//! is the one the coordinator partitioned, read what every domain shares (the emitters,
+//! materials and textures), rebuild the render settings from the resolved spec, and say
+//! how to load each domain on demand ([`DomainSource`]).
 //!
 //! The coordinator resolves every default before it sends the setup, so this file only
 //! reads fields; any disagreement (another manifest, an unknown integrator or effect) is
 //! an error that fails the job rather than a different image.
 
 use std::path::Path;
+use std::sync::Arc;
 
 use dray_core::camera::Camera;
 use dray_core::effects::{Effect, Effects};
 use dray_core::integrator::{IntegratorKind, RenderSettings};
-use dray_proto::v1::{JobSetup, RoutingTable};
+use dray_core::light_sampler::LightSampler;
+use dray_core::scene::Scene;
+use dray_proto::v1::JobSetup;
 use dray_scene::partition::checksum::{checksum, to_hex};
 use dray_scene::partition::manifest::MANIFEST_FILE;
-use dray_scene::partition::memory::{MemoryPackages, is_memory_package};
-use dray_scene::partition::{Aabb, DomainLayout, ResidentScene, load_resident, open_package};
+use dray_scene::partition::memory::{MemoryPackage, MemoryPackages, is_memory_package};
+use dray_scene::partition::resident::{assemble, resident_bytes};
+use dray_scene::partition::{Aabb, DomainLayout, DomainMesh, Package, open_package};
 use glam::Vec3;
 
+use crate::domain_store::{DomainSource, LoadedDomain};
 use crate::tracer::JobTracer;
 
 /// Why a job could not be set up on this worker.
@@ -37,19 +43,6 @@ pub enum JobError {
     },
     #[error("job setup: {0}")]
     Invalid(String),
-}
-
-/// The domains `worker_id` owns in `routing`, ascending.
-pub fn owned_domains(routing: &RoutingTable, worker_id: &str) -> Vec<u32> {
-    let mut owned: Vec<u32> = routing
-        .routes
-        .iter()
-        .filter(|r| r.worker_id == worker_id)
-        .map(|r| r.domain)
-        .collect();
-    owned.sort_unstable();
-    owned.dedup();
-    owned
 }
 
 /// The render settings a setup describes.
@@ -93,19 +86,20 @@ pub fn settings(setup: &JobSetup) -> Result<RenderSettings, JobError> {
     })
 }
 
-/// Load what `worker_id` needs of the job and make its tracer: from the package
-/// directory, or from `memory` when the package is an in-memory one of this process.
-/// Blocking (reads files and builds BVHs).
-pub fn build_tracer(
-    setup: &JobSetup,
-    worker_id: &str,
-    memory: Option<&MemoryPackages>,
-) -> Result<JobTracer, JobError> {
+/// A job's tracer and where its domains come from, made from its setup. Reads the
+/// manifest (and, for a package on disk, the emitters and textures, which every domain
+/// shares) but no domain: those are loaded on demand by the domain store.
+pub struct JobPlan {
+    pub tracer: JobTracer,
+    pub source: Arc<dyn DomainSource>,
+}
+
+/// Open the job's package (a directory, or an in-memory package of this process in
+/// `memory`) and make its tracer. Blocking (reads files).
+pub fn plan_job(setup: &JobSetup, memory: Option<&MemoryPackages>) -> Result<JobPlan, JobError> {
     let settings = settings(setup)?;
-    let routing = setup.routing.as_ref().ok_or(JobError::Missing("routing"))?;
-    let owned = owned_domains(routing, worker_id);
     if is_memory_package(&setup.package_path) {
-        return memory_tracer(setup, settings, &owned, memory);
+        return memory_plan(setup, settings, memory);
     }
     let dir = Path::new(&setup.package_path);
     let pkg_err = |message: String| JobError::Package {
@@ -132,24 +126,62 @@ pub fn build_tracer(
         .iter()
         .map(|d| d.triangles)
         .collect();
-    let resident = load_resident(&package, &owned).map_err(|e| pkg_err(e.to_string()))?;
-    Ok(tracer(
-        resident,
-        settings,
-        camera,
-        package.layout(),
-        &counts,
-        setup,
-    ))
+    let tracer = tracer(settings.clone(), camera, package.layout(), &counts, setup);
+    let source = package_domains(package, &settings).map_err(|e| pkg_err(e.to_string()))?;
+    Ok(JobPlan { tracer, source })
 }
 
-/// [`build_tracer`] for a package in this process's memory.
-fn memory_tracer(
+/// The domains of `package` on disk, loaded one at a time for `settings` (the
+/// emitters and textures are read now, once).
+pub fn package_domains(
+    package: Package,
+    settings: &RenderSettings,
+) -> dray_scene::error::Result<Arc<dyn DomainSource>> {
+    let bounds = package.layout().scene_bounds();
+    let emitters = package.load_emitters()?;
+    let tables = Scene {
+        name: package.name().to_string(),
+        mesh: Default::default(),
+        materials: package.materials().to_vec(),
+        textures: package.load_textures()?,
+        lights: package.lights().to_vec(),
+        cameras: package.cameras().to_vec(),
+        environment: package.environment(),
+        stats: Default::default(),
+    };
+    Ok(Arc::new(PackageDomains {
+        sizes: package
+            .manifest()
+            .domains
+            .iter()
+            .map(|d| (d.vertices, d.triangles))
+            .collect(),
+        package,
+        shared: SharedParts::new(tables, emitters, bounds, settings),
+    }))
+}
+
+/// The domains of an in-memory `package`, copied out one at a time for `settings`.
+pub fn memory_domains(
+    package: Arc<MemoryPackage>,
+    settings: &RenderSettings,
+) -> Arc<dyn DomainSource> {
+    let b = package.layout().scene_bounds();
+    let shared = SharedParts::new(
+        package.tables().clone(),
+        package.emitters().clone(),
+        b,
+        settings,
+    );
+    Arc::new(MemoryDomains { package, shared })
+}
+
+/// [`plan_job`] for a package in this process's memory.
+fn memory_plan(
     setup: &JobSetup,
     settings: RenderSettings,
-    owned: &[u32],
     memory: Option<&MemoryPackages>,
-) -> Result<JobTracer, JobError> {
+) -> Result<JobPlan, JobError> {
     let pkg_err = |message: String| JobError::Package {
         path: setup.package_path.clone(),
         message,
@@ -171,16 +203,114 @@ fn memory_tracer(
         &package.tables().cameras,
         layout.scene_bounds(),
     )?;
-    let resident = package
-        .resident(owned)
-        .map_err(|e| pkg_err(e.to_string()))?;
     let counts = package.triangle_counts();
-    Ok(tracer(resident, settings, camera, layout, &counts, setup))
+    let tracer = tracer(settings.clone(), camera, layout, &counts, setup);
+    Ok(JobPlan {
+        tracer,
+        source: memory_domains(package, &settings),
+    })
 }
 
-/// The tracer over `resident`, walking rays with `layout` (`counts`: triangles per domain).
+/// What every domain of a job shares: the scene's tables (materials, textures, lights,
+/// cameras) and its emitters, read once per job.
+struct SharedParts {
+    tables: Scene,
+    emitters: DomainMesh,
+    bounds: (glam::Vec3, glam::Vec3),
+    emission: bool,
+}
+
+impl SharedParts {
+    fn new(tables: Scene, emitters: DomainMesh, bounds: Aabb, settings: &RenderSettings) -> Self {
+        SharedParts {
+            tables,
+            emitters,
+            bounds: (bounds.min, bounds.max),
+            emission: settings.effects.contains(Effect::Emission),
+        }
+    }
+
+    /// Domain `part` ready to trace: merged with the emitters in scene order, its BVH
+    /// built, its light table made.
+    fn finish(&self, part: DomainMesh) -> LoadedDomain {
+        let domain = part.domain;
+        let resident = assemble(
+            self.tables.clone(),
+            self.bounds,
+            vec![part],
+            self.emitters.clone(),
+        );
+        let lights = Arc::new(LightSampler::with_bounds(
+            &resident.scene,
+            self.emission,
+            resident.bounds,
+        ));
+        LoadedDomain {
+            domain,
+            bytes: resident.bytes(),
+            resident,
+            lights,
+        }
+    }
+
+    /// [`SharedParts::finish`]'s size for a domain of `vertices` and `triangles`.
+    fn estimate(&self, vertices: u64, triangles: u64) -> u64 {
+        let e = &self.emitters.mesh;
+        resident_bytes(
+            vertices + e.positions.len() as u64,
+            triangles + e.indices.len() as u64,
+            triangles,
+        )
+    }
+}
+
+/// A job's domains in a package directory.
+struct PackageDomains {
+    package: Package,
+    /// (vertices, triangles) per domain, from the manifest.
+    sizes: Vec<(u64, u64)>,
+    shared: SharedParts,
+}
+
+impl DomainSource for PackageDomains {
+    fn estimate_bytes(&self, d: u32) -> u64 {
+        let (v, t) = self.sizes.get(d as usize).copied().unwrap_or_default();
+        self.shared.estimate(v, t)
+    }
+
+    fn load(&self, d: u32) -> Result<LoadedDomain, String> {
+        let part = self.package.load_domain(d).map_err(|e| e.to_string())?;
+        Ok(self.shared.finish(part))
+    }
+}
+
+/// A job's domains in an in-memory package of this process.
+struct MemoryDomains {
+    package: Arc<MemoryPackage>,
+    shared: SharedParts,
+}
+
+impl DomainSource for MemoryDomains {
+    fn estimate_bytes(&self, d: u32) -> u64 {
+        self.package.domain_mesh(d).map_or(0, |m| {
+            self.shared
+                .estimate(m.mesh.positions.len() as u64, m.triangle_count() as u64)
+        })
+    }
+
+    fn load(&self, d: u32) -> Result<LoadedDomain, String> {
+        let part = self.package.domain_mesh(d).cloned().ok_or_else(|| {
+            format!(
+                "domain {d} is not in the package ({} domains)",
+                self.package.domain_count()
+            )
+        })?;
+        Ok(self.shared.finish(part))
+    }
+}
+
+/// The job's tracer, walking rays with `layout` (`counts`: triangles per domain).
 fn tracer(
-    resident: ResidentScene,
     settings: RenderSettings,
     camera: Camera,
     layout: &DomainLayout,
@@ -188,7 +318,6 @@ fn tracer(
     setup: &JobSetup,
 ) -> JobTracer {
     JobTracer::new(
-        resident,
         settings,
         camera,
         layout.to_domain_tree(),
@@ -236,9 +365,8 @@ fn job_camera(
 
 #[cfg(test)]
 mod tests {
-    use dray_proto::v1::{DomainRoute, JobSpec, Rgb};
+    use dray_proto::v1::{DomainRoute, JobSpec, Rgb, RoutingTable};
     use dray_scene::partition::LayoutSpec;
-    use dray_scene::partition::memory::MemoryPackage;
 
     use super::*;
 
@@ -277,19 +405,21 @@ mod tests {
         let store = MemoryPackages::default();
         let name = store.insert(MemoryPackage::new(scene, &LayoutSpec::Kd(3)).unwrap());
         let s = setup(&name, 3);
-        let t = build_tracer(&s, "w", Some(&store)).expect("loads from the store");
-        drop(t);
-        let err = build_tracer(&s, "w", None)
-            .err()
-            .expect("no store")
-            .to_string();
+        let plan = plan_job(&s, Some(&store)).expect("plans from the store");
+        let d = plan.source.load(1).expect("loads a domain");
+        assert_eq!(d.domain, 1);
+        assert_eq!(d.resident.domains.len(), 1);
+        assert!(d.bytes > 0 && d.bytes <= plan.source.estimate_bytes(1));
+        assert!(plan.source.load(3).is_err(), "no domain 3");
+        drop(plan);
+        let err = plan_job(&s, None).err().expect("no store").to_string();
         assert!(err.contains(&name) && err.contains("another"), "{err}");
-        let wrong = build_tracer(&setup(&name, 4), "w", Some(&store))
+        let wrong = plan_job(&setup(&name, 4), Some(&store))
             .err()
             .expect("domain count mismatch")
             .to_string();
         assert!(wrong.contains("3 domains"), "{wrong}");
         store.remove(&name);
-        assert!(build_tracer(&s, "w", Some(&store)).is_err());
+        assert!(plan_job(&s, Some(&store)).is_err());
     }
 }

@@ -1,31 +1,41 @@
-//! dray's worker actor. This first slice is the worker's ray intake: the peer-to-peer
-//! ray streams (`dray.v1.RayExchangeService.RayStream`) and the bounded per-domain ray
-//! queues they fill.
+//! dray's worker actor: owns spatial domains of a job's scene, traces the rays that
+//! enter them, and streams the rays that leave to the domains' owners.
 //!
-//! Why it is built this way:
-//! - [`queue`]: one bounded queue per owned domain, because the domain is the unit of
-//!   tracing and scheduling (the per-domain lengths are the worker's queue report), and
-//!   bounded because rays multiply as they bounce: an unbounded queue would turn a ray
-//!   explosion into an out-of-memory kill.
-//! - [`peer_server`]: the receiving end. It grants credit only as batches get into a
-//!   queue, so a full queue stops the sender at the other end within one window, with
-//!   no rays dropped and no memory growth; malformed input ends that stream with a status
-//!   naming the problem and never panics.
-//! - [`peer_client`]: the sending end, one per peer. Rays are packed (64 bytes each, see
-//!   `dray_proto::ray_record`) into one batch per destination domain, sent when full or
-//!   when a short delay passes, and never beyond the receiver's grant.
+//! Why it is built this way (see [`node`] for how the parts fit):
+//! - [`domain_store`]: the domain is the unit of residency, loading and scheduling;
+//!   domains load on demand and are evicted least-recently-used within a memory budget,
+//!   so a worker can serve a scene larger than its memory.
+//! - [`queue`]: bounded ray queues per (job attempt, domain): the per-domain lengths are
+//!   the worker's queue report, and bounded because rays multiply as they bounce: an
+//!   unbounded queue would turn a ray explosion into an out-of-memory kill.
+//! - [`routing`]: the job's versioned routing table, swapped while the job runs when
+//!   the scheduler moves domains; rays for domains this worker does not own are
+//!   forwarded.
+//! - [`tracer`]: the compute step, with no I/O.
+//! - [`peer_server`] / [`peer_client`]: the ray stream between workers, with credit
+//!   flow control so a full queue stalls the sender instead of growing memory.
 
+pub mod config;
+pub(crate) mod coordinator_link;
 pub mod credit;
+pub mod domain_store;
 pub mod job;
+pub mod jobs;
 pub mod node;
 pub mod peer_client;
 pub mod peer_server;
+pub(crate) mod peers;
 pub mod pixel_sums;
 pub mod queue;
+pub(crate) mod reporter;
+pub mod routing;
 pub mod tracer;
+pub(crate) mod work;
 
-pub use node::{NodeError, WorkerConfig, run};
+pub use config::{Limits, NodeError, WorkerConfig};
+pub use domain_store::{DomainSource, DomainStore, JobKey, LoadError, LoadedDomain};
+pub use node::run;
 pub use peer_client::{BatchKey, PeerClientConfig, PeerError, PeerSender};
 pub use peer_server::{PeerServer, PeerServerConfig, StreamError};
-pub use queue::{QueueError, QueuedBatch, RayQueues};
-pub use tracer::{JobTracer, Outbox, TileRef, TraceError};
+pub use queue::{QueueError, QueueKey, QueuedBatch, RayQueues};
+pub use tracer::{JobTracer, Outbox, Residency, TileRef, TraceError};

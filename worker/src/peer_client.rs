@@ -16,12 +16,12 @@
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use dray_proto::ray_record::FLAG_TICKETED;
+use dray_core::ray::FLAG_TICKETED;
+use dray_core::ray::{RAY_RECORD_BYTES, RAY_RECORD_FORMAT, RayRecord};
 use dray_proto::v1::ray_exchange_service_client::RayExchangeServiceClient;
 use dray_proto::v1::{
     RayBatch, RayStreamOpen, RayStreamRequest, RayTicket, ray_stream_request, ray_stream_response,
 };
-use dray_proto::{RAY_RECORD_BYTES, RAY_RECORD_FORMAT, RayRecord};
 use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
 use tokio::time::Instant;
@@ -67,6 +67,11 @@ pub struct BatchKey {
     pub domain: u32,
     /// Routing-table version used to pick the receiver.
     pub routing_version: u64,
+    /// The job attempt the rays belong to.
+    pub attempt: u32,
+    /// How many times these rays were forwarded before (0 for rays sent by the worker
+    /// that made them).
+    pub forwards: u32,
 }
 
 /// Why rays could not be sent.
@@ -335,7 +340,8 @@ impl PeerSender {
             count: p.count as u32,
             records: p.records,
             tickets: p.tickets,
-            forwards: 0,
+            forwards: p.key.forwards,
+            attempt: p.key.attempt,
         };
         self.send_raw(RayStreamRequest {
             msg: Some(ray_stream_request::Msg::Batch(batch)),

@@ -2,7 +2,9 @@
 //!
 //! One task per incoming stream reads batches in order, validates them (header, record
 //! framing, the credit the sender was granted, tickets), decodes the packed records and
-//! pushes them into the per-domain [`RayQueues`]. Credit follows the queues: the stream
+//! pushes them into the [`RayQueues`] of their job attempt and domain. Every domain is
+//! accepted: rays for a job whose setup is still on its way wait for it, and rays for a
+//! domain this worker does not own (any more) are forwarded by the tracing side. Credit follows the queues: the stream
 //! opens with a grant of `stream_window` rays, and each batch is acknowledged, and its
 //! rays granted again, only once it is queued. While a queue is full the push waits, no
 //! acks go out, and the sender runs out of credit. A sender therefore never has more than
@@ -15,13 +17,13 @@
 use std::pin::Pin;
 use std::sync::Arc;
 
-use dray_proto::ray_record::{FLAG_TICKETED, decode_rays_into, record_count};
+use dray_core::ray::{FLAG_TICKETED, decode_rays_into, record_count};
+use dray_core::ray::{RAY_RECORD_BYTES, RAY_RECORD_FORMAT, RecordError};
 use dray_proto::v1::ray_exchange_service_server::{RayExchangeService, RayExchangeServiceServer};
 use dray_proto::v1::{
     RayBatch, RayBatchAck, RayStreamAccept, RayStreamRequest, RayStreamResponse,
     ray_stream_request, ray_stream_response,
 };
-use dray_proto::{RAY_RECORD_BYTES, RAY_RECORD_FORMAT, RecordError};
 use tokio::sync::mpsc;
 use tokio_stream::Stream;
 use tokio_stream::wrappers::ReceiverStream;
@@ -35,15 +37,12 @@ pub const MAX_MESSAGE_BYTES: usize = 64 * 1024 * RAY_RECORD_BYTES + 64 * 1024;
 /// Settings of a worker's ray-stream server.
 #[derive(Clone, Debug)]
 pub struct PeerServerConfig {
-    /// This worker's id; a stream opened for another id is refused (a restarted process
+    /// This worker's id at start (see [`PeerServer::set_worker_id`]); a stream opened for another id is refused (a restarted process
     /// on a reused port must not take rays meant for its predecessor). Empty: accept any.
     pub worker_id: String,
     /// Rays a sender may have in flight on one stream (queued-but-unacknowledged plus on
     /// the wire). Clamped to the queue capacity, so one batch always fits a queue.
     pub stream_window: u64,
-    /// Queue rays for domains that have no queue yet (their job's setup may still be on
-    /// its way here) instead of refusing the stream.
-    pub accept_unknown_domains: bool,
 }
 
 impl Default for PeerServerConfig {
@@ -51,7 +50,6 @@ impl Default for PeerServerConfig {
         PeerServerConfig {
             worker_id: String::new(),
             stream_window: 16 * 1024,
-            accept_unknown_domains: false,
         }
     }
 }
@@ -127,12 +125,33 @@ impl From<StreamError> for Status {
 pub struct PeerServer {
     queues: Arc<RayQueues>,
     config: PeerServerConfig,
+    /// The worker id streams must be opened for; starts as `config.worker_id` and
+    /// changes when the worker registers again (a new coordinator gives a new id).
+    worker_id: Arc<std::sync::RwLock<String>>,
 }
 
 impl PeerServer {
     /// A server that queues incoming rays into `queues`.
     pub fn new(queues: Arc<RayQueues>, config: PeerServerConfig) -> PeerServer {
-        PeerServer { queues, config }
+        PeerServer {
+            queues,
+            worker_id: Arc::new(std::sync::RwLock::new(config.worker_id.clone())),
+            config,
+        }
+    }
+
+    /// From now on, accept streams opened for `id` (the worker registered again).
+    /// Clones of this server share the change.
+    pub fn set_worker_id(&self, id: &str) {
+        let mut w = self.worker_id.write().unwrap_or_else(|p| p.into_inner());
+        *w = id.to_string();
+    }
+
+    fn worker_id(&self) -> String {
+        self.worker_id
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
     }
 
     /// The tonic service, with message limits sized for full batches.
@@ -165,13 +184,11 @@ impl RayExchangeService for PeerServer {
             }) => open,
             _ => return Err(StreamError::NotOpened.into()),
         };
-        if !self.config.worker_id.is_empty()
-            && !open.receiver_id.is_empty()
-            && open.receiver_id != self.config.worker_id
-        {
+        let me = self.worker_id();
+        if !me.is_empty() && !open.receiver_id.is_empty() && open.receiver_id != me {
             return Err(StreamError::WrongReceiver {
                 expected: open.receiver_id,
-                actual: self.config.worker_id.clone(),
+                actual: me,
             }
             .into());
         }
@@ -193,7 +210,6 @@ impl RayExchangeService for PeerServer {
         // Cannot fail: the receiver is alive and the buffer empty.
         let _ = tx.try_send(Ok(accept));
         let receiver = StreamReceiver {
-            accept_unknown_domains: self.config.accept_unknown_domains,
             queues: Arc::clone(&self.queues),
             granted: window,
             sent: 0,
@@ -207,14 +223,13 @@ impl RayExchangeService for PeerServer {
 
 /// The state of one incoming stream.
 struct StreamReceiver {
-    accept_unknown_domains: bool,
     queues: Arc<RayQueues>,
     /// Cumulative grant sent to the peer.
     granted: u64,
     /// Rays received on the stream so far.
     sent: u64,
     next_sequence: u64,
-    scratch: Vec<dray_proto::RayRecord>,
+    scratch: Vec<dray_core::ray::RayRecord>,
 }
 
 type AckSender = mpsc::Sender<Result<RayStreamResponse, Status>>;
@@ -304,21 +319,6 @@ impl StreamReceiver {
                 sent: self.sent,
             });
         }
-        if !self.queues.owns(batch.domain) && self.accept_unknown_domains {
-            // A peer that loaded its job sooner than this worker received the job's
-            // setup: keep the rays; the tracer checks ownership per job when it pops.
-            self.queues.add_domain(batch.domain);
-        }
-        if !self.queues.owns(batch.domain) {
-            // Forwarding to the domain's new owner needs the routing table; until the
-            // worker has one, a batch for a domain it does not own is refused.
-            return Err(StreamError::Queue {
-                sequence,
-                source: QueueError::UnknownDomain {
-                    domain: batch.domain,
-                },
-            });
-        }
         self.scratch.clear();
         decode_rays_into(&batch.records, &mut self.scratch)
             .map_err(|source| StreamError::Record { sequence, source })?;
@@ -327,7 +327,9 @@ impl StreamReceiver {
         let rays = std::mem::replace(&mut self.scratch, Vec::with_capacity(records));
         let queued = QueuedBatch {
             job_id: Arc::from(batch.job_id),
+            attempt: batch.attempt,
             routing_version: batch.routing_version,
+            forwards: batch.forwards,
             rays,
             tickets: batch.tickets,
         };
@@ -346,7 +348,7 @@ impl StreamReceiver {
 
 /// Tickets must name, in increasing order, exactly the records flagged TICKETED.
 fn check_tickets(
-    rays: &[dray_proto::RayRecord],
+    rays: &[dray_core::ray::RayRecord],
     tickets: &[dray_proto::v1::RayTicket],
 ) -> Result<(), String> {
     let mut next = tickets.iter();

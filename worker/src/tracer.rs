@@ -12,26 +12,33 @@
 //! [`dray_core::trace::DomainSet`] uses, and the image is the same bit for bit. Empty
 //! domains are skipped: they can neither hit nor block a ray.
 //!
-//! A ray bound for another domain that is resident here is traced in the same step,
-//! not queued: only rays for other workers' domains leave the step. The results are the
-//! same bits either way (sums are exact in any order and credit is split when a ray is
-//! made), and a one-worker render pays no queue round trip per ray.
+//! A ray bound for another domain that is resident here (and that this worker may trace:
+//! see [`Residency`]) is traced in the same step, not queued: only rays for other
+//! domains leave the step. The results are the same bits either way (sums are exact in
+//! any order and credit is split when a ray is made), and a one-worker render pays no
+//! queue round trip per ray.
+//!
+//! Each domain is traced and shaded over its own [`LoadedDomain`]: the domain's
+//! triangles and every emitter, in scene order with scene-wide ids, which shades exactly
+//! as the whole scene does (`Integrator::partial`). A step looks each domain up once and
+//! holds it until the step ends, so an eviction meanwhile frees it only afterwards.
 
 use std::collections::HashMap;
 use std::sync::Arc;
+
+use crate::domain_store::LoadedDomain;
 
 /// A deterministic fast hash for domain keys.
 type FastState = foldhash::fast::FixedState;
 
 use dray_core::camera::Camera;
 use dray_core::domain::{DomainTree, Hop};
-use dray_core::effects::Effect;
 use dray_core::film::to_fixed;
 use dray_core::integrator::{Integrator, RayKind, RayState, RenderSettings, Sink};
 use dray_core::light_sampler::LightSampler;
+use dray_core::ray::RayRecord;
+use dray_core::scene::Scene;
 use dray_core::trace::SpanTrace;
-use dray_proto::RayRecord;
-use dray_scene::partition::ResidentScene;
 use glam::Vec3;
 
 use crate::credit::{self, CreditError};
@@ -163,6 +170,43 @@ impl Sink for ContributionsOnly<'_> {
     }
 }
 
+/// Which domains a step may trace here: resident, and this worker's to trace under the
+/// job's current routing table. Asked once per domain per step.
+pub trait Residency {
+    /// Domain `d`, if this step may trace it here.
+    fn domain(&self, d: u32) -> Option<Arc<LoadedDomain>>;
+}
+
+/// A fixed set of domains (tests, benchmarks): every one is traced where it is.
+impl Residency for HashMap<u32, Arc<LoadedDomain>> {
+    fn domain(&self, d: u32) -> Option<Arc<LoadedDomain>> {
+        self.get(&d).cloned()
+    }
+}
+
+/// The domains one step has looked up, held until the step ends.
+struct Pins<'r> {
+    residency: &'r dyn Residency,
+    slots: Vec<Option<Option<Arc<LoadedDomain>>>>,
+}
+
+impl<'r> Pins<'r> {
+    fn new(residency: &'r dyn Residency, domains: usize) -> Self {
+        Pins {
+            residency,
+            slots: vec![None; domains],
+        }
+    }
+
+    fn get(&mut self, d: u32) -> Option<&Arc<LoadedDomain>> {
+        let slot = self.slots.get_mut(d as usize)?;
+        if slot.is_none() {
+            *slot = Some(self.residency.domain(d));
+        }
+        slot.as_ref().and_then(|s| s.as_ref())
+    }
+}
+
 /// Scratch space reused across the rays of one step.
 #[derive(Default)]
 struct Step {
@@ -170,57 +214,54 @@ struct Step {
     kinds: Vec<RayKind>,
 }
 
-/// One job on one worker: the resident part of the scene and the job's settings.
+/// One job on one worker: the job's settings and layout. The domains come per step,
+/// through a [`Residency`].
 pub struct JobTracer {
-    resident: ResidentScene,
-    lights: Arc<LightSampler>,
+    /// The job's camera, its name dropped so that the per-domain integrators copy it
+    /// without allocating.
     camera: Camera,
     settings: RenderSettings,
     tree: DomainTree,
     pad: f32,
     /// Per domain of the layout, whether it holds any triangle.
     nonempty: Vec<bool>,
-    /// Per domain of the layout, its index in `resident.domains` when resident here.
-    local: Vec<Option<u32>>,
     tile_size: u32,
     tiles_x: u32,
+    /// A scene with no triangles and its (empty) light table: the integrator of steps
+    /// that need no domain (camera rays, rays leaving the scene).
+    bare: Scene,
+    bare_lights: Arc<LightSampler>,
 }
 
 impl JobTracer {
-    /// `domain_triangles` has one entry per domain of the layout (all of them, not only
-    /// the resident ones); `tile_size` is the edge of the job's row-major tiles.
+    /// `domain_triangles` has one entry per domain of the layout; `tile_size` is the
+    /// edge of the job's row-major tiles.
     pub fn new(
-        resident: ResidentScene,
         settings: RenderSettings,
-        camera: Camera,
+        mut camera: Camera,
         tree: DomainTree,
         pad: f32,
         domain_triangles: &[u64],
         tile_size: u32,
     ) -> JobTracer {
-        let lights = Arc::new(LightSampler::with_bounds(
-            &resident.scene,
-            settings.effects.contains(Effect::Emission),
-            resident.bounds,
-        ));
         let tile_size = tile_size.max(1);
-        let mut local = vec![None; domain_triangles.len()];
-        for (i, d) in resident.domains.iter().enumerate() {
-            if let Some(slot) = local.get_mut(d.domain as usize) {
-                *slot = Some(i as u32);
-            }
-        }
+        camera.name = String::new();
+        let bare = Scene::default();
+        let bare_lights = Arc::new(LightSampler::with_bounds(
+            &bare,
+            false,
+            (Vec3::ZERO, Vec3::ONE),
+        ));
         JobTracer {
-            local,
             tiles_x: settings.width.div_ceil(tile_size),
-            resident,
-            lights,
             camera,
             settings,
             tree,
             pad,
             nonempty: domain_triangles.iter().map(|&n| n > 0).collect(),
             tile_size,
+            bare,
+            bare_lights,
         }
     }
 
@@ -228,17 +269,35 @@ impl JobTracer {
         &self.settings
     }
 
-    pub fn resident(&self) -> &ResidentScene {
-        &self.resident
+    /// Domains in the job's layout.
+    pub fn domain_count(&self) -> u32 {
+        self.nonempty.len() as u32
     }
 
-    fn integrator(&self) -> Integrator<'_> {
+    /// Whether domain `d` holds any triangle (rays never enter empty domains).
+    pub fn is_nonempty(&self, d: u32) -> bool {
+        self.nonempty.get(d as usize).copied().unwrap_or(false)
+    }
+
+    /// The integrator over one domain.
+    fn integrator<'d>(&self, domain: &'d LoadedDomain) -> Integrator<'d> {
         Integrator::partial(
-            &self.resident.scene,
+            &domain.resident.scene,
             self.camera.clone(),
             self.settings.clone(),
-            self.lights.clone(),
-            &self.resident.global_ids,
+            domain.lights.clone(),
+            &domain.resident.global_ids,
+        )
+    }
+
+    /// The integrator of steps that touch no triangle.
+    fn bare(&self) -> Integrator<'_> {
+        Integrator::partial(
+            &self.bare,
+            self.camera.clone(),
+            self.settings.clone(),
+            self.bare_lights.clone(),
+            &[],
         )
     }
 
@@ -260,6 +319,7 @@ impl JobTracer {
         tile: &TileRef,
         start: u64,
         count: u64,
+        residency: &dyn Residency,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
         let spp = self.settings.spp.max(1) as u64;
@@ -273,7 +333,8 @@ impl JobTracer {
                 credit: tile.credit,
             });
         }
-        let integrator = self.integrator();
+        let mut pins = Pins::new(residency, self.nonempty.len());
+        let bare = self.bare();
         let end = start.saturating_add(count).min(total);
         for i in start..end {
             let (p, sample) = (i / spp, (i % spp) as u32);
@@ -283,23 +344,19 @@ impl JobTracer {
             );
             let pixel = (tile.y0 + ly) * self.settings.width + tile.x0 + lx;
             let share = credit::camera_share(tile.credit, total, i).unwrap_or(0);
-            let ray = integrator.camera_ray(pixel, sample);
+            let ray = bare.camera_ray(pixel, sample);
             out.traced[RayKind::Camera as usize] += 1;
-            self.route_new(&integrator, ray, share, tile.index, out);
+            self.route_new(&bare, &mut pins, ray, share, tile.index, out);
         }
-        self.trace_local(&integrator, out)
-    }
-
-    /// Whether `domain` is resident here.
-    fn is_local(&self, domain: u32) -> bool {
-        matches!(self.local.get(domain as usize), Some(Some(_)))
+        self.trace_local(&mut pins, &mut Step::default(), out)
     }
 
     /// Send a ray that was just made to the first domain on its path, or finish it at
     /// once when it meets no domain with triangles.
     fn route_new(
         &self,
-        integrator: &Integrator<'_>,
+        bare: &Integrator<'_>,
+        pins: &mut Pins<'_>,
         ray: RayState,
         credit: u64,
         tile: u32,
@@ -309,15 +366,17 @@ impl JobTracer {
             self.tree
                 .first_hop(ray.origin, ray.dir, 0.0, ray.tmax, self.pad, self.wanted());
         match first {
-            Some(h) => self.forward(ray, credit, h.span.domain, Some(h), tile, out),
-            None => self.finish_unblocked(integrator, &ray, credit, tile, out),
+            Some(h) => self.forward(pins, ray, credit, h.span.domain, Some(h), tile, out),
+            None => finish_unblocked(bare, &ray, credit, tile, out),
         }
     }
 
-    /// Send `ray` on to `domain`: traced in this step when the domain is resident here
-    /// (with `hop`, its span there, when already known), else to the domain's owner.
+    /// Send `ray` on to `domain`: traced in this step when the domain may be traced here
+    /// (with `hop`, its span there, when already known), else out of the step.
+    #[allow(clippy::too_many_arguments)]
     fn forward(
         &self,
+        pins: &mut Pins<'_>,
         ray: RayState,
         credit: u64,
         domain: u32,
@@ -326,7 +385,7 @@ impl JobTracer {
         out: &mut Outbox,
     ) {
         match RayRecord::from_state(&ray, credit) {
-            Ok(r) if self.is_local(domain) => out.local.push((domain, r, hop)),
+            Ok(r) if pins.get(domain).is_some() => out.local.push((domain, r, hop)),
             Ok(r) => out.rays.entry(domain).or_default().push(r),
             // Depth beyond 16 bits: no valid job gets here (max_depth <= 1024); end the
             // ray rather than lose its credit.
@@ -334,79 +393,79 @@ impl JobTracer {
         }
     }
 
-    /// A ray that left the scene without being blocked: occlusion rays add what they
-    /// carry, others see the environment.
-    fn finish_unblocked(
+    /// A ray leaves domain `from` through a wall into domain `next`. This is the one
+    /// place where a ray crossing a wall is seen: the wall is the face of `from` at the
+    /// ray's exit `hop.span.t1`, the crossing point `origin + dir * t1` (the cache actors
+    /// on walls hook in here).
+    #[allow(clippy::too_many_arguments)]
+    fn leave(
         &self,
-        integrator: &Integrator<'_>,
-        ray: &RayState,
+        pins: &mut Pins<'_>,
+        ray: RayState,
         credit: u64,
+        _from: u32,
+        _hop: &Hop,
+        next: u32,
         tile: u32,
         out: &mut Outbox,
     ) {
-        let mut sink = ContributionsOnly(out);
-        if ray.kind.is_occlusion() {
-            integrator.shadow_result(ray, false, &mut sink);
-        } else {
-            integrator.shade_miss(ray, &mut sink);
-        }
-        out.give_back(tile, credit);
+        self.forward(pins, ray, credit, next, None, tile, out);
     }
 
-    /// Trace `rays`, all queued for `domain`, which must be resident here, and every ray
-    /// they lead to in domains resident here.
+    /// Trace `rays`, all queued for `domain`, which `residency` must give, and every ray
+    /// they lead to in domains it gives.
     pub fn trace_batch(
         &self,
         domain: u32,
         rays: &[RayRecord],
+        residency: &dyn Residency,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
-        if !self.is_local(domain) {
+        let mut pins = Pins::new(residency, self.nonempty.len());
+        if pins.get(domain).is_none() {
             return Err(TraceError::NotResident { domain });
         }
-        let integrator = self.integrator();
         let mut step = Step::default();
         for rec in rays {
-            self.trace_one(&integrator, domain, rec, None, &mut step, out)?;
+            self.trace_one(&mut pins, domain, rec, None, &mut step, out)?;
         }
-        self.trace_local_with(&integrator, &mut step, out)
+        self.trace_local(&mut pins, &mut step, out)
     }
 
-    /// Trace the rays the step sent to resident domains, and theirs, until none is left.
-    fn trace_local(&self, integrator: &Integrator<'_>, out: &mut Outbox) -> Result<(), TraceError> {
-        self.trace_local_with(integrator, &mut Step::default(), out)
-    }
-
-    fn trace_local_with(
+    /// Trace the rays the step sent to domains traced here, and theirs, until none is
+    /// left.
+    fn trace_local(
         &self,
-        integrator: &Integrator<'_>,
+        pins: &mut Pins<'_>,
         step: &mut Step,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
         while let Some((domain, rec, hop)) = out.local.pop() {
-            self.trace_one(integrator, domain, &rec, hop, step, out)?;
+            self.trace_one(pins, domain, &rec, hop, step, out)?;
         }
         Ok(())
     }
 
-    /// Trace one ray in `domain` (resident here; `hop` is its span there if known) and
+    /// Trace one ray in `domain` (traced here; `hop` is its span there if known) and
     /// hand on what it makes.
     fn trace_one(
         &self,
-        integrator: &Integrator<'_>,
+        pins: &mut Pins<'_>,
         domain: u32,
         rec: &RayRecord,
         hop: Option<Hop>,
         step: &mut Step,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
-        let index = self
-            .local
-            .get(domain as usize)
-            .copied()
-            .flatten()
+        let loaded = pins
+            .get(domain)
+            .cloned()
             .ok_or(TraceError::NotResident { domain })?;
-        let resident = &self.resident.domains[index as usize];
+        let resident = loaded
+            .resident
+            .domains
+            .first()
+            .ok_or(TraceError::NotResident { domain })?;
         let pixels = self.settings.width as u64 * self.settings.height as u64;
         if rec.pixel as u64 >= pixels {
             return Err(TraceError::BadPixel {
@@ -415,6 +474,7 @@ impl JobTracer {
                 height: self.settings.height,
             });
         }
+        let integrator = self.integrator(&loaded);
         let ray = rec.to_state();
         let tile = self.tile_of(ray.pixel);
         let hop = match hop {
@@ -440,16 +500,16 @@ impl JobTracer {
             if integrator.occluded(&geometry, &ray) {
                 out.give_back(tile, rec.credit);
             } else if let Some(next) = hop.next {
-                self.forward(ray, rec.credit, next, None, tile, out);
+                self.leave(pins, ray, rec.credit, domain, &hop, next, tile, out);
             } else {
-                self.finish_unblocked(integrator, &ray, rec.credit, tile, out);
+                finish_unblocked(&integrator, &ray, rec.credit, tile, out);
             }
             return Ok(());
         }
         let Some(hit) = integrator.intersect(&geometry, &ray) else {
             match hop.next {
-                Some(next) => self.forward(ray, rec.credit, next, None, tile, out),
-                None => self.finish_unblocked(integrator, &ray, rec.credit, tile, out),
+                Some(next) => self.leave(pins, ray, rec.credit, domain, &hop, next, tile, out),
+                None => finish_unblocked(&integrator, &ray, rec.credit, tile, out),
             }
             return Ok(());
         };
@@ -466,8 +526,26 @@ impl JobTracer {
         out.give_back(tile, back);
         for (child, share) in sink.children.drain(..).zip(shares) {
             out.traced[child.kind as usize] += 1;
-            self.route_new(integrator, child, share, tile, out);
+            self.route_new(&integrator, pins, child, share, tile, out);
         }
         Ok(())
     }
+}
+
+/// A ray that left the scene without being blocked: occlusion rays add what they carry,
+/// others see the environment.
+fn finish_unblocked(
+    integrator: &Integrator<'_>,
+    ray: &RayState,
+    credit: u64,
+    tile: u32,
+    out: &mut Outbox,
+) {
+    let mut sink = ContributionsOnly(out);
+    if ray.kind.is_occlusion() {
+        integrator.shadow_result(ray, false, &mut sink);
+    } else {
+        integrator.shade_miss(ray, &mut sink);
+    }
+    out.give_back(tile, credit);
 }

@@ -7,20 +7,22 @@
 //! must come back whole.
 
 use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
 
 use dray_core::bvh::Accel;
 use dray_core::camera::Camera;
 use dray_core::film::Film;
 use dray_core::integrator::{Integrator, IntegratorKind, RenderSettings};
+use dray_core::ray::RayRecord;
 use dray_core::render;
 use dray_core::scene::Scene;
-use dray_proto::RayRecord;
+use dray_scene::partition::memory::MemoryPackage;
 use dray_scene::partition::resident::resident_in_memory;
 use dray_scene::partition::{
-    DomainLayout, LayoutSpec, ResidentScene, load_resident, open_package, partition_in_memory,
-    write_scene_package,
+    DomainLayout, LayoutSpec, load_resident, open_package, partition_in_memory, write_scene_package,
 };
-use dray_worker::{JobTracer, Outbox, TileRef};
+use dray_worker::job::{memory_domains, package_domains};
+use dray_worker::{DomainSource, JobTracer, LoadedDomain, Outbox, TileRef};
 
 const TILE: u32 = 16;
 const TILE_CREDIT: u64 = 1 << 62;
@@ -62,9 +64,9 @@ fn distributed(
     scramble: u64,
 ) -> Distributed {
     let layout = DomainLayout::for_source(scene, spec).unwrap();
-    distributed_with(scene, s, &layout, workers, scramble, &|owned| {
-        resident_in_memory(scene, &layout, owned).unwrap()
-    })
+    let package = MemoryPackage::with_layout(scene.clone(), layout.clone()).unwrap();
+    let source = memory_domains(Arc::new(package), s);
+    distributed_with(scene, s, &layout, workers, scramble, source.as_ref())
 }
 
 fn distributed_with(
@@ -73,7 +75,7 @@ fn distributed_with(
     layout: &DomainLayout,
     workers: u32,
     scramble: u64,
-    load: &dyn Fn(&[u32]) -> ResidentScene,
+    source: &dyn DomainSource,
 ) -> Distributed {
     let n = layout.domain_count();
     let mut counts = vec![0u64; n as usize];
@@ -81,17 +83,28 @@ fn distributed_with(
         counts[p.domain as usize] = p.triangle_count() as u64;
     }
     let owner = |d: u32| d % workers;
-    let tracers: Vec<JobTracer> = (0..workers)
+    // Each worker's domains, loaded one by one as its domain store would.
+    let held: Vec<HashMap<u32, Arc<LoadedDomain>>> = (0..workers)
         .map(|w| {
-            let owned: Vec<u32> = (0..n).filter(|&d| owner(d) == w).collect();
-            let resident = load(&owned);
-            // A worker holds its own domains and the emitters, never the whole scene
-            // (unless it owns every domain).
-            if workers > 1 && n > 1 {
-                assert!(resident.scene.mesh.indices.len() < scene.mesh.indices.len());
-            }
+            (0..n)
+                .filter(|&d| owner(d) == w)
+                .map(|d| {
+                    let loaded = source.load(d).unwrap();
+                    // A domain holds its own triangles and the emitters, never the
+                    // whole scene (unless it is the only domain).
+                    if n > 1 {
+                        assert!(
+                            loaded.resident.scene.mesh.indices.len() < scene.mesh.indices.len()
+                        );
+                    }
+                    (d, Arc::new(loaded))
+                })
+                .collect()
+        })
+        .collect();
+    let tracers: Vec<JobTracer> = (0..workers)
+        .map(|_| {
             JobTracer::new(
-                resident,
                 s.clone(),
                 camera(scene, s),
                 layout.to_domain_tree(),
@@ -140,12 +153,14 @@ fn distributed_with(
     assert!(!tiles.is_empty());
     for (i, t) in tile_refs.iter().enumerate() {
         let w = &tracers[i % workers as usize];
+        let mine = &held[i % workers as usize];
         // Camera rays in two ranges, as a worker generating them lazily would.
         let total = t.camera_rays(s.spp);
         let half = total / 2;
         let mut out = Outbox::default();
-        w.camera_rays(t, 0, half, &mut out).unwrap();
-        w.camera_rays(t, half, total - half, &mut out).unwrap();
+        w.camera_rays(t, 0, half, mine, &mut out).unwrap();
+        w.camera_rays(t, half, total - half, mine, &mut out)
+            .unwrap();
         absorb(out, &mut queues);
     }
     // Trade rays until none is left, in an order that depends on `scramble`.
@@ -168,8 +183,9 @@ fn distributed_with(
         let take = q.len().min(1 + (step >> 40) as usize % 300);
         let batch: Vec<RayRecord> = q.drain(q.len() - take..).collect();
         let mut out = Outbox::default();
-        tracers[owner(d) as usize]
-            .trace_batch(d, &batch, &mut out)
+        let w = owner(d) as usize;
+        tracers[w]
+            .trace_batch(d, &batch, &held[w], &mut out)
             .unwrap();
         absorb(out, &mut queues);
     }
@@ -264,9 +280,8 @@ fn a_package_on_disk_gives_the_same_image() {
         assert_eq!(a.global_ids, b.global_ids, "{owned:?}");
         assert!(a.scene.mesh == b.scene.mesh, "{owned:?}");
     }
-    let d = distributed_with(&scene, &s, &layout, 3, 11, &|owned| {
-        load_resident(&package, owned).unwrap()
-    });
+    let source = package_domains(open_package(&dir).unwrap(), &s).unwrap();
+    let d = distributed_with(&scene, &s, &layout, 3, 11, source.as_ref());
     let _ = std::fs::remove_dir_all(&dir);
     assert!(d.film == film, "image from the package differs");
 }

@@ -97,6 +97,16 @@ impl MemoryPackage {
         self.layout.domain_count()
     }
 
+    /// Domain `d`'s triangles, if the layout has it.
+    pub fn domain_mesh(&self, d: u32) -> Option<&DomainMesh> {
+        self.domains.get(d as usize)
+    }
+
+    /// Every emissive triangle, in scene order.
+    pub fn emitters(&self) -> &DomainMesh {
+        &self.emitters
+    }
+
     /// The scene's tables (cameras, materials, ...), with no triangles.
     pub fn tables(&self) -> &Scene {
         &self.tables

@@ -676,7 +676,7 @@ fn write_textures(
         w.write_all(&FORMAT_VERSION.to_le_bytes())?;
         w.write_all(&(textures.len() as u32).to_le_bytes())?;
         for t in textures {
-            for px in &t.texels {
+            for px in t.texels.iter() {
                 w.write_all(px)?;
             }
         }

@@ -52,13 +52,20 @@ impl ResidentScene {
     /// Bytes held by triangles and BVHs, roughly: what a memory budget counts.
     pub fn bytes(&self) -> u64 {
         let m = &self.scene.mesh;
-        let vertex = 12 + 12 + 16 + 8;
-        let per_tri = 12 + 4 + 4;
-        let mesh = m.positions.len() as u64 * vertex + m.indices.len() as u64 * per_tri;
-        // Each BVH keeps its own copy of its triangles (three corners) plus nodes.
-        let bvh: u64 = self.domains.iter().map(|d| d.triangles as u64 * 64).sum();
-        mesh + bvh
+        let bvh: u64 = self.domains.iter().map(|d| d.triangles as u64).sum();
+        resident_bytes(m.positions.len() as u64, m.indices.len() as u64, bvh)
     }
+}
+
+/// Bytes a resident scene of `vertices` and `triangles` (merged mesh) with BVHs over
+/// `bvh_triangles` takes, roughly; [`ResidentScene::bytes`] and the estimates a worker
+/// makes from a manifest before loading both use it, so they agree.
+pub fn resident_bytes(vertices: u64, triangles: u64, bvh_triangles: u64) -> u64 {
+    // Position, normal, tangent, uv per vertex; indices, material and global id per
+    // triangle; each BVH keeps its own copy of its triangles (three corners) plus nodes.
+    let vertex = 12 + 12 + 16 + 8;
+    let per_tri = 12 + 4 + 4;
+    vertices * vertex + triangles * per_tri + bvh_triangles * 64
 }
 
 /// Load `owned` domains and the emitters of `package` (checking every file) and

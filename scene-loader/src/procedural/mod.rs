@@ -9,7 +9,8 @@
 //!
 //! ```text
 //! cornell[:mirror|:glass]      the Cornell box (original 555-unit measurements, Y up)
-//! spheres[:N]                  N icospheres (320 triangles each) on a ground quad; N = 100
+//! spheres[:N[:mirror]]         N icospheres (320 triangles each) on a ground quad; N = 100;
+//!                              `mirror`: every third colour a perfect mirror
 //! soup[:N]                     N random triangles in the unit cube;                N = 10000
 //! city[:N]                     N x N blocks of box buildings;                      N = 8
 //! iso[:FIELD[:RES]]            marching-cubes isosurface on a RES^3 cell grid,

@@ -1,4 +1,6 @@
-//! `spheres:N`: N icospheres resting on a ground quad.
+//! `spheres:N[:mirror]`: N icospheres resting on a ground quad; with `mirror`, every
+//! third colour of the palette is a perfect mirror, so Whitted rays bounce between
+//! spheres (the scheduling experiment's scene: two lights' shadows and reflections).
 //!
 //! A scene of many small, separate, smoothly shaded objects: the BVH sees N tight
 //! clusters, shadows and the point light give every sphere distinct shading, and the
@@ -23,7 +25,22 @@ const SEED: u64 = 0x5EED_5EED_0000_0001;
 
 pub(super) fn generate(spec: &str, args: Option<&str>) -> Result<Scene> {
     let max = (MAX_TRIANGLES - 2) / TRIANGLES_PER_SPHERE;
-    let n = parse_count(spec, "sphere count", args.unwrap_or(DEFAULT_COUNT), 1, max)?;
+    let (count, variant) = match args.map(|a| a.split_once(':')) {
+        Some(Some((n, v))) => (n, Some(v)),
+        Some(None) => (args.unwrap_or(DEFAULT_COUNT), None),
+        None => (DEFAULT_COUNT, None),
+    };
+    let mirrors = match variant {
+        None => false,
+        Some("mirror") => true,
+        Some(other) => {
+            return Err(crate::error::SceneError::Procedural {
+                spec: spec.to_string(),
+                message: format!("unknown spheres variant {other:?} (expected `mirror`)"),
+            });
+        }
+    };
+    let n = parse_count(spec, "sphere count", count, 1, max)?;
     let mut rng = Rng::new(SEED);
     let mut b = Builder::new(spec, "spheres");
 
@@ -47,7 +64,15 @@ pub(super) fn generate(spec: &str, args: Option<&str>) -> Result<Scene> {
     let palette: Vec<u32> = (0..PALETTE.min(n))
         .map(|i| {
             let color = rng.color(0.1, 0.9);
-            b.material(Material::lambert(&format!("sphere {i}"), color))
+            if mirrors && i % 3 == 0 {
+                b.material(Material::metal(
+                    &format!("sphere {i}"),
+                    Vec3::splat(0.9),
+                    0.0,
+                ))
+            } else {
+                b.material(Material::lambert(&format!("sphere {i}"), color))
+            }
         })
         .collect();
 

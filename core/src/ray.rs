@@ -1,4 +1,8 @@
-//! The packed ray record carried by `RayBatch.records` (format 1, 64 bytes per ray).
+//! A ray in flight between domains: [`RayRecord`], the self-contained ray with its
+//! credit, and its 64-byte wire form (format 1), carried by `RayBatch.records`.
+//!
+//! The in-memory ray belongs to the engine, not to the protocol crate: the tracer makes
+//! and consumes it; the gRPC layer only moves its bytes.
 //!
 //! Layout (little-endian, no padding; the authoritative table is in `rays.proto`):
 //!
@@ -23,13 +27,13 @@
 //! The job, the destination domain and the routing version are the same for every ray
 //! of a batch and live in the `RayBatch` header, not here.
 
-use dray_core::integrator::{RayKind, RayState};
+use crate::integrator::{RayKind, RayState};
 use glam::Vec3;
 
 /// Bytes per ray on the wire.
 pub const RAY_RECORD_BYTES: usize = 64;
 
-/// The record format this crate reads and writes (`RayStreamOpen.record_format`).
+/// The record format this module reads and writes (`RayStreamOpen.record_format`).
 pub const RAY_RECORD_FORMAT: u32 = 1;
 
 /// `flags` bit 0: the ray carries a ray-cache ticket, found in `RayBatch.tickets`.

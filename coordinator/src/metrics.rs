@@ -1,0 +1,157 @@
+//! A job's scheduling metrics: the workers' counters (ReportContributionsRequest.counters,
+//! deltas except the queue peak) summed per worker and over the job, for JobStats.
+//!
+//! Kept per worker id for every worker that took part, lost and joined ones included,
+//! in id order so `workers_detail` reads the same on every call.
+
+use std::collections::BTreeMap;
+
+use dray_proto::v1::{JobStats, RayCounts, WorkerCounters, WorkerJobStats};
+
+/// A counter report that cannot be right.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CounterError {
+    /// A seconds field that is negative, NaN or infinite.
+    #[error("counters.{field}: {value} is not a finite, non-negative number of seconds")]
+    Seconds {
+        /// The field.
+        field: &'static str,
+        /// Its value.
+        value: f64,
+    },
+}
+
+/// Check a worker's counters before anything is applied.
+pub fn check(c: &WorkerCounters) -> Result<(), CounterError> {
+    for (field, value) in [
+        ("domain_load_seconds", c.domain_load_seconds),
+        ("idle_seconds", c.idle_seconds),
+    ] {
+        if !value.is_finite() || value < 0.0 {
+            return Err(CounterError::Seconds { field, value });
+        }
+    }
+    Ok(())
+}
+
+/// Total rays in `r`, all kinds.
+pub fn total_rays(r: &RayCounts) -> u64 {
+    [
+        r.camera,
+        r.shadow,
+        r.reflection,
+        r.refraction,
+        r.diffuse,
+        r.ambient_occlusion,
+    ]
+    .iter()
+    .fold(0u64, |a, &b| a.saturating_add(b))
+}
+
+/// Per-worker sums for one job.
+#[derive(Clone, Debug, Default)]
+pub struct JobMetrics {
+    workers: BTreeMap<String, WorkerJobStats>,
+    rays_sent: u64,
+    rays_forwarded: u64,
+}
+
+impl JobMetrics {
+    /// Make sure `worker` is listed (with zeros until it reports).
+    pub fn add_worker(&mut self, worker: &str) {
+        self.entry(worker);
+    }
+
+    fn entry(&mut self, worker: &str) -> &mut WorkerJobStats {
+        self.workers
+            .entry(worker.to_string())
+            .or_insert_with(|| WorkerJobStats {
+                worker_id: worker.to_string(),
+                ..Default::default()
+            })
+    }
+
+    /// Workers that took part.
+    pub fn workers(&self) -> usize {
+        self.workers.len()
+    }
+
+    /// Add one report's counters (checked with [`check`]) and traced rays.
+    pub fn add(&mut self, worker: &str, c: Option<&WorkerCounters>, traced: Option<&RayCounts>) {
+        if let Some(c) = c {
+            self.rays_sent = self.rays_sent.saturating_add(c.rays_sent);
+            self.rays_forwarded = self.rays_forwarded.saturating_add(c.rays_forwarded);
+        }
+        let w = self.entry(worker);
+        if let Some(c) = c {
+            w.domain_loads = w.domain_loads.saturating_add(c.domain_loads);
+            w.domain_load_seconds += c.domain_load_seconds;
+            w.evictions = w.evictions.saturating_add(c.evictions);
+            w.idle_seconds += c.idle_seconds;
+            w.queue_peak = w.queue_peak.max(c.queue_peak);
+        }
+        if let Some(t) = traced {
+            w.rays_traced = w.rays_traced.saturating_add(total_rays(t));
+        }
+    }
+
+    /// Write the sums into `s` (the fields this type owns; the rest is left alone).
+    pub fn fill(&self, s: &mut JobStats) {
+        let ws = self.workers.values();
+        s.domain_loads = ws
+            .clone()
+            .fold(0u64, |a, w| a.saturating_add(w.domain_loads));
+        s.domain_load_seconds = ws.clone().map(|w| w.domain_load_seconds).sum();
+        s.evictions = ws.clone().fold(0u64, |a, w| a.saturating_add(w.evictions));
+        s.queue_peak = ws.clone().map(|w| w.queue_peak).max().unwrap_or(0);
+        s.rays_exchanged = self.rays_sent;
+        s.rays_forwarded = self.rays_forwarded;
+        s.workers_detail = ws.cloned().collect();
+        s.workers = self.workers.len() as u32;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn deltas_sum_and_peaks_take_the_max() {
+        let mut m = JobMetrics::default();
+        m.add_worker("b");
+        let c = |loads, peak| WorkerCounters {
+            domain_loads: loads,
+            domain_load_seconds: 0.5,
+            evictions: 1,
+            rays_sent: 10,
+            rays_forwarded: 2,
+            idle_seconds: 0.25,
+            queue_peak: peak,
+        };
+        let traced = RayCounts {
+            camera: 3,
+            shadow: 4,
+            ..Default::default()
+        };
+        m.add("a", Some(&c(2, 50)), Some(&traced));
+        m.add("a", Some(&c(1, 40)), None);
+        let mut s = JobStats::default();
+        m.fill(&mut s);
+        assert_eq!((s.domain_loads, s.evictions, s.queue_peak), (3, 2, 50));
+        assert_eq!((s.rays_exchanged, s.rays_forwarded, s.workers), (20, 4, 2));
+        assert_eq!(s.domain_load_seconds, 1.0);
+        let a = &s.workers_detail[0];
+        assert_eq!(
+            (a.worker_id.as_str(), a.rays_traced, a.idle_seconds),
+            ("a", 7, 0.5)
+        );
+        assert_eq!(s.workers_detail[1].worker_id, "b");
+        assert!(
+            check(&WorkerCounters {
+                idle_seconds: f64::NAN,
+                ..Default::default()
+            })
+            .is_err()
+        );
+    }
+}

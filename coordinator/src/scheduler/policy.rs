@@ -1,0 +1,416 @@
+//! The schedules of Navrátil et al. 2012, as pure functions: inputs in, ownership (or
+//! nothing) out. No clocks, no gRPC, no hash-map order: the same inputs give the same
+//! table, so every decision is unit-tested and replayable.
+//!
+//! - **image-plane**: no routing ([`Routes::local`]); tiles in contiguous blocks, worker
+//!   `i` of `n` getting tiles `[i*T/n, (i+1)*T/n)`. Each worker loads whatever domain its
+//!   fullest queue needs. The table never changes.
+//! - **domain**: static round robin (domain `d` to worker `d % n`), tiles round robin.
+//!   Changes only when a worker is lost.
+//! - **dynamic** (ray-weighted): starts as domain; then each round ([`rebalance`]) gives
+//!   the most-wanted domains that no owner holds to workers that no ray needs, and with
+//!   `replicate`, adds idle workers as extra owners of hot resident domains.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use dray_proto::v1::DomainQueue;
+
+use super::table::Routes;
+
+/// The schedule names a job may ask for (JobSpec.schedule; empty means dynamic).
+pub const SCHEDULE_NAMES: [&str; 3] = ["image-plane", "domain", "dynamic"];
+
+/// How a job's domains and rays are placed on its workers.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Schedule {
+    /// Each worker traces its own block of tiles and every ray they lead to.
+    ImagePlane,
+    /// Static round-robin ownership; rays go to owners.
+    Domain,
+    /// Ray-weighted: domains move to idle workers, driven by queue reports.
+    Dynamic {
+        /// Also replicate hot resident domains on idle workers.
+        replicate: bool,
+    },
+}
+
+/// A schedule a job cannot have.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ScheduleError {
+    /// Not one of [`SCHEDULE_NAMES`].
+    #[error(
+        "schedule: unknown schedule {0:?} (expected image-plane, domain or dynamic; empty \
+         means dynamic)"
+    )]
+    Unknown(String),
+    /// `replicate` with a static schedule.
+    #[error(
+        "replicate: hot-domain replication needs the dynamic schedule, not {0:?} (leave \
+         schedule empty or set it to dynamic)"
+    )]
+    ReplicateNeedsDynamic(&'static str),
+}
+
+impl Schedule {
+    /// The schedule JobSpec `schedule` and `replicate` ask for ("" is dynamic).
+    pub fn parse(name: &str, replicate: bool) -> Result<Schedule, ScheduleError> {
+        let s = match name {
+            "" | "dynamic" => return Ok(Schedule::Dynamic { replicate }),
+            "image-plane" => Schedule::ImagePlane,
+            "domain" => Schedule::Domain,
+            other => return Err(ScheduleError::Unknown(other.to_string())),
+        };
+        if replicate {
+            return Err(ScheduleError::ReplicateNeedsDynamic(s.name()));
+        }
+        Ok(s)
+    }
+
+    /// The name, as JobSpec, JobSetup and JobStats spell it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Schedule::ImagePlane => "image-plane",
+            Schedule::Domain => "domain",
+            Schedule::Dynamic { .. } => "dynamic",
+        }
+    }
+
+    /// Whether rounds of queue reports can change the table.
+    pub fn is_dynamic(self) -> bool {
+        matches!(self, Schedule::Dynamic { .. })
+    }
+
+    /// The first ownership of `domains` domains over `workers` (in job order).
+    pub fn initial_routes(self, domains: u32, workers: &[String]) -> Routes {
+        match self {
+            Schedule::ImagePlane => Routes::local(),
+            Schedule::Domain | Schedule::Dynamic { .. } => Routes::round_robin(domains, workers),
+        }
+    }
+
+    /// Deal `tiles` tiles (positions `0..tiles` of a row-major list) over `workers`
+    /// workers: for each worker, the positions it gets, ascending. Image-plane: contiguous
+    /// blocks, worker `i` getting `[i*T/n, (i+1)*T/n)`; otherwise round robin, position
+    /// `j` to worker `j % n`. No workers: nothing dealt.
+    pub fn deal_tiles(self, tiles: usize, workers: usize) -> Vec<Vec<usize>> {
+        let mut out = vec![Vec::new(); workers];
+        if workers == 0 {
+            return out;
+        }
+        match self {
+            Schedule::ImagePlane => {
+                let (t, n) = (tiles as u64, workers as u64);
+                for (i, mine) in out.iter_mut().enumerate() {
+                    let i = i as u64;
+                    mine.extend((i * t / n) as usize..((i + 1) * t / n) as usize);
+                }
+            }
+            Schedule::Domain | Schedule::Dynamic { .. } => {
+                for j in 0..tiles {
+                    out[j % workers].push(j);
+                }
+            }
+        }
+        out
+    }
+
+    /// The ownership once only `survivors` (non-empty, in job order) are left of the
+    /// job's workers. Image-plane stays local; domain is dealt round robin again over the
+    /// survivors; dynamic keeps every surviving owner where it is (its domains may still
+    /// be loaded there) and deals the domains left without an owner round robin, in
+    /// domain order, over the survivors.
+    pub fn routes_after_loss(self, current: &Routes, domains: u32, survivors: &[String]) -> Routes {
+        match self {
+            Schedule::ImagePlane => Routes::local(),
+            Schedule::Domain => Routes::round_robin(domains, survivors),
+            Schedule::Dynamic { .. } => {
+                if survivors.is_empty() {
+                    return Routes::from_owners(Vec::new());
+                }
+                let mut next = 0usize;
+                let owners = (0..domains)
+                    .map(|d| {
+                        let kept: Vec<String> = current
+                            .owners(d)
+                            .iter()
+                            .filter(|o| survivors.contains(o))
+                            .cloned()
+                            .collect();
+                        if kept.is_empty() {
+                            let w = survivors[next % survivors.len()].clone();
+                            next += 1;
+                            vec![w]
+                        } else {
+                            kept
+                        }
+                    })
+                    .collect();
+                Routes::from_owners(owners)
+            }
+        }
+    }
+}
+
+/// One worker as a dynamic round sees it.
+#[derive(Clone, Copy, Debug)]
+pub struct WorkerView<'a> {
+    /// Its id.
+    pub id: &'a str,
+    /// Its memory budget for resident domains (0 = unlimited).
+    pub budget: u64,
+    /// Its latest queue report for this job attempt (empty if none yet).
+    pub queues: &'a [DomainQueue],
+}
+
+/// Everything a dynamic round decides from.
+#[derive(Clone, Copy, Debug)]
+pub struct RoundInput<'a> {
+    /// Domains in the job.
+    pub domains: u32,
+    /// The current ownership.
+    pub routes: &'a Routes,
+    /// The job's workers, in job order (ties between idle workers go to the first).
+    pub workers: &'a [WorkerView<'a>],
+    /// `(domain, worker)` pairs given out by earlier rounds whose worker has not yet
+    /// reported the domain resident: the load is under way, so the domain counts as
+    /// loaded (moving it again would throw the load away) and gets no other replica.
+    pub loading: &'a BTreeSet<(u32, String)>,
+    /// Replicate hot domains on idle workers that are still idle after the moves.
+    pub replicate: bool,
+}
+
+/// One change a round made.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Change {
+    /// `domain` now belongs to `to` alone (it was with `from`, where it was not loaded).
+    Move {
+        /// The domain.
+        domain: u32,
+        /// Its previous owners.
+        from: Vec<String>,
+        /// The idle worker that now owns it.
+        to: String,
+    },
+    /// `to` became an extra owner of `domain`, which is resident elsewhere.
+    Replicate {
+        /// The domain.
+        domain: u32,
+        /// The idle worker added as owner.
+        to: String,
+    },
+}
+
+impl Change {
+    /// The domain changed and the worker that received it.
+    pub fn given(&self) -> (u32, &str) {
+        match self {
+            Change::Move { domain, to, .. } | Change::Replicate { domain, to } => (*domain, to),
+        }
+    }
+}
+
+/// What a round decided.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Decision {
+    /// The new ownership.
+    pub routes: Routes,
+    /// What changed, in the order decided.
+    pub changes: Vec<Change>,
+}
+
+/// What the reports say about one domain.
+#[derive(Clone, Debug, Default)]
+struct DomainView {
+    /// Rays queued for it, over every worker (owners and others alike).
+    want: u64,
+    /// Workers that hold it.
+    resident_at: BTreeSet<String>,
+    /// Largest resident size any report gave.
+    bytes: u64,
+}
+
+/// One dynamic round. `want(d)` is the sum of the rays queued for `d` at every worker. A
+/// worker is idle when no domain it owns is wanted; a domain is unloaded when it is
+/// neither resident nor [being loaded](RoundInput::loading) at any of its owners. The
+/// most-wanted unloaded domains (want > 0, descending, ties to the lower index) go to
+/// idle workers, one per idle worker, each to an idle worker whose budget the domain's
+/// resident size fits (0 = unlimited; the budget, not the free memory, since a worker
+/// evicts domains nobody wants), preferring one that still holds the domain, else the
+/// first in job order. The domain leaves its previous owners. Loaded domains stay.
+/// With `replicate`, idle workers left over become extra owners of the most-wanted
+/// domains resident somewhere (one new replica per domain per round, never more owners
+/// than workers). `None` when nothing changes.
+pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
+    if input.routes.is_local() || input.workers.is_empty() {
+        return None;
+    }
+    let n = input.domains as usize;
+    let mut view = vec![DomainView::default(); n];
+    for w in input.workers {
+        for q in w.queues {
+            // Reports come from the network: a domain out of range is not ours to judge.
+            let Some(v) = view.get_mut(q.domain as usize) else {
+                continue;
+            };
+            v.want = v.want.saturating_add(q.rays_queued);
+            v.bytes = v.bytes.max(q.resident_bytes);
+            if q.resident {
+                v.resident_at.insert(w.id.to_string());
+            }
+        }
+    }
+    let mut owners: Vec<Vec<String>> = (0..input.domains)
+        .map(|d| input.routes.owners(d).to_vec())
+        .collect();
+    let wanted = |d: usize| view[d].want > 0;
+    // Owners of a wanted domain are busy; one pass over the domains, not one per worker.
+    let busy: BTreeSet<&str> = owners
+        .iter()
+        .enumerate()
+        .filter(|&(d, _)| wanted(d))
+        .flat_map(|(_, o)| o.iter().map(String::as_str))
+        .collect();
+    let mut idle: Vec<&WorkerView<'_>> = input
+        .workers
+        .iter()
+        .filter(|w| !busy.contains(w.id))
+        .collect();
+    if idle.is_empty() {
+        return None;
+    }
+    let loading_at = |d: usize, w: &str| input.loading.contains(&(d as u32, w.to_string()));
+    let by_want = |mut ds: Vec<usize>| {
+        // Descending want, then ascending index: a total order, so no tie is left to
+        // the sort's stability or to map iteration.
+        ds.sort_by(|&a, &b| view[b].want.cmp(&view[a].want).then(a.cmp(&b)));
+        ds
+    };
+    let fits = |w: &WorkerView<'_>, d: usize| w.budget == 0 || view[d].bytes <= w.budget;
+    // The idle worker for domain `d`: one that fits and still holds it, else the first
+    // that fits.
+    let pick = |idle: &[&WorkerView<'_>], d: usize, skip: &[String]| -> Option<usize> {
+        let ok = |w: &&WorkerView<'_>| fits(w, d) && !skip.iter().any(|s| s == w.id);
+        idle.iter()
+            .position(|w| ok(w) && view[d].resident_at.contains(w.id))
+            .or_else(|| idle.iter().position(ok))
+    };
+
+    let mut changes = Vec::new();
+    let unloaded: Vec<usize> = (0..n)
+        .filter(|&d| wanted(d))
+        .filter(|&d| {
+            !owners[d]
+                .iter()
+                .any(|o| view[d].resident_at.contains(o) || loading_at(d, o))
+        })
+        .collect();
+    for d in by_want(unloaded) {
+        if idle.is_empty() {
+            break;
+        }
+        let Some(i) = pick(&idle, d, &[]) else {
+            continue;
+        };
+        let w = idle.remove(i);
+        let from = std::mem::replace(&mut owners[d], vec![w.id.to_string()]);
+        changes.push(Change::Move {
+            domain: d as u32,
+            from,
+            to: w.id.to_string(),
+        });
+    }
+
+    if input.replicate && !idle.is_empty() {
+        let moved: BTreeSet<u32> = changes.iter().map(|c| c.given().0).collect();
+        let hot: Vec<usize> = (0..n)
+            .filter(|&d| wanted(d) && !view[d].resident_at.is_empty())
+            .filter(|&d| !moved.contains(&(d as u32)))
+            .filter(|&d| !owners[d].iter().any(|o| loading_at(d, o)))
+            .filter(|&d| owners[d].len() < input.workers.len())
+            .collect();
+        for d in by_want(hot) {
+            if idle.is_empty() {
+                break;
+            }
+            let Some(i) = pick(&idle, d, &owners[d]) else {
+                continue;
+            };
+            let w = idle.remove(i);
+            owners[d].push(w.id.to_string());
+            changes.push(Change::Replicate {
+                domain: d as u32,
+                to: w.id.to_string(),
+            });
+        }
+    }
+
+    if changes.is_empty() {
+        return None;
+    }
+    Some(Decision {
+        routes: Routes::from_owners(owners),
+        changes,
+    })
+}
+
+/// The latest queue report of each worker, as [`WorkerView`]s in `order`, with budgets.
+pub fn views<'a>(
+    order: &'a [String],
+    budgets: &'a BTreeMap<String, u64>,
+    reports: &'a BTreeMap<String, Vec<DomainQueue>>,
+) -> Vec<WorkerView<'a>> {
+    order
+        .iter()
+        .map(|id| WorkerView {
+            id,
+            budget: budgets.get(id).copied().unwrap_or(0),
+            queues: reports.get(id).map_or(&[], Vec::as_slice),
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parse_names_and_replication() {
+        assert_eq!(
+            Schedule::parse("", false),
+            Ok(Schedule::Dynamic { replicate: false })
+        );
+        assert_eq!(
+            Schedule::parse("dynamic", true),
+            Ok(Schedule::Dynamic { replicate: true })
+        );
+        assert_eq!(Schedule::parse("domain", false), Ok(Schedule::Domain));
+        assert_eq!(
+            Schedule::parse("image-plane", false),
+            Ok(Schedule::ImagePlane)
+        );
+        assert!(matches!(
+            Schedule::parse("domain", true),
+            Err(ScheduleError::ReplicateNeedsDynamic("domain"))
+        ));
+        assert!(matches!(
+            Schedule::parse("Dynamic", false),
+            Err(ScheduleError::Unknown(_))
+        ));
+        for name in SCHEDULE_NAMES {
+            assert_eq!(Schedule::parse(name, false).unwrap().name(), name);
+        }
+    }
+
+    #[test]
+    fn image_plane_blocks_cover_every_tile_once() {
+        for (t, n) in [(10, 3), (3, 5), (0, 2), (262_144, 7)] {
+            let dealt = Schedule::ImagePlane.deal_tiles(t, n);
+            let flat: Vec<usize> = dealt.concat();
+            assert_eq!(flat, (0..t).collect::<Vec<_>>(), "{t} tiles on {n}");
+            for (i, mine) in dealt.iter().enumerate() {
+                assert_eq!(mine.first().copied().unwrap_or(i * t / n), i * t / n);
+            }
+        }
+        assert!(Schedule::Domain.deal_tiles(5, 0).is_empty());
+    }
+}

@@ -1,0 +1,243 @@
+//! Routing tables: who owns which domain of a job, and the versioned table sent to its
+//! workers (cluster.proto `RoutingTable`).
+//!
+//! [`Routes`] is the ownership alone, the value a [`policy`](super::policy) computes;
+//! [`JobRouting`] adds what makes it a message (job, attempt, version, endpoints). Only
+//! [`JobRouting`] bumps versions, so "a new table" always means "version + 1".
+
+use dray_proto::v1::{DomainRoute, RoutingTable, WorkerEndpoint};
+
+/// The owners of every domain of a job, by worker id, or "local" (image-plane: every
+/// worker traces its own rays, nothing is routed).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Routes {
+    local: bool,
+    /// Index = domain. Each list is non-empty for a routed job (more than one owner when
+    /// a hot domain is replicated) and has no duplicates.
+    owners: Vec<Vec<String>>,
+}
+
+impl Routes {
+    /// No routing: every worker traces every ray it makes (image-plane).
+    pub fn local() -> Routes {
+        Routes {
+            local: true,
+            owners: Vec::new(),
+        }
+    }
+
+    /// Explicit owners, index = domain.
+    pub fn from_owners(owners: Vec<Vec<String>>) -> Routes {
+        Routes {
+            local: false,
+            owners,
+        }
+    }
+
+    /// Domain `d` to `workers[d % n]`. With several domains per worker (the normal case)
+    /// this spreads neighbouring kd or grid cells over workers, which evens out load
+    /// better than contiguous blocks when the interesting part of a scene is small.
+    /// No workers: no owners (a table nobody can use, but no panic).
+    pub fn round_robin(domains: u32, workers: &[String]) -> Routes {
+        let owners = if workers.is_empty() {
+            Vec::new()
+        } else {
+            (0..domains as usize)
+                .map(|d| vec![workers[d % workers.len()].clone()])
+                .collect()
+        };
+        Routes::from_owners(owners)
+    }
+
+    /// Whether rays stay where they are made (image-plane).
+    pub fn is_local(&self) -> bool {
+        self.local
+    }
+
+    /// Domains with an owner list (0 when local).
+    pub fn domains(&self) -> usize {
+        self.owners.len()
+    }
+
+    /// The owners of domain `d` (empty when local or out of range).
+    pub fn owners(&self, d: u32) -> &[String] {
+        self.owners.get(d as usize).map_or(&[], Vec::as_slice)
+    }
+
+    /// Every domain's owners, index = domain.
+    pub fn all_owners(&self) -> &[Vec<String>] {
+        &self.owners
+    }
+
+    /// Whether `worker` owns domain `d`.
+    pub fn owns(&self, worker: &str, d: u32) -> bool {
+        self.owners(d).iter().any(|o| o == worker)
+    }
+
+    /// The domains `worker` owns, ascending.
+    pub fn owned_by<'a>(&'a self, worker: &'a str) -> impl Iterator<Item = u32> + 'a {
+        self.owners
+            .iter()
+            .enumerate()
+            .filter(move |(_, o)| o.iter().any(|w| w == worker))
+            .map(|(d, _)| d as u32)
+    }
+
+    /// The wire form: one entry per (domain, owner), by domain, owners in order.
+    pub fn to_proto(&self) -> Vec<DomainRoute> {
+        self.owners
+            .iter()
+            .enumerate()
+            .flat_map(|(d, owners)| {
+                owners.iter().map(move |w| DomainRoute {
+                    domain: d as u32,
+                    worker_id: w.clone(),
+                })
+            })
+            .collect()
+    }
+}
+
+/// A job's current routing table: [`Routes`] plus the job, the attempt, the version and
+/// the workers' endpoints.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct JobRouting {
+    job_id: String,
+    attempt: u32,
+    version: u64,
+    workers: Vec<WorkerEndpoint>,
+    routes: Routes,
+}
+
+impl JobRouting {
+    /// The first table of a job: version 1, attempt 0.
+    pub fn new(job_id: &str, workers: Vec<WorkerEndpoint>, routes: Routes) -> JobRouting {
+        JobRouting {
+            job_id: job_id.to_string(),
+            attempt: 0,
+            version: 1,
+            workers,
+            routes,
+        }
+    }
+
+    /// The version (1 for the first table; never decreases, across attempts too).
+    pub fn version(&self) -> u64 {
+        self.version
+    }
+
+    /// The job attempt the table belongs to.
+    pub fn attempt(&self) -> u32 {
+        self.attempt
+    }
+
+    /// The ownership.
+    pub fn routes(&self) -> &Routes {
+        &self.routes
+    }
+
+    /// The job's workers, in the order tiles and round robin deal over them.
+    pub fn workers(&self) -> &[WorkerEndpoint] {
+        &self.workers
+    }
+
+    /// The workers' ids, in order.
+    pub fn worker_ids(&self) -> Vec<String> {
+        self.workers.iter().map(|w| w.worker_id.clone()).collect()
+    }
+
+    /// Whether `worker` is one of the job's workers.
+    pub fn has_worker(&self, worker: &str) -> bool {
+        self.workers.iter().any(|w| w.worker_id == worker)
+    }
+
+    /// Replace the ownership: a new version. Returns the new version.
+    pub fn set_routes(&mut self, routes: Routes) -> u64 {
+        self.routes = routes;
+        self.version += 1;
+        self.version
+    }
+
+    /// Add a worker at the end of the list (it owns nothing yet): a new version.
+    pub fn add_worker(&mut self, worker: WorkerEndpoint) -> u64 {
+        self.workers.push(worker);
+        self.version += 1;
+        self.version
+    }
+
+    /// Remove a worker that owns nothing from the list: a new version. None (and no
+    /// change) when it is not listed or owns a domain.
+    pub fn remove_worker(&mut self, worker: &str) -> Option<u64> {
+        let i = self.workers.iter().position(|w| w.worker_id == worker)?;
+        if self.routes.owned_by(worker).next().is_some() {
+            return None;
+        }
+        self.workers.remove(i);
+        self.version += 1;
+        Some(self.version)
+    }
+
+    /// Start attempt `attempt` over `workers` with `routes`: a new version.
+    pub fn restart(&mut self, attempt: u32, workers: Vec<WorkerEndpoint>, routes: Routes) -> u64 {
+        self.attempt = attempt;
+        self.workers = workers;
+        self.routes = routes;
+        self.version += 1;
+        self.version
+    }
+
+    /// The message workers receive.
+    pub fn table(&self) -> RoutingTable {
+        RoutingTable {
+            job_id: self.job_id.clone(),
+            version: self.version,
+            workers: self.workers.clone(),
+            routes: self.routes.to_proto(),
+            attempt: self.attempt,
+            local: self.routes.is_local(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ids(names: &[&str]) -> Vec<String> {
+        names.iter().map(|s| s.to_string()).collect()
+    }
+
+    #[test]
+    fn round_robin_deals_domains_in_turn() {
+        let r = Routes::round_robin(7, &ids(&["a", "b", "c"]));
+        let owners: Vec<String> = r.to_proto().into_iter().map(|r| r.worker_id).collect();
+        assert_eq!(owners, ["a", "b", "c", "a", "b", "c", "a"]);
+        assert!(
+            r.to_proto()
+                .iter()
+                .enumerate()
+                .all(|(i, r)| r.domain == i as u32)
+        );
+        assert_eq!(r.owned_by("b").collect::<Vec<_>>(), [1, 4]);
+        assert!(Routes::round_robin(3, &[]).to_proto().is_empty());
+    }
+
+    #[test]
+    fn versions_only_grow() {
+        let ws = vec![WorkerEndpoint {
+            worker_id: "a".into(),
+            endpoint: "http://a:1".into(),
+        }];
+        let mut t = JobRouting::new("j", ws.clone(), Routes::round_robin(2, &ids(&["a"])));
+        assert_eq!((t.version(), t.attempt()), (1, 0));
+        assert_eq!(t.set_routes(Routes::local()), 2);
+        let m = t.table();
+        assert!(m.local && m.routes.is_empty());
+        assert_eq!(t.restart(1, ws, Routes::round_robin(2, &ids(&["a"]))), 3);
+        let m = t.table();
+        assert_eq!(
+            (m.version, m.attempt, m.local, m.routes.len()),
+            (3, 1, false, 2)
+        );
+    }
+}

@@ -1,0 +1,144 @@
+//! How a worker runs, and why it stops.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use dray_core::ray::RAY_RECORD_BYTES;
+use dray_scene::partition::memory::MemoryPackages;
+
+/// How a worker runs.
+#[derive(Clone, Debug)]
+pub struct WorkerConfig {
+    /// The coordinator, e.g. `http://127.0.0.1:50051`.
+    pub coordinator: String,
+    /// Where peers reach this worker, e.g. `http://10.0.0.7:50052`; by default
+    /// `http://` + the listening address.
+    pub advertise: Option<String>,
+    /// Tracing threads (0: all cores).
+    pub threads: usize,
+    /// Memory for resident domains and queued rays, bytes (0: unlimited); reported to
+    /// the scheduler. See [`WorkerConfig::limits`] for how it is split.
+    pub memory_budget: u64,
+    /// Added to every domain load, to emulate slow shared storage in experiments.
+    pub load_delay: Duration,
+    /// Rays the queues hold together at most (peers wait beyond it); lowered to fit
+    /// the memory budget.
+    pub queue_capacity: usize,
+    /// Rays in flight at this worker above which no camera rays are made; lowered to
+    /// fit the memory budget.
+    pub in_flight_limit: usize,
+    /// How long to keep trying to reach the coordinator at start.
+    pub connect_timeout: Duration,
+    /// How long to keep trying to register again after losing the coordinator (it
+    /// restarted, or declared this worker lost) before giving up.
+    pub rejoin_timeout: Duration,
+    /// The in-memory package store of the coordinator in this process, when there is
+    /// one (`dray render`): jobs whose package is `memory:N` read their domains from it.
+    pub memory_packages: Option<Arc<MemoryPackages>>,
+}
+
+impl Default for WorkerConfig {
+    fn default() -> Self {
+        WorkerConfig {
+            coordinator: "http://127.0.0.1:50051".into(),
+            advertise: None,
+            threads: 0,
+            memory_budget: 0,
+            load_delay: Duration::ZERO,
+            queue_capacity: 1 << 18,
+            in_flight_limit: 1 << 18,
+            connect_timeout: Duration::from_secs(10),
+            rejoin_timeout: Duration::from_secs(300),
+            memory_packages: None,
+        }
+    }
+}
+
+/// How a memory budget is spent.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Limits {
+    /// Bytes for resident domains (0: unlimited).
+    pub domain_bytes: u64,
+    /// Rays the queues hold together.
+    pub queue_capacity: usize,
+    /// Rays in flight above which no camera rays are made.
+    pub in_flight_limit: usize,
+}
+
+/// Fewest rays the queues and the in-flight limit are cut to, however small the budget:
+/// below this batches could not be formed at all.
+const MIN_RAYS: usize = 4096;
+
+impl WorkerConfig {
+    /// The split of the memory budget: a quarter for rays (queued, and waiting for
+    /// peers: the queue capacity and the in-flight limit each get half of it, 64 bytes
+    /// a ray), the rest for resident domains. Without a budget the configured ray
+    /// limits hold and domains are unlimited.
+    pub fn limits(&self) -> Limits {
+        if self.memory_budget == 0 {
+            return Limits {
+                domain_bytes: 0,
+                queue_capacity: self.queue_capacity.max(1),
+                in_flight_limit: self.in_flight_limit.max(1),
+            };
+        }
+        let rays = (self.memory_budget / 4 / 2 / RAY_RECORD_BYTES as u64) as usize;
+        let rays = rays.max(MIN_RAYS);
+        let queue_capacity = self.queue_capacity.min(rays).max(1);
+        let in_flight_limit = self.in_flight_limit.min(rays).max(1);
+        let ray_bytes = ((queue_capacity + in_flight_limit) * RAY_RECORD_BYTES) as u64;
+        Limits {
+            domain_bytes: self.memory_budget.saturating_sub(ray_bytes).max(1),
+            queue_capacity,
+            in_flight_limit,
+        }
+    }
+}
+
+/// Why a worker stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum NodeError {
+    #[error("invalid coordinator address {address:?}: {message}")]
+    Address { address: String, message: String },
+    #[error("cannot reach the coordinator at {address} (tried for {seconds} s): {message}")]
+    Unreachable {
+        address: String,
+        seconds: u64,
+        message: String,
+    },
+    #[error("the coordinator refused this worker: {0}")]
+    Refused(String),
+    #[error("lost the coordinator: {0}")]
+    Lost(String),
+    #[error("cannot start the tracing threads: {0}")]
+    Threads(String),
+    #[error("the ray-stream server failed: {0}")]
+    Serve(String),
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_budget_is_split_between_rays_and_domains() {
+        let c = WorkerConfig {
+            memory_budget: 64 << 20,
+            ..WorkerConfig::default()
+        };
+        let l = c.limits();
+        assert_eq!(l.queue_capacity, (64 << 20) / 8 / 64);
+        assert_eq!(l.in_flight_limit, l.queue_capacity);
+        assert_eq!(l.domain_bytes, (64 << 20) - (64 << 20) / 4);
+        let unlimited = WorkerConfig::default().limits();
+        assert_eq!(unlimited.domain_bytes, 0);
+        assert_eq!(unlimited.queue_capacity, 1 << 18);
+        // A tiny budget still leaves room for whole batches.
+        let tiny = WorkerConfig {
+            memory_budget: 1000,
+            ..WorkerConfig::default()
+        };
+        assert_eq!(tiny.limits().queue_capacity, MIN_RAYS);
+        assert_eq!(tiny.limits().domain_bytes, 1);
+    }
+}

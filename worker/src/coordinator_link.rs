@@ -1,0 +1,331 @@
+//! The worker's side of `ClusterService`: connect, register, heartbeat, and act on the
+//! coordinator's commands (job setups, tiles, routing tables, releases) in order.
+//!
+//! A worker outlives its coordinator: when the coordinator restarts (or declared this
+//! worker lost after a long stall), the worker drops its jobs — they died with the
+//! coordinator, or were given to others — registers again under a new id and takes the
+//! next job. Only a coordinator unreachable for longer than the rejoin timeout stops it.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use dray_core::ray::RAY_RECORD_FORMAT;
+use dray_proto::v1::{
+    Assignment, HeartbeatRequest, JobSetup, RegisterWorkerRequest, RegisterWorkerResponse,
+    ReportContributionsRequest, RoutingTable, TileAssignment, WatchAssignmentsRequest,
+    assignment::Command,
+};
+use tonic::transport::{Channel, Endpoint};
+
+use crate::config::{NodeError, WorkerConfig};
+use crate::domain_store::JobKey;
+use crate::job::plan_job;
+use crate::jobs::{Job, lock};
+use crate::node::{Shared, VERSION};
+use crate::peer_server::PeerServer;
+use crate::routing::Routes;
+use crate::tracer::TileRef;
+
+/// Connect to the coordinator, retrying for `patience`: in a cluster the workers often
+/// start before the coordinator listens.
+pub(crate) async fn connect(
+    config: &WorkerConfig,
+    patience: Duration,
+) -> Result<Channel, NodeError> {
+    let address = if config.coordinator.contains("://") {
+        config.coordinator.clone()
+    } else {
+        format!("http://{}", config.coordinator)
+    };
+    let endpoint = Endpoint::from_shared(address.clone()).map_err(|e| NodeError::Address {
+        address: config.coordinator.clone(),
+        message: e.to_string(),
+    })?;
+    let endpoint = endpoint.connect_timeout(Duration::from_secs(2));
+    let start = tokio::time::Instant::now();
+    loop {
+        match endpoint.connect().await {
+            Ok(c) => return Ok(c),
+            Err(e) => {
+                if start.elapsed() >= patience {
+                    return Err(NodeError::Unreachable {
+                        address,
+                        seconds: patience.as_secs(),
+                        message: error_chain(&e),
+                    });
+                }
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+        }
+    }
+}
+
+/// An error and its sources in one line (tonic's messages often repeat their source's
+/// text already, so repeats are skipped).
+fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut message = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        let text = s.to_string();
+        if !message.contains(&text) {
+            message = format!("{message}: {text}");
+        }
+        source = s.source();
+    }
+    message
+}
+
+fn hostname() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .map(|s| s.trim().to_string())
+        .unwrap_or_default()
+}
+
+/// Register with the coordinator once; the id is stored in `shared`.
+pub(crate) async fn register(
+    shared: &Shared,
+    endpoint: &str,
+) -> Result<RegisterWorkerResponse, NodeError> {
+    let mut client = shared.client.clone();
+    let reg = client
+        .register_worker(RegisterWorkerRequest {
+            endpoint: endpoint.to_string(),
+            threads: shared.threads as u32,
+            memory_budget_bytes: shared.memory_budget,
+            version: VERSION.into(),
+            record_format: RAY_RECORD_FORMAT,
+            hostname: hostname(),
+        })
+        .await
+        .map_err(|s| NodeError::Refused(s.message().to_string()))?
+        .into_inner();
+    shared.set_id(&reg.worker_id);
+    tracing::info!(worker = %reg.worker_id, %endpoint, "registered");
+    Ok(reg)
+}
+
+/// Serve the coordinator: one session per registration, registering again after a
+/// lost coordinator, for as long as it can be reached within `rejoin`.
+pub(crate) async fn sessions(
+    shared: Arc<Shared>,
+    mut registration: RegisterWorkerResponse,
+    endpoint: String,
+    peer_server: PeerServer,
+    rejoin: Duration,
+) -> Result<(), NodeError> {
+    loop {
+        peer_server.set_worker_id(&registration.worker_id);
+        let heartbeat = registration
+            .heartbeat_interval
+            .and_then(|d| Duration::try_from(d).ok())
+            .unwrap_or(Duration::from_secs(1));
+        let lost = tokio::select! {
+            e = assignment_loop(shared.clone()) => e,
+            e = heartbeat_loop(shared.clone(), heartbeat) => e,
+        };
+        tracing::warn!(worker = %shared.id(), "{lost}; dropping this worker's jobs and registering again");
+        for j in shared.jobs.release_all() {
+            shared.forget(&j.key.id, j.key.attempt);
+        }
+        let start = tokio::time::Instant::now();
+        registration = loop {
+            match register(&shared, &endpoint).await {
+                Ok(r) => break r,
+                Err(e) if start.elapsed() >= rejoin => {
+                    return Err(NodeError::Lost(format!(
+                        "{lost}, and could not register again within {} s: {e}",
+                        rejoin.as_secs()
+                    )));
+                }
+                Err(_) => tokio::time::sleep(Duration::from_millis(500)).await,
+            }
+        };
+    }
+}
+
+/// Read the coordinator's commands in order until the stream fails.
+async fn assignment_loop(shared: Arc<Shared>) -> NodeError {
+    let mut client = shared.client.clone();
+    let stream = client
+        .watch_assignments(WatchAssignmentsRequest {
+            worker_id: shared.id(),
+        })
+        .await;
+    let mut stream = match stream {
+        Ok(s) => s.into_inner(),
+        Err(s) => return NodeError::Lost(s.message().to_string()),
+    };
+    loop {
+        let msg = match stream.message().await {
+            Ok(Some(m)) => m,
+            Ok(None) => return NodeError::Lost("the assignment stream ended".into()),
+            Err(s) => return NodeError::Lost(s.message().to_string()),
+        };
+        let Assignment { command } = msg;
+        match command {
+            Some(Command::Setup(setup)) => setup_job(&shared, setup).await,
+            Some(Command::Tiles(t)) => add_tiles(&shared, t),
+            Some(Command::Routing(r)) => set_routing(&shared, r),
+            Some(Command::Cancel(r)) | Some(Command::Finish(r)) => {
+                tracing::info!(job = %r.job_id, attempt = r.attempt, reason = %r.reason, "job released");
+                if let Some(j) = shared.jobs.release(&r.job_id, r.attempt) {
+                    shared.forget(&j.key.id, j.key.attempt);
+                } else {
+                    shared.forget(&r.job_id, r.attempt);
+                }
+            }
+            None => {}
+        }
+    }
+}
+
+/// Heartbeats until the coordinator says it does not know this worker or cannot be
+/// reached five times in a row.
+async fn heartbeat_loop(shared: Arc<Shared>, every: Duration) -> NodeError {
+    let mut client = shared.client.clone();
+    let mut failures = 0u32;
+    loop {
+        tokio::time::sleep(every).await;
+        let r = client
+            .heartbeat(HeartbeatRequest {
+                worker_id: shared.id(),
+                memory_used_bytes: shared.memory_used(),
+                rays_queued: shared.in_flight() as u64,
+            })
+            .await;
+        match r {
+            Ok(r) if r.get_ref().reregister => {
+                return NodeError::Lost(
+                    "the coordinator no longer knows this worker (it restarted or declared it lost)"
+                        .into(),
+                );
+            }
+            Ok(_) => failures = 0,
+            Err(s) => {
+                failures += 1;
+                if failures >= 5 {
+                    return NodeError::Lost(s.message().to_string());
+                }
+            }
+        }
+    }
+}
+
+/// Set up a job attempt: plan it (reads the manifest; domains load on demand) and start
+/// taking its rays. A newer attempt replaces an older one.
+async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
+    let job_id = setup.job_id.clone();
+    let attempt = setup.attempt;
+    if shared.jobs.is_released(&job_id, attempt) {
+        return;
+    }
+    let memory = shared.memory_packages.clone();
+    let setup2 = setup.clone();
+    let planned = tokio::task::spawn_blocking(move || plan_job(&setup2, memory.as_deref()))
+        .await
+        .map_err(|e| e.to_string())
+        .and_then(|r| r.map_err(|e| e.to_string()));
+    let me = shared.id();
+    let routes = setup
+        .routing
+        .as_ref()
+        .ok_or_else(|| "job setup has no routing table".to_string())
+        .and_then(|t| Routes::new(t, &me, setup.domain_count).map_err(|e| e.to_string()));
+    let (plan, routes) = match (planned, routes) {
+        (Ok(p), Ok(r)) => (p, r),
+        (Err(e), _) | (_, Err(e)) => {
+            report_setup_failure(shared, &job_id, attempt, format!("worker {me}: {e}")).await;
+            return;
+        }
+    };
+    let key = JobKey {
+        id: job_id.as_str().into(),
+        attempt,
+    };
+    let job = Arc::new(Job::new(key, plan.tracer, plan.source, routes));
+    let owned = job.routes().owned().len();
+    let (started, replaced) = shared.jobs.insert(job.clone());
+    if let Some(old) = replaced {
+        shared.forget(&old.key.id, old.key.attempt);
+    }
+    if started {
+        tracing::info!(job = %job_id, attempt, owned, schedule = %setup.schedule, "job set up");
+    }
+    shared.notify();
+}
+
+async fn report_setup_failure(shared: &Shared, job_id: &str, attempt: u32, message: String) {
+    tracing::error!(job = %job_id, "{message}");
+    let mut client = shared.client.clone();
+    let _ = client
+        .report_contributions(ReportContributionsRequest {
+            worker_id: shared.id(),
+            job_id: job_id.to_string(),
+            sequence: 1,
+            failure: message,
+            attempt,
+            ..Default::default()
+        })
+        .await;
+    shared.jobs.release(job_id, attempt);
+    shared.forget(job_id, attempt);
+}
+
+fn add_tiles(shared: &Shared, t: TileAssignment) {
+    let Some(job) = shared.jobs.get(&t.job_id) else {
+        tracing::warn!(job = %t.job_id, "tiles for a job this worker does not run");
+        return;
+    };
+    let mut tiles = lock(&job.tiles);
+    for tile in t.tiles {
+        if tile.attempt != job.key.attempt {
+            tracing::warn!(job = %t.job_id, attempt = tile.attempt, "tile of another attempt ignored");
+            continue;
+        }
+        tiles.push_back((
+            TileRef {
+                index: tile.index,
+                x0: tile.x0,
+                y0: tile.y0,
+                width: tile.width,
+                height: tile.height,
+                credit: tile.credit,
+            },
+            0,
+        ));
+    }
+    drop(tiles);
+    shared.notify();
+}
+
+/// A new routing table: swap it in, and let go of domains this worker no longer owns
+/// (their queued rays are forwarded by the tracing threads).
+fn set_routing(shared: &Shared, table: RoutingTable) {
+    let Some(job) = shared.jobs.get(&table.job_id) else {
+        return;
+    };
+    if table.attempt != job.key.attempt {
+        return;
+    }
+    let routes = match Routes::new(&table, &shared.id(), job.tracer.domain_count()) {
+        Ok(r) => r,
+        Err(e) => {
+            job.fail(format!("worker {}: {e}", shared.id()));
+            return;
+        }
+    };
+    let version = routes.version;
+    let Some(old) = job.set_routes(routes) else {
+        return;
+    };
+    let new = job.routes();
+    let mut dropped = Vec::new();
+    for d in old.owned() {
+        if !new.owns(d) {
+            shared.store.evict(&job.key, d);
+            dropped.push(d);
+        }
+    }
+    tracing::debug!(job = %job.key.id, version, owned = ?new.owned(), ?dropped, "routing table changed");
+    shared.notify();
+}

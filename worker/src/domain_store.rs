@@ -1,0 +1,444 @@
+//! The domain store: which domains of which job attempts are resident on this worker,
+//! loaded on demand and evicted least-recently-used within a memory budget.
+//!
+//! A domain is the unit of residency (DESIGN.md "Words"): its triangles, the scene's
+//! emitters (next-event estimation samples them from anywhere) and one BVH, in scene
+//! order with scene-wide ids, so that tracing and shading in it give the bits the whole
+//! scene gives (see `dray_scene::partition::resident`). Each is loaded alone — read from
+//! the package, checked, BVH built — counted and timed, and dropped alone.
+//!
+//! **Budget.** The store keeps the bytes of resident domains at or below its budget: a
+//! load first evicts the least recently used domains (of any job) until the newcomer
+//! fits. A domain that could never fit fails its job with a message saying so, instead
+//! of the kernel killing the worker. Tracing steps hold the domains they touch through an
+//! `Arc` for the length of one batch, so an evicted domain's memory is freed when the
+//! steps using it end: the stated margin over the budget is the domains pinned by steps
+//! already running when the eviction happened (at most a few per tracing thread).
+//!
+//! Loads run on the tracing thread that needs the domain (other threads go on with
+//! resident work); a domain being loaded by one thread is not loaded twice.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use dray_core::light_sampler::LightSampler;
+use dray_scene::partition::ResidentScene;
+
+/// A job attempt, as the store and the queues know it.
+#[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct JobKey {
+    /// The job id.
+    pub id: Arc<str>,
+    /// The attempt (`JobSetup.attempt`).
+    pub attempt: u32,
+}
+
+/// One domain ready to trace: its triangles and the emitters, with a BVH over the
+/// domain's triangles, and the light table over that mesh.
+pub struct LoadedDomain {
+    /// The domain index in the package.
+    pub domain: u32,
+    /// Exactly one entry in `resident.domains`: this domain.
+    pub resident: ResidentScene,
+    /// The light table over `resident.scene` (the same table as the whole scene's: every
+    /// emitter is in it, in scene order).
+    pub lights: Arc<LightSampler>,
+    /// What it counts against the budget.
+    pub bytes: u64,
+}
+
+/// Where a job's domains come from: a package directory or an in-memory package.
+pub trait DomainSource: Send + Sync {
+    /// Bytes domain `d` will take once loaded, estimated before loading (from the
+    /// package manifest), so that room is made first.
+    fn estimate_bytes(&self, d: u32) -> u64;
+    /// Load domain `d` (blocking: reads files, builds the BVH).
+    fn load(&self, d: u32) -> Result<LoadedDomain, String>;
+}
+
+/// Why a domain could not be loaded now.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum LoadError {
+    /// The domain alone is larger than the budget: the job cannot run on this worker.
+    #[error(
+        "domain {domain} needs about {needed} bytes resident, more than this worker's memory budget leaves for domains ({budget} bytes{note})"
+    )]
+    TooLarge {
+        domain: u32,
+        needed: u64,
+        budget: u64,
+        /// How the budget was split, when it was (see `WorkerConfig::limits`).
+        note: String,
+    },
+    /// Another thread is loading it, or every byte of the budget is held by domains
+    /// being loaded: try other work and come back.
+    #[error("domain {domain} cannot be loaded right now")]
+    Busy { domain: u32 },
+    /// Reading or building failed.
+    #[error("cannot load domain {domain}: {message}")]
+    Failed { domain: u32, message: String },
+}
+
+/// What the store did for one job attempt since it was last asked ([`DomainStore::take_counters`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StoreCounters {
+    pub loads: u64,
+    pub load_seconds: f64,
+    pub evictions: u64,
+}
+
+enum Slot {
+    /// A thread is loading it; `bytes` are reserved.
+    Loading { bytes: u64 },
+    Ready {
+        domain: Arc<LoadedDomain>,
+        last_used: u64,
+    },
+}
+
+impl Slot {
+    fn bytes(&self) -> u64 {
+        match self {
+            Slot::Loading { bytes } => *bytes,
+            Slot::Ready { domain, .. } => domain.bytes,
+        }
+    }
+}
+
+#[derive(Default)]
+struct Inner {
+    slots: HashMap<(JobKey, u32), Slot>,
+    /// Bytes of all slots, loading ones included.
+    bytes: u64,
+    clock: u64,
+    counters: HashMap<JobKey, StoreCounters>,
+}
+
+/// The resident domains of every job attempt on this worker.
+pub struct DomainStore {
+    /// Bytes resident domains may take together; 0 means unlimited.
+    budget: u64,
+    /// Said with a domain too large for the budget: where the budget came from.
+    note: String,
+    /// Added to every load, to emulate slow shared storage in experiments.
+    load_delay: Duration,
+    inner: Mutex<Inner>,
+}
+
+impl DomainStore {
+    /// A store holding at most `budget` bytes of domains (0: unlimited), each load
+    /// taking at least `load_delay` longer.
+    pub fn new(budget: u64, load_delay: Duration) -> DomainStore {
+        DomainStore {
+            budget,
+            note: String::new(),
+            load_delay,
+            inner: Mutex::new(Inner::default()),
+        }
+    }
+
+    /// Say `note` (e.g. how a larger budget was split) with every "too large" error.
+    pub fn with_note(mut self, note: String) -> DomainStore {
+        self.note = note;
+        self
+    }
+
+    fn lock(&self) -> MutexGuard<'_, Inner> {
+        // Every update below leaves the maps consistent before it can panic.
+        self.inner.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The budget in bytes (0: unlimited).
+    pub fn budget(&self) -> u64 {
+        self.budget
+    }
+
+    /// Domain `d` of `job` if resident (marking it used).
+    pub fn get(&self, job: &JobKey, d: u32) -> Option<Arc<LoadedDomain>> {
+        let mut g = self.lock();
+        g.clock += 1;
+        let now = g.clock;
+        match g.slots.get_mut(&(job.clone(), d)) {
+            Some(Slot::Ready { domain, last_used }) => {
+                *last_used = now;
+                Some(domain.clone())
+            }
+            _ => None,
+        }
+    }
+
+    /// Whether domain `d` of `job` is resident.
+    pub fn is_resident(&self, job: &JobKey, d: u32) -> bool {
+        matches!(
+            self.lock().slots.get(&(job.clone(), d)),
+            Some(Slot::Ready { .. })
+        )
+    }
+
+    /// Load domain `d` of `job` from `source` unless it is resident, evicting least
+    /// recently used domains to make room. Blocking.
+    pub fn load(
+        &self,
+        job: &JobKey,
+        d: u32,
+        source: &dyn DomainSource,
+    ) -> Result<Arc<LoadedDomain>, LoadError> {
+        let estimate = source.estimate_bytes(d);
+        if self.budget > 0 && estimate > self.budget {
+            return Err(LoadError::TooLarge {
+                domain: d,
+                needed: estimate,
+                budget: self.budget,
+                note: self.note.clone(),
+            });
+        }
+        let key = (job.clone(), d);
+        {
+            let mut g = self.lock();
+            match g.slots.get(&key) {
+                Some(Slot::Ready { domain, .. }) => return Ok(domain.clone()),
+                Some(Slot::Loading { .. }) => return Err(LoadError::Busy { domain: d }),
+                None => {}
+            }
+            if !self.make_room(&mut g, estimate) {
+                return Err(LoadError::Busy { domain: d });
+            }
+            g.slots
+                .insert(key.clone(), Slot::Loading { bytes: estimate });
+            g.bytes += estimate;
+        }
+        let start = Instant::now();
+        let _span = tracing::debug_span!("load", job = %job.id, domain = d).entered();
+        if !self.load_delay.is_zero() {
+            std::thread::sleep(self.load_delay);
+        }
+        let loaded = source.load(d);
+        let seconds = start.elapsed().as_secs_f64();
+        let mut g = self.lock();
+        g.bytes -= estimate;
+        g.slots.remove(&key);
+        let loaded = loaded.map_err(|message| LoadError::Failed { domain: d, message })?;
+        let domain = Arc::new(loaded);
+        // The estimate made the room; the measured size is what counts from now on.
+        g.bytes += domain.bytes;
+        g.clock += 1;
+        let now = g.clock;
+        g.slots.insert(
+            key,
+            Slot::Ready {
+                domain: domain.clone(),
+                last_used: now,
+            },
+        );
+        let c = g.counters.entry(job.clone()).or_default();
+        c.loads += 1;
+        c.load_seconds += seconds;
+        if self.budget > 0 && g.bytes > self.budget {
+            // The estimate was short: evict others until the measured size fits.
+            let over = g.bytes - self.budget;
+            self.evict_lru(&mut g, over, Some((job, d)));
+        }
+        tracing::debug!(job = %job.id, domain = d, bytes = domain.bytes, seconds, "domain loaded");
+        Ok(domain)
+    }
+
+    /// Evict ready domains, least recently used first, until `needed` more bytes fit.
+    /// False when they cannot (the rest is being loaded).
+    fn make_room(&self, g: &mut Inner, needed: u64) -> bool {
+        if self.budget == 0 || g.bytes + needed <= self.budget {
+            return true;
+        }
+        let excess = g.bytes + needed - self.budget;
+        self.evict_lru(g, excess, None);
+        g.bytes + needed <= self.budget
+    }
+
+    /// Evict least recently used ready domains (never `keep`) until `bytes` are freed or
+    /// none is left.
+    fn evict_lru(&self, g: &mut Inner, bytes: u64, keep: Option<(&JobKey, u32)>) {
+        let mut ready: Vec<(u64, (JobKey, u32))> = g
+            .slots
+            .iter()
+            .filter_map(|(k, s)| match s {
+                Slot::Ready { last_used, .. } => Some((*last_used, k.clone())),
+                Slot::Loading { .. } => None,
+            })
+            .filter(|(_, k)| keep.is_none_or(|(j, d)| !(k.0 == *j && k.1 == d)))
+            .collect();
+        ready.sort_unstable_by_key(|(t, _)| *t);
+        let mut freed = 0u64;
+        for (_, k) in ready {
+            if freed >= bytes {
+                break;
+            }
+            if let Some(slot) = g.slots.remove(&k) {
+                let b = slot.bytes();
+                freed += b;
+                g.bytes -= b;
+                g.counters.entry(k.0.clone()).or_default().evictions += 1;
+                tracing::debug!(job = %k.0.id, domain = k.1, bytes = b, "domain evicted");
+            }
+        }
+    }
+
+    /// Drop domain `d` of `job` if resident (its owner moved it away); counted as an
+    /// eviction.
+    pub fn evict(&self, job: &JobKey, d: u32) {
+        let mut g = self.lock();
+        if let Some(Slot::Ready { domain, .. }) = g.slots.get(&(job.clone(), d)) {
+            let b = domain.bytes;
+            g.slots.remove(&(job.clone(), d));
+            g.bytes -= b;
+            g.counters.entry(job.clone()).or_default().evictions += 1;
+        }
+    }
+
+    /// Drop every domain of `job_id` with attempt at most `attempt` (released), without
+    /// counting evictions.
+    pub fn release(&self, job_id: &str, attempt: u32) {
+        let mut g = self.lock();
+        let mut freed = 0;
+        g.slots.retain(|(j, _), s| {
+            let gone = &*j.id == job_id && j.attempt <= attempt && matches!(s, Slot::Ready { .. });
+            if gone {
+                freed += s.bytes();
+            }
+            !gone
+        });
+        g.bytes -= freed;
+        g.counters
+            .retain(|j, _| !(&*j.id == job_id && j.attempt <= attempt));
+    }
+
+    /// Resident domains of `job` with their bytes, in domain order.
+    pub fn resident(&self, job: &JobKey) -> Vec<(u32, u64)> {
+        let g = self.lock();
+        let mut v: Vec<(u32, u64)> = g
+            .slots
+            .iter()
+            .filter_map(|((j, d), s)| match s {
+                Slot::Ready { domain, .. } if j == job => Some((*d, domain.bytes)),
+                _ => None,
+            })
+            .collect();
+        v.sort_unstable();
+        v
+    }
+
+    /// Bytes held by resident (and loading) domains.
+    pub fn used_bytes(&self) -> u64 {
+        self.lock().bytes
+    }
+
+    /// What the store did for `job` since the previous call.
+    pub fn take_counters(&self, job: &JobKey) -> StoreCounters {
+        self.lock()
+            .counters
+            .get_mut(job)
+            .map(std::mem::take)
+            .unwrap_or_default()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dray_core::scene::Scene;
+    use std::sync::atomic::{AtomicU64, Ordering};
+
+    /// Domains of a fixed size made from an empty scene, counting loads.
+    struct Fake {
+        bytes: u64,
+        loads: AtomicU64,
+    }
+
+    impl DomainSource for Fake {
+        fn estimate_bytes(&self, _d: u32) -> u64 {
+            self.bytes
+        }
+        fn load(&self, d: u32) -> Result<LoadedDomain, String> {
+            self.loads.fetch_add(1, Ordering::Relaxed);
+            let resident = ResidentScene {
+                scene: Scene::default(),
+                global_ids: Vec::new(),
+                bounds: (glam::Vec3::ZERO, glam::Vec3::ONE),
+                domains: Vec::new(),
+            };
+            let lights = Arc::new(LightSampler::with_bounds(
+                &resident.scene,
+                false,
+                resident.bounds,
+            ));
+            Ok(LoadedDomain {
+                domain: d,
+                resident,
+                lights,
+                bytes: self.bytes,
+            })
+        }
+    }
+
+    fn job(a: u32) -> JobKey {
+        JobKey {
+            id: "j".into(),
+            attempt: a,
+        }
+    }
+
+    #[test]
+    fn loads_once_and_evicts_least_recently_used() {
+        let src = Fake {
+            bytes: 100,
+            loads: AtomicU64::new(0),
+        };
+        let store = DomainStore::new(250, Duration::ZERO);
+        let j = job(0);
+        store.load(&j, 0, &src).unwrap();
+        store.load(&j, 1, &src).unwrap();
+        store.load(&j, 0, &src).unwrap();
+        assert_eq!(
+            src.loads.load(Ordering::Relaxed),
+            2,
+            "a resident domain is not reloaded"
+        );
+        // Touch 0, so 1 is the least recently used.
+        assert!(store.get(&j, 0).is_some());
+        store.load(&j, 2, &src).unwrap();
+        assert!(store.is_resident(&j, 0));
+        assert!(!store.is_resident(&j, 1), "the LRU domain went");
+        assert!(store.used_bytes() <= 250);
+        let c = store.take_counters(&j);
+        assert_eq!((c.loads, c.evictions), (3, 1));
+        assert_eq!(store.take_counters(&j).loads, 0, "counters are deltas");
+    }
+
+    #[test]
+    fn a_domain_larger_than_the_budget_is_an_error() {
+        let src = Fake {
+            bytes: 1000,
+            loads: AtomicU64::new(0),
+        };
+        let store = DomainStore::new(999, Duration::ZERO);
+        let e = store.load(&job(0), 3, &src).err().unwrap();
+        assert!(matches!(e, LoadError::TooLarge { domain: 3, .. }), "{e}");
+        assert!(e.to_string().contains("budget"));
+        assert_eq!(src.loads.load(Ordering::Relaxed), 0);
+    }
+
+    #[test]
+    fn release_frees_an_attempt() {
+        let src = Fake {
+            bytes: 10,
+            loads: AtomicU64::new(0),
+        };
+        let store = DomainStore::new(0, Duration::ZERO);
+        store.load(&job(0), 0, &src).unwrap();
+        store.load(&job(1), 0, &src).unwrap();
+        store.release("j", 0);
+        assert!(!store.is_resident(&job(0), 0));
+        assert!(store.is_resident(&job(1), 0));
+        assert_eq!(store.used_bytes(), 10);
+        assert_eq!(store.resident(&job(1)), vec![(0, 10)]);
+    }
+}

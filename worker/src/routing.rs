@@ -1,0 +1,213 @@
+//! A job's routing table as the worker uses it: who traces each domain, and where to
+//! reach them.
+//!
+//! The coordinator's scheduler sends a new table (a larger version) whenever it moves or
+//! replicates domains; a worker swaps it in while the job runs ([`Routes`] behind an
+//! `Arc`, replaced whole), so a tracing step always sees one consistent table. Rays for a
+//! domain this worker does not own under the current table go to an owner, whether they
+//! were made here or arrived from a peer that used an older table (forwarding).
+//!
+//! Under the image-plane schedule the table is *local*: every worker owns every domain
+//! for the rays it makes, so no ray leaves the worker that made it.
+
+use std::collections::HashMap;
+
+use dray_proto::v1::RoutingTable;
+
+/// Why a table cannot be used.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum RoutingError {
+    #[error("routing table version {version} names domain {domain}, but the job has {domains}")]
+    UnknownDomain {
+        version: u64,
+        domain: u32,
+        domains: u32,
+    },
+    #[error(
+        "routing table version {version} gives domain {domain} to worker {worker:?}, which it does not list"
+    )]
+    UnknownWorker {
+        version: u64,
+        domain: u32,
+        worker: String,
+    },
+    #[error("routing table version {version} gives domain {domain} to no worker")]
+    NoOwner { version: u64, domain: u32 },
+}
+
+/// A peer: id and endpoint.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Peer {
+    pub id: String,
+    pub endpoint: String,
+}
+
+/// One version of a job's routing table, resolved for this worker.
+#[derive(Clone, Debug)]
+pub struct Routes {
+    /// The table's version.
+    pub version: u64,
+    /// Image-plane: every ray stays here.
+    pub local: bool,
+    /// Per domain, indices into `peers` of its owners (one, or several for a
+    /// replicated domain), in the table's order.
+    owners: Vec<Vec<u32>>,
+    peers: Vec<Peer>,
+    /// This worker's index in `peers`, if listed.
+    me: Option<u32>,
+}
+
+impl Routes {
+    /// Resolve `table` for worker `me` of a job with `domains` domains.
+    pub fn new(table: &RoutingTable, me: &str, domains: u32) -> Result<Routes, RoutingError> {
+        let peers: Vec<Peer> = table
+            .workers
+            .iter()
+            .map(|w| Peer {
+                id: w.worker_id.clone(),
+                endpoint: w.endpoint.clone(),
+            })
+            .collect();
+        let index: HashMap<&str, u32> = peers
+            .iter()
+            .enumerate()
+            .map(|(i, p)| (p.id.as_str(), i as u32))
+            .collect();
+        let mut owners = vec![Vec::new(); domains as usize];
+        if !table.local {
+            for r in &table.routes {
+                let slot =
+                    owners
+                        .get_mut(r.domain as usize)
+                        .ok_or(RoutingError::UnknownDomain {
+                            version: table.version,
+                            domain: r.domain,
+                            domains,
+                        })?;
+                let w = index.get(r.worker_id.as_str()).copied().ok_or_else(|| {
+                    RoutingError::UnknownWorker {
+                        version: table.version,
+                        domain: r.domain,
+                        worker: r.worker_id.clone(),
+                    }
+                })?;
+                if !slot.contains(&w) {
+                    slot.push(w);
+                }
+            }
+            if let Some(d) = owners.iter().position(Vec::is_empty) {
+                return Err(RoutingError::NoOwner {
+                    version: table.version,
+                    domain: d as u32,
+                });
+            }
+        }
+        Ok(Routes {
+            version: table.version,
+            local: table.local,
+            me: index.get(me).copied(),
+            owners,
+            peers,
+        })
+    }
+
+    /// Whether this worker traces rays bound for domain `d`.
+    pub fn owns(&self, d: u32) -> bool {
+        self.local
+            || self
+                .me
+                .is_some_and(|me| self.owners.get(d as usize).is_some_and(|o| o.contains(&me)))
+    }
+
+    /// The domains this worker owns, ascending (every domain under a local table).
+    pub fn owned(&self) -> Vec<u32> {
+        (0..self.owners.len() as u32)
+            .filter(|&d| self.owns(d))
+            .collect()
+    }
+
+    /// The peer that should trace rays bound for `d` that this worker does not own;
+    /// `spread` picks among the owners of a replicated domain (any value will do: the
+    /// image does not depend on who traces what). None under a local table or for a
+    /// domain the table does not have.
+    pub fn owner(&self, d: u32, spread: u32) -> Option<&Peer> {
+        if self.local {
+            return None;
+        }
+        let o = self.owners.get(d as usize)?;
+        let pick = o.get(spread as usize % o.len().max(1))?;
+        self.peers.get(*pick as usize)
+    }
+
+    /// Every peer of the job.
+    pub fn peers(&self) -> &[Peer] {
+        &self.peers
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dray_proto::v1::{DomainRoute, WorkerEndpoint};
+
+    fn table(routes: &[(u32, &str)], local: bool) -> RoutingTable {
+        RoutingTable {
+            job_id: "j".into(),
+            version: 3,
+            workers: ["a", "b"]
+                .iter()
+                .map(|w| WorkerEndpoint {
+                    worker_id: w.to_string(),
+                    endpoint: format!("http://{w}"),
+                })
+                .collect(),
+            routes: routes
+                .iter()
+                .map(|(d, w)| DomainRoute {
+                    domain: *d,
+                    worker_id: w.to_string(),
+                })
+                .collect(),
+            attempt: 0,
+            local,
+        }
+    }
+
+    #[test]
+    fn owners_and_replicas() {
+        let t = table(&[(0, "a"), (1, "b"), (2, "a"), (2, "b")], false);
+        let r = Routes::new(&t, "a", 3).unwrap();
+        assert_eq!(r.owned(), vec![0, 2]);
+        assert!(!r.owns(1));
+        assert_eq!(r.owner(1, 7).map(|p| p.id.as_str()), Some("b"));
+        let picks: Vec<&str> = (0..2).map(|s| r.owner(2, s).unwrap().id.as_str()).collect();
+        assert_eq!(
+            picks,
+            ["a", "b"],
+            "a replicated domain spreads over its owners"
+        );
+    }
+
+    #[test]
+    fn a_local_table_owns_everything() {
+        let r = Routes::new(&table(&[], true), "b", 4).unwrap();
+        assert_eq!(r.owned(), vec![0, 1, 2, 3]);
+        assert!(r.owner(1, 0).is_none());
+    }
+
+    #[test]
+    fn bad_tables_are_errors() {
+        let e = Routes::new(&table(&[(0, "a")], false), "a", 2).unwrap_err();
+        assert_eq!(
+            e,
+            RoutingError::NoOwner {
+                version: 3,
+                domain: 1
+            }
+        );
+        let e = Routes::new(&table(&[(0, "a"), (5, "a")], false), "a", 2).unwrap_err();
+        assert!(matches!(e, RoutingError::UnknownDomain { domain: 5, .. }));
+        let e = Routes::new(&table(&[(0, "z")], false), "a", 1).unwrap_err();
+        assert!(e.to_string().contains("\"z\""), "{e}");
+    }
+}

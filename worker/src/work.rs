@@ -1,0 +1,330 @@
+//! The tracing threads: choose work, trace it, hand the results on.
+//!
+//! Work, in order of preference:
+//! 1. **The fullest queue** (Navrátil et al.: each process works on its fullest queue).
+//!    If this worker no longer owns the queue's domain (the routing table moved it),
+//!    its rays are forwarded to an owner. If the domain is not resident, this thread
+//!    loads it (other threads go on with other work) — but only when its queue is more
+//!    than twice as full as the fullest queue of a resident domain, so that queues of
+//!    similar length do not evict each other's domains in turn. A domain another
+//!    thread is loading, or that cannot get room yet, is skipped for the next queue.
+//! 2. **Camera rays** of the job's tiles, while the rays in flight here are below the
+//!    in-flight limit: the only source of new work, so this bounds memory.
+//!
+//! **Tracing never waits for the network**: rays for other workers go to per-peer
+//! outboxes ([`crate::peers`]), rays for domains this worker owns to its own queues
+//! without waiting. So no cycle of workers waiting on each other's full queues can form.
+
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+use dray_core::ray::RAY_RECORD_BYTES;
+
+use crate::domain_store::{DomainStore, JobKey, LoadError, LoadedDomain};
+use crate::jobs::{Job, Standing, lock};
+use crate::node::Shared;
+use crate::peers::PeerMessage;
+use crate::queue::QueuedBatch;
+use crate::routing::Routes;
+use crate::tracer::{Outbox, Residency, TileRef};
+
+/// Camera rays made in one tracing step.
+const CAMERA_CHUNK: u64 = 4096;
+/// Times a batch may be forwarded before the job fails. A receiver whose table is
+/// older than the sender's waits for its own instead of forwarding, so rays do not
+/// bounce between tables; each forward follows a newer table, and this only catches a
+/// routing bug.
+pub const MAX_FORWARDS: u32 = 16;
+
+/// One piece of work for a tracing thread.
+enum Work {
+    /// Rays queued for a domain this worker owns, and the domain, held so that no
+    /// eviction can take it between choosing the work and tracing it.
+    Rays(Arc<Job>, Arc<LoadedDomain>, QueuedBatch),
+    /// Rays queued for a domain this worker no longer owns.
+    Forward(Arc<Job>, u32, QueuedBatch),
+    /// Camera rays `start..start + count` of a tile.
+    Camera(Arc<Job>, TileRef, u64, u64),
+}
+
+/// What a step may trace here: domains resident and owned under the job's table.
+struct StepResidency<'a> {
+    store: &'a DomainStore,
+    key: &'a JobKey,
+    routes: &'a Routes,
+    /// The domain the work was chosen for, already held.
+    held: Option<&'a Arc<LoadedDomain>>,
+}
+
+impl Residency for StepResidency<'_> {
+    fn domain(&self, d: u32) -> Option<Arc<LoadedDomain>> {
+        if let Some(h) = self.held
+            && h.domain == d
+        {
+            return Some(h.clone());
+        }
+        if self.routes.owns(d) {
+            self.store.get(self.key, d)
+        } else {
+            None
+        }
+    }
+}
+
+/// One tracing thread: take work, trace it, hand the results on; sleep when there is
+/// none, until new rays or tiles arrive (the timeout is only a safety net).
+pub(crate) fn tracer_thread(shared: &Arc<Shared>) {
+    while !shared.stopping.load(Ordering::Relaxed) {
+        let seen = shared.wake.seen();
+        match next_work(shared) {
+            Some(work) => trace(shared, work),
+            None => {
+                let start = Instant::now();
+                shared.wake.wait(seen, Duration::from_millis(50));
+                let idle = start.elapsed().as_secs_f64();
+                for job in shared.jobs.all() {
+                    lock(&job.report).idle_seconds += idle;
+                }
+            }
+        }
+    }
+}
+
+/// The next piece of work, if any.
+fn next_work(shared: &Shared) -> Option<Work> {
+    let mut lengths = shared.queues.lengths();
+    // Fullest first; ties in key order, so threads agree.
+    lengths.sort_by(|a, b| b.1.cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
+    // The fullest queue whose domain is already here: a domain is loaded (and another
+    // perhaps evicted) only for a queue more than twice as full, so that two queues of
+    // about the same length do not evict each other's domains in turn.
+    let resident_best = lengths
+        .iter()
+        .find(|(k, _)| {
+            shared.jobs.get(&k.job_id).is_some_and(|j| {
+                j.key.attempt == k.attempt && shared.store.is_resident(&j.key, k.domain)
+            })
+        })
+        .map_or(0, |(_, n)| *n);
+    for (key, len) in lengths {
+        let job = match shared.jobs.standing(&key.job_id, key.attempt) {
+            Standing::Running(job) if !job.has_failed() => job,
+            Standing::Running(_) | Standing::Gone => {
+                shared.queues.drop_job(&key.job_id, key.attempt);
+                continue;
+            }
+            // Its setup is on the way: keep the rays.
+            Standing::Pending => continue,
+        };
+        let d = key.domain;
+        let routes = job.routes();
+        if !routes.owns(d) {
+            // A sender with a newer table than ours says this worker owns the domain:
+            // our table is on its way; forwarding now could bounce the rays back.
+            if shared
+                .queues
+                .front_version(&key)
+                .is_some_and(|v| v > routes.version)
+            {
+                continue;
+            }
+            if let Some(b) = shared.queues.pop(&key) {
+                return Some(Work::Forward(job, d, b));
+            }
+            continue;
+        }
+        let held = match shared.store.get(&job.key, d) {
+            Some(h) => h,
+            None if len <= 2 * resident_best => continue,
+            None => match shared.store.load(&job.key, d, job.source.as_ref()) {
+                Ok(h) => h,
+                Err(LoadError::Busy { .. }) => continue,
+                Err(e) => {
+                    job.fail(format!("worker {}: {e}", shared.id()));
+                    continue;
+                }
+            },
+        };
+        if let Some(b) = shared.queues.pop(&key) {
+            return Some(Work::Rays(job, held, b));
+        }
+    }
+    if shared.in_flight() < shared.limits.in_flight_limit {
+        for job in shared.jobs.all() {
+            if job.has_failed() {
+                continue;
+            }
+            let mut tiles = lock(&job.tiles);
+            let Some((tile, next)) = tiles.front_mut() else {
+                continue;
+            };
+            let total = tile.camera_rays(job.tracer.settings().spp);
+            let start = *next;
+            let count = CAMERA_CHUNK.min(total - start);
+            let t = *tile;
+            *next += count;
+            if *next >= total {
+                tiles.pop_front();
+            }
+            drop(tiles);
+            return Some(Work::Camera(job, t, start, count));
+        }
+    }
+    None
+}
+
+/// Trace one piece of work and hand the results on.
+fn trace(shared: &Arc<Shared>, work: Work) {
+    let mut out = Outbox::default();
+    let (job, result) = match work {
+        Work::Rays(job, held, batch) => {
+            if !job.is_active() {
+                return;
+            }
+            let d = held.domain;
+            let _span = tracing::trace_span!("batch", job = %job.key.id, domain = d, rays = batch.rays.len())
+                .entered();
+            let routes = job.routes();
+            let residency = StepResidency {
+                store: &shared.store,
+                key: &job.key,
+                routes: &routes,
+                held: Some(&held),
+            };
+            let r = job.tracer.trace_batch(d, &batch.rays, &residency, &mut out);
+            (job, r)
+        }
+        Work::Camera(job, tile, start, count) => {
+            if !job.is_active() {
+                return;
+            }
+            let _span =
+                tracing::trace_span!("tile", job = %job.key.id, tile = tile.index, start).entered();
+            let routes = job.routes();
+            let residency = StepResidency {
+                store: &shared.store,
+                key: &job.key,
+                routes: &routes,
+                held: None,
+            };
+            let r = job
+                .tracer
+                .camera_rays(&tile, start, count, &residency, &mut out);
+            (job, r)
+        }
+        Work::Forward(job, d, batch) => {
+            forward(shared, &job, d, batch);
+            return;
+        }
+    };
+    match result {
+        Ok(()) => deliver(shared, &job, out),
+        Err(e) => job.fail(format!("worker {}: {e}", shared.id())),
+    }
+}
+
+/// Rays queued here for `domain`, which this worker no longer owns: on to an owner.
+fn forward(shared: &Arc<Shared>, job: &Arc<Job>, domain: u32, batch: QueuedBatch) {
+    if !job.is_active() {
+        return;
+    }
+    let routes = job.routes();
+    let n = batch.rays.len() as u64;
+    if routes.owns(domain) {
+        // The table changed back meanwhile.
+        shared.queues.push_local(domain, batch);
+        return;
+    }
+    if batch.forwards >= MAX_FORWARDS {
+        job.fail(format!(
+            "worker {}: rays for domain {domain} were forwarded {} times (routing version {}); the routing tables disagree",
+            shared.id(),
+            batch.forwards,
+            routes.version
+        ));
+        return;
+    }
+    let spread = job.spread.fetch_add(1, Ordering::Relaxed) as u32;
+    let Some(peer) = routes.owner(domain, spread).cloned() else {
+        job.fail(format!(
+            "worker {}: routing version {} has no owner for domain {domain}",
+            shared.id(),
+            routes.version
+        ));
+        return;
+    };
+    {
+        let mut r = lock(&job.report);
+        r.rays_forwarded += n;
+        r.rays_sent += n;
+        r.bytes += n * RAY_RECORD_BYTES as u64;
+    }
+    shared.peers.send(
+        shared,
+        &peer,
+        PeerMessage {
+            job: job.clone(),
+            domain,
+            rays: batch.rays,
+            forwards: batch.forwards + 1,
+            routing_version: routes.version,
+        },
+    );
+}
+
+/// Results into the job's report; rays to this worker's queues or to their owners.
+fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, out: Outbox) {
+    let routes = job.routes();
+    let mut sent = 0u64;
+    for (d, rays) in out.rays {
+        if rays.is_empty() {
+            continue;
+        }
+        if routes.owns(d) {
+            shared.queues.push_local(
+                d,
+                QueuedBatch {
+                    job_id: job.key.id.clone(),
+                    attempt: job.key.attempt,
+                    routing_version: routes.version,
+                    forwards: 0,
+                    rays,
+                    tickets: Vec::new(),
+                },
+            );
+            continue;
+        }
+        let spread = job.spread.fetch_add(1, Ordering::Relaxed) as u32;
+        let Some(peer) = routes.owner(d, spread).cloned() else {
+            job.fail(format!(
+                "worker {}: a ray goes to domain {d}, which routing version {} does not route",
+                shared.id(),
+                routes.version
+            ));
+            return;
+        };
+        sent += rays.len() as u64;
+        shared.peers.send(
+            shared,
+            &peer,
+            PeerMessage {
+                job: job.clone(),
+                domain: d,
+                rays,
+                forwards: 0,
+                routing_version: routes.version,
+            },
+        );
+    }
+    let mut r = lock(&job.report);
+    r.sums.extend(&out.sums);
+    let mut credits = out.credits;
+    r.credits.append(&mut credits);
+    for (k, n) in out.traced.iter().enumerate() {
+        r.traced[k] += n;
+    }
+    r.nonfinite += out.nonfinite;
+    r.bytes += sent * RAY_RECORD_BYTES as u64;
+    r.rays_sent += sent;
+}
