@@ -10,7 +10,7 @@ no worker can hold more than an eighth of it and the cluster as a whole cannot h
 all), with and without `--load-delay-ms` (slow shared storage). For every schedule
 (image-plane, domain, dynamic; optionally dynamic with --replicate), integrator (whitted
 with two lights and mirror bounces, path) and image size, `dray submit --stats` records:
-wall seconds per frame, domain loads and load seconds, evictions, rays exchanged between
+seconds per frame (the job's time from the coordinator), domain loads and load seconds, evictions, rays exchanged between
 workers (64 bytes each), rays forwarded, scheduler rounds and routing versions.
 Every image of one (integrator, size) must be the same bytes whatever the schedule: the
 script checks it and says so in the table.
@@ -87,7 +87,7 @@ def partition(dray: Path, scene: str, domains: int, out: Path) -> dict:
         env.run_timed([dray, "partition", scene, "--domains", str(domains), "--layout", "kd",
                        "--out", out])
     manifest = json.loads((out / "manifest.json").read_text())
-    body = manifest.get("manifest", manifest)
+    body = manifest.get("body", manifest)
     doms = body["domains"]
     tris = sum(d["triangles"] for d in doms)
     verts = sum(d["vertices"] for d in doms)
@@ -163,6 +163,9 @@ def main() -> int:
                                    "budget_bytes": budget, "wall_s": r["wall_s"], "ok": r["rc"] == 0}
                             if run["ok"]:
                                 s = json.loads(stats.read_text())
+                                # The job's own time (submit's wall time is rounded up to its
+                                # progress polling).
+                                run["job_s"] = s.get("job_time_s")
                                 run.update({k: s.get(k) for k in [
                                     "domain_loads", "domain_load_seconds", "evictions", "rays_exchanged",
                                     "rays_forwarded", "scheduler_rounds", "routing_version", "queue_peak"]})
@@ -189,7 +192,7 @@ def main() -> int:
             print(f"| {r['domains']} | {r['delay_ms']} | {r['integrator']} | {r['size']} | {r['schedule']} | failed: {r.get('error')} |")
             continue
         print(f"| {r['domains']} | {r['delay_ms']} | {r['integrator']} | {r['size']} | {r['schedule']} | "
-              f"{r['wall_s']:.2f} | {r['domain_loads']} | {r['domain_load_seconds'] or 0:.1f} | {r['evictions']} | "
+              f"{r['job_s'] or r['wall_s']:.2f} | {r['domain_loads']} | {r['domain_load_seconds'] or 0:.1f} | {r['evictions']} | "
               f"{r['bytes_exchanged'] / 1e6:.1f} | {'yes' if r.get('same_bits') else 'NO'} |")
     env.log(f"results in {out}")
     if a.plot:
@@ -208,7 +211,7 @@ def plot(results: dict, path: Path) -> None:
     width = 0.8 / max(len(scheds), 1)
     for i, s in enumerate(scheds):
         xs = [k for k in range(len(keys))]
-        secs = [next((r["wall_s"] for r in runs if (r["domains"], r["delay_ms"], r["integrator"], r["size"]) == key
+        secs = [next((r.get("job_s") or r["wall_s"] for r in runs if (r["domains"], r["delay_ms"], r["integrator"], r["size"]) == key
                       and r["schedule"] == s), 0) for key in keys]
         loads = [next((r["domain_loads"] for r in runs if (r["domains"], r["delay_ms"], r["integrator"], r["size"]) == key
                        and r["schedule"] == s), 0) for key in keys]

@@ -4,8 +4,11 @@
 //! The children are this same executable (`dray coordinator`, `dray worker`), so a cluster
 //! always runs the code it was built with. The cluster owns its children's lifetime:
 //! - Ctrl-C, SIGTERM or SIGHUP stops them all (SIGTERM, then SIGKILL after a grace time);
-//! - a child that exits on its own stops the others, and the cluster exits non-zero naming
-//!   it, because a cluster missing a member would hang or fail jobs in confusing ways;
+//! - a worker that exits on its own (killed, crashed) is reported on stderr and the
+//!   cluster keeps serving with the workers left: the coordinator re-traces the lost
+//!   worker's share of running jobs, and with no worker left it renders in its own process;
+//! - the coordinator exiting on its own stops the workers, and the cluster exits non-zero
+//!   naming it;
 //! - if the cluster is killed outright, the kernel sends each child SIGTERM
 //!   (PR_SET_PDEATHSIG on Linux), and if the cluster's own parent dies (a test harness, a
 //!   terminal closed) the cluster notices through `getppid` and stops them: nothing is
@@ -56,6 +59,13 @@ pub struct ClusterArgs {
     /// The coordinator's --heartbeat-timeout-ms.
     #[arg(long, value_name = "MS")]
     pub heartbeat_timeout_ms: Option<u64>,
+    /// Every worker's --memory-budget: bytes for resident domains and queued rays
+    /// (suffixes K, M, G, T are powers of 1024; 0 = unlimited).
+    #[arg(long, value_name = "BYTES", value_parser = crate::bytes::parse_bytes)]
+    pub memory_budget: Option<u64>,
+    /// Every worker's --load-delay-ms: added to each domain load (slow storage).
+    #[arg(long, value_name = "MS")]
+    pub load_delay_ms: Option<u64>,
 }
 
 /// One child process of the cluster.
@@ -76,20 +86,31 @@ struct Cluster {
 }
 
 impl Cluster {
-    /// A member that exited, with its status (reaped here).
-    fn exited(&mut self) -> Option<(String, ExitStatus)> {
-        for m in &mut self.members {
+    /// A member that exited: its index (0 is the coordinator), a description naming
+    /// it, and its status (reaped here).
+    fn exited(&mut self) -> Option<(usize, String, ExitStatus)> {
+        for (i, m) in self.members.iter_mut().enumerate() {
             if m.exited.is_none()
                 && let Ok(Some(status)) = m.child.try_wait()
             {
                 m.exited = Some(status);
                 return Some((
-                    format!("{} (pid {}, {})", m.name, m.child.id(), m.addr),
+                    i,
+                    format!("{} (pid {}, http://{})", m.name, m.child.id(), m.addr),
                     status,
                 ));
             }
         }
         None
+    }
+
+    /// Workers not known to have exited.
+    fn workers_running(&self) -> usize {
+        self.members
+            .iter()
+            .skip(1)
+            .filter(|m| m.exited.is_none())
+            .count()
     }
 
     /// SIGTERM to every member still running (workers first, so they do not see the
@@ -174,6 +195,27 @@ impl Signals {
             _ = self.term.recv() => "terminated",
             _ = self.hup.recv() => "hung up",
         }
+    }
+}
+
+/// How a member ended, for a human: "signal 9 (SIGKILL)", "exit status 1".
+fn describe(status: ExitStatus) -> String {
+    use std::os::unix::process::ExitStatusExt;
+    if let Some(sig) = status.signal() {
+        let name = match sig {
+            libc::SIGKILL => " (SIGKILL)",
+            libc::SIGTERM => " (SIGTERM)",
+            libc::SIGINT => " (SIGINT)",
+            libc::SIGSEGV => " (SIGSEGV)",
+            libc::SIGABRT => " (SIGABRT)",
+            libc::SIGBUS => " (SIGBUS)",
+            _ => "",
+        };
+        format!("signal {sig}{name}")
+    } else if let Some(code) = status.code() {
+        format!("exit status {code}")
+    } else {
+        status.to_string()
     }
 }
 
@@ -327,13 +369,21 @@ pub fn run(a: ClusterArgs) -> Result<()> {
             .push(spawn(&exe, "coordinator".into(), coordinator_addr, &args)?);
         let coordinator_url = format!("http://{coordinator_addr}");
         for (i, w) in worker_addrs.iter().enumerate() {
-            let args = [
+            let mut args = vec![
                 "worker".to_string(),
                 "--coordinator".to_string(),
                 coordinator_url.clone(),
                 "--listen".to_string(),
                 w.to_string(),
             ];
+            if let Some(bytes) = a.memory_budget {
+                args.push("--memory-budget".into());
+                args.push(bytes.to_string());
+            }
+            if let Some(ms) = a.load_delay_ms {
+                args.push("--load-delay-ms".into());
+                args.push(ms.to_string());
+            }
             cluster
                 .members
                 .push(spawn(&exe, format!("worker {}", i + 1), *w, &args)?);
@@ -350,7 +400,7 @@ pub fn run(a: ClusterArgs) -> Result<()> {
                 }
                 _ = tick.tick() => {}
             }
-            if let Some((name, status)) = cluster.exited() {
+            if let Some((_, name, status)) = cluster.exited() {
                 bail!("{name} exited while starting ({status}); stopped the others");
             }
             if start.elapsed() > READY_TIMEOUT {
@@ -393,19 +443,34 @@ pub fn run(a: ClusterArgs) -> Result<()> {
         loop {
             tokio::select! {
                 why = signals.next() => {
+                    let n = cluster.workers_running();
                     eprintln!(
-                        "dray cluster: {why}; stopping the coordinator and {} worker{}",
-                        a.workers,
-                        if a.workers == 1 { "" } else { "s" }
+                        "dray cluster: {why}; stopping the coordinator and {n} worker{}",
+                        if n == 1 { "" } else { "s" }
                     );
                     cluster.stop();
                     return Ok(());
                 }
                 _ = tick.tick() => {}
             }
-            if let Some((name, status)) = cluster.exited() {
-                cluster.stop();
-                bail!("{name} exited unexpectedly ({status}); stopped the others");
+            while let Some((i, name, status)) = cluster.exited() {
+                if i == 0 {
+                    cluster.stop();
+                    bail!("{name} exited unexpectedly ({status}); stopped the others");
+                }
+                // A lost worker: the coordinator notices it too (its stream ends) and
+                // re-traces its share; the cluster serves on with the others.
+                let n = cluster.workers_running();
+                eprintln!(
+                    "dray cluster: {name} exited: {}; the cluster keeps serving with {n} worker{}{}",
+                    describe(status),
+                    if n == 1 { "" } else { "s" },
+                    if n == 0 {
+                        " (jobs run in the coordinator's process)"
+                    } else {
+                        ""
+                    }
+                );
             }
             if std::os::unix::process::parent_id() != parent {
                 eprintln!("dray cluster: the parent process is gone; stopping");

@@ -15,10 +15,9 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use dray_coordinator::Coordinator;
 use dray_coordinator::cluster::ClusterOptions;
-use dray_core::integrator::RayKind;
-use dray_core::render::{RayCounts, RenderOutput};
+use dray_core::render::RenderOutput;
 use dray_core::scene::Scene;
-use dray_proto::v1::JobState;
+use dray_proto::v1::{JobState, JobStats};
 use dray_scene::partition::memory::MemoryPackages;
 
 use crate::render_cmd::RenderArgs;
@@ -47,15 +46,23 @@ impl Drop for WorkDir {
     }
 }
 
+/// What a render on in-process actors gives back.
+pub struct ActorsOutput {
+    /// The image, rays by kind and the render time.
+    pub out: RenderOutput,
+    /// The job's statistics as GetJob reports them (domains, scheduling metrics, per
+    /// worker).
+    pub stats: JobStats,
+}
+
 /// Render `a` on `workers` in-process worker actors; `scene` is the job's scene, loaded
 /// and translated by the caller. `progress` gets (tiles done, total).
-/// Returns the image and the number of domains the scene was cut into.
 pub fn render_on_actors(
     a: &RenderArgs,
     workers: usize,
     scene: Scene,
     progress: &dyn Fn(usize, usize),
-) -> Result<(RenderOutput, u32)> {
+) -> Result<ActorsOutput> {
     // One worker renders best from one domain (no hops); several want the coordinator's
     // choice (0), several domains each.
     let domains = a.domains.unwrap_or(if workers <= 1 { 1 } else { 0 });
@@ -91,7 +98,10 @@ pub fn render_on_actors(
         .build()
         .context("cannot start the async runtime")?;
     rt.block_on(async {
+        // Workers stop first, then the coordinator: a worker that saw its coordinator go
+        // first would warn that it lost it and try to register again.
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let (stop_workers_tx, stop_workers_rx) = tokio::sync::watch::channel(false);
         let stopped = |mut rx: tokio::sync::watch::Receiver<bool>| async move {
             let _ = rx.wait_for(|s| *s).await;
         };
@@ -115,12 +125,14 @@ pub fn render_on_actors(
                 coordinator: format!("http://{addr}"),
                 threads: per_worker,
                 memory_packages: Some(memory.clone()),
+                memory_budget: a.memory_budget,
+                load_delay: Duration::from_millis(a.load_delay_ms),
                 ..dray_worker::WorkerConfig::default()
             };
             nodes.push(tokio::spawn(dray_worker::run(
                 config,
                 l,
-                stopped(stop_rx.clone()),
+                stopped(stop_workers_rx.clone()),
             )));
         }
         let result = async {
@@ -155,31 +167,24 @@ pub fn render_on_actors(
             let film = entry.film().context("the job has no image")?;
             let job = entry.to_job();
             let stats = job.stats.unwrap_or_default();
-            let domains = stats.domains;
-            let r = stats.rays.unwrap_or_default();
-            let mut rays = RayCounts::default();
-            rays.0[RayKind::Camera as usize] = r.camera;
-            rays.0[RayKind::Shadow as usize] = r.shadow;
-            rays.0[RayKind::Reflection as usize] = r.reflection;
-            rays.0[RayKind::Refraction as usize] = r.refraction;
-            rays.0[RayKind::Diffuse as usize] = r.diffuse;
-            rays.0[RayKind::AmbientOcclusion as usize] = r.ambient_occlusion;
-            Ok((
-                RenderOutput {
+            let rays = crate::summary::ray_counts(&stats.rays.unwrap_or_default());
+            Ok(ActorsOutput {
+                out: RenderOutput {
                     film: (*film).clone(),
                     rays,
                     render_time,
                 },
-                domains,
-            ))
+                stats,
+            })
         }
         .await;
-        let _ = stop_tx.send(true);
+        let _ = stop_workers_tx.send(true);
         // The image is in hand: give the actors a moment to stop cleanly, no more.
         let stop_all = async {
             for n in nodes {
                 let _ = n.await;
             }
+            let _ = stop_tx.send(true);
             let _ = server.await;
         };
         let _ = tokio::time::timeout(Duration::from_secs(5), stop_all).await;

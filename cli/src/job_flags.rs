@@ -2,7 +2,7 @@
 //! and `dray submit` (which sends it to a coordinator), so the two take the same words
 //! and turn them into the same `dray.v1.JobSpec`.
 
-use anyhow::Result;
+use anyhow::{Result, bail};
 use clap::Args;
 use dray_proto::v1::{JobSpec, Rgb, Vec3};
 
@@ -62,9 +62,45 @@ pub struct JobFlags {
     /// No progress bar or summary.
     #[arg(long, short)]
     pub quiet: bool,
+    /// How the job's domains and rays are scheduled on workers: image-plane (each worker
+    /// traces its own block of tiles and every ray they lead to, loading the domains it
+    /// needs; no rays exchanged), domain (static round-robin ownership, rays sent to
+    /// owners) or dynamic (ray-weighted: domains move to where the rays wait). The image
+    /// is the same under every schedule. No effect with `dray render --workers 0` (the
+    /// reference renderer has no workers to schedule).
+    #[arg(long, default_value = "dynamic", value_name = "NAME", value_parser = parse_schedule)]
+    pub schedule: String,
+    /// With --schedule dynamic: also replicate the most-wanted domains on idle workers.
+    #[arg(long)]
+    pub replicate: bool,
+}
+
+/// The schedules a job can ask for, as `JobSpec.schedule` spells them.
+pub const SCHEDULES: [&str; 3] = ["image-plane", "domain", "dynamic"];
+
+/// `--schedule NAME`: one of [`SCHEDULES`], or a one-line error naming them.
+fn parse_schedule(s: &str) -> Result<String, String> {
+    if SCHEDULES.contains(&s) {
+        Ok(s.to_string())
+    } else {
+        Err(format!(
+            "unknown schedule {s:?} (expected image-plane, domain or dynamic)"
+        ))
+    }
 }
 
 impl JobFlags {
+    /// Flags that clap cannot check one at a time.
+    pub fn check_schedule(&self) -> Result<()> {
+        if self.replicate && self.schedule != "dynamic" {
+            bail!(
+                "--replicate needs --schedule dynamic (got --schedule {})",
+                self.schedule
+            );
+        }
+        Ok(())
+    }
+
     /// The job spec these flags describe, with `scene` as given. `max_depth` and
     /// `ao_samples` are always sent (with `dray render`'s defaults), so the job does not
     /// depend on a server's defaults.
@@ -75,6 +111,7 @@ impl JobFlags {
         layout: &str,
         label: &str,
     ) -> Result<JobSpec> {
+        self.check_schedule()?;
         let env = self
             .env
             .as_deref()
@@ -112,6 +149,26 @@ impl JobFlags {
             domains,
             layout: layout.to_string(),
             label: label.to_string(),
+            schedule: self.schedule.clone(),
+            replicate: self.replicate,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn schedules() {
+        for name in SCHEDULES {
+            assert_eq!(parse_schedule(name).as_deref(), Ok(name));
+        }
+        let e = parse_schedule("bogus").expect_err("bogus");
+        assert!(
+            e.contains("\"bogus\"") && e.contains("image-plane, domain or dynamic"),
+            "{e}"
+        );
+        assert!(parse_schedule("Dynamic").is_err());
     }
 }

@@ -5,6 +5,7 @@
 //! partitioner and the ray-throughput benchmark (`dray bench-rays`).
 
 mod bench_rays;
+mod bytes;
 mod cluster_cmd;
 mod coordinator_cmd;
 mod embedded;

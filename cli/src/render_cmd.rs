@@ -14,7 +14,7 @@ use dray_core::trace::Trace;
 use dray_scene::partition::LayoutSpec;
 
 use crate::options::{apply_effects, parse_vec3};
-use crate::summary::{SceneFacts, Summary, print_summary};
+use crate::summary::{SceneFacts, Scheduling, Summary, print_summary};
 
 /// Largest image side accepted.
 pub const MAX_SIDE: u32 = 16384;
@@ -47,6 +47,15 @@ pub struct RenderArgs {
     /// same, bit for bit).
     #[arg(long, default_value_t = 1)]
     pub workers: usize,
+    /// Memory of each in-process worker for resident domains and queued rays, in bytes
+    /// (suffixes K, M, G, T are powers of 1024: 512M, 2GiB; 0 = unlimited), as
+    /// `dray worker --memory-budget`. No effect with --workers 0.
+    #[arg(long, default_value = "0", value_name = "BYTES", value_parser = crate::bytes::parse_bytes)]
+    pub memory_budget: u64,
+    /// Milliseconds added to every domain load of the in-process workers, to emulate slow
+    /// shared storage. No effect with --workers 0.
+    #[arg(long, default_value_t = 0, value_name = "MS")]
+    pub load_delay_ms: u64,
 }
 
 fn check_args(a: &RenderArgs) -> Result<IntegratorKind> {
@@ -80,6 +89,7 @@ fn check_args(a: &RenderArgs) -> Result<IntegratorKind> {
             a.workers
         );
     }
+    a.job.check_schedule()?;
     if a.job.ao_samples == 0 || a.job.ao_samples > 4096 {
         bail!(
             "--ao-samples {} is out of range (1..=4096)",
@@ -185,16 +195,17 @@ pub fn run(a: RenderArgs) -> Result<()> {
         }
     };
     let mut build_time = std::time::Duration::ZERO;
-    let (out, domains): (RenderOutput, u32) = if a.workers > 0 {
+    let (out, domains, scheduling): (RenderOutput, u32, Scheduling) = if a.workers > 0 {
         let _span = tracing::info_span!("job", scene = %a.job.scene, workers = a.workers).entered();
         // The scene goes to the in-process coordinator as it is (translated), so it is
         // not loaded twice; the coordinator repeats the checks made above.
-        crate::embedded::render_on_actors(&a, a.workers, scene, &|done, total| {
+        let r = crate::embedded::render_on_actors(&a, a.workers, scene, &|done, total| {
             if let Some(b) = &bar {
                 b.set_length(total as u64);
                 b.set_position(done as u64);
             }
-        })?
+        })?;
+        (r.out, r.stats.domains, Scheduling::of(&r.stats))
     } else {
         let _span = tracing::info_span!("job", scene = %a.job.scene).entered();
         let domains = a.domains.unwrap_or(1);
@@ -204,7 +215,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         let integrator = Integrator::new(&scene, camera, settings.clone());
         let out = render::render(&integrator, geometry.as_ref(), a.threads, &progress)
             .context("cannot start the thread pool")?;
-        (out, domains)
+        (out, domains, Scheduling::none())
     };
     if let Some(b) = &bar {
         b.finish_and_clear();
@@ -233,6 +244,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         start.elapsed(),
     );
     summary.domains = domains;
+    summary.scheduling = scheduling;
     if let Some(p) = &a.stats {
         let json = serde_json::to_string_pretty(&summary).context("cannot encode statistics")?;
         std::fs::write(p, json + "\n").with_context(|| format!("cannot write {}", p.display()))?;

@@ -8,17 +8,22 @@
 //! reaches the server (the address, `--env`/`--translate` syntax, exposure, which is
 //! applied at fetch time) is checked here, before anything is submitted.
 
+use std::collections::BTreeMap;
 use std::io::IsTerminal;
+use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
 use clap::Args;
 use dray_proto::v1::render_service_client::RenderServiceClient;
 use dray_proto::v1::{
-    CancelJobRequest, GetImageRequest, GetJobRequest, ImageFormat, JobProgress, JobSpec, JobState,
-    SubmitJobRequest, WatchJobRequest,
+    CancelJobRequest, GetImageRequest, GetJobRequest, ImageFormat, Job, JobProgress, JobSpec,
+    JobState, SubmitJobRequest, WatchJobRequest,
 };
+use serde::Serialize;
 use tonic::transport::{Channel, Endpoint};
+
+use crate::summary::{Scheduling, ray_counts, rays_by_name};
 
 #[derive(Args, Debug)]
 pub struct SubmitArgs {
@@ -37,6 +42,70 @@ pub struct SubmitArgs {
     /// A label shown by ListJobs; no effect on the image.
     #[arg(long)]
     pub label: Option<String>,
+    /// Write the finished job's statistics as JSON (GetJob's: rays by kind, domains,
+    /// and the scheduling metrics, per worker too).
+    #[arg(long, value_name = "FILE")]
+    pub stats: Option<PathBuf>,
+}
+
+/// `dray submit --stats`: the job as GetJob reports it once finished, with the keys of
+/// `dray render --stats` where they mean the same.
+#[derive(Serialize, Debug)]
+struct SubmitStats {
+    job_id: String,
+    coordinator: String,
+    scene: String,
+    width: u32,
+    height: u32,
+    spp: u32,
+    integrator: String,
+    max_depth: u32,
+    seed: u64,
+    triangles: u64,
+    effects: Vec<String>,
+    rays: BTreeMap<&'static str, u64>,
+    rays_total: u64,
+    /// Spatial domains the scene was cut into.
+    domains: u32,
+    nonfinite_contributions: u64,
+    /// The coordinator's time for the job, preparation included.
+    job_time_s: f64,
+    /// From submission to the image written, as seen here.
+    wall_time_s: f64,
+    #[serde(flatten)]
+    scheduling: Scheduling,
+}
+
+impl SubmitStats {
+    fn of(job: &Job, url: &str, wall: Duration) -> SubmitStats {
+        let spec = job.spec.clone().unwrap_or_default();
+        let stats = job.stats.clone().unwrap_or_default();
+        let rays = ray_counts(&stats.rays.unwrap_or_default());
+        SubmitStats {
+            job_id: job.job_id.clone(),
+            coordinator: url.to_string(),
+            scene: spec.scene,
+            width: spec.width,
+            height: spec.height,
+            spp: spec.spp,
+            integrator: spec.integrator,
+            max_depth: spec.max_depth.unwrap_or_default(),
+            seed: spec.seed,
+            triangles: stats.triangles,
+            effects: stats.effects.clone(),
+            rays: rays_by_name(&rays),
+            rays_total: rays.total(),
+            domains: stats.domains,
+            nonfinite_contributions: stats.nonfinite,
+            job_time_s: job
+                .progress
+                .as_ref()
+                .and_then(|p| p.elapsed)
+                .map_or(0.0, |d| d.seconds as f64 + f64::from(d.nanos) * 1e-9),
+            wall_time_s: wall.as_secs_f64(),
+            scheduling: Scheduling::of(&stats),
+        }
+    }
 }
 
 /// `host:port` or `http://host:port` as the URL tonic wants. Plaintext only: dray's
@@ -112,6 +181,7 @@ async fn connect(url: &str) -> Result<RenderServiceClient<Channel>> {
 }
 
 async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
+    let started = Instant::now();
     let mut client = connect(&url).await?;
 
     // SubmitJob answers after the scene is loaded, which can take a while; a Ctrl-C in
@@ -166,6 +236,19 @@ async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
         let exr = fetch(&mut client, &id, ImageFormat::Exr, 0.0, &url).await?;
         std::fs::write(path, &exr).with_context(|| format!("cannot write {}", path.display()))?;
     }
+    // The final statistics (scheduling metrics included) are GetJob's: WatchJob carries
+    // progress only.
+    let job = if a.stats.is_some() || !a.job.quiet {
+        Some(get_job(&mut client, &id, &url).await?)
+    } else {
+        None
+    };
+    if let (Some(path), Some(job)) = (&a.stats, &job) {
+        let stats = SubmitStats::of(job, &url, started.elapsed());
+        let json = serde_json::to_string_pretty(&stats).context("cannot encode statistics")?;
+        std::fs::write(path, json + "\n")
+            .with_context(|| format!("cannot write {}", path.display()))?;
+    }
     if !a.job.quiet {
         let secs = last
             .elapsed
@@ -181,8 +264,25 @@ async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
                 .map(|p| format!(" and {}", p.display()))
                 .unwrap_or_default()
         );
+        let scheduling = Scheduling::of(&job.and_then(|j| j.stats).unwrap_or_default());
+        if let Some(line) = scheduling.line() {
+            eprintln!("dray submit: schedule {line}");
+        }
     }
     Ok(())
+}
+
+/// GetJob: the job as the coordinator knows it.
+async fn get_job(client: &mut RenderServiceClient<Channel>, id: &str, url: &str) -> Result<Job> {
+    client
+        .get_job(GetJobRequest {
+            job_id: id.to_string(),
+        })
+        .await
+        .map_err(|s| rpc_error("GetJob", url, s))?
+        .into_inner()
+        .job
+        .with_context(|| format!("GetJob: no job {id}"))
 }
 
 /// Best effort: the user asked to stop, so a failure to cancel is reported, not fatal.
@@ -270,15 +370,9 @@ async fn watch(
     match last {
         Some(p) if is_terminal(p.state()) => Ok(p),
         _ => {
-            let job = client
-                .get_job(GetJobRequest {
-                    job_id: id.to_string(),
-                })
-                .await
-                .map_err(|s| rpc_error("GetJob", url, s))?
-                .into_inner()
-                .job
-                .and_then(|j| j.progress)
+            let job = get_job(&mut client, id, url)
+                .await?
+                .progress
                 .with_context(|| format!("GetJob: no progress for job {id}"))?;
             if !is_terminal(job.state()) {
                 bail!(

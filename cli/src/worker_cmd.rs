@@ -22,9 +22,16 @@ pub struct WorkerArgs {
     /// Tracing threads (0 = all cores).
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
-    /// Memory for resident domains in bytes (0 = unlimited), reported to the scheduler.
-    #[arg(long, default_value_t = 0)]
+    /// Memory for resident domains and queued rays, in bytes (suffixes K, M, G, T are
+    /// powers of 1024: 512M, 2GiB; 0 = unlimited). A quarter goes to rays, the rest to
+    /// domains, which load on demand and are evicted least-recently-used; a job with a
+    /// domain larger than that fails with a clear error. Reported to the scheduler.
+    #[arg(long, default_value = "0", value_name = "BYTES", value_parser = crate::bytes::parse_bytes)]
     pub memory_budget: u64,
+    /// Milliseconds added to every domain load, to emulate slow shared storage in
+    /// experiments.
+    #[arg(long, default_value_t = 0, value_name = "MS")]
+    pub load_delay_ms: u64,
     /// Seconds to keep trying to reach the coordinator at start.
     #[arg(long, default_value_t = 10)]
     pub connect_timeout: u64,
@@ -49,6 +56,7 @@ pub fn run(a: WorkerArgs) -> Result<()> {
             advertise: a.advertise.clone(),
             threads: a.threads,
             memory_budget: a.memory_budget,
+            load_delay: Duration::from_millis(a.load_delay_ms),
             connect_timeout: Duration::from_secs(a.connect_timeout),
             ..dray_worker::WorkerConfig::default()
         };

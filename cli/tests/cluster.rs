@@ -1,9 +1,10 @@
 //! `dray cluster` as a real process: it starts its members, waits for health, prints the
-//! endpoints, serves jobs, and stops every member on SIGTERM, when a member dies, and when
-//! its own parent dies; a port already in use is a clear error before anything starts.
+//! endpoints, serves jobs, and stops every member on SIGTERM, when its coordinator dies,
+//! and when its own parent dies; a worker that dies is reported and the cluster keeps
+//! serving; a port already in use is a clear error before anything starts.
 //!
-//! Workers are not exercised here (`--workers 0`): this tests the spawn/stop machinery,
-//! which is the same for every member.
+//! Most tests run no workers (`--workers 0`): the spawn/stop machinery is the same for
+//! every member.
 
 mod common;
 mod support;
@@ -150,7 +151,7 @@ fn cluster_serves_jobs_and_stops_its_members_on_sigterm() {
 }
 
 #[test]
-fn a_member_that_dies_stops_the_cluster_with_its_name() {
+fn the_coordinator_dying_stops_the_cluster_with_its_name() {
     let dir = common::tmp("cluster-member-dies");
     let mut c = start_cluster(&dir);
     let _guard = KillOnDrop(c.coordinator_pid);
@@ -243,5 +244,164 @@ fn the_cluster_stops_when_its_parent_dies() {
         gone_within(coordinator_pid, 10.0),
         "the orphaned coordinator kept running"
     );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `dray submit` of a small job; its `--stats` JSON (the test fails if the job does).
+fn submit_small(addr: &str, dir: &std::path::Path, tag: &str, want: &[u8]) -> serde_json::Value {
+    let png = dir.join(format!("{tag}.png"));
+    let stats = dir.join(format!("{tag}.json"));
+    let mut cmd = dray();
+    cmd.args(["submit", "--coordinator", addr, "cornell:glass", "-q"])
+        .args(SMALL)
+        .arg("--output")
+        .arg(&png)
+        .arg("--stats")
+        .arg(&stats)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped());
+    let mut p = Proc::spawn(cmd);
+    let err = support::capture_stderr(&mut p.child);
+    let status = p.wait_timeout(180.0);
+    std::thread::sleep(std::time::Duration::from_millis(50));
+    let err = err.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    let status = status.unwrap_or_else(|| panic!("HANG: dray submit {tag}: {err}"));
+    assert!(status.success(), "{tag}: {err}");
+    assert!(
+        std::fs::read(&png).expect("png") == want,
+        "{tag}: the image differs from dray render's"
+    );
+    serde_json::from_str(&std::fs::read_to_string(&stats).expect("stats")).expect("stats JSON")
+}
+
+const SMALL: [&str; 8] = [
+    "--width",
+    "32",
+    "--height",
+    "24",
+    "--spp",
+    "2",
+    "--domains",
+    "4",
+];
+
+/// Poll until `f` holds, up to `secs` (a limit that only catches hangs).
+fn eventually(secs: f64, mut f: impl FnMut() -> bool) -> bool {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs_f64(secs);
+    while std::time::Instant::now() < deadline {
+        if f() {
+            return true;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    f()
+}
+
+#[test]
+fn a_worker_that_dies_is_reported_and_the_cluster_keeps_serving() {
+    let dir = common::tmp("cluster-worker-dies");
+    let reference = common::render(&dir, "reference", "cornell:glass", &SMALL);
+    assert!(reference.ok, "{}", reference.stderr);
+    let want = std::fs::read(reference.png.expect("png")).expect("png");
+    // Heartbeats every 100 ms, a worker lost after 3 s of silence.
+    let mut c = support::WorkerCluster::start(
+        2,
+        0,
+        &dir,
+        &[
+            "--heartbeat-interval-ms",
+            "100",
+            "--heartbeat-timeout-ms",
+            "3000",
+        ],
+    );
+    let stats = submit_small(&c.addr, &dir, "two", &want);
+    assert_eq!(
+        stats["workers"].as_array().map(Vec::len),
+        Some(2),
+        "{stats}"
+    );
+
+    // SIGKILL worker 2: the cluster names it and keeps serving with worker 1.
+    let port = |i: u16| {
+        c.addr
+            .rsplit(':')
+            .next()
+            .and_then(|p| p.parse::<u16>().ok())
+            .map(|p| p + i)
+    };
+    let w2 = c.worker_pids[1];
+    // SAFETY: kill(2) on a worker of the cluster this test started.
+    unsafe {
+        libc::kill(w2, libc::SIGKILL);
+    }
+    let line = format!(
+        "dray cluster: worker 2 (pid {w2}, http://127.0.0.1:{}) exited: signal 9 (SIGKILL); \
+         the cluster keeps serving with 1 worker",
+        port(2).expect("port")
+    );
+    assert!(
+        eventually(30.0, || c.log().contains(&line)),
+        "no {line:?} in:\n{}",
+        c.log()
+    );
+    assert!(
+        c.proc.child.try_wait().expect("try_wait").is_none(),
+        "the cluster stopped"
+    );
+    assert!(
+        alive(c.coordinator_pid) && alive(c.worker_pids[0]),
+        "{}",
+        c.log()
+    );
+    // Once the coordinator has noticed, jobs run on the worker left.
+    assert!(
+        eventually(60.0, || c.log().matches("worker lost").count() == 1),
+        "{}",
+        c.log()
+    );
+    let stats = submit_small(&c.addr, &dir, "one", &want);
+    assert_eq!(
+        stats["workers"].as_array().map(Vec::len),
+        Some(1),
+        "{stats}"
+    );
+
+    // With no worker left the coordinator renders in its own process.
+    let w1 = c.worker_pids[0];
+    // SAFETY: as above.
+    unsafe {
+        libc::kill(w1, libc::SIGKILL);
+    }
+    assert!(
+        eventually(30.0, || c.log().contains("keeps serving with 0 workers")),
+        "{}",
+        c.log()
+    );
+    assert!(
+        eventually(60.0, || c.log().matches("worker lost").count() == 2),
+        "{}",
+        c.log()
+    );
+    let stats = submit_small(&c.addr, &dir, "none", &want);
+    assert_eq!(stats["schedule"], "none", "{stats}");
+    assert!(
+        c.proc.child.try_wait().expect("try_wait").is_none(),
+        "the cluster stopped"
+    );
+
+    // SIGTERM still stops the cluster cleanly.
+    c.proc.signal(libc::SIGTERM);
+    let status = c
+        .proc
+        .wait_timeout(20.0)
+        .expect("the cluster did not stop on SIGTERM");
+    assert!(status.success(), "{status}: {}", c.log());
+    assert!(
+        gone_within(c.coordinator_pid, 5.0),
+        "the coordinator outlived the cluster"
+    );
+    drop(c);
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -373,7 +373,12 @@ impl Ledger {
             .or_default()
             .insert(r.sequence);
         if !r.failure.is_empty() {
-            let msg = format!("worker {} failed: {}", r.worker_id, r.failure.trim());
+            // Workers often name themselves already ("worker w1: ..."): say it once.
+            let failure = r.failure.trim();
+            let failure = failure
+                .strip_prefix(&format!("worker {}: ", r.worker_id))
+                .unwrap_or(failure);
+            let msg = format!("worker {} failed: {failure}", r.worker_id);
             tracing::warn!(worker = %r.worker_id, "{msg}");
             let job = g.remove(&r.job_id);
             drop(g);

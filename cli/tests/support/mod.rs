@@ -262,9 +262,12 @@ impl WorkerCluster {
 
 impl Drop for WorkerCluster {
     fn drop(&mut self) {
-        self.proc.signal(libc::SIGTERM);
-        if self.proc.wait_timeout(15.0).is_none() {
-            let _ = self.proc.child.kill();
+        // Not once reaped (a test may have stopped the cluster): the pid may be reused.
+        if !matches!(self.proc.child.try_wait(), Ok(Some(_))) {
+            self.proc.signal(libc::SIGTERM);
+            if self.proc.wait_timeout(15.0).is_none() {
+                let _ = self.proc.child.kill();
+            }
         }
         for &pid in std::iter::once(&self.coordinator_pid).chain(&self.worker_pids) {
             if alive(pid) {
