@@ -66,6 +66,9 @@ pub struct ClusterArgs {
     /// Every worker's --load-delay-ms: added to each domain load (slow storage).
     #[arg(long, value_name = "MS")]
     pub load_delay_ms: Option<u64>,
+    /// Every worker's --threads: tracing threads per worker (0 = all cores each).
+    #[arg(long, value_name = "N")]
+    pub threads: Option<usize>,
 }
 
 /// One child process of the cluster.
@@ -383,6 +386,10 @@ pub fn run(a: ClusterArgs) -> Result<()> {
             if let Some(ms) = a.load_delay_ms {
                 args.push("--load-delay-ms".into());
                 args.push(ms.to_string());
+            }
+            if let Some(n) = a.threads {
+                args.push("--threads".into());
+                args.push(n.to_string());
             }
             cluster
                 .members

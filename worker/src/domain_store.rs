@@ -311,16 +311,16 @@ impl DomainStore {
             .retain(|j, _| !(&*j.id == job_id && j.attempt <= attempt));
     }
 
-    /// Resident domains of `job` with their bytes, in domain order.
+    /// Resident domains of `job` with their bytes, in domain order, and those being
+    /// loaded now (with their estimated bytes): the scheduler must not move a domain
+    /// whose load is under way, or the load is thrown away.
     pub fn resident(&self, job: &JobKey) -> Vec<(u32, u64)> {
         let g = self.lock();
         let mut v: Vec<(u32, u64)> = g
             .slots
             .iter()
-            .filter_map(|((j, d), s)| match s {
-                Slot::Ready { domain, .. } if j == job => Some((*d, domain.bytes)),
-                _ => None,
-            })
+            .filter(|((j, _), _)| j == job)
+            .map(|((_, d), s)| (*d, s.bytes()))
             .collect();
         v.sort_unstable();
         v
