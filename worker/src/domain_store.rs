@@ -7,13 +7,17 @@
 //! scene gives (see `dray_scene::partition::resident`). Each is loaded alone — read from
 //! the package, checked, BVH built — counted and timed, and dropped alone.
 //!
-//! **Budget.** The store keeps the bytes of resident domains at or below its budget: a
-//! load first evicts the least recently used domains (of any job) until the newcomer
-//! fits. A domain that could never fit fails its job with a message saying so, instead
-//! of the kernel killing the worker. Tracing steps hold the domains they touch through an
-//! `Arc` for the length of one batch, so an evicted domain's memory is freed when the
-//! steps using it end: the stated margin over the budget is the domains pinned by steps
-//! already running when the eviction happened (at most a few per tracing thread).
+//! **Budget.** The store keeps the bytes of resident domains, and of loads under way, at
+//! or below its budget: a load first evicts the least recently used domains (of any
+//! job) until the newcomer fits together with what its build holds for a moment
+//! ([`LOAD_OVERHEAD`] times its size). A domain that could never fit fails its job with
+//! a message saying so, instead of the kernel killing the worker. Tracing steps hold the
+//! domains they touch through an `Arc` for the length of one batch, so an evicted
+//! domain's memory is freed when the steps using it end: the stated margin over the
+//! budget is the domains pinned by steps already running when the eviction happened (at
+//! most a few per tracing thread). Freed memory is handed back to the operating system
+//! after evictions (glibc keeps freed heap pages otherwise, and the process would look
+//! as large as its largest moment).
 //!
 //! Loads run on the tracing thread that needs the domain (other threads go on with
 //! resident work); a domain being loaded by one thread is not loaded twice.
@@ -79,6 +83,12 @@ pub enum LoadError {
     #[error("cannot load domain {domain}: {message}")]
     Failed { domain: u32, message: String },
 }
+
+/// Bytes a load holds while it runs, as a multiple of the domain's resident size:
+/// the domain file as read, the merged mesh, the padded triangles handed to the BVH
+/// builder and the builder's own arrays live at once for a moment. Room for all of it
+/// is made before the load starts, so loads do not push the worker past its budget.
+pub const LOAD_OVERHEAD: u64 = 2;
 
 /// What the store did for one job attempt since it was last asked ([`DomainStore::take_counters`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -185,6 +195,13 @@ impl DomainStore {
         source: &dyn DomainSource,
     ) -> Result<Arc<LoadedDomain>, LoadError> {
         let estimate = source.estimate_bytes(d);
+        // What the load holds while it runs (see LOAD_OVERHEAD), within the budget: a
+        // domain that fits only without its build transients still loads, alone.
+        let reserve = if self.budget > 0 {
+            estimate.saturating_mul(LOAD_OVERHEAD).min(self.budget)
+        } else {
+            estimate
+        };
         if self.budget > 0 && estimate > self.budget {
             return Err(LoadError::TooLarge {
                 domain: d,
@@ -201,12 +218,12 @@ impl DomainStore {
                 Some(Slot::Loading { .. }) => return Err(LoadError::Busy { domain: d }),
                 None => {}
             }
-            if !self.make_room(&mut g, estimate) {
+            if !self.make_room(&mut g, reserve) {
                 return Err(LoadError::Busy { domain: d });
             }
             g.slots
-                .insert(key.clone(), Slot::Loading { bytes: estimate });
-            g.bytes += estimate;
+                .insert(key.clone(), Slot::Loading { bytes: reserve });
+            g.bytes += reserve;
         }
         let start = Instant::now();
         let _span = tracing::debug_span!("load", job = %job.id, domain = d).entered();
@@ -216,11 +233,11 @@ impl DomainStore {
         let loaded = source.load(d);
         let seconds = start.elapsed().as_secs_f64();
         let mut g = self.lock();
-        g.bytes -= estimate;
+        g.bytes -= reserve;
         g.slots.remove(&key);
         let loaded = loaded.map_err(|message| LoadError::Failed { domain: d, message })?;
         let domain = Arc::new(loaded);
-        // The estimate made the room; the measured size is what counts from now on.
+        // The reservation made the room; the measured size is what counts from now on.
         g.bytes += domain.bytes;
         g.clock += 1;
         let now = g.clock;
@@ -239,6 +256,9 @@ impl DomainStore {
             let over = g.bytes - self.budget;
             self.evict_lru(&mut g, over, Some((job, d)));
         }
+        drop(g);
+        // The build's transients are freed now: give them back.
+        release_freed_memory();
         tracing::debug!(job = %job.id, domain = d, bytes = domain.bytes, seconds, "domain loaded");
         Ok(domain)
     }
@@ -341,6 +361,18 @@ impl DomainStore {
     }
 }
 
+/// Hand freed heap memory back to the operating system. glibc's allocator keeps large
+/// freed regions of its main heap for reuse, so without this a worker that loaded and
+/// evicted many domains shows the resident size of its busiest moment forever.
+fn release_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only walks and trims the allocator's own free lists; it is
+    // safe to call from any thread at any time.
+    unsafe {
+        libc::malloc_trim(0);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -392,7 +424,8 @@ mod tests {
             bytes: 100,
             loads: AtomicU64::new(0),
         };
-        let store = DomainStore::new(250, Duration::ZERO);
+        // Room for three resident domains while a fourth is being built (2 x 100).
+        let store = DomainStore::new(450, Duration::ZERO);
         let j = job(0);
         store.load(&j, 0, &src).unwrap();
         store.load(&j, 1, &src).unwrap();
@@ -405,12 +438,28 @@ mod tests {
         // Touch 0, so 1 is the least recently used.
         assert!(store.get(&j, 0).is_some());
         store.load(&j, 2, &src).unwrap();
-        assert!(store.is_resident(&j, 0));
+        assert_eq!(store.used_bytes(), 300);
+        // 300 resident + 200 for the build exceed 450: the LRU domain goes first.
+        store.load(&j, 3, &src).unwrap();
+        assert!(store.is_resident(&j, 0) && store.is_resident(&j, 2));
         assert!(!store.is_resident(&j, 1), "the LRU domain went");
-        assert!(store.used_bytes() <= 250);
+        assert!(store.used_bytes() <= 450);
         let c = store.take_counters(&j);
-        assert_eq!((c.loads, c.evictions), (3, 1));
+        assert_eq!((c.loads, c.evictions), (4, 1));
         assert_eq!(store.take_counters(&j).loads, 0, "counters are deltas");
+    }
+
+    #[test]
+    fn a_domain_that_fits_only_without_its_build_room_still_loads() {
+        let src = Fake {
+            bytes: 100,
+            loads: AtomicU64::new(0),
+        };
+        let store = DomainStore::new(150, Duration::ZERO);
+        store.load(&job(0), 0, &src).unwrap();
+        store.load(&job(0), 1, &src).unwrap();
+        assert!(!store.is_resident(&job(0), 0), "one at a time");
+        assert!(store.is_resident(&job(0), 1));
     }
 
     #[test]

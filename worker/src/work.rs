@@ -4,10 +4,10 @@
 //! 1. **The fullest queue** (Navrátil et al.: each process works on its fullest queue).
 //!    If this worker no longer owns the queue's domain (the routing table moved it),
 //!    its rays are forwarded to an owner. If the domain is not resident, this thread
-//!    loads it (other threads go on with other work) — but only when its queue is more
-//!    than twice as full as the fullest queue of a resident domain, so that queues of
-//!    similar length do not evict each other's domains in turn. A domain another
-//!    thread is loading, or that cannot get room yet, is skipped for the next queue.
+//!    loads it (other threads go on with other work) — but only when no resident
+//!    domain has rays waiting, so that rays for absent domains gather and each load
+//!    serves as many as it can. A domain another thread is loading, or that cannot get
+//!    room yet, is skipped for the next queue.
 //! 2. **Camera rays** of the job's tiles, while the rays in flight here are below the
 //!    in-flight limit: the only source of new work, so this bounds memory.
 //!
@@ -96,9 +96,10 @@ fn next_work(shared: &Shared) -> Option<Work> {
     let mut lengths = shared.queues.lengths();
     // Fullest first; ties in key order, so threads agree.
     lengths.sort_by(|a, b| b.1.cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
-    // The fullest queue whose domain is already here: a domain is loaded (and another
-    // perhaps evicted) only for a queue more than twice as full, so that two queues of
-    // about the same length do not evict each other's domains in turn.
+    // The fullest queue whose domain is already here: while any resident domain has
+    // rays, no other domain is loaded (nor one evicted for it). Rays for the domains
+    // that are not here gather meanwhile, so each load serves as many rays as it can:
+    // loads are what an out-of-core worker pays for.
     let resident_best = lengths
         .iter()
         .find(|(k, _)| {
@@ -107,7 +108,7 @@ fn next_work(shared: &Shared) -> Option<Work> {
             })
         })
         .map_or(0, |(_, n)| *n);
-    for (key, len) in lengths {
+    for (key, _) in lengths {
         let job = match shared.jobs.standing(&key.job_id, key.attempt) {
             Standing::Running(job) if !job.has_failed() => job,
             Standing::Running(_) | Standing::Gone => {
@@ -136,7 +137,7 @@ fn next_work(shared: &Shared) -> Option<Work> {
         }
         let held = match shared.store.get(&job.key, d) {
             Some(h) => h,
-            None if len <= 2 * resident_best => continue,
+            None if resident_best > 0 => continue,
             None => match shared.store.load(&job.key, d, job.source.as_ref()) {
                 Ok(h) => h,
                 Err(LoadError::Busy { .. }) => continue,
