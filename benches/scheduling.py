@@ -114,7 +114,16 @@ def main() -> int:
     ap.add_argument("--work", type=Path, default=env.OUT / "scheduling")
     ap.add_argument("--port", type=int, default=52100)
     ap.add_argument("--plot", type=Path)
+    ap.add_argument("--replot", type=Path, nargs="+", metavar="RESULTS_JSON",
+                    help="render nothing: print the table of these results files together "
+                         "(and --plot them)")
     a = ap.parse_args()
+    if a.replot:
+        runs = [r for f in a.replot for r in json.loads(f.read_text())["runs"]]
+        table({"runs": runs})
+        if a.plot:
+            plot({"runs": runs}, a.plot)
+        return 0
     if a.plot:
         env.ensure_venv()  # matplotlib; re-executes this script in the venv first
     if a.quick:
@@ -185,6 +194,14 @@ def main() -> int:
                 cl.stop()
     out = a.work / "results.json"
     out.write_text(json.dumps(results, indent=2))
+    table(results)
+    env.log(f"results in {out}")
+    if a.plot:
+        plot(results, a.plot)
+    return 0
+
+
+def table(results: dict) -> None:
     print("| domains | delay ms | integrator | size | schedule | s | loads | load s | evictions | MB exchanged | same bits |")
     print("|---:|---:|---|---:|---|---:|---:|---:|---:|---:|---|")
     for r in results["runs"]:
@@ -194,10 +211,6 @@ def main() -> int:
         print(f"| {r['domains']} | {r['delay_ms']} | {r['integrator']} | {r['size']} | {r['schedule']} | "
               f"{r['job_s'] or r['wall_s']:.2f} | {r['domain_loads']} | {r['domain_load_seconds'] or 0:.1f} | {r['evictions']} | "
               f"{r['bytes_exchanged'] / 1e6:.1f} | {'yes' if r.get('same_bits') else 'NO'} |")
-    env.log(f"results in {out}")
-    if a.plot:
-        plot(results, a.plot)
-    return 0
 
 
 def plot(results: dict, path: Path) -> None:

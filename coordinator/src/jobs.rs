@@ -102,6 +102,7 @@ impl JobEntry {
             elapsed: prost_types::Duration::try_from(elapsed).ok(),
             eta: eta.and_then(|d| prost_types::Duration::try_from(d).ok()),
             error: g.error.clone(),
+            stats: None,
         }
     }
 

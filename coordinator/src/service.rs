@@ -182,7 +182,8 @@ impl RenderService for Coordinator {
         tokio::spawn(async move {
             let mut last: Option<(i32, u32, u64)> = None;
             loop {
-                let p = job.progress();
+                let mut p = job.progress();
+                p.stats = Some(job.to_job().stats.unwrap_or_default());
                 let key = (p.state, p.tiles_done, p.rays_traced);
                 let done = is_terminal(p.state);
                 if last != Some(key) {

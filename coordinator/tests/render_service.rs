@@ -103,6 +103,17 @@ async fn watch(c: &mut RenderServiceClient<Channel>, id: &str) -> (JobState, usi
         n += 1;
         last = p.state();
         assert!(p.tiles_done <= p.tiles_total);
+        // Every message carries the statistics so far (read a moment after the
+        // progress, so they may count a few more rays, never fewer).
+        let stats = p.stats.expect("WatchJob carries the job's statistics");
+        let rays = stats.rays.map_or(0, |r| {
+            r.camera + r.shadow + r.reflection + r.refraction + r.diffuse + r.ambient_occlusion
+        });
+        assert!(
+            rays >= p.rays_traced,
+            "{rays} rays in the stats, {} in progress",
+            p.rays_traced
+        );
     }
     (last, n)
 }
