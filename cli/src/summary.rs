@@ -145,8 +145,8 @@ impl Scheduling {
     pub fn line(&self) -> Option<String> {
         (self.worker_count > 0).then(|| {
             format!(
-                "{} on {} worker{}: {} domain loads ({:.3} s), {} evictions, {} rays exchanged, \
-                 {} tiles re-traced",
+                "{} on {} worker{}: domain loads {} ({:.3} s), evictions {}, rays exchanged {}, \
+                 tiles re-traced {}",
                 self.schedule,
                 self.worker_count,
                 if self.worker_count == 1 { "" } else { "s" },
@@ -320,8 +320,8 @@ mod tests {
         assert_eq!(
             s.line().as_deref(),
             Some(
-                "domain on 2 workers: 9 domain loads (0.500 s), 1 evictions, 40 rays exchanged, \
-                 3 tiles re-traced"
+                "domain on 2 workers: domain loads 9 (0.500 s), evictions 1, rays exchanged 40, \
+                 tiles re-traced 3"
             )
         );
         // A job the coordinator rendered itself, and the reference renderer.
