@@ -207,6 +207,31 @@ fn reference(dir: &Path, tag: &str, scene: &str, flags: &[&str]) -> Vec<u8> {
     std::fs::read(run.png.expect("png")).expect("read the reference png")
 }
 
+/// A small job on the cluster as it is now gives the reference image; its stats.
+fn next_job_is_right(c: &Cluster, tag: &str, domains: u32) -> serde_json::Value {
+    let d = domains.to_string();
+    let flags = [
+        "--width",
+        "40",
+        "--height",
+        "30",
+        "--spp",
+        "4",
+        "--domains",
+        &d,
+    ];
+    let want = reference(&c.dir, &format!("{tag}-reference"), "cornell", &flags);
+    let png = c.dir.join(format!("{tag}.png"));
+    let stats = c.dir.join(format!("{tag}.json"));
+    let (ok, out) = submit(&c.addr, "cornell", &flags, &png, &stats).finish();
+    assert!(ok, "the next job failed: {out}");
+    assert!(
+        std::fs::read(&png).expect("png") == want,
+        "the next job's image differs"
+    );
+    serde_json::from_slice(&std::fs::read(&stats).expect("read stats")).expect("stats json")
+}
+
 /// A job long enough to lose a worker in the middle of (many small tiles), with domains
 /// spread over every worker.
 const SCENE: &str = "cornell:glass";
@@ -286,24 +311,7 @@ fn a_worker_stopped_past_the_heartbeat_timeout_changes_nothing_and_rejoins() {
         "the resumed worker did not register again: {}",
         text(&c.log)
     );
-    let flags = [
-        "--width",
-        "40",
-        "--height",
-        "30",
-        "--spp",
-        "4",
-        "--domains",
-        "6",
-    ];
-    let want = reference(&c.dir, "after", "cornell", &flags);
-    let png = c.dir.join("after.png");
-    let (ok, out) = submit(&c.addr, "cornell", &flags, &png, &c.dir.join("after.json")).finish();
-    assert!(ok, "the next job failed: {out}");
-    assert!(
-        std::fs::read(&png).expect("png") == want,
-        "the next job's image differs"
-    );
+    next_job_is_right(&c, "after", 6);
     assert!(c.workers.iter().all(|w| support::alive(w.pid())));
     let _ = std::fs::remove_dir_all(&c.dir);
 }
@@ -404,27 +412,7 @@ fn a_coordinator_restart_fails_its_jobs_and_the_workers_take_the_next() {
         text(&c.log)
     );
     assert!(support::alive(c.workers[0].pid()), "the worker exited");
-    let flags = [
-        "--width",
-        "40",
-        "--height",
-        "30",
-        "--spp",
-        "4",
-        "--domains",
-        "4",
-    ];
-    let want = reference(&c.dir, "next", "cornell", &flags);
-    let png = c.dir.join("next.png");
-    let (ok, out) = submit(&c.addr, "cornell", &flags, &png, &c.dir.join("next.json")).finish();
-    assert!(ok, "the next job failed: {out}");
-    assert!(
-        std::fs::read(&png).expect("png") == want,
-        "the next job's image differs"
-    );
-    let json: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(c.dir.join("next.json")).expect("read stats"))
-            .expect("stats json");
+    let json = next_job_is_right(&c, "next", 4);
     assert!(
         json["workers"].as_array().is_some_and(|w| !w.is_empty()),
         "the next job did not run on the worker: {json}"

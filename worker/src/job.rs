@@ -139,16 +139,7 @@ pub fn package_domains(
 ) -> dray_scene::error::Result<Arc<dyn DomainSource>> {
     let bounds = package.layout().scene_bounds();
     let emitters = package.load_emitters()?;
-    let tables = Scene {
-        name: package.name().to_string(),
-        mesh: Default::default(),
-        materials: package.materials().to_vec(),
-        textures: package.load_textures()?,
-        lights: package.lights().to_vec(),
-        cameras: package.cameras().to_vec(),
-        environment: package.environment(),
-        stats: Default::default(),
-    };
+    let tables = package.tables()?;
     Ok(Arc::new(PackageDomains {
         sizes: package
             .manifest()

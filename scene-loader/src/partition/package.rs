@@ -829,6 +829,21 @@ impl Package {
         self.manifest.environment()
     }
 
+    /// The scene's tables with no mesh: materials, textures (read and checked now),
+    /// lights, cameras and environment: what every domain of the package shares.
+    pub fn tables(&self) -> Result<Scene> {
+        Ok(Scene {
+            name: self.name().to_string(),
+            mesh: Mesh::default(),
+            materials: self.materials().to_vec(),
+            textures: self.load_textures()?,
+            lights: self.lights().to_vec(),
+            cameras: self.cameras().to_vec(),
+            environment: self.environment(),
+            stats: Default::default(),
+        })
+    }
+
     /// Load domain `d`, checking its size, header, checksum and indices.
     pub fn load_domain(&self, d: u32) -> Result<DomainMesh> {
         let Some(entry) = self.manifest.domains.get(d as usize) else {

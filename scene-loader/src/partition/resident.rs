@@ -77,16 +77,7 @@ pub fn load_resident(package: &Package, owned: &[u32]) -> Result<ResidentScene> 
         .collect::<Result<Vec<_>>>()?;
     let emitters = package.load_emitters()?;
     let b = package.layout().scene_bounds();
-    let scene = Scene {
-        name: package.name().to_string(),
-        mesh: Mesh::default(),
-        materials: package.materials().to_vec(),
-        textures: package.load_textures()?,
-        lights: package.lights().to_vec(),
-        cameras: package.cameras().to_vec(),
-        environment: package.environment(),
-        stats: Default::default(),
-    };
+    let scene = package.tables()?;
     Ok(assemble(scene, (b.min, b.max), parts, emitters))
 }
 
