@@ -8,7 +8,9 @@
 //! were made here or arrived from a peer that used an older table (forwarding).
 //!
 //! Under the image-plane schedule the table is *local*: every worker owns every domain
-//! for the rays it makes, so no ray leaves the worker that made it.
+//! for the rays it makes, so no ray leaves the worker that made it. A table may also
+//! leave a domain without an owner: its rays are *held* where they are made until a
+//! later table gives the domain to a worker.
 
 use std::collections::HashMap;
 
@@ -31,8 +33,6 @@ pub enum RoutingError {
         domain: u32,
         worker: String,
     },
-    #[error("routing table version {version} gives domain {domain} to no worker")]
-    NoOwner { version: u64, domain: u32 },
 }
 
 /// A peer: id and endpoint.
@@ -95,12 +95,6 @@ impl Routes {
                     slot.push(w);
                 }
             }
-            if let Some(d) = owners.iter().position(Vec::is_empty) {
-                return Err(RoutingError::NoOwner {
-                    version: table.version,
-                    domain: d as u32,
-                });
-            }
         }
         Ok(Routes {
             version: table.version,
@@ -128,8 +122,9 @@ impl Routes {
 
     /// The peer that should trace rays bound for `d` that this worker does not own;
     /// `spread` picks among the owners of a replicated domain (any value will do: the
-    /// image does not depend on who traces what). None under a local table or for a
-    /// domain the table does not have.
+    /// image does not depend on who traces what). None under a local table, for a
+    /// domain the table does not have, and for a domain it gives to no worker (see
+    /// [`Routes::is_held`]).
     pub fn owner(&self, d: u32, spread: u32) -> Option<&Peer> {
         if self.local {
             return None;
@@ -137,6 +132,14 @@ impl Routes {
         let o = self.owners.get(d as usize)?;
         let pick = o.get(spread as usize % o.len().max(1))?;
         self.peers.get(*pick as usize)
+    }
+
+    /// Whether rays for `d` wait where they are: a table may leave a domain without an
+    /// owner (a scheduler that gives workers only the domains they can hold), and its
+    /// rays then stay queued at the worker that made them, counted in its queue report,
+    /// until a later table gives the domain to someone.
+    pub fn is_held(&self, d: u32) -> bool {
+        !self.local && self.owners.get(d as usize).is_some_and(Vec::is_empty)
     }
 
     /// Every peer of the job.
@@ -196,15 +199,16 @@ mod tests {
     }
 
     #[test]
+    fn a_domain_without_an_owner_is_held() {
+        let r = Routes::new(&table(&[(0, "a")], false), "b", 2).unwrap();
+        assert!(r.is_held(1) && !r.is_held(0));
+        assert!(!r.owns(1));
+        assert!(r.owner(1, 0).is_none());
+        assert!(!Routes::new(&table(&[], true), "b", 2).unwrap().is_held(1));
+    }
+
+    #[test]
     fn bad_tables_are_errors() {
-        let e = Routes::new(&table(&[(0, "a")], false), "a", 2).unwrap_err();
-        assert_eq!(
-            e,
-            RoutingError::NoOwner {
-                version: 3,
-                domain: 1
-            }
-        );
         let e = Routes::new(&table(&[(0, "a"), (5, "a")], false), "a", 2).unwrap_err();
         assert!(matches!(e, RoutingError::UnknownDomain { domain: 5, .. }));
         let e = Routes::new(&table(&[(0, "z")], false), "a", 1).unwrap_err();

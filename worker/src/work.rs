@@ -120,6 +120,10 @@ fn next_work(shared: &Shared) -> Option<Work> {
         };
         let d = key.domain;
         let routes = job.routes();
+        if routes.is_held(d) {
+            // No worker has the domain now: its rays wait here for a table that gives it.
+            continue;
+        }
         if !routes.owns(d) {
             // A sender with a newer table than ours says this worker owns the domain:
             // our table is on its way; forwarding now could bounce the rays back.
@@ -232,8 +236,8 @@ fn forward(shared: &Arc<Shared>, job: &Arc<Job>, domain: u32, batch: QueuedBatch
     }
     let routes = job.routes();
     let n = batch.rays.len() as u64;
-    if routes.owns(domain) {
-        // The table changed back meanwhile.
+    if routes.owns(domain) || routes.is_held(domain) {
+        // The table changed meanwhile: trace them here, or hold them here.
         shared.queues.push_local(domain, batch);
         return;
     }
@@ -282,7 +286,8 @@ fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, out: Outbox) {
         if rays.is_empty() {
             continue;
         }
-        if routes.owns(d) {
+        if routes.owns(d) || routes.is_held(d) {
+            // Traced here, or held here until a worker is given the domain.
             shared.queues.push_local(
                 d,
                 QueuedBatch {
