@@ -563,12 +563,10 @@ fn main() {
             workers: Vec::new(),
             routes: changes
                 .iter()
-                .map(|c| {
-                    let (domain, to) = c.given();
-                    DomainRoute {
-                        domain,
-                        worker_id: to.to_string(),
-                    }
+                .filter_map(|c| c.given())
+                .map(|(domain, to)| DomainRoute {
+                    domain,
+                    worker_id: to.to_string(),
                 })
                 .collect(),
         };

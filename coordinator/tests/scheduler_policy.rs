@@ -178,7 +178,7 @@ fn ties_go_to_the_lower_domain_and_each_idle_worker_gets_one() {
         ("c", 0, vec![]),
     ];
     let d = round(4, &routes, &ws, false).unwrap();
-    let given: Vec<(u32, &str)> = d.changes.iter().map(Change::given).collect();
+    let given: Vec<(u32, &str)> = d.changes.iter().filter_map(Change::given).collect();
     assert_eq!(given, [(1, "b"), (2, "c")]);
 }
 
@@ -190,12 +190,12 @@ fn budgets_are_respected_and_a_worker_holding_the_domain_is_preferred() {
     // b's budget is too small for 0 but fits 1; c is unlimited.
     let ws = [("a", 0, a.clone()), ("b", 500, vec![]), ("c", 0, vec![])];
     let d = round(2, &routes, &ws, false).unwrap();
-    let given: Vec<(u32, &str)> = d.changes.iter().map(Change::given).collect();
+    let given: Vec<(u32, &str)> = d.changes.iter().filter_map(Change::given).collect();
     assert_eq!(given, [(0, "c"), (1, "b")]);
     // Only small budgets: the big domain stays where it is.
     let ws = [("a", 0, a.clone()), ("b", 500, vec![]), ("c", 999, vec![])];
     let d = round(2, &routes, &ws, false).unwrap();
-    let given: Vec<(u32, &str)> = d.changes.iter().map(Change::given).collect();
+    let given: Vec<(u32, &str)> = d.changes.iter().filter_map(Change::given).collect();
     assert_eq!(given, [(1, "b")]);
     // The budget counts, not the free memory: c holds 900 bytes of an unwanted domain
     // but may evict it, and it is preferred for domain 0 because it still holds it.
@@ -211,7 +211,8 @@ fn budgets_are_respected_and_a_worker_holding_the_domain_is_preferred() {
         .unwrap()
         .changes
         .iter()
-        .map(|c| (c.given().0, c.given().1.to_string()))
+        .filter_map(Change::given)
+        .map(|(d, w)| (d, w.to_string()))
         .collect();
     assert_eq!(given, [(0, "c".to_string()), (1, "b".to_string())]);
 }
@@ -242,7 +243,7 @@ fn a_domain_being_loaded_is_not_moved_again() {
     // Without the mark, idle a (its domain 1 is unwanted) takes 0 from b.
     let none = BTreeSet::new();
     let d = rebalance(&input(&none)).unwrap();
-    assert_eq!(d.changes[0].given(), (0, "a"));
+    assert_eq!(d.changes[0].given(), Some((0, "a")));
     // b was given 0 by an earlier round and has not reported it resident yet.
     let loading = BTreeSet::from([(0, "b".to_string())]);
     assert_eq!(rebalance(&input(&loading)), None);
@@ -339,7 +340,7 @@ fn reports_from_the_network_cannot_panic_a_round() {
     // Domain 7 does not exist and is ignored; want(0) saturates. b (owning only the
     // unwanted 1) is idle and takes 0, which a has not loaded.
     let d = round(2, &routes, &ws, false).unwrap();
-    let given: Vec<(u32, &str)> = d.changes.iter().map(Change::given).collect();
+    let given: Vec<(u32, &str)> = d.changes.iter().filter_map(Change::given).collect();
     assert_eq!(given, [(0, "b")]);
 }
 
@@ -421,4 +422,49 @@ fn tiles_are_dealt_with_the_attempt() {
     assert_eq!(dealt.len(), 2);
     assert!(dealt.iter().flat_map(|(_, t)| t).all(|t| t.attempt == 1));
     assert_eq!(dealt[0].1.len() + dealt[1].1.len(), 3);
+}
+
+/// A worker owning more wanted domains than its budget holds keeps the loaded ones and
+/// the most wanted of the rest, and lets the others go (no owner: their rays wait); an
+/// idle worker is then given the most wanted of those.
+#[test]
+fn ownership_is_bounded_by_what_a_worker_can_hold() {
+    // Domains of 100 bytes; a's budget of 800 holds (600 / 100) - 2 = 4 of them.
+    let routes = Routes::from_owners((0..7).map(|_| ids(&["a"])).collect());
+    let a = queues(&[
+        (0, 5, true, 100),
+        (1, 50, false, 100),
+        (2, 40, false, 100),
+        (3, 30, false, 100),
+        (4, 20, false, 100),
+        (5, 10, false, 100),
+        (6, 0, true, 100),
+    ]);
+    // Everyone busy: a lets the two least wanted unloaded domains go.
+    let d = round(7, &routes, &[("a", 800, a.clone())], false).unwrap();
+    let released: Vec<u32> = d
+        .changes
+        .iter()
+        .filter_map(|c| match c {
+            Change::Release { domain, from } if from == "a" => Some(*domain),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(released, [4, 5]);
+    assert!(d.routes.owners(4).is_empty() && d.routes.owners(5).is_empty());
+    assert_eq!(d.routes.owners(0), ["a"], "a loaded domain stays");
+    assert_eq!(d.routes.owners(1), ["a"]);
+    // With an idle worker, the most wanted domain not loaded anywhere goes to it (a
+    // kept it, but has not loaded it); the released ones wait for the next rounds.
+    let d = round(
+        7,
+        &routes,
+        &[("a", 800, a.clone()), ("b", 800, vec![])],
+        false,
+    )
+    .unwrap();
+    assert_eq!(d.routes.owners(1), ["b"]);
+    assert!(d.routes.owners(4).is_empty() && d.routes.owners(5).is_empty());
+    // An unlimited budget bounds nothing.
+    assert!(round(7, &routes, &[("a", 0, a)], false).is_none());
 }

@@ -198,15 +198,39 @@ pub enum Change {
         /// The idle worker added as owner.
         to: String,
     },
+    /// `domain` no longer has an owner: `from` owned more wanted domains than it can
+    /// hold, and this one was not loaded there. Its rays wait where they are until a
+    /// round gives it to a worker with nothing else to do.
+    Release {
+        /// The domain.
+        domain: u32,
+        /// Its owner until now.
+        from: String,
+    },
 }
 
 impl Change {
-    /// The domain changed and the worker that received it.
-    pub fn given(&self) -> (u32, &str) {
+    /// The domain changed and the worker that received it (None for a release).
+    pub fn given(&self) -> Option<(u32, &str)> {
         match self {
-            Change::Move { domain, to, .. } | Change::Replicate { domain, to } => (*domain, to),
+            Change::Move { domain, to, .. } | Change::Replicate { domain, to } => {
+                Some((*domain, to))
+            }
+            Change::Release { .. } => None,
         }
     }
+}
+
+/// Domains `w` can hold at once, judged from its budget and the largest domain the
+/// reports sized: a quarter of a worker's budget is for rays, and its store keeps room
+/// to build one more domain (twice a domain's size) beside the resident ones. None when
+/// the budget is unlimited or no size is known yet.
+fn capacity(w: &WorkerView<'_>, size: u64) -> Option<usize> {
+    if w.budget == 0 || size == 0 {
+        return None;
+    }
+    let share = w.budget / 4 * 3;
+    Some(((share / size) as usize).saturating_sub(2).max(1))
 }
 
 /// What a round decided.
@@ -263,6 +287,42 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
         .map(|d| input.routes.owners(d).to_vec())
         .collect();
     let wanted = |d: usize| view[d].want > 0;
+    let loading_at = |d: usize, w: &str| input.loading.contains(&(d as u32, w.to_string()));
+    let mut changes = Vec::new();
+    // Ownership bounded by what a worker can hold (Navratil et al.): a worker that owns
+    // more wanted domains than it can hold keeps those loaded (or loading) there and the
+    // most wanted of the rest, and lets the others go; their rays wait where they are
+    // until a worker with nothing to do is given them, so one load serves them all
+    // instead of the owner swapping its domains in and out.
+    let size = view.iter().map(|v| v.bytes).max().unwrap_or(0);
+    for w in input.workers {
+        let Some(cap) = capacity(w, size) else {
+            continue;
+        };
+        let here = |d: usize| view[d].resident_at.contains(w.id) || loading_at(d, w.id);
+        let mut mine: Vec<usize> = (0..n)
+            .filter(|&d| wanted(d) && owners[d].len() == 1 && owners[d][0] == w.id)
+            .collect();
+        if mine.len() <= cap {
+            continue;
+        }
+        mine.sort_by(|&a, &b| {
+            here(b)
+                .cmp(&here(a))
+                .then(view[b].want.cmp(&view[a].want))
+                .then(a.cmp(&b))
+        });
+        for &d in &mine[cap..] {
+            if here(d) {
+                continue;
+            }
+            owners[d].clear();
+            changes.push(Change::Release {
+                domain: d as u32,
+                from: w.id.to_string(),
+            });
+        }
+    }
     // Owners of a wanted domain are busy; one pass over the domains, not one per worker.
     let busy: BTreeSet<&str> = owners
         .iter()
@@ -276,9 +336,11 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
         .filter(|w| !busy.contains(w.id))
         .collect();
     if idle.is_empty() {
-        return None;
+        return (!changes.is_empty()).then(|| Decision {
+            routes: Routes::from_owners(owners.clone()),
+            changes,
+        });
     }
-    let loading_at = |d: usize, w: &str| input.loading.contains(&(d as u32, w.to_string()));
     let by_want = |mut ds: Vec<usize>| {
         // Descending want, then ascending index: a total order, so no tie is left to
         // the sort's stability or to map iteration.
@@ -295,7 +357,6 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
             .or_else(|| idle.iter().position(ok))
     };
 
-    let mut changes = Vec::new();
     let unloaded: Vec<usize> = (0..n)
         .filter(|&d| wanted(d))
         .filter(|&d| {
@@ -321,7 +382,10 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
     }
 
     if input.replicate && !idle.is_empty() {
-        let moved: BTreeSet<u32> = changes.iter().map(|c| c.given().0).collect();
+        let moved: BTreeSet<u32> = changes
+            .iter()
+            .filter_map(|c| c.given().map(|g| g.0))
+            .collect();
         let hot: Vec<usize> = (0..n)
             .filter(|&d| wanted(d) && !view[d].resident_at.is_empty())
             .filter(|&d| !moved.contains(&(d as u32)))

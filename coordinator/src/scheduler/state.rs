@@ -193,8 +193,7 @@ impl JobSchedule {
         let Some(decision) = decision else {
             return RoundOutcome::Unchanged;
         };
-        for c in &decision.changes {
-            let (d, w) = c.given();
+        for (d, w) in decision.changes.iter().filter_map(Change::given) {
             self.loading.insert((d, w.to_string()));
             self.holders.insert(w.to_string());
         }
@@ -312,7 +311,7 @@ mod tests {
             panic!("expected a change");
         };
         assert_eq!((t.version, s.rounds()), (2, 1));
-        assert_eq!(changes[0].given(), (2, "b"));
+        assert_eq!(changes[0].given(), Some((2, "b")));
         s.record_queues(&report("a", &[(0, 5, true), (2, 9, false)]));
         assert_eq!(
             s.round(t0 + Duration::from_millis(10), iv),
