@@ -7,9 +7,11 @@
 //!   fullest queue needs. The table never changes.
 //! - **domain**: static round robin (domain `d` to worker `d % n`), tiles round robin.
 //!   Changes only when a worker is lost.
-//! - **dynamic** (ray-weighted): starts as domain; then each round ([`rebalance`]) gives
-//!   the most-wanted domains that no owner holds to workers that no ray needs, and with
-//!   `replicate`, adds idle workers as extra owners of hot resident domains.
+//! - **dynamic** (ray-weighted): starts as domain; then each round ([`rebalance`]) bounds
+//!   every worker's wanted domains by what its budget holds (the rest lose their owner
+//!   and their rays wait where they are), gives the most-wanted domains that no owner
+//!   holds to workers that no ray needs, and with `replicate`, adds idle workers as extra
+//!   owners of hot resident domains.
 
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -253,7 +255,10 @@ struct DomainView {
     bytes: u64,
 }
 
-/// One dynamic round. `want(d)` is the sum of the rays queued for `d` at every worker. A
+/// One dynamic round. First, a worker owning more wanted domains than its budget holds
+/// (see `capacity`) keeps the ones loaded or loading there and the most wanted of the
+/// rest, and releases the others (no owner: their rays wait where they are). Then
+/// `want(d)` is the sum of the rays queued for `d` at every worker. A
 /// worker is idle when no domain it owns is wanted; a domain is unloaded when it is
 /// neither resident nor [being loaded](RoundInput::loading) at any of its owners. The
 /// most-wanted unloaded domains (want > 0, descending, ties to the lower index) go to
