@@ -12,7 +12,7 @@ mod support;
 use std::io::{BufRead, BufReader, Lines};
 use std::process::{ChildStdout, Command, Stdio};
 
-use support::{Proc, alive, dray, free_port, gone_within};
+use support::{Proc, alive, dray, eventually, free_port, gone_within};
 
 /// A `dray cluster --workers 0` on a free base port, read up to its "ready" line.
 struct Cluster {
@@ -285,18 +285,6 @@ const SMALL: [&str; 8] = [
     "--domains",
     "4",
 ];
-
-/// Poll until `f` holds, up to `secs` (a limit that only catches hangs).
-fn eventually(secs: f64, mut f: impl FnMut() -> bool) -> bool {
-    let deadline = std::time::Instant::now() + std::time::Duration::from_secs_f64(secs);
-    while std::time::Instant::now() < deadline {
-        if f() {
-            return true;
-        }
-        std::thread::sleep(std::time::Duration::from_millis(50));
-    }
-    f()
-}
 
 #[test]
 fn a_worker_that_dies_is_reported_and_the_cluster_keeps_serving() {

@@ -22,21 +22,10 @@ use std::time::Duration;
 
 use dray_proto::v1::render_service_client::RenderServiceClient;
 use dray_proto::v1::{GetJobRequest, Job};
-use support::{Proc, capture_stderr, dray, free_port};
+use support::{Proc, capture_stderr, dray, eventually, free_port};
 
 /// A limit that only catches hangs.
 const HANG_SECS: f64 = 240.0;
-
-fn eventually(secs: f64, mut f: impl FnMut() -> bool) -> bool {
-    let deadline = std::time::Instant::now() + Duration::from_secs_f64(secs);
-    while std::time::Instant::now() < deadline {
-        if f() {
-            return true;
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    f()
-}
 
 fn text(log: &Arc<Mutex<String>>) -> String {
     log.lock().unwrap_or_else(|p| p.into_inner()).clone()

@@ -22,7 +22,7 @@ use std::time::{Duration, Instant};
 
 use dray_proto::v1::render_service_client::RenderServiceClient;
 use dray_proto::v1::{GetJobRequest, Job, JobState};
-use support::{Proc, WorkerCluster, capture_stderr, cpu_ticks, dray, proc_status_kb};
+use support::{Proc, WorkerCluster, capture_stderr, cpu_ticks, dray, eventually, proc_status_kb};
 
 /// Cluster port slots, one per test (tests run in parallel).
 const SLOT_SAME_BITS: u16 = 0;
@@ -204,20 +204,6 @@ fn submit_to(
         );
     }
     job
-}
-
-/// Poll until `f` holds, up to `secs`.
-fn eventually(secs: f64, mut f: impl FnMut() -> bool) -> bool {
-    let deadline = Instant::now() + Duration::from_secs_f64(secs);
-    loop {
-        if f() {
-            return true;
-        }
-        if Instant::now() >= deadline {
-            return false;
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
 }
 
 /// Directories in `dir` (job packages).

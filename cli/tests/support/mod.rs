@@ -113,6 +113,19 @@ pub fn alive(pid: i32) -> bool {
     }
 }
 
+/// Poll until `f` holds, up to `secs`: a limit that only catches hangs (tests wait for
+/// events, they do not time them).
+pub fn eventually(secs: f64, mut f: impl FnMut() -> bool) -> bool {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs_f64(secs);
+    while std::time::Instant::now() < deadline {
+        if f() {
+            return true;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    f()
+}
+
 /// Poll until `pid` is gone, up to `secs`.
 pub fn gone_within(pid: i32, secs: f64) -> bool {
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs_f64(secs);

@@ -21,9 +21,9 @@ use dray_proto::v1::{
 use tonic::codec::Streaming;
 use tonic::transport::Channel;
 
-/// Longest wait for anything the coordinator should do promptly; only reached when a
-/// test fails.
-pub const PATIENCE: Duration = Duration::from_secs(20);
+/// Longest wait for anything the coordinator should do promptly: a hang guard, only
+/// reached when a test fails (generous, as CI machines are loaded).
+pub const PATIENCE: Duration = Duration::from_secs(120);
 
 /// A coordinator on a free port; stopped (and its work directory removed) when dropped,
 /// even if the test panics.
