@@ -11,6 +11,7 @@ const PROTOS: &[&str] = &[
     "dray/v1/render.proto",
     "dray/v1/cluster.proto",
     "dray/v1/rays.proto",
+    "dray/v1/cache.proto",
 ];
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {

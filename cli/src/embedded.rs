@@ -7,6 +7,11 @@
 //! network (the coordinator's RenderService is called directly). So the embedded mode and
 //! a cluster share one code path, and the tests hold it to the same bits as the
 //! reference renderer (`dray render --workers 0`), which traces tiles with no actors.
+//!
+//! A job with ray caches (`--ray-cache`) also gets a cache host beside each worker, on
+//! its own loopback port, as `dray worker` runs one: the coordinator places the walls
+//! on them and the workers talk to them over gRPC. Without `--ray-cache` none is
+//! started (nothing would use it).
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -20,6 +25,7 @@ use dray_core::scene::Scene;
 use dray_proto::v1::{JobState, JobStats};
 use dray_scene::partition::memory::MemoryPackages;
 
+use crate::cache_host::LocalCacheHost;
 use crate::render_cmd::RenderArgs;
 
 /// A scene spec with its file paths made absolute, since the in-process coordinator
@@ -117,16 +123,26 @@ pub fn render_on_actors(
             stopped(stop_rx.clone()),
         ));
         let mut nodes = Vec::new();
+        let mut caches = Vec::new();
         for _ in 0..workers {
             let l = tokio::net::TcpListener::bind("127.0.0.1:0")
                 .await
                 .context("cannot listen on a loopback port")?;
+            let cache = if spec.ray_cache.is_some() || spec.phm.is_some() {
+                let h = LocalCacheHost::start("127.0.0.1:0", None, None).await?;
+                let endpoint = h.endpoint.clone();
+                caches.push(h);
+                Some(endpoint)
+            } else {
+                None
+            };
             let config = dray_worker::WorkerConfig {
                 coordinator: format!("http://{addr}"),
                 threads: per_worker,
                 memory_packages: Some(memory.clone()),
                 memory_budget: a.memory_budget,
                 load_delay: Duration::from_millis(a.load_delay_ms),
+                cache_endpoint: cache,
                 ..dray_worker::WorkerConfig::default()
             };
             nodes.push(tokio::spawn(dray_worker::run(
@@ -183,6 +199,9 @@ pub fn render_on_actors(
         let stop_all = async {
             for n in nodes {
                 let _ = n.await;
+            }
+            for c in caches {
+                c.stop().await;
             }
             let _ = stop_tx.send(true);
             let _ = server.await;

@@ -4,7 +4,7 @@
 
 use anyhow::{Result, bail};
 use clap::Args;
-use dray_proto::v1::{JobSpec, Rgb, Vec3};
+use dray_proto::v1::{JobSpec, PhmSettings, RayCacheSettings, Rgb, Vec3};
 
 use crate::options::parse_vec3;
 
@@ -73,6 +73,24 @@ pub struct JobFlags {
     /// With --schedule dynamic: also replicate the most-wanted domains on idle workers.
     #[arg(long)]
     pub replicate: bool,
+    /// Ray caches on domain walls, e.g. radius=0.005,kinds=camera+diffuse, or `on` (keys:
+    /// radius, angle-deg, retrieve, coarse, kinds, fill; --help says more).
+    #[arg(
+        long,
+        value_name = "KEY=VALUE,...",
+        long_help = crate::ray_cache_flag::HELP,
+        value_parser = crate::ray_cache_flag::parse_ray_cache
+    )]
+    pub ray_cache: Option<RayCacheSettings>,
+    /// Probability hit maps on domain walls, e.g. miss=0.1,hit=0.9,kinds=shadow, or `on`
+    /// (keys: res, dirs, prior, miss, hit, mode, reprobe, kinds; --help says more).
+    #[arg(
+        long,
+        value_name = "KEY=VALUE,...",
+        long_help = crate::phm_flag::HELP,
+        value_parser = crate::phm_flag::parse_phm
+    )]
+    pub phm: Option<PhmSettings>,
 }
 
 /// The schedules a job can ask for, as `JobSpec.schedule` spells them.
@@ -151,6 +169,8 @@ impl JobFlags {
             label: label.to_string(),
             schedule: self.schedule.clone(),
             replicate: self.replicate,
+            ray_cache: self.ray_cache.clone(),
+            phm: self.phm.clone(),
         })
     }
 }

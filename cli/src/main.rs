@@ -1,20 +1,28 @@
 //! `dray`: a distributed renderer for scenes larger than one machine's memory.
 //!
 //! This binary hosts every actor: the embedded mode (`dray render`), the coordinator,
-//! the worker, a local cluster of processes, the job client (`dray submit`), the
-//! partitioner and the ray-throughput benchmark (`dray bench-rays`).
+//! the worker, a stand-alone cache host (`dray cache`), a local cluster of processes,
+//! the job client (`dray submit`), the partitioner and the ray-throughput benchmark
+//! (`dray bench-rays`).
 
 mod bench_rays;
 mod bytes;
+mod cache_cmd;
+mod cache_host;
 mod cluster_cmd;
 mod coordinator_cmd;
 mod embedded;
 mod job_flags;
+mod kv_flag;
 mod options;
 mod partition_cmd;
+mod phm_flag;
+mod ray_cache_flag;
 mod render_cmd;
 mod submit_cmd;
 mod summary;
+mod sweep;
+mod sweep_cmd;
 mod worker_cmd;
 
 use clap::{Parser, Subcommand};
@@ -46,8 +54,15 @@ enum Command {
     /// Run a coordinator and N workers as local processes on consecutive ports, until
     /// Ctrl-C.
     Cluster(cluster_cmd::ClusterArgs),
-    /// Join a coordinator as a worker: own domains, trace rays, stream them to peers.
+    /// Join a coordinator as a worker: own domains, trace rays, stream them to peers
+    /// (and host ray caches, unless --no-cache-host).
     Worker(worker_cmd::WorkerArgs),
+    /// Serve ray caches for a coordinator's jobs: a stand-alone cache host, until Ctrl-C
+    /// or SIGTERM.
+    Cache(cache_cmd::CacheArgs),
+    /// Render the exact image, then every combination of --vary values, and write what
+    /// each costs in error for what it saves in time (results.csv, table.md, pareto.png).
+    Sweep(sweep_cmd::SweepArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -93,6 +108,8 @@ fn main() -> std::process::ExitCode {
         Command::Worker(a) => worker_cmd::run(a),
         Command::Submit(a) => submit_cmd::run(a),
         Command::Cluster(a) => cluster_cmd::run(a),
+        Command::Cache(a) => cache_cmd::run(a),
+        Command::Sweep(a) => sweep_cmd::run(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

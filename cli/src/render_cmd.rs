@@ -7,6 +7,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use dray_core::bvh::Accel;
 use dray_core::camera::Camera;
+use dray_core::film::Film;
 use dray_core::integrator::{Integrator, IntegratorKind, RenderSettings};
 use dray_core::render::{self, RenderOutput};
 use dray_core::scene::Scene;
@@ -14,7 +15,7 @@ use dray_core::trace::Trace;
 use dray_scene::partition::LayoutSpec;
 
 use crate::options::{apply_effects, parse_vec3};
-use crate::summary::{SceneFacts, Scheduling, Summary, print_summary};
+use crate::summary::{PhmSummary, RayCacheSummary, SceneFacts, Scheduling, Summary, print_summary};
 
 /// Largest image side accepted.
 pub const MAX_SIDE: u32 = 16384;
@@ -58,7 +59,9 @@ pub struct RenderArgs {
     pub load_delay_ms: u64,
 }
 
-fn check_args(a: &RenderArgs) -> Result<IntegratorKind> {
+/// The checks clap cannot make, shared with `dray sweep` (which runs them on every
+/// setting before rendering any).
+pub fn check_args(a: &RenderArgs) -> Result<IntegratorKind> {
     if a.job.width == 0 || a.job.height == 0 || a.job.width > MAX_SIDE || a.job.height > MAX_SIDE {
         bail!(
             "image size {}x{} is out of range (1..={MAX_SIDE} per side)",
@@ -90,6 +93,18 @@ fn check_args(a: &RenderArgs) -> Result<IntegratorKind> {
         );
     }
     a.job.check_schedule()?;
+    if a.job.ray_cache.is_some() && a.workers == 0 {
+        bail!(
+            "--ray-cache needs worker actors: --workers 0 is the exact reference renderer, \
+             which has no cache hosts"
+        );
+    }
+    if a.job.phm.is_some() && a.workers == 0 {
+        bail!(
+            "--phm needs worker actors: --workers 0 is the exact reference renderer, which \
+             has no cache hosts"
+        );
+    }
     if a.job.ao_samples == 0 || a.job.ao_samples > 4096 {
         bail!(
             "--ao-samples {} is out of range (1..=4096)",
@@ -132,9 +147,67 @@ fn build_geometry(scene: &Scene, domains: u32, layout: &str) -> Result<Box<dyn T
     Ok(Box::new(set))
 }
 
+/// A finished render before anything is written or printed: what `dray render` writes,
+/// and what `dray sweep` compares against its exact render.
+pub struct Rendered {
+    pub film: Film,
+    /// The run's statistics; `wall_time_s` is as of the end of the render (`dray render`
+    /// sets it again once the files are written, from `start`).
+    pub summary: Summary,
+    pub start: Instant,
+}
+
 pub fn run(a: RenderArgs) -> Result<()> {
+    // The bar appears with the first progress report, once the scene is loaded.
+    let bar = std::sync::OnceLock::new();
+    let show = !a.job.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let rendered = render(&a, &|done, total| {
+        if show {
+            let b = bar.get_or_init(|| {
+                let b = indicatif::ProgressBar::new(total as u64);
+                b.set_style(
+                    indicatif::ProgressStyle::with_template(
+                        "{spinner} rendering [{bar:40}] {pos}/{len} tiles {elapsed} eta {eta}",
+                    )
+                    .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+                    .progress_chars("=> "),
+                );
+                b
+            });
+            b.set_length(total as u64);
+            b.set_position(done as u64);
+        }
+    });
+    if let Some(b) = bar.get() {
+        b.finish_and_clear();
+    }
+    let Rendered {
+        film,
+        mut summary,
+        start,
+    } = rendered?;
+    film.write_png(&a.job.output, a.job.spp, 2f32.powf(a.job.exposure))
+        .with_context(|| format!("cannot write {}", a.job.output.display()))?;
+    if let Some(p) = &a.job.exr {
+        film.write_exr(p, a.job.spp)
+            .with_context(|| format!("cannot write {}", p.display()))?;
+    }
+    summary.wall_time_s = start.elapsed().as_secs_f64();
+    if let Some(p) = &a.stats {
+        let json = serde_json::to_string_pretty(&summary).context("cannot encode statistics")?;
+        std::fs::write(p, json + "\n").with_context(|| format!("cannot write {}", p.display()))?;
+    }
+    if !a.job.quiet {
+        print_summary(&summary);
+    }
+    Ok(())
+}
+
+/// Render `a` as `dray render` does (reference renderer or in-process actors), writing
+/// nothing and printing nothing; `progress` gets (tiles done, total).
+pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Result<Rendered> {
     let start = Instant::now();
-    let integrator_kind = check_args(&a)?;
+    let integrator_kind = check_args(a)?;
     let env_arg = a
         .job
         .env
@@ -178,34 +251,23 @@ pub fn run(a: RenderArgs) -> Result<()> {
         ao_distance: a.job.ao_distance.unwrap_or(f32::INFINITY),
     };
     let facts = SceneFacts::of(&scene);
-    let bar = (!a.job.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr())).then(|| {
-        let b = indicatif::ProgressBar::new(render::tiles(a.job.width, a.job.height).len() as u64);
-        b.set_style(
-            indicatif::ProgressStyle::with_template(
-                "{spinner} rendering [{bar:40}] {pos}/{len} tiles {elapsed} eta {eta}",
-            )
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
-            .progress_chars("=> "),
-        );
-        b
-    });
-    let progress = |done: usize, _total: usize| {
-        if let Some(b) = &bar {
-            b.set_position(done as u64);
-        }
-    };
     let mut build_time = std::time::Duration::ZERO;
-    let (out, domains, scheduling): (RenderOutput, u32, Scheduling) = if a.workers > 0 {
+    let (out, domains, scheduling, walls): (
+        RenderOutput,
+        u32,
+        Scheduling,
+        (Option<RayCacheSummary>, Option<PhmSummary>),
+    ) = if a.workers > 0 {
         let _span = tracing::info_span!("job", scene = %a.job.scene, workers = a.workers).entered();
         // The scene goes to the in-process coordinator as it is (translated), so it is
         // not loaded twice; the coordinator repeats the checks made above.
-        let r = crate::embedded::render_on_actors(&a, a.workers, scene, &|done, total| {
-            if let Some(b) = &bar {
-                b.set_length(total as u64);
-                b.set_position(done as u64);
-            }
-        })?;
-        (r.out, r.stats.domains, Scheduling::of(&r.stats))
+        let r = crate::embedded::render_on_actors(a, a.workers, scene, progress)?;
+        (
+            r.out,
+            r.stats.domains,
+            Scheduling::of(&r.stats),
+            (RayCacheSummary::of(&r.stats), PhmSummary::of(&r.stats)),
+        )
     } else {
         let _span = tracing::info_span!("job", scene = %a.job.scene).entered();
         let domains = a.domains.unwrap_or(1);
@@ -213,21 +275,10 @@ pub fn run(a: RenderArgs) -> Result<()> {
         let geometry = build_geometry(&scene, domains, &a.layout)?;
         build_time = build_start.elapsed();
         let integrator = Integrator::new(&scene, camera, settings.clone());
-        let out = render::render(&integrator, geometry.as_ref(), a.threads, &progress)
+        let out = render::render(&integrator, geometry.as_ref(), a.threads, progress)
             .context("cannot start the thread pool")?;
-        (out, domains, Scheduling::none())
+        (out, domains, Scheduling::none(), (None, None))
     };
-    if let Some(b) = &bar {
-        b.finish_and_clear();
-    }
-    out.film
-        .write_png(&a.job.output, a.job.spp, 2f32.powf(a.job.exposure))
-        .with_context(|| format!("cannot write {}", a.job.output.display()))?;
-    if let Some(p) = &a.job.exr {
-        out.film
-            .write_exr(p, a.job.spp)
-            .with_context(|| format!("cannot write {}", p.display()))?;
-    }
     let threads = if a.threads == 0 {
         rayon::current_num_threads()
     } else {
@@ -245,12 +296,10 @@ pub fn run(a: RenderArgs) -> Result<()> {
     );
     summary.domains = domains;
     summary.scheduling = scheduling;
-    if let Some(p) = &a.stats {
-        let json = serde_json::to_string_pretty(&summary).context("cannot encode statistics")?;
-        std::fs::write(p, json + "\n").with_context(|| format!("cannot write {}", p.display()))?;
-    }
-    if !a.job.quiet {
-        print_summary(&summary);
-    }
-    Ok(())
+    (summary.ray_cache, summary.phm) = walls;
+    Ok(Rendered {
+        film: out.film,
+        summary,
+        start,
+    })
 }

@@ -23,7 +23,7 @@ use dray_proto::v1::{
 use serde::Serialize;
 use tonic::transport::{Channel, Endpoint};
 
-use crate::summary::{Scheduling, ray_counts, rays_by_name};
+use crate::summary::{PhmSummary, RayCacheSummary, Scheduling, ray_counts, rays_by_name};
 
 #[derive(Args, Debug)]
 pub struct SubmitArgs {
@@ -51,7 +51,7 @@ pub struct SubmitArgs {
 /// `dray submit --stats`: the job as GetJob reports it once finished, with the keys of
 /// `dray render --stats` where they mean the same.
 #[derive(Serialize, Debug)]
-struct SubmitStats {
+pub(crate) struct SubmitStats {
     job_id: String,
     coordinator: String,
     scene: String,
@@ -74,10 +74,16 @@ struct SubmitStats {
     wall_time_s: f64,
     #[serde(flatten)]
     scheduling: Scheduling,
+    /// What the ray caches did; absent when the job had none.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    ray_cache: Option<RayCacheSummary>,
+    /// What the hit maps did; absent when the job had none.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    phm: Option<PhmSummary>,
 }
 
 impl SubmitStats {
-    fn of(job: &Job, url: &str, wall: Duration) -> SubmitStats {
+    pub(crate) fn of(job: &Job, url: &str, wall: Duration) -> SubmitStats {
         let spec = job.spec.clone().unwrap_or_default();
         let stats = job.stats.clone().unwrap_or_default();
         let rays = ray_counts(&stats.rays.unwrap_or_default());
@@ -104,6 +110,8 @@ impl SubmitStats {
                 .map_or(0.0, |d| d.seconds as f64 + f64::from(d.nanos) * 1e-9),
             wall_time_s: wall.as_secs_f64(),
             scheduling: Scheduling::of(&stats),
+            ray_cache: RayCacheSummary::of(&stats),
+            phm: PhmSummary::of(&stats),
         }
     }
 }
@@ -129,7 +137,7 @@ pub fn endpoint_url(addr: &str) -> Result<String> {
 }
 
 /// The job spec the flags describe.
-fn job_spec(a: &SubmitArgs) -> Result<JobSpec> {
+pub(crate) fn job_spec(a: &SubmitArgs) -> Result<JobSpec> {
     a.job.job_spec(
         a.job.scene.clone(),
         a.domains.unwrap_or(0),
@@ -169,7 +177,7 @@ pub fn run(a: SubmitArgs) -> Result<()> {
     rt.block_on(submit(a, spec, url))
 }
 
-async fn connect(url: &str) -> Result<RenderServiceClient<Channel>> {
+pub(crate) async fn connect(url: &str) -> Result<RenderServiceClient<Channel>> {
     let channel = Endpoint::from_shared(url.to_string())
         .with_context(|| format!("--coordinator: {url} is not a valid address"))?
         .connect_timeout(Duration::from_secs(10))
@@ -183,51 +191,7 @@ async fn connect(url: &str) -> Result<RenderServiceClient<Channel>> {
 async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
     let started = Instant::now();
     let mut client = connect(&url).await?;
-
-    // SubmitJob answers after the scene is loaded, which can take a while; a Ctrl-C in
-    // that window must still cancel the job the server is about to accept.
-    let submit = client.clone();
-    let mut submitting = Box::pin(async move {
-        let mut c = submit;
-        c.submit_job(SubmitJobRequest { spec: Some(spec) }).await
-    });
-    let response = tokio::select! {
-        r = &mut submitting => r,
-        _ = tokio::signal::ctrl_c() => {
-            eprintln!("dray submit: interrupted; waiting for the job id to cancel it (Ctrl-C again to leave it)");
-            tokio::select! {
-                r = &mut submitting => {
-                    if let Ok(resp) = r {
-                        let id = resp.into_inner().job_id;
-                        cancel(&mut client, &id).await;
-                        bail!("interrupted: job {id} cancelled");
-                    }
-                    bail!("interrupted before the job was accepted");
-                }
-                _ = tokio::signal::ctrl_c() => bail!("interrupted; the job may still run on the coordinator"),
-            }
-        }
-    }
-    .map_err(|s| rpc_error("SubmitJob", &url, s))?;
-    let id = response.into_inner().job_id;
-    if !a.job.quiet {
-        eprintln!("dray submit: job {id} accepted by {url}");
-    }
-
-    let watcher = client.clone();
-    let last = tokio::select! {
-        r = watch(watcher, &id, &url, a.job.quiet) => r?,
-        _ = tokio::signal::ctrl_c() => {
-            cancel(&mut client, &id).await;
-            bail!("interrupted: job {id} cancelled");
-        }
-    };
-    match last.state() {
-        JobState::Succeeded => {}
-        JobState::Failed => bail!("job {id} failed: {}", last.error.replace('\n', " ")),
-        JobState::Cancelled => bail!("job {id} was cancelled"),
-        other => bail!("job {id} ended in unexpected state {}", other.as_str_name()),
-    }
+    let (id, last) = run_job(&mut client, spec, &url, a.job.quiet, "dray submit").await?;
 
     let png = fetch(&mut client, &id, ImageFormat::Png, a.job.exposure, &url).await?;
     std::fs::write(&a.job.output, &png)
@@ -264,16 +228,84 @@ async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
                 .map(|p| format!(" and {}", p.display()))
                 .unwrap_or_default()
         );
-        let scheduling = Scheduling::of(&job.and_then(|j| j.stats).unwrap_or_default());
-        if let Some(line) = scheduling.line() {
+        let stats = job.and_then(|j| j.stats).unwrap_or_default();
+        if let Some(line) = Scheduling::of(&stats).line() {
             eprintln!("dray submit: schedule {line}");
+        }
+        if let Some(rc) = RayCacheSummary::of(&stats) {
+            for line in rc.lines() {
+                eprintln!("dray submit: ray caches {line}");
+            }
+        }
+        if let Some(p) = PhmSummary::of(&stats) {
+            eprintln!("dray submit: hit maps {}", p.line());
         }
     }
     Ok(())
 }
 
+/// Submit `spec` and follow the job to its end (a progress view unless `quiet`; `who`
+/// prefixes the messages); its id and last progress once it succeeded. Ctrl-C cancels
+/// it. Shared with `dray sweep --coordinator`, which fetches what it needs itself.
+pub(crate) async fn run_job(
+    client: &mut RenderServiceClient<Channel>,
+    spec: JobSpec,
+    url: &str,
+    quiet: bool,
+    who: &str,
+) -> Result<(String, JobProgress)> {
+    // SubmitJob answers after the scene is loaded, which can take a while; a Ctrl-C in
+    // that window must still cancel the job the server is about to accept.
+    let submit = client.clone();
+    let mut submitting = Box::pin(async move {
+        let mut c = submit;
+        c.submit_job(SubmitJobRequest { spec: Some(spec) }).await
+    });
+    let response = tokio::select! {
+        r = &mut submitting => r,
+        _ = tokio::signal::ctrl_c() => {
+            eprintln!("{who}: interrupted; waiting for the job id to cancel it (Ctrl-C again to leave it)");
+            tokio::select! {
+                r = &mut submitting => {
+                    if let Ok(resp) = r {
+                        let id = resp.into_inner().job_id;
+                        cancel(client, &id).await;
+                        bail!("interrupted: job {id} cancelled");
+                    }
+                    bail!("interrupted before the job was accepted");
+                }
+                _ = tokio::signal::ctrl_c() => bail!("interrupted; the job may still run on the coordinator"),
+            }
+        }
+    }
+    .map_err(|s| rpc_error("SubmitJob", url, s))?;
+    let id = response.into_inner().job_id;
+    if !quiet {
+        eprintln!("{who}: job {id} accepted by {url}");
+    }
+
+    let watcher = client.clone();
+    let last = tokio::select! {
+        r = watch(watcher, &id, url, quiet) => r?,
+        _ = tokio::signal::ctrl_c() => {
+            cancel(client, &id).await;
+            bail!("interrupted: job {id} cancelled");
+        }
+    };
+    match last.state() {
+        JobState::Succeeded => Ok((id, last)),
+        JobState::Failed => bail!("job {id} failed: {}", last.error.replace('\n', " ")),
+        JobState::Cancelled => bail!("job {id} was cancelled"),
+        other => bail!("job {id} ended in unexpected state {}", other.as_str_name()),
+    }
+}
+
 /// GetJob: the job as the coordinator knows it.
-async fn get_job(client: &mut RenderServiceClient<Channel>, id: &str, url: &str) -> Result<Job> {
+pub(crate) async fn get_job(
+    client: &mut RenderServiceClient<Channel>,
+    id: &str,
+    url: &str,
+) -> Result<Job> {
     client
         .get_job(GetJobRequest {
             job_id: id.to_string(),
@@ -297,7 +329,7 @@ async fn cancel(client: &mut RenderServiceClient<Channel>, id: &str) {
     }
 }
 
-async fn fetch(
+pub(crate) async fn fetch(
     client: &mut RenderServiceClient<Channel>,
     id: &str,
     format: ImageFormat,

@@ -6,7 +6,7 @@ use std::time::Duration;
 use dray_core::integrator::{RayKind, RenderSettings};
 use dray_core::render::{RayCounts, RenderOutput};
 use dray_core::scene::Scene;
-use dray_proto::v1::JobStats;
+use dray_proto::v1::{JobStats, PhmStats, RayCacheStats};
 use serde::Serialize;
 
 #[derive(Serialize, Debug)]
@@ -37,6 +37,183 @@ pub struct Summary {
     /// How the job was scheduled on workers, and what that cost.
     #[serde(flatten)]
     pub scheduling: Scheduling,
+    /// What the ray caches did; absent when the job had none.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ray_cache: Option<RayCacheSummary>,
+    /// What the hit maps did; absent when the job had none.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub phm: Option<PhmSummary>,
+}
+
+/// A job's hit-map statistics (`JobStats.phm`), as the `--stats` JSON spells them.
+#[derive(Serialize, Debug, Clone, Copy, PartialEq)]
+pub struct PhmSummary {
+    /// Rays that asked a map.
+    pub lookups: u64,
+    /// Rays that skipped a domain (predicted miss), occlusion rays answered as occluded
+    /// (predicted hit).
+    pub rays_skipped: u64,
+    pub rays_occluded: u64,
+    /// Rays traced to learn, and outcomes reported back.
+    pub probes: u64,
+    pub outcomes: u64,
+    /// Cells decided as hits and as misses when the job ended, of all cells.
+    pub cells_decided_hit: u64,
+    pub cells_decided_miss: u64,
+    pub cells: u64,
+    /// Rays not sent to another worker because a map answered or skipped them.
+    pub rays_not_sent: u64,
+    pub bytes_not_sent: u64,
+    /// Domains dropped (not built: always 0).
+    pub domains_dropped: u64,
+}
+
+impl PhmSummary {
+    /// The summary of a job's statistics; None when it had no hit maps.
+    pub fn of(s: &JobStats) -> Option<PhmSummary> {
+        s.phm.as_ref().map(|p: &PhmStats| PhmSummary {
+            lookups: p.lookups,
+            rays_skipped: p.rays_skipped,
+            rays_occluded: p.rays_occluded,
+            probes: p.probes,
+            outcomes: p.outcomes,
+            cells_decided_hit: p.cells_decided_hit,
+            cells_decided_miss: p.cells_decided_miss,
+            cells: p.cells,
+            rays_not_sent: p.rays_not_sent,
+            bytes_not_sent: p.bytes_not_sent,
+            domains_dropped: p.domains_dropped,
+        })
+    }
+
+    /// The line of the human summary, without a label.
+    pub fn line(&self) -> String {
+        format!(
+            "{} lookups: {} skipped, {} occluded, {} probes; cells decided {} hit, {} miss of {}; {} rays not sent",
+            self.lookups,
+            self.rays_skipped,
+            self.rays_occluded,
+            self.probes,
+            self.cells_decided_hit,
+            self.cells_decided_miss,
+            self.cells,
+            self.rays_not_sent
+        )
+    }
+}
+
+/// A job's ray-cache statistics (`JobStats.ray_cache`), as the `--stats` JSON of
+/// `dray render` and `dray submit` spells them, with the hit ratios worked out.
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct RayCacheSummary {
+    /// Lookups and hits on outer walls (the scene bounds); ratio = hits / lookups (0
+    /// without lookups).
+    pub outer_lookups: u64,
+    pub outer_hits: u64,
+    pub outer_hit_ratio: f64,
+    /// The same on inner walls (between domains).
+    pub inner_lookups: u64,
+    pub inner_hits: u64,
+    pub inner_hit_ratio: f64,
+    /// Rays a cache answered that would have gone to another worker, and their bytes.
+    pub rays_not_sent: u64,
+    pub bytes_not_sent: u64,
+    /// Tickets opened by misses, closed when their credit came back, closed with their
+    /// radiance stored, and still open when the job ended.
+    pub tickets_opened: u64,
+    pub tickets_closed: u64,
+    pub tickets_stored: u64,
+    pub tickets_open: u64,
+    /// Rays of the coarse pass.
+    pub coarse_rays: u64,
+    /// Rays that went past an unreachable cache host (traced exactly).
+    pub rays_bypassed: u64,
+    /// Bytes of lookups and ticket returns sent to cache hosts.
+    pub cache_bytes: u64,
+    /// Cache hosts lost during the job.
+    pub lost_hosts: Vec<String>,
+    /// Entries in the caches at the end, radiance not stored for a full store, misses
+    /// refused a ticket, ticket returns refused (non-zero is a bug), rays whose
+    /// crossing could not be placed on their wall.
+    pub entries: u64,
+    pub entries_dropped: u64,
+    pub tickets_refused: u64,
+    pub returns_rejected: u64,
+    pub lookups_skipped: u64,
+}
+
+fn ratio(hits: u64, lookups: u64) -> f64 {
+    if lookups == 0 {
+        0.0
+    } else {
+        hits as f64 / lookups as f64
+    }
+}
+
+impl RayCacheSummary {
+    /// The summary of a job's statistics; None when it had no ray caches.
+    pub fn of(s: &JobStats) -> Option<RayCacheSummary> {
+        s.ray_cache.as_ref().map(RayCacheSummary::from_stats)
+    }
+
+    fn from_stats(r: &RayCacheStats) -> RayCacheSummary {
+        RayCacheSummary {
+            outer_lookups: r.outer_lookups,
+            outer_hits: r.outer_hits,
+            outer_hit_ratio: ratio(r.outer_hits, r.outer_lookups),
+            inner_lookups: r.inner_lookups,
+            inner_hits: r.inner_hits,
+            inner_hit_ratio: ratio(r.inner_hits, r.inner_lookups),
+            rays_not_sent: r.rays_not_sent,
+            bytes_not_sent: r.bytes_not_sent,
+            tickets_opened: r.tickets_opened,
+            tickets_closed: r.tickets_closed,
+            tickets_stored: r.tickets_stored,
+            tickets_open: r.tickets_open,
+            coarse_rays: r.coarse_rays,
+            rays_bypassed: r.rays_bypassed,
+            cache_bytes: r.cache_bytes,
+            lost_hosts: r.lost_hosts.clone(),
+            entries: r.entries,
+            entries_dropped: r.entries_dropped,
+            tickets_refused: r.tickets_refused,
+            returns_rejected: r.returns_rejected,
+            lookups_skipped: r.lookups_skipped,
+        }
+    }
+
+    /// The lines of the human summary, without a label.
+    pub fn lines(&self) -> [String; 3] {
+        let lost = if self.lost_hosts.is_empty() {
+            "none".to_string()
+        } else {
+            self.lost_hosts.join(", ")
+        };
+        [
+            format!(
+                "outer walls {} hits of {} lookups ({:.1}%), inner walls {} of {} ({:.1}%)",
+                self.outer_hits,
+                self.outer_lookups,
+                100.0 * self.outer_hit_ratio,
+                self.inner_hits,
+                self.inner_lookups,
+                100.0 * self.inner_hit_ratio
+            ),
+            format!(
+                "{} rays ({} bytes) not sent; tickets opened {}, closed {}, stored {}, open {}",
+                self.rays_not_sent,
+                self.bytes_not_sent,
+                self.tickets_opened,
+                self.tickets_closed,
+                self.tickets_stored,
+                self.tickets_open
+            ),
+            format!(
+                "{} rays bypassed, {} bytes to cache hosts, lost hosts: {lost}",
+                self.rays_bypassed, self.cache_bytes
+            ),
+        ]
+    }
 }
 
 /// The scheduling metrics of a job on workers (GetJob's `JobStats`), as the `--stats`
@@ -241,6 +418,8 @@ impl Summary {
             nonfinite_contributions: out.film.nonfinite,
             warnings: scene.warnings.clone(),
             scheduling: Scheduling::none(),
+            ray_cache: None,
+            phm: None,
         }
     }
 }
@@ -277,6 +456,21 @@ pub fn print_summary(s: &Summary) {
     );
     if let Some(line) = s.scheduling.line() {
         eprintln!("schedule     {line}");
+    }
+    if let Some(rc) = &s.ray_cache {
+        for (i, line) in rc.lines().iter().enumerate() {
+            eprintln!(
+                "{}{line}",
+                if i == 0 {
+                    "ray caches   "
+                } else {
+                    "             "
+                }
+            );
+        }
+    }
+    if let Some(p) = &s.phm {
+        eprintln!("hit maps     {}", p.line());
     }
     if s.nonfinite_contributions > 0 {
         eprintln!(
@@ -329,5 +523,58 @@ mod tests {
         assert_eq!(alone.schedule, "none");
         assert_eq!(alone.line(), None);
         assert_eq!(Scheduling::none(), alone);
+    }
+
+    #[test]
+    fn ray_cache_summary_from_job_stats() {
+        assert_eq!(RayCacheSummary::of(&JobStats::default()), None);
+        let stats = JobStats {
+            ray_cache: Some(RayCacheStats {
+                outer_lookups: 1000,
+                outer_hits: 920,
+                inner_lookups: 0,
+                inner_hits: 0,
+                rays_not_sent: 10,
+                bytes_not_sent: 640,
+                tickets_opened: 80,
+                tickets_closed: 79,
+                tickets_stored: 70,
+                tickets_open: 1,
+                rays_bypassed: 3,
+                lost_hosts: vec!["http://h:1".into()],
+                ..Default::default()
+            }),
+            ..JobStats::default()
+        };
+        let rc = RayCacheSummary::of(&stats).expect("caches");
+        assert_eq!((rc.outer_hit_ratio, rc.inner_hit_ratio), (0.92, 0.0));
+        let json = serde_json::to_value(&rc).expect("json");
+        for key in [
+            "outer_lookups",
+            "outer_hits",
+            "outer_hit_ratio",
+            "inner_lookups",
+            "inner_hits",
+            "inner_hit_ratio",
+            "rays_not_sent",
+            "bytes_not_sent",
+            "tickets_opened",
+            "tickets_closed",
+            "tickets_stored",
+            "tickets_open",
+            "rays_bypassed",
+            "lost_hosts",
+        ] {
+            assert!(json.get(key).is_some(), "{key} missing from {json}");
+        }
+        assert_eq!(json["outer_hit_ratio"], 0.92);
+        assert_eq!(json["lost_hosts"][0], "http://h:1");
+        let lines = rc.lines();
+        assert_eq!(
+            lines[0],
+            "outer walls 920 hits of 1000 lookups (92.0%), inner walls 0 of 0 (0.0%)"
+        );
+        assert!(lines[1].starts_with("10 rays (640 bytes) not sent; tickets opened 80"));
+        assert!(lines[2].ends_with("lost hosts: http://h:1"), "{}", lines[2]);
     }
 }

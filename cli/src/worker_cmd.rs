@@ -1,10 +1,19 @@
 //! `dray worker`: join a coordinator, own the domains it assigns, and trace rays with the
 //! other workers until Ctrl-C or until the coordinator is lost.
+//!
+//! By default the process also hosts ray caches: a `dray_cache` CacheService on its own
+//! listener (`--cache-listen`, default the worker's host with a free port), announced to
+//! the coordinator when the worker registers, so jobs with `ray_cache` can place cache
+//! actors beside the domains this worker owns. `--no-cache-host` leaves it out. The
+//! cache host stops after the worker; if it fails, the worker stops too, naming it.
 
+use std::net::SocketAddr;
 use std::time::Duration;
 
 use anyhow::{Context, Result};
 use clap::Args;
+
+use crate::cache_host::{LocalCacheHost, advertised_host};
 
 #[derive(Args, Debug)]
 pub struct WorkerArgs {
@@ -35,6 +44,15 @@ pub struct WorkerArgs {
     /// Seconds to keep trying to reach the coordinator at start.
     #[arg(long, default_value_t = 10)]
     pub connect_timeout: u64,
+    /// Address to serve this process's ray caches on (port 0 picks a free port);
+    /// advertised at the worker's advertised host with the bound port. Default: the
+    /// worker's listening host, port 0.
+    #[arg(long, value_name = "ADDR")]
+    pub cache_listen: Option<String>,
+    /// Host no ray caches in this process (jobs with ray caches then use other workers'
+    /// or stand-alone `dray cache` hosts).
+    #[arg(long, conflicts_with = "cache_listen")]
+    pub no_cache_host: bool,
 }
 
 pub fn run(a: WorkerArgs) -> Result<()> {
@@ -51,6 +69,18 @@ pub fn run(a: WorkerArgs) -> Result<()> {
             .context("cannot read the bound address")?;
         // One line on stdout, so scripts and tests can find the port.
         println!("dray worker listening on {addr}");
+        let mut cache = if a.no_cache_host {
+            None
+        } else {
+            let listen = a
+                .cache_listen
+                .clone()
+                .unwrap_or_else(|| SocketAddr::new(addr.ip(), 0).to_string());
+            let host = a.advertise.as_deref().and_then(advertised_host);
+            let h = LocalCacheHost::start(&listen, None, host.as_deref()).await?;
+            println!("dray worker cache host listening on {}", h.addr);
+            Some(h)
+        };
         let config = dray_worker::WorkerConfig {
             coordinator: a.coordinator.clone(),
             advertise: a.advertise.clone(),
@@ -58,13 +88,23 @@ pub fn run(a: WorkerArgs) -> Result<()> {
             memory_budget: a.memory_budget,
             load_delay: Duration::from_millis(a.load_delay_ms),
             connect_timeout: Duration::from_secs(a.connect_timeout),
+            cache_endpoint: cache.as_ref().map(|h| h.endpoint.clone()),
             ..dray_worker::WorkerConfig::default()
         };
         let shutdown = async {
             let _ = tokio::signal::ctrl_c().await;
         };
-        dray_worker::run(config, listener, shutdown)
-            .await
-            .context("worker stopped")
+        let worker = dray_worker::run(config, listener, shutdown);
+        let result = match cache.as_mut() {
+            Some(h) => tokio::select! {
+                r = worker => r.context("worker stopped"),
+                e = h.ended() => Err(e),
+            },
+            None => worker.await.context("worker stopped"),
+        };
+        if let Some(h) = cache {
+            h.stop().await;
+        }
+        result
     })
 }

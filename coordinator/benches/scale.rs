@@ -231,6 +231,7 @@ impl Sim {
                         version: VERSION.into(),
                         record_format: dray_proto::RAY_RECORD_FORMAT,
                         hostname: format!("node{i}"),
+                        cache_endpoint: String::new(),
                     })
                     .expect("register");
                 JobWorker {
@@ -341,6 +342,7 @@ impl Sim {
                         rays_forwarded: 3,
                         idle_seconds: 0.001,
                         queue_peak: 50_000,
+                        ..Default::default()
                     }),
                     ..Default::default()
                 }
@@ -561,6 +563,8 @@ fn main() {
             attempt: new_table.attempt,
             local: false,
             workers: Vec::new(),
+            cache_hosts: Vec::new(),
+            wall_hosts: Vec::new(),
             routes: changes
                 .iter()
                 .filter_map(|c| c.given())

@@ -1,6 +1,9 @@
 //! `dray.v1.ClusterService`: the calls workers make to the coordinator, over the
 //! [`Membership`], the [`Ledger`] and the [`Scheduler`].
 //!
+//! Stand-alone cache hosts (`dray cache`) register here too (RegisterCacheHost), and are
+//! listed in [`Membership::cache_hosts`](crate::membership::Membership::cache_hosts).
+//!
 //! Workers dial out; the coordinator answers and pushes commands on each worker's
 //! WatchAssignments stream. See cluster.proto for the protocol and [`crate::dispatch`] for
 //! what a job's workers receive, in order. Registrations, queue reports and lost workers
@@ -13,9 +16,9 @@ use std::time::{Duration, Instant};
 use dray_proto::v1::cluster_service_server::ClusterService;
 use dray_proto::v1::{
     Assignment, GetRoutingTableRequest, GetRoutingTableResponse, HeartbeatRequest,
-    HeartbeatResponse, RegisterWorkerRequest, RegisterWorkerResponse, ReportContributionsRequest,
-    ReportContributionsResponse, ReportQueuesRequest, ReportQueuesResponse,
-    WatchAssignmentsRequest,
+    HeartbeatResponse, RegisterCacheHostRequest, RegisterCacheHostResponse, RegisterWorkerRequest,
+    RegisterWorkerResponse, ReportContributionsRequest, ReportContributionsResponse,
+    ReportQueuesRequest, ReportQueuesResponse, WatchAssignmentsRequest,
 };
 use dray_scene::partition::memory::MemoryPackages;
 use tokio_stream::wrappers::ReceiverStream;
@@ -68,7 +71,7 @@ impl Cluster {
     /// A cluster with no workers.
     pub fn new(options: ClusterOptions) -> Cluster {
         let membership = Arc::new(Membership::new(options.heartbeat));
-        let ledger = Arc::new(Ledger::new(membership.clone()));
+        let ledger = Ledger::shared(membership.clone());
         Cluster {
             scheduler: Scheduler::new(ledger.clone(), options.scheduler),
             ledger,
@@ -222,5 +225,13 @@ impl ClusterService for ClusterApi {
         Ok(Response::new(ReportContributionsResponse {
             job_active: outcome.job_active(),
         }))
+    }
+
+    async fn register_cache_host(
+        &self,
+        r: Request<RegisterCacheHostRequest>,
+    ) -> Result<Response<RegisterCacheHostResponse>, Status> {
+        let host_id = self.cluster.membership.cache_hosts.register(r.get_ref())?;
+        Ok(Response::new(RegisterCacheHostResponse { host_id }))
     }
 }

@@ -28,6 +28,12 @@
 //! A worker that registers while a dynamic job runs gets that job's `JobSetup` (current
 //! attempt and table, listing it) and no tiles; rounds then give it domains.
 //!
+//! A job with `ray_cache` has its walls placed on cache hosts and opened (OpenWalls)
+//! before step 1, and every table of the attempt lists them (`cache_hosts`,
+//! `wall_hosts`; see [`crate::caches`]). With no cache host at all (no `dray cache`
+//! registered, and no worker announced one) the job fails before it starts; with hosts
+//! that all fail to open, it runs without caches and says so in its statistics.
+//!
 //! The JobSetup's spec is what the worker must render, resolved so every worker reads the
 //! same thing: `camera` is always set, to the index (as a decimal string) of the camera in
 //! the package's camera list; `translate` is cleared because the package was written from
@@ -45,6 +51,9 @@ use dray_scene::partition::memory::{MemoryPackage, MemoryPackages};
 use dray_scene::partition::{LayoutSpec, write_scene_package};
 use tracing::Instrument;
 
+use crate::caches::geometry::WallGeometry;
+use crate::caches::job::{self as cache_job, JobCaches, OpenAttempt};
+use crate::caches::lifecycle;
 use crate::cluster::Cluster;
 use crate::jobs::JobEntry;
 use crate::ledger::DistJob;
@@ -105,6 +114,13 @@ pub enum DispatchError {
     /// Every worker left before the job could start.
     #[error("no worker is registered any more")]
     NoWorkers,
+    /// The job asks for ray caches and nothing can host them.
+    #[error(
+        "ray caches need a cache host: workers announced none and no `dray cache` \
+         registered (start workers without --no-cache-host, or a `dray cache`, or submit \
+         the job without ray_cache)"
+    )]
+    NoCacheHost,
     /// A blocking task died.
     #[error("the package task died: {0}")]
     Task(String),
@@ -151,17 +167,21 @@ struct PackageInfo {
     domains: u32,
     /// Set when the package was made for this job (and goes with it).
     owned: Option<OwnedPackage>,
+    /// The boxes of its domains, when the job has ray caches.
+    geometry: Option<WallGeometry>,
 }
 
-/// Write (or check) the package: into `memory` when given, else into `dir`. Blocking.
+/// Write (or check) the package: into `memory` when given, else into `dir`; with
+/// `walls`, also take the boxes its cache hosts need. Blocking.
 fn make_package(
     src: PackageSource,
     dir: &Path,
     memory: Option<&Arc<MemoryPackages>>,
+    walls: bool,
 ) -> Result<PackageInfo, DispatchError> {
     let src = match (src, memory) {
         (PackageSource::Write { scene, layout }, Some(store)) => {
-            return memory_package(*scene, &layout, store, dir);
+            return memory_package(*scene, &layout, store, dir, walls);
         }
         (src, _) => src,
     };
@@ -196,6 +216,7 @@ fn make_package(
         checksum: package_checksum(&bytes),
         domains: pkg.domain_count(),
         owned: owned.then_some(OwnedPackage::Dir(dir)),
+        geometry: walls.then(|| WallGeometry::of(pkg.layout())),
     })
 }
 
@@ -205,12 +226,14 @@ fn memory_package(
     layout: &LayoutSpec,
     store: &Arc<MemoryPackages>,
     dir: &Path,
+    walls: bool,
 ) -> Result<PackageInfo, DispatchError> {
     let pkg = MemoryPackage::new(scene, layout).map_err(|e| DispatchError::Package {
         dir: dir.to_path_buf(),
         message: e.to_string(),
     })?;
     let domains = pkg.domain_count();
+    let geometry = walls.then(|| WallGeometry::of(pkg.layout()));
     let name = store.insert(pkg);
     Ok(PackageInfo {
         path: name.clone(),
@@ -221,6 +244,7 @@ fn memory_package(
             store: store.clone(),
             name,
         }),
+        geometry,
     })
 }
 
@@ -232,6 +256,26 @@ pub fn package_checksum(manifest_bytes: &[u8]) -> String {
 }
 
 /// The tiles of a `width` x `height` image, row-major, each with [`TILE_CREDIT`].
+/// The tiles of a ray-cache coarse pass over an `n` x `n` image, numbered from `first`
+/// (the image's tile count) in the same row-major order and size as the image's tiles,
+/// as the workers number them (cluster.proto `Tile.coarse`).
+pub fn coarse_tiles(n: u32, first: u32) -> Vec<Tile> {
+    render::tiles(n, n)
+        .into_iter()
+        .enumerate()
+        .map(|(i, t)| Tile {
+            index: first + i as u32,
+            x0: t.x0,
+            y0: t.y0,
+            width: t.w,
+            height: t.h,
+            credit: TILE_CREDIT,
+            attempt: 0,
+            coarse: true,
+        })
+        .collect()
+}
+
 pub fn image_tiles(width: u32, height: u32) -> Vec<Tile> {
     render::tiles(width, height)
         .into_iter()
@@ -244,6 +288,7 @@ pub fn image_tiles(width: u32, height: u32) -> Vec<Tile> {
             height: t.h,
             credit: TILE_CREDIT,
             attempt: 0,
+            coarse: false,
         })
         .collect()
 }
@@ -358,9 +403,11 @@ async fn run(
     let dir = cluster.options.work_dir.join(&entry.id);
     let dir2 = dir.clone();
     let memory = cluster.options.memory_packages.clone();
-    let info = tokio::task::spawn_blocking(move || make_package(package, &dir2, memory.as_ref()))
-        .await
-        .map_err(|e| DispatchError::Task(e.to_string()));
+    let walls = setup_spec.ray_cache.is_some() || setup_spec.phm.is_some();
+    let info =
+        tokio::task::spawn_blocking(move || make_package(package, &dir2, memory.as_ref(), walls))
+            .await
+            .map_err(|e| DispatchError::Task(e.to_string()));
     let info = match info {
         Ok(Ok(i)) => i,
         Ok(Err(e)) | Err(e) => {
@@ -387,7 +434,25 @@ async fn run(
         remove_package(owned.as_ref());
         return Err(DispatchError::NoWorkers);
     }
-    let sched = JobSchedule::new(&entry.id, schedule, info.domains, &workers);
+    let mut sched = JobSchedule::new(&entry.id, schedule, info.domains, &workers);
+    let walled = setup_spec.ray_cache.is_some() || setup_spec.phm.is_some();
+    let caches = match info.geometry {
+        Some(geometry) if walled => {
+            let caches = JobCaches::new(
+                setup_spec.ray_cache.clone(),
+                setup_spec.phm.clone(),
+                Arc::new(geometry),
+            );
+            match open_first_attempt(cluster, entry, &mut sched, caches).await {
+                Ok(c) => Some(c),
+                Err(e) => {
+                    remove_package(owned.as_ref());
+                    return Err(e);
+                }
+            }
+        }
+        _ => None,
+    };
     let env = prepared.environment;
     let setup = JobSetup {
         job_id: entry.id.clone(),
@@ -408,7 +473,18 @@ async fn run(
         attempt: 0,
         schedule: schedule.name().to_string(),
     };
-    let tiles = image_tiles(entry.spec.width, entry.spec.height);
+    let mut tiles = image_tiles(entry.spec.width, entry.spec.height);
+    // The coarse pass's tiles come after the image's: traced first, they fill the caches
+    // before any image ray looks them up (see the ledger).
+    let coarse = setup
+        .spec
+        .as_ref()
+        .and_then(|s| s.ray_cache.as_ref())
+        .map_or(0, |rc| rc.coarse);
+    if coarse > 0 {
+        let first = tiles.len() as u32;
+        tiles.extend(coarse_tiles(coarse, first));
+    }
     let n = workers.len();
     entry.update_stats(|s| {
         s.triangles = prepared.triangles;
@@ -418,7 +494,14 @@ async fn run(
         s.schedule = schedule.name().to_string();
     });
     let tile_count = tiles.len();
-    let job = DistJob::new(entry.clone(), setup, sched, tiles, owned.clone());
+    let mut job = DistJob::new(entry.clone(), setup, sched, tiles, owned.clone());
+    // What to close if the job never starts (cancelled while its walls opened).
+    let opened = caches
+        .as_ref()
+        .and_then(|c| c.opened.clone().map(|o| (o, c.tally.clone())));
+    if let Some(c) = caches {
+        job = job.with_caches(c);
+    }
     match cluster.ledger.start(job) {
         Ok(()) => {
             tracing::info!(
@@ -433,6 +516,12 @@ async fn run(
         }
         Err(msg) => {
             remove_package(owned.as_ref());
+            if let Some((o, tally)) = opened {
+                let closed = lifecycle::close(&entry.id, o.attempt, &o.placement).await;
+                tally.add_host(&closed.stats);
+                tally.add_host_phm(&closed.phm);
+                tally.publish(entry);
+            }
             if entry.is_terminal() {
                 return Ok(());
             }
@@ -440,6 +529,46 @@ async fn run(
             Ok(())
         }
     }
+}
+
+/// Place the first attempt's cache walls by `sched`'s first table and open them, then
+/// put the placement in the table. Hosts that fail are left out (their walls placed on
+/// the others) and listed as lost; if all fail, the job runs without caches. Fails when
+/// there is no host at all.
+async fn open_first_attempt(
+    cluster: &Arc<Cluster>,
+    entry: &Arc<JobEntry>,
+    sched: &mut JobSchedule,
+    mut caches: JobCaches,
+) -> Result<JobCaches, DispatchError> {
+    let candidates = cache_job::candidates(&cluster.membership, sched);
+    if candidates.is_empty() {
+        return Err(DispatchError::NoCacheHost);
+    }
+    let placement = cache_job::place(&candidates, sched, sched.domains());
+    let walls = caches.attempt_walls(&entry.id, sched.attempt());
+    let opened = lifecycle::open(&walls, placement).await;
+    caches
+        .tally
+        .lose(opened.failed.iter().map(|f| f.host.endpoint.as_str()));
+    if opened.placement.is_empty() {
+        tracing::warn!(
+            hosts = candidates.hosts.len(),
+            "no cache host could open the walls: the job runs without ray caches"
+        );
+    } else {
+        tracing::info!(
+            hosts = opened.placement.hosts().len(),
+            walls = opened.placement.wall_hosts().len(),
+            "cache walls open"
+        );
+        caches.opened = Some(OpenAttempt {
+            attempt: walls.attempt,
+            placement: opened.placement.clone(),
+        });
+    }
+    sched.set_caches(opened.placement);
+    Ok(caches)
 }
 
 #[cfg(test)]

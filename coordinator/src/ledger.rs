@@ -30,9 +30,18 @@
 //! Every change to a job (credit, attempt, table) and the commands it causes are made
 //! under one lock, so a worker never sees a table or tiles of an attempt the ledger does
 //! not know yet, and a report never sees half a restart.
+//!
+//! **Ray caches.** A job with `ray_cache` has its attempt's walls open on cache hosts
+//! before the attempt's tiles go out, and closed when the attempt ends (see
+//! [`crate::caches::job`] for who closes what). Those calls are network calls, so they
+//! never run under the lock: a new attempt after a lost worker is *pending* (its old
+//! attempt cancelled, its tiles cleared, nothing sent) while a task closes the old walls
+//! and opens the new ones, then [`Ledger::caches_opened`] sends its setup and tiles,
+//! unless the job moved on meanwhile. A job that ends with walls open turns terminal
+//! only once they are closed, so its final statistics include the hosts'.
 
 use std::collections::{BTreeSet, HashMap};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::time::{Duration, Instant};
 
 use dray_core::film::Film;
@@ -42,6 +51,9 @@ use dray_proto::v1::{
 };
 use tonic::Status;
 
+use crate::caches::job::{self as cache_job, JobCaches, OpenAttempt};
+use crate::caches::lifecycle::{self, Opened};
+use crate::caches::placement::Placement;
 use crate::dispatch::TILES_PER_MESSAGE;
 use crate::jobs::JobEntry;
 use crate::membership::{LostWorker, Membership, WorkerRecord};
@@ -83,10 +95,18 @@ pub struct DistJob {
     /// `schedule` are filled from `sched` each time it is sent.
     setup: JobSetup,
     sched: JobSchedule,
-    /// Every tile of the image (rectangle and starting credit), by index.
+    /// Every tile of the image (rectangle and starting credit), by index, then the
+    /// tiles of the ray-cache coarse pass, if any (`Tile.coarse`).
     tiles: Vec<Tile>,
     tile_back: Vec<u64>,
+    /// Image tiles complete (coarse tiles are not counted: progress is the image's).
     tiles_done: u32,
+    /// The image's tiles: `tiles[..image_tiles]`; the rest are the coarse pass's.
+    image_tiles: usize,
+    /// Whether the coarse pass (if any) is complete: until it is, only coarse tiles go
+    /// out, so every image ray's lookup sees caches the coarse pass has filled (and,
+    /// with `fill=false`, only those: the same bits every run).
+    coarse_done: bool,
     tiles_retried: u32,
     film: Film,
     /// Sequences applied per worker, this attempt.
@@ -95,6 +115,8 @@ pub struct DistJob {
     nonfinite: u64,
     ray_bytes_sent: u64,
     metrics: JobMetrics,
+    /// Ray caches, for a job with `ray_cache`.
+    caches: Option<JobCaches>,
 }
 
 impl DistJob {
@@ -112,11 +134,14 @@ impl DistJob {
         for id in sched.worker_ids() {
             metrics.add_worker(&id);
         }
+        let image_tiles = tiles.iter().filter(|t| !t.coarse).count();
         DistJob {
             entry,
             owned_package,
             setup,
             sched,
+            image_tiles,
+            coarse_done: image_tiles == tiles.len(),
             tile_back: vec![0; tiles.len()],
             tiles,
             tiles_done: 0,
@@ -127,7 +152,15 @@ impl DistJob {
             nonfinite: 0,
             ray_bytes_sent: 0,
             metrics,
+            caches: None,
         }
+    }
+
+    /// The same job with ray caches (their first attempt's walls already open, or
+    /// none, as `caches.opened` says).
+    pub fn with_caches(mut self, caches: JobCaches) -> DistJob {
+        self.caches = Some(caches);
+        self
     }
 
     /// The scheduling state.
@@ -148,10 +181,18 @@ impl DistJob {
     /// For each worker of the current attempt, in job order: its JobSetup, then `tiles`
     /// dealt by the schedule's rule, in messages of at most [`TILES_PER_MESSAGE`].
     fn start_commands(&self, tiles: &[Tile]) -> Vec<(String, Assignment)> {
-        let setup = self.current_setup();
+        self.commands(tiles, true)
+    }
+
+    /// `tiles` dealt to the current attempt's workers, each worker's JobSetup first when
+    /// `setup`.
+    fn commands(&self, tiles: &[Tile], setup: bool) -> Vec<(String, Assignment)> {
+        let job_setup = self.current_setup();
         let mut out = Vec::new();
         for (w, mine) in self.sched.deal(tiles) {
-            out.push((w.clone(), command(Command::Setup(setup.clone()))));
+            if setup {
+                out.push((w.clone(), command(Command::Setup(job_setup.clone()))));
+            }
             for chunk in mine.chunks(TILES_PER_MESSAGE) {
                 out.push((
                     w.clone(),
@@ -169,10 +210,39 @@ impl DistJob {
         self.tile_back[t] == self.tiles[t].credit
     }
 
+    /// The tiles whose credit is not all back, of the phase the job is in: the coarse
+    /// pass's until it is complete, then the image's.
+    fn incomplete_tiles(&self) -> Vec<Tile> {
+        let range = if self.coarse_done {
+            0..self.image_tiles
+        } else {
+            self.image_tiles..self.tiles.len()
+        };
+        range
+            .filter(|&t| !self.tile_complete(t))
+            .map(|t| self.tiles[t])
+            .collect()
+    }
+
+    /// Whether every tile, image and coarse, is complete.
+    fn all_complete(&self) -> bool {
+        self.coarse_done && self.tiles_done as usize == self.image_tiles
+    }
+
+    /// Whether the current attempt waits for its cache walls to open.
+    fn caches_pending(&self) -> bool {
+        self.caches.as_ref().is_some_and(|c| c.pending.is_some())
+    }
+
     /// Set every pixel of tile `t` back to zero, exactly (wrapping integer sums: adding
     /// the negated sum gives 0 whatever the sum was).
     fn clear_tile(&mut self, t: usize) {
         let tile = self.tiles[t];
+        if tile.coarse {
+            // Coarse rays add nothing to the image.
+            self.tile_back[t] = 0;
+            return;
+        }
         let width = self.film.width;
         for y in tile.y0..tile.y0.saturating_add(tile.height).min(self.film.height) {
             for x in tile.x0..tile.x0.saturating_add(tile.width).min(width) {
@@ -197,6 +267,9 @@ impl DistJob {
             s.routing_version = self.sched.version();
             s.schedule = self.sched.schedule().name().to_string();
         });
+        if let Some(c) = &self.caches {
+            c.tally.publish(&self.entry);
+        }
     }
 }
 
@@ -238,6 +311,10 @@ impl ReportOutcome {
 pub struct Ledger {
     jobs: Mutex<HashMap<String, DistJob>>,
     membership: Arc<Membership>,
+    /// This ledger, for the tasks it starts to open and close cache walls, which come
+    /// back to it. Dangling for a ledger made with [`Ledger::new`]: a new attempt then
+    /// runs without caches.
+    me: Weak<Ledger>,
 }
 
 /// How a job leaves the ledger.
@@ -252,7 +329,18 @@ impl Ledger {
         Ledger {
             jobs: Mutex::new(HashMap::new()),
             membership,
+            me: Weak::new(),
         }
+    }
+
+    /// A shared ledger, which can start the tasks that open a new attempt's cache walls
+    /// (the server's; [`Ledger::new`] is enough for jobs without caches).
+    pub fn shared(membership: Arc<Membership>) -> Arc<Ledger> {
+        Arc::new_cyclic(|me| Ledger {
+            jobs: Mutex::new(HashMap::new()),
+            membership,
+            me: me.clone(),
+        })
     }
 
     fn lock(&self) -> MutexGuard<'_, HashMap<String, DistJob>> {
@@ -275,7 +363,7 @@ impl Ledger {
                 "worker {w} left the cluster while the job was being prepared"
             ));
         }
-        for (w, a) in job.start_commands(&job.tiles) {
+        for (w, a) in job.start_commands(&job.incomplete_tiles()) {
             if !self.membership.send(&w, a) {
                 // Cannot happen while we hold the ledger lock unless the worker expired
                 // between the check above and here; the job cannot run without it.
@@ -399,7 +487,7 @@ impl Ledger {
                 Some(b) if b <= start => {
                     let was = job.tile_back[t] == start;
                     job.tile_back[t] = b;
-                    if !was && b == start {
+                    if !was && b == start && t < job.image_tiles {
                         job.tiles_done += 1;
                     }
                 }
@@ -422,6 +510,9 @@ impl Ledger {
         job.ray_bytes_sent += r.ray_bytes_sent;
         job.metrics
             .add(&r.worker_id, r.counters.as_ref(), r.traced.as_ref());
+        if let (Some(c), Some(caches)) = (&r.counters, &job.caches) {
+            caches.tally.add_worker(c);
+        }
         job.publish();
         if let Some((tile, credit)) = overdrawn {
             let t = tile as usize;
@@ -438,18 +529,40 @@ impl Ledger {
             }
             return Ok(ReportOutcome::Failed);
         }
-        if job.tiles_done as usize == job.tiles.len() {
+        if !job.coarse_done && (job.image_tiles..job.tiles.len()).all(|t| job.tile_complete(t)) {
+            // The coarse pass is complete, and with it every ticket of its rays (workers
+            // report credit only once the cache actors have its ticket returns): the
+            // image's tiles go out now.
+            job.coarse_done = true;
+            let coarse = job.tiles.len() - job.image_tiles;
+            let rays: u64 = job.tiles[job.image_tiles..]
+                .iter()
+                .map(|t| u64::from(t.width) * u64::from(t.height))
+                .sum();
+            if let Some(c) = &job.caches {
+                c.tally.add_host(&dray_proto::v1::RayCacheStats {
+                    coarse_rays: rays,
+                    ..Default::default()
+                });
+            }
+            tracing::info!(
+                tiles = coarse,
+                "coarse pass complete; the image's tiles go out"
+            );
+            for (w, a) in job.commands(&job.incomplete_tiles(), false) {
+                if !self.membership.send(&w, a) {
+                    tracing::debug!(worker = %w, "worker gone before the image's tiles");
+                }
+            }
+        }
+        if job.all_complete() {
             let Some(job) = g.remove(&r.job_id) else {
                 return Ok(ReportOutcome::Inactive);
             };
             drop(g);
             tracing::info!(tiles = job.tiles.len(), "job complete");
             self.release_workers(&job, Release::Finish, "completed");
-            let mut film = job.film;
-            film.nonfinite = job.nonfinite;
-            job.entry
-                .finish(JobState::Succeeded, String::new(), Some(film));
-            remove_package(job.owned_package.as_ref());
+            self.end(job, JobState::Succeeded, String::new());
             return Ok(ReportOutcome::Completed);
         }
         Ok(ReportOutcome::Applied)
@@ -457,8 +570,47 @@ impl Ledger {
 
     fn fail(&self, job: DistJob, msg: String) {
         self.release_workers(&job, Release::Cancel, &msg);
-        job.entry.finish(JobState::Failed, msg, None);
-        remove_package(job.owned_package.as_ref());
+        self.end(job, JobState::Failed, msg);
+    }
+
+    /// Finish `job`, out of the ledger and its workers released, as `state` (with its
+    /// film when it succeeded), and remove its package. Its open cache walls are closed
+    /// first, on a task, and their statistics added, so the job turns terminal with its
+    /// final statistics (a cancelled job is marked CANCELLED by the caller already: its
+    /// statistics follow).
+    fn end(&self, job: DistJob, state: JobState, error: String) {
+        let DistJob {
+            entry,
+            owned_package,
+            mut film,
+            nonfinite,
+            mut caches,
+            ..
+        } = job;
+        film.nonfinite = nonfinite;
+        let film = (state == JobState::Succeeded).then_some(film);
+        let open = caches
+            .as_mut()
+            .and_then(|c| c.opened.take().map(|o| (o, c.tally.clone())));
+        let finish = move |entry: &JobEntry| {
+            entry.finish(state, error, film);
+            remove_package(owned_package.as_ref());
+        };
+        let Some((open, tally)) = open else {
+            return finish(&entry);
+        };
+        let Ok(rt) = tokio::runtime::Handle::try_current() else {
+            tracing::warn!(job = %entry.id, "no async runtime to close the job's cache walls");
+            return finish(&entry);
+        };
+        rt.spawn(async move {
+            let closed = lifecycle::close(&entry.id, open.attempt, &open.placement).await;
+            tally.add_host(&closed.stats);
+            tally.add_host_phm(&closed.phm);
+            tally.lose(closed.failed.iter().map(|f| f.host.endpoint.as_str()));
+            tally.publish(&entry);
+            finish(&entry);
+        });
     }
 
     fn release_workers(&self, job: &DistJob, how: Release, reason: &str) {
@@ -485,8 +637,7 @@ impl Ledger {
             Some(job) => {
                 tracing::info!(job = %id, "job cancelled on its workers");
                 self.release_workers(&job, Release::Cancel, "cancelled by user");
-                job.entry.finish(JobState::Cancelled, String::new(), None);
-                remove_package(job.owned_package.as_ref());
+                self.end(job, JobState::Cancelled, String::new());
                 true
             }
             None => false,
@@ -543,9 +694,16 @@ impl Ledger {
     /// Clear and re-deal the incomplete tiles of `job`, whose schedule has just moved to
     /// a new attempt without `lost` (`old` is the attempt dropped).
     fn retrace(&self, job: &mut DistJob, old: u32, lost: &LostWorker) {
-        let incomplete: Vec<usize> = (0..job.tiles.len())
+        let mut incomplete: Vec<usize> = (0..job.tiles.len())
             .filter(|&t| !job.tile_complete(t))
             .collect();
+        if job.image_tiles < job.tiles.len() {
+            // The new attempt's walls open empty: its coarse pass runs again, whole,
+            // before its image tiles.
+            job.coarse_done = false;
+            incomplete.extend((job.image_tiles..job.tiles.len()).filter(|&t| job.tile_complete(t)));
+            incomplete.sort_unstable();
+        }
         for &t in &incomplete {
             job.clear_tile(t);
         }
@@ -576,16 +734,116 @@ impl Ledger {
             };
             self.membership.send(&w, command(Command::Cancel(release)));
         }
-        let tiles: Vec<Tile> = incomplete.iter().map(|&t| job.tiles[t]).collect();
-        for (w, a) in job.start_commands(&tiles) {
+        job.entry.set_rays_in_flight(0);
+        if !self.reopen_caches(job) {
+            self.send_attempt(job);
+        }
+        job.publish();
+    }
+
+    /// Send every worker of `job`'s current attempt its JobSetup and the incomplete
+    /// tiles, dealt by the schedule.
+    fn send_attempt(&self, job: &DistJob) {
+        for (w, a) in job.start_commands(&job.incomplete_tiles()) {
             // A survivor that is gone too has its own loss event queued: it restarts
             // the job again then.
             if !self.membership.send(&w, a) {
                 tracing::debug!(worker = %w, "survivor gone before its new attempt");
             }
         }
-        job.entry.set_rays_in_flight(0);
+    }
+
+    /// For a job with ray caches whose new attempt has just been made (its old attempt
+    /// cancelled, its tiles cleared): mark the attempt pending and start the task that
+    /// closes the old attempt's walls, places and opens the new one's, and hands over to
+    /// [`Ledger::caches_opened`], which sends the setup and tiles. False when the job has
+    /// no caches, or no task can be started (no runtime, a ledger made with
+    /// [`Ledger::new`]): the caller sends the attempt at once, without caches.
+    fn reopen_caches(&self, job: &mut DistJob) -> bool {
+        let Some(c) = job.caches.as_mut() else {
+            return false;
+        };
+        let attempt = job.sched.attempt();
+        let (Some(ledger), Ok(rt)) = (self.me.upgrade(), tokio::runtime::Handle::try_current())
+        else {
+            // The old walls stay `opened`: the job's end closes them, if it can.
+            tracing::warn!(job = %job.entry.id, attempt, "no async runtime: the attempt runs without ray caches");
+            return false;
+        };
+        let prev = c.opened.take();
+        let candidates = cache_job::candidates(&self.membership, &job.sched);
+        let placement = cache_job::place(&candidates, &job.sched, job.sched.domains());
+        c.pending = Some(attempt);
+        let walls = c.attempt_walls(&job.entry.id, attempt);
+        let tally = c.tally.clone();
+        let entry = job.entry.clone();
+        rt.spawn(async move {
+            if let Some(p) = prev {
+                let closed = lifecycle::close(&walls.job_id, p.attempt, &p.placement).await;
+                tally.add_host(&closed.stats);
+                tally.add_host_phm(&closed.phm);
+                tally.lose(closed.failed.iter().map(|f| f.host.endpoint.as_str()));
+            }
+            let opened = if placement.is_empty() {
+                tracing::warn!(job = %walls.job_id, attempt, "no cache host is left: the attempt runs without ray caches");
+                Opened::default()
+            } else {
+                lifecycle::open(&walls, placement).await
+            };
+            if ledger.caches_opened(&walls.job_id, attempt, opened.placement.clone()) {
+                tally.lose(opened.failed.iter().map(|f| f.host.endpoint.as_str()));
+            } else {
+                // Replaced by a newer attempt, or the job ended, while the walls were
+                // opening: close them again. A host failing now is no loss (a newer
+                // attempt opening on it drops this one).
+                let closed = lifecycle::close(&walls.job_id, attempt, &opened.placement).await;
+                tally.add_host(&closed.stats);
+                tally.add_host_phm(&closed.phm);
+            }
+            tally.publish(&entry);
+        });
+        true
+    }
+
+    /// The walls of `job_id`'s pending attempt `attempt` are open as `placement` (empty:
+    /// no host could open them, the attempt runs without caches): put the placement in
+    /// its tables and send its setup and tiles. False, changing nothing, when the job
+    /// has ended or moved on to another attempt meanwhile (the caller closes the walls).
+    pub fn caches_opened(&self, job_id: &str, attempt: u32, placement: Placement) -> bool {
+        let mut g = self.lock();
+        let Some(job) = g.get_mut(job_id) else {
+            return false;
+        };
+        if job.entry.is_terminal() || job.sched.attempt() != attempt {
+            return false;
+        }
+        let Some(c) = job.caches.as_mut() else {
+            return false;
+        };
+        if c.pending != Some(attempt) {
+            return false;
+        }
+        c.pending = None;
+        c.opened = (!placement.is_empty()).then(|| OpenAttempt {
+            attempt,
+            placement: placement.clone(),
+        });
+        tracing::info!(
+            job = %job_id,
+            attempt,
+            hosts = placement.hosts().len(),
+            "cache walls open; the attempt starts"
+        );
+        job.sched.set_caches(placement);
+        self.send_attempt(job);
         job.publish();
+        if job.sched.schedule().is_dynamic() {
+            // Workers that registered while the attempt was pending were not joined.
+            for w in self.membership.workers() {
+                self.join(job, &w);
+            }
+        }
+        true
     }
 
     /// Worker `w` registered: every running dynamic job takes it on (static schedules
@@ -610,6 +868,10 @@ impl Ledger {
     fn join(&self, job: &mut DistJob, w: &WorkerRecord) {
         if self.membership.get(&w.id).is_none() {
             // Lost before its join was handled (its loss event comes next).
+            return;
+        }
+        if job.caches_pending() {
+            // The attempt has not been sent to anyone yet; it joins when it is.
             return;
         }
         let Some(table) = job.sched.add_worker(JobWorker {

@@ -22,9 +22,12 @@
 //! - [`ledger`]: credit per tile, the exact fixed-point film, attempts (restarting a
 //!   job's unfinished tiles without a lost worker), releases.
 //! - [`metrics`]: the workers' scheduling counters summed into JobStats.
+//! - [`caches`]: ray caches on domain walls: cache hosts, where each attempt's cache
+//!   actors live, opening and closing their walls, and their statistics.
 //! - [`cluster`]: the tonic `ClusterService` over the above.
 //! - [`service`]: the tonic `RenderService` and [`serve`].
 
+pub mod caches;
 pub mod cluster;
 pub mod dispatch;
 pub mod jobs;

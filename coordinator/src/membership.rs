@@ -22,6 +22,8 @@ use tokio::sync::Notify;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::Status;
 
+use crate::caches::hosts::CacheHosts;
+
 /// The dray version every worker must have been built from: rays, packages and settings
 /// are only guaranteed bit-compatible within one build of the workspace.
 pub const VERSION: &str = env!("CARGO_PKG_VERSION");
@@ -136,6 +138,8 @@ pub struct WorkerRecord {
     pub id: String,
     /// Its RayExchangeService endpoint.
     pub endpoint: String,
+    /// The CacheService of the cache host in its process, if it runs one.
+    pub cache_endpoint: Option<String>,
     /// Tracing threads.
     pub threads: u32,
     /// Memory budget for resident domains (0 = unlimited).
@@ -157,6 +161,7 @@ impl std::fmt::Debug for WorkerRecord {
         f.debug_struct("WorkerRecord")
             .field("id", &self.id)
             .field("endpoint", &self.endpoint)
+            .field("cache_endpoint", &self.cache_endpoint)
             .field("threads", &self.threads)
             .field("memory_budget_bytes", &self.memory_budget_bytes)
             .field("hostname", &self.hostname)
@@ -188,6 +193,22 @@ pub struct LostWorker {
     pub cause: String,
 }
 
+/// Check an endpoint a peer announced (`field` names it in the error): an http(s) URL
+/// with a host, such as `http://10.0.0.7:7001`. Returns it trimmed. INVALID_ARGUMENT
+/// otherwise: the caller must fix its flags, retrying cannot help.
+pub fn check_endpoint(field: &str, raw: &str) -> Result<String, Status> {
+    let endpoint = raw.trim();
+    let host = endpoint
+        .strip_prefix("http://")
+        .or_else(|| endpoint.strip_prefix("https://"));
+    if host.is_none_or(|h| h.is_empty() || h.starts_with('/')) {
+        return Err(Status::invalid_argument(format!(
+            "{field}: {raw:?} is not a URL such as http://10.0.0.7:7001 that peers can reach"
+        )));
+    }
+    Ok(endpoint.to_string())
+}
+
 /// The registered workers.
 pub struct Membership {
     workers: Mutex<BTreeMap<String, WorkerRecord>>,
@@ -198,6 +219,8 @@ pub struct Membership {
     nonce: u32,
     /// Heartbeat settings.
     pub heartbeat: HeartbeatConfig,
+    /// Stand-alone cache hosts (`dray cache`), which register apart from workers.
+    pub cache_hosts: CacheHosts,
 }
 
 impl Membership {
@@ -213,6 +236,7 @@ impl Membership {
             next: AtomicU64::new(1),
             nonce,
             heartbeat,
+            cache_hosts: CacheHosts::default(),
         }
     }
 
@@ -239,20 +263,18 @@ impl Membership {
                 dray_proto::RAY_RECORD_FORMAT
             )));
         }
-        let endpoint = r.endpoint.trim();
-        let host = endpoint
-            .strip_prefix("http://")
-            .or_else(|| endpoint.strip_prefix("https://"));
-        if host.is_none_or(|h| h.is_empty() || h.starts_with('/')) {
-            return Err(Status::invalid_argument(format!(
-                "endpoint: {:?} is not a URL such as http://10.0.0.7:7001 that peers can reach",
-                r.endpoint
-            )));
-        }
+        let endpoint = check_endpoint("endpoint", &r.endpoint)?;
+        // A worker may host no cache actors (empty); one it announces must be usable.
+        let cache_endpoint = if r.cache_endpoint.trim().is_empty() {
+            None
+        } else {
+            Some(check_endpoint("cache_endpoint", &r.cache_endpoint)?)
+        };
         let n = self.next.fetch_add(1, Ordering::Relaxed);
         let rec = WorkerRecord {
             id: format!("w{n}-{:08x}", self.nonce),
-            endpoint: endpoint.to_string(),
+            endpoint,
+            cache_endpoint,
             threads: r.threads,
             memory_budget_bytes: r.memory_budget_bytes,
             hostname: r.hostname.clone(),
@@ -262,7 +284,13 @@ impl Membership {
             outbox: Arc::new(Outbox::default()),
         };
         self.lock().insert(rec.id.clone(), rec.clone());
-        tracing::info!(worker = %rec.id, endpoint = %rec.endpoint, host = %rec.hostname, "worker registered");
+        tracing::info!(
+            worker = %rec.id,
+            endpoint = %rec.endpoint,
+            cache_endpoint = %rec.cache_endpoint.as_deref().unwrap_or("none"),
+            host = %rec.hostname,
+            "worker registered"
+        );
         Ok(rec)
     }
 

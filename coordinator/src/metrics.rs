@@ -19,7 +19,23 @@ pub enum CounterError {
         /// Its value.
         value: f64,
     },
+    /// Too many lost cache hosts in one report, or a name too long to be an endpoint.
+    #[error(
+        "counters.lost_cache_hosts: {count} names, the longest {longest} bytes (at most \
+         {MAX_LOST_CACHE_HOSTS} of at most {MAX_HOST_NAME} bytes)"
+    )]
+    LostCacheHosts {
+        /// Names in the report.
+        count: usize,
+        /// Bytes of the longest.
+        longest: usize,
+    },
 }
+
+/// Most lost cache hosts one report may name.
+pub const MAX_LOST_CACHE_HOSTS: usize = 64;
+/// Longest cache host name (an endpoint URL) a report may carry, in bytes.
+pub const MAX_HOST_NAME: usize = 2048;
 
 /// Check a worker's counters before anything is applied.
 pub fn check(c: &WorkerCounters) -> Result<(), CounterError> {
@@ -30,6 +46,18 @@ pub fn check(c: &WorkerCounters) -> Result<(), CounterError> {
         if !value.is_finite() || value < 0.0 {
             return Err(CounterError::Seconds { field, value });
         }
+    }
+    let longest = c
+        .lost_cache_hosts
+        .iter()
+        .map(String::len)
+        .max()
+        .unwrap_or(0);
+    if c.lost_cache_hosts.len() > MAX_LOST_CACHE_HOSTS || longest > MAX_HOST_NAME {
+        return Err(CounterError::LostCacheHosts {
+            count: c.lost_cache_hosts.len(),
+            longest,
+        });
     }
     Ok(())
 }
@@ -127,6 +155,7 @@ mod tests {
             rays_forwarded: 2,
             idle_seconds: 0.25,
             queue_peak: peak,
+            ..Default::default()
         };
         let traced = RayCounts {
             camera: 3,
@@ -152,6 +181,27 @@ mod tests {
                 ..Default::default()
             })
             .is_err()
+        );
+        assert!(
+            check(&WorkerCounters {
+                lost_cache_hosts: vec!["http://h:1".into(); MAX_LOST_CACHE_HOSTS + 1],
+                ..Default::default()
+            })
+            .is_err()
+        );
+        assert!(
+            check(&WorkerCounters {
+                lost_cache_hosts: vec!["x".repeat(MAX_HOST_NAME + 1)],
+                ..Default::default()
+            })
+            .is_err()
+        );
+        assert!(
+            check(&WorkerCounters {
+                lost_cache_hosts: vec!["http://h:1".into(); MAX_LOST_CACHE_HOSTS],
+                ..Default::default()
+            })
+            .is_ok()
         );
     }
 }

@@ -96,6 +96,18 @@ impl Coordinator {
             .map_err(|e| Status::internal(format!("scene loading task died: {e}")))??;
         let workers = self.cluster.membership.len();
         let job = if workers == 0 {
+            if v.spec.ray_cache.is_some() {
+                return Err(Status::failed_precondition(
+                    "ray_cache: ray caches run on workers' cache hosts, and no worker is \
+                     registered (this coordinator would render the job itself, exactly)",
+                ));
+            }
+            if v.spec.phm.is_some() {
+                return Err(Status::failed_precondition(
+                    "phm: hit maps run on workers' cache hosts, and no worker is \
+                     registered (this coordinator would render the job itself, exactly)",
+                ));
+            }
             if v.package.is_some() {
                 return Err(Status::failed_precondition(format!(
                     "scene: {:?} is a scene package, which renders on workers, and no \

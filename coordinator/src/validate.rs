@@ -12,7 +12,7 @@ use dray_core::camera::Camera;
 use dray_core::effects::Effect;
 use dray_core::integrator::{IntegratorKind, RenderSettings};
 use dray_core::scene::{Mesh, Scene};
-use dray_proto::v1::JobSpec;
+use dray_proto::v1::{JobSpec, PhmSettings, RayCacheSettings};
 use dray_scene::partition::manifest::MANIFEST_FILE;
 use dray_scene::partition::open_package;
 use glam::Vec3;
@@ -56,6 +56,17 @@ pub const DEFAULT_MAX_DEPTH: u32 = 5;
 pub const DEFAULT_AO_SAMPLES: u32 = 16;
 /// Default domain layout.
 pub const DEFAULT_LAYOUT: &str = "kd";
+/// Default `ray_cache.angle_deg`, degrees.
+pub const DEFAULT_CACHE_ANGLE_DEG: f32 = 10.0;
+/// Default `ray_cache.retrieve`.
+pub const DEFAULT_CACHE_RETRIEVE: &str = "nearest";
+/// The `ray_cache.retrieve` modes.
+pub const CACHE_RETRIEVE_MODES: [&str; 3] = ["first", "nearest", "average"];
+/// The ray kinds a cache may answer, in the order `ray_cache.kinds` is written back.
+/// Shadow and AO rays carry no radiance of their own, so there is nothing to cache.
+pub const CACHE_KINDS: [&str; 4] = ["camera", "reflection", "refraction", "diffuse"];
+/// Largest `ray_cache.coarse` (a coarse pass of N x N rays).
+pub const MAX_CACHE_COARSE: u32 = 4096;
 
 /// A spec that passed [`validate`]: the spec with defaults filled in, plus parsed values.
 #[derive(Clone, Debug)]
@@ -173,6 +184,12 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
     let schedule =
         Schedule::parse(&spec.schedule, spec.replicate).map_err(|e| bad(e.to_string()))?;
     spec.schedule = schedule.name().to_string();
+    if let Some(rc) = spec.ray_cache.as_mut() {
+        check_ray_cache(rc)?;
+    }
+    if let Some(p) = spec.phm.as_mut() {
+        check_phm(p)?;
+    }
     if spec.label.len() > limits.max_label {
         return Err(bad(format!(
             "label: {} bytes is longer than {}",
@@ -198,6 +215,144 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         domains_auto,
         schedule,
     })
+}
+
+/// Ray kinds that may consult hit maps, in the order `phm.kinds` is written back.
+pub const PHM_KINDS: [&str; 6] = [
+    "camera",
+    "shadow",
+    "reflection",
+    "refraction",
+    "diffuse",
+    "ambient_occlusion",
+];
+
+/// Check the hit-map knobs and fill in their defaults in place (docs/caches.md): res 4
+/// (1..=64), dirs 12 (1..=256), prior 100 (finite, >= 0), miss 0.1 and hit 0.9
+/// (0 <= miss <= 0.5 <= hit <= 1), mode consistent, reprobe 0.1 ([0, 1]), kinds shadow.
+pub fn check_phm(p: &mut PhmSettings) -> Result<(), Status> {
+    let res = *p.res.get_or_insert(4);
+    if !(1..=64).contains(&res) {
+        return Err(bad(format!("phm.res must be in 1..=64 texels, got {res}")));
+    }
+    let dirs = *p.dirs.get_or_insert(12);
+    if !(1..=256).contains(&dirs) {
+        return Err(bad(format!("phm.dirs must be in 1..=256 bins, got {dirs}")));
+    }
+    let prior = *p.prior.get_or_insert(100.0);
+    if !(prior.is_finite() && prior >= 0.0) {
+        return Err(bad(format!(
+            "phm.prior must be finite and >= 0, got {prior}"
+        )));
+    }
+    let miss = *p.miss.get_or_insert(0.1);
+    let hit = *p.hit.get_or_insert(0.9);
+    if !(0.0..=0.5).contains(&miss) {
+        return Err(bad(format!("phm.miss must be in [0, 0.5], got {miss}")));
+    }
+    if !(0.5..=1.0).contains(&hit) {
+        return Err(bad(format!("phm.hit must be in [0.5, 1], got {hit}")));
+    }
+    if p.mode.is_empty() {
+        p.mode = "consistent".into();
+    }
+    if p.mode != "consistent" && p.mode != "inconsistent" {
+        return Err(bad(format!(
+            "phm.mode must be consistent or inconsistent, got {:?}",
+            p.mode
+        )));
+    }
+    let reprobe = *p.reprobe.get_or_insert(0.1);
+    if !(0.0..=1.0).contains(&reprobe) {
+        return Err(bad(format!("phm.reprobe must be in [0, 1], got {reprobe}")));
+    }
+    let mut wanted = [false; PHM_KINDS.len()];
+    let kinds = if p.kinds.trim().is_empty() {
+        "shadow".to_string()
+    } else {
+        p.kinds.clone()
+    };
+    for name in kinds
+        .split([',', '+'])
+        .map(str::trim)
+        .filter(|n| !n.is_empty())
+    {
+        let Some(i) = PHM_KINDS.iter().position(|k| *k == name) else {
+            return Err(bad(format!(
+                "phm.kinds: unknown ray kind {name:?} (expected camera, shadow, reflection, \
+                 refraction, diffuse or ambient_occlusion)"
+            )));
+        };
+        wanted[i] = true;
+    }
+    p.kinds = PHM_KINDS
+        .iter()
+        .zip(wanted)
+        .filter(|(_, w)| *w)
+        .map(|(k, _)| *k)
+        .collect::<Vec<_>>()
+        .join(",");
+    if p.kinds.is_empty() {
+        return Err(bad("phm.kinds: no ray kind given".into()));
+    }
+    Ok(())
+}
+
+/// Check the ray-cache knobs and fill in their defaults in place, so the workers, the
+/// cache hosts and GetJob all read the same resolved settings: `angle_deg` 10,
+/// `retrieve` "nearest", `kinds` all four cacheable kinds (written back in the order of
+/// [`CACHE_KINDS`], without duplicates), `fill` true.
+pub fn check_ray_cache(rc: &mut RayCacheSettings) -> Result<(), Status> {
+    if !(rc.radius.is_finite() && rc.radius >= 0.0) {
+        return Err(bad(format!(
+            "ray_cache.radius must be finite and >= 0, got {}",
+            rc.radius
+        )));
+    }
+    let angle = *rc.angle_deg.get_or_insert(DEFAULT_CACHE_ANGLE_DEG);
+    // Written so that NaN fails too.
+    if !(angle > 0.0 && angle <= 90.0) {
+        return Err(bad(format!(
+            "ray_cache.angle_deg must be in (0, 90] degrees, got {angle}"
+        )));
+    }
+    if rc.retrieve.is_empty() {
+        rc.retrieve = DEFAULT_CACHE_RETRIEVE.into();
+    }
+    if !CACHE_RETRIEVE_MODES.contains(&rc.retrieve.as_str()) {
+        return Err(bad(format!(
+            "ray_cache.retrieve must be first, nearest or average, got {:?}",
+            rc.retrieve
+        )));
+    }
+    if rc.coarse > MAX_CACHE_COARSE {
+        return Err(bad(format!(
+            "ray_cache.coarse must be in 0..={MAX_CACHE_COARSE}, got {}",
+            rc.coarse
+        )));
+    }
+    let mut wanted = [false; CACHE_KINDS.len()];
+    for name in rc.kinds.split(',').map(str::trim).filter(|n| !n.is_empty()) {
+        let Some(i) = CACHE_KINDS.iter().position(|k| *k == name) else {
+            return Err(bad(format!(
+                "ray_cache.kinds: {name:?} cannot be cached (expected camera, reflection, \
+                 refraction or diffuse; shadow and ao rays carry no radiance of their own)"
+            )));
+        };
+        wanted[i] = true;
+    }
+    if !wanted.contains(&true) {
+        wanted = [true; CACHE_KINDS.len()];
+    }
+    rc.kinds = CACHE_KINDS
+        .iter()
+        .zip(wanted)
+        .filter(|(_, on)| *on)
+        .map(|(k, _)| *k)
+        .collect::<Vec<_>>()
+        .join(",");
+    rc.fill.get_or_insert(true);
+    Ok(())
 }
 
 /// Parse effect overrides such as "+specular,-transmission" (a bare name means on).
@@ -472,5 +627,157 @@ mod tests {
         };
         let v = validate(&s, &l, &root).unwrap();
         assert_eq!(v.schedule, Schedule::Dynamic { replicate: true });
+    }
+
+    fn cache(rc: RayCacheSettings) -> Result<RayCacheSettings, String> {
+        let root = std::env::temp_dir().canonicalize().unwrap();
+        let s = JobSpec {
+            ray_cache: Some(rc),
+            ..spec()
+        };
+        validate(&s, &Limits::default(), &root)
+            .map(|v| v.spec.ray_cache.expect("ray_cache kept"))
+            .map_err(|e| {
+                assert_eq!(e.code(), tonic::Code::InvalidArgument);
+                e.message().to_string()
+            })
+    }
+
+    #[test]
+    fn ray_cache_defaults_are_filled_in() {
+        let root = std::env::temp_dir().canonicalize().unwrap();
+        let off = validate(&spec(), &Limits::default(), &root).unwrap();
+        assert_eq!(off.spec.ray_cache, None, "absent stays absent (caches off)");
+        let rc = cache(RayCacheSettings::default()).unwrap();
+        assert_eq!(
+            rc,
+            RayCacheSettings {
+                radius: 0.0,
+                angle_deg: Some(10.0),
+                retrieve: "nearest".into(),
+                coarse: 0,
+                kinds: "camera,reflection,refraction,diffuse".into(),
+                fill: Some(true),
+            }
+        );
+        let rc = cache(RayCacheSettings {
+            radius: 0.005,
+            angle_deg: Some(90.0),
+            retrieve: "average".into(),
+            kinds: " diffuse,camera,,diffuse ".into(),
+            fill: Some(false),
+            ..Default::default()
+        })
+        .unwrap();
+        assert_eq!(rc.radius, 0.005);
+        assert_eq!(rc.angle_deg, Some(90.0));
+        assert_eq!(rc.retrieve, "average");
+        assert_eq!(rc.kinds, "camera,diffuse", "canonical order, no duplicates");
+        assert_eq!(rc.fill, Some(false));
+        for mode in ["first", "nearest", "average"] {
+            let rc = cache(RayCacheSettings {
+                retrieve: mode.into(),
+                ..Default::default()
+            });
+            assert_eq!(rc.unwrap().retrieve, mode);
+        }
+    }
+
+    #[test]
+    fn ray_cache_bad_values_name_the_field() {
+        let base = RayCacheSettings::default;
+        let cases = [
+            (
+                RayCacheSettings {
+                    radius: -1.0,
+                    ..base()
+                },
+                "ray_cache.radius must be finite and >= 0, got -1",
+            ),
+            (
+                RayCacheSettings {
+                    radius: f32::NAN,
+                    ..base()
+                },
+                "ray_cache.radius",
+            ),
+            (
+                RayCacheSettings {
+                    radius: f32::INFINITY,
+                    ..base()
+                },
+                "ray_cache.radius",
+            ),
+            (
+                RayCacheSettings {
+                    angle_deg: Some(0.0),
+                    ..base()
+                },
+                "ray_cache.angle_deg",
+            ),
+            (
+                RayCacheSettings {
+                    angle_deg: Some(90.5),
+                    ..base()
+                },
+                "ray_cache.angle_deg",
+            ),
+            (
+                RayCacheSettings {
+                    angle_deg: Some(-3.0),
+                    ..base()
+                },
+                "ray_cache.angle_deg",
+            ),
+            (
+                RayCacheSettings {
+                    angle_deg: Some(f32::NAN),
+                    ..base()
+                },
+                "ray_cache.angle_deg",
+            ),
+            (
+                RayCacheSettings {
+                    retrieve: "best".into(),
+                    ..base()
+                },
+                "ray_cache.retrieve",
+            ),
+            (
+                RayCacheSettings {
+                    retrieve: "Nearest".into(),
+                    ..base()
+                },
+                "ray_cache.retrieve",
+            ),
+            (
+                RayCacheSettings {
+                    coarse: 4097,
+                    ..base()
+                },
+                "ray_cache.coarse must be in 0..=4096",
+            ),
+            (
+                RayCacheSettings {
+                    kinds: "camera,shadow".into(),
+                    ..base()
+                },
+                "ray_cache.kinds: \"shadow\"",
+            ),
+            (
+                RayCacheSettings {
+                    kinds: "ao".into(),
+                    ..base()
+                },
+                "ray_cache.kinds: \"ao\"",
+            ),
+        ];
+        for (rc, want) in cases {
+            let msg = cache(rc.clone()).expect_err(&format!("{rc:?} accepted"));
+            assert!(
+                msg.starts_with(want),
+                "{msg:?} does not start with {want:?}"
+            );
+        }
     }
 }

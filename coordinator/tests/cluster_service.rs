@@ -148,6 +148,7 @@ async fn a_job_runs_on_a_registered_worker_and_returns_its_sums() {
             rays_forwarded: 4,
             idle_seconds: 0.25,
             queue_peak: 40,
+            ..Default::default()
         }),
         ..Default::default()
     };

@@ -232,6 +232,13 @@ impl<'a> Integrator<'a> {
             (x as f32 + j.x) / w as f32,
             (y as f32 + j.y) / self.settings.height.max(1) as f32,
         );
+        self.camera_ray_through(film, pixel, sample)
+    }
+
+    /// The camera ray through `film` (image coordinates in [0, 1]^2, y down), labelled
+    /// with `pixel` and `sample` (which key its path's random numbers).
+    pub fn camera_ray_through(&self, film: Vec2, pixel: u32, sample: u32) -> RayState {
+        let w = self.settings.width.max(1);
         let aspect = w as f32 / self.settings.height.max(1) as f32;
         let r = self.camera.generate(film, aspect);
         RayState {

@@ -26,3 +26,4 @@ pub mod render;
 pub mod sampling;
 pub mod surface;
 pub mod trace;
+pub mod wall;

@@ -39,8 +39,16 @@ pub const RAY_RECORD_FORMAT: u32 = 1;
 /// `flags` bit 0: the ray carries a ray-cache ticket, found in `RayBatch.tickets`.
 pub const FLAG_TICKETED: u8 = 1;
 
+/// `flags` bit 1: the ray belongs to a ray-cache coarse pass: its `pixel` indexes the
+/// coarse image, its contributions fill cache tickets only, never the image.
+pub const FLAG_COARSE: u8 = 2;
+
+/// `flags` bit 2: a probability hit map asked for this ray's outcome in the domain it
+/// enters: the domain's owner reports whether it hit there.
+pub const FLAG_PROBE: u8 = 4;
+
 /// Flag bits this format defines; any other bit set is an error.
-const KNOWN_FLAGS: u8 = FLAG_TICKETED;
+const KNOWN_FLAGS: u8 = FLAG_TICKETED | FLAG_COARSE | FLAG_PROBE;
 
 const _: () = assert!(RAY_RECORD_BYTES <= 64);
 

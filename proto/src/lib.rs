@@ -43,3 +43,5 @@ pub const RENDER_SERVICE: &str = "dray.v1.RenderService";
 pub const CLUSTER_SERVICE: &str = "dray.v1.ClusterService";
 /// Fully qualified name of the worker-to-worker ray exchange service.
 pub const RAY_EXCHANGE_SERVICE: &str = "dray.v1.RayExchangeService";
+/// Fully qualified name of the cache actors' service (ray caches on domain walls).
+pub const CACHE_SERVICE: &str = "dray.v1.CacheService";

@@ -35,6 +35,11 @@ pub struct WorkerConfig {
     /// The in-memory package store of the coordinator in this process, when there is
     /// one (`dray render`): jobs whose package is `memory:N` read their domains from it.
     pub memory_packages: Option<Arc<MemoryPackages>>,
+    /// The CacheService endpoint of the cache host running beside this worker in the
+    /// same process (`dray worker` starts one unless told not to), announced when
+    /// registering so the coordinator can place cache actors there. The worker itself
+    /// never answers a ray from a cache: it talks to the actors over gRPC like anyone.
+    pub cache_endpoint: Option<String>,
 }
 
 impl Default for WorkerConfig {
@@ -50,6 +55,7 @@ impl Default for WorkerConfig {
             connect_timeout: Duration::from_secs(10),
             rejoin_timeout: Duration::from_secs(300),
             memory_packages: None,
+            cache_endpoint: None,
         }
     }
 }

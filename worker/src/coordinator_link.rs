@@ -95,6 +95,7 @@ pub(crate) async fn register(
             version: VERSION.into(),
             record_format: RAY_RECORD_FORMAT,
             hostname: hostname(),
+            cache_endpoint: shared.cache_endpoint.clone().unwrap_or_default(),
         })
         .await
         .map_err(|s| NodeError::Refused(s.message().to_string()))?
@@ -290,6 +291,7 @@ fn add_tiles(shared: &Shared, t: TileAssignment) {
                 width: tile.width,
                 height: tile.height,
                 credit: tile.credit,
+                coarse: tile.coarse,
             },
             0,
         ));

@@ -12,9 +12,10 @@ use std::sync::Arc;
 
 use dray_core::camera::Camera;
 use dray_core::effects::{Effect, Effects};
-use dray_core::integrator::{IntegratorKind, RenderSettings};
+use dray_core::integrator::{IntegratorKind, RayKind, RenderSettings};
 use dray_core::light_sampler::LightSampler;
 use dray_core::scene::Scene;
+use dray_core::wall::PhmBins;
 use dray_proto::v1::JobSetup;
 use dray_scene::partition::checksum::{checksum, to_hex};
 use dray_scene::partition::manifest::MANIFEST_FILE;
@@ -316,6 +317,75 @@ fn tracer(
         counts,
         setup.tile_size,
     )
+    .with_cached_kinds(cached_kinds(setup))
+    .with_phm(phm_kinds(setup), phm_bins(setup))
+    .with_fill(
+        setup
+            .spec
+            .as_ref()
+            .and_then(|s| s.ray_cache.as_ref())
+            .and_then(|rc| rc.fill)
+            .unwrap_or(true),
+    )
+    .with_coarse(
+        setup
+            .spec
+            .as_ref()
+            .and_then(|s| s.ray_cache.as_ref())
+            .map_or(0, |rc| rc.coarse),
+    )
+}
+
+/// The ray kinds the job's hit maps serve (none without maps); empty means shadow rays.
+fn phm_kinds(setup: &JobSetup) -> [bool; RayKind::COUNT] {
+    let mut kinds = [false; RayKind::COUNT];
+    let Some(p) = setup.spec.as_ref().and_then(|s| s.phm.as_ref()) else {
+        return kinds;
+    };
+    let names = if p.kinds.trim().is_empty() {
+        "shadow"
+    } else {
+        p.kinds.as_str()
+    };
+    for name in names.split([',', '+']).map(str::trim) {
+        if let Some(k) = RayKind::ALL.iter().find(|k| k.name() == name) {
+            kinds[*k as usize] = true;
+        }
+    }
+    kinds
+}
+
+/// The binning of the job's hit maps (defaults as the coordinator fills them).
+fn phm_bins(setup: &JobSetup) -> PhmBins {
+    let p = setup.spec.as_ref().and_then(|s| s.phm.as_ref());
+    PhmBins::new(
+        p.and_then(|p| p.res).unwrap_or(4),
+        p.and_then(|p| p.dirs).unwrap_or(12),
+    )
+}
+
+/// The ray kinds the job's ray caches look up (none without caches). The coordinator
+/// validated the names and filled in the default; an empty list here still means all
+/// four kinds that carry radiance.
+fn cached_kinds(setup: &JobSetup) -> [bool; RayKind::COUNT] {
+    let mut kinds = [false; RayKind::COUNT];
+    let Some(rc) = setup.spec.as_ref().and_then(|s| s.ray_cache.as_ref()) else {
+        return kinds;
+    };
+    let names = if rc.kinds.trim().is_empty() {
+        "camera,reflection,refraction,diffuse"
+    } else {
+        rc.kinds.as_str()
+    };
+    for name in names.split([',', '+']).map(str::trim) {
+        if let Some(k) = RayKind::ALL
+            .iter()
+            .find(|k| k.name() == name && !k.is_occlusion())
+        {
+            kinds[*k as usize] = true;
+        }
+    }
+    kinds
 }
 
 /// The package must be cut as the coordinator said.

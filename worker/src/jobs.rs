@@ -16,6 +16,7 @@ use tokio::sync::watch;
 use crate::domain_store::{DomainSource, JobKey};
 use crate::pixel_sums::PixelSums;
 use crate::routing::Routes;
+use crate::tickets::TicketLedger;
 use crate::tracer::{JobTracer, TileRef};
 
 pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -36,6 +37,20 @@ pub struct Report {
     /// Peers the job's rays could not be sent to.
     pub unreachable: Vec<String>,
     pub failure: Option<String>,
+    /// Contributions and credit owed to ray-cache tickets; returned to their cache
+    /// actors (and acknowledged) before the same credit goes to the coordinator.
+    pub tickets: TicketLedger,
+    /// Rays a cache answered whose domain another worker owns (not sent).
+    pub cache_rays_not_sent: u64,
+    /// Rays that went past an unreachable cache host.
+    pub cache_rays_bypassed: u64,
+    /// Rays a hit map skipped past, or answered as occluded at, a domain another worker
+    /// owns (not sent).
+    pub phm_rays_not_sent: u64,
+    /// Bytes of lookups and ticket returns sent to cache hosts.
+    pub cache_bytes: u64,
+    /// Cache hosts found unreachable.
+    pub lost_cache_hosts: Vec<String>,
 }
 
 impl Report {
@@ -51,6 +66,12 @@ impl Report {
             && self.rays_forwarded == 0
             && self.unreachable.is_empty()
             && self.failure.is_none()
+            && self.tickets.is_empty()
+            && self.cache_rays_not_sent == 0
+            && self.cache_rays_bypassed == 0
+            && self.phm_rays_not_sent == 0
+            && self.cache_bytes == 0
+            && self.lost_cache_hosts.is_empty()
     }
 }
 
@@ -73,6 +94,8 @@ pub struct Job {
     /// Rays of this job waiting for a peer. Counted per job, so rays stuck on the way to
     /// a lost peer stop counting once their job is released.
     pub outgoing: AtomicUsize,
+    /// Rays of this job waiting for a cache actor's answer.
+    pub awaiting_cache: AtomicUsize,
     /// Most rays queued here for this job at once, so far.
     pub queue_peak: AtomicU64,
     /// Picks among the owners of replicated domains.
@@ -98,6 +121,7 @@ impl Job {
             failed: AtomicBool::new(false),
             released: watch::channel(false).0,
             outgoing: AtomicUsize::new(0),
+            awaiting_cache: AtomicUsize::new(0),
             queue_peak: AtomicU64::new(0),
             spread: AtomicU64::new(0),
         }

@@ -15,6 +15,7 @@
 //! - [`peer_server`] / [`peer_client`]: the ray stream between workers, with credit
 //!   flow control so a full queue stalls the sender instead of growing memory.
 
+pub(crate) mod cache_link;
 pub mod config;
 pub(crate) mod coordinator_link;
 pub mod credit;
@@ -29,6 +30,7 @@ pub mod pixel_sums;
 pub mod queue;
 pub(crate) mod reporter;
 pub mod routing;
+pub mod tickets;
 pub mod tracer;
 pub(crate) mod work;
 

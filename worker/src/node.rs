@@ -28,6 +28,7 @@ use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tonic::transport::Channel;
 
+use crate::cache_link::CacheLinks;
 use crate::config::Limits;
 pub use crate::config::{NodeError, WorkerConfig};
 use crate::coordinator_link;
@@ -76,11 +77,15 @@ pub(crate) struct Shared {
     pub store: DomainStore,
     pub jobs: Jobs,
     pub peers: Peers,
+    /// The streams to cache hosts (ray caches).
+    pub caches: CacheLinks,
     pub wake: Wake,
     pub limits: Limits,
     pub memory_packages: Option<Arc<MemoryPackages>>,
     pub memory_budget: u64,
     pub threads: usize,
+    /// The cache host beside this worker, announced at registration.
+    pub cache_endpoint: Option<String>,
     /// Set when the worker stops: tracing threads leave.
     pub stopping: AtomicBool,
 }
@@ -105,7 +110,7 @@ impl Shared {
             .jobs
             .all()
             .iter()
-            .map(|j| j.outgoing.load(Ordering::Relaxed))
+            .map(|j| j.outgoing.load(Ordering::Relaxed) + j.awaiting_cache.load(Ordering::Relaxed))
             .sum();
         self.queues.total() + outgoing
     }
@@ -161,11 +166,13 @@ pub async fn run(
         ),
         jobs: Jobs::default(),
         peers: Peers::new(tokio::runtime::Handle::current()),
+        caches: CacheLinks::new(tokio::runtime::Handle::current()),
         wake: Wake::default(),
         limits,
         memory_packages: config.memory_packages.clone(),
         memory_budget: config.memory_budget,
         threads,
+        cache_endpoint: config.cache_endpoint.clone(),
         stopping: AtomicBool::new(false),
     });
     // The first registration: a refusal here is final (wrong version, bad address).
@@ -223,6 +230,7 @@ pub async fn run(
     // End the streams to peers, so their servers can stop too, then our own server,
     // giving it a moment to finish its streams.
     shared.peers.close().await;
+    shared.caches.close().await;
     match tokio::time::timeout(Duration::from_secs(2), server).await {
         Ok(Ok(Err(e))) if result.is_ok() => return Err(NodeError::Serve(e.to_string())),
         _ => {}

@@ -30,6 +30,7 @@ use tonic::Status;
 use tonic::transport::Channel;
 
 use crate::peer_server::MAX_MESSAGE_BYTES;
+use crate::tickets::MAX_TICKETS;
 
 /// Largest batch sent, so that a batch always fits the receiver's message limit.
 pub const MAX_BATCH_RAYS: usize = 64 * 1024;
@@ -85,8 +86,8 @@ pub enum PeerError {
     Protocol(&'static str),
     #[error("the ray stream is closed")]
     Closed,
-    #[error("{tickets} tickets given for {ticketed} ticketed rays")]
-    TicketMismatch { tickets: usize, ticketed: usize },
+    #[error("tickets do not match the ticketed rays: {detail}")]
+    TicketMismatch { detail: String },
 }
 
 impl From<Status> for PeerError {
@@ -231,26 +232,22 @@ impl PeerSender {
     }
 
     /// Add `rays` to the open batch for `key`, sending batches that fill up or are due.
-    /// `tickets` holds one ticket per ray with the TICKETED flag, in order. Waits while
-    /// the receiver has not granted room for a full batch.
+    /// `tickets` are the rays' cache tickets by index into `rays`, in increasing order,
+    /// one or more for each ray with the TICKETED flag and none for the others. Waits
+    /// while the receiver has not granted room for a full batch.
     pub async fn send(
         &mut self,
         key: &BatchKey,
         rays: &[RayRecord],
-        tickets: &[u64],
+        tickets: &[RayTicket],
     ) -> Result<(), PeerError> {
-        let ticketed = rays.iter().filter(|r| r.flags & FLAG_TICKETED != 0).count();
-        if ticketed != tickets.len() {
-            return Err(PeerError::TicketMismatch {
-                tickets: tickets.len(),
-                ticketed,
-            });
-        }
+        check_tickets(rays, tickets).map_err(|detail| PeerError::TicketMismatch { detail })?;
         let mut idx = match self.pending.iter().position(|p| &p.key == key) {
             Some(i) => i,
             None => self.new_pending(key.clone()),
         };
-        let mut tickets = tickets.iter();
+        let mut tickets = tickets.iter().peekable();
+        let mut index = 0u32;
         let mut rest = rays;
         while !rest.is_empty() {
             let p = &mut self.pending[idx];
@@ -259,14 +256,13 @@ impl PeerSender {
             rest = later;
             p.records.reserve(take * RAY_RECORD_BYTES);
             for r in now {
-                if r.flags & FLAG_TICKETED != 0
-                    && let Some(&ticket) = tickets.next()
-                {
+                while let Some(t) = tickets.next_if(|t| t.record == index) {
                     p.tickets.push(RayTicket {
                         record: p.count as u32,
-                        ticket,
+                        ticket: t.ticket,
                     });
                 }
+                index += 1;
                 p.records.extend_from_slice(&r.to_bytes());
                 p.count += 1;
             }
@@ -417,4 +413,46 @@ impl PeerSender {
 
 fn set_failure(slot: &Mutex<Option<Status>>, status: Status) {
     *slot.lock().unwrap_or_else(|e| e.into_inner()) = Some(status);
+}
+
+/// Tickets must name, in non-decreasing record order, exactly the records flagged
+/// TICKETED, each at least once and at most [`MAX_TICKETS`] times: what a receiver
+/// checks on arrival, so a sender checks it before sending.
+pub fn check_tickets(rays: &[RayRecord], tickets: &[RayTicket]) -> Result<(), String> {
+    let mut at = 0usize;
+    for (i, r) in rays.iter().enumerate() {
+        let start = at;
+        while at < tickets.len() && usize::try_from(tickets[at].record).ok() == Some(i) {
+            at += 1;
+        }
+        let n = at - start;
+        if r.flags & FLAG_TICKETED != 0 {
+            if n == 0 {
+                return Err(format!("record {i} is ticketed but has no ticket"));
+            }
+            if n > MAX_TICKETS {
+                return Err(format!(
+                    "record {i} has {n} tickets, more than {MAX_TICKETS}"
+                ));
+            }
+        } else if n > 0 {
+            return Err(format!("ticket for record {i}, which is not ticketed"));
+        }
+        if let Some(t) = tickets.get(at)
+            && usize::try_from(t.record).ok().is_none_or(|rec| rec <= i)
+        {
+            return Err(format!(
+                "ticket for record {} out of order after record {i}",
+                t.record
+            ));
+        }
+    }
+    match tickets.get(at) {
+        Some(t) => Err(format!(
+            "ticket for record {}, beyond the batch's {} records",
+            t.record,
+            rays.len()
+        )),
+        None => Ok(()),
+    }
 }

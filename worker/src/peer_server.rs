@@ -17,8 +17,8 @@
 use std::pin::Pin;
 use std::sync::Arc;
 
-use dray_core::ray::{FLAG_TICKETED, decode_rays_into, record_count};
 use dray_core::ray::{RAY_RECORD_BYTES, RAY_RECORD_FORMAT, RecordError};
+use dray_core::ray::{decode_rays_into, record_count};
 use dray_proto::v1::ray_exchange_service_server::{RayExchangeService, RayExchangeServiceServer};
 use dray_proto::v1::{
     RayBatch, RayBatchAck, RayStreamAccept, RayStreamRequest, RayStreamResponse,
@@ -322,7 +322,7 @@ impl StreamReceiver {
         self.scratch.clear();
         decode_rays_into(&batch.records, &mut self.scratch)
             .map_err(|source| StreamError::Record { sequence, source })?;
-        check_tickets(&self.scratch, &batch.tickets)
+        crate::peer_client::check_tickets(&self.scratch, &batch.tickets)
             .map_err(|detail| StreamError::BadTickets { sequence, detail })?;
         let rays = std::mem::replace(&mut self.scratch, Vec::with_capacity(records));
         let queued = QueuedBatch {
@@ -343,34 +343,5 @@ impl StreamReceiver {
         // again. The queue's own capacity bounds what is queued; this bounds what waits.
         self.granted += n;
         Ok(sequence)
-    }
-}
-
-/// Tickets must name, in increasing order, exactly the records flagged TICKETED.
-fn check_tickets(
-    rays: &[dray_core::ray::RayRecord],
-    tickets: &[dray_proto::v1::RayTicket],
-) -> Result<(), String> {
-    let mut next = tickets.iter();
-    for (i, r) in rays.iter().enumerate() {
-        if r.flags & FLAG_TICKETED != 0 {
-            match next.next() {
-                Some(t) if usize::try_from(t.record).ok() == Some(i) => {}
-                Some(t) => {
-                    return Err(format!(
-                        "ticket for record {} where record {i} is the next ticketed one",
-                        t.record
-                    ));
-                }
-                None => return Err(format!("record {i} is ticketed but has no ticket")),
-            }
-        }
-    }
-    match next.next() {
-        Some(t) => Err(format!(
-            "ticket for record {} which is not a ticketed record",
-            t.record
-        )),
-        None => Ok(()),
     }
 }

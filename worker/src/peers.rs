@@ -16,6 +16,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use dray_core::ray::RayRecord;
+use dray_proto::v1::RayTicket;
 use tokio::sync::mpsc;
 use tokio::task::JoinSet;
 use tonic::transport::Endpoint;
@@ -30,6 +31,8 @@ pub(crate) struct PeerMessage {
     pub job: Arc<Job>,
     pub domain: u32,
     pub rays: Vec<RayRecord>,
+    /// The rays' cache tickets, by index into `rays` (see `tickets::RayBundle`).
+    pub tickets: Vec<RayTicket>,
     pub forwards: u32,
     pub routing_version: u64,
 }
@@ -159,7 +162,7 @@ async fn peer_loop(shared: Arc<Shared>, peer: Peer, mut rx: mpsc::UnboundedRecei
         // forever: once the job is released, its rays are dropped with the stream.
         let sent = if m.job.is_active() {
             tokio::select! {
-                r = sender.send(&key, &m.rays, &[]) => r.map_err(|e| e.to_string()),
+                r = sender.send(&key, &m.rays, &m.tickets) => r.map_err(|e| e.to_string()),
                 _ = m.job.released() => {
                     Err("the job was released while its rays waited for the peer".to_string())
                 }

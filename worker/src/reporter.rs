@@ -58,8 +58,10 @@ pub(crate) async fn report_loop(shared: Arc<Shared>, mut stop: watch::Receiver<b
 /// Send what `job` accumulated (with `force`, even if that is only idle time).
 /// Contributions go in chunks that stay well inside gRPC's message limit; the credit
 /// travels in the last one, so no credit reaches the coordinator before the
-/// contributions of the same rays.
-async fn report(shared: &Shared, job: &Arc<Job>, force: bool) {
+/// contributions of the same rays. What is owed to ray-cache tickets goes to their
+/// cache actors first, and the report waits until they have applied it: a tile whose
+/// credit is complete at the coordinator has then closed every ticket of its rays.
+async fn report(shared: &Arc<Shared>, job: &Arc<Job>, force: bool) {
     let store = shared.store.take_counters(&job.key);
     let mut report = {
         let mut r = lock(&job.report);
@@ -72,6 +74,18 @@ async fn report(shared: &Shared, job: &Arc<Job>, force: bool) {
         }
         std::mem::take(&mut *r)
     };
+    if !report.tickets.is_empty() {
+        let returns = report.tickets.drain();
+        crate::cache_link::return_tickets(shared, job, returns).await;
+        // Bytes and lost hosts noted while returning ride along with this report.
+        let mut r = lock(&job.report);
+        report.cache_bytes += std::mem::take(&mut r.cache_bytes);
+        for h in r.lost_cache_hosts.drain(..) {
+            if !report.lost_cache_hosts.contains(&h) {
+                report.lost_cache_hosts.push(h);
+            }
+        }
+    }
     let mut sums = report.sums.drain();
     while sums.len() > MAX_SUMS_PER_REPORT {
         let rest = sums.split_off(MAX_SUMS_PER_REPORT);
@@ -97,6 +111,11 @@ async fn report(shared: &Shared, job: &Arc<Job>, force: bool) {
         rays_forwarded: report.rays_forwarded,
         idle_seconds: report.idle_seconds,
         queue_peak: job.queue_peak.load(Ordering::Relaxed),
+        cache_rays_not_sent: report.cache_rays_not_sent,
+        cache_rays_bypassed: report.cache_rays_bypassed,
+        phm_rays_not_sent: report.phm_rays_not_sent,
+        cache_bytes: report.cache_bytes,
+        lost_cache_hosts: std::mem::take(&mut report.lost_cache_hosts),
     };
     let request = request(shared, job, sums, credits, &report, Some(counters));
     send_report(shared, job, request).await;

@@ -26,6 +26,15 @@ pub enum RoutingError {
         domains: u32,
     },
     #[error(
+        "routing table version {version} has {walls} wall placements and {hosts} cache hosts for {domains} domains (want 6 per domain, each naming a listed host)"
+    )]
+    BadWalls {
+        version: u64,
+        walls: usize,
+        hosts: usize,
+        domains: u32,
+    },
+    #[error(
         "routing table version {version} gives domain {domain} to worker {worker:?}, which it does not list"
     )]
     UnknownWorker {
@@ -55,6 +64,10 @@ pub struct Routes {
     peers: Vec<Peer>,
     /// This worker's index in `peers`, if listed.
     me: Option<u32>,
+    /// Cache hosts' endpoints, and per wall (6 per domain) the index of its host; both
+    /// empty when the job has no ray caches.
+    cache_hosts: Vec<String>,
+    wall_hosts: Vec<u32>,
 }
 
 impl Routes {
@@ -96,13 +109,45 @@ impl Routes {
                 }
             }
         }
+        let cache_hosts: Vec<String> = table
+            .cache_hosts
+            .iter()
+            .map(|h| h.endpoint.clone())
+            .collect();
+        let walls_ok = (table.wall_hosts.is_empty() && cache_hosts.is_empty())
+            || (table.wall_hosts.len() == 6 * domains as usize
+                && table
+                    .wall_hosts
+                    .iter()
+                    .all(|&h| (h as usize) < cache_hosts.len()));
+        if !walls_ok {
+            return Err(RoutingError::BadWalls {
+                version: table.version,
+                walls: table.wall_hosts.len(),
+                hosts: cache_hosts.len(),
+                domains,
+            });
+        }
         Ok(Routes {
             version: table.version,
             local: table.local,
             me: index.get(me).copied(),
             owners,
             peers,
+            cache_hosts,
+            wall_hosts: table.wall_hosts.clone(),
         })
+    }
+
+    /// Whether rays crossing walls go to cache actors under this table.
+    pub fn has_caches(&self) -> bool {
+        !self.wall_hosts.is_empty()
+    }
+
+    /// The endpoint of the cache host serving `wall`, if the job has caches.
+    pub fn cache_host(&self, wall: u32) -> Option<&str> {
+        let h = *self.wall_hosts.get(wall as usize)?;
+        self.cache_hosts.get(h as usize).map(String::as_str)
     }
 
     /// Whether this worker traces rays bound for domain `d`.
@@ -173,6 +218,7 @@ mod tests {
                 .collect(),
             attempt: 0,
             local,
+            ..Default::default()
         }
     }
 

@@ -18,6 +18,15 @@
 //! any order and credit is split when a ray is made), and a one-worker render pays no
 //! queue round trip per ray.
 //!
+//! **Walls and tickets** (ray caches on, DESIGN.md "Walls"): a ray entering a domain
+//! through a wall, from another domain or from outside the scene, goes to the wall's
+//! cache actor first ([`Outbox::lookups`]) when the job caches its kind, even when the
+//! domain is resident here; the actor's answer (a hit, or a miss with a ticket) comes
+//! back through `cache_link`. A ray carries the tickets of the walls it (or an
+//! ancestor) missed, its children inherit them, and everything they hand back is
+//! also owed to those tickets ([`Outbox::tickets`]). With caches off no ray has a
+//! ticket and no lookup is made: the step is exactly what it was before caches.
+//!
 //! Each domain is traced and shaded over its own [`LoadedDomain`]: the domain's
 //! triangles and every emitter, in scene order with scene-wide ids, which shades exactly
 //! as the whole scene does (`Integrator::partial`). A step looks each domain up once and
@@ -39,9 +48,12 @@ use dray_core::light_sampler::LightSampler;
 use dray_core::ray::RayRecord;
 use dray_core::scene::Scene;
 use dray_core::trace::SpanTrace;
+use dray_core::wall::{PhmBins, entry_face, wall_index};
+use dray_proto::v1::RayTicket;
 use glam::Vec3;
 
 use crate::credit::{self, CreditError};
+use crate::tickets::{Lineage, RayBundle, TicketLedger, with_lineage};
 
 /// Why a batch could not be traced. Each is a reason to fail the job: it means a routing
 /// bug, a corrupt ray or an exhausted credit, never a transient condition.
@@ -67,6 +79,10 @@ pub enum TraceError {
     },
 }
 
+/// The sample index of coarse-pass rays: their random numbers are keyed apart from every
+/// sample of the image (spp is at most 65536).
+const COARSE_SAMPLE: u32 = u32::MAX;
+
 /// A rectangle of the image whose camera rays this worker generates.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct TileRef {
@@ -76,11 +92,15 @@ pub struct TileRef {
     pub width: u32,
     pub height: u32,
     pub credit: u64,
+    /// A tile of the ray-cache coarse pass: its pixels are those of the coarse image,
+    /// one regular ray each.
+    pub coarse: bool,
 }
 
 impl TileRef {
-    /// Camera rays in the tile: pixels times samples.
+    /// Camera rays in the tile: pixels times samples (one per pixel for a coarse tile).
     pub fn camera_rays(&self, spp: u32) -> u64 {
+        let spp = if self.coarse { 1 } else { spp.max(1) };
         self.width as u64 * self.height as u64 * spp as u64
     }
 }
@@ -94,13 +114,20 @@ pub struct Outbox {
     /// Credit handed back by rays that terminated, by tile; a tile may repeat, but
     /// consecutive returns to one tile share an entry.
     pub credits: Vec<(u32, u64)>,
-    /// Rays to trace next on other workers, by the domain they enter next.
-    pub rays: HashMap<u32, Vec<RayRecord>, FastState>,
+    /// Rays to trace next on other workers, by the domain they enter next, with their
+    /// tickets.
+    pub rays: HashMap<u32, RayBundle, FastState>,
+    /// Rays at walls whose cache actors are asked before the rays go on.
+    pub lookups: Vec<Lookup>,
+    /// Contributions and credit owed to the tickets of the rays that made them.
+    pub tickets: TicketLedger,
+    /// Outcomes of hit-map probes traced here: (wall, cell, hit inside the domain).
+    pub outcomes: Vec<(u32, u32, bool)>,
     /// Rays bound for a domain resident here, traced before the step ends (depth first,
     /// so the stack stays as small as one camera ray's descendants).
     /// A ray made in this step carries the hop found when it was routed, so its
     /// domain walk is not done twice.
-    local: Vec<(u32, RayRecord, Option<Hop>)>,
+    local: Vec<(u32, RayRecord, Option<Hop>, Lineage)>,
     /// Rays made here (camera rays and children), by kind: each ray is counted once,
     /// where it is made, so the totals equal the single-process renderer's.
     pub traced: [u64; RayKind::COUNT],
@@ -113,24 +140,47 @@ impl Outbox {
     pub fn is_empty(&self) -> bool {
         self.sums.is_empty()
             && self.credits.is_empty()
-            && self.rays.values().all(Vec::is_empty)
+            && self.rays.values().all(RayBundle::is_empty)
+            && self.lookups.is_empty()
+            && self.tickets.is_empty()
+            && self.outcomes.is_empty()
             && self.traced.iter().all(|&n| n == 0)
             && self.nonfinite == 0
     }
 
     /// Rays waiting to be sent.
     pub fn ray_count(&self) -> usize {
-        self.rays.values().map(Vec::len).sum()
+        self.rays.values().map(RayBundle::len).sum()
     }
 
-    fn add(&mut self, pixel: u32, value: Vec3) {
+    /// A contribution to `pixel` (none for a coarse-pass ray), owed also to the ray's
+    /// tickets; `cached` when it is a cache's answer.
+    fn add(&mut self, pixel: u32, value: Vec3, lin: &Lineage, cached: bool) {
         match to_fixed(value) {
-            Some(f) => self.sums.push((pixel, f)),
+            Some(f) => {
+                if !lin.coarse {
+                    self.sums.push((pixel, f));
+                }
+                if let Some(t) = &lin.tickets {
+                    self.tickets.contribute(t, f, cached);
+                }
+            }
             None => self.nonfinite += 1,
         }
     }
 
-    fn give_back(&mut self, tile: u32, credit: u64) {
+    /// Mark the ray's tickets as met by an approximation (their radiance is not stored).
+    fn taint(&mut self, lin: &Lineage) {
+        if let Some(t) = &lin.tickets {
+            self.tickets.credit(t, 0, true);
+        }
+    }
+
+    /// Credit handed back to `tile`, and to the ray's tickets.
+    fn give_back(&mut self, tile: u32, credit: u64, lin: &Lineage, cached: bool) {
+        if let Some(t) = &lin.tickets {
+            self.tickets.credit(t, credit, cached);
+        }
         if credit == 0 {
             return;
         }
@@ -157,13 +207,49 @@ impl Sink for StepSink {
     }
 }
 
+/// A ray at a wall, waiting for the wall's cache actor (ray caches on).
+#[derive(Clone, Debug)]
+pub struct Lookup {
+    /// The wall (6 * domain + face).
+    pub wall: u32,
+    /// The domain the ray enters through it: where it goes unless the cache answers.
+    pub domain: u32,
+    pub ray: RayRecord,
+    /// Its tickets (and coarse flag).
+    pub lineage: Lineage,
+    /// Ask the wall's ray cache (the job caches the ray's kind).
+    pub cache: bool,
+    /// Ask the wall's hit map (the job's maps serve the ray's kind).
+    pub phm: bool,
+}
+
+/// A step with no domain here (answers applied off the tracing threads): rays go out,
+/// to walls when `walls`.
+pub struct NoDomains {
+    pub walls: bool,
+}
+
+impl Residency for NoDomains {
+    fn domain(&self, _d: u32) -> Option<Arc<LoadedDomain>> {
+        None
+    }
+
+    fn walls(&self) -> bool {
+        self.walls
+    }
+}
+
 /// The sink of a ray's last step (a miss, an unblocked occlusion ray): contributions go
-/// straight to the outbox, with no buffer to allocate. Those steps make no rays.
-struct ContributionsOnly<'a>(&'a mut Outbox);
+/// straight to the outbox (and the ray's tickets), with no buffer to allocate. Those
+/// steps make no rays.
+struct ContributionsOnly<'a> {
+    out: &'a mut Outbox,
+    lineage: &'a Lineage,
+}
 
 impl Sink for ContributionsOnly<'_> {
     fn contribute(&mut self, pixel: u32, value: Vec3) {
-        self.0.add(pixel, value);
+        self.out.add(pixel, value, self.lineage, false);
     }
     fn spawn(&mut self, _ray: RayState) {
         debug_assert!(false, "a miss or an occlusion result made a ray");
@@ -175,6 +261,12 @@ impl Sink for ContributionsOnly<'_> {
 pub trait Residency {
     /// Domain `d`, if this step may trace it here.
     fn domain(&self, d: u32) -> Option<Arc<LoadedDomain>>;
+
+    /// Whether rays crossing walls go to cache actors (the job has ray caches and the
+    /// routing table places their actors).
+    fn walls(&self) -> bool {
+        false
+    }
 }
 
 /// A fixed set of domains (tests, benchmarks): every one is traced where it is.
@@ -188,6 +280,8 @@ impl Residency for HashMap<u32, Arc<LoadedDomain>> {
 struct Pins<'r> {
     residency: &'r dyn Residency,
     slots: Vec<Option<Option<Arc<LoadedDomain>>>>,
+    /// [`Residency::walls`], asked once.
+    walls: bool,
 }
 
 impl<'r> Pins<'r> {
@@ -195,7 +289,12 @@ impl<'r> Pins<'r> {
         Pins {
             residency,
             slots: vec![None; domains],
+            walls: residency.walls(),
         }
+    }
+
+    fn walls(&self) -> bool {
+        self.walls
     }
 
     fn get(&mut self, d: u32) -> Option<&Arc<LoadedDomain>> {
@@ -231,6 +330,21 @@ pub struct JobTracer {
     /// that need no domain (camera rays, rays leaving the scene).
     bare: Scene,
     bare_lights: Arc<LightSampler>,
+    /// Per domain, its box: where walls are.
+    bounds: Vec<(Vec3, Vec3)>,
+    /// Per ray kind, whether the job's ray caches look it up (all false: caches off).
+    cached_kinds: [bool; RayKind::COUNT],
+    /// Whether rays of the main pass fill the caches (`ray_cache.fill`); if not, only
+    /// the coarse pass's rays take tickets.
+    fill: bool,
+    /// Per ray kind, whether the job's hit maps serve it, and the maps' binning (no
+    /// kinds: maps off).
+    phm_kinds: [bool; RayKind::COUNT],
+    phm_bins: PhmBins,
+    /// The coarse pass's image edge N (0: no coarse pass), and the image's tile count
+    /// (coarse tiles are numbered after the image's).
+    coarse: u32,
+    image_tiles: u32,
 }
 
 impl JobTracer {
@@ -253,6 +367,13 @@ impl JobTracer {
             (Vec3::ZERO, Vec3::ONE),
         ));
         JobTracer {
+            bounds: tree.domain_bounds(),
+            cached_kinds: [false; RayKind::COUNT],
+            fill: true,
+            phm_kinds: [false; RayKind::COUNT],
+            phm_bins: PhmBins::new(1, 1),
+            coarse: 0,
+            image_tiles: settings.width.div_ceil(tile_size) * settings.height.div_ceil(tile_size),
             tiles_x: settings.width.div_ceil(tile_size),
             camera,
             settings,
@@ -265,8 +386,93 @@ impl JobTracer {
         }
     }
 
+    /// Look rays of these kinds up in wall caches (the job's `ray_cache.kinds`).
+    pub fn with_cached_kinds(mut self, kinds: [bool; RayKind::COUNT]) -> JobTracer {
+        self.cached_kinds = kinds;
+        self
+    }
+
+    /// Whether the main pass's rays fill the caches (`ray_cache.fill`).
+    pub fn with_fill(mut self, fill: bool) -> JobTracer {
+        self.fill = fill;
+        self
+    }
+
+    /// Whether a ray of this lineage takes a ticket on a miss: coarse-pass rays always,
+    /// others when the main pass fills the caches.
+    pub fn tickets_for(&self, lineage: &Lineage) -> bool {
+        lineage.coarse || self.fill
+    }
+
+    /// Consult hit maps binned by `bins` for rays of these kinds (the job's `phm`).
+    pub fn with_phm(mut self, kinds: [bool; RayKind::COUNT], bins: PhmBins) -> JobTracer {
+        self.phm_kinds = kinds;
+        self.phm_bins = bins;
+        self
+    }
+
+    /// A ray whose wall's hit map predicts that it misses `domain`: it goes on past the
+    /// domain as if it were empty (to the next wall, or out of the scene). Its tickets
+    /// are tainted: what it sees now rests on a prediction.
+    pub fn skip(
+        &self,
+        ray: &RayRecord,
+        lineage: Lineage,
+        domain: u32,
+        residency: &dyn Residency,
+        out: &mut Outbox,
+    ) -> Result<(), TraceError> {
+        let mut pins = Pins::new(residency, self.nonempty.len());
+        let state = ray.to_state();
+        let tile = self.tile_of(ray.pixel, lineage.coarse);
+        out.taint(&lineage);
+        let hop = self
+            .tree
+            .hop(
+                state.origin,
+                state.dir,
+                0.0,
+                state.tmax,
+                self.pad,
+                domain,
+                self.wanted(),
+            )
+            .ok_or(TraceError::Misrouted { domain })?;
+        let lin = lineage.inherited();
+        match hop.next {
+            Some(next) => self.cross(&mut pins, state, ray.credit, lin, next, None, tile, out),
+            None => finish_unblocked(&self.bare(), &state, ray.credit, &lin, tile, out),
+        }
+        self.trace_local(&mut pins, &mut Step::default(), out)
+    }
+
+    /// An occlusion ray whose wall's hit map predicts a hit: it is occluded, adding
+    /// nothing; its credit goes back (its tickets tainted).
+    pub fn answer_occluded(&self, ray: &RayRecord, lineage: &Lineage, out: &mut Outbox) {
+        let tile = self.tile_of(ray.pixel, lineage.coarse);
+        out.give_back(tile, ray.credit, lineage, true);
+    }
+
+    /// The job's ray-cache coarse pass covers an `n` x `n` image (0: none).
+    pub fn with_coarse(mut self, n: u32) -> JobTracer {
+        self.coarse = n;
+        self
+    }
+
     pub fn settings(&self) -> &RenderSettings {
         &self.settings
+    }
+
+    /// A ray answered by a wall's cache with `radiance`: its contribution (weight x
+    /// radiance) and its credit, both also owed to its tickets, marked as coming from
+    /// a cache.
+    pub fn answer_hit(&self, ray: &RayRecord, lineage: &Lineage, radiance: Vec3, out: &mut Outbox) {
+        let pixels = self.settings.width as u64 * self.settings.height as u64;
+        let tile = self.tile_of(ray.pixel, lineage.coarse);
+        if lineage.coarse || (ray.pixel as u64) < pixels {
+            out.add(ray.pixel, ray.weight * radiance, lineage, true);
+        }
+        out.give_back(tile, ray.credit, lineage, true);
     }
 
     /// Domains in the job's layout.
@@ -301,8 +507,14 @@ impl JobTracer {
         )
     }
 
-    /// The tile holding `pixel`.
-    pub fn tile_of(&self, pixel: u32) -> u32 {
+    /// The tile holding `pixel` (of the coarse image for a coarse-pass ray).
+    pub fn tile_of(&self, pixel: u32, coarse: bool) -> u32 {
+        if coarse {
+            let n = self.coarse.max(1);
+            let (x, y) = (pixel % n, pixel / n);
+            let tiles_x = n.div_ceil(self.tile_size);
+            return self.image_tiles + (y / self.tile_size) * tiles_x + x / self.tile_size;
+        }
         let w = self.settings.width.max(1);
         let (x, y) = (pixel % w, pixel / w);
         (y / self.tile_size) * self.tiles_x + x / self.tile_size
@@ -322,7 +534,11 @@ impl JobTracer {
         residency: &dyn Residency,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
-        let spp = self.settings.spp.max(1) as u64;
+        let spp = if tile.coarse {
+            1
+        } else {
+            self.settings.spp.max(1) as u64
+        };
         let total = tile.camera_rays(spp as u32);
         if credit::camera_share(tile.credit, total, 0).is_none() {
             return Err(TraceError::TileCredit {
@@ -342,23 +558,44 @@ impl JobTracer {
                 (p % tile.width as u64) as u32,
                 (p / tile.width as u64) as u32,
             );
-            let pixel = (tile.y0 + ly) * self.settings.width + tile.x0 + lx;
             let share = credit::camera_share(tile.credit, total, i).unwrap_or(0);
-            let ray = bare.camera_ray(pixel, sample);
+            let (ray, lin) = if tile.coarse {
+                // One regular ray through the coarse pixel's centre, its random numbers
+                // keyed apart from every sample of the image.
+                let n = self.coarse.max(1);
+                let (cx, cy) = (tile.x0 + lx, tile.y0 + ly);
+                let film =
+                    glam::Vec2::new((cx as f32 + 0.5) / n as f32, (cy as f32 + 0.5) / n as f32);
+                let lin = Lineage {
+                    tickets: None,
+                    coarse: true,
+                    probe: false,
+                };
+                (
+                    bare.camera_ray_through(film, cy * n + cx, COARSE_SAMPLE),
+                    lin,
+                )
+            } else {
+                let pixel = (tile.y0 + ly) * self.settings.width + tile.x0 + lx;
+                (bare.camera_ray(pixel, sample), Lineage::default())
+            };
             out.traced[RayKind::Camera as usize] += 1;
-            self.route_new(&bare, &mut pins, ray, share, tile.index, out);
+            self.route_new(&bare, &mut pins, ray, share, lin, tile.index, out);
         }
         self.trace_local(&mut pins, &mut Step::default(), out)
     }
 
     /// Send a ray that was just made to the first domain on its path, or finish it at
-    /// once when it meets no domain with triangles.
+    /// once when it meets no domain with triangles. A ray whose first domain starts
+    /// ahead of its origin enters it through a wall.
+    #[allow(clippy::too_many_arguments)]
     fn route_new(
         &self,
         bare: &Integrator<'_>,
         pins: &mut Pins<'_>,
         ray: RayState,
         credit: u64,
+        lin: Lineage,
         tile: u32,
         out: &mut Outbox,
     ) {
@@ -366,8 +603,11 @@ impl JobTracer {
             self.tree
                 .first_hop(ray.origin, ray.dir, 0.0, ray.tmax, self.pad, self.wanted());
         match first {
-            Some(h) => self.forward(pins, ray, credit, h.span.domain, Some(h), tile, out),
-            None => finish_unblocked(bare, &ray, credit, tile, out),
+            Some(h) if h.span.t0 > 0.0 => {
+                self.cross(pins, ray, credit, lin, h.span.domain, Some(h), tile, out)
+            }
+            Some(h) => self.forward(pins, ray, credit, lin, h.span.domain, Some(h), tile, out),
+            None => finish_unblocked(bare, &ray, credit, &lin, tile, out),
         }
     }
 
@@ -379,45 +619,68 @@ impl JobTracer {
         pins: &mut Pins<'_>,
         ray: RayState,
         credit: u64,
+        lin: Lineage,
         domain: u32,
         hop: Option<Hop>,
         tile: u32,
         out: &mut Outbox,
     ) {
         match RayRecord::from_state(&ray, credit) {
-            Ok(r) if pins.get(domain).is_some() => out.local.push((domain, r, hop)),
-            Ok(r) => out.rays.entry(domain).or_default().push(r),
+            Ok(r) if pins.get(domain).is_some() => out.local.push((domain, r, hop, lin)),
+            Ok(r) => out.rays.entry(domain).or_default().push(r, &lin),
             // Depth beyond 16 bits: no valid job gets here (max_depth <= 1024); end the
             // ray rather than lose its credit.
-            Err(_) => out.give_back(tile, credit),
+            Err(_) => out.give_back(tile, credit, &lin, false),
         }
     }
 
-    /// A ray leaves domain `from` through a wall into domain `next`. This is the one
-    /// place where a ray crossing a wall is seen: the wall is the face of `from` at the
-    /// ray's exit `hop.span.t1`, the crossing point `origin + dir * t1` (the cache actors
-    /// on walls hook in here).
+    /// A ray enters `domain` through one of its walls, from another domain or from
+    /// outside the scene: the one place where a ray crossing a wall is seen. With ray
+    /// caches on for its kind, it goes to the wall's cache actor first (the wall is the
+    /// face of `domain` it enters by); otherwise straight on.
     #[allow(clippy::too_many_arguments)]
-    fn leave(
+    fn cross(
         &self,
         pins: &mut Pins<'_>,
         ray: RayState,
         credit: u64,
-        _from: u32,
-        _hop: &Hop,
-        next: u32,
+        lin: Lineage,
+        domain: u32,
+        hop: Option<Hop>,
         tile: u32,
         out: &mut Outbox,
     ) {
-        self.forward(pins, ray, credit, next, None, tile, out);
+        let k = ray.kind as usize;
+        let (cache, phm) = (self.cached_kinds[k], self.phm_kinds[k] && !lin.coarse);
+        if pins.walls() && (cache || phm) {
+            let face = self
+                .bounds
+                .get(domain as usize)
+                .and_then(|&(lo, hi)| entry_face(lo, hi, ray.origin, ray.dir));
+            if let (Some(face), Ok(r)) = (face, RayRecord::from_state(&ray, credit)) {
+                out.lookups.push(Lookup {
+                    wall: wall_index(domain, face),
+                    domain,
+                    ray: r,
+                    lineage: lin,
+                    cache,
+                    phm,
+                });
+                return;
+            }
+        }
+        self.forward(pins, ray, credit, lin, domain, hop, tile, out);
     }
 
     /// Trace `rays`, all queued for `domain`, which `residency` must give, and every ray
     /// they lead to in domains it gives.
+    /// `tickets` are the rays' cache tickets, by record index in increasing order (the
+    /// wire's sparse form; empty when no ray carries one).
     pub fn trace_batch(
         &self,
         domain: u32,
         rays: &[RayRecord],
+        tickets: &[RayTicket],
         residency: &dyn Residency,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
@@ -426,8 +689,8 @@ impl JobTracer {
             return Err(TraceError::NotResident { domain });
         }
         let mut step = Step::default();
-        for rec in rays {
-            self.trace_one(&mut pins, domain, rec, None, &mut step, out)?;
+        for (rec, lin) in with_lineage(rays, tickets) {
+            self.trace_one(&mut pins, domain, rec, None, lin, &mut step, out)?;
         }
         self.trace_local(&mut pins, &mut step, out)
     }
@@ -440,23 +703,29 @@ impl JobTracer {
         step: &mut Step,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
-        while let Some((domain, rec, hop)) = out.local.pop() {
-            self.trace_one(pins, domain, &rec, hop, step, out)?;
+        while let Some((domain, rec, hop, lin)) = out.local.pop() {
+            self.trace_one(pins, domain, &rec, hop, lin, step, out)?;
         }
         Ok(())
     }
 
     /// Trace one ray in `domain` (traced here; `hop` is its span there if known) and
-    /// hand on what it makes.
+    /// hand on what it makes; its lineage `lin` is inherited by its children.
+    #[allow(clippy::too_many_arguments)]
     fn trace_one(
         &self,
         pins: &mut Pins<'_>,
         domain: u32,
         rec: &RayRecord,
         hop: Option<Hop>,
+        lin: Lineage,
         step: &mut Step,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
+        // A probe's outcome is reported for this domain only; its children and its way
+        // on are ordinary rays.
+        let probe = lin.probe;
+        let lin = if probe { lin.inherited() } else { lin };
         let loaded = pins
             .get(domain)
             .cloned()
@@ -467,7 +736,12 @@ impl JobTracer {
             .first()
             .ok_or(TraceError::NotResident { domain })?;
         let pixels = self.settings.width as u64 * self.settings.height as u64;
-        if rec.pixel as u64 >= pixels {
+        let limit = if lin.coarse {
+            self.coarse as u64 * self.coarse as u64
+        } else {
+            pixels
+        };
+        if rec.pixel as u64 >= limit {
             return Err(TraceError::BadPixel {
                 pixel: rec.pixel,
                 width: self.settings.width,
@@ -476,7 +750,7 @@ impl JobTracer {
         }
         let integrator = self.integrator(&loaded);
         let ray = rec.to_state();
-        let tile = self.tile_of(ray.pixel);
+        let tile = self.tile_of(ray.pixel, lin.coarse);
         let hop = match hop {
             Some(h) => h,
             None => self
@@ -497,19 +771,27 @@ impl JobTracer {
             span: hop.span,
         };
         if ray.kind.is_occlusion() {
-            if integrator.occluded(&geometry, &ray) {
-                out.give_back(tile, rec.credit);
+            let occluded = integrator.occluded(&geometry, &ray);
+            if probe {
+                self.report_probe(domain, &ray, occluded, out);
+            }
+            if occluded {
+                out.give_back(tile, rec.credit, &lin, false);
             } else if let Some(next) = hop.next {
-                self.leave(pins, ray, rec.credit, domain, &hop, next, tile, out);
+                self.cross(pins, ray, rec.credit, lin, next, None, tile, out);
             } else {
-                finish_unblocked(&integrator, &ray, rec.credit, tile, out);
+                finish_unblocked(&integrator, &ray, rec.credit, &lin, tile, out);
             }
             return Ok(());
         }
-        let Some(hit) = integrator.intersect(&geometry, &ray) else {
+        let found = integrator.intersect(&geometry, &ray);
+        if probe {
+            self.report_probe(domain, &ray, found.is_some(), out);
+        }
+        let Some(hit) = found else {
             match hop.next {
-                Some(next) => self.leave(pins, ray, rec.credit, domain, &hop, next, tile, out),
-                None => finish_unblocked(&integrator, &ray, rec.credit, tile, out),
+                Some(next) => self.cross(pins, ray, rec.credit, lin, next, None, tile, out),
+                None => finish_unblocked(&integrator, &ray, rec.credit, &lin, tile, out),
             }
             return Ok(());
         };
@@ -518,17 +800,32 @@ impl JobTracer {
         sink.children.clear();
         integrator.shade_hit(&ray, &hit, sink);
         for &(p, v) in &sink.contributions {
-            out.add(p, v);
+            out.add(p, v, &lin, false);
         }
         step.kinds.clear();
         step.kinds.extend(sink.children.iter().map(|c| c.kind));
         let (shares, back) = credit::split(rec.credit, &step.kinds)?;
-        out.give_back(tile, back);
+        out.give_back(tile, back, &lin, false);
         for (child, share) in sink.children.drain(..).zip(shares) {
             out.traced[child.kind as usize] += 1;
-            self.route_new(&integrator, pins, child, share, tile, out);
+            self.route_new(&integrator, pins, child, share, lin.clone(), tile, out);
         }
         Ok(())
+    }
+}
+
+impl JobTracer {
+    /// Note a probe's outcome in `domain` for the map of the wall it entered by.
+    fn report_probe(&self, domain: u32, ray: &RayState, hit: bool, out: &mut Outbox) {
+        let Some(&(lo, hi)) = self.bounds.get(domain as usize) else {
+            return;
+        };
+        let Some(face) = entry_face(lo, hi, ray.origin, ray.dir) else {
+            return;
+        };
+        if let Some(cell) = self.phm_bins.cell(lo, hi, face, ray.origin, ray.dir) {
+            out.outcomes.push((wall_index(domain, face), cell, hit));
+        }
     }
 }
 
@@ -538,14 +835,15 @@ fn finish_unblocked(
     integrator: &Integrator<'_>,
     ray: &RayState,
     credit: u64,
+    lineage: &Lineage,
     tile: u32,
     out: &mut Outbox,
 ) {
-    let mut sink = ContributionsOnly(out);
+    let mut sink = ContributionsOnly { out, lineage };
     if ray.kind.is_occlusion() {
         integrator.shadow_result(ray, false, &mut sink);
     } else {
         integrator.shade_miss(ray, &mut sink);
     }
-    out.give_back(tile, credit);
+    out.give_back(tile, credit, lineage, false);
 }

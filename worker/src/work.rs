@@ -70,6 +70,10 @@ impl Residency for StepResidency<'_> {
             None
         }
     }
+
+    fn walls(&self) -> bool {
+        self.routes.has_caches()
+    }
 }
 
 /// One tracing thread: take work, trace it, hand the results on; sleep when there is
@@ -197,7 +201,9 @@ fn trace(shared: &Arc<Shared>, work: Work) {
                 routes: &routes,
                 held: Some(&held),
             };
-            let r = job.tracer.trace_batch(d, &batch.rays, &residency, &mut out);
+            let r = job
+                .tracer
+                .trace_batch(d, &batch.rays, &batch.tickets, &residency, &mut out);
             (job, r)
         }
         Work::Camera(job, tile, start, count) => {
@@ -272,20 +278,29 @@ fn forward(shared: &Arc<Shared>, job: &Arc<Job>, domain: u32, batch: QueuedBatch
             job: job.clone(),
             domain,
             rays: batch.rays,
+            tickets: batch.tickets,
             forwards: batch.forwards + 1,
             routing_version: routes.version,
         },
     );
 }
 
-/// Results into the job's report; rays to this worker's queues or to their owners.
-fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, out: Outbox) {
+/// Results into the job's report; rays to this worker's queues or to their owners,
+/// rays at walls to the walls' cache actors.
+pub(crate) fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, mut out: Outbox) {
+    if !out.lookups.is_empty() {
+        crate::cache_link::send_lookups(shared, job, std::mem::take(&mut out.lookups));
+    }
+    if !out.outcomes.is_empty() {
+        crate::cache_link::send_outcomes(shared, job, std::mem::take(&mut out.outcomes));
+    }
     let routes = job.routes();
     let mut sent = 0u64;
-    for (d, rays) in out.rays {
-        if rays.is_empty() {
+    for (d, bundle) in out.rays {
+        if bundle.is_empty() {
             continue;
         }
+        let (rays, tickets) = (bundle.rays, bundle.tickets);
         if routes.owns(d) || routes.is_held(d) {
             // Traced here, or held here until a worker is given the domain.
             shared.queues.push_local(
@@ -296,7 +311,7 @@ fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, out: Outbox) {
                     routing_version: routes.version,
                     forwards: 0,
                     rays,
-                    tickets: Vec::new(),
+                    tickets,
                 },
             );
             continue;
@@ -318,6 +333,7 @@ fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, out: Outbox) {
                 job: job.clone(),
                 domain: d,
                 rays,
+                tickets,
                 forwards: 0,
                 routing_version: routes.version,
             },
@@ -331,6 +347,7 @@ fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, out: Outbox) {
         r.traced[k] += n;
     }
     r.nonfinite += out.nonfinite;
+    r.tickets.merge(out.tickets);
     r.bytes += sent * RAY_RECORD_BYTES as u64;
     r.rays_sent += sent;
 }

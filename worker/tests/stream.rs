@@ -7,7 +7,7 @@ use std::time::Duration;
 use dray_core::integrator::RayKind;
 use dray_core::ray::FLAG_TICKETED;
 use dray_core::ray::RayRecord;
-use dray_proto::v1::{RayBatch, RayStreamRequest, ray_stream_request};
+use dray_proto::v1::{RayBatch, RayStreamRequest, RayTicket, ray_stream_request};
 use dray_worker::{
     BatchKey, PeerClientConfig, PeerError, PeerSender, PeerServer, PeerServerConfig, QueueKey,
     RayQueues,
@@ -137,12 +137,16 @@ async fn rays_arrive_bit_exact_in_their_domain_queues() {
         assert_eq!(to3.chunks(130).len(), to7.chunks(97).len());
         let mut ticket = 0u64;
         for (c3, c7) in to3.chunks(130).zip(to7.chunks(97)) {
-            let tickets: Vec<u64> = c3
+            let tickets: Vec<RayTicket> = c3
                 .iter()
-                .filter(|r| r.flags & FLAG_TICKETED != 0)
-                .map(|_| {
+                .enumerate()
+                .filter(|(_, r)| r.flags & FLAG_TICKETED != 0)
+                .map(|(i, _)| {
                     ticket += 1;
-                    ticket
+                    RayTicket {
+                        record: i as u32,
+                        ticket,
+                    }
                 })
                 .collect();
             sender.send(&key(3), c3, &tickets).await.expect("send 3");

@@ -131,8 +131,10 @@ fn distributed_with(
         }
         film.nonfinite += out.nonfinite;
         for (d, mut r) in out.rays {
-            queues.entry(d).or_default().append(&mut r);
+            assert!(r.tickets.is_empty(), "no tickets without ray caches");
+            queues.entry(d).or_default().append(&mut r.rays);
         }
+        assert!(out.lookups.is_empty(), "no lookups without ray caches");
     };
 
     let tiles = render::tiles(s.width, s.height);
@@ -147,6 +149,7 @@ fn distributed_with(
                 width: TILE.min(s.width - x0),
                 height: TILE.min(s.height - y0),
                 credit: TILE_CREDIT,
+                coarse: false,
             });
         }
     }
@@ -185,7 +188,7 @@ fn distributed_with(
         let mut out = Outbox::default();
         let w = owner(d) as usize;
         tracers[w]
-            .trace_batch(d, &batch, &held[w], &mut out)
+            .trace_batch(d, &batch, &[], &held[w], &mut out)
             .unwrap();
         absorb(out, &mut queues);
     }

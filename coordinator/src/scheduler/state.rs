@@ -13,6 +13,7 @@ use dray_proto::v1::{DomainQueue, ReportQueuesRequest, RoutingTable, Tile, Worke
 
 use super::policy::{Change, RoundInput, Schedule, rebalance, views};
 use super::table::JobRouting;
+use crate::caches::placement::Placement;
 
 /// A worker as a job knows it.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -111,6 +112,16 @@ impl JobSchedule {
     /// The current routing state.
     pub fn routing(&self) -> &JobRouting {
         &self.routing
+    }
+
+    /// Set the current attempt's cache placement (before its first table is sent).
+    pub fn set_caches(&mut self, caches: Placement) {
+        self.routing.set_caches(caches);
+    }
+
+    /// Domains of the job.
+    pub fn domains(&self) -> u32 {
+        self.domains
     }
 
     /// Rounds run so far.

@@ -7,6 +7,8 @@
 
 use dray_proto::v1::{DomainRoute, RoutingTable, WorkerEndpoint};
 
+use crate::caches::placement::Placement;
+
 /// The owners of every domain of a job, by worker id, or "local" (image-plane: every
 /// worker traces its own rays, nothing is routed).
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
@@ -98,8 +100,8 @@ impl Routes {
     }
 }
 
-/// A job's current routing table: [`Routes`] plus the job, the attempt, the version and
-/// the workers' endpoints.
+/// A job's current routing table: [`Routes`] plus the job, the attempt, the version,
+/// the workers' endpoints and the attempt's cache placement.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct JobRouting {
     job_id: String,
@@ -107,6 +109,9 @@ pub struct JobRouting {
     version: u64,
     workers: Vec<WorkerEndpoint>,
     routes: Routes,
+    /// Where the attempt's cache actors live (empty: no caches). Set once per attempt,
+    /// before its first table goes out, and kept by every later table of the attempt.
+    caches: Placement,
 }
 
 impl JobRouting {
@@ -118,6 +123,7 @@ impl JobRouting {
             version: 1,
             workers,
             routes,
+            caches: Placement::none(),
         }
     }
 
@@ -177,13 +183,26 @@ impl JobRouting {
         Some(self.version)
     }
 
-    /// Start attempt `attempt` over `workers` with `routes`: a new version.
+    /// Start attempt `attempt` over `workers` with `routes`: a new version, with no
+    /// caches until [`JobRouting::set_caches`] places the new attempt's.
     pub fn restart(&mut self, attempt: u32, workers: Vec<WorkerEndpoint>, routes: Routes) -> u64 {
         self.attempt = attempt;
         self.workers = workers;
         self.routes = routes;
+        self.caches = Placement::none();
         self.version += 1;
         self.version
+    }
+
+    /// Set the attempt's cache placement. Not a new version: it is set before any table
+    /// of the attempt is sent, and never changes while the attempt runs.
+    pub fn set_caches(&mut self, caches: Placement) {
+        self.caches = caches;
+    }
+
+    /// The attempt's cache placement.
+    pub fn caches(&self) -> &Placement {
+        &self.caches
     }
 
     /// The message workers receive.
@@ -195,6 +214,8 @@ impl JobRouting {
             routes: self.routes.to_proto(),
             attempt: self.attempt,
             local: self.routes.is_local(),
+            cache_hosts: self.caches.hosts().to_vec(),
+            wall_hosts: self.caches.wall_hosts().to_vec(),
         }
     }
 }
@@ -239,5 +260,28 @@ mod tests {
             (m.version, m.attempt, m.local, m.routes.len()),
             (3, 1, false, 2)
         );
+    }
+
+    #[test]
+    fn every_table_of_an_attempt_carries_its_cache_placement() {
+        use crate::caches::placement::Candidates;
+        let ws = vec![WorkerEndpoint {
+            worker_id: "a".into(),
+            endpoint: "http://a:1".into(),
+        }];
+        let mut t = JobRouting::new("j", ws.clone(), Routes::round_robin(2, &ids(&["a"])));
+        assert!(t.table().cache_hosts.is_empty() && t.table().wall_hosts.is_empty());
+        let c = Candidates::choose(Vec::new(), &[("a".into(), "http://a:2".into())]);
+        let p = Placement::place(2, &c, &c.beside(t.routes(), 2));
+        t.set_caches(p.clone());
+        assert_eq!(t.version(), 1, "placing caches is not a new table");
+        t.set_routes(Routes::local());
+        let m = t.table();
+        assert_eq!(m.cache_hosts[0].endpoint, "http://a:2");
+        assert_eq!(m.wall_hosts, [0; 12]);
+        // A new attempt starts with none (until its own are placed).
+        t.restart(1, ws, Routes::round_robin(2, &ids(&["a"])));
+        assert!(t.table().cache_hosts.is_empty());
+        assert!(t.caches().is_empty());
     }
 }

@@ -116,11 +116,12 @@ pub fn register_request(endpoint: &str) -> RegisterWorkerRequest {
         version: VERSION.into(),
         record_format: dray_proto::RAY_RECORD_FORMAT,
         hostname: "test".into(),
+        cache_endpoint: String::new(),
     }
 }
 
 /// Aborts a task when dropped.
-pub struct AbortOnDrop(tokio::task::JoinHandle<()>);
+pub struct AbortOnDrop(pub tokio::task::JoinHandle<()>);
 
 impl Drop for AbortOnDrop {
     fn drop(&mut self) {

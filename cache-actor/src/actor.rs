@@ -1,0 +1,426 @@
+//! The wall actor: one tokio task per wall of an open job attempt, owning that wall's
+//! store and tickets (when the job has a ray cache) and its hit map (when it has
+//! probability hit maps), driven only through its mailbox.
+//!
+//! Why an actor per wall: a wall's state is touched by every worker's stream, and
+//! giving it a single owner makes every change to it sequential without a lock on the
+//! hot path; walls are independent, so a host with many walls uses every core. The
+//! host keeps only [`WallHandle`]s (a mailbox sender): it never reads an actor's state
+//! except through the stats a `Close` returns. The mailbox is bounded, so a burst of
+//! lookups waits at the sender instead of queueing without limit.
+
+use std::sync::Arc;
+
+use dray_core::ray::{FLAG_COARSE, RayRecord};
+use dray_core::wall::WallFrame;
+use glam::Vec3;
+use tokio::sync::{mpsc, oneshot};
+use tokio::task::JoinHandle;
+use tracing::Instrument;
+
+use crate::phm::{Advice, HitMap, Learned};
+use crate::settings::{CacheSettings, HitMapSettings};
+use crate::stats::{WallStats, worth_logging};
+use crate::store::{EntryKey, InsertError, Query, WallStore};
+use crate::tickets::{Applied, Return, TicketBook, TicketRay};
+
+/// Lookup option bit 0: the ray may be answered from the cache.
+pub const OPTION_ANSWER: u32 = 1;
+/// Lookup option bit 1: on a miss, open a ticket for the ray.
+pub const OPTION_TICKET: u32 = 2;
+/// Lookup option bit 2: consult the wall's hit map.
+pub const OPTION_PHM: u32 = 4;
+/// Added to an outcome code (0 or 2) when the ray goes on as a probe.
+pub const PROBE: u8 = 8;
+
+/// Rays an actor handles between yields, so one huge lookup does not hold a runtime
+/// thread away from the other walls' actors and the streams for long.
+const YIELD_EVERY: usize = 1024;
+
+/// One ray reaching a wall, with its lookup options.
+#[derive(Clone, Copy, Debug)]
+pub struct LookupRay {
+    pub ray: RayRecord,
+    pub options: u32,
+}
+
+/// The answer to one ray.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Outcome {
+    /// Not answered, no ticket: the worker traces the ray on, exactly.
+    Miss,
+    /// Answered with this radiance.
+    Hit([f32; 3]),
+    /// Not answered; the ray carries this ticket on.
+    Ticket(u64),
+    /// The hit map predicts a miss: the ray skips the domain behind the wall.
+    Skip,
+    /// The hit map predicts a hit for an occlusion ray: it is occluded.
+    Occluded,
+    /// As [`Outcome::Miss`], and the ray goes on as a probe.
+    Probe,
+    /// As [`Outcome::Ticket`], and the ray goes on as a probe.
+    ProbeTicket(u64),
+}
+
+impl Outcome {
+    /// The byte in `CacheAnswers.outcomes`.
+    pub fn code(&self) -> u8 {
+        match self {
+            Outcome::Miss => 0,
+            Outcome::Hit(_) => 1,
+            Outcome::Ticket(_) => 2,
+            Outcome::Skip => 3,
+            Outcome::Occluded => 4,
+            Outcome::Probe => PROBE,
+            Outcome::ProbeTicket(_) => 2 + PROBE,
+        }
+    }
+
+    /// The ticket the ray carries on, if any.
+    pub fn ticket(&self) -> Option<u64> {
+        match self {
+            Outcome::Ticket(t) | Outcome::ProbeTicket(t) => Some(*t),
+            _ => None,
+        }
+    }
+
+    /// This outcome for a ray that goes on as a probe; `None` when the ray does not go
+    /// on into the domain (answered, skipped or occluded), so there is nothing to probe.
+    fn probed(self) -> Option<Outcome> {
+        match self {
+            Outcome::Miss | Outcome::Probe => Some(Outcome::Probe),
+            Outcome::Ticket(t) | Outcome::ProbeTicket(t) => Some(Outcome::ProbeTicket(t)),
+            Outcome::Hit(_) | Outcome::Skip | Outcome::Occluded => None,
+        }
+    }
+}
+
+/// A message to a wall actor.
+pub(crate) enum Command {
+    /// Answer these rays; the reply holds one outcome per ray, in order.
+    Lookup {
+        rays: Vec<LookupRay>,
+        reply: oneshot::Sender<Vec<Outcome>>,
+    },
+    /// Apply these returns (ticket slot, return); the reply says they are applied.
+    Returns {
+        returns: Vec<(u32, Return)>,
+        reply: oneshot::Sender<()>,
+    },
+    /// Teach the hit map these probe outcomes (cell, hit byte); the reply says they
+    /// are applied.
+    Outcomes {
+        outcomes: Vec<(u32, u8)>,
+        reply: oneshot::Sender<()>,
+    },
+    /// Report the counters and stop.
+    Close { reply: oneshot::Sender<WallStats> },
+}
+
+/// What an actor needs to know about its wall and its job.
+#[derive(Clone, Debug)]
+pub(crate) struct WallSpec {
+    pub wall: u32,
+    pub frame: WallFrame,
+    pub outer: bool,
+    /// The box of the domain the wall belongs to (the hit map bins against it).
+    pub domain: (Vec3, Vec3),
+    /// The job's ray cache; `None` when it has none (then the wall only has a map).
+    pub settings: Option<Arc<CacheSettings>>,
+    /// The job's hit maps; `None` when it has none.
+    pub phm: Option<Arc<HitMapSettings>>,
+    pub max_entries: usize,
+    pub max_open_tickets: usize,
+    pub mailbox: usize,
+}
+
+/// The host's side of an actor: its mailbox.
+#[derive(Clone, Debug)]
+pub(crate) struct WallHandle {
+    tx: mpsc::Sender<Command>,
+    pub outer: bool,
+}
+
+impl WallHandle {
+    /// Post a command. False when the actor has stopped (its job closed meanwhile).
+    pub async fn send(&self, cmd: Command) -> bool {
+        self.tx.send(cmd).await.is_ok()
+    }
+}
+
+/// Start the actor for one wall, inside `span`.
+pub(crate) fn spawn(spec: WallSpec, span: tracing::Span) -> (WallHandle, JoinHandle<()>) {
+    let (tx, rx) = mpsc::channel(spec.mailbox.max(1));
+    let handle = WallHandle {
+        tx,
+        outer: spec.outer,
+    };
+    let (lo, hi) = spec.domain;
+    let actor = WallActor {
+        store: WallStore::new(spec.max_entries),
+        tickets: TicketBook::new(spec.wall, spec.max_open_tickets),
+        map: spec
+            .phm
+            .as_deref()
+            .map(|s| HitMap::new(s, spec.wall, lo, hi)),
+        stats: WallStats::default(),
+        spec,
+    };
+    let task = tokio::spawn(actor.run(rx).instrument(span));
+    (handle, task)
+}
+
+struct WallActor {
+    spec: WallSpec,
+    store: WallStore,
+    tickets: TicketBook,
+    map: Option<HitMap>,
+    stats: WallStats,
+}
+
+impl WallActor {
+    async fn run(mut self, mut rx: mpsc::Receiver<Command>) {
+        tracing::debug!("wall actor started");
+        while let Some(cmd) = rx.recv().await {
+            match cmd {
+                Command::Lookup { rays, reply } => {
+                    let mut out = Vec::with_capacity(rays.len());
+                    for chunk in rays.chunks(YIELD_EVERY) {
+                        out.extend(chunk.iter().map(|r| self.lookup(r)));
+                        if rays.len() > YIELD_EVERY {
+                            tokio::task::yield_now().await;
+                        }
+                    }
+                    // The asker may have gone (its stream ended): nothing to do then.
+                    let _ = reply.send(out);
+                }
+                Command::Returns { returns, reply } => {
+                    for (slot, ret) in returns {
+                        self.apply(slot, ret);
+                    }
+                    let _ = reply.send(());
+                }
+                Command::Outcomes { outcomes, reply } => {
+                    for chunk in outcomes.chunks(YIELD_EVERY) {
+                        for &(cell, hit) in chunk {
+                            self.learn(cell, hit);
+                        }
+                        if outcomes.len() > YIELD_EVERY {
+                            tokio::task::yield_now().await;
+                        }
+                    }
+                    let _ = reply.send(());
+                }
+                Command::Close { reply } => {
+                    let stats = self.stats();
+                    tracing::debug!(?stats, "wall actor closed");
+                    let _ = reply.send(stats);
+                    return;
+                }
+            }
+        }
+        tracing::debug!("wall actor stopped: its job attempt was dropped");
+    }
+
+    fn stats(&self) -> WallStats {
+        let mut stats = WallStats {
+            tickets_open: self.tickets.open_count() as u64,
+            entries: self.store.len() as u64,
+            entries_dropped: self.store.dropped,
+            ..self.stats
+        };
+        if let Some(map) = &self.map {
+            let (hit, miss) = map.decided();
+            stats.phm.cells = u64::from(map.len());
+            stats.phm.cells_decided_hit = hit;
+            stats.phm.cells_decided_miss = miss;
+        }
+        stats
+    }
+
+    /// Answer one ray. The hit map speaks first (a ray it skips or occludes never
+    /// reaches the ray cache, so it is not a cache lookup); every other ray gets the
+    /// ray cache's answer, marked as a probe when the map wants to learn from it and
+    /// the ray goes on into the domain.
+    fn lookup(&mut self, r: &LookupRay) -> Outcome {
+        let mut probe = false;
+        if r.options & OPTION_PHM != 0
+            && let Some(map) = &self.map
+        {
+            self.stats.phm.lookups += 1;
+            match map.advise(&r.ray) {
+                Advice::Skip => {
+                    self.stats.phm.skipped += 1;
+                    return Outcome::Skip;
+                }
+                Advice::Occlude => {
+                    self.stats.phm.occluded += 1;
+                    return Outcome::Occluded;
+                }
+                Advice::Probe => probe = true,
+                Advice::Unplaced => self.stats.phm.unplaced += 1,
+            }
+        }
+        let outcome = self.cache_lookup(r);
+        if !probe {
+            return outcome;
+        }
+        match outcome.probed() {
+            Some(o) => {
+                self.stats.phm.probes += 1;
+                o
+            }
+            None => outcome,
+        }
+    }
+
+    /// The ray cache's answer: a hit from the store, else a ticket if asked for, else a
+    /// miss. Always a miss on a wall without a ray cache.
+    fn cache_lookup(&mut self, r: &LookupRay) -> Outcome {
+        let Some(settings) = self.spec.settings.as_deref() else {
+            return Outcome::Miss;
+        };
+        let answer = r.options & OPTION_ANSWER != 0;
+        let ticket = r.options & OPTION_TICKET != 0;
+        if answer {
+            self.stats.lookups += 1;
+        }
+        if !answer && !ticket {
+            return Outcome::Miss;
+        }
+        let ray = &r.ray;
+        // The crossing point and the direction are what the store is keyed by; a ray
+        // that has neither (parallel to the wall, zero or non-finite direction) can
+        // neither be answered nor stored.
+        let (Some(point), Some(dir)) = (
+            self.spec.frame.crossing(ray.origin, ray.dir),
+            ray.dir.try_normalize(),
+        ) else {
+            self.stats.skipped += 1;
+            return Outcome::Miss;
+        };
+        if answer {
+            let q = Query {
+                point,
+                dir,
+                radius: settings.radius,
+                cos_min: settings.cos_min,
+                retrieve: settings.retrieve,
+            };
+            if let Some(radiance) = self.store.lookup(&q) {
+                self.stats.hits += 1;
+                return Outcome::Hit(radiance);
+            }
+        }
+        if !ticket {
+            return Outcome::Miss;
+        }
+        let opened = self.tickets.open(TicketRay {
+            key: EntryKey::of(ray),
+            point,
+            dir,
+            weight: ray.weight,
+            credit: ray.credit,
+            coarse: ray.flags & FLAG_COARSE != 0,
+        });
+        match opened {
+            Ok(id) => {
+                self.stats.tickets_opened += 1;
+                Outcome::Ticket(id)
+            }
+            Err(e) => {
+                self.stats.tickets_refused += 1;
+                if worth_logging(self.stats.tickets_refused) {
+                    tracing::warn!(
+                        error = %e,
+                        refused = self.stats.tickets_refused,
+                        "miss without a ticket"
+                    );
+                }
+                Outcome::Miss
+            }
+        }
+    }
+
+    /// Teach the map one probe's outcome. Outcomes that do not fit (no map on this
+    /// wall, a cell beyond the map, a hit byte other than 0 or 1) are counted and
+    /// dropped: they mean a bug or a mismatch elsewhere, and must not take the host
+    /// down.
+    fn learn(&mut self, cell: u32, hit: u8) {
+        let learned = match (&mut self.map, hit) {
+            (Some(map), 0 | 1) => map.learn(cell, hit == 1),
+            _ => Learned::OutOfRange,
+        };
+        let phm = &mut self.stats.phm;
+        match learned {
+            Learned::Counted => phm.outcomes += 1,
+            Learned::Frozen => {
+                phm.outcomes += 1;
+                phm.outcomes_frozen += 1;
+            }
+            Learned::OutOfRange => {
+                phm.outcomes_rejected += 1;
+                if worth_logging(phm.outcomes_rejected) {
+                    tracing::warn!(
+                        cell,
+                        hit,
+                        has_map = self.map.is_some(),
+                        count = phm.outcomes_rejected,
+                        "hit-map outcome that fits no cell of this wall's map (ignored)"
+                    );
+                }
+            }
+        }
+    }
+
+    /// Apply one return to its ticket; a ticket whose credit is whole closes and, when
+    /// the job fills the caches or the ray was of the coarse pass, stores its radiance.
+    /// Without a ray cache no ticket was ever issued, so every return is a stray.
+    fn apply(&mut self, slot: u32, ret: Return) {
+        let fill = self.spec.settings.as_ref().is_some_and(|s| s.fill);
+        match self.tickets.apply(slot, ret, fill) {
+            Applied::Pending => {}
+            Applied::Closed(entry) => {
+                self.stats.tickets_closed += 1;
+                let Some(entry) = entry else { return };
+                match self.store.insert(entry) {
+                    Ok(()) => self.stats.tickets_stored += 1,
+                    Err(InsertError::Full) => {
+                        if worth_logging(self.store.dropped) {
+                            tracing::warn!(
+                                dropped = self.store.dropped,
+                                entries = self.store.len(),
+                                "wall store full: radiance dropped"
+                            );
+                        }
+                    }
+                    // Cannot happen (the ticket's point and direction were checked when
+                    // it opened), but it is harmless: the radiance is just not stored.
+                    Err(InsertError::NotFinite) => {}
+                }
+            }
+            Applied::Unknown => {
+                self.stats.stray_returns += 1;
+                if worth_logging(self.stats.stray_returns) {
+                    tracing::warn!(
+                        slot,
+                        count = self.stats.stray_returns,
+                        "return for a ticket that is not open (ignored)"
+                    );
+                }
+            }
+            Applied::OverCredit => {
+                self.stats.over_credit += 1;
+                if worth_logging(self.stats.over_credit) {
+                    tracing::warn!(
+                        slot,
+                        credit = ret.credit,
+                        count = self.stats.over_credit,
+                        "return exceeds its ticket's credit (ignored)"
+                    );
+                }
+            }
+        }
+    }
+}

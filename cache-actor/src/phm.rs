@@ -1,0 +1,595 @@
+//! One wall's probability hit map (Bolstad 2017): per cell (a texel on the wall times a
+//! direction bin into the domain), how many rays entering the domain there hit
+//! something inside it and how many went through.
+//!
+//! The map turns those counts into advice for the next ray through the cell. With
+//! `p = (hits + prior) / (hits + misses + 2 prior)`, a cell with `p <= miss` predicts
+//! that rays pass the domain untouched (they skip it, and the domain's owner never sees
+//! them), one with `p >= hit` predicts that they hit inside (an occlusion ray is then
+//! occluded without being traced), and anything between is undecided: its rays are
+//! traced as *probes*, whose outcomes the domain's owner reports back to teach the map.
+//!
+//! Two modes, as in the source:
+//! - consistent: a decided cell follows its counts (it can change its mind), and a
+//!   deterministic fraction `reprobe` of its rays is probed anyway, so a wrong decision
+//!   is eventually corrected;
+//! - inconsistent: once a cell has decided, it ignores further outcomes, which freezes
+//!   its counts and so its decision. Freezing the counts instead of storing a separate
+//!   decision means a cell never un-decides, even one decided by its prior alone (a
+//!   `miss` of 0.5 decides every fresh cell).
+//!
+//! Whether a ray is re-probed is a hash of the ray's bits, never a random draw, so the
+//! same ray at the same map state gets the same answer on every run and every host.
+
+use std::collections::HashMap;
+
+use dray_core::ray::RayRecord;
+use dray_core::wall::{self, PhmBins};
+use glam::Vec3;
+
+use crate::settings::{HitMapSettings, PhmMode};
+
+/// Maps of at most this many cells keep a dense array of counts (8 bytes a cell, at
+/// most 512 KiB a wall). Larger maps (up to 64 x 64 texels x 264 direction bins, 1 Mi
+/// cells) keep only the cells that have learned something, so a host's memory follows
+/// the outcomes it received rather than the settings' worst case times its walls.
+pub const DENSE_MAX_CELLS: u32 = 1 << 16;
+
+/// One cell's outcomes. Saturating: a cell that has seen four billion outcomes of a
+/// kind has decided long ago, and overflow must not flip it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Counts {
+    pub hits: u32,
+    pub misses: u32,
+}
+
+/// What a cell predicts.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Decision {
+    Undecided,
+    /// Rays through the cell pass the domain untouched.
+    Miss,
+    /// Rays through the cell hit something in the domain.
+    Hit,
+}
+
+/// What the map says about one ray.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Advice {
+    /// The ray has no cell (it does not cross the wall's plane, or its direction is
+    /// zero): the map says nothing, and the ray cannot be a probe (its outcome could
+    /// not be binned).
+    Unplaced,
+    /// Skip the domain behind the wall (outcome 3).
+    Skip,
+    /// An occlusion ray at a cell that predicts a hit: occluded (outcome 4).
+    Occlude,
+    /// Trace the ray (as the ray cache answers it) and report its outcome: a probe.
+    Probe,
+}
+
+/// What an outcome did to the map.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Learned {
+    /// Added to the cell's counts.
+    Counted,
+    /// The cell has decided and the map is inconsistent: ignored.
+    Frozen,
+    /// The cell is beyond the map: ignored.
+    OutOfRange,
+}
+
+/// Cell counts, allocated on the first outcome: a map that never learns (a wall no
+/// probe reached) costs nothing.
+#[derive(Debug, Default)]
+enum Cells {
+    #[default]
+    Empty,
+    Dense(Vec<Counts>),
+    Sparse(HashMap<u32, Counts>),
+}
+
+impl Cells {
+    fn get(&self, cell: u32) -> Counts {
+        match self {
+            Cells::Empty => Counts::default(),
+            Cells::Dense(v) => usize::try_from(cell)
+                .ok()
+                .and_then(|i| v.get(i))
+                .copied()
+                .unwrap_or_default(),
+            Cells::Sparse(m) => m.get(&cell).copied().unwrap_or_default(),
+        }
+    }
+
+    /// The counts of `cell` (< `n`, checked by the caller) to change.
+    fn get_mut(&mut self, cell: u32, n: u32) -> Option<&mut Counts> {
+        if let Cells::Empty = self {
+            *self = if n <= DENSE_MAX_CELLS {
+                Cells::Dense(vec![Counts::default(); n as usize])
+            } else {
+                Cells::Sparse(HashMap::new())
+            };
+        }
+        match self {
+            Cells::Empty => None,
+            Cells::Dense(v) => v.get_mut(usize::try_from(cell).ok()?),
+            Cells::Sparse(m) => Some(m.entry(cell).or_default()),
+        }
+    }
+
+    /// Every cell that holds counts (the others are fresh).
+    fn held(&self) -> Box<dyn Iterator<Item = Counts> + '_> {
+        match self {
+            Cells::Empty => Box::new(std::iter::empty()),
+            Cells::Dense(v) => Box::new(v.iter().copied()),
+            Cells::Sparse(m) => Box::new(m.values().copied()),
+        }
+    }
+}
+
+/// The hit map of one wall.
+#[derive(Debug)]
+pub struct HitMap {
+    bins: PhmBins,
+    /// The box of the domain the wall belongs to, and the wall's face of it: what
+    /// [`PhmBins::cell`] bins against, exactly as the workers do.
+    lo: Vec3,
+    hi: Vec3,
+    face: u32,
+    wall: u32,
+    prior: f64,
+    miss: f64,
+    hit: f64,
+    mode: PhmMode,
+    reprobe: f64,
+    cells: Cells,
+}
+
+impl HitMap {
+    /// An empty map (every cell at its prior) for `wall`, whose domain is `[lo, hi]`.
+    pub fn new(settings: &HitMapSettings, wall: u32, lo: Vec3, hi: Vec3) -> HitMap {
+        HitMap {
+            bins: settings.bins,
+            lo,
+            hi,
+            face: wall::wall_face(wall),
+            wall,
+            prior: f64::from(settings.prior),
+            miss: f64::from(settings.miss),
+            hit: f64::from(settings.hit),
+            mode: settings.mode,
+            reprobe: f64::from(settings.reprobe),
+            cells: Cells::Empty,
+        }
+    }
+
+    /// Cells in the map.
+    pub fn len(&self) -> u32 {
+        self.bins.cells()
+    }
+
+    /// Never true (a map has at least one cell); for clippy's `len` convention.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The cell of a ray entering through this wall, as the workers bin it.
+    pub fn cell_of(&self, origin: Vec3, dir: Vec3) -> Option<u32> {
+        self.bins
+            .cell(self.lo, self.hi, self.face, origin, dir)
+            .filter(|&c| c < self.len())
+    }
+
+    /// The counts of `cell` (fresh counts for a cell beyond the map).
+    pub fn counts(&self, cell: u32) -> Counts {
+        self.cells.get(cell)
+    }
+
+    /// The hit probability of counts `c`: the prior's 0.5 weighted by `prior` rays on
+    /// each side; 0.5 when there is neither prior nor outcome.
+    pub fn probability(&self, c: Counts) -> f64 {
+        let hits = f64::from(c.hits);
+        let total = hits + f64::from(c.misses) + 2.0 * self.prior;
+        if total > 0.0 {
+            (hits + self.prior) / total
+        } else {
+            0.5
+        }
+    }
+
+    /// What counts `c` decide. With a positive prior the true `p` is strictly inside
+    /// (0, 1), but in f64 a tiny prior next to billions of outcomes rounds to exactly 0
+    /// or 1; clamping keeps thresholds of 0 and 1 from ever deciding then, as the
+    /// settings promise.
+    pub fn decide(&self, c: Counts) -> Decision {
+        let mut p = self.probability(c);
+        if self.prior > 0.0 {
+            p = p.clamp(f64::MIN_POSITIVE, 1.0 - f64::EPSILON);
+        }
+        if p <= self.miss {
+            Decision::Miss
+        } else if p >= self.hit {
+            Decision::Hit
+        } else {
+            Decision::Undecided
+        }
+    }
+
+    /// The current decision of `cell`. Inconsistent maps need nothing more: a decided
+    /// cell's counts no longer change, so neither does this.
+    pub fn decision(&self, cell: u32) -> Decision {
+        self.decide(self.cells.get(cell))
+    }
+
+    /// Whether a ray at a decided cell is probed anyway: consistent maps only, for a
+    /// fraction `reprobe` of rays picked by [`reprobe_draw`].
+    pub fn reprobes(&self, ray: &RayRecord) -> bool {
+        self.mode == PhmMode::Consistent && reprobe_draw(ray, self.wall) < self.reprobe
+    }
+
+    /// The map's advice for `ray`, reaching this wall. A ray's kind only matters for
+    /// predicted hits: only occlusion rays can be answered by "something is in the
+    /// way"; others are traced (and so probed) at such cells.
+    pub fn advise(&self, ray: &RayRecord) -> Advice {
+        let Some(cell) = self.cell_of(ray.origin, ray.dir) else {
+            return Advice::Unplaced;
+        };
+        let decision = self.decision(cell);
+        if decision == Decision::Undecided || self.reprobes(ray) {
+            return Advice::Probe;
+        }
+        match decision {
+            Decision::Miss => Advice::Skip,
+            Decision::Hit if ray.kind.is_occlusion() => Advice::Occlude,
+            _ => Advice::Probe,
+        }
+    }
+
+    /// Learn one probe's outcome: whether it hit something inside the domain.
+    pub fn learn(&mut self, cell: u32, hit: bool) -> Learned {
+        let n = self.len();
+        if cell >= n {
+            return Learned::OutOfRange;
+        }
+        if self.mode == PhmMode::Inconsistent && self.decision(cell) != Decision::Undecided {
+            return Learned::Frozen;
+        }
+        let Some(c) = self.cells.get_mut(cell, n) else {
+            return Learned::OutOfRange;
+        };
+        if hit {
+            c.hits = c.hits.saturating_add(1);
+        } else {
+            c.misses = c.misses.saturating_add(1);
+        }
+        Learned::Counted
+    }
+
+    /// Cells whose current decision is a hit, and a miss.
+    pub fn decided(&self) -> (u64, u64) {
+        let (mut hit, mut miss, mut held) = (0u64, 0u64, 0u64);
+        let mut count = |d: Decision, n: u64| match d {
+            Decision::Hit => hit += n,
+            Decision::Miss => miss += n,
+            Decision::Undecided => {}
+        };
+        for c in self.cells.held() {
+            held += 1;
+            count(self.decide(c), 1);
+        }
+        // The cells without counts all decide as a fresh cell does.
+        let fresh = u64::from(self.len()).saturating_sub(held);
+        count(self.decide(Counts::default()), fresh);
+        (hit, miss)
+    }
+}
+
+/// A uniform number in [0, 1) made from the bits of `ray` (pixel, sample, depth, kind,
+/// origin and direction) and the wall: the same ray at the same wall always draws the
+/// same number, on any host, in any run. SplitMix64's finaliser mixes each word in.
+pub fn reprobe_draw(ray: &RayRecord, wall: u32) -> f64 {
+    let o = ray.origin.to_array().map(f32::to_bits);
+    let d = ray.dir.to_array().map(f32::to_bits);
+    let words = [
+        u64::from(ray.pixel) << 32 | u64::from(ray.sample),
+        u64::from(ray.depth) << 40 | u64::from(ray.kind as u8) << 32 | u64::from(wall),
+        u64::from(o[0]) << 32 | u64::from(o[1]),
+        u64::from(o[2]) << 32 | u64::from(d[0]),
+        u64::from(d[1]) << 32 | u64::from(d[2]),
+    ];
+    let h = words.iter().fold(0x9e37_79b9_7f4a_7c15u64, |h, &w| {
+        mix(h ^ w).wrapping_add(0x9e37_79b9_7f4a_7c15)
+    });
+    // The top 53 bits, as a double in [0, 1).
+    (h >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
+}
+
+/// SplitMix64's finaliser: a bijection on u64 with full avalanche.
+fn mix(mut z: u64) -> u64 {
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dray_core::integrator::RayKind;
+    use dray_proto::v1::PhmSettings;
+
+    fn settings(edit: impl FnOnce(&mut PhmSettings)) -> HitMapSettings {
+        let mut p = PhmSettings::default();
+        edit(&mut p);
+        HitMapSettings::from_proto(&p).unwrap()
+    }
+
+    /// Wall 4: face -z of domain 0, the unit cube.
+    fn map(s: &HitMapSettings) -> HitMap {
+        HitMap::new(s, 4, Vec3::ZERO, Vec3::ONE)
+    }
+
+    /// A shadow ray entering the unit cube through its -z face at (u, v).
+    fn ray(u: f32, v: f32, pixel: u32) -> RayRecord {
+        RayRecord {
+            credit: 1,
+            origin: Vec3::new(u, v, -1.0),
+            dir: Vec3::new(0.0, 0.0, 1.0),
+            tmax: f32::INFINITY,
+            weight: Vec3::ONE,
+            bsdf_pdf: 0.0,
+            pixel,
+            sample: 0,
+            depth: 1,
+            kind: RayKind::Shadow,
+            flags: 0,
+        }
+    }
+
+    fn cell(m: &HitMap, r: &RayRecord) -> u32 {
+        m.cell_of(r.origin, r.dir).unwrap()
+    }
+
+    #[test]
+    fn the_prior_alone_is_undecided() {
+        let m = map(&settings(|_| {}));
+        assert_eq!(m.len(), 192);
+        let r = ray(0.5, 0.5, 0);
+        assert_eq!(m.decision(cell(&m, &r)), Decision::Undecided);
+        assert_eq!(m.probability(Counts::default()), 0.5);
+        assert_eq!(m.advise(&r), Advice::Probe);
+        assert_eq!(m.decided(), (0, 0));
+        // No prior, no outcomes: 0.5 too.
+        let m = map(&settings(|p| p.prior = Some(0.0)));
+        assert_eq!(m.probability(Counts::default()), 0.5);
+        assert_eq!(m.decision(0), Decision::Undecided);
+    }
+
+    #[test]
+    fn enough_misses_decide_a_miss() {
+        let mut m = map(&settings(|_| {}));
+        let r = ray(0.3, 0.6, 0);
+        let c = cell(&m, &r);
+        // 100 / (n + 200) <= 0.1 from n = 800 misses on.
+        for _ in 0..799 {
+            assert_eq!(m.learn(c, false), Learned::Counted);
+        }
+        assert_eq!(m.decision(c), Decision::Undecided);
+        m.learn(c, false);
+        assert_eq!(m.decision(c), Decision::Miss);
+        // Most rays skip; the ones the hash picks are re-probed.
+        let advice: Vec<Advice> = (0..1000).map(|i| m.advise(&ray(0.3, 0.6, i))).collect();
+        let skips = advice.iter().filter(|a| **a == Advice::Skip).count();
+        let probes = advice.iter().filter(|a| **a == Advice::Probe).count();
+        assert_eq!(skips + probes, 1000);
+        assert!((50..150).contains(&probes), "{probes}");
+        // Other cells are untouched.
+        let other = ray(0.9, 0.1, 0);
+        assert_eq!(m.decision(cell(&m, &other)), Decision::Undecided);
+        assert_eq!(m.decided(), (0, 1));
+    }
+
+    #[test]
+    fn hits_answer_occlusion_rays_only() {
+        let s = settings(|p| {
+            p.prior = Some(1.0);
+            p.reprobe = Some(0.0);
+            p.kinds = "camera,shadow".into();
+        });
+        let mut m = map(&s);
+        let r = ray(0.5, 0.5, 0);
+        let c = cell(&m, &r);
+        // (n + 1) / (n + 2) >= 0.9 from n = 8.
+        for _ in 0..8 {
+            m.learn(c, true);
+        }
+        assert_eq!(m.decision(c), Decision::Hit);
+        assert_eq!(m.advise(&r), Advice::Occlude);
+        let ao = RayRecord {
+            kind: RayKind::AmbientOcclusion,
+            ..r
+        };
+        assert_eq!(m.advise(&ao), Advice::Occlude);
+        let cam = RayRecord {
+            kind: RayKind::Camera,
+            ..r
+        };
+        assert_eq!(m.advise(&cam), Advice::Probe);
+        assert_eq!(m.decided(), (1, 0));
+    }
+
+    #[test]
+    fn inconsistent_maps_freeze_and_consistent_ones_follow_the_counts() {
+        for mode in [PhmMode::Consistent, PhmMode::Inconsistent] {
+            let s = settings(|p| {
+                p.prior = Some(1.0);
+                p.mode = mode.name().into();
+            });
+            let mut m = map(&s);
+            // 1 / (n + 2) <= 0.1 from n = 8 misses.
+            for _ in 0..8 {
+                assert_eq!(m.learn(7, false), Learned::Counted);
+            }
+            assert_eq!(m.decision(7), Decision::Miss);
+            // Hits arrive after the decision.
+            let after: Vec<Learned> = (0..100).map(|_| m.learn(7, true)).collect();
+            match mode {
+                PhmMode::Inconsistent => {
+                    assert!(after.iter().all(|l| *l == Learned::Frozen));
+                    assert_eq!(m.counts(7), Counts { hits: 0, misses: 8 });
+                    assert_eq!(m.decision(7), Decision::Miss);
+                    assert_eq!(m.decided(), (0, 1));
+                }
+                PhmMode::Consistent => {
+                    assert!(after.iter().all(|l| *l == Learned::Counted));
+                    // 101 / 110 >= 0.9: the cell changed its mind.
+                    assert_eq!(m.decision(7), Decision::Hit);
+                    assert_eq!(m.decided(), (1, 0));
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn inconsistent_maps_never_reprobe() {
+        let s = settings(|p| {
+            p.prior = Some(0.0);
+            p.mode = "inconsistent".into();
+            p.reprobe = Some(1.0);
+        });
+        let mut m = map(&s);
+        let r = ray(0.5, 0.5, 0);
+        m.learn(cell(&m, &r), false);
+        assert!((0..200).all(|i| m.advise(&ray(0.5, 0.5, i)) == Advice::Skip));
+    }
+
+    #[test]
+    fn reprobe_rate_and_determinism() {
+        for rate in [0.0f32, 0.1, 0.5, 1.0] {
+            let s = settings(|p| {
+                p.prior = Some(0.0);
+                p.reprobe = Some(rate);
+            });
+            let mut m = map(&s);
+            let base = ray(0.5, 0.5, 0);
+            m.learn(cell(&m, &base), false);
+            let n = 20_000u32;
+            let mut probed = 0u32;
+            for i in 0..n {
+                // Distinct rays: pixel, sample and a slightly moved origin.
+                let mut r = ray(0.5 + (i % 7) as f32 * 1e-4, 0.5, i / 3);
+                r.sample = i % 3;
+                let first = m.advise(&r);
+                assert_eq!(first, m.advise(&r), "the same ray, the same answer");
+                if first == Advice::Probe {
+                    probed += 1;
+                }
+            }
+            let got = f64::from(probed) / f64::from(n);
+            assert!((got - f64::from(rate)).abs() < 0.015, "rate {rate}: {got}");
+        }
+        // The draw depends on the wall too, and stays in [0, 1).
+        let r = ray(0.5, 0.5, 9);
+        assert_ne!(reprobe_draw(&r, 4), reprobe_draw(&r, 5));
+        assert_eq!(reprobe_draw(&r, 4), reprobe_draw(&r, 4));
+        assert!((0..1000).all(|w| (0.0..1.0).contains(&reprobe_draw(&r, w))));
+    }
+
+    #[test]
+    fn thresholds_zero_and_one_never_decide() {
+        for prior in [100.0f32, 1.0, 1e-30, f32::from_bits(1)] {
+            let s = settings(|p| {
+                p.prior = Some(prior);
+                p.miss = Some(0.0);
+                p.hit = Some(1.0);
+            });
+            let mut m = map(&s);
+            for c in [
+                Counts::default(),
+                Counts {
+                    hits: u32::MAX,
+                    misses: 0,
+                },
+                Counts {
+                    hits: 0,
+                    misses: u32::MAX,
+                },
+            ] {
+                assert_eq!(m.decide(c), Decision::Undecided, "prior {prior}, {c:?}");
+            }
+            for _ in 0..1000 {
+                m.learn(3, false);
+                m.learn(5, true);
+            }
+            assert_eq!(
+                (m.decision(3), m.decision(5)),
+                (Decision::Undecided, Decision::Undecided)
+            );
+            assert_eq!(m.decided(), (0, 0));
+        }
+        // Without a prior, certainty does decide at 0 and 1.
+        let mut m = map(&settings(|p| {
+            p.prior = Some(0.0);
+            p.miss = Some(0.0);
+            p.hit = Some(1.0);
+        }));
+        m.learn(3, false);
+        m.learn(5, true);
+        assert_eq!(
+            (m.decision(3), m.decision(5)),
+            (Decision::Miss, Decision::Hit)
+        );
+    }
+
+    #[test]
+    fn a_miss_threshold_of_one_half_decides_fresh_cells_for_good() {
+        let mut m = map(&settings(|p| {
+            p.miss = Some(0.5);
+            p.mode = "inconsistent".into();
+        }));
+        assert_eq!(m.decided(), (0, 192));
+        assert_eq!(m.learn(0, true), Learned::Frozen);
+        assert_eq!(m.decision(0), Decision::Miss);
+    }
+
+    #[test]
+    fn counts_saturate_and_bad_cells_are_refused() {
+        let mut m = map(&settings(|p| {
+            p.res = Some(1);
+            p.dirs = Some(1);
+        }));
+        assert_eq!(m.len(), 1);
+        assert_eq!(m.learn(1, true), Learned::OutOfRange);
+        assert_eq!(m.learn(u32::MAX, true), Learned::OutOfRange);
+        if let Some(c) = m.cells.get_mut(0, 1) {
+            c.hits = u32::MAX;
+        }
+        assert_eq!(m.learn(0, true), Learned::Counted);
+        assert_eq!(m.counts(0).hits, u32::MAX);
+        // Rays the map cannot bin.
+        let mut r = ray(0.5, 0.5, 0);
+        r.dir = Vec3::X;
+        assert_eq!(m.advise(&r), Advice::Unplaced);
+        r.dir = Vec3::ZERO;
+        assert_eq!(m.advise(&r), Advice::Unplaced);
+    }
+
+    #[test]
+    fn large_maps_hold_only_what_they_learned() {
+        let mut m = map(&settings(|p| {
+            p.res = Some(64);
+            p.dirs = Some(256);
+            p.prior = Some(1.0);
+        }));
+        assert!(m.len() > DENSE_MAX_CELLS);
+        let last = m.len() - 1;
+        for _ in 0..20 {
+            m.learn(last, false);
+            m.learn(0, true);
+        }
+        assert!(matches!(&m.cells, Cells::Sparse(c) if c.len() == 2));
+        assert_eq!(m.decided(), (1, 1));
+        assert_eq!(m.decision(last), Decision::Miss);
+        assert_eq!(m.decision(1), Decision::Undecided);
+    }
+}

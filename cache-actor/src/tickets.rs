@@ -1,0 +1,348 @@
+//! One wall's open tickets: a ray that missed the cache leaves with a ticket, its
+//! descendants hand contributions and credit back to it, and when the credit is whole
+//! the radiance along the ray is known: `sum / weight at the wall` (DESIGN.md
+//! "Counting: credit").
+//!
+//! Credit is the only completion signal that survives reordering and retries: returns
+//! can arrive in any order, from any worker, split any way, and the ticket closes
+//! exactly when their credit adds up to the ray's. Returns that do not fit (more credit
+//! than the ray had, a ticket that is not open) are counted and dropped; they mean a
+//! bug or a duplicate somewhere else, and must not take the host down.
+
+use std::collections::HashMap;
+
+use dray_core::film::FIXED_SCALE;
+use glam::Vec3;
+
+use crate::store::{Entry, EntryKey};
+
+/// Tickets a wall keeps open by default; past it, misses get no ticket (and the worker
+/// traces them without caching), which bounds the memory a flood of lookups can take.
+pub const DEFAULT_MAX_OPEN_TICKETS: usize = 1 << 22;
+
+/// Everything a ticket remembers about the ray that opened it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TicketRay {
+    pub key: EntryKey,
+    /// Crossing point, wall coordinates.
+    pub point: [f32; 2],
+    /// Unit direction.
+    pub dir: Vec3,
+    /// Throughput at the wall: the contributions coming back are `weight * radiance`.
+    pub weight: Vec3,
+    /// The ray's credit: the ticket closes when this much has come back.
+    pub credit: u64,
+    /// The ray belongs to the coarse pass, whose tickets store even when the job's main
+    /// pass does not fill the caches.
+    pub coarse: bool,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Ticket {
+    ray: TicketRay,
+    returned: u64,
+    /// Fixed-point sums (24 fractional bits). i128 so no sequence of i64 returns can
+    /// overflow; saturating anyway, so even that cannot panic.
+    sums: [i128; 3],
+    tainted: bool,
+}
+
+/// One return, as applied to a ticket.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Return {
+    /// Contribution sums, fixed point.
+    pub rgb: [i64; 3],
+    pub credit: u64,
+    pub tainted: bool,
+}
+
+/// What applying a return did.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Applied {
+    /// Added; the ticket waits for more credit.
+    Pending,
+    /// The ticket closed; `Some` carries the entry to store, `None` when the radiance
+    /// must not or cannot be stored.
+    Closed(Option<Entry>),
+    /// The ticket is not open (never issued here, or already closed).
+    Unknown,
+    /// The return carried more credit than the ticket still waited for; ignored, and
+    /// the ticket stays as it was.
+    OverCredit,
+}
+
+/// Why a miss got no ticket.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum OpenError {
+    #[error("the wall has too many open tickets")]
+    TooMany,
+    #[error("the wall has issued every ticket id it can")]
+    Exhausted,
+    #[error("a ray without credit could never close its ticket")]
+    NoCredit,
+}
+
+/// The open tickets of one wall.
+pub struct TicketBook {
+    wall: u32,
+    /// The next slot to issue; slot 0 is never issued, so a zero ticket is never valid.
+    next_slot: u32,
+    open: HashMap<u32, Ticket>,
+    max_open: usize,
+}
+
+impl TicketBook {
+    pub fn new(wall: u32, max_open: usize) -> TicketBook {
+        TicketBook {
+            wall,
+            next_slot: 1,
+            open: HashMap::new(),
+            max_open,
+        }
+    }
+
+    /// Tickets open now.
+    pub fn open_count(&self) -> usize {
+        self.open.len()
+    }
+
+    /// Open a ticket for `ray`; returns its id, `wall << 32 | slot`.
+    pub fn open(&mut self, ray: TicketRay) -> Result<u64, OpenError> {
+        if ray.credit == 0 {
+            return Err(OpenError::NoCredit);
+        }
+        if self.open.len() >= self.max_open {
+            return Err(OpenError::TooMany);
+        }
+        let slot = self.next_slot;
+        if slot == 0 {
+            return Err(OpenError::Exhausted);
+        }
+        // Wraps to 0 after u32::MAX, which then refuses further tickets.
+        self.next_slot = slot.wrapping_add(1);
+        self.open.insert(
+            slot,
+            Ticket {
+                ray,
+                returned: 0,
+                sums: [0; 3],
+                tainted: false,
+            },
+        );
+        Ok(u64::from(self.wall) << 32 | u64::from(slot))
+    }
+
+    /// Apply one return to the ticket in `slot`. `fill` says whether a clean close of a
+    /// main-pass ticket stores its radiance (coarse-pass tickets always do).
+    pub fn apply(&mut self, slot: u32, ret: Return, fill: bool) -> Applied {
+        let Some(t) = self.open.get_mut(&slot) else {
+            return Applied::Unknown;
+        };
+        let Some(returned) = t.returned.checked_add(ret.credit) else {
+            return Applied::OverCredit;
+        };
+        if returned > t.ray.credit {
+            return Applied::OverCredit;
+        }
+        t.returned = returned;
+        for (s, v) in t.sums.iter_mut().zip(ret.rgb) {
+            *s = s.saturating_add(i128::from(v));
+        }
+        t.tainted |= ret.tainted;
+        if returned < t.ray.credit {
+            return Applied::Pending;
+        }
+        let Some(t) = self.open.remove(&slot) else {
+            return Applied::Unknown;
+        };
+        let store = fill || t.ray.coarse;
+        Applied::Closed(if store { radiance_entry(&t) } else { None })
+    }
+}
+
+/// The entry a cleanly closed ticket stores: radiance = (sum / 2^24) / weight per
+/// channel. `None` when a cache answered some descendant (its radiance is already an
+/// approximation and must not be cached again), when a weight channel is not a finite
+/// positive number (the radiance cannot be recovered from the sum), or when the result
+/// is not a finite non-negative radiance.
+fn radiance_entry(t: &Ticket) -> Option<Entry> {
+    if t.tainted {
+        return None;
+    }
+    let w = t.ray.weight.to_array();
+    if !w.iter().all(|c| c.is_finite() && *c > 0.0) {
+        return None;
+    }
+    let mut radiance = [0f32; 3];
+    for ((out, sum), weight) in radiance.iter_mut().zip(t.sums).zip(w) {
+        let r = ((sum as f64 / FIXED_SCALE) / f64::from(weight)) as f32;
+        if !(r.is_finite() && r >= 0.0) {
+            return None;
+        }
+        *out = r;
+    }
+    Some(Entry {
+        key: t.ray.key,
+        point: t.ray.point,
+        dir: t.ray.dir,
+        radiance,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn coarse_ray(credit: u64) -> TicketRay {
+        TicketRay {
+            coarse: true,
+            ..ray(credit, Vec3::ONE)
+        }
+    }
+
+    fn ray(credit: u64, weight: Vec3) -> TicketRay {
+        TicketRay {
+            key: EntryKey {
+                pixel: 3,
+                sample: 1,
+                depth: 0,
+                kind: 0,
+                origin: [0; 3],
+                dir: [0; 3],
+            },
+            point: [0.25, 0.5],
+            dir: Vec3::X,
+            weight,
+            credit,
+            coarse: false,
+        }
+    }
+
+    fn ret(rgb: [i64; 3], credit: u64) -> Return {
+        Return {
+            rgb,
+            credit,
+            tainted: false,
+        }
+    }
+
+    #[test]
+    fn closes_exactly_once_when_credit_is_whole() {
+        let mut book = TicketBook::new(7, 16);
+        let id = book.open(ray(10, Vec3::new(0.5, 0.25, 1.0))).unwrap();
+        assert_eq!(id >> 32, 7);
+        let slot = id as u32;
+        assert_eq!(slot, 1);
+        let one = 1i64 << 24;
+        assert_eq!(
+            book.apply(slot, ret([one, one, 0], 3), true),
+            Applied::Pending
+        );
+        assert_eq!(
+            book.apply(slot, ret([0, 0, one], 0), true),
+            Applied::Pending
+        );
+        assert_eq!(
+            book.apply(slot, ret([one, 0, 0], 6), true),
+            Applied::Pending
+        );
+        let Applied::Closed(Some(e)) = book.apply(slot, ret([0, one, one], 1), true) else {
+            panic!("should close and store");
+        };
+        // Sums are (2, 2, 2); divided by the weight.
+        assert_eq!(e.radiance, [4.0, 8.0, 2.0]);
+        assert_eq!(e.point, [0.25, 0.5]);
+        assert_eq!(book.open_count(), 0);
+        // Closed: further returns are unknown, never a second close.
+        assert_eq!(book.apply(slot, ret([1, 1, 1], 1), true), Applied::Unknown);
+        assert_eq!(book.apply(slot, ret([1, 1, 1], 0), true), Applied::Unknown);
+    }
+
+    #[test]
+    fn tainted_and_zero_weight_close_without_storing() {
+        let mut book = TicketBook::new(0, 16);
+        let a = book.open(ray(2, Vec3::ONE)).unwrap() as u32;
+        let b = book.open(ray(2, Vec3::new(1.0, 0.0, 1.0))).unwrap() as u32;
+        let c = book.open(ray(2, Vec3::new(1.0, f32::NAN, 1.0))).unwrap() as u32;
+        let d = book.open(ray(1, Vec3::ONE)).unwrap() as u32;
+        assert_eq!(
+            book.apply(
+                a,
+                Return {
+                    tainted: true,
+                    ..ret([5, 5, 5], 1)
+                },
+                true
+            ),
+            Applied::Pending
+        );
+        assert_eq!(
+            book.apply(a, ret([5, 5, 5], 1), true),
+            Applied::Closed(None)
+        );
+        assert_eq!(
+            book.apply(b, ret([5, 5, 5], 2), true),
+            Applied::Closed(None)
+        );
+        assert_eq!(
+            book.apply(c, ret([5, 5, 5], 2), true),
+            Applied::Closed(None)
+        );
+        // The job does not fill: a clean close still stores nothing, unless the ray was
+        // of the coarse pass.
+        assert_eq!(
+            book.apply(d, ret([5, 5, 5], 1), false),
+            Applied::Closed(None)
+        );
+        let e = book.open(coarse_ray(1)).unwrap() as u32;
+        assert!(matches!(
+            book.apply(e, ret([5, 5, 5], 1), false),
+            Applied::Closed(Some(_))
+        ));
+    }
+
+    #[test]
+    fn over_credit_is_refused_and_the_ticket_survives() {
+        let mut book = TicketBook::new(0, 16);
+        let s = book.open(ray(4, Vec3::ONE)).unwrap() as u32;
+        assert_eq!(book.apply(s, ret([1, 1, 1], 3), true), Applied::Pending);
+        assert_eq!(book.apply(s, ret([9, 9, 9], 2), true), Applied::OverCredit);
+        assert_eq!(
+            book.apply(s, ret([9, 9, 9], u64::MAX), true),
+            Applied::OverCredit
+        );
+        let Applied::Closed(Some(e)) = book.apply(s, ret([1, 1, 1], 1), true) else {
+            panic!("should close");
+        };
+        assert_eq!(e.radiance, [2.0 / FIXED_SCALE as f32; 3]);
+    }
+
+    #[test]
+    fn extreme_sums_do_not_panic() {
+        let mut book = TicketBook::new(0, 16);
+        let s = book.open(ray(3, Vec3::splat(1e-30))).unwrap() as u32;
+        for _ in 0..2 {
+            assert_eq!(
+                book.apply(s, ret([i64::MAX, i64::MIN, i64::MAX], 1), true),
+                Applied::Pending
+            );
+        }
+        // Infinite radiance (tiny weight) and negative sums are not stored.
+        assert_eq!(
+            book.apply(s, ret([i64::MAX, 0, 0], 1), true),
+            Applied::Closed(None)
+        );
+    }
+
+    #[test]
+    fn limits_refuse_tickets() {
+        let mut book = TicketBook::new(0, 1);
+        assert_eq!(book.open(ray(0, Vec3::ONE)), Err(OpenError::NoCredit));
+        book.open(ray(1, Vec3::ONE)).unwrap();
+        assert_eq!(book.open(ray(1, Vec3::ONE)), Err(OpenError::TooMany));
+        let mut book = TicketBook::new(u32::MAX, 8);
+        book.next_slot = u32::MAX;
+        assert_eq!(book.open(ray(1, Vec3::ONE)), Ok(u64::MAX));
+        assert_eq!(book.open(ray(1, Vec3::ONE)), Err(OpenError::Exhausted));
+    }
+}

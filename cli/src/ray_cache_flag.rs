@@ -1,0 +1,123 @@
+//! `--ray-cache KEY=VALUE,...`: the ray-cache knobs of `dray render` and `dray submit`,
+//! parsed into `JobSpec.ray_cache`.
+//!
+//! Only the syntax is checked here (known keys, a `=`, values of the right type), each
+//! error one line naming the key; the ranges are the coordinator's to check, so the rules
+//! live in one place (it answers INVALID_ARGUMENT naming `ray_cache.<field>`, which both
+//! commands print as it is). Keys the flag leaves out keep the coordinator's defaults.
+
+use dray_proto::v1::RayCacheSettings;
+
+/// The flag's help, shared by `dray render` and `dray submit`.
+pub const HELP: &str = "Ray caches on domain walls (Little 2011): rays crossing a wall may \
+be answered from radiance cached there instead of being traced (an approximation; the \
+image is no longer exact). Comma-separated KEY=VALUE pairs: radius=R (lookup radius on the \
+wall, scene units; 0, the default, never answers, the caches only fill), angle-deg=A \
+(largest angle between a ray and a cached direction, degrees in (0, 90], default 10), \
+retrieve=first|nearest|average (which cached ray answers, default nearest), coarse=N (a \
+coarse pass of N x N rays filling the caches first; 0, the default, is the only value \
+accepted until it is built), kinds=K+K... (ray kinds looked up, joined with +, from \
+camera, reflection, refraction, diffuse; default all four), fill=true|false (whether the \
+main pass stores what it learns, default true). `--ray-cache on` takes every default. \
+Caches run on cache hosts: in every worker process (default) or stand-alone `dray cache` \
+processes.";
+
+/// The keys, in the order the help gives them.
+pub const KEYS: [&str; 6] = ["radius", "angle-deg", "retrieve", "coarse", "kinds", "fill"];
+
+/// Parse `--ray-cache` into settings; errors name the key (clap prefixes the flag).
+pub fn parse_ray_cache(s: &str) -> Result<RayCacheSettings, String> {
+    let mut rc = RayCacheSettings::default();
+    for (key, value) in crate::kv_flag::pairs(s, &KEYS)? {
+        let number = |what: &str| format!("{key}: {value:?} is not {what}");
+        match key {
+            "radius" => rc.radius = value.parse().map_err(|_| number("a number"))?,
+            "angle-deg" => {
+                rc.angle_deg = Some(value.parse().map_err(|_| number("a number of degrees"))?)
+            }
+            "retrieve" => {
+                if value.is_empty() {
+                    return Err(format!("{key}: empty (first, nearest or average)"));
+                }
+                rc.retrieve = value.to_string();
+            }
+            "coarse" => rc.coarse = value.parse().map_err(|_| number("a whole number"))?,
+            "kinds" => {
+                rc.kinds =
+                    crate::kv_flag::kinds(key, value, "camera, reflection, refraction, diffuse")?
+            }
+            "fill" => {
+                rc.fill = Some(match value {
+                    "true" => true,
+                    "false" => false,
+                    _ => return Err(number("true or false")),
+                })
+            }
+            other => {
+                return Err(format!("unknown key {other:?} (keys: {})", KEYS.join(", ")));
+            }
+        }
+    }
+    Ok(rc)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pairs_and_defaults() {
+        assert_eq!(parse_ray_cache("on"), Ok(RayCacheSettings::default()));
+        assert_eq!(
+            parse_ray_cache("radius=0.005"),
+            Ok(RayCacheSettings {
+                radius: 0.005,
+                ..Default::default()
+            })
+        );
+        let all = parse_ray_cache(
+            "radius=0.01, angle-deg=5,retrieve=average,coarse=0,kinds=camera+diffuse,fill=false",
+        )
+        .unwrap();
+        assert_eq!(
+            all,
+            RayCacheSettings {
+                radius: 0.01,
+                angle_deg: Some(5.0),
+                retrieve: "average".into(),
+                coarse: 0,
+                kinds: "camera,diffuse".into(),
+                fill: Some(false),
+            }
+        );
+        // Ranges are the coordinator's to check: these parse.
+        assert_eq!(parse_ray_cache("radius=-1").unwrap().radius, -1.0);
+        assert_eq!(parse_ray_cache("retrieve=best").unwrap().retrieve, "best");
+        assert_eq!(parse_ray_cache("kinds=shadow").unwrap().kinds, "shadow");
+    }
+
+    #[test]
+    fn errors_name_the_key() {
+        for (arg, want) in [
+            ("radius=x", "radius: \"x\" is not a number"),
+            ("angle-deg=ten", "angle-deg:"),
+            ("coarse=-1", "coarse:"),
+            ("coarse=1.5", "coarse:"),
+            ("fill=yes", "fill: \"yes\" is not true or false"),
+            ("kinds=camera+", "kinds:"),
+            ("kinds=", "kinds:"),
+            ("retrieve=", "retrieve:"),
+            ("radius", "radius: missing =VALUE"),
+            ("radius=1,radius=2", "radius: given twice"),
+            ("radius=1,,fill=true", "an empty pair"),
+            ("size=3", "unknown key \"size\""),
+            ("kinds=camera,diffuse", "\"diffuse\" is not KEY=VALUE"),
+            ("", "empty"),
+            ("off", "\"off\" is not KEY=VALUE"),
+        ] {
+            let e = parse_ray_cache(arg).expect_err(arg);
+            assert!(e.starts_with(want), "{arg:?}: {e:?}");
+            assert!(!e.contains('\n'), "one line: {e:?}");
+        }
+    }
+}

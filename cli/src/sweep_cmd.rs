@@ -1,0 +1,446 @@
+//! `dray sweep`: price every knob. Render the exact image once (the render flags with ray
+//! caches and hit maps off), then every combination of the `--vary` values, and write
+//! what each costs in error for what it saves in time: `results.csv`, `table.md`,
+//! `pareto.png` and every image, into `--out`.
+//!
+//! Every render is the one `dray render` (in this process) or `dray submit` (with
+//! `--coordinator`) would make from the same flags: the settings' arguments are parsed by
+//! those commands' own definitions (`crate::sweep::plan`), and rendered by their own code.
+//! So a sweep measures exactly what a user would run.
+
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, anyhow};
+use clap::{Args, CommandFactory, Parser};
+use dray_proto::v1::ImageFormat;
+use dray_proto::v1::render_service_client::RenderServiceClient;
+use serde_json::Value;
+use tonic::transport::Channel;
+
+use crate::render_cmd::RenderArgs;
+use crate::submit_cmd;
+use crate::sweep::metrics::{self, Picture};
+use crate::sweep::pareto::{self, Point};
+use crate::sweep::plan::{Job, Plan, Setting, Target};
+use crate::sweep::report::{self, Row};
+
+/// The flag's long help.
+const VARY_HELP: &str = "A knob to vary, with its values: KEY=V1,V2,... (semicolons \
+instead of commas when values hold commas: env=1,1,1;0.5). Repeat for more knobs: every \
+combination is rendered. KEY is ray-cache.<knob> (radius, angle-deg, retrieve, coarse, \
+kinds, fill), folded into --ray-cache; phm.<knob> (res, dirs, prior, miss, hit, mode, \
+reprobe, kinds), folded into --phm; or a dray render flag's long name without dashes \
+(spp, max-depth, integrator, workers, schedule, ...), which replaces that flag. Switches \
+take true,false.";
+
+#[derive(Args, Debug)]
+#[command(
+    mut_arg("output", |a| a.hide(true)),
+    mut_arg("exr", |a| a.hide(true)),
+    mut_arg("stats", |a| a.hide(true))
+)]
+pub struct SweepArgs {
+    /// The render flags: the exact render uses them with ray caches and hit maps off,
+    /// every setting with its varied values.
+    #[command(flatten)]
+    pub render: RenderArgs,
+    /// A knob to vary: KEY=V1,V2,... (ray-cache.<knob>, phm.<knob> or a render flag such
+    /// as spp; --help says more).
+    #[arg(long, value_name = "KEY=V1,V2,...", long_help = VARY_HELP)]
+    pub vary: Vec<String>,
+    /// Directory for results.csv, table.md, pareto.png and the images (created if
+    /// missing; files of the same names are replaced).
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+    /// Render every setting on this coordinator (host:port or http://host:port), as
+    /// `dray submit` does, instead of in this process.
+    #[arg(long, value_name = "ADDR")]
+    pub coordinator: Option<String>,
+}
+
+/// The sweep's flags as a parser of their own: the plan groups the words typed after
+/// `dray sweep` with it.
+#[derive(Parser, Debug)]
+#[command(name = "dray sweep", no_binary_name = true)]
+pub struct SweepCli {
+    #[command(flatten)]
+    pub args: SweepArgs,
+}
+
+/// The words after `dray sweep`, as typed. The plan needs the words, not clap's parsed
+/// values: a setting is the same words with the varied flags replaced, parsed again by
+/// `dray render`'s definitions, so defaults and checks are never restated here.
+fn words_after_sweep() -> Result<Vec<String>> {
+    let args: Vec<String> = std::env::args_os()
+        .skip(1)
+        .map(|a| {
+            a.into_string()
+                .map_err(|a| anyhow!("argument {a:?} is not valid UTF-8"))
+        })
+        .collect::<Result<_>>()?;
+    let at = args
+        .iter()
+        .position(|a| a == "sweep")
+        .context("dray sweep: cannot find the sweep command among the arguments")?;
+    Ok(args[at + 1..].to_vec())
+}
+
+pub fn run(a: SweepArgs) -> Result<()> {
+    let words = words_after_sweep()?;
+    let base = crate::sweep::plan::render_tokens(&SweepCli::command(), &words)?;
+    let target = match &a.coordinator {
+        Some(addr) => Target::Coordinator(addr.clone()),
+        None => Target::Embedded,
+    };
+    let plan = Plan::new(base, &a.vary, &target)?;
+    sweep(&plan, &a.out, &target, a.render.job.quiet)
+}
+
+/// What one render gives the sweep.
+struct Output {
+    picture: Picture,
+    /// The render's `--stats` JSON.
+    stats: Value,
+    wall_s: f64,
+    render_s: f64,
+}
+
+/// Where the renders run: here, or on a coordinator through one connection.
+enum Renderer {
+    Embedded,
+    Remote(Box<Remote>),
+}
+
+/// A connection to a coordinator, and the runtime it lives on.
+struct Remote {
+    rt: tokio::runtime::Runtime,
+    client: RenderServiceClient<Channel>,
+    url: String,
+}
+
+impl Renderer {
+    fn new(target: &Target) -> Result<Renderer> {
+        match target {
+            Target::Embedded => Ok(Renderer::Embedded),
+            Target::Coordinator(addr) => {
+                let url = submit_cmd::endpoint_url(addr)?;
+                let rt = tokio::runtime::Builder::new_current_thread()
+                    .enable_all()
+                    .build()
+                    .context("cannot start the async runtime")?;
+                let client = rt.block_on(submit_cmd::connect(&url))?;
+                Ok(Renderer::Remote(Box::new(Remote { rt, client, url })))
+            }
+        }
+    }
+
+    /// Render `s`, write its PNG to `png`; `label` names it on the progress bar.
+    fn render(&mut self, s: &Setting, png: &Path, label: &str, show: bool) -> Result<Output> {
+        match (self, &s.job) {
+            (Renderer::Embedded, Job::Render(a)) => render_here(a, png, label, show),
+            (Renderer::Remote(r), Job::Submit(a)) => {
+                let Remote { rt, client, url } = &mut **r;
+                let spec = submit_cmd::job_spec(a)?;
+                let exposure = a.job.exposure;
+                if show {
+                    // `dray submit`'s progress view names the job, not the setting.
+                    eprintln!("dray sweep: {label}");
+                }
+                let start = Instant::now();
+                let (png_bytes, wall, exr_bytes, job) = rt.block_on(async {
+                    let (id, _) =
+                        submit_cmd::run_job(client, spec, url, !show, "dray sweep").await?;
+                    let png =
+                        submit_cmd::fetch(client, &id, ImageFormat::Png, exposure, url).await?;
+                    // The clock stops with the image in hand: the EXR and the statistics
+                    // are fetched for the comparison, not part of the render.
+                    let wall = start.elapsed();
+                    let exr = submit_cmd::fetch(client, &id, ImageFormat::Exr, 0.0, url).await?;
+                    let job = submit_cmd::get_job(client, &id, url).await?;
+                    anyhow::Ok((png, wall, exr, job))
+                })?;
+                std::fs::write(png, &png_bytes)
+                    .with_context(|| format!("cannot write {}", png.display()))?;
+                let stats = serde_json::to_value(submit_cmd::SubmitStats::of(&job, url, wall))
+                    .context("cannot encode statistics")?;
+                Ok(Output {
+                    picture: decode(&png_bytes, &exr_bytes)?,
+                    render_s: stats["job_time_s"].as_f64().unwrap_or(0.0),
+                    stats,
+                    wall_s: wall.as_secs_f64(),
+                })
+            }
+            _ => Err(anyhow!(
+                "internal error: a setting parsed for another target"
+            )),
+        }
+    }
+}
+
+/// A render in this process, as `dray render` makes it, with a progress bar of its own.
+fn render_here(a: &RenderArgs, png: &Path, label: &str, show: bool) -> Result<Output> {
+    // A spinner while the scene loads and the actors start, a bar once tiles are known.
+    let bar = show.then(|| {
+        let b = indicatif::ProgressBar::new_spinner();
+        b.set_style(
+            indicatif::ProgressStyle::with_template("{spinner} {prefix} starting {elapsed}")
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
+        );
+        b.set_prefix(label.to_string());
+        b.enable_steady_tick(Duration::from_millis(120));
+        b
+    });
+    let tiles_known = std::sync::Once::new();
+    let r = crate::render_cmd::render(a, &|done, total| {
+        if let Some(b) = &bar {
+            tiles_known.call_once(|| {
+                b.set_style(
+                    indicatif::ProgressStyle::with_template(
+                        "{spinner} {prefix} [{bar:30}] {pos}/{len} tiles {elapsed}",
+                    )
+                    .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+                    .progress_chars("=> "),
+                );
+            });
+            b.set_length(total as u64);
+            b.set_position(done as u64);
+        }
+    });
+    if let Some(b) = &bar {
+        b.finish_and_clear();
+    }
+    let r = r?;
+    let (spp, scale) = (a.job.spp, 2f32.powf(a.job.exposure));
+    r.film
+        .write_png(png, spp, scale)
+        .with_context(|| format!("cannot write {}", png.display()))?;
+    let linear = r
+        .film
+        .linear(spp)
+        .iter()
+        .flat_map(|v| v.to_array())
+        .collect();
+    Ok(Output {
+        picture: Picture::new(
+            r.film.width,
+            r.film.height,
+            r.film.srgb8(spp, scale),
+            linear,
+        )?,
+        stats: serde_json::to_value(&r.summary).context("cannot encode statistics")?,
+        wall_s: r.summary.wall_time_s,
+        render_s: r.summary.render_time_s,
+    })
+}
+
+/// The picture a coordinator sent: its PNG (8-bit sRGB) and EXR (linear radiance).
+fn decode(png: &[u8], exr: &[u8]) -> Result<Picture> {
+    use exr::prelude::{ReadChannels, ReadLayers};
+    let img = image::load_from_memory_with_format(png, image::ImageFormat::Png)
+        .context("cannot decode the PNG the coordinator sent")?
+        .to_rgb8();
+    let (w, h) = img.dimensions();
+    let linear = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .rgba_channels(
+            |size, _| (size.width(), vec![0f32; size.width() * size.height() * 3]),
+            |(width, px): &mut (usize, Vec<f32>), pos, (r, g, b, _): (f32, f32, f32, f32)| {
+                let i = (pos.y() * *width + pos.x()) * 3;
+                px[i..i + 3].copy_from_slice(&[r, g, b]);
+            },
+        )
+        .first_valid_layer()
+        .all_attributes()
+        .from_buffered(std::io::Cursor::new(exr))
+        .context("cannot decode the EXR the coordinator sent")?
+        .layer_data
+        .channel_data
+        .pixels
+        .1;
+    Picture::new(w, h, img.into_raw(), linear)
+}
+
+/// A word as a shell would need it: quoted when it holds anything but plain characters.
+fn shell_word(w: &str) -> String {
+    if !w.is_empty()
+        && w.chars()
+            .all(|c| c.is_ascii_alphanumeric() || "-_=.,:/+@%".contains(c))
+    {
+        w.to_string()
+    } else {
+        format!("'{}'", w.replace('\'', "'\\''"))
+    }
+}
+
+/// Words joined as a shell command line.
+fn shell_line(words: &[String]) -> String {
+    words
+        .iter()
+        .map(|w| shell_word(w))
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+/// Render the plan and write the results; on a failed render, what was measured so far is
+/// still written before the error is returned.
+fn sweep(plan: &Plan, out: &Path, target: &Target, quiet: bool) -> Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let show = !quiet && std::io::stderr().is_terminal();
+    let total = plan.settings.len() + 1;
+    let mut renderer = Renderer::new(target)?;
+    let label = |i: usize, s: &Setting| format!("[{}/{total}] {}", i + 1, s.name);
+
+    let exact = renderer
+        .render(
+            &plan.exact,
+            &out.join(&plan.exact.file),
+            &label(0, &plan.exact),
+            show,
+        )
+        .context("the exact render")?;
+    if !quiet {
+        eprintln!(
+            "dray sweep: {}: wall {:.3} s",
+            label(0, &plan.exact),
+            exact.wall_s
+        );
+    }
+    let mut rows = vec![Row {
+        setting: plan.exact.name.clone(),
+        values: plan.exact.values.clone(),
+        wall_s: exact.wall_s,
+        render_s: exact.render_s,
+        errors: metrics::compare(&exact.picture, &exact.picture)?,
+        stats: exact.stats,
+        image: plan.exact.file.clone(),
+        args: shell_line(&plan.exact.tokens),
+    }];
+    let mut failure = None;
+    for (i, s) in plan.settings.iter().enumerate() {
+        let result = renderer
+            .render(s, &out.join(&s.file), &label(i + 1, s), show)
+            .and_then(|o| {
+                let errors = metrics::compare(&exact.picture, &o.picture)?;
+                Ok((o, errors))
+            });
+        let (o, errors) = match result {
+            Ok(r) => r,
+            Err(e) => {
+                failure = Some(e.context(format!("setting {}", s.name)));
+                break;
+            }
+        };
+        if !quiet {
+            eprintln!(
+                "dray sweep: {}: wall {:.3} s ({:.2}x), rmse {:.5}, flip {:.5}",
+                label(i + 1, s),
+                o.wall_s,
+                report::speedup(exact.wall_s, o.wall_s),
+                errors.rmse,
+                errors.flip
+            );
+        }
+        rows.push(Row {
+            setting: s.name.clone(),
+            values: s.values.clone(),
+            wall_s: o.wall_s,
+            render_s: o.render_s,
+            stats: o.stats,
+            errors,
+            image: s.file.clone(),
+            args: shell_line(&s.tokens),
+        });
+    }
+
+    let points: Vec<Point> = rows
+        .iter()
+        .map(|r| Point {
+            label: r.setting.clone(),
+            wall_s: r.wall_s,
+            error: r.errors.flip,
+        })
+        .collect();
+    let front = pareto::front(&points);
+    let keys: Vec<String> = plan.varies.iter().map(|v| v.name.clone()).collect();
+    let csv = out.join("results.csv");
+    std::fs::write(&csv, report::csv(&keys, &rows, &front))
+        .with_context(|| format!("cannot write {}", csv.display()))?;
+    let table = out.join("table.md");
+    let base = shell_line(&plan.base);
+    std::fs::write(
+        &table,
+        report::table(&plan.exact.job.flags().scene, &base, &rows, &front),
+    )
+    .with_context(|| format!("cannot write {}", table.display()))?;
+    let font = pareto::find_font();
+    if font.is_none() {
+        eprintln!(
+            "dray sweep: no TrueType font found (set DRAY_FONT to a .ttf file); pareto.png \
+             has no text"
+        );
+    }
+    let plot = out.join("pareto.png");
+    pareto::draw(&points, font, &plot)?;
+    if let Some(e) = failure {
+        let chain: Vec<String> = e.chain().map(|c| c.to_string()).collect();
+        return Err(anyhow!(
+            "{} (the results of the {} renders before it are in {})",
+            chain.join(": "),
+            rows.len(),
+            out.display()
+        ));
+    }
+    if !quiet {
+        eprintln!(
+            "dray sweep: wrote {}, {}, {} and {} images ({}, ...) in {}",
+            csv.display(),
+            table.display(),
+            plot.display(),
+            rows.len(),
+            plan.exact.file,
+            out.display()
+        );
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shell_words() {
+        assert_eq!(shell_word("--spp"), "--spp");
+        assert_eq!(
+            shell_word("radius=0.1,kinds=camera+diffuse"),
+            "radius=0.1,kinds=camera+diffuse"
+        );
+        assert_eq!(shell_word("a b"), "'a b'");
+        assert_eq!(shell_word("it's"), "'it'\\''s'");
+        assert_eq!(shell_word(""), "''");
+    }
+
+    #[test]
+    fn decodes_what_a_coordinator_sends() {
+        // A 2x1 film written as `dray submit` would receive it.
+        let mut film = dray_core::film::Film::new(2, 1);
+        film.add(0, glam::Vec3::new(0.25, 0.5, 2.0));
+        let dir = std::env::temp_dir().join(format!("dray-sweep-decode-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        film.write_png(&dir.join("a.png"), 1, 1.0).unwrap();
+        film.write_exr(&dir.join("a.exr"), 1).unwrap();
+        let p = decode(
+            &std::fs::read(dir.join("a.png")).unwrap(),
+            &std::fs::read(dir.join("a.exr")).unwrap(),
+        )
+        .unwrap();
+        assert_eq!((p.width, p.height), (2, 1));
+        assert_eq!(p.srgb8, film.srgb8(1, 1.0));
+        let want: Vec<f32> = film.linear(1).iter().flat_map(|v| v.to_array()).collect();
+        assert_eq!(p.linear, want);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

@@ -1,0 +1,398 @@
+//! Ray caches on domain walls end to end (issue 9), with real cache actors: in-process
+//! cache hosts beside `dray render`'s workers, and a stand-alone `dray cache` process in
+//! a cluster of processes.
+//!
+//! - Caches that never answer (`radius=0`) still look every wall-crossing ray up and
+//!   ticket it; the image is then the reference renderer's, bit for bit, on 1, 2 and 4
+//!   workers, and every ticket opened closes exactly once.
+//! - A coarse pass fills the caches before the image's rays look them up; with
+//!   `fill=false` the image is then the same bits on every run and worker count.
+//! - Hit maps whose thresholds never decide give the reference bits; maps that decide
+//!   skip domains and occlude shadow rays, and say so.
+//! - A cache host killed mid-job: rays go past its walls, the job completes with the
+//!   reference bits (nothing was answered) and names the lost host.
+
+mod common;
+mod support;
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::Stdio;
+use std::sync::{Arc, Mutex};
+
+use serde_json::Value;
+use support::{Proc, capture_stderr, dray, eventually};
+
+/// A limit that only catches hangs.
+const HANG_SECS: f64 = 240.0;
+
+const SCENE: &str = "cornell:glass";
+
+fn flags(integrator: &str) -> Vec<&str> {
+    vec![
+        "--width",
+        "40",
+        "--height",
+        "30",
+        "--spp",
+        "2",
+        "--seed",
+        "3",
+        "--max-depth",
+        "5",
+        "--domains",
+        "8",
+        "--integrator",
+        integrator,
+    ]
+}
+
+fn u64_of(v: &Value, key: &str) -> u64 {
+    v[key]
+        .as_u64()
+        .unwrap_or_else(|| panic!("no unsigned {key:?} in {v}"))
+}
+
+/// The reference image and stats: `--workers 0`, no actors, no caches.
+fn reference(dir: &Path, tag: &str, integrator: &str) -> (Vec<u8>, Value) {
+    let r = common::render(
+        dir,
+        tag,
+        SCENE,
+        &[&flags(integrator)[..], &["--workers", "0"]].concat(),
+    );
+    assert!(r.ok, "{tag}: {}", r.stderr);
+    (
+        std::fs::read(r.png.expect("png")).expect("read png"),
+        r.stats.expect("reference stats"),
+    )
+}
+
+/// Every ticket opened was closed once, none is left open, nothing was refused.
+fn check_tickets(rc: &Value, what: &str) {
+    let opened = u64_of(rc, "tickets_opened");
+    assert!(opened > 0, "{what}: no ticket was opened: {rc}");
+    assert_eq!(
+        u64_of(rc, "tickets_closed"),
+        opened,
+        "{what}: tickets opened and closed differ: {rc}"
+    );
+    assert_eq!(u64_of(rc, "tickets_open"), 0, "{what}: {rc}");
+    assert!(
+        u64_of(rc, "tickets_stored") <= opened,
+        "{what}: more stored than opened: {rc}"
+    );
+}
+
+#[test]
+fn caches_that_never_answer_give_the_reference_bits_and_close_every_ticket() {
+    let dir = common::tmp("caches-radius-zero");
+    for integrator in ["whitted", "path"] {
+        let (want, want_stats) = reference(&dir, &format!("ref-{integrator}"), integrator);
+        for workers in [1, 2, 4] {
+            let what = format!("{integrator} on {workers} workers, radius=0");
+            let n = workers.to_string();
+            let r = common::render(
+                &dir,
+                "cached",
+                SCENE,
+                &[
+                    &flags(integrator)[..],
+                    &["--workers", &n, "--ray-cache", "radius=0"],
+                ]
+                .concat(),
+            );
+            assert!(r.ok, "{what}: {}", r.stderr);
+            let png = std::fs::read(r.png.expect("png")).expect("read png");
+            assert!(png == want, "{what}: the image differs from the reference");
+            let stats = r.stats.expect("stats");
+            assert_eq!(stats["rays"], want_stats["rays"], "{what}: rays by kind");
+            let rc = &stats["ray_cache"];
+            let lookups = u64_of(rc, "outer_lookups") + u64_of(rc, "inner_lookups");
+            assert!(lookups > 0, "{what}: no lookups: {rc}");
+            assert_eq!(
+                u64_of(rc, "outer_hits") + u64_of(rc, "inner_hits"),
+                0,
+                "{what}: {rc}"
+            );
+            check_tickets(rc, &what);
+            // Nothing answered, so every closed ticket could store (8 domains, all walls
+            // inside the scene's own light: radiance is finite and positive).
+            assert!(
+                u64_of(rc, "tickets_stored") > 0,
+                "{what}: nothing stored: {rc}"
+            );
+            assert_eq!(u64_of(rc, "rays_bypassed"), 0, "{what}: {rc}");
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn render_ok(dir: &Path, tag: &str, args: &[&str], what: &str) -> (Vec<u8>, Value) {
+    let r = common::render(dir, tag, SCENE, args);
+    assert!(r.ok, "{what}: {}", r.stderr);
+    (
+        std::fs::read(r.png.expect("png")).expect("read png"),
+        r.stats.expect("stats"),
+    )
+}
+
+#[test]
+fn a_coarse_pass_fills_the_caches_and_without_fill_every_run_gives_the_same_bits() {
+    let dir = common::tmp("caches-coarse");
+    let (want, _) = reference(&dir, "ref", "whitted");
+    // The box is about 555 units wide: coarse crossings are ~20 units apart on the walls.
+    let cache = "radius=15,angle-deg=20,coarse=24,fill=false";
+    let mut first: Option<Vec<u8>> = None;
+    for (run, workers) in [(0, "2"), (1, "2"), (2, "1"), (3, "3")] {
+        let what = format!("run {run} on {workers} workers with --ray-cache {cache}");
+        let (png, stats) = render_ok(
+            &dir,
+            &format!("coarse-{run}"),
+            &[
+                &flags("whitted")[..],
+                &["--workers", workers, "--ray-cache", cache],
+            ]
+            .concat(),
+            &what,
+        );
+        let rc = &stats["ray_cache"];
+        assert_eq!(u64_of(rc, "coarse_rays"), 24 * 24, "{what}: {rc}");
+        let hits = u64_of(rc, "outer_hits") + u64_of(rc, "inner_hits");
+        assert!(
+            hits > 0,
+            "{what}: the coarse pass filled nothing that answered: {rc}"
+        );
+        check_tickets(rc, &what);
+        assert!(png != want, "{what}: answers changed nothing in the image");
+        match &first {
+            None => first = Some(png),
+            Some(f) => assert!(*f == png, "{what}: not the same bits as run 0"),
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn hit_maps_that_never_decide_give_the_reference_bits() {
+    let dir = common::tmp("phm-never");
+    let (want, want_stats) = reference(&dir, "ref", "path");
+    for workers in ["1", "3"] {
+        let what = format!("path on {workers} workers with undecided maps");
+        let (png, stats) = render_ok(
+            &dir,
+            "phm",
+            &[
+                &flags("path")[..],
+                &["--workers", workers, "--phm", "miss=0,hit=1"],
+            ]
+            .concat(),
+            &what,
+        );
+        assert!(png == want, "{what}: the image differs from the reference");
+        assert_eq!(stats["rays"], want_stats["rays"], "{what}: rays by kind");
+        let p = &stats["phm"];
+        assert!(u64_of(p, "lookups") > 0, "{what}: no map was asked: {p}");
+        assert_eq!(
+            u64_of(p, "rays_skipped") + u64_of(p, "rays_occluded"),
+            0,
+            "{what}: {p}"
+        );
+        assert!(u64_of(p, "probes") > 0, "{what}: {p}");
+        assert_eq!(
+            u64_of(p, "cells_decided_hit") + u64_of(p, "cells_decided_miss"),
+            0,
+            "{what}: {p}"
+        );
+        assert!(
+            stats.get("ray_cache").is_none(),
+            "{what}: no ray caches asked for"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn hit_maps_that_decide_skip_domains_and_occlude_shadow_rays() {
+    let dir = common::tmp("phm-decide");
+    let job = [
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--spp",
+        "4",
+        "--seed",
+        "3",
+        "--max-depth",
+        "4",
+        "--domains",
+        "8",
+        "--integrator",
+        "path",
+    ];
+    let what = "path on 2 workers with eager maps";
+    // Predictions that happen to be right change no pixel, so the image is not
+    // compared here: what the maps cost in error is the sweep's to measure.
+    let (_png, stats) = render_ok(
+        &dir,
+        "phm",
+        &[
+            &job[..],
+            &[
+                "--workers",
+                "2",
+                "--phm",
+                "prior=1,miss=0.2,hit=0.8,reprobe=0.05",
+            ],
+        ]
+        .concat(),
+        what,
+    );
+    let p = &stats["phm"];
+    assert!(
+        u64_of(p, "rays_skipped") + u64_of(p, "rays_occluded") > 0,
+        "{what}: the maps answered nothing: {p}"
+    );
+    assert!(
+        u64_of(p, "cells_decided_hit") + u64_of(p, "cells_decided_miss") > 0,
+        "{what}: no cell decided: {p}"
+    );
+    assert!(u64_of(p, "outcomes") > 0, "{what}: {p}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn text(log: &Arc<Mutex<String>>) -> String {
+    log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+}
+
+/// A process whose first stdout line ends with its address.
+fn spawn_with_address(mut cmd: std::process::Command) -> (Proc, String, Arc<Mutex<String>>) {
+    cmd.env("NO_COLOR", "1")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    let mut p = Proc::spawn(cmd);
+    let log = capture_stderr(&mut p.child);
+    let mut first = String::new();
+    BufReader::new(p.child.stdout.take().expect("stdout"))
+        .read_line(&mut first)
+        .expect("read the first line");
+    let addr = first
+        .trim()
+        .rsplit(' ')
+        .next()
+        .filter(|a| a.contains(':'))
+        .unwrap_or_else(|| panic!("no address in {first:?}"))
+        .to_string();
+    (p, addr, log)
+}
+
+#[test]
+fn a_cache_host_killed_mid_job_is_bypassed_and_the_image_stays_exact() {
+    let dir = common::tmp("caches-killed-host");
+    // A job long enough to outlive the kill by far.
+    let job: Vec<&str> = vec![
+        "--width",
+        "160",
+        "--height",
+        "120",
+        "--spp",
+        "8",
+        "--seed",
+        "3",
+        "--max-depth",
+        "5",
+        "--domains",
+        "8",
+        "--integrator",
+        "path",
+    ];
+    let want = {
+        let r = common::render(
+            &dir,
+            "ref",
+            SCENE,
+            &[&job[..], &["--workers", "0"]].concat(),
+        );
+        assert!(r.ok, "reference: {}", r.stderr);
+        std::fs::read(r.png.expect("png")).expect("read png")
+    };
+
+    let mut cmd = dray();
+    cmd.args(["coordinator", "--listen", "127.0.0.1:0", "--scene-root"])
+        .arg(&dir)
+        .env("DRAY_LOG", "warn,dray_coordinator=info");
+    let (_coordinator, addr, coordinator_log) = spawn_with_address(cmd);
+    let url = format!("http://{addr}");
+    let mut cmd = dray();
+    cmd.args(["cache", "--coordinator", &url, "--listen", "127.0.0.1:0"])
+        .env("DRAY_LOG", "info");
+    let (cache, _cache_addr, cache_log) = spawn_with_address(cmd);
+    let mut workers = Vec::new();
+    for _ in 0..2 {
+        let mut cmd = dray();
+        cmd.args(["worker", "--coordinator", &url, "--listen", "127.0.0.1:0"])
+            .args(["--threads", "1", "--no-cache-host"])
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null());
+        workers.push(Proc::spawn(cmd));
+    }
+    assert!(
+        eventually(60.0, || text(&coordinator_log)
+            .matches("worker registered")
+            .count()
+            >= 2),
+        "the workers did not register: {}",
+        text(&coordinator_log)
+    );
+
+    let png = dir.join("job.png");
+    let stats = dir.join("job.json");
+    let mut submit = dray();
+    submit
+        .args(["submit", "--coordinator", &addr, SCENE])
+        .args(&job)
+        .args(["--ray-cache", "radius=0"])
+        .arg("--output")
+        .arg(&png)
+        .arg("--stats")
+        .arg(&stats)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped());
+    let mut submit = Proc::spawn(submit);
+    let submit_log = capture_stderr(&mut submit.child);
+    // The job's walls are open on the stand-alone host: kill it.
+    assert!(
+        eventually(HANG_SECS, || text(&cache_log).contains("walls opened")),
+        "the cache host never opened the job's walls: {}\n{}",
+        text(&cache_log),
+        text(&submit_log)
+    );
+    cache.signal(libc::SIGKILL);
+    let status = submit.wait_timeout(HANG_SECS);
+    std::thread::sleep(std::time::Duration::from_millis(50));
+    let out = text(&submit_log);
+    let status = status.unwrap_or_else(|| panic!("HANG: dray submit did not finish: {out}"));
+    assert!(
+        status.success(),
+        "the job failed with its cache host lost: {out}"
+    );
+    let got = std::fs::read(&png).expect("read the job's png");
+    assert!(got == want, "the image differs from the reference");
+    let json: Value =
+        serde_json::from_slice(&std::fs::read(&stats).expect("read stats")).expect("stats json");
+    let rc = &json["ray_cache"];
+    assert!(
+        rc["lost_hosts"].as_array().is_some_and(|h| !h.is_empty()),
+        "the lost cache host is not named: {rc}"
+    );
+    assert!(
+        u64_of(rc, "rays_bypassed") > 0,
+        "no ray went past the dead host: {rc}"
+    );
+    drop(workers);
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -1,0 +1,380 @@
+//! `dray sweep` end to end (issue 9, item 7), with real `dray` processes: the exact
+//! render and every combination of the varied values, in this process and on a local
+//! cluster; results.csv, table.md, pareto.png and the images; one-line errors before any
+//! rendering.
+
+mod common;
+mod support;
+
+use std::collections::HashMap;
+use std::path::Path;
+use std::process::Output;
+
+use support::{WorkerCluster, dray};
+
+/// The columns every results.csv has (besides one per varied key).
+const COLUMNS: [&str; 34] = [
+    "setting",
+    "wall_s",
+    "speedup",
+    "rays_traced",
+    "rays_sent",
+    "bytes_sent",
+    "outer_lookups",
+    "outer_hits",
+    "outer_hit_ratio",
+    "inner_lookups",
+    "inner_hits",
+    "inner_hit_ratio",
+    "rays_not_sent",
+    "bytes_not_sent",
+    "tickets_opened",
+    "tickets_closed",
+    "tickets_stored",
+    "tickets_open",
+    "rays_bypassed",
+    "phm_lookups",
+    "phm_rays_skipped",
+    "phm_rays_occluded",
+    "phm_probes",
+    "phm_cells_decided_hit",
+    "phm_cells_decided_miss",
+    "rmse",
+    "rmse_linear",
+    "psnr",
+    "flip",
+    "image",
+    "render_s",
+    "cache_bytes",
+    "pareto",
+    "args",
+];
+
+fn sweep(args: &[&str], out: &Path, env: &[(&str, &str)]) -> Output {
+    let mut cmd = dray();
+    cmd.arg("sweep").args(args).arg("--out").arg(out);
+    for (k, v) in env {
+        cmd.env(k, v);
+    }
+    cmd.output().expect("run dray sweep")
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// results.csv as rows of column -> cell (no cell of these sweeps holds a comma, except
+/// `args`, which is last and quoted when it does).
+fn read_csv(path: &Path) -> (Vec<String>, Vec<HashMap<String, String>>) {
+    let text = std::fs::read_to_string(path).expect("read results.csv");
+    let mut lines = text.lines();
+    let head: Vec<String> = lines
+        .next()
+        .expect("a header")
+        .split(',')
+        .map(String::from)
+        .collect();
+    let rows = lines
+        .map(|l| {
+            let cells: Vec<&str> = l.splitn(head.len(), ',').collect();
+            assert_eq!(cells.len(), head.len(), "{l}");
+            head.iter()
+                .cloned()
+                .zip(cells.iter().map(|c| c.to_string()))
+                .collect()
+        })
+        .collect();
+    (head, rows)
+}
+
+fn num(row: &HashMap<String, String>, col: &str) -> f64 {
+    row[col]
+        .parse()
+        .unwrap_or_else(|_| panic!("{col} = {:?} is not a number in {row:?}", row[col]))
+}
+
+/// What every sweep's output must hold: the columns, an exact first row with no error,
+/// balanced tickets, the table, a plot that decodes and every image.
+fn check_outputs(out: &Path, keys: &[&str], settings: usize) -> Vec<HashMap<String, String>> {
+    let (head, rows) = read_csv(&out.join("results.csv"));
+    for c in COLUMNS.iter().chain(keys) {
+        assert!(head.iter().any(|h| h == c), "no column {c} in {head:?}");
+    }
+    assert_eq!(rows.len(), settings + 1, "{rows:?}");
+    let exact = &rows[0];
+    assert_eq!(exact["setting"], "exact");
+    assert_eq!(num(exact, "rmse"), 0.0);
+    assert_eq!(num(exact, "rmse_linear"), 0.0);
+    assert_eq!(num(exact, "flip"), 0.0);
+    assert_eq!(exact["psnr"], "inf");
+    assert_eq!(num(exact, "speedup"), 1.0);
+    assert_eq!(exact["image"], "exact.png");
+    // The exact render has no caches: empty cells, not zeros.
+    assert_eq!(exact["tickets_opened"], "");
+    for r in &rows {
+        assert_eq!(
+            r["tickets_opened"], r["tickets_closed"],
+            "{}: tickets opened and closed differ",
+            r["setting"]
+        );
+        assert!(num(r, "wall_s") > 0.0, "{r:?}");
+        assert!(num(r, "rays_traced") > 0.0, "{r:?}");
+        let flip = num(r, "flip");
+        assert!((0.0..=1.0).contains(&flip), "{r:?}");
+        let img = common::rgb(&out.join(&r["image"]));
+        assert_eq!(img.dimensions(), (32, 24), "{}", r["image"]);
+    }
+    let table = std::fs::read_to_string(out.join("table.md")).expect("read table.md");
+    assert!(table.contains("| exact |"), "{table}");
+    assert!(table.contains("8-bit sRGB"), "{table}");
+    for r in &rows[1..] {
+        assert!(table.contains(&format!("| {} |", r["setting"])), "{table}");
+    }
+    let plot = image::open(out.join("pareto.png")).expect("pareto.png decodes");
+    assert!(plot.width() >= 400 && plot.height() >= 300);
+    rows
+}
+
+const BASE: [&str; 9] = [
+    "cornell",
+    "--width",
+    "32",
+    "--height",
+    "24",
+    "--spp",
+    "2",
+    "--domains",
+    "4",
+];
+
+#[test]
+fn sweeps_ray_cache_radius_and_spp_in_this_process() {
+    let dir = common::tmp("sweep-embedded");
+    let out = dir.join("out");
+    let o = sweep(
+        &[
+            &BASE[..],
+            &[
+                "--workers",
+                "2",
+                "--vary",
+                "ray-cache.radius=0,0.2",
+                "--vary",
+                "spp=1,2",
+            ],
+        ]
+        .concat(),
+        &out,
+        &[],
+    );
+    let err = stderr(&o);
+    assert!(o.status.success(), "{err}");
+    let rows = check_outputs(&out, &["ray-cache.radius", "spp"], 4);
+    let names: Vec<&str> = rows.iter().map(|r| r["setting"].as_str()).collect();
+    assert_eq!(
+        names,
+        [
+            "exact",
+            "ray-cache.radius=0 spp=1",
+            "ray-cache.radius=0 spp=2",
+            "ray-cache.radius=0.2 spp=1",
+            "ray-cache.radius=0.2 spp=2"
+        ]
+    );
+    assert_eq!(rows[0]["spp"], "2", "the exact row shows the base spp");
+    assert_eq!(rows[3]["ray-cache.radius"], "0.2");
+    for r in &rows[1..] {
+        // Caches were on: every setting looked rays up and ticketed them.
+        assert!(num(r, "tickets_opened") > 0.0, "{r:?}");
+        assert_eq!(num(r, "tickets_open"), 0.0, "{r:?}");
+        assert!(
+            Path::new(&out).join(&r["image"]).is_file(),
+            "{}",
+            r["image"]
+        );
+        assert!(r["args"].contains("--ray-cache"), "{r:?}");
+    }
+    // Radius 0 never answers: with the exact render's spp, the exact image.
+    assert_eq!(num(&rows[2], "rmse"), 0.0, "{:?}", rows[2]);
+    assert_eq!(num(&rows[2], "flip"), 0.0, "{:?}", rows[2]);
+    // Half the samples: not the exact image.
+    assert!(num(&rows[1], "rmse") > 0.0, "{:?}", rows[1]);
+    assert!(num(&rows[1], "flip") > 0.0, "{:?}", rows[1]);
+    assert_eq!(rows[1]["image"], "ray-cache.radius-0_spp-1.png");
+    // The exact render is `dray render` with the same flags, bit for bit.
+    let r = common::render(
+        &dir,
+        "render",
+        "cornell",
+        &[&BASE[1..], &["--workers", "2"]].concat(),
+    );
+    assert!(r.ok, "{}", r.stderr);
+    assert_eq!(
+        common::rgb(&r.png.expect("png")),
+        common::rgb(&out.join("exact.png"))
+    );
+    let last = err.lines().last().unwrap_or_default();
+    for f in ["results.csv", "table.md", "pareto.png"] {
+        assert!(last.contains(f), "the last line names {f}: {last:?}");
+    }
+}
+
+#[test]
+fn sweeps_hit_map_thresholds() {
+    let dir = common::tmp("sweep-phm");
+    let out = dir.join("out");
+    // miss=0 and hit=1 never decide: the exact image, every shadow ray a probe.
+    let o = sweep(
+        &[
+            &BASE[..],
+            &[
+                "--workers",
+                "2",
+                "--phm",
+                "hit=1",
+                "--vary",
+                "phm.miss=0",
+                "--vary",
+                "max-depth=5",
+            ],
+        ]
+        .concat(),
+        &out,
+        &[],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let rows = check_outputs(&out, &["phm.miss", "max-depth"], 1);
+    assert_eq!(rows[0]["phm_lookups"], "", "the exact render has no maps");
+    let r = &rows[1];
+    assert_eq!(r["setting"], "phm.miss=0 max-depth=5");
+    assert_eq!(rows[0]["max-depth"], "5");
+    assert!(num(r, "phm_lookups") > 0.0, "{r:?}");
+    assert_eq!(num(r, "phm_rays_skipped"), 0.0, "{r:?}");
+    assert_eq!(num(r, "phm_cells_decided_hit"), 0.0, "{r:?}");
+    assert_eq!(num(r, "rmse"), 0.0, "{r:?}");
+    assert_eq!(r["tickets_opened"], "", "no ray caches: {r:?}");
+    // The base --phm and the varied knob, merged.
+    assert!(r["args"].contains("--phm hit=1,miss=0"), "{r:?}");
+}
+
+#[test]
+fn bad_keys_and_values_fail_in_one_line_before_rendering() {
+    let dir = common::tmp("sweep-errors");
+    for (vary, want) in [
+        ("bogus=1", "--vary bogus: unknown key"),
+        ("spp=", "--vary spp: no values"),
+        ("spp=1,0", "--vary spp=0: --spp 0 is out of range"),
+        (
+            "ray-cache.radius=-1",
+            "--vary ray-cache.radius=-1: ray_cache.radius must be",
+        ),
+        (
+            "ray-cache.bogus=1",
+            "--vary ray-cache.bogus: unknown ray-cache knob",
+        ),
+        (
+            "phm.miss=0.7",
+            "--vary phm.miss=0.7: phm.miss must be in [0, 0.5]",
+        ),
+        ("max-depth=two", "--vary max-depth=two: invalid value 'two'"),
+    ] {
+        let out = dir.join("out");
+        let o = sweep(&[&BASE[..], &["--vary", vary]].concat(), &out, &[]);
+        let err = stderr(&o);
+        assert!(!o.status.success(), "{vary}: {err}");
+        assert_eq!(o.status.code(), Some(1), "{vary}: {err}");
+        assert_eq!(err.lines().count(), 1, "{vary}: one line: {err}");
+        assert!(
+            err.starts_with(&format!("dray: error: {want}")),
+            "{vary}: {err}"
+        );
+        assert!(
+            !out.exists(),
+            "{vary}: nothing is written before the plan holds"
+        );
+    }
+    // A flag the sweep sets itself.
+    let o = sweep(
+        &["cornell", "--output", "x.png", "--vary", "spp=1"],
+        &dir.join("o2"),
+        &[],
+    );
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("--output: dray sweep writes"),
+        "{}",
+        stderr(&o)
+    );
+}
+
+#[test]
+fn a_failed_render_keeps_the_results_before_it() {
+    let dir = common::tmp("sweep-partial");
+    let out = dir.join("out");
+    // A camera the scene lacks fails only when that setting renders.
+    let o = sweep(
+        &[&BASE[..], &["--workers", "2", "--vary", "camera=0,nosuch"]].concat(),
+        &out,
+        &[],
+    );
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    let last = err.lines().last().unwrap_or_default();
+    assert!(
+        last.starts_with("dray: error: setting camera=nosuch: camera \"nosuch\" not found"),
+        "{err}"
+    );
+    assert!(
+        last.contains("the results of the 2 renders before it are in"),
+        "{err}"
+    );
+    let rows = check_outputs(&out, &["camera"], 1);
+    assert_eq!(rows[1]["setting"], "camera=0");
+}
+
+#[test]
+fn sweeps_on_a_cluster_and_without_a_font() {
+    let dir = common::tmp("sweep-cluster");
+    let cluster = WorkerCluster::start(2, 0, &dir, &[]);
+    let out = dir.join("out");
+    // No font: the plot is drawn without text, and the sweep says so, not fails.
+    let o = sweep(
+        &[
+            &BASE[..],
+            &[
+                "--coordinator",
+                &cluster.addr,
+                "--vary",
+                "ray-cache.radius=0",
+                "--vary",
+                "spp=1,2",
+            ],
+        ]
+        .concat(),
+        &out,
+        &[("DRAY_FONT", "/nonexistent/font.ttf")],
+    );
+    let err = stderr(&o);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("no TrueType font found"), "{err}");
+    let rows = check_outputs(&out, &["ray-cache.radius", "spp"], 2);
+    assert!(num(&rows[1], "tickets_opened") > 0.0, "{:?}", rows[1]);
+    assert_eq!(num(&rows[2], "rmse"), 0.0, "{:?}", rows[2]);
+    assert!(num(&rows[1], "rmse") > 0.0, "{:?}", rows[1]);
+    // Flags only an in-process render has are refused with a coordinator.
+    let o = sweep(
+        &[
+            &BASE[..],
+            &["--coordinator", &cluster.addr, "--vary", "workers=1,2"],
+        ]
+        .concat(),
+        &dir.join("o2"),
+        &[],
+    );
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).starts_with("dray: error: --vary workers: only for renders in this process"),
+        "{}",
+        stderr(&o)
+    );
+}

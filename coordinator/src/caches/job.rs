@@ -1,0 +1,99 @@
+//! One job's ray caches, as the ledger holds them next to its credit: the resolved knobs,
+//! the boxes, the statistics so far, and which attempt's walls are open.
+//!
+//! **Who closes what.** An attempt's walls are opened before its tiles go out and
+//! closed when it ends. `opened` names the attempt whose walls are open; whoever ends
+//! that attempt takes it (`Option::take`) and closes it: the job's end (completed,
+//! failed, cancelled), or the start of the next attempt after a lost worker, which
+//! closes the old walls before opening the new ones (a host drops older attempts of a
+//! job when a newer one opens, so the order matters for the statistics). `pending`
+//! names an attempt whose walls are being opened and whose tiles wait for that; if the
+//! attempt is replaced or the job ends meanwhile, the task opening it closes it itself.
+
+use std::sync::Arc;
+
+use dray_proto::v1::{PhmSettings, RayCacheSettings};
+
+use super::geometry::WallGeometry;
+use super::lifecycle::AttemptWalls;
+use super::placement::{Candidates, Placement};
+use super::tally::CacheTally;
+use crate::membership::Membership;
+use crate::scheduler::state::JobSchedule;
+
+/// The attempt whose walls are open, and where.
+#[derive(Clone, Debug)]
+pub struct OpenAttempt {
+    /// The attempt.
+    pub attempt: u32,
+    /// Its hosts and walls.
+    pub placement: Placement,
+}
+
+/// A job's ray caches.
+#[derive(Debug)]
+pub struct JobCaches {
+    /// The ray-cache knobs, defaults filled in (None: hit maps only).
+    pub settings: Option<RayCacheSettings>,
+    /// The hit-map knobs, defaults filled in (None: ray caches only).
+    pub phm: Option<PhmSettings>,
+    /// Scene and domain boxes.
+    pub geometry: Arc<WallGeometry>,
+    /// Statistics so far (shared with the tasks that close walls).
+    pub tally: Arc<CacheTally>,
+    /// The attempt whose walls are open, if any.
+    pub opened: Option<OpenAttempt>,
+    /// The attempt whose walls are being opened, if any (its tiles wait).
+    pub pending: Option<u32>,
+}
+
+impl JobCaches {
+    /// Caches for a job, nothing open yet.
+    pub fn new(
+        settings: Option<RayCacheSettings>,
+        phm: Option<PhmSettings>,
+        geometry: Arc<WallGeometry>,
+    ) -> JobCaches {
+        JobCaches {
+            tally: Arc::new(CacheTally::new(settings.is_some(), phm.is_some())),
+            settings,
+            phm,
+            geometry,
+            opened: None,
+            pending: None,
+        }
+    }
+
+    /// What opening attempt `attempt` of `job_id` sends.
+    pub fn attempt_walls(&self, job_id: &str, attempt: u32) -> AttemptWalls {
+        AttemptWalls {
+            job_id: job_id.to_string(),
+            attempt,
+            settings: self.settings.clone(),
+            phm: self.phm.clone(),
+            geometry: self.geometry.clone(),
+        }
+    }
+}
+
+/// The hosts the current attempt of `sched` may use: the registered stand-alone hosts,
+/// else the cache hosts its workers announced (see [`Candidates::choose`]).
+pub fn candidates(membership: &Membership, sched: &JobSchedule) -> Candidates {
+    let workers: Vec<(String, String)> = sched
+        .worker_ids()
+        .into_iter()
+        .map(|id| {
+            let e = membership
+                .get(&id)
+                .and_then(|w| w.cache_endpoint)
+                .unwrap_or_default();
+            (id, e)
+        })
+        .collect();
+    Candidates::choose(membership.cache_hosts.list(), &workers)
+}
+
+/// Place the walls of `sched`'s job on `c` by its current (the attempt's first) table.
+pub fn place(c: &Candidates, sched: &JobSchedule, domains: u32) -> Placement {
+    Placement::place(domains, c, &c.beside(sched.routing().routes(), domains))
+}

@@ -1,0 +1,577 @@
+//! The worker's streams to cache hosts (ray caches, `cache.proto`).
+//!
+//! One long-lived `CacheService.Exchange` stream per host, owned by one task: lookups
+//! (rays at walls) and ticket returns go out in order, and the host answers each message
+//! in order, so the task matches answers to what it sent with a FIFO. A worker never
+//! answers a ray from a cache itself: it only applies the actor's answer —
+//! - a **hit**: the ray's weight x the cached radiance goes to its pixel, its credit
+//!   back to its tile (both also to its tickets, marked as from a cache);
+//! - a **miss**: the ray goes on to the domain behind the wall, with the new ticket if
+//!   the actor opened one.
+//!
+//! A host that cannot be reached, or whose stream breaks, is *dead* for the rest of
+//! this worker's life: its pending lookups and every later one go straight on to their
+//! domains (traced exactly: "bypassed"), its ticket returns are dropped (those tickets
+//! can never close), and every job that used it names it in its report. Tracing never
+//! waits for a cache host: lookups leave through an unbounded channel counted in the
+//! job's rays in flight, which bounds them like every other ray.
+
+use std::collections::{HashMap, HashSet, VecDeque};
+use std::sync::Arc;
+use std::sync::Mutex;
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
+use dray_core::ray::{FLAG_COARSE, RAY_RECORD_BYTES, encode_rays};
+use dray_proto::v1::cache_service_client::CacheServiceClient;
+use dray_proto::v1::{
+    CacheAnswers, CacheLookups, CacheRequest, PhmOutcomes, TicketReturn, TicketReturns,
+    cache_request, cache_response,
+};
+use glam::Vec3;
+use tokio::sync::{mpsc, oneshot};
+use tokio::task::JoinSet;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::transport::Endpoint;
+
+use crate::jobs::{Job, lock};
+use crate::node::Shared;
+use crate::tickets::MAX_TICKETS;
+use crate::tracer::{Lookup, NoDomains, Outbox};
+
+/// Lookups per message: 4096 rays of 64 bytes, far inside gRPC's message limit.
+const LOOKUPS_PER_MESSAGE: usize = 4096;
+/// Returns per message (about 40 bytes each).
+const RETURNS_PER_MESSAGE: usize = 16 * 1024;
+/// Bytes a ticket return costs on the wire, roughly (for the job's byte count).
+const RETURN_BYTES: u64 = 40;
+/// Option bits of a lookup (cache.proto `CacheLookups.options`).
+const MAY_ANSWER: u32 = 1;
+const MAY_TICKET: u32 = 2;
+const ASK_PHM: u32 = 4;
+/// Answer codes (cache.proto `CacheAnswers.outcomes`).
+const GO_ON: u8 = 0;
+const HIT: u8 = 1;
+const TICKETED: u8 = 2;
+const SKIP: u8 = 3;
+const OCCLUDED: u8 = 4;
+const PROBE: u8 = 8;
+
+/// Work for one host's stream.
+pub(crate) enum CacheMessage {
+    /// Rays at walls of this host.
+    Lookups { job: Arc<Job>, lookups: Vec<Lookup> },
+    /// Ticket returns; `done` says whether the host applied them.
+    Returns {
+        job: Arc<Job>,
+        returns: Vec<TicketReturn>,
+        done: oneshot::Sender<bool>,
+    },
+    /// Outcomes of hit-map probes: (wall, cell, hit). Nothing waits for them.
+    Outcomes {
+        job: Arc<Job>,
+        outcomes: Vec<(u32, u32, bool)>,
+    },
+}
+
+/// The streams to cache hosts.
+pub(crate) struct CacheLinks {
+    /// By endpoint.
+    links: Mutex<HashMap<String, mpsc::UnboundedSender<CacheMessage>>>,
+    /// Hosts found unreachable.
+    dead: Mutex<HashSet<String>>,
+    tasks: Mutex<JoinSet<()>>,
+    runtime: tokio::runtime::Handle,
+}
+
+impl CacheLinks {
+    pub fn new(runtime: tokio::runtime::Handle) -> CacheLinks {
+        CacheLinks {
+            links: Mutex::new(HashMap::new()),
+            dead: Mutex::new(HashSet::new()),
+            tasks: Mutex::new(JoinSet::new()),
+            runtime,
+        }
+    }
+
+    /// Whether the host at `endpoint` was found unreachable.
+    pub fn is_dead(&self, endpoint: &str) -> bool {
+        lock(&self.dead).contains(endpoint)
+    }
+
+    /// Hand `msg` to the stream to `endpoint`, opening it if needed. Never waits; a
+    /// dead host gets the message failed at once.
+    pub fn send(&self, shared: &Arc<Shared>, endpoint: &str, msg: CacheMessage) {
+        if self.is_dead(endpoint) {
+            fail(shared, endpoint, msg);
+            return;
+        }
+        let tx = {
+            let mut links = lock(&self.links);
+            match links.get(endpoint) {
+                Some(tx) if !tx.is_closed() => tx.clone(),
+                _ => {
+                    let (tx, rx) = mpsc::unbounded_channel();
+                    links.insert(endpoint.to_string(), tx.clone());
+                    let mut tasks = lock(&self.tasks);
+                    while tasks.try_join_next().is_some() {}
+                    tasks.spawn_on(
+                        link_loop(shared.clone(), endpoint.to_string(), rx),
+                        &self.runtime,
+                    );
+                    tx
+                }
+            }
+        };
+        if let Err(e) = tx.send(msg) {
+            fail(shared, endpoint, e.0);
+        }
+    }
+
+    /// End every stream and wait for the tasks (briefly).
+    pub async fn close(&self) {
+        lock(&self.links).clear();
+        let mut tasks = std::mem::take(&mut *lock(&self.tasks));
+        if tokio::time::timeout(Duration::from_secs(2), async {
+            while tasks.join_next().await.is_some() {}
+        })
+        .await
+        .is_err()
+        {
+            tasks.shutdown().await;
+        }
+    }
+}
+
+/// Send lookups to their walls' hosts (or straight on, for walls whose host is dead).
+/// Called with a tracing step's lookups; never waits.
+pub(crate) fn send_lookups(shared: &Arc<Shared>, job: &Arc<Job>, lookups: Vec<Lookup>) {
+    let routes = job.routes();
+    let mut by_host: HashMap<&str, Vec<Lookup>> = HashMap::new();
+    let mut bypass = Outbox::default();
+    let mut bypassed = 0u64;
+    for l in lookups {
+        match routes.cache_host(l.wall) {
+            Some(h) if !shared.caches.is_dead(h) => by_host.entry(h).or_default().push(l),
+            _ => {
+                bypassed += 1;
+                bypass
+                    .rays
+                    .entry(l.domain)
+                    .or_default()
+                    .push(l.ray, &l.lineage);
+            }
+        }
+    }
+    for (host, lookups) in by_host {
+        job.awaiting_cache
+            .fetch_add(lookups.len(), Ordering::Relaxed);
+        shared.caches.send(
+            shared,
+            host,
+            CacheMessage::Lookups {
+                job: job.clone(),
+                lookups,
+            },
+        );
+    }
+    if bypassed > 0 {
+        lock(&job.report).cache_rays_bypassed += bypassed;
+        crate::work::deliver(shared, job, bypass);
+    }
+}
+
+/// Report hit-map probe outcomes to their walls' hosts. Never waits; outcomes for a
+/// dead host are dropped (its maps are gone with it).
+pub(crate) fn send_outcomes(shared: &Arc<Shared>, job: &Arc<Job>, outcomes: Vec<(u32, u32, bool)>) {
+    let routes = job.routes();
+    let mut by_host: HashMap<&str, Vec<(u32, u32, bool)>> = HashMap::new();
+    for o in outcomes {
+        if let Some(h) = routes.cache_host(o.0)
+            && !shared.caches.is_dead(h)
+        {
+            by_host.entry(h).or_default().push(o);
+        }
+    }
+    for (host, outcomes) in by_host {
+        lock(&job.report).cache_bytes += outcomes.len() as u64 * 9;
+        shared.caches.send(
+            shared,
+            host,
+            CacheMessage::Outcomes {
+                job: job.clone(),
+                outcomes,
+            },
+        );
+    }
+}
+
+/// Return `returns` to their tickets' hosts and wait until each host has applied its
+/// share (or is found dead): the credit in them may then be reported to the
+/// coordinator.
+pub(crate) async fn return_tickets(
+    shared: &Arc<Shared>,
+    job: &Arc<Job>,
+    returns: Vec<TicketReturn>,
+) {
+    let routes = job.routes();
+    let mut by_host: HashMap<String, Vec<TicketReturn>> = HashMap::new();
+    for r in returns {
+        // A ticket naming a wall no host serves cannot close anywhere: drop it.
+        if let Some(h) = routes.cache_host(crate::tickets::ticket_wall(r.ticket)) {
+            by_host.entry(h.to_string()).or_default().push(r);
+        }
+    }
+    let mut waits = Vec::new();
+    for (host, returns) in by_host {
+        let (done, wait) = oneshot::channel();
+        lock(&job.report).cache_bytes += returns.len() as u64 * RETURN_BYTES;
+        shared.caches.send(
+            shared,
+            &host,
+            CacheMessage::Returns {
+                job: job.clone(),
+                returns,
+                done,
+            },
+        );
+        waits.push(wait);
+    }
+    for w in waits {
+        let _ = w.await;
+    }
+}
+
+/// A message that cannot reach its host: lookups go straight on, returns are dropped.
+fn fail(shared: &Arc<Shared>, endpoint: &str, msg: CacheMessage) {
+    match msg {
+        CacheMessage::Lookups { job, lookups } => {
+            job.awaiting_cache
+                .fetch_sub(lookups.len(), Ordering::Relaxed);
+            lost(&job, endpoint);
+            let n = lookups.len() as u64;
+            let mut out = Outbox::default();
+            for l in lookups {
+                out.rays
+                    .entry(l.domain)
+                    .or_default()
+                    .push(l.ray, &l.lineage);
+            }
+            lock(&job.report).cache_rays_bypassed += n;
+            if job.is_active() {
+                crate::work::deliver(shared, &job, out);
+            }
+        }
+        CacheMessage::Returns { job, done, .. } => {
+            lost(&job, endpoint);
+            let _ = done.send(false);
+        }
+        CacheMessage::Outcomes { job, .. } => lost(&job, endpoint),
+    }
+    shared.notify();
+}
+
+/// Name a lost host in `job`'s report, once.
+fn lost(job: &Job, endpoint: &str) {
+    let mut r = lock(&job.report);
+    if !r.lost_cache_hosts.iter().any(|h| h == endpoint) {
+        tracing::warn!(job = %job.key.id, host = %endpoint, "cache host unreachable: rays go past its walls");
+        r.lost_cache_hosts.push(endpoint.to_string());
+    }
+}
+
+/// What was sent and awaits an answer, in order.
+enum Pending {
+    Lookups { job: Arc<Job>, lookups: Vec<Lookup> },
+    Returns { done: oneshot::Sender<bool> },
+}
+
+async fn link_loop(
+    shared: Arc<Shared>,
+    endpoint: String,
+    mut rx: mpsc::UnboundedReceiver<CacheMessage>,
+) {
+    let (req_tx, req_rx) = mpsc::channel::<CacheRequest>(64);
+    let opened = async {
+        let channel = Endpoint::from_shared(endpoint.clone())
+            .map_err(|e| e.to_string())?
+            .connect_timeout(Duration::from_secs(5))
+            .tcp_nodelay(true)
+            .connect()
+            .await
+            .map_err(|e| e.to_string())?;
+        let mut client = CacheServiceClient::new(channel)
+            .max_decoding_message_size(64 << 20)
+            .max_encoding_message_size(64 << 20);
+        client
+            .exchange(ReceiverStream::new(req_rx))
+            .await
+            .map(|r| r.into_inner())
+            .map_err(|s| s.message().to_string())
+    }
+    .await;
+    let mut answers = match opened {
+        Ok(a) => a,
+        Err(e) => {
+            link_failed(&shared, &endpoint, &mut rx, VecDeque::new(), &e);
+            return;
+        }
+    };
+    let mut pending: VecDeque<(u64, Pending)> = VecDeque::new();
+    let mut sequence = 0u64;
+    loop {
+        tokio::select! {
+            msg = rx.recv() => {
+                let Some(msg) = msg else { return };
+                let sent = match msg {
+                    CacheMessage::Lookups { job, lookups } => {
+                        let mut rest = lookups;
+                        let mut ok = true;
+                        while !rest.is_empty() {
+                            let tail = rest.split_off(rest.len().min(LOOKUPS_PER_MESSAGE));
+                            let chunk = std::mem::replace(&mut rest, tail);
+                            sequence += 1;
+                            let request = lookups_request(&job, sequence, &chunk);
+                            lock(&job.report).cache_bytes += chunk.len() as u64 * (RAY_RECORD_BYTES as u64 + 8);
+                            pending.push_back((sequence, Pending::Lookups { job: job.clone(), lookups: chunk }));
+                            if req_tx.send(request).await.is_err() {
+                                ok = false;
+                                if !rest.is_empty() {
+                                    pending.push_back((0, Pending::Lookups { job: job.clone(), lookups: rest }));
+                                }
+                                break;
+                            }
+                        }
+                        ok
+                    }
+                    CacheMessage::Returns { job, returns, done } => {
+                        let mut ok = true;
+                        let mut rest = returns;
+                        let mut dones = Some(done);
+                        while !rest.is_empty() || dones.is_some() {
+                            let tail = rest.split_off(rest.len().min(RETURNS_PER_MESSAGE));
+                            let chunk = std::mem::replace(&mut rest, tail);
+                            sequence += 1;
+                            let request = CacheRequest {
+                                msg: Some(cache_request::Msg::Returns(TicketReturns {
+                                    job_id: job.key.id.to_string(),
+                                    attempt: job.key.attempt,
+                                    sequence,
+                                    returns: chunk,
+                                })),
+                            };
+                            // The last chunk carries the caller's wait.
+                            let p = if rest.is_empty() {
+                                match dones.take() {
+                                    Some(done) => Pending::Returns { done },
+                                    None => break,
+                                }
+                            } else {
+                                Pending::Returns { done: oneshot::channel().0 }
+                            };
+                            pending.push_back((sequence, p));
+                            if req_tx.send(request).await.is_err() {
+                                ok = false;
+                                break;
+                            }
+                        }
+                        ok
+                    }
+                    CacheMessage::Outcomes { job, outcomes } => {
+                        sequence += 1;
+                        let request = CacheRequest {
+                            msg: Some(cache_request::Msg::Outcomes(PhmOutcomes {
+                                job_id: job.key.id.to_string(),
+                                attempt: job.key.attempt,
+                                sequence,
+                                walls: outcomes.iter().map(|o| o.0).collect(),
+                                cells: outcomes.iter().map(|o| o.1).collect(),
+                                hits: outcomes.iter().map(|o| u8::from(o.2)).collect(),
+                            })),
+                        };
+                        pending.push_back((sequence, Pending::Returns { done: oneshot::channel().0 }));
+                        req_tx.send(request).await.is_ok()
+                    }
+                };
+                if !sent {
+                    link_failed(&shared, &endpoint, &mut rx, pending, "the stream closed");
+                    return;
+                }
+            }
+            answer = answers.message() => {
+                let response = match answer {
+                    Ok(Some(r)) => r,
+                    Ok(None) => {
+                        link_failed(&shared, &endpoint, &mut rx, pending, "the host ended the stream");
+                        return;
+                    }
+                    Err(s) => {
+                        link_failed(&shared, &endpoint, &mut rx, pending, s.message());
+                        return;
+                    }
+                };
+                let Some((seq, p)) = pending.pop_front() else {
+                    link_failed(&shared, &endpoint, &mut rx, pending, "an answer to nothing sent");
+                    return;
+                };
+                match (response.msg, p) {
+                    (Some(cache_response::Msg::Answers(a)), Pending::Lookups { job, lookups })
+                        if a.sequence == seq =>
+                    {
+                        apply_answers(&shared, &job, lookups, &a);
+                    }
+                    (Some(cache_response::Msg::Ack(a)), Pending::Returns { done }) if a.sequence == seq => {
+                        let _ = done.send(true);
+                    }
+                    (_, p) => {
+                        pending.push_front((seq, p));
+                        link_failed(&shared, &endpoint, &mut rx, pending, "answers out of order");
+                        return;
+                    }
+                }
+            }
+        }
+    }
+}
+
+fn lookups_request(job: &Job, sequence: u64, lookups: &[Lookup]) -> CacheRequest {
+    // The actor reads the coarse flag from the record (a coarse ray's ticket stores
+    // even when the main pass does not fill).
+    let rays: Vec<_> = lookups
+        .iter()
+        .map(|l| {
+            let mut r = l.ray;
+            if l.lineage.coarse {
+                r.flags |= FLAG_COARSE;
+            }
+            r
+        })
+        .collect();
+    let mut records = Vec::new();
+    encode_rays(&rays, &mut records);
+    CacheRequest {
+        msg: Some(cache_request::Msg::Lookups(CacheLookups {
+            job_id: job.key.id.to_string(),
+            attempt: job.key.attempt,
+            sequence,
+            count: lookups.len() as u32,
+            records,
+            walls: lookups.iter().map(|l| l.wall).collect(),
+            options: lookups
+                .iter()
+                .map(|l| {
+                    let mut o = 0;
+                    if l.cache {
+                        // The coarse pass is exact: its rays fill the caches, never ask.
+                        if !l.lineage.coarse {
+                            o |= MAY_ANSWER;
+                        }
+                        if l.lineage.ticket_count() < MAX_TICKETS
+                            && job.tracer.tickets_for(&l.lineage)
+                        {
+                            o |= MAY_TICKET;
+                        }
+                    }
+                    if l.phm {
+                        o |= ASK_PHM;
+                    }
+                    o
+                })
+                .collect(),
+        })),
+    }
+}
+
+/// Apply a host's answers to the lookups they answer, ray for ray. An answer that
+/// does not fit its lookups (a host bug) sends the unanswered rays straight on.
+fn apply_answers(shared: &Arc<Shared>, job: &Arc<Job>, lookups: Vec<Lookup>, a: &CacheAnswers) {
+    job.awaiting_cache
+        .fetch_sub(lookups.len(), Ordering::Relaxed);
+    if !job.is_active() {
+        return;
+    }
+    let routes = job.routes();
+    let residency = NoDomains {
+        walls: routes.has_caches(),
+    };
+    let mut out = Outbox::default();
+    let mut radiance = a.radiance.chunks_exact(3);
+    let mut tickets = a.tickets.iter();
+    let (mut cache_not_sent, mut phm_not_sent) = (0u64, 0u64);
+    for (i, l) in lookups.into_iter().enumerate() {
+        let code = a.outcomes.get(i).copied().unwrap_or(GO_ON);
+        let mut lin = l.lineage;
+        lin.probe = code & PROBE != 0 && matches!(code & !PROBE, GO_ON | TICKETED);
+        match code & !PROBE {
+            HIT => {
+                if let Some(c) = radiance.next() {
+                    job.tracer
+                        .answer_hit(&l.ray, &lin, Vec3::new(c[0], c[1], c[2]), &mut out);
+                    if !routes.owns(l.domain) {
+                        cache_not_sent += 1;
+                    }
+                    continue;
+                }
+            }
+            TICKETED => {
+                if let Some(&t) = tickets.next() {
+                    lin = lin.with_ticket(t);
+                }
+            }
+            SKIP => {
+                if !routes.owns(l.domain) {
+                    phm_not_sent += 1;
+                }
+                if let Err(e) = job.tracer.skip(&l.ray, lin, l.domain, &residency, &mut out) {
+                    job.fail(format!("worker {}: {e}", shared.id()));
+                    return;
+                }
+                continue;
+            }
+            OCCLUDED if l.ray.kind.is_occlusion() => {
+                if !routes.owns(l.domain) {
+                    phm_not_sent += 1;
+                }
+                job.tracer.answer_occluded(&l.ray, &lin, &mut out);
+                continue;
+            }
+            _ => {}
+        }
+        out.rays.entry(l.domain).or_default().push(l.ray, &lin);
+    }
+    if cache_not_sent + phm_not_sent > 0 {
+        let mut r = lock(&job.report);
+        r.cache_rays_not_sent += cache_not_sent;
+        r.phm_rays_not_sent += phm_not_sent;
+    }
+    crate::work::deliver(shared, job, out);
+    shared.notify();
+}
+
+/// The stream to `endpoint` failed: the host is dead for this worker; everything sent
+/// or waiting for it is failed (lookups go straight on, returns are dropped).
+fn link_failed(
+    shared: &Arc<Shared>,
+    endpoint: &str,
+    rx: &mut mpsc::UnboundedReceiver<CacheMessage>,
+    pending: VecDeque<(u64, Pending)>,
+    error: &str,
+) {
+    tracing::warn!(worker = %shared.id(), host = %endpoint, "cache host lost: {error}");
+    lock(&shared.caches.dead).insert(endpoint.to_string());
+    rx.close();
+    lock(&shared.caches.links).retain(|_, tx| !tx.is_closed());
+    for (_, p) in pending {
+        match p {
+            Pending::Lookups { job, lookups } => {
+                fail(shared, endpoint, CacheMessage::Lookups { job, lookups })
+            }
+            Pending::Returns { done } => {
+                let _ = done.send(false);
+            }
+        }
+    }
+    while let Ok(m) = rx.try_recv() {
+        fail(shared, endpoint, m);
+    }
+}
