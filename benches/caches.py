@@ -136,7 +136,8 @@ def main() -> int:
         try:
             # The cluster renders the package (cut once); the embedded mode loads and
             # cuts the scene in memory for every render (`render_s` leaves that out).
-            scene = str(package) if mode == "cluster" else f"grid:{bunny}:3x3x3"
+            # (the coordinator resolves scene names against its scene root, a.work)
+            scene = package.name if mode == "cluster" else f"grid:{bunny}:3x3x3"
             if mode == "embedded":
                 target += ["--domains", "27", "--layout", "grid"]
             results[mode] = sweep(dray, scene, a.work / f"{mode}-radius", a.size,
