@@ -147,13 +147,18 @@ impl CacheLinks {
 /// Called with a tracing step's lookups; never waits.
 pub(crate) fn send_lookups(shared: &Arc<Shared>, job: &Arc<Job>, lookups: Vec<Lookup>) {
     let routes = job.routes();
-    let mut by_host: HashMap<&str, Vec<Lookup>> = HashMap::new();
+    // Grouped by host index, and each host's liveness asked once per step, not per ray
+    // (a lock and a string hash each).
+    let mut by_host: Vec<Vec<Lookup>> = vec![Vec::new(); routes.cache_host_count()];
     let mut bypass = Outbox::default();
     let mut bypassed = 0u64;
     for l in lookups {
-        match routes.cache_host(l.wall) {
-            Some(h) if !shared.caches.is_dead(h) => by_host.entry(h).or_default().push(l),
-            _ => {
+        match routes
+            .cache_host_index(l.wall)
+            .and_then(|h| by_host.get_mut(h as usize))
+        {
+            Some(group) => group.push(l),
+            None => {
                 bypassed += 1;
                 bypass
                     .rays
@@ -163,7 +168,24 @@ pub(crate) fn send_lookups(shared: &Arc<Shared>, job: &Arc<Job>, lookups: Vec<Lo
             }
         }
     }
-    for (host, lookups) in by_host {
+    for (h, lookups) in by_host.into_iter().enumerate() {
+        if lookups.is_empty() {
+            continue;
+        }
+        let Some(host) = routes.cache_host_endpoint(h as u32) else {
+            continue;
+        };
+        if shared.caches.is_dead(host) {
+            bypassed += lookups.len() as u64;
+            for l in lookups {
+                bypass
+                    .rays
+                    .entry(l.domain)
+                    .or_default()
+                    .push(l.ray, &l.lineage);
+            }
+            continue;
+        }
         job.awaiting_cache
             .fetch_add(lookups.len(), Ordering::Relaxed);
         shared.caches.send(

@@ -146,8 +146,23 @@ impl Routes {
 
     /// The endpoint of the cache host serving `wall`, if the job has caches.
     pub fn cache_host(&self, wall: u32) -> Option<&str> {
-        let h = *self.wall_hosts.get(wall as usize)?;
-        self.cache_hosts.get(h as usize).map(String::as_str)
+        self.cache_host_index(wall)
+            .and_then(|h| self.cache_host_endpoint(h))
+    }
+
+    /// The index (into the table's cache hosts) of the host serving `wall`.
+    pub fn cache_host_index(&self, wall: u32) -> Option<u32> {
+        self.wall_hosts.get(wall as usize).copied()
+    }
+
+    /// The endpoint of cache host `index`.
+    pub fn cache_host_endpoint(&self, index: u32) -> Option<&str> {
+        self.cache_hosts.get(index as usize).map(String::as_str)
+    }
+
+    /// Cache hosts in the table.
+    pub fn cache_host_count(&self) -> usize {
+        self.cache_hosts.len()
     }
 
     /// Whether this worker traces rays bound for domain `d`.
