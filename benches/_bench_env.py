@@ -242,3 +242,33 @@ def idle_check(seconds: float = 2.0) -> float:
         log(f"WARNING: the machine is not idle ({busy_cores:.2f} cores busy before the start); "
             "timings will be disturbed")
     return busy_cores
+
+
+class Cluster:
+    """`dray cluster --workers N` as a child process (extra flags in `extra`), up until
+    `stop`; `addr` is its coordinator's host:port."""
+
+    def __init__(self, dray: Path, workers: int, port: int, root: Path, log: Path,
+                 extra: list[str] | None = None) -> None:
+        self.addr = f"127.0.0.1:{port}"
+        cmd = [str(dray), "cluster", "--workers", str(workers), "--base-port", str(port),
+               "--scene-root", str(root), *(extra or [])]
+        self.logf = open(log, "w")
+        self.p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=self.logf, text=True)
+        for line in self.p.stdout:
+            if line.startswith("dray cluster ready"):
+                break
+        else:
+            self.stop()
+            raise RuntimeError(f"dray cluster did not start: {' '.join(cmd)}; see {log}")
+
+    def stop(self) -> None:
+        import signal
+        if self.p.poll() is None:
+            self.p.send_signal(signal.SIGTERM)
+            try:
+                self.p.wait(60)
+            except subprocess.TimeoutExpired:
+                self.p.kill()
+                self.p.wait()
+        self.logf.close()

@@ -29,7 +29,6 @@ import csv
 import json
 import math
 import os
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -46,33 +45,6 @@ THESIS = {
 }
 THESIS_VOXEL = 0.3
 ANGLE_DEG = math.degrees(math.acos(1.0 - 0.005))
-
-
-class Cluster:
-    """`dray cluster` as a child process, up until `stop`."""
-
-    def __init__(self, dray: Path, workers: int, port: int, root: Path, log: Path) -> None:
-        self.addr = f"127.0.0.1:{port}"
-        cmd = [str(dray), "cluster", "--workers", str(workers), "--base-port", str(port),
-               "--scene-root", str(root), "--threads", "1"]
-        self.logf = open(log, "w")
-        self.p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=self.logf, text=True)
-        for line in self.p.stdout:
-            if line.startswith("dray cluster ready"):
-                break
-        else:
-            self.stop()
-            raise RuntimeError(f"dray cluster did not start: {' '.join(cmd)}; see {log}")
-
-    def stop(self) -> None:
-        if self.p.poll() is None:
-            self.p.send_signal(signal.SIGTERM)
-            try:
-                self.p.wait(60)
-            except subprocess.TimeoutExpired:
-                self.p.kill()
-                self.p.wait()
-        self.logf.close()
 
 
 def voxel_width(package: Path) -> float:
@@ -129,7 +101,8 @@ def main() -> int:
     for mode in a.modes:
         cluster = None
         if mode == "cluster":
-            cluster = Cluster(dray, a.workers, a.port, a.work, a.work / "cluster.log")
+            cluster = env.Cluster(dray, a.workers, a.port, a.work, a.work / "cluster.log",
+                                      ["--threads", "1"])
             target = ["--coordinator", cluster.addr]
         else:
             target = ["--workers", str(a.workers)]

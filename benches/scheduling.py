@@ -32,7 +32,6 @@ import hashlib
 import json
 import os
 import re
-import signal
 import subprocess
 import sys
 import time
@@ -46,37 +45,6 @@ SCHEDULES = ["image-plane", "domain", "dynamic"]
 
 def sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
-
-
-class Cluster:
-    """`dray cluster` as a child process, up until `stop`."""
-
-    def __init__(self, dray: Path, workers: int, port: int, root: Path, budget: int, delay: int,
-                 threads: int, log: Path) -> None:
-        self.addr = f"127.0.0.1:{port}"
-        cmd = [str(dray), "cluster", "--workers", str(workers), "--base-port", str(port),
-               "--scene-root", str(root), "--memory-budget", str(budget),
-               "--load-delay-ms", str(delay)]
-        if threads:
-            cmd += ["--threads", str(threads)]
-        self.logf = open(log, "w")
-        self.p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=self.logf, text=True)
-        for line in self.p.stdout:
-            if line.startswith("dray cluster ready"):
-                break
-        else:
-            self.stop()
-            raise RuntimeError(f"dray cluster did not start: {' '.join(cmd)}; see {log}")
-
-    def stop(self) -> None:
-        if self.p.poll() is None:
-            self.p.send_signal(signal.SIGTERM)
-            try:
-                self.p.wait(60)
-            except subprocess.TimeoutExpired:
-                self.p.kill()
-                self.p.wait()
-        self.logf.close()
 
 
 def partition(dray: Path, scene: str, domains: int, out: Path) -> dict:
@@ -148,8 +116,11 @@ def main() -> int:
         env.log(f"{domains} domains, {info['triangles']} triangles, resident {info['resident_bytes'] / 2**20:.0f} MiB,"
                 f" budget {budget / 2**20:.0f} MiB per worker")
         for delay in a.delays:
-            cl = Cluster(dray, a.workers, a.port, a.work, budget, delay, a.threads,
-                         a.work / f"cluster_{domains}_{delay}.log")
+            extra = ["--memory-budget", str(budget), "--load-delay-ms", str(delay)]
+            if a.threads:
+                extra += ["--threads", str(a.threads)]
+            cl = env.Cluster(dray, a.workers, a.port, a.work,
+                             a.work / f"cluster_{domains}_{delay}.log", extra)
             try:
                 for integ in a.integrators:
                     for size in a.sizes:

@@ -221,7 +221,7 @@ async fn wait_cache_stats(
         }
         assert!(
             tokio::time::Instant::now() < deadline,
-            "cache statistics never came"
+            "HANG: cache statistics never came within PATIENCE"
         );
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
