@@ -9,6 +9,7 @@
 //!   `fill=false` the image is then the same bits on every run and worker count.
 //! - Hit maps whose thresholds never decide give the reference bits; maps that decide
 //!   skip domains and occlude shadow rays, and say so.
+//! - Consistent maps come closer to the exact image as the sample count grows.
 //! - A cache host killed mid-job: rays go past its walls, the job completes with the
 //!   reference bits (nothing was answered) and names the lost host.
 
@@ -259,6 +260,94 @@ fn hit_maps_that_decide_skip_domains_and_occlude_shadow_rays() {
         "{what}: no cell decided: {p}"
     );
     assert!(u64_of(p, "outcomes") > 0, "{what}: {p}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Root-mean-square difference of two PNGs' 8-bit values, scaled to [0, 1].
+fn rmse(a: &Path, b: &Path) -> f64 {
+    let (a, b) = (common::rgb(a), common::rgb(b));
+    assert_eq!(a.dimensions(), b.dimensions(), "image sizes differ");
+    let n = a.as_raw().len() as f64;
+    let sum: f64 = a
+        .as_raw()
+        .iter()
+        .zip(b.as_raw())
+        .map(|(&x, &y)| {
+            let d = (f64::from(x) - f64::from(y)) / 255.0;
+            d * d
+        })
+        .sum();
+    (sum / n).sqrt()
+}
+
+/// Consistent maps keep probing decided cells, so as the sample count grows a job's
+/// image comes closer to the converged exact one: the error against a many-sample
+/// exact render falls. (A cell whose true hit rate lies below `miss` stays decided and
+/// keeps its small bias; docs/caches.md says so.)
+#[test]
+fn consistent_hit_maps_come_closer_to_the_exact_image_as_samples_grow() {
+    let dir = common::tmp("phm-converges");
+    let job = |spp: &'static str| {
+        vec![
+            "--width",
+            "48",
+            "--height",
+            "36",
+            "--spp",
+            spp,
+            "--seed",
+            "5",
+            "--max-depth",
+            "4",
+            "--domains",
+            "8",
+            "--integrator",
+            "path",
+        ]
+    };
+    let exact = common::render(
+        &dir,
+        "exact",
+        SCENE,
+        &[&job("256")[..], &["--workers", "0"]].concat(),
+    );
+    assert!(exact.ok, "exact: {}", exact.stderr);
+    let exact = exact.png.expect("exact png");
+    let mut errors = Vec::new();
+    for spp in ["2", "32"] {
+        let what = format!("consistent maps at {spp} spp");
+        let r = common::render(
+            &dir,
+            &format!("phm-{spp}"),
+            SCENE,
+            &[
+                &job(spp)[..],
+                &[
+                    "--workers",
+                    "2",
+                    "--phm",
+                    "prior=1,miss=0.2,hit=0.8,reprobe=0.2,mode=consistent",
+                ],
+            ]
+            .concat(),
+        );
+        assert!(r.ok, "{what}: {}", r.stderr);
+        let stats = r.stats.expect("stats");
+        let p = &stats["phm"];
+        assert!(
+            u64_of(p, "rays_skipped") + u64_of(p, "rays_occluded") > 0,
+            "{what}: the maps answered nothing, so this test shows nothing: {p}"
+        );
+        errors.push(rmse(&r.png.expect("png"), &exact));
+    }
+    eprintln!(
+        "RMSE against the 256-spp exact image: 2 spp {:.4}, 32 spp {:.4}",
+        errors[0], errors[1]
+    );
+    assert!(
+        errors[1] < errors[0] * 0.75,
+        "the error did not fall as samples grew: {errors:?}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 
