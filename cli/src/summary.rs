@@ -225,6 +225,9 @@ pub struct Scheduling {
     pub schedule: String,
     /// Domain loads by workers (a domain loaded twice counts twice).
     pub domain_loads: u64,
+    /// Domains workers found resident from an earlier or concurrent job of the same
+    /// package, instead of loading them.
+    pub domains_warm: u64,
     /// Seconds workers spent loading domains, summed over workers.
     pub domain_load_seconds: f64,
     /// Domains evicted to stay within workers' memory budgets.
@@ -255,6 +258,7 @@ pub struct Scheduling {
 pub struct WorkerSummary {
     pub worker_id: String,
     pub domain_loads: u64,
+    pub domains_warm: u64,
     pub domain_load_seconds: f64,
     pub evictions: u64,
     pub idle_seconds: f64,
@@ -268,6 +272,7 @@ impl Scheduling {
         Scheduling {
             schedule: "none".into(),
             domain_loads: 0,
+            domains_warm: 0,
             domain_load_seconds: 0.0,
             evictions: 0,
             rays_exchanged: 0,
@@ -292,6 +297,7 @@ impl Scheduling {
         Scheduling {
             schedule,
             domain_loads: s.domain_loads,
+            domains_warm: s.domains_warm,
             domain_load_seconds: s.domain_load_seconds,
             evictions: s.evictions,
             rays_exchanged: s.rays_exchanged,
@@ -307,6 +313,7 @@ impl Scheduling {
                 .map(|w| WorkerSummary {
                     worker_id: w.worker_id.clone(),
                     domain_loads: w.domain_loads,
+                    domains_warm: w.domains_warm,
                     domain_load_seconds: w.domain_load_seconds,
                     evictions: w.evictions,
                     idle_seconds: w.idle_seconds,
@@ -322,13 +329,18 @@ impl Scheduling {
     pub fn line(&self) -> Option<String> {
         (self.worker_count > 0).then(|| {
             format!(
-                "{} on {} worker{}: domain loads {} ({:.3} s), evictions {}, rays exchanged {}, \
+                "{} on {} worker{}: domain loads {} ({:.3} s){}, evictions {}, rays exchanged {}, \
                  tiles re-traced {}",
                 self.schedule,
                 self.worker_count,
                 if self.worker_count == 1 { "" } else { "s" },
                 self.domain_loads,
                 self.domain_load_seconds,
+                if self.domains_warm > 0 {
+                    format!(", {} found resident", self.domains_warm)
+                } else {
+                    String::new()
+                },
                 self.evictions,
                 self.rays_exchanged,
                 self.tiles_retraced

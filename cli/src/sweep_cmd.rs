@@ -58,6 +58,16 @@ pub struct SweepArgs {
     /// `dray submit` does, instead of in this process.
     #[arg(long, value_name = "ADDR")]
     pub coordinator: Option<String>,
+    /// Render every setting (the exact one included) N times, in N interleaved rounds,
+    /// and report the median times: this machine's noise then moves every setting
+    /// alike. Errors and statistics are those of the first round.
+    #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=100))]
+    pub repeat: u32,
+    /// With --coordinator, do not render the exact job once, unmeasured, before the
+    /// sweep. Workers keep the last package's domains resident between jobs, so without
+    /// the warm-up the first render alone would pay for loading them.
+    #[arg(long)]
+    pub no_warmup: bool,
 }
 
 /// The sweep's flags as a parser of their own: the plan groups the words typed after
@@ -95,7 +105,33 @@ pub fn run(a: SweepArgs) -> Result<()> {
         None => Target::Embedded,
     };
     let plan = Plan::new(base, &a.vary, &target)?;
-    sweep(&plan, &a.out, &target, a.render.job.quiet)
+    let rounds = Rounds {
+        repeat: a.repeat,
+        warmup: a.coordinator.is_some() && !a.no_warmup,
+    };
+    sweep(&plan, &a.out, &target, a.render.job.quiet, rounds)
+}
+
+/// How often every setting is rendered.
+#[derive(Clone, Copy, Debug)]
+struct Rounds {
+    /// Interleaved rounds; times are medians over them.
+    repeat: u32,
+    /// Render the exact job once, unmeasured, first.
+    warmup: bool,
+}
+
+/// The median of `v` (not empty).
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_unstable_by(f64::total_cmp);
+    let n = v.len();
+    if n == 0 {
+        0.0
+    } else if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        (v[n / 2 - 1] + v[n / 2]) / 2.0
+    }
 }
 
 /// What one render gives the sweep.
@@ -286,12 +322,26 @@ fn shell_line(words: &[String]) -> String {
 
 /// Render the plan and write the results; on a failed render, what was measured so far is
 /// still written before the error is returned.
-fn sweep(plan: &Plan, out: &Path, target: &Target, quiet: bool) -> Result<()> {
+fn sweep(plan: &Plan, out: &Path, target: &Target, quiet: bool, rounds: Rounds) -> Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let show = !quiet && std::io::stderr().is_terminal();
     let total = plan.settings.len() + 1;
     let mut renderer = Renderer::new(target)?;
     let label = |i: usize, s: &Setting| format!("[{}/{total}] {}", i + 1, s.name);
+
+    if rounds.warmup {
+        let png = out.join(format!("warmup-{}", plan.exact.file));
+        let o = renderer
+            .render(&plan.exact, &png, "warm-up (exact, not measured)", show)
+            .context("the warm-up render")?;
+        let _ = std::fs::remove_file(&png);
+        if !quiet {
+            eprintln!(
+                "dray sweep: warm-up (exact, not measured): wall {:.3} s",
+                o.wall_s
+            );
+        }
+    }
 
     let exact = renderer
         .render(
@@ -355,6 +405,39 @@ fn sweep(plan: &Plan, out: &Path, target: &Target, quiet: bool) -> Result<()> {
         });
     }
 
+    // More rounds, interleaved, for the times only.
+    if failure.is_none() && rounds.repeat > 1 {
+        let mut walls: Vec<Vec<f64>> = rows.iter().map(|r| vec![r.wall_s]).collect();
+        let mut renders: Vec<Vec<f64>> = rows.iter().map(|r| vec![r.render_s]).collect();
+        let all: Vec<&Setting> = std::iter::once(&plan.exact)
+            .chain(plan.settings.iter())
+            .collect();
+        'rounds: for round in 2..=rounds.repeat {
+            for (i, s) in all.iter().enumerate() {
+                let png = out.join(format!("round-{}", s.file));
+                let what = format!("{} (round {round}/{})", label(i, s), rounds.repeat);
+                match renderer.render(s, &png, &what, show) {
+                    Ok(o) => {
+                        walls[i].push(o.wall_s);
+                        renders[i].push(o.render_s);
+                        if !quiet {
+                            eprintln!("dray sweep: {what}: wall {:.3} s", o.wall_s);
+                        }
+                    }
+                    Err(e) => {
+                        failure = Some(e.context(format!("setting {} in round {round}", s.name)));
+                        break 'rounds;
+                    }
+                }
+                let _ = std::fs::remove_file(&png);
+            }
+        }
+        for ((row, w), r) in rows.iter_mut().zip(&mut walls).zip(&mut renders) {
+            row.wall_s = median(w);
+            row.render_s = median(r);
+        }
+    }
+
     let points: Vec<Point> = rows
         .iter()
         .map(|r| Point {
@@ -372,7 +455,13 @@ fn sweep(plan: &Plan, out: &Path, target: &Target, quiet: bool) -> Result<()> {
     let base = shell_line(&plan.base);
     std::fs::write(
         &table,
-        report::table(&plan.exact.job.flags().scene, &base, &rows, &front),
+        report::table(
+            &plan.exact.job.flags().scene,
+            &base,
+            &rows,
+            &front,
+            rounds.repeat,
+        ),
     )
     .with_context(|| format!("cannot write {}", table.display()))?;
     let font = pareto::find_font();
@@ -410,6 +499,13 @@ fn sweep(plan: &Plan, out: &Path, target: &Target, quiet: bool) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn medians() {
+        assert_eq!(median(&mut [3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(median(&mut [4.0, 1.0, 2.0, 3.0]), 2.5);
+        assert_eq!(median(&mut [5.0]), 5.0);
+    }
 
     #[test]
     fn shell_words() {

@@ -109,8 +109,8 @@ fn check_scheduling_stats(stats: &Value, schedule: &str, workers: usize, what: &
         "{what}: {stats}"
     );
     assert!(
-        u64_of(stats, "domain_loads") > 0,
-        "{what}: no domain loads: {stats}"
+        u64_of(stats, "domain_loads") + u64_of(stats, "domains_warm") > 0,
+        "{what}: no domain loaded or found resident: {stats}"
     );
     assert!(u64_of(stats, "routing_version") >= 1, "{what}: {stats}");
     let per_worker = stats["workers"]
@@ -118,13 +118,20 @@ fn check_scheduling_stats(stats: &Value, schedule: &str, workers: usize, what: &
         .unwrap_or_else(|| panic!("{what}: no workers list in {stats}"));
     assert_eq!(per_worker.len(), workers, "{what}: {stats}");
     let mut loads = 0;
+    let mut warm = 0;
     let mut evictions = 0;
     for w in per_worker {
         assert!(
             w["worker_id"].as_str().is_some_and(|id| !id.is_empty()),
             "{what}: {w}"
         );
-        for key in ["domain_loads", "evictions", "queue_peak", "rays_traced"] {
+        for key in [
+            "domain_loads",
+            "domains_warm",
+            "evictions",
+            "queue_peak",
+            "rays_traced",
+        ] {
             u64_of(w, key);
         }
         for key in ["domain_load_seconds", "idle_seconds"] {
@@ -134,9 +141,11 @@ fn check_scheduling_stats(stats: &Value, schedule: &str, workers: usize, what: &
             );
         }
         loads += u64_of(w, "domain_loads");
+        warm += u64_of(w, "domains_warm");
         evictions += u64_of(w, "evictions");
     }
     assert_eq!(loads, u64_of(stats, "domain_loads"), "{what}: {stats}");
+    assert_eq!(warm, u64_of(stats, "domains_warm"), "{what}: {stats}");
     assert_eq!(evictions, u64_of(stats, "evictions"), "{what}: {stats}");
     if schedule == "image-plane" {
         assert_eq!(
@@ -387,6 +396,7 @@ fn submit_and_compare(
 fn every_schedule_on_a_cluster_gives_the_reference_bits() {
     let dir = common::tmp("schedules-cluster");
     let cluster = WorkerCluster::start(3, SLOT_UNBUDGETED, &dir, &[]);
+    let mut warm = Vec::new();
     for integrator in INTEGRATORS {
         let (want, _) = reference(&dir, integrator);
         for schedule in SCHEDULES {
@@ -396,8 +406,20 @@ fn every_schedule_on_a_cluster_gives_the_reference_bits() {
             if schedule != "dynamic" {
                 assert_eq!(u64_of(&stats, "evictions"), 0, "{tag}: {stats}");
             }
+            warm.push(u64_of(&stats, "domains_warm"));
         }
     }
+    // Every job is the same scene cut the same way: the workers keep the last job's
+    // domains, so the later jobs find them resident, and their bits (checked above)
+    // are those of domains loaded afresh.
+    assert_eq!(
+        warm[0], 0,
+        "the first job cannot find warm domains: {warm:?}"
+    );
+    assert!(
+        warm[1..].iter().all(|&w| w > 0),
+        "a later job of the same package loaded every domain again: {warm:?}"
+    );
     assert!(cluster.all_alive(), "{}", cluster.log());
     drop(cluster);
     let _ = std::fs::remove_dir_all(&dir);

@@ -113,6 +113,7 @@ impl JobMetrics {
         let w = self.entry(worker);
         if let Some(c) = c {
             w.domain_loads = w.domain_loads.saturating_add(c.domain_loads);
+            w.domains_warm = w.domains_warm.saturating_add(c.domains_warm);
             w.domain_load_seconds += c.domain_load_seconds;
             w.evictions = w.evictions.saturating_add(c.evictions);
             w.idle_seconds += c.idle_seconds;
@@ -130,6 +131,9 @@ impl JobMetrics {
             .clone()
             .fold(0u64, |a, w| a.saturating_add(w.domain_loads));
         s.domain_load_seconds = ws.clone().map(|w| w.domain_load_seconds).sum();
+        s.domains_warm = ws
+            .clone()
+            .fold(0u64, |a, w| a.saturating_add(w.domains_warm));
         s.evictions = ws.clone().fold(0u64, |a, w| a.saturating_add(w.evictions));
         s.queue_peak = ws.clone().map(|w| w.queue_peak).max().unwrap_or(0);
         s.rays_exchanged = self.rays_sent;

@@ -243,6 +243,7 @@ async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
         id: job_id.as_str().into(),
         attempt,
     };
+    shared.store.open(&key, plan.content);
     let job = Arc::new(Job::new(key, plan.tracer, plan.source, routes));
     let owned = job.routes().owned().len();
     let (started, replaced) = shared.jobs.insert(job.clone());

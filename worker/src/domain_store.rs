@@ -21,6 +21,15 @@
 //!
 //! Loads run on the tracing thread that needs the domain (other threads go on with
 //! resident work); a domain being loaded by one thread is not loaded twice.
+//!
+//! **Warm domains.** A slot is keyed by what the domain *is* — the package's content
+//! (its manifest checksum, which covers every domain file) and the settings that change
+//! a loaded domain — not by the job that loaded it ([`DomainStore::open`]). Jobs of the
+//! same package share resident domains, and when a job is released its domains stay
+//! resident, idle, until a job of another package opens or the budget needs their room:
+//! a sweep, an animation or a second look at the same scene does not load and build
+//! its BVHs again. At most one idle package is kept, so a worker between jobs holds no
+//! more than the last job's domains.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -94,6 +103,8 @@ pub const LOAD_OVERHEAD: u64 = 2;
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct StoreCounters {
     pub loads: u64,
+    /// Domains the job found resident, loaded by another job of the same content.
+    pub warm: u64,
     pub load_seconds: f64,
     pub evictions: u64,
 }
@@ -116,9 +127,19 @@ impl Slot {
     }
 }
 
+/// What a loaded domain is made of (see "Warm domains" above): equal keys load
+/// equal domains.
+pub type Content = Arc<str>;
+
 #[derive(Default)]
 struct Inner {
-    slots: HashMap<(JobKey, u32), Slot>,
+    slots: HashMap<(Content, u32), Slot>,
+    /// The content of every open job attempt.
+    jobs: HashMap<JobKey, Content>,
+    /// The content whose domains stay resident with no open job (see "Warm domains").
+    idle: Option<Content>,
+    /// Domains each open job has used or loaded, so that a warm one counts once.
+    used: HashMap<JobKey, std::collections::HashSet<u32>>,
     /// Bytes of all slots, loading ones included.
     bytes: u64,
     clock: u64,
@@ -159,6 +180,29 @@ impl DomainStore {
         self.inner.lock().unwrap_or_else(|p| p.into_inner())
     }
 
+    /// Say what `job`'s domains are made of, before its first load: resident domains of
+    /// the same content (another job's, or idle ones of a finished job) are then used
+    /// as they are. Idle domains of other content are dropped now. A job never opened
+    /// has domains of its own.
+    pub fn open(&self, job: &JobKey, content: Content) {
+        let mut g = self.lock();
+        if g.idle.as_ref().is_some_and(|c| *c != content) {
+            let old = g.idle.take();
+            if let Some(old) = old {
+                drop_content(&mut g, &old);
+            }
+        } else if g.idle.as_ref() == Some(&content) {
+            g.idle = None;
+        }
+        g.jobs.insert(job.clone(), content);
+    }
+
+    /// The slot key of domain `d` of `job`.
+    fn key(g: &Inner, job: &JobKey, d: u32) -> (Content, u32) {
+        let content = g.jobs.get(job).cloned().unwrap_or_else(|| private(job));
+        (content, d)
+    }
+
     /// The budget in bytes (0: unlimited).
     pub fn budget(&self) -> u64 {
         self.budget
@@ -169,19 +213,25 @@ impl DomainStore {
         let mut g = self.lock();
         g.clock += 1;
         let now = g.clock;
-        match g.slots.get_mut(&(job.clone(), d)) {
+        let key = Self::key(&g, job, d);
+        let found = match g.slots.get_mut(&key) {
             Some(Slot::Ready { domain, last_used }) => {
                 *last_used = now;
                 Some(domain.clone())
             }
             _ => None,
+        };
+        if found.is_some() {
+            note_use(&mut g, job, d, false);
         }
+        found
     }
 
     /// Whether domain `d` of `job` is resident.
     pub fn is_resident(&self, job: &JobKey, d: u32) -> bool {
+        let g = self.lock();
         matches!(
-            self.lock().slots.get(&(job.clone(), d)),
+            g.slots.get(&Self::key(&g, job, d)),
             Some(Slot::Ready { .. })
         )
     }
@@ -210,11 +260,18 @@ impl DomainStore {
                 note: self.note.clone(),
             });
         }
-        let key = (job.clone(), d);
-        {
+        let key = {
             let mut g = self.lock();
+            if !g.jobs.contains_key(job) {
+                g.jobs.insert(job.clone(), private(job));
+            }
+            let key = Self::key(&g, job, d);
             match g.slots.get(&key) {
-                Some(Slot::Ready { domain, .. }) => return Ok(domain.clone()),
+                Some(Slot::Ready { domain, .. }) => {
+                    let domain = domain.clone();
+                    note_use(&mut g, job, d, false);
+                    return Ok(domain);
+                }
                 Some(Slot::Loading { .. }) => return Err(LoadError::Busy { domain: d }),
                 None => {}
             }
@@ -224,7 +281,8 @@ impl DomainStore {
             g.slots
                 .insert(key.clone(), Slot::Loading { bytes: reserve });
             g.bytes += reserve;
-        }
+            key
+        };
         let start = Instant::now();
         let _span = tracing::debug_span!("load", job = %job.id, domain = d).entered();
         if !self.load_delay.is_zero() {
@@ -248,13 +306,15 @@ impl DomainStore {
                 last_used: now,
             },
         );
+        note_use(&mut g, job, d, true);
         let c = g.counters.entry(job.clone()).or_default();
         c.loads += 1;
         c.load_seconds += seconds;
         if self.budget > 0 && g.bytes > self.budget {
             // The estimate was short: evict others until the measured size fits.
             let over = g.bytes - self.budget;
-            self.evict_lru(&mut g, over, Some((job, d)));
+            let keep = Self::key(&g, job, d);
+            self.evict_lru(&mut g, over, Some(&keep));
         }
         drop(g);
         // The build's transients are freed now: give them back.
@@ -276,15 +336,15 @@ impl DomainStore {
 
     /// Evict least recently used ready domains (never `keep`) until `bytes` are freed or
     /// none is left.
-    fn evict_lru(&self, g: &mut Inner, bytes: u64, keep: Option<(&JobKey, u32)>) {
-        let mut ready: Vec<(u64, (JobKey, u32))> = g
+    fn evict_lru(&self, g: &mut Inner, bytes: u64, keep: Option<&(Content, u32)>) {
+        let mut ready: Vec<(u64, (Content, u32))> = g
             .slots
             .iter()
             .filter_map(|(k, s)| match s {
                 Slot::Ready { last_used, .. } => Some((*last_used, k.clone())),
                 Slot::Loading { .. } => None,
             })
-            .filter(|(_, k)| keep.is_none_or(|(j, d)| !(k.0 == *j && k.1 == d)))
+            .filter(|(_, k)| keep.is_none_or(|keep| k != keep))
             .collect();
         ready.sort_unstable_by_key(|(t, _)| *t);
         let mut freed = 0u64;
@@ -296,8 +356,17 @@ impl DomainStore {
                 let b = slot.bytes();
                 freed += b;
                 g.bytes -= b;
-                g.counters.entry(k.0.clone()).or_default().evictions += 1;
-                tracing::debug!(job = %k.0.id, domain = k.1, bytes = b, "domain evicted");
+                // Counted for every open job of that content (idle ones count nowhere).
+                let jobs: Vec<JobKey> = g
+                    .jobs
+                    .iter()
+                    .filter(|(_, c)| **c == k.0)
+                    .map(|(j, _)| j.clone())
+                    .collect();
+                for j in jobs {
+                    g.counters.entry(j).or_default().evictions += 1;
+                }
+                tracing::debug!(content = %k.0, domain = k.1, bytes = b, "domain evicted");
             }
         }
     }
@@ -306,27 +375,46 @@ impl DomainStore {
     /// eviction.
     pub fn evict(&self, job: &JobKey, d: u32) {
         let mut g = self.lock();
-        if let Some(Slot::Ready { domain, .. }) = g.slots.get(&(job.clone(), d)) {
+        let key = Self::key(&g, job, d);
+        if let Some(Slot::Ready { domain, .. }) = g.slots.get(&key) {
             let b = domain.bytes;
-            g.slots.remove(&(job.clone(), d));
+            g.slots.remove(&key);
             g.bytes -= b;
             g.counters.entry(job.clone()).or_default().evictions += 1;
         }
     }
 
-    /// Drop every domain of `job_id` with attempt at most `attempt` (released), without
-    /// counting evictions.
+    /// Close every attempt of `job_id` up to `attempt` (released). Their domains stay
+    /// resident while another open job shares them; otherwise the last released
+    /// content stays as the idle one (see "Warm domains") and the rest is dropped,
+    /// without counting evictions.
     pub fn release(&self, job_id: &str, attempt: u32) {
         let mut g = self.lock();
-        let mut freed = 0;
-        g.slots.retain(|(j, _), s| {
-            let gone = &*j.id == job_id && j.attempt <= attempt && matches!(s, Slot::Ready { .. });
-            if gone {
-                freed += s.bytes();
+        let closed: Vec<JobKey> = g
+            .jobs
+            .keys()
+            .filter(|j| &*j.id == job_id && j.attempt <= attempt)
+            .cloned()
+            .collect();
+        for j in &closed {
+            g.used.remove(j);
+        }
+        let mut contents: Vec<Content> = closed.iter().filter_map(|j| g.jobs.remove(j)).collect();
+        contents.sort_unstable();
+        contents.dedup();
+        for c in contents {
+            if g.jobs.values().any(|o| *o == c) || g.idle.as_ref() == Some(&c) {
+                continue;
             }
-            !gone
-        });
-        g.bytes -= freed;
+            if closed.iter().any(|j| private(j) == c) {
+                // A job never opened had domains of its own: no later job can use them.
+                drop_content(&mut g, &c);
+                continue;
+            }
+            if let Some(old) = g.idle.replace(c) {
+                drop_content(&mut g, &old);
+            }
+        }
         g.counters
             .retain(|j, _| !(&*j.id == job_id && j.attempt <= attempt));
     }
@@ -336,10 +424,11 @@ impl DomainStore {
     /// whose load is under way, or the load is thrown away.
     pub fn resident(&self, job: &JobKey) -> Vec<(u32, u64)> {
         let g = self.lock();
+        let content = Self::key(&g, job, 0).0;
         let mut v: Vec<(u32, u64)> = g
             .slots
             .iter()
-            .filter(|((j, _), _)| j == job)
+            .filter(|((c, _), _)| *c == content)
             .map(|((_, d), s)| (*d, s.bytes()))
             .collect();
         v.sort_unstable();
@@ -359,6 +448,37 @@ impl DomainStore {
             .map(std::mem::take)
             .unwrap_or_default()
     }
+}
+
+/// Mark domain `d` used by `job`; the first use of a domain it did not load itself
+/// (`loaded` false) counts as warm.
+fn note_use(g: &mut Inner, job: &JobKey, d: u32, loaded: bool) {
+    if !g.jobs.contains_key(job) {
+        return;
+    }
+    let first = g.used.entry(job.clone()).or_default().insert(d);
+    if first && !loaded {
+        g.counters.entry(job.clone()).or_default().warm += 1;
+    }
+}
+
+/// The content of the domains of a job never [opened](DomainStore::open): its own.
+fn private(job: &JobKey) -> Content {
+    format!("job {} attempt {}", job.id, job.attempt).into()
+}
+
+/// Drop the ready domains of `content` (loads under way finish and are then kept only
+/// while their job is open).
+fn drop_content(g: &mut Inner, content: &Content) {
+    let mut freed = 0;
+    g.slots.retain(|(c, _), s| {
+        let gone = c == content && matches!(s, Slot::Ready { .. });
+        if gone {
+            freed += s.bytes();
+        }
+        !gone
+    });
+    g.bytes -= freed;
 }
 
 /// Hand freed heap memory back to the operating system. glibc's allocator keeps large
@@ -489,5 +609,70 @@ mod tests {
         assert!(store.is_resident(&job(1), 0));
         assert_eq!(store.used_bytes(), 10);
         assert_eq!(store.resident(&job(1)), vec![(0, 10)]);
+    }
+
+    fn named(id: &str) -> JobKey {
+        JobKey {
+            id: id.into(),
+            attempt: 0,
+        }
+    }
+
+    #[test]
+    fn jobs_of_the_same_content_share_domains_and_the_last_stays_warm() {
+        let src = Fake {
+            bytes: 10,
+            loads: AtomicU64::new(0),
+        };
+        let store = DomainStore::new(0, Duration::ZERO);
+        let (a, b, c) = (named("a"), named("b"), named("c"));
+        store.open(&a, "pkg-1".into());
+        store.open(&b, "pkg-1".into());
+        store.load(&a, 0, &src).unwrap();
+        store.load(&b, 0, &src).unwrap();
+        assert_eq!(src.loads.load(Ordering::Relaxed), 1, "b used a's domain");
+        let cb = store.take_counters(&b);
+        assert_eq!((cb.loads, cb.warm), (0, 1));
+        assert!(store.get(&b, 0).is_some());
+        assert_eq!(store.take_counters(&b).warm, 0, "a warm domain counts once");
+        assert_eq!(store.take_counters(&a).warm, 0, "a loaded it");
+        store.release("a", 0);
+        store.release("b", 0);
+        assert_eq!(store.used_bytes(), 10, "the released package stays warm");
+        // A later job of the same package finds it resident.
+        store.open(&c, "pkg-1".into());
+        assert!(store.is_resident(&c, 0));
+        assert!(store.get(&c, 0).is_some());
+        assert_eq!(store.take_counters(&c).warm, 1);
+        assert_eq!(store.resident(&c), vec![(0, 10)]);
+        store.release("c", 0);
+        // A job of another package drops the idle one.
+        let d = named("d");
+        store.open(&d, "pkg-2".into());
+        assert_eq!(store.used_bytes(), 0, "idle domains of other content went");
+        assert!(!store.is_resident(&d, 0));
+        store.load(&d, 0, &src).unwrap();
+        assert_eq!(src.loads.load(Ordering::Relaxed), 2);
+    }
+
+    #[test]
+    fn idle_domains_give_way_to_the_budget() {
+        let src = Fake {
+            bytes: 100,
+            loads: AtomicU64::new(0),
+        };
+        let store = DomainStore::new(450, Duration::ZERO);
+        let (a, b) = (named("a"), named("b"));
+        store.open(&a, "pkg-1".into());
+        for d in 0..3 {
+            store.load(&a, d, &src).unwrap();
+        }
+        store.release("a", 0);
+        // Another job of the same package that needs a fourth domain: the least
+        // recently used idle one makes room, as any resident domain would.
+        store.open(&b, "pkg-1".into());
+        store.load(&b, 3, &src).unwrap();
+        assert!(store.used_bytes() <= 450);
+        assert_eq!(store.resident(&b).len(), 3);
     }
 }

@@ -24,7 +24,7 @@ use dray_scene::partition::resident::{assemble, resident_bytes};
 use dray_scene::partition::{Aabb, DomainLayout, DomainMesh, Package, open_package};
 use glam::Vec3;
 
-use crate::domain_store::{DomainSource, LoadedDomain};
+use crate::domain_store::{Content, DomainSource, LoadedDomain};
 use crate::tracer::JobTracer;
 
 /// Why a job could not be set up on this worker.
@@ -93,6 +93,20 @@ pub fn settings(setup: &JobSetup) -> Result<RenderSettings, JobError> {
 pub struct JobPlan {
     pub tracer: JobTracer,
     pub source: Arc<dyn DomainSource>,
+    /// What its loaded domains are made of ([`DomainStore::open`]): jobs with equal
+    /// content share resident domains.
+    ///
+    /// [`DomainStore::open`]: crate::DomainStore::open
+    pub content: Content,
+}
+
+/// The content key of a package's domains loaded for `settings`: the package's
+/// identity (the manifest checksum for a package on disk, which covers every domain
+/// file; the process-unique name of an in-memory one) and the one setting that
+/// changes a loaded domain (whether emitters are lights).
+fn content(identity: &str, settings: &RenderSettings) -> Content {
+    let emission = settings.effects.contains(Effect::Emission);
+    format!("{identity} emission={emission}").into()
 }
 
 /// Open the job's package (a directory, or an in-memory package of this process in
@@ -129,7 +143,11 @@ pub fn plan_job(setup: &JobSetup, memory: Option<&MemoryPackages>) -> Result<Job
         .collect();
     let tracer = tracer(settings.clone(), camera, package.layout(), &counts, setup);
     let source = package_domains(package, &settings).map_err(|e| pkg_err(e.to_string()))?;
-    Ok(JobPlan { tracer, source })
+    Ok(JobPlan {
+        content: content(&found, &settings),
+        tracer,
+        source,
+    })
 }
 
 /// The domains of `package` on disk, loaded one at a time for `settings` (the
@@ -198,6 +216,7 @@ fn memory_plan(
     let counts = package.triangle_counts();
     let tracer = tracer(settings.clone(), camera, layout, &counts, setup);
     Ok(JobPlan {
+        content: content(&setup.package_path, &settings),
         tracer,
         source: memory_domains(package, &settings),
     })

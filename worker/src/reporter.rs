@@ -67,6 +67,7 @@ async fn report(shared: &Arc<Shared>, job: &Arc<Job>, force: bool) {
         let mut r = lock(&job.report);
         if r.is_empty()
             && store.loads == 0
+            && store.warm == 0
             && store.evictions == 0
             && !(force && r.idle_seconds > 0.0)
         {
@@ -105,6 +106,7 @@ async fn report(shared: &Arc<Shared>, job: &Arc<Job>, force: bool) {
     }
     let counters = WorkerCounters {
         domain_loads: store.loads,
+        domains_warm: store.warm,
         domain_load_seconds: store.load_seconds,
         evictions: store.evictions,
         rays_sent: report.rays_sent,

@@ -204,7 +204,7 @@ fn md(s: &str) -> String {
 }
 
 /// `table.md`: the key columns as a Markdown table, and how the errors are measured.
-pub fn table(title: &str, base: &str, rows: &[Row], front: &[bool]) -> String {
+pub fn table(title: &str, base: &str, rows: &[Row], front: &[bool], repeat: u32) -> String {
     let mut out = String::new();
     let exact_wall = rows.first().map_or(0.0, |r| r.wall_s);
     let _ = writeln!(out, "# dray sweep: {}\n", md(title));
@@ -213,6 +213,13 @@ pub fn table(title: &str, base: &str, rows: &[Row], front: &[bool]) -> String {
         "Render flags: `{base}`. Every setting is compared with the exact render (these \
          flags with ray caches and hit maps off).\n"
     );
+    if repeat > 1 {
+        let _ = writeln!(
+            out,
+            "Times are medians of {repeat} interleaved rounds; errors and counts are the \
+             first round's.\n"
+        );
+    }
     let _ = writeln!(
         out,
         "| setting | wall s | speedup | rays sent | outer hits | inner hits | rmse | psnr dB | flip | Pareto |"
@@ -327,9 +334,19 @@ mod tests {
             "cornell --spp 2",
             &[row("exact", 1.0, json!({}), 0.0)],
             &[true],
+            1,
         );
         assert!(t.contains("| exact | 1.000 | 1.00x |"), "{t}");
         assert!(t.contains("8-bit sRGB"), "{t}");
+        assert!(!t.contains("medians"), "{t}");
+        let t = table(
+            "cornell",
+            "",
+            &[row("exact", 1.0, json!({}), 0.0)],
+            &[true],
+            3,
+        );
+        assert!(t.contains("medians of 3 interleaved rounds"), "{t}");
     }
 
     #[test]
