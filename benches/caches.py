@@ -55,9 +55,10 @@ def voxel_width(package: Path) -> float:
 
 
 def sweep(dray: Path, scene: str, out: Path, size: int, varies: list[str], base: list[str],
-          target: list[str]) -> list[dict]:
+          target: list[str], repeat: int) -> list[dict]:
     cmd = [str(dray), "sweep", scene, "--integrator", "raycast", "--width", str(size),
-           "--height", str(size), "--spp", "1", *base, *target, "--out", str(out)]
+           "--height", str(size), "--spp", "1", *base, *target, "--repeat", str(repeat),
+           "--out", str(out)]
     for v in varies:
         cmd += ["--vary", v]
     print("+", " ".join(cmd), flush=True)
@@ -78,6 +79,8 @@ def main() -> int:
                     choices=["cluster", "embedded"])
     ap.add_argument("--port", type=int, default=53100)
     ap.add_argument("--work", type=Path, default=Path("benches/out/caches"))
+    ap.add_argument("--repeat", type=int, default=3,
+                    help="interleaved rounds per sweep; times are medians (dray sweep --repeat)")
     ap.add_argument("--quick", action="store_true", help="256^2, 3 radii, coarse 0 and 64")
     a = ap.parse_args()
     if a.quick:
@@ -115,13 +118,13 @@ def main() -> int:
                 target += ["--domains", "27", "--layout", "grid"]
             results[mode] = sweep(dray, scene, a.work / f"{mode}-radius", a.size,
                                   [f"ray-cache.radius={radii}", f"ray-cache.coarse={coarse}"],
-                                  base, target)
+                                  base, target, a.repeat)
             mid = f"{0.005 * scale:.6g}"
             results[mode + "-retrieve"] = sweep(
                 dray, scene, a.work / f"{mode}-retrieve", a.size,
                 ["ray-cache.retrieve=first,nearest,average"],
                 ["--ray-cache", f"angle-deg={ANGLE_DEG:.4g},radius={mid},coarse={max(a.coarse)}"],
-                target)
+                target, a.repeat)
         finally:
             if cluster:
                 cluster.stop()

@@ -16,7 +16,6 @@ use clap::Args;
 use dray_proto::v1::RegisterCacheHostRequest;
 use dray_proto::v1::cluster_service_client::ClusterServiceClient;
 use tokio::signal::unix::{SignalKind, signal};
-use tonic::transport::Endpoint;
 
 use crate::cache_host::LocalCacheHost;
 use crate::submit_cmd::endpoint_url;
@@ -39,10 +38,14 @@ pub struct CacheArgs {
     /// Seconds to keep trying to reach the coordinator at start.
     #[arg(long, default_value_t = 10)]
     pub connect_timeout: u64,
+    #[command(flatten)]
+    pub member: crate::net_flags::MemberArgs,
 }
 
 pub fn run(a: CacheArgs) -> Result<()> {
-    let url = endpoint_url(&a.coordinator)?;
+    endpoint_url(&a.coordinator)?;
+    let (server, net) = a.member.options()?;
+    let url = net.url(&a.coordinator);
     if let Some(adv) = &a.advertise
         && !(adv.starts_with("http://") || adv.starts_with("https://"))
     {
@@ -56,11 +59,11 @@ pub fn run(a: CacheArgs) -> Result<()> {
         // Before anything starts, so a signal during start-up stops it cleanly.
         let mut term = signal(SignalKind::terminate()).context("cannot handle SIGTERM")?;
         let mut int = signal(SignalKind::interrupt()).context("cannot handle SIGINT")?;
-        let mut host = LocalCacheHost::start(&a.listen, a.advertise.clone(), None).await?;
+        let mut host = LocalCacheHost::start(&a.listen, a.advertise.clone(), None, &server).await?;
         // One line on stdout, so scripts and tests can find the port.
         println!("dray cache listening on {}", host.addr);
         let registered = tokio::select! {
-            r = register(&url, &host.endpoint, Duration::from_secs(a.connect_timeout)) => r,
+            r = register(&net, &url, &host.endpoint, Duration::from_secs(a.connect_timeout)) => r,
             _ = term.recv() => {
                 host.stop().await;
                 return Ok(());
@@ -94,9 +97,15 @@ pub fn run(a: CacheArgs) -> Result<()> {
 
 /// RegisterCacheHost at `url` for `endpoint`, retrying connections for up to `patience`;
 /// the host id. A refusal (another dray version, a bad endpoint) is final.
-async fn register(url: &str, endpoint: &str, patience: Duration) -> Result<String> {
+async fn register(
+    net: &dray_net::ClientOptions,
+    url: &str,
+    endpoint: &str,
+    patience: Duration,
+) -> Result<String> {
     let deadline = Instant::now() + patience;
-    let target = Endpoint::from_shared(url.to_string())
+    let target = net
+        .endpoint(url)
         .with_context(|| format!("--coordinator: {url} is not a valid address"))?
         .connect_timeout(Duration::from_secs(2))
         .timeout(Duration::from_secs(10));
@@ -119,7 +128,7 @@ async fn register(url: &str, endpoint: &str, patience: Duration) -> Result<Strin
         version: dray_coordinator::membership::VERSION.to_string(),
         hostname: hostname(),
     };
-    let r = ClusterServiceClient::new(channel)
+    let r = ClusterServiceClient::new(net.wrap(channel))
         .register_cache_host(req)
         .await
         .map_err(|s| {

@@ -33,6 +33,7 @@ impl LocalCacheHost {
         listen: &str,
         endpoint: Option<String>,
         advertised_host: Option<&str>,
+        options: &dray_net::ServerOptions,
     ) -> Result<LocalCacheHost> {
         let listener = TcpListener::bind(listen)
             .await
@@ -45,9 +46,14 @@ impl LocalCacheHost {
             None => format!("http://{addr}"),
         });
         let (stop, mut stopped) = watch::channel(false);
-        let task = tokio::spawn(dray_cache::CacheHost::new().serve(listener, async move {
-            let _ = stopped.wait_for(|s| *s).await;
-        }));
+        let options = options.clone();
+        let task = tokio::spawn(async move {
+            dray_cache::CacheHost::new()
+                .serve_with(&options, listener, async move {
+                    let _ = stopped.wait_for(|s| *s).await;
+                })
+                .await
+        });
         Ok(LocalCacheHost {
             addr,
             endpoint,
@@ -141,9 +147,14 @@ mod tests {
 
     #[tokio::test]
     async fn serves_and_stops() {
-        let h = LocalCacheHost::start("127.0.0.1:0", None, Some("example"))
-            .await
-            .unwrap();
+        let h = LocalCacheHost::start(
+            "127.0.0.1:0",
+            None,
+            Some("example"),
+            &dray_net::ServerOptions::default(),
+        )
+        .await
+        .unwrap();
         assert_eq!(h.endpoint, format!("http://example:{}", h.addr.port()));
         // It answers gRPC health.
         let channel = tonic::transport::Endpoint::from_shared(format!("http://{}", h.addr))
@@ -163,7 +174,13 @@ mod tests {
             tonic_health::pb::health_check_response::ServingStatus::Serving as i32
         );
         h.stop().await;
-        let busy = LocalCacheHost::start("256.0.0.1:0", None, None).await;
+        let busy = LocalCacheHost::start(
+            "256.0.0.1:0",
+            None,
+            None,
+            &dray_net::ServerOptions::default(),
+        )
+        .await;
         assert!(busy.is_err());
     }
 }

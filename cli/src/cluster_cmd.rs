@@ -27,7 +27,6 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use tokio::signal::unix::{Signal, SignalKind, signal};
-use tonic::transport::Endpoint;
 use tonic_health::pb::HealthCheckRequest;
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
@@ -69,6 +68,25 @@ pub struct ClusterArgs {
     /// Every worker's --threads: tracing threads per worker (0 = all cores each).
     #[arg(long, value_name = "N")]
     pub threads: Option<usize>,
+    /// The coordinator's API token (passed on as its --auth-token-file).
+    #[command(flatten)]
+    pub api_token: crate::net_flags::ApiTokenArgs,
+    /// The members' cluster token. Without it, `dray cluster` makes a random one for
+    /// this run and hands it to its members in a file only this user can read.
+    #[command(flatten)]
+    pub cluster_token: crate::net_flags::ClusterTokenArgs,
+    /// TLS for every member (passed on to each).
+    #[command(flatten)]
+    pub tls: crate::net_flags::TlsArgs,
+}
+
+/// A directory of this run's secrets, removed when the cluster stops.
+struct SecretDir(PathBuf);
+
+impl Drop for SecretDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
 }
 
 /// One child process of the cluster.
@@ -286,8 +304,13 @@ fn spawn(exe: &PathBuf, name: String, addr: SocketAddr, args: &[String]) -> Resu
 
 /// Whether the gRPC server at `addr` reports `service` as SERVING. A worker without the
 /// health service (UNIMPLEMENTED) still proves its gRPC server is up.
-async fn healthy(addr: SocketAddr, service: &str, unimplemented_ok: bool) -> bool {
-    let Ok(endpoint) = Endpoint::from_shared(format!("http://{addr}")) else {
+async fn healthy(
+    net: &dray_net::ClientOptions,
+    addr: SocketAddr,
+    service: &str,
+    unimplemented_ok: bool,
+) -> bool {
+    let Ok(endpoint) = net.endpoint(&addr.to_string()) else {
         return false;
     };
     let Ok(channel) = endpoint
@@ -333,6 +356,28 @@ pub fn run(a: ClusterArgs) -> Result<()> {
         check_port_free(w.port(), &format!("worker {}", i + 1))?;
     }
     let exe = std::env::current_exe().context("cannot find the dray executable to start")?;
+    // The members' cluster token: the one given, or one made for this run.
+    let secrets = SecretDir(
+        std::env::temp_dir().join(format!("dray-cluster-{}-secrets", std::process::id())),
+    );
+    let token_file = match &a.cluster_token.cluster_token_file {
+        Some(f) => f.clone(),
+        None => {
+            let token = match a.cluster_token.token()? {
+                Some(t) => t,
+                None => dray_net::Token::generate()?,
+            };
+            crate::net_flags::write_token_file(&secrets.0, "cluster.token", &token)?
+        }
+    };
+    let api_token = a.api_token.token()?;
+    let net = crate::net_flags::client_options(None, &a.tls)?;
+    let scheme = if net.tls() { "https" } else { "http" };
+    let mut shared_args = vec![
+        "--cluster-token-file".to_string(),
+        token_file.display().to_string(),
+    ];
+    shared_args.extend(a.tls.to_args());
 
     // Current-thread: children are forked from the main thread (see `spawn`).
     let rt = tokio::runtime::Builder::new_current_thread()
@@ -367,10 +412,15 @@ pub fn run(a: ClusterArgs) -> Result<()> {
             args.push("--heartbeat-timeout-ms".into());
             args.push(ms.to_string());
         }
+        if let Some(f) = &a.api_token.auth_token_file {
+            args.push("--auth-token-file".into());
+            args.push(f.display().to_string());
+        }
+        args.extend(shared_args.iter().cloned());
         cluster
             .members
             .push(spawn(&exe, "coordinator".into(), coordinator_addr, &args)?);
-        let coordinator_url = format!("http://{coordinator_addr}");
+        let coordinator_url = format!("{scheme}://{coordinator_addr}");
         for (i, w) in worker_addrs.iter().enumerate() {
             let mut args = vec![
                 "worker".to_string(),
@@ -391,6 +441,7 @@ pub fn run(a: ClusterArgs) -> Result<()> {
                 args.push("--threads".into());
                 args.push(n.to_string());
             }
+            args.extend(shared_args.iter().cloned());
             cluster
                 .members
                 .push(spawn(&exe, format!("worker {}", i + 1), *w, &args)?);
@@ -426,9 +477,9 @@ pub fn run(a: ClusterArgs) -> Result<()> {
             for (i, m) in cluster.members.iter_mut().enumerate() {
                 if !m.ready {
                     m.ready = if i == 0 {
-                        healthy(m.addr, "dray.v1.RenderService", false).await
+                        healthy(&net, m.addr, "dray.v1.RenderService", false).await
                     } else {
-                        healthy(m.addr, "", true).await
+                        healthy(&net, m.addr, "", true).await
                     };
                 }
             }
@@ -440,7 +491,13 @@ pub fn run(a: ClusterArgs) -> Result<()> {
         println!(
             "example: dray submit --coordinator {coordinator_addr} cornell --width 320 --height 240 --output cornell.png"
         );
-        println!("example: grpcurl -plaintext {coordinator_addr} list");
+        let grpcurl_tls = if net.tls() { "-cacert CA.pem" } else { "-plaintext" };
+        let header = if api_token.is_some() {
+            " -H \"authorization: Bearer $(cat TOKEN_FILE)\""
+        } else {
+            ""
+        };
+        println!("example: grpcurl {grpcurl_tls}{header} {coordinator_addr} list");
         println!(
             "dray cluster ready: 1 coordinator, {} worker{}; Ctrl-C stops them all",
             a.workers,

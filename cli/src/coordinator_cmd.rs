@@ -18,6 +18,8 @@ use clap::Args;
 use dray_coordinator::cluster::ClusterOptions;
 use dray_coordinator::membership::HeartbeatConfig;
 
+use crate::net_flags::{self, ApiTokenArgs, MemberArgs};
+
 /// How long a graceful shutdown may take before the process exits anyway (a client still
 /// watching a job would otherwise hold it open).
 const SHUTDOWN_GRACE: Duration = Duration::from_secs(2);
@@ -53,6 +55,10 @@ pub struct CoordinatorArgs {
     /// a worker busy loading a large domain still beats, but late beats happen).
     #[arg(long, value_name = "MS", default_value_t = default_heartbeat().timeout.as_millis() as u64)]
     pub heartbeat_timeout_ms: u64,
+    #[command(flatten)]
+    pub api_token: ApiTokenArgs,
+    #[command(flatten)]
+    pub member: MemberArgs,
 }
 
 fn default_heartbeat() -> HeartbeatConfig {
@@ -82,7 +88,28 @@ fn cluster_options(a: &CoordinatorArgs) -> Result<ClusterOptions> {
     if let Some(dir) = &a.work_dir {
         options.work_dir = prepare_work_dir(dir)?;
     }
+    options.clients = net_flags::client_options(a.member.cluster_token.token()?, &a.member.tls)?;
     Ok(options)
+}
+
+/// One line saying who may call what, so an open server is never a surprise.
+pub fn describe_access(api: bool, cluster: bool, tls: bool) -> String {
+    format!(
+        "{} API ({}), {} cluster services ({}), {}",
+        if api { "authenticated" } else { "OPEN" },
+        if api {
+            "the API token is required"
+        } else {
+            "anyone who reaches the port may submit jobs; set --auth-token-file"
+        },
+        if cluster { "authenticated" } else { "OPEN" },
+        if cluster {
+            "the cluster token is required"
+        } else {
+            "anyone who reaches the port may join; set --cluster-token-file"
+        },
+        if tls { "TLS" } else { "plaintext" }
+    )
 }
 
 /// Create `dir` if needed, check it is a writable directory, and make it absolute:
@@ -125,6 +152,14 @@ async fn stop_signal() {
 
 pub fn run(a: CoordinatorArgs) -> Result<()> {
     let options = cluster_options(&a)?;
+    let api = a.api_token.token()?;
+    let cluster_token = a.member.cluster_token.token()?;
+    let access = describe_access(
+        api.is_some(),
+        cluster_token.is_some(),
+        a.member.tls.tls_cert.is_some(),
+    );
+    let server = net_flags::server_options(api, cluster_token, &a.member.tls, a.member.max_calls)?;
     let heartbeat = options.heartbeat;
     let work_dir = options.work_dir.clone();
     let coordinator = dray_coordinator::Coordinator::new(&a.scene_root, a.threads)
@@ -152,12 +187,13 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
             heartbeat.interval.as_millis(),
             heartbeat.timeout.as_millis(),
         );
+        eprintln!("dray coordinator: {access}");
         let (stopping_tx, stopping_rx) = tokio::sync::oneshot::channel::<()>();
         let shutdown = async move {
             stop_signal().await;
             let _ = stopping_tx.send(());
         };
-        let served = dray_coordinator::serve(listener, coordinator, shutdown);
+        let served = dray_coordinator::serve_with(&server, listener, coordinator, shutdown);
         tokio::pin!(served);
         // Serve until a signal; then give the graceful shutdown a bounded time.
         let result = tokio::select! {

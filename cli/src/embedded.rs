@@ -91,11 +91,23 @@ pub fn render_on_actors(
     // The coordinator cuts the scene into this store and the workers read it: no package
     // is written to disk for a scene this process already holds.
     let memory = Arc::new(MemoryPackages::default());
+    // The actors listen on loopback ports: a token made for this run keeps other local
+    // users' processes from joining or injecting rays.
+    let token = dray_net::Token::generate()?;
+    let clients = dray_net::ClientOptions::plain().with_token(Some(token.clone()));
+    let server_options = dray_net::ServerOptions {
+        auth: dray_net::AuthPolicy {
+            api: None,
+            cluster: Some(token),
+        },
+        ..dray_net::ServerOptions::default()
+    };
     let coordinator = Coordinator::new(Path::new("/"), threads)
         .context("cannot start the coordinator")?
         .with_cluster_options(ClusterOptions {
             work_dir: work_dir.0.clone(),
             memory_packages: Some(memory.clone()),
+            clients: clients.clone(),
             ..ClusterOptions::default()
         });
     let rt = tokio::runtime::Builder::new_multi_thread()
@@ -117,11 +129,12 @@ pub fn render_on_actors(
         let addr = listener
             .local_addr()
             .context("cannot read the bound address")?;
-        let server = tokio::spawn(dray_coordinator::serve(
-            listener,
-            coordinator.clone(),
-            stopped(stop_rx.clone()),
-        ));
+        let coordinator_server = server_options.clone();
+        let serving = coordinator.clone();
+        let stop = stopped(stop_rx.clone());
+        let server = tokio::spawn(async move {
+            dray_coordinator::serve_with(&coordinator_server, listener, serving, stop).await
+        });
         let mut nodes = Vec::new();
         let mut caches = Vec::new();
         for _ in 0..workers {
@@ -129,7 +142,7 @@ pub fn render_on_actors(
                 .await
                 .context("cannot listen on a loopback port")?;
             let cache = if spec.ray_cache.is_some() || spec.phm.is_some() {
-                let h = LocalCacheHost::start("127.0.0.1:0", None, None).await?;
+                let h = LocalCacheHost::start("127.0.0.1:0", None, None, &server_options).await?;
                 let endpoint = h.endpoint.clone();
                 caches.push(h);
                 Some(endpoint)
@@ -143,6 +156,8 @@ pub fn render_on_actors(
                 memory_budget: a.memory_budget,
                 load_delay: Duration::from_millis(a.load_delay_ms),
                 cache_endpoint: cache,
+                net: clients.clone(),
+                server: server_options.clone(),
                 ..dray_worker::WorkerConfig::default()
             };
             nodes.push(tokio::spawn(dray_worker::run(

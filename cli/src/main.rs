@@ -14,6 +14,7 @@ mod coordinator_cmd;
 mod embedded;
 mod job_flags;
 mod kv_flag;
+mod net_flags;
 mod options;
 mod partition_cmd;
 mod phm_flag;

@@ -15,13 +15,13 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
 use clap::Args;
+use dray_net::{AuthChannel, ClientOptions};
 use dray_proto::v1::render_service_client::RenderServiceClient;
 use dray_proto::v1::{
     CancelJobRequest, GetImageRequest, GetJobRequest, ImageFormat, Job, JobProgress, JobSpec,
     JobState, SubmitJobRequest, WatchJobRequest,
 };
 use serde::Serialize;
-use tonic::transport::{Channel, Endpoint};
 
 use crate::summary::{PhmSummary, RayCacheSummary, Scheduling, ray_counts, rays_by_name};
 
@@ -46,6 +46,10 @@ pub struct SubmitArgs {
     /// and the scheduling metrics, per worker too).
     #[arg(long, value_name = "FILE")]
     pub stats: Option<PathBuf>,
+    #[command(flatten)]
+    pub api_token: crate::net_flags::ApiTokenArgs,
+    #[command(flatten)]
+    pub tls: crate::net_flags::TlsArgs,
 }
 
 /// `dray submit --stats`: the job as GetJob reports it once finished, with the keys of
@@ -177,20 +181,26 @@ pub fn run(a: SubmitArgs) -> Result<()> {
     rt.block_on(submit(a, spec, url))
 }
 
-pub(crate) async fn connect(url: &str) -> Result<RenderServiceClient<Channel>> {
-    let channel = Endpoint::from_shared(url.to_string())
+pub(crate) async fn connect(
+    net: &ClientOptions,
+    url: &str,
+) -> Result<RenderServiceClient<AuthChannel>> {
+    let channel = net
+        .endpoint(url)
         .with_context(|| format!("--coordinator: {url} is not a valid address"))?
         .connect_timeout(Duration::from_secs(10))
         .connect()
         .await
         .with_context(|| format!("cannot connect to the coordinator at {url}"))?;
     // Images are one message each: a large EXR is far beyond tonic's 4 MiB default.
-    Ok(RenderServiceClient::new(channel).max_decoding_message_size(usize::MAX))
+    Ok(RenderServiceClient::new(net.wrap(channel)).max_decoding_message_size(usize::MAX))
 }
 
 async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
     let started = Instant::now();
-    let mut client = connect(&url).await?;
+    let net = crate::net_flags::client_options(a.api_token.token()?, &a.tls)?;
+    let url = net.url(&url);
+    let mut client = connect(&net, &url).await?;
     let (id, last) = run_job(&mut client, spec, &url, a.job.quiet, "dray submit").await?;
 
     let png = fetch(&mut client, &id, ImageFormat::Png, a.job.exposure, &url).await?;
@@ -248,7 +258,7 @@ async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
 /// prefixes the messages); its id and last progress once it succeeded. Ctrl-C cancels
 /// it. Shared with `dray sweep --coordinator`, which fetches what it needs itself.
 pub(crate) async fn run_job(
-    client: &mut RenderServiceClient<Channel>,
+    client: &mut RenderServiceClient<AuthChannel>,
     spec: JobSpec,
     url: &str,
     quiet: bool,
@@ -302,7 +312,7 @@ pub(crate) async fn run_job(
 
 /// GetJob: the job as the coordinator knows it.
 pub(crate) async fn get_job(
-    client: &mut RenderServiceClient<Channel>,
+    client: &mut RenderServiceClient<AuthChannel>,
     id: &str,
     url: &str,
 ) -> Result<Job> {
@@ -318,7 +328,7 @@ pub(crate) async fn get_job(
 }
 
 /// Best effort: the user asked to stop, so a failure to cancel is reported, not fatal.
-async fn cancel(client: &mut RenderServiceClient<Channel>, id: &str) {
+async fn cancel(client: &mut RenderServiceClient<AuthChannel>, id: &str) {
     let req = CancelJobRequest {
         job_id: id.to_string(),
     };
@@ -330,7 +340,7 @@ async fn cancel(client: &mut RenderServiceClient<Channel>, id: &str) {
 }
 
 pub(crate) async fn fetch(
-    client: &mut RenderServiceClient<Channel>,
+    client: &mut RenderServiceClient<AuthChannel>,
     id: &str,
     format: ImageFormat,
     exposure: f32,
@@ -366,7 +376,7 @@ fn state_name(s: JobState) -> String {
 /// Follow WatchJob to a terminal state and return the last progress message. A stream
 /// that ends early (a proxy timeout, a restart) is not the job's end: GetJob tells.
 async fn watch(
-    mut client: RenderServiceClient<Channel>,
+    mut client: RenderServiceClient<AuthChannel>,
     id: &str,
     url: &str,
     quiet: bool,

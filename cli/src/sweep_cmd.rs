@@ -17,7 +17,6 @@ use clap::{Args, CommandFactory, Parser};
 use dray_proto::v1::ImageFormat;
 use dray_proto::v1::render_service_client::RenderServiceClient;
 use serde_json::Value;
-use tonic::transport::Channel;
 
 use crate::render_cmd::RenderArgs;
 use crate::submit_cmd;
@@ -68,6 +67,12 @@ pub struct SweepArgs {
     /// the warm-up the first render alone would pay for loading them.
     #[arg(long)]
     pub no_warmup: bool,
+    /// With --coordinator: the API token to present.
+    #[command(flatten)]
+    pub api_token: crate::net_flags::ApiTokenArgs,
+    /// With --coordinator: TLS.
+    #[command(flatten)]
+    pub tls: crate::net_flags::TlsArgs,
 }
 
 /// The sweep's flags as a parser of their own: the plan groups the words typed after
@@ -100,6 +105,7 @@ fn words_after_sweep() -> Result<Vec<String>> {
 pub fn run(a: SweepArgs) -> Result<()> {
     let words = words_after_sweep()?;
     let base = crate::sweep::plan::render_tokens(&SweepCli::command(), &words)?;
+    let net = crate::net_flags::client_options(a.api_token.token()?, &a.tls)?;
     let target = match &a.coordinator {
         Some(addr) => Target::Coordinator(addr.clone()),
         None => Target::Embedded,
@@ -109,7 +115,7 @@ pub fn run(a: SweepArgs) -> Result<()> {
         repeat: a.repeat,
         warmup: a.coordinator.is_some() && !a.no_warmup,
     };
-    sweep(&plan, &a.out, &target, a.render.job.quiet, rounds)
+    sweep(&plan, &a.out, &target, &net, a.render.job.quiet, rounds)
 }
 
 /// How often every setting is rendered.
@@ -152,21 +158,21 @@ enum Renderer {
 /// A connection to a coordinator, and the runtime it lives on.
 struct Remote {
     rt: tokio::runtime::Runtime,
-    client: RenderServiceClient<Channel>,
+    client: RenderServiceClient<dray_net::AuthChannel>,
     url: String,
 }
 
 impl Renderer {
-    fn new(target: &Target) -> Result<Renderer> {
+    fn new(target: &Target, net: &dray_net::ClientOptions) -> Result<Renderer> {
         match target {
             Target::Embedded => Ok(Renderer::Embedded),
             Target::Coordinator(addr) => {
-                let url = submit_cmd::endpoint_url(addr)?;
+                let url = net.url(addr);
                 let rt = tokio::runtime::Builder::new_current_thread()
                     .enable_all()
                     .build()
                     .context("cannot start the async runtime")?;
-                let client = rt.block_on(submit_cmd::connect(&url))?;
+                let client = rt.block_on(submit_cmd::connect(net, &url))?;
                 Ok(Renderer::Remote(Box::new(Remote { rt, client, url })))
             }
         }
@@ -322,11 +328,18 @@ fn shell_line(words: &[String]) -> String {
 
 /// Render the plan and write the results; on a failed render, what was measured so far is
 /// still written before the error is returned.
-fn sweep(plan: &Plan, out: &Path, target: &Target, quiet: bool, rounds: Rounds) -> Result<()> {
+fn sweep(
+    plan: &Plan,
+    out: &Path,
+    target: &Target,
+    net: &dray_net::ClientOptions,
+    quiet: bool,
+    rounds: Rounds,
+) -> Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let show = !quiet && std::io::stderr().is_terminal();
     let total = plan.settings.len() + 1;
-    let mut renderer = Renderer::new(target)?;
+    let mut renderer = Renderer::new(target, net)?;
     let label = |i: usize, s: &Setting| format!("[{}/{total}] {}", i + 1, s.name);
 
     if rounds.warmup {

@@ -53,9 +53,12 @@ pub struct WorkerArgs {
     /// or stand-alone `dray cache` hosts).
     #[arg(long, conflicts_with = "cache_listen")]
     pub no_cache_host: bool,
+    #[command(flatten)]
+    pub member: crate::net_flags::MemberArgs,
 }
 
 pub fn run(a: WorkerArgs) -> Result<()> {
+    let (server, net) = a.member.options()?;
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -69,6 +72,7 @@ pub fn run(a: WorkerArgs) -> Result<()> {
             .context("cannot read the bound address")?;
         // One line on stdout, so scripts and tests can find the port.
         println!("dray worker listening on {addr}");
+
         let mut cache = if a.no_cache_host {
             None
         } else {
@@ -77,7 +81,7 @@ pub fn run(a: WorkerArgs) -> Result<()> {
                 .clone()
                 .unwrap_or_else(|| SocketAddr::new(addr.ip(), 0).to_string());
             let host = a.advertise.as_deref().and_then(advertised_host);
-            let h = LocalCacheHost::start(&listen, None, host.as_deref()).await?;
+            let h = LocalCacheHost::start(&listen, None, host.as_deref(), &server).await?;
             println!("dray worker cache host listening on {}", h.addr);
             Some(h)
         };
@@ -89,6 +93,8 @@ pub fn run(a: WorkerArgs) -> Result<()> {
             load_delay: Duration::from_millis(a.load_delay_ms),
             connect_timeout: Duration::from_secs(a.connect_timeout),
             cache_endpoint: cache.as_ref().map(|h| h.endpoint.clone()),
+            net,
+            server,
             ..dray_worker::WorkerConfig::default()
         };
         let shutdown = async {

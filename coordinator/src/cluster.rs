@@ -42,6 +42,8 @@ pub struct ClusterOptions {
     pub memory_packages: Option<Arc<MemoryPackages>>,
     /// Scheduler pacing.
     pub scheduler: SchedulerOptions,
+    /// How the coordinator reaches cache hosts (the cluster token, TLS).
+    pub clients: dray_net::ClientOptions,
 }
 
 impl Default for ClusterOptions {
@@ -51,6 +53,7 @@ impl Default for ClusterOptions {
             work_dir: std::env::temp_dir().join(format!("dray-coordinator-{}", std::process::id())),
             memory_packages: None,
             scheduler: SchedulerOptions::default(),
+            clients: dray_net::ClientOptions::plain(),
         }
     }
 }

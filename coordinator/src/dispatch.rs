@@ -442,6 +442,7 @@ async fn run(
                 setup_spec.ray_cache.clone(),
                 setup_spec.phm.clone(),
                 Arc::new(geometry),
+                cluster.options.clients.clone(),
             );
             match open_first_attempt(cluster, entry, &mut sched, caches).await {
                 Ok(c) => Some(c),
@@ -496,9 +497,11 @@ async fn run(
     let tile_count = tiles.len();
     let mut job = DistJob::new(entry.clone(), setup, sched, tiles, owned.clone());
     // What to close if the job never starts (cancelled while its walls opened).
-    let opened = caches
-        .as_ref()
-        .and_then(|c| c.opened.clone().map(|o| (o, c.tally.clone())));
+    let opened = caches.as_ref().and_then(|c| {
+        c.opened
+            .clone()
+            .map(|o| (o, c.tally.clone(), c.net.clone()))
+    });
     if let Some(c) = caches {
         job = job.with_caches(c);
     }
@@ -516,8 +519,8 @@ async fn run(
         }
         Err(msg) => {
             remove_package(owned.as_ref());
-            if let Some((o, tally)) = opened {
-                let closed = lifecycle::close(&entry.id, o.attempt, &o.placement).await;
+            if let Some((o, tally, net)) = opened {
+                let closed = lifecycle::close(&entry.id, o.attempt, &o.placement, &net).await;
                 tally.add_host(&closed.stats);
                 tally.add_host_phm(&closed.phm);
                 tally.publish(entry);

@@ -591,12 +591,12 @@ impl Ledger {
         let film = (state == JobState::Succeeded).then_some(film);
         let open = caches
             .as_mut()
-            .and_then(|c| c.opened.take().map(|o| (o, c.tally.clone())));
+            .and_then(|c| c.opened.take().map(|o| (o, c.tally.clone(), c.net.clone())));
         let finish = move |entry: &JobEntry| {
             entry.finish(state, error, film);
             remove_package(owned_package.as_ref());
         };
-        let Some((open, tally)) = open else {
+        let Some((open, tally, net)) = open else {
             return finish(&entry);
         };
         let Ok(rt) = tokio::runtime::Handle::try_current() else {
@@ -604,7 +604,7 @@ impl Ledger {
             return finish(&entry);
         };
         rt.spawn(async move {
-            let closed = lifecycle::close(&entry.id, open.attempt, &open.placement).await;
+            let closed = lifecycle::close(&entry.id, open.attempt, &open.placement, &net).await;
             tally.add_host(&closed.stats);
             tally.add_host_phm(&closed.phm);
             tally.lose(closed.failed.iter().map(|f| f.host.endpoint.as_str()));
@@ -779,7 +779,8 @@ impl Ledger {
         let entry = job.entry.clone();
         rt.spawn(async move {
             if let Some(p) = prev {
-                let closed = lifecycle::close(&walls.job_id, p.attempt, &p.placement).await;
+                let closed =
+                    lifecycle::close(&walls.job_id, p.attempt, &p.placement, &walls.net).await;
                 tally.add_host(&closed.stats);
                 tally.add_host_phm(&closed.phm);
                 tally.lose(closed.failed.iter().map(|f| f.host.endpoint.as_str()));
@@ -796,7 +797,8 @@ impl Ledger {
                 // Replaced by a newer attempt, or the job ended, while the walls were
                 // opening: close them again. A host failing now is no loss (a newer
                 // attempt opening on it drops this one).
-                let closed = lifecycle::close(&walls.job_id, attempt, &opened.placement).await;
+                let closed =
+                    lifecycle::close(&walls.job_id, attempt, &opened.placement, &walls.net).await;
                 tally.add_host(&closed.stats);
                 tally.add_host_phm(&closed.phm);
             }

@@ -39,4 +39,4 @@ pub mod scheduler;
 pub mod service;
 pub mod validate;
 
-pub use service::{Coordinator, serve};
+pub use service::{Coordinator, serve, serve_with};

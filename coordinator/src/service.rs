@@ -337,21 +337,32 @@ impl Drop for AbortOnDrop {
 }
 
 /// Serve `coordinator` on `listener` (RenderService and ClusterService) with gRPC
-/// reflection and health until `shutdown` completes. GetImage replies may exceed 4 MiB,
-/// so the encoding limit is raised. On shutdown the workers' assignment streams are
-/// ended, so a graceful shutdown does not wait for them forever.
+/// reflection and health until `shutdown` completes, open and in plaintext: see
+/// [`serve_with`].
 pub async fn serve(
     listener: TcpListener,
     coordinator: Coordinator,
     shutdown: impl Future<Output = ()> + Send,
-) -> Result<(), tonic::transport::Error> {
-    let (health_reporter, health_service) = tonic_health::server::health_reporter();
-    health_reporter
-        .set_serving::<RenderServiceServer<Coordinator>>()
-        .await;
-    health_reporter
-        .set_serving::<ClusterServiceServer<ClusterApi>>()
-        .await;
+) -> Result<(), dray_net::server::ServeError> {
+    serve_with(
+        &dray_net::ServerOptions::default(),
+        listener,
+        coordinator,
+        shutdown,
+    )
+    .await
+}
+
+/// [`serve`] with `options`: the API and cluster tokens calls must present, TLS, load
+/// shedding (dray-net's one server builder). GetImage replies may exceed 4 MiB, so the
+/// encoding limit is raised. On shutdown the workers' assignment streams are ended, so
+/// a graceful shutdown does not wait for them forever.
+pub async fn serve_with(
+    options: &dray_net::ServerOptions,
+    listener: TcpListener,
+    coordinator: Coordinator,
+    shutdown: impl Future<Output = ()> + Send,
+) -> Result<(), dray_net::server::ServeError> {
     let cluster = coordinator.cluster.clone();
     let work_dir = cluster.options.work_dir.clone();
     let _reaper = AbortOnDrop(tokio::spawn(cluster.clone().reaper()));
@@ -363,24 +374,16 @@ pub async fn serve(
     let cluster_api = ClusterServiceServer::new(ClusterApi {
         cluster: coordinator.cluster.clone(),
     });
-    let reflection =
-        dray_proto::reflection::reflection_v1().expect("the built-in descriptor sets are valid");
-    let reflection_alpha = dray_proto::reflection::reflection_v1alpha()
-        .expect("the built-in descriptor sets are valid");
     let render = RenderServiceServer::new(coordinator).max_encoding_message_size(usize::MAX);
-    let served = tonic::transport::Server::builder()
-        .add_service(health_service)
-        .add_service(reflection)
-        .add_service(reflection_alpha)
-        .add_service(render)
-        .add_service(cluster_api)
-        .serve_with_incoming_shutdown(
-            // TCP_NODELAY: without it every small reply (registration, job setup,
-            // reports) waited out the peer's 40 ms delayed ACK.
-            tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
-            shutdown,
-        )
-        .await;
+    let routes = tonic::service::Routes::new(render).add_service(cluster_api);
+    let served = dray_net::server::serve(
+        options,
+        listener,
+        routes,
+        &[dray_proto::RENDER_SERVICE, dray_proto::CLUSTER_SERVICE],
+        shutdown,
+    )
+    .await;
     // Job packages are removed as jobs end; the work directory itself goes if empty.
     let _ = std::fs::remove_dir(&work_dir);
     served

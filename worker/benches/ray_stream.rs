@@ -93,7 +93,7 @@ fn ray_stream(c: &mut Criterion) {
             .await
             .expect("connect");
         let sender = PeerSender::open(
-            channel,
+            dray_net::ClientOptions::plain().wrap(channel),
             PeerClientConfig {
                 sender_id: "bench-client".into(),
                 receiver_id: "bench".into(),

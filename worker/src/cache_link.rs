@@ -32,7 +32,6 @@ use glam::Vec3;
 use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinSet;
 use tokio_stream::wrappers::ReceiverStream;
-use tonic::transport::Endpoint;
 
 use crate::jobs::{Job, lock};
 use crate::node::Shared;
@@ -315,14 +314,16 @@ async fn link_loop(
 ) {
     let (req_tx, req_rx) = mpsc::channel::<CacheRequest>(64);
     let opened = async {
-        let channel = Endpoint::from_shared(endpoint.clone())
+        let channel = shared
+            .net
+            .endpoint(&endpoint)
             .map_err(|e| e.to_string())?
             .connect_timeout(Duration::from_secs(5))
             .tcp_nodelay(true)
             .connect()
             .await
             .map_err(|e| e.to_string())?;
-        let mut client = CacheServiceClient::new(channel)
+        let mut client = CacheServiceClient::new(shared.net.wrap(channel))
             .max_decoding_message_size(64 << 20)
             .max_encoding_message_size(64 << 20);
         client

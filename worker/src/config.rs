@@ -40,6 +40,12 @@ pub struct WorkerConfig {
     /// registering so the coordinator can place cache actors there. The worker itself
     /// never answers a ray from a cache: it talks to the actors over gRPC like anyone.
     pub cache_endpoint: Option<String>,
+    /// How this worker reaches the coordinator, its peers and cache hosts: the cluster
+    /// token it presents, and TLS.
+    pub net: dray_net::ClientOptions,
+    /// How its own server (ray streams) admits calls: the cluster token it requires,
+    /// TLS, load shedding.
+    pub server: dray_net::ServerOptions,
 }
 
 impl Default for WorkerConfig {
@@ -56,6 +62,8 @@ impl Default for WorkerConfig {
             rejoin_timeout: Duration::from_secs(300),
             memory_packages: None,
             cache_endpoint: None,
+            net: dray_net::ClientOptions::plain(),
+            server: dray_net::ServerOptions::default(),
         }
     }
 }

@@ -10,12 +10,12 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use dray_core::ray::RAY_RECORD_FORMAT;
+use dray_net::AuthChannel;
 use dray_proto::v1::{
     Assignment, HeartbeatRequest, JobSetup, RegisterWorkerRequest, RegisterWorkerResponse,
     ReportContributionsRequest, RoutingTable, TileAssignment, WatchAssignmentsRequest,
     assignment::Command,
 };
-use tonic::transport::{Channel, Endpoint};
 
 use crate::config::{NodeError, WorkerConfig};
 use crate::domain_store::JobKey;
@@ -31,21 +31,20 @@ use crate::tracer::TileRef;
 pub(crate) async fn connect(
     config: &WorkerConfig,
     patience: Duration,
-) -> Result<Channel, NodeError> {
-    let address = if config.coordinator.contains("://") {
-        config.coordinator.clone()
-    } else {
-        format!("http://{}", config.coordinator)
-    };
-    let endpoint = Endpoint::from_shared(address.clone()).map_err(|e| NodeError::Address {
-        address: config.coordinator.clone(),
-        message: e.to_string(),
-    })?;
+) -> Result<AuthChannel, NodeError> {
+    let address = config.net.url(&config.coordinator);
+    let endpoint = config
+        .net
+        .endpoint(&config.coordinator)
+        .map_err(|e| NodeError::Address {
+            address: config.coordinator.clone(),
+            message: e.to_string(),
+        })?;
     let endpoint = endpoint.connect_timeout(Duration::from_secs(2));
     let start = tokio::time::Instant::now();
     loop {
         match endpoint.connect().await {
-            Ok(c) => return Ok(c),
+            Ok(c) => return Ok(config.net.wrap(c)),
             Err(e) => {
                 if start.elapsed() >= patience {
                     return Err(NodeError::Unreachable {

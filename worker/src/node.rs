@@ -22,11 +22,11 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex, RwLock};
 use std::time::Duration;
 
+use dray_net::AuthChannel;
 use dray_proto::v1::cluster_service_client::ClusterServiceClient;
 use dray_scene::partition::memory::MemoryPackages;
 use tokio::net::TcpListener;
 use tokio::sync::watch;
-use tonic::transport::Channel;
 
 use crate::cache_link::CacheLinks;
 use crate::config::Limits;
@@ -72,7 +72,9 @@ impl Wake {
 /// What the worker's parts share.
 pub(crate) struct Shared {
     id: RwLock<String>,
-    pub client: ClusterServiceClient<Channel>,
+    pub client: ClusterServiceClient<AuthChannel>,
+    /// How to reach peers and cache hosts (token, TLS).
+    pub net: dray_net::ClientOptions,
     pub queues: Arc<RayQueues>,
     pub store: DomainStore,
     pub jobs: Jobs,
@@ -152,6 +154,7 @@ pub async fn run(
     let shared = Arc::new(Shared {
         id: RwLock::new(String::new()),
         client: ClusterServiceClient::new(channel),
+        net: config.net.clone(),
         queues: queues.clone(),
         store: DomainStore::new(limits.domain_bytes, config.load_delay).with_note(
             if config.memory_budget > 0 {
@@ -177,6 +180,12 @@ pub async fn run(
     });
     // The first registration: a refusal here is final (wrong version, bad address).
     let registration = coordinator_link::register(&shared, &endpoint).await?;
+    if config.server.auth.cluster.is_none() {
+        tracing::warn!(
+            "no cluster token (--cluster-token-file or DRAY_CLUSTER_TOKEN): this worker's ray \
+             streams are open to anyone who reaches its ports"
+        );
+    }
     let weak = Arc::downgrade(&shared);
     queues.on_data(move || {
         if let Some(s) = weak.upgrade() {
@@ -192,7 +201,12 @@ pub async fn run(
         },
     );
     let (stop_tx, stop_rx) = watch::channel(false);
-    let server = tokio::spawn(serve(listener, peer_server.clone(), stop_rx.clone()));
+    let server = tokio::spawn(serve(
+        config.server.clone(),
+        listener,
+        peer_server.clone(),
+        stop_rx.clone(),
+    ));
 
     let mut tracers = Vec::new();
     for i in 0..threads {
@@ -240,30 +254,21 @@ pub async fn run(
 
 /// The worker's gRPC server (ray streams, health, reflection) until `stop`.
 async fn serve(
+    options: dray_net::ServerOptions,
     listener: TcpListener,
     peer_server: PeerServer,
     mut stop: watch::Receiver<bool>,
 ) -> Result<(), String> {
-    let (health_reporter, health_service) = tonic_health::server::health_reporter();
-    health_reporter
-        .set_serving::<dray_proto::v1::ray_exchange_service_server::RayExchangeServiceServer<PeerServer>>()
-        .await;
-    let reflection = dray_proto::reflection::reflection_v1().map_err(|e| e.to_string())?;
-    let reflection_alpha =
-        dray_proto::reflection::reflection_v1alpha().map_err(|e| e.to_string())?;
-    tonic::transport::Server::builder()
-        .add_service(health_service)
-        .add_service(reflection)
-        .add_service(reflection_alpha)
-        .add_service(peer_server.into_service())
-        .serve_with_incoming_shutdown(
-            // TCP_NODELAY: without it every small reply (registration, job setup,
-            // reports) waited out the peer's 40 ms delayed ACK.
-            tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
-            async move {
-                let _ = stop.wait_for(|s| *s).await;
-            },
-        )
-        .await
-        .map_err(|e| e.to_string())
+    let routes = tonic::service::Routes::new(peer_server.into_service());
+    dray_net::server::serve(
+        &options,
+        listener,
+        routes,
+        &[dray_proto::RAY_EXCHANGE_SERVICE],
+        async move {
+            let _ = stop.wait_for(|s| *s).await;
+        },
+    )
+    .await
+    .map_err(|e| e.to_string())
 }

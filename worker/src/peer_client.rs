@@ -18,6 +18,7 @@ use std::time::Duration;
 
 use dray_core::ray::FLAG_TICKETED;
 use dray_core::ray::{RAY_RECORD_BYTES, RAY_RECORD_FORMAT, RayRecord};
+use dray_net::AuthChannel;
 use dray_proto::v1::ray_exchange_service_client::RayExchangeServiceClient;
 use dray_proto::v1::{
     RayBatch, RayStreamOpen, RayStreamRequest, RayTicket, ray_stream_request, ray_stream_response,
@@ -27,7 +28,6 @@ use tokio::task::JoinHandle;
 use tokio::time::Instant;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::Status;
-use tonic::transport::Channel;
 
 use crate::peer_server::MAX_MESSAGE_BYTES;
 use crate::tickets::MAX_TICKETS;
@@ -132,7 +132,10 @@ impl Drop for PeerSender {
 
 impl PeerSender {
     /// Open a stream on `channel` and wait for the receiver's first grant.
-    pub async fn open(channel: Channel, config: PeerClientConfig) -> Result<PeerSender, PeerError> {
+    pub async fn open(
+        channel: AuthChannel,
+        config: PeerClientConfig,
+    ) -> Result<PeerSender, PeerError> {
         let mut client = RayExchangeServiceClient::new(channel)
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(MAX_MESSAGE_BYTES);

@@ -19,7 +19,6 @@ use dray_core::ray::RayRecord;
 use dray_proto::v1::RayTicket;
 use tokio::sync::mpsc;
 use tokio::task::JoinSet;
-use tonic::transport::Endpoint;
 
 use crate::jobs::{Job, lock};
 use crate::node::Shared;
@@ -112,13 +111,15 @@ async fn peer_loop(shared: Arc<Shared>, peer: Peer, mut rx: mpsc::UnboundedRecei
         ..PeerClientConfig::default()
     };
     let opened = async {
-        let channel = Endpoint::from_shared(peer.endpoint.clone())
+        let channel = shared
+            .net
+            .endpoint(&peer.endpoint)
             .map_err(|e| e.to_string())?
             .connect_timeout(Duration::from_secs(5))
             .connect()
             .await
             .map_err(|e| e.to_string())?;
-        PeerSender::open(channel, config)
+        PeerSender::open(shared.net.wrap(channel), config)
             .await
             .map_err(|e| e.to_string())
     }

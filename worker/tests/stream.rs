@@ -16,7 +16,7 @@ use glam::Vec3;
 use tokio::net::TcpListener;
 use tokio::task::JoinHandle;
 use tokio_stream::wrappers::TcpListenerStream;
-use tonic::transport::{Channel, Endpoint, Server};
+use tonic::transport::{Endpoint, Server};
 
 /// Aborts the task on drop, so a failing test still stops its server or sender.
 struct AbortOnDrop<T>(JoinHandle<T>);
@@ -30,7 +30,7 @@ impl<T> Drop for AbortOnDrop<T> {
 async fn start_server(
     queues: Arc<RayQueues>,
     config: PeerServerConfig,
-) -> (Channel, AbortOnDrop<()>) {
+) -> (dray_net::AuthChannel, AbortOnDrop<()>) {
     let listener = TcpListener::bind("127.0.0.1:0").await.expect("bind");
     let addr = listener.local_addr().expect("local addr");
     let service = PeerServer::new(queues, config).into_service();
@@ -45,7 +45,7 @@ async fn start_server(
         .connect()
         .await
         .expect("connect");
-    (channel, server)
+    (dray_net::ClientOptions::plain().wrap(channel), server)
 }
 
 /// SplitMix64, so the rays are varied but reproducible.

@@ -150,7 +150,18 @@ pub struct Plan {
 }
 
 /// The sweep's own flags, removed from the render flags.
-const SWEEP_FLAGS: [&str; 3] = ["vary", "out", "coordinator"];
+/// Flags of `dray sweep` itself (not render flags): never part of a setting.
+const SWEEP_FLAGS: [&str; 9] = [
+    "vary",
+    "out",
+    "coordinator",
+    "repeat",
+    "no-warmup",
+    "auth-token-file",
+    "tls-cert",
+    "tls-key",
+    "tls-ca",
+];
 
 /// Group `tokens` into flags and positionals, using `cmd`'s arguments to know which flags
 /// take a value (a value is the next token even when it starts with `-`, as clap does for

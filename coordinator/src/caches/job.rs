@@ -45,6 +45,8 @@ pub struct JobCaches {
     pub opened: Option<OpenAttempt>,
     /// The attempt whose walls are being opened, if any (its tiles wait).
     pub pending: Option<u32>,
+    /// How to reach the cache hosts (the cluster token, TLS).
+    pub net: dray_net::ClientOptions,
 }
 
 impl JobCaches {
@@ -53,6 +55,7 @@ impl JobCaches {
         settings: Option<RayCacheSettings>,
         phm: Option<PhmSettings>,
         geometry: Arc<WallGeometry>,
+        net: dray_net::ClientOptions,
     ) -> JobCaches {
         JobCaches {
             tally: Arc::new(CacheTally::new(settings.is_some(), phm.is_some())),
@@ -61,6 +64,7 @@ impl JobCaches {
             geometry,
             opened: None,
             pending: None,
+            net,
         }
     }
 
@@ -72,6 +76,7 @@ impl JobCaches {
             settings: self.settings.clone(),
             phm: self.phm.clone(),
             geometry: self.geometry.clone(),
+            net: self.net.clone(),
         }
     }
 }

@@ -18,7 +18,6 @@ use dray_proto::v1::{
     RayCacheStats,
 };
 use tokio::task::JoinSet;
-use tonic::transport::Endpoint;
 
 use super::geometry::WallGeometry;
 use super::placement::Placement;
@@ -44,6 +43,8 @@ pub struct AttemptWalls {
     pub phm: Option<PhmSettings>,
     /// Scene and domain boxes.
     pub geometry: Arc<WallGeometry>,
+    /// How to reach the hosts (the cluster token, TLS).
+    pub net: dray_net::ClientOptions,
 }
 
 /// A host that failed a call, and why (for logs).
@@ -77,10 +78,12 @@ pub struct Closed {
 
 /// A client for the host at `endpoint`, with the connect and call deadlines.
 async fn client(
+    net: &dray_net::ClientOptions,
     endpoint: &str,
     timeout: Duration,
-) -> Result<CacheServiceClient<tonic::transport::Channel>, String> {
-    let channel = Endpoint::from_shared(endpoint.to_string())
+) -> Result<CacheServiceClient<dray_net::AuthChannel>, String> {
+    let channel = net
+        .endpoint(endpoint)
         .map_err(|e| format!("bad endpoint: {e}"))?
         .connect_timeout(CONNECT_TIMEOUT)
         .timeout(timeout)
@@ -88,16 +91,20 @@ async fn client(
         .connect()
         .await
         .map_err(|e| format!("cannot connect: {e}"))?;
-    Ok(CacheServiceClient::new(channel))
+    Ok(CacheServiceClient::new(net.wrap(channel)))
 }
 
-async fn open_one(host: CacheHost, req: OpenWallsRequest) -> Result<u32, HostFailure> {
+async fn open_one(
+    net: dray_net::ClientOptions,
+    host: CacheHost,
+    req: OpenWallsRequest,
+) -> Result<u32, HostFailure> {
     let fail = |reason: String| HostFailure {
         host: host.clone(),
         reason,
     };
     let call = async {
-        let mut c = client(&host.endpoint, OPEN_TIMEOUT).await?;
+        let mut c = client(&net, &host.endpoint, OPEN_TIMEOUT).await?;
         c.open_walls(req)
             .await
             .map(|r| r.into_inner().actors)
@@ -110,6 +117,7 @@ async fn open_one(host: CacheHost, req: OpenWallsRequest) -> Result<u32, HostFai
 }
 
 async fn close_one(
+    net: dray_net::ClientOptions,
     host: CacheHost,
     req: CloseWallsRequest,
 ) -> Result<(RayCacheStats, PhmStats), HostFailure> {
@@ -118,7 +126,7 @@ async fn close_one(
         reason,
     };
     let call = async {
-        let mut c = client(&host.endpoint, CLOSE_TIMEOUT).await?;
+        let mut c = client(&net, &host.endpoint, CLOSE_TIMEOUT).await?;
         c.close_walls(req)
             .await
             .map(|r| {
@@ -155,7 +163,8 @@ pub async fn open(a: &AttemptWalls, placement: Placement) -> Opened {
                 walls,
                 phm: a.phm.clone(),
             };
-            calls.spawn(async move { (h, open_one(host, req).await) });
+            let net = a.net.clone();
+            calls.spawn(async move { (h, open_one(net, host, req).await) });
         }
         let mut failed = BTreeSet::new();
         while let Some(joined) = calls.join_next().await {
@@ -198,14 +207,19 @@ pub async fn open(a: &AttemptWalls, placement: Placement) -> Opened {
 
 /// Close attempt `attempt` of `job_id` on every host of `placement` and sum what they
 /// return.
-pub async fn close(job_id: &str, attempt: u32, placement: &Placement) -> Closed {
+pub async fn close(
+    job_id: &str,
+    attempt: u32,
+    placement: &Placement,
+    net: &dray_net::ClientOptions,
+) -> Closed {
     let mut calls = JoinSet::new();
     for host in placement.hosts() {
         let req = CloseWallsRequest {
             job_id: job_id.to_string(),
             attempt,
         };
-        calls.spawn(close_one(host.clone(), req));
+        calls.spawn(close_one(net.clone(), host.clone(), req));
     }
     let mut out = Closed::default();
     while let Some(joined) = calls.join_next().await {

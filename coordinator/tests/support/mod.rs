@@ -63,6 +63,7 @@ impl Server {
                 work_dir: work_dir.clone(),
                 memory_packages: None,
                 scheduler,
+                clients: dray_net::ClientOptions::plain(),
             });
         let served = coordinator.clone();
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();

@@ -1,0 +1,182 @@
+//! The flags that say how dray processes authenticate and encrypt their gRPC calls,
+//! shared by every command that serves or calls (see dray-net for what they do).
+//!
+//! - `--auth-token-file FILE` (or `DRAY_AUTH_TOKEN` holding the token itself): the
+//!   **API token** the coordinator requires on `RenderService`, and that `dray submit`,
+//!   `dray sweep --coordinator` and grpcurl (`-H "authorization: Bearer TOKEN"`) present.
+//! - `--cluster-token-file FILE` (or `DRAY_CLUSTER_TOKEN`): the **cluster token** every
+//!   member presents and requires on the cluster's own services. API clients never hold
+//!   it. `dray cluster` and `dray render` make one for their own processes.
+//! - `--tls-cert`, `--tls-key`, `--tls-ca` (PEM files): TLS on every server and client;
+//!   with `--tls-ca` on a server, clients must present a certificate it signed.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use clap::Args;
+use dray_net::{ClientOptions, ServerOptions, TlsFiles, Token};
+
+/// The environment variable holding the API token itself.
+pub const API_TOKEN_ENV: &str = "DRAY_AUTH_TOKEN";
+/// The environment variable holding the cluster token itself.
+pub const CLUSTER_TOKEN_ENV: &str = "DRAY_CLUSTER_TOKEN";
+
+/// TLS certificate files.
+#[derive(Args, Debug, Clone, Default)]
+pub struct TlsArgs {
+    /// This process's TLS certificate chain (PEM). With --tls-key, servers speak TLS.
+    #[arg(long, value_name = "FILE", env = "DRAY_TLS_CERT")]
+    pub tls_cert: Option<PathBuf>,
+    /// The private key of --tls-cert (PEM).
+    #[arg(long, value_name = "FILE", env = "DRAY_TLS_KEY")]
+    pub tls_key: Option<PathBuf>,
+    /// The certificate authority to trust (PEM). Clients check servers against it; a
+    /// server given it requires client certificates it signed (mutual TLS).
+    #[arg(long, value_name = "FILE", env = "DRAY_TLS_CA")]
+    pub tls_ca: Option<PathBuf>,
+}
+
+impl TlsArgs {
+    pub fn files(&self) -> TlsFiles {
+        TlsFiles {
+            cert: self.tls_cert.clone(),
+            key: self.tls_key.clone(),
+            ca: self.tls_ca.clone(),
+        }
+    }
+
+    /// The flags again, for a child process.
+    pub fn to_args(&self) -> Vec<String> {
+        let mut v = Vec::new();
+        for (flag, path) in [
+            ("--tls-cert", &self.tls_cert),
+            ("--tls-key", &self.tls_key),
+            ("--tls-ca", &self.tls_ca),
+        ] {
+            if let Some(p) = path {
+                v.push(flag.to_string());
+                v.push(p.display().to_string());
+            }
+        }
+        v
+    }
+}
+
+/// The API token (coordinator, and the clients of its public API).
+#[derive(Args, Debug, Clone, Default)]
+pub struct ApiTokenArgs {
+    /// File holding the API token: the coordinator requires it on RenderService, clients
+    /// present it. Without it (and without DRAY_AUTH_TOKEN) the API is open.
+    #[arg(long, value_name = "FILE", env = "DRAY_AUTH_TOKEN_FILE")]
+    pub auth_token_file: Option<PathBuf>,
+}
+
+impl ApiTokenArgs {
+    /// The token, from the file or from `DRAY_AUTH_TOKEN`.
+    pub fn token(&self) -> Result<Option<Token>> {
+        token(
+            self.auth_token_file.as_deref(),
+            API_TOKEN_ENV,
+            "--auth-token-file",
+        )
+    }
+}
+
+/// The cluster token (every member).
+#[derive(Args, Debug, Clone, Default)]
+pub struct ClusterTokenArgs {
+    /// File holding the cluster token: members present it to each other and require it
+    /// on the cluster's own services. Without it (and without DRAY_CLUSTER_TOKEN) those
+    /// services are open to anyone who can reach the ports.
+    #[arg(long, value_name = "FILE", env = "DRAY_CLUSTER_TOKEN_FILE")]
+    pub cluster_token_file: Option<PathBuf>,
+}
+
+impl ClusterTokenArgs {
+    /// The token, from the file or from `DRAY_CLUSTER_TOKEN`.
+    pub fn token(&self) -> Result<Option<Token>> {
+        token(
+            self.cluster_token_file.as_deref(),
+            CLUSTER_TOKEN_ENV,
+            "--cluster-token-file",
+        )
+    }
+}
+
+/// The token in `file`, else in the environment variable `env`, else none.
+fn token(file: Option<&Path>, env: &str, flag: &str) -> Result<Option<Token>> {
+    if let Some(f) = file {
+        return Token::from_file(f)
+            .map(Some)
+            .with_context(|| flag.to_string());
+    }
+    match std::env::var(env) {
+        Ok(v) => Token::parse(&v, &format!("in {env}"))
+            .map(Some)
+            .map_err(Into::into),
+        Err(std::env::VarError::NotPresent) => Ok(None),
+        Err(std::env::VarError::NotUnicode(_)) => {
+            anyhow::bail!("{env} is not valid UTF-8")
+        }
+    }
+}
+
+/// A cluster member's flags: its cluster token, TLS, and how many calls its servers
+/// take at once.
+#[derive(Args, Debug, Clone, Default)]
+pub struct MemberArgs {
+    #[command(flatten)]
+    pub cluster_token: ClusterTokenArgs,
+    #[command(flatten)]
+    pub tls: TlsArgs,
+    /// Calls in progress at once on this process's servers; more are refused at once
+    /// with RESOURCE_EXHAUSTED.
+    #[arg(long, value_name = "N", default_value_t = dray_net::server::DEFAULT_MAX_CALLS)]
+    pub max_calls: usize,
+}
+
+impl MemberArgs {
+    /// How this member serves (requiring the cluster token) and calls (presenting it).
+    pub fn options(&self) -> Result<(ServerOptions, ClientOptions)> {
+        let token = self.cluster_token.token()?;
+        let server = server_options(None, token.clone(), &self.tls, self.max_calls)?;
+        let client = client_options(token, &self.tls)?;
+        Ok((server, client))
+    }
+}
+
+/// Server options for a process requiring `api` (coordinator only) and `cluster`, with
+/// TLS per `tls` and at most `max_calls` calls in progress.
+pub fn server_options(
+    api: Option<Token>,
+    cluster: Option<Token>,
+    tls: &TlsArgs,
+    max_calls: usize,
+) -> Result<ServerOptions> {
+    let mut o = ServerOptions::new(api, cluster, &tls.files())?;
+    o.max_calls = max_calls;
+    Ok(o)
+}
+
+/// Client options presenting `token`, with TLS per `tls`.
+pub fn client_options(token: Option<Token>, tls: &TlsArgs) -> Result<ClientOptions> {
+    Ok(ClientOptions::new(token, &tls.files())?)
+}
+
+/// Write `token` to a new file only this user can read, in `dir`, for child processes.
+pub fn write_token_file(dir: &Path, name: &str, token: &Token) -> Result<PathBuf> {
+    use std::io::Write;
+    use std::os::unix::fs::OpenOptionsExt;
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let path = dir.join(name);
+    let _ = std::fs::remove_file(&path);
+    let mut f = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .mode(0o600)
+        .open(&path)
+        .with_context(|| format!("cannot create {}", path.display()))?;
+    f.write_all(token.expose().as_bytes())
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(path)
+}

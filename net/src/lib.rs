@@ -1,0 +1,28 @@
+//! How dray's actors talk to each other and to their users: the one place where gRPC
+//! servers and clients are set up.
+//!
+//! - [`credential`]: bearer tokens (read from a file or the environment, compared in
+//!   constant time, never printed).
+//! - [`auth`]: which credential each service needs. The public API (`RenderService`)
+//!   takes the **API token**; the cluster's own services (`ClusterService`,
+//!   `RayExchangeService`, `CacheService`) take the **cluster token**, which API clients
+//!   never hold; health and reflection stay open, for probes and grpcurl.
+//! - [`server`]: one builder for the coordinator, the workers and the cache hosts,
+//!   made of tower layers: authentication, admission (a bound on calls in progress,
+//!   beyond which calls are refused at once rather than queued), request timeouts;
+//!   plus health, reflection, TCP_NODELAY and TLS.
+//! - [`client`]: channels that present a token (and speak TLS when asked).
+//! - [`tls`]: certificate files for both sides.
+
+pub mod admission;
+pub mod auth;
+pub mod client;
+pub mod credential;
+pub mod server;
+pub mod tls;
+
+pub use auth::{Access, AuthPolicy};
+pub use client::{AuthChannel, ClientOptions};
+pub use credential::Token;
+pub use server::ServerOptions;
+pub use tls::TlsFiles;
