@@ -191,7 +191,11 @@ pub fn render_on_actors(
                 match JobState::try_from(p.state) {
                     Ok(JobState::Succeeded) => break,
                     Ok(JobState::Failed | JobState::Cancelled) => bail!("{}", p.error),
-                    _ => tokio::time::sleep(Duration::from_millis(10)).await,
+                    // Progress every 50 ms; the end as soon as it comes.
+                    _ => tokio::select! {
+                        _ = tokio::time::sleep(Duration::from_millis(50)) => {}
+                        _ = entry.wait_ended() => {}
+                    },
                 }
             }
             let render_time = start.elapsed();

@@ -38,6 +38,9 @@ pub struct JobEntry {
     tiles_done: AtomicU32,
     rays_in_flight: AtomicU64,
     inner: Mutex<Inner>,
+    /// Woken when the job reaches a terminal state, so watchers see the end at once
+    /// rather than at their next interval.
+    ended: tokio::sync::Notify,
 }
 
 struct Inner {
@@ -168,6 +171,21 @@ impl JobEntry {
         g.film = film.map(Arc::new);
         g.elapsed_final = Some(g.started.map(|t| t.elapsed()).unwrap_or_default());
         g.finished_at = Some(SystemTime::now());
+        drop(g);
+        self.ended.notify_waiters();
+    }
+
+    /// Completes once the job is in a terminal state (at once if it already is).
+    pub async fn wait_ended(&self) {
+        loop {
+            let notified = self.ended.notified();
+            tokio::pin!(notified);
+            notified.as_mut().enable();
+            if terminal(self.lock().state) {
+                return;
+            }
+            notified.await;
+        }
     }
 }
 
@@ -225,6 +243,7 @@ impl JobTable {
                 stats: JobStats::default(),
                 film: None,
             }),
+            ended: tokio::sync::Notify::new(),
         });
         self.jobs().push(entry.clone());
         entry

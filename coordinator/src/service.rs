@@ -207,8 +207,10 @@ impl RenderService for Coordinator {
                 if done {
                     return;
                 }
+                // The interval paces progress messages; the end is sent at once.
                 tokio::select! {
                     _ = tokio::time::sleep(interval) => {}
+                    _ = job.wait_ended() => {}
                     _ = tx.closed() => return,
                 }
             }
