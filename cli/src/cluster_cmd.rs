@@ -78,6 +78,18 @@ pub struct ClusterArgs {
     /// TLS for every member (passed on to each).
     #[command(flatten)]
     pub tls: crate::net_flags::TlsArgs,
+    /// Times a worker that exits on its own is started again, after 1, 2, 4, ... s (at
+    /// most 30 s); 0 never restarts one.
+    #[arg(long, value_name = "N", default_value_t = 3)]
+    pub restart_limit: u32,
+}
+
+/// Longest wait before a worker is started again.
+const MAX_RESTART_BACKOFF: Duration = Duration::from_secs(30);
+
+/// The wait before restart number `n` (0-based): 1 s, 2 s, 4 s, ... at most 30 s.
+fn restart_backoff(n: u32) -> Duration {
+    Duration::from_secs(1u64 << n.min(5)).min(MAX_RESTART_BACKOFF)
 }
 
 /// A directory of this run's secrets, removed when the cluster stops.
@@ -98,6 +110,12 @@ struct Member {
     ready: bool,
     /// Set once it has been reaped.
     exited: Option<ExitStatus>,
+    /// Its command line, to start it again.
+    args: Vec<String>,
+    /// Times it was started again.
+    restarts: u32,
+    /// When to start it again, if it is to be.
+    restart_at: Option<tokio::time::Instant>,
 }
 
 /// The running members. Dropping it stops every member still running, so an early
@@ -299,7 +317,49 @@ fn spawn(exe: &PathBuf, name: String, addr: SocketAddr, args: &[String]) -> Resu
         child,
         ready: false,
         exited: None,
+        args: args.to_vec(),
+        restarts: 0,
+        restart_at: None,
     })
+}
+
+impl Cluster {
+    /// Start again the workers whose restart time has come; a start that fails is
+    /// tried again after the next backoff, within the limit.
+    fn restart_due(&mut self, exe: &PathBuf, limit: u32) {
+        let now = tokio::time::Instant::now();
+        for m in self.members.iter_mut().skip(1) {
+            if m.restart_at.is_none_or(|t| t > now) {
+                continue;
+            }
+            m.restart_at = None;
+            m.restarts += 1;
+            match spawn(exe, m.name.clone(), m.addr, &m.args) {
+                Ok(new) => {
+                    eprintln!(
+                        "dray cluster: {} started again (pid {}, http://{}; restart {} of {limit})",
+                        m.name,
+                        new.child.id(),
+                        m.addr,
+                        m.restarts
+                    );
+                    m.child = new.child;
+                    m.exited = None;
+                }
+                Err(e) => {
+                    let retry = m.restarts < limit;
+                    eprintln!(
+                        "dray cluster: cannot start {} again: {e:#}{}",
+                        m.name,
+                        if retry { "; trying later" } else { "" }
+                    );
+                    if retry {
+                        m.restart_at = Some(now + restart_backoff(m.restarts));
+                    }
+                }
+            }
+        }
+    }
 }
 
 /// Whether the gRPC server at `addr` reports `service` as SERVING. A worker without the
@@ -523,10 +583,29 @@ pub fn run(a: ClusterArgs) -> Result<()> {
                     bail!("{name} exited unexpectedly ({status}); stopped the others");
                 }
                 // A lost worker: the coordinator notices it too (its stream ends) and
-                // re-traces its share; the cluster serves on with the others.
+                // re-traces its share; the cluster serves on with the others, and starts
+                // the worker again (on the same port) within the restart limit.
                 let n = cluster.workers_running();
+                let m = &mut cluster.members[i];
+                let restart = if m.restarts < a.restart_limit {
+                    let wait = restart_backoff(m.restarts);
+                    m.restart_at = Some(tokio::time::Instant::now() + wait);
+                    format!(
+                        " and starts it again in {} s (restart {} of {})",
+                        wait.as_secs(),
+                        m.restarts + 1,
+                        a.restart_limit
+                    )
+                } else if a.restart_limit > 0 {
+                    format!(
+                        " (it was started again {} times, the --restart-limit)",
+                        m.restarts
+                    )
+                } else {
+                    String::new()
+                };
                 eprintln!(
-                    "dray cluster: {name} exited: {}; the cluster keeps serving with {n} worker{}{}",
+                    "dray cluster: {name} exited: {}; the cluster keeps serving with {n} worker{}{}{restart}",
                     describe(status),
                     if n == 1 { "" } else { "s" },
                     if n == 0 {
@@ -536,6 +615,7 @@ pub fn run(a: ClusterArgs) -> Result<()> {
                     }
                 );
             }
+            cluster.restart_due(&exe, a.restart_limit);
             if std::os::unix::process::parent_id() != parent {
                 eprintln!("dray cluster: the parent process is gone; stopping");
                 cluster.stop();

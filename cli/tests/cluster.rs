@@ -302,6 +302,9 @@ fn a_worker_that_dies_is_reported_and_the_cluster_keeps_serving() {
             "100",
             "--heartbeat-timeout-ms",
             "3000",
+            // This test follows the cluster down to no worker: no restarts.
+            "--restart-limit",
+            "0",
         ],
     );
     let stats = submit_small(&c.addr, &dir, "two", &want);
@@ -389,6 +392,68 @@ fn a_worker_that_dies_is_reported_and_the_cluster_keeps_serving() {
     assert!(
         gone_within(c.coordinator_pid, 5.0),
         "the coordinator outlived the cluster"
+    );
+    drop(c);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_worker_that_dies_is_started_again_and_takes_the_next_job() {
+    let dir = common::tmp("cluster-worker-restarts");
+    let reference = common::render(&dir, "reference", "cornell:glass", &SMALL);
+    assert!(reference.ok, "{}", reference.stderr);
+    let want = std::fs::read(reference.png.expect("png")).expect("png");
+    let mut c = support::WorkerCluster::start(
+        2,
+        1,
+        &dir,
+        &[
+            "--heartbeat-interval-ms",
+            "100",
+            "--heartbeat-timeout-ms",
+            "3000",
+        ],
+    );
+    let w2 = c.worker_pids[1];
+    // SAFETY: kill(2) on a worker of the cluster this test started.
+    unsafe {
+        libc::kill(w2, libc::SIGKILL);
+    }
+    assert!(
+        eventually(30.0, || c.log().contains(
+            "the cluster keeps serving with 1 worker and starts it again in 1 s (restart 1 of 3)"
+        )),
+        "{}",
+        c.log()
+    );
+    assert!(
+        eventually(30.0, || c
+            .log()
+            .contains("dray cluster: worker 2 started again (pid")),
+        "{}",
+        c.log()
+    );
+    // The new worker 2 registers (a third registration) on the same port.
+    assert!(
+        eventually(60.0, || c.log().matches("worker registered").count() >= 3),
+        "{}",
+        c.log()
+    );
+    // Once the coordinator has let the old one go, jobs run on both again.
+    assert!(
+        eventually(60.0, || c.log().contains("worker lost")),
+        "{}",
+        c.log()
+    );
+    let stats = submit_small(&c.addr, &dir, "after-restart", &want);
+    assert_eq!(
+        stats["workers"].as_array().map(Vec::len),
+        Some(2),
+        "{stats}"
+    );
+    assert!(
+        c.proc.child.try_wait().expect("try_wait").is_none(),
+        "the cluster stopped"
     );
     drop(c);
     let _ = std::fs::remove_dir_all(&dir);
