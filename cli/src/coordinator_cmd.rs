@@ -59,6 +59,21 @@ pub struct CoordinatorArgs {
     pub api_token: ApiTokenArgs,
     #[command(flatten)]
     pub member: MemberArgs,
+    /// Jobs queued, preparing or running at once; SubmitJob refuses more with
+    /// RESOURCE_EXHAUSTED.
+    #[arg(long, value_name = "N", default_value_t = 64)]
+    pub max_jobs: usize,
+    /// Largest memory a job may need at the coordinator (image and scene, estimated
+    /// before it is accepted; suffixes K, M, G, T). [default: half the machine's memory]
+    #[arg(long, value_name = "BYTES", value_parser = crate::bytes::parse_bytes)]
+    pub max_job_bytes: Option<u64>,
+    /// Keep the images of this many finished jobs (the newest); older ones are dropped
+    /// and GetImage says so.
+    #[arg(long, value_name = "N", default_value_t = 100)]
+    pub keep_finished: usize,
+    /// Drop a finished job's image this many seconds after it finished (0: never).
+    #[arg(long, value_name = "SECONDS", default_value_t = 86400)]
+    pub finished_ttl: u64,
 }
 
 fn default_heartbeat() -> HeartbeatConfig {
@@ -164,7 +179,16 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
     let work_dir = options.work_dir.clone();
     let coordinator = dray_coordinator::Coordinator::new(&a.scene_root, a.threads)
         .with_context(|| format!("--scene-root {}", a.scene_root.display()))?
-        .with_cluster_options(options);
+        .with_cluster_options(options)
+        .with_admission(
+            a.max_jobs.max(1),
+            a.max_job_bytes
+                .unwrap_or_else(dray_coordinator::admission::default_max_job_bytes),
+            dray_coordinator::jobs::Retention {
+                keep_finished: a.keep_finished,
+                ttl: (a.finished_ttl > 0).then(|| Duration::from_secs(a.finished_ttl)),
+            },
+        );
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()

@@ -51,6 +51,8 @@ struct Inner {
     error: String,
     stats: JobStats,
     film: Option<Arc<Film>>,
+    /// Why the image is gone, once the retention policy dropped it.
+    dropped: Option<&'static str>,
 }
 
 fn terminal(s: JobState) -> bool {
@@ -73,6 +75,11 @@ impl JobEntry {
     /// The finished film, once the job SUCCEEDED.
     pub fn film(&self) -> Option<Arc<Film>> {
         self.lock().film.clone()
+    }
+
+    /// Why the finished job's image was dropped, if it was ([`Retention`]).
+    pub fn dropped(&self) -> Option<&'static str> {
+        self.lock().dropped
     }
 
     /// Progress as WatchJob and GetJob report it.
@@ -198,6 +205,26 @@ pub struct JobTable {
     nonce: u32,
     gate: Arc<Semaphore>,
     threads: usize,
+    retention: Retention,
+}
+
+/// How long finished jobs keep their images: the coordinator would otherwise hold every
+/// image it ever made.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Retention {
+    /// Images of at most this many finished jobs are kept (the newest).
+    pub keep_finished: usize,
+    /// An image is dropped this long after its job finished (None: never, by age).
+    pub ttl: Option<Duration>,
+}
+
+impl Default for Retention {
+    fn default() -> Retention {
+        Retention {
+            keep_finished: 100,
+            ttl: Some(Duration::from_secs(24 * 3600)),
+        }
+    }
 }
 
 impl JobTable {
@@ -215,6 +242,52 @@ impl JobTable {
             },
             gate: Arc::new(Semaphore::new(1)),
             threads,
+            retention: Retention::default(),
+        }
+    }
+
+    /// The same table with another retention policy.
+    pub fn with_retention(mut self, retention: Retention) -> JobTable {
+        self.retention = retention;
+        self
+    }
+
+    /// Render threads for jobs in this process (0 = all cores).
+    pub fn threads(&self) -> usize {
+        self.threads
+    }
+
+    /// Jobs not yet in a terminal state (queued, preparing or running).
+    pub fn active(&self) -> usize {
+        self.jobs().iter().filter(|j| !terminal(j.state())).count()
+    }
+
+    /// Drop the images the retention policy no longer keeps: those of finished jobs
+    /// beyond the newest `keep_finished`, and those older than the TTL. The jobs stay
+    /// listed (GetJob), and GetImage says why there is no image.
+    pub fn sweep(&self) {
+        let now = SystemTime::now();
+        let mut kept = 0usize;
+        for j in self.jobs().iter().rev() {
+            let mut g = j.lock();
+            if !terminal(g.state) || g.film.is_none() {
+                continue;
+            }
+            let expired = match (self.retention.ttl, g.finished_at) {
+                (Some(ttl), Some(at)) => now.duration_since(at).is_ok_and(|age| age > ttl),
+                _ => false,
+            };
+            if expired {
+                g.film = None;
+                g.dropped = Some("it finished longer ago than the coordinator's --finished-ttl");
+            } else if kept >= self.retention.keep_finished {
+                g.film = None;
+                g.dropped = Some(
+                    "the coordinator keeps the images of its newest --keep-finished jobs only",
+                );
+            } else {
+                kept += 1;
+            }
         }
     }
 
@@ -225,6 +298,7 @@ impl JobTable {
     /// Add a job QUEUED, without starting anything: the caller runs it (in process with
     /// [`JobTable::submit`], or on workers through the dispatcher).
     pub fn insert(&self, spec: JobSpec) -> Arc<JobEntry> {
+        self.sweep();
         let n = self.next_id.fetch_add(1, Ordering::Relaxed);
         let entry = Arc::new(JobEntry {
             id: format!("job-{n}-{:08x}", self.nonce),
@@ -242,6 +316,7 @@ impl JobTable {
                 error: String::new(),
                 stats: JobStats::default(),
                 film: None,
+                dropped: None,
             }),
             ended: tokio::sync::Notify::new(),
         });

@@ -27,6 +27,7 @@
 //! - [`cluster`]: the tonic `ClusterService` over the above.
 //! - [`service`]: the tonic `RenderService` and [`serve`].
 
+pub mod admission;
 pub mod caches;
 pub mod cluster;
 pub mod dispatch;

@@ -54,6 +54,21 @@ impl Coordinator {
         })
     }
 
+    /// The same coordinator with admission limits: at most `max_jobs` jobs queued or
+    /// running, none estimated above `max_job_bytes`, and finished jobs' images kept per
+    /// `retention`. Call before serving.
+    pub fn with_admission(
+        mut self,
+        max_jobs: usize,
+        max_job_bytes: u64,
+        retention: crate::jobs::Retention,
+    ) -> Coordinator {
+        self.limits.max_jobs = max_jobs;
+        self.limits.max_job_bytes = max_job_bytes;
+        self.table = Arc::new(JobTable::new(self.table.threads()).with_retention(retention));
+        self
+    }
+
     /// The same coordinator with other cluster settings (heartbeats, work directory).
     /// Call before serving: workers and jobs on workers start afresh.
     pub fn with_cluster_options(mut self, options: ClusterOptions) -> Coordinator {
@@ -87,7 +102,15 @@ impl Coordinator {
 
     /// SubmitJob, with the scene already loaded or not.
     async fn submit(&self, spec: JobSpec, loaded: Option<Scene>) -> Result<String, Status> {
+        let active = self.table.active();
+        if active >= self.limits.max_jobs {
+            return Err(Status::resource_exhausted(format!(
+                "the coordinator has {active} jobs queued or running, its --max-jobs: submit \
+                 again when one has finished"
+            )));
+        }
         let v = validate(&spec, &self.limits, &self.scene_root)?;
+        crate::admission::admit(&v, &self.limits)?;
         // Loading the scene checks the scene spec and the camera; it may take a while for
         // large scenes, so it runs off the async threads.
         let v2 = v.clone();
@@ -297,7 +320,14 @@ impl RenderService for Coordinator {
                 )));
             }
         };
+        self.table.sweep();
         let job = self.job(&r.job_id)?;
+        if let Some(why) = job.dropped() {
+            return Err(Status::not_found(format!(
+                "job {:?} finished, but its image was dropped: {why}",
+                job.id
+            )));
+        }
         let Some(film) = job.film() else {
             return Err(Status::failed_precondition(format!(
                 "job {:?} is {}; its image is available once it has SUCCEEDED",

@@ -35,6 +35,11 @@ pub struct Limits {
     pub max_domains: u32,
     /// Longest label, in bytes.
     pub max_label: usize,
+    /// Jobs queued, preparing or running at once; more are refused.
+    pub max_jobs: usize,
+    /// Largest memory a job may need at the coordinator, by the estimate of
+    /// [`crate::admission`]; larger jobs are refused.
+    pub max_job_bytes: u64,
 }
 
 impl Default for Limits {
@@ -46,6 +51,8 @@ impl Default for Limits {
             max_ao_samples: 4096,
             max_domains: 65536,
             max_label: 256,
+            max_jobs: 64,
+            max_job_bytes: crate::admission::default_max_job_bytes(),
         }
     }
 }

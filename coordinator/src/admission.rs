@@ -1,0 +1,105 @@
+//! Admission by memory: before a job is accepted, estimate what it will need at the
+//! coordinator and refuse it (RESOURCE_EXHAUSTED) above `--max-job-bytes`, so that a job
+//! within every per-field limit still cannot take the machine down inside SubmitJob.
+//!
+//! The estimate covers what grows with the request:
+//! - the film: integer sums per pixel, plus the encoded image GetImage builds;
+//! - a scene file: its size times [`IMPORT_FACTOR`] (meshes, the BVH or the partition
+//!   built from it), and for `grid:<file>:XxYxZ` that times the copies.
+//!
+//! Procedural generators are bounded by their own argument limits (each checks its
+//! counts), and scene packages are read domain by domain on the workers, so neither is
+//! estimated here beyond the film.
+
+use tonic::Status;
+
+use crate::validate::{Limits, Validated};
+
+/// Bytes per pixel: 3 x i64 sums, plus room for an encoded EXR (RGB f32) of the image.
+pub const FILM_BYTES_PER_PIXEL: u64 = 24 + 12;
+/// A scene file grows about this much once imported and built (meshes with normals and
+/// uvs, the BVH, partition buffers).
+pub const IMPORT_FACTOR: u64 = 16;
+
+/// The default `--max-job-bytes`: half the machine's memory (or 8 GiB when it cannot
+/// be read).
+pub fn default_max_job_bytes() -> u64 {
+    physical_memory().map_or(8 << 30, |m| m / 2)
+}
+
+/// Total memory from /proc/meminfo.
+fn physical_memory() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemTotal:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    kb.checked_mul(1024)
+}
+
+/// The estimate, in bytes, of what job `v` needs at the coordinator.
+pub fn estimate(v: &Validated) -> u64 {
+    let film = u64::from(v.spec.width)
+        .saturating_mul(u64::from(v.spec.height))
+        .saturating_mul(FILM_BYTES_PER_PIXEL);
+    film.saturating_add(scene_bytes(&v.scene_spec, v.package.is_some()))
+}
+
+/// The imported size of the scene `spec` (a canonical file path or a procedural spec).
+fn scene_bytes(spec: &str, package: bool) -> u64 {
+    if package {
+        return 0;
+    }
+    if let Some(rest) = spec.strip_prefix("grid:") {
+        // grid:<scene>:XxYxZ, the scene itself possibly a file.
+        if let Some((inner, dims)) = rest.rsplit_once(':') {
+            let copies = dims
+                .split('x')
+                .map(|d| d.parse::<u64>().unwrap_or(1))
+                .fold(1u64, |a, d| a.saturating_mul(d.max(1)));
+            return scene_bytes(inner, false).saturating_mul(copies);
+        }
+        return 0;
+    }
+    match std::fs::metadata(spec) {
+        Ok(m) if m.is_file() => m.len().saturating_mul(IMPORT_FACTOR),
+        _ => 0,
+    }
+}
+
+/// Refuse `v` if its estimate exceeds the limit.
+pub fn admit(v: &Validated, limits: &Limits) -> Result<(), Status> {
+    let need = estimate(v);
+    if need > limits.max_job_bytes {
+        return Err(Status::resource_exhausted(format!(
+            "the job needs about {} MiB at the coordinator (image {}x{} and scene), more \
+             than its --max-job-bytes of {} MiB",
+            need >> 20,
+            v.spec.width,
+            v.spec.height,
+            limits.max_job_bytes >> 20
+        )));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn grid_copies_multiply_a_file() {
+        let dir = std::env::temp_dir().join(format!("dray-admission-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let f = dir.join("m.ply");
+        std::fs::write(&f, vec![0u8; 1000]).unwrap();
+        let p = f.display().to_string();
+        assert_eq!(scene_bytes(&p, false), 1000 * IMPORT_FACTOR);
+        assert_eq!(
+            scene_bytes(&format!("grid:{p}:2x3x4"), false),
+            24 * 1000 * IMPORT_FACTOR
+        );
+        assert_eq!(scene_bytes(&p, true), 0);
+        assert_eq!(scene_bytes("cornell", false), 0);
+        assert!(default_max_job_bytes() > 0);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

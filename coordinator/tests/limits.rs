@@ -1,0 +1,170 @@
+//! Admission and lifetime limits on a live in-process server (issue 12): a job whose
+//! estimated memory exceeds `max_job_bytes` is refused with RESOURCE_EXHAUSTED before
+//! anything is prepared; beyond `max_jobs` jobs queued or running, SubmitJob refuses
+//! more; and a finished job's image is dropped once newer jobs push it out of
+//! `keep_finished`, after which GetImage says so (and GetJob still lists the job).
+
+use dray_coordinator::Coordinator;
+use dray_coordinator::jobs::Retention;
+use dray_proto::v1::render_service_client::RenderServiceClient;
+use dray_proto::v1::{
+    CancelJobRequest, GetImageRequest, GetJobRequest, ImageFormat, JobSpec, JobState,
+    SubmitJobRequest, WatchJobRequest,
+};
+use tonic::transport::Channel;
+
+/// A limits-configured coordinator on a free port; stopped when dropped.
+struct Server {
+    addr: std::net::SocketAddr,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl Server {
+    async fn start(max_jobs: usize, max_job_bytes: u64, keep_finished: usize) -> Server {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let coordinator = Coordinator::new(&std::env::temp_dir(), 1)
+            .unwrap()
+            .with_admission(
+                max_jobs,
+                max_job_bytes,
+                Retention {
+                    keep_finished,
+                    ttl: None,
+                },
+            );
+        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+        let task = tokio::spawn(async move {
+            dray_coordinator::serve(listener, coordinator, async {
+                rx.await.ok();
+            })
+            .await
+            .unwrap();
+        });
+        Server {
+            addr,
+            stop: Some(tx),
+            task,
+        }
+    }
+
+    async fn client(&self) -> RenderServiceClient<Channel> {
+        let channel = tonic::transport::Endpoint::from_shared(format!("http://{}", self.addr))
+            .unwrap()
+            .connect()
+            .await
+            .unwrap();
+        RenderServiceClient::new(channel).max_decoding_message_size(usize::MAX)
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        if let Some(tx) = self.stop.take() {
+            let _ = tx.send(());
+        }
+        self.task.abort();
+    }
+}
+
+fn cornell(width: u32, height: u32, spp: u32) -> JobSpec {
+    JobSpec {
+        scene: "cornell".into(),
+        width,
+        height,
+        spp,
+        ..Default::default()
+    }
+}
+
+async fn submit(
+    c: &mut RenderServiceClient<Channel>,
+    spec: JobSpec,
+) -> Result<String, tonic::Status> {
+    c.submit_job(SubmitJobRequest { spec: Some(spec) })
+        .await
+        .map(|r| r.into_inner().job_id)
+}
+
+async fn wait_end(c: &mut RenderServiceClient<Channel>, id: &str) -> JobState {
+    let mut s = c
+        .watch_job(WatchJobRequest {
+            job_id: id.into(),
+            min_interval: None,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let mut last = JobState::Unspecified;
+    while let Some(p) = s.message().await.unwrap() {
+        last = p.state();
+    }
+    last
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_estimated_above_the_memory_limit_is_refused() {
+    let server = Server::start(8, 1 << 20, 10).await;
+    let mut c = server.client().await;
+    // 1024 x 1024 pixels need 36 MiB of film alone.
+    let e = submit(&mut c, cornell(1024, 1024, 1)).await.unwrap_err();
+    assert_eq!(e.code(), tonic::Code::ResourceExhausted, "{e:?}");
+    assert!(e.message().contains("--max-job-bytes"), "{}", e.message());
+    // A small one is accepted and runs.
+    let id = submit(&mut c, cornell(32, 24, 1)).await.unwrap();
+    assert_eq!(wait_end(&mut c, &id).await, JobState::Succeeded);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn beyond_max_jobs_submit_is_refused_until_one_ends() {
+    let server = Server::start(1, 1 << 40, 10).await;
+    let mut c = server.client().await;
+    // A long job holds the one place.
+    let long = submit(&mut c, cornell(256, 256, 1 << 12)).await.unwrap();
+    let e = submit(&mut c, cornell(16, 16, 1)).await.unwrap_err();
+    assert_eq!(e.code(), tonic::Code::ResourceExhausted, "{e:?}");
+    assert!(e.message().contains("--max-jobs"), "{}", e.message());
+    c.cancel_job(CancelJobRequest {
+        job_id: long.clone(),
+    })
+    .await
+    .unwrap();
+    assert_eq!(wait_end(&mut c, &long).await, JobState::Cancelled);
+    let id = submit(&mut c, cornell(16, 16, 1)).await.unwrap();
+    assert_eq!(wait_end(&mut c, &id).await, JobState::Succeeded);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn finished_images_beyond_keep_finished_are_dropped_and_get_image_says_so() {
+    let server = Server::start(8, 1 << 40, 1).await;
+    let mut c = server.client().await;
+    let first = submit(&mut c, cornell(16, 16, 1)).await.unwrap();
+    assert_eq!(wait_end(&mut c, &first).await, JobState::Succeeded);
+    let image = |id: &str| GetImageRequest {
+        job_id: id.into(),
+        format: ImageFormat::Png as i32,
+        exposure: 0.0,
+    };
+    assert!(c.get_image(image(&first)).await.is_ok());
+    let second = submit(&mut c, cornell(16, 16, 1)).await.unwrap();
+    assert_eq!(wait_end(&mut c, &second).await, JobState::Succeeded);
+    // Only the newest finished job keeps its image.
+    let e = c.get_image(image(&first)).await.unwrap_err();
+    assert_eq!(e.code(), tonic::Code::NotFound, "{e:?}");
+    assert!(
+        e.message().contains("dropped") && e.message().contains("--keep-finished"),
+        "{}",
+        e.message()
+    );
+    assert!(c.get_image(image(&second)).await.is_ok());
+    // The job itself is still listed.
+    let job = c
+        .get_job(GetJobRequest { job_id: first })
+        .await
+        .unwrap()
+        .into_inner()
+        .job
+        .unwrap();
+    assert_eq!(job.progress.unwrap().state(), JobState::Succeeded);
+}
