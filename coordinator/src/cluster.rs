@@ -125,6 +125,7 @@ impl ClusterService for ClusterApi {
         r: Request<RegisterWorkerRequest>,
     ) -> Result<Response<RegisterWorkerResponse>, Status> {
         let w = self.cluster.membership.register(r.get_ref())?;
+        let w_token = w.member_token.expose().to_string();
         let hb = self.cluster.membership.heartbeat;
         let id = w.id.clone();
         self.cluster.scheduler.post(SchedulerEvent::WorkerJoined(w));
@@ -132,6 +133,7 @@ impl ClusterService for ClusterApi {
             worker_id: id,
             heartbeat_interval: duration(hb.interval),
             heartbeat_timeout: duration(hb.timeout),
+            member_token: w_token,
         }))
     }
 
@@ -139,6 +141,9 @@ impl ClusterService for ClusterApi {
         &self,
         r: Request<HeartbeatRequest>,
     ) -> Result<Response<HeartbeatResponse>, Status> {
+        self.cluster
+            .membership
+            .check_member(&r.get_ref().worker_id, r.metadata())?;
         let r = r.into_inner();
         let known =
             self.cluster
@@ -154,6 +159,7 @@ impl ClusterService for ClusterApi {
         r: Request<WatchAssignmentsRequest>,
     ) -> Result<Response<Self::WatchAssignmentsStream>, Status> {
         let id = &r.get_ref().worker_id;
+        self.cluster.membership.check_member(id, r.metadata())?;
         let Some(w) = self.cluster.membership.get(id) else {
             return Err(Status::not_found(format!(
                 "worker_id: {id:?} is not registered (register again)"
@@ -181,6 +187,9 @@ impl ClusterService for ClusterApi {
         &self,
         r: Request<ReportQueuesRequest>,
     ) -> Result<Response<ReportQueuesResponse>, Status> {
+        self.cluster
+            .membership
+            .check_member(&r.get_ref().worker_id, r.metadata())?;
         let r = r.into_inner();
         self.cluster.membership.touch(&r.worker_id);
         // 0 tells the worker the job is not running at that attempt (versions start at
@@ -199,6 +208,9 @@ impl ClusterService for ClusterApi {
         &self,
         r: Request<ReportContributionsRequest>,
     ) -> Result<Response<ReportContributionsResponse>, Status> {
+        self.cluster
+            .membership
+            .check_member(&r.get_ref().worker_id, r.metadata())?;
         let r = r.into_inner();
         self.cluster.membership.touch(&r.worker_id);
         let outcome = self.cluster.ledger.report(&r)?;

@@ -154,6 +154,9 @@ pub struct WorkerRecord {
     pub rays_queued: u64,
     /// Commands for it.
     pub outbox: Arc<Outbox>,
+    /// Its own secret (RegisterWorkerResponse.member_token): calls naming it must carry
+    /// it.
+    pub member_token: dray_net::Token,
 }
 
 impl std::fmt::Debug for WorkerRecord {
@@ -210,6 +213,9 @@ pub fn check_endpoint(field: &str, raw: &str) -> Result<String, Status> {
 }
 
 /// The registered workers.
+/// The metadata key of a worker's own secret (RegisterWorkerResponse.member_token).
+pub const MEMBER_HEADER: &str = "x-dray-member";
+
 pub struct Membership {
     workers: Mutex<BTreeMap<String, WorkerRecord>>,
     next: AtomicU64,
@@ -282,6 +288,8 @@ impl Membership {
             memory_used_bytes: 0,
             rays_queued: 0,
             outbox: Arc::new(Outbox::default()),
+            member_token: dray_net::Token::generate()
+                .map_err(|e| Status::internal(format!("cannot make a member token: {e}")))?,
         };
         self.lock().insert(rec.id.clone(), rec.clone());
         tracing::info!(
@@ -292,6 +300,30 @@ impl Membership {
             "worker registered"
         );
         Ok(rec)
+    }
+
+    /// Whether a call naming worker `id` may speak for it: it carries the worker's own
+    /// secret in `x-dray-member`. An unknown worker passes (the call then says it must
+    /// register again).
+    pub fn check_member(
+        &self,
+        id: &str,
+        metadata: &tonic::metadata::MetadataMap,
+    ) -> Result<(), Status> {
+        let Some(token) = self.lock().get(id).map(|w| w.member_token.clone()) else {
+            return Ok(());
+        };
+        let presented = metadata
+            .get(MEMBER_HEADER)
+            .map(|v| v.as_bytes())
+            .unwrap_or_default();
+        if token.matches(presented) {
+            Ok(())
+        } else {
+            Err(Status::permission_denied(format!(
+                "worker_id {id:?}: the call does not carry that worker's member credential"
+            )))
+        }
     }
 
     /// Record a heartbeat. False when the worker is unknown (it must re-register).

@@ -526,14 +526,43 @@ async fn registration_refuses_mismatches_and_heartbeats_ask_strangers_to_reregis
     };
     let r = c.heartbeat(hb("w1-00000000")).await.unwrap().into_inner();
     assert!(r.reregister, "an unknown id must re-register");
-    let id = c
+    let reg = c
         .register_worker(register_request("http://127.0.0.1:7001"))
         .await
         .unwrap()
-        .into_inner()
-        .worker_id;
-    let r = c.heartbeat(hb(&id)).await.unwrap().into_inner();
+        .into_inner();
+    let id = reg.worker_id;
+    let r = c
+        .heartbeat(support::as_member(&reg.member_token, hb(&id)))
+        .await
+        .unwrap()
+        .into_inner();
     assert!(!r.reregister);
+    // Without the worker's own secret, or with another worker's, nobody speaks for it.
+    let other = c
+        .register_worker(register_request("http://127.0.0.1:7002"))
+        .await
+        .unwrap()
+        .into_inner();
+    for req in [
+        tonic::Request::new(hb(&id)),
+        support::as_member(&other.member_token, hb(&id)),
+    ] {
+        let e = c.heartbeat(req).await.unwrap_err();
+        assert_eq!(e.code(), Code::PermissionDenied, "{e:?}");
+    }
+    let e = c
+        .report_contributions(support::as_member(
+            &other.member_token,
+            dray_proto::v1::ReportContributionsRequest {
+                worker_id: id.clone(),
+                job_id: "job-1".into(),
+                ..Default::default()
+            },
+        ))
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::PermissionDenied, "{e:?}");
     // Watching assignments needs a registered id.
     let e = c
         .watch_assignments(WatchAssignmentsRequest {

@@ -121,7 +121,7 @@ async fn beyond_max_jobs_submit_is_refused_until_one_ends() {
     let server = Server::start(1, 1 << 40, 10).await;
     let mut c = server.client().await;
     // A long job holds the one place.
-    let long = submit(&mut c, cornell(256, 256, 1 << 12)).await.unwrap();
+    let long = submit(&mut c, cornell(128, 128, 1 << 11)).await.unwrap();
     let e = submit(&mut c, cornell(16, 16, 1)).await.unwrap_err();
     assert_eq!(e.code(), tonic::Code::ResourceExhausted, "{e:?}");
     assert!(e.message().contains("--max-jobs"), "{}", e.message());

@@ -99,7 +99,7 @@ pub(crate) async fn register(
         .await
         .map_err(|s| NodeError::Refused(s.message().to_string()))?
         .into_inner();
-    shared.set_id(&reg.worker_id);
+    shared.set_member(&reg.worker_id, &reg.member_token);
     tracing::info!(worker = %reg.worker_id, %endpoint, "registered");
     Ok(reg)
 }
@@ -147,9 +147,9 @@ pub(crate) async fn sessions(
 async fn assignment_loop(shared: Arc<Shared>) -> NodeError {
     let mut client = shared.client.clone();
     let stream = client
-        .watch_assignments(WatchAssignmentsRequest {
+        .watch_assignments(shared.as_member(WatchAssignmentsRequest {
             worker_id: shared.id(),
-        })
+        }))
         .await;
     let mut stream = match stream {
         Ok(s) => s.into_inner(),
@@ -187,11 +187,11 @@ async fn heartbeat_loop(shared: Arc<Shared>, every: Duration) -> NodeError {
     loop {
         tokio::time::sleep(every).await;
         let r = client
-            .heartbeat(HeartbeatRequest {
+            .heartbeat(shared.as_member(HeartbeatRequest {
                 worker_id: shared.id(),
                 memory_used_bytes: shared.memory_used(),
                 rays_queued: shared.in_flight() as u64,
-            })
+            }))
             .await;
         match r {
             Ok(r) if r.get_ref().reregister => {
@@ -259,14 +259,14 @@ async fn report_setup_failure(shared: &Shared, job_id: &str, attempt: u32, messa
     tracing::error!(job = %job_id, "{message}");
     let mut client = shared.client.clone();
     let _ = client
-        .report_contributions(ReportContributionsRequest {
+        .report_contributions(shared.as_member(ReportContributionsRequest {
             worker_id: shared.id(),
             job_id: job_id.to_string(),
             sequence: 1,
             failure: message,
             attempt,
             ..Default::default()
-        })
+        }))
         .await;
     shared.jobs.release(job_id, attempt);
     shared.forget(job_id, attempt);

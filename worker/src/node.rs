@@ -72,6 +72,9 @@ impl Wake {
 /// What the worker's parts share.
 pub(crate) struct Shared {
     id: RwLock<String>,
+    /// The coordinator's secret for this worker (RegisterWorkerResponse.member_token),
+    /// sent with every call that names the worker.
+    member: RwLock<String>,
     pub client: ClusterServiceClient<AuthChannel>,
     /// How to reach peers and cache hosts (token, TLS).
     pub net: dray_net::ClientOptions,
@@ -98,8 +101,26 @@ impl Shared {
         self.id.read().unwrap_or_else(|p| p.into_inner()).clone()
     }
 
-    pub fn set_id(&self, id: &str) {
+    /// Take the id and secret the coordinator gave at registration.
+    pub fn set_member(&self, id: &str, token: &str) {
         *self.id.write().unwrap_or_else(|p| p.into_inner()) = id.to_string();
+        *self.member.write().unwrap_or_else(|p| p.into_inner()) = token.to_string();
+    }
+
+    /// `msg` as a request speaking for this worker: with its member secret attached.
+    pub fn as_member<T>(&self, msg: T) -> tonic::Request<T> {
+        let mut req = tonic::Request::new(msg);
+        let token = self
+            .member
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone();
+        if let Ok(v) = tonic::metadata::MetadataValue::try_from(token.as_str())
+            && !token.is_empty()
+        {
+            req.metadata_mut().insert("x-dray-member", v);
+        }
+        req
     }
 
     pub fn notify(&self) {
@@ -153,6 +174,7 @@ pub async fn run(
     let queues = Arc::new(RayQueues::new(limits.queue_capacity));
     let shared = Arc::new(Shared {
         id: RwLock::new(String::new()),
+        member: RwLock::new(String::new()),
         client: ClusterServiceClient::new(channel),
         net: config.net.clone(),
         queues: queues.clone(),

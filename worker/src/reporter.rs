@@ -164,7 +164,10 @@ async fn send_report(shared: &Shared, job: &Arc<Job>, request: ReportContributio
         if !job.is_active() {
             return false;
         }
-        match client.report_contributions(request.clone()).await {
+        match client
+            .report_contributions(shared.as_member(request.clone()))
+            .await
+        {
             Ok(r) => {
                 if !r.into_inner().job_active {
                     tracing::info!(job = %job.key.id, attempt = job.key.attempt, "the coordinator says the job is over");
@@ -209,14 +212,14 @@ async fn report_queues(shared: &Shared, job: &Arc<Job>) {
     }
     let mut client = shared.client.clone();
     let r = client
-        .report_queues(ReportQueuesRequest {
+        .report_queues(shared.as_member(ReportQueuesRequest {
             worker_id: shared.id(),
             job_id: job.key.id.to_string(),
             routing_version: job.routes().version,
             queues: entries.into_values().collect(),
             memory_used_bytes: shared.memory_used(),
             attempt: job.key.attempt,
-        })
+        }))
         .await;
     if let Ok(r) = r
         && r.get_ref().routing_version > job.routes().version

@@ -133,8 +133,18 @@ impl Drop for AbortOnDrop {
 /// A test playing one worker.
 pub struct FakeWorker {
     pub id: String,
+    /// Its member secret (RegisterWorkerResponse.member_token).
+    pub token: String,
     pub client: ClusterServiceClient<Channel>,
     pub stream: Streaming<Assignment>,
+}
+
+/// `msg` as a call speaking for the worker whose secret is `token`.
+pub fn as_member<T>(token: &str, msg: T) -> tonic::Request<T> {
+    let mut req = tonic::Request::new(msg);
+    req.metadata_mut()
+        .insert("x-dray-member", token.parse().expect("token metadata"));
+    req
 }
 
 impl FakeWorker {
@@ -147,15 +157,20 @@ impl FakeWorker {
         let r = client.register_worker(req).await.unwrap().into_inner();
         assert!(!r.worker_id.is_empty());
         assert!(r.heartbeat_interval.is_some() && r.heartbeat_timeout.is_some());
+        assert!(!r.member_token.is_empty());
         let stream = client
-            .watch_assignments(WatchAssignmentsRequest {
-                worker_id: r.worker_id.clone(),
-            })
+            .watch_assignments(as_member(
+                &r.member_token,
+                WatchAssignmentsRequest {
+                    worker_id: r.worker_id.clone(),
+                },
+            ))
             .await
             .unwrap()
             .into_inner();
         FakeWorker {
             id: r.worker_id,
+            token: r.member_token,
             client,
             stream,
         }
@@ -165,14 +180,18 @@ impl FakeWorker {
     pub fn keep_alive(&self, every: Duration) -> AbortOnDrop {
         let mut client = self.client.clone();
         let id = self.id.clone();
+        let token = self.token.clone();
         AbortOnDrop(tokio::spawn(async move {
             loop {
                 let _ = client
-                    .heartbeat(HeartbeatRequest {
-                        worker_id: id.clone(),
-                        memory_used_bytes: 0,
-                        rays_queued: 0,
-                    })
+                    .heartbeat(as_member(
+                        &token,
+                        HeartbeatRequest {
+                            worker_id: id.clone(),
+                            memory_used_bytes: 0,
+                            rays_queued: 0,
+                        },
+                    ))
                     .await;
                 tokio::time::sleep(every).await;
             }
@@ -229,10 +248,13 @@ impl FakeWorker {
 
     pub async fn report(&mut self, r: ReportContributionsRequest) -> Result<bool, tonic::Status> {
         self.client
-            .report_contributions(ReportContributionsRequest {
-                worker_id: self.id.clone(),
-                ..r
-            })
+            .report_contributions(as_member(
+                &self.token,
+                ReportContributionsRequest {
+                    worker_id: self.id.clone(),
+                    ..r
+                },
+            ))
             .await
             .map(|r| r.into_inner().job_active)
     }
@@ -246,25 +268,29 @@ impl FakeWorker {
         routing_version: u64,
         queues: &[(u32, u64, bool, u64)],
     ) -> u64 {
+        let token = self.token.clone();
         self.client
-            .report_queues(ReportQueuesRequest {
-                worker_id: self.id.clone(),
-                job_id: job.into(),
-                routing_version,
-                queues: queues
-                    .iter()
-                    .map(
-                        |&(domain, rays_queued, resident, resident_bytes)| DomainQueue {
-                            domain,
-                            rays_queued,
-                            resident,
-                            resident_bytes,
-                        },
-                    )
-                    .collect(),
-                memory_used_bytes: 0,
-                attempt,
-            })
+            .report_queues(as_member(
+                &token,
+                ReportQueuesRequest {
+                    worker_id: self.id.clone(),
+                    job_id: job.into(),
+                    routing_version,
+                    queues: queues
+                        .iter()
+                        .map(
+                            |&(domain, rays_queued, resident, resident_bytes)| DomainQueue {
+                                domain,
+                                rays_queued,
+                                resident,
+                                resident_bytes,
+                            },
+                        )
+                        .collect(),
+                    memory_used_bytes: 0,
+                    attempt,
+                },
+            ))
             .await
             .unwrap()
             .into_inner()
