@@ -63,10 +63,15 @@ WORKDIR /var/lib/dray
 # 50052 a worker's ray streams, 50053 the ray-cache host in a worker (--cache-listen) or a
 # stand-alone `dray cache`. `dray cluster --base-port P` uses P and P+1...P+N.
 EXPOSE 50051 50052 50053
-# No HEALTHCHECK: it would need a client of grpc.health.v1 inside the image, and `dray`
-# has no health-check subcommand yet (the image holds the dray binary only, no shell
-# tools to speak gRPC). The servers do serve grpc.health.v1: Kubernetes checks them with
-# its built-in gRPC probes (helm/dray), and from outside, e.g.
-#   grpcurl -plaintext HOST:50051 grpc.health.v1.Health/Check
+# Health: `dray health` asks the gRPC health service (grpc.health.v1) of the server at
+# DRAY_HEALTH_ADDR and exits 0 only when it answers SERVING. The default is the
+# coordinator's port; run a worker with -e DRAY_HEALTH_ADDR=127.0.0.1:50052 (a
+# stand-alone `dray cache` with 127.0.0.1:50053), and one-shot commands (render, submit)
+# with --no-healthcheck. A server on TLS: the check reads the same DRAY_TLS_* variables,
+# and DRAY_HEALTH_ADDR must then name the host its certificate was made for.
+# (Kubernetes ignores HEALTHCHECK: helm/dray gives its pods gRPC probes instead.)
+ENV DRAY_HEALTH_ADDR=127.0.0.1:50051
+HEALTHCHECK --interval=10s --timeout=6s --start-period=15s --retries=3 \
+  CMD ["dray", "health", "--quiet", "--timeout", "5"]
 ENTRYPOINT ["dray"]
 CMD ["--help"]

@@ -12,6 +12,7 @@ const PROTOS: &[&str] = &[
     "dray/v1/cluster.proto",
     "dray/v1/rays.proto",
     "dray/v1/cache.proto",
+    "dray/v1/package.proto",
 ];
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {

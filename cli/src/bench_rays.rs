@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use dray_core::bvh::{Accel, QueryRay};
+use dray_core::bvh::{Accel, QueryRay, Simd, TraversalCounts};
 use dray_core::camera::Camera;
 use dray_core::sampling::{PathKey, Purpose, uniform_sphere};
 use glam::{Vec2, Vec3};
@@ -23,6 +23,18 @@ pub enum RayKindArg {
     Primary,
     /// Origins uniform in the bounds, directions uniform on the sphere.
     Incoherent,
+}
+
+/// The node test's instruction set (`--simd`).
+#[derive(Clone, Copy, Debug, ValueEnum, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SimdArg {
+    /// The best this CPU runs (AVX2 if present, else SSE2).
+    Auto,
+    Avx2,
+    Sse2,
+    /// Plain Rust, one child at a time.
+    Portable,
 }
 
 #[derive(Args, Debug)]
@@ -51,6 +63,12 @@ pub struct BenchArgs {
     /// Write the triangles as f32 [x0, y0, z0, x1, …, z2] records.
     #[arg(long)]
     pub dump_mesh: Option<PathBuf>,
+    /// Node test instruction set (all give the same hits).
+    #[arg(long, value_enum, default_value = "auto")]
+    pub simd: SimdArg,
+    /// Also count the nodes and triangles each ray tests (one extra, untimed pass).
+    #[arg(long)]
+    pub count: bool,
 }
 
 #[derive(Serialize)]
@@ -67,6 +85,13 @@ struct Report<'a> {
     hits: u64,
     /// Sum of hit distances, to compare answers between ray tracers.
     t_sum: f64,
+    /// The node test's instruction set.
+    simd: String,
+    /// With `--count`: nodes and triangles tested per ray.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    nodes_per_ray: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    triangles_per_ray: Option<f64>,
 }
 
 fn make_rays(a: &BenchArgs, lo: Vec3, hi: Vec3) -> Vec<(Vec3, Vec3)> {
@@ -123,8 +148,19 @@ pub fn run(a: BenchArgs) -> Result<()> {
     let scene =
         dray_scene::load(&a.mesh).with_context(|| format!("cannot load mesh {:?}", a.mesh))?;
     let t0 = Instant::now();
-    let accel = Accel::build(&scene.mesh);
+    let mut accel = Accel::build(&scene.mesh);
     let build_s = t0.elapsed().as_secs_f64();
+    let want = match a.simd {
+        SimdArg::Auto => None,
+        SimdArg::Avx2 => Some(Simd::Avx2),
+        SimdArg::Sse2 => Some(Simd::Sse2),
+        SimdArg::Portable => Some(Simd::Portable),
+    };
+    if let Some(s) = want
+        && !accel.set_simd(s)
+    {
+        bail!("this CPU cannot run the {s:?} node test");
+    }
     let (lo, hi) = scene.bounds();
     let rays = make_rays(&a, lo, hi);
     if let Some(p) = &a.dump_rays {
@@ -178,6 +214,19 @@ pub fn run(a: BenchArgs) -> Result<()> {
         times.push(start.elapsed().as_secs_f64());
         t_sum = sum;
     }
+    let counts = a.count.then(|| {
+        let mut c = TraversalCounts::default();
+        for (o, d) in &rays {
+            let q = QueryRay {
+                origin: *o,
+                dir: *d,
+                tmin: 0.0,
+                tmax: f32::INFINITY,
+            };
+            accel.closest_counted(&q, |_, _| true, &mut c);
+        }
+        c
+    });
     times.sort_by(f64::total_cmp);
     let median_s = times[times.len() / 2];
     let report = Report {
@@ -192,6 +241,9 @@ pub fn run(a: BenchArgs) -> Result<()> {
         mrays_per_s: rays.len() as f64 / median_s / 1e6,
         hits: hits.load(Ordering::Relaxed),
         t_sum,
+        simd: format!("{:?}", accel.simd()).to_lowercase(),
+        nodes_per_ray: counts.map(|c| c.nodes as f64 / rays.len() as f64),
+        triangles_per_ray: counts.map(|c| c.triangles as f64 / rays.len() as f64),
     };
     println!(
         "{}",

@@ -68,6 +68,13 @@ pub struct ClusterArgs {
     /// Every worker's --threads: tracing threads per worker (0 = all cores each).
     #[arg(long, value_name = "N")]
     pub threads: Option<usize>,
+    /// Every worker's --fetch-packages: when to fetch job packages from the coordinator
+    /// over gRPC instead of reading the coordinator's --work-dir (auto, always, never).
+    #[arg(long, value_name = "MODE", value_parser = crate::worker_cmd::parse_fetch_mode)]
+    pub fetch_packages: Option<dray_worker::package_fetch::FetchMode>,
+    /// Fetched packages go to DIR/worker-I for worker I (its --package-cache).
+    #[arg(long, value_name = "DIR")]
+    pub package_cache: Option<PathBuf>,
     /// The coordinator's API token (passed on as its --auth-token-file).
     #[command(flatten)]
     pub api_token: crate::net_flags::ApiTokenArgs,
@@ -82,6 +89,9 @@ pub struct ClusterArgs {
     /// most 30 s); 0 never restarts one.
     #[arg(long, value_name = "N", default_value_t = 3)]
     pub restart_limit: u32,
+    /// Passed to the coordinator and every worker.
+    #[command(flatten)]
+    pub otlp: crate::telemetry::OtlpArgs,
 }
 
 /// Longest wait before a worker is started again.
@@ -438,6 +448,7 @@ pub fn run(a: ClusterArgs) -> Result<()> {
         token_file.display().to_string(),
     ];
     shared_args.extend(a.tls.to_args());
+    shared_args.extend(a.otlp.to_args());
 
     // Current-thread: children are forked from the main thread (see `spawn`).
     let rt = tokio::runtime::Builder::new_current_thread()
@@ -500,6 +511,14 @@ pub fn run(a: ClusterArgs) -> Result<()> {
             if let Some(n) = a.threads {
                 args.push("--threads".into());
                 args.push(n.to_string());
+            }
+            if let Some(mode) = a.fetch_packages {
+                args.push("--fetch-packages".into());
+                args.push(mode.name().into());
+            }
+            if let Some(dir) = &a.package_cache {
+                args.push("--package-cache".into());
+                args.push(dir.join(format!("worker-{}", i + 1)).display().to_string());
             }
             args.extend(shared_args.iter().cloned());
             cluster

@@ -4,7 +4,8 @@
 //! Where a job runs: while no worker is registered, an accepted job renders in this
 //! process, one at a time, with the same code path as `dray render`; once at least one
 //! worker (`dray worker --coordinator ADDR`) is registered, jobs run on the workers, which
-//! read the job's scene package from `--work-dir`. Either way the image fetched with
+//! read the job's scene package from `--work-dir` when they share it, or fetch it from
+//! this coordinator's `dray.v1.PackageService`. Either way the image fetched with
 //! GetImage has the same bits as `dray render` with the same settings.
 //!
 //! Ctrl-C or SIGTERM stops the server: the workers' assignment streams are ended and the
@@ -19,6 +20,10 @@ use dray_coordinator::cluster::ClusterOptions;
 use dray_coordinator::membership::HeartbeatConfig;
 
 use crate::net_flags::{self, ApiTokenArgs, MemberArgs};
+
+/// How long, after the server has stopped, the process waits for blocking work (a scene
+/// being loaded, an in-process render) before it exits without it.
+const BLOCKING_GRACE: Duration = Duration::from_millis(500);
 
 /// How long a graceful shutdown may take before the process exits anyway (a client still
 /// watching a job would otherwise hold it open).
@@ -41,9 +46,10 @@ pub struct CoordinatorArgs {
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
     /// Directory where the scene packages of jobs on workers are written (one
-    /// subdirectory per job, removed when the job ends). Workers read the packages at the
-    /// same path, so on several machines it must be a shared file system mounted at the
-    /// same place. Created if missing; use one directory per coordinator.
+    /// subdirectory per job, removed when the job ends). Workers that see it at the same
+    /// path (a shared file system) read the packages there; others fetch the files they
+    /// need from this coordinator over gRPC. Created if missing; use one directory per
+    /// coordinator.
     /// [default: a new directory in the system temp directory]
     #[arg(long, value_name = "DIR")]
     pub work_dir: Option<PathBuf>,
@@ -74,6 +80,13 @@ pub struct CoordinatorArgs {
     /// Drop a finished job's image this many seconds after it finished (0: never).
     #[arg(long, value_name = "SECONDS", default_value_t = 86400)]
     pub finished_ttl: u64,
+    /// Fail a job on workers when none of them has returned any credit for this many
+    /// seconds (0: never): heartbeats show a worker alive, not working, and a member
+    /// that never traces would otherwise hold its job forever.
+    #[arg(long, value_name = "SECONDS", default_value_t = 1800)]
+    pub stall_timeout: u64,
+    #[command(flatten)]
+    pub otlp: crate::telemetry::OtlpArgs,
 }
 
 fn default_heartbeat() -> HeartbeatConfig {
@@ -98,6 +111,7 @@ fn cluster_options(a: &CoordinatorArgs) -> Result<ClusterOptions> {
             interval: Duration::from_millis(a.heartbeat_interval_ms),
             timeout: Duration::from_millis(a.heartbeat_timeout_ms),
         },
+        stall_timeout: (a.stall_timeout > 0).then(|| Duration::from_secs(a.stall_timeout)),
         ..ClusterOptions::default()
     };
     if let Some(dir) = &a.work_dir {
@@ -149,7 +163,7 @@ fn prepare_work_dir(dir: &Path) -> Result<PathBuf> {
 }
 
 /// Completes on the first Ctrl-C or SIGTERM.
-async fn stop_signal() {
+pub async fn stop_signal() {
     use tokio::signal::unix::{SignalKind, signal};
     let term = signal(SignalKind::terminate());
     let int = signal(SignalKind::interrupt());
@@ -193,7 +207,7 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
         .enable_all()
         .build()
         .context("cannot start the async runtime")?;
-    rt.block_on(async {
+    let result = rt.block_on(async {
         let listener = tokio::net::TcpListener::bind(&a.listen)
             .await
             .with_context(|| format!("cannot listen on {}", a.listen))?;
@@ -234,5 +248,9 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
             }
         };
         result.context("the gRPC server stopped")
-    })
+    });
+    // A scene still loading or a job still rendering runs on a blocking thread, which
+    // dropping the runtime would wait for: a stop signal must not wait minutes for it.
+    rt.shutdown_timeout(BLOCKING_GRACE);
+    result
 }

@@ -108,6 +108,9 @@ pub fn render_on_actors(
             work_dir: work_dir.0.clone(),
             memory_packages: Some(memory.clone()),
             clients: clients.clone(),
+            // Its workers are its own threads: no member to distrust, and a slow render
+            // (a huge scene, --load-delay-ms) is not a stuck one.
+            stall_timeout: None,
             ..ClusterOptions::default()
         });
     let rt = tokio::runtime::Builder::new_multi_thread()
@@ -158,6 +161,8 @@ pub fn render_on_actors(
                 cache_endpoint: cache,
                 net: clients.clone(),
                 server: server_options.clone(),
+                // The workers read the coordinator's in-memory packages: nothing to fetch.
+                package_fetch: dray_worker::package_fetch::FetchMode::Never,
                 ..dray_worker::WorkerConfig::default()
             };
             nodes.push(tokio::spawn(dray_worker::run(

@@ -12,6 +12,7 @@ mod cache_host;
 mod cluster_cmd;
 mod coordinator_cmd;
 mod embedded;
+mod health_cmd;
 mod job_flags;
 mod kv_flag;
 mod net_flags;
@@ -24,6 +25,7 @@ mod submit_cmd;
 mod summary;
 mod sweep;
 mod sweep_cmd;
+mod telemetry;
 mod worker_cmd;
 
 use clap::{Parser, Subcommand};
@@ -64,16 +66,12 @@ enum Command {
     /// Render the exact image, then every combination of --vary values, and write what
     /// each costs in error for what it saves in time (results.csv, table.md, pareto.png).
     Sweep(sweep_cmd::SweepArgs),
+    /// Ask a dray server for its status (grpc.health.v1): exit 0 when SERVING, 1 with the
+    /// reason otherwise (for Docker's HEALTHCHECK and scripts).
+    Health(health_cmd::HealthArgs),
 }
 
 fn main() -> std::process::ExitCode {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_env("DRAY_LOG")
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
-        )
-        .with_writer(std::io::stderr)
-        .init();
     let cli = match Cli::try_parse() {
         Ok(c) => c,
         Err(e) => {
@@ -101,6 +99,29 @@ fn main() -> std::process::ExitCode {
             return std::process::ExitCode::from(2);
         }
     };
+    // The logger, and the OpenTelemetry exporters of the commands that take
+    // --otlp-endpoint (`cluster` hands it to its members and exports nothing itself).
+    let otlp = match &cli.command {
+        Command::Coordinator(a) => Some((&a.otlp, "coordinator")),
+        Command::Worker(a) => Some((&a.otlp, "worker")),
+        Command::Render(a) => Some((&a.otlp, "render")),
+        _ => None,
+    };
+    let telemetry = match otlp {
+        Some((o, role)) => match telemetry::init(o, role) {
+            Ok(t) => t,
+            Err(e) => {
+                telemetry::init_logs();
+                let msg: Vec<String> = e.chain().map(|c| c.to_string()).collect();
+                eprintln!("dray: error: {}", msg.join(": "));
+                return std::process::ExitCode::FAILURE;
+            }
+        },
+        None => {
+            telemetry::init_logs();
+            None
+        }
+    };
     let result = match cli.command {
         Command::Render(a) => render_cmd::run(a),
         Command::BenchRays(a) => bench_rays::run(a),
@@ -111,7 +132,12 @@ fn main() -> std::process::ExitCode {
         Command::Cluster(a) => cluster_cmd::run(a),
         Command::Cache(a) => cache_cmd::run(a),
         Command::Sweep(a) => sweep_cmd::run(a),
+        Command::Health(a) => health_cmd::run(a),
     };
+    // Flush what the exporters still hold (the commands return on Ctrl-C and SIGTERM too).
+    if let Some(t) = telemetry {
+        t.shutdown();
+    }
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {

@@ -1,6 +1,6 @@
 //! `dray render`: load, analyse, build, trace, write — all in this process.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
@@ -23,13 +23,23 @@ pub const MAX_SIDE: u32 = 16384;
 pub const MAX_SPP: u32 = 1 << 16;
 /// Most in-process worker actors: each has its own threads, queues and loopback server.
 pub const MAX_WORKERS: usize = 64;
+/// Most tracing threads: far more than any machine's cores (threads beyond the cores
+/// only add stacks and scheduling), and few enough that asking cannot exhaust memory or
+/// the process's thread limit.
+pub const MAX_THREADS: usize = 4096;
 
 #[derive(Args, Debug)]
 pub struct RenderArgs {
     #[command(flatten)]
     pub job: crate::job_flags::JobFlags,
-    /// Worker threads (0 = all cores).
-    #[arg(long, default_value_t = 0)]
+    #[command(flatten)]
+    pub otlp: crate::telemetry::OtlpArgs,
+    /// Worker threads (0 = all cores; at most 4096).
+    #[arg(
+        long,
+        default_value_t = 0,
+        value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(0..=MAX_THREADS as u64)
+    )]
     pub threads: usize,
     /// Write run statistics as JSON.
     #[arg(long)]
@@ -157,7 +167,75 @@ pub struct Rendered {
     pub start: Instant,
 }
 
+/// Check that `path` can be written as a file with one of `extensions` (lower case,
+/// without the dot), without writing it: its folder exists, it is not a folder, and it
+/// can be opened for writing (a file made only to find out is removed again). Called
+/// before rendering, so a typo costs nothing instead of the whole render.
+pub fn check_output(flag: &str, path: &Path, extensions: &[&str]) -> Result<()> {
+    let shown = path.display();
+    if !extensions.is_empty() {
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase);
+        if !ext.as_deref().is_some_and(|e| extensions.contains(&e)) {
+            let expected: Vec<String> = extensions.iter().map(|e| format!(".{e}")).collect();
+            bail!(
+                "{flag} {shown}: unsupported file type (expected {})",
+                expected.join(" or ")
+            );
+        }
+    }
+    let folder = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    match std::fs::metadata(folder) {
+        Ok(m) if m.is_dir() => {}
+        Ok(_) => bail!("{flag} {shown}: {} is not a folder", folder.display()),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            bail!("{flag} {shown}: folder {} does not exist", folder.display())
+        }
+        Err(e) => bail!(
+            "{flag} {shown}: cannot use folder {}: {e}",
+            folder.display()
+        ),
+    }
+    match std::fs::symlink_metadata(path) {
+        Ok(m) if m.is_dir() => bail!("{flag} {shown}: is a folder"),
+        Ok(_) => {
+            // Exists: open for writing without truncating, so nothing changes yet.
+            std::fs::OpenOptions::new()
+                .write(true)
+                .open(path)
+                .map(drop)
+                .map_err(|e| anyhow::anyhow!("{flag} {shown}: cannot be written: {e}"))?;
+            if !std::fs::metadata(path).is_ok_and(|m| m.is_file()) {
+                bail!("{flag} {shown}: is not a regular file");
+            }
+        }
+        Err(_) => {
+            std::fs::OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .open(path)
+                .map(drop)
+                .map_err(|e| anyhow::anyhow!("{flag} {shown}: cannot be written: {e}"))?;
+            let _ = std::fs::remove_file(path);
+        }
+    }
+    Ok(())
+}
+
 pub fn run(a: RenderArgs) -> Result<()> {
+    // Every file this run will write is checked before the render, not after it.
+    check_output("--output", &a.job.output, &["png", "jpg", "jpeg"])?;
+    if let Some(p) = &a.job.exr {
+        check_output("--exr", p, &["exr"])?;
+    }
+    if let Some(p) = &a.stats {
+        check_output("--stats", p, &[])?;
+    }
     // The bar appears with the first progress report, once the scene is loaded.
     let bar = std::sync::OnceLock::new();
     let show = !a.job.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr());

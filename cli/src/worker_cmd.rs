@@ -53,8 +53,21 @@ pub struct WorkerArgs {
     /// or stand-alone `dray cache` hosts).
     #[arg(long, conflicts_with = "cache_listen")]
     pub no_cache_host: bool,
+    /// When to fetch a job's scene package from the coordinator (over gRPC, domain by
+    /// domain as they are first loaded) instead of reading it at the path the
+    /// coordinator names: "auto" when that path does not hold the job's package (no
+    /// shared volume), "always", or "never" (the path must be on a shared volume).
+    #[arg(long, value_name = "MODE", default_value = "auto", value_parser = parse_fetch_mode)]
+    pub fetch_packages: dray_worker::package_fetch::FetchMode,
+    /// Directory for fetched packages (kept for later jobs of the same package; one
+    /// directory per worker). Default: a directory in the system's temp directory,
+    /// removed when the worker stops.
+    #[arg(long, value_name = "DIR")]
+    pub package_cache: Option<std::path::PathBuf>,
     #[command(flatten)]
     pub member: crate::net_flags::MemberArgs,
+    #[command(flatten)]
+    pub otlp: crate::telemetry::OtlpArgs,
 }
 
 pub fn run(a: WorkerArgs) -> Result<()> {
@@ -63,7 +76,7 @@ pub fn run(a: WorkerArgs) -> Result<()> {
         .enable_all()
         .build()
         .context("cannot start the async runtime")?;
-    rt.block_on(async {
+    let result = rt.block_on(async {
         let listener = tokio::net::TcpListener::bind(&a.listen)
             .await
             .with_context(|| format!("cannot listen on {}", a.listen))?;
@@ -95,11 +108,13 @@ pub fn run(a: WorkerArgs) -> Result<()> {
             cache_endpoint: cache.as_ref().map(|h| h.endpoint.clone()),
             net,
             server,
+            package_fetch: a.fetch_packages,
+            package_cache: a.package_cache.clone(),
             ..dray_worker::WorkerConfig::default()
         };
-        let shutdown = async {
-            let _ = tokio::signal::ctrl_c().await;
-        };
+        // Ctrl-C or SIGTERM (dray cluster and Kubernetes stop workers with SIGTERM) ends
+        // the worker in order, so main flushes the OpenTelemetry exporters.
+        let shutdown = crate::coordinator_cmd::stop_signal();
         let worker = dray_worker::run(config, listener, shutdown);
         let result = match cache.as_mut() {
             Some(h) => tokio::select! {
@@ -112,5 +127,15 @@ pub fn run(a: WorkerArgs) -> Result<()> {
             h.stop().await;
         }
         result
-    })
+    });
+    // A domain load or a trace on a blocking thread would hold the process past the
+    // stop signal if dropping the runtime waited for it.
+    rt.shutdown_timeout(Duration::from_millis(500));
+    result
+}
+
+/// `--fetch-packages`: auto, always or never.
+pub fn parse_fetch_mode(s: &str) -> Result<dray_worker::package_fetch::FetchMode, String> {
+    dray_worker::package_fetch::FetchMode::from_name(s)
+        .ok_or_else(|| format!("{s:?} is not one of auto, always, never"))
 }

@@ -14,7 +14,6 @@
 mod common;
 mod support;
 
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::Stdio;
 use std::sync::{Arc, Mutex};
@@ -60,17 +59,8 @@ impl Cluster {
             .stderr(Stdio::piped());
         let mut p = Proc::spawn(cmd);
         let log = capture_stderr(&mut p.child);
-        let mut first = String::new();
-        BufReader::new(p.child.stdout.take().expect("stdout"))
-            .read_line(&mut first)
-            .expect("read the coordinator's first line");
-        let addr = first
-            .trim()
-            .rsplit(' ')
-            .next()
-            .filter(|a| a.contains(':'))
-            .unwrap_or_else(|| panic!("no address in {first:?}"))
-            .to_string();
+        let addr = support::listening_address(&mut p.child)
+            .unwrap_or_else(|first| panic!("no address in {first:?}"));
         (p, addr, log)
     }
 

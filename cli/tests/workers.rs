@@ -594,7 +594,7 @@ fn invalid_jobs_are_rejected_while_workers_are_registered() {
     let dir = common::tmp("workers-invalid");
     let cluster = WorkerCluster::start(2, SLOT_INVALID, &dir, &[]);
     let png = dir.join("never.png");
-    let cases: [(&str, &[&str], &str); 8] = [
+    let cases: [(&str, &[&str], &str); 7] = [
         ("cornell", &["--spp", "0"], "spp"),
         ("cornell", &["--width", "0"], "width"),
         ("cornell", &["--height", "20000"], "height"),
@@ -602,7 +602,6 @@ fn invalid_jobs_are_rejected_while_workers_are_registered() {
         ("no_such_scene", &[], "scene"),
         ("missing/model.gltf", &[], "scene"),
         ("../outside.gltf", &[], "scene"),
-        ("cornell", &["--camera", "no-such-camera"], "camera"),
     ];
     for (scene, flags, field) in cases {
         let out = submit(&cluster.addr, scene, flags, &png, None);
@@ -623,6 +622,26 @@ fn invalid_jobs_are_rejected_while_workers_are_registered() {
         );
         assert!(!png.exists(), "an image was written for a rejected job");
     }
+    // A camera the scene lacks is found once the scene is loaded, after SubmitJob has
+    // answered: the job fails, and dray submit ends with that one error line.
+    let out = submit(
+        &cluster.addr,
+        "cornell",
+        &["--camera", "no-such-camera"],
+        &png,
+        None,
+    );
+    let err = stderr(&out);
+    assert!(
+        !out.status.success(),
+        "a job with a missing camera succeeded: {err}"
+    );
+    let last = err.trim_end().lines().last().unwrap_or_default();
+    assert!(
+        last.starts_with("dray: error: job ") && last.contains("failed: camera: "),
+        "{err}"
+    );
+    assert!(!png.exists(), "an image was written for a failed job");
     assert!(cluster.all_alive(), "{}", cluster.log());
     // The cluster still serves, on its workers.
     let flags = [

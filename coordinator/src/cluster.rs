@@ -15,10 +15,11 @@ use std::time::{Duration, Instant};
 
 use dray_proto::v1::cluster_service_server::ClusterService;
 use dray_proto::v1::{
-    Assignment, GetRoutingTableRequest, GetRoutingTableResponse, HeartbeatRequest,
-    HeartbeatResponse, RegisterCacheHostRequest, RegisterCacheHostResponse, RegisterWorkerRequest,
-    RegisterWorkerResponse, ReportContributionsRequest, ReportContributionsResponse,
-    ReportQueuesRequest, ReportQueuesResponse, WatchAssignmentsRequest,
+    Assignment, GetPeerPassRequest, GetPeerPassResponse, GetRoutingTableRequest,
+    GetRoutingTableResponse, HeartbeatRequest, HeartbeatResponse, RegisterCacheHostRequest,
+    RegisterCacheHostResponse, RegisterWorkerRequest, RegisterWorkerResponse,
+    ReportContributionsRequest, ReportContributionsResponse, ReportQueuesRequest,
+    ReportQueuesResponse, WatchAssignmentsRequest,
 };
 use dray_scene::partition::memory::MemoryPackages;
 use tokio_stream::wrappers::ReceiverStream;
@@ -34,7 +35,8 @@ pub struct ClusterOptions {
     /// Heartbeat interval and timeout told to workers.
     pub heartbeat: HeartbeatConfig,
     /// Where per-job scene packages are written (a directory per job, removed when the
-    /// job is released). Must be readable by the workers at the same path.
+    /// job is released). Workers read them at the same path when they share it (a
+    /// shared volume), and fetch them over gRPC otherwise (`PackageService`).
     pub work_dir: PathBuf,
     /// When set, packages for scenes are cut into this in-memory store instead of the
     /// work directory: for workers in the coordinator's own process (`dray render`),
@@ -44,6 +46,9 @@ pub struct ClusterOptions {
     pub scheduler: SchedulerOptions,
     /// How the coordinator reaches cache hosts (the cluster token, TLS).
     pub clients: dray_net::ClientOptions,
+    /// A job on workers none of which has returned credit for this long fails (None:
+    /// never). Heartbeats prove a worker alive, not working.
+    pub stall_timeout: Option<Duration>,
 }
 
 impl Default for ClusterOptions {
@@ -54,9 +59,14 @@ impl Default for ClusterOptions {
             memory_packages: None,
             scheduler: SchedulerOptions::default(),
             clients: dray_net::ClientOptions::plain(),
+            stall_timeout: Some(DEFAULT_STALL_TIMEOUT),
         }
     }
 }
+
+/// The default [`ClusterOptions::stall_timeout`]: long enough for the slowest domain
+/// loads seen (minutes for out-of-core scenes), short enough that a stuck job ends.
+pub const DEFAULT_STALL_TIMEOUT: Duration = Duration::from_secs(1800);
 
 /// Membership, accounting and scheduling of the coordinator's workers.
 pub struct Cluster {
@@ -84,8 +94,14 @@ impl Cluster {
     }
 
     /// Drop workers silent for too long; the scheduler restarts their jobs on the
-    /// survivors (or fails them when none is left). Returns how many were dropped.
+    /// survivors (or fails them when none is left). Fail jobs that made no progress for
+    /// the stall timeout. Returns how many workers were dropped.
     pub fn reap(&self, now: Instant) -> usize {
+        if let Some(timeout) = self.options.stall_timeout {
+            for id in self.ledger.fail_stalled(now, timeout) {
+                self.scheduler.post(SchedulerEvent::JobEnded { job_id: id });
+            }
+        }
         let lost = self.membership.expire(now);
         let n = lost.len();
         for w in lost {
@@ -96,8 +112,13 @@ impl Cluster {
 
     /// Call [`Cluster::reap`] periodically, forever (the server aborts it on shutdown).
     pub async fn reaper(self: Arc<Self>) {
-        // A quarter of the timeout: a lost worker is noticed within 1.25 timeouts.
-        let period = (self.options.heartbeat.timeout / 4).max(Duration::from_millis(10));
+        // A quarter of the timeout: a lost worker (or a stalled job) is noticed within
+        // 1.25 timeouts.
+        let shortest = match self.options.stall_timeout {
+            Some(stall) => stall.min(self.options.heartbeat.timeout),
+            None => self.options.heartbeat.timeout,
+        };
+        let period = (shortest / 4).max(Duration::from_millis(10));
         let mut tick = tokio::time::interval(period);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
@@ -162,7 +183,8 @@ impl ClusterService for ClusterApi {
         self.cluster.membership.check_member(id, r.metadata())?;
         let Some(w) = self.cluster.membership.get(id) else {
             return Err(Status::not_found(format!(
-                "worker_id: {id:?} is not registered (register again)"
+                "worker_id: {} is not registered (register again)",
+                crate::validate::bounded(id)
             )));
         };
         self.cluster.membership.touch(id);
@@ -178,7 +200,8 @@ impl ClusterService for ClusterApi {
         match self.cluster.ledger.routing(id) {
             Some(t) => Ok(Response::new(GetRoutingTableResponse { routing: Some(t) })),
             None => Err(Status::not_found(format!(
-                "job_id: no running job {id:?} on this cluster"
+                "job_id: no running job {} on this cluster",
+                crate::validate::bounded(id)
             ))),
         }
     }
@@ -248,5 +271,30 @@ impl ClusterService for ClusterApi {
     ) -> Result<Response<RegisterCacheHostResponse>, Status> {
         let host_id = self.cluster.membership.cache_hosts.register(r.get_ref())?;
         Ok(Response::new(RegisterCacheHostResponse { host_id }))
+    }
+
+    async fn get_peer_pass(
+        &self,
+        r: Request<GetPeerPassRequest>,
+    ) -> Result<Response<GetPeerPassResponse>, Status> {
+        let (id, peer) = (&r.get_ref().worker_id, &r.get_ref().peer_id);
+        let membership = &self.cluster.membership;
+        if membership.get(id).is_none() {
+            return Err(Status::not_found(format!(
+                "worker_id: {} is not registered (register again)",
+                crate::validate::bounded(id)
+            )));
+        }
+        // A registered caller must prove it is `id`.
+        membership.check_member(id, r.metadata())?;
+        let Some(p) = membership.get(peer) else {
+            return Err(Status::not_found(format!(
+                "peer_id: {} is not registered",
+                crate::validate::bounded(peer)
+            )));
+        };
+        Ok(Response::new(GetPeerPassResponse {
+            pass: dray_net::peer_pass::peer_pass(p.member_token.expose(), id),
+        }))
     }
 }

@@ -445,7 +445,12 @@ async fn run(
                 cluster.options.clients.clone(),
             );
             match open_first_attempt(cluster, entry, &mut sched, caches).await {
-                Ok(c) => Some(c),
+                Ok(c) => {
+                    // The statistics from the start (hosts lost while opening), before
+                    // any worker hears of the job: GetJob must not show less than they did.
+                    c.tally.publish(entry);
+                    Some(c)
+                }
                 Err(e) => {
                     remove_package(owned.as_ref());
                     return Err(e);
@@ -473,6 +478,8 @@ async fn run(
         routing: None,
         attempt: 0,
         schedule: schedule.name().to_string(),
+        // The job's span (this task runs in it): the workers' spans join its trace.
+        trace_context: dray_net::trace::inject(&tracing::Span::current()),
     };
     let mut tiles = image_tiles(entry.spec.width, entry.spec.height);
     // The coarse pass's tiles come after the image's: traced first, they fill the caches

@@ -53,6 +53,9 @@ struct Inner {
     film: Option<Arc<Film>>,
     /// Why the image is gone, once the retention policy dropped it.
     dropped: Option<&'static str>,
+    /// The spec as it runs, once the scene is prepared: on workers the domain count and
+    /// layout come from the scene (or its package), so GetJob says what ran.
+    resolved: Option<JobSpec>,
 }
 
 fn terminal(s: JobState) -> bool {
@@ -122,7 +125,7 @@ impl JobEntry {
         let g = self.lock();
         Job {
             job_id: self.id.clone(),
-            spec: Some(self.spec.clone()),
+            spec: Some(g.resolved.clone().unwrap_or_else(|| self.spec.clone())),
             progress: Some(progress),
             stats: Some(g.stats.clone()),
             submitted_at: Some(self.submitted_at.into()),
@@ -135,6 +138,16 @@ impl JobEntry {
     pub fn cancel(&self) {
         self.cancel.store(true, Ordering::Relaxed);
         self.finish(JobState::Cancelled, String::new(), None);
+    }
+
+    /// Record the spec as it runs (see [`JobEntry::to_job`]).
+    pub(crate) fn resolve(&self, spec: JobSpec) {
+        self.lock().resolved = Some(spec);
+    }
+
+    /// Whether CancelJob (or the server's shutdown) asked the job to stop.
+    pub fn is_cancelled(&self) -> bool {
+        self.cancel.load(Ordering::Relaxed)
     }
 
     /// Set the number of committed tiles (distributed jobs count them in the ledger).
@@ -176,9 +189,11 @@ impl JobEntry {
         g.state = s;
         g.error = error;
         g.film = film.map(Arc::new);
-        g.elapsed_final = Some(g.started.map(|t| t.elapsed()).unwrap_or_default());
+        let elapsed = g.started.map(|t| t.elapsed()).unwrap_or_default();
+        g.elapsed_final = Some(elapsed);
         g.finished_at = Some(SystemTime::now());
         drop(g);
+        crate::metrics::otel::job_ended(s, elapsed);
         self.ended.notify_waiters();
     }
 
@@ -317,10 +332,12 @@ impl JobTable {
                 stats: JobStats::default(),
                 film: None,
                 dropped: None,
+                resolved: None,
             }),
             ended: tokio::sync::Notify::new(),
         });
         self.jobs().push(entry.clone());
+        crate::metrics::otel::job_accepted();
         entry
     }
 
@@ -328,6 +345,13 @@ impl JobTable {
     /// task. Must be called within a tokio runtime.
     pub fn submit(&self, v: Validated, prepared: Prepared) -> Arc<JobEntry> {
         let entry = self.insert(v.spec);
+        self.start(&entry, prepared);
+        entry
+    }
+
+    /// Start the in-process render of `entry`, a job already in the table whose scene
+    /// has been prepared. Must be called within a tokio runtime.
+    pub fn start(&self, entry: &Arc<JobEntry>, prepared: Prepared) {
         let (gate, threads, job) = (self.gate.clone(), self.threads, entry.clone());
         tokio::spawn(async move {
             let Ok(_permit) = gate.acquire_owned().await else {
@@ -344,7 +368,6 @@ impl JobTable {
                 job.finish(JobState::Failed, format!("render task died: {e}"), None);
             }
         });
-        entry
     }
 
     /// The job with id `id`.

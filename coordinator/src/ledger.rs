@@ -117,6 +117,9 @@ pub struct DistJob {
     metrics: JobMetrics,
     /// Ray caches, for a job with `ray_cache`.
     caches: Option<JobCaches>,
+    /// When a worker last returned credit (or the job or its latest attempt started):
+    /// a job with none for the stall timeout is failed (see [`Ledger::fail_stalled`]).
+    last_progress: Instant,
 }
 
 impl DistJob {
@@ -153,6 +156,7 @@ impl DistJob {
             ray_bytes_sent: 0,
             metrics,
             caches: None,
+            last_progress: Instant::now(),
         }
     }
 
@@ -409,8 +413,9 @@ impl Ledger {
         }
         if !job.sched.has_worker(&r.worker_id) {
             return Err(Status::permission_denied(format!(
-                "worker_id: {:?} is not a worker of job {:?}",
-                r.worker_id, r.job_id
+                "worker_id: {} is not a worker of job {:?}",
+                crate::validate::bounded(&r.worker_id),
+                r.job_id
             )));
         }
         if r.sequence == 0 {
@@ -485,6 +490,9 @@ impl Ledger {
             let start = job.tiles[t].credit;
             match job.tile_back[t].checked_add(c.credit) {
                 Some(b) if b <= start => {
+                    if c.credit > 0 {
+                        job.last_progress = Instant::now();
+                    }
                     let was = job.tile_back[t] == start;
                     job.tile_back[t] = b;
                     if !was && b == start && t < job.image_tiles {
@@ -629,6 +637,34 @@ impl Ledger {
         }
     }
 
+    /// Fail every job whose workers have returned no credit for longer than `timeout`
+    /// at `now`, and return their ids. Heartbeats only say a worker is alive; a member
+    /// that heartbeats but never traces (broken, or hostile) would otherwise hold its
+    /// jobs forever. The message names the job's workers and the setting.
+    pub fn fail_stalled(&self, now: Instant, timeout: Duration) -> Vec<String> {
+        let mut g = self.lock();
+        let mut stalled: Vec<String> = g
+            .iter()
+            .filter(|(_, j)| now.saturating_duration_since(j.last_progress) > timeout)
+            .map(|(id, _)| id.clone())
+            .collect();
+        stalled.sort();
+        for id in &stalled {
+            let Some(job) = g.remove(id) else { continue };
+            let quiet = now.saturating_duration_since(job.last_progress);
+            let msg = format!(
+                "no progress for {:.0} s: none of the job's workers ({}) returned any \
+                 credit (the coordinator's --stall-timeout is {} s)",
+                quiet.as_secs_f64(),
+                job.sched.worker_ids().join(", "),
+                timeout.as_secs()
+            );
+            tracing::warn!(job = %id, "{msg}");
+            self.fail(job, msg);
+        }
+        stalled
+    }
+
     /// Stop job `id` on its workers (CancelJob). False when it is not running here.
     /// The caller marks the job CANCELLED first.
     pub fn cancel(&self, id: &str) -> bool {
@@ -679,6 +715,7 @@ impl Ledger {
             let old = job.sched.attempt();
             if job.sched.restart_without(&lost.id).is_some() {
                 self.retrace(job, old, lost);
+                job.last_progress = Instant::now();
                 continue;
             }
             let Some(job) = g.remove(&id) else { continue };
@@ -962,6 +999,18 @@ impl Ledger {
         self.lock()
             .get(job)
             .is_some_and(|j| j.sched.has_worker(worker))
+    }
+
+    /// The package of running job `job`, as its workers are told
+    /// (`JobSetup.package_path`, `JobSetup.package_checksum`): what the PackageService
+    /// may serve for it, and only while the job runs.
+    pub fn package(&self, job: &str) -> Option<(String, String)> {
+        self.lock().get(job).map(|j| {
+            (
+                j.setup.package_path.clone(),
+                j.setup.package_checksum.clone(),
+            )
+        })
     }
 
     /// Whether `job` is running on workers.

@@ -25,6 +25,8 @@
 //! - [`caches`]: ray caches on domain walls: cache hosts, where each attempt's cache
 //!   actors live, opening and closing their walls, and their statistics.
 //! - [`cluster`]: the tonic `ClusterService` over the above.
+//! - [`package_service`]: the tonic `PackageService`: running jobs' package files for
+//!   workers that do not share the coordinator's disk.
 //! - [`service`]: the tonic `RenderService` and [`serve`].
 
 pub mod admission;
@@ -36,6 +38,7 @@ pub mod ledger;
 pub mod membership;
 pub mod metrics;
 pub mod owned_package;
+pub mod package_service;
 pub mod scheduler;
 pub mod service;
 pub mod validate;

@@ -321,7 +321,8 @@ impl Membership {
             Ok(())
         } else {
             Err(Status::permission_denied(format!(
-                "worker_id {id:?}: the call does not carry that worker's member credential"
+                "worker_id {}: the call does not carry that worker's member credential",
+                crate::validate::bounded(id)
             )))
         }
     }

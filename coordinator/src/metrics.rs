@@ -209,3 +209,60 @@ mod tests {
         );
     }
 }
+
+/// The coordinator's OpenTelemetry metrics, through the global meter: a no-op unless the
+/// process installed a meter provider (`dray coordinator --otlp-endpoint`). The workers
+/// export their own counters (rays, bytes, domain loads, queues); these are the job-level
+/// ones only the coordinator sees.
+pub mod otel {
+    use std::sync::OnceLock;
+    use std::time::Duration;
+
+    use dray_proto::v1::JobState;
+    use opentelemetry::KeyValue;
+    use opentelemetry::metrics::{Histogram, UpDownCounter};
+
+    struct Instruments {
+        job_duration: Histogram<f64>,
+        jobs_active: UpDownCounter<i64>,
+    }
+
+    fn instruments() -> &'static Instruments {
+        static I: OnceLock<Instruments> = OnceLock::new();
+        I.get_or_init(|| {
+            let m = opentelemetry::global::meter("dray-coordinator");
+            Instruments {
+                job_duration: m
+                    .f64_histogram("dray.coordinator.job.duration")
+                    .with_description("Time from a job's start to its end, by final state")
+                    .with_unit("s")
+                    .with_boundaries(vec![
+                        0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 300.0, 900.0, 3600.0,
+                    ])
+                    .build(),
+                jobs_active: m
+                    .i64_up_down_counter("dray.coordinator.jobs.active")
+                    .with_description("Jobs queued, preparing or running")
+                    .with_unit("{job}")
+                    .build(),
+            }
+        })
+    }
+
+    /// A job was accepted.
+    pub fn job_accepted() {
+        instruments().jobs_active.add(1, &[]);
+    }
+
+    /// A job ended in `state` after running for `elapsed`.
+    pub fn job_ended(state: JobState, elapsed: Duration) {
+        let i = instruments();
+        i.jobs_active.add(-1, &[]);
+        let state = state
+            .as_str_name()
+            .trim_start_matches("JOB_STATE_")
+            .to_lowercase();
+        i.job_duration
+            .record(elapsed.as_secs_f64(), &[KeyValue::new("state", state)]);
+    }
+}

@@ -8,6 +8,7 @@ use std::time::Duration;
 
 use dray_core::scene::Scene;
 use dray_proto::v1::cluster_service_server::ClusterServiceServer;
+use dray_proto::v1::package_service_server::PackageServiceServer;
 use dray_proto::v1::render_service_server::{RenderService, RenderServiceServer};
 use dray_proto::v1::{
     CancelJobRequest, CancelJobResponse, GetImageRequest, GetImageResponse, GetJobRequest,
@@ -21,8 +22,9 @@ use tonic::{Request, Response, Status};
 use crate::cluster::{Cluster, ClusterApi, ClusterOptions};
 use crate::dispatch;
 use crate::jobs::{JobEntry, JobTable, encode_exr, encode_png};
+use crate::package_service::PackageApi;
 use crate::scheduler::SchedulerEvent;
-use crate::validate::{Limits, prepare, validate};
+use crate::validate::{Limits, bounded, prepare, validate};
 
 /// Default least time between two WatchJob messages.
 pub const DEFAULT_WATCH_INTERVAL: Duration = Duration::from_millis(250);
@@ -101,6 +103,14 @@ impl Coordinator {
     }
 
     /// SubmitJob, with the scene already loaded or not.
+    ///
+    /// Everything that needs no scene is checked before the job is accepted: the fields,
+    /// the scene's path, the memory estimate, the job count. A scene already in memory
+    /// or a package (whose manifest is all the coordinator reads) is then prepared at
+    /// once, so its errors (a camera it lacks) still refuse the call. A scene file or a
+    /// procedural scene may take minutes to load: the job is accepted PREPARING and its
+    /// scene is loaded off the request path; an error then fails the job (GetJob and
+    /// WatchJob say why), and CancelJob ends it at once without waiting for the load.
     async fn submit(&self, spec: JobSpec, loaded: Option<Scene>) -> Result<String, Status> {
         let active = self.table.active();
         if active >= self.limits.max_jobs {
@@ -111,34 +121,85 @@ impl Coordinator {
         }
         let v = validate(&spec, &self.limits, &self.scene_root)?;
         crate::admission::admit(&v, &self.limits)?;
-        // Loading the scene checks the scene spec and the camera; it may take a while for
-        // large scenes, so it runs off the async threads.
-        let v2 = v.clone();
-        let prepared = tokio::task::spawn_blocking(move || prepare(&v2, loaded))
-            .await
-            .map_err(|e| Status::internal(format!("scene loading task died: {e}")))??;
+        self.check_placement(&v)?;
+        if loaded.is_some() || v.package.is_some() {
+            let v2 = v.clone();
+            let prepared = tokio::task::spawn_blocking(move || prepare(&v2, loaded))
+                .await
+                .map_err(|e| Status::internal(format!("scene loading task died: {e}")))??;
+            let job = self.table.insert(v.spec.clone());
+            self.launch(&job, &v, prepared)?;
+            return Ok(job.id.clone());
+        }
+        let job = self.table.insert(v.spec.clone());
+        job.set_state(JobState::Preparing);
+        tracing::info!(id = %job.id, scene = %job.spec.scene, "job accepted; preparing its scene");
+        let (this, entry) = (self.clone(), job.clone());
+        tokio::spawn(async move {
+            let v2 = v.clone();
+            let loaded = tokio::task::spawn_blocking(move || prepare(&v2, None)).await;
+            // A job cancelled while its scene loaded is already CANCELLED; the scene is
+            // dropped here.
+            if entry.is_cancelled() {
+                return;
+            }
+            let outcome = match loaded {
+                Err(e) => Err(format!("scene loading task died: {e}")),
+                Ok(Err(status)) => Err(status.message().to_string()),
+                Ok(Ok(prepared)) => this
+                    .launch(&entry, &v, prepared)
+                    .map_err(|s| s.message().to_string()),
+            };
+            if let Err(e) = outcome {
+                tracing::info!(id = %entry.id, error = %e, "job failed while preparing");
+                entry.finish(JobState::Failed, e, None);
+            }
+        });
+        Ok(job.id.clone())
+    }
+
+    /// Refuse what cannot run where the job would run now: with no worker registered
+    /// the coordinator renders in process, which has no cache hosts and cannot read a
+    /// package's domains.
+    fn check_placement(&self, v: &crate::validate::Validated) -> Result<(), Status> {
+        if !self.cluster.membership.is_empty() {
+            return Ok(());
+        }
+        if v.spec.ray_cache.is_some() {
+            return Err(Status::failed_precondition(
+                "ray_cache: ray caches run on workers' cache hosts, and no worker is \
+                 registered (this coordinator would render the job itself, exactly)",
+            ));
+        }
+        if v.spec.phm.is_some() {
+            return Err(Status::failed_precondition(
+                "phm: hit maps run on workers' cache hosts, and no worker is \
+                 registered (this coordinator would render the job itself, exactly)",
+            ));
+        }
+        if v.package.is_some() {
+            return Err(Status::failed_precondition(format!(
+                "scene: {} is a scene package, which renders on workers, and no \
+                 worker is registered",
+                bounded(&v.spec.scene)
+            )));
+        }
+        Ok(())
+    }
+
+    /// Run `job`, in the table and prepared: in process while no worker is registered,
+    /// else on the workers.
+    fn launch(
+        &self,
+        job: &Arc<JobEntry>,
+        v: &crate::validate::Validated,
+        prepared: crate::validate::Prepared,
+    ) -> Result<(), Status> {
+        // Workers may have come or gone while the scene loaded.
+        self.check_placement(v)?;
         let workers = self.cluster.membership.len();
-        let job = if workers == 0 {
-            if v.spec.ray_cache.is_some() {
-                return Err(Status::failed_precondition(
-                    "ray_cache: ray caches run on workers' cache hosts, and no worker is \
-                     registered (this coordinator would render the job itself, exactly)",
-                ));
-            }
-            if v.spec.phm.is_some() {
-                return Err(Status::failed_precondition(
-                    "phm: hit maps run on workers' cache hosts, and no worker is \
-                     registered (this coordinator would render the job itself, exactly)",
-                ));
-            }
-            if v.package.is_some() {
-                return Err(Status::failed_precondition(format!(
-                    "scene: {:?} is a scene package, which renders on workers, and no \
-                     worker is registered",
-                    v.spec.scene
-                )));
-            }
-            self.table.submit(v, prepared)
+        if workers == 0 {
+            self.table.start(job, prepared);
         } else {
             // On workers: the spec shows the domain count and layout the package is cut
             // with, so GetJob says what ran.
@@ -159,18 +220,17 @@ impl Coordinator {
             }
             let layout = dispatch::layout_spec(&spec.layout, spec.domains);
             let planned = dispatch::plan(prepared, spec.clone(), layout, v.schedule);
-            let entry = self.table.insert(spec);
-            dispatch::spawn(self.cluster.clone(), entry.clone(), planned);
-            entry
-        };
-        tracing::info!(id = %job.id, scene = %job.spec.scene, workers, "job accepted");
-        Ok(job.id.clone())
+            job.resolve(spec);
+            dispatch::spawn(self.cluster.clone(), job.clone(), planned);
+        }
+        tracing::info!(id = %job.id, scene = %job.spec.scene, workers, "job started");
+        Ok(())
     }
 
     fn job(&self, id: &str) -> Result<Arc<JobEntry>, Status> {
         self.table
             .get(id)
-            .ok_or_else(|| Status::not_found(format!("no job {id:?}")))
+            .ok_or_else(|| Status::not_found(format!("no job {}", bounded(id))))
     }
 }
 
@@ -195,7 +255,7 @@ impl RenderService for Coordinator {
         let job = self.job(&id)?;
         Ok(Response::new(SubmitJobResponse {
             job_id: id,
-            spec: Some(job.spec.clone()),
+            spec: job.to_job().spec,
         }))
     }
 
@@ -261,7 +321,10 @@ impl RenderService for Coordinator {
             0
         } else {
             r.page_token.parse::<usize>().map_err(|_| {
-                Status::invalid_argument(format!("page_token: {:?} is not valid", r.page_token))
+                Status::invalid_argument(format!(
+                    "page_token: {} is not valid",
+                    bounded(&r.page_token)
+                ))
             })?
         };
         let all = self.table.list();
@@ -368,7 +431,7 @@ impl Drop for AbortOnDrop {
     }
 }
 
-/// Serve `coordinator` on `listener` (RenderService and ClusterService) with gRPC
+/// Serve `coordinator` on `listener` (RenderService, ClusterService and PackageService) with gRPC
 /// reflection and health until `shutdown` completes, open and in plaintext: see
 /// [`serve_with`].
 pub async fn serve(
@@ -406,13 +469,21 @@ pub async fn serve_with(
     let cluster_api = ClusterServiceServer::new(ClusterApi {
         cluster: coordinator.cluster.clone(),
     });
+    // Workers without the coordinator's disk fetch the jobs' packages from here.
+    let packages = PackageServiceServer::new(PackageApi::new(coordinator.cluster.ledger.clone()));
     let render = RenderServiceServer::new(coordinator).max_encoding_message_size(usize::MAX);
-    let routes = tonic::service::Routes::new(render).add_service(cluster_api);
+    let routes = tonic::service::Routes::new(render)
+        .add_service(cluster_api)
+        .add_service(packages);
     let served = dray_net::server::serve(
         options,
         listener,
         routes,
-        &[dray_proto::RENDER_SERVICE, dray_proto::CLUSTER_SERVICE],
+        &[
+            dray_proto::RENDER_SERVICE,
+            dray_proto::CLUSTER_SERVICE,
+            dray_proto::PACKAGE_SERVICE,
+        ],
         shutdown,
     )
     .await;

@@ -105,6 +105,35 @@ fn bad(msg: String) -> Status {
     Status::invalid_argument(msg)
 }
 
+/// The longest `scene` (a path or a procedural spec): Linux's PATH_MAX.
+pub const MAX_SCENE_BYTES: usize = 4096;
+/// The longest of every other free-text field (names, modes, lists of names).
+pub const MAX_NAME_BYTES: usize = 256;
+
+/// Refuse a text field longer than `max` bytes, without echoing it: every later error
+/// may quote a field, so bounding the fields here bounds every message.
+fn check_text(field: &str, v: &str, max: usize) -> Result<(), Status> {
+    if v.len() > max {
+        return Err(bad(format!(
+            "{field}: {} bytes is longer than {max}",
+            v.len()
+        )));
+    }
+    Ok(())
+}
+
+/// `text` quoted for an error message, cut to 80 characters: errors name the input
+/// that was wrong but never echo an unbounded request (a 4 MiB field would become a
+/// 4 MiB error in the caller's logs and ours).
+pub fn bounded(text: &str) -> String {
+    const ECHO_CHARS: usize = 80;
+    if text.chars().count() <= ECHO_CHARS {
+        return format!("{text:?}");
+    }
+    let head: String = text.chars().take(ECHO_CHARS).collect();
+    format!("{head:?}... ({} bytes)", text.len())
+}
+
 fn check_range(field: &str, v: u32, max: u32) -> Result<(), Status> {
     if v == 0 || v > max {
         return Err(bad(format!("{field}: {v} is out of range (1..={max})")));
@@ -116,6 +145,27 @@ fn check_range(field: &str, v: u32, max: u32) -> Result<(), Status> {
 /// be canonical). Procedural scene names are accepted as they are; a path must name an
 /// existing file inside the root.
 pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Validated, Status> {
+    check_text("scene", &spec.scene, MAX_SCENE_BYTES)?;
+    let names = [
+        ("integrator", &spec.integrator),
+        ("layout", &spec.layout),
+        ("schedule", &spec.schedule),
+        ("effects", &spec.effects),
+    ];
+    for (field, v) in names {
+        check_text(field, v, MAX_NAME_BYTES)?;
+    }
+    if let Some(c) = &spec.camera {
+        check_text("camera", c, MAX_NAME_BYTES)?;
+    }
+    if let Some(p) = &spec.phm {
+        check_text("phm.mode", &p.mode, MAX_NAME_BYTES)?;
+        check_text("phm.kinds", &p.kinds, MAX_NAME_BYTES)?;
+    }
+    if let Some(rc) = &spec.ray_cache {
+        check_text("ray_cache.retrieve", &rc.retrieve, MAX_NAME_BYTES)?;
+        check_text("ray_cache.kinds", &rc.kinds, MAX_NAME_BYTES)?;
+    }
     let mut spec = spec.clone();
     check_range("width", spec.width, limits.max_side)?;
     check_range("height", spec.height, limits.max_side)?;

@@ -563,6 +563,45 @@ async fn registration_refuses_mismatches_and_heartbeats_ask_strangers_to_reregis
         .await
         .unwrap_err();
     assert_eq!(e.code(), Code::PermissionDenied, "{e:?}");
+    // A peer pass is handed only to the worker it names, and proves exactly that worker
+    // to exactly that peer (which checks it with its own secret).
+    let ask = |peer: &str| dray_proto::v1::GetPeerPassRequest {
+        worker_id: id.clone(),
+        peer_id: peer.into(),
+    };
+    let pass = c
+        .get_peer_pass(support::as_member(&reg.member_token, ask(&other.worker_id)))
+        .await
+        .unwrap()
+        .into_inner()
+        .pass;
+    assert!(dray_net::peer_pass::verify_peer_pass(
+        &other.member_token,
+        &id,
+        &pass
+    ));
+    assert!(!dray_net::peer_pass::verify_peer_pass(
+        &other.member_token,
+        &other.worker_id,
+        &pass
+    ));
+    assert!(!dray_net::peer_pass::verify_peer_pass(
+        &reg.member_token,
+        &id,
+        &pass
+    ));
+    for req in [
+        tonic::Request::new(ask(&other.worker_id)),
+        support::as_member(&other.member_token, ask(&other.worker_id)),
+    ] {
+        let e = c.get_peer_pass(req).await.unwrap_err();
+        assert_eq!(e.code(), Code::PermissionDenied, "{e:?}");
+    }
+    let e = c
+        .get_peer_pass(support::as_member(&reg.member_token, ask("stranger")))
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::NotFound, "{e:?}");
     // Watching assignments needs a registered id.
     let e = c
         .watch_assignments(WatchAssignmentsRequest {
@@ -571,6 +610,36 @@ async fn registration_refuses_mismatches_and_heartbeats_ask_strangers_to_reregis
         .await
         .unwrap_err();
     assert_eq!(e.code(), Code::NotFound);
+}
+
+/// A member that is alive (its heartbeats are fine) but never traces would hold its
+/// job forever: with no credit back for the stall timeout, the job fails naming its
+/// workers, and they are told to drop it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_without_progress_fails_after_the_stall_timeout() {
+    let server = Server::start_full(
+        "stall",
+        slow_heartbeat(),
+        Default::default(),
+        Some(Duration::from_millis(300)),
+        &std::env::temp_dir(),
+    )
+    .await;
+    let channel = server.channel().await;
+    let mut w = FakeWorker::join(channel.clone(), "http://127.0.0.1:7010").await;
+    let id = submit(&channel, spec(32, 32, 1)).await;
+    w.setup_and_tiles(1).await;
+    // It never reports.
+    let job = wait_state(&channel, &id, JobState::Failed).await;
+    let err = job.progress.unwrap().error;
+    assert!(
+        err.starts_with("no progress for")
+            && err.contains(&w.id)
+            && err.contains("--stall-timeout"),
+        "{err}"
+    );
+    // The worker is still a member (it was never silent), and may take the next job.
+    assert!(server.coordinator.cluster().membership.get(&w.id).is_some());
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -117,6 +117,62 @@ async fn a_job_estimated_above_the_memory_limit_is_refused() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_procedural_scene_too_large_for_the_limit_is_refused_before_it_is_made() {
+    // 8 GiB: a 100M-triangle soup is within the generators' cap but needs ~75 GiB.
+    let server = Server::start(8, 8 << 30, 10).await;
+    let mut c = server.client().await;
+    for scene in [
+        "soup:100000000",
+        "grid:spheres:1000:10x10x10",
+        "iso:gyroid:2048",
+    ] {
+        let spec = JobSpec {
+            scene: scene.into(),
+            ..cornell(16, 16, 1)
+        };
+        let e = submit(&mut c, spec).await.unwrap_err();
+        assert_eq!(e.code(), tonic::Code::ResourceExhausted, "{scene}: {e:?}");
+        assert!(e.message().contains("--max-job-bytes"), "{}", e.message());
+    }
+    // A procedural scene that fits is made and rendered.
+    let spec = JobSpec {
+        scene: "soup:1000".into(),
+        ..cornell(16, 16, 1)
+    };
+    let id = submit(&mut c, spec).await.unwrap();
+    assert_eq!(wait_end(&mut c, &id).await, JobState::Succeeded);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn errors_never_echo_an_unbounded_field() {
+    let server = Server::start(8, 1 << 40, 10).await;
+    let mut c = server.client().await;
+    let huge = "x".repeat(1 << 20);
+    type Set = fn(&mut JobSpec, String);
+    let fields: [(&str, Set); 4] = [
+        ("scene", |s, v| s.scene = v),
+        ("integrator", |s, v| s.integrator = v),
+        ("camera", |s, v| s.camera = Some(v)),
+        ("effects", |s, v| s.effects = v),
+    ];
+    for (field, set) in fields {
+        let mut spec = cornell(16, 16, 1);
+        set(&mut spec, huge.clone());
+        let e = submit(&mut c, spec).await.unwrap_err();
+        assert_eq!(e.code(), tonic::Code::InvalidArgument, "{field}");
+        assert!(e.message().starts_with(field), "{field}: {}", e.message());
+        assert!(
+            e.message().len() < 200,
+            "{field}: {} bytes",
+            e.message().len()
+        );
+    }
+    let e = c.get_job(GetJobRequest { job_id: huge }).await.unwrap_err();
+    assert_eq!(e.code(), tonic::Code::NotFound);
+    assert!(e.message().len() < 200, "{} bytes", e.message().len());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn beyond_max_jobs_submit_is_refused_until_one_ends() {
     let server = Server::start(1, 1 << 40, 10).await;
     let mut c = server.client().await;

@@ -155,7 +155,12 @@ fn reference_png(width: u32, height: u32, spp: u32) -> Vec<u8> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn render_service_end_to_end() {
-    let root = std::env::temp_dir();
+    // The scene root is a folder of its own, with a file beside it (outside the root).
+    let base = std::env::temp_dir().join(format!("dray-render-service-{}", std::process::id()));
+    let root = base.join("root");
+    std::fs::create_dir_all(&root).unwrap();
+    let outside_file = base.join("outside.gltf");
+    std::fs::write(&outside_file, "{}").unwrap();
     let server = Server::start(&root).await;
     let channel = server.channel().await;
     let mut c = RenderServiceClient::new(channel.clone()).max_decoding_message_size(64 << 20);
@@ -224,11 +229,8 @@ async fn render_service_end_to_end() {
     assert_eq!(job.spec.unwrap().integrator, "path");
 
     // Invalid jobs: INVALID_ARGUMENT naming the field.
-    let outside = {
-        // A file that exists but lies outside the scene root.
-        let d = std::env::current_dir().unwrap().join("Cargo.toml");
-        d.to_string_lossy().into_owned()
-    };
+    // A file that exists but lies outside the scene root.
+    let outside = outside_file.to_string_lossy().into_owned();
     let cases: Vec<(JobSpec, &str)> = vec![
         (cornell(0, 64, 4), "width"),
         (cornell(64, 20000, 4), "height"),
@@ -261,13 +263,6 @@ async fn render_service_end_to_end() {
                 ..cornell(8, 8, 1)
             },
             "scene",
-        ),
-        (
-            JobSpec {
-                camera: Some("no-such-camera".into()),
-                ..cornell(8, 8, 1)
-            },
-            "camera",
         ),
         (
             JobSpec {
@@ -364,4 +359,69 @@ async fn render_service_end_to_end() {
     assert_eq!(ids, [next.as_str(), big.as_str()], "newest first");
     assert_eq!(listed.next_page_token, "2");
     drop(server);
+    let _ = std::fs::remove_dir_all(&base);
+}
+
+/// A scene that must be loaded is prepared off the request path: SubmitJob answers with
+/// the job PREPARING; what loading finds wrong fails the job with the field named; and
+/// CancelJob ends a job whose scene is still loading at once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn scenes_load_after_submit_and_a_loading_job_can_be_cancelled() {
+    let root = std::env::temp_dir();
+    let server = Server::start(&root).await;
+    let mut c = RenderServiceClient::new(server.channel().await);
+    let state = |j: &dray_proto::v1::Job| j.progress.as_ref().map(|p| p.state());
+
+    // Found only once the scene is loaded: the job fails, naming the field.
+    let id = submit(
+        &mut c,
+        JobSpec {
+            camera: Some("no-such-camera".into()),
+            ..cornell(8, 8, 1)
+        },
+    )
+    .await
+    .unwrap();
+    let (end, _) = watch(&mut c, &id).await;
+    assert_eq!(end, JobState::Failed);
+    let job = get(&mut c, &id).await;
+    let error = job.progress.unwrap().error;
+    assert!(error.starts_with("camera:"), "{error}");
+
+    // A million-triangle soup takes a while to make: SubmitJob does not wait for it.
+    let id = submit(
+        &mut c,
+        JobSpec {
+            scene: "soup:1000000".into(),
+            ..cornell(8, 8, 1)
+        },
+    )
+    .await
+    .unwrap();
+    let job = get(&mut c, &id).await;
+    assert_eq!(state(&job), Some(JobState::Preparing));
+    let after = c
+        .cancel_job(CancelJobRequest { job_id: id.clone() })
+        .await
+        .unwrap()
+        .into_inner()
+        .job
+        .unwrap();
+    assert_eq!(state(&after), Some(JobState::Cancelled));
+    let (end, _) = watch(&mut c, &id).await;
+    assert_eq!(end, JobState::Cancelled);
+
+    // The server goes on: the next job loads and renders.
+    let next = submit(&mut c, cornell(16, 16, 1)).await.unwrap();
+    assert_eq!(watch(&mut c, &next).await.0, JobState::Succeeded);
+    drop(server);
+}
+
+async fn get(c: &mut RenderServiceClient<Channel>, id: &str) -> dray_proto::v1::Job {
+    c.get_job(GetJobRequest { job_id: id.into() })
+        .await
+        .unwrap()
+        .into_inner()
+        .job
+        .unwrap()
 }

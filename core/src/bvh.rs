@@ -9,14 +9,40 @@
 //!
 //! Node boxes are padded by a few ulps of the scene's magnitude so that rounding in the
 //! slab test can never cull a box whose triangle the leaf test would hit.
+//!
+//! The binary tree under the CWBVH is dray's own (see `build`): a binned-SAH build with
+//! a bounded depth, because obvhs's PLOC builder goes quadratic and arbitrarily deep on
+//! coincident triangles. Triangles with a non-finite corner are left out (nothing can
+//! hit them), and the scene's bounds are taken in f64 so that coordinates near the f32
+//! range cannot make the scale, the padding or a box infinite.
+//!
+//! Traversal is dray's own loop over obvhs's compressed nodes (`traverse`), with the
+//! nodes re-laid out for an eight-children-at-once box test (`wide`, `node_test`: SSE2 on
+//! every x86-64, AVX2 picked at run time) and the triangles stored in leaf order for the
+//! watertight test (`leaf`). Both tests are obvhs's and [`crate::intersect`]'s arithmetic,
+//! operation for operation, and the loop visits nodes and triangles in obvhs's order, so
+//! the answers are the same bits as with obvhs's `traverse!`.
 
 use std::time::Duration;
 
-use glam::{UVec2, Vec3, Vec3A};
-use obvhs::{Boundable, BvhBuildParams, aabb::Aabb, cwbvh::CwBvh, ray::Ray, traverse};
+use glam::{DVec3, Vec3, Vec3A};
+use obvhs::cwbvh::bvh2_to_cwbvh::bvh2_to_cwbvh;
+use obvhs::{Boundable, aabb::Aabb};
 
 use crate::intersect::{TriangleHit, WatertightRay};
 use crate::scene::Mesh;
+
+mod build;
+mod leaf;
+mod node_test;
+mod traverse;
+mod wide;
+
+use leaf::PackedTri;
+use node_test::NodeRay;
+use traverse::{Counter, Leaf};
+pub use traverse::{Simd, TraversalCounts};
+use wide::WideNode;
 
 /// A closest hit: world-space distance, the triangle's index in the mesh, barycentrics.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -51,14 +77,17 @@ impl Boundable for PaddedTri {
 }
 
 pub struct Accel {
-    bvh: CwBvh,
+    /// The CWBVH's nodes, laid out for the wide node test.
+    nodes: Vec<WideNode>,
     /// Triangle corners in accelerator space, in BVH leaf order.
-    tris: Vec<[Vec3; 3]>,
+    tris: Vec<PackedTri>,
     /// Mesh triangle index of each leaf slot.
     ids: Vec<u32>,
     /// World to accelerator scale (a power of two).
     scale: f32,
     inv_scale: f32,
+    /// The node test's instruction set (detected at build time).
+    simd: Simd,
     /// Wall time of the BVH build.
     pub build_time: Duration,
 }
@@ -74,58 +103,99 @@ impl Accel {
     /// exactly as in one BVH over the whole scene.
     pub fn build_with_ids(mesh: &Mesh, global_ids: Option<&[u32]>) -> Accel {
         let start = std::time::Instant::now();
-        let (lo, hi) = mesh.bounds();
-        let extent = (hi - lo).max_element().max(f32::MIN_POSITIVE);
+        // Only triangles with finite corners go in: nothing can hit the others, and one
+        // infinite coordinate would make every box above it (and the conversion's child
+        // ordering, which then panics) non-finite.
+        let kept: Vec<u32> = (0..mesh.indices.len() as u32)
+            .filter(|&i| mesh.corners(i as usize).iter().all(|p| p.is_finite()))
+            .collect();
+        // Bounds in f64: the extent of finite f32 coordinates can overflow f32 (3e38
+        // minus -3e38), which would make the scale and the padding infinite.
+        let mut lo = DVec3::splat(f64::INFINITY);
+        let mut hi = DVec3::splat(f64::NEG_INFINITY);
+        for &i in &kept {
+            for p in mesh.corners(i as usize) {
+                lo = lo.min(p.as_dvec3());
+                hi = hi.max(p.as_dvec3());
+            }
+        }
+        if kept.is_empty() {
+            (lo, hi) = (DVec3::ZERO, DVec3::ZERO);
+        }
+        let extent = (hi - lo).max_element().max(f64::from(f32::MIN_POSITIVE));
         let magnitude = lo.abs().max(hi.abs()).max_element().max(extent);
-        // s = 2^(20 - floor(log2(extent))), limited so that coordinates stay far from overflow.
+        // s = 2^(20 - floor(log2(extent))), limited so that coordinates stay far from
+        // overflow (below 2^100 in accelerator space).
         let e = extent.log2().floor() as i32;
         let mut exp = 20 - e;
         let max_exp = 100 - magnitude.log2().ceil() as i32;
         exp = exp.min(max_exp).clamp(-120, 120);
         let scale = 2f32.powi(exp);
         let inv_scale = 2f32.powi(-exp);
-        let pad = magnitude * scale * (1.0 / (1u32 << 21) as f32);
+        let pad = (magnitude * f64::from(scale) / f64::from(1u32 << 21)) as f32;
 
-        let prims: Vec<PaddedTri> = (0..mesh.indices.len())
-            .map(|i| PaddedTri {
-                v: mesh.corners(i).map(|p| p * scale),
+        let prims: Vec<PaddedTri> = kept
+            .iter()
+            .map(|&i| PaddedTri {
+                v: mesh.corners(i as usize).map(|p| p * scale),
                 pad,
             })
             .collect();
         if prims.is_empty() {
             return Accel {
-                bvh: CwBvh::default(),
+                nodes: Vec::new(),
                 tris: Vec::new(),
                 ids: Vec::new(),
                 scale,
                 inv_scale,
+                simd: Simd::detect(),
                 build_time: start.elapsed(),
             };
         }
-        let mut core = Duration::default();
-        let bvh =
-            obvhs::cwbvh::builder::build_cwbvh(&prims, BvhBuildParams::medium_build(), &mut core);
-        let ids = match global_ids {
-            Some(g) => bvh
-                .primitive_indices
-                .iter()
-                .map(|&i| g.get(i as usize).copied().unwrap_or(i))
-                .collect(),
-            None => bvh.primitive_indices.clone(),
-        };
+        let aabbs: Vec<Aabb> = prims.iter().map(Boundable::aabb).collect();
+        let bvh2 = build::build(&aabbs);
+        // At most 3 triangles per leaf, as obvhs's own CWBVH builder converts.
+        let bvh = bvh2_to_cwbvh(&bvh2, 3, true, false);
+        let ids = bvh
+            .primitive_indices
+            .iter()
+            .map(|&p| {
+                let i = kept[p as usize];
+                match global_ids {
+                    Some(g) => g.get(i as usize).copied().unwrap_or(i),
+                    None => i,
+                }
+            })
+            .collect();
         let tris = bvh
             .primitive_indices
             .iter()
-            .map(|&i| prims[i as usize].v)
+            .map(|&i| PackedTri::new(prims[i as usize].v))
             .collect();
         Accel {
-            bvh,
+            nodes: wide::from_cwbvh(&bvh),
             tris,
             ids,
             scale,
             inv_scale,
+            simd: Simd::detect(),
             build_time: start.elapsed(),
         }
+    }
+
+    /// The node test's instruction set.
+    pub fn simd(&self) -> Simd {
+        self.simd
+    }
+
+    /// Run the node test with `simd` instead of the detected best (for tests and
+    /// benchmarks: every build gives the same answers). Ignored, returning false, when
+    /// this CPU cannot run it.
+    pub fn set_simd(&mut self, simd: Simd) -> bool {
+        if simd.supported() {
+            self.simd = simd;
+        }
+        self.simd == simd
     }
 
     pub fn triangle_count(&self) -> usize {
@@ -133,7 +203,7 @@ impl Accel {
     }
 
     #[inline]
-    fn prepare(&self, ray: &QueryRay) -> (Ray, WatertightRay) {
+    fn prepare(&self, ray: &QueryRay) -> (NodeRay, WatertightRay, f32, f32) {
         let o = ray.origin * self.scale;
         let tmax = if ray.tmax.is_finite() {
             ray.tmax * self.scale
@@ -155,51 +225,114 @@ impl Accel {
                 1e28
             }
         };
-        let r = Ray {
-            origin: Vec3A::from(o),
-            direction: Vec3A::from(dir),
-            inv_direction: Vec3A::new(inv(dir.x), inv(dir.y), inv(dir.z)),
-            tmin: ray.tmin * self.scale,
+        let node_ray = NodeRay::new(
+            o.to_array(),
+            dir.to_array(),
+            [inv(dir.x), inv(dir.y), inv(dir.z)],
+        );
+        (
+            node_ray,
+            WatertightRay::new(o, dir),
+            ray.tmin * self.scale,
             tmax,
-        };
-        (r, WatertightRay::new(o, dir))
+        )
+    }
+
+    /// Run `walk` with the node test of `self.simd`.
+    #[inline(always)]
+    fn walk<C: Counter>(
+        &self,
+        ray: &NodeRay,
+        tmax: f32,
+        counter: &mut C,
+        leaf: impl FnMut(u32, &mut f32, &mut C) -> Leaf,
+    ) {
+        // SAFETY: `self.simd` is only ever a level this CPU supports (`detect`,
+        // `set_simd`), and `self.nodes` was built by `wide::from_cwbvh`.
+        unsafe {
+            match self.simd {
+                #[cfg(target_arch = "x86_64")]
+                Simd::Avx2 => walk_avx2(&self.nodes, ray, tmax, counter, leaf),
+                #[cfg(target_arch = "x86_64")]
+                Simd::Sse2 => traverse::walk(
+                    &self.nodes,
+                    ray,
+                    tmax,
+                    counter,
+                    |n, r, t| node_test::x86::hits_sse2(n, r, t),
+                    leaf,
+                ),
+                _ => traverse::walk(
+                    &self.nodes,
+                    ray,
+                    tmax,
+                    counter,
+                    node_test::hits_portable,
+                    leaf,
+                ),
+            }
+        }
     }
 
     /// The closest hit in (tmin, tmax) that `accept` agrees to. Ties in distance go to the
     /// lower triangle index, so the answer does not depend on traversal order.
+    ///
+    /// Never inlined: one call per ray costs nothing next to the traversal, and profiles
+    /// can then name the whole query.
+    #[inline(never)]
     pub fn closest(
         &self,
         ray: &QueryRay,
+        accept: impl FnMut(u32, &TriangleHit) -> bool,
+    ) -> Option<Hit> {
+        self.closest_with(ray, accept, &mut ())
+    }
+
+    /// [`Accel::closest`], adding the nodes and triangles it tested to `counts`.
+    pub fn closest_counted(
+        &self,
+        ray: &QueryRay,
+        accept: impl FnMut(u32, &TriangleHit) -> bool,
+        counts: &mut TraversalCounts,
+    ) -> Option<Hit> {
+        self.closest_with(ray, accept, counts)
+    }
+
+    #[inline(always)]
+    fn closest_with<C: Counter>(
+        &self,
+        ray: &QueryRay,
         mut accept: impl FnMut(u32, &TriangleHit) -> bool,
+        counter: &mut C,
     ) -> Option<Hit> {
         if self.ids.is_empty() || !ray.origin.is_finite() || !ray.dir.is_finite() {
             return None;
         }
-        let (mut trav, wt) = self.prepare(ray);
+        let (node_ray, wt, tmin, tmax) = self.prepare(ray);
         let mut best: Option<(TriangleHit, u32)> = None;
-        let mut state = self.bvh.new_traversal(trav.direction);
-        let mut node;
-        traverse!(
-            self.bvh,
-            node,
-            state,
-            node.intersect_ray(&trav, state.oct_inv4),
-            {
-                let slot = state.primitive_id as usize;
-                let [a, b, c] = self.tris[slot];
+        self.walk(
+            &node_ray,
+            tmax,
+            counter,
+            #[inline(always)]
+            |slot, tmax, _| {
+                let slot = slot as usize;
                 // Inclusive upper bound so that equal-distance hits reach the tie-break.
-                if let Some(h) = wt.intersect(a, b, c, trav.tmin, next_up(trav.tmax)) {
+                if let Some(tri) = self.tris.get(slot)
+                    && let Some(h) = leaf::intersect(&wt, tri, tmin, next_up(*tmax))
+                {
                     let id = self.ids[slot];
                     let better = match &best {
                         None => true,
                         Some((bh, bid)) => h.t < bh.t || (h.t == bh.t && id < *bid),
                     };
                     if better && accept(id, &h) {
-                        trav.tmax = h.t;
+                        *tmax = h.t;
                         best = Some((h, id));
                     }
                 }
-            }
+                Leaf::Continue
+            },
         );
         best.map(|(h, id)| Hit {
             t: h.t * self.inv_scale,
@@ -211,37 +344,78 @@ impl Accel {
     }
 
     /// True if any hit in (tmin, tmax) is accepted by `accept` (shadow and AO rays).
-    pub fn occluded(
+    #[inline(never)]
+    pub fn occluded(&self, ray: &QueryRay, accept: impl FnMut(u32, &TriangleHit) -> bool) -> bool {
+        self.occluded_with(ray, accept, &mut ())
+    }
+
+    /// [`Accel::occluded`], adding the nodes and triangles it tested to `counts`.
+    pub fn occluded_counted(
+        &self,
+        ray: &QueryRay,
+        accept: impl FnMut(u32, &TriangleHit) -> bool,
+        counts: &mut TraversalCounts,
+    ) -> bool {
+        self.occluded_with(ray, accept, counts)
+    }
+
+    #[inline(always)]
+    fn occluded_with<C: Counter>(
         &self,
         ray: &QueryRay,
         mut accept: impl FnMut(u32, &TriangleHit) -> bool,
+        counter: &mut C,
     ) -> bool {
         if self.ids.is_empty() || !ray.origin.is_finite() || !ray.dir.is_finite() {
             return false;
         }
-        let (trav, wt) = self.prepare(ray);
+        let (node_ray, wt, tmin, tmax) = self.prepare(ray);
         let mut hit = false;
-        let mut state = self.bvh.new_traversal(trav.direction);
-        let mut node;
-        'outer: {
-            traverse!(
-                self.bvh,
-                node,
-                state,
-                node.intersect_ray(&trav, state.oct_inv4),
+        self.walk(
+            &node_ray,
+            tmax,
+            counter,
+            #[inline(always)]
+            |slot, tmax, _| {
+                let slot = slot as usize;
+                if let Some(tri) = self.tris.get(slot)
+                    && let Some(h) = leaf::intersect(&wt, tri, tmin, *tmax)
+                    && accept(self.ids[slot], &h)
                 {
-                    let slot = state.primitive_id as usize;
-                    let [a, b, c] = self.tris[slot];
-                    if let Some(h) = wt.intersect(a, b, c, trav.tmin, trav.tmax)
-                        && accept(self.ids[slot], &h)
-                    {
-                        hit = true;
-                        break 'outer;
-                    }
+                    hit = true;
+                    return Leaf::Stop;
                 }
-            );
-        }
+                Leaf::Continue
+            },
+        );
         hit
+    }
+}
+
+/// [`traverse::walk`] with the AVX2 node test, compiled for AVX2 (and the POPCNT and
+/// LZCNT that come with it) so the whole loop, leaf test included, uses them.
+///
+/// # Safety
+/// The CPU must support AVX2, POPCNT and LZCNT; `nodes` as for [`traverse::walk`].
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,popcnt,lzcnt")]
+unsafe fn walk_avx2<C: Counter>(
+    nodes: &[WideNode],
+    ray: &NodeRay,
+    tmax: f32,
+    counter: &mut C,
+    leaf: impl FnMut(u32, &mut f32, &mut C) -> Leaf,
+) {
+    // SAFETY: as the caller promises.
+    unsafe {
+        traverse::walk(
+            nodes,
+            ray,
+            tmax,
+            counter,
+            |n, r, t| node_test::x86::hits_avx2(n, r, t),
+            leaf,
+        )
     }
 }
 

@@ -183,6 +183,11 @@ mod tests {
             Access::Cluster
         );
         assert_eq!(access_of("/dray.v1.CacheService/Exchange"), Access::Cluster);
+        // Scene package files are the cluster's, never the API clients'.
+        assert_eq!(
+            access_of("/dray.v1.PackageService/FetchFile"),
+            Access::Cluster
+        );
         assert_eq!(access_of("/something.Else/X"), Access::Cluster);
         assert_eq!(access_of("garbage"), Access::Cluster);
     }

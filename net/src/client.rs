@@ -13,7 +13,8 @@ use crate::tls::{TlsError, TlsFiles};
 /// A channel whose calls carry a token.
 pub type AuthChannel = InterceptedService<Channel, Bearer>;
 
-/// Adds `authorization: Bearer TOKEN` to every call (nothing without a token).
+/// Adds `authorization: Bearer TOKEN` to every call (nothing without a token), and the
+/// current span's W3C trace context when the process exports traces ([`crate::trace`]).
 #[derive(Clone, Debug, Default)]
 pub struct Bearer(Option<MetadataValue<Ascii>>);
 
@@ -22,6 +23,7 @@ impl Interceptor for Bearer {
         if let Some(v) = &self.0 {
             req.metadata_mut().insert("authorization", v.clone());
         }
+        crate::trace::inject_current(req.metadata_mut());
         Ok(req)
     }
 }

@@ -13,13 +13,16 @@
 //!   plus health, reflection, TCP_NODELAY and TLS.
 //! - [`client`]: channels that present a token (and speak TLS when asked).
 //! - [`tls`]: certificate files for both sides.
+//! - [`trace`]: W3C trace context in gRPC metadata (when the process exports traces).
 
 pub mod admission;
 pub mod auth;
 pub mod client;
 pub mod credential;
+pub mod peer_pass;
 pub mod server;
 pub mod tls;
+pub mod trace;
 
 pub use auth::{Access, AuthPolicy};
 pub use client::{AuthChannel, ClientOptions};

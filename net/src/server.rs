@@ -1,6 +1,8 @@
 //! The one server builder: every dray server (coordinator, worker, cache host) is
 //! served by [`serve`], with the same layers in the same order:
 //!
+//! 0. [`crate::trace::TraceLayer`]: a call carrying a W3C `traceparent` runs in a span
+//!    whose parent is the caller's (only when the process exports traces).
 //! 1. [`AuthLayer`]: the caller's credential for the method's class ([`crate::auth`]);
 //!    refused calls cost nothing further.
 //! 2. [`AdmissionLayer`]: at most `max_calls` calls in progress; more are refused at
@@ -104,6 +106,7 @@ pub async fn serve(
         .add_service(reflection)
         .add_service(reflection_alpha);
     let layers = tower::ServiceBuilder::new()
+        .layer(crate::trace::TraceLayer)
         .layer(AuthLayer::new(options.auth.clone()))
         .layer(AdmissionLayer::new(options.max_calls, options.api_timeout))
         .into_inner();

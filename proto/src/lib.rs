@@ -3,7 +3,8 @@
 //! - [`dray::v1`]: messages, clients and servers generated from `proto/dray/v1/*.proto`:
 //!   the public `RenderService`, the internal `ClusterService` (registration, heartbeats,
 //!   assignments and routing tables, queue reports, contributions) and the worker-to-worker
-//!   `RayExchangeService` (bidirectional ray stream).
+//!   `RayExchangeService` (bidirectional ray stream), and the coordinator's
+//!   `PackageService` (scene package files for workers without a shared volume).
 //! - [`FILE_DESCRIPTOR_SET`]: the encoded descriptors (with comments), for gRPC server
 //!   reflection: `tonic_reflection::server::Builder::configure()
 //!   .register_encoded_file_descriptor_set(dray_proto::FILE_DESCRIPTOR_SET)`.
@@ -45,3 +46,6 @@ pub const CLUSTER_SERVICE: &str = "dray.v1.ClusterService";
 pub const RAY_EXCHANGE_SERVICE: &str = "dray.v1.RayExchangeService";
 /// Fully qualified name of the cache actors' service (ray caches on domain walls).
 pub const CACHE_SERVICE: &str = "dray.v1.CacheService";
+/// Fully qualified name of the coordinator's scene-package transfer service (workers
+/// without a shared volume fetch package files with it).
+pub const PACKAGE_SERVICE: &str = "dray.v1.PackageService";

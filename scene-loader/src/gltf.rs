@@ -11,7 +11,7 @@
 
 use std::borrow::Cow;
 use std::panic::AssertUnwindSafe;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use dray_core::camera::{Camera, Projection};
 use dray_core::light::Light;
@@ -47,14 +47,13 @@ const MAX_NODE_VISITS: usize = 1 << 22;
 /// patched by sparse values); without it a tiny file could ask for a huge allocation.
 const MAX_ZERO_FILLED_COMPONENTS: usize = 1 << 28;
 
-/// How many characters of a URI go into an error message (data URIs can be megabytes).
-const URI_DISPLAY_LEN: usize = 60;
-
 /// Load a glTF 2.0 file (`.gltf` or `.glb`) into a flattened world-space [`Scene`].
 ///
 /// The default scene is used (or the first scene; with no scenes, every root node).
-/// Buffers and images are resolved relative to the file's folder; `data:` URIs and the
-/// GLB binary chunk are supported. Problems in the file are errors that name the file and,
+/// Buffers and images are relative paths that must resolve inside the file's folder, to
+/// regular files (see [`crate::reference`]; a buffer is read no further than its
+/// `byteLength`); `data:` URIs and the GLB binary chunk are supported, other schemes
+/// (`file:` included) and absolute paths are refused. Problems in the file are errors that name the file and,
 /// where they apply, the URI, mesh and primitive; ignored features are listed in
 /// `scene.stats.warnings`.
 pub fn load_gltf(path: &Path) -> Result<Scene> {
@@ -86,15 +85,14 @@ fn format_error(path: &Path, message: impl Into<String>) -> SceneError {
 }
 
 fn load_unguarded(path: &Path) -> Result<Scene> {
-    let bytes = std::fs::read(path).map_err(|source| SceneError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    check_glb_header(&bytes).map_err(|m| format_error(path, m))?;
-    // serde_json refuses a UTF-8 byte order mark, which some exporters write.
+    let bytes = crate::reference::read_scene_file(path)?;
+    // serde_json refuses a UTF-8 byte order mark, which some exporters write. The GLB
+    // check comes after, on what the crate will see (a mark before "glTF" must not
+    // smuggle a bad header past it).
     let text = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(&bytes);
+    check_glb_header(text).map_err(|m| format_error(path, m))?;
     let gltf::Gltf { document, blob } = gltf::Gltf::from_slice_without_validation(text)
-        .map_err(|e| format_error(path, format!("not a valid glTF file: {e}")))?;
+        .map_err(|e| format_error(path, format!("not a valid glTF file: {}", bounded(&e))))?;
     let mut root = document.into_json();
 
     for ext in &root.extensions_required {
@@ -121,14 +119,12 @@ fn load_unguarded(path: &Path) -> Result<Scene> {
     root.extensions_required
         .retain(|e| json::extensions::ENABLED_EXTENSIONS.contains(&e.as_str()));
     let document = gltf::Document::from_json(root)
-        .map_err(|e| format_error(path, format!("invalid glTF: {e}")))?;
+        .map_err(|e| format_error(path, format!("invalid glTF: {}", bounded(&e))))?;
 
-    let base = path.parent().unwrap_or(Path::new("."));
-    let buffers = load_buffers(path, base, document.as_json(), blob)?;
+    let buffers = load_buffers(path, document.as_json(), blob)?;
 
     let mut loader = Loader {
         path,
-        base,
         doc: &document,
         root: document.as_json(),
         buffers,
@@ -205,13 +201,9 @@ fn precheck(root: &json::Root) -> std::result::Result<(), String> {
     Ok(())
 }
 
-/// Read every buffer: the GLB binary chunk, a `data:` URI or a file next to the glTF.
-fn load_buffers(
-    path: &Path,
-    base: &Path,
-    root: &json::Root,
-    mut blob: Option<Vec<u8>>,
-) -> Result<Vec<Vec<u8>>> {
+/// Read every buffer: the GLB binary chunk, a `data:` URI or a file in the glTF's folder,
+/// no further than its `byteLength`.
+fn load_buffers(path: &Path, root: &json::Root, mut blob: Option<Vec<u8>>) -> Result<Vec<Vec<u8>>> {
     let mut out = Vec::with_capacity(root.buffers.len());
     for (i, buffer) in root.buffers.iter().enumerate() {
         let what = match &buffer.uri {
@@ -225,9 +217,8 @@ fn load_buffers(
             )
         })?;
         let mut data = match &buffer.uri {
-            Some(uri) => {
-                read_uri(base, uri).map_err(|m| format_error(path, format!("{what}: {m}")))?
-            }
+            Some(uri) => read_uri(path, uri, Some(buffer.byte_length.0))
+                .map_err(|m| format_error(path, format!("{what}: {m}")))?,
             // Only the first buffer may refer to the GLB binary chunk.
             None => match (i, blob.take()) {
                 (0, Some(b)) => b,
@@ -257,16 +248,27 @@ fn load_buffers(
 
 /// A URI shortened for messages.
 fn display_uri(uri: &str) -> String {
-    if uri.chars().count() <= URI_DISPLAY_LEN {
-        format!("{uri:?}")
+    crate::reference::display_reference(uri)
+}
+
+/// An error from a parser, at most a few hundred characters: serde's messages quote the
+/// values they reject, which can be as long as the file.
+fn bounded(e: &dyn std::fmt::Display) -> String {
+    const MAX: usize = 300;
+    let text = e.to_string().replace(['\n', '\r'], " ");
+    if text.chars().count() <= MAX {
+        text
     } else {
-        let head: String = uri.chars().take(URI_DISPLAY_LEN).collect();
-        format!("{head:?}…")
+        let head: String = text.chars().take(MAX).collect();
+        format!("{head}…")
     }
 }
 
-/// Resolve a buffer or image URI: `data:`, `file:` or a path relative to `base`.
-fn read_uri(base: &Path, uri: &str) -> std::result::Result<Vec<u8>, String> {
+/// Resolve a buffer or image URI: a `data:` URI, or a relative path that must stay
+/// inside the folder of the scene file `scene` and name a regular file, read no further
+/// than `limit` bytes when given (a buffer's byteLength). Other schemes (`file:`,
+/// `http:`, ...) and absolute paths are refused. Messages never quote file contents.
+fn read_uri(scene: &Path, uri: &str, limit: Option<u64>) -> std::result::Result<Vec<u8>, String> {
     if let Some(rest) = uri.strip_prefix("data:") {
         let (header, payload) = rest
             .split_once(',')
@@ -277,21 +279,36 @@ fn read_uri(base: &Path, uri: &str) -> std::result::Result<Vec<u8>, String> {
             percent_decode(payload).map_err(|m| format!("data URI: {m}"))
         };
     }
-    let file: PathBuf = match uri_scheme(uri) {
+    match uri_scheme(uri) {
         Some(scheme) if scheme.eq_ignore_ascii_case("file") => {
-            let rest = &uri[scheme.len() + 1..];
-            let rest = rest.strip_prefix("//").unwrap_or(rest);
-            PathBuf::from(utf8(percent_decode(rest)?)?)
+            return Err(
+                "file: URIs are not allowed (a scene may only refer to files in its own \
+                 folder, by relative path)"
+                    .to_string(),
+            );
         }
         Some(scheme) => {
             return Err(format!(
-                "URI scheme {scheme:?} is not supported (only relative paths, file: and \
-                 data: URIs)"
+                "URI scheme {} is not supported (only relative paths and data: URIs)",
+                display_uri(scheme)
             ));
         }
-        None => base.join(utf8(percent_decode(uri)?)?),
-    };
-    std::fs::read(&file).map_err(|e| format!("cannot read {}: {e}", file.display()))
+        None => {}
+    }
+    let relative = utf8(percent_decode(uri)?)?;
+    let opened =
+        crate::reference::open_in_scene_folder(scene, &relative).map_err(|e| e.message())?;
+    let len = opened.len;
+    if let Some(declared) = limit
+        && len < declared
+    {
+        return Err(format!(
+            "file has {len} bytes but the buffer's byteLength is {declared} (truncated file?)"
+        ));
+    }
+    opened
+        .read_at_most(limit.unwrap_or(len))
+        .map_err(|e| format!("cannot read: {}", e.kind()))
 }
 
 fn utf8(bytes: Vec<u8>) -> std::result::Result<String, String> {
@@ -432,7 +449,6 @@ struct Placements {
 
 struct Loader<'a> {
     path: &'a Path,
-    base: &'a Path,
     doc: &'a gltf::Document,
     root: &'a json::Root,
     buffers: Vec<Vec<u8>>,
@@ -522,8 +538,8 @@ impl Loader<'_> {
         let (what, bytes): (String, Cow<'_, [u8]>) = match (&image.uri, image.buffer_view) {
             (Some(uri), _) => {
                 let what = format!("image {index} ({})", display_uri(uri));
-                let bytes =
-                    read_uri(self.base, uri).map_err(|m| self.error(format!("{what}: {m}")))?;
+                let bytes = read_uri(self.path, uri, None)
+                    .map_err(|m| self.error(format!("{what}: {m}")))?;
                 (what, Cow::Owned(bytes))
             }
             (None, Some(view)) => {

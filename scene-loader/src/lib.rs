@@ -10,6 +10,7 @@ pub mod partition;
 pub mod ply;
 pub mod ply_stream;
 pub mod procedural;
+pub mod reference;
 pub mod validate;
 
 pub use error::{Result, SceneError};

@@ -18,7 +18,8 @@
 //! - `illum` 6 or 7 (refraction) makes a clear dielectric (transmission 1), tinted by
 //!   `Tf` when given. `Tf` alone does not: some exporters write `Tf 1 1 1` on every
 //!   opaque material.
-//! - `map_Kd` is the base colour texture, loaded relative to the OBJ file. It replaces
+//! - `map_Kd` is the base colour texture, loaded relative to the OBJ file (and, like
+//!   `mtllib`, refused unless it resolves inside the OBJ's folder). It replaces
 //!   `Kd` rather than multiplying it, because exporters write a placeholder `Kd` next
 //!   to the map. Other maps are ignored with a warning.
 //!
@@ -27,7 +28,6 @@
 
 use std::cell::RefCell;
 use std::collections::HashMap;
-use std::io::BufReader;
 use std::path::{Path, PathBuf};
 
 use dray_core::material::{AlphaMode, Material, TexRef};
@@ -36,6 +36,7 @@ use dray_core::texture::{Sampler, Texture};
 use glam::{Vec2, Vec3};
 
 use crate::error::{Result, SceneError};
+use crate::reference::{RefError, display_reference, open_in_scene_folder as open_reference};
 use crate::validate::{self, Origin, Primitive};
 
 /// Load an OBJ file and the MTL libraries it names.
@@ -48,16 +49,14 @@ pub fn load_obj(path: &Path) -> Result<Scene> {
         path: path.to_path_buf(),
         message,
     };
-    let bytes = std::fs::read(path).map_err(|source| SceneError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let dir = path.parent().unwrap_or(Path::new("")).to_path_buf();
+    let bytes = crate::reference::read_scene_file(path)?;
 
     // tobj reports MTL trouble only as a bare error code; record which library failed
-    // and how, so the warning or error can name it.
-    let missing_mtl: RefCell<Vec<PathBuf>> = RefCell::new(Vec::new());
-    let bad_mtl: RefCell<Vec<(PathBuf, String)>> = RefCell::new(Vec::new());
+    // and how, so the warning or error can name it. A library must be a regular file
+    // inside the OBJ's folder: one that is missing there is a warning, one that is
+    // refused (absolute, escaping, a device or FIFO) an error.
+    let missing_mtl: RefCell<Vec<String>> = RefCell::new(Vec::new());
+    let bad_mtl: RefCell<Vec<(String, String)>> = RefCell::new(Vec::new());
     let options = tobj::LoadOptions {
         triangulate: true,
         single_index: true,
@@ -67,21 +66,35 @@ pub fn load_obj(path: &Path) -> Result<Scene> {
         ignore_lines: true,
     };
     let loader = |mtl: &Path| {
-        let full = dir.join(mtl);
-        match std::fs::File::open(&full) {
-            Ok(file) => {
-                let result = tobj::load_mtl_buf(&mut BufReader::new(file));
-                if let Err(e) = &result {
-                    bad_mtl.borrow_mut().push((full, e.to_string()));
-                }
-                result
+        let name = mtl.to_string_lossy().into_owned();
+        match open_reference(path, &name) {
+            Ok(opened) => {
+                let result = match opened.read_all() {
+                    Ok(text) => match precheck_mtl(&text) {
+                        Ok(()) => tobj::load_mtl_buf(&mut std::io::Cursor::new(text))
+                            .map_err(|e| e.to_string()),
+                        Err(m) => Err(m),
+                    },
+                    Err(e) => Err(format!("cannot read: {}", e.kind())),
+                };
+                result.map_err(|m| {
+                    bad_mtl.borrow_mut().push((name, m));
+                    tobj::LoadError::MaterialParseError
+                })
             }
-            Err(_) => {
-                missing_mtl.borrow_mut().push(full);
+            Err(RefError::NotFound) => {
+                missing_mtl.borrow_mut().push(name);
+                Err(tobj::LoadError::OpenFileFailed)
+            }
+            Err(e) => {
+                bad_mtl.borrow_mut().push((name, e.message()));
                 Err(tobj::LoadError::OpenFileFailed)
             }
         }
     };
+    // tobj does index arithmetic on face indices without overflow checks (a huge or
+    // zero index wraps and then indexes out of bounds): refuse such faces first.
+    precheck_faces(&bytes).map_err(format_err)?;
     // tobj is fuzzed but third-party; a panic on hostile input must still surface as a
     // load error rather than take down the renderer.
     let parsed = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
@@ -92,7 +105,7 @@ pub fn load_obj(path: &Path) -> Result<Scene> {
     if let Some((mtl, e)) = bad_mtl.into_inner().into_iter().next() {
         return Err(format_err(format!(
             "material library {}: {e}",
-            mtl.display()
+            display_reference(&mtl)
         )));
     }
     let obj_materials = materials.unwrap_or_default();
@@ -108,13 +121,12 @@ pub fn load_obj(path: &Path) -> Result<Scene> {
     for mtl in missing_mtl.into_inner() {
         scene.stats.warnings.push(format!(
             "material library {} not found; using a default material",
-            mtl.display()
+            display_reference(&mtl)
         ));
     }
 
     let mut builder = MaterialBuilder {
         path,
-        dir: &dir,
         obj_materials: &obj_materials,
         converted: HashMap::new(),
         textures: HashMap::new(),
@@ -206,7 +218,6 @@ pub fn load_obj(path: &Path) -> Result<Scene> {
 /// nothing and cannot fail the load.
 struct MaterialBuilder<'a> {
     path: &'a Path,
-    dir: &'a Path,
     obj_materials: &'a [tobj::Material],
     /// tobj material id -> index in `Scene::materials`.
     converted: HashMap<usize, u32>,
@@ -362,33 +373,38 @@ impl MaterialBuilder<'_> {
                 "material {material:?}: map_Kd {statement:?} names no file"
             )));
         }
-        let mut full = self.dir.join(file);
+        let shown = display_reference(file);
+        let refused = |e: RefError| {
+            self.error(format!(
+                "material {material:?}: texture {shown}: {}",
+                e.message()
+            ))
+        };
         // OBJ files written on Windows often use backslashes.
-        if !full.exists() && file.contains('\\') {
-            let alt = self.dir.join(file.replace('\\', "/"));
-            if alt.exists() {
-                full = alt;
+        let opened = match open_reference(self.path, file) {
+            Err(RefError::NotFound) if file.contains('\\') => {
+                open_reference(self.path, &file.replace('\\', "/"))
             }
+            other => other,
         }
-        if let Some(&t) = self.textures.get(&full) {
+        .map_err(|e| match e {
+            RefError::NotFound => self.error(format!(
+                "material {material:?}: texture file {shown} not found in the OBJ's folder"
+            )),
+            e => refused(e),
+        })?;
+        if let Some(&t) = self.textures.get(&opened.path) {
             return Ok(t);
         }
-        if !full.is_file() {
-            return Err(self.error(format!(
-                "material {material:?}: texture file {} not found",
-                full.display()
-            )));
-        }
-        let image = image::ImageReader::open(&full)
-            .and_then(|r| r.with_guessed_format())
+        let full = opened.path.clone();
+        let bytes = opened
+            .read_all()
+            .map_err(|e| refused(RefError::Refused(format!("cannot read: {}", e.kind()))))?;
+        let image = image::ImageReader::new(std::io::Cursor::new(bytes))
+            .with_guessed_format()
             .map_err(|e| e.to_string())
             .and_then(|r| r.decode().map_err(|e| e.to_string()))
-            .map_err(|e| {
-                self.error(format!(
-                    "material {material:?}: texture {}: {e}",
-                    full.display()
-                ))
-            })?
+            .map_err(|e| self.error(format!("material {material:?}: texture {shown}: {e}")))?
             .to_rgba8();
         let (width, height) = image.dimensions();
         let texels = image.pixels().map(|p| p.0).collect();
@@ -431,6 +447,79 @@ fn texture_file_name(statement: &str) -> &str {
         }
     }
     rest
+}
+
+/// Lines as tobj reads them (`BufRead::lines`), with 1-based numbers; lines that are not
+/// UTF-8 are skipped (tobj refuses them itself).
+fn text_lines(bytes: &[u8]) -> impl Iterator<Item = (usize, &str)> {
+    bytes
+        .split(|&b| b == b'\n')
+        .enumerate()
+        .filter_map(|(i, l)| Some((i + 1, std::str::from_utf8(l).ok()?)))
+}
+
+/// Check every face (`f`) and line (`l`) statement's indices the way tobj will use
+/// them: positive ones within the file's `v`/`vt`/`vn` counts, negative (relative) ones
+/// within the counts so far, none zero. tobj subtracts, multiplies and then indexes
+/// without overflow checks, so such an index would panic inside it.
+fn precheck_faces(bytes: &[u8]) -> std::result::Result<(), String> {
+    let mut total = [0i64; 3];
+    for (_, line) in text_lines(bytes) {
+        match line.split_whitespace().next() {
+            Some("v") => total[0] += 1,
+            Some("vt") => total[1] += 1,
+            Some("vn") => total[2] += 1,
+            _ => {}
+        }
+    }
+    let mut so_far = [0i64; 3];
+    const KIND: [&str; 3] = ["vertex", "texture coordinate", "normal"];
+    for (n, line) in text_lines(bytes) {
+        let mut words = line.split_whitespace();
+        match words.next() {
+            Some("v") => so_far[0] += 1,
+            Some("vt") => so_far[1] += 1,
+            Some("vn") => so_far[2] += 1,
+            Some("f" | "l") => {
+                for vertex in words {
+                    for (k, part) in vertex.split('/').take(3).enumerate() {
+                        // Unparsable parts are tobj's to refuse.
+                        let Ok(x) = part.parse::<i64>() else { continue };
+                        let ok = match x {
+                            0 => false,
+                            x if x > 0 => x <= total[k],
+                            x => x.checked_neg().is_some_and(|m| m <= so_far[k]),
+                        };
+                        if !ok {
+                            return Err(format!(
+                                "line {n}: {} index {x} is out of range ({} {}s {})",
+                                KIND[k],
+                                if x < 0 { so_far[k] } else { total[k] },
+                                KIND[k],
+                                if x < 0 { "before it" } else { "in the file" }
+                            ));
+                        }
+                    }
+                }
+            }
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
+/// Check what tobj's MTL parser would panic on: a colour statement (`Ka`, `Kd`, `Ks`,
+/// `Ke`) with fewer than three values.
+fn precheck_mtl(bytes: &[u8]) -> std::result::Result<(), String> {
+    for (n, line) in text_lines(bytes) {
+        let mut words = line.split_whitespace();
+        if let Some(key @ ("Ka" | "Kd" | "Ks" | "Ke")) = words.next()
+            && words.count() < 3
+        {
+            return Err(format!("line {n}: {key} needs three numbers"));
+        }
+    }
+    Ok(())
 }
 
 /// Split off the first whitespace-separated word; returns (word, trimmed rest).

@@ -84,13 +84,10 @@ pub(crate) fn tables(path: &Path, warnings: Vec<String>) -> Scene {
 
 /// Open `path` and run one pass of [`read_body`] over it, returning the parse warnings.
 pub(crate) fn read_file(path: &Path, body: &mut dyn Body) -> Result<Vec<String>> {
-    let io = |source| SceneError::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    let mut file = std::fs::File::open(path).map_err(io)?;
-    let len = file.metadata().map_err(io)?.len();
-    let len = usize::try_from(len).unwrap_or(usize::MAX);
+    let opened = crate::reference::open_scene_file(path)?;
+    let len = usize::try_from(opened.len).unwrap_or(usize::MAX);
+    // No further than the length the file had when opened.
+    let mut file = opened.file.take(opened.len);
     read_body(&mut file, len, body).map_err(|stop| match stop {
         Stop::Format(message) => SceneError::Format {
             path: path.to_path_buf(),
@@ -103,12 +100,9 @@ pub(crate) fn read_file(path: &Path, body: &mut dyn Body) -> Result<Vec<String>>
 /// Whether `path`'s header declares its face element before its vertex element (legal
 /// PLY, but a stream cannot resolve indices to vertices it has not read yet).
 pub(crate) fn faces_before_vertices(path: &Path) -> Result<bool> {
-    let io = |source| SceneError::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    let mut file = std::fs::File::open(path).map_err(io)?;
-    let len = file.metadata().map_err(io)?.len();
+    let opened = crate::reference::open_scene_file(path)?;
+    let len = opened.len;
+    let mut file = opened.file.take(len);
     let mut cur = Cursor::new(&mut file, usize::try_from(len).unwrap_or(usize::MAX));
     let header = parse_header(&mut cur).map_err(|message| SceneError::Format {
         path: path.to_path_buf(),

@@ -114,11 +114,25 @@ pub fn add_primitive(
     Ok(())
 }
 
-/// The error for the first vertex with a NaN or infinite position, if any: such a
-/// vertex would poison bounds and BVH builds, so it is refused rather than dropped.
+/// The largest coordinate magnitude a vertex may have. Far beyond any real scene, and
+/// small enough that the products of two coordinates (edge cross products, areas,
+/// squared distances) and the scene's extent stay finite in f32: coordinates near the f32
+/// range (3e38) overflow as soon as two are added or multiplied.
+pub const MAX_COORDINATE: f32 = 1e18;
+
+/// The error for the first vertex with a NaN or infinite position, or a coordinate
+/// beyond ±[`MAX_COORDINATE`], if any: such a vertex would poison bounds, areas and BVH
+/// builds, so it is refused rather than dropped.
 pub fn check_positions(origin: Origin<'_>, positions: &[Vec3]) -> Result<()> {
-    match positions.iter().enumerate().find(|(_, p)| !p.is_finite()) {
-        Some((i, p)) => Err(origin.error(format!("vertex {i} has a non-finite position {p}"))),
+    let bad = |p: &Vec3| !p.is_finite() || p.abs().max_element() > MAX_COORDINATE;
+    match positions.iter().enumerate().find(|(_, p)| bad(p)) {
+        Some((i, p)) if !p.is_finite() => {
+            Err(origin.error(format!("vertex {i} has a non-finite position {p}")))
+        }
+        Some((i, _)) => Err(origin.error(format!(
+            "vertex {i} has a coordinate beyond ±{MAX_COORDINATE:e}, the largest dray accepts \
+             (larger ones overflow f32 in areas and distances)"
+        ))),
         None => Ok(()),
     }
 }

@@ -9,10 +9,12 @@
 #   2. builds the top-level Dockerfile offline: `cargo vendor` output in a staged build
 #      context, `docker build --network none --build-arg OFFLINE=1`;
 #   3. starts a coordinator and 3 workers as containers of that image on a private Docker
-#      network (the workers share the coordinator's work directory through a Docker volume
-#      mounted at the same path: workers do not fetch domains over gRPC yet), with the
+#      network (only the coordinator has the work directory, a Docker volume: the workers
+#      share no disk with it and fetch each job's manifest and domains over gRPC, as
+#      helm/dray's default workDir.mode "fetch" has them), with the
 #      arguments helm/dray gives its pods, and the coordinator's port published on
 #      127.0.0.1;
+#      the image's HEALTHCHECK (`dray health`) must report every container healthy;
 #   4. from the host, with grpcurl through server reflection: list, health, SubmitJob,
 #      WatchJob, GetImage; the PNG must be the bytes `dray render` writes on the host;
 #   5. a bigger job, and once WatchJob shows it running with tiles done, one worker
@@ -204,7 +206,8 @@ say "built $IMAGE in $((SECONDS - build_start)) s: $(docker image inspect -f '{{
 docker run --rm --pull never "$IMAGE" --version >/dev/null || die "the image does not run dray"
 
 # ---------------------------------------------------------------------------------------
-# 3. The cluster: a private network, a shared work-dir volume, a coordinator, 3 workers.
+# 3. The cluster: a private network, the coordinator's work-dir volume, a coordinator,
+#    3 workers with no shared disk.
 tag=dray-ct-$$
 net=$tag-net
 vol=$tag-work
@@ -240,21 +243,24 @@ docker volume create "$vol" >/dev/null
 # The arguments and the security context helm/dray gives its pods (read-only root file
 # system with /tmp writable, no capabilities, no privilege escalation; container names
 # stand in for the pods' DNS names).
-run_opts=(--detach --pull never --network "$net" -v "$vol:/var/lib/dray/work"
+run_opts=(--detach --pull never --network "$net"
   --read-only --tmpfs /tmp --cap-drop ALL --security-opt no-new-privileges)
-docker run "${run_opts[@]}" --name "$coord" --hostname "$coord" \
+docker run "${run_opts[@]}" -v "$vol:/var/lib/dray/work" --name "$coord" --hostname "$coord" \
   -e DRAY_LOG=warn,dray_coordinator::membership=info -e NO_COLOR=1 \
   -p 127.0.0.1::50051 \
   "$IMAGE" coordinator --listen=0.0.0.0:50051 --scene-root=/scenes \
   --work-dir=/var/lib/dray/work --heartbeat-timeout-ms=20000 >/dev/null
 for w in "${workers[@]}"; do
   docker run "${run_opts[@]}" --name "$w" --hostname "$w" -e NO_COLOR=1 \
+    -e DRAY_LOG=warn,dray_worker::job=info \
+    -e DRAY_HEALTH_ADDR=127.0.0.1:50052 \
     "$IMAGE" worker --coordinator="http://$coord:50051" --listen=0.0.0.0:50052 \
-    --advertise="http://$w:50052" --cache-listen=0.0.0.0:50053 --connect-timeout=60 >/dev/null
+    --advertise="http://$w:50052" --cache-listen=0.0.0.0:50053 --connect-timeout=60 \
+    --fetch-packages=auto --package-cache=/tmp/dray-packages >/dev/null
 done
 addr=$(docker port "$coord" 50051/tcp | head -1)
 [ -n "$addr" ] || die "the coordinator's port is not published"
-say "cluster: $coord (published at $addr) and ${#workers[@]} workers on network $net, work dir on volume $vol"
+say "cluster: $coord (published at $addr, work dir on volume $vol) and ${#workers[@]} workers with no shared disk on network $net"
 
 registered() { docker logs "$coord" 2>&1 | grep -c "worker registered" || true; }
 for _ in $(seq 1 600); do
@@ -287,6 +293,23 @@ if [ -n "$grpcurl_bin" ] && [ -x "$grpcurl_bin" ]; then
 else
   say "NOTE: health probes inside the network not checked (no static grpcurl binary found from $grpcurl)"
 fi
+
+# The image's own HEALTHCHECK (`dray health` inside each container, DRAY_HEALTH_ADDR the
+# coordinator's 50051 by default and 50052 for the workers): every container turns
+# healthy; and `dray health` by hand names what it checked.
+health_states() {
+  for c in "$coord" "${workers[@]}"; do docker inspect -f '{{.State.Health.Status}}' "$c"; done |
+    sort | uniq -c | tr -s ' \n' ' '
+}
+for _ in $(seq 1 450); do
+  [ "$(health_states)" = " $((1 + ${#workers[@]})) healthy " ] && break
+  sleep 0.2
+done
+[ "$(health_states)" = " $((1 + ${#workers[@]})) healthy " ] ||
+  die "Docker HEALTHCHECK: not all healthy within 90 s:$(health_states)($coord: $(docker inspect -f '{{json .State.Health}}' "$coord"))"
+manual=$(docker exec "$coord" dray health --service dray.v1.RenderService) || die "dray health in $coord: $manual"
+[ "$manual" = "127.0.0.1:50051 (service dray.v1.RenderService): SERVING" ] || die "dray health said: $manual"
+say "Docker HEALTHCHECK (dray health in each container): all $((1 + ${#workers[@]})) healthy; $manual"
 
 # ---------------------------------------------------------------------------------------
 # 4. grpcurl through reflection, from the host.
@@ -340,6 +363,16 @@ fetch "$job" "$out/cluster.png"
 cmp "$out/cluster.png" "$out/embedded.png" || die "the containerised cluster's PNG differs from dray render's"
 stats=$("$grpcurl" -plaintext -d "{\"jobId\": \"$job\"}" "$addr" dray.v1.RenderService/GetJob | json 'v["job"]["stats"].get("workers", 0), v["job"]["stats"].get("raysExchanged", "0")')
 say "job $job (cornell 320x240, 16 spp): SUCCEEDED ($tiles/$total tiles, $n WatchJob messages; workers, rays exchanged: $stats); PNG identical to dray render's ($(stat -c %s "$out/cluster.png") bytes)"
+# The workers share no disk with the coordinator: each that took part fetched the
+# package over gRPC.
+fetched=0
+for w in "${workers[@]}"; do
+  if docker logs "$w" 2>&1 | grep -q "fetching the package from the coordinator"; then
+    fetched=$((fetched + 1))
+  fi
+done
+[ "$fetched" -ge 1 ] || die "no worker says it fetched the package from the coordinator"
+say "$fetched of ${#workers[@]} workers fetched the job's package over gRPC (no shared disk)"
 
 # ---------------------------------------------------------------------------------------
 # 5. Kill a worker mid-job.

@@ -10,8 +10,10 @@ image-baked scene root, and the README's `helm install ... --set` values), the c
      fields fail),
   3. checked for what a schema cannot see: labels, selectors that select the pods,
      the headless Service the StatefulSet names, worker addresses, probes on real ports,
-     volumes at the same path in every pod, and every `dray` flag the pods are given
-     present in that subcommand's --help (when a dray binary is at hand),
+     volumes at the same path in every pod, auth.existingSecret as token files (the API
+     token for the coordinator only) and otlp.endpoint as OTEL_EXPORTER_OTLP_ENDPOINT, and
+     every `dray` flag and variable the pods are given present in that subcommand's
+     --help (when a dray binary is at hand),
 and values that the schema or the templates must refuse are refused with their name.
 Exits non-zero on any failure.
 """
@@ -232,29 +234,45 @@ def semantics(label: str, objs: list[dict], v: dict, notes: str, namespace: str,
             check(re.search(rf"(^|\s){re.escape(flag)}[\s=,]", help_text) is not None,
                   f"{label}: `dray {sub}` has no flag {flag}")
 
-    # Volumes: the work directory and the scenes at the same path in both pods, and the
-    # coordinator's --work-dir / --scene-root pointing there.
+    # Volumes: the coordinator's --work-dir / --scene-root point at its mounts. With
+    # workDir.mode "shared" the workers mount the work directory and the scenes at the
+    # same paths and read packages there; with "fetch" they mount neither and fetch
+    # packages from the coordinator into a cache of their own.
     def mounts(c: dict) -> dict[str, str]:
         return {m["name"]: m["mountPath"] for m in c.get("volumeMounts", [])}
 
     cm, wm = mounts(cc), mounts(wc)
-    check(cm.get("work") == wm.get("work") == v["workDir"]["path"] == cf.get("--work-dir"),
-          f"{label}: work dir mounts {cm.get('work')} / {wm.get('work')} / --work-dir {cf.get('--work-dir')}")
+    shared = v["workDir"]["mode"] == "shared"
+    check(cm.get("work") == v["workDir"]["path"] == cf.get("--work-dir"),
+          f"{label}: coordinator work dir mount {cm.get('work')} / --work-dir {cf.get('--work-dir')}")
     check(cf.get("--scene-root") == v["scenes"]["path"], f"{label}: --scene-root")
     if v["scenes"]["source"] == "image":
-        check("scenes" not in cm and "scenes" not in wm, f"{label}: image scenes are not mounted")
+        check("scenes" not in cm, f"{label}: image scenes are not mounted")
     else:
-        check(cm.get("scenes") == wm.get("scenes") == v["scenes"]["path"],
-              f"{label}: scenes mounted at {cm.get('scenes')} / {wm.get('scenes')}")
+        check(cm.get("scenes") == v["scenes"]["path"], f"{label}: scenes mounted at {cm.get('scenes')}")
+    if shared:
+        check(wm.get("work") == cm.get("work") and wm.get("scenes") == cm.get("scenes"),
+              f"{label}: shared work dir / scenes mounted at {wm} in workers, {cm} in the coordinator")
+        check(wf.get("--fetch-packages") == "never" and "package-cache" not in wm,
+              f"{label}: shared mode worker flags {wf}")
+    else:
+        check("work" not in wm and "scenes" not in wm,
+              f"{label}: workers that fetch packages mount {wm}")
+        check(wf.get("--fetch-packages") == "auto" and wm.get("package-cache") is not None
+              and wm.get("package-cache") == wf.get("--package-cache"),
+              f"{label}: package cache mount {wm.get('package-cache')} / flags {wf}")
     claims = {}
     for w in (coord, workers):
         for vol in w["spec"]["template"]["spec"]["volumes"]:
             if "persistentVolumeClaim" in vol:
                 claims.setdefault(vol["name"], set()).add(vol["persistentVolumeClaim"]["claimName"])
-    want_work = v["workDir"]["existingClaim"] or f"{coord['metadata']['name'].removesuffix('-coordinator')}-work"
-    check(claims.get("work") == {want_work}, f"{label}: work claim {claims.get('work')} (want {want_work})")
+    created = f"{coord['metadata']['name'].removesuffix('-coordinator')}-work"
+    want_work = v["workDir"]["existingClaim"] or (created if v["workDir"]["create"] else None)
+    check(claims.get("work") == ({want_work} if want_work else None),
+          f"{label}: work claim {claims.get('work')} (want {want_work or 'an emptyDir'})")
     pvcs = [p["metadata"]["name"] for p in by_kind(objs, "PersistentVolumeClaim")]
-    check(pvcs == ([] if v["workDir"]["existingClaim"] else [want_work]), f"{label}: PVCs {pvcs}")
+    want_pvcs = [created] if v["workDir"]["create"] and not v["workDir"]["existingClaim"] else []
+    check(pvcs == want_pvcs, f"{label}: PVCs {pvcs} (want {want_pvcs})")
     if v["scenes"]["source"] == "pvc":
         check(claims.get("scenes") == {v["scenes"]["pvc"]["claimName"]}, f"{label}: scene claim")
 
@@ -270,11 +288,73 @@ def semantics(label: str, objs: list[dict], v: dict, notes: str, namespace: str,
                  "dray.v1.RenderService/WatchJob", "dray.v1.RenderService/GetImage",
                  "grpc.health.v1.Health/Check"):
         check(want in notes, f"{label}: NOTES.txt lacks {want!r}")
-    for key in ("auth.existingSecret", "otlp.endpoint"):
-        section, field = key.split(".")
-        if v[section][field]:
-            check(f"{key}={v[section][field]} is not used yet" in notes,
-                  f"{label}: NOTES.txt does not say {key} is unused")
+    mode = v.get("workDir", {}).get("mode", "fetch")
+    check(f"(workDir.mode {mode}" in notes,
+          f"{label}: NOTES.txt does not say how workers get packages (workDir.mode {mode})")
+    auth_and_otlp(label, coord, workers, v, notes, dray)
+
+
+def container_env(c: dict) -> dict[str, str | None]:
+    return {e["name"]: e.get("value") for e in c.get("env", [])}
+
+
+def auth_and_otlp(label: str, coord: dict, workers: dict, v: dict, notes: str,
+                  dray: str | None) -> None:
+    """auth.existingSecret reaches the pods as token files (DRAY_AUTH_TOKEN_FILE for the
+    coordinator only, DRAY_CLUSTER_TOKEN_FILE for both) in the Secret mounted read-only,
+    and otlp.endpoint as OTEL_EXPORTER_OTLP_ENDPOINT; dray reads both variables."""
+    secret = v["auth"]["existingSecret"]
+    endpoint = v["otlp"]["endpoint"]
+    for w, component in ((coord, "coordinator"), (workers, "worker")):
+        pod = w["spec"]["template"]["spec"]
+        c = pod["containers"][0]
+        env = container_env(c)
+        vols = {vol["name"]: vol for vol in pod.get("volumes", [])}
+        mounts = {m["name"]: m for m in c.get("volumeMounts", [])}
+        want_files = {"DRAY_CLUSTER_TOKEN_FILE": v["auth"]["clusterTokenKey"]}
+        if component == "coordinator":
+            want_files["DRAY_AUTH_TOKEN_FILE"] = v["auth"]["apiTokenKey"]
+        if not secret:
+            check(not any(k in env for k in ("DRAY_AUTH_TOKEN_FILE", "DRAY_CLUSTER_TOKEN_FILE"))
+                  and "auth" not in vols and "auth" not in mounts,
+                  f"{label}: {component} has token files without auth.existingSecret")
+        else:
+            vol, mount = vols.get("auth"), mounts.get("auth")
+            check(vol is not None and vol.get("secret", {}).get("secretName") == secret,
+                  f"{label}: {component} does not mount Secret {secret}: {vol}")
+            check(mount is not None and mount.get("readOnly") is True,
+                  f"{label}: {component} auth mount is not read-only: {mount}")
+            if vol and mount:
+                items = {i["path"]: i["key"] for i in vol["secret"].get("items", [])}
+                for var, key in want_files.items():
+                    path = env.get(var) or ""
+                    check(path.startswith(mount["mountPath"] + "/"),
+                          f"{label}: {component} {var}={path} is not in the auth mount")
+                    name = path.removeprefix(mount["mountPath"] + "/")
+                    check(items.get(name) == key,
+                          f"{label}: {component} {var} is file {name}, Secret items {items} (want key {key})")
+                check(len(items) == len(want_files),
+                      f"{label}: {component} gets Secret keys {sorted(items.values())}")
+            if component == "worker":
+                check("DRAY_AUTH_TOKEN_FILE" not in env, f"{label}: workers get the API token")
+        check(env.get("OTEL_EXPORTER_OTLP_ENDPOINT") == (endpoint or None),
+              f"{label}: {component} OTEL_EXPORTER_OTLP_ENDPOINT={env.get('OTEL_EXPORTER_OTLP_ENDPOINT')}"
+              f" (want {endpoint or 'unset'})")
+        # Every variable dray is given is one its --help names.
+        help_text = dray_help(dray, component)
+        if help_text is not None:
+            for var in env:
+                if var.startswith(("DRAY_", "OTEL_EXPORTER_")):
+                    check(f"[env: {var}=" in help_text,
+                          f"{label}: `dray {component} --help` names no variable {var}")
+    if secret:
+        check('-H "authorization: Bearer $token"' in notes and "--auth-token-file api.token" in notes
+              and f"get secret {secret}" in notes,
+              f"{label}: NOTES.txt does not show how to present the API token")
+    else:
+        check("no auth.existingSecret" in notes, f"{label}: NOTES.txt does not say the API is open")
+    if endpoint:
+        check(f"exported to {endpoint}" in notes, f"{label}: NOTES.txt does not name {endpoint}")
 
 
 def refused(label: str, values: dict, must_mention: str) -> None:
@@ -321,9 +401,12 @@ def main() -> int:
     cases = [
         ("default values", {}, "dray", "dray"),
         ("values-large.yaml (8 workers, PVC scenes, resources)", large, "farm", "render"),
-        ("image-baked scenes, 1 worker, existing work claim",
+        ("image-baked scenes, 1 worker, existing work claim shared with the workers",
          {"scenes": {"source": "image", "path": "/opt/scenes"}, "workers": {"replicas": 1},
-          "workDir": {"existingClaim": "shared-work"}}, "dray", "prod"),
+          "workDir": {"existingClaim": "shared-work", "mode": "shared"}}, "dray", "prod"),
+        ("packages fetched, a work claim the chart creates, a bounded package cache",
+         {"workDir": {"create": True, "size": "5Gi"},
+          "workers": {"packageCacheSizeLimit": "10Gi"}}, "dray", "dray"),
     ]
     # The README's `helm install render helm/dray --namespace render --set ...`, parsed as
     # Helm parses --set (so "6Gi" must stay a string).
@@ -331,6 +414,11 @@ def main() -> int:
         "image.repository=registry.example.com/dray,image.tag=0.1.0,workers.replicas=4,"
         "workers.memoryBudget=6Gi,workers.resources.limits.memory=8Gi")
     cases.append(("the README's helm install --set values", readme, "render", "render"))
+    cases.append(("auth from a Secret with its own keys, OTLP export",
+                  {"auth": {"existingSecret": "render-tokens", "apiTokenKey": "api.tok",
+                            "clusterTokenKey": "members"},
+                   "otlp": {"endpoint": "http://otel-collector.observability.svc:4317"}},
+                  "dray", "dray"))
     for i, (label, values, name, ns) in enumerate(cases):
         print(f"== {label} (release {name}, namespace {ns})")
         lint(label, values, kube)
@@ -358,7 +446,13 @@ def main() -> int:
     refused("scenes.source=pvc without a claim", {"scenes": {"source": "pvc"}}, "claimName")
     refused("scenes.source=nfs", {"scenes": {"source": "nfs"}}, "source")
     refused("image.pullPolicy=Sometimes", {"image": {"pullPolicy": "Sometimes"}}, "pullPolicy")
-    refused("no work dir", {"workDir": {"create": False}}, "workDir")
+    refused("a shared work dir without a claim", {"workDir": {"mode": "shared"}}, "workDir")
+    refused("workDir.mode=nfs", {"workDir": {"mode": "nfs"}}, "mode")
+    refused("otlp.endpoint without a scheme", {"otlp": {"endpoint": "collector:4317"}}, "endpoint")
+    refused("auth.existingSecret not a Secret name", {"auth": {"existingSecret": "My_Secret"}},
+            "existingSecret")
+    refused("auth.apiTokenKey empty", {"auth": {"existingSecret": "s", "apiTokenKey": ""}},
+            "apiTokenKey")
 
     if failures:
         print(f"\nchart test FAILED: {len(failures)} problem(s):")
@@ -366,7 +460,7 @@ def main() -> int:
             print(f"  - {f}")
         return 1
     print(f"\nchart test passed: {len(cases)} value sets linted (strict), rendered and "
-          f"validated (kubernetes-validate --strict -k {kube}); 8 bad value sets refused")
+          f"validated (kubernetes-validate --strict -k {kube}); 12 bad value sets refused")
     return 0
 
 

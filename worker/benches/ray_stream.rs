@@ -99,6 +99,8 @@ fn ray_stream(c: &mut Criterion) {
                 receiver_id: "bench".into(),
                 batch_rays: BATCH_RAYS,
                 max_delay: Duration::from_millis(2),
+                // The bench's server has no member secret: no pass is asked for.
+                sender_pass: String::new(),
             },
         )
         .await

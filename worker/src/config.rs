@@ -46,6 +46,12 @@ pub struct WorkerConfig {
     /// How its own server (ray streams) admits calls: the cluster token it requires,
     /// TLS, load shedding.
     pub server: dray_net::ServerOptions,
+    /// When job packages are fetched from the coordinator instead of read at the path
+    /// the coordinator names (see [`crate::package_fetch`]).
+    pub package_fetch: crate::package_fetch::FetchMode,
+    /// Where fetched packages are kept; `None`: a directory of this process in the
+    /// system's temp directory, removed when the worker stops.
+    pub package_cache: Option<std::path::PathBuf>,
 }
 
 impl Default for WorkerConfig {
@@ -64,6 +70,8 @@ impl Default for WorkerConfig {
             cache_endpoint: None,
             net: dray_net::ClientOptions::plain(),
             server: dray_net::ServerOptions::default(),
+            package_fetch: crate::package_fetch::FetchMode::Auto,
+            package_cache: None,
         }
     }
 }
@@ -128,6 +136,8 @@ pub enum NodeError {
     Threads(String),
     #[error("the ray-stream server failed: {0}")]
     Serve(String),
+    #[error("cannot set up the package cache: {0}")]
+    PackageCache(String),
 }
 
 #[cfg(test)]

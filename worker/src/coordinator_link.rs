@@ -19,7 +19,7 @@ use dray_proto::v1::{
 
 use crate::config::{NodeError, WorkerConfig};
 use crate::domain_store::JobKey;
-use crate::job::plan_job;
+use crate::job::plan_job_with;
 use crate::jobs::{Job, lock};
 use crate::node::{Shared, VERSION};
 use crate::peer_server::PeerServer;
@@ -115,6 +115,7 @@ pub(crate) async fn sessions(
 ) -> Result<(), NodeError> {
     loop {
         peer_server.set_worker_id(&registration.worker_id);
+        peer_server.set_member_secret(&registration.member_token);
         let heartbeat = registration
             .heartbeat_interval
             .and_then(|d| Duration::try_from(d).ok())
@@ -220,11 +221,14 @@ async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
         return;
     }
     let memory = shared.memory_packages.clone();
+    let fetcher = shared.fetcher.clone();
     let setup2 = setup.clone();
-    let planned = tokio::task::spawn_blocking(move || plan_job(&setup2, memory.as_deref()))
-        .await
-        .map_err(|e| e.to_string())
-        .and_then(|r| r.map_err(|e| e.to_string()));
+    let planned = tokio::task::spawn_blocking(move || {
+        plan_job_with(&setup2, memory.as_deref(), fetcher.as_ref())
+    })
+    .await
+    .map_err(|e| e.to_string())
+    .and_then(|r| r.map_err(|e| e.to_string()));
     let me = shared.id();
     let routes = setup
         .routing
@@ -243,7 +247,9 @@ async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
         attempt,
     };
     shared.store.open(&key, plan.content);
-    let job = Arc::new(Job::new(key, plan.tracer, plan.source, routes));
+    let span = tracing::info_span!("job", id = %job_id, attempt);
+    dray_net::trace::set_parent(&span, &setup.trace_context);
+    let job = Arc::new(Job::new(key, plan.tracer, plan.source, routes).with_span(span));
     let owned = job.routes().owned().len();
     let (started, replaced) = shared.jobs.insert(job.clone());
     if let Some(old) = replaced {

@@ -25,6 +25,7 @@ use dray_scene::partition::{Aabb, DomainLayout, DomainMesh, Package, open_packag
 use glam::Vec3;
 
 use crate::domain_store::{Content, DomainSource, LoadedDomain};
+use crate::package_fetch::{PackageFetcher, RemotePackage};
 use crate::tracer::JobTracer;
 
 /// Why a job could not be set up on this worker.
@@ -112,15 +113,39 @@ fn content(identity: &str, settings: &RenderSettings) -> Content {
 /// Open the job's package (a directory, or an in-memory package of this process in
 /// `memory`) and make its tracer. Blocking (reads files).
 pub fn plan_job(setup: &JobSetup, memory: Option<&MemoryPackages>) -> Result<JobPlan, JobError> {
+    plan_job_with(setup, memory, None)
+}
+
+/// [`plan_job`], fetching the package from the coordinator with `fetcher` when it is
+/// not on this disk ([`PackageFetcher::should_fetch`]): the manifest and the files every
+/// domain shares now, each domain file when the domain is first loaded. Blocking (reads
+/// files, waits for the coordinator).
+pub fn plan_job_with(
+    setup: &JobSetup,
+    memory: Option<&MemoryPackages>,
+    fetcher: Option<&Arc<PackageFetcher>>,
+) -> Result<JobPlan, JobError> {
     let settings = settings(setup)?;
     if is_memory_package(&setup.package_path) {
         return memory_plan(setup, settings, memory);
     }
-    let dir = Path::new(&setup.package_path);
     let pkg_err = |message: String| JobError::Package {
         path: setup.package_path.clone(),
         message,
     };
+    let remote = match fetcher {
+        Some(f) if f.should_fetch(Path::new(&setup.package_path), &setup.package_checksum) => {
+            let r = f
+                .open(&setup.job_id, &setup.package_checksum)
+                .map_err(|e| pkg_err(e.to_string()))?;
+            tracing::info!(job = %setup.job_id, cache = %r.dir().display(), "fetching the package from the coordinator");
+            Some(r)
+        }
+        _ => None,
+    };
+    let dir = remote
+        .as_ref()
+        .map_or(Path::new(&setup.package_path), |r| r.dir());
     let manifest_bytes =
         std::fs::read(dir.join(MANIFEST_FILE)).map_err(|e| pkg_err(e.to_string()))?;
     let found = to_hex(checksum(&manifest_bytes));
@@ -132,6 +157,10 @@ pub fn plan_job(setup: &JobSetup, memory: Option<&MemoryPackages>) -> Result<Job
         });
     }
     let package = open_package(dir).map_err(|e| pkg_err(e.to_string()))?;
+    if let Some(r) = &remote {
+        r.fetch_shared(&package)
+            .map_err(|e| pkg_err(e.to_string()))?;
+    }
     check_domain_count(package.domain_count(), setup)?;
     let bounds = package.layout().scene_bounds();
     let camera = job_camera(setup, &settings, package.cameras(), bounds)?;
@@ -142,7 +171,7 @@ pub fn plan_job(setup: &JobSetup, memory: Option<&MemoryPackages>) -> Result<Job
         .map(|d| d.triangles)
         .collect();
     let tracer = tracer(settings.clone(), camera, package.layout(), &counts, setup);
-    let source = package_domains(package, &settings).map_err(|e| pkg_err(e.to_string()))?;
+    let source = domains_of(package, &settings, remote).map_err(|e| pkg_err(e.to_string()))?;
     Ok(JobPlan {
         content: content(&found, &settings),
         tracer,
@@ -156,6 +185,16 @@ pub fn package_domains(
     package: Package,
     settings: &RenderSettings,
 ) -> dray_scene::error::Result<Arc<dyn DomainSource>> {
+    domains_of(package, settings, None)
+}
+
+/// [`package_domains`], each domain file fetched into `remote` before it is read when
+/// the package is fetched from the coordinator.
+fn domains_of(
+    package: Package,
+    settings: &RenderSettings,
+    remote: Option<RemotePackage>,
+) -> dray_scene::error::Result<Arc<dyn DomainSource>> {
     let bounds = package.layout().scene_bounds();
     let emitters = package.load_emitters()?;
     let tables = package.tables()?;
@@ -168,6 +207,7 @@ pub fn package_domains(
             .collect(),
         package,
         shared: SharedParts::new(tables, emitters, bounds, settings),
+        remote,
     }))
 }
 
@@ -281,6 +321,8 @@ struct PackageDomains {
     /// (vertices, triangles) per domain, from the manifest.
     sizes: Vec<(u64, u64)>,
     shared: SharedParts,
+    /// Where the files come from when the package is fetched from the coordinator.
+    remote: Option<RemotePackage>,
 }
 
 impl DomainSource for PackageDomains {
@@ -290,6 +332,11 @@ impl DomainSource for PackageDomains {
     }
 
     fn load(&self, d: u32) -> Result<LoadedDomain, String> {
+        if let Some(r) = &self.remote {
+            // Fetched when first loaded: a worker downloads only the domains it traces.
+            r.fetch_domain(&self.package, d)
+                .map_err(|e| e.to_string())?;
+        }
         let part = self.package.load_domain(d).map_err(|e| e.to_string())?;
         Ok(self.shared.finish(part))
     }

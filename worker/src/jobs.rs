@@ -100,6 +100,9 @@ pub struct Job {
     pub queue_peak: AtomicU64,
     /// Picks among the owners of replicated domains.
     pub spread: AtomicU64,
+    /// This job's span here (a child of the coordinator's, when traces are exported):
+    /// tracing work and domain loads run in it.
+    pub span: tracing::Span,
 }
 
 impl Job {
@@ -124,7 +127,14 @@ impl Job {
             awaiting_cache: AtomicUsize::new(0),
             queue_peak: AtomicU64::new(0),
             spread: AtomicU64::new(0),
+            span: tracing::Span::none(),
         }
+    }
+
+    /// The same job, with `span` as its span.
+    pub fn with_span(mut self, span: tracing::Span) -> Job {
+        self.span = span;
+        self
     }
 
     /// The current routing table.

@@ -14,15 +14,20 @@
 //! - [`tracer`]: the compute step, with no I/O.
 //! - [`peer_server`] / [`peer_client`]: the ray stream between workers, with credit
 //!   flow control so a full queue stalls the sender instead of growing memory.
+//! - [`package_fetch`]: scene packages fetched from the coordinator, domain by domain,
+//!   so a worker needs no shared volume with it.
 
 pub(crate) mod cache_link;
 pub mod config;
+pub(crate) mod contain;
 pub(crate) mod coordinator_link;
 pub mod credit;
 pub mod domain_store;
 pub mod job;
 pub mod jobs;
+pub(crate) mod metrics;
 pub mod node;
+pub mod package_fetch;
 pub mod peer_client;
 pub mod peer_server;
 pub(crate) mod peers;

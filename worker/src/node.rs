@@ -87,6 +87,9 @@ pub(crate) struct Shared {
     pub wake: Wake,
     pub limits: Limits,
     pub memory_packages: Option<Arc<MemoryPackages>>,
+    /// Fetches job packages from the coordinator when they are not on this disk (none
+    /// with `FetchMode::Never`).
+    pub fetcher: Option<Arc<crate::package_fetch::PackageFetcher>>,
     pub memory_budget: u64,
     pub threads: usize,
     /// The cache host beside this worker, announced at registration.
@@ -171,6 +174,18 @@ pub async fn run(
         config.threads
     };
     let limits = config.limits();
+    let fetcher = match config.package_fetch {
+        crate::package_fetch::FetchMode::Never => None,
+        mode => Some(Arc::new(
+            crate::package_fetch::PackageFetcher::new(
+                channel.clone(),
+                tokio::runtime::Handle::current(),
+                config.package_cache.clone(),
+                mode,
+            )
+            .map_err(|e| NodeError::PackageCache(e.to_string()))?,
+        )),
+    };
     let queues = Arc::new(RayQueues::new(limits.queue_capacity));
     let shared = Arc::new(Shared {
         id: RwLock::new(String::new()),
@@ -195,6 +210,7 @@ pub async fn run(
         wake: Wake::default(),
         limits,
         memory_packages: config.memory_packages.clone(),
+        fetcher,
         memory_budget: config.memory_budget,
         threads,
         cache_endpoint: config.cache_endpoint.clone(),

@@ -40,6 +40,9 @@ pub const MAX_BATCH_RAYS: usize = 64 * 1024;
 pub struct PeerClientConfig {
     /// This worker's id (`RayStreamOpen.sender_id`).
     pub sender_id: String,
+    /// Its peer pass for the receiver (`RayStreamOpen.sender_pass`, from
+    /// ClusterService.GetPeerPass).
+    pub sender_pass: String,
     /// The id of the worker the stream is for; empty if not known.
     pub receiver_id: String,
     /// Rays per batch before it is sent (clamped to the receiver's window).
@@ -52,6 +55,7 @@ impl Default for PeerClientConfig {
     fn default() -> Self {
         PeerClientConfig {
             sender_id: String::new(),
+            sender_pass: String::new(),
             receiver_id: String::new(),
             batch_rays: 4096,
             max_delay: Duration::from_millis(2),
@@ -146,6 +150,7 @@ impl PeerSender {
                 sender_id: config.sender_id.clone(),
                 receiver_id: config.receiver_id.clone(),
                 record_format: RAY_RECORD_FORMAT,
+                sender_pass: config.sender_pass.clone(),
             })),
         };
         tx.send(open).await.map_err(|_| PeerError::Closed)?;

@@ -59,6 +59,11 @@ impl Default for PeerServerConfig {
 pub enum StreamError {
     #[error("the first message of a ray stream must be RayStreamOpen")]
     NotOpened,
+    #[error(
+        "the stream's sender_pass does not prove its sender_id (ask the coordinator for a \
+         peer pass with GetPeerPass)"
+    )]
+    NotAuthenticated,
     #[error("RayStreamOpen sent twice")]
     OpenedTwice,
     #[error("message without content")]
@@ -109,6 +114,7 @@ impl StreamError {
                 Code::FailedPrecondition
             }
             StreamError::OverGrant { .. } => Code::ResourceExhausted,
+            StreamError::NotAuthenticated => Code::PermissionDenied,
             _ => Code::InvalidArgument,
         }
     }
@@ -128,6 +134,9 @@ pub struct PeerServer {
     /// The worker id streams must be opened for; starts as `config.worker_id` and
     /// changes when the worker registers again (a new coordinator gives a new id).
     worker_id: Arc<std::sync::RwLock<String>>,
+    /// This worker's member secret, once registered: a stream's sender must present the
+    /// pass made from it (see `dray_net::peer_pass`). Empty until then.
+    secret: Arc<std::sync::RwLock<String>>,
 }
 
 impl PeerServer {
@@ -136,6 +145,7 @@ impl PeerServer {
         PeerServer {
             queues,
             worker_id: Arc::new(std::sync::RwLock::new(config.worker_id.clone())),
+            secret: Arc::new(std::sync::RwLock::new(String::new())),
             config,
         }
     }
@@ -145,6 +155,13 @@ impl PeerServer {
     pub fn set_worker_id(&self, id: &str) {
         let mut w = self.worker_id.write().unwrap_or_else(|p| p.into_inner());
         *w = id.to_string();
+    }
+
+    /// From now on, require senders' passes made from `secret`, this worker's member
+    /// secret at its coordinator. Clones of this server share the change.
+    pub fn set_member_secret(&self, secret: &str) {
+        let mut w = self.secret.write().unwrap_or_else(|p| p.into_inner());
+        *w = secret.to_string();
     }
 
     fn worker_id(&self) -> String {
@@ -191,6 +208,20 @@ impl RayExchangeService for PeerServer {
                 actual: me,
             }
             .into());
+        }
+        let secret = self
+            .secret
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone();
+        if !secret.is_empty()
+            && !dray_net::peer_pass::verify_peer_pass(&secret, &open.sender_id, &open.sender_pass)
+        {
+            tracing::warn!(
+                sender = %open.sender_id.chars().take(80).collect::<String>(),
+                "ray stream refused: the sender's pass is not valid"
+            );
+            return Err(StreamError::NotAuthenticated.into());
         }
         if open.record_format != RAY_RECORD_FORMAT {
             return Err(StreamError::UnsupportedFormat {

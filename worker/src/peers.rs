@@ -16,7 +16,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use dray_core::ray::RayRecord;
-use dray_proto::v1::RayTicket;
+use dray_proto::v1::{GetPeerPassRequest, RayTicket};
 use tokio::sync::mpsc;
 use tokio::task::JoinSet;
 
@@ -105,12 +105,27 @@ fn unreachable(job: &Job, peer: &str) {
 }
 
 async fn peer_loop(shared: Arc<Shared>, peer: Peer, mut rx: mpsc::UnboundedReceiver<PeerMessage>) {
-    let config = PeerClientConfig {
-        sender_id: shared.id(),
-        receiver_id: peer.id.clone(),
-        ..PeerClientConfig::default()
-    };
     let opened = async {
+        // The receiver authenticates the stream's sender by this pass, which only the
+        // coordinator can make (see dray_net::peer_pass).
+        let me = shared.id();
+        let pass = shared
+            .client
+            .clone()
+            .get_peer_pass(shared.as_member(GetPeerPassRequest {
+                worker_id: me.clone(),
+                peer_id: peer.id.clone(),
+            }))
+            .await
+            .map_err(|s| format!("no peer pass from the coordinator: {}", s.message()))?
+            .into_inner()
+            .pass;
+        let config = PeerClientConfig {
+            sender_id: me,
+            sender_pass: pass,
+            receiver_id: peer.id.clone(),
+            ..PeerClientConfig::default()
+        };
         let channel = shared
             .net
             .endpoint(&peer.endpoint)

@@ -36,6 +36,9 @@ pub(crate) async fn report_loop(shared: Arc<Shared>, mut stop: watch::Receiver<b
         }
         let jobs = shared.jobs.all();
         let queue_tick = last_queues.elapsed() >= QUEUE_REPORT_INTERVAL;
+        if queue_tick {
+            crate::metrics::record_queued(shared.in_flight() as u64);
+        }
         for job in &jobs {
             let queued: u64 = shared
                 .queues
@@ -119,6 +122,13 @@ async fn report(shared: &Arc<Shared>, job: &Arc<Job>, force: bool) {
         cache_bytes: report.cache_bytes,
         lost_cache_hosts: std::mem::take(&mut report.lost_cache_hosts),
     };
+    crate::metrics::record_report(
+        &report.traced,
+        report.rays_sent,
+        report.bytes,
+        store.loads,
+        store.load_seconds,
+    );
     let request = request(shared, job, sums, credits, &report, Some(counters));
     send_report(shared, job, request).await;
 }

@@ -21,6 +21,7 @@ use std::time::{Duration, Instant};
 
 use dray_core::ray::RAY_RECORD_BYTES;
 
+use crate::contain::contained;
 use crate::domain_store::{DomainStore, JobKey, LoadError, LoadedDomain};
 use crate::jobs::{Job, Standing, lock};
 use crate::node::Shared;
@@ -146,7 +147,10 @@ fn next_work(shared: &Shared) -> Option<Work> {
         let held = match shared.store.get(&job.key, d) {
             Some(h) => h,
             None if resident_best > 0 => continue,
-            None => match shared.store.load(&job.key, d, job.source.as_ref()) {
+            None => match job
+                .span
+                .in_scope(|| shared.store.load(&job.key, d, job.source.as_ref()))
+            {
                 Ok(h) => h,
                 Err(LoadError::Busy { .. }) => continue,
                 Err(e) => {
@@ -192,7 +196,7 @@ fn trace(shared: &Arc<Shared>, work: Work) {
                 return;
             }
             let d = held.domain;
-            let _span = tracing::trace_span!("batch", job = %job.key.id, domain = d, rays = batch.rays.len())
+            let _span = tracing::trace_span!(parent: &job.span, "batch", job = %job.key.id, domain = d, rays = batch.rays.len())
                 .entered();
             let routes = job.routes();
             let residency = StepResidency {
@@ -201,9 +205,10 @@ fn trace(shared: &Arc<Shared>, work: Work) {
                 routes: &routes,
                 held: Some(&held),
             };
-            let r = job
-                .tracer
-                .trace_batch(d, &batch.rays, &batch.tickets, &residency, &mut out);
+            let r = contained(|| {
+                job.tracer
+                    .trace_batch(d, &batch.rays, &batch.tickets, &residency, &mut out)
+            });
             (job, r)
         }
         Work::Camera(job, tile, start, count) => {
@@ -211,7 +216,7 @@ fn trace(shared: &Arc<Shared>, work: Work) {
                 return;
             }
             let _span =
-                tracing::trace_span!("tile", job = %job.key.id, tile = tile.index, start).entered();
+                tracing::trace_span!(parent: &job.span, "tile", job = %job.key.id, tile = tile.index, start).entered();
             let routes = job.routes();
             let residency = StepResidency {
                 store: &shared.store,
@@ -219,9 +224,10 @@ fn trace(shared: &Arc<Shared>, work: Work) {
                 routes: &routes,
                 held: None,
             };
-            let r = job
-                .tracer
-                .camera_rays(&tile, start, count, &residency, &mut out);
+            let r = contained(|| {
+                job.tracer
+                    .camera_rays(&tile, start, count, &residency, &mut out)
+            });
             (job, r)
         }
         Work::Forward(job, d, batch) => {
@@ -230,8 +236,9 @@ fn trace(shared: &Arc<Shared>, work: Work) {
         }
     };
     match result {
-        Ok(()) => deliver(shared, &job, out),
-        Err(e) => job.fail(format!("worker {}: {e}", shared.id())),
+        Ok(Ok(())) => deliver(shared, &job, out),
+        Ok(Err(e)) => job.fail(format!("worker {}: {e}", shared.id())),
+        Err(panic) => job.fail(format!("worker {}: {panic}", shared.id())),
     }
 }
 

@@ -31,9 +31,13 @@ async fn start_server(
     queues: Arc<RayQueues>,
     config: PeerServerConfig,
 ) -> (dray_net::AuthChannel, AbortOnDrop<()>) {
+    serve(PeerServer::new(queues, config)).await
+}
+
+async fn serve(peer_server: PeerServer) -> (dray_net::AuthChannel, AbortOnDrop<()>) {
     let listener = TcpListener::bind("127.0.0.1:0").await.expect("bind");
     let addr = listener.local_addr().expect("local addr");
-    let service = PeerServer::new(queues, config).into_service();
+    let service = peer_server.into_service();
     let server = AbortOnDrop(tokio::spawn(async move {
         let _ = Server::builder()
             .add_service(service)
@@ -181,6 +185,54 @@ async fn rays_arrive_bit_exact_in_their_domain_queues() {
     })
     .await
     .expect("test timed out");
+}
+
+/// A registered worker accepts a stream only from the sender its pass was made for:
+/// holding the cluster token and naming another worker is not enough.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_needs_the_senders_pass() {
+    {
+        let secret = "receiver-member-secret-0123456789";
+        let queues = Arc::new(RayQueues::new(100_000));
+        let server = PeerServer::new(Arc::clone(&queues), PeerServerConfig::default());
+        server.set_member_secret(secret);
+        let (channel, _server) = serve(server).await;
+        let open = |sender: &str, pass: String| PeerClientConfig {
+            sender_id: sender.into(),
+            sender_pass: pass,
+            ..PeerClientConfig::default()
+        };
+        let good = dray_net::peer_pass::peer_pass(secret, "w0");
+        let refused = [
+            ("no pass", open("w0", String::new())),
+            ("another sender's pass", open("w1", good.clone())),
+            (
+                "a pass for another receiver",
+                open(
+                    "w0",
+                    dray_net::peer_pass::peer_pass("other-secret-0123456789", "w0"),
+                ),
+            ),
+        ];
+        for (what, config) in refused {
+            match PeerSender::open(channel.clone(), config).await {
+                Err(PeerError::Status(s)) => {
+                    assert_eq!(s.code(), tonic::Code::PermissionDenied, "{what}: {s:?}")
+                }
+                Err(e) => panic!("{what}: {e:?}"),
+                Ok(_) => panic!("{what}: the stream was accepted"),
+            }
+        }
+        let mut sender = PeerSender::open(channel, open("w0", good))
+            .await
+            .expect("the sender's own pass opens the stream");
+        sender
+            .send(&key(3), &rays(10, 5, 0), &[])
+            .await
+            .expect("send");
+        sender.close().await.expect("close");
+        assert_eq!(queues.job_lengths("job-1", 0), vec![(3, 10)]);
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -72,16 +72,21 @@ pub fn coordinator(scene_root: &Path) -> Coordinator {
         .stdout(Stdio::piped())
         .stderr(Stdio::null());
     let mut proc = Proc::spawn(cmd);
-    let stdout = proc.child.stdout.take().expect("coordinator stdout");
-    let line = first_line(stdout);
-    let addr = line
-        .trim()
+    let addr = listening_address(&mut proc.child)
+        .unwrap_or_else(|line| panic!("no address in the coordinator's first line {line:?}"));
+    Coordinator { proc, addr }
+}
+
+/// The address a dray server announces in its first stdout line ("dray ... listening
+/// on ADDR"), or that line when it holds none. Takes the child's stdout.
+pub fn listening_address(child: &mut Child) -> Result<String, String> {
+    let line = first_line(child.stdout.take().expect("the server's stdout is piped"));
+    line.trim()
         .rsplit(' ')
         .next()
         .filter(|a| a.contains(':'))
-        .unwrap_or_else(|| panic!("no address in the coordinator's first line {line:?}"))
-        .to_string();
-    Coordinator { proc, addr }
+        .map(str::to_string)
+        .ok_or(line)
 }
 
 fn first_line(stdout: ChildStdout) -> String {

@@ -164,7 +164,11 @@ pub async fn open(a: &AttemptWalls, placement: Placement) -> Opened {
                 phm: a.phm.clone(),
             };
             let net = a.net.clone();
-            calls.spawn(async move { (h, open_one(net, host, req).await) });
+            // In the job's span, so the call carries its trace context to the host.
+            calls.spawn(tracing::Instrument::instrument(
+                async move { (h, open_one(net, host, req).await) },
+                tracing::Span::current(),
+            ));
         }
         let mut failed = BTreeSet::new();
         while let Some(joined) = calls.join_next().await {

@@ -51,6 +51,18 @@ impl Server {
         scheduler: SchedulerOptions,
         root: &Path,
     ) -> Server {
+        let stall = Some(dray_coordinator::cluster::DEFAULT_STALL_TIMEOUT);
+        Server::start_full(name, heartbeat, scheduler, stall, root).await
+    }
+
+    /// [`Server::start_with`], failing jobs without progress for `stall_timeout`.
+    pub async fn start_full(
+        name: &str,
+        heartbeat: HeartbeatConfig,
+        scheduler: SchedulerOptions,
+        stall_timeout: Option<std::time::Duration>,
+        root: &Path,
+    ) -> Server {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let addr = listener.local_addr().unwrap();
         let work_dir =
@@ -64,6 +76,7 @@ impl Server {
                 memory_packages: None,
                 scheduler,
                 clients: dray_net::ClientOptions::plain(),
+                stall_timeout,
             });
         let served = coordinator.clone();
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();

@@ -65,14 +65,26 @@ Object names.
 {{- printf "%s-workers" (include "dray.fullname" .) }}
 {{- end }}
 
+{{/*
+The work directory's claim: an existing one, one the chart creates, or none (mode
+"fetch" only: the coordinator's work directory is then an emptyDir).
+*/}}
 {{- define "dray.workDir.claimName" -}}
 {{- if .Values.workDir.existingClaim }}
 {{- .Values.workDir.existingClaim }}
 {{- else if .Values.workDir.create }}
 {{- printf "%s-work" (include "dray.fullname" .) }}
-{{- else }}
-{{- fail "workDir: set workDir.existingClaim (a ReadWriteMany claim) or workDir.create=true: the coordinator and the workers share job packages there" }}
+{{- else if eq .Values.workDir.mode "shared" }}
+{{- fail "workDir: mode \"shared\" needs workDir.existingClaim (a ReadWriteMany claim) or workDir.create=true: the coordinator and the workers share job packages there (or use mode \"fetch\")" }}
 {{- end }}
+{{- end }}
+
+{{/*
+Whether the workers read job packages from the shared work directory (and the scenes
+volume) rather than fetching them from the coordinator.
+*/}}
+{{- define "dray.workDir.shared" -}}
+{{- if eq .Values.workDir.mode "shared" }}true{{ end }}
 {{- end }}
 
 {{- define "dray.serviceAccountName" -}}
@@ -98,45 +110,76 @@ The coordinator's address as the workers dial it (the Service's cluster DNS name
 {{- end }}
 
 {{/*
-Volumes of the coordinator and the workers: /tmp, the work directory and the scenes,
-each mounted at the same path in every pod (workers read job packages in the work
-directory and pre-partitioned packages under the scene root at the coordinator's paths).
+Volumes of a pod, given (dict "ctx" $ "component" "coordinator"|"worker"): /tmp, the work
+directory and the scenes. The coordinator mounts them all; a worker mounts the work
+directory and the scenes at the same paths only with workDir.mode "shared" (it reads job
+packages in place), and otherwise has its own package cache (it fetches them).
 */}}
 {{- define "dray.volumes" -}}
+{{- $ctx := .ctx }}
+{{- $mounts := or (eq .component "coordinator") (include "dray.workDir.shared" $ctx) -}}
 - name: tmp
   emptyDir: {}
+{{- if $mounts }}
 - name: work
+{{- with include "dray.workDir.claimName" $ctx }}
   persistentVolumeClaim:
-    claimName: {{ include "dray.workDir.claimName" . }}
-{{- if eq .Values.scenes.source "pvc" }}
+    claimName: {{ . }}
+{{- else }}
+  emptyDir: {}
+{{- end }}
+{{- if eq $ctx.Values.scenes.source "pvc" }}
 - name: scenes
   persistentVolumeClaim:
-    claimName: {{ required "scenes.pvc.claimName is required when scenes.source is pvc" .Values.scenes.pvc.claimName }}
+    claimName: {{ required "scenes.pvc.claimName is required when scenes.source is pvc" $ctx.Values.scenes.pvc.claimName }}
     readOnly: true
-{{- else if eq .Values.scenes.source "none" }}
+{{- else if eq $ctx.Values.scenes.source "none" }}
 # Procedural scenes only: an empty scene root (the coordinator wants it to exist).
 - name: scenes
   emptyDir: {}
 {{- end }}
+{{- else }}
+# Scene packages fetched from the coordinator (dray.v1.PackageService).
+- name: package-cache
+  emptyDir:
+    {{- with $ctx.Values.workers.packageCacheSizeLimit }}
+    sizeLimit: {{ . }}
+    {{- else }} {}
+    {{- end }}
+{{- end }}
 {{- end }}
 
 {{- define "dray.volumeMounts" -}}
+{{- $ctx := .ctx }}
+{{- $mounts := or (eq .component "coordinator") (include "dray.workDir.shared" $ctx) -}}
 - name: tmp
   mountPath: /tmp
+{{- if $mounts }}
 - name: work
-  mountPath: {{ .Values.workDir.path }}
-{{- if eq .Values.scenes.source "pvc" }}
+  mountPath: {{ $ctx.Values.workDir.path }}
+{{- if eq $ctx.Values.scenes.source "pvc" }}
 - name: scenes
-  mountPath: {{ .Values.scenes.path }}
+  mountPath: {{ $ctx.Values.scenes.path }}
   readOnly: true
-  {{- with .Values.scenes.pvc.subPath }}
+  {{- with $ctx.Values.scenes.pvc.subPath }}
   subPath: {{ . }}
   {{- end }}
-{{- else if eq .Values.scenes.source "none" }}
+{{- else if eq $ctx.Values.scenes.source "none" }}
 - name: scenes
-  mountPath: {{ .Values.scenes.path }}
+  mountPath: {{ $ctx.Values.scenes.path }}
   readOnly: true
 {{- end }}
+{{- else }}
+- name: package-cache
+  mountPath: {{ include "dray.packageCache.path" $ctx }}
+{{- end }}
+{{- end }}
+
+{{/*
+Where a worker keeps fetched scene packages (workDir.mode "fetch").
+*/}}
+{{- define "dray.packageCache.path" -}}
+/var/cache/dray/packages
 {{- end }}
 
 {{/*
@@ -150,4 +193,73 @@ initialDelaySeconds: {{ .probe.initialDelaySeconds }}
 periodSeconds: {{ .probe.periodSeconds }}
 timeoutSeconds: {{ .probe.timeoutSeconds }}
 failureThreshold: {{ .probe.failureThreshold }}
+{{- end }}
+
+{{/*
+Where the auth Secret's token files are mounted.
+*/}}
+{{- define "dray.auth.path" -}}
+/etc/dray/auth
+{{- end }}
+
+{{/*
+The environment of a pod, given (dict "ctx" $ "component" "coordinator"|"worker"): its
+name and namespace (for $(VAR) expansion in the arguments, and the telemetry resource),
+the token files of auth.existingSecret (the API token for the coordinator only), and the
+OTLP endpoint.
+*/}}
+{{- define "dray.env" -}}
+{{- $ctx := .ctx }}
+- name: POD_NAME
+  valueFrom:
+    fieldRef:
+      fieldPath: metadata.name
+- name: POD_NAMESPACE
+  valueFrom:
+    fieldRef:
+      fieldPath: metadata.namespace
+{{- if $ctx.Values.auth.existingSecret }}
+- name: DRAY_CLUSTER_TOKEN_FILE
+  value: {{ printf "%s/cluster.token" (include "dray.auth.path" $ctx) | quote }}
+{{- if eq .component "coordinator" }}
+- name: DRAY_AUTH_TOKEN_FILE
+  value: {{ printf "%s/api.token" (include "dray.auth.path" $ctx) | quote }}
+{{- end }}
+{{- end }}
+{{- with $ctx.Values.otlp.endpoint }}
+- name: OTEL_EXPORTER_OTLP_ENDPOINT
+  value: {{ . | quote }}
+- name: OTEL_RESOURCE_ATTRIBUTES
+  value: "k8s.pod.name=$(POD_NAME),k8s.namespace.name=$(POD_NAMESPACE)"
+{{- end }}
+{{- end }}
+
+{{/*
+The auth Secret as a read-only volume of token files (none without auth.existingSecret),
+given (dict "ctx" $ "component" ...): workers get the cluster token only.
+*/}}
+{{- define "dray.auth.volume" -}}
+{{- $ctx := .ctx }}
+{{- with $ctx.Values.auth.existingSecret }}
+- name: auth
+  secret:
+    secretName: {{ . }}
+    # Readable by the pod's group (fsGroup), not by others.
+    defaultMode: 0440
+    items:
+      - key: {{ $ctx.Values.auth.clusterTokenKey }}
+        path: cluster.token
+      {{- if eq $.component "coordinator" }}
+      - key: {{ $ctx.Values.auth.apiTokenKey }}
+        path: api.token
+      {{- end }}
+{{- end }}
+{{- end }}
+
+{{- define "dray.auth.volumeMount" -}}
+{{- if .Values.auth.existingSecret }}
+- name: auth
+  mountPath: {{ include "dray.auth.path" . }}
+  readOnly: true
+{{- end }}
 {{- end }}

@@ -735,8 +735,8 @@ pub struct Package {
 /// worker reads only its own); [`Package::verify`] checks them all.
 pub fn open_package(dir: &Path) -> Result<Package> {
     let path = dir.join(MANIFEST_FILE);
-    let file = File::open(&path).map_err(io_error(&path))?;
-    let len = file.metadata().map_err(io_error(&path))?.len();
+    let opened = crate::reference::open_scene_file(&path)?;
+    let (file, len) = (opened.file, opened.len);
     // A manifest is a few bytes per material and domain; anything this large is not one.
     const MAX_MANIFEST: u64 = 1 << 30;
     if len > MAX_MANIFEST {
@@ -874,8 +874,10 @@ impl Package {
 
     fn load_entry(&self, d: u32, entry: &DomainEntry, bounds: Aabb) -> Result<DomainMesh> {
         let path = self.dir.join(&entry.file);
-        let file = File::open(&path).map_err(io_error(&path))?;
-        let len = file.metadata().map_err(io_error(&path))?.len();
+        // A regular file, opened without blocking (a FIFO or device in a package folder
+        // must not hang or feed the reader forever).
+        let opened = crate::reference::open_scene_file(&path)?;
+        let (file, len) = (opened.file, opened.len);
         if len != entry.bytes {
             return Err(format_error(
                 &path,
@@ -923,6 +925,19 @@ impl Package {
     /// Index checks on a decoded domain (after its checksum matched, so a failure here
     /// means the package was written wrong, not damaged).
     fn check_domain(&self, (mesh, ids): &(Mesh, Vec<u32>), path: &Path) -> Result<()> {
+        // Checksums catch damage, not a hostile writer (anyone can recompute them): hold
+        // positions to the importers' rule.
+        let limit = crate::validate::MAX_COORDINATE;
+        if let Some(i) = mesh
+            .positions
+            .iter()
+            .position(|p| !p.is_finite() || p.abs().max_element() > limit)
+        {
+            return Err(format_error(
+                path,
+                format!("vertex {i} has a non-finite position or a coordinate beyond ±{limit:e}"),
+            ));
+        }
         let v = mesh.positions.len() as u32;
         if let Some((i, t)) = mesh
             .indices
@@ -964,9 +979,21 @@ impl Package {
         };
         let path = self.dir.join(&entry.file);
         let bytes = read_checked(&path, entry.bytes, &entry.xxh3)?;
-        let header_ok = bytes[..8] == TEXTURE_MAGIC;
-        let version = u32::from_le_bytes(bytes[8..12].try_into().unwrap());
-        let count = u32::from_le_bytes(bytes[12..16].try_into().unwrap());
+        // The manifest's size is only checked against the file, so a short (but
+        // checksummed) file must not be sliced blindly.
+        let word = |at: usize| -> Option<u32> {
+            Some(u32::from_le_bytes(bytes.get(at..at + 4)?.try_into().ok()?))
+        };
+        let (Some(version), Some(count)) = (word(8), word(12)) else {
+            return Err(format_error(
+                &path,
+                format!(
+                    "{} bytes is too short for a texture file header",
+                    bytes.len()
+                ),
+            ));
+        };
+        let header_ok = bytes.get(..8) == Some(&TEXTURE_MAGIC[..]);
         if !header_ok {
             return Err(format_error(&path, "not a dray texture file (bad magic)"));
         }
@@ -993,7 +1020,11 @@ impl Package {
             .textures
             .iter()
             .map(|t| {
-                let b = &bytes[t.offset as usize..(t.offset + t.bytes) as usize];
+                let b = usize::try_from(t.offset)
+                    .ok()
+                    .zip(usize::try_from(t.offset.saturating_add(t.bytes)).ok())
+                    .and_then(|(start, end)| bytes.get(start..end))
+                    .unwrap_or_default();
                 Texture {
                     name: t.name.clone(),
                     width: t.width,
@@ -1022,8 +1053,8 @@ impl Package {
 
 /// Read a whole file whose size and checksum the manifest gives.
 fn read_checked(path: &Path, size: u64, xxh3: &str) -> Result<Vec<u8>> {
-    let file = File::open(path).map_err(io_error(path))?;
-    let len = file.metadata().map_err(io_error(path))?.len();
+    let opened = crate::reference::open_scene_file(path)?;
+    let (file, len) = (opened.file, opened.len);
     if len != size {
         return Err(format_error(
             path,

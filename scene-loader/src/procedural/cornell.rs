@@ -71,6 +71,9 @@ fn block(top: [[f32; 2]; 4], h: f32) -> MeshData {
     mesh
 }
 
+/// More triangles than any Cornell variant has (walls, light and two boxes: about 36).
+pub(super) const TRIANGLE_ESTIMATE: u64 = 64;
+
 pub(super) fn generate(spec: &str, args: Option<&str>) -> Result<Scene> {
     let variant = match args {
         None => Variant::Plain,

@@ -25,6 +25,10 @@ pub(crate) trait Generator {
     /// to by index, lights and environment, in a scene named `spec`.
     fn tables(&self, spec: &str) -> Scene;
 
+    /// About how many triangles [`emit`](Self::emit) makes, without making them: an
+    /// upper estimate for admission control, which must answer before anything is built.
+    fn triangle_estimate(&self) -> u64;
+
     /// Emit every triangle, in the same order on every call.
     fn emit(&self, spec: &str, sink: &mut dyn Sink) -> Result<()>;
 

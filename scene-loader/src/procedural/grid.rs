@@ -39,6 +39,23 @@ fn parse_dims(spec: &str, text: &str) -> Result<[u64; 3]> {
     Ok(dims)
 }
 
+/// The number of copies `XxYxZ` asks for, within [`MAX_COPIES`].
+pub(super) fn copies(spec: &str, dims: &str) -> Result<u64> {
+    let dims = parse_dims(spec, dims)?;
+    dims.iter()
+        .try_fold(1u64, |acc, &d| acc.checked_mul(d))
+        .filter(|&c| c <= MAX_COPIES)
+        .ok_or_else(|| {
+            spec_error(
+                spec,
+                format!(
+                    "{}x{}x{} copies exceed the cap of {MAX_COPIES}",
+                    dims[0], dims[1], dims[2]
+                ),
+            )
+        })
+}
+
 /// Check the spec, load the base scene, and describe the grid without making it.
 pub(super) fn plan(
     spec: &str,
@@ -67,20 +84,8 @@ pub(super) fn plan(
             format!("missing scene to replicate; {usage}"),
         ));
     }
+    let copies = copies(spec, dims)?;
     let dims = parse_dims(spec, dims)?;
-    let copies = dims
-        .iter()
-        .try_fold(1u64, |acc, &d| acc.checked_mul(d))
-        .filter(|&c| c <= MAX_COPIES)
-        .ok_or_else(|| {
-            spec_error(
-                spec,
-                format!(
-                    "{}x{}x{} copies exceed the cap of {MAX_COPIES}",
-                    dims[0], dims[1], dims[2]
-                ),
-            )
-        })?;
 
     let base = load(inner)?;
     let tris = base.mesh.triangle_count() as u64;

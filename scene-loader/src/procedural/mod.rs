@@ -121,6 +121,30 @@ pub fn stream(
     })
 }
 
+/// About how many triangles the procedural scene `spec` has, without making it: what
+/// admission control needs to refuse a scene too large for the machine before anything
+/// is built. `None` when `spec` is not procedural, is malformed (making it reports why),
+/// or replicates a file (whose size the caller knows better).
+pub fn triangle_estimate(spec: &str) -> Option<u64> {
+    let (head, args) = match spec.split_once(':') {
+        Some((h, a)) => (h, Some(a)),
+        None => (spec, None),
+    };
+    match head {
+        "cornell" => Some(cornell::TRIANGLE_ESTIMATE),
+        "spheres" => spheres::triangle_estimate(spec, args),
+        "grid" => {
+            let (inner, dims) = args?.rsplit_once(':')?;
+            let copies = grid::copies(spec, dims).ok()?;
+            triangle_estimate(inner).map(|t| t.saturating_mul(copies))
+        }
+        _ => generator(spec, head, args)
+            .ok()
+            .flatten()
+            .map(|g| g.triangle_estimate()),
+    }
+}
+
 /// The generators that can stream, parsed from their arguments; `None` for any other head.
 fn generator(spec: &str, head: &str, args: Option<&str>) -> Result<Option<Box<dyn Generator>>> {
     Ok(Some(match head {

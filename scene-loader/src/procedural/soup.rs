@@ -73,6 +73,10 @@ impl Generator for Soup {
         "soup"
     }
 
+    fn triangle_estimate(&self) -> u64 {
+        self.triangles
+    }
+
     fn tables(&self, spec: &str) -> Scene {
         Scene {
             name: spec.to_string(),

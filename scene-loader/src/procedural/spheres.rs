@@ -23,6 +23,15 @@ const TRIANGLES_PER_SPHERE: u64 = 320;
 const PALETTE: u64 = 24;
 const SEED: u64 = 0x5EED_5EED_0000_0001;
 
+/// The triangles of `spheres:N[:mirror]` (the spheres and the ground quad), or `None`
+/// when the count does not parse.
+pub(super) fn triangle_estimate(spec: &str, args: Option<&str>) -> Option<u64> {
+    let count = args.map_or(DEFAULT_COUNT, |a| a.split_once(':').map_or(a, |(n, _)| n));
+    let max = (MAX_TRIANGLES - 2) / TRIANGLES_PER_SPHERE;
+    let n = parse_count(spec, "sphere count", count, 1, max).ok()?;
+    Some(n * TRIANGLES_PER_SPHERE + 2)
+}
+
 pub(super) fn generate(spec: &str, args: Option<&str>) -> Result<Scene> {
     let max = (MAX_TRIANGLES - 2) / TRIANGLES_PER_SPHERE;
     let (count, variant) = match args.map(|a| a.split_once(':')) {

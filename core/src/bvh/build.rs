@@ -1,0 +1,289 @@
+//! The binary BVH that [`super::Accel`] hands to obvhs's CWBVH conversion: top-down
+//! binned SAH, built with an explicit work stack and a bounded depth.
+//!
+//! obvhs's own builder (PLOC) is not used: on degenerate input it degrades badly. With
+//! many coincident triangles every merge cost ties, PLOC merges one pair per pass
+//! (quadratic time: minutes for 100k triangles) into a chain as deep as the triangle
+//! count, and the recursive BVH2-to-CWBVH conversion then overflows the thread's stack.
+//! Nested triangles sharing a centroid do the same with distinct costs. This builder
+//! cannot: a node whose subtree could end deeper than [`MAX_DEPTH`] is cut at the
+//! median (by index when every centroid is the same point), so the tree is at most
+//! [`MAX_DEPTH`] deep whatever the input, the conversion's recursion is bounded, the
+//! build is O(n log n), and the CWBVH stays within obvhs's fixed traversal stack.
+
+use glam::Vec3A;
+use obvhs::aabb::Aabb;
+use obvhs::bvh2::Bvh2;
+use obvhs::bvh2::node::Bvh2Node;
+
+/// Deepest leaf (the root is depth 0). At least 32 (a balanced tree over 2^32
+/// primitives); the rest is room for SAH's unbalanced cuts.
+pub const MAX_DEPTH: u32 = 64;
+
+/// SAH bins per axis.
+const BINS: usize = 16;
+
+struct Task {
+    node: usize,
+    start: usize,
+    end: usize,
+    depth: u32,
+}
+
+/// A BVH2 over `aabbs` with one primitive per leaf (what the CWBVH conversion expects),
+/// at most [`MAX_DEPTH`] deep. Every box must be finite; `aabbs` must not be empty and
+/// must have fewer than 2^31 entries.
+pub fn build(aabbs: &[Aabb]) -> Bvh2 {
+    let n = aabbs.len();
+    let centroids: Vec<Vec3A> = aabbs.iter().map(Aabb::center).collect();
+    let mut order: Vec<u32> = (0..n as u32).collect();
+    let mut nodes: Vec<Bvh2Node> = Vec::with_capacity((2 * n).saturating_sub(1));
+    nodes.push(Bvh2Node::new(bounds(aabbs, &order), 0, 0));
+    let mut stack = vec![Task {
+        node: 0,
+        start: 0,
+        end: n,
+        depth: 0,
+    }];
+    while let Some(task) = stack.pop() {
+        let count = task.end - task.start;
+        if count <= 1 {
+            let aabb = *nodes[task.node].aabb();
+            nodes[task.node] = Bvh2Node::new(aabb, 1, task.start as u32);
+            continue;
+        }
+        let range = &mut order[task.start..task.end];
+        // A median cut from here ends at depth + ceil(log2(count)); once that reaches
+        // the limit, only median cuts keep the promise.
+        let force_median = task.depth + ceil_log2(count) >= MAX_DEPTH;
+        let mid = if force_median {
+            median_cut(range, &centroids)
+        } else {
+            sah_cut(range, aabbs, &centroids).unwrap_or_else(|| median_cut(range, &centroids))
+        };
+        let (left, right) = range.split_at(mid);
+        let left_box = bounds(aabbs, left);
+        let right_box = bounds(aabbs, right);
+        let first = nodes.len();
+        nodes.push(Bvh2Node::new(left_box, 0, 0));
+        nodes.push(Bvh2Node::new(right_box, 0, 0));
+        let aabb = *nodes[task.node].aabb();
+        nodes[task.node] = Bvh2Node::new(aabb, 0, first as u32);
+        stack.push(Task {
+            node: first + 1,
+            start: task.start + mid,
+            end: task.end,
+            depth: task.depth + 1,
+        });
+        stack.push(Task {
+            node: first,
+            start: task.start,
+            end: task.start + mid,
+            depth: task.depth + 1,
+        });
+    }
+    Bvh2 {
+        nodes,
+        primitive_indices: order,
+        max_depth: MAX_DEPTH as usize + 1,
+        ..Bvh2::default()
+    }
+}
+
+fn ceil_log2(n: usize) -> u32 {
+    n.next_power_of_two().trailing_zeros()
+}
+
+fn bounds(aabbs: &[Aabb], indices: &[u32]) -> Aabb {
+    let mut b = Aabb::empty();
+    for &i in indices {
+        b = b.union(&aabbs[i as usize]);
+    }
+    b
+}
+
+fn centroid_bounds(range: &[u32], centroids: &[Vec3A]) -> (Vec3A, Vec3A) {
+    let mut lo = Vec3A::splat(f32::INFINITY);
+    let mut hi = Vec3A::splat(f32::NEG_INFINITY);
+    for &i in range {
+        let c = centroids[i as usize];
+        lo = lo.min(c);
+        hi = hi.max(c);
+    }
+    (lo, hi)
+}
+
+/// Reorder `range` about its median on the centroids' longest axis and return the cut
+/// (`len / 2`). With every centroid at one point the order is left as it is.
+fn median_cut(range: &mut [u32], centroids: &[Vec3A]) -> usize {
+    let mid = range.len() / 2;
+    let (lo, hi) = centroid_bounds(range, centroids);
+    let extent = hi - lo;
+    let axis = if extent.x >= extent.y && extent.x >= extent.z {
+        0
+    } else if extent.y >= extent.z {
+        1
+    } else {
+        2
+    };
+    if extent[axis] > 0.0 {
+        range.select_nth_unstable_by(mid, |&a, &b| {
+            let (ca, cb) = (centroids[a as usize][axis], centroids[b as usize][axis]);
+            ca.total_cmp(&cb).then(a.cmp(&b))
+        });
+    }
+    mid
+}
+
+/// The binned-SAH cut of `range`: reorders it so the left side comes first and returns
+/// the cut, or `None` when no bin boundary separates the centroids (or the costs are
+/// not finite), for the caller to cut at the median instead.
+fn sah_cut(range: &mut [u32], aabbs: &[Aabb], centroids: &[Vec3A]) -> Option<usize> {
+    let (lo, hi) = centroid_bounds(range, centroids);
+    let extent = hi - lo;
+    let mut best: Option<(f32, usize, usize)> = None; // (cost, axis, first right bin)
+    for axis in 0..3 {
+        // Zero, NaN and infinite extents have no bins to place.
+        if !(extent[axis].is_finite() && extent[axis] > 0.0) {
+            continue;
+        }
+        let to_bin = bin_scale(extent[axis]);
+        let mut count = [0u32; BINS];
+        let mut boxes = [Aabb::empty(); BINS];
+        for &i in range.iter() {
+            let b = bin_of(centroids[i as usize][axis], lo[axis], to_bin);
+            count[b] += 1;
+            boxes[b] = boxes[b].union(&aabbs[i as usize]);
+        }
+        // Right-hand sweep: area and count of bins k.. for every k.
+        let mut right_area = [0f32; BINS];
+        let mut right_count = [0u32; BINS];
+        let mut acc = Aabb::empty();
+        let mut acc_count = 0;
+        for k in (1..BINS).rev() {
+            acc = acc.union(&boxes[k]);
+            acc_count += count[k];
+            right_area[k] = acc.half_area();
+            right_count[k] = acc_count;
+        }
+        let mut acc = Aabb::empty();
+        let mut acc_count = 0;
+        for k in 1..BINS {
+            acc = acc.union(&boxes[k - 1]);
+            acc_count += count[k - 1];
+            if acc_count == 0 || right_count[k] == 0 {
+                continue;
+            }
+            let cost = acc.half_area() * acc_count as f32 + right_area[k] * right_count[k] as f32;
+            if cost.is_finite() && best.is_none_or(|(c, _, _)| cost < c) {
+                best = Some((cost, axis, k));
+            }
+        }
+    }
+    let (_, axis, split) = best?;
+    let to_bin = bin_scale(extent[axis]);
+    // Two-pointer partition: left of `mid` the bins below `split`.
+    let mut mid = 0;
+    for j in 0..range.len() {
+        let i = range[j];
+        if bin_of(centroids[i as usize][axis], lo[axis], to_bin) < split {
+            range.swap(j, mid);
+            mid += 1;
+        }
+    }
+    (mid > 0 && mid < range.len()).then_some(mid)
+}
+
+#[inline]
+fn bin_scale(extent: f32) -> f32 {
+    // Slightly under BINS / extent, so the largest centroid lands in the last bin.
+    BINS as f32 * (1.0 - 1e-5) / extent
+}
+
+#[inline]
+fn bin_of(c: f32, lo: f32, to_bin: f32) -> usize {
+    // `as` saturates (and maps NaN to 0), so the index is always in range.
+    (((c - lo) * to_bin) as usize).min(BINS - 1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn depth(bvh: &Bvh2) -> u32 {
+        let mut deepest = 0;
+        let mut stack = vec![(0usize, 0u32)];
+        while let Some((i, d)) = stack.pop() {
+            deepest = deepest.max(d);
+            let node = &bvh.nodes[i];
+            if node.prim_count == 0 {
+                stack.push((node.first_index as usize, d + 1));
+                stack.push((node.first_index as usize + 1, d + 1));
+            }
+        }
+        deepest
+    }
+
+    fn leaves(bvh: &Bvh2) -> Vec<u32> {
+        let mut out: Vec<u32> = bvh
+            .nodes
+            .iter()
+            .filter(|n| n.prim_count == 1)
+            .map(|n| bvh.primitive_indices[n.first_index as usize])
+            .collect();
+        out.sort_unstable();
+        out
+    }
+
+    #[test]
+    fn coincident_boxes_give_a_balanced_tree() {
+        let b = Aabb::new(Vec3A::ZERO, Vec3A::ONE);
+        let bvh = build(&vec![b; 100_000]);
+        assert_eq!(bvh.nodes.len(), 2 * 100_000 - 1);
+        assert_eq!(depth(&bvh), 17);
+        assert_eq!(leaves(&bvh), (0..100_000).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn nested_boxes_stay_within_the_depth_limit() {
+        // Every box contains the previous one and shares its centre: the input that
+        // turns a greedy agglomerative build into a chain.
+        let boxes: Vec<Aabb> = (1..=50_000)
+            .map(|i| {
+                let r = i as f32;
+                Aabb::new(Vec3A::splat(-r), Vec3A::splat(r))
+            })
+            .collect();
+        let bvh = build(&boxes);
+        assert!(depth(&bvh) <= MAX_DEPTH, "{}", depth(&bvh));
+        assert_eq!(leaves(&bvh).len(), 50_000);
+        // Geometric growth: SAH alone would peel one box per level.
+        let boxes: Vec<Aabb> = (0..2_000)
+            .map(|i| {
+                let r = 1.01f32.powi(i);
+                Aabb::new(Vec3A::new(-r, 0.0, 0.0), Vec3A::new(r, 1.0, 1.0))
+            })
+            .collect();
+        assert!(depth(&build(&boxes)) <= MAX_DEPTH);
+    }
+
+    #[test]
+    fn distinct_boxes_cover_every_primitive_once() {
+        let boxes: Vec<Aabb> = (0..1000)
+            .map(|i| {
+                let p = Vec3A::new((i % 10) as f32, (i / 10 % 10) as f32, (i / 100) as f32);
+                Aabb::new(p, p + 0.5)
+            })
+            .collect();
+        let bvh = build(&boxes);
+        assert_eq!(leaves(&bvh), (0..1000).collect::<Vec<_>>());
+        for node in &bvh.nodes {
+            if node.prim_count == 0 {
+                let l = bvh.nodes[node.first_index as usize].aabb();
+                let r = bvh.nodes[node.first_index as usize + 1].aabb();
+                assert_eq!(l.union(r), *node.aabb());
+            }
+        }
+        assert!(depth(&bvh) < 20, "{}", depth(&bvh));
+    }
+}

@@ -1,0 +1,41 @@
+//! Panic containment for tracing work.
+//!
+//! A tracing thread that panics would die silently: its job would wait for credit that
+//! never comes (until the coordinator's stall timeout), and every later job would have
+//! one thread fewer. Instead, a panic while tracing a batch or a tile fails that job,
+//! with the panic's message, and the thread goes on to the next piece of work. The
+//! worker's shared state is behind locks that tolerate poisoning, and the work item's
+//! own outputs are dropped with the failed job.
+
+use std::panic::{AssertUnwindSafe, catch_unwind};
+
+/// Run `f`; a panic inside it becomes `Err` with the panic's message.
+pub(crate) fn contained<T>(f: impl FnOnce() -> T) -> Result<T, String> {
+    catch_unwind(AssertUnwindSafe(f)).map_err(|payload| {
+        let message = payload
+            .downcast_ref::<&str>()
+            .map(|s| (*s).to_string())
+            .or_else(|| payload.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "a panic without a message".to_string());
+        // Bounded: the message goes to the coordinator and into GetJob.
+        let short: String = message.chars().take(300).collect();
+        format!("internal error (a panic while tracing, contained): {short}")
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_panic_becomes_an_error_with_its_message_and_values_pass_through() {
+        assert_eq!(contained(|| 7), Ok(7));
+        let e = contained(|| -> u32 { panic!("index {} out of range", 9) }).unwrap_err();
+        assert!(e.contains("index 9 out of range"), "{e}");
+        let e = contained(|| -> u32 { std::panic::panic_any(5u8) }).unwrap_err();
+        assert!(e.contains("without a message"), "{e}");
+        let long = "x".repeat(10_000);
+        let e = contained(|| -> u32 { panic!("{long}") }).unwrap_err();
+        assert!(e.len() < 400, "{}", e.len());
+    }
+}
