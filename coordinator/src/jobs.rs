@@ -7,7 +7,6 @@
 //! (RUNNING). Cancellation is cooperative: a flag the
 //! render loop checks before each tile.
 
-use std::io::Cursor;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime};
@@ -472,20 +471,8 @@ pub fn encode_png(film: &Film, spp: u32, exposure: f32) -> Result<Vec<u8>, Strin
     Ok(out)
 }
 
-/// The film as linear f32 RGB OpenEXR, as `dray render --exr` writes it.
+/// The film as linear f32 RGB OpenEXR, the bytes `dray render --exr` writes.
 pub fn encode_exr(film: &Film, spp: u32) -> Result<Vec<u8>, String> {
-    use exr::prelude::*;
-    let lin = film.linear(spp);
-    let w = film.width as usize;
-    let channels = SpecificChannels::rgb(|pos: Vec2<usize>| {
-        let p = lin[pos.y() * w + pos.x()];
-        (p.x, p.y, p.z)
-    });
-    let image = Image::from_channels((w, film.height as usize), channels);
-    let mut out = Cursor::new(Vec::new());
-    image
-        .write()
-        .to_buffered(&mut out)
-        .map_err(|e| format!("cannot encode EXR: {e}"))?;
-    Ok(out.into_inner())
+    film.encode_exr(spp)
+        .map_err(|e| format!("cannot encode EXR: {e}"))
 }

@@ -340,68 +340,42 @@ impl Bsdf {
         self.eval_pdf(wo, wi).1
     }
 
+    /// [`Bsdf::eval`] and [`Bsdf::pdf`] in one call.
+    pub fn eval_pdf(&self, wo: Vec3, wi: Vec3) -> (Vec3, f32) {
+        self.at(wo).map_or((Vec3::ZERO, 0.0), |at| at.eval_pdf(wi))
+    }
+
     /// Samples a direction: `u_lobe` picks the lobe, `u` the direction within it.
     /// Returns `None` for an absorbed/invalid sample (below the surface, total internal
     /// reflection of a sampled refraction, zero pdf or zero value).
     pub fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
+        self.at(wo)?.sample(u_lobe, u)
+    }
+
+    /// The BSDF seen from `wo`: its frame, lobe weights and lobe selection, computed once
+    /// for every evaluation and sample at this hit. `None` when `wo` is degenerate or
+    /// tangent to the surface (every evaluation is then zero and every sample absorbed).
+    pub fn at(&self, wo: Vec3) -> Option<BsdfAt<'_>> {
         let (fr, wo_l) = self.frame(wo)?;
-        let sel = self.selection(wo_l.z, fr.etap);
-        let ul = sanitize_u(u_lobe);
-        let u = Vec2::new(sanitize_u(u.x), sanitize_u(u.y));
-        if !(sel.p_diffuse + sel.p_spec > 0.0) {
-            return None;
-        }
-        if ul < sel.p_diffuse || sel.p_spec <= 0.0 {
-            let wi_l = cosine_hemisphere(u);
-            return self.finish(&fr, wo, fr.world(wi_l), Lobe::Diffuse);
-        }
-        // Reuse the lobe number for the reflection/transmission split.
-        let u2 = ((ul - sel.p_diffuse) / sel.p_spec).clamp(0.0, ONE_MINUS_EPS);
-
-        if self.refl_delta || (self.trans_delta && u2 >= sel.pr_macro) {
-            let w = self.weights(wo_l.z, fr.etap);
-            if self.refl_delta && u2 < sel.pr_macro {
-                let wi = fr.world(Vec3::new(-wo_l.x, -wo_l.y, wo_l.z));
-                if wi.dot(fr.ng) <= 0.0 {
-                    return None;
-                }
-                return self.delta_sample(
-                    wi,
-                    w.refl,
-                    sel.p_spec * sel.pr_macro,
-                    Lobe::SpecularReflection,
-                );
-            }
-            let wi_l = refract(wo_l, Vec3::Z, fr.etap)?;
-            let wi = fr.world(wi_l);
-            if wi.dot(fr.ng) >= 0.0 {
-                return None;
-            }
-            return self.delta_sample(
-                wi,
-                w.trans,
-                sel.p_spec * (1.0 - sel.pr_macro),
-                Lobe::SpecularTransmission,
-            );
-        }
-
-        let m = sample_vndf(wo_l, self.alpha, u)?;
-        let c = wo_l.dot(m);
-        if !(c > 0.0) {
-            return None;
-        }
-        let reflect = if self.trans_delta {
-            true // u2 < pr_macro here
+        let w_o = self.weights(wo_l.z, fr.etap);
+        let sel = self.selection_from(&w_o);
+        let a2 = self.alpha * self.alpha;
+        let microfacets =
+            (self.has_refl && !self.refl_delta) || (self.transmissive && !self.trans_delta);
+        let lambda_o = if microfacets {
+            ggx_lambda(wo_l, a2)
         } else {
-            u2 < self.pr(&self.weights(c, fr.etap))
+            0.0
         };
-        if reflect {
-            let wi_l = m * (2.0 * c) - wo_l;
-            self.finish(&fr, wo, fr.world(wi_l), Lobe::GlossyReflection)
-        } else {
-            let wi_l = refract(wo_l, m, fr.etap)?;
-            self.finish(&fr, wo, fr.world(wi_l), Lobe::GlossyTransmission)
-        }
+        Some(BsdfAt {
+            bsdf: self,
+            fr,
+            wo_l,
+            w_o,
+            sel,
+            a2,
+            lambda_o,
+        })
     }
 
     /// True when the material has a (non-zero) Lambert lobe.
@@ -537,12 +511,6 @@ impl Bsdf {
         }
     }
 
-    /// `1 - specular max(F_d(c))`: what the dielectric layer lets through to the base at
-    /// cosine `c` (0 on total internal reflection when `specular` is 1).
-    fn base_scale(&self, c: f32, etap: f32) -> f32 {
-        self.weights(c, etap).base_scale
-    }
-
     /// Probability of reflecting (vs refracting) on a microfacet with weights `w`.
     fn pr(&self, w: &Weights) -> f32 {
         let r = if self.has_refl { lum(w.refl) } else { 0.0 };
@@ -556,9 +524,9 @@ impl Bsdf {
         }
     }
 
-    /// Lobe selection from the lobe weights at the macro normal (luminance), with floors.
-    fn selection(&self, cos_o: f32, etap: f32) -> Selection {
-        let w = self.weights(cos_o, etap);
+    /// Lobe selection from the lobe weights `w` at the macro normal (luminance), with
+    /// floors.
+    fn selection_from(&self, w: &Weights) -> Selection {
         let wd = lum(self.diffuse_tint) * w.base_scale.max(SELECT_FLOOR);
         let r = if self.has_refl {
             lum(w.refl).max(SELECT_FLOOR * self.refl_max)
@@ -588,113 +556,6 @@ impl Bsdf {
         }
     }
 
-    /// BSDF value and pdf of the non-delta lobes.
-    fn eval_pdf(&self, wo: Vec3, wi: Vec3) -> (Vec3, f32) {
-        let zero = (Vec3::ZERO, 0.0);
-        let Some((fr, wo_l)) = self.frame(wo) else {
-            return zero;
-        };
-        let Some(wi) = unit(wi) else {
-            return zero;
-        };
-        let wi_l = fr.local(wi);
-        let gi = wi.dot(fr.ng);
-        let sel = self.selection(wo_l.z, fr.etap);
-        let a2 = self.alpha * self.alpha;
-        let (cos_o, cos_i) = (wo_l.z, wi_l.z);
-        let mut f = Vec3::ZERO;
-        let mut pdf = 0.0;
-
-        if cos_i >= COS_EPS && gi > 0.0 {
-            let Some(h) = unit(wo_l + wi_l) else {
-                return zero;
-            };
-            let c = wo_l.dot(h);
-            let w = self.weights(c, fr.etap);
-            // The base is attenuated by the dielectric layer's Fresnel on the way in and out
-            // (not at VdotH as in glTF Appendix B, which gains energy under a smooth layer).
-            let base_scale = self.base_scale(cos_o, fr.etap) * self.base_scale(cos_i, fr.etap);
-            f += self.diffuse_tint * (base_scale * FRAC_1_PI);
-            pdf += sel.p_diffuse * cos_i * FRAC_1_PI;
-            if self.has_refl && !self.refl_delta {
-                let d = ggx_d(h, a2);
-                let lo = ggx_lambda(wo_l, a2);
-                let li = ggx_lambda(wi_l, a2);
-                let g2 = 1.0 / (1.0 + lo + li);
-                let g1 = 1.0 / (1.0 + lo);
-                f += w.refl * (d * g2 / (4.0 * cos_o * cos_i));
-                let pr = if self.trans_delta {
-                    sel.pr_macro
-                } else {
-                    self.pr(&w)
-                };
-                // VNDF pdf G1 D (wo.h) / cos_o times the reflection Jacobian 1 / (4 wo.h).
-                pdf += sel.p_spec * pr * g1 * d / (4.0 * cos_o);
-            }
-        } else if cos_i <= -COS_EPS && gi < 0.0 && self.transmissive && !self.trans_delta {
-            // Walter et al. 2007: generalized half vector, facing wo's side.
-            let etap = fr.etap;
-            let Some(mut m) = unit(wi_l * etap + wo_l) else {
-                return zero;
-            };
-            if m.z < 0.0 {
-                m = -m;
-            }
-            let c_o = wo_l.dot(m);
-            let c_i = wi_l.dot(m);
-            if !(c_o > 0.0 && c_i < 0.0) {
-                return zero;
-            }
-            let w = self.weights(c_o, etap);
-            let denom = c_i + c_o / etap;
-            let den2 = denom * denom;
-            if !(den2 > 1e-12) || w.trans.max_element() <= 0.0 {
-                return zero;
-            }
-            let d = ggx_d(m, a2);
-            let lo = ggx_lambda(wo_l, a2);
-            let li = ggx_lambda(wi_l, a2);
-            let g2 = 1.0 / (1.0 + lo + li);
-            let g1 = 1.0 / (1.0 + lo);
-            f += w.trans * (d * g2 * (-c_i) * c_o / (-cos_i * cos_o * den2));
-            let vndf = g1 * c_o * d / cos_o;
-            pdf += sel.p_spec * (1.0 - self.pr(&w)) * vndf * (-c_i) / den2;
-        }
-
-        if f.is_finite() && pdf.is_finite() && pdf >= 0.0 {
-            (f.max(Vec3::ZERO), pdf)
-        } else {
-            zero
-        }
-    }
-
-    /// A non-delta sample: value and pdf are those of `eval`/`pdf`, so MIS is consistent.
-    /// A direction that lands on the wrong side for its lobe (a microfacet reflection below
-    /// the surface, a rough refraction back above it) is rejected: `pdf` would not count the
-    /// technique that produced it, and accepting it would bias the estimate upward.
-    fn finish(&self, fr: &Frame, wo: Vec3, wi: Vec3, lobe: Lobe) -> Option<BsdfSample> {
-        let wi = unit(wi)?;
-        let (cs, cg) = (wi.dot(fr.n), wi.dot(fr.ng));
-        let right_side = match lobe {
-            Lobe::GlossyTransmission | Lobe::SpecularTransmission => cs < 0.0 && cg < 0.0,
-            _ => cs > 0.0 && cg > 0.0,
-        };
-        if !right_side {
-            return None;
-        }
-        let (f, pdf) = self.eval_pdf(wo, wi);
-        if !(pdf > 0.0) || !pdf.is_finite() || !f.is_finite() || f.max_element() <= 0.0 {
-            return None;
-        }
-        Some(BsdfSample {
-            wi,
-            f,
-            pdf,
-            lobe,
-            delta: false,
-        })
-    }
-
     /// A delta sample with throughput `weight / prob`.
     fn delta_sample(&self, wi: Vec3, weight: Vec3, prob: f32, lobe: Lobe) -> Option<BsdfSample> {
         let wi = unit(wi)?;
@@ -712,6 +573,203 @@ impl Bsdf {
             pdf: prob,
             lobe,
             delta: true,
+        })
+    }
+}
+
+/// A [`Bsdf`] seen from one outgoing direction `wo` ([`Bsdf::at`]). Light sampling and
+/// BSDF sampling at a hit share the frame, the Fresnel weights at `wo` and the lobe
+/// selection, instead of rebuilding them for every evaluation; the values are those the
+/// per-call methods of [`Bsdf`] compute, bit for bit.
+#[derive(Clone, Copy, Debug)]
+pub struct BsdfAt<'a> {
+    bsdf: &'a Bsdf,
+    fr: Frame,
+    wo_l: Vec3,
+    /// Lobe weights at the macro normal (`c = cos_o`).
+    w_o: Weights,
+    sel: Selection,
+    /// GGX `alpha^2`.
+    a2: f32,
+    /// Smith Λ of `wo`, for the microfacet lobes (0 when there are none).
+    lambda_o: f32,
+}
+
+impl BsdfAt<'_> {
+    /// `f(wo, wi)` of the non-delta lobes, without the cosine.
+    pub fn eval(&self, wi: Vec3) -> Vec3 {
+        self.eval_pdf(wi).0
+    }
+
+    /// BSDF value and pdf of the non-delta lobes.
+    pub fn eval_pdf(&self, wi: Vec3) -> (Vec3, f32) {
+        let b = self.bsdf;
+        let zero = (Vec3::ZERO, 0.0);
+        let (fr, wo_l) = (&self.fr, self.wo_l);
+        let Some(wi) = unit(wi) else {
+            return zero;
+        };
+        let wi_l = fr.local(wi);
+        let gi = wi.dot(fr.ng);
+        let sel = &self.sel;
+        let a2 = self.a2;
+        let (cos_o, cos_i) = (wo_l.z, wi_l.z);
+        let mut f = Vec3::ZERO;
+        let mut pdf = 0.0;
+
+        if cos_i >= COS_EPS && gi > 0.0 {
+            let Some(h) = unit(wo_l + wi_l) else {
+                return zero;
+            };
+            let c = wo_l.dot(h);
+            // The base is attenuated by the dielectric layer's Fresnel on the way in and out
+            // (not at VdotH as in glTF Appendix B, which gains energy under a smooth layer).
+            let base_scale = self.w_o.base_scale * b.weights(cos_i, fr.etap).base_scale;
+            f += b.diffuse_tint * (base_scale * FRAC_1_PI);
+            pdf += sel.p_diffuse * cos_i * FRAC_1_PI;
+            if b.has_refl && !b.refl_delta {
+                let w = b.weights(c, fr.etap);
+                let d = ggx_d(h, a2);
+                let lo = self.lambda_o;
+                let li = ggx_lambda(wi_l, a2);
+                let g2 = 1.0 / (1.0 + lo + li);
+                let g1 = 1.0 / (1.0 + lo);
+                f += w.refl * (d * g2 / (4.0 * cos_o * cos_i));
+                let pr = if b.trans_delta {
+                    sel.pr_macro
+                } else {
+                    b.pr(&w)
+                };
+                // VNDF pdf G1 D (wo.h) / cos_o times the reflection Jacobian 1 / (4 wo.h).
+                pdf += sel.p_spec * pr * g1 * d / (4.0 * cos_o);
+            }
+        } else if cos_i <= -COS_EPS && gi < 0.0 && b.transmissive && !b.trans_delta {
+            // Walter et al. 2007: generalized half vector, facing wo's side.
+            let etap = fr.etap;
+            let Some(mut m) = unit(wi_l * etap + wo_l) else {
+                return zero;
+            };
+            if m.z < 0.0 {
+                m = -m;
+            }
+            let c_o = wo_l.dot(m);
+            let c_i = wi_l.dot(m);
+            if !(c_o > 0.0 && c_i < 0.0) {
+                return zero;
+            }
+            let w = b.weights(c_o, etap);
+            let denom = c_i + c_o / etap;
+            let den2 = denom * denom;
+            if !(den2 > 1e-12) || w.trans.max_element() <= 0.0 {
+                return zero;
+            }
+            let d = ggx_d(m, a2);
+            let lo = self.lambda_o;
+            let li = ggx_lambda(wi_l, a2);
+            let g2 = 1.0 / (1.0 + lo + li);
+            let g1 = 1.0 / (1.0 + lo);
+            f += w.trans * (d * g2 * (-c_i) * c_o / (-cos_i * cos_o * den2));
+            let vndf = g1 * c_o * d / cos_o;
+            pdf += sel.p_spec * (1.0 - b.pr(&w)) * vndf * (-c_i) / den2;
+        }
+
+        if f.is_finite() && pdf.is_finite() && pdf >= 0.0 {
+            (f.max(Vec3::ZERO), pdf)
+        } else {
+            zero
+        }
+    }
+
+    /// Samples a direction: `u_lobe` picks the lobe, `u` the direction within it.
+    /// Returns `None` for an absorbed/invalid sample (below the surface, total internal
+    /// reflection of a sampled refraction, zero pdf or zero value).
+    pub fn sample(&self, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
+        let b = self.bsdf;
+        let (fr, wo_l) = (&self.fr, self.wo_l);
+        let sel = &self.sel;
+        let ul = sanitize_u(u_lobe);
+        let u = Vec2::new(sanitize_u(u.x), sanitize_u(u.y));
+        if !(sel.p_diffuse + sel.p_spec > 0.0) {
+            return None;
+        }
+        if ul < sel.p_diffuse || sel.p_spec <= 0.0 {
+            let wi_l = cosine_hemisphere(u);
+            return self.finish(fr.world(wi_l), Lobe::Diffuse);
+        }
+        // Reuse the lobe number for the reflection/transmission split.
+        let u2 = ((ul - sel.p_diffuse) / sel.p_spec).clamp(0.0, ONE_MINUS_EPS);
+
+        if b.refl_delta || (b.trans_delta && u2 >= sel.pr_macro) {
+            let w = &self.w_o;
+            if b.refl_delta && u2 < sel.pr_macro {
+                let wi = fr.world(Vec3::new(-wo_l.x, -wo_l.y, wo_l.z));
+                if wi.dot(fr.ng) <= 0.0 {
+                    return None;
+                }
+                return b.delta_sample(
+                    wi,
+                    w.refl,
+                    sel.p_spec * sel.pr_macro,
+                    Lobe::SpecularReflection,
+                );
+            }
+            let wi_l = refract(wo_l, Vec3::Z, fr.etap)?;
+            let wi = fr.world(wi_l);
+            if wi.dot(fr.ng) >= 0.0 {
+                return None;
+            }
+            return b.delta_sample(
+                wi,
+                w.trans,
+                sel.p_spec * (1.0 - sel.pr_macro),
+                Lobe::SpecularTransmission,
+            );
+        }
+
+        let m = sample_vndf(wo_l, b.alpha, u)?;
+        let c = wo_l.dot(m);
+        if !(c > 0.0) {
+            return None;
+        }
+        let reflect = if b.trans_delta {
+            true // u2 < pr_macro here
+        } else {
+            u2 < b.pr(&b.weights(c, fr.etap))
+        };
+        if reflect {
+            let wi_l = m * (2.0 * c) - wo_l;
+            self.finish(fr.world(wi_l), Lobe::GlossyReflection)
+        } else {
+            let wi_l = refract(wo_l, m, fr.etap)?;
+            self.finish(fr.world(wi_l), Lobe::GlossyTransmission)
+        }
+    }
+
+    /// A non-delta sample: value and pdf are those of `eval`/`pdf`, so MIS is consistent.
+    /// A direction that lands on the wrong side for its lobe (a microfacet reflection below
+    /// the surface, a rough refraction back above it) is rejected: `pdf` would not count the
+    /// technique that produced it, and accepting it would bias the estimate upward.
+    fn finish(&self, wi: Vec3, lobe: Lobe) -> Option<BsdfSample> {
+        let fr = &self.fr;
+        let wi = unit(wi)?;
+        let (cs, cg) = (wi.dot(fr.n), wi.dot(fr.ng));
+        let right_side = match lobe {
+            Lobe::GlossyTransmission | Lobe::SpecularTransmission => cs < 0.0 && cg < 0.0,
+            _ => cs > 0.0 && cg > 0.0,
+        };
+        if !right_side {
+            return None;
+        }
+        let (f, pdf) = self.eval_pdf(wi);
+        if !(pdf > 0.0) || !pdf.is_finite() || !f.is_finite() || f.max_element() <= 0.0 {
+            return None;
+        }
+        Some(BsdfSample {
+            wi,
+            f,
+            pdf,
+            lobe,
+            delta: false,
         })
     }
 }

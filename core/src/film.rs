@@ -135,17 +135,34 @@ impl Film {
         })
     }
 
+    /// Write [`Film::encode_exr`]'s bytes to `path`.
     pub fn write_exr(&self, path: &Path, spp: u32) -> Result<(), FilmError> {
+        let fail = |message: String| FilmError::Exr {
+            path: path.display().to_string(),
+            message,
+        };
+        let bytes = self.encode_exr(spp).map_err(fail)?;
+        std::fs::write(path, bytes).map_err(|e| fail(e.to_string()))
+    }
+
+    /// The image as linear f32 RGB OpenEXR (`dray render --exr`, GetImage). The same
+    /// film gives the same bytes: blocks are compressed on one thread, because in
+    /// parallel they land in the file in the order they finish.
+    pub fn encode_exr(&self, spp: u32) -> Result<Vec<u8>, String> {
+        use exr::prelude::{Image, SpecificChannels, Vec2, WritableImage};
         let lin = self.linear(spp);
         let w = self.width as usize;
-        exr::prelude::write_rgb_file(path, w, self.height as usize, |x, y| {
+        let channels = SpecificChannels::rgb(|Vec2(x, y): Vec2<usize>| {
             let p = lin[y * w + x];
             (p.x, p.y, p.z)
-        })
-        .map_err(|e| FilmError::Exr {
-            path: path.display().to_string(),
-            message: e.to_string(),
-        })
+        });
+        let mut out = std::io::Cursor::new(Vec::new());
+        Image::from_channels((w, self.height as usize), channels)
+            .write()
+            .non_parallel()
+            .to_buffered(&mut out)
+            .map_err(|e| e.to_string())?;
+        Ok(out.into_inner())
     }
 }
 

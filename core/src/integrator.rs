@@ -13,7 +13,7 @@ use std::sync::Arc;
 use glam::{Vec2, Vec3};
 use serde::Serialize;
 
-use crate::bsdf::{Bsdf, BsdfParams, Lobe};
+use crate::bsdf::{Bsdf, BsdfAt, BsdfParams, Lobe};
 use crate::bvh::{Hit, QueryRay};
 use crate::camera::Camera;
 use crate::effects::{Effect, Effects};
@@ -371,8 +371,11 @@ impl<'a> Integrator<'a> {
         match self.settings.integrator {
             IntegratorKind::Path => self.path_step(ray, &surf, &bsdf, wo, key, sink),
             IntegratorKind::Raycast | IntegratorKind::Whitted => {
-                if self.settings.effects.contains(Effect::DirectLight) && !bsdf.is_delta_only() {
-                    self.direct_light(ray, &surf, &bsdf, wo, key, false, sink);
+                if self.settings.effects.contains(Effect::DirectLight)
+                    && !bsdf.is_delta_only()
+                    && let Some(at) = bsdf.at(wo)
+                {
+                    self.direct_light(ray, &surf, &at, key, false, sink);
                 }
                 // Unshadowed ambient light from the constant environment: raycast and
                 // Whitted trace no rays toward the sky, so this keeps unlit scenes legible.
@@ -445,8 +448,7 @@ impl<'a> Integrator<'a> {
         &self,
         ray: &RayState,
         surf: &Surface,
-        bsdf: &Bsdf,
-        wo: Vec3,
+        bsdf: &BsdfAt,
         key: PathKey,
         mis: bool,
         sink: &mut impl Sink,
@@ -457,8 +459,7 @@ impl<'a> Integrator<'a> {
                     .lights
                     .sample_entry(self.scene, e, 1.0, surf.p, Vec2::ZERO)
             {
-                let c =
-                    ray.weight * bsdf.eval(wo, ls.wi) * surf.n.dot(ls.wi).abs() * ls.li / ls.pdf;
+                let c = ray.weight * bsdf.eval(ls.wi) * surf.n.dot(ls.wi).abs() * ls.li / ls.pdf;
                 if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
                     sink.spawn(s);
                 }
@@ -468,16 +469,13 @@ impl<'a> Integrator<'a> {
         if let Some((e, p)) = self.lights.choose_area(u_sel) {
             let u = key.uniform2(ray.depth, Purpose::LightPoint, 0);
             if let Some(ls) = self.lights.sample_entry(self.scene, e, p, surf.p, u) {
+                let (f, pdf) = bsdf.eval_pdf(ls.wi);
                 let w = if mis {
-                    power_heuristic(ls.pdf, bsdf.pdf(wo, ls.wi))
+                    power_heuristic(ls.pdf, pdf)
                 } else {
                     1.0
                 };
-                let c = ray.weight
-                    * bsdf.eval(wo, ls.wi)
-                    * surf.n.dot(ls.wi).abs()
-                    * ls.li
-                    * (w / ls.pdf);
+                let c = ray.weight * f * surf.n.dot(ls.wi).abs() * ls.li * (w / ls.pdf);
                 if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
                     sink.spawn(s);
                 }
@@ -572,12 +570,17 @@ impl<'a> Integrator<'a> {
         let nee = effects.contains(Effect::DirectLight)
             && !bsdf.is_delta_only()
             && !self.lights.is_empty();
+        // With no frame for `wo` every evaluation is zero and every sample absorbed:
+        // neither a shadow ray nor a bounce would carry anything.
+        let Some(at) = bsdf.at(wo) else {
+            return;
+        };
         if nee {
-            self.direct_light(ray, surf, bsdf, wo, key, true, sink);
+            self.direct_light(ray, surf, &at, key, true, sink);
         }
         let u_lobe = key.uniform(depth, Purpose::BsdfLobe, 0);
         let u = key.uniform2(depth, Purpose::BsdfDirection, 0);
-        let Some(bs) = bsdf.sample(wo, u_lobe, u) else {
+        let Some(bs) = at.sample(u_lobe, u) else {
             return;
         };
         let mut weight = ray.weight * bs.f * surf.n.dot(bs.wi).abs() / bs.pdf;
