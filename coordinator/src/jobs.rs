@@ -33,7 +33,8 @@ pub struct JobEntry {
     pub submitted_at: SystemTime,
     /// Tiles in the image.
     pub tiles_total: u32,
-    cancel: AtomicBool,
+    /// Shared with the scene load, which stops when it is set.
+    cancel: Arc<AtomicBool>,
     tiles_done: AtomicU32,
     rays_in_flight: AtomicU64,
     inner: Mutex<Inner>,
@@ -147,6 +148,12 @@ impl JobEntry {
     /// Whether CancelJob (or the server's shutdown) asked the job to stop.
     pub fn is_cancelled(&self) -> bool {
         self.cancel.load(Ordering::Relaxed)
+    }
+
+    /// The flag [`JobEntry::cancel`] sets, for work that runs apart from the job (its
+    /// scene load) and stops when it is set.
+    pub(crate) fn cancel_flag(&self) -> &Arc<AtomicBool> {
+        &self.cancel
     }
 
     /// Set the number of committed tiles (distributed jobs count them in the ledger).
@@ -319,7 +326,7 @@ impl JobTable {
             tiles_total: render::tiles(spec.width, spec.height).len() as u32,
             spec,
             submitted_at: SystemTime::now(),
-            cancel: AtomicBool::new(false),
+            cancel: Arc::new(AtomicBool::new(false)),
             tiles_done: AtomicU32::new(0),
             rays_in_flight: AtomicU64::new(0),
             inner: Mutex::new(Inner {

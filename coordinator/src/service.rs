@@ -4,6 +4,7 @@
 use std::future::Future;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::time::Duration;
 
 use dray_core::scene::Scene;
@@ -40,6 +41,15 @@ pub struct Coordinator {
     limits: Limits,
     scene_root: PathBuf,
     cluster: Arc<Cluster>,
+    loads: Arc<SceneLoads>,
+}
+
+/// Scene loads running off the request path, and how many a CancelJob stopped before
+/// they finished: a cancelled job's load must end, not hold its memory for minutes.
+#[derive(Debug, Default)]
+struct SceneLoads {
+    running: AtomicUsize,
+    stopped: AtomicU64,
 }
 
 impl Coordinator {
@@ -53,7 +63,17 @@ impl Coordinator {
             limits: Limits::default(),
             scene_root,
             cluster: Arc::new(Cluster::new(ClusterOptions::default())),
+            loads: Arc::default(),
         })
+    }
+
+    /// Scene loads running now on blocking threads, and loads that a CancelJob stopped
+    /// part-way (since the coordinator started).
+    pub fn scene_loads(&self) -> (usize, u64) {
+        (
+            self.loads.running.load(Ordering::SeqCst),
+            self.loads.stopped.load(Ordering::SeqCst),
+        )
     }
 
     /// The same coordinator with admission limits: at most `max_jobs` jobs queued or
@@ -124,7 +144,9 @@ impl Coordinator {
         self.check_placement(&v)?;
         if loaded.is_some() || v.package.is_some() {
             let v2 = v.clone();
-            let prepared = tokio::task::spawn_blocking(move || prepare(&v2, loaded))
+            // Prepared within this call: nothing can cancel it before it has an id.
+            let never = Arc::new(AtomicBool::new(false));
+            let prepared = tokio::task::spawn_blocking(move || prepare(&v2, loaded, &never))
                 .await
                 .map_err(|e| Status::internal(format!("scene loading task died: {e}")))??;
             let job = self.table.insert(v.spec.clone());
@@ -136,11 +158,18 @@ impl Coordinator {
         tracing::info!(id = %job.id, scene = %job.spec.scene, "job accepted; preparing its scene");
         let (this, entry) = (self.clone(), job.clone());
         tokio::spawn(async move {
-            let v2 = v.clone();
-            let loaded = tokio::task::spawn_blocking(move || prepare(&v2, None)).await;
-            // A job cancelled while its scene loaded is already CANCELLED; the scene is
+            let (v2, cancel) = (v.clone(), entry.cancel_flag().clone());
+            this.loads.running.fetch_add(1, Ordering::SeqCst);
+            let loaded = tokio::task::spawn_blocking(move || prepare(&v2, None, &cancel)).await;
+            this.loads.running.fetch_sub(1, Ordering::SeqCst);
+            // A job cancelled while its scene loaded is already CANCELLED; its load
+            // stopped at the next primitive (or chunk of elements), and what it made is
             // dropped here.
             if entry.is_cancelled() {
+                if matches!(loaded, Ok(Err(_))) {
+                    this.loads.stopped.fetch_add(1, Ordering::SeqCst);
+                    tracing::info!(id = %entry.id, "scene load stopped: the job was cancelled");
+                }
                 return;
             }
             let outcome = match loaded {

@@ -7,6 +7,8 @@
 //! [`prepare`], which the server calls on a blocking thread before it answers SubmitJob.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
 
 use dray_core::camera::Camera;
 use dray_core::effects::Effect;
@@ -502,7 +504,14 @@ pub struct Prepared {
 /// already in memory (a process hosting the coordinator, as `dray render` does, hands
 /// over the scene it loaded instead of having it read twice); it is translated here like
 /// a loaded one. Blocking.
-pub fn prepare(v: &Validated, loaded: Option<Scene>) -> Result<Prepared, Status> {
+///
+/// A scene loaded here stops early once `cancel` is set (CancelJob during PREPARING): it
+/// then fails with a message saying so, for a job that is already CANCELLED.
+pub fn prepare(
+    v: &Validated,
+    loaded: Option<Scene>,
+    cancel: &Arc<AtomicBool>,
+) -> Result<Prepared, Status> {
     let s = &v.spec;
     let (mut scene, package) = match (&v.package, loaded) {
         (_, Some(scene)) => (scene, None),
@@ -512,7 +521,7 @@ pub fn prepare(v: &Validated, loaded: Option<Scene>) -> Result<Prepared, Status>
             (package_scene(&pkg), Some(pkg))
         }
         (None, None) => {
-            let scene = dray_scene::load(&v.scene_spec)
+            let scene = dray_scene::load_cancellable(&v.scene_spec, cancel)
                 .map_err(|e| bad(format!("scene: cannot load {:?}: {e}", s.scene)))?;
             (scene, None)
         }

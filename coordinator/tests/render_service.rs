@@ -23,6 +23,8 @@ use tonic_reflection::pb::v1::server_reflection_response::MessageResponse;
 /// A server on a free port; stopped when dropped, even if the test panics.
 struct Server {
     addr: std::net::SocketAddr,
+    /// A handle on the served coordinator (clones share its state).
+    coordinator: Coordinator,
     stop: Option<tokio::sync::oneshot::Sender<()>>,
     task: tokio::task::JoinHandle<()>,
 }
@@ -32,9 +34,10 @@ impl Server {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let addr = listener.local_addr().unwrap();
         let coordinator = Coordinator::new(root, 0).unwrap();
+        let served = coordinator.clone();
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
         let task = tokio::spawn(async move {
-            dray_coordinator::serve(listener, coordinator, async {
+            dray_coordinator::serve(listener, served, async {
                 rx.await.ok();
             })
             .await
@@ -42,6 +45,7 @@ impl Server {
         });
         Server {
             addr,
+            coordinator,
             stop: Some(tx),
             task,
         }
@@ -388,11 +392,12 @@ async fn scenes_load_after_submit_and_a_loading_job_can_be_cancelled() {
     let error = job.progress.unwrap().error;
     assert!(error.starts_with("camera:"), "{error}");
 
-    // A million-triangle soup takes a while to make: SubmitJob does not wait for it.
+    // An eight-million-triangle soup takes seconds to make: SubmitJob does not wait for
+    // it, and CancelJob stops it part-way.
     let id = submit(
         &mut c,
         JobSpec {
-            scene: "soup:1000000".into(),
+            scene: "soup:8000000".into(),
             ..cornell(8, 8, 1)
         },
     )
@@ -410,6 +415,22 @@ async fn scenes_load_after_submit_and_a_loading_job_can_be_cancelled() {
     assert_eq!(state(&after), Some(JobState::Cancelled));
     let (end, _) = watch(&mut c, &id).await;
     assert_eq!(end, JobState::Cancelled);
+    // The load stops at its next chunk of triangles, and what it made is dropped (a
+    // limit that only catches a hang: no load is left running, and it was stopped, not
+    // finished).
+    let mut loads = server.coordinator.scene_loads();
+    for _ in 0..2400 {
+        if loads.0 == 0 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        loads = server.coordinator.scene_loads();
+    }
+    assert_eq!(
+        loads,
+        (0, 1),
+        "(loads running, loads stopped by a cancel): the cancelled job's load must stop"
+    );
 
     // The server goes on: the next job loads and renders.
     let next = submit(&mut c, cornell(16, 16, 1)).await.unwrap();

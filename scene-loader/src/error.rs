@@ -29,6 +29,9 @@ pub enum SceneError {
     Procedural { spec: String, message: String },
     #[error("{path}: scene has no triangles")]
     Empty { path: PathBuf },
+    /// The load was cancelled ([`crate::cancel::load_cancellable`]).
+    #[error("loading was cancelled")]
+    Cancelled,
 }
 
 pub type Result<T> = std::result::Result<T, SceneError>;

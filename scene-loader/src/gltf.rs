@@ -530,6 +530,7 @@ impl Loader<'_> {
     }
 
     fn decode_image(&self, index: usize) -> Result<DecodedImage> {
+        crate::cancel::check()?;
         let image = self
             .root
             .images
@@ -847,6 +848,7 @@ impl Loader<'_> {
                 .name()
                 .map(str::to_string)
                 .unwrap_or_else(|| format!("mesh #{mesh_index}"));
+            crate::cancel::check()?;
             let prims = self.decode_mesh(&mesh, &name)?;
             for &(_, world) in placements.meshes.get(start..end).unwrap_or_default() {
                 for prim in &prims {

@@ -1,6 +1,7 @@
 //! Scene import for dray: glTF 2.0, PLY and OBJ files and procedural scenes, with
 //! validation and effect analysis.
 
+pub mod cancel;
 pub mod effects;
 pub mod error;
 pub mod gltf;
@@ -13,5 +14,6 @@ pub mod procedural;
 pub mod reference;
 pub mod validate;
 
+pub use cancel::load_cancellable;
 pub use error::{Result, SceneError};
 pub use load::load;

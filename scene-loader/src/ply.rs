@@ -846,7 +846,7 @@ const NX: usize = 3;
 const U: usize = 6;
 const SLOTS: usize = 8;
 
-fn read_vertices(cur: &mut Cursor<'_>, element: &Element) -> ParseResult<Vertices> {
+fn read_vertices(cur: &mut Cursor<'_>, element: &Element) -> std::result::Result<Vertices, Stop> {
     let has_scalar = |name: &str| {
         element
             .props
@@ -884,7 +884,7 @@ fn read_vertices(cur: &mut Cursor<'_>, element: &Element) -> ParseResult<Vertice
     let present = |s: usize| slots.contains(&Some(s));
     for (i, axis) in ["x", "y", "z"].iter().enumerate() {
         if !present(X + i) {
-            return Err(format!("vertex element has no scalar property {axis}"));
+            return Err(format!("vertex element has no scalar property {axis}").into());
         }
     }
     let has_normals = (NX..NX + 3).all(present);
@@ -895,6 +895,7 @@ fn read_vertices(cur: &mut Cursor<'_>, element: &Element) -> ParseResult<Vertice
     let mut normals = Vec::with_capacity(if has_normals { cap } else { 0 });
     let mut uvs = Vec::with_capacity(if has_uvs { cap } else { 0 });
     for row in 0..element.count {
+        crate::cancel::check_at(row)?;
         let mut buf = [0.0f64; SLOTS];
         for (p, slot) in element.props.iter().zip(&slots) {
             let at = |e: String| format!("vertex {row}: property {}: {e}", p.name);
@@ -957,6 +958,7 @@ fn read_faces(
     let mut poly: Vec<u32> = Vec::new();
     let mut short_faces = 0u64;
     for row in 0..element.count {
+        crate::cancel::check_at(row)?;
         for (k, p) in element.props.iter().enumerate() {
             let at = |e: String| format!("face {row}: property {}: {e}", p.name);
             match p.kind {

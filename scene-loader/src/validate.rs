@@ -47,6 +47,7 @@ pub fn add_primitive(
     origin: Origin<'_>,
     prim: Primitive<'_>,
 ) -> Result<()> {
+    crate::cancel::check()?;
     let n = prim.positions.len();
     check_positions(origin, prim.positions)?;
     let check_len = |name: &str, len: Option<usize>| -> Result<()> {

@@ -454,6 +454,7 @@ fn extract(
     let mut vertices = 0u64;
     let mut triangles = 0u64;
     for k in 0..res {
+        crate::cancel::check()?;
         fill(&mut above, k + 1);
         slab.clear();
         let first_vertex = vertices;
