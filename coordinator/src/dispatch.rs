@@ -379,9 +379,16 @@ pub fn spawn(cluster: Arc<Cluster>, entry: Arc<JobEntry>, planned: Planned) {
     let span = tracing::info_span!("job", id = %entry.id, scene = %entry.spec.scene);
     tokio::spawn(
         async move {
-            if let Err(e) = run(&cluster, &entry, planned).await {
-                tracing::warn!("job failed before it started: {e}");
-                entry.finish(JobState::Failed, e.to_string(), None);
+            match run(&cluster, &entry, planned).await {
+                Ok(()) => {}
+                // CANCELLED already; the package was stopped part-way and removed.
+                Err(e) if entry.is_cancelled() => {
+                    tracing::info!("job cancelled before it started: {e}");
+                }
+                Err(e) => {
+                    tracing::warn!("job failed before it started: {e}");
+                    entry.finish(JobState::Failed, e.to_string(), None);
+                }
             }
         }
         .instrument(span),
@@ -404,10 +411,15 @@ async fn run(
     let dir2 = dir.clone();
     let memory = cluster.options.memory_packages.clone();
     let walls = setup_spec.ray_cache.is_some() || setup_spec.phm.is_some();
-    let info =
-        tokio::task::spawn_blocking(move || make_package(package, &dir2, memory.as_ref(), walls))
-            .await
-            .map_err(|e| DispatchError::Task(e.to_string()));
+    // CancelJob stops the cut part-way (its files are removed below).
+    let cancel = entry.cancel_flag().clone();
+    let info = tokio::task::spawn_blocking(move || {
+        dray_scene::cancel::with_cancel(&cancel, || {
+            make_package(package, &dir2, memory.as_ref(), walls)
+        })
+    })
+    .await
+    .map_err(|e| DispatchError::Task(e.to_string()));
     let info = match info {
         Ok(Ok(i)) => i,
         Ok(Err(e)) | Err(e) => {

@@ -1,4 +1,4 @@
-//! Stopping a load part-way.
+//! Stopping a load (or a package being cut) part-way.
 //!
 //! A coordinator loads a job's scene on a blocking thread while the job is PREPARING. A
 //! job cancelled then (or a coordinator stopping) must not go on parsing or generating
@@ -28,7 +28,13 @@ pub(crate) const CHECK_EVERY: usize = 1 << 16;
 
 /// [`crate::load`], ended early with [`SceneError::Cancelled`] once `cancel` is set.
 pub fn load_cancellable(spec: &str, cancel: &Arc<AtomicBool>) -> Result<Scene> {
-    /// Puts back the caller's flag (a nested load, or none) however the load ends.
+    with_cancel(cancel, || crate::load(spec))
+}
+
+/// Run `f` (a load, or a package being cut into domains) so that the loaders and the
+/// partitioner inside it stop with [`SceneError::Cancelled`] once `cancel` is set.
+pub fn with_cancel<R>(cancel: &Arc<AtomicBool>, f: impl FnOnce() -> R) -> R {
+    /// Puts back the caller's flag (a nested call, or none) however `f` ends.
     struct Restore(Option<Arc<AtomicBool>>);
     impl Drop for Restore {
         fn drop(&mut self) {
@@ -38,8 +44,8 @@ pub fn load_cancellable(spec: &str, cancel: &Arc<AtomicBool>) -> Result<Scene> {
     }
     let previous = FLAG.with(|f| f.borrow_mut().replace(cancel.clone()));
     let _restore = Restore(previous);
-    // No look before the load starts: the loaders' own looks are what the tests reach.
-    crate::load(spec)
+    // No look before `f` starts: the loaders' own looks are what the tests reach.
+    f()
 }
 
 /// `Err(Cancelled)` when the load running on this thread was cancelled.

@@ -961,3 +961,22 @@ fn ply_with_faces_first_streams_as_the_loaded_scene() {
         .unwrap();
     assert_eq!(n, 2);
 }
+
+#[test]
+fn a_cancelled_cut_stops_and_leaves_no_package() {
+    let tmp = TmpDir::new("cancelled-cut");
+    let scene = load("soup:500");
+    let flag = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
+    let e = dray_scene::cancel::with_cancel(&flag, || {
+        write_scene_package(&tmp.0, &scene, &LayoutSpec::Kd(4))
+    })
+    .unwrap_err();
+    assert!(matches!(e, dray_scene::SceneError::Cancelled), "{e}");
+    assert!(
+        open_package(&tmp.0).is_err(),
+        "a cancelled cut left a package"
+    );
+    // Outside the call the same cut goes through.
+    write_scene_package(&tmp.0, &scene, &LayoutSpec::Kd(4)).unwrap();
+    open_package(&tmp.0).unwrap().verify().unwrap();
+}

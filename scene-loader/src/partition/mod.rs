@@ -258,6 +258,7 @@ pub fn survey(source: &dyn TriangleSource, sample_capacity: usize) -> Result<Sur
     };
     let mut rng = 0x9A27_1710_0000_0003u64;
     source.for_each_triangle(&mut |t| {
+        crate::cancel::check_at(t.id as usize)?;
         for p in t.positions {
             s.bounds.grow(p);
         }

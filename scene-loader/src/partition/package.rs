@@ -264,6 +264,7 @@ pub fn write_package(
     let mut emitters = DomainBuilder::new();
     let mut record = Vec::with_capacity(RECORD_BYTES);
     source.for_each_triangle(&mut |t| {
+        crate::cancel::check_at(seen as usize)?;
         seen += 1;
         if seen > s.triangles || t.id as u64 >= s.triangles {
             return Err(format_error(
@@ -317,6 +318,7 @@ pub fn write_package(
     tracing::info!("pass 2 done");
 
     // Compact each domain into its file, a few at a time.
+    crate::cancel::check()?;
     let entries = finalize_domains(dir, &spills, &layout, options.threads)?;
     cleanup.paths.clear();
     tracing::info!("domain files written");
