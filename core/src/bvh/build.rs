@@ -56,14 +56,19 @@ pub fn build(aabbs: &[Aabb]) -> Bvh2 {
         // A median cut from here ends at depth + ceil(log2(count)); once that reaches
         // the limit, only median cuts keep the promise.
         let force_median = task.depth + ceil_log2(count) >= MAX_DEPTH;
-        let mid = if force_median {
-            median_cut(range, &centroids)
+        let sah = if force_median {
+            None
         } else {
-            sah_cut(range, aabbs, &centroids).unwrap_or_else(|| median_cut(range, &centroids))
+            sah_cut(range, aabbs, &centroids)
         };
-        let (left, right) = range.split_at(mid);
-        let left_box = bounds(aabbs, left);
-        let right_box = bounds(aabbs, right);
+        let (mid, left_box, right_box) = match sah {
+            Some(cut) => cut,
+            None => {
+                let mid = median_cut(range, &centroids);
+                let (left, right) = range.split_at(mid);
+                (mid, bounds(aabbs, left), bounds(aabbs, right))
+            }
+        };
         let first = nodes.len();
         nodes.push(Bvh2Node::new(left_box, 0, 0));
         nodes.push(Bvh2Node::new(right_box, 0, 0));
@@ -136,62 +141,94 @@ fn median_cut(range: &mut [u32], centroids: &[Vec3A]) -> usize {
 }
 
 /// The binned-SAH cut of `range`: reorders it so the left side comes first and returns
-/// the cut, or `None` when no bin boundary separates the centroids (or the costs are
-/// not finite), for the caller to cut at the median instead.
-fn sah_cut(range: &mut [u32], aabbs: &[Aabb], centroids: &[Vec3A]) -> Option<usize> {
+/// the cut with the two sides' bounds, or `None` when no bin boundary separates the
+/// centroids (or the costs are not finite), for the caller to cut at the median instead.
+///
+/// One pass bins every axis, and the sides' bounds are the unions of their bins' boxes:
+/// min and max are exact, so they are the very boxes a pass over each side would give.
+fn sah_cut(range: &mut [u32], aabbs: &[Aabb], centroids: &[Vec3A]) -> Option<(usize, Aabb, Aabb)> {
     let (lo, hi) = centroid_bounds(range, centroids);
     let extent = hi - lo;
-    let mut best: Option<(f32, usize, usize)> = None; // (cost, axis, first right bin)
-    for axis in 0..3 {
-        // Zero, NaN and infinite extents have no bins to place.
-        if !(extent[axis].is_finite() && extent[axis] > 0.0) {
-            continue;
-        }
-        let to_bin = bin_scale(extent[axis]);
-        let mut count = [0u32; BINS];
-        let mut boxes = [Aabb::empty(); BINS];
-        for &i in range.iter() {
-            let b = bin_of(centroids[i as usize][axis], lo[axis], to_bin);
-            count[b] += 1;
-            boxes[b] = boxes[b].union(&aabbs[i as usize]);
-        }
-        // Right-hand sweep: area and count of bins k.. for every k.
-        let mut right_area = [0f32; BINS];
-        let mut right_count = [0u32; BINS];
-        let mut acc = Aabb::empty();
-        let mut acc_count = 0;
-        for k in (1..BINS).rev() {
-            acc = acc.union(&boxes[k]);
-            acc_count += count[k];
-            right_area[k] = acc.half_area();
-            right_count[k] = acc_count;
-        }
-        let mut acc = Aabb::empty();
-        let mut acc_count = 0;
-        for k in 1..BINS {
-            acc = acc.union(&boxes[k - 1]);
-            acc_count += count[k - 1];
-            if acc_count == 0 || right_count[k] == 0 {
-                continue;
-            }
-            let cost = acc.half_area() * acc_count as f32 + right_area[k] * right_count[k] as f32;
-            if cost.is_finite() && best.is_none_or(|(c, _, _)| cost < c) {
-                best = Some((cost, axis, k));
+    // Zero, NaN and infinite extents have no bins to place.
+    let binned = [0, 1, 2].map(|axis| extent[axis].is_finite() && extent[axis] > 0.0);
+    let to_bin = [0, 1, 2].map(|axis| bin_scale(extent[axis]));
+    let mut count = [[0u32; BINS]; 3];
+    let mut boxes = [[Aabb::empty(); BINS]; 3];
+    for &i in range.iter() {
+        let (c, b) = (centroids[i as usize], &aabbs[i as usize]);
+        for axis in 0..3 {
+            if binned[axis] {
+                let k = bin_of(c[axis], lo[axis], to_bin[axis]);
+                count[axis][k] += 1;
+                boxes[axis][k] = boxes[axis][k].union(b);
             }
         }
     }
+    let mut best: Option<(f32, usize, usize)> = None; // (cost, axis, first right bin)
+    for axis in (0..3).filter(|&a| binned[a]) {
+        sweep(&count[axis], &boxes[axis], axis, &mut best);
+    }
     let (_, axis, split) = best?;
-    let to_bin = bin_scale(extent[axis]);
     // Two-pointer partition: left of `mid` the bins below `split`.
     let mut mid = 0;
     for j in 0..range.len() {
         let i = range[j];
-        if bin_of(centroids[i as usize][axis], lo[axis], to_bin) < split {
+        if bin_of(centroids[i as usize][axis], lo[axis], to_bin[axis]) < split {
             range.swap(j, mid);
             mid += 1;
         }
     }
-    (mid > 0 && mid < range.len()).then_some(mid)
+    if !(mid > 0 && mid < range.len()) {
+        return None;
+    }
+    let union = |bins: &[Aabb]| bins.iter().fold(Aabb::empty(), |a, b| a.union(b));
+    let sides = (union(&boxes[axis][..split]), union(&boxes[axis][split..]));
+    Some((mid, sides.0, sides.1))
+}
+
+/// The best SAH cut among `axis`'s bins, kept in `best` (cost, axis, first right bin)
+/// when cheaper than what it holds (of equal costs the first found stays).
+///
+/// Only cuts just above an occupied bin are looked at: a run of empty bins leaves both
+/// sides and the cost as they were, and of equal costs the first (that one) wins, so
+/// the cut is the one a sweep over every bin finds (a test holds the two together).
+/// Near the leaves most bins are empty.
+fn sweep(
+    count: &[u32; BINS],
+    boxes: &[Aabb; BINS],
+    axis: usize,
+    best: &mut Option<(f32, usize, usize)>,
+) {
+    let mut occupied = [0usize; BINS];
+    let mut m = 0;
+    for (k, &c) in count.iter().enumerate() {
+        if c > 0 {
+            occupied[m] = k;
+            m += 1;
+        }
+    }
+    // Right-hand sweep: area and count of occupied bins j.. for every j >= 1.
+    let mut right_area = [0f32; BINS];
+    let mut right_count = [0u32; BINS];
+    let mut acc = Aabb::empty();
+    let mut acc_count = 0;
+    for j in (1..m).rev() {
+        acc = acc.union(&boxes[occupied[j]]);
+        acc_count += count[occupied[j]];
+        right_area[j] = acc.half_area();
+        right_count[j] = acc_count;
+    }
+    let mut acc = Aabb::empty();
+    let mut acc_count = 0;
+    for j in 1..m {
+        let below = occupied[j - 1];
+        acc = acc.union(&boxes[below]);
+        acc_count += count[below];
+        let cost = acc.half_area() * acc_count as f32 + right_area[j] * right_count[j] as f32;
+        if cost.is_finite() && best.is_none_or(|(c, _, _)| cost < c) {
+            *best = Some((cost, axis, below + 1));
+        }
+    }
 }
 
 #[inline]
@@ -233,6 +270,72 @@ mod tests {
             .collect();
         out.sort_unstable();
         out
+    }
+
+    /// The sweep over every bin that [`sweep`] shortens.
+    fn full_sweep(
+        count: &[u32; BINS],
+        boxes: &[Aabb; BINS],
+        axis: usize,
+        best: &mut Option<(f32, usize, usize)>,
+    ) {
+        let mut right_area = [0f32; BINS];
+        let mut right_count = [0u32; BINS];
+        let mut acc = Aabb::empty();
+        let mut acc_count = 0;
+        for k in (1..BINS).rev() {
+            acc = acc.union(&boxes[k]);
+            acc_count += count[k];
+            right_area[k] = acc.half_area();
+            right_count[k] = acc_count;
+        }
+        let mut acc = Aabb::empty();
+        let mut acc_count = 0;
+        for k in 1..BINS {
+            acc = acc.union(&boxes[k - 1]);
+            acc_count += count[k - 1];
+            if acc_count == 0 || right_count[k] == 0 {
+                continue;
+            }
+            let cost = acc.half_area() * acc_count as f32 + right_area[k] * right_count[k] as f32;
+            if cost.is_finite() && best.is_none_or(|(c, _, _)| cost < c) {
+                *best = Some((cost, axis, k));
+            }
+        }
+    }
+
+    #[test]
+    fn skipping_empty_bins_finds_the_cut_a_full_sweep_finds() {
+        let mut seed = 0x2545_F491_4F6C_DD1Du64;
+        let mut next = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed
+        };
+        for round in 0..20_000 {
+            let mut count = [0u32; BINS];
+            let mut boxes = [Aabb::empty(); BINS];
+            // Few occupied bins (as near the leaves), some with equal boxes (ties).
+            let occupied = 1 + (next() % if round % 2 == 0 { 4 } else { BINS as u64 });
+            for _ in 0..occupied {
+                let k = (next() % BINS as u64) as usize;
+                let f = |r: u64| (r % 8) as f32 * 0.5;
+                let lo = Vec3A::new(f(next()), f(next()), f(next()));
+                count[k] += 1 + (next() % 3) as u32;
+                boxes[k] = boxes[k].union(&Aabb::new(lo, lo + 0.5 + f(next())));
+            }
+            let (mut a, mut b) = (None, None);
+            for axis in 0..3 {
+                sweep(&count, &boxes, axis, &mut a);
+                full_sweep(&count, &boxes, axis, &mut b);
+            }
+            assert_eq!(
+                a.map(|(c, x, k)| (c.to_bits(), x, k)),
+                b.map(|(c, x, k)| (c.to_bits(), x, k)),
+                "round {round}: {count:?}"
+            );
+        }
     }
 
     #[test]
