@@ -223,6 +223,79 @@ class OtherLoad:
         return max(0.0, (busy - (self._ours() - self.ours0)) / max(wall, 1e-9))
 
 
+def embree_build(tris) -> tuple:
+    """Build an Embree BVH over `tris` ((n, 3, 3) float32, unwelded) through embreex, timing
+    each stage. Returns (scene, timings). Needs the venv (numpy, embreex).
+
+    embreex gives no way to call rtcCommitScene or to pass rtcNewDevice a config (its
+    `EmbreeDevice()` calls `rtcNewDevice(NULL)`, and this Embree build reads no
+    ~/.embree4 file), so:
+    - `device_s`: `EmbreeDevice()` + `EmbreeScene(device)` (rtcNewDevice, TBB start-up,
+      rtcNewScene);
+    - `copy_s`: `TriangleMesh(scene, tris)`: embreex copies every vertex into Embree's
+      buffers in an untyped Cython loop (Python-speed indexing; slow, and not Embree's
+      cost), then rtcCommitGeometry + rtcAttachGeometry;
+    - `commit_s`: the BVH build. embreex commits the scene lazily in the first `run()`;
+      `first_query_s` times that first run() of one ray (checked: `is_committed` goes
+      from 0 to 1 inside it), `query_s` is the median of later 1-ray run() calls on the
+      built scene, and `commit_s = first_query_s - query_s`.
+    One thread: Embree builds with one TBB worker per core of the process's affinity
+    mask, so the caller pins the process to one core (taskset -c CORE);
+    `threads_in_process` and `commit_cpu_s` (process CPU time over the first run) show it.
+    The one-ray query aims at the centroid of triangle 0 from outside the bounds, so it
+    must hit: a scene that built nothing would fail the check.
+    """
+    import numpy as np
+    from embreex import mesh_construction, rtcore, rtcore_scene
+
+    tris = np.ascontiguousarray(tris, dtype=np.float32)
+    lo, hi = tris.reshape(-1, 3).min(0), tris.reshape(-1, 3).max(0)
+    target = tris[0].mean(0)
+    origin = (hi + (hi - lo) + 1.0).astype(np.float32)
+    d = (target - origin).astype(np.float64)
+    o1 = origin.reshape(1, 3).astype(np.float32)
+    d1 = (d / np.linalg.norm(d)).reshape(1, 3).astype(np.float32)
+
+    t0 = time.perf_counter()
+    device = rtcore.EmbreeDevice()
+    scene = rtcore_scene.EmbreeScene(device)
+    t1 = time.perf_counter()
+    mesh = mesh_construction.TriangleMesh(scene, tris)
+    t2 = time.perf_counter()
+    committed_before = int(scene.is_committed)
+    c0 = time.process_time()
+    t3 = time.perf_counter()
+    dist = scene.run(o1, d1, query="DISTANCE")
+    t4 = time.perf_counter()
+    commit_cpu = time.process_time() - c0
+    committed_after = int(scene.is_committed)
+    if committed_before != 0 or committed_after != 1:
+        raise RuntimeError(f"embreex did not commit inside the first run() (is_committed {committed_before} -> "
+                           f"{committed_after}): the build was not timed")
+    if not float(dist[0]) < 1e37:
+        raise RuntimeError("the check ray towards triangle 0 missed: the Embree scene is empty or broken")
+    q = []
+    for _ in range(200):
+        t = time.perf_counter()
+        scene.run(o1, d1, query="DISTANCE")
+        q.append(time.perf_counter() - t)
+    query_s = sorted(q)[len(q) // 2]
+    first = t4 - t3
+    timings = {
+        "device_s": t1 - t0,
+        "copy_s": t2 - t1,
+        "first_query_s": first,
+        "query_s": query_s,
+        "commit_s": max(first - query_s, 0.0),
+        "commit_cpu_s": commit_cpu,
+        "threads_in_process": len(os.listdir("/proc/self/task")),
+        "embree_version": repr(device).split(":", 1)[-1].strip(),
+        "check_ray_t": float(dist[0]),
+    }
+    del mesh  # the scene holds the attached geometry (and the device)
+    return scene, timings
+
+
 def binary_info(path: Path) -> dict:
     import hashlib
 
@@ -272,3 +345,16 @@ class Cluster:
                 self.p.kill()
                 self.p.wait()
         self.logf.close()
+
+
+def save_results(path, info: dict, args, results: list, load) -> None:
+    """Write results.json: the machine facts (with the other processes' average load
+    during the run, from `load`), the arguments and the results."""
+    import json
+    from pathlib import Path as _Path
+
+    info["other_processes_cores_during_run"] = round(load.cores(), 2)
+    out = {"machine": info, "args": {k: (str(v) if isinstance(v, _Path) else v) for k, v in vars(args).items()},
+           "results": results}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out, indent=2) + "\n")
