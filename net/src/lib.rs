@@ -14,10 +14,12 @@
 //! - [`client`]: channels that present a token (and speak TLS when asked).
 //! - [`tls`]: certificate files for both sides.
 //! - [`trace`]: W3C trace context in gRPC metadata (when the process exports traces).
+//! - [`contain`]: panics in handlers and tasks become errors with their message.
 
 pub mod admission;
 pub mod auth;
 pub mod client;
+pub mod contain;
 pub mod credential;
 pub mod peer_pass;
 pub mod server;

@@ -8,6 +8,8 @@
 //! 2. [`AdmissionLayer`]: at most `max_calls` calls in progress; more are refused at
 //!    once with RESOURCE_EXHAUSTED (load shedding), and public API calls end with
 //!    DEADLINE_EXCEEDED after `api_timeout`.
+//! 3. [`ContainLayer`]: a handler that panics answers INTERNAL with the panic's message
+//!    instead of taking the connection (and every other call on it) down.
 //!
 //! Health (`grpc.health.v1`) and reflection (v1 and v1alpha) are added to every
 //! server; TCP_NODELAY is set on every connection (small replies would otherwise wait
@@ -23,6 +25,7 @@ use tonic::transport::server::TcpIncoming;
 
 use crate::admission::AdmissionLayer;
 use crate::auth::{AuthLayer, AuthPolicy};
+use crate::contain::ContainLayer;
 use crate::credential::Token;
 use crate::tls::{TlsError, TlsFiles};
 
@@ -109,6 +112,7 @@ pub async fn serve(
         .layer(crate::trace::TraceLayer)
         .layer(AuthLayer::new(options.auth.clone()))
         .layer(AdmissionLayer::new(options.max_calls, options.api_timeout))
+        .layer(ContainLayer)
         .into_inner();
     let mut builder = tonic::transport::Server::builder();
     if let Some(tls) = &options.tls {

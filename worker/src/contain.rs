@@ -12,14 +12,9 @@ use std::panic::{AssertUnwindSafe, catch_unwind};
 /// Run `f`; a panic inside it becomes `Err` with the panic's message.
 pub(crate) fn contained<T>(f: impl FnOnce() -> T) -> Result<T, String> {
     catch_unwind(AssertUnwindSafe(f)).map_err(|payload| {
-        let message = payload
-            .downcast_ref::<&str>()
-            .map(|s| (*s).to_string())
-            .or_else(|| payload.downcast_ref::<String>().cloned())
-            .unwrap_or_else(|| "a panic without a message".to_string());
         // Bounded: the message goes to the coordinator and into GetJob.
-        let short: String = message.chars().take(300).collect();
-        format!("internal error (a panic while tracing, contained): {short}")
+        let message = dray_net::contain::panic_message(payload.as_ref());
+        format!("internal error (a panic while tracing, contained): {message}")
     })
 }
 

@@ -255,7 +255,7 @@ pub async fn run(
             .map_err(|e| NodeError::Threads(e.to_string()))?;
         tracers.push(t);
     }
-    let reporter = tokio::spawn(reporter::report_loop(shared.clone(), stop_rx.clone()));
+    let reporter = tokio::spawn(reporter::supervised(shared.clone(), stop_rx.clone()));
     let session = coordinator_link::sessions(
         shared.clone(),
         registration,

@@ -247,7 +247,22 @@ impl RayExchangeService for PeerServer {
             next_sequence: 1,
             scratch: Vec::new(),
         };
-        tokio::spawn(receiver.run(inbound, tx, open.sender_id));
+        // A panic while taking the peer's rays ends this stream with the panic's
+        // message to the sender, not silently (the sender reports it; the job fails).
+        let fail = tx.clone();
+        let sender = open.sender_id.clone();
+        tokio::spawn(async move {
+            if let Err(panic) =
+                dray_net::contain::contained(receiver.run(inbound, tx, sender)).await
+            {
+                tracing::error!(sender = %open.sender_id, %panic, "ray stream receiver panicked");
+                let _ = fail
+                    .send(Err(Status::internal(format!(
+                        "internal error (a panic while receiving rays, contained): {panic}"
+                    ))))
+                    .await;
+            }
+        });
         Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
     }
 }

@@ -27,6 +27,24 @@ const MAX_SUMS_PER_REPORT: usize = 64 * 1024;
 /// How often queue lengths are reported (the scheduler's input).
 pub const QUEUE_REPORT_INTERVAL: Duration = Duration::from_millis(100);
 
+/// [`report_loop`], started again a second after a panic: a bug met while reporting one
+/// job must not silently stop the credit of every job on this worker (a job whose
+/// report keeps panicking stalls, and the coordinator's stall timeout ends it).
+pub(crate) async fn supervised(shared: Arc<Shared>, mut stop: watch::Receiver<bool>) {
+    loop {
+        match dray_net::contain::contained(report_loop(shared.clone(), stop.clone())).await {
+            Ok(()) => return,
+            Err(panic) => {
+                tracing::error!(%panic, "the reporter panicked; it starts again in 1 s");
+                tokio::select! {
+                    _ = tokio::time::sleep(std::time::Duration::from_secs(1)) => {}
+                    _ = stop.wait_for(|s| *s) => return,
+                }
+            }
+        }
+    }
+}
+
 pub(crate) async fn report_loop(shared: Arc<Shared>, mut stop: watch::Receiver<bool>) {
     let mut last_queues = tokio::time::Instant::now();
     loop {
