@@ -60,8 +60,9 @@ pub struct WorkerArgs {
     #[arg(long, value_name = "MODE", default_value = "auto", value_parser = parse_fetch_mode)]
     pub fetch_packages: dray_worker::package_fetch::FetchMode,
     /// Directory for fetched packages (kept for later jobs of the same package; one
-    /// directory per worker). Default: a directory in the system's temp directory,
-    /// removed when the worker stops.
+    /// directory per worker, locked while it runs: a second worker given the same one
+    /// refuses to start). Default: a directory in the system's temp directory, removed
+    /// when the worker stops.
     #[arg(long, value_name = "DIR")]
     pub package_cache: Option<std::path::PathBuf>,
     #[command(flatten)]

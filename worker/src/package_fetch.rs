@@ -140,6 +140,31 @@ pub enum FetchError {
     PackageId(String),
     #[error("domain {0} is not in the package's manifest")]
     NoDomain(u32),
+    #[error(
+        "package cache {0}: another worker is using it ({LOCK_FILE} there is locked); give each worker its own --package-cache"
+    )]
+    InUse(PathBuf),
+}
+
+/// The file in a given cache directory that its worker holds locked while it runs: two
+/// workers writing the same partial files would corrupt each other's downloads.
+pub const LOCK_FILE: &str = ".dray-worker.lock";
+
+/// Lock `root`'s [`LOCK_FILE`] for this process (an advisory lock the OS drops when the
+/// process ends, however it ends), or say that another worker holds it.
+fn lock_cache(root: &Path) -> Result<std::fs::File, FetchError> {
+    let path = root.join(LOCK_FILE);
+    let file = std::fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .map_err(io_err(&path))?;
+    match file.try_lock() {
+        Ok(()) => Ok(file),
+        Err(std::fs::TryLockError::WouldBlock) => Err(FetchError::InUse(root.to_path_buf())),
+        Err(std::fs::TryLockError::Error(e)) => Err(io_err(&path)(e)),
+    }
 }
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> FetchError + '_ {
@@ -174,6 +199,8 @@ pub struct PackageFetcher {
     /// One lock per file being fetched, so two jobs never write the same partial file.
     files: Mutex<HashMap<PathBuf, Arc<Mutex<()>>>>,
     leases: Mutex<Leases>,
+    /// [`LOCK_FILE`], locked for as long as this fetcher lives (a given directory only).
+    _held: Option<std::fs::File>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -206,6 +233,11 @@ impl PackageFetcher {
             // never makes it).
             std::fs::create_dir_all(&root).map_err(io_err(&root))?;
         }
+        let held = if owned {
+            None
+        } else {
+            Some(lock_cache(&root)?)
+        };
         // Absolute, so a relative --package-cache means the worker's working directory
         // at start, whatever happens later.
         let root = std::path::absolute(&root).map_err(io_err(&root))?;
@@ -217,6 +249,7 @@ impl PackageFetcher {
             mode,
             files: Mutex::new(HashMap::new()),
             leases: Mutex::new(Leases::default()),
+            _held: held,
         })
     }
 
@@ -664,6 +697,20 @@ pub fn expected_of(data: &[u8]) -> Expected {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_cache_directory_takes_one_worker_at_a_time() {
+        let dir = std::env::temp_dir().join(format!("dray-cache-lock-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let first = lock_cache(&dir).unwrap();
+        let e = lock_cache(&dir).unwrap_err();
+        assert!(matches!(e, FetchError::InUse(_)), "{e}");
+        assert!(e.to_string().contains("its own --package-cache"), "{e}");
+        drop(first);
+        let again = lock_cache(&dir).unwrap();
+        drop(again);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 
     #[test]
     fn modes_by_name() {
