@@ -321,33 +321,26 @@ fn output_paths_are_checked_before_rendering() {
     assert!(folder.is_dir(), "the folder is left alone");
     // --exr and --stats get the same checks; a good --output is not created by them.
     let png = root.join("fine.png");
-    let out = dray(&[
-        "render",
-        "cornell",
-        "--output",
-        png.to_str().unwrap(),
-        "--exr",
-        root.join("missing/x.exr").to_str().unwrap(),
-    ]);
-    refused(&out, Some(&png), &["--exr", "does not exist"]);
-    let out = dray(&[
-        "render",
-        "cornell",
-        "--output",
-        png.to_str().unwrap(),
-        "--exr",
-        root.join("x.png").to_str().unwrap(),
-    ]);
-    refused(&out, Some(&png), &["--exr", ".exr"]);
-    let out = dray(&[
-        "render",
-        "cornell",
-        "--output",
-        png.to_str().unwrap(),
-        "--stats",
-        folder.to_str().unwrap(),
-    ]);
-    refused(&out, Some(&png), &["--stats", "is a folder"]);
+    let side_cases: [(&str, PathBuf, &[&str]); 3] = [
+        (
+            "--exr",
+            root.join("missing/x.exr"),
+            &["--exr", "does not exist"],
+        ),
+        ("--exr", root.join("x.png"), &["--exr", ".exr"]),
+        ("--stats", folder.clone(), &["--stats", "is a folder"]),
+    ];
+    for (flag, path, words) in side_cases {
+        let out = dray(&[
+            "render",
+            "cornell",
+            "--output",
+            png.to_str().unwrap(),
+            flag,
+            path.to_str().unwrap(),
+        ]);
+        refused(&out, Some(&png), words);
+    }
     // An existing output file is left as it was by the check (and then replaced).
     std::fs::write(&png, b"old").unwrap();
     let out = dray(&[

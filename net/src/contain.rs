@@ -90,19 +90,20 @@ where
     }
 
     fn call(&mut self, req: http::Request<B>) -> Self::Future {
-        let path = req.uri().path().to_string();
+        // A cheap clone (shared bytes): the path is only read if the handler panics.
+        let uri = req.uri().clone();
         // A panic while the call is being set up, before there is a future to poll.
         let fut = match catch_unwind(AssertUnwindSafe(|| self.inner.call(req))) {
             Ok(fut) => fut,
             Err(payload) => {
                 let message = panic_message(payload.as_ref());
-                return Box::pin(async move { Ok(internal(&path, &message)) });
+                return Box::pin(async move { Ok(internal(uri.path(), &message)) });
             }
         };
         Box::pin(async move {
             match contained(fut).await {
                 Ok(r) => r,
-                Err(message) => Ok(internal(&path, &message)),
+                Err(message) => Ok(internal(uri.path(), &message)),
             }
         })
     }
