@@ -28,6 +28,50 @@ pub struct CameraRay {
     pub dir: Vec3,
 }
 
+/// A camera ready to make an image's rays ([`Camera::frustum`]): the rays are those of
+/// [`Camera::generate`], bit for bit, without a tangent per ray.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Frustum {
+    transform: Mat4,
+    shape: Shape,
+    /// The near clip distance, at least 0.
+    znear: f32,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Shape {
+    Perspective { tan_half_yfov: f32, aspect: f32 },
+    Orthographic { xmag: f32, ymag: f32 },
+}
+
+impl Frustum {
+    /// The ray through film position `film` in [0,1]^2 (x right, y down).
+    #[inline]
+    pub fn generate(&self, film: Vec2) -> CameraRay {
+        let sx = film.x * 2.0 - 1.0;
+        let sy = 1.0 - film.y * 2.0;
+        let (o_local, d_local) = match self.shape {
+            Shape::Perspective {
+                tan_half_yfov: th,
+                aspect,
+            } => {
+                let d = Vec3::new(sx * th * aspect, sy * th, -1.0);
+                (d * self.znear, d)
+            }
+            Shape::Orthographic { xmag, ymag } => (
+                Vec3::new(sx * xmag, sy * ymag, -self.znear),
+                Vec3::new(0.0, 0.0, -1.0),
+            ),
+        };
+        let origin = self.transform.transform_point3(o_local);
+        let dir = self
+            .transform
+            .transform_vector3(d_local)
+            .normalize_or_zero();
+        CameraRay { origin, dir }
+    }
+}
+
 impl Camera {
     /// A perspective camera at `eye` looking at `target`.
     pub fn look_at(name: &str, eye: Vec3, target: Vec3, up: Vec3, yfov: f32) -> Camera {
@@ -71,28 +115,25 @@ impl Camera {
     /// The ray through film position `film` in [0,1]^2 (x right, y down), for an image of
     /// the given aspect (width / height).
     pub fn generate(&self, film: Vec2, image_aspect: f32) -> CameraRay {
-        let sx = film.x * 2.0 - 1.0;
-        let sy = 1.0 - film.y * 2.0;
-        let (o_local, d_local) = match self.projection {
-            Projection::Perspective { yfov, aspect } => {
-                let aspect = aspect.unwrap_or(image_aspect);
-                let th = (yfov * 0.5).tan();
-                let d = Vec3::new(sx * th * aspect, sy * th, -1.0);
-                (d * self.znear.max(0.0), d)
-            }
-            Projection::Orthographic { xmag, ymag } => (
-                Vec3::new(sx * xmag, sy * ymag, -self.znear.max(0.0)),
-                Vec3::new(0.0, 0.0, -1.0),
-            ),
-        };
-        let origin = self.transform.transform_point3(o_local);
-        let dir = self
-            .transform
-            .transform_vector3(d_local)
-            .normalize_or_zero();
-        CameraRay { origin, dir }
+        self.frustum(image_aspect).generate(film)
     }
 
+    /// The camera made ready for many rays of an image of the given aspect: what does not
+    /// change from ray to ray (the projection's tangent) is worked out once.
+    pub fn frustum(&self, image_aspect: f32) -> Frustum {
+        let shape = match self.projection {
+            Projection::Perspective { yfov, aspect } => Shape::Perspective {
+                tan_half_yfov: (yfov * 0.5).tan(),
+                aspect: aspect.unwrap_or(image_aspect),
+            },
+            Projection::Orthographic { xmag, ymag } => Shape::Orthographic { xmag, ymag },
+        };
+        Frustum {
+            transform: self.transform,
+            shape,
+            znear: self.znear.max(0.0),
+        }
+    }
     /// True when the camera gives finite, non-degenerate rays.
     pub fn is_valid(&self) -> bool {
         let t_ok = self.transform.is_finite() && self.transform.determinant().abs() > 0.0;

@@ -23,7 +23,16 @@ pub fn to_fixed(v: Vec3) -> Option<[i64; 3]> {
         return None;
     }
     let c = v.clamp(Vec3::ZERO, Vec3::splat(MAX_CONTRIBUTION));
-    Some([c.x, c.y, c.z].map(|x| (x as f64 * FIXED_SCALE).round() as i64))
+    Some([c.x, c.y, c.z].map(|x| round_non_negative(x as f64 * FIXED_SCALE)))
+}
+
+/// `x.round() as i64` for `0 <= x < 2^52`, without the call to libm's `round` that
+/// generic x86-64 code makes for it (three per contribution). Below 2^52 the fraction
+/// `x - trunc(x)` is exact, so this rounds half away from zero exactly as `round` does.
+#[inline]
+fn round_non_negative(x: f64) -> i64 {
+    let t = x as i64;
+    t + i64::from(x - t as f64 >= 0.5)
 }
 
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -183,6 +192,31 @@ pub fn linear_to_srgb8(c: f32) -> u8 {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn rounding_without_libm_matches_round() {
+        // Halves, the float just below a half, tiny values, the largest contribution,
+        // and a sweep of f32 values scaled as contributions are.
+        let mut xs = vec![
+            0.0,
+            0.5,
+            1.5,
+            2.5,
+            0.49999999999999994,
+            1.0 - f64::EPSILON / 2.0,
+        ];
+        xs.push(MAX_CONTRIBUTION as f64 * FIXED_SCALE);
+        let mut f = 1.0e-12f32;
+        while f < MAX_CONTRIBUTION {
+            for g in [f, f.next_up(), f.next_down(), f * 1.37] {
+                xs.push(g as f64 * FIXED_SCALE);
+            }
+            f *= 1.01;
+        }
+        for x in xs {
+            assert_eq!(round_non_negative(x), x.round() as i64, "{x}");
+        }
+    }
+
     use super::*;
 
     #[test]

@@ -15,7 +15,7 @@ use serde::Serialize;
 
 use crate::bsdf::{Bsdf, BsdfAt, BsdfParams, Lobe};
 use crate::bvh::{Hit, QueryRay};
-use crate::camera::Camera;
+use crate::camera::{Camera, Frustum};
 use crate::effects::{Effect, Effects};
 use crate::intersect::offset_ray_origin;
 use crate::light_sampler::{LightRef, LightSample, LightSampler};
@@ -153,6 +153,13 @@ pub struct Integrator<'a> {
     /// Random numbers keyed by a triangle use the scene-wide id, so they are the same
     /// wherever the triangle is shaded.
     pub global_ids: Option<&'a [u32]>,
+    /// `camera` made ready for `settings`' image, once.
+    frustum: Frustum,
+}
+
+/// The image's aspect (width / height), as the camera rays use it.
+fn image_aspect(settings: &RenderSettings) -> f32 {
+    settings.width.max(1) as f32 / settings.height.max(1) as f32
 }
 
 fn power_heuristic(a: f32, b: f32) -> f32 {
@@ -175,6 +182,7 @@ impl<'a> Integrator<'a> {
         Integrator {
             scene,
             lights,
+            frustum: camera.frustum(image_aspect(&settings)),
             settings,
             camera,
             global_ids: None,
@@ -196,6 +204,7 @@ impl<'a> Integrator<'a> {
         Integrator {
             scene,
             lights,
+            frustum: camera.frustum(image_aspect(&settings)),
             settings,
             camera,
             global_ids: Some(global_ids),
@@ -238,9 +247,7 @@ impl<'a> Integrator<'a> {
     /// The camera ray through `film` (image coordinates in [0, 1]^2, y down), labelled
     /// with `pixel` and `sample` (which key its path's random numbers).
     pub fn camera_ray_through(&self, film: Vec2, pixel: u32, sample: u32) -> RayState {
-        let w = self.settings.width.max(1);
-        let aspect = w as f32 / self.settings.height.max(1) as f32;
-        let r = self.camera.generate(film, aspect);
+        let r = self.frustum.generate(film);
         RayState {
             origin: r.origin,
             dir: r.dir,

@@ -37,8 +37,21 @@ pub struct CreditError {
 /// would look complete, and the parent's contributions would arrive too late for the
 /// image.
 pub fn split(credit: u64, kinds: &[RayKind]) -> Result<(Vec<u64>, u64), CreditError> {
+    let mut shares = Vec::with_capacity(kinds.len());
+    let back = split_into(credit, kinds, &mut shares)?;
+    Ok((shares, back))
+}
+
+/// [`split`] into a buffer the caller reuses (it is cleared first): the tracer splits
+/// once per hit.
+pub fn split_into(
+    credit: u64,
+    kinds: &[RayKind],
+    shares: &mut Vec<u64>,
+) -> Result<u64, CreditError> {
+    shares.clear();
     if kinds.is_empty() {
-        return Ok((Vec::new(), credit));
+        return Ok(credit);
     }
     let terminal = kinds.iter().filter(|k| k.is_occlusion()).count() as u64;
     let continuing = kinds.len() as u64 - terminal;
@@ -49,25 +62,23 @@ pub fn split(credit: u64, kinds: &[RayKind]) -> Result<(Vec<u64>, u64), CreditEr
         });
     }
     if continuing == 0 {
-        return Ok((vec![1; kinds.len()], credit - terminal));
+        shares.resize(kinds.len(), 1);
+        return Ok(credit - terminal);
     }
     let rest = credit - terminal - 1;
     let (each, extra) = (rest / continuing, rest % continuing);
     let mut first = true;
-    let shares = kinds
-        .iter()
-        .map(|k| {
-            if k.is_occlusion() {
-                1
-            } else if first {
-                first = false;
-                each + extra
-            } else {
-                each
-            }
-        })
-        .collect();
-    Ok((shares, 1))
+    shares.extend(kinds.iter().map(|k| {
+        if k.is_occlusion() {
+            1
+        } else if first {
+            first = false;
+            each + extra
+        } else {
+            each
+        }
+    }));
+    Ok(1)
 }
 
 /// The share of camera ray `index` (0-based, of `count`) of a tile with `credit`: equal

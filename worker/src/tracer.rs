@@ -32,6 +32,7 @@
 //! as the whole scene does (`Integrator::partial`). A step looks each domain up once and
 //! holds it until the step ends, so an eviction meanwhile frees it only afterwards.
 
+use std::cell::OnceCell;
 use std::collections::HashMap;
 use std::sync::Arc;
 
@@ -65,6 +66,16 @@ pub enum TraceError {
     Misrouted { domain: u32 },
     #[error("ray for pixel {pixel} is outside the {width}x{height} image")]
     BadPixel { pixel: u32, width: u32, height: u32 },
+    #[error("tile {tile} at ({x0}, {y0}), {w}x{h} px, is not inside the {width}x{height} image")]
+    BadTile {
+        tile: u32,
+        x0: u32,
+        y0: u32,
+        w: u32,
+        h: u32,
+        width: u32,
+        height: u32,
+    },
     #[error(transparent)]
     Credit(#[from] CreditError),
     #[error(
@@ -125,9 +136,7 @@ pub struct Outbox {
     pub outcomes: Vec<(u32, u32, bool)>,
     /// Rays bound for a domain resident here, traced before the step ends (depth first,
     /// so the stack stays as small as one camera ray's descendants).
-    /// A ray made in this step carries the hop found when it was routed, so its
-    /// domain walk is not done twice.
-    local: Vec<(u32, RayRecord, Option<Hop>, Lineage)>,
+    local: Vec<LocalRay>,
     /// Rays made here (camera rays and children), by kind: each ray is counted once,
     /// where it is made, so the totals equal the single-process renderer's.
     pub traced: [u64; RayKind::COUNT],
@@ -159,7 +168,17 @@ impl Outbox {
         match to_fixed(value) {
             Some(f) => {
                 if !lin.coarse {
-                    self.sums.push((pixel, f));
+                    // A pixel's samples are traced one after another, so most
+                    // contributions land on the pixel of the one before: add them up
+                    // here (wrapping sums, exact in any grouping).
+                    match self.sums.last_mut() {
+                        Some((p, s)) if *p == pixel => {
+                            for c in 0..3 {
+                                s[c] = s[c].wrapping_add(f[c]);
+                            }
+                        }
+                        _ => self.sums.push((pixel, f)),
+                    }
                 }
                 if let Some(t) = &lin.tickets {
                     self.tickets.contribute(t, f, cached);
@@ -191,16 +210,32 @@ impl Outbox {
     }
 }
 
-/// Collects what one shading step produces.
-#[derive(Default)]
-struct StepSink {
-    contributions: Vec<(u32, Vec3)>,
-    children: Vec<RayState>,
+/// A ray bound for a domain traced in this step. It stays unpacked (it is never
+/// sent), and a ray made in this step carries the hop found when it was routed, so its
+/// domain walk is not done twice.
+#[derive(Debug)]
+struct LocalRay {
+    domain: u32,
+    ray: RayState,
+    credit: u64,
+    hop: Option<Hop>,
+    /// The tile its credit goes back to: its camera ray's (checked when the ray came in
+    /// or its tile was dealt).
+    tile: u32,
+    lineage: Lineage,
 }
 
-impl Sink for StepSink {
+/// The sink of a hit's shading: contributions go straight to the outbox (and the ray's
+/// tickets), the rays it makes to the step's buffer, to be given credit and routed.
+struct HitSink<'a> {
+    out: &'a mut Outbox,
+    lineage: &'a Lineage,
+    children: &'a mut Vec<RayState>,
+}
+
+impl Sink for HitSink<'_> {
     fn contribute(&mut self, pixel: u32, value: Vec3) {
-        self.contributions.push((pixel, value));
+        self.out.add(pixel, value, self.lineage, false);
     }
     fn spawn(&mut self, ray: RayState) {
         self.children.push(ray);
@@ -276,10 +311,11 @@ impl Residency for HashMap<u32, Arc<LoadedDomain>> {
     }
 }
 
-/// The domains one step has looked up, held until the step ends.
+/// The domains one step has looked up, held until the step ends. Each slot is filled
+/// at most once, so a domain looked up here stays put (and borrowable) for the step.
 struct Pins<'r> {
     residency: &'r dyn Residency,
-    slots: Vec<Option<Option<Arc<LoadedDomain>>>>,
+    slots: Vec<OnceCell<Option<Arc<LoadedDomain>>>>,
     /// [`Residency::walls`], asked once.
     walls: bool,
 }
@@ -288,7 +324,7 @@ impl<'r> Pins<'r> {
     fn new(residency: &'r dyn Residency, domains: usize) -> Self {
         Pins {
             residency,
-            slots: vec![None; domains],
+            slots: (0..domains).map(|_| OnceCell::new()).collect(),
             walls: residency.walls(),
         }
     }
@@ -297,20 +333,55 @@ impl<'r> Pins<'r> {
         self.walls
     }
 
-    fn get(&mut self, d: u32) -> Option<&Arc<LoadedDomain>> {
-        let slot = self.slots.get_mut(d as usize)?;
-        if slot.is_none() {
-            *slot = Some(self.residency.domain(d));
+    fn get(&self, d: u32) -> Option<&Arc<LoadedDomain>> {
+        self.slots
+            .get(d as usize)?
+            .get_or_init(|| self.residency.domain(d))
+            .as_ref()
+    }
+}
+
+/// One step's view of the job: the pinned domains and, made once per domain per step,
+/// an integrator over each. Making an integrator copies the camera and settings and
+/// takes a reference on the domain's light table; once per ray, that meant two atomic
+/// counters (the domain's and the table's) shared by every tracing thread, touched
+/// twice per ray.
+struct StepCtx<'p> {
+    tracer: &'p JobTracer,
+    pins: &'p Pins<'p>,
+    integrators: Vec<OnceCell<Integrator<'p>>>,
+    /// The integrator of steps that touch no triangle (camera rays, rays leaving the
+    /// scene).
+    bare: Integrator<'p>,
+}
+
+impl<'p> StepCtx<'p> {
+    fn new(tracer: &'p JobTracer, pins: &'p Pins<'p>) -> Self {
+        StepCtx {
+            tracer,
+            pins,
+            integrators: (0..pins.slots.len()).map(|_| OnceCell::new()).collect(),
+            bare: tracer.bare(),
         }
-        slot.as_ref().and_then(|s| s.as_ref())
+    }
+
+    /// Domain `d` if this step may trace it, with its integrator.
+    fn domain(&self, d: u32) -> Option<(&'p LoadedDomain, &Integrator<'p>)> {
+        let loaded: &'p LoadedDomain = self.pins.get(d)?;
+        let integrator = self
+            .integrators
+            .get(d as usize)?
+            .get_or_init(|| self.tracer.integrator(loaded));
+        Some((loaded, integrator))
     }
 }
 
 /// Scratch space reused across the rays of one step.
 #[derive(Default)]
 struct Step {
-    sink: StepSink,
+    children: Vec<RayState>,
     kinds: Vec<RayKind>,
+    shares: Vec<u64>,
 }
 
 /// One job on one worker: the job's settings and layout. The domains come per step,
@@ -422,7 +493,8 @@ impl JobTracer {
         residency: &dyn Residency,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
-        let mut pins = Pins::new(residency, self.nonempty.len());
+        let pins = Pins::new(residency, self.nonempty.len());
+        let ctx = StepCtx::new(self, &pins);
         let state = ray.to_state();
         let tile = self.tile_of(ray.pixel, lineage.coarse);
         out.taint(&lineage);
@@ -440,10 +512,10 @@ impl JobTracer {
             .ok_or(TraceError::Misrouted { domain })?;
         let lin = lineage.inherited();
         match hop.next {
-            Some(next) => self.cross(&mut pins, state, ray.credit, lin, next, None, tile, out),
-            None => finish_unblocked(&self.bare(), &state, ray.credit, &lin, tile, out),
+            Some(next) => self.cross(&ctx, state, ray.credit, lin, next, None, tile, out),
+            None => finish_unblocked(&ctx.bare, &state, ray.credit, &lin, tile, out),
         }
-        self.trace_local(&mut pins, &mut Step::default(), out)
+        self.trace_local(&ctx, &mut Step::default(), out)
     }
 
     /// An occlusion ray whose wall's hit map predicts a hit: it is occluded, adding
@@ -549,8 +621,29 @@ impl JobTracer {
                 credit: tile.credit,
             });
         }
-        let mut pins = Pins::new(residency, self.nonempty.len());
-        let bare = self.bare();
+        // Every pixel of the tile is in the image (or the coarse image), so the rays made
+        // here and their descendants need no check of their own.
+        let (width, height) = if tile.coarse {
+            (self.coarse, self.coarse)
+        } else {
+            (self.settings.width, self.settings.height)
+        };
+        if tile.x0 as u64 + tile.width as u64 > width as u64
+            || tile.y0 as u64 + tile.height as u64 > height as u64
+        {
+            return Err(TraceError::BadTile {
+                tile: tile.index,
+                x0: tile.x0,
+                y0: tile.y0,
+                w: tile.width,
+                h: tile.height,
+                width,
+                height,
+            });
+        }
+        let pins = Pins::new(residency, self.nonempty.len());
+        let ctx = StepCtx::new(self, &pins);
+        let bare = &ctx.bare;
         let end = start.saturating_add(count).min(total);
         for i in start..end {
             let (p, sample) = (i / spp, (i % spp) as u32);
@@ -580,9 +673,9 @@ impl JobTracer {
                 (bare.camera_ray(pixel, sample), Lineage::default())
             };
             out.traced[RayKind::Camera as usize] += 1;
-            self.route_new(&bare, &mut pins, ray, share, lin, tile.index, out);
+            self.route_new(&ctx, bare, ray, share, lin, tile.index, out);
         }
-        self.trace_local(&mut pins, &mut Step::default(), out)
+        self.trace_local(&ctx, &mut Step::default(), out)
     }
 
     /// Send a ray that was just made to the first domain on its path, or finish it at
@@ -591,8 +684,8 @@ impl JobTracer {
     #[allow(clippy::too_many_arguments)]
     fn route_new(
         &self,
-        bare: &Integrator<'_>,
-        pins: &mut Pins<'_>,
+        ctx: &StepCtx<'_>,
+        finisher: &Integrator<'_>,
         ray: RayState,
         credit: u64,
         lin: Lineage,
@@ -604,10 +697,10 @@ impl JobTracer {
                 .first_hop(ray.origin, ray.dir, 0.0, ray.tmax, self.pad, self.wanted());
         match first {
             Some(h) if h.span.t0 > 0.0 => {
-                self.cross(pins, ray, credit, lin, h.span.domain, Some(h), tile, out)
+                self.cross(ctx, ray, credit, lin, h.span.domain, Some(h), tile, out)
             }
-            Some(h) => self.forward(pins, ray, credit, lin, h.span.domain, Some(h), tile, out),
-            None => finish_unblocked(bare, &ray, credit, &lin, tile, out),
+            Some(h) => self.forward(ctx, ray, credit, lin, h.span.domain, Some(h), tile, out),
+            None => finish_unblocked(finisher, &ray, credit, &lin, tile, out),
         }
     }
 
@@ -616,7 +709,7 @@ impl JobTracer {
     #[allow(clippy::too_many_arguments)]
     fn forward(
         &self,
-        pins: &mut Pins<'_>,
+        ctx: &StepCtx<'_>,
         ray: RayState,
         credit: u64,
         lin: Lineage,
@@ -625,11 +718,25 @@ impl JobTracer {
         tile: u32,
         out: &mut Outbox,
     ) {
+        // Depth beyond 16 bits (a record's field): no valid job gets here (max_depth
+        // <= 1024); end the ray rather than lose its credit.
+        if u16::try_from(ray.depth).is_err() {
+            out.give_back(tile, credit, &lin, false);
+            return;
+        }
+        if ctx.pins.get(domain).is_some() {
+            out.local.push(LocalRay {
+                domain,
+                ray,
+                credit,
+                hop,
+                tile,
+                lineage: lin,
+            });
+            return;
+        }
         match RayRecord::from_state(&ray, credit) {
-            Ok(r) if pins.get(domain).is_some() => out.local.push((domain, r, hop, lin)),
             Ok(r) => out.rays.entry(domain).or_default().push(r, &lin),
-            // Depth beyond 16 bits: no valid job gets here (max_depth <= 1024); end the
-            // ray rather than lose its credit.
             Err(_) => out.give_back(tile, credit, &lin, false),
         }
     }
@@ -641,7 +748,7 @@ impl JobTracer {
     #[allow(clippy::too_many_arguments)]
     fn cross(
         &self,
-        pins: &mut Pins<'_>,
+        ctx: &StepCtx<'_>,
         ray: RayState,
         credit: u64,
         lin: Lineage,
@@ -652,7 +759,7 @@ impl JobTracer {
     ) {
         let k = ray.kind as usize;
         let (cache, phm) = (self.cached_kinds[k], self.phm_kinds[k] && !lin.coarse);
-        if pins.walls() && (cache || phm) {
+        if ctx.pins.walls() && (cache || phm) {
             let face = self
                 .bounds
                 .get(domain as usize)
@@ -669,7 +776,7 @@ impl JobTracer {
                 return;
             }
         }
-        self.forward(pins, ray, credit, lin, domain, hop, tile, out);
+        self.forward(ctx, ray, credit, lin, domain, hop, tile, out);
     }
 
     /// Trace `rays`, all queued for `domain`, which `residency` must give, and every ray
@@ -684,73 +791,79 @@ impl JobTracer {
         residency: &dyn Residency,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
-        let mut pins = Pins::new(residency, self.nonempty.len());
+        let pins = Pins::new(residency, self.nonempty.len());
         if pins.get(domain).is_none() {
             return Err(TraceError::NotResident { domain });
         }
+        let ctx = StepCtx::new(self, &pins);
         let mut step = Step::default();
+        let pixels = self.settings.width as u64 * self.settings.height as u64;
+        let coarse_pixels = self.coarse as u64 * self.coarse as u64;
         for (rec, lin) in with_lineage(rays, tickets) {
-            self.trace_one(&mut pins, domain, rec, None, lin, &mut step, out)?;
+            let limit = if lin.coarse { coarse_pixels } else { pixels };
+            if rec.pixel as u64 >= limit {
+                return Err(TraceError::BadPixel {
+                    pixel: rec.pixel,
+                    width: self.settings.width,
+                    height: self.settings.height,
+                });
+            }
+            let ray = LocalRay {
+                domain,
+                ray: rec.to_state(),
+                credit: rec.credit,
+                hop: None,
+                tile: self.tile_of(rec.pixel, lin.coarse),
+                lineage: lin,
+            };
+            self.trace_one(&ctx, ray, &mut step, out)?;
         }
-        self.trace_local(&mut pins, &mut step, out)
+        self.trace_local(&ctx, &mut step, out)
     }
 
     /// Trace the rays the step sent to domains traced here, and theirs, until none is
     /// left.
     fn trace_local(
         &self,
-        pins: &mut Pins<'_>,
+        ctx: &StepCtx<'_>,
         step: &mut Step,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
-        while let Some((domain, rec, hop, lin)) = out.local.pop() {
-            self.trace_one(pins, domain, &rec, hop, lin, step, out)?;
+        while let Some(ray) = out.local.pop() {
+            self.trace_one(ctx, ray, step, out)?;
         }
         Ok(())
     }
 
     /// Trace one ray in `domain` (traced here; `hop` is its span there if known) and
     /// hand on what it makes; its lineage `lin` is inherited by its children.
-    #[allow(clippy::too_many_arguments)]
     fn trace_one(
         &self,
-        pins: &mut Pins<'_>,
-        domain: u32,
-        rec: &RayRecord,
-        hop: Option<Hop>,
-        lin: Lineage,
+        ctx: &StepCtx<'_>,
+        local: LocalRay,
         step: &mut Step,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
+        let LocalRay {
+            domain,
+            ray,
+            credit,
+            hop,
+            tile,
+            lineage: lin,
+        } = local;
         // A probe's outcome is reported for this domain only; its children and its way
         // on are ordinary rays.
         let probe = lin.probe;
         let lin = if probe { lin.inherited() } else { lin };
-        let loaded = pins
-            .get(domain)
-            .cloned()
+        let (loaded, integrator) = ctx
+            .domain(domain)
             .ok_or(TraceError::NotResident { domain })?;
         let resident = loaded
             .resident
             .domains
             .first()
             .ok_or(TraceError::NotResident { domain })?;
-        let pixels = self.settings.width as u64 * self.settings.height as u64;
-        let limit = if lin.coarse {
-            self.coarse as u64 * self.coarse as u64
-        } else {
-            pixels
-        };
-        if rec.pixel as u64 >= limit {
-            return Err(TraceError::BadPixel {
-                pixel: rec.pixel,
-                width: self.settings.width,
-                height: self.settings.height,
-            });
-        }
-        let integrator = self.integrator(&loaded);
-        let ray = rec.to_state();
-        let tile = self.tile_of(ray.pixel, lin.coarse);
         let hop = match hop {
             Some(h) => h,
             None => self
@@ -776,11 +889,11 @@ impl JobTracer {
                 self.report_probe(domain, &ray, occluded, out);
             }
             if occluded {
-                out.give_back(tile, rec.credit, &lin, false);
+                out.give_back(tile, credit, &lin, false);
             } else if let Some(next) = hop.next {
-                self.cross(pins, ray, rec.credit, lin, next, None, tile, out);
+                self.cross(ctx, ray, credit, lin, next, None, tile, out);
             } else {
-                finish_unblocked(&integrator, &ray, rec.credit, &lin, tile, out);
+                finish_unblocked(integrator, &ray, credit, &lin, tile, out);
             }
             return Ok(());
         }
@@ -790,25 +903,28 @@ impl JobTracer {
         }
         let Some(hit) = found else {
             match hop.next {
-                Some(next) => self.cross(pins, ray, rec.credit, lin, next, None, tile, out),
-                None => finish_unblocked(&integrator, &ray, rec.credit, &lin, tile, out),
+                Some(next) => self.cross(ctx, ray, credit, lin, next, None, tile, out),
+                None => finish_unblocked(integrator, &ray, credit, &lin, tile, out),
             }
             return Ok(());
         };
-        let sink = &mut step.sink;
-        sink.contributions.clear();
-        sink.children.clear();
-        integrator.shade_hit(&ray, &hit, sink);
-        for &(p, v) in &sink.contributions {
-            out.add(p, v, &lin, false);
-        }
+        step.children.clear();
+        integrator.shade_hit(
+            &ray,
+            &hit,
+            &mut HitSink {
+                out,
+                lineage: &lin,
+                children: &mut step.children,
+            },
+        );
         step.kinds.clear();
-        step.kinds.extend(sink.children.iter().map(|c| c.kind));
-        let (shares, back) = credit::split(rec.credit, &step.kinds)?;
+        step.kinds.extend(step.children.iter().map(|c| c.kind));
+        let back = credit::split_into(credit, &step.kinds, &mut step.shares)?;
         out.give_back(tile, back, &lin, false);
-        for (child, share) in sink.children.drain(..).zip(shares) {
+        for (child, &share) in step.children.drain(..).zip(&step.shares) {
             out.traced[child.kind as usize] += 1;
-            self.route_new(&integrator, pins, child, share, lin.clone(), tile, out);
+            self.route_new(ctx, integrator, child, share, lin.clone(), tile, out);
         }
         Ok(())
     }
