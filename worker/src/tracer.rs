@@ -644,6 +644,7 @@ impl JobTracer {
         let pins = Pins::new(residency, self.nonempty.len());
         let ctx = StepCtx::new(self, &pins);
         let bare = &ctx.bare;
+        let mut step = Step::default();
         let end = start.saturating_add(count).min(total);
         for i in start..end {
             let (p, sample) = (i / spp, (i % spp) as u32);
@@ -674,8 +675,12 @@ impl JobTracer {
             };
             out.traced[RayKind::Camera as usize] += 1;
             self.route_new(&ctx, bare, ray, share, lin, tile.index, out);
+            // Depth first, one camera ray's tree at a time: the stack of local rays stays
+            // a few entries deep and in cache, where making the whole chunk's camera rays
+            // first stacked thousands of them (half a megabyte).
+            self.trace_local(&ctx, &mut step, out)?;
         }
-        self.trace_local(&ctx, &mut Step::default(), out)
+        Ok(())
     }
 
     /// Send a ray that was just made to the first domain on its path, or finish it at
