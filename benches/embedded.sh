@@ -23,6 +23,16 @@ cases=(
   "city:8|--integrator ao --spp 4"
   "grid:spheres:200:3x3x3|--spp 1 --width 320 --height 240"
 )
+# Issue 10's deep case (Lucy, path tracing to depth 64), when benches/vs_mitsuba.sh --case
+# deep has written its scene; at 1 and 2 threads.
+deep="${DEEP_SCENE:-benches/out/vs_mitsuba_deep/scene.gltf}"
+if [ -f "$deep" ]; then
+  for t in 1 2; do
+    cases+=("$deep|--width 256 --height 256 --spp 64 --integrator path --max-depth 64 --env 0.25,0.25,0.25 --threads $t")
+  done
+else
+  echo "note: $deep not found (run benches/vs_mitsuba.sh --case deep to make it); the deep case is skipped" >&2
+fi
 
 median() { sort -g | awk '{a[NR]=$1} END {print a[int((NR+1)/2)]}'; }
 
@@ -40,12 +50,16 @@ printf "%-26s %-34s %10s %10s %7s %10s %10s %s\n" scene flags "ref s" "actors s"
 for c in "${cases[@]}"; do
   scene=${c%%|*}; flags=${c#*|}
   declare -A t=() m=()
-  for mode in reference actors; do
-    : >"$out/$mode.times"
-    for _ in $(seq "$RUNS"); do
+  : >"$out/reference.times"
+  : >"$out/actors.times"
+  # Interleaved, so that any other load on the machine hits both alike.
+  for _ in $(seq "$RUNS"); do
+    for mode in reference actors; do
       # shellcheck disable=SC2086
       run "$mode" "$scene" $flags >>"$out/$mode.times"
     done
+  done
+  for mode in reference actors; do
     t[$mode]=$(cut -d' ' -f1 "$out/$mode.times" | median)
     m[$mode]=$(cut -d' ' -f2 "$out/$mode.times" | sort -g | tail -1)
   done

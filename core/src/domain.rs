@@ -43,6 +43,15 @@ pub struct Span {
 }
 
 impl DomainTree {
+    /// The domain of a layout of one domain (the embedded default), which holds the
+    /// whole scene: every ray's span in it is its whole interval (see [`Self::walk`]).
+    pub fn single(&self) -> Option<u32> {
+        match self.nodes.as_slice() {
+            [DomainNode::Leaf { domain }] => Some(*domain),
+            _ => None,
+        }
+    }
+
     /// A uniform `dims` grid over [lo, hi]; domains are numbered x fastest, then y, then z.
     pub fn grid(lo: Vec3, hi: Vec3, dims: [u32; 3]) -> DomainTree {
         let dims = dims.map(|d| d.max(1));

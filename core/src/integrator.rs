@@ -295,14 +295,19 @@ impl<'a> Integrator<'a> {
     }
 
     /// Closest accepted hit of `ray` in `geometry`.
-    pub fn intersect(&self, geometry: &dyn Trace, ray: &RayState) -> Option<Hit> {
+    ///
+    /// Generic over the geometry so that a worker's span-limited BVH is called directly,
+    /// not through a vtable and two wrappers per ray.
+    #[inline]
+    pub fn intersect<T: Trace + ?Sized>(&self, geometry: &T, ray: &RayState) -> Option<Hit> {
         geometry.closest(&Self::query(ray), &mut |tri, h| {
             self.accept(ray, tri, [h.b0, h.b1, h.b2])
         })
     }
 
     /// Whether anything accepted blocks `ray` in `geometry`.
-    pub fn occluded(&self, geometry: &dyn Trace, ray: &RayState) -> bool {
+    #[inline]
+    pub fn occluded<T: Trace + ?Sized>(&self, geometry: &T, ray: &RayState) -> bool {
         geometry.occluded(&Self::query(ray), &mut |tri, h| {
             self.accept(ray, tri, [h.b0, h.b1, h.b2])
         })

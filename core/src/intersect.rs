@@ -121,6 +121,7 @@ impl WatertightRay {
 /// Move a surface point `p` off the surface along the unit normal `n` (which must point to
 /// the side the new ray leaves from), by a few ulps of `p`'s own magnitude: the offset
 /// scales with the distance from the origin, so it works at 1e6 as well as at 1.
+#[inline]
 pub fn offset_ray_origin(p: Vec3, n: Vec3) -> Vec3 {
     const ORIGIN: f32 = 1.0 / 32.0;
     const FLOAT_SCALE: f32 = 1.0 / 65536.0;

@@ -158,6 +158,7 @@ impl LightSampler {
     }
 
     /// Choose an emissive-triangle entry with probability proportional to power.
+    #[inline]
     pub fn choose_area(&self, u: f32) -> Option<(usize, f32)> {
         if self.area_entries.is_empty() {
             return None;

@@ -73,6 +73,7 @@ impl Trace for DomainSet {
 
 /// The closest accepted hit of `ray` inside one domain's span: the one test both the
 /// embedded [`DomainSet`] and a worker owning the domain run, so they agree bit for bit.
+#[inline]
 pub fn closest_in_span(
     accel: &Accel,
     ray: &QueryRay,
@@ -90,6 +91,7 @@ pub fn closest_in_span(
 /// Whether anything accepted blocks `ray` inside one domain's span. Occlusion tests are
 /// open at both ends, but a hit exactly on a wall between two spans must still count, so
 /// every span but the ray's last is closed by one ulp.
+#[inline]
 pub fn occluded_in_span(
     accel: &Accel,
     ray: &QueryRay,
@@ -118,6 +120,7 @@ pub struct SpanTrace<'a> {
 }
 
 impl Trace for SpanTrace<'_> {
+    #[inline]
     fn closest(
         &self,
         ray: &QueryRay,
@@ -126,6 +129,7 @@ impl Trace for SpanTrace<'_> {
         closest_in_span(self.accel, ray, &self.span, accept)
     }
 
+    #[inline]
     fn occluded(&self, ray: &QueryRay, accept: &mut dyn FnMut(u32, &TriangleHit) -> bool) -> bool {
         occluded_in_span(self.accel, ray, &self.span, accept)
     }

@@ -44,6 +44,7 @@ pub fn split(credit: u64, kinds: &[RayKind]) -> Result<(Vec<u64>, u64), CreditEr
 
 /// [`split`] into a buffer the caller reuses (it is cleared first): the tracer splits
 /// once per hit.
+#[inline]
 pub fn split_into(
     credit: u64,
     kinds: &[RayKind],
@@ -66,7 +67,12 @@ pub fn split_into(
         return Ok(credit - terminal);
     }
     let rest = credit - terminal - 1;
-    let (each, extra) = (rest / continuing, rest % continuing);
+    // One continuing ray (a path's next bounce) is the common case: no division.
+    let (each, extra) = if continuing == 1 {
+        (rest, 0)
+    } else {
+        (rest / continuing, rest % continuing)
+    };
     let mut first = true;
     shares.extend(kinds.iter().map(|k| {
         if k.is_occlusion() {

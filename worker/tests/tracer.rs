@@ -216,7 +216,9 @@ fn check(scene_name: &str, kinds: &[IntegratorKind], spp: u32) {
         let s = settings(&scene, kind, 40, 30, spp);
         let (film, rays) = reference(&scene, &s);
         assert!(rays.iter().sum::<u64>() > 0);
-        for spec in [LayoutSpec::Kd(6), LayoutSpec::GridCount(8)] {
+        // One domain too: `dray render`'s embedded worker, whose camera rays take the
+        // tracer's routing-free path (`trace_tree`).
+        for spec in [LayoutSpec::Kd(6), LayoutSpec::GridCount(8), LayoutSpec::Kd(1)] {
             for workers in [1u32, 2, 4] {
                 let d = distributed(&scene, &s, &spec, workers, workers as u64 * 31 + 5);
                 assert_eq!(
