@@ -26,6 +26,7 @@ mod summary;
 mod sweep;
 mod sweep_cmd;
 mod telemetry;
+mod threads;
 mod worker_cmd;
 
 use clap::{Parser, Subcommand};

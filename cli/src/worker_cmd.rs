@@ -72,6 +72,7 @@ pub struct WorkerArgs {
 }
 
 pub fn run(a: WorkerArgs) -> Result<()> {
+    crate::threads::limit_build_threads(a.threads);
     let (server, net) = a.member.options()?;
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()

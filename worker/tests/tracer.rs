@@ -218,7 +218,11 @@ fn check(scene_name: &str, kinds: &[IntegratorKind], spp: u32) {
         assert!(rays.iter().sum::<u64>() > 0);
         // One domain too: `dray render`'s embedded worker, whose camera rays take the
         // tracer's routing-free path (`trace_tree`).
-        for spec in [LayoutSpec::Kd(6), LayoutSpec::GridCount(8), LayoutSpec::Kd(1)] {
+        for spec in [
+            LayoutSpec::Kd(6),
+            LayoutSpec::GridCount(8),
+            LayoutSpec::Kd(1),
+        ] {
             for workers in [1u32, 2, 4] {
                 let d = distributed(&scene, &s, &spec, workers, workers as u64 * 31 + 5);
                 assert_eq!(

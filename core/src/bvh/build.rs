@@ -23,6 +23,10 @@ pub const MAX_DEPTH: u32 = 64;
 /// SAH bins per axis.
 const BINS: usize = 16;
 
+/// Subtrees over at least this many primitives are built on two threads (rayon's
+/// pool); smaller ones on the calling thread.
+const PARALLEL_MIN: usize = 4096;
+
 struct Task {
     node: usize,
     start: usize,
@@ -33,42 +37,108 @@ struct Task {
 /// A BVH2 over `aabbs` with one primitive per leaf (what the CWBVH conversion expects),
 /// at most [`MAX_DEPTH`] deep. Every box must be finite; `aabbs` must not be empty and
 /// must have fewer than 2^31 entries.
+///
+/// The top of the tree is built in parallel (the two sides of a cut are independent),
+/// and the nodes are numbered as one thread working through a stack, left side first,
+/// would number them: the tree is the same, node for node, on any number of threads.
 pub fn build(aabbs: &[Aabb]) -> Bvh2 {
     let n = aabbs.len();
     let centroids: Vec<Vec3A> = aabbs.iter().map(Aabb::center).collect();
     let mut order: Vec<u32> = (0..n as u32).collect();
+    let root = bounds(aabbs, &order);
+    let input = Input {
+        aabbs,
+        centroids: &centroids,
+    };
+    let nodes = subtree(&input, &mut order, 0, 0, root);
+    Bvh2 {
+        nodes,
+        primitive_indices: order,
+        max_depth: MAX_DEPTH as usize + 1,
+        ..Bvh2::default()
+    }
+}
+
+/// What every subtree reads.
+struct Input<'a> {
+    aabbs: &'a [Aabb],
+    centroids: &'a [Vec3A],
+}
+
+/// The nodes of the subtree over `range` (the primitives `start..start + range.len()`
+/// of the whole order), whose root has box `aabb` and sits at `depth`. Numbered from
+/// its root (0) in the order one thread would allocate them: a cut's two children
+/// side by side when the cut is made, the left side's subtree before the right's.
+/// Leaves point into the whole order; internal nodes to children in this numbering.
+fn subtree(
+    input: &Input,
+    range: &mut [u32],
+    start: usize,
+    depth: u32,
+    aabb: Aabb,
+) -> Vec<Bvh2Node> {
+    let count = range.len();
+    if count < PARALLEL_MIN {
+        return sequential(input, range, start, depth, aabb);
+    }
+    let (mid, left_box, right_box) = cut(input, range, depth);
+    let (left, right) = range.split_at_mut(mid);
+    let (l, r) = rayon::join(
+        || subtree(input, left, start, depth + 1, left_box),
+        || subtree(input, right, start + mid, depth + 1, right_box),
+    );
+    // This node, its two children at 1 and 2, then the rest of the left subtree, then
+    // the rest of the right one.
+    let mut nodes = Vec::with_capacity(1 + l.len() + r.len());
+    nodes.push(Bvh2Node::new(aabb, 0, 1));
+    let left_rest = 3;
+    let right_rest = left_rest + l.len() - 1;
+    let place = |local: u32, first: usize, rest: usize| {
+        if local == 0 {
+            first as u32
+        } else {
+            (rest + local as usize - 1) as u32
+        }
+    };
+    let moved = |node: &Bvh2Node, first: usize, rest: usize| {
+        if node.prim_count == 0 {
+            Bvh2Node::new(*node.aabb(), 0, place(node.first_index, first, rest))
+        } else {
+            *node
+        }
+    };
+    nodes.push(moved(&l[0], 1, left_rest));
+    nodes.push(moved(&r[0], 2, right_rest));
+    nodes.extend(l[1..].iter().map(|n| moved(n, 1, left_rest)));
+    nodes.extend(r[1..].iter().map(|n| moved(n, 2, right_rest)));
+    nodes
+}
+
+/// [`subtree`] on one thread, with an explicit work stack.
+fn sequential(
+    input: &Input,
+    range: &mut [u32],
+    start: usize,
+    depth: u32,
+    aabb: Aabb,
+) -> Vec<Bvh2Node> {
+    let n = range.len();
     let mut nodes: Vec<Bvh2Node> = Vec::with_capacity((2 * n).saturating_sub(1));
-    nodes.push(Bvh2Node::new(bounds(aabbs, &order), 0, 0));
+    nodes.push(Bvh2Node::new(aabb, 0, 0));
     let mut stack = vec![Task {
         node: 0,
         start: 0,
         end: n,
-        depth: 0,
+        depth,
     }];
     while let Some(task) = stack.pop() {
         let count = task.end - task.start;
         if count <= 1 {
             let aabb = *nodes[task.node].aabb();
-            nodes[task.node] = Bvh2Node::new(aabb, 1, task.start as u32);
+            nodes[task.node] = Bvh2Node::new(aabb, 1, (start + task.start) as u32);
             continue;
         }
-        let range = &mut order[task.start..task.end];
-        // A median cut from here ends at depth + ceil(log2(count)); once that reaches
-        // the limit, only median cuts keep the promise.
-        let force_median = task.depth + ceil_log2(count) >= MAX_DEPTH;
-        let sah = if force_median {
-            None
-        } else {
-            sah_cut(range, aabbs, &centroids)
-        };
-        let (mid, left_box, right_box) = match sah {
-            Some(cut) => cut,
-            None => {
-                let mid = median_cut(range, &centroids);
-                let (left, right) = range.split_at(mid);
-                (mid, bounds(aabbs, left), bounds(aabbs, right))
-            }
-        };
+        let (mid, left_box, right_box) = cut(input, &mut range[task.start..task.end], task.depth);
         let first = nodes.len();
         nodes.push(Bvh2Node::new(left_box, 0, 0));
         nodes.push(Bvh2Node::new(right_box, 0, 0));
@@ -87,11 +157,27 @@ pub fn build(aabbs: &[Aabb]) -> Bvh2 {
             depth: task.depth + 1,
         });
     }
-    Bvh2 {
-        nodes,
-        primitive_indices: order,
-        max_depth: MAX_DEPTH as usize + 1,
-        ..Bvh2::default()
+    nodes
+}
+
+/// Cut `range` (at least two primitives, at `depth`) in two: reorders it so the left
+/// side comes first and returns the cut with the two sides' bounds.
+fn cut(input: &Input, range: &mut [u32], depth: u32) -> (usize, Aabb, Aabb) {
+    // A median cut from here ends at depth + ceil(log2(count)); once that reaches
+    // the limit, only median cuts keep the promise.
+    let force_median = depth + ceil_log2(range.len()) >= MAX_DEPTH;
+    let sah = if force_median {
+        None
+    } else {
+        sah_cut(range, input.aabbs, input.centroids)
+    };
+    match sah {
+        Some(cut) => cut,
+        None => {
+            let mid = median_cut(range, input.centroids);
+            let (left, right) = range.split_at(mid);
+            (mid, bounds(input.aabbs, left), bounds(input.aabbs, right))
+        }
     }
 }
 
@@ -388,5 +474,53 @@ mod tests {
             }
         }
         assert!(depth(&bvh) < 20, "{}", depth(&bvh));
+    }
+
+    /// The parallel build gives the very tree one thread gives: every node, in the same
+    /// place, and the same primitive order. Random boxes, coincident boxes (median cuts
+    /// by index) and nested ones (the depth limit's forced median cuts).
+    #[test]
+    fn the_parallel_build_is_the_one_thread_build() {
+        let mut seed = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let random: Vec<Aabb> = (0..60_000)
+            .map(|_| {
+                let p = Vec3A::new(next(), next(), next()) * 100.0;
+                Aabb::new(p, p + Vec3A::new(next(), next(), next()))
+            })
+            .collect();
+        let coincident = vec![Aabb::new(Vec3A::ZERO, Vec3A::ONE); 20_000];
+        let nested: Vec<Aabb> = (1..=20_000)
+            .map(|i| Aabb::new(Vec3A::splat(-(i as f32)), Vec3A::splat(i as f32)))
+            .collect();
+        for boxes in [random, coincident, nested] {
+            assert!(
+                boxes.len() >= 4 * PARALLEL_MIN,
+                "the top levels must run in parallel"
+            );
+            let parallel = build(&boxes);
+            let centroids: Vec<Vec3A> = boxes.iter().map(Aabb::center).collect();
+            let mut order: Vec<u32> = (0..boxes.len() as u32).collect();
+            let input = Input {
+                aabbs: &boxes,
+                centroids: &centroids,
+            };
+            let root = bounds(&boxes, &order);
+            let one = sequential(&input, &mut order, 0, 0, root);
+            assert_eq!(parallel.primitive_indices, order);
+            assert_eq!(parallel.nodes.len(), one.len());
+            for (i, (a, b)) in parallel.nodes.iter().zip(&one).enumerate() {
+                assert_eq!(
+                    (a.aabb(), a.prim_count, a.first_index),
+                    (b.aabb(), b.prim_count, b.first_index),
+                    "node {i}"
+                );
+            }
+        }
     }
 }
