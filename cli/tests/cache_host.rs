@@ -230,7 +230,14 @@ fn dray_cache_registers_and_stops_cleanly_on_sigterm() {
         .wait_timeout(30.0)
         .unwrap_or_else(|| panic!("dray cache did not stop on SIGTERM: {}", text(&cache_log)));
     assert!(status.success(), "{status}: {}", text(&cache_log));
-    assert!(text(&cache_log).contains("dray cache: terminated; stopping"));
+    // The process has exited, but the thread copying its stderr may not have taken the
+    // last line yet.
+    assert!(
+        eventually(10.0, || text(&cache_log)
+            .contains("dray cache: terminated; stopping")),
+        "{}",
+        text(&cache_log)
+    );
     // Its port is free again.
     assert!(std::net::TcpListener::bind(&cache_addr).is_ok());
 
