@@ -504,6 +504,7 @@ impl JobTracer {
         residency: &dyn Residency,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
+        self.check_pixel(ray.pixel, lineage.coarse)?;
         let pins = Pins::new(residency, self.nonempty.len());
         let ctx = StepCtx::new(self, &pins);
         let state = ray.to_state();
@@ -556,6 +557,25 @@ impl JobTracer {
             out.add(ray.pixel, ray.weight * radiance, lineage, true);
         }
         out.give_back(tile, ray.credit, lineage, true);
+    }
+
+    /// A ray that came from elsewhere (another worker, a cache actor) must be for a
+    /// pixel of the image, or of the coarse image for a coarse-pass ray. Rays made here
+    /// are for their camera ray's pixel, which its tile's check covered.
+    fn check_pixel(&self, pixel: u32, coarse: bool) -> Result<(), TraceError> {
+        let limit = if coarse {
+            self.coarse as u64 * self.coarse as u64
+        } else {
+            self.settings.width as u64 * self.settings.height as u64
+        };
+        if pixel as u64 >= limit {
+            return Err(TraceError::BadPixel {
+                pixel,
+                width: self.settings.width,
+                height: self.settings.height,
+            });
+        }
+        Ok(())
     }
 
     /// Domains in the job's layout.
@@ -837,17 +857,8 @@ impl JobTracer {
         }
         let ctx = StepCtx::new(self, &pins);
         let mut step = Step::default();
-        let pixels = self.settings.width as u64 * self.settings.height as u64;
-        let coarse_pixels = self.coarse as u64 * self.coarse as u64;
         for (rec, lin) in with_lineage(rays, tickets) {
-            let limit = if lin.coarse { coarse_pixels } else { pixels };
-            if rec.pixel as u64 >= limit {
-                return Err(TraceError::BadPixel {
-                    pixel: rec.pixel,
-                    width: self.settings.width,
-                    height: self.settings.height,
-                });
-            }
+            self.check_pixel(rec.pixel, lin.coarse)?;
             let ray = LocalRay {
                 domain,
                 ray: rec.to_state(),

@@ -294,3 +294,42 @@ fn a_package_on_disk_gives_the_same_image() {
     let _ = std::fs::remove_dir_all(&dir);
     assert!(d.film == film, "image from the package differs");
 }
+
+/// A tile that reaches past the image is an error naming it, not rays for pixels of
+/// the next row (or beyond the image): the rays a tile makes are not checked one by one.
+#[test]
+fn a_tile_past_the_image_is_an_error() {
+    let scene = dray_scene::load("cornell").unwrap();
+    let s = settings(&scene, IntegratorKind::Path, 40, 30, 1);
+    let layout = DomainLayout::for_source(&scene, &LayoutSpec::Kd(1)).unwrap();
+    let tracer = JobTracer::new(
+        s.clone(),
+        camera(&scene, &s),
+        layout.to_domain_tree(),
+        layout.epsilon(),
+        &[scene.mesh.indices.len() as u64],
+        TILE,
+    );
+    let held: HashMap<u32, Arc<LoadedDomain>> = HashMap::new();
+    for (x0, y0, width, height) in [(32, 0, 16, 16), (0, 16, 16, 16), (u32::MAX, 0, 2, 2)] {
+        let tile = TileRef {
+            index: 0,
+            x0,
+            y0,
+            width,
+            height,
+            credit: TILE_CREDIT,
+            coarse: false,
+        };
+        let mut out = Outbox::default();
+        let err = tracer
+            .camera_rays(&tile, 0, 4, &held, &mut out)
+            .expect_err("a tile past the image was traced");
+        let message = err.to_string();
+        assert!(
+            message.contains("is not inside the 40x30 image"),
+            "{message}"
+        );
+        assert!(out.is_empty(), "rays were made for a bad tile");
+    }
+}
