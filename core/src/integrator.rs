@@ -146,6 +146,8 @@ pub struct Integrator<'a> {
     pub scene: &'a Scene,
     /// Shared, so a worker builds the table once per job and an integrator per batch.
     pub lights: Arc<LightSampler>,
+    /// Read-only after construction: the camera rays' [`Frustum`] is made from it and
+    /// `camera` when the integrator is.
     pub settings: RenderSettings,
     pub camera: Camera,
     /// Scene-wide id of each triangle of `scene` when it holds only part of the scene (a
