@@ -36,14 +36,9 @@ pub struct CreditError {
 /// children's credit could reach the coordinator from another worker first, the tile
 /// would look complete, and the parent's contributions would arrive too late for the
 /// image.
-pub fn split(credit: u64, kinds: &[RayKind]) -> Result<(Vec<u64>, u64), CreditError> {
-    let mut shares = Vec::with_capacity(kinds.len());
-    let back = split_into(credit, kinds, &mut shares)?;
-    Ok((shares, back))
-}
-
-/// [`split`] into a buffer the caller reuses (it is cleared first): the tracer splits
-/// once per hit.
+///
+/// The shares go into `shares`, a buffer the caller reuses (it is cleared first): the
+/// tracer splits once per hit.
 #[inline]
 pub fn split_into(
     credit: u64,
@@ -103,6 +98,13 @@ pub fn camera_share(credit: u64, count: u64, index: u64) -> Option<u64> {
 
 #[cfg(test)]
 mod tests {
+    /// [`split_into`] with a fresh buffer.
+    fn split(credit: u64, kinds: &[RayKind]) -> Result<(Vec<u64>, u64), CreditError> {
+        let mut shares = Vec::new();
+        let back = split_into(credit, kinds, &mut shares)?;
+        Ok((shares, back))
+    }
+
     use super::*;
 
     #[test]
