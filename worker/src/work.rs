@@ -151,7 +151,14 @@ fn next_work(shared: &Shared) -> Option<Work> {
                 .span
                 .in_scope(|| shared.store.load(&job.key, d, job.source.as_ref()))
             {
-                Ok(h) => h,
+                Ok(h) => {
+                    // Threads that skipped this domain's rays while it loaded (and found
+                    // nothing else) are asleep: wake them to share the rays now, rather
+                    // than when their safety-net timeout ends (up to 50 ms of one idle
+                    // thread at the start of every job).
+                    shared.notify();
+                    h
+                }
                 Err(LoadError::Busy { .. }) => continue,
                 Err(e) => {
                     job.fail(format!("worker {}: {e}", shared.id()));
@@ -165,7 +172,7 @@ fn next_work(shared: &Shared) -> Option<Work> {
     }
     if shared.in_flight() < shared.limits.in_flight_limit {
         for job in shared.jobs.all() {
-            if job.has_failed() {
+            if job.has_failed() || !camera_ready(shared, &job) {
                 continue;
             }
             let mut tiles = lock(&job.tiles);
@@ -185,6 +192,35 @@ fn next_work(shared: &Shared) -> Option<Work> {
         }
     }
     None
+}
+
+/// Whether `job`'s camera rays can be made now. A job of one domain has it loaded
+/// first, by the thread that would make them: made earlier, every camera ray would be
+/// packed, queued for the domain and unpacked again instead of traced at once, and
+/// making them would take the cores from the domain's build. False while another thread
+/// loads it (that thread wakes the others when it is done) or when the load fails (the
+/// job fails with it).
+fn camera_ready(shared: &Shared, job: &Arc<Job>) -> bool {
+    let Some(d) = job.tracer.single_domain() else {
+        return true;
+    };
+    if !job.routes().owns(d) || shared.store.is_resident(&job.key, d) {
+        return true;
+    }
+    match job
+        .span
+        .in_scope(|| shared.store.load(&job.key, d, job.source.as_ref()))
+    {
+        Ok(_) => {
+            shared.notify();
+            true
+        }
+        Err(LoadError::Busy { .. }) => false,
+        Err(e) => {
+            job.fail(format!("worker {}: {e}", shared.id()));
+            false
+        }
+    }
 }
 
 /// Trace one piece of work and hand the results on.
