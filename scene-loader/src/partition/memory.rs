@@ -147,6 +147,11 @@ impl MemoryPackage {
 
 /// Push every emissive triangle of `mesh` (whose materials are `scene`'s) to `out`.
 fn emitters_of(mesh: &Mesh, scene: &Scene, out: &mut DomainBuilder) -> Result<()> {
+    // A scene with no emissive material (most: sun, sky, point lights) has none: no need
+    // to visit its triangles.
+    if !scene.materials.iter().any(|m| m.has_emission()) {
+        return Ok(());
+    }
     mesh.for_each_triangle(&mut |t| {
         if scene
             .materials

@@ -86,6 +86,22 @@ pub fn load_resident(package: &Package, owned: &[u32]) -> Result<ResidentScene> 
 pub fn assemble(
     tables: Scene,
     bounds: (Vec3, Vec3),
+    mut parts: Vec<DomainMesh>,
+    emitters: DomainMesh,
+) -> ResidentScene {
+    if merged_is_the_part(&parts, &emitters)
+        && let Some(part) = parts.pop()
+    {
+        return whole_part(tables, bounds, part);
+    }
+    merge(tables, bounds, parts, emitters)
+}
+
+/// [`assemble`] in general: the union of the parts and the emitters, copied in scene
+/// order.
+fn merge(
+    tables: Scene,
+    bounds: (Vec3, Vec3),
     parts: Vec<DomainMesh>,
     emitters: DomainMesh,
 ) -> ResidentScene {
@@ -157,6 +173,53 @@ pub fn assemble(
     }
 }
 
+/// Whether [`assemble`]'s merge of `parts` and `emitters` would give back the one part's
+/// triangles, in its order: one part whose global ids ascend strictly, with every emitter
+/// among them. Then the part itself can be the resident scene, and a one-domain layout
+/// (every embedded `dray render`) takes it as it is instead of copying the scene. Only
+/// the vertex numbering may differ from the merge's (which numbers vertices by first
+/// use), and no result depends on it: hits, shading and light sampling read a
+/// triangle's corners, never its vertex indices. Every index must be in range, as the
+/// merge (which would panic) requires too.
+fn merged_is_the_part(parts: &[DomainMesh], emitters: &DomainMesh) -> bool {
+    let [part] = parts else {
+        return false;
+    };
+    let (ids, m) = (&part.global_ids, &part.mesh);
+    let n = m.positions.len();
+    ids.len() == m.indices.len()
+        && m.material.len() == m.indices.len()
+        && m.normals.len() == n
+        && m.tangents.len() == n
+        && m.uvs.len() == n
+        && ids.windows(2).all(|w| w[0] < w[1])
+        && emitters
+            .global_ids
+            .iter()
+            .all(|g| ids.binary_search(g).is_ok())
+        && m.indices.iter().flatten().all(|&v| (v as usize) < n)
+}
+
+/// [`assemble`] when [`merged_is_the_part`] holds: the part's mesh moves into the scene.
+fn whole_part(tables: Scene, bounds: (Vec3, Vec3), part: DomainMesh) -> ResidentScene {
+    // Every triangle's merged index is its index in the part: the ids are the defaults.
+    let accel = Accel::build_with_ids(&part.mesh, None);
+    let triangles = part.triangle_count();
+    ResidentScene {
+        scene: Scene {
+            mesh: part.mesh,
+            ..tables
+        },
+        global_ids: part.global_ids,
+        bounds,
+        domains: vec![ResidentDomain {
+            domain: part.domain,
+            accel,
+            triangles,
+        }],
+    }
+}
+
 /// The resident scene a worker owning `owned` would load from a package of `scene` cut
 /// by `layout`, made in memory: for tests, with the same bits as [`load_resident`] gives.
 pub fn resident_in_memory(
@@ -187,4 +250,111 @@ pub fn domain_set(scene: &Scene, spec: &super::LayoutSpec) -> Result<dray_core::
             .collect(),
         pad: layout.epsilon(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use dray_core::bvh::QueryRay;
+
+    use super::*;
+    use crate::partition::LayoutSpec;
+    use crate::partition::memory::MemoryPackage;
+
+    /// Per triangle, in order: its material and, per corner, the bits of its position,
+    /// normal, tangent and uv (what rendering reads; not the vertex numbering).
+    fn triangle_bits(m: &Mesh) -> Vec<u32> {
+        let mut out = Vec::new();
+        for (t, tri) in m.indices.iter().enumerate() {
+            out.push(m.material[t]);
+            for &v in tri {
+                let v = v as usize;
+                let p = m.positions[v].to_array();
+                let n = m.normals[v].to_array();
+                let g = m.tangents[v].to_array();
+                let u = m.uvs[v].to_array();
+                out.extend(p.iter().chain(&n).chain(&g).chain(&u).map(|x| x.to_bits()));
+            }
+        }
+        out
+    }
+
+    /// One-domain packages (the embedded `dray render`) take the part as it is, and that
+    /// is what the general merge gives: the same triangles in the same order to the bit,
+    /// the same global ids, the same hits. Scenes with emitters (which the merge adds),
+    /// shared vertices, and vertices not numbered in first-use order (the sphere).
+    #[test]
+    fn a_whole_part_is_what_the_merge_gives() {
+        for spec in [
+            "cornell",
+            "cornell:glass",
+            "spheres:40",
+            "soup:3000",
+            "city:3",
+        ] {
+            let scene = crate::load(spec).unwrap_or_else(|e| panic!("{spec}: {e}"));
+            let pkg = MemoryPackage::new(scene, &LayoutSpec::Kd(1)).unwrap();
+            let part = pkg.domain_mesh(0).cloned().unwrap();
+            let emitters = pkg.emitters().clone();
+            let one = std::slice::from_ref(&part);
+            assert!(merged_is_the_part(one, &emitters), "{spec}");
+            let b = pkg.layout().scene_bounds();
+            let bounds = (b.min, b.max);
+            let tables = || pkg.tables().clone();
+            let fast = assemble(tables(), bounds, vec![part.clone()], emitters.clone());
+            let slow = merge(tables(), bounds, vec![part], emitters);
+            let (fm, sm) = (&fast.scene.mesh, &slow.scene.mesh);
+            assert_eq!(triangle_bits(fm), triangle_bits(sm), "{spec}");
+            assert_eq!(fast.global_ids, slow.global_ids, "{spec}");
+            let (lo, hi) = fast.bounds;
+            let (fa, sa) = (&fast.domains[0].accel, &slow.domains[0].accel);
+            let mut hits = 0;
+            for i in 0..2000u32 {
+                let u = |k: u32| {
+                    let h = i.wrapping_mul(2_654_435_761).wrapping_add(k * 40_503);
+                    (h % 1000) as f32 / 1000.0
+                };
+                let target = lo + (hi - lo) * Vec3::new(u(1), u(2), u(3));
+                let origin = lo + (hi - lo) * (Vec3::new(u(4), u(5), u(6)) * 3.0 - 1.0);
+                let ray = QueryRay {
+                    origin,
+                    dir: (target - origin).normalize(),
+                    tmin: 0.0,
+                    tmax: f32::INFINITY,
+                };
+                let key = |h: Option<dray_core::bvh::Hit>| {
+                    h.map(|h| (h.t.to_bits(), h.tri, h.b0.to_bits(), h.b1.to_bits()))
+                };
+                let a = fa.closest(&ray, |_, _: &_| true);
+                let s = sa.closest(&ray, |_, _: &_| true);
+                assert_eq!(key(a), key(s), "{spec} ray {i}");
+                hits += a.is_some() as u32;
+            }
+            assert!(hits > 100, "{spec}: {hits} hits");
+        }
+    }
+
+    /// Two parts, an emitter outside the part, ids out of order or an index out of range
+    /// take the general merge.
+    #[test]
+    fn other_inputs_take_the_merge() {
+        let scene = crate::load("cornell").unwrap();
+        let pkg = MemoryPackage::new(scene.clone(), &LayoutSpec::Kd(2)).unwrap();
+        let (a, b) = (
+            pkg.domain_mesh(0).cloned().unwrap(),
+            pkg.domain_mesh(1).cloned().unwrap(),
+        );
+        assert!(!merged_is_the_part(&[a, b], pkg.emitters()));
+        let whole = MemoryPackage::new(scene, &LayoutSpec::Kd(1)).unwrap();
+        let part = whole.domain_mesh(0).cloned().unwrap();
+        let mut emitters = whole.emitters().clone();
+        emitters.global_ids.push(u32::MAX);
+        assert!(!merged_is_the_part(std::slice::from_ref(&part), &emitters));
+        let mut swapped = part.clone();
+        swapped.global_ids.swap(0, 1);
+        assert!(!merged_is_the_part(&[swapped], whole.emitters()));
+        let mut outside = part.clone();
+        outside.mesh.indices[3][1] = outside.mesh.positions.len() as u32;
+        assert!(!merged_is_the_part(&[outside], whole.emitters()));
+        assert!(merged_is_the_part(&[part], whole.emitters()));
+    }
 }
