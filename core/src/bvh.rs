@@ -26,13 +26,13 @@
 use std::time::Duration;
 
 use glam::{DVec3, Vec3, Vec3A};
-use obvhs::cwbvh::bvh2_to_cwbvh::bvh2_to_cwbvh;
 use obvhs::{Boundable, aabb::Aabb};
 
 use crate::intersect::{TriangleHit, WatertightRay};
 use crate::scene::Mesh;
 
 mod build;
+mod convert;
 mod leaf;
 mod node_test;
 mod traverse;
@@ -154,8 +154,9 @@ impl Accel {
         }
         let aabbs: Vec<Aabb> = prims.iter().map(Boundable::aabb).collect();
         let bvh2 = build::build(&aabbs);
-        // At most 3 triangles per leaf, as obvhs's own CWBVH builder converts.
-        let bvh = bvh2_to_cwbvh(&bvh2, 3, true, false);
+        // At most 3 triangles per leaf, as obvhs's own CWBVH builder converts; obvhs's
+        // conversion, with large subtrees on rayon's pool.
+        let bvh = convert::to_cwbvh(&bvh2, 3);
         let ids = bvh
             .primitive_indices
             .iter()

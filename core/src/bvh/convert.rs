@@ -1,0 +1,516 @@
+//! BVH2 to CWBVH: obvhs 0.4's `bvh2_to_cwbvh` (Ylitie et al. 2017's cost-based collapse
+//! into 8-wide nodes, children ordered by octant), step for step, with the large
+//! subtrees converted on rayon's pool.
+//!
+//! obvhs converts on one thread; on a 1.7M-triangle scene that is a third of a second
+//! with the other core idle, as long as the parallel binned-SAH build before it. The
+//! result here is obvhs's own, node for node (a test compares the two with `==`):
+//! - **Costs** (bottom up): each node's seven decisions need only its children's, so
+//!   the two sides of the top levels are costed in parallel (`rayon::join`). Each
+//!   node's decisions are written once, by the task that owns the node, into atomics
+//!   (relaxed: the join orders a child's writes before its parent's reads).
+//! - **Nodes** (top down): obvhs numbers a node's children as one block at the end of
+//!   the node list when it visits the node, then visits the internal children in slot
+//!   order, and appends a leaf child's primitives when it visits the leaf's parent. So
+//!   what one internal child's visit appends (its subtree's nodes less itself, and its
+//!   subtree's primitives) is one contiguous run of each list. A large subtree is
+//!   converted on its own, into lists numbered from its own start, and its runs are
+//!   appended with its indices moved by where they land.
+
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+
+use glam::{UVec3, Vec3A, vec3a};
+use obvhs::bvh2::Bvh2;
+use obvhs::cwbvh::node::CwBvhNode;
+use obvhs::cwbvh::{BRANCHING, CwBvh};
+
+/// obvhs's `DENOM`: one step of the 8-bit child-plane grid.
+const DENOM: f32 = 1.0 / 255.0;
+/// obvhs's `PRIM_COST`.
+const PRIM_COST: f32 = 0.3;
+/// Directions of the child-ordering table (octants).
+const DIRECTIONS: usize = 8;
+/// Decisions per BVH2 node: one per number of CWBVH child slots it may fill (1..=7).
+const SLOTS: usize = 7;
+const INVALID: u8 = u8::MAX;
+const INVALID32: u32 = u32::MAX;
+/// BVH2 levels whose two sides are costed in parallel.
+const PARALLEL_COST_DEPTH: u32 = 8;
+/// Subtrees over at least this many primitives are converted on their own, in parallel
+/// with their siblings.
+const PARALLEL_MIN: u32 = 4096;
+
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum Kind {
+    Leaf,
+    Internal,
+    Distribute,
+}
+
+/// obvhs's `Decision`: what a node becomes when it may fill `i + 1` child slots.
+#[derive(Clone, Copy, Debug)]
+struct Decision {
+    cost: f32,
+    kind: Kind,
+    left: u8,
+    right: u8,
+}
+
+impl Decision {
+    fn pack(self) -> u64 {
+        let kind = match self.kind {
+            Kind::Leaf => 0u64,
+            Kind::Internal => 1,
+            Kind::Distribute => 2,
+        };
+        u64::from(self.cost.to_bits())
+            | kind << 32
+            | u64::from(self.left) << 40
+            | u64::from(self.right) << 48
+    }
+
+    fn unpack(v: u64) -> Decision {
+        Decision {
+            cost: f32::from_bits(v as u32),
+            kind: match (v >> 32) as u8 {
+                0 => Kind::Leaf,
+                1 => Kind::Internal,
+                _ => Kind::Distribute,
+            },
+            left: (v >> 40) as u8,
+            right: (v >> 48) as u8,
+        }
+    }
+}
+
+/// obvhs's `Decision::default()`.
+const DEFAULT: Decision = Decision {
+    cost: 0.0,
+    kind: Kind::Distribute,
+    left: 0,
+    right: 0,
+};
+
+struct Converter<'a> {
+    bvh2: &'a Bvh2,
+    /// `SLOTS` decisions per BVH2 node.
+    decisions: Vec<AtomicU64>,
+    /// Primitives under each BVH2 node (set by the cost pass).
+    prims: Vec<AtomicU32>,
+    directions: [Vec3A; DIRECTIONS],
+}
+
+/// What converting one subtree appends: its nodes (the subtree's root first, then the
+/// blocks its visit numbers) and its primitives, numbered from 0.
+#[derive(Default)]
+struct Part {
+    nodes: Vec<CwBvhNode>,
+    primitive_indices: Vec<u32>,
+}
+
+/// obvhs's `bvh2_to_cwbvh(bvh2, max_prims_per_leaf, true, false)`, the same to the bit.
+/// `bvh2` must have one primitive per leaf (as obvhs requires).
+pub(crate) fn to_cwbvh(bvh2: &Bvh2, max_prims_per_leaf: u32) -> CwBvh {
+    if bvh2.nodes.is_empty() {
+        return CwBvh::default();
+    }
+    let n = bvh2.nodes.len();
+    let c = Converter {
+        bvh2,
+        decisions: (0..n * SLOTS)
+            .map(|_| AtomicU64::new(DEFAULT.pack()))
+            .collect(),
+        prims: (0..n).map(|_| AtomicU32::new(0)).collect(),
+        directions: std::array::from_fn(|s| {
+            vec3a(
+                if (s & 0b100) != 0 { -1.0 } else { 1.0 },
+                if (s & 0b010) != 0 { -1.0 } else { 1.0 },
+                if (s & 0b001) != 0 { -1.0 } else { 1.0 },
+            )
+        }),
+    };
+    c.cost(0, max_prims_per_leaf, 0);
+    let mut part = Part::default();
+    part.nodes.reserve(bvh2.primitive_indices.len());
+    part.primitive_indices.reserve(bvh2.primitive_indices.len());
+    part.nodes.push(CwBvhNode::default());
+    c.convert(&mut part, 0, 0);
+    CwBvh {
+        nodes: part.nodes,
+        primitive_indices: part.primitive_indices,
+        total_aabb: *bvh2.nodes[0].aabb(),
+        exact_node_aabbs: None,
+        uses_spatial_splits: bvh2.uses_spatial_splits,
+    }
+}
+
+impl Converter<'_> {
+    fn decision(&self, i: usize) -> Decision {
+        Decision::unpack(self.decisions[i].load(Ordering::Relaxed))
+    }
+
+    fn set(&self, i: usize, d: Decision) {
+        self.decisions[i].store(d.pack(), Ordering::Relaxed);
+    }
+
+    /// obvhs's `calculate_cost_impl`: fill node `index`'s decisions, its children's
+    /// first; returns the primitives under it.
+    fn cost(&self, index: usize, max_prims_per_leaf: u32, depth: u32) -> u32 {
+        let node = &self.bvh2.nodes[index];
+        let half_area = node.aabb().half_area();
+        let first = node.first_index as usize;
+        let base = index * SLOTS;
+        let (first_7, next_7) = (first * SLOTS, (first + 1) * SLOTS);
+        let num_primitives;
+        if node.prim_count != 0 {
+            num_primitives = node.prim_count;
+            assert!(
+                num_primitives == 1,
+                "the CWBVH conversion expects one primitive per BVH2 leaf"
+            );
+            let cost = half_area * (num_primitives as f32) * PRIM_COST;
+            for i in 0..SLOTS {
+                self.set(
+                    base + i,
+                    Decision {
+                        kind: Kind::Leaf,
+                        cost,
+                        ..self.decision(base + i)
+                    },
+                );
+            }
+        } else {
+            let (l, r) = if depth < PARALLEL_COST_DEPTH {
+                rayon::join(
+                    || self.cost(first, max_prims_per_leaf, depth + 1),
+                    || self.cost(first + 1, max_prims_per_leaf, depth + 1),
+                )
+            } else {
+                (
+                    self.cost(first, max_prims_per_leaf, depth + 1),
+                    self.cost(first + 1, max_prims_per_leaf, depth + 1),
+                )
+            };
+            num_primitives = l + r;
+            let child = |i: usize| self.decision(i).cost;
+            {
+                let cost_leaf = if num_primitives <= max_prims_per_leaf {
+                    (num_primitives as f32) * half_area * PRIM_COST
+                } else {
+                    f32::INFINITY
+                };
+                let mut cost_distribute = f32::INFINITY;
+                let (mut left, mut right) = (INVALID, INVALID);
+                for k in 0..SLOTS {
+                    let c = child(first_7 + k) + child(next_7 + 6 - k);
+                    if c < cost_distribute {
+                        cost_distribute = c;
+                        left = k as u8;
+                        right = 6 - k as u8;
+                    }
+                }
+                let cost_internal = cost_distribute + half_area;
+                let (kind, cost) = if cost_leaf < cost_internal {
+                    (Kind::Leaf, cost_leaf)
+                } else {
+                    (Kind::Internal, cost_internal)
+                };
+                self.set(
+                    base,
+                    Decision {
+                        cost,
+                        kind,
+                        left,
+                        right,
+                    },
+                );
+            }
+            for i in 1..SLOTS {
+                let at = base + i;
+                let mut cost_distribute = self.decision(at - 1).cost;
+                let (mut left, mut right) = (INVALID, INVALID);
+                for k in 0..i {
+                    let c = child(first_7 + k) + child(next_7 + i - k - 1);
+                    if c < cost_distribute {
+                        cost_distribute = c;
+                        left = k as u8;
+                        right = i as u8 - k as u8 - 1;
+                    }
+                }
+                if left != INVALID {
+                    self.set(
+                        at,
+                        Decision {
+                            cost: cost_distribute,
+                            kind: Kind::Distribute,
+                            left,
+                            right,
+                        },
+                    );
+                } else {
+                    // obvhs sets the cost, then copies the previous decision over it.
+                    self.set(at, self.decision(at - 1));
+                }
+            }
+        }
+        self.prims[index].store(num_primitives, Ordering::Relaxed);
+        num_primitives
+    }
+
+    /// obvhs's `get_children`.
+    fn children(&self, index: usize, out: &mut [u32; 8], count: &mut usize, i: usize) {
+        let node = &self.bvh2.nodes[index];
+        if node.is_leaf() {
+            out[*count] = index as u32;
+            *count += 1;
+            return;
+        }
+        let d = self.decision(index * SLOTS + i);
+        let first = node.first_index as usize;
+        for (child, slot) in [(first, d.left), (first + 1, d.right)] {
+            if self.decision(child * SLOTS + slot as usize).kind == Kind::Distribute {
+                self.children(child, out, count, slot as usize);
+            } else {
+                out[*count] = child as u32;
+                *count += 1;
+            }
+        }
+    }
+
+    /// obvhs's `order_children`: children in octant order (greedy assignment).
+    fn order(&self, index: usize, children: &mut [u32; 8], count: usize) {
+        let p = self.bvh2.nodes[index].aabb().center();
+        let mut cost = [[f32::MAX; DIRECTIONS]; BRANCHING];
+        for (s, d) in self.directions.iter().enumerate() {
+            for c in 0..count {
+                let v = self.bvh2.nodes[children[c] as usize].aabb().center() - p;
+                cost[c][s] = d.dot(v);
+            }
+        }
+        let mut assignment = [usize::MAX; BRANCHING];
+        let mut filled = [false; DIRECTIONS];
+        loop {
+            let mut min_cost = f32::MAX;
+            let (mut min_slot, mut min_index) = (usize::MAX, usize::MAX);
+            for c in 0..count {
+                if assignment[c] == usize::MAX {
+                    for (s, &f) in filled.iter().enumerate() {
+                        if !f && cost[c][s] < min_cost {
+                            min_cost = cost[c][s];
+                            min_slot = s;
+                            min_index = c;
+                        }
+                    }
+                }
+            }
+            if min_slot == usize::MAX {
+                break;
+            }
+            filled[min_slot] = true;
+            assignment[min_index] = min_slot;
+        }
+        let original = std::mem::replace(children, [INVALID32; 8]);
+        for i in 0..count {
+            children[assignment[i]] = original[i];
+        }
+    }
+
+    /// obvhs's `count_primitives`: append the primitives under `index`, left first.
+    fn push_primitives(&self, index: usize, out: &mut Vec<u32>) -> u32 {
+        let node = &self.bvh2.nodes[index];
+        if node.is_leaf() {
+            out.push(self.bvh2.primitive_indices[node.first_index as usize]);
+            return node.prim_count;
+        }
+        let first = node.first_index as usize;
+        self.push_primitives(first, out) + self.push_primitives(first + 1, out)
+    }
+
+    /// obvhs's `convert_to_cwbvh_impl`: fill `part.nodes[at]` from BVH2 node `index`,
+    /// appending its children's block and primitives, then convert its internal
+    /// children; large ones on their own, in parallel, appended in slot order.
+    fn convert(&self, part: &mut Part, at: usize, index: usize) {
+        let mut node = part.nodes[at];
+        let aabb = self.bvh2.nodes[index].aabb();
+        let node_p = aabb.min;
+        node.p = node_p.into();
+        let e = ((aabb.max - aabb.min).max(Vec3A::splat(1e-20)) * DENOM)
+            .log2()
+            .ceil()
+            .exp2();
+        let rcp_e = 1.0 / e;
+        let e: UVec3 = UVec3::new(e.x.to_bits(), e.y.to_bits(), e.z.to_bits()) >> 23u32;
+        node.e = [e.x as u8, e.y as u8, e.z as u8];
+
+        let mut children = [INVALID32; 8];
+        let mut count = 0;
+        self.children(index, &mut children, &mut count, 0);
+        self.order(index, &mut children, count);
+
+        node.imask = 0;
+        node.primitive_base_idx = part.primitive_indices.len() as u32;
+        node.child_base_idx = part.nodes.len() as u32;
+        let mut internal = 0;
+        let mut num_primitives = 0u32;
+        for (i, &child) in children.iter().enumerate() {
+            if child == INVALID32 {
+                continue;
+            }
+            let child_aabb = self.bvh2.nodes[child as usize].aabb();
+            const PAD: f32 = 0.0;
+            let child_min = ((child_aabb.min - node_p - PAD) * rcp_e)
+                .floor()
+                .clamp(Vec3A::ZERO, Vec3A::splat(255.0));
+            let child_max = ((child_aabb.max - node_p + PAD) * rcp_e)
+                .ceil()
+                .clamp(Vec3A::ZERO, Vec3A::splat(255.0));
+            node.child_min_x[i] = child_min.x as u8;
+            node.child_min_y[i] = child_min.y as u8;
+            node.child_min_z[i] = child_min.z as u8;
+            node.child_max_x[i] = child_max.x as u8;
+            node.child_max_y[i] = child_max.y as u8;
+            node.child_max_z[i] = child_max.z as u8;
+            match self.decision(child as usize * SLOTS).kind {
+                Kind::Leaf => {
+                    let n = self.push_primitives(child as usize, &mut part.primitive_indices);
+                    node.child_meta[i] = num_primitives as u8
+                        | match n {
+                            1 => 0b0010_0000,
+                            2 => 0b0110_0000,
+                            3 => 0b1110_0000,
+                            _ => panic!("a CWBVH leaf of {n} primitives (at most 3)"),
+                        };
+                    num_primitives += n;
+                }
+                Kind::Internal => {
+                    node.imask |= 1u8 << i;
+                    node.child_meta[i] = (24 + i as u8) | 0b0010_0000;
+                    internal += 1;
+                }
+                Kind::Distribute => unreachable!("a child slot never distributes"),
+            }
+        }
+        let block = part.nodes.len();
+        part.nodes.resize(block + internal, CwBvhNode::default());
+        part.nodes[at] = node;
+
+        let inner: Vec<usize> = children
+            .iter()
+            .enumerate()
+            .filter(|&(i, &c)| c != INVALID32 && node.imask & (1 << i) != 0)
+            .map(|(_, &c)| c as usize)
+            .collect();
+        let large = |c: usize| self.prims[c].load(Ordering::Relaxed) >= PARALLEL_MIN;
+        if inner.iter().filter(|&&c| large(c)).count() < 2 {
+            for (offset, &child) in inner.iter().enumerate() {
+                self.convert(part, block + offset, child);
+            }
+            return;
+        }
+        // Each large child converted on its own (numbered from 0), small ones in place
+        // when their turn comes, so that every run lands where one thread puts it.
+        let mut parts: Vec<Option<Part>> = inner.iter().map(|_| None).collect();
+        rayon::scope(|s| {
+            for (slot, &child) in parts.iter_mut().zip(&inner) {
+                if large(child) {
+                    s.spawn(move |_| {
+                        let mut sub = Part::default();
+                        sub.nodes.push(CwBvhNode::default());
+                        self.convert(&mut sub, 0, child);
+                        *slot = Some(sub);
+                    });
+                }
+            }
+        });
+        for (offset, (&child, sub)) in inner.iter().zip(parts).enumerate() {
+            match sub {
+                None => self.convert(part, block + offset, child),
+                Some(sub) => append(part, block + offset, sub),
+            }
+        }
+    }
+}
+
+/// Put a subtree converted on its own into `part`: its root at `at`, the rest of its
+/// nodes and its primitives appended, with their indices moved to where they land
+/// (node `k >= 1` of the subtree lands at `nodes.len() + k - 1`).
+fn append(part: &mut Part, at: usize, sub: Part) {
+    let node_shift = part.nodes.len() as u32;
+    let prim_shift = part.primitive_indices.len() as u32;
+    let moved = |mut n: CwBvhNode| {
+        // Every child block of the subtree starts at its index 1 or later.
+        n.child_base_idx = n.child_base_idx + node_shift - 1;
+        n.primitive_base_idx += prim_shift;
+        n
+    };
+    let mut nodes = sub.nodes.into_iter();
+    if let Some(root) = nodes.next() {
+        part.nodes[at] = moved(root);
+    }
+    part.nodes.extend(nodes.map(moved));
+    part.primitive_indices.extend(sub.primitive_indices);
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::Vec3A;
+    use obvhs::aabb::Aabb;
+    use obvhs::cwbvh::bvh2_to_cwbvh::bvh2_to_cwbvh;
+
+    use super::*;
+    use crate::bvh::build;
+    use crate::sampling::{PathKey, Purpose};
+
+    fn boxes(n: u32, seed: u32, kind: u32) -> Vec<Aabb> {
+        (0..n)
+            .map(|i| {
+                let k = PathKey {
+                    seed: u64::from(seed),
+                    pixel: i,
+                    sample: 0,
+                };
+                let u = |d: u32| k.uniform(0, Purpose::Film, d);
+                let c = match kind {
+                    // Everything at one point: median cuts, deep chains.
+                    0 => Vec3A::splat(1.0),
+                    // A few clusters far apart, with coincident boxes.
+                    1 => Vec3A::new((i % 7) as f32 * 1000.0, (i % 3) as f32, 5.0),
+                    _ => Vec3A::new(u(0), u(1), u(2)) * 100.0,
+                };
+                let h = Vec3A::new(u(3), u(4), u(5)) * if kind == 2 { 2.0 } else { 0.0 };
+                Aabb::new(c - h, c + h)
+            })
+            .collect()
+    }
+
+    /// The parallel conversion is obvhs's, node for node and primitive for primitive,
+    /// on random, clustered and coincident boxes, small (one thread) and large (parallel
+    /// subtrees), and with 1, 2 or 3 primitives per leaf.
+    #[test]
+    fn same_tree_as_obvhs() {
+        for (n, kind) in [
+            (1, 2),
+            (2, 2),
+            (9, 2),
+            (700, 2),
+            (50_000, 2),
+            (30_000, 1),
+            (20_000, 0),
+        ] {
+            let bvh2 = build::build(&boxes(n, 7 + n, kind));
+            for leaf in 1..=3 {
+                let want = bvh2_to_cwbvh(&bvh2, leaf, true, false);
+                let got = to_cwbvh(&bvh2, leaf);
+                assert_eq!(got.nodes.len(), want.nodes.len(), "{n} {kind} {leaf}");
+                for (i, (g, w)) in got.nodes.iter().zip(&want.nodes).enumerate() {
+                    assert!(
+                        g == w,
+                        "{n} boxes, kind {kind}, leaf {leaf}: node {i} differs"
+                    );
+                }
+                assert_eq!(got.primitive_indices, want.primitive_indices);
+                assert!(got == want, "{n} {kind} {leaf}");
+            }
+        }
+    }
+}
