@@ -50,7 +50,9 @@ pub fn build(aabbs: &[Aabb]) -> Bvh2 {
         aabbs,
         centroids: &centroids,
     };
-    let nodes = subtree(&input, &mut order, 0, 0, root);
+    let mut nodes = vec![Bvh2Node::default(); 2 * n - 1];
+    let (top, rest) = nodes.split_at_mut(1);
+    top[0] = subtree(&input, &mut order, 0, 0, root, rest, 1);
     Bvh2 {
         nodes,
         primitive_indices: order,
@@ -65,53 +67,68 @@ struct Input<'a> {
     centroids: &'a [Vec3A],
 }
 
-/// The nodes of the subtree over `range` (the primitives `start..start + range.len()`
-/// of the whole order), whose root has box `aabb` and sits at `depth`. Numbered from
-/// its root (0) in the order one thread would allocate them: a cut's two children
-/// side by side when the cut is made, the left side's subtree before the right's.
-/// Leaves point into the whole order; internal nodes to children in this numbering.
+/// The subtree over `range` (the primitives `start..start + range.len()` of the whole
+/// order), whose root has box `aabb` and sits at `depth`, numbered as one thread would
+/// number it: a cut's two children side by side when the cut is made, the left side's
+/// subtree before the right's. A subtree over `k` primitives has `2k - 1` nodes; its root
+/// is returned (its parent places it), the other `2k - 2` are written into `rest`, which
+/// the whole tree numbers from `offset`. Leaves point into the whole order.
+///
+/// Large subtrees cut in parallel: the two sides' nodes go to the two halves of `rest`
+/// after the children's pair, each written once, in place.
 fn subtree(
     input: &Input,
     range: &mut [u32],
     start: usize,
     depth: u32,
     aabb: Aabb,
-) -> Vec<Bvh2Node> {
+    rest: &mut [Bvh2Node],
+    offset: usize,
+) -> Bvh2Node {
     let count = range.len();
+    debug_assert_eq!(rest.len(), 2 * count - 2);
     if count < PARALLEL_MIN {
-        return sequential(input, range, start, depth, aabb);
+        let local = sequential(input, range, start, depth, aabb);
+        // Local node k >= 1 is node `offset + k - 1` of the whole tree.
+        let moved = |node: &Bvh2Node| {
+            if node.prim_count == 0 {
+                Bvh2Node::new(
+                    *node.aabb(),
+                    0,
+                    (offset + node.first_index as usize - 1) as u32,
+                )
+            } else {
+                *node
+            }
+        };
+        for (slot, node) in rest.iter_mut().zip(&local[1..]) {
+            *slot = moved(node);
+        }
+        return moved(&local[0]);
     }
     let (mid, left_box, right_box) = cut(input, range, depth);
     let (left, right) = range.split_at_mut(mid);
+    // The children's pair, then the rest of the left subtree, then the right's.
+    let (pair, sides) = rest.split_at_mut(2);
+    let (left_rest, right_rest) = sides.split_at_mut(2 * mid - 2);
+    let (l_offset, r_offset) = (offset + 2, offset + 2 + left_rest.len());
     let (l, r) = rayon::join(
-        || subtree(input, left, start, depth + 1, left_box),
-        || subtree(input, right, start + mid, depth + 1, right_box),
+        || subtree(input, left, start, depth + 1, left_box, left_rest, l_offset),
+        || {
+            subtree(
+                input,
+                right,
+                start + mid,
+                depth + 1,
+                right_box,
+                right_rest,
+                r_offset,
+            )
+        },
     );
-    // This node, its two children at 1 and 2, then the rest of the left subtree, then
-    // the rest of the right one.
-    let mut nodes = Vec::with_capacity(1 + l.len() + r.len());
-    nodes.push(Bvh2Node::new(aabb, 0, 1));
-    let left_rest = 3;
-    let right_rest = left_rest + l.len() - 1;
-    let place = |local: u32, first: usize, rest: usize| {
-        if local == 0 {
-            first as u32
-        } else {
-            (rest + local as usize - 1) as u32
-        }
-    };
-    let moved = |node: &Bvh2Node, first: usize, rest: usize| {
-        if node.prim_count == 0 {
-            Bvh2Node::new(*node.aabb(), 0, place(node.first_index, first, rest))
-        } else {
-            *node
-        }
-    };
-    nodes.push(moved(&l[0], 1, left_rest));
-    nodes.push(moved(&r[0], 2, right_rest));
-    nodes.extend(l[1..].iter().map(|n| moved(n, 1, left_rest)));
-    nodes.extend(r[1..].iter().map(|n| moved(n, 2, right_rest)));
-    nodes
+    pair[0] = l;
+    pair[1] = r;
+    Bvh2Node::new(aabb, 0, offset as u32)
 }
 
 /// [`subtree`] on one thread, with an explicit work stack.
