@@ -27,6 +27,7 @@ use std::time::Duration;
 
 use glam::{DVec3, Vec3, Vec3A};
 use obvhs::{Boundable, aabb::Aabb};
+use rayon::prelude::*;
 
 use crate::intersect::{TriangleHit, WatertightRay};
 use crate::scene::Mesh;
@@ -106,7 +107,9 @@ impl Accel {
         // Only triangles with finite corners go in: nothing can hit the others, and one
         // infinite coordinate would make every box above it (and the conversion's child
         // ordering, which then panics) non-finite.
+        // Per-triangle passes run on rayon's pool; each keeps its input's order.
         let kept: Vec<u32> = (0..mesh.indices.len() as u32)
+            .into_par_iter()
             .filter(|&i| mesh.corners(i as usize).iter().all(|p| p.is_finite()))
             .collect();
         // Bounds in f64: the extent of finite f32 coordinates can overflow f32 (3e38
@@ -135,7 +138,7 @@ impl Accel {
         let pad = (magnitude * f64::from(scale) / f64::from(1u32 << 21)) as f32;
 
         let prims: Vec<PaddedTri> = kept
-            .iter()
+            .par_iter()
             .map(|&i| PaddedTri {
                 v: mesh.corners(i as usize).map(|p| p * scale),
                 pad,
@@ -152,14 +155,14 @@ impl Accel {
                 build_time: start.elapsed(),
             };
         }
-        let aabbs: Vec<Aabb> = prims.iter().map(Boundable::aabb).collect();
+        let aabbs: Vec<Aabb> = prims.par_iter().map(Boundable::aabb).collect();
         let bvh2 = build::build(&aabbs);
         // At most 3 triangles per leaf, as obvhs's own CWBVH builder converts; obvhs's
         // conversion, with large subtrees on rayon's pool.
         let bvh = convert::to_cwbvh(&bvh2, 3);
         let ids = bvh
             .primitive_indices
-            .iter()
+            .par_iter()
             .map(|&p| {
                 let i = kept[p as usize];
                 match global_ids {
@@ -170,7 +173,7 @@ impl Accel {
             .collect();
         let tris = bvh
             .primitive_indices
-            .iter()
+            .par_iter()
             .map(|&i| PackedTri::new(prims[i as usize].v))
             .collect();
         Accel {

@@ -23,6 +23,7 @@ use glam::{UVec3, Vec3A, vec3a};
 use obvhs::bvh2::Bvh2;
 use obvhs::cwbvh::node::CwBvhNode;
 use obvhs::cwbvh::{BRANCHING, CwBvh};
+use rayon::prelude::*;
 
 /// obvhs's `DENOM`: one step of the 8-bit child-plane grid.
 const DENOM: f32 = 1.0 / 255.0;
@@ -118,9 +119,10 @@ pub(crate) fn to_cwbvh(bvh2: &Bvh2, max_prims_per_leaf: u32) -> CwBvh {
     let c = Converter {
         bvh2,
         decisions: (0..n * SLOTS)
+            .into_par_iter()
             .map(|_| AtomicU64::new(DEFAULT.pack()))
             .collect(),
-        prims: (0..n).map(|_| AtomicU32::new(0)).collect(),
+        prims: (0..n).into_par_iter().map(|_| AtomicU32::new(0)).collect(),
         directions: std::array::from_fn(|s| {
             vec3a(
                 if (s & 0b100) != 0 { -1.0 } else { 1.0 },

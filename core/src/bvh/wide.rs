@@ -16,6 +16,7 @@
 //! same nodes in the same order as with obvhs's `traverse!` and `intersect_ray`.
 
 use obvhs::cwbvh::CwBvh;
+use rayon::prelude::*;
 
 /// One 8-wide node, 128 bytes (two cache lines, aligned).
 #[derive(Clone, Copy, Debug, Default)]
@@ -41,7 +42,7 @@ pub(crate) struct WideNode {
 /// The wide nodes of `bvh`, index for index (child indices keep their meaning).
 pub(crate) fn from_cwbvh(bvh: &CwBvh) -> Vec<WideNode> {
     bvh.nodes
-        .iter()
+        .par_iter()
         .map(|n| {
             let mut q = [[0u8; 16]; 3];
             for (row, (lo, hi)) in q.iter_mut().zip([
