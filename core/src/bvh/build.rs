@@ -378,17 +378,21 @@ fn bins_of(c: Vec3A, lo: Vec3A, to_bin: Vec3A) -> [usize; 3] {
 mod tests {
     use super::*;
 
-    /// The three-lane bin index is `bin_of`'s on every axis: in range, at the last bin's
-    /// edge, below the low end, beyond the top, for NaN and infinite positions.
-    #[test]
-    fn bins_of_is_bin_of_per_axis() {
-        let mut seed = 0x2545_F491_4F6C_DD1Du64;
-        let mut next = move || {
+    /// Uniform floats in [0, 1) from a xorshift generator.
+    fn uniforms(mut seed: u64) -> impl FnMut() -> f32 {
+        move || {
             seed ^= seed << 13;
             seed ^= seed >> 7;
             seed ^= seed << 17;
             (seed >> 40) as f32 / (1u64 << 24) as f32
-        };
+        }
+    }
+
+    /// The three-lane bin index is `bin_of`'s on every axis: in range, at the last bin's
+    /// edge, below the low end, beyond the top, for NaN and infinite positions.
+    #[test]
+    fn bins_of_is_bin_of_per_axis() {
+        let mut next = uniforms(0x2545_F491_4F6C_DD1Du64);
         let special = [
             0.0,
             -0.0,
@@ -568,13 +572,7 @@ mod tests {
     /// by index) and nested ones (the depth limit's forced median cuts).
     #[test]
     fn the_parallel_build_is_the_one_thread_build() {
-        let mut seed = 0x9E37_79B9_7F4A_7C15u64;
-        let mut next = move || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            (seed >> 40) as f32 / (1u64 << 24) as f32
-        };
+        let mut next = uniforms(0x9E37_79B9_7F4A_7C15u64);
         let random: Vec<Aabb> = (0..60_000)
             .map(|_| {
                 let p = Vec3A::new(next(), next(), next()) * 100.0;
