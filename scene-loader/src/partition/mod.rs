@@ -78,15 +78,31 @@ pub struct SourceTriangle {
 pub trait TriangleSource {
     /// Call `f` once per triangle, stopping at the first error `f` returns.
     fn for_each_triangle(&self, f: &mut dyn FnMut(&SourceTriangle) -> Result<()>) -> Result<()>;
+
+    /// Call `f(id, positions, material)` once per triangle, in `for_each_triangle`'s
+    /// order with its values: all that pass 1 ([`survey`]) reads. A source that can give
+    /// them without making whole triangles (normals, tangents, uvs) overrides it.
+    fn for_each_position(
+        &self,
+        f: &mut dyn FnMut(u32, [Vec3; 3], u32) -> Result<()>,
+    ) -> Result<()> {
+        self.for_each_triangle(&mut |t| f(t.id, t.positions, t.material))
+    }
+}
+
+/// Every triangle of `mesh` can be given a 32-bit global id.
+fn ids_fit(mesh: &Mesh) -> Result<()> {
+    if mesh.indices.len() > u32::MAX as usize {
+        return Err(layout::layout_error(
+            "more than 4 billion triangles cannot be given 32-bit global ids",
+        ));
+    }
+    Ok(())
 }
 
 impl TriangleSource for Mesh {
     fn for_each_triangle(&self, f: &mut dyn FnMut(&SourceTriangle) -> Result<()>) -> Result<()> {
-        if self.indices.len() > u32::MAX as usize {
-            return Err(layout::layout_error(
-                "more than 4 billion triangles cannot be given 32-bit global ids",
-            ));
-        }
+        ids_fit(self)?;
         for (i, tri) in self.indices.iter().enumerate() {
             let at = |k: usize| tri[k] as usize;
             let t = SourceTriangle {
@@ -105,11 +121,30 @@ impl TriangleSource for Mesh {
         }
         Ok(())
     }
+
+    fn for_each_position(
+        &self,
+        f: &mut dyn FnMut(u32, [Vec3; 3], u32) -> Result<()>,
+    ) -> Result<()> {
+        ids_fit(self)?;
+        for (i, tri) in self.indices.iter().enumerate() {
+            let material = self.material.get(i).copied().unwrap_or(0);
+            f(i as u32, tri.map(|v| self.positions[v as usize]), material)?;
+        }
+        Ok(())
+    }
 }
 
 impl TriangleSource for Scene {
     fn for_each_triangle(&self, f: &mut dyn FnMut(&SourceTriangle) -> Result<()>) -> Result<()> {
         self.mesh.for_each_triangle(f)
+    }
+
+    fn for_each_position(
+        &self,
+        f: &mut dyn FnMut(u32, [Vec3; 3], u32) -> Result<()>,
+    ) -> Result<()> {
+        self.mesh.for_each_position(f)
     }
 }
 
@@ -257,17 +292,17 @@ pub fn survey(source: &dyn TriangleSource, sample_capacity: usize) -> Result<Sur
         centroids: Vec::new(),
     };
     let mut rng = 0x9A27_1710_0000_0003u64;
-    source.for_each_triangle(&mut |t| {
-        crate::cancel::check_at(t.id as usize)?;
-        for p in t.positions {
+    source.for_each_position(&mut |id, positions, material| {
+        crate::cancel::check_at(id as usize)?;
+        for p in positions {
             s.bounds.grow(p);
         }
-        let m = t.material as usize;
+        let m = material as usize;
         if m >= s.material_triangles.len() {
             s.material_triangles.resize(m + 1, 0);
         }
         s.material_triangles[m] += 1;
-        let c = (t.positions[0] + t.positions[1] + t.positions[2]) / 3.0;
+        let c = (positions[0] + positions[1] + positions[2]) / 3.0;
         if s.centroids.len() < sample_capacity {
             s.centroids.push(c);
         } else if sample_capacity > 0 {
@@ -356,6 +391,33 @@ pub fn partition_source_in_memory(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A mesh's own position pass gives what its whole triangles give: the same ids,
+    /// corners and materials in the same order (so pass 1 surveys the same values), and
+    /// materials past the table's end read as 0 as before.
+    #[test]
+    fn a_meshs_position_pass_is_its_triangle_pass() {
+        for spec in ["cornell:glass", "city:3", "soup:500"] {
+            let mut scene = crate::load(spec).unwrap();
+            scene.mesh.material.pop();
+            let mut whole = Vec::new();
+            scene
+                .for_each_triangle(&mut |t| {
+                    whole.push((t.id, t.positions.map(|p| p.to_array()), t.material));
+                    Ok(())
+                })
+                .unwrap();
+            let mut positions = Vec::new();
+            scene
+                .for_each_position(&mut |id, p, m| {
+                    positions.push((id, p.map(|p| p.to_array()), m));
+                    Ok(())
+                })
+                .unwrap();
+            assert!(whole.len() > 10, "{spec}");
+            assert_eq!(positions, whole, "{spec}");
+        }
+    }
 
     #[test]
     fn reservoir_keeps_everything_below_capacity_and_is_bounded_above() {
