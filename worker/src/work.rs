@@ -172,7 +172,12 @@ fn next_work(shared: &Shared) -> Option<Work> {
     }
     if shared.in_flight() < shared.limits.in_flight_limit {
         for job in shared.jobs.all() {
-            if job.has_failed() || !camera_ready(shared, &job) {
+            if job.has_failed() {
+                continue;
+            }
+            // Apart, so that the lock is not held through a load.
+            let tiles_left = !lock(&job.tiles).is_empty();
+            if !tiles_left || !camera_ready(shared, &job) {
                 continue;
             }
             let mut tiles = lock(&job.tiles);
@@ -194,12 +199,12 @@ fn next_work(shared: &Shared) -> Option<Work> {
     None
 }
 
-/// Whether `job`'s camera rays can be made now. A job of one domain has it loaded
-/// first, by the thread that would make them: made earlier, every camera ray would be
-/// packed, queued for the domain and unpacked again instead of traced at once, and
-/// making them would take the cores from the domain's build. False while another thread
-/// loads it (that thread wakes the others when it is done) or when the load fails (the
-/// job fails with it).
+/// Whether `job`'s camera rays (some are left) can be made now. A job of one domain has
+/// it loaded first, by the thread that would make them: made earlier, every camera ray
+/// would be packed, queued for the domain and unpacked again instead of traced at once,
+/// and making them would take the cores from the domain's build. False while another
+/// thread loads it (that thread wakes the others when it is done) or when the load fails
+/// (the job fails with it).
 fn camera_ready(shared: &Shared, job: &Arc<Job>) -> bool {
     let Some(d) = job.tracer.single_domain() else {
         return true;
