@@ -341,17 +341,11 @@ fn bin_scale(extent: f32) -> f32 {
     BINS as f32 * (1.0 - 1e-5) / extent
 }
 
-#[inline]
-#[cfg_attr(not(test), allow(dead_code))]
-fn bin_of(c: f32, lo: f32, to_bin: f32) -> usize {
-    // `as` saturates (and maps NaN to 0), so the index is always in range.
-    (((c - lo) * to_bin) as usize).min(BINS - 1)
-}
-
-/// [`bin_of`] on the three axes at once: the same subtraction and product per lane,
-/// then the position clamped to `[0, BINS - 1]` (a NaN to 0, as `max` with zero second
-/// returns zero) before truncation, which then equals `as usize` followed by the `min`.
-/// A third of the build's instructions went to `bin_of`'s saturating conversions.
+/// The bin of centroid `c` on each axis, in one SSE step: per lane `(c - lo) * to_bin`,
+/// clamped to `[0, BINS - 1]` (a NaN to 0, as `max` with zero second returns zero), then
+/// truncated, which equals a saturating `as usize` followed by `min(BINS - 1)` (the
+/// per-axis form it replaced, whose conversions took a third of the build's
+/// instructions; the tests keep it as the reference).
 #[inline(always)]
 fn bins_of(c: Vec3A, lo: Vec3A, to_bin: Vec3A) -> [usize; 3] {
     let k = ((c - lo) * to_bin)
@@ -377,6 +371,12 @@ fn bins_of(c: Vec3A, lo: Vec3A, to_bin: Vec3A) -> [usize; 3] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// One axis's bin with `as`, which saturates and maps NaN to 0 (the form `bins_of`
+    /// replaced, kept as its reference).
+    fn bin_of(c: f32, lo: f32, to_bin: f32) -> usize {
+        (((c - lo) * to_bin) as usize).min(BINS - 1)
+    }
 
     /// Uniform floats in [0, 1) from a xorshift generator.
     fn uniforms(mut seed: u64) -> impl FnMut() -> f32 {

@@ -396,12 +396,16 @@ impl Converter<'_> {
         part.nodes.resize(block + internal, CwBvhNode::default());
         part.nodes[at] = node;
 
-        let inner: Vec<usize> = children
-            .iter()
-            .enumerate()
-            .filter(|&(i, &c)| c != INVALID32 && node.imask & (1 << i) != 0)
-            .map(|(_, &c)| c as usize)
-            .collect();
+        // The internal children in slot order (on the stack: this runs once per node).
+        let mut slots = [0usize; 8];
+        let mut n = 0;
+        for (i, &c) in children.iter().enumerate() {
+            if c != INVALID32 && node.imask & (1 << i) != 0 {
+                slots[n] = c as usize;
+                n += 1;
+            }
+        }
+        let inner = &slots[..n];
         let large = |c: usize| self.prims[c].load(Ordering::Relaxed) >= PARALLEL_MIN;
         if inner.iter().filter(|&&c| large(c)).count() < 2 {
             for (offset, &child) in inner.iter().enumerate() {
@@ -413,7 +417,7 @@ impl Converter<'_> {
         // when their turn comes, so that every run lands where one thread puts it.
         let mut parts: Vec<Option<Part>> = inner.iter().map(|_| None).collect();
         rayon::scope(|s| {
-            for (slot, &child) in parts.iter_mut().zip(&inner) {
+            for (slot, &child) in parts.iter_mut().zip(inner) {
                 if large(child) {
                     s.spawn(move |_| {
                         let mut sub = Part::default();
