@@ -578,13 +578,13 @@ impl JobTracer {
         Ok(())
     }
 
-    /// Domains in the job's layout.
     /// The layout's one domain, when it has one and it holds triangles: every camera
     /// ray of the job is traced in it.
     pub fn single_domain(&self) -> Option<u32> {
         self.single
     }
 
+    /// Domains in the job's layout.
     pub fn domain_count(&self) -> u32 {
         self.nonempty.len() as u32
     }
