@@ -159,3 +159,100 @@ fn a_cluster_over_mutual_tls_renders_the_same_bits_and_refuses_plaintext() {
     drop(cluster);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Run `dray args...` to its end (it must end: each case fails before serving).
+fn run_to_end(args: &[&str]) -> (std::process::ExitStatus, String, String) {
+    let mut cmd = dray();
+    cmd.args(args)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    for v in ["DRAY_TLS_CA", "DRAY_TLS_CERT", "DRAY_TLS_KEY"] {
+        cmd.env_remove(v);
+    }
+    let mut p = Proc::spawn(cmd);
+    let (mut out, mut err) = (Vec::new(), Vec::new());
+    // Read both pipes to their end (the process closes them when it exits).
+    let mut stdout = p.child.stdout.take().expect("stdout");
+    let reader = std::thread::spawn(move || {
+        let mut v = Vec::new();
+        let _ = std::io::Read::read_to_end(&mut stdout, &mut v);
+        v
+    });
+    if let Some(mut e) = p.child.stderr.take() {
+        let _ = std::io::Read::read_to_end(&mut e, &mut err);
+    }
+    let status = p
+        .wait_timeout(HANG_SECS)
+        .unwrap_or_else(|| panic!("HANG: dray {args:?} still runs after {HANG_SECS} s"));
+    out.extend(reader.join().expect("stdout reader"));
+    (
+        status,
+        String::from_utf8_lossy(&out).into_owned(),
+        String::from_utf8_lossy(&err).into_owned(),
+    )
+}
+
+/// Issue 20, item 13: a bad certificate, key or mismatched pair used to print
+/// "listening ... TLS" and then fail every handshake with a transport error naming no
+/// file; a worker with a mismatched key said "invalid coordinator address". Every
+/// server and client now checks its files before it listens or dials.
+#[test]
+fn bad_tls_files_are_refused_before_listening_naming_the_file() {
+    let dir = common::tmp("tls-bad");
+    let pki = make_pki(&dir);
+    let garbage = write(&dir, "garbage.pem", "this is not PEM\n");
+    let s = |p: &PathBuf| p.display().to_string();
+    // (what, certificate, key, file the error must name)
+    let cases = [
+        (
+            "a key of another certificate",
+            &pki.server_cert,
+            &pki.client_key,
+            "client.key",
+        ),
+        (
+            "a certificate that is not PEM",
+            &garbage,
+            &pki.server_key,
+            "garbage.pem",
+        ),
+        (
+            "a key that is not PEM",
+            &pki.server_cert,
+            &garbage,
+            "garbage.pem",
+        ),
+    ];
+    for (what, cert, key, named) in cases {
+        let (cert, key, ca) = (s(cert), s(key), s(&pki.ca));
+        let tls = ["--tls-cert", &cert, "--tls-key", &key, "--tls-ca", &ca];
+        let coordinator: Vec<&str> = ["coordinator", "--listen", "127.0.0.1:0"]
+            .into_iter()
+            .chain(tls)
+            .collect();
+        let worker: Vec<&str> = [
+            "worker",
+            "--listen",
+            "127.0.0.1:0",
+            "--coordinator",
+            "127.0.0.1:9",
+        ]
+        .into_iter()
+        .chain(tls)
+        .collect();
+        for args in [coordinator, worker] {
+            let (status, out, err) = run_to_end(&args);
+            assert!(!status.success(), "{what}, {}: it started", args[0]);
+            assert!(!out.contains("listening"), "{what}, {}: {out}", args[0]);
+            assert!(
+                err.starts_with("dray: error: "),
+                "{what}, {}: {err}",
+                args[0]
+            );
+            assert!(err.contains(named), "{what}, {}: {err}", args[0]);
+            assert!(!err.contains("panicked"), "{what}, {}: {err}", args[0]);
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
