@@ -196,17 +196,49 @@ pub struct LostWorker {
     pub cause: String,
 }
 
+/// The longest endpoint URL a member may announce (a host name is at most 253 bytes).
+pub const MAX_ENDPOINT_BYTES: usize = 1024;
+/// The longest host name a member may announce (it is only logged).
+pub const MAX_HOSTNAME_BYTES: usize = 256;
+
+/// `version` as a member announced it, for an error: cut (it is input).
+pub fn version_mismatch(what: &str, version: &str) -> Status {
+    Status::failed_precondition(format!(
+        "version: the {what} is dray {} but the coordinator is dray {VERSION:?}; \
+         rays are only compatible within one build, so run the same dray everywhere",
+        crate::validate::bounded(version)
+    ))
+}
+
+/// Check the host name a member announced: at most [`MAX_HOSTNAME_BYTES`].
+pub fn check_hostname(hostname: &str) -> Result<(), Status> {
+    if hostname.len() > MAX_HOSTNAME_BYTES {
+        return Err(Status::invalid_argument(format!(
+            "hostname: {} bytes is longer than {MAX_HOSTNAME_BYTES}",
+            hostname.len()
+        )));
+    }
+    Ok(())
+}
+
 /// Check an endpoint a peer announced (`field` names it in the error): an http(s) URL
 /// with a host, such as `http://10.0.0.7:7001`. Returns it trimmed. INVALID_ARGUMENT
 /// otherwise: the caller must fix its flags, retrying cannot help.
 pub fn check_endpoint(field: &str, raw: &str) -> Result<String, Status> {
+    if raw.len() > MAX_ENDPOINT_BYTES {
+        return Err(Status::invalid_argument(format!(
+            "{field}: {} bytes is longer than {MAX_ENDPOINT_BYTES}",
+            raw.len()
+        )));
+    }
     let endpoint = raw.trim();
     let host = endpoint
         .strip_prefix("http://")
         .or_else(|| endpoint.strip_prefix("https://"));
     if host.is_none_or(|h| h.is_empty() || h.starts_with('/')) {
         return Err(Status::invalid_argument(format!(
-            "{field}: {raw:?} is not a URL such as http://10.0.0.7:7001 that peers can reach"
+            "{field}: {} is not a URL such as http://10.0.0.7:7001 that peers can reach",
+            crate::validate::bounded(raw)
         )));
     }
     Ok(endpoint.to_string())
@@ -255,12 +287,9 @@ impl Membership {
     /// endpoint is INVALID_ARGUMENT.
     pub fn register(&self, r: &RegisterWorkerRequest) -> Result<WorkerRecord, Status> {
         if r.version != VERSION {
-            return Err(Status::failed_precondition(format!(
-                "version: the worker is dray {:?} but the coordinator is dray {VERSION:?}; \
-                 rays are only compatible within one build, so run the same dray everywhere",
-                r.version
-            )));
+            return Err(version_mismatch("worker", &r.version));
         }
+        check_hostname(&r.hostname)?;
         if r.record_format != dray_proto::RAY_RECORD_FORMAT {
             return Err(Status::failed_precondition(format!(
                 "record_format: the worker uses ray record format {} but the coordinator \
@@ -518,5 +547,77 @@ mod tests {
             "a dropped worker must re-register"
         );
         assert!(m.heartbeat(&b.id, 0, 0));
+    }
+
+    /// Issue 20, item 11: a 3 MB `version`, `endpoint` or `hostname` came back whole in
+    /// the error (and the logs). Every echoed field is cut.
+    #[test]
+    fn registration_errors_never_echo_an_unbounded_field() {
+        let m = Membership::new(HeartbeatConfig::default());
+        let huge = "x".repeat(3 << 20);
+        let ok = RegisterWorkerRequest {
+            endpoint: "http://h:1".into(),
+            version: VERSION.into(),
+            record_format: dray_proto::RAY_RECORD_FORMAT,
+            ..Default::default()
+        };
+        let cases = [
+            (
+                "version",
+                RegisterWorkerRequest {
+                    version: huge.clone(),
+                    ..ok.clone()
+                },
+            ),
+            (
+                "endpoint",
+                RegisterWorkerRequest {
+                    endpoint: huge.clone(),
+                    ..ok.clone()
+                },
+            ),
+            (
+                "endpoint",
+                RegisterWorkerRequest {
+                    endpoint: format!("h{huge}"),
+                    ..ok.clone()
+                },
+            ),
+            (
+                "cache_endpoint",
+                RegisterWorkerRequest {
+                    cache_endpoint: huge.clone(),
+                    ..ok.clone()
+                },
+            ),
+            (
+                "hostname",
+                RegisterWorkerRequest {
+                    hostname: huge.clone(),
+                    ..ok.clone()
+                },
+            ),
+        ];
+        for (field, req) in cases {
+            let e = m.register(&req).unwrap_err();
+            assert!(
+                e.message().starts_with(field),
+                "{field}: {}",
+                &e.message()[..100.min(e.message().len())]
+            );
+            assert!(
+                e.message().len() < 400,
+                "{field}: {} bytes",
+                e.message().len()
+            );
+        }
+        // A bad endpoint short enough is still quoted in full.
+        let e = m
+            .register(&RegisterWorkerRequest {
+                endpoint: "h:1".into(),
+                ..ok
+            })
+            .unwrap_err();
+        assert!(e.message().contains("\"h:1\""), "{}", e.message());
     }
 }

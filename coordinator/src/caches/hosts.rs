@@ -14,7 +14,7 @@ use std::sync::{Mutex, MutexGuard};
 use dray_proto::v1::{CacheHost, RegisterCacheHostRequest};
 use tonic::Status;
 
-use crate::membership::{VERSION, check_endpoint};
+use crate::membership::{VERSION, check_endpoint, check_hostname, version_mismatch};
 
 /// The registered stand-alone cache hosts, in registration order.
 #[derive(Debug)]
@@ -44,13 +44,9 @@ impl CacheHosts {
     /// restarted on the same port) keeps its id and is listed once.
     pub fn register(&self, r: &RegisterCacheHostRequest) -> Result<String, Status> {
         if r.version != VERSION {
-            return Err(Status::failed_precondition(format!(
-                "version: the cache host is dray {:?} but the coordinator is dray \
-                 {VERSION:?}; rays are only compatible within one build, so run the same \
-                 dray everywhere",
-                r.version
-            )));
+            return Err(version_mismatch("cache host", &r.version));
         }
+        check_hostname(&r.hostname)?;
         let endpoint = check_endpoint("endpoint", &r.endpoint)?;
         let mut g = self.lock();
         if let Some(h) = g.iter().find(|h| h.endpoint == endpoint) {
@@ -120,5 +116,40 @@ mod tests {
             assert!(e.message().starts_with("endpoint:"), "{}", e.message());
         }
         assert_eq!(h.len(), 2);
+    }
+
+    /// Issue 20, item 11: no field of a registration comes back whole in an error.
+    #[test]
+    fn registration_errors_never_echo_an_unbounded_field() {
+        let h = CacheHosts::default();
+        let huge = "y".repeat(3 << 20);
+        let cases = [
+            (
+                "version",
+                RegisterCacheHostRequest {
+                    version: huge.clone(),
+                    ..req("http://h:1")
+                },
+            ),
+            ("endpoint", req(&huge)),
+            ("endpoint", req(&format!("http{huge}"))),
+            (
+                "hostname",
+                RegisterCacheHostRequest {
+                    hostname: huge.clone(),
+                    ..req("http://h:1")
+                },
+            ),
+        ];
+        for (field, r) in cases {
+            let e = h.register(&r).unwrap_err();
+            assert!(e.message().starts_with(field), "{field}");
+            assert!(
+                e.message().len() < 400,
+                "{field}: {} bytes",
+                e.message().len()
+            );
+        }
+        assert!(h.is_empty());
     }
 }
