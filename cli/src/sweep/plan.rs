@@ -316,6 +316,12 @@ pub fn parse_vary(spec: &str, render: &clap::Command, target: &Target) -> Result
     if list.trim().is_empty() {
         bail!("--vary {name}: no values (expected {name}=V1,V2,...)");
     }
+    if values.len() > MAX_SETTINGS {
+        bail!(
+            "--vary {name}: {} values, more than the {MAX_SETTINGS} settings one sweep renders",
+            values.len()
+        );
+    }
     if values.iter().any(String::is_empty) {
         bail!("--vary {name}: an empty value in {list:?}");
     }
@@ -334,6 +340,21 @@ pub fn parse_vary(spec: &str, render: &clap::Command, target: &Target) -> Result
         key,
         values,
     })
+}
+
+/// The most settings one sweep renders (the product of the `--vary` value counts).
+pub const MAX_SETTINGS: usize = 1024;
+
+/// The longest error text a sweep prints: values can be arbitrarily long input.
+const MAX_ERROR_CHARS: usize = 400;
+
+/// `text` cut to [`MAX_ERROR_CHARS`] characters, saying how long it was.
+fn cut(text: &str) -> String {
+    if text.chars().count() <= MAX_ERROR_CHARS {
+        return text.to_string();
+    }
+    let head: String = text.chars().take(MAX_ERROR_CHARS).collect();
+    format!("{head}... ({} bytes in all)", text.len())
 }
 
 /// Every combination of the varied values, the first `--vary` varying slowest.
@@ -549,6 +570,10 @@ impl Plan {
     /// `--vary` specs: every key and value checked, alone and in combination, before
     /// anything renders. Errors are one line naming the key or the setting.
     pub fn new(base: Vec<String>, vary: &[String], target: &Target) -> Result<Plan> {
+        Plan::checked(base, vary, target).map_err(|e| anyhow::anyhow!("{}", cut(&e.to_string())))
+    }
+
+    fn checked(base: Vec<String>, vary: &[String], target: &Target) -> Result<Plan> {
         let cmd = RenderCli::command();
         let mut varies: Vec<Vary> = Vec::new();
         for spec in vary {
@@ -557,6 +582,23 @@ impl Plan {
                 bail!("--vary {}: given twice (list its values once)", v.name);
             }
             varies.push(v);
+        }
+        // Counted before anything is made: 1000 values on each of two keys would start a
+        // million renders.
+        let count = varies
+            .iter()
+            .try_fold(1usize, |n, v| n.checked_mul(v.values.len()))
+            .filter(|&n| n <= MAX_SETTINGS);
+        if count.is_none() {
+            let sizes: Vec<String> = varies
+                .iter()
+                .map(|v| format!("{} {}", v.values.len(), cut(&v.name)))
+                .collect();
+            bail!(
+                "--vary: {} make more than {MAX_SETTINGS} settings, the most one sweep renders \
+                 (split it into several sweeps)",
+                sizes.join(" x ")
+            );
         }
         let exact_tokens = setting_tokens(&cmd, &base, &[], &[], true);
         let job = check(&exact_tokens, target).map_err(|e| match target {
@@ -867,5 +909,43 @@ mod tests {
         );
         assert_eq!(file_stem("env=1,1,1"), "env-1_1_1");
         assert_eq!(file_stem("..//"), "__");
+    }
+
+    /// Issue 20, item 12: a 1000 x 1000 `--vary` started a million renders, and a 100 KB
+    /// value came back whole in the error.
+    #[test]
+    fn sweeps_are_capped_and_errors_cut() {
+        let e = Target::Embedded;
+        let list = |n: usize| (1..=n).map(|i| i.to_string()).collect::<Vec<_>>().join(",");
+        let big = [
+            format!("spp={}", list(1000)),
+            format!("seed={}", list(1000)),
+        ];
+        let err = Plan::new(vec!["cornell".into()], &big, &e)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("more than 1024 settings"), "{err}");
+        assert!(err.contains("1000 spp x 1000 seed"), "{err}");
+        let one = [format!("seed={}", list(2_000_000))];
+        let err = Plan::new(vec!["cornell".into()], &one, &e)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("2000000 values"), "{err}");
+        // Within the cap it plans.
+        let fine = [format!("spp={}", list(32)), format!("seed={}", list(32))];
+        assert_eq!(
+            Plan::new(vec!["cornell".into()], &fine, &e)
+                .unwrap()
+                .settings
+                .len(),
+            1024
+        );
+        // A 100 KB value is cut in the error.
+        let long = [format!("spp={}", "9".repeat(100_000))];
+        let err = Plan::new(vec!["cornell".into()], &long, &e)
+            .unwrap_err()
+            .to_string();
+        assert!(err.len() < 600, "{} bytes: {}", err.len(), &err[..200]);
+        assert!(err.contains("bytes in all"), "{err}");
     }
 }
