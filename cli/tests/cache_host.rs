@@ -144,7 +144,7 @@ fn spawn_with_address(
 ) -> (
     Proc,
     String,
-    Arc<Mutex<String>>,
+    support::Captured,
     std::io::Lines<BufReader<std::process::ChildStdout>>,
 ) {
     cmd.env("NO_COLOR", "1")
@@ -168,7 +168,7 @@ fn spawn_with_address(
     (p, addr, log, lines)
 }
 
-fn coordinator_with_log(dir: &std::path::Path) -> (Proc, String, Arc<Mutex<String>>) {
+fn coordinator_with_log(dir: &std::path::Path) -> (Proc, String, support::Captured) {
     let mut cmd = dray();
     cmd.args(["coordinator", "--listen", "127.0.0.1:0", "--scene-root"])
         .arg(dir)

@@ -264,8 +264,7 @@ fn submit_small(addr: &str, dir: &std::path::Path, tag: &str, want: &[u8]) -> se
     let mut p = Proc::spawn(cmd);
     let err = support::capture_stderr(&mut p.child);
     let status = p.wait_timeout(180.0);
-    std::thread::sleep(std::time::Duration::from_millis(50));
-    let err = err.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    let err = err.after(status.is_some());
     let status = status.unwrap_or_else(|| panic!("HANG: dray submit {tag}: {err}"));
     assert!(status.success(), "{tag}: {err}");
     assert!(

@@ -34,16 +34,16 @@ fn text(log: &Arc<Mutex<String>>) -> String {
 struct Cluster {
     dir: PathBuf,
     addr: String,
-    log: Arc<Mutex<String>>,
+    log: support::Captured,
     workers: Vec<Proc>,
     /// Each worker's stderr, for failure messages.
-    worker_logs: Vec<Arc<Mutex<String>>>,
+    worker_logs: Vec<support::Captured>,
     coordinator: Proc,
 }
 
 impl Cluster {
     /// A coordinator on `port` (0: any) with a 2 s heartbeat timeout.
-    fn coordinator(dir: &Path, port: u16) -> (Proc, String, Arc<Mutex<String>>) {
+    fn coordinator(dir: &Path, port: u16) -> (Proc, String, support::Captured) {
         let mut cmd = dray();
         cmd.args(["coordinator", "--listen", &format!("127.0.0.1:{port}")])
             .arg("--scene-root")
@@ -143,7 +143,7 @@ fn process_state(pid: i32) -> String {
 /// A `dray submit` running in the background; its stderr carries progress and the id.
 struct Submit {
     proc: Proc,
-    log: Arc<Mutex<String>>,
+    log: support::Captured,
 }
 
 fn submit(addr: &str, scene: &str, flags: &[&str], png: &Path, stats: &Path) -> Submit {
@@ -181,8 +181,7 @@ impl Submit {
     /// Wait for the client to end; its exit status and output.
     fn finish(mut self) -> (bool, String) {
         let status = self.proc.wait_timeout(HANG_SECS);
-        std::thread::sleep(Duration::from_millis(50));
-        let out = text(&self.log);
+        let out = self.log.after(status.is_some());
         let Some(status) = status else {
             panic!("HANG: dray submit did not finish within {HANG_SECS} s:\n{out}");
         };

@@ -166,7 +166,7 @@ fn the_readme_grpcurl_flow_renders_the_same_png_as_dray_render() {
     let grpcurl = match grpcurl_binary() {
         Ok(p) => p,
         Err(why) => {
-            eprintln!("skipped: {why}");
+            common::dependency_missing(&why);
             return;
         }
     };

@@ -20,7 +20,6 @@ mod support;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
 
 use dray_proto::v1::package_service_client::PackageServiceClient;
 use dray_proto::v1::render_service_client::RenderServiceClient;
@@ -66,8 +65,8 @@ fn can_hide(probe: &Path) -> bool {
 struct Members {
     coordinator: Proc,
     addr: String,
-    log: Arc<Mutex<String>>,
-    workers: Vec<(Proc, Arc<Mutex<String>>)>,
+    log: support::Captured,
+    workers: Vec<(Proc, support::Captured)>,
     /// The coordinator's working directory (its --work-dir is `work` inside it).
     coord_dir: PathBuf,
     api: PathBuf,
@@ -203,12 +202,7 @@ impl Members {
 }
 
 /// `dray submit` to `m` with the API token, as a process (stderr captured).
-fn spawn_submit(
-    m: &Members,
-    scene: &str,
-    flags: &[&str],
-    png: &Path,
-) -> (Proc, Arc<Mutex<String>>) {
+fn spawn_submit(m: &Members, scene: &str, flags: &[&str], png: &Path) -> (Proc, support::Captured) {
     let mut cmd = dray();
     cmd.args(["submit", "--coordinator", &m.addr, scene])
         .args(flags)
@@ -229,8 +223,7 @@ fn spawn_submit(
 fn submit(m: &Members, scene: &str, flags: &[&str], png: &Path) -> (bool, String) {
     let (mut p, err) = spawn_submit(m, scene, flags, png);
     let status = p.wait_timeout(HANG_SECS);
-    std::thread::sleep(Duration::from_millis(50));
-    let out = text(&err);
+    let out = err.after(status.is_some());
     let status = status.unwrap_or_else(|| {
         panic!(
             "HANG: dray submit did not finish; its output:\n{out}\nworkers:\n{}",

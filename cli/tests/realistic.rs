@@ -15,10 +15,10 @@ fn scenes_dir() -> Option<PathBuf> {
     if dir.is_dir() {
         Some(dir)
     } else {
-        eprintln!(
-            "realistic tier skipped: no scenes folder at {} (set DRAY_SCENES to the shared scenes)",
+        common::dependency_missing(&format!(
+            "realistic tier: no scenes folder at {} (set DRAY_SCENES to the shared scenes)",
             dir.display()
-        );
+        ));
         None
     }
 }

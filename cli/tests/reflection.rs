@@ -16,7 +16,7 @@ use std::process::Command;
 #[test]
 fn python_reflection_client_renders_the_same_png_as_dray_render() {
     let Some(python) = std::env::var_os("DRAY_PY") else {
-        eprintln!("skipped: DRAY_PY not set (.ci/run sets it to its Python venv)");
+        common::dependency_missing("DRAY_PY not set (.ci/run sets it to its Python venv)");
         return;
     };
     let script = concat!(

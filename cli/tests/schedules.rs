@@ -10,7 +10,6 @@ mod support;
 
 use std::path::Path;
 use std::process::{Output, Stdio};
-use std::time::Duration;
 
 use serde_json::Value;
 use support::{Proc, WorkerCluster, capture_stderr, dray};
@@ -330,8 +329,7 @@ fn submit(addr: &str, dir: &Path, tag: &str, flags: &[&str]) -> (Output, Option<
     let mut p = Proc::spawn(cmd);
     let err = capture_stderr(&mut p.child);
     let status = p.wait_timeout(SUBMIT_TIMEOUT_SECS);
-    std::thread::sleep(Duration::from_millis(50));
-    let text = err.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    let text = err.after(status.is_some());
     let Some(status) = status else {
         panic!("HANG: dray submit {tag} {flags:?} did not finish: {text}");
     };

@@ -53,9 +53,7 @@ fn submit(addr: &str, scene: &str, flags: &[&str], png: &Path, exr: Option<&Path
     let mut p = Proc::spawn(cmd);
     let err = capture_stderr(&mut p.child);
     let status = p.wait_timeout(SUBMIT_TIMEOUT_SECS);
-    // The reader thread sees EOF once the process is gone.
-    std::thread::sleep(Duration::from_millis(50));
-    let text = err.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    let text = err.after(status.is_some());
     let Some(status) = status else {
         panic!(
             "HANG: dray submit {scene} {flags:?} to {addr} did not finish within \
@@ -306,10 +304,10 @@ fn scenes_dir() -> Option<PathBuf> {
     if dir.is_dir() {
         Some(dir)
     } else {
-        eprintln!(
-            "SKIPPED: no scenes folder at {} (set DRAY_SCENES to the shared scenes)",
+        common::dependency_missing(&format!(
+            "no scenes folder at {} (set DRAY_SCENES to the shared scenes)",
             dir.display()
-        );
+        ));
         None
     }
 }
@@ -341,7 +339,7 @@ fn a_realistic_model_on_two_workers_is_dray_render() {
         .filter(|(m, _)| {
             let ok = scenes.join(m).is_file();
             if !ok {
-                eprintln!("SKIPPED: {m} is not in {}", scenes.display());
+                common::dependency_missing(&format!("{m} is not in {}", scenes.display()));
             }
             ok
         })

@@ -660,7 +660,7 @@ async fn a_lost_worker_closes_the_old_attempt_and_opens_the_new_one_first() {
         "cache-lost",
         HeartbeatConfig {
             interval: Duration::from_millis(50),
-            timeout: Duration::from_millis(400),
+            timeout: Duration::from_millis(3000),
         },
     )
     .await;

@@ -354,7 +354,7 @@ async fn a_lost_worker_restarts_its_unfinished_tiles_and_the_image_is_unchanged(
         "retrace",
         HeartbeatConfig {
             interval: beat,
-            timeout: Duration::from_millis(800),
+            timeout: Duration::from_millis(3000),
         },
     )
     .await;

@@ -249,7 +249,7 @@ impl WorkerCluster {
             addr: format!("127.0.0.1:{port}"),
             coordinator_pid,
             worker_pids,
-            log,
+            log: log.log.clone(),
         };
         let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
         loop {
@@ -319,12 +319,53 @@ pub fn cpu_ticks(pid: i32) -> Option<u64> {
     Some(f.get(11)?.parse::<u64>().ok()? + f.get(12)?.parse::<u64>().ok()?)
 }
 
+/// A child's stderr, collected on a thread as it comes (see [`capture_stderr`]). It
+/// dereferences to the text so far; [`Captured::to_end`] waits for the reader to see
+/// end-of-file, so nothing the child wrote just before it exited is missed.
+pub struct Captured {
+    pub log: std::sync::Arc<std::sync::Mutex<String>>,
+    ended: std::sync::Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl std::ops::Deref for Captured {
+    type Target = std::sync::Arc<std::sync::Mutex<String>>;
+    fn deref(&self) -> &Self::Target {
+        &self.log
+    }
+}
+
+impl Captured {
+    /// Everything the child wrote, once its stderr has closed (it exited, and so did any
+    /// child of its holding the pipe). Waits for that event, up to 60 s, a limit that
+    /// only catches hangs; then it panics.
+    pub fn to_end(&self) -> String {
+        use std::sync::atomic::Ordering;
+        assert!(
+            eventually(60.0, || self.ended.load(Ordering::Acquire)),
+            "the child's stderr was still open 60 s later"
+        );
+        self.log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    /// [`Captured::to_end`] when the child has exited, else the text so far (for the
+    /// message about a child that hung).
+    pub fn after(&self, exited: bool) -> String {
+        if exited {
+            self.to_end()
+        } else {
+            self.log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+        }
+    }
+}
+
 /// Collect a child's piped stderr on a thread, as it comes.
-pub fn capture_stderr(child: &mut Child) -> std::sync::Arc<std::sync::Mutex<String>> {
+pub fn capture_stderr(child: &mut Child) -> Captured {
     use std::io::Read;
+    use std::sync::atomic::{AtomicBool, Ordering};
     let log = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
+    let ended = std::sync::Arc::new(AtomicBool::new(false));
     let mut err = child.stderr.take().expect("piped stderr");
-    let sink = log.clone();
+    let (sink, done) = (log.clone(), ended.clone());
     std::thread::spawn(move || {
         let mut buf = [0u8; 4096];
         while let Ok(k) = err.read(&mut buf) {
@@ -335,6 +376,7 @@ pub fn capture_stderr(child: &mut Child) -> std::sync::Arc<std::sync::Mutex<Stri
                 .unwrap_or_else(|p| p.into_inner())
                 .push_str(&String::from_utf8_lossy(&buf[..k]));
         }
+        done.store(true, Ordering::Release);
     });
-    log
+    Captured { log, ended }
 }
