@@ -77,6 +77,10 @@ pub struct CoordinatorArgs {
     /// and GetImage says so.
     #[arg(long, value_name = "N", default_value_t = 100)]
     pub keep_finished: usize,
+    /// Keep finished jobs' images up to this many bytes in all (the newest first; a
+    /// 2048x2048 image takes 96 MiB; suffixes K, M, G, T). [default: --max-job-bytes]
+    #[arg(long, value_name = "BYTES", value_parser = crate::bytes::parse_bytes)]
+    pub keep_finished_bytes: Option<u64>,
     /// Drop a finished job's image this many seconds after it finished (0: never).
     #[arg(long, value_name = "SECONDS", default_value_t = 86400)]
     pub finished_ttl: u64,
@@ -201,6 +205,7 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
             dray_coordinator::jobs::Retention {
                 keep_finished: a.keep_finished,
                 ttl: (a.finished_ttl > 0).then(|| Duration::from_secs(a.finished_ttl)),
+                max_bytes: a.keep_finished_bytes,
             },
         );
     let rt = tokio::runtime::Builder::new_multi_thread()

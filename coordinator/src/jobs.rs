@@ -237,6 +237,11 @@ pub struct Retention {
     pub keep_finished: usize,
     /// An image is dropped this long after its job finished (None: never, by age).
     pub ttl: Option<Duration>,
+    /// The kept images add up to at most this many bytes (the newest first; None: the
+    /// coordinator's `--max-job-bytes`, see [`crate::Coordinator::with_admission`]). A
+    /// finished 2048² image holds 96 MiB of exact sums: without a byte budget,
+    /// `keep_finished` large images were the only bound.
+    pub max_bytes: Option<u64>,
 }
 
 impl Default for Retention {
@@ -244,6 +249,7 @@ impl Default for Retention {
         Retention {
             keep_finished: 100,
             ttl: Some(Duration::from_secs(24 * 3600)),
+            max_bytes: None,
         }
     }
 }
@@ -269,6 +275,7 @@ impl JobTable {
 
     /// The same table with another retention policy.
     pub fn with_retention(mut self, retention: Retention) -> JobTable {
+        // (The budget defaults to --max-job-bytes in `with_admission`.)
         self.retention = retention;
         self
     }
@@ -284,11 +291,14 @@ impl JobTable {
     }
 
     /// Drop the images the retention policy no longer keeps: those of finished jobs
-    /// beyond the newest `keep_finished`, and those older than the TTL. The jobs stay
-    /// listed (GetJob), and GetImage says why there is no image.
+    /// beyond the newest `keep_finished`, beyond the byte budget, and those older than
+    /// the TTL. The jobs stay listed (GetJob), and GetImage says why there is no image.
+    /// Runs when a job is submitted and when an image is asked for.
     pub fn sweep(&self) {
         let now = SystemTime::now();
         let mut kept = 0usize;
+        let mut kept_bytes = 0u64;
+        let budget = self.retention.max_bytes.unwrap_or(u64::MAX);
         for j in self.jobs().iter().rev() {
             let mut g = j.lock();
             if !terminal(g.state) || g.film.is_none() {
@@ -306,8 +316,18 @@ impl JobTable {
                 g.dropped = Some(
                     "the coordinator keeps the images of its newest --keep-finished jobs only",
                 );
+            } else if let Some(bytes) = g.film.as_ref().map(|f| f.heap_bytes())
+                && kept_bytes.saturating_add(bytes) > budget
+            {
+                g.film = None;
+                g.dropped = Some(
+                    "the newer finished images already take the coordinator's \
+                     --keep-finished-bytes (default: --max-job-bytes)",
+                );
             } else {
                 kept += 1;
+                kept_bytes =
+                    kept_bytes.saturating_add(g.film.as_ref().map_or(0, |f| f.heap_bytes()));
             }
         }
     }

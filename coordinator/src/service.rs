@@ -87,6 +87,12 @@ impl Coordinator {
     ) -> Coordinator {
         self.limits.max_jobs = max_jobs;
         self.limits.max_job_bytes = max_job_bytes;
+        // Finished images count against a memory budget too: by default the same bytes
+        // one job may take.
+        let retention = crate::jobs::Retention {
+            max_bytes: Some(retention.max_bytes.unwrap_or(max_job_bytes)),
+            ..retention
+        };
         self.table = Arc::new(JobTable::new(self.table.threads()).with_retention(retention));
         self
     }

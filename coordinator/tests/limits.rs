@@ -32,6 +32,7 @@ impl Server {
                 Retention {
                     keep_finished,
                     ttl: None,
+                    max_bytes: None,
                 },
             );
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
@@ -223,4 +224,36 @@ async fn finished_images_beyond_keep_finished_are_dropped_and_get_image_says_so(
         .job
         .unwrap();
     assert_eq!(job.progress.unwrap().state(), JobState::Succeeded);
+}
+
+/// Issue 20, item 8: finished images were kept without regard to `--max-job-bytes`
+/// (+84 MB per finished 2048² job, 1.1 GB after 12; only `--keep-finished` bounded
+/// them). Kept images now add up to at most the byte budget, `--max-job-bytes` by
+/// default: here 16 MiB, and each 512² image holds 6 MiB of sums.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn finished_images_are_kept_within_a_byte_budget() {
+    let server = Server::start(8, 16 << 20, 100).await;
+    let mut c = server.client().await;
+    let image = |id: &str| GetImageRequest {
+        job_id: id.into(),
+        format: ImageFormat::Png as i32,
+        exposure: 0.0,
+    };
+    let mut ids = Vec::new();
+    for _ in 0..3 {
+        let id = submit(&mut c, cornell(512, 512, 1)).await.unwrap();
+        assert_eq!(wait_end(&mut c, &id).await, JobState::Succeeded);
+        ids.push(id);
+    }
+    // 3 x 6 MiB > 16 MiB: the oldest image went, the two newest stay.
+    let e = c.get_image(image(&ids[0])).await.unwrap_err();
+    assert_eq!(e.code(), tonic::Code::NotFound, "{e:?}");
+    assert!(
+        e.message().contains("dropped") && e.message().contains("--keep-finished-bytes"),
+        "{}",
+        e.message()
+    );
+    for id in &ids[1..] {
+        assert!(c.get_image(image(id)).await.is_ok(), "{id}");
+    }
 }

@@ -64,6 +64,12 @@ impl Film {
 
     /// Add a contribution to pixel `pixel` (row-major index). Out-of-range pixels are ignored.
     #[inline]
+    /// The bytes its sums take in memory (what a coordinator keeping finished images
+    /// counts against its budget).
+    pub fn heap_bytes(&self) -> u64 {
+        (self.sums.len() as u64).saturating_mul(std::mem::size_of::<[i64; 3]>() as u64)
+    }
+
     pub fn add(&mut self, pixel: u32, value: Vec3) {
         match to_fixed(value) {
             Some(f) => {
