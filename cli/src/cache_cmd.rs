@@ -3,18 +3,20 @@
 //! registered, the coordinator places jobs' cache actors on the stand-alone hosts
 //! instead of beside the workers, taking that memory and work off the workers.
 //!
-//! It registers once, at start (retrying until `--connect-timeout` while the
-//! coordinator is not up yet); there are no heartbeats for cache hosts yet, so a
-//! coordinator that restarts does not know it until it is started again. Ctrl-C or
-//! SIGTERM stops it; a job whose walls it held then says so in its statistics
-//! (`lost_hosts`) and its rays go past it, traced exactly.
+//! It registers at start (retrying until `--connect-timeout` while the coordinator is
+//! not up yet), and only with a coordinator started with `--cache-hosts`. Then it calls
+//! again every refresh interval the coordinator gave, with the member secret it got,
+//! to stay listed: a coordinator drops a host silent for its heartbeat timeout, and a
+//! coordinator that restarted lists it anew at the next refresh. Ctrl-C or SIGTERM
+//! stops it; a job whose walls it held then says so in its statistics (`lost_hosts`)
+//! and its rays go past it, traced exactly.
 
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use dray_proto::v1::RegisterCacheHostRequest;
 use dray_proto::v1::cluster_service_client::ClusterServiceClient;
+use dray_proto::v1::{RegisterCacheHostRequest, RegisterCacheHostResponse};
 use tokio::signal::unix::{SignalKind, signal};
 
 use crate::cache_host::LocalCacheHost;
@@ -73,21 +75,27 @@ pub fn run(a: CacheArgs) -> Result<()> {
                 return Ok(());
             }
         };
-        let id = match registered {
-            Ok(id) => id,
+        let mut listing = match registered {
+            Ok(l) => l,
             Err(e) => {
                 host.stop().await;
                 return Err(e);
             }
         };
         eprintln!(
-            "dray cache: registered with {url} as {id}, serving at {}",
-            host.endpoint
+            "dray cache: registered with {url} as {}, serving at {}",
+            listing.host_id, host.endpoint
         );
-        let why = tokio::select! {
-            _ = term.recv() => "terminated",
-            _ = int.recv() => "interrupted",
-            e = host.ended() => return Err(e),
+        let mut tick = tokio::time::interval(listing.refresh);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        tick.tick().await;
+        let why = loop {
+            tokio::select! {
+                _ = term.recv() => break "terminated",
+                _ = int.recv() => break "interrupted",
+                e = host.ended() => return Err(e),
+                _ = tick.tick() => listing.refresh(&url).await,
+            }
         };
         eprintln!("dray cache: {why}; stopping");
         host.stop().await;
@@ -95,14 +103,60 @@ pub fn run(a: CacheArgs) -> Result<()> {
     })
 }
 
+/// This host's listing at a coordinator: what it sends to stay listed.
+struct Listing {
+    client: ClusterServiceClient<dray_net::AuthChannel>,
+    request: RegisterCacheHostRequest,
+    host_id: String,
+    refresh: Duration,
+}
+
+impl Listing {
+    /// Take the coordinator's answer: id, secret (sent with every later call) and
+    /// refresh interval.
+    fn take(&mut self, r: RegisterCacheHostResponse) {
+        self.host_id = r.host_id;
+        self.request.member_token = r.member_token;
+        if let Some(d) = r.refresh_interval.and_then(|d| Duration::try_from(d).ok()) {
+            // Never busier than 10 calls a second, whatever a coordinator says.
+            self.refresh = d.max(Duration::from_millis(100));
+        }
+    }
+
+    /// Call RegisterCacheHost again to stay listed. Failures are logged and the next
+    /// refresh tries again (the coordinator may be restarting).
+    async fn refresh(&mut self, url: &str) {
+        match self.client.register_cache_host(self.request.clone()).await {
+            Ok(r) => {
+                let before = self.host_id.clone();
+                self.take(r.into_inner());
+                if self.host_id != before {
+                    eprintln!(
+                        "dray cache: the coordinator at {url} had dropped this host; listed \
+                         again as {}",
+                        self.host_id
+                    );
+                }
+            }
+            Err(s) if s.code() == tonic::Code::PermissionDenied => {
+                // Another process holds this endpoint's listing: start over next time.
+                eprintln!("dray cache: refresh refused by {url}: {}", s.message());
+                self.request.member_token.clear();
+            }
+            Err(s) => eprintln!("dray cache: cannot refresh with {url}: {}", s.message()),
+        }
+    }
+}
+
 /// RegisterCacheHost at `url` for `endpoint`, retrying connections for up to `patience`;
-/// the host id. A refusal (another dray version, a bad endpoint) is final.
+/// the listing. A refusal (another dray version, a bad endpoint, a coordinator without
+/// `--cache-hosts`) is final.
 async fn register(
     net: &dray_net::ClientOptions,
     url: &str,
     endpoint: &str,
     patience: Duration,
-) -> Result<String> {
+) -> Result<Listing> {
     let deadline = Instant::now() + patience;
     let target = net
         .endpoint(url)
@@ -127,17 +181,23 @@ async fn register(
         endpoint: endpoint.to_string(),
         version: dray_coordinator::membership::VERSION.to_string(),
         hostname: hostname(),
+        member_token: String::new(),
     };
-    let r = ClusterServiceClient::new(net.wrap(channel))
-        .register_cache_host(req)
-        .await
-        .map_err(|s| {
-            anyhow::anyhow!(
-                "the coordinator at {url} refused this cache host: {}",
-                s.message()
-            )
-        })?;
-    Ok(r.into_inner().host_id)
+    let mut client = ClusterServiceClient::new(net.wrap(channel));
+    let r = client.register_cache_host(req.clone()).await.map_err(|s| {
+        anyhow::anyhow!(
+            "the coordinator at {url} refused this cache host: {}",
+            s.message()
+        )
+    })?;
+    let mut listing = Listing {
+        client,
+        request: req,
+        host_id: String::new(),
+        refresh: Duration::from_secs(1),
+    };
+    listing.take(r.into_inner());
+    Ok(listing)
 }
 
 /// This machine's name, for the coordinator's logs.

@@ -89,6 +89,11 @@ pub struct CoordinatorArgs {
     /// that never traces would otherwise hold its job forever.
     #[arg(long, value_name = "SECONDS", default_value_t = 1800)]
     pub stall_timeout: u64,
+    /// Take stand-alone cache hosts (`dray cache`): jobs with ray caches or hit maps then
+    /// place their cache actors on them. Off by default, since a cache host can change
+    /// any image: only turn it on where every holder of the cluster token is trusted.
+    #[arg(long)]
+    pub cache_hosts: bool,
     #[command(flatten)]
     pub otlp: crate::telemetry::OtlpArgs,
 }
@@ -116,6 +121,7 @@ fn cluster_options(a: &CoordinatorArgs) -> Result<ClusterOptions> {
             timeout: Duration::from_millis(a.heartbeat_timeout_ms),
         },
         stall_timeout: (a.stall_timeout > 0).then(|| Duration::from_secs(a.stall_timeout)),
+        cache_hosts: a.cache_hosts,
         ..ClusterOptions::default()
     };
     if let Some(dir) = &a.work_dir {

@@ -168,10 +168,14 @@ fn spawn_with_address(
     (p, addr, log, lines)
 }
 
-fn coordinator_with_log(dir: &std::path::Path) -> (Proc, String, support::Captured) {
+fn coordinator_with_log(
+    dir: &std::path::Path,
+    extra: &[&str],
+) -> (Proc, String, support::Captured) {
     let mut cmd = dray();
     cmd.args(["coordinator", "--listen", "127.0.0.1:0", "--scene-root"])
         .arg(dir)
+        .args(extra)
         .env("DRAY_LOG", "warn,dray_coordinator=info");
     let (p, addr, log, _) = spawn_with_address(cmd);
     (p, addr, log)
@@ -180,7 +184,7 @@ fn coordinator_with_log(dir: &std::path::Path) -> (Proc, String, support::Captur
 #[test]
 fn dray_cache_registers_and_stops_cleanly_on_sigterm() {
     let dir = common::tmp("cache-standalone");
-    let (_coordinator, addr, coordinator_log) = coordinator_with_log(&dir);
+    let (_coordinator, addr, coordinator_log) = coordinator_with_log(&dir, &["--cache-hosts"]);
     let url = format!("http://{addr}");
     let mut cmd = dray();
     cmd.args(["cache", "--coordinator", &url, "--listen", "127.0.0.1:0"]);
@@ -204,12 +208,13 @@ fn dray_cache_registers_and_stops_cleanly_on_sigterm() {
         "{}",
         text(&coordinator_log)
     );
-    // The coordinator lists it: registering the same endpoint again gives its id back.
+    // The coordinator lists it: registering the same endpoint again without the host's
+    // member secret is refused (issue 20, item 6: no one takes over a host).
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
         .unwrap();
-    let id = rt.block_on(async {
+    let refused = rt.block_on(async {
         let mut c = ClusterServiceClient::connect(url.clone())
             .await
             .expect("connect");
@@ -217,13 +222,13 @@ fn dray_cache_registers_and_stops_cleanly_on_sigterm() {
             endpoint: endpoint.clone(),
             version: env!("CARGO_PKG_VERSION").into(),
             hostname: "test".into(),
+            member_token: String::new(),
         })
         .await
-        .expect("register again")
-        .into_inner()
-        .host_id
+        .expect_err("a registration of a listed endpoint without its secret")
     });
-    assert_eq!(id, "cache-1");
+    assert_eq!(refused.code(), tonic::Code::PermissionDenied, "{refused:?}");
+    assert!(refused.message().contains("cache-1"), "{refused:?}");
 
     cache.signal(libc::SIGTERM);
     let status = cache
@@ -260,7 +265,7 @@ fn dray_cache_registers_and_stops_cleanly_on_sigterm() {
 #[test]
 fn dray_worker_announces_its_cache_host_unless_told_not_to() {
     let dir = common::tmp("cache-worker");
-    let (_coordinator, addr, coordinator_log) = coordinator_with_log(&dir);
+    let (_coordinator, addr, coordinator_log) = coordinator_with_log(&dir, &[]);
     let url = format!("http://{addr}");
     let mut cmd = dray();
     cmd.args(["worker", "--coordinator", &url, "--listen", "127.0.0.1:0"])
@@ -287,6 +292,79 @@ fn dray_worker_announces_its_cache_host_unless_told_not_to() {
             .contains("cache_endpoint=none")),
         "{}",
         text(&coordinator_log)
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Issue 20, items 6 and 15. A coordinator takes stand-alone cache hosts only when its
+/// operator says so (`--cache-hosts`): before, any holder of the cluster token could
+/// register one, be given every wall of later jobs and answer every lookup. And hosts
+/// that stop refreshing are dropped (before, 3,000 dead hosts stayed listed).
+#[test]
+fn cache_hosts_are_opt_in_and_silent_ones_are_dropped() {
+    let dir = common::tmp("cache-optin");
+    // Without --cache-hosts: refused, in one line naming the flag.
+    let (_plain, addr, _) = coordinator_with_log(&dir, &[]);
+    let out = dray()
+        .args(["cache", "--coordinator", &addr, "--connect-timeout", "10"])
+        .stdout(Stdio::null())
+        .output()
+        .expect("run dray cache");
+    one_line_error(
+        &out,
+        "a cache host on a coordinator without --cache-hosts",
+        &["refused this cache host", "--cache-hosts"],
+    );
+
+    // With it, and heartbeats every 100 ms, silence for 1.5 s: two hosts register and
+    // refresh; the one killed is dropped, the live one stays.
+    let (_coordinator, addr, log) = coordinator_with_log(
+        &dir,
+        &[
+            "--cache-hosts",
+            "--heartbeat-interval-ms",
+            "100",
+            "--heartbeat-timeout-ms",
+            "1500",
+        ],
+    );
+    let url = format!("http://{addr}");
+    let start_host = || {
+        let mut cmd = dray();
+        cmd.args(["cache", "--coordinator", &url, "--listen", "127.0.0.1:0"]);
+        let (p, host_addr, host_log, _) = spawn_with_address(cmd);
+        assert!(
+            eventually(60.0, || text(&host_log).contains("registered with")),
+            "dray cache did not register: {}",
+            text(&host_log)
+        );
+        (p, format!("http://{host_addr}"), host_log)
+    };
+    let (mut dead, dead_endpoint, _) = start_host();
+    let (_live, live_endpoint, live_log) = start_host();
+    dead.signal(libc::SIGKILL);
+    assert!(dead.wait_timeout(30.0).is_some(), "SIGKILL did not end it");
+    let lost = |endpoint: &str| {
+        text(&log)
+            .lines()
+            .any(|l| l.contains("cache host lost") && l.contains(endpoint))
+    };
+    assert!(
+        eventually(60.0, || lost(&dead_endpoint)),
+        "the killed host was never dropped: {}",
+        text(&log)
+    );
+    // Two more timeouts: the live host keeps refreshing, so it is still listed.
+    std::thread::sleep(std::time::Duration::from_millis(3000));
+    assert!(
+        !lost(&live_endpoint),
+        "the live host was dropped: {}",
+        text(&log)
+    );
+    assert!(
+        !text(&live_log).contains("had dropped this host"),
+        "{}",
+        text(&live_log)
     );
     let _ = std::fs::remove_dir_all(&dir);
 }

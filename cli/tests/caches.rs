@@ -411,6 +411,7 @@ fn a_cache_host_killed_mid_job_is_bypassed_and_the_image_stays_exact() {
     let mut cmd = dray();
     cmd.args(["coordinator", "--listen", "127.0.0.1:0", "--scene-root"])
         .arg(&dir)
+        .arg("--cache-hosts")
         .env("DRAY_LOG", "warn,dray_coordinator=info");
     let (_coordinator, addr, coordinator_log) = spawn_with_address(cmd);
     let url = format!("http://{addr}");

@@ -49,6 +49,10 @@ pub struct ClusterOptions {
     /// A job on workers none of which has returned credit for this long fails (None:
     /// never). Heartbeats prove a worker alive, not working.
     pub stall_timeout: Option<Duration>,
+    /// Whether stand-alone cache hosts (`dray cache`) may register. Off by default: a
+    /// host answers every lookup on the walls it holds, so it can change any image, and
+    /// holding the cluster token must not be enough to become one (`--cache-hosts`).
+    pub cache_hosts: bool,
 }
 
 impl Default for ClusterOptions {
@@ -60,6 +64,7 @@ impl Default for ClusterOptions {
             scheduler: SchedulerOptions::default(),
             clients: dray_net::ClientOptions::plain(),
             stall_timeout: Some(DEFAULT_STALL_TIMEOUT),
+            cache_hosts: false,
         }
     }
 }
@@ -102,6 +107,11 @@ impl Cluster {
                 self.scheduler.post(SchedulerEvent::JobEnded { job_id: id });
             }
         }
+        // Cache hosts refresh at the heartbeat interval and are dropped after the same
+        // silence as workers; a job using one that died already bypasses it.
+        self.membership
+            .cache_hosts
+            .expire(now, self.membership.heartbeat.timeout);
         let lost = self.membership.expire(now);
         let n = lost.len();
         for w in lost {
@@ -269,8 +279,20 @@ impl ClusterService for ClusterApi {
         &self,
         r: Request<RegisterCacheHostRequest>,
     ) -> Result<Response<RegisterCacheHostResponse>, Status> {
-        let host_id = self.cluster.membership.cache_hosts.register(r.get_ref())?;
-        Ok(Response::new(RegisterCacheHostResponse { host_id }))
+        if !self.cluster.options.cache_hosts {
+            return Err(Status::failed_precondition(
+                "this coordinator takes no stand-alone cache hosts (start it with \
+                 --cache-hosts; without them, cache actors run beside the workers)",
+            ));
+        }
+        let registered = self.cluster.membership.cache_hosts.register(r.get_ref())?;
+        let heartbeat = self.cluster.membership.heartbeat;
+        Ok(Response::new(RegisterCacheHostResponse {
+            host_id: registered.host_id,
+            member_token: registered.member_token,
+            refresh_interval: duration(heartbeat.interval),
+            expiry: duration(heartbeat.timeout),
+        }))
     }
 
     async fn get_peer_pass(

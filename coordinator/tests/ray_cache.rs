@@ -598,6 +598,7 @@ async fn standalone_hosts_register_and_take_the_walls_and_cancel_closes_them() {
         endpoint: endpoint.into(),
         version: version.into(),
         hostname: "test".into(),
+        member_token: String::new(),
     };
     let e = cluster
         .register_cache_host(register("http://127.0.0.1:7500", "0.0.0-other"))

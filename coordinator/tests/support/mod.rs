@@ -77,6 +77,8 @@ impl Server {
                 scheduler,
                 clients: dray_net::ClientOptions::plain(),
                 stall_timeout,
+                // These tests register fake stand-alone cache hosts.
+                cache_hosts: true,
             });
         let served = coordinator.clone();
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
