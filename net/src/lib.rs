@@ -8,9 +8,12 @@
 //!   `RayExchangeService`, `CacheService`) take the **cluster token**, which API clients
 //!   never hold; health and reflection stay open, for probes and grpcurl.
 //! - [`server`]: one builder for the coordinator, the workers and the cache hosts,
-//!   made of tower layers: authentication, admission (a bound on calls in progress,
-//!   beyond which calls are refused at once rather than queued), request timeouts;
-//!   plus health, reflection, TCP_NODELAY and TLS.
+//!   made of tower layers: authentication, admission (a bound on calls in progress per
+//!   class of caller, beyond which calls are refused at once rather than queued),
+//!   request timeouts; plus health, reflection, TCP_NODELAY and TLS.
+//! - [`connections`]: connections bounded before authentication (a maximum, handshake
+//!   and idle timeouts).
+//! - [`first_message`]: a request body whose message must arrive in time.
 //! - [`client`]: channels that present a token (and speak TLS when asked).
 //! - [`tls`]: certificate files for both sides.
 //! - [`trace`]: W3C trace context in gRPC metadata (when the process exports traces).
@@ -19,8 +22,10 @@
 pub mod admission;
 pub mod auth;
 pub mod client;
+pub mod connections;
 pub mod contain;
 pub mod credential;
+pub mod first_message;
 pub mod peer_pass;
 pub mod server;
 pub mod tls;
