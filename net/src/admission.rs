@@ -11,12 +11,12 @@
 //!   the response body, so a streaming response (WatchJob, WatchAssignments, a ray
 //!   stream) counts until the stream ends or the client goes away, not only while its
 //!   handler sets it up.
-//! - **A request's one message must arrive in time**: for methods whose request is a
-//!   single message (every method but the client- and bidi-streaming ones, see
-//!   [`single_message_request`]), the message must be complete within the body
-//!   timeout of the call's admission, or the call ends with DEADLINE_EXCEEDED and
-//!   frees its place ([`crate::first_message`]). A client that sends headers and never
-//!   a body cannot hold a place longer than that.
+//! - **A one-message request must arrive whole in time**: for methods whose request is
+//!   a single message (every method but the client- and bidi-streaming ones, see
+//!   [`single_message_request`]), the request body must end within the body timeout
+//!   of the call's admission, or the call ends with DEADLINE_EXCEEDED and frees its
+//!   place ([`crate::body_deadline`]). A client that sends headers and never a body
+//!   (or a message and never its end) cannot hold a place longer than that.
 //!
 //! Public API calls ([`Access::Api`]) also end with DEADLINE_EXCEEDED when their
 //! handler runs longer than the API timeout; the cluster's own calls are not timed
@@ -35,7 +35,7 @@ use tonic::body::Body;
 use tower::{Layer, Service};
 
 use crate::auth::{Access, access_of};
-use crate::first_message::FirstMessage;
+use crate::body_deadline::BodyDeadline;
 
 /// The budgets calls are counted against, one per class of caller.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -159,7 +159,7 @@ where
         };
         let req = if single_message_request(req.uri().path()) {
             let timeout = self.layer.body_timeout;
-            req.map(|body| Body::new(FirstMessage::new(body, timeout)))
+            req.map(|body| Body::new(BodyDeadline::new(body, timeout)))
         } else {
             req
         };

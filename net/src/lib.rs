@@ -13,7 +13,7 @@
 //!   request timeouts; plus health, reflection, TCP_NODELAY and TLS.
 //! - [`connections`]: connections bounded before authentication (a maximum, handshake
 //!   and idle timeouts).
-//! - [`first_message`]: a request body whose message must arrive in time.
+//! - [`body_deadline`]: a request body that must arrive whole in time.
 //! - [`client`]: channels that present a token (and speak TLS when asked).
 //! - [`tls`]: certificate files for both sides.
 //! - [`trace`]: W3C trace context in gRPC metadata (when the process exports traces).
@@ -21,11 +21,11 @@
 
 pub mod admission;
 pub mod auth;
+pub mod body_deadline;
 pub mod client;
 pub mod connections;
 pub mod contain;
 pub mod credential;
-pub mod first_message;
 pub mod peer_pass;
 pub mod server;
 pub mod tls;

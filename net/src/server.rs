@@ -9,8 +9,9 @@
 //!    (health, reflection, the public API, the cluster: no class takes another's
 //!    places); more are refused at once with RESOURCE_EXHAUSTED (load shedding). A call
 //!    holds its place until its response has been sent (a stream: until it ends); a
-//!    single-message request must arrive within `body_timeout` (a call whose client
-//!    sends headers and no body ends with DEADLINE_EXCEEDED and frees its place); public
+//!    single-message request must arrive whole within `body_timeout` (a call whose
+//!    client sends headers and no body, or no END_STREAM, ends with DEADLINE_EXCEEDED
+//!    and frees its place); public
 //!    API calls end with DEADLINE_EXCEEDED after `api_timeout`.
 //! 3. [`ContainLayer`]: a handler that panics answers INTERNAL with the panic's message
 //!    instead of taking the connection (and every other call on it) down.
@@ -81,7 +82,8 @@ pub struct ServerOptions {
     /// Longest a public API call may run (its handler, not a stream it returns).
     pub api_timeout: Duration,
     /// Longest a single-message request (every method but the client- and
-    /// bidi-streaming ones) may take for its message to arrive, from its headers.
+    /// bidi-streaming ones) may take to arrive whole (its message and its end), from
+    /// its headers.
     pub body_timeout: Duration,
     /// Connections open at once; more are closed as soon as they are accepted.
     pub max_connections: usize,

@@ -31,9 +31,11 @@ fn options() -> ServerOptions {
     }
 }
 
-/// Send `n` calls to `path` with headers only (never a DATA frame, never END_STREAM),
-/// on one connection; each call's gRPC status arrives on the channel when it ends.
-/// The returned streams keep the calls open.
+/// Send `n` calls to `path` that never end their request, on one connection: the even
+/// ones with headers only (never a DATA frame), the odd ones with their message but no
+/// END_STREAM (tonic reads a request to its end before the handler runs). Each call's
+/// gRPC status arrives on the channel when it ends. The returned streams keep the calls
+/// open.
 async fn headers_only(
     addr: std::net::SocketAddr,
     path: &str,
@@ -45,15 +47,19 @@ async fn headers_only(
     let client = h2_connect(addr).await;
     let (tx, rx) = mpsc::unbounded_channel();
     let mut open = Vec::new();
-    for _ in 0..n {
+    for i in 0..n {
         let mut ready = client
             .clone()
             .ready()
             .await
             .expect("the connection takes a stream");
-        let (response, send) = ready
+        let (response, mut send) = ready
             .send_request(grpc_request(addr, path), false)
             .expect("headers sent");
+        if i % 2 == 1 {
+            send.send_data(empty_message(), false)
+                .expect("message sent");
+        }
         open.push(send);
         let tx = tx.clone();
         tokio::spawn(async move {
@@ -79,7 +85,7 @@ async fn call(addr: std::net::SocketAddr, path: &str) -> Option<i32> {
     unary(&mut client, addr, path).await
 }
 
-/// 12 headers-only API calls against 8 places: 4 are shed at once, 8 are held until
+/// 12 API calls that never end their request against 8 places: 4 are shed at once, 8 are held until
 /// the body timeout; meanwhile health and the cluster's calls are admitted (their own
 /// budgets), and once the held calls end with DEADLINE_EXCEEDED their places are free.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
