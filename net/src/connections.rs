@@ -92,10 +92,21 @@ where
             match std::task::ready!(Pin::new(&mut this.inner).poll_next(cx)) {
                 None => return Poll::Ready(None),
                 Some(Err(e)) => {
-                    // Never end the server for an accept error; pause when the process
-                    // (or the system) is out of something, or the loop would spin.
-                    tracing::warn!(error = %e, "cannot accept a connection; pausing accepts");
-                    this.pause = Some(Box::pin(tokio::time::sleep(ACCEPT_ERROR_PAUSE)));
+                    // Never end the server for an accept error. One connection's own
+                    // failure is skipped; anything else (EMFILE: the process is out of
+                    // descriptors) pauses accepting, or the loop would spin on it.
+                    if matches!(
+                        e.kind(),
+                        io::ErrorKind::ConnectionAborted
+                            | io::ErrorKind::ConnectionReset
+                            | io::ErrorKind::Interrupted
+                            | io::ErrorKind::WouldBlock
+                    ) {
+                        tracing::debug!(error = %e, "a connection failed before it was accepted");
+                    } else {
+                        tracing::warn!(error = %e, "cannot accept a connection; pausing accepts");
+                        this.pause = Some(Box::pin(tokio::time::sleep(ACCEPT_ERROR_PAUSE)));
+                    }
                 }
                 Some(Ok(stream)) => match this.slots.clone().try_acquire_owned() {
                     Ok(slot) => {
@@ -252,5 +263,41 @@ impl Connected for Guarded {
 
     fn connect_info(&self) -> TcpConnectInfo {
         self.io.connect_info()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tokio_stream::StreamExt;
+
+    /// EMFILE from accept neither ends the server's stream of connections nor spins: the
+    /// next connection is still served.
+    #[tokio::test]
+    async fn an_accept_error_pauses_and_accepting_goes_on() {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+            .await
+            .expect("bind");
+        let client = TcpStream::connect(listener.local_addr().expect("address"))
+            .await
+            .expect("connect");
+        let (server_side, _) = listener.accept().await.expect("accept");
+        let emfile = io::Error::from_raw_os_error(24);
+        let accepted = tokio_stream::iter(vec![Err(emfile), Ok(server_side)]);
+        let mut limited = Limited::new(
+            accepted,
+            ConnectionLimits {
+                max_connections: 1,
+                handshake_timeout: Duration::from_secs(10),
+                idle_timeout: None,
+            },
+        );
+        let first = limited.next().await.expect("a connection, not the end");
+        let guarded = first.expect("the connection after the error");
+        assert_eq!(
+            guarded.connect_info().remote_addr(),
+            client.local_addr().ok()
+        );
+        assert!(limited.next().await.is_none());
     }
 }
