@@ -129,8 +129,9 @@ pub struct MemberArgs {
     pub cluster_token: ClusterTokenArgs,
     #[command(flatten)]
     pub tls: TlsArgs,
-    /// Calls in progress at once on this process's servers; more are refused at once
-    /// with RESOURCE_EXHAUSTED.
+    /// Calls in progress at once on this process's servers, in each class of caller
+    /// (health, reflection, API, cluster; a stream counts until it ends); more are
+    /// refused at once with RESOURCE_EXHAUSTED.
     #[arg(long, value_name = "N", default_value_t = dray_net::server::DEFAULT_MAX_CALLS)]
     pub max_calls: usize,
 }

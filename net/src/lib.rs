@@ -8,9 +8,12 @@
 //!   `RayExchangeService`, `CacheService`) take the **cluster token**, which API clients
 //!   never hold; health and reflection stay open, for probes and grpcurl.
 //! - [`server`]: one builder for the coordinator, the workers and the cache hosts,
-//!   made of tower layers: authentication, admission (a bound on calls in progress,
-//!   beyond which calls are refused at once rather than queued), request timeouts;
-//!   plus health, reflection, TCP_NODELAY and TLS.
+//!   made of tower layers: authentication, admission (a bound on calls in progress per
+//!   class of caller, beyond which calls are refused at once rather than queued),
+//!   request timeouts; plus health, reflection, TCP_NODELAY and TLS.
+//! - [`connections`]: connections bounded before authentication (a maximum, handshake
+//!   and idle timeouts).
+//! - [`body_deadline`]: a request body that must arrive whole in time.
 //! - [`client`]: channels that present a token (and speak TLS when asked).
 //! - [`tls`]: certificate files for both sides.
 //! - [`trace`]: W3C trace context in gRPC metadata (when the process exports traces).
@@ -18,7 +21,9 @@
 
 pub mod admission;
 pub mod auth;
+pub mod body_deadline;
 pub mod client;
+pub mod connections;
 pub mod contain;
 pub mod credential;
 pub mod peer_pass;

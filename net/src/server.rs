@@ -5,11 +5,30 @@
 //!    whose parent is the caller's (only when the process exports traces).
 //! 1. [`AuthLayer`]: the caller's credential for the method's class ([`crate::auth`]);
 //!    refused calls cost nothing further.
-//! 2. [`AdmissionLayer`]: at most `max_calls` calls in progress; more are refused at
-//!    once with RESOURCE_EXHAUSTED (load shedding), and public API calls end with
-//!    DEADLINE_EXCEEDED after `api_timeout`.
+//! 2. [`AdmissionLayer`]: at most `max_calls` calls in progress **per class of caller**
+//!    (health, reflection, the public API, the cluster: no class takes another's
+//!    places); more are refused at once with RESOURCE_EXHAUSTED (load shedding). A call
+//!    holds its place until its response has been sent (a stream: until it ends); a
+//!    single-message request must arrive whole within `body_timeout` (a call whose
+//!    client sends headers and no body, or no END_STREAM, ends with DEADLINE_EXCEEDED
+//!    and frees its place); public
+//!    API calls end with DEADLINE_EXCEEDED after `api_timeout`.
 //! 3. [`ContainLayer`]: a handler that panics answers INTERNAL with the panic's message
 //!    instead of taking the connection (and every other call on it) down.
+//!
+//! Below the layers, connections are bounded before anyone is authenticated
+//! ([`crate::connections`]): at most `max_connections` open at once (more are closed as
+//! soon as accepted); a connection must start its handshake (the HTTP/2 preface or TLS)
+//! within `handshake_timeout`, and a TLS handshake must end within it; a connection
+//! from which nothing is read for `idle_timeout` is closed. HTTP/2 keep-alive PINGs
+//! every `keepalive_interval` (answered within `keepalive_timeout`) keep live peers
+//! talking and close dead ones; a connection has at most
+//! `max_streams_per_connection` streams open at once (HTTP/2
+//! SETTINGS_MAX_CONCURRENT_STREAMS: a client's further streams wait or are refused).
+//! hyper's HTTP/2 defaults stay in force against protocol abuse: a header list is
+//! bounded (16 KiB, which also bounds CONTINUATION frames), streams reset before the
+//! server accepts them are bounded (rapid reset), and so are the resets a client makes
+//! the server send.
 //!
 //! Health (`grpc.health.v1`) and reflection (v1 and v1alpha) are added to every
 //! server; TCP_NODELAY is set on every connection (small replies would otherwise wait
@@ -25,6 +44,7 @@ use tonic::transport::server::TcpIncoming;
 
 use crate::admission::AdmissionLayer;
 use crate::auth::{AuthLayer, AuthPolicy};
+use crate::connections::{ConnectionLimits, Limited};
 use crate::contain::ContainLayer;
 use crate::credential::Token;
 use crate::tls::{TlsError, TlsFiles};
@@ -33,16 +53,53 @@ use crate::tls::{TlsError, TlsFiles};
 pub const DEFAULT_MAX_CALLS: usize = 1024;
 /// How long a public API call may take by default.
 pub const DEFAULT_API_TIMEOUT: Duration = Duration::from_secs(120);
+/// How long a single-message request's message may take to arrive by default (requests
+/// are at most a few MiB; this is generous even on a slow link).
+pub const DEFAULT_BODY_TIMEOUT: Duration = Duration::from_secs(20);
+/// Connections a server keeps open at once by default (well under the usual
+/// descriptor limits of a server process).
+pub const DEFAULT_MAX_CONNECTIONS: usize = 4096;
+/// How long a new connection may take to start its handshake (or to finish TLS).
+pub const DEFAULT_HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
+/// How long a connection may send nothing at all before it is closed.
+pub const DEFAULT_IDLE_TIMEOUT: Duration = Duration::from_secs(60);
+/// How often a server PINGs a connection it has heard nothing from.
+pub const DEFAULT_KEEPALIVE_INTERVAL: Duration = Duration::from_secs(20);
+/// How long a PING may wait for its answer before the connection is closed.
+pub const DEFAULT_KEEPALIVE_TIMEOUT: Duration = Duration::from_secs(20);
+/// Streams one connection may have open at once by default.
+pub const DEFAULT_MAX_STREAMS_PER_CONNECTION: u32 = 512;
 
-/// How a server admits calls.
+/// How a server admits connections and calls. The limits' defaults are the `DEFAULT_`
+/// constants of this module.
 #[derive(Clone, Debug)]
 pub struct ServerOptions {
     pub auth: AuthPolicy,
     pub tls: Option<ServerTlsConfig>,
-    /// Calls in progress at once; more are shed.
+    /// Calls in progress at once in each class of caller (health, reflection, API,
+    /// cluster); more are shed. A streaming call counts until its stream ends.
     pub max_calls: usize,
     /// Longest a public API call may run (its handler, not a stream it returns).
     pub api_timeout: Duration,
+    /// Longest a single-message request (every method but the client- and
+    /// bidi-streaming ones) may take to arrive whole (its message and its end), from
+    /// its headers.
+    pub body_timeout: Duration,
+    /// Connections open at once; more are closed as soon as they are accepted.
+    pub max_connections: usize,
+    /// Longest a new connection may take to send its first bytes (the HTTP/2 preface
+    /// or a TLS ClientHello), and a TLS handshake to finish.
+    pub handshake_timeout: Duration,
+    /// A connection from which nothing is read for this long is closed. Used only with
+    /// keep-alive, and then at least `keepalive_interval + keepalive_timeout` + 5 s.
+    pub idle_timeout: Duration,
+    /// HTTP/2 keep-alive: a PING after this long without hearing from the peer;
+    /// `None` turns keep-alive (and with it the idle timeout) off.
+    pub keepalive_interval: Option<Duration>,
+    /// How long a keep-alive PING may wait for its answer.
+    pub keepalive_timeout: Duration,
+    /// Streams (calls) one connection may have open at once.
+    pub max_streams_per_connection: u32,
 }
 
 impl Default for ServerOptions {
@@ -53,6 +110,13 @@ impl Default for ServerOptions {
             tls: None,
             max_calls: DEFAULT_MAX_CALLS,
             api_timeout: DEFAULT_API_TIMEOUT,
+            body_timeout: DEFAULT_BODY_TIMEOUT,
+            max_connections: DEFAULT_MAX_CONNECTIONS,
+            handshake_timeout: DEFAULT_HANDSHAKE_TIMEOUT,
+            idle_timeout: DEFAULT_IDLE_TIMEOUT,
+            keepalive_interval: Some(DEFAULT_KEEPALIVE_INTERVAL),
+            keepalive_timeout: DEFAULT_KEEPALIVE_TIMEOUT,
+            max_streams_per_connection: DEFAULT_MAX_STREAMS_PER_CONNECTION,
         }
     }
 }
@@ -83,6 +147,19 @@ impl ServerOptions {
             ..ServerOptions::default()
         })
     }
+
+    /// The connection limits these options ask for (the idle timeout only with
+    /// keep-alive, and long enough for a PING to be answered).
+    pub fn connection_limits(&self) -> ConnectionLimits {
+        let slack = Duration::from_secs(5);
+        ConnectionLimits {
+            max_connections: self.max_connections,
+            handshake_timeout: self.handshake_timeout,
+            idle_timeout: self
+                .keepalive_interval
+                .map(|i| self.idle_timeout.max(i + self.keepalive_timeout + slack)),
+        }
+    }
 }
 
 /// Serve `routes` on `listener` until `shutdown`, with health (every name in
@@ -111,20 +188,28 @@ pub async fn serve(
     let layers = tower::ServiceBuilder::new()
         .layer(crate::trace::TraceLayer)
         .layer(AuthLayer::new(options.auth.clone()))
-        .layer(AdmissionLayer::new(options.max_calls, options.api_timeout))
+        .layer(AdmissionLayer::new(
+            options.max_calls,
+            options.api_timeout,
+            options.body_timeout,
+        ))
         .layer(ContainLayer)
         .into_inner();
-    let mut builder = tonic::transport::Server::builder();
+    let mut builder = tonic::transport::Server::builder()
+        .http2_keepalive_interval(options.keepalive_interval)
+        .http2_keepalive_timeout(Some(options.keepalive_timeout))
+        .max_concurrent_streams(Some(options.max_streams_per_connection.max(1)));
     if let Some(tls) = &options.tls {
-        builder = builder.tls_config(tls.clone())?;
+        builder = builder.tls_config(tls.clone().timeout(options.handshake_timeout))?;
     }
+    let incoming = Limited::new(
+        TcpIncoming::from(listener).with_nodelay(Some(true)),
+        options.connection_limits(),
+    );
     builder
         .layer(layers)
         .add_routes(routes)
-        .serve_with_incoming_shutdown(
-            TcpIncoming::from(listener).with_nodelay(Some(true)),
-            shutdown,
-        )
+        .serve_with_incoming_shutdown(incoming, shutdown)
         .await?;
     Ok(())
 }

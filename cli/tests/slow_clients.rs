@@ -1,0 +1,152 @@
+//! Issue 20, item 2, with real processes: API calls that send headers and never a body
+//! used to hold every `--max-calls` place of the coordinator; health checks, heartbeats
+//! and registrations were refused, every worker was declared lost and the running job
+//! failed. Now the API has its own places: while a client holds all of them, a worker
+//! keeps beating (it is not declared lost past its heartbeat timeout), another worker
+//! registers, and `dray health` answers. (The release of the places after the body
+//! timeout, streams, connection floods and HTTP/2 abuse are in `net/tests/`.)
+
+mod common;
+mod support;
+
+use std::process::Stdio;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use support::{Proc, capture_stderr, dray, eventually};
+
+const SUBMIT_JOB: &str = "/dray.v1.RenderService/SubmitJob";
+const MAX_CALLS: usize = 8;
+
+fn text(log: &Arc<Mutex<String>>) -> String {
+    log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+}
+
+fn worker(addr: &str) -> Proc {
+    let mut cmd = dray();
+    cmd.args(["worker", "--coordinator", &format!("http://{addr}")])
+        .args(["--listen", "127.0.0.1:0", "--threads", "1"])
+        .env("NO_COLOR", "1")
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null());
+    Proc::spawn(cmd)
+}
+
+/// Open `n` SubmitJob calls that send their headers and nothing else, on one HTTP/2
+/// connection, and wait until `refused` of them have been refused with
+/// RESOURCE_EXHAUSTED; returns the streams that keep the others open.
+async fn headers_only(addr: &str, n: usize, refused: usize) -> Vec<h2::SendStream<bytes::Bytes>> {
+    let tcp = tokio::net::TcpStream::connect(addr).await.expect("connect");
+    let (client, connection) = h2::client::handshake(tcp).await.expect("HTTP/2");
+    tokio::spawn(async move {
+        let _ = connection.await;
+    });
+    let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+    let mut open = Vec::new();
+    for _ in 0..n {
+        let mut ready = client.clone().ready().await.expect("a stream");
+        let request = http::Request::post(format!("http://{addr}{SUBMIT_JOB}"))
+            .header("content-type", "application/grpc")
+            .header("te", "trailers")
+            .body(())
+            .expect("a request");
+        let (response, send) = ready.send_request(request, false).expect("headers");
+        open.push(send);
+        let tx = tx.clone();
+        tokio::spawn(async move {
+            if let Ok(r) = response.await {
+                let status = r
+                    .headers()
+                    .get("grpc-status")
+                    .and_then(|s| s.to_str().ok().map(str::to_string));
+                let _ = tx.send(status);
+            }
+        });
+    }
+    let mut seen = 0;
+    while seen < refused {
+        let status = tokio::time::timeout(Duration::from_secs(60), rx.recv())
+            .await
+            .unwrap_or_else(|_| panic!("{seen} of {refused} calls refused (safety deadline)"))
+            .expect("open channel");
+        assert_eq!(
+            status.as_deref(),
+            Some("8"),
+            "a call beyond the API's places is refused"
+        );
+        seen += 1;
+    }
+    open
+}
+
+#[test]
+fn headers_only_api_calls_do_not_starve_heartbeats_registration_or_health() {
+    let dir = common::tmp("slow-clients");
+    let mut cmd = dray();
+    cmd.args(["coordinator", "--listen", "127.0.0.1:0", "--scene-root"])
+        .arg(&dir)
+        .args(["--max-calls", &MAX_CALLS.to_string()])
+        .args([
+            "--heartbeat-interval-ms",
+            "100",
+            "--heartbeat-timeout-ms",
+            "2000",
+        ])
+        .env("DRAY_LOG", "warn,dray_coordinator=info")
+        .env("NO_COLOR", "1")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    let mut coordinator = Proc::spawn(cmd);
+    let log = capture_stderr(&mut coordinator.child);
+    let addr = support::listening_address(&mut coordinator.child)
+        .unwrap_or_else(|first| panic!("no address in {first:?}"));
+    let _first = worker(&addr);
+    assert!(
+        eventually(60.0, || text(&log).matches("worker registered").count()
+            >= 1),
+        "the worker registered: {}",
+        text(&log)
+    );
+
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .expect("runtime");
+    // Every API place is held (the calls beyond them are refused at once)...
+    let _open = rt.block_on(headers_only(&addr, 4 * MAX_CALLS, 3 * MAX_CALLS));
+
+    // ...and meanwhile a second worker registers...
+    let _second = worker(&addr);
+    assert!(
+        eventually(60.0, || text(&log).matches("worker registered").count()
+            >= 2),
+        "a worker registers while the API is full: {}",
+        text(&log)
+    );
+    // ...health answers...
+    let out = dray()
+        .args(["health", &addr])
+        .env_remove("DRAY_TLS_CERT")
+        .env_remove("DRAY_TLS_KEY")
+        .env_remove("DRAY_TLS_CA")
+        .output()
+        .expect("dray health");
+    assert!(
+        out.status.success(),
+        "dray health: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // ...and the first worker's heartbeats keep it a member past its heartbeat timeout
+    // (the scenario needs the API held that long; the places are held for the body
+    // timeout, 20 s by default).
+    std::thread::sleep(Duration::from_secs(4));
+    assert_eq!(
+        text(&log).matches("worker lost").count(),
+        0,
+        "no worker is lost while the API is full: {}",
+        text(&log)
+    );
+}

@@ -1,0 +1,303 @@
+//! Connections, bounded before anyone is authenticated: a peer that opens sockets and
+//! never speaks must not take the server's file descriptors.
+//!
+//! - [`Limited`] wraps the listener's stream of accepted sockets: at most
+//!   `max_connections` are open at once; a socket accepted beyond that is closed at
+//!   once (the client sees its connection closed, the server keeps no descriptor for
+//!   it). An accept error (EMFILE: the process is out of descriptors) pauses accepting
+//!   briefly instead of spinning.
+//! - [`Guarded`] wraps each accepted socket and holds its place. Its first
+//!   [`HANDSHAKE_BYTES`] bytes (the HTTP/2 connection preface, or the start of a TLS
+//!   handshake) must arrive within the handshake timeout; after that, a connection from
+//!   which nothing at all is read for the idle timeout is closed. A live peer always
+//!   sends something: the server's HTTP/2 keep-alive PINGs ([`crate::server`]) must be
+//!   answered, and the idle timeout is longer than a ping's interval and timeout
+//!   together. (The TLS handshake as a whole is bounded by the handshake timeout too,
+//!   set on the TLS acceptor.)
+
+use std::future::Future;
+use std::io;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::task::{Context, Poll};
+use std::time::Duration;
+
+use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
+use tokio::net::TcpStream;
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
+use tokio::time::{Instant, Sleep};
+use tokio_stream::Stream;
+use tonic::transport::server::{Connected, TcpConnectInfo};
+
+/// Bytes a connection must send within the handshake timeout: the length of the
+/// HTTP/2 client preface (`PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n`); a TLS ClientHello is
+/// longer.
+pub const HANDSHAKE_BYTES: usize = 24;
+
+/// How long accepting pauses after an accept error such as EMFILE.
+const ACCEPT_ERROR_PAUSE: Duration = Duration::from_millis(100);
+
+/// Sockets refused in one poll before the accept loop yields to other tasks.
+const REFUSALS_PER_POLL: usize = 64;
+
+/// How connections are bounded; see the module.
+#[derive(Clone, Copy, Debug)]
+pub struct ConnectionLimits {
+    /// Connections open at once; more are closed as soon as they are accepted.
+    pub max_connections: usize,
+    /// Time for a new connection's first [`HANDSHAKE_BYTES`] bytes (and for a TLS
+    /// handshake).
+    pub handshake_timeout: Duration,
+    /// A connection from which nothing is read for this long is closed; `None` for
+    /// never (only when HTTP/2 keep-alive is off: a quiet client would be cut).
+    pub idle_timeout: Option<Duration>,
+}
+
+/// The stream of accepted connections, bounded; see the module.
+pub struct Limited<I> {
+    inner: I,
+    slots: Arc<Semaphore>,
+    limits: ConnectionLimits,
+    pause: Option<Pin<Box<Sleep>>>,
+    /// Whether the last socket was refused (to warn once per burst, not per socket).
+    refusing: bool,
+}
+
+impl<I> Limited<I> {
+    /// `inner`'s connections, at most `limits.max_connections` (at least 1) at once.
+    pub fn new(inner: I, limits: ConnectionLimits) -> Limited<I> {
+        Limited {
+            inner,
+            slots: Arc::new(Semaphore::new(limits.max_connections.max(1))),
+            limits,
+            pause: None,
+            refusing: false,
+        }
+    }
+}
+
+impl<I> Stream for Limited<I>
+where
+    I: Stream<Item = io::Result<TcpStream>> + Unpin,
+{
+    type Item = io::Result<Guarded>;
+
+    fn poll_next(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Self::Item>> {
+        let this = &mut *self;
+        for _ in 0..REFUSALS_PER_POLL {
+            if let Some(pause) = this.pause.as_mut() {
+                std::task::ready!(pause.as_mut().poll(cx));
+                this.pause = None;
+            }
+            match std::task::ready!(Pin::new(&mut this.inner).poll_next(cx)) {
+                None => return Poll::Ready(None),
+                Some(Err(e)) => {
+                    // Never end the server for an accept error. One connection's own
+                    // failure is skipped; anything else (EMFILE: the process is out of
+                    // descriptors) pauses accepting, or the loop would spin on it.
+                    if matches!(
+                        e.kind(),
+                        io::ErrorKind::ConnectionAborted
+                            | io::ErrorKind::ConnectionReset
+                            | io::ErrorKind::Interrupted
+                            | io::ErrorKind::WouldBlock
+                    ) {
+                        tracing::debug!(error = %e, "a connection failed before it was accepted");
+                    } else {
+                        tracing::warn!(error = %e, "cannot accept a connection; pausing accepts");
+                        this.pause = Some(Box::pin(tokio::time::sleep(ACCEPT_ERROR_PAUSE)));
+                    }
+                }
+                Some(Ok(stream)) => match this.slots.clone().try_acquire_owned() {
+                    Ok(slot) => {
+                        this.refusing = false;
+                        return Poll::Ready(Some(Ok(Guarded::new(stream, slot, this.limits))));
+                    }
+                    Err(_) => {
+                        if !this.refusing {
+                            tracing::warn!(
+                                limit = this.limits.max_connections,
+                                "too many connections open: new ones are closed at once"
+                            );
+                        }
+                        this.refusing = true;
+                        drop(stream);
+                    }
+                },
+            }
+        }
+        cx.waker().wake_by_ref();
+        Poll::Pending
+    }
+}
+
+/// An accepted connection holding its place; see the module.
+pub struct Guarded {
+    io: TcpStream,
+    _slot: OwnedSemaphorePermit,
+    /// Bytes still owed before the handshake timeout stops applying (0 after).
+    owed: usize,
+    idle_timeout: Option<Duration>,
+    last_read: Instant,
+    /// When the connection is closed unless something is read first.
+    deadline: Pin<Box<Sleep>>,
+}
+
+impl Guarded {
+    fn new(io: TcpStream, slot: OwnedSemaphorePermit, limits: ConnectionLimits) -> Guarded {
+        let now = Instant::now();
+        Guarded {
+            io,
+            _slot: slot,
+            owed: HANDSHAKE_BYTES,
+            idle_timeout: limits.idle_timeout,
+            last_read: now,
+            deadline: Box::pin(tokio::time::sleep_until(now + limits.handshake_timeout)),
+        }
+    }
+
+    /// Whether the deadline has passed with nothing read since it was set; moves it on
+    /// when something was.
+    fn expired(&mut self, cx: &mut Context<'_>) -> bool {
+        loop {
+            if self.deadline.as_mut().poll(cx).is_pending() {
+                return false;
+            }
+            if self.owed > 0 {
+                return true;
+            }
+            let Some(idle) = self.idle_timeout else {
+                return false;
+            };
+            let next = self.last_read + idle;
+            if next <= Instant::now() {
+                return true;
+            }
+            self.deadline.as_mut().reset(next);
+        }
+    }
+}
+
+impl AsyncRead for Guarded {
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<io::Result<()>> {
+        let this = &mut *self;
+        let before = buf.filled().len();
+        match Pin::new(&mut this.io).poll_read(cx, buf) {
+            Poll::Ready(Ok(())) => {
+                let n = buf.filled().len() - before;
+                if n > 0 {
+                    this.last_read = Instant::now();
+                    if this.owed > 0 {
+                        this.owed = this.owed.saturating_sub(n);
+                        if this.owed == 0 {
+                            match this.idle_timeout {
+                                Some(idle) => this.deadline.as_mut().reset(this.last_read + idle),
+                                // Far enough never to fire while the connection lives.
+                                None => this
+                                    .deadline
+                                    .as_mut()
+                                    .reset(this.last_read + Duration::from_secs(86_400 * 365)),
+                            }
+                        }
+                    }
+                }
+                Poll::Ready(Ok(()))
+            }
+            Poll::Ready(Err(e)) => Poll::Ready(Err(e)),
+            Poll::Pending => {
+                if this.expired(cx) {
+                    let what = if this.owed > 0 {
+                        "did not start its handshake"
+                    } else {
+                        "sent nothing"
+                    };
+                    tracing::debug!(peer = ?this.io.peer_addr().ok(), "closing a connection that {what} in time");
+                    return Poll::Ready(Err(io::Error::new(
+                        io::ErrorKind::TimedOut,
+                        format!("the connection {what} in time"),
+                    )));
+                }
+                Poll::Pending
+            }
+        }
+    }
+}
+
+impl AsyncWrite for Guarded {
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<io::Result<usize>> {
+        Pin::new(&mut self.io).poll_write(cx, buf)
+    }
+
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Pin::new(&mut self.io).poll_flush(cx)
+    }
+
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Pin::new(&mut self.io).poll_shutdown(cx)
+    }
+
+    fn poll_write_vectored(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        bufs: &[io::IoSlice<'_>],
+    ) -> Poll<io::Result<usize>> {
+        Pin::new(&mut self.io).poll_write_vectored(cx, bufs)
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        self.io.is_write_vectored()
+    }
+}
+
+impl Connected for Guarded {
+    /// The socket's own: handlers see the peer's address as before.
+    type ConnectInfo = TcpConnectInfo;
+
+    fn connect_info(&self) -> TcpConnectInfo {
+        self.io.connect_info()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tokio_stream::StreamExt;
+
+    /// EMFILE from accept neither ends the server's stream of connections nor spins: the
+    /// next connection is still served.
+    #[tokio::test]
+    async fn an_accept_error_pauses_and_accepting_goes_on() {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+            .await
+            .expect("bind");
+        let client = TcpStream::connect(listener.local_addr().expect("address"))
+            .await
+            .expect("connect");
+        let (server_side, _) = listener.accept().await.expect("accept");
+        let emfile = io::Error::from_raw_os_error(24);
+        let accepted = tokio_stream::iter(vec![Err(emfile), Ok(server_side)]);
+        let mut limited = Limited::new(
+            accepted,
+            ConnectionLimits {
+                max_connections: 1,
+                handshake_timeout: Duration::from_secs(10),
+                idle_timeout: None,
+            },
+        );
+        let first = limited.next().await.expect("a connection, not the end");
+        let guarded = first.expect("the connection after the error");
+        assert_eq!(
+            guarded.connect_info().remote_addr(),
+            client.local_addr().ok()
+        );
+        assert!(limited.next().await.is_none());
+    }
+}
