@@ -102,13 +102,13 @@ fn restart_backoff(n: u32) -> Duration {
     Duration::from_secs(1u64 << n.min(5)).min(MAX_RESTART_BACKOFF)
 }
 
-/// A directory of this run's secrets, removed when the cluster stops.
-struct SecretDir(PathBuf);
-
-impl Drop for SecretDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
+/// A new directory for this run's secrets (the cluster token handed to the members): a
+/// random name in the system temp directory, made atomically (an existing path, which
+/// another local user could have made and could write into, is never used), readable
+/// only by this user (0700), and removed with its contents when the guard drops.
+fn secrets_dir() -> Result<tempfile::TempDir> {
+    dray_scene::private_fs::private_temp_dir("dray-cluster-", "-secrets")
+        .context("cannot create a private directory for the cluster token in the temp directory")
 }
 
 /// One child process of the cluster.
@@ -427,17 +427,18 @@ pub fn run(a: ClusterArgs) -> Result<()> {
     }
     let exe = std::env::current_exe().context("cannot find the dray executable to start")?;
     // The members' cluster token: the one given, or one made for this run.
-    let secrets = SecretDir(
-        std::env::temp_dir().join(format!("dray-cluster-{}-secrets", std::process::id())),
-    );
-    let token_file = match &a.cluster_token.cluster_token_file {
-        Some(f) => f.clone(),
+    // Its directory is private to this run (see `secrets_dir`), removed when the cluster
+    // stops: `_secrets` lives until `run` returns.
+    let (_secrets, token_file) = match &a.cluster_token.cluster_token_file {
+        Some(f) => (None, f.clone()),
         None => {
             let token = match a.cluster_token.token()? {
                 Some(t) => t,
                 None => dray_net::Token::generate()?,
             };
-            crate::net_flags::write_token_file(&secrets.0, "cluster.token", &token)?
+            let dir = secrets_dir()?;
+            let file = crate::net_flags::write_token_file(dir.path(), "cluster.token", &token)?;
+            (Some(dir), file)
         }
     };
     let api_token = a.api_token.token()?;

@@ -115,7 +115,7 @@ fn cluster_options(a: &CoordinatorArgs) -> Result<ClusterOptions> {
         ..ClusterOptions::default()
     };
     if let Some(dir) = &a.work_dir {
-        options.work_dir = prepare_work_dir(dir)?;
+        options.work_dir = prepare_work_dir(dir)?.into();
     }
     options.clients = net_flags::client_options(a.member.cluster_token.token()?, &a.member.tls)?;
     Ok(options)

@@ -87,8 +87,9 @@ pub const MIN_TRIANGLES_PER_DOMAIN: u64 = 64;
 /// Errors preparing a job for workers.
 #[derive(Debug, thiserror::Error)]
 pub enum DispatchError {
-    /// The work directory could not be created.
-    #[error("cannot create the work directory {dir}: {source}")]
+    /// The job's package folder could not be made in the work directory (it exists
+    /// already, or the work directory is missing).
+    #[error("cannot create the job's package folder {dir}: {source}")]
     WorkDir {
         /// The directory.
         dir: PathBuf,
@@ -187,12 +188,14 @@ fn make_package(
     };
     let (dir, owned) = match src {
         PackageSource::Write { scene, layout } => {
-            if let Some(parent) = dir.parent() {
-                std::fs::create_dir_all(parent).map_err(|source| DispatchError::WorkDir {
-                    dir: parent.to_path_buf(),
-                    source,
-                })?;
-            }
+            // The job's folder is new (mkdir refuses an existing path, so nothing planted
+            // there beforehand is used); the work directory must exist already (a private
+            // one this process made, or the user's), and is not made here, where a
+            // missing private directory could be remade by another user.
+            std::fs::create_dir(dir).map_err(|source| DispatchError::WorkDir {
+                dir: dir.to_path_buf(),
+                source,
+            })?;
             write_scene_package(dir, &scene, &layout).map_err(|e| DispatchError::Package {
                 dir: dir.to_path_buf(),
                 message: e.to_string(),
@@ -423,7 +426,10 @@ async fn run(
     let info = match info {
         Ok(Ok(i)) => i,
         Ok(Err(e)) | Err(e) => {
-            remove_package(Some(&OwnedPackage::Dir(dir)));
+            // A folder the job could not make is not the job's to remove.
+            if !matches!(e, DispatchError::WorkDir { .. }) {
+                remove_package(Some(&OwnedPackage::Dir(dir)));
+            }
             return Err(e);
         }
     };

@@ -517,6 +517,6 @@ pub async fn serve_with(
     )
     .await;
     // Job packages are removed as jobs end; the work directory itself goes if empty.
-    let _ = std::fs::remove_dir(&work_dir);
+    let _ = std::fs::remove_dir(work_dir.path());
     served
 }
