@@ -25,6 +25,10 @@ use crate::net_flags::{self, ApiTokenArgs, MemberArgs};
 /// being loaded, an in-process render) before it exits without it.
 const BLOCKING_GRACE: Duration = Duration::from_millis(500);
 
+/// How long, on a stop, package cuts in progress get to stop before their folders are
+/// removed anyway (a cut looks at its cancel flag every 64 Ki triangles).
+const PACKAGE_GRACE: Duration = Duration::from_secs(5);
+
 /// How long a graceful shutdown may take before the process exits anyway (a client still
 /// watching a job would otherwise hold it open).
 const SHUTDOWN_GRACE: Duration = Duration::from_secs(2);
@@ -231,6 +235,7 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
             stop_signal().await;
             let _ = stopping_tx.send(());
         };
+        let cleanup = coordinator.clone();
         let served = dray_coordinator::serve_with(&server, listener, coordinator, shutdown);
         tokio::pin!(served);
         // Serve until a signal; then give the graceful shutdown a bounded time.
@@ -247,6 +252,9 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
                 Ok(())
             }
         };
+        // No job's package outlives the coordinator: cuts in progress are stopped and
+        // every job folder removed (a large preparation's partial package included).
+        cleanup.remove_packages_on_stop(PACKAGE_GRACE).await;
         result.context("the gRPC server stopped")
     });
     // A scene still loading or a job still rendering runs on a blocking thread, which

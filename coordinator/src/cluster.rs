@@ -25,9 +25,9 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status};
 
 use crate::ledger::Ledger;
-pub use crate::work_dir::WorkDir;
 use crate::membership::{HeartbeatConfig, Membership};
 use crate::scheduler::{Scheduler, SchedulerEvent, SchedulerOptions};
+pub use crate::work_dir::WorkDir;
 
 /// Settings of the cluster side of the coordinator.
 #[derive(Clone, Debug)]
@@ -80,6 +80,9 @@ pub struct Cluster {
     pub scheduler: Scheduler,
     /// Settings.
     pub options: ClusterOptions,
+    /// Package cuts in progress (a job's folder being written), so that a stopping
+    /// coordinator can wait for them to stop before it removes their folders.
+    pub(crate) cuts: std::sync::atomic::AtomicUsize,
 }
 
 impl Cluster {
@@ -92,6 +95,7 @@ impl Cluster {
             ledger,
             membership,
             options,
+            cuts: std::sync::atomic::AtomicUsize::new(0),
         }
     }
 

@@ -376,6 +376,26 @@ fn camera_index(scene: &Scene, which: Option<&str>) -> Option<usize> {
     }
 }
 
+/// One package cut in progress, counted in [`Cluster::cuts`] while it lives.
+struct Cutting<'a>(&'a Cluster);
+
+impl<'a> Cutting<'a> {
+    fn start(cluster: &'a Cluster) -> Cutting<'a> {
+        cluster
+            .cuts
+            .fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        Cutting(cluster)
+    }
+}
+
+impl Drop for Cutting<'_> {
+    fn drop(&mut self) {
+        self.0
+            .cuts
+            .fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
+    }
+}
+
 /// Run job `entry` on the cluster's workers: make the package, then queue the setup and
 /// tiles on the workers' streams. Returns at once; the work runs on a task.
 pub fn spawn(cluster: Arc<Cluster>, entry: Arc<JobEntry>, planned: Planned) {
@@ -410,6 +430,8 @@ async fn run(
         schedule,
     } = planned;
     entry.set_state(JobState::Preparing);
+    // Counted until the cut has ended and, on failure, its folder is gone.
+    let cutting = Cutting::start(cluster);
     let dir = cluster.options.work_dir.join(&entry.id);
     let dir2 = dir.clone();
     let memory = cluster.options.memory_packages.clone();
@@ -433,6 +455,7 @@ async fn run(
             return Err(e);
         }
     };
+    drop(cutting);
     let owned = info.owned.clone();
     if entry.is_terminal() {
         // Cancelled while the package was being written.

@@ -75,7 +75,8 @@ impl Default for WorkDir {
                 let r = std::collections::hash_map::RandomState::new()
                     .build_hasher()
                     .finish();
-                let path = std::env::temp_dir().join(format!("dray-coordinator-unavailable-{r:016x}"));
+                let path =
+                    std::env::temp_dir().join(format!("dray-coordinator-unavailable-{r:016x}"));
                 tracing::error!(
                     "cannot create a private work directory in {}: {e}; jobs cut into packages will fail (set --work-dir)",
                     std::env::temp_dir().display()

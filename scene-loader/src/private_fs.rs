@@ -109,7 +109,10 @@ mod tests {
         // A plain new file is made.
         let f = d.path().join("new");
         create_new(&f, 0o600).unwrap();
-        assert!(create_new(&f, 0o600).is_err(), "an existing file is refused");
+        assert!(
+            create_new(&f, 0o600).is_err(),
+            "an existing file is refused"
+        );
         create_truncate(&f).unwrap();
     }
 }

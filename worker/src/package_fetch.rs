@@ -155,7 +155,11 @@ pub enum FetchError {
     #[error(
         "fetching {file}: the coordinator announces {bytes} bytes, more than {limit}; refused before writing"
     )]
-    TooLarge { file: String, bytes: u64, limit: String },
+    TooLarge {
+        file: String,
+        bytes: u64,
+        limit: String,
+    },
     #[error("package cache {path}: {source}")]
     Io {
         path: PathBuf,
@@ -436,9 +440,10 @@ impl PackageFetcher {
         expected: &Expected,
     ) -> Result<u64, FetchError> {
         // Resumable, so not create_new; never through a symlink planted at the path.
-        let mut out = dray_scene::private_fs::no_follow(OpenOptions::new().create(true).append(true))
-            .open(part)
-            .map_err(io_err(part))?;
+        let mut out =
+            dray_scene::private_fs::no_follow(OpenOptions::new().create(true).append(true))
+                .open(part)
+                .map_err(io_err(part))?;
         if !out.metadata().map_err(io_err(part))?.is_file() {
             return Err(io_err(part)(std::io::Error::other("not a regular file")));
         }
