@@ -27,7 +27,7 @@ const BLOCKING_GRACE: Duration = Duration::from_millis(500);
 
 /// How long, on a stop, package cuts in progress get to stop before their folders are
 /// removed anyway (a cut looks at its cancel flag every 64 Ki triangles).
-const PACKAGE_GRACE: Duration = Duration::from_secs(5);
+const PACKAGE_GRACE: Duration = Duration::from_secs(2);
 
 /// How long a graceful shutdown may take before the process exits anyway (a client still
 /// watching a job would otherwise hold it open).
@@ -231,11 +231,14 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
         );
         eprintln!("dray coordinator: {access}");
         let (stopping_tx, stopping_rx) = tokio::sync::oneshot::channel::<()>();
+        let cleanup = coordinator.clone();
+        let stopping = coordinator.clone();
         let shutdown = async move {
             stop_signal().await;
+            // Cuts stop now, while the server winds down, not after.
+            stopping.stop_preparations();
             let _ = stopping_tx.send(());
         };
-        let cleanup = coordinator.clone();
         let served = dray_coordinator::serve_with(&server, listener, coordinator, shutdown);
         tokio::pin!(served);
         // Serve until a signal; then give the graceful shutdown a bounded time.

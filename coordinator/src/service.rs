@@ -76,16 +76,23 @@ impl Coordinator {
         )
     }
 
+    /// For a stopping coordinator, as soon as it is told to stop: every scene load and
+    /// package cut in progress stops at its next look at its job's cancel flag (the
+    /// jobs' states are left as they are: the process is ending).
+    pub fn stop_preparations(&self) {
+        for e in self.table.list() {
+            e.cancel_flag().store(true, Ordering::SeqCst);
+        }
+    }
+
     /// For a stopping coordinator: stop every scene load and package cut in progress (as
     /// CancelJob does), wait up to `grace` for the cuts to end, then remove every job's
     /// package folder from the work directory, and the work directory itself if that
     /// leaves it empty. Without this a SIGTERM during the preparation of a large job
     /// left its partial package (hundreds of MB) behind, and a running job's whole one.
     pub async fn remove_packages_on_stop(&self, grace: std::time::Duration) {
+        self.stop_preparations();
         let jobs = self.table.list();
-        for e in &jobs {
-            e.cancel_flag().store(true, Ordering::SeqCst);
-        }
         let deadline = tokio::time::Instant::now() + grace;
         while self.cluster.cuts.load(Ordering::SeqCst) > 0 {
             if tokio::time::Instant::now() >= deadline {
