@@ -43,7 +43,9 @@ pub struct ClusterArgs {
     /// Worker processes to start (0 runs a coordinator alone).
     #[arg(long)]
     pub workers: u16,
-    /// The coordinator listens on 127.0.0.1:P, worker i on 127.0.0.1:P+i.
+    /// The coordinator listens on 127.0.0.1:P, worker i on 127.0.0.1:P+i. With 0 each
+    /// member binds a port the system chooses (the coordinator first, whose address the
+    /// workers are then given); the lines printed before the ready line name them.
     #[arg(long, default_value_t = 50051)]
     pub base_port: u16,
     /// The coordinator's scene root (scene paths in jobs are resolved against it).
@@ -102,20 +104,23 @@ fn restart_backoff(n: u32) -> Duration {
     Duration::from_secs(1u64 << n.min(5)).min(MAX_RESTART_BACKOFF)
 }
 
-/// A directory of this run's secrets, removed when the cluster stops.
-struct SecretDir(PathBuf);
-
-impl Drop for SecretDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
+/// A new directory for this run's secrets (the cluster token handed to the members): a
+/// random name in the system temp directory, made atomically (an existing path, which
+/// another local user could have made and could write into, is never used), readable
+/// only by this user (0700), and removed with its contents when the guard drops.
+fn secrets_dir() -> Result<tempfile::TempDir> {
+    dray_scene::private_fs::private_temp_dir("dray-cluster-", "-secrets")
+        .context("cannot create a private directory for the cluster token in the temp directory")
 }
 
 /// One child process of the cluster.
 struct Member {
     name: String,
+    /// Its address; port 0 until it announced the port it bound (`--base-port 0`).
     addr: SocketAddr,
     child: Child,
+    /// The address it announces on its first line of stdout, when it binds port 0.
+    announced: Option<std::sync::mpsc::Receiver<SocketAddr>>,
     /// Set once the member answered its health check.
     ready: bool,
     /// Set once it has been reaped.
@@ -281,13 +286,42 @@ fn check_port_free(port: u16, name: &str) -> Result<()> {
     }
 }
 
+/// The address in a member's first line of stdout ("dray coordinator listening on
+/// 127.0.0.1:PORT", "dray worker listening on ...").
+fn announced_addr(line: &str) -> Option<SocketAddr> {
+    line.rsplit_once(" listening on ")?.1.trim().parse().ok()
+}
+
+/// Read `stdout`'s first line on a thread of its own and send the address it announces;
+/// the rest is read and dropped, so the member never blocks on a full pipe.
+fn watch_announcement(stdout: std::process::ChildStdout) -> std::sync::mpsc::Receiver<SocketAddr> {
+    use std::io::BufRead;
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut lines = std::io::BufReader::new(stdout).lines();
+        if let Some(Ok(first)) = lines.next()
+            && let Some(addr) = announced_addr(&first)
+        {
+            let _ = tx.send(addr);
+        }
+        for _ in lines.map_while(|l| l.ok()) {}
+    });
+    rx
+}
+
 /// Start `exe args…` as a member: in its own process group, stdout discarded (the
-/// cluster prints the endpoints), stderr shared so its errors reach the user.
+/// cluster prints the endpoints) unless `addr` has port 0 (then its first line, which
+/// names the port it bound, is read), stderr shared so its errors reach the user.
 fn spawn(exe: &PathBuf, name: String, addr: SocketAddr, args: &[String]) -> Result<Member> {
+    let ephemeral = addr.port() == 0;
     let mut cmd = Command::new(exe);
     cmd.args(args)
         .stdin(Stdio::null())
-        .stdout(Stdio::null())
+        .stdout(if ephemeral {
+            Stdio::piped()
+        } else {
+            Stdio::null()
+        })
         .stderr(Stdio::inherit())
         .process_group(0);
     #[cfg(target_os = "linux")]
@@ -318,13 +352,15 @@ fn spawn(exe: &PathBuf, name: String, addr: SocketAddr, args: &[String]) -> Resu
             });
         }
     }
-    let child = cmd
+    let mut child = cmd
         .spawn()
         .with_context(|| format!("cannot start the {name} ({})", exe.display()))?;
+    let announced = child.stdout.take().map(watch_announcement);
     Ok(Member {
         name,
         addr,
         child,
+        announced,
         ready: false,
         exited: None,
         args: args.to_vec(),
@@ -334,6 +370,21 @@ fn spawn(exe: &PathBuf, name: String, addr: SocketAddr, args: &[String]) -> Resu
 }
 
 impl Cluster {
+    /// Take the addresses members on port 0 announced; tell of those of members started
+    /// again (`report`).
+    fn take_announced(&mut self, report: bool) {
+        for m in &mut self.members {
+            if m.addr.port() == 0
+                && let Some(addr) = m.announced.as_ref().and_then(|rx| rx.try_recv().ok())
+            {
+                m.addr = addr;
+                if report {
+                    eprintln!("dray cluster: {} listens on http://{addr}", m.name);
+                }
+            }
+        }
+    }
+
     /// Start again the workers whose restart time has come; a start that fails is
     /// tried again after the next backoff, within the limit.
     fn restart_due(&mut self, exe: &PathBuf, limit: u32) {
@@ -344,16 +395,28 @@ impl Cluster {
             }
             m.restart_at = None;
             m.restarts += 1;
-            match spawn(exe, m.name.clone(), m.addr, &m.args) {
+            // A member on a port of its choosing binds a new one.
+            let addr = if m.announced.is_some() {
+                SocketAddr::from((Ipv4Addr::LOCALHOST, 0))
+            } else {
+                m.addr
+            };
+            match spawn(exe, m.name.clone(), addr, &m.args) {
                 Ok(new) => {
                     eprintln!(
                         "dray cluster: {} started again (pid {}, http://{}; restart {} of {limit})",
                         m.name,
                         new.child.id(),
-                        m.addr,
+                        if addr.port() == 0 {
+                            "a new port".to_string()
+                        } else {
+                            addr.to_string()
+                        },
                         m.restarts
                     );
                     m.child = new.child;
+                    m.addr = addr;
+                    m.announced = new.announced;
                     m.exited = None;
                 }
                 Err(e) => {
@@ -401,9 +464,8 @@ async fn healthy(
 }
 
 pub fn run(a: ClusterArgs) -> Result<()> {
-    if a.base_port == 0 {
-        bail!("--base-port 0: the cluster needs fixed ports (workers are told the coordinator's)");
-    }
+    // --base-port 0: every member on a port the system chooses.
+    let ephemeral = a.base_port == 0;
     if u32::from(a.base_port) + u32::from(a.workers) > 65535 {
         bail!(
             "--base-port {} with --workers {} needs ports up to {}, past 65535",
@@ -417,27 +479,31 @@ pub fn run(a: ClusterArgs) -> Result<()> {
     {
         bail!("--scene-root {}: not a directory", root.display());
     }
-    let coordinator_addr = SocketAddr::from((Ipv4Addr::LOCALHOST, a.base_port));
+    let port_of = |i: u16| if ephemeral { 0 } else { a.base_port + i };
+    let coordinator_addr = SocketAddr::from((Ipv4Addr::LOCALHOST, port_of(0)));
     let worker_addrs: Vec<SocketAddr> = (1..=a.workers)
-        .map(|i| SocketAddr::from((Ipv4Addr::LOCALHOST, a.base_port + i)))
+        .map(|i| SocketAddr::from((Ipv4Addr::LOCALHOST, port_of(i))))
         .collect();
-    check_port_free(a.base_port, "coordinator")?;
-    for (i, w) in worker_addrs.iter().enumerate() {
-        check_port_free(w.port(), &format!("worker {}", i + 1))?;
+    if !ephemeral {
+        check_port_free(a.base_port, "coordinator")?;
+        for (i, w) in worker_addrs.iter().enumerate() {
+            check_port_free(w.port(), &format!("worker {}", i + 1))?;
+        }
     }
     let exe = std::env::current_exe().context("cannot find the dray executable to start")?;
     // The members' cluster token: the one given, or one made for this run.
-    let secrets = SecretDir(
-        std::env::temp_dir().join(format!("dray-cluster-{}-secrets", std::process::id())),
-    );
-    let token_file = match &a.cluster_token.cluster_token_file {
-        Some(f) => f.clone(),
+    // Its directory is private to this run (see `secrets_dir`), removed when the cluster
+    // stops: `_secrets` lives until `run` returns.
+    let (_secrets, token_file) = match &a.cluster_token.cluster_token_file {
+        Some(f) => (None, f.clone()),
         None => {
             let token = match a.cluster_token.token()? {
                 Some(t) => t,
                 None => dray_net::Token::generate()?,
             };
-            crate::net_flags::write_token_file(&secrets.0, "cluster.token", &token)?
+            let dir = secrets_dir()?;
+            let file = crate::net_flags::write_token_file(dir.path(), "cluster.token", &token)?;
+            (Some(dir), file)
         }
     };
     let api_token = a.api_token.token()?;
@@ -491,6 +557,26 @@ pub fn run(a: ClusterArgs) -> Result<()> {
         cluster
             .members
             .push(spawn(&exe, "coordinator".into(), coordinator_addr, &args)?);
+        // On a port of its choosing, the coordinator names it before the workers start.
+        let start = Instant::now();
+        let mut tick = tokio::time::interval(POLL);
+        while cluster.members[0].addr.port() == 0 {
+            tokio::select! {
+                why = signals.next() => {
+                    eprintln!("dray cluster: {why} while starting; stopping");
+                    return Ok(());
+                }
+                _ = tick.tick() => {}
+            }
+            cluster.take_announced(false);
+            if let Some((_, name, status)) = cluster.exited() {
+                bail!("{name} exited while starting ({status}); stopped the others");
+            }
+            if start.elapsed() > READY_TIMEOUT {
+                bail!("the coordinator did not name its port within {READY_TIMEOUT:?}; stopped it");
+            }
+        }
+        let coordinator_addr = cluster.members[0].addr;
         let coordinator_url = format!("{scheme}://{coordinator_addr}");
         for (i, w) in worker_addrs.iter().enumerate() {
             let mut args = vec![
@@ -527,8 +613,6 @@ pub fn run(a: ClusterArgs) -> Result<()> {
         }
 
         // Wait until every member answers its health check.
-        let start = Instant::now();
-        let mut tick = tokio::time::interval(POLL);
         while cluster.members.iter().any(|m| !m.ready) {
             tokio::select! {
                 why = signals.next() => {
@@ -553,8 +637,9 @@ pub fn run(a: ClusterArgs) -> Result<()> {
                     waiting.join(", ")
                 );
             }
+            cluster.take_announced(false);
             for (i, m) in cluster.members.iter_mut().enumerate() {
-                if !m.ready {
+                if !m.ready && m.addr.port() != 0 {
                     m.ready = if i == 0 {
                         healthy(&net, m.addr, "dray.v1.RenderService", false).await
                     } else {
@@ -578,7 +663,8 @@ pub fn run(a: ClusterArgs) -> Result<()> {
         };
         println!("example: grpcurl {grpcurl_tls}{header} {coordinator_addr} list");
         println!(
-            "dray cluster ready: 1 coordinator, {} worker{}; Ctrl-C stops them all",
+            "dray cluster ready: 1 coordinator, {} worker{}; coordinator at {coordinator_addr}; \
+             Ctrl-C stops them all",
             a.workers,
             if a.workers == 1 { "" } else { "s" }
         );
@@ -635,6 +721,7 @@ pub fn run(a: ClusterArgs) -> Result<()> {
                 );
             }
             cluster.restart_due(&exe, a.restart_limit);
+            cluster.take_announced(true);
             if std::os::unix::process::parent_id() != parent {
                 eprintln!("dray cluster: the parent process is gone; stopping");
                 cluster.stop();

@@ -25,6 +25,10 @@ use crate::net_flags::{self, ApiTokenArgs, MemberArgs};
 /// being loaded, an in-process render) before it exits without it.
 const BLOCKING_GRACE: Duration = Duration::from_millis(500);
 
+/// How long, on a stop, package cuts in progress get to stop before their folders are
+/// removed anyway (a cut looks at its cancel flag every 64 Ki triangles).
+const PACKAGE_GRACE: Duration = Duration::from_secs(2);
+
 /// How long a graceful shutdown may take before the process exits anyway (a client still
 /// watching a job would otherwise hold it open).
 const SHUTDOWN_GRACE: Duration = Duration::from_secs(2);
@@ -125,7 +129,7 @@ fn cluster_options(a: &CoordinatorArgs) -> Result<ClusterOptions> {
         ..ClusterOptions::default()
     };
     if let Some(dir) = &a.work_dir {
-        options.work_dir = prepare_work_dir(dir)?;
+        options.work_dir = prepare_work_dir(dir)?.into();
     }
     options.clients = net_flags::client_options(a.member.cluster_token.token()?, &a.member.tls)?;
     Ok(options)
@@ -238,8 +242,12 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
         );
         eprintln!("dray coordinator: {access}");
         let (stopping_tx, stopping_rx) = tokio::sync::oneshot::channel::<()>();
+        let cleanup = coordinator.clone();
+        let stopping = coordinator.clone();
         let shutdown = async move {
             stop_signal().await;
+            // Cuts stop now, while the server winds down, not after.
+            stopping.stop_preparations();
             let _ = stopping_tx.send(());
         };
         let served = dray_coordinator::serve_with(&server, listener, coordinator, shutdown);
@@ -258,6 +266,9 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
                 Ok(())
             }
         };
+        // No job's package outlives the coordinator: cuts in progress are stopped and
+        // every job folder removed (a large preparation's partial package included).
+        cleanup.remove_packages_on_stop(PACKAGE_GRACE).await;
         result.context("the gRPC server stopped")
     });
     // A scene still loading or a job still rendering runs on a blocking thread, which

@@ -13,7 +13,7 @@
 //! on them and the workers talk to them over gRPC. Without `--ray-cache` none is
 //! started (nothing would use it).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -40,15 +40,6 @@ fn absolute_scene(spec: &str) -> String {
     match Path::new(spec).canonicalize() {
         Ok(p) if p.is_file() || p.is_dir() => p.to_string_lossy().into_owned(),
         _ => spec.to_string(),
-    }
-}
-
-/// Removes the in-process coordinator's work directory however the render ends.
-struct WorkDir(PathBuf);
-
-impl Drop for WorkDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
     }
 }
 
@@ -83,11 +74,10 @@ pub fn render_on_actors(
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let threads = if a.threads == 0 { cores } else { a.threads };
     let per_worker = threads.div_ceil(workers).max(1);
-    let work_dir = WorkDir(std::env::temp_dir().join(format!(
-        "dray-embedded-{}-{}",
-        std::process::id(),
-        Instant::now().elapsed().as_nanos()
-    )));
+    // A private directory (random name, 0700, never one made beforehand by another
+    // user), removed however the render ends.
+    let work_dir = dray_coordinator::cluster::WorkDir::private("dray-embedded-")
+        .context("cannot create the coordinator's work directory")?;
     // The coordinator cuts the scene into this store and the workers read it: no package
     // is written to disk for a scene this process already holds.
     let memory = Arc::new(MemoryPackages::default());
@@ -105,7 +95,7 @@ pub fn render_on_actors(
     let coordinator = Coordinator::new(Path::new("/"), threads)
         .context("cannot start the coordinator")?
         .with_cluster_options(ClusterOptions {
-            work_dir: work_dir.0.clone(),
+            work_dir,
             memory_packages: Some(memory.clone()),
             clients: clients.clone(),
             // Its workers are its own threads: no member to distrust, and a slow render

@@ -164,18 +164,14 @@ pub fn client_options(token: Option<Token>, tls: &TlsArgs) -> Result<ClientOptio
     Ok(ClientOptions::new(token, &tls.files())?)
 }
 
-/// Write `token` to a new file only this user can read, in `dir`, for child processes.
+/// Write `token` to a new file only this user can read (0600), `name` in `dir`, for
+/// child processes. `dir` must exist (a private directory: see
+/// `dray_scene::private_fs`); the file must not: an existing file or a symlink there is
+/// refused, never replaced or followed.
 pub fn write_token_file(dir: &Path, name: &str, token: &Token) -> Result<PathBuf> {
     use std::io::Write;
-    use std::os::unix::fs::OpenOptionsExt;
-    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     let path = dir.join(name);
-    let _ = std::fs::remove_file(&path);
-    let mut f = std::fs::OpenOptions::new()
-        .write(true)
-        .create_new(true)
-        .mode(0o600)
-        .open(&path)
+    let mut f = dray_scene::private_fs::create_new(&path, 0o600)
         .with_context(|| format!("cannot create {}", path.display()))?;
     f.write_all(token.expose().as_bytes())
         .with_context(|| format!("cannot write {}", path.display()))?;

@@ -457,3 +457,64 @@ fn a_worker_that_dies_is_started_again_and_takes_the_next_job() {
     drop(c);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Issue 20 item 17: `--base-port 0` puts every member on a port the system chooses; the
+/// lines before the ready line, and the ready line, name them, and a job submitted to
+/// the coordinator's announced address runs on the workers.
+#[test]
+fn a_cluster_on_ephemeral_ports_names_them_and_runs_a_job() {
+    let dir = common::tmp("cluster-port0");
+    let mut cmd = dray();
+    cmd.args(["cluster", "--workers", "2", "--base-port", "0"])
+        .arg("--scene-root")
+        .arg(&dir)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null());
+    let mut proc = Proc::spawn(cmd);
+    let mut stdout = BufReader::new(proc.child.stdout.take().expect("stdout")).lines();
+    let lines = read_until_ready(&mut stdout);
+    let _guard = KillOnDrop(pid_of(&lines, "coordinator"));
+    let port_of = |name: &str| -> u16 {
+        lines
+            .iter()
+            .find(|l| l.starts_with(name))
+            .and_then(|l| l.split("http://127.0.0.1:").nth(1))
+            .and_then(|r| r.split_whitespace().next())
+            .and_then(|p| p.parse().ok())
+            .unwrap_or_else(|| panic!("no port for {name} in {lines:?}"))
+    };
+    let ports = [
+        port_of("coordinator"),
+        port_of("worker 1"),
+        port_of("worker 2"),
+    ];
+    assert!(ports.iter().all(|&p| p != 0), "{lines:?}");
+    assert!(
+        ports[0] != ports[1] && ports[1] != ports[2] && ports[0] != ports[2],
+        "{lines:?}"
+    );
+    let ready = lines.last().unwrap();
+    let announced = format!("127.0.0.1:{}", ports[0]);
+    assert!(ready.contains(&announced), "{ready}");
+
+    let png = dir.join("port0.png");
+    let out = dray()
+        .args(["submit", "--coordinator", &announced, "cornell", "-q"])
+        .args(["--width", "32", "--height", "24", "--spp", "1"])
+        .arg("--output")
+        .arg(&png)
+        .output()
+        .expect("run dray submit");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(png.is_file());
+    proc.signal(libc::SIGTERM);
+    assert!(
+        proc.wait_timeout(30.0).is_some(),
+        "the cluster did not stop"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

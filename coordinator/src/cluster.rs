@@ -9,7 +9,6 @@
 //! what a job's workers receive, in order. Registrations, queue reports and lost workers
 //! become [`SchedulerEvent`]s; the RPCs answer without waiting for the scheduler.
 
-use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -28,16 +27,19 @@ use tonic::{Request, Response, Status};
 use crate::ledger::Ledger;
 use crate::membership::{HeartbeatConfig, Membership};
 use crate::scheduler::{Scheduler, SchedulerEvent, SchedulerOptions};
+pub use crate::work_dir::WorkDir;
 
 /// Settings of the cluster side of the coordinator.
 #[derive(Clone, Debug)]
 pub struct ClusterOptions {
     /// Heartbeat interval and timeout told to workers.
     pub heartbeat: HeartbeatConfig,
-    /// Where per-job scene packages are written (a directory per job, removed when the
-    /// job is released). Workers read them at the same path when they share it (a
-    /// shared volume), and fetch them over gRPC otherwise (`PackageService`).
-    pub work_dir: PathBuf,
+    /// Where per-job scene packages are written (a directory per job, made new by the
+    /// job and removed when the job is released). Workers read them at the same path
+    /// when they share it (a shared volume), and fetch them over gRPC otherwise
+    /// (`PackageService`). By default a private directory of this process (see
+    /// [`WorkDir`]).
+    pub work_dir: WorkDir,
     /// When set, packages for scenes are cut into this in-memory store instead of the
     /// work directory: for workers in the coordinator's own process (`dray render`),
     /// which read the same store. Workers elsewhere cannot, so a cluster leaves it unset.
@@ -59,7 +61,7 @@ impl Default for ClusterOptions {
     fn default() -> ClusterOptions {
         ClusterOptions {
             heartbeat: HeartbeatConfig::default(),
-            work_dir: std::env::temp_dir().join(format!("dray-coordinator-{}", std::process::id())),
+            work_dir: WorkDir::default(),
             memory_packages: None,
             scheduler: SchedulerOptions::default(),
             clients: dray_net::ClientOptions::plain(),
@@ -83,6 +85,9 @@ pub struct Cluster {
     pub scheduler: Scheduler,
     /// Settings.
     pub options: ClusterOptions,
+    /// Package cuts in progress (a job's folder being written), so that a stopping
+    /// coordinator can wait for them to stop before it removes their folders.
+    pub(crate) cuts: std::sync::atomic::AtomicUsize,
 }
 
 impl Cluster {
@@ -95,6 +100,7 @@ impl Cluster {
             ledger,
             membership,
             options,
+            cuts: std::sync::atomic::AtomicUsize::new(0),
         }
     }
 

@@ -87,8 +87,9 @@ pub const MIN_TRIANGLES_PER_DOMAIN: u64 = 64;
 /// Errors preparing a job for workers.
 #[derive(Debug, thiserror::Error)]
 pub enum DispatchError {
-    /// The work directory could not be created.
-    #[error("cannot create the work directory {dir}: {source}")]
+    /// The job's package folder could not be made in the work directory (it exists
+    /// already, or the work directory is missing).
+    #[error("cannot create the job's package folder {dir}: {source}")]
     WorkDir {
         /// The directory.
         dir: PathBuf,
@@ -187,12 +188,14 @@ fn make_package(
     };
     let (dir, owned) = match src {
         PackageSource::Write { scene, layout } => {
-            if let Some(parent) = dir.parent() {
-                std::fs::create_dir_all(parent).map_err(|source| DispatchError::WorkDir {
-                    dir: parent.to_path_buf(),
-                    source,
-                })?;
-            }
+            // The job's folder is new (mkdir refuses an existing path, so nothing planted
+            // there beforehand is used); the work directory must exist already (a private
+            // one this process made, or the user's), and is not made here, where a
+            // missing private directory could be remade by another user.
+            std::fs::create_dir(dir).map_err(|source| DispatchError::WorkDir {
+                dir: dir.to_path_buf(),
+                source,
+            })?;
             write_scene_package(dir, &scene, &layout).map_err(|e| DispatchError::Package {
                 dir: dir.to_path_buf(),
                 message: e.to_string(),
@@ -373,6 +376,26 @@ fn camera_index(scene: &Scene, which: Option<&str>) -> Option<usize> {
     }
 }
 
+/// One package cut in progress, counted in [`Cluster::cuts`] while it lives.
+struct Cutting<'a>(&'a Cluster);
+
+impl<'a> Cutting<'a> {
+    fn start(cluster: &'a Cluster) -> Cutting<'a> {
+        cluster
+            .cuts
+            .fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        Cutting(cluster)
+    }
+}
+
+impl Drop for Cutting<'_> {
+    fn drop(&mut self) {
+        self.0
+            .cuts
+            .fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
+    }
+}
+
 /// Run job `entry` on the cluster's workers: make the package, then queue the setup and
 /// tiles on the workers' streams. Returns at once; the work runs on a task.
 pub fn spawn(cluster: Arc<Cluster>, entry: Arc<JobEntry>, planned: Planned) {
@@ -407,6 +430,8 @@ async fn run(
         schedule,
     } = planned;
     entry.set_state(JobState::Preparing);
+    // Counted until the cut has ended and, on failure, its folder is gone.
+    let cutting = Cutting::start(cluster);
     let dir = cluster.options.work_dir.join(&entry.id);
     let dir2 = dir.clone();
     let memory = cluster.options.memory_packages.clone();
@@ -423,10 +448,14 @@ async fn run(
     let info = match info {
         Ok(Ok(i)) => i,
         Ok(Err(e)) | Err(e) => {
-            remove_package(Some(&OwnedPackage::Dir(dir)));
+            // A folder the job could not make is not the job's to remove.
+            if !matches!(e, DispatchError::WorkDir { .. }) {
+                remove_package(Some(&OwnedPackage::Dir(dir)));
+            }
             return Err(e);
         }
     };
+    drop(cutting);
     let owned = info.owned.clone();
     if entry.is_terminal() {
         // Cancelled while the package was being written.

@@ -42,5 +42,6 @@ pub mod package_service;
 pub mod scheduler;
 pub mod service;
 pub mod validate;
+pub mod work_dir;
 
 pub use service::{Coordinator, serve, serve_with};

@@ -76,6 +76,51 @@ impl Coordinator {
         )
     }
 
+    /// For a stopping coordinator, as soon as it is told to stop: every scene load and
+    /// package cut in progress stops at its next look at its job's cancel flag (the
+    /// jobs' states are left as they are: the process is ending).
+    pub fn stop_preparations(&self) {
+        for e in self.table.list() {
+            e.cancel_flag().store(true, Ordering::SeqCst);
+        }
+    }
+
+    /// For a stopping coordinator: stop every scene load and package cut in progress (as
+    /// CancelJob does), wait up to `grace` for the cuts to end, then remove every job's
+    /// package folder from the work directory, and the work directory itself if that
+    /// leaves it empty. Without this a SIGTERM during the preparation of a large job
+    /// left its partial package (hundreds of MB) behind, and a running job's whole one.
+    pub async fn remove_packages_on_stop(&self, grace: std::time::Duration) {
+        self.stop_preparations();
+        let jobs = self.table.list();
+        let deadline = tokio::time::Instant::now() + grace;
+        while self.cluster.cuts.load(Ordering::SeqCst) > 0 {
+            if tokio::time::Instant::now() >= deadline {
+                tracing::warn!(
+                    "package cuts still running after {grace:?}; removing their folders anyway"
+                );
+                break;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        }
+        let work_dir = &self.cluster.options.work_dir;
+        for e in &jobs {
+            let dir = work_dir.join(&e.id);
+            // A cut still writing may add a file between the listing and the rmdir.
+            for _ in 0..5 {
+                match std::fs::remove_dir_all(&dir) {
+                    Ok(()) => break,
+                    Err(err) if err.kind() == std::io::ErrorKind::NotFound => break,
+                    Err(err) => {
+                        tracing::debug!(dir = %dir.display(), "removing a job's package: {err}");
+                        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+                    }
+                }
+            }
+        }
+        let _ = std::fs::remove_dir(work_dir.path());
+    }
+
     /// The same coordinator with admission limits: at most `max_jobs` jobs queued or
     /// running, none estimated above `max_job_bytes`, and finished jobs' images kept per
     /// `retention`. Call before serving.
@@ -523,6 +568,6 @@ pub async fn serve_with(
     )
     .await;
     // Job packages are removed as jobs end; the work directory itself goes if empty.
-    let _ = std::fs::remove_dir(&work_dir);
+    let _ = std::fs::remove_dir(work_dir.path());
     served
 }

@@ -10,6 +10,7 @@ pub mod obj;
 pub mod partition;
 pub mod ply;
 pub mod ply_stream;
+pub mod private_fs;
 pub mod procedural;
 pub mod reference;
 pub mod validate;

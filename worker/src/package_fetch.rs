@@ -24,7 +24,21 @@
 //! only repeated failures without progress give up. The whole file's XXH3-64 is then
 //! checked against the manifest's (the setup's package checksum for the manifest) before
 //! it is renamed into place, so a file in the cache is always whole and verified; a
-//! mismatch discards the partial file and fails the job loudly, naming the file.
+//! mismatch discards the partial file and fails the job loudly, naming the file. A fetch
+//! that fails, however, removes its partial file (a partial file left by a process that
+//! died is resumed by the next fetch).
+//!
+//! **Bounds.** The coordinator is not trusted with the worker's disk: the manifest, whose
+//! size nothing declares beforehand, may be at most [`MAX_MANIFEST_BYTES`]; every size
+//! the coordinator announces (and every size the manifest declares) is checked against
+//! that bound or the manifest's, and against the cache's free space, before a byte is
+//! written.
+//!
+//! **Trust.** The default cache is a private directory (random name, mode 0700, made
+//! atomically, removed when the fetcher drops: see `dray_scene::private_fs`), so no other
+//! local user can plant files or symlinks in it. In every cache, a package folder that
+//! exists must be a real directory, and partial files are opened without following
+//! symlinks.
 //!
 //! The fetch is blocking (tracing and setup threads call it); the network calls run on
 //! the worker's async runtime through its handle.
@@ -53,6 +67,13 @@ const FIRST_BACKOFF: Duration = Duration::from_millis(100);
 
 /// Suffix of a file being downloaded.
 const PART: &str = ".part";
+
+/// The largest manifest a worker fetches (64 MiB). Nothing declares a manifest's size
+/// beforehand, so without a bound a coordinator could make a worker write until its disk
+/// is full. A manifest holds per-domain entries of a few hundred bytes, per-material and
+/// per-light descriptions: 64 MiB is hundreds of thousands of domains. (A package read
+/// from a shared path is bounded by the package reader's own limit.)
+pub const MAX_MANIFEST_BYTES: u64 = 64 << 20;
 
 /// When a worker fetches a job's package instead of reading it at the setup's path.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -131,6 +152,14 @@ pub enum FetchError {
     },
     #[error("fetching {file}: the coordinator broke the protocol: {message}")]
     Protocol { file: String, message: String },
+    #[error(
+        "fetching {file}: the coordinator announces {bytes} bytes, more than {limit}; refused before writing"
+    )]
+    TooLarge {
+        file: String,
+        bytes: u64,
+        limit: String,
+    },
     #[error("package cache {path}: {source}")]
     Io {
         path: PathBuf,
@@ -154,12 +183,14 @@ pub const LOCK_FILE: &str = ".dray-worker.lock";
 /// process ends, however it ends), or say that another worker holds it.
 fn lock_cache(root: &Path) -> Result<std::fs::File, FetchError> {
     let path = root.join(LOCK_FILE);
-    let file = std::fs::OpenOptions::new()
-        .create(true)
-        .truncate(false)
-        .write(true)
-        .open(&path)
-        .map_err(io_err(&path))?;
+    let file = dray_scene::private_fs::no_follow(
+        std::fs::OpenOptions::new()
+            .create(true)
+            .truncate(false)
+            .write(true),
+    )
+    .open(&path)
+    .map_err(io_err(&path))?;
     match file.try_lock() {
         Ok(()) => Ok(file),
         Err(std::fs::TryLockError::WouldBlock) => Err(FetchError::InUse(root.to_path_buf())),
@@ -193,8 +224,9 @@ pub struct PackageFetcher {
     client: PackageServiceClient<AuthChannel>,
     rt: tokio::runtime::Handle,
     root: PathBuf,
-    /// Remove `root` when dropped (a directory this process made for itself).
-    owned: bool,
+    /// The private directory this process made for itself when no cache was given;
+    /// removed when dropped.
+    _owned: Option<tempfile::TempDir>,
     mode: FetchMode,
     /// One lock per file being fetched, so two jobs never write the same partial file.
     files: Mutex<HashMap<PathBuf, Arc<Mutex<()>>>>,
@@ -209,33 +241,30 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 
 impl PackageFetcher {
     /// A fetcher calling the coordinator over `channel` (its calls run on `rt`), caching
-    /// under `root`, or, when `None`, under a new directory of this process in the
-    /// system's temp directory, removed when the fetcher is dropped.
+    /// under `root`, or, when `None`, under a new private directory of this process in
+    /// the system's temp directory (random name, 0700), removed when the fetcher is
+    /// dropped.
     pub fn new(
         channel: AuthChannel,
         rt: tokio::runtime::Handle,
         root: Option<PathBuf>,
         mode: FetchMode,
     ) -> Result<PackageFetcher, FetchError> {
-        static FETCHERS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         let (root, owned) = match root {
-            Some(r) => (r, false),
+            Some(r) => (r, None),
             None => {
-                // Unique per fetcher: several workers may share a process.
-                let n = FETCHERS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                let name = format!("dray-worker-{}-{n}-packages", std::process::id());
-                (std::env::temp_dir().join(name), true)
+                // Unique per fetcher (several workers may share a process), and never a
+                // directory another user made beforehand.
+                let dir = dray_scene::private_fs::private_temp_dir("dray-worker-", "-packages")
+                    .map_err(io_err(&std::env::temp_dir()))?;
+                (dir.path().to_path_buf(), Some(dir))
             }
         };
-        if !owned {
-            // A directory given is checked now, so a bad one fails the worker at start;
-            // the default one is made by the first fetch (a worker on a shared volume
-            // never makes it).
-            std::fs::create_dir_all(&root).map_err(io_err(&root))?;
-        }
-        let held = if owned {
+        let held = if owned.is_some() {
             None
         } else {
+            // A directory given is checked now, so a bad one fails the worker at start.
+            std::fs::create_dir_all(&root).map_err(io_err(&root))?;
             Some(lock_cache(&root)?)
         };
         // Absolute, so a relative --package-cache means the worker's working directory
@@ -245,7 +274,7 @@ impl PackageFetcher {
             client: PackageServiceClient::new(channel),
             rt,
             root,
-            owned,
+            _owned: owned,
             mode,
             files: Mutex::new(HashMap::new()),
             leases: Mutex::new(Leases::default()),
@@ -287,7 +316,7 @@ impl PackageFetcher {
             checksum: checksum.to_string(),
             dir,
         };
-        std::fs::create_dir_all(&remote.dir).map_err(io_err(&remote.dir))?;
+        package_dir(&remote.dir)?;
         remote.fetch(
             MANIFEST_FILE,
             &Expected {
@@ -372,8 +401,9 @@ impl PackageFetcher {
         let dest = dir.join(name);
         let file_lock = self.file_lock(&dest);
         let _held = lock(&file_lock);
-        // Only verified files are ever renamed into place.
-        if dest.is_file() {
+        // Only verified files are ever renamed into place (a symlink is not one: the
+        // fetched file replaces it).
+        if std::fs::symlink_metadata(&dest).is_ok_and(|m| m.file_type().is_file()) {
             return Ok(());
         }
         let part = dir.join(format!("{name}{PART}"));
@@ -381,18 +411,20 @@ impl PackageFetcher {
         let bytes = match self.download(job_id, checksum, name, &part, expected) {
             Ok(b) => b,
             Err(e) => {
-                // Bytes of a file that is not the manifest's are no prefix worth
-                // resuming; an empty partial file is no use either. The rest stays for
-                // the next attempt to resume.
-                let empty = std::fs::metadata(&part).is_ok_and(|m| m.len() == 0);
-                if empty || matches!(e, FetchError::Mismatch { .. } | FetchError::Protocol { .. }) {
-                    let _ = std::fs::remove_file(&part);
-                }
+                // A failed fetch leaves nothing behind: a partial file may be all a
+                // hostile coordinator sent (bytes of no file of the package), and it
+                // holds disk the job no longer needs. (A symlink there, refused by the
+                // open, is removed too: remove_file does not follow it.)
+                let _ = std::fs::remove_file(&part);
                 return Err(e);
             }
         };
-        verify(&part, name, bytes, &expected.xxh3)?;
-        std::fs::rename(&part, &dest).map_err(io_err(&dest))?;
+        if let Err(e) = verify(&part, name, bytes, &expected.xxh3)
+            .and_then(|()| std::fs::rename(&part, &dest).map_err(io_err(&dest)))
+        {
+            let _ = std::fs::remove_file(&part);
+            return Err(e);
+        }
         tracing::debug!(job = %job_id, file = %name, bytes, seconds = started.elapsed().as_secs_f64(), "package file fetched");
         Ok(())
     }
@@ -407,16 +439,23 @@ impl PackageFetcher {
         part: &Path,
         expected: &Expected,
     ) -> Result<u64, FetchError> {
-        let mut out = OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(part)
-            .map_err(io_err(part))?;
+        // Resumable, so not create_new; never through a symlink planted at the path.
+        let mut out =
+            dray_scene::private_fs::no_follow(OpenOptions::new().create(true).append(true))
+                .open(part)
+                .map_err(io_err(part))?;
+        if !out.metadata().map_err(io_err(part))?.is_file() {
+            return Err(io_err(part)(std::io::Error::other("not a regular file")));
+        }
         let mut have = out.metadata().map_err(io_err(part))?.len();
         if expected.bytes.is_some_and(|b| have > b) {
             // Longer than the file can be: not a prefix of it.
             out.set_len(0).map_err(io_err(part))?;
             have = 0;
+        }
+        if let Some(b) = expected.bytes {
+            // The size the manifest declares, before a byte of it is written.
+            check_room(part, name, b - have)?;
         }
         let mut total = expected.bytes;
         let mut failures = 0u32;
@@ -532,6 +571,18 @@ impl PackageFetcher {
                     expected: expected.xxh3.clone(),
                 }));
             }
+            if *total != Some(announced) {
+                // The first chunk: its size is checked before a byte is written.
+                if expected.bytes.is_none() && announced > MAX_MANIFEST_BYTES {
+                    return Err(CallError::Fatal(FetchError::TooLarge {
+                        file: name,
+                        bytes: announced,
+                        limit: format!("the {MAX_MANIFEST_BYTES}-byte bound on a manifest"),
+                    }));
+                }
+                check_room(part, &name, announced.saturating_sub(*have))
+                    .map_err(CallError::Fatal)?;
+            }
             *total = Some(announced);
             let end = chunk.offset.checked_add(chunk.data.len() as u64);
             if chunk.offset != *have || end.is_none_or(|e| e > announced) {
@@ -555,11 +606,51 @@ impl PackageFetcher {
     }
 }
 
-impl Drop for PackageFetcher {
-    fn drop(&mut self) {
-        if self.owned {
-            let _ = std::fs::remove_dir_all(&self.root);
+/// Refuse a file of `bytes` more bytes where `part` is when the file system holding it
+/// has less room than that: a size a coordinator announces (or a manifest declares) is
+/// checked before it is written, not discovered when the disk is full.
+fn check_room(part: &Path, name: &str, bytes: u64) -> Result<(), FetchError> {
+    let dir = part.parent().unwrap_or(Path::new("."));
+    match free_bytes(dir) {
+        Some(free) if bytes > free => Err(FetchError::TooLarge {
+            file: name.to_string(),
+            bytes,
+            limit: format!("the {free} bytes free in {}", dir.display()),
+        }),
+        _ => Ok(()),
+    }
+}
+
+/// Bytes an unprivileged process may still write on the file system holding `dir`
+/// (statvfs), or None when that cannot be told.
+fn free_bytes(dir: &Path) -> Option<u64> {
+    use std::os::unix::ffi::OsStrExt;
+    let c = std::ffi::CString::new(dir.as_os_str().as_bytes()).ok()?;
+    // SAFETY: statvfs(3) with a NUL-terminated path and a zeroed struct it fills.
+    let mut st: libc::statvfs = unsafe { std::mem::zeroed() };
+    if unsafe { libc::statvfs(c.as_ptr(), &mut st) } != 0 {
+        return None;
+    }
+    (st.f_bavail as u64).checked_mul(st.f_frsize as u64)
+}
+
+/// Make a package's folder `dir`, or use the one there if it is a real directory (a
+/// cache given by the user keeps packages between runs); a symlink or anything else
+/// there is refused.
+fn package_dir(dir: &Path) -> Result<(), FetchError> {
+    match std::fs::create_dir(dir) {
+        Ok(()) => Ok(()),
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+            let m = std::fs::symlink_metadata(dir).map_err(io_err(dir))?;
+            if m.is_dir() {
+                Ok(())
+            } else {
+                Err(io_err(dir)(std::io::Error::other(
+                    "exists and is not a directory (a symlink is not followed)",
+                )))
+            }
         }
+        Err(e) => Err(io_err(dir)(e)),
     }
 }
 
@@ -590,7 +681,9 @@ fn retryable(code: Code) -> bool {
 
 /// Check the downloaded `part` is `bytes` long and hashes to `xxh3`; remove it if not.
 fn verify(part: &Path, name: &str, bytes: u64, xxh3: &str) -> Result<(), FetchError> {
-    let file = File::open(part).map_err(io_err(part))?;
+    let file = dray_scene::private_fs::no_follow(OpenOptions::new().read(true))
+        .open(part)
+        .map_err(io_err(part))?;
     let mut r = HashingReader::new(file);
     std::io::copy(&mut r, &mut std::io::sink()).map_err(io_err(part))?;
     let found = to_hex(r.digest());

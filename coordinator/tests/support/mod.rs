@@ -68,11 +68,13 @@ impl Server {
         let work_dir =
             std::env::temp_dir().join(format!("dray-cluster-test-{}-{name}", std::process::id()));
         let _ = std::fs::remove_dir_all(&work_dir);
+        // A work directory must exist (jobs make only their own folders in it).
+        std::fs::create_dir_all(&work_dir).unwrap();
         let coordinator = Coordinator::new(root, 1)
             .unwrap()
             .with_cluster_options(ClusterOptions {
                 heartbeat,
-                work_dir: work_dir.clone(),
+                work_dir: work_dir.clone().into(),
                 memory_packages: None,
                 scheduler,
                 clients: dray_net::ClientOptions::plain(),

@@ -370,7 +370,10 @@ pub fn write_package(
     let text = manifest::encode(&m)
         .map_err(|e| format_error(dir, format!("cannot encode the manifest: {e}")))?;
     let tmp = dir.join(format!("{MANIFEST_FILE}.tmp"));
-    fs::write(&tmp, &text).map_err(io_error(&tmp))?;
+    // No write follows a symlink planted in the package directory (see private_fs).
+    crate::private_fs::create_truncate(&tmp)
+        .and_then(|mut f| f.write_all(text.as_bytes()))
+        .map_err(io_error(&tmp))?;
     let final_path = dir.join(MANIFEST_FILE);
     fs::rename(&tmp, &final_path).map_err(io_error(&final_path))?;
 
@@ -543,9 +546,7 @@ impl Spill {
         if self.buf.is_empty() {
             return Ok(());
         }
-        let mut f = OpenOptions::new()
-            .create(true)
-            .append(true)
+        let mut f = crate::private_fs::no_follow(OpenOptions::new().create(true).append(true))
             .open(&self.path)
             .map_err(io_error(&self.path))?;
         f.write_all(&self.buf).map_err(io_error(&self.path))?;
@@ -624,7 +625,7 @@ fn read_full(r: &mut impl Read, buf: &mut [u8]) -> io::Result<usize> {
 
 /// Write `mesh` as a domain file; its size and checksum.
 pub fn write_domain_file(path: &Path, mesh: &DomainMesh) -> Result<(u64, u64)> {
-    let file = File::create(path).map_err(io_error(path))?;
+    let file = crate::private_fs::create_truncate(path).map_err(io_error(path))?;
     // The buffer sits outside the hasher, so the hasher sees large chunks.
     let mut w = BufWriter::with_capacity(IO_BUFFER, HashingWriter::new(file));
     let m = &mesh.mesh;
@@ -670,7 +671,7 @@ fn write_textures(
     }
     let path = dir.join(TEXTURES_FILE);
     let mut descs = Vec::with_capacity(textures.len());
-    let file = File::create(&path).map_err(io_error(&path))?;
+    let file = crate::private_fs::create_truncate(&path).map_err(io_error(&path))?;
     let mut w = BufWriter::with_capacity(IO_BUFFER, HashingWriter::new(file));
     let mut offset = TEXTURE_HEADER_BYTES;
     let result = (|| -> io::Result<()> {
