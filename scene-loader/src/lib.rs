@@ -12,6 +12,7 @@ pub mod ply;
 pub mod ply_stream;
 pub mod procedural;
 pub mod reference;
+pub mod translate;
 pub mod validate;
 
 pub use cancel::load_cancellable;
