@@ -429,6 +429,6 @@ fn worker_bounds_cover_the_coordinators_limits() {
     assert!(l.max_ao_samples <= b::MAX_AO_SAMPLES);
     assert!(l.max_domains <= b::MAX_DOMAINS);
     assert!(l.max_jobs <= b::MAX_JOBS);
-    assert!(MAX_CACHE_COARSE <= b::MAX_COARSE);
-    assert!(dray_coordinator::dispatch::TILE_SIZE <= b::MAX_TILE_SIZE);
+    const { assert!(MAX_CACHE_COARSE <= b::MAX_COARSE) };
+    const { assert!(dray_coordinator::dispatch::TILE_SIZE <= b::MAX_TILE_SIZE) };
 }
