@@ -303,7 +303,8 @@ pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Resul
     let mut scene = dray_scene::load(&a.job.scene)
         .with_context(|| format!("cannot load scene {:?}", a.job.scene))?;
     if let Some(t) = translate {
-        scene.translate(t);
+        dray_scene::translate::translate(&mut scene, t)
+            .with_context(|| format!("--translate {}", a.job.translate.as_deref().unwrap_or("")))?;
     }
     for w in &scene.stats.warnings {
         tracing::warn!("{w}");

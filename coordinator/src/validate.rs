@@ -527,7 +527,8 @@ pub fn prepare(
         }
     };
     if let Some(t) = v.translate {
-        scene.translate(t);
+        dray_scene::translate::translate(&mut scene, t)
+            .map_err(|e| bad(format!("translate: {e}")))?;
     }
     let triangles = match &package {
         Some(p) => p.manifest().source_triangles,
@@ -616,6 +617,36 @@ mod tests {
             height: 8,
             spp: 1,
             ..Default::default()
+        }
+    }
+
+    /// Issue 20, item 3: a scene moved beyond the import bound (±1e18) is refused
+    /// like a file with such coordinates; before, it reached the BVH conversion, which
+    /// panicked on the workers.
+    #[test]
+    fn a_translation_beyond_the_coordinate_bound_is_refused() {
+        let root = std::env::temp_dir().canonicalize().unwrap();
+        let l = Limits::default();
+        let never = Arc::new(AtomicBool::new(false));
+        for (x, ok) in [(1e25f32, false), (-1e22, false), (1e17, true)] {
+            let s = JobSpec {
+                translate: Some(dray_proto::v1::Vec3 { x, y: 0.0, z: 0.0 }),
+                ..spec()
+            };
+            let v = validate(&s, &l, &root).unwrap();
+            match prepare(&v, None, &never) {
+                Ok(_) => assert!(ok, "{x} accepted"),
+                Err(e) => {
+                    assert!(!ok, "{x}: {}", e.message());
+                    assert_eq!(e.code(), tonic::Code::InvalidArgument);
+                    assert!(
+                        e.message().starts_with("translate: moves vertex"),
+                        "{}",
+                        e.message()
+                    );
+                    assert!(e.message().contains("1e18"), "{}", e.message());
+                }
+            }
         }
     }
 

@@ -97,6 +97,30 @@ fn coordinates_near_the_float_range_do_not_panic() {
 }
 
 #[test]
+fn scenes_moved_far_beyond_the_import_bound_do_not_panic() {
+    // A box of 40 triangles moved to 1e22 or 1e25 on an axis, or to 3e38: the
+    // coordinates collapse to a few f32 values, the padded boxes' half-areas overflow
+    // f32, and the conversion used to index a decision slot that does not exist
+    // (`dray render cornell --translate 1e25,0,0` panicked this way).
+    for offset in [
+        Vec3::new(1e25, 0.0, 0.0),
+        Vec3::new(0.0, 1e22, 0.0),
+        Vec3::new(0.0, 0.0, 1e22),
+        Vec3::new(3e38, 0.0, 0.0),
+    ] {
+        let tris: Vec<[Vec3; 3]> = (0..40)
+            .map(|i| {
+                let o = Vec3::new((i % 4) as f32, (i / 4) as f32, (i % 3) as f32) * 100.0;
+                [o, o + Vec3::X * 50.0, o + Vec3::Y * 50.0].map(|p| p + offset)
+            })
+            .collect();
+        let accel = Accel::build(&mesh(&tris));
+        assert_eq!(accel.triangle_count(), 40, "{offset}");
+        let _ = accel.closest(&down(offset.x, offset.y, offset.z + 1e3), |_, _| true);
+    }
+}
+
+#[test]
 fn non_finite_corners_are_left_out() {
     let tris = [
         [Vec3::ZERO, Vec3::X, Vec3::Y],

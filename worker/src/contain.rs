@@ -1,20 +1,32 @@
-//! Panic containment for tracing work.
+//! Panic containment for tracing work and domain loads.
 //!
 //! A tracing thread that panics would die silently: its job would wait for credit that
 //! never comes (until the coordinator's stall timeout), and every later job would have
-//! one thread fewer. Instead, a panic while tracing a batch or a tile fails that job,
+//! one thread fewer. A load that panicked also left its domain marked "loading" for
+//! ever, so every other thread skipped the domain as busy and the job hung (issue 20,
+//! item 3: `dray render --translate 1e25,0,0` with worker actors). Instead, a panic
+//! while tracing a batch or a tile, or while loading a domain (reading it, building its
+//! BVH, on this thread or on rayon's pool, which carries the panic back), fails that job
 //! with the panic's message, and the thread goes on to the next piece of work. The
 //! worker's shared state is behind locks that tolerate poisoning, and the work item's
-//! own outputs are dropped with the failed job.
+//! own outputs are dropped with the failed job. Whatever else panics on a tracing
+//! thread is caught by the thread's loop ([`crate::work::tracer_thread`]), which logs it
+//! and goes on.
 
 use std::panic::{AssertUnwindSafe, catch_unwind};
 
 /// Run `f`; a panic inside it becomes `Err` with the panic's message.
 pub(crate) fn contained<T>(f: impl FnOnce() -> T) -> Result<T, String> {
+    contained_while("tracing", f)
+}
+
+/// Run `f`, which does `what` ("tracing", "loading a domain"); a panic inside it
+/// becomes `Err` with the panic's message.
+pub(crate) fn contained_while<T>(what: &str, f: impl FnOnce() -> T) -> Result<T, String> {
     catch_unwind(AssertUnwindSafe(f)).map_err(|payload| {
         // Bounded: the message goes to the coordinator and into GetJob.
         let message = dray_net::contain::panic_message(payload.as_ref());
-        format!("internal error (a panic while tracing, contained): {message}")
+        format!("internal error (a panic while {what}, contained): {message}")
     })
 }
 

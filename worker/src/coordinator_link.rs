@@ -220,6 +220,17 @@ async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
     if shared.jobs.is_released(&job_id, attempt) {
         return;
     }
+    // Before anything is sized by the setup, and before it is planned.
+    let refused = crate::setup_bounds::check_setup(&setup)
+        .map_err(|e| e.to_string())
+        .and_then(|()| shared.jobs.admit(&job_id));
+    if let Err(e) = refused {
+        let me = shared.id();
+        // An id beyond the bound is not kept among the released ones.
+        let keep = job_id.len() <= crate::setup_bounds::MAX_ID_BYTES;
+        report_refusal(shared, &job_id, attempt, format!("worker {me}: {e}"), keep).await;
+        return;
+    }
     let memory = shared.memory_packages.clone();
     let fetcher = shared.fetcher.clone();
     let setup2 = setup.clone();
@@ -262,7 +273,20 @@ async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
 }
 
 async fn report_setup_failure(shared: &Shared, job_id: &str, attempt: u32, message: String) {
-    tracing::error!(job = %job_id, "{message}");
+    report_refusal(shared, job_id, attempt, message, true).await;
+}
+
+/// Tell the coordinator that `job_id` fails here, and drop it; `release` keeps its id
+/// among the released ones (so that its late rays are dropped).
+async fn report_refusal(
+    shared: &Shared,
+    job_id: &str,
+    attempt: u32,
+    message: String,
+    release: bool,
+) {
+    let shown: String = job_id.chars().take(64).collect();
+    tracing::error!(job = %shown, "{message}");
     let mut client = shared.client.clone();
     let _ = client
         .report_contributions(shared.as_member(ReportContributionsRequest {
@@ -274,7 +298,9 @@ async fn report_setup_failure(shared: &Shared, job_id: &str, attempt: u32, messa
             ..Default::default()
         }))
         .await;
-    shared.jobs.release(job_id, attempt);
+    if release {
+        shared.jobs.release(job_id, attempt);
+    }
     shared.forget(job_id, attempt);
 }
 
@@ -284,6 +310,17 @@ fn add_tiles(shared: &Shared, t: TileAssignment) {
         return;
     };
     let mut tiles = lock(&job.tiles);
+    // No more tiles queued than the job has: a coordinator repeating tiles cannot grow
+    // the queue without end.
+    if (tiles.len() + t.tiles.len()) as u64 > job.tracer.tile_count() {
+        drop(tiles);
+        job.fail(format!(
+            "worker {}: more tiles dealt than the job's {} (refused)",
+            shared.id(),
+            job.tracer.tile_count()
+        ));
+        return;
+    }
     for tile in t.tiles {
         if tile.attempt != job.key.attempt {
             tracing::warn!(job = %t.job_id, attempt = tile.attempt, "tile of another attempt ignored");
@@ -313,6 +350,10 @@ fn set_routing(shared: &Shared, table: RoutingTable) {
         return;
     };
     if table.attempt != job.key.attempt {
+        return;
+    }
+    if let Err(e) = crate::setup_bounds::check_routing(&table, job.tracer.domain_count()) {
+        job.fail(format!("worker {}: {e}", shared.id()));
         return;
     }
     let routes = match Routes::new(&table, &shared.id(), job.tracer.domain_count()) {

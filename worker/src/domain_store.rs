@@ -288,7 +288,10 @@ impl DomainStore {
         if !self.load_delay.is_zero() {
             std::thread::sleep(self.load_delay);
         }
-        let loaded = source.load(d);
+        // A panic in the load (the BVH build, a reader) fails this load like an error:
+        // the slot is freed below, so no thread waits for a load that ended.
+        let loaded =
+            crate::contain::contained_while("loading a domain", || source.load(d)).and_then(|r| r);
         let seconds = start.elapsed().as_secs_f64();
         let mut g = self.lock();
         g.bytes -= reserve;
@@ -536,6 +539,52 @@ mod tests {
             id: "j".into(),
             attempt: a,
         }
+    }
+
+    /// A source whose load panics the first `panics` times, as the BVH conversion did
+    /// on a scene moved to 1e25 (issue 20, item 3).
+    struct Panicking {
+        panics: AtomicU64,
+        then: Fake,
+    }
+
+    impl DomainSource for Panicking {
+        fn estimate_bytes(&self, d: u32) -> u64 {
+            self.then.estimate_bytes(d)
+        }
+        fn load(&self, d: u32) -> Result<LoadedDomain, String> {
+            if self.panics.load(Ordering::Relaxed) > 0 {
+                self.panics.fetch_sub(1, Ordering::Relaxed);
+                panic!("index out of bounds: the len is 441 but the index is 444");
+            }
+            self.then.load(d)
+        }
+    }
+
+    #[test]
+    fn a_load_that_panics_fails_with_the_message_and_frees_its_slot() {
+        let src = Panicking {
+            panics: AtomicU64::new(1),
+            then: Fake {
+                bytes: 100,
+                loads: AtomicU64::new(0),
+            },
+        };
+        let store = DomainStore::new(450, Duration::ZERO);
+        let j = job(0);
+        let e = store.load(&j, 2, &src).err().unwrap();
+        assert!(matches!(e, LoadError::Failed { domain: 2, .. }), "{e}");
+        let text = e.to_string();
+        assert!(
+            text.contains("the len is 441 but the index is 444"),
+            "{text}"
+        );
+        assert!(text.contains("panic while loading a domain"), "{text}");
+        // The slot and its reservation are gone: the next load is not "busy" (before,
+        // every thread skipped the domain for ever and the job hung).
+        assert_eq!(store.used_bytes(), 0);
+        assert!(store.load(&j, 2, &src).is_ok());
+        assert_eq!(store.used_bytes(), 100);
     }
 
     #[test]

@@ -235,6 +235,35 @@ impl Jobs {
         }
     }
 
+    /// Whether a setup for job `id` may be taken: a new attempt of a job held here
+    /// replaces it, and a new job is refused once [`MAX_JOBS`] are held (issue 20, item
+    /// 9: a coordinator made a worker hold 20,000 setups, 202 MB). The assignment loop
+    /// takes setups one at a time (each is planned before the next is read), so the
+    /// jobs held are the running ones plus at most the one being planned.
+    ///
+    /// [`MAX_JOBS`]: crate::setup_bounds::MAX_JOBS
+    pub fn admit(&self, id: &str) -> Result<(), String> {
+        let jobs = lock(&self.jobs);
+        let max = crate::setup_bounds::MAX_JOBS;
+        if jobs.len() >= max && !jobs.contains_key(id) {
+            return Err(format!(
+                "job setup refused: this worker already holds {} jobs, its bound ({max} at once)",
+                jobs.len()
+            ));
+        }
+        Ok(())
+    }
+
+    /// Jobs held here.
+    pub fn len(&self) -> usize {
+        lock(&self.jobs).len()
+    }
+
+    /// Whether no job is held here.
+    pub fn is_empty(&self) -> bool {
+        lock(&self.jobs).is_empty()
+    }
+
     /// Whether attempt `attempt` of `id` was released here (or superseded).
     pub fn is_released(&self, id: &str, attempt: u32) -> bool {
         matches!(self.standing(id, attempt), Standing::Gone)

@@ -35,6 +35,7 @@ pub mod pixel_sums;
 pub mod queue;
 pub(crate) mod reporter;
 pub mod routing;
+pub mod setup_bounds;
 pub mod tickets;
 pub mod tracer;
 pub(crate) mod work;

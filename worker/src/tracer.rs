@@ -616,6 +616,16 @@ impl JobTracer {
         )
     }
 
+    /// Tiles the job has: the image's, then the coarse pass's (none without one).
+    pub fn tile_count(&self) -> u64 {
+        let coarse = if self.coarse == 0 {
+            0
+        } else {
+            u64::from(self.coarse.div_ceil(self.tile_size)).pow(2)
+        };
+        u64::from(self.image_tiles) + coarse
+    }
+
     /// The tile holding `pixel` (of the coarse image for a coarse-pass ray).
     pub fn tile_of(&self, pixel: u32, coarse: bool) -> u32 {
         if coarse {

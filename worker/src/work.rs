@@ -79,18 +79,32 @@ impl Residency for StepResidency<'_> {
 
 /// One tracing thread: take work, trace it, hand the results on; sleep when there is
 /// none, until new rays or tiles arrive (the timeout is only a safety net).
+///
+/// Tracing and loads contain their own panics and fail their job with them (see
+/// [`crate::contain`]). A panic anywhere else in a step (choosing work, delivering
+/// results) is caught here too: logged, and the thread goes on after a short pause, so
+/// the worker never loses a tracing thread to one.
 pub(crate) fn tracer_thread(shared: &Arc<Shared>) {
     while !shared.stopping.load(Ordering::Relaxed) {
         let seen = shared.wake.seen();
-        match next_work(shared) {
-            Some(work) => trace(shared, work),
-            None => {
-                let start = Instant::now();
-                shared.wake.wait(seen, Duration::from_millis(50));
-                let idle = start.elapsed().as_secs_f64();
-                for job in shared.jobs.all() {
-                    lock(&job.report).idle_seconds += idle;
-                }
+        if let Err(e) = crate::contain::contained_while("choosing work", || step(shared, seen)) {
+            tracing::error!(worker = %shared.id(), "{e}");
+            // Not a hot loop if it panics again at once.
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+/// One turn of a tracing thread: a piece of work, or a wait for some.
+fn step(shared: &Arc<Shared>, seen: u64) {
+    match next_work(shared) {
+        Some(work) => trace(shared, work),
+        None => {
+            let start = Instant::now();
+            shared.wake.wait(seen, Duration::from_millis(50));
+            let idle = start.elapsed().as_secs_f64();
+            for job in shared.jobs.all() {
+                lock(&job.report).idle_seconds += idle;
             }
         }
     }

@@ -211,6 +211,13 @@ impl Converter<'_> {
                         right = 6 - k as u8;
                     }
                 }
+                if left == INVALID {
+                    // Every split costs infinity or NaN: boxes whose half-areas overflow
+                    // f32 (coordinates far beyond the import bound, moved there). obvhs
+                    // leaves the slots unset and the conversion then indexes slot 255;
+                    // any split gives a valid tree, so take the first.
+                    (left, right) = (0, 6);
+                }
                 let cost_internal = cost_distribute + half_area;
                 let (kind, cost) = if cost_leaf < cost_internal {
                     (Kind::Leaf, cost_leaf)
@@ -516,6 +523,30 @@ mod tests {
                 }
                 assert_eq!(got.primitive_indices, want.primitive_indices);
                 assert!(got == want, "{n} {kind} {leaf}");
+            }
+        }
+    }
+
+    /// Boxes whose half-areas overflow f32 (sides of 1e22 and more, as a scene moved to
+    /// 1e25 gives in accelerator space) make every split cost infinity; the conversion
+    /// indexed decision slot 255 then ("index out of bounds: the len is 441 but the
+    /// index is 444"). Now it gives a tree holding every primitive once.
+    #[test]
+    fn boxes_with_infinite_half_areas_convert() {
+        for side in [1e22f32, 1e25, 3e38] {
+            let aabbs: Vec<Aabb> = (0..64u32)
+                .map(|i| {
+                    let c = Vec3A::new(1e25, i as f32 * 1e20, (i % 5) as f32 * 1e20);
+                    Aabb::new(c - Vec3A::splat(side), c + Vec3A::splat(side))
+                })
+                .collect();
+            assert!(!aabbs[0].half_area().is_finite(), "{side}");
+            let bvh2 = build::build(&aabbs);
+            for leaf in 1..=3 {
+                let got = to_cwbvh(&bvh2, leaf);
+                let mut prims = got.primitive_indices.clone();
+                prims.sort_unstable();
+                assert_eq!(prims, (0..64).collect::<Vec<u32>>(), "{side} {leaf}");
             }
         }
     }
