@@ -69,9 +69,9 @@ pub struct CoordinatorArgs {
     pub api_token: ApiTokenArgs,
     #[command(flatten)]
     pub member: MemberArgs,
-    /// Jobs queued, preparing or running at once; SubmitJob refuses more with
-    /// RESOURCE_EXHAUSTED.
-    #[arg(long, value_name = "N", default_value_t = 64)]
+    /// Jobs queued, preparing or running at once (1..=128: a worker holds at most twice
+    /// that); SubmitJob refuses more with RESOURCE_EXHAUSTED.
+    #[arg(long, value_name = "N", default_value_t = 64, value_parser = parse_max_jobs)]
     pub max_jobs: usize,
     /// Largest memory a job may need at the coordinator (image and scene, estimated
     /// before it is accepted; suffixes K, M, G, T). [default: half the machine's memory]
@@ -275,4 +275,14 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
     // dropping the runtime would wait for: a stop signal must not wait minutes for it.
     rt.shutdown_timeout(BLOCKING_GRACE);
     result
+}
+
+/// `--max-jobs`: 1..=[`MAX_COORDINATOR_JOBS`](dray_worker::setup_bounds::MAX_COORDINATOR_JOBS),
+/// so a worker never refuses a job the coordinator admitted.
+fn parse_max_jobs(s: &str) -> Result<usize, String> {
+    let max = dray_worker::setup_bounds::MAX_COORDINATOR_JOBS;
+    match s.parse::<usize>() {
+        Ok(n) if (1..=max).contains(&n) => Ok(n),
+        _ => Err(format!("expected a whole number in 1..={max}")),
+    }
 }

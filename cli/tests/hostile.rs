@@ -428,7 +428,19 @@ fn worker_bounds_cover_the_coordinators_limits() {
     assert!(l.max_depth <= b::MAX_DEPTH);
     assert!(l.max_ao_samples <= b::MAX_AO_SAMPLES);
     assert!(l.max_domains <= b::MAX_DOMAINS);
-    assert!(l.max_jobs <= b::MAX_JOBS);
+    assert!(l.max_jobs <= b::MAX_COORDINATOR_JOBS && b::MAX_COORDINATOR_JOBS < b::MAX_JOBS);
+    // And a coordinator cannot be told to admit more jobs than a worker holds.
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_dray"))
+        .args(["coordinator", "--listen", "127.0.0.1:0", "--max-jobs"])
+        .arg((b::MAX_COORDINATOR_JOBS + 1).to_string())
+        .output()
+        .expect("run dray coordinator");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(
+        err.contains("--max-jobs") && err.contains("1..=128"),
+        "{err}"
+    );
     const { assert!(MAX_CACHE_COARSE <= b::MAX_COARSE) };
     const { assert!(dray_coordinator::dispatch::TILE_SIZE <= b::MAX_TILE_SIZE) };
 }

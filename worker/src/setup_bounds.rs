@@ -43,9 +43,13 @@ pub const MAX_PATH_BYTES: usize = 4096;
 /// Most effect names and trace-context entries.
 pub const MAX_NAMES: usize = 64;
 /// Jobs (setups being planned and jobs running) a worker holds at once; more are
-/// refused. The coordinator's default `--max-jobs` is 64 too, so a coordinator at its
-/// defaults never meets it.
-pub const MAX_JOBS: usize = 64;
+/// refused. A coordinator's `--max-jobs` is at most half of it ([`MAX_COORDINATOR_JOBS`]),
+/// leaving room for jobs that ended at the coordinator while the worker has not yet
+/// released them. About 10 KB a setup: 2.5 MB at the bound.
+pub const MAX_JOBS: usize = 256;
+
+/// The largest `--max-jobs` a coordinator accepts (see [`MAX_JOBS`]).
+pub const MAX_COORDINATOR_JOBS: usize = MAX_JOBS / 2;
 
 /// A field beyond its bound.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
