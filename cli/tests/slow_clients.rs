@@ -90,8 +90,10 @@ fn headers_only_api_calls_do_not_starve_heartbeats_registration_or_health() {
         .args([
             "--heartbeat-interval-ms",
             "100",
+            // Long enough that a loaded machine's late beats lose no worker, short
+            // enough to be outlived below while the API places are held (20 s).
             "--heartbeat-timeout-ms",
-            "2000",
+            "5000",
         ])
         .env("DRAY_LOG", "warn,dray_coordinator=info")
         .env("NO_COLOR", "1")
@@ -142,7 +144,7 @@ fn headers_only_api_calls_do_not_starve_heartbeats_registration_or_health() {
     // ...and the first worker's heartbeats keep it a member past its heartbeat timeout
     // (the scenario needs the API held that long; the places are held for the body
     // timeout, 20 s by default).
-    std::thread::sleep(Duration::from_secs(4));
+    std::thread::sleep(Duration::from_secs(7));
     assert_eq!(
         text(&log).matches("worker lost").count(),
         0,
