@@ -158,7 +158,10 @@ pub(crate) fn spawn(spec: WallSpec, span: tracing::Span) -> (WallHandle, JoinHan
     };
     let (lo, hi) = spec.domain;
     let actor = WallActor {
-        store: WallStore::new(spec.max_entries),
+        store: WallStore::for_radius(
+            spec.max_entries,
+            spec.settings.as_ref().map_or(0.0, |s| s.radius),
+        ),
         tickets: TicketBook::new(spec.wall, spec.max_open_tickets),
         map: spec
             .phm

@@ -1,32 +1,47 @@
 //! One wall's radiance store: crossing points on the wall (2-D), each with the direction
 //! and the radiance that came back through its ticket, queried by radius and angle.
 //!
-//! A k-d tree (kiddo 5) finds the crossing points near a query. Two of kiddo's limits
-//! shape this module:
-//! - Its fixed-size leaf buckets cannot split more items than a bucket holds at the
-//!   *exact same point*, and it panics instead. Rays from one camera through one pixel
-//!   all cross a wall at nearby, often identical, points, so the tree holds each
-//!   distinct point once, and the point indexes a list of the entries stored there.
-//! - Its comparisons need ordered floats: NaN must never reach it, and `-0.0`/`+0.0`
-//!   (equal to kiddo, different bits to a hash map) are folded into `+0.0`.
+//! Every query of a job has the same radius, so the store is a uniform grid of square
+//! cells as wide as that radius (a fixed-radius near-neighbour search, which is what a
+//! grid does best): a query reads the 2 x 2 to 3 x 3 cells its circle touches, and an
+//! insert appends to one cell. A cell keeps what a query reads of its entries together
+//! ([`Hot`], 48 bytes: point, direction, radiance, the key's leading fields), so a query scans
+//! memory in order instead of chasing an index per candidate; the rest of an entry is
+//! read only for the entries that are in range and must be ordered. Nothing is allocated
+//! per query: `first` and `nearest` keep their best candidate, and `average` sorts into a
+//! buffer the store keeps between queries. (Before this grid, a k-d tree with one-by-one
+//! inserts and a `Vec` per query cost several times more per lookup and per insert:
+//! docs/benchmarks.md, "Lean tickets".)
 //!
 //! Answers must not depend on the order entries arrived in (tickets close in whatever
 //! order the cluster's timing gives), so every choice between entries uses a total
-//! order over what the entries *are* ([`EntryKey`], then their bits), and kiddo's
-//! floating-point distance only finds candidates: whether a point is in range is
-//! decided again here, exactly, in f64.
+//! order over what the entries *are* ([`EntryKey`], then their bits). The grid only finds
+//! candidates (a superset, with slack for rounding); whether a point is in range is
+//! decided exactly, in f64. Points are compared by value after folding `-0.0` into
+//! `+0.0`, and non-finite points never enter.
 
+use std::cell::Cell;
+use std::cmp::Ordering;
 use std::collections::HashMap;
 
 use dray_core::ray::RayRecord;
 use glam::Vec3;
-use kiddo::{KdTree, SquaredEuclidean};
 
 use crate::settings::Retrieve;
 
 /// Entries a wall holds by default; more are dropped and counted, so a flood of tickets
-/// cannot exhaust the host's memory (about 80 bytes an entry).
+/// cannot exhaust the host's memory (about 130 bytes an entry).
 pub const DEFAULT_MAX_ENTRIES: usize = 1 << 22;
+
+/// The cell edge of a store made without a radius ([`WallStore::new`]), scene units.
+/// Any edge gives the same answers; one near the query radius gives them fastest.
+pub const DEFAULT_CELL: f32 = 1.0 / 64.0;
+
+/// Relative slack on the radius when choosing the cells a query reads: the exact test
+/// in f64 can accept a point a few ulps beyond the radius, which must still be read.
+const CELL_SLACK: f64 = 1e-6;
+
+type FastState = foldhash::fast::FixedState;
 
 /// A deterministic identity of the ray that made an entry: the ray's pixel, sample,
 /// depth and kind, then the bit patterns of its origin and direction. Two runs of the
@@ -83,7 +98,21 @@ impl Entry {
     }
 }
 
-/// What a lookup asks for.
+/// What a query reads of an entry, stored in the entry's cell: all it needs unless two
+/// candidates share a pixel and sample (then their keys are compared in full).
+#[derive(Clone, Copy, Debug)]
+struct Hot {
+    point: [f32; 2],
+    dir: [f32; 3],
+    /// The leading fields of the entry's key, `(pixel << 32) | sample`: the order of two
+    /// entries is the order of these unless they are equal.
+    lead: u64,
+    radiance: [f32; 3],
+    /// Index into `WallStore::entries`.
+    index: u32,
+}
+
+/// What a query asks for.
 #[derive(Clone, Copy, Debug)]
 pub struct Query {
     /// Crossing point in wall coordinates.
@@ -108,14 +137,19 @@ pub enum InsertError {
 
 /// One wall's store.
 pub struct WallStore {
-    /// One item per distinct point; the item is the index into `points`.
-    tree: KdTree<f32, 2>,
-    /// Distinct points and the indices (into `entries`) stored at each.
-    points: Vec<([f32; 2], Vec<u32>)>,
-    /// Point bits → index into `points`.
-    point_index: HashMap<[u32; 2], u32>,
+    /// Cell edge, scene units (positive and finite).
+    cell: f64,
+    /// Occupied cells: [`cell_key`] → index into `lists`. Small (12 bytes a cell), so a
+    /// wall's index stays in a core's cache while the lists are read.
+    cells: HashMap<u64, u32, FastState>,
+    /// Each occupied cell's entries, their [`Hot`] parts in the order they arrived (which
+    /// no answer depends on).
+    lists: Vec<Vec<Hot>>,
     entries: Vec<Entry>,
     max_entries: usize,
+    /// `average`'s candidates, kept between queries so a query allocates nothing once
+    /// the buffer has grown to the largest neighbourhood seen.
+    scratch: Cell<Vec<Hot>>,
     /// Entries refused because the store was full.
     pub dropped: u64,
 }
@@ -133,15 +167,42 @@ fn canonical(p: [f32; 2]) -> Option<[f32; 2]> {
     p.iter().all(|x| x.is_finite()).then_some(p)
 }
 
+/// The hash key of cell (column, row).
+fn cell_key((x, y): (i32, i32)) -> u64 {
+    u64::from(x as u32) << 32 | u64::from(y as u32)
+}
+
+/// Where a query stands while it scans candidates.
+enum Pick {
+    /// `first` and `nearest`: the best so far, with its squared distance.
+    Best(Option<(f64, Hot)>),
+    /// `average`: every candidate in range.
+    All(Vec<Hot>),
+}
+
 impl WallStore {
-    /// An empty store holding at most `max_entries` entries (capped at `u32::MAX`).
+    /// An empty store holding at most `max_entries` entries (capped at `u32::MAX`),
+    /// with cells of [`DEFAULT_CELL`].
     pub fn new(max_entries: usize) -> WallStore {
+        WallStore::for_radius(max_entries, DEFAULT_CELL)
+    }
+
+    /// An empty store whose queries will mostly have this radius: its cells are that
+    /// wide. A radius that is not a positive finite number (a job whose caches only
+    /// fill) gets cells of [`DEFAULT_CELL`]. Answers never depend on the cell size.
+    pub fn for_radius(max_entries: usize, radius: f32) -> WallStore {
+        let cell = if radius.is_finite() && radius > 0.0 {
+            radius
+        } else {
+            DEFAULT_CELL
+        };
         WallStore {
-            tree: KdTree::new(),
-            points: Vec::new(),
-            point_index: HashMap::new(),
+            cell: f64::from(cell),
+            cells: HashMap::default(),
+            lists: Vec::new(),
             entries: Vec::new(),
             max_entries: max_entries.min(u32::MAX as usize),
+            scratch: Cell::new(Vec::new()),
             dropped: 0,
         }
     }
@@ -155,8 +216,14 @@ impl WallStore {
         self.entries.is_empty()
     }
 
+    /// The column (or row) of coordinate `x`: monotonic in `x`, saturating at the ends
+    /// of `i32` (cells there are merely larger: answers stay exact).
+    fn coord(&self, x: f64) -> i32 {
+        (x / self.cell).floor() as i32
+    }
+
     /// Store `entry`. A full store drops it (and counts it); a non-finite point or
-    /// direction is refused, since it could never be found and would break the tree.
+    /// direction is refused, since it could never be found.
     pub fn insert(&mut self, mut entry: Entry) -> Result<(), InsertError> {
         let point = canonical(entry.point).ok_or(InsertError::NotFinite)?;
         if !entry.dir.is_finite() {
@@ -170,22 +237,43 @@ impl WallStore {
         // Cannot truncate: `max_entries` is at most u32::MAX.
         let index = self.entries.len() as u32;
         self.entries.push(entry);
-        let bits = point.map(f32::to_bits);
-        match self.point_index.get(&bits) {
-            Some(&p) => {
-                if let Some((_, list)) = self.points.get_mut(p as usize) {
-                    list.push(index);
-                }
-            }
-            None => {
-                // At most one point per entry, so this fits a u32 too.
-                let p = self.points.len() as u32;
-                self.points.push((point, vec![index]));
-                self.point_index.insert(bits, p);
-                self.tree.add(&point, u64::from(p));
-            }
-        }
+        let at = (
+            self.coord(f64::from(point[0])),
+            self.coord(f64::from(point[1])),
+        );
+        let lists = &mut self.lists;
+        let list = *self.cells.entry(cell_key(at)).or_insert_with(|| {
+            lists.push(Vec::new());
+            // At most one list per entry, so this fits a u32 too.
+            (lists.len() - 1) as u32
+        });
+        let Some(list) = self.lists.get_mut(list as usize) else {
+            // Cannot happen: every index in `cells` was pushed above.
+            return Ok(());
+        };
+        list.push(Hot {
+            point,
+            dir: entry.dir.to_array(),
+            lead: u64::from(entry.key.pixel) << 32 | u64::from(entry.key.sample),
+            radiance: entry.radiance,
+            index,
+        });
         Ok(())
+    }
+
+    /// The total order of two stored entries (see [`EntryOrder`]), from their hot parts
+    /// when those differ.
+    fn cmp_entries(&self, a: &Hot, b: &Hot) -> Ordering {
+        a.lead.cmp(&b.lead).then_with(|| {
+            match (
+                self.entries.get(a.index as usize),
+                self.entries.get(b.index as usize),
+            ) {
+                (Some(x), Some(y)) => x.order().cmp(&y.order()),
+                // Cannot happen (every hot part indexes its entry); any order will do.
+                _ => a.index.cmp(&b.index),
+            }
+        })
     }
 
     /// The radiance answering `q`, or `None` for a miss.
@@ -196,68 +284,105 @@ impl WallStore {
         let point = canonical(q.point)?;
         let r = f64::from(q.radius);
         let r2 = r * r;
-        // kiddo measures in f32: ask it for a slightly larger radius so rounding can only
-        // add candidates, then decide exactly below. (A huge radius becomes +inf, which
-        // kiddo handles as "everything".)
-        let slack = r * (1.0 + 1e-4);
-        let query_r2 = (slack * slack) as f32;
         let dir = q.dir.as_dvec3();
+        let (px, py) = (f64::from(point[0]), f64::from(point[1]));
 
-        let mut best: Option<(f64, &Entry)> = None;
-        let mut in_range: Vec<&Entry> = Vec::new();
-        for nn in self
-            .tree
-            .within_unsorted::<SquaredEuclidean>(&point, query_r2)
-        {
-            let Some((p, list)) = self.points.get(nn.item as usize) else {
-                continue;
-            };
-            let du = f64::from(p[0]) - f64::from(point[0]);
-            let dv = f64::from(p[1]) - f64::from(point[1]);
-            let d2 = du * du + dv * dv;
-            if d2 > r2 {
-                continue;
+        let mut pick = match q.retrieve {
+            Retrieve::Average => {
+                let mut v = self.scratch.take();
+                v.clear();
+                Pick::All(v)
             }
-            for e in list.iter().filter_map(|&i| self.entries.get(i as usize)) {
-                if dir.dot(e.dir.as_dvec3()) < q.cos_min {
+            Retrieve::First | Retrieve::Nearest => Pick::Best(None),
+        };
+        let mut scan = |cell: &[Hot]| {
+            for h in cell {
+                let du = f64::from(h.point[0]) - px;
+                let dv = f64::from(h.point[1]) - py;
+                let d2 = du * du + dv * dv;
+                if d2 > r2 {
                     continue;
                 }
-                match q.retrieve {
-                    Retrieve::Average => in_range.push(e),
-                    Retrieve::First => {
-                        if best.is_none_or(|(_, b)| e.order() < b.order()) {
-                            best = Some((d2, e));
-                        }
-                    }
-                    Retrieve::Nearest => {
-                        let closer = best.is_none_or(|(bd, b)| {
-                            d2.total_cmp(&bd).then_with(|| e.order().cmp(&b.order()))
-                                == std::cmp::Ordering::Less
-                        });
-                        if closer {
-                            best = Some((d2, e));
+                let d = glam::DVec3::new(
+                    f64::from(h.dir[0]),
+                    f64::from(h.dir[1]),
+                    f64::from(h.dir[2]),
+                );
+                if dir.dot(d) < q.cos_min {
+                    continue;
+                }
+                match &mut pick {
+                    Pick::All(v) => v.push(*h),
+                    Pick::Best(best) => {
+                        let better = match best {
+                            None => true,
+                            Some((bd, b)) => {
+                                let by_distance = match q.retrieve {
+                                    Retrieve::Nearest => d2.total_cmp(bd),
+                                    _ => Ordering::Equal,
+                                };
+                                by_distance.then_with(|| self.cmp_entries(h, b)) == Ordering::Less
+                            }
+                        };
+                        if better {
+                            *best = Some((d2, *h));
                         }
                     }
                 }
             }
-        }
-        match q.retrieve {
-            Retrieve::First | Retrieve::Nearest => best.map(|(_, e)| e.radiance),
-            Retrieve::Average => {
-                if in_range.is_empty() {
-                    return None;
-                }
-                in_range.sort_unstable_by_key(|e| e.order());
-                let mut sum = [0f64; 3];
-                for e in &in_range {
-                    for (s, c) in sum.iter_mut().zip(e.radiance) {
-                        *s += f64::from(c);
+        };
+
+        // The cells the circle's bounding square touches, with slack for rounding; when
+        // there are more of them than occupied cells (a radius far larger than the
+        // cells), every occupied cell instead.
+        let reach = r * (1.0 + CELL_SLACK);
+        let (x0, x1) = (self.coord(px - reach), self.coord(px + reach));
+        let (y0, y1) = (self.coord(py - reach), self.coord(py + reach));
+        let span = |lo: i32, hi: i32| (i64::from(hi) - i64::from(lo) + 1) as u64;
+        let reads = span(x0, x1).saturating_mul(span(y0, y1));
+        if reads > self.lists.len() as u64 {
+            for list in &self.lists {
+                scan(list);
+            }
+        } else {
+            for x in x0..=x1 {
+                for y in y0..=y1 {
+                    if let Some(list) = self
+                        .cells
+                        .get(&cell_key((x, y)))
+                        .and_then(|&i| self.lists.get(i as usize))
+                    {
+                        scan(list);
                     }
                 }
-                let n = in_range.len() as f64;
-                Some(sum.map(|s| (s / n) as f32))
             }
         }
+
+        match pick {
+            Pick::Best(best) => best.map(|(_, h)| h.radiance),
+            Pick::All(mut v) => {
+                let answer = self.average(&mut v);
+                self.scratch.set(v);
+                answer
+            }
+        }
+    }
+
+    /// The mean radiance of `in_range`, summed in the entries' order (so the same set
+    /// gives the same bits whatever order it was found in).
+    fn average(&self, in_range: &mut [Hot]) -> Option<[f32; 3]> {
+        if in_range.is_empty() {
+            return None;
+        }
+        in_range.sort_unstable_by(|a, b| self.cmp_entries(a, b));
+        let mut sum = [0f64; 3];
+        for h in in_range.iter() {
+            for (s, c) in sum.iter_mut().zip(h.radiance) {
+                *s += f64::from(c);
+            }
+        }
+        let n = in_range.len() as f64;
+        Some(sum.map(|s| (s / n) as f32))
     }
 }
 
@@ -358,6 +483,69 @@ mod tests {
         assert!(hits > 1000, "the test should mostly hit: {hits}");
     }
 
+    /// The answer by definition: every entry read, in range decided in f64, choices by
+    /// the entries' total order.
+    fn reference(es: &[Entry], q: &Query) -> Option<[f32; 3]> {
+        let p = canonical(q.point)?;
+        let r2 = f64::from(q.radius) * f64::from(q.radius);
+        let mut c: Vec<(f64, &Entry)> = es
+            .iter()
+            .filter_map(|e| {
+                let e_p = canonical(e.point)?;
+                let du = f64::from(e_p[0]) - f64::from(p[0]);
+                let dv = f64::from(e_p[1]) - f64::from(p[1]);
+                let d2 = du * du + dv * dv;
+                let cos = q.dir.as_dvec3().dot(e.dir.as_dvec3());
+                (q.radius > 0.0 && d2 <= r2 && cos >= q.cos_min).then_some((d2, e))
+            })
+            .collect();
+        c.sort_by(|a, b| match q.retrieve {
+            Retrieve::Nearest => a.0.total_cmp(&b.0).then(a.1.order().cmp(&b.1.order())),
+            _ => a.1.order().cmp(&b.1.order()),
+        });
+        match q.retrieve {
+            Retrieve::First | Retrieve::Nearest => c.first().map(|(_, e)| e.radiance),
+            Retrieve::Average => (!c.is_empty()).then(|| {
+                let mut sum = [0f64; 3];
+                for (_, e) in &c {
+                    for (s, v) in sum.iter_mut().zip(e.radiance) {
+                        *s += f64::from(v);
+                    }
+                }
+                sum.map(|s| (s / c.len() as f64) as f32)
+            }),
+        }
+    }
+
+    #[test]
+    fn any_cell_size_gives_the_answers_of_a_full_scan() {
+        let es = entries();
+        let mut rng = Rng(41);
+        // Cells far smaller than, near, and far larger than the radii; and a radius that
+        // covers the whole wall (every occupied cell read).
+        for cell in [1e-12, 1e-4, 0.003, 0.02, 0.5, 1e6] {
+            let mut s = WallStore::for_radius(DEFAULT_MAX_ENTRIES, cell);
+            for e in &es {
+                s.insert(*e).unwrap();
+            }
+            for i in 0..300 {
+                let point = if i % 7 == 0 {
+                    [0.5, 0.5]
+                } else {
+                    [rng.unit() * 1.2 - 0.1, rng.unit() * 1.2 - 0.1]
+                };
+                for retrieve in [Retrieve::First, Retrieve::Nearest, Retrieve::Average] {
+                    for radius in [0.001, 0.02, 0.2, 3.0, f32::MAX] {
+                        let q = query(point, radius, retrieve);
+                        let want = reference(&es, &q).map(|r| r.map(f32::to_bits));
+                        let got = s.lookup(&q).map(|r| r.map(f32::to_bits));
+                        assert_eq!(got, want, "cell {cell} {point:?} {retrieve:?} {radius}");
+                    }
+                }
+            }
+        }
+    }
+
     #[test]
     fn retrieval_modes_pick_as_documented() {
         let mut s = WallStore::default();
@@ -432,7 +620,7 @@ mod tests {
             s.insert(entry(i, [0.0, -0.0], Vec3::X, 1.0)).unwrap();
         }
         assert_eq!(s.len(), 30_000);
-        assert_eq!(s.points.len(), 2);
+        assert_eq!(s.lists.len(), 2);
         let q = query([0.25, 0.75], 1e-6, Retrieve::Average);
         assert_eq!(s.lookup(&q), Some([1.0, 0.5, 0.25]));
         let q = query([-0.0, -0.0], 1e-6, Retrieve::First);

@@ -9,12 +9,16 @@
 //! than the ray had, a ticket that is not open) are counted and dropped; they mean a
 //! bug or a duplicate somewhere else, and must not take the host down.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 
 use dray_core::film::FIXED_SCALE;
 use glam::Vec3;
 
 use crate::store::{Entry, EntryKey};
+
+/// The map of old open tickets hashes a slot with foldhash: slots are issued by the book
+/// itself (no one can choose them to collide), and SipHash costs more than a return.
+type FastState = foldhash::fast::FixedState;
 
 /// Tickets a wall keeps open by default; past it, misses get no ticket (and the worker
 /// traces them without caching), which bounds the memory a flood of lookups can take.
@@ -82,12 +86,28 @@ pub enum OpenError {
     NoCredit,
 }
 
+/// Slots a book keeps in its window (about 11 MiB of tickets) before it moves the
+/// oldest tickets still open out to its map.
+const WINDOW: usize = 1 << 16;
+
 /// The open tickets of one wall.
+///
+/// Slots are issued in order, and tickets mostly close in about that order (a worker
+/// returns a tile's tickets together, sorted), so tickets live in a window indexed by
+/// `slot - base`: a return finds its ticket without hashing, and a run of returns reads
+/// neighbouring memory. Tickets that stay open while [`WINDOW`] newer ones open (a ray
+/// whose descendants take long) move to a map, so one straggler cannot make the window
+/// grow without bound.
 pub struct TicketBook {
     wall: u32,
     /// The next slot to issue; slot 0 is never issued, so a zero ticket is never valid.
     next_slot: u32,
-    open: HashMap<u32, Ticket>,
+    /// The tickets of slots `base..base + recent.len()`; `None` once closed (or moved).
+    recent: VecDeque<Option<Ticket>>,
+    base: u32,
+    /// Open tickets of slots below `base`.
+    old: HashMap<u32, Ticket, FastState>,
+    open: usize,
     max_open: usize,
 }
 
@@ -96,14 +116,17 @@ impl TicketBook {
         TicketBook {
             wall,
             next_slot: 1,
-            open: HashMap::new(),
+            recent: VecDeque::new(),
+            base: 1,
+            old: HashMap::default(),
+            open: 0,
             max_open,
         }
     }
 
     /// Tickets open now.
     pub fn open_count(&self) -> usize {
-        self.open.len()
+        self.open
     }
 
     /// Open a ticket for `ray`; returns its id, `wall << 32 | slot`.
@@ -111,7 +134,7 @@ impl TicketBook {
         if ray.credit == 0 {
             return Err(OpenError::NoCredit);
         }
-        if self.open.len() >= self.max_open {
+        if self.open >= self.max_open {
             return Err(OpenError::TooMany);
         }
         let slot = self.next_slot;
@@ -120,22 +143,70 @@ impl TicketBook {
         }
         // Wraps to 0 after u32::MAX, which then refuses further tickets.
         self.next_slot = slot.wrapping_add(1);
-        self.open.insert(
-            slot,
-            Ticket {
-                ray,
-                returned: 0,
-                sums: [0; 3],
-                tainted: false,
-            },
-        );
+        if u64::from(self.base) + self.recent.len() as u64 != u64::from(slot) {
+            // Not the window's next slot (only when `next_slot` was set by hand): start a
+            // new window there.
+            self.retire(self.recent.len());
+            self.base = slot;
+        }
+        if self.recent.len() >= WINDOW {
+            self.retire(self.recent.len() + 1 - WINDOW);
+        }
+        self.recent.push_back(Some(Ticket {
+            ray,
+            returned: 0,
+            sums: [0; 3],
+            tainted: false,
+        }));
+        self.open += 1;
         Ok(u64::from(self.wall) << 32 | u64::from(slot))
+    }
+
+    /// Move the window's first `n` slots out of it: their open tickets to the map.
+    fn retire(&mut self, n: usize) {
+        for _ in 0..n {
+            let Some(front) = self.recent.pop_front() else {
+                return;
+            };
+            if let Some(t) = front {
+                self.old.insert(self.base, t);
+            }
+            self.base = self.base.wrapping_add(1);
+        }
+    }
+
+    /// The open ticket in `slot`, if any.
+    fn ticket(&mut self, slot: u32) -> Option<&mut Ticket> {
+        match slot.checked_sub(self.base) {
+            Some(i) => self.recent.get_mut(i as usize)?.as_mut(),
+            None => self.old.get_mut(&slot),
+        }
+    }
+
+    /// Close the ticket in `slot` (open, as [`TicketBook::ticket`] found it).
+    fn close(&mut self, slot: u32) {
+        self.open = self.open.saturating_sub(1);
+        match slot.checked_sub(self.base) {
+            Some(i) => {
+                if let Some(t) = self.recent.get_mut(i as usize) {
+                    *t = None;
+                }
+                // Closed slots at the front leave the window.
+                while matches!(self.recent.front(), Some(None)) {
+                    self.recent.pop_front();
+                    self.base = self.base.wrapping_add(1);
+                }
+            }
+            None => {
+                self.old.remove(&slot);
+            }
+        }
     }
 
     /// Apply one return to the ticket in `slot`. `fill` says whether a clean close of a
     /// main-pass ticket stores its radiance (coarse-pass tickets always do).
     pub fn apply(&mut self, slot: u32, ret: Return, fill: bool) -> Applied {
-        let Some(t) = self.open.get_mut(&slot) else {
+        let Some(t) = self.ticket(slot) else {
             return Applied::Unknown;
         };
         let Some(returned) = t.returned.checked_add(ret.credit) else {
@@ -152,11 +223,10 @@ impl TicketBook {
         if returned < t.ray.credit {
             return Applied::Pending;
         }
-        let Some(t) = self.open.remove(&slot) else {
-            return Applied::Unknown;
-        };
         let store = fill || t.ray.coarse;
-        Applied::Closed(if store { radiance_entry(&t) } else { None })
+        let entry = if store { radiance_entry(t) } else { None };
+        self.close(slot);
+        Applied::Closed(entry)
     }
 }
 

@@ -12,22 +12,93 @@
 //! waiting to be returned ([`TicketLedger`]).
 
 use std::collections::HashMap;
-use std::sync::Arc;
+use std::fmt;
+use std::ops::Deref;
 
 use dray_core::ray::{FLAG_COARSE, FLAG_PROBE, FLAG_TICKETED, RayRecord};
 use dray_proto::v1::{RayTicket, TicketReturn};
 
-/// Tickets one ray carries, outermost first. Shared (not copied) by its children.
-pub type TicketSet = Arc<[u64]>;
-
 /// The most tickets a ray carries.
 pub const MAX_TICKETS: usize = 8;
 
-/// A ray's tickets with one more appended (a ray that missed another wall's cache).
+/// Tickets one ray carries, outermost first, at most [`MAX_TICKETS`], held inline.
+///
+/// Why inline: a ray's set is copied to each of its children (72 bytes), which costs less
+/// than what a shared `Arc<[u64]>` did: an allocation for every ray that gained a ticket
+/// or arrived with one, and an atomic count for every child (docs/benchmarks.md, "Lean
+/// tickets"). It reads as a slice of tickets (`iter`, `len`, `to_vec`, ...).
+#[derive(Clone, PartialEq, Eq, Hash)]
+pub struct TicketSet {
+    tickets: [u64; MAX_TICKETS],
+    len: u8,
+}
+
+impl TicketSet {
+    /// The set of one ticket.
+    pub fn one(ticket: u64) -> TicketSet {
+        let mut tickets = [0; MAX_TICKETS];
+        tickets[0] = ticket;
+        TicketSet { tickets, len: 1 }
+    }
+
+    /// The set with `ticket` appended; `None` when it already holds [`MAX_TICKETS`].
+    pub fn with(&self, ticket: u64) -> Option<TicketSet> {
+        let mut out = self.clone();
+        *out.tickets.get_mut(usize::from(self.len))? = ticket;
+        out.len += 1;
+        Some(out)
+    }
+
+    /// The tickets of `tickets` up to the first [`MAX_TICKETS`] (a receiver has checked
+    /// that a ray has no more), and `None` for none.
+    pub fn from_tickets(tickets: impl IntoIterator<Item = u64>) -> Option<TicketSet> {
+        let mut set = TicketSet {
+            tickets: [0; MAX_TICKETS],
+            len: 0,
+        };
+        for (slot, t) in set.tickets.iter_mut().zip(tickets) {
+            *slot = t;
+            set.len += 1;
+        }
+        (set.len > 0).then_some(set)
+    }
+}
+
+impl Deref for TicketSet {
+    type Target = [u64];
+
+    fn deref(&self) -> &[u64] {
+        &self.tickets[..usize::from(self.len)]
+    }
+}
+
+impl fmt::Debug for TicketSet {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_list().entries(self.iter()).finish()
+    }
+}
+
+impl From<Vec<u64>> for TicketSet {
+    /// The first [`MAX_TICKETS`] of `v` (an empty set for an empty `v`).
+    fn from(v: Vec<u64>) -> TicketSet {
+        TicketSet::from_tickets(v).unwrap_or(TicketSet {
+            tickets: [0; MAX_TICKETS],
+            len: 0,
+        })
+    }
+}
+
+/// A ray's tickets with one more appended (a ray that missed another wall's cache). A set
+/// that is already full stays as it is: callers ask for a ticket only below
+/// [`MAX_TICKETS`] (and a ray never arrives with more), so this does not happen.
 pub fn with_ticket(set: Option<&TicketSet>, ticket: u64) -> TicketSet {
-    let mut v: Vec<u64> = set.map(|s| s.to_vec()).unwrap_or_default();
-    v.push(ticket);
-    v.into()
+    match set {
+        None => TicketSet::one(ticket),
+        Some(s) => s.with(ticket).unwrap_or_else(|| {
+            debug_assert!(false, "a ninth ticket for a ray");
+            s.clone()
+        }),
+    }
 }
 
 /// The host index of a ticket's wall: the upper 32 bits.
@@ -62,15 +133,17 @@ impl Lineage {
     pub fn with_ticket(&self, ticket: u64) -> Lineage {
         Lineage {
             tickets: Some(with_ticket(self.tickets.as_ref(), ticket)),
-            ..self.clone()
+            coarse: self.coarse,
+            probe: self.probe,
         }
     }
 
     /// What a child inherits (everything but the probe).
     pub fn inherited(&self) -> Lineage {
         Lineage {
+            tickets: self.tickets.clone(),
+            coarse: self.coarse,
             probe: false,
-            ..self.clone()
         }
     }
 
@@ -128,7 +201,8 @@ impl RayBundle {
 }
 
 /// Walk `rays` with their lineages, tickets from a sparse table sorted by record (as
-/// checked on arrival); tickets naming no ray are ignored.
+/// checked on arrival); tickets naming no ray, and beyond a ray's first [`MAX_TICKETS`]
+/// (which the arrival check refuses), are ignored.
 pub fn with_lineage<'a>(
     rays: &'a [RayRecord],
     tickets: &'a [RayTicket],
@@ -142,7 +216,7 @@ pub fn with_lineage<'a>(
         while at < tickets.len() && tickets[at].record as usize == i {
             at += 1;
         }
-        let set = (at > start).then(|| tickets[start..at].iter().map(|t| t.ticket).collect());
+        let set = TicketSet::from_tickets(tickets[start..at].iter().map(|t| t.ticket));
         (r, Lineage::of(r, set))
     })
 }
@@ -155,10 +229,14 @@ pub struct TicketSums {
     pub tainted: bool,
 }
 
+/// The ledger hashes tickets with foldhash: ticket ids are issued by the cache actors, not
+/// chosen by a peer, and SipHash cost more than the sums it indexes.
+type FastState = foldhash::fast::FixedState;
+
 /// Contributions and credit owed to tickets, by ticket.
 #[derive(Debug, Default)]
 pub struct TicketLedger {
-    by_ticket: HashMap<u64, TicketSums>,
+    by_ticket: HashMap<u64, TicketSums, FastState>,
 }
 
 impl TicketLedger {
