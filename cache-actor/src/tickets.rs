@@ -86,7 +86,7 @@ pub enum OpenError {
     NoCredit,
 }
 
-/// Slots a book keeps in its window (about 11 MiB of tickets) before it moves the
+/// Slots a book keeps in its window (144 bytes a slot: 9 MiB) before it moves the
 /// oldest tickets still open out to its map.
 const WINDOW: usize = 1 << 16;
 
@@ -402,6 +402,52 @@ mod tests {
             book.apply(s, ret([i64::MAX, 0, 0], 1), true),
             Applied::Closed(None)
         );
+    }
+
+    #[test]
+    fn a_ticket_left_open_behind_the_window_still_closes_once() {
+        let mut book = TicketBook::new(1, usize::MAX);
+        let straggler = book.open(ray(2, Vec3::ONE)).unwrap() as u32;
+        let early = book.open(ray(1, Vec3::ONE)).unwrap() as u32;
+        // Many newer tickets open and close while the straggler waits, some left open.
+        let mut open = Vec::new();
+        for i in 0..WINDOW + 1000 {
+            let s = book.open(ray(1, Vec3::ONE)).unwrap() as u32;
+            if i % 1000 == 0 {
+                open.push(s);
+            } else {
+                assert!(matches!(
+                    book.apply(s, ret([1, 1, 1], 1), true),
+                    Applied::Closed(Some(_))
+                ));
+            }
+        }
+        assert!(book.recent.len() <= WINDOW, "the window is bounded");
+        assert!(book.old.contains_key(&straggler) && book.old.contains_key(&open[0]));
+        assert_eq!(book.open_count(), 2 + open.len());
+        assert_eq!(
+            book.apply(straggler, ret([1, 1, 1], 1), true),
+            Applied::Pending
+        );
+        assert!(matches!(
+            book.apply(early, ret([1, 1, 1], 1), true),
+            Applied::Closed(Some(_))
+        ));
+        assert!(matches!(
+            book.apply(straggler, ret([1, 1, 1], 1), true),
+            Applied::Closed(Some(_))
+        ));
+        for &s in &open {
+            assert!(matches!(
+                book.apply(s, ret([1, 1, 1], 1), true),
+                Applied::Closed(Some(_))
+            ));
+        }
+        assert_eq!(book.open_count(), 0);
+        // Closed, whether in the window or moved out of it: never a second close.
+        for s in [straggler, early, open[0], open[open.len() - 1]] {
+            assert_eq!(book.apply(s, ret([1, 1, 1], 1), true), Applied::Unknown);
+        }
     }
 
     #[test]
