@@ -139,12 +139,38 @@ impl FromStr for LinkEmulation {
 /// The spec again, in units [`FromStr`] reads back exactly (for a child process).
 impl fmt::Display for LinkEmulation {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        /// `x` in the largest of `units` that divides it exactly.
+        fn exact(x: u128, units: &[(&'static str, u128)]) -> (u128, &'static str) {
+            units
+                .iter()
+                .find(|(_, scale)| x.is_multiple_of(*scale))
+                .map_or((x, ""), |(unit, scale)| (x / scale, unit))
+        }
         let mut sep = "";
         if let Some(b) = self.bandwidth_bits_per_s {
-            write!(f, "bandwidth={b}bit")?;
+            let (n, unit) = exact(
+                b.into(),
+                &[
+                    ("tbit", 1_000_000_000_000),
+                    ("gbit", 1_000_000_000),
+                    ("mbit", 1_000_000),
+                    ("kbit", 1_000),
+                    ("bit", 1),
+                ],
+            );
+            write!(f, "bandwidth={n}{unit}")?;
             sep = ",";
         }
-        write!(f, "{sep}latency={}ns", self.latency.as_nanos())
+        let (n, unit) = exact(
+            self.latency.as_nanos(),
+            &[
+                ("s", 1_000_000_000),
+                ("ms", 1_000_000),
+                ("us", 1_000),
+                ("ns", 1),
+            ],
+        );
+        write!(f, "{sep}latency={n}{unit}")
     }
 }
 
@@ -747,8 +773,14 @@ mod tests {
             "bandwidth=10gbit,latency=20us",
             "latency=7ns",
             "bandwidth=1mbit",
+            "bandwidth=1234567bit,latency=1500us",
+            "latency=3s",
         ] {
             let l = link(spec);
+            assert_eq!(
+                l.to_string(),
+                spec.replace("bandwidth=1mbit", "bandwidth=1mbit,latency=0s")
+            );
             assert_eq!(link(&l.to_string()), l, "{spec} -> {l}");
         }
     }

@@ -213,9 +213,10 @@ pub async fn serve(
         builder = builder.tls_config(tls.clone().timeout(options.handshake_timeout))?;
     }
     if let Some(link) = &options.emulate {
-        tracing::info!(
+        // Loud on purpose: a server that is slowed on purpose must not pass unnoticed.
+        tracing::warn!(
             link = %link,
-            "every connection this server accepts is shaped (an emulated interconnect)"
+            "every connection this server accepts is shaped (an emulated interconnect, for experiments)"
         );
     }
     let incoming = Limited::new(
