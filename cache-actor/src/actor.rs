@@ -21,7 +21,7 @@ use tracing::Instrument;
 use crate::phm::{Advice, HitMap, Learned};
 use crate::settings::{CacheSettings, HitMapSettings};
 use crate::stats::{WallStats, worth_logging};
-use crate::store::{EntryKey, InsertError, Query, WallStore};
+use crate::store::{Entry, EntryKey, InsertError, Query, WallStore};
 use crate::tickets::{Applied, Return, TicketBook, TicketRay};
 
 /// Lookup option bit 0: the ray may be answered from the cache.
@@ -103,9 +103,16 @@ pub(crate) enum Command {
         rays: Vec<LookupRay>,
         reply: oneshot::Sender<Vec<Outcome>>,
     },
-    /// Apply these returns (ticket slot, return); the reply says they are applied.
+    /// Apply these returns (ticket slot, return); the reply says they are applied and
+    /// holds the entries they stored (for the wall's other replicas).
     Returns {
         returns: Vec<(u32, Return)>,
+        reply: oneshot::Sender<Vec<Entry>>,
+    },
+    /// Store these entries, which another replica of the wall stored; the reply says
+    /// they are stored.
+    Insert {
+        entries: Vec<Entry>,
         reply: oneshot::Sender<()>,
     },
     /// Teach the hit map these probe outcomes (cell, hit byte); the reply says they
@@ -199,8 +206,15 @@ impl WallActor {
                     let _ = reply.send(out);
                 }
                 Command::Returns { returns, reply } => {
-                    for (slot, ret) in returns {
-                        self.apply(slot, ret);
+                    let stored: Vec<Entry> = returns
+                        .into_iter()
+                        .filter_map(|(slot, ret)| self.apply(slot, ret))
+                        .collect();
+                    let _ = reply.send(stored);
+                }
+                Command::Insert { entries, reply } => {
+                    for entry in entries {
+                        self.store_entry(entry);
                     }
                     let _ = reply.send(());
                 }
@@ -377,30 +391,43 @@ impl WallActor {
         }
     }
 
+    /// Store one entry; false when the store refused it (full, or not finite).
+    fn store_entry(&mut self, entry: Entry) -> bool {
+        match self.store.insert(entry) {
+            Ok(()) => true,
+            Err(InsertError::Full) => {
+                if worth_logging(self.store.dropped) {
+                    tracing::warn!(
+                        dropped = self.store.dropped,
+                        entries = self.store.len(),
+                        "wall store full: radiance dropped"
+                    );
+                }
+                false
+            }
+            // A ticket's point and direction were checked when it opened, and a
+            // replica's entry was checked where it was made; harmless either way: the
+            // radiance is just not stored.
+            Err(InsertError::NotFinite) => false,
+        }
+    }
+
     /// Apply one return to its ticket; a ticket whose credit is whole closes and, when
-    /// the job fills the caches or the ray was of the coarse pass, stores its radiance.
-    /// Without a ray cache no ticket was ever issued, so every return is a stray.
-    fn apply(&mut self, slot: u32, ret: Return) {
+    /// the job fills the caches or the ray was of the coarse pass, stores its radiance
+    /// (returned, so other replicas of the wall can store it too). Without a ray cache
+    /// no ticket was ever issued, so every return is a stray.
+    fn apply(&mut self, slot: u32, ret: Return) -> Option<Entry> {
         let fill = self.spec.settings.as_ref().is_some_and(|s| s.fill);
         match self.tickets.apply(slot, ret, fill) {
-            Applied::Pending => {}
+            Applied::Pending => None,
             Applied::Closed(entry) => {
                 self.stats.tickets_closed += 1;
-                let Some(entry) = entry else { return };
-                match self.store.insert(entry) {
-                    Ok(()) => self.stats.tickets_stored += 1,
-                    Err(InsertError::Full) => {
-                        if worth_logging(self.store.dropped) {
-                            tracing::warn!(
-                                dropped = self.store.dropped,
-                                entries = self.store.len(),
-                                "wall store full: radiance dropped"
-                            );
-                        }
-                    }
-                    // Cannot happen (the ticket's point and direction were checked when
-                    // it opened), but it is harmless: the radiance is just not stored.
-                    Err(InsertError::NotFinite) => {}
+                let entry = entry?;
+                if self.store_entry(entry) {
+                    self.stats.tickets_stored += 1;
+                    Some(entry)
+                } else {
+                    None
                 }
             }
             Applied::Unknown => {
@@ -412,6 +439,7 @@ impl WallActor {
                         "return for a ticket that is not open (ignored)"
                     );
                 }
+                None
             }
             Applied::OverCredit => {
                 self.stats.over_credit += 1;
@@ -423,6 +451,7 @@ impl WallActor {
                         "return exceeds its ticket's credit (ignored)"
                     );
                 }
+                None
             }
         }
     }

@@ -22,6 +22,14 @@ pub enum HostError {
     WallOutOfRange { wall: u32, domains: usize },
     #[error("walls: {count} walls exceed the limit of {max} per job attempt")]
     TooManyWalls { count: usize, max: usize },
+    #[error("replica: {replica} exceeds the largest replica number {max}")]
+    Replica { replica: u32, max: u32 },
+    #[error("entries {sequence}: {source}")]
+    Entries {
+        sequence: u64,
+        #[source]
+        source: crate::entry_record::EntryRecordError,
+    },
     #[error("job {job_id:?} attempt {attempt} is older than the open attempt {open}")]
     StaleAttempt {
         job_id: String,

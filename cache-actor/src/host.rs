@@ -21,17 +21,19 @@ use dray_proto::v1::cache_service_server::{CacheService, CacheServiceServer};
 use dray_proto::v1::{
     CacheAnswers, CacheLookups, CacheRequest, CacheResponse, CloseWallsRequest, CloseWallsResponse,
     OpenWallsRequest, OpenWallsResponse, PhmOutcomes, PhmStats, RayCacheStats, TicketAck,
-    TicketReturns, cache_request, cache_response,
+    TicketReturns, WallEntries, cache_request, cache_response,
 };
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::actor::{self, Command, LookupRay, Outcome, WallHandle, WallSpec};
+use crate::entry_record::{ENTRY_RECORD_BYTES, decode_entries, encode_entry};
 use crate::error::HostError;
 use crate::job::{self, JobAttempt, OpenPlan};
 use crate::stats::{WallStats, log_point_between};
-use crate::store::DEFAULT_MAX_ENTRIES;
+use crate::store::{DEFAULT_MAX_ENTRIES, Entry};
+use crate::ticket_id;
 use crate::tickets::{DEFAULT_MAX_OPEN_TICKETS, Return};
 
 /// Largest gRPC message the host accepts or sends: a lookup of 64 Ki rays (64-byte
@@ -177,6 +179,7 @@ impl CacheHost {
             phm,
             layout,
             walls,
+            replica,
         } = job::plan(&req)?;
         let (ray_cache, hit_maps) = (settings.is_some(), phm.is_some());
         let replaced = {
@@ -202,6 +205,7 @@ impl CacheHost {
                         });
                     }
                     let job = Arc::clone(&e.job);
+                    job.replica.store(replica, Ordering::Relaxed);
                     let missing: Vec<u32> = {
                         let map = job.walls.read().unwrap_or_else(|p| p.into_inner());
                         walls
@@ -228,6 +232,7 @@ impl CacheHost {
                 settings: settings.map(Arc::new),
                 phm: phm.map(Arc::new),
                 layout,
+                replica: replica.into(),
                 walls: RwLock::new(HashMap::new()),
                 stray_returns: Default::default(),
                 stray_outcomes: Default::default(),
@@ -320,6 +325,9 @@ impl CacheHost {
                 cache_response::Msg::Answers(self.lookups(l).await?)
             }
             Some(cache_request::Msg::Returns(r)) => cache_response::Msg::Ack(self.returns(r).await),
+            Some(cache_request::Msg::Entries(e)) => {
+                cache_response::Msg::Ack(self.entries(e).await?)
+            }
             Some(cache_request::Msg::Outcomes(o)) => {
                 cache_response::Msg::Ack(self.outcomes(o).await?)
             }
@@ -345,41 +353,16 @@ impl CacheHost {
         }
         let rays =
             decode_rays(&l.records).map_err(|source| HostError::Record { sequence, source })?;
-
-        let mut outcomes = vec![Outcome::Miss; n];
-        if let Some(job) = self.job(&l.job_id, l.attempt) {
-            // Group by wall, keeping each ray's position; one command per actor.
-            let mut groups: BTreeMap<u32, (Vec<usize>, Vec<LookupRay>)> = BTreeMap::new();
-            for (i, ((ray, &wall), &options)) in
-                rays.iter().zip(&l.walls).zip(&l.options).enumerate()
-            {
-                let g = groups.entry(wall).or_default();
-                g.0.push(i);
-                g.1.push(LookupRay { ray: *ray, options });
-            }
-            let handles = job.handles(groups.keys().copied());
-            let mut pending = Vec::with_capacity(groups.len());
-            for ((_, (positions, rays)), handle) in groups.into_iter().zip(handles) {
-                // A wall not served here: those rays stay "miss, no ticket".
-                let Some(handle) = handle else { continue };
-                let (reply, rx) = oneshot::channel();
-                if handle.send(Command::Lookup { rays, reply }).await {
-                    pending.push((positions, rx));
-                }
-            }
-            for (positions, rx) in pending {
-                // An actor that stopped meanwhile (its job closed) leaves misses.
-                let Ok(answers) = rx.await else { continue };
-                for (p, o) in positions.into_iter().zip(answers) {
-                    if let Some(slot) = outcomes.get_mut(p) {
-                        *slot = o;
-                    }
-                }
-            }
-        } else {
-            tracing::debug!(job = %l.job_id, attempt = l.attempt, rays = n, "lookups for a job not open here: all miss");
-        }
-
+        let rays: Vec<WallLookup> = rays
+            .into_iter()
+            .zip(&l.walls)
+            .zip(&l.options)
+            .map(|((ray, &wall), &options)| WallLookup {
+                wall,
+                ray: LookupRay { ray, options },
+            })
+            .collect();
+        let outcomes = self.lookup_rays(&l.job_id, l.attempt, rays).await;
         let mut answers = CacheAnswers {
             sequence,
             outcomes: outcomes.iter().map(Outcome::code).collect(),
@@ -397,28 +380,124 @@ impl CacheHost {
         Ok(answers)
     }
 
+    /// Answer rays at walls of attempt `attempt` of `job_id`, one outcome per ray in
+    /// order: what a `CacheLookups` does, for a worker in this process (no encoding, no
+    /// copy into records). Rays for a job, attempt or wall not served here are misses
+    /// without a ticket.
+    pub async fn lookup_rays(
+        &self,
+        job_id: &str,
+        attempt: u32,
+        rays: Vec<WallLookup>,
+    ) -> Vec<Outcome> {
+        let n = rays.len();
+        let mut outcomes = vec![Outcome::Miss; n];
+        let Some(job) = self.job(job_id, attempt) else {
+            tracing::debug!(job = %job_id, attempt, rays = n, "lookups for a job not open here: all miss");
+            return outcomes;
+        };
+        // Group by wall, keeping each ray's position; one command per actor.
+        let mut groups: BTreeMap<u32, (Vec<usize>, Vec<LookupRay>)> = BTreeMap::new();
+        for (i, l) in rays.into_iter().enumerate() {
+            let g = groups.entry(l.wall).or_default();
+            g.0.push(i);
+            g.1.push(l.ray);
+        }
+        let handles = job.handles(groups.keys().copied());
+        let mut pending = Vec::with_capacity(groups.len());
+        for ((_, (positions, rays)), handle) in groups.into_iter().zip(handles) {
+            // A wall not served here: those rays stay "miss, no ticket".
+            let Some(handle) = handle else { continue };
+            let (reply, rx) = oneshot::channel();
+            if handle.send(Command::Lookup { rays, reply }).await {
+                pending.push((positions, rx));
+            }
+        }
+        for (positions, rx) in pending {
+            // An actor that stopped meanwhile (its job closed) leaves misses.
+            let Ok(answers) = rx.await else { continue };
+            for (p, o) in positions.into_iter().zip(answers) {
+                if let Some(slot) = outcomes.get_mut(p) {
+                    *slot = o;
+                }
+            }
+        }
+        let replica = job.replica.load(Ordering::Relaxed);
+        if replica != 0 {
+            // A replica's tickets name it, so returns from anywhere find it.
+            for o in &mut outcomes {
+                match o {
+                    Outcome::Ticket(t) | Outcome::ProbeTicket(t) => {
+                        *t = ticket_id::with_replica(*t, replica);
+                    }
+                    _ => {}
+                }
+            }
+        }
+        outcomes
+    }
+
     /// Apply a `TicketReturns`; the ack is built only once every actor has applied its
     /// share. Returns for a job not open here are acknowledged and dropped (the job may
     /// have closed while they were on their way).
     pub async fn returns(&self, r: TicketReturns) -> TicketAck {
-        let ack = TicketAck {
-            sequence: r.sequence,
-        };
-        let Some(job) = self.job(&r.job_id, r.attempt) else {
-            tracing::debug!(job = %r.job_id, attempt = r.attempt, returns = r.returns.len(), "returns for a job not open here: dropped");
-            return ack;
-        };
-        let mut groups: BTreeMap<u32, Vec<(u32, Return)>> = BTreeMap::new();
-        for t in &r.returns {
-            let wall = (t.ticket >> 32) as u32;
-            groups.entry(wall).or_default().push((
-                t.ticket as u32,
+        let returns = r.returns.iter().map(|t| {
+            (
+                t.ticket,
                 Return {
                     rgb: [t.r, t.g, t.b],
                     credit: t.credit,
                     tainted: t.tainted,
                 },
-            ));
+            )
+        });
+        let stored = self.return_tickets(&r.job_id, r.attempt, returns).await;
+        let mut ack = TicketAck {
+            sequence: r.sequence,
+            walls: Vec::with_capacity(stored.len()),
+            entries: Vec::with_capacity(stored.len() * ENTRY_RECORD_BYTES),
+        };
+        for (wall, entry) in &stored {
+            ack.walls.push(*wall);
+            encode_entry(entry, &mut ack.entries);
+        }
+        ack
+    }
+
+    /// Apply ticket returns (ticket, what is returned to it) of attempt `attempt` of
+    /// `job_id`, returning once every actor has applied its share: what a
+    /// `TicketReturns` does, for a worker in this process. Returns for a job not open
+    /// here, or for tickets another replica issued, are dropped. Returns, for
+    /// replicated walls, the entries the returns stored (wall, entry), in wall order,
+    /// for the wall's other replicas; nothing otherwise.
+    pub async fn return_tickets(
+        &self,
+        job_id: &str,
+        attempt: u32,
+        returns: impl IntoIterator<Item = (u64, Return)>,
+    ) -> Vec<(u32, Entry)> {
+        let Some(job) = self.job(job_id, attempt) else {
+            tracing::debug!(job = %job_id, attempt, "returns for a job not open here: dropped");
+            return Vec::new();
+        };
+        let replica = job.replica.load(Ordering::Relaxed);
+        let mut groups: BTreeMap<u32, Vec<(u32, Return)>> = BTreeMap::new();
+        let mut foreign = 0u64;
+        for (ticket, ret) in returns {
+            if ticket_id::ticket_replica(ticket) != replica {
+                foreign += 1;
+                continue;
+            }
+            groups
+                .entry(ticket_id::ticket_wall(ticket))
+                .or_default()
+                .push((ticket_id::ticket_slot(ticket), ret));
+        }
+        if foreign > 0 {
+            let before = job.stray_returns.fetch_add(foreign, Ordering::Relaxed);
+            if log_point_between(before, before + foreign) {
+                tracing::warn!(job = %job.job_id, replica, count = before + foreign, "ticket returns for another replica's tickets (ignored)");
+            }
         }
         let handles = job.handles(groups.keys().copied());
         let mut pending = Vec::with_capacity(groups.len());
@@ -433,13 +512,62 @@ impl CacheHost {
             };
             let (reply, rx) = oneshot::channel();
             if handle.send(Command::Returns { returns, reply }).await {
+                pending.push((wall, rx));
+            }
+        }
+        let mut stored = Vec::new();
+        for (wall, rx) in pending {
+            if let Ok(entries) = rx.await
+                && replica != 0
+            {
+                stored.extend(entries.into_iter().map(|e| (wall, e)));
+            }
+        }
+        stored
+    }
+
+    /// Apply a `WallEntries`: store another replica's entries here.
+    pub async fn entries(&self, e: WallEntries) -> Result<TicketAck, HostError> {
+        let sequence = e.sequence;
+        let entries = decode_entries(&e.entries, e.walls.len())
+            .map_err(|source| HostError::Entries { sequence, source })?;
+        self.insert_entries(&e.job_id, e.attempt, e.walls.into_iter().zip(entries))
+            .await;
+        Ok(TicketAck {
+            sequence,
+            ..TicketAck::default()
+        })
+    }
+
+    /// Store entries (wall, entry) that another replica of the walls stored, returning
+    /// once every actor has them: what a `WallEntries` does, for a worker in this
+    /// process. Entries for a job or wall not open here are dropped.
+    pub async fn insert_entries(
+        &self,
+        job_id: &str,
+        attempt: u32,
+        entries: impl IntoIterator<Item = (u32, Entry)>,
+    ) {
+        let Some(job) = self.job(job_id, attempt) else {
+            tracing::debug!(job = %job_id, attempt, "entries for a job not open here: dropped");
+            return;
+        };
+        let mut groups: BTreeMap<u32, Vec<Entry>> = BTreeMap::new();
+        for (wall, entry) in entries {
+            groups.entry(wall).or_default().push(entry);
+        }
+        let handles = job.handles(groups.keys().copied());
+        let mut pending = Vec::with_capacity(groups.len());
+        for ((_, entries), handle) in groups.into_iter().zip(handles) {
+            let Some(handle) = handle else { continue };
+            let (reply, rx) = oneshot::channel();
+            if handle.send(Command::Insert { entries, reply }).await {
                 pending.push(rx);
             }
         }
         for rx in pending {
             let _ = rx.await;
         }
-        ack
     }
 
     /// Apply a `PhmOutcomes`; the ack is built only once every actor has applied its
@@ -459,13 +587,35 @@ impl CacheHost {
                 ),
             });
         }
-        let ack = TicketAck { sequence };
-        let Some(job) = self.job(&o.job_id, o.attempt) else {
-            tracing::debug!(job = %o.job_id, attempt = o.attempt, outcomes = n, "hit-map outcomes for a job not open here: dropped");
-            return Ok(ack);
+        let outcomes = o
+            .walls
+            .iter()
+            .zip(&o.cells)
+            .zip(&o.hits)
+            .map(|((&wall, &cell), &hit)| (wall, cell, hit));
+        self.learn(&o.job_id, o.attempt, outcomes).await;
+        Ok(TicketAck {
+            sequence,
+            ..TicketAck::default()
+        })
+    }
+
+    /// Teach the hit maps probe outcomes (wall, cell, hit byte) of attempt `attempt` of
+    /// `job_id`, returning once every actor has applied its share: what a `PhmOutcomes`
+    /// does, for a worker in this process. Outcomes for a job or wall not served here
+    /// are dropped.
+    pub async fn learn(
+        &self,
+        job_id: &str,
+        attempt: u32,
+        outcomes: impl IntoIterator<Item = (u32, u32, u8)>,
+    ) {
+        let Some(job) = self.job(job_id, attempt) else {
+            tracing::debug!(job = %job_id, attempt, "hit-map outcomes for a job not open here: dropped");
+            return;
         };
         let mut groups: BTreeMap<u32, Vec<(u32, u8)>> = BTreeMap::new();
-        for ((&wall, &cell), &hit) in o.walls.iter().zip(&o.cells).zip(&o.hits) {
+        for (wall, cell, hit) in outcomes {
             groups.entry(wall).or_default().push((cell, hit));
         }
         let handles = job.handles(groups.keys().copied());
@@ -487,8 +637,16 @@ impl CacheHost {
         for rx in pending {
             let _ = rx.await;
         }
-        Ok(ack)
     }
+}
+
+/// One ray at one wall, as a worker in the host's process hands it over.
+#[derive(Clone, Copy, Debug)]
+pub struct WallLookup {
+    /// The wall (`6 * domain + face`).
+    pub wall: u32,
+    /// The ray and its lookup options.
+    pub ray: LookupRay,
 }
 
 /// Stop every actor of a job attempt and sum their counters, into the job's

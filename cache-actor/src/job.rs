@@ -6,7 +6,7 @@
 //! is the set of walls (a re-open of the same attempt may add walls).
 
 use std::collections::HashMap;
-use std::sync::atomic::AtomicU64;
+use std::sync::atomic::{AtomicU32, AtomicU64};
 use std::sync::{Arc, RwLock};
 
 use dray_core::wall::{self, WallFrame};
@@ -59,6 +59,8 @@ pub(crate) struct OpenPlan {
     pub layout: Layout,
     /// Sorted, without duplicates.
     pub walls: Vec<u32>,
+    /// The replica these walls are (0: the walls' only actors).
+    pub replica: u32,
 }
 
 /// Check an `OpenWallsRequest` completely.
@@ -107,6 +109,12 @@ pub(crate) fn plan(req: &OpenWallsRequest) -> Result<OpenPlan, HostError> {
             max: MAX_WALLS_PER_JOB,
         });
     }
+    if req.replica > crate::ticket_id::MAX_REPLICAS {
+        return Err(HostError::Replica {
+            replica: req.replica,
+            max: crate::ticket_id::MAX_REPLICAS,
+        });
+    }
     let layout = Layout { scene, domains };
     if let Some(&wall) = walls.iter().find(|&&w| layout.wall(w).is_none()) {
         return Err(HostError::WallOutOfRange {
@@ -119,6 +127,7 @@ pub(crate) fn plan(req: &OpenWallsRequest) -> Result<OpenPlan, HostError> {
         phm,
         layout,
         walls,
+        replica: req.replica,
     })
 }
 
@@ -145,6 +154,10 @@ pub(crate) struct JobAttempt {
     pub settings: Option<Arc<CacheSettings>>,
     pub phm: Option<Arc<HitMapSettings>>,
     pub layout: Layout,
+    /// The replica of the walls this host holds (sender placement), 0 for none: put in
+    /// every ticket this host issues, checked on every return. A re-open may renumber
+    /// it (a host before this one failed to open, before any ticket was issued).
+    pub replica: AtomicU32,
     /// The wall actors. Read on every request (briefly, to clone handles); written only
     /// when a re-open adds walls.
     pub walls: RwLock<HashMap<u32, WallHandle>>,
@@ -189,6 +202,7 @@ mod tests {
             ],
             walls: vec![11, 0, 1, 0],
             phm: None,
+            replica: 0,
         }
     }
 

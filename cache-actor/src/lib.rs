@@ -29,6 +29,7 @@
 //! [`CacheHost::close_walls`] directly.
 
 pub mod actor;
+pub mod entry_record;
 pub mod error;
 mod exchange;
 pub mod host;
@@ -38,14 +39,17 @@ pub mod server;
 pub mod settings;
 pub mod stats;
 pub mod store;
+pub mod ticket_id;
 pub mod tickets;
 
-pub use actor::{OPTION_ANSWER, OPTION_PHM, OPTION_TICKET, Outcome, PROBE};
+pub use actor::{LookupRay, OPTION_ANSWER, OPTION_PHM, OPTION_TICKET, Outcome, PROBE};
 pub use error::HostError;
 pub use exchange::ResponseStream;
-pub use host::{CacheHost, CacheHostConfig, MAX_MESSAGE_BYTES};
+pub use host::{CacheHost, CacheHostConfig, MAX_MESSAGE_BYTES, WallLookup};
 pub use job::MAX_WALLS_PER_JOB;
 pub use phm::{Advice, Decision, HitMap};
 pub use server::{ServeError, serve};
 pub use settings::{CacheSettings, HitMapSettings, PhmMode, Retrieve, SettingsError};
 pub use stats::{MapStats, WallStats};
+pub use store::Entry;
+pub use tickets::Return;

@@ -126,6 +126,7 @@ fn open_request(job: &str, attempt: u32, radius: f32, walls: Vec<u32>) -> OpenWa
         ],
         walls,
         phm: None,
+        replica: 0,
     }
 }
 
@@ -1236,4 +1237,130 @@ async fn bad_hit_map_requests_get_clean_errors() {
     assert_eq!((phm.lookups, phm.probes, phm.outcomes), (2, 1, 2));
     drop(ex);
     server.stop().await;
+}
+
+/// Sender placement: two hosts hold replicas 3 and 4 of the same walls. A replica's
+/// tickets carry its number; a ticket that closes there stores, and the ack hands the
+/// entry back so that the other replica can store it (WallEntries), after which a ray
+/// looked up at either replica hits with the same radiance. Returns naming another
+/// replica are strays.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn replicas_share_what_they_store() {
+    let (a, b) = (start().await, start().await);
+    let (mut ca, mut cb) = (a.client().await, b.client().await);
+    let walls: Vec<u32> = (0..12).collect();
+    for (c, replica) in [(&mut ca, 3), (&mut cb, 4)] {
+        let mut req = open_request("rep", 1, 1e-6, walls.clone());
+        req.replica = replica;
+        c.open_walls(req).await.unwrap();
+    }
+    let mut too_many = open_request("rep2", 1, 1e-6, walls.clone());
+    too_many.replica = 4096;
+    let e = ca.open_walls(too_many).await.unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+    assert!(e.message().contains("replica"), "{e:?}");
+
+    let (mut xa, mut xb) = (Exchange::open(&mut ca).await, Exchange::open(&mut cb).await);
+    let cam = camera_ray();
+    let got = xa
+        .lookup(lookups("rep", 1, 1, &[(cam, 0, BOTH)]))
+        .await
+        .unwrap();
+    assert_eq!(got.outcomes, vec![2]);
+    let t = got.tickets[0];
+    assert_eq!(dray_cache::ticket_id::ticket_replica(t), 3);
+    assert_eq!(dray_cache::ticket_id::ticket_wall(t), 0);
+
+    // The same ticket returned to replica 4 is not its own: ignored, nothing stored.
+    let stray = xb
+        .give_back(TicketReturns {
+            job_id: "rep".into(),
+            attempt: 1,
+            sequence: 1,
+            returns: vec![ret(t, [1 << 24, 1 << 24, 1 << 24], 1000)],
+        })
+        .await
+        .unwrap();
+    assert!(stray.walls.is_empty() && stray.entries.is_empty());
+
+    // Returned to replica 3: whole, stored, and handed back.
+    let ack = xa
+        .give_back(TicketReturns {
+            job_id: "rep".into(),
+            attempt: 1,
+            sequence: 2,
+            returns: vec![ret(t, [1 << 24, 1 << 23, 1 << 22], 1000)],
+        })
+        .await
+        .unwrap();
+    assert_eq!(ack.walls, vec![0]);
+    assert_eq!(
+        ack.entries.len(),
+        dray_cache::entry_record::ENTRY_RECORD_BYTES
+    );
+    // Replica 4 does not have it yet.
+    let before = xb
+        .lookup(lookups("rep", 1, 2, &[(cam, 0, OPTION_ANSWER)]))
+        .await
+        .unwrap();
+    assert_eq!(before.outcomes, vec![0]);
+    // Copied over, it answers as replica 3 does.
+    let copied = match xb
+        .ask(Some(cache_request::Msg::Entries(
+            dray_proto::v1::WallEntries {
+                job_id: "rep".into(),
+                attempt: 1,
+                sequence: 3,
+                walls: ack.walls.clone(),
+                entries: ack.entries.clone(),
+            },
+        )))
+        .await
+        .unwrap()
+        .msg
+    {
+        Some(cache_response::Msg::Ack(a)) => a,
+        other => panic!("expected an ack, got {other:?}"),
+    };
+    assert_eq!(copied.sequence, 3);
+    let at_a = xa
+        .lookup(lookups("rep", 1, 3, &[(cam, 0, OPTION_ANSWER)]))
+        .await
+        .unwrap();
+    let at_b = xb
+        .lookup(lookups("rep", 1, 4, &[(cam, 0, OPTION_ANSWER)]))
+        .await
+        .unwrap();
+    assert_eq!(at_a.outcomes, vec![1]);
+    assert_eq!(at_b.outcomes, at_a.outcomes);
+    assert_eq!(at_b.radiance, at_a.radiance);
+
+    // Entries that are not whole records end the stream with a clean error.
+    let bad = xb
+        .ask(Some(cache_request::Msg::Entries(
+            dray_proto::v1::WallEntries {
+                job_id: "rep".into(),
+                attempt: 1,
+                sequence: 5,
+                walls: vec![0],
+                entries: vec![0; 10],
+            },
+        )))
+        .await
+        .unwrap_err();
+    assert_eq!(bad.code(), Code::InvalidArgument, "{bad:?}");
+
+    drop((xa, xb));
+    let closed = ca
+        .close_walls(CloseWallsRequest {
+            job_id: "rep".into(),
+            attempt: 1,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let stats = closed.stats.unwrap();
+    assert_eq!((stats.tickets_opened, stats.tickets_stored), (1, 1));
+    a.stop().await;
+    b.stop().await;
 }

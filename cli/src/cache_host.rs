@@ -1,8 +1,8 @@
 //! A cache host in this process: `dray_cache`'s CacheService on its own listener, the
 //! way `dray worker` (by default), the embedded mode (for jobs with ray caches) and
-//! `dray cache` run one. Workers never answer rays from it directly: the coordinator
-//! places cache actors on it and every worker talks to it over gRPC, this process's
-//! worker included.
+//! `dray cache` run one. The coordinator places cache actors on it and workers in
+//! other processes reach it over gRPC; a worker in this process is handed the host
+//! itself ([`LocalCacheHost::host`]) and reaches its actors through their mailboxes.
 
 use std::net::SocketAddr;
 
@@ -21,6 +21,8 @@ pub struct LocalCacheHost {
     pub addr: SocketAddr,
     /// Where workers and the coordinator reach it.
     pub endpoint: String,
+    /// The host it serves, for a worker in this process.
+    pub host: dray_cache::CacheHost,
     stop: watch::Sender<bool>,
     task: Option<JoinHandle<Result<(), dray_cache::ServeError>>>,
 }
@@ -47,8 +49,10 @@ impl LocalCacheHost {
         });
         let (stop, mut stopped) = watch::channel(false);
         let options = options.clone();
+        let host = dray_cache::CacheHost::new();
+        let serving = host.clone();
         let task = tokio::spawn(async move {
-            dray_cache::CacheHost::new()
+            serving
                 .serve_with(&options, listener, async move {
                     let _ = stopped.wait_for(|s| *s).await;
                 })
@@ -57,6 +61,7 @@ impl LocalCacheHost {
         Ok(LocalCacheHost {
             addr,
             endpoint,
+            host,
             stop,
             task: Some(task),
         })

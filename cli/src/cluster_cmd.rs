@@ -94,6 +94,10 @@ pub struct ClusterArgs {
     /// Passed to the coordinator and every worker.
     #[command(flatten)]
     pub otlp: crate::telemetry::OtlpArgs,
+    /// Every member's --emulate-link: each connection between the members behaves like
+    /// a link of this bandwidth and latency (`bandwidth=1gbit,latency=100us`).
+    #[arg(long, value_name = "SPEC", value_parser = crate::net_flags::parse_link)]
+    pub emulate_link: Option<dray_net::LinkEmulation>,
 }
 
 /// Longest wait before a worker is started again.
@@ -515,6 +519,7 @@ pub fn run(a: ClusterArgs) -> Result<()> {
     ];
     shared_args.extend(a.tls.to_args());
     shared_args.extend(a.otlp.to_args());
+    shared_args.extend(crate::net_flags::link_args(a.emulate_link.as_ref()));
 
     // Current-thread: children are forked from the main thread (see `spawn`).
     let rt = tokio::runtime::Builder::new_current_thread()

@@ -202,7 +202,7 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
         cluster_token.is_some(),
         a.member.tls.tls_cert.is_some(),
     );
-    let server = net_flags::server_options(api, cluster_token, &a.member.tls, a.member.max_calls)?;
+    let server = net_flags::server_options(api, cluster_token, &a.member)?;
     let heartbeat = options.heartbeat;
     let work_dir = options.work_dir.clone();
     let coordinator = dray_coordinator::Coordinator::new(&a.scene_root, a.threads)

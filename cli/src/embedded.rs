@@ -136,12 +136,13 @@ pub fn render_on_actors(
                 .context("cannot listen on a loopback port")?;
             let cache = if spec.ray_cache.is_some() || spec.phm.is_some() {
                 let h = LocalCacheHost::start("127.0.0.1:0", None, None, &server_options).await?;
-                let endpoint = h.endpoint.clone();
+                let endpoint = (h.endpoint.clone(), h.host.clone());
                 caches.push(h);
                 Some(endpoint)
             } else {
                 None
             };
+            let (cache, cache_host) = cache.unzip();
             let config = dray_worker::WorkerConfig {
                 coordinator: format!("http://{addr}"),
                 threads: per_worker,
@@ -149,6 +150,7 @@ pub fn render_on_actors(
                 memory_budget: a.memory_budget,
                 load_delay: Duration::from_millis(a.load_delay_ms),
                 cache_endpoint: cache,
+                cache_host,
                 net: clients.clone(),
                 server: server_options.clone(),
                 // The workers read the coordinator's in-memory packages: nothing to fetch.

@@ -9,12 +9,15 @@
 //!   it. `dray cluster` and `dray render` make one for their own processes.
 //! - `--tls-cert`, `--tls-key`, `--tls-ca` (PEM files): TLS on every server and client;
 //!   with `--tls-ca` on a server, clients must present a certificate it signed.
+//! - `--emulate-link SPEC` (members only): shape every connection the member's servers
+//!   accept as a link of a real cluster (`dray_net::emulate`), for experiments that
+//!   price communication on one machine.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use clap::Args;
-use dray_net::{ClientOptions, ServerOptions, TlsFiles, Token};
+use dray_net::{ClientOptions, LinkEmulation, ServerOptions, TlsFiles, Token};
 
 /// The environment variable holding the API token itself.
 pub const API_TOKEN_ENV: &str = "DRAY_AUTH_TOKEN";
@@ -134,28 +137,46 @@ pub struct MemberArgs {
     /// refused at once with RESOURCE_EXHAUSTED.
     #[arg(long, value_name = "N", default_value_t = dray_net::server::DEFAULT_MAX_CALLS)]
     pub max_calls: usize,
+    /// An emulated interconnect, for experiments: every connection this process's
+    /// servers accept behaves like a link of this bandwidth and latency, each way
+    /// (`bandwidth=1gbit,latency=100us`; units bit/kbit/mbit/gbit/tbit and ns/us/ms/s;
+    /// either key may be left out). Off by default.
+    #[arg(long, value_name = "SPEC", value_parser = parse_link)]
+    pub emulate_link: Option<LinkEmulation>,
+}
+
+/// `--emulate-link SPEC`.
+pub fn parse_link(spec: &str) -> Result<LinkEmulation, String> {
+    spec.parse()
+        .map_err(|e: dray_net::emulate::LinkSpecError| e.to_string())
+}
+
+/// `--emulate-link SPEC` for a child process, when set.
+pub fn link_args(link: Option<&LinkEmulation>) -> Vec<String> {
+    link.map(|l| vec!["--emulate-link".to_string(), l.to_string()])
+        .unwrap_or_default()
 }
 
 impl MemberArgs {
     /// How this member serves (requiring the cluster token) and calls (presenting it).
     pub fn options(&self) -> Result<(ServerOptions, ClientOptions)> {
         let token = self.cluster_token.token()?;
-        let server = server_options(None, token.clone(), &self.tls, self.max_calls)?;
+        let server = server_options(None, token.clone(), self)?;
         let client = client_options(token, &self.tls)?;
         Ok((server, client))
     }
 }
 
-/// Server options for a process requiring `api` (coordinator only) and `cluster`, with
-/// TLS per `tls` and at most `max_calls` calls in progress.
+/// Server options for a member requiring `api` (coordinator only) and `cluster`, with
+/// its TLS, call bound and link emulation.
 pub fn server_options(
     api: Option<Token>,
     cluster: Option<Token>,
-    tls: &TlsArgs,
-    max_calls: usize,
+    member: &MemberArgs,
 ) -> Result<ServerOptions> {
-    let mut o = ServerOptions::new(api, cluster, &tls.files())?;
-    o.max_calls = max_calls;
+    let mut o = ServerOptions::new(api, cluster, &member.tls.files())?;
+    o.max_calls = member.max_calls;
+    o.emulate = member.emulate_link;
     Ok(o)
 }
 

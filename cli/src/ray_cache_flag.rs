@@ -15,15 +15,26 @@ image is no longer exact). Comma-separated KEY=VALUE pairs: radius=R (lookup rad
 wall, scene units; 0, the default, never answers, the caches only fill), angle-deg=A \
 (largest angle between a ray and a cached direction, degrees in (0, 90], default 10), \
 retrieve=first|nearest|average (which cached ray answers, default nearest), coarse=N (a \
-coarse pass of N x N rays filling the caches first; 0, the default, is the only value \
-accepted until it is built), kinds=K+K... (ray kinds looked up, joined with +, from \
-camera, reflection, refraction, diffuse; default all four), fill=true|false (whether the \
-main pass stores what it learns, default true). `--ray-cache on` takes every default. \
+coarse pass of N x N camera rays, traced exactly first to fill the caches; default 0, \
+none), kinds=K+K... (ray kinds looked up, joined with +, from camera, reflection, \
+refraction, diffuse; default all four), fill=true|false (whether the main pass stores what \
+it learns, default true; false with a coarse pass gives the same bits every run), \
+placement=sender|remote (sender, the default: every worker holds a replica of every wall \
+and looks rays up in its own memory, so a hit sends nothing; remote: each wall once, beside \
+its domain's owner, every lookup a round trip). `--ray-cache on` takes every default. \
 Caches run on cache hosts: in every worker process (default) or stand-alone `dray cache` \
-processes.";
+processes (which hold each wall once).";
 
 /// The keys, in the order the help gives them.
-pub const KEYS: [&str; 6] = ["radius", "angle-deg", "retrieve", "coarse", "kinds", "fill"];
+pub const KEYS: [&str; 7] = [
+    "radius",
+    "angle-deg",
+    "retrieve",
+    "coarse",
+    "kinds",
+    "fill",
+    "placement",
+];
 
 /// Parse `--ray-cache` into settings; errors name the key (clap prefixes the flag).
 pub fn parse_ray_cache(s: &str) -> Result<RayCacheSettings, String> {
@@ -53,6 +64,12 @@ pub fn parse_ray_cache(s: &str) -> Result<RayCacheSettings, String> {
                     _ => return Err(number("true or false")),
                 })
             }
+            "placement" => {
+                if value.is_empty() {
+                    return Err(format!("{key}: empty (sender or remote)"));
+                }
+                rc.placement = value.to_string();
+            }
             other => {
                 return Err(format!("unknown key {other:?} (keys: {})", KEYS.join(", ")));
             }
@@ -76,7 +93,7 @@ mod tests {
             })
         );
         let all = parse_ray_cache(
-            "radius=0.01, angle-deg=5,retrieve=average,coarse=0,kinds=camera+diffuse,fill=false",
+            "radius=0.01, angle-deg=5,retrieve=average,coarse=0,kinds=camera+diffuse,fill=false,placement=remote",
         )
         .unwrap();
         assert_eq!(
@@ -88,6 +105,7 @@ mod tests {
                 coarse: 0,
                 kinds: "camera,diffuse".into(),
                 fill: Some(false),
+                placement: "remote".into(),
             }
         );
         // Ranges are the coordinator's to check: these parse.
@@ -107,6 +125,7 @@ mod tests {
             ("kinds=camera+", "kinds:"),
             ("kinds=", "kinds:"),
             ("retrieve=", "retrieve:"),
+            ("placement=", "placement:"),
             ("radius", "radius: missing =VALUE"),
             ("radius=1,radius=2", "radius: given twice"),
             ("radius=1,,fill=true", "an empty pair"),

@@ -108,6 +108,7 @@ pub fn run(a: WorkerArgs) -> Result<()> {
             load_delay: Duration::from_millis(a.load_delay_ms),
             connect_timeout: Duration::from_secs(a.connect_timeout),
             cache_endpoint: cache.as_ref().map(|h| h.endpoint.clone()),
+            cache_host: cache.as_ref().map(|h| h.host.clone()),
             net,
             server,
             package_fetch: a.fetch_packages,

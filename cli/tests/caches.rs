@@ -6,7 +6,9 @@
 //!   ticket it; the image is then the reference renderer's, bit for bit, on 1, 2 and 4
 //!   workers, and every ticket opened closes exactly once.
 //! - A coarse pass fills the caches before the image's rays look them up; with
-//!   `fill=false` the image is then the same bits on every run and worker count.
+//!   `fill=false` the image is then the same bits on every run, worker count and
+//!   placement (sender replicas or remote walls), in one process (where a worker
+//!   reaches its own cache host through mailboxes) and across processes (gRPC).
 //! - Hit maps whose thresholds never decide give the reference bits; maps that decide
 //!   skip domains and occlude shadow rays, and say so.
 //! - Consistent maps come closer to the exact image as the sample count grows.
@@ -143,9 +145,17 @@ fn a_coarse_pass_fills_the_caches_and_without_fill_every_run_gives_the_same_bits
     let dir = common::tmp("caches-coarse");
     let (want, _) = reference(&dir, "ref", "whitted");
     // The box is about 555 units wide: coarse crossings are ~20 units apart on the walls.
-    let cache = "radius=15,angle-deg=20,coarse=24,fill=false";
+    let frozen = "radius=15,angle-deg=20,coarse=24,fill=false";
+    let remote = format!("{frozen},placement=remote");
     let mut first: Option<Vec<u8>> = None;
-    for (run, workers) in [(0, "2"), (1, "2"), (2, "1"), (3, "3")] {
+    for (run, workers, cache) in [
+        (0, "2", frozen),
+        (1, "2", frozen),
+        (2, "1", frozen),
+        (3, "3", frozen),
+        (4, "3", remote.as_str()),
+        (5, "1", remote.as_str()),
+    ] {
         let what = format!("run {run} on {workers} workers with --ray-cache {cache}");
         let (png, stats) = render_ok(
             &dir,
@@ -351,6 +361,98 @@ fn consistent_hit_maps_come_closer_to_the_exact_image_as_samples_grow() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// The frozen-cache job of the test above on a cluster of processes, where rays,
+/// lookups (remote placement), ticket returns and replicas' entries (sender placement)
+/// cross between processes over gRPC: the same bits as one process.
+#[test]
+fn frozen_caches_give_the_same_bits_across_processes_and_placements() {
+    let dir = common::tmp("caches-processes");
+    let frozen = "radius=15,angle-deg=20,coarse=24,fill=false";
+    let (want, _) = render_ok(
+        &dir,
+        "embedded",
+        &[
+            &flags("whitted")[..],
+            &["--workers", "2", "--ray-cache", frozen],
+        ]
+        .concat(),
+        "in one process",
+    );
+    let mut cmd = dray();
+    cmd.args(["coordinator", "--listen", "127.0.0.1:0", "--scene-root"])
+        .arg(&dir)
+        .env("DRAY_LOG", "warn,dray_coordinator=info");
+    let (_coordinator, addr, coordinator_log) = spawn_with_address(cmd);
+    let url = format!("http://{addr}");
+    let workers = start_workers(&url, 3, &[], &coordinator_log);
+    for placement in ["sender", "remote"] {
+        let what = format!("3 worker processes, placement={placement}");
+        let png = dir.join(format!("{placement}.png"));
+        let stats = dir.join(format!("{placement}.json"));
+        let mut submit = dray();
+        submit
+            .args(["submit", "--coordinator", &addr, SCENE])
+            .args(flags("whitted"))
+            .args(["--ray-cache", &format!("{frozen},placement={placement}")])
+            .arg("--output")
+            .arg(&png)
+            .arg("--stats")
+            .arg(&stats)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped());
+        let mut submit = Proc::spawn(submit);
+        let log = capture_stderr(&mut submit.child);
+        let status = submit.wait_timeout(HANG_SECS);
+        let out = log.after(status.is_some());
+        let status = status.unwrap_or_else(|| panic!("HANG: {what}: {out}"));
+        assert!(status.success(), "{what}: {out}");
+        let json: Value = serde_json::from_slice(&std::fs::read(&stats).expect("read stats"))
+            .expect("stats json");
+        let rc = &json["ray_cache"];
+        check_tickets(rc, &what);
+        assert!(
+            u64_of(rc, "outer_hits") + u64_of(rc, "inner_hits") > 0,
+            "{what}: nothing answered: {rc}"
+        );
+        let got = std::fs::read(&png).expect("read the job's png");
+        assert!(got == want, "{what}: not the same bits as one process");
+    }
+    drop(workers);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `n` one-thread worker processes of the coordinator at `url` (with `extra` flags),
+/// once its log says they registered.
+fn start_workers(
+    url: &str,
+    n: usize,
+    extra: &[&str],
+    coordinator_log: &Arc<Mutex<String>>,
+) -> Vec<Proc> {
+    let workers: Vec<Proc> = (0..n)
+        .map(|_| {
+            let mut cmd = dray();
+            cmd.args(["worker", "--coordinator", url, "--listen", "127.0.0.1:0"])
+                .args(["--threads", "1"])
+                .args(extra)
+                .stdin(Stdio::null())
+                .stdout(Stdio::null())
+                .stderr(Stdio::null());
+            Proc::spawn(cmd)
+        })
+        .collect();
+    assert!(
+        eventually(60.0, || text(coordinator_log)
+            .matches("worker registered")
+            .count()
+            >= n),
+        "the workers did not register: {}",
+        text(coordinator_log)
+    );
+    workers
+}
+
 fn text(log: &Arc<Mutex<String>>) -> String {
     log.lock().unwrap_or_else(|p| p.into_inner()).clone()
 }
@@ -419,24 +521,7 @@ fn a_cache_host_killed_mid_job_is_bypassed_and_the_image_stays_exact() {
     cmd.args(["cache", "--coordinator", &url, "--listen", "127.0.0.1:0"])
         .env("DRAY_LOG", "info");
     let (cache, _cache_addr, cache_log) = spawn_with_address(cmd);
-    let mut workers = Vec::new();
-    for _ in 0..2 {
-        let mut cmd = dray();
-        cmd.args(["worker", "--coordinator", &url, "--listen", "127.0.0.1:0"])
-            .args(["--threads", "1", "--no-cache-host"])
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::null());
-        workers.push(Proc::spawn(cmd));
-    }
-    assert!(
-        eventually(60.0, || text(&coordinator_log)
-            .matches("worker registered")
-            .count()
-            >= 2),
-        "the workers did not register: {}",
-        text(&coordinator_log)
-    );
+    let workers = start_workers(&url, 2, &["--no-cache-host"], &coordinator_log);
 
     let png = dir.join("job.png");
     let stats = dir.join("job.json");

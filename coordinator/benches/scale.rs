@@ -565,6 +565,7 @@ fn main() {
             workers: Vec::new(),
             cache_hosts: Vec::new(),
             wall_hosts: Vec::new(),
+            cache_replicas: false,
             routes: changes
                 .iter()
                 .filter_map(|c| c.given())

@@ -596,7 +596,7 @@ async fn open_first_attempt(
     if candidates.is_empty() {
         return Err(DispatchError::NoCacheHost);
     }
-    let placement = cache_job::place(&candidates, sched, sched.domains());
+    let placement = cache_job::place(&candidates, sched, sched.domains(), &caches);
     let walls = caches.attempt_walls(&entry.id, sched.attempt());
     let opened = lifecycle::open(&walls, placement).await;
     caches

@@ -809,7 +809,7 @@ impl Ledger {
         };
         let prev = c.opened.take();
         let candidates = cache_job::candidates(&self.membership, &job.sched);
-        let placement = cache_job::place(&candidates, &job.sched, job.sched.domains());
+        let placement = cache_job::place(&candidates, &job.sched, job.sched.domains(), c);
         c.pending = Some(attempt);
         let walls = c.attempt_walls(&job.entry.id, attempt);
         let tally = c.tally.clone();

@@ -411,8 +411,22 @@ pub fn check_ray_cache(rc: &mut RayCacheSettings) -> Result<(), Status> {
         .collect::<Vec<_>>()
         .join(",");
     rc.fill.get_or_insert(true);
+    if rc.placement.is_empty() {
+        rc.placement = CACHE_PLACEMENT_SENDER.into();
+    }
+    if ![CACHE_PLACEMENT_SENDER, CACHE_PLACEMENT_REMOTE].contains(&rc.placement.as_str()) {
+        return Err(bad(format!(
+            "ray_cache.placement must be sender or remote, got {:?}",
+            rc.placement
+        )));
+    }
     Ok(())
 }
+
+/// `ray_cache.placement`: every worker holds a replica of every wall (the default).
+pub const CACHE_PLACEMENT_SENDER: &str = "sender";
+/// `ray_cache.placement`: each wall once, beside its domain's owner.
+pub const CACHE_PLACEMENT_REMOTE: &str = "remote";
 
 /// Parse effect overrides such as "+specular,-transmission" (a bare name means on).
 pub fn parse_effects(spec: &str) -> Result<Vec<(Effect, bool)>, Status> {
@@ -755,6 +769,7 @@ mod tests {
                 coarse: 0,
                 kinds: "camera,reflection,refraction,diffuse".into(),
                 fill: Some(true),
+                placement: "sender".into(),
             }
         );
         let rc = cache(RayCacheSettings {
@@ -784,6 +799,13 @@ mod tests {
     fn ray_cache_bad_values_name_the_field() {
         let base = RayCacheSettings::default;
         let cases = [
+            (
+                RayCacheSettings {
+                    placement: "beside".into(),
+                    ..base()
+                },
+                "ray_cache.placement must be sender or remote, got \"beside\"",
+            ),
             (
                 RayCacheSettings {
                     radius: -1.0,

@@ -164,10 +164,13 @@ fn worker_with_host(endpoint: &str, cache_endpoint: &str) -> RegisterWorkerReque
     }
 }
 
+/// `spec` with ray caches placed remotely (each wall once, beside its domain's owner):
+/// what most tests here check.
 fn cached(spec: JobSpec) -> JobSpec {
     JobSpec {
         ray_cache: Some(RayCacheSettings {
             radius: 0.01,
+            placement: "remote".into(),
             ..Default::default()
         }),
         ..spec
@@ -426,9 +429,11 @@ async fn walls_open_beside_their_owners_before_the_tiles_and_close_with_the_job(
             coarse: 0,
             kinds: "camera,reflection,refraction,diffuse".into(),
             fill: Some(true),
+            placement: "remote".into(),
         }
     );
     for o in [&oa[0], &ob[0]] {
+        assert_eq!(o.replica, 0, "remote walls are the only actors");
         assert_eq!((o.job_id.as_str(), o.attempt), (id.as_str(), 0));
         assert_eq!(o.scene_bounds.len(), 6);
         assert_eq!(o.domain_bounds.len(), 4 * 6);
@@ -495,6 +500,79 @@ async fn walls_open_beside_their_owners_before_the_tiles_and_close_with_the_job(
     for w in [&mut a, &mut b] {
         assert!(matches!(w.next().await, Command::Finish(_)));
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sender_placement_opens_a_replica_of_every_wall_beside_every_worker() {
+    let server = Server::start("cache-sender", slow_heartbeat()).await;
+    let channel = server.channel().await;
+    let ha = FakeHost::start(host_stats(90), false).await;
+    let hb = FakeHost::start(host_stats(80), false).await;
+    let mut a = FakeWorker::join_with(
+        channel.clone(),
+        worker_with_host("http://127.0.0.1:7111", &ha.endpoint),
+    )
+    .await;
+    let mut b = FakeWorker::join_with(
+        channel.clone(),
+        worker_with_host("http://127.0.0.1:7112", &hb.endpoint),
+    )
+    .await;
+    // The default placement is sender.
+    let job = JobSpec {
+        schedule: "domain".into(),
+        ray_cache: Some(RayCacheSettings {
+            radius: 0.01,
+            ..Default::default()
+        }),
+        ..spec(64, 32, 4)
+    };
+    let id = submit(&channel, job).await;
+    let (sa, ta) = a.setup_and_tiles(1).await;
+    let (_sb, tb) = b.setup_and_tiles(1).await;
+    let (oa, ob) = (ha.opens(), hb.opens());
+    assert_eq!((oa.len(), ob.len()), (1, 1));
+    // Every wall on both hosts, as replicas 1 and 2 (their places in the table, plus 1).
+    assert_eq!(oa[0].walls, (0..24).collect::<Vec<u32>>());
+    assert_eq!(ob[0].walls, oa[0].walls);
+    assert_eq!((oa[0].replica, ob[0].replica), (1, 2));
+    assert_eq!(oa[0].settings.as_ref().unwrap().placement, "sender");
+    let table = sa.routing.clone().unwrap();
+    assert!(table.cache_replicas);
+    let hosts: Vec<&str> = table
+        .cache_hosts
+        .iter()
+        .map(|h| h.host_id.as_str())
+        .collect();
+    assert_eq!(hosts, [a.id.as_str(), b.id.as_str()]);
+    // Each wall still has a home beside its owner, for workers without a host.
+    let by_domain: Vec<u32> = table.wall_hosts.chunks(6).map(|c| c[0]).collect();
+    assert_eq!(by_domain, [0, 1, 0, 1]);
+
+    assert!(a.report(all_credit(&id, 0, 1, &ta)).await.unwrap());
+    assert!(!b.report(all_credit(&id, 0, 1, &tb)).await.unwrap());
+    wait_state(&channel, &id, JobState::Succeeded).await;
+    assert_eq!(ha.trace(), [("open", 0), ("close", 0)]);
+    assert_eq!(hb.trace(), [("open", 0), ("close", 0)]);
+    for w in [&mut a, &mut b] {
+        assert!(matches!(w.next().await, Command::Finish(_)));
+    }
+    // A job with hit maps keeps each wall once.
+    let with_maps = JobSpec {
+        schedule: "domain".into(),
+        ray_cache: Some(RayCacheSettings {
+            radius: 0.01,
+            ..Default::default()
+        }),
+        phm: Some(Default::default()),
+        ..spec(64, 32, 4)
+    };
+    submit(&channel, with_maps).await;
+    a.setup_and_tiles(1).await;
+    b.setup_and_tiles(1).await;
+    let (oa, ob) = (ha.opens(), hb.opens());
+    assert_eq!((oa[1].replica, ob[1].replica), (0, 0));
+    assert_eq!(oa[1].walls.len() + ob[1].walls.len(), 24);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -14,6 +14,8 @@
 //!   answered, and the idle timeout is longer than a ping's interval and timeout
 //!   together. (The TLS handshake as a whole is bounded by the handshake timeout too,
 //!   set on the TLS acceptor.)
+//! - With a [`LinkEmulation`], each accepted socket is shaped beneath everything else
+//!   (TLS included) by [`crate::emulate`]: both directions of every link are shaped once.
 
 use std::future::Future;
 use std::io;
@@ -28,6 +30,8 @@ use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 use tokio::time::{Instant, Sleep};
 use tokio_stream::Stream;
 use tonic::transport::server::{Connected, TcpConnectInfo};
+
+use crate::emulate::{LinkEmulation, MaybeEmulated};
 
 /// Bytes a connection must send within the handshake timeout: the length of the
 /// HTTP/2 client preface (`PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n`); a TLS ClientHello is
@@ -51,6 +55,9 @@ pub struct ConnectionLimits {
     /// A connection from which nothing is read for this long is closed; `None` for
     /// never (only when HTTP/2 keep-alive is off: a quiet client would be cut).
     pub idle_timeout: Option<Duration>,
+    /// Shape every connection as a link of this kind; `None` (the default) leaves
+    /// sockets as they are.
+    pub emulate: Option<LinkEmulation>,
 }
 
 /// The stream of accepted connections, bounded; see the module.
@@ -133,7 +140,7 @@ where
 
 /// An accepted connection holding its place; see the module.
 pub struct Guarded {
-    io: TcpStream,
+    io: MaybeEmulated<TcpStream>,
     _slot: OwnedSemaphorePermit,
     /// Bytes still owed before the handshake timeout stops applying (0 after).
     owed: usize,
@@ -147,7 +154,7 @@ impl Guarded {
     fn new(io: TcpStream, slot: OwnedSemaphorePermit, limits: ConnectionLimits) -> Guarded {
         let now = Instant::now();
         Guarded {
-            io,
+            io: MaybeEmulated::new(io, limits.emulate),
             _slot: slot,
             owed: HANDSHAKE_BYTES,
             idle_timeout: limits.idle_timeout,
@@ -215,7 +222,7 @@ impl AsyncRead for Guarded {
                     } else {
                         "sent nothing"
                     };
-                    tracing::debug!(peer = ?this.io.peer_addr().ok(), "closing a connection that {what} in time");
+                    tracing::debug!(peer = ?this.io.get_ref().peer_addr().ok(), "closing a connection that {what} in time");
                     return Poll::Ready(Err(io::Error::new(
                         io::ErrorKind::TimedOut,
                         format!("the connection {what} in time"),
@@ -262,7 +269,7 @@ impl Connected for Guarded {
     type ConnectInfo = TcpConnectInfo;
 
     fn connect_info(&self) -> TcpConnectInfo {
-        self.io.connect_info()
+        self.io.get_ref().connect_info()
     }
 }
 
@@ -290,6 +297,7 @@ mod tests {
                 max_connections: 1,
                 handshake_timeout: Duration::from_secs(10),
                 idle_timeout: None,
+                emulate: None,
             },
         );
         let first = limited.next().await.expect("a connection, not the end");

@@ -13,6 +13,8 @@
 //!   request timeouts; plus health, reflection, TCP_NODELAY and TLS.
 //! - [`connections`]: connections bounded before authentication (a maximum, handshake
 //!   and idle timeouts).
+//! - [`emulate`]: an opt-in emulated interconnect (per-connection latency and bandwidth)
+//!   on every accepted connection, to price communication as on a real cluster.
 //! - [`body_deadline`]: a request body that must arrive whole in time.
 //! - [`client`]: channels that present a token (and speak TLS when asked).
 //! - [`tls`]: certificate files for both sides.
@@ -26,6 +28,7 @@ pub mod client;
 pub mod connections;
 pub mod contain;
 pub mod credential;
+pub mod emulate;
 pub mod peer_pass;
 pub mod server;
 pub mod tls;
@@ -34,5 +37,6 @@ pub mod trace;
 pub use auth::{Access, AuthPolicy};
 pub use client::{AuthChannel, ClientOptions};
 pub use credential::Token;
+pub use emulate::LinkEmulation;
 pub use server::ServerOptions;
 pub use tls::TlsFiles;

@@ -33,6 +33,10 @@
 //! Health (`grpc.health.v1`) and reflection (v1 and v1alpha) are added to every
 //! server; TCP_NODELAY is set on every connection (small replies would otherwise wait
 //! out the peer's delayed ACK); TLS when configured.
+//!
+//! With `emulate` set, every accepted connection is shaped as a link of a real cluster
+//! (latency and bandwidth, both directions; [`crate::emulate`]), beneath TLS. Off by
+//! default; only experiments that price communication turn it on.
 
 use std::future::Future;
 use std::time::Duration;
@@ -47,6 +51,7 @@ use crate::auth::{AuthLayer, AuthPolicy};
 use crate::connections::{ConnectionLimits, Limited};
 use crate::contain::ContainLayer;
 use crate::credential::Token;
+use crate::emulate::LinkEmulation;
 use crate::tls::{TlsError, TlsFiles};
 
 /// Calls in progress a server takes by default before shedding.
@@ -100,6 +105,9 @@ pub struct ServerOptions {
     pub keepalive_timeout: Duration,
     /// Streams (calls) one connection may have open at once.
     pub max_streams_per_connection: u32,
+    /// Shape every accepted connection as a link with this bandwidth and latency (an
+    /// emulated interconnect); `None` leaves connections alone.
+    pub emulate: Option<LinkEmulation>,
 }
 
 impl Default for ServerOptions {
@@ -117,6 +125,7 @@ impl Default for ServerOptions {
             keepalive_interval: Some(DEFAULT_KEEPALIVE_INTERVAL),
             keepalive_timeout: DEFAULT_KEEPALIVE_TIMEOUT,
             max_streams_per_connection: DEFAULT_MAX_STREAMS_PER_CONNECTION,
+            emulate: None,
         }
     }
 }
@@ -158,6 +167,7 @@ impl ServerOptions {
             idle_timeout: self
                 .keepalive_interval
                 .map(|i| self.idle_timeout.max(i + self.keepalive_timeout + slack)),
+            emulate: self.emulate,
         }
     }
 }
@@ -201,6 +211,13 @@ pub async fn serve(
         .max_concurrent_streams(Some(options.max_streams_per_connection.max(1)));
     if let Some(tls) = &options.tls {
         builder = builder.tls_config(tls.clone().timeout(options.handshake_timeout))?;
+    }
+    if let Some(link) = &options.emulate {
+        // Loud on purpose: a server that is slowed on purpose must not pass unnoticed.
+        tracing::warn!(
+            link = %link,
+            "every connection this server accepts is shaped (an emulated interconnect, for experiments)"
+        );
     }
     let incoming = Limited::new(
         TcpIncoming::from(listener).with_nodelay(Some(true)),

@@ -1,8 +1,13 @@
-//! The worker's streams to cache hosts (ray caches, `cache.proto`).
+//! The worker's links to cache hosts (ray caches, `cache.proto`).
 //!
-//! One long-lived `CacheService.Exchange` stream per host, owned by one task: lookups
-//! (rays at walls) and ticket returns go out in order, and the host answers each message
-//! in order, so the task matches answers to what it sent with a FIFO. A worker never
+//! One link per host, owned by one task: lookups (rays at walls), ticket returns and
+//! hit-map outcomes go out in order, and the host answers each message in order. A host
+//! in another process is reached over one long-lived `CacheService.Exchange` stream (the
+//! task matches answers to what it sent with a FIFO); the host in this process, when
+//! there is one, through its actors' mailboxes ([`dray_cache::CacheHost::lookup_rays`]
+//! and friends): no protobuf, no HTTP/2, no copy into records, and the same actors give
+//! the same answers. Only the gRPC link counts bytes: they are the bytes between
+//! processes. A worker never
 //! answers a ray from a cache itself: it only applies the actor's answer —
 //! - a **hit**: the ray's weight x the cached radiance goes to its pixel, its credit
 //!   back to its tile (both also to its tickets, marked as from a cache);
@@ -22,11 +27,13 @@ use std::sync::Mutex;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
-use dray_core::ray::{FLAG_COARSE, RAY_RECORD_BYTES, encode_rays};
+use dray_cache::entry_record::{ENTRY_RECORD_BYTES, decode_entries, encode_entry};
+use dray_cache::{CacheHost, Entry, LookupRay, Outcome, Return, WallLookup};
+use dray_core::ray::{FLAG_COARSE, RAY_RECORD_BYTES, RayRecord, encode_rays};
 use dray_proto::v1::cache_service_client::CacheServiceClient;
 use dray_proto::v1::{
-    CacheAnswers, CacheLookups, CacheRequest, PhmOutcomes, TicketReturn, TicketReturns,
-    cache_request, cache_response,
+    CacheAnswers, CacheLookups, CacheRequest, PhmOutcomes, TicketAck, TicketReturn, TicketReturns,
+    WallEntries, cache_request, cache_response,
 };
 use glam::Vec3;
 use tokio::sync::{mpsc, oneshot};
@@ -42,8 +49,12 @@ use crate::tracer::{Lookup, NoDomains, Outbox};
 const LOOKUPS_PER_MESSAGE: usize = 4096;
 /// Returns per message (about 40 bytes each).
 const RETURNS_PER_MESSAGE: usize = 16 * 1024;
+/// Entries per message (68 bytes each, and a wall).
+const ENTRIES_PER_MESSAGE: usize = 16 * 1024;
 /// Bytes a ticket return costs on the wire, roughly (for the job's byte count).
 const RETURN_BYTES: u64 = 40;
+/// Bytes a hit-map outcome costs on the wire, roughly (wall, cell and hit varints).
+const OUTCOME_BYTES: u64 = 9;
 /// Option bits of a lookup (cache.proto `CacheLookups.options`).
 const MAY_ANSWER: u32 = 1;
 const MAY_TICKET: u32 = 2;
@@ -60,11 +71,19 @@ const PROBE: u8 = 8;
 pub(crate) enum CacheMessage {
     /// Rays at walls of this host.
     Lookups { job: Arc<Job>, lookups: Vec<Lookup> },
-    /// Ticket returns; `done` says whether the host applied them.
+    /// Ticket returns; `done` says whether the host applied them, with the entries
+    /// they stored on a replicated wall (for the wall's other replicas).
     Returns {
         job: Arc<Job>,
         returns: Vec<TicketReturn>,
-        done: oneshot::Sender<bool>,
+        done: oneshot::Sender<Acked>,
+    },
+    /// Entries another replica of these walls stored (wall, entry); `done` says whether
+    /// the host stored them.
+    Entries {
+        job: Arc<Job>,
+        entries: Vec<(u32, Entry)>,
+        done: oneshot::Sender<Acked>,
     },
     /// Outcomes of hit-map probes: (wall, cell, hit). Nothing waits for them.
     Outcomes {
@@ -73,7 +92,11 @@ pub(crate) enum CacheMessage {
     },
 }
 
-/// The streams to cache hosts.
+/// What a host did with returns or entries: `None` when they did not reach it (the
+/// host is dead), else the entries the returns stored on replicated walls.
+pub(crate) type Acked = Option<Vec<(u32, Entry)>>;
+
+/// The links to cache hosts.
 pub(crate) struct CacheLinks {
     /// By endpoint.
     links: Mutex<HashMap<String, mpsc::UnboundedSender<CacheMessage>>>,
@@ -81,15 +104,19 @@ pub(crate) struct CacheLinks {
     dead: Mutex<HashSet<String>>,
     tasks: Mutex<JoinSet<()>>,
     runtime: tokio::runtime::Handle,
+    /// The cache host in this process and the endpoint it is announced at: messages for
+    /// that endpoint go to it directly.
+    local: Option<(String, CacheHost)>,
 }
 
 impl CacheLinks {
-    pub fn new(runtime: tokio::runtime::Handle) -> CacheLinks {
+    pub fn new(runtime: tokio::runtime::Handle, local: Option<(String, CacheHost)>) -> CacheLinks {
         CacheLinks {
             links: Mutex::new(HashMap::new()),
             dead: Mutex::new(HashSet::new()),
             tasks: Mutex::new(JoinSet::new()),
             runtime,
+            local,
         }
     }
 
@@ -114,10 +141,14 @@ impl CacheLinks {
                     links.insert(endpoint.to_string(), tx.clone());
                     let mut tasks = lock(&self.tasks);
                     while tasks.try_join_next().is_some() {}
-                    tasks.spawn_on(
-                        link_loop(shared.clone(), endpoint.to_string(), rx),
-                        &self.runtime,
-                    );
+                    match &self.local {
+                        Some((e, host)) if e == endpoint => tasks
+                            .spawn_on(local_loop(shared.clone(), host.clone(), rx), &self.runtime),
+                        _ => tasks.spawn_on(
+                            link_loop(shared.clone(), endpoint.to_string(), rx),
+                            &self.runtime,
+                        ),
+                    };
                     tx
                 }
             }
@@ -153,7 +184,7 @@ pub(crate) fn send_lookups(shared: &Arc<Shared>, job: &Arc<Job>, lookups: Vec<Lo
     let mut bypassed = 0u64;
     for l in lookups {
         match routes
-            .cache_host_index(l.wall)
+            .lookup_host_index(l.wall)
             .and_then(|h| by_host.get_mut(h as usize))
         {
             Some(group) => group.push(l),
@@ -215,7 +246,6 @@ pub(crate) fn send_outcomes(shared: &Arc<Shared>, job: &Arc<Job>, outcomes: Vec<
         }
     }
     for (host, outcomes) in by_host {
-        lock(&job.report).cache_bytes += outcomes.len() as u64 * 9;
         shared.caches.send(
             shared,
             host,
@@ -228,8 +258,10 @@ pub(crate) fn send_outcomes(shared: &Arc<Shared>, job: &Arc<Job>, outcomes: Vec<
 }
 
 /// Return `returns` to their tickets' hosts and wait until each host has applied its
-/// share (or is found dead): the credit in them may then be reported to the
-/// coordinator.
+/// share (or is found dead), and, on replicated walls, until every other replica has
+/// stored the entries those returns stored: the credit in them may then be reported to
+/// the coordinator. (So when the coarse pass's credit is whole, every replica holds
+/// every entry it made, and the main pass sees the same caches everywhere.)
 pub(crate) async fn return_tickets(
     shared: &Arc<Shared>,
     job: &Arc<Job>,
@@ -239,20 +271,53 @@ pub(crate) async fn return_tickets(
     let mut by_host: HashMap<String, Vec<TicketReturn>> = HashMap::new();
     for r in returns {
         // A ticket naming a wall no host serves cannot close anywhere: drop it.
-        if let Some(h) = routes.cache_host(crate::tickets::ticket_wall(r.ticket)) {
+        if let Some(h) = routes.ticket_host(r.ticket) {
             by_host.entry(h.to_string()).or_default().push(r);
         }
     }
     let mut waits = Vec::new();
     for (host, returns) in by_host {
         let (done, wait) = oneshot::channel();
-        lock(&job.report).cache_bytes += returns.len() as u64 * RETURN_BYTES;
         shared.caches.send(
             shared,
             &host,
             CacheMessage::Returns {
                 job: job.clone(),
                 returns,
+                done,
+            },
+        );
+        waits.push((host, wait));
+    }
+    let mut stored: Vec<(String, Vec<(u32, Entry)>)> = Vec::new();
+    for (host, w) in waits {
+        if let Ok(Some(entries)) = w.await
+            && !entries.is_empty()
+        {
+            stored.push((host, entries));
+        }
+    }
+    if stored.is_empty() || !routes.cache_replicas() {
+        return;
+    }
+    // Each replica gets what every other replica stored.
+    let mut waits = Vec::new();
+    for target in routes.cache_host_endpoints() {
+        let entries: Vec<(u32, Entry)> = stored
+            .iter()
+            .filter(|(origin, _)| origin != target)
+            .flat_map(|(_, e)| e.iter().copied())
+            .collect();
+        if entries.is_empty() || shared.caches.is_dead(target) {
+            continue;
+        }
+        let (done, wait) = oneshot::channel();
+        shared.caches.send(
+            shared,
+            target,
+            CacheMessage::Entries {
+                job: job.clone(),
+                entries,
                 done,
             },
         );
@@ -283,9 +348,9 @@ fn fail(shared: &Arc<Shared>, endpoint: &str, msg: CacheMessage) {
                 crate::work::deliver(shared, &job, out);
             }
         }
-        CacheMessage::Returns { job, done, .. } => {
+        CacheMessage::Returns { job, done, .. } | CacheMessage::Entries { job, done, .. } => {
             lost(&job, endpoint);
-            let _ = done.send(false);
+            let _ = done.send(None);
         }
         CacheMessage::Outcomes { job, .. } => lost(&job, endpoint),
     }
@@ -303,8 +368,14 @@ fn lost(job: &Job, endpoint: &str) {
 
 /// What was sent and awaits an answer, in order.
 enum Pending {
-    Lookups { job: Arc<Job>, lookups: Vec<Lookup> },
-    Returns { done: oneshot::Sender<bool> },
+    Lookups {
+        job: Arc<Job>,
+        lookups: Vec<Lookup>,
+    },
+    /// An ack; the last message of a `CacheMessage` carries its caller's wait.
+    Ack {
+        done: Option<oneshot::Sender<Acked>>,
+    },
 }
 
 async fn link_loop(
@@ -342,6 +413,8 @@ async fn link_loop(
     };
     let mut pending: VecDeque<(u64, Pending)> = VecDeque::new();
     let mut sequence = 0u64;
+    // Entries acknowledged returns stored, until the ack that ends their message.
+    let mut carried: Vec<(u32, Entry)> = Vec::new();
     loop {
         tokio::select! {
             msg = rx.recv() => {
@@ -368,6 +441,7 @@ async fn link_loop(
                         ok
                     }
                     CacheMessage::Returns { job, returns, done } => {
+                        lock(&job.report).cache_bytes += returns.len() as u64 * RETURN_BYTES;
                         let mut ok = true;
                         let mut rest = returns;
                         let mut dones = Some(done);
@@ -386,11 +460,11 @@ async fn link_loop(
                             // The last chunk carries the caller's wait.
                             let p = if rest.is_empty() {
                                 match dones.take() {
-                                    Some(done) => Pending::Returns { done },
+                                    Some(done) => Pending::Ack { done: Some(done) },
                                     None => break,
                                 }
                             } else {
-                                Pending::Returns { done: oneshot::channel().0 }
+                                Pending::Ack { done: None }
                             };
                             pending.push_back((sequence, p));
                             if req_tx.send(request).await.is_err() {
@@ -401,6 +475,7 @@ async fn link_loop(
                         ok
                     }
                     CacheMessage::Outcomes { job, outcomes } => {
+                        lock(&job.report).cache_bytes += outcomes.len() as u64 * OUTCOME_BYTES;
                         sequence += 1;
                         let request = CacheRequest {
                             msg: Some(cache_request::Msg::Outcomes(PhmOutcomes {
@@ -412,8 +487,41 @@ async fn link_loop(
                                 hits: outcomes.iter().map(|o| u8::from(o.2)).collect(),
                             })),
                         };
-                        pending.push_back((sequence, Pending::Returns { done: oneshot::channel().0 }));
+                        pending.push_back((sequence, Pending::Ack { done: None }));
                         req_tx.send(request).await.is_ok()
+                    }
+                    CacheMessage::Entries { job, entries, done } => {
+                        lock(&job.report).cache_bytes += entries.len() as u64 * (ENTRY_RECORD_BYTES as u64 + 4);
+                        let mut ok = true;
+                        let mut chunks = entries.chunks(ENTRIES_PER_MESSAGE).peekable();
+                        let mut dones = Some(done);
+                        while let Some(chunk) = chunks.next() {
+                            sequence += 1;
+                            let mut records = Vec::with_capacity(chunk.len() * ENTRY_RECORD_BYTES);
+                            for (_, e) in chunk {
+                                encode_entry(e, &mut records);
+                            }
+                            let request = CacheRequest {
+                                msg: Some(cache_request::Msg::Entries(WallEntries {
+                                    job_id: job.key.id.to_string(),
+                                    attempt: job.key.attempt,
+                                    sequence,
+                                    walls: chunk.iter().map(|(w, _)| *w).collect(),
+                                    entries: records,
+                                })),
+                            };
+                            let done = if chunks.peek().is_none() { dones.take() } else { None };
+                            pending.push_back((sequence, Pending::Ack { done }));
+                            if req_tx.send(request).await.is_err() {
+                                ok = false;
+                                break;
+                            }
+                        }
+                        if let Some(done) = dones {
+                            // Nothing to send (no entries): done at once.
+                            let _ = done.send(Some(Vec::new()));
+                        }
+                        ok
                     }
                 };
                 if !sent {
@@ -441,10 +549,19 @@ async fn link_loop(
                     (Some(cache_response::Msg::Answers(a)), Pending::Lookups { job, lookups })
                         if a.sequence == seq =>
                     {
-                        apply_answers(&shared, &job, lookups, &a);
+                        apply_answers(&shared, &job, lookups, answers_of(&a));
                     }
-                    (Some(cache_response::Msg::Ack(a)), Pending::Returns { done }) if a.sequence == seq => {
-                        let _ = done.send(true);
+                    (Some(cache_response::Msg::Ack(a)), Pending::Ack { done }) if a.sequence == seq => {
+                        match entries_of(&a) {
+                            Ok(entries) => carried.extend(entries),
+                            Err(e) => {
+                                link_failed(&shared, &endpoint, &mut rx, pending, &e);
+                                return;
+                            }
+                        }
+                        if let Some(done) = done {
+                            let _ = done.send(Some(std::mem::take(&mut carried)));
+                        }
                     }
                     (_, p) => {
                         pending.push_front((seq, p));
@@ -457,19 +574,36 @@ async fn link_loop(
     }
 }
 
+/// The ray as its wall's actor sees it: the actor reads the coarse flag from the
+/// record (a coarse ray's ticket stores even when the main pass does not fill).
+fn lookup_record(l: &Lookup) -> RayRecord {
+    let mut r = l.ray;
+    if l.lineage.coarse {
+        r.flags |= FLAG_COARSE;
+    }
+    r
+}
+
+/// A lookup's option bits (cache.proto `CacheLookups.options`).
+fn lookup_options(job: &Job, l: &Lookup) -> u32 {
+    let mut o = 0;
+    if l.cache {
+        // The coarse pass is exact: its rays fill the caches, never ask.
+        if !l.lineage.coarse {
+            o |= MAY_ANSWER;
+        }
+        if l.lineage.ticket_count() < MAX_TICKETS && job.tracer.tickets_for(&l.lineage) {
+            o |= MAY_TICKET;
+        }
+    }
+    if l.phm {
+        o |= ASK_PHM;
+    }
+    o
+}
+
 fn lookups_request(job: &Job, sequence: u64, lookups: &[Lookup]) -> CacheRequest {
-    // The actor reads the coarse flag from the record (a coarse ray's ticket stores
-    // even when the main pass does not fill).
-    let rays: Vec<_> = lookups
-        .iter()
-        .map(|l| {
-            let mut r = l.ray;
-            if l.lineage.coarse {
-                r.flags |= FLAG_COARSE;
-            }
-            r
-        })
-        .collect();
+    let rays: Vec<_> = lookups.iter().map(lookup_record).collect();
     let mut records = Vec::new();
     encode_rays(&rays, &mut records);
     CacheRequest {
@@ -480,34 +614,130 @@ fn lookups_request(job: &Job, sequence: u64, lookups: &[Lookup]) -> CacheRequest
             count: lookups.len() as u32,
             records,
             walls: lookups.iter().map(|l| l.wall).collect(),
-            options: lookups
-                .iter()
-                .map(|l| {
-                    let mut o = 0;
-                    if l.cache {
-                        // The coarse pass is exact: its rays fill the caches, never ask.
-                        if !l.lineage.coarse {
-                            o |= MAY_ANSWER;
-                        }
-                        if l.lineage.ticket_count() < MAX_TICKETS
-                            && job.tracer.tickets_for(&l.lineage)
-                        {
-                            o |= MAY_TICKET;
-                        }
-                    }
-                    if l.phm {
-                        o |= ASK_PHM;
-                    }
-                    o
-                })
-                .collect(),
+            options: lookups.iter().map(|l| lookup_options(job, l)).collect(),
         })),
+    }
+}
+
+/// The entries an ack carries (wall, entry).
+fn entries_of(a: &TicketAck) -> Result<Vec<(u32, Entry)>, String> {
+    if a.walls.is_empty() && a.entries.is_empty() {
+        return Ok(Vec::new());
+    }
+    let entries = decode_entries(&a.entries, a.walls.len()).map_err(|e| e.to_string())?;
+    Ok(a.walls.iter().copied().zip(entries).collect())
+}
+
+/// The answer to one ray, however it came.
+#[derive(Clone, Copy, Debug)]
+struct Answer {
+    /// cache.proto's outcome code (with [`PROBE`] added for probes).
+    code: u8,
+    /// The cached radiance of a hit.
+    radiance: Option<[f32; 3]>,
+    /// The ticket of a ticketed miss.
+    ticket: Option<u64>,
+}
+
+impl From<Outcome> for Answer {
+    fn from(o: Outcome) -> Answer {
+        Answer {
+            code: o.code(),
+            radiance: match o {
+                Outcome::Hit(rgb) => Some(rgb),
+                _ => None,
+            },
+            ticket: o.ticket(),
+        }
+    }
+}
+
+/// A `CacheAnswers` ray for ray: the radiance of each hit and the ticket of each
+/// ticketed miss taken in order from their lists (missing ones stay `None`).
+fn answers_of(a: &CacheAnswers) -> impl Iterator<Item = Answer> + '_ {
+    let mut radiance = a.radiance.chunks_exact(3);
+    let mut tickets = a.tickets.iter();
+    a.outcomes.iter().map(move |&code| Answer {
+        code,
+        radiance: if code & !PROBE == HIT {
+            radiance.next().map(|c| [c[0], c[1], c[2]])
+        } else {
+            None
+        },
+        ticket: if code & !PROBE == TICKETED {
+            tickets.next().copied()
+        } else {
+            None
+        },
+    })
+}
+
+/// The link to the cache host in this process: each message is handed to the host's
+/// actors and answered before the next (the order a gRPC link keeps, so an applied
+/// return means what it means there).
+async fn local_loop(
+    shared: Arc<Shared>,
+    host: CacheHost,
+    mut rx: mpsc::UnboundedReceiver<CacheMessage>,
+) {
+    while let Some(msg) = rx.recv().await {
+        match msg {
+            CacheMessage::Lookups { job, lookups } => {
+                let rays = lookups
+                    .iter()
+                    .map(|l| WallLookup {
+                        wall: l.wall,
+                        ray: LookupRay {
+                            ray: lookup_record(l),
+                            options: lookup_options(&job, l),
+                        },
+                    })
+                    .collect();
+                let outcomes = host.lookup_rays(&job.key.id, job.key.attempt, rays).await;
+                apply_answers(
+                    &shared,
+                    &job,
+                    lookups,
+                    outcomes.into_iter().map(Answer::from),
+                );
+            }
+            CacheMessage::Returns { job, returns, done } => {
+                let returns = returns.iter().map(|t| {
+                    (
+                        t.ticket,
+                        Return {
+                            rgb: [t.r, t.g, t.b],
+                            credit: t.credit,
+                            tainted: t.tainted,
+                        },
+                    )
+                });
+                let stored = host
+                    .return_tickets(&job.key.id, job.key.attempt, returns)
+                    .await;
+                let _ = done.send(Some(stored));
+            }
+            CacheMessage::Entries { job, entries, done } => {
+                host.insert_entries(&job.key.id, job.key.attempt, entries)
+                    .await;
+                let _ = done.send(Some(Vec::new()));
+            }
+            CacheMessage::Outcomes { job, outcomes } => {
+                let outcomes = outcomes.iter().map(|&(w, c, hit)| (w, c, u8::from(hit)));
+                host.learn(&job.key.id, job.key.attempt, outcomes).await;
+            }
+        }
     }
 }
 
 /// Apply a host's answers to the lookups they answer, ray for ray. An answer that
 /// does not fit its lookups (a host bug) sends the unanswered rays straight on.
-fn apply_answers(shared: &Arc<Shared>, job: &Arc<Job>, lookups: Vec<Lookup>, a: &CacheAnswers) {
+fn apply_answers(
+    shared: &Arc<Shared>,
+    job: &Arc<Job>,
+    lookups: Vec<Lookup>,
+    answers: impl Iterator<Item = Answer>,
+) {
     job.awaiting_cache
         .fetch_sub(lookups.len(), Ordering::Relaxed);
     if !job.is_active() {
@@ -518,18 +748,18 @@ fn apply_answers(shared: &Arc<Shared>, job: &Arc<Job>, lookups: Vec<Lookup>, a: 
         walls: routes.has_caches(),
     };
     let mut out = Outbox::default();
-    let mut radiance = a.radiance.chunks_exact(3);
-    let mut tickets = a.tickets.iter();
     let (mut cache_not_sent, mut phm_not_sent) = (0u64, 0u64);
-    for (i, l) in lookups.into_iter().enumerate() {
-        let code = a.outcomes.get(i).copied().unwrap_or(GO_ON);
+    let mut answers = answers.fuse();
+    for l in lookups {
+        let answer = answers.next();
+        let code = answer.map_or(GO_ON, |a| a.code);
         let mut lin = l.lineage;
         lin.probe = code & PROBE != 0 && matches!(code & !PROBE, GO_ON | TICKETED);
         match code & !PROBE {
             HIT => {
-                if let Some(c) = radiance.next() {
+                if let Some(c) = answer.and_then(|a| a.radiance) {
                     job.tracer
-                        .answer_hit(&l.ray, &lin, Vec3::new(c[0], c[1], c[2]), &mut out);
+                        .answer_hit(&l.ray, &lin, Vec3::from_array(c), &mut out);
                     if !routes.owns(l.domain) {
                         cache_not_sent += 1;
                     }
@@ -537,7 +767,7 @@ fn apply_answers(shared: &Arc<Shared>, job: &Arc<Job>, lookups: Vec<Lookup>, a: 
                 }
             }
             TICKETED => {
-                if let Some(&t) = tickets.next() {
+                if let Some(t) = answer.and_then(|a| a.ticket) {
                     lin = lin.with_ticket(t);
                 }
             }
@@ -589,8 +819,10 @@ fn link_failed(
             Pending::Lookups { job, lookups } => {
                 fail(shared, endpoint, CacheMessage::Lookups { job, lookups })
             }
-            Pending::Returns { done } => {
-                let _ = done.send(false);
+            Pending::Ack { done } => {
+                if let Some(done) = done {
+                    let _ = done.send(None);
+                }
             }
         }
     }

@@ -38,8 +38,13 @@ pub struct WorkerConfig {
     /// The CacheService endpoint of the cache host running beside this worker in the
     /// same process (`dray worker` starts one unless told not to), announced when
     /// registering so the coordinator can place cache actors there. The worker itself
-    /// never answers a ray from a cache: it talks to the actors over gRPC like anyone.
+    /// never answers a ray from a cache: it hands rays to the walls' actors.
     pub cache_endpoint: Option<String>,
+    /// That cache host itself, when it runs in this process: rays at its walls reach
+    /// its actors through their mailboxes (no protobuf, no HTTP/2), and only cache
+    /// hosts in other processes are reached over gRPC. The answers are the same either
+    /// way (the same actors answer).
+    pub cache_host: Option<dray_cache::CacheHost>,
     /// How this worker reaches the coordinator, its peers and cache hosts: the cluster
     /// token it presents, and TLS.
     pub net: dray_net::ClientOptions,
@@ -68,6 +73,7 @@ impl Default for WorkerConfig {
             rejoin_timeout: Duration::from_secs(300),
             memory_packages: None,
             cache_endpoint: None,
+            cache_host: None,
             net: dray_net::ClientOptions::plain(),
             server: dray_net::ServerOptions::default(),
             package_fetch: crate::package_fetch::FetchMode::Auto,

@@ -206,7 +206,10 @@ pub async fn run(
         ),
         jobs: Jobs::default(),
         peers: Peers::new(tokio::runtime::Handle::current()),
-        caches: CacheLinks::new(tokio::runtime::Handle::current()),
+        caches: CacheLinks::new(
+            tokio::runtime::Handle::current(),
+            config.cache_endpoint.clone().zip(config.cache_host.clone()),
+        ),
         wake: Wake::default(),
         limits,
         memory_packages: config.memory_packages.clone(),

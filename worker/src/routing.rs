@@ -68,6 +68,10 @@ pub struct Routes {
     /// empty when the job has no ray caches.
     cache_hosts: Vec<String>,
     wall_hosts: Vec<u32>,
+    /// Sender placement: every cache host holds a replica of every wall.
+    replicas: bool,
+    /// Under sender placement, the index in `cache_hosts` of this worker's own host.
+    my_host: Option<u32>,
 }
 
 impl Routes {
@@ -128,6 +132,13 @@ impl Routes {
                 domains,
             });
         }
+        // A host beside a worker is listed under the worker's id.
+        let my_host = table
+            .cache_hosts
+            .iter()
+            .position(|h| h.host_id == me)
+            .map(|i| i as u32)
+            .filter(|_| table.cache_replicas);
         Ok(Routes {
             version: table.version,
             local: table.local,
@@ -136,6 +147,8 @@ impl Routes {
             peers,
             cache_hosts,
             wall_hosts: table.wall_hosts.clone(),
+            replicas: table.cache_replicas,
+            my_host,
         })
     }
 
@@ -150,9 +163,39 @@ impl Routes {
             .and_then(|h| self.cache_host_endpoint(h))
     }
 
-    /// The index (into the table's cache hosts) of the host serving `wall`.
+    /// The index (into the table's cache hosts) of the wall's home host: its only
+    /// actor under remote placement, the replica used by workers with no host of their
+    /// own under sender placement.
     pub fn cache_host_index(&self, wall: u32) -> Option<u32> {
         self.wall_hosts.get(wall as usize).copied()
+    }
+
+    /// The index of the host this worker looks `wall` up at: its own host's replica
+    /// under sender placement (a lookup in this process), else the wall's home.
+    pub fn lookup_host_index(&self, wall: u32) -> Option<u32> {
+        match self.my_host {
+            Some(h) if (wall as usize) < self.wall_hosts.len() => Some(h),
+            _ => self.cache_host_index(wall),
+        }
+    }
+
+    /// The endpoint of the host holding `ticket`'s actor: the replica its bits name,
+    /// or its wall's home when it names none.
+    pub fn ticket_host(&self, ticket: u64) -> Option<&str> {
+        match dray_cache::ticket_id::ticket_replica(ticket) {
+            0 => self.cache_host(dray_cache::ticket_id::ticket_wall(ticket)),
+            r => self.cache_host_endpoint(r - 1),
+        }
+    }
+
+    /// Whether every cache host holds a replica of every wall (sender placement).
+    pub fn cache_replicas(&self) -> bool {
+        self.replicas
+    }
+
+    /// The endpoints of every cache host in the table.
+    pub fn cache_host_endpoints(&self) -> &[String] {
+        &self.cache_hosts
     }
 
     /// The endpoint of cache host `index`.

@@ -14,7 +14,7 @@ use crate::render_cmd::RenderArgs;
 use crate::submit_cmd::SubmitArgs;
 
 /// The knobs of `--ray-cache`, as `ray-cache.<knob>` keys vary them.
-pub const RAY_CACHE_KNOBS: [&str; 6] = crate::ray_cache_flag::KEYS;
+pub const RAY_CACHE_KNOBS: [&str; 7] = crate::ray_cache_flag::KEYS;
 /// The knobs of `--phm`, as `phm.<knob>` keys vary them.
 pub const PHM_KNOBS: [&str; 8] = crate::phm_flag::KEYS;
 

@@ -68,6 +68,17 @@ impl JobCaches {
         }
     }
 
+    /// Whether the job's walls are replicated beside every worker (Little's sender
+    /// placement). Hit maps are not replicated yet, so a job with them keeps each wall
+    /// once (remote placement).
+    pub fn sender_placement(&self) -> bool {
+        self.phm.is_none()
+            && self
+                .settings
+                .as_ref()
+                .is_some_and(|s| s.placement == crate::validate::CACHE_PLACEMENT_SENDER)
+    }
+
     /// What opening attempt `attempt` of `job_id` sends.
     pub fn attempt_walls(&self, job_id: &str, attempt: u32) -> AttemptWalls {
         AttemptWalls {
@@ -98,7 +109,15 @@ pub fn candidates(membership: &Membership, sched: &JobSchedule) -> Candidates {
     Candidates::choose(membership.cache_hosts.list(), &workers)
 }
 
-/// Place the walls of `sched`'s job on `c` by its current (the attempt's first) table.
-pub fn place(c: &Candidates, sched: &JobSchedule, domains: u32) -> Placement {
-    Placement::place(domains, c, &c.beside(sched.routing().routes(), domains))
+/// Place the walls of `sched`'s job on `c` by its current (the attempt's first) table:
+/// replicated on every host when the job asks for sender placement and the hosts are
+/// beside workers (stand-alone `dray cache` hosts send nothing, so they hold each wall
+/// once).
+pub fn place(c: &Candidates, sched: &JobSchedule, domains: u32, caches: &JobCaches) -> Placement {
+    let beside = c.beside(sched.routing().routes(), domains);
+    if caches.sender_placement() && !c.beside_worker.is_empty() {
+        Placement::replicated(domains, c, &beside)
+    } else {
+        Placement::place(domains, c, &beside)
+    }
 }

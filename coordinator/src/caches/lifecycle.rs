@@ -162,6 +162,7 @@ pub async fn open(a: &AttemptWalls, placement: Placement) -> Opened {
                 domain_bounds: a.geometry.domain_bounds.clone(),
                 walls,
                 phm: a.phm.clone(),
+                replica: placement.replica_of(h),
             };
             let net = a.net.clone();
             // In the job's span, so the call carries its trace context to the host.

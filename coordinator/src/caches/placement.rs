@@ -9,9 +9,17 @@
 //! worker, an owner may announce no cache endpoint) goes round robin over the hosts by
 //! domain (`d % hosts`), which spreads neighbouring domains, as domain ownership does.
 //!
+//! **Sender placement** ([`Placement::replicated`], Little 2011): every host holds a
+//! replica of every wall, so a worker looks up a ray in its own process, the one the
+//! ray is leaving; host `i` is replica `i + 1` (tickets carry the number, so returns
+//! find the replica that issued them). Each wall still has a *home* by the rule above,
+//! where workers without a host of their own look up.
+//!
 //! **Failures.** A host that cannot open its walls is left out and its walls go round
 //! robin by domain over the hosts that are left ([`Placement::without`]); the others keep
-//! theirs, so only the lost walls have to be opened again.
+//! theirs, so only the lost walls have to be opened again. (Replicated, the others hold
+//! every wall already; those whose index moved are opened again with their new replica
+//! number, before any ticket exists.)
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
@@ -78,6 +86,8 @@ pub struct Placement {
     hosts: Vec<CacheHost>,
     /// Index = wall (`6 * domain + face`), value = index in `hosts`.
     wall_hosts: Vec<u32>,
+    /// Sender placement: every host holds a replica of every wall.
+    replicated: bool,
 }
 
 impl Placement {
@@ -107,6 +117,47 @@ impl Placement {
         Placement::compact(&c.hosts, &per_domain)
     }
 
+    /// Sender placement: every host of `c` holds a replica of every wall of `domains`
+    /// domains; each wall's home is as [`Placement::place`] would put it. No hosts: no
+    /// caches.
+    pub fn replicated(domains: u32, c: &Candidates, beside: &[Option<usize>]) -> Placement {
+        let n = c.hosts.len();
+        if n == 0 {
+            return Placement::none();
+        }
+        let wall_hosts = (0..domains as usize)
+            .flat_map(|d| {
+                let h = beside
+                    .get(d)
+                    .copied()
+                    .flatten()
+                    .filter(|&h| h < n)
+                    .unwrap_or(d % n);
+                std::iter::repeat_n(h as u32, FACES as usize)
+            })
+            .collect();
+        Placement {
+            hosts: c.hosts.clone(),
+            wall_hosts,
+            replicated: true,
+        }
+    }
+
+    /// Whether every host holds a replica of every wall.
+    pub fn is_replicated(&self) -> bool {
+        self.replicated
+    }
+
+    /// The replica number host `h` opens its walls as: `h + 1` under sender placement,
+    /// 0 (the only actor) otherwise.
+    pub fn replica_of(&self, h: usize) -> u32 {
+        if self.replicated {
+            u32::try_from(h + 1).unwrap_or(u32::MAX)
+        } else {
+            0
+        }
+    }
+
     /// The placement with every domain `d` on `c.hosts[per_domain[d]]`, listing only
     /// the hosts used, in their order in `hosts`.
     fn compact(hosts: &[CacheHost], per_domain: &[usize]) -> Placement {
@@ -123,6 +174,7 @@ impl Placement {
         Placement {
             hosts: used.iter().map(|&h| hosts[h].clone()).collect(),
             wall_hosts,
+            replicated: false,
         }
     }
 
@@ -141,8 +193,15 @@ impl Placement {
         &self.wall_hosts
     }
 
-    /// The walls of host `h`, ascending.
+    /// The walls of host `h`, ascending (every wall, under sender placement).
     pub fn walls_of(&self, h: usize) -> Vec<u32> {
+        if self.replicated {
+            return if h < self.hosts.len() {
+                (0..self.wall_hosts.len() as u32).collect()
+            } else {
+                Vec::new()
+            };
+        }
         self.wall_hosts
             .iter()
             .enumerate()
@@ -164,6 +223,9 @@ impl Placement {
             return (Placement::none(), Vec::new());
         }
         let domains = self.wall_hosts.len() / FACES as usize;
+        if self.replicated {
+            return self.replicas_without(&left);
+        }
         let mut moved = BTreeSet::new();
         let per_domain: Vec<usize> = (0..domains)
             .map(|d| {
@@ -187,11 +249,77 @@ impl Placement {
         }
         (next, gained.into_iter().collect())
     }
+
+    /// [`Placement::without`] under sender placement: the hosts `left` (old indices,
+    /// ascending) keep every wall; homes on lost hosts go round robin by domain over
+    /// them. The hosts whose index (so replica number) moved must open their walls
+    /// again with the new number.
+    fn replicas_without(&self, left: &[usize]) -> (Placement, Vec<(usize, Vec<u32>)>) {
+        let index: BTreeMap<usize, u32> = left
+            .iter()
+            .enumerate()
+            .map(|(new, &old)| (old, new as u32))
+            .collect();
+        let wall_hosts = self
+            .wall_hosts
+            .chunks(FACES as usize)
+            .enumerate()
+            .flat_map(|(d, homes)| {
+                let h = homes.first().copied().unwrap_or(0) as usize;
+                let new = index
+                    .get(&h)
+                    .copied()
+                    .unwrap_or(index[&left[d % left.len()]]);
+                std::iter::repeat_n(new, FACES as usize)
+            })
+            .collect();
+        let next = Placement {
+            hosts: left.iter().map(|&h| self.hosts[h].clone()).collect(),
+            wall_hosts,
+            replicated: true,
+        };
+        let moved = left
+            .iter()
+            .enumerate()
+            .filter(|(new, old)| new != *old)
+            .map(|(new, _)| (new, next.walls_of(new)))
+            .collect();
+        (next, moved)
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn replicas_hold_every_wall_and_keep_homes() {
+        let c = Candidates::choose(
+            Vec::new(),
+            &[
+                ("a".into(), "http://a:9".into()),
+                ("b".into(), "http://b:9".into()),
+                ("c".into(), "http://c:9".into()),
+            ],
+        );
+        let p = Placement::replicated(4, &c, &[Some(2), None, Some(0), None]);
+        assert!(p.is_replicated());
+        assert_eq!(p.hosts().len(), 3);
+        assert_eq!(p.walls_of(1), (0..24).collect::<Vec<u32>>());
+        assert_eq!(p.walls_of(3), Vec::<u32>::new());
+        assert_eq!((p.replica_of(0), p.replica_of(2)), (1, 3));
+        assert_eq!(&p.wall_hosts()[..6], &[2; 6]);
+        assert_eq!(&p.wall_hosts()[6..12], &[1; 6]);
+        // Host 1 fails: 0 keeps its number, 2 becomes 1 and opens again as replica 2.
+        let (q, again) = p.without(&BTreeSet::from([1]));
+        assert!(q.is_replicated());
+        assert_eq!(ids(&q), ["a", "c"]);
+        assert_eq!(again, vec![(1, (0..24).collect::<Vec<u32>>())]);
+        assert_eq!(q.replica_of(1), 2);
+        assert_eq!(&q.wall_hosts()[..6], &[1; 6]);
+        assert!(q.wall_hosts().iter().all(|&h| h < 2));
+        assert_eq!(Placement::place(4, &c, &[]).replica_of(0), 0);
+    }
 
     fn host(id: &str) -> CacheHost {
         CacheHost {

@@ -216,6 +216,7 @@ impl JobRouting {
             local: self.routes.is_local(),
             cache_hosts: self.caches.hosts().to_vec(),
             wall_hosts: self.caches.wall_hosts().to_vec(),
+            cache_replicas: self.caches.is_replicated(),
         }
     }
 }
