@@ -75,6 +75,9 @@ def main() -> int:
                     help="lookup radii in the thesis's units (voxels 0.3 wide)")
     ap.add_argument("--coarse", type=int, nargs="+", default=[0, 128, 256])
     ap.add_argument("--workers", type=int, default=4)
+    ap.add_argument("--placements", nargs="+", default=["sender"],
+                    choices=["sender", "remote"],
+                    help="ray-cache.placement values to compare (issue 21)")
     ap.add_argument("--modes", nargs="+", default=["cluster", "embedded"],
                     choices=["cluster", "embedded"])
     ap.add_argument("--port", type=int, default=53100)
@@ -117,7 +120,8 @@ def main() -> int:
             if mode == "embedded":
                 target += ["--domains", "27", "--layout", "grid"]
             results[mode] = sweep(dray, scene, a.work / f"{mode}-radius", a.size,
-                                  [f"ray-cache.radius={radii}", f"ray-cache.coarse={coarse}"],
+                                  [f"ray-cache.radius={radii}", f"ray-cache.coarse={coarse}",
+                                   f"ray-cache.placement={','.join(a.placements)}"],
                                   base, target, a.repeat)
             mid = f"{0.005 * scale:.6g}"
             results[mode + "-retrieve"] = sweep(
