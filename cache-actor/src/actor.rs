@@ -276,6 +276,7 @@ impl WallActor {
                     return Outcome::Occluded;
                 }
                 Advice::Probe => probe = true,
+                Advice::Trace => {}
                 Advice::Unplaced => self.stats.phm.unplaced += 1,
             }
         }

@@ -66,6 +66,11 @@ pub enum Advice {
     Occlude,
     /// Trace the ray (as the ray cache answers it) and report its outcome: a probe.
     Probe,
+    /// Trace the ray, but not as a probe: its cell has decided in an inconsistent map
+    /// (which ignores outcomes from then on), and the decision cannot answer this ray
+    /// (a predicted hit, and the ray is not an occlusion ray). Its outcome would be
+    /// sent only to be dropped.
+    Trace,
 }
 
 /// What an outcome did to the map.
@@ -230,7 +235,8 @@ impl HitMap {
 
     /// The map's advice for `ray`, reaching this wall. A ray's kind only matters for
     /// predicted hits: only occlusion rays can be answered by "something is in the
-    /// way"; others are traced (and so probed) at such cells.
+    /// way"; others are traced at such cells, as probes while the cell can still learn
+    /// (consistent maps), plainly once it cannot (inconsistent maps).
     pub fn advise(&self, ray: &RayRecord) -> Advice {
         let Some(cell) = self.cell_of(ray.origin, ray.dir) else {
             return Advice::Unplaced;
@@ -242,6 +248,7 @@ impl HitMap {
         match decision {
             Decision::Miss => Advice::Skip,
             Decision::Hit if ray.kind.is_occlusion() => Advice::Occlude,
+            _ if self.mode == PhmMode::Inconsistent => Advice::Trace,
             _ => Advice::Probe,
         }
     }
@@ -446,6 +453,39 @@ mod tests {
                     assert_eq!(m.decision(7), Decision::Hit);
                     assert_eq!(m.decided(), (1, 0));
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn frozen_cells_do_not_ask_for_probes() {
+        for mode in [PhmMode::Consistent, PhmMode::Inconsistent] {
+            let s = settings(|p| {
+                p.prior = Some(1.0);
+                p.reprobe = Some(0.0);
+                p.mode = mode.name().into();
+                p.kinds = "camera,shadow".into();
+            });
+            let mut m = map(&s);
+            let cam = RayRecord {
+                kind: RayKind::Camera,
+                ..ray(0.5, 0.5, 0)
+            };
+            let c = cell(&m, &cam);
+            assert_eq!(m.advise(&cam), Advice::Probe, "undecided cells probe");
+            for _ in 0..8 {
+                m.learn(c, true);
+            }
+            assert_eq!(m.decision(c), Decision::Hit);
+            // A camera ray cannot be occluded: it is traced either way, but only a
+            // consistent map can still learn from its outcome.
+            let want = match mode {
+                PhmMode::Consistent => Advice::Probe,
+                PhmMode::Inconsistent => Advice::Trace,
+            };
+            assert_eq!(m.advise(&cam), want, "{mode:?}");
+            if mode == PhmMode::Inconsistent {
+                assert_eq!(m.learn(c, false), Learned::Frozen);
             }
         }
     }

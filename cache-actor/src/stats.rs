@@ -85,7 +85,7 @@ impl MapStats {
     }
 
     /// Add this map's share to the job's statistics. The worker-side fields
-    /// (`rays_not_sent`, `bytes_not_sent`, `domains_dropped`) stay zero here.
+    /// (`rays_not_sent`, `bytes_not_sent`) stay zero here.
     pub fn add_to(&self, stats: &mut PhmStats) {
         stats.lookups += self.lookups;
         stats.rays_skipped += self.skipped;

@@ -6,7 +6,7 @@ use std::time::Duration;
 use dray_core::integrator::{RayKind, RenderSettings};
 use dray_core::render::{RayCounts, RenderOutput};
 use dray_core::scene::Scene;
-use dray_proto::v1::{JobStats, PhmStats, RayCacheStats};
+use dray_proto::v1::{JobStats, PhmStats, RayCacheStats, TrafficStats};
 use serde::Serialize;
 
 #[derive(Serialize, Debug)]
@@ -64,8 +64,9 @@ pub struct PhmSummary {
     /// Rays not sent to another worker because a map answered or skipped them.
     pub rays_not_sent: u64,
     pub bytes_not_sent: u64,
-    /// Domains dropped (not built: always 0).
-    pub domains_dropped: u64,
+    /// `bytes_not_sent` less the traffic of lookups, answers and map outcomes (negative
+    /// when the maps cost more bytes than they saved).
+    pub bytes_not_sent_net: i64,
 }
 
 impl PhmSummary {
@@ -82,7 +83,7 @@ impl PhmSummary {
             cells: p.cells,
             rays_not_sent: p.rays_not_sent,
             bytes_not_sent: p.bytes_not_sent,
-            domains_dropped: p.domains_dropped,
+            bytes_not_sent_net: p.bytes_not_sent_net,
         })
     }
 
@@ -118,6 +119,9 @@ pub struct RayCacheSummary {
     /// Rays a cache answered that would have gone to another worker, and their bytes.
     pub rays_not_sent: u64,
     pub bytes_not_sent: u64,
+    /// `bytes_not_sent` less the traffic of lookups, answers, ticket returns and entry
+    /// copies (negative when the caches cost more bytes than they saved).
+    pub bytes_not_sent_net: i64,
     /// Tickets opened by misses, closed when their credit came back, closed with their
     /// radiance stored, and still open when the job ended.
     pub tickets_opened: u64,
@@ -166,6 +170,7 @@ impl RayCacheSummary {
             inner_hit_ratio: ratio(r.inner_hits, r.inner_lookups),
             rays_not_sent: r.rays_not_sent,
             bytes_not_sent: r.bytes_not_sent,
+            bytes_not_sent_net: r.bytes_not_sent_net,
             tickets_opened: r.tickets_opened,
             tickets_closed: r.tickets_closed,
             tickets_stored: r.tickets_stored,
@@ -238,6 +243,8 @@ pub struct Scheduling {
     pub rays_forwarded: u64,
     /// Ray batches' payload bytes sent between actors.
     pub ray_bytes_sent: u64,
+    /// Bytes between processes by kind, and in total.
+    pub traffic: TrafficSummary,
     /// Most rays queued at one worker at any moment.
     pub queue_peak: u64,
     /// Rounds of the scheduler.
@@ -251,6 +258,42 @@ pub struct Scheduling {
     /// Workers that took part (0: no actors).
     #[serde(skip)]
     pub worker_count: u32,
+}
+
+/// Bytes between processes by kind (`JobStats.traffic`; docs/caches.md "Statistics"
+/// says what each covers), as the `--stats` JSON spells them.
+#[derive(Serialize, Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct TrafficSummary {
+    /// Ray batches between workers (records and their tickets).
+    pub rays: u64,
+    /// Cache lookups sent, and their answers received.
+    pub lookups: u64,
+    pub answers: u64,
+    /// Ticket returns sent and acknowledged.
+    pub ticket_returns: u64,
+    /// Sender placement's replica copies, both directions.
+    pub entry_copies: u64,
+    /// Hit-map outcomes sent and acknowledged.
+    pub map_outcomes: u64,
+    /// The sum of the kinds.
+    pub total: u64,
+    /// Cache-link messages, both directions (ray batches not counted).
+    pub cache_messages: u64,
+}
+
+impl TrafficSummary {
+    pub fn of(t: &TrafficStats) -> TrafficSummary {
+        TrafficSummary {
+            rays: t.rays,
+            lookups: t.lookups,
+            answers: t.answers,
+            ticket_returns: t.ticket_returns,
+            entry_copies: t.entry_copies,
+            map_outcomes: t.map_outcomes,
+            total: t.total,
+            cache_messages: t.cache_messages,
+        }
+    }
 }
 
 /// One worker's share of a job.
@@ -278,6 +321,7 @@ impl Scheduling {
             rays_exchanged: 0,
             rays_forwarded: 0,
             ray_bytes_sent: 0,
+            traffic: TrafficSummary::default(),
             queue_peak: 0,
             scheduler_rounds: 0,
             routing_version: 0,
@@ -303,6 +347,7 @@ impl Scheduling {
             rays_exchanged: s.rays_exchanged,
             rays_forwarded: s.rays_forwarded,
             ray_bytes_sent: s.ray_bytes_sent,
+            traffic: TrafficSummary::of(&s.traffic.unwrap_or_default()),
             queue_peak: s.queue_peak,
             scheduler_rounds: s.scheduler_rounds,
             routing_version: s.routing_version,

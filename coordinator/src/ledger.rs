@@ -114,6 +114,8 @@ pub struct DistJob {
     rays: RayCounts,
     nonfinite: u64,
     ray_bytes_sent: u64,
+    /// Bytes between processes by kind, summed over the workers' reports.
+    traffic: dray_proto::v1::TrafficStats,
     metrics: JobMetrics,
     /// Ray caches, for a job with `ray_cache`.
     caches: Option<JobCaches>,
@@ -154,6 +156,7 @@ impl DistJob {
             rays: RayCounts::default(),
             nonfinite: 0,
             ray_bytes_sent: 0,
+            traffic: Default::default(),
             metrics,
             caches: None,
             last_progress: Instant::now(),
@@ -265,6 +268,7 @@ impl DistJob {
             s.rays = Some(self.rays);
             s.nonfinite = self.nonfinite;
             s.ray_bytes_sent = self.ray_bytes_sent;
+            s.traffic = Some(self.traffic);
             self.metrics.fill(s);
             s.tiles_retried = self.tiles_retried;
             s.scheduler_rounds = self.sched.rounds();
@@ -516,6 +520,9 @@ impl Ledger {
         }
         job.nonfinite += r.nonfinite;
         job.ray_bytes_sent += r.ray_bytes_sent;
+        if let Some(t) = r.counters.as_ref().and_then(|c| c.traffic.as_ref()) {
+            crate::traffic::add(&mut job.traffic, t);
+        }
         job.metrics
             .add(&r.worker_id, r.counters.as_ref(), r.traced.as_ref());
         if let (Some(c), Some(caches)) = (&r.counters, &job.caches) {

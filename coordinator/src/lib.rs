@@ -41,6 +41,7 @@ pub mod owned_package;
 pub mod package_service;
 pub mod scheduler;
 pub mod service;
+pub mod traffic;
 pub mod validate;
 pub mod work_dir;
 

@@ -36,6 +36,7 @@ use dray_proto::v1::{
     WallEntries, cache_request, cache_response,
 };
 use glam::Vec3;
+use prost::Message;
 use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinSet;
 use tokio_stream::wrappers::ReceiverStream;
@@ -44,6 +45,7 @@ use crate::jobs::{Job, lock};
 use crate::node::Shared;
 use crate::tickets::MAX_TICKETS;
 use crate::tracer::{Lookup, NoDomains, Outbox};
+use crate::traffic::Kind;
 
 /// Lookups per message: 4096 rays of 64 bytes, far inside gRPC's message limit.
 const LOOKUPS_PER_MESSAGE: usize = 4096;
@@ -372,8 +374,12 @@ enum Pending {
         job: Arc<Job>,
         lookups: Vec<Lookup>,
     },
-    /// An ack; the last message of a `CacheMessage` carries its caller's wait.
+    /// An ack; the last message of a `CacheMessage` carries its caller's wait. `kind`
+    /// is what the acked message was (its ack's bytes count as the same kind; an ack
+    /// of returns that carries entries counts as entry copies).
     Ack {
+        job: Arc<Job>,
+        kind: Kind,
         done: Option<oneshot::Sender<Acked>>,
     },
 }
@@ -428,7 +434,11 @@ async fn link_loop(
                             let chunk = std::mem::replace(&mut rest, tail);
                             sequence += 1;
                             let request = lookups_request(&job, sequence, &chunk);
-                            lock(&job.report).cache_bytes += chunk.len() as u64 * (RAY_RECORD_BYTES as u64 + 8);
+                            {
+                                let mut r = lock(&job.report);
+                                r.cache_bytes += chunk.len() as u64 * (RAY_RECORD_BYTES as u64 + 8);
+                                r.traffic.message(Kind::Lookups, request.encoded_len());
+                            }
                             pending.push_back((sequence, Pending::Lookups { job: job.clone(), lookups: chunk }));
                             if req_tx.send(request).await.is_err() {
                                 ok = false;
@@ -458,14 +468,16 @@ async fn link_loop(
                                 })),
                             };
                             // The last chunk carries the caller's wait.
-                            let p = if rest.is_empty() {
+                            let done = if rest.is_empty() {
                                 match dones.take() {
-                                    Some(done) => Pending::Ack { done: Some(done) },
+                                    Some(done) => Some(done),
                                     None => break,
                                 }
                             } else {
-                                Pending::Ack { done: None }
+                                None
                             };
+                            lock(&job.report).traffic.message(Kind::TicketReturns, request.encoded_len());
+                            let p = Pending::Ack { job: job.clone(), kind: Kind::TicketReturns, done };
                             pending.push_back((sequence, p));
                             if req_tx.send(request).await.is_err() {
                                 ok = false;
@@ -487,7 +499,8 @@ async fn link_loop(
                                 hits: outcomes.iter().map(|o| u8::from(o.2)).collect(),
                             })),
                         };
-                        pending.push_back((sequence, Pending::Ack { done: None }));
+                        lock(&job.report).traffic.message(Kind::MapOutcomes, request.encoded_len());
+                        pending.push_back((sequence, Pending::Ack { job: job.clone(), kind: Kind::MapOutcomes, done: None }));
                         req_tx.send(request).await.is_ok()
                     }
                     CacheMessage::Entries { job, entries, done } => {
@@ -511,7 +524,8 @@ async fn link_loop(
                                 })),
                             };
                             let done = if chunks.peek().is_none() { dones.take() } else { None };
-                            pending.push_back((sequence, Pending::Ack { done }));
+                            lock(&job.report).traffic.message(Kind::EntryCopies, request.encoded_len());
+                            pending.push_back((sequence, Pending::Ack { job: job.clone(), kind: Kind::EntryCopies, done }));
                             if req_tx.send(request).await.is_err() {
                                 ok = false;
                                 break;
@@ -541,6 +555,7 @@ async fn link_loop(
                         return;
                     }
                 };
+                let size = response.encoded_len();
                 let Some((seq, p)) = pending.pop_front() else {
                     link_failed(&shared, &endpoint, &mut rx, pending, "an answer to nothing sent");
                     return;
@@ -549,9 +564,12 @@ async fn link_loop(
                     (Some(cache_response::Msg::Answers(a)), Pending::Lookups { job, lookups })
                         if a.sequence == seq =>
                     {
+                        lock(&job.report).traffic.message(Kind::Answers, size);
                         apply_answers(&shared, &job, lookups, answers_of(&a));
                     }
-                    (Some(cache_response::Msg::Ack(a)), Pending::Ack { done }) if a.sequence == seq => {
+                    (Some(cache_response::Msg::Ack(a)), Pending::Ack { job, kind, done }) if a.sequence == seq => {
+                        let kind = if a.entries.is_empty() { kind } else { Kind::EntryCopies };
+                        lock(&job.report).traffic.message(kind, size);
                         match entries_of(&a) {
                             Ok(entries) => carried.extend(entries),
                             Err(e) => {
@@ -819,7 +837,7 @@ fn link_failed(
             Pending::Lookups { job, lookups } => {
                 fail(shared, endpoint, CacheMessage::Lookups { job, lookups })
             }
-            Pending::Ack { done } => {
+            Pending::Ack { done, .. } => {
                 if let Some(done) = done {
                     let _ = done.send(None);
                 }

@@ -51,6 +51,8 @@ pub struct Report {
     pub cache_bytes: u64,
     /// Cache hosts found unreachable.
     pub lost_cache_hosts: Vec<String>,
+    /// Bytes exchanged with other processes, by kind.
+    pub traffic: crate::traffic::Traffic,
 }
 
 impl Report {
@@ -72,6 +74,7 @@ impl Report {
             && self.phm_rays_not_sent == 0
             && self.cache_bytes == 0
             && self.lost_cache_hosts.is_empty()
+            && self.traffic.is_empty()
     }
 }
 

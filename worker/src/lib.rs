@@ -38,6 +38,7 @@ pub mod routing;
 pub mod setup_bounds;
 pub mod tickets;
 pub mod tracer;
+pub mod traffic;
 pub(crate) mod work;
 
 pub use config::{Limits, NodeError, WorkerConfig};

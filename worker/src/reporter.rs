@@ -102,6 +102,7 @@ async fn report(shared: &Arc<Shared>, job: &Arc<Job>, force: bool) {
         // Bytes and lost hosts noted while returning ride along with this report.
         let mut r = lock(&job.report);
         report.cache_bytes += std::mem::take(&mut r.cache_bytes);
+        report.traffic.add(&std::mem::take(&mut r.traffic));
         for h in r.lost_cache_hosts.drain(..) {
             if !report.lost_cache_hosts.contains(&h) {
                 report.lost_cache_hosts.push(h);
@@ -139,6 +140,7 @@ async fn report(shared: &Arc<Shared>, job: &Arc<Job>, force: bool) {
         phm_rays_not_sent: report.phm_rays_not_sent,
         cache_bytes: report.cache_bytes,
         lost_cache_hosts: std::mem::take(&mut report.lost_cache_hosts),
+        traffic: (!report.traffic.is_empty()).then(|| report.traffic.to_proto()),
     };
     crate::metrics::record_report(
         &report.traced,

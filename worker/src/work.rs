@@ -332,6 +332,7 @@ fn forward(shared: &Arc<Shared>, job: &Arc<Job>, domain: u32, batch: QueuedBatch
         r.rays_forwarded += n;
         r.rays_sent += n;
         r.bytes += n * RAY_RECORD_BYTES as u64;
+        r.traffic.rays(batch.rays.len(), &batch.tickets);
     }
     shared.peers.send(
         shared,
@@ -358,6 +359,7 @@ pub(crate) fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, mut out: Outbox) {
     }
     let routes = job.routes();
     let mut sent = 0u64;
+    let mut traffic = crate::traffic::Traffic::default();
     for (d, bundle) in out.rays {
         if bundle.is_empty() {
             continue;
@@ -388,6 +390,7 @@ pub(crate) fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, mut out: Outbox) {
             return;
         };
         sent += rays.len() as u64;
+        traffic.rays(rays.len(), &tickets);
         shared.peers.send(
             shared,
             &peer,
@@ -412,4 +415,5 @@ pub(crate) fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, mut out: Outbox) {
     r.tickets.merge(out.tickets);
     r.bytes += sent * RAY_RECORD_BYTES as u64;
     r.rays_sent += sent;
+    r.traffic.add(&traffic);
 }

@@ -51,7 +51,6 @@ pub fn add_phm(a: &mut PhmStats, b: &PhmStats) {
     sum(&mut a.cells, b.cells);
     sum(&mut a.rays_not_sent, b.rays_not_sent);
     sum(&mut a.bytes_not_sent, b.bytes_not_sent);
-    sum(&mut a.domains_dropped, b.domains_dropped);
 }
 
 /// Add `b` into `a`, counter by counter (saturating); `lost_hosts` are merged without
@@ -160,9 +159,20 @@ impl CacheTally {
         let g = self.both();
         // The entry's lock is a leaf (nothing is locked under it), so holding ours
         // across it cannot deadlock, and orders the writes.
+        // Savings net of what consulting caches and maps cost between processes, from
+        // the traffic the ledger publishes first (zero before any worker reported).
         entry.update_stats(|s| {
-            s.ray_cache = self.caches.then(|| g.0.clone());
-            s.phm = self.phm.then_some(g.1);
+            let traffic = s.traffic.unwrap_or_default();
+            s.ray_cache = self.caches.then(|| {
+                let mut c = g.0.clone();
+                c.bytes_not_sent_net = crate::traffic::cache_net(c.bytes_not_sent, &traffic);
+                c
+            });
+            s.phm = self.phm.then(|| {
+                let mut p = g.1;
+                p.bytes_not_sent_net = crate::traffic::phm_net(p.bytes_not_sent, &traffic);
+                p
+            });
         });
     }
 }

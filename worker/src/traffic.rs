@@ -1,0 +1,148 @@
+//! Bytes this worker exchanged with other processes for one job, by kind (render.proto
+//! `TrafficStats`): what the ray caches and hit maps cost on the wire, beside what they
+//! save. Counted where a message is encoded for gRPC or decoded from it (the cache
+//! link's gRPC loop, the rays handed to peer streams), never on the mailbox link to the
+//! cache host in this process: those bytes never leave it.
+//!
+//! Sizes are the encoded protobuf messages (`prost::Message::encoded_len`), so they are
+//! the bytes the messages take, not estimates; gRPC's 5-byte frame header and HTTP/2
+//! and TLS framing are left out.
+
+use dray_core::ray::RAY_RECORD_BYTES;
+use dray_proto::v1::{RayTicket, TrafficStats};
+use prost::Message;
+
+/// The kind a cache-link message's bytes count as.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Kind {
+    Lookups,
+    Answers,
+    TicketReturns,
+    EntryCopies,
+    MapOutcomes,
+}
+
+/// Byte counters by kind, accumulated between reports.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Traffic {
+    pub rays: u64,
+    pub lookups: u64,
+    pub answers: u64,
+    pub ticket_returns: u64,
+    pub entry_copies: u64,
+    pub map_outcomes: u64,
+    /// Cache-link messages counted, both directions.
+    pub cache_messages: u64,
+}
+
+impl Traffic {
+    /// Whether nothing was counted.
+    pub fn is_empty(&self) -> bool {
+        *self == Traffic::default()
+    }
+
+    /// One cache-link message of `bytes`, as `kind`.
+    pub(crate) fn message(&mut self, kind: Kind, bytes: usize) {
+        let b = bytes as u64;
+        match kind {
+            Kind::Lookups => self.lookups += b,
+            Kind::Answers => self.answers += b,
+            Kind::TicketReturns => self.ticket_returns += b,
+            Kind::EntryCopies => self.entry_copies += b,
+            Kind::MapOutcomes => self.map_outcomes += b,
+        }
+        self.cache_messages += 1;
+    }
+
+    /// `rays` ray records and their `tickets` handed to a peer stream.
+    pub(crate) fn rays(&mut self, rays: usize, tickets: &[RayTicket]) {
+        self.rays += ray_bytes(rays, tickets);
+    }
+
+    /// Add `other` into this.
+    pub fn add(&mut self, other: &Traffic) {
+        self.rays += other.rays;
+        self.lookups += other.lookups;
+        self.answers += other.answers;
+        self.ticket_returns += other.ticket_returns;
+        self.entry_copies += other.entry_copies;
+        self.map_outcomes += other.map_outcomes;
+        self.cache_messages += other.cache_messages;
+    }
+
+    /// The counters as a report carries them (`total` is the coordinator's to sum).
+    pub fn to_proto(self) -> TrafficStats {
+        TrafficStats {
+            rays: self.rays,
+            lookups: self.lookups,
+            answers: self.answers,
+            ticket_returns: self.ticket_returns,
+            entry_copies: self.entry_copies,
+            map_outcomes: self.map_outcomes,
+            total: 0,
+            cache_messages: self.cache_messages,
+        }
+    }
+}
+
+/// Bytes of `rays` records with `tickets` in a ray batch: the 64-byte records and each
+/// ticket as the batch's repeated `RayTicket` field encodes it (tag, length, message).
+pub(crate) fn ray_bytes(rays: usize, tickets: &[RayTicket]) -> u64 {
+    let tickets: usize = tickets
+        .iter()
+        .map(|t| {
+            let n = t.encoded_len();
+            1 + prost::length_delimiter_len(n) + n
+        })
+        .sum();
+    (rays * RAY_RECORD_BYTES + tickets) as u64
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn kinds_add_up_and_count_messages() {
+        let mut t = Traffic::default();
+        assert!(t.is_empty());
+        t.message(Kind::Lookups, 100);
+        t.message(Kind::Answers, 10);
+        t.message(Kind::TicketReturns, 7);
+        t.message(Kind::EntryCopies, 5);
+        t.message(Kind::MapOutcomes, 3);
+        t.message(Kind::Lookups, 1);
+        let mut u = Traffic::default();
+        u.add(&t);
+        u.add(&t);
+        assert_eq!(
+            (
+                u.lookups,
+                u.answers,
+                u.ticket_returns,
+                u.entry_copies,
+                u.map_outcomes
+            ),
+            (202, 20, 14, 10, 6)
+        );
+        assert_eq!(u.cache_messages, 12);
+        let p = u.to_proto();
+        assert_eq!((p.lookups, p.total, p.cache_messages), (202, 0, 12));
+    }
+
+    #[test]
+    fn rays_count_records_and_encoded_tickets() {
+        assert_eq!(ray_bytes(3, &[]), 3 * 64);
+        // record 1 (tag + 1-byte varint) and the largest ticket (tag + 10-byte varint):
+        // 13 bytes, plus the field's tag and length.
+        let t = RayTicket {
+            record: 1,
+            ticket: u64::MAX,
+        };
+        assert_eq!(ray_bytes(2, &[t]), 2 * 64 + 15);
+        let mut tr = Traffic::default();
+        tr.rays(2, &[t, t]);
+        assert_eq!(tr.rays, 2 * 64 + 30);
+        assert_eq!(tr.cache_messages, 0, "ray batches are not cache messages");
+    }
+}
