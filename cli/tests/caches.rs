@@ -415,11 +415,64 @@ fn frozen_caches_give_the_same_bits_across_processes_and_placements() {
             u64_of(rc, "outer_hits") + u64_of(rc, "inner_hits") > 0,
             "{what}: nothing answered: {rc}"
         );
+        check_traffic(&json, placement, &what);
         let got = std::fs::read(&png).expect("read the job's png");
         assert!(got == want, "{what}: not the same bits as one process");
     }
     drop(workers);
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The job's bytes between processes (`traffic` in `--stats`): every kind present, the
+/// total their sum, rays exchanged between the worker processes; under sender
+/// placement every lookup is answered in the sender's own process (no lookup or answer
+/// bytes) and replicas copy entries, under remote placement lookups cross processes
+/// and nothing is copied. The caches' net saving is what they saved less that traffic.
+fn check_traffic(json: &Value, placement: &str, what: &str) {
+    let t = &json["traffic"];
+    let kinds = [
+        "rays",
+        "lookups",
+        "answers",
+        "ticket_returns",
+        "entry_copies",
+        "map_outcomes",
+    ];
+    let sum: u64 = kinds.iter().map(|k| u64_of(t, k)).sum();
+    assert_eq!(u64_of(t, "total"), sum, "{what}: total is not the sum: {t}");
+    assert!(
+        u64_of(t, "rays") > 0,
+        "{what}: no rays between processes: {t}"
+    );
+    assert_eq!(u64_of(t, "map_outcomes"), 0, "{what}: no hit maps: {t}");
+    match placement {
+        "sender" => {
+            assert_eq!(
+                (u64_of(t, "lookups"), u64_of(t, "answers")),
+                (0, 0),
+                "{what}: lookups left their process: {t}"
+            );
+            assert!(
+                u64_of(t, "entry_copies") > 0,
+                "{what}: no replica copies: {t}"
+            );
+        }
+        _ => {
+            assert!(u64_of(t, "lookups") > 0, "{what}: no lookup traffic: {t}");
+            assert!(u64_of(t, "answers") > 0, "{what}: no answer traffic: {t}");
+            assert_eq!(u64_of(t, "entry_copies"), 0, "{what}: copies: {t}");
+        }
+    }
+    let rc = &json["ray_cache"];
+    let cost = ["lookups", "answers", "ticket_returns", "entry_copies"]
+        .iter()
+        .map(|k| u64_of(t, k) as i64)
+        .sum::<i64>();
+    assert_eq!(
+        rc["bytes_not_sent_net"].as_i64(),
+        Some(u64_of(rc, "bytes_not_sent") as i64 - cost),
+        "{what}: {rc} {t}"
+    );
 }
 
 /// `n` one-thread worker processes of the coordinator at `url` (with `extra` flags),
