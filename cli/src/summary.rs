@@ -245,6 +245,9 @@ pub struct Scheduling {
     pub ray_bytes_sent: u64,
     /// Bytes between processes by kind, and in total.
     pub traffic: TrafficSummary,
+    /// CPU seconds (user + system) of the processes that ran the job, once per process
+    /// (render.proto `JobStats.cpu_seconds`); 0 without workers.
+    pub cpu_seconds: f64,
     /// Most rays queued at one worker at any moment.
     pub queue_peak: u64,
     /// Rounds of the scheduler.
@@ -322,6 +325,7 @@ impl Scheduling {
             rays_forwarded: 0,
             ray_bytes_sent: 0,
             traffic: TrafficSummary::default(),
+            cpu_seconds: 0.0,
             queue_peak: 0,
             scheduler_rounds: 0,
             routing_version: 0,
@@ -348,6 +352,7 @@ impl Scheduling {
             rays_forwarded: s.rays_forwarded,
             ray_bytes_sent: s.ray_bytes_sent,
             traffic: TrafficSummary::of(&s.traffic.unwrap_or_default()),
+            cpu_seconds: s.cpu_seconds,
             queue_peak: s.queue_peak,
             scheduler_rounds: s.scheduler_rounds,
             routing_version: s.routing_version,

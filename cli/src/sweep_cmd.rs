@@ -147,6 +147,15 @@ struct Output {
     stats: Value,
     wall_s: f64,
     render_s: f64,
+    /// CPU seconds of the processes that ran it ([`report::Row::cpu_s`]).
+    cpu_s: f64,
+}
+
+impl Output {
+    /// Every byte between processes: the stats' `traffic.total`.
+    fn bytes_total(&self) -> u64 {
+        self.stats["traffic"]["total"].as_u64().unwrap_or(0)
+    }
 }
 
 /// Where the renders run: here, or on a coordinator through one connection.
@@ -210,6 +219,7 @@ impl Renderer {
                 Ok(Output {
                     picture: decode(&png_bytes, &exr_bytes)?,
                     render_s: stats["job_time_s"].as_f64().unwrap_or(0.0),
+                    cpu_s: job.stats.as_ref().map_or(0.0, |s| s.cpu_seconds),
                     stats,
                     wall_s: wall.as_secs_f64(),
                 })
@@ -235,6 +245,9 @@ fn render_here(a: &RenderArgs, png: &Path, label: &str, show: bool) -> Result<Ou
         b
     });
     let tiles_known = std::sync::Once::new();
+    // Every actor runs in this process: its CPU clock across the render is the render's
+    // CPU, over the same span as its wall time.
+    let cpu_before = dray_net::cpu::process_cpu_seconds();
     let r = crate::render_cmd::render(a, &|done, total| {
         if let Some(b) = &bar {
             tiles_known.call_once(|| {
@@ -250,6 +263,7 @@ fn render_here(a: &RenderArgs, png: &Path, label: &str, show: bool) -> Result<Ou
             b.set_position(done as u64);
         }
     });
+    let cpu_s = dray_net::cpu::process_cpu_seconds() - cpu_before;
     if let Some(b) = &bar {
         b.finish_and_clear();
     }
@@ -274,6 +288,7 @@ fn render_here(a: &RenderArgs, png: &Path, label: &str, show: bool) -> Result<Ou
         stats: serde_json::to_value(&r.summary).context("cannot encode statistics")?,
         wall_s: r.summary.wall_time_s,
         render_s: r.summary.render_time_s,
+        cpu_s,
     })
 }
 
@@ -376,6 +391,8 @@ fn sweep(
         values: plan.exact.values.clone(),
         wall_s: exact.wall_s,
         render_s: exact.render_s,
+        cpu_s: exact.cpu_s,
+        bytes_total: exact.bytes_total(),
         errors: metrics::compare(&exact.picture, &exact.picture)?,
         stats: exact.stats,
         image: plan.exact.file.clone(),
@@ -411,6 +428,8 @@ fn sweep(
             values: s.values.clone(),
             wall_s: o.wall_s,
             render_s: o.render_s,
+            cpu_s: o.cpu_s,
+            bytes_total: o.bytes_total(),
             stats: o.stats,
             errors,
             image: s.file.clone(),
@@ -422,6 +441,8 @@ fn sweep(
     if failure.is_none() && rounds.repeat > 1 {
         let mut walls: Vec<Vec<f64>> = rows.iter().map(|r| vec![r.wall_s]).collect();
         let mut renders: Vec<Vec<f64>> = rows.iter().map(|r| vec![r.render_s]).collect();
+        let mut cpus: Vec<Vec<f64>> = rows.iter().map(|r| vec![r.cpu_s]).collect();
+        let mut bytes: Vec<Vec<f64>> = rows.iter().map(|r| vec![r.bytes_total as f64]).collect();
         let all: Vec<&Setting> = std::iter::once(&plan.exact)
             .chain(plan.settings.iter())
             .collect();
@@ -433,6 +454,8 @@ fn sweep(
                     Ok(o) => {
                         walls[i].push(o.wall_s);
                         renders[i].push(o.render_s);
+                        cpus[i].push(o.cpu_s);
+                        bytes[i].push(o.bytes_total() as f64);
                         if !quiet {
                             eprintln!("dray sweep: {what}: wall {:.3} s", o.wall_s);
                         }
@@ -445,9 +468,12 @@ fn sweep(
                 let _ = std::fs::remove_file(&png);
             }
         }
-        for ((row, w), r) in rows.iter_mut().zip(&mut walls).zip(&mut renders) {
-            row.wall_s = median(w);
-            row.render_s = median(r);
+        for (i, row) in rows.iter_mut().enumerate() {
+            row.wall_s = median(&mut walls[i]);
+            row.render_s = median(&mut renders[i]);
+            row.cpu_s = median(&mut cpus[i]);
+            // Counts are whole; a median of an even number of rounds is rounded.
+            row.bytes_total = median(&mut bytes[i]).round() as u64;
         }
     }
 

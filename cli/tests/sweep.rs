@@ -13,7 +13,7 @@ use std::process::Output;
 use support::{WorkerCluster, dray};
 
 /// The columns every results.csv has (besides one per varied key).
-const COLUMNS: [&str; 34] = [
+const COLUMNS: [&str; 36] = [
     "setting",
     "wall_s",
     "speedup",
@@ -46,6 +46,8 @@ const COLUMNS: [&str; 34] = [
     "image",
     "render_s",
     "cache_bytes",
+    "bytes_total",
+    "cpu_s",
     "pareto",
     "args",
 ];
@@ -119,6 +121,9 @@ fn check_outputs(out: &Path, keys: &[&str], settings: usize) -> Vec<HashMap<Stri
         );
         assert!(num(r, "wall_s") > 0.0, "{r:?}");
         assert!(num(r, "rays_traced") > 0.0, "{r:?}");
+        // Every render costs CPU somewhere; bytes are a whole count.
+        assert!(num(r, "cpu_s") > 0.0, "{r:?}");
+        assert!(r["bytes_total"].parse::<u64>().is_ok(), "{r:?}");
         let flip = num(r, "flip");
         assert!((0.0..=1.0).contains(&flip), "{r:?}");
         let img = common::rgb(&out.join(&r["image"]));

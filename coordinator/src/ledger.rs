@@ -116,6 +116,8 @@ pub struct DistJob {
     ray_bytes_sent: u64,
     /// Bytes between processes by kind, summed over the workers' reports.
     traffic: dray_proto::v1::TrafficStats,
+    /// CPU seconds of the processes that ran the job.
+    cpu: crate::cpu_tally::CpuTally,
     metrics: JobMetrics,
     /// Ray caches, for a job with `ray_cache`.
     caches: Option<JobCaches>,
@@ -157,6 +159,7 @@ impl DistJob {
             nonfinite: 0,
             ray_bytes_sent: 0,
             traffic: Default::default(),
+            cpu: crate::cpu_tally::CpuTally::here(),
             metrics,
             caches: None,
             last_progress: Instant::now(),
@@ -269,6 +272,7 @@ impl DistJob {
             s.nonfinite = self.nonfinite;
             s.ray_bytes_sent = self.ray_bytes_sent;
             s.traffic = Some(self.traffic);
+            s.cpu_seconds = self.cpu.seconds();
             self.metrics.fill(s);
             s.tiles_retried = self.tiles_retried;
             s.scheduler_rounds = self.sched.rounds();
@@ -523,6 +527,10 @@ impl Ledger {
         if let Some(t) = r.counters.as_ref().and_then(|c| c.traffic.as_ref()) {
             crate::traffic::add(&mut job.traffic, t);
         }
+        if let Some(c) = r.counters.as_ref().and_then(|c| c.cpu.as_ref()) {
+            job.cpu.note(c);
+        }
+        job.cpu.note_here();
         job.metrics
             .add(&r.worker_id, r.counters.as_ref(), r.traced.as_ref());
         if let (Some(c), Some(caches)) = (&r.counters, &job.caches) {

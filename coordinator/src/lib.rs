@@ -32,6 +32,7 @@
 pub mod admission;
 pub mod caches;
 pub mod cluster;
+pub mod cpu_tally;
 pub mod dispatch;
 pub mod jobs;
 pub mod ledger;

@@ -27,6 +27,7 @@ pub mod body_deadline;
 pub mod client;
 pub mod connections;
 pub mod contain;
+pub mod cpu;
 pub mod credential;
 pub mod emulate;
 pub mod peer_pass;

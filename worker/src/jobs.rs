@@ -103,6 +103,9 @@ pub struct Job {
     pub queue_peak: AtomicU64,
     /// Picks among the owners of replicated domains.
     pub spread: AtomicU64,
+    /// This process's CPU clock when the job was set up here (reported with every
+    /// report, for `JobStats.cpu_seconds`).
+    pub cpu_at_setup: f64,
     /// This job's span here (a child of the coordinator's, when traces are exported):
     /// tracing work and domain loads run in it.
     pub span: tracing::Span,
@@ -130,6 +133,7 @@ impl Job {
             awaiting_cache: AtomicUsize::new(0),
             queue_peak: AtomicU64::new(0),
             spread: AtomicU64::new(0),
+            cpu_at_setup: dray_net::cpu::process_cpu_seconds(),
             span: tracing::Span::none(),
         }
     }

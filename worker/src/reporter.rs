@@ -12,8 +12,8 @@ use std::time::Duration;
 
 use dray_core::integrator::RayKind;
 use dray_proto::v1::{
-    DomainQueue, RayCounts, ReportContributionsRequest, ReportQueuesRequest, TileCredit,
-    WorkerCounters,
+    DomainQueue, ProcessCpu, RayCounts, ReportContributionsRequest, ReportQueuesRequest,
+    TileCredit, WorkerCounters,
 };
 use tokio::sync::watch;
 
@@ -141,6 +141,11 @@ async fn report(shared: &Arc<Shared>, job: &Arc<Job>, force: bool) {
         cache_bytes: report.cache_bytes,
         lost_cache_hosts: std::mem::take(&mut report.lost_cache_hosts),
         traffic: (!report.traffic.is_empty()).then(|| report.traffic.to_proto()),
+        cpu: Some(ProcessCpu {
+            process: dray_net::cpu::process_token(),
+            at_setup: job.cpu_at_setup,
+            now: dray_net::cpu::process_cpu_seconds(),
+        }),
     };
     crate::metrics::record_report(
         &report.traced,

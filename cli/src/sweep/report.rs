@@ -51,6 +51,13 @@ pub struct Row {
     pub wall_s: f64,
     /// The render alone (the coordinator's job time with --coordinator).
     pub render_s: f64,
+    /// CPU seconds (user + system) of the processes that ran the render: in this
+    /// process (embedded), this process's clock across the render, as `wall_s` spans it;
+    /// with a coordinator, the job's `cpu_seconds` (the coordinator's and every worker
+    /// process's, once each; stand-alone `dray cache` hosts not included).
+    pub cpu_s: f64,
+    /// Every byte between processes (`traffic.total` of the stats).
+    pub bytes_total: u64,
     /// The render's `--stats` JSON.
     pub stats: Value,
     pub errors: Errors,
@@ -130,6 +137,8 @@ pub fn header(keys: &[String]) -> Vec<String> {
             "rays_sent",
             "bytes_sent",
             "cache_bytes",
+            "bytes_total",
+            "cpu_s",
         ]
         .map(String::from),
     );
@@ -174,6 +183,8 @@ pub fn csv(keys: &[String], rows: &[Row], front: &[bool]) -> String {
         c.push(r.rays_sent().to_string());
         c.push(cell(r.stats.get("ray_bytes_sent")));
         c.push(r.ray_cache("cache_bytes"));
+        c.push(r.bytes_total.to_string());
+        c.push(format!("{:.4}", r.cpu_s));
         c.extend(RAY_CACHE_COLUMNS.iter().map(|k| r.ray_cache(k)));
         c.extend(PHM_COLUMNS.iter().map(|(_, k)| r.phm(k)));
         c.push(num(r.errors.rmse));
@@ -216,15 +227,18 @@ pub fn table(title: &str, base: &str, rows: &[Row], front: &[bool], repeat: u32)
     if repeat > 1 {
         let _ = writeln!(
             out,
-            "Times are medians of {repeat} interleaved rounds; errors and counts are the \
-             first round's.\n"
+            "Times, CPU seconds and total bytes are medians of {repeat} interleaved rounds; \
+             errors and other counts are the first round's.\n"
         );
     }
     let _ = writeln!(
         out,
-        "| setting | wall s | speedup | rays sent | outer hits | inner hits | rmse | psnr dB | flip | Pareto |"
+        "| setting | wall s | speedup | CPU s | bytes | rays sent | outer hits | inner hits | rmse | psnr dB | flip | Pareto |"
     );
-    let _ = writeln!(out, "|---|---:|---:|---:|---:|---:|---:|---:|---:|:---:|");
+    let _ = writeln!(
+        out,
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|:---:|"
+    );
     for (i, r) in rows.iter().enumerate() {
         let psnr = if r.errors.psnr.is_infinite() {
             "inf".to_string()
@@ -233,10 +247,12 @@ pub fn table(title: &str, base: &str, rows: &[Row], front: &[bool], repeat: u32)
         };
         let _ = writeln!(
             out,
-            "| {} | {:.3} | {:.2}x | {} | {} | {} | {:.5} | {psnr} | {:.5} | {} |",
+            "| {} | {:.3} | {:.2}x | {:.3} | {} | {} | {} | {} | {:.5} | {psnr} | {:.5} | {} |",
             md(&r.setting),
             r.wall_s,
             speedup(exact_wall, r.wall_s),
+            r.cpu_s,
+            r.bytes_total,
             r.rays_sent(),
             percent(r, "outer_hit_ratio"),
             percent(r, "inner_hit_ratio"),
@@ -256,7 +272,9 @@ pub fn table(title: &str, base: &str, rows: &[Row], front: &[bool], repeat: u32)
          `rmse_linear`, on linear radiance); PSNR = 20 log10(1 / RMSE); FLIP is the mean \
          NVIDIA FLIP error (LDR, 67 pixels per degree) against the exact PNG. Wall time runs \
          from the start of a render to its image (scene loading included); speedup = exact \
-         wall / setting wall. Pareto: no other setting is both faster and closer to exact."
+         wall / setting wall. CPU s: user + system seconds of the processes that ran the \
+         render (results.csv `cpu_s`); bytes: every byte between processes \
+         (`bytes_total`, docs/caches.md \"Statistics\"). Pareto: no other setting is both faster and closer to exact."
     );
     out
 }
@@ -272,6 +290,8 @@ mod tests {
             values: vec!["0.1".into()],
             wall_s: wall,
             render_s: wall / 2.0,
+            cpu_s: wall * 1.5,
+            bytes_total: 1000,
             stats,
             errors: Errors {
                 rmse,
@@ -325,6 +345,8 @@ mod tests {
         assert_eq!(col(lines[2], "outer_hit_ratio"), "0.5");
         assert_eq!(col(lines[2], "tickets_closed"), "4");
         assert_eq!(col(lines[2], "cache_bytes"), "99");
+        assert_eq!(col(lines[2], "bytes_total"), "1000");
+        assert_eq!(col(lines[2], "cpu_s"), "1.5000");
         assert_eq!(col(lines[2], "phm_lookups"), "7");
         assert_eq!(col(lines[2], "rmse"), "0.25");
         assert_eq!(col(lines[2], "psnr"), "12.041199826559248");
