@@ -380,7 +380,7 @@ impl Scheduling {
         (self.worker_count > 0).then(|| {
             format!(
                 "{} on {} worker{}: domain loads {} ({:.3} s){}, evictions {}, rays exchanged {}, \
-                 tiles re-traced {}",
+                 tiles re-traced {}; {} bytes between processes, {:.3} CPU s",
                 self.schedule,
                 self.worker_count,
                 if self.worker_count == 1 { "" } else { "s" },
@@ -393,7 +393,9 @@ impl Scheduling {
                 },
                 self.evictions,
                 self.rays_exchanged,
-                self.tiles_retraced
+                self.tiles_retraced,
+                self.traffic.total,
+                self.cpu_seconds
             )
         })
     }
@@ -558,6 +560,13 @@ mod tests {
             rays_exchanged: 40,
             tiles_retried: 3,
             routing_version: 2,
+            traffic: Some(TrafficStats {
+                rays: 2560,
+                lookups: 64,
+                total: 2624,
+                ..TrafficStats::default()
+            }),
+            cpu_seconds: 1.25,
             workers_detail: vec![WorkerJobStats {
                 worker_id: "w1".into(),
                 domain_loads: 9,
@@ -571,13 +580,16 @@ mod tests {
         assert_eq!(s.workers[0].worker_id, "w1");
         let json = serde_json::to_value(&s).expect("json");
         assert_eq!(json["tiles_retraced"], 3);
+        assert_eq!(json["traffic"]["total"], 2624);
+        assert_eq!(json["traffic"]["lookups"], 64);
+        assert_eq!(json["cpu_seconds"], 1.25);
         assert_eq!(json["workers"][0]["domain_loads"], 9);
         assert!(json.get("worker_count").is_none());
         assert_eq!(
             s.line().as_deref(),
             Some(
                 "domain on 2 workers: domain loads 9 (0.500 s), evictions 1, rays exchanged 40, \
-                 tiles re-traced 3"
+                 tiles re-traced 3; 2624 bytes between processes, 1.250 CPU s"
             )
         );
         // A job the coordinator rendered itself, and the reference renderer.
