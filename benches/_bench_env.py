@@ -317,6 +317,25 @@ def idle_check(seconds: float = 2.0) -> float:
     return busy_cores
 
 
+def bunny() -> Path:
+    """The Stanford bunny of the shared scenes; exits with a clear message when absent."""
+    path = scenes_dir() / "stanford_bunny" / "bun_zipper.ply"
+    if not path.exists():
+        sys.exit(f"the Stanford bunny is not at {path}: set DRAY_SCENES to the shared scenes")
+    return path
+
+
+def bunny_grid_package(dray: Path, work: Path) -> Path:
+    """The 3x3x3 bunny grid cut into 27 grid domains (Little 2011's Table 5.1 scene) as a
+    scene package under `work`, partitioned once and shared by the cache benchmarks."""
+    package = work / "bunny-grid-27"
+    if not (package / "manifest.json").exists():
+        work.mkdir(parents=True, exist_ok=True)
+        subprocess.run([str(dray), "partition", f"grid:{bunny()}:3x3x3", "--grid", "3x3x3",
+                        "--layout", "grid", "--out", str(package)], check=True)
+    return package
+
+
 class Cluster:
     """`dray cluster --workers N` as a child process (extra flags in `extra`), up until
     `stop`; `addr` is its coordinator's host:port."""

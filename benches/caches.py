@@ -20,6 +20,7 @@ Usage (from the repository root):
     benches/caches.sh                        # builds dray, then runs this (1024^2)
     python3 benches/caches.py --quick        # 256^2, fewer radii: to try it out
     python3 benches/caches.py --size 1024 --modes cluster --coarse 0 256
+    python3 benches/caches.py --modes cluster --links none bandwidth=1gbit,latency=100us
 """
 
 from __future__ import annotations
@@ -80,6 +81,11 @@ def main() -> int:
                     help="ray-cache.placement values to compare (issue 21)")
     ap.add_argument("--modes", nargs="+", default=["cluster", "embedded"],
                     choices=["cluster", "embedded"])
+    ap.add_argument("--links", nargs="+", default=["none"],
+                    help="cluster mode: --emulate-link specs, one cluster each (none: plain "
+                         "loopback), e.g. bandwidth=1gbit,latency=100us")
+    ap.add_argument("--no-retrieve", action="store_true",
+                    help="skip the retrieval-method sweep")
     ap.add_argument("--port", type=int, default=53100)
     ap.add_argument("--work", type=Path, default=Path("benches/out/caches"))
     ap.add_argument("--repeat", type=int, default=3,
@@ -89,26 +95,23 @@ def main() -> int:
     if a.quick:
         a.size, a.radii, a.coarse = 256, [0.001, 0.003, 0.005], [0, 64]
     dray = env.dray_binary()
-    bunny = env.scenes_dir() / "stanford_bunny" / "bun_zipper.ply"
-    if not bunny.exists():
-        print(f"the Stanford bunny is not at {bunny}: set DRAY_SCENES to the shared scenes",
-              file=sys.stderr)
-        return 2
-    a.work.mkdir(parents=True, exist_ok=True)
-    package = a.work / "bunny-grid-27"
-    if not (package / "manifest.json").exists():
-        subprocess.run([str(dray), "partition", f"grid:{bunny}:3x3x3", "--grid", "3x3x3",
-                        "--layout", "grid", "--out", str(package)], check=True)
+    bunny = env.bunny()
+    package = env.bunny_grid_package(dray, a.work)
     scale = voxel_width(package) / THESIS_VOXEL
     radii = ",".join(f"{r * scale:.6g}" for r in a.radii)
     coarse = ",".join(str(c) for c in a.coarse)
     base = ["--ray-cache", f"angle-deg={ANGLE_DEG:.4g}"]
     results: dict[str, list[dict]] = {}
-    for mode in a.modes:
+    runs = [(m, link) for m in a.modes for link in (a.links if m == "cluster" else ["none"])]
+    for i, (mode, link) in enumerate(runs):
         cluster = None
+        name = mode if link == "none" else f"{mode}-{link.replace(',', '-').replace('=', '')}"
         if mode == "cluster":
-            cluster = env.Cluster(dray, a.workers, a.port, a.work, a.work / "cluster.log",
-                                      ["--threads", "1"])
+            extra = ["--threads", "1"]
+            if link != "none":
+                extra += ["--emulate-link", link]
+            cluster = env.Cluster(dray, a.workers, a.port + 20 * i, a.work,
+                                  a.work / f"{name}.log", extra)
             target = ["--coordinator", cluster.addr]
         else:
             target = ["--workers", str(a.workers)]
@@ -119,16 +122,17 @@ def main() -> int:
             scene = package.name if mode == "cluster" else f"grid:{bunny}:3x3x3"
             if mode == "embedded":
                 target += ["--domains", "27", "--layout", "grid"]
-            results[mode] = sweep(dray, scene, a.work / f"{mode}-radius", a.size,
+            results[name] = sweep(dray, scene, a.work / f"{name}-radius", a.size,
                                   [f"ray-cache.radius={radii}", f"ray-cache.coarse={coarse}",
                                    f"ray-cache.placement={','.join(a.placements)}"],
                                   base, target, a.repeat)
-            mid = f"{0.005 * scale:.6g}"
-            results[mode + "-retrieve"] = sweep(
-                dray, scene, a.work / f"{mode}-retrieve", a.size,
-                ["ray-cache.retrieve=first,nearest,average"],
-                ["--ray-cache", f"angle-deg={ANGLE_DEG:.4g},radius={mid},coarse={max(a.coarse)}"],
-                target, a.repeat)
+            if not a.no_retrieve:
+                mid = f"{0.005 * scale:.6g}"
+                results[name + "-retrieve"] = sweep(
+                    dray, scene, a.work / f"{name}-retrieve", a.size,
+                    ["ray-cache.retrieve=first,nearest,average"],
+                    ["--ray-cache", f"angle-deg={ANGLE_DEG:.4g},radius={mid},coarse={max(a.coarse)}"],
+                    target, a.repeat)
         finally:
             if cluster:
                 cluster.stop()
@@ -139,8 +143,8 @@ def main() -> int:
           f"angle {ANGLE_DEG:.2f} deg; {a.size}^2 raycast, {a.workers} workers\n")
     for mode, rows in results.items():
         print(f"### {mode}\n")
-        print("| setting | thesis r | wall s | render s | speedup (render) | outer hit | inner hit | rays sent | RMS | FLIP | thesis s | thesis RMS |")
-        print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+        print("| setting | thesis r | wall s | render s | speedup (render) | CPU s | bytes total | outer hit | inner hit | rays sent | RMS | FLIP | thesis s | thesis RMS |")
+        print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
         exact_render = next((float(r["render_s"]) for r in rows if r["setting"] == "exact"), None)
         for r in rows:
             radius = r.get("ray-cache.radius") or ""
@@ -152,6 +156,7 @@ def main() -> int:
             ratio = lambda k: f"{float(r[k]):.3f}" if r.get(k) else ""
             print(f"| {r['setting']} | {thesis_r if thesis_r is not None else ''} | "
                   f"{float(r['wall_s']):.2f} | {render:.2f} | {speed:.2f} | "
+                  f"{float(r.get('cpu_s') or 'nan'):.2f} | {int(r.get('bytes_total') or 0):,} | "
                   f"{ratio('outer_hit_ratio')} | {ratio('inner_hit_ratio')} | {r.get('rays_sent', '')} | "
                   f"{float(r['rmse']):.4f} | {float(r['flip']):.4f} | "
                   f"{t[0] if t else ''} | {t[1] if t and t[1] is not None else ''} |")

@@ -57,14 +57,8 @@ a.work.mkdir(parents=True, exist_ok=True)
 if a.scene:
     scene, root = a.scene, (a.scene_root or a.work).resolve()
 else:
-    bunny = env.scenes_dir() / "stanford_bunny" / "bun_zipper.ply"
     root = Path("benches/out/caches").resolve()
-    package = root / "bunny-grid-27"
-    if not (package / "manifest.json").exists():
-        root.mkdir(parents=True, exist_ok=True)
-        subprocess.run([str(dray), "partition", f"grid:{bunny}:3x3x3", "--grid", "3x3x3",
-                        "--layout", "grid", "--out", str(package)], check=True)
-    scene = package.name
+    scene = env.bunny_grid_package(dray, root).name
 
 
 def tree_cpu_s(pid: int) -> float:

@@ -121,6 +121,12 @@ pub(crate) enum Command {
         outcomes: Vec<(u32, u8)>,
         reply: oneshot::Sender<()>,
     },
+    /// Merge another copy's outcomes into the hit map: (cell, hits, misses); the reply
+    /// says they are applied.
+    Merge {
+        cells: Vec<(u32, u32, u32)>,
+        reply: oneshot::Sender<()>,
+    },
     /// Report the counters and stop.
     Close { reply: oneshot::Sender<WallStats> },
 }
@@ -226,6 +232,12 @@ impl WallActor {
                         if outcomes.len() > YIELD_EVERY {
                             tokio::task::yield_now().await;
                         }
+                    }
+                    let _ = reply.send(());
+                }
+                Command::Merge { cells, reply } => {
+                    for &(cell, hits, misses) in &cells {
+                        self.merge(cell, hits, misses);
                     }
                     let _ = reply.send(());
                 }
@@ -386,6 +398,35 @@ impl WallActor {
                         has_map = self.map.is_some(),
                         count = phm.outcomes_rejected,
                         "hit-map outcome that fits no cell of this wall's map (ignored)"
+                    );
+                }
+            }
+        }
+    }
+
+    /// Merge another copy's counts at `cell` into the map. Like [`Self::learn`], counts
+    /// that fit no cell are counted as rejected and dropped.
+    fn merge(&mut self, cell: u32, hits: u32, misses: u32) {
+        let learned = match &mut self.map {
+            Some(map) => map.merge(cell, hits, misses),
+            None => Learned::OutOfRange,
+        };
+        let n = u64::from(hits) + u64::from(misses);
+        let phm = &mut self.stats.phm;
+        match learned {
+            Learned::Counted => phm.outcomes_merged += n,
+            Learned::Frozen => {
+                phm.outcomes_merged += n;
+                phm.outcomes_frozen += n;
+            }
+            Learned::OutOfRange => {
+                phm.outcomes_rejected += n;
+                if worth_logging(phm.outcomes_rejected) {
+                    tracing::warn!(
+                        cell,
+                        has_map = self.map.is_some(),
+                        count = phm.outcomes_rejected,
+                        "hit-map merge for a cell beyond this wall's map (ignored)"
                     );
                 }
             }

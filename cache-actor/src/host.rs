@@ -20,7 +20,7 @@ use dray_core::ray::{RAY_RECORD_BYTES, decode_rays, record_count};
 use dray_proto::v1::cache_service_server::{CacheService, CacheServiceServer};
 use dray_proto::v1::{
     CacheAnswers, CacheLookups, CacheRequest, CacheResponse, CloseWallsRequest, CloseWallsResponse,
-    OpenWallsRequest, OpenWallsResponse, PhmOutcomes, PhmStats, RayCacheStats, TicketAck,
+    OpenWallsRequest, OpenWallsResponse, PhmMerge, PhmOutcomes, PhmStats, RayCacheStats, TicketAck,
     TicketReturns, WallEntries, cache_request, cache_response,
 };
 use tokio::sync::oneshot;
@@ -331,6 +331,9 @@ impl CacheHost {
             Some(cache_request::Msg::Outcomes(o)) => {
                 cache_response::Msg::Ack(self.outcomes(o).await?)
             }
+            Some(cache_request::Msg::Merge(m)) => {
+                cache_response::Msg::Ack(self.merge_message(m).await?)
+            }
             None => return Err(HostError::Empty),
         };
         Ok(CacheResponse { msg: Some(msg) })
@@ -631,6 +634,72 @@ impl CacheHost {
             };
             let (reply, rx) = oneshot::channel();
             if handle.send(Command::Outcomes { outcomes, reply }).await {
+                pending.push(rx);
+            }
+        }
+        for rx in pending {
+            let _ = rx.await;
+        }
+    }
+}
+
+impl CacheHost {
+    /// Apply a `PhmMerge` (another worker's outcomes, counted per cell); the ack is
+    /// built once every actor has applied its share. Mismatched lengths are a protocol
+    /// error; merges for a job not open here, or a wall not served here, are
+    /// acknowledged and dropped, as outcomes are.
+    pub async fn merge_message(&self, m: PhmMerge) -> Result<TicketAck, HostError> {
+        let sequence = m.sequence;
+        let n = m.walls.len();
+        if m.cells.len() != n || m.hits.len() != n || m.misses.len() != n {
+            return Err(HostError::BadOutcomes {
+                sequence,
+                detail: format!(
+                    "merge: {n} walls, {} cells, {} hits and {} misses must be as many",
+                    m.cells.len(),
+                    m.hits.len(),
+                    m.misses.len()
+                ),
+            });
+        }
+        let cells = (0..n).map(|i| (m.walls[i], m.cells[i], m.hits[i], m.misses[i]));
+        self.merge(&m.job_id, m.attempt, cells).await;
+        Ok(TicketAck {
+            sequence,
+            ..TicketAck::default()
+        })
+    }
+
+    /// Merge another worker's outcomes (wall, cell, hits, misses) of attempt `attempt`
+    /// of `job_id` into this host's copies of the maps, returning once every actor has
+    /// applied its share: what a `PhmMerge` does, for a worker in this process.
+    pub async fn merge(
+        &self,
+        job_id: &str,
+        attempt: u32,
+        cells: impl IntoIterator<Item = (u32, u32, u32, u32)>,
+    ) {
+        let Some(job) = self.job(job_id, attempt) else {
+            tracing::debug!(job = %job_id, attempt, "hit-map merge for a job not open here: dropped");
+            return;
+        };
+        let mut groups: BTreeMap<u32, Vec<(u32, u32, u32)>> = BTreeMap::new();
+        for (wall, cell, hits, misses) in cells {
+            groups.entry(wall).or_default().push((cell, hits, misses));
+        }
+        let handles = job.handles(groups.keys().copied());
+        let mut pending = Vec::with_capacity(groups.len());
+        for ((wall, cells), handle) in groups.into_iter().zip(handles) {
+            let Some(handle) = handle else {
+                let n: u64 = cells.iter().map(|c| u64::from(c.1) + u64::from(c.2)).sum();
+                let before = job.stray_outcomes.fetch_add(n, Ordering::Relaxed);
+                if log_point_between(before, before + n) {
+                    tracing::warn!(job = %job.job_id, wall, count = before + n, "hit-map merge for a wall not served here (ignored)");
+                }
+                continue;
+            };
+            let (reply, rx) = oneshot::channel();
+            if handle.send(Command::Merge { cells, reply }).await {
                 pending.push(rx);
             }
         }

@@ -255,6 +255,15 @@ impl HitMap {
 
     /// Learn one probe's outcome: whether it hit something inside the domain.
     pub fn learn(&mut self, cell: u32, hit: bool) -> Learned {
+        self.merge(cell, u32::from(hit), u32::from(!hit))
+    }
+
+    /// Merge another copy's outcomes at `cell` (sender placement: `hits` and `misses`
+    /// seen there by another worker since its last merge). The counts are added as if
+    /// learned one by one, except that an inconsistent map's cell that has already
+    /// decided takes none of them (it is frozen), and one still undecided takes them
+    /// all: a merge is one event, so a cell does not freeze half-way through it.
+    pub fn merge(&mut self, cell: u32, hits: u32, misses: u32) -> Learned {
         let n = self.len();
         if cell >= n {
             return Learned::OutOfRange;
@@ -265,11 +274,8 @@ impl HitMap {
         let Some(c) = self.cells.get_mut(cell, n) else {
             return Learned::OutOfRange;
         };
-        if hit {
-            c.hits = c.hits.saturating_add(1);
-        } else {
-            c.misses = c.misses.saturating_add(1);
-        }
+        c.hits = c.hits.saturating_add(hits);
+        c.misses = c.misses.saturating_add(misses);
         Learned::Counted
     }
 
@@ -612,6 +618,51 @@ mod tests {
         assert_eq!(m.advise(&r), Advice::Unplaced);
         r.dir = Vec3::ZERO;
         assert_eq!(m.advise(&r), Advice::Unplaced);
+    }
+
+    #[test]
+    fn merges_add_counts_and_frozen_cells_take_none() {
+        for mode in ["consistent", "inconsistent"] {
+            let s = settings(|p| p.mode = mode.into());
+            let mut learned = map(&s);
+            let mut merged = map(&s);
+            for _ in 0..30 {
+                learned.learn(5, false);
+            }
+            learned.learn(5, true);
+            assert_eq!(merged.merge(5, 1, 30), Learned::Counted);
+            assert_eq!(merged.counts(5), learned.counts(5), "{mode}");
+            assert_eq!(merged.merge(merged.len(), 1, 1), Learned::OutOfRange);
+        }
+        // Prior 1, miss 0.1: 20 misses decide a miss; an inconsistent map then takes
+        // no more, a consistent one keeps counting.
+        let frozen = settings(|p| {
+            p.mode = "inconsistent".into();
+            p.prior = Some(1.0);
+        });
+        let mut m = map(&frozen);
+        assert_eq!(m.merge(2, 0, 20), Learned::Counted);
+        assert_eq!(m.decision(2), Decision::Miss);
+        assert_eq!(m.merge(2, 50, 0), Learned::Frozen);
+        assert_eq!(
+            m.counts(2),
+            Counts {
+                hits: 0,
+                misses: 20
+            }
+        );
+        let mut c = map(&settings(|p| p.prior = Some(1.0)));
+        c.merge(2, 0, 20);
+        assert_eq!(c.merge(2, 50, 0), Learned::Counted);
+        assert_eq!(
+            c.counts(2),
+            Counts {
+                hits: 50,
+                misses: 20
+            }
+        );
+        assert_eq!(c.merge(2, u32::MAX, 0), Learned::Counted);
+        assert_eq!(c.counts(2).hits, u32::MAX, "counts saturate");
     }
 
     #[test]

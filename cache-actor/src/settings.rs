@@ -416,6 +416,7 @@ mod tests {
             mode: "inconsistent".into(),
             reprobe: Some(1.0),
             kinds: "camera+ambient_occlusion, shadow,".into(),
+            ..Default::default()
         };
         let s = HitMapSettings::from_proto(&p).unwrap();
         assert_eq!(s.mode, PhmMode::Inconsistent);

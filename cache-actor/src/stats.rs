@@ -61,6 +61,9 @@ pub struct MapStats {
     /// Outcomes naming a cell beyond the map, or with a hit byte other than 0 or 1
     /// (ignored).
     pub outcomes_rejected: u64,
+    /// Outcomes merged in from another worker's copy of the map (sender placement),
+    /// whether the cell took them or was frozen.
+    pub outcomes_merged: u64,
     /// Cells of the map, and of those the cells whose decision at the time the stats
     /// were taken is a hit or a miss.
     pub cells: u64,
@@ -79,6 +82,7 @@ impl MapStats {
         self.outcomes += o.outcomes;
         self.outcomes_frozen += o.outcomes_frozen;
         self.outcomes_rejected += o.outcomes_rejected;
+        self.outcomes_merged += o.outcomes_merged;
         self.cells += o.cells;
         self.cells_decided_hit += o.cells_decided_hit;
         self.cells_decided_miss += o.cells_decided_miss;
@@ -92,6 +96,7 @@ impl MapStats {
         stats.rays_occluded += self.occluded;
         stats.probes += self.probes;
         stats.outcomes += self.outcomes;
+        stats.outcomes_merged += self.outcomes_merged;
         stats.cells_decided_hit += self.cells_decided_hit;
         stats.cells_decided_miss += self.cells_decided_miss;
         stats.cells += self.cells;
@@ -195,6 +200,7 @@ mod tests {
             outcomes: 4,
             outcomes_frozen: 1,
             outcomes_rejected: 1,
+            outcomes_merged: 6,
             cells: 192,
             cells_decided_hit: 5,
             cells_decided_miss: 7,
@@ -219,6 +225,7 @@ mod tests {
                 rays_occluded: 2,
                 probes: 4,
                 outcomes: 4,
+                outcomes_merged: 6,
                 cells_decided_hit: 5,
                 cells_decided_miss: 7,
                 cells: 192,

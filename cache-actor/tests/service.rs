@@ -11,8 +11,8 @@ use dray_core::wall::PhmBins;
 use dray_proto::v1::cache_service_client::CacheServiceClient;
 use dray_proto::v1::{
     CacheAnswers, CacheLookups, CacheRequest, CacheResponse, CloseWallsRequest, OpenWallsRequest,
-    PhmOutcomes, PhmSettings, PhmStats, RayCacheSettings, RayCacheStats, TicketAck, TicketReturn,
-    TicketReturns, cache_request, cache_response,
+    PhmMerge, PhmOutcomes, PhmSettings, PhmStats, RayCacheSettings, RayCacheStats, TicketAck,
+    TicketReturn, TicketReturns, cache_request, cache_response,
 };
 use glam::Vec3;
 use tokio::sync::{mpsc, oneshot};
@@ -97,6 +97,13 @@ impl Exchange {
 
     async fn give_back(&mut self, r: TicketReturns) -> Result<TicketAck, Status> {
         match self.ask(Some(cache_request::Msg::Returns(r))).await?.msg {
+            Some(cache_response::Msg::Ack(a)) => Ok(a),
+            other => panic!("expected an ack, got {other:?}"),
+        }
+    }
+
+    async fn merge(&mut self, m: PhmMerge) -> Result<TicketAck, Status> {
+        match self.ask(Some(cache_request::Msg::Merge(m))).await?.msg {
             Some(cache_response::Msg::Ack(a)) => Ok(a),
             other => panic!("expected an ack, got {other:?}"),
         }
@@ -1004,6 +1011,80 @@ async fn hit_maps_learn_skip_and_occlude() {
         })
     );
     drop(ex);
+    server.stop().await;
+}
+
+/// Sender placement's merges (another worker's outcomes, counted per cell) teach a
+/// copy of a map what the same outcomes one by one would, are counted as merged rather
+/// than as outcomes, and bad merges get clean errors.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn merges_teach_a_copy_of_the_maps() {
+    let server = start().await;
+    let mut client = server.client().await;
+    let phm = PhmSettings {
+        reprobe: Some(0.0),
+        ..Default::default()
+    };
+    client.open_walls(phm_request("copy", phm)).await.unwrap();
+    let mut ex = Exchange::open(&mut client).await;
+    let (a, b) = (shadow_ray(0.2, 0.2, 1), shadow_ray(0.8, 0.7, 2));
+    let (cell_a, cell_b) = (cell_at_wall6(&a), cell_at_wall6(&b));
+    // 1000 misses at a's cell, 1000 hits at b's, in two merges; 12 more to another job.
+    let merge = |sequence, job: &str, per: &[(u32, u32, u32, u32)]| PhmMerge {
+        job_id: job.into(),
+        attempt: 1,
+        sequence,
+        walls: per.iter().map(|p| p.0).collect(),
+        cells: per.iter().map(|p| p.1).collect(),
+        hits: per.iter().map(|p| p.2).collect(),
+        misses: per.iter().map(|p| p.3).collect(),
+    };
+    let ack = ex
+        .merge(merge(
+            1,
+            "copy",
+            &[(WALL, cell_a, 0, 600), (WALL, cell_b, 600, 0)],
+        ))
+        .await
+        .unwrap();
+    assert_eq!(ack.sequence, 1);
+    ex.merge(merge(
+        2,
+        "copy",
+        &[(WALL, cell_a, 0, 400), (WALL, cell_b, 400, 0)],
+    ))
+    .await
+    .unwrap();
+    ex.merge(merge(3, "other", &[(WALL, cell_a, 12, 0)]))
+        .await
+        .unwrap();
+    let answers = ex
+        .lookup(lookups(
+            "copy",
+            1,
+            4,
+            &[(a, WALL, OPTION_PHM), (b, WALL, OPTION_PHM)],
+        ))
+        .await
+        .unwrap();
+    assert_eq!(answers.outcomes, vec![3, 4], "a skips, b is occluded");
+    // Mismatched lengths end the stream with a clean error.
+    let mut bad = merge(5, "copy", &[(WALL, cell_a, 1, 1)]);
+    bad.misses.clear();
+    let e = ex.merge(bad).await.unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument, "{e}");
+    assert!(e.message().contains("misses"), "{}", e.message());
+    let closed = client
+        .close_walls(CloseWallsRequest {
+            job_id: "copy".into(),
+            attempt: 1,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let p = closed.phm.expect("hit-map statistics");
+    assert_eq!((p.outcomes, p.outcomes_merged), (0, 2000), "{p:?}");
+    assert_eq!((p.cells_decided_hit, p.cells_decided_miss), (1, 1), "{p:?}");
     server.stop().await;
 }
 

@@ -19,12 +19,26 @@ prior 0.5 in rays, default 100), miss=P and hit=P (thresholds, 0 <= miss <= 0.5 
 mode=consistent|inconsistent (keep probing decided cells, or make decisions final; \
 default consistent), reprobe=F (consistent mode: fraction of rays at decided cells traced \
 anyway, default 0.1), kinds=K+K... (ray kinds that ask the maps, joined with +, from \
-camera, shadow, reflection, refraction, diffuse, ambient_occlusion; default shadow). \
-`--phm on` takes every default. Maps live on the cache hosts, beside the ray caches.";
+camera, shadow, reflection, refraction, diffuse, ambient_occlusion; default shadow), \
+placement=sender|remote (sender: every worker holds a copy of every wall's map and \
+consults it in its own process, and outcomes are merged into the other copies in \
+batches; remote: each map once, beside its domain's owner, a round trip per ray; default \
+the ray cache's placement, else sender), merge=N (sender placement: outcomes a worker \
+gathers before merging them into the other copies, default 4096). `--phm on` takes every \
+default. Maps live on the cache hosts, beside the ray caches.";
 
 /// The keys, in the order the help gives them.
-pub const KEYS: [&str; 8] = [
-    "res", "dirs", "prior", "miss", "hit", "mode", "reprobe", "kinds",
+pub const KEYS: [&str; 10] = [
+    "res",
+    "dirs",
+    "prior",
+    "miss",
+    "hit",
+    "mode",
+    "reprobe",
+    "kinds",
+    "placement",
+    "merge",
 ];
 
 /// Parse `--phm` into settings; errors name the key (clap prefixes the flag).
@@ -41,6 +55,13 @@ pub fn parse_phm(s: &str) -> Result<PhmSettings, String> {
             "miss" => p.miss = Some(number()?),
             "hit" => p.hit = Some(number()?),
             "reprobe" => p.reprobe = Some(number()?),
+            "merge" => p.merge = Some(whole()?),
+            "placement" => {
+                if value.is_empty() {
+                    return Err(format!("{key}: empty (sender or remote)"));
+                }
+                p.placement = value.to_string();
+            }
             "mode" => {
                 if value.is_empty() {
                     return Err(format!("{key}: empty (consistent or inconsistent)"));
@@ -70,7 +91,7 @@ mod tests {
     fn pairs_and_defaults() {
         assert_eq!(parse_phm("on"), Ok(PhmSettings::default()));
         let all = parse_phm(
-            "res=8,dirs=32,prior=50,miss=0.05,hit=0.95,mode=inconsistent,reprobe=0.2,kinds=shadow+camera",
+            "res=8,dirs=32,prior=50,miss=0.05,hit=0.95,mode=inconsistent,reprobe=0.2,kinds=shadow+camera,placement=remote,merge=100",
         )
         .unwrap();
         assert_eq!(
@@ -84,6 +105,8 @@ mod tests {
                 mode: "inconsistent".into(),
                 reprobe: Some(0.2),
                 kinds: "shadow,camera".into(),
+                placement: "remote".into(),
+                merge: Some(100),
             }
         );
         // Ranges are the coordinator's to check: these parse.
@@ -98,6 +121,8 @@ mod tests {
             ("prior=lots", "prior:"),
             ("hit=", "hit:"),
             ("mode=", "mode:"),
+            ("placement=", "placement:"),
+            ("merge=many", "merge:"),
             ("kinds=shadow+", "kinds:"),
             ("miss", "miss: missing =VALUE"),
             ("res=1,res=2", "res: given twice"),

@@ -57,14 +57,18 @@ pub struct PhmSummary {
     /// Rays traced to learn, and outcomes reported back.
     pub probes: u64,
     pub outcomes: u64,
-    /// Cells decided as hits and as misses when the job ended, of all cells.
+    /// Sender placement: outcomes applied to other workers' copies of the maps by
+    /// merges (one per copy reached).
+    pub outcomes_merged: u64,
+    /// Cells decided as hits and as misses when the job ended, of all cells (of every
+    /// copy, under sender placement).
     pub cells_decided_hit: u64,
     pub cells_decided_miss: u64,
     pub cells: u64,
     /// Rays not sent to another worker because a map answered or skipped them.
     pub rays_not_sent: u64,
     pub bytes_not_sent: u64,
-    /// `bytes_not_sent` less the traffic of lookups, answers and map outcomes (negative
+    /// `bytes_not_sent` less the traffic of lookups, answers, map outcomes and merges (negative
     /// when the maps cost more bytes than they saved).
     pub bytes_not_sent_net: i64,
 }
@@ -78,6 +82,7 @@ impl PhmSummary {
             rays_occluded: p.rays_occluded,
             probes: p.probes,
             outcomes: p.outcomes,
+            outcomes_merged: p.outcomes_merged,
             cells_decided_hit: p.cells_decided_hit,
             cells_decided_miss: p.cells_decided_miss,
             cells: p.cells,
@@ -278,6 +283,8 @@ pub struct TrafficSummary {
     pub entry_copies: u64,
     /// Hit-map outcomes sent and acknowledged.
     pub map_outcomes: u64,
+    /// Sender placement's hit-map merges sent and acknowledged.
+    pub map_merges: u64,
     /// The sum of the kinds.
     pub total: u64,
     /// Cache-link messages, both directions (ray batches not counted).
@@ -293,6 +300,7 @@ impl TrafficSummary {
             ticket_returns: t.ticket_returns,
             entry_copies: t.entry_copies,
             map_outcomes: t.map_outcomes,
+            map_merges: t.map_merges,
             total: t.total,
             cache_messages: t.cache_messages,
         }

@@ -387,28 +387,14 @@ fn frozen_caches_give_the_same_bits_across_processes_and_placements() {
     let workers = start_workers(&url, 3, &[], &coordinator_log);
     for placement in ["sender", "remote"] {
         let what = format!("3 worker processes, placement={placement}");
-        let png = dir.join(format!("{placement}.png"));
-        let stats = dir.join(format!("{placement}.json"));
-        let mut submit = dray();
-        submit
-            .args(["submit", "--coordinator", &addr, SCENE])
-            .args(flags("whitted"))
-            .args(["--ray-cache", &format!("{frozen},placement={placement}")])
-            .arg("--output")
-            .arg(&png)
-            .arg("--stats")
-            .arg(&stats)
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped());
-        let mut submit = Proc::spawn(submit);
-        let log = capture_stderr(&mut submit.child);
-        let status = submit.wait_timeout(HANG_SECS);
-        let out = log.after(status.is_some());
-        let status = status.unwrap_or_else(|| panic!("HANG: {what}: {out}"));
-        assert!(status.success(), "{what}: {out}");
-        let json: Value = serde_json::from_slice(&std::fs::read(&stats).expect("read stats"))
-            .expect("stats json");
+        let cache = format!("{frozen},placement={placement}");
+        let (got, json) = submit(
+            &dir,
+            &addr,
+            placement,
+            &[&flags("whitted")[..], &["--ray-cache", &cache]].concat(),
+            &what,
+        );
         let rc = &json["ray_cache"];
         check_tickets(rc, &what);
         assert!(
@@ -416,7 +402,6 @@ fn frozen_caches_give_the_same_bits_across_processes_and_placements() {
             "{what}: nothing answered: {rc}"
         );
         check_traffic(&json, placement, &what);
-        let got = std::fs::read(&png).expect("read the job's png");
         assert!(got == want, "{what}: not the same bits as one process");
     }
     drop(workers);
@@ -437,6 +422,7 @@ fn check_traffic(json: &Value, placement: &str, what: &str) {
         "ticket_returns",
         "entry_copies",
         "map_outcomes",
+        "map_merges",
     ];
     let sum: u64 = kinds.iter().map(|k| u64_of(t, k)).sum();
     assert_eq!(u64_of(t, "total"), sum, "{what}: total is not the sum: {t}");
@@ -444,7 +430,11 @@ fn check_traffic(json: &Value, placement: &str, what: &str) {
         u64_of(t, "rays") > 0,
         "{what}: no rays between processes: {t}"
     );
-    assert_eq!(u64_of(t, "map_outcomes"), 0, "{what}: no hit maps: {t}");
+    assert_eq!(
+        u64_of(t, "map_outcomes") + u64_of(t, "map_merges"),
+        0,
+        "{what}: no hit maps: {t}"
+    );
     match placement {
         "sender" => {
             assert_eq!(
@@ -473,6 +463,129 @@ fn check_traffic(json: &Value, placement: &str, what: &str) {
         Some(u64_of(rc, "bytes_not_sent") as i64 - cost),
         "{what}: {rc} {t}"
     );
+}
+
+/// Hit maps on a cluster of processes, under both placements. Maps that never decide
+/// give the reference bits either way. Under sender placement (Bolstad's replicated
+/// maps) every worker consults its own copy, so no lookup crosses processes, and the
+/// outcomes reach the other copies in merges (`merge=64`, so that there are several);
+/// under remote placement the rays cross to the walls' hosts and nothing is merged.
+/// Maps that decide skip rays under both placements.
+#[test]
+fn replicated_hit_maps_are_consulted_locally_and_merged_across_processes() {
+    let dir = common::tmp("phm-processes");
+    let (want, _) = reference(&dir, "ref", "path");
+    let mut cmd = dray();
+    cmd.args(["coordinator", "--listen", "127.0.0.1:0", "--scene-root"])
+        .arg(&dir)
+        .env("DRAY_LOG", "warn,dray_coordinator=info");
+    let (_coordinator, addr, coordinator_log) = spawn_with_address(cmd);
+    let url = format!("http://{addr}");
+    let workers = start_workers(&url, 3, &[], &coordinator_log);
+    let path = flags("path");
+    let submit = |tag: &str, phm: &str, what: &str| {
+        submit(
+            &dir,
+            &addr,
+            tag,
+            &[&path[..], &["--phm", phm]].concat(),
+            what,
+        )
+    };
+    for placement in ["sender", "remote"] {
+        let what = format!("undecided maps on 3 worker processes, placement={placement}");
+        let (png, json) = submit(
+            &format!("never-{placement}"),
+            &format!("miss=0,hit=1,merge=64,placement={placement}"),
+            &what,
+        );
+        assert!(png == want, "{what}: the image differs from the reference");
+        let (p, t) = (&json["phm"], &json["traffic"]);
+        assert!(u64_of(p, "lookups") > 0, "{what}: no map was asked: {p}");
+        assert!(u64_of(p, "probes") > 0, "{what}: {p}");
+        let kinds = [
+            "rays",
+            "lookups",
+            "answers",
+            "ticket_returns",
+            "entry_copies",
+        ];
+        let sum: u64 = kinds
+            .iter()
+            .chain(&["map_outcomes", "map_merges"])
+            .map(|k| u64_of(t, k))
+            .sum();
+        assert_eq!(u64_of(t, "total"), sum, "{what}: total is not the sum: {t}");
+        if placement == "sender" {
+            assert_eq!(
+                (u64_of(t, "lookups"), u64_of(t, "answers")),
+                (0, 0),
+                "{what}: lookups left their process: {t}"
+            );
+            assert!(u64_of(t, "map_merges") > 0, "{what}: no merges: {t}");
+            // Each outcome reaches at most the two other copies (fewer when its
+            // batch was still on the way as the job closed).
+            let merged = u64_of(p, "outcomes_merged");
+            assert!(
+                merged > 0 && merged <= 2 * u64_of(p, "outcomes"),
+                "{what}: {p}"
+            );
+        } else {
+            assert!(u64_of(t, "lookups") > 0, "{what}: no lookup traffic: {t}");
+            assert_eq!(u64_of(t, "map_merges"), 0, "{what}: merges: {t}");
+            assert_eq!(u64_of(p, "outcomes_merged"), 0, "{what}: {p}");
+        }
+        let cost = ["lookups", "answers", "map_outcomes", "map_merges"]
+            .iter()
+            .map(|k| u64_of(t, k) as i64)
+            .sum::<i64>();
+        assert_eq!(
+            p["bytes_not_sent_net"].as_i64(),
+            Some(u64_of(p, "bytes_not_sent") as i64 - cost),
+            "{what}: {p} {t}"
+        );
+
+        let what = format!("eager maps on 3 worker processes, placement={placement}");
+        let (_png, json) = submit(
+            &format!("eager-{placement}"),
+            &format!("prior=1,miss=0.2,hit=0.8,reprobe=0.05,merge=64,placement={placement}"),
+            &what,
+        );
+        let p = &json["phm"];
+        assert!(
+            u64_of(p, "rays_skipped") + u64_of(p, "rays_occluded") > 0,
+            "{what}: the maps answered nothing: {p}"
+        );
+    }
+    drop(workers);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `dray submit SCENE ARGS` to the coordinator at `addr`, writing `TAG.png` and
+/// `TAG.json` in `dir`: the image's bytes and the stats, once it succeeded.
+fn submit(dir: &Path, addr: &str, tag: &str, args: &[&str], what: &str) -> (Vec<u8>, Value) {
+    let png = dir.join(format!("{tag}.png"));
+    let stats = dir.join(format!("{tag}.json"));
+    let mut submit = dray();
+    submit
+        .args(["submit", "--coordinator", addr, SCENE])
+        .args(args)
+        .arg("--output")
+        .arg(&png)
+        .arg("--stats")
+        .arg(&stats)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped());
+    let mut submit = Proc::spawn(submit);
+    let log = capture_stderr(&mut submit.child);
+    let status = submit.wait_timeout(HANG_SECS);
+    let out = log.after(status.is_some());
+    let status = status.unwrap_or_else(|| panic!("HANG: {what}: {out}"));
+    assert!(status.success(), "{what}: {out}");
+    let json: Value =
+        serde_json::from_slice(&std::fs::read(&stats).expect("read stats")).expect("stats json");
+    (std::fs::read(&png).expect("read the job's png"), json)
 }
 
 /// `n` one-thread worker processes of the coordinator at `url` (with `extra` flags),

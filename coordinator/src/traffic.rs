@@ -14,6 +14,7 @@ pub fn add(a: &mut TrafficStats, b: &TrafficStats) {
     sum(&mut a.ticket_returns, b.ticket_returns);
     sum(&mut a.entry_copies, b.entry_copies);
     sum(&mut a.map_outcomes, b.map_outcomes);
+    sum(&mut a.map_merges, b.map_merges);
     sum(&mut a.cache_messages, b.cache_messages);
     a.total = [
         a.rays,
@@ -22,6 +23,7 @@ pub fn add(a: &mut TrafficStats, b: &TrafficStats) {
         a.ticket_returns,
         a.entry_copies,
         a.map_outcomes,
+        a.map_merges,
     ]
     .iter()
     .fold(0u64, |s, x| s.saturating_add(*x));
@@ -42,9 +44,12 @@ pub fn cache_net(bytes_not_sent: u64, t: &TrafficStats) -> i64 {
     )
 }
 
-/// Hit maps' `bytes_not_sent` less lookups, answers and map outcomes.
+/// Hit maps' `bytes_not_sent` less lookups, answers, map outcomes and map merges.
 pub fn phm_net(bytes_not_sent: u64, t: &TrafficStats) -> i64 {
-    net(bytes_not_sent, &[t.lookups, t.answers, t.map_outcomes])
+    net(
+        bytes_not_sent,
+        &[t.lookups, t.answers, t.map_outcomes, t.map_merges],
+    )
 }
 
 #[cfg(test)]
@@ -61,6 +66,7 @@ mod tests {
             ticket_returns: 40,
             entry_copies: 72,
             map_outcomes: 9,
+            map_merges: 11,
             total: 12345, // ignored
             cache_messages: 5,
         };
@@ -68,7 +74,7 @@ mod tests {
         add(&mut a, &d);
         assert_eq!(a.rays, 1280);
         assert_eq!(a.cache_messages, 10);
-        assert_eq!(a.total, 2 * (640 + 72 + 9 + 40 + 72 + 9));
+        assert_eq!(a.total, 2 * (640 + 72 + 9 + 40 + 72 + 9 + 11));
     }
 
     #[test]
@@ -79,11 +85,12 @@ mod tests {
             ticket_returns: 30,
             entry_copies: 40,
             map_outcomes: 7,
+            map_merges: 3,
             ..Default::default()
         };
         assert_eq!(cache_net(1000, &t), 810);
         assert_eq!(cache_net(64, &t), -126);
-        assert_eq!(phm_net(64, &t), 64 - 127);
+        assert_eq!(phm_net(64, &t), 64 - 130);
         assert_eq!(cache_net(u64::MAX, &TrafficStats::default()), i64::MAX);
     }
 }

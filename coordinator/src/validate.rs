@@ -248,6 +248,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
     }
     if let Some(p) = spec.phm.as_mut() {
         check_phm(p)?;
+        check_phm_placement(p, spec.ray_cache.as_ref())?;
     }
     if spec.label.len() > limits.max_label {
         return Err(bad(format!(
@@ -288,7 +289,8 @@ pub const PHM_KINDS: [&str; 6] = [
 
 /// Check the hit-map knobs and fill in their defaults in place (docs/caches.md): res 4
 /// (1..=64), dirs 12 (1..=256), prior 100 (finite, >= 0), miss 0.1 and hit 0.9
-/// (0 <= miss <= 0.5 <= hit <= 1), mode consistent, reprobe 0.1 ([0, 1]), kinds shadow.
+/// (0 <= miss <= 0.5 <= hit <= 1), mode consistent, reprobe 0.1 ([0, 1]), kinds shadow,
+/// merge 4096 (>= 1).
 pub fn check_phm(p: &mut PhmSettings) -> Result<(), Status> {
     let res = *p.res.get_or_insert(4);
     if !(1..=64).contains(&res) {
@@ -325,6 +327,10 @@ pub fn check_phm(p: &mut PhmSettings) -> Result<(), Status> {
     if !(0.0..=1.0).contains(&reprobe) {
         return Err(bad(format!("phm.reprobe must be in [0, 1], got {reprobe}")));
     }
+    let merge = *p.merge.get_or_insert(4096);
+    if merge == 0 {
+        return Err(bad("phm.merge must be at least 1 outcome, got 0".into()));
+    }
     let mut wanted = [false; PHM_KINDS.len()];
     let kinds = if p.kinds.trim().is_empty() {
         "shadow".to_string()
@@ -353,6 +359,36 @@ pub fn check_phm(p: &mut PhmSettings) -> Result<(), Status> {
         .join(",");
     if p.kinds.is_empty() {
         return Err(bad("phm.kinds: no ray kind given".into()));
+    }
+    Ok(())
+}
+
+/// Check `phm.placement` (after [`check_ray_cache`]) and fill in its default: the ray
+/// cache's placement when the job has one, else sender. A wall's actor holds both its
+/// cache and its map, so the two must agree.
+pub fn check_phm_placement(
+    p: &mut PhmSettings,
+    ray_cache: Option<&RayCacheSettings>,
+) -> Result<(), Status> {
+    if p.placement.is_empty() {
+        p.placement = ray_cache
+            .map_or(CACHE_PLACEMENT_SENDER, |rc| rc.placement.as_str())
+            .to_string();
+    }
+    if ![CACHE_PLACEMENT_SENDER, CACHE_PLACEMENT_REMOTE].contains(&p.placement.as_str()) {
+        return Err(bad(format!(
+            "phm.placement must be sender or remote, got {:?}",
+            p.placement
+        )));
+    }
+    if let Some(rc) = ray_cache
+        && rc.placement != p.placement
+    {
+        return Err(bad(format!(
+            "phm.placement {:?} and ray_cache.placement {:?} must agree: a wall's actor \
+             holds its cache and its map",
+            p.placement, rc.placement
+        )));
     }
     Ok(())
 }
@@ -793,6 +829,52 @@ mod tests {
             });
             assert_eq!(rc.unwrap().retrieve, mode);
         }
+    }
+
+    #[test]
+    fn phm_placement_follows_the_ray_cache_and_must_agree_with_it() {
+        let root = std::env::temp_dir().canonicalize().unwrap();
+        let run = |rc: Option<&str>, phm: &str| {
+            let s = JobSpec {
+                ray_cache: rc.map(|p| RayCacheSettings {
+                    placement: p.into(),
+                    ..Default::default()
+                }),
+                phm: Some(PhmSettings {
+                    placement: phm.into(),
+                    ..Default::default()
+                }),
+                ..spec()
+            };
+            validate(&s, &Limits::default(), &root)
+                .map(|v| v.spec.phm.expect("phm kept"))
+                .map_err(|e| e.message().to_string())
+        };
+        let p = run(None, "").unwrap();
+        assert_eq!((p.placement.as_str(), p.merge), ("sender", Some(4096)));
+        assert_eq!(run(Some("remote"), "").unwrap().placement, "remote");
+        assert_eq!(run(Some(""), "").unwrap().placement, "sender");
+        assert_eq!(run(None, "remote").unwrap().placement, "remote");
+        let e = run(Some("remote"), "sender").unwrap_err();
+        assert!(
+            e.starts_with("phm.placement \"sender\" and ray_cache.placement \"remote\" must agree"),
+            "{e}"
+        );
+        let e = run(None, "nearby").unwrap_err();
+        assert_eq!(e, "phm.placement must be sender or remote, got \"nearby\"");
+        let s = JobSpec {
+            phm: Some(PhmSettings {
+                merge: Some(0),
+                ..Default::default()
+            }),
+            ..spec()
+        };
+        let e = validate(&s, &Limits::default(), &root).unwrap_err();
+        assert!(
+            e.message().starts_with("phm.merge must be at least 1"),
+            "{}",
+            e.message()
+        );
     }
 
     #[test]

@@ -557,22 +557,32 @@ async fn sender_placement_opens_a_replica_of_every_wall_beside_every_worker() {
     for w in [&mut a, &mut b] {
         assert!(matches!(w.next().await, Command::Finish(_)));
     }
-    // A job with hit maps keeps each wall once.
-    let with_maps = JobSpec {
-        schedule: "domain".into(),
-        ray_cache: Some(RayCacheSettings {
-            radius: 0.01,
-            ..Default::default()
-        }),
-        phm: Some(Default::default()),
-        ..spec(64, 32, 4)
-    };
-    submit(&channel, with_maps).await;
-    a.setup_and_tiles(1).await;
-    b.setup_and_tiles(1).await;
-    let (oa, ob) = (ha.opens(), hb.opens());
-    assert_eq!((oa[1].replica, ob[1].replica), (0, 0));
-    assert_eq!(oa[1].walls.len() + ob[1].walls.len(), 24);
+    // A job with hit maps replicates them too (their placement follows the cache's);
+    // with remote placement each wall is opened once.
+    for (n, placement) in [(1, "sender"), (2, "remote")] {
+        let with_maps = JobSpec {
+            schedule: "domain".into(),
+            ray_cache: Some(RayCacheSettings {
+                radius: 0.01,
+                placement: placement.into(),
+                ..Default::default()
+            }),
+            phm: Some(Default::default()),
+            ..spec(64, 32, 4)
+        };
+        submit(&channel, with_maps).await;
+        a.setup_and_tiles(1).await;
+        b.setup_and_tiles(1).await;
+        let (oa, ob) = (ha.opens(), hb.opens());
+        assert_eq!(oa[n].phm.as_ref().unwrap().placement, placement);
+        if placement == "sender" {
+            assert_eq!((oa[n].replica, ob[n].replica), (1, 2));
+            assert_eq!((oa[n].walls.len(), ob[n].walls.len()), (24, 24));
+        } else {
+            assert_eq!((oa[n].replica, ob[n].replica), (0, 0));
+            assert_eq!(oa[n].walls.len() + ob[n].walls.len(), 24);
+        }
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -32,8 +32,8 @@ use dray_cache::{CacheHost, Entry, LookupRay, Outcome, Return, WallLookup};
 use dray_core::ray::{FLAG_COARSE, RAY_RECORD_BYTES, RayRecord, encode_rays};
 use dray_proto::v1::cache_service_client::CacheServiceClient;
 use dray_proto::v1::{
-    CacheAnswers, CacheLookups, CacheRequest, PhmOutcomes, TicketAck, TicketReturn, TicketReturns,
-    WallEntries, cache_request, cache_response,
+    CacheAnswers, CacheLookups, CacheRequest, PhmMerge, PhmOutcomes, TicketAck, TicketReturn,
+    TicketReturns, WallEntries, cache_request, cache_response,
 };
 use glam::Vec3;
 use prost::Message;
@@ -91,6 +91,12 @@ pub(crate) enum CacheMessage {
     Outcomes {
         job: Arc<Job>,
         outcomes: Vec<(u32, u32, bool)>,
+    },
+    /// Outcomes gathered for another worker's copies of the maps, per cell: (wall,
+    /// cell, hits, misses). Nothing waits for them.
+    Merge {
+        job: Arc<Job>,
+        cells: crate::map_merge::Merge,
     },
 }
 
@@ -237,8 +243,27 @@ pub(crate) fn send_lookups(shared: &Arc<Shared>, job: &Arc<Job>, lookups: Vec<Lo
 
 /// Report hit-map probe outcomes to their walls' hosts. Never waits; outcomes for a
 /// dead host are dropped (its maps are gone with it).
+///
+/// Under sender placement every host holds a copy of every map: the copy in this
+/// worker's process learns the outcomes at once, and the others get them in merges
+/// ([`crate::map_merge`]).
 pub(crate) fn send_outcomes(shared: &Arc<Shared>, job: &Arc<Job>, outcomes: Vec<(u32, u32, bool)>) {
     let routes = job.routes();
+    if routes.cache_replicas() {
+        let merge = job.merges.gather(&outcomes);
+        if let Some(mine) = routes.my_host_endpoint()
+            && !shared.caches.is_dead(mine)
+        {
+            let job = job.clone();
+            shared
+                .caches
+                .send(shared, mine, CacheMessage::Outcomes { job, outcomes });
+        }
+        if let Some(cells) = merge {
+            send_merge(shared, job, &routes, cells);
+        }
+        return;
+    }
     let mut by_host: HashMap<&str, Vec<(u32, u32, bool)>> = HashMap::new();
     for o in outcomes {
         if let Some(h) = routes.cache_host(o.0)
@@ -254,6 +279,37 @@ pub(crate) fn send_outcomes(shared: &Arc<Shared>, job: &Arc<Job>, outcomes: Vec<
             CacheMessage::Outcomes {
                 job: job.clone(),
                 outcomes,
+            },
+        );
+    }
+}
+
+/// Send the hit-map outcomes gathered for other workers' copies of the maps, if any
+/// (sender placement; see [`crate::map_merge`]).
+pub(crate) fn flush_merges(shared: &Arc<Shared>, job: &Arc<Job>) {
+    if let Some(cells) = job.merges.take() {
+        send_merge(shared, job, &job.routes(), cells);
+    }
+}
+
+/// One merge to every host but this worker's own (which learned the outcomes already).
+fn send_merge(
+    shared: &Arc<Shared>,
+    job: &Arc<Job>,
+    routes: &crate::routing::Routes,
+    cells: crate::map_merge::Merge,
+) {
+    let mine = routes.my_host_endpoint();
+    for target in routes.cache_host_endpoints() {
+        if Some(target.as_str()) == mine || shared.caches.is_dead(target) {
+            continue;
+        }
+        shared.caches.send(
+            shared,
+            target,
+            CacheMessage::Merge {
+                job: job.clone(),
+                cells: cells.clone(),
             },
         );
     }
@@ -354,7 +410,9 @@ fn fail(shared: &Arc<Shared>, endpoint: &str, msg: CacheMessage) {
             lost(&job, endpoint);
             let _ = done.send(None);
         }
-        CacheMessage::Outcomes { job, .. } => lost(&job, endpoint),
+        CacheMessage::Outcomes { job, .. } | CacheMessage::Merge { job, .. } => {
+            lost(&job, endpoint)
+        }
     }
     shared.notify();
 }
@@ -501,6 +559,28 @@ async fn link_loop(
                         };
                         lock(&job.report).traffic.message(Kind::MapOutcomes, request.encoded_len());
                         pending.push_back((sequence, Pending::Ack { job: job.clone(), kind: Kind::MapOutcomes, done: None }));
+                        req_tx.send(request).await.is_ok()
+                    }
+                    CacheMessage::Merge { job, cells } => {
+                        sequence += 1;
+                        let request = CacheRequest {
+                            msg: Some(cache_request::Msg::Merge(PhmMerge {
+                                job_id: job.key.id.to_string(),
+                                attempt: job.key.attempt,
+                                sequence,
+                                walls: cells.iter().map(|c| c.0).collect(),
+                                cells: cells.iter().map(|c| c.1).collect(),
+                                hits: cells.iter().map(|c| c.2).collect(),
+                                misses: cells.iter().map(|c| c.3).collect(),
+                            })),
+                        };
+                        let bytes = request.encoded_len();
+                        {
+                            let mut r = lock(&job.report);
+                            r.cache_bytes += bytes as u64;
+                            r.traffic.message(Kind::MapMerges, bytes);
+                        }
+                        pending.push_back((sequence, Pending::Ack { job: job.clone(), kind: Kind::MapMerges, done: None }));
                         req_tx.send(request).await.is_ok()
                     }
                     CacheMessage::Entries { job, entries, done } => {
@@ -743,6 +823,9 @@ async fn local_loop(
             CacheMessage::Outcomes { job, outcomes } => {
                 let outcomes = outcomes.iter().map(|&(w, c, hit)| (w, c, u8::from(hit)));
                 host.learn(&job.key.id, job.key.attempt, outcomes).await;
+            }
+            CacheMessage::Merge { job, cells } => {
+                host.merge(&job.key.id, job.key.attempt, cells).await;
             }
         }
     }

@@ -260,7 +260,17 @@ async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
     shared.store.open(&key, plan.content);
     let span = tracing::info_span!("job", id = %job_id, attempt);
     dray_net::trace::set_parent(&span, &setup.trace_context);
-    let job = Arc::new(Job::new(key, plan.tracer, plan.source, routes).with_span(span));
+    let merge_every = setup
+        .spec
+        .as_ref()
+        .and_then(|s| s.phm.as_ref())
+        .and_then(|p| p.merge)
+        .unwrap_or(crate::map_merge::DEFAULT_MERGE_EVERY);
+    let job = Arc::new(
+        Job::new(key, plan.tracer, plan.source, routes)
+            .with_span(span)
+            .with_merges_every(merge_every),
+    );
     let owned = job.routes().owned().len();
     let (started, replaced) = shared.jobs.insert(job.clone());
     if let Some(old) = replaced {

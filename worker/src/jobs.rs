@@ -106,6 +106,9 @@ pub struct Job {
     /// This process's CPU clock when the job was set up here (reported with every
     /// report, for `JobStats.cpu_seconds`).
     pub cpu_at_setup: f64,
+    /// Hit-map outcomes gathered for the other workers' copies of the maps (sender
+    /// placement).
+    pub merges: crate::map_merge::MapMerges,
     /// This job's span here (a child of the coordinator's, when traces are exported):
     /// tracing work and domain loads run in it.
     pub span: tracing::Span,
@@ -135,7 +138,15 @@ impl Job {
             spread: AtomicU64::new(0),
             cpu_at_setup: dray_net::cpu::process_cpu_seconds(),
             span: tracing::Span::none(),
+            merges: crate::map_merge::MapMerges::default(),
         }
+    }
+
+    /// The same job, merging hit-map outcomes into other workers' copies every `every`
+    /// outcomes ([`crate::map_merge`]).
+    pub fn with_merges_every(mut self, every: u32) -> Job {
+        self.merges = crate::map_merge::MapMerges::new(every);
+        self
     }
 
     /// The same job, with `span` as its span.

@@ -25,6 +25,7 @@ pub mod credit;
 pub mod domain_store;
 pub mod job;
 pub mod jobs;
+pub mod map_merge;
 pub(crate) mod metrics;
 pub mod node;
 pub mod package_fetch;

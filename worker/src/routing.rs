@@ -188,6 +188,12 @@ impl Routes {
         }
     }
 
+    /// The endpoint of the cache host beside this worker, when it holds a replica of
+    /// every wall (sender placement).
+    pub fn my_host_endpoint(&self) -> Option<&str> {
+        self.my_host.and_then(|h| self.cache_host_endpoint(h))
+    }
+
     /// Whether every cache host holds a replica of every wall (sender placement).
     pub fn cache_replicas(&self) -> bool {
         self.replicas

@@ -20,6 +20,7 @@ pub(crate) enum Kind {
     TicketReturns,
     EntryCopies,
     MapOutcomes,
+    MapMerges,
 }
 
 /// Byte counters by kind, accumulated between reports.
@@ -31,6 +32,7 @@ pub struct Traffic {
     pub ticket_returns: u64,
     pub entry_copies: u64,
     pub map_outcomes: u64,
+    pub map_merges: u64,
     /// Cache-link messages counted, both directions.
     pub cache_messages: u64,
 }
@@ -50,6 +52,7 @@ impl Traffic {
             Kind::TicketReturns => self.ticket_returns += b,
             Kind::EntryCopies => self.entry_copies += b,
             Kind::MapOutcomes => self.map_outcomes += b,
+            Kind::MapMerges => self.map_merges += b,
         }
         self.cache_messages += 1;
     }
@@ -67,6 +70,7 @@ impl Traffic {
         self.ticket_returns += other.ticket_returns;
         self.entry_copies += other.entry_copies;
         self.map_outcomes += other.map_outcomes;
+        self.map_merges += other.map_merges;
         self.cache_messages += other.cache_messages;
     }
 
@@ -79,6 +83,7 @@ impl Traffic {
             ticket_returns: self.ticket_returns,
             entry_copies: self.entry_copies,
             map_outcomes: self.map_outcomes,
+            map_merges: self.map_merges,
             total: 0,
             cache_messages: self.cache_messages,
         }
@@ -111,6 +116,7 @@ mod tests {
         t.message(Kind::TicketReturns, 7);
         t.message(Kind::EntryCopies, 5);
         t.message(Kind::MapOutcomes, 3);
+        t.message(Kind::MapMerges, 4);
         t.message(Kind::Lookups, 1);
         let mut u = Traffic::default();
         u.add(&t);
@@ -125,9 +131,13 @@ mod tests {
             ),
             (202, 20, 14, 10, 6)
         );
-        assert_eq!(u.cache_messages, 12);
+        assert_eq!(u.map_merges, 8);
+        assert_eq!(u.cache_messages, 14);
         let p = u.to_proto();
-        assert_eq!((p.lookups, p.total, p.cache_messages), (202, 0, 12));
+        assert_eq!(
+            (p.lookups, p.map_merges, p.total, p.cache_messages),
+            (202, 8, 0, 14)
+        );
     }
 
     #[test]

@@ -100,6 +100,11 @@ fn step(shared: &Arc<Shared>, seen: u64) {
     match next_work(shared) {
         Some(work) => trace(shared, work),
         None => {
+            // Nothing to trace: hit-map outcomes gathered for the other workers' copies
+            // go now rather than wait for a full batch (sender placement).
+            for job in shared.jobs.all() {
+                crate::cache_link::flush_merges(shared, &job);
+            }
             let start = Instant::now();
             shared.wake.wait(seen, Duration::from_millis(50));
             let idle = start.elapsed().as_secs_f64();

@@ -16,7 +16,7 @@ use crate::submit_cmd::SubmitArgs;
 /// The knobs of `--ray-cache`, as `ray-cache.<knob>` keys vary them.
 pub const RAY_CACHE_KNOBS: [&str; 7] = crate::ray_cache_flag::KEYS;
 /// The knobs of `--phm`, as `phm.<knob>` keys vary them.
-pub const PHM_KNOBS: [&str; 8] = crate::phm_flag::KEYS;
+pub const PHM_KNOBS: [&str; 10] = crate::phm_flag::KEYS;
 
 /// Flags a sweep sets itself or that make no sense to vary: the files a render writes
 /// (the sweep writes its own into `--out`), the whole `--ray-cache`/`--phm` values (their
@@ -554,6 +554,8 @@ pub fn check(tokens: &[String], target: &Target) -> Result<Job, String> {
     }
     if let Some(p) = spec.phm.as_mut() {
         dray_coordinator::validate::check_phm(p).map_err(|s| s.message().to_string())?;
+        dray_coordinator::validate::check_phm_placement(p, spec.ray_cache.as_ref())
+            .map_err(|s| s.message().to_string())?;
     }
     Ok(job)
 }

@@ -68,15 +68,19 @@ impl JobCaches {
         }
     }
 
-    /// Whether the job's walls are replicated beside every worker (Little's sender
-    /// placement). Hit maps are not replicated yet, so a job with them keeps each wall
-    /// once (remote placement).
+    /// Whether the job's walls, with their caches and maps, are replicated beside
+    /// every worker (sender placement: Little 2011 for ray caches, Bolstad 2017 for
+    /// hit maps). Validation made the two settings agree when the job has both.
     pub fn sender_placement(&self) -> bool {
-        self.phm.is_none()
-            && self
-                .settings
-                .as_ref()
-                .is_some_and(|s| s.placement == crate::validate::CACHE_PLACEMENT_SENDER)
+        let sender = crate::validate::CACHE_PLACEMENT_SENDER;
+        let cache = self.settings.as_ref().map(|s| s.placement == sender);
+        let phm = self.phm.as_ref().map(|p| p.placement == sender);
+        match (cache, phm) {
+            (None, None) => false,
+            (Some(c), None) => c,
+            (None, Some(p)) => p,
+            (Some(c), Some(p)) => c && p,
+        }
     }
 
     /// What opening attempt `attempt` of `job_id` sends.

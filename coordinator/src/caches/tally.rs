@@ -46,6 +46,7 @@ pub fn add_phm(a: &mut PhmStats, b: &PhmStats) {
     sum(&mut a.rays_occluded, b.rays_occluded);
     sum(&mut a.probes, b.probes);
     sum(&mut a.outcomes, b.outcomes);
+    sum(&mut a.outcomes_merged, b.outcomes_merged);
     sum(&mut a.cells_decided_hit, b.cells_decided_hit);
     sum(&mut a.cells_decided_miss, b.cells_decided_miss);
     sum(&mut a.cells, b.cells);
