@@ -38,10 +38,11 @@ import _bench_env as env  # noqa: E402
 def sweep(dray: Path, scene: str, out: Path, a, target: list[str]) -> list[dict]:
     cmd = [str(dray), "sweep", scene, "--integrator", "raycast", "--width", str(a.size),
            "--height", str(a.size), "--spp", "1", "--schedule", "domain",
-           "--phm", "kinds=shadow", *target, "--repeat", str(a.repeat), "--out", str(out),
+           "--phm", f"kinds={a.kinds}", *target, "--repeat", str(a.repeat), "--out", str(out),
            "--vary", "phm.placement=" + ",".join(a.placements),
            "--vary", "phm.prior=" + ",".join(str(p) for p in a.priors),
-           "--vary", "phm.mode=" + ",".join(a.modes)]
+           "--vary", "phm.mode=" + ",".join(a.modes),
+           "--vary", "phm.miss=" + ",".join(str(m) for m in a.misses)]
     print("+", " ".join(cmd), flush=True)
     subprocess.run(cmd, check=True)
     with open(out / "results.csv") as f:
@@ -57,6 +58,11 @@ def main() -> int:
     ap.add_argument("--placements", nargs="+", default=["sender", "remote"])
     ap.add_argument("--priors", type=float, nargs="+", default=[100, 10])
     ap.add_argument("--modes", nargs="+", default=["consistent", "inconsistent"])
+    ap.add_argument("--misses", type=float, nargs="+", default=[0.1],
+                    help="phm.miss thresholds (the source's: 0.1)")
+    ap.add_argument("--kinds", default="shadow",
+                    help="ray kinds that consult the maps, joined with + (the source's: shadow)")
+    ap.add_argument("--tag", default="hit-maps", help="name of the output folders and logs")
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--port", type=int, default=53500)
     ap.add_argument("--work", type=Path, default=Path("benches/out/caches"))
@@ -70,19 +76,19 @@ def main() -> int:
             extra += ["--emulate-link", link]
         tag = "loopback" if link == "none" else link.replace(",", "-").replace("=", "")
         cluster = env.Cluster(dray, a.workers, a.port + 20 * i, a.work,
-                              a.work / f"hit-maps-{tag}.log", extra)
+                              a.work / f"{a.tag}-{tag}.log", extra)
         try:
-            results[link] = sweep(dray, package.name, a.work / f"hit-maps-{tag}", a,
+            results[link] = sweep(dray, package.name, a.work / f"{a.tag}-{tag}", a,
                                   ["--coordinator", cluster.addr])
         finally:
             cluster.stop()
-    (a.work / "hit-maps.json").write_text(json.dumps(
+    (a.work / f"{a.tag}.json").write_text(json.dumps(
         {"size": a.size, "workers": a.workers, "results": results}, indent=1))
     for link, rows in results.items():
         exact = next(r for r in rows if r["setting"] == "exact")
         e_wall, e_cpu, e_bytes = (float(exact[k]) for k in ("wall_s", "cpu_s", "bytes_total"))
         print(f"\n### {link}: {a.size}^2 raycast, {a.workers} workers, schedule domain, "
-              f"medians of {a.repeat}\n")
+              f"kinds {a.kinds}, medians of {a.repeat}\n")
         print("| setting | wall s | vs exact | CPU s | bytes total | vs exact | rays sent | "
               "skipped | occluded | FLIP |")
         print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")

@@ -24,14 +24,10 @@ use crate::stats::{WallStats, worth_logging};
 use crate::store::{Entry, EntryKey, InsertError, Query, WallStore};
 use crate::tickets::{Applied, Return, TicketBook, TicketRay};
 
-/// Lookup option bit 0: the ray may be answered from the cache.
-pub const OPTION_ANSWER: u32 = 1;
-/// Lookup option bit 1: on a miss, open a ticket for the ray.
-pub const OPTION_TICKET: u32 = 2;
-/// Lookup option bit 2: consult the wall's hit map.
-pub const OPTION_PHM: u32 = 4;
-/// Added to an outcome code (0 or 2) when the ray goes on as a probe.
-pub const PROBE: u8 = 8;
+use crate::wire::{
+    CODE_HIT, CODE_MISS, CODE_OCCLUDED, CODE_SKIP, CODE_TICKET, OPTION_ANSWER, OPTION_PHM,
+    OPTION_TICKET, PROBE,
+};
 
 /// Rays an actor handles between yields, so one huge lookup does not hold a runtime
 /// thread away from the other walls' actors and the streams for long.
@@ -67,13 +63,13 @@ impl Outcome {
     /// The byte in `CacheAnswers.outcomes`.
     pub fn code(&self) -> u8 {
         match self {
-            Outcome::Miss => 0,
-            Outcome::Hit(_) => 1,
-            Outcome::Ticket(_) => 2,
-            Outcome::Skip => 3,
-            Outcome::Occluded => 4,
-            Outcome::Probe => PROBE,
-            Outcome::ProbeTicket(_) => 2 + PROBE,
+            Outcome::Miss => CODE_MISS,
+            Outcome::Hit(_) => CODE_HIT,
+            Outcome::Ticket(_) => CODE_TICKET,
+            Outcome::Skip => CODE_SKIP,
+            Outcome::Occluded => CODE_OCCLUDED,
+            Outcome::Probe => CODE_MISS + PROBE,
+            Outcome::ProbeTicket(_) => CODE_TICKET + PROBE,
         }
     }
 

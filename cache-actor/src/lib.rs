@@ -41,8 +41,9 @@ pub mod stats;
 pub mod store;
 pub mod ticket_id;
 pub mod tickets;
+pub mod wire;
 
-pub use actor::{LookupRay, OPTION_ANSWER, OPTION_PHM, OPTION_TICKET, Outcome, PROBE};
+pub use actor::{LookupRay, Outcome};
 pub use error::HostError;
 pub use exchange::ResponseStream;
 pub use host::{CacheHost, CacheHostConfig, MAX_MESSAGE_BYTES, WallLookup};
@@ -53,3 +54,4 @@ pub use settings::{CacheSettings, HitMapSettings, PhmMode, Retrieve, SettingsErr
 pub use stats::{MapStats, WallStats};
 pub use store::Entry;
 pub use tickets::Return;
+pub use wire::{OPTION_ANSWER, OPTION_PHM, OPTION_TICKET, PROBE};

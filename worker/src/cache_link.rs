@@ -28,6 +28,10 @@ use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use dray_cache::entry_record::{ENTRY_RECORD_BYTES, decode_entries, encode_entry};
+use dray_cache::wire::{
+    CODE_HIT, CODE_MISS, CODE_OCCLUDED, CODE_SKIP, CODE_TICKET, OPTION_ANSWER, OPTION_PHM,
+    OPTION_TICKET, PROBE,
+};
 use dray_cache::{CacheHost, Entry, LookupRay, Outcome, Return, WallLookup};
 use dray_core::ray::{FLAG_COARSE, RAY_RECORD_BYTES, RayRecord, encode_rays};
 use dray_proto::v1::cache_service_client::CacheServiceClient;
@@ -57,17 +61,6 @@ const ENTRIES_PER_MESSAGE: usize = 16 * 1024;
 const RETURN_BYTES: u64 = 40;
 /// Bytes a hit-map outcome costs on the wire, roughly (wall, cell and hit varints).
 const OUTCOME_BYTES: u64 = 9;
-/// Option bits of a lookup (cache.proto `CacheLookups.options`).
-const MAY_ANSWER: u32 = 1;
-const MAY_TICKET: u32 = 2;
-const ASK_PHM: u32 = 4;
-/// Answer codes (cache.proto `CacheAnswers.outcomes`).
-const GO_ON: u8 = 0;
-const HIT: u8 = 1;
-const TICKETED: u8 = 2;
-const SKIP: u8 = 3;
-const OCCLUDED: u8 = 4;
-const PROBE: u8 = 8;
 
 /// Work for one host's stream.
 pub(crate) enum CacheMessage {
@@ -688,14 +681,14 @@ fn lookup_options(job: &Job, l: &Lookup) -> u32 {
     if l.cache {
         // The coarse pass is exact: its rays fill the caches, never ask.
         if !l.lineage.coarse {
-            o |= MAY_ANSWER;
+            o |= OPTION_ANSWER;
         }
         if l.lineage.ticket_count() < MAX_TICKETS && job.tracer.tickets_for(&l.lineage) {
-            o |= MAY_TICKET;
+            o |= OPTION_TICKET;
         }
     }
     if l.phm {
-        o |= ASK_PHM;
+        o |= OPTION_PHM;
     }
     o
 }
@@ -757,12 +750,12 @@ fn answers_of(a: &CacheAnswers) -> impl Iterator<Item = Answer> + '_ {
     let mut tickets = a.tickets.iter();
     a.outcomes.iter().map(move |&code| Answer {
         code,
-        radiance: if code & !PROBE == HIT {
+        radiance: if code & !PROBE == CODE_HIT {
             radiance.next().map(|c| [c[0], c[1], c[2]])
         } else {
             None
         },
-        ticket: if code & !PROBE == TICKETED {
+        ticket: if code & !PROBE == CODE_TICKET {
             tickets.next().copied()
         } else {
             None
@@ -853,11 +846,11 @@ fn apply_answers(
     let mut answers = answers.fuse();
     for l in lookups {
         let answer = answers.next();
-        let code = answer.map_or(GO_ON, |a| a.code);
+        let code = answer.map_or(CODE_MISS, |a| a.code);
         let mut lin = l.lineage;
-        lin.probe = code & PROBE != 0 && matches!(code & !PROBE, GO_ON | TICKETED);
+        lin.probe = code & PROBE != 0 && matches!(code & !PROBE, CODE_MISS | CODE_TICKET);
         match code & !PROBE {
-            HIT => {
+            CODE_HIT => {
                 if let Some(c) = answer.and_then(|a| a.radiance) {
                     job.tracer
                         .answer_hit(&l.ray, &lin, Vec3::from_array(c), &mut out);
@@ -867,12 +860,12 @@ fn apply_answers(
                     continue;
                 }
             }
-            TICKETED => {
+            CODE_TICKET => {
                 if let Some(t) = answer.and_then(|a| a.ticket) {
                     lin = lin.with_ticket(t);
                 }
             }
-            SKIP => {
+            CODE_SKIP => {
                 if !routes.owns(l.domain) {
                     phm_not_sent += 1;
                 }
@@ -882,7 +875,7 @@ fn apply_answers(
                 }
                 continue;
             }
-            OCCLUDED if l.ray.kind.is_occlusion() => {
+            CODE_OCCLUDED if l.ray.kind.is_occlusion() => {
                 if !routes.owns(l.domain) {
                     phm_not_sent += 1;
                 }
