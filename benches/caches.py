@@ -84,6 +84,8 @@ def main() -> int:
     ap.add_argument("--links", nargs="+", default=["none"],
                     help="cluster mode: --emulate-link specs, one cluster each (none: plain "
                          "loopback), e.g. bandwidth=1gbit,latency=100us")
+    ap.add_argument("--fills", nargs="+", default=["true"], choices=["true", "false"],
+                    help="ray-cache.fill values (false: only the coarse pass stores)")
     ap.add_argument("--no-retrieve", action="store_true",
                     help="skip the retrieval-method sweep")
     ap.add_argument("--port", type=int, default=53100)
@@ -124,7 +126,8 @@ def main() -> int:
                 target += ["--domains", "27", "--layout", "grid"]
             results[name] = sweep(dray, scene, a.work / f"{name}-radius", a.size,
                                   [f"ray-cache.radius={radii}", f"ray-cache.coarse={coarse}",
-                                   f"ray-cache.placement={','.join(a.placements)}"],
+                                   f"ray-cache.placement={','.join(a.placements)}",
+                                   f"ray-cache.fill={','.join(a.fills)}"],
                                   base, target, a.repeat)
             if not a.no_retrieve:
                 mid = f"{0.005 * scale:.6g}"
@@ -143,6 +146,7 @@ def main() -> int:
           f"angle {ANGLE_DEG:.2f} deg; {a.size}^2 raycast, {a.workers} workers\n")
     for mode, rows in results.items():
         print(f"### {mode}\n")
+        print(f"{len(rows)} rows; medians of {a.repeat}\n")
         print("| setting | thesis r | wall s | render s | speedup (render) | CPU s | bytes total | outer hit | inner hit | rays sent | RMS | FLIP | thesis s | thesis RMS |")
         print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
         exact_render = next((float(r["render_s"]) for r in rows if r["setting"] == "exact"), None)

@@ -10,6 +10,7 @@
 //! lookups waits at the sender instead of queueing without limit.
 
 use std::sync::Arc;
+use std::sync::atomic::Ordering;
 
 use dray_core::ray::{FLAG_COARSE, RayRecord};
 use dray_core::wall::WallFrame;
@@ -18,7 +19,7 @@ use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinHandle;
 use tracing::Instrument;
 
-use crate::phm::{Advice, HitMap, Learned};
+use crate::phm::{Advice, HitMap, Learned, MapView};
 use crate::settings::{CacheSettings, HitMapSettings};
 use crate::stats::{WallStats, worth_logging};
 use crate::store::{Entry, EntryKey, InsertError, Query, WallStore};
@@ -149,6 +150,8 @@ pub(crate) struct WallSpec {
 pub(crate) struct WallHandle {
     tx: mpsc::Sender<Command>,
     pub outer: bool,
+    /// A view of the wall's hit map for consulting it in place (dense maps only).
+    pub map: Option<MapView>,
 }
 
 impl WallHandle {
@@ -164,18 +167,24 @@ pub(crate) fn spawn(spec: WallSpec, span: tracing::Span) -> (WallHandle, JoinHan
     let handle = WallHandle {
         tx,
         outer: spec.outer,
+        map: None,
     };
     let (lo, hi) = spec.domain;
+    let map = spec
+        .phm
+        .as_deref()
+        .map(|s| HitMap::new(s, spec.wall, lo, hi));
+    let handle = WallHandle {
+        map: map.as_ref().and_then(HitMap::view),
+        ..handle
+    };
     let actor = WallActor {
         store: WallStore::for_radius(
             spec.max_entries,
             spec.settings.as_ref().map_or(0.0, |s| s.radius),
         ),
         tickets: TicketBook::new(spec.wall, spec.max_open_tickets),
-        map: spec
-            .phm
-            .as_deref()
-            .map(|s| HitMap::new(s, spec.wall, lo, hi)),
+        map,
         stats: WallStats::default(),
         spec,
     };
@@ -257,6 +266,14 @@ impl WallActor {
         };
         if let Some(map) = &self.map {
             let (hit, miss) = map.decided();
+            // Consults made in place, through the map's views.
+            let c = map.consults();
+            let get = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed);
+            stats.phm.lookups += get(&c.lookups);
+            stats.phm.unplaced += get(&c.unplaced);
+            stats.phm.skipped += get(&c.skipped);
+            stats.phm.occluded += get(&c.occluded);
+            stats.phm.probes += get(&c.probes);
             stats.phm.cells = u64::from(map.len());
             stats.phm.cells_decided_hit = hit;
             stats.phm.cells_decided_miss = miss;

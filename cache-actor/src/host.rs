@@ -31,6 +31,7 @@ use crate::actor::{self, Command, LookupRay, Outcome, WallHandle, WallSpec};
 use crate::entry_record::{ENTRY_RECORD_BYTES, decode_entries, encode_entry};
 use crate::error::HostError;
 use crate::job::{self, JobAttempt, OpenPlan};
+use crate::phm::MapView;
 use crate::stats::{WallStats, log_point_between};
 use crate::store::{DEFAULT_MAX_ENTRIES, Entry};
 use crate::ticket_id;
@@ -644,6 +645,27 @@ impl CacheHost {
 }
 
 impl CacheHost {
+    /// Views of the hit maps of attempt `attempt` of `job_id` on this host, for a
+    /// worker in this process to consult in place ([`MapView`]); `None` while the
+    /// attempt is not open here, or when it has no map that can be viewed.
+    pub fn map_views(&self, job_id: &str, attempt: u32) -> Option<Arc<MapViews>> {
+        let job = self.job(job_id, attempt)?;
+        let mut views: Vec<Option<MapView>> = Vec::new();
+        for (wall, handle) in job.all_handles() {
+            if let Some(view) = handle.map {
+                let i = wall as usize;
+                if views.len() <= i {
+                    views.resize(i + 1, None);
+                }
+                views[i] = Some(view);
+            }
+        }
+        if views.is_empty() {
+            return None;
+        }
+        Some(Arc::new(MapViews { views }))
+    }
+
     /// Apply a `PhmMerge` (another worker's outcomes, counted per cell); the ack is
     /// built once every actor has applied its share. Mismatched lengths are a protocol
     /// error; merges for a job not open here, or a wall not served here, are
@@ -706,6 +728,19 @@ impl CacheHost {
         for rx in pending {
             let _ = rx.await;
         }
+    }
+}
+
+/// The viewable hit maps of one job attempt on a host, by wall.
+#[derive(Debug)]
+pub struct MapViews {
+    views: Vec<Option<MapView>>,
+}
+
+impl MapViews {
+    /// The view of `wall`'s map, if this host serves it with one.
+    pub fn get(&self, wall: u32) -> Option<&MapView> {
+        self.views.get(wall as usize)?.as_ref()
     }
 }
 

@@ -22,6 +22,8 @@
 //! same ray at the same map state gets the same answer on every run and every host.
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, OnceLock};
 
 use dray_core::ray::RayRecord;
 use dray_core::wall::{self, PhmBins};
@@ -84,58 +86,89 @@ pub enum Learned {
     OutOfRange,
 }
 
-/// Cell counts, allocated on the first outcome: a map that never learns (a wall no
-/// probe reached) costs nothing.
-#[derive(Debug, Default)]
+/// Dense counts, shared between a wall's actor (their only writer) and the tracing
+/// threads that consult the map in place ([`MapView`]). Each cell is one `u64` (hits in
+/// the low half, misses in the high half), so a reader always sees a pair the writer
+/// stored. Allocated on the first outcome: a map that never learns costs nothing.
+type DenseCells = Arc<OnceLock<Box<[AtomicU64]>>>;
+
+fn pack(c: Counts) -> u64 {
+    u64::from(c.hits) | u64::from(c.misses) << 32
+}
+
+fn unpack(x: u64) -> Counts {
+    Counts {
+        hits: x as u32,
+        misses: (x >> 32) as u32,
+    }
+}
+
+fn dense_get(cells: &DenseCells, cell: u32) -> Counts {
+    cells
+        .get()
+        .and_then(|v| v.get(usize::try_from(cell).ok()?))
+        .map_or_else(Counts::default, |a| unpack(a.load(Ordering::Relaxed)))
+}
+
+/// Cell counts: dense for maps of at most [`DENSE_MAX_CELLS`] cells (which may be
+/// consulted in place), sparse above.
+#[derive(Debug)]
 enum Cells {
-    #[default]
-    Empty,
-    Dense(Vec<Counts>),
+    Dense(DenseCells),
     Sparse(HashMap<u32, Counts>),
 }
 
 impl Cells {
+    fn new(n: u32) -> Cells {
+        if n <= DENSE_MAX_CELLS {
+            Cells::Dense(Arc::new(OnceLock::new()))
+        } else {
+            Cells::Sparse(HashMap::new())
+        }
+    }
+
     fn get(&self, cell: u32) -> Counts {
         match self {
-            Cells::Empty => Counts::default(),
-            Cells::Dense(v) => usize::try_from(cell)
-                .ok()
-                .and_then(|i| v.get(i))
-                .copied()
-                .unwrap_or_default(),
+            Cells::Dense(d) => dense_get(d, cell),
             Cells::Sparse(m) => m.get(&cell).copied().unwrap_or_default(),
         }
     }
 
-    /// The counts of `cell` (< `n`, checked by the caller) to change.
-    fn get_mut(&mut self, cell: u32, n: u32) -> Option<&mut Counts> {
-        if let Cells::Empty = self {
-            *self = if n <= DENSE_MAX_CELLS {
-                Cells::Dense(vec![Counts::default(); n as usize])
-            } else {
-                Cells::Sparse(HashMap::new())
-            };
-        }
+    /// Set the counts of `cell` (< `n`, checked by the caller) to `f` of their current
+    /// value. Only the wall's actor writes, so a load and a store are enough.
+    fn update(&mut self, cell: u32, n: u32, f: impl FnOnce(Counts) -> Counts) {
         match self {
-            Cells::Empty => None,
-            Cells::Dense(v) => v.get_mut(usize::try_from(cell).ok()?),
-            Cells::Sparse(m) => Some(m.entry(cell).or_default()),
+            Cells::Dense(d) => {
+                let v = d.get_or_init(|| (0..n).map(|_| AtomicU64::new(0)).collect());
+                if let Some(a) = usize::try_from(cell).ok().and_then(|i| v.get(i)) {
+                    a.store(
+                        pack(f(unpack(a.load(Ordering::Relaxed)))),
+                        Ordering::Relaxed,
+                    );
+                }
+            }
+            Cells::Sparse(m) => {
+                let c = m.entry(cell).or_default();
+                *c = f(*c);
+            }
         }
     }
 
     /// Every cell that holds counts (the others are fresh).
     fn held(&self) -> Box<dyn Iterator<Item = Counts> + '_> {
         match self {
-            Cells::Empty => Box::new(std::iter::empty()),
-            Cells::Dense(v) => Box::new(v.iter().copied()),
+            Cells::Dense(d) => match d.get() {
+                Some(v) => Box::new(v.iter().map(|a| unpack(a.load(Ordering::Relaxed)))),
+                None => Box::new(std::iter::empty()),
+            },
             Cells::Sparse(m) => Box::new(m.values().copied()),
         }
     }
 }
 
-/// The hit map of one wall.
-#[derive(Debug)]
-pub struct HitMap {
+/// How a map bins rays and decides: everything about it but its counts.
+#[derive(Clone, Copy, Debug)]
+struct MapRule {
     bins: PhmBins,
     /// The box of the domain the wall belongs to, and the wall's face of it: what
     /// [`PhmBins::cell`] bins against, exactly as the workers do.
@@ -148,52 +181,20 @@ pub struct HitMap {
     hit: f64,
     mode: PhmMode,
     reprobe: f64,
-    cells: Cells,
 }
 
-impl HitMap {
-    /// An empty map (every cell at its prior) for `wall`, whose domain is `[lo, hi]`.
-    pub fn new(settings: &HitMapSettings, wall: u32, lo: Vec3, hi: Vec3) -> HitMap {
-        HitMap {
-            bins: settings.bins,
-            lo,
-            hi,
-            face: wall::wall_face(wall),
-            wall,
-            prior: f64::from(settings.prior),
-            miss: f64::from(settings.miss),
-            hit: f64::from(settings.hit),
-            mode: settings.mode,
-            reprobe: f64::from(settings.reprobe),
-            cells: Cells::Empty,
-        }
-    }
-
-    /// Cells in the map.
-    pub fn len(&self) -> u32 {
+impl MapRule {
+    fn len(&self) -> u32 {
         self.bins.cells()
     }
 
-    /// Never true (a map has at least one cell); for clippy's `len` convention.
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-
-    /// The cell of a ray entering through this wall, as the workers bin it.
-    pub fn cell_of(&self, origin: Vec3, dir: Vec3) -> Option<u32> {
+    fn cell_of(&self, origin: Vec3, dir: Vec3) -> Option<u32> {
         self.bins
             .cell(self.lo, self.hi, self.face, origin, dir)
             .filter(|&c| c < self.len())
     }
 
-    /// The counts of `cell` (fresh counts for a cell beyond the map).
-    pub fn counts(&self, cell: u32) -> Counts {
-        self.cells.get(cell)
-    }
-
-    /// The hit probability of counts `c`: the prior's 0.5 weighted by `prior` rays on
-    /// each side; 0.5 when there is neither prior nor outcome.
-    pub fn probability(&self, c: Counts) -> f64 {
+    fn probability(&self, c: Counts) -> f64 {
         let hits = f64::from(c.hits);
         let total = hits + f64::from(c.misses) + 2.0 * self.prior;
         if total > 0.0 {
@@ -203,11 +204,7 @@ impl HitMap {
         }
     }
 
-    /// What counts `c` decide. With a positive prior the true `p` is strictly inside
-    /// (0, 1), but in f64 a tiny prior next to billions of outcomes rounds to exactly 0
-    /// or 1; clamping keeps thresholds of 0 and 1 from ever deciding then, as the
-    /// settings promise.
-    pub fn decide(&self, c: Counts) -> Decision {
+    fn decide(&self, c: Counts) -> Decision {
         let mut p = self.probability(c);
         if self.prior > 0.0 {
             p = p.clamp(f64::MIN_POSITIVE, 1.0 - f64::EPSILON);
@@ -221,27 +218,15 @@ impl HitMap {
         }
     }
 
-    /// The current decision of `cell`. Inconsistent maps need nothing more: a decided
-    /// cell's counts no longer change, so neither does this.
-    pub fn decision(&self, cell: u32) -> Decision {
-        self.decide(self.cells.get(cell))
-    }
-
-    /// Whether a ray at a decided cell is probed anyway: consistent maps only, for a
-    /// fraction `reprobe` of rays picked by [`reprobe_draw`].
-    pub fn reprobes(&self, ray: &RayRecord) -> bool {
+    fn reprobes(&self, ray: &RayRecord) -> bool {
         self.mode == PhmMode::Consistent && reprobe_draw(ray, self.wall) < self.reprobe
     }
 
-    /// The map's advice for `ray`, reaching this wall. A ray's kind only matters for
-    /// predicted hits: only occlusion rays can be answered by "something is in the
-    /// way"; others are traced at such cells, as probes while the cell can still learn
-    /// (consistent maps), plainly once it cannot (inconsistent maps).
-    pub fn advise(&self, ray: &RayRecord) -> Advice {
+    fn advise(&self, ray: &RayRecord, counts: impl FnOnce(u32) -> Counts) -> Advice {
         let Some(cell) = self.cell_of(ray.origin, ray.dir) else {
             return Advice::Unplaced;
         };
-        let decision = self.decision(cell);
+        let decision = self.decide(counts(cell));
         if decision == Decision::Undecided || self.reprobes(ray) {
             return Advice::Probe;
         }
@@ -251,6 +236,156 @@ impl HitMap {
             _ if self.mode == PhmMode::Inconsistent => Advice::Trace,
             _ => Advice::Probe,
         }
+    }
+}
+
+/// Consults of a map made in place through its [`MapView`]s, counted where they happen
+/// and added to the wall's statistics when it closes.
+#[derive(Debug, Default)]
+pub struct Consults {
+    pub lookups: AtomicU64,
+    pub unplaced: AtomicU64,
+    pub skipped: AtomicU64,
+    pub occluded: AtomicU64,
+    pub probes: AtomicU64,
+}
+
+/// A read-only view of one wall's map for the tracing threads of the worker in the
+/// map's own process (sender placement): they consult it in place, with no message to
+/// the wall's actor and no wait for an answer. What the actor learns (from outcomes
+/// and merges) shows in the view at once. Dense maps only.
+#[derive(Clone, Debug)]
+pub struct MapView {
+    rule: MapRule,
+    cells: DenseCells,
+    consults: Arc<Consults>,
+}
+
+impl MapView {
+    /// The map's advice for `ray` at its wall, counted as the actor counts a lookup
+    /// (the probes among them are counted here too: a consulting ray the map wants to
+    /// learn from always goes on into the domain, as a probe).
+    pub fn consult(&self, ray: &RayRecord) -> Advice {
+        let c = &self.consults;
+        c.lookups.fetch_add(1, Ordering::Relaxed);
+        let advice = self.rule.advise(ray, |cell| dense_get(&self.cells, cell));
+        let counter = match advice {
+            Advice::Unplaced => &c.unplaced,
+            Advice::Skip => &c.skipped,
+            Advice::Occlude => &c.occluded,
+            Advice::Probe => &c.probes,
+            Advice::Trace => return advice,
+        };
+        counter.fetch_add(1, Ordering::Relaxed);
+        advice
+    }
+
+    /// The wall the map belongs to.
+    pub fn wall(&self) -> u32 {
+        self.rule.wall
+    }
+}
+
+/// The hit map of one wall.
+#[derive(Debug)]
+pub struct HitMap {
+    rule: MapRule,
+    cells: Cells,
+    consults: Arc<Consults>,
+}
+
+impl HitMap {
+    /// An empty map (every cell at its prior) for `wall`, whose domain is `[lo, hi]`.
+    pub fn new(settings: &HitMapSettings, wall: u32, lo: Vec3, hi: Vec3) -> HitMap {
+        let rule = MapRule {
+            bins: settings.bins,
+            lo,
+            hi,
+            face: wall::wall_face(wall),
+            wall,
+            prior: f64::from(settings.prior),
+            miss: f64::from(settings.miss),
+            hit: f64::from(settings.hit),
+            mode: settings.mode,
+            reprobe: f64::from(settings.reprobe),
+        };
+        HitMap {
+            cells: Cells::new(rule.len()),
+            rule,
+            consults: Arc::default(),
+        }
+    }
+
+    /// A view for consulting the map in place, sharing its counts; `None` for a map too
+    /// large for dense counts (its rays ask the actor).
+    pub fn view(&self) -> Option<MapView> {
+        match &self.cells {
+            Cells::Dense(d) => Some(MapView {
+                rule: self.rule,
+                cells: d.clone(),
+                consults: self.consults.clone(),
+            }),
+            Cells::Sparse(_) => None,
+        }
+    }
+
+    /// The consults made through the map's views.
+    pub fn consults(&self) -> &Consults {
+        &self.consults
+    }
+
+    /// Cells in the map.
+    pub fn len(&self) -> u32 {
+        self.rule.len()
+    }
+
+    /// Never true (a map has at least one cell); for clippy's `len` convention.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The cell of a ray entering through this wall, as the workers bin it.
+    pub fn cell_of(&self, origin: Vec3, dir: Vec3) -> Option<u32> {
+        self.rule.cell_of(origin, dir)
+    }
+
+    /// The counts of `cell` (fresh counts for a cell beyond the map).
+    pub fn counts(&self, cell: u32) -> Counts {
+        self.cells.get(cell)
+    }
+
+    /// The hit probability of counts `c`: the prior's 0.5 weighted by `prior` rays on
+    /// each side; 0.5 when there is neither prior nor outcome.
+    pub fn probability(&self, c: Counts) -> f64 {
+        self.rule.probability(c)
+    }
+
+    /// What counts `c` decide. With a positive prior the true `p` is strictly inside
+    /// (0, 1), but in f64 a tiny prior next to billions of outcomes rounds to exactly 0
+    /// or 1; clamping keeps thresholds of 0 and 1 from ever deciding then, as the
+    /// settings promise.
+    pub fn decide(&self, c: Counts) -> Decision {
+        self.rule.decide(c)
+    }
+
+    /// The current decision of `cell`. Inconsistent maps need nothing more: a decided
+    /// cell's counts no longer change, so neither does this.
+    pub fn decision(&self, cell: u32) -> Decision {
+        self.decide(self.cells.get(cell))
+    }
+
+    /// Whether a ray at a decided cell is probed anyway: consistent maps only, for a
+    /// fraction `reprobe` of rays picked by [`reprobe_draw`].
+    pub fn reprobes(&self, ray: &RayRecord) -> bool {
+        self.rule.reprobes(ray)
+    }
+
+    /// The map's advice for `ray`, reaching this wall. A ray's kind only matters for
+    /// predicted hits: only occlusion rays can be answered by "something is in the
+    /// way"; others are traced at such cells, as probes while the cell can still learn
+    /// (consistent maps), plainly once it cannot (inconsistent maps).
+    pub fn advise(&self, ray: &RayRecord) -> Advice {
+        self.rule.advise(ray, |cell| self.cells.get(cell))
     }
 
     /// Learn one probe's outcome: whether it hit something inside the domain.
@@ -268,14 +403,13 @@ impl HitMap {
         if cell >= n {
             return Learned::OutOfRange;
         }
-        if self.mode == PhmMode::Inconsistent && self.decision(cell) != Decision::Undecided {
+        if self.rule.mode == PhmMode::Inconsistent && self.decision(cell) != Decision::Undecided {
             return Learned::Frozen;
         }
-        let Some(c) = self.cells.get_mut(cell, n) else {
-            return Learned::OutOfRange;
-        };
-        c.hits = c.hits.saturating_add(hits);
-        c.misses = c.misses.saturating_add(misses);
+        self.cells.update(cell, n, |c| Counts {
+            hits: c.hits.saturating_add(hits),
+            misses: c.misses.saturating_add(misses),
+        });
         Learned::Counted
     }
 
@@ -607,9 +741,8 @@ mod tests {
         assert_eq!(m.len(), 1);
         assert_eq!(m.learn(1, true), Learned::OutOfRange);
         assert_eq!(m.learn(u32::MAX, true), Learned::OutOfRange);
-        if let Some(c) = m.cells.get_mut(0, 1) {
-            c.hits = u32::MAX;
-        }
+        assert_eq!(m.merge(0, u32::MAX - 1, 0), Learned::Counted);
+        assert_eq!(m.learn(0, true), Learned::Counted);
         assert_eq!(m.learn(0, true), Learned::Counted);
         assert_eq!(m.counts(0).hits, u32::MAX);
         // Rays the map cannot bin.
@@ -682,5 +815,43 @@ mod tests {
         assert_eq!(m.decided(), (1, 1));
         assert_eq!(m.decision(last), Decision::Miss);
         assert_eq!(m.decision(1), Decision::Undecided);
+        assert!(
+            m.view().is_none(),
+            "sparse maps are consulted by message only"
+        );
+    }
+
+    #[test]
+    fn views_see_what_the_map_learns_and_count_their_consults() {
+        let s = settings(|p| {
+            p.prior = Some(1.0);
+            p.reprobe = Some(0.0);
+        });
+        let mut m = map(&s);
+        let view = m.view().expect("dense maps have views");
+        assert_eq!(view.wall(), 4);
+        let r = ray(0.3, 0.6, 0);
+        let c = cell(&m, &r);
+        assert_eq!(view.consult(&r), Advice::Probe);
+        // 1 / (n + 2) <= 0.1 from 8 misses: the view skips the ray as the map does.
+        for _ in 0..8 {
+            m.learn(c, false);
+        }
+        assert_eq!(view.consult(&r), Advice::Skip);
+        assert_eq!(view.consult(&r), m.advise(&r));
+        let mut sideways = r;
+        sideways.dir = Vec3::X;
+        assert_eq!(view.consult(&sideways), Advice::Unplaced);
+        let n = m.consults();
+        let get = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        assert_eq!(
+            (
+                get(&n.lookups),
+                get(&n.probes),
+                get(&n.skipped),
+                get(&n.unplaced)
+            ),
+            (4, 1, 2, 1)
+        );
     }
 }

@@ -121,6 +121,13 @@ impl CacheLinks {
         }
     }
 
+    /// The cache host in this process, when `routes` make it this worker's replica of
+    /// every wall (sender placement): its maps may then be consulted in place.
+    pub fn local_host(&self, routes: &crate::routing::Routes) -> Option<&CacheHost> {
+        let (endpoint, host) = self.local.as_ref()?;
+        (routes.my_host_endpoint() == Some(endpoint.as_str())).then_some(host)
+    }
+
     /// Whether the host at `endpoint` was found unreachable.
     pub fn is_dead(&self, endpoint: &str) -> bool {
         lock(&self.dead).contains(endpoint)

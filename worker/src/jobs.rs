@@ -109,6 +109,9 @@ pub struct Job {
     /// Hit-map outcomes gathered for the other workers' copies of the maps (sender
     /// placement).
     pub merges: crate::map_merge::MapMerges,
+    /// Views of this job's hit maps on the cache host in this process, once its walls
+    /// are open there (sender placement).
+    maps: std::sync::OnceLock<Arc<dray_cache::MapViews>>,
     /// This job's span here (a child of the coordinator's, when traces are exported):
     /// tracing work and domain loads run in it.
     pub span: tracing::Span,
@@ -139,6 +142,7 @@ impl Job {
             cpu_at_setup: dray_net::cpu::process_cpu_seconds(),
             span: tracing::Span::none(),
             merges: crate::map_merge::MapMerges::default(),
+            maps: std::sync::OnceLock::new(),
         }
     }
 
@@ -147,6 +151,19 @@ impl Job {
     pub fn with_merges_every(mut self, every: u32) -> Job {
         self.merges = crate::map_merge::MapMerges::new(every);
         self
+    }
+
+    /// Views of the job's hit maps on `host` (the cache host in this process, when it
+    /// holds this worker's copies), asked of the host until its walls are open.
+    pub fn map_views(
+        &self,
+        host: Option<&dray_cache::CacheHost>,
+    ) -> Option<Arc<dray_cache::MapViews>> {
+        if let Some(v) = self.maps.get() {
+            return Some(v.clone());
+        }
+        let views = host?.map_views(&self.key.id, self.key.attempt)?;
+        Some(self.maps.get_or_init(|| views).clone())
     }
 
     /// The same job, with `span` as its span.

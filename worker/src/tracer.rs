@@ -41,6 +41,7 @@ use crate::domain_store::LoadedDomain;
 /// A deterministic fast hash for domain keys.
 type FastState = foldhash::fast::FixedState;
 
+use dray_cache::{Advice, MapView};
 use dray_core::camera::Camera;
 use dray_core::domain::{DomainTree, Hop, Span};
 use dray_core::film::to_fixed;
@@ -142,6 +143,9 @@ pub struct Outbox {
     pub traced: [u64; RayKind::COUNT],
     /// Non-finite contributions dropped.
     pub nonfinite: u64,
+    /// Rays a hit map consulted in place skipped or occluded on their way to another
+    /// worker's domain: rays not sent.
+    pub phm_not_sent: u64,
 }
 
 impl Outbox {
@@ -304,6 +308,12 @@ pub trait Residency {
     fn walls(&self) -> bool {
         false
     }
+
+    /// A view of `wall`'s hit map to consult in place, when the map lives in this
+    /// process (sender placement); rays at other walls ask its actor.
+    fn map(&self, _wall: u32) -> Option<&MapView> {
+        None
+    }
 }
 
 /// A fixed set of domains (tests, benchmarks): every one is traced where it is.
@@ -333,6 +343,10 @@ impl<'r> Pins<'r> {
 
     fn walls(&self) -> bool {
         self.walls
+    }
+
+    fn map(&self, wall: u32) -> Option<&MapView> {
+        self.residency.map(wall)
     }
 
     fn get(&self, d: u32) -> Option<&Arc<LoadedDomain>> {
@@ -841,8 +855,13 @@ impl JobTracer {
                 .get(domain as usize)
                 .and_then(|&(lo, hi)| entry_face(lo, hi, ray.origin, ray.dir));
             if let (Some(face), Ok(r)) = (face, RayRecord::from_state(&ray, credit)) {
+                let wall = wall_index(domain, face);
+                if !cache && let Some(view) = ctx.pins.map(wall) {
+                    self.consult_in_place(ctx, view, r, lin, domain, hop, tile, out);
+                    return;
+                }
                 out.lookups.push(Lookup {
-                    wall: wall_index(domain, face),
+                    wall,
                     domain,
                     ray: r,
                     lineage: lin,
@@ -853,6 +872,61 @@ impl JobTracer {
             }
         }
         self.forward(ctx, ray, credit, lin, domain, hop, tile, out);
+    }
+
+    /// A ray entering `domain` consults the hit map of its wall in place, as the wall's
+    /// actor would answer it (sender placement; see docs/caches.md "Replicated maps"):
+    /// a predicted miss skips the domain, a predicted hit occludes an occlusion ray, and
+    /// otherwise the ray goes on into the domain, as a probe when the map asks for one.
+    #[allow(clippy::too_many_arguments)]
+    fn consult_in_place(
+        &self,
+        ctx: &StepCtx<'_>,
+        view: &MapView,
+        r: RayRecord,
+        mut lin: Lineage,
+        domain: u32,
+        hop: Option<Hop>,
+        tile: u32,
+        out: &mut Outbox,
+    ) {
+        let advice = view.consult(&r);
+        let elsewhere = || u64::from(ctx.pins.get(domain).is_none());
+        match advice {
+            Advice::Skip => {
+                let state = r.to_state();
+                let next = self.tree.hop(
+                    state.origin,
+                    state.dir,
+                    0.0,
+                    state.tmax,
+                    self.pad,
+                    domain,
+                    self.wanted(),
+                );
+                if let Some(past) = next {
+                    out.phm_not_sent += elsewhere();
+                    out.taint(&lin);
+                    let lin = lin.inherited();
+                    match past.next {
+                        Some(d) => self.cross(ctx, state, r.credit, lin, d, None, tile, out),
+                        None => finish_unblocked(&ctx.bare, &state, r.credit, &lin, tile, out),
+                    }
+                    return;
+                }
+                // The ray does not cross the domain after all (a routing mismatch that
+                // the message path reports as an error): trace it exactly.
+                lin.probe = false;
+            }
+            Advice::Occlude if r.kind.is_occlusion() => {
+                out.phm_not_sent += elsewhere();
+                self.answer_occluded(&r, &lin, out);
+                return;
+            }
+            Advice::Probe => lin.probe = true,
+            _ => lin.probe = false,
+        }
+        self.forward(ctx, r.to_state(), r.credit, lin, domain, hop, tile, out);
     }
 
     /// Trace `rays`, all queued for `domain`, which `residency` must give, and every ray

@@ -56,6 +56,8 @@ struct StepResidency<'a> {
     routes: &'a Routes,
     /// The domain the work was chosen for, already held.
     held: Option<&'a Arc<LoadedDomain>>,
+    /// The job's hit maps in this process, to consult in place (sender placement).
+    maps: Option<Arc<dray_cache::MapViews>>,
 }
 
 impl Residency for StepResidency<'_> {
@@ -74,6 +76,10 @@ impl Residency for StepResidency<'_> {
 
     fn walls(&self) -> bool {
         self.routes.has_caches()
+    }
+
+    fn map(&self, wall: u32) -> Option<&dray_cache::MapView> {
+        self.maps.as_deref()?.get(wall)
     }
 }
 
@@ -264,6 +270,7 @@ fn trace(shared: &Arc<Shared>, work: Work) {
                 key: &job.key,
                 routes: &routes,
                 held: Some(&held),
+                maps: job.map_views(shared.caches.local_host(&routes)),
             };
             let r = contained(|| {
                 job.tracer
@@ -283,6 +290,7 @@ fn trace(shared: &Arc<Shared>, work: Work) {
                 key: &job.key,
                 routes: &routes,
                 held: None,
+                maps: job.map_views(shared.caches.local_host(&routes)),
             };
             let r = contained(|| {
                 job.tracer
@@ -356,6 +364,9 @@ fn forward(shared: &Arc<Shared>, job: &Arc<Job>, domain: u32, batch: QueuedBatch
 /// Results into the job's report; rays to this worker's queues or to their owners,
 /// rays at walls to the walls' cache actors.
 pub(crate) fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, mut out: Outbox) {
+    if out.phm_not_sent > 0 {
+        lock(&job.report).phm_rays_not_sent += std::mem::take(&mut out.phm_not_sent);
+    }
     if !out.lookups.is_empty() {
         crate::cache_link::send_lookups(shared, job, std::mem::take(&mut out.lookups));
     }
