@@ -477,10 +477,12 @@ fn sweep(
         }
     }
 
+    let names: Vec<String> = rows.iter().map(|r| r.setting.clone()).collect();
     let points: Vec<Point> = rows
         .iter()
-        .map(|r| Point {
-            label: r.setting.clone(),
+        .zip(pareto::labels(&names))
+        .map(|(r, label)| Point {
+            label,
             wall_s: r.wall_s,
             error: r.errors.flip,
         })

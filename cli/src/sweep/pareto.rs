@@ -34,6 +34,41 @@ pub fn front(points: &[Point]) -> Vec<bool> {
         .collect()
 }
 
+/// Short labels for the plot from the settings' names (`key=value` words, or `exact`):
+/// a word every setting shares says nothing and is left out, and a knob's flag prefix
+/// (`ray-cache.`, `phm.`) is dropped, so `ray-cache.radius=0.002 ray-cache.coarse=256`
+/// beside `ray-cache.radius=0.004 ray-cache.coarse=256` reads `radius=0.002`.
+pub fn labels(settings: &[String]) -> Vec<String> {
+    let varied: Vec<Vec<&str>> = settings
+        .iter()
+        .filter(|s| *s != "exact")
+        .map(|s| s.split_whitespace().collect())
+        .collect();
+    let shared = |w: &str| varied.len() > 1 && varied.iter().all(|v| v.contains(&w));
+    settings
+        .iter()
+        .map(|s| {
+            if s == "exact" {
+                return s.clone();
+            }
+            let words: Vec<&str> = s
+                .split_whitespace()
+                .filter(|w| !shared(w))
+                .map(|w| {
+                    w.strip_prefix("ray-cache.")
+                        .or_else(|| w.strip_prefix("phm."))
+                        .unwrap_or(w)
+                })
+                .collect();
+            if words.is_empty() {
+                s.clone()
+            } else {
+                words.join(" ")
+            }
+        })
+        .collect()
+}
+
 /// Fonts tried in order when `DRAY_FONT` is not set (Debian/Ubuntu, Fedora, Arch, macOS,
 /// Windows).
 const FONT_PATHS: [&str; 8] = [
@@ -189,6 +224,24 @@ mod tests {
             wall_s,
             error,
         }
+    }
+
+    #[test]
+    fn labels_leave_out_what_every_setting_shares() {
+        let s = |v: &[&str]| v.iter().map(|x| x.to_string()).collect::<Vec<_>>();
+        assert_eq!(
+            labels(&s(&[
+                "exact",
+                "ray-cache.radius=1 ray-cache.coarse=256 phm.miss=0.1",
+                "ray-cache.radius=2 ray-cache.coarse=256 phm.miss=0.2",
+            ])),
+            s(&["exact", "radius=1 miss=0.1", "radius=2 miss=0.2"])
+        );
+        // One setting: nothing is left out; a setting of shared words keeps its name.
+        assert_eq!(
+            labels(&s(&["exact", "spp=4 ray-cache.fill=false"])),
+            s(&["exact", "spp=4 fill=false"])
+        );
     }
 
     #[test]
