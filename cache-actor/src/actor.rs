@@ -9,8 +9,8 @@
 //! except through the stats a `Close` returns. The mailbox is bounded, so a burst of
 //! lookups waits at the sender instead of queueing without limit.
 
-use std::sync::Arc;
 use std::sync::atomic::Ordering;
+use std::sync::{Arc, RwLock};
 
 use dray_core::ray::{FLAG_COARSE, RayRecord};
 use dray_core::wall::WallFrame;
@@ -23,6 +23,7 @@ use crate::phm::{Advice, HitMap, Learned, MapView};
 use crate::settings::{CacheSettings, HitMapSettings};
 use crate::stats::{WallStats, worth_logging};
 use crate::store::{Entry, EntryKey, InsertError, Query, WallStore};
+use crate::store_view::{SharedStore, StoreConsults, StoreView};
 use crate::tickets::{Applied, Return, TicketBook, TicketRay};
 
 use crate::wire::{
@@ -152,6 +153,8 @@ pub(crate) struct WallHandle {
     pub outer: bool,
     /// A view of the wall's hit map for consulting it in place (dense maps only).
     pub map: Option<MapView>,
+    /// A view of the wall's ray cache for answering rays in place.
+    pub cache: Option<StoreView>,
 }
 
 impl WallHandle {
@@ -168,21 +171,29 @@ pub(crate) fn spawn(spec: WallSpec, span: tracing::Span) -> (WallHandle, JoinHan
         tx,
         outer: spec.outer,
         map: None,
+        cache: None,
     };
     let (lo, hi) = spec.domain;
     let map = spec
         .phm
         .as_deref()
         .map(|s| HitMap::new(s, spec.wall, lo, hi));
+    let store: SharedStore = Arc::new(RwLock::new(WallStore::for_radius(
+        spec.max_entries,
+        spec.settings.as_ref().map_or(0.0, |s| s.radius),
+    )));
+    let store_consults = Arc::new(StoreConsults::default());
     let handle = WallHandle {
         map: map.as_ref().and_then(HitMap::view),
+        cache: spec
+            .settings
+            .as_ref()
+            .map(|s| StoreView::new(spec.frame, s.clone(), store.clone(), store_consults.clone())),
         ..handle
     };
     let actor = WallActor {
-        store: WallStore::for_radius(
-            spec.max_entries,
-            spec.settings.as_ref().map_or(0.0, |s| s.radius),
-        ),
+        store,
+        store_consults,
         tickets: TicketBook::new(spec.wall, spec.max_open_tickets),
         map,
         stats: WallStats::default(),
@@ -194,7 +205,11 @@ pub(crate) fn spawn(spec: WallSpec, span: tracing::Span) -> (WallHandle, JoinHan
 
 struct WallActor {
     spec: WallSpec,
-    store: WallStore,
+    /// The wall's entries: written by this actor only, read by it and by the
+    /// [`StoreView`]s of the worker in this process.
+    store: SharedStore,
+    /// Lookups made through the views.
+    store_consults: Arc<StoreConsults>,
     tickets: TicketBook,
     map: Option<HitMap>,
     stats: WallStats,
@@ -260,10 +275,15 @@ impl WallActor {
     fn stats(&self) -> WallStats {
         let mut stats = WallStats {
             tickets_open: self.tickets.open_count() as u64,
-            entries: self.store.len() as u64,
-            entries_dropped: self.store.dropped,
+            entries: self.store().len() as u64,
+            entries_dropped: self.store().dropped,
             ..self.stats
         };
+        // Lookups made in place, through the store's views.
+        let c = &self.store_consults;
+        stats.lookups += c.lookups.load(Ordering::Relaxed);
+        stats.hits += c.hits.load(Ordering::Relaxed);
+        stats.skipped += c.skipped.load(Ordering::Relaxed);
         if let Some(map) = &self.map {
             let (hit, miss) = map.decided();
             // Consults made in place, through the map's views.
@@ -351,7 +371,8 @@ impl WallActor {
                 cos_min: settings.cos_min,
                 retrieve: settings.retrieve,
             };
-            if let Some(radiance) = self.store.lookup(&q) {
+            let found = self.store().lookup(&q);
+            if let Some(radiance) = found {
                 self.stats.hits += 1;
                 return Outcome::Hit(radiance);
             }
@@ -446,15 +467,21 @@ impl WallActor {
         }
     }
 
+    /// The store, to read.
+    fn store(&self) -> std::sync::RwLockReadGuard<'_, WallStore> {
+        self.store.read().unwrap_or_else(|p| p.into_inner())
+    }
+
     /// Store one entry; false when the store refused it (full, or not finite).
     fn store_entry(&mut self, entry: Entry) -> bool {
-        match self.store.insert(entry) {
+        let mut store = self.store.write().unwrap_or_else(|p| p.into_inner());
+        match store.insert(entry) {
             Ok(()) => true,
             Err(InsertError::Full) => {
-                if worth_logging(self.store.dropped) {
+                if worth_logging(store.dropped) {
                     tracing::warn!(
-                        dropped = self.store.dropped,
-                        entries = self.store.len(),
+                        dropped = store.dropped,
+                        entries = store.len(),
                         "wall store full: radiance dropped"
                     );
                 }

@@ -34,6 +34,7 @@ use crate::job::{self, JobAttempt, OpenPlan};
 use crate::phm::MapView;
 use crate::stats::{WallStats, log_point_between};
 use crate::store::{DEFAULT_MAX_ENTRIES, Entry};
+use crate::store_view::StoreView;
 use crate::ticket_id;
 use crate::tickets::{DEFAULT_MAX_OPEN_TICKETS, Return};
 
@@ -645,25 +646,22 @@ impl CacheHost {
 }
 
 impl CacheHost {
-    /// Views of the hit maps of attempt `attempt` of `job_id` on this host, for a
-    /// worker in this process to consult in place ([`MapView`]); `None` while the
-    /// attempt is not open here, or when it has no map that can be viewed.
-    pub fn map_views(&self, job_id: &str, attempt: u32) -> Option<Arc<MapViews>> {
+    /// Views of the ray caches and hit maps of attempt `attempt` of `job_id` on this
+    /// host, for a worker in this process to consult in place ([`StoreView`],
+    /// [`MapView`]); `None` while the attempt is not open here.
+    pub fn wall_views(&self, job_id: &str, attempt: u32) -> Option<Arc<WallViews>> {
         let job = self.job(job_id, attempt)?;
-        let mut views: Vec<Option<MapView>> = Vec::new();
+        let mut views = WallViews::default();
         for (wall, handle) in job.all_handles() {
-            if let Some(view) = handle.map {
-                let i = wall as usize;
-                if views.len() <= i {
-                    views.resize(i + 1, None);
-                }
-                views[i] = Some(view);
+            let i = wall as usize;
+            if views.maps.len() <= i {
+                views.maps.resize(i + 1, None);
+                views.caches.resize(i + 1, None);
             }
+            views.maps[i] = handle.map;
+            views.caches[i] = handle.cache;
         }
-        if views.is_empty() {
-            return None;
-        }
-        Some(Arc::new(MapViews { views }))
+        Some(Arc::new(views))
     }
 
     /// Apply a `PhmMerge` (another worker's outcomes, counted per cell); the ack is
@@ -731,16 +729,22 @@ impl CacheHost {
     }
 }
 
-/// The viewable hit maps of one job attempt on a host, by wall.
-#[derive(Debug)]
-pub struct MapViews {
-    views: Vec<Option<MapView>>,
+/// The walls of one job attempt on a host that can be consulted in place, by wall.
+#[derive(Debug, Default)]
+pub struct WallViews {
+    maps: Vec<Option<MapView>>,
+    caches: Vec<Option<StoreView>>,
 }
 
-impl MapViews {
-    /// The view of `wall`'s map, if this host serves it with one.
-    pub fn get(&self, wall: u32) -> Option<&MapView> {
-        self.views.get(wall as usize)?.as_ref()
+impl WallViews {
+    /// The view of `wall`'s hit map, if this host serves it with one.
+    pub fn map(&self, wall: u32) -> Option<&MapView> {
+        self.maps.get(wall as usize)?.as_ref()
+    }
+
+    /// The view of `wall`'s ray cache, if this host serves it with one.
+    pub fn cache(&self, wall: u32) -> Option<&StoreView> {
+        self.caches.get(wall as usize)?.as_ref()
     }
 }
 

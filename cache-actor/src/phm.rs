@@ -262,9 +262,9 @@ pub struct MapView {
 }
 
 impl MapView {
-    /// The map's advice for `ray` at its wall, counted as the actor counts a lookup
-    /// (the probes among them are counted here too: a consulting ray the map wants to
-    /// learn from always goes on into the domain, as a probe).
+    /// The map's advice for `ray` at its wall, counted as the actor counts a lookup.
+    /// A probe is counted when the ray does go on into the domain ([`Self::probed`]):
+    /// a ray the ray cache answers is not one.
     pub fn consult(&self, ray: &RayRecord) -> Advice {
         let c = &self.consults;
         c.lookups.fetch_add(1, Ordering::Relaxed);
@@ -273,11 +273,15 @@ impl MapView {
             Advice::Unplaced => &c.unplaced,
             Advice::Skip => &c.skipped,
             Advice::Occlude => &c.occluded,
-            Advice::Probe => &c.probes,
-            Advice::Trace => return advice,
+            Advice::Probe | Advice::Trace => return advice,
         };
         counter.fetch_add(1, Ordering::Relaxed);
         advice
+    }
+
+    /// Count a ray the map asked to probe that went on into the domain.
+    pub fn probed(&self) {
+        self.consults.probes.fetch_add(1, Ordering::Relaxed);
     }
 
     /// The wall the map belongs to.
@@ -833,6 +837,7 @@ mod tests {
         let r = ray(0.3, 0.6, 0);
         let c = cell(&m, &r);
         assert_eq!(view.consult(&r), Advice::Probe);
+        view.probed();
         // 1 / (n + 2) <= 0.1 from 8 misses: the view skips the ray as the map does.
         for _ in 0..8 {
             m.learn(c, false);

@@ -147,7 +147,7 @@ impl CacheSettings {
             retrieve,
             coarse: s.coarse,
             kinds,
-            fill: s.fill.unwrap_or(true),
+            fill: s.fill.unwrap_or(s.coarse == 0),
         })
     }
 

@@ -147,11 +147,16 @@ pub struct WallStore {
     lists: Vec<Vec<Hot>>,
     entries: Vec<Entry>,
     max_entries: usize,
-    /// `average`'s candidates, kept between queries so a query allocates nothing once
-    /// the buffer has grown to the largest neighbourhood seen.
-    scratch: Cell<Vec<Hot>>,
     /// Entries refused because the store was full.
     pub dropped: u64,
+}
+
+thread_local! {
+    /// `average`'s candidates, kept between queries so a query allocates nothing once
+    /// the buffer has grown to the largest neighbourhood seen. Per thread, so that the
+    /// store can be read by several threads at once (the wall's actor and, through
+    /// [`crate::StoreView`], the tracing threads of the worker in its process).
+    static SCRATCH: Cell<Vec<Hot>> = const { Cell::new(Vec::new()) };
 }
 
 impl Default for WallStore {
@@ -202,7 +207,6 @@ impl WallStore {
             lists: Vec::new(),
             entries: Vec::new(),
             max_entries: max_entries.min(u32::MAX as usize),
-            scratch: Cell::new(Vec::new()),
             dropped: 0,
         }
     }
@@ -289,7 +293,7 @@ impl WallStore {
 
         let mut pick = match q.retrieve {
             Retrieve::Average => {
-                let mut v = self.scratch.take();
+                let mut v = SCRATCH.take();
                 v.clear();
                 Pick::All(v)
             }
@@ -362,7 +366,7 @@ impl WallStore {
             Pick::Best(best) => best.map(|(_, h)| h.radiance),
             Pick::All(mut v) => {
                 let answer = self.average(&mut v);
-                self.scratch.set(v);
+                SCRATCH.set(v);
                 answer
             }
         }

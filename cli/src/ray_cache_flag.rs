@@ -18,7 +18,8 @@ retrieve=first|nearest|average (which cached ray answers, default nearest), coar
 coarse pass of N x N camera rays, traced exactly first to fill the caches; default 0, \
 none), kinds=K+K... (ray kinds looked up, joined with +, from camera, reflection, \
 refraction, diffuse; default all four), fill=true|false (whether the main pass stores what \
-it learns, default true; false with a coarse pass gives the same bits every run), \
+it learns; default false with a coarse pass, which then fills the caches and they stay \
+frozen, the same bits every run; true without one), \
 placement=sender|remote (sender, the default: every worker holds a replica of every wall \
 and looks rays up in its own memory, so a hit sends nothing; remote: each wall once, beside \
 its domain's owner, every lookup a round trip). `--ray-cache on` takes every default. \

@@ -155,6 +155,8 @@ fn a_coarse_pass_fills_the_caches_and_without_fill_every_run_gives_the_same_bits
         (3, "3", frozen),
         (4, "3", remote.as_str()),
         (5, "1", remote.as_str()),
+        // A coarse pass freezes the caches by default.
+        (6, "2", "radius=15,angle-deg=20,coarse=24"),
     ] {
         let what = format!("run {run} on {workers} workers with --ray-cache {cache}");
         let (png, stats) = render_ok(

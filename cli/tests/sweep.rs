@@ -13,7 +13,7 @@ use std::process::Output;
 use support::{WorkerCluster, dray};
 
 /// The columns every results.csv has (besides one per varied key).
-const COLUMNS: [&str; 36] = [
+const COLUMNS: [&str; 43] = [
     "setting",
     "wall_s",
     "speedup",
@@ -48,6 +48,13 @@ const COLUMNS: [&str; 36] = [
     "cache_bytes",
     "bytes_total",
     "cpu_s",
+    "bytes_rays",
+    "bytes_lookups",
+    "bytes_answers",
+    "bytes_ticket_returns",
+    "bytes_entry_copies",
+    "bytes_map_outcomes",
+    "bytes_map_merges",
     "pareto",
     "args",
 ];
@@ -124,6 +131,7 @@ fn check_outputs(out: &Path, keys: &[&str], settings: usize) -> Vec<HashMap<Stri
         // Every render costs CPU somewhere; bytes are a whole count.
         assert!(num(r, "cpu_s") > 0.0, "{r:?}");
         assert!(r["bytes_total"].parse::<u64>().is_ok(), "{r:?}");
+        assert!(r["bytes_rays"].parse::<u64>().is_ok(), "{r:?}");
         let flip = num(r, "flip");
         assert!((0.0..=1.0).contains(&flip), "{r:?}");
         let img = common::rgb(&out.join(&r["image"]));

@@ -396,7 +396,8 @@ pub fn check_phm_placement(
 /// Check the ray-cache knobs and fill in their defaults in place, so the workers, the
 /// cache hosts and GetJob all read the same resolved settings: `angle_deg` 10,
 /// `retrieve` "nearest", `kinds` all four cacheable kinds (written back in the order of
-/// [`CACHE_KINDS`], without duplicates), `fill` true.
+/// [`CACHE_KINDS`], without duplicates), `fill` true without a coarse pass and false with
+/// one.
 pub fn check_ray_cache(rc: &mut RayCacheSettings) -> Result<(), Status> {
     if !(rc.radius.is_finite() && rc.radius >= 0.0) {
         return Err(bad(format!(
@@ -446,7 +447,9 @@ pub fn check_ray_cache(rc: &mut RayCacheSettings) -> Result<(), Status> {
         .map(|(k, _)| *k)
         .collect::<Vec<_>>()
         .join(",");
-    rc.fill.get_or_insert(true);
+    // A coarse pass fills the caches, which then stay frozen (Little 2011; the same
+    // bits every run); without one, the main pass must fill them or they stay empty.
+    rc.fill.get_or_insert(rc.coarse == 0);
     if rc.placement.is_empty() {
         rc.placement = CACHE_PLACEMENT_SENDER.into();
     }
@@ -822,6 +825,12 @@ mod tests {
         assert_eq!(rc.retrieve, "average");
         assert_eq!(rc.kinds, "camera,diffuse", "canonical order, no duplicates");
         assert_eq!(rc.fill, Some(false));
+        let frozen = cache(RayCacheSettings {
+            coarse: 64,
+            ..Default::default()
+        })
+        .unwrap();
+        assert_eq!(frozen.fill, Some(false), "a coarse pass freezes the caches");
         for mode in ["first", "nearest", "average"] {
             let rc = cache(RayCacheSettings {
                 retrieve: mode.into(),

@@ -47,7 +47,6 @@ use tokio_stream::wrappers::ReceiverStream;
 
 use crate::jobs::{Job, lock};
 use crate::node::Shared;
-use crate::tickets::MAX_TICKETS;
 use crate::tracer::{Lookup, NoDomains, Outbox};
 use crate::traffic::Kind;
 
@@ -690,7 +689,7 @@ fn lookup_options(job: &Job, l: &Lookup) -> u32 {
         if !l.lineage.coarse {
             o |= OPTION_ANSWER;
         }
-        if l.lineage.ticket_count() < MAX_TICKETS && job.tracer.tickets_for(&l.lineage) {
+        if job.tracer.opens_ticket(&l.lineage) {
             o |= OPTION_TICKET;
         }
     }

@@ -390,7 +390,7 @@ fn tracer(
             .spec
             .as_ref()
             .and_then(|s| s.ray_cache.as_ref())
-            .and_then(|rc| rc.fill)
+            .map(|rc| rc.fill.unwrap_or(rc.coarse == 0))
             .unwrap_or(true),
     )
     .with_coarse(

@@ -109,9 +109,9 @@ pub struct Job {
     /// Hit-map outcomes gathered for the other workers' copies of the maps (sender
     /// placement).
     pub merges: crate::map_merge::MapMerges,
-    /// Views of this job's hit maps on the cache host in this process, once its walls
-    /// are open there (sender placement).
-    maps: std::sync::OnceLock<Arc<dray_cache::MapViews>>,
+    /// Views of this job's walls (ray caches and hit maps) on the cache host in this
+    /// process, once its walls are open there (sender placement).
+    views: std::sync::OnceLock<Arc<dray_cache::WallViews>>,
     /// This job's span here (a child of the coordinator's, when traces are exported):
     /// tracing work and domain loads run in it.
     pub span: tracing::Span,
@@ -142,7 +142,7 @@ impl Job {
             cpu_at_setup: dray_net::cpu::process_cpu_seconds(),
             span: tracing::Span::none(),
             merges: crate::map_merge::MapMerges::default(),
-            maps: std::sync::OnceLock::new(),
+            views: std::sync::OnceLock::new(),
         }
     }
 
@@ -153,17 +153,17 @@ impl Job {
         self
     }
 
-    /// Views of the job's hit maps on `host` (the cache host in this process, when it
-    /// holds this worker's copies), asked of the host until its walls are open.
-    pub fn map_views(
+    /// Views of the job's walls on `host` (the cache host in this process, when it
+    /// holds this worker's replicas), asked of the host until its walls are open.
+    pub fn wall_views(
         &self,
         host: Option<&dray_cache::CacheHost>,
-    ) -> Option<Arc<dray_cache::MapViews>> {
-        if let Some(v) = self.maps.get() {
+    ) -> Option<Arc<dray_cache::WallViews>> {
+        if let Some(v) = self.views.get() {
             return Some(v.clone());
         }
-        let views = host?.map_views(&self.key.id, self.key.attempt)?;
-        Some(self.maps.get_or_init(|| views).clone())
+        let views = host?.wall_views(&self.key.id, self.key.attempt)?;
+        Some(self.views.get_or_init(|| views).clone())
     }
 
     /// The same job, with `span` as its span.

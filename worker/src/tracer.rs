@@ -41,7 +41,7 @@ use crate::domain_store::LoadedDomain;
 /// A deterministic fast hash for domain keys.
 type FastState = foldhash::fast::FixedState;
 
-use dray_cache::{Advice, MapView};
+use dray_cache::{Advice, MapView, StoreView};
 use dray_core::camera::Camera;
 use dray_core::domain::{DomainTree, Hop, Span};
 use dray_core::film::to_fixed;
@@ -55,7 +55,7 @@ use dray_proto::v1::RayTicket;
 use glam::Vec3;
 
 use crate::credit::{self, CreditError};
-use crate::tickets::{Lineage, RayBundle, TicketLedger, with_lineage};
+use crate::tickets::{Lineage, MAX_TICKETS, RayBundle, TicketLedger, with_lineage};
 
 /// Why a batch could not be traced. Each is a reason to fail the job: it means a routing
 /// bug, a corrupt ray or an exhausted credit, never a transient condition.
@@ -146,6 +146,8 @@ pub struct Outbox {
     /// Rays a hit map consulted in place skipped or occluded on their way to another
     /// worker's domain: rays not sent.
     pub phm_not_sent: u64,
+    /// Rays a ray cache answered in place on their way to another worker's domain.
+    pub cache_not_sent: u64,
 }
 
 impl Outbox {
@@ -314,6 +316,12 @@ pub trait Residency {
     fn map(&self, _wall: u32) -> Option<&MapView> {
         None
     }
+
+    /// A view of `wall`'s ray cache to answer rays in place, when the cache lives in
+    /// this process (sender placement).
+    fn cache(&self, _wall: u32) -> Option<&StoreView> {
+        None
+    }
 }
 
 /// A fixed set of domains (tests, benchmarks): every one is traced where it is.
@@ -347,6 +355,10 @@ impl<'r> Pins<'r> {
 
     fn map(&self, wall: u32) -> Option<&MapView> {
         self.residency.map(wall)
+    }
+
+    fn cache(&self, wall: u32) -> Option<&StoreView> {
+        self.residency.cache(wall)
     }
 
     fn get(&self, d: u32) -> Option<&Arc<LoadedDomain>> {
@@ -856,8 +868,14 @@ impl JobTracer {
                 .and_then(|&(lo, hi)| entry_face(lo, hi, ray.origin, ray.dir));
             if let (Some(face), Ok(r)) = (face, RayRecord::from_state(&ray, credit)) {
                 let wall = wall_index(domain, face);
-                if !cache && let Some(view) = ctx.pins.map(wall) {
-                    self.consult_in_place(ctx, view, r, lin, domain, hop, tile, out);
+                // In place when the ray opens no ticket (nothing for the actor to
+                // record) and every view it needs is in this process.
+                let answer = cache && !lin.coarse;
+                let ticket = cache && self.opens_ticket(&lin);
+                let map = if phm { ctx.pins.map(wall) } else { None };
+                let store = if answer { ctx.pins.cache(wall) } else { None };
+                if !ticket && map.is_some() == phm && store.is_some() == answer {
+                    self.at_wall_in_place(ctx, map, store, r, lin, domain, hop, tile, out);
                     return;
                 }
                 out.lookups.push(Lookup {
@@ -874,15 +892,25 @@ impl JobTracer {
         self.forward(ctx, ray, credit, lin, domain, hop, tile, out);
     }
 
-    /// A ray entering `domain` consults the hit map of its wall in place, as the wall's
-    /// actor would answer it (sender placement; see docs/caches.md "Replicated maps"):
-    /// a predicted miss skips the domain, a predicted hit occludes an occlusion ray, and
-    /// otherwise the ray goes on into the domain, as a probe when the map asks for one.
+    /// Whether a ray of `lin` crossing a cached wall opens a ticket there: the job
+    /// fills its caches (or the ray is of the coarse pass), and the ray carries fewer
+    /// than [`MAX_TICKETS`].
+    pub fn opens_ticket(&self, lin: &Lineage) -> bool {
+        lin.ticket_count() < MAX_TICKETS && self.tickets_for(lin)
+    }
+
+    /// A ray entering `domain` is answered at its wall in place, as the wall's actor
+    /// would answer it (sender placement; docs/caches.md "An actor is not a network
+    /// hop"): the hit map first (a predicted miss skips the domain, a predicted hit
+    /// occludes an occlusion ray), then the ray cache (a hit ends the ray with the
+    /// stored radiance); otherwise the ray goes on into the domain, as a probe when the
+    /// map asks for one. Only for rays that open no ticket: the views read, never write.
     #[allow(clippy::too_many_arguments)]
-    fn consult_in_place(
+    fn at_wall_in_place(
         &self,
         ctx: &StepCtx<'_>,
-        view: &MapView,
+        map: Option<&MapView>,
+        store: Option<&StoreView>,
         r: RayRecord,
         mut lin: Lineage,
         domain: u32,
@@ -890,10 +918,10 @@ impl JobTracer {
         tile: u32,
         out: &mut Outbox,
     ) {
-        let advice = view.consult(&r);
         let elsewhere = || u64::from(ctx.pins.get(domain).is_none());
+        let advice = map.map(|m| m.consult(&r));
         match advice {
-            Advice::Skip => {
+            Some(Advice::Skip) => {
                 let state = r.to_state();
                 let next = self.tree.hop(
                     state.origin,
@@ -916,15 +944,24 @@ impl JobTracer {
                 }
                 // The ray does not cross the domain after all (a routing mismatch that
                 // the message path reports as an error): trace it exactly.
-                lin.probe = false;
             }
-            Advice::Occlude if r.kind.is_occlusion() => {
+            Some(Advice::Occlude) if r.kind.is_occlusion() => {
                 out.phm_not_sent += elsewhere();
                 self.answer_occluded(&r, &lin, out);
                 return;
             }
-            Advice::Probe => lin.probe = true,
-            _ => lin.probe = false,
+            _ => {}
+        }
+        if let Some(rgb) = store.and_then(|s| s.answer(&r)) {
+            out.cache_not_sent += elsewhere();
+            self.answer_hit(&r, &lin, Vec3::from_array(rgb), out);
+            return;
+        }
+        lin.probe = advice == Some(Advice::Probe);
+        if lin.probe
+            && let Some(m) = map
+        {
+            m.probed();
         }
         self.forward(ctx, r.to_state(), r.credit, lin, domain, hop, tile, out);
     }

@@ -56,8 +56,8 @@ struct StepResidency<'a> {
     routes: &'a Routes,
     /// The domain the work was chosen for, already held.
     held: Option<&'a Arc<LoadedDomain>>,
-    /// The job's hit maps in this process, to consult in place (sender placement).
-    maps: Option<Arc<dray_cache::MapViews>>,
+    /// The job's walls in this process, to consult in place (sender placement).
+    views: Option<Arc<dray_cache::WallViews>>,
 }
 
 impl Residency for StepResidency<'_> {
@@ -79,7 +79,11 @@ impl Residency for StepResidency<'_> {
     }
 
     fn map(&self, wall: u32) -> Option<&dray_cache::MapView> {
-        self.maps.as_deref()?.get(wall)
+        self.views.as_deref()?.map(wall)
+    }
+
+    fn cache(&self, wall: u32) -> Option<&dray_cache::StoreView> {
+        self.views.as_deref()?.cache(wall)
     }
 }
 
@@ -270,7 +274,7 @@ fn trace(shared: &Arc<Shared>, work: Work) {
                 key: &job.key,
                 routes: &routes,
                 held: Some(&held),
-                maps: job.map_views(shared.caches.local_host(&routes)),
+                views: job.wall_views(shared.caches.local_host(&routes)),
             };
             let r = contained(|| {
                 job.tracer
@@ -290,7 +294,7 @@ fn trace(shared: &Arc<Shared>, work: Work) {
                 key: &job.key,
                 routes: &routes,
                 held: None,
-                maps: job.map_views(shared.caches.local_host(&routes)),
+                views: job.wall_views(shared.caches.local_host(&routes)),
             };
             let r = contained(|| {
                 job.tracer
@@ -364,8 +368,10 @@ fn forward(shared: &Arc<Shared>, job: &Arc<Job>, domain: u32, batch: QueuedBatch
 /// Results into the job's report; rays to this worker's queues or to their owners,
 /// rays at walls to the walls' cache actors.
 pub(crate) fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, mut out: Outbox) {
-    if out.phm_not_sent > 0 {
-        lock(&job.report).phm_rays_not_sent += std::mem::take(&mut out.phm_not_sent);
+    if out.phm_not_sent + out.cache_not_sent > 0 {
+        let mut r = lock(&job.report);
+        r.phm_rays_not_sent += std::mem::take(&mut out.phm_not_sent);
+        r.cache_rays_not_sent += std::mem::take(&mut out.cache_not_sent);
     }
     if !out.lookups.is_empty() {
         crate::cache_link::send_lookups(shared, job, std::mem::take(&mut out.lookups));

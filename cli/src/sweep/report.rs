@@ -28,6 +28,19 @@ pub const RAY_CACHE_COLUMNS: [&str; 13] = [
     "rays_bypassed",
 ];
 
+/// Bytes between processes by kind: CSV column and key under `--stats`' `traffic`
+/// (docs/caches.md "Statistics"). With `--repeat`, from the round whose stats the row
+/// keeps (byte counts hardly move between rounds); `bytes_total` is the median.
+pub const TRAFFIC_COLUMNS: [(&str, &str); 7] = [
+    ("bytes_rays", "rays"),
+    ("bytes_lookups", "lookups"),
+    ("bytes_answers", "answers"),
+    ("bytes_ticket_returns", "ticket_returns"),
+    ("bytes_entry_copies", "entry_copies"),
+    ("bytes_map_outcomes", "map_outcomes"),
+    ("bytes_map_merges", "map_merges"),
+];
+
 /// The hit-map statistics: CSV column and key under `--stats`' `phm`.
 pub const PHM_COLUMNS: [(&str, &str); 6] = [
     ("phm_lookups", "lookups"),
@@ -86,6 +99,11 @@ impl Row {
         cell(self.stats.get("ray_cache").and_then(|r| r.get(key)))
     }
 
+    /// Bytes between processes of one kind (empty when the stats have none).
+    pub fn traffic(&self, key: &str) -> String {
+        cell(self.stats.get("traffic").and_then(|r| r.get(key)))
+    }
+
     /// A hit-map statistic, empty when the render had no hit maps.
     pub fn phm(&self, key: &str) -> String {
         cell(self.stats.get("phm").and_then(|r| r.get(key)))
@@ -142,6 +160,7 @@ pub fn header(keys: &[String]) -> Vec<String> {
         ]
         .map(String::from),
     );
+    h.extend(TRAFFIC_COLUMNS.map(|(c, _)| c.to_string()));
     h.extend(RAY_CACHE_COLUMNS.map(String::from));
     h.extend(PHM_COLUMNS.map(|(c, _)| c.to_string()));
     h.extend(
@@ -185,6 +204,7 @@ pub fn csv(keys: &[String], rows: &[Row], front: &[bool]) -> String {
         c.push(r.ray_cache("cache_bytes"));
         c.push(r.bytes_total.to_string());
         c.push(format!("{:.4}", r.cpu_s));
+        c.extend(TRAFFIC_COLUMNS.iter().map(|(_, k)| r.traffic(k)));
         c.extend(RAY_CACHE_COLUMNS.iter().map(|k| r.ray_cache(k)));
         c.extend(PHM_COLUMNS.iter().map(|(_, k)| r.phm(k)));
         c.push(num(r.errors.rmse));
