@@ -1,5 +1,5 @@
 //! dray's cache actors: ray caches (Little 2011) and probability hit maps (Bolstad
-//! 2017) on domain walls (DESIGN.md "Walls").
+//! 2017) on domain walls (docs/caches.md "Walls").
 //!
 //! A *cache host* serves `dray.v1.CacheService` and holds one actor per wall of each
 //! open job attempt. A wall is face `f` of domain `d` (index `6 * d + f`), seen by the

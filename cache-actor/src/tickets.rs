@@ -1,7 +1,7 @@
 //! One wall's open tickets: a ray that missed the cache leaves with a ticket, its
 //! descendants hand contributions and credit back to it, and when the credit is whole
-//! the radiance along the ray is known: `sum / weight at the wall` (DESIGN.md
-//! "Counting: credit").
+//! the radiance along the ray is known: `sum / weight at the wall`
+//! (docs/architecture.md "Credit").
 //!
 //! Credit is the only completion signal that survives reordering and retries: returns
 //! can arrive in any order, from any worker, split any way, and the ticket closes

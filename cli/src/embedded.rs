@@ -8,10 +8,11 @@
 //! a cluster share one code path, and the tests hold it to the same bits as the
 //! reference renderer (`dray render --workers 0`), which traces tiles with no actors.
 //!
-//! A job with ray caches (`--ray-cache`) also gets a cache host beside each worker, on
-//! its own loopback port, as `dray worker` runs one: the coordinator places the walls
-//! on them and the workers talk to them over gRPC. Without `--ray-cache` none is
-//! started (nothing would use it).
+//! A job with ray caches or hit maps (`--ray-cache`, `--phm`) also gets a cache host
+//! beside each worker, on its own loopback port, as `dray worker` runs one: the
+//! coordinator places the walls on them; a worker reaches the host beside it through
+//! the actors' mailboxes and in-place views, and the others' over loopback gRPC.
+//! Without caches or maps none is started (nothing would use it).
 
 use std::path::Path;
 use std::sync::Arc;

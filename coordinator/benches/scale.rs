@@ -57,7 +57,7 @@ use dray_coordinator::membership::{HeartbeatConfig, Membership, VERSION};
 use dray_coordinator::metrics::JobMetrics;
 use dray_coordinator::scheduler::policy::{RoundInput, Schedule, rebalance, views};
 use dray_coordinator::scheduler::state::{JobSchedule, JobWorker, RoundOutcome};
-use dray_coordinator::scheduler::table::Routes;
+use dray_coordinator::scheduler::table::Ownership;
 use dray_core::film::Film;
 use dray_proto::v1::{
     DomainQueue, DomainRoute, JobSetup, JobSpec, JobStats, RayCounts, RegisterWorkerRequest,
@@ -467,7 +467,7 @@ fn main() {
             .map(|r| (r.worker_id.clone(), r.queues.clone()))
             .collect();
         let budgets: BTreeMap<String, u64> = sim.ids.iter().map(|i| (i.clone(), BUDGET)).collect();
-        let routes = Routes::round_robin(d, &sim.ids);
+        let routes = Ownership::round_robin(d, &sim.ids);
         let loading = BTreeSet::new();
         let wv = views(&sim.ids, &budgets, &reports);
         let input = RoundInput {

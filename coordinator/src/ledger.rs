@@ -1,7 +1,7 @@
 //! The ledger: credit accounting and image assembly for jobs running on workers, and
 //! each job's scheduling state beside it.
 //!
-//! Every tile starts with a fixed credit (DESIGN.md, "Counting: credit"); workers hand
+//! Every tile starts with a fixed credit (docs/architecture.md "Credit"); workers hand
 //! credit back with the contributions of terminated rays. A tile is complete when all of
 //! its credit is back, and a job when all its tiles are. Credit beyond a tile's start
 //! means something was counted twice, which would silently brighten the image, so it

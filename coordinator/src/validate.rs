@@ -12,7 +12,7 @@ use std::sync::atomic::AtomicBool;
 
 use dray_core::camera::Camera;
 use dray_core::effects::Effect;
-use dray_core::integrator::{IntegratorKind, RenderSettings};
+use dray_core::integrator::{IntegratorKind, RayKind, RenderSettings};
 use dray_core::scene::{Mesh, Scene};
 use dray_proto::v1::{JobSpec, PhmSettings, RayCacheSettings};
 use dray_scene::partition::manifest::MANIFEST_FILE;
@@ -73,7 +73,12 @@ pub const DEFAULT_CACHE_RETRIEVE: &str = "nearest";
 pub const CACHE_RETRIEVE_MODES: [&str; 3] = ["first", "nearest", "average"];
 /// The ray kinds a cache may answer, in the order `ray_cache.kinds` is written back.
 /// Shadow and AO rays carry no radiance of their own, so there is nothing to cache.
-pub const CACHE_KINDS: [&str; 4] = ["camera", "reflection", "refraction", "diffuse"];
+pub const CACHE_KINDS: [&str; 4] = [
+    RayKind::RADIANCE[0].name(),
+    RayKind::RADIANCE[1].name(),
+    RayKind::RADIANCE[2].name(),
+    RayKind::RADIANCE[3].name(),
+];
 /// Largest `ray_cache.coarse` (a coarse pass of N x N rays).
 pub const MAX_CACHE_COARSE: u32 = 4096;
 
@@ -278,14 +283,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
 }
 
 /// Ray kinds that may consult hit maps, in the order `phm.kinds` is written back.
-pub const PHM_KINDS: [&str; 6] = [
-    "camera",
-    "shadow",
-    "reflection",
-    "refraction",
-    "diffuse",
-    "ambient_occlusion",
-];
+pub const PHM_KINDS: [&str; RayKind::COUNT] = RayKind::NAMES;
 
 /// Check the hit-map knobs and fill in their defaults in place (docs/caches.md): res 4
 /// (1..=64), dirs 12 (1..=256), prior 100 (finite, >= 0), miss 0.1 and hit 0.9

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use dray_coordinator::scheduler::policy::{Change, RoundInput, Schedule, WorkerView, rebalance};
 use dray_coordinator::scheduler::state::{JobSchedule, JobWorker, RoundOutcome};
-use dray_coordinator::scheduler::table::Routes;
+use dray_coordinator::scheduler::table::Ownership;
 use dray_proto::v1::{DomainQueue, ReportQueuesRequest, Tile, WorkerEndpoint};
 
 fn ids(names: &[&str]) -> Vec<String> {
@@ -28,7 +28,7 @@ fn queues(q: &[(u32, u64, bool, u64)]) -> Vec<DomainQueue> {
         .collect()
 }
 
-fn owners(r: &Routes) -> Vec<Vec<&str>> {
+fn owners(r: &Ownership) -> Vec<Vec<&str>> {
     r.all_owners()
         .iter()
         .map(|o| o.iter().map(String::as_str).collect())
@@ -38,7 +38,7 @@ fn owners(r: &Routes) -> Vec<Vec<&str>> {
 /// One round over `workers` = (id, budget, queues), with nothing loading.
 fn round(
     domains: u32,
-    routes: &Routes,
+    routes: &Ownership,
     workers: &[(&str, u64, Vec<DomainQueue>)],
     replicate: bool,
 ) -> Option<dray_coordinator::scheduler::policy::Decision> {
@@ -100,7 +100,7 @@ fn domain_schedule_is_round_robin_and_redealt_over_survivors() {
 
 #[test]
 fn dynamic_keeps_surviving_owners_after_a_loss() {
-    let r = Routes::from_owners(vec![
+    let r = Ownership::from_owners(vec![
         ids(&["a"]),
         ids(&["b", "c"]),
         ids(&["b"]),
@@ -114,7 +114,7 @@ fn dynamic_keeps_surviving_owners_after_a_loss() {
 #[test]
 fn an_idle_worker_gets_the_most_wanted_unloaded_domain() {
     // a owns 0, 2, 4; b owns 1, 3. Rays wait for 0 (resident at a), 2 and 4 (not loaded).
-    let routes = Routes::round_robin(5, &ids(&["a", "b"]));
+    let routes = Ownership::round_robin(5, &ids(&["a", "b"]));
     let ws = [
         (
             "a",
@@ -141,7 +141,7 @@ fn an_idle_worker_gets_the_most_wanted_unloaded_domain() {
 
 #[test]
 fn loaded_domains_stay_and_busy_workers_get_nothing() {
-    let routes = Routes::round_robin(4, &ids(&["a", "b"]));
+    let routes = Ownership::round_robin(4, &ids(&["a", "b"]));
     // 0 is wanted and resident at its owner a: it stays even though b is idle.
     let ws = [
         ("a", 0, queues(&[(0, 500, true, 1)])),
@@ -162,7 +162,7 @@ fn loaded_domains_stay_and_busy_workers_get_nothing() {
 #[test]
 fn ties_go_to_the_lower_domain_and_each_idle_worker_gets_one() {
     // a owns every domain and has loaded none; b, c, d own nothing.
-    let routes = Routes::from_owners(vec![ids(&["a"]); 4]);
+    let routes = Ownership::from_owners(vec![ids(&["a"]); 4]);
     let ws = [
         (
             "a",
@@ -184,7 +184,7 @@ fn ties_go_to_the_lower_domain_and_each_idle_worker_gets_one() {
 
 #[test]
 fn budgets_are_respected_and_a_worker_holding_the_domain_is_preferred() {
-    let routes = Routes::from_owners(vec![ids(&["a"]), ids(&["a"])]);
+    let routes = Ownership::from_owners(vec![ids(&["a"]), ids(&["a"])]);
     // Domain 0 takes 1000 bytes, domain 1 takes 100.
     let a = queues(&[(0, 90, false, 1000), (1, 10, false, 100)]);
     // b's budget is too small for 0 but fits 1; c is unlimited.
@@ -199,7 +199,7 @@ fn budgets_are_respected_and_a_worker_holding_the_domain_is_preferred() {
     assert_eq!(given, [(1, "b")]);
     // The budget counts, not the free memory: c holds 900 bytes of an unwanted domain
     // but may evict it, and it is preferred for domain 0 because it still holds it.
-    let routes = Routes::from_owners(vec![ids(&["a"]), ids(&["a"]), ids(&["c"])]);
+    let routes = Ownership::from_owners(vec![ids(&["a"]), ids(&["a"]), ids(&["c"])]);
     let ws = [
         ("a", 0, a),
         ("b", 0, vec![]),
@@ -219,7 +219,7 @@ fn budgets_are_respected_and_a_worker_holding_the_domain_is_preferred() {
 
 #[test]
 fn a_domain_being_loaded_is_not_moved_again() {
-    let routes = Routes::from_owners(vec![ids(&["b"]), ids(&["a"])]);
+    let routes = Ownership::from_owners(vec![ids(&["b"]), ids(&["a"])]);
     let q = [
         ("a", 0u64, queues(&[(0, 80, false, 1), (1, 0, true, 1)])),
         ("b", 0, queues(&[(0, 20, false, 1)])),
@@ -252,7 +252,7 @@ fn a_domain_being_loaded_is_not_moved_again() {
 #[test]
 fn replication_only_behind_the_flag_one_replica_per_domain_per_round() {
     // a holds 0 and 1, both hot; b and c own nothing wanted (c owns 2, unwanted).
-    let routes = Routes::from_owners(vec![ids(&["a"]), ids(&["a"]), ids(&["c"])]);
+    let routes = Ownership::from_owners(vec![ids(&["a"]), ids(&["a"]), ids(&["c"])]);
     let ws = [
         ("a", 0, queues(&[(0, 100, true, 10), (1, 300, true, 10)])),
         ("b", 0, vec![]),
@@ -282,7 +282,7 @@ fn replication_only_behind_the_flag_one_replica_per_domain_per_round() {
         [vec!["a", "c"], vec!["a", "b"], vec!["c"]]
     );
     // One hot domain and two idle workers: one new replica this round, not two.
-    let routes = Routes::from_owners(vec![ids(&["a"]), ids(&["b"]), ids(&["c"])]);
+    let routes = Ownership::from_owners(vec![ids(&["a"]), ids(&["b"]), ids(&["c"])]);
     let ws = [
         ("a", 0, queues(&[(0, 100, true, 10)])),
         ("b", 0, vec![]),
@@ -292,14 +292,14 @@ fn replication_only_behind_the_flag_one_replica_per_domain_per_round() {
     assert_eq!(d.changes.len(), 1);
     assert_eq!(owners(&d.routes)[0], ["a", "b"]);
     // Never more owners than workers.
-    let routes = Routes::from_owners(vec![ids(&["a", "b"]), ids(&["b"])]);
+    let routes = Ownership::from_owners(vec![ids(&["a", "b"]), ids(&["b"])]);
     let ws = [("a", 0, queues(&[(0, 100, true, 10)])), ("b", 0, vec![])];
     assert_eq!(round(2, &routes, &ws, true), None);
 }
 
 #[test]
 fn unloaded_domains_come_before_replicas() {
-    let routes = Routes::from_owners(vec![ids(&["a"]), ids(&["a"])]);
+    let routes = Ownership::from_owners(vec![ids(&["a"]), ids(&["a"])]);
     let ws = [
         ("a", 0, queues(&[(0, 1000, true, 10), (1, 5, false, 10)])),
         ("b", 0, vec![]),
@@ -324,7 +324,7 @@ fn unloaded_domains_come_before_replicas() {
 
 #[test]
 fn reports_from_the_network_cannot_panic_a_round() {
-    let routes = Routes::round_robin(2, &ids(&["a", "b"]));
+    let routes = Ownership::round_robin(2, &ids(&["a", "b"]));
     let ws = [
         (
             "a",
@@ -430,7 +430,7 @@ fn tiles_are_dealt_with_the_attempt() {
 #[test]
 fn ownership_is_bounded_by_what_a_worker_can_hold() {
     // Domains of 100 bytes; a's budget of 800 holds (600 / 100) - 2 = 4 of them.
-    let routes = Routes::from_owners((0..7).map(|_| ids(&["a"])).collect());
+    let routes = Ownership::from_owners((0..7).map(|_| ids(&["a"])).collect());
     let a = queues(&[
         (0, 5, true, 100),
         (1, 50, false, 100),

@@ -47,7 +47,27 @@ impl RayKind {
         RayKind::AmbientOcclusion,
     ];
 
-    pub fn name(self) -> &'static str {
+    /// Every kind's name, in [`RayKind::ALL`]'s order: the one spelling of the list
+    /// (stats keys, metrics labels, the `kinds` knobs of ray caches and hit maps).
+    pub const NAMES: [&'static str; RayKind::COUNT] = [
+        RayKind::Camera.name(),
+        RayKind::Shadow.name(),
+        RayKind::Reflection.name(),
+        RayKind::Refraction.name(),
+        RayKind::Diffuse.name(),
+        RayKind::AmbientOcclusion.name(),
+    ];
+
+    /// The kinds that carry radiance of their own (occlusion rays only answer "is
+    /// anything in the way?"): what a ray cache may store and answer.
+    pub const RADIANCE: [RayKind; 4] = [
+        RayKind::Camera,
+        RayKind::Reflection,
+        RayKind::Refraction,
+        RayKind::Diffuse,
+    ];
+
+    pub const fn name(self) -> &'static str {
         match self {
             RayKind::Camera => "camera",
             RayKind::Shadow => "shadow",

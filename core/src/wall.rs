@@ -1,4 +1,4 @@
-//! Walls: the faces of domains, where ray caches live (DESIGN.md "Walls").
+//! Walls: the faces of domains, where ray caches live (docs/caches.md "Walls").
 //!
 //! A wall is one face of one domain, seen by the rays that *enter* the domain through it:
 //! wall `6 * domain + face`, faces in the order -x, +x, -y, +y, -z, +z. A face shared by

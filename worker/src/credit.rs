@@ -1,4 +1,4 @@
-//! Splitting a ray's credit among its children (DESIGN.md "Counting: credit").
+//! Splitting a ray's credit among its children (docs/architecture.md "Credit").
 //!
 //! Each tile starts with a fixed credit; every ray carries a share, and a tile is
 //! complete when all of its credit has come back to the coordinator. A ray that spawns

@@ -1,7 +1,7 @@
 //! The domain store: which domains of which job attempts are resident on this worker,
 //! loaded on demand and evicted least-recently-used within a memory budget.
 //!
-//! A domain is the unit of residency (DESIGN.md "Words"): its triangles, the scene's
+//! A domain is the unit of residency (docs/architecture.md "Words"): its triangles, the scene's
 //! emitters (next-event estimation samples them from anywhere) and one BVH, in scene
 //! order with scene-wide ids, so that tracing and shading in it give the bits the whole
 //! scene gives (see `dray_scene::partition::resident`). Each is loaded alone — read from

@@ -56,14 +56,7 @@ fn instruments() -> &'static Instruments {
                 .with_description("Rays queued at this worker, over all jobs and domains")
                 .with_unit("{ray}")
                 .build(),
-            kinds: [
-                kind("camera"),
-                kind("shadow"),
-                kind("reflection"),
-                kind("refraction"),
-                kind("diffuse"),
-                kind("ambient_occlusion"),
-            ],
+            kinds: RayKind::NAMES.map(kind),
         }
     })
 }

@@ -2,7 +2,7 @@
 //!
 //! Rays wait here until the domain's BVH traces them (or, when the routing table moved
 //! the domain elsewhere, until they are forwarded), and the per-domain lengths are what
-//! the worker reports to the coordinator's scheduler (DESIGN.md "Scheduling"). Queues are
+//! the worker reports to the coordinator's scheduler (docs/architecture.md "Scheduling"). Queues are
 //! keyed by job attempt as well as domain, so one job's report never counts another's
 //! rays and a released attempt's rays can be dropped at once.
 //!

@@ -1,4 +1,4 @@
-//! Ray-cache tickets on the worker's side (DESIGN.md "Walls").
+//! Ray-cache tickets on the worker's side (docs/caches.md "Walls").
 //!
 //! A ray that missed a wall's cache travels on with a *ticket* from that wall's actor.
 //! Its children inherit its tickets, so every contribution and every unit of credit the

@@ -18,7 +18,7 @@
 //! any order and credit is split when a ray is made), and a one-worker render pays no
 //! queue round trip per ray.
 //!
-//! **Walls and tickets** (ray caches on, DESIGN.md "Walls"): a ray entering a domain
+//! **Walls and tickets** (ray caches on, docs/caches.md "Walls"): a ray entering a domain
 //! through a wall, from another domain or from outside the scene, goes to the wall's
 //! cache actor first ([`Outbox::lookups`]) when the job caches its kind, even when the
 //! domain is resident here; the actor's answer (a hit, or a miss with a ticket) comes

@@ -1,4 +1,4 @@
-//! Ray caches on domain walls (DESIGN.md "Walls"; cache.proto): the coordinator's side.
+//! Ray caches on domain walls (docs/caches.md "Walls"; cache.proto): the coordinator's side.
 //!
 //! The coordinator never answers a ray from a cache. It decides where each job attempt's
 //! cache actors live, tells the cache hosts to open and close them, and sums what they

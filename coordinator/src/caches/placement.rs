@@ -26,7 +26,7 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 use dray_core::wall::FACES;
 use dray_proto::v1::CacheHost;
 
-use crate::scheduler::table::Routes;
+use crate::scheduler::table::Ownership;
 
 /// The hosts a job attempt may place cache actors on, and which of them sits beside
 /// which worker.
@@ -67,7 +67,7 @@ impl Candidates {
 
     /// For each of `domains` domains, the host beside its (first) owner in `routes`, if
     /// that owner runs one.
-    pub fn beside(&self, routes: &Routes, domains: u32) -> Vec<Option<usize>> {
+    pub fn beside(&self, routes: &Ownership, domains: u32) -> Vec<Option<usize>> {
         (0..domains)
             .map(|d| {
                 routes
@@ -364,7 +364,7 @@ mod tests {
         );
         assert_eq!(c.hosts.len(), 3);
         // Owners: a, b, c, a, b (round robin) but shuffled to prove the owner rules.
-        let routes = Routes::from_owners(vec![
+        let routes = Ownership::from_owners(vec![
             vec!["c".into()],
             vec!["a".into()],
             vec!["b".into(), "a".into()],
@@ -386,10 +386,10 @@ mod tests {
             &workers(&[("a", "http://a:9"), ("b", ""), ("c", "http://c:9")]),
         );
         assert_eq!(ids(&Placement::place(1, &c, &[])), ["a"]);
-        let local = Routes::local();
+        let local = Ownership::local();
         let p = Placement::place(5, &c, &c.beside(&local, 5));
         assert_eq!(by_domain(&p), ["a", "c", "a", "c", "a"]);
-        let routes = Routes::from_owners(vec![
+        let routes = Ownership::from_owners(vec![
             vec!["b".into()],
             vec![],
             vec!["c".into()],
@@ -407,7 +407,7 @@ mod tests {
             &workers(&[("a", "http://a:9")]),
         );
         assert!(c.beside_worker.is_empty());
-        let routes = Routes::from_owners(vec![vec!["a".into()]; 3]);
+        let routes = Ownership::from_owners(vec![vec!["a".into()]; 3]);
         let p = Placement::place(3, &c, &c.beside(&routes, 3));
         assert_eq!(by_domain(&p), ["cache-1", "cache-2", "cache-1"]);
         // Only the hosts given walls are listed.

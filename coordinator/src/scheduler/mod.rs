@@ -1,5 +1,5 @@
-//! The scheduler: where each job's domains live and where its rays go (DESIGN.md,
-//! "Scheduling"), after Navrátil et al. 2012.
+//! The scheduler: where each job's domains live and where its rays go
+//! (docs/architecture.md "Scheduling"), after Navrátil et al. 2012.
 //!
 //! - [`event`]: the event loop. Queue reports, joins, losses and job ends arrive as typed
 //!   [`SchedulerEvent`]s, posted by the RPC handlers and the heartbeat reaper, and are
@@ -10,7 +10,7 @@
 //! - [`policy`]: the schedules (image-plane, domain, dynamic) as pure functions: the first
 //!   ownership, how tiles are dealt, the ownership after a loss, and the dynamic round
 //!   ([`policy::rebalance`]).
-//! - [`table`]: ownership ([`table::Routes`]) and the versioned table workers receive.
+//! - [`table`]: ownership ([`table::Ownership`]) and the versioned table workers receive.
 //! - [`state`]: one job's scheduling state (table, budgets, latest queue reports), held
 //!   by the ledger next to the job's credit.
 //!
@@ -37,7 +37,7 @@ use crate::ledger::Ledger;
 #[derive(Clone, Copy, Debug)]
 pub struct SchedulerOptions {
     /// Least time between two rounds of one job. Workers report queues about every
-    /// 250 ms; a round more often than that sees little new, and a table change costs
+    /// 100 ms (`dray_worker`'s `QUEUE_REPORT_INTERVAL`); a round more often than that sees little new, and a table change costs
     /// every worker a swap (and possibly a load).
     pub round_interval: Duration,
 }

@@ -2,7 +2,7 @@
 //! nothing) out. No clocks, no gRPC, no hash-map order: the same inputs give the same
 //! table, so every decision is unit-tested and replayable.
 //!
-//! - **image-plane**: no routing ([`Routes::local`]); tiles in contiguous blocks, worker
+//! - **image-plane**: no routing ([`Ownership::local`]); tiles in contiguous blocks, worker
 //!   `i` of `n` getting tiles `[i*T/n, (i+1)*T/n)`. Each worker loads whatever domain its
 //!   fullest queue needs. The table never changes.
 //! - **domain**: static round robin (domain `d` to worker `d % n`), tiles round robin.
@@ -17,7 +17,7 @@ use std::collections::{BTreeMap, BTreeSet};
 
 use dray_proto::v1::DomainQueue;
 
-use super::table::Routes;
+use super::table::Ownership;
 
 /// The schedule names a job may ask for (JobSpec.schedule; empty means dynamic).
 pub const SCHEDULE_NAMES: [&str; 3] = ["image-plane", "domain", "dynamic"];
@@ -83,10 +83,10 @@ impl Schedule {
     }
 
     /// The first ownership of `domains` domains over `workers` (in job order).
-    pub fn initial_routes(self, domains: u32, workers: &[String]) -> Routes {
+    pub fn initial_routes(self, domains: u32, workers: &[String]) -> Ownership {
         match self {
-            Schedule::ImagePlane => Routes::local(),
-            Schedule::Domain | Schedule::Dynamic { .. } => Routes::round_robin(domains, workers),
+            Schedule::ImagePlane => Ownership::local(),
+            Schedule::Domain | Schedule::Dynamic { .. } => Ownership::round_robin(domains, workers),
         }
     }
 
@@ -121,13 +121,18 @@ impl Schedule {
     /// survivors; dynamic keeps every surviving owner where it is (its domains may still
     /// be loaded there) and deals the domains left without an owner round robin, in
     /// domain order, over the survivors.
-    pub fn routes_after_loss(self, current: &Routes, domains: u32, survivors: &[String]) -> Routes {
+    pub fn routes_after_loss(
+        self,
+        current: &Ownership,
+        domains: u32,
+        survivors: &[String],
+    ) -> Ownership {
         match self {
-            Schedule::ImagePlane => Routes::local(),
-            Schedule::Domain => Routes::round_robin(domains, survivors),
+            Schedule::ImagePlane => Ownership::local(),
+            Schedule::Domain => Ownership::round_robin(domains, survivors),
             Schedule::Dynamic { .. } => {
                 if survivors.is_empty() {
-                    return Routes::from_owners(Vec::new());
+                    return Ownership::from_owners(Vec::new());
                 }
                 let mut next = 0usize;
                 let owners = (0..domains)
@@ -147,7 +152,7 @@ impl Schedule {
                         }
                     })
                     .collect();
-                Routes::from_owners(owners)
+                Ownership::from_owners(owners)
             }
         }
     }
@@ -170,7 +175,7 @@ pub struct RoundInput<'a> {
     /// Domains in the job.
     pub domains: u32,
     /// The current ownership.
-    pub routes: &'a Routes,
+    pub routes: &'a Ownership,
     /// The job's workers, in job order (ties between idle workers go to the first).
     pub workers: &'a [WorkerView<'a>],
     /// `(domain, worker)` pairs given out by earlier rounds whose worker has not yet
@@ -239,7 +244,7 @@ fn capacity(w: &WorkerView<'_>, size: u64) -> Option<usize> {
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Decision {
     /// The new ownership.
-    pub routes: Routes,
+    pub routes: Ownership,
     /// What changed, in the order decided.
     pub changes: Vec<Change>,
 }
@@ -342,7 +347,7 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
         .collect();
     if idle.is_empty() {
         return (!changes.is_empty()).then(|| Decision {
-            routes: Routes::from_owners(owners.clone()),
+            routes: Ownership::from_owners(owners.clone()),
             changes,
         });
     }
@@ -417,7 +422,7 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
         return None;
     }
     Some(Decision {
-        routes: Routes::from_owners(owners),
+        routes: Ownership::from_owners(owners),
         changes,
     })
 }

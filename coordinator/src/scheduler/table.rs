@@ -1,7 +1,8 @@
 //! Routing tables: who owns which domain of a job, and the versioned table sent to its
 //! workers (cluster.proto `RoutingTable`).
 //!
-//! [`Routes`] is the ownership alone, the value a [`policy`](super::policy) computes;
+//! [`Ownership`] is the ownership alone, the value a [`policy`](super::policy) computes
+//! (the worker's `routing::Routes` is its view of the table it receives);
 //! [`JobRouting`] adds what makes it a message (job, attempt, version, endpoints). Only
 //! [`JobRouting`] bumps versions, so "a new table" always means "version + 1".
 
@@ -12,25 +13,25 @@ use crate::caches::placement::Placement;
 /// The owners of every domain of a job, by worker id, or "local" (image-plane: every
 /// worker traces its own rays, nothing is routed).
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
-pub struct Routes {
+pub struct Ownership {
     local: bool,
     /// Index = domain. Each list is non-empty for a routed job (more than one owner when
     /// a hot domain is replicated) and has no duplicates.
     owners: Vec<Vec<String>>,
 }
 
-impl Routes {
+impl Ownership {
     /// No routing: every worker traces every ray it makes (image-plane).
-    pub fn local() -> Routes {
-        Routes {
+    pub fn local() -> Ownership {
+        Ownership {
             local: true,
             owners: Vec::new(),
         }
     }
 
     /// Explicit owners, index = domain.
-    pub fn from_owners(owners: Vec<Vec<String>>) -> Routes {
-        Routes {
+    pub fn from_owners(owners: Vec<Vec<String>>) -> Ownership {
+        Ownership {
             local: false,
             owners,
         }
@@ -40,7 +41,7 @@ impl Routes {
     /// this spreads neighbouring kd or grid cells over workers, which evens out load
     /// better than contiguous blocks when the interesting part of a scene is small.
     /// No workers: no owners (a table nobody can use, but no panic).
-    pub fn round_robin(domains: u32, workers: &[String]) -> Routes {
+    pub fn round_robin(domains: u32, workers: &[String]) -> Ownership {
         let owners = if workers.is_empty() {
             Vec::new()
         } else {
@@ -48,7 +49,7 @@ impl Routes {
                 .map(|d| vec![workers[d % workers.len()].clone()])
                 .collect()
         };
-        Routes::from_owners(owners)
+        Ownership::from_owners(owners)
     }
 
     /// Whether rays stay where they are made (image-plane).
@@ -100,7 +101,7 @@ impl Routes {
     }
 }
 
-/// A job's current routing table: [`Routes`] plus the job, the attempt, the version,
+/// A job's current routing table: [`Ownership`] plus the job, the attempt, the version,
 /// the workers' endpoints and the attempt's cache placement.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct JobRouting {
@@ -108,7 +109,7 @@ pub struct JobRouting {
     attempt: u32,
     version: u64,
     workers: Vec<WorkerEndpoint>,
-    routes: Routes,
+    routes: Ownership,
     /// Where the attempt's cache actors live (empty: no caches). Set once per attempt,
     /// before its first table goes out, and kept by every later table of the attempt.
     caches: Placement,
@@ -116,7 +117,7 @@ pub struct JobRouting {
 
 impl JobRouting {
     /// The first table of a job: version 1, attempt 0.
-    pub fn new(job_id: &str, workers: Vec<WorkerEndpoint>, routes: Routes) -> JobRouting {
+    pub fn new(job_id: &str, workers: Vec<WorkerEndpoint>, routes: Ownership) -> JobRouting {
         JobRouting {
             job_id: job_id.to_string(),
             attempt: 0,
@@ -138,7 +139,7 @@ impl JobRouting {
     }
 
     /// The ownership.
-    pub fn routes(&self) -> &Routes {
+    pub fn routes(&self) -> &Ownership {
         &self.routes
     }
 
@@ -158,7 +159,7 @@ impl JobRouting {
     }
 
     /// Replace the ownership: a new version. Returns the new version.
-    pub fn set_routes(&mut self, routes: Routes) -> u64 {
+    pub fn set_routes(&mut self, routes: Ownership) -> u64 {
         self.routes = routes;
         self.version += 1;
         self.version
@@ -185,7 +186,12 @@ impl JobRouting {
 
     /// Start attempt `attempt` over `workers` with `routes`: a new version, with no
     /// caches until [`JobRouting::set_caches`] places the new attempt's.
-    pub fn restart(&mut self, attempt: u32, workers: Vec<WorkerEndpoint>, routes: Routes) -> u64 {
+    pub fn restart(
+        &mut self,
+        attempt: u32,
+        workers: Vec<WorkerEndpoint>,
+        routes: Ownership,
+    ) -> u64 {
         self.attempt = attempt;
         self.workers = workers;
         self.routes = routes;
@@ -231,7 +237,7 @@ mod tests {
 
     #[test]
     fn round_robin_deals_domains_in_turn() {
-        let r = Routes::round_robin(7, &ids(&["a", "b", "c"]));
+        let r = Ownership::round_robin(7, &ids(&["a", "b", "c"]));
         let owners: Vec<String> = r.to_proto().into_iter().map(|r| r.worker_id).collect();
         assert_eq!(owners, ["a", "b", "c", "a", "b", "c", "a"]);
         assert!(
@@ -241,7 +247,7 @@ mod tests {
                 .all(|(i, r)| r.domain == i as u32)
         );
         assert_eq!(r.owned_by("b").collect::<Vec<_>>(), [1, 4]);
-        assert!(Routes::round_robin(3, &[]).to_proto().is_empty());
+        assert!(Ownership::round_robin(3, &[]).to_proto().is_empty());
     }
 
     #[test]
@@ -250,12 +256,12 @@ mod tests {
             worker_id: "a".into(),
             endpoint: "http://a:1".into(),
         }];
-        let mut t = JobRouting::new("j", ws.clone(), Routes::round_robin(2, &ids(&["a"])));
+        let mut t = JobRouting::new("j", ws.clone(), Ownership::round_robin(2, &ids(&["a"])));
         assert_eq!((t.version(), t.attempt()), (1, 0));
-        assert_eq!(t.set_routes(Routes::local()), 2);
+        assert_eq!(t.set_routes(Ownership::local()), 2);
         let m = t.table();
         assert!(m.local && m.routes.is_empty());
-        assert_eq!(t.restart(1, ws, Routes::round_robin(2, &ids(&["a"]))), 3);
+        assert_eq!(t.restart(1, ws, Ownership::round_robin(2, &ids(&["a"]))), 3);
         let m = t.table();
         assert_eq!(
             (m.version, m.attempt, m.local, m.routes.len()),
@@ -270,18 +276,18 @@ mod tests {
             worker_id: "a".into(),
             endpoint: "http://a:1".into(),
         }];
-        let mut t = JobRouting::new("j", ws.clone(), Routes::round_robin(2, &ids(&["a"])));
+        let mut t = JobRouting::new("j", ws.clone(), Ownership::round_robin(2, &ids(&["a"])));
         assert!(t.table().cache_hosts.is_empty() && t.table().wall_hosts.is_empty());
         let c = Candidates::choose(Vec::new(), &[("a".into(), "http://a:2".into())]);
         let p = Placement::place(2, &c, &c.beside(t.routes(), 2));
         t.set_caches(p.clone());
         assert_eq!(t.version(), 1, "placing caches is not a new table");
-        t.set_routes(Routes::local());
+        t.set_routes(Ownership::local());
         let m = t.table();
         assert_eq!(m.cache_hosts[0].endpoint, "http://a:2");
         assert_eq!(m.wall_hosts, [0; 12]);
         // A new attempt starts with none (until its own are placed).
-        t.restart(1, ws, Routes::round_robin(2, &ids(&["a"])));
+        t.restart(1, ws, Ownership::round_robin(2, &ids(&["a"])));
         assert!(t.table().cache_hosts.is_empty());
         assert!(t.caches().is_empty());
     }

@@ -1,7 +1,7 @@
 //! Spatial partitioning and the on-disk scene package.
 //!
 //! dray renders scenes larger than one machine by cutting them into **domains**: an
-//! axis-aligned box and every triangle that overlaps it (see `../shared/DESIGN.md`). This
+//! axis-aligned box and every triangle that overlaps it (docs/architecture.md "Words"). This
 //! module decides the boxes ([`DomainLayout`]: a uniform grid or a kd split balanced by
 //! triangle count), assigns triangles to them, and stores the result as a **scene
 //! package**: a directory with a checksummed, versioned manifest and one binary file per
