@@ -1,4 +1,4 @@
-//! One wall actor's parts, driven directly (issue 21, item 4 "Lean tickets"): the store's
+//! One wall actor's parts, driven directly (docs/benchmarks.md "Lean tickets"): the store's
 //! inserts and its `first`/`nearest`/`average` queries, and the ticket cycle (open, returns,
 //! close, store) as the actor runs it (`actor.rs`: `cache_lookup` and `apply`), without the
 //! mailbox or gRPC around them.

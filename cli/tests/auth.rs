@@ -1,4 +1,5 @@
-//! Authentication end to end, with real processes (issue 12): a `dray cluster` whose
+//! Authentication end to end, with real processes (docs/security.md "Hostile requests"): a
+//! `dray cluster` whose
 //! coordinator requires an API token, and whose members share a cluster token that
 //! `dray cluster` made for them.
 //!

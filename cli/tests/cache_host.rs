@@ -209,7 +209,8 @@ fn dray_cache_registers_and_stops_cleanly_on_sigterm() {
         text(&coordinator_log)
     );
     // The coordinator lists it: registering the same endpoint again without the host's
-    // member secret is refused (issue 20, item 6: no one takes over a host).
+    // member secret is refused (docs/security.md "Hardening, second round", item 6: no one
+    // takes over a host).
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
@@ -296,7 +297,8 @@ fn dray_worker_announces_its_cache_host_unless_told_not_to() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// Issue 20, items 6 and 15. A coordinator takes stand-alone cache hosts only when its
+/// docs/security.md "Hardening, second round", items 6 and 15. A coordinator takes
+/// stand-alone cache hosts only when its
 /// operator says so (`--cache-hosts`): before, any holder of the cluster token could
 /// register one, be given every wall of later jobs and answer every lookup. And hosts
 /// that stop refreshing are dropped (before, 3,000 dead hosts stayed listed).

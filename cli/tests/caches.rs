@@ -1,4 +1,4 @@
-//! Ray caches on domain walls end to end (issue 9), with real cache actors: in-process
+//! Ray caches on domain walls end to end (docs/caches.md), with real cache actors: in-process
 //! cache hosts beside `dray render`'s workers, and a stand-alone `dray cache` process in
 //! a cluster of processes.
 //!

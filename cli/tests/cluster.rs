@@ -458,7 +458,8 @@ fn a_worker_that_dies_is_started_again_and_takes_the_next_job() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// Issue 20 item 17: `--base-port 0` puts every member on a port the system chooses; the
+/// docs/security.md "Hardening, second round", item 17: `--base-port 0` puts every member
+/// on a port the system chooses; the
 /// lines before the ready line, and the ready line, name them, and a job submitted to
 /// the coordinator's announced address runs on the workers.
 #[test]

@@ -1,4 +1,5 @@
-//! `--emulate-link` (issue 21, item 6): `dray cluster` hands the spec to every member,
+//! `--emulate-link` (docs/caches.md "Pricing communication: the emulated interconnect"):
+//! `dray cluster` hands the spec to every member,
 //! each member's servers shape the connections they accept, and a job rendered through
 //! the emulated links has the same bits as `dray render`; a bad spec is refused naming
 //! what is wrong.

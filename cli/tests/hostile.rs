@@ -244,7 +244,8 @@ fn render_within(root: &Path, name: &str, args: &[&str], secs: u64) -> Out {
     }
 }
 
-/// Issue 20 item 3: `--translate 1e25,0,0` (or 1e22, or 3e38) panicked in the BVH
+/// docs/security.md "Hardening, second round", item 3: `--translate 1e25,0,0` (or 1e22, or
+/// 3e38) panicked in the BVH
 /// conversion: exit 101 with `--workers 0`, and a hang with worker actors (the tracing
 /// thread that loaded the domain died and the job waited for it). Now it is refused like
 /// a file with such coordinates, in both modes, before anything is built.
@@ -415,7 +416,7 @@ fn output_paths_are_checked_before_rendering() {
     assert!(image::open(&png).is_ok());
 }
 
-/// Issue 20, item 5: a worker refuses setups beyond its bounds
+/// docs/security.md "Hardening, second round", item 5: a worker refuses setups beyond its bounds
 /// (`worker/src/setup_bounds.rs`); those bounds must let through everything the
 /// coordinator accepts at its defaults, or legitimate jobs would fail on workers.
 #[test]

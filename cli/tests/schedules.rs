@@ -1,4 +1,5 @@
-//! Schedules and memory budgets end to end (issue 8): every schedule (image-plane, domain,
+//! Schedules and memory budgets end to end (docs/architecture.md "Scheduling"): every
+//! schedule (image-plane, domain,
 //! dynamic) gives the reference renderer's bits (`dray render --workers 0`) on 1, 2 and 4
 //! in-process workers and on a real `dray cluster` with `dray submit`, with and without a
 //! memory budget that forces domains to be evicted; a budget smaller than one domain is a

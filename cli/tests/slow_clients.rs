@@ -1,4 +1,5 @@
-//! Issue 20, item 2, with real processes: API calls that send headers and never a body
+//! docs/security.md "Hardening, second round", item 2, with real processes: API calls that
+//! send headers and never a body
 //! used to hold every `--max-calls` place of the coordinator; health checks, heartbeats
 //! and registrations were refused, every worker was declared lost and the running job
 //! failed. Now the API has its own places: while a client holds all of them, a worker

@@ -1,4 +1,4 @@
-//! `dray sweep` end to end (issue 9, item 7), with real `dray` processes: the exact
+//! `dray sweep` end to end (README "dray sweep"), with real `dray` processes: the exact
 //! render and every combination of the varied values, in this process and on a local
 //! cluster; results.csv, table.md, pareto.png and the images; one-line errors before any
 //! rendering.

@@ -193,7 +193,8 @@ fn run_to_end(args: &[&str]) -> (std::process::ExitStatus, String, String) {
     )
 }
 
-/// Issue 20, item 13: a bad certificate, key or mismatched pair used to print
+/// docs/security.md "Hardening, second round", item 13: a bad certificate, key or
+/// mismatched pair used to print
 /// "listening ... TLS" and then fail every handshake with a transport error naming no
 /// file; a worker with a mismatched key said "invalid coordinator address". Every
 /// server and client now checks its files before it listens or dials.

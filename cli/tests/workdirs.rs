@@ -1,12 +1,14 @@
 //! Where dray processes write on the local disk, against another local user and a stop.
 //!
-//! - Issue 20 item 1: `dray cluster` used `/tmp/dray-cluster-<pid>-secrets` for its
+//! - docs/security.md "Hardening, second round", item 1: `dray cluster` used
+//! `/tmp/dray-cluster-<pid>-secrets` for its
 //!   cluster token, so an unprivileged user who made that directory first (mode 0777)
 //!   could swap the token. Here a second user (nobody, through `setpriv`) plants
 //!   directories at the old predictable names for the next pids, and the test shows the
 //!   cluster's token lives in a new, private directory the other user can neither read
 //!   nor write.
-//! - Issue 20 item 14: a SIGTERM while a coordinator cut a large scene into a package
+//! - docs/security.md "Hardening, second round", item 14: a SIGTERM while a coordinator
+//! cut a large scene into a package
 //!   left the partial package (hundreds of MB) in its work directory.
 
 mod common;
@@ -217,7 +219,8 @@ fn a_cluster_token_lives_in_a_new_private_directory_not_one_another_user_planted
     let _ = std::fs::remove_dir_all(&root);
 }
 
-/// Issue 20 item 14: a SIGTERM while the coordinator cuts a large scene into a package
+/// docs/security.md "Hardening, second round", item 14: a SIGTERM while the coordinator
+/// cuts a large scene into a package
 /// leaves no package behind (partial or whole).
 #[test]
 fn a_stop_during_a_large_preparation_leaves_no_partial_package() {

@@ -1,4 +1,4 @@
-//! What limits dray at 1,000 workers (issue 8, item 7, "Scale on paper"): a simulated
+//! What limits dray at 1,000 workers (docs/scaling.md): a simulated
 //! cluster with no real workers, no network and no tracing. Only the coordinator's own
 //! code runs, fed synthetic reports shaped like the ones workers send, so what is
 //! measured is the coordinator's CPU cost per report, per round and per table; the

@@ -549,7 +549,8 @@ mod tests {
         assert!(m.heartbeat(&b.id, 0, 0));
     }
 
-    /// Issue 20, item 11: a 3 MB `version`, `endpoint` or `hostname` came back whole in
+    /// docs/security.md "Hardening, second round", item 11: a 3 MB `version`, `endpoint`
+    /// or `hostname` came back whole in
     /// the error (and the logs). Every echoed field is cut.
     #[test]
     fn registration_errors_never_echo_an_unbounded_field() {

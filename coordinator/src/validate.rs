@@ -671,7 +671,8 @@ mod tests {
         }
     }
 
-    /// Issue 20, item 3: a scene moved beyond the import bound (±1e18) is refused
+    /// docs/security.md "Hardening, second round", item 3: a scene moved beyond the import
+    /// bound (±1e18) is refused
     /// like a file with such coordinates; before, it reached the BVH conversion, which
     /// panicked on the workers.
     #[test]

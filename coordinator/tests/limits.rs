@@ -1,4 +1,5 @@
-//! Admission and lifetime limits on a live in-process server (issue 12): a job whose
+//! Admission and lifetime limits on a live in-process server (docs/security.md "Hostile
+//! requests"): a job whose
 //! estimated memory exceeds `max_job_bytes` is refused with RESOURCE_EXHAUSTED before
 //! anything is prepared; beyond `max_jobs` jobs queued or running, SubmitJob refuses
 //! more; and a finished job's image is dropped once newer jobs push it out of
@@ -226,7 +227,8 @@ async fn finished_images_beyond_keep_finished_are_dropped_and_get_image_says_so(
     assert_eq!(job.progress.unwrap().state(), JobState::Succeeded);
 }
 
-/// Issue 20, item 8: finished images were kept without regard to `--max-job-bytes`
+/// docs/security.md "Hardening, second round", item 8: finished images were kept without
+/// regard to `--max-job-bytes`
 /// (+84 MB per finished 2048² job, 1.1 GB after 12; only `--keep-finished` bounded
 /// them). Kept images now add up to at most the byte budget, `--max-job-bytes` by
 /// default: here 16 MiB, and each 512² image holds 6 MiB of sums.

@@ -1,4 +1,5 @@
-//! Issue 20, items 2 and 10, against a real server on loopback: calls that send headers
+//! docs/security.md "Hardening, second round", items 2 and 10, against a real server on
+//! loopback: calls that send headers
 //! and never a body, and streams that never end, cannot take other classes' places,
 //! and free their own (body timeout; a stream's place goes with its stream).
 

@@ -1,4 +1,5 @@
-//! Issue 20, item 4, against a real server on loopback: sockets that never speak cannot
+//! docs/security.md "Hardening, second round", item 4, against a real server on loopback:
+//! sockets that never speak cannot
 //! exhaust the server's descriptors: beyond the connection limit they are closed at
 //! once, and the others are closed after the handshake (or idle) timeout.
 

@@ -1,4 +1,5 @@
-//! Issue 20: HTTP/2 abuse the server stack (hyper and h2 under tonic) must survive, on
+//! docs/security.md "Hardening, second round": HTTP/2 abuse the server stack (hyper and h2
+//! under tonic) must survive, on
 //! loopback and bounded in count: rapid reset, CONTINUATION flood, SETTINGS flood and
 //! PING flood. After each, a health check on a new connection answers SERVING and
 //! admission places are not leaked.

@@ -1,4 +1,4 @@
-//! The worker's ticket bookkeeping (issue 21, item 4 "Lean tickets"), without the tracing
+//! The worker's ticket bookkeeping (docs/benchmarks.md "Lean tickets"), without the tracing
 //! or the streams around it: a ray's ticket set as it gains tickets at walls and is
 //! inherited by its children (`Lineage`), the sparse ticket table of a ray batch (encode:
 //! `RayBundle::push`; decode: `with_lineage`), and the per-ticket sums (`TicketLedger`:
@@ -8,7 +8,8 @@
 //! one outer wall and then one or two inner walls, so they carry 1-3 tickets, and a
 //! batch holds rays of 0 to 3 tickets. Each bench reports per ray.
 //!
-//! Times are CPU time of the bench thread (`cache-actor/benches/common/thread_cpu.rs`), not wall time.
+//! Times are CPU time of the bench thread (`cache-actor/benches/common/thread_cpu.rs`),
+//! not wall time.
 //!
 //! Run: `cargo bench -p dray-worker --bench tickets`.
 

@@ -3,8 +3,9 @@
 //! A tracing thread that panics would die silently: its job would wait for credit that
 //! never comes (until the coordinator's stall timeout), and every later job would have
 //! one thread fewer. A load that panicked also left its domain marked "loading" for
-//! ever, so every other thread skipped the domain as busy and the job hung (issue 20,
-//! item 3: `dray render --translate 1e25,0,0` with worker actors). Instead, a panic
+//! ever, so every other thread skipped the domain as busy and the job hung
+//! (docs/security.md "Hardening, second round", item 3: `dray render --translate 1e25,0,0`
+//! with worker actors). Instead, a panic
 //! while tracing a batch or a tile, or while loading a domain (reading it, building its
 //! BVH, on this thread or on rayon's pool, which carries the panic back), fails that job
 //! with the panic's message, and the thread goes on to the next piece of work. The

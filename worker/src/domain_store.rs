@@ -542,7 +542,7 @@ mod tests {
     }
 
     /// A source whose load panics the first `panics` times, as the BVH conversion did
-    /// on a scene moved to 1e25 (issue 20, item 3).
+    /// on a scene moved to 1e25 (docs/security.md "Hardening, second round", item 3).
     struct Panicking {
         panics: AtomicU64,
         then: Fake,

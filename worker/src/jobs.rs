@@ -271,8 +271,9 @@ impl Jobs {
     }
 
     /// Whether a setup for job `id` may be taken: a new attempt of a job held here
-    /// replaces it, and a new job is refused once [`MAX_JOBS`] are held (issue 20, item
-    /// 9: a coordinator made a worker hold 20,000 setups, 202 MB). The assignment loop
+    /// replaces it, and a new job is refused once [`MAX_JOBS`] are held
+    /// (docs/security.md "Hardening, second round", item 9: a coordinator made a worker
+    /// hold 20,000 setups, 202 MB). The assignment loop
     /// takes setups one at a time (each is planned before the next is read), so the
     /// jobs held are the running ones plus at most the one being planned.
     ///

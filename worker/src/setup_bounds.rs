@@ -2,7 +2,8 @@
 //!
 //! A worker trusts its coordinator to say what to trace, not to say how much memory to
 //! take: one `JobSetup` with `domain_count = 0xFFFFFFFF` made a worker allocate a
-//! per-domain table of 103 GB and abort (issue 20, item 5). Every field that sizes
+//! per-domain table of 103 GB and abort (docs/security.md "Hardening, second round", item
+//! 5). Every field that sizes
 //! something (a table, a loop, an image, a string kept with the job) is held here to
 //! the largest value a legitimate coordinator sends: the coordinator's own defaults in
 //! `dray_coordinator::validate::Limits` (a test in `cli/tests/hostile.rs` keeps the two

@@ -322,7 +322,8 @@ fn a_refusal_is_not_retried() {
     assert_eq!(s.calls(), vec![0]);
 }
 
-/// Issue 20 item 9: a coordinator announcing a 1 TiB manifest (whose size nothing
+/// docs/security.md "Hardening, second round", item 9: a coordinator announcing a 1 TiB
+/// manifest (whose size nothing
 /// declares beforehand) made a worker write 600 MB before it gave up, and the partial
 /// file stayed. The announced size is now refused before a byte is written.
 #[test]
@@ -449,7 +450,8 @@ fn as_other_user(script: &str) -> Option<std::process::Output> {
     )
 }
 
-/// Issue 20 item 1: in a cache directory another local user can write to (a shared
+/// docs/security.md "Hardening, second round", item 1: in a cache directory another local
+/// user can write to (a shared
 /// --package-cache, or the old predictable default), that user plants `NAME.part` as a
 /// symlink to a file of ours. The fetch must not write through it.
 #[test]
@@ -493,7 +495,8 @@ fn a_symlink_planted_at_a_partial_file_is_not_followed() {
     let _ = std::fs::remove_file(&victim);
 }
 
-/// Issue 20 item 1: the default cache is a new private directory (random name, 0700,
+/// docs/security.md "Hardening, second round", item 1: the default cache is a new private
+/// directory (random name, 0700,
 /// ours), which another local user cannot write in, and it goes with the fetcher.
 #[test]
 fn the_default_cache_is_private_and_goes_with_its_fetcher() {

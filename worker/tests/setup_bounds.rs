@@ -2,7 +2,8 @@
 //! client and assignment loop), on loopback: this file's coordinator is a real tonic
 //! `ClusterService` server that registers the worker and sends it hostile setups.
 //!
-//! Issue 20, item 5: one `JobSetup` with `domain_count = 0xFFFFFFFF` made a worker
+//! docs/security.md "Hardening, second round", item 5: one `JobSetup` with `domain_count =
+//! 0xFFFFFFFF` made a worker
 //! allocate 103 GB and abort. Item 9: a coordinator could make a worker hold 20,000 job
 //! setups. Now each is refused with a failure report naming the bound, and the worker
 //! goes on taking the next setup.

@@ -1,5 +1,5 @@
 //! A criterion measurement of the benchmark thread's CPU time (`CLOCK_THREAD_CPUTIME_ID`)
-//! instead of wall time: the project's machine is shared, and issue 21 prices the caches
+//! instead of wall time: the project's machine is shared, and docs/caches.md prices the caches
 //! in CPU time, so a bench reports what its code costs in CPU whatever else runs beside
 //! it. Values are nanoseconds, printed as criterion prints durations ("time:").
 //!

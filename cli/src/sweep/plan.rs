@@ -913,7 +913,8 @@ mod tests {
         assert_eq!(file_stem("..//"), "__");
     }
 
-    /// Issue 20, item 12: a 1000 x 1000 `--vary` started a million renders, and a 100 KB
+    /// docs/security.md "Hardening, second round", item 12: a 1000 x 1000 `--vary` started
+    /// a million renders, and a 100 KB
     /// value came back whole in the error.
     #[test]
     fn sweeps_are_capped_and_errors_cut() {

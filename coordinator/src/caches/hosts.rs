@@ -177,7 +177,8 @@ mod tests {
             ..req("http://10.0.0.1:7100")
         };
         assert_eq!(h.register(&again).unwrap().host_id, "cache-1");
-        // Without it, or with another host's: refused (issue 20, item 6).
+        // Without it, or with another host's: refused (docs/security.md "Hardening, second
+        // round", item 6).
         let e = h.register(&req("http://10.0.0.1:7100")).unwrap_err();
         assert_eq!(e.code(), Code::PermissionDenied, "{e:?}");
         assert_eq!(h.len(), 2);
@@ -197,7 +198,8 @@ mod tests {
         assert_eq!(h.len(), 2);
     }
 
-    /// Issue 20, item 11: no field of a registration comes back whole in an error.
+    /// docs/security.md "Hardening, second round", item 11: no field of a registration
+    /// comes back whole in an error.
     #[test]
     fn registration_errors_never_echo_an_unbounded_field() {
         let h = CacheHosts::default();
@@ -232,7 +234,8 @@ mod tests {
         assert!(h.is_empty());
     }
 
-    /// Issue 20, item 15: registered hosts were never expired (3,000 dead ones stayed).
+    /// docs/security.md "Hardening, second round", item 15: registered hosts were never
+    /// expired (3,000 dead ones stayed).
     #[test]
     fn silent_hosts_expire_and_refreshed_ones_stay() {
         let h = CacheHosts::default();
