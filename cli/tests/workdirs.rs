@@ -1,15 +1,13 @@
 //! Where dray processes write on the local disk, against another local user and a stop.
 //!
 //! - docs/security.md "Hardening, second round", item 1: `dray cluster` used
-//! `/tmp/dray-cluster-<pid>-secrets` for its
-//!   cluster token, so an unprivileged user who made that directory first (mode 0777)
+//!   `/tmp/dray-cluster-<pid>-secrets` for its cluster token, so an unprivileged user who made that directory first (mode 0777)
 //!   could swap the token. Here a second user (nobody, through `setpriv`) plants
 //!   directories at the old predictable names for the next pids, and the test shows the
 //!   cluster's token lives in a new, private directory the other user can neither read
 //!   nor write.
 //! - docs/security.md "Hardening, second round", item 14: a SIGTERM while a coordinator
-//! cut a large scene into a package
-//!   left the partial package (hundreds of MB) in its work directory.
+//!   cut a large scene into a package left the partial package (hundreds of MB) in its work directory.
 
 mod common;
 mod support;
