@@ -412,3 +412,44 @@ fn bad_input_gives_one_line_and_a_nonzero_exit() {
         );
     }
 }
+
+/// A one-triangle glTF that uses an extension dray does not know, so loading it warns.
+fn write_warning_gltf(dir: &std::path::Path) -> std::path::PathBuf {
+    let pos: [f32; 9] = [-1.0, -1.0, 0.0, 1.0, -1.0, 0.0, 0.0, 1.0, 0.0];
+    let bin: Vec<u8> = pos.iter().flat_map(|v| v.to_le_bytes()).collect();
+    std::fs::write(dir.join("warn.bin"), &bin).unwrap();
+    let json = format!(
+        r#"{{"asset":{{"version":"2.0"}},"extensionsUsed":["EXT_dray_test_unknown"],
+"buffers":[{{"uri":"warn.bin","byteLength":{}}}],
+"bufferViews":[{{"buffer":0,"byteLength":{}}}],
+"accessors":[{{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[-1,-1,0],"max":[1,1,0]}}],
+"meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}}}}]}}],
+"nodes":[{{"mesh":0}}],"scenes":[{{"nodes":[0]}}]}}"#,
+        bin.len(),
+        bin.len()
+    );
+    let path = dir.join("warn.gltf");
+    std::fs::write(&path, json).unwrap();
+    path
+}
+
+#[test]
+fn import_warnings_are_printed_once_in_plain_text_when_stderr_is_not_a_terminal() {
+    let d = tmp("warn-once");
+    let scene = write_warning_gltf(&d);
+    let r = render(
+        &d,
+        "warn",
+        scene.to_str().unwrap(),
+        &["--width", "8", "--height", "8", "--spp", "1"],
+    );
+    assert!(r.ok, "{}", r.stderr);
+    // The test harness captures stderr through a pipe: not a terminal.
+    assert_eq!(
+        r.stderr.matches("EXT_dray_test_unknown").count(),
+        1,
+        "{}",
+        r.stderr
+    );
+    assert!(!r.stderr.contains('\u{1b}'), "colour codes: {:?}", r.stderr);
+}

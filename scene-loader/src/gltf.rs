@@ -458,9 +458,14 @@ struct Loader<'a> {
 }
 
 impl Loader<'_> {
+    /// Record a warning in `scene.stats.warnings`, once: the same problem met again (in
+    /// another material, primitive or instance) adds nothing. The loader does not log
+    /// it; whoever loads the scene prints the list (the CLI) or forwards it (the
+    /// coordinator's job summary), so each warning reaches the user exactly once.
     fn warn(&mut self, message: String) {
-        tracing::warn!("{message}");
-        self.scene.stats.warnings.push(message);
+        if !self.scene.stats.warnings.contains(&message) {
+            self.scene.stats.warnings.push(message);
+        }
     }
 
     fn error(&self, message: impl Into<String>) -> SceneError {
