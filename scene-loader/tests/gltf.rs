@@ -832,3 +832,136 @@ fn corrupted_glb_never_panics() {
     println!("{loaded} of {iters} corrupted files still loaded");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A quad (two triangles) in the XY plane facing +Z with NORMAL and TEXCOORD_0, U along
+/// +X and V along -Y (glTF's V runs down the image): POSITION 0, NORMAL 1, TEXCOORD_0 2,
+/// indices 3.
+fn normal_mapped_quad() -> Builder {
+    let mut b = Builder::default();
+    b.floats(
+        &[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 1.0, 0.0],
+        "VEC3",
+    );
+    b.floats(&[0.0, 0.0, 1.0].repeat(4), "VEC3");
+    b.floats(&[0.0, 1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0], "VEC2");
+    b.indices(&[0, 1, 2, 0, 2, 3]);
+    b
+}
+
+/// The rest of a file with one quad mesh whose material has a normal map.
+fn normal_mapped_rest(attributes: &str) -> String {
+    format!(
+        r#""meshes":[{{"name":"Quad","primitives":[{{"attributes":{{{attributes}}},"indices":3,"material":0}}]}}],
+"nodes":[{{"mesh":0}}],"scenes":[{{"nodes":[0]}}],
+"materials":[{{"normalTexture":{{"index":0}}}}],
+"textures":[{{"source":0}}],
+"images":[{{"uri":"data:image/png;base64,{}"}}]"#,
+        base64(&png_2x1())
+    )
+}
+
+#[test]
+fn normal_mapped_primitive_without_tangents_gets_mikktspace_tangents() {
+    let dir = test_dir("mikktspace");
+    let b = normal_mapped_quad();
+    let path = b.write(
+        &dir,
+        "quad",
+        &normal_mapped_rest(r#""POSITION":0,"NORMAL":1,"TEXCOORD_0":2"#),
+    );
+    let scene = load_gltf(&path).unwrap();
+    let m = &scene.mesh;
+    assert_eq!(m.tangents.len(), m.positions.len());
+    for t in &m.tangents {
+        // U grows along +X and "up the image" (-V) along +Y = N x T: sign +1, as
+        // Blender would have written the TANGENT for this quad.
+        assert!(approx(t.truncate(), Vec3::X), "{t}");
+        assert_eq!(t.w, 1.0, "{t}");
+    }
+    assert!(
+        scene.stats.warnings.is_empty(),
+        "{:?}",
+        scene.stats.warnings
+    );
+
+    // Without NORMAL there is nothing to build a frame on: a warning says the normal
+    // map is ignored, and no tangent is made up.
+    let path = b.write(
+        &dir,
+        "no-normals",
+        &normal_mapped_rest(r#""POSITION":0,"TEXCOORD_0":2"#),
+    );
+    let scene = load_gltf(&path).unwrap();
+    assert!(scene.mesh.tangents.iter().all(|t| *t == Vec4::ZERO));
+    assert!(
+        scene
+            .stats
+            .warnings
+            .iter()
+            .any(|w| w.contains("normal map is ignored")),
+        "{:?}",
+        scene.stats.warnings
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn morph_targets_are_applied_at_mesh_and_node_weights() {
+    let dir = test_dir("morph");
+    let mut b = triangle_builder();
+    // Target 0 lifts every vertex by 1 in z; target 1 moves them 2 along x.
+    let lift = b.floats(&[0.0, 0.0, 1.0].repeat(3), "VEC3");
+    let shift = b.floats(&[2.0, 0.0, 0.0].repeat(3), "VEC3");
+    let rest = format!(
+        r#""meshes":[{{"name":"Tri","weights":[0.5,0.25],"primitives":[{{"attributes":{{"POSITION":0,"NORMAL":1,"TANGENT":2}},"indices":3,"targets":[{{"POSITION":{lift}}},{{"POSITION":{shift}}}]}}]}}],
+"nodes":[{{"mesh":0}},{{"mesh":0,"weights":[1.0,0.0],"translation":[10,0,0]}},{{"mesh":0}}],
+"scenes":[{{"nodes":[0,1,2]}}]"#
+    );
+    let path = b.write(&dir, "morph", &rest);
+    let scene = load_gltf(&path).unwrap();
+    let p = &scene.mesh.positions;
+    assert_eq!(p.len(), 9);
+    // Node 0 and 2: the mesh's weights (0.5 lift, 0.25 x 2 shift).
+    let mesh_weighted = [
+        Vec3::new(0.5, 0.0, 0.5),
+        Vec3::new(1.5, 0.0, 0.5),
+        Vec3::new(0.5, 1.0, 0.5),
+    ];
+    // Node 1: its own weights (full lift, no shift), then its translation.
+    let node_weighted = [
+        Vec3::new(10.0, 0.0, 1.0),
+        Vec3::new(11.0, 0.0, 1.0),
+        Vec3::new(10.0, 1.0, 1.0),
+    ];
+    let found = |want: &[Vec3; 3]| {
+        p.chunks(3)
+            .filter(|c| c.iter().zip(want).all(|(a, b)| approx(*a, *b)))
+            .count()
+    };
+    assert_eq!(found(&mesh_weighted), 2, "{p:?}");
+    assert_eq!(found(&node_weighted), 1, "{p:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn each_warning_is_recorded_once() {
+    let dir = test_dir("warn-once");
+    let b = triangle_builder();
+    // A line primitive in a mesh instanced with different node weights, so the mesh is
+    // decoded twice: its skip is reported once.
+    let rest = r#""meshes":[
+  {"name":"Tri","primitives":[{"attributes":{"POSITION":0},"indices":3},{"attributes":{"POSITION":0},"mode":1}]}
+],
+"nodes":[{"mesh":0},{"mesh":0,"weights":[]},{"mesh":0}],
+"scenes":[{"nodes":[0,1,2]}]"#;
+    let path = b.write(&dir, "lines", rest);
+    let scene = load_gltf(&path).unwrap();
+    let skipped: Vec<_> = scene
+        .stats
+        .warnings
+        .iter()
+        .filter(|w| w.contains("not triangles"))
+        .collect();
+    assert_eq!(skipped.len(), 1, "{:?}", scene.stats.warnings);
+    let _ = std::fs::remove_dir_all(&dir);
+}
