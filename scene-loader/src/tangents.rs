@@ -7,7 +7,9 @@
 //!
 //! MikkTSpace gives a tangent per triangle corner. Corners that share a vertex nearly
 //! always agree; where they do not (mirrored UVs meeting at a shared vertex, for one),
-//! the vertex is split, so every corner keeps the tangent MikkTSpace gave it.
+//! the vertex is split, so every corner keeps the tangent MikkTSpace gave it. A corner
+//! MikkTSpace gives nothing (a triangle with degenerate UVs and no neighbour to borrow
+//! from) takes its vertex's tangent from the other corners there, if any.
 
 use bevy_mikktspace::{Geometry, TangentSpace, generate_tangents};
 use glam::{Vec2, Vec3, Vec4};
@@ -112,6 +114,11 @@ pub fn generate(
     // Copies made so far per source vertex, so corners that agree with a copy reuse it.
     let mut copies: Vec<(u32, u32)> = Vec::new();
     for (slot, &t) in indices.iter_mut().zip(&per_corner) {
+        if t == Vec4::ZERO {
+            // No opinion (a degenerate UV triangle MikkTSpace could not place): the
+            // corner takes whatever tangent its vertex gets from its other corners.
+            continue;
+        }
         let v = *slot as usize;
         match tangents.get(v).copied().flatten() {
             None => {

@@ -965,3 +965,75 @@ fn each_warning_is_recorded_once() {
     assert_eq!(skipped.len(), 1, "{:?}", scene.stats.warnings);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Tangents made by dray agree with the ones the exporter wrote: the shared WaterBottle
+/// (exported with TANGENT) is loaded as is and with its TANGENT attributes removed, and
+/// the generated frames must have the exporter's handedness at every corner and nearly
+/// its direction. This pins the UV convention (V up, as the baking tools have it): with
+/// glTF's V down every sign would be inverted.
+#[test]
+fn generated_tangents_match_the_exporters_on_a_shared_model() {
+    let src = scenes_dir().join("water_bottle");
+    if !src.join("WaterBottle.gltf").is_file() {
+        let why = format!("{} not found (set DRAY_SCENES)", src.display());
+        assert!(
+            std::env::var("CI").map_or(true, |v| v != "true"),
+            "CI=true: {why}"
+        );
+        println!("SKIPPED (not under CI): {why}");
+        return;
+    }
+    let dir = test_dir("exporter-tangents");
+    for entry in std::fs::read_dir(&src).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_file() {
+            std::fs::copy(&path, dir.join(path.file_name().unwrap())).unwrap();
+        }
+    }
+    let mut json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("WaterBottle.gltf")).unwrap()).unwrap();
+    for mesh in json["meshes"].as_array_mut().unwrap() {
+        for prim in mesh["primitives"].as_array_mut().unwrap() {
+            prim["attributes"]
+                .as_object_mut()
+                .unwrap()
+                .remove("TANGENT");
+        }
+    }
+    let stripped = dir.join("stripped.gltf");
+    std::fs::write(&stripped, serde_json::to_vec(&json).unwrap()).unwrap();
+
+    let file = load_gltf(&dir.join("WaterBottle.gltf")).unwrap();
+    let made = load_gltf(&stripped).unwrap();
+    assert_eq!(file.mesh.indices.len(), made.mesh.indices.len());
+    let (mut corners, mut missing, mut same_sign, mut close) = (0usize, 0, 0, 0);
+    for (a, b) in file.mesh.indices.iter().zip(&made.mesh.indices) {
+        for k in 0..3 {
+            let x = file.mesh.tangents[a[k] as usize];
+            let y = made.mesh.tangents[b[k] as usize];
+            if y == Vec4::ZERO {
+                // MikkTSpace gives nothing for a triangle with degenerate UVs and no
+                // neighbour to borrow from.
+                missing += 1;
+                continue;
+            }
+            corners += 1;
+            same_sign += usize::from(x.w.signum() == y.w.signum());
+            let cos = x.truncate().normalize().dot(y.truncate().normalize());
+            close += usize::from(cos > 0.9);
+        }
+    }
+    println!(
+        "{corners} corners with tangents, {missing} without, {same_sign} same sign, {close} close"
+    );
+    assert!(
+        missing * 1000 <= corners,
+        "{missing} corners without a tangent"
+    );
+    assert_eq!(same_sign, corners, "handedness differs at some corners");
+    assert!(
+        close * 100 >= corners * 99,
+        "{close} of {corners} within 25 degrees"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
