@@ -22,7 +22,7 @@ use crate::light_sampler::{LightRef, LightSample, LightSampler};
 use crate::material::Material;
 use crate::sampling::{PathKey, Purpose, cosine_hemisphere};
 use crate::scene::Scene;
-use crate::surface::{Surface, alpha_passes, interpolate_uv};
+use crate::surface::{Surface, alpha_passes};
 use crate::trace::Trace;
 
 /// The kinds of rays, counted separately in every summary.
@@ -297,13 +297,12 @@ impl<'a> Integrator<'a> {
         if self.material_of(tri).is_none_or(|m| !m.has_alpha()) {
             return true;
         }
-        let uv = interpolate_uv(scene, tri, b);
         let id = self
             .global_ids
             .and_then(|g| g.get(tri as usize).copied())
             .unwrap_or(tri);
         let u = self.key(ray).uniform(ray.depth, Purpose::Alpha, id);
-        alpha_passes(scene, tri, uv, u)
+        alpha_passes(scene, tri, b, u)
     }
 
     /// The material of triangle `tri`, if it has a valid one.

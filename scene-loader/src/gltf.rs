@@ -427,6 +427,8 @@ struct DecodedPrimitive {
     normals: Option<Vec<Vec3>>,
     tangents: Option<Vec<Vec4>>,
     uvs: Option<Vec<Vec2>>,
+    /// `COLOR_0` as linear RGBA.
+    colors: Option<Vec<Vec4>>,
     /// Triangle list (strips and fans already converted).
     indices: Vec<u32>,
     material: u32,
@@ -913,14 +915,6 @@ impl Loader<'_> {
                 ));
                 continue;
             }
-            if prim.get(&Semantic::Colors(0)).is_some() {
-                // One message per file (the warning list keeps it once).
-                self.warn(format!(
-                    "{}: COLOR_0 vertex colours are not supported yet; they are ignored \
-                     (base colours are not multiplied by them)",
-                    self.path.display()
-                ));
-            }
             let attr = |semantic: Semantic| prim.get(&semantic).map(|a| a.index());
             let err = |what: &str, m: String| origin.error(format!("{what}: {m}"));
 
@@ -978,6 +972,10 @@ impl Loader<'_> {
                 ),
                 None => None,
             };
+            let mut colors = match attr(Semantic::Colors(0)) {
+                Some(a) => Some(self.read_colors(a).map_err(|m| err("COLOR_0", m))?),
+                None => None,
+            };
             let raw_indices = match prim.indices() {
                 Some(acc) => self
                     .read_indices(acc.index())
@@ -1032,6 +1030,9 @@ impl Loader<'_> {
                         split.apply(&mut positions);
                         split.apply(ns);
                         split.apply(us);
+                        if let Some(cs) = colors.as_mut() {
+                            split.apply(cs);
+                        }
                         tangents = Some(generated);
                     }
                     _ => self.warn(format!(
@@ -1050,6 +1051,7 @@ impl Loader<'_> {
                 normals,
                 tangents,
                 uvs,
+                colors,
                 indices,
                 material,
             });
@@ -1192,6 +1194,7 @@ impl Loader<'_> {
                 normals: normals.as_deref(),
                 tangents: tangents.as_deref(),
                 uvs: prim.uvs.as_deref(),
+                colors: prim.colors.as_deref(),
                 indices: &indices,
                 material: prim.material,
             },
@@ -1233,11 +1236,7 @@ impl Loader<'_> {
         index: usize,
         dims: usize,
     ) -> std::result::Result<Vec<T>, String> {
-        let acc = self
-            .root
-            .accessors
-            .get(index)
-            .ok_or_else(|| format!("accessor {index} does not exist"))?;
+        let acc = self.accessor(index)?;
         let Checked::Valid(json::accessor::GenericComponentType(ty)) = acc.component_type else {
             return Err(format!("accessor {index} has an invalid componentType"));
         };
@@ -1392,14 +1391,49 @@ impl Loader<'_> {
         Ok(())
     }
 
+    /// Accessor `index`, or a message saying it does not exist.
+    fn accessor(&self, index: usize) -> std::result::Result<&json::Accessor, String> {
+        self.root
+            .accessors
+            .get(index)
+            .ok_or_else(|| format!("accessor {index} does not exist"))
+    }
+
+    /// Read a `COLOR_0` accessor: VEC3 (alpha 1) or VEC4, float or normalized unsigned
+    /// 8/16-bit, as the glTF specification allows.
+    fn read_colors(&self, index: usize) -> std::result::Result<Vec<Vec4>, String> {
+        use json::accessor::ComponentType as C;
+        let acc = self.accessor(index)?;
+        let dims = match acc.type_ {
+            Checked::Valid(json::accessor::Type::Vec3) => 3,
+            Checked::Valid(json::accessor::Type::Vec4) => 4,
+            _ => return Err(format!("accessor {index} must be VEC3 or VEC4")),
+        };
+        match acc.component_type {
+            Checked::Valid(json::accessor::GenericComponentType(C::F32)) => {}
+            Checked::Valid(json::accessor::GenericComponentType(C::U8 | C::U16))
+                if acc.normalized => {}
+            _ => {
+                return Err(format!(
+                    "accessor {index} must hold floats or normalized unsigned 8 or 16-bit \
+                     integers"
+                ));
+            }
+        }
+        let values = self.read_accessor::<f32>(index, dims)?;
+        Ok(values
+            .chunks_exact(dims)
+            .map(|c| match c {
+                [r, g, b] => Vec4::new(*r, *g, *b, 1.0),
+                _ => Vec4::from_slice(c),
+            })
+            .collect())
+    }
+
     /// Read an index accessor (unsigned 8, 16 or 32-bit scalars).
     fn read_indices(&self, index: usize) -> std::result::Result<Vec<u32>, String> {
         use json::accessor::ComponentType as C;
-        let acc = self
-            .root
-            .accessors
-            .get(index)
-            .ok_or_else(|| format!("accessor {index} does not exist"))?;
+        let acc = self.accessor(index)?;
         match acc.component_type {
             Checked::Valid(json::accessor::GenericComponentType(C::U8 | C::U16 | C::U32)) => {}
             _ => {

@@ -1037,3 +1037,75 @@ fn generated_tangents_match_the_exporters_on_a_shared_model() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn vertex_colours_are_read_as_rgba_and_cost_nothing_when_absent() {
+    let dir = test_dir("colours");
+    let mut b = triangle_builder();
+    // COLOR_0 as float VEC3 (alpha 1) on primitive 0, as normalized u8 VEC4 on
+    // primitive 1, none on primitive 2.
+    let rgb = b.floats(&[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], "VEC3");
+    let view = b.view(&[255, 0, 0, 255, 0, 255, 0, 128, 0, 0, 255, 0]);
+    b.accessors.push(format!(
+        r#"{{"bufferView":{view},"componentType":5121,"normalized":true,"count":3,"type":"VEC4"}}"#
+    ));
+    let rgba = b.accessors.len() - 1;
+    let rest = format!(
+        r#""meshes":[{{"primitives":[
+  {{"attributes":{{"POSITION":0,"COLOR_0":{rgb}}},"indices":3}},
+  {{"attributes":{{"POSITION":0,"COLOR_0":{rgba}}},"indices":3}},
+  {{"attributes":{{"POSITION":0}},"indices":3}}]}}],
+"nodes":[{{"mesh":0}}],"scenes":[{{"nodes":[0]}}]"#
+    );
+    let scene = load_gltf(&b.write(&dir, "colours", &rest)).unwrap();
+    let c = &scene.mesh.colors;
+    assert_eq!(c.len(), 9);
+    assert_eq!(
+        c[0..3],
+        [
+            Vec4::new(1.0, 0.0, 0.0, 1.0),
+            Vec4::new(0.0, 1.0, 0.0, 1.0),
+            Vec4::new(0.0, 0.0, 1.0, 1.0)
+        ]
+    );
+    let half = 128.0 / 255.0;
+    assert_eq!(
+        c[3..6],
+        [
+            Vec4::new(1.0, 0.0, 0.0, 1.0),
+            Vec4::new(0.0, 1.0, 0.0, half),
+            Vec4::new(0.0, 0.0, 1.0, 0.0)
+        ]
+    );
+    assert_eq!(c[6..9], [Vec4::ONE; 3]);
+    assert!(
+        scene.stats.warnings.is_empty(),
+        "{:?}",
+        scene.stats.warnings
+    );
+
+    // Integer colours must be normalized (glTF 2.0, "Meshes"): otherwise the file is
+    // wrong and the error says where.
+    let bad = rest.replace(r#""normalized":true,"#, "");
+    let mut b2 = b;
+    if let Some(a) = b2.accessors.last_mut() {
+        *a = a.replace(r#""normalized":true,"#, "");
+    }
+    let msg = load_gltf(&b2.write(&dir, "bad", &bad))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        msg.contains("COLOR_0") && msg.contains("normalized"),
+        "{msg}"
+    );
+
+    // A file without COLOR_0 keeps no colour array at all.
+    let scene = load_gltf(&triangle_builder().write(
+        &dir,
+        "plain",
+        &format!(r#"{TRI_MESH},"nodes":[{{"mesh":0}}],"scenes":[{{"nodes":[0]}}]"#),
+    ))
+    .unwrap();
+    assert!(scene.mesh.colors.is_empty());
+    let _ = std::fs::remove_dir_all(&dir);
+}
