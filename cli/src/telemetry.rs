@@ -140,12 +140,20 @@ fn log_filter() -> tracing_subscriber::EnvFilter {
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"))
 }
 
+/// Whether the log on stderr may carry colour codes: only when a person reads it on a
+/// terminal. Redirected to a file, a pipe or a test harness it is plain text (escape
+/// codes there are noise, and make warnings hard to grep).
+fn stderr_is_terminal() -> bool {
+    std::io::IsTerminal::is_terminal(&std::io::stderr())
+}
+
 /// Install the logger only (commands that export nothing, and errors before parsing).
 pub fn init_logs() {
     let _ = tracing_subscriber::registry()
         .with(
             tracing_subscriber::fmt::layer()
                 .with_writer(std::io::stderr)
+                .with_ansi(stderr_is_terminal())
                 .with_filter(log_filter()),
         )
         .try_init();
@@ -285,6 +293,7 @@ pub fn init(otlp: &OtlpArgs, role: &str) -> Result<Option<Telemetry>> {
         .with(
             tracing_subscriber::fmt::layer()
                 .with_writer(std::io::stderr)
+                .with_ansi(stderr_is_terminal())
                 .with_filter(log_filter()),
         )
         .with(otel)

@@ -412,3 +412,101 @@ fn bad_input_gives_one_line_and_a_nonzero_exit() {
         );
     }
 }
+
+/// A one-triangle glTF that uses an extension dray does not know, so loading it warns.
+fn write_warning_gltf(dir: &std::path::Path) -> std::path::PathBuf {
+    let pos: [f32; 9] = [-1.0, -1.0, 0.0, 1.0, -1.0, 0.0, 0.0, 1.0, 0.0];
+    let bin: Vec<u8> = pos.iter().flat_map(|v| v.to_le_bytes()).collect();
+    std::fs::write(dir.join("warn.bin"), &bin).unwrap();
+    let json = format!(
+        r#"{{"asset":{{"version":"2.0"}},"extensionsUsed":["EXT_dray_test_unknown"],
+"buffers":[{{"uri":"warn.bin","byteLength":{}}}],
+"bufferViews":[{{"buffer":0,"byteLength":{}}}],
+"accessors":[{{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[-1,-1,0],"max":[1,1,0]}}],
+"meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}}}}]}}],
+"nodes":[{{"mesh":0}}],"scenes":[{{"nodes":[0]}}]}}"#,
+        bin.len(),
+        bin.len()
+    );
+    let path = dir.join("warn.gltf");
+    std::fs::write(&path, json).unwrap();
+    path
+}
+
+#[test]
+fn import_warnings_are_printed_once_in_plain_text_when_stderr_is_not_a_terminal() {
+    let d = tmp("warn-once");
+    let scene = write_warning_gltf(&d);
+    let r = render(
+        &d,
+        "warn",
+        scene.to_str().unwrap(),
+        &["--width", "8", "--height", "8", "--spp", "1"],
+    );
+    assert!(r.ok, "{}", r.stderr);
+    // The test harness captures stderr through a pipe: not a terminal.
+    assert_eq!(
+        r.stderr.matches("EXT_dray_test_unknown").count(),
+        1,
+        "{}",
+        r.stderr
+    );
+    assert!(!r.stderr.contains('\u{1b}'), "colour codes: {:?}", r.stderr);
+}
+
+/// A double-sided white quad facing +Z, with red `COLOR_0` on every vertex when
+/// `coloured`.
+fn write_quad_gltf(dir: &std::path::Path, name: &str, coloured: bool) -> std::path::PathBuf {
+    let pos: [f32; 12] = [
+        -1.0, -1.0, 0.0, 1.0, -1.0, 0.0, 1.0, 1.0, 0.0, -1.0, 1.0, 0.0,
+    ];
+    let idx: [u16; 6] = [0, 1, 2, 0, 2, 3];
+    let red: [f32; 12] = [1.0, 0.0, 0.0].repeat(4).try_into().unwrap();
+    let mut bin: Vec<u8> = pos.iter().flat_map(|v| v.to_le_bytes()).collect();
+    bin.extend(red.iter().flat_map(|v| v.to_le_bytes()));
+    bin.extend(idx.iter().flat_map(|v| v.to_le_bytes()));
+    std::fs::write(dir.join(format!("{name}.bin")), &bin).unwrap();
+    let colour = if coloured { r#","COLOR_0":1"# } else { "" };
+    let json = format!(
+        r#"{{"asset":{{"version":"2.0"}},
+"buffers":[{{"uri":"{name}.bin","byteLength":{}}}],
+"bufferViews":[{{"buffer":0,"byteLength":48}},{{"buffer":0,"byteOffset":48,"byteLength":48}},{{"buffer":0,"byteOffset":96,"byteLength":12}}],
+"accessors":[
+ {{"bufferView":0,"componentType":5126,"count":4,"type":"VEC3","min":[-1,-1,0],"max":[1,1,0]}},
+ {{"bufferView":1,"componentType":5126,"count":4,"type":"VEC3"}},
+ {{"bufferView":2,"componentType":5123,"count":6,"type":"SCALAR"}}],
+"materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[0.8,0.8,0.8,1],"metallicFactor":0}},"doubleSided":true}}],
+"meshes":[{{"primitives":[{{"attributes":{{"POSITION":0{colour}}},"indices":2,"material":0}}]}}],
+"nodes":[{{"mesh":0}}],"scenes":[{{"nodes":[0]}}]}}"#,
+        bin.len()
+    );
+    let path = dir.join(format!("{name}.gltf"));
+    std::fs::write(&path, json).unwrap();
+    path
+}
+
+#[test]
+fn vertex_colours_tint_the_render() {
+    let d = tmp("vertex-colours");
+    let args = ["--width", "32", "--height", "32", "--spp", "4"];
+    let centre = |coloured: bool| {
+        let scene = write_quad_gltf(&d, &format!("quad-{coloured}"), coloured);
+        let r = render(
+            &d,
+            &format!("quad-{coloured}"),
+            scene.to_str().unwrap(),
+            &args,
+        );
+        assert!(r.ok, "{}", r.stderr);
+        let img = rgb(r.png.as_ref().unwrap());
+        img.get_pixel(16, 16).0
+    };
+    let [r, g, b] = centre(true);
+    // Red diffuse; the white specular reflection of the sky keeps some green and blue.
+    assert!(r > 3 * g && g == b, "coloured quad is not red: {r} {g} {b}");
+    let [r, g, b] = centre(false);
+    assert!(
+        r > 40 && r == g && g == b,
+        "plain quad is not grey: {r} {g} {b}"
+    );
+}

@@ -5,9 +5,11 @@ use glam::{Mat4, Vec2, Vec3};
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Projection {
-    /// `yfov` in radians; `aspect` from the file if given, else the image's.
+    /// `yfov` in radians. `aspect` is the file's `aspectRatio`, kept for the record: rays
+    /// always take the output image's aspect (see [`Camera::frustum`]).
     Perspective { yfov: f32, aspect: Option<f32> },
-    /// Half-extents of the view volume.
+    /// Half-extents of the view volume. Rays keep `ymag` and take the horizontal extent
+    /// from the image's aspect (see [`Camera::frustum`]); `xmag` gives only its sign.
     Orthographic { xmag: f32, ymag: f32 },
 }
 
@@ -120,13 +122,23 @@ impl Camera {
 
     /// The camera made ready for many rays of an image of the given aspect: what does not
     /// change from ray to ray (the projection's tangent) is worked out once.
+    ///
+    /// The vertical field of view (perspective `yfov`, orthographic `ymag`) is kept and
+    /// the horizontal one follows the image, whatever `aspectRatio` or `xmag` the file
+    /// gives: that is what glTF viewers do (the Khronos Sample Viewer, three.js and
+    /// Blender's importer fit the camera to the viewport), and it never stretches the
+    /// picture. Applying the file's aspect to an image of another shape would squash
+    /// every round thing into an ellipse.
     pub fn frustum(&self, image_aspect: f32) -> Frustum {
         let shape = match self.projection {
-            Projection::Perspective { yfov, aspect } => Shape::Perspective {
+            Projection::Perspective { yfov, .. } => Shape::Perspective {
                 tan_half_yfov: (yfov * 0.5).tan(),
-                aspect: aspect.unwrap_or(image_aspect),
+                aspect: image_aspect,
             },
-            Projection::Orthographic { xmag, ymag } => Shape::Orthographic { xmag, ymag },
+            Projection::Orthographic { xmag, ymag } => Shape::Orthographic {
+                xmag: ymag.abs() * image_aspect * if xmag < 0.0 { -1.0 } else { 1.0 },
+                ymag,
+            },
         };
         Frustum {
             transform: self.transform,
@@ -137,12 +149,11 @@ impl Camera {
     /// True when the camera gives finite, non-degenerate rays.
     pub fn is_valid(&self) -> bool {
         let t_ok = self.transform.is_finite() && self.transform.determinant().abs() > 0.0;
+        // A perspective camera's aspect ratio is not used for rays (see `frustum`), so
+        // a bad one does not make the camera unusable.
         let p_ok = match self.projection {
-            Projection::Perspective { yfov, aspect } => {
-                yfov.is_finite()
-                    && yfov > 0.0
-                    && yfov < std::f32::consts::PI
-                    && aspect.is_none_or(|a| a.is_finite() && a > 0.0)
+            Projection::Perspective { yfov, .. } => {
+                yfov.is_finite() && yfov > 0.0 && yfov < std::f32::consts::PI
             }
             Projection::Orthographic { xmag, ymag } => {
                 xmag.is_finite() && ymag.is_finite() && xmag != 0.0 && ymag != 0.0
@@ -173,6 +184,40 @@ mod tests {
         // Top of the film goes up.
         let top = cam.generate(Vec2::new(0.5, 0.0), 1.0);
         assert!(top.dir.y > 0.0);
+    }
+
+    /// A file camera with aspect 1 rendering a 2:1 image: the vertical field of view is
+    /// the file's, the horizontal one widens with the image (no stretching). The same
+    /// for an orthographic camera's magnifications.
+    #[test]
+    fn file_aspect_is_fitted_to_the_image_not_stretched() {
+        let yfov = 0.8f32;
+        let persp = Camera {
+            name: "p".into(),
+            transform: Mat4::IDENTITY,
+            projection: Projection::Perspective {
+                yfov,
+                aspect: Some(1.0),
+            },
+            znear: 0.0,
+        };
+        let top = persp.generate(Vec2::new(0.5, 0.0), 2.0).dir;
+        let right = persp.generate(Vec2::new(1.0, 0.5), 2.0).dir;
+        let half = (yfov * 0.5).tan();
+        assert!((top.y / -top.z - half).abs() < 1e-5, "{top}");
+        assert!((right.x / -right.z - 2.0 * half).abs() < 1e-5, "{right}");
+
+        let ortho = Camera {
+            projection: Projection::Orthographic {
+                xmag: 1.0,
+                ymag: 1.0,
+            },
+            ..persp
+        };
+        let top = ortho.generate(Vec2::new(0.5, 0.0), 2.0).origin;
+        let right = ortho.generate(Vec2::new(1.0, 0.5), 2.0).origin;
+        assert!((top.y - 1.0).abs() < 1e-6, "{top}");
+        assert!((right.x - 2.0).abs() < 1e-6, "{right}");
     }
 
     #[test]

@@ -19,9 +19,10 @@ use crate::camera::{Camera, Frustum};
 use crate::effects::{Effect, Effects};
 use crate::intersect::offset_ray_origin;
 use crate::light_sampler::{LightRef, LightSample, LightSampler};
+use crate::material::Material;
 use crate::sampling::{PathKey, Purpose, cosine_hemisphere};
 use crate::scene::Scene;
-use crate::surface::{Surface, alpha_passes, interpolate_uv};
+use crate::surface::{Surface, alpha_passes};
 use crate::trace::Trace;
 
 /// The kinds of rays, counted separately in every summary.
@@ -177,6 +178,14 @@ pub struct Integrator<'a> {
     pub global_ids: Option<&'a [u32]>,
     /// `camera` made ready for `settings`' image, once.
     frustum: Frustum,
+    /// Whether any material is single-sided, so camera rays must skip its back faces
+    /// (see [`Integrator::accept`]); false spares every other scene the test.
+    cull_camera_back_faces: bool,
+}
+
+/// Whether any material of `scene` is single-sided (glTF `doubleSided: false`).
+fn any_single_sided(scene: &Scene) -> bool {
+    scene.materials.iter().any(|m| !m.double_sided)
 }
 
 /// The image's aspect (width / height), as the camera rays use it.
@@ -208,6 +217,7 @@ impl<'a> Integrator<'a> {
             settings,
             camera,
             global_ids: None,
+            cull_camera_back_faces: any_single_sided(scene),
         }
     }
 
@@ -230,6 +240,7 @@ impl<'a> Integrator<'a> {
             settings,
             camera,
             global_ids: Some(global_ids),
+            cull_camera_back_faces: any_single_sided(scene),
         }
     }
 
@@ -283,28 +294,55 @@ impl<'a> Integrator<'a> {
         }
     }
 
-    /// Whether a hit on `tri` counts, given alpha cut-outs and stochastic blending.
+    /// Whether a hit on `tri` counts, given back-face culling, alpha cut-outs and
+    /// stochastic blending.
+    ///
+    /// Camera rays pass through the back faces of single-sided materials (glTF
+    /// `doubleSided: false`), as a rasteriser culls them. Every other ray sees both
+    /// sides: light transport treats geometry as two-sided, as pbrt and Mitsuba do, so
+    /// a closed single-sided object still casts shadows and reflects whichever way a
+    /// ray meets it (the glTF Sample Viewer culls in rasterisation only, so its shadows
+    /// and reflections are not culled either, where it has them).
     fn accept(&self, ray: &RayState, tri: u32, b: [f32; 3]) -> bool {
+        if self.cull_camera_back_faces
+            && ray.kind == RayKind::Camera
+            && self.is_single_sided_back_face(ray, tri)
+        {
+            return false;
+        }
         if !self.settings.effects.contains(Effect::Alpha) {
             return true;
         }
         let scene = self.scene;
-        let opaque = scene
-            .mesh
-            .material
-            .get(tri as usize)
-            .and_then(|&m| scene.materials.get(m as usize))
-            .is_none_or(|m| !m.has_alpha());
-        if opaque {
+        if self.material_of(tri).is_none_or(|m| !m.has_alpha()) {
             return true;
         }
-        let uv = interpolate_uv(scene, tri, b);
         let id = self
             .global_ids
             .and_then(|g| g.get(tri as usize).copied())
             .unwrap_or(tri);
         let u = self.key(ray).uniform(ray.depth, Purpose::Alpha, id);
-        alpha_passes(scene, tri, uv, u)
+        alpha_passes(scene, tri, b, u)
+    }
+
+    /// The material of triangle `tri`, if it has a valid one.
+    fn material_of(&self, tri: u32) -> Option<&Material> {
+        let scene = self.scene;
+        scene
+            .mesh
+            .material
+            .get(tri as usize)
+            .and_then(|&m| scene.materials.get(m as usize))
+    }
+
+    /// Whether `ray` meets triangle `tri` from behind (clockwise as seen from the ray,
+    /// the same test [`Surface::new`] makes) and its material is single-sided.
+    fn is_single_sided_back_face(&self, ray: &RayState, tri: u32) -> bool {
+        if self.material_of(tri).is_none_or(|m| m.double_sided) {
+            return false;
+        }
+        let [a, b, c] = self.scene.mesh.corners(tri as usize);
+        (b - a).cross(c - a).dot(ray.dir) > 0.0
     }
 
     fn query(ray: &RayState) -> QueryRay {

@@ -22,6 +22,10 @@ pub struct Mesh {
     pub tangents: Vec<Vec4>,
     /// Per-vertex `TEXCOORD_0`; zero where the source had none.
     pub uvs: Vec<Vec2>,
+    /// Per-vertex linear RGBA colour (glTF `COLOR_0`), multiplying the base colour; white
+    /// where the source had none. Empty when no vertex has one, so scenes without vertex
+    /// colours (nearly all) spend no memory on them: empty means white everywhere.
+    pub colors: Vec<Vec4>,
     pub indices: Vec<[u32; 3]>,
     /// Per-triangle index into `Scene::materials`.
     pub material: Vec<u32>,
@@ -40,7 +44,25 @@ impl Mesh {
         self.normals.resize(self.positions.len(), Vec3::ZERO);
         self.tangents.resize(self.positions.len(), Vec4::ZERO);
         self.uvs.resize(self.positions.len(), Vec2::ZERO);
+        if !self.colors.is_empty() {
+            self.colors.resize(self.positions.len(), Vec4::ONE);
+        }
         base
+    }
+
+    /// Append per-vertex colours for the vertices from `first` on (`colors` holds one per
+    /// vertex from `first`, or is `None` for white), keeping [`Mesh::colors`] empty while
+    /// every vertex is white. Call after the positions are appended.
+    pub fn extend_colors(&mut self, first: usize, colors: Option<&[Vec4]>) {
+        match colors {
+            Some(cs) if self.colors.is_empty() && cs.iter().all(|&c| c == Vec4::ONE) => {}
+            Some(cs) => {
+                self.colors.resize(first, Vec4::ONE);
+                self.colors.extend_from_slice(cs);
+            }
+            None if self.colors.is_empty() => {}
+            None => self.colors.resize(self.positions.len(), Vec4::ONE),
+        }
     }
 
     /// The three corner positions of triangle `tri`.
@@ -79,6 +101,8 @@ impl Mesh {
         self.normals.extend_from_slice(&other.normals);
         self.tangents.extend_from_slice(&other.tangents);
         self.uvs.extend_from_slice(&other.uvs);
+        let colors = (!other.colors.is_empty()).then_some(other.colors.as_slice());
+        self.extend_colors(base as usize, colors);
         self.indices
             .extend(other.indices.iter().map(|t| t.map(|i| i + base)));
         self.material

@@ -18,6 +18,8 @@ pub struct Surface {
     /// Unit shading normal on the same side as `ng`.
     pub n: Vec3,
     pub uv: Vec2,
+    /// Interpolated vertex colour (white when the mesh has none).
+    pub color: Vec4,
     /// Whether the ray hit the front face (counter-clockwise winding, glTF convention).
     pub front: bool,
     pub tri: u32,
@@ -52,9 +54,22 @@ pub fn interpolate_uv(scene: &Scene, tri: u32, b: [f32; 3]) -> Vec2 {
     uvs[idx[0] as usize] * b[0] + uvs[idx[1] as usize] * b[1] + uvs[idx[2] as usize] * b[2]
 }
 
-/// Alpha of a surface point (base colour alpha times texture alpha).
-pub fn alpha_at(scene: &Scene, m: &Material, uv: Vec2) -> f32 {
-    m.base_color.w * tex(scene, m.base_color_tex, uv, true).w
+/// Interpolated vertex colour of triangle `tri` at barycentrics; white when the mesh
+/// has no vertex colours.
+pub fn interpolate_color(scene: &Scene, tri: u32, b: [f32; 3]) -> Vec4 {
+    let colors = &scene.mesh.colors;
+    if colors.is_empty() {
+        return Vec4::ONE;
+    }
+    let idx = scene.mesh.indices[tri as usize];
+    let at = |k: usize| colors.get(idx[k] as usize).copied().unwrap_or(Vec4::ONE);
+    at(0) * b[0] + at(1) * b[1] + at(2) * b[2]
+}
+
+/// Alpha of a surface point (base colour alpha times texture alpha times vertex colour
+/// alpha, as glTF multiplies them).
+pub fn alpha_at(scene: &Scene, m: &Material, uv: Vec2, vertex_alpha: f32) -> f32 {
+    m.base_color.w * tex(scene, m.base_color_tex, uv, true).w * vertex_alpha
 }
 
 impl Surface {
@@ -76,6 +91,7 @@ impl Surface {
         let ns = idx.map(|i| mesh.normals[i as usize]);
         let mut n = (ns[0] * bary[0] + ns[1] * bary[1] + ns[2] * bary[2]).normalize_or_zero();
         let uv = interpolate_uv(scene, hit.tri, bary);
+        let color = interpolate_color(scene, hit.tri, bary);
         let material = mesh.material[hit.tri as usize];
         if let Some(m) = scene.materials.get(material as usize)
             && effects.contains(Effect::Textures)
@@ -110,6 +126,7 @@ impl Surface {
             ng,
             n,
             uv,
+            color,
             front,
             tri: hit.tri,
             material,
@@ -132,7 +149,9 @@ impl Surface {
                 Vec4::ONE
             }
         };
-        let bc = m.base_color * t(m.base_color_tex, true);
+        // glTF: base colour = factor x texture x COLOR_0 (white without vertex colours,
+        // and x * 1 is exact, so such scenes keep their bits).
+        let bc = m.base_color * t(m.base_color_tex, true) * self.color;
         let mr = t(m.metallic_roughness_tex, false);
         let mut v = ShadingValues {
             base_color: bc.truncate().max(Vec3::ZERO),
@@ -168,9 +187,10 @@ impl Surface {
     }
 }
 
-/// Whether a hit on triangle `tri` at `uv` is a real surface, given its material's alpha
-/// mode. `u` is the stochastic-alpha random number for blended materials.
-pub fn alpha_passes(scene: &Scene, tri: u32, uv: Vec2, u: f32) -> bool {
+/// Whether a hit on triangle `tri` at barycentrics `b` is a real surface, given its
+/// material's alpha mode. `u` is the stochastic-alpha random number for blended
+/// materials.
+pub fn alpha_passes(scene: &Scene, tri: u32, b: [f32; 3], u: f32) -> bool {
     let Some(m) = scene
         .mesh
         .material
@@ -179,9 +199,13 @@ pub fn alpha_passes(scene: &Scene, tri: u32, uv: Vec2, u: f32) -> bool {
     else {
         return true;
     };
+    let alpha = || {
+        let uv = interpolate_uv(scene, tri, b);
+        alpha_at(scene, m, uv, interpolate_color(scene, tri, b).w)
+    };
     match m.alpha_mode {
         AlphaMode::Opaque => true,
-        AlphaMode::Mask { cutoff } => alpha_at(scene, m, uv) >= cutoff,
-        AlphaMode::Blend => u < alpha_at(scene, m, uv),
+        AlphaMode::Mask { cutoff } => alpha() >= cutoff,
+        AlphaMode::Blend => u < alpha(),
     }
 }

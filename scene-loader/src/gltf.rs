@@ -427,6 +427,8 @@ struct DecodedPrimitive {
     normals: Option<Vec<Vec3>>,
     tangents: Option<Vec<Vec4>>,
     uvs: Option<Vec<Vec2>>,
+    /// `COLOR_0` as linear RGBA.
+    colors: Option<Vec<Vec4>>,
     /// Triangle list (strips and fans already converted).
     indices: Vec<u32>,
     material: u32,
@@ -443,8 +445,9 @@ struct DecodedImage {
 /// Everything the node walk found.
 #[derive(Default)]
 struct Placements {
-    /// (mesh index, world matrix) per mesh instance.
-    meshes: Vec<(usize, DMat4)>,
+    /// Per mesh instance: mesh index, world matrix, and the node's morph weights (which
+    /// override the mesh's).
+    meshes: Vec<(usize, DMat4, Option<Vec<f32>>)>,
 }
 
 struct Loader<'a> {
@@ -458,9 +461,14 @@ struct Loader<'a> {
 }
 
 impl Loader<'_> {
+    /// Record a warning in `scene.stats.warnings`, once: the same problem met again (in
+    /// another material, primitive or instance) adds nothing. The loader does not log
+    /// it; whoever loads the scene prints the list (the CLI) or forwards it (the
+    /// coordinator's job summary), so each warning reaches the user exactly once.
     fn warn(&mut self, message: String) {
-        tracing::warn!("{message}");
-        self.scene.stats.warnings.push(message);
+        if !self.scene.stats.warnings.contains(&message) {
+            self.scene.stats.warnings.push(message);
+        }
     }
 
     fn error(&self, message: impl Into<String>) -> SceneError {
@@ -652,7 +660,7 @@ impl Loader<'_> {
         if tex_coord != 0 {
             self.warn(format!(
                 "{}: material {material:?} {slot} uses TEXCOORD_{tex_coord}; dray reads \
-                 TEXCOORD_0 only",
+                 TEXCOORD_0 only, so this texture is sampled with TEXCOORD_0",
                 self.path.display()
             ));
         }
@@ -728,7 +736,9 @@ impl Loader<'_> {
                 )));
             }
             if let Some(mesh) = node.mesh() {
-                placements.meshes.push((mesh.index(), world));
+                placements
+                    .meshes
+                    .push((mesh.index(), world, node.weights().map(<[f32]>::to_vec)));
                 if node.skin().is_some() && !skinned_warned {
                     skinned_warned = true;
                     self.warn(format!(
@@ -829,16 +839,16 @@ impl Loader<'_> {
     fn load_meshes(&mut self, mut placements: Placements) -> Result<()> {
         // Group instances by mesh (stable, so instances keep their walk order) so each
         // mesh is decoded once and dropped before the next.
-        placements.meshes.sort_by_key(|&(mesh, _)| mesh);
+        placements.meshes.sort_by_key(|&(mesh, _, _)| mesh);
         let doc = self.doc;
         let mut start = 0;
-        while let Some(&(mesh_index, _)) = placements.meshes.get(start) {
+        while let Some(&(mesh_index, _, _)) = placements.meshes.get(start) {
             let end = placements
                 .meshes
                 .get(start..)
                 .unwrap_or_default()
                 .iter()
-                .position(|&(m, _)| m != mesh_index)
+                .position(|&(m, _, _)| m != mesh_index)
                 .map_or(placements.meshes.len(), |n| start + n);
             let mesh = doc
                 .meshes()
@@ -848,11 +858,27 @@ impl Loader<'_> {
                 .name()
                 .map(str::to_string)
                 .unwrap_or_else(|| format!("mesh #{mesh_index}"));
-            crate::cancel::check()?;
-            let prims = self.decode_mesh(&mesh, &name)?;
-            for &(_, world) in placements.meshes.get(start..end).unwrap_or_default() {
-                for prim in &prims {
-                    self.emit(&name, prim, world)?;
+            let group = placements.meshes.get(start..end).unwrap_or_default();
+            // Instances whose nodes give the same morph weights (nearly always all of
+            // them: node weights are rare) share one decoded copy.
+            let mut emitted = vec![false; group.len()];
+            for (first, (_, _, node_weights)) in group.iter().enumerate() {
+                if emitted.get(first).copied().unwrap_or(true) {
+                    continue;
+                }
+                crate::cancel::check()?;
+                let weights = node_weights.as_deref().or(mesh.weights());
+                let prims = self.decode_mesh(&mesh, &name, weights)?;
+                for (k, (_, world, w)) in group.iter().enumerate().skip(first) {
+                    if w != node_weights || emitted.get(k).copied().unwrap_or(true) {
+                        continue;
+                    }
+                    if let Some(e) = emitted.get_mut(k) {
+                        *e = true;
+                    }
+                    for prim in &prims {
+                        self.emit(&name, prim, *world)?;
+                    }
                 }
             }
             start = end;
@@ -860,7 +886,15 @@ impl Loader<'_> {
         Ok(())
     }
 
-    fn decode_mesh(&mut self, mesh: &gltf::Mesh<'_>, name: &str) -> Result<Vec<DecodedPrimitive>> {
+    /// Decode every triangle primitive of `mesh` in its local space, with the morph
+    /// `weights` applied (the rest pose the file shows), and tangents generated where a
+    /// normal map needs them and the file gives none.
+    fn decode_mesh(
+        &mut self,
+        mesh: &gltf::Mesh<'_>,
+        name: &str,
+        weights: Option<&[f32]>,
+    ) -> Result<Vec<DecodedPrimitive>> {
         use gltf::mesh::{Mode, Semantic};
         let mut out = Vec::new();
         for prim in mesh.primitives() {
@@ -886,13 +920,13 @@ impl Loader<'_> {
 
             let pos_acc = attr(Semantic::Positions)
                 .ok_or_else(|| origin.error("primitive has no POSITION attribute"))?;
-            let positions: Vec<Vec3> = self
+            let mut positions: Vec<Vec3> = self
                 .read_accessor::<f32>(pos_acc, 3)
                 .map_err(|m| err("POSITION", m))?
                 .chunks_exact(3)
                 .map(Vec3::from_slice)
                 .collect();
-            let normals = match attr(Semantic::Normals) {
+            let mut normals = match attr(Semantic::Normals) {
                 Some(a) => Some(
                     self.read_accessor::<f32>(a, 3)
                         .map_err(|m| err("NORMAL", m))?
@@ -902,7 +936,7 @@ impl Loader<'_> {
                 ),
                 None => None,
             };
-            let tangents = match attr(Semantic::Tangents) {
+            let mut tangents = match attr(Semantic::Tangents) {
                 Some(a) => Some(
                     self.read_accessor::<f32>(a, 4)
                         .map_err(|m| err("TANGENT", m))?
@@ -912,7 +946,23 @@ impl Loader<'_> {
                 ),
                 None => None,
             };
-            let uvs = match attr(Semantic::TexCoords(0)) {
+            let targets = self
+                .root
+                .meshes
+                .get(mesh.index())
+                .and_then(|m| m.primitives.get(prim.index()))
+                .and_then(|p| p.targets.as_deref());
+            if let (Some(targets), Some(weights)) = (targets, weights) {
+                self.apply_morph_targets(
+                    origin,
+                    targets,
+                    weights,
+                    &mut positions,
+                    &mut normals,
+                    &mut tangents,
+                )?;
+            }
+            let mut uvs = match attr(Semantic::TexCoords(0)) {
                 Some(a) => Some(
                     self.read_accessor::<f32>(a, 2)
                         .map_err(|m| err("TEXCOORD_0", m))?
@@ -920,6 +970,10 @@ impl Loader<'_> {
                         .map(Vec2::from_slice)
                         .collect::<Vec<_>>(),
                 ),
+                None => None,
+            };
+            let mut colors = match attr(Semantic::Colors(0)) {
+                Some(a) => Some(self.read_colors(a).map_err(|m| err("COLOR_0", m))?),
                 None => None,
             };
             let raw_indices = match prim.indices() {
@@ -932,7 +986,7 @@ impl Loader<'_> {
                     (0..n).collect()
                 }
             };
-            let indices = match mode {
+            let mut indices = match mode {
                 Mode::TriangleStrip => validate::strip_to_list(&raw_indices),
                 Mode::TriangleFan => validate::fan_to_list(&raw_indices),
                 _ => raw_indices,
@@ -944,17 +998,133 @@ impl Loader<'_> {
                     .ok_or_else(|| origin.error(format!("material {i} does not exist")))?,
                 None => self.default_material(),
             };
+            let normal_map = self
+                .scene
+                .materials
+                .get(material as usize)
+                .and_then(|m| m.normal_tex);
+            if let (Some(map), None) = (normal_map, &tangents) {
+                match (&mut normals, &mut uvs) {
+                    (Some(ns), Some(us)) if map.tex_coord == 0 => {
+                        // MikkTSpace reads what shading will read (cleaned values),
+                        // with V pointing up as in the tools that bake normal maps:
+                        // glTF's V points down the image, and a normal map's green
+                        // channel points up it ("+Y is up", glTF 2.0 normalTexture).
+                        // Without the flip every bitangent sign would be inverted
+                        // (three.js negates w after MikkTSpace for the same reason).
+                        let clean_ns: Vec<Vec3> =
+                            ns.iter().map(|&n| validate::clean_normal(n)).collect();
+                        let clean_us: Vec<Vec2> = us
+                            .iter()
+                            .map(|&u| {
+                                let c = validate::clean_uv(u);
+                                Vec2::new(c.x, 1.0 - c.y)
+                            })
+                            .collect();
+                        let (generated, split) = crate::tangents::generate(
+                            &positions,
+                            &clean_ns,
+                            &clean_us,
+                            &mut indices,
+                        );
+                        split.apply(&mut positions);
+                        split.apply(ns);
+                        split.apply(us);
+                        if let Some(cs) = colors.as_mut() {
+                            split.apply(cs);
+                        }
+                        tangents = Some(generated);
+                    }
+                    _ => self.warn(format!(
+                        "{}: mesh {name:?} primitive {}: its material has a normal map but the \
+                         primitive has no TANGENT, and no NORMAL or TEXCOORD_{} to generate \
+                         tangents from; the normal map is ignored there",
+                        self.path.display(),
+                        prim.index(),
+                        map.tex_coord
+                    )),
+                }
+            }
             out.push(DecodedPrimitive {
                 index: prim.index(),
                 positions,
                 normals,
                 tangents,
                 uvs,
+                colors,
                 indices,
                 material,
             });
         }
         Ok(out)
+    }
+
+    /// Add the morph targets' displacements, each times its weight, to the base
+    /// attributes: a file's rest pose is its mesh at the default weights (glTF 2.0,
+    /// "Morph Targets"), and an animation dray does not play would start from it. A
+    /// weight of zero adds nothing, so an unweighted mesh keeps its bits.
+    #[allow(clippy::too_many_arguments)] // the one primitive's attributes being moved
+    fn apply_morph_targets(
+        &mut self,
+        origin: Origin<'_>,
+        targets: &[json::mesh::MorphTarget],
+        weights: &[f32],
+        positions: &mut [Vec3],
+        normals: &mut Option<Vec<Vec3>>,
+        tangents: &mut Option<Vec<Vec4>>,
+    ) -> Result<()> {
+        if weights.len() != targets.len() {
+            self.warn(format!(
+                "{}: mesh {:?} primitive {}: {} morph weights for {} morph targets; the \
+                 missing ones are taken as 0 and the extra ones ignored",
+                self.path.display(),
+                origin.mesh,
+                origin.primitive,
+                weights.len(),
+                targets.len()
+            ));
+        }
+        let n = positions.len();
+        for (t, (target, &weight)) in targets.iter().zip(weights).enumerate() {
+            if weight == 0.0 {
+                continue;
+            }
+            let read = |acc: Option<json::Index<json::Accessor>>, what: &str| {
+                let Some(acc) = acc else {
+                    return Ok(None);
+                };
+                let what = format!("morph target {t} {what}");
+                let deltas: Vec<Vec3> = self
+                    .read_accessor::<f32>(acc.value(), 3)
+                    .map_err(|m| origin.error(format!("{what}: {m}")))?
+                    .chunks_exact(3)
+                    .map(Vec3::from_slice)
+                    .collect();
+                if deltas.len() != n {
+                    return Err(origin.error(format!(
+                        "{what} has {} entries but POSITION has {n}",
+                        deltas.len()
+                    )));
+                }
+                Ok(Some(deltas))
+            };
+            if let Some(d) = read(target.positions, "POSITION")? {
+                for (p, d) in positions.iter_mut().zip(d) {
+                    *p += weight * d;
+                }
+            }
+            if let (Some(d), Some(ns)) = (read(target.normals, "NORMAL")?, normals.as_mut()) {
+                for (v, d) in ns.iter_mut().zip(d) {
+                    *v += weight * d;
+                }
+            }
+            if let (Some(d), Some(ts)) = (read(target.tangents, "TANGENT")?, tangents.as_mut()) {
+                for (v, d) in ts.iter_mut().zip(d) {
+                    *v += (weight * d).extend(0.0);
+                }
+            }
+        }
+        Ok(())
     }
 
     /// Transform one decoded primitive by `world` and push it through the validation gate.
@@ -1024,6 +1194,7 @@ impl Loader<'_> {
                 normals: normals.as_deref(),
                 tangents: tangents.as_deref(),
                 uvs: prim.uvs.as_deref(),
+                colors: prim.colors.as_deref(),
                 indices: &indices,
                 material: prim.material,
             },
@@ -1065,11 +1236,7 @@ impl Loader<'_> {
         index: usize,
         dims: usize,
     ) -> std::result::Result<Vec<T>, String> {
-        let acc = self
-            .root
-            .accessors
-            .get(index)
-            .ok_or_else(|| format!("accessor {index} does not exist"))?;
+        let acc = self.accessor(index)?;
         let Checked::Valid(json::accessor::GenericComponentType(ty)) = acc.component_type else {
             return Err(format!("accessor {index} has an invalid componentType"));
         };
@@ -1224,14 +1391,49 @@ impl Loader<'_> {
         Ok(())
     }
 
+    /// Accessor `index`, or a message saying it does not exist.
+    fn accessor(&self, index: usize) -> std::result::Result<&json::Accessor, String> {
+        self.root
+            .accessors
+            .get(index)
+            .ok_or_else(|| format!("accessor {index} does not exist"))
+    }
+
+    /// Read a `COLOR_0` accessor: VEC3 (alpha 1) or VEC4, float or normalized unsigned
+    /// 8/16-bit, as the glTF specification allows.
+    fn read_colors(&self, index: usize) -> std::result::Result<Vec<Vec4>, String> {
+        use json::accessor::ComponentType as C;
+        let acc = self.accessor(index)?;
+        let dims = match acc.type_ {
+            Checked::Valid(json::accessor::Type::Vec3) => 3,
+            Checked::Valid(json::accessor::Type::Vec4) => 4,
+            _ => return Err(format!("accessor {index} must be VEC3 or VEC4")),
+        };
+        match acc.component_type {
+            Checked::Valid(json::accessor::GenericComponentType(C::F32)) => {}
+            Checked::Valid(json::accessor::GenericComponentType(C::U8 | C::U16))
+                if acc.normalized => {}
+            _ => {
+                return Err(format!(
+                    "accessor {index} must hold floats or normalized unsigned 8 or 16-bit \
+                     integers"
+                ));
+            }
+        }
+        let values = self.read_accessor::<f32>(index, dims)?;
+        Ok(values
+            .chunks_exact(dims)
+            .map(|c| match c {
+                [r, g, b] => Vec4::new(*r, *g, *b, 1.0),
+                _ => Vec4::from_slice(c),
+            })
+            .collect())
+    }
+
     /// Read an index accessor (unsigned 8, 16 or 32-bit scalars).
     fn read_indices(&self, index: usize) -> std::result::Result<Vec<u32>, String> {
         use json::accessor::ComponentType as C;
-        let acc = self
-            .root
-            .accessors
-            .get(index)
-            .ok_or_else(|| format!("accessor {index} does not exist"))?;
+        let acc = self.accessor(index)?;
         match acc.component_type {
             Checked::Valid(json::accessor::GenericComponentType(C::U8 | C::U16 | C::U32)) => {}
             _ => {

@@ -13,6 +13,7 @@ pub mod ply_stream;
 pub mod private_fs;
 pub mod procedural;
 pub mod reference;
+pub mod tangents;
 pub mod translate;
 pub mod validate;
 

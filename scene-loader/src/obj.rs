@@ -201,6 +201,7 @@ pub fn load_obj(path: &Path) -> Result<Scene> {
                 normals: normals.as_deref(),
                 tangents: None,
                 uvs: uvs.as_deref(),
+                colors: None,
                 indices: &mesh.indices,
                 material,
             },

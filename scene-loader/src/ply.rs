@@ -51,6 +51,7 @@ pub fn load_ply(path: &Path) -> Result<Scene> {
             normals: vertices.normals.as_deref(),
             tangents: None,
             uvs: vertices.uvs.as_deref(),
+            colors: None,
             indices: &body.indices,
             material: 0,
         },

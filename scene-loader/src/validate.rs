@@ -34,6 +34,8 @@ pub struct Primitive<'a> {
     pub normals: Option<&'a [Vec3]>,
     pub tangents: Option<&'a [Vec4]>,
     pub uvs: Option<&'a [Vec2]>,
+    /// Linear RGBA vertex colours (glTF `COLOR_0`; RGB sources with alpha 1).
+    pub colors: Option<&'a [Vec4]>,
     /// Triangle-list indices (three per triangle).
     pub indices: &'a [u32],
     pub material: u32,
@@ -61,6 +63,7 @@ pub fn add_primitive(
     check_len("NORMAL", prim.normals.map(<[_]>::len))?;
     check_len("TANGENT", prim.tangents.map(<[_]>::len))?;
     check_len("TEXCOORD_0", prim.uvs.map(<[_]>::len))?;
+    check_len("COLOR_0", prim.colors.map(<[_]>::len))?;
     if !prim.indices.len().is_multiple_of(3) {
         return Err(origin.error(format!(
             "index count {} is not a multiple of 3",
@@ -98,6 +101,10 @@ pub fn add_primitive(
         Some(us) => mesh.uvs.extend(us.iter().map(|&v| clean_uv(v))),
         None => mesh.uvs.resize(mesh.positions.len(), Vec2::ZERO),
     }
+    let colors: Option<Vec<Vec4>> = prim
+        .colors
+        .map(|cs| cs.iter().map(|&c| clean_color(c)).collect());
+    mesh.extend_colors(base as usize, colors.as_deref());
     for tri in prim.indices.chunks_exact(3) {
         let [a, b, c] = [tri[0], tri[1], tri[2]];
         let corners = [
@@ -148,6 +155,12 @@ pub fn clean_normal(v: Vec3) -> Vec3 {
 /// A texture coordinate as the mesh stores it: zero ("absent") when not finite.
 pub fn clean_uv(v: Vec2) -> Vec2 {
     if v.is_finite() { v } else { Vec2::ZERO }
+}
+
+/// A vertex colour as the mesh stores it: white when not finite (a colour that cannot
+/// be shown should not blacken or poison the surface), otherwise as given.
+pub fn clean_color(v: Vec4) -> Vec4 {
+    if v.is_finite() { v } else { Vec4::ONE }
 }
 
 /// Whether a triangle is dropped as degenerate: a repeated index, or zero area in f32.
@@ -202,6 +215,7 @@ mod tests {
             normals: None,
             tangents: None,
             uvs: None,
+            colors: None,
             indices: idx,
             material: 0,
         };

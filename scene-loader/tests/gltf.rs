@@ -832,3 +832,280 @@ fn corrupted_glb_never_panics() {
     println!("{loaded} of {iters} corrupted files still loaded");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A quad (two triangles) in the XY plane facing +Z with NORMAL and TEXCOORD_0, U along
+/// +X and V along -Y (glTF's V runs down the image): POSITION 0, NORMAL 1, TEXCOORD_0 2,
+/// indices 3.
+fn normal_mapped_quad() -> Builder {
+    let mut b = Builder::default();
+    b.floats(
+        &[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 1.0, 0.0],
+        "VEC3",
+    );
+    b.floats(&[0.0, 0.0, 1.0].repeat(4), "VEC3");
+    b.floats(&[0.0, 1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0], "VEC2");
+    b.indices(&[0, 1, 2, 0, 2, 3]);
+    b
+}
+
+/// The rest of a file with one quad mesh whose material has a normal map.
+fn normal_mapped_rest(attributes: &str) -> String {
+    format!(
+        r#""meshes":[{{"name":"Quad","primitives":[{{"attributes":{{{attributes}}},"indices":3,"material":0}}]}}],
+"nodes":[{{"mesh":0}}],"scenes":[{{"nodes":[0]}}],
+"materials":[{{"normalTexture":{{"index":0}}}}],
+"textures":[{{"source":0}}],
+"images":[{{"uri":"data:image/png;base64,{}"}}]"#,
+        base64(&png_2x1())
+    )
+}
+
+#[test]
+fn normal_mapped_primitive_without_tangents_gets_mikktspace_tangents() {
+    let dir = test_dir("mikktspace");
+    let b = normal_mapped_quad();
+    let path = b.write(
+        &dir,
+        "quad",
+        &normal_mapped_rest(r#""POSITION":0,"NORMAL":1,"TEXCOORD_0":2"#),
+    );
+    let scene = load_gltf(&path).unwrap();
+    let m = &scene.mesh;
+    assert_eq!(m.tangents.len(), m.positions.len());
+    for t in &m.tangents {
+        // U grows along +X and "up the image" (-V) along +Y = N x T: sign +1, as
+        // Blender would have written the TANGENT for this quad.
+        assert!(approx(t.truncate(), Vec3::X), "{t}");
+        assert_eq!(t.w, 1.0, "{t}");
+    }
+    assert!(
+        scene.stats.warnings.is_empty(),
+        "{:?}",
+        scene.stats.warnings
+    );
+
+    // Without NORMAL there is nothing to build a frame on: a warning says the normal
+    // map is ignored, and no tangent is made up.
+    let path = b.write(
+        &dir,
+        "no-normals",
+        &normal_mapped_rest(r#""POSITION":0,"TEXCOORD_0":2"#),
+    );
+    let scene = load_gltf(&path).unwrap();
+    assert!(scene.mesh.tangents.iter().all(|t| *t == Vec4::ZERO));
+    assert!(
+        scene
+            .stats
+            .warnings
+            .iter()
+            .any(|w| w.contains("normal map is ignored")),
+        "{:?}",
+        scene.stats.warnings
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn morph_targets_are_applied_at_mesh_and_node_weights() {
+    let dir = test_dir("morph");
+    let mut b = triangle_builder();
+    // Target 0 lifts every vertex by 1 in z; target 1 moves them 2 along x.
+    let lift = b.floats(&[0.0, 0.0, 1.0].repeat(3), "VEC3");
+    let shift = b.floats(&[2.0, 0.0, 0.0].repeat(3), "VEC3");
+    let rest = format!(
+        r#""meshes":[{{"name":"Tri","weights":[0.5,0.25],"primitives":[{{"attributes":{{"POSITION":0,"NORMAL":1,"TANGENT":2}},"indices":3,"targets":[{{"POSITION":{lift}}},{{"POSITION":{shift}}}]}}]}}],
+"nodes":[{{"mesh":0}},{{"mesh":0,"weights":[1.0,0.0],"translation":[10,0,0]}},{{"mesh":0}}],
+"scenes":[{{"nodes":[0,1,2]}}]"#
+    );
+    let path = b.write(&dir, "morph", &rest);
+    let scene = load_gltf(&path).unwrap();
+    let p = &scene.mesh.positions;
+    assert_eq!(p.len(), 9);
+    // Node 0 and 2: the mesh's weights (0.5 lift, 0.25 x 2 shift).
+    let mesh_weighted = [
+        Vec3::new(0.5, 0.0, 0.5),
+        Vec3::new(1.5, 0.0, 0.5),
+        Vec3::new(0.5, 1.0, 0.5),
+    ];
+    // Node 1: its own weights (full lift, no shift), then its translation.
+    let node_weighted = [
+        Vec3::new(10.0, 0.0, 1.0),
+        Vec3::new(11.0, 0.0, 1.0),
+        Vec3::new(10.0, 1.0, 1.0),
+    ];
+    let found = |want: &[Vec3; 3]| {
+        p.chunks(3)
+            .filter(|c| c.iter().zip(want).all(|(a, b)| approx(*a, *b)))
+            .count()
+    };
+    assert_eq!(found(&mesh_weighted), 2, "{p:?}");
+    assert_eq!(found(&node_weighted), 1, "{p:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn each_warning_is_recorded_once() {
+    let dir = test_dir("warn-once");
+    let b = triangle_builder();
+    // A line primitive in a mesh instanced with different node weights, so the mesh is
+    // decoded twice: its skip is reported once.
+    let rest = r#""meshes":[
+  {"name":"Tri","primitives":[{"attributes":{"POSITION":0},"indices":3},{"attributes":{"POSITION":0},"mode":1}]}
+],
+"nodes":[{"mesh":0},{"mesh":0,"weights":[]},{"mesh":0}],
+"scenes":[{"nodes":[0,1,2]}]"#;
+    let path = b.write(&dir, "lines", rest);
+    let scene = load_gltf(&path).unwrap();
+    let skipped: Vec<_> = scene
+        .stats
+        .warnings
+        .iter()
+        .filter(|w| w.contains("not triangles"))
+        .collect();
+    assert_eq!(skipped.len(), 1, "{:?}", scene.stats.warnings);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Tangents made by dray agree with the ones the exporter wrote: the shared WaterBottle
+/// (exported with TANGENT) is loaded as is and with its TANGENT attributes removed, and
+/// the generated frames must have the exporter's handedness at every corner and nearly
+/// its direction. This pins the UV convention (V up, as the baking tools have it): with
+/// glTF's V down every sign would be inverted.
+#[test]
+fn generated_tangents_match_the_exporters_on_a_shared_model() {
+    let src = scenes_dir().join("water_bottle");
+    if !src.join("WaterBottle.gltf").is_file() {
+        let why = format!("{} not found (set DRAY_SCENES)", src.display());
+        assert!(
+            std::env::var("CI").map_or(true, |v| v != "true"),
+            "CI=true: {why}"
+        );
+        println!("SKIPPED (not under CI): {why}");
+        return;
+    }
+    let dir = test_dir("exporter-tangents");
+    for entry in std::fs::read_dir(&src).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_file() {
+            std::fs::copy(&path, dir.join(path.file_name().unwrap())).unwrap();
+        }
+    }
+    let mut json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("WaterBottle.gltf")).unwrap()).unwrap();
+    for mesh in json["meshes"].as_array_mut().unwrap() {
+        for prim in mesh["primitives"].as_array_mut().unwrap() {
+            prim["attributes"]
+                .as_object_mut()
+                .unwrap()
+                .remove("TANGENT");
+        }
+    }
+    let stripped = dir.join("stripped.gltf");
+    std::fs::write(&stripped, serde_json::to_vec(&json).unwrap()).unwrap();
+
+    let file = load_gltf(&dir.join("WaterBottle.gltf")).unwrap();
+    let made = load_gltf(&stripped).unwrap();
+    assert_eq!(file.mesh.indices.len(), made.mesh.indices.len());
+    let (mut corners, mut missing, mut same_sign, mut close) = (0usize, 0, 0, 0);
+    for (a, b) in file.mesh.indices.iter().zip(&made.mesh.indices) {
+        for k in 0..3 {
+            let x = file.mesh.tangents[a[k] as usize];
+            let y = made.mesh.tangents[b[k] as usize];
+            if y == Vec4::ZERO {
+                // MikkTSpace gives nothing for a triangle with degenerate UVs and no
+                // neighbour to borrow from.
+                missing += 1;
+                continue;
+            }
+            corners += 1;
+            same_sign += usize::from(x.w.signum() == y.w.signum());
+            let cos = x.truncate().normalize().dot(y.truncate().normalize());
+            close += usize::from(cos > 0.9);
+        }
+    }
+    println!(
+        "{corners} corners with tangents, {missing} without, {same_sign} same sign, {close} close"
+    );
+    assert!(
+        missing * 1000 <= corners,
+        "{missing} corners without a tangent"
+    );
+    assert_eq!(same_sign, corners, "handedness differs at some corners");
+    assert!(
+        close * 100 >= corners * 99,
+        "{close} of {corners} within 25 degrees"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn vertex_colours_are_read_as_rgba_and_cost_nothing_when_absent() {
+    let dir = test_dir("colours");
+    let mut b = triangle_builder();
+    // COLOR_0 as float VEC3 (alpha 1) on primitive 0, as normalized u8 VEC4 on
+    // primitive 1, none on primitive 2.
+    let rgb = b.floats(&[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], "VEC3");
+    let view = b.view(&[255, 0, 0, 255, 0, 255, 0, 128, 0, 0, 255, 0]);
+    b.accessors.push(format!(
+        r#"{{"bufferView":{view},"componentType":5121,"normalized":true,"count":3,"type":"VEC4"}}"#
+    ));
+    let rgba = b.accessors.len() - 1;
+    let rest = format!(
+        r#""meshes":[{{"primitives":[
+  {{"attributes":{{"POSITION":0,"COLOR_0":{rgb}}},"indices":3}},
+  {{"attributes":{{"POSITION":0,"COLOR_0":{rgba}}},"indices":3}},
+  {{"attributes":{{"POSITION":0}},"indices":3}}]}}],
+"nodes":[{{"mesh":0}}],"scenes":[{{"nodes":[0]}}]"#
+    );
+    let scene = load_gltf(&b.write(&dir, "colours", &rest)).unwrap();
+    let c = &scene.mesh.colors;
+    assert_eq!(c.len(), 9);
+    assert_eq!(
+        c[0..3],
+        [
+            Vec4::new(1.0, 0.0, 0.0, 1.0),
+            Vec4::new(0.0, 1.0, 0.0, 1.0),
+            Vec4::new(0.0, 0.0, 1.0, 1.0)
+        ]
+    );
+    let half = 128.0 / 255.0;
+    assert_eq!(
+        c[3..6],
+        [
+            Vec4::new(1.0, 0.0, 0.0, 1.0),
+            Vec4::new(0.0, 1.0, 0.0, half),
+            Vec4::new(0.0, 0.0, 1.0, 0.0)
+        ]
+    );
+    assert_eq!(c[6..9], [Vec4::ONE; 3]);
+    assert!(
+        scene.stats.warnings.is_empty(),
+        "{:?}",
+        scene.stats.warnings
+    );
+
+    // Integer colours must be normalized (glTF 2.0, "Meshes"): otherwise the file is
+    // wrong and the error says where.
+    let bad = rest.replace(r#""normalized":true,"#, "");
+    let mut b2 = b;
+    if let Some(a) = b2.accessors.last_mut() {
+        *a = a.replace(r#""normalized":true,"#, "");
+    }
+    let msg = load_gltf(&b2.write(&dir, "bad", &bad))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        msg.contains("COLOR_0") && msg.contains("normalized"),
+        "{msg}"
+    );
+
+    // A file without COLOR_0 keeps no colour array at all.
+    let scene = load_gltf(&triangle_builder().write(
+        &dir,
+        "plain",
+        &format!(r#"{TRI_MESH},"nodes":[{{"mesh":0}}],"scenes":[{{"nodes":[0]}}]"#),
+    ))
+    .unwrap();
+    assert!(scene.mesh.colors.is_empty());
+    let _ = std::fs::remove_dir_all(&dir);
+}

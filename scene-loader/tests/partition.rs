@@ -396,7 +396,25 @@ fn bits(m: &Mesh) -> Vec<u32> {
             .map(f32::to_bits),
     );
     out.extend(m.uvs.iter().flat_map(|v| v.to_array()).map(f32::to_bits));
+    out.push(m.colors.len() as u32);
+    out.extend(m.colors.iter().flat_map(|v| v.to_array()).map(f32::to_bits));
     out
+}
+
+/// [`rich_scene`] with vertex colours on every other vertex (white on the rest).
+fn coloured_scene() -> Scene {
+    let mut scene = rich_scene();
+    let n = scene.mesh.positions.len();
+    scene.mesh.colors = (0..n)
+        .map(|i| {
+            if i % 2 == 0 {
+                Vec4::new(0.1 * (i % 10) as f32, 0.5, 1.0, 0.75)
+            } else {
+                Vec4::ONE
+            }
+        })
+        .collect();
+    scene
 }
 
 fn write(dir: &Path, scene: &Scene, spec: LayoutSpec) {
@@ -414,6 +432,7 @@ fn package_round_trip_is_exact() {
         ("rich-kd", rich_scene(), LayoutSpec::Kd(5)),
         ("rich-grid", rich_scene(), LayoutSpec::Grid([2, 2, 1])),
         ("soup-kd", load("soup:5000"), LayoutSpec::Kd(6)),
+        ("coloured-kd", coloured_scene(), LayoutSpec::Kd(5)),
     ] {
         let tmp = TmpDir::new(name);
         write(&tmp.0, &scene, spec);
@@ -443,6 +462,12 @@ fn package_round_trip_is_exact() {
             assigned += disk.triangle_count() as u64;
         }
         assert_eq!(assigned, m.assigned_triangles);
+        // Vertex colours travel only where the scene has them: colourless scenes keep
+        // no colour array in any domain (no memory, no bytes on disk).
+        let coloured = (0..pkg.domain_count())
+            .filter(|&d| !pkg.load_domain(d).unwrap().mesh.colors.is_empty())
+            .count();
+        assert_eq!(coloured > 0, !scene.mesh.colors.is_empty(), "{name}");
         assert!(pkg.load_domain(pkg.domain_count()).is_err());
     }
 }

@@ -479,6 +479,10 @@ pub struct DomainEntry {
     pub file: String,
     pub triangles: u64,
     pub vertices: u64,
+    /// Whether the file carries a vertex colour section. Written only when true, so the
+    /// manifests of scenes without vertex colours (nearly all) are what they were.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub colors: bool,
     pub bytes: u64,
     pub xxh3: String,
 }

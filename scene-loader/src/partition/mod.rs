@@ -57,7 +57,7 @@ pub use resident::{ResidentDomain, ResidentScene, load_resident};
 
 /// One triangle as a source hands it over: corners with all attributes, its material and
 /// its global id.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SourceTriangle {
     /// Index of the triangle in the unpartitioned scene.
     pub id: u32,
@@ -66,6 +66,23 @@ pub struct SourceTriangle {
     pub normals: [Vec3; 3],
     pub tangents: [Vec4; 3],
     pub uvs: [Vec2; 3],
+    /// Vertex colours (white where the source has none).
+    pub colors: [Vec4; 3],
+}
+
+impl Default for SourceTriangle {
+    /// Zero attributes ("absent"), and white corners: white is "no vertex colour".
+    fn default() -> Self {
+        SourceTriangle {
+            id: 0,
+            material: 0,
+            positions: [Vec3::ZERO; 3],
+            normals: [Vec3::ZERO; 3],
+            tangents: [Vec4::ZERO; 3],
+            uvs: [Vec2::ZERO; 3],
+            colors: [Vec4::ONE; 3],
+        }
+    }
 }
 
 /// Anything that can hand over a scene's triangles one at a time.
@@ -87,6 +104,12 @@ pub trait TriangleSource {
         f: &mut dyn FnMut(u32, [Vec3; 3], u32) -> Result<()>,
     ) -> Result<()> {
         self.for_each_triangle(&mut |t| f(t.id, t.positions, t.material))
+    }
+
+    /// Whether any triangle may have a vertex colour other than white. Sources without
+    /// them (the default) are partitioned without a colour section anywhere.
+    fn has_colors(&self) -> bool {
+        false
     }
 }
 
@@ -116,6 +139,9 @@ impl TriangleSource for Mesh {
                     self.tangents.get(at(k)).copied().unwrap_or(Vec4::ZERO)
                 }),
                 uvs: std::array::from_fn(|k| self.uvs.get(at(k)).copied().unwrap_or(Vec2::ZERO)),
+                colors: std::array::from_fn(|k| {
+                    self.colors.get(at(k)).copied().unwrap_or(Vec4::ONE)
+                }),
             };
             f(&t)?;
         }
@@ -133,6 +159,10 @@ impl TriangleSource for Mesh {
         }
         Ok(())
     }
+
+    fn has_colors(&self) -> bool {
+        !self.colors.is_empty()
+    }
 }
 
 impl TriangleSource for Scene {
@@ -145,6 +175,10 @@ impl TriangleSource for Scene {
         f: &mut dyn FnMut(u32, [Vec3; 3], u32) -> Result<()>,
     ) -> Result<()> {
         self.mesh.for_each_position(f)
+    }
+
+    fn has_colors(&self) -> bool {
+        self.mesh.has_colors()
     }
 }
 
@@ -172,13 +206,16 @@ impl DomainMesh {
 /// identical, which loses nothing (shading reads only the attributes) and needs no global
 /// vertex ids from the source.
 #[derive(Clone, Copy, PartialEq, Eq)]
-struct VertexKey([u8; 48]);
+struct VertexKey([u8; 64]);
 
 impl std::hash::Hash for VertexKey {
     fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
-        // One-shot XXH3 of the 48 bytes: several times faster than feeding a streaming
-        // hasher, and the map hashes every corner of every triangle.
-        state.write_u64(xxhash_rust::xxh3::xxh3_64(&self.0));
+        // One-shot XXH3 of the first 48 bytes: several times faster than feeding a
+        // streaming hasher, and the map hashes every corner of every triangle. The
+        // colour (the last 16) is left out of the hash, which costs colourless scenes
+        // nothing; equality still compares it, so vertices that differ only in colour
+        // stay apart (they merely share a hash).
+        state.write_u64(xxhash_rust::xxh3::xxh3_64(&self.0[..48]));
     }
 }
 
@@ -200,9 +237,17 @@ impl std::hash::Hasher for PassThrough {
 }
 
 fn vertex_key(t: &SourceTriangle, k: usize) -> VertexKey {
-    let (p, n, g, u) = (t.positions[k], t.normals[k], t.tangents[k], t.uvs[k]);
-    let mut key = [0u8; 48];
-    let values = [p.x, p.y, p.z, n.x, n.y, n.z, g.x, g.y, g.z, g.w, u.x, u.y];
+    let (p, n, g, u, c) = (
+        t.positions[k],
+        t.normals[k],
+        t.tangents[k],
+        t.uvs[k],
+        t.colors[k],
+    );
+    let mut key = [0u8; 64];
+    let values = [
+        p.x, p.y, p.z, n.x, n.y, n.z, g.x, g.y, g.z, g.w, u.x, u.y, c.x, c.y, c.z, c.w,
+    ];
     for (chunk, v) in key.chunks_exact_mut(4).zip(values) {
         chunk.copy_from_slice(&v.to_le_bytes());
     }
@@ -244,6 +289,10 @@ impl DomainBuilder {
                 self.mesh.normals.push(t.normals[k]);
                 self.mesh.tangents.push(t.tangents[k]);
                 self.mesh.uvs.push(t.uvs[k]);
+                // Stays empty while every colour is white.
+                let colour = t.colors[k];
+                self.mesh
+                    .extend_colors(i as usize, Some(std::slice::from_ref(&colour)));
             }
             i
         });

@@ -27,12 +27,13 @@
 //!         12 V      normals     [f32; 3]   (zero = absent)
 //!         16 V      tangents    [f32; 4]   (zero = absent)
 //!          8 V      uvs         [f32; 2]
+//!         16 V      colours     [f32; 4]   (only when the manifest entry says `colors`)
 //!         12 T      indices     [u32; 3]   (into this file's vertices)
 //!          4 T      material    u32        (into the manifest's materials)
 //!          4 T      global id   u32        (index in the unpartitioned scene)
 //! ```
 //!
-//! so a domain file is exactly `32 + 48 V + 20 T` bytes. Sections rather than records keep
+//! so a domain file is exactly `32 + 48 V + 20 T` bytes, `+ 16 V` with colours. Sections rather than records keep
 //! each attribute contiguous, as the BVH builder and shading want them.
 //!
 //! `textures.bin`: magic `"DRAYTEX\0"`, u32 version, u32 texture count, then each
@@ -77,14 +78,22 @@ const TEXTURE_HEADER_BYTES: u64 = 16;
 const VERTEX_BYTES: u64 = 48;
 const TRIANGLE_BYTES: u64 = 20;
 /// A triangle in a spill file: id, material, then per corner position, normal, tangent
-/// and uv (12 f32).
-const RECORD_BYTES: usize = 8 + 3 * 48;
+/// and uv (12 f32), and the colour (4 f32) when the source has vertex colours, so
+/// scenes without them do not spill a third more.
+fn record_bytes(colors: bool) -> usize {
+    8 + 3 * if colors { 64 } else { 48 }
+}
 const IO_BUFFER: usize = 1 << 20;
 
-/// The size of a domain file with `vertices` and `triangles`, or `None` on overflow.
-pub fn domain_file_bytes(vertices: u64, triangles: u64) -> Option<u64> {
+/// Bytes per vertex of the optional colour section.
+const COLOR_BYTES: u64 = 16;
+
+/// The size of a domain file with `vertices` and `triangles` (and a colour section when
+/// `colors`), or `None` on overflow.
+pub fn domain_file_bytes(vertices: u64, triangles: u64, colors: bool) -> Option<u64> {
+    let per_vertex = VERTEX_BYTES + if colors { COLOR_BYTES } else { 0 };
     vertices
-        .checked_mul(VERTEX_BYTES)?
+        .checked_mul(per_vertex)?
         .checked_add(triangles.checked_mul(TRIANGLE_BYTES)?)?
         .checked_add(DOMAIN_HEADER_BYTES)
 }
@@ -248,7 +257,9 @@ pub fn write_package(
     // Pass 2: every triangle to the spill buffers of its domains.
     let domain_count = layout.domain_count() as usize;
     let per_domain = (options.buffer_bytes / domain_count).clamp(4096, 1 << 20);
-    let per_domain = per_domain.div_ceil(RECORD_BYTES) * RECORD_BYTES;
+    let colors = source.has_colors();
+    let record_len = record_bytes(colors);
+    let per_domain = per_domain.div_ceil(record_len) * record_len;
     let mut spills: Vec<Spill> = cleanup
         .paths
         .iter()
@@ -262,7 +273,7 @@ pub fn write_package(
     let mut domains = Vec::new();
     // Emitters are few next to the scene (they are lights), so they are kept in memory.
     let mut emitters = DomainBuilder::new();
-    let mut record = Vec::with_capacity(RECORD_BYTES);
+    let mut record = Vec::with_capacity(record_len);
     source.for_each_triangle(&mut |t| {
         crate::cancel::check_at(seen as usize)?;
         seen += 1;
@@ -287,7 +298,7 @@ pub fn write_package(
             emitters.push(t);
         }
         record.clear();
-        encode_record(t, &mut record);
+        encode_record(t, colors, &mut record);
         for &d in &domains {
             let spill = &mut spills[d as usize];
             if spill.buf.capacity() == 0 {
@@ -319,7 +330,7 @@ pub fn write_package(
 
     // Compact each domain into its file, a few at a time.
     crate::cancel::check()?;
-    let entries = finalize_domains(dir, &spills, &layout, options.threads)?;
+    let entries = finalize_domains(dir, &spills, &layout, options.threads, colors)?;
     cleanup.paths.clear();
     tracing::info!("domain files written");
 
@@ -330,6 +341,7 @@ pub fn write_package(
             file: EMITTERS_FILE.to_string(),
             triangles: mesh.triangle_count() as u64,
             vertices: mesh.mesh.positions.len() as u64,
+            colors: !mesh.mesh.colors.is_empty(),
             bytes,
             xxh3: to_hex(sum),
         })
@@ -396,6 +408,7 @@ fn finalize_domains(
     spills: &[Spill],
     layout: &DomainLayout,
     threads: usize,
+    colors: bool,
 ) -> Result<Vec<DomainEntry>> {
     let threads = threads.clamp(1, spills.len());
     let next = AtomicUsize::new(0);
@@ -408,7 +421,7 @@ fn finalize_domains(
                     while !failed.load(Ordering::Relaxed) {
                         let d = next.fetch_add(1, Ordering::Relaxed);
                         let Some(spill) = spills.get(d) else { break };
-                        match finalize_domain(dir, d as u32, spill, layout) {
+                        match finalize_domain(dir, d as u32, spill, layout, colors) {
                             Ok(e) => done.push((d, e)),
                             Err(e) => {
                                 failed.store(true, Ordering::Relaxed);
@@ -440,10 +453,11 @@ fn finalize_domain(
     d: u32,
     spill: &Spill,
     layout: &DomainLayout,
+    colors: bool,
 ) -> Result<DomainEntry> {
     let mut builder = DomainBuilder::with_capacity(spill.triangles as usize);
     if spill.triangles > 0 {
-        read_spill(&spill.path, &mut |t| builder.push(t))?;
+        read_spill(&spill.path, colors, &mut |t| builder.push(t))?;
     }
     if builder.triangle_count() as u64 != spill.triangles {
         return Err(format_error(
@@ -463,6 +477,7 @@ fn finalize_domain(
         file,
         triangles: mesh.triangle_count() as u64,
         vertices: mesh.mesh.positions.len() as u64,
+        colors: !mesh.mesh.colors.is_empty(),
         bytes,
         xxh3: to_hex(sum),
     })
@@ -555,7 +570,7 @@ impl Spill {
     }
 }
 
-fn encode_record(t: &SourceTriangle, out: &mut Vec<u8>) {
+fn encode_record(t: &SourceTriangle, colors: bool, out: &mut Vec<u8>) {
     out.extend_from_slice(&t.id.to_le_bytes());
     out.extend_from_slice(&t.material.to_le_bytes());
     for k in 0..3 {
@@ -563,13 +578,19 @@ fn encode_record(t: &SourceTriangle, out: &mut Vec<u8>) {
         for x in [p.x, p.y, p.z, n.x, n.y, n.z, g.x, g.y, g.z, g.w, u.x, u.y] {
             out.extend_from_slice(&x.to_le_bytes());
         }
+        if colors {
+            for x in t.colors[k].to_array() {
+                out.extend_from_slice(&x.to_le_bytes());
+            }
+        }
     }
 }
 
-fn decode_record(b: &[u8]) -> SourceTriangle {
+fn decode_record(b: &[u8], colors: bool) -> SourceTriangle {
     let u = |i: usize| u32::from_le_bytes(b[i..i + 4].try_into().unwrap());
     let f = |i: usize| f32::from_bits(u(i));
-    let corner = |k: usize| 8 + 48 * k;
+    let stride = if colors { 64 } else { 48 };
+    let corner = |k: usize| 8 + stride * k;
     SourceTriangle {
         id: u(0),
         material: u(4),
@@ -589,19 +610,28 @@ fn decode_record(b: &[u8]) -> SourceTriangle {
             let o = corner(k) + 40;
             Vec2::new(f(o), f(o + 4))
         }),
+        colors: std::array::from_fn(|k| {
+            let o = corner(k) + 48;
+            if colors {
+                Vec4::new(f(o), f(o + 4), f(o + 8), f(o + 12))
+            } else {
+                Vec4::ONE
+            }
+        }),
     }
 }
 
-fn read_spill(path: &Path, f: &mut dyn FnMut(&SourceTriangle)) -> Result<()> {
+fn read_spill(path: &Path, colors: bool, f: &mut dyn FnMut(&SourceTriangle)) -> Result<()> {
     let mut r = BufReader::with_capacity(IO_BUFFER, File::open(path).map_err(io_error(path))?);
-    let mut chunk = vec![0u8; RECORD_BYTES * 1024];
+    let record_len = record_bytes(colors);
+    let mut chunk = vec![0u8; record_len * 1024];
     loop {
         let n = read_full(&mut r, &mut chunk).map_err(io_error(path))?;
-        if n % RECORD_BYTES != 0 {
+        if n % record_len != 0 {
             return Err(format_error(path, "spill file ends inside a record"));
         }
-        for rec in chunk[..n].chunks_exact(RECORD_BYTES) {
-            f(&decode_record(rec));
+        for rec in chunk[..n].chunks_exact(record_len) {
+            f(&decode_record(rec, colors));
         }
         if n < chunk.len() {
             return Ok(());
@@ -646,6 +676,9 @@ pub fn write_domain_file(path: &Path, mesh: &DomainMesh) -> Result<(u64, u64)> {
             v.to_array().iter().try_for_each(|x| put(x.to_bits()))?;
         }
         for v in &m.uvs {
+            v.to_array().iter().try_for_each(|x| put(x.to_bits()))?;
+        }
+        for v in &m.colors {
             v.to_array().iter().try_for_each(|x| put(x.to_bits()))?;
         }
         for t in &m.indices {
@@ -768,7 +801,7 @@ pub fn open_package(dir: &Path) -> Result<Package> {
                 .map(|e| ("emitters".to_string(), e)),
         );
     for (what, e) in named {
-        if domain_file_bytes(e.vertices, e.triangles) != Some(e.bytes) {
+        if domain_file_bytes(e.vertices, e.triangles, e.colors) != Some(e.bytes) {
             return Err(format_error(
                 &path,
                 format!(
@@ -1136,6 +1169,13 @@ fn decode_domain(
         Vec4::new(f(b, 0), f(b, 1), f(b, 2), f(b, 3))
     })?;
     let uvs = read_items(r, v, 8, path, |b| Vec2::new(f(b, 0), f(b, 1)))?;
+    let colors = if entry.colors {
+        read_items(r, v, 16, path, |b| {
+            Vec4::new(f(b, 0), f(b, 1), f(b, 2), f(b, 3))
+        })?
+    } else {
+        Vec::new()
+    };
     let indices = read_items(r, t, 12, path, |b| [u(b, 0), u(b, 1), u(b, 2)])?;
     let material = read_items(r, t, 4, path, |b| u(b, 0))?;
     let ids = read_items(r, t, 4, path, |b| u(b, 0))?;
@@ -1145,6 +1185,7 @@ fn decode_domain(
             normals,
             tangents,
             uvs,
+            colors,
             indices,
             material,
         },
@@ -1197,11 +1238,20 @@ mod tests {
             normals: [Vec3::Z; 3],
             tangents: [Vec4::new(1.0, 0.0, 0.0, -1.0); 3],
             uvs: [Vec2::new(0.25, 0.75), Vec2::ZERO, Vec2::ONE],
+            colors: [Vec4::ONE; 3],
         };
         let mut b = Vec::new();
-        encode_record(&t, &mut b);
-        assert_eq!(b.len(), RECORD_BYTES);
-        assert_eq!(decode_record(&b), t);
+        encode_record(&t, false, &mut b);
+        assert_eq!(b.len(), record_bytes(false));
+        assert_eq!(decode_record(&b, false), t);
+        let t = SourceTriangle {
+            colors: [Vec4::new(0.5, 0.25, 1.0, 0.75), Vec4::ONE, Vec4::ZERO],
+            ..t
+        };
+        b.clear();
+        encode_record(&t, true, &mut b);
+        assert_eq!(b.len(), record_bytes(true));
+        assert_eq!(decode_record(&b, true), t);
     }
 
     #[test]
@@ -1216,8 +1266,9 @@ mod tests {
 
     #[test]
     fn file_size_formula_overflows_safely() {
-        assert_eq!(domain_file_bytes(0, 0), Some(32));
-        assert_eq!(domain_file_bytes(3, 1), Some(32 + 144 + 20));
-        assert_eq!(domain_file_bytes(u64::MAX / 2, 1), None);
+        assert_eq!(domain_file_bytes(0, 0, false), Some(32));
+        assert_eq!(domain_file_bytes(3, 1, false), Some(32 + 144 + 20));
+        assert_eq!(domain_file_bytes(3, 1, true), Some(32 + 144 + 48 + 20));
+        assert_eq!(domain_file_bytes(u64::MAX / 2, 1, false), None);
     }
 }

@@ -140,6 +140,8 @@ fn merge(
                 mesh.normals.push(src.normals[v as usize]);
                 mesh.tangents.push(src.tangents[v as usize]);
                 mesh.uvs.push(src.uvs[v as usize]);
+                let colour = src.colors.get(v as usize).map(std::slice::from_ref);
+                mesh.extend_colors(*slot as usize, colour);
             }
             *slot
         });
@@ -192,6 +194,7 @@ fn merged_is_the_part(parts: &[DomainMesh], emitters: &DomainMesh) -> bool {
         && m.normals.len() == n
         && m.tangents.len() == n
         && m.uvs.len() == n
+        && (m.colors.is_empty() || m.colors.len() == n)
         && ids.windows(2).all(|w| w[0] < w[1])
         && emitters
             .global_ids
@@ -272,10 +275,48 @@ mod tests {
                 let n = m.normals[v].to_array();
                 let g = m.tangents[v].to_array();
                 let u = m.uvs[v].to_array();
-                out.extend(p.iter().chain(&n).chain(&g).chain(&u).map(|x| x.to_bits()));
+                let c = m
+                    .colors
+                    .get(v)
+                    .copied()
+                    .unwrap_or(glam::Vec4::ONE)
+                    .to_array();
+                let all = p.iter().chain(&n).chain(&g).chain(&u).chain(&c);
+                out.extend(all.map(|x| x.to_bits()));
             }
         }
         out
+    }
+
+    /// Vertex colours survive the merge of several domains: each triangle of the resident
+    /// scene has its source triangle's corner colours, white ones included.
+    #[test]
+    fn the_merge_keeps_vertex_colours() {
+        let mut scene = crate::load("soup:400").unwrap();
+        let n = scene.mesh.positions.len();
+        scene.mesh.colors = (0..n)
+            .map(|i| glam::Vec4::new((i % 7) as f32 / 7.0, 0.5, 0.25, 1.0))
+            .collect();
+        let source = scene.clone();
+        let pkg = MemoryPackage::new(scene, &LayoutSpec::Kd(4)).unwrap();
+        let parts: Vec<_> = (0..pkg.domain_count())
+            .filter_map(|d| pkg.domain_mesh(d).cloned())
+            .collect();
+        assert!(parts.len() > 1);
+        let b = pkg.layout().scene_bounds();
+        let merged = merge(
+            pkg.tables().clone(),
+            (b.min, b.max),
+            parts,
+            pkg.emitters().clone(),
+        );
+        let m = &merged.scene.mesh;
+        assert_eq!(m.colors.len(), m.positions.len());
+        for (t, &g) in merged.global_ids.iter().enumerate() {
+            let want = source.mesh.indices[g as usize].map(|v| source.mesh.colors[v as usize]);
+            let have = m.indices[t].map(|v| m.colors[v as usize]);
+            assert_eq!(have, want, "triangle {g}");
+        }
     }
 
     /// One-domain packages (the embedded `dray render`) take the part as it is, and that

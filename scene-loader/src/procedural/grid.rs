@@ -216,6 +216,10 @@ impl TriangleSource for GridSource {
         }
         Ok(())
     }
+
+    fn has_colors(&self) -> bool {
+        self.base.has_colors()
+    }
 }
 
 /// `grid:SPEC:XxYxZ` in memory.

@@ -289,6 +289,7 @@ impl Sink for Builder<'_> {
                 normals,
                 tangents: None,
                 uvs: None,
+                colors: None,
                 indices,
                 material,
             },

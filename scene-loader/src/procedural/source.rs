@@ -33,4 +33,11 @@ impl TriangleSource for ProceduralSource {
             ProceduralSource::Generated(g) => g.for_each_triangle(f),
         }
     }
+
+    fn has_colors(&self) -> bool {
+        match self {
+            ProceduralSource::Grid(g) => g.has_colors(),
+            ProceduralSource::Generated(g) => g.has_colors(),
+        }
+    }
 }

@@ -87,6 +87,7 @@ impl Sink for StreamSink<'_> {
                 normals,
                 tangents: None,
                 uvs: None,
+                colors: None,
                 indices,
                 material,
             },
