@@ -11,22 +11,24 @@
 //! it measures:
 //!
 //! 1. **Scheduler round**: [`rebalance`] alone (pure), [`JobSchedule::round`] (adds the
-//!    views, the new table and the stale-load sweep) and [`Ledger::round`] end to end
-//!    (adds the copy of the new table queued for each of the N workers, all under the
-//!    ledger's lock), each fed one queue report per worker.
+//!    views, the new table and the stale-load sweep) and [`RunningJob::round`] end to end
+//!    (adds the copy of the new table queued for each of the N workers: what the job's
+//!    actor runs on its round timer), each fed one queue report per worker.
 //! 2. **Routing table**: the prost-encoded size of the table the coordinator really
 //!    builds ([`JobSchedule::table`]), what a change costs on the wire (N copies), its
 //!    in-memory size (each worker's outbox holds its own copy until its stream sends
 //!    it), the time to encode one copy, and what a delta or an owner-index form would
 //!    weigh (estimates from encoded sizes; neither is built).
-//! 3. **Report fan-in and the credit ledger**: [`Ledger::report`] for a
-//!    ReportContributions with 1,000 pixel sums and 10 tile credits, through the real
-//!    ledger (a [`Membership`] with N registered workers and a started [`DistJob`]);
-//!    the whole call runs under the ledger's one lock, so its time is the lock time.
-//!    Beside it: the same pixel and credit additions on a bare [`Film`] (the work the
-//!    ledger cannot avoid), the report's encoded size and its prost decode time (done by
-//!    tonic outside the lock, on any core).
-//! 4. **Queue reports**: [`Ledger::report_queues`] with one worker's report (its owned
+//! 3. **Report fan-in and the credit accounting**: what a job's actor runs for a
+//!    ReportContributions with 1,000 pixel sums and 10 tile credits ([`report::check`],
+//!    [`report::apply`], [`RunningJob::publish`]), on a real started job (a
+//!    [`Membership`] with N registered workers and a [`RunningJob`] started on them). One
+//!    job's reports are applied one at a time by its actor, so this time bounds one
+//!    job's report rate; other jobs run on other actors. Beside it: the same pixel and
+//!    credit additions on a bare [`Film`] (the work the job cannot avoid), the report's
+//!    encoded size and its prost decode time (done by tonic outside the actor, on any
+//!    core).
+//! 4. **Queue reports**: [`RunningJob::queue_report`] with one worker's report (its owned
 //!    domains plus the domains it holds rays for).
 //!
 //! Why synthetic reports are shaped this way: a worker reports, per job, one entry per
@@ -41,9 +43,9 @@
 //!
 //! What is not simulated: gRPC and HTTP/2 framing, the network, the tokio tasks that
 //! encode each worker's stream, tracing spans with a subscriber installed, other jobs
-//! sharing the lock, and memory-bandwidth contention from tracing on the same machine.
-//! Reports are applied from one thread, so the lock is never contended here: the times
-//! are the lock's hold times, a floor on what a busy coordinator sees.
+//! sharing the machine, the actor's mailbox hop, and memory-bandwidth contention from
+//! tracing on the same machine. Reports are applied from one thread: the times are the
+//! actor's busy time per call, a floor on what a busy coordinator sees.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::hint::black_box;
@@ -51,8 +53,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use dray_coordinator::dispatch::image_tiles;
+use dray_coordinator::job::report::{self, Applied};
+use dray_coordinator::job::{JobPlan, RunningJob};
 use dray_coordinator::jobs::JobTable;
-use dray_coordinator::ledger::{DistJob, Ledger, ReportOutcome};
 use dray_coordinator::membership::{HeartbeatConfig, Membership, VERSION};
 use dray_coordinator::metrics::JobMetrics;
 use dray_coordinator::scheduler::policy::{RoundInput, Schedule, rebalance, views};
@@ -206,12 +209,14 @@ fn per_fresh<S, R>(
     (times[times.len() / 2], last.expect("at least one sample"))
 }
 
-/// A coordinator's ledger with N registered workers and one started dynamic job of D
-/// domains on all of them (the real code path: Membership::register, JobSchedule::new,
-/// DistJob::new, Ledger::start; start queues each worker's JobSetup and tiles in its
-/// outbox, which nothing drains here).
+/// A coordinator with N registered workers and one started dynamic job of D domains on
+/// all of them (the real code path: Membership::register, JobSchedule::new,
+/// RunningJob::new, RunningJob::start; start queues each worker's JobSetup and tiles in
+/// its outbox, which nothing drains here). The job's state is driven directly, as its
+/// actor drives it.
 struct Sim {
-    ledger: Ledger,
+    membership: Arc<Membership>,
+    running: RunningJob,
     job: String,
     /// Worker ids in job order.
     ids: Vec<String>,
@@ -260,11 +265,18 @@ impl Sim {
             domain_count: d,
             ..Default::default()
         };
-        let dist = DistJob::new(entry, setup, sched, image_tiles(WIDTH, HEIGHT), None);
-        let ledger = Ledger::new(membership);
-        ledger.start(dist).expect("start");
+        let mut running = RunningJob::new(JobPlan {
+            entry,
+            setup,
+            sched,
+            tiles: image_tiles(WIDTH, HEIGHT),
+            owned_package: None,
+            caches: None,
+        });
+        running.start(&membership).expect("start");
         Sim {
-            ledger,
+            membership,
+            running,
             job,
             ids,
             workers,
@@ -414,7 +426,7 @@ fn jiffies() -> Option<(u64, u64)> {
 struct Case {
     n: usize,
     d: u32,
-    ledger_round: Duration,
+    job_round: Duration,
     contrib: Duration,
     queues: Duration,
 }
@@ -435,7 +447,7 @@ fn main() {
     let cores = std::thread::available_parallelism().map_or(0, |n| n.get());
     println!("# dray coordinator scale simulation");
     println!();
-    println!("cores: {cores}; CPU: {cpu}; samples: {samples} (ledger rounds: {big_samples})");
+    println!("cores: {cores}; CPU: {cpu}; samples: {samples} (job rounds: {big_samples})");
     println!(
         "image {WIDTH}x{HEIGHT}; a contribution report: {REPORT_PIXELS} pixel sums, \
          {REPORT_TILES} tile credits"
@@ -448,7 +460,7 @@ fn main() {
     println!();
     println!(
         "| N | D | queue entries (all reports) | moves | rebalance | JobSchedule::round | \
-         Ledger::round (with N table copies) |"
+         RunningJob::round (with N table copies) |"
     );
     println!("|---:|---:|---:|---:|---:|---:|---:|");
     let mut tables = Vec::new();
@@ -497,30 +509,33 @@ fn main() {
         let RoundOutcome::Changed(new_table, changes) = out else {
             panic!("JobSchedule::round changed nothing");
         };
-        // End to end through the ledger, on a fresh coordinator each sample.
+        // End to end through the job's state, on a fresh coordinator each sample.
         drop(sim);
-        let (t_ledger, out) = per_fresh(
+        let (t_job, out) = per_fresh(
             rs,
             || {
-                let sim = Sim::new(n, d);
+                let mut sim = Sim::new(n, d);
                 for r in sim.queue_requests(d) {
-                    sim.ledger.report_queues(&r).expect("job running");
+                    sim.running.queue_report(&r).expect("job running");
                 }
                 sim
             },
-            |s| s.ledger.round(&s.job, Instant::now(), Duration::ZERO),
+            |s| {
+                s.running
+                    .round(&s.membership, Instant::now(), Duration::ZERO)
+            },
         );
-        assert!(matches!(out, Some(RoundOutcome::Changed(..))));
+        assert!(matches!(out, RoundOutcome::Changed(..)));
         println!(
             "| {n} | {d} | {entries} | {moves} | {} | {} | {} |",
             us(t_rebalance),
             us(t_sched),
-            us(t_ledger)
+            us(t_job)
         );
         cases.push(Case {
             n,
             d,
-            ledger_round: t_ledger,
+            job_round: t_job,
             ..Default::default()
         });
         tables.push((n, d, sched.table(), new_table, changes));
@@ -540,7 +555,7 @@ fn main() {
         let t_encode = per_call(samples, || {
             black_box(black_box(new_table).encode_to_vec());
         });
-        // What Ledger::round spends on copies alone: N clones of the new table, kept
+        // What RunningJob::round spends on copies alone: N clones of the new table, kept
         // (as the outboxes keep them) until the sample ends.
         let (t_clones, _) = per_fresh(
             if *n * *d as usize > 1_000_000 {
@@ -615,17 +630,17 @@ fn main() {
     }
 
     println!();
-    println!("## 3. Report fan-in: ReportContributions through Ledger::report");
+    println!("## 3. Report fan-in: ReportContributions through the job's state");
     println!();
     println!(
         "| N | report encoded | prost decode | film + credit adds only | has_worker | \
-         metrics.fill | Ledger::report (lock held) | reports/s per core | \
-         workers per core at 100/s | lock load at N workers | wire in at N |"
+         metrics.fill | check + apply + publish | reports/s per core | \
+         workers per core at 100/s | actor load at N workers | wire in at N |"
     );
     println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     let mut contrib_by_n = BTreeMap::new();
     for &(n, d) in CASES.iter().filter(|(n, d)| *d as usize == 4 * n) {
-        let sim = Sim::new(n, d);
+        let mut sim = Sim::new(n, d);
         let mut reqs = sim.contribution_requests();
         let wire = reqs[0].encode_to_vec();
         let t_decode = per_call(samples, || {
@@ -647,10 +662,9 @@ fn main() {
             }
         });
         black_box((&film, &back));
-        // Two O(N) steps every report takes under the lock: the membership check (a
-        // linear scan of the job's workers) and JobStats' per-worker detail, rebuilt by
-        // DistJob::publish through JobMetrics::fill.
-        let sched = sim.ledger.schedule(&sim.job).expect("job running");
+        // Two steps every report takes: the membership check and JobStats' per-worker
+        // detail, rebuilt by RunningJob::publish through JobMetrics::fill.
+        let sched = sim.running.schedule().clone();
         let mut k = 0;
         let t_has = per_call(samples, || {
             black_box(sched.has_worker(black_box(&sim.ids[k % n])));
@@ -665,14 +679,17 @@ fn main() {
         let t_fill = per_call(samples, || {
             metrics.fill(black_box(&mut stats));
         });
-        // The real ledger: workers in turn, each report a new sequence.
+        // What the job's actor runs: workers in turn, each report a new sequence.
         let mut k = 0;
         let t_report = per_call(samples, || {
             let r = &mut reqs[k % n];
             k += 1;
             r.sequence += 1;
-            let out = sim.ledger.report(r).expect("report accepted");
-            debug_assert_eq!(out, ReportOutcome::Applied);
+            let checked = report::check(&sim.running, r).expect("report accepted");
+            debug_assert_eq!(checked, None);
+            let out = report::apply(&mut sim.running, r);
+            debug_assert_eq!(out, Applied::Counted);
+            sim.running.publish();
             black_box(out);
         });
         let per_s = 1.0 / t_report.as_secs_f64();
@@ -693,26 +710,26 @@ fn main() {
     }
 
     println!();
-    println!("## 4. Queue reports through Ledger::report_queues");
+    println!("## 4. Queue reports through RunningJob::queue_report");
     println!();
     println!(
-        "| N | D | entries per report (mean) | Ledger::report_queues (lock held) | reports/s per core | \
-         lock load at N workers (10/s each) |"
+        "| N | D | entries per report (mean) | RunningJob::queue_report | reports/s per core | \
+         actor load at N workers (10/s each) |"
     );
     println!("|---:|---:|---:|---:|---:|---:|");
     for c in &mut cases {
         let (n, d) = (c.n, c.d);
-        let sim = Sim::new(n, d);
+        let mut sim = Sim::new(n, d);
         let reqs = sim.queue_requests(d);
         for r in &reqs {
-            sim.ledger.report_queues(r).expect("job running");
+            sim.running.queue_report(r).expect("job running");
         }
         let mean = reqs.iter().map(|r| r.queues.len()).sum::<usize>() as f64 / n as f64;
         let mut k = 0;
         let t = per_call(samples, || {
             let r = &reqs[k % n];
             k += 1;
-            black_box(sim.ledger.report_queues(r));
+            black_box(sim.running.queue_report(r));
         });
         println!(
             "| {n} | {d} | {mean:.1} | {} | {:.0} | {:.2} cores |",
@@ -725,12 +742,12 @@ fn main() {
     }
 
     println!();
-    println!("## 5. Load on the ledger lock, one job on all N workers");
+    println!("## 5. Load on one job's actor, one job on all N workers");
     println!();
     println!(
-        "Cores of lock time per second: N x 100 contribution reports, N x 10 queue reports, \
-         5 rounds (one per 200 ms round interval). Above 1.0 the lock cannot keep up, however \
-         many cores the coordinator has."
+        "Cores of the job actor's time per second: N x 100 contribution reports, N x 10 queue \
+         reports, 5 rounds (one per 200 ms round interval). Above 1.0 one job's actor cannot \
+         keep up, however many cores the coordinator has (other jobs have their own)."
     );
     println!();
     println!("| N | D | contributions | queue reports | rounds | total |");
@@ -739,7 +756,7 @@ fn main() {
         let nf = c.n as f64;
         let a = nf * CONTRIB_PER_S * c.contrib.as_secs_f64();
         let b = nf * QUEUES_PER_S * c.queues.as_secs_f64();
-        let r = ROUNDS_PER_S * c.ledger_round.as_secs_f64();
+        let r = ROUNDS_PER_S * c.job_round.as_secs_f64();
         println!(
             "| {} | {} | {a:.3} | {b:.3} | {r:.3} | **{:.3}** |",
             c.n,
@@ -747,7 +764,7 @@ fn main() {
             a + b + r
         );
     }
-    // Where contributions alone fill the lock: fit t(N) = a + bN through the N = 100 and
+    // Where contributions alone fill one job's actor: fit t(N) = a + bN through the N = 100 and
     // N = 1000 points and solve 100 N t(N) = 1.
     if let (Some(t1), Some(t2)) = (contrib_by_n.get(&100), contrib_by_n.get(&1000)) {
         let (t1, t2) = (t1.as_secs_f64(), t2.as_secs_f64());
@@ -761,8 +778,8 @@ fn main() {
         };
         println!();
         println!(
-            "Contribution report cost fitted as t(N) = {:.2} µs + {:.2} ns x N; the lock is \
-             full of contribution reports alone at N = {nstar:.0} workers (100 reports/s each).",
+            "Contribution report cost fitted as t(N) = {:.2} µs + {:.2} ns x N; one job's \
+             actor is full of contribution reports alone at N = {nstar:.0} workers (100 reports/s each).",
             a * 1e6,
             b * 1e9
         );

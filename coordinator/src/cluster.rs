@@ -1,13 +1,13 @@
 //! `dray.v1.ClusterService`: the calls workers make to the coordinator, over the
-//! [`Membership`], the [`Ledger`] and the [`Scheduler`].
+//! [`Membership`] and the [`JobRegistry`] (one actor per running job).
 //!
 //! Stand-alone cache hosts (`dray cache`) register here too (RegisterCacheHost), and are
 //! listed in [`Membership::cache_hosts`](crate::membership::Membership::cache_hosts).
 //!
 //! Workers dial out; the coordinator answers and pushes commands on each worker's
 //! WatchAssignments stream. See cluster.proto for the protocol and [`crate::dispatch`] for
-//! what a job's workers receive, in order. Registrations, queue reports and lost workers
-//! become [`SchedulerEvent`]s; the RPCs answer without waiting for the scheduler.
+//! what a job's workers receive, in order. Reports and queue reports go to their job's
+//! actor and are answered by it; registrations and lost workers are posted to every job.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -24,9 +24,9 @@ use dray_scene::partition::memory::MemoryPackages;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status};
 
-use crate::ledger::Ledger;
+use crate::job::{ActorConfig, JobRegistry};
 use crate::membership::{HeartbeatConfig, Membership};
-use crate::scheduler::{Scheduler, SchedulerEvent, SchedulerOptions};
+use crate::scheduler::SchedulerOptions;
 pub use crate::work_dir::WorkDir;
 
 /// Settings of the cluster side of the coordinator.
@@ -79,10 +79,8 @@ pub const DEFAULT_STALL_TIMEOUT: Duration = Duration::from_secs(1800);
 pub struct Cluster {
     /// Registered workers and their command outboxes.
     pub membership: Arc<Membership>,
-    /// Jobs running on workers: credit, film, and each job's scheduling state.
-    pub ledger: Arc<Ledger>,
-    /// The scheduler's event loop (run by [`crate::serve`]).
-    pub scheduler: Scheduler,
+    /// Jobs running on workers, one actor each: credit, film, schedule, caches.
+    pub jobs: Arc<JobRegistry>,
     /// Settings.
     pub options: ClusterOptions,
     /// Package cuts in progress (a job's folder being written), so that a stopping
@@ -94,25 +92,25 @@ impl Cluster {
     /// A cluster with no workers.
     pub fn new(options: ClusterOptions) -> Cluster {
         let membership = Arc::new(Membership::new(options.heartbeat));
-        let ledger = Ledger::shared(membership.clone());
+        let jobs = Arc::new(JobRegistry::new(
+            membership.clone(),
+            ActorConfig {
+                round_interval: options.scheduler.round_interval,
+                stall_timeout: options.stall_timeout,
+            },
+        ));
         Cluster {
-            scheduler: Scheduler::new(ledger.clone(), options.scheduler),
-            ledger,
+            jobs,
             membership,
             options,
             cuts: std::sync::atomic::AtomicUsize::new(0),
         }
     }
 
-    /// Drop workers silent for too long; the scheduler restarts their jobs on the
-    /// survivors (or fails them when none is left). Fail jobs that made no progress for
-    /// the stall timeout. Returns how many workers were dropped.
-    pub fn reap(&self, now: Instant) -> usize {
-        if let Some(timeout) = self.options.stall_timeout {
-            for id in self.ledger.fail_stalled(now, timeout) {
-                self.scheduler.post(SchedulerEvent::JobEnded { job_id: id });
-            }
-        }
+    /// Drop workers silent for too long; their jobs restart on the survivors (or fail
+    /// when none is left). Returns how many workers were dropped. (A job that makes no
+    /// progress fails on its own actor's stall timer.)
+    pub async fn reap(&self, now: Instant) -> usize {
         // Cache hosts refresh at the heartbeat interval and are dropped after the same
         // silence as workers; a job using one that died already bypasses it.
         self.membership
@@ -121,25 +119,20 @@ impl Cluster {
         let lost = self.membership.expire(now);
         let n = lost.len();
         for w in lost {
-            self.scheduler.post(SchedulerEvent::WorkerLost(w));
+            self.jobs.worker_lost(&w).await;
         }
         n
     }
 
     /// Call [`Cluster::reap`] periodically, forever (the server aborts it on shutdown).
     pub async fn reaper(self: Arc<Self>) {
-        // A quarter of the timeout: a lost worker (or a stalled job) is noticed within
-        // 1.25 timeouts.
-        let shortest = match self.options.stall_timeout {
-            Some(stall) => stall.min(self.options.heartbeat.timeout),
-            None => self.options.heartbeat.timeout,
-        };
-        let period = (shortest / 4).max(Duration::from_millis(10));
+        // A quarter of the timeout: a lost worker is noticed within 1.25 timeouts.
+        let period = (self.options.heartbeat.timeout / 4).max(Duration::from_millis(10));
         let mut tick = tokio::time::interval(period);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
             tick.tick().await;
-            self.reap(Instant::now());
+            self.reap(Instant::now()).await;
         }
     }
 }
@@ -165,7 +158,7 @@ impl ClusterService for ClusterApi {
         let w_token = w.member_token.expose().to_string();
         let hb = self.cluster.membership.heartbeat;
         let id = w.id.clone();
-        self.cluster.scheduler.post(SchedulerEvent::WorkerJoined(w));
+        self.cluster.jobs.worker_joined(&w).await;
         Ok(Response::new(RegisterWorkerResponse {
             worker_id: id,
             heartbeat_interval: duration(hb.interval),
@@ -213,7 +206,7 @@ impl ClusterService for ClusterApi {
         r: Request<GetRoutingTableRequest>,
     ) -> Result<Response<GetRoutingTableResponse>, Status> {
         let id = &r.get_ref().job_id;
-        match self.cluster.ledger.routing(id) {
+        match self.cluster.jobs.routing(id).await {
             Some(t) => Ok(Response::new(GetRoutingTableResponse { routing: Some(t) })),
             None => Err(Status::not_found(format!(
                 "job_id: no running job {} on this cluster",
@@ -234,12 +227,7 @@ impl ClusterService for ClusterApi {
         // 0 tells the worker the job is not running at that attempt (versions start at
         // 1): it is over, or a lost worker made it start again (the release of the old
         // attempt is then on its way).
-        let routing_version = self.cluster.ledger.report_queues(&r).unwrap_or(0);
-        if routing_version != 0 {
-            self.cluster
-                .scheduler
-                .post(SchedulerEvent::QueueReport { job_id: r.job_id });
-        }
+        let routing_version = self.cluster.jobs.report_queues(r).await.unwrap_or(0);
         Ok(Response::new(ReportQueuesResponse { routing_version }))
     }
 
@@ -252,30 +240,21 @@ impl ClusterService for ClusterApi {
             .check_member(&r.get_ref().worker_id, r.metadata())?;
         let r = r.into_inner();
         self.cluster.membership.touch(&r.worker_id);
-        let outcome = self.cluster.ledger.report(&r)?;
+        let reporter = r.worker_id.clone();
+        let reply = self.cluster.jobs.report(r).await?;
         // Peers this worker could not send rays to are lost to the job (their rays were
-        // dropped): the job restarts on the others, as after a missed heartbeat. Only
-        // peers of a job still running, named by one of its workers, count.
-        if outcome.job_active() {
-            for peer in r.unreachable_peers.iter().take(16) {
-                if peer != &r.worker_id
-                    && self.cluster.ledger.has_worker(&r.job_id, peer)
-                    && let Some(lost) =
-                        self.cluster
-                            .membership
-                            .drop_unreachable(peer, &r.worker_id, Instant::now())
-                {
-                    self.cluster
-                        .scheduler
-                        .post(SchedulerEvent::WorkerLost(lost));
-                }
+        // dropped): the job restarts on the others, as after a missed heartbeat. The job
+        // named only its own workers, and only while it runs.
+        for peer in &reply.unreachable {
+            if let Some(lost) =
+                self.cluster
+                    .membership
+                    .drop_unreachable(peer, &reporter, Instant::now())
+            {
+                self.cluster.jobs.worker_lost(&lost).await;
             }
         }
-        if outcome.ended() {
-            self.cluster
-                .scheduler
-                .post(SchedulerEvent::JobEnded { job_id: r.job_id });
-        }
+        let outcome = reply.outcome;
         Ok(Response::new(ReportContributionsResponse {
             job_active: outcome.job_active(),
         }))

@@ -20,7 +20,7 @@
 //!    scheduler moves or replicates domains, or when a worker joins a dynamic job;
 //! 4. when a worker of the job is lost: `cancel` of the old attempt, then a new
 //!    `JobSetup` (attempt + 1, a new table over the survivors) and the tiles that were
-//!    not complete, dealt by the same rule over the survivors (see [`crate::ledger`]);
+//!    not complete, dealt by the same rule over the survivors (see [`crate::job`]);
 //! 5. at the end, exactly one `finish` (every tile's credit came back) or `cancel`
 //!    (CancelJob, a worker's failure report, a credit error, or the last worker lost)
 //!    `JobRelease` of the current attempt.
@@ -55,8 +55,8 @@ use crate::caches::geometry::WallGeometry;
 use crate::caches::job::{self as cache_job, JobCaches, OpenAttempt};
 use crate::caches::lifecycle;
 use crate::cluster::Cluster;
+use crate::job::JobPlan;
 use crate::jobs::JobEntry;
-use crate::ledger::DistJob;
 use crate::owned_package::{OwnedPackage, remove_package};
 use crate::scheduler::Schedule;
 use crate::scheduler::state::{JobSchedule, JobWorker};
@@ -71,9 +71,7 @@ pub const TILE_SIZE: u32 = render::TILE;
 /// credit never overflow a u64 however they are grouped.
 pub const TILE_CREDIT: u64 = 1 << 62;
 
-/// Tiles per TileAssignment message, to stay well below gRPC's default 4 MiB message
-/// limit on the worker's side even for a 16384x16384 image on one worker.
-pub const TILES_PER_MESSAGE: usize = 4096;
+pub use crate::job::TILES_PER_MESSAGE;
 
 /// Domains per worker when the job does not say: the dynamic-scheduling paper found
 /// several times more domains than processes best, and it gives the dynamic scheduler
@@ -524,7 +522,7 @@ async fn run(
     };
     let mut tiles = image_tiles(entry.spec.width, entry.spec.height);
     // The coarse pass's tiles come after the image's: traced first, they fill the caches
-    // before any image ray looks them up (see the ledger).
+    // before any image ray looks them up (see `crate::job::running`).
     let coarse = setup
         .spec
         .as_ref()
@@ -543,17 +541,21 @@ async fn run(
         s.schedule = schedule.name().to_string();
     });
     let tile_count = tiles.len();
-    let mut job = DistJob::new(entry.clone(), setup, sched, tiles, owned.clone());
     // What to close if the job never starts (cancelled while its walls opened).
     let opened = caches.as_ref().and_then(|c| {
         c.opened
             .clone()
             .map(|o| (o, c.tally.clone(), c.net.clone()))
     });
-    if let Some(c) = caches {
-        job = job.with_caches(c);
-    }
-    match cluster.ledger.start(job) {
+    let plan = JobPlan {
+        entry: entry.clone(),
+        setup,
+        sched,
+        tiles,
+        owned_package: owned.clone(),
+        caches,
+    };
+    match cluster.jobs.start(plan).await {
         Ok(()) => {
             tracing::info!(
                 workers = n,

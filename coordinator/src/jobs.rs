@@ -1,7 +1,7 @@
 //! The job table: every job the server accepted, its state and progress, and the finished
 //! film (fixed-point sums, so GetImage can encode PNG at any exposure, or EXR).
 //!
-//! With workers registered, a job runs on them (`dispatch`, `ledger`). With none, jobs
+//! With workers registered, a job runs on them (`dispatch`, `job`). With none, jobs
 //! run one at a time, in submission order, in this process: a job waits QUEUED for the
 //! render gate, builds its geometry (PREPARING), then traces tiles on a blocking thread
 //! (RUNNING). Cancellation is cooperative: a flag the
@@ -156,7 +156,7 @@ impl JobEntry {
         &self.cancel
     }
 
-    /// Set the number of committed tiles (distributed jobs count them in the ledger).
+    /// Set the number of committed tiles (distributed jobs count them in their actor).
     pub(crate) fn set_tiles_done(&self, done: u32) {
         self.tiles_done.store(done, Ordering::Relaxed);
     }

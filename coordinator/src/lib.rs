@@ -16,11 +16,12 @@
 //!   the scene root; every rejection is `INVALID_ARGUMENT` naming the field.
 //! - [`jobs`]: the job table, the in-process render task, cancellation, image encoding.
 //! - [`membership`]: registered workers, heartbeats, per-worker command outboxes.
-//! - [`dispatch`]: a job's package, JobSetup and tiles, queued for its workers.
-//! - [`scheduler`]: the event loop over queue reports, joins and losses, the schedules
-//!   as pure policies, versioned routing tables.
-//! - [`ledger`]: credit per tile, the exact fixed-point film, attempts (restarting a
-//!   job's unfinished tiles without a lost worker), releases.
+//! - [`dispatch`]: a job's package, JobSetup and tiles: the plan a job starts from.
+//! - [`job`]: one actor per running job, routed to by job id: credit per tile, the
+//!   exact fixed-point film, attempts (restarting a job's unfinished tiles without a lost
+//!   worker), round pacing, cache walls, releases.
+//! - [`scheduler`]: the schedules as pure policies, each job's scheduling state,
+//!   versioned routing tables.
 //! - [`metrics`]: the workers' scheduling counters summed into JobStats.
 //! - [`caches`]: ray caches on domain walls: cache hosts, where each attempt's cache
 //!   actors live, opening and closing their walls, and their statistics.
@@ -34,8 +35,8 @@ pub mod caches;
 pub mod cluster;
 pub mod cpu_tally;
 pub mod dispatch;
+pub mod job;
 pub mod jobs;
-pub mod ledger;
 pub mod membership;
 pub mod metrics;
 pub mod owned_package;

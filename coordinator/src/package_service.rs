@@ -34,7 +34,7 @@ use dray_scene::partition::open_package;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status};
 
-use crate::ledger::Ledger;
+use crate::job::JobRegistry;
 
 /// Largest `FileChunk.data`: small enough for gRPC's default 4 MiB message limit with
 /// room to spare, large enough that per-message costs vanish.
@@ -65,16 +65,16 @@ struct Files {
 /// The tonic `PackageService` over the coordinator's running jobs.
 #[derive(Clone)]
 pub struct PackageApi {
-    ledger: Arc<Ledger>,
+    jobs: Arc<JobRegistry>,
     /// File tables by job id, dropped once the job no longer runs.
     tables: Arc<Mutex<HashMap<String, Arc<Files>>>>,
 }
 
 impl PackageApi {
-    /// Serve the packages of the jobs `ledger` runs.
-    pub fn new(ledger: Arc<Ledger>) -> PackageApi {
+    /// Serve the packages of the jobs `jobs` runs.
+    pub fn new(jobs: Arc<JobRegistry>) -> PackageApi {
         PackageApi {
-            ledger,
+            jobs,
             tables: Arc::new(Mutex::new(HashMap::new())),
         }
     }
@@ -85,9 +85,9 @@ impl PackageApi {
 
     /// The file table of running job `job` (read from its manifest on first use).
     async fn files(&self, job: &str) -> Result<Arc<Files>, Status> {
-        let Some((path, checksum)) = self.ledger.package(job) else {
+        let Some((path, checksum)) = self.jobs.package(job) else {
             // Forget the tables of jobs that ended.
-            self.lock().retain(|id, _| self.ledger.contains(id));
+            self.lock().retain(|id, _| self.jobs.contains(id));
             return Err(Status::not_found(format!(
                 "job {job:?} is not running on workers: there is no package to fetch"
             )));
@@ -107,7 +107,7 @@ impl PackageApi {
             .map_err(|e| Status::internal(format!("manifest reading task died: {e}")))??;
         let table = Arc::new(table);
         let mut g = self.lock();
-        g.retain(|id, _| self.ledger.contains(id));
+        g.retain(|id, _| self.jobs.contains(id));
         g.insert(job.to_string(), table.clone());
         Ok(table)
     }

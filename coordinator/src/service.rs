@@ -24,7 +24,6 @@ use crate::cluster::{Cluster, ClusterApi, ClusterOptions};
 use crate::dispatch;
 use crate::jobs::{JobEntry, JobTable, encode_exr, encode_png};
 use crate::package_service::PackageApi;
-use crate::scheduler::SchedulerEvent;
 use crate::validate::{Limits, bounded, prepare, validate};
 
 /// Default least time between two WatchJob messages.
@@ -432,11 +431,7 @@ impl RenderService for Coordinator {
         let job = self.job(&r.get_ref().job_id)?;
         // Mark it first: a dispatch racing with this sees the state and does not start.
         job.cancel();
-        if self.cluster.ledger.cancel(&job.id) {
-            self.cluster.scheduler.post(SchedulerEvent::JobEnded {
-                job_id: job.id.clone(),
-            });
-        }
+        self.cluster.jobs.cancel(&job.id).await;
         Ok(Response::new(CancelJobResponse {
             job: Some(job.to_job()),
         }))
@@ -501,7 +496,7 @@ impl RenderService for Coordinator {
     }
 }
 
-/// Aborts a task when dropped, so the heartbeat reaper and the scheduler stop with the
+/// Aborts a task when dropped, so the heartbeat reaper stops with the
 /// server however `serve` ends (returned, failed, or its future dropped).
 struct AbortOnDrop(tokio::task::JoinHandle<()>);
 
@@ -541,7 +536,6 @@ pub async fn serve_with(
     let cluster = coordinator.cluster.clone();
     let work_dir = cluster.options.work_dir.clone();
     let _reaper = AbortOnDrop(tokio::spawn(cluster.clone().reaper()));
-    let _scheduler = AbortOnDrop(tokio::spawn(cluster.scheduler.run()));
     let shutdown = async move {
         shutdown.await;
         cluster.membership.close_all();
@@ -550,7 +544,7 @@ pub async fn serve_with(
         cluster: coordinator.cluster.clone(),
     });
     // Workers without the coordinator's disk fetch the jobs' packages from here.
-    let packages = PackageServiceServer::new(PackageApi::new(coordinator.cluster.ledger.clone()));
+    let packages = PackageServiceServer::new(PackageApi::new(coordinator.cluster.jobs.clone()));
     let render = RenderServiceServer::new(coordinator).max_encoding_message_size(usize::MAX);
     let routes = tonic::service::Routes::new(render)
         .add_service(cluster_api)

@@ -1,5 +1,5 @@
-//! One job's ray caches, as the ledger holds them next to its credit: the resolved knobs,
-//! the boxes, the statistics so far, and which attempt's walls are open.
+//! One job's ray caches, as the job's actor holds them next to its credit: the resolved
+//! knobs, the boxes, the statistics so far, and which attempt's walls are open.
 //!
 //! **Who closes what.** An attempt's walls are opened before its tiles go out and
 //! closed when it ends. `opened` names the attempt whose walls are open; whoever ends
@@ -8,7 +8,7 @@
 //! closes the old walls before opening the new ones (a host drops older attempts of a
 //! job when a newer one opens, so the order matters for the statistics). `pending`
 //! names an attempt whose walls are being opened and whose tiles wait for that; if the
-//! attempt is replaced or the job ends meanwhile, the task opening it closes it itself.
+//! attempt is replaced or the job ends meanwhile, the actor closes what that task opened.
 
 use std::sync::Arc;
 

@@ -11,7 +11,7 @@
 //!   else round robin), and the re-placement when a host fails.
 //! - [`lifecycle`]: OpenWalls before an attempt's tiles go out (re-placing around hosts
 //!   that fail), CloseWalls when it ends, with deadlines.
-//! - [`job`]: a job's caches in the ledger: knobs, boxes, which attempt is open.
+//! - [`job`]: a job's caches as its actor holds them: knobs, boxes, which attempt is open.
 //! - [`geometry`]: the scene and domain boxes OpenWalls carries.
 //! - [`tally`]: the job's `RayCacheStats`, from the hosts and the workers.
 //!

@@ -2,8 +2,8 @@
 //! CloseWalls when an attempt ends) and the workers' cache counters (in their
 //! contribution reports), published as `JobStats.ray_cache`.
 //!
-//! Shared (`Arc`) between the job in the ledger and the tasks that close its walls, since
-//! a host's statistics may arrive after the job has left the ledger (a job that failed
+//! Shared (`Arc`) between the job's actor and the tasks that close its walls, since
+//! a host's statistics may arrive after the job has left the registry (a job that failed
 //! or was cancelled) or while a new attempt's walls are being opened. Every change is
 //! published to the job record under the tally's own lock, so two writers cannot leave
 //! an older sum in place of a newer one.
@@ -161,7 +161,7 @@ impl CacheTally {
         // The entry's lock is a leaf (nothing is locked under it), so holding ours
         // across it cannot deadlock, and orders the writes.
         // Savings net of what consulting caches and maps cost between processes, from
-        // the traffic the ledger publishes first (zero before any worker reported).
+        // the traffic the job publishes first (zero before any worker reported).
         entry.update_stats(|s| {
             let traffic = s.traffic.unwrap_or_default();
             s.ray_cache = self.caches.then(|| {

@@ -1,7 +1,7 @@
 //! One job's scheduling state: the schedule, the current table, the workers with their
-//! budgets, and what the latest queue reports said. The ledger holds one per running job
-//! (under the same lock as the job's credit, so an attempt bump, its new table and its
-//! tiles change together); the [event loop](super::event) drives its rounds.
+//! budgets, and what the latest queue reports said. Each job's actor
+//! ([`crate::job::actor`]) owns one next to the job's credit, so an attempt bump, its new
+//! table and its tiles change in one step; the actor's timer paces its rounds.
 //!
 //! Every method is synchronous and clock-free apart from the `now` it is given, so this
 //! too is tested without a server.

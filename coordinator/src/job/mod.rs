@@ -1,0 +1,20 @@
+//! Jobs running on workers, one actor per job (docs/architecture.md "The coordinator").
+//!
+//! - [`registry`]: routes calls to jobs by id and holds every job's actor.
+//! - [`actor`]: one job's task: its mailbox, round timer, stall timeout and cache walls.
+//! - [`event`]: what an actor is told.
+//! - [`running`]: what an actor owns: tiles and credit, the film, the schedule, the
+//!   caches, the counters it publishes; and the commands they cause.
+//! - [`report`]: a contribution report, checked and applied.
+
+pub mod actor;
+pub mod event;
+pub mod registry;
+pub mod report;
+pub mod running;
+
+pub use actor::ActorConfig;
+pub use event::{JobEvent, ReportReply};
+pub use registry::JobRegistry;
+pub use report::ReportOutcome;
+pub use running::{JobPlan, RunningJob, TILES_PER_MESSAGE};

@@ -1,0 +1,386 @@
+//! One ReportContributions call against a running job, in three steps each testable
+//! alone: [`check`] (is it for this attempt, from a worker of the job, new, and
+//! well-formed?), [`apply`] (add its pixels, credit and counters), and the transitions
+//! the actor makes from what `apply` found (the coarse pass complete, the job complete,
+//! credit overdrawn: see [`super::actor`]).
+//!
+//! A report is applied at most once per `(worker, job, attempt, sequence)`, so a worker
+//! may retry a call whose answer it lost. Everything is checked before anything changes,
+//! so a malformed report leaves the job as it was (and may be sent again, fixed, under
+//! the same sequence).
+//!
+//! **Contract for workers:** a ray's contribution must be reported in the same report as
+//! the credit it returns, or an earlier one: the job succeeds (and its film is frozen)
+//! the moment the last credit arrives. Sequences start at 1 for each attempt. Credit
+//! beyond a tile's start means something was counted twice, which would silently
+//! brighten the image, so it fails the job instead.
+
+use std::collections::BTreeSet;
+use std::time::Instant;
+
+use dray_proto::v1::ReportContributionsRequest;
+use tonic::Status;
+
+use super::running::RunningJob;
+use crate::metrics;
+
+/// What happened to a report (for logs and tests).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ReportOutcome {
+    /// Applied; the job goes on.
+    Applied,
+    /// This sequence was applied before; nothing changed.
+    Duplicate,
+    /// Applied, and it completed the job.
+    Completed,
+    /// The job failed (the worker's failure, or a credit error).
+    Failed,
+    /// The job is not running (unknown, finished, cancelled or failed).
+    Inactive,
+    /// The report belongs to an attempt the job has dropped (a worker was lost since);
+    /// nothing was counted and the worker should release that attempt.
+    Stale,
+}
+
+impl ReportOutcome {
+    /// `ReportContributionsResponse.job_active`.
+    pub fn job_active(self) -> bool {
+        matches!(self, ReportOutcome::Applied | ReportOutcome::Duplicate)
+    }
+
+    /// Whether the job ended with this report.
+    pub fn ended(self) -> bool {
+        matches!(self, ReportOutcome::Completed | ReportOutcome::Failed)
+    }
+}
+
+/// Sequences of one (worker, job) already applied: everything up to `upto`, plus the
+/// ones above it that arrived out of order. Stays small when reports arrive in order.
+#[derive(Default, Debug)]
+pub struct SeqWindow {
+    upto: u64,
+    above: BTreeSet<u64>,
+}
+
+impl SeqWindow {
+    /// Whether sequence `s` was applied.
+    pub fn contains(&self, s: u64) -> bool {
+        s <= self.upto || self.above.contains(&s)
+    }
+
+    /// Record sequence `s` as applied.
+    pub fn insert(&mut self, s: u64) {
+        if s <= self.upto {
+            return;
+        }
+        self.above.insert(s);
+        while self.above.remove(&(self.upto + 1)) {
+            self.upto += 1;
+        }
+    }
+}
+
+/// Whether `r` may be applied to `job`: `Ok(None)` when it may, `Ok(Some(outcome))` when
+/// it is answered without being applied (stale attempt, duplicate sequence), an error
+/// naming the field when it is malformed or from a worker that is not the job's.
+pub fn check(
+    job: &RunningJob,
+    r: &ReportContributionsRequest,
+) -> Result<Option<ReportOutcome>, Status> {
+    if job.entry.is_terminal() {
+        return Ok(Some(ReportOutcome::Inactive));
+    }
+    let attempt = job.sched.attempt();
+    if r.attempt < attempt {
+        return Ok(Some(ReportOutcome::Stale));
+    }
+    if r.attempt > attempt {
+        return Err(Status::invalid_argument(format!(
+            "attempt: {} is newer than job {:?}'s attempt {attempt}",
+            r.attempt, r.job_id
+        )));
+    }
+    if !job.sched.has_worker(&r.worker_id) {
+        return Err(Status::permission_denied(format!(
+            "worker_id: {} is not a worker of job {:?}",
+            crate::validate::bounded(&r.worker_id),
+            r.job_id
+        )));
+    }
+    if r.sequence == 0 {
+        return Err(Status::invalid_argument(
+            "sequence: must start at 1 (0 is the unset value)",
+        ));
+    }
+    if job
+        .seen
+        .get(&r.worker_id)
+        .is_some_and(|s| s.contains(r.sequence))
+    {
+        return Ok(Some(ReportOutcome::Duplicate));
+    }
+    if r.sums.len() != 3 * r.pixels.len() {
+        return Err(Status::invalid_argument(format!(
+            "sums: {} values for {} pixels (three per pixel expected)",
+            r.sums.len(),
+            r.pixels.len()
+        )));
+    }
+    let npix = u64::from(job.film.width) * u64::from(job.film.height);
+    if let Some(p) = r.pixels.iter().find(|&&p| u64::from(p) >= npix) {
+        return Err(Status::invalid_argument(format!(
+            "pixels: {p} is outside the {}x{} image",
+            job.film.width, job.film.height
+        )));
+    }
+    if let Some(c) = r
+        .credits
+        .iter()
+        .find(|c| c.tile as usize >= job.tiles.len())
+    {
+        return Err(Status::invalid_argument(format!(
+            "credits: tile {} does not exist (the job has {} tiles)",
+            c.tile,
+            job.tiles.len()
+        )));
+    }
+    if let Some(c) = &r.counters {
+        metrics::check(c).map_err(|e| Status::invalid_argument(e.to_string()))?;
+    }
+    Ok(None)
+}
+
+/// What applying a report found, for the actor's transitions.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Applied {
+    /// The worker reported its own failure: the job fails with this message.
+    WorkerFailed(String),
+    /// Credit came back beyond a tile's start: the job fails with this message.
+    Overdrawn(String),
+    /// Counted; the job goes on (its transitions depend on its tiles).
+    Counted,
+}
+
+/// Apply `r`, which [`check`] accepted, to `job`: its sequence, pixels, credit and
+/// counters. A worker's failure is recorded (its sequence) and nothing else.
+pub fn apply(job: &mut RunningJob, r: &ReportContributionsRequest) -> Applied {
+    job.seen
+        .entry(r.worker_id.clone())
+        .or_default()
+        .insert(r.sequence);
+    if !r.failure.is_empty() {
+        // Workers often name themselves already ("worker w1: ..."): say it once.
+        let failure = r.failure.trim();
+        let failure = failure
+            .strip_prefix(&format!("worker {}: ", r.worker_id))
+            .unwrap_or(failure);
+        return Applied::WorkerFailed(format!("worker {} failed: {failure}", r.worker_id));
+    }
+    for (i, &p) in r.pixels.iter().enumerate() {
+        let s = &r.sums[3 * i..3 * i + 3];
+        job.film.add_fixed(p, [s[0], s[1], s[2]]);
+    }
+    let mut overdrawn = None;
+    for c in &r.credits {
+        let t = c.tile as usize;
+        let start = job.tiles[t].credit;
+        match job.tile_back[t].checked_add(c.credit) {
+            Some(b) if b <= start => {
+                if c.credit > 0 {
+                    job.last_progress = Instant::now();
+                }
+                let was = job.tile_back[t] == start;
+                job.tile_back[t] = b;
+                if !was && b == start && t < job.image_tiles {
+                    job.tiles_done += 1;
+                }
+            }
+            _ => {
+                overdrawn = Some((c.tile, c.credit));
+                break;
+            }
+        }
+    }
+    if let Some(t) = &r.traced {
+        let k = &mut job.rays;
+        k.camera += t.camera;
+        k.shadow += t.shadow;
+        k.reflection += t.reflection;
+        k.refraction += t.refraction;
+        k.diffuse += t.diffuse;
+        k.ambient_occlusion += t.ambient_occlusion;
+    }
+    job.nonfinite += r.nonfinite;
+    job.ray_bytes_sent += r.ray_bytes_sent;
+    if let Some(t) = r.counters.as_ref().and_then(|c| c.traffic.as_ref()) {
+        crate::traffic::add(&mut job.traffic, t);
+    }
+    if let Some(c) = r.counters.as_ref().and_then(|c| c.cpu.as_ref()) {
+        job.cpu.note(c);
+    }
+    job.cpu.note_here();
+    job.metrics
+        .add(&r.worker_id, r.counters.as_ref(), r.traced.as_ref());
+    if let (Some(c), Some(caches)) = (&r.counters, &job.caches) {
+        caches.tally.add_worker(c);
+    }
+    match overdrawn {
+        Some((tile, credit)) => {
+            let t = tile as usize;
+            Applied::Overdrawn(format!(
+                "credit accounting error: worker {} returned {credit} credit to tile {tile}, \
+                 which already had {} of its {} back; rays were counted twice",
+                r.worker_id, job.tile_back[t], job.tiles[t].credit
+            ))
+        }
+        None => Applied::Counted,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::job::running::JobPlan;
+    use crate::jobs::JobTable;
+    use crate::scheduler::Schedule;
+    use crate::scheduler::state::{JobSchedule, JobWorker};
+    use dray_proto::v1::{JobSetup, JobSpec, Tile, TileCredit};
+
+    #[test]
+    fn seq_window_dedupes_in_and_out_of_order() {
+        let mut w = SeqWindow::default();
+        assert!(!w.contains(1));
+        w.insert(1);
+        w.insert(3);
+        assert!(w.contains(1) && w.contains(3) && !w.contains(2));
+        w.insert(2);
+        assert_eq!(w.upto, 3);
+        assert!(w.above.is_empty());
+        assert!(w.contains(2) && !w.contains(4));
+    }
+
+    /// A 4x2 job of two 2x2 tiles (credit 10 each) on workers w1 and w2.
+    fn job() -> RunningJob {
+        let table = JobTable::new(1);
+        let entry = table.insert(JobSpec {
+            width: 4,
+            height: 2,
+            spp: 1,
+            ..Default::default()
+        });
+        let workers = ["w1", "w2"].map(|w| JobWorker {
+            endpoint: dray_proto::v1::WorkerEndpoint {
+                worker_id: w.into(),
+                ..Default::default()
+            },
+            budget: 0,
+        });
+        let sched = JobSchedule::new(&entry.id, Schedule::Domain, 2, &workers);
+        let tile = |i: u32| Tile {
+            index: i,
+            x0: 2 * i,
+            y0: 0,
+            width: 2,
+            height: 2,
+            credit: 10,
+            ..Default::default()
+        };
+        RunningJob::new(JobPlan {
+            entry,
+            setup: JobSetup::default(),
+            sched,
+            tiles: vec![tile(0), tile(1)],
+            owned_package: None,
+            caches: None,
+        })
+    }
+
+    fn report(worker: &str, seq: u64, credits: &[(u32, u64)]) -> ReportContributionsRequest {
+        ReportContributionsRequest {
+            worker_id: worker.into(),
+            sequence: seq,
+            pixels: vec![1],
+            sums: vec![5, 6, 7],
+            credits: credits
+                .iter()
+                .map(|&(tile, credit)| TileCredit { tile, credit })
+                .collect(),
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn check_rejects_strangers_bad_fields_and_answers_duplicates() {
+        let mut j = job();
+        assert!(
+            check(&j, &report("w9", 1, &[])).is_err(),
+            "not a worker of the job"
+        );
+        assert!(check(&j, &report("w1", 0, &[])).is_err(), "sequence 0");
+        let mut bad = report("w1", 1, &[]);
+        bad.sums.pop();
+        assert!(check(&j, &bad).is_err(), "two sums for one pixel");
+        let mut outside = report("w1", 1, &[]);
+        outside.pixels = vec![8];
+        assert!(check(&j, &outside).is_err(), "pixel 8 of a 4x2 image");
+        assert!(
+            check(&j, &report("w1", 1, &[(2, 1)])).is_err(),
+            "tile 2 of 2"
+        );
+        let mut newer = report("w1", 1, &[]);
+        newer.attempt = 1;
+        assert!(
+            check(&j, &newer).is_err(),
+            "an attempt the job has not made"
+        );
+        let r = report("w1", 1, &[(0, 4)]);
+        assert_eq!(check(&j, &r).unwrap(), None);
+        assert_eq!(apply(&mut j, &r), Applied::Counted);
+        assert_eq!(
+            check(&j, &r).unwrap(),
+            Some(ReportOutcome::Duplicate),
+            "the same sequence again"
+        );
+        assert_eq!(
+            check(&j, &report("w2", 1, &[])).unwrap(),
+            None,
+            "w2's own sequence"
+        );
+    }
+
+    #[test]
+    fn apply_adds_pixels_and_credit_and_completes_tiles_exactly() {
+        let mut j = job();
+        assert_eq!(
+            apply(&mut j, &report("w1", 1, &[(0, 4), (1, 10)])),
+            Applied::Counted
+        );
+        assert_eq!(j.tiles_done, 1, "tile 1 has all its credit back");
+        assert!(!j.all_complete());
+        assert_eq!(apply(&mut j, &report("w2", 1, &[(0, 6)])), Applied::Counted);
+        assert!(j.all_complete());
+        assert_eq!(
+            j.film.sum_fixed(1),
+            [10, 12, 14],
+            "two reports' sums of pixel 1"
+        );
+        j.clear_tile(0);
+        assert_eq!(j.film.sum_fixed(1), [0, 0, 0], "cleared exactly");
+        assert_eq!(j.tile_back[0], 0);
+    }
+
+    #[test]
+    fn apply_fails_overdrawn_credit_and_names_worker_failures_once() {
+        let mut j = job();
+        match apply(&mut j, &report("w1", 1, &[(0, 11)])) {
+            Applied::Overdrawn(m) => assert!(m.contains("tile 0"), "{m}"),
+            other => panic!("expected overdrawn credit, got {other:?}"),
+        }
+        let mut failed = report("w2", 1, &[]);
+        failed.failure = "worker w2: out of memory".into();
+        assert_eq!(
+            apply(&mut j, &failed),
+            Applied::WorkerFailed("worker w2 failed: out of memory".into())
+        );
+    }
+}

@@ -1,0 +1,461 @@
+//! What one running job holds: its tiles and their credit, the exact film, the attempts'
+//! schedule, the ray caches, and the counters it publishes. Owned by the job's actor
+//! ([`super::actor`]) and by nothing else, so none of it is behind a lock; the methods
+//! here change it and say what to send, and the actor sends it.
+//!
+//! **Credit** (docs/architecture.md "Credit"): every tile starts with a fixed credit;
+//! workers hand credit back with the contributions of terminated rays. A tile is complete
+//! when all of its credit is back, and a job when all its tiles are.
+//!
+//! **The film.** Pixel sums arrive in fixed point and are added with integer arithmetic
+//! into one [`Film`]: addition is associative, so the image does not depend on which
+//! worker reported what, or in which order.
+//!
+//! **Attempts.** When a worker of the job is lost, the job starts its next attempt on the
+//! survivors: every tile whose credit is not all back is cleared (its pixels set back to
+//! exactly zero by subtracting their integer sums, its returned credit to 0) and dealt
+//! again. Complete tiles keep their pixels: their credit is all back, so (by the
+//! workers' contract, [`super::report`]) so is every contribution they will ever have.
+//! Since a pixel belongs to one tile and its rays only add to that tile's pixels, the
+//! final film is bit for bit that of an undisturbed run.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use dray_core::film::Film;
+use dray_proto::v1::{
+    Assignment, JobRelease, JobSetup, JobState, RayCounts, ReportQueuesRequest, Tile,
+    TileAssignment, assignment::Command,
+};
+
+use super::report::SeqWindow;
+use crate::caches::job::JobCaches;
+use crate::jobs::JobEntry;
+use crate::membership::{Membership, WorkerRecord};
+use crate::metrics::JobMetrics;
+use crate::owned_package::OwnedPackage;
+use crate::scheduler::state::{JobSchedule, JobWorker, RoundOutcome};
+
+/// Tiles per TileAssignment message, to stay well below gRPC's default 4 MiB message
+/// limit on the worker's side even for a 16384x16384 image on one worker.
+pub const TILES_PER_MESSAGE: usize = 4096;
+
+/// What a job is started with: everything [`crate::dispatch`] prepared.
+pub struct JobPlan {
+    /// The public job record (state, progress, stats, film when done).
+    pub entry: Arc<JobEntry>,
+    /// What every worker of the job is told to set up; `attempt`, `routing` and
+    /// `schedule` are filled from the schedule each time it is sent.
+    pub setup: JobSetup,
+    /// The schedule over the job's first workers (its first table).
+    pub sched: JobSchedule,
+    /// Every tile of the image (rectangle and starting credit), by index, then the
+    /// tiles of the ray-cache coarse pass, if any (`Tile.coarse`).
+    pub tiles: Vec<Tile>,
+    /// Package to delete when the job ends (None for a package the user supplied).
+    pub owned_package: Option<OwnedPackage>,
+    /// Ray caches, for a job with `ray_cache` or `phm` (their first attempt's walls
+    /// already open, or none, as `caches.opened` says).
+    pub caches: Option<JobCaches>,
+}
+
+/// A job running on workers: the state its actor owns.
+pub struct RunningJob {
+    /// The public job record, where the job publishes its progress.
+    pub entry: Arc<JobEntry>,
+    /// Package to delete when the job ends.
+    pub owned_package: Option<OwnedPackage>,
+    pub(super) setup: JobSetup,
+    pub(super) sched: JobSchedule,
+    pub(super) tiles: Vec<Tile>,
+    /// Credit returned per tile.
+    pub(super) tile_back: Vec<u64>,
+    /// Image tiles complete (coarse tiles are not counted: progress is the image's).
+    pub(super) tiles_done: u32,
+    /// The image's tiles: `tiles[..image_tiles]`; the rest are the coarse pass's.
+    pub(super) image_tiles: usize,
+    /// Whether the coarse pass (if any) is complete: until it is, only coarse tiles go
+    /// out, so every image ray's lookup sees caches the coarse pass has filled (and,
+    /// with `fill=false`, only those: the same bits every run).
+    pub(super) coarse_done: bool,
+    pub(super) tiles_retried: u32,
+    pub(super) film: Film,
+    /// Sequences applied per worker, this attempt.
+    pub(super) seen: HashMap<String, SeqWindow>,
+    pub(super) rays: RayCounts,
+    pub(super) nonfinite: u64,
+    pub(super) ray_bytes_sent: u64,
+    /// Bytes between processes by kind, summed over the workers' reports.
+    pub(super) traffic: dray_proto::v1::TrafficStats,
+    /// CPU seconds of the processes that ran the job.
+    pub(super) cpu: crate::cpu_tally::CpuTally,
+    pub(super) metrics: JobMetrics,
+    pub(super) caches: Option<JobCaches>,
+    /// When a worker last returned credit (or the job or its latest attempt started):
+    /// a job with none for the stall timeout fails.
+    pub(super) last_progress: Instant,
+}
+
+/// How a job's workers are released.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Release {
+    /// Every tile's credit came back.
+    Finish,
+    /// Cancelled, failed or restarted.
+    Cancel,
+}
+
+impl RunningJob {
+    /// The state of a job about to start from `plan`.
+    pub fn new(plan: JobPlan) -> RunningJob {
+        let JobPlan {
+            entry,
+            setup,
+            sched,
+            tiles,
+            owned_package,
+            caches,
+        } = plan;
+        let (w, h) = (entry.spec.width, entry.spec.height);
+        let mut metrics = JobMetrics::default();
+        for id in sched.worker_ids() {
+            metrics.add_worker(&id);
+        }
+        let image_tiles = tiles.iter().filter(|t| !t.coarse).count();
+        RunningJob {
+            entry,
+            owned_package,
+            setup,
+            sched,
+            image_tiles,
+            coarse_done: image_tiles == tiles.len(),
+            tile_back: vec![0; tiles.len()],
+            tiles,
+            tiles_done: 0,
+            tiles_retried: 0,
+            film: Film::new(w, h),
+            seen: HashMap::new(),
+            rays: RayCounts::default(),
+            nonfinite: 0,
+            ray_bytes_sent: 0,
+            traffic: Default::default(),
+            cpu: crate::cpu_tally::CpuTally::here(),
+            metrics,
+            caches,
+            last_progress: Instant::now(),
+        }
+    }
+
+    /// The job's id.
+    pub fn id(&self) -> &str {
+        &self.entry.id
+    }
+
+    /// The scheduling state.
+    pub fn schedule(&self) -> &JobSchedule {
+        &self.sched
+    }
+
+    /// The package workers are told to load (`JobSetup.package_path`,
+    /// `JobSetup.package_checksum`).
+    pub fn package(&self) -> (String, String) {
+        (
+            self.setup.package_path.clone(),
+            self.setup.package_checksum.clone(),
+        )
+    }
+
+    /// Send each worker of the first attempt its JobSetup and tiles, and mark the job
+    /// RUNNING. Fails (sending nothing) when the job was cancelled meanwhile, or names
+    /// the first worker that is gone. A dynamic job also takes on the workers that
+    /// registered after its workers were chosen.
+    pub fn start(&mut self, membership: &Membership) -> Result<(), String> {
+        if self.entry.is_terminal() {
+            return Err(format!("job {} ended before it started", self.entry.id));
+        }
+        let workers = self.sched.worker_ids();
+        if let Some(w) = workers.iter().find(|w| membership.get(w).is_none()) {
+            return Err(format!(
+                "worker {w} left the cluster while the job was being prepared"
+            ));
+        }
+        for (w, a) in self.attempt_commands() {
+            if !membership.send(&w, a) {
+                // The worker expired between the check above and here; the job cannot
+                // run without it.
+                for (w, a) in self.releases(Release::Cancel, "a worker left during setup") {
+                    membership.send(&w, a);
+                }
+                return Err(format!(
+                    "worker {w} left the cluster while job {} was being set up",
+                    self.entry.id
+                ));
+            }
+        }
+        self.entry.set_state(JobState::Running);
+        self.publish();
+        if self.sched.schedule().is_dynamic() {
+            // Workers that registered before the job's actor existed: this is their join.
+            for w in membership.workers() {
+                self.join(membership, &w);
+            }
+        }
+        Ok(())
+    }
+
+    /// Store a queue report; the job's routing version, or None when the job is not
+    /// running at the report's attempt (or the worker is not one of its workers).
+    pub fn queue_report(&mut self, r: &ReportQueuesRequest) -> Option<u64> {
+        if self.entry.is_terminal()
+            || r.attempt != self.sched.attempt()
+            || !self.sched.has_worker(&r.worker_id)
+        {
+            return None;
+        }
+        self.sched.record_queues(r);
+        // Rays queued at the job's workers, as of each one's latest report: what
+        // JobProgress.rays_in_flight shows (rays on the wire are not counted).
+        self.entry.set_rays_in_flight(self.sched.rays_queued());
+        Some(self.sched.version())
+    }
+
+    /// Run the scheduling round if one is due at `now` (at most one per `interval`),
+    /// sending a changed table to every worker of the job.
+    pub fn round(
+        &mut self,
+        membership: &Membership,
+        now: Instant,
+        interval: Duration,
+    ) -> RoundOutcome {
+        if self.entry.is_terminal() {
+            return RoundOutcome::Waiting;
+        }
+        let out = self.sched.round(now, interval);
+        match &out {
+            RoundOutcome::Changed(table, changes) => {
+                tracing::debug!(version = table.version, ?changes, "routing table changed");
+                for w in self.sched.worker_ids() {
+                    membership.send(&w, command(Command::Routing(table.clone())));
+                }
+                self.publish();
+            }
+            RoundOutcome::Unchanged => self.publish(),
+            RoundOutcome::NotBefore(_) | RoundOutcome::Waiting => {}
+        }
+        out
+    }
+
+    /// Send every worker of the current attempt its JobSetup and the incomplete tiles.
+    pub fn send_attempt(&self, membership: &Membership) {
+        for (w, a) in self.attempt_commands() {
+            // A survivor that is gone too has its own loss event queued: it restarts
+            // the job again then.
+            if !membership.send(&w, a) {
+                tracing::debug!(worker = %w, "survivor gone before its new attempt");
+            }
+        }
+    }
+
+    /// Add `w` to the (dynamic) job if it is not a worker of it yet: the others get the
+    /// new table (listing it), it gets a JobSetup of the current attempt. It has no tiles
+    /// and owns nothing; being idle, it gets domains from the next rounds.
+    pub fn join(&mut self, membership: &Membership, w: &WorkerRecord) {
+        if membership.get(&w.id).is_none() {
+            // Lost before its join was handled (its loss event comes next).
+            return;
+        }
+        if self.caches_pending() {
+            // The attempt has not been sent to anyone yet; it joins when it is.
+            return;
+        }
+        let Some(table) = self.sched.add_worker(JobWorker {
+            endpoint: w.endpoint(),
+            budget: w.memory_budget_bytes,
+        }) else {
+            return;
+        };
+        self.metrics.add_worker(&w.id);
+        for other in self.sched.worker_ids().iter().filter(|o| **o != w.id) {
+            membership.send(other, command(Command::Routing(table.clone())));
+        }
+        membership.send(&w.id, command(Command::Setup(self.current_setup())));
+        tracing::info!(
+            worker = %w.id,
+            endpoint = %w.endpoint,
+            version = table.version,
+            "worker joined the running job"
+        );
+        self.publish();
+    }
+
+    /// The JobSetup of the current attempt and table.
+    pub(super) fn current_setup(&self) -> JobSetup {
+        JobSetup {
+            attempt: self.sched.attempt(),
+            routing: Some(self.sched.table()),
+            schedule: self.sched.schedule().name().to_string(),
+            ..self.setup.clone()
+        }
+    }
+
+    /// For each worker of the current attempt, in job order: its JobSetup, then the
+    /// incomplete tiles of the phase the job is in, dealt by the schedule's rule, in
+    /// messages of at most [`TILES_PER_MESSAGE`].
+    pub(super) fn attempt_commands(&self) -> Vec<(String, Assignment)> {
+        self.commands(&self.incomplete_tiles(), true)
+    }
+
+    /// `tiles` dealt to the current attempt's workers, each worker's JobSetup first when
+    /// `setup`.
+    pub(super) fn commands(&self, tiles: &[Tile], setup: bool) -> Vec<(String, Assignment)> {
+        let job_setup = self.current_setup();
+        let mut out = Vec::new();
+        for (w, mine) in self.sched.deal(tiles) {
+            if setup {
+                out.push((w.clone(), command(Command::Setup(job_setup.clone()))));
+            }
+            for chunk in mine.chunks(TILES_PER_MESSAGE) {
+                out.push((
+                    w.clone(),
+                    command(Command::Tiles(TileAssignment {
+                        job_id: self.entry.id.clone(),
+                        tiles: chunk.to_vec(),
+                    })),
+                ));
+            }
+        }
+        out
+    }
+
+    /// The release of the current attempt, for each of its workers.
+    pub(super) fn releases(&self, how: Release, reason: &str) -> Vec<(String, Assignment)> {
+        self.releases_of(self.sched.attempt(), how, reason)
+    }
+
+    /// The release of attempt `attempt`, for each worker of the current attempt.
+    pub(super) fn releases_of(
+        &self,
+        attempt: u32,
+        how: Release,
+        reason: &str,
+    ) -> Vec<(String, Assignment)> {
+        self.sched
+            .worker_ids()
+            .into_iter()
+            .map(|w| {
+                let release = JobRelease {
+                    job_id: self.entry.id.clone(),
+                    reason: reason.to_string(),
+                    attempt,
+                };
+                let c = match how {
+                    Release::Finish => Command::Finish(release),
+                    Release::Cancel => Command::Cancel(release),
+                };
+                (w, command(c))
+            })
+            .collect()
+    }
+
+    pub(super) fn tile_complete(&self, t: usize) -> bool {
+        self.tile_back[t] == self.tiles[t].credit
+    }
+
+    /// The tiles whose credit is not all back, of the phase the job is in: the coarse
+    /// pass's until it is complete, then the image's.
+    pub(super) fn incomplete_tiles(&self) -> Vec<Tile> {
+        let range = if self.coarse_done {
+            0..self.image_tiles
+        } else {
+            self.image_tiles..self.tiles.len()
+        };
+        range
+            .filter(|&t| !self.tile_complete(t))
+            .map(|t| self.tiles[t])
+            .collect()
+    }
+
+    /// Whether every tile, image and coarse, is complete.
+    pub(super) fn all_complete(&self) -> bool {
+        self.coarse_done && self.tiles_done as usize == self.image_tiles
+    }
+
+    /// Whether the coarse pass has just completed (every coarse tile's credit is back
+    /// while the job still waits for it).
+    pub(super) fn coarse_pass_complete(&self) -> bool {
+        !self.coarse_done && (self.image_tiles..self.tiles.len()).all(|t| self.tile_complete(t))
+    }
+
+    /// Whether the current attempt waits for its cache walls to open.
+    pub(super) fn caches_pending(&self) -> bool {
+        self.caches.as_ref().is_some_and(|c| c.pending.is_some())
+    }
+
+    /// Set every pixel of tile `t` back to zero, exactly (wrapping integer sums: adding
+    /// the negated sum gives 0 whatever the sum was).
+    pub(super) fn clear_tile(&mut self, t: usize) {
+        let tile = self.tiles[t];
+        if tile.coarse {
+            // Coarse rays add nothing to the image.
+            self.tile_back[t] = 0;
+            return;
+        }
+        let width = self.film.width;
+        for y in tile.y0..tile.y0.saturating_add(tile.height).min(self.film.height) {
+            for x in tile.x0..tile.x0.saturating_add(tile.width).min(width) {
+                let p = y * width + x;
+                let s = self.film.sum_fixed(p);
+                self.film.add_fixed(p, s.map(i64::wrapping_neg));
+            }
+        }
+        self.tile_back[t] = 0;
+    }
+
+    /// Clear the tiles a new attempt traces again (every incomplete tile, and the whole
+    /// coarse pass when the job has one: the new attempt's walls open empty), forget the
+    /// old attempt's sequences, and return how many tiles go out again.
+    pub(super) fn clear_for_retry(&mut self) -> usize {
+        let mut incomplete: Vec<usize> = (0..self.tiles.len())
+            .filter(|&t| !self.tile_complete(t))
+            .collect();
+        if self.image_tiles < self.tiles.len() {
+            self.coarse_done = false;
+            incomplete
+                .extend((self.image_tiles..self.tiles.len()).filter(|&t| self.tile_complete(t)));
+            incomplete.sort_unstable();
+        }
+        for &t in &incomplete {
+            self.clear_tile(t);
+        }
+        self.seen.clear();
+        self.tiles_retried = self.tiles_retried.saturating_add(incomplete.len() as u32);
+        self.last_progress = Instant::now();
+        incomplete.len()
+    }
+
+    /// Copy counters and scheduling figures into the public job record.
+    pub fn publish(&self) {
+        self.entry.set_tiles_done(self.tiles_done);
+        self.entry.update_stats(|s| {
+            s.rays = Some(self.rays);
+            s.nonfinite = self.nonfinite;
+            s.ray_bytes_sent = self.ray_bytes_sent;
+            s.traffic = Some(self.traffic);
+            s.cpu_seconds = self.cpu.seconds();
+            self.metrics.fill(s);
+            s.tiles_retried = self.tiles_retried;
+            s.scheduler_rounds = self.sched.rounds();
+            s.routing_version = self.sched.version();
+            s.schedule = self.sched.schedule().name().to_string();
+        });
+        if let Some(c) = &self.caches {
+            c.tally.publish(&self.entry);
+        }
+    }
+}
+
+/// An assignment carrying `c`.
+pub(super) fn command(c: Command) -> Assignment {
+    Assignment { command: Some(c) }
+}
