@@ -56,10 +56,13 @@ impl Default for HeartbeatConfig {
     }
 }
 
-/// Commands for one worker, in order, waiting to be written to its stream.
+/// Commands for one worker, in order, waiting to be written to its stream. A command
+/// sent to many workers (a job's new routing table) is queued once and shared (`Arc`):
+/// a round's fan-out costs a pointer per worker, not a copy of the table; each stream
+/// takes its own copy only as it writes it.
 #[derive(Default)]
 pub struct Outbox {
-    queue: Mutex<VecDeque<Assignment>>,
+    queue: Mutex<VecDeque<Arc<Assignment>>>,
     notify: Notify,
     /// Bumped when a new stream takes over, so the previous stream's task stops.
     generation: AtomicU64,
@@ -68,12 +71,12 @@ pub struct Outbox {
 }
 
 impl Outbox {
-    fn lock(&self) -> MutexGuard<'_, VecDeque<Assignment>> {
+    fn lock(&self) -> MutexGuard<'_, VecDeque<Arc<Assignment>>> {
         self.queue.lock().unwrap_or_else(|p| p.into_inner())
     }
 
     /// Queue a command.
-    pub fn push(&self, a: Assignment) {
+    pub fn push(&self, a: Arc<Assignment>) {
         self.lock().push_back(a);
         self.notify.notify_waiters();
     }
@@ -109,10 +112,10 @@ impl Outbox {
                 let next = outbox.lock().pop_front();
                 match next {
                     Some(a) => {
-                        if let Err(e) = tx.send(Ok(a)).await {
+                        if let Err(e) = tx.send(Ok(Arc::unwrap_or_clone(a))).await {
                             // The worker went away: keep the command for its next stream.
                             if let Ok(a) = e.0 {
-                                outbox.lock().push_front(a);
+                                outbox.lock().push_front(Arc::new(a));
                             }
                             return;
                         }
@@ -398,6 +401,20 @@ impl Membership {
 
     /// Queue `a` for worker `id`. False when the worker is gone.
     pub fn send(&self, id: &str, a: Assignment) -> bool {
+        self.send_shared(id, Arc::new(a))
+    }
+
+    /// Queue one shared copy of `a` for each of `ids` (those still registered).
+    pub fn send_all(&self, ids: &[String], a: Assignment) {
+        let a = Arc::new(a);
+        for id in ids {
+            self.send_shared(id, a.clone());
+        }
+    }
+
+    /// Queue `a`, which other workers may be sent too, for worker `id`. False when the
+    /// worker is gone.
+    pub fn send_shared(&self, id: &str, a: Arc<Assignment>) -> bool {
         let outbox = self.lock().get(id).map(|w| w.outbox.clone());
         match outbox {
             Some(o) => {
@@ -467,14 +484,14 @@ mod tests {
     use dray_proto::v1::assignment::Command;
     use tokio_stream::StreamExt;
 
-    fn release(id: &str) -> Assignment {
-        Assignment {
+    fn release(id: &str) -> Arc<Assignment> {
+        Arc::new(Assignment {
             command: Some(Command::Finish(JobRelease {
                 job_id: id.into(),
                 reason: String::new(),
                 attempt: 0,
             })),
-        }
+        })
     }
 
     fn job_of(a: Option<Result<Assignment, Status>>) -> String {

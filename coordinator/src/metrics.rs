@@ -76,12 +76,21 @@ pub fn total_rays(r: &RayCounts) -> u64 {
     .fold(0u64, |a, &b| a.saturating_add(b))
 }
 
-/// Per-worker sums for one job.
+/// Per-worker sums for one job, and the job's totals kept as reports arrive, so the
+/// totals cost the same to publish for 10,000 workers as for one; the per-worker detail
+/// ([`JobMetrics::fill_detail`]) is O(workers) and published less often.
 #[derive(Clone, Debug, Default)]
 pub struct JobMetrics {
     workers: BTreeMap<String, WorkerJobStats>,
     rays_sent: u64,
     rays_forwarded: u64,
+    domain_loads: u64,
+    /// Load seconds in whole nanoseconds (integers: the sum does not depend on the order
+    /// reports arrived in).
+    domain_load_ns: u64,
+    domains_warm: u64,
+    evictions: u64,
+    queue_peak: u64,
 }
 
 impl JobMetrics {
@@ -109,6 +118,14 @@ impl JobMetrics {
         if let Some(c) = c {
             self.rays_sent = self.rays_sent.saturating_add(c.rays_sent);
             self.rays_forwarded = self.rays_forwarded.saturating_add(c.rays_forwarded);
+            self.domain_loads = self.domain_loads.saturating_add(c.domain_loads);
+            // `check` made it finite and non-negative.
+            self.domain_load_ns = self
+                .domain_load_ns
+                .saturating_add((c.domain_load_seconds * 1e9).round() as u64);
+            self.domains_warm = self.domains_warm.saturating_add(c.domains_warm);
+            self.evictions = self.evictions.saturating_add(c.evictions);
+            self.queue_peak = self.queue_peak.max(c.queue_peak);
         }
         let w = self.entry(worker);
         if let Some(c) = c {
@@ -124,22 +141,30 @@ impl JobMetrics {
         }
     }
 
-    /// Write the sums into `s` (the fields this type owns; the rest is left alone).
-    pub fn fill(&self, s: &mut JobStats) {
-        let ws = self.workers.values();
-        s.domain_loads = ws
-            .clone()
-            .fold(0u64, |a, w| a.saturating_add(w.domain_loads));
-        s.domain_load_seconds = ws.clone().map(|w| w.domain_load_seconds).sum();
-        s.domains_warm = ws
-            .clone()
-            .fold(0u64, |a, w| a.saturating_add(w.domains_warm));
-        s.evictions = ws.clone().fold(0u64, |a, w| a.saturating_add(w.evictions));
-        s.queue_peak = ws.clone().map(|w| w.queue_peak).max().unwrap_or(0);
+    /// Write the totals into `s` (the fields this type owns except the per-worker
+    /// detail; the rest is left alone). O(1).
+    pub fn fill_totals(&self, s: &mut JobStats) {
+        s.domain_loads = self.domain_loads;
+        s.domain_load_seconds = self.domain_load_ns as f64 * 1e-9;
+        s.domains_warm = self.domains_warm;
+        s.evictions = self.evictions;
+        s.queue_peak = self.queue_peak;
         s.rays_exchanged = self.rays_sent;
         s.rays_forwarded = self.rays_forwarded;
-        s.workers_detail = ws.cloned().collect();
         s.workers = self.workers.len() as u32;
+    }
+
+    /// Write the per-worker detail into `s` (`workers_detail`, in worker id order).
+    /// O(workers).
+    pub fn fill_detail(&self, s: &mut JobStats) {
+        s.workers_detail = self.workers.values().cloned().collect();
+    }
+
+    /// Write everything into `s`: [`JobMetrics::fill_totals`] and
+    /// [`JobMetrics::fill_detail`].
+    pub fn fill(&self, s: &mut JobStats) {
+        self.fill_totals(s);
+        self.fill_detail(s);
     }
 }
 

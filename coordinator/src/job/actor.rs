@@ -42,6 +42,10 @@ use crate::membership::{LostWorker, Membership, WorkerRecord};
 use crate::owned_package::remove_package;
 use crate::scheduler::state::RoundOutcome;
 
+/// Least time between two publications of a job's per-worker detail (an O(workers)
+/// copy; the totals are published with every change).
+pub const DETAIL_INTERVAL: Duration = Duration::from_millis(250);
+
 /// How a job's actor paces itself.
 #[derive(Clone, Copy, Debug)]
 pub struct ActorConfig {
@@ -77,6 +81,8 @@ pub(super) struct JobActor {
     config: ActorConfig,
     /// When the next round is due, if a queue report is waiting for one.
     round_at: Option<Instant>,
+    /// When the per-worker detail is next published, if it is stale.
+    detail_at: Option<Instant>,
     /// Tasks opening and closing this job's cache walls.
     walls: JoinSet<WallsDone>,
     ending: Option<Ending>,
@@ -95,6 +101,7 @@ impl JobActor {
             registry,
             config,
             round_at: None,
+            detail_at: None,
             walls: JoinSet::new(),
             ending: None,
         }
@@ -131,8 +138,13 @@ impl JobActor {
             guard.armed = false;
             return;
         }
+        self.job.publish_detail();
         while self.ending.is_none() {
+            if self.detail_at.is_none() && self.job.detail_stale() {
+                self.detail_at = Some(Instant::now() + DETAIL_INTERVAL);
+            }
             let round_at = self.round_at;
+            let detail_at = self.detail_at;
             let stall_at = self
                 .config
                 .stall_timeout
@@ -147,6 +159,10 @@ impl JobActor {
                     self.round(Instant::now());
                 }
                 () = sleep_until(stall_at) => self.check_stall(Instant::now()),
+                () = sleep_until(detail_at) => {
+                    self.detail_at = None;
+                    self.job.publish_detail();
+                }
                 Some(done) = self.walls.join_next(), if !self.walls.is_empty() => {
                     self.on_walls(done);
                 }
@@ -340,10 +356,10 @@ impl JobActor {
                 version = table.version,
                 "worker lost before it was given work; the job goes on without it"
             );
-            for w in self.job.sched.worker_ids() {
-                self.membership
-                    .send(&w, command(Command::Routing(table.clone())));
-            }
+            self.membership.send_all(
+                &self.job.sched.worker_ids(),
+                command(Command::Routing(table.clone())),
+            );
             self.job.publish();
             return;
         }
@@ -537,6 +553,7 @@ impl JobActor {
         let Some(Ending { state, error }) = self.ending.take() else {
             return;
         };
+        self.job.publish_detail();
         let open = self
             .job
             .caches

@@ -95,6 +95,9 @@ pub struct RunningJob {
     /// When a worker last returned credit (or the job or its latest attempt started):
     /// a job with none for the stall timeout fails.
     pub(super) last_progress: Instant,
+    /// Whether the per-worker detail in the public record is older than the totals
+    /// (see [`RunningJob::publish_detail`]).
+    detail_stale: std::cell::Cell<bool>,
 }
 
 /// How a job's workers are released.
@@ -144,6 +147,7 @@ impl RunningJob {
             metrics,
             caches,
             last_progress: Instant::now(),
+            detail_stale: std::cell::Cell::new(true),
         }
     }
 
@@ -235,9 +239,10 @@ impl RunningJob {
         match &out {
             RoundOutcome::Changed(table, changes) => {
                 tracing::debug!(version = table.version, ?changes, "routing table changed");
-                for w in self.sched.worker_ids() {
-                    membership.send(&w, command(Command::Routing(table.clone())));
-                }
+                membership.send_all(
+                    &self.sched.worker_ids(),
+                    command(Command::Routing(table.clone())),
+                );
                 self.publish();
             }
             RoundOutcome::Unchanged => self.publish(),
@@ -276,9 +281,13 @@ impl RunningJob {
             return;
         };
         self.metrics.add_worker(&w.id);
-        for other in self.sched.worker_ids().iter().filter(|o| **o != w.id) {
-            membership.send(other, command(Command::Routing(table.clone())));
-        }
+        let others: Vec<String> = self
+            .sched
+            .worker_ids()
+            .into_iter()
+            .filter(|o| *o != w.id)
+            .collect();
+        membership.send_all(&others, command(Command::Routing(table.clone())));
         membership.send(&w.id, command(Command::Setup(self.current_setup())));
         tracing::info!(
             worker = %w.id,
@@ -434,7 +443,9 @@ impl RunningJob {
         incomplete.len()
     }
 
-    /// Copy counters and scheduling figures into the public job record.
+    /// Copy counters and scheduling figures into the public job record: O(1) in the
+    /// number of workers, so a job can publish with every report. The per-worker detail
+    /// is left for [`RunningJob::publish_detail`] (the actor runs it a little later).
     pub fn publish(&self) {
         self.entry.set_tiles_done(self.tiles_done);
         self.entry.update_stats(|s| {
@@ -443,7 +454,7 @@ impl RunningJob {
             s.ray_bytes_sent = self.ray_bytes_sent;
             s.traffic = Some(self.traffic);
             s.cpu_seconds = self.cpu.seconds();
-            self.metrics.fill(s);
+            self.metrics.fill_totals(s);
             s.tiles_retried = self.tiles_retried;
             s.scheduler_rounds = self.sched.rounds();
             s.routing_version = self.sched.version();
@@ -452,6 +463,19 @@ impl RunningJob {
         if let Some(c) = &self.caches {
             c.tally.publish(&self.entry);
         }
+        self.detail_stale.set(true);
+    }
+
+    /// Copy the per-worker detail (`JobStats.workers_detail`) into the public record:
+    /// O(workers), so the actor does it at most a few times a second and at the end.
+    pub fn publish_detail(&self) {
+        self.entry.update_stats(|s| self.metrics.fill_detail(s));
+        self.detail_stale.set(false);
+    }
+
+    /// Whether the per-worker detail is older than the last [`RunningJob::publish`].
+    pub fn detail_stale(&self) -> bool {
+        self.detail_stale.get()
     }
 }
 

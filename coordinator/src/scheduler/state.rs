@@ -38,6 +38,13 @@ pub enum RoundOutcome {
     Waiting,
 }
 
+/// Rays queued in one worker's report (saturating: a hostile report cannot wrap it).
+fn queued_in(queues: &[DomainQueue]) -> u64 {
+    queues
+        .iter()
+        .fold(0u64, |a, q| a.saturating_add(q.rays_queued))
+}
+
 /// Scheduling state of one running job.
 #[derive(Clone, Debug)]
 pub struct JobSchedule {
@@ -47,6 +54,8 @@ pub struct JobSchedule {
     budgets: BTreeMap<String, u64>,
     /// Latest queue report per worker, this attempt only.
     reports: BTreeMap<String, Vec<DomainQueue>>,
+    /// Rays queued over `reports`, kept as reports arrive and leave.
+    queued: u64,
     /// Domains given out by a round whose new owner has not reported them resident yet.
     loading: BTreeSet<(u32, String)>,
     /// Workers that may hold some of this attempt's credit: those it started with (they
@@ -81,6 +90,7 @@ impl JobSchedule {
                 .map(|w| (w.endpoint.worker_id.clone(), w.budget))
                 .collect(),
             reports: BTreeMap::new(),
+            queued: 0,
             loading: BTreeSet::new(),
             holders: ids.iter().cloned().collect(),
             fresh: false,
@@ -136,7 +146,9 @@ impl JobSchedule {
 
     /// Whether `worker` is one of the job's workers.
     pub fn has_worker(&self, worker: &str) -> bool {
-        self.routing.has_worker(worker)
+        // `budgets` lists exactly the table's workers, and is a map: O(log N), where
+        // the table's list is a scan (every report asks).
+        self.budgets.contains_key(worker)
     }
 
     /// Deal `tiles` over the current workers by the schedule's tile rule, each stamped
@@ -165,16 +177,17 @@ impl JobSchedule {
         for q in r.queues.iter().filter(|q| q.resident) {
             self.loading.remove(&(q.domain, r.worker_id.clone()));
         }
-        self.reports.insert(r.worker_id.clone(), r.queues.clone());
+        let old = self.reports.insert(r.worker_id.clone(), r.queues.clone());
+        self.queued = self
+            .queued
+            .saturating_sub(old.as_deref().map_or(0, queued_in))
+            .saturating_add(queued_in(&r.queues));
         self.fresh = true;
     }
 
     /// Rays queued at the job's workers, as of each one's latest report.
     pub fn rays_queued(&self) -> u64 {
-        self.reports
-            .values()
-            .flatten()
-            .fold(0u64, |a, q| a.saturating_add(q.rays_queued))
+        self.queued
     }
 
     /// Run a round if one is due at `now`: the schedule is dynamic, a report arrived
@@ -240,7 +253,9 @@ impl JobSchedule {
         }
         self.routing.remove_worker(lost)?;
         self.budgets.remove(lost);
-        self.reports.remove(lost);
+        if let Some(old) = self.reports.remove(lost) {
+            self.queued = self.queued.saturating_sub(queued_in(&old));
+        }
         Some(self.table())
     }
 
@@ -270,6 +285,7 @@ impl JobSchedule {
         self.routing.restart(attempt, survivors, routes);
         self.budgets.remove(lost);
         self.reports.clear();
+        self.queued = 0;
         self.loading.clear();
         self.holders = self.routing.worker_ids().into_iter().collect();
         self.fresh = false;
