@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
-"""Issue 9's experiment: Little 2011's Table 5.1 (ray caches on a 3x3x3 grid of Stanford
-bunnies), reproduced with `dray sweep`.
+"""Little 2011's Table 5.1 (ray caches on a 3x3x3 grid of Stanford bunnies), reproduced
+with `dray sweep` (docs/caches.md; results in docs/benchmarks.md, "Ray caches").
 
 The scene is `grid:<bunny>:3x3x3` (69,451 x 27 = 1,875,177 triangles), cut once into a
 scene package of 27 grid domains (`dray partition --grid 3x3x3 --layout grid`), rendered
@@ -11,8 +11,9 @@ exact image first, then every setting, and writes results.csv, table.md and pare
 (error against time) per mode; this script prints the table side by side with the
 thesis's numbers.
 
-Units: the thesis's voxels are 0.3 wide; ours are the bunny grid's domains, about 0.18
-wide, so radii are given in the thesis's units and scaled by (our voxel width / 0.3).
+Units: the thesis's voxels are 0.3 wide; ours are the bunny grid's domains, about 0.137
+wide, so radii are given in the thesis's units and scaled by (our voxel width / 0.3),
+about 0.456 (the script prints it).
 The thesis's "cos phi = 0.005" is read as 1 - cos(phi) = 0.005, an angle of 5.73
 degrees (a cosine of 0.005 would accept almost any direction).
 
@@ -78,7 +79,7 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=4)
     ap.add_argument("--placements", nargs="+", default=["sender"],
                     choices=["sender", "remote"],
-                    help="ray-cache.placement values to compare (issue 21)")
+                    help="ray-cache.placement values to compare (docs/caches.md, \"Placement\")")
     ap.add_argument("--modes", nargs="+", default=["cluster", "embedded"],
                     choices=["cluster", "embedded"])
     ap.add_argument("--links", nargs="+", default=["none"],

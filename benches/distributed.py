@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Issue 3's benchmarks: the distributed runtime on one machine.
+"""The distributed runtime on one machine (docs/benchmarks.md, "Distributed runtime").
 
 Sections (--sections, default all, in this order):
 - overhead:  the same scene and settings with `dray render` (embedded: coordinator and one

@@ -23,8 +23,9 @@ cases=(
   "city:8|--integrator ao --spp 4"
   "grid:spheres:200:3x3x3|--spp 1 --width 320 --height 240"
 )
-# Issue 10's deep case (Lucy, path tracing to depth 64), when benches/vs_mitsuba.sh --case
-# deep has written its scene; at 1 and 2 threads.
+# The deep scanned-model case (Lucy, path tracing to depth 64; docs/benchmarks.md, "Path
+# tracing against Mitsuba 3"), when benches/vs_mitsuba.sh --case deep has written its
+# scene; at 1 and 2 threads.
 deep="${DEEP_SCENE:-benches/out/vs_mitsuba_deep/scene.gltf}"
 if [ -f "$deep" ]; then
   for t in 1 2; do

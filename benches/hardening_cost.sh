@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# What issue 20's hardening costs a render: two dray binaries (OLD_BIN, before; NEW_BIN,
-# after) on the same multi-worker embedded renders, where every ray batch, report and
+# What the second hardening round (docs/security.md, "Hardening, second round") costs a
+# render: two dray binaries (OLD_BIN, before; NEW_BIN, after) on the same multi-worker
+# embedded renders, where every ray batch, report and
 # heartbeat crosses the hardened server stack (per-class admission, body deadlines, the
 # place held in every response body, connection limits). Runs are interleaved (old, new,
 # old, new, ...); prints per case the median wall seconds and median CPU seconds

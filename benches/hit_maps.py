@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
-"""Issue 21, item 3: probability hit maps (Bolstad 2017) with the source's own settings,
-priced in every byte between processes, under both placements, on plain loopback and on
-an emulated interconnect.
+"""Probability hit maps (Bolstad 2017; docs/caches.md, "Replicated maps") with the source's
+own settings, priced in every byte between processes, under both placements, on plain
+loopback and on an emulated interconnect (docs/benchmarks.md, "Probability hit maps").
 
 The scene is the 3x3x3 bunny grid cut into 27 grid domains (the package benches/caches.py
 makes, shared under benches/out/caches), rendered with `raycast` (camera rays, direct

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Price a distributed render's communication on one machine (issue 21, item 6): one local
-# `dray cluster` of N workers per link setting, every member started with `--emulate-link
+# Price a distributed render's communication on one machine (docs/caches.md, "Pricing
+# communication: the emulated interconnect"): one local `dray cluster` of N workers per link setting, every member started with `--emulate-link
 # SPEC` (the dray-net shim: each connection a member's servers accept gets a delay line
 # and a token bucket each way; `none` is plain loopback), the same exact job rendered on
 # each, rounds interleaved across the clusters after one warm-up job each (warm domains).

@@ -4,8 +4,9 @@
 Buckets the samples of a `perf record -e cpu-clock` profile by thread and by time, and
 prints one row per bucket: samples per thread (the busiest threads as columns) and the
 two hottest symbols. At a sampling rate F, a busy thread shows F x bucket samples per
-bucket; a thread with fewer is idle part of it. This is how issue 10's fourth pass found
-a tracing thread asleep while the other loaded the domain, and the serial build steps.
+bucket; a thread with fewer is idle part of it. This is how the fourth pass on one node's
+speed (docs/history/2026-11-24-one-node-speed.md, "Fourth pass") found a tracing thread
+asleep while the other loaded the domain, and the serial build steps.
 
 Usage:
     perf record -e cpu-clock -F 2000 -o OUT -- dray render SCENE ...

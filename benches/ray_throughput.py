@@ -33,7 +33,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _bench_env as env  # noqa: E402
 
-# About 1.3M triangles each (dray prints the exact count; see docs/benchmarks.md).
+# About 1.3M triangles each (dray prints the exact count; see docs/benchmarks.md, "Ray
+# throughput and BVH build against Embree").
 DEFAULT_PROCEDURAL = "iso:gyroid:259"  # 1,300,420 triangles
 LUCY_GRID = "grid:{scenes}/lucy_100k/lucy.ply:1x13x1"  # 13 x 99,970 = 1,299,610 triangles
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
-"""Issue 8's experiment: the three schedules of Navratil et al. 2012 on a scene larger
-than one worker's memory budget.
+"""The scheduling experiment (docs/benchmarks.md, "Scheduling"): the three schedules of
+Navratil et al. 2012 on a scene larger than one worker's memory budget.
 
 A procedural scene (default `grid:spheres:1000:mirror:4x4x4`, 20.5M triangles: mirror and
 Lambert spheres, a sun and a point light) is cut once per domain count into a scene

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Build the dray binary (unless DRAY_BIN is set), then run benches/scheduling.py (issue 8's
-# experiment: image-plane, domain and dynamic schedules on a scene larger than a worker's
-# memory budget). Standard-library Python, plus matplotlib in the benchmark venv for --plot.
+# Build the dray binary (unless DRAY_BIN is set), then run benches/scheduling.py (the
+# scheduling experiment: image-plane, domain and dynamic schedules on a scene larger than a
+# worker's memory budget; docs/benchmarks.md, "Scheduling"). Standard-library Python, plus
+# matplotlib in the benchmark venv for --plot.
 # Usage: benches/scheduling.sh [options of scheduling.py]   (see: python3 benches/scheduling.py --help)
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."

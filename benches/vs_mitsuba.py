@@ -40,7 +40,7 @@ Options beyond the defaults: --width/--height, --max-depth (dray's; Mitsuba's is
 more), --threads as a list (e.g. 1,2: every round runs every count; N threads run on the
 first N of --cores), --up z for Z-up models (rotated to Y-up in both renderers' files).
 
---case deep is issue 10's scanned-model case: Lucy ($DRAY_SCENES/lucy_100k/lucy.ply,
+--case deep is the scanned-model case: Lucy ($DRAY_SCENES/lucy_100k/lucy.ply,
 99,970 triangles; the bunny if Lucy is missing), 256x256, 64 spp, --max-depth 64 (Mitsuba
 max_depth 65, rr_depth 4), the same sun and constant environment, scalar_rgb and
 llvm_ad_rgb, threads 1 and 2; it reports dray/Mitsuba time ratios per thread count and
@@ -80,8 +80,8 @@ MITSUBA_RR_DEPTH = DRAY_RR_START + 1  # Mitsuba: roulette once (vertex depth + 1
 FALLBACK_MESH = "iso:metaballs:64"
 LLVM_DEB = "libllvm19"
 
-# Defaults (the original benchmark) and issue 10's deep scanned-model case. Values given on
-# the command line win over the case's.
+# Defaults (the original benchmark) and the deep scanned-model case (docs/benchmarks.md,
+# "Path tracing against Mitsuba 3"). Values given on the command line win over the case's.
 CASES = {
     "default": {"width": 512, "height": 512, "spp": 16, "ref_spp": 256, "max_depth": 2, "threads": "2",
                 "up": "y", "mesh": None, "out": "vs_mitsuba"},

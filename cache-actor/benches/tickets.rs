@@ -1,13 +1,14 @@
-//! One wall actor's parts, driven directly (docs/benchmarks.md "Lean tickets"): the store's
-//! inserts and its `first`/`nearest`/`average` queries, and the ticket cycle (open, returns,
-//! close, store) as the actor runs it (`actor.rs`: `cache_lookup` and `apply`), without the
-//! mailbox or gRPC around them.
+//! One wall actor's parts, driven directly (docs/history/2026-11-26-lean-tickets.md): the
+//! store's inserts and its `first`/`nearest`/`average` queries, and the ticket cycle (open,
+//! returns, close, store) as the actor runs it (`actor.rs`: `cache_lookup` and `apply`),
+//! without the mailbox or gRPC around them.
 //!
-//! Sizes follow the Table 5.1 set-up (docs/benchmarks.md): a wall 0.137 wide (one voxel of
-//! the bunny grid), camera rays from a pinhole 1 unit in front of it, radius 0.00228 (the
-//! thesis's 0.005, scaled by 0.456) and 5.73 degrees. The store holds 32,768 entries (a
-//! 256² coarse pass puts 7-8 k on each of the 9 outer walls facing the camera; `fill=true`
-//! adds tens of thousands more), so a query finds a few tens of candidates in range.
+//! Sizes follow the Table 5.1 set-up (docs/history/2026-11-24-ray-caches-table-5-1.md): a
+//! wall 0.137 wide (one voxel of the bunny grid), camera rays from a pinhole 1 unit in front
+//! of it, radius 0.00228 (the thesis's 0.005, scaled by 0.456) and 5.73 degrees. The store
+//! holds 32,768 entries (a 256² coarse pass puts 7-8 k on each of the 9 outer walls facing
+//! the camera; `fill=true` adds tens of thousands more), so a query finds a few tens of
+//! candidates in range.
 //!
 //! Times are CPU time of the bench thread (`common/thread_cpu.rs`), not wall time.
 //!

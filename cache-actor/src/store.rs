@@ -11,7 +11,7 @@
 //! per query: `first` and `nearest` keep their best candidate, and `average` sorts into a
 //! buffer the store keeps between queries. (Before this grid, a k-d tree with one-by-one
 //! inserts and a `Vec` per query cost several times more per lookup and per insert:
-//! docs/benchmarks.md, "Lean tickets".)
+//! docs/history/2026-11-26-lean-tickets.md.)
 //!
 //! Answers must not depend on the order entries arrived in (tickets close in whatever
 //! order the cluster's timing gives), so every choice between entries uses a total

@@ -1,5 +1,5 @@
-//! The worker's ticket bookkeeping (docs/benchmarks.md "Lean tickets"), without the tracing
-//! or the streams around it: a ray's ticket set as it gains tickets at walls and is
+//! The worker's ticket bookkeeping (docs/history/2026-11-26-lean-tickets.md), without the
+//! tracing or the streams around it: a ray's ticket set as it gains tickets at walls and is
 //! inherited by its children (`Lineage`), the sparse ticket table of a ray batch (encode:
 //! `RayBundle::push`; decode: `with_lineage`), and the per-ticket sums (`TicketLedger`:
 //! contributions and credit under each ray's tickets, drained into returns).
