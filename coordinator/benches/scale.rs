@@ -9,7 +9,9 @@
 //! Last, one JSON line per (N, D) point: `workers`, `domains`, `round_ms` (a changed
 //! round end to end, fan-out included), `report_us` (one contribution report as the
 //! job's actor applies it), `reports_per_s` (its inverse: one job's reports per second
-//! on one core) and `queue_report_us`.
+//! on one core), `report_no_pixels_us` and `reports_no_pixels_per_s` (the same report
+//! without its pixel sums: the actor's own bookkeeping, credit and counters) and
+//! `queue_report_us`.
 //!
 //! For N workers and D domains (D = 4N for N = 10, 100, 1,000 and 10,000, D = 32N for
 //! N = 1,000 and D = 10N for N = 10,000) it measures:
@@ -440,6 +442,8 @@ struct Case {
     d: u32,
     job_round: Duration,
     contrib: Duration,
+    /// A report with no pixel sums: the actor's own work per report.
+    bookkeeping: Duration,
     queues: Duration,
 }
 
@@ -655,6 +659,7 @@ fn main() {
     );
     println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     let mut contrib_by_n = BTreeMap::new();
+    let mut book_by_n = BTreeMap::new();
     for &(n, d) in CASES.iter().filter(|(n, d)| *d as usize == 4 * n) {
         let mut sim = Sim::new(n, d);
         let mut reqs = sim.contribution_requests();
@@ -708,6 +713,33 @@ fn main() {
             sim.running.publish();
             black_box(out);
         });
+        // The actor's own bookkeeping: the same reports with credit and counters but no
+        // pixel sums (what is left when the film adds leave the actor).
+        let mut bare: Vec<ReportContributionsRequest> = reqs
+            .iter()
+            .map(|r| ReportContributionsRequest {
+                pixels: Vec::new(),
+                sums: Vec::new(),
+                credits: r
+                    .credits
+                    .iter()
+                    .map(|c| TileCredit { credit: 0, ..*c })
+                    .collect(),
+                ..r.clone()
+            })
+            .collect();
+        let mut k = 0;
+        let t_book = per_call(samples, || {
+            let r = &mut bare[k % n];
+            k += 1;
+            r.sequence = reqs[0].sequence + k as u64;
+            let checked = report::check(&sim.running, r).expect("report accepted");
+            debug_assert_eq!(checked, None);
+            let out = report::apply(&mut sim.running, r);
+            sim.running.publish();
+            black_box(out);
+        });
+        book_by_n.insert(n, t_book);
         let per_s = 1.0 / t_report.as_secs_f64();
         let load = n as f64 * CONTRIB_PER_S * t_report.as_secs_f64();
         println!(
@@ -755,6 +787,7 @@ fn main() {
         );
         c.queues = t;
         c.contrib = contrib_by_n[&n];
+        c.bookkeeping = book_by_n[&n];
     }
 
     println!();
@@ -806,12 +839,15 @@ fn main() {
     for c in &cases {
         println!(
             "{{\"workers\": {}, \"domains\": {}, \"round_ms\": {:.3}, \"report_us\": {:.3}, \
-             \"reports_per_s\": {:.0}, \"queue_report_us\": {:.3}}}",
+             \"reports_per_s\": {:.0}, \"report_no_pixels_us\": {:.3}, \
+             \"reports_no_pixels_per_s\": {:.0}, \"queue_report_us\": {:.3}}}",
             c.n,
             c.d,
             c.job_round.as_secs_f64() * 1e3,
             c.contrib.as_secs_f64() * 1e6,
             1.0 / c.contrib.as_secs_f64(),
+            c.bookkeeping.as_secs_f64() * 1e6,
+            1.0 / c.bookkeeping.as_secs_f64(),
             c.queues.as_secs_f64() * 1e6,
         );
     }

@@ -313,7 +313,7 @@ impl JobActor {
         );
         let commands = job.commands(&job.incomplete_tiles(), false);
         for (w, a) in commands {
-            if !self.membership.send(&w, a) {
+            if !self.membership.send_shared(&w, a) {
                 tracing::debug!(worker = %w, "worker gone before the image's tiles");
             }
         }

@@ -185,7 +185,7 @@ impl RunningJob {
             ));
         }
         for (w, a) in self.attempt_commands() {
-            if !membership.send(&w, a) {
+            if !membership.send_shared(&w, a) {
                 // The worker expired between the check above and here; the job cannot
                 // run without it.
                 for (w, a) in self.releases(Release::Cancel, "a worker left during setup") {
@@ -256,7 +256,7 @@ impl RunningJob {
         for (w, a) in self.attempt_commands() {
             // A survivor that is gone too has its own loss event queued: it restarts
             // the job again then.
-            if !membership.send(&w, a) {
+            if !membership.send_shared(&w, a) {
                 tracing::debug!(worker = %w, "survivor gone before its new attempt");
             }
         }
@@ -311,26 +311,27 @@ impl RunningJob {
     /// For each worker of the current attempt, in job order: its JobSetup, then the
     /// incomplete tiles of the phase the job is in, dealt by the schedule's rule, in
     /// messages of at most [`TILES_PER_MESSAGE`].
-    pub(super) fn attempt_commands(&self) -> Vec<(String, Assignment)> {
+    pub(super) fn attempt_commands(&self) -> Vec<(String, Arc<Assignment>)> {
         self.commands(&self.incomplete_tiles(), true)
     }
 
     /// `tiles` dealt to the current attempt's workers, each worker's JobSetup first when
-    /// `setup`.
-    pub(super) fn commands(&self, tiles: &[Tile], setup: bool) -> Vec<(String, Assignment)> {
-        let job_setup = self.current_setup();
+    /// `setup`. The JobSetup (which carries the whole routing table) is one shared copy
+    /// for every worker: at 10,000 workers a copy each would be gigabytes.
+    pub(super) fn commands(&self, tiles: &[Tile], setup: bool) -> Vec<(String, Arc<Assignment>)> {
+        let job_setup = setup.then(|| Arc::new(command(Command::Setup(self.current_setup()))));
         let mut out = Vec::new();
         for (w, mine) in self.sched.deal(tiles) {
-            if setup {
-                out.push((w.clone(), command(Command::Setup(job_setup.clone()))));
+            if let Some(s) = &job_setup {
+                out.push((w.clone(), s.clone()));
             }
             for chunk in mine.chunks(TILES_PER_MESSAGE) {
                 out.push((
                     w.clone(),
-                    command(Command::Tiles(TileAssignment {
+                    Arc::new(command(Command::Tiles(TileAssignment {
                         job_id: self.entry.id.clone(),
                         tiles: chunk.to_vec(),
-                    })),
+                    }))),
                 ));
             }
         }

@@ -13,7 +13,7 @@
 //!   holds to workers that no ray needs, and with `replicate`, adds idle workers as extra
 //!   owners of hot resident domains.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 use dray_proto::v1::DomainQueue;
 
@@ -305,14 +305,21 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
     // until a worker with nothing to do is given them, so one load serves them all
     // instead of the owner swapping its domains in and out.
     let size = view.iter().map(|v| v.bytes).max().unwrap_or(0);
+    // Each worker's wanted domains it owns alone, ascending, from one pass over the
+    // domains (not one pass per worker: that is N x D at 10,000 workers). A worker's
+    // releases below touch only its own domains, so the lists stay true as it goes.
+    let mut sole: HashMap<String, Vec<usize>> = HashMap::new();
+    for (d, o) in owners.iter().enumerate() {
+        if wanted(d) && o.len() == 1 {
+            sole.entry(o[0].clone()).or_default().push(d);
+        }
+    }
     for w in input.workers {
         let Some(cap) = capacity(w, size) else {
             continue;
         };
         let here = |d: usize| view[d].resident_at.contains(w.id) || loading_at(d, w.id);
-        let mut mine: Vec<usize> = (0..n)
-            .filter(|&d| wanted(d) && owners[d].len() == 1 && owners[d][0] == w.id)
-            .collect();
+        let mut mine: Vec<usize> = sole.remove(w.id).unwrap_or_default();
         if mine.len() <= cap {
             continue;
         }
@@ -340,17 +347,28 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
         .filter(|&(d, _)| wanted(d))
         .flat_map(|(_, o)| o.iter().map(String::as_str))
         .collect();
-    let mut idle: Vec<&WorkerView<'_>> = input
+    // Idle workers in job order; a worker given a domain leaves its slot empty, so the
+    // order of the others (which decides ties) never changes.
+    let mut idle: Vec<Option<&WorkerView<'_>>> = input
         .workers
         .iter()
         .filter(|w| !busy.contains(w.id))
+        .map(Some)
         .collect();
-    if idle.is_empty() {
+    let mut idle_left = idle.len();
+    if idle_left == 0 {
         return (!changes.is_empty()).then(|| Decision {
             routes: Ownership::from_owners(owners.clone()),
             changes,
         });
     }
+    let slot_of: HashMap<&str, usize> = idle
+        .iter()
+        .enumerate()
+        .filter_map(|(i, w)| w.map(|w| (w.id, i)))
+        .collect();
+    // Every slot before this one is empty.
+    let mut first_live = 0usize;
     let by_want = |mut ds: Vec<usize>| {
         // Descending want, then ascending index: a total order, so no tie is left to
         // the sort's stability or to map iteration.
@@ -358,15 +376,19 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
         ds
     };
     let fits = |w: &WorkerView<'_>, d: usize| w.budget == 0 || view[d].bytes <= w.budget;
-    // The idle worker for domain `d`: one that fits and still holds it, else the first
-    // that fits.
-    let pick = |idle: &[&WorkerView<'_>], d: usize, skip: &[String]| -> Option<usize> {
-        let ok = |w: &&WorkerView<'_>| fits(w, d) && !skip.iter().any(|s| s == w.id);
-        idle.iter()
-            .position(|w| ok(w) && view[d].resident_at.contains(w.id))
-            .or_else(|| idle.iter().position(ok))
+    // The idle worker for domain `d`: the first (in job order) that fits and still holds
+    // it, else the first that fits. The holders are few: they are looked up, not
+    // searched for, so a round costs O(moves x holders) plus the scan for a fit.
+    let pick = |idle: &[Option<&WorkerView<'_>>], first: usize, d: usize, skip: &[String]| {
+        let ok = |w: &WorkerView<'_>| fits(w, d) && !skip.iter().any(|s| s == w.id);
+        view[d]
+            .resident_at
+            .iter()
+            .filter_map(|id| slot_of.get(id.as_str()).copied())
+            .filter(|&i| idle[i].is_some_and(ok))
+            .min()
+            .or_else(|| (first..idle.len()).find(|&i| idle[i].is_some_and(ok)))
     };
-
     let unloaded: Vec<usize> = (0..n)
         .filter(|&d| wanted(d))
         .filter(|&d| {
@@ -376,13 +398,15 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
         })
         .collect();
     for d in by_want(unloaded) {
-        if idle.is_empty() {
+        if idle_left == 0 {
             break;
         }
-        let Some(i) = pick(&idle, d, &[]) else {
+        let Some(i) = pick(&idle, first_live, d, &[]) else {
             continue;
         };
-        let w = idle.remove(i);
+        let Some(w) = take_slot(&mut idle, i, &mut first_live, &mut idle_left) else {
+            continue;
+        };
         let from = std::mem::replace(&mut owners[d], vec![w.id.to_string()]);
         changes.push(Change::Move {
             domain: d as u32,
@@ -391,7 +415,7 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
         });
     }
 
-    if input.replicate && !idle.is_empty() {
+    if input.replicate && idle_left > 0 {
         let moved: BTreeSet<u32> = changes
             .iter()
             .filter_map(|c| c.given().map(|g| g.0))
@@ -403,13 +427,15 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
             .filter(|&d| owners[d].len() < input.workers.len())
             .collect();
         for d in by_want(hot) {
-            if idle.is_empty() {
+            if idle_left == 0 {
                 break;
             }
-            let Some(i) = pick(&idle, d, &owners[d]) else {
+            let Some(i) = pick(&idle, first_live, d, &owners[d]) else {
                 continue;
             };
-            let w = idle.remove(i);
+            let Some(w) = take_slot(&mut idle, i, &mut first_live, &mut idle_left) else {
+                continue;
+            };
             owners[d].push(w.id.to_string());
             changes.push(Change::Replicate {
                 domain: d as u32,
@@ -425,6 +451,24 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
         routes: Ownership::from_owners(owners),
         changes,
     })
+}
+
+/// Empty slot `i` of `idle` and return its worker, keeping `first` at the first slot
+/// still holding one and `left` at how many do.
+fn take_slot<'a, 'b>(
+    idle: &mut [Option<&'a WorkerView<'b>>],
+    i: usize,
+    first: &mut usize,
+    left: &mut usize,
+) -> Option<&'a WorkerView<'b>> {
+    let w = idle.get_mut(i)?.take();
+    if w.is_some() {
+        *left -= 1;
+    }
+    while *first < idle.len() && idle[*first].is_none() {
+        *first += 1;
+    }
+    w
 }
 
 /// The latest queue report of each worker, as [`WorkerView`]s in `order`, with budgets.
