@@ -4,7 +4,7 @@ use dray_core::integrator::RayKind;
 
 use super::outbox::Outbox;
 use super::residency::{Pins, Residency, StepCtx};
-use super::trace::Step;
+use super::trace::{InFlight, Step};
 use super::{JobTracer, TraceError};
 use crate::credit;
 use crate::tickets::Lineage;
@@ -143,12 +143,17 @@ impl JobTracer {
                 (bare.camera_ray(pixel, sample), Lineage::default())
             };
             out.traced[RayKind::Camera as usize] += 1;
-            if let Some((d, loaded, integrator)) = whole {
-                let parts = (d, loaded, integrator);
-                self.trace_tree(parts, ray, share, &lin, tile.index, &mut step, out)?;
+            let flight = InFlight {
+                ray,
+                credit: share,
+                tile: tile.index,
+                lineage: &lin,
+            };
+            if let Some(whole) = whole {
+                self.trace_tree(whole, flight, &mut step, out)?;
                 continue;
             }
-            self.route_new(&ctx, bare, ray, share, lin, tile.index, out);
+            self.route_new(&ctx, bare, flight, out);
             // Depth first, one camera ray's tree at a time: the stack of local rays stays
             // a few entries deep and in cache, where making the whole chunk's camera rays
             // first stacked thousands of them (half a megabyte).

@@ -50,8 +50,8 @@ mod walls;
 use std::sync::Arc;
 
 use dray_core::camera::Camera;
-use dray_core::domain::DomainTree;
-use dray_core::integrator::{Integrator, RayKind, RenderSettings};
+use dray_core::domain::{DomainTree, Hop};
+use dray_core::integrator::{Integrator, RayKind, RayState, RenderSettings};
 use dray_core::light_sampler::LightSampler;
 use dray_core::scene::Scene;
 use dray_core::wall::PhmBins;
@@ -273,5 +273,20 @@ impl JobTracer {
 
     fn wanted(&self) -> impl Fn(u32) -> bool + '_ {
         |d| self.nonempty.get(d as usize).copied().unwrap_or(false)
+    }
+
+    /// `ray`'s span in `domain`, walking the layout from the ray's origin, and the next
+    /// domain with triangles on its path; `None` when the ray does not pass through
+    /// `domain`.
+    fn hop_in(&self, ray: &RayState, domain: u32) -> Option<Hop> {
+        self.tree.hop(
+            ray.origin,
+            ray.dir,
+            0.0,
+            ray.tmax,
+            self.pad,
+            domain,
+            self.wanted(),
+        )
     }
 }

@@ -8,7 +8,7 @@ use dray_core::integrator::RayKind;
 use dray_core::ray::RayRecord;
 use glam::Vec3;
 
-use super::trace::LocalRay;
+use super::trace::Entering;
 use crate::tickets::{Lineage, RayBundle, TicketLedger};
 
 /// A deterministic fast hash for domain keys.
@@ -34,7 +34,7 @@ pub struct Outbox {
     pub outcomes: Vec<(u32, u32, bool)>,
     /// Rays bound for a domain resident here, traced before the step ends (depth first,
     /// so the stack stays as small as one camera ray's descendants).
-    pub(super) local: Vec<LocalRay>,
+    pub(super) local: Vec<Entering>,
     /// Rays made here (camera rays and children), by kind: each ray is counted once,
     /// where it is made, so the totals equal the single-process renderer's.
     pub traced: [u64; RayKind::COUNT],

@@ -1,6 +1,7 @@
 //! Tracing rays in the domains traced here: a ray's span in its domain, its hit shaded,
 //! and each ray it makes routed on.
 
+use dray_core::bvh::Hit;
 use dray_core::domain::{Hop, Span};
 use dray_core::integrator::{Integrator, RayKind, RayState, Sink};
 use dray_core::ray::RayRecord;
@@ -15,19 +16,32 @@ use crate::credit;
 use crate::domain_store::LoadedDomain;
 use crate::tickets::{Lineage, with_lineage};
 
-/// A ray bound for a domain traced in this step. It stays unpacked (it is never
-/// sent), and a ray made in this step carries the hop found when it was routed, so its
-/// domain walk is not done twice.
+/// A ray in flight with what travels with it: its credit, the tile that credit goes
+/// back to and its lineage (tickets, coarse and probe flags).
+///
+/// The lineage is borrowed and cloned only where the ray is kept (a local ray, a
+/// lookup): a lineage is 88 bytes, and a bundle holding its own (160 bytes) cost a
+/// `memcpy` call at each move along the way, 3% of the instructions of a step.
+pub(super) struct InFlight<'l> {
+    pub(super) ray: RayState,
+    pub(super) credit: u64,
+    /// Its camera ray's tile (checked when the ray came in or its tile was dealt).
+    pub(super) tile: u32,
+    pub(super) lineage: &'l Lineage,
+}
+
+/// A ray entering `domain` to be traced in this step, waiting in [`Outbox`]'s local
+/// stack. It stays unpacked (it is never sent), and a ray made in this step carries the
+/// hop found when it was routed, so its domain walk is not done twice.
 #[derive(Debug)]
-pub(super) struct LocalRay {
-    domain: u32,
-    ray: RayState,
-    credit: u64,
-    hop: Option<Hop>,
-    /// The tile its credit goes back to: its camera ray's (checked when the ray came in
-    /// or its tile was dealt).
-    tile: u32,
-    lineage: Lineage,
+pub(super) struct Entering {
+    pub(super) domain: u32,
+    /// Its span in `domain` and the next domain on its path, when already known.
+    pub(super) hop: Option<Hop>,
+    pub(super) ray: RayState,
+    pub(super) credit: u64,
+    pub(super) tile: u32,
+    pub(super) lineage: Lineage,
 }
 
 /// The sink of a hit's shading: contributions go straight to the outbox (and the ray's
@@ -68,27 +82,94 @@ impl Sink for ContributionsOnly<'_> {
 #[derive(Default)]
 pub(super) struct Step {
     children: Vec<RayState>,
-    /// Rays of one tree waiting in [`JobTracer::trace_tree`], with their credit.
+    /// Rays of one tree waiting in [`JobTracer::trace_tree`], with their credit (the
+    /// tree's tile and lineage are its camera ray's).
     tree: Vec<(RayState, u64)>,
     kinds: Vec<RayKind>,
     shares: Vec<u64>,
 }
 
+/// What tracing a ray through its span in a domain came to.
+pub(super) enum InSpan {
+    /// An occlusion ray was blocked: it ends, handing back all of its credit.
+    Blocked,
+    /// A hit, shaded: its contributions are in the outbox, the rays it made in
+    /// `Step::children` with their credit in `Step::shares`, and the ray hands back
+    /// what the split left.
+    Shaded { back: u64 },
+    /// Nothing in the span stopped it: it goes on past the span.
+    Through,
+}
+
+/// Trace `flight`'s ray through `geometry`, its span in one domain, and shade what it
+/// hits. The one tracing step of both loops, the routed one
+/// ([`JobTracer::trace_one`]) and the one-domain one ([`JobTracer::trace_tree`]), so
+/// that they trace, shade and split credit alike.
+#[inline(always)]
+fn in_span(
+    integrator: &Integrator<'_>,
+    geometry: &SpanTrace<'_>,
+    flight: &InFlight<'_>,
+    step: &mut Step,
+    out: &mut Outbox,
+) -> Result<InSpan, TraceError> {
+    let ray = &flight.ray;
+    if ray.kind.is_occlusion() {
+        return Ok(if integrator.occluded(geometry, ray) {
+            InSpan::Blocked
+        } else {
+            InSpan::Through
+        });
+    }
+    let Some(hit) = integrator.intersect(geometry, ray) else {
+        return Ok(InSpan::Through);
+    };
+    let back = shade(integrator, &hit, flight, step, out)?;
+    Ok(InSpan::Shaded { back })
+}
+
+/// Shade `hit`: its contributions go to the outbox, the rays it makes to
+/// `step.children` with their credit in `step.shares`. Returns the credit the ray
+/// hands back itself.
+#[inline]
+fn shade(
+    integrator: &Integrator<'_>,
+    hit: &Hit,
+    flight: &InFlight<'_>,
+    step: &mut Step,
+    out: &mut Outbox,
+) -> Result<u64, TraceError> {
+    step.children.clear();
+    integrator.shade_hit(
+        &flight.ray,
+        hit,
+        &mut HitSink {
+            out,
+            lineage: flight.lineage,
+            children: &mut step.children,
+        },
+    );
+    step.kinds.clear();
+    step.kinds.extend(step.children.iter().map(|c| c.kind));
+    Ok(credit::split_into(
+        flight.credit,
+        &step.kinds,
+        &mut step.shares,
+    )?)
+}
+
 impl JobTracer {
     /// Send a ray that was just made to the first domain on its path, or finish it at
-    /// once when it meets no domain with triangles. A ray whose first domain starts
-    /// ahead of its origin enters it through a wall.
-    #[allow(clippy::too_many_arguments)]
+    /// once (with `finisher`) when it meets no domain with triangles. A ray whose first
+    /// domain starts ahead of its origin enters it through a wall.
     pub(super) fn route_new(
         &self,
         ctx: &StepCtx<'_>,
         finisher: &Integrator<'_>,
-        ray: RayState,
-        credit: u64,
-        lin: Lineage,
-        tile: u32,
+        flight: InFlight<'_>,
         out: &mut Outbox,
     ) {
+        let ray = &flight.ray;
         let first = match self.single {
             // What the walk finds in a layout of one domain, without the walk.
             Some(domain) => Some(Hop {
@@ -105,49 +186,66 @@ impl JobTracer {
             }
         };
         match first {
-            Some(h) if h.span.t0 > 0.0 => {
-                self.cross(ctx, ray, credit, lin, h.span.domain, Some(h), tile, out)
-            }
-            Some(h) => self.forward(ctx, ray, credit, lin, h.span.domain, Some(h), tile, out),
-            None => finish_unblocked(finisher, &ray, credit, &lin, tile, out),
+            Some(h) if h.span.t0 > 0.0 => self.cross(ctx, h.span.domain, Some(h), flight, out),
+            Some(h) => self.forward(ctx, h.span.domain, Some(h), flight, out),
+            None => finish_unblocked(finisher, &flight, out),
         }
     }
 
-    /// Send `ray` on to `domain`: traced in this step when the domain may be traced here
+    /// Send a ray on to `domain`: traced in this step when the domain may be traced here
     /// (with `hop`, its span there, when already known), else out of the step.
-    #[allow(clippy::too_many_arguments)]
     #[inline]
     pub(super) fn forward(
         &self,
         ctx: &StepCtx<'_>,
-        ray: RayState,
-        credit: u64,
-        lin: Lineage,
         domain: u32,
         hop: Option<Hop>,
-        tile: u32,
+        flight: InFlight<'_>,
         out: &mut Outbox,
     ) {
+        let InFlight {
+            ray,
+            credit,
+            tile,
+            lineage,
+        } = flight;
         // Depth beyond 16 bits (a record's field): no valid job gets here (max_depth
         // <= 1024); end the ray rather than lose its credit.
         if u16::try_from(ray.depth).is_err() {
-            out.give_back(tile, credit, &lin, false);
+            out.give_back(tile, credit, lineage, false);
             return;
         }
         if ctx.pins.get(domain).is_some() {
-            out.local.push(LocalRay {
+            out.local.push(Entering {
                 domain,
+                hop,
                 ray,
                 credit,
-                hop,
                 tile,
-                lineage: lin,
+                lineage: lineage.clone(),
             });
             return;
         }
         match RayRecord::from_state(&ray, credit) {
-            Ok(r) => out.rays.entry(domain).or_default().push(r, &lin),
-            Err(_) => out.give_back(tile, credit, &lin, false),
+            Ok(r) => out.rays.entry(domain).or_default().push(r, lineage),
+            Err(_) => out.give_back(tile, credit, lineage, false),
+        }
+    }
+
+    /// A ray that left a domain unblocked goes on: into `next`, the next domain with
+    /// triangles on its path, through its wall; or, with none, out of the scene (finished
+    /// with `finisher`).
+    pub(super) fn go_on(
+        &self,
+        ctx: &StepCtx<'_>,
+        finisher: &Integrator<'_>,
+        next: Option<u32>,
+        flight: InFlight<'_>,
+        out: &mut Outbox,
+    ) {
+        match next {
+            Some(domain) => self.cross(ctx, domain, None, flight, out),
+            None => finish_unblocked(finisher, &flight, out),
         }
     }
 
@@ -171,35 +269,38 @@ impl JobTracer {
         let mut step = Step::default();
         for (rec, lin) in with_lineage(rays, tickets) {
             self.check_pixel(rec.pixel, lin.coarse)?;
-            let ray = LocalRay {
+            let entering = Entering {
                 domain,
+                hop: None,
                 ray: rec.to_state(),
                 credit: rec.credit,
-                hop: None,
                 tile: self.tile_of(rec.pixel, lin.coarse),
                 lineage: lin,
             };
-            self.trace_one(&ctx, ray, &mut step, out)?;
+            self.trace_one(&ctx, entering, &mut step, out)?;
         }
         self.trace_local(&ctx, &mut step, out)
     }
 
-    /// Trace `ray` and every ray it leads to in `domain`, the layout's only domain
+    /// Trace `root` and every ray it leads to in `domain`, the layout's only domain
     /// (`single`), traced here: what [`Self::route_new`], [`Self::forward`] and
     /// [`Self::trace_one`] do for such rays, without the routing. In a layout of one
     /// domain, every span is the ray's whole interval and no ray crosses a wall (so none
     /// takes a ticket or a probe, and the lineage is the camera ray's); the rays are
-    /// traced, shaded, counted and given credit exactly as there, so the image, the
-    /// counts and the credit are the same. This is the loop of `dray render`'s one
-    /// embedded worker, where the routing cost a quarter of the time per ray.
-    #[allow(clippy::too_many_arguments)]
+    /// traced, shaded, counted and given credit exactly as there (the same
+    /// [`in_span`]), so the image, the counts and the credit are the same. This is the
+    /// loop of `dray render`'s one embedded worker.
+    ///
+    /// It is kept apart from the routed loop because the routing costs even here: with
+    /// every ray of a one-domain cornell render (96x96, 8 spp, path) sent through
+    /// `route_new`, `forward` and `trace_one` instead, `camera_rays` ran 9.7% more
+    /// instructions (callgrind: 1,224M against 1,116M) and took 8% longer: the domain
+    /// pinned for every ray, and every ray moved through the step's stack with its own
+    /// copy of the lineage.
     pub(super) fn trace_tree(
         &self,
         (domain, loaded, integrator): (u32, &LoadedDomain, &Integrator<'_>),
-        ray: RayState,
-        credit: u64,
-        lin: &Lineage,
-        tile: u32,
+        root: InFlight<'_>,
         step: &mut Step,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
@@ -208,12 +309,15 @@ impl JobTracer {
             .domains
             .first()
             .ok_or(TraceError::NotResident { domain })?;
+        // One ray of the tree at a time in `f`: the tile and lineage are the root's.
+        let mut f = root;
         step.tree.clear();
-        step.tree.push((ray, credit));
+        step.tree.push((f.ray, f.credit));
         while let Some((ray, credit)) = step.tree.pop() {
+            (f.ray, f.credit) = (ray, credit);
             // As in `forward`: a depth a ray record cannot carry ends the ray.
-            if u16::try_from(ray.depth).is_err() {
-                out.give_back(tile, credit, lin, false);
+            if u16::try_from(f.ray.depth).is_err() {
+                out.give_back(f.tile, f.credit, f.lineage, false);
                 continue;
             }
             let geometry = SpanTrace {
@@ -221,59 +325,22 @@ impl JobTracer {
                 span: Span {
                     domain,
                     t0: 0.0,
-                    t1: ray.tmax,
+                    t1: f.ray.tmax,
                 },
             };
-            if ray.kind.is_occlusion() {
-                if integrator.occluded(&geometry, &ray) {
-                    out.give_back(tile, credit, lin, false);
-                } else {
-                    finish_unblocked(integrator, &ray, credit, lin, tile, out);
+            match in_span(integrator, &geometry, &f, step, out)? {
+                InSpan::Blocked => out.give_back(f.tile, f.credit, f.lineage, false),
+                InSpan::Through => finish_unblocked(integrator, &f, out),
+                InSpan::Shaded { back } => {
+                    out.give_back(f.tile, back, f.lineage, false);
+                    for (child, &share) in step.children.drain(..).zip(&step.shares) {
+                        out.traced[child.kind as usize] += 1;
+                        step.tree.push((child, share));
+                    }
                 }
-                continue;
-            }
-            let Some(hit) = integrator.intersect(&geometry, &ray) else {
-                finish_unblocked(integrator, &ray, credit, lin, tile, out);
-                continue;
-            };
-            let back = self.shade(integrator, &ray, &hit, credit, lin, step, out)?;
-            out.give_back(tile, back, lin, false);
-            for (child, &share) in step.children.drain(..).zip(&step.shares) {
-                out.traced[child.kind as usize] += 1;
-                step.tree.push((child, share));
             }
         }
         Ok(())
-    }
-
-    /// Shade `hit`: its contributions go to the outbox, the rays it makes to
-    /// `step.children` with their credit in `step.shares`. Returns the credit the ray
-    /// hands back itself.
-    #[allow(clippy::too_many_arguments)]
-    #[inline]
-    fn shade(
-        &self,
-        integrator: &Integrator<'_>,
-        ray: &RayState,
-        hit: &dray_core::bvh::Hit,
-        credit: u64,
-        lin: &Lineage,
-        step: &mut Step,
-        out: &mut Outbox,
-    ) -> Result<u64, TraceError> {
-        step.children.clear();
-        integrator.shade_hit(
-            ray,
-            hit,
-            &mut HitSink {
-                out,
-                lineage: lin,
-                children: &mut step.children,
-            },
-        );
-        step.kinds.clear();
-        step.kinds.extend(step.children.iter().map(|c| c.kind));
-        Ok(credit::split_into(credit, &step.kinds, &mut step.shares)?)
     }
 
     /// Trace the rays the step sent to domains traced here, and theirs, until none is
@@ -284,33 +351,33 @@ impl JobTracer {
         step: &mut Step,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
-        while let Some(ray) = out.local.pop() {
-            self.trace_one(ctx, ray, step, out)?;
+        while let Some(entering) = out.local.pop() {
+            self.trace_one(ctx, entering, step, out)?;
         }
         Ok(())
     }
 
-    /// Trace one ray in `domain` (traced here; `hop` is its span there if known) and
-    /// hand on what it makes; its lineage `lin` is inherited by its children.
+    /// Trace one ray entering a domain traced here and hand on what it makes; its
+    /// lineage is inherited by its children.
     fn trace_one(
         &self,
         ctx: &StepCtx<'_>,
-        local: LocalRay,
+        entering: Entering,
         step: &mut Step,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
-        let LocalRay {
+        let Entering {
             domain,
+            hop,
             ray,
             credit,
-            hop,
             tile,
-            lineage: lin,
-        } = local;
+            lineage,
+        } = entering;
         // A probe's outcome is reported for this domain only; its children and its way
         // on are ordinary rays.
-        let probe = lin.probe;
-        let lin = if probe { lin.inherited() } else { lin };
+        let probe = lineage.probe;
+        let lineage = if probe { lineage.inherited() } else { lineage };
         let (loaded, integrator) = ctx
             .domain(domain)
             .ok_or(TraceError::NotResident { domain })?;
@@ -322,72 +389,59 @@ impl JobTracer {
         let hop = match hop {
             Some(h) => h,
             None => self
-                .tree
-                .hop(
-                    ray.origin,
-                    ray.dir,
-                    0.0,
-                    ray.tmax,
-                    self.pad,
-                    domain,
-                    self.wanted(),
-                )
+                .hop_in(&ray, domain)
                 .ok_or(TraceError::Misrouted { domain })?,
         };
         let geometry = SpanTrace {
             accel: &resident.accel,
             span: hop.span,
         };
-        if ray.kind.is_occlusion() {
-            let occluded = integrator.occluded(&geometry, &ray);
-            if probe {
-                self.report_probe(domain, &ray, occluded, out);
-            }
-            if occluded {
-                out.give_back(tile, credit, &lin, false);
-            } else if let Some(next) = hop.next {
-                self.cross(ctx, ray, credit, lin, next, None, tile, out);
-            } else {
-                finish_unblocked(integrator, &ray, credit, &lin, tile, out);
-            }
-            return Ok(());
-        }
-        let found = integrator.intersect(&geometry, &ray);
-        if probe {
-            self.report_probe(domain, &ray, found.is_some(), out);
-        }
-        let Some(hit) = found else {
-            match hop.next {
-                Some(next) => self.cross(ctx, ray, credit, lin, next, None, tile, out),
-                None => finish_unblocked(integrator, &ray, credit, &lin, tile, out),
-            }
-            return Ok(());
+        let f = InFlight {
+            ray,
+            credit,
+            tile,
+            lineage: &lineage,
         };
-        let back = self.shade(integrator, &ray, &hit, credit, &lin, step, out)?;
-        out.give_back(tile, back, &lin, false);
-        for (child, &share) in step.children.drain(..).zip(&step.shares) {
-            out.traced[child.kind as usize] += 1;
-            self.route_new(ctx, integrator, child, share, lin.clone(), tile, out);
+        let outcome = in_span(integrator, &geometry, &f, step, out)?;
+        if probe {
+            let hit = !matches!(outcome, InSpan::Through);
+            self.report_probe(domain, &f.ray, hit, out);
+        }
+        match outcome {
+            InSpan::Blocked => out.give_back(tile, credit, &lineage, false),
+            InSpan::Through => self.go_on(ctx, integrator, hop.next, f, out),
+            InSpan::Shaded { back } => {
+                out.give_back(tile, back, &lineage, false);
+                for (child, &share) in step.children.drain(..).zip(&step.shares) {
+                    out.traced[child.kind as usize] += 1;
+                    let flight = InFlight {
+                        ray: child,
+                        credit: share,
+                        tile,
+                        lineage: &lineage,
+                    };
+                    self.route_new(ctx, integrator, flight, out);
+                }
+            }
         }
         Ok(())
     }
 }
 
 /// A ray that left the scene without being blocked: occlusion rays add what they carry,
-/// others see the environment.
+/// others see the environment; its credit goes back.
+#[inline]
 pub(super) fn finish_unblocked(
     integrator: &Integrator<'_>,
-    ray: &RayState,
-    credit: u64,
-    lineage: &Lineage,
-    tile: u32,
+    flight: &InFlight<'_>,
     out: &mut Outbox,
 ) {
+    let (ray, lineage) = (&flight.ray, flight.lineage);
     let mut sink = ContributionsOnly { out, lineage };
     if ray.kind.is_occlusion() {
         integrator.shadow_result(ray, false, &mut sink);
     } else {
         integrator.shade_miss(ray, &mut sink);
     }
-    out.give_back(tile, credit, lineage, false);
+    out.give_back(flight.tile, flight.credit, lineage, false);
 }

@@ -10,9 +10,20 @@ use glam::Vec3;
 
 use super::outbox::{Lookup, Outbox};
 use super::residency::{Pins, Residency, StepCtx};
-use super::trace::{Step, finish_unblocked};
+use super::trace::{InFlight, Step};
 use super::{JobTracer, TraceError};
 use crate::tickets::{Lineage, MAX_TICKETS};
+
+/// A ray at a wall answered in place: packed as the wall's actor would see it, and
+/// where it goes unless the wall answers it.
+struct AtWall<'l> {
+    record: RayRecord,
+    lineage: &'l Lineage,
+    tile: u32,
+    /// The domain it enters, and its span there when already known.
+    domain: u32,
+    hop: Option<Hop>,
+}
 
 impl JobTracer {
     /// A ray whose wall's hit map predicts that it misses `domain`: it goes on past the
@@ -31,25 +42,36 @@ impl JobTracer {
         let ctx = StepCtx::new(self, &pins);
         let state = ray.to_state();
         let tile = self.tile_of(ray.pixel, lineage.coarse);
-        out.taint(&lineage);
         let hop = self
-            .tree
-            .hop(
-                state.origin,
-                state.dir,
-                0.0,
-                state.tmax,
-                self.pad,
-                domain,
-                self.wanted(),
-            )
+            .hop_in(&state, domain)
             .ok_or(TraceError::Misrouted { domain })?;
-        let lin = lineage.inherited();
-        match hop.next {
-            Some(next) => self.cross(&ctx, state, ray.credit, lin, next, None, tile, out),
-            None => finish_unblocked(&ctx.bare, &state, ray.credit, &lin, tile, out),
-        }
+        let flight = InFlight {
+            ray: state,
+            credit: ray.credit,
+            tile,
+            lineage: &lineage,
+        };
+        self.go_past(&ctx, hop.next, flight, out);
         self.trace_local(&ctx, &mut Step::default(), out)
+    }
+
+    /// A ray a hit map predicts to miss the domain it was entering goes on past it, to
+    /// `next` (or out of the scene): its tickets tainted, since what it sees now rests on
+    /// a prediction, and its probe flag dropped.
+    fn go_past(
+        &self,
+        ctx: &StepCtx<'_>,
+        next: Option<u32>,
+        flight: InFlight<'_>,
+        out: &mut Outbox,
+    ) {
+        out.taint(flight.lineage);
+        let inherited = flight.lineage.inherited();
+        let flight = InFlight {
+            lineage: &inherited,
+            ..flight
+        };
+        self.go_on(ctx, &ctx.bare, next, flight, out);
     }
 
     /// An occlusion ray whose wall's hit map predicts a hit: it is occluded, adding
@@ -74,50 +96,58 @@ impl JobTracer {
     /// A ray enters `domain` through one of its walls, from another domain or from
     /// outside the scene: the one place where a ray crossing a wall is seen. With ray
     /// caches on for its kind, it goes to the wall's cache actor first (the wall is the
-    /// face of `domain` it enters by); otherwise straight on.
-    #[allow(clippy::too_many_arguments)]
+    /// face of `domain` it enters by); otherwise straight on (with `hop`, its span in
+    /// `domain`, when already known).
     pub(super) fn cross(
         &self,
         ctx: &StepCtx<'_>,
-        ray: RayState,
-        credit: u64,
-        lin: Lineage,
         domain: u32,
         hop: Option<Hop>,
-        tile: u32,
+        flight: InFlight<'_>,
         out: &mut Outbox,
     ) {
-        let k = ray.kind as usize;
-        let (cache, phm) = (self.cached_kinds[k], self.phm_kinds[k] && !lin.coarse);
+        let f = &flight;
+        let k = f.ray.kind as usize;
+        let (cache, phm) = (self.cached_kinds[k], self.phm_kinds[k] && !f.lineage.coarse);
         if ctx.pins.walls() && (cache || phm) {
             let face = self
                 .bounds
                 .get(domain as usize)
-                .and_then(|&(lo, hi)| entry_face(lo, hi, ray.origin, ray.dir));
-            if let (Some(face), Ok(r)) = (face, RayRecord::from_state(&ray, credit)) {
+                .and_then(|&(lo, hi)| entry_face(lo, hi, f.ray.origin, f.ray.dir));
+            if let (Some(face), Ok(r)) = (face, RayRecord::from_state(&f.ray, f.credit)) {
+                let InFlight {
+                    tile, lineage: lin, ..
+                } = flight;
                 let wall = wall_index(domain, face);
                 // In place when the ray opens no ticket (nothing for the actor to
                 // record) and every view it needs is in this process.
                 let answer = cache && !lin.coarse;
-                let ticket = cache && self.opens_ticket(&lin);
+                let ticket = cache && self.opens_ticket(lin);
                 let map = if phm { ctx.pins.map(wall) } else { None };
                 let store = if answer { ctx.pins.cache(wall) } else { None };
                 if !ticket && map.is_some() == phm && store.is_some() == answer {
-                    self.at_wall_in_place(ctx, map, store, r, lin, domain, hop, tile, out);
+                    let at = AtWall {
+                        record: r,
+                        lineage: lin,
+                        tile,
+                        domain,
+                        hop,
+                    };
+                    self.at_wall_in_place(ctx, map, store, at, out);
                     return;
                 }
                 out.lookups.push(Lookup {
                     wall,
                     domain,
                     ray: r,
-                    lineage: lin,
+                    lineage: lin.clone(),
                     cache,
                     phm,
                 });
                 return;
             }
         }
-        self.forward(ctx, ray, credit, lin, domain, hop, tile, out);
+        self.forward(ctx, domain, hop, flight, out);
     }
 
     /// Whether a ray of `lin` crossing a cached wall opens a ticket there: the job
@@ -133,41 +163,35 @@ impl JobTracer {
     /// occludes an occlusion ray), then the ray cache (a hit ends the ray with the
     /// stored radiance); otherwise the ray goes on into the domain, as a probe when the
     /// map asks for one. Only for rays that open no ticket: the views read, never write.
-    #[allow(clippy::too_many_arguments)]
     fn at_wall_in_place(
         &self,
         ctx: &StepCtx<'_>,
         map: Option<&MapView>,
         store: Option<&StoreView>,
-        r: RayRecord,
-        mut lin: Lineage,
-        domain: u32,
-        hop: Option<Hop>,
-        tile: u32,
+        at: AtWall<'_>,
         out: &mut Outbox,
     ) {
+        let AtWall {
+            record: r,
+            lineage: lin,
+            tile,
+            domain,
+            hop,
+        } = at;
         let elsewhere = || u64::from(ctx.pins.get(domain).is_none());
         let advice = map.map(|m| m.consult(&r));
         match advice {
             Some(Advice::Skip) => {
                 let state = r.to_state();
-                let next = self.tree.hop(
-                    state.origin,
-                    state.dir,
-                    0.0,
-                    state.tmax,
-                    self.pad,
-                    domain,
-                    self.wanted(),
-                );
-                if let Some(past) = next {
+                if let Some(past) = self.hop_in(&state, domain) {
                     out.phm_not_sent += elsewhere();
-                    out.taint(&lin);
-                    let lin = lin.inherited();
-                    match past.next {
-                        Some(d) => self.cross(ctx, state, r.credit, lin, d, None, tile, out),
-                        None => finish_unblocked(&ctx.bare, &state, r.credit, &lin, tile, out),
-                    }
+                    let flight = InFlight {
+                        ray: state,
+                        credit: r.credit,
+                        tile,
+                        lineage: lin,
+                    };
+                    self.go_past(ctx, past.next, flight, out);
                     return;
                 }
                 // The ray does not cross the domain after all (a routing mismatch that
@@ -175,23 +199,31 @@ impl JobTracer {
             }
             Some(Advice::Occlude) if r.kind.is_occlusion() => {
                 out.phm_not_sent += elsewhere();
-                self.answer_occluded(&r, &lin, out);
+                self.answer_occluded(&r, lin, out);
                 return;
             }
             _ => {}
         }
         if let Some(rgb) = store.and_then(|s| s.answer(&r)) {
             out.cache_not_sent += elsewhere();
-            self.answer_hit(&r, &lin, Vec3::from_array(rgb), out);
+            self.answer_hit(&r, lin, Vec3::from_array(rgb), out);
             return;
         }
-        lin.probe = advice == Some(Advice::Probe);
-        if lin.probe
-            && let Some(m) = map
-        {
+        let probe = advice == Some(Advice::Probe);
+        if probe && let Some(m) = map {
             m.probed();
         }
-        self.forward(ctx, r.to_state(), r.credit, lin, domain, hop, tile, out);
+        let lin = Lineage {
+            probe,
+            ..lin.clone()
+        };
+        let flight = InFlight {
+            ray: r.to_state(),
+            credit: r.credit,
+            tile,
+            lineage: &lin,
+        };
+        self.forward(ctx, domain, hop, flight, out);
     }
 
     /// Note a probe's outcome in `domain` for the map of the wall it entered by.
