@@ -44,6 +44,8 @@
 mod camera;
 mod outbox;
 mod residency;
+#[cfg(test)]
+mod tests;
 mod trace;
 mod walls;
 
