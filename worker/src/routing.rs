@@ -258,11 +258,12 @@ impl Routes {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use dray_proto::v1::{DomainRoute, WorkerEndpoint};
 
-    fn table(routes: &[(u32, &str)], local: bool) -> RoutingTable {
+    /// A table of workers a and b, each domain routed to the workers listed for it.
+    pub(crate) fn table(routes: &[(u32, &str)], local: bool) -> RoutingTable {
         RoutingTable {
             job_id: "j".into(),
             version: 3,

@@ -16,7 +16,7 @@
 //! without waiting. So no cycle of workers waiting on each other's full queues can form.
 
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use dray_core::ray::RAY_RECORD_BYTES;
@@ -27,7 +27,7 @@ use crate::jobs::{Job, Standing, lock};
 use crate::node::Shared;
 use crate::peers::PeerMessage;
 use crate::queue::QueuedBatch;
-use crate::routing::Routes;
+use crate::routing::{Peer, Routes};
 use crate::tracer::{Outbox, Residency, TileRef};
 
 /// Camera rays made in one tracing step.
@@ -314,6 +314,48 @@ fn trace(shared: &Arc<Shared>, work: Work) {
     }
 }
 
+/// Where a batch of rays bound for one domain goes (docs/architecture.md "Life of a
+/// ray", 5 and 7). Rays at walls have gone to the walls' cache actors before this.
+enum Destination {
+    /// This worker's queue: it owns the domain under the job's table, or holds its rays
+    /// until a worker is given the domain.
+    Here,
+    /// An owner of the domain, chosen over its replicas.
+    Peer(Peer),
+}
+
+/// Why a batch has nowhere to go. Each fails the job: it means the routing tables
+/// disagree, never a transient condition.
+enum Unroutable {
+    /// The batch was forwarded [`MAX_FORWARDS`] times already.
+    Forwarded,
+    /// The table has no owner for the domain.
+    NoOwner,
+}
+
+/// Where a batch for `domain`, forwarded `forwards` times so far, goes under `routes`:
+/// the one routing decision for the rays a step sends ([`deliver`]) and for the rays
+/// queued here for a domain this worker no longer owns ([`forward`]). Replicas of the
+/// domain take turns by `spread` (the job's), counted only when a peer is chosen.
+fn destination(
+    routes: &Routes,
+    domain: u32,
+    forwards: u32,
+    spread: &AtomicU64,
+) -> Result<Destination, Unroutable> {
+    if routes.owns(domain) || routes.is_held(domain) {
+        return Ok(Destination::Here);
+    }
+    if forwards >= MAX_FORWARDS {
+        return Err(Unroutable::Forwarded);
+    }
+    let spread = spread.fetch_add(1, Ordering::Relaxed) as u32;
+    match routes.owner(domain, spread) {
+        Some(peer) => Ok(Destination::Peer(peer.clone())),
+        None => Err(Unroutable::NoOwner),
+    }
+}
+
 /// Rays queued here for `domain`, which this worker no longer owns: on to an owner.
 fn forward(shared: &Arc<Shared>, job: &Arc<Job>, domain: u32, batch: QueuedBatch) {
     if !job.is_active() {
@@ -321,28 +363,30 @@ fn forward(shared: &Arc<Shared>, job: &Arc<Job>, domain: u32, batch: QueuedBatch
     }
     let routes = job.routes();
     let n = batch.rays.len() as u64;
-    if routes.owns(domain) || routes.is_held(domain) {
-        // The table changed meanwhile: trace them here, or hold them here.
-        shared.queues.push_local(domain, batch);
-        return;
-    }
-    if batch.forwards >= MAX_FORWARDS {
-        job.fail(format!(
-            "worker {}: rays for domain {domain} were forwarded {} times (routing version {}); the routing tables disagree",
-            shared.id(),
-            batch.forwards,
-            routes.version
-        ));
-        return;
-    }
-    let spread = job.spread.fetch_add(1, Ordering::Relaxed) as u32;
-    let Some(peer) = routes.owner(domain, spread).cloned() else {
-        job.fail(format!(
-            "worker {}: routing version {} has no owner for domain {domain}",
-            shared.id(),
-            routes.version
-        ));
-        return;
+    let peer = match destination(&routes, domain, batch.forwards, &job.spread) {
+        Ok(Destination::Peer(peer)) => peer,
+        Ok(Destination::Here) => {
+            // The table changed meanwhile: trace them here, or hold them here.
+            shared.queues.push_local(domain, batch);
+            return;
+        }
+        Err(Unroutable::Forwarded) => {
+            job.fail(format!(
+                "worker {}: rays for domain {domain} were forwarded {} times (routing version {}); the routing tables disagree",
+                shared.id(),
+                batch.forwards,
+                routes.version
+            ));
+            return;
+        }
+        Err(Unroutable::NoOwner) => {
+            job.fail(format!(
+                "worker {}: routing version {} has no owner for domain {domain}",
+                shared.id(),
+                routes.version
+            ));
+            return;
+        }
     };
     {
         let mut r = lock(&job.report);
@@ -387,29 +431,32 @@ pub(crate) fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, mut out: Outbox) {
             continue;
         }
         let (rays, tickets) = (bundle.rays, bundle.tickets);
-        if routes.owns(d) || routes.is_held(d) {
-            // Traced here, or held here until a worker is given the domain.
-            shared.queues.push_local(
-                d,
-                QueuedBatch {
-                    job_id: job.key.id.clone(),
-                    attempt: job.key.attempt,
-                    routing_version: routes.version,
-                    forwards: 0,
-                    rays,
-                    tickets,
-                },
-            );
-            continue;
-        }
-        let spread = job.spread.fetch_add(1, Ordering::Relaxed) as u32;
-        let Some(peer) = routes.owner(d, spread).cloned() else {
-            job.fail(format!(
-                "worker {}: a ray goes to domain {d}, which routing version {} does not route",
-                shared.id(),
-                routes.version
-            ));
-            return;
+        let peer = match destination(&routes, d, 0, &job.spread) {
+            Ok(Destination::Peer(peer)) => peer,
+            Ok(Destination::Here) => {
+                // Traced here, or held here until a worker is given the domain.
+                shared.queues.push_local(
+                    d,
+                    QueuedBatch {
+                        job_id: job.key.id.clone(),
+                        attempt: job.key.attempt,
+                        routing_version: routes.version,
+                        forwards: 0,
+                        rays,
+                        tickets,
+                    },
+                );
+                continue;
+            }
+            // Never forwarded yet: only a table without an owner gets here.
+            Err(Unroutable::NoOwner | Unroutable::Forwarded) => {
+                job.fail(format!(
+                    "worker {}: a ray goes to domain {d}, which routing version {} does not route",
+                    shared.id(),
+                    routes.version
+                ));
+                return;
+            }
         };
         sent += rays.len() as u64;
         traffic.rays(rays.len(), &tickets);
@@ -438,4 +485,57 @@ pub(crate) fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, mut out: Outbox) {
     r.bytes += sent * RAY_RECORD_BYTES as u64;
     r.rays_sent += sent;
     r.traffic.add(&traffic);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::routing::tests::table;
+
+    /// Worker `me`'s view of a table over four domains: 0 on a, 1 on b, 2 on both,
+    /// 3 on none (held).
+    fn routes(me: &str) -> Routes {
+        let t = table(&[(0, "a"), (1, "b"), (2, "a"), (2, "b")], false);
+        Routes::new(&t, me, 4).expect("routes")
+    }
+
+    /// The destination as a name: "here", the peer's id, or the reason it has none.
+    fn to(routes: &Routes, domain: u32, forwards: u32, spread: &AtomicU64) -> String {
+        match destination(routes, domain, forwards, spread) {
+            Ok(Destination::Here) => "here".into(),
+            Ok(Destination::Peer(p)) => p.id,
+            Err(Unroutable::Forwarded) => "forwarded too often".into(),
+            Err(Unroutable::NoOwner) => "no owner".into(),
+        }
+    }
+
+    #[test]
+    fn a_batch_goes_here_to_an_owner_or_nowhere() {
+        let a = routes("a");
+        let spread = AtomicU64::new(0);
+        assert_eq!(to(&a, 0, 0, &spread), "here", "owned");
+        assert_eq!(to(&a, 2, 0, &spread), "here", "owned, replicated");
+        assert_eq!(to(&a, 3, 0, &spread), "here", "held until a worker has it");
+        assert_eq!(
+            to(&a, 0, MAX_FORWARDS, &spread),
+            "here",
+            "owned: never too often"
+        );
+        assert_eq!(to(&a, 1, MAX_FORWARDS, &spread), "forwarded too often");
+        assert_eq!(spread.load(Ordering::Relaxed), 0, "no peer chosen yet");
+        assert_eq!(to(&a, 1, 0, &spread), "b");
+        assert_eq!(to(&a, 1, MAX_FORWARDS - 1, &spread), "b");
+        assert_eq!(to(&a, 9, 0, &spread), "no owner", "not in the table");
+        assert_eq!(spread.load(Ordering::Relaxed), 3);
+    }
+
+    #[test]
+    fn replicas_take_turns() {
+        // A worker the table does not list owns nothing: every domain goes to a peer.
+        let c = routes("c");
+        let spread = AtomicU64::new(0);
+        let picks: Vec<String> = (0..4).map(|_| to(&c, 2, 0, &spread)).collect();
+        assert_eq!(picks, ["a", "b", "a", "b"]);
+        assert_eq!(to(&c, 0, 0, &spread), "a");
+    }
 }

@@ -1,0 +1,164 @@
+//! Camera rays: a tile's rays, each with its share of the tile's credit.
+
+use dray_core::integrator::RayKind;
+
+use super::outbox::Outbox;
+use super::residency::{Pins, Residency, StepCtx};
+use super::trace::{InFlight, Step};
+use super::{JobTracer, TraceError};
+use crate::credit;
+use crate::tickets::Lineage;
+
+/// The sample index of coarse-pass rays: their random numbers are keyed apart from every
+/// sample of the image (spp is at most 65536).
+const COARSE_SAMPLE: u32 = u32::MAX;
+
+/// A rectangle of the image whose camera rays this worker generates.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TileRef {
+    pub index: u32,
+    pub x0: u32,
+    pub y0: u32,
+    pub width: u32,
+    pub height: u32,
+    pub credit: u64,
+    /// A tile of the ray-cache coarse pass: its pixels are those of the coarse image,
+    /// one regular ray each.
+    pub coarse: bool,
+}
+
+impl TileRef {
+    /// Camera rays in the tile: pixels times samples (one per pixel for a coarse tile).
+    pub fn camera_rays(&self, spp: u32) -> u64 {
+        let spp = if self.coarse { 1 } else { spp.max(1) };
+        self.width as u64 * self.height as u64 * spp as u64
+    }
+}
+
+impl JobTracer {
+    /// Tiles the job has: the image's, then the coarse pass's (none without one).
+    pub fn tile_count(&self) -> u64 {
+        let coarse = if self.coarse == 0 {
+            0
+        } else {
+            u64::from(self.coarse.div_ceil(self.tile_size)).pow(2)
+        };
+        u64::from(self.image_tiles) + coarse
+    }
+
+    /// The tile holding `pixel` (of the coarse image for a coarse-pass ray).
+    pub fn tile_of(&self, pixel: u32, coarse: bool) -> u32 {
+        if coarse {
+            let n = self.coarse.max(1);
+            let (x, y) = (pixel % n, pixel / n);
+            let tiles_x = n.div_ceil(self.tile_size);
+            return self.image_tiles + (y / self.tile_size) * tiles_x + x / self.tile_size;
+        }
+        let w = self.settings.width.max(1);
+        let (x, y) = (pixel % w, pixel / w);
+        (y / self.tile_size) * self.tiles_x + x / self.tile_size
+    }
+
+    /// Camera rays `start..start + count` of `tile` (ray i is pixel i / spp of the tile,
+    /// row-major, sample i % spp), each sent to the first domain it enters.
+    pub fn camera_rays(
+        &self,
+        tile: &TileRef,
+        start: u64,
+        count: u64,
+        residency: &dyn Residency,
+        out: &mut Outbox,
+    ) -> Result<(), TraceError> {
+        let spp = if tile.coarse {
+            1
+        } else {
+            self.settings.spp.max(1) as u64
+        };
+        let total = tile.camera_rays(spp as u32);
+        if credit::camera_share(tile.credit, total, 0).is_none() {
+            return Err(TraceError::TileCredit {
+                tile: tile.index,
+                w: tile.width,
+                h: tile.height,
+                spp: spp as u32,
+                credit: tile.credit,
+            });
+        }
+        // Every pixel of the tile is in the image (or the coarse image), so the rays made
+        // here and their descendants need no check of their own.
+        let (width, height) = if tile.coarse {
+            (self.coarse, self.coarse)
+        } else {
+            (self.settings.width, self.settings.height)
+        };
+        if tile.x0 as u64 + tile.width as u64 > width as u64
+            || tile.y0 as u64 + tile.height as u64 > height as u64
+        {
+            return Err(TraceError::BadTile {
+                tile: tile.index,
+                x0: tile.x0,
+                y0: tile.y0,
+                w: tile.width,
+                h: tile.height,
+                width,
+                height,
+            });
+        }
+        let pins = Pins::new(residency, self.nonempty.len());
+        let ctx = StepCtx::new(self, &pins);
+        let bare = &ctx.bare;
+        let mut step = Step::default();
+        // A layout of one domain, traced here: every ray of a camera ray's tree stays in
+        // it, and the trees are traced with no routing.
+        let whole = self.single.and_then(|d| {
+            ctx.domain(d)
+                .map(|(loaded, integrator)| (d, loaded, integrator))
+        });
+        let end = start.saturating_add(count).min(total);
+        for i in start..end {
+            let (p, sample) = (i / spp, (i % spp) as u32);
+            let (lx, ly) = (
+                (p % tile.width as u64) as u32,
+                (p / tile.width as u64) as u32,
+            );
+            let share = credit::camera_share(tile.credit, total, i).unwrap_or(0);
+            let (ray, lin) = if tile.coarse {
+                // One regular ray through the coarse pixel's centre, its random numbers
+                // keyed apart from every sample of the image.
+                let n = self.coarse.max(1);
+                let (cx, cy) = (tile.x0 + lx, tile.y0 + ly);
+                let film =
+                    glam::Vec2::new((cx as f32 + 0.5) / n as f32, (cy as f32 + 0.5) / n as f32);
+                let lin = Lineage {
+                    tickets: None,
+                    coarse: true,
+                    probe: false,
+                };
+                (
+                    bare.camera_ray_through(film, cy * n + cx, COARSE_SAMPLE),
+                    lin,
+                )
+            } else {
+                let pixel = (tile.y0 + ly) * self.settings.width + tile.x0 + lx;
+                (bare.camera_ray(pixel, sample), Lineage::default())
+            };
+            out.traced[RayKind::Camera as usize] += 1;
+            let flight = InFlight {
+                ray,
+                credit: share,
+                tile: tile.index,
+                lineage: &lin,
+            };
+            if let Some(whole) = whole {
+                self.trace_tree(whole, flight, &mut step, out)?;
+                continue;
+            }
+            self.route_new(&ctx, bare, flight, out);
+            // Depth first, one camera ray's tree at a time: the stack of local rays stays
+            // a few entries deep and in cache, where making the whole chunk's camera rays
+            // first stacked thousands of them (half a megabyte).
+            self.trace_local(&ctx, &mut step, out)?;
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,132 @@
+//! What a step hands on: contributions and credit given back, rays for other domains
+//! and walls, and the tickets they are owed to.
+
+use std::collections::HashMap;
+
+use dray_core::film::to_fixed;
+use dray_core::integrator::RayKind;
+use dray_core::ray::RayRecord;
+use glam::Vec3;
+
+use super::trace::Entering;
+use crate::tickets::{Lineage, RayBundle, TicketLedger};
+
+/// A deterministic fast hash for domain keys.
+type FastState = foldhash::fast::FixedState;
+
+/// Everything that comes out of tracing, to be reported or sent on.
+#[derive(Debug, Default)]
+pub struct Outbox {
+    /// Contributions in fixed point, by pixel; a pixel may repeat (the coordinator's sums
+    /// are exact in any grouping; the worker merges them per report, see `pixel_sums`).
+    pub sums: Vec<(u32, [i64; 3])>,
+    /// Credit handed back by rays that terminated, by tile; a tile may repeat, but
+    /// consecutive returns to one tile share an entry.
+    pub credits: Vec<(u32, u64)>,
+    /// Rays to trace next on other workers, by the domain they enter next, with their
+    /// tickets.
+    pub rays: HashMap<u32, RayBundle, FastState>,
+    /// Rays at walls whose cache actors are asked before the rays go on.
+    pub lookups: Vec<Lookup>,
+    /// Contributions and credit owed to the tickets of the rays that made them.
+    pub tickets: TicketLedger,
+    /// Outcomes of hit-map probes traced here: (wall, cell, hit inside the domain).
+    pub outcomes: Vec<(u32, u32, bool)>,
+    /// Rays bound for a domain resident here, traced before the step ends (depth first,
+    /// so the stack stays as small as one camera ray's descendants).
+    pub(super) local: Vec<Entering>,
+    /// Rays made here (camera rays and children), by kind: each ray is counted once,
+    /// where it is made, so the totals equal the single-process renderer's.
+    pub traced: [u64; RayKind::COUNT],
+    /// Non-finite contributions dropped.
+    pub nonfinite: u64,
+    /// Rays a hit map consulted in place skipped or occluded on their way to another
+    /// worker's domain: rays not sent.
+    pub phm_not_sent: u64,
+    /// Rays a ray cache answered in place on their way to another worker's domain.
+    pub cache_not_sent: u64,
+}
+
+impl Outbox {
+    /// Whether nothing is waiting to be reported or sent.
+    pub fn is_empty(&self) -> bool {
+        self.sums.is_empty()
+            && self.credits.is_empty()
+            && self.rays.values().all(RayBundle::is_empty)
+            && self.lookups.is_empty()
+            && self.tickets.is_empty()
+            && self.outcomes.is_empty()
+            && self.traced.iter().all(|&n| n == 0)
+            && self.nonfinite == 0
+    }
+
+    /// Rays waiting to be sent.
+    pub fn ray_count(&self) -> usize {
+        self.rays.values().map(RayBundle::len).sum()
+    }
+
+    /// A contribution to `pixel` (none for a coarse-pass ray), owed also to the ray's
+    /// tickets; `cached` when it is a cache's answer.
+    #[inline]
+    pub(super) fn add(&mut self, pixel: u32, value: Vec3, lin: &Lineage, cached: bool) {
+        match to_fixed(value) {
+            Some(f) => {
+                if !lin.coarse {
+                    // A pixel's samples are traced one after another, so most
+                    // contributions land on the pixel of the one before: add them up
+                    // here (wrapping sums, exact in any grouping).
+                    match self.sums.last_mut() {
+                        Some((p, s)) if *p == pixel => {
+                            for c in 0..3 {
+                                s[c] = s[c].wrapping_add(f[c]);
+                            }
+                        }
+                        _ => self.sums.push((pixel, f)),
+                    }
+                }
+                if let Some(t) = &lin.tickets {
+                    self.tickets.contribute(t, f, cached);
+                }
+            }
+            None => self.nonfinite += 1,
+        }
+    }
+
+    /// Mark the ray's tickets as met by an approximation (their radiance is not stored).
+    pub(super) fn taint(&mut self, lin: &Lineage) {
+        if let Some(t) = &lin.tickets {
+            self.tickets.credit(t, 0, true);
+        }
+    }
+
+    /// Credit handed back to `tile`, and to the ray's tickets.
+    #[inline]
+    pub(super) fn give_back(&mut self, tile: u32, credit: u64, lin: &Lineage, cached: bool) {
+        if let Some(t) = &lin.tickets {
+            self.tickets.credit(t, credit, cached);
+        }
+        if credit == 0 {
+            return;
+        }
+        match self.credits.last_mut() {
+            Some((t, c)) if *t == tile => *c += credit,
+            _ => self.credits.push((tile, credit)),
+        }
+    }
+}
+
+/// A ray at a wall, waiting for the wall's cache actor (ray caches on).
+#[derive(Clone, Debug)]
+pub struct Lookup {
+    /// The wall (6 * domain + face).
+    pub wall: u32,
+    /// The domain the ray enters through it: where it goes unless the cache answers.
+    pub domain: u32,
+    pub ray: RayRecord,
+    /// Its tickets (and coarse flag).
+    pub lineage: Lineage,
+    /// Ask the wall's ray cache (the job caches the ray's kind).
+    pub cache: bool,
+    /// Ask the wall's hit map (the job's maps serve the ray's kind).
+    pub phm: bool,
+}
