@@ -18,13 +18,13 @@
 //!
 //! 1. **Scheduler round**: [`rebalance`] alone (pure), [`JobSchedule::round`] (adds the
 //!    views, the new table and the stale-load sweep) and [`RunningJob::round`] end to end
-//!    (adds the copy of the new table queued for each of the N workers: what the job's
-//!    actor runs on its round timer), each fed one queue report per worker.
-//! 2. **Routing table**: the prost-encoded size of the table the coordinator really
-//!    builds ([`JobSchedule::table`]), what a change costs on the wire (N copies), its
-//!    in-memory size (each worker's outbox holds its own copy until its stream sends
-//!    it), the time to encode one copy, and what a delta or an owner-index form would
-//!    weigh (estimates from encoded sizes; neither is built).
+//!    (adds the round's delta, one shared copy queued for each of the N workers: what
+//!    the job's actor runs on its round timer), each fed one queue report per worker.
+//! 2. **Routing table**: the prost-encoded size of the whole table the coordinator
+//!    builds ([`JobSchedule::table`], sent at a job's start, a join or a restart), what
+//!    N copies of it would weigh on the wire and in memory (what every round cost before
+//!    rounds sent deltas), the time to encode one copy, the delta a round really sends
+//!    ([`delta`]) and what an owner-index form would weigh (an estimate; not built).
 //! 3. **Report fan-in and the credit accounting**: what a job's actor runs for a
 //!    ReportContributions with 1,000 pixel sums and 10 tile credits ([`report::check`],
 //!    [`report::apply`], [`RunningJob::publish`]), on a real started job (a
@@ -66,7 +66,7 @@ use dray_coordinator::membership::{HeartbeatConfig, Membership, VERSION};
 use dray_coordinator::metrics::JobMetrics;
 use dray_coordinator::scheduler::policy::{RoundInput, Schedule, rebalance, views};
 use dray_coordinator::scheduler::state::{JobSchedule, JobWorker, RoundOutcome};
-use dray_coordinator::scheduler::table::Ownership;
+use dray_coordinator::scheduler::table::{Ownership, delta};
 use dray_core::film::Film;
 use dray_proto::v1::{
     DomainQueue, DomainRoute, JobSetup, JobSpec, JobStats, RayCounts, RegisterWorkerRequest,
@@ -562,7 +562,7 @@ fn main() {
     println!();
     println!(
         "| N | D | encoded | x N per change | in memory | x N (outbox copies) | encode one | \
-         x N encodes | N clones (no longer made) | delta of one round (moves) | x N | owner-index form |"
+         x N encodes | N clones (no longer made) | delta sent by a round (moves) | x N | owner-index form |"
     );
     println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for (n, d, first, new_table, changes) in &tables {
@@ -590,26 +590,10 @@ fn main() {
             )
             .0
         });
-        // Delta estimate: the version header plus one route per moved domain, no
-        // endpoint list (the workers did not change).
-        let delta = RoutingTable {
-            job_id: new_table.job_id.clone(),
-            version: new_table.version,
-            attempt: new_table.attempt,
-            local: false,
-            workers: Vec::new(),
-            cache_hosts: Vec::new(),
-            wall_hosts: Vec::new(),
-            cache_replicas: false,
-            routes: changes
-                .iter()
-                .filter_map(|c| c.given())
-                .map(|(domain, to)| DomainRoute {
-                    domain,
-                    worker_id: to.to_string(),
-                })
-                .collect(),
-        };
+        // The delta a round really sends (scheduler::table::delta): the moved
+        // domains' owners, no endpoint list.
+        let moved: BTreeSet<u32> = changes.iter().map(|c| c.domain()).collect();
+        let delta = delta(new_table, first.version, &moved);
         // Owner-index form estimate: the same table with each route as a packed varint
         // index into `workers` (domain = position), instead of (domain, worker id).
         let index: BTreeMap<&str, u64> = new_table

@@ -248,8 +248,20 @@ async fn a_worker_joining_a_dynamic_job_is_set_up_and_given_a_domain() {
         other => panic!("expected a round's table, got {other:?}"),
     }
     assert_eq!((t3.version, t3.attempt), (3, 0));
+    // A round sends a delta from the table the workers hold: the moved domain only.
+    assert_eq!(t3.base_version, 2);
+    assert!(t3.workers.is_empty(), "a delta does not repeat the workers");
+    assert!(
+        t3.routes.iter().all(|r| r.domain == 2),
+        "only domain 2 moved"
+    );
+    let moved: Vec<u32> = t3.routes.iter().map(|r| r.domain).collect();
+    let mut whole = t2.clone();
+    whole.routes.retain(|r| !moved.contains(&r.domain));
+    whole.routes.extend(t3.routes.iter().cloned());
     let owner = |d: u32| -> Vec<String> {
-        t3.routes
+        whole
+            .routes
             .iter()
             .filter(|r| r.domain == d)
             .map(|r| r.worker_id.clone())

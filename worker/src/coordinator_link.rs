@@ -12,9 +12,9 @@ use std::time::Duration;
 use dray_core::ray::RAY_RECORD_FORMAT;
 use dray_net::AuthChannel;
 use dray_proto::v1::{
-    Assignment, HeartbeatRequest, JobSetup, RegisterWorkerRequest, RegisterWorkerResponse,
-    ReportContributionsRequest, RoutingTable, TileAssignment, WatchAssignmentsRequest,
-    assignment::Command,
+    Assignment, GetRoutingTableRequest, HeartbeatRequest, JobSetup, RegisterWorkerRequest,
+    RegisterWorkerResponse, ReportContributionsRequest, RoutingTable, TileAssignment,
+    WatchAssignmentsRequest, assignment::Command,
 };
 
 use crate::config::{NodeError, WorkerConfig};
@@ -166,7 +166,7 @@ async fn assignment_loop(shared: Arc<Shared>) -> NodeError {
         match command {
             Some(Command::Setup(setup)) => setup_job(&shared, setup).await,
             Some(Command::Tiles(t)) => add_tiles(&shared, t),
-            Some(Command::Routing(r)) => set_routing(&shared, r),
+            Some(Command::Routing(r)) => set_routing(&shared, r).await,
             Some(Command::Cancel(r)) | Some(Command::Finish(r)) => {
                 tracing::info!(job = %r.job_id, attempt = r.attempt, reason = %r.reason, "job released");
                 if let Some(j) = shared.jobs.release(&r.job_id, r.attempt) {
@@ -271,6 +271,9 @@ async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
             .with_span(span)
             .with_merges_every(merge_every),
     );
+    if let Some(t) = setup.routing {
+        job.keep_table(t);
+    }
     let owned = job.routes().owned().len();
     let (started, replaced) = shared.jobs.insert(job.clone());
     if let Some(old) = replaced {
@@ -280,6 +283,24 @@ async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
         tracing::info!(job = %job_id, attempt, owned, schedule = %setup.schedule, "job set up");
     }
     shared.notify();
+}
+
+/// The whole current routing table of `job_id`, from the coordinator (None when it
+/// has none: the job is not running there).
+async fn whole_table(shared: &Shared, job_id: &str) -> Option<RoutingTable> {
+    let mut client = shared.client.clone();
+    let r = client
+        .get_routing_table(shared.as_member(GetRoutingTableRequest {
+            job_id: job_id.to_string(),
+        }))
+        .await;
+    match r {
+        Ok(r) => r.into_inner().routing,
+        Err(s) => {
+            tracing::warn!(job = %job_id, "could not fetch the whole routing table: {}", s.message());
+            None
+        }
+    }
 }
 
 async fn report_setup_failure(shared: &Shared, job_id: &str, attempt: u32, message: String) {
@@ -354,14 +375,32 @@ fn add_tiles(shared: &Shared, t: TileAssignment) {
 }
 
 /// A new routing table: swap it in, and let go of domains this worker no longer owns
-/// (their queued rays are forwarded by the tracing threads).
-fn set_routing(shared: &Shared, table: RoutingTable) {
+/// (their queued rays are forwarded by the tracing threads). A delta (a round's moved
+/// domains) is applied to the whole table kept for the job; a worker that does not hold
+/// its base asks the coordinator for the whole table.
+async fn set_routing(shared: &Arc<Shared>, table: RoutingTable) {
     let Some(job) = shared.jobs.get(&table.job_id) else {
         return;
     };
     if table.attempt != job.key.attempt {
         return;
     }
+    let table = if table.base_version == 0 {
+        table
+    } else {
+        if let Err(e) = crate::setup_bounds::check_routing(&table, job.tracer.domain_count()) {
+            job.fail(format!("worker {}: {e}", shared.id()));
+            return;
+        }
+        match job.patch_table(&table) {
+            Some(t) => t,
+            None => match whole_table(shared, &table.job_id).await {
+                Some(t) if t.attempt == job.key.attempt && t.base_version == 0 => t,
+                // The job ended or moved to another attempt: its release is on the way.
+                _ => return,
+            },
+        }
+    };
     if let Err(e) = crate::setup_bounds::check_routing(&table, job.tracer.domain_count()) {
         job.fail(format!("worker {}: {e}", shared.id()));
         return;
@@ -377,6 +416,7 @@ fn set_routing(shared: &Shared, table: RoutingTable) {
     let Some(old) = job.set_routes(routes) else {
         return;
     };
+    job.keep_table(table);
     let new = job.routes();
     let mut dropped = Vec::new();
     for d in old.owned() {

@@ -11,6 +11,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, RwLock};
 
 use dray_core::integrator::RayKind;
+use dray_proto::v1::RoutingTable;
 use tokio::sync::watch;
 
 use crate::domain_store::{DomainSource, JobKey};
@@ -85,6 +86,9 @@ pub struct Job {
     /// Where its domains are loaded from.
     pub source: Arc<dyn DomainSource>,
     routes: RwLock<Arc<Routes>>,
+    /// The whole routing table `routes` was made from: the base the coordinator's
+    /// deltas (a round's moved domains) apply to.
+    table: Mutex<Option<RoutingTable>>,
     /// Tiles whose camera rays are still to be made, with the next ray index.
     pub tiles: Mutex<VecDeque<(TileRef, u64)>>,
     pub report: Mutex<Report>,
@@ -129,6 +133,7 @@ impl Job {
             tracer,
             source,
             routes: RwLock::new(Arc::new(routes)),
+            table: Mutex::new(None),
             tiles: Mutex::new(VecDeque::new()),
             report: Mutex::new(Report::default()),
             sequence: AtomicU64::new(0),
@@ -178,6 +183,22 @@ impl Job {
             .read()
             .unwrap_or_else(|p| p.into_inner())
             .clone()
+    }
+
+    /// Keep `table` (a whole table) as the base of later deltas, if it is newer than the
+    /// one kept.
+    pub fn keep_table(&self, table: RoutingTable) {
+        let mut g = lock(&self.table);
+        if g.as_ref().is_none_or(|t| t.version < table.version) {
+            *g = Some(table);
+        }
+    }
+
+    /// The whole table that `delta` (cluster.proto, `RoutingTable.base_version`) leads
+    /// to from the table kept here; None when the kept table is not its base (the
+    /// caller asks the coordinator for the whole table).
+    pub fn patch_table(&self, delta: &RoutingTable) -> Option<RoutingTable> {
+        crate::routing::patch(lock(&self.table).as_ref()?, delta)
     }
 
     /// Swap in `routes` if it is newer; returns the table it replaced.

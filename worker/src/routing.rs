@@ -257,6 +257,30 @@ impl Routes {
     }
 }
 
+/// The whole table that `delta` (cluster.proto, `RoutingTable.base_version`) leads to
+/// from `base`; None when `base` is not its base (another version, attempt or job).
+pub fn patch(base: &RoutingTable, delta: &RoutingTable) -> Option<RoutingTable> {
+    if base.version != delta.base_version
+        || base.attempt != delta.attempt
+        || base.job_id != delta.job_id
+    {
+        return None;
+    }
+    let moved: std::collections::HashSet<u32> = delta.routes.iter().map(|r| r.domain).collect();
+    let mut t = base.clone();
+    t.routes.retain(|r| !moved.contains(&r.domain));
+    t.routes.extend(
+        delta
+            .routes
+            .iter()
+            .filter(|r| !r.worker_id.is_empty())
+            .cloned(),
+    );
+    t.version = delta.version;
+    t.base_version = 0;
+    Some(t)
+}
+
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
@@ -324,5 +348,40 @@ pub(crate) mod tests {
         assert!(matches!(e, RoutingError::UnknownDomain { domain: 5, .. }));
         let e = Routes::new(&table(&[(0, "z")], false), "a", 1).unwrap_err();
         assert!(e.to_string().contains("\"z\""), "{e}");
+    }
+
+    #[test]
+    fn a_delta_patches_its_base_and_only_its_base() {
+        let mut base = table(&[(0, "a"), (1, "a"), (1, "b"), (2, "b")], false);
+        base.version = 4;
+        let delta = RoutingTable {
+            job_id: base.job_id.clone(),
+            version: 5,
+            base_version: 4,
+            attempt: base.attempt,
+            routes: vec![
+                DomainRoute {
+                    domain: 0,
+                    worker_id: "b".into(),
+                },
+                DomainRoute {
+                    domain: 1,
+                    worker_id: String::new(),
+                },
+            ],
+            ..Default::default()
+        };
+        let t = patch(&base, &delta).expect("its base");
+        assert_eq!((t.version, t.base_version), (5, 0));
+        assert_eq!(t.workers, base.workers, "the base's workers hold");
+        let r = Routes::new(&t, "b", 3).unwrap();
+        assert!(r.owns(0) && r.owns(2), "b was given 0 and keeps 2");
+        assert!(r.is_held(1), "1 has no owner now");
+        let mut other = base.clone();
+        other.version = 3;
+        assert!(
+            patch(&other, &delta).is_none(),
+            "not its base: ask for the whole table"
+        );
     }
 }

@@ -225,7 +225,8 @@ impl RunningJob {
     }
 
     /// Run the scheduling round if one is due at `now` (at most one per `interval`),
-    /// sending a changed table to every worker of the job.
+    /// sending a changed table to every worker of the job, as a delta from the table
+    /// they hold (one shared copy for all of them).
     pub fn round(
         &mut self,
         membership: &Membership,
@@ -235,14 +236,16 @@ impl RunningJob {
         if self.entry.is_terminal() {
             return RoundOutcome::Waiting;
         }
+        let base = self.sched.version();
         let out = self.sched.round(now, interval);
         match &out {
             RoundOutcome::Changed(table, changes) => {
                 tracing::debug!(version = table.version, ?changes, "routing table changed");
-                membership.send_all(
-                    &self.sched.worker_ids(),
-                    command(Command::Routing(table.clone())),
-                );
+                // The workers hold table `base` (every table goes to every worker of the
+                // attempt, in order): they get only the domains that moved.
+                let moved = changes.iter().map(|c| c.domain()).collect();
+                let delta = crate::scheduler::table::delta(table, base, &moved);
+                membership.send_all(&self.sched.worker_ids(), command(Command::Routing(delta)));
                 self.publish();
             }
             RoundOutcome::Unchanged => self.publish(),

@@ -217,6 +217,15 @@ pub enum Change {
 }
 
 impl Change {
+    /// The domain whose owners changed.
+    pub fn domain(&self) -> u32 {
+        match self {
+            Change::Move { domain, .. }
+            | Change::Replicate { domain, .. }
+            | Change::Release { domain, .. } => *domain,
+        }
+    }
+
     /// The domain changed and the worker that received it (None for a release).
     pub fn given(&self) -> Option<(u32, &str)> {
         match self {

@@ -223,13 +223,81 @@ impl JobRouting {
             cache_hosts: self.caches.hosts().to_vec(),
             wall_hosts: self.caches.wall_hosts().to_vec(),
             cache_replicas: self.caches.is_replicated(),
+            base_version: 0,
         }
+    }
+}
+
+/// The delta that takes a worker from table `base_version` to `table` (a whole table of
+/// the same attempt) when only `domains` changed owners: their owners as `table` lists
+/// them (one entry with an empty worker id for a domain left with none), and nothing
+/// else (cluster.proto, `RoutingTable.base_version`). A round sends this to every
+/// worker instead of the whole table: bytes proportional to what moved.
+pub fn delta(
+    table: &RoutingTable,
+    base_version: u64,
+    domains: &std::collections::BTreeSet<u32>,
+) -> RoutingTable {
+    let mut routes: Vec<DomainRoute> = table
+        .routes
+        .iter()
+        .filter(|r| domains.contains(&r.domain))
+        .cloned()
+        .collect();
+    let listed: std::collections::BTreeSet<u32> = routes.iter().map(|r| r.domain).collect();
+    routes.extend(domains.difference(&listed).map(|&domain| DomainRoute {
+        domain,
+        worker_id: String::new(),
+    }));
+    RoutingTable {
+        job_id: table.job_id.clone(),
+        version: table.version,
+        attempt: table.attempt,
+        base_version,
+        routes,
+        ..Default::default()
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_delta_lists_every_owner_of_the_changed_domains_and_nothing_else() {
+        let mut routing = JobRouting::new(
+            "j",
+            ["a", "b"]
+                .iter()
+                .map(|w| WorkerEndpoint {
+                    worker_id: w.to_string(),
+                    endpoint: format!("http://{w}"),
+                })
+                .collect(),
+            Ownership::from_owners(vec![
+                vec!["a".into()],
+                vec!["a".into(), "b".into()],
+                vec![],
+                vec!["b".into()],
+            ]),
+        );
+        routing.set_routes(Ownership::from_owners(vec![
+            vec!["a".into()],
+            vec!["a".into(), "b".into()],
+            vec![],
+            vec![],
+        ]));
+        let full = routing.table();
+        let d = delta(&full, 1, &[1, 3].into_iter().collect());
+        assert_eq!((d.version, d.base_version), (2, 1));
+        assert!(d.workers.is_empty() && d.cache_hosts.is_empty());
+        let got: Vec<(u32, &str)> = d
+            .routes
+            .iter()
+            .map(|r| (r.domain, r.worker_id.as_str()))
+            .collect();
+        assert_eq!(got, vec![(1, "a"), (1, "b"), (3, "")]);
+    }
 
     fn ids(names: &[&str]) -> Vec<String> {
         names.iter().map(|s| s.to_string()).collect()
