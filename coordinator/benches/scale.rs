@@ -24,7 +24,7 @@
 //!    builds ([`JobSchedule::table`], sent at a job's start, a join or a restart), what
 //!    N copies of it would weigh on the wire and in memory (what every round cost before
 //!    rounds sent deltas), the time to encode one copy, the delta a round really sends
-//!    ([`delta`]) and what an owner-index form would weigh (an estimate; not built).
+//!    ([`JobRouting::delta`](dray_coordinator::scheduler::table::JobRouting::delta)) and what an owner-index form would weigh (an estimate; not built).
 //! 3. **Report fan-in and the credit accounting**: what a job's actor runs for a
 //!    ReportContributions with 1,000 pixel sums and 10 tile credits ([`report::check`],
 //!    [`report::apply`], [`RunningJob::publish`]), on a real started job (a
@@ -66,7 +66,7 @@ use dray_coordinator::membership::{HeartbeatConfig, Membership, VERSION};
 use dray_coordinator::metrics::JobMetrics;
 use dray_coordinator::scheduler::policy::{RoundInput, Schedule, rebalance, views};
 use dray_coordinator::scheduler::state::{JobSchedule, JobWorker, RoundOutcome};
-use dray_coordinator::scheduler::table::{Ownership, delta};
+use dray_coordinator::scheduler::table::Ownership;
 use dray_core::film::Film;
 use dray_proto::v1::{
     DomainQueue, DomainRoute, JobSetup, JobSpec, JobStats, RayCounts, RegisterWorkerRequest,
@@ -522,9 +522,13 @@ fn main() {
         }
         let now = Instant::now();
         let (t_sched, out) = per_fresh(samples, || sched.clone(), |s| s.round(now, Duration::ZERO));
-        let RoundOutcome::Changed(new_table, changes) = out else {
+        let RoundOutcome::Changed(delta, changes) = out else {
             panic!("JobSchedule::round changed nothing");
         };
+        // The whole table after the round (what a join or a restart sends).
+        let mut after = sched.clone();
+        after.round(now, Duration::ZERO);
+        let new_table = after.table();
         // End to end through the job's state, on a fresh coordinator each sample.
         drop(sim);
         let (t_job, out) = per_fresh(
@@ -554,7 +558,7 @@ fn main() {
             job_round: t_job,
             ..Default::default()
         });
-        tables.push((n, d, sched.table(), new_table, changes));
+        tables.push((n, d, sched.table(), new_table, delta, changes));
     }
 
     println!();
@@ -565,7 +569,7 @@ fn main() {
          x N encodes | N clones (no longer made) | delta sent by a round (moves) | x N | owner-index form |"
     );
     println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
-    for (n, d, first, new_table, changes) in &tables {
+    for (n, d, first, new_table, delta, changes) in &tables {
         let len = new_table.encoded_len();
         let mem = heap_bytes(new_table);
         let t_encode = per_call(samples, || {
@@ -590,10 +594,9 @@ fn main() {
             )
             .0
         });
-        // The delta a round really sends (scheduler::table::delta): the moved
-        // domains' owners, no endpoint list.
-        let moved: BTreeSet<u32> = changes.iter().map(|c| c.domain()).collect();
-        let delta = delta(new_table, first.version, &moved);
+        // The delta a round really sends (JobRouting::delta): the moved domains'
+        // owners, no endpoint list.
+        assert_eq!(delta.base_version, first.version);
         // Owner-index form estimate: the same table with each route as a packed varint
         // index into `workers` (domain = position), instead of (domain, worker id).
         let index: BTreeMap<&str, u64> = new_table

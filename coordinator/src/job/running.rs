@@ -236,16 +236,16 @@ impl RunningJob {
         if self.entry.is_terminal() {
             return RoundOutcome::Waiting;
         }
-        let base = self.sched.version();
         let out = self.sched.round(now, interval);
         match &out {
-            RoundOutcome::Changed(table, changes) => {
-                tracing::debug!(version = table.version, ?changes, "routing table changed");
-                // The workers hold table `base` (every table goes to every worker of the
-                // attempt, in order): they get only the domains that moved.
-                let moved = changes.iter().map(|c| c.domain()).collect();
-                let delta = crate::scheduler::table::delta(table, base, &moved);
-                membership.send_all(&self.sched.worker_ids(), command(Command::Routing(delta)));
+            RoundOutcome::Changed(delta, changes) => {
+                tracing::debug!(version = delta.version, ?changes, "routing table changed");
+                // Every worker holds the version before the round (every table of the
+                // attempt goes to every worker, in order): the delta is enough.
+                membership.send_all(
+                    &self.sched.worker_ids(),
+                    command(Command::Routing(delta.clone())),
+                );
                 self.publish();
             }
             RoundOutcome::Unchanged => self.publish(),

@@ -27,7 +27,8 @@ pub struct JobWorker {
 /// What [`JobSchedule::round`] did.
 #[derive(Clone, Debug, PartialEq)]
 pub enum RoundOutcome {
-    /// A round ran and changed the table: send this to every worker of the job.
+    /// A round ran and changed the table: send this delta (from the version before the
+    /// round, which every worker of the job holds) to every worker of the job.
     Changed(RoutingTable, Vec<Change>),
     /// A round ran; nothing to change.
     Unchanged,
@@ -221,14 +222,16 @@ impl JobSchedule {
             self.loading.insert((d, w.to_string()));
             self.holders.insert(w.to_string());
         }
+        let base = self.routing.version();
         self.routing.set_routes(decision.routes);
         self.forget_stale_loads();
-        RoundOutcome::Changed(self.table(), decision.changes)
+        let moved = decision.changes.iter().map(Change::domain).collect();
+        RoundOutcome::Changed(self.routing.delta(base, &moved), decision.changes)
     }
 
     /// Drop loading marks of workers that no longer own the domain.
     fn forget_stale_loads(&mut self) {
-        let routes = self.routing.routes().clone();
+        let routes = self.routing.routes();
         self.loading.retain(|(d, w)| routes.owns(w, *d));
     }
 

@@ -6,6 +6,8 @@
 //! [`JobRouting`] adds what makes it a message (job, attempt, version, endpoints). Only
 //! [`JobRouting`] bumps versions, so "a new table" always means "version + 1".
 
+use std::collections::BTreeSet;
+
 use dray_proto::v1::{DomainRoute, RoutingTable, WorkerEndpoint};
 
 use crate::caches::placement::Placement;
@@ -226,36 +228,35 @@ impl JobRouting {
             base_version: 0,
         }
     }
-}
 
-/// The delta that takes a worker from table `base_version` to `table` (a whole table of
-/// the same attempt) when only `domains` changed owners: their owners as `table` lists
-/// them (one entry with an empty worker id for a domain left with none), and nothing
-/// else (cluster.proto, `RoutingTable.base_version`). A round sends this to every
-/// worker instead of the whole table: bytes proportional to what moved.
-pub fn delta(
-    table: &RoutingTable,
-    base_version: u64,
-    domains: &std::collections::BTreeSet<u32>,
-) -> RoutingTable {
-    let mut routes: Vec<DomainRoute> = table
-        .routes
-        .iter()
-        .filter(|r| domains.contains(&r.domain))
-        .cloned()
-        .collect();
-    let listed: std::collections::BTreeSet<u32> = routes.iter().map(|r| r.domain).collect();
-    routes.extend(domains.difference(&listed).map(|&domain| DomainRoute {
-        domain,
-        worker_id: String::new(),
-    }));
-    RoutingTable {
-        job_id: table.job_id.clone(),
-        version: table.version,
-        attempt: table.attempt,
-        base_version,
-        routes,
-        ..Default::default()
+    /// The delta that takes a worker from table `base_version` to this one when only
+    /// `domains` changed owners: their owners, in order (one entry with an empty worker
+    /// id for a domain left with none), and nothing else (cluster.proto,
+    /// `RoutingTable.base_version`). A round sends this to every worker instead of the
+    /// whole table: bytes proportional to what moved, and no O(domains) copy.
+    pub fn delta(&self, base_version: u64, domains: &BTreeSet<u32>) -> RoutingTable {
+        let mut routes = Vec::new();
+        for &d in domains {
+            let owners = self.routes.owners(d);
+            if owners.is_empty() {
+                routes.push(DomainRoute {
+                    domain: d,
+                    worker_id: String::new(),
+                });
+            }
+            routes.extend(owners.iter().map(|w| DomainRoute {
+                domain: d,
+                worker_id: w.clone(),
+            }));
+        }
+        RoutingTable {
+            job_id: self.job_id.clone(),
+            version: self.version,
+            attempt: self.attempt,
+            base_version,
+            routes,
+            ..Default::default()
+        }
     }
 }
 
@@ -287,8 +288,7 @@ mod tests {
             vec![],
             vec![],
         ]));
-        let full = routing.table();
-        let d = delta(&full, 1, &[1, 3].into_iter().collect());
+        let d = routing.delta(1, &[1, 3].into_iter().collect());
         assert_eq!((d.version, d.base_version), (2, 1));
         assert!(d.workers.is_empty() && d.cache_hosts.is_empty());
         let got: Vec<(u32, &str)> = d
