@@ -11,7 +11,9 @@
 
 use std::collections::{HashMap, VecDeque};
 
+use dray_core::credit::Credit;
 use dray_core::film::FIXED_SCALE;
+use dray_proto::v1::TicketReturn;
 use glam::Vec3;
 
 use crate::store::{Entry, EntryKey};
@@ -35,7 +37,7 @@ pub struct TicketRay {
     /// Throughput at the wall: the contributions coming back are `weight * radiance`.
     pub weight: Vec3,
     /// The ray's credit: the ticket closes when this much has come back.
-    pub credit: u64,
+    pub credit: Credit,
     /// The ray belongs to the coarse pass, whose tickets store even when the job's main
     /// pass does not fill the caches.
     pub coarse: bool,
@@ -44,7 +46,7 @@ pub struct TicketRay {
 #[derive(Clone, Copy, Debug)]
 struct Ticket {
     ray: TicketRay,
-    returned: u64,
+    returned: Credit,
     /// Fixed-point sums (24 fractional bits). i128 so no sequence of i64 returns can
     /// overflow; saturating anyway, so even that cannot panic.
     sums: [i128; 3],
@@ -56,8 +58,19 @@ struct Ticket {
 pub struct Return {
     /// Contribution sums, fixed point.
     pub rgb: [i64; 3],
-    pub credit: u64,
+    pub credit: Credit,
     pub tainted: bool,
+}
+
+impl From<&TicketReturn> for Return {
+    /// A return as `TicketReturns` carries it (its ticket aside).
+    fn from(t: &TicketReturn) -> Return {
+        Return {
+            rgb: [t.r, t.g, t.b],
+            credit: Credit::from_wire(t.credit),
+            tainted: t.tainted,
+        }
+    }
 }
 
 /// What applying a return did.
@@ -131,7 +144,7 @@ impl TicketBook {
 
     /// Open a ticket for `ray`; returns its id, `wall << 32 | slot`.
     pub fn open(&mut self, ray: TicketRay) -> Result<u64, OpenError> {
-        if ray.credit == 0 {
+        if ray.credit.is_zero() {
             return Err(OpenError::NoCredit);
         }
         if self.open >= self.max_open {
@@ -154,7 +167,7 @@ impl TicketBook {
         }
         self.recent.push_back(Some(Ticket {
             ray,
-            returned: 0,
+            returned: Credit::ZERO,
             sums: [0; 3],
             tainted: false,
         }));
@@ -283,7 +296,7 @@ mod tests {
             point: [0.25, 0.5],
             dir: Vec3::X,
             weight,
-            credit,
+            credit: Credit::from_wire(credit),
             coarse: false,
         }
     }
@@ -291,7 +304,7 @@ mod tests {
     fn ret(rgb: [i64; 3], credit: u64) -> Return {
         Return {
             rgb,
-            credit,
+            credit: Credit::from_wire(credit),
             tainted: false,
         }
     }

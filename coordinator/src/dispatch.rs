@@ -42,6 +42,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+use dray_core::credit::Credit;
 use dray_core::render;
 use dray_core::scene::Scene;
 use dray_proto::v1::{JobSetup, JobSpec, JobState, Rgb, Tile};
@@ -65,11 +66,9 @@ use crate::validate::Prepared;
 /// Tile edge in pixels: the same tiles as `dray render`, so progress reads the same.
 pub const TILE_SIZE: u32 = render::TILE;
 
-/// Credit each tile starts with. Large, so a tile's camera rays and their descendants
-/// can split it many times before a share reaches 1 (a ray whose share cannot be split
-/// further fails the job rather than losing count); below 2^63 so sums of returned
-/// credit never overflow a u64 however they are grouped.
-pub const TILE_CREDIT: u64 = 1 << 62;
+/// Credit each tile starts with, [`Credit::TILE`], as `Tile.credit` and
+/// `JobSetup.tile_credit` carry it (docs/architecture.md "Credit").
+pub const TILE_CREDIT: u64 = Credit::TILE.to_wire();
 
 pub use crate::job::TILES_PER_MESSAGE;
 

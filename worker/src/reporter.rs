@@ -119,13 +119,20 @@ async fn report(shared: &Arc<Shared>, job: &Arc<Job>, force: bool) {
         }
     }
     report.credits.sort_unstable_by_key(|c| c.0);
-    let mut credits: Vec<TileCredit> = Vec::new();
-    for (tile, credit) in std::mem::take(&mut report.credits) {
-        match credits.last_mut() {
-            Some(c) if c.tile == tile => c.credit += credit,
-            _ => credits.push(TileCredit { tile, credit }),
+    report.credits.dedup_by(|next, kept| {
+        let same = next.0 == kept.0;
+        if same {
+            kept.1 = kept.1.saturating_add(next.1);
         }
-    }
+        same
+    });
+    let credits: Vec<TileCredit> = std::mem::take(&mut report.credits)
+        .into_iter()
+        .map(|(tile, credit)| TileCredit {
+            tile,
+            credit: credit.to_wire(),
+        })
+        .collect();
     let counters = WorkerCounters {
         domain_loads: store.loads,
         domains_warm: store.warm,

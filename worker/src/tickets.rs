@@ -15,6 +15,7 @@ use std::collections::HashMap;
 use std::fmt;
 use std::ops::Deref;
 
+use dray_core::credit::Credit;
 use dray_core::ray::{FLAG_COARSE, FLAG_PROBE, FLAG_TICKETED, RayRecord};
 use dray_proto::v1::{RayTicket, TicketReturn};
 
@@ -225,7 +226,7 @@ pub fn with_lineage<'a>(
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct TicketSums {
     pub sum: [i64; 3],
-    pub credit: u64,
+    pub credit: Credit,
     pub tainted: bool,
 }
 
@@ -257,13 +258,13 @@ impl TicketLedger {
     }
 
     /// Credit handed back under `tickets`.
-    pub fn credit(&mut self, tickets: &TicketSet, credit: u64, cached: bool) {
-        if credit == 0 && !cached {
+    pub fn credit(&mut self, tickets: &TicketSet, credit: Credit, cached: bool) {
+        if credit.is_zero() && !cached {
             return;
         }
         for &t in tickets.iter() {
             let e = self.by_ticket.entry(t).or_default();
-            e.credit += credit;
+            e.credit = e.credit.saturating_add(credit);
             e.tainted |= cached;
         }
     }
@@ -275,7 +276,7 @@ impl TicketLedger {
             for (s, v) in e.sum.iter_mut().zip(o.sum) {
                 *s = s.wrapping_add(v);
             }
-            e.credit += o.credit;
+            e.credit = e.credit.saturating_add(o.credit);
             e.tainted |= o.tainted;
         }
     }
@@ -290,7 +291,7 @@ impl TicketLedger {
                 r: s.sum[0],
                 g: s.sum[1],
                 b: s.sum[2],
-                credit: s.credit,
+                credit: s.credit.to_wire(),
                 tainted: s.tainted,
             })
             .collect();
@@ -307,7 +308,7 @@ mod tests {
 
     fn ray(pixel: u32) -> RayRecord {
         RayRecord {
-            credit: 10,
+            credit: Credit::from_wire(10),
             origin: Vec3::ZERO,
             dir: Vec3::X,
             tmax: f32::INFINITY,
@@ -361,10 +362,10 @@ mod tests {
         let a: TicketSet = vec![1, 2].into();
         let b: TicketSet = vec![2].into();
         l.contribute(&a, [1, 2, 3], false);
-        l.credit(&a, 5, false);
+        l.credit(&a, Credit::from_wire(5), false);
         let mut m = TicketLedger::default();
         m.contribute(&b, [10, 10, 10], true);
-        m.credit(&b, 1, true);
+        m.credit(&b, Credit::from_wire(1), true);
         l.merge(m);
         let r = l.drain();
         assert!(l.is_empty());

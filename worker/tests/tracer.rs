@@ -11,6 +11,7 @@ use std::sync::Arc;
 
 use dray_core::bvh::Accel;
 use dray_core::camera::Camera;
+use dray_core::credit::Credit;
 use dray_core::film::Film;
 use dray_core::integrator::{Integrator, IntegratorKind, RenderSettings};
 use dray_core::ray::RayRecord;
@@ -25,7 +26,7 @@ use dray_worker::job::{memory_domains, package_domains};
 use dray_worker::{DomainSource, JobTracer, LoadedDomain, Outbox, TileRef};
 
 const TILE: u32 = 16;
-const TILE_CREDIT: u64 = 1 << 62;
+const TILE_CREDIT: Credit = Credit::TILE;
 
 fn settings(scene: &Scene, kind: IntegratorKind, w: u32, h: u32, spp: u32) -> RenderSettings {
     let environment = dray_scene::effects::default_environment(scene);
@@ -117,14 +118,15 @@ fn distributed_with(
 
     let mut film = Film::new(s.width, s.height);
     let mut rays = [0u64; 6];
-    let mut credit: BTreeMap<u32, u64> = BTreeMap::new();
+    let mut credit: BTreeMap<u32, Credit> = BTreeMap::new();
     let mut queues: HashMap<u32, Vec<RayRecord>> = HashMap::new();
     let mut absorb = |out: Outbox, queues: &mut HashMap<u32, Vec<RayRecord>>| {
         for (p, v) in out.sums {
             film.add_fixed(p, v);
         }
         for (t, c) in out.credits {
-            *credit.entry(t).or_insert(0) += c;
+            let sum = credit.entry(t).or_default();
+            *sum = sum.checked_add(c).expect("no tile's credit overflows");
         }
         for (k, n) in out.traced.iter().enumerate() {
             rays[k] += n;

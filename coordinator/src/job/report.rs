@@ -18,6 +18,7 @@
 use std::collections::BTreeSet;
 use std::time::Instant;
 
+use dray_core::credit::Credit;
 use dray_proto::v1::ReportContributionsRequest;
 use tonic::Status;
 
@@ -183,20 +184,23 @@ pub fn apply(job: &mut RunningJob, r: &ReportContributionsRequest) -> Applied {
     let mut overdrawn = None;
     for c in &r.credits {
         let t = c.tile as usize;
-        let start = job.tiles[t].credit;
-        match job.tile_back[t].checked_add(c.credit) {
+        // Credit arrives, and is kept per tile, as the wire carries it; the sums are
+        // made on [`Credit`] (docs/architecture.md "Credit").
+        let start = Credit::from_wire(job.tiles[t].credit);
+        let back = Credit::from_wire(job.tile_back[t]);
+        let credit = Credit::from_wire(c.credit);
+        match back.checked_add(credit) {
             Some(b) if b <= start => {
-                if c.credit > 0 {
+                if !credit.is_zero() {
                     job.last_progress = Instant::now();
                 }
-                let was = job.tile_back[t] == start;
-                job.tile_back[t] = b;
-                if !was && b == start && t < job.image_tiles {
+                job.tile_back[t] = b.to_wire();
+                if back != start && b == start && t < job.image_tiles {
                     job.tiles_done += 1;
                 }
             }
             _ => {
-                overdrawn = Some((c.tile, c.credit));
+                overdrawn = Some((c.tile, credit));
                 break;
             }
         }

@@ -1,12 +1,12 @@
 //! Camera rays: a tile's rays, each with its share of the tile's credit.
 
+use dray_core::credit::Credit;
 use dray_core::integrator::RayKind;
 
 use super::outbox::Outbox;
 use super::residency::{Pins, Residency, StepCtx};
 use super::trace::{InFlight, Step};
 use super::{JobTracer, TraceError};
-use crate::credit;
 use crate::tickets::Lineage;
 
 /// The sample index of coarse-pass rays: their random numbers are keyed apart from every
@@ -21,7 +21,7 @@ pub struct TileRef {
     pub y0: u32,
     pub width: u32,
     pub height: u32,
-    pub credit: u64,
+    pub credit: Credit,
     /// A tile of the ray-cache coarse pass: its pixels are those of the coarse image,
     /// one regular ray each.
     pub coarse: bool,
@@ -75,7 +75,7 @@ impl JobTracer {
             self.settings.spp.max(1) as u64
         };
         let total = tile.camera_rays(spp as u32);
-        if credit::camera_share(tile.credit, total, 0).is_none() {
+        if tile.credit.camera_share(total, 0).is_none() {
             return Err(TraceError::TileCredit {
                 tile: tile.index,
                 w: tile.width,
@@ -121,7 +121,7 @@ impl JobTracer {
                 (p % tile.width as u64) as u32,
                 (p / tile.width as u64) as u32,
             );
-            let share = credit::camera_share(tile.credit, total, i).unwrap_or(0);
+            let share = tile.credit.camera_share(total, i).unwrap_or(Credit::ZERO);
             let (ray, lin) = if tile.coarse {
                 // One regular ray through the coarse pixel's centre, its random numbers
                 // keyed apart from every sample of the image.

@@ -52,6 +52,7 @@ mod walls;
 use std::sync::Arc;
 
 use dray_core::camera::Camera;
+use dray_core::credit::{Credit, CreditError};
 use dray_core::domain::{DomainTree, Hop};
 use dray_core::integrator::{Integrator, RayKind, RayState, RenderSettings};
 use dray_core::light_sampler::LightSampler;
@@ -59,7 +60,6 @@ use dray_core::scene::Scene;
 use dray_core::wall::PhmBins;
 use glam::Vec3;
 
-use crate::credit::CreditError;
 use crate::domain_store::LoadedDomain;
 use crate::tickets::Lineage;
 
@@ -97,7 +97,7 @@ pub enum TraceError {
         w: u32,
         h: u32,
         spp: u32,
-        credit: u64,
+        credit: Credit,
     },
 }
 
