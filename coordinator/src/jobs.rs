@@ -16,6 +16,7 @@ use dray_core::film::Film;
 use dray_core::integrator::{Integrator, RayKind};
 use dray_core::render;
 use dray_core::scene::Scene;
+use dray_core::tiles::TileGrid;
 use dray_core::trace::Trace;
 use dray_proto::v1::{Job, JobProgress, JobSpec, JobState, JobStats, RayCounts};
 use dray_scene::partition::LayoutSpec;
@@ -343,7 +344,7 @@ impl JobTable {
         let n = self.next_id.fetch_add(1, Ordering::Relaxed);
         let entry = Arc::new(JobEntry {
             id: format!("job-{n}-{:08x}", self.nonce),
-            tiles_total: render::tiles(spec.width, spec.height).len() as u32,
+            tiles_total: TileGrid::image(spec.width, spec.height).count(),
             spec,
             submitted_at: SystemTime::now(),
             cancel: Arc::new(AtomicBool::new(false)),

@@ -27,5 +27,6 @@ pub mod ray;
 pub mod render;
 pub mod sampling;
 pub mod surface;
+pub mod tiles;
 pub mod trace;
 pub mod wall;

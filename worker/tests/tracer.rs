@@ -17,6 +17,7 @@ use dray_core::integrator::{Integrator, IntegratorKind, RenderSettings};
 use dray_core::ray::RayRecord;
 use dray_core::render;
 use dray_core::scene::Scene;
+use dray_core::tiles::TileGrid;
 use dray_scene::partition::memory::MemoryPackage;
 use dray_scene::partition::resident::resident_in_memory;
 use dray_scene::partition::{
@@ -139,23 +140,9 @@ fn distributed_with(
         assert!(out.lookups.is_empty(), "no lookups without ray caches");
     };
 
-    let tiles = render::tiles(s.width, s.height);
-    let tiles_x = s.width.div_ceil(TILE);
-    let mut tile_refs = Vec::new();
-    for y0 in (0..s.height).step_by(TILE as usize) {
-        for x0 in (0..s.width).step_by(TILE as usize) {
-            tile_refs.push(TileRef {
-                index: (y0 / TILE) * tiles_x + x0 / TILE,
-                x0,
-                y0,
-                width: TILE.min(s.width - x0),
-                height: TILE.min(s.height - y0),
-                credit: TILE_CREDIT,
-                coarse: false,
-            });
-        }
-    }
-    assert!(!tiles.is_empty());
+    // The tiles as the coordinator deals them (dispatch::image_tiles), at this size.
+    let tile_refs = TileRef::all(&TileGrid::new(s.width, s.height, TILE), TILE_CREDIT);
+    assert!(!tile_refs.is_empty());
     for (i, t) in tile_refs.iter().enumerate() {
         let w = &tracers[i % workers as usize];
         let mine = &held[i % workers as usize];

@@ -16,6 +16,7 @@ use dray_core::integrator::{IntegratorKind, RayKind, RenderSettings};
 use dray_core::material::Material;
 use dray_core::ray::RayRecord;
 use dray_core::scene::{Mesh, Scene};
+use dray_core::tiles::TileGrid;
 use dray_scene::partition::memory::MemoryPackage;
 use dray_scene::partition::{DomainLayout, LayoutSpec, partition_in_memory};
 use glam::Vec3;
@@ -135,22 +136,8 @@ impl Fixture {
     }
 
     fn tiles(&self) -> Vec<TileRef> {
-        let (w, h) = (self.settings.width, self.settings.height);
-        let mut tiles = Vec::new();
-        for y0 in (0..h).step_by(TILE as usize) {
-            for x0 in (0..w).step_by(TILE as usize) {
-                tiles.push(TileRef {
-                    index: (y0 / TILE) * w.div_ceil(TILE) + x0 / TILE,
-                    x0,
-                    y0,
-                    width: TILE.min(w - x0),
-                    height: TILE.min(h - y0),
-                    credit: TILE_CREDIT,
-                    coarse: false,
-                });
-            }
-        }
-        tiles
+        let grid = TileGrid::new(self.settings.width, self.settings.height, TILE);
+        TileRef::all(&grid, TILE_CREDIT)
     }
 }
 
