@@ -19,6 +19,7 @@ use std::hint::black_box;
 use criterion::{BatchSize, Criterion, Throughput, criterion_group, criterion_main};
 use dray_cache::Retrieve;
 use dray_cache::store::{DEFAULT_MAX_ENTRIES, Entry, EntryKey, Query, WallStore};
+use dray_cache::ticket_id::ticket_slot;
 use dray_cache::tickets::{Applied, Return, TicketBook, TicketRay};
 use dray_core::credit::Credit;
 use dray_core::integrator::RayKind;
@@ -229,7 +230,7 @@ fn returns(tickets: &[u64]) -> Vec<(u32, Return)> {
             let tile = (j * stride + k as usize * 5) % tiles;
             let first = tile * TILE;
             for (i, &t) in tickets.iter().enumerate().skip(first).take(TILE) {
-                out.push((t as u32, part(i, k)));
+                out.push((ticket_slot(t), part(i, k)));
             }
         }
     }

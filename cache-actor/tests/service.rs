@@ -272,7 +272,7 @@ async fn tickets_fill_the_cache_and_later_rays_hit() {
             returns: vec![
                 parts[2],
                 ret(12345, [1, 1, 1], 1),
-                ret(11 << 32 | 1, [1, 1, 1], 1),
+                ret(dray_cache::ticket_id::ticket_id(0, 11, 1), [1, 1, 1], 1),
                 ret(t_inner, [1, 1, 1], 78),
             ],
         })

@@ -16,6 +16,7 @@
 use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use dray_cache::ticket_id::ticket_id;
 use dray_core::credit::Credit;
 use dray_core::integrator::RayKind;
 use dray_core::ray::RayRecord;
@@ -56,8 +57,8 @@ fn ticket(seed: u64, i: usize, j: u32) -> u64 {
         pixel: i as u32,
         sample: j,
     };
-    let slot = key.bits(0, Purpose::Film, 0) % OPEN + 1;
-    (slot % 54) << 32 | slot
+    let slot = (key.bits(0, Purpose::Film, 0) % OPEN + 1) as u32;
+    ticket_id(0, slot % 54, slot)
 }
 
 /// `RAYS` lineages of 0-3 tickets (a quarter each), as `Lineage::with_ticket` builds them.

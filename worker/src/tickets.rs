@@ -102,11 +102,6 @@ pub fn with_ticket(set: Option<&TicketSet>, ticket: u64) -> TicketSet {
     }
 }
 
-/// The host index of a ticket's wall: the upper 32 bits.
-pub fn ticket_wall(ticket: u64) -> u32 {
-    (ticket >> 32) as u32
-}
-
 /// What a ray inherits from its ancestors: the tickets it owes what it hands back to,
 /// and whether it belongs to the coarse pass (whose rays fill caches and add nothing to
 /// the image).
@@ -303,6 +298,7 @@ impl TicketLedger {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use dray_cache::ticket_id::ticket_id;
     use dray_core::integrator::RayKind;
     use glam::Vec3;
 
@@ -325,7 +321,7 @@ mod tests {
     #[test]
     fn bundles_keep_each_rays_tickets() {
         let mut b = RayBundle::default();
-        let two: TicketSet = vec![7u64 << 32 | 1, 9u64 << 32 | 4].into();
+        let two: TicketSet = vec![ticket_id(0, 7, 1), ticket_id(0, 9, 4)].into();
         let coarse = Lineage {
             tickets: None,
             coarse: true,
@@ -353,7 +349,6 @@ mod tests {
             [0, FLAG_TICKETED | FLAG_PROBE, FLAG_TICKETED | FLAG_COARSE]
         );
         assert!(b.iter().last().is_some_and(|(_, l)| l.coarse));
-        assert_eq!(ticket_wall(9u64 << 32 | 4), 9);
     }
 
     #[test]
