@@ -78,7 +78,7 @@ pub struct JobFlags {
     #[arg(
         long,
         value_name = "KEY=VALUE,...",
-        long_help = crate::ray_cache_flag::HELP,
+        long_help = crate::ray_cache_flag::help(),
         value_parser = crate::ray_cache_flag::parse_ray_cache
     )]
     pub ray_cache: Option<RayCacheSettings>,
@@ -87,7 +87,7 @@ pub struct JobFlags {
     #[arg(
         long,
         value_name = "KEY=VALUE,...",
-        long_help = crate::phm_flag::HELP,
+        long_help = crate::phm_flag::help(),
         value_parser = crate::phm_flag::parse_phm
     )]
     pub phm: Option<PhmSettings>,

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant, SystemTime};
 
 use dray_core::bvh::Accel;
 use dray_core::film::Film;
-use dray_core::integrator::{Integrator, RayKind};
+use dray_core::integrator::Integrator;
 use dray_core::render;
 use dray_core::scene::Scene;
 use dray_core::tiles::TileGrid;
@@ -102,12 +102,7 @@ impl JobEntry {
             state: g.state as i32,
             tiles_done: done,
             tiles_total: self.tiles_total,
-            rays_traced: rays.camera
-                + rays.shadow
-                + rays.reflection
-                + rays.refraction
-                + rays.diffuse
-                + rays.ambient_occlusion,
+            rays_traced: crate::metrics::total_rays(&rays),
             rays_in_flight: if terminal(g.state) {
                 0
             } else {
@@ -451,15 +446,7 @@ fn run(job: &JobEntry, p: Prepared, threads: usize) {
         Ok(out) => {
             {
                 let mut g = job.lock();
-                let r = |k: RayKind| out.rays.get(k);
-                g.stats.rays = Some(RayCounts {
-                    camera: r(RayKind::Camera),
-                    shadow: r(RayKind::Shadow),
-                    reflection: r(RayKind::Reflection),
-                    refraction: r(RayKind::Refraction),
-                    diffuse: r(RayKind::Diffuse),
-                    ambient_occlusion: r(RayKind::AmbientOcclusion),
-                });
+                g.stats.rays = Some(RayCounts::from_kinds(out.rays.0));
                 g.stats.nonfinite = out.film.nonfinite;
             }
             job.finish(JobState::Succeeded, String::new(), Some(out.film));

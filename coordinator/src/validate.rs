@@ -342,8 +342,8 @@ pub fn check_phm(p: &mut PhmSettings) -> Result<(), Status> {
     {
         let Some(i) = PHM_KINDS.iter().position(|k| *k == name) else {
             return Err(bad(format!(
-                "phm.kinds: unknown ray kind {name:?} (expected camera, shadow, reflection, \
-                 refraction, diffuse or ambient_occlusion)"
+                "phm.kinds: unknown ray kind {name:?} (expected one of {})",
+                RayKind::help_list(&RayKind::ALL)
             )));
         };
         wanted[i] = true;
@@ -429,8 +429,9 @@ pub fn check_ray_cache(rc: &mut RayCacheSettings) -> Result<(), Status> {
     for name in rc.kinds.split(',').map(str::trim).filter(|n| !n.is_empty()) {
         let Some(i) = CACHE_KINDS.iter().position(|k| *k == name) else {
             return Err(bad(format!(
-                "ray_cache.kinds: {name:?} cannot be cached (expected camera, reflection, \
-                 refraction or diffuse; shadow and ao rays carry no radiance of their own)"
+                "ray_cache.kinds: {name:?} cannot be cached (expected one of {}; shadow and \
+                 ao rays carry no radiance of their own)",
+                RayKind::help_list(&RayKind::RADIANCE)
             )));
         };
         wanted[i] = true;

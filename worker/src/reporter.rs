@@ -10,7 +10,6 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
-use dray_core::integrator::RayKind;
 use dray_proto::v1::{
     DomainQueue, ProcessCpu, RayCounts, ReportContributionsRequest, ReportQueuesRequest,
     TileCredit, WorkerCounters,
@@ -182,14 +181,7 @@ fn request(
         pixels: sums.iter().map(|(p, _)| *p).collect(),
         sums: sums.iter().flat_map(|(_, v)| *v).collect(),
         credits,
-        traced: Some(RayCounts {
-            camera: t[RayKind::Camera as usize],
-            shadow: t[RayKind::Shadow as usize],
-            reflection: t[RayKind::Reflection as usize],
-            refraction: t[RayKind::Refraction as usize],
-            diffuse: t[RayKind::Diffuse as usize],
-            ambient_occlusion: t[RayKind::AmbientOcclusion as usize],
-        }),
+        traced: Some(RayCounts::from_kinds(*t)),
         nonfinite: r.nonfinite,
         ray_bytes_sent: r.bytes,
         failure: r.failure.clone().unwrap_or_default(),

@@ -19,7 +19,7 @@ use std::collections::BTreeSet;
 use std::time::Instant;
 
 use dray_core::credit::Credit;
-use dray_proto::v1::ReportContributionsRequest;
+use dray_proto::v1::{RayCounts, ReportContributionsRequest};
 use tonic::Status;
 
 use super::running::RunningJob;
@@ -206,13 +206,8 @@ pub fn apply(job: &mut RunningJob, r: &ReportContributionsRequest) -> Applied {
         }
     }
     if let Some(t) = &r.traced {
-        let k = &mut job.rays;
-        k.camera += t.camera;
-        k.shadow += t.shadow;
-        k.reflection += t.reflection;
-        k.refraction += t.refraction;
-        k.diffuse += t.diffuse;
-        k.ambient_occlusion += t.ambient_occlusion;
+        let (sum, add) = (job.rays.by_kind(), t.by_kind());
+        job.rays = RayCounts::from_kinds(std::array::from_fn(|k| sum[k] + add[k]));
     }
     job.nonfinite += r.nonfinite;
     job.ray_bytes_sent += r.ray_bytes_sent;
