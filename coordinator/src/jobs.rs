@@ -240,11 +240,18 @@ pub struct Retention {
     pub max_bytes: Option<u64>,
 }
 
+impl Retention {
+    /// The default [`Retention::keep_finished`] (`dray coordinator --keep-finished`).
+    pub const KEEP_FINISHED: usize = 100;
+    /// The default [`Retention::ttl`] (`dray coordinator --finished-ttl`).
+    pub const TTL: Duration = Duration::from_secs(24 * 3600);
+}
+
 impl Default for Retention {
     fn default() -> Retention {
         Retention {
-            keep_finished: 100,
-            ttl: Some(Duration::from_secs(24 * 3600)),
+            keep_finished: Retention::KEEP_FINISHED,
+            ttl: Some(Retention::TTL),
             max_bytes: None,
         }
     }
