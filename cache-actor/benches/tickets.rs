@@ -19,7 +19,9 @@ use std::hint::black_box;
 use criterion::{BatchSize, Criterion, Throughput, criterion_group, criterion_main};
 use dray_cache::Retrieve;
 use dray_cache::store::{DEFAULT_MAX_ENTRIES, Entry, EntryKey, Query, WallStore};
+use dray_cache::ticket_id::ticket_slot;
 use dray_cache::tickets::{Applied, Return, TicketBook, TicketRay};
+use dray_core::credit::Credit;
 use dray_core::integrator::RayKind;
 use dray_core::ray::RayRecord;
 use dray_core::sampling::{PathKey, Purpose};
@@ -41,7 +43,7 @@ const QUERIES: usize = 4096;
 /// Rays of one coarse pass over the wall (the cycle bench).
 const COARSE: usize = 16_384;
 /// A ray's credit (any positive value; the returns split it).
-const CREDIT: u64 = 1 << 20;
+const CREDIT: Credit = Credit::from_wire(1 << 20);
 
 /// The wall: the -z face of the voxel `[0, WALL]³`, seen by rays going +z.
 fn frame() -> WallFrame {
@@ -212,11 +214,11 @@ fn returns(tickets: &[u64]) -> Vec<(u32, Return)> {
     const TILE: usize = 256;
     let part = |i: usize, k: u64| Return {
         rgb: [(i as i64 + 1) << 20, (i as i64) << 19, 3 << 18],
-        credit: if k == 2 {
-            CREDIT - 2 * (CREDIT / 3)
+        credit: Credit::from_wire(if k == 2 {
+            CREDIT.to_wire() - 2 * (CREDIT.to_wire() / 3)
         } else {
-            CREDIT / 3
-        },
+            CREDIT.to_wire() / 3
+        }),
         tainted: false,
     };
     let tiles = tickets.len().div_ceil(TILE);
@@ -228,7 +230,7 @@ fn returns(tickets: &[u64]) -> Vec<(u32, Return)> {
             let tile = (j * stride + k as usize * 5) % tiles;
             let first = tile * TILE;
             for (i, &t) in tickets.iter().enumerate().skip(first).take(TILE) {
-                out.push((t as u32, part(i, k)));
+                out.push((ticket_slot(t), part(i, k)));
             }
         }
     }

@@ -528,7 +528,7 @@ impl WallActor {
                 if worth_logging(self.stats.over_credit) {
                     tracing::warn!(
                         slot,
-                        credit = ret.credit,
+                        credit = %ret.credit,
                         count = self.stats.over_credit,
                         "return exceeds its ticket's credit (ignored)"
                     );

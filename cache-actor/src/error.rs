@@ -20,6 +20,8 @@ pub enum HostError {
     DomainBounds(String),
     #[error("walls: wall {wall} is out of range ({domains} domains have walls 0..{})", 6 * *domains as u64)]
     WallOutOfRange { wall: u32, domains: usize },
+    #[error("walls: wall {wall} cannot be named by a ticket id (walls 0..{max})")]
+    WallIndex { wall: u32, max: u32 },
     #[error("walls: {count} walls exceed the limit of {max} per job attempt")]
     TooManyWalls { count: usize, max: usize },
     #[error("replica: {replica} exceeds the largest replica number {max}")]

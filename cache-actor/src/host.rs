@@ -446,16 +446,7 @@ impl CacheHost {
     /// share. Returns for a job not open here are acknowledged and dropped (the job may
     /// have closed while they were on their way).
     pub async fn returns(&self, r: TicketReturns) -> TicketAck {
-        let returns = r.returns.iter().map(|t| {
-            (
-                t.ticket,
-                Return {
-                    rgb: [t.r, t.g, t.b],
-                    credit: t.credit,
-                    tainted: t.tainted,
-                },
-            )
-        });
+        let returns = r.returns.iter().map(|t| (t.ticket, Return::from(t)));
         let stored = self.return_tickets(&r.job_id, r.attempt, returns).await;
         let mut ack = TicketAck {
             sequence: r.sequence,

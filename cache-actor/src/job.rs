@@ -16,11 +16,12 @@ use glam::Vec3;
 use crate::actor::WallHandle;
 use crate::error::HostError;
 use crate::settings::{CacheSettings, HitMapSettings, SettingsError};
+use crate::ticket_id;
 
 /// Walls one job attempt may open on one host: an actor each, so this bounds the tasks
 /// a single request can start (a 64 x 64 x 64 grid has 1.5 Mi walls in all, spread over
-/// many hosts).
-pub const MAX_WALLS_PER_JOB: usize = 1 << 20;
+/// many hosts). As many as a ticket id can name.
+pub const MAX_WALLS_PER_JOB: usize = ticket_id::MAX_WALLS as usize;
 
 /// The scene and domain boxes of a job, validated: finite, `lo <= hi`.
 #[derive(Clone, Debug, PartialEq)]
@@ -109,10 +110,10 @@ pub(crate) fn plan(req: &OpenWallsRequest) -> Result<OpenPlan, HostError> {
             max: MAX_WALLS_PER_JOB,
         });
     }
-    if req.replica > crate::ticket_id::MAX_REPLICAS {
+    if req.replica > ticket_id::MAX_REPLICAS {
         return Err(HostError::Replica {
             replica: req.replica,
-            max: crate::ticket_id::MAX_REPLICAS,
+            max: ticket_id::MAX_REPLICAS,
         });
     }
     let layout = Layout { scene, domains };
@@ -120,6 +121,14 @@ pub(crate) fn plan(req: &OpenWallsRequest) -> Result<OpenPlan, HostError> {
         return Err(HostError::WallOutOfRange {
             wall,
             domains: layout.domains.len(),
+        });
+    }
+    // A wall of a layout with more than 2^20 / 6 domains: its tickets' ids could not
+    // name it. Sorted: the last wall is the largest.
+    if let Some(&wall) = walls.last().filter(|&&w| w >= ticket_id::MAX_WALLS) {
+        return Err(HostError::WallIndex {
+            wall,
+            max: ticket_id::MAX_WALLS,
         });
     }
     Ok(OpenPlan {
@@ -262,6 +271,15 @@ mod tests {
             ),
             (Box::new(|r| r.walls.push(12)), "walls"),
             (Box::new(|r| r.walls.push(u32::MAX)), "walls"),
+            // Walls of a layout with that many domains, but beyond what a ticket id names.
+            (
+                Box::new(|r| {
+                    let domains = ticket_id::MAX_WALLS as usize / 6 + 1;
+                    r.domain_bounds = [0.0, 0.0, 0.0, 1.0, 1.0, 1.0].repeat(domains);
+                    r.walls.push(ticket_id::MAX_WALLS);
+                }),
+                "walls: wall 1048576 cannot be named",
+            ),
         ];
         for (edit, field) in cases {
             let mut r = request();

@@ -466,6 +466,7 @@ fn mix(mut z: u64) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use dray_core::credit::Credit;
     use dray_core::integrator::RayKind;
     use dray_proto::v1::PhmSettings;
 
@@ -483,7 +484,7 @@ mod tests {
     /// A shadow ray entering the unit cube through its -z face at (u, v).
     fn ray(u: f32, v: f32, pixel: u32) -> RayRecord {
         RayRecord {
-            credit: 1,
+            credit: Credit::from_wire(1),
             origin: Vec3::new(u, v, -1.0),
             dir: Vec3::new(0.0, 0.0, 1.0),
             tmax: f32::INFINITY,

@@ -59,7 +59,8 @@ pub enum SettingsError {
     #[error("settings.coarse must be at most {MAX_COARSE}, got {0}")]
     Coarse(u32),
     #[error(
-        "settings.kinds: unknown ray kind {0:?} (expected camera, reflection, refraction, diffuse)"
+        "settings.kinds: unknown ray kind {0:?} (expected one of {kinds})",
+        kinds = RayKind::help_list(&RayKind::RADIANCE)
     )]
     Kinds(String),
     #[error("phm.res must be in 1..={MAX_PHM_RES}, got {0}")]
@@ -77,8 +78,8 @@ pub enum SettingsError {
     #[error("phm.reprobe must be in [0, 1], got {0}")]
     PhmReprobe(f32),
     #[error(
-        "phm.kinds: unknown ray kind {0:?} (expected camera, shadow, reflection, refraction, \
-         diffuse, ambient_occlusion)"
+        "phm.kinds: unknown ray kind {0:?} (expected one of {kinds})",
+        kinds = RayKind::help_list(&RayKind::ALL)
     )]
     PhmKinds(String),
 }
@@ -109,14 +110,6 @@ pub struct CacheSettings {
     /// stored and every lookup misses (the exact image).
     pub fill: bool,
 }
-
-/// The kinds that carry radiance worth caching.
-const CACHEABLE: [RayKind; 4] = [
-    RayKind::Camera,
-    RayKind::Reflection,
-    RayKind::Refraction,
-    RayKind::Diffuse,
-];
 
 impl CacheSettings {
     /// Validate the coordinator's settings.
@@ -163,14 +156,13 @@ impl CacheSettings {
 fn parse_kinds(s: &str) -> Result<u8, SettingsError> {
     let mut mask = 0u8;
     for name in s.split([',', '+']).map(str::trim).filter(|n| !n.is_empty()) {
-        let kind = CACHEABLE
-            .iter()
-            .find(|k| k.name() == name)
+        let kind = RayKind::from_name(name)
+            .filter(|k| RayKind::RADIANCE.contains(k))
             .ok_or_else(|| SettingsError::Kinds(name.to_string()))?;
-        mask |= 1 << *kind as u8;
+        mask |= 1 << kind as u8;
     }
     if mask == 0 {
-        mask = CACHEABLE.iter().fold(0, |m, k| m | 1 << *k as u8);
+        mask = RayKind::RADIANCE.iter().fold(0, |m, k| m | 1 << *k as u8);
     }
     Ok(mask)
 }
@@ -285,11 +277,9 @@ impl HitMapSettings {
 fn parse_phm_kinds(s: &str) -> Result<u8, SettingsError> {
     let mut mask = 0u8;
     for name in s.split([',', '+']).map(str::trim).filter(|n| !n.is_empty()) {
-        let kind = RayKind::ALL
-            .iter()
-            .find(|k| k.name() == name)
-            .ok_or_else(|| SettingsError::PhmKinds(name.to_string()))?;
-        mask |= 1 << *kind as u8;
+        let kind =
+            RayKind::from_name(name).ok_or_else(|| SettingsError::PhmKinds(name.to_string()))?;
+        mask |= 1 << kind as u8;
     }
     if mask == 0 {
         mask = 1 << RayKind::Shadow as u8;

@@ -2,13 +2,20 @@
 //! hosts and actors take it apart).
 //!
 //! `replica << 52 | wall << 32 | slot`: the slot the wall's actor issued (bits 0..31,
-//! never 0), the wall (bits 32..51: a job has at most [`crate::MAX_WALLS_PER_JOB`] =
-//! 2^20 walls) and, under sender placement, the replica that issued it (bits 52..63,
+//! never 0), the wall (bits 32..51: a job's walls are numbered below [`MAX_WALLS`] =
+//! 2^20) and, under sender placement, the replica that issued it (bits 52..63,
 //! 1..=[`MAX_REPLICAS`]; 0 when each wall has one actor). A return must reach the very
 //! actor that opened its ticket, and the replica bits say which process that is.
+//!
+//! Everything that makes or reads a ticket id goes through these functions: the wall's
+//! [`TicketBook`](crate::tickets::TicketBook) (which issues replica 0), the host (which
+//! sets the replica and routes returns by wall and slot) and the worker (which routes
+//! returns to the host by replica or wall).
 
 /// Bits of the wall field.
 const WALL_BITS: u32 = 20;
+/// Walls a ticket id can name: a job's walls are numbered `0..MAX_WALLS`.
+pub const MAX_WALLS: u32 = 1 << WALL_BITS;
 /// Where the replica field starts.
 const REPLICA_SHIFT: u32 = 32 + WALL_BITS;
 /// The most replicas a wall can have (the replica field is 12 bits; 0 means none).
@@ -17,13 +24,13 @@ pub const MAX_REPLICAS: u32 = (1 << (64 - REPLICA_SHIFT)) - 1;
 /// The id of `slot` of `wall` issued by replica `replica` (0: the only actor).
 pub fn ticket_id(replica: u32, wall: u32, slot: u32) -> u64 {
     u64::from(replica & MAX_REPLICAS) << REPLICA_SHIFT
-        | u64::from(wall & ((1 << WALL_BITS) - 1)) << 32
+        | u64::from(wall & (MAX_WALLS - 1)) << 32
         | u64::from(slot)
 }
 
 /// The wall of a ticket.
 pub fn ticket_wall(ticket: u64) -> u32 {
-    ((ticket >> 32) & ((1 << WALL_BITS) - 1)) as u32
+    ((ticket >> 32) as u32) & (MAX_WALLS - 1)
 }
 
 /// The replica that issued a ticket (0: the wall's only actor).

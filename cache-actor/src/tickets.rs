@@ -11,10 +11,13 @@
 
 use std::collections::{HashMap, VecDeque};
 
+use dray_core::credit::Credit;
 use dray_core::film::FIXED_SCALE;
+use dray_proto::v1::TicketReturn;
 use glam::Vec3;
 
 use crate::store::{Entry, EntryKey};
+use crate::ticket_id::ticket_id;
 
 /// The map of old open tickets hashes a slot with foldhash: slots are issued by the book
 /// itself (no one can choose them to collide), and SipHash costs more than a return.
@@ -35,7 +38,7 @@ pub struct TicketRay {
     /// Throughput at the wall: the contributions coming back are `weight * radiance`.
     pub weight: Vec3,
     /// The ray's credit: the ticket closes when this much has come back.
-    pub credit: u64,
+    pub credit: Credit,
     /// The ray belongs to the coarse pass, whose tickets store even when the job's main
     /// pass does not fill the caches.
     pub coarse: bool,
@@ -44,7 +47,7 @@ pub struct TicketRay {
 #[derive(Clone, Copy, Debug)]
 struct Ticket {
     ray: TicketRay,
-    returned: u64,
+    returned: Credit,
     /// Fixed-point sums (24 fractional bits). i128 so no sequence of i64 returns can
     /// overflow; saturating anyway, so even that cannot panic.
     sums: [i128; 3],
@@ -56,8 +59,19 @@ struct Ticket {
 pub struct Return {
     /// Contribution sums, fixed point.
     pub rgb: [i64; 3],
-    pub credit: u64,
+    pub credit: Credit,
     pub tainted: bool,
+}
+
+impl From<&TicketReturn> for Return {
+    /// A return as `TicketReturns` carries it (its ticket aside).
+    fn from(t: &TicketReturn) -> Return {
+        Return {
+            rgb: [t.r, t.g, t.b],
+            credit: Credit::from_wire(t.credit),
+            tainted: t.tainted,
+        }
+    }
 }
 
 /// What applying a return did.
@@ -129,9 +143,10 @@ impl TicketBook {
         self.open
     }
 
-    /// Open a ticket for `ray`; returns its id, `wall << 32 | slot`.
+    /// Open a ticket for `ray`; returns its id ([`ticket_id`], replica 0: the host sets
+    /// the replica that issued it).
     pub fn open(&mut self, ray: TicketRay) -> Result<u64, OpenError> {
-        if ray.credit == 0 {
+        if ray.credit.is_zero() {
             return Err(OpenError::NoCredit);
         }
         if self.open >= self.max_open {
@@ -154,12 +169,12 @@ impl TicketBook {
         }
         self.recent.push_back(Some(Ticket {
             ray,
-            returned: 0,
+            returned: Credit::ZERO,
             sums: [0; 3],
             tainted: false,
         }));
         self.open += 1;
-        Ok(u64::from(self.wall) << 32 | u64::from(slot))
+        Ok(ticket_id(0, self.wall, slot))
     }
 
     /// Move the window's first `n` slots out of it: their open tickets to the map.
@@ -262,6 +277,7 @@ fn radiance_entry(t: &Ticket) -> Option<Entry> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::ticket_id::{ticket_replica, ticket_slot, ticket_wall};
 
     fn coarse_ray(credit: u64) -> TicketRay {
         TicketRay {
@@ -283,7 +299,7 @@ mod tests {
             point: [0.25, 0.5],
             dir: Vec3::X,
             weight,
-            credit,
+            credit: Credit::from_wire(credit),
             coarse: false,
         }
     }
@@ -291,7 +307,7 @@ mod tests {
     fn ret(rgb: [i64; 3], credit: u64) -> Return {
         Return {
             rgb,
-            credit,
+            credit: Credit::from_wire(credit),
             tainted: false,
         }
     }
@@ -300,8 +316,8 @@ mod tests {
     fn closes_exactly_once_when_credit_is_whole() {
         let mut book = TicketBook::new(7, 16);
         let id = book.open(ray(10, Vec3::new(0.5, 0.25, 1.0))).unwrap();
-        assert_eq!(id >> 32, 7);
-        let slot = id as u32;
+        assert_eq!((ticket_wall(id), ticket_replica(id)), (7, 0));
+        let slot = ticket_slot(id);
         assert_eq!(slot, 1);
         let one = 1i64 << 24;
         assert_eq!(
@@ -331,10 +347,10 @@ mod tests {
     #[test]
     fn tainted_and_zero_weight_close_without_storing() {
         let mut book = TicketBook::new(0, 16);
-        let a = book.open(ray(2, Vec3::ONE)).unwrap() as u32;
-        let b = book.open(ray(2, Vec3::new(1.0, 0.0, 1.0))).unwrap() as u32;
-        let c = book.open(ray(2, Vec3::new(1.0, f32::NAN, 1.0))).unwrap() as u32;
-        let d = book.open(ray(1, Vec3::ONE)).unwrap() as u32;
+        let a = ticket_slot(book.open(ray(2, Vec3::ONE)).unwrap());
+        let b = ticket_slot(book.open(ray(2, Vec3::new(1.0, 0.0, 1.0))).unwrap());
+        let c = ticket_slot(book.open(ray(2, Vec3::new(1.0, f32::NAN, 1.0))).unwrap());
+        let d = ticket_slot(book.open(ray(1, Vec3::ONE)).unwrap());
         assert_eq!(
             book.apply(
                 a,
@@ -364,7 +380,7 @@ mod tests {
             book.apply(d, ret([5, 5, 5], 1), false),
             Applied::Closed(None)
         );
-        let e = book.open(coarse_ray(1)).unwrap() as u32;
+        let e = ticket_slot(book.open(coarse_ray(1)).unwrap());
         assert!(matches!(
             book.apply(e, ret([5, 5, 5], 1), false),
             Applied::Closed(Some(_))
@@ -374,7 +390,7 @@ mod tests {
     #[test]
     fn over_credit_is_refused_and_the_ticket_survives() {
         let mut book = TicketBook::new(0, 16);
-        let s = book.open(ray(4, Vec3::ONE)).unwrap() as u32;
+        let s = ticket_slot(book.open(ray(4, Vec3::ONE)).unwrap());
         assert_eq!(book.apply(s, ret([1, 1, 1], 3), true), Applied::Pending);
         assert_eq!(book.apply(s, ret([9, 9, 9], 2), true), Applied::OverCredit);
         assert_eq!(
@@ -390,7 +406,7 @@ mod tests {
     #[test]
     fn extreme_sums_do_not_panic() {
         let mut book = TicketBook::new(0, 16);
-        let s = book.open(ray(3, Vec3::splat(1e-30))).unwrap() as u32;
+        let s = ticket_slot(book.open(ray(3, Vec3::splat(1e-30))).unwrap());
         for _ in 0..2 {
             assert_eq!(
                 book.apply(s, ret([i64::MAX, i64::MIN, i64::MAX], 1), true),
@@ -407,12 +423,12 @@ mod tests {
     #[test]
     fn a_ticket_left_open_behind_the_window_still_closes_once() {
         let mut book = TicketBook::new(1, usize::MAX);
-        let straggler = book.open(ray(2, Vec3::ONE)).unwrap() as u32;
-        let early = book.open(ray(1, Vec3::ONE)).unwrap() as u32;
+        let straggler = ticket_slot(book.open(ray(2, Vec3::ONE)).unwrap());
+        let early = ticket_slot(book.open(ray(1, Vec3::ONE)).unwrap());
         // Many newer tickets open and close while the straggler waits, some left open.
         let mut open = Vec::new();
         for i in 0..WINDOW + 1000 {
-            let s = book.open(ray(1, Vec3::ONE)).unwrap() as u32;
+            let s = ticket_slot(book.open(ray(1, Vec3::ONE)).unwrap());
             if i % 1000 == 0 {
                 open.push(s);
             } else {
@@ -456,9 +472,13 @@ mod tests {
         assert_eq!(book.open(ray(0, Vec3::ONE)), Err(OpenError::NoCredit));
         book.open(ray(1, Vec3::ONE)).unwrap();
         assert_eq!(book.open(ray(1, Vec3::ONE)), Err(OpenError::TooMany));
-        let mut book = TicketBook::new(u32::MAX, 8);
+        let last_wall = crate::ticket_id::MAX_WALLS - 1;
+        let mut book = TicketBook::new(last_wall, 8);
         book.next_slot = u32::MAX;
-        assert_eq!(book.open(ray(1, Vec3::ONE)), Ok(u64::MAX));
+        assert_eq!(
+            book.open(ray(1, Vec3::ONE)),
+            Ok(ticket_id(0, last_wall, u32::MAX))
+        );
         assert_eq!(book.open(ray(1, Vec3::ONE)), Err(OpenError::Exhausted));
     }
 }

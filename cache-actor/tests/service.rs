@@ -4,6 +4,7 @@
 use std::net::SocketAddr;
 
 use dray_cache::{CacheHost, OPTION_ANSWER, OPTION_PHM, OPTION_TICKET};
+use dray_core::credit::Credit;
 use dray_core::film::FIXED_SCALE;
 use dray_core::integrator::RayKind;
 use dray_core::ray::{FLAG_COARSE, RayRecord, encode_rays};
@@ -140,7 +141,7 @@ fn open_request(job: &str, attempt: u32, radius: f32, walls: Vec<u32>) -> OpenWa
 /// A camera-like ray from outside the scene entering domain 0 through its -x face.
 fn camera_ray() -> RayRecord {
     RayRecord {
-        credit: 1000,
+        credit: Credit::from_wire(1000),
         origin: Vec3::new(-1.0, 0.5, 0.5),
         dir: Vec3::new(1.0, 0.1, -0.05),
         tmax: f32::INFINITY,
@@ -157,7 +158,7 @@ fn camera_ray() -> RayRecord {
 /// A diffuse ray inside domain 0 crossing into domain 1 (wall 6 = domain 1, -x).
 fn inner_ray() -> RayRecord {
     RayRecord {
-        credit: 77,
+        credit: Credit::from_wire(77),
         origin: Vec3::new(0.5, 0.5, 0.5),
         dir: Vec3::new(1.0, 0.0, 0.2),
         weight: Vec3::splat(0.3),
@@ -271,7 +272,7 @@ async fn tickets_fill_the_cache_and_later_rays_hit() {
             returns: vec![
                 parts[2],
                 ret(12345, [1, 1, 1], 1),
-                ret(11 << 32 | 1, [1, 1, 1], 1),
+                ret(dray_cache::ticket_id::ticket_id(0, 11, 1), [1, 1, 1], 1),
                 ret(t_inner, [1, 1, 1], 78),
             ],
         })
@@ -390,7 +391,7 @@ async fn radius_zero_never_hits() {
         job_id: "zero".into(),
         attempt: 1,
         sequence: 2,
-        returns: vec![ret(a.tickets[0], [1 << 24; 3], cam.credit)],
+        returns: vec![ret(a.tickets[0], [1 << 24; 3], cam.credit.to_wire())],
     })
     .await
     .unwrap();
@@ -568,7 +569,7 @@ async fn bad_requests_get_clean_errors_and_the_server_stays_up() {
     let mut zero = cam;
     zero.dir = Vec3::ZERO;
     let mut no_credit = cam;
-    no_credit.credit = 0;
+    no_credit.credit = Credit::ZERO;
     let a = ex
         .lookup(lookups(
             "job",
@@ -639,7 +640,7 @@ async fn concurrent_streams_close_every_ticket_once() {
         .unwrap();
     // 4 streams x 100 rays on a 20 x 20 grid of crossing points.
     let ray = |i: u32| RayRecord {
-        credit: 10,
+        credit: Credit::from_wire(10),
         origin: Vec3::new(
             -1.0,
             0.025 + 0.05 * (i % 20) as f32,
@@ -777,8 +778,8 @@ async fn without_fill_only_the_coarse_pass_stores() {
         attempt: 1,
         sequence: 2,
         returns: vec![
-            ret(a.tickets[0], [1 << 24; 3], main.credit),
-            ret(a.tickets[1], [1 << 24; 3], coarse.credit),
+            ret(a.tickets[0], [1 << 24; 3], main.credit.to_wire()),
+            ret(a.tickets[1], [1 << 24; 3], coarse.credit.to_wire()),
         ],
     })
     .await
@@ -1118,7 +1119,7 @@ async fn hit_maps_and_ray_caches_share_the_walls() {
         job_id: "both".into(),
         attempt: 1,
         sequence: 2,
-        returns: vec![ret(a.tickets[0], [1 << 24; 3], cam.credit)],
+        returns: vec![ret(a.tickets[0], [1 << 24; 3], cam.credit.to_wire())],
     })
     .await
     .unwrap();

@@ -16,8 +16,10 @@ use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use dray_coordinator::cluster::ClusterOptions;
+use dray_coordinator::cluster::{ClusterOptions, DEFAULT_STALL_TIMEOUT};
+use dray_coordinator::jobs::Retention;
 use dray_coordinator::membership::HeartbeatConfig;
+use dray_coordinator::validate::Limits;
 
 use crate::net_flags::{self, ApiTokenArgs, MemberArgs};
 
@@ -71,7 +73,7 @@ pub struct CoordinatorArgs {
     pub member: MemberArgs,
     /// Jobs queued, preparing or running at once (1..=128: a worker holds at most twice
     /// that); SubmitJob refuses more with RESOURCE_EXHAUSTED.
-    #[arg(long, value_name = "N", default_value_t = 64, value_parser = parse_max_jobs)]
+    #[arg(long, value_name = "N", default_value_t = Limits::MAX_JOBS, value_parser = parse_max_jobs)]
     pub max_jobs: usize,
     /// Largest memory a job may need at the coordinator (image and scene, estimated
     /// before it is accepted; suffixes K, M, G, T). [default: half the machine's memory]
@@ -79,19 +81,19 @@ pub struct CoordinatorArgs {
     pub max_job_bytes: Option<u64>,
     /// Keep the images of this many finished jobs (the newest); older ones are dropped
     /// and GetImage says so.
-    #[arg(long, value_name = "N", default_value_t = 100)]
+    #[arg(long, value_name = "N", default_value_t = Retention::KEEP_FINISHED)]
     pub keep_finished: usize,
     /// Keep finished jobs' images up to this many bytes in all (the newest first; a
     /// 2048x2048 image takes 96 MiB; suffixes K, M, G, T). [default: --max-job-bytes]
     #[arg(long, value_name = "BYTES", value_parser = crate::bytes::parse_bytes)]
     pub keep_finished_bytes: Option<u64>,
     /// Drop a finished job's image this many seconds after it finished (0: never).
-    #[arg(long, value_name = "SECONDS", default_value_t = 86400)]
+    #[arg(long, value_name = "SECONDS", default_value_t = Retention::TTL.as_secs())]
     pub finished_ttl: u64,
     /// Fail a job on workers when none of them has returned any credit for this many
     /// seconds (0: never): heartbeats show a worker alive, not working, and a member
     /// that never traces would otherwise hold its job forever.
-    #[arg(long, value_name = "SECONDS", default_value_t = 1800)]
+    #[arg(long, value_name = "SECONDS", default_value_t = DEFAULT_STALL_TIMEOUT.as_secs())]
     pub stall_timeout: u64,
     /// Take stand-alone cache hosts (`dray cache`): jobs with ray caches or hit maps then
     /// place their cache actors on them. Off by default, since a cache host can change
@@ -212,7 +214,7 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
             a.max_jobs.max(1),
             a.max_job_bytes
                 .unwrap_or_else(dray_coordinator::admission::default_max_job_bytes),
-            dray_coordinator::jobs::Retention {
+            Retention {
                 keep_finished: a.keep_finished,
                 ttl: (a.finished_ttl > 0).then(|| Duration::from_secs(a.finished_ttl)),
                 max_bytes: a.keep_finished_bytes,

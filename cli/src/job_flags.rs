@@ -4,6 +4,10 @@
 
 use anyhow::{Result, bail};
 use clap::Args;
+use dray_coordinator::scheduler::Schedule;
+use dray_coordinator::scheduler::policy::{SCHEDULE_NAMES, ScheduleError};
+use dray_coordinator::service::MAX_EXPOSURE_STOPS;
+use dray_coordinator::validate::{DEFAULT_AO_SAMPLES, DEFAULT_INTEGRATOR, DEFAULT_MAX_DEPTH};
 use dray_proto::v1::{JobSpec, PhmSettings, RayCacheSettings, Rgb, Vec3};
 
 use crate::options::parse_vec3;
@@ -23,10 +27,10 @@ pub struct JobFlags {
     #[arg(long, default_value_t = 16)]
     pub spp: u32,
     /// raycast | whitted | path | ao
-    #[arg(long, default_value = "path")]
+    #[arg(long, default_value = DEFAULT_INTEGRATOR.name())]
     pub integrator: String,
     /// Maximum number of surface interactions along a path.
-    #[arg(long, default_value_t = 5)]
+    #[arg(long, default_value_t = DEFAULT_MAX_DEPTH)]
     pub max_depth: u32,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -41,7 +45,7 @@ pub struct JobFlags {
     #[arg(long, allow_hyphen_values = true)]
     pub effects: Option<String>,
     /// Rays per hit for the ao integrator.
-    #[arg(long, default_value_t = 16)]
+    #[arg(long, default_value_t = DEFAULT_AO_SAMPLES)]
     pub ao_samples: u32,
     /// Occlusion distance for the ao integrator (default: unlimited).
     #[arg(long)]
@@ -68,7 +72,7 @@ pub struct JobFlags {
     /// owners) or dynamic (ray-weighted: domains move to where the rays wait). The image
     /// is the same under every schedule. No effect with `dray render --workers 0` (the
     /// reference renderer has no workers to schedule).
-    #[arg(long, default_value = "dynamic", value_name = "NAME", value_parser = parse_schedule)]
+    #[arg(long, default_value = default_schedule(), value_name = "NAME", value_parser = parse_schedule)]
     pub schedule: String,
     /// With --schedule dynamic: also replicate the most-wanted domains on idle workers.
     #[arg(long)]
@@ -78,7 +82,7 @@ pub struct JobFlags {
     #[arg(
         long,
         value_name = "KEY=VALUE,...",
-        long_help = crate::ray_cache_flag::HELP,
+        long_help = crate::ray_cache_flag::help(),
         value_parser = crate::ray_cache_flag::parse_ray_cache
     )]
     pub ray_cache: Option<RayCacheSettings>,
@@ -87,33 +91,49 @@ pub struct JobFlags {
     #[arg(
         long,
         value_name = "KEY=VALUE,...",
-        long_help = crate::phm_flag::HELP,
+        long_help = crate::phm_flag::help(),
         value_parser = crate::phm_flag::parse_phm
     )]
     pub phm: Option<PhmSettings>,
 }
 
-/// The schedules a job can ask for, as `JobSpec.schedule` spells them.
-pub const SCHEDULES: [&str; 3] = ["image-plane", "domain", "dynamic"];
+/// The schedule of a job that names none: the coordinator's choice for an empty
+/// `JobSpec.schedule`.
+fn default_schedule() -> &'static str {
+    Schedule::parse("", false).map_or("", |s| s.name())
+}
 
-/// `--schedule NAME`: one of [`SCHEDULES`], or a one-line error naming them.
+/// `--schedule NAME`: one of the coordinator's [`SCHEDULE_NAMES`], or a one-line error
+/// naming them.
 fn parse_schedule(s: &str) -> Result<String, String> {
-    if SCHEDULES.contains(&s) {
+    if SCHEDULE_NAMES.contains(&s) {
         Ok(s.to_string())
     } else {
         Err(format!(
-            "unknown schedule {s:?} (expected image-plane, domain or dynamic)"
+            "unknown schedule {s:?} (expected one of {})",
+            SCHEDULE_NAMES.join(", ")
         ))
     }
 }
 
 impl JobFlags {
-    /// Flags that clap cannot check one at a time.
+    /// Flags that clap cannot check one at a time, by the coordinator's rules.
     pub fn check_schedule(&self) -> Result<()> {
-        if self.replicate && self.schedule != "dynamic" {
+        if let Err(e @ ScheduleError::ReplicateNeedsDynamic(_)) =
+            Schedule::parse(&self.schedule, self.replicate)
+        {
+            bail!("--replicate with --schedule {}: {e}", self.schedule);
+        }
+        Ok(())
+    }
+
+    /// `--exposure`: finite, within the coordinator's GetImage range.
+    pub fn check_exposure(&self) -> Result<()> {
+        if !self.exposure.is_finite() || self.exposure.abs() > MAX_EXPOSURE_STOPS {
             bail!(
-                "--replicate needs --schedule dynamic (got --schedule {})",
-                self.schedule
+                "--exposure {} is out of range (-{MAX_EXPOSURE_STOPS}..={MAX_EXPOSURE_STOPS} \
+                 stops)",
+                self.exposure
             );
         }
         Ok(())
@@ -181,14 +201,15 @@ mod tests {
 
     #[test]
     fn schedules() {
-        for name in SCHEDULES {
+        for name in SCHEDULE_NAMES {
             assert_eq!(parse_schedule(name).as_deref(), Ok(name));
         }
         let e = parse_schedule("bogus").expect_err("bogus");
         assert!(
-            e.contains("\"bogus\"") && e.contains("image-plane, domain or dynamic"),
+            e.contains("\"bogus\"") && e.contains("image-plane, domain, dynamic"),
             "{e}"
         );
         assert!(parse_schedule("Dynamic").is_err());
+        assert_eq!(parse_schedule(default_schedule()).as_deref(), Ok("dynamic"));
     }
 }

@@ -2,6 +2,8 @@
 //! or comma-separated pairs of known keys, each at most once. Each flag reads its own
 //! values; this only splits, so both flags word their errors the same way.
 
+use dray_core::integrator::RayKind;
+
 /// The pairs of `s` (none for `on`), trimmed; errors are one line naming the key.
 pub fn pairs<'a>(s: &'a str, keys: &[&str]) -> Result<Vec<(&'a str, &'a str)>, String> {
     let s = s.trim();
@@ -38,11 +40,12 @@ pub fn pairs<'a>(s: &'a str, keys: &[&str]) -> Result<Vec<(&'a str, &'a str)>, S
 }
 
 /// A `kinds` value: names joined with `+`, written back joined with `,` (the JobSpec's
-/// form); `names` lists the kinds, for the error.
-pub fn kinds(key: &str, value: &str, names: &str) -> Result<String, String> {
+/// form); `choices` are the kinds the flag takes, listed in the error.
+pub fn kinds(key: &str, value: &str, choices: &[RayKind]) -> Result<String, String> {
     if value.is_empty() || value.split('+').any(|k| k.trim().is_empty()) {
         return Err(format!(
-            "{key}: {value:?} needs kind names joined with + ({names})"
+            "{key}: {value:?} needs kind names joined with + ({})",
+            RayKind::help_list(choices)
         ));
     }
     Ok(value

@@ -6,10 +6,13 @@
 //! coordinator's to check (INVALID_ARGUMENT naming `phm.<field>`). Keys left out keep
 //! the coordinator's defaults.
 
+use dray_core::integrator::RayKind;
 use dray_proto::v1::PhmSettings;
 
 /// The flag's help, shared by `dray render` and `dray submit`.
-pub const HELP: &str = "Probability hit maps on domain walls (Bolstad 2017): a ray \
+pub fn help() -> String {
+    format!(
+        "Probability hit maps on domain walls (Bolstad 2017): a ray \
 entering a domain whose map predicts a miss skips it, and an occlusion ray whose map \
 predicts a hit is occluded, without tracing (an approximation; the image is no longer \
 exact). Comma-separated KEY=VALUE pairs: res=N (texels per wall edge, 1..=64, default 4), \
@@ -19,13 +22,16 @@ prior 0.5 in rays, default 100), miss=P and hit=P (thresholds, 0 <= miss <= 0.5 
 mode=consistent|inconsistent (keep probing decided cells, or make decisions final; \
 default consistent), reprobe=F (consistent mode: fraction of rays at decided cells traced \
 anyway, default 0.1), kinds=K+K... (ray kinds that ask the maps, joined with +, from \
-camera, shadow, reflection, refraction, diffuse, ambient_occlusion; default shadow), \
+{}; default shadow), \
 placement=sender|remote (sender: every worker holds a copy of every wall's map and \
 consults it in its own process, and outcomes are merged into the other copies in \
 batches; remote: each map once, beside its domain's owner, a round trip per ray; default \
 the ray cache's placement, else sender), merge=N (sender placement: outcomes a worker \
 gathers before merging them into the other copies, default 4096). `--phm on` takes every \
-default. Maps live on the cache hosts, beside the ray caches.";
+default. Maps live on the cache hosts, beside the ray caches.",
+        RayKind::help_list(&RayKind::ALL)
+    )
+}
 
 /// The keys, in the order the help gives them.
 pub const KEYS: [&str; 10] = [
@@ -68,13 +74,7 @@ pub fn parse_phm(s: &str) -> Result<PhmSettings, String> {
                 }
                 p.mode = value.to_string();
             }
-            "kinds" => {
-                p.kinds = crate::kv_flag::kinds(
-                    key,
-                    value,
-                    "camera, shadow, reflection, refraction, diffuse, ambient_occlusion",
-                )?
-            }
+            "kinds" => p.kinds = crate::kv_flag::kinds(key, value, &RayKind::ALL)?,
             other => {
                 return Err(format!("unknown key {other:?} (keys: {})", KEYS.join(", ")));
             }

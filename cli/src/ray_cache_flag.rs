@@ -6,25 +6,30 @@
 //! live in one place (it answers INVALID_ARGUMENT naming `ray_cache.<field>`, which both
 //! commands print as it is). Keys the flag leaves out keep the coordinator's defaults.
 
+use dray_core::integrator::RayKind;
 use dray_proto::v1::RayCacheSettings;
 
 /// The flag's help, shared by `dray render` and `dray submit`.
-pub const HELP: &str = "Ray caches on domain walls (Little 2011): rays crossing a wall may \
+pub fn help() -> String {
+    format!(
+        "Ray caches on domain walls (Little 2011): rays crossing a wall may \
 be answered from radiance cached there instead of being traced (an approximation; the \
 image is no longer exact). Comma-separated KEY=VALUE pairs: radius=R (lookup radius on the \
 wall, scene units; 0, the default, never answers, the caches only fill), angle-deg=A \
 (largest angle between a ray and a cached direction, degrees in (0, 90], default 10), \
 retrieve=first|nearest|average (which cached ray answers, default nearest), coarse=N (a \
 coarse pass of N x N camera rays, traced exactly first to fill the caches; default 0, \
-none), kinds=K+K... (ray kinds looked up, joined with +, from camera, reflection, \
-refraction, diffuse; default all four), fill=true|false (whether the main pass stores what \
-it learns; default false with a coarse pass, which then fills the caches and they stay \
+none), kinds=K+K... (ray kinds looked up, joined with +, from {}; default all of them), \
+fill=true|false (whether the main pass stores what it learns; default false with a coarse pass, which then fills the caches and they stay \
 frozen, the same bits every run; true without one), \
 placement=sender|remote (sender, the default: every worker holds a replica of every wall \
 and looks rays up in its own memory, so a hit sends nothing; remote: each wall once, beside \
 its domain's owner, every lookup a round trip). `--ray-cache on` takes every default. \
 Caches run on cache hosts: in every worker process (default) or stand-alone `dray cache` \
-processes (which hold each wall once).";
+processes (which hold each wall once).",
+        RayKind::help_list(&RayKind::RADIANCE)
+    )
+}
 
 /// The keys, in the order the help gives them.
 pub const KEYS: [&str; 7] = [
@@ -54,10 +59,7 @@ pub fn parse_ray_cache(s: &str) -> Result<RayCacheSettings, String> {
                 rc.retrieve = value.to_string();
             }
             "coarse" => rc.coarse = value.parse().map_err(|_| number("a whole number"))?,
-            "kinds" => {
-                rc.kinds =
-                    crate::kv_flag::kinds(key, value, "camera, reflection, refraction, diffuse")?
-            }
+            "kinds" => rc.kinds = crate::kv_flag::kinds(key, value, &RayKind::RADIANCE)?,
             "fill" => {
                 rc.fill = Some(match value {
                     "true" => true,

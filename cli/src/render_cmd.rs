@@ -5,6 +5,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use dray_coordinator::validate::{DEFAULT_LAYOUT, Limits};
 use dray_core::bvh::Accel;
 use dray_core::camera::Camera;
 use dray_core::film::Film;
@@ -17,10 +18,6 @@ use dray_scene::partition::LayoutSpec;
 use crate::options::{apply_effects, parse_vec3};
 use crate::summary::{PhmSummary, RayCacheSummary, SceneFacts, Scheduling, Summary, print_summary};
 
-/// Largest image side accepted.
-pub const MAX_SIDE: u32 = 16384;
-/// Largest samples per pixel accepted.
-pub const MAX_SPP: u32 = 1 << 16;
 /// Most in-process worker actors: each has its own threads, queues and loopback server.
 pub const MAX_WORKERS: usize = 64;
 /// Most tracing threads: far more than any machine's cores (threads beyond the cores
@@ -50,7 +47,7 @@ pub struct RenderArgs {
     #[arg(long)]
     pub domains: Option<u32>,
     /// Domain layout for --domains: a uniform grid or a kd split balanced by triangle count.
-    #[arg(long, default_value = "kd")]
+    #[arg(long, default_value = DEFAULT_LAYOUT)]
     pub layout: String,
     /// Worker actors to run the job on, all in this process with a coordinator, talking
     /// over loopback gRPC exactly as `dray cluster` does. 0: the reference renderer,
@@ -72,6 +69,8 @@ pub struct RenderArgs {
 /// The checks clap cannot make, shared with `dray sweep` (which runs them on every
 /// setting before rendering any).
 pub fn check_args(a: &RenderArgs) -> Result<IntegratorKind> {
+    // The coordinator's default limits (a job on workers is checked against them too).
+    const MAX_SIDE: u32 = Limits::MAX_SIDE;
     if a.job.width == 0 || a.job.height == 0 || a.job.width > MAX_SIDE || a.job.height > MAX_SIDE {
         bail!(
             "image size {}x{} is out of range (1..={MAX_SIDE} per side)",
@@ -79,22 +78,28 @@ pub fn check_args(a: &RenderArgs) -> Result<IntegratorKind> {
             a.job.height
         );
     }
-    if a.job.spp == 0 || a.job.spp > MAX_SPP {
-        bail!("--spp {} is out of range (1..={MAX_SPP})", a.job.spp);
-    }
-    if a.job.max_depth == 0 || a.job.max_depth > 1024 {
-        bail!("--max-depth {} is out of range (1..=1024)", a.job.max_depth);
-    }
-    if !a.job.exposure.is_finite() || a.job.exposure.abs() > 64.0 {
+    if a.job.spp == 0 || a.job.spp > Limits::MAX_SPP {
         bail!(
-            "--exposure {} is out of range (-64..=64 stops)",
-            a.job.exposure
+            "--spp {} is out of range (1..={})",
+            a.job.spp,
+            Limits::MAX_SPP
         );
     }
+    if a.job.max_depth == 0 || a.job.max_depth > Limits::MAX_DEPTH {
+        bail!(
+            "--max-depth {} is out of range (1..={})",
+            a.job.max_depth,
+            Limits::MAX_DEPTH
+        );
+    }
+    a.job.check_exposure()?;
     if let Some(d) = a.domains
-        && (d == 0 || d > 65536)
+        && (d == 0 || d > Limits::MAX_DOMAINS)
     {
-        bail!("--domains {d} is out of range (1..=65536)");
+        bail!(
+            "--domains {d} is out of range (1..={})",
+            Limits::MAX_DOMAINS
+        );
     }
     if a.workers > MAX_WORKERS {
         bail!(
@@ -115,10 +120,11 @@ pub fn check_args(a: &RenderArgs) -> Result<IntegratorKind> {
              has no cache hosts"
         );
     }
-    if a.job.ao_samples == 0 || a.job.ao_samples > 4096 {
+    if a.job.ao_samples == 0 || a.job.ao_samples > Limits::MAX_AO_SAMPLES {
         bail!(
-            "--ao-samples {} is out of range (1..=4096)",
-            a.job.ao_samples
+            "--ao-samples {} is out of range (1..={})",
+            a.job.ao_samples,
+            Limits::MAX_AO_SAMPLES
         );
     }
     if let Some(d) = a.job.ao_distance

@@ -167,12 +167,7 @@ fn rpc_error(what: &str, url: &str, s: tonic::Status) -> anyhow::Error {
 
 pub fn run(a: SubmitArgs) -> Result<()> {
     let spec = job_spec(&a)?;
-    if !a.job.exposure.is_finite() || a.job.exposure.abs() > 64.0 {
-        bail!(
-            "--exposure {} is out of range (-64..=64 stops)",
-            a.job.exposure
-        );
-    }
+    a.job.check_exposure()?;
     let url = endpoint_url(&a.coordinator)?;
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()

@@ -411,14 +411,7 @@ impl Scheduling {
 
 /// Rays by kind from the protocol's counts.
 pub fn ray_counts(r: &dray_proto::v1::RayCounts) -> RayCounts {
-    let mut rays = RayCounts::default();
-    rays.0[RayKind::Camera as usize] = r.camera;
-    rays.0[RayKind::Shadow as usize] = r.shadow;
-    rays.0[RayKind::Reflection as usize] = r.reflection;
-    rays.0[RayKind::Refraction as usize] = r.refraction;
-    rays.0[RayKind::Diffuse as usize] = r.diffuse;
-    rays.0[RayKind::AmbientOcclusion as usize] = r.ambient_occlusion;
-    rays
+    RayCounts(r.by_kind())
 }
 
 /// Rays by kind under the names the `--stats` JSON uses.

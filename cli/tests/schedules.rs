@@ -15,7 +15,8 @@ use std::process::{Output, Stdio};
 use serde_json::Value;
 use support::{Proc, WorkerCluster, capture_stderr, dray};
 
-const SCHEDULES: [&str; 3] = ["image-plane", "domain", "dynamic"];
+/// Every schedule a job can ask for.
+const SCHEDULES: [&str; 3] = dray_coordinator::scheduler::policy::SCHEDULE_NAMES;
 
 /// The scene: 8 kd domains of about 85 kB each (as the workers count them).
 const SCENE: &str = "cornell:glass";

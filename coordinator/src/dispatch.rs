@@ -12,10 +12,10 @@
 //!    domain and dynamic schedules, `local` with no routes for image-plane;
 //! 2. one or more `TileAssignment`s with the tiles dealt to that worker: the image is cut
 //!    row-major into `tile_size` squares (edge tiles smaller, tile `i` has index
-//!    `(y0 / tile_size) * tiles_x + x0 / tile_size`), each with `credit = tile_credit` and
-//!    `attempt = 0`. Image-plane deals contiguous blocks (worker `i` of `n` gets tiles
-//!    `[i*T/n, (i+1)*T/n)`); domain and dynamic deal round robin (tile `i` to
-//!    `workers[i % n]`);
+//!    `(y0 / tile_size) * tiles_x + x0 / tile_size`: [`TileGrid`]), each with
+//!    `credit = tile_credit` and `attempt = 0`. Image-plane deals contiguous blocks
+//!    (worker `i` of `n` gets tiles `[i*T/n, (i+1)*T/n)`); domain and dynamic deal round
+//!    robin (tile `i` to `workers[i % n]`);
 //! 3. while the job runs: `routing` tables with higher versions when the dynamic
 //!    scheduler moves or replicates domains, or when a worker joins a dynamic job;
 //! 4. when a worker of the job is lost: `cancel` of the old attempt, then a new
@@ -42,8 +42,9 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use dray_core::render;
+use dray_core::credit::Credit;
 use dray_core::scene::Scene;
+use dray_core::tiles::TileGrid;
 use dray_proto::v1::{JobSetup, JobSpec, JobState, Rgb, Tile};
 use dray_scene::partition::checksum::{checksum, to_hex};
 use dray_scene::partition::manifest::MANIFEST_FILE;
@@ -63,13 +64,11 @@ use crate::scheduler::state::{JobSchedule, JobWorker};
 use crate::validate::Prepared;
 
 /// Tile edge in pixels: the same tiles as `dray render`, so progress reads the same.
-pub const TILE_SIZE: u32 = render::TILE;
+pub use dray_core::tiles::TILE_SIZE;
 
-/// Credit each tile starts with. Large, so a tile's camera rays and their descendants
-/// can split it many times before a share reaches 1 (a ray whose share cannot be split
-/// further fails the job rather than losing count); below 2^63 so sums of returned
-/// credit never overflow a u64 however they are grouped.
-pub const TILE_CREDIT: u64 = 1 << 62;
+/// Credit each tile starts with, [`Credit::TILE`], as `Tile.credit` and
+/// `JobSetup.tile_credit` carry it (docs/architecture.md "Credit").
+pub const TILE_CREDIT: u64 = Credit::TILE.to_wire();
 
 pub use crate::job::TILES_PER_MESSAGE;
 
@@ -256,40 +255,32 @@ pub fn package_checksum(manifest_bytes: &[u8]) -> String {
     to_hex(checksum(manifest_bytes))
 }
 
-/// The tiles of a `width` x `height` image, row-major, each with [`TILE_CREDIT`].
+/// The tiles of a `width` x `height` image ([`TileGrid::image`]), each with
+/// [`TILE_CREDIT`].
+pub fn image_tiles(width: u32, height: u32) -> Vec<Tile> {
+    grid_tiles(TileGrid::image(width, height), 0, false)
+}
+
 /// The tiles of a ray-cache coarse pass over an `n` x `n` image, numbered from `first`
 /// (the image's tile count) in the same row-major order and size as the image's tiles,
 /// as the workers number them (cluster.proto `Tile.coarse`).
 pub fn coarse_tiles(n: u32, first: u32) -> Vec<Tile> {
-    render::tiles(n, n)
-        .into_iter()
-        .enumerate()
-        .map(|(i, t)| Tile {
-            index: first + i as u32,
-            x0: t.x0,
-            y0: t.y0,
-            width: t.w,
-            height: t.h,
-            credit: TILE_CREDIT,
-            attempt: 0,
-            coarse: true,
-        })
-        .collect()
+    grid_tiles(TileGrid::image(n, n), first, true)
 }
 
-pub fn image_tiles(width: u32, height: u32) -> Vec<Tile> {
-    render::tiles(width, height)
-        .into_iter()
-        .enumerate()
-        .map(|(i, t)| Tile {
-            index: i as u32,
+/// `grid`'s tiles as dealt, numbered from `first`, each with [`TILE_CREDIT`].
+fn grid_tiles(grid: TileGrid, first: u32, coarse: bool) -> Vec<Tile> {
+    grid.iter()
+        .zip(first..)
+        .map(|(t, index)| Tile {
+            index,
             x0: t.x0,
             y0: t.y0,
             width: t.w,
             height: t.h,
             credit: TILE_CREDIT,
             attempt: 0,
-            coarse: false,
+            coarse,
         })
         .collect()
 }
@@ -641,15 +632,16 @@ mod tests {
     #[test]
     fn tiles_are_row_major_with_the_documented_index() {
         let t = image_tiles(70, 40);
-        let tiles_x = 70u32.div_ceil(TILE_SIZE);
+        let grid = TileGrid::image(70, 40);
         assert_eq!(t.len(), 3 * 2);
         for tile in &t {
-            assert_eq!(
-                tile.index,
-                (tile.y0 / TILE_SIZE) * tiles_x + tile.x0 / TILE_SIZE
-            );
+            assert_eq!(tile.index, grid.index_of(tile.x0, tile.y0));
             assert_eq!(tile.credit, TILE_CREDIT);
         }
+        let c = coarse_tiles(40, 6);
+        assert_eq!(c.len(), 4);
+        assert!(c.iter().all(|t| t.coarse));
+        assert_eq!(c.iter().map(|t| t.index).collect::<Vec<_>>(), [6, 7, 8, 9]);
         assert_eq!((t[2].width, t[2].height), (6, 32));
         assert_eq!((t[5].width, t[5].height), (6, 8));
         let px: u32 = t.iter().map(|t| t.width * t.height).sum();

@@ -13,9 +13,10 @@ use std::time::{Duration, Instant, SystemTime};
 
 use dray_core::bvh::Accel;
 use dray_core::film::Film;
-use dray_core::integrator::{Integrator, RayKind};
+use dray_core::integrator::Integrator;
 use dray_core::render;
 use dray_core::scene::Scene;
+use dray_core::tiles::TileGrid;
 use dray_core::trace::Trace;
 use dray_proto::v1::{Job, JobProgress, JobSpec, JobState, JobStats, RayCounts};
 use dray_scene::partition::LayoutSpec;
@@ -101,12 +102,7 @@ impl JobEntry {
             state: g.state as i32,
             tiles_done: done,
             tiles_total: self.tiles_total,
-            rays_traced: rays.camera
-                + rays.shadow
-                + rays.reflection
-                + rays.refraction
-                + rays.diffuse
-                + rays.ambient_occlusion,
+            rays_traced: crate::metrics::total_rays(&rays),
             rays_in_flight: if terminal(g.state) {
                 0
             } else {
@@ -244,11 +240,18 @@ pub struct Retention {
     pub max_bytes: Option<u64>,
 }
 
+impl Retention {
+    /// The default [`Retention::keep_finished`] (`dray coordinator --keep-finished`).
+    pub const KEEP_FINISHED: usize = 100;
+    /// The default [`Retention::ttl`] (`dray coordinator --finished-ttl`).
+    pub const TTL: Duration = Duration::from_secs(24 * 3600);
+}
+
 impl Default for Retention {
     fn default() -> Retention {
         Retention {
-            keep_finished: 100,
-            ttl: Some(Duration::from_secs(24 * 3600)),
+            keep_finished: Retention::KEEP_FINISHED,
+            ttl: Some(Retention::TTL),
             max_bytes: None,
         }
     }
@@ -343,7 +346,7 @@ impl JobTable {
         let n = self.next_id.fetch_add(1, Ordering::Relaxed);
         let entry = Arc::new(JobEntry {
             id: format!("job-{n}-{:08x}", self.nonce),
-            tiles_total: render::tiles(spec.width, spec.height).len() as u32,
+            tiles_total: TileGrid::image(spec.width, spec.height).count(),
             spec,
             submitted_at: SystemTime::now(),
             cancel: Arc::new(AtomicBool::new(false)),
@@ -450,15 +453,7 @@ fn run(job: &JobEntry, p: Prepared, threads: usize) {
         Ok(out) => {
             {
                 let mut g = job.lock();
-                let r = |k: RayKind| out.rays.get(k);
-                g.stats.rays = Some(RayCounts {
-                    camera: r(RayKind::Camera),
-                    shadow: r(RayKind::Shadow),
-                    reflection: r(RayKind::Reflection),
-                    refraction: r(RayKind::Refraction),
-                    diffuse: r(RayKind::Diffuse),
-                    ambient_occlusion: r(RayKind::AmbientOcclusion),
-                });
+                g.stats.rays = Some(RayCounts::from_kinds(out.rays.0));
                 g.stats.nonfinite = out.film.nonfinite;
             }
             job.finish(JobState::Succeeded, String::new(), Some(out.film));

@@ -64,16 +64,7 @@ pub fn check(c: &WorkerCounters) -> Result<(), CounterError> {
 
 /// Total rays in `r`, all kinds.
 pub fn total_rays(r: &RayCounts) -> u64 {
-    [
-        r.camera,
-        r.shadow,
-        r.reflection,
-        r.refraction,
-        r.diffuse,
-        r.ambient_occlusion,
-    ]
-    .iter()
-    .fold(0u64, |a, &b| a.saturating_add(b))
+    r.by_kind().iter().fold(0u64, |a, &b| a.saturating_add(b))
 }
 
 /// Per-worker sums for one job, and the job's totals kept as reports arrive, so the
@@ -171,6 +162,37 @@ impl JobMetrics {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `RayCounts::by_kind` and `from_kinds` (in dray-proto, which knows no engine) put
+    /// each kind where render.proto numbers its field: kind `k`, field `k + 1`, named as
+    /// the engine names the kind.
+    #[test]
+    fn ray_counts_follow_the_engines_ray_kinds() {
+        use dray_core::integrator::RayKind;
+        use prost::Message;
+        let fds = prost_types::FileDescriptorSet::decode(dray_proto::FILE_DESCRIPTOR_SET)
+            .expect("the descriptor set decodes");
+        let fields = &fds
+            .file
+            .iter()
+            .filter(|f| f.package() == "dray.v1")
+            .flat_map(|f| &f.message_type)
+            .find(|m| m.name() == "RayCounts")
+            .expect("render.proto has RayCounts")
+            .field;
+        assert_eq!(fields.len(), RayKind::COUNT);
+        for k in RayKind::ALL {
+            let number = k as i32 + 1;
+            let field = fields.iter().find(|f| f.number() == number);
+            assert_eq!(field.map(|f| f.name()), Some(k.name()), "field {number}");
+            let mut one = [0; RayKind::COUNT];
+            one[k as usize] = 1;
+            let counts = RayCounts::from_kinds(one);
+            // A varint field: its key (number << 3), then the value 1.
+            assert_eq!(counts.encode_to_vec(), [(number << 3) as u8, 1], "{k:?}");
+            assert_eq!(counts.by_kind(), one);
+        }
+    }
 
     #[test]
     fn deltas_sum_and_peaks_take_the_max() {

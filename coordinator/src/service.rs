@@ -28,6 +28,8 @@ use crate::validate::{Limits, bounded, prepare, validate};
 
 /// Default least time between two WatchJob messages.
 pub const DEFAULT_WATCH_INTERVAL: Duration = Duration::from_millis(250);
+/// Largest GetImage exposure either way, in stops (and `dray render`'s `--exposure`).
+pub const MAX_EXPOSURE_STOPS: f32 = 64.0;
 /// Default and largest ListJobs page.
 pub const DEFAULT_PAGE_SIZE: usize = 50;
 const MAX_PAGE_SIZE: usize = 1000;
@@ -442,9 +444,10 @@ impl RenderService for Coordinator {
         r: Request<GetImageRequest>,
     ) -> Result<Response<GetImageResponse>, Status> {
         let r = r.into_inner();
-        if !r.exposure.is_finite() || r.exposure.abs() > 64.0 {
+        if !r.exposure.is_finite() || r.exposure.abs() > MAX_EXPOSURE_STOPS {
             return Err(Status::invalid_argument(format!(
-                "exposure: {} is out of range (-64..=64 stops)",
+                "exposure: {} is out of range (-{MAX_EXPOSURE_STOPS}..={MAX_EXPOSURE_STOPS} \
+                 stops)",
                 r.exposure
             )));
         }

@@ -44,20 +44,40 @@ pub struct Limits {
     pub max_job_bytes: u64,
 }
 
+impl Limits {
+    /// The default [`Limits::max_side`], and `dray render`'s.
+    pub const MAX_SIDE: u32 = 16384;
+    /// The default [`Limits::max_spp`], and `dray render`'s.
+    pub const MAX_SPP: u32 = 1 << 16;
+    /// The default [`Limits::max_depth`], and `dray render`'s.
+    pub const MAX_DEPTH: u32 = 1024;
+    /// The default [`Limits::max_ao_samples`], and `dray render`'s.
+    pub const MAX_AO_SAMPLES: u32 = 4096;
+    /// The default [`Limits::max_domains`], and `dray render`'s.
+    pub const MAX_DOMAINS: u32 = 65536;
+    /// The default [`Limits::max_label`].
+    pub const MAX_LABEL: usize = 256;
+    /// The default [`Limits::max_jobs`] (`dray coordinator --max-jobs`).
+    pub const MAX_JOBS: usize = 64;
+}
+
 impl Default for Limits {
     fn default() -> Limits {
         Limits {
-            max_side: 16384,
-            max_spp: 1 << 16,
-            max_depth: 1024,
-            max_ao_samples: 4096,
-            max_domains: 65536,
-            max_label: 256,
-            max_jobs: 64,
+            max_side: Limits::MAX_SIDE,
+            max_spp: Limits::MAX_SPP,
+            max_depth: Limits::MAX_DEPTH,
+            max_ao_samples: Limits::MAX_AO_SAMPLES,
+            max_domains: Limits::MAX_DOMAINS,
+            max_label: Limits::MAX_LABEL,
+            max_jobs: Limits::MAX_JOBS,
             max_job_bytes: crate::admission::default_max_job_bytes(),
         }
     }
 }
+
+/// Default `integrator` (as `dray render`).
+pub const DEFAULT_INTEGRATOR: IntegratorKind = IntegratorKind::Path;
 
 /// Default `max_depth` (as `dray render`).
 pub const DEFAULT_MAX_DEPTH: u32 = 5;
@@ -178,7 +198,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
     check_range("height", spec.height, limits.max_side)?;
     check_range("spp", spec.spp, limits.max_spp)?;
     if spec.integrator.is_empty() {
-        spec.integrator = "path".into();
+        spec.integrator = DEFAULT_INTEGRATOR.name().into();
     }
     let integrator = IntegratorKind::from_name(&spec.integrator).ok_or_else(|| {
         bad(format!(
@@ -342,8 +362,8 @@ pub fn check_phm(p: &mut PhmSettings) -> Result<(), Status> {
     {
         let Some(i) = PHM_KINDS.iter().position(|k| *k == name) else {
             return Err(bad(format!(
-                "phm.kinds: unknown ray kind {name:?} (expected camera, shadow, reflection, \
-                 refraction, diffuse or ambient_occlusion)"
+                "phm.kinds: unknown ray kind {name:?} (expected one of {})",
+                RayKind::help_list(&RayKind::ALL)
             )));
         };
         wanted[i] = true;
@@ -429,8 +449,9 @@ pub fn check_ray_cache(rc: &mut RayCacheSettings) -> Result<(), Status> {
     for name in rc.kinds.split(',').map(str::trim).filter(|n| !n.is_empty()) {
         let Some(i) = CACHE_KINDS.iter().position(|k| *k == name) else {
             return Err(bad(format!(
-                "ray_cache.kinds: {name:?} cannot be cached (expected camera, reflection, \
-                 refraction or diffuse; shadow and ao rays carry no radiance of their own)"
+                "ray_cache.kinds: {name:?} cannot be cached (expected one of {}; shadow and \
+                 ao rays carry no radiance of their own)",
+                RayKind::help_list(&RayKind::RADIANCE)
             )));
         };
         wanted[i] = true;

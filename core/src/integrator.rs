@@ -68,6 +68,21 @@ impl RayKind {
         RayKind::Diffuse,
     ];
 
+    /// The kind named `name` (as [`RayKind::name`] spells it).
+    pub fn from_name(name: &str) -> Option<RayKind> {
+        RayKind::ALL.into_iter().find(|k| k.name() == name)
+    }
+
+    /// `kinds`' names, comma-separated, for help texts and errors that list the choices
+    /// ("camera, shadow, ...").
+    pub fn help_list(kinds: &[RayKind]) -> String {
+        kinds
+            .iter()
+            .map(|k| k.name())
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
     pub const fn name(self) -> &'static str {
         match self {
             RayKind::Camera => "camera",
@@ -671,5 +686,26 @@ impl<'a> Integrator<'a> {
         };
         let pdf = if bs.delta || !nee { 0.0 } else { bs.pdf };
         self.spawn_bounce(ray, surf, bs.wi, weight, kind, pdf, sink);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn kinds_are_named_once_and_found_by_name() {
+        for (i, k) in RayKind::ALL.into_iter().enumerate() {
+            assert_eq!(k as usize, i, "ALL is in discriminant order");
+            assert_eq!(RayKind::NAMES[i], k.name());
+            assert_eq!(RayKind::from_name(k.name()), Some(k));
+        }
+        assert_eq!(RayKind::from_name("ao"), None);
+        assert!(RayKind::RADIANCE.iter().all(|k| !k.is_occlusion()));
+        assert_eq!(
+            RayKind::RADIANCE.len(),
+            RayKind::ALL.iter().filter(|k| !k.is_occlusion()).count()
+        );
+        assert_eq!(RayKind::help_list(&RayKind::ALL), RayKind::NAMES.join(", "));
     }
 }

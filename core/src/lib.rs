@@ -4,7 +4,8 @@
 //! ([`scene`]), the BVH and the one watertight leaf test ([`bvh`], [`intersect`]),
 //! counter-based sampling ([`sampling`]), materials and BSDFs ([`material`], [`bsdf`]),
 //! lights ([`light`]), cameras ([`camera`]), the integrators' per-ray steps
-//! ([`integrator`]) and the exact, order-free film ([`film`]).
+//! ([`integrator`]), the exact, order-free film ([`film`]) and the credit that tells when
+//! a tile is complete ([`credit`]).
 
 pub mod bsdf;
 pub mod camera;
@@ -16,6 +17,7 @@ pub mod texture;
 
 pub use glam::{Mat4, Vec2, Vec3, Vec4};
 pub mod bvh;
+pub mod credit;
 pub mod domain;
 pub mod film;
 pub mod integrator;
@@ -25,5 +27,6 @@ pub mod ray;
 pub mod render;
 pub mod sampling;
 pub mod surface;
+pub mod tiles;
 pub mod trace;
 pub mod wall;

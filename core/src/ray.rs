@@ -27,6 +27,7 @@
 //! The job, the destination domain and the routing version are the same for every ray
 //! of a batch and live in the `RayBatch` header, not here.
 
+use crate::credit::Credit;
 use crate::integrator::{RayKind, RayState};
 use glam::Vec3;
 
@@ -57,7 +58,7 @@ const _: () = assert!(RAY_RECORD_BYTES <= 64);
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RayRecord {
     /// This ray's share of its tile's credit.
-    pub credit: u64,
+    pub credit: Credit,
     /// Ray origin, world space.
     pub origin: Vec3,
     /// Ray direction, world space.
@@ -104,7 +105,7 @@ pub enum RecordError {
 impl RayRecord {
     /// Pack a core ray with its credit share. Fails only for a depth beyond 16 bits,
     /// which no valid job reaches (max_depth is at most 1024).
-    pub fn from_state(ray: &RayState, credit: u64) -> Result<RayRecord, RecordError> {
+    pub fn from_state(ray: &RayState, credit: Credit) -> Result<RayRecord, RecordError> {
         let depth = u16::try_from(ray.depth)
             .map_err(|_| RecordError::DepthTooLarge { depth: ray.depth })?;
         Ok(RayRecord {
@@ -145,7 +146,7 @@ impl RayRecord {
     /// The record's bytes.
     pub fn to_bytes(&self) -> [u8; RAY_RECORD_BYTES] {
         let mut b = [0u8; RAY_RECORD_BYTES];
-        b[0..8].copy_from_slice(&self.credit.to_le_bytes());
+        b[0..8].copy_from_slice(&self.credit.to_wire().to_le_bytes());
         put_vec3(&mut b[8..20], self.origin);
         put_vec3(&mut b[20..32], self.dir);
         b[32..36].copy_from_slice(&self.tmax.to_le_bytes());
@@ -191,7 +192,7 @@ impl RayRecord {
             return Err(RecordError::NanTmax { index });
         }
         Ok(RayRecord {
-            credit: u64::from_le_bytes(b[0..8].try_into().expect("8 bytes")),
+            credit: Credit::from_wire(u64::from_le_bytes(b[0..8].try_into().expect("8 bytes"))),
             origin,
             dir,
             tmax,
@@ -324,7 +325,7 @@ mod tests {
             _ => rng.finite(),
         };
         RayRecord {
-            credit: rng.next(),
+            credit: Credit::from_wire(rng.next()),
             origin: rng.finite3(),
             dir: rng.finite3(),
             tmax,
@@ -391,7 +392,7 @@ mod tests {
     #[test]
     fn layout_is_as_documented() {
         let r = RayRecord {
-            credit: 0x0102_0304_0506_0708,
+            credit: Credit::from_wire(0x0102_0304_0506_0708),
             origin: Vec3::new(1.0, 2.0, 3.0),
             dir: Vec3::new(-1.0, 0.5, 0.25),
             tmax: f32::INFINITY,
@@ -530,8 +531,8 @@ mod tests {
             weight: Vec3::new(0.5, 0.25, 2.0),
             bsdf_pdf: 0.0,
         };
-        let rec = RayRecord::from_state(&ray, 1 << 40).unwrap();
-        assert_eq!(rec.credit, 1 << 40);
+        let rec = RayRecord::from_state(&ray, Credit::from_wire(1 << 40)).unwrap();
+        assert_eq!(rec.credit, Credit::from_wire(1 << 40));
         assert!(!rec.is_ticketed());
         let back = decode_rays(&rec.to_bytes()).unwrap()[0].to_state();
         assert_eq!(back, ray);
@@ -541,7 +542,7 @@ mod tests {
             ..ray
         };
         assert_eq!(
-            RayRecord::from_state(&deep, 1),
+            RayRecord::from_state(&deep, Credit::from_wire(1)),
             Err(RecordError::DepthTooLarge { depth: 70_000 })
         );
     }

@@ -12,10 +12,8 @@ use rayon::prelude::*;
 
 use crate::film::{Film, to_fixed};
 use crate::integrator::{Integrator, RayKind, RayState, Sink};
+use crate::tiles::{Tile, TileGrid};
 use crate::trace::Trace;
-
-/// Tile edge in pixels.
-pub const TILE: u32 = 32;
 
 /// Rays traced, by kind.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -35,31 +33,6 @@ pub struct RenderOutput {
     pub film: Film,
     pub rays: RayCounts,
     pub render_time: Duration,
-}
-
-/// A rectangle of pixels.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Tile {
-    pub x0: u32,
-    pub y0: u32,
-    pub w: u32,
-    pub h: u32,
-}
-
-/// Cut a `width` x `height` image into tiles of at most `TILE` pixels a side, row-major.
-pub fn tiles(width: u32, height: u32) -> Vec<Tile> {
-    let mut out = Vec::new();
-    for y0 in (0..height).step_by(TILE as usize) {
-        for x0 in (0..width).step_by(TILE as usize) {
-            out.push(Tile {
-                x0,
-                y0,
-                w: TILE.min(width - x0),
-                h: TILE.min(height - y0),
-            });
-        }
-    }
-    out
 }
 
 struct TileSink {
@@ -122,7 +95,7 @@ pub fn render_cancellable(
 ) -> Result<RenderOutput, rayon::ThreadPoolBuildError> {
     let s = &integrator.settings;
     let (width, height, spp) = (s.width, s.height, s.spp);
-    let tiles = tiles(width, height);
+    let tiles: Vec<Tile> = TileGrid::image(width, height).iter().collect();
     let film = Mutex::new(Film::new(width, height));
     let counts: Vec<AtomicU64> = (0..RayKind::COUNT).map(|_| AtomicU64::new(0)).collect();
     let done = AtomicU64::new(0);

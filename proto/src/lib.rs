@@ -33,6 +33,43 @@ pub mod dray {
 
 pub use dray::v1;
 
+impl v1::RayCounts {
+    /// The counts by kind, in field-number order (`camera` = 1 to `ambient_occlusion` =
+    /// 6), which is the engine's ray-kind order: kind `k` is field `k + 1`. This crate
+    /// needs no engine; the coordinator's `metrics` tests check the two orders agree
+    /// (`dray_core::integrator::RayKind`).
+    pub fn by_kind(&self) -> [u64; 6] {
+        [
+            self.camera,
+            self.shadow,
+            self.reflection,
+            self.refraction,
+            self.diffuse,
+            self.ambient_occlusion,
+        ]
+    }
+
+    /// Counts by kind, in [`v1::RayCounts::by_kind`]'s order.
+    pub fn from_kinds(k: [u64; 6]) -> v1::RayCounts {
+        let [
+            camera,
+            shadow,
+            reflection,
+            refraction,
+            diffuse,
+            ambient_occlusion,
+        ] = k;
+        v1::RayCounts {
+            camera,
+            shadow,
+            reflection,
+            refraction,
+            diffuse,
+            ambient_occlusion,
+        }
+    }
+}
+
 /// The encoded `google.protobuf.FileDescriptorSet` of `dray.v1` (with its imports and
 /// source comments), for gRPC server reflection and for tools that inspect the protocol.
 pub const FILE_DESCRIPTOR_SET: &[u8] =

@@ -31,7 +31,7 @@ fn rays(n: usize) -> Vec<RayRecord> {
         .map(|i| {
             let f = i as f32;
             RayRecord {
-                credit: i as u64 * 7919,
+                credit: dray_core::credit::Credit::from_wire(i as u64 * 7919),
                 origin: Vec3::new(f, f * 0.5, -f),
                 dir: Vec3::new(0.3, -0.4, 0.866),
                 tmax: f32::INFINITY,

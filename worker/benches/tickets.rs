@@ -16,6 +16,8 @@
 use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use dray_cache::ticket_id::ticket_id;
+use dray_core::credit::Credit;
 use dray_core::integrator::RayKind;
 use dray_core::ray::RayRecord;
 use dray_core::sampling::{PathKey, Purpose};
@@ -33,7 +35,7 @@ const OPEN: u64 = 1024;
 
 fn ray(i: usize) -> RayRecord {
     RayRecord {
-        credit: 1 << 20,
+        credit: Credit::from_wire(1 << 20),
         origin: Vec3::new(i as f32 * 1e-3, 0.5, -1.0),
         dir: Vec3::new(0.0, 0.1, 1.0).normalize(),
         tmax: f32::INFINITY,
@@ -55,8 +57,8 @@ fn ticket(seed: u64, i: usize, j: u32) -> u64 {
         pixel: i as u32,
         sample: j,
     };
-    let slot = key.bits(0, Purpose::Film, 0) % OPEN + 1;
-    (slot % 54) << 32 | slot
+    let slot = (key.bits(0, Purpose::Film, 0) % OPEN + 1) as u32;
+    ticket_id(0, slot % 54, slot)
 }
 
 /// `RAYS` lineages of 0-3 tickets (a quarter each), as `Lineage::with_ticket` builds them.
@@ -145,7 +147,7 @@ fn ledger(c: &mut Criterion<ThreadCpu>) {
             for (i, l) in lins.iter().enumerate() {
                 if let Some(t) = &l.tickets {
                     ledger.contribute(t, [i as i64, 2 * i as i64, 3], false);
-                    ledger.credit(t, 1 << 20, false);
+                    ledger.credit(t, Credit::from_wire(1 << 20), false);
                 }
             }
             ledger.drain()

@@ -799,16 +799,7 @@ async fn local_loop(
                 );
             }
             CacheMessage::Returns { job, returns, done } => {
-                let returns = returns.iter().map(|t| {
-                    (
-                        t.ticket,
-                        Return {
-                            rgb: [t.r, t.g, t.b],
-                            credit: t.credit,
-                            tainted: t.tainted,
-                        },
-                    )
-                });
+                let returns = returns.iter().map(|t| (t.ticket, Return::from(t)));
                 let stored = host
                     .return_tickets(&job.key.id, job.key.attempt, returns)
                     .await;

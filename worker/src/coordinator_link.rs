@@ -9,6 +9,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
+use dray_core::credit::Credit;
 use dray_core::ray::RAY_RECORD_FORMAT;
 use dray_net::AuthChannel;
 use dray_proto::v1::{
@@ -364,7 +365,7 @@ fn add_tiles(shared: &Shared, t: TileAssignment) {
                 y0: tile.y0,
                 width: tile.width,
                 height: tile.height,
-                credit: tile.credit,
+                credit: Credit::from_wire(tile.credit),
                 coarse: tile.coarse,
             },
             0,

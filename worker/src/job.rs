@@ -414,8 +414,8 @@ fn phm_kinds(setup: &JobSetup) -> [bool; RayKind::COUNT] {
         p.kinds.as_str()
     };
     for name in names.split([',', '+']).map(str::trim) {
-        if let Some(k) = RayKind::ALL.iter().find(|k| k.name() == name) {
-            kinds[*k as usize] = true;
+        if let Some(k) = RayKind::from_name(name) {
+            kinds[k as usize] = true;
         }
     }
     kinds
@@ -432,23 +432,21 @@ fn phm_bins(setup: &JobSetup) -> PhmBins {
 
 /// The ray kinds the job's ray caches look up (none without caches). The coordinator
 /// validated the names and filled in the default; an empty list here still means all
-/// four kinds that carry radiance.
+/// the kinds that carry radiance ([`RayKind::RADIANCE`]).
 fn cached_kinds(setup: &JobSetup) -> [bool; RayKind::COUNT] {
     let mut kinds = [false; RayKind::COUNT];
     let Some(rc) = setup.spec.as_ref().and_then(|s| s.ray_cache.as_ref()) else {
         return kinds;
     };
-    let names = if rc.kinds.trim().is_empty() {
-        "camera,reflection,refraction,diffuse"
-    } else {
-        rc.kinds.as_str()
-    };
-    for name in names.split([',', '+']).map(str::trim) {
-        if let Some(k) = RayKind::ALL
-            .iter()
-            .find(|k| k.name() == name && !k.is_occlusion())
-        {
-            kinds[*k as usize] = true;
+    if rc.kinds.trim().is_empty() {
+        for k in RayKind::RADIANCE {
+            kinds[k as usize] = true;
+        }
+        return kinds;
+    }
+    for name in rc.kinds.split([',', '+']).map(str::trim) {
+        if let Some(k) = RayKind::from_name(name).filter(|k| RayKind::RADIANCE.contains(k)) {
+            kinds[k as usize] = true;
         }
     }
     kinds

@@ -10,6 +10,7 @@ use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, RwLock};
 
+use dray_core::credit::Credit;
 use dray_core::integrator::RayKind;
 use dray_proto::v1::RoutingTable;
 use tokio::sync::watch;
@@ -28,7 +29,7 @@ pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 #[derive(Default)]
 pub struct Report {
     pub sums: PixelSums,
-    pub credits: Vec<(u32, u64)>,
+    pub credits: Vec<(u32, Credit)>,
     pub traced: [u64; RayKind::COUNT],
     pub nonfinite: u64,
     pub bytes: u64,

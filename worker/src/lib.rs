@@ -21,7 +21,6 @@ pub(crate) mod cache_link;
 pub mod config;
 pub(crate) mod contain;
 pub(crate) mod coordinator_link;
-pub mod credit;
 pub mod domain_store;
 pub mod job;
 pub mod jobs;

@@ -10,7 +10,6 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
-use dray_core::integrator::RayKind;
 use dray_proto::v1::{
     DomainQueue, ProcessCpu, RayCounts, ReportContributionsRequest, ReportQueuesRequest,
     TileCredit, WorkerCounters,
@@ -119,13 +118,20 @@ async fn report(shared: &Arc<Shared>, job: &Arc<Job>, force: bool) {
         }
     }
     report.credits.sort_unstable_by_key(|c| c.0);
-    let mut credits: Vec<TileCredit> = Vec::new();
-    for (tile, credit) in std::mem::take(&mut report.credits) {
-        match credits.last_mut() {
-            Some(c) if c.tile == tile => c.credit += credit,
-            _ => credits.push(TileCredit { tile, credit }),
+    report.credits.dedup_by(|next, kept| {
+        let same = next.0 == kept.0;
+        if same {
+            kept.1 = kept.1.saturating_add(next.1);
         }
-    }
+        same
+    });
+    let credits: Vec<TileCredit> = std::mem::take(&mut report.credits)
+        .into_iter()
+        .map(|(tile, credit)| TileCredit {
+            tile,
+            credit: credit.to_wire(),
+        })
+        .collect();
     let counters = WorkerCounters {
         domain_loads: store.loads,
         domains_warm: store.warm,
@@ -175,14 +181,7 @@ fn request(
         pixels: sums.iter().map(|(p, _)| *p).collect(),
         sums: sums.iter().flat_map(|(_, v)| *v).collect(),
         credits,
-        traced: Some(RayCounts {
-            camera: t[RayKind::Camera as usize],
-            shadow: t[RayKind::Shadow as usize],
-            reflection: t[RayKind::Reflection as usize],
-            refraction: t[RayKind::Refraction as usize],
-            diffuse: t[RayKind::Diffuse as usize],
-            ambient_occlusion: t[RayKind::AmbientOcclusion as usize],
-        }),
+        traced: Some(RayCounts::from_kinds(*t)),
         nonfinite: r.nonfinite,
         ray_bytes_sent: r.bytes,
         failure: r.failure.clone().unwrap_or_default(),

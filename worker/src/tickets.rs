@@ -15,6 +15,7 @@ use std::collections::HashMap;
 use std::fmt;
 use std::ops::Deref;
 
+use dray_core::credit::Credit;
 use dray_core::ray::{FLAG_COARSE, FLAG_PROBE, FLAG_TICKETED, RayRecord};
 use dray_proto::v1::{RayTicket, TicketReturn};
 
@@ -99,11 +100,6 @@ pub fn with_ticket(set: Option<&TicketSet>, ticket: u64) -> TicketSet {
             s.clone()
         }),
     }
-}
-
-/// The host index of a ticket's wall: the upper 32 bits.
-pub fn ticket_wall(ticket: u64) -> u32 {
-    (ticket >> 32) as u32
 }
 
 /// What a ray inherits from its ancestors: the tickets it owes what it hands back to,
@@ -225,7 +221,7 @@ pub fn with_lineage<'a>(
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct TicketSums {
     pub sum: [i64; 3],
-    pub credit: u64,
+    pub credit: Credit,
     pub tainted: bool,
 }
 
@@ -257,13 +253,13 @@ impl TicketLedger {
     }
 
     /// Credit handed back under `tickets`.
-    pub fn credit(&mut self, tickets: &TicketSet, credit: u64, cached: bool) {
-        if credit == 0 && !cached {
+    pub fn credit(&mut self, tickets: &TicketSet, credit: Credit, cached: bool) {
+        if credit.is_zero() && !cached {
             return;
         }
         for &t in tickets.iter() {
             let e = self.by_ticket.entry(t).or_default();
-            e.credit += credit;
+            e.credit = e.credit.saturating_add(credit);
             e.tainted |= cached;
         }
     }
@@ -275,7 +271,7 @@ impl TicketLedger {
             for (s, v) in e.sum.iter_mut().zip(o.sum) {
                 *s = s.wrapping_add(v);
             }
-            e.credit += o.credit;
+            e.credit = e.credit.saturating_add(o.credit);
             e.tainted |= o.tainted;
         }
     }
@@ -290,7 +286,7 @@ impl TicketLedger {
                 r: s.sum[0],
                 g: s.sum[1],
                 b: s.sum[2],
-                credit: s.credit,
+                credit: s.credit.to_wire(),
                 tainted: s.tainted,
             })
             .collect();
@@ -302,12 +298,13 @@ impl TicketLedger {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use dray_cache::ticket_id::ticket_id;
     use dray_core::integrator::RayKind;
     use glam::Vec3;
 
     fn ray(pixel: u32) -> RayRecord {
         RayRecord {
-            credit: 10,
+            credit: Credit::from_wire(10),
             origin: Vec3::ZERO,
             dir: Vec3::X,
             tmax: f32::INFINITY,
@@ -324,7 +321,7 @@ mod tests {
     #[test]
     fn bundles_keep_each_rays_tickets() {
         let mut b = RayBundle::default();
-        let two: TicketSet = vec![7u64 << 32 | 1, 9u64 << 32 | 4].into();
+        let two: TicketSet = vec![ticket_id(0, 7, 1), ticket_id(0, 9, 4)].into();
         let coarse = Lineage {
             tickets: None,
             coarse: true,
@@ -352,7 +349,6 @@ mod tests {
             [0, FLAG_TICKETED | FLAG_PROBE, FLAG_TICKETED | FLAG_COARSE]
         );
         assert!(b.iter().last().is_some_and(|(_, l)| l.coarse));
-        assert_eq!(ticket_wall(9u64 << 32 | 4), 9);
     }
 
     #[test]
@@ -361,10 +357,10 @@ mod tests {
         let a: TicketSet = vec![1, 2].into();
         let b: TicketSet = vec![2].into();
         l.contribute(&a, [1, 2, 3], false);
-        l.credit(&a, 5, false);
+        l.credit(&a, Credit::from_wire(5), false);
         let mut m = TicketLedger::default();
         m.contribute(&b, [10, 10, 10], true);
-        m.credit(&b, 1, true);
+        m.credit(&b, Credit::from_wire(1), true);
         l.merge(m);
         let r = l.drain();
         assert!(l.is_empty());

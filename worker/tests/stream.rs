@@ -80,7 +80,7 @@ fn rays(n: usize, seed: u64, ticket_every: usize) -> Vec<RayRecord> {
     let mut rng = Rng(seed);
     (0..n)
         .map(|i| RayRecord {
-            credit: rng.next(),
+            credit: dray_core::credit::Credit::from_wire(rng.next()),
             origin: rng.vec3(),
             dir: rng.vec3(),
             tmax: if i % 3 == 0 {

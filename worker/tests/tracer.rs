@@ -11,11 +11,13 @@ use std::sync::Arc;
 
 use dray_core::bvh::Accel;
 use dray_core::camera::Camera;
+use dray_core::credit::Credit;
 use dray_core::film::Film;
 use dray_core::integrator::{Integrator, IntegratorKind, RenderSettings};
 use dray_core::ray::RayRecord;
 use dray_core::render;
 use dray_core::scene::Scene;
+use dray_core::tiles::TileGrid;
 use dray_scene::partition::memory::MemoryPackage;
 use dray_scene::partition::resident::resident_in_memory;
 use dray_scene::partition::{
@@ -25,7 +27,7 @@ use dray_worker::job::{memory_domains, package_domains};
 use dray_worker::{DomainSource, JobTracer, LoadedDomain, Outbox, TileRef};
 
 const TILE: u32 = 16;
-const TILE_CREDIT: u64 = 1 << 62;
+const TILE_CREDIT: Credit = Credit::TILE;
 
 fn settings(scene: &Scene, kind: IntegratorKind, w: u32, h: u32, spp: u32) -> RenderSettings {
     let environment = dray_scene::effects::default_environment(scene);
@@ -117,14 +119,15 @@ fn distributed_with(
 
     let mut film = Film::new(s.width, s.height);
     let mut rays = [0u64; 6];
-    let mut credit: BTreeMap<u32, u64> = BTreeMap::new();
+    let mut credit: BTreeMap<u32, Credit> = BTreeMap::new();
     let mut queues: HashMap<u32, Vec<RayRecord>> = HashMap::new();
     let mut absorb = |out: Outbox, queues: &mut HashMap<u32, Vec<RayRecord>>| {
         for (p, v) in out.sums {
             film.add_fixed(p, v);
         }
         for (t, c) in out.credits {
-            *credit.entry(t).or_insert(0) += c;
+            let sum = credit.entry(t).or_default();
+            *sum = sum.checked_add(c).expect("no tile's credit overflows");
         }
         for (k, n) in out.traced.iter().enumerate() {
             rays[k] += n;
@@ -137,23 +140,9 @@ fn distributed_with(
         assert!(out.lookups.is_empty(), "no lookups without ray caches");
     };
 
-    let tiles = render::tiles(s.width, s.height);
-    let tiles_x = s.width.div_ceil(TILE);
-    let mut tile_refs = Vec::new();
-    for y0 in (0..s.height).step_by(TILE as usize) {
-        for x0 in (0..s.width).step_by(TILE as usize) {
-            tile_refs.push(TileRef {
-                index: (y0 / TILE) * tiles_x + x0 / TILE,
-                x0,
-                y0,
-                width: TILE.min(s.width - x0),
-                height: TILE.min(s.height - y0),
-                credit: TILE_CREDIT,
-                coarse: false,
-            });
-        }
-    }
-    assert!(!tiles.is_empty());
+    // The tiles as the coordinator deals them (dispatch::image_tiles), at this size.
+    let tile_refs = TileRef::all(&TileGrid::new(s.width, s.height, TILE), TILE_CREDIT);
+    assert!(!tile_refs.is_empty());
     for (i, t) in tile_refs.iter().enumerate() {
         let w = &tracers[i % workers as usize];
         let mine = &held[i % workers as usize];

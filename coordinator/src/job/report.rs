@@ -18,7 +18,8 @@
 use std::collections::BTreeSet;
 use std::time::Instant;
 
-use dray_proto::v1::ReportContributionsRequest;
+use dray_core::credit::Credit;
+use dray_proto::v1::{RayCounts, ReportContributionsRequest};
 use tonic::Status;
 
 use super::running::RunningJob;
@@ -183,32 +184,30 @@ pub fn apply(job: &mut RunningJob, r: &ReportContributionsRequest) -> Applied {
     let mut overdrawn = None;
     for c in &r.credits {
         let t = c.tile as usize;
-        let start = job.tiles[t].credit;
-        match job.tile_back[t].checked_add(c.credit) {
+        // Credit arrives, and is kept per tile, as the wire carries it; the sums are
+        // made on [`Credit`] (docs/architecture.md "Credit").
+        let start = Credit::from_wire(job.tiles[t].credit);
+        let back = Credit::from_wire(job.tile_back[t]);
+        let credit = Credit::from_wire(c.credit);
+        match back.checked_add(credit) {
             Some(b) if b <= start => {
-                if c.credit > 0 {
+                if !credit.is_zero() {
                     job.last_progress = Instant::now();
                 }
-                let was = job.tile_back[t] == start;
-                job.tile_back[t] = b;
-                if !was && b == start && t < job.image_tiles {
+                job.tile_back[t] = b.to_wire();
+                if back != start && b == start && t < job.image_tiles {
                     job.tiles_done += 1;
                 }
             }
             _ => {
-                overdrawn = Some((c.tile, c.credit));
+                overdrawn = Some((c.tile, credit));
                 break;
             }
         }
     }
     if let Some(t) = &r.traced {
-        let k = &mut job.rays;
-        k.camera += t.camera;
-        k.shadow += t.shadow;
-        k.reflection += t.reflection;
-        k.refraction += t.refraction;
-        k.diffuse += t.diffuse;
-        k.ambient_occlusion += t.ambient_occlusion;
+        let (sum, add) = (job.rays.by_kind(), t.by_kind());
+        job.rays = RayCounts::from_kinds(std::array::from_fn(|k| sum[k] + add[k]));
     }
     job.nonfinite += r.nonfinite;
     job.ray_bytes_sent += r.ray_bytes_sent;

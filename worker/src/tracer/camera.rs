@@ -1,12 +1,13 @@
 //! Camera rays: a tile's rays, each with its share of the tile's credit.
 
+use dray_core::credit::Credit;
 use dray_core::integrator::RayKind;
+use dray_core::tiles::TileGrid;
 
 use super::outbox::Outbox;
 use super::residency::{Pins, Residency, StepCtx};
 use super::trace::{InFlight, Step};
 use super::{JobTracer, TraceError};
-use crate::credit;
 use crate::tickets::Lineage;
 
 /// The sample index of coarse-pass rays: their random numbers are keyed apart from every
@@ -21,13 +22,31 @@ pub struct TileRef {
     pub y0: u32,
     pub width: u32,
     pub height: u32,
-    pub credit: u64,
+    pub credit: Credit,
     /// A tile of the ray-cache coarse pass: its pixels are those of the coarse image,
     /// one regular ray each.
     pub coarse: bool,
 }
 
 impl TileRef {
+    /// Every tile of `grid` with `credit`, numbered as the coordinator deals an image's
+    /// tiles (`dispatch::image_tiles`): a whole image's work, for tests and benches that
+    /// drive a tracer without a coordinator.
+    pub fn all(grid: &TileGrid, credit: Credit) -> Vec<TileRef> {
+        grid.iter()
+            .zip(0..)
+            .map(|(t, index)| TileRef {
+                index,
+                x0: t.x0,
+                y0: t.y0,
+                width: t.w,
+                height: t.h,
+                credit,
+                coarse: false,
+            })
+            .collect()
+    }
+
     /// Camera rays in the tile: pixels times samples (one per pixel for a coarse tile).
     pub fn camera_rays(&self, spp: u32) -> u64 {
         let spp = if self.coarse { 1 } else { spp.max(1) };
@@ -38,25 +57,15 @@ impl TileRef {
 impl JobTracer {
     /// Tiles the job has: the image's, then the coarse pass's (none without one).
     pub fn tile_count(&self) -> u64 {
-        let coarse = if self.coarse == 0 {
-            0
-        } else {
-            u64::from(self.coarse.div_ceil(self.tile_size)).pow(2)
-        };
-        u64::from(self.image_tiles) + coarse
+        u64::from(self.tiles.count()) + u64::from(self.coarse_tiles.count())
     }
 
     /// The tile holding `pixel` (of the coarse image for a coarse-pass ray).
     pub fn tile_of(&self, pixel: u32, coarse: bool) -> u32 {
         if coarse {
-            let n = self.coarse.max(1);
-            let (x, y) = (pixel % n, pixel / n);
-            let tiles_x = n.div_ceil(self.tile_size);
-            return self.image_tiles + (y / self.tile_size) * tiles_x + x / self.tile_size;
+            return self.tiles.count() + self.coarse_tiles.index_of_pixel(pixel);
         }
-        let w = self.settings.width.max(1);
-        let (x, y) = (pixel % w, pixel / w);
-        (y / self.tile_size) * self.tiles_x + x / self.tile_size
+        self.tiles.index_of_pixel(pixel)
     }
 
     /// Camera rays `start..start + count` of `tile` (ray i is pixel i / spp of the tile,
@@ -75,7 +84,7 @@ impl JobTracer {
             self.settings.spp.max(1) as u64
         };
         let total = tile.camera_rays(spp as u32);
-        if credit::camera_share(tile.credit, total, 0).is_none() {
+        if tile.credit.camera_share(total, 0).is_none() {
             return Err(TraceError::TileCredit {
                 tile: tile.index,
                 w: tile.width,
@@ -121,7 +130,7 @@ impl JobTracer {
                 (p % tile.width as u64) as u32,
                 (p / tile.width as u64) as u32,
             );
-            let share = credit::camera_share(tile.credit, total, i).unwrap_or(0);
+            let share = tile.credit.camera_share(total, i).unwrap_or(Credit::ZERO);
             let (ray, lin) = if tile.coarse {
                 // One regular ray through the coarse pixel's centre, its random numbers
                 // keyed apart from every sample of the image.

@@ -52,14 +52,15 @@ mod walls;
 use std::sync::Arc;
 
 use dray_core::camera::Camera;
+use dray_core::credit::{Credit, CreditError};
 use dray_core::domain::{DomainTree, Hop};
 use dray_core::integrator::{Integrator, RayKind, RayState, RenderSettings};
 use dray_core::light_sampler::LightSampler;
 use dray_core::scene::Scene;
+use dray_core::tiles::TileGrid;
 use dray_core::wall::PhmBins;
 use glam::Vec3;
 
-use crate::credit::CreditError;
 use crate::domain_store::LoadedDomain;
 use crate::tickets::Lineage;
 
@@ -97,7 +98,7 @@ pub enum TraceError {
         w: u32,
         h: u32,
         spp: u32,
-        credit: u64,
+        credit: Credit,
     },
 }
 
@@ -115,8 +116,8 @@ pub struct JobTracer {
     /// The layout's one domain, when it has one and it holds triangles: every ray's
     /// first hop is then its whole interval in that domain, with no walk.
     single: Option<u32>,
-    tile_size: u32,
-    tiles_x: u32,
+    /// The image's tiles, as the coordinator numbers them.
+    tiles: TileGrid,
     /// A scene with no triangles and its (empty) light table: the integrator of steps
     /// that need no domain (camera rays, rays leaving the scene).
     bare: Scene,
@@ -132,15 +133,15 @@ pub struct JobTracer {
     /// kinds: maps off).
     phm_kinds: [bool; RayKind::COUNT],
     phm_bins: PhmBins,
-    /// The coarse pass's image edge N (0: no coarse pass), and the image's tile count
-    /// (coarse tiles are numbered after the image's).
+    /// The coarse pass's image edge N (0: no coarse pass), and its tiles (numbered
+    /// after the image's).
     coarse: u32,
-    image_tiles: u32,
+    coarse_tiles: TileGrid,
 }
 
 impl JobTracer {
     /// `domain_triangles` has one entry per domain of the layout; `tile_size` is the
-    /// edge of the job's row-major tiles.
+    /// edge of the job's tiles ([`TileGrid`]).
     pub fn new(
         settings: RenderSettings,
         mut camera: Camera,
@@ -149,7 +150,6 @@ impl JobTracer {
         domain_triangles: &[u64],
         tile_size: u32,
     ) -> JobTracer {
-        let tile_size = tile_size.max(1);
         camera.name = String::new();
         let single = tree
             .single()
@@ -167,15 +167,14 @@ impl JobTracer {
             phm_kinds: [false; RayKind::COUNT],
             phm_bins: PhmBins::new(1, 1),
             coarse: 0,
-            image_tiles: settings.width.div_ceil(tile_size) * settings.height.div_ceil(tile_size),
-            tiles_x: settings.width.div_ceil(tile_size),
+            coarse_tiles: TileGrid::new(0, 0, tile_size),
+            tiles: TileGrid::new(settings.width, settings.height, tile_size),
             camera,
             settings,
             tree,
             pad,
             single,
             nonempty: domain_triangles.iter().map(|&n| n > 0).collect(),
-            tile_size,
             bare,
             bare_lights,
         }
@@ -209,6 +208,7 @@ impl JobTracer {
     /// The job's ray-cache coarse pass covers an `n` x `n` image (0: none).
     pub fn with_coarse(mut self, n: u32) -> JobTracer {
         self.coarse = n;
+        self.coarse_tiles = TileGrid::new(n, n, self.tiles.size());
         self
     }
 

@@ -3,6 +3,7 @@
 
 use std::collections::HashMap;
 
+use dray_core::credit::Credit;
 use dray_core::film::to_fixed;
 use dray_core::integrator::RayKind;
 use dray_core::ray::RayRecord;
@@ -22,7 +23,7 @@ pub struct Outbox {
     pub sums: Vec<(u32, [i64; 3])>,
     /// Credit handed back by rays that terminated, by tile; a tile may repeat, but
     /// consecutive returns to one tile share an entry.
-    pub credits: Vec<(u32, u64)>,
+    pub credits: Vec<(u32, Credit)>,
     /// Rays to trace next on other workers, by the domain they enter next, with their
     /// tickets.
     pub rays: HashMap<u32, RayBundle, FastState>,
@@ -95,21 +96,21 @@ impl Outbox {
     /// Mark the ray's tickets as met by an approximation (their radiance is not stored).
     pub(super) fn taint(&mut self, lin: &Lineage) {
         if let Some(t) = &lin.tickets {
-            self.tickets.credit(t, 0, true);
+            self.tickets.credit(t, Credit::ZERO, true);
         }
     }
 
     /// Credit handed back to `tile`, and to the ray's tickets.
     #[inline]
-    pub(super) fn give_back(&mut self, tile: u32, credit: u64, lin: &Lineage, cached: bool) {
+    pub(super) fn give_back(&mut self, tile: u32, credit: Credit, lin: &Lineage, cached: bool) {
         if let Some(t) = &lin.tickets {
             self.tickets.credit(t, credit, cached);
         }
-        if credit == 0 {
+        if credit.is_zero() {
             return;
         }
         match self.credits.last_mut() {
-            Some((t, c)) if *t == tile => *c += credit,
+            Some((t, c)) if *t == tile => *c = c.saturating_add(credit),
             _ => self.credits.push((tile, credit)),
         }
     }

@@ -10,11 +10,13 @@ use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
 use dray_core::camera::Camera;
+use dray_core::credit::Credit;
 use dray_core::film::to_fixed;
 use dray_core::integrator::{IntegratorKind, RayKind, RenderSettings};
 use dray_core::material::Material;
 use dray_core::ray::RayRecord;
 use dray_core::scene::{Mesh, Scene};
+use dray_core::tiles::TileGrid;
 use dray_scene::partition::memory::MemoryPackage;
 use dray_scene::partition::{DomainLayout, LayoutSpec, partition_in_memory};
 use glam::Vec3;
@@ -25,8 +27,8 @@ use crate::job::memory_domains;
 use crate::tickets::Lineage;
 
 const TILE: u32 = 8;
-const TILE_CREDIT: u64 = 1 << 40;
-const RAY_CREDIT: u64 = 1 << 20;
+const TILE_CREDIT: Credit = Credit::from_wire(1 << 40);
+const RAY_CREDIT: Credit = Credit::from_wire(1 << 20);
 
 /// Two quads, each two triangles, of one white lambert material; no lights, so the
 /// renderer's default sky lights them.
@@ -134,22 +136,8 @@ impl Fixture {
     }
 
     fn tiles(&self) -> Vec<TileRef> {
-        let (w, h) = (self.settings.width, self.settings.height);
-        let mut tiles = Vec::new();
-        for y0 in (0..h).step_by(TILE as usize) {
-            for x0 in (0..w).step_by(TILE as usize) {
-                tiles.push(TileRef {
-                    index: (y0 / TILE) * w.div_ceil(TILE) + x0 / TILE,
-                    x0,
-                    y0,
-                    width: TILE.min(w - x0),
-                    height: TILE.min(h - y0),
-                    credit: TILE_CREDIT,
-                    coarse: false,
-                });
-            }
-        }
-        tiles
+        let grid = TileGrid::new(self.settings.width, self.settings.height, TILE);
+        TileRef::all(&grid, TILE_CREDIT)
     }
 }
 
@@ -191,20 +179,22 @@ fn up_and_out(weight: Vec3) -> RayRecord {
 }
 
 /// Credit handed back plus credit carried by rays sent out, by tile.
-fn credit_by_tile(tracer: &JobTracer, out: &Outbox) -> BTreeMap<u32, u64> {
+fn credit_by_tile(tracer: &JobTracer, out: &Outbox) -> BTreeMap<u32, Credit> {
     let mut by_tile = BTreeMap::new();
+    let mut add = |tile: u32, c: Credit| {
+        let sum: &mut Credit = by_tile.entry(tile).or_default();
+        *sum = sum.checked_add(c).expect("no tile's credit overflows");
+    };
     for &(t, c) in &out.credits {
-        *by_tile.entry(t).or_insert(0) += c;
+        add(t, c);
     }
     for bundle in out.rays.values() {
         for r in &bundle.rays {
-            *by_tile.entry(tracer.tile_of(r.pixel, false)).or_insert(0) += r.credit;
+            add(tracer.tile_of(r.pixel, false), r.credit);
         }
     }
     for l in &out.lookups {
-        *by_tile
-            .entry(tracer.tile_of(l.ray.pixel, false))
-            .or_insert(0) += l.ray.credit;
+        add(tracer.tile_of(l.ray.pixel, false), l.ray.credit);
     }
     by_tile
 }

@@ -2,6 +2,7 @@
 //! and each ray it makes routed on.
 
 use dray_core::bvh::Hit;
+use dray_core::credit::Credit;
 use dray_core::domain::{Hop, Span};
 use dray_core::integrator::{Integrator, RayKind, RayState, Sink};
 use dray_core::ray::RayRecord;
@@ -12,7 +13,6 @@ use glam::Vec3;
 use super::outbox::Outbox;
 use super::residency::{Pins, Residency, StepCtx};
 use super::{JobTracer, TraceError};
-use crate::credit;
 use crate::domain_store::LoadedDomain;
 use crate::tickets::{Lineage, with_lineage};
 
@@ -24,7 +24,7 @@ use crate::tickets::{Lineage, with_lineage};
 /// `memcpy` call at each move along the way, 3% of the instructions of a step.
 pub(super) struct InFlight<'l> {
     pub(super) ray: RayState,
-    pub(super) credit: u64,
+    pub(super) credit: Credit,
     /// Its camera ray's tile (checked when the ray came in or its tile was dealt).
     pub(super) tile: u32,
     pub(super) lineage: &'l Lineage,
@@ -39,7 +39,7 @@ pub(super) struct Entering {
     /// Its span in `domain` and the next domain on its path, when already known.
     pub(super) hop: Option<Hop>,
     pub(super) ray: RayState,
-    pub(super) credit: u64,
+    pub(super) credit: Credit,
     pub(super) tile: u32,
     pub(super) lineage: Lineage,
 }
@@ -84,9 +84,9 @@ pub(super) struct Step {
     children: Vec<RayState>,
     /// Rays of one tree waiting in [`JobTracer::trace_tree`], with their credit (the
     /// tree's tile and lineage are its camera ray's).
-    tree: Vec<(RayState, u64)>,
+    tree: Vec<(RayState, Credit)>,
     kinds: Vec<RayKind>,
-    shares: Vec<u64>,
+    shares: Vec<Credit>,
 }
 
 /// What tracing a ray through its span in a domain came to.
@@ -96,7 +96,7 @@ pub(super) enum InSpan {
     /// A hit, shaded: its contributions are in the outbox, the rays it made in
     /// `Step::children` with their credit in `Step::shares`, and the ray hands back
     /// what the split left.
-    Shaded { back: u64 },
+    Shaded { back: Credit },
     /// Nothing in the span stopped it: it goes on past the span.
     Through,
 }
@@ -138,7 +138,7 @@ fn shade(
     flight: &InFlight<'_>,
     step: &mut Step,
     out: &mut Outbox,
-) -> Result<u64, TraceError> {
+) -> Result<Credit, TraceError> {
     step.children.clear();
     integrator.shade_hit(
         &flight.ray,
@@ -151,11 +151,7 @@ fn shade(
     );
     step.kinds.clear();
     step.kinds.extend(step.children.iter().map(|c| c.kind));
-    Ok(credit::split_into(
-        flight.credit,
-        &step.kinds,
-        &mut step.shares,
-    )?)
+    Ok(flight.credit.split_into(&step.kinds, &mut step.shares)?)
 }
 
 impl JobTracer {
