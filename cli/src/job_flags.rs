@@ -109,9 +109,11 @@ fn parse_schedule(s: &str) -> Result<String, String> {
     if SCHEDULE_NAMES.contains(&s) {
         Ok(s.to_string())
     } else {
+        // "a, b or c", as the coordinator words it.
+        let (last, rest) = SCHEDULE_NAMES.split_last().unwrap_or((&"", &[]));
         Err(format!(
-            "unknown schedule {s:?} (expected one of {})",
-            SCHEDULE_NAMES.join(", ")
+            "unknown schedule {s:?} (expected {} or {last})",
+            rest.join(", ")
         ))
     }
 }
@@ -206,7 +208,7 @@ mod tests {
         }
         let e = parse_schedule("bogus").expect_err("bogus");
         assert!(
-            e.contains("\"bogus\"") && e.contains("image-plane, domain, dynamic"),
+            e.contains("\"bogus\"") && e.contains("image-plane, domain or dynamic"),
             "{e}"
         );
         assert!(parse_schedule("Dynamic").is_err());
