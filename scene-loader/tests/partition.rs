@@ -740,6 +740,61 @@ fn a_streamed_grid_writes_the_same_package_as_the_grid_in_memory() {
     }
 }
 
+/// A source that hides its [`TriangleSource::lookup`], so the package writer must spill
+/// whole triangles.
+struct StreamOnly<'a>(&'a dyn TriangleSource);
+
+impl TriangleSource for StreamOnly<'_> {
+    fn for_each_triangle(
+        &self,
+        f: &mut dyn FnMut(&dray_scene::partition::SourceTriangle) -> dray_scene::Result<()>,
+    ) -> dray_scene::Result<()> {
+        self.0.for_each_triangle(f)
+    }
+
+    fn has_colors(&self) -> bool {
+        self.0.has_colors()
+    }
+}
+
+/// Spilling global ids and making the triangles again from the source's lookup writes
+/// the very package that spilling whole triangles writes: every attribute (tangents, uvs,
+/// colours), for scenes in memory and streamed grids, with many flushes per domain.
+#[test]
+fn spilling_ids_writes_the_same_package_as_spilling_triangles() {
+    let grid = dray_scene::procedural::stream("grid:cornell:glass:3x2x2", &dray_scene::load)
+        .unwrap()
+        .expect("grid specs stream");
+    let (rich, coloured) = (rich_scene(), coloured_scene());
+    let cases: [(&str, &dyn TriangleSource, &Scene); 3] = [
+        ("rich", &rich, &rich),
+        ("coloured", &coloured, &coloured),
+        ("grid", &grid, grid.tables()),
+    ];
+    for (name, source, tables) in cases {
+        assert!(source.lookup().is_some(), "{name} has a lookup");
+        let (ids, records) = (
+            TmpDir::new(&format!("ids-{name}")),
+            TmpDir::new(&format!("records-{name}")),
+        );
+        let options = WriteOptions {
+            buffer_bytes: 1,
+            ..WriteOptions::default()
+        };
+        let spec = LayoutSpec::Kd(5);
+        let parts = SceneParts::of(tables);
+        let a = write_package(&ids.0, parts, source, &spec, &options).unwrap();
+        let b = write_package(&records.0, parts, &StreamOnly(source), &spec, &options).unwrap();
+        assert_eq!(a.bytes, b.bytes, "{name}");
+        assert!(
+            a.assigned_triangles > a.source_triangles,
+            "{name}: walls cut triangles"
+        );
+        assert_same_package(&ids.0, &records.0, name);
+        open_package(&ids.0).unwrap().verify().unwrap();
+    }
+}
+
 /// Write a package from the streaming `source` (whose tables are `tables`) and one from
 /// `scene` in memory, both cut by `layout`, into fresh directories tagged `tag`, and
 /// check every file has the same bytes.

@@ -4,7 +4,8 @@
 use std::collections::HashMap;
 
 use dray_core::scene::Scene;
-use dray_scene::procedural::generate;
+use dray_scene::partition::TriangleSource;
+use dray_scene::procedural::{generate, stream};
 use dray_scene::{Result, SceneError};
 
 /// Loads procedural specs only (enough for `grid` over procedural scenes).
@@ -247,6 +248,31 @@ fn malformed_specs_are_errors_not_panics() {
     assert!(load("grid:grid:cornell:2x1x1:1x1x2").is_ok());
     // An inner scene that cannot be loaded surfaces the loader's error.
     assert!(load("grid:nosuchfile.ply:2x2x2").is_err());
+}
+
+/// A grid's lookup gives every triangle bit for bit as its stream does, and nothing past
+/// the end.
+#[test]
+fn a_grids_lookup_is_its_stream() {
+    let source = stream("grid:spheres:3:mirror:2x3x2", &load)
+        .unwrap()
+        .unwrap();
+    let lookup = source.lookup().expect("grids have a lookup");
+    let mut n = 0u32;
+    source
+        .for_each_triangle(&mut |t| {
+            assert_eq!(t.id, n);
+            assert_eq!(lookup.triangle(t.id).as_ref(), Some(t));
+            n += 1;
+            Ok(())
+        })
+        .unwrap();
+    assert_eq!(
+        n as usize,
+        load("spheres:3:mirror").unwrap().mesh.triangle_count() * 12
+    );
+    assert!(lookup.triangle(n).is_none());
+    assert!(lookup.triangle(u32::MAX).is_none());
 }
 
 #[test]

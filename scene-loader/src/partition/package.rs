@@ -66,8 +66,8 @@ use super::manifest::{
     Manifest, StatsDesc, TEXTURES_FILE, TextureDesc, domain_file_name,
 };
 use super::{
-    DEFAULT_SAMPLE_CAPACITY, DomainBuilder, DomainMesh, SourceTriangle, TriangleSource, survey,
-    unassigned_error,
+    DEFAULT_SAMPLE_CAPACITY, DomainBuilder, DomainMesh, SourceTriangle, TriangleLookup,
+    TriangleSource, survey, unassigned_error,
 };
 use crate::error::{Result, SceneError};
 
@@ -82,6 +82,33 @@ const TRIANGLE_BYTES: u64 = 20;
 /// scenes without them do not spill a third more.
 fn record_bytes(colors: bool) -> usize {
     8 + 3 * if colors { 64 } else { 48 }
+}
+
+/// What pass 2 writes to a domain's spill file for each of its triangles.
+#[derive(Clone, Copy)]
+enum SpillFormat<'a> {
+    /// Whole triangles ([`encode_record`]), for sources that can only be streamed.
+    Records { colors: bool },
+    /// The global id alone (u32, little-endian): compaction makes the triangle again
+    /// from the source's [`TriangleLookup`], so the spill is 4 bytes a triangle instead
+    /// of 152 or more.
+    Ids(&'a dyn TriangleLookup),
+}
+
+impl SpillFormat<'_> {
+    fn bytes(self) -> usize {
+        match self {
+            SpillFormat::Records { colors } => record_bytes(colors),
+            SpillFormat::Ids(_) => 4,
+        }
+    }
+
+    fn encode(self, t: &SourceTriangle, out: &mut Vec<u8>) {
+        match self {
+            SpillFormat::Records { colors } => encode_record(t, colors, out),
+            SpillFormat::Ids(_) => out.extend_from_slice(&t.id.to_le_bytes()),
+        }
+    }
 }
 const IO_BUFFER: usize = 1 << 20;
 
@@ -258,7 +285,11 @@ pub fn write_package(
     let domain_count = layout.domain_count() as usize;
     let per_domain = (options.buffer_bytes / domain_count).clamp(4096, 1 << 20);
     let colors = source.has_colors();
-    let record_len = record_bytes(colors);
+    let format = match source.lookup() {
+        Some(lookup) => SpillFormat::Ids(lookup),
+        None => SpillFormat::Records { colors },
+    };
+    let record_len = format.bytes();
     let per_domain = per_domain.div_ceil(record_len) * record_len;
     let mut spills: Vec<Spill> = cleanup
         .paths
@@ -298,7 +329,7 @@ pub fn write_package(
             emitters.push(t);
         }
         record.clear();
-        encode_record(t, colors, &mut record);
+        format.encode(t, &mut record);
         for &d in &domains {
             let spill = &mut spills[d as usize];
             if spill.buf.capacity() == 0 {
@@ -330,7 +361,7 @@ pub fn write_package(
 
     // Compact each domain into its file, a few at a time.
     crate::cancel::check()?;
-    let entries = finalize_domains(dir, &spills, &layout, options.threads, colors)?;
+    let entries = finalize_domains(dir, &spills, &layout, options.threads, format)?;
     cleanup.paths.clear();
     tracing::info!("domain files written");
 
@@ -408,7 +439,7 @@ fn finalize_domains(
     spills: &[Spill],
     layout: &DomainLayout,
     threads: usize,
-    colors: bool,
+    format: SpillFormat<'_>,
 ) -> Result<Vec<DomainEntry>> {
     let threads = threads.clamp(1, spills.len());
     let next = AtomicUsize::new(0);
@@ -421,7 +452,7 @@ fn finalize_domains(
                     while !failed.load(Ordering::Relaxed) {
                         let d = next.fetch_add(1, Ordering::Relaxed);
                         let Some(spill) = spills.get(d) else { break };
-                        match finalize_domain(dir, d as u32, spill, layout, colors) {
+                        match finalize_domain(dir, d as u32, spill, layout, format) {
                             Ok(e) => done.push((d, e)),
                             Err(e) => {
                                 failed.store(true, Ordering::Relaxed);
@@ -453,11 +484,14 @@ fn finalize_domain(
     d: u32,
     spill: &Spill,
     layout: &DomainLayout,
-    colors: bool,
+    format: SpillFormat<'_>,
 ) -> Result<DomainEntry> {
     let mut builder = DomainBuilder::with_capacity(spill.triangles as usize);
     if spill.triangles > 0 {
-        read_spill(&spill.path, colors, &mut |t| builder.push(t))?;
+        read_spill(&spill.path, format, &mut |t| {
+            builder.push(t);
+            Ok(())
+        })?;
     }
     if builder.triangle_count() as u64 != spill.triangles {
         return Err(format_error(
@@ -621,9 +655,13 @@ fn decode_record(b: &[u8], colors: bool) -> SourceTriangle {
     }
 }
 
-fn read_spill(path: &Path, colors: bool, f: &mut dyn FnMut(&SourceTriangle)) -> Result<()> {
+fn read_spill(
+    path: &Path,
+    format: SpillFormat<'_>,
+    f: &mut dyn FnMut(&SourceTriangle) -> Result<()>,
+) -> Result<()> {
     let mut r = BufReader::with_capacity(IO_BUFFER, File::open(path).map_err(io_error(path))?);
-    let record_len = record_bytes(colors);
+    let record_len = format.bytes();
     let mut chunk = vec![0u8; record_len * 1024];
     loop {
         let n = read_full(&mut r, &mut chunk).map_err(io_error(path))?;
@@ -631,7 +669,19 @@ fn read_spill(path: &Path, colors: bool, f: &mut dyn FnMut(&SourceTriangle)) -> 
             return Err(format_error(path, "spill file ends inside a record"));
         }
         for rec in chunk[..n].chunks_exact(record_len) {
-            f(&decode_record(rec, colors));
+            match format {
+                SpillFormat::Records { colors } => f(&decode_record(rec, colors))?,
+                SpillFormat::Ids(lookup) => {
+                    let id = u32::from_le_bytes([rec[0], rec[1], rec[2], rec[3]]);
+                    let t = lookup.triangle(id).ok_or_else(|| {
+                        format_error(
+                            path,
+                            format!("the source has no triangle {id}: it changed while written"),
+                        )
+                    })?;
+                    f(&t)?;
+                }
+            }
         }
         if n < chunk.len() {
             return Ok(());

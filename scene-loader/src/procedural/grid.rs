@@ -7,7 +7,7 @@
 use dray_core::light::Light;
 use dray_core::scene::{Mesh, Scene};
 
-use crate::partition::{SourceTriangle, TriangleSource};
+use crate::partition::{SourceTriangle, TriangleLookup, TriangleSource};
 use glam::Vec3;
 
 use super::{MAX_TRIANGLES, frame, parse_count, spec_error};
@@ -219,6 +219,31 @@ impl TriangleSource for GridSource {
 
     fn has_colors(&self) -> bool {
         self.base.has_colors()
+    }
+
+    /// Any copy's triangle is the base model's moved by the copy's offset, so a grid far
+    /// larger than memory is still randomly accessible.
+    fn lookup(&self) -> Option<&dyn TriangleLookup> {
+        Some(self)
+    }
+}
+
+impl TriangleLookup for GridSource {
+    fn triangle(&self, id: u32) -> Option<SourceTriangle> {
+        let per_copy = self.base.indices.len() as u64;
+        if per_copy == 0 {
+            return None;
+        }
+        let (copy, i) = (id as u64 / per_copy, id as u64 % per_copy);
+        let offset = *self.offsets.get(copy as usize)?;
+        // `i` is below the base's triangle count, which fits a u32 when `id` does.
+        let mut t = self.base.triangle(i as u32)?;
+        t.id = id;
+        // The same additions as `for_each_triangle`, so the same bits.
+        for p in &mut t.positions {
+            *p += offset;
+        }
+        Some(t)
     }
 }
 
