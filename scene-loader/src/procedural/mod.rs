@@ -72,7 +72,8 @@ pub const MAX_TRIANGLES: u64 = 200_000_000;
 /// The largest grid [`stream`] hands over: every triangle needs a 32-bit global id (see
 /// `partition`). A streamed grid holds only its base model in memory (which
 /// [`MAX_TRIANGLES`] still bounds), so it may be far larger than the machine; what it
-/// costs is disk, about 45 bytes a triangle in the package (docs/benchmarks.md).
+/// costs is disk: 34 to 46 bytes a triangle in the package, the less when the model has
+/// no tangents or uvs (docs/history/2026-11-26-billion-triangles.md).
 pub const MAX_STREAMED_TRIANGLES: u64 = u32::MAX as u64;
 
 /// The names that select a generator (the first `:`-separated word of a spec).
