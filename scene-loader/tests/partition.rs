@@ -472,6 +472,50 @@ fn package_round_trip_is_exact() {
     }
 }
 
+/// Domains whose tangents (or uvs) are all zero leave the section out, 16 (8) bytes a
+/// vertex, and read back bit for bit; a single non-zero bit (-0.0 too) keeps it.
+#[test]
+fn all_zero_tangents_and_uvs_are_left_out_and_read_back() {
+    let iso = load("iso:gyroid:12");
+    assert!(iso.mesh.tangents.iter().all(|t| *t == Vec4::ZERO));
+    assert!(iso.mesh.uvs.iter().all(|u| *u == Vec2::ZERO));
+    let mut signed = iso.clone();
+    signed.mesh.tangents[0].w = -0.0;
+    let mut uv = iso.clone();
+    uv.mesh.uvs[0].x = 0.5;
+    for (name, scene, tangents, uvs) in [
+        ("iso", &iso, false, false),
+        ("signed", &signed, true, false),
+        ("uv", &uv, false, true),
+    ] {
+        let tmp = TmpDir::new(&format!("sections-{name}"));
+        let spec = LayoutSpec::Kd(1);
+        write(&tmp.0, scene, spec);
+        let pkg = open_package(&tmp.0).unwrap();
+        pkg.verify().unwrap();
+        let e = &pkg.manifest().domains[0];
+        assert_eq!((e.no_tangents, e.no_uvs), (!tangents, !uvs), "{name}");
+        let v = e.vertices;
+        let full = 32 + 48 * v + 20 * e.triangles;
+        let left_out = if tangents { 0 } else { 16 * v } + if uvs { 0 } else { 8 * v };
+        assert_eq!(e.bytes, full - left_out, "{name}");
+        let disk = pkg.load_domain(0).unwrap();
+        let mem = partition_in_memory(scene, &layout_for(scene, spec)).unwrap();
+        assert_eq!(bits(&disk.mesh), bits(&mem[0].mesh), "{name}");
+        assert_eq!(disk.mesh.indices, mem[0].mesh.indices, "{name}");
+    }
+    // The flags are part of the size check: a manifest that says the tangents are there
+    // when the file left them out is refused on opening.
+    let tmp = TmpDir::new("sections-lie");
+    write(&tmp.0, &iso, LayoutSpec::Kd(1));
+    let mut m = open_package(&tmp.0).unwrap().manifest().clone();
+    m.domains[0].no_tangents = false;
+    let lie = dray_scene::partition::manifest::encode(&m).unwrap();
+    std::fs::write(tmp.0.join("manifest.json"), lie).unwrap();
+    let e = open_package(&tmp.0).err().unwrap().to_string();
+    assert!(e.contains("cannot hold"), "{e}");
+}
+
 #[test]
 fn rewriting_replaces_a_package_but_never_clobbers_other_files() {
     let tmp = TmpDir::new("rewrite");
@@ -737,6 +781,61 @@ fn a_streamed_grid_writes_the_same_package_as_the_grid_in_memory() {
             &LayoutSpec::Kd(7),
             &format!("grid-{}", spec.len()),
         );
+    }
+}
+
+/// A source that hides its [`TriangleSource::lookup`], so the package writer must spill
+/// whole triangles.
+struct StreamOnly<'a>(&'a dyn TriangleSource);
+
+impl TriangleSource for StreamOnly<'_> {
+    fn for_each_triangle(
+        &self,
+        f: &mut dyn FnMut(&dray_scene::partition::SourceTriangle) -> dray_scene::Result<()>,
+    ) -> dray_scene::Result<()> {
+        self.0.for_each_triangle(f)
+    }
+
+    fn has_colors(&self) -> bool {
+        self.0.has_colors()
+    }
+}
+
+/// Spilling global ids and making the triangles again from the source's lookup writes
+/// the very package that spilling whole triangles writes: every attribute (tangents, uvs,
+/// colours), for scenes in memory and streamed grids, with many flushes per domain.
+#[test]
+fn spilling_ids_writes_the_same_package_as_spilling_triangles() {
+    let grid = dray_scene::procedural::stream("grid:cornell:glass:3x2x2", &dray_scene::load)
+        .unwrap()
+        .expect("grid specs stream");
+    let (rich, coloured) = (rich_scene(), coloured_scene());
+    let cases: [(&str, &dyn TriangleSource, &Scene); 3] = [
+        ("rich", &rich, &rich),
+        ("coloured", &coloured, &coloured),
+        ("grid", &grid, grid.tables()),
+    ];
+    for (name, source, tables) in cases {
+        assert!(source.lookup().is_some(), "{name} has a lookup");
+        let (ids, records) = (
+            TmpDir::new(&format!("ids-{name}")),
+            TmpDir::new(&format!("records-{name}")),
+        );
+        let options = WriteOptions {
+            buffer_bytes: 1,
+            ..WriteOptions::default()
+        };
+        let spec = LayoutSpec::Kd(5);
+        let parts = SceneParts::of(tables);
+        let a = write_package(&ids.0, parts, source, &spec, &options).unwrap();
+        let b = write_package(&records.0, parts, &StreamOnly(source), &spec, &options).unwrap();
+        assert_eq!(a.bytes, b.bytes, "{name}");
+        assert!(
+            a.assigned_triangles > a.source_triangles,
+            "{name}: walls cut triangles"
+        );
+        assert_same_package(&ids.0, &records.0, name);
+        open_package(&ids.0).unwrap().verify().unwrap();
     }
 }
 

@@ -4,7 +4,8 @@
 use std::collections::HashMap;
 
 use dray_core::scene::Scene;
-use dray_scene::procedural::generate;
+use dray_scene::partition::TriangleSource;
+use dray_scene::procedural::{MAX_TRIANGLES, generate, stream};
 use dray_scene::{Result, SceneError};
 
 /// Loads procedural specs only (enough for `grid` over procedural scenes).
@@ -247,6 +248,65 @@ fn malformed_specs_are_errors_not_panics() {
     assert!(load("grid:grid:cornell:2x1x1:1x1x2").is_ok());
     // An inner scene that cannot be loaded surfaces the loader's error.
     assert!(load("grid:nosuchfile.ply:2x2x2").is_err());
+}
+
+/// A grid's lookup gives every triangle bit for bit as its stream does, and nothing past
+/// the end.
+#[test]
+fn a_grids_lookup_is_its_stream() {
+    let source = stream("grid:spheres:3:mirror:2x3x2", &load)
+        .unwrap()
+        .unwrap();
+    let lookup = source.lookup().expect("grids have a lookup");
+    let mut n = 0u32;
+    source
+        .for_each_triangle(&mut |t| {
+            assert_eq!(t.id, n);
+            assert_eq!(lookup.triangle(t.id).as_ref(), Some(t));
+            n += 1;
+            Ok(())
+        })
+        .unwrap();
+    assert_eq!(
+        n as usize,
+        load("spheres:3:mirror").unwrap().mesh.triangle_count() * 12
+    );
+    assert!(lookup.triangle(n).is_none());
+    assert!(lookup.triangle(u32::MAX).is_none());
+}
+
+/// A streamed grid holds only its base model in memory, so it may pass the in-memory cap
+/// (the grid to partition for a billion triangles does) up to the 32-bit global ids, and
+/// its lookup reaches the last of them without overflowing.
+#[test]
+fn streamed_grids_pass_the_memory_cap_up_to_32_bit_ids() {
+    let per_copy = load("spheres:13").unwrap().mesh.triangle_count() as u64;
+    let total = per_copy * 1_000_000;
+    assert!(total > MAX_TRIANGLES && total <= u32::MAX as u64, "{total}");
+    let spec = "grid:spheres:13:100x100x100";
+    assert!(matches!(load(spec), Err(SceneError::Procedural { .. })));
+    let source = stream(spec, &load).unwrap().unwrap();
+    let lookup = source.lookup().unwrap();
+    let last = u32::try_from(total - 1).unwrap();
+    assert_eq!(lookup.triangle(last).map(|t| t.id), Some(last));
+    assert!(lookup.triangle(last + 1).is_none());
+    // Copy 999,999 is the far corner, (99, 99, 99) steps from copy 0.
+    let corner = |id: u64| lookup.triangle(id as u32).unwrap().positions[0];
+    let step = corner(per_copy) - corner(0);
+    let far = corner(total - per_copy) - corner(0);
+    assert!(step.x > 0.0 && step.y == 0.0 && step.z == 0.0, "{step}");
+    assert!((far.x / step.x - 99.0).abs() < 1e-3, "{far} {step}");
+    assert!(far.min_element() > 0.0, "{far}");
+    // Past the ids, streaming refuses too.
+    let over = "grid:spheres:14:100x100x100";
+    assert!(load("spheres:14").unwrap().mesh.triangle_count() as u64 * 1_000_000 > u32::MAX as u64);
+    match stream(over, &load) {
+        Err(SceneError::Procedural { message, .. }) => {
+            assert!(message.contains(&u32::MAX.to_string()), "{message}")
+        }
+        Err(other) => panic!("{over}: unexpected error kind {other}"),
+        Ok(_) => panic!("{over}: accepted"),
+    }
 }
 
 #[test]

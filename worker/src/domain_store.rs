@@ -110,8 +110,10 @@ pub struct StoreCounters {
 }
 
 enum Slot {
-    /// A thread is loading it; `bytes` are reserved.
-    Loading { bytes: u64 },
+    /// A thread is loading it; `bytes` are reserved. `dropped`: the worker let the domain
+    /// go while it loaded ([`DomainStore::evict`]), so the load hands the domain to its
+    /// caller but does not keep it.
+    Loading { bytes: u64, dropped: bool },
     Ready {
         domain: Arc<LoadedDomain>,
         last_used: u64,
@@ -121,7 +123,7 @@ enum Slot {
 impl Slot {
     fn bytes(&self) -> u64 {
         match self {
-            Slot::Loading { bytes } => *bytes,
+            Slot::Loading { bytes, .. } => *bytes,
             Slot::Ready { domain, .. } => domain.bytes,
         }
     }
@@ -278,8 +280,13 @@ impl DomainStore {
             if !self.make_room(&mut g, reserve) {
                 return Err(LoadError::Busy { domain: d });
             }
-            g.slots
-                .insert(key.clone(), Slot::Loading { bytes: reserve });
+            g.slots.insert(
+                key.clone(),
+                Slot::Loading {
+                    bytes: reserve,
+                    dropped: false,
+                },
+            );
             g.bytes += reserve;
             key
         };
@@ -295,9 +302,29 @@ impl DomainStore {
         let seconds = start.elapsed().as_secs_f64();
         let mut g = self.lock();
         g.bytes -= reserve;
-        g.slots.remove(&key);
+        let dropped = matches!(
+            g.slots.remove(&key),
+            Some(Slot::Loading { dropped: true, .. })
+        );
         let loaded = loaded.map_err(|message| LoadError::Failed { domain: d, message })?;
         let domain = Arc::new(loaded);
+        if dropped {
+            // Let go while it loaded: the caller traces what it loaded it for, but the
+            // domain does not stay. Kept, it would be resident at a worker that does not
+            // own it, its rays held there, and the tracing threads, which load nothing
+            // while a resident domain has rays (`work::next_work`), would never load the
+            // domains this worker does own: with every worker in that state, the
+            // scheduler has no idle worker to give the held domains to, and the job
+            // stops.
+            let c = g.counters.entry(job.clone()).or_default();
+            c.loads += 1;
+            c.load_seconds += seconds;
+            c.evictions += 1;
+            drop(g);
+            release_freed_memory();
+            tracing::debug!(job = %job.id, domain = d, seconds, "domain loaded after it was let go; not kept");
+            return Ok(domain);
+        }
         // The reservation made the room; the measured size is what counts from now on.
         g.bytes += domain.bytes;
         g.clock += 1;
@@ -375,15 +402,21 @@ impl DomainStore {
     }
 
     /// Drop domain `d` of `job` if resident (its owner moved it away); counted as an
-    /// eviction.
+    /// eviction. A load of it under way finishes, but does not keep it (see
+    /// [`Slot::Loading`]): a routing table can let a domain go while it loads, when the
+    /// scheduler decided on a queue report sent just before the load began.
     pub fn evict(&self, job: &JobKey, d: u32) {
         let mut g = self.lock();
         let key = Self::key(&g, job, d);
-        if let Some(Slot::Ready { domain, .. }) = g.slots.get(&key) {
-            let b = domain.bytes;
-            g.slots.remove(&key);
-            g.bytes -= b;
-            g.counters.entry(job.clone()).or_default().evictions += 1;
+        match g.slots.get_mut(&key) {
+            Some(Slot::Ready { domain, .. }) => {
+                let b = domain.bytes;
+                g.slots.remove(&key);
+                g.bytes -= b;
+                g.counters.entry(job.clone()).or_default().evictions += 1;
+            }
+            Some(Slot::Loading { dropped, .. }) => *dropped = true,
+            None => {}
         }
     }
 
@@ -702,6 +735,79 @@ mod tests {
         assert!(!store.is_resident(&d, 0));
         store.load(&d, 0, &src).unwrap();
         assert_eq!(src.loads.load(Ordering::Relaxed), 2);
+    }
+
+    /// A [`Fake`] whose load waits for `go` after saying it has started.
+    struct Gated {
+        started: std::sync::mpsc::SyncSender<()>,
+        go: std::sync::Mutex<std::sync::mpsc::Receiver<()>>,
+        then: Fake,
+    }
+
+    impl DomainSource for Gated {
+        fn estimate_bytes(&self, d: u32) -> u64 {
+            self.then.estimate_bytes(d)
+        }
+        fn load(&self, d: u32) -> Result<LoadedDomain, String> {
+            self.started.send(()).map_err(|e| e.to_string())?;
+            self.go
+                .lock()
+                .map_err(|e| e.to_string())?
+                .recv()
+                .map_err(|e| e.to_string())?;
+            self.then.load(d)
+        }
+    }
+
+    /// A routing table that lets a domain go while it loads (the scheduler decided on a
+    /// queue report sent just before the load began): the load still gives its caller
+    /// the domain, but the domain does not stay resident, where its held rays would stop
+    /// the worker from loading the domains it owns.
+    #[test]
+    fn a_domain_let_go_while_it_loads_is_not_kept() {
+        let (started_tx, started) = std::sync::mpsc::sync_channel(1);
+        let (go, go_rx) = std::sync::mpsc::sync_channel(1);
+        let src = Gated {
+            started: started_tx,
+            go: std::sync::Mutex::new(go_rx),
+            then: Fake {
+                bytes: 100,
+                loads: AtomicU64::new(0),
+            },
+        };
+        let store = DomainStore::new(1000, Duration::ZERO);
+        let j = job(0);
+        std::thread::scope(|scope| {
+            let loading = scope.spawn(|| store.load(&j, 4, &src));
+            started.recv().unwrap();
+            assert_eq!(
+                store.resident(&j),
+                vec![(4, 200)],
+                "the load reserves its room"
+            );
+            store.evict(&j, 4);
+            go.send(()).unwrap();
+            let loaded = loading.join().unwrap().unwrap();
+            assert_eq!(loaded.domain, 4, "the caller gets what it loaded");
+        });
+        assert!(!store.is_resident(&j, 4));
+        assert!(store.resident(&j).is_empty());
+        assert_eq!(store.used_bytes(), 0);
+        let c = store.take_counters(&j);
+        assert_eq!((c.loads, c.evictions), (1, 1));
+        // Given back later, it loads and stays as usual.
+        let (started_tx, started) = std::sync::mpsc::sync_channel(1);
+        let (go, go_rx) = std::sync::mpsc::sync_channel(1);
+        let src = Gated {
+            started: started_tx,
+            go: std::sync::Mutex::new(go_rx),
+            then: src.then,
+        };
+        go.send(()).unwrap();
+        store.load(&j, 4, &src).unwrap();
+        started.recv().unwrap();
+        assert!(store.is_resident(&j, 4));
+        assert_eq!(src.then.loads.load(Ordering::Relaxed), 2);
     }
 
     #[test]

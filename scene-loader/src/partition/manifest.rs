@@ -483,6 +483,16 @@ pub struct DomainEntry {
     /// manifests of scenes without vertex colours (nearly all) are what they were.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub colors: bool,
+    /// Whether the file leaves out the tangent section because every tangent of the
+    /// domain is zero ("absent"; procedural meshes and most scans have none): the reader
+    /// puts the zeros back. A billion triangles of such a mesh save 16 bytes a vertex on
+    /// disk this way (docs/history/2026-11-26-billion-triangles.md). Written only when
+    /// true, so other manifests are what they were.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub no_tangents: bool,
+    /// The same for the uv section (8 bytes a vertex).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub no_uvs: bool,
     pub bytes: u64,
     pub xxh3: String,
 }

@@ -111,6 +111,26 @@ pub trait TriangleSource {
     fn has_colors(&self) -> bool {
         false
     }
+
+    /// Random access by global id, for sources that can make any of their triangles
+    /// cheaply from its id alone (a mesh in memory, a grid of copies of one). The package
+    /// writer then spills 4-byte ids in pass 2 instead of whole triangles (152 bytes or
+    /// more), and makes each domain's triangles again while compacting it: the spill is
+    /// what bounds the disk a package needs while it is written, and whole triangles made
+    /// it about three times the finished package (docs/benchmarks.md, "`dray partition`
+    /// of 104 million triangles").
+    fn lookup(&self) -> Option<&dyn TriangleLookup> {
+        None
+    }
+}
+
+/// A [`TriangleSource`]'s triangles by global id (see [`TriangleSource::lookup`]).
+///
+/// `Sync` because the package writer compacts several domains at once.
+pub trait TriangleLookup: Sync {
+    /// The triangle with global id `id`, bit for bit as `for_each_triangle` hands it
+    /// over; `None` when the source has no such triangle.
+    fn triangle(&self, id: u32) -> Option<SourceTriangle>;
 }
 
 /// Every triangle of `mesh` can be given a 32-bit global id.
@@ -123,27 +143,27 @@ fn ids_fit(mesh: &Mesh) -> Result<()> {
     Ok(())
 }
 
+/// Triangle `i` of `mesh` as a source hands it over (absent attributes zero, absent
+/// colours white). The caller has checked `i` is in range and fits a u32.
+fn mesh_triangle(mesh: &Mesh, i: usize) -> SourceTriangle {
+    let tri = mesh.indices[i];
+    let at = |k: usize| tri[k] as usize;
+    SourceTriangle {
+        id: i as u32,
+        material: mesh.material.get(i).copied().unwrap_or(0),
+        positions: std::array::from_fn(|k| mesh.positions[at(k)]),
+        normals: std::array::from_fn(|k| mesh.normals.get(at(k)).copied().unwrap_or(Vec3::ZERO)),
+        tangents: std::array::from_fn(|k| mesh.tangents.get(at(k)).copied().unwrap_or(Vec4::ZERO)),
+        uvs: std::array::from_fn(|k| mesh.uvs.get(at(k)).copied().unwrap_or(Vec2::ZERO)),
+        colors: std::array::from_fn(|k| mesh.colors.get(at(k)).copied().unwrap_or(Vec4::ONE)),
+    }
+}
+
 impl TriangleSource for Mesh {
     fn for_each_triangle(&self, f: &mut dyn FnMut(&SourceTriangle) -> Result<()>) -> Result<()> {
         ids_fit(self)?;
-        for (i, tri) in self.indices.iter().enumerate() {
-            let at = |k: usize| tri[k] as usize;
-            let t = SourceTriangle {
-                id: i as u32,
-                material: self.material.get(i).copied().unwrap_or(0),
-                positions: std::array::from_fn(|k| self.positions[at(k)]),
-                normals: std::array::from_fn(|k| {
-                    self.normals.get(at(k)).copied().unwrap_or(Vec3::ZERO)
-                }),
-                tangents: std::array::from_fn(|k| {
-                    self.tangents.get(at(k)).copied().unwrap_or(Vec4::ZERO)
-                }),
-                uvs: std::array::from_fn(|k| self.uvs.get(at(k)).copied().unwrap_or(Vec2::ZERO)),
-                colors: std::array::from_fn(|k| {
-                    self.colors.get(at(k)).copied().unwrap_or(Vec4::ONE)
-                }),
-            };
-            f(&t)?;
+        for i in 0..self.indices.len() {
+            f(&mesh_triangle(self, i))?;
         }
         Ok(())
     }
@@ -163,6 +183,17 @@ impl TriangleSource for Mesh {
     fn has_colors(&self) -> bool {
         !self.colors.is_empty()
     }
+
+    fn lookup(&self) -> Option<&dyn TriangleLookup> {
+        Some(self)
+    }
+}
+
+impl TriangleLookup for Mesh {
+    fn triangle(&self, id: u32) -> Option<SourceTriangle> {
+        let i = id as usize;
+        (i < self.indices.len()).then(|| mesh_triangle(self, i))
+    }
 }
 
 impl TriangleSource for Scene {
@@ -179,6 +210,10 @@ impl TriangleSource for Scene {
 
     fn has_colors(&self) -> bool {
         self.mesh.has_colors()
+    }
+
+    fn lookup(&self) -> Option<&dyn TriangleLookup> {
+        self.mesh.lookup()
     }
 }
 

@@ -25,16 +25,18 @@
 //! 24      8         u64 triangle count T
 //! 32      12 V      positions   [f32; 3]
 //!         12 V      normals     [f32; 3]   (zero = absent)
-//!         16 V      tangents    [f32; 4]   (zero = absent)
-//!          8 V      uvs         [f32; 2]
+//!         16 V      tangents    [f32; 4]   (zero = absent; left out, all zero, when the
+//!                                          manifest entry says `no_tangents`)
+//!          8 V      uvs         [f32; 2]   (left out, all zero, when it says `no_uvs`)
 //!         16 V      colours     [f32; 4]   (only when the manifest entry says `colors`)
 //!         12 T      indices     [u32; 3]   (into this file's vertices)
 //!          4 T      material    u32        (into the manifest's materials)
 //!          4 T      global id   u32        (index in the unpartitioned scene)
 //! ```
 //!
-//! so a domain file is exactly `32 + 48 V + 20 T` bytes, `+ 16 V` with colours. Sections rather than records keep
-//! each attribute contiguous, as the BVH builder and shading want them.
+//! so a domain file is exactly `32 + 48 V + 20 T` bytes, `+ 16 V` with colours, `- 16 V`
+//! without tangents and `- 8 V` without uvs (see [`Sections`]). Sections rather than
+//! records keep each attribute contiguous, as the BVH builder and shading want them.
 //!
 //! `textures.bin`: magic `"DRAYTEX\0"`, u32 version, u32 texture count, then each
 //! texture's RGBA8 texels at the offset the manifest gives.
@@ -66,8 +68,8 @@ use super::manifest::{
     Manifest, StatsDesc, TEXTURES_FILE, TextureDesc, domain_file_name,
 };
 use super::{
-    DEFAULT_SAMPLE_CAPACITY, DomainBuilder, DomainMesh, SourceTriangle, TriangleSource, survey,
-    unassigned_error,
+    DEFAULT_SAMPLE_CAPACITY, DomainBuilder, DomainMesh, SourceTriangle, TriangleLookup,
+    TriangleSource, survey, unassigned_error,
 };
 use crate::error::{Result, SceneError};
 
@@ -83,15 +85,93 @@ const TRIANGLE_BYTES: u64 = 20;
 fn record_bytes(colors: bool) -> usize {
     8 + 3 * if colors { 64 } else { 48 }
 }
+
+/// What pass 2 writes to a domain's spill file for each of its triangles.
+#[derive(Clone, Copy)]
+enum SpillFormat<'a> {
+    /// Whole triangles ([`encode_record`]), for sources that can only be streamed.
+    Records { colors: bool },
+    /// The global id alone (u32, little-endian): compaction makes the triangle again
+    /// from the source's [`TriangleLookup`], so the spill is 4 bytes a triangle instead
+    /// of 152 or more.
+    Ids(&'a dyn TriangleLookup),
+}
+
+impl SpillFormat<'_> {
+    fn bytes(self) -> usize {
+        match self {
+            SpillFormat::Records { colors } => record_bytes(colors),
+            SpillFormat::Ids(_) => 4,
+        }
+    }
+
+    fn encode(self, t: &SourceTriangle, out: &mut Vec<u8>) {
+        match self {
+            SpillFormat::Records { colors } => encode_record(t, colors, out),
+            SpillFormat::Ids(_) => out.extend_from_slice(&t.id.to_le_bytes()),
+        }
+    }
+}
 const IO_BUFFER: usize = 1 << 20;
 
 /// Bytes per vertex of the optional colour section.
 const COLOR_BYTES: u64 = 16;
+/// Bytes per vertex of the tangent and uv sections, which are left out when all zero.
+const TANGENT_BYTES: u64 = 16;
+const UV_BYTES: u64 = 8;
 
-/// The size of a domain file with `vertices` and `triangles` (and a colour section when
-/// `colors`), or `None` on overflow.
-pub fn domain_file_bytes(vertices: u64, triangles: u64, colors: bool) -> Option<u64> {
-    let per_vertex = VERTEX_BYTES + if colors { COLOR_BYTES } else { 0 };
+/// Which optional vertex sections a domain file carries. Tangents and uvs are left out
+/// when every one of the domain's is zero (bit for bit, so nothing is lost): a mesh
+/// without them (any isosurface) then costs about 34 bytes a triangle on disk instead of
+/// 46, which is what let a package of a billion triangles fit the disk of the machine
+/// that wrote it (docs/history/2026-11-26-billion-triangles.md).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Sections {
+    pub tangents: bool,
+    pub uvs: bool,
+    pub colors: bool,
+}
+
+impl Sections {
+    /// Every section (colours too): the fullest file.
+    pub const ALL: Sections = Sections {
+        tangents: true,
+        uvs: true,
+        colors: true,
+    };
+
+    /// The sections a manifest entry says its file has.
+    pub fn of_entry(e: &DomainEntry) -> Sections {
+        Sections {
+            tangents: !e.no_tangents,
+            uvs: !e.no_uvs,
+            colors: e.colors,
+        }
+    }
+
+    /// The sections `mesh` needs.
+    pub fn of_mesh(mesh: &Mesh) -> Sections {
+        let zero = |x: &[f32]| x.iter().all(|v| v.to_bits() == 0);
+        Sections {
+            tangents: !mesh.tangents.iter().all(|t| zero(&t.to_array())),
+            uvs: !mesh.uvs.iter().all(|u| zero(&u.to_array())),
+            colors: !mesh.colors.is_empty(),
+        }
+    }
+
+    fn vertex_bytes(self) -> u64 {
+        let optional = |present: bool, bytes: u64| if present { bytes } else { 0 };
+        VERTEX_BYTES - TANGENT_BYTES - UV_BYTES
+            + optional(self.tangents, TANGENT_BYTES)
+            + optional(self.uvs, UV_BYTES)
+            + optional(self.colors, COLOR_BYTES)
+    }
+}
+
+/// The size of a domain file with `vertices` and `triangles` and the optional
+/// `sections`, or `None` on overflow.
+pub fn domain_file_bytes(vertices: u64, triangles: u64, sections: Sections) -> Option<u64> {
+    let per_vertex = sections.vertex_bytes();
     vertices
         .checked_mul(per_vertex)?
         .checked_add(triangles.checked_mul(TRIANGLE_BYTES)?)?
@@ -258,7 +338,11 @@ pub fn write_package(
     let domain_count = layout.domain_count() as usize;
     let per_domain = (options.buffer_bytes / domain_count).clamp(4096, 1 << 20);
     let colors = source.has_colors();
-    let record_len = record_bytes(colors);
+    let format = match source.lookup() {
+        Some(lookup) => SpillFormat::Ids(lookup),
+        None => SpillFormat::Records { colors },
+    };
+    let record_len = format.bytes();
     let per_domain = per_domain.div_ceil(record_len) * record_len;
     let mut spills: Vec<Spill> = cleanup
         .paths
@@ -298,7 +382,7 @@ pub fn write_package(
             emitters.push(t);
         }
         record.clear();
-        encode_record(t, colors, &mut record);
+        format.encode(t, &mut record);
         for &d in &domains {
             let spill = &mut spills[d as usize];
             if spill.buf.capacity() == 0 {
@@ -330,21 +414,14 @@ pub fn write_package(
 
     // Compact each domain into its file, a few at a time.
     crate::cancel::check()?;
-    let entries = finalize_domains(dir, &spills, &layout, options.threads, colors)?;
+    let entries = finalize_domains(dir, &spills, &layout, options.threads, format)?;
     cleanup.paths.clear();
     tracing::info!("domain files written");
 
     let emitters = if emitters.triangle_count() > 0 {
         let mesh = emitters.finish(EMITTERS_DOMAIN, layout.scene_bounds());
-        let (bytes, sum) = write_domain_file(&dir.join(EMITTERS_FILE), &mesh)?;
-        Some(DomainEntry {
-            file: EMITTERS_FILE.to_string(),
-            triangles: mesh.triangle_count() as u64,
-            vertices: mesh.mesh.positions.len() as u64,
-            colors: !mesh.mesh.colors.is_empty(),
-            bytes,
-            xxh3: to_hex(sum),
-        })
+        let written = write_domain_file(&dir.join(EMITTERS_FILE), &mesh)?;
+        Some(written.entry(EMITTERS_FILE.to_string(), &mesh))
     } else {
         None
     };
@@ -408,7 +485,7 @@ fn finalize_domains(
     spills: &[Spill],
     layout: &DomainLayout,
     threads: usize,
-    colors: bool,
+    format: SpillFormat<'_>,
 ) -> Result<Vec<DomainEntry>> {
     let threads = threads.clamp(1, spills.len());
     let next = AtomicUsize::new(0);
@@ -421,7 +498,7 @@ fn finalize_domains(
                     while !failed.load(Ordering::Relaxed) {
                         let d = next.fetch_add(1, Ordering::Relaxed);
                         let Some(spill) = spills.get(d) else { break };
-                        match finalize_domain(dir, d as u32, spill, layout, colors) {
+                        match finalize_domain(dir, d as u32, spill, layout, format) {
                             Ok(e) => done.push((d, e)),
                             Err(e) => {
                                 failed.store(true, Ordering::Relaxed);
@@ -453,11 +530,14 @@ fn finalize_domain(
     d: u32,
     spill: &Spill,
     layout: &DomainLayout,
-    colors: bool,
+    format: SpillFormat<'_>,
 ) -> Result<DomainEntry> {
     let mut builder = DomainBuilder::with_capacity(spill.triangles as usize);
     if spill.triangles > 0 {
-        read_spill(&spill.path, colors, &mut |t| builder.push(t))?;
+        read_spill(&spill.path, format, &mut |t| {
+            builder.push(t);
+            Ok(())
+        })?;
     }
     if builder.triangle_count() as u64 != spill.triangles {
         return Err(format_error(
@@ -471,16 +551,9 @@ fn finalize_domain(
     }
     let mesh = builder.finish(d, layout.bounds(d));
     let file = domain_file_name(d);
-    let (bytes, sum) = write_domain_file(&dir.join(&file), &mesh)?;
+    let written = write_domain_file(&dir.join(&file), &mesh)?;
     let _ = fs::remove_file(&spill.path);
-    Ok(DomainEntry {
-        file,
-        triangles: mesh.triangle_count() as u64,
-        vertices: mesh.mesh.positions.len() as u64,
-        colors: !mesh.mesh.colors.is_empty(),
-        bytes,
-        xxh3: to_hex(sum),
-    })
+    Ok(written.entry(file, &mesh))
 }
 
 fn spill_file_name(d: u32) -> String {
@@ -621,9 +694,13 @@ fn decode_record(b: &[u8], colors: bool) -> SourceTriangle {
     }
 }
 
-fn read_spill(path: &Path, colors: bool, f: &mut dyn FnMut(&SourceTriangle)) -> Result<()> {
+fn read_spill(
+    path: &Path,
+    format: SpillFormat<'_>,
+    f: &mut dyn FnMut(&SourceTriangle) -> Result<()>,
+) -> Result<()> {
     let mut r = BufReader::with_capacity(IO_BUFFER, File::open(path).map_err(io_error(path))?);
-    let record_len = record_bytes(colors);
+    let record_len = format.bytes();
     let mut chunk = vec![0u8; record_len * 1024];
     loop {
         let n = read_full(&mut r, &mut chunk).map_err(io_error(path))?;
@@ -631,7 +708,19 @@ fn read_spill(path: &Path, colors: bool, f: &mut dyn FnMut(&SourceTriangle)) -> 
             return Err(format_error(path, "spill file ends inside a record"));
         }
         for rec in chunk[..n].chunks_exact(record_len) {
-            f(&decode_record(rec, colors));
+            match format {
+                SpillFormat::Records { colors } => f(&decode_record(rec, colors))?,
+                SpillFormat::Ids(lookup) => {
+                    let id = u32::from_le_bytes([rec[0], rec[1], rec[2], rec[3]]);
+                    let t = lookup.triangle(id).ok_or_else(|| {
+                        format_error(
+                            path,
+                            format!("the source has no triangle {id}: it changed while written"),
+                        )
+                    })?;
+                    f(&t)?;
+                }
+            }
         }
         if n < chunk.len() {
             return Ok(());
@@ -653,8 +742,33 @@ fn read_full(r: &mut impl Read, buf: &mut [u8]) -> io::Result<usize> {
     Ok(n)
 }
 
-/// Write `mesh` as a domain file; its size and checksum.
-pub fn write_domain_file(path: &Path, mesh: &DomainMesh) -> Result<(u64, u64)> {
+/// What [`write_domain_file`] wrote.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct WrittenDomain {
+    pub bytes: u64,
+    pub xxh3: u64,
+    pub sections: Sections,
+}
+
+impl WrittenDomain {
+    /// The manifest entry of `mesh` written to `file`.
+    pub fn entry(self, file: String, mesh: &DomainMesh) -> DomainEntry {
+        DomainEntry {
+            file,
+            triangles: mesh.triangle_count() as u64,
+            vertices: mesh.mesh.positions.len() as u64,
+            colors: self.sections.colors,
+            no_tangents: !self.sections.tangents,
+            no_uvs: !self.sections.uvs,
+            bytes: self.bytes,
+            xxh3: to_hex(self.xxh3),
+        }
+    }
+}
+
+/// Write `mesh` as a domain file, with the sections it needs ([`Sections::of_mesh`]).
+pub fn write_domain_file(path: &Path, mesh: &DomainMesh) -> Result<WrittenDomain> {
+    let sections = Sections::of_mesh(&mesh.mesh);
     let file = crate::private_fs::create_truncate(path).map_err(io_error(path))?;
     // The buffer sits outside the hasher, so the hasher sees large chunks.
     let mut w = BufWriter::with_capacity(IO_BUFFER, HashingWriter::new(file));
@@ -672,11 +786,15 @@ pub fn write_domain_file(path: &Path, mesh: &DomainMesh) -> Result<(u64, u64)> {
         for v in &m.normals {
             v.to_array().iter().try_for_each(|x| put(x.to_bits()))?;
         }
-        for v in &m.tangents {
-            v.to_array().iter().try_for_each(|x| put(x.to_bits()))?;
+        if sections.tangents {
+            for v in &m.tangents {
+                v.to_array().iter().try_for_each(|x| put(x.to_bits()))?;
+            }
         }
-        for v in &m.uvs {
-            v.to_array().iter().try_for_each(|x| put(x.to_bits()))?;
+        if sections.uvs {
+            for v in &m.uvs {
+                v.to_array().iter().try_for_each(|x| put(x.to_bits()))?;
+            }
         }
         for v in &m.colors {
             v.to_array().iter().try_for_each(|x| put(x.to_bits()))?;
@@ -690,8 +808,12 @@ pub fn write_domain_file(path: &Path, mesh: &DomainMesh) -> Result<(u64, u64)> {
     })();
     result.map_err(io_error(path))?;
     let hashing = w.into_inner().map_err(|e| io_error(path)(e.into_error()))?;
-    let (_, bytes, sum) = hashing.finish().map_err(io_error(path))?;
-    Ok((bytes, sum))
+    let (_, bytes, xxh3) = hashing.finish().map_err(io_error(path))?;
+    Ok(WrittenDomain {
+        bytes,
+        xxh3,
+        sections,
+    })
 }
 
 /// Write `textures.bin` (when there are textures) and describe each texture.
@@ -801,7 +923,7 @@ pub fn open_package(dir: &Path) -> Result<Package> {
                 .map(|e| ("emitters".to_string(), e)),
         );
     for (what, e) in named {
-        if domain_file_bytes(e.vertices, e.triangles, e.colors) != Some(e.bytes) {
+        if domain_file_bytes(e.vertices, e.triangles, Sections::of_entry(e)) != Some(e.bytes) {
             return Err(format_error(
                 &path,
                 format!(
@@ -1165,10 +1287,18 @@ fn decode_domain(
     let u = |b: &[u8], i: usize| u32::from_le_bytes(b[4 * i..4 * i + 4].try_into().unwrap());
     let positions = read_items(r, v, 12, path, |b| Vec3::new(f(b, 0), f(b, 1), f(b, 2)))?;
     let normals = read_items(r, v, 12, path, |b| Vec3::new(f(b, 0), f(b, 1), f(b, 2)))?;
-    let tangents = read_items(r, v, 16, path, |b| {
-        Vec4::new(f(b, 0), f(b, 1), f(b, 2), f(b, 3))
-    })?;
-    let uvs = read_items(r, v, 8, path, |b| Vec2::new(f(b, 0), f(b, 1)))?;
+    let tangents = if entry.no_tangents {
+        vec![Vec4::ZERO; v]
+    } else {
+        read_items(r, v, 16, path, |b| {
+            Vec4::new(f(b, 0), f(b, 1), f(b, 2), f(b, 3))
+        })?
+    };
+    let uvs = if entry.no_uvs {
+        vec![Vec2::ZERO; v]
+    } else {
+        read_items(r, v, 8, path, |b| Vec2::new(f(b, 0), f(b, 1)))?
+    };
     let colors = if entry.colors {
         read_items(r, v, 16, path, |b| {
             Vec4::new(f(b, 0), f(b, 1), f(b, 2), f(b, 3))
@@ -1266,9 +1396,23 @@ mod tests {
 
     #[test]
     fn file_size_formula_overflows_safely() {
-        assert_eq!(domain_file_bytes(0, 0, false), Some(32));
-        assert_eq!(domain_file_bytes(3, 1, false), Some(32 + 144 + 20));
-        assert_eq!(domain_file_bytes(3, 1, true), Some(32 + 144 + 48 + 20));
-        assert_eq!(domain_file_bytes(u64::MAX / 2, 1, false), None);
+        let plain = Sections {
+            colors: false,
+            ..Sections::ALL
+        };
+        let bare = Sections {
+            tangents: false,
+            uvs: false,
+            colors: false,
+        };
+        assert_eq!(domain_file_bytes(0, 0, plain), Some(32));
+        assert_eq!(domain_file_bytes(3, 1, plain), Some(32 + 144 + 20));
+        assert_eq!(
+            domain_file_bytes(3, 1, Sections::ALL),
+            Some(32 + 144 + 48 + 20)
+        );
+        assert_eq!(domain_file_bytes(3, 1, bare), Some(32 + 72 + 20));
+        assert_eq!(domain_file_bytes(u64::MAX / 2, 1, plain), None);
+        assert_eq!(domain_file_bytes(u64::MAX / 24, 1, bare), None);
     }
 }

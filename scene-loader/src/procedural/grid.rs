@@ -7,10 +7,10 @@
 use dray_core::light::Light;
 use dray_core::scene::{Mesh, Scene};
 
-use crate::partition::{SourceTriangle, TriangleSource};
+use crate::partition::{SourceTriangle, TriangleLookup, TriangleSource};
 use glam::Vec3;
 
-use super::{MAX_TRIANGLES, frame, parse_count, spec_error};
+use super::{MAX_STREAMED_TRIANGLES, MAX_TRIANGLES, frame, parse_count, spec_error};
 use crate::error::Result;
 
 /// At most a million copies, whatever the model: beyond that the per-copy overhead alone
@@ -56,11 +56,23 @@ pub(super) fn copies(spec: &str, dims: &str) -> Result<u64> {
         })
 }
 
+/// Where a grid's triangles will live, which decides its limits.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Residence {
+    /// Made whole ([`GridSource::into_scene`]): at most [`MAX_TRIANGLES`], and the copies'
+    /// vertices must be numbered by the mesh's u32 indices.
+    InMemory,
+    /// Read copy by copy ([`GridSource`] as a [`TriangleSource`]): only the base model is
+    /// in memory, so the one limit is [`MAX_STREAMED_TRIANGLES`], the 32-bit global ids.
+    Streamed,
+}
+
 /// Check the spec, load the base scene, and describe the grid without making it.
 pub(super) fn plan(
     spec: &str,
     args: Option<&str>,
     load: &dyn Fn(&str) -> Result<Scene>,
+    residence: Residence,
 ) -> Result<GridSource> {
     let usage = "expected grid:<scene>:XxYxZ, e.g. grid:cornell:3x3x3";
     let mut nesting = 0;
@@ -96,16 +108,18 @@ pub(super) fn plan(
         ));
     }
     let total = copies.saturating_mul(tris);
-    if total > MAX_TRIANGLES {
+    let cap = match residence {
+        Residence::InMemory => MAX_TRIANGLES,
+        Residence::Streamed => MAX_STREAMED_TRIANGLES,
+    };
+    if total > cap {
         return Err(spec_error(
             spec,
-            format!(
-                "{copies} copies of {tris} triangles is {total}, over the cap of {MAX_TRIANGLES}"
-            ),
+            format!("{copies} copies of {tris} triangles is {total}, over the cap of {cap}"),
         ));
     }
     let verts = base.mesh.positions.len() as u64;
-    if copies.saturating_mul(verts) > u32::MAX as u64 {
+    if residence == Residence::InMemory && copies.saturating_mul(verts) > u32::MAX as u64 {
         return Err(spec_error(
             spec,
             format!("{copies} copies of {verts} vertices exceed 2^32 vertices"),
@@ -220,6 +234,31 @@ impl TriangleSource for GridSource {
     fn has_colors(&self) -> bool {
         self.base.has_colors()
     }
+
+    /// Any copy's triangle is the base model's moved by the copy's offset, so a grid far
+    /// larger than memory is still randomly accessible.
+    fn lookup(&self) -> Option<&dyn TriangleLookup> {
+        Some(self)
+    }
+}
+
+impl TriangleLookup for GridSource {
+    fn triangle(&self, id: u32) -> Option<SourceTriangle> {
+        let per_copy = self.base.indices.len() as u64;
+        if per_copy == 0 {
+            return None;
+        }
+        let (copy, i) = (id as u64 / per_copy, id as u64 % per_copy);
+        let offset = *self.offsets.get(copy as usize)?;
+        // `i` is below the base's triangle count, which fits a u32 when `id` does.
+        let mut t = self.base.triangle(i as u32)?;
+        t.id = id;
+        // The same additions as `for_each_triangle`, so the same bits.
+        for p in &mut t.positions {
+            *p += offset;
+        }
+        Some(t)
+    }
 }
 
 /// `grid:SPEC:XxYxZ` in memory.
@@ -228,5 +267,5 @@ pub(super) fn generate(
     args: Option<&str>,
     load: &dyn Fn(&str) -> Result<Scene>,
 ) -> Result<Scene> {
-    Ok(plan(spec, args, load)?.into_scene())
+    Ok(plan(spec, args, load, Residence::InMemory)?.into_scene())
 }

@@ -20,9 +20,10 @@
 //! ```
 //!
 //! The first `:`-separated word selects the generator, so a file literally called
-//! `city` must be given as `./city`. Sizes are capped (see [`MAX_TRIANGLES`] and the
-//! per-generator limits) so a typo cannot ask for terabytes; an out-of-range or malformed
-//! argument is a [`SceneError::Procedural`] naming the spec, never a panic.
+//! `city` must be given as `./city`. Sizes are capped (see [`MAX_TRIANGLES`], the
+//! per-generator limits, and [`MAX_STREAMED_TRIANGLES`] for grids that are streamed into a
+//! package) so a typo cannot ask for terabytes; an out-of-range or malformed argument is a
+//! [`SceneError::Procedural`] naming the spec, never a panic.
 //!
 //! Every scene is deterministic: each generator seeds its own [`Rng`] (splitmix64) with a
 //! fixed constant, so the same spec gives bit-identical scenes on every machine, which
@@ -67,6 +68,13 @@ use stream_sink::StreamSink;
 /// memory: large enough for the streaming experiments, small enough that a stray zero in
 /// a spec fails fast with a message instead of exhausting the machine.
 pub const MAX_TRIANGLES: u64 = 200_000_000;
+
+/// The largest grid [`stream`] hands over: every triangle needs a 32-bit global id (see
+/// `partition`). A streamed grid holds only its base model in memory (which
+/// [`MAX_TRIANGLES`] still bounds), so it may be far larger than the machine; what it
+/// costs is disk: 34 to 46 bytes a triangle in the package, the less when the model has
+/// no tangents or uvs (docs/history/2026-11-26-billion-triangles.md).
+pub const MAX_STREAMED_TRIANGLES: u64 = u32::MAX as u64;
 
 /// The names that select a generator (the first `:`-separated word of a spec).
 pub const NAMES: [&str; 6] = ["cornell", "spheres", "soup", "grid", "city", "iso"];
@@ -113,7 +121,8 @@ pub fn stream(
         None => (spec, None),
     };
     if head == "grid" {
-        return Ok(Some(ProceduralSource::Grid(grid::plan(spec, args, load)?)));
+        let plan = grid::plan(spec, args, load, grid::Residence::Streamed)?;
+        return Ok(Some(ProceduralSource::Grid(plan)));
     }
     Ok(match generator(spec, head, args)? {
         Some(g) => Some(ProceduralSource::Generated(GeneratedSource::plan(spec, g)?)),

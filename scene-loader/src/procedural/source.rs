@@ -6,7 +6,7 @@ use dray_core::scene::Scene;
 use super::GeneratedSource;
 use super::grid::GridSource;
 use crate::error::Result;
-use crate::partition::{SourceTriangle, TriangleSource};
+use crate::partition::{SourceTriangle, TriangleLookup, TriangleSource};
 
 /// A procedural scene as a stream (see [`stream`](super::stream)).
 pub enum ProceduralSource {
@@ -38,6 +38,13 @@ impl TriangleSource for ProceduralSource {
         match self {
             ProceduralSource::Grid(g) => g.has_colors(),
             ProceduralSource::Generated(g) => g.has_colors(),
+        }
+    }
+
+    fn lookup(&self) -> Option<&dyn TriangleLookup> {
+        match self {
+            ProceduralSource::Grid(g) => g.lookup(),
+            ProceduralSource::Generated(g) => g.lookup(),
         }
     }
 }
