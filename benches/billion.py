@@ -14,9 +14,10 @@ Steps (docs/history/2026-11-26-billion-triangles.md has the numbers of the first
 3. results.json and a markdown table in --work; the image is copied to --image.
 The package (tens of GB) is deleted at the end unless --keep-package.
 
-Takes about an hour on the project's 2-core, 24 GiB machine at the default size
-(partition 15-20 min, render 30-40 min), longer when the cores are shared; `--quick`
-runs the same steps on 20 million triangles in a few minutes. Not for CI.
+Took 35 minutes on the project's 2-core, 24 GiB machine at the default size (partition
+17 min, render 18 min) with other engineers' builds on the same cores, and needs about
+40 GB free under --work (the package is 33 GB); `--quick` runs the same steps on 20
+million triangles in about two minutes. Not for CI.
 
 Usage (from the repository root):
     benches/billion.sh                  # builds dray, then runs this
