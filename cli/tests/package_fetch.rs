@@ -172,7 +172,7 @@ impl Members {
         cmd.args(&args)
             .current_dir(dir)
             .env_remove("DRAY_CLUSTER_TOKEN")
-            .env("DRAY_LOG", "warn,dray_worker::job=info")
+            .env("DRAY_LOG", "warn,dray_worker::plan=info")
             .env("NO_COLOR", "1")
             .stdin(Stdio::null())
             .stdout(Stdio::null())

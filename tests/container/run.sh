@@ -252,7 +252,7 @@ docker run "${run_opts[@]}" -v "$vol:/var/lib/dray/work" --name "$coord" --hostn
   --work-dir=/var/lib/dray/work --heartbeat-timeout-ms=20000 >/dev/null
 for w in "${workers[@]}"; do
   docker run "${run_opts[@]}" --name "$w" --hostname "$w" -e NO_COLOR=1 \
-    -e DRAY_LOG=warn,dray_worker::job=info \
+    -e DRAY_LOG=warn,dray_worker::plan=info \
     -e DRAY_HEALTH_ADDR=127.0.0.1:50052 \
     "$IMAGE" worker --coordinator="http://$coord:50051" --listen=0.0.0.0:50052 \
     --advertise="http://$w:50052" --cache-listen=0.0.0.0:50053 --connect-timeout=60 \

@@ -24,7 +24,6 @@
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::sync::Arc;
 use std::sync::Mutex;
-use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use dray_cache::entry_record::{ENTRY_RECORD_BYTES, decode_entries, encode_entry};
@@ -45,7 +44,7 @@ use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinSet;
 use tokio_stream::wrappers::ReceiverStream;
 
-use crate::jobs::{Job, lock};
+use crate::jobs::{Job, Report, lock};
 use crate::node::Shared;
 use crate::tracer::{Lookup, NoDomains, Outbox};
 use crate::traffic::Kind;
@@ -223,8 +222,7 @@ pub(crate) fn send_lookups(shared: &Arc<Shared>, job: &Arc<Job>, lookups: Vec<Lo
             }
             continue;
         }
-        job.awaiting_cache
-            .fetch_add(lookups.len(), Ordering::Relaxed);
+        job.awaiting_cache_add(lookups.len());
         shared.caches.send(
             shared,
             host,
@@ -235,8 +233,11 @@ pub(crate) fn send_lookups(shared: &Arc<Shared>, job: &Arc<Job>, lookups: Vec<Lo
         );
     }
     if bypassed > 0 {
-        lock(&job.report).cache_rays_bypassed += bypassed;
-        crate::work::deliver(shared, job, bypass);
+        let counted = Report {
+            cache_rays_bypassed: bypassed,
+            ..Report::default()
+        };
+        crate::work::deliver_with(shared, job, bypass, counted);
     }
 }
 
@@ -389,8 +390,7 @@ pub(crate) async fn return_tickets(
 fn fail(shared: &Arc<Shared>, endpoint: &str, msg: CacheMessage) {
     match msg {
         CacheMessage::Lookups { job, lookups } => {
-            job.awaiting_cache
-                .fetch_sub(lookups.len(), Ordering::Relaxed);
+            job.awaiting_cache_sub(lookups.len());
             lost(&job, endpoint);
             let n = lookups.len() as u64;
             let mut out = Outbox::default();
@@ -400,9 +400,12 @@ fn fail(shared: &Arc<Shared>, endpoint: &str, msg: CacheMessage) {
                     .or_default()
                     .push(l.ray, &l.lineage);
             }
-            lock(&job.report).cache_rays_bypassed += n;
+            let counted = Report {
+                cache_rays_bypassed: n,
+                ..Report::default()
+            };
             if job.is_active() {
-                crate::work::deliver(shared, &job, out);
+                crate::work::deliver_with(shared, &job, out, counted);
             }
         }
         CacheMessage::Returns { job, done, .. } | CacheMessage::Entries { job, done, .. } => {
@@ -416,13 +419,25 @@ fn fail(shared: &Arc<Shared>, endpoint: &str, msg: CacheMessage) {
     shared.notify();
 }
 
-/// Name a lost host in `job`'s report, once.
-fn lost(job: &Job, endpoint: &str) {
-    let mut r = lock(&job.report);
-    if !r.lost_cache_hosts.iter().any(|h| h == endpoint) {
-        tracing::warn!(job = %job.key.id, host = %endpoint, "cache host unreachable: rays go past its walls");
-        r.lost_cache_hosts.push(endpoint.to_string());
+/// Count `cache_bytes` sent to cache hosts, and a message of `(kind, size)`, in `job`'s
+/// report.
+fn count(job: &Job, cache_bytes: u64, message: Option<(Kind, usize)>) {
+    let mut r = Report {
+        cache_bytes,
+        ..Report::default()
+    };
+    if let Some((kind, size)) = message {
+        r.traffic.message(kind, size);
     }
+    job.post(r);
+}
+
+/// Name a lost host in `job`'s report (once: its actor keeps names once).
+fn lost(job: &Job, endpoint: &str) {
+    job.post(Report {
+        lost_cache_hosts: vec![endpoint.to_string()],
+        ..Report::default()
+    });
 }
 
 /// What was sent and awaits an answer, in order.
@@ -491,11 +506,7 @@ async fn link_loop(
                             let chunk = std::mem::replace(&mut rest, tail);
                             sequence += 1;
                             let request = lookups_request(&job, sequence, &chunk);
-                            {
-                                let mut r = lock(&job.report);
-                                r.cache_bytes += chunk.len() as u64 * (RAY_RECORD_BYTES as u64 + 8);
-                                r.traffic.message(Kind::Lookups, request.encoded_len());
-                            }
+                            count(&job, chunk.len() as u64 * (RAY_RECORD_BYTES as u64 + 8), Some((Kind::Lookups, request.encoded_len())));
                             pending.push_back((sequence, Pending::Lookups { job: job.clone(), lookups: chunk }));
                             if req_tx.send(request).await.is_err() {
                                 ok = false;
@@ -508,7 +519,7 @@ async fn link_loop(
                         ok
                     }
                     CacheMessage::Returns { job, returns, done } => {
-                        lock(&job.report).cache_bytes += returns.len() as u64 * RETURN_BYTES;
+                        count(&job, returns.len() as u64 * RETURN_BYTES, None);
                         let mut ok = true;
                         let mut rest = returns;
                         let mut dones = Some(done);
@@ -533,7 +544,7 @@ async fn link_loop(
                             } else {
                                 None
                             };
-                            lock(&job.report).traffic.message(Kind::TicketReturns, request.encoded_len());
+                            count(&job, 0, Some((Kind::TicketReturns, request.encoded_len())));
                             let p = Pending::Ack { job: job.clone(), kind: Kind::TicketReturns, done };
                             pending.push_back((sequence, p));
                             if req_tx.send(request).await.is_err() {
@@ -544,7 +555,7 @@ async fn link_loop(
                         ok
                     }
                     CacheMessage::Outcomes { job, outcomes } => {
-                        lock(&job.report).cache_bytes += outcomes.len() as u64 * OUTCOME_BYTES;
+                        count(&job, outcomes.len() as u64 * OUTCOME_BYTES, None);
                         sequence += 1;
                         let request = CacheRequest {
                             msg: Some(cache_request::Msg::Outcomes(PhmOutcomes {
@@ -556,7 +567,7 @@ async fn link_loop(
                                 hits: outcomes.iter().map(|o| u8::from(o.2)).collect(),
                             })),
                         };
-                        lock(&job.report).traffic.message(Kind::MapOutcomes, request.encoded_len());
+                        count(&job, 0, Some((Kind::MapOutcomes, request.encoded_len())));
                         pending.push_back((sequence, Pending::Ack { job: job.clone(), kind: Kind::MapOutcomes, done: None }));
                         req_tx.send(request).await.is_ok()
                     }
@@ -574,16 +585,12 @@ async fn link_loop(
                             })),
                         };
                         let bytes = request.encoded_len();
-                        {
-                            let mut r = lock(&job.report);
-                            r.cache_bytes += bytes as u64;
-                            r.traffic.message(Kind::MapMerges, bytes);
-                        }
+                        count(&job, bytes as u64, Some((Kind::MapMerges, bytes)));
                         pending.push_back((sequence, Pending::Ack { job: job.clone(), kind: Kind::MapMerges, done: None }));
                         req_tx.send(request).await.is_ok()
                     }
                     CacheMessage::Entries { job, entries, done } => {
-                        lock(&job.report).cache_bytes += entries.len() as u64 * (ENTRY_RECORD_BYTES as u64 + 4);
+                        count(&job, entries.len() as u64 * (ENTRY_RECORD_BYTES as u64 + 4), None);
                         let mut ok = true;
                         let mut chunks = entries.chunks(ENTRIES_PER_MESSAGE).peekable();
                         let mut dones = Some(done);
@@ -603,7 +610,7 @@ async fn link_loop(
                                 })),
                             };
                             let done = if chunks.peek().is_none() { dones.take() } else { None };
-                            lock(&job.report).traffic.message(Kind::EntryCopies, request.encoded_len());
+                            count(&job, 0, Some((Kind::EntryCopies, request.encoded_len())));
                             pending.push_back((sequence, Pending::Ack { job: job.clone(), kind: Kind::EntryCopies, done }));
                             if req_tx.send(request).await.is_err() {
                                 ok = false;
@@ -643,12 +650,12 @@ async fn link_loop(
                     (Some(cache_response::Msg::Answers(a)), Pending::Lookups { job, lookups })
                         if a.sequence == seq =>
                     {
-                        lock(&job.report).traffic.message(Kind::Answers, size);
+                        count(&job, 0, Some((Kind::Answers, size)));
                         apply_answers(&shared, &job, lookups, answers_of(&a));
                     }
                     (Some(cache_response::Msg::Ack(a)), Pending::Ack { job, kind, done }) if a.sequence == seq => {
                         let kind = if a.entries.is_empty() { kind } else { Kind::EntryCopies };
-                        lock(&job.report).traffic.message(kind, size);
+                        count(&job, 0, Some((kind, size)));
                         match entries_of(&a) {
                             Ok(entries) => carried.extend(entries),
                             Err(e) => {
@@ -829,8 +836,7 @@ fn apply_answers(
     lookups: Vec<Lookup>,
     answers: impl Iterator<Item = Answer>,
 ) {
-    job.awaiting_cache
-        .fetch_sub(lookups.len(), Ordering::Relaxed);
+    job.awaiting_cache_sub(lookups.len());
     if !job.is_active() {
         return;
     }
@@ -883,12 +889,12 @@ fn apply_answers(
         }
         out.rays.entry(l.domain).or_default().push(l.ray, &lin);
     }
-    if cache_not_sent + phm_not_sent > 0 {
-        let mut r = lock(&job.report);
-        r.cache_rays_not_sent += cache_not_sent;
-        r.phm_rays_not_sent += phm_not_sent;
-    }
-    crate::work::deliver(shared, job, out);
+    let counted = Report {
+        cache_rays_not_sent: cache_not_sent,
+        phm_rays_not_sent: phm_not_sent,
+        ..Report::default()
+    };
+    crate::work::deliver_with(shared, job, out, counted);
     shared.notify();
 }
 

@@ -9,23 +9,21 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use dray_core::credit::Credit;
 use dray_core::ray::RAY_RECORD_FORMAT;
 use dray_net::AuthChannel;
 use dray_proto::v1::{
     Assignment, GetRoutingTableRequest, HeartbeatRequest, JobSetup, RegisterWorkerRequest,
-    RegisterWorkerResponse, ReportContributionsRequest, RoutingTable, TileAssignment,
-    WatchAssignmentsRequest, assignment::Command,
+    RegisterWorkerResponse, RoutingTable, WatchAssignmentsRequest, assignment::Command,
 };
 
 use crate::config::{NodeError, WorkerConfig};
 use crate::domain_store::JobKey;
-use crate::job::plan_job_with;
-use crate::jobs::{Job, lock};
+use crate::jobs::actor::JobActor;
+use crate::jobs::{Job, JobEvent};
 use crate::node::{Shared, VERSION};
 use crate::peer_server::PeerServer;
+use crate::plan::plan_job_with;
 use crate::routing::Routes;
-use crate::tracer::TileRef;
 
 /// Connect to the coordinator, retrying for `patience`: in a cluster the workers often
 /// start before the coordinator listens.
@@ -166,8 +164,15 @@ async fn assignment_loop(shared: Arc<Shared>) -> NodeError {
         let Assignment { command } = msg;
         match command {
             Some(Command::Setup(setup)) => setup_job(&shared, setup).await,
-            Some(Command::Tiles(t)) => add_tiles(&shared, t),
-            Some(Command::Routing(r)) => set_routing(&shared, r).await,
+            Some(Command::Tiles(t)) => match shared.jobs.get(&t.job_id) {
+                Some(job) => job.tell(JobEvent::Tiles(t)),
+                None => tracing::warn!(job = %t.job_id, "tiles for a job this worker does not run"),
+            },
+            Some(Command::Routing(r)) => {
+                if let Some(job) = shared.jobs.get(&r.job_id) {
+                    job.tell(JobEvent::Routing(r));
+                }
+            }
             Some(Command::Cancel(r)) | Some(Command::Finish(r)) => {
                 tracing::info!(job = %r.job_id, attempt = r.attempt, reason = %r.reason, "job released");
                 if let Some(j) = shared.jobs.release(&r.job_id, r.attempt) {
@@ -188,11 +193,13 @@ async fn heartbeat_loop(shared: Arc<Shared>, every: Duration) -> NodeError {
     let mut failures = 0u32;
     loop {
         tokio::time::sleep(every).await;
+        let rays_queued = shared.in_flight() as u64;
+        crate::metrics::record_queued(rays_queued);
         let r = client
             .heartbeat(shared.as_member(HeartbeatRequest {
                 worker_id: shared.id(),
                 memory_used_bytes: shared.memory_used(),
-                rays_queued: shared.in_flight() as u64,
+                rays_queued,
             }))
             .await;
         match r {
@@ -267,16 +274,11 @@ async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
         .and_then(|s| s.phm.as_ref())
         .and_then(|p| p.merge)
         .unwrap_or(crate::map_merge::DEFAULT_MERGE_EVERY);
-    let job = Arc::new(
-        Job::new(key, plan.tracer, plan.source, routes)
-            .with_span(span)
-            .with_merges_every(merge_every),
-    );
-    if let Some(t) = setup.routing {
-        job.keep_table(t);
-    }
+    let (job, mailbox) = Job::new(key, plan.tracer, plan.source, routes);
+    let job = Arc::new(job.with_span(span).with_merges_every(merge_every));
+    let actor = JobActor::new(shared.clone(), job.clone(), mailbox, setup.routing);
     let owned = job.routes().owned().len();
-    let (started, replaced) = shared.jobs.insert(job.clone());
+    let (started, replaced) = shared.jobs.start(job.clone(), actor);
     if let Some(old) = replaced {
         shared.forget(&old.key.id, old.key.attempt);
     }
@@ -288,7 +290,7 @@ async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
 
 /// The whole current routing table of `job_id`, from the coordinator (None when it
 /// has none: the job is not running there).
-async fn whole_table(shared: &Shared, job_id: &str) -> Option<RoutingTable> {
+pub(crate) async fn whole_table(shared: &Shared, job_id: &str) -> Option<RoutingTable> {
     let mut client = shared.client.clone();
     let r = client
         .get_routing_table(shared.as_member(GetRoutingTableRequest {
@@ -319,113 +321,10 @@ async fn report_refusal(
 ) {
     let shown: String = job_id.chars().take(64).collect();
     tracing::error!(job = %shown, "{message}");
-    let mut client = shared.client.clone();
-    let _ = client
-        .report_contributions(shared.as_member(ReportContributionsRequest {
-            worker_id: shared.id(),
-            job_id: job_id.to_string(),
-            sequence: 1,
-            failure: message,
-            attempt,
-            ..Default::default()
-        }))
-        .await;
+    // Nothing was reported for the attempt before: its first sequence number.
+    crate::reporter::report_failure(shared, job_id, attempt, 1, message).await;
     if release {
         shared.jobs.release(job_id, attempt);
     }
     shared.forget(job_id, attempt);
-}
-
-fn add_tiles(shared: &Shared, t: TileAssignment) {
-    let Some(job) = shared.jobs.get(&t.job_id) else {
-        tracing::warn!(job = %t.job_id, "tiles for a job this worker does not run");
-        return;
-    };
-    let mut tiles = lock(&job.tiles);
-    // No more tiles queued than the job has: a coordinator repeating tiles cannot grow
-    // the queue without end.
-    if (tiles.len() + t.tiles.len()) as u64 > job.tracer.tile_count() {
-        drop(tiles);
-        job.fail(format!(
-            "worker {}: more tiles dealt than the job's {} (refused)",
-            shared.id(),
-            job.tracer.tile_count()
-        ));
-        return;
-    }
-    for tile in t.tiles {
-        if tile.attempt != job.key.attempt {
-            tracing::warn!(job = %t.job_id, attempt = tile.attempt, "tile of another attempt ignored");
-            continue;
-        }
-        tiles.push_back((
-            TileRef {
-                index: tile.index,
-                x0: tile.x0,
-                y0: tile.y0,
-                width: tile.width,
-                height: tile.height,
-                credit: Credit::from_wire(tile.credit),
-                coarse: tile.coarse,
-            },
-            0,
-        ));
-    }
-    drop(tiles);
-    shared.notify();
-}
-
-/// A new routing table: swap it in, and let go of domains this worker no longer owns
-/// (their queued rays are forwarded by the tracing threads). A delta (a round's moved
-/// domains) is applied to the whole table kept for the job; a worker that does not hold
-/// its base asks the coordinator for the whole table.
-async fn set_routing(shared: &Arc<Shared>, table: RoutingTable) {
-    let Some(job) = shared.jobs.get(&table.job_id) else {
-        return;
-    };
-    if table.attempt != job.key.attempt {
-        return;
-    }
-    let table = if table.base_version == 0 {
-        table
-    } else {
-        if let Err(e) = crate::setup_bounds::check_routing(&table, job.tracer.domain_count()) {
-            job.fail(format!("worker {}: {e}", shared.id()));
-            return;
-        }
-        match job.patch_table(&table) {
-            Some(t) => t,
-            None => match whole_table(shared, &table.job_id).await {
-                Some(t) if t.attempt == job.key.attempt && t.base_version == 0 => t,
-                // The job ended or moved to another attempt: its release is on the way.
-                _ => return,
-            },
-        }
-    };
-    if let Err(e) = crate::setup_bounds::check_routing(&table, job.tracer.domain_count()) {
-        job.fail(format!("worker {}: {e}", shared.id()));
-        return;
-    }
-    let routes = match Routes::new(&table, &shared.id(), job.tracer.domain_count()) {
-        Ok(r) => r,
-        Err(e) => {
-            job.fail(format!("worker {}: {e}", shared.id()));
-            return;
-        }
-    };
-    let version = routes.version;
-    let Some(old) = job.set_routes(routes) else {
-        return;
-    };
-    job.keep_table(table);
-    let new = job.routes();
-    let mut dropped = Vec::new();
-    for d in old.owned() {
-        if !new.owns(d) {
-            shared.store.evict(&job.key, d);
-            dropped.push(d);
-        }
-    }
-    tracing::debug!(job = %job.key.id, version, owned = ?new.owned(), ?dropped, "routing table changed");
-    shared.notify();
 }

@@ -4,7 +4,8 @@
 //! - [`crate::coordinator_link`]: connect, register, heartbeats and the coordinator's
 //!   command stream (job setups, tiles, routing tables, releases); registers again when
 //!   the coordinator restarts or declared this worker lost.
-//! - [`crate::jobs`]: the job attempts running here and what each has to report.
+//! - [`crate::jobs`]: the job attempts running here, each with its actor: the one owner
+//!   of what the job has to report, of its routing table and of the tiles dealt to it.
 //! - [`crate::domain_store`]: which domains are resident, loaded on demand and evicted
 //!   least-recently-used within the memory budget.
 //! - [`crate::queue`]: the ray queues, per job attempt and domain.
@@ -12,10 +13,11 @@
 //!   if needed), forward rays for domains this worker no longer owns, make camera rays,
 //!   trace, and hand the results on. **Tracing never waits for the network.**
 //! - [`crate::peers`]: one task per peer owning the gRPC stream to it.
-//! - [`crate::reporter`]: contributions and queue lengths to the coordinator.
+//! - [`crate::reporter`]: the report messages the job actors send the coordinator.
 //!
 //! Shutdown is in one place, [`run`]: a stop signal every task watches, the tracing
-//! threads joined, the peer tasks held in a join set and ended, the server stopped.
+//! threads joined, every job released and its actor joined, the peer tasks held in a
+//! join set and ended, the server stopped.
 
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -37,7 +39,6 @@ use crate::jobs::{Jobs, lock};
 use crate::peer_server::{PeerServer, PeerServerConfig};
 use crate::peers::Peers;
 use crate::queue::RayQueues;
-use crate::reporter;
 
 /// The dray version, sent at registration: the coordinator refuses another build.
 pub const VERSION: &str = env!("CARGO_PKG_VERSION");
@@ -132,12 +133,7 @@ impl Shared {
 
     /// Rays waiting here in any form, for the jobs still running.
     pub fn in_flight(&self) -> usize {
-        let outgoing: usize = self
-            .jobs
-            .all()
-            .iter()
-            .map(|j| j.outgoing.load(Ordering::Relaxed) + j.awaiting_cache.load(Ordering::Relaxed))
-            .sum();
+        let outgoing: usize = self.jobs.all().iter().map(|j| j.waiting()).sum();
         self.queues.total() + outgoing
     }
 
@@ -258,7 +254,6 @@ pub async fn run(
             .map_err(|e| NodeError::Threads(e.to_string()))?;
         tracers.push(t);
     }
-    let reporter = tokio::spawn(reporter::supervised(shared.clone(), stop_rx.clone()));
     let session = coordinator_link::sessions(
         shared.clone(),
         registration,
@@ -278,10 +273,10 @@ pub async fn run(
     for t in tracers {
         let _ = t.join();
     }
-    let _ = reporter.await;
     for j in shared.jobs.release_all() {
         shared.forget(&j.key.id, j.key.attempt);
     }
+    shared.jobs.join_actors().await;
     // End the streams to peers, so their servers can stop too, then our own server,
     // giving it a moment to finish its streams.
     shared.peers.close().await;

@@ -11,7 +11,6 @@
 //! it as lost and traces the unfinished tiles again on the workers that remain.
 
 use std::collections::HashMap;
-use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -20,7 +19,7 @@ use dray_proto::v1::{GetPeerPassRequest, RayTicket};
 use tokio::sync::mpsc;
 use tokio::task::JoinSet;
 
-use crate::jobs::{Job, lock};
+use crate::jobs::{Job, Report, lock};
 use crate::node::Shared;
 use crate::peer_client::{BatchKey, PeerClientConfig, PeerSender};
 use crate::routing::Peer;
@@ -56,7 +55,7 @@ impl Peers {
     /// Hand `msg` to the stream to `peer`, opening it if needed. Never waits.
     pub fn send(&self, shared: &Arc<Shared>, peer: &Peer, msg: PeerMessage) {
         let n = msg.rays.len();
-        msg.job.outgoing.fetch_add(n, Ordering::Relaxed);
+        msg.job.outgoing_add(n);
         let tx = {
             let mut outboxes = lock(&self.outboxes);
             match outboxes.get(&peer.endpoint) {
@@ -74,7 +73,7 @@ impl Peers {
         };
         if let Err(e) = tx.send(msg) {
             let m = e.0;
-            m.job.outgoing.fetch_sub(n, Ordering::Relaxed);
+            m.job.outgoing_sub(n);
             unreachable(&m.job, &peer.id);
         }
     }
@@ -95,13 +94,12 @@ impl Peers {
     }
 }
 
-/// Note that `job`'s rays for `peer` could not be sent.
+/// Note that `job`'s rays for `peer` could not be sent (its actor keeps each name once).
 fn unreachable(job: &Job, peer: &str) {
-    let mut r = lock(&job.report);
-    if !r.unreachable.iter().any(|p| p == peer) {
-        tracing::warn!(job = %job.key.id, %peer, "rays for an unreachable peer dropped");
-        r.unreachable.push(peer.to_string());
-    }
+    job.post(Report {
+        unreachable: vec![peer.to_string()],
+        ..Report::default()
+    });
 }
 
 async fn peer_loop(shared: Arc<Shared>, peer: Peer, mut rx: mpsc::UnboundedReceiver<PeerMessage>) {
@@ -186,7 +184,7 @@ async fn peer_loop(shared: Arc<Shared>, peer: Peer, mut rx: mpsc::UnboundedRecei
         } else {
             Ok(())
         };
-        m.job.outgoing.fetch_sub(n, Ordering::Relaxed);
+        m.job.outgoing_sub(n);
         // Room for camera rays again, perhaps.
         shared.notify();
         if let Err(e) = sent {
@@ -211,7 +209,7 @@ fn peer_failed(
     // The next rays for this peer open a new stream.
     lock(&shared.peers.outboxes).retain(|_, tx| !tx.is_closed());
     while let Ok(m) = rx.try_recv() {
-        m.job.outgoing.fetch_sub(m.rays.len(), Ordering::Relaxed);
+        m.job.outgoing_sub(m.rays.len());
         if m.job.is_active() {
             unreachable(&m.job, &peer.id);
         }

@@ -36,6 +36,17 @@ impl PixelSums {
         }
     }
 
+    /// Add every sum of `other`.
+    pub fn absorb(&mut self, other: PixelSums) {
+        if self.sums.is_empty() {
+            self.sums = other.sums;
+            return;
+        }
+        for (p, v) in other.sums {
+            self.add(p, v);
+        }
+    }
+
     /// Pixels with a sum.
     pub fn len(&self) -> usize {
         self.sums.len()

@@ -23,7 +23,7 @@ use dray_core::ray::RAY_RECORD_BYTES;
 
 use crate::contain::contained;
 use crate::domain_store::{DomainStore, JobKey, LoadError, LoadedDomain};
-use crate::jobs::{Job, Standing, lock};
+use crate::jobs::{Job, Report, Standing};
 use crate::node::Shared;
 use crate::peers::PeerMessage;
 use crate::queue::QueuedBatch;
@@ -119,7 +119,10 @@ fn step(shared: &Arc<Shared>, seen: u64) {
             shared.wake.wait(seen, Duration::from_millis(50));
             let idle = start.elapsed().as_secs_f64();
             for job in shared.jobs.all() {
-                lock(&job.report).idle_seconds += idle;
+                job.post(Report {
+                    idle_seconds: idle,
+                    ..Report::default()
+                });
             }
         }
     }
@@ -134,11 +137,16 @@ fn next_work(shared: &Shared) -> Option<Work> {
     // rays, no other domain is loaded (nor one evicted for it). Rays for the domains
     // that are not here gather meanwhile, so each load serves as many rays as it can:
     // loads are what an out-of-core worker pays for.
+    // Only domains this worker owns count: rays queued for a resident domain that the
+    // table moved away are forwarded, not traced, and must not hold back a load.
     let resident_best = lengths
         .iter()
         .find(|(k, _)| {
             shared.jobs.get(&k.job_id).is_some_and(|j| {
-                j.key.attempt == k.attempt && shared.store.is_resident(&j.key, k.domain)
+                j.key.attempt == k.attempt
+                    && !j.has_failed()
+                    && j.routes().owns(k.domain)
+                    && shared.store.is_resident(&j.key, k.domain)
             })
         })
         .map_or(0, |(_, n)| *n);
@@ -204,25 +212,14 @@ fn next_work(shared: &Shared) -> Option<Work> {
             if job.has_failed() {
                 continue;
             }
-            // Apart, so that the lock is not held through a load.
-            let tiles_left = !lock(&job.tiles).is_empty();
-            if !tiles_left || !camera_ready(shared, &job) {
+            if job.tiles().is_empty() || !camera_ready(shared, &job) {
                 continue;
             }
-            let mut tiles = lock(&job.tiles);
-            let Some((tile, next)) = tiles.front_mut() else {
-                continue;
-            };
-            let total = tile.camera_rays(job.tracer.settings().spp);
-            let start = *next;
-            let count = CAMERA_CHUNK.min(total - start);
-            let t = *tile;
-            *next += count;
-            if *next >= total {
-                tiles.pop_front();
+            let spp = job.tracer.settings().spp;
+            if let Some((t, start, count)) = job.tiles().take(CAMERA_CHUNK, |t| t.camera_rays(spp))
+            {
+                return Some(Work::Camera(job, t, start, count));
             }
-            drop(tiles);
-            return Some(Work::Camera(job, t, start, count));
         }
     }
     None
@@ -363,7 +360,7 @@ fn forward(shared: &Arc<Shared>, job: &Arc<Job>, domain: u32, batch: QueuedBatch
     }
     let routes = job.routes();
     let n = batch.rays.len() as u64;
-    let peer = match destination(&routes, domain, batch.forwards, &job.spread) {
+    let peer = match destination(&routes, domain, batch.forwards, job.spread()) {
         Ok(Destination::Peer(peer)) => peer,
         Ok(Destination::Here) => {
             // The table changed meanwhile: trace them here, or hold them here.
@@ -388,13 +385,14 @@ fn forward(shared: &Arc<Shared>, job: &Arc<Job>, domain: u32, batch: QueuedBatch
             return;
         }
     };
-    {
-        let mut r = lock(&job.report);
-        r.rays_forwarded += n;
-        r.rays_sent += n;
-        r.bytes += n * RAY_RECORD_BYTES as u64;
-        r.traffic.rays(batch.rays.len(), &batch.tickets);
-    }
+    let mut report = Report {
+        rays_forwarded: n,
+        rays_sent: n,
+        bytes: n * RAY_RECORD_BYTES as u64,
+        ..Report::default()
+    };
+    report.traffic.rays(batch.rays.len(), &batch.tickets);
+    job.post(report);
     shared.peers.send(
         shared,
         &peer,
@@ -411,12 +409,20 @@ fn forward(shared: &Arc<Shared>, job: &Arc<Job>, domain: u32, batch: QueuedBatch
 
 /// Results into the job's report; rays to this worker's queues or to their owners,
 /// rays at walls to the walls' cache actors.
-pub(crate) fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, mut out: Outbox) {
-    if out.phm_not_sent + out.cache_not_sent > 0 {
-        let mut r = lock(&job.report);
-        r.phm_rays_not_sent += std::mem::take(&mut out.phm_not_sent);
-        r.cache_rays_not_sent += std::mem::take(&mut out.cache_not_sent);
-    }
+pub(crate) fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, out: Outbox) {
+    deliver_with(shared, job, out, Report::default());
+}
+
+/// [`deliver`], adding the results to `report` (counters of the caller's own) and
+/// posting it to the job's actor: one step's results travel together.
+pub(crate) fn deliver_with(
+    shared: &Arc<Shared>,
+    job: &Arc<Job>,
+    mut out: Outbox,
+    mut report: Report,
+) {
+    report.phm_rays_not_sent += std::mem::take(&mut out.phm_not_sent);
+    report.cache_rays_not_sent += std::mem::take(&mut out.cache_not_sent);
     if !out.lookups.is_empty() {
         crate::cache_link::send_lookups(shared, job, std::mem::take(&mut out.lookups));
     }
@@ -431,7 +437,7 @@ pub(crate) fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, mut out: Outbox) {
             continue;
         }
         let (rays, tickets) = (bundle.rays, bundle.tickets);
-        let peer = match destination(&routes, d, 0, &job.spread) {
+        let peer = match destination(&routes, d, 0, job.spread()) {
             Ok(Destination::Peer(peer)) => peer,
             Ok(Destination::Here) => {
                 // Traced here, or held here until a worker is given the domain.
@@ -473,18 +479,18 @@ pub(crate) fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, mut out: Outbox) {
             },
         );
     }
-    let mut r = lock(&job.report);
+    let r = &mut report;
     r.sums.extend(&out.sums);
-    let mut credits = out.credits;
-    r.credits.append(&mut credits);
+    r.credits.append(&mut out.credits);
     for (k, n) in out.traced.iter().enumerate() {
         r.traced[k] += n;
     }
     r.nonfinite += out.nonfinite;
-    r.tickets.merge(out.tickets);
+    r.tickets.merge(std::mem::take(&mut out.tickets));
     r.bytes += sent * RAY_RECORD_BYTES as u64;
     r.rays_sent += sent;
     r.traffic.add(&traffic);
+    job.post(report);
 }
 
 #[cfg(test)]

@@ -23,7 +23,7 @@ use dray_scene::partition::resident::resident_in_memory;
 use dray_scene::partition::{
     DomainLayout, LayoutSpec, load_resident, open_package, partition_in_memory, write_scene_package,
 };
-use dray_worker::job::{memory_domains, package_domains};
+use dray_worker::plan::{memory_domains, package_domains};
 use dray_worker::{DomainSource, JobTracer, LoadedDomain, Outbox, TileRef};
 
 const TILE: u32 = 16;

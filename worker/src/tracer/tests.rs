@@ -23,7 +23,7 @@ use glam::Vec3;
 
 use super::{JobTracer, NoDomains, Outbox, Residency, TileRef, TraceError};
 use crate::domain_store::LoadedDomain;
-use crate::job::memory_domains;
+use crate::plan::memory_domains;
 use crate::tickets::Lineage;
 
 const TILE: u32 = 8;
