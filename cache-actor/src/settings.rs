@@ -7,6 +7,7 @@
 //! instead of misbehaving later.
 
 use dray_core::integrator::RayKind;
+use dray_core::kind_set::KindSet;
 use dray_core::wall::PhmBins;
 use dray_proto::v1::{PhmSettings, RayCacheSettings};
 
@@ -150,21 +151,15 @@ impl CacheSettings {
     }
 }
 
-/// `"camera,diffuse"` → bit mask; empty means all four cacheable kinds. `+` separates
-/// too, as on the command line (`kinds=camera+diffuse`), so a list passed through
-/// unchanged is not refused.
+/// `"camera,diffuse"` → bit mask ([`KindSet`]); empty means all four cacheable kinds.
 fn parse_kinds(s: &str) -> Result<u8, SettingsError> {
-    let mut mask = 0u8;
-    for name in s.split([',', '+']).map(str::trim).filter(|n| !n.is_empty()) {
-        let kind = RayKind::from_name(name)
-            .filter(|k| RayKind::RADIANCE.contains(k))
-            .ok_or_else(|| SettingsError::Kinds(name.to_string()))?;
-        mask |= 1 << kind as u8;
+    let kinds = KindSet::parse(s, &RayKind::RADIANCE).map_err(|e| SettingsError::Kinds(e.name))?;
+    Ok(if kinds.is_empty() {
+        KindSet::cache_default()
+    } else {
+        kinds
     }
-    if mask == 0 {
-        mask = RayKind::RADIANCE.iter().fold(0, |m, k| m | 1 << *k as u8);
-    }
-    Ok(mask)
+    .bits())
 }
 
 /// Texels per wall edge used when `phm.res` is absent, and the largest accepted.
@@ -272,19 +267,16 @@ impl HitMapSettings {
     }
 }
 
-/// `"shadow,ambient_occlusion"` → bit mask over every kind; empty means shadow rays
-/// only (the source's use). `+` separates too, as for the ray cache's kinds.
+/// `"shadow,ambient_occlusion"` → bit mask over every kind ([`KindSet`]); empty means
+/// shadow rays only (the source's use).
 fn parse_phm_kinds(s: &str) -> Result<u8, SettingsError> {
-    let mut mask = 0u8;
-    for name in s.split([',', '+']).map(str::trim).filter(|n| !n.is_empty()) {
-        let kind =
-            RayKind::from_name(name).ok_or_else(|| SettingsError::PhmKinds(name.to_string()))?;
-        mask |= 1 << kind as u8;
+    let kinds = KindSet::parse(s, &RayKind::ALL).map_err(|e| SettingsError::PhmKinds(e.name))?;
+    Ok(if kinds.is_empty() {
+        KindSet::phm_default()
+    } else {
+        kinds
     }
-    if mask == 0 {
-        mask = 1 << RayKind::Shadow as u8;
-    }
-    Ok(mask)
+    .bits())
 }
 
 #[cfg(test)]
@@ -374,7 +366,7 @@ mod tests {
             angle_deg: Some(90.0),
             retrieve: "average".into(),
             coarse: 4096,
-            kinds: " camera , diffuse+camera,".into(),
+            kinds: " camera , diffuse,camera,".into(),
             fill: Some(false),
             ..proto(0.0)
         };
@@ -405,7 +397,7 @@ mod tests {
             hit: Some(0.5),
             mode: "inconsistent".into(),
             reprobe: Some(1.0),
-            kinds: "camera+ambient_occlusion, shadow,".into(),
+            kinds: "camera,ambient_occlusion, shadow,".into(),
             ..Default::default()
         };
         let s = HitMapSettings::from_proto(&p).unwrap();

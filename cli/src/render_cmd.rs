@@ -134,8 +134,9 @@ pub fn check_args(a: &RenderArgs) -> Result<IntegratorKind> {
     }
     IntegratorKind::from_name(&a.job.integrator).with_context(|| {
         format!(
-            "unknown integrator {:?} (expected raycast, whitted, path or ao)",
-            a.job.integrator
+            "unknown integrator {:?} (expected {})",
+            a.job.integrator,
+            IntegratorKind::choices()
         )
     })
 }

@@ -42,7 +42,7 @@ pub struct WorkerArgs {
     #[arg(long, default_value_t = 0, value_name = "MS")]
     pub load_delay_ms: u64,
     /// Seconds to keep trying to reach the coordinator at start.
-    #[arg(long, default_value_t = 10)]
+    #[arg(long, default_value_t = dray_worker::WorkerConfig::default().connect_timeout.as_secs())]
     pub connect_timeout: u64,
     /// Address to serve this process's ray caches on (port 0 picks a free port);
     /// advertised at the worker's advertised host with the bound port. Default: the

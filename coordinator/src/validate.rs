@@ -13,6 +13,7 @@ use std::sync::atomic::AtomicBool;
 use dray_core::camera::Camera;
 use dray_core::effects::Effect;
 use dray_core::integrator::{IntegratorKind, RayKind, RenderSettings};
+use dray_core::kind_set::KindSet;
 use dray_core::scene::{Mesh, Scene};
 use dray_proto::v1::{JobSpec, PhmSettings, RayCacheSettings};
 use dray_scene::partition::manifest::MANIFEST_FILE;
@@ -91,14 +92,6 @@ pub const DEFAULT_CACHE_ANGLE_DEG: f32 = 10.0;
 pub const DEFAULT_CACHE_RETRIEVE: &str = "nearest";
 /// The `ray_cache.retrieve` modes.
 pub const CACHE_RETRIEVE_MODES: [&str; 3] = ["first", "nearest", "average"];
-/// The ray kinds a cache may answer, in the order `ray_cache.kinds` is written back.
-/// Shadow and AO rays carry no radiance of their own, so there is nothing to cache.
-pub const CACHE_KINDS: [&str; 4] = [
-    RayKind::RADIANCE[0].name(),
-    RayKind::RADIANCE[1].name(),
-    RayKind::RADIANCE[2].name(),
-    RayKind::RADIANCE[3].name(),
-];
 /// Largest `ray_cache.coarse` (a coarse pass of N x N rays).
 pub const MAX_CACHE_COARSE: u32 = 4096;
 
@@ -202,8 +195,9 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
     }
     let integrator = IntegratorKind::from_name(&spec.integrator).ok_or_else(|| {
         bad(format!(
-            "integrator: unknown integrator {:?} (expected raycast, whitted, path or ao)",
-            spec.integrator
+            "integrator: unknown integrator {:?} (expected {})",
+            spec.integrator,
+            IntegratorKind::choices()
         ))
     })?;
     let max_depth = *spec.max_depth.get_or_insert(DEFAULT_MAX_DEPTH);
@@ -302,9 +296,6 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
     })
 }
 
-/// Ray kinds that may consult hit maps, in the order `phm.kinds` is written back.
-pub const PHM_KINDS: [&str; RayKind::COUNT] = RayKind::NAMES;
-
 /// Check the hit-map knobs and fill in their defaults in place (docs/caches.md): res 4
 /// (1..=64), dirs 12 (1..=256), prior 100 (finite, >= 0), miss 0.1 and hit 0.9
 /// (0 <= miss <= 0.5 <= hit <= 1), mode consistent, reprobe 0.1 ([0, 1]), kinds shadow,
@@ -349,32 +340,17 @@ pub fn check_phm(p: &mut PhmSettings) -> Result<(), Status> {
     if merge == 0 {
         return Err(bad("phm.merge must be at least 1 outcome, got 0".into()));
     }
-    let mut wanted = [false; PHM_KINDS.len()];
     let kinds = if p.kinds.trim().is_empty() {
-        "shadow".to_string()
+        KindSet::phm_default()
     } else {
-        p.kinds.clone()
+        KindSet::parse(&p.kinds, &RayKind::ALL).map_err(|e| {
+            bad(format!(
+                "phm.kinds: unknown ray kind {:?} (expected one of {})",
+                e.name, e.allowed
+            ))
+        })?
     };
-    for name in kinds
-        .split([',', '+'])
-        .map(str::trim)
-        .filter(|n| !n.is_empty())
-    {
-        let Some(i) = PHM_KINDS.iter().position(|k| *k == name) else {
-            return Err(bad(format!(
-                "phm.kinds: unknown ray kind {name:?} (expected one of {})",
-                RayKind::help_list(&RayKind::ALL)
-            )));
-        };
-        wanted[i] = true;
-    }
-    p.kinds = PHM_KINDS
-        .iter()
-        .zip(wanted)
-        .filter(|(_, w)| *w)
-        .map(|(k, _)| *k)
-        .collect::<Vec<_>>()
-        .join(",");
+    p.kinds = kinds.names();
     if p.kinds.is_empty() {
         return Err(bad("phm.kinds: no ray kind given".into()));
     }
@@ -413,8 +389,9 @@ pub fn check_phm_placement(
 
 /// Check the ray-cache knobs and fill in their defaults in place, so the workers, the
 /// cache hosts and GetJob all read the same resolved settings: `angle_deg` 10,
-/// `retrieve` "nearest", `kinds` all four cacheable kinds (written back in the order of
-/// [`CACHE_KINDS`], without duplicates), `fill` true without a coarse pass and false with
+/// `retrieve` "nearest", `kinds` all four cacheable kinds (read and written back by
+/// [`KindSet`]: canonical order, no duplicates; shadow and AO rays carry no radiance of
+/// their own, so there is nothing to cache), `fill` true without a coarse pass and false with
 /// one.
 pub fn check_ray_cache(rc: &mut RayCacheSettings) -> Result<(), Status> {
     if !(rc.radius.is_finite() && rc.radius >= 0.0) {
@@ -445,27 +422,19 @@ pub fn check_ray_cache(rc: &mut RayCacheSettings) -> Result<(), Status> {
             rc.coarse
         )));
     }
-    let mut wanted = [false; CACHE_KINDS.len()];
-    for name in rc.kinds.split(',').map(str::trim).filter(|n| !n.is_empty()) {
-        let Some(i) = CACHE_KINDS.iter().position(|k| *k == name) else {
-            return Err(bad(format!(
-                "ray_cache.kinds: {name:?} cannot be cached (expected one of {}; shadow and \
-                 ao rays carry no radiance of their own)",
-                RayKind::help_list(&RayKind::RADIANCE)
-            )));
-        };
-        wanted[i] = true;
+    let kinds = KindSet::parse(&rc.kinds, &RayKind::RADIANCE).map_err(|e| {
+        bad(format!(
+            "ray_cache.kinds: {:?} cannot be cached (expected one of {}; shadow and \
+             ao rays carry no radiance of their own)",
+            e.name, e.allowed
+        ))
+    })?;
+    rc.kinds = if kinds.is_empty() {
+        KindSet::cache_default()
+    } else {
+        kinds
     }
-    if !wanted.contains(&true) {
-        wanted = [true; CACHE_KINDS.len()];
-    }
-    rc.kinds = CACHE_KINDS
-        .iter()
-        .zip(wanted)
-        .filter(|(_, on)| *on)
-        .map(|(k, _)| *k)
-        .collect::<Vec<_>>()
-        .join(",");
+    .names();
     // A coarse pass fills the caches, which then stay frozen (Little 2011; the same
     // bits every run); without one, the main pass must fill them or they stay empty.
     rc.fill.get_or_insert(rc.coarse == 0);

@@ -114,16 +114,27 @@ pub enum IntegratorKind {
 }
 
 impl IntegratorKind {
+    pub const ALL: [IntegratorKind; 4] = [
+        IntegratorKind::Raycast,
+        IntegratorKind::Whitted,
+        IntegratorKind::Path,
+        IntegratorKind::Ao,
+    ];
+
+    /// The integrator named `s` (as [`IntegratorKind::name`] spells it).
     pub fn from_name(s: &str) -> Option<IntegratorKind> {
-        match s {
-            "raycast" => Some(IntegratorKind::Raycast),
-            "whitted" => Some(IntegratorKind::Whitted),
-            "path" => Some(IntegratorKind::Path),
-            "ao" => Some(IntegratorKind::Ao),
-            _ => None,
-        }
+        IntegratorKind::ALL.into_iter().find(|k| k.name() == s)
     }
 
+    /// Every integrator's name, for errors that list the choices ("raycast, whitted,
+    /// path or ao").
+    pub fn choices() -> String {
+        let names = IntegratorKind::ALL.map(IntegratorKind::name);
+        let (last, rest) = names.split_last().expect("at least one integrator");
+        format!("{} or {last}", rest.join(", "))
+    }
+
+    /// The one spelling of each integrator's name (the JobSpec, the CLI, stats).
     pub fn name(self) -> &'static str {
         match self {
             IntegratorKind::Raycast => "raycast",
@@ -692,6 +703,15 @@ impl<'a> Integrator<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn integrators_are_named_once_and_found_by_name() {
+        for k in IntegratorKind::ALL {
+            assert_eq!(IntegratorKind::from_name(k.name()), Some(k));
+        }
+        assert_eq!(IntegratorKind::from_name("bdpt"), None);
+        assert_eq!(IntegratorKind::choices(), "raycast, whitted, path or ao");
+    }
 
     #[test]
     fn kinds_are_named_once_and_found_by_name() {

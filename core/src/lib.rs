@@ -22,6 +22,7 @@ pub mod domain;
 pub mod film;
 pub mod integrator;
 pub mod intersect;
+pub mod kind_set;
 pub mod light_sampler;
 pub mod ray;
 pub mod render;

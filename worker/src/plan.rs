@@ -13,6 +13,7 @@ use std::sync::Arc;
 use dray_core::camera::Camera;
 use dray_core::effects::{Effect, Effects};
 use dray_core::integrator::{IntegratorKind, RayKind, RenderSettings};
+use dray_core::kind_set::KindSet;
 use dray_core::light_sampler::LightSampler;
 use dray_core::scene::Scene;
 use dray_core::wall::PhmBins;
@@ -170,7 +171,7 @@ pub fn plan_job_with(
         .iter()
         .map(|d| d.triangles)
         .collect();
-    let tracer = tracer(settings.clone(), camera, package.layout(), &counts, setup);
+    let tracer = tracer(settings.clone(), camera, package.layout(), &counts, setup)?;
     let source = domains_of(package, &settings, remote).map_err(|e| pkg_err(e.to_string()))?;
     Ok(JobPlan {
         content: content(&found, &settings),
@@ -254,7 +255,7 @@ fn memory_plan(
         layout.scene_bounds(),
     )?;
     let counts = package.triangle_counts();
-    let tracer = tracer(settings.clone(), camera, layout, &counts, setup);
+    let tracer = tracer(settings.clone(), camera, layout, &counts, setup)?;
     Ok(JobPlan {
         content: content(&setup.package_path, &settings),
         tracer,
@@ -374,8 +375,8 @@ fn tracer(
     layout: &DomainLayout,
     counts: &[u64],
     setup: &JobSetup,
-) -> JobTracer {
-    JobTracer::new(
+) -> Result<JobTracer, JobError> {
+    Ok(JobTracer::new(
         settings,
         camera,
         layout.to_domain_tree(),
@@ -383,8 +384,8 @@ fn tracer(
         counts,
         setup.tile_size,
     )
-    .with_cached_kinds(cached_kinds(setup))
-    .with_phm(phm_kinds(setup), phm_bins(setup))
+    .with_cached_kinds(cached_kinds(setup)?)
+    .with_phm(phm_kinds(setup)?, phm_bins(setup))
     .with_fill(
         setup
             .spec
@@ -399,26 +400,23 @@ fn tracer(
             .as_ref()
             .and_then(|s| s.ray_cache.as_ref())
             .map_or(0, |rc| rc.coarse),
-    )
+    ))
 }
 
-/// The ray kinds the job's hit maps serve (none without maps); empty means shadow rays.
-fn phm_kinds(setup: &JobSetup) -> [bool; RayKind::COUNT] {
-    let mut kinds = [false; RayKind::COUNT];
+/// The ray kinds the job's hit maps serve (none without maps); an empty list means
+/// shadow rays ([`KindSet::phm_default`]).
+fn phm_kinds(setup: &JobSetup) -> Result<[bool; RayKind::COUNT], JobError> {
     let Some(p) = setup.spec.as_ref().and_then(|s| s.phm.as_ref()) else {
-        return kinds;
+        return Ok([false; RayKind::COUNT]);
     };
-    let names = if p.kinds.trim().is_empty() {
-        "shadow"
+    let kinds = KindSet::parse(&p.kinds, &RayKind::ALL)
+        .map_err(|e| JobError::Invalid(format!("phm.kinds: {e}")))?;
+    Ok(if kinds.is_empty() {
+        KindSet::phm_default()
     } else {
-        p.kinds.as_str()
-    };
-    for name in names.split([',', '+']).map(str::trim) {
-        if let Some(k) = RayKind::from_name(name) {
-            kinds[k as usize] = true;
-        }
+        kinds
     }
-    kinds
+    .to_flags())
 }
 
 /// The binning of the job's hit maps (defaults as the coordinator fills them).
@@ -432,24 +430,19 @@ fn phm_bins(setup: &JobSetup) -> PhmBins {
 
 /// The ray kinds the job's ray caches look up (none without caches). The coordinator
 /// validated the names and filled in the default; an empty list here still means all
-/// the kinds that carry radiance ([`RayKind::RADIANCE`]).
-fn cached_kinds(setup: &JobSetup) -> [bool; RayKind::COUNT] {
-    let mut kinds = [false; RayKind::COUNT];
+/// the kinds that carry radiance ([`KindSet::cache_default`]).
+fn cached_kinds(setup: &JobSetup) -> Result<[bool; RayKind::COUNT], JobError> {
     let Some(rc) = setup.spec.as_ref().and_then(|s| s.ray_cache.as_ref()) else {
-        return kinds;
+        return Ok([false; RayKind::COUNT]);
     };
-    if rc.kinds.trim().is_empty() {
-        for k in RayKind::RADIANCE {
-            kinds[k as usize] = true;
-        }
-        return kinds;
+    let kinds = KindSet::parse(&rc.kinds, &RayKind::RADIANCE)
+        .map_err(|e| JobError::Invalid(format!("ray_cache.kinds: {e}")))?;
+    Ok(if kinds.is_empty() {
+        KindSet::cache_default()
+    } else {
+        kinds
     }
-    for name in rc.kinds.split([',', '+']).map(str::trim) {
-        if let Some(k) = RayKind::from_name(name).filter(|k| RayKind::RADIANCE.contains(k)) {
-            kinds[k as usize] = true;
-        }
-    }
-    kinds
+    .to_flags())
 }
 
 /// The package must be cut as the coordinator said.
