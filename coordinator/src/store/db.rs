@@ -15,7 +15,7 @@ use std::time::Duration;
 
 use dray_proto::v1::{JobSpec, JobState, JobStats};
 use prost::Message;
-use rusqlite::{Connection, ErrorCode, OpenFlags, OptionalExtension};
+use rusqlite::{Connection, ErrorCode, OpenFlags};
 
 use super::writer::{Op, Writer};
 use super::{CommittedTile, StoreError, StoredJob, from_millis};
@@ -333,16 +333,17 @@ pub(crate) fn ended(s: JobState) -> bool {
     )
 }
 
-/// The row of job `id`, if any (tests).
-pub fn has_job(conn: &Connection, id: &str) -> rusqlite::Result<bool> {
-    conn.query_row("SELECT 1 FROM jobs WHERE id = ?1", [id], |_| Ok(()))
-        .optional()
-        .map(|r| r.is_some())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rusqlite::OptionalExtension;
+
+    /// Whether the database has a row for job `id`.
+    fn has_job(conn: &Connection, id: &str) -> rusqlite::Result<bool> {
+        conn.query_row("SELECT 1 FROM jobs WHERE id = ?1", [id], |_| Ok(()))
+            .optional()
+            .map(|r| r.is_some())
+    }
 
     fn spec() -> JobSpec {
         JobSpec {
