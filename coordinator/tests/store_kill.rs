@@ -65,7 +65,7 @@ fn child(dir: &str) {
                 })
                 .collect(),
         });
-        if job % 3 == 0 {
+        if job.is_multiple_of(3) {
             store.post(Op::Finish {
                 id: id.clone(),
                 state: JobState::Succeeded,
@@ -137,7 +137,7 @@ fn a_kill_during_writes_tears_nothing() {
             images += 1;
         } else {
             assert!(
-                n % 3 != 0 || n > confirmed,
+                !n.is_multiple_of(3) || n > confirmed,
                 "{}: confirmed as ended, found {:?}",
                 j.id,
                 j.state
