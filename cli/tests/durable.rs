@@ -27,30 +27,17 @@ fn text(log: &support::Captured) -> String {
 
 /// A coordinator on `port` keeping its jobs in `state`.
 fn coordinator(dir: &Path, state: &Path, port: u16) -> (Proc, String, support::Captured) {
-    let mut cmd = dray();
-    cmd.args(["coordinator", "--listen", &format!("127.0.0.1:{port}")])
-        .arg("--scene-root")
-        .arg(dir)
-        .arg("--work-dir")
-        .arg(dir.join("work"))
-        .arg("--state-dir")
-        .arg(state)
-        .args([
-            "--heartbeat-interval-ms",
-            "100",
-            "--heartbeat-timeout-ms",
-            "2000",
-        ])
-        .env("DRAY_LOG", "warn,dray_coordinator=info")
-        .env("NO_COLOR", "1")
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped());
-    let mut p = Proc::spawn(cmd);
-    let log = capture_stderr(&mut p.child);
-    let addr = support::listening_address(&mut p.child)
-        .unwrap_or_else(|first| panic!("no address in {first:?}: {}", text(&log)));
-    (p, addr, log)
+    let work = dir.join("work");
+    support::logged_coordinator(
+        dir,
+        port,
+        &[
+            "--work-dir".as_ref(),
+            work.as_os_str(),
+            "--state-dir".as_ref(),
+            state.as_os_str(),
+        ],
+    )
 }
 
 fn worker(addr: &str) -> Proc {

@@ -45,26 +45,7 @@ struct Cluster {
 impl Cluster {
     /// A coordinator on `port` (0: any) with a 2 s heartbeat timeout.
     fn coordinator(dir: &Path, port: u16) -> (Proc, String, support::Captured) {
-        let mut cmd = dray();
-        cmd.args(["coordinator", "--listen", &format!("127.0.0.1:{port}")])
-            .arg("--scene-root")
-            .arg(dir)
-            .args([
-                "--heartbeat-interval-ms",
-                "100",
-                "--heartbeat-timeout-ms",
-                "2000",
-            ])
-            .env("DRAY_LOG", "warn,dray_coordinator=info")
-            .env("NO_COLOR", "1")
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped());
-        let mut p = Proc::spawn(cmd);
-        let log = capture_stderr(&mut p.child);
-        let addr = support::listening_address(&mut p.child)
-            .unwrap_or_else(|first| panic!("no address in {first:?}"));
-        (p, addr, log)
+        support::logged_coordinator(dir, port, &[])
     }
 
     fn start(tag: &str, workers: usize, worker_flags: &[&str]) -> Cluster {
