@@ -617,3 +617,82 @@ pub fn encode_exr(film: &Film, spp: u32) -> Result<Vec<u8>, String> {
     film.encode_exr(spp)
         .map_err(|e| format!("cannot encode EXR: {e}"))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec(seed: u64) -> JobSpec {
+        JobSpec {
+            scene: "cornell".into(),
+            width: 4,
+            height: 2,
+            spp: 1,
+            seed,
+            ..Default::default()
+        }
+    }
+
+    fn film(v: i64) -> Film {
+        let mut f = Film::new(4, 2);
+        for p in 0..8 {
+            f.add_fixed(p, [v, -v, p as i64]);
+        }
+        f
+    }
+
+    /// Finished jobs come back from the store with their images, and the retention
+    /// policy deletes a dropped image's file and records why.
+    #[test]
+    fn finished_images_are_kept_and_dropped_in_the_store() {
+        let dir = tempfile::tempdir().unwrap();
+        let (old, new) = {
+            let (store, _) = JobStore::open(dir.path()).unwrap();
+            let store = Arc::new(store);
+            let table = JobTable::new(1);
+            table.keep_in(store.clone());
+            let old = table.insert(spec(1));
+            old.finish(JobState::Succeeded, String::new(), Some(film(3)));
+            let new = table.insert(spec(2));
+            new.finish(JobState::Succeeded, String::new(), Some(film(5)));
+            store.flush();
+            (old.id.clone(), new.id.clone())
+        };
+        let image = |id: &str| dir.path().join("images").join(format!("{id}.film"));
+        assert!(image(&old).is_file() && image(&new).is_file());
+
+        let (store, stored) = JobStore::open(dir.path()).unwrap();
+        let store = Arc::new(store);
+        let table = JobTable::new(1).with_retention(Retention {
+            keep_finished: 1,
+            ..Retention::default()
+        });
+        table.keep_in(store.clone());
+        assert!(table.restore(stored).is_empty(), "nothing to run again");
+        let get = |id: &str| table.get(id).unwrap();
+        assert_eq!(get(&old).state(), JobState::Succeeded);
+        let kept = crate::store::image_file::read(&get(&old).image_file().unwrap()).unwrap();
+        assert_eq!(kept, film(3), "the image comes back exactly");
+
+        table.sweep();
+        store.flush();
+        assert!(
+            get(&old)
+                .dropped()
+                .is_some_and(|w| w.contains("--keep-finished"))
+        );
+        assert!(get(&old).image_file().is_none());
+        assert!(!image(&old).exists(), "the dropped image's file is deleted");
+        assert!(image(&new).is_file(), "the newest is kept");
+        drop(table);
+        store.seal();
+        let (_store, stored) = JobStore::open(dir.path()).unwrap();
+        let old = stored.iter().find(|j| j.id == old).unwrap();
+        assert!(old.image.is_none());
+        assert!(
+            old.dropped
+                .as_deref()
+                .is_some_and(|w| w.contains("--keep-finished"))
+        );
+    }
+}
