@@ -19,6 +19,7 @@ use clap::Args;
 use dray_coordinator::cluster::{ClusterOptions, DEFAULT_STALL_TIMEOUT};
 use dray_coordinator::jobs::Retention;
 use dray_coordinator::membership::HeartbeatConfig;
+use dray_coordinator::store::JobStore;
 use dray_coordinator::validate::Limits;
 
 use crate::net_flags::{self, ApiTokenArgs, MemberArgs};
@@ -59,6 +60,15 @@ pub struct CoordinatorArgs {
     /// [default: a new directory in the system temp directory]
     #[arg(long, value_name = "DIR")]
     pub work_dir: Option<PathBuf>,
+    /// Directory where jobs and finished images are kept across restarts (an SQLite
+    /// database, its lock and the images): a coordinator started again on it lists the
+    /// finished jobs, serves their images, queues the queued ones again and resumes the
+    /// running ones, keeping every committed tile. One coordinator per directory (a lock
+    /// file says who holds it).
+    /// [default: `state` in --work-dir when that is given; without either, jobs are kept
+    /// in memory only]
+    #[arg(long, value_name = "DIR")]
+    pub state_dir: Option<PathBuf>,
     /// How often workers send heartbeats, in milliseconds.
     #[arg(long, value_name = "MS", default_value_t = default_heartbeat().interval.as_millis() as u64)]
     pub heartbeat_interval_ms: u64,
@@ -195,8 +205,30 @@ pub async fn stop_signal() {
     }
 }
 
+/// The state directory the flags ask for, if any: `--state-dir`, else `state` in
+/// `--work-dir` (made absolute by [`prepare_work_dir`] already).
+fn state_dir(a: &CoordinatorArgs, work_dir: &Path) -> Option<PathBuf> {
+    match (&a.state_dir, &a.work_dir) {
+        (Some(dir), _) => Some(dir.clone()),
+        (None, Some(_)) => Some(work_dir.join("state")),
+        (None, None) => None,
+    }
+}
+
 pub fn run(a: CoordinatorArgs) -> Result<()> {
     let options = cluster_options(&a)?;
+    // The store is opened first: a locked, damaged or newer one stops the coordinator
+    // before it serves anything, with one line naming the file.
+    let store = match state_dir(&a, options.work_dir.path()) {
+        Some(dir) => {
+            let (store, jobs) = JobStore::open(&dir).map_err(|e| anyhow::anyhow!("{e}"))?;
+            Some((std::sync::Arc::new(store), jobs))
+        }
+        None => None,
+    };
+    // Workers that outlived an earlier coordinator register again within their
+    // heartbeat timeout: jobs taken back wait that long (twice) for one.
+    let resume_grace = options.heartbeat.timeout.saturating_mul(2);
     let api = a.api_token.token()?;
     let cluster_token = a.member.cluster_token.token()?;
     let access = describe_access(
@@ -220,6 +252,10 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
                 max_bytes: a.keep_finished_bytes,
             },
         );
+    let (coordinator, stored, store) = match store {
+        Some((store, jobs)) => (coordinator.with_store(store.clone()), jobs, Some(store)),
+        None => (coordinator, Vec::new(), None),
+    };
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -243,11 +279,31 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
             heartbeat.timeout.as_millis(),
         );
         eprintln!("dray coordinator: {access}");
+        match &store {
+            Some(s) => {
+                let again = coordinator.resume(stored, resume_grace);
+                eprintln!(
+                    "dray coordinator: jobs kept in {} ({} taken back, {again} to run again)",
+                    s.dir().display(),
+                    coordinator.job_count(),
+                );
+            }
+            None => eprintln!(
+                "dray coordinator: jobs are kept in memory only (set --state-dir or --work-dir \
+                 to keep them across restarts)"
+            ),
+        }
+        let sealing = store.clone();
         let (stopping_tx, stopping_rx) = tokio::sync::oneshot::channel::<()>();
         let cleanup = coordinator.clone();
         let stopping = coordinator.clone();
         let shutdown = async move {
             stop_signal().await;
+            // Jobs stopped by the shutdown itself are not recorded as ended: they are
+            // resumed by the next coordinator on this state directory.
+            if let Some(s) = sealing {
+                s.seal();
+            }
             // Cuts stop now, while the server winds down, not after.
             stopping.stop_preparations();
             let _ = stopping_tx.send(());
@@ -273,6 +329,9 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
         cleanup.remove_packages_on_stop(PACKAGE_GRACE).await;
         result.context("the gRPC server stopped")
     });
+    if let Some(s) = &store {
+        s.seal();
+    }
     // A scene still loading or a job still rendering runs on a blocking thread, which
     // dropping the runtime would wait for: a stop signal must not wait minutes for it.
     rt.shutdown_timeout(BLOCKING_GRACE);

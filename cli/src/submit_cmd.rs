@@ -42,6 +42,11 @@ pub struct SubmitArgs {
     /// A label shown by ListJobs; no effect on the image.
     #[arg(long)]
     pub label: Option<String>,
+    /// When the coordinator goes away while the job runs, wait this many seconds for it
+    /// to come back and follow the job again (a coordinator with a state directory keeps
+    /// its jobs across restarts); 0 fails at once.
+    #[arg(long, value_name = "SECONDS", default_value_t = RECONNECT_WAIT.as_secs())]
+    pub reconnect_wait: u64,
     /// Write the finished job's statistics as JSON (GetJob's: rays by kind, domains,
     /// and the scheduling metrics, per worker too).
     #[arg(long, value_name = "FILE")]
@@ -120,6 +125,9 @@ impl SubmitStats {
     }
 }
 
+/// How long `dray submit` waits by default for a coordinator that went away mid-job.
+pub const RECONNECT_WAIT: Duration = Duration::from_secs(120);
+
 /// `host:port` or `http://host:port` as the URL tonic wants. Plaintext only: dray's
 /// servers do not speak TLS, and saying so beats a handshake error.
 pub fn endpoint_url(addr: &str) -> Result<String> {
@@ -196,7 +204,16 @@ async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
     let net = crate::net_flags::client_options(a.api_token.token()?, &a.tls)?;
     let url = net.url(&url);
     let mut client = connect(&net, &url).await?;
-    let (id, last) = run_job(&mut client, spec, &url, a.job.quiet, "dray submit").await?;
+    let reconnect = Duration::from_secs(a.reconnect_wait);
+    let (id, last) = run_job(
+        &mut client,
+        spec,
+        &url,
+        a.job.quiet,
+        "dray submit",
+        reconnect,
+    )
+    .await?;
 
     let png = fetch(&mut client, &id, ImageFormat::Png, a.job.exposure, &url).await?;
     std::fs::write(&a.job.output, &png)
@@ -258,6 +275,7 @@ pub(crate) async fn run_job(
     url: &str,
     quiet: bool,
     who: &str,
+    reconnect: Duration,
 ) -> Result<(String, JobProgress)> {
     // SubmitJob answers after the scene is loaded, which can take a while; a Ctrl-C in
     // that window must still cancel the job the server is about to accept.
@@ -291,7 +309,7 @@ pub(crate) async fn run_job(
 
     let watcher = client.clone();
     let last = tokio::select! {
-        r = watch(watcher, &id, url, quiet) => r?,
+        r = watch(watcher, &id, url, quiet, Reconnect { who, wait: reconnect }) => r?,
         _ = tokio::signal::ctrl_c() => {
             cancel(client, &id).await;
             bail!("interrupted: job {id} cancelled");
@@ -368,58 +386,134 @@ fn state_name(s: JobState) -> String {
         .to_ascii_lowercase()
 }
 
+/// How [`watch`] follows a job across a coordinator that goes away.
+#[derive(Clone, Copy)]
+struct Reconnect<'a> {
+    /// Prefix of the messages.
+    who: &'a str,
+    /// Longest wait for the coordinator to come back.
+    wait: Duration,
+}
+
+/// Whether `s` says the coordinator went away (a restart, a dropped connection), rather
+/// than answering about the job.
+fn coordinator_gone(s: &tonic::Status) -> bool {
+    use tonic::Code;
+    match s.code() {
+        Code::Unavailable | Code::Unknown | Code::Cancelled | Code::Aborted => true,
+        Code::Internal => {
+            let m = s.message();
+            m.contains("h2 protocol error") || m.contains("connection") || m.contains("transport")
+        }
+        _ => false,
+    }
+}
+
 /// Follow WatchJob to a terminal state and return the last progress message. A stream
-/// that ends early (a proxy timeout, a restart) is not the job's end: GetJob tells.
+/// that ends early (a proxy timeout, a restart) is not the job's end: GetJob tells, and
+/// the job is watched again. When the coordinator goes away, it is waited for (at most
+/// `reconnect.wait`, saying so) and the same job followed again once it is back: a
+/// coordinator with a state directory resumes its jobs.
 async fn watch(
     mut client: RenderServiceClient<AuthChannel>,
     id: &str,
     url: &str,
     quiet: bool,
+    reconnect: Reconnect<'_>,
 ) -> Result<JobProgress> {
+    let mut view = ProgressView::new(quiet);
+    let mut lost: Option<Instant> = None;
+    loop {
+        let outcome = watch_once(&mut client, id, &mut view).await;
+        let status = match outcome {
+            Ok(Some(p)) => {
+                view.finish();
+                return Ok(p);
+            }
+            // The stream ended before the job did: ask where it is.
+            Ok(None) => match client
+                .get_job(GetJobRequest {
+                    job_id: id.to_string(),
+                })
+                .await
+            {
+                Ok(r) => {
+                    let p = r
+                        .into_inner()
+                        .job
+                        .and_then(|j| j.progress)
+                        .with_context(|| format!("GetJob: no progress for job {id}"))?;
+                    if is_terminal(p.state()) {
+                        view.finish();
+                        return Ok(p);
+                    }
+                    if lost.take().is_some() {
+                        eprintln!(
+                            "{}: the coordinator at {url} is back; following job {id} again",
+                            reconnect.who
+                        );
+                    }
+                    tokio::time::sleep(Duration::from_millis(200)).await;
+                    continue;
+                }
+                Err(s) => s,
+            },
+            Err(s) => s,
+        };
+        if status.code() == tonic::Code::NotFound && lost.is_some() {
+            view.finish();
+            bail!(
+                "the coordinator at {url} came back without job {id}: it keeps jobs across \
+                 restarts only with a state directory (--state-dir, or --work-dir)"
+            );
+        }
+        if !coordinator_gone(&status) {
+            view.finish();
+            return Err(rpc_error("WatchJob", url, status));
+        }
+        let since = *lost.get_or_insert_with(|| {
+            view.finish();
+            eprintln!(
+                "{}: lost the coordinator at {url} ({}); waiting up to {} s for it to come \
+                 back to follow job {id}",
+                reconnect.who,
+                status.message().replace('\n', " "),
+                reconnect.wait.as_secs()
+            );
+            Instant::now()
+        });
+        if since.elapsed() >= reconnect.wait {
+            bail!(
+                "the coordinator at {url} did not come back within {} s (job {id} may still \
+                 be kept by it: look with ListJobs once it is back)",
+                reconnect.wait.as_secs()
+            );
+        }
+        tokio::time::sleep(Duration::from_secs(1)).await;
+    }
+}
+
+/// One WatchJob stream to its end: the terminal progress, None when the stream ended
+/// before the job did, or the stream's error.
+async fn watch_once(
+    client: &mut RenderServiceClient<AuthChannel>,
+    id: &str,
+    view: &mut ProgressView,
+) -> Result<Option<JobProgress>, tonic::Status> {
     let mut stream = client
         .watch_job(WatchJobRequest {
             job_id: id.to_string(),
             min_interval: None,
         })
-        .await
-        .map_err(|s| rpc_error("WatchJob", url, s))?
+        .await?
         .into_inner();
-    let mut view = ProgressView::new(quiet);
-    let mut last: Option<JobProgress> = None;
-    loop {
-        match stream.message().await {
-            Ok(Some(p)) => {
-                view.show(&p);
-                let done = is_terminal(p.state());
-                last = Some(p);
-                if done {
-                    break;
-                }
-            }
-            Ok(None) => break,
-            Err(s) => {
-                view.finish();
-                return Err(rpc_error("WatchJob", url, s));
-            }
+    while let Some(p) = stream.message().await? {
+        view.show(&p);
+        if is_terminal(p.state()) {
+            return Ok(Some(p));
         }
     }
-    view.finish();
-    match last {
-        Some(p) if is_terminal(p.state()) => Ok(p),
-        _ => {
-            let job = get_job(&mut client, id, url)
-                .await?
-                .progress
-                .with_context(|| format!("GetJob: no progress for job {id}"))?;
-            if !is_terminal(job.state()) {
-                bail!(
-                    "the progress stream of job {id} ended while it was {}",
-                    state_name(job.state())
-                );
-            }
-            Ok(job)
-        }
-    }
+    Ok(None)
 }
 
 /// A progress bar on a terminal, plain lines (state changes and at most one a second)

@@ -201,8 +201,15 @@ impl Renderer {
                 }
                 let start = Instant::now();
                 let (png_bytes, wall, exr_bytes, job) = rt.block_on(async {
-                    let (id, _) =
-                        submit_cmd::run_job(client, spec, url, !show, "dray sweep").await?;
+                    let (id, _) = submit_cmd::run_job(
+                        client,
+                        spec,
+                        url,
+                        !show,
+                        "dray sweep",
+                        submit_cmd::RECONNECT_WAIT,
+                    )
+                    .await?;
                     let png =
                         submit_cmd::fetch(client, &id, ImageFormat::Png, exposure, url).await?;
                     // The clock stops with the image in hand: the EXR and the statistics

@@ -4,8 +4,9 @@
 //! - a worker SIGSTOPped past the heartbeat timeout: the same; once resumed it registers
 //!   again and takes the next job;
 //! - a worker that joins mid-job (dynamic schedule) takes domains;
-//! - a coordinator restart fails its jobs with a clear status, and the workers stay up
-//!   and take the next job.
+//! - a coordinator restart without a state directory fails its jobs with a clear status
+//!   (dray submit waits for the coordinator, then says the job is gone), and the workers
+//!   stay up and take the next job (cli/tests/durable.rs: with one, nothing is lost).
 //!
 //! Each test starts its own coordinator (heartbeats every 100 ms, lost after 2 s) and
 //! workers one by one, so it can stop any of them. Nothing here bounds elapsed time:
@@ -44,26 +45,7 @@ struct Cluster {
 impl Cluster {
     /// A coordinator on `port` (0: any) with a 2 s heartbeat timeout.
     fn coordinator(dir: &Path, port: u16) -> (Proc, String, support::Captured) {
-        let mut cmd = dray();
-        cmd.args(["coordinator", "--listen", &format!("127.0.0.1:{port}")])
-            .arg("--scene-root")
-            .arg(dir)
-            .args([
-                "--heartbeat-interval-ms",
-                "100",
-                "--heartbeat-timeout-ms",
-                "2000",
-            ])
-            .env("DRAY_LOG", "warn,dray_coordinator=info")
-            .env("NO_COLOR", "1")
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped());
-        let mut p = Proc::spawn(cmd);
-        let log = capture_stderr(&mut p.child);
-        let addr = support::listening_address(&mut p.child)
-            .unwrap_or_else(|first| panic!("no address in {first:?}"));
-        (p, addr, log)
+        support::logged_coordinator(dir, port, &[])
     }
 
     fn start(tag: &str, workers: usize, worker_flags: &[&str]) -> Cluster {
@@ -445,16 +427,23 @@ fn a_coordinator_restart_fails_its_jobs_and_the_workers_take_the_next() {
         text(&s.log)
     );
     c.coordinator.signal(libc::SIGKILL);
-    let (ok, out) = s.finish();
-    assert!(!ok, "a job whose coordinator died cannot succeed: {out}");
-    let last = out.lines().last().unwrap_or_default().to_string();
-    eprintln!("restart: dray submit said: {last}");
-    assert!(!last.is_empty(), "dray submit said nothing");
-    // A new coordinator on the same port: the worker registers again.
+    // A new coordinator on the same port, with no state directory: the worker registers
+    // again; dray submit, which waited for it, finds its job gone and says why.
     let (coordinator, addr, log) = Cluster::coordinator(&c.dir, port);
     c.coordinator = coordinator;
     c.addr = addr;
     c.log = log;
+    let (ok, out) = s.finish();
+    assert!(
+        !ok,
+        "a job whose coordinator died without a state directory cannot succeed: {out}"
+    );
+    let last = out.lines().last().unwrap_or_default().to_string();
+    eprintln!("restart: dray submit said: {last}");
+    assert!(
+        out.contains("lost the coordinator") && last.contains("came back without job"),
+        "dray submit did not say what happened: {out}"
+    );
     assert!(
         eventually(HANG_SECS, || c.registered() >= 1),
         "the worker did not register with the new coordinator: {}",

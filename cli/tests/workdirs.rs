@@ -259,8 +259,14 @@ fn a_stop_during_a_large_preparation_leaves_no_partial_package() {
         .stderr(Stdio::null());
     let _submit = Proc::spawn(cmd);
     let job_dirs = |work: &Path| -> Vec<PathBuf> {
+        // The job store (`state`) is not a job's folder.
         std::fs::read_dir(work)
-            .map(|d| d.flatten().map(|e| e.path()).collect())
+            .map(|d| {
+                d.flatten()
+                    .map(|e| e.path())
+                    .filter(|p| !p.ends_with("state"))
+                    .collect()
+            })
             .unwrap_or_default()
     };
     // The cut has begun when the job's folder holds files.

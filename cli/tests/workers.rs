@@ -205,12 +205,14 @@ fn submit_to(
 }
 
 /// Directories in `dir` (job packages).
+/// The job package folders in a coordinator's work directory (its job store, `state`,
+/// is not one).
 fn subdirs(dir: &Path) -> Vec<PathBuf> {
     std::fs::read_dir(dir)
         .map(|r| {
             r.flatten()
                 .map(|e| e.path())
-                .filter(|p| p.is_dir())
+                .filter(|p| p.is_dir() && !p.ends_with("state"))
                 .collect()
         })
         .unwrap_or_default()

@@ -286,6 +286,7 @@ impl Sim {
             tiles: image_tiles(WIDTH, HEIGHT),
             owned_package: None,
             caches: None,
+            resume: None,
         });
         running.start(&membership).expect("start");
         Sim {

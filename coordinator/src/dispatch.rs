@@ -61,6 +61,7 @@ use crate::jobs::JobEntry;
 use crate::owned_package::{OwnedPackage, remove_package};
 use crate::scheduler::Schedule;
 use crate::scheduler::state::{JobSchedule, JobWorker};
+use crate::store::Resume;
 use crate::validate::Prepared;
 
 /// Tile edge in pixels: the same tiles as `dray render`, so progress reads the same.
@@ -387,11 +388,16 @@ impl Drop for Cutting<'_> {
 
 /// Run job `entry` on the cluster's workers: make the package, then queue the setup and
 /// tiles on the workers' streams. Returns at once; the work runs on a task.
-pub fn spawn(cluster: Arc<Cluster>, entry: Arc<JobEntry>, planned: Planned) {
+pub fn spawn(
+    cluster: Arc<Cluster>,
+    entry: Arc<JobEntry>,
+    planned: Planned,
+    resume: Option<Resume>,
+) {
     let span = tracing::info_span!("job", id = %entry.id, scene = %entry.spec.scene);
     tokio::spawn(
         async move {
-            match run(&cluster, &entry, planned).await {
+            match run(&cluster, &entry, planned, resume).await {
                 Ok(()) => {}
                 // CANCELLED already; the package was stopped part-way and removed.
                 Err(e) if entry.is_cancelled() => {
@@ -411,6 +417,7 @@ async fn run(
     cluster: &Arc<Cluster>,
     entry: &Arc<JobEntry>,
     planned: Planned,
+    resume: Option<Resume>,
 ) -> Result<(), DispatchError> {
     let Planned {
         setup_spec,
@@ -465,6 +472,9 @@ async fn run(
         return Err(DispatchError::NoWorkers);
     }
     let mut sched = JobSchedule::new(&entry.id, schedule, info.domains, &workers);
+    if let Some(r) = &resume {
+        sched.set_first_attempt(r.attempt);
+    }
     let walled = setup_spec.ray_cache.is_some() || setup_spec.phm.is_some();
     let caches = match info.geometry {
         Some(geometry) if walled => {
@@ -545,6 +555,7 @@ async fn run(
         tiles,
         owned_package: owned.clone(),
         caches,
+        resume,
     };
     match cluster.jobs.start(plan).await {
         Ok(()) => {

@@ -7,8 +7,9 @@
 //! (RUNNING). Cancellation is cooperative: a flag the
 //! render loop checks before each tile.
 
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
 use std::time::{Duration, Instant, SystemTime};
 
 use dray_core::bvh::Accel;
@@ -22,6 +23,7 @@ use dray_proto::v1::{Job, JobProgress, JobSpec, JobState, JobStats, RayCounts};
 use dray_scene::partition::LayoutSpec;
 use tokio::sync::Semaphore;
 
+use crate::store::{JobStore, Op, StoredJob, to_millis};
 use crate::validate::{Prepared, Validated};
 
 /// One job.
@@ -42,6 +44,8 @@ pub struct JobEntry {
     /// Woken when the job reaches a terminal state, so watchers see the end at once
     /// rather than at their next interval.
     ended: tokio::sync::Notify,
+    /// Where its changes are kept across restarts (None: in memory only).
+    store: Option<Arc<JobStore>>,
 }
 
 struct Inner {
@@ -53,7 +57,10 @@ struct Inner {
     stats: JobStats,
     film: Option<Arc<Film>>,
     /// Why the image is gone, once the retention policy dropped it.
-    dropped: Option<&'static str>,
+    dropped: Option<String>,
+    /// The image in the job store, for a job that finished before this coordinator
+    /// started (its film is read from there when asked for).
+    image_file: Option<PathBuf>,
     /// The spec as it runs, once the scene is prepared: on workers the domain count and
     /// layout come from the scene (or its package), so GetJob says what ran.
     resolved: Option<JobSpec>,
@@ -82,8 +89,19 @@ impl JobEntry {
     }
 
     /// Why the finished job's image was dropped, if it was ([`Retention`]).
-    pub fn dropped(&self) -> Option<&'static str> {
-        self.lock().dropped
+    pub fn dropped(&self) -> Option<String> {
+        self.lock().dropped.clone()
+    }
+
+    /// The finished image's file in the job store, for a job that finished before this
+    /// coordinator started (see [`crate::store::image_file::read`]).
+    pub fn image_file(&self) -> Option<PathBuf> {
+        self.lock().image_file.clone()
+    }
+
+    /// The job store this job is kept in, if any.
+    pub fn store(&self) -> Option<&Arc<JobStore>> {
+        self.store.as_ref()
     }
 
     /// Progress as WatchJob and GetJob report it.
@@ -138,6 +156,12 @@ impl JobEntry {
 
     /// Record the spec as it runs (see [`JobEntry::to_job`]).
     pub(crate) fn resolve(&self, spec: JobSpec) {
+        if let Some(store) = &self.store {
+            store.post(Op::Resolved {
+                id: self.id.clone(),
+                spec: spec.clone(),
+            });
+        }
         self.lock().resolved = Some(spec);
     }
 
@@ -175,6 +199,14 @@ impl JobEntry {
     pub(crate) fn set_state(&self, s: JobState) {
         let mut g = self.lock();
         if !terminal(g.state) {
+            if g.state != s
+                && let Some(store) = &self.store
+            {
+                store.post(Op::State {
+                    id: self.id.clone(),
+                    state: s,
+                });
+            }
             g.state = s;
             if g.started.is_none() {
                 g.started = Some(Instant::now());
@@ -193,7 +225,19 @@ impl JobEntry {
         g.film = film.map(Arc::new);
         let elapsed = g.started.map(|t| t.elapsed()).unwrap_or_default();
         g.elapsed_final = Some(elapsed);
-        g.finished_at = Some(SystemTime::now());
+        let now = SystemTime::now();
+        g.finished_at = Some(now);
+        if let Some(store) = &self.store {
+            store.post(Op::Finish {
+                id: self.id.clone(),
+                state: s,
+                error: g.error.clone(),
+                finished_ms: to_millis(now),
+                elapsed_ms: i64::try_from(elapsed.as_millis()).unwrap_or(i64::MAX),
+                stats: Box::new(g.stats.clone()),
+                film: g.film.clone(),
+            });
+        }
         drop(g);
         crate::metrics::otel::job_ended(s, elapsed);
         self.ended.notify_waiters();
@@ -223,6 +267,8 @@ pub struct JobTable {
     gate: Arc<Semaphore>,
     threads: usize,
     retention: Retention,
+    /// Where jobs are kept across restarts, once set ([`JobTable::keep_in`]).
+    store: OnceLock<Arc<JobStore>>,
 }
 
 /// How long finished jobs keep their images: the coordinator would otherwise hold every
@@ -273,7 +319,66 @@ impl JobTable {
             gate: Arc::new(Semaphore::new(1)),
             threads,
             retention: Retention::default(),
+            store: OnceLock::new(),
         }
+    }
+
+    /// Keep every job accepted from now on in `store`. Once only (later calls are
+    /// ignored); before any job is accepted.
+    pub fn keep_in(&self, store: Arc<JobStore>) {
+        let _ = self.store.set(store);
+    }
+
+    /// Put back the jobs a store held (in submission order), as this coordinator's. Ended
+    /// jobs come back as they ended, with their images in the store; the others come
+    /// back QUEUED and are returned, in order, with what they had stored, for the caller
+    /// to run again.
+    pub fn restore(&self, stored: Vec<StoredJob>) -> Vec<(Arc<JobEntry>, StoredJob)> {
+        let mut resumable = Vec::new();
+        for j in stored {
+            let ended = terminal(j.state);
+            let state = if ended { j.state } else { JobState::Queued };
+            let entry = Arc::new(JobEntry {
+                id: j.id.clone(),
+                tiles_total: TileGrid::image(j.spec.width, j.spec.height).count(),
+                spec: j.spec.clone(),
+                submitted_at: j.submitted_at,
+                cancel: Arc::new(AtomicBool::new(false)),
+                tiles_done: AtomicU32::new(0),
+                rays_in_flight: AtomicU64::new(0),
+                inner: Mutex::new(Inner {
+                    state,
+                    started: None,
+                    elapsed_final: ended.then(|| j.elapsed.unwrap_or_default()),
+                    finished_at: j.finished_at,
+                    error: j.error.clone(),
+                    stats: j.stats.clone(),
+                    film: None,
+                    dropped: j.dropped.clone(),
+                    image_file: j.image.clone(),
+                    resolved: j.resolved.clone(),
+                }),
+                ended: tokio::sync::Notify::new(),
+                store: self.store.get().cloned(),
+            });
+            if ended {
+                if state == JobState::Succeeded {
+                    entry.set_tiles_done(entry.tiles_total);
+                }
+            } else {
+                if j.state != JobState::Queued
+                    && let Some(store) = &entry.store
+                {
+                    store.post(Op::State {
+                        id: j.id.clone(),
+                        state: JobState::Queued,
+                    });
+                }
+                resumable.push((entry.clone(), j));
+            }
+            self.jobs().push(entry);
+        }
+        resumable
     }
 
     /// The same table with another retention policy.
@@ -304,33 +409,38 @@ impl JobTable {
         let budget = self.retention.max_bytes.unwrap_or(u64::MAX);
         for j in self.jobs().iter().rev() {
             let mut g = j.lock();
-            if !terminal(g.state) || g.film.is_none() {
+            if !terminal(g.state) || (g.film.is_none() && g.image_file.is_none()) {
                 continue;
             }
+            // A stored image holds exactly the sums the film would.
+            let bytes = g.film.as_ref().map_or_else(
+                || u64::from(j.spec.width) * u64::from(j.spec.height) * 24,
+                |f| f.heap_bytes(),
+            );
             let expired = match (self.retention.ttl, g.finished_at) {
                 (Some(ttl), Some(at)) => now.duration_since(at).is_ok_and(|age| age > ttl),
                 _ => false,
             };
-            if expired {
-                g.film = None;
-                g.dropped = Some("it finished longer ago than the coordinator's --finished-ttl");
+            let why = if expired {
+                "it finished longer ago than the coordinator's --finished-ttl"
             } else if kept >= self.retention.keep_finished {
-                g.film = None;
-                g.dropped = Some(
-                    "the coordinator keeps the images of its newest --keep-finished jobs only",
-                );
-            } else if let Some(bytes) = g.film.as_ref().map(|f| f.heap_bytes())
-                && kept_bytes.saturating_add(bytes) > budget
-            {
-                g.film = None;
-                g.dropped = Some(
-                    "the newer finished images already take the coordinator's \
-                     --keep-finished-bytes (default: --max-job-bytes)",
-                );
+                "the coordinator keeps the images of its newest --keep-finished jobs only"
+            } else if kept_bytes.saturating_add(bytes) > budget {
+                "the newer finished images already take the coordinator's \
+                 --keep-finished-bytes (default: --max-job-bytes)"
             } else {
                 kept += 1;
-                kept_bytes =
-                    kept_bytes.saturating_add(g.film.as_ref().map_or(0, |f| f.heap_bytes()));
+                kept_bytes = kept_bytes.saturating_add(bytes);
+                continue;
+            };
+            g.film = None;
+            g.image_file = None;
+            g.dropped = Some(why.to_string());
+            if let Some(store) = &j.store {
+                store.post(Op::Dropped {
+                    id: j.id.clone(),
+                    why: why.to_string(),
+                });
             }
         }
     }
@@ -361,10 +471,19 @@ impl JobTable {
                 stats: JobStats::default(),
                 film: None,
                 dropped: None,
+                image_file: None,
                 resolved: None,
             }),
             ended: tokio::sync::Notify::new(),
+            store: self.store.get().cloned(),
         });
+        if let Some(store) = &entry.store {
+            store.post(Op::Insert {
+                id: entry.id.clone(),
+                spec: entry.spec.clone(),
+                submitted_ms: to_millis(entry.submitted_at),
+            });
+        }
         self.jobs().push(entry.clone());
         crate::metrics::otel::job_accepted();
         entry
@@ -497,4 +616,83 @@ pub fn encode_png(film: &Film, spp: u32, exposure: f32) -> Result<Vec<u8>, Strin
 pub fn encode_exr(film: &Film, spp: u32) -> Result<Vec<u8>, String> {
     film.encode_exr(spp)
         .map_err(|e| format!("cannot encode EXR: {e}"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec(seed: u64) -> JobSpec {
+        JobSpec {
+            scene: "cornell".into(),
+            width: 4,
+            height: 2,
+            spp: 1,
+            seed,
+            ..Default::default()
+        }
+    }
+
+    fn film(v: i64) -> Film {
+        let mut f = Film::new(4, 2);
+        for p in 0..8 {
+            f.add_fixed(p, [v, -v, p as i64]);
+        }
+        f
+    }
+
+    /// Finished jobs come back from the store with their images, and the retention
+    /// policy deletes a dropped image's file and records why.
+    #[test]
+    fn finished_images_are_kept_and_dropped_in_the_store() {
+        let dir = tempfile::tempdir().unwrap();
+        let (old, new) = {
+            let (store, _) = JobStore::open(dir.path()).unwrap();
+            let store = Arc::new(store);
+            let table = JobTable::new(1);
+            table.keep_in(store.clone());
+            let old = table.insert(spec(1));
+            old.finish(JobState::Succeeded, String::new(), Some(film(3)));
+            let new = table.insert(spec(2));
+            new.finish(JobState::Succeeded, String::new(), Some(film(5)));
+            store.flush();
+            (old.id.clone(), new.id.clone())
+        };
+        let image = |id: &str| dir.path().join("images").join(format!("{id}.film"));
+        assert!(image(&old).is_file() && image(&new).is_file());
+
+        let (store, stored) = JobStore::open(dir.path()).unwrap();
+        let store = Arc::new(store);
+        let table = JobTable::new(1).with_retention(Retention {
+            keep_finished: 1,
+            ..Retention::default()
+        });
+        table.keep_in(store.clone());
+        assert!(table.restore(stored).is_empty(), "nothing to run again");
+        let get = |id: &str| table.get(id).unwrap();
+        assert_eq!(get(&old).state(), JobState::Succeeded);
+        let kept = crate::store::image_file::read(&get(&old).image_file().unwrap()).unwrap();
+        assert_eq!(kept, film(3), "the image comes back exactly");
+
+        table.sweep();
+        store.flush();
+        assert!(
+            get(&old)
+                .dropped()
+                .is_some_and(|w| w.contains("--keep-finished"))
+        );
+        assert!(get(&old).image_file().is_none());
+        assert!(!image(&old).exists(), "the dropped image's file is deleted");
+        assert!(image(&new).is_file(), "the newest is kept");
+        drop(table);
+        store.seal();
+        let (_store, stored) = JobStore::open(dir.path()).unwrap();
+        let old = stored.iter().find(|j| j.id == old).unwrap();
+        assert!(old.image.is_none());
+        assert!(
+            old.dropped
+                .as_deref()
+                .is_some_and(|w| w.contains("--keep-finished"))
+        );
+    }
 }

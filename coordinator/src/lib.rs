@@ -43,6 +43,7 @@ pub mod owned_package;
 pub mod package_service;
 pub mod scheduler;
 pub mod service;
+pub mod store;
 pub mod traffic;
 pub mod validate;
 pub mod work_dir;

@@ -24,6 +24,7 @@ use crate::cluster::{Cluster, ClusterApi, ClusterOptions};
 use crate::dispatch;
 use crate::jobs::{JobEntry, JobTable, encode_exr, encode_png};
 use crate::package_service::PackageApi;
+use crate::store::{JobStore, Resume, StoredJob};
 use crate::validate::{Limits, bounded, prepare, validate};
 
 /// Default least time between two WatchJob messages.
@@ -150,6 +151,92 @@ impl Coordinator {
         self
     }
 
+    /// Keep every job in `store` (call after [`Coordinator::with_admission`], before
+    /// serving), and take back the jobs it held: see [`Coordinator::resume`].
+    pub fn with_store(self, store: Arc<JobStore>) -> Coordinator {
+        self.table.keep_in(store);
+        self
+    }
+
+    /// Take back the jobs a store held (`stored`, in submission order): ended jobs are
+    /// listed again with their images; the others are queued again and, once a worker
+    /// has registered or `grace` has passed (workers that outlived the old coordinator
+    /// register again within their heartbeat timeout), run again in their order. A job
+    /// that was running resumes as a new attempt that keeps its committed tiles and
+    /// traces only the rest, so its image has the bits of an undisturbed run. Returns
+    /// how many jobs run again. Must be called within a tokio runtime.
+    pub fn resume(&self, stored: Vec<StoredJob>, grace: Duration) -> usize {
+        let again = self.table.restore(stored);
+        let n = again.len();
+        if n == 0 {
+            return 0;
+        }
+        let this = self.clone();
+        tokio::spawn(async move {
+            let deadline = tokio::time::Instant::now() + grace;
+            while this.cluster.membership.is_empty() && tokio::time::Instant::now() < deadline {
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+            for (entry, job) in again {
+                if entry.is_terminal() {
+                    continue;
+                }
+                if let Err(e) = this.run_again(&entry, job).await {
+                    tracing::warn!(id = %entry.id, "job could not run again after the restart: {e}");
+                    entry.finish(
+                        JobState::Failed,
+                        format!("could not run again after the coordinator restarted: {e}"),
+                        None,
+                    );
+                }
+            }
+        });
+        n
+    }
+
+    /// Validate, prepare and launch a job taken back from the store, as at submission.
+    async fn run_again(&self, entry: &Arc<JobEntry>, job: StoredJob) -> Result<(), String> {
+        let v = validate(&job.spec, &self.limits, &self.scene_root)
+            .map_err(|s| s.message().to_string())?;
+        let v2 = v.clone();
+        let cancel = entry.cancel_flag().clone();
+        let prepared = tokio::task::spawn_blocking(move || prepare(&v2, None, &cancel))
+            .await
+            .map_err(|e| format!("scene loading task died: {e}"))?
+            .map_err(|s| s.message().to_string())?;
+        if entry.is_terminal() {
+            return Ok(());
+        }
+        // The package the old coordinator was cutting or running from: cut again (it
+        // may be partial), into a folder made new as for any job.
+        let stale = self.cluster.options.work_dir.join(&entry.id);
+        if let Err(e) = std::fs::remove_dir_all(&stale)
+            && e.kind() != std::io::ErrorKind::NotFound
+        {
+            return Err(format!(
+                "cannot remove its old package {}: {e}",
+                stale.display()
+            ));
+        }
+        let resume = Resume {
+            attempt: job.attempt.map_or(0, |a| a.saturating_add(1)),
+            tiles: job.tiles,
+        };
+        tracing::info!(
+            id = %entry.id,
+            attempt = resume.attempt,
+            tiles_kept = resume.tiles.len(),
+            "job taken back from the store"
+        );
+        self.launch(entry, &v, prepared, Some(resume))
+            .map_err(|s| s.message().to_string())
+    }
+
+    /// How many jobs the coordinator lists.
+    pub fn job_count(&self) -> usize {
+        self.table.list().len()
+    }
+
     /// The cluster state (registered workers, jobs on workers).
     pub fn cluster(&self) -> &Arc<Cluster> {
         &self.cluster
@@ -202,7 +289,7 @@ impl Coordinator {
                 .await
                 .map_err(|e| Status::internal(format!("scene loading task died: {e}")))??;
             let job = self.table.insert(v.spec.clone());
-            self.launch(&job, &v, prepared)?;
+            self.launch(&job, &v, prepared, None)?;
             return Ok(job.id.clone());
         }
         let job = self.table.insert(v.spec.clone());
@@ -228,7 +315,7 @@ impl Coordinator {
                 Err(e) => Err(format!("scene loading task died: {e}")),
                 Ok(Err(status)) => Err(status.message().to_string()),
                 Ok(Ok(prepared)) => this
-                    .launch(&entry, &v, prepared)
+                    .launch(&entry, &v, prepared, None)
                     .map_err(|s| s.message().to_string()),
             };
             if let Err(e) = outcome {
@@ -269,12 +356,14 @@ impl Coordinator {
     }
 
     /// Run `job`, in the table and prepared: in process while no worker is registered,
-    /// else on the workers.
+    /// else on the workers (from where `resume` left it, for a job this coordinator
+    /// took back from its store).
     fn launch(
         &self,
         job: &Arc<JobEntry>,
         v: &crate::validate::Validated,
         prepared: crate::validate::Prepared,
+        resume: Option<Resume>,
     ) -> Result<(), Status> {
         // Workers may have come or gone while the scene loaded.
         self.check_placement(v)?;
@@ -302,7 +391,7 @@ impl Coordinator {
             let layout = dispatch::layout_spec(&spec.layout, spec.domains);
             let planned = dispatch::plan(prepared, spec.clone(), layout, v.schedule);
             job.resolve(spec);
-            dispatch::spawn(self.cluster.clone(), job.clone(), planned);
+            dispatch::spawn(self.cluster.clone(), job.clone(), planned, resume);
         }
         tracing::info!(id = %job.id, scene = %job.spec.scene, workers, "job started");
         Ok(())
@@ -469,18 +558,33 @@ impl RenderService for Coordinator {
                 job.id
             )));
         }
-        let Some(film) = job.film() else {
-            return Err(Status::failed_precondition(format!(
-                "job {:?} is {}; its image is available once it has SUCCEEDED",
-                job.id,
-                job.state().as_str_name()
-            )));
+        let film = match (job.film(), job.image_file()) {
+            (Some(film), _) => Ok(film),
+            (None, Some(file)) => Err(file),
+            (None, None) => {
+                return Err(Status::failed_precondition(format!(
+                    "job {:?} is {}; its image is available once it has SUCCEEDED",
+                    job.id,
+                    job.state().as_str_name()
+                )));
+            }
         };
         let spp = job.spec.spp;
         let exposure = r.exposure;
-        let data = tokio::task::spawn_blocking(move || match format {
-            ImageFormat::Exr => encode_exr(&film, spp),
-            _ => encode_png(&film, spp, exposure),
+        let data = tokio::task::spawn_blocking(move || {
+            // A job that finished before this coordinator started: its image is in the
+            // job store.
+            let film = match film {
+                Ok(film) => film,
+                Err(file) => Arc::new(
+                    crate::store::image_file::read(&file)
+                        .map_err(|e| format!("cannot read the stored image: {e}"))?,
+                ),
+            };
+            match format {
+                ImageFormat::Exr => encode_exr(&film, spp),
+                _ => encode_png(&film, spp, exposure),
+            }
         })
         .await
         .map_err(|e| Status::internal(format!("image encoding task died: {e}")))?

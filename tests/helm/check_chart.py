@@ -270,8 +270,23 @@ def semantics(label: str, objs: list[dict], v: dict, notes: str, namespace: str,
     want_work = v["workDir"]["existingClaim"] or (created if v["workDir"]["create"] else None)
     check(claims.get("work") == ({want_work} if want_work else None),
           f"{label}: work claim {claims.get('work')} (want {want_work or 'an emptyDir'})")
-    pvcs = [p["metadata"]["name"] for p in by_kind(objs, "PersistentVolumeClaim")]
+    # The job store: --state-dir on the coordinator's own volume (a claim unless told
+    # otherwise), never mounted by workers; one coordinator at a time (Recreate).
+    sd = v["stateDir"]
+    state_claim = f"{coord['metadata']['name'].removesuffix('-coordinator')}-state"
+    want_state = sd["existingClaim"] or (state_claim if sd["create"] else None)
+    check(cm.get("state") == sd["path"] == cf.get("--state-dir") and "state" not in wm,
+          f"{label}: state dir mount {cm.get('state')} / --state-dir {cf.get('--state-dir')}")
+    check(claims.get("state") == ({want_state} if want_state else None),
+          f"{label}: state claim {claims.get('state')} (want {want_state or 'an emptyDir'})")
+    check(coord["spec"].get("strategy", {}).get("type") == "Recreate",
+          f"{label}: the coordinator Deployment must use the Recreate strategy")
+    check("job store" in notes, f"{label}: NOTES.txt does not say where jobs are kept")
+    pvcs = sorted(p["metadata"]["name"] for p in by_kind(objs, "PersistentVolumeClaim"))
     want_pvcs = [created] if v["workDir"]["create"] and not v["workDir"]["existingClaim"] else []
+    if sd["create"] and not sd["existingClaim"]:
+        want_pvcs.append(state_claim)
+    want_pvcs.sort()
     check(pvcs == want_pvcs, f"{label}: PVCs {pvcs} (want {want_pvcs})")
     if v["scenes"]["source"] == "pvc":
         check(claims.get("scenes") == {v["scenes"]["pvc"]["claimName"]}, f"{label}: scene claim")
@@ -407,6 +422,10 @@ def main() -> int:
         ("packages fetched, a work claim the chart creates, a bounded package cache",
          {"workDir": {"create": True, "size": "5Gi"},
           "workers": {"packageCacheSizeLimit": "10Gi"}}, "dray", "dray"),
+        ("the job store on an existing claim",
+         {"stateDir": {"existingClaim": "dray-jobs"}}, "dray", "dray"),
+        ("the job store on an emptyDir",
+         {"stateDir": {"create": False}}, "dray", "dray"),
     ]
     # The README's `helm install render helm/dray --namespace render --set ...`, parsed as
     # Helm parses --set (so "6Gi" must stay a string).

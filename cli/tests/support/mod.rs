@@ -77,6 +77,41 @@ pub fn coordinator(scene_root: &Path) -> Coordinator {
     Coordinator { proc, addr }
 }
 
+/// A `dray coordinator` on `port` (0: any) with heartbeats every 100 ms (lost after 2 s),
+/// `extra` flags, and its log (coordinator events at info) captured: the process, its
+/// address and the log.
+pub fn logged_coordinator(
+    scene_root: &Path,
+    port: u16,
+    extra: &[&std::ffi::OsStr],
+) -> (Proc, String, Captured) {
+    let mut cmd = dray();
+    cmd.args(["coordinator", "--listen", &format!("127.0.0.1:{port}")])
+        .arg("--scene-root")
+        .arg(scene_root)
+        .args([
+            "--heartbeat-interval-ms",
+            "100",
+            "--heartbeat-timeout-ms",
+            "2000",
+        ])
+        .args(extra)
+        .env("DRAY_LOG", "warn,dray_coordinator=info")
+        .env("NO_COLOR", "1")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    let mut p = Proc::spawn(cmd);
+    let log = capture_stderr(&mut p.child);
+    let addr = listening_address(&mut p.child).unwrap_or_else(|first| {
+        panic!(
+            "no address in {first:?}: {}",
+            log.lock().unwrap_or_else(|e| e.into_inner())
+        )
+    });
+    (p, addr, log)
+}
+
 /// The address a dray server announces in its first stdout line ("dray ... listening
 /// on ADDR"), or that line when it holds none. Takes the child's stdout.
 pub fn listening_address(child: &mut Child) -> Result<String, String> {

@@ -139,6 +139,13 @@ impl JobActor {
             return;
         }
         self.job.publish_detail();
+        if self.job.all_complete() {
+            // Taken back from the job store with every tile committed (the coordinator
+            // stopped between the last tile and the job's end).
+            tracing::info!("every tile was committed before the restart: job complete");
+            self.send_all(self.job.releases(Release::Finish, "completed"));
+            self.end(JobState::Succeeded, String::new());
+        }
         while self.ending.is_none() {
             if self.detail_at.is_none() && self.job.detail_stale() {
                 self.detail_at = Some(Instant::now() + DETAIL_INTERVAL);
@@ -274,6 +281,7 @@ impl JobActor {
                 ReportOutcome::Failed
             }
             Applied::Counted => {
+                self.job.persist_committed();
                 self.job.publish();
                 if self.job.coarse_pass_complete() {
                     self.start_image_pass();
@@ -379,6 +387,8 @@ impl JobActor {
     /// Clear and re-deal the incomplete tiles, the schedule having just moved to a new
     /// attempt without `lost` (`old` is the attempt dropped).
     fn retrace(&mut self, old: u32, lost: &LostWorker) {
+        self.job.persist_committed();
+        self.job.persist_attempt();
         let n = self.job.clear_for_retry();
         let attempt = self.job.sched.attempt();
         let reason = format!(

@@ -197,6 +197,9 @@ pub fn apply(job: &mut RunningJob, r: &ReportContributionsRequest) -> Applied {
                 job.tile_back[t] = b.to_wire();
                 if back != start && b == start && t < job.image_tiles {
                     job.tiles_done += 1;
+                    if job.entry.store().is_some() {
+                        job.committed.push(t);
+                    }
                 }
             }
             _ => {
@@ -291,6 +294,7 @@ mod tests {
             tiles: vec![tile(0), tile(1)],
             owned_package: None,
             caches: None,
+            resume: None,
         })
     }
 

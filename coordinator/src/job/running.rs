@@ -36,6 +36,7 @@ use crate::membership::{Membership, WorkerRecord};
 use crate::metrics::JobMetrics;
 use crate::owned_package::OwnedPackage;
 use crate::scheduler::state::{JobSchedule, JobWorker, RoundOutcome};
+use crate::store::{CommittedTile, Op, Resume};
 
 /// Tiles per TileAssignment message, to stay well below gRPC's default 4 MiB message
 /// limit on the worker's side even for a 16384x16384 image on one worker.
@@ -58,6 +59,9 @@ pub struct JobPlan {
     /// Ray caches, for a job with `ray_cache` or `phm` (their first attempt's walls
     /// already open, or none, as `caches.opened` says).
     pub caches: Option<JobCaches>,
+    /// For a job taken back from the job store: the tiles it keeps (its attempt is in
+    /// `sched` already).
+    pub resume: Option<Resume>,
 }
 
 /// A job running on workers: the state its actor owns.
@@ -98,6 +102,9 @@ pub struct RunningJob {
     /// Whether the per-worker detail in the public record is older than the totals
     /// (see [`RunningJob::publish_detail`]).
     detail_stale: std::cell::Cell<bool>,
+    /// Image tiles completed since they were last posted to the job store (only for a
+    /// job kept in one).
+    pub(super) committed: Vec<usize>,
 }
 
 /// How a job's workers are released.
@@ -119,6 +126,7 @@ impl RunningJob {
             tiles,
             owned_package,
             caches,
+            resume,
         } = plan;
         let (w, h) = (entry.spec.width, entry.spec.height);
         let mut metrics = JobMetrics::default();
@@ -126,7 +134,7 @@ impl RunningJob {
             metrics.add_worker(&id);
         }
         let image_tiles = tiles.iter().filter(|t| !t.coarse).count();
-        RunningJob {
+        let mut job = RunningJob {
             entry,
             owned_package,
             setup,
@@ -148,6 +156,87 @@ impl RunningJob {
             caches,
             last_progress: Instant::now(),
             detail_stale: std::cell::Cell::new(true),
+            committed: Vec::new(),
+        };
+        if let Some(r) = resume {
+            job.keep(r.tiles);
+        }
+        job
+    }
+
+    /// Put back tiles committed before a coordinator restart: their exact sums into the
+    /// film and all their credit, so they are complete and never dealt. A tile that does
+    /// not fit the job's grid is left to be traced again.
+    fn keep(&mut self, tiles: Vec<CommittedTile>) {
+        for CommittedTile { tile, sums } in tiles {
+            let t = tile as usize;
+            let fits = self.tiles.get(t).is_some_and(|x| {
+                !x.coarse && sums.len() as u64 == u64::from(x.width) * u64::from(x.height)
+            });
+            if !fits || self.tile_complete(t) {
+                tracing::warn!(tile, "a stored tile does not fit the job: traced again");
+                continue;
+            }
+            let x = self.tiles[t];
+            let mut px = sums.into_iter();
+            for y in x.y0..x.y0 + x.height {
+                for xx in x.x0..x.x0 + x.width {
+                    if let Some(s) = px.next() {
+                        self.film.add_fixed(y * self.film.width + xx, s);
+                    }
+                }
+            }
+            self.tile_back[t] = x.credit;
+            self.tiles_done += 1;
+        }
+    }
+
+    /// Post the tiles completed since the last call, with their exact sums, to the job
+    /// store (a channel send: the store's own thread writes them).
+    pub(super) fn persist_committed(&mut self) {
+        if self.committed.is_empty() {
+            return;
+        }
+        let Some(store) = self.entry.store() else {
+            self.committed.clear();
+            return;
+        };
+        let tiles = self
+            .committed
+            .drain(..)
+            .map(|t| {
+                let x = self.tiles[t];
+                let mut sums = Vec::with_capacity(x.width as usize * x.height as usize);
+                for y in x.y0..x.y0 + x.height {
+                    for xx in x.x0..x.x0 + x.width {
+                        sums.push(self.film.sum_fixed(y * self.film.width + xx));
+                    }
+                }
+                CommittedTile {
+                    tile: t as u32,
+                    sums,
+                }
+            })
+            .collect();
+        store.post(Op::Tiles {
+            id: self.entry.id.clone(),
+            tiles,
+        });
+    }
+
+    /// Record in the job store that the current attempt has started, and wait until it
+    /// is on disk: a job taken back after a restart must start past every attempt its
+    /// workers may have seen (they refuse an attempt they released). Rare (a start, a
+    /// lost worker), so the short wait is not on any hot path.
+    pub(super) fn persist_attempt(&self) {
+        if let Some(store) = self.entry.store() {
+            let op = Op::Attempt {
+                id: self.entry.id.clone(),
+                attempt: self.sched.attempt(),
+            };
+            if !store.post_durable(op, std::time::Duration::from_secs(10)) {
+                tracing::warn!("the job store did not confirm the job's new attempt");
+            }
         }
     }
 
@@ -184,6 +273,7 @@ impl RunningJob {
                 "worker {w} left the cluster while the job was being prepared"
             ));
         }
+        self.persist_attempt();
         for (w, a) in self.attempt_commands() {
             if !membership.send_shared(&w, a) {
                 // The worker expired between the check above and here; the job cannot

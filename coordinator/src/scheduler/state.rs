@@ -125,6 +125,12 @@ impl JobSchedule {
         &self.routing
     }
 
+    /// Start at attempt `attempt` instead of 0, before the first table is sent (a job
+    /// taken back from the job store).
+    pub fn set_first_attempt(&mut self, attempt: u32) {
+        self.routing.set_first_attempt(attempt);
+    }
+
     /// Set the current attempt's cache placement (before its first table is sent).
     pub fn set_caches(&mut self, caches: Placement) {
         self.routing.set_caches(caches);

@@ -130,6 +130,12 @@ impl JobRouting {
         }
     }
 
+    /// Make the first table attempt `attempt`'s, before it is sent: a job a restarted
+    /// coordinator takes back starts past the attempts workers may still remember.
+    pub fn set_first_attempt(&mut self, attempt: u32) {
+        self.attempt = attempt;
+    }
+
     /// The version (1 for the first table; never decreases, across attempts too).
     pub fn version(&self) -> u64 {
         self.version

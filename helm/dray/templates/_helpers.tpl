@@ -69,6 +69,14 @@ Object names.
 The work directory's claim: an existing one, one the chart creates, or none (mode
 "fetch" only: the coordinator's work directory is then an emptyDir).
 */}}
+{{- define "dray.stateDir.claimName" -}}
+{{- if .Values.stateDir.existingClaim }}
+{{- .Values.stateDir.existingClaim }}
+{{- else if .Values.stateDir.create }}
+{{- printf "%s-state" (include "dray.fullname" .) }}
+{{- end }}
+{{- end }}
+
 {{- define "dray.workDir.claimName" -}}
 {{- if .Values.workDir.existingClaim }}
 {{- .Values.workDir.existingClaim }}
@@ -120,6 +128,16 @@ packages in place), and otherwise has its own package cache (it fetches them).
 {{- $mounts := or (eq .component "coordinator") (include "dray.workDir.shared" $ctx) -}}
 - name: tmp
   emptyDir: {}
+{{- if eq .component "coordinator" }}
+# The job store (--state-dir): the coordinator's alone.
+- name: state
+{{- with include "dray.stateDir.claimName" $ctx }}
+  persistentVolumeClaim:
+    claimName: {{ . }}
+{{- else }}
+  emptyDir: {}
+{{- end }}
+{{- end }}
 {{- if $mounts }}
 - name: work
 {{- with include "dray.workDir.claimName" $ctx }}
@@ -154,6 +172,10 @@ packages in place), and otherwise has its own package cache (it fetches them).
 {{- $mounts := or (eq .component "coordinator") (include "dray.workDir.shared" $ctx) -}}
 - name: tmp
   mountPath: /tmp
+{{- if eq .component "coordinator" }}
+- name: state
+  mountPath: {{ $ctx.Values.stateDir.path }}
+{{- end }}
 {{- if $mounts }}
 - name: work
   mountPath: {{ $ctx.Values.workDir.path }}

@@ -1,0 +1,344 @@
+//! Durable jobs, with real processes: a coordinator on a state directory is SIGKILLed in
+//! the middle of a job and started again on the same directory. The running job resumes
+//! (keeping the tiles it had committed) and finishes with the bits of `dray render`; the
+//! job submitted behind it runs too; an image finished before the kill is still served;
+//! the `dray submit` clients wait for the coordinator and follow their jobs to the end.
+//! A second coordinator on a held state directory stops with one line naming the lock.
+//!
+//! Nothing here bounds elapsed time: tests wait for events, with limits that only catch
+//! hangs.
+
+mod common;
+mod support;
+
+use std::path::{Path, PathBuf};
+use std::process::Stdio;
+
+use dray_proto::v1::render_service_client::RenderServiceClient;
+use dray_proto::v1::{GetImageRequest, GetJobRequest, ImageFormat, Job, ListJobsRequest};
+use support::{Proc, capture_stderr, dray, eventually, free_port};
+
+/// A limit that only catches hangs.
+const HANG_SECS: f64 = 300.0;
+
+fn text(log: &support::Captured) -> String {
+    log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+}
+
+/// A coordinator on `port` keeping its jobs in `state`.
+fn coordinator(dir: &Path, state: &Path, port: u16) -> (Proc, String, support::Captured) {
+    let work = dir.join("work");
+    support::logged_coordinator(
+        dir,
+        port,
+        &[
+            "--work-dir".as_ref(),
+            work.as_os_str(),
+            "--state-dir".as_ref(),
+            state.as_os_str(),
+        ],
+    )
+}
+
+fn worker(addr: &str) -> Proc {
+    let mut cmd = dray();
+    cmd.args(["worker", "--coordinator", &format!("http://{addr}")])
+        .args(["--listen", "127.0.0.1:0", "--threads", "1"])
+        .env("NO_COLOR", "1")
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null());
+    Proc::spawn(cmd)
+}
+
+/// A `dray submit` running in the background; its stderr carries progress and the id.
+struct Submit {
+    proc: Proc,
+    log: support::Captured,
+    png: PathBuf,
+}
+
+fn submit(addr: &str, dir: &Path, tag: &str, flags: &[&str]) -> Submit {
+    let png = dir.join(format!("{tag}.png"));
+    let mut cmd = dray();
+    cmd.args(["submit", "--coordinator", addr, "cornell:glass"])
+        .args(flags)
+        .arg("--output")
+        .arg(&png)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped());
+    let mut proc = Proc::spawn(cmd);
+    let log = capture_stderr(&mut proc.child);
+    Submit { proc, log, png }
+}
+
+impl Submit {
+    fn id(&self) -> Option<String> {
+        text(&self.log).lines().find_map(|l| {
+            l.strip_prefix("dray submit: job ")?
+                .split_once(" accepted by ")
+                .map(|(id, _)| id.to_string())
+        })
+    }
+
+    /// Wait for the client to end; its exit status and output.
+    fn finish(mut self) -> (bool, String, PathBuf) {
+        let status = self.proc.wait_timeout(HANG_SECS);
+        let out = self.log.after(status.is_some());
+        let Some(status) = status else {
+            panic!("HANG: dray submit did not finish within {HANG_SECS} s:\n{out}");
+        };
+        (status.success(), out, self.png)
+    }
+}
+
+fn rt() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .expect("runtime")
+}
+
+fn get_job(addr: &str, id: &str) -> Option<Job> {
+    rt().block_on(async {
+        let mut c = RenderServiceClient::connect(format!("http://{addr}"))
+            .await
+            .ok()?;
+        c.get_job(GetJobRequest {
+            job_id: id.to_string(),
+        })
+        .await
+        .ok()?
+        .into_inner()
+        .job
+    })
+}
+
+fn tiles_done(addr: &str, id: &str) -> u32 {
+    get_job(addr, id)
+        .and_then(|j| j.progress)
+        .map_or(0, |p| p.tiles_done)
+}
+
+/// GetImage as PNG, or the status message.
+fn get_png(addr: &str, id: &str) -> Result<Vec<u8>, String> {
+    rt().block_on(async {
+        let mut c = RenderServiceClient::connect(format!("http://{addr}"))
+            .await
+            .map_err(|e| e.to_string())?
+            .max_decoding_message_size(usize::MAX);
+        c.get_image(GetImageRequest {
+            job_id: id.to_string(),
+            format: ImageFormat::Png as i32,
+            exposure: 0.0,
+        })
+        .await
+        .map(|r| r.into_inner().data)
+        .map_err(|s| format!("{:?}: {}", s.code(), s.message()))
+    })
+}
+
+fn list_ids(addr: &str) -> Vec<String> {
+    rt().block_on(async {
+        let Ok(mut c) = RenderServiceClient::connect(format!("http://{addr}")).await else {
+            return Vec::new();
+        };
+        c.list_jobs(ListJobsRequest::default())
+            .await
+            .map(|r| r.into_inner().jobs.into_iter().map(|j| j.job_id).collect())
+            .unwrap_or_default()
+    })
+}
+
+/// The reference image: `dray render --workers 0` (no actors) with the same flags.
+fn reference(dir: &Path, tag: &str, flags: &[&str]) -> Vec<u8> {
+    let mut all = flags.to_vec();
+    all.extend(["--workers", "0"]);
+    let run = common::render(dir, tag, "cornell:glass", &all);
+    assert!(run.ok, "dray render failed: {}", run.stderr);
+    std::fs::read(run.png.expect("png")).expect("read the reference png")
+}
+
+/// A small job, finished before the kill.
+const SMALL: &[&str] = &["--width", "32", "--height", "24", "--spp", "4"];
+/// A job long enough to kill the coordinator in the middle of (many small tiles).
+const LONG: &[&str] = &[
+    "--width",
+    "128",
+    "--height",
+    "96",
+    "--spp",
+    "64",
+    "--max-depth",
+    "6",
+    "--domains",
+    "4",
+];
+/// The job submitted behind the long one.
+const BEHIND: &[&str] = &[
+    "--width", "48", "--height", "32", "--spp", "8", "--seed", "7",
+];
+
+#[test]
+fn a_coordinator_killed_mid_job_resumes_it_with_the_same_bits() {
+    let dir = common::tmp("durable-kill");
+    let state = dir.join("state");
+    let port = free_port();
+    let (coord, addr, log) = coordinator(&dir, &state, port);
+    let mut coord = Some((coord, log));
+    let workers = [worker(&addr), worker(&addr)];
+    let registered = |log: &support::Captured, n: usize| {
+        eventually(60.0, || text(log).matches("worker registered").count() >= n)
+    };
+    let log = |c: &Option<(Proc, support::Captured)>| {
+        c.as_ref().map(|(_, l)| text(l)).unwrap_or_default()
+    };
+    assert!(
+        registered(&coord.as_ref().expect("coordinator").1, 2),
+        "{}",
+        log(&coord)
+    );
+
+    let want_small = reference(&dir, "ref-small", SMALL);
+    let want_long = reference(&dir, "ref-long", LONG);
+    let want_behind = reference(&dir, "ref-behind", BEHIND);
+
+    // A job that finishes before the kill.
+    let (ok, out, png) = submit(&addr, &dir, "small", SMALL).finish();
+    assert!(ok, "the first job failed: {out}\n{}", log(&coord));
+    assert!(
+        std::fs::read(&png).expect("png") == want_small,
+        "the first image differs"
+    );
+    let small_id = out
+        .lines()
+        .find_map(|l| {
+            l.strip_prefix("dray submit: job ")?
+                .split_once(" accepted by ")
+                .map(|(i, _)| i.to_string())
+        })
+        .expect("the first job's id");
+
+    // The long job, and one behind it; the coordinator dies once some tiles are in.
+    let long = submit(&addr, &dir, "long", LONG);
+    assert!(
+        eventually(HANG_SECS, || long.id().is_some()),
+        "{}",
+        text(&long.log)
+    );
+    let long_id = long.id().expect("id");
+    let behind = submit(&addr, &dir, "behind", BEHIND);
+    assert!(
+        eventually(HANG_SECS, || behind.id().is_some()),
+        "{}",
+        text(&behind.log)
+    );
+    assert!(
+        eventually(HANG_SECS, || tiles_done(&addr, &long_id) >= 4),
+        "no tile of the long job was done: {}",
+        log(&coord)
+    );
+    let done_before = tiles_done(&addr, &long_id);
+    let total = get_job(&addr, &long_id)
+        .and_then(|j| j.progress)
+        .map_or(0, |p| p.tiles_total);
+    let first_log = log(&coord);
+    if let Some((c, _)) = coord.take() {
+        c.signal(libc::SIGKILL);
+        // Reaped when dropped.
+        drop(c);
+    }
+    assert!(
+        done_before < total,
+        "the long job ended before the kill ({done_before} of {total} tiles): make it longer"
+    );
+
+    // The same state directory, the same port: the workers register again, the jobs run.
+    let (c, addr2, log2) = coordinator(&dir, &state, port);
+    assert_eq!(addr2, addr);
+    coord = Some((c, log2));
+    assert!(
+        registered(&coord.as_ref().expect("coordinator").1, 1),
+        "the workers did not register again: {}",
+        log(&coord)
+    );
+
+    let (ok, out, png) = long.finish();
+    assert!(
+        ok,
+        "the resumed job failed: {out}\n--- new coordinator ---\n{}\n--- old ---\n{first_log}",
+        log(&coord)
+    );
+    assert!(
+        out.contains("lost the coordinator"),
+        "dray submit did not say it waited for the coordinator: {out}"
+    );
+    assert!(
+        std::fs::read(&png).expect("png") == want_long,
+        "the resumed job's image differs from dray render's"
+    );
+    let (ok, out, png) = behind.finish();
+    assert!(ok, "the job behind it failed: {out}\n{}", log(&coord));
+    assert!(
+        std::fs::read(&png).expect("png") == want_behind,
+        "the job behind it differs"
+    );
+
+    // The resumed job kept tiles committed before the kill (the store had them).
+    let resumed = log(&coord);
+    let kept: u32 = resumed
+        .lines()
+        .filter(|l| l.contains("job taken back from the store") && l.contains(&long_id))
+        .find_map(|l| {
+            let rest = &l[l.find("tiles_kept=")? + "tiles_kept=".len()..];
+            rest.split(|c: char| !c.is_ascii_digit())
+                .next()?
+                .parse()
+                .ok()
+        })
+        .unwrap_or_else(|| panic!("no resume line for {long_id}: {resumed}"));
+    assert!(
+        kept > 0,
+        "the resumed job kept no committed tile: {resumed}"
+    );
+    assert!(kept < total, "{kept} of {total}");
+    eprintln!(
+        "resumed {long_id} with {kept} of {total} tiles kept ({done_before} seen done before the kill)"
+    );
+
+    // The first job's image is still served, and every job is listed.
+    assert_eq!(
+        get_png(&addr, &small_id).as_deref(),
+        Ok(want_small.as_slice())
+    );
+    let ids = list_ids(&addr);
+    for id in [&small_id, &long_id] {
+        assert!(ids.contains(id), "{id} is not listed: {ids:?}");
+    }
+    assert_eq!(ids.len(), 3, "{ids:?}");
+
+    // A second coordinator on the same state directory is refused, naming the lock.
+    let mut cmd = dray();
+    cmd.args(["coordinator", "--listen", "127.0.0.1:0"])
+        .arg("--state-dir")
+        .arg(&state)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped());
+    let out = cmd.output().expect("run a second coordinator");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "a second coordinator started: {err}");
+    let line = err
+        .lines()
+        .find(|l| l.contains("error"))
+        .unwrap_or_default();
+    assert!(
+        line.contains(&state.join("lock").display().to_string())
+            && line.contains("another coordinator"),
+        "{err}"
+    );
+    drop(workers);
+    drop(coord);
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -1,0 +1,500 @@
+//! Opening the job store: the state directory's lock, the database's checks and schema,
+//! and the jobs a restarted coordinator reads back.
+//!
+//! The directory holds `lock` (held with `flock` for the store's life: a second
+//! coordinator on the same directory stops with an error naming it), `jobs.sqlite3` (and
+//! SQLite's `-wal` file) and `images/`. A database that is not a dray store, is damaged,
+//! or comes from a newer dray is an error naming the file, and nothing is changed or
+//! deleted: the user decides what to do with it.
+
+use std::fs::{File, OpenOptions, TryLockError};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::time::Duration;
+
+use dray_proto::v1::{JobSpec, JobState, JobStats};
+use prost::Message;
+use rusqlite::{Connection, ErrorCode, OpenFlags};
+
+use super::writer::{Op, Writer};
+use super::{CommittedTile, StoreError, StoredJob, from_millis};
+
+/// The schema this build writes and the newest it reads (`PRAGMA user_version`).
+pub const SCHEMA_VERSION: u32 = 1;
+
+/// `PRAGMA application_id` of a dray job store ("dray"), so another program's SQLite
+/// file is never taken for one.
+const APPLICATION_ID: i32 = 0x6472_6179;
+
+/// The database's file name in the state directory.
+pub const DB_FILE: &str = "jobs.sqlite3";
+/// The lock file's name in the state directory.
+pub const LOCK_FILE: &str = "lock";
+/// The images' folder in the state directory.
+pub const IMAGES_DIR: &str = "images";
+
+const SCHEMA: &str = "
+CREATE TABLE jobs (
+    seq INTEGER PRIMARY KEY,          -- submission order
+    id TEXT NOT NULL UNIQUE,
+    spec BLOB NOT NULL,               -- dray.v1.JobSpec as accepted
+    resolved BLOB,                    -- dray.v1.JobSpec as it ran on workers
+    label TEXT NOT NULL,
+    state INTEGER NOT NULL,           -- dray.v1.JobState
+    error TEXT NOT NULL DEFAULT '',
+    submitted_ms INTEGER NOT NULL,
+    finished_ms INTEGER,
+    elapsed_ms INTEGER,
+    stats BLOB,                       -- dray.v1.JobStats
+    attempt INTEGER,                  -- newest attempt started on workers
+    image TEXT,                       -- file name in images/
+    dropped TEXT                      -- why the image was dropped
+);
+CREATE TABLE tiles (
+    job_id TEXT NOT NULL,
+    tile INTEGER NOT NULL,
+    sums BLOB NOT NULL,               -- 3 x i64 little-endian per pixel, row-major
+    PRIMARY KEY (job_id, tile)
+) WITHOUT ROWID;
+";
+
+/// An open job store: the lock, and the thread that writes the database.
+pub struct JobStore {
+    dir: PathBuf,
+    writer: Mutex<Option<Writer>>,
+}
+
+impl std::fmt::Debug for JobStore {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("JobStore").field("dir", &self.dir).finish()
+    }
+}
+
+impl JobStore {
+    /// Open (or create) the store in `dir`, and read back every job it holds, in
+    /// submission order. Fails, changing nothing, when another coordinator holds the
+    /// directory or the database cannot be used.
+    pub fn open(dir: &Path) -> Result<(JobStore, Vec<StoredJob>), StoreError> {
+        let io = |path: &Path| {
+            let path = path.to_path_buf();
+            move |source| StoreError::Io { path, source }
+        };
+        std::fs::create_dir_all(dir).map_err(io(dir))?;
+        let lock = lock(&dir.join(LOCK_FILE))?;
+        let images = dir.join(IMAGES_DIR);
+        std::fs::create_dir_all(&images).map_err(io(&images))?;
+        let path = dir.join(DB_FILE);
+        let conn = open_db(&path)?;
+        let jobs = load(&conn, &images).map_err(|e| classify(&path, e))?;
+        let writer = Writer::spawn(conn, path, images, lock).map_err(io(dir))?;
+        Ok((
+            JobStore {
+                dir: dir.to_path_buf(),
+                writer: Mutex::new(Some(writer)),
+            },
+            jobs,
+        ))
+    }
+
+    /// The state directory.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Post `op` to the writer; dropped once the store is sealed.
+    pub fn post(&self, op: Op) {
+        if let Some(w) = self.lock().as_ref() {
+            w.post(op);
+        }
+    }
+
+    /// Post `op` and wait (at most `timeout`) until it is in the database: for the rare
+    /// writes that must be on disk before the coordinator acts on them (a new attempt,
+    /// which workers remember). False when it could not be confirmed.
+    pub fn post_durable(&self, op: Op, timeout: Duration) -> bool {
+        let (tx, rx) = std::sync::mpsc::sync_channel(1);
+        {
+            let g = self.lock();
+            let Some(w) = g.as_ref() else { return false };
+            w.post(op);
+            w.post(Op::Flush(tx));
+        }
+        rx.recv_timeout(timeout).is_ok()
+    }
+
+    /// Wait until everything posted so far is in the database.
+    pub fn flush(&self) {
+        self.post_durable(Op::Nothing, Duration::from_secs(30));
+    }
+
+    /// Write what is pending, then stop writing and release the directory's lock: for a
+    /// coordinator that is stopping, whose jobs must be resumed as they were rather than
+    /// recorded as failed by the shutdown itself.
+    pub fn seal(&self) {
+        let writer = self.lock().take();
+        if let Some(w) = writer {
+            w.stop();
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Option<Writer>> {
+        self.writer.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+impl Drop for JobStore {
+    fn drop(&mut self) {
+        self.seal();
+    }
+}
+
+/// Take the state directory's lock at `path` (creating the file), and write this
+/// process's id into it for the message a second coordinator gets.
+fn lock(path: &Path) -> Result<File, StoreError> {
+    let io = |source| StoreError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut f = OpenOptions::new()
+        .read(true)
+        .write(true)
+        .create(true)
+        .truncate(false)
+        .open(path)
+        .map_err(io)?;
+    match f.try_lock() {
+        Ok(()) => {}
+        Err(TryLockError::WouldBlock) => {
+            let pid = std::fs::read_to_string(path).unwrap_or_default();
+            let pid = pid.trim();
+            return Err(StoreError::Locked {
+                file: path.to_path_buf(),
+                holder: if pid.chars().all(|c| c.is_ascii_digit()) && !pid.is_empty() {
+                    format!(", pid {pid}")
+                } else {
+                    String::new()
+                },
+            });
+        }
+        Err(TryLockError::Error(e)) => return Err(io(e)),
+    }
+    f.set_len(0).map_err(io)?;
+    writeln!(f, "{}", std::process::id()).map_err(io)?;
+    Ok(f)
+}
+
+/// A rusqlite error on `file` as the store's error: a file SQLite cannot read as a
+/// database is damaged, not an I/O failure.
+pub(crate) fn classify(file: &Path, e: rusqlite::Error) -> StoreError {
+    match e.sqlite_error_code() {
+        Some(ErrorCode::NotADatabase | ErrorCode::DatabaseCorrupt) => StoreError::Corrupt {
+            file: file.to_path_buf(),
+            why: "it is not a readable SQLite database".into(),
+        },
+        Some(ErrorCode::DatabaseBusy | ErrorCode::DatabaseLocked) => StoreError::Locked {
+            file: file.to_path_buf(),
+            holder: String::new(),
+        },
+        _ => StoreError::Sql {
+            file: file.to_path_buf(),
+            source: e,
+        },
+    }
+}
+
+/// Open the database at `path`: check what it is, make the schema if it is new, and set
+/// it up for durable writes.
+fn open_db(path: &Path) -> Result<Connection, StoreError> {
+    let sql = |e| classify(path, e);
+    let conn = Connection::open_with_flags(
+        path,
+        OpenFlags::SQLITE_OPEN_READ_WRITE
+            | OpenFlags::SQLITE_OPEN_CREATE
+            | OpenFlags::SQLITE_OPEN_NO_MUTEX,
+    )
+    .map_err(sql)?;
+    let app: i32 = conn
+        .pragma_query_value(None, "application_id", |r| r.get(0))
+        .map_err(sql)?;
+    let version: u32 = conn
+        .pragma_query_value(None, "user_version", |r| r.get(0))
+        .map_err(sql)?;
+    let tables: i64 = conn
+        .query_row("SELECT count(*) FROM sqlite_master", [], |r| r.get(0))
+        .map_err(sql)?;
+    let corrupt = |why: &str| StoreError::Corrupt {
+        file: path.to_path_buf(),
+        why: why.to_string(),
+    };
+    if app != APPLICATION_ID && (app != 0 || tables > 0) {
+        return Err(corrupt(
+            "it is an SQLite database, but not a dray job store",
+        ));
+    }
+    if version > SCHEMA_VERSION {
+        return Err(StoreError::Newer {
+            file: path.to_path_buf(),
+            found: version,
+            supported: SCHEMA_VERSION,
+        });
+    }
+    let check: String = conn
+        .query_row("PRAGMA quick_check", [], |r| r.get(0))
+        .map_err(sql)?;
+    if check != "ok" {
+        return Err(corrupt(&format!("its integrity check says {check:?}")));
+    }
+    // Write-ahead log with a sync at every commit: a committed transaction survives a
+    // kill or a power cut, and a torn one is rolled back on the next open.
+    conn.pragma_update(None, "journal_mode", "WAL")
+        .map_err(sql)?;
+    conn.pragma_update(None, "synchronous", "FULL")
+        .map_err(sql)?;
+    if app == 0 {
+        let tx = conn.unchecked_transaction().map_err(sql)?;
+        tx.execute_batch(SCHEMA).map_err(sql)?;
+        tx.pragma_update(None, "application_id", APPLICATION_ID)
+            .map_err(sql)?;
+        tx.pragma_update(None, "user_version", SCHEMA_VERSION)
+            .map_err(sql)?;
+        tx.commit().map_err(sql)?;
+    } else if version < SCHEMA_VERSION {
+        // No older schema has been released: a dray store with a lower version is not
+        // one this build wrote.
+        return Err(corrupt(&format!("unknown schema version {version}")));
+    }
+    Ok(conn)
+}
+
+/// Every job in the database, in submission order, with the committed tiles of those
+/// that had not ended.
+fn load(conn: &Connection, images: &Path) -> rusqlite::Result<Vec<StoredJob>> {
+    let mut q = conn.prepare(
+        "SELECT id, spec, resolved, state, error, submitted_ms, finished_ms, elapsed_ms, \
+         stats, attempt, image, dropped FROM jobs ORDER BY seq",
+    )?;
+    let rows = q.query_map([], |r| {
+        let blob = |i: usize| -> rusqlite::Result<Option<Vec<u8>>> { r.get(i) };
+        let spec = blob(1)?.unwrap_or_default();
+        let decode_err = |i: usize, e: prost::DecodeError| {
+            rusqlite::Error::FromSqlConversionFailure(i, rusqlite::types::Type::Blob, Box::new(e))
+        };
+        let state: i32 = r.get(3)?;
+        Ok(StoredJob {
+            id: r.get(0)?,
+            spec: JobSpec::decode(spec.as_slice()).map_err(|e| decode_err(1, e))?,
+            resolved: blob(2)?
+                .map(|b| JobSpec::decode(b.as_slice()))
+                .transpose()
+                .map_err(|e| decode_err(2, e))?,
+            state: JobState::try_from(state).unwrap_or(JobState::Failed),
+            error: r.get(4)?,
+            submitted_at: from_millis(r.get(5)?),
+            finished_at: r.get::<_, Option<i64>>(6)?.map(from_millis),
+            elapsed: r
+                .get::<_, Option<i64>>(7)?
+                .map(|ms| Duration::from_millis(u64::try_from(ms).unwrap_or(0))),
+            stats: blob(8)?
+                .map(|b| JobStats::decode(b.as_slice()))
+                .transpose()
+                .map_err(|e| decode_err(8, e))?
+                .unwrap_or_default(),
+            attempt: r.get(9)?,
+            image: r.get::<_, Option<String>>(10)?.map(|n| images.join(n)),
+            dropped: r.get(11)?,
+            tiles: Vec::new(),
+        })
+    })?;
+    let mut jobs = rows.collect::<rusqlite::Result<Vec<_>>>()?;
+    let mut tiles = conn.prepare("SELECT tile, sums FROM tiles WHERE job_id = ?1 ORDER BY tile")?;
+    for j in jobs.iter_mut().filter(|j| !ended(j.state)) {
+        j.tiles = tiles
+            .query_map([&j.id], |r| {
+                let sums: Vec<u8> = r.get(1)?;
+                Ok(CommittedTile {
+                    tile: r.get(0)?,
+                    sums: sums
+                        .chunks_exact(24)
+                        .map(super::image_file::read_sums)
+                        .collect(),
+                })
+            })?
+            .collect::<rusqlite::Result<Vec<_>>>()?;
+    }
+    Ok(jobs)
+}
+
+/// Whether `s` is a terminal state.
+pub(crate) fn ended(s: JobState) -> bool {
+    matches!(
+        s,
+        JobState::Succeeded | JobState::Failed | JobState::Cancelled
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rusqlite::OptionalExtension;
+
+    /// Whether the database has a row for job `id`.
+    fn has_job(conn: &Connection, id: &str) -> rusqlite::Result<bool> {
+        conn.query_row("SELECT 1 FROM jobs WHERE id = ?1", [id], |_| Ok(()))
+            .optional()
+            .map(|r| r.is_some())
+    }
+
+    fn spec() -> JobSpec {
+        JobSpec {
+            scene: "cornell".into(),
+            width: 8,
+            height: 8,
+            spp: 1,
+            label: "a".into(),
+            ..Default::default()
+        }
+    }
+
+    fn files(dir: &Path) -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
+    }
+
+    #[test]
+    fn jobs_and_committed_tiles_come_back_in_order() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            let (store, jobs) = JobStore::open(dir.path()).unwrap();
+            assert!(jobs.is_empty());
+            for id in ["job-2-x", "job-1-x"] {
+                store.post(Op::Insert {
+                    id: id.into(),
+                    spec: spec(),
+                    submitted_ms: 5,
+                });
+            }
+            store.post(Op::State {
+                id: "job-2-x".into(),
+                state: JobState::Running,
+            });
+            store.post(Op::Tiles {
+                id: "job-2-x".into(),
+                tiles: vec![CommittedTile {
+                    tile: 3,
+                    sums: vec![[1, -2, i64::MAX], [i64::MIN, 0, 7]],
+                }],
+            });
+            assert!(store.post_durable(
+                Op::Attempt {
+                    id: "job-2-x".into(),
+                    attempt: 4
+                },
+                Duration::from_secs(10)
+            ));
+        }
+        let (_store, jobs) = JobStore::open(dir.path()).unwrap();
+        let ids: Vec<&str> = jobs.iter().map(|j| j.id.as_str()).collect();
+        assert_eq!(ids, ["job-2-x", "job-1-x"], "submission order");
+        assert_eq!(jobs[0].state, JobState::Running);
+        assert_eq!(jobs[0].attempt, Some(4));
+        assert_eq!(jobs[0].spec, spec());
+        assert_eq!(
+            jobs[0].tiles,
+            [CommittedTile {
+                tile: 3,
+                sums: vec![[1, -2, i64::MAX], [i64::MIN, 0, 7]]
+            }]
+        );
+        assert_eq!(jobs[1].state, JobState::Queued);
+    }
+
+    #[test]
+    fn a_second_coordinator_is_refused_naming_the_lock() {
+        let dir = tempfile::tempdir().unwrap();
+        let (first, _) = JobStore::open(dir.path()).unwrap();
+        let err = JobStore::open(dir.path()).unwrap_err();
+        let msg = err.to_string();
+        assert!(matches!(err, StoreError::Locked { .. }), "{msg}");
+        assert!(
+            msg.contains(&dir.path().join(LOCK_FILE).display().to_string())
+                && msg.contains(&format!("pid {}", std::process::id()))
+                && !msg.contains('\n'),
+            "{msg}"
+        );
+        drop(first);
+        JobStore::open(dir.path()).expect("free again once the first one is gone");
+    }
+
+    #[test]
+    fn a_damaged_database_is_an_error_and_nothing_is_deleted() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join(DB_FILE);
+        let junk: Vec<u8> = (0..8192u32).map(|i| (i * 7919 % 251) as u8).collect();
+        std::fs::write(&db, &junk).unwrap();
+        let err = JobStore::open(dir.path()).unwrap_err();
+        let msg = err.to_string();
+        assert!(matches!(err, StoreError::Corrupt { .. }), "{msg}");
+        assert!(
+            msg.contains(&db.display().to_string()) && !msg.contains('\n'),
+            "{msg}"
+        );
+        assert_eq!(std::fs::read(&db).unwrap(), junk, "the file is untouched");
+        assert_eq!(files(dir.path()), [IMAGES_DIR, DB_FILE, LOCK_FILE]);
+    }
+
+    #[test]
+    fn another_programs_database_is_not_taken() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join(DB_FILE);
+        let c = Connection::open(&db).unwrap();
+        c.execute_batch("CREATE TABLE t (x); INSERT INTO t VALUES (1);")
+            .unwrap();
+        drop(c);
+        let err = JobStore::open(dir.path()).unwrap_err();
+        assert!(err.to_string().contains("not a dray job store"), "{err}");
+        let c = Connection::open(&db).unwrap();
+        let n: i64 = c
+            .query_row("SELECT count(*) FROM t", [], |r| r.get(0))
+            .unwrap();
+        assert_eq!(n, 1, "its data is untouched");
+    }
+
+    #[test]
+    fn a_store_from_a_newer_dray_is_refused_unchanged() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            let (store, _) = JobStore::open(dir.path()).unwrap();
+            store.post(Op::Insert {
+                id: "job-1-x".into(),
+                spec: spec(),
+                submitted_ms: 1,
+            });
+        }
+        let db = dir.path().join(DB_FILE);
+        let c = Connection::open(&db).unwrap();
+        c.pragma_update(None, "user_version", SCHEMA_VERSION + 1)
+            .unwrap();
+        drop(c);
+        let err = JobStore::open(dir.path()).unwrap_err();
+        let msg = err.to_string();
+        assert!(
+            matches!(err, StoreError::Newer { found, .. } if found == SCHEMA_VERSION + 1),
+            "{msg}"
+        );
+        assert!(
+            msg.contains(&db.display().to_string()) && !msg.contains('\n'),
+            "{msg}"
+        );
+        let c = Connection::open(&db).unwrap();
+        assert!(has_job(&c, "job-1-x").unwrap(), "its jobs are still there");
+        let v: u32 = c
+            .pragma_query_value(None, "user_version", |r| r.get(0))
+            .unwrap();
+        assert_eq!(v, SCHEMA_VERSION + 1);
+    }
+}

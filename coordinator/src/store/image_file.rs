@@ -1,0 +1,170 @@
+//! A finished job's image on disk, beside the job store: its exact fixed-point sums (so
+//! GetImage encodes PNG at any exposure, or EXR, exactly as from the film in memory).
+//!
+//! Written atomically: the bytes go to a temporary file in the same directory, which is
+//! flushed to disk, renamed over the final name and the directory flushed too. A reader
+//! therefore sees either no file or a whole one, whenever the process is killed; a
+//! checksum over the whole file catches what the disk itself may do.
+//!
+//! Layout (little-endian): `DRAYFILM`, format version (u32), width (u32), height (u32),
+//! non-finite count (u64), width × height × 3 sums (i64), then XXH3-64 of all of the
+//! above (u64).
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use dray_core::film::Film;
+use dray_scene::partition::checksum::checksum;
+
+use super::StoreError;
+
+const MAGIC: &[u8; 8] = b"DRAYFILM";
+/// The only format written and read.
+const FORMAT: u32 = 1;
+const HEADER: usize = 8 + 4 + 4 + 4 + 8;
+
+/// The film as the bytes of an image file.
+pub fn encode(film: &Film) -> Vec<u8> {
+    let pixels = film.width as usize * film.height as usize;
+    let mut out = Vec::with_capacity(HEADER + pixels * 24 + 8);
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&FORMAT.to_le_bytes());
+    out.extend_from_slice(&film.width.to_le_bytes());
+    out.extend_from_slice(&film.height.to_le_bytes());
+    out.extend_from_slice(&film.nonfinite.to_le_bytes());
+    for p in 0..pixels as u32 {
+        for c in film.sum_fixed(p) {
+            out.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    let sum = checksum(&out);
+    out.extend_from_slice(&sum.to_le_bytes());
+    out
+}
+
+/// The film in `bytes` (read from `path`, which errors name).
+pub fn decode(bytes: &[u8], path: &Path) -> Result<Film, StoreError> {
+    let corrupt = |why: &str| StoreError::Corrupt {
+        file: path.to_path_buf(),
+        why: why.to_string(),
+    };
+    if bytes.len() < HEADER + 8 || &bytes[..8] != MAGIC {
+        return Err(corrupt("not a dray image file"));
+    }
+    let (body, tail) = bytes.split_at(bytes.len() - 8);
+    let want = u64::from_le_bytes(tail.try_into().map_err(|_| corrupt("truncated"))?);
+    if checksum(body) != want {
+        return Err(corrupt("checksum mismatch (the file is damaged)"));
+    }
+    let u32_at = |o: usize| u32::from_le_bytes([body[o], body[o + 1], body[o + 2], body[o + 3]]);
+    let format = u32_at(8);
+    if format != FORMAT {
+        return Err(StoreError::Newer {
+            file: path.to_path_buf(),
+            found: format,
+            supported: FORMAT,
+        });
+    }
+    let (width, height) = (u32_at(12), u32_at(16));
+    let mut nf = [0u8; 8];
+    nf.copy_from_slice(&body[20..28]);
+    let pixels = width as usize * height as usize;
+    if body.len() != HEADER + pixels * 24 {
+        return Err(corrupt("its size does not match its width and height"));
+    }
+    let mut film = Film::new(width, height);
+    film.nonfinite = u64::from_le_bytes(nf);
+    for (p, px) in body[HEADER..].chunks_exact(24).enumerate() {
+        film.add_fixed(p as u32, read_sums(px));
+    }
+    Ok(film)
+}
+
+/// Three little-endian i64 sums from 24 bytes.
+pub(crate) fn read_sums(px: &[u8]) -> [i64; 3] {
+    let mut s = [0i64; 3];
+    for (c, b) in s.iter_mut().zip(px.chunks_exact(8)) {
+        let mut a = [0u8; 8];
+        a.copy_from_slice(b);
+        *c = i64::from_le_bytes(a);
+    }
+    s
+}
+
+/// Read the film at `path`.
+pub fn read(path: &Path) -> Result<Film, StoreError> {
+    let bytes = std::fs::read(path).map_err(|source| StoreError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    decode(&bytes, path)
+}
+
+/// Write `bytes` to `path` atomically: a temporary file beside it, flushed, renamed over
+/// `path`, then the directory flushed so the rename itself is on disk.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
+    let io = |p: &Path| {
+        let p = p.to_path_buf();
+        move |source| StoreError::Io { path: p, source }
+    };
+    let dir = path.parent().unwrap_or(Path::new("."));
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned());
+    let tmp: PathBuf = dir.join(format!(".{}.tmp", name.unwrap_or_default()));
+    let mut f = std::fs::File::create(&tmp).map_err(io(&tmp))?;
+    f.write_all(bytes).map_err(io(&tmp))?;
+    f.sync_all().map_err(io(&tmp))?;
+    drop(f);
+    std::fs::rename(&tmp, path).map_err(io(path))?;
+    sync_dir(dir)
+}
+
+/// Flush directory `dir`'s entries (a rename or a new file in it) to disk.
+pub fn sync_dir(dir: &Path) -> Result<(), StoreError> {
+    std::fs::File::open(dir)
+        .and_then(|d| d.sync_all())
+        .map_err(|source| StoreError::Io {
+            path: dir.to_path_buf(),
+            source,
+        })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn film() -> Film {
+        let mut f = Film::new(3, 2);
+        for p in 0..6 {
+            f.add_fixed(p, [p as i64 - 2, i64::MIN + p as i64, i64::MAX - 7]);
+        }
+        f.nonfinite = 5;
+        f
+    }
+
+    #[test]
+    fn round_trips_exactly_and_atomically() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("job-1.film");
+        write_atomic(&path, &encode(&film())).unwrap();
+        assert_eq!(read(&path).unwrap(), film());
+        let names: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert_eq!(names, ["job-1.film"], "no temporary file is left");
+    }
+
+    #[test]
+    fn damage_is_an_error_naming_the_file() {
+        let mut bytes = encode(&film());
+        bytes[40] ^= 1;
+        let err = decode(&bytes, Path::new("/x/job-1.film")).unwrap_err();
+        let msg = err.to_string();
+        assert!(
+            msg.contains("/x/job-1.film") && msg.contains("checksum"),
+            "{msg}"
+        );
+        let err = decode(&bytes[..20], Path::new("/x/a.film")).unwrap_err();
+        assert!(matches!(err, StoreError::Corrupt { .. }), "{err}");
+    }
+}

@@ -1,0 +1,297 @@
+//! The store's writer: one OS thread that owns the database connection and applies what
+//! the coordinator posts, in the order posted, a batch of everything waiting at a time in
+//! one transaction. Posting is a channel send, so a job's actor never waits for the disk
+//! while it counts reports; a tile committed in memory reaches the disk a moment later,
+//! and a tile lost in that moment is only traced again.
+//!
+//! An image is written to its file (atomically) before the transaction that names it, so
+//! the database never points at a missing or half-written image; a dropped image's file
+//! is removed after the transaction that forgets it.
+
+use std::fs::File;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::mpsc::{Receiver, Sender, SyncSender};
+
+use dray_core::film::Film;
+use dray_proto::v1::{JobSpec, JobState, JobStats};
+use prost::Message;
+use rusqlite::{Connection, Transaction, params};
+
+use super::{CommittedTile, image_file};
+
+/// Most operations in one transaction.
+const BATCH: usize = 4096;
+
+/// One change to the store.
+#[derive(Debug)]
+pub enum Op {
+    /// Nothing (a [`super::JobStore::flush`] carrier).
+    Nothing,
+    /// A job was accepted, QUEUED.
+    Insert {
+        /// Its id.
+        id: String,
+        /// Its spec as accepted.
+        spec: JobSpec,
+        /// When, in milliseconds since the Unix epoch.
+        submitted_ms: i64,
+    },
+    /// The spec it runs with on workers.
+    Resolved {
+        /// The job.
+        id: String,
+        /// The resolved spec.
+        spec: JobSpec,
+    },
+    /// A state that is not an ending.
+    State {
+        /// The job.
+        id: String,
+        /// The state.
+        state: JobState,
+    },
+    /// The job started attempt `attempt` on workers.
+    Attempt {
+        /// The job.
+        id: String,
+        /// The attempt.
+        attempt: u32,
+    },
+    /// Tiles whose credit is all back, with their sums.
+    Tiles {
+        /// The job.
+        id: String,
+        /// The tiles.
+        tiles: Vec<CommittedTile>,
+    },
+    /// The job ended: its committed tiles are forgotten (the image holds them).
+    Finish {
+        /// The job.
+        id: String,
+        /// SUCCEEDED, FAILED or CANCELLED.
+        state: JobState,
+        /// Why it failed.
+        error: String,
+        /// When, in milliseconds since the Unix epoch.
+        finished_ms: i64,
+        /// How long it ran, in milliseconds.
+        elapsed_ms: i64,
+        /// Its final statistics.
+        stats: Box<JobStats>,
+        /// Its image, when it succeeded.
+        film: Option<Arc<Film>>,
+    },
+    /// The retention policy dropped the job's image.
+    Dropped {
+        /// The job.
+        id: String,
+        /// Why.
+        why: String,
+    },
+    /// Answered once every earlier operation is committed.
+    Flush(SyncSender<()>),
+}
+
+/// The writer thread and its mailbox.
+pub(crate) struct Writer {
+    tx: Sender<Op>,
+    thread: std::thread::JoinHandle<()>,
+}
+
+impl Writer {
+    /// Start the thread over `conn` (the database at `path`), writing images into
+    /// `images`, holding `lock` for as long as it runs.
+    pub(crate) fn spawn(
+        conn: Connection,
+        path: PathBuf,
+        images: PathBuf,
+        lock: File,
+    ) -> std::io::Result<Writer> {
+        let (tx, rx) = std::sync::mpsc::channel();
+        let thread = std::thread::Builder::new()
+            .name("dray-job-store".into())
+            .spawn(move || {
+                let _lock = lock;
+                run(conn, &path, &images, &rx);
+            })?;
+        Ok(Writer { tx, thread })
+    }
+
+    /// Queue `op`.
+    pub(crate) fn post(&self, op: Op) {
+        let _ = self.tx.send(op);
+    }
+
+    /// Write what is queued, then end the thread (releasing the lock).
+    pub(crate) fn stop(self) {
+        drop(self.tx);
+        if self.thread.join().is_err() {
+            tracing::error!("the job store's writer thread panicked");
+        }
+    }
+}
+
+fn run(mut conn: Connection, path: &Path, images: &Path, rx: &Receiver<Op>) {
+    while let Ok(first) = rx.recv() {
+        let mut batch = vec![first];
+        while batch.len() < BATCH {
+            match rx.try_recv() {
+                Ok(op) => batch.push(op),
+                Err(_) => break,
+            }
+        }
+        write_batch(&mut conn, path, images, batch);
+    }
+}
+
+/// The image file name of job `id`.
+pub(crate) fn image_name(id: &str) -> String {
+    format!("{id}.film")
+}
+
+fn write_batch(conn: &mut Connection, path: &Path, images: &Path, batch: Vec<Op>) {
+    // Images first: a row names only an image already whole on disk.
+    let mut written = Vec::new();
+    for op in &batch {
+        if let Op::Finish {
+            id,
+            film: Some(film),
+            ..
+        } = op
+        {
+            let file = images.join(image_name(id));
+            match image_file::write_atomic(&file, &image_file::encode(film)) {
+                Ok(()) => written.push(id.clone()),
+                Err(e) => tracing::error!("cannot keep job {id}'s image: {e}"),
+            }
+        }
+    }
+    let mut flushes = Vec::new();
+    let mut removed = Vec::new();
+    let result = (|| -> rusqlite::Result<()> {
+        let tx = conn.transaction()?;
+        for op in batch {
+            match op {
+                Op::Flush(reply) => flushes.push(reply),
+                Op::Dropped { id, why } => {
+                    tx.execute(
+                        "UPDATE jobs SET image = NULL, dropped = ?2 WHERE id = ?1",
+                        params![id, why],
+                    )?;
+                    removed.push(images.join(image_name(&id)));
+                }
+                op => apply(&tx, op, &written)?,
+            }
+        }
+        tx.commit()
+    })();
+    match result {
+        Ok(()) => {
+            for f in removed {
+                if let Err(e) = std::fs::remove_file(&f)
+                    && e.kind() != std::io::ErrorKind::NotFound
+                {
+                    tracing::warn!("cannot remove the dropped image {}: {e}", f.display());
+                }
+            }
+            for f in flushes {
+                let _ = f.send(());
+            }
+        }
+        Err(e) => tracing::error!(
+            "cannot write to the job store {}: {e} (those changes are not kept)",
+            path.display()
+        ),
+    }
+}
+
+fn apply(tx: &Transaction<'_>, op: Op, written: &[String]) -> rusqlite::Result<()> {
+    match op {
+        Op::Nothing | Op::Flush(_) | Op::Dropped { .. } => {}
+        Op::Insert {
+            id,
+            spec,
+            submitted_ms,
+        } => {
+            tx.execute(
+                "INSERT OR IGNORE INTO jobs (id, spec, label, state, submitted_ms) \
+                 VALUES (?1, ?2, ?3, ?4, ?5)",
+                params![
+                    id,
+                    spec.encode_to_vec(),
+                    spec.label,
+                    JobState::Queued as i32,
+                    submitted_ms
+                ],
+            )?;
+        }
+        Op::Resolved { id, spec } => {
+            tx.execute(
+                "UPDATE jobs SET resolved = ?2 WHERE id = ?1",
+                params![id, spec.encode_to_vec()],
+            )?;
+        }
+        Op::State { id, state } => {
+            // An ended job keeps its ending.
+            tx.execute(
+                "UPDATE jobs SET state = ?2 WHERE id = ?1 AND state NOT IN (?3, ?4, ?5)",
+                params![
+                    id,
+                    state as i32,
+                    JobState::Succeeded as i32,
+                    JobState::Failed as i32,
+                    JobState::Cancelled as i32
+                ],
+            )?;
+        }
+        Op::Attempt { id, attempt } => {
+            tx.execute(
+                "UPDATE jobs SET attempt = max(coalesce(attempt, 0), ?2) WHERE id = ?1",
+                params![id, attempt],
+            )?;
+        }
+        Op::Tiles { id, tiles } => {
+            let mut q = tx
+                .prepare("INSERT OR REPLACE INTO tiles (job_id, tile, sums) VALUES (?1, ?2, ?3)")?;
+            for t in tiles {
+                let mut sums = Vec::with_capacity(t.sums.len() * 24);
+                for s in &t.sums {
+                    for c in s {
+                        sums.extend_from_slice(&c.to_le_bytes());
+                    }
+                }
+                q.execute(params![id, t.tile, sums])?;
+            }
+        }
+        Op::Finish {
+            id,
+            state,
+            error,
+            finished_ms,
+            elapsed_ms,
+            stats,
+            film,
+        } => {
+            let image = (film.is_some() && written.contains(&id)).then(|| image_name(&id));
+            let dropped = (film.is_some() && image.is_none())
+                .then_some("the coordinator could not write it to its state directory");
+            tx.execute(
+                "UPDATE jobs SET state = ?2, error = ?3, finished_ms = ?4, elapsed_ms = ?5, \
+                 stats = ?6, image = ?7, dropped = ?8 WHERE id = ?1",
+                params![
+                    id,
+                    state as i32,
+                    error,
+                    finished_ms,
+                    elapsed_ms,
+                    stats.encode_to_vec(),
+                    image,
+                    dropped
+                ],
+            )?;
+            tx.execute("DELETE FROM tiles WHERE job_id = ?1", params![id])?;
+        }
+    }
+    Ok(())
+}
