@@ -382,6 +382,9 @@ pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Resul
         start.elapsed(),
     );
     summary.domains = domains;
+    if a.workers == 0 {
+        summary.clamped_contributions = Some(out.film.clamped);
+    }
     summary.scheduling = scheduling;
     (summary.ray_cache, summary.phm) = walls;
     Ok(Rendered {

@@ -33,6 +33,13 @@ pub struct Summary {
     pub wall_time_s: f64,
     pub mrays_per_s: f64,
     pub nonfinite_contributions: u64,
+    /// Pixels brighter than the film represents, read as its bound (docs/numerics.md
+    /// "The film").
+    pub saturated_pixels: u64,
+    /// Contributions clamped to the film's largest; counted by the tile renderer
+    /// (`--workers 0`) only, absent on actors.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub clamped_contributions: Option<u64>,
     pub warnings: Vec<String>,
     /// How the job was scheduled on workers, and what that cost.
     #[serde(flatten)]
@@ -481,6 +488,8 @@ impl Summary {
                 0.0
             },
             nonfinite_contributions: out.film.nonfinite,
+            saturated_pixels: out.film.saturated(),
+            clamped_contributions: None,
             warnings: scene.warnings.clone(),
             scheduling: Scheduling::none(),
             ray_cache: None,
@@ -541,6 +550,15 @@ pub fn print_summary(s: &Summary) {
         eprintln!(
             "non-finite   {} contributions dropped",
             s.nonfinite_contributions
+        );
+    }
+    if let Some(n) = s.clamped_contributions.filter(|&n| n > 0) {
+        eprintln!("clamped      {n} contributions above the film's largest");
+    }
+    if s.saturated_pixels > 0 {
+        eprintln!(
+            "saturated    {} pixels brighter than the film holds",
+            s.saturated_pixels
         );
     }
 }

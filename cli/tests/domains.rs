@@ -203,3 +203,43 @@ fn in_process_actors_give_the_tile_renderers_bits() {
         }
     }
 }
+
+/// Whitted and path tracing at the deepest depth a job accepts, on glass: the actors'
+/// credit lasts the whole tree (docs/numerics.md "Deep ray trees"), and the image and
+/// ray counts are the tile renderer's (`--workers 0`), bit for bit.
+#[test]
+fn deepest_trees_render_on_actors_as_without() {
+    let d = tmp("deepest");
+    for integ in ["whitted", "path"] {
+        let args = [
+            "--width",
+            "24",
+            "--height",
+            "24",
+            "--spp",
+            "2",
+            "--integrator",
+            integ,
+            "--max-depth",
+            "1024",
+        ];
+        let one = render(
+            &d,
+            "tiles",
+            "cornell:glass",
+            &[&args[..], &["--workers", "0"]].concat(),
+        );
+        assert!(one.ok, "{}", one.stderr);
+        let reference = std::fs::read(one.png.unwrap()).unwrap();
+        let rays = |stats: &Option<serde_json::Value>| stats.as_ref().unwrap()["rays"].clone();
+        for extra in [&[][..], &["--domains", "4", "--workers", "2"][..]] {
+            let r = render(&d, "actors", "cornell:glass", &[&args[..], extra].concat());
+            assert!(r.ok, "{integ} {extra:?}: {}", r.stderr);
+            assert!(
+                std::fs::read(r.png.clone().unwrap()).unwrap() == reference,
+                "{integ} {extra:?} differs from the tile renderer"
+            );
+            assert_eq!(rays(&r.stats), rays(&one.stats), "{integ} {extra:?}");
+        }
+    }
+}

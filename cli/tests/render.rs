@@ -510,3 +510,53 @@ fn vertex_colours_tint_the_render() {
         "plain quad is not grey: {r} {g} {b}"
     );
 }
+
+/// The film cannot wrap (docs/numerics.md "The film"): one pixel at the most samples a
+/// job accepts, each with a contribution far above the clamp, reads the clamp (white, not
+/// the black of a wrapped negative sum), saturates nothing, counts the clamps, and has
+/// the same linear bits on actors as on the tile renderer.
+#[test]
+fn the_brightest_pixel_at_the_most_samples_does_not_wrap() {
+    let d = tmp("brightest");
+    let args = [
+        "--width",
+        "1",
+        "--height",
+        "1",
+        "--spp",
+        "65536",
+        "--integrator",
+        "raycast",
+        "--env",
+        "1e8,1e8,1e8",
+        "--effects",
+        "+environment",
+    ];
+    let mut exrs = Vec::new();
+    for (tag, flags) in [("tiles", &["--workers", "0"][..]), ("actors", &[][..])] {
+        let exr = d.join(format!("{tag}.exr"));
+        let exr_arg = exr.to_str().unwrap();
+        let r = render(
+            &d,
+            tag,
+            "cornell",
+            &[&args[..], flags, &["--exr", exr_arg]].concat(),
+        );
+        assert!(r.ok, "{tag}: {}", r.stderr);
+        assert_eq!(
+            rgb(r.png.as_ref().unwrap()).get_pixel(0, 0).0,
+            [255; 3],
+            "{tag}"
+        );
+        let s = r.stats.unwrap();
+        assert_eq!(s["saturated_pixels"], 0, "{tag}: {s}");
+        if tag == "tiles" {
+            // Nearly every sample's ambient light is far above the clamp (those that
+            // meet the lamp are not).
+            let clamped = s["clamped_contributions"].as_u64().unwrap();
+            assert!(clamped > 60_000 && clamped <= 65_536, "{s}");
+        }
+        exrs.push(std::fs::read(&exr).unwrap());
+    }
+    assert!(exrs[0] == exrs[1], "actors and the tile renderer differ");
+}

@@ -49,9 +49,11 @@ impl Limits {
     /// The default [`Limits::max_side`], and `dray render`'s.
     pub const MAX_SIDE: u32 = 16384;
     /// The default [`Limits::max_spp`], and `dray render`'s.
-    pub const MAX_SPP: u32 = 1 << 16;
+    /// The film is sized for it (`dray_core::film::MAX_SPP`).
+    pub const MAX_SPP: u32 = dray_core::film::MAX_SPP;
     /// The default [`Limits::max_depth`], and `dray render`'s.
-    pub const MAX_DEPTH: u32 = 1024;
+    /// Tiles' credit is sized for it (`dray_core::integrator::MAX_DEPTH`).
+    pub const MAX_DEPTH: u32 = dray_core::integrator::MAX_DEPTH;
     /// The default [`Limits::max_ao_samples`], and `dray render`'s.
     pub const MAX_AO_SAMPLES: u32 = 4096;
     /// The default [`Limits::max_domains`], and `dray render`'s.

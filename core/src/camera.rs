@@ -38,6 +38,8 @@ pub struct Frustum {
     shape: Shape,
     /// The near clip distance, at least 0.
     znear: f32,
+    /// The scene's box, when rays start at it (see [`Frustum::clipped_to`]).
+    scene: Option<(Vec3, Vec3)>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -70,8 +72,65 @@ impl Frustum {
             .transform
             .transform_vector3(d_local)
             .normalize_or_zero();
+        let origin = match self.scene {
+            Some((lo, hi)) => advance_to_box(origin, dir, lo, hi),
+            None => origin,
+        };
         CameraRay { origin, dir }
     }
+
+    /// This frustum with its rays starting just outside the scene's box `[lo, hi]`
+    /// instead of at the camera, when the camera is outside it.
+    ///
+    /// Far from the scene, `bound - origin` rounds by more than any margin relative to
+    /// the scene, so a ray from the camera itself could not be clipped to domains, nor
+    /// its hits assigned to them, exactly: a split render would lose hits near the
+    /// bounds and split planes that one BVH finds (docs/numerics.md "Far cameras").
+    /// Every configuration starts the ray at the same computed point, so they agree bit
+    /// for bit, and no geometry lies between the camera and that point.
+    pub fn clipped_to(self, lo: Vec3, hi: Vec3) -> Frustum {
+        let ok = lo.is_finite() && hi.is_finite() && lo.cmple(hi).all();
+        Frustum {
+            scene: ok.then_some((lo, hi)),
+            ..self
+        }
+    }
+}
+
+/// The margin [`advance_to_box`] leaves outside the box, relative to the magnitudes of
+/// the box's and the origin's coordinates: 16 times the rounding of the slab distances
+/// and of the moved origin (about 2^-21 of those magnitudes), so the moved origin
+/// provably stays outside the box.
+const BOX_MARGIN: f32 = 1.0 / (1u32 << 17) as f32;
+
+/// `origin` moved along `dir` to just outside the box `[lo, hi]` when it starts outside
+/// and the ray meets the box; otherwise `origin`. Done twice: the first step's margin
+/// is relative to the (possibly huge) distance of the origin, the second's to the box.
+pub fn advance_to_box(origin: Vec3, dir: Vec3, lo: Vec3, hi: Vec3) -> Vec3 {
+    let mut o = origin;
+    let size = lo.abs().max(hi.abs()).max_element();
+    for _ in 0..2 {
+        let m = (o.abs().max_element() + size) * BOX_MARGIN;
+        let (blo, bhi) = (lo - Vec3::splat(m), hi + Vec3::splat(m));
+        let (mut t0, mut t1) = (0.0f32, f32::INFINITY);
+        for a in 0..3 {
+            if dir[a] == 0.0 {
+                if o[a] < blo[a] || o[a] > bhi[a] {
+                    return o;
+                }
+                continue;
+            }
+            let inv = 1.0 / dir[a];
+            let (ta, tb) = ((blo[a] - o[a]) * inv, (bhi[a] - o[a]) * inv);
+            t0 = t0.max(ta.min(tb));
+            t1 = t1.min(ta.max(tb));
+        }
+        if !(t0 > 0.0 && t0 <= t1 && t0.is_finite()) {
+            return o;
+        }
+        o += dir * t0;
+    }
+    o
 }
 
 impl Camera {
@@ -144,6 +203,7 @@ impl Camera {
             transform: self.transform,
             shape,
             znear: self.znear.max(0.0),
+            scene: None,
         }
     }
     /// True when the camera gives finite, non-degenerate rays.

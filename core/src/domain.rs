@@ -10,6 +10,10 @@
 
 use glam::Vec3;
 
+/// The part of the ray origin's magnitude [`DomainTree::walk`] adds to the bounds'
+/// margin: 16 times the rounding of a slab distance (about 2^-21 of the magnitudes).
+const ORIGIN_MARGIN: f32 = 1.0 / (1u32 << 17) as f32;
+
 /// A node of the domain tree.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum DomainNode {
@@ -187,6 +191,9 @@ impl DomainTree {
         }
         let dir = dir + Vec3::ZERO; // fold -0.0 so signs agree with comparisons
         let inv = Vec3::ONE / dir;
+        // `bound - origin` rounds to the larger magnitude of the two, so a margin relative
+        // to the scene alone vanishes for a far origin: grow it with the origin's too.
+        let pad = pad + origin.abs().max_element() * ORIGIN_MARGIN;
         let lo = self.lo - Vec3::splat(pad);
         let hi = self.hi + Vec3::splat(pad);
         let (mut t0, mut t1) = (tmin, tmax);

@@ -3,8 +3,18 @@
 //! on 1 worker or many). Box filter: a sample counts for the pixel it was taken in.
 //!
 //! A contribution is converted once, deterministically, to an integer with 24 fractional
-//! bits; integer addition is associative, so sums never depend on order. Non-finite or
-//! negative contributions are counted and dropped: NaN and Inf never reach the image.
+//! bits; integer addition is associative, so sums never depend on order. Non-finite
+//! contributions are counted and dropped (NaN and Inf never reach the image); negative
+//! components count as zero.
+//!
+//! Sums cannot overflow (docs/numerics.md "The film"): every converted contribution is
+//! non-negative and every sum, here, on workers and on the coordinator, is a saturating
+//! addition. For non-negative terms `min(a + b, MAX)` is associative and commutative
+//! (each partial sum is `min(true sum, MAX)` however the terms are grouped), so the
+//! image keeps the same bits in every configuration, and a pixel too bright to represent
+//! reads as the largest sum instead of wrapping to a negative one. [`MAX_CONTRIBUTION`] is
+//! small enough that a pixel taking one clamped contribution per sample at the most
+//! samples a job accepts never reaches that limit.
 
 use std::path::Path;
 
@@ -12,18 +22,44 @@ use glam::Vec3;
 
 /// Fixed-point scale: 2^24 steps per unit of radiance.
 pub const FIXED_SCALE: f64 = (1u64 << 24) as f64;
-/// Largest contribution component accepted (radiance units); larger values are clamped
-/// so that a pixel sum cannot overflow an i64 over 2^16 samples.
-pub const MAX_CONTRIBUTION: f32 = 1.0e7;
+/// The most samples per pixel a job accepts (`spp`), which [`MAX_CONTRIBUTION`] is sized for.
+pub const MAX_SPP: u32 = 1 << 16;
+/// Largest contribution component accepted (radiance units, 2^22); larger values are
+/// clamped and counted. With one such contribution per sample at [`MAX_SPP`] samples a
+/// pixel sums to 2^22 * 2^24 * 2^16 = 2^62, half of what an i64 holds; pixels taking
+/// several clamped contributions per sample saturate (see [`Film::saturated`]).
+pub const MAX_CONTRIBUTION: f32 = (1u32 << 22) as f32;
+/// The largest sum a pixel component holds; sums saturate here.
+pub const MAX_SUM: i64 = i64::MAX;
+
+/// A contribution in fixed point, and whether a component was clamped to
+/// [`MAX_CONTRIBUTION`]; `None` for non-finite input.
+#[inline]
+pub fn to_fixed_clamped(v: Vec3) -> Option<([i64; 3], bool)> {
+    if !v.is_finite() {
+        return None;
+    }
+    let clamped = v.max_element() > MAX_CONTRIBUTION;
+    let c = v.clamp(Vec3::ZERO, Vec3::splat(MAX_CONTRIBUTION));
+    Some((
+        [c.x, c.y, c.z].map(|x| round_non_negative(x as f64 * FIXED_SCALE)),
+        clamped,
+    ))
+}
 
 /// Convert one contribution to fixed point. Returns `None` for non-finite input.
 #[inline]
 pub fn to_fixed(v: Vec3) -> Option<[i64; 3]> {
-    if !v.is_finite() {
-        return None;
+    to_fixed_clamped(v).map(|(f, _)| f)
+}
+
+/// Add `value` to the sum `s`, saturating at [`MAX_SUM`]: the one addition every film
+/// sum uses, exact and order-free for the non-negative values [`to_fixed`] makes.
+#[inline]
+pub fn add_sums(s: &mut [i64; 3], value: [i64; 3]) {
+    for c in 0..3 {
+        s[c] = s[c].saturating_add(value[c]);
     }
-    let c = v.clamp(Vec3::ZERO, Vec3::splat(MAX_CONTRIBUTION));
-    Some([c.x, c.y, c.z].map(|x| round_non_negative(x as f64 * FIXED_SCALE)))
 }
 
 /// `x.round() as i64` for `0 <= x < 2^52`, without the call to libm's `round` that
@@ -42,6 +78,9 @@ pub struct Film {
     sums: Vec<[i64; 3]>,
     /// Contributions dropped because they were NaN or infinite.
     pub nonfinite: u64,
+    /// Contributions with a component clamped to [`MAX_CONTRIBUTION`] (counted where a
+    /// film adds values itself; sums added in fixed point bring no count).
+    pub clamped: u64,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -59,24 +98,24 @@ impl Film {
             height,
             sums: vec![[0; 3]; width as usize * height as usize],
             nonfinite: 0,
+            clamped: 0,
         }
     }
 
-    /// Add a contribution to pixel `pixel` (row-major index). Out-of-range pixels are ignored.
-    #[inline]
     /// The bytes its sums take in memory (what a coordinator keeping finished images
     /// counts against its budget).
     pub fn heap_bytes(&self) -> u64 {
         (self.sums.len() as u64).saturating_mul(std::mem::size_of::<[i64; 3]>() as u64)
     }
 
+    /// Add a contribution to pixel `pixel` (row-major index). Out-of-range pixels are ignored.
+    #[inline]
     pub fn add(&mut self, pixel: u32, value: Vec3) {
-        match to_fixed(value) {
-            Some(f) => {
+        match to_fixed_clamped(value) {
+            Some((f, clamped)) => {
+                self.clamped += u64::from(clamped);
                 if let Some(s) = self.sums.get_mut(pixel as usize) {
-                    for c in 0..3 {
-                        s[c] = s[c].wrapping_add(f[c]);
-                    }
+                    add_sums(s, f);
                 }
             }
             None => self.nonfinite += 1,
@@ -84,23 +123,27 @@ impl Film {
     }
 
     /// Add an already-converted fixed-point sum (from another film or a remote worker).
+    /// Adding a pixel's negated sum sets it to zero exactly.
     #[inline]
     pub fn add_fixed(&mut self, pixel: u32, value: [i64; 3]) {
         if let Some(s) = self.sums.get_mut(pixel as usize) {
-            for c in 0..3 {
-                s[c] = s[c].wrapping_add(value[c]);
-            }
+            add_sums(s, value);
         }
     }
 
     /// Merge another film of the same size (exact, order-free).
     pub fn merge(&mut self, other: &Film) {
         for (a, b) in self.sums.iter_mut().zip(&other.sums) {
-            for c in 0..3 {
-                a[c] = a[c].wrapping_add(b[c]);
-            }
+            add_sums(a, *b);
         }
         self.nonfinite += other.nonfinite;
+        self.clamped += other.clamped;
+    }
+
+    /// Pixels with a component at [`MAX_SUM`]: brighter than the film can represent
+    /// (a mean above 2^39 / spp), so their value is a lower bound.
+    pub fn saturated(&self) -> u64 {
+        self.sums.iter().filter(|s| s.contains(&MAX_SUM)).count() as u64
     }
 
     pub fn sum_fixed(&self, pixel: u32) -> [i64; 3] {
@@ -246,6 +289,123 @@ mod tests {
         assert_eq!(a.sum_fixed(0), b.sum_fixed(0));
         assert_eq!(b.nonfinite, 2);
         assert!(a.linear(1)[0].is_finite());
+    }
+
+    #[test]
+    fn the_brightest_sky_at_the_most_samples_does_not_wrap() {
+        // One contribution per sample far above the clamp, at the most samples a job
+        // accepts: the pixel reads exactly the clamp, and every clamp is counted.
+        let mut f = Film::new(1, 1);
+        for _ in 0..MAX_SPP {
+            f.add(0, Vec3::splat(1.0e7));
+        }
+        assert_eq!(f.clamped, u64::from(MAX_SPP));
+        assert_eq!(f.saturated(), 0);
+        assert_eq!(f.linear(MAX_SPP)[0], Vec3::splat(MAX_CONTRIBUTION));
+        // Three more clamped contributions per sample: the sum saturates instead of
+        // wrapping, and the pixel is counted as saturated.
+        for _ in 0..3 * MAX_SPP {
+            f.add(0, Vec3::new(1.0e30, 0.5, 1.0e9));
+        }
+        assert_eq!(f.sum_fixed(0)[0], MAX_SUM);
+        assert_eq!(f.sum_fixed(0)[2], MAX_SUM);
+        assert!(f.sum_fixed(0)[1] < MAX_SUM);
+        assert_eq!(f.saturated(), 1);
+        let v = f.linear(MAX_SPP)[0];
+        assert!(v.min_element() > 0.0 && v.is_finite(), "{v}");
+        assert!(
+            v.x >= MAX_CONTRIBUTION,
+            "saturated sums read high, never negative: {v}"
+        );
+    }
+
+    /// A small deterministic generator for the grouping tests.
+    struct Lcg(u64);
+    impl Lcg {
+        fn next(&mut self) -> u64 {
+            self.0 = self
+                .0
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            self.0 >> 11
+        }
+    }
+
+    /// Sum `terms` as a random binary tree of partial films (workers' reports, tiles,
+    /// merges), returning the one pixel's sum.
+    fn grouped_sum(terms: &[[i64; 3]], rng: &mut Lcg) -> [i64; 3] {
+        if terms.len() <= 2 {
+            let mut s = [0; 3];
+            for t in terms {
+                add_sums(&mut s, *t);
+            }
+            return s;
+        }
+        let cut = 1 + (rng.next() as usize) % (terms.len() - 1);
+        let (a, b) = (
+            grouped_sum(&terms[..cut], rng),
+            grouped_sum(&terms[cut..], rng),
+        );
+        let mut f = Film::new(1, 1);
+        f.add_fixed(0, b);
+        let mut g = Film::new(1, 1);
+        g.add_fixed(0, a);
+        g.merge(&f);
+        g.sum_fixed(0)
+    }
+
+    #[test]
+    fn saturating_sums_are_the_same_in_any_grouping_and_order() {
+        let mut rng = Lcg(7);
+        let mut saturated = 0;
+        for case in 0..200 {
+            // Contributions from tiny to clamped, and in every third case partial sums
+            // near the limit (what workers report for very bright pixels).
+            let n = 1 + (rng.next() % 400) as usize;
+            let mut terms: Vec<[i64; 3]> = (0..n)
+                .map(|_| {
+                    if case % 3 == 0 {
+                        return [0; 3]
+                            .map(|_: i64| ((rng.next() << 10) >> (rng.next() % 16)) as i64);
+                    }
+                    let mut v = Vec3::ZERO;
+                    for c in 0..3 {
+                        let e = (rng.next() % 64) as i32 - 40;
+                        v[c] = (2.0f32).powi(e) * (1.0 + (rng.next() % 1000) as f32 / 1000.0);
+                    }
+                    to_fixed(v).expect("finite")
+                })
+                .collect();
+            let exact = terms.iter().fold([0i128; 3], |mut s, t| {
+                for c in 0..3 {
+                    s[c] += i128::from(t[c]);
+                }
+                s
+            });
+            let want = exact.map(|c| c.min(i128::from(MAX_SUM)) as i64);
+            saturated += usize::from(want.contains(&MAX_SUM));
+            for _ in 0..4 {
+                // Shuffle, then group at random.
+                for i in (1..terms.len()).rev() {
+                    terms.swap(i, (rng.next() as usize) % (i + 1));
+                }
+                assert_eq!(grouped_sum(&terms, &mut rng), want, "case {case}");
+            }
+        }
+        assert!(saturated > 20, "the cases reach the limit: {saturated}");
+    }
+
+    #[test]
+    fn a_negated_sum_clears_a_pixel_even_when_saturated() {
+        let mut f = Film::new(2, 1);
+        for _ in 0..5 * MAX_SPP {
+            f.add(1, Vec3::splat(1.0e20));
+        }
+        assert_eq!(f.saturated(), 1);
+        let s = f.sum_fixed(1);
+        f.add_fixed(1, s.map(i64::wrapping_neg));
+        assert_eq!(f.sum_fixed(1), [0; 3]);
+        assert_eq!(f.saturated(), 0);
     }
 
     #[test]

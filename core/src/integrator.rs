@@ -16,6 +16,7 @@ use serde::Serialize;
 use crate::bsdf::{Bsdf, BsdfAt, BsdfParams, Lobe};
 use crate::bvh::{Hit, QueryRay};
 use crate::camera::{Camera, Frustum};
+use crate::credit::Credit;
 use crate::effects::{Effect, Effects};
 use crate::intersect::offset_ray_origin;
 use crate::light_sampler::{LightRef, LightSample, LightSampler};
@@ -145,6 +146,14 @@ impl IntegratorKind {
     }
 }
 
+/// The deepest `max_depth` a job accepts: [`Integrator::credit_needed`] fits in a tile's
+/// credit at this depth, the most samples and the most lights a scene may have.
+pub const MAX_DEPTH: u32 = 1024;
+
+/// Bounces up to which Whitted spawns both a mirror and a refraction ray at glass; deeper,
+/// one of the two (see [`Integrator::credit_needed`]).
+pub const WHITTED_BRANCH_DEPTH: u32 = 8;
+
 /// Everything about a render that is not the scene.
 #[derive(Clone, Debug)]
 pub struct RenderSettings {
@@ -236,10 +245,11 @@ impl<'a> Integrator<'a> {
             scene,
             settings.effects.contains(Effect::Emission),
         ));
+        let (lo, hi) = lights.scene_bounds();
         Integrator {
             scene,
+            frustum: camera.frustum(image_aspect(&settings)).clipped_to(lo, hi),
             lights,
-            frustum: camera.frustum(image_aspect(&settings)),
             settings,
             camera,
             global_ids: None,
@@ -259,15 +269,66 @@ impl<'a> Integrator<'a> {
         lights: Arc<LightSampler>,
         global_ids: &'a [u32],
     ) -> Integrator<'a> {
+        let (lo, hi) = lights.scene_bounds();
         Integrator {
             scene,
+            frustum: camera.frustum(image_aspect(&settings)).clipped_to(lo, hi),
             lights,
-            frustum: camera.frustum(image_aspect(&settings)),
             settings,
             camera,
             global_ids: Some(global_ids),
             cull_camera_back_faces: any_single_sided(scene),
         }
+    }
+
+    /// The least credit a camera ray needs so that every ray of its tree, down to the
+    /// job's maximum depth, can give each of its children a share (docs/architecture.md
+    /// "Credit"): the credit of the largest tree the integrator can make, with a shadow
+    /// ray to every punctual light and one to an emitter at every hit. [`MAX_DEPTH`],
+    /// `film::MAX_SPP`, `light::MAX_PUNCTUAL_LIGHTS` and the tile size are chosen so
+    /// that this always fits a camera ray's share of a tile (tested below); were a limit
+    /// raised past that, a share too small would still fail the job with
+    /// [`crate::credit::CreditError`], never give a wrong image.
+    pub fn credit_needed(&self) -> Credit {
+        let s = &self.settings;
+        let punctual = self
+            .lights
+            .entries()
+            .iter()
+            .filter(|l| matches!(l, LightRef::Punctual(_)))
+            .count() as u128;
+        let area = u128::from(self.lights.choose_area(0.0).is_some());
+        let shadows = if s.effects.contains(Effect::DirectLight) {
+            punctual + area
+        } else {
+            0
+        };
+        let depth = s.max_depth.max(1);
+        // need(d): the credit a ray at depth d needs; a hit keeps one unit for itself and
+        // gives one to each shadow ray, the rest to the rays that go on.
+        let need = match s.integrator {
+            IntegratorKind::Ao => u128::from(s.ao_samples.max(1)) + 1,
+            IntegratorKind::Raycast => shadows + 1,
+            IntegratorKind::Path => {
+                // Hits at depth 0..depth spawn shadow rays and one bounce; at `depth`,
+                // nothing.
+                (0..depth).fold(1u128, |below, _| {
+                    (shadows + 1 + below).min(u128::from(u64::MAX))
+                })
+            }
+            IntegratorKind::Whitted => {
+                // Hits at depth 0..depth spawn shadow rays, and those before depth - 1
+                // mirror and refraction rays too: both before WHITTED_BRANCH_DEPTH, one
+                // from there on.
+                let mut below = shadows + 1;
+                for d in (0..depth - 1).rev() {
+                    let k = if d < WHITTED_BRANCH_DEPTH { 2 } else { 1 };
+                    below = (shadows + 1 + k * below).min(u128::from(u64::MAX));
+                }
+                below
+            }
+        };
+        Credit::from_wire(need.min(u128::from(u64::MAX)) as u64)
     }
 
     fn key(&self, ray: &RayState) -> PathKey {
@@ -581,6 +642,12 @@ impl<'a> Integrator<'a> {
         }
     }
 
+    /// Whitted's mirror and refraction rays. Up to [`WHITTED_BRANCH_DEPTH`] bounces a hit
+    /// on glass spawns both; deeper, it spawns one of them, chosen with probability
+    /// proportional to its weight (and weighted by the inverse), which has the same
+    /// expectation. A ray tree then holds at most 2^[`WHITTED_BRANCH_DEPTH`] chains of
+    /// bounces whatever the depth, so its credit (and its ray count) is bounded at the
+    /// deepest depth a job accepts (docs/numerics.md "Deep ray trees").
     fn whitted_children(
         &self,
         ray: &RayState,
@@ -590,31 +657,33 @@ impl<'a> Integrator<'a> {
         sink: &mut impl Sink,
     ) {
         let effects = self.settings.effects;
-        if effects.contains(Effect::Specular)
-            && let Some((wi, w)) = bsdf.mirror(wo)
-        {
-            self.spawn_bounce(
-                ray,
-                surf,
-                wi,
-                ray.weight * w,
-                RayKind::Reflection,
-                0.0,
-                sink,
-            );
-        }
-        if effects.contains(Effect::Transmission)
-            && let Some((wi, w)) = bsdf.refraction(wo)
-        {
-            self.spawn_bounce(
-                ray,
-                surf,
-                wi,
-                ray.weight * w,
-                RayKind::Refraction,
-                0.0,
-                sink,
-            );
+        let mirror = if effects.contains(Effect::Specular) {
+            bsdf.mirror(wo)
+                .map(|(wi, w)| (wi, ray.weight * w, RayKind::Reflection))
+        } else {
+            None
+        };
+        let refraction = if effects.contains(Effect::Transmission) {
+            bsdf.refraction(wo)
+                .map(|(wi, w)| (wi, ray.weight * w, RayKind::Refraction))
+        } else {
+            None
+        };
+        let children = match (mirror, refraction) {
+            (Some(m), Some(r)) if ray.depth >= WHITTED_BRANCH_DEPTH => {
+                let (lm, lr) = (m.1.max_element().max(0.0), r.1.max_element().max(0.0));
+                let pm = if lm + lr > 0.0 { lm / (lm + lr) } else { 0.5 };
+                let u = self.key(ray).uniform(ray.depth, Purpose::Roulette, 0);
+                if u < pm {
+                    [Some((m.0, m.1 / pm, m.2)), None]
+                } else {
+                    [Some((r.0, r.1 / (1.0 - pm), r.2)), None]
+                }
+            }
+            (m, r) => [m, r],
+        };
+        for (wi, weight, kind) in children.into_iter().flatten() {
+            self.spawn_bounce(ray, surf, wi, weight, kind, 0.0, sink);
         }
     }
 
@@ -711,6 +780,64 @@ mod tests {
         }
         assert_eq!(IntegratorKind::from_name("bdpt"), None);
         assert_eq!(IntegratorKind::choices(), "raycast, whitted, path or ao");
+    }
+
+    #[test]
+    fn credit_suffices_at_the_deepest_depth_the_most_samples_and_lights() {
+        use crate::credit::Credit;
+        use crate::film::MAX_SPP;
+        use crate::light::{Light, MAX_PUNCTUAL_LIGHTS};
+        use crate::tiles::TILE_SIZE;
+        // The most punctual lights a scene may have, and an emitter.
+        let mut scene = Scene::default();
+        let base = scene.mesh.push_vertices(&[Vec3::ZERO, Vec3::X, Vec3::Y]);
+        scene.mesh.indices.push([base, base + 1, base + 2]);
+        scene.mesh.material.push(0);
+        scene.materials.push(Material {
+            emissive: Vec3::ONE,
+            ..Material::default()
+        });
+        scene.lights = (0..MAX_PUNCTUAL_LIGHTS)
+            .map(|i| Light::Point {
+                position: Vec3::new(i as f32, 2.0, 0.0),
+                intensity: Vec3::ONE,
+            })
+            .collect();
+        // What each camera ray of a whole tile gets at the most samples.
+        let rays = u64::from(TILE_SIZE * TILE_SIZE) * u64::from(MAX_SPP);
+        let per_ray = Credit::TILE.to_wire() / rays;
+        let mut deepest = 0;
+        for integrator in [
+            IntegratorKind::Raycast,
+            IntegratorKind::Whitted,
+            IntegratorKind::Path,
+            IntegratorKind::Ao,
+        ] {
+            let settings = RenderSettings {
+                width: 64,
+                height: 64,
+                spp: MAX_SPP,
+                integrator,
+                max_depth: MAX_DEPTH,
+                seed: 0,
+                environment: Vec3::ONE,
+                effects: Effect::ALL.into_iter().fold(Effects::NONE, Effects::with),
+                ao_samples: 4096,
+                ao_distance: f32::INFINITY,
+            };
+            let cam = Camera::look_at("c", Vec3::Z, Vec3::ZERO, Vec3::Y, 0.5);
+            let need = Integrator::new(&scene, cam, settings).credit_needed();
+            assert!(
+                need.to_wire() <= per_ray,
+                "{integrator:?}: a camera ray needs {need}, gets {per_ray}"
+            );
+            deepest = deepest.max(need.to_wire());
+        }
+        // Whitted's tree: 2^8 chains of 1024 hits, each hit with a shadow ray per light.
+        assert!(
+            deepest > (1 << 8) * 1000 * u64::from(MAX_PUNCTUAL_LIGHTS),
+            "{deepest}"
+        );
     }
 
     #[test]

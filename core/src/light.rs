@@ -6,6 +6,11 @@
 
 use glam::Vec3;
 
+/// The most punctual lights a scene may have (loaders refuse more): every hit sends a
+/// shadow ray to each, and the credit of the deepest ray trees a job accepts is sized for
+/// this many (`Integrator::credit_needed`).
+pub const MAX_PUNCTUAL_LIGHTS: u32 = 1 << 16;
+
 #[derive(Clone, Debug, PartialEq)]
 pub enum Light {
     Point {

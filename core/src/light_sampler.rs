@@ -47,6 +47,9 @@ pub struct LightSampler {
     /// (triangle, entry index), sorted by triangle, for MIS look-ups.
     tri_entry: Vec<(u32, u32)>,
     scene_radius: f32,
+    /// The whole scene's bounds, as given: where camera rays start (see
+    /// [`crate::camera::Frustum::clipped_to`]).
+    bounds: (Vec3, Vec3),
 }
 
 /// Normalised probabilities and their running sum.
@@ -130,7 +133,13 @@ impl LightSampler {
             area_cdf,
             tri_entry,
             scene_radius,
+            bounds,
         }
+    }
+
+    /// The whole scene's bounds this sampler was made with.
+    pub fn scene_bounds(&self) -> (Vec3, Vec3) {
+        self.bounds
     }
 
     pub fn is_empty(&self) -> bool {

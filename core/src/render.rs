@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 use glam::Vec3;
 use rayon::prelude::*;
 
-use crate::film::{Film, to_fixed};
+use crate::film::{Film, add_sums, to_fixed_clamped};
 use crate::integrator::{Integrator, RayKind, RayState, Sink};
 use crate::tiles::{Tile, TileGrid};
 use crate::trace::Trace;
@@ -40,6 +40,7 @@ struct TileSink {
     width: u32,
     sums: Vec<[i64; 3]>,
     nonfinite: u64,
+    clamped: u64,
     stack: Vec<RayState>,
 }
 
@@ -50,12 +51,10 @@ impl Sink for TileSink {
         if lx >= self.tile.w || ly >= self.tile.h {
             return;
         }
-        match to_fixed(value) {
-            Some(f) => {
-                let s = &mut self.sums[(ly * self.tile.w + lx) as usize];
-                for c in 0..3 {
-                    s[c] = s[c].wrapping_add(f[c]);
-                }
+        match to_fixed_clamped(value) {
+            Some((f, clamped)) => {
+                self.clamped += u64::from(clamped);
+                add_sums(&mut self.sums[(ly * self.tile.w + lx) as usize], f);
             }
             None => self.nonfinite += 1,
         }
@@ -114,6 +113,7 @@ pub fn render_cancellable(
                 width,
                 sums: vec![[0; 3]; (tile.w * tile.h) as usize],
                 nonfinite: 0,
+                clamped: 0,
                 stack: Vec::with_capacity(64),
             };
             let mut local = [0u64; RayKind::COUNT];
@@ -149,6 +149,7 @@ pub fn render_cancellable(
                     }
                 }
                 f.nonfinite += sink.nonfinite;
+                f.clamped += sink.clamped;
             }
             let d = done.fetch_add(1, Ordering::Relaxed) + 1;
             progress(d as usize, tiles.len());

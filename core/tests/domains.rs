@@ -9,6 +9,9 @@ use dray_core::scene::Mesh;
 use dray_core::trace::{DomainSet, Trace};
 use glam::Vec3;
 
+mod support;
+use support::split;
+
 fn key(i: u32) -> PathKey {
     PathKey {
         seed: 5,
@@ -53,30 +56,6 @@ fn scene() -> Mesh {
     m.indices = (0..n).map(|i| [3 * i, 3 * i + 1, 3 * i + 2]).collect();
     m.material = vec![0; n as usize];
     m
-}
-
-/// Per-domain BVHs: each triangle goes to every domain whose box, expanded by `pad`,
-/// overlaps the triangle's bounds.
-fn split(mesh: &Mesh, tree: &DomainTree, pad: f32) -> Vec<Accel> {
-    tree.domain_bounds()
-        .iter()
-        .map(|&(lo, hi)| {
-            let (lo, hi) = (lo - Vec3::splat(pad), hi + Vec3::splat(pad));
-            let mut part = Mesh::default();
-            let mut ids = Vec::new();
-            for t in 0..mesh.indices.len() {
-                let c = mesh.corners(t);
-                let (tlo, thi) = (c[0].min(c[1]).min(c[2]), c[0].max(c[1]).max(c[2]));
-                if tlo.cmple(hi).all() && thi.cmpge(lo).all() {
-                    let base = part.push_vertices(&c);
-                    part.indices.push([base, base + 1, base + 2]);
-                    part.material.push(0);
-                    ids.push(t as u32);
-                }
-            }
-            Accel::build_with_ids(&part, Some(&ids))
-        })
-        .collect()
 }
 
 fn check(tree: &DomainTree, mesh: &Mesh) {

@@ -4,6 +4,7 @@
 pub mod cancel;
 pub mod effects;
 pub mod error;
+pub mod factors;
 pub mod gltf;
 mod load;
 pub mod obj;

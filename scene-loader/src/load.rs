@@ -28,7 +28,7 @@ pub fn load(spec: &str) -> Result<Scene> {
             ),
         });
     }
-    let scene = match ext.as_str() {
+    let mut scene = match ext.as_str() {
         "gltf" | "glb" => crate::gltf::load_gltf(path)?,
         "ply" => crate::ply::load_ply(path)?,
         "obj" => crate::obj::load_obj(path)?,
@@ -43,5 +43,6 @@ pub fn load(spec: &str) -> Result<Scene> {
             path: path.to_path_buf(),
         });
     }
+    crate::factors::check_factors(path, &mut scene)?;
     Ok(scene)
 }

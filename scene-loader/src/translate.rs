@@ -5,12 +5,19 @@
 //! applied afterwards could undo that (`--translate 1e25,0,0` moved the Cornell box to
 //! where the BVH's boxes have infinite areas), so the moved scene is held to the same
 //! bound, and an offset that breaks it is refused before anything moves.
+//!
+//! Far from the origin f32 coordinates are coarse (steps of 1/16 at 1e6), and a small
+//! triangle's corners can round onto one line or point. Such a triangle can never be
+//! hit (the watertight test rejects zero area), so it is dropped and counted with the
+//! loaders' degenerate triangles, as if the file had held it so, instead of filling the
+//! BVH with boxes that every ray near it must open (docs/numerics.md "Far from the
+//! origin").
 
 use dray_core::light::Light;
 use dray_core::scene::Scene;
 use glam::Vec3;
 
-use crate::validate::MAX_COORDINATE;
+use crate::validate::{MAX_COORDINATE, is_degenerate};
 
 /// Why a scene cannot be moved by an offset.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -25,6 +32,9 @@ pub enum TranslateError {
         .to.x, .to.y, .to.z
     )]
     OutOfRange { what: String, to: Vec3 },
+    /// Every triangle rounds to zero area where the offset puts it.
+    #[error("moves the scene so far that every one of its triangles rounds to zero area")]
+    Collapsed,
 }
 
 /// Where `p` lands, if within the bound.
@@ -60,13 +70,52 @@ pub fn translate(scene: &mut Scene, offset: Vec3) -> Result<(), TranslateError> 
             return Err(out(format!("light {i}"), *position));
         }
     }
+    let keep: Vec<bool> = (0..scene.mesh.indices.len())
+        .map(|t| {
+            let corners = scene.mesh.corners(t).map(|p| p + offset);
+            !is_degenerate(scene.mesh.indices[t], corners)
+        })
+        .collect();
+    if !scene.mesh.indices.is_empty() && !keep.contains(&true) {
+        return Err(TranslateError::Collapsed);
+    }
     scene.translate(offset);
+    let mut flags = keep.iter();
+    scene
+        .mesh
+        .indices
+        .retain(|_| flags.next().copied().unwrap_or(true));
+    let mut flags = keep.iter();
+    scene
+        .mesh
+        .material
+        .retain(|_| flags.next().copied().unwrap_or(true));
+    scene.stats.degenerate_triangles += keep.iter().filter(|k| !**k).count() as u64;
     Ok(())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn triangles_that_round_to_zero_area_are_dropped_and_counted() {
+        let mut scene = crate::load("spheres:30").unwrap();
+        let triangles = scene.mesh.indices.len();
+        let before = scene.stats.degenerate_triangles;
+        translate(&mut scene, Vec3::splat(1.0e6)).unwrap();
+        let dropped = scene.stats.degenerate_triangles - before;
+        assert!(dropped > 0, "some triangles collapse at 1e6");
+        assert_eq!(scene.mesh.indices.len() as u64 + dropped, triangles as u64);
+        assert_eq!(scene.mesh.material.len(), scene.mesh.indices.len());
+        for t in 0..scene.mesh.indices.len() {
+            assert!(!is_degenerate(scene.mesh.indices[t], scene.mesh.corners(t)));
+        }
+        // Near the origin nothing collapses.
+        let mut near = crate::load("spheres:30").unwrap();
+        translate(&mut near, Vec3::splat(10.0)).unwrap();
+        assert_eq!(near.mesh.indices.len(), triangles);
+    }
 
     #[test]
     fn offsets_that_leave_the_bound_are_refused_and_move_nothing() {

@@ -4,11 +4,13 @@
 //! at 16 samples sent some ten million (pixel, R, G, B) entries, and encoding, sending
 //! and decoding them cost more than a fifth of a one-worker render. Between two reports
 //! most entries land on the same few tiles' pixels, so merging them here shrinks a report
-//! many times over. The sums are fixed-point integers added with wrapping arithmetic
-//! (`dray_core::film`), which is associative and commutative: merging on the worker gives
-//! the coordinator the very same bits as sending every entry.
+//! many times over. The sums are non-negative fixed-point integers added with saturating
+//! arithmetic (`dray_core::film::add_sums`), which is then associative and commutative:
+//! merging on the worker gives the coordinator the very same bits as sending every entry.
 
 use std::collections::HashMap;
+
+use dray_core::film::add_sums;
 
 /// A deterministic fast hash: pixel indices are not attacker-chosen keys.
 type FastState = foldhash::fast::FixedState;
@@ -22,10 +24,7 @@ pub struct PixelSums {
 impl PixelSums {
     /// Add `value` to `pixel`'s sum.
     pub fn add(&mut self, pixel: u32, value: [i64; 3]) {
-        let s = self.sums.entry(pixel).or_insert([0; 3]);
-        for c in 0..3 {
-            s[c] = s[c].wrapping_add(value[c]);
-        }
+        add_sums(self.sums.entry(pixel).or_insert([0; 3]), value);
     }
 
     /// Add every entry of `entries`.
@@ -70,18 +69,25 @@ mod tests {
     #[test]
     fn merged_sums_equal_entry_by_entry_sums() {
         let entries: Vec<(u32, [i64; 3])> = (0..1000u32)
-            .map(|i| (i % 37, [i as i64, -(i as i64) * 3, i64::MAX - i as i64]))
+            .map(|i| (i % 37, [i as i64, (i as i64) << 45, i64::MAX - i as i64]))
             .collect();
         let mut merged = PixelSums::default();
         merged.extend(&entries[..400]);
         merged.extend(&entries[400..]);
         assert_eq!(merged.len(), 37);
-        let mut expect = [[0i64; 3]; 37];
+        // Exact sums, saturated once at the end: what any grouping gives.
+        let mut exact = [[0i128; 3]; 37];
         for (p, v) in &entries {
             for c in 0..3 {
-                expect[*p as usize][c] = expect[*p as usize][c].wrapping_add(v[c]);
+                exact[*p as usize][c] += i128::from(v[c]);
             }
         }
+        let expect = exact.map(|s| s.map(|c| c.min(i128::from(i64::MAX)) as i64));
+        assert!(
+            expect
+                .iter()
+                .any(|s| s[1] < i64::MAX && s[1] > 1 << 45 && s[2] == i64::MAX)
+        );
         let mut got = merged.drain();
         got.sort_unstable_by_key(|e| e.0);
         assert!(merged.is_empty());

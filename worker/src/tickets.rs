@@ -16,6 +16,7 @@ use std::fmt;
 use std::ops::Deref;
 
 use dray_core::credit::Credit;
+use dray_core::film::add_sums;
 use dray_core::ray::{FLAG_COARSE, FLAG_PROBE, FLAG_TICKETED, RayRecord};
 use dray_proto::v1::{RayTicket, TicketReturn};
 
@@ -245,9 +246,7 @@ impl TicketLedger {
     pub fn contribute(&mut self, tickets: &TicketSet, value: [i64; 3], cached: bool) {
         for &t in tickets.iter() {
             let e = self.by_ticket.entry(t).or_default();
-            for (s, v) in e.sum.iter_mut().zip(value) {
-                *s = s.wrapping_add(v);
-            }
+            add_sums(&mut e.sum, value);
             e.tainted |= cached;
         }
     }
@@ -268,9 +267,7 @@ impl TicketLedger {
     pub fn merge(&mut self, other: TicketLedger) {
         for (t, o) in other.by_ticket {
             let e = self.by_ticket.entry(t).or_default();
-            for (s, v) in e.sum.iter_mut().zip(o.sum) {
-                *s = s.wrapping_add(v);
-            }
+            add_sums(&mut e.sum, o.sum);
             e.credit = e.credit.saturating_add(o.credit);
             e.tainted |= o.tainted;
         }

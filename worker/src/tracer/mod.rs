@@ -155,11 +155,9 @@ impl JobTracer {
             .single()
             .filter(|&d| domain_triangles.get(d as usize).is_some_and(|&n| n > 0));
         let bare = Scene::default();
-        let bare_lights = Arc::new(LightSampler::with_bounds(
-            &bare,
-            false,
-            (Vec3::ZERO, Vec3::ONE),
-        ));
+        // The layout's bounds are the scene's: camera rays start at them (core's
+        // `Frustum::clipped_to`), as in every other configuration.
+        let bare_lights = Arc::new(LightSampler::with_bounds(&bare, false, (tree.lo, tree.hi)));
         JobTracer {
             bounds: tree.domain_bounds(),
             cached_kinds: [false; RayKind::COUNT],

@@ -4,7 +4,7 @@
 use std::collections::HashMap;
 
 use dray_core::credit::Credit;
-use dray_core::film::to_fixed;
+use dray_core::film::{add_sums, to_fixed};
 use dray_core::integrator::RayKind;
 use dray_core::ray::RayRecord;
 use glam::Vec3;
@@ -75,13 +75,9 @@ impl Outbox {
                 if !lin.coarse {
                     // A pixel's samples are traced one after another, so most
                     // contributions land on the pixel of the one before: add them up
-                    // here (wrapping sums, exact in any grouping).
+                    // here (saturating sums of non-negative values, exact in any grouping).
                     match self.sums.last_mut() {
-                        Some((p, s)) if *p == pixel => {
-                            for c in 0..3 {
-                                s[c] = s[c].wrapping_add(f[c]);
-                            }
-                        }
+                        Some((p, s)) if *p == pixel => add_sums(s, f),
                         _ => self.sums.push((pixel, f)),
                     }
                 }

@@ -1,0 +1,30 @@
+//! What the domain tests share: cutting a mesh into per-domain BVHs.
+
+use dray_core::bvh::Accel;
+use dray_core::domain::DomainTree;
+use dray_core::scene::Mesh;
+use glam::Vec3;
+
+/// Per-domain BVHs with scene-wide ids: each triangle goes to every domain whose box,
+/// grown by `pad`, overlaps the triangle's bounds (what the partitioner does).
+pub fn split(mesh: &Mesh, tree: &DomainTree, pad: f32) -> Vec<Accel> {
+    tree.domain_bounds()
+        .iter()
+        .map(|&(lo, hi)| {
+            let (lo, hi) = (lo - Vec3::splat(pad), hi + Vec3::splat(pad));
+            let mut part = Mesh::default();
+            let mut ids = Vec::new();
+            for t in 0..mesh.indices.len() {
+                let c = mesh.corners(t);
+                let (tlo, thi) = (c[0].min(c[1]).min(c[2]), c[0].max(c[1]).max(c[2]));
+                if tlo.cmple(hi).all() && thi.cmpge(lo).all() {
+                    let base = part.push_vertices(&c);
+                    part.indices.push([base, base + 1, base + 2]);
+                    part.material.push(0);
+                    ids.push(t as u32);
+                }
+            }
+            Accel::build_with_ids(&part, Some(&ids))
+        })
+        .collect()
+}
