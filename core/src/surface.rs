@@ -38,11 +38,14 @@ pub struct ShadingValues {
     pub transmission: f32,
     pub ior: f32,
     pub emission: Vec3,
+    /// `KHR_materials_clearcoat` strength (0: no coat) and roughness.
+    pub clearcoat: f32,
+    pub clearcoat_roughness: f32,
 }
 
 fn tex(scene: &Scene, r: Option<TexRef>, uv: Vec2, srgb: bool) -> Vec4 {
-    match r.and_then(|r| scene.textures.get(r.texture as usize)) {
-        Some(t) => t.sample(uv, srgb),
+    match r.and_then(|r| Some((scene.textures.get(r.texture as usize)?, r.uv(uv)))) {
+        Some((t, uv)) => t.sample(uv, srgb),
         None => Vec4::ONE,
     }
 }
@@ -168,7 +171,16 @@ impl Surface {
                 1.5
             },
             emission: (m.emissive * t(m.emissive_tex, true).truncate()).max(Vec3::ZERO),
+            clearcoat: 0.0,
+            clearcoat_roughness: 0.0,
         };
+        if let Some(c) = m.clearcoat
+            && effects.contains(Effect::Clearcoat)
+        {
+            v.clearcoat = (c.factor * t(c.tex, false).x).clamp(0.0, 1.0);
+            v.clearcoat_roughness = (c.roughness * t(c.roughness_tex, false).y).clamp(0.0, 1.0);
+        }
+
         if !m.double_sided && !self.front {
             // Back faces of single-sided surfaces do not emit.
             v.emission = Vec3::ZERO;
@@ -182,6 +194,18 @@ impl Surface {
         }
         if !effects.contains(Effect::Transmission) {
             v.transmission = 0.0;
+        }
+        if m.unlit && effects.contains(Effect::Unlit) {
+            // The base colour is what the eye (or a bounce) sees, unlit and lighting
+            // nothing: shown as emission over a black, lobeless BSDF, so every
+            // integrator shows it and none spawns a ray from it. Unlit triangles are
+            // not in the light sampler, so a bounce that finds one weighs it fully.
+            v.emission = v.base_color;
+            v.base_color = Vec3::ZERO;
+            v.metallic = 0.0;
+            v.specular = 0.0;
+            v.transmission = 0.0;
+            v.clearcoat = 0.0;
         }
         v
     }

@@ -22,6 +22,17 @@ pub fn analyze(scene: &Scene, environment: Vec3) -> Effects {
         .map(|(m, _)| m);
     let mut fx = Effects::NONE;
     for m in materials {
+        if m.unlit {
+            // Only its base colour (and alpha) is read: no lobe, no emission.
+            fx.set(Effect::Unlit, true);
+            if m.base_color_tex.is_some() {
+                fx.set(Effect::Textures, true);
+            }
+            if m.has_alpha() {
+                fx.set(Effect::Alpha, true);
+            }
+            continue;
+        }
         if m.has_specular() {
             fx.set(Effect::Specular, true);
         }
@@ -37,6 +48,14 @@ pub fn analyze(scene: &Scene, environment: Vec3) -> Effects {
         if m.has_alpha() {
             fx.set(Effect::Alpha, true);
         }
+        fx.set(
+            Effect::Clearcoat,
+            fx.contains(Effect::Clearcoat) || m.has_clearcoat(),
+        );
+        fx.set(
+            Effect::Volume,
+            fx.contains(Effect::Volume) || m.has_volume(),
+        );
     }
     if !scene.lights.is_empty() || fx.contains(Effect::Emission) {
         fx.set(Effect::DirectLight, true);
