@@ -66,7 +66,7 @@ impl Volume {
     /// medium, infinite for a black channel).
     pub fn sigma(&self) -> Vec3 {
         let d = self.attenuation_distance;
-        if !(d > 0.0) || d.is_infinite() {
+        if d.is_nan() || d <= 0.0 || d.is_infinite() {
             return Vec3::ZERO;
         }
         let c = self.attenuation_color.clamp(Vec3::ZERO, Vec3::ONE);

@@ -81,7 +81,7 @@ impl Compressed {
     pub fn decode(&self, data: &[u8]) -> Result<Vec<u8>, String> {
         let (stride, count) = (self.byte_stride, self.count);
         let stride_ok = match self.mode {
-            Mode::Attributes => stride > 0 && stride <= 256 && stride % 4 == 0,
+            Mode::Attributes => stride > 0 && stride <= 256 && stride.is_multiple_of(4),
             Mode::Triangles | Mode::Indices => stride == 2 || stride == 4,
         };
         if !stride_ok {
@@ -95,7 +95,7 @@ impl Compressed {
             Filter::None => true,
             Filter::Octahedral => stride == 4 || stride == 8,
             Filter::Quaternion => stride == 8,
-            Filter::Exponential => stride % 4 == 0,
+            Filter::Exponential => stride.is_multiple_of(4),
         };
         if !filter_ok || (self.filter != Filter::None && self.mode != Mode::Attributes) {
             return Err(format!(
@@ -103,7 +103,7 @@ impl Compressed {
                 self.filter, self.mode
             ));
         }
-        if self.mode == Mode::Triangles && count % 3 != 0 {
+        if self.mode == Mode::Triangles && !count.is_multiple_of(3) {
             return Err(format!(
                 "mode TRIANGLES needs a count divisible by 3, not {count}"
             ));

@@ -1294,7 +1294,7 @@ fn meshopt_compressed_buffer_views_are_decoded() {
     let vbuf = meshopt::encode_vertex_buffer(&positions).unwrap();
     let ibuf = meshopt::encode_index_buffer(&indices, positions.len()).unwrap();
     let mut bin = vbuf.clone();
-    while bin.len() % 4 != 0 {
+    while !bin.len().is_multiple_of(4) {
         bin.push(0);
     }
     let ioff = bin.len();
