@@ -28,12 +28,14 @@ pub enum Effect {
     Unlit,
     /// Some material has a clear coat (`KHR_materials_clearcoat`).
     Clearcoat,
+    /// Some material has a sheen layer (`KHR_materials_sheen`).
+    Sheen,
     /// Some transmissive material absorbs inside (`KHR_materials_volume`).
     Volume,
 }
 
 impl Effect {
-    pub const ALL: [Effect; 10] = [
+    pub const ALL: [Effect; 11] = [
         Effect::DirectLight,
         Effect::Specular,
         Effect::Transmission,
@@ -43,6 +45,7 @@ impl Effect {
         Effect::Environment,
         Effect::Unlit,
         Effect::Clearcoat,
+        Effect::Sheen,
         Effect::Volume,
     ];
 
@@ -61,6 +64,7 @@ impl Effect {
             Effect::Environment => "environment",
             Effect::Unlit => "unlit",
             Effect::Clearcoat => "clearcoat",
+            Effect::Sheen => "sheen",
             Effect::Volume => "volume",
         }
     }

@@ -481,6 +481,8 @@ impl<'a> Integrator<'a> {
             ior: sv.ior,
             clearcoat: sv.clearcoat,
             clearcoat_roughness: sv.clearcoat_roughness,
+            sheen_color: sv.sheen_color,
+            sheen_roughness: sv.sheen_roughness,
         };
         // The BSDF tells inside from outside by the outward (winding) normal.
         let outward = if surf.front { surf.ng } else { -surf.ng };
@@ -710,7 +712,7 @@ impl<'a> Integrator<'a> {
             weight /= q;
         }
         let kind = match bs.lobe {
-            Lobe::Diffuse => RayKind::Diffuse,
+            Lobe::Diffuse | Lobe::Sheen => RayKind::Diffuse,
             Lobe::GlossyReflection | Lobe::SpecularReflection | Lobe::CoatReflection => {
                 RayKind::Reflection
             }

@@ -51,6 +51,18 @@ pub struct Clearcoat {
     pub roughness_tex: Option<TexRef>,
 }
 
+/// `KHR_materials_sheen`: a velvet-like layer of fibres (the Charlie distribution)
+/// over the material, below a clear coat.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Sheen {
+    /// Linear sheen colour (texture RGB, sRGB, multiplies it).
+    pub color: Vec3,
+    pub color_tex: Option<TexRef>,
+    /// Sheen perceptual roughness (texture A multiplies it).
+    pub roughness: f32,
+    pub roughness_tex: Option<TexRef>,
+}
+
 /// `KHR_materials_volume`: the medium inside a transmissive object, attenuating light
 /// by Beer-Lambert over the distance travelled inside.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -132,6 +144,7 @@ pub struct Material {
     /// and lighting nothing.
     pub unlit: bool,
     pub clearcoat: Option<Clearcoat>,
+    pub sheen: Option<Sheen>,
     pub volume: Option<Volume>,
 }
 
@@ -160,6 +173,7 @@ impl Default for Material {
             double_sided: false,
             unlit: false,
             clearcoat: None,
+            sheen: None,
             volume: None,
         }
     }
@@ -245,6 +259,10 @@ impl Material {
         !self.unlit && self.clearcoat.is_some_and(|c| c.factor > 0.0)
     }
 
+    pub fn has_sheen(&self) -> bool {
+        !self.unlit && self.sheen.is_some_and(|s| s.color.max_element() > 0.0)
+    }
+
     /// A transmissive material whose inside absorbs.
     pub fn has_volume(&self) -> bool {
         !self.unlit && self.has_transmission() && self.volume.is_some_and(|v| v.absorbs())
@@ -262,6 +280,8 @@ impl Material {
             self.specular_color_tex,
             self.clearcoat.and_then(|c| c.tex),
             self.clearcoat.and_then(|c| c.roughness_tex),
+            self.sheen.and_then(|s| s.color_tex),
+            self.sheen.and_then(|s| s.roughness_tex),
         ]
         .into_iter()
         .flatten()

@@ -41,6 +41,9 @@ pub struct ShadingValues {
     /// `KHR_materials_clearcoat` strength (0: no coat) and roughness.
     pub clearcoat: f32,
     pub clearcoat_roughness: f32,
+    /// `KHR_materials_sheen` colour (black: no sheen) and roughness.
+    pub sheen_color: Vec3,
+    pub sheen_roughness: f32,
 }
 
 fn tex(scene: &Scene, r: Option<TexRef>, uv: Vec2, srgb: bool) -> Vec4 {
@@ -173,12 +176,21 @@ impl Surface {
             emission: (m.emissive * t(m.emissive_tex, true).truncate()).max(Vec3::ZERO),
             clearcoat: 0.0,
             clearcoat_roughness: 0.0,
+            sheen_color: Vec3::ZERO,
+            sheen_roughness: 0.0,
         };
         if let Some(c) = m.clearcoat
             && effects.contains(Effect::Clearcoat)
         {
             v.clearcoat = (c.factor * t(c.tex, false).x).clamp(0.0, 1.0);
             v.clearcoat_roughness = (c.roughness * t(c.roughness_tex, false).y).clamp(0.0, 1.0);
+        }
+        if let Some(sh) = m.sheen
+            && effects.contains(Effect::Sheen)
+        {
+            v.sheen_color =
+                (sh.color * t(sh.color_tex, true).truncate()).clamp(Vec3::ZERO, Vec3::ONE);
+            v.sheen_roughness = (sh.roughness * t(sh.roughness_tex, false).w).clamp(0.0, 1.0);
         }
 
         if !m.double_sided && !self.front {
@@ -206,6 +218,7 @@ impl Surface {
             v.specular = 0.0;
             v.transmission = 0.0;
             v.clearcoat = 0.0;
+            v.sheen_color = Vec3::ZERO;
         }
         v
     }

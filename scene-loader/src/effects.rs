@@ -48,14 +48,15 @@ pub fn analyze(scene: &Scene, environment: Vec3) -> Effects {
         if m.has_alpha() {
             fx.set(Effect::Alpha, true);
         }
-        fx.set(
-            Effect::Clearcoat,
-            fx.contains(Effect::Clearcoat) || m.has_clearcoat(),
-        );
-        fx.set(
-            Effect::Volume,
-            fx.contains(Effect::Volume) || m.has_volume(),
-        );
+        if m.has_clearcoat() {
+            fx.set(Effect::Clearcoat, true);
+        }
+        if m.has_sheen() {
+            fx.set(Effect::Sheen, true);
+        }
+        if m.has_volume() {
+            fx.set(Effect::Volume, true);
+        }
     }
     if !scene.lights.is_empty() || fx.contains(Effect::Emission) {
         fx.set(Effect::DirectLight, true);

@@ -15,7 +15,7 @@ use std::path::Path;
 
 use dray_core::camera::{Camera, Projection};
 use dray_core::light::Light;
-use dray_core::material::{AlphaMode, Clearcoat, Material, TexRef, Volume};
+use dray_core::material::{AlphaMode, Clearcoat, Material, Sheen, TexRef, Volume};
 use dray_core::scene::Scene;
 use dray_core::texture::{Filter, Sampler, Texture, Wrap};
 use glam::{DMat3, DMat4, DQuat, DVec3, Vec2, Vec3, Vec4};
@@ -36,6 +36,7 @@ pub const SUPPORTED_EXTENSIONS: &[&str] = &[
     "KHR_materials_specular",
     "KHR_materials_unlit",
     "KHR_materials_clearcoat",
+    "KHR_materials_sheen",
     "KHR_materials_volume",
     "KHR_texture_transform",
     "KHR_mesh_quantization",
@@ -728,6 +729,19 @@ impl Loader<'_> {
                         &name,
                         "clearcoatRoughnessTexture",
                         c.roughness_texture,
+                    ),
+                });
+            }
+            if let Some(sh) = m.extension_value("KHR_materials_sheen") {
+                let sh = gltf_ext::sheen(sh);
+                mat.sheen = Some(Sheen {
+                    color: sh.color,
+                    color_tex: self.tex_json(&name, "sheenColorTexture", sh.color_texture),
+                    roughness: sh.roughness,
+                    roughness_tex: self.tex_json(
+                        &name,
+                        "sheenRoughnessTexture",
+                        sh.roughness_texture,
                     ),
                 });
             }

@@ -1,12 +1,12 @@
 //! The parts of glTF extensions the `gltf` crate does not type for dray: texture
 //! transforms on any texture slot, and the material extensions it does not know
-//! (`KHR_materials_clearcoat`), read from its JSON.
+//! (`KHR_materials_clearcoat`, `KHR_materials_sheen`), read from their JSON.
 //!
 //! Values are taken as the extensions' schemas give them, with their defaults; a value
 //! of the wrong JSON type counts as absent (the default), as the crate treats the
 //! extensions it does know. Range checks are left to shading, which clamps.
 
-use glam::{Affine2, Vec2};
+use glam::{Affine2, Vec2, Vec3};
 use serde_json::Value;
 
 /// A texture slot read from JSON: texture index, UV set and transform.
@@ -110,6 +110,24 @@ pub fn clearcoat(v: &Value) -> ClearcoatJson {
     }
 }
 
+/// `KHR_materials_sheen` as written in a material's extensions.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SheenJson {
+    pub color: Vec3,
+    pub color_texture: Option<SlotJson>,
+    pub roughness: f32,
+    pub roughness_texture: Option<SlotJson>,
+}
+
+pub fn sheen(v: &Value) -> SheenJson {
+    SheenJson {
+        color: vec3(v.get("sheenColorFactor")).map_or(Vec3::ZERO, Vec3::from),
+        color_texture: slot(v.get("sheenColorTexture")),
+        roughness: number(v.get("sheenRoughnessFactor")).unwrap_or(0.0),
+        roughness_texture: slot(v.get("sheenRoughnessTexture")),
+    }
+}
+
 fn number(v: Option<&Value>) -> Option<f32> {
     v?.as_f64().map(|x| x as f32)
 }
@@ -117,6 +135,13 @@ fn number(v: Option<&Value>) -> Option<f32> {
 fn vec2(v: Option<&Value>) -> Option<[f32; 2]> {
     match v?.as_array()?.as_slice() {
         [a, b] => Some([a.as_f64()? as f32, b.as_f64()? as f32]),
+        _ => None,
+    }
+}
+
+fn vec3(v: Option<&Value>) -> Option<[f32; 3]> {
+    match v?.as_array()?.as_slice() {
+        [a, b, c] => Some([a.as_f64()? as f32, b.as_f64()? as f32, c.as_f64()? as f32]),
         _ => None,
     }
 }

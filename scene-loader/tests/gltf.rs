@@ -344,7 +344,7 @@ fn extensions_required_and_used() {
     // Used but not required: loads, with one warning.
     let rest = format!(
         r#"{TRI_MESH},"nodes":[{{"mesh":0}}],
-        "extensionsUsed":["KHR_materials_sheen"]"#
+        "extensionsUsed":["KHR_materials_iridescence"]"#
     );
     let path = b.write(&dir, "used", &rest);
     let scene = load_gltf(&path).unwrap();
@@ -353,7 +353,7 @@ fn extensions_required_and_used() {
             .stats
             .warnings
             .iter()
-            .filter(|w| w.contains("KHR_materials_sheen"))
+            .filter(|w| w.contains("KHR_materials_iridescence"))
             .count(),
         1
     );
@@ -1348,7 +1348,7 @@ fn meshopt_compressed_buffer_views_are_decoded() {
 }
 
 #[test]
-fn clearcoat_and_volume_are_read_and_counted() {
+fn clearcoat_sheen_and_volume_are_read_and_counted() {
     use dray_core::effects::Effect;
     let dir = test_dir("coat");
     let b = triangle_builder();
@@ -1357,11 +1357,14 @@ fn clearcoat_and_volume_are_read_and_counted() {
   {{"attributes":{{"POSITION":0}},"indices":3,"material":0}},
   {{"attributes":{{"POSITION":0}},"indices":3,"material":1}}]}}],
 "nodes":[{{"mesh":0}}],
-"extensionsUsed":["KHR_materials_clearcoat","KHR_materials_volume","KHR_materials_transmission"],
-"extensionsRequired":["KHR_materials_clearcoat","KHR_materials_volume"],
+"extensionsUsed":["KHR_materials_clearcoat","KHR_materials_volume","KHR_materials_transmission",
+  "KHR_materials_sheen"],
+"extensionsRequired":["KHR_materials_clearcoat","KHR_materials_volume","KHR_materials_sheen"],
 "materials":[
   {{"extensions":{{"KHR_materials_clearcoat":{{"clearcoatFactor":0.75,
-    "clearcoatRoughnessFactor":0.25,"clearcoatRoughnessTexture":{{"index":0,"texCoord":0}}}}}}}},
+    "clearcoatRoughnessFactor":0.25,"clearcoatRoughnessTexture":{{"index":0,"texCoord":0}}}},
+    "KHR_materials_sheen":{{"sheenColorFactor":[1,0.5,0.25],"sheenRoughnessFactor":0.5,
+      "sheenColorTexture":{{"index":0}}}}}}}},
   {{"extensions":{{"KHR_materials_transmission":{{"transmissionFactor":1}},
     "KHR_materials_volume":{{"attenuationColor":[0.5,0.25,1],"attenuationDistance":2}}}}}}],
 {}"#,
@@ -1371,6 +1374,9 @@ fn clearcoat_and_volume_are_read_and_counted() {
     let c = scene.materials[0].clearcoat.unwrap();
     assert_eq!((c.factor, c.roughness), (0.75, 0.25));
     assert_eq!(c.roughness_tex.map(|t| t.texture), Some(0));
+    let sh = scene.materials[0].sheen.unwrap();
+    assert_eq!((sh.color, sh.roughness), (Vec3::new(1.0, 0.5, 0.25), 0.5));
+    assert_eq!(sh.color_tex.map(|t| t.texture), Some(0));
     let v = scene.materials[1].volume.unwrap();
     assert_eq!(v.attenuation_color, Vec3::new(0.5, 0.25, 1.0));
     // Beer-Lambert: after attenuationDistance white light has the attenuation colour.
@@ -1381,6 +1387,7 @@ fn clearcoat_and_volume_are_read_and_counted() {
     );
     let fx = dray_scene::effects::analyze(&scene, Vec3::ZERO);
     assert!(fx.contains(Effect::Clearcoat) && fx.contains(Effect::Volume));
+    assert!(fx.contains(Effect::Sheen));
     // A scene without them asks for neither.
     let plain = load_gltf(&triangle_builder().write(
         &dir,
@@ -1389,7 +1396,12 @@ fn clearcoat_and_volume_are_read_and_counted() {
     ))
     .unwrap();
     let fx = dray_scene::effects::analyze(&plain, Vec3::ZERO);
-    for e in [Effect::Clearcoat, Effect::Volume, Effect::Unlit] {
+    for e in [
+        Effect::Clearcoat,
+        Effect::Sheen,
+        Effect::Volume,
+        Effect::Unlit,
+    ] {
         assert!(!fx.contains(e), "{e:?}");
     }
     let _ = std::fs::remove_dir_all(&dir);

@@ -29,7 +29,7 @@ use std::path::Path;
 
 use dray_core::camera::{Camera, Projection};
 use dray_core::light::Light;
-use dray_core::material::{AlphaMode, Clearcoat, Material, TexRef, Volume};
+use dray_core::material::{AlphaMode, Clearcoat, Material, Sheen, TexRef, Volume};
 use dray_core::texture::{Filter, Sampler, Wrap};
 use glam::{Affine2, Mat4, Vec3, Vec4};
 use serde::de::{self, Visitor};
@@ -135,6 +135,15 @@ pub struct ClearcoatDesc {
     pub roughness_tex: Option<TexRefDesc>,
 }
 
+/// Mirror of [`Sheen`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SheenDesc {
+    pub color: [Real; 3],
+    pub color_tex: Option<TexRefDesc>,
+    pub roughness: Real,
+    pub roughness_tex: Option<TexRefDesc>,
+}
+
 /// Mirror of [`Volume`].
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct VolumeDesc {
@@ -178,6 +187,8 @@ pub struct MaterialDesc {
     pub unlit: bool,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub clearcoat: Option<ClearcoatDesc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sheen: Option<SheenDesc>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub volume: Option<VolumeDesc>,
 }
@@ -235,6 +246,12 @@ impl From<&Material> for MaterialDesc {
                 roughness: Real(c.roughness),
                 roughness_tex: tex_out(c.roughness_tex),
             }),
+            sheen: m.sheen.map(|s| SheenDesc {
+                color: v3(s.color),
+                color_tex: tex_out(s.color_tex),
+                roughness: Real(s.roughness),
+                roughness_tex: tex_out(s.roughness_tex),
+            }),
             volume: m.volume.map(|v| VolumeDesc {
                 attenuation_color: v3(v.attenuation_color),
                 attenuation_distance: Real(v.attenuation_distance),
@@ -276,6 +293,12 @@ impl MaterialDesc {
                 roughness: c.roughness.0,
                 roughness_tex: tex_in(c.roughness_tex),
             }),
+            sheen: self.sheen.map(|s| Sheen {
+                color: from_v3(s.color),
+                color_tex: tex_in(s.color_tex),
+                roughness: s.roughness.0,
+                roughness_tex: tex_in(s.roughness_tex),
+            }),
             volume: self.volume.map(|v| Volume {
                 attenuation_color: from_v3(v.attenuation_color),
                 attenuation_distance: v.attenuation_distance.0,
@@ -294,6 +317,8 @@ impl MaterialDesc {
             self.specular_color_tex,
             self.clearcoat.and_then(|c| c.tex),
             self.clearcoat.and_then(|c| c.roughness_tex),
+            self.sheen.and_then(|s| s.color_tex),
+            self.sheen.and_then(|s| s.roughness_tex),
         ]
         .into_iter()
         .flatten()
@@ -861,7 +886,7 @@ mod tests {
         // Without glTF extensions the description has no field for them (old manifests
         // keep their bytes); with them, they round-trip.
         let plain = serde_json::to_string(&MaterialDesc::from(&m)).unwrap();
-        for absent in ["unlit", "clearcoat", "volume", "transform"] {
+        for absent in ["unlit", "clearcoat", "sheen", "volume", "transform"] {
             assert!(!plain.contains(absent), "{absent} in {plain}");
         }
         m.unlit = true;
@@ -878,6 +903,12 @@ mod tests {
             tex: Some(TexRef::new(1)),
             roughness: 0.25,
             roughness_tex: None,
+        });
+        m.sheen = Some(Sheen {
+            color: Vec3::new(0.5, 0.25, 1.0),
+            color_tex: None,
+            roughness: 0.75,
+            roughness_tex: Some(TexRef::new(0)),
         });
         m.volume = Some(Volume {
             attenuation_color: Vec3::new(0.5, 0.9, 1.0),
