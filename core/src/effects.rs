@@ -30,12 +30,14 @@ pub enum Effect {
     Clearcoat,
     /// Some material has a sheen layer (`KHR_materials_sheen`).
     Sheen,
+    /// Some material has an anisotropic specular lobe (`KHR_materials_anisotropy`).
+    Anisotropy,
     /// Some transmissive material absorbs inside (`KHR_materials_volume`).
     Volume,
 }
 
 impl Effect {
-    pub const ALL: [Effect; 11] = [
+    pub const ALL: [Effect; 12] = [
         Effect::DirectLight,
         Effect::Specular,
         Effect::Transmission,
@@ -46,6 +48,7 @@ impl Effect {
         Effect::Unlit,
         Effect::Clearcoat,
         Effect::Sheen,
+        Effect::Anisotropy,
         Effect::Volume,
     ];
 
@@ -65,6 +68,7 @@ impl Effect {
             Effect::Unlit => "unlit",
             Effect::Clearcoat => "clearcoat",
             Effect::Sheen => "sheen",
+            Effect::Anisotropy => "anisotropy",
             Effect::Volume => "volume",
         }
     }

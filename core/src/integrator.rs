@@ -483,6 +483,8 @@ impl<'a> Integrator<'a> {
             clearcoat_roughness: sv.clearcoat_roughness,
             sheen_color: sv.sheen_color,
             sheen_roughness: sv.sheen_roughness,
+            anisotropy: sv.anisotropy,
+            anisotropy_direction: sv.anisotropy_direction,
         };
         // The BSDF tells inside from outside by the outward (winding) normal.
         let outward = if surf.front { surf.ng } else { -surf.ng };

@@ -63,6 +63,18 @@ pub struct Sheen {
     pub roughness_tex: Option<TexRef>,
 }
 
+/// `KHR_materials_anisotropy`: the specular lobe stretched along a direction in the
+/// tangent plane (brushed metal).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Anisotropy {
+    /// In [0, 1] (texture B multiplies it).
+    pub strength: f32,
+    /// Radians, counter-clockwise from the tangent, applied to the direction.
+    pub rotation: f32,
+    /// RG: the direction in tangent space in [-1, 1]; B: strength.
+    pub tex: Option<TexRef>,
+}
+
 /// `KHR_materials_volume`: the medium inside a transmissive object, attenuating light
 /// by Beer-Lambert over the distance travelled inside.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -145,6 +157,7 @@ pub struct Material {
     pub unlit: bool,
     pub clearcoat: Option<Clearcoat>,
     pub sheen: Option<Sheen>,
+    pub anisotropy: Option<Anisotropy>,
     pub volume: Option<Volume>,
 }
 
@@ -174,6 +187,7 @@ impl Default for Material {
             unlit: false,
             clearcoat: None,
             sheen: None,
+            anisotropy: None,
             volume: None,
         }
     }
@@ -263,6 +277,10 @@ impl Material {
         !self.unlit && self.sheen.is_some_and(|s| s.color.max_element() > 0.0)
     }
 
+    pub fn has_anisotropy(&self) -> bool {
+        !self.unlit && self.anisotropy.is_some_and(|a| a.strength > 0.0)
+    }
+
     /// A transmissive material whose inside absorbs.
     pub fn has_volume(&self) -> bool {
         !self.unlit && self.has_transmission() && self.volume.is_some_and(|v| v.absorbs())
@@ -282,6 +300,7 @@ impl Material {
             self.clearcoat.and_then(|c| c.roughness_tex),
             self.sheen.and_then(|s| s.color_tex),
             self.sheen.and_then(|s| s.roughness_tex),
+            self.anisotropy.and_then(|a| a.tex),
         ]
         .into_iter()
         .flatten()

@@ -20,6 +20,10 @@ pub struct Surface {
     pub uv: Vec2,
     /// Interpolated vertex colour (white when the mesh has none).
     pub color: Vec4,
+    /// Unit tangent and bitangent of the shading frame (from the mesh's tangents), for
+    /// anisotropic materials only; zero otherwise.
+    pub tangent: Vec3,
+    pub bitangent: Vec3,
     /// Whether the ray hit the front face (counter-clockwise winding, glTF convention).
     pub front: bool,
     pub tri: u32,
@@ -44,6 +48,9 @@ pub struct ShadingValues {
     /// `KHR_materials_sheen` colour (black: no sheen) and roughness.
     pub sheen_color: Vec3,
     pub sheen_roughness: f32,
+    /// `KHR_materials_anisotropy` strength (0: isotropic) and world direction.
+    pub anisotropy: f32,
+    pub anisotropy_direction: Vec3,
 }
 
 fn tex(scene: &Scene, r: Option<TexRef>, uv: Vec2, srgb: bool) -> Vec4 {
@@ -122,6 +129,12 @@ impl Surface {
                 }
             }
         }
+        let (tangent, bitangent) = match scene.materials.get(material as usize) {
+            Some(m) if m.has_anisotropy() && effects.contains(Effect::Anisotropy) => {
+                tangent_frame(scene, idx, bary, if n == Vec3::ZERO { ng } else { n })
+            }
+            _ => (Vec3::ZERO, Vec3::ZERO),
+        };
         if n == Vec3::ZERO {
             n = ng;
         } else if n.dot(ng) < 0.0 {
@@ -133,6 +146,8 @@ impl Surface {
             n,
             uv,
             color,
+            tangent,
+            bitangent,
             front,
             tri: hit.tri,
             material,
@@ -178,7 +193,25 @@ impl Surface {
             clearcoat_roughness: 0.0,
             sheen_color: Vec3::ZERO,
             sheen_roughness: 0.0,
+            anisotropy: 0.0,
+            anisotropy_direction: Vec3::ZERO,
         };
+        if let Some(a) = m.anisotropy
+            && effects.contains(Effect::Anisotropy)
+            && self.tangent != Vec3::ZERO
+        {
+            // RG of the texture is the direction in tangent space (default: the
+            // tangent), turned by the rotation; B multiplies the strength.
+            let tx = t(a.tex, false);
+            let dir = match a.tex {
+                Some(_) if textured => Vec2::new(tx.x * 2.0 - 1.0, tx.y * 2.0 - 1.0),
+                _ => Vec2::X,
+            };
+            let (s, c) = a.rotation.sin_cos();
+            let d = Vec2::new(c * dir.x - s * dir.y, s * dir.x + c * dir.y);
+            v.anisotropy = (a.strength * tx.z).clamp(0.0, 1.0);
+            v.anisotropy_direction = self.tangent * d.x + self.bitangent * d.y;
+        }
         if let Some(c) = m.clearcoat
             && effects.contains(Effect::Clearcoat)
         {
@@ -222,6 +255,26 @@ impl Surface {
         }
         v
     }
+}
+
+/// The tangent frame at barycentrics `b` of the triangle with vertices `idx`, made
+/// orthonormal to the shading normal `n`; zero when the mesh has no tangent there.
+fn tangent_frame(scene: &Scene, idx: [u32; 3], b: [f32; 3], n: Vec3) -> (Vec3, Vec3) {
+    let ts = idx.map(|i| {
+        scene
+            .mesh
+            .tangents
+            .get(i as usize)
+            .copied()
+            .unwrap_or(Vec4::ZERO)
+    });
+    let t4 = ts[0] * b[0] + ts[1] * b[1] + ts[2] * b[2];
+    let t = (t4.truncate() - n * n.dot(t4.truncate())).normalize_or_zero();
+    if t == Vec3::ZERO {
+        return (Vec3::ZERO, Vec3::ZERO);
+    }
+    let sign = if ts[0].w < 0.0 { -1.0 } else { 1.0 };
+    (t, n.cross(t) * sign)
 }
 
 /// Whether a hit on triangle `tri` at barycentrics `b` is a real surface, given its

@@ -54,6 +54,9 @@ pub fn analyze(scene: &Scene, environment: Vec3) -> Effects {
         if m.has_sheen() {
             fx.set(Effect::Sheen, true);
         }
+        if m.has_anisotropy() {
+            fx.set(Effect::Anisotropy, true);
+        }
         if m.has_volume() {
             fx.set(Effect::Volume, true);
         }

@@ -15,7 +15,7 @@ use std::path::Path;
 
 use dray_core::camera::{Camera, Projection};
 use dray_core::light::Light;
-use dray_core::material::{AlphaMode, Clearcoat, Material, Sheen, TexRef, Volume};
+use dray_core::material::{AlphaMode, Anisotropy, Clearcoat, Material, Sheen, TexRef, Volume};
 use dray_core::scene::Scene;
 use dray_core::texture::{Filter, Sampler, Texture, Wrap};
 use glam::{DMat3, DMat4, DQuat, DVec3, Vec2, Vec3, Vec4};
@@ -37,6 +37,7 @@ pub const SUPPORTED_EXTENSIONS: &[&str] = &[
     "KHR_materials_unlit",
     "KHR_materials_clearcoat",
     "KHR_materials_sheen",
+    "KHR_materials_anisotropy",
     "KHR_materials_volume",
     "KHR_texture_transform",
     "KHR_mesh_quantization",
@@ -745,6 +746,14 @@ impl Loader<'_> {
                     ),
                 });
             }
+            if let Some(a) = m.extension_value("KHR_materials_anisotropy") {
+                let a = gltf_ext::anisotropy(a);
+                mat.anisotropy = Some(Anisotropy {
+                    strength: a.strength,
+                    rotation: a.rotation,
+                    tex: self.tex_json(&name, "anisotropyTexture", a.texture),
+                });
+            }
             mat.unlit = m.unlit();
             let set = self.choose_uv_set(&mat);
             self.uv_sets.push(set);
@@ -1168,11 +1177,14 @@ impl Loader<'_> {
                 Mode::TriangleFan => validate::fan_to_list(&raw_indices),
                 _ => raw_indices,
             };
-            let normal_map = self
-                .scene
-                .materials
-                .get(material as usize)
-                .and_then(|m| m.normal_tex);
+            // Tangents are made for a normal map, and for an anisotropic lobe (its
+            // direction is given in tangent space) from the UV set the material reads.
+            let normal_map = self.scene.materials.get(material as usize).and_then(|m| {
+                m.normal_tex.or(m.has_anisotropy().then_some(TexRef {
+                    tex_coord: uv_set,
+                    ..TexRef::new(0)
+                }))
+            });
             if let (Some(map), None) = (normal_map, &tangents) {
                 match (&mut normals, &mut uvs) {
                     (Some(ns), Some(us)) if map.tex_coord == uv_set => {
@@ -1206,9 +1218,10 @@ impl Loader<'_> {
                         tangents = Some(generated);
                     }
                     _ => self.warn(format!(
-                        "{}: mesh {name:?} primitive {}: its material has a normal map but the \
-                         primitive has no TANGENT, and no NORMAL or TEXCOORD_{} to generate \
-                         tangents from; the normal map is ignored there",
+                        "{}: mesh {name:?} primitive {}: its material has a normal map or an \
+                         anisotropic lobe but the primitive has no TANGENT, and no NORMAL or \
+                         TEXCOORD_{} to generate tangents from; its normal map is ignored there, \
+                         and so is its anisotropy",
                         self.path.display(),
                         prim.index(),
                         map.tex_coord

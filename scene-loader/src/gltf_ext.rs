@@ -128,6 +128,22 @@ pub fn sheen(v: &Value) -> SheenJson {
     }
 }
 
+/// `KHR_materials_anisotropy` as written in a material's extensions.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AnisotropyJson {
+    pub strength: f32,
+    pub rotation: f32,
+    pub texture: Option<SlotJson>,
+}
+
+pub fn anisotropy(v: &Value) -> AnisotropyJson {
+    AnisotropyJson {
+        strength: number(v.get("anisotropyStrength")).unwrap_or(0.0),
+        rotation: number(v.get("anisotropyRotation")).unwrap_or(0.0),
+        texture: slot(v.get("anisotropyTexture")),
+    }
+}
+
 fn number(v: Option<&Value>) -> Option<f32> {
     v?.as_f64().map(|x| x as f32)
 }

@@ -1206,6 +1206,26 @@ fn texture_transforms_map_uvs_on_every_slot() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// The surface and shading values of triangle 0 at one inner point, seen from +z.
+fn shade_first_triangle(
+    scene: &Scene,
+    fx: dray_core::effects::Effects,
+) -> (
+    dray_core::surface::Surface,
+    dray_core::surface::ShadingValues,
+) {
+    let hit = dray_core::bvh::Hit {
+        t: 1.0,
+        tri: 0,
+        b0: 0.2,
+        b1: 0.3,
+        b2: 0.5,
+    };
+    let surf = dray_core::surface::Surface::new(scene, &hit, -Vec3::Z, fx);
+    let sv = surf.shading(scene, fx);
+    (surf, sv)
+}
+
 #[test]
 fn unlit_materials_show_their_base_colour_and_light_nothing() {
     use dray_core::effects::Effect;
@@ -1224,15 +1244,7 @@ fn unlit_materials_show_their_base_colour_and_light_nothing() {
     let fx = dray_scene::effects::analyze(&scene, Vec3::ONE);
     assert!(fx.contains(Effect::Unlit));
     assert!(!fx.contains(Effect::Specular) && !fx.contains(Effect::Emission));
-    let hit = dray_core::bvh::Hit {
-        t: 1.0,
-        tri: 0,
-        b0: 0.2,
-        b1: 0.3,
-        b2: 0.5,
-    };
-    let surf = dray_core::surface::Surface::new(&scene, &hit, -Vec3::Z, fx);
-    let sv = surf.shading(&scene, fx);
+    let (_, sv) = shade_first_triangle(&scene, fx);
     assert_eq!(sv.emission, Vec3::new(0.5, 0.25, 1.0));
     assert_eq!(sv.base_color, Vec3::ZERO);
     assert_eq!((sv.metallic, sv.specular), (0.0, 0.0));
@@ -1404,5 +1416,40 @@ fn clearcoat_sheen_and_volume_are_read_and_counted() {
     ] {
         assert!(!fx.contains(e), "{e:?}");
     }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn anisotropy_is_read_and_gets_tangents() {
+    use dray_core::effects::Effect;
+    let dir = test_dir("anisotropy");
+    // NORMAL (1) and TEXCOORD_1 (5) but no TANGENT: tangents are made for the lobe.
+    let b = two_uv_sets();
+    let rest = r#""meshes":[{"primitives":[
+  {"attributes":{"POSITION":0,"NORMAL":1,"TEXCOORD_0":5},"indices":3,"material":0}]}],
+"nodes":[{"mesh":0}],
+"extensionsUsed":["KHR_materials_anisotropy"],"extensionsRequired":["KHR_materials_anisotropy"],
+"materials":[{"pbrMetallicRoughness":{"roughnessFactor":0.3},
+  "extensions":{"KHR_materials_anisotropy":{"anisotropyStrength":0.6,"anisotropyRotation":0.5}}}]"#;
+    let scene = load_gltf(&b.write(&dir, "aniso", rest)).unwrap();
+    let a = scene.materials[0].anisotropy.unwrap();
+    assert_eq!((a.strength, a.rotation, a.tex), (0.6, 0.5, None));
+    assert!(
+        scene
+            .mesh
+            .tangents
+            .iter()
+            .all(|t| t.truncate().length() > 0.5),
+        "{:?}",
+        scene.mesh.tangents
+    );
+    let fx = dray_scene::effects::analyze(&scene, Vec3::ONE);
+    assert!(fx.contains(Effect::Anisotropy));
+    // The direction reaches shading: the tangent turned by the rotation.
+    let (surf, sv) = shade_first_triangle(&scene, fx);
+    assert_eq!(sv.anisotropy, 0.6);
+    let want = surf.tangent * 0.5f32.cos() + surf.bitangent * 0.5f32.sin();
+    assert!((sv.anisotropy_direction - want).length() < 1e-6);
+    assert!(surf.tangent.length() > 0.99);
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -29,7 +29,7 @@ use std::path::Path;
 
 use dray_core::camera::{Camera, Projection};
 use dray_core::light::Light;
-use dray_core::material::{AlphaMode, Clearcoat, Material, Sheen, TexRef, Volume};
+use dray_core::material::{AlphaMode, Anisotropy, Clearcoat, Material, Sheen, TexRef, Volume};
 use dray_core::texture::{Filter, Sampler, Wrap};
 use glam::{Affine2, Mat4, Vec3, Vec4};
 use serde::de::{self, Visitor};
@@ -144,6 +144,14 @@ pub struct SheenDesc {
     pub roughness_tex: Option<TexRefDesc>,
 }
 
+/// Mirror of [`Anisotropy`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AnisotropyDesc {
+    pub strength: Real,
+    pub rotation: Real,
+    pub tex: Option<TexRefDesc>,
+}
+
 /// Mirror of [`Volume`].
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct VolumeDesc {
@@ -189,6 +197,8 @@ pub struct MaterialDesc {
     pub clearcoat: Option<ClearcoatDesc>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sheen: Option<SheenDesc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub anisotropy: Option<AnisotropyDesc>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub volume: Option<VolumeDesc>,
 }
@@ -252,6 +262,11 @@ impl From<&Material> for MaterialDesc {
                 roughness: Real(s.roughness),
                 roughness_tex: tex_out(s.roughness_tex),
             }),
+            anisotropy: m.anisotropy.map(|a| AnisotropyDesc {
+                strength: Real(a.strength),
+                rotation: Real(a.rotation),
+                tex: tex_out(a.tex),
+            }),
             volume: m.volume.map(|v| VolumeDesc {
                 attenuation_color: v3(v.attenuation_color),
                 attenuation_distance: Real(v.attenuation_distance),
@@ -299,6 +314,11 @@ impl MaterialDesc {
                 roughness: s.roughness.0,
                 roughness_tex: tex_in(s.roughness_tex),
             }),
+            anisotropy: self.anisotropy.map(|a| Anisotropy {
+                strength: a.strength.0,
+                rotation: a.rotation.0,
+                tex: tex_in(a.tex),
+            }),
             volume: self.volume.map(|v| Volume {
                 attenuation_color: from_v3(v.attenuation_color),
                 attenuation_distance: v.attenuation_distance.0,
@@ -319,6 +339,7 @@ impl MaterialDesc {
             self.clearcoat.and_then(|c| c.roughness_tex),
             self.sheen.and_then(|s| s.color_tex),
             self.sheen.and_then(|s| s.roughness_tex),
+            self.anisotropy.and_then(|a| a.tex),
         ]
         .into_iter()
         .flatten()
@@ -886,7 +907,14 @@ mod tests {
         // Without glTF extensions the description has no field for them (old manifests
         // keep their bytes); with them, they round-trip.
         let plain = serde_json::to_string(&MaterialDesc::from(&m)).unwrap();
-        for absent in ["unlit", "clearcoat", "sheen", "volume", "transform"] {
+        for absent in [
+            "unlit",
+            "clearcoat",
+            "sheen",
+            "anisotropy",
+            "volume",
+            "transform",
+        ] {
             assert!(!plain.contains(absent), "{absent} in {plain}");
         }
         m.unlit = true;
@@ -909,6 +937,11 @@ mod tests {
             color_tex: None,
             roughness: 0.75,
             roughness_tex: Some(TexRef::new(0)),
+        });
+        m.anisotropy = Some(Anisotropy {
+            strength: 0.5,
+            rotation: 1.25,
+            tex: Some(TexRef::new(1)),
         });
         m.volume = Some(Volume {
             attenuation_color: Vec3::new(0.5, 0.9, 1.0),
