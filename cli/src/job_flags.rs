@@ -41,7 +41,8 @@ pub struct JobFlags {
     #[arg(long)]
     pub env: Option<String>,
     /// Force effects on or off, e.g. "+specular,-transmission" (names: direct_light,
-    /// specular, transmission, emission, textures, alpha, environment).
+    /// specular, transmission, emission, textures, alpha, environment, unlit, clearcoat,
+    /// sheen, anisotropy, volume).
     #[arg(long, allow_hyphen_values = true)]
     pub effects: Option<String>,
     /// Rays per hit for the ao integrator.

@@ -24,10 +24,20 @@ pub enum Effect {
     Alpha,
     /// The environment radiance is not black.
     Environment,
+    /// Some material is unlit (`KHR_materials_unlit`): it shows its base colour.
+    Unlit,
+    /// Some material has a clear coat (`KHR_materials_clearcoat`).
+    Clearcoat,
+    /// Some material has a sheen layer (`KHR_materials_sheen`).
+    Sheen,
+    /// Some material has an anisotropic specular lobe (`KHR_materials_anisotropy`).
+    Anisotropy,
+    /// Some transmissive material absorbs inside (`KHR_materials_volume`).
+    Volume,
 }
 
 impl Effect {
-    pub const ALL: [Effect; 7] = [
+    pub const ALL: [Effect; 12] = [
         Effect::DirectLight,
         Effect::Specular,
         Effect::Transmission,
@@ -35,9 +45,14 @@ impl Effect {
         Effect::Textures,
         Effect::Alpha,
         Effect::Environment,
+        Effect::Unlit,
+        Effect::Clearcoat,
+        Effect::Sheen,
+        Effect::Anisotropy,
+        Effect::Volume,
     ];
 
-    fn bit(self) -> u8 {
+    fn bit(self) -> u16 {
         1 << (self as u8)
     }
 
@@ -50,6 +65,11 @@ impl Effect {
             Effect::Textures => "textures",
             Effect::Alpha => "alpha",
             Effect::Environment => "environment",
+            Effect::Unlit => "unlit",
+            Effect::Clearcoat => "clearcoat",
+            Effect::Sheen => "sheen",
+            Effect::Anisotropy => "anisotropy",
+            Effect::Volume => "volume",
         }
     }
 
@@ -60,7 +80,7 @@ impl Effect {
 
 /// A set of [`Effect`]s.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
-pub struct Effects(u8);
+pub struct Effects(u16);
 
 impl Effects {
     pub const NONE: Effects = Effects(0);

@@ -475,6 +475,23 @@ impl<'a> Integrator<'a> {
         }
     }
 
+    /// Beer-Lambert attenuation of a ray that reached `surf` from inside an absorbing
+    /// transmissive object (`KHR_materials_volume`): it hit the object's back face, so
+    /// it crossed the medium from its origin to here. Stateless (the ray carries no
+    /// medium), so the distance is measured from the ray's own origin to the hit point,
+    /// both the same bits on every worker. `None` when nothing is absorbed.
+    fn volume_transmittance(&self, ray: &RayState, surf: &Surface) -> Option<Vec3> {
+        if surf.front || !self.settings.effects.contains(Effect::Volume) {
+            return None;
+        }
+        let m = self.scene.materials.get(surf.material as usize)?;
+        if !m.has_volume() {
+            return None;
+        }
+        let t = m.volume?.transmittance((surf.p - ray.origin).length());
+        t.is_finite().then_some(t)
+    }
+
     /// A camera or bounce ray hit a surface.
     pub fn shade_hit(&self, ray: &RayState, hit: &Hit, sink: &mut impl Sink) {
         let effects = self.settings.effects;
@@ -482,6 +499,17 @@ impl<'a> Integrator<'a> {
         let sv = surf.shading(self.scene, effects);
         let wo = -ray.dir;
         let key = self.key(ray);
+        let attenuated;
+        let ray = match self.volume_transmittance(ray, &surf) {
+            Some(t) => {
+                attenuated = RayState {
+                    weight: ray.weight * t,
+                    ..*ray
+                };
+                &attenuated
+            }
+            None => ray,
+        };
 
         // Emission seen directly (or by a bounce, weighted against light sampling).
         if sv.emission != Vec3::ZERO {
@@ -523,6 +551,12 @@ impl<'a> Integrator<'a> {
             specular_color: sv.specular_color,
             transmission: sv.transmission,
             ior: sv.ior,
+            clearcoat: sv.clearcoat,
+            clearcoat_roughness: sv.clearcoat_roughness,
+            sheen_color: sv.sheen_color,
+            sheen_roughness: sv.sheen_roughness,
+            anisotropy: sv.anisotropy,
+            anisotropy_direction: sv.anisotropy_direction,
         };
         // The BSDF tells inside from outside by the outward (winding) normal.
         let outward = if surf.front { surf.ng } else { -surf.ng };
@@ -760,8 +794,10 @@ impl<'a> Integrator<'a> {
             weight /= q;
         }
         let kind = match bs.lobe {
-            Lobe::Diffuse => RayKind::Diffuse,
-            Lobe::GlossyReflection | Lobe::SpecularReflection => RayKind::Reflection,
+            Lobe::Diffuse | Lobe::Sheen => RayKind::Diffuse,
+            Lobe::GlossyReflection | Lobe::SpecularReflection | Lobe::CoatReflection => {
+                RayKind::Reflection
+            }
             Lobe::SpecularTransmission | Lobe::GlossyTransmission => RayKind::Refraction,
         };
         let pdf = if bs.delta || !nee { 0.0 } else { bs.pdf };

@@ -27,6 +27,7 @@ pub mod light_sampler;
 pub mod ray;
 pub mod render;
 pub mod sampling;
+pub mod sheen;
 pub mod surface;
 pub mod tiles;
 pub mod trace;

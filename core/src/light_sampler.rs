@@ -319,8 +319,8 @@ impl LightSampler {
 pub fn emitted(scene: &Scene, m: &Material, uv: Vec2) -> Vec3 {
     let t = m
         .emissive_tex
-        .and_then(|r| scene.textures.get(r.texture as usize))
-        .map(|t| t.sample(uv, true).truncate())
+        .and_then(|r| Some((scene.textures.get(r.texture as usize)?, r.uv(uv))))
+        .map(|(t, uv)| t.sample(uv, true).truncate())
         .unwrap_or(Vec3::ONE);
     (m.emissive * t).max(Vec3::ZERO)
 }

@@ -3,16 +3,110 @@
 //! Factors are stored as glTF gives them; textures multiply them at shading time.
 //! Emission is stored already multiplied by `KHR_materials_emissive_strength`.
 
-use glam::{Vec3, Vec4};
+use glam::{Affine2, Vec2, Vec3, Vec4};
 
 /// A reference from a material slot to a texture in [`crate::scene::Scene::textures`].
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TexRef {
     /// Index into `Scene::textures`.
     pub texture: u32,
-    /// Which UV set the texture reads. dray keeps one UV set per vertex (`TEXCOORD_0`);
-    /// loaders warn when a texture asks for another.
+    /// Which UV set of the source file the texture reads. The mesh keeps one UV set per
+    /// vertex: loaders store there the set each triangle's material reads (docs/gltf.md,
+    /// "Texture coordinates"), so shading never looks this up.
     pub tex_coord: u32,
+    /// `KHR_texture_transform`: the affine map from the mesh's UV to the texture's UV
+    /// (offset, rotation and scale composed), `None` for the identity. Kept as `None`
+    /// rather than an identity matrix so untransformed lookups keep their bits.
+    pub transform: Option<Affine2>,
+}
+
+impl TexRef {
+    /// A reference to `texture` through UV set 0, untransformed.
+    pub fn new(texture: u32) -> TexRef {
+        TexRef {
+            texture,
+            tex_coord: 0,
+            transform: None,
+        }
+    }
+
+    /// The texture-space coordinate for the mesh coordinate `uv`.
+    #[inline]
+    pub fn uv(&self, uv: Vec2) -> Vec2 {
+        match &self.transform {
+            Some(t) => t.transform_point2(uv),
+            None => uv,
+        }
+    }
+}
+
+/// `KHR_materials_clearcoat`: a clear dielectric coat (ior 1.5, GGX) over the material.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Clearcoat {
+    /// Coat strength in [0, 1] (texture R multiplies it).
+    pub factor: f32,
+    pub tex: Option<TexRef>,
+    /// Coat perceptual roughness (texture G multiplies it).
+    pub roughness: f32,
+    pub roughness_tex: Option<TexRef>,
+}
+
+/// `KHR_materials_sheen`: a velvet-like layer of fibres (the Charlie distribution)
+/// over the material, below a clear coat.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Sheen {
+    /// Linear sheen colour (texture RGB, sRGB, multiplies it).
+    pub color: Vec3,
+    pub color_tex: Option<TexRef>,
+    /// Sheen perceptual roughness (texture A multiplies it).
+    pub roughness: f32,
+    pub roughness_tex: Option<TexRef>,
+}
+
+/// `KHR_materials_anisotropy`: the specular lobe stretched along a direction in the
+/// tangent plane (brushed metal).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Anisotropy {
+    /// In [0, 1] (texture B multiplies it).
+    pub strength: f32,
+    /// Radians, counter-clockwise from the tangent, applied to the direction.
+    pub rotation: f32,
+    /// RG: the direction in tangent space in [-1, 1]; B: strength.
+    pub tex: Option<TexRef>,
+}
+
+/// `KHR_materials_volume`: the medium inside a transmissive object, attenuating light
+/// by Beer-Lambert over the distance travelled inside.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Volume {
+    /// Linear colour white light becomes after `attenuation_distance` in the medium.
+    pub attenuation_color: Vec3,
+    /// Distance at which white light has become `attenuation_color` (infinite: clear).
+    pub attenuation_distance: f32,
+}
+
+impl Volume {
+    /// Per-channel attenuation coefficient `-ln(color) / distance` (0 for a clear
+    /// medium, infinite for a black channel).
+    pub fn sigma(&self) -> Vec3 {
+        let d = self.attenuation_distance;
+        if d.is_nan() || d <= 0.0 || d.is_infinite() {
+            return Vec3::ZERO;
+        }
+        let c = self.attenuation_color.clamp(Vec3::ZERO, Vec3::ONE);
+        Vec3::new(-c.x.ln(), -c.y.ln(), -c.z.ln()) / d
+    }
+
+    /// Transmittance over `distance` inside the medium.
+    pub fn transmittance(&self, distance: f32) -> Vec3 {
+        let s = self.sigma() * distance.max(0.0);
+        Vec3::new((-s.x).exp(), (-s.y).exp(), (-s.z).exp())
+    }
+
+    /// True when the medium absorbs anything.
+    pub fn absorbs(&self) -> bool {
+        self.sigma().max_element() > 0.0
+    }
 }
 
 /// How alpha is interpreted (glTF `alphaMode`).
@@ -58,6 +152,13 @@ pub struct Material {
     pub specular_color_tex: Option<TexRef>,
     pub alpha_mode: AlphaMode,
     pub double_sided: bool,
+    /// `KHR_materials_unlit`: the surface shows its base colour as is, lit by nothing
+    /// and lighting nothing.
+    pub unlit: bool,
+    pub clearcoat: Option<Clearcoat>,
+    pub sheen: Option<Sheen>,
+    pub anisotropy: Option<Anisotropy>,
+    pub volume: Option<Volume>,
 }
 
 impl Default for Material {
@@ -83,6 +184,11 @@ impl Default for Material {
             specular_color_tex: None,
             alpha_mode: AlphaMode::Opaque,
             double_sided: false,
+            unlit: false,
+            clearcoat: None,
+            sheen: None,
+            anisotropy: None,
+            volume: None,
         }
     }
 }
@@ -149,8 +255,10 @@ impl Material {
         self.transmission > 0.0
     }
 
+    /// Unlit materials do not emit: they show their base colour to whoever looks, but
+    /// are not light sources (what a rasteriser's unlit material does).
     pub fn has_emission(&self) -> bool {
-        self.emissive.max_element() > 0.0
+        !self.unlit && self.emissive.max_element() > 0.0
     }
 
     pub fn has_textures(&self) -> bool {
@@ -159,6 +267,23 @@ impl Material {
 
     pub fn has_alpha(&self) -> bool {
         !matches!(self.alpha_mode, AlphaMode::Opaque)
+    }
+
+    pub fn has_clearcoat(&self) -> bool {
+        !self.unlit && self.clearcoat.is_some_and(|c| c.factor > 0.0)
+    }
+
+    pub fn has_sheen(&self) -> bool {
+        !self.unlit && self.sheen.is_some_and(|s| s.color.max_element() > 0.0)
+    }
+
+    pub fn has_anisotropy(&self) -> bool {
+        !self.unlit && self.anisotropy.is_some_and(|a| a.strength > 0.0)
+    }
+
+    /// A transmissive material whose inside absorbs.
+    pub fn has_volume(&self) -> bool {
+        !self.unlit && self.has_transmission() && self.volume.is_some_and(|v| v.absorbs())
     }
 
     /// Every texture slot in use, for validation and effect analysis.
@@ -171,6 +296,11 @@ impl Material {
             self.transmission_tex,
             self.specular_tex,
             self.specular_color_tex,
+            self.clearcoat.and_then(|c| c.tex),
+            self.clearcoat.and_then(|c| c.roughness_tex),
+            self.sheen.and_then(|s| s.color_tex),
+            self.sheen.and_then(|s| s.roughness_tex),
+            self.anisotropy.and_then(|a| a.tex),
         ]
         .into_iter()
         .flatten()

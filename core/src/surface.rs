@@ -20,6 +20,10 @@ pub struct Surface {
     pub uv: Vec2,
     /// Interpolated vertex colour (white when the mesh has none).
     pub color: Vec4,
+    /// Unit tangent and bitangent of the shading frame (from the mesh's tangents), for
+    /// anisotropic materials only; zero otherwise.
+    pub tangent: Vec3,
+    pub bitangent: Vec3,
     /// Whether the ray hit the front face (counter-clockwise winding, glTF convention).
     pub front: bool,
     pub tri: u32,
@@ -38,11 +42,20 @@ pub struct ShadingValues {
     pub transmission: f32,
     pub ior: f32,
     pub emission: Vec3,
+    /// `KHR_materials_clearcoat` strength (0: no coat) and roughness.
+    pub clearcoat: f32,
+    pub clearcoat_roughness: f32,
+    /// `KHR_materials_sheen` colour (black: no sheen) and roughness.
+    pub sheen_color: Vec3,
+    pub sheen_roughness: f32,
+    /// `KHR_materials_anisotropy` strength (0: isotropic) and world direction.
+    pub anisotropy: f32,
+    pub anisotropy_direction: Vec3,
 }
 
 fn tex(scene: &Scene, r: Option<TexRef>, uv: Vec2, srgb: bool) -> Vec4 {
-    match r.and_then(|r| scene.textures.get(r.texture as usize)) {
-        Some(t) => t.sample(uv, srgb),
+    match r.and_then(|r| Some((scene.textures.get(r.texture as usize)?, r.uv(uv)))) {
+        Some((t, uv)) => t.sample(uv, srgb),
         None => Vec4::ONE,
     }
 }
@@ -116,6 +129,12 @@ impl Surface {
                 }
             }
         }
+        let (tangent, bitangent) = match scene.materials.get(material as usize) {
+            Some(m) if m.has_anisotropy() && effects.contains(Effect::Anisotropy) => {
+                tangent_frame(scene, idx, bary, if n == Vec3::ZERO { ng } else { n })
+            }
+            _ => (Vec3::ZERO, Vec3::ZERO),
+        };
         if n == Vec3::ZERO {
             n = ng;
         } else if n.dot(ng) < 0.0 {
@@ -127,6 +146,8 @@ impl Surface {
             n,
             uv,
             color,
+            tangent,
+            bitangent,
             front,
             tri: hit.tri,
             material,
@@ -168,7 +189,43 @@ impl Surface {
                 1.5
             },
             emission: (m.emissive * t(m.emissive_tex, true).truncate()).max(Vec3::ZERO),
+            clearcoat: 0.0,
+            clearcoat_roughness: 0.0,
+            sheen_color: Vec3::ZERO,
+            sheen_roughness: 0.0,
+            anisotropy: 0.0,
+            anisotropy_direction: Vec3::ZERO,
         };
+        if let Some(a) = m.anisotropy
+            && effects.contains(Effect::Anisotropy)
+            && self.tangent != Vec3::ZERO
+        {
+            // RG of the texture is the direction in tangent space (default: the
+            // tangent), turned by the rotation; B multiplies the strength.
+            let tx = t(a.tex, false);
+            let dir = match a.tex {
+                Some(_) if textured => Vec2::new(tx.x * 2.0 - 1.0, tx.y * 2.0 - 1.0),
+                _ => Vec2::X,
+            };
+            let (s, c) = a.rotation.sin_cos();
+            let d = Vec2::new(c * dir.x - s * dir.y, s * dir.x + c * dir.y);
+            v.anisotropy = (a.strength * tx.z).clamp(0.0, 1.0);
+            v.anisotropy_direction = self.tangent * d.x + self.bitangent * d.y;
+        }
+        if let Some(c) = m.clearcoat
+            && effects.contains(Effect::Clearcoat)
+        {
+            v.clearcoat = (c.factor * t(c.tex, false).x).clamp(0.0, 1.0);
+            v.clearcoat_roughness = (c.roughness * t(c.roughness_tex, false).y).clamp(0.0, 1.0);
+        }
+        if let Some(sh) = m.sheen
+            && effects.contains(Effect::Sheen)
+        {
+            v.sheen_color =
+                (sh.color * t(sh.color_tex, true).truncate()).clamp(Vec3::ZERO, Vec3::ONE);
+            v.sheen_roughness = (sh.roughness * t(sh.roughness_tex, false).w).clamp(0.0, 1.0);
+        }
+
         if !m.double_sided && !self.front {
             // Back faces of single-sided surfaces do not emit.
             v.emission = Vec3::ZERO;
@@ -183,8 +240,41 @@ impl Surface {
         if !effects.contains(Effect::Transmission) {
             v.transmission = 0.0;
         }
+        if m.unlit && effects.contains(Effect::Unlit) {
+            // The base colour is what the eye (or a bounce) sees, unlit and lighting
+            // nothing: shown as emission over a black, lobeless BSDF, so every
+            // integrator shows it and none spawns a ray from it. Unlit triangles are
+            // not in the light sampler, so a bounce that finds one weighs it fully.
+            v.emission = v.base_color;
+            v.base_color = Vec3::ZERO;
+            v.metallic = 0.0;
+            v.specular = 0.0;
+            v.transmission = 0.0;
+            v.clearcoat = 0.0;
+            v.sheen_color = Vec3::ZERO;
+        }
         v
     }
+}
+
+/// The tangent frame at barycentrics `b` of the triangle with vertices `idx`, made
+/// orthonormal to the shading normal `n`; zero when the mesh has no tangent there.
+fn tangent_frame(scene: &Scene, idx: [u32; 3], b: [f32; 3], n: Vec3) -> (Vec3, Vec3) {
+    let ts = idx.map(|i| {
+        scene
+            .mesh
+            .tangents
+            .get(i as usize)
+            .copied()
+            .unwrap_or(Vec4::ZERO)
+    });
+    let t4 = ts[0] * b[0] + ts[1] * b[1] + ts[2] * b[2];
+    let t = (t4.truncate() - n * n.dot(t4.truncate())).normalize_or_zero();
+    if t == Vec3::ZERO {
+        return (Vec3::ZERO, Vec3::ZERO);
+    }
+    let sign = if ts[0].w < 0.0 { -1.0 } else { 1.0 };
+    (t, n.cross(t) * sign)
 }
 
 /// Whether a hit on triangle `tri` at barycentrics `b` is a real surface, given its

@@ -22,6 +22,17 @@ pub fn analyze(scene: &Scene, environment: Vec3) -> Effects {
         .map(|(m, _)| m);
     let mut fx = Effects::NONE;
     for m in materials {
+        if m.unlit {
+            // Only its base colour (and alpha) is read: no lobe, no emission.
+            fx.set(Effect::Unlit, true);
+            if m.base_color_tex.is_some() {
+                fx.set(Effect::Textures, true);
+            }
+            if m.has_alpha() {
+                fx.set(Effect::Alpha, true);
+            }
+            continue;
+        }
         if m.has_specular() {
             fx.set(Effect::Specular, true);
         }
@@ -36,6 +47,18 @@ pub fn analyze(scene: &Scene, environment: Vec3) -> Effects {
         }
         if m.has_alpha() {
             fx.set(Effect::Alpha, true);
+        }
+        if m.has_clearcoat() {
+            fx.set(Effect::Clearcoat, true);
+        }
+        if m.has_sheen() {
+            fx.set(Effect::Sheen, true);
+        }
+        if m.has_anisotropy() {
+            fx.set(Effect::Anisotropy, true);
+        }
+        if m.has_volume() {
+            fx.set(Effect::Volume, true);
         }
     }
     if !scene.lights.is_empty() || fx.contains(Effect::Emission) {

@@ -15,7 +15,7 @@ use std::path::Path;
 
 use dray_core::camera::{Camera, Projection};
 use dray_core::light::Light;
-use dray_core::material::{AlphaMode, Material, TexRef};
+use dray_core::material::{AlphaMode, Anisotropy, Clearcoat, Material, Sheen, TexRef, Volume};
 use dray_core::scene::Scene;
 use dray_core::texture::{Filter, Sampler, Texture, Wrap};
 use glam::{DMat3, DMat4, DQuat, DVec3, Vec2, Vec3, Vec4};
@@ -23,6 +23,7 @@ use gltf::json;
 use gltf::json::validation::Checked;
 
 use crate::error::{Result, SceneError};
+use crate::gltf_ext::{self, SlotJson, TextureTransform};
 use crate::validate::{self, Origin, Primitive};
 
 /// Extensions dray understands. A file that *requires* anything else is refused; a file
@@ -33,6 +34,14 @@ pub const SUPPORTED_EXTENSIONS: &[&str] = &[
     "KHR_materials_transmission",
     "KHR_materials_ior",
     "KHR_materials_specular",
+    "KHR_materials_unlit",
+    "KHR_materials_clearcoat",
+    "KHR_materials_sheen",
+    "KHR_materials_anisotropy",
+    "KHR_materials_volume",
+    "KHR_texture_transform",
+    "KHR_mesh_quantization",
+    "EXT_meshopt_compression",
 ];
 
 /// Deeper hierarchies than this are treated as cycles (the JSON validator does not
@@ -122,12 +131,14 @@ fn load_unguarded(path: &Path) -> Result<Scene> {
         .map_err(|e| format_error(path, format!("invalid glTF: {}", bounded(&e))))?;
 
     let buffers = load_buffers(path, document.as_json(), blob)?;
+    let decoded_views = decode_meshopt_views(path, document.as_json(), &buffers)?;
 
     let mut loader = Loader {
         path,
         doc: &document,
         root: document.as_json(),
         buffers,
+        decoded_views,
         scene: Scene {
             name: path
                 .file_stem()
@@ -136,6 +147,7 @@ fn load_unguarded(path: &Path) -> Result<Scene> {
             ..Scene::default()
         },
         default_material: None,
+        uv_sets: Vec::new(),
     };
     for w in warnings {
         loader.warn(w);
@@ -216,6 +228,15 @@ fn load_buffers(path: &Path, root: &json::Root, mut blob: Option<Vec<u8>>) -> Re
                 format!("{what}: byteLength {} is too large", buffer.byte_length.0),
             )
         })?;
+        let meshopt_ext = buffer
+            .extensions
+            .as_ref()
+            .and_then(|e| e.others.get("EXT_meshopt_compression"));
+        if buffer.uri.is_none() && crate::meshopt::is_fallback(meshopt_ext) {
+            // Its views are all compressed elsewhere: nothing to read.
+            out.push(Vec::new());
+            continue;
+        }
         let mut data = match &buffer.uri {
             Some(uri) => read_uri(path, uri, Some(buffer.byte_length.0))
                 .map_err(|m| format_error(path, format!("{what}: {m}")))?,
@@ -242,6 +263,51 @@ fn load_buffers(path: &Path, root: &json::Root, mut blob: Option<Vec<u8>>) -> Re
         // Accessors may only read within byteLength; anything past it (GLB padding) goes.
         data.truncate(declared);
         out.push(data);
+    }
+    Ok(out)
+}
+
+/// Decode every buffer view stored with `EXT_meshopt_compression` (see
+/// [`crate::meshopt`]); `None` for the views stored plainly.
+fn decode_meshopt_views(
+    path: &Path,
+    root: &json::Root,
+    buffers: &[Vec<u8>],
+) -> Result<Vec<Option<Vec<u8>>>> {
+    let mut out = Vec::with_capacity(root.buffer_views.len());
+    for (i, view) in root.buffer_views.iter().enumerate() {
+        let Some(ext) = view
+            .extensions
+            .as_ref()
+            .and_then(|e| e.others.get("EXT_meshopt_compression"))
+        else {
+            out.push(None);
+            continue;
+        };
+        crate::cancel::check()?;
+        let what = format!("buffer view {i} (EXT_meshopt_compression)");
+        let fail = |m: String| format_error(path, format!("{what}: {m}"));
+        let c = crate::meshopt::Compressed::from_json(ext).map_err(fail)?;
+        let source = buffers.get(c.buffer).ok_or_else(|| {
+            fail(format!(
+                "refers to buffer {}, which does not exist",
+                c.buffer
+            ))
+        })?;
+        let data = c
+            .byte_offset
+            .checked_add(c.byte_length)
+            .and_then(|end| source.get(c.byte_offset..end))
+            .ok_or_else(|| {
+                fail(format!(
+                    "bytes {}..+{} lie outside buffer {} ({} bytes)",
+                    c.byte_offset,
+                    c.byte_length,
+                    c.buffer,
+                    source.len()
+                ))
+            })?;
+        out.push(Some(c.decode(data).map_err(fail)?));
     }
     Ok(out)
 }
@@ -455,9 +521,13 @@ struct Loader<'a> {
     doc: &'a gltf::Document,
     root: &'a json::Root,
     buffers: Vec<Vec<u8>>,
+    /// Per buffer view, its bytes when `EXT_meshopt_compression` stored it compressed.
+    decoded_views: Vec<Option<Vec<u8>>>,
     scene: Scene,
     /// Index of the default material once a primitive without one has needed it.
     default_material: Option<u32>,
+    /// Per glTF material, the UV set its triangles store ([`Loader::choose_uv_set`]).
+    uv_sets: Vec<u32>,
 }
 
 impl Loader<'_> {
@@ -618,6 +688,7 @@ impl Loader<'_> {
                     "normalTexture",
                     normal.texture().index(),
                     normal.tex_coord(),
+                    TextureTransform::from_extensions(normal.extensions()),
                 );
             }
             mat.emissive_tex = self.tex_ref(&name, "emissiveTexture", m.emissive_texture());
@@ -636,6 +707,56 @@ impl Loader<'_> {
                 mat.specular_color_tex =
                     self.tex_ref(&name, "specularColorTexture", s.specular_color_texture());
             }
+            if let Some(v) = m.volume() {
+                mat.volume = Some(Volume {
+                    attenuation_color: Vec3::from(v.attenuation_color()),
+                    attenuation_distance: v.attenuation_distance(),
+                });
+            }
+            if let Some(c) = m.extension_value("KHR_materials_clearcoat") {
+                let c = gltf_ext::clearcoat(c);
+                if c.has_normal_texture {
+                    self.warn(format!(
+                        "{}: material {name:?} clearcoatNormalTexture is not supported; the \
+                         coat uses the material's shading normal",
+                        self.path.display()
+                    ));
+                }
+                mat.clearcoat = Some(Clearcoat {
+                    factor: c.factor,
+                    tex: self.tex_json(&name, "clearcoatTexture", c.texture),
+                    roughness: c.roughness,
+                    roughness_tex: self.tex_json(
+                        &name,
+                        "clearcoatRoughnessTexture",
+                        c.roughness_texture,
+                    ),
+                });
+            }
+            if let Some(sh) = m.extension_value("KHR_materials_sheen") {
+                let sh = gltf_ext::sheen(sh);
+                mat.sheen = Some(Sheen {
+                    color: sh.color,
+                    color_tex: self.tex_json(&name, "sheenColorTexture", sh.color_texture),
+                    roughness: sh.roughness,
+                    roughness_tex: self.tex_json(
+                        &name,
+                        "sheenRoughnessTexture",
+                        sh.roughness_texture,
+                    ),
+                });
+            }
+            if let Some(a) = m.extension_value("KHR_materials_anisotropy") {
+                let a = gltf_ext::anisotropy(a);
+                mat.anisotropy = Some(Anisotropy {
+                    strength: a.strength,
+                    rotation: a.rotation,
+                    tex: self.tex_json(&name, "anisotropyTexture", a.texture),
+                });
+            }
+            mat.unlit = m.unlit();
+            let set = self.choose_uv_set(&mat);
+            self.uv_sets.push(set);
             self.scene.materials.push(mat);
         }
     }
@@ -647,27 +768,82 @@ impl Loader<'_> {
         info: Option<gltf::texture::Info<'_>>,
     ) -> Option<TexRef> {
         let info = info?;
-        self.tex_slot(material, slot, info.texture().index(), info.tex_coord())
+        let transform = info.texture_transform().map(|t| TextureTransform {
+            offset: t.offset(),
+            rotation: t.rotation(),
+            scale: t.scale(),
+            tex_coord: t.tex_coord(),
+        });
+        self.tex_slot(
+            material,
+            slot,
+            info.texture().index(),
+            info.tex_coord(),
+            transform,
+        )
     }
 
+    /// A texture slot the `gltf` crate does not type (an extension's), from its JSON.
+    fn tex_json(&mut self, material: &str, slot: &str, json: Option<SlotJson>) -> Option<TexRef> {
+        let s = json?;
+        if s.index >= self.scene.textures.len() {
+            self.warn(format!(
+                "{}: material {material:?} {slot} refers to texture {}, which does not exist; \
+                 the slot is ignored",
+                self.path.display(),
+                s.index
+            ));
+            return None;
+        }
+        self.tex_slot(material, slot, s.index, s.tex_coord, s.transform)
+    }
+
+    /// A texture reference with `KHR_texture_transform` applied (its `texCoord`
+    /// overrides the slot's, as the extension says).
     fn tex_slot(
         &mut self,
         material: &str,
         slot: &str,
         texture: usize,
         tex_coord: u32,
+        transform: Option<TextureTransform>,
     ) -> Option<TexRef> {
-        if tex_coord != 0 {
+        if transform.is_some_and(|t| t.is_malformed()) {
             self.warn(format!(
-                "{}: material {material:?} {slot} uses TEXCOORD_{tex_coord}; dray reads \
-                 TEXCOORD_0 only, so this texture is sampled with TEXCOORD_0",
+                "{}: material {material:?} {slot}: KHR_texture_transform has a value that \
+                 is not finite; the transform is ignored",
                 self.path.display()
             ));
         }
         Some(TexRef {
             texture: u32::try_from(texture).ok()?,
-            tex_coord,
+            tex_coord: transform.and_then(|t| t.tex_coord).unwrap_or(tex_coord),
+            transform: transform.and_then(|t| t.affine()),
         })
+    }
+
+    /// The UV set the mesh stores for triangles of material `material`: the one its
+    /// textures read. A material whose slots read different sets keeps the base colour's
+    /// (else the first slot's) and warns for the others, which then read it too.
+    fn choose_uv_set(&mut self, material: &Material) -> u32 {
+        let first = material
+            .base_color_tex
+            .or_else(|| material.texture_refs().next())
+            .map_or(0, |t| t.tex_coord);
+        let others: Vec<u32> = material
+            .texture_refs()
+            .map(|t| t.tex_coord)
+            .filter(|&k| k != first)
+            .collect();
+        if let Some(k) = others.first() {
+            self.warn(format!(
+                "{}: material {:?} reads TEXCOORD_{first} and TEXCOORD_{k}; dray keeps one UV \
+                 set per vertex, so its textures all read TEXCOORD_{first}",
+                self.path.display(),
+                material.name
+            ));
+        }
+        first
     }
 
     fn default_material(&mut self) -> u32 {
@@ -962,10 +1138,20 @@ impl Loader<'_> {
                     &mut tangents,
                 )?;
             }
-            let mut uvs = match attr(Semantic::TexCoords(0)) {
+            let material = match prim.material().index() {
+                Some(i) => u32::try_from(i)
+                    .ok()
+                    .filter(|&i| (i as usize) < self.root.materials.len())
+                    .ok_or_else(|| origin.error(format!("material {i} does not exist")))?,
+                None => self.default_material(),
+            };
+            // The UV set this primitive's material reads (TEXCOORD_0 unless its
+            // textures ask for another).
+            let uv_set = self.uv_sets.get(material as usize).copied().unwrap_or(0);
+            let mut uvs = match attr(Semantic::TexCoords(uv_set)) {
                 Some(a) => Some(
                     self.read_accessor::<f32>(a, 2)
-                        .map_err(|m| err("TEXCOORD_0", m))?
+                        .map_err(|m| err(&format!("TEXCOORD_{uv_set}"), m))?
                         .chunks_exact(2)
                         .map(Vec2::from_slice)
                         .collect::<Vec<_>>(),
@@ -991,21 +1177,17 @@ impl Loader<'_> {
                 Mode::TriangleFan => validate::fan_to_list(&raw_indices),
                 _ => raw_indices,
             };
-            let material = match prim.material().index() {
-                Some(i) => u32::try_from(i)
-                    .ok()
-                    .filter(|&i| (i as usize) < self.root.materials.len())
-                    .ok_or_else(|| origin.error(format!("material {i} does not exist")))?,
-                None => self.default_material(),
-            };
-            let normal_map = self
-                .scene
-                .materials
-                .get(material as usize)
-                .and_then(|m| m.normal_tex);
+            // Tangents are made for a normal map, and for an anisotropic lobe (its
+            // direction is given in tangent space) from the UV set the material reads.
+            let normal_map = self.scene.materials.get(material as usize).and_then(|m| {
+                m.normal_tex.or(m.has_anisotropy().then_some(TexRef {
+                    tex_coord: uv_set,
+                    ..TexRef::new(0)
+                }))
+            });
             if let (Some(map), None) = (normal_map, &tangents) {
                 match (&mut normals, &mut uvs) {
-                    (Some(ns), Some(us)) if map.tex_coord == 0 => {
+                    (Some(ns), Some(us)) if map.tex_coord == uv_set => {
                         // MikkTSpace reads what shading will read (cleaned values),
                         // with V pointing up as in the tools that bake normal maps:
                         // glTF's V points down the image, and a normal map's green
@@ -1036,9 +1218,10 @@ impl Loader<'_> {
                         tangents = Some(generated);
                     }
                     _ => self.warn(format!(
-                        "{}: mesh {name:?} primitive {}: its material has a normal map but the \
-                         primitive has no TANGENT, and no NORMAL or TEXCOORD_{} to generate \
-                         tangents from; the normal map is ignored there",
+                        "{}: mesh {name:?} primitive {}: its material has a normal map or an \
+                         anisotropic lobe but the primitive has no TANGENT, and no NORMAL or \
+                         TEXCOORD_{} to generate tangents from; its normal map is ignored there, \
+                         and so is its anisotropy",
                         self.path.display(),
                         prim.index(),
                         map.tex_coord
@@ -1210,6 +1393,10 @@ impl Loader<'_> {
             .buffer_views
             .get(index)
             .ok_or_else(|| format!("buffer view {index} does not exist"))?;
+        let stride = view.byte_stride.map(|s| s.0).filter(|&s| s > 0);
+        if let Some(Some(decoded)) = self.decoded_views.get(index) {
+            return Ok((decoded, stride));
+        }
         let b = view.buffer.value();
         let buffer = self
             .buffers
@@ -1226,7 +1413,7 @@ impl Loader<'_> {
                 buffer.len()
             )
         })?;
-        Ok((slice, view.byte_stride.map(|s| s.0).filter(|&s| s > 0)))
+        Ok((slice, stride))
     }
 
     /// Decode accessor `index`, which must have `dims` components per element, into a

@@ -344,10 +344,7 @@ impl MaterialBuilder<'_> {
 
         if let Some(tex) = &mtl.diffuse_texture {
             let texture = self.texture(name, tex, scene)?;
-            m.base_color_tex = Some(TexRef {
-                texture,
-                tex_coord: 0,
-            });
+            m.base_color_tex = Some(TexRef::new(texture));
             m.base_color = Vec3::ONE.extend(m.base_color.w);
         }
         for (slot, map) in [

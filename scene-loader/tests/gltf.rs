@@ -344,7 +344,7 @@ fn extensions_required_and_used() {
     // Used but not required: loads, with one warning.
     let rest = format!(
         r#"{TRI_MESH},"nodes":[{{"mesh":0}}],
-        "extensionsUsed":["KHR_materials_clearcoat"]"#
+        "extensionsUsed":["KHR_materials_iridescence"]"#
     );
     let path = b.write(&dir, "used", &rest);
     let scene = load_gltf(&path).unwrap();
@@ -353,7 +353,7 @@ fn extensions_required_and_used() {
             .stats
             .warnings
             .iter()
-            .filter(|w| w.contains("KHR_materials_clearcoat"))
+            .filter(|w| w.contains("KHR_materials_iridescence"))
             .count(),
         1
     );
@@ -1107,5 +1107,349 @@ fn vertex_colours_are_read_as_rgba_and_cost_nothing_when_absent() {
     ))
     .unwrap();
     assert!(scene.mesh.colors.is_empty());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A 2x1 PNG as a data-URI image, and one texture on it.
+fn one_texture() -> String {
+    format!(
+        r#""images":[{{"uri":"data:image/png;base64,{}"}}],"textures":[{{"source":0}}]"#,
+        base64(&png_2x1())
+    )
+}
+
+/// A triangle with TEXCOORD_0 (accessor 4) and TEXCOORD_1 (accessor 5) that differ.
+fn two_uv_sets() -> Builder {
+    let mut b = triangle_builder();
+    b.floats(&[0.0; 6], "VEC2");
+    b.floats(&[0.25, 0.5, 0.75, 0.5, 0.25, 1.0], "VEC2");
+    b
+}
+
+#[test]
+fn each_material_reads_its_own_uv_set() {
+    let dir = test_dir("texcoord");
+    let b = two_uv_sets();
+    let rest = format!(
+        r#""meshes":[{{"primitives":[
+  {{"attributes":{{"POSITION":0,"TEXCOORD_0":4,"TEXCOORD_1":5}},"indices":3,"material":0}},
+  {{"attributes":{{"POSITION":0,"TEXCOORD_0":4,"TEXCOORD_1":5}},"indices":3,"material":1}},
+  {{"attributes":{{"POSITION":0,"TEXCOORD_0":4,"TEXCOORD_1":5}},"indices":3,"material":2}}]}}],
+"nodes":[{{"mesh":0}}],"extensionsUsed":["KHR_texture_transform"],
+"materials":[
+  {{"pbrMetallicRoughness":{{"baseColorTexture":{{"index":0,"texCoord":1}}}},
+    "emissiveTexture":{{"index":0,"texCoord":1}}}},
+  {{"pbrMetallicRoughness":{{"baseColorTexture":{{"index":0}}}}}},
+  {{"pbrMetallicRoughness":{{"baseColorTexture":{{"index":0,
+    "extensions":{{"KHR_texture_transform":{{"texCoord":1}}}}}}}}}}],
+{}"#,
+        one_texture()
+    );
+    let scene = load_gltf(&b.write(&dir, "sets", &rest)).unwrap();
+    let set1 = [
+        glam::Vec2::new(0.25, 0.5),
+        glam::Vec2::new(0.75, 0.5),
+        glam::Vec2::new(0.25, 1.0),
+    ];
+    assert_eq!(scene.mesh.uvs[0..3], set1, "texCoord 1");
+    assert_eq!(scene.mesh.uvs[3..6], [glam::Vec2::ZERO; 3], "texCoord 0");
+    assert_eq!(scene.mesh.uvs[6..9], set1, "texCoord 1 from the transform");
+    assert_eq!(
+        scene.materials[2].base_color_tex.map(|t| t.tex_coord),
+        Some(1)
+    );
+    // An identity transform keeps the lookup untouched (same bits).
+    assert_eq!(
+        scene.materials[2].base_color_tex.and_then(|t| t.transform),
+        None
+    );
+    assert!(
+        scene.stats.warnings.is_empty(),
+        "{:?}",
+        scene.stats.warnings
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn texture_transforms_map_uvs_on_every_slot() {
+    let dir = test_dir("transform");
+    let b = two_uv_sets();
+    let rest = format!(
+        r#""meshes":[{{"primitives":[
+  {{"attributes":{{"POSITION":0,"NORMAL":1,"TANGENT":2,"TEXCOORD_0":4}},"indices":3,"material":0}}]}}],
+"nodes":[{{"mesh":0}}],
+"extensionsUsed":["KHR_texture_transform","KHR_materials_clearcoat"],
+"extensionsRequired":["KHR_texture_transform"],
+"materials":[{{
+  "pbrMetallicRoughness":{{"baseColorTexture":{{"index":0,"extensions":{{"KHR_texture_transform":
+    {{"offset":[0,1],"rotation":1.5707963,"scale":[0.5,0.5]}}}}}}}},
+  "normalTexture":{{"index":0,"extensions":{{"KHR_texture_transform":{{"scale":[2,3]}}}}}},
+  "extensions":{{"KHR_materials_clearcoat":{{"clearcoatFactor":1,
+    "clearcoatTexture":{{"index":0,"extensions":{{"KHR_texture_transform":{{"offset":[0.5,0]}}}}}}}}}}}}],
+{}"#,
+        one_texture()
+    );
+    let scene = load_gltf(&b.write(&dir, "transform", &rest)).unwrap();
+    let m = &scene.materials[0];
+    let base = m.base_color_tex.unwrap();
+    // The extension's own example: the lower-left quadrant, turned clockwise.
+    let at = |t: dray_core::material::TexRef, u: f32, v: f32| t.uv(glam::Vec2::new(u, v));
+    assert!((at(base, 1.0, 0.0) - glam::Vec2::new(0.0, 0.5)).length() < 1e-6);
+    assert!((at(base, 0.0, 1.0) - glam::Vec2::new(0.5, 1.0)).length() < 1e-6);
+    assert_eq!(
+        at(m.normal_tex.unwrap(), 1.0, 1.0),
+        glam::Vec2::new(2.0, 3.0)
+    );
+    let coat = m.clearcoat.unwrap().tex.unwrap();
+    assert_eq!(at(coat, 0.25, 0.25), glam::Vec2::new(0.75, 0.25));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The surface and shading values of triangle 0 at one inner point, seen from +z.
+fn shade_first_triangle(
+    scene: &Scene,
+    fx: dray_core::effects::Effects,
+) -> (
+    dray_core::surface::Surface,
+    dray_core::surface::ShadingValues,
+) {
+    let hit = dray_core::bvh::Hit {
+        t: 1.0,
+        tri: 0,
+        b0: 0.2,
+        b1: 0.3,
+        b2: 0.5,
+    };
+    let surf = dray_core::surface::Surface::new(scene, &hit, -Vec3::Z, fx);
+    let sv = surf.shading(scene, fx);
+    (surf, sv)
+}
+
+#[test]
+fn unlit_materials_show_their_base_colour_and_light_nothing() {
+    use dray_core::effects::Effect;
+    let dir = test_dir("unlit");
+    let b = triangle_builder();
+    let rest = format!(
+        r#"{TRI_MESH},"nodes":[{{"mesh":0}}],
+"extensionsUsed":["KHR_materials_unlit"],"extensionsRequired":["KHR_materials_unlit"],
+"materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[0.5,0.25,1,1],"metallicFactor":1}},
+  "emissiveFactor":[1,1,1],"extensions":{{"KHR_materials_unlit":{{}}}}}}]"#
+    )
+    .replace(r#""indices":3}"#, r#""indices":3,"material":0}"#);
+    let scene = load_gltf(&b.write(&dir, "unlit", &rest)).unwrap();
+    let m = &scene.materials[0];
+    assert!(m.unlit && !m.has_emission());
+    let fx = dray_scene::effects::analyze(&scene, Vec3::ONE);
+    assert!(fx.contains(Effect::Unlit));
+    assert!(!fx.contains(Effect::Specular) && !fx.contains(Effect::Emission));
+    let (_, sv) = shade_first_triangle(&scene, fx);
+    assert_eq!(sv.emission, Vec3::new(0.5, 0.25, 1.0));
+    assert_eq!(sv.base_color, Vec3::ZERO);
+    assert_eq!((sv.metallic, sv.specular), (0.0, 0.0));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn quantized_attributes_are_read() {
+    let dir = test_dir("quantized");
+    let mut b = Builder::default();
+    // POSITION as unsigned 16-bit integers (a node scale brings them back), NORMAL as
+    // normalized signed bytes, TEXCOORD_0 as normalized unsigned shorts.
+    let pos: Vec<u8> = [0u16, 0, 0, 1000, 0, 0, 0, 1000, 0, 0]
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
+    let v = b.view(&pos[..18]);
+    b.accessors.push(format!(
+        r#"{{"bufferView":{v},"componentType":5123,"count":3,"type":"VEC3","min":[0,0,0],"max":[1000,1000,0]}}"#
+    ));
+    let v = b.view(&[0, 0, 127, 0, 0, 0, 127, 0, 0, 0, 127, 0]);
+    b.accessors.push(format!(
+        r#"{{"bufferView":{v},"componentType":5120,"normalized":true,"count":3,"type":"VEC3"}}"#
+    ));
+    b.views[v] = b.views[v].replace('}', r#","byteStride":4}"#);
+    let uv: Vec<u8> = [0u16, 0, 65535, 0, 0, 65535]
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
+    let v = b.view(&uv);
+    b.accessors.push(format!(
+        r#"{{"bufferView":{v},"componentType":5123,"normalized":true,"count":3,"type":"VEC2"}}"#
+    ));
+    let rest = r#""meshes":[{"primitives":[{"attributes":{"POSITION":0,"NORMAL":1,"TEXCOORD_0":2}}]}],
+"nodes":[{"mesh":0,"scale":[0.001,0.001,0.001]}],
+"extensionsUsed":["KHR_mesh_quantization"],"extensionsRequired":["KHR_mesh_quantization"]"#;
+    let scene = load_gltf(&b.write(&dir, "quantized", rest)).unwrap();
+    let m = &scene.mesh;
+    assert!(approx(m.positions[1], Vec3::X) && approx(m.positions[2], Vec3::Y));
+    assert!(
+        m.normals.iter().all(|n| approx(*n, Vec3::Z)),
+        "{:?}",
+        m.normals
+    );
+    assert_eq!(m.uvs[1], glam::Vec2::new(1.0, 0.0));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn meshopt_compressed_buffer_views_are_decoded() {
+    let dir = test_dir("meshopt");
+    let positions: Vec<[f32; 3]> = vec![
+        [0.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+        [1.0, 1.0, 0.0],
+    ];
+    let indices: Vec<u32> = vec![0, 1, 2, 2, 1, 3];
+    let vbuf = meshopt::encode_vertex_buffer(&positions).unwrap();
+    let ibuf = meshopt::encode_index_buffer(&indices, positions.len()).unwrap();
+    let mut bin = vbuf.clone();
+    while !bin.len().is_multiple_of(4) {
+        bin.push(0);
+    }
+    let ioff = bin.len();
+    bin.extend_from_slice(&ibuf);
+    std::fs::write(dir.join("c.bin"), &bin).unwrap();
+    let json = format!(
+        r#"{{"asset":{{"version":"2.0"}},
+"extensionsUsed":["EXT_meshopt_compression"],"extensionsRequired":["EXT_meshopt_compression"],
+"buffers":[{{"uri":"c.bin","byteLength":{}}},
+  {{"byteLength":60,"extensions":{{"EXT_meshopt_compression":{{"fallback":true}}}}}}],
+"bufferViews":[
+  {{"buffer":1,"byteLength":48,"byteStride":12,"extensions":{{"EXT_meshopt_compression":
+    {{"buffer":0,"byteLength":{},"byteStride":12,"count":4,"mode":"ATTRIBUTES"}}}}}},
+  {{"buffer":1,"byteOffset":48,"byteLength":12,"extensions":{{"EXT_meshopt_compression":
+    {{"buffer":0,"byteOffset":{ioff},"byteLength":{},"byteStride":2,"count":6,"mode":"TRIANGLES"}}}}}}],
+"accessors":[
+  {{"bufferView":0,"componentType":5126,"count":4,"type":"VEC3","min":[0,0,0],"max":[1,1,0]}},
+  {{"bufferView":1,"componentType":5123,"count":6,"type":"SCALAR"}}],
+"meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1}}]}}],
+"nodes":[{{"mesh":0}}]}}"#,
+        bin.len(),
+        vbuf.len(),
+        ibuf.len()
+    );
+    let path = dir.join("c.gltf");
+    std::fs::write(&path, &json).unwrap();
+    let scene = load_gltf(&path).unwrap();
+    assert_eq!(scene.mesh.triangle_count(), 2);
+    let got: Vec<[f32; 3]> = scene.mesh.positions.iter().map(|p| p.to_array()).collect();
+    assert_eq!(got, positions);
+    assert_eq!(scene.mesh.indices, vec![[0, 1, 2], [2, 1, 3]]);
+
+    // A corrupted stream is an error naming the buffer view, not a crash.
+    let mut bad = bin.clone();
+    for b in bad.iter_mut().take(vbuf.len()).skip(1) {
+        *b = 0xff;
+    }
+    std::fs::write(dir.join("c.bin"), &bad).unwrap();
+    let msg = load_gltf(&path).unwrap_err().to_string();
+    assert!(msg.contains("buffer view 0"), "{msg}");
+    // A stride the decoder does not take is refused before it is called.
+    std::fs::write(dir.join("c.bin"), &bin).unwrap();
+    std::fs::write(
+        &path,
+        json.replace(r#""byteStride":12,"count""#, r#""byteStride":10,"count""#),
+    )
+    .unwrap();
+    let msg = load_gltf(&path).unwrap_err().to_string();
+    assert!(msg.contains("byteStride 10"), "{msg}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn clearcoat_sheen_and_volume_are_read_and_counted() {
+    use dray_core::effects::Effect;
+    let dir = test_dir("coat");
+    let b = triangle_builder();
+    let rest = format!(
+        r#""meshes":[{{"primitives":[
+  {{"attributes":{{"POSITION":0}},"indices":3,"material":0}},
+  {{"attributes":{{"POSITION":0}},"indices":3,"material":1}}]}}],
+"nodes":[{{"mesh":0}}],
+"extensionsUsed":["KHR_materials_clearcoat","KHR_materials_volume","KHR_materials_transmission",
+  "KHR_materials_sheen"],
+"extensionsRequired":["KHR_materials_clearcoat","KHR_materials_volume","KHR_materials_sheen"],
+"materials":[
+  {{"extensions":{{"KHR_materials_clearcoat":{{"clearcoatFactor":0.75,
+    "clearcoatRoughnessFactor":0.25,"clearcoatRoughnessTexture":{{"index":0,"texCoord":0}}}},
+    "KHR_materials_sheen":{{"sheenColorFactor":[1,0.5,0.25],"sheenRoughnessFactor":0.5,
+      "sheenColorTexture":{{"index":0}}}}}}}},
+  {{"extensions":{{"KHR_materials_transmission":{{"transmissionFactor":1}},
+    "KHR_materials_volume":{{"attenuationColor":[0.5,0.25,1],"attenuationDistance":2}}}}}}],
+{}"#,
+        one_texture()
+    );
+    let scene = load_gltf(&b.write(&dir, "coat", &rest)).unwrap();
+    let c = scene.materials[0].clearcoat.unwrap();
+    assert_eq!((c.factor, c.roughness), (0.75, 0.25));
+    assert_eq!(c.roughness_tex.map(|t| t.texture), Some(0));
+    let sh = scene.materials[0].sheen.unwrap();
+    assert_eq!((sh.color, sh.roughness), (Vec3::new(1.0, 0.5, 0.25), 0.5));
+    assert_eq!(sh.color_tex.map(|t| t.texture), Some(0));
+    let v = scene.materials[1].volume.unwrap();
+    assert_eq!(v.attenuation_color, Vec3::new(0.5, 0.25, 1.0));
+    // Beer-Lambert: after attenuationDistance white light has the attenuation colour.
+    let t = v.transmittance(2.0);
+    assert!(
+        (t - Vec3::new(0.5, 0.25, 1.0)).abs().max_element() < 1e-6,
+        "{t}"
+    );
+    let fx = dray_scene::effects::analyze(&scene, Vec3::ZERO);
+    assert!(fx.contains(Effect::Clearcoat) && fx.contains(Effect::Volume));
+    assert!(fx.contains(Effect::Sheen));
+    // A scene without them asks for neither.
+    let plain = load_gltf(&triangle_builder().write(
+        &dir,
+        "plain",
+        &format!(r#"{TRI_MESH},"nodes":[{{"mesh":0}}]"#),
+    ))
+    .unwrap();
+    let fx = dray_scene::effects::analyze(&plain, Vec3::ZERO);
+    for e in [
+        Effect::Clearcoat,
+        Effect::Sheen,
+        Effect::Volume,
+        Effect::Unlit,
+    ] {
+        assert!(!fx.contains(e), "{e:?}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn anisotropy_is_read_and_gets_tangents() {
+    use dray_core::effects::Effect;
+    let dir = test_dir("anisotropy");
+    // NORMAL (1) and TEXCOORD_1 (5) but no TANGENT: tangents are made for the lobe.
+    let b = two_uv_sets();
+    let rest = r#""meshes":[{"primitives":[
+  {"attributes":{"POSITION":0,"NORMAL":1,"TEXCOORD_0":5},"indices":3,"material":0}]}],
+"nodes":[{"mesh":0}],
+"extensionsUsed":["KHR_materials_anisotropy"],"extensionsRequired":["KHR_materials_anisotropy"],
+"materials":[{"pbrMetallicRoughness":{"roughnessFactor":0.3},
+  "extensions":{"KHR_materials_anisotropy":{"anisotropyStrength":0.6,"anisotropyRotation":0.5}}}]"#;
+    let scene = load_gltf(&b.write(&dir, "aniso", rest)).unwrap();
+    let a = scene.materials[0].anisotropy.unwrap();
+    assert_eq!((a.strength, a.rotation, a.tex), (0.6, 0.5, None));
+    assert!(
+        scene
+            .mesh
+            .tangents
+            .iter()
+            .all(|t| t.truncate().length() > 0.5),
+        "{:?}",
+        scene.mesh.tangents
+    );
+    let fx = dray_scene::effects::analyze(&scene, Vec3::ONE);
+    assert!(fx.contains(Effect::Anisotropy));
+    // The direction reaches shading: the tangent turned by the rotation.
+    let (surf, sv) = shade_first_triangle(&scene, fx);
+    assert_eq!(sv.anisotropy, 0.6);
+    let want = surf.tangent * 0.5f32.cos() + surf.bitangent * 0.5f32.sin();
+    assert!((sv.anisotropy_direction - want).length() < 1e-6);
+    assert!(surf.tangent.length() > 0.99);
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -358,10 +358,7 @@ fn rich_scene() -> Scene {
         },
     });
     scene.materials.push(Material {
-        base_color_tex: Some(TexRef {
-            texture: 0,
-            tex_coord: 0,
-        }),
+        base_color_tex: Some(TexRef::new(0)),
         alpha_mode: dray_core::material::AlphaMode::Mask { cutoff: 0.3 },
         roughness: 0.1,
         ..Material::default()

@@ -29,9 +29,9 @@ use std::path::Path;
 
 use dray_core::camera::{Camera, Projection};
 use dray_core::light::Light;
-use dray_core::material::{AlphaMode, Material, TexRef};
+use dray_core::material::{AlphaMode, Anisotropy, Clearcoat, Material, Sheen, TexRef, Volume};
 use dray_core::texture::{Filter, Sampler, Wrap};
-use glam::{Mat4, Vec3, Vec4};
+use glam::{Affine2, Mat4, Vec3, Vec4};
 use serde::de::{self, Visitor};
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use serde_json::value::RawValue;
@@ -119,6 +119,44 @@ fn from_v3(v: [Real; 3]) -> Vec3 {
 pub struct TexRefDesc {
     pub texture: u32,
     pub tex_coord: u32,
+    /// `KHR_texture_transform` as the affine map's columns (`x_axis`, `y_axis`,
+    /// `translation`); left out when there is none, so manifests of scenes without
+    /// transforms are unchanged.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub transform: Option<[Real; 6]>,
+}
+
+/// Mirror of [`Clearcoat`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ClearcoatDesc {
+    pub factor: Real,
+    pub tex: Option<TexRefDesc>,
+    pub roughness: Real,
+    pub roughness_tex: Option<TexRefDesc>,
+}
+
+/// Mirror of [`Sheen`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SheenDesc {
+    pub color: [Real; 3],
+    pub color_tex: Option<TexRefDesc>,
+    pub roughness: Real,
+    pub roughness_tex: Option<TexRefDesc>,
+}
+
+/// Mirror of [`Anisotropy`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AnisotropyDesc {
+    pub strength: Real,
+    pub rotation: Real,
+    pub tex: Option<TexRefDesc>,
+}
+
+/// Mirror of [`Volume`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct VolumeDesc {
+    pub attenuation_color: [Real; 3],
+    pub attenuation_distance: Real,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -151,12 +189,25 @@ pub struct MaterialDesc {
     pub specular_color_tex: Option<TexRefDesc>,
     pub alpha_mode: AlphaModeDesc,
     pub double_sided: bool,
+    // The glTF extensions below are left out when absent, so manifests of scenes
+    // without them keep their bytes (and their checksums).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub unlit: bool,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clearcoat: Option<ClearcoatDesc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sheen: Option<SheenDesc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub anisotropy: Option<AnisotropyDesc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub volume: Option<VolumeDesc>,
 }
 
 fn tex_out(t: Option<TexRef>) -> Option<TexRefDesc> {
     t.map(|t| TexRefDesc {
         texture: t.texture,
         tex_coord: t.tex_coord,
+        transform: t.transform.map(|a| a.to_cols_array().map(Real)),
     })
 }
 
@@ -164,6 +215,9 @@ fn tex_in(t: Option<TexRefDesc>) -> Option<TexRef> {
     t.map(|t| TexRef {
         texture: t.texture,
         tex_coord: t.tex_coord,
+        transform: t
+            .transform
+            .map(|a| Affine2::from_cols_array(&a.map(|r| r.0))),
     })
 }
 
@@ -195,6 +249,28 @@ impl From<&Material> for MaterialDesc {
                 AlphaMode::Blend => AlphaModeDesc::Blend,
             },
             double_sided: m.double_sided,
+            unlit: m.unlit,
+            clearcoat: m.clearcoat.map(|c| ClearcoatDesc {
+                factor: Real(c.factor),
+                tex: tex_out(c.tex),
+                roughness: Real(c.roughness),
+                roughness_tex: tex_out(c.roughness_tex),
+            }),
+            sheen: m.sheen.map(|s| SheenDesc {
+                color: v3(s.color),
+                color_tex: tex_out(s.color_tex),
+                roughness: Real(s.roughness),
+                roughness_tex: tex_out(s.roughness_tex),
+            }),
+            anisotropy: m.anisotropy.map(|a| AnisotropyDesc {
+                strength: Real(a.strength),
+                rotation: Real(a.rotation),
+                tex: tex_out(a.tex),
+            }),
+            volume: m.volume.map(|v| VolumeDesc {
+                attenuation_color: v3(v.attenuation_color),
+                attenuation_distance: Real(v.attenuation_distance),
+            }),
         }
     }
 }
@@ -225,6 +301,28 @@ impl MaterialDesc {
                 AlphaModeDesc::Blend => AlphaMode::Blend,
             },
             double_sided: self.double_sided,
+            unlit: self.unlit,
+            clearcoat: self.clearcoat.map(|c| Clearcoat {
+                factor: c.factor.0,
+                tex: tex_in(c.tex),
+                roughness: c.roughness.0,
+                roughness_tex: tex_in(c.roughness_tex),
+            }),
+            sheen: self.sheen.map(|s| Sheen {
+                color: from_v3(s.color),
+                color_tex: tex_in(s.color_tex),
+                roughness: s.roughness.0,
+                roughness_tex: tex_in(s.roughness_tex),
+            }),
+            anisotropy: self.anisotropy.map(|a| Anisotropy {
+                strength: a.strength.0,
+                rotation: a.rotation.0,
+                tex: tex_in(a.tex),
+            }),
+            volume: self.volume.map(|v| Volume {
+                attenuation_color: from_v3(v.attenuation_color),
+                attenuation_distance: v.attenuation_distance.0,
+            }),
         }
     }
 
@@ -237,6 +335,11 @@ impl MaterialDesc {
             self.transmission_tex,
             self.specular_tex,
             self.specular_color_tex,
+            self.clearcoat.and_then(|c| c.tex),
+            self.clearcoat.and_then(|c| c.roughness_tex),
+            self.sheen.and_then(|s| s.color_tex),
+            self.sheen.and_then(|s| s.roughness_tex),
+            self.anisotropy.and_then(|a| a.tex),
         ]
         .into_iter()
         .flatten()
@@ -799,11 +902,54 @@ mod tests {
     fn core_types_round_trip() {
         let mut m = Material::glass("g", 1.33);
         m.alpha_mode = AlphaMode::Mask { cutoff: 0.25 };
-        m.normal_tex = Some(TexRef {
-            texture: 2,
-            tex_coord: 0,
-        });
+        m.normal_tex = Some(TexRef::new(2));
         assert_eq!(MaterialDesc::from(&m).to_core(), m);
+        // Without glTF extensions the description has no field for them (old manifests
+        // keep their bytes); with them, they round-trip.
+        let plain = serde_json::to_string(&MaterialDesc::from(&m)).unwrap();
+        for absent in [
+            "unlit",
+            "clearcoat",
+            "sheen",
+            "anisotropy",
+            "volume",
+            "transform",
+        ] {
+            assert!(!plain.contains(absent), "{absent} in {plain}");
+        }
+        m.unlit = true;
+        m.normal_tex = Some(TexRef {
+            transform: Some(glam::Affine2::from_scale_angle_translation(
+                glam::Vec2::new(2.0, 0.5),
+                0.3,
+                glam::Vec2::new(0.25, -1.0),
+            )),
+            ..TexRef::new(2)
+        });
+        m.clearcoat = Some(Clearcoat {
+            factor: 0.5,
+            tex: Some(TexRef::new(1)),
+            roughness: 0.25,
+            roughness_tex: None,
+        });
+        m.sheen = Some(Sheen {
+            color: Vec3::new(0.5, 0.25, 1.0),
+            color_tex: None,
+            roughness: 0.75,
+            roughness_tex: Some(TexRef::new(0)),
+        });
+        m.anisotropy = Some(Anisotropy {
+            strength: 0.5,
+            rotation: 1.25,
+            tex: Some(TexRef::new(1)),
+        });
+        m.volume = Some(Volume {
+            attenuation_color: Vec3::new(0.5, 0.9, 1.0),
+            attenuation_distance: f32::INFINITY,
+        });
+        let json = serde_json::to_string(&MaterialDesc::from(&m)).unwrap();
+        let back: MaterialDesc = serde_json::from_str(&json).unwrap();
+        assert_eq!(back.to_core(), m);
         let c = Camera::look_at("c", Vec3::new(1.0, 2.0, 3.0), Vec3::ZERO, Vec3::Y, 0.7);
         assert_eq!(CameraDesc::from(&c).to_core(), c);
         let l = Light::Spot {
