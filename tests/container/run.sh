@@ -19,7 +19,11 @@
 #      WatchJob, GetImage; the PNG must be the bytes `dray render` writes on the host;
 #   5. a bigger job, and once WatchJob shows it running with tiles done, one worker
 #      container is killed (SIGKILL): the job must still succeed, with tiles traced again
-#      (JobStats.tilesRetried > 0) and the same bits as `dray render`.
+#      (JobStats.tilesRetried > 0) and the same bits as `dray render`;
+#   6. another job, and once it is running with tiles done, the coordinator container is
+#      killed (SIGKILL) and started again on the same volume (its job store is in the work
+#      directory): the job resumes with the tiles it had committed and finishes with the
+#      same bits as `dray render`, and the image of the job of step 4 is still served.
 #
 # Usage (by hand, from anywhere; root or a user allowed to use Docker):
 #   tests/container/run.sh
@@ -246,7 +250,7 @@ docker volume create "$vol" >/dev/null
 run_opts=(--detach --pull never --network "$net"
   --read-only --tmpfs /tmp --cap-drop ALL --security-opt no-new-privileges)
 docker run "${run_opts[@]}" -v "$vol:/var/lib/dray/work" --name "$coord" --hostname "$coord" \
-  -e DRAY_LOG=warn,dray_coordinator::membership=info -e NO_COLOR=1 \
+  -e DRAY_LOG=warn,dray_coordinator::membership=info,dray_coordinator::service=info -e NO_COLOR=1 \
   -p 127.0.0.1::50051 \
   "$IMAGE" coordinator --listen=0.0.0.0:50051 --scene-root=/scenes \
   --work-dir=/var/lib/dray/work --heartbeat-timeout-ms=20000 >/dev/null
@@ -355,6 +359,7 @@ EOF
 }
 
 job=$(submit '{"scene": "cornell", "width": 320, "height": 240, "spp": 16, "integrator": "path", "maxDepth": 5, "seed": "0"}')
+first_job=$job
 "$grpcurl" -plaintext -d "{\"jobId\": \"$job\"}" "$addr" dray.v1.RenderService/WatchJob >"$out/watch1.json"
 read -r state tiles total n err < <(last_state "$out/watch1.json")
 [ "$state" = JOB_STATE_SUCCEEDED ] || die "job $job ended $state: $err"
@@ -406,4 +411,46 @@ cmp "$out/killed.png" "$out/embedded2.png" || die "the PNG of the job that lost 
 say "PNG identical to dray render's ($(stat -c %s "$out/killed.png") bytes)"
 
 [ "$(docker inspect -f '{{.State.Running}}' "$coord")" = true ] || die "the coordinator is gone"
+
+# ---------------------------------------------------------------------------------------
+# 6. Kill the coordinator mid-job and start it again on the same volume.
+# job_state JOB: "STATE TILES_DONE TILES_TOTAL" from GetJob ("none 0 0" while unreachable)
+job_state() {
+  "$grpcurl" -plaintext -d "{\"jobId\": \"$1\"}" "$addr" dray.v1.RenderService/GetJob 2>/dev/null |
+    json '" ".join(str(v["job"].get("progress", {}).get(k, d)) for k, d in (("state", "none"), ("tilesDone", 0), ("tilesTotal", 0)))' 2>/dev/null ||
+    echo "none 0 0"
+}
+durable='{"scene": "cornell", "width": 480, "height": 360, "spp": 32, "integrator": "path", "maxDepth": 5, "seed": "5"}'
+job=$(submit "$durable")
+for _ in $(seq 1 1200); do
+  read -r state tiles total < <(job_state "$job")
+  [ "$state" = JOB_STATE_RUNNING ] && [ "$tiles" -gt 0 ] && break
+  case "$state" in JOB_STATE_SUCCEEDED | JOB_STATE_FAILED | JOB_STATE_CANCELLED) break ;; esac
+  sleep 0.1
+done
+[ "$state" = JOB_STATE_RUNNING ] && [ "$tiles" -gt 0 ] && [ "$tiles" -lt "$total" ] ||
+  die "job $job was not running with tiles left before the coordinator was killed (state $state, $tiles/$total tiles): make it bigger"
+docker kill "$coord" >/dev/null
+say "job $job (cornell 480x360, 32 spp) running at $tiles/$total tiles: killed the coordinator $coord (SIGKILL)"
+docker start "$coord" >/dev/null || die "the coordinator container did not start again"
+addr=$(docker port "$coord" 50051/tcp | head -1)
+[ -n "$addr" ] || die "the restarted coordinator's port is not published"
+for _ in $(seq 1 3000); do
+  read -r state tiles total < <(job_state "$job")
+  case "$state" in JOB_STATE_SUCCEEDED | JOB_STATE_FAILED | JOB_STATE_CANCELLED) break ;; esac
+  [ "$(docker inspect -f '{{.State.Running}}' "$coord")" = true ] || die "the restarted coordinator exited: $(docker logs "$coord" 2>&1 | tail -5)"
+  sleep 0.1
+done
+[ "$state" = JOB_STATE_SUCCEEDED ] ||
+  die "the job did not survive the coordinator's restart: $state ($tiles/$total tiles); coordinator: $(docker logs "$coord" 2>&1 | tail -20)"
+kept=$(docker logs "$coord" 2>&1 | grep "job taken back from the store" | grep "$job" |
+  sed -n 's/.*tiles_kept=\([0-9]*\).*/\1/p' | tail -1)
+[ -n "$kept" ] || die "the restarted coordinator did not take job $job back from its store: $(docker logs "$coord" 2>&1 | tail -20)"
+fetch "$job" "$out/resumed.png"
+"$dray" render cornell --width 480 --height 360 --spp 32 --seed 5 --output "$out/embedded3.png" -q
+cmp "$out/resumed.png" "$out/embedded3.png" || die "the PNG of the job resumed after the coordinator's restart differs from dray render's"
+fetch "$first_job" "$out/first-again.png"
+cmp "$out/first-again.png" "$out/cluster.png" || die "the image of job $first_job, finished before the restart, is not served the same"
+say "after the coordinator's restart: job $job resumed with $kept of $total tiles kept, SUCCEEDED; PNG identical to dray render's; job $first_job's image still served"
+
 say "PASSED in $((SECONDS - start)) s"
