@@ -59,6 +59,13 @@ if [ "$build" -eq 1 ]; then
   echo "fuzz/run.sh: build took $((SECONDS - build_start)) s"
 fi
 
+# The meshopt crate (glTF's EXT_meshopt_compression) links meshoptimizer's C++ sources
+# so that one constant table ('edges' in opacitymap.cpp) is registered twice with the
+# same size; ASan's strictest ODR check (level 2, its default) aborts every run on that
+# at start. Level 1 still reports globals defined twice with different sizes, the
+# violations that corrupt memory.
+export ASAN_OPTIONS="${ASAN_OPTIONS:+$ASAN_OPTIONS:}detect_odr_violation=1"
+
 mkdir -p work/logs
 failed=()
 for t in "${targets[@]}"; do
