@@ -134,6 +134,16 @@ pub fn check(
             job.film.width, job.film.height
         )));
     }
+    // Contributions are non-negative (`dray_core::film::to_fixed`) and every sum of them
+    // saturates, which is what makes the film's sums independent of the order reports
+    // arrive in; a negative value can only come from a broken or hostile worker.
+    if let Some(i) = r.sums.iter().position(|&v| v < 0) {
+        return Err(Status::invalid_argument(format!(
+            "sums: {} for pixel {} is negative (contributions never are)",
+            r.sums[i],
+            r.pixels[i / 3]
+        )));
+    }
     if let Some(c) = r
         .credits
         .iter()
@@ -326,6 +336,14 @@ mod tests {
         let mut outside = report("w1", 1, &[]);
         outside.pixels = vec![8];
         assert!(check(&j, &outside).is_err(), "pixel 8 of a 4x2 image");
+        let mut negative = report("w1", 1, &[]);
+        negative.sums[1] = -1;
+        let e = check(&j, &negative).unwrap_err();
+        assert!(
+            e.message().contains("pixel 1 is negative"),
+            "{}",
+            e.message()
+        );
         assert!(
             check(&j, &report("w1", 1, &[(2, 1)])).is_err(),
             "tile 2 of 2"
