@@ -1462,20 +1462,40 @@ mod tests {
                 );
             }
         }
-        for roughness in [0.0, 0.05, 0.3, 0.7, 1.0] {
-            for base in [
-                white,
-                p(1.0, 1.0, 0.2, 1.0, 0.0),
-                p(1.0, 0.0, 0.4, 1.0, 0.0),
-                p(1.0, 0.0, 0.0, 1.0, 1.0),
-                p(1.0, 0.0, 0.5, 1.0, 1.0),
-            ] {
-                let b = flat(&coated(base, 1.0, roughness));
+        let bases = [
+            white,
+            p(1.0, 1.0, 0.2, 1.0, 0.0),
+            p(1.0, 0.0, 0.4, 1.0, 0.0),
+            p(1.0, 0.0, 0.0, 1.0, 1.0),
+            p(1.0, 0.0, 0.5, 1.0, 1.0),
+        ];
+        assert_no_gain(
+            "coat",
+            &bases,
+            &[0.0, 0.05, 0.3, 0.7, 1.0],
+            &mut rng,
+            |b, r| coated(b, 1.0, r),
+        );
+    }
+
+    /// `layer` (a base and a roughness to a layered material) over each of `bases` at
+    /// each of `roughnesses` reflects no more than it receives (albedo at most 1.01),
+    /// something, and nothing non-finite, from above and below.
+    fn assert_no_gain(
+        name: &str,
+        bases: &[BsdfParams],
+        roughnesses: &[f32],
+        rng: &mut Rng,
+        layer: impl Fn(BsdfParams, f32) -> BsdfParams,
+    ) {
+        for &roughness in roughnesses {
+            for &base in bases {
+                let b = flat(&layer(base, roughness));
                 for wo in [dir(0.0), dir(50.0), dir(85.0), -dir(30.0)] {
-                    let a = albedo(&b, wo, 20_000, &mut rng);
+                    let a = albedo(&b, wo, 20_000, rng);
                     assert!(
                         a.max_element() <= 1.01 && a.min_element() > 0.0 && a.is_finite(),
-                        "coat roughness {roughness} base {base:?} wo {wo}: {a}"
+                        "{name} roughness {roughness} base {base:?} wo {wo}: {a}"
                     );
                 }
             }
@@ -1524,24 +1544,16 @@ mod tests {
                 );
             }
         }
-        for roughness in [0.0, 0.3, 1.0] {
-            for base in [
-                p(1.0, 0.0, 1.0, 0.0, 0.0),
-                p(1.0, 0.0, 0.3, 1.0, 0.0),
-                p(1.0, 1.0, 0.0, 1.0, 0.0),
-                coated(p(1.0, 0.0, 0.5, 1.0, 0.0), 1.0, 0.2),
-                p(1.0, 0.0, 0.5, 1.0, 1.0),
-            ] {
-                let b = flat(&sheened(base, 1.0, roughness));
-                for wo in [dir(0.0), dir(50.0), dir(85.0), -dir(30.0)] {
-                    let a = albedo(&b, wo, 20_000, &mut rng);
-                    assert!(
-                        a.max_element() <= 1.01 && a.min_element() > 0.0 && a.is_finite(),
-                        "sheen roughness {roughness} base {base:?} wo {wo}: {a}"
-                    );
-                }
-            }
-        }
+        let bases = [
+            p(1.0, 0.0, 1.0, 0.0, 0.0),
+            p(1.0, 0.0, 0.3, 1.0, 0.0),
+            p(1.0, 1.0, 0.0, 1.0, 0.0),
+            coated(p(1.0, 0.0, 0.5, 1.0, 0.0), 1.0, 0.2),
+            p(1.0, 0.0, 0.5, 1.0, 1.0),
+        ];
+        assert_no_gain("sheen", &bases, &[0.0, 0.3, 1.0], &mut rng, |b, r| {
+            sheened(b, 1.0, r)
+        });
     }
 
     /// Sampled and uniformly integrated albedos agree with a sheen, and the pdf
