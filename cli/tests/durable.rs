@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 use std::process::Stdio;
 
 use dray_proto::v1::render_service_client::RenderServiceClient;
-use dray_proto::v1::{GetImageRequest, GetJobRequest, ImageFormat, Job, ListJobsRequest};
+use dray_proto::v1::{GetImageRequest, ImageFormat, ListJobsRequest};
 use support::{Proc, capture_stderr, dray, eventually, free_port};
 
 /// A limit that only catches hangs.
@@ -100,23 +100,8 @@ fn rt() -> tokio::runtime::Runtime {
         .expect("runtime")
 }
 
-fn get_job(addr: &str, id: &str) -> Option<Job> {
-    rt().block_on(async {
-        let mut c = RenderServiceClient::connect(format!("http://{addr}"))
-            .await
-            .ok()?;
-        c.get_job(GetJobRequest {
-            job_id: id.to_string(),
-        })
-        .await
-        .ok()?
-        .into_inner()
-        .job
-    })
-}
-
 fn tiles_done(addr: &str, id: &str) -> u32 {
-    get_job(addr, id)
+    support::get_job(addr, id)
         .and_then(|j| j.progress)
         .map_or(0, |p| p.tiles_done)
 }
@@ -240,7 +225,7 @@ fn a_coordinator_killed_mid_job_resumes_it_with_the_same_bits() {
         log(&coord)
     );
     let done_before = tiles_done(&addr, &long_id);
-    let total = get_job(&addr, &long_id)
+    let total = support::get_job(&addr, &long_id)
         .and_then(|j| j.progress)
         .map_or(0, |p| p.tiles_total);
     let first_log = log(&coord);

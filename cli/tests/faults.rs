@@ -20,8 +20,8 @@ use std::process::Stdio;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use dray_proto::v1::GetJobRequest;
 use dray_proto::v1::render_service_client::RenderServiceClient;
-use dray_proto::v1::{GetJobRequest, Job};
 use support::{Proc, capture_stderr, dray, eventually, free_port};
 
 /// A limit that only catches hangs.
@@ -171,25 +171,6 @@ impl Submit {
     }
 }
 
-fn get_job(addr: &str, id: &str) -> Option<Job> {
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .expect("runtime");
-    rt.block_on(async {
-        let mut c = RenderServiceClient::connect(format!("http://{addr}"))
-            .await
-            .ok()?;
-        c.get_job(GetJobRequest {
-            job_id: id.to_string(),
-        })
-        .await
-        .ok()?
-        .into_inner()
-        .job
-    })
-}
-
 /// Whether the coordinator answers an API call: the status of GetJob for an unknown
 /// job (NOT_FOUND when it does), with a limit so a wedged server shows as such.
 fn probe(addr: &str) -> String {
@@ -219,7 +200,7 @@ fn probe(addr: &str) -> String {
 }
 
 fn tiles_done(addr: &str, id: &str) -> u32 {
-    get_job(addr, id)
+    support::get_job(addr, id)
         .and_then(|j| j.progress)
         .map_or(0, |p| p.tiles_done)
 }

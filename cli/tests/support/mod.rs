@@ -415,3 +415,26 @@ pub fn capture_stderr(child: &mut Child) -> Captured {
     });
     Captured { log, ended }
 }
+
+/// Job `id` as the coordinator at `addr` reports it (GetJob); None when the coordinator
+/// cannot be reached or does not know the job.
+pub fn get_job(addr: &str, id: &str) -> Option<dray_proto::v1::Job> {
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .expect("runtime");
+    rt.block_on(async {
+        let mut c = dray_proto::v1::render_service_client::RenderServiceClient::connect(format!(
+            "http://{addr}"
+        ))
+        .await
+        .ok()?;
+        c.get_job(dray_proto::v1::GetJobRequest {
+            job_id: id.to_string(),
+        })
+        .await
+        .ok()?
+        .into_inner()
+        .job
+    })
+}
