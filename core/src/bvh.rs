@@ -522,8 +522,14 @@ mod tests {
         let mut hits = 0u64;
         for (scale, shift) in cases {
             let m = mesh(scale, shift);
-            let accel = Accel::build(&m);
-            let leaf_hits = |o: Vec3, d: Vec3| -> (Vec<u32>, Vec<u32>) {
+            let mut accel = Accel::build(&m);
+            let levels: Vec<Simd> = [Simd::Portable, Simd::Sse2, Simd::Avx2]
+                .into_iter()
+                .filter(|s| s.supported())
+                .collect();
+            // The slots the leaf test hits, and the slots each build of the node test
+            // visits (the far limit never lowered, so every box the ray crosses).
+            let mut leaf_hits = |o: Vec3, d: Vec3| -> (Vec<u32>, Vec<Vec<u32>>) {
                 let ray = QueryRay {
                     origin: o,
                     dir: d,
@@ -536,11 +542,18 @@ mod tests {
                         leaf::intersect(&wt, &accel.tris[s as usize], tmin, tmax).is_some()
                     })
                     .collect();
-                let mut seen = Vec::new();
-                accel.walk(&node_ray, tmax, &mut (), |slot, _, _| {
-                    seen.push(slot);
-                    Leaf::Continue
-                });
+                let seen = levels
+                    .iter()
+                    .map(|&simd| {
+                        assert!(accel.set_simd(simd));
+                        let mut seen = Vec::new();
+                        accel.walk(&node_ray, tmax, &mut (), |slot, _, _| {
+                            seen.push(slot);
+                            Leaf::Continue
+                        });
+                        seen
+                    })
+                    .collect();
                 (want, seen)
             };
             for i in 0..3000u32 {
@@ -559,7 +572,13 @@ mod tests {
                 if !d.is_finite() {
                     continue;
                 }
-                let (want, seen) = leaf_hits(o, d);
+                let (want, seen_by) = leaf_hits(o, d);
+                // Every build of the node test visits the same slots, in the same order.
+                assert!(
+                    seen_by.windows(2).all(|w| w[0] == w[1]),
+                    "ray {i}: builds differ"
+                );
+                let seen = &seen_by[0];
                 for s in &want {
                     assert!(
                         seen.contains(s),
