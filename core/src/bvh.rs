@@ -7,14 +7,19 @@
 //! about 2^20 units. Scaling by a power of two is exact, so hits, barycentrics and
 //! watertightness are unchanged, and the node epsilon becomes ~1e-10 of the scene.
 //!
-//! Node boxes are padded by a few ulps of the scene's magnitude so that rounding in the
-//! slab test can never cull a box whose triangle the leaf test would hit.
+//! Node boxes are exactly the bounds of their triangles; the node test instead grows
+//! every box, per ray, by 2^-17 of the largest distance from the ray's origin to the
+//! scene's box ([`BOX_MARGIN`]), so that rounding in the slab test, in the boxes'
+//! quantisation or in the leaf test can never cull a box whose triangle the leaf test
+//! would hit (see `node_test`). The margin scales with the distances the arithmetic
+//! works with, never with the coordinates' magnitude, so a scene far from the origin is
+//! traversed as fast as at the origin.
 //!
 //! The binary tree under the CWBVH is dray's own (see `build`): a binned-SAH build with
 //! a bounded depth, because obvhs's PLOC builder goes quadratic and arbitrarily deep on
 //! coincident triangles. Triangles with a non-finite corner are left out (nothing can
 //! hit them), and the scene's bounds are taken in f64 so that coordinates near the f32
-//! range cannot make the scale, the padding or a box infinite.
+//! range cannot make the scale or a box infinite.
 //!
 //! Traversal is dray's own loop over obvhs's compressed nodes (`traverse`), with the
 //! nodes re-laid out for an eight-children-at-once box test (`wide`, `node_test`: SSE2 on
@@ -64,15 +69,21 @@ pub struct QueryRay {
     pub tmax: f32,
 }
 
-struct PaddedTri {
+/// The part of the largest distance from a ray's origin to the scene's box by which the
+/// node test grows every box (see `node_test`, "Conservative"). The roundings it covers
+/// add up to well under 2^-19 of that distance (about 50 units of 2^-24: the slab
+/// arithmetic, the quantisation of child planes and the leaf test's shear and edge
+/// functions); 2^-17 leaves a factor of about 2.5, and is still 10^-5 of the scene.
+pub const BOX_MARGIN: f32 = 1.0 / (1u32 << 17) as f32;
+
+struct Tri {
     v: [Vec3; 3],
-    pad: f32,
 }
 
-impl Boundable for PaddedTri {
+impl Boundable for Tri {
     fn aabb(&self) -> Aabb {
-        let lo = self.v[0].min(self.v[1]).min(self.v[2]) - Vec3::splat(self.pad);
-        let hi = self.v[0].max(self.v[1]).max(self.v[2]) + Vec3::splat(self.pad);
+        let lo = self.v[0].min(self.v[1]).min(self.v[2]);
+        let hi = self.v[0].max(self.v[1]).max(self.v[2]);
         Aabb::new(Vec3A::from(lo), Vec3A::from(hi))
     }
 }
@@ -84,6 +95,9 @@ pub struct Accel {
     tris: Vec<PackedTri>,
     /// Mesh triangle index of each leaf slot.
     ids: Vec<u32>,
+    /// The bounds of every triangle, accelerator space (for the node test's margin).
+    lo: Vec3,
+    hi: Vec3,
     /// World to accelerator scale (a power of two).
     scale: f32,
     inv_scale: f32,
@@ -113,7 +127,7 @@ impl Accel {
             .filter(|&i| mesh.corners(i as usize).iter().all(|p| p.is_finite()))
             .collect();
         // Bounds in f64: the extent of finite f32 coordinates can overflow f32 (3e38
-        // minus -3e38), which would make the scale and the padding infinite.
+        // minus -3e38), which would make the scale infinite.
         let mut lo = DVec3::splat(f64::INFINITY);
         let mut hi = DVec3::splat(f64::NEG_INFINITY);
         for &i in &kept {
@@ -135,13 +149,13 @@ impl Accel {
         exp = exp.min(max_exp).clamp(-120, 120);
         let scale = 2f32.powi(exp);
         let inv_scale = 2f32.powi(-exp);
-        let pad = (magnitude * f64::from(scale) / f64::from(1u32 << 21)) as f32;
+        // Exact: the corners are f32 and the scale a power of two.
+        let (box_lo, box_hi) = (lo.as_vec3() * scale, hi.as_vec3() * scale);
 
-        let prims: Vec<PaddedTri> = kept
+        let prims: Vec<Tri> = kept
             .par_iter()
-            .map(|&i| PaddedTri {
+            .map(|&i| Tri {
                 v: mesh.corners(i as usize).map(|p| p * scale),
-                pad,
             })
             .collect();
         if prims.is_empty() {
@@ -149,6 +163,8 @@ impl Accel {
                 nodes: Vec::new(),
                 tris: Vec::new(),
                 ids: Vec::new(),
+                lo: box_lo,
+                hi: box_hi,
                 scale,
                 inv_scale,
                 simd: Simd::detect(),
@@ -180,6 +196,8 @@ impl Accel {
             nodes: wide::from_cwbvh(&bvh),
             tris,
             ids,
+            lo: box_lo,
+            hi: box_hi,
             scale,
             inv_scale,
             simd: Simd::detect(),
@@ -229,10 +247,14 @@ impl Accel {
                 1e28
             }
         };
+        // The node test's margin: 2^-17 of the farthest the scene's box reaches from
+        // the origin along any axis (exact but for one rounding of each difference).
+        let reach = (self.hi - o).abs().max((self.lo - o).abs()).max_element();
         let node_ray = NodeRay::new(
             o.to_array(),
             dir.to_array(),
             [inv(dir.x), inv(dir.y), inv(dir.z)],
+            reach * BOX_MARGIN,
         );
         (
             node_ray,
@@ -430,5 +452,142 @@ fn next_up(x: f32) -> f32 {
         f32::from_bits(x.to_bits() + 1)
     } else {
         x
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sampling::{PathKey, Purpose, uniform_sphere};
+
+    fn key(i: u32) -> PathKey {
+        PathKey {
+            seed: 17,
+            pixel: i,
+            sample: 0,
+        }
+    }
+
+    /// A closed, bumpy grid surface (every edge shared) and a soup of small triangles
+    /// over it, `scale` across, `shift` from the origin.
+    fn mesh(scale: f32, shift: Vec3) -> Mesh {
+        let n = 24;
+        let height = |i: u32, j: u32| {
+            let k = key(i * 100 + j);
+            k.uniform(0, Purpose::Film, 0) * 0.1
+        };
+        let at = |x: f32, y: f32, z: f32| Vec3::new(x, y, z) * scale + shift;
+        let mut pts = Vec::new();
+        for i in 0..n {
+            for j in 0..n {
+                let p = |a: u32, b: u32| at(a as f32 / n as f32, b as f32 / n as f32, height(a, b));
+                let (a, b, c, d) = (p(i, j), p(i + 1, j), p(i + 1, j + 1), p(i, j + 1));
+                pts.extend([a, b, c, a, c, d]);
+            }
+        }
+        for i in 0..600u32 {
+            let k = key(10_000 + i);
+            let c = Vec3::new(
+                k.uniform(1, Purpose::Film, 0),
+                k.uniform(1, Purpose::Film, 1),
+                k.uniform(1, Purpose::Film, 2) * 0.5 + 0.1,
+            );
+            for j in 0..3 {
+                let v = c + uniform_sphere(k.uniform2(2, Purpose::Film, j)) * 0.02;
+                pts.push(at(v.x, v.y, v.z));
+            }
+        }
+        let mut m = Mesh::default();
+        m.push_vertices(&pts);
+        let t = pts.len() as u32 / 3;
+        m.indices = (0..t).map(|i| [3 * i, 3 * i + 1, 3 * i + 2]).collect();
+        m.material = vec![0; t as usize];
+        m
+    }
+
+    /// Every triangle the leaf test hits lies in a box the node test lets through: rays
+    /// aimed exactly at corners and edges (where the leaf test's rounding matters), from
+    /// inside the scene, from its box and from 1,000 scene sizes away, at scales and
+    /// distances from the origin where the margin is tiny next to the coordinates.
+    #[test]
+    fn the_node_test_never_loses_a_triangle_the_leaf_test_hits() {
+        let cases = [
+            (1.0f32, Vec3::ZERO),
+            (1e-6, Vec3::ZERO),
+            (1e6, Vec3::ZERO),
+            (1.0, Vec3::new(1e5, -1e5, 3e4)),
+            (64.0, Vec3::new(1e6, 0.0, -1e6)),
+            (1e-2, Vec3::new(-1e4, 1e4, 0.0)),
+        ];
+        let mut hits = 0u64;
+        for (scale, shift) in cases {
+            let m = mesh(scale, shift);
+            let mut accel = Accel::build(&m);
+            let levels: Vec<Simd> = [Simd::Portable, Simd::Sse2, Simd::Avx2]
+                .into_iter()
+                .filter(|s| s.supported())
+                .collect();
+            // The slots the leaf test hits, and the slots each build of the node test
+            // visits (the far limit never lowered, so every box the ray crosses).
+            let mut leaf_hits = |o: Vec3, d: Vec3| -> (Vec<u32>, Vec<Vec<u32>>) {
+                let ray = QueryRay {
+                    origin: o,
+                    dir: d,
+                    tmin: 0.0,
+                    tmax: f32::INFINITY,
+                };
+                let (node_ray, wt, tmin, tmax) = accel.prepare(&ray);
+                let want: Vec<u32> = (0..accel.tris.len() as u32)
+                    .filter(|&s| {
+                        leaf::intersect(&wt, &accel.tris[s as usize], tmin, tmax).is_some()
+                    })
+                    .collect();
+                let seen = levels
+                    .iter()
+                    .map(|&simd| {
+                        assert!(accel.set_simd(simd));
+                        let mut seen = Vec::new();
+                        accel.walk(&node_ray, tmax, &mut (), |slot, _, _| {
+                            seen.push(slot);
+                            Leaf::Continue
+                        });
+                        seen
+                    })
+                    .collect();
+                (want, seen)
+            };
+            for i in 0..3000u32 {
+                let k = key(20_000 + i);
+                let tri = (k.uniform(3, Purpose::Film, 0) * m.indices.len() as f32) as usize;
+                let [a, b, c] = m.corners(tri.min(m.indices.len() - 1));
+                let target = match i % 3 {
+                    0 => a,
+                    1 => (a + b) * 0.5,
+                    _ => (a + b + c) / 3.0,
+                };
+                let from = uniform_sphere(k.uniform2(4, Purpose::Film, 0));
+                let dist = [0.3, 2.0, 1000.0][(i / 3 % 3) as usize] * scale;
+                let o = target + from * dist;
+                let d = (target - o).normalize();
+                if !d.is_finite() {
+                    continue;
+                }
+                let (want, seen_by) = leaf_hits(o, d);
+                // Every build of the node test visits the same slots, in the same order.
+                assert!(
+                    seen_by.windows(2).all(|w| w[0] == w[1]),
+                    "ray {i}: builds differ"
+                );
+                let seen = &seen_by[0];
+                for s in &want {
+                    assert!(
+                        seen.contains(s),
+                        "scale {scale} shift {shift} ray {i}: slot {s} is hit but its box is culled"
+                    );
+                }
+                hits += want.len() as u64;
+            }
+        }
+        assert!(hits > 10_000, "{hits}");
     }
 }

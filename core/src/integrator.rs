@@ -154,6 +154,15 @@ pub const MAX_DEPTH: u32 = 1024;
 /// one of the two (see [`Integrator::credit_needed`]).
 pub const WHITTED_BRANCH_DEPTH: u32 = 8;
 
+/// The part of a shadow ray's length toward a point it does not test (pbrt-v4's
+/// `ShadowEpsilon`): the light's own surface lies just beyond that point (the point is
+/// offset toward the shading point by its error bound), but the normalised direction and
+/// the length round by a few ulps of the length, which can exceed that offset when the
+/// light is nearer the origin than the shading point is. An occluder within 2^-13 of the
+/// distance from the light is not seen; the bound is relative, so it is the same at any
+/// scale (docs/numerics.md "Spawned rays").
+pub const SHADOW_EPSILON: f32 = 1.0 / 8192.0;
+
 /// Everything about a render that is not the scene.
 #[derive(Clone, Debug)]
 pub struct RenderSettings {
@@ -525,7 +534,7 @@ impl<'a> Integrator<'a> {
 
         if self.settings.integrator == IntegratorKind::Ao {
             let n = self.settings.ao_samples.max(1);
-            let origin = offset_ray_origin(surf.p, surf.ng);
+            let origin = offset_ray_origin(surf.p, surf.p_err, surf.ng);
             for i in 0..n {
                 let u = key.uniform2(ray.depth, Purpose::AmbientOcclusion, i);
                 let dir = cosine_hemisphere(surf.ng, u);
@@ -604,16 +613,16 @@ impl<'a> Integrator<'a> {
         } else {
             -surf.ng
         };
-        let origin = offset_ray_origin(surf.p, side);
+        let origin = offset_ray_origin(surf.p, surf.p_err, side);
         let (dir, tmax) = if ls.dist.is_finite() {
             let target = if ls.delta {
                 ls.light_p
             } else {
-                offset_ray_origin(ls.light_p, ls.light_n)
+                offset_ray_origin(ls.light_p, ls.light_p_err, ls.light_n)
             };
             let d = target - origin;
             let len = d.length();
-            (d / len, len)
+            (d / len, len * (1.0 - SHADOW_EPSILON))
         } else {
             (ls.wi, f32::INFINITY)
         };
@@ -741,7 +750,7 @@ impl<'a> Integrator<'a> {
             -surf.ng
         };
         sink.spawn(RayState {
-            origin: offset_ray_origin(surf.p, side),
+            origin: offset_ray_origin(surf.p, surf.p_err, side),
             dir: wi,
             tmax: f32::INFINITY,
             depth: ray.depth + 1,

@@ -4,6 +4,7 @@
 
 use glam::{Vec2, Vec3};
 
+use crate::intersect::interpolate_with_error;
 use crate::light::Light;
 use crate::material::Material;
 use crate::sampling::uniform_triangle;
@@ -32,6 +33,9 @@ pub struct LightSample {
     pub delta: bool,
     /// The point on an area light (for the shadow ray's far end) and its normal.
     pub light_p: Vec3,
+    /// A bound on each coordinate's rounding error in `light_p` (zero for punctual lights:
+    /// no surface lies there for the shadow ray to stop short of).
+    pub light_p_err: Vec3,
     pub light_n: Vec3,
 }
 
@@ -233,6 +237,7 @@ impl LightSampler {
                     pdf: p_select,
                     delta: true,
                     light_p: if dist.is_finite() { p + wi * dist } else { p },
+                    light_p_err: Vec3::ZERO,
                     light_n: -wi,
                 })
             }
@@ -243,7 +248,7 @@ impl LightSampler {
                 let [a, b, c] = scene.mesh.corners(t as usize);
                 let (b1, b2) = uniform_triangle(u);
                 let b0 = 1.0 - b1 - b2;
-                let q = a * b0 + b * b1 + c * b2;
+                let (q, q_err) = interpolate_with_error([a, b, c], [b0, b1, b2]);
                 let cross = (b - a).cross(c - a);
                 let area = 0.5 * cross.length();
                 let n = cross.normalize_or_zero();
@@ -272,6 +277,7 @@ impl LightSampler {
                     pdf,
                     delta: false,
                     light_p: q,
+                    light_p_err: q_err,
                     light_n: if n.dot(wi) < 0.0 { n } else { -n },
                 })
             }

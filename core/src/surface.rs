@@ -5,6 +5,7 @@ use glam::{Vec2, Vec3, Vec4};
 
 use crate::bvh::Hit;
 use crate::effects::{Effect, Effects};
+use crate::intersect::interpolate_with_error;
 use crate::material::{AlphaMode, Material, TexRef};
 use crate::scene::Scene;
 
@@ -13,6 +14,10 @@ use crate::scene::Scene;
 pub struct Surface {
     /// World position, from barycentrics (more accurate than origin + t * dir).
     pub p: Vec3,
+    /// A bound on each coordinate's rounding error in `p`
+    /// ([`crate::intersect::interpolate_with_error`]): rays leaving the surface start
+    /// just outside it ([`crate::intersect::offset_ray_origin`]).
+    pub p_err: Vec3,
     /// Unit geometric normal, facing the incoming ray's origin.
     pub ng: Vec3,
     /// Unit shading normal on the same side as `ng`.
@@ -92,7 +97,7 @@ impl Surface {
         let idx = mesh.indices[hit.tri as usize];
         let [a, b, c] = idx.map(|i| mesh.positions[i as usize]);
         let bary = [hit.b0, hit.b1, hit.b2];
-        let p = a * bary[0] + b * bary[1] + c * bary[2];
+        let (p, p_err) = interpolate_with_error([a, b, c], bary);
         let mut ng = (b - a).cross(c - a).normalize_or_zero();
         if ng == Vec3::ZERO {
             ng = -dir;
@@ -142,6 +147,7 @@ impl Surface {
         }
         Surface {
             p,
+            p_err,
             ng,
             n,
             uv,

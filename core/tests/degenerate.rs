@@ -3,18 +3,10 @@
 //! build in a bounded depth without a panic, and still find the right hits.
 
 use dray_core::bvh::{Accel, QueryRay};
-use dray_core::scene::Mesh;
 use glam::Vec3;
 
-fn mesh(tris: &[[Vec3; 3]]) -> Mesh {
-    let mut m = Mesh::default();
-    for t in tris {
-        let base = m.push_vertices(t);
-        m.indices.push([base, base + 1, base + 2]);
-        m.material.push(0);
-    }
-    m
-}
+mod support;
+use support::mesh;
 
 fn down(x: f32, y: f32, z: f32) -> QueryRay {
     QueryRay {

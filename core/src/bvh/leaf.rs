@@ -7,11 +7,14 @@
 //! three rows, and the three corners are then transformed side by side in one SSE
 //! vector: `a = v - o`, `x = a[kx] - sx * a[kz]`, `y = a[ky] - sy * a[kz]`, and the three
 //! edge functions `u, v, w` as lane-wise products of rotated vectors. The double-precision
-//! recomputation on a zero edge function, the sign test, the determinant, the distance
-//! and the barycentrics are the reference's expressions, evaluated in its order.
+//! recomputation on a zero edge function and the sign test are the reference's
+//! expressions; the determinant, the distance, its error bound and the barycentrics are
+//! the reference's own function (`intersect::finish_hit`).
 
 use glam::Vec3;
 
+#[cfg(target_arch = "x86_64")]
+use crate::intersect::finish_hit;
 use crate::intersect::{TriangleHit, WatertightRay};
 
 /// One triangle in accelerator space: `rows[axis] = [v0[axis], v1[axis], v2[axis], 0]`.
@@ -127,27 +130,22 @@ unsafe fn intersect_sse(
         }
         let mut e = [0f32; 4];
         _mm_storeu_ps(e.as_mut_ptr(), uvw);
-        let [u, v, w, _] = e;
-        let det = u + v + w;
-        if det == 0.0 || !det.is_finite() {
-            return None;
-        }
-        // (u * az, v * bz, w * cz) with (az, bz, cz) = sz * a[kz].
-        let z = _mm_mul_ps(_mm_set1_ps(ray.sz), pz);
-        let mut p = [0f32; 4];
-        _mm_storeu_ps(p.as_mut_ptr(), _mm_mul_ps(uvw, z));
-        let tt = p[0] + p[1] + p[2];
-        let inv = 1.0 / det;
-        let t = tt * inv;
-        if !(t > tmin && t < tmax) {
-            return None;
-        }
-        Some(TriangleHit {
-            t,
-            b0: u * inv,
-            b1: v * inv,
-            b2: w * inv,
-        })
+        // The corners' scaled depths sz * a[kz], and their sheared x and y for the
+        // distance's error bound; the rest is the reference's own code.
+        let mut z = [0f32; 4];
+        _mm_storeu_ps(z.as_mut_ptr(), _mm_mul_ps(_mm_set1_ps(ray.sz), pz));
+        let mut xs = [0f32; 4];
+        let mut ys = [0f32; 4];
+        _mm_storeu_ps(xs.as_mut_ptr(), x);
+        _mm_storeu_ps(ys.as_mut_ptr(), y);
+        finish_hit(
+            [e[0], e[1], e[2]],
+            [z[0], z[1], z[2]],
+            [xs[0], xs[1], xs[2]],
+            [ys[0], ys[1], ys[2]],
+            tmin,
+            tmax,
+        )
     }
 }
 

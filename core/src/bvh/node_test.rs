@@ -5,10 +5,23 @@
 //! - per node, `adj_inv = extent * inv_dir` and `adj_orig = (p - origin) * inv_dir`;
 //! - per child and axis, `t = q * adj_inv + adj_orig` (a multiply, then an add: no FMA),
 //!   with `q` the child's lower plane on that axis for the entry distance and the upper
-//!   one for the exit, swapped where the direction is negative (`dir < 0`);
+//!   one for the exit, swapped where the direction is negative (`dir < 0`), and
+//!   `adj_orig` lowered by the ray's slack `pad` for entry distances and raised by it for
+//!   exit distances (dray's addition: see "Conservative" below);
 //! - `tmin = max(tx, max(ty, tz))`, then `max(tmin, 1e-4)`; `tmax = min(tx, min(ty, tz))`,
 //!   then `min(tmax, ray.tmax)` (same operand order, so NaNs fall the same way);
 //! - hit when `tmin <= tmax`.
+//!
+//! Conservative: `pad[a]` is the ray's spatial margin `m` (in accelerator units) divided
+//! by `|dir[a]|`, so every child box is tested grown by `m` on each side. `Accel` sets
+//! `m` to 2^-17 of the largest distance from the ray's origin to the scene's box, which
+//! exceeds every rounding that could make the test miss a box whose triangle the leaf
+//! test hits: this test's own arithmetic (relative to the distances from the origin to
+//! the node's planes and to the node's size), the 8-bit quantisation of child planes
+//! (relative to the parent's size), and the leaf test's shear (relative to the distance
+//! from the origin to the corners). None of these depends on the coordinates' magnitude,
+//! so boxes stay tight far from the origin (docs/numerics.md "Far from the origin").
+//! With a zero `pad` the test is obvhs's, bit for bit.
 //!
 //! What changes is the decoding: a child's planes are converted eight at a time
 //! (`u8 -> i32 -> f32`, exact), the near/far choice is a per-ray byte offset instead of a
@@ -42,6 +55,8 @@ pub(crate) struct NodeRay {
     /// Origin and inverse direction (x, y, z, 0), accelerator space.
     pub origin: [f32; 4],
     pub inv_dir: [f32; 4],
+    /// Per axis: the ray's spatial margin divided by `|dir|`, `m * |inv_dir|` (x, y, z, 0).
+    pub pad: [f32; 4],
     /// Byte offset of the near planes in each axis row of `WideNode::q` (0 or 8).
     pub near: [usize; 3],
     /// Per slot: the traversal-order bit of an internal child, `1 << (24 + (slot ^
@@ -53,14 +68,21 @@ pub(crate) struct NodeRay {
 }
 
 impl NodeRay {
-    /// `dir` must already have its signed zeros folded to +0.0.
-    pub fn new(origin: [f32; 3], dir: [f32; 3], inv_dir: [f32; 3]) -> NodeRay {
+    /// `dir` must already have its signed zeros folded to +0.0; `margin` (non-negative)
+    /// grows every box by that much on each side.
+    pub fn new(origin: [f32; 3], dir: [f32; 3], inv_dir: [f32; 3], margin: f32) -> NodeRay {
         let oct_inv = (if dir[0] < 0.0 { 0 } else { 4 })
             | (if dir[1] < 0.0 { 0 } else { 2 })
             | (if dir[2] < 0.0 { 0 } else { 1 });
         NodeRay {
             origin: [origin[0], origin[1], origin[2], 0.0],
             inv_dir: [inv_dir[0], inv_dir[1], inv_dir[2], 0.0],
+            pad: [
+                margin * inv_dir[0].abs(),
+                margin * inv_dir[1].abs(),
+                margin * inv_dir[2].abs(),
+                0.0,
+            ],
             near: dir.map(|d| if d < 0.0 { 8 } else { 0 }),
             order_bits: ORDER_BITS[oct_inv as usize],
             oct_inv,
@@ -75,10 +97,13 @@ impl NodeRay {
 #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
 pub(crate) fn hits_portable(node: &WideNode, ray: &NodeRay, tmax: f32) -> u32 {
     let mut adj_inv = [0f32; 3];
-    let mut adj_orig = [0f32; 3];
+    let mut orig_near = [0f32; 3];
+    let mut orig_far = [0f32; 3];
     for a in 0..3 {
         adj_inv[a] = node.extent[a] * ray.inv_dir[a];
-        adj_orig[a] = (node.p[a] - ray.origin[a]) * ray.inv_dir[a];
+        let adj_orig = (node.p[a] - ray.origin[a]) * ray.inv_dir[a];
+        orig_near[a] = adj_orig - ray.pad[a];
+        orig_far[a] = adj_orig + ray.pad[a];
     }
     // SSE's max/min: the second operand unless the first is strictly greater/less.
     let max = |a: f32, b: f32| if a > b { a } else { b };
@@ -91,8 +116,8 @@ pub(crate) fn hits_portable(node: &WideNode, ray: &NodeRay, tmax: f32) -> u32 {
             let near = ray.near[a];
             let qn = f32::from(node.q[a][near + slot]);
             let qf = f32::from(node.q[a][8 - near + slot]);
-            tn[a] = qn * adj_inv[a] + adj_orig[a];
-            tf[a] = qf * adj_inv[a] + adj_orig[a];
+            tn[a] = qn * adj_inv[a] + orig_near[a];
+            tf[a] = qf * adj_inv[a] + orig_far[a];
         }
         let tmin = max(max(tn[0], max(tn[1], tn[2])), NODE_EPSILON);
         let tmax_c = min(min(tf[0], min(tf[1], tf[2])), tmax);
@@ -124,6 +149,8 @@ pub(crate) mod x86 {
                 ),
                 inv,
             );
+            let pad = _mm_loadu_ps(ray.pad.as_ptr());
+            let (near_orig, far_orig) = (_mm_sub_ps(adj_orig, pad), _mm_add_ps(adj_orig, pad));
             let zero = _mm_setzero_si128();
             // Eight bytes to two vectors of four floats (exact).
             let planes = |row: &[u8; 16], off: usize| -> (__m128, __m128) {
@@ -136,18 +163,22 @@ pub(crate) mod x86 {
             };
             let mut tn = [[_mm_setzero_ps(); 2]; 3];
             let mut tf = [[_mm_setzero_ps(); 2]; 3];
+            // Per axis: the node's grid step, and its origin for entry and exit distances.
             let lanes = [
                 (
                     _mm_shuffle_ps::<0x00>(adj_inv, adj_inv),
-                    _mm_shuffle_ps::<0x00>(adj_orig, adj_orig),
+                    _mm_shuffle_ps::<0x00>(near_orig, near_orig),
+                    _mm_shuffle_ps::<0x00>(far_orig, far_orig),
                 ),
                 (
                     _mm_shuffle_ps::<0x55>(adj_inv, adj_inv),
-                    _mm_shuffle_ps::<0x55>(adj_orig, adj_orig),
+                    _mm_shuffle_ps::<0x55>(near_orig, near_orig),
+                    _mm_shuffle_ps::<0x55>(far_orig, far_orig),
                 ),
                 (
                     _mm_shuffle_ps::<0xaa>(adj_inv, adj_inv),
-                    _mm_shuffle_ps::<0xaa>(adj_orig, adj_orig),
+                    _mm_shuffle_ps::<0xaa>(near_orig, near_orig),
+                    _mm_shuffle_ps::<0xaa>(far_orig, far_orig),
                 ),
             ];
             for a in 0..3 {
@@ -155,14 +186,14 @@ pub(crate) mod x86 {
                 let row = node.q.get_unchecked(a);
                 let (n0, n1) = planes(row, near);
                 let (f0, f1) = planes(row, 8 - near);
-                let (s, o) = lanes[a];
+                let (s, on, of) = lanes[a];
                 tn[a] = [
-                    _mm_add_ps(_mm_mul_ps(n0, s), o),
-                    _mm_add_ps(_mm_mul_ps(n1, s), o),
+                    _mm_add_ps(_mm_mul_ps(n0, s), on),
+                    _mm_add_ps(_mm_mul_ps(n1, s), on),
                 ];
                 tf[a] = [
-                    _mm_add_ps(_mm_mul_ps(f0, s), o),
-                    _mm_add_ps(_mm_mul_ps(f1, s), o),
+                    _mm_add_ps(_mm_mul_ps(f0, s), of),
+                    _mm_add_ps(_mm_mul_ps(f1, s), of),
                 ];
             }
             let eps = _mm_set1_ps(NODE_EPSILON);
@@ -203,6 +234,8 @@ pub(crate) mod x86 {
                 ),
                 inv,
             );
+            let pad = _mm_loadu_ps(ray.pad.as_ptr());
+            let (near_orig, far_orig) = (_mm_sub_ps(adj_orig, pad), _mm_add_ps(adj_orig, pad));
             let planes = |row: &[u8; 16], off: usize| -> __m256 {
                 let b = _mm_loadl_epi64(row.as_ptr().add(off) as *const __m128i);
                 _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(b))
@@ -212,18 +245,23 @@ pub(crate) mod x86 {
                 _mm256_broadcastss_ps(_mm_shuffle_ps::<0x55>(adj_inv, adj_inv)),
                 _mm256_broadcastss_ps(_mm_shuffle_ps::<0xaa>(adj_inv, adj_inv)),
             ];
-            let o = [
-                _mm256_broadcastss_ps(adj_orig),
-                _mm256_broadcastss_ps(_mm_shuffle_ps::<0x55>(adj_orig, adj_orig)),
-                _mm256_broadcastss_ps(_mm_shuffle_ps::<0xaa>(adj_orig, adj_orig)),
+            let on = [
+                _mm256_broadcastss_ps(near_orig),
+                _mm256_broadcastss_ps(_mm_shuffle_ps::<0x55>(near_orig, near_orig)),
+                _mm256_broadcastss_ps(_mm_shuffle_ps::<0xaa>(near_orig, near_orig)),
+            ];
+            let of = [
+                _mm256_broadcastss_ps(far_orig),
+                _mm256_broadcastss_ps(_mm_shuffle_ps::<0x55>(far_orig, far_orig)),
+                _mm256_broadcastss_ps(_mm_shuffle_ps::<0xaa>(far_orig, far_orig)),
             ];
             let mut tn = [_mm256_setzero_ps(); 3];
             let mut tf = [_mm256_setzero_ps(); 3];
             for a in 0..3 {
                 let near = *ray.near.get_unchecked(a);
                 let row = node.q.get_unchecked(a);
-                tn[a] = _mm256_add_ps(_mm256_mul_ps(planes(row, near), s[a]), o[a]);
-                tf[a] = _mm256_add_ps(_mm256_mul_ps(planes(row, 8 - near), s[a]), o[a]);
+                tn[a] = _mm256_add_ps(_mm256_mul_ps(planes(row, near), s[a]), on[a]);
+                tf[a] = _mm256_add_ps(_mm256_mul_ps(planes(row, 8 - near), s[a]), of[a]);
             }
             let tmin = _mm256_max_ps(tn[0], _mm256_max_ps(tn[1], tn[2]));
             let tmax8 = _mm256_min_ps(tf[0], _mm256_min_ps(tf[1], tf[2]));

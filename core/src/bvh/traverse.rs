@@ -255,7 +255,12 @@ mod tests {
 
     fn with_walk(nodes: &[WideNode], tris: &[PackedTri], simd: Simd, o: Vec3, d: Vec3) -> Trace {
         let d = d + Vec3::ZERO;
-        let ray = NodeRay::new(o.to_array(), d.to_array(), [inv(d.x), inv(d.y), inv(d.z)]);
+        let ray = NodeRay::new(
+            o.to_array(),
+            d.to_array(),
+            [inv(d.x), inv(d.y), inv(d.z)],
+            0.0,
+        );
         let wt = WatertightRay::new(o, d);
         let (mut visited, mut slots, mut best) = (Vec::new(), Vec::new(), None);
         let base = nodes.as_ptr() as usize;

@@ -1,4 +1,6 @@
-//! What the domain tests share: cutting a mesh into per-domain BVHs.
+//! What the geometry tests share: a mesh from a list of triangles, and cutting a mesh
+//! into per-domain BVHs. Each test crate uses part of it.
+#![allow(dead_code)]
 
 use dray_core::bvh::Accel;
 use dray_core::domain::DomainTree;
@@ -27,4 +29,16 @@ pub fn split(mesh: &Mesh, tree: &DomainTree, pad: f32) -> Vec<Accel> {
             Accel::build_with_ids(&part, Some(&ids))
         })
         .collect()
+}
+
+/// A mesh of separate triangles (no shared corners), material 0, in the given order:
+/// triangle `i` of the list is triangle `i` of the mesh.
+pub fn mesh(tris: &[[Vec3; 3]]) -> Mesh {
+    let mut m = Mesh::default();
+    for t in tris {
+        let base = m.push_vertices(t);
+        m.indices.push([base, base + 1, base + 2]);
+        m.material.push(0);
+    }
+    m
 }
