@@ -383,9 +383,8 @@ pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Resul
         start.elapsed(),
     );
     summary.domains = domains;
-    if a.workers == 0 {
-        summary.clamped_contributions = Some(out.film.clamped);
-    }
+    // Counted by the tile renderer, and by the workers (JobStats.clamped).
+    summary.clamped_contributions = Some(out.film.clamped);
     summary.scheduling = scheduling;
     (summary.ray_cache, summary.phm) = walls;
     Ok(Rendered {

@@ -81,6 +81,8 @@ pub(crate) struct SubmitStats {
     /// Spatial domains the scene was cut into.
     domains: u32,
     nonfinite_contributions: u64,
+    /// Contributions clamped to the film's largest radiance.
+    clamped_contributions: u64,
     /// The coordinator's time for the job, preparation included.
     job_time_s: f64,
     /// From submission to the image written, as seen here.
@@ -116,6 +118,7 @@ impl SubmitStats {
             rays_total: rays.total(),
             domains: stats.domains,
             nonfinite_contributions: stats.nonfinite,
+            clamped_contributions: stats.clamped,
             job_time_s: job
                 .progress
                 .as_ref()

@@ -533,6 +533,7 @@ fn the_brightest_pixel_at_the_most_samples_does_not_wrap() {
         "+environment",
     ];
     let mut exrs = Vec::new();
+    let mut clamps = Vec::new();
     for (tag, flags) in [("tiles", &["--workers", "0"][..]), ("actors", &[][..])] {
         let exr = d.join(format!("{tag}.exr"));
         let exr_arg = exr.to_str().unwrap();
@@ -550,13 +551,16 @@ fn the_brightest_pixel_at_the_most_samples_does_not_wrap() {
         );
         let s = r.stats.unwrap();
         assert_eq!(s["saturated_pixels"], 0, "{tag}: {s}");
-        if tag == "tiles" {
-            // Nearly every sample's ambient light is far above the clamp (those that
-            // meet the lamp are not).
-            let clamped = s["clamped_contributions"].as_u64().unwrap();
-            assert!(clamped > 60_000 && clamped <= 65_536, "{s}");
-        }
+        // Nearly every sample's ambient light is far above the clamp (those that meet
+        // the lamp are not); the workers count them as the tile renderer does.
+        let clamped = s["clamped_contributions"].as_u64().unwrap();
+        assert!(clamped > 60_000 && clamped <= 65_536, "{tag}: {s}");
         exrs.push(std::fs::read(&exr).unwrap());
+        clamps.push(clamped);
     }
     assert!(exrs[0] == exrs[1], "actors and the tile renderer differ");
+    assert_eq!(
+        clamps[0], clamps[1],
+        "actors and the tile renderer count clamps alike"
+    );
 }

@@ -603,6 +603,7 @@ fn run(job: &JobEntry, p: Prepared, threads: usize) {
                 let mut g = job.lock();
                 g.stats.rays = Some(RayCounts::from_kinds(out.rays.0));
                 g.stats.nonfinite = out.film.nonfinite;
+                g.stats.clamped = out.film.clamped;
             }
             job.finish(JobState::Succeeded, String::new(), Some(out.film));
         }

@@ -154,6 +154,7 @@ fn request(
         credits,
         traced: Some(RayCounts::from_kinds(*t)),
         nonfinite: r.nonfinite,
+        clamped: r.clamped,
         ray_bytes_sent: r.bytes,
         failure: r.failure.clone().unwrap_or_default(),
         counters,

@@ -486,6 +486,7 @@ pub(crate) fn deliver_with(
         r.traced[k] += n;
     }
     r.nonfinite += out.nonfinite;
+    r.clamped += out.clamped;
     r.tickets.merge(std::mem::take(&mut out.tickets));
     r.bytes += sent * RAY_RECORD_BYTES as u64;
     r.rays_sent += sent;

@@ -622,6 +622,7 @@ impl JobActor {
             owned_package,
             mut film,
             nonfinite,
+            clamped,
             caches,
             ..
         } = self.job;
@@ -629,6 +630,7 @@ impl JobActor {
             c.tally.publish(&entry);
         }
         film.nonfinite = nonfinite;
+        film.clamped = clamped;
         let film = (state == JobState::Succeeded).then_some(film);
         entry.finish(state, error, film);
         remove_package(owned_package.as_ref());

@@ -220,6 +220,7 @@ pub fn apply(job: &mut RunningJob, r: &ReportContributionsRequest) -> Applied {
         job.rays = RayCounts::from_kinds(std::array::from_fn(|k| sum[k] + add[k]));
     }
     job.nonfinite += r.nonfinite;
+    job.clamped = job.clamped.saturating_add(r.clamped);
     job.ray_bytes_sent += r.ray_bytes_sent;
     if let Some(t) = r.counters.as_ref().and_then(|c| c.traffic.as_ref()) {
         crate::traffic::add(&mut job.traffic, t);

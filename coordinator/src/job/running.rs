@@ -89,6 +89,8 @@ pub struct RunningJob {
     pub(super) seen: HashMap<String, SeqWindow>,
     pub(super) rays: RayCounts,
     pub(super) nonfinite: u64,
+    /// Contributions the workers clamped to the film's largest.
+    pub(super) clamped: u64,
     pub(super) ray_bytes_sent: u64,
     /// Bytes between processes by kind, summed over the workers' reports.
     pub(super) traffic: dray_proto::v1::TrafficStats,
@@ -158,6 +160,7 @@ impl RunningJob {
             seen: HashMap::new(),
             rays: RayCounts::default(),
             nonfinite: 0,
+            clamped: 0,
             ray_bytes_sent: 0,
             traffic: Default::default(),
             cpu: crate::cpu_tally::CpuTally::here(),
@@ -636,6 +639,7 @@ impl RunningJob {
         self.entry.update_stats(|s| {
             s.rays = Some(self.rays);
             s.nonfinite = self.nonfinite;
+            s.clamped = self.clamped;
             s.ray_bytes_sent = self.ray_bytes_sent;
             s.traffic = Some(self.traffic);
             s.cpu_seconds = self.cpu.seconds();

@@ -20,6 +20,7 @@ pub struct Report {
     pub credits: Vec<(u32, Credit)>,
     pub traced: [u64; RayKind::COUNT],
     pub nonfinite: u64,
+    pub clamped: u64,
     pub bytes: u64,
     pub rays_sent: u64,
     pub rays_forwarded: u64,
@@ -53,6 +54,7 @@ impl Report {
             && self.credits.is_empty()
             && self.traced.iter().all(|&n| n == 0)
             && self.nonfinite == 0
+            && self.clamped == 0
             && self.bytes == 0
             && self.rays_sent == 0
             && self.rays_forwarded == 0
@@ -75,6 +77,7 @@ impl Report {
             mut credits,
             traced,
             nonfinite,
+            clamped,
             bytes,
             rays_sent,
             rays_forwarded,
@@ -95,6 +98,7 @@ impl Report {
             self.traced[k] += n;
         }
         self.nonfinite += nonfinite;
+        self.clamped += clamped;
         self.bytes += bytes;
         self.rays_sent += rays_sent;
         self.rays_forwarded += rays_forwarded;

@@ -4,7 +4,7 @@
 use std::collections::HashMap;
 
 use dray_core::credit::Credit;
-use dray_core::film::{add_sums, to_fixed};
+use dray_core::film::{add_sums, to_fixed_clamped};
 use dray_core::integrator::RayKind;
 use dray_core::ray::RayRecord;
 use glam::Vec3;
@@ -41,6 +41,9 @@ pub struct Outbox {
     pub traced: [u64; RayKind::COUNT],
     /// Non-finite contributions dropped.
     pub nonfinite: u64,
+    /// Contributions with a component clamped to the film's largest
+    /// (`dray_core::film::MAX_CONTRIBUTION`).
+    pub clamped: u64,
     /// Rays a hit map consulted in place skipped or occluded on their way to another
     /// worker's domain: rays not sent.
     pub phm_not_sent: u64,
@@ -59,6 +62,7 @@ impl Outbox {
             && self.outcomes.is_empty()
             && self.traced.iter().all(|&n| n == 0)
             && self.nonfinite == 0
+            && self.clamped == 0
     }
 
     /// Rays waiting to be sent.
@@ -70,8 +74,9 @@ impl Outbox {
     /// tickets; `cached` when it is a cache's answer.
     #[inline]
     pub(super) fn add(&mut self, pixel: u32, value: Vec3, lin: &Lineage, cached: bool) {
-        match to_fixed(value) {
-            Some(f) => {
+        match to_fixed_clamped(value) {
+            Some((f, clamped)) => {
+                self.clamped += u64::from(clamped);
                 if !lin.coarse {
                     // A pixel's samples are traced one after another, so most
                     // contributions land on the pixel of the one before: add them up
