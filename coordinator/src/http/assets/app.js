@@ -16,6 +16,7 @@ const state = {
   lastWorkers: "",
   selected: null,        // job id
   selectedState: null,   // its last state
+  jobs: [],              // the rows of the last snapshot
   jobEvents: null,       // EventSource of the selected job's progress
   image: { busy: false, again: false, last: 0, url: null, version: 0, timer: null },
 };
@@ -173,6 +174,7 @@ function renderJobs(page) {
   if (json === state.lastJobs) return;
   state.lastJobs = json;
   const jobs = page.jobs;
+  state.jobs = jobs;
   const running = jobs.filter((j) => !TERMINAL.has(j.state)).length;
   $("jobs-count").textContent = `${jobs.length} shown, ${running} active`;
   $("summary").textContent = `${running} active job${running === 1 ? "" : "s"}`;
@@ -294,6 +296,8 @@ function selectJob(id) {
     delete img.dataset.samples;
     state.image.version = 0;
     $("preview-caption").textContent = "";
+    const j = state.jobs.find((x) => x.id === id);
+    if (j) renderJobHeader(j);
   }
   const es = new EventSource(`/api/jobs/${encodeURIComponent(id)}/events`);
   state.jobEvents = es;
