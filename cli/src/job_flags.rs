@@ -54,6 +54,11 @@ pub struct JobFlags {
     /// Move the whole scene by "X,Y,Z" before rendering (tests precision far from the origin).
     #[arg(long, allow_hyphen_values = true)]
     pub translate: Option<String>,
+    /// Progressive passes: "doubling" (1, 1, 2, 4, ... samples per pixel; GetImage and
+    /// `dray submit --preview` show the image after each), "one" (every sample in one
+    /// pass), or N samples per pass. No effect on the final image.
+    #[arg(long, default_value = dray_core::passes::DEFAULT)]
+    pub passes: String,
     /// Exposure in stops for the PNG (radiance is scaled by 2^EV; the EXR stays linear).
     /// Scenes in photometric units, such as a 68000-lux sun, want about -16.
     #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
@@ -130,6 +135,13 @@ impl JobFlags {
         Ok(())
     }
 
+    /// `--passes`: a cut of `--spp` the coordinator accepts.
+    pub fn check_passes(&self) -> Result<()> {
+        dray_core::passes::Passes::parse(&self.passes, self.spp)
+            .map(drop)
+            .map_err(|e| anyhow::anyhow!("--passes: {e}"))
+    }
+
     /// `--exposure`: finite, within the coordinator's GetImage range.
     pub fn check_exposure(&self) -> Result<()> {
         if !self.exposure.is_finite() || self.exposure.abs() > MAX_EXPOSURE_STOPS {
@@ -194,6 +206,7 @@ impl JobFlags {
             replicate: self.replicate,
             ray_cache: self.ray_cache.clone(),
             phm: self.phm.clone(),
+            passes: self.passes.clone(),
         })
     }
 }
