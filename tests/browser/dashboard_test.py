@@ -186,12 +186,20 @@ def submit_and_image(d, c: Cluster, artifacts: Path, dray: str, tmp: Path) -> No
 @step("cancelling a running job from the page cancels it (GetJob over gRPC)")
 def cancel_from_page(d, c: Cluster, artifacts: Path) -> None:
     fill_form(d, {"scene": SCENE, "width": 320, "height": 240, "spp": LONG_SPP,
-                  "label": "to cancel"})
+                  "domains": 4, "label": "to cancel"})
     job = wait_for("the long job's row", lambda: d.execute_script(
         "const r = document.querySelector('#jobs tbody tr.selected');"
         "return r && r.querySelector('td small') && r.dataset.id"))
     wait_for("the long job to run", lambda: any(
         r["id"] == job and r["state"] == "RUNNING" for r in rows(d)))
+    if has_list_workers(c):
+        # While it runs: its 4 domains with their owners, and domains at the workers.
+        wait_for("its 4 domains in the ownership view", lambda: d.execute_script(
+            "return document.querySelectorAll(`#ownership [data-job='${arguments[0]}'] .domain`)"
+            ".length", job) == 4)
+        wait_for("domains listed at the workers", lambda: d.execute_script(
+            "return document.querySelectorAll('#workers tbody td.chips .chip').length") > 0)
+        d.save_screenshot(str(artifacts / "running-domains.png"))
     d.find_element(By.CSS_SELECTOR, f'button[data-cancel="{job}"]').click()
     wait_for("the page to show it CANCELLED", lambda: any(
         r["id"] == job and r["state"] == "CANCELLED" for r in rows(d)))

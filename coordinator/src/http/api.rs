@@ -11,14 +11,14 @@ use axum::response::{IntoResponse, Response};
 use dray_proto::v1::render_service_server::RenderService;
 use dray_proto::v1::{
     CancelJobRequest, GetImageRequest, GetJobRequest, ImageFormat, Job, ListJobsRequest,
-    SubmitJobRequest,
+    ListWorkersRequest, SubmitJobRequest,
 };
 use serde::{Deserialize, Serialize};
 use tonic::Request;
 
 use super::Dashboard;
 use super::auth::{Credential, Gate};
-use super::dto::{JobDetail, JobPage, SubmitForm, Submitted};
+use super::dto::{JobDetail, JobPage, SubmitForm, Submitted, Workers};
 use super::error::ApiError;
 
 /// `GET /api/session`: whether the token is required and this request has it, so the
@@ -163,7 +163,18 @@ pub async fn image(
     h.insert(header::CONTENT_TYPE, HeaderValue::from_static("image/png"));
     h.insert("x-dray-width", HeaderValue::from(r.width));
     h.insert("x-dray-height", HeaderValue::from(r.height));
+    // A running job's image has the samples of its passes complete so far.
+    h.insert("x-dray-samples", HeaderValue::from(r.samples));
+    h.insert(
+        "x-dray-final",
+        HeaderValue::from_static(if r.r#final { "true" } else { "false" }),
+    );
     Ok(resp)
+}
+
+/// `GET /api/workers`: ListWorkers, with the domain ownership of running jobs.
+pub async fn workers(State(d): State<Dashboard>) -> Result<Json<Workers>, ApiError> {
+    Ok(Json(d.workers().await?))
 }
 
 impl Dashboard {
@@ -178,5 +189,15 @@ impl Dashboard {
             .await?
             .into_inner();
         Ok(JobPage::from(&r))
+    }
+
+    /// The workers and the running jobs' domain owners through ListWorkers.
+    pub async fn workers(&self) -> Result<Workers, ApiError> {
+        let r = self
+            .coordinator
+            .list_workers(Request::new(ListWorkersRequest { omit_jobs: false }))
+            .await?
+            .into_inner();
+        Ok(Workers::from(&r))
     }
 }

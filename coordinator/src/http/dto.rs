@@ -4,7 +4,8 @@
 //! seconds; states drop their `JOB_STATE_` prefix (`"RUNNING"`).
 
 use dray_proto::v1::{
-    Job, JobProgress, JobSpec, JobState, JobStats, ListJobsResponse, WorkerJobStats,
+    Job, JobProgress, JobSpec, JobState, JobStats, ListJobsResponse, ListWorkersResponse,
+    WorkerJobStats, WorkerStatus,
 };
 use serde::{Deserialize, Serialize};
 
@@ -41,6 +42,10 @@ pub struct Progress {
     pub elapsed_s: Option<f64>,
     pub eta_s: Option<f64>,
     pub error: String,
+    /// Samples per pixel of the passes complete so far.
+    pub samples_done: u32,
+    pub passes_done: u32,
+    pub passes_total: u32,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub stats: Option<Stats>,
 }
@@ -176,6 +181,9 @@ impl From<&JobProgress> for Progress {
             elapsed_s: seconds(p.elapsed.as_ref()),
             eta_s: seconds(p.eta.as_ref()),
             error: p.error.clone(),
+            samples_done: p.samples_done,
+            passes_done: p.passes_done,
+            passes_total: p.passes_total,
             stats: p.stats.as_ref().map(Stats::from),
         }
     }
@@ -193,6 +201,9 @@ impl From<&Job> for JobSummary {
             elapsed_s: None,
             eta_s: None,
             error: String::new(),
+            samples_done: 0,
+            passes_done: 0,
+            passes_total: 0,
             stats: None,
         });
         progress.stats = None;
@@ -269,6 +280,115 @@ impl From<&WorkerJobStats> for WorkerShare {
             evictions: w.evictions,
             idle_seconds: w.idle_seconds,
             queue_peak: w.queue_peak,
+        }
+    }
+}
+
+/// The cluster as ListWorkers tells it: the workers, and who owns which domain of each
+/// running job.
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct Workers {
+    pub workers: Vec<WorkerRow>,
+    pub jobs: Vec<JobOwnership>,
+}
+
+/// One worker (WorkerStatus).
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct WorkerRow {
+    pub id: String,
+    pub address: String,
+    pub hostname: String,
+    pub state: String,
+    pub threads: u32,
+    pub memory_used_bytes: u64,
+    pub memory_budget_bytes: u64,
+    pub rays_queued: u64,
+    pub rays_per_second: f64,
+    pub jobs: Vec<String>,
+    pub domains: Vec<DomainAt>,
+    pub since_heartbeat_s: Option<f64>,
+}
+
+/// One domain of one job at one worker (WorkerDomain).
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct DomainAt {
+    pub job_id: String,
+    pub domain: u32,
+    pub resident: bool,
+    pub owned: bool,
+    pub rays_queued: u64,
+}
+
+/// Who owns each domain of one running job (JobDomains).
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct JobOwnership {
+    pub job_id: String,
+    pub schedule: String,
+    pub routing_version: u64,
+    pub attempt: u32,
+    pub domains: Vec<DomainOwner>,
+}
+
+/// One domain's owners and the rays waiting for it (DomainOwners).
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct DomainOwner {
+    pub domain: u32,
+    pub worker_ids: Vec<String>,
+    pub rays_queued: u64,
+}
+
+impl From<&ListWorkersResponse> for Workers {
+    fn from(r: &ListWorkersResponse) -> Workers {
+        Workers {
+            workers: r.workers.iter().map(WorkerRow::from).collect(),
+            jobs: r
+                .jobs
+                .iter()
+                .map(|j| JobOwnership {
+                    job_id: j.job_id.clone(),
+                    schedule: j.schedule.clone(),
+                    routing_version: j.routing_version,
+                    attempt: j.attempt,
+                    domains: j
+                        .domains
+                        .iter()
+                        .map(|d| DomainOwner {
+                            domain: d.domain,
+                            worker_ids: d.worker_ids.clone(),
+                            rays_queued: d.rays_queued,
+                        })
+                        .collect(),
+                })
+                .collect(),
+        }
+    }
+}
+
+impl From<&WorkerStatus> for WorkerRow {
+    fn from(w: &WorkerStatus) -> WorkerRow {
+        WorkerRow {
+            id: w.worker_id.clone(),
+            address: w.endpoint.clone(),
+            hostname: w.hostname.clone(),
+            state: w.state.clone(),
+            threads: w.threads,
+            memory_used_bytes: w.memory_used_bytes,
+            memory_budget_bytes: w.memory_budget_bytes,
+            rays_queued: w.rays_queued,
+            rays_per_second: w.rays_per_second,
+            jobs: w.jobs.clone(),
+            domains: w
+                .domains
+                .iter()
+                .map(|d| DomainAt {
+                    job_id: d.job_id.clone(),
+                    domain: d.domain,
+                    resident: d.resident,
+                    owned: d.owned,
+                    rays_queued: d.rays_queued,
+                })
+                .collect(),
+            since_heartbeat_s: seconds(w.since_heartbeat.as_ref()),
         }
     }
 }

@@ -1,7 +1,8 @@
 //! Live updates as server-sent events, at a bounded rate whatever the cluster does:
 //!
 //! - `GET /api/events?jobs=N&page_token=T&interval_ms=M`: a `snapshot` event (the
-//!   jobs page, ListJobs) at once and then at most every `interval_ms` (default 1000,
+//!   jobs page, ListJobs, and the workers with the running jobs' domain owners,
+//!   ListWorkers) at once and then at most every `interval_ms` (default 1000,
 //!   250..=10000), only when something changed. Rows carry no statistics, so 100 jobs
 //!   are a few tens of kilobytes.
 //! - `GET /api/jobs/{id}/events`: WatchJob's messages for one job (with its
@@ -25,7 +26,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::Request;
 
 use super::Dashboard;
-use super::dto::{JobPage, Progress};
+use super::dto::{JobPage, Progress, Workers};
 use super::error::ApiError;
 
 /// Event streams open at once, over every client.
@@ -56,6 +57,7 @@ pub struct SnapshotQuery {
 #[derive(Serialize, PartialEq)]
 pub struct Snapshot {
     pub jobs: JobPage,
+    pub workers: Workers,
 }
 
 type Events = Sse<KeepAliveStream<ReceiverStream<Result<Event, Infallible>>>>;
@@ -166,6 +168,7 @@ impl Dashboard {
     async fn snapshot(&self, jobs: u32, page_token: String) -> Result<Snapshot, ApiError> {
         Ok(Snapshot {
             jobs: self.job_page(jobs, page_token).await?,
+            workers: self.workers().await?,
         })
     }
 }

@@ -76,6 +76,7 @@ impl Dashboard {
             .route("/api/jobs/{id}/cancel", post(api::cancel))
             .route("/api/jobs/{id}/image.png", get(api::image))
             .route("/api/jobs/{id}/events", get(events::job_progress))
+            .route("/api/workers", get(api::workers))
             .route("/api/events", get(events::snapshots))
             .route_layer(middleware::from_fn_with_state(self.clone(), guard));
         Router::new()

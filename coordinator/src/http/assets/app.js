@@ -332,6 +332,7 @@ function renderProgress(p) {
   const rows = [
     ["state", p.state + (p.error ? ` (${p.error})` : "")],
     ["tiles", `${p.tiles_done} / ${p.tiles_total}`],
+    ["samples", p.passes_total ? `${p.samples_done} per pixel, pass ${p.passes_done} of ${p.passes_total}` : ""],
     ["elapsed", fmtSecs(p.elapsed_s)],
     ["ETA", TERMINAL.has(p.state) ? "" : fmtSecs(p.eta_s)],
     ["rays traced", fmtCount(p.rays_traced)],
@@ -420,7 +421,9 @@ async function fetchImage(id) {
   const samples = r.headers.get("x-dray-samples");
   if (samples != null) img.dataset.samples = samples;
   const w = r.headers.get("x-dray-width"), h = r.headers.get("x-dray-height");
-  caption.textContent = `${w}×${h}` + (samples != null ? `, ${samples} samples per pixel so far` : "");
+  const final = r.headers.get("x-dray-final") === "true";
+  caption.textContent = `${w}×${h}` + (samples != null
+    ? `, ${samples} samples per pixel${final ? "" : " so far"}` : "");
 }
 
 // ---- workers ----
@@ -434,22 +437,37 @@ function renderWorkers(workers) {
 }
 
 function renderWorkerTable(workers) {
-  const list = (workers && workers.workers) || [];
+  const list = workers.workers || [];
+  const colour = new Map(list.map((w, i) => [w.id, `o${i % 12}`]));
   $("workers-count").textContent = `${list.length} registered`;
   $("workers-empty").hidden = list.length > 0;
-  $("workers").tBodies[0].innerHTML = list.map((w) => `<tr data-worker="${esc(w.id)}">
-      <td>${esc(w.id)}</td><td>${esc(w.address)}</td><td>${esc(w.state)}</td>
-      <td><meter min="0" max="${w.memory_budget_bytes || 1}" value="${w.memory_used_bytes}"></meter>
-        ${fmtBytes(w.memory_used_bytes)}${w.memory_budget_bytes ? " / " + fmtBytes(w.memory_budget_bytes) : ""}</td>
+  $("workers").tBodies[0].innerHTML = list.map((w) => {
+    const resident = (w.domains || []).filter((d) => d.resident || d.owned);
+    const chips = resident.map((d) =>
+      `<span class="chip ${d.owned ? colour.get(w.id) : "onone"}" title="job ${esc(d.job_id)}, domain ${d.domain}: ${d.resident ? "resident" : "not loaded"}, ${d.owned ? "owned" : "not owned"}, ${d.rays_queued} rays queued">${d.domain}</span>`).join("");
+    const budget = w.memory_budget_bytes ? " / " + fmtBytes(w.memory_budget_bytes) : "";
+    return `<tr data-worker="${esc(w.id)}">
+      <td><span class="chip ${colour.get(w.id)}">&nbsp;</span> ${esc(w.id)}</td>
+      <td title="${esc(w.hostname)}">${esc(w.address)}</td><td>${esc(w.state)}</td>
+      <td><meter min="0" max="${w.memory_budget_bytes || w.memory_used_bytes || 1}" value="${w.memory_used_bytes}"></meter>
+        ${fmtBytes(w.memory_used_bytes)}${budget}</td>
       <td class="num">${fmtCount(w.rays_queued)}</td>
       <td class="num">${fmtCount(Math.round(w.rays_per_second || 0))}</td>
       <td>${esc((w.jobs || []).join(", "))}</td>
-      <td class="chips">${(w.domains || []).map((d) => `<span class="chip o${workerIndex(workers, w.id) % 12}">${esc(d)}</span>`).join("")}</td>
-    </tr>`).join("");
-}
-
-function workerIndex(workers, id) {
-  return Math.max(0, ((workers && workers.workers) || []).findIndex((w) => w.id === id));
+      <td class="chips">${chips}</td>
+    </tr>`;
+  }).join("");
+  // Each running job's domains: coloured by (first) owner, with the rays waiting.
+  $("ownership").innerHTML = (workers.jobs || []).map((j) => {
+    const cells = j.domains.map((d) => {
+      const owner = d.worker_ids.length ? colour.get(d.worker_ids[0]) || "onone" : "onone";
+      const owners = d.worker_ids.length ? d.worker_ids.join(", ") : "any worker";
+      return `<span class="domain ${owner}" title="domain ${d.domain}: ${esc(owners)}">${d.domain}<span class="waiting">${fmtCount(d.rays_queued)}</span></span>`;
+    }).join("");
+    return `<div class="ownership-job" data-job="${esc(j.job_id)}">
+      <div class="legend">${esc(j.job_id)}: ${esc(j.schedule)}, routing table v${j.routing_version}, attempt ${j.attempt}</div>
+      <div class="domains">${cells}</div></div>`;
+  }).join("") || '<p class="muted">No job running on workers.</p>';
 }
 
 boot().catch((e) => {
