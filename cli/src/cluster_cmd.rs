@@ -98,6 +98,10 @@ pub struct ClusterArgs {
     /// a link of this bandwidth and latency (`bandwidth=1gbit,latency=100us`).
     #[arg(long, value_name = "SPEC", value_parser = crate::net_flags::parse_link)]
     pub emulate_link: Option<dray_net::LinkEmulation>,
+    /// The coordinator's --http-listen: serve the web dashboard on this address (e.g.
+    /// 127.0.0.1:8080). Off unless given.
+    #[arg(long, value_name = "ADDR")]
+    pub http_listen: Option<SocketAddr>,
 }
 
 /// Longest wait before a worker is started again.
@@ -488,6 +492,15 @@ pub fn run(a: ClusterArgs) -> Result<()> {
     let worker_addrs: Vec<SocketAddr> = (1..=a.workers)
         .map(|i| SocketAddr::from((Ipv4Addr::LOCALHOST, port_of(i))))
         .collect();
+    if let Some(http) = a.http_listen
+        && http.port() != 0
+        && let Err(e) = TcpListener::bind(http)
+    {
+        if e.kind() == std::io::ErrorKind::AddrInUse {
+            bail!("--http-listen {http} is already in use; stop what holds it or choose another");
+        }
+        return Err(e).with_context(|| format!("--http-listen {http}"));
+    }
     if !ephemeral {
         check_port_free(a.base_port, "coordinator")?;
         for (i, w) in worker_addrs.iter().enumerate() {
@@ -557,6 +570,10 @@ pub fn run(a: ClusterArgs) -> Result<()> {
         if let Some(f) = &a.api_token.auth_token_file {
             args.push("--auth-token-file".into());
             args.push(f.display().to_string());
+        }
+        if let Some(http) = a.http_listen {
+            args.push("--http-listen".into());
+            args.push(http.to_string());
         }
         args.extend(shared_args.iter().cloned());
         cluster
@@ -656,6 +673,9 @@ pub fn run(a: ClusterArgs) -> Result<()> {
 
         for m in &cluster.members {
             println!("{:<12} http://{}  pid {}", m.name, m.addr, m.child.id());
+        }
+        if let Some(http) = a.http_listen.filter(|h| h.port() != 0) {
+            println!("{:<12} http://{http}  (open it in a browser)", "dashboard");
         }
         println!(
             "example: dray submit --coordinator {coordinator_addr} cornell --width 320 --height 240 --output cornell.png"

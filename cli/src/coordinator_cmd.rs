@@ -112,6 +112,13 @@ pub struct CoordinatorArgs {
     pub cache_hosts: bool,
     #[command(flatten)]
     pub otlp: crate::telemetry::OtlpArgs,
+    /// Serve the web dashboard on this address, e.g. 127.0.0.1:8080 (port 0 picks a free
+    /// port): jobs with their progress, statistics and image, the workers and their
+    /// domains, submit and cancel, through the same RenderService methods as gRPC. With
+    /// --auth-token-file it requires the API token. Plain HTTP: keep it on loopback or
+    /// behind a port-forward. Off unless given.
+    #[arg(long, value_name = "ADDR")]
+    pub http_listen: Option<String>,
 }
 
 fn default_heartbeat() -> HeartbeatConfig {
@@ -236,7 +243,7 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
         cluster_token.is_some(),
         a.member.tls.tls_cert.is_some(),
     );
-    let server = net_flags::server_options(api, cluster_token, &a.member)?;
+    let server = net_flags::server_options(api.clone(), cluster_token, &a.member)?;
     let heartbeat = options.heartbeat;
     let work_dir = options.work_dir.clone();
     let coordinator = dray_coordinator::Coordinator::new(&a.scene_root, a.threads)
@@ -269,6 +276,11 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
             .context("cannot read the bound address")?;
         // One line on stdout, so scripts and tests can find the port.
         println!("dray coordinator listening on {addr}");
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let dashboard = match &a.http_listen {
+            Some(http) => Some(start_dashboard(http, &coordinator, api, stop_rx).await?),
+            None => None,
+        };
         eprintln!(
             "dray coordinator: scene root {}, work dir {}, heartbeats every {} ms (lost after \
              {} ms); jobs run on the registered workers, or in this process while none is \
@@ -306,6 +318,7 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
             }
             // Cuts stop now, while the server winds down, not after.
             stopping.stop_preparations();
+            let _ = stop_tx.send(true);
             let _ = stopping_tx.send(());
         };
         let served = dray_coordinator::serve_with(&server, listener, coordinator, shutdown);
@@ -324,6 +337,9 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
                 Ok(())
             }
         };
+        if let Some(d) = dashboard {
+            d.abort();
+        }
         // No job's package outlives the coordinator: cuts in progress are stopped and
         // every job folder removed (a large preparation's partial package included).
         cleanup.remove_packages_on_stop(PACKAGE_GRACE).await;
@@ -336,6 +352,40 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
     // dropping the runtime would wait for: a stop signal must not wait minutes for it.
     rt.shutdown_timeout(BLOCKING_GRACE);
     result
+}
+
+/// Bind `--http-listen` and serve the dashboard there until `stop` turns true; says
+/// where on stdout (`dray coordinator dashboard on http://ADDR`).
+async fn start_dashboard(
+    http: &str,
+    coordinator: &dray_coordinator::Coordinator,
+    api: Option<dray_net::Token>,
+    mut stop: tokio::sync::watch::Receiver<bool>,
+) -> Result<tokio::task::JoinHandle<()>> {
+    let listener = tokio::net::TcpListener::bind(http)
+        .await
+        .with_context(|| format!("--http-listen: cannot listen on {http}"))?;
+    let addr = listener
+        .local_addr()
+        .context("cannot read the dashboard's bound address")?;
+    let dashboard = dray_coordinator::http::Dashboard::new(coordinator.clone(), api.clone())?;
+    println!("dray coordinator dashboard on http://{addr}");
+    eprintln!(
+        "dray coordinator: dashboard on http://{addr} ({})",
+        if api.is_some() {
+            "the API token is required"
+        } else {
+            "OPEN: no API token; answers requests to an IP address or localhost only"
+        }
+    );
+    let shutdown = async move {
+        let _ = stop.wait_for(|s| *s).await;
+    };
+    Ok(tokio::spawn(async move {
+        if let Err(e) = dray_coordinator::http::serve(listener, dashboard, shutdown).await {
+            eprintln!("dray coordinator: {e}");
+        }
+    }))
 }
 
 /// `--max-jobs`: 1..=[`MAX_COORDINATOR_JOBS`](dray_worker::setup_bounds::MAX_COORDINATOR_JOBS),

@@ -31,12 +31,15 @@
 //! - [`package_service`]: the tonic `PackageService`: running jobs' package files for
 //!   workers that do not share the coordinator's disk.
 //! - [`service`]: the tonic `RenderService` and [`serve`].
+//! - [`http`]: the web dashboard (`--http-listen`): a page and JSON endpoints over the
+//!   same RenderService methods, live updates by server-sent events.
 
 pub mod admission;
 pub mod caches;
 pub mod cluster;
 pub mod cpu_tally;
 pub mod dispatch;
+pub mod http;
 pub mod job;
 pub mod jobs;
 pub mod membership;

@@ -12,29 +12,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 
-req=tests/helm/requirements.txt
 venv=target/helm-venv
-stamp="$venv/.requirements.sha256"
-want=$(sha256sum "$req" | cut -d' ' -f1)
-if [ ! -x "$venv/bin/python" ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
-  if ! command -v python3 >/dev/null 2>&1; then
-    echo "tests/helm/check.sh: FAILED: python3 is required" >&2
-    exit 1
-  fi
-  echo "tests/helm/check.sh: installing $req into $venv"
-  mkdir -p target
-  python3 -m venv --clear "$venv"
-  log=$(mktemp)
-  if ! "$venv/bin/python" -m pip install --quiet --disable-pip-version-check \
-      --no-input -r "$req" >"$log" 2>&1; then
-    cat "$log" >&2
-    rm -f "$log"
-    echo "tests/helm/check.sh: FAILED: pip could not install $req (is the package index reachable?)" >&2
-    exit 1
-  fi
-  rm -f "$log"
-  echo "$want" >"$stamp"
-fi
+tests/venv.sh tests/helm/requirements.txt "$venv" tests/helm/check.sh
 
 exec "$venv/bin/python" tests/helm/check_chart.py \
   --kubernetes-validate "$venv/bin/kubernetes-validate" "$@"

@@ -156,8 +156,10 @@ def semantics(label: str, objs: list[dict], v: dict, notes: str, namespace: str,
         check(selects(csvc["spec"]["selector"], pod_labels(coord))
               and not selects(csvc["spec"]["selector"], pod_labels(workers)),
               f"{label}: the coordinator Service does not select exactly the coordinator")
-        check([p["port"] for p in csvc["spec"]["ports"]] == [cport],
-              f"{label}: coordinator Service ports {csvc['spec']['ports']}")
+        dash = v["coordinator"]["dashboard"]
+        want_ports = [cport] + ([dash["port"]] if dash["enabled"] else [])
+        check([p["port"] for p in csvc["spec"]["ports"]] == want_ports,
+              f"{label}: coordinator Service ports {csvc['spec']['ports']} (want {want_ports})")
         check(csvc["spec"]["type"] == v["coordinator"]["service"]["type"], f"{label}: type")
 
     # The headless Service the StatefulSet names, publishing not-ready pods.
@@ -303,10 +305,29 @@ def semantics(label: str, objs: list[dict], v: dict, notes: str, namespace: str,
                  "dray.v1.RenderService/WatchJob", "dray.v1.RenderService/GetImage",
                  "grpc.health.v1.Health/Check"):
         check(want in notes, f"{label}: NOTES.txt lacks {want!r}")
+    dashboard(label, cc, cf, v, notes, namespace, coord["metadata"]["name"])
     mode = v.get("workDir", {}).get("mode", "fetch")
     check(f"(workDir.mode {mode}" in notes,
           f"{label}: NOTES.txt does not say how workers get packages (workDir.mode {mode})")
     auth_and_otlp(label, coord, workers, v, notes, dray)
+
+
+def dashboard(label: str, cc: dict, cf: dict, v: dict, notes: str, namespace: str,
+              coord_name: str) -> None:
+    """coordinator.dashboard: off, no trace of it; on, --http-listen on its port, a
+    container port named http (the Service's targetPort) and a port-forward in NOTES."""
+    dash = v["coordinator"]["dashboard"]
+    ports = {p["name"]: p["containerPort"] for p in cc.get("ports", [])}
+    forward = (f"kubectl --namespace {namespace} port-forward service/{coord_name} "
+               f"{dash['port']}:{dash['port']}")
+    if dash["enabled"]:
+        check(cf.get("--http-listen") == f"0.0.0.0:{dash['port']}",
+              f"{label}: coordinator --http-listen {cf.get('--http-listen')}")
+        check(ports.get("http") == dash["port"], f"{label}: container ports {ports}")
+        check(forward in notes, f"{label}: NOTES.txt lacks {forward!r}")
+    else:
+        check("--http-listen" not in cf and "http" not in ports and "dashboard" not in notes,
+              f"{label}: the dashboard is off but appears: {cf} {ports}")
 
 
 def container_env(c: dict) -> dict[str, str | None]:
@@ -438,6 +459,9 @@ def main() -> int:
                             "clusterTokenKey": "members"},
                    "otlp": {"endpoint": "http://otel-collector.observability.svc:4317"}},
                   "dray", "dray"))
+    cases.append(("the web dashboard on its own port, with auth",
+                  {"coordinator": {"dashboard": {"enabled": True, "port": 8088}},
+                   "auth": {"existingSecret": "dray-auth"}}, "dray", "dray"))
     for i, (label, values, name, ns) in enumerate(cases):
         print(f"== {label} (release {name}, namespace {ns})")
         lint(label, values, kube)
@@ -473,13 +497,18 @@ def main() -> int:
     refused("auth.apiTokenKey empty", {"auth": {"existingSecret": "s", "apiTokenKey": ""}},
             "apiTokenKey")
 
+    refused("coordinator.dashboard.port equal to coordinator.port",
+            {"coordinator": {"dashboard": {"enabled": True, "port": 50051}}}, "dashboard.port")
+    refused("coordinator.dashboard.port=0",
+            {"coordinator": {"dashboard": {"enabled": True, "port": 0}}}, "port")
+
     if failures:
         print(f"\nchart test FAILED: {len(failures)} problem(s):")
         for f in failures:
             print(f"  - {f}")
         return 1
     print(f"\nchart test passed: {len(cases)} value sets linted (strict), rendered and "
-          f"validated (kubernetes-validate --strict -k {kube}); 12 bad value sets refused")
+          f"validated (kubernetes-validate --strict -k {kube}); 14 bad value sets refused")
     return 0
 
 

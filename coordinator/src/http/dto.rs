@@ -1,0 +1,394 @@
+//! The JSON the dashboard's endpoints speak: small serde types made from (and, for a
+//! submission, into) the RenderService's protobuf messages, which have no serde of
+//! their own. Field names are snake_case; durations are seconds; times are Unix
+//! seconds; states drop their `JOB_STATE_` prefix (`"RUNNING"`).
+
+use dray_proto::v1::{
+    Job, JobProgress, JobSpec, JobState, JobStats, ListJobsResponse, ListWorkersResponse,
+    WorkerJobStats, WorkerStatus,
+};
+use serde::{Deserialize, Serialize};
+
+/// One job as a row of the jobs table: what it renders and how far it is. No
+/// statistics: 100 of these go out every second to every open dashboard.
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct JobSummary {
+    pub id: String,
+    pub label: String,
+    pub scene: String,
+    pub width: u32,
+    pub height: u32,
+    pub spp: u32,
+    pub integrator: String,
+    pub schedule: String,
+    pub domains: u32,
+    #[serde(flatten)]
+    pub progress: Progress,
+    /// When SubmitJob accepted it.
+    pub submitted_at: Option<i64>,
+    /// When it reached a terminal state.
+    pub finished_at: Option<i64>,
+}
+
+/// A job's progress (WatchJob's JobProgress), with its statistics when the message
+/// has them.
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct Progress {
+    pub state: &'static str,
+    pub tiles_done: u32,
+    pub tiles_total: u32,
+    pub rays_traced: u64,
+    pub rays_in_flight: u64,
+    pub elapsed_s: Option<f64>,
+    pub eta_s: Option<f64>,
+    pub error: String,
+    /// Samples per pixel of the passes complete so far.
+    pub samples_done: u32,
+    pub passes_done: u32,
+    pub passes_total: u32,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stats: Option<Stats>,
+}
+
+/// A page of jobs, newest first.
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct JobPage {
+    pub jobs: Vec<JobSummary>,
+    /// The token of the next page; empty on the last.
+    pub next_page_token: String,
+}
+
+/// One job with its statistics (GetJob).
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct JobDetail {
+    #[serde(flatten)]
+    pub job: JobSummary,
+    pub stats: Option<Stats>,
+}
+
+/// A job's statistics (JobStats), the fields a person reads.
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct Stats {
+    pub triangles: u64,
+    pub domains: u32,
+    pub workers: u32,
+    pub effects: Vec<String>,
+    /// Rays traced by kind: camera, shadow, reflection, refraction, diffuse,
+    /// ambient_occlusion.
+    pub rays: [u64; 6],
+    pub nonfinite: u64,
+    pub domain_loads: u64,
+    pub domain_load_seconds: f64,
+    pub domains_warm: u64,
+    pub evictions: u64,
+    pub tiles_retried: u32,
+    pub rays_exchanged: u64,
+    pub rays_forwarded: u64,
+    pub queue_peak: u64,
+    pub scheduler_rounds: u32,
+    pub routing_version: u64,
+    pub schedule: String,
+    pub traffic_bytes: u64,
+    pub cpu_seconds: f64,
+    pub workers_detail: Vec<WorkerShare>,
+}
+
+/// One worker's share of a job (WorkerJobStats).
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct WorkerShare {
+    pub worker_id: String,
+    pub rays_traced: u64,
+    pub domain_loads: u64,
+    pub domain_load_seconds: f64,
+    pub domains_warm: u64,
+    pub evictions: u64,
+    pub idle_seconds: f64,
+    pub queue_peak: u64,
+}
+
+/// The submit form: the main knobs of a JobSpec. What is left out takes the same
+/// defaults as over gRPC; every check is SubmitJob's.
+#[derive(Deserialize, Debug, Default)]
+#[serde(deny_unknown_fields)]
+pub struct SubmitForm {
+    pub scene: String,
+    pub width: u32,
+    pub height: u32,
+    pub spp: u32,
+    #[serde(default)]
+    pub integrator: String,
+    pub max_depth: Option<u32>,
+    #[serde(default)]
+    pub seed: u64,
+    #[serde(default)]
+    pub domains: u32,
+    #[serde(default)]
+    pub schedule: String,
+    #[serde(default)]
+    pub layout: String,
+    #[serde(default)]
+    pub label: String,
+    #[serde(default)]
+    pub replicate: bool,
+}
+
+/// SubmitJob's answer.
+#[derive(Serialize, Debug)]
+pub struct Submitted {
+    pub id: String,
+}
+
+impl From<SubmitForm> for JobSpec {
+    fn from(f: SubmitForm) -> JobSpec {
+        JobSpec {
+            scene: f.scene,
+            width: f.width,
+            height: f.height,
+            spp: f.spp,
+            integrator: f.integrator,
+            max_depth: f.max_depth,
+            seed: f.seed,
+            domains: f.domains,
+            schedule: f.schedule,
+            layout: f.layout,
+            label: f.label,
+            replicate: f.replicate,
+            ..JobSpec::default()
+        }
+    }
+}
+
+/// `"RUNNING"` for `JOB_STATE_RUNNING`.
+pub fn state_name(state: i32) -> &'static str {
+    let name = JobState::try_from(state)
+        .unwrap_or(JobState::Unspecified)
+        .as_str_name();
+    name.strip_prefix("JOB_STATE_").unwrap_or(name)
+}
+
+fn seconds(d: Option<&prost_types::Duration>) -> Option<f64> {
+    d.map(|d| d.seconds as f64 + f64::from(d.nanos) * 1e-9)
+}
+
+impl From<&JobProgress> for Progress {
+    fn from(p: &JobProgress) -> Progress {
+        Progress {
+            state: state_name(p.state),
+            tiles_done: p.tiles_done,
+            tiles_total: p.tiles_total,
+            rays_traced: p.rays_traced,
+            rays_in_flight: p.rays_in_flight,
+            elapsed_s: seconds(p.elapsed.as_ref()),
+            eta_s: seconds(p.eta.as_ref()),
+            error: p.error.clone(),
+            samples_done: p.samples_done,
+            passes_done: p.passes_done,
+            passes_total: p.passes_total,
+            stats: p.stats.as_ref().map(Stats::from),
+        }
+    }
+}
+
+impl From<&Job> for JobSummary {
+    fn from(j: &Job) -> JobSummary {
+        let spec = j.spec.clone().unwrap_or_default();
+        let mut progress = j.progress.as_ref().map(Progress::from).unwrap_or(Progress {
+            state: state_name(0),
+            tiles_done: 0,
+            tiles_total: 0,
+            rays_traced: 0,
+            rays_in_flight: 0,
+            elapsed_s: None,
+            eta_s: None,
+            error: String::new(),
+            samples_done: 0,
+            passes_done: 0,
+            passes_total: 0,
+            stats: None,
+        });
+        progress.stats = None;
+        JobSummary {
+            id: j.job_id.clone(),
+            label: spec.label,
+            scene: spec.scene,
+            width: spec.width,
+            height: spec.height,
+            spp: spec.spp,
+            integrator: spec.integrator,
+            schedule: spec.schedule,
+            domains: spec.domains,
+            progress,
+            submitted_at: j.submitted_at.as_ref().map(|t| t.seconds),
+            finished_at: j.finished_at.as_ref().map(|t| t.seconds),
+        }
+    }
+}
+
+impl From<&Job> for JobDetail {
+    fn from(j: &Job) -> JobDetail {
+        JobDetail {
+            job: JobSummary::from(j),
+            stats: j.stats.as_ref().map(Stats::from),
+        }
+    }
+}
+
+impl From<&ListJobsResponse> for JobPage {
+    fn from(r: &ListJobsResponse) -> JobPage {
+        JobPage {
+            jobs: r.jobs.iter().map(JobSummary::from).collect(),
+            next_page_token: r.next_page_token.clone(),
+        }
+    }
+}
+
+impl From<&JobStats> for Stats {
+    fn from(s: &JobStats) -> Stats {
+        Stats {
+            triangles: s.triangles,
+            domains: s.domains,
+            workers: s.workers,
+            effects: s.effects.clone(),
+            rays: s.rays.as_ref().map(|r| r.by_kind()).unwrap_or_default(),
+            nonfinite: s.nonfinite,
+            domain_loads: s.domain_loads,
+            domain_load_seconds: s.domain_load_seconds,
+            domains_warm: s.domains_warm,
+            evictions: s.evictions,
+            tiles_retried: s.tiles_retried,
+            rays_exchanged: s.rays_exchanged,
+            rays_forwarded: s.rays_forwarded,
+            queue_peak: s.queue_peak,
+            scheduler_rounds: s.scheduler_rounds,
+            routing_version: s.routing_version,
+            schedule: s.schedule.clone(),
+            traffic_bytes: s.traffic.as_ref().map_or(0, |t| t.total),
+            cpu_seconds: s.cpu_seconds,
+            workers_detail: s.workers_detail.iter().map(WorkerShare::from).collect(),
+        }
+    }
+}
+
+impl From<&WorkerJobStats> for WorkerShare {
+    fn from(w: &WorkerJobStats) -> WorkerShare {
+        WorkerShare {
+            worker_id: w.worker_id.clone(),
+            rays_traced: w.rays_traced,
+            domain_loads: w.domain_loads,
+            domain_load_seconds: w.domain_load_seconds,
+            domains_warm: w.domains_warm,
+            evictions: w.evictions,
+            idle_seconds: w.idle_seconds,
+            queue_peak: w.queue_peak,
+        }
+    }
+}
+
+/// The cluster as ListWorkers tells it: the workers, and who owns which domain of each
+/// running job.
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct Workers {
+    pub workers: Vec<WorkerRow>,
+    pub jobs: Vec<JobOwnership>,
+}
+
+/// One worker (WorkerStatus).
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct WorkerRow {
+    pub id: String,
+    pub address: String,
+    pub hostname: String,
+    pub state: String,
+    pub threads: u32,
+    pub memory_used_bytes: u64,
+    pub memory_budget_bytes: u64,
+    pub rays_queued: u64,
+    pub rays_per_second: f64,
+    pub jobs: Vec<String>,
+    pub domains: Vec<DomainAt>,
+    pub since_heartbeat_s: Option<f64>,
+}
+
+/// One domain of one job at one worker (WorkerDomain).
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct DomainAt {
+    pub job_id: String,
+    pub domain: u32,
+    pub resident: bool,
+    pub owned: bool,
+    pub rays_queued: u64,
+}
+
+/// Who owns each domain of one running job (JobDomains).
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct JobOwnership {
+    pub job_id: String,
+    pub schedule: String,
+    pub routing_version: u64,
+    pub attempt: u32,
+    pub domains: Vec<DomainOwner>,
+}
+
+/// One domain's owners and the rays waiting for it (DomainOwners).
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct DomainOwner {
+    pub domain: u32,
+    pub worker_ids: Vec<String>,
+    pub rays_queued: u64,
+}
+
+impl From<&ListWorkersResponse> for Workers {
+    fn from(r: &ListWorkersResponse) -> Workers {
+        Workers {
+            workers: r.workers.iter().map(WorkerRow::from).collect(),
+            jobs: r
+                .jobs
+                .iter()
+                .map(|j| JobOwnership {
+                    job_id: j.job_id.clone(),
+                    schedule: j.schedule.clone(),
+                    routing_version: j.routing_version,
+                    attempt: j.attempt,
+                    domains: j
+                        .domains
+                        .iter()
+                        .map(|d| DomainOwner {
+                            domain: d.domain,
+                            worker_ids: d.worker_ids.clone(),
+                            rays_queued: d.rays_queued,
+                        })
+                        .collect(),
+                })
+                .collect(),
+        }
+    }
+}
+
+impl From<&WorkerStatus> for WorkerRow {
+    fn from(w: &WorkerStatus) -> WorkerRow {
+        WorkerRow {
+            id: w.worker_id.clone(),
+            address: w.endpoint.clone(),
+            hostname: w.hostname.clone(),
+            state: w.state.clone(),
+            threads: w.threads,
+            memory_used_bytes: w.memory_used_bytes,
+            memory_budget_bytes: w.memory_budget_bytes,
+            rays_queued: w.rays_queued,
+            rays_per_second: w.rays_per_second,
+            jobs: w.jobs.clone(),
+            domains: w
+                .domains
+                .iter()
+                .map(|d| DomainAt {
+                    job_id: d.job_id.clone(),
+                    domain: d.domain,
+                    resident: d.resident,
+                    owned: d.owned,
+                    rays_queued: d.rays_queued,
+                })
+                .collect(),
+            since_heartbeat_s: seconds(w.since_heartbeat.as_ref()),
+        }
+    }
+}

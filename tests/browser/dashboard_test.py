@@ -1,0 +1,364 @@
+#!/usr/bin/env python3
+"""The web dashboard in a real browser (run by tests/browser/run.sh).
+
+Headless Chromium, driven over WebDriver by Selenium, against a real
+`dray cluster --workers 2 --http-listen 127.0.0.1:PORT`:
+  1. the page loads and its live updates connect;
+  2. a job submitted from the page's form appears in the jobs table;
+  3. its image is shown, and the last frame has the pixels of `dray render`'s PNG for
+     the same spec (decoded and compared); frames shown while it runs (when the
+     coordinator serves progressive images) change as samples are added;
+  4. cancelling a running job from the page cancels it (checked through gRPC with
+     grpcurl: GetJob says CANCELLED);
+  5. the workers are listed with their domains;
+  6. 100 jobs are listed at once, and older ones are a page away;
+  7. with --auth-token-file, the page shows its login, the API refuses requests without
+     the token (401) and state-changing requests without the CSRF header (403), a wrong
+     token is refused, and the right one opens the dashboard with an HttpOnly cookie.
+No assertion is on time: each step waits for what it needs with a generous bound.
+Screenshots go to --artifacts (dashboard.png is the README's).
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import hashlib
+import io
+import json
+import subprocess
+import sys
+import tempfile
+import time
+import traceback
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+from PIL import Image
+from selenium import webdriver
+from selenium.webdriver.chrome.service import Service
+from selenium.webdriver.common.by import By
+
+from cluster import Cluster, wait_for
+
+# The job the page submits and `dray render` renders: the form's defaults for the rest
+# (integrator path, max depth 5, seed 0; domains and schedule do not change the bits).
+SCENE, WIDTH, HEIGHT, SPP = "cornell", 160, 120, 256
+# A job that runs long enough to be cancelled while RUNNING.
+LONG_SPP = 65536
+
+passed: list[str] = []
+skipped: list[str] = []
+SKIPPED = "skipped"
+
+
+def step(name: str):
+    """A check; one that returns SKIPPED could not run against this coordinator."""
+    def wrap(f):
+        def run(*a, **kw):
+            t = time.monotonic()
+            if f(*a, **kw) == SKIPPED:
+                skipped.append(name)
+                print(f"skip - {name}", flush=True)
+                return
+            passed.append(name)
+            print(f"ok - {name} ({time.monotonic() - t:.1f} s)", flush=True)
+        return run
+    return wrap
+
+
+def browser(artifacts: Path) -> webdriver.Chrome:
+    o = webdriver.ChromeOptions()
+    o.binary_location = "/usr/bin/chromium"
+    for a in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+              "--window-size=1280,1000", "--hide-scrollbars"):
+        o.add_argument(a)
+    d = webdriver.Chrome(service=Service("/usr/bin/chromedriver",
+                                         log_output=str(artifacts / "chromedriver.log")),
+                         options=o)
+    d.set_script_timeout(120)
+    return d
+
+
+def shown(d, element_id: str) -> bool:
+    return d.find_element(By.ID, element_id).is_displayed()
+
+
+def rows(d) -> list[dict]:
+    return d.execute_script(
+        "return [...document.querySelectorAll('#jobs tbody tr')]"
+        ".map(r => ({id: r.dataset.id, state: r.dataset.state}))")
+
+
+def fill_form(d, values: dict) -> None:
+    form = d.find_element(By.ID, "submit-form")
+    for name, value in values.items():
+        el = form.find_element(By.NAME, name)
+        if el.tag_name == "select":
+            d.execute_script("arguments[0].value = arguments[1]", el, str(value))
+        else:
+            el.clear()
+            el.send_keys(str(value))
+    d.find_element(By.ID, "submit-button").click()
+
+
+def displayed_png(d) -> bytes:
+    """The bytes of the image the page shows (its blob, fetched inside the page)."""
+    b64 = d.execute_async_script("""
+        const done = arguments[arguments.length - 1];
+        fetch(document.getElementById('preview').src)
+          .then(r => r.arrayBuffer())
+          .then(b => { const u = new Uint8Array(b); let s = '';
+                       for (let i = 0; i < u.length; i += 0x8000)
+                         s += String.fromCharCode.apply(null, u.subarray(i, i + 0x8000));
+                       done(btoa(s)); })
+          .catch(e => done('ERROR ' + e));""")
+    if b64.startswith("ERROR"):
+        raise AssertionError(f"cannot read the displayed image: {b64}")
+    return base64.b64decode(b64)
+
+
+def pixels(png: bytes) -> tuple[tuple[int, int], bytes]:
+    im = Image.open(io.BytesIO(png)).convert("RGB")
+    return im.size, im.tobytes()
+
+
+def http(url: str, method: str = "GET", headers: dict | None = None,
+         body: bytes | None = None) -> tuple[int, dict]:
+    req = urllib.request.Request(url, method=method, headers=headers or {}, data=body)
+    try:
+        with urllib.request.urlopen(req, timeout=60) as r:
+            return r.status, json.loads(r.read() or b"{}")
+    except urllib.error.HTTPError as e:
+        return e.code, json.loads(e.read() or b"{}")
+
+
+@step("the page loads and its live updates connect")
+def page_loads(d, c: Cluster, artifacts: Path) -> None:
+    d.get(c.url + "/")
+    wait_for("the app to show", lambda: shown(d, "app"))
+    wait_for("live updates", lambda: d.find_element(By.ID, "live").text == "live")
+    assert d.title == "dray", d.title
+    d.save_screenshot(str(artifacts / "loaded.png"))
+
+
+@step("a job submitted from the page appears, and its image is dray render's")
+def submit_and_image(d, c: Cluster, artifacts: Path, dray: str, tmp: Path) -> None:
+    fill_form(d, {"scene": SCENE, "width": WIDTH, "height": HEIGHT, "spp": SPP,
+                  "label": "browser test"})
+    job = wait_for("the submitted job's row", lambda: d.execute_script(
+        "const r = document.querySelector('#jobs tbody tr.selected'); return r && r.dataset.id"))
+    assert any(r["id"] == job for r in rows(d)), rows(d)
+    # Frames while it runs, when the coordinator has progressive images (each frame
+    # carries its samples per pixel); then the last one.
+    frames: dict[str, str] = {}
+
+    def finished() -> bool:
+        img = d.find_element(By.ID, "preview")
+        samples = img.get_attribute("data-samples")
+        version = img.get_attribute("data-version")
+        if samples is not None and version != "0" and samples not in frames:
+            frames[samples] = hashlib.sha256(displayed_png(d)).hexdigest()
+        state = next((r["state"] for r in rows(d) if r["id"] == job), None)
+        return state == "SUCCEEDED" and version != "0" and (
+            samples is None or samples == str(SPP))
+
+    wait_for(f"job {job} to succeed with its image shown", finished, every=0.1)
+    d.save_screenshot(str(artifacts / "job-succeeded.png"))
+    if frames:
+        print(f"   frames seen at samples per pixel {sorted(frames, key=int)}")
+        assert len(set(frames.values())) == len(frames), f"a new pass left the image as it was: {frames}"
+        assert len(frames) >= 2, f"only one frame seen while the job ran: {frames}"
+    else:
+        print("   NOTE: this coordinator serves no progressive images (no x-dray-samples): "
+              "only the finished image was checked")
+    shown_png = displayed_png(d)
+    ref = tmp / "render.png"
+    subprocess.run([dray, "render", SCENE, "--width", str(WIDTH), "--height", str(HEIGHT),
+                    "--spp", str(SPP), "--output", str(ref), "-q"], check=True, timeout=600)
+    (size_a, a), (size_b, b) = pixels(shown_png), pixels(ref.read_bytes())
+    assert size_a == size_b, f"the page shows {size_a}, dray render made {size_b}"
+    differing = sum(1 for i in range(0, len(a), 3) if a[i:i + 3] != b[i:i + 3])
+    assert differing == 0, f"{differing} pixels differ from dray render's PNG"
+
+
+@step("cancelling a running job from the page cancels it (GetJob over gRPC)")
+def cancel_from_page(d, c: Cluster, artifacts: Path) -> None:
+    fill_form(d, {"scene": SCENE, "width": 320, "height": 240, "spp": LONG_SPP,
+                  "domains": 4, "label": "to cancel"})
+    job = wait_for("the long job's row", lambda: d.execute_script(
+        "const r = document.querySelector('#jobs tbody tr.selected');"
+        "return r && r.querySelector('td small') && r.dataset.id"))
+    wait_for("the long job to run", lambda: any(
+        r["id"] == job and r["state"] == "RUNNING" for r in rows(d)))
+    if has_list_workers(c):
+        # While it runs: its 4 domains with their owners, and domains at the workers.
+        wait_for("its 4 domains in the ownership view", lambda: d.execute_script(
+            "return document.querySelectorAll(`#ownership [data-job='${arguments[0]}'] .domain`)"
+            ".length", job) == 4)
+        wait_for("domains listed at the workers", lambda: d.execute_script(
+            "return document.querySelectorAll('#workers tbody td.chips .chip').length") > 0)
+        d.save_screenshot(str(artifacts / "running-domains.png"))
+    d.find_element(By.CSS_SELECTOR, f'button[data-cancel="{job}"]').click()
+    wait_for("the page to show it CANCELLED", lambda: any(
+        r["id"] == job and r["state"] == "CANCELLED" for r in rows(d)))
+    got = c.grpcurl(GRPCURL, "GetJob", {"jobId": job})
+    state = got["job"]["progress"]["state"]
+    assert state == "JOB_STATE_CANCELLED", got
+    d.save_screenshot(str(artifacts / "cancelled.png"))
+
+
+def has_list_workers(c: Cluster) -> bool:
+    r = subprocess.run([GRPCURL, "-plaintext", c.grpc, "describe", "dray.v1.RenderService"],
+                       capture_output=True, text=True, timeout=120)
+    return "ListWorkers" in r.stdout
+
+
+@step("the workers are listed with their domains")
+def workers_listed(d, c: Cluster, artifacts: Path) -> None:
+    if not has_list_workers(c):
+        print("   NOTE: this coordinator has no ListWorkers rpc yet: the workers panel was "
+              "NOT checked")
+        return SKIPPED
+    wait_for("two workers in the table", lambda: d.execute_script(
+        "return document.querySelectorAll('#workers tbody tr').length") == 2)
+    ids = d.execute_script(
+        "return [...document.querySelectorAll('#workers tbody tr')].map(r => r.dataset.worker)")
+    got = c.grpcurl(GRPCURL, "ListWorkers", {})
+    want = sorted(w.get("workerId", w.get("id", "")) for w in got.get("workers", []))
+    assert sorted(ids) == want, f"the page lists {ids}, ListWorkers {want}"
+
+
+@step("100 jobs listed at once, older ones a page away")
+def many_jobs(d, c: Cluster, artifacts: Path) -> None:
+    # Tiny jobs through the dashboard's API (the same SubmitJob), one after another so
+    # that no more than --max-jobs are ever active.
+    for i in range(101):
+        body = json.dumps({"scene": "cornell", "width": 8, "height": 8, "spp": 1,
+                           "label": f"many {i}"}).encode()
+        status, got = http(c.url + "/api/jobs", "POST",
+                           {"Content-Type": "application/json", "X-Dray-Csrf": "1"}, body)
+        assert status == 200, (status, got)
+    wait_for("100 rows and an older page", lambda: len(rows(d)) == 100 and d.execute_script(
+        "return !!document.querySelector('#jobs-pager button')"))
+    d.find_element(By.CSS_SELECTOR, "#jobs-pager button").click()
+    wait_for("the older page", lambda: 0 < len(rows(d)) < 100)
+    d.find_element(By.CSS_SELECTOR, '#jobs-pager button[data-page="newest"]').click()
+    wait_for("the newest page again", lambda: len(rows(d)) == 100)
+
+
+def readme_screenshot(d, artifacts: Path) -> None:
+    """dashboard.png: the finished job selected, workers listed (the README's picture)."""
+    job = d.execute_script(
+        "return [...document.querySelectorAll('#jobs tbody tr')]"
+        ".find(r => r.dataset.state === 'SUCCEEDED').dataset.id")
+    d.find_element(By.CSS_SELECTOR, f'#jobs tbody tr[data-id="{job}"]').click()
+    wait_for("its image", lambda: d.find_element(By.ID, "preview").get_attribute("data-version") != "0")
+    # The whole page, not just the window.
+    height = d.execute_script("return document.documentElement.scrollHeight")
+    d.set_window_size(1280, height + 140)
+    d.save_screenshot(str(artifacts / "dashboard.png"))
+    d.set_window_size(1280, 1000)
+
+
+@step("with a token: login shown, API refused without it, CSRF refused, login works")
+def token_required(d, c: Cluster, artifacts: Path) -> None:
+    token = c.token_file.read_text().strip()
+    d.delete_all_cookies()
+    d.get(c.url + "/")
+    wait_for("the login form", lambda: shown(d, "login"))
+    assert not shown(d, "app")
+    d.save_screenshot(str(artifacts / "login.png"))
+    status, body = http(c.url + "/api/jobs")
+    assert status == 401 and body.get("code") == "UNAUTHENTICATED", (status, body)
+    status, _ = http(c.url + "/api/jobs", headers={"Authorization": f"Bearer {token}x"})
+    assert status == 401, status
+    status, body = http(c.url + "/api/jobs", headers={"Authorization": f"Bearer {token}"})
+    assert status == 200 and "jobs" in body, (status, body)
+    in_page = "return fetch('/api/jobs').then(r => r.status)"
+    assert d.execute_script(in_page) == 401
+    # A wrong token is refused on the page.
+    d.find_element(By.ID, "token").send_keys("not-the-api-token-at-all")
+    d.find_element(By.CSS_SELECTOR, "#login-form button").click()
+    wait_for("the refusal", lambda: d.find_element(By.ID, "login-error").text != "")
+    assert not shown(d, "app")
+    # The right one opens the dashboard; its cookie is out of the page's reach.
+    d.find_element(By.ID, "token").clear()
+    d.find_element(By.ID, "token").send_keys(token)
+    d.find_element(By.CSS_SELECTOR, "#login-form button").click()
+    wait_for("the app after logging in", lambda: shown(d, "app"))
+    wait_for("live updates", lambda: d.find_element(By.ID, "live").text == "live")
+    assert "dray_session" not in d.execute_script("return document.cookie")
+    assert d.execute_script(in_page) == 200
+    # With the cookie, a state-changing request without the CSRF header is refused.
+    csrf = d.execute_script("""
+        return fetch('/api/jobs', {method: 'POST', headers: {'Content-Type': 'application/json'},
+          body: JSON.stringify({scene: 'cornell', width: 8, height: 8, spp: 1})}).then(r => r.status)""")
+    assert csrf == 403, csrf
+    jobs = c.grpcurl(GRPCURL, "ListJobs", {})
+    assert not jobs.get("jobs"), f"a refused request made a job: {jobs}"
+
+
+GRPCURL = "grpcurl"
+
+
+def main() -> int:
+    global GRPCURL
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--dray", required=True)
+    ap.add_argument("--grpcurl", required=True)
+    ap.add_argument("--artifacts", required=True)
+    a = ap.parse_args()
+    GRPCURL = a.grpcurl
+    artifacts = Path(a.artifacts).resolve()
+    artifacts.mkdir(parents=True, exist_ok=True)
+    for old in [*artifacts.glob("*.png"), *artifacts.glob("*.log")]:
+        old.unlink()
+    dray = str(Path(a.dray).resolve())
+    failed: list[str] = []
+    started = time.monotonic()
+    with tempfile.TemporaryDirectory(prefix="dray-browser-") as tmp_name:
+        tmp = Path(tmp_name)
+        d = browser(artifacts)
+        clusters: list[Cluster] = []
+        try:
+            def guarded(name: str, f, *args) -> None:
+                try:
+                    f(*args)
+                except Exception:  # noqa: BLE001 - every step reports, the run goes on
+                    failed.append(name)
+                    print(f"FAIL - {name}\n{traceback.format_exc()}", flush=True)
+                    d.save_screenshot(str(artifacts / f"failed-{len(failed)}.png"))
+
+            c = Cluster(dray, artifacts / "cluster.log")
+            clusters.append(c)
+            print(f"cluster up: gRPC {c.grpc}, dashboard {c.url}", flush=True)
+            guarded("page loads", page_loads, d, c, artifacts)
+            guarded("submit and image", submit_and_image, d, c, artifacts, dray, tmp)
+            guarded("workers listed", workers_listed, d, c, artifacts)
+            guarded("cancel", cancel_from_page, d, c, artifacts)
+            guarded("README screenshot", readme_screenshot, d, artifacts)
+            guarded("many jobs", many_jobs, d, c, artifacts)
+            c.stop()
+
+            token_file = tmp / "api.token"
+            token_file.write_text(base64.b64encode(hashlib.sha256(tmp_name.encode()).digest())
+                                  .decode() + "\n")
+            token_file.chmod(0o600)
+            c = Cluster(dray, artifacts / "cluster-token.log", token_file=token_file)
+            clusters.append(c)
+            guarded("token", token_required, d, c, artifacts)
+        finally:
+            d.quit()
+            for c in clusters:
+                c.stop()
+    total = time.monotonic() - started
+    print(f"browser test: {len(passed)} passed, {len(failed)} failed, {len(skipped)} skipped "
+          f"({total:.0f} s); "
+          f"screenshots in {artifacts}")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
