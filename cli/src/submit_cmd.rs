@@ -5,8 +5,8 @@
 //! defaults, so `dray submit` and `dray render` with the same flags give the same bits.
 //! Validation is the server's job: it answers `INVALID_ARGUMENT` with a message naming the
 //! field, which is printed as it is, so the rules live in one place. Only what never
-//! reaches the server (the address, `--env`/`--translate` syntax, exposure, which is
-//! applied at fetch time) is checked here, before anything is submitted.
+//! reaches the server (the address, `--env`/`--translate` syntax, exposure and tone
+//! curve, which are applied at fetch time) is checked here, before anything is submitted.
 
 use std::collections::BTreeMap;
 use std::io::IsTerminal;
@@ -15,6 +15,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
 use clap::Args;
+use dray_core::display::Display;
+use dray_core::exposure::Exposure;
 use dray_net::{AuthChannel, ClientOptions};
 use dray_proto::v1::render_service_client::RenderServiceClient;
 use dray_proto::v1::{
@@ -175,7 +177,6 @@ fn rpc_error(what: &str, url: &str, s: tonic::Status) -> anyhow::Error {
 
 pub fn run(a: SubmitArgs) -> Result<()> {
     let spec = job_spec(&a)?;
-    a.job.check_exposure()?;
     let url = endpoint_url(&a.coordinator)?;
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
@@ -215,11 +216,11 @@ async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
     )
     .await?;
 
-    let png = fetch(&mut client, &id, ImageFormat::Png, a.job.exposure, &url).await?;
+    let png = fetch(&mut client, &id, ImageFormat::Png, a.job.display(), &url).await?;
     std::fs::write(&a.job.output, &png)
         .with_context(|| format!("cannot write {}", a.job.output.display()))?;
     if let Some(path) = &a.job.exr {
-        let exr = fetch(&mut client, &id, ImageFormat::Exr, 0.0, &url).await?;
+        let exr = fetch(&mut client, &id, ImageFormat::Exr, Display::default(), &url).await?;
         std::fs::write(path, &exr).with_context(|| format!("cannot write {}", path.display()))?;
     }
     // The final statistics (scheduling metrics included) are GetJob's: WatchJob carries
@@ -352,17 +353,23 @@ async fn cancel(client: &mut RenderServiceClient<AuthChannel>, id: &str) {
     }
 }
 
+/// GetImage: the job's image as `format`, a PNG through `display` (which the
+/// coordinator applies to the assembled film, as `dray render` does to its own).
 pub(crate) async fn fetch(
     client: &mut RenderServiceClient<AuthChannel>,
     id: &str,
     format: ImageFormat,
-    exposure: f32,
+    display: Display,
     url: &str,
 ) -> Result<Vec<u8>> {
     let req = GetImageRequest {
         job_id: id.to_string(),
         format: format as i32,
-        exposure,
+        exposure: match display.exposure {
+            Exposure::Auto => None,
+            Exposure::Stops(ev) => Some(ev),
+        },
+        tonemap: display.tonemap.name().to_string(),
     };
     Ok(client
         .get_image(req)

@@ -22,15 +22,13 @@ use tonic::{Request, Response, Status};
 
 use crate::cluster::{Cluster, ClusterApi, ClusterOptions};
 use crate::dispatch;
-use crate::jobs::{JobEntry, JobTable, encode_exr, encode_png};
+use crate::jobs::{JobEntry, JobTable, encode_exr, encode_png, requested_display};
 use crate::package_service::PackageApi;
 use crate::store::{JobStore, Resume, StoredJob};
 use crate::validate::{Limits, bounded, prepare, validate};
 
 /// Default least time between two WatchJob messages.
 pub const DEFAULT_WATCH_INTERVAL: Duration = Duration::from_millis(250);
-/// Largest GetImage exposure either way, in stops (and `dray render`'s `--exposure`).
-pub const MAX_EXPOSURE_STOPS: f32 = 64.0;
 /// Default and largest ListJobs page.
 pub const DEFAULT_PAGE_SIZE: usize = 50;
 const MAX_PAGE_SIZE: usize = 1000;
@@ -533,13 +531,8 @@ impl RenderService for Coordinator {
         r: Request<GetImageRequest>,
     ) -> Result<Response<GetImageResponse>, Status> {
         let r = r.into_inner();
-        if !r.exposure.is_finite() || r.exposure.abs() > MAX_EXPOSURE_STOPS {
-            return Err(Status::invalid_argument(format!(
-                "exposure: {} is out of range (-{MAX_EXPOSURE_STOPS}..={MAX_EXPOSURE_STOPS} \
-                 stops)",
-                r.exposure
-            )));
-        }
+        let display =
+            requested_display(r.exposure, &r.tonemap).map_err(Status::invalid_argument)?;
         let format = match ImageFormat::try_from(r.format) {
             Ok(ImageFormat::Unspecified | ImageFormat::Png) => ImageFormat::Png,
             Ok(ImageFormat::Exr) => ImageFormat::Exr,
@@ -570,7 +563,6 @@ impl RenderService for Coordinator {
             }
         };
         let spp = job.spec.spp;
-        let exposure = r.exposure;
         let data = tokio::task::spawn_blocking(move || {
             // A job that finished before this coordinator started: its image is in the
             // job store.
@@ -583,7 +575,7 @@ impl RenderService for Coordinator {
             };
             match format {
                 ImageFormat::Exr => encode_exr(&film, spp),
-                _ => encode_png(&film, spp, exposure),
+                _ => encode_png(&film, spp, display),
             }
         })
         .await
