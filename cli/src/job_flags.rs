@@ -56,6 +56,11 @@ pub struct JobFlags {
     /// Move the whole scene by "X,Y,Z" before rendering (tests precision far from the origin).
     #[arg(long, allow_hyphen_values = true)]
     pub translate: Option<String>,
+    /// Progressive passes: "doubling" (1, 1, 2, 4, ... samples per pixel; GetImage and
+    /// `dray submit --preview` show the image after each), "one" (every sample in one
+    /// pass), or N samples per pass. No effect on the final image.
+    #[arg(long, default_value = dray_core::passes::DEFAULT)]
+    pub passes: String,
     /// Exposure of the PNG: `auto` maps the image's log-average luminance (robust to a
     /// few very bright pixels) to mid-grey, so scenes in photometric units (a 68000-lux
     /// sun) come out well exposed; a number is stops (radiance times 2^EV, -64..=64).
@@ -165,6 +170,13 @@ impl JobFlags {
         Ok(())
     }
 
+    /// `--passes`: a cut of `--spp` the coordinator accepts.
+    pub fn check_passes(&self) -> Result<()> {
+        dray_core::passes::Passes::parse(&self.passes, self.spp)
+            .map(drop)
+            .map_err(|e| anyhow::anyhow!("--passes: {e}"))
+    }
+
     /// The display transform of the PNG (`--exposure`, `--tonemap`).
     pub fn display(&self) -> Display {
         Display {
@@ -225,6 +237,7 @@ impl JobFlags {
             replicate: self.replicate,
             ray_cache: self.ray_cache.clone(),
             phm: self.phm.clone(),
+            passes: self.passes.clone(),
         })
     }
 }

@@ -19,6 +19,7 @@ mod net_flags;
 mod options;
 mod partition_cmd;
 mod phm_flag;
+mod preview;
 mod ray_cache_flag;
 mod render_cmd;
 mod submit_cmd;

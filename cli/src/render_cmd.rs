@@ -237,6 +237,7 @@ pub fn check_output(flag: &str, path: &Path, extensions: &[&str]) -> Result<()> 
 
 pub fn run(a: RenderArgs) -> Result<()> {
     crate::threads::limit_build_threads(a.threads);
+    a.job.check_passes()?;
     // Every file this run will write is checked before the render, not after it.
     check_output("--output", &a.job.output, &["png", "jpg", "jpeg"])?;
     if let Some(p) = &a.job.exr {

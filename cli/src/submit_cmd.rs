@@ -49,6 +49,10 @@ pub struct SubmitArgs {
     /// its jobs across restarts); 0 fails at once.
     #[arg(long, value_name = "SECONDS", default_value_t = RECONNECT_WAIT.as_secs())]
     pub reconnect_wait: u64,
+    /// Rewrite this PNG with the running job's image after each progressive pass
+    /// (`--passes`), so a viewer can watch it sharpen; the final image goes to --output.
+    #[arg(long, value_name = "FILE")]
+    pub preview: Option<PathBuf>,
     /// Write the finished job's statistics as JSON (GetJob's: rays by kind, domains,
     /// and the scheduling metrics, per worker too).
     #[arg(long, value_name = "FILE")]
@@ -177,6 +181,7 @@ fn rpc_error(what: &str, url: &str, s: tonic::Status) -> anyhow::Error {
 
 pub fn run(a: SubmitArgs) -> Result<()> {
     let spec = job_spec(&a)?;
+    a.job.check_passes()?;
     let url = endpoint_url(&a.coordinator)?;
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
@@ -206,6 +211,7 @@ async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
     let url = net.url(&url);
     let mut client = connect(&net, &url).await?;
     let reconnect = Duration::from_secs(a.reconnect_wait);
+    let preview = a.preview.clone().map(|p| (p, a.job.display()));
     let (id, last) = run_job(
         &mut client,
         spec,
@@ -213,6 +219,7 @@ async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
         a.job.quiet,
         "dray submit",
         reconnect,
+        preview,
     )
     .await?;
 
@@ -277,6 +284,7 @@ pub(crate) async fn run_job(
     quiet: bool,
     who: &str,
     reconnect: Duration,
+    preview: Option<(PathBuf, Display)>,
 ) -> Result<(String, JobProgress)> {
     // SubmitJob answers after the scene is loaded, which can take a while; a Ctrl-C in
     // that window must still cancel the job the server is about to accept.
@@ -308,14 +316,29 @@ pub(crate) async fn run_job(
         eprintln!("{who}: job {id} accepted by {url}");
     }
 
+    let preview = preview.map(|(path, display)| {
+        crate::preview::spawn(client.clone(), id.clone(), path, display, quiet)
+    });
     let watcher = client.clone();
     let last = tokio::select! {
-        r = watch(watcher, &id, url, quiet, Reconnect { who, wait: reconnect }) => r?,
+        r = watch(watcher, &id, url, quiet, Reconnect { who, wait: reconnect }) => r,
         _ = tokio::signal::ctrl_c() => {
             cancel(client, &id).await;
-            bail!("interrupted: job {id} cancelled");
+            Err(anyhow::anyhow!("interrupted: job {id} cancelled"))
         }
     };
+    if let Some(p) = preview {
+        // The last image of a job that succeeded is the final one: let it land.
+        if last
+            .as_ref()
+            .is_ok_and(|l| l.state() == JobState::Succeeded)
+        {
+            let _ = tokio::time::timeout(Duration::from_secs(30), p).await;
+        } else {
+            p.abort();
+        }
+    }
+    let last = last?;
     match last.state() {
         JobState::Succeeded => Ok((id, last)),
         JobState::Failed => bail!("job {id} failed: {}", last.error.replace('\n', " ")),
@@ -353,6 +376,16 @@ async fn cancel(client: &mut RenderServiceClient<AuthChannel>, id: &str) {
     }
 }
 
+/// `display` as GetImageRequest and WatchImageRequest spell it: `exposure` absent for
+/// automatic, the curve by name.
+pub(crate) fn wire_display(display: Display) -> (Option<f32>, String) {
+    let exposure = match display.exposure {
+        Exposure::Auto => None,
+        Exposure::Stops(ev) => Some(ev),
+    };
+    (exposure, display.tonemap.name().to_string())
+}
+
 /// GetImage: the job's image as `format`, a PNG through `display` (which the
 /// coordinator applies to the assembled film, as `dray render` does to its own).
 pub(crate) async fn fetch(
@@ -362,14 +395,12 @@ pub(crate) async fn fetch(
     display: Display,
     url: &str,
 ) -> Result<Vec<u8>> {
+    let (exposure, tonemap) = wire_display(display);
     let req = GetImageRequest {
         job_id: id.to_string(),
         format: format as i32,
-        exposure: match display.exposure {
-            Exposure::Auto => None,
-            Exposure::Stops(ev) => Some(ev),
-        },
-        tonemap: display.tonemap.name().to_string(),
+        exposure,
+        tonemap,
     };
     Ok(client
         .get_image(req)
@@ -534,6 +565,19 @@ enum ProgressView {
     },
 }
 
+/// ", pass 3/9" while a job of several passes runs (its tiles count again each pass).
+fn pass_of(p: &JobProgress) -> String {
+    if p.passes_total > 1 && p.state() == JobState::Running {
+        format!(
+            ", pass {}/{}",
+            (p.passes_done + 1).min(p.passes_total),
+            p.passes_total
+        )
+    } else {
+        String::new()
+    }
+}
+
 impl ProgressView {
     fn new(quiet: bool) -> ProgressView {
         if quiet {
@@ -542,7 +586,7 @@ impl ProgressView {
             let b = indicatif::ProgressBar::new(0);
             b.set_style(
                 indicatif::ProgressStyle::with_template(
-                    "{spinner} {msg:10} [{bar:40}] {pos}/{len} tiles {elapsed} eta {eta}",
+                    "{spinner} {msg:10} [{bar:40}] {pos}/{len} tiles {elapsed}",
                 )
                 .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
                 .progress_chars("=> "),
@@ -563,7 +607,7 @@ impl ProgressView {
             ProgressView::Bar(b) => {
                 b.set_length(u64::from(p.tiles_total));
                 b.set_position(u64::from(p.tiles_done));
-                b.set_message(state_name(p.state()));
+                b.set_message(format!("{}{}", state_name(p.state()), pass_of(p)));
             }
             ProgressView::Lines {
                 last_state,
@@ -573,9 +617,10 @@ impl ProgressView {
                 let due = last_line.is_none_or(|t| t.elapsed() >= Duration::from_secs(1));
                 if changed || due {
                     eprintln!(
-                        "job {}: {}, {}/{} tiles, {} rays traced, {} in flight",
+                        "job {}: {}{}, {}/{} tiles, {} rays traced, {} in flight",
                         p.job_id,
                         state_name(p.state()),
+                        pass_of(p),
                         p.tiles_done,
                         p.tiles_total,
                         p.rays_traced,

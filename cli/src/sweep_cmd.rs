@@ -210,6 +210,7 @@ impl Renderer {
                         !show,
                         "dray sweep",
                         submit_cmd::RECONNECT_WAIT,
+                        None,
                     )
                     .await?;
                     let png =

@@ -287,7 +287,9 @@ fn a_coordinator_killed_mid_job_resumes_it_with_the_same_bits() {
         kept > 0,
         "the resumed job kept no committed tile: {resumed}"
     );
-    assert!(kept < total, "{kept} of {total}");
+    // (Progressive passes: a kept tile holds the passes it had finished; the job goes
+    // on from the first pass some tile had not.)
+    assert!(kept <= total, "{kept} of {total}");
     eprintln!(
         "resumed {long_id} with {kept} of {total} tiles kept ({done_before} seen done before the kill)"
     );

@@ -298,6 +298,32 @@ fn the_readme_grpcurl_flow_renders_the_same_png_as_dray_render() {
         );
     }
 
+    // The README's ListWorkers: both workers, idle now, with their addresses.
+    let workers = json(&ok(
+        &grpcurl,
+        &[
+            "-plaintext",
+            "-d",
+            "{}",
+            addr,
+            "dray.v1.RenderService/ListWorkers",
+        ],
+    ));
+    let listed = workers["workers"]
+        .as_array()
+        .unwrap_or_else(|| panic!("no workers in {workers}"));
+    assert_eq!(listed.len(), 2, "{workers}");
+    for w in listed {
+        assert!(
+            w["endpoint"]
+                .as_str()
+                .is_some_and(|e| e.starts_with("http://")),
+            "{w}"
+        );
+        // The job is over: in no running job (silent only if beats came late).
+        assert!(w["state"] == "idle" || w["state"] == "silent", "{w}");
+    }
+
     // GetJob works the same way.
     let got = json(&ok(
         &grpcurl,

@@ -282,6 +282,8 @@ fn grid_tiles(grid: TileGrid, first: u32, coarse: bool) -> Vec<Tile> {
             credit: TILE_CREDIT,
             attempt: 0,
             coarse,
+            first_sample: 0,
+            samples: 0,
         })
         .collect()
 }

@@ -50,6 +50,8 @@ pub struct JobEntry {
     ended: tokio::sync::Notify,
     /// Where its changes are kept across restarts (None: in memory only).
     store: Option<Arc<JobStore>>,
+    /// Its progressive passes and the image after the last complete one.
+    pub passes: crate::pass_images::PassImages,
 }
 
 struct Inner {
@@ -116,8 +118,15 @@ impl JobEntry {
             .elapsed_final
             .or_else(|| g.started.map(|s| s.elapsed()))
             .unwrap_or_default();
-        let eta = (g.state == JobState::Running && done > 0 && done < self.tiles_total)
-            .then(|| elapsed.mul_f64(f64::from(self.tiles_total - done) / f64::from(done)));
+        // Passes differ in size: the ETA is from the fraction of samples traced.
+        let fraction = self.passes.fraction(done, self.tiles_total);
+        let eta = (g.state == JobState::Running && fraction > 0.0 && fraction < 1.0)
+            .then(|| elapsed.mul_f64((1.0 - fraction) / fraction));
+        let passes_done = if g.state == JobState::Succeeded {
+            self.passes.total()
+        } else {
+            self.passes.done()
+        };
         let rays = g.stats.rays.unwrap_or_default();
         JobProgress {
             job_id: self.id.clone(),
@@ -134,6 +143,9 @@ impl JobEntry {
             eta: eta.and_then(|d| prost_types::Duration::try_from(d).ok()),
             error: g.error.clone(),
             stats: None,
+            samples_done: self.passes.samples_after(passes_done),
+            passes_done,
+            passes_total: self.passes.total(),
         }
     }
 
@@ -243,6 +255,11 @@ impl JobEntry {
             });
         }
         drop(g);
+        if s == JobState::Succeeded {
+            self.passes.complete();
+        } else {
+            self.passes.drop_image();
+        }
         crate::metrics::otel::job_ended(s, elapsed);
         self.ended.notify_waiters();
     }
@@ -364,6 +381,7 @@ impl JobTable {
                 }),
                 ended: tokio::sync::Notify::new(),
                 store: self.store.get().cloned(),
+                passes: crate::pass_images::PassImages::new(&j.spec.passes, j.spec.spp),
             });
             if ended {
                 if state == JobState::Succeeded {
@@ -461,7 +479,6 @@ impl JobTable {
         let entry = Arc::new(JobEntry {
             id: format!("job-{n}-{:08x}", self.nonce),
             tiles_total: TileGrid::image(spec.width, spec.height).count(),
-            spec,
             submitted_at: SystemTime::now(),
             cancel: Arc::new(AtomicBool::new(false)),
             tiles_done: AtomicU32::new(0),
@@ -480,6 +497,8 @@ impl JobTable {
             }),
             ended: tokio::sync::Notify::new(),
             store: self.store.get().cloned(),
+            passes: crate::pass_images::PassImages::new(&spec.passes, spec.spp),
+            spec,
         });
         if let Some(store) = &entry.store {
             store.post(Op::Insert {
@@ -557,11 +576,21 @@ fn run(job: &JobEntry, p: Prepared, threads: usize) {
     let progress = |done: usize, _total: usize| {
         job.tiles_done.fetch_max(done as u32, Ordering::Relaxed);
     };
-    let out = render::render_cancellable(
+    let passes = job.passes.ranges();
+    let on_pass = |film: &Film, k: usize| {
+        // The last pass's image is the job's final one (`finish`).
+        if k + 1 < passes.len() {
+            job.passes.publish(Arc::new(film.clone()), k as u32 + 1);
+            job.tiles_done.store(0, Ordering::Relaxed);
+        }
+    };
+    let out = render::render_passes(
         &integrator,
         geometry.as_ref(),
         threads,
+        passes,
         &progress,
+        &on_pass,
         &job.cancel,
     );
     match out {

@@ -23,6 +23,8 @@
 //! - [`scheduler`]: the schedules as pure policies, each job's scheduling state,
 //!   versioned routing tables.
 //! - [`metrics`]: the workers' scheduling counters summed into JobStats.
+//! - [`pass_images`]: a job's progressive passes and the image after the last one.
+//! - [`worker_list`]: ListWorkers, from the membership and the running jobs' views.
 //! - [`caches`]: ray caches on domain walls: cache hosts, where each attempt's cache
 //!   actors live, opening and closing their walls, and their statistics.
 //! - [`cluster`]: the tonic `ClusterService` over the above.
@@ -41,11 +43,13 @@ pub mod membership;
 pub mod metrics;
 pub mod owned_package;
 pub mod package_service;
+pub mod pass_images;
 pub mod scheduler;
 pub mod service;
 pub mod store;
 pub mod traffic;
 pub mod validate;
 pub mod work_dir;
+pub mod worker_list;
 
 pub use service::{Coordinator, serve, serve_with};

@@ -104,6 +104,13 @@ impl JobMetrics {
         self.workers.len()
     }
 
+    /// Rays traced per worker (all kinds), in worker id order.
+    pub fn traced(&self) -> impl Iterator<Item = (String, u64)> + '_ {
+        self.workers
+            .iter()
+            .map(|(id, w)| (id.clone(), w.rays_traced))
+    }
+
     /// Add one report's counters (checked with [`check`]) and traced rays.
     pub fn add(&mut self, worker: &str, c: Option<&WorkerCounters>, traced: Option<&RayCounts>) {
         if let Some(c) = c {

@@ -7,6 +7,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::time::Duration;
 
+use dray_core::display::Display;
 use dray_core::scene::Scene;
 use dray_proto::v1::cluster_service_server::ClusterServiceServer;
 use dray_proto::v1::package_service_server::PackageServiceServer;
@@ -14,7 +15,8 @@ use dray_proto::v1::render_service_server::{RenderService, RenderServiceServer};
 use dray_proto::v1::{
     CancelJobRequest, CancelJobResponse, GetImageRequest, GetImageResponse, GetJobRequest,
     GetJobResponse, ImageFormat, JobProgress, JobSpec, JobState, ListJobsRequest, ListJobsResponse,
-    SubmitJobRequest, SubmitJobResponse, WatchJobRequest,
+    ListWorkersRequest, ListWorkersResponse, SubmitJobRequest, SubmitJobResponse,
+    WatchImageRequest, WatchJobRequest,
 };
 use tokio::net::TcpListener;
 use tokio_stream::wrappers::ReceiverStream;
@@ -27,6 +29,10 @@ use crate::package_service::PackageApi;
 use crate::store::{JobStore, Resume, StoredJob};
 use crate::validate::{Limits, bounded, prepare, validate};
 
+/// Default least time between two WatchImage messages.
+pub const DEFAULT_IMAGE_INTERVAL: Duration = Duration::from_millis(500);
+/// How long ListWorkers waits for a running job's actor to describe itself.
+const VIEW_WAIT: Duration = Duration::from_secs(2);
 /// Default least time between two WatchJob messages.
 pub const DEFAULT_WATCH_INTERVAL: Duration = Duration::from_millis(250);
 /// Default and largest ListJobs page.
@@ -42,6 +48,8 @@ pub struct Coordinator {
     scene_root: PathBuf,
     cluster: Arc<Cluster>,
     loads: Arc<SceneLoads>,
+    /// Rays per second per worker, between ListWorkers calls.
+    rates: Arc<crate::worker_list::RateWindow>,
 }
 
 /// Scene loads running off the request path, and how many a CancelJob stopped before
@@ -64,6 +72,7 @@ impl Coordinator {
             scene_root,
             cluster: Arc::new(Cluster::new(ClusterOptions::default())),
             loads: Arc::default(),
+            rates: Arc::default(),
         })
     }
 
@@ -531,68 +540,212 @@ impl RenderService for Coordinator {
         r: Request<GetImageRequest>,
     ) -> Result<Response<GetImageResponse>, Status> {
         let r = r.into_inner();
-        let display =
-            requested_display(r.exposure, &r.tonemap).map_err(Status::invalid_argument)?;
-        let format = match ImageFormat::try_from(r.format) {
-            Ok(ImageFormat::Unspecified | ImageFormat::Png) => ImageFormat::Png,
-            Ok(ImageFormat::Exr) => ImageFormat::Exr,
-            Err(_) => {
-                return Err(Status::invalid_argument(format!(
-                    "format: unknown image format {}",
-                    r.format
-                )));
-            }
-        };
+        let (format, display) = image_request(r.format, r.exposure, &r.tonemap)?;
         self.table.sweep();
         let job = self.job(&r.job_id)?;
-        if let Some(why) = job.dropped() {
-            return Err(Status::not_found(format!(
-                "job {:?} finished, but its image was dropped: {why}",
-                job.id
-            )));
-        }
-        let film = match (job.film(), job.image_file()) {
-            (Some(film), _) => Ok(film),
-            (None, Some(file)) => Err(file),
-            (None, None) => {
+        let image = match job_image(&job)? {
+            Some(image) => image,
+            None => {
                 return Err(Status::failed_precondition(format!(
-                    "job {:?} is {}; its image is available once it has SUCCEEDED",
+                    "job {:?} is {} with no complete pass yet; its image is available once \
+                     its first pass is complete (JobProgress.passes_done)",
                     job.id,
                     job.state().as_str_name()
                 )));
             }
         };
-        let spp = job.spec.spp;
-        let data = tokio::task::spawn_blocking(move || {
-            // A job that finished before this coordinator started: its image is in the
-            // job store.
-            let film = match film {
-                Ok(film) => film,
-                Err(file) => Arc::new(
-                    crate::store::image_file::read(&file)
-                        .map_err(|e| format!("cannot read the stored image: {e}"))?,
-                ),
-            };
-            match format {
-                ImageFormat::Exr => encode_exr(&film, spp),
-                _ => encode_png(&film, spp, display),
-            }
-        })
-        .await
-        .map_err(|e| Status::internal(format!("image encoding task died: {e}")))?
-        .map_err(Status::internal)?;
-        Ok(Response::new(GetImageResponse {
-            data,
-            format: format as i32,
-            content_type: match format {
-                ImageFormat::Exr => "image/x-exr",
-                _ => "image/png",
-            }
-            .into(),
-            width: job.spec.width,
-            height: job.spec.height,
-        }))
+        Ok(Response::new(
+            encode_image(&job, image, format, display).await?,
+        ))
     }
+
+    type WatchImageStream = ReceiverStream<Result<GetImageResponse, Status>>;
+
+    async fn watch_image(
+        &self,
+        r: Request<WatchImageRequest>,
+    ) -> Result<Response<Self::WatchImageStream>, Status> {
+        let r = r.into_inner();
+        let (format, display) = image_request(r.format, r.exposure, &r.tonemap)?;
+        let job = self.job(&r.job_id)?;
+        job_image(&job)?;
+        let interval = r
+            .min_interval
+            .and_then(|d| Duration::try_from(d).ok())
+            .filter(|d| !d.is_zero())
+            .unwrap_or(DEFAULT_IMAGE_INTERVAL)
+            .clamp(Duration::from_millis(50), Duration::from_secs(60));
+        let (tx, rx) = tokio::sync::mpsc::channel(2);
+        let mut passes = job.passes.subscribe();
+        tokio::spawn(async move {
+            // (passes done, final) of the last image sent.
+            let mut sent: Option<(u32, bool)> = None;
+            loop {
+                passes.borrow_and_update();
+                let image = match job_image(&job) {
+                    Ok(image) => image,
+                    Err(e) => {
+                        let _ = tx.send(Err(e)).await;
+                        return;
+                    }
+                };
+                if let Some(image) = image {
+                    let key = (image.passes_done, image.final_image);
+                    if sent != Some(key) {
+                        let msg = encode_image(&job, image, format, display).await;
+                        let end = msg.is_err() || key.1;
+                        if tx.send(msg).await.is_err() || end {
+                            return;
+                        }
+                        sent = Some(key);
+                    }
+                }
+                if job.is_terminal() && job.state() != JobState::Succeeded {
+                    // Failed or cancelled: no more images (job_image says why next).
+                    continue;
+                }
+                tokio::select! {
+                    _ = passes.changed() => {}
+                    _ = job.wait_ended() => {}
+                    _ = tx.closed() => return,
+                }
+                // At most one image per interval (the final one waits at most that).
+                tokio::select! {
+                    _ = tokio::time::sleep(interval) => {}
+                    _ = tx.closed() => return,
+                }
+            }
+        });
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+
+    async fn list_workers(
+        &self,
+        r: Request<ListWorkersRequest>,
+    ) -> Result<Response<ListWorkersResponse>, Status> {
+        let cluster = &self.cluster;
+        let views = cluster.jobs.views(VIEW_WAIT).await;
+        let now = std::time::Instant::now();
+        let rates = self.rates.rates(&views, now);
+        Ok(Response::new(crate::worker_list::list(
+            &cluster.membership.workers(),
+            views,
+            &rates,
+            cluster.membership.heartbeat,
+            now,
+            r.get_ref().omit_jobs,
+        )))
+    }
+}
+
+/// The encoding GetImage and WatchImage are asked for, and the display transform of a
+/// PNG (`exposure` absent: automatic; `tonemap` empty: the default), checked.
+fn image_request(
+    format: i32,
+    exposure: Option<f32>,
+    tonemap: &str,
+) -> Result<(ImageFormat, Display), Status> {
+    let display = requested_display(exposure, tonemap).map_err(Status::invalid_argument)?;
+    match ImageFormat::try_from(format) {
+        Ok(ImageFormat::Unspecified | ImageFormat::Png) => Ok((ImageFormat::Png, display)),
+        Ok(ImageFormat::Exr) => Ok((ImageFormat::Exr, display)),
+        Err(_) => Err(Status::invalid_argument(format!(
+            "format: unknown image format {format}"
+        ))),
+    }
+}
+
+/// The image a job can show now, before encoding.
+struct JobImage {
+    /// The film, or the job store's file of a job that finished before this
+    /// coordinator started.
+    film: Result<Arc<dray_core::film::Film>, PathBuf>,
+    samples: u32,
+    passes_done: u32,
+    final_image: bool,
+}
+
+/// The final image of a SUCCEEDED job, or the last pass's image of a running one; None
+/// while no pass is complete. An error for a job whose image is gone (dropped by the
+/// retention policy, or the job failed or was cancelled).
+fn job_image(job: &JobEntry) -> Result<Option<JobImage>, Status> {
+    if let Some(why) = job.dropped() {
+        return Err(Status::not_found(format!(
+            "job {:?} finished, but its image was dropped: {why}",
+            job.id
+        )));
+    }
+    let total = job.passes.total();
+    let final_film = match (job.film(), job.image_file()) {
+        (Some(film), _) => Some(Ok(film)),
+        (None, Some(file)) => Some(Err(file)),
+        (None, None) => None,
+    };
+    if let Some(film) = final_film {
+        return Ok(Some(JobImage {
+            film,
+            samples: job.spec.spp,
+            passes_done: total,
+            final_image: true,
+        }));
+    }
+    let state = job.state();
+    if is_terminal(state as i32) {
+        return Err(Status::failed_precondition(format!(
+            "job {:?} is {}; it has no image",
+            job.id,
+            state.as_str_name()
+        )));
+    }
+    Ok(job.passes.latest().map(|p| JobImage {
+        film: Ok(p.film),
+        samples: p.samples,
+        passes_done: p.passes_done,
+        final_image: false,
+    }))
+}
+
+/// `image` encoded as GetImage answers it (on a blocking thread: a large PNG takes a
+/// while).
+async fn encode_image(
+    job: &JobEntry,
+    image: JobImage,
+    format: ImageFormat,
+    display: Display,
+) -> Result<GetImageResponse, Status> {
+    let samples = image.samples;
+    let film = image.film;
+    let data = tokio::task::spawn_blocking(move || {
+        let film = match film {
+            Ok(film) => film,
+            Err(file) => Arc::new(
+                crate::store::image_file::read(&file)
+                    .map_err(|e| format!("cannot read the stored image: {e}"))?,
+            ),
+        };
+        match format {
+            ImageFormat::Exr => encode_exr(&film, samples),
+            _ => encode_png(&film, samples, display),
+        }
+    })
+    .await
+    .map_err(|e| Status::internal(format!("image encoding task died: {e}")))?
+    .map_err(Status::internal)?;
+    Ok(GetImageResponse {
+        data,
+        format: format as i32,
+        content_type: match format {
+            ImageFormat::Exr => "image/x-exr",
+            _ => "image/png",
+        }
+        .into(),
+        width: job.spec.width,
+        height: job.spec.height,
+        samples,
+        r#final: image.final_image,
+        passes_done: image.passes_done,
+        passes_total: job.passes.total(),
+    })
 }
 
 /// Aborts a task when dropped, so the heartbeat reaper stops with the

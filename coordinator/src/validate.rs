@@ -173,6 +173,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         ("layout", &spec.layout),
         ("schedule", &spec.schedule),
         ("effects", &spec.effects),
+        ("passes", &spec.passes),
     ];
     for (field, v) in names {
         check_text(field, v, MAX_NAME_BYTES)?;
@@ -192,6 +193,11 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
     check_range("width", spec.width, limits.max_side)?;
     check_range("height", spec.height, limits.max_side)?;
     check_range("spp", spec.spp, limits.max_spp)?;
+    if spec.passes.is_empty() {
+        spec.passes = dray_core::passes::DEFAULT.into();
+    }
+    dray_core::passes::Passes::parse(&spec.passes, spec.spp)
+        .map_err(|e| bad(format!("passes: {e}")))?;
     if spec.integrator.is_empty() {
         spec.integrator = DEFAULT_INTEGRATOR.name().into();
     }

@@ -62,6 +62,7 @@ fn child(dir: &str) {
                 .map(|t| CommittedTile {
                     tile: t,
                     sums: sums(job, t),
+                    passes: Some(t),
                 })
                 .collect(),
         });
@@ -144,6 +145,7 @@ fn a_kill_during_writes_tears_nothing() {
             );
             for t in &j.tiles {
                 assert_eq!(t.sums, sums(n, t.tile), "{} tile {}", j.id, t.tile);
+                assert_eq!(t.passes, Some(t.tile), "{} tile {} passes", j.id, t.tile);
             }
             if n <= confirmed {
                 assert_eq!(j.tiles.len(), 4, "{}: a confirmed tile is missing", j.id);

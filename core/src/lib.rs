@@ -27,6 +27,7 @@ pub mod integrator;
 pub mod intersect;
 pub mod kind_set;
 pub mod light_sampler;
+pub mod passes;
 pub mod ray;
 pub mod render;
 pub mod sampling;

@@ -92,8 +92,35 @@ pub fn render_cancellable(
     progress: &(dyn Fn(usize, usize) + Sync),
     cancel: &AtomicBool,
 ) -> Result<RenderOutput, rayon::ThreadPoolBuildError> {
+    let all = 0..integrator.settings.spp.max(1);
+    render_passes(
+        integrator,
+        geometry,
+        threads,
+        std::slice::from_ref(&all),
+        progress,
+        &|_, _| {},
+        cancel,
+    )
+}
+
+/// [`render_cancellable`] in progressive passes (`crate::passes`): pass `k` traces
+/// samples `passes[k]` of every pixel, and `on_pass(film, k)` is called with the image
+/// of passes `0..=k` once pass `k` is complete (before the next starts). `progress` is
+/// called with (tiles done in this pass, tiles) after every tile. The final film is the
+/// same bits as one pass of every sample: sums are fixed-point integers, and each
+/// sample's random numbers are keyed by pixel and sample index.
+pub fn render_passes(
+    integrator: &Integrator<'_>,
+    geometry: &dyn Trace,
+    threads: usize,
+    passes: &[std::ops::Range<u32>],
+    progress: &(dyn Fn(usize, usize) + Sync),
+    on_pass: &(dyn Fn(&Film, usize) + Sync),
+    cancel: &AtomicBool,
+) -> Result<RenderOutput, rayon::ThreadPoolBuildError> {
     let s = &integrator.settings;
-    let (width, height, spp) = (s.width, s.height, s.spp);
+    let (width, height) = (s.width, s.height);
     let tiles: Vec<Tile> = TileGrid::image(width, height).iter().collect();
     let film = Mutex::new(Film::new(width, height));
     let counts: Vec<AtomicU64> = (0..RayKind::COUNT).map(|_| AtomicU64::new(0)).collect();
@@ -102,59 +129,66 @@ pub fn render_cancellable(
         .num_threads(threads)
         .build()?;
     let start = Instant::now();
-    pool.install(|| {
-        tiles.par_iter().for_each(|tile| {
-            if cancel.load(Ordering::Relaxed) {
-                return;
-            }
-            let _span = tracing::trace_span!("tile", x = tile.x0, y = tile.y0).entered();
-            let mut sink = TileSink {
-                tile: *tile,
-                width,
-                sums: vec![[0; 3]; (tile.w * tile.h) as usize],
-                nonfinite: 0,
-                clamped: 0,
-                stack: Vec::with_capacity(64),
-            };
-            let mut local = [0u64; RayKind::COUNT];
-            for y in tile.y0..tile.y0 + tile.h {
-                for x in tile.x0..tile.x0 + tile.w {
-                    let pixel = y * width + x;
-                    for sample in 0..spp {
-                        sink.stack.push(integrator.camera_ray(pixel, sample));
-                        while let Some(ray) = sink.stack.pop() {
-                            local[ray.kind as usize] += 1;
-                            if ray.kind.is_occlusion() {
-                                let occ = integrator.occluded(geometry, &ray);
-                                integrator.shadow_result(&ray, occ, &mut sink);
-                            } else {
-                                match integrator.intersect(geometry, &ray) {
-                                    Some(hit) => integrator.shade_hit(&ray, &hit, &mut sink),
-                                    None => integrator.shade_miss(&ray, &mut sink),
+    for (k, samples) in passes.iter().enumerate() {
+        done.store(0, Ordering::Relaxed);
+        pool.install(|| {
+            tiles.par_iter().for_each(|tile| {
+                if cancel.load(Ordering::Relaxed) {
+                    return;
+                }
+                let _span = tracing::trace_span!("tile", x = tile.x0, y = tile.y0).entered();
+                let mut sink = TileSink {
+                    tile: *tile,
+                    width,
+                    sums: vec![[0; 3]; (tile.w * tile.h) as usize],
+                    nonfinite: 0,
+                    clamped: 0,
+                    stack: Vec::with_capacity(64),
+                };
+                let mut local = [0u64; RayKind::COUNT];
+                for y in tile.y0..tile.y0 + tile.h {
+                    for x in tile.x0..tile.x0 + tile.w {
+                        let pixel = y * width + x;
+                        for sample in samples.clone() {
+                            sink.stack.push(integrator.camera_ray(pixel, sample));
+                            while let Some(ray) = sink.stack.pop() {
+                                local[ray.kind as usize] += 1;
+                                if ray.kind.is_occlusion() {
+                                    let occ = integrator.occluded(geometry, &ray);
+                                    integrator.shadow_result(&ray, occ, &mut sink);
+                                } else {
+                                    match integrator.intersect(geometry, &ray) {
+                                        Some(hit) => integrator.shade_hit(&ray, &hit, &mut sink),
+                                        None => integrator.shade_miss(&ray, &mut sink),
+                                    }
                                 }
                             }
                         }
                     }
                 }
-            }
-            for (c, n) in counts.iter().zip(local) {
-                c.fetch_add(n, Ordering::Relaxed);
-            }
-            {
-                let mut f = film.lock().unwrap_or_else(|p| p.into_inner());
-                for ly in 0..tile.h {
-                    for lx in 0..tile.w {
-                        let pixel = (tile.y0 + ly) * width + tile.x0 + lx;
-                        f.add_fixed(pixel, sink.sums[(ly * tile.w + lx) as usize]);
-                    }
+                for (c, n) in counts.iter().zip(local) {
+                    c.fetch_add(n, Ordering::Relaxed);
                 }
-                f.nonfinite += sink.nonfinite;
-                f.clamped += sink.clamped;
-            }
-            let d = done.fetch_add(1, Ordering::Relaxed) + 1;
-            progress(d as usize, tiles.len());
+                {
+                    let mut f = film.lock().unwrap_or_else(|p| p.into_inner());
+                    for ly in 0..tile.h {
+                        for lx in 0..tile.w {
+                            let pixel = (tile.y0 + ly) * width + tile.x0 + lx;
+                            f.add_fixed(pixel, sink.sums[(ly * tile.w + lx) as usize]);
+                        }
+                    }
+                    f.nonfinite += sink.nonfinite;
+                    f.clamped += sink.clamped;
+                }
+                let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+                progress(d as usize, tiles.len());
+            });
         });
-    });
+        if cancel.load(Ordering::Relaxed) {
+            break;
+        }
+        on_pass(&film.lock().unwrap_or_else(|p| p.into_inner()), k);
+    }
     let render_time = start.elapsed();
     let mut rays = RayCounts::default();
     for (i, c) in counts.iter().enumerate() {

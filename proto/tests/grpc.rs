@@ -8,8 +8,8 @@ use dray_proto::v1::render_service_client::RenderServiceClient;
 use dray_proto::v1::render_service_server::{RenderService, RenderServiceServer};
 use dray_proto::v1::{
     CancelJobRequest, CancelJobResponse, GetImageRequest, GetImageResponse, GetJobRequest,
-    GetJobResponse, JobProgress, ListJobsRequest, ListJobsResponse, SubmitJobRequest,
-    SubmitJobResponse, WatchJobRequest,
+    GetJobResponse, JobProgress, ListJobsRequest, ListJobsResponse, ListWorkersRequest,
+    ListWorkersResponse, SubmitJobRequest, SubmitJobResponse, WatchImageRequest, WatchJobRequest,
 };
 use prost::Message;
 use prost_types::FileDescriptorSet;
@@ -145,6 +145,22 @@ impl RenderService for NoJobs {
         r: Request<GetImageRequest>,
     ) -> Result<Response<GetImageResponse>, Status> {
         Err(not_found(&r.get_ref().job_id))
+    }
+
+    type WatchImageStream = tokio_stream::Empty<Result<GetImageResponse, Status>>;
+
+    async fn watch_image(
+        &self,
+        r: Request<WatchImageRequest>,
+    ) -> Result<Response<Self::WatchImageStream>, Status> {
+        Err(not_found(&r.get_ref().job_id))
+    }
+
+    async fn list_workers(
+        &self,
+        _: Request<ListWorkersRequest>,
+    ) -> Result<Response<ListWorkersResponse>, Status> {
+        Ok(Response::new(ListWorkersResponse::default()))
     }
 }
 

@@ -68,9 +68,20 @@ fn distributed(
     let layout = DomainLayout::for_source(scene, spec).unwrap();
     let package = MemoryPackage::with_layout(scene.clone(), layout.clone()).unwrap();
     let source = memory_domains(Arc::new(package), s);
-    distributed_with(scene, s, &layout, workers, scramble, source.as_ref())
+    let all = 0..s.spp;
+    distributed_with(
+        scene,
+        s,
+        &layout,
+        workers,
+        scramble,
+        source.as_ref(),
+        std::slice::from_ref(&all),
+    )
 }
 
+/// Trace the job in `passes` (sample ranges), each dealt and traded to the end before
+/// the next, as the coordinator deals progressive passes.
 fn distributed_with(
     scene: &Scene,
     s: &RenderSettings,
@@ -78,6 +89,7 @@ fn distributed_with(
     workers: u32,
     scramble: u64,
     source: &dyn DomainSource,
+    passes: &[std::ops::Range<u32>],
 ) -> Distributed {
     let n = layout.domain_count();
     let mut counts = vec![0u64; n as usize];
@@ -121,73 +133,77 @@ fn distributed_with(
     let mut rays = [0u64; 6];
     let mut credit: BTreeMap<u32, Credit> = BTreeMap::new();
     let mut queues: HashMap<u32, Vec<RayRecord>> = HashMap::new();
-    let mut absorb = |out: Outbox, queues: &mut HashMap<u32, Vec<RayRecord>>| {
-        for (p, v) in out.sums {
-            film.add_fixed(p, v);
-        }
-        for (t, c) in out.credits {
-            let sum = credit.entry(t).or_default();
-            *sum = sum.checked_add(c).expect("no tile's credit overflows");
-        }
-        for (k, n) in out.traced.iter().enumerate() {
-            rays[k] += n;
-        }
-        film.nonfinite += out.nonfinite;
-        for (d, mut r) in out.rays {
-            assert!(r.tickets.is_empty(), "no tickets without ray caches");
-            queues.entry(d).or_default().append(&mut r.rays);
-        }
-        assert!(out.lookups.is_empty(), "no lookups without ray caches");
-    };
-
-    // The tiles as the coordinator deals them (dispatch::image_tiles), at this size.
     let tile_refs = TileRef::all(&TileGrid::new(s.width, s.height, TILE), TILE_CREDIT);
     assert!(!tile_refs.is_empty());
-    for (i, t) in tile_refs.iter().enumerate() {
-        let w = &tracers[i % workers as usize];
-        let mine = &held[i % workers as usize];
-        // Camera rays in two ranges, as a worker generating them lazily would.
-        let total = t.camera_rays(s.spp);
-        let half = total / 2;
-        let mut out = Outbox::default();
-        w.camera_rays(t, 0, half, mine, &mut out).unwrap();
-        w.camera_rays(t, half, total - half, mine, &mut out)
-            .unwrap();
-        absorb(out, &mut queues);
-    }
-    // Trade rays until none is left, in an order that depends on `scramble`.
-    let mut step = scramble;
-    loop {
-        let mut pending: Vec<u32> = queues
-            .iter()
-            .filter(|(_, v)| !v.is_empty())
-            .map(|(d, _)| *d)
-            .collect();
-        if pending.is_empty() {
-            break;
+    for samples in passes {
+        credit.clear();
+        let mut absorb = |out: Outbox, queues: &mut HashMap<u32, Vec<RayRecord>>| {
+            for (p, v) in out.sums {
+                film.add_fixed(p, v);
+            }
+            for (t, c) in out.credits {
+                let sum = credit.entry(t).or_default();
+                *sum = sum.checked_add(c).expect("no tile's credit overflows");
+            }
+            for (k, n) in out.traced.iter().enumerate() {
+                rays[k] += n;
+            }
+            film.nonfinite += out.nonfinite;
+            for (d, mut r) in out.rays {
+                assert!(r.tickets.is_empty(), "no tickets without ray caches");
+                queues.entry(d).or_default().append(&mut r.rays);
+            }
+            assert!(out.lookups.is_empty(), "no lookups without ray caches");
+        };
+
+        // The tiles as the coordinator deals them (dispatch::image_tiles), at this size.
+        for (i, t) in tile_refs.iter().enumerate() {
+            let t = &t.in_pass(samples.clone());
+            let w = &tracers[i % workers as usize];
+            let mine = &held[i % workers as usize];
+            // Camera rays in two ranges, as a worker generating them lazily would.
+            let total = t.camera_rays(s.spp);
+            let half = total / 2;
+            let mut out = Outbox::default();
+            w.camera_rays(t, 0, half, mine, &mut out).unwrap();
+            w.camera_rays(t, half, total - half, mine, &mut out)
+                .unwrap();
+            absorb(out, &mut queues);
         }
-        pending.sort_unstable();
-        step = step
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        let d = pending[(step >> 33) as usize % pending.len()];
-        let q = queues.get_mut(&d).unwrap();
-        let take = q.len().min(1 + (step >> 40) as usize % 300);
-        let batch: Vec<RayRecord> = q.drain(q.len() - take..).collect();
-        let mut out = Outbox::default();
-        let w = owner(d) as usize;
-        tracers[w]
-            .trace_batch(d, &batch, &[], &held[w], &mut out)
-            .unwrap();
-        absorb(out, &mut queues);
-    }
-    for t in &tile_refs {
-        assert_eq!(
-            credit.get(&t.index).copied(),
-            Some(TILE_CREDIT),
-            "tile {} credit",
-            t.index
-        );
+        // Trade rays until none is left, in an order that depends on `scramble`.
+        let mut step = scramble;
+        loop {
+            let mut pending: Vec<u32> = queues
+                .iter()
+                .filter(|(_, v)| !v.is_empty())
+                .map(|(d, _)| *d)
+                .collect();
+            if pending.is_empty() {
+                break;
+            }
+            pending.sort_unstable();
+            step = step
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            let d = pending[(step >> 33) as usize % pending.len()];
+            let q = queues.get_mut(&d).unwrap();
+            let take = q.len().min(1 + (step >> 40) as usize % 300);
+            let batch: Vec<RayRecord> = q.drain(q.len() - take..).collect();
+            let mut out = Outbox::default();
+            let w = owner(d) as usize;
+            tracers[w]
+                .trace_batch(d, &batch, &[], &held[w], &mut out)
+                .unwrap();
+            absorb(out, &mut queues);
+        }
+        for t in &tile_refs {
+            assert_eq!(
+                credit.get(&t.index).copied(),
+                Some(TILE_CREDIT),
+                "tile {} credit, pass {samples:?}",
+                t.index
+            );
+        }
     }
     Distributed { film, rays }
 }
@@ -224,6 +240,48 @@ fn check(scene_name: &str, kinds: &[IntegratorKind], spp: u32) {
                 );
             }
         }
+    }
+}
+
+/// Progressive passes (each dealt and finished before the next) give the one-pass
+/// image bit for bit, and so does the single-process driver's own passes.
+#[test]
+fn passes_give_the_same_bits_as_one_pass() {
+    use dray_core::passes::Passes;
+    let scene = dray_scene::load("cornell:glass").unwrap();
+    let s = settings(&scene, IntegratorKind::Path, 40, 30, 7);
+    let (film, rays) = reference(&scene, &s);
+    let layout = DomainLayout::for_source(&scene, &LayoutSpec::Kd(4)).unwrap();
+    let package = MemoryPackage::with_layout(scene.clone(), layout.clone()).unwrap();
+    let source = memory_domains(Arc::new(package), &s);
+    for cut in [Passes::Doubling, Passes::Every(3), Passes::Every(1)] {
+        let passes = cut.ranges(s.spp);
+        assert!(passes.len() > 1);
+        let d = distributed_with(&scene, &s, &layout, 3, 17, source.as_ref(), &passes);
+        assert_eq!(d.rays, rays, "{cut:?}: ray counts");
+        assert!(d.film == film, "{cut:?}: the image differs from one pass");
+        let integrator = Integrator::new(&scene, camera(&scene, &s), s.clone());
+        let accel = Accel::build(&scene.mesh);
+        let seen = std::sync::Mutex::new(Vec::new());
+        let out = render::render_passes(
+            &integrator,
+            &accel,
+            2,
+            &passes,
+            &|_, _| {},
+            &|f: &Film, k| seen.lock().unwrap().push((k, f.clone())),
+            &std::sync::atomic::AtomicBool::new(false),
+        )
+        .unwrap();
+        assert!(
+            out.film == film,
+            "{cut:?}: render_passes differs from one pass"
+        );
+        let seen = seen.into_inner().unwrap();
+        assert_eq!(seen.len(), passes.len(), "one image per pass");
+        assert!(seen.last().unwrap().1 == film);
+        // Each pass adds light: the first image is not the last.
+        assert!(seen[0].1 != film);
     }
 }
 
@@ -279,7 +337,16 @@ fn a_package_on_disk_gives_the_same_image() {
         assert!(a.scene.mesh == b.scene.mesh, "{owned:?}");
     }
     let source = package_domains(open_package(&dir).unwrap(), &s).unwrap();
-    let d = distributed_with(&scene, &s, &layout, 3, 11, source.as_ref());
+    let all = 0..s.spp;
+    let d = distributed_with(
+        &scene,
+        &s,
+        &layout,
+        3,
+        11,
+        source.as_ref(),
+        std::slice::from_ref(&all),
+    );
     let _ = std::fs::remove_dir_all(&dir);
     assert!(d.film == film, "image from the package differs");
 }
@@ -309,6 +376,8 @@ fn a_tile_past_the_image_is_an_error() {
             height,
             credit: TILE_CREDIT,
             coarse: false,
+            first_sample: 0,
+            samples: 0,
         };
         let mut out = Outbox::default();
         let err = tracer

@@ -139,6 +139,11 @@ impl JobActor {
             return;
         }
         self.job.publish_detail();
+        // Tiles taken back whole from the job store are complete in every pass: passes
+        // they make up entirely are over at once.
+        while self.job.pass_complete() {
+            self.start_next_pass();
+        }
         if self.job.all_complete() {
             // Taken back from the job store with every tile committed (the coordinator
             // stopped between the last tile and the job's end).
@@ -239,6 +244,9 @@ impl JobActor {
             JobEvent::Schedule(reply) => {
                 let _ = reply.send(self.job.sched.clone());
             }
+            JobEvent::View(reply) => {
+                let _ = reply.send(self.job.view());
+            }
         }
     }
 
@@ -286,6 +294,9 @@ impl JobActor {
                 if self.job.coarse_pass_complete() {
                     self.start_image_pass();
                 }
+                if self.job.pass_complete() {
+                    self.start_next_pass();
+                }
                 if self.job.all_complete() {
                     tracing::info!(tiles = self.job.tiles.len(), "job complete");
                     self.send_all(self.job.releases(Release::Finish, "completed"));
@@ -323,6 +334,24 @@ impl JobActor {
         for (w, a) in commands {
             if !self.membership.send_shared(&w, a) {
                 tracing::debug!(worker = %w, "worker gone before the image's tiles");
+            }
+        }
+    }
+
+    /// Every image tile finished a pass that is not the last: the next pass's tiles go
+    /// out (the scheduler's rule deals them again, so a worker that joined meanwhile
+    /// gets its share).
+    fn start_next_pass(&mut self) {
+        let tiles = self.job.next_pass();
+        tracing::info!(
+            pass = self.job.pass,
+            passes = self.job.passes_total(),
+            tiles = tiles.len(),
+            "pass complete; the next pass's tiles go out"
+        );
+        for (w, a) in self.job.commands(&tiles, false) {
+            if !self.membership.send_shared(&w, a) {
+                tracing::debug!(worker = %w, "worker gone before the next pass's tiles");
             }
         }
     }
@@ -621,6 +650,7 @@ fn answer_ended(ev: JobEvent) {
         // Dropping the reply says "no such job".
         JobEvent::Routing(_)
         | JobEvent::Schedule(_)
+        | JobEvent::View(_)
         | JobEvent::WorkerLost(_)
         | JobEvent::WorkerJoined(_) => {}
     }

@@ -8,6 +8,7 @@ use tokio::sync::oneshot;
 use tonic::Status;
 
 use super::report::ReportOutcome;
+use super::view::JobView;
 use crate::membership::{LostWorker, WorkerRecord};
 use crate::scheduler::state::JobSchedule;
 
@@ -34,6 +35,8 @@ pub enum JobEvent {
     Routing(oneshot::Sender<RoutingTable>),
     /// A copy of the scheduling state (tests, benchmarks, introspection).
     Schedule(oneshot::Sender<JobSchedule>),
+    /// Domains, owners, queues and rays per worker, for ListWorkers.
+    View(oneshot::Sender<JobView>),
 }
 
 /// The answer to a [`JobEvent::Report`].

@@ -6,15 +6,18 @@
 //! - [`running`]: what an actor owns: tiles and credit, the film, the schedule, the
 //!   caches, the counters it publishes; and the commands they cause.
 //! - [`report`]: a contribution report, checked and applied.
+//! - [`view`]: the snapshot of domains and queues a job gives `ListWorkers`.
 
 pub mod actor;
 pub mod event;
 pub mod registry;
 pub mod report;
 pub mod running;
+pub mod view;
 
 pub use actor::ActorConfig;
 pub use event::{JobEvent, ReportReply};
 pub use registry::JobRegistry;
 pub use report::ReportOutcome;
 pub use running::{JobPlan, RunningJob, TILES_PER_MESSAGE};
+pub use view::JobView;

@@ -19,6 +19,7 @@ use tonic::Status;
 use super::actor::{ActorConfig, JobActor};
 use super::event::{JobEvent, ReportReply};
 use super::running::{JobPlan, RunningJob};
+use super::view::JobView;
 use crate::membership::{LostWorker, Membership, WorkerRecord};
 use crate::scheduler::state::JobSchedule;
 
@@ -160,6 +161,27 @@ impl JobRegistry {
     /// A copy of job `id`'s scheduling state (for tests and introspection).
     pub async fn schedule(&self, id: &str) -> Option<JobSchedule> {
         self.ask(id, JobEvent::Schedule).await
+    }
+
+    /// A snapshot of every running job's domains, owners and queues (ListWorkers). A
+    /// job whose actor does not answer within `wait` (busy with a long report) is left
+    /// out rather than holding the listing.
+    pub async fn views(&self, wait: std::time::Duration) -> Vec<JobView> {
+        let mut asks = JoinSet::new();
+        for tx in self.all() {
+            asks.spawn(async move {
+                let (reply, rx) = oneshot::channel();
+                tx.send(JobEvent::View(reply)).await.ok()?;
+                tokio::time::timeout(wait, rx).await.ok()?.ok()
+            });
+        }
+        let mut views = Vec::new();
+        while let Some(done) = asks.join_next().await {
+            if let Ok(Some(v)) = done {
+                views.push(v);
+            }
+        }
+        views
     }
 
     /// The package of running job `id` (`JobSetup.package_path`,

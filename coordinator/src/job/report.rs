@@ -206,10 +206,7 @@ pub fn apply(job: &mut RunningJob, r: &ReportContributionsRequest) -> Applied {
                 }
                 job.tile_back[t] = b.to_wire();
                 if back != start && b == start && t < job.image_tiles {
-                    job.tiles_done += 1;
-                    if job.entry.store().is_some() {
-                        job.committed.push(t);
-                    }
+                    job.tile_finished(t);
                 }
             }
             _ => {

@@ -105,6 +105,15 @@ pub struct RunningJob {
     /// Image tiles completed since they were last posted to the job store (only for a
     /// job kept in one).
     pub(super) committed: Vec<usize>,
+    /// The progressive pass the image's tiles are in (index into the entry's
+    /// `passes.ranges()`), and per image tile how many passes it has complete: equal to
+    /// `pass` while its credit comes back, one more once it is all back, and every pass
+    /// for a tile taken back whole from the job store.
+    pub(super) pass: usize,
+    pub(super) tile_passes: Vec<u32>,
+    /// The film as the current pass started (the previous pass's image): a tile traced
+    /// again after a lost worker goes back to it. None in the first pass (zero).
+    pub(super) pass_base: Option<Arc<Film>>,
 }
 
 /// How a job's workers are released.
@@ -157,6 +166,9 @@ impl RunningJob {
             last_progress: Instant::now(),
             detail_stale: std::cell::Cell::new(true),
             committed: Vec::new(),
+            pass: 0,
+            tile_passes: vec![0; image_tiles],
+            pass_base: None,
         };
         if let Some(r) = resume {
             job.keep(r.tiles);
@@ -165,15 +177,20 @@ impl RunningJob {
     }
 
     /// Put back tiles committed before a coordinator restart: their exact sums into the
-    /// film and all their credit, so they are complete and never dealt. A tile that does
-    /// not fit the job's grid is left to be traced again.
+    /// film, and how many passes each holds. The job goes on from the first pass some
+    /// tile has not finished; tiles further on are complete in it (and in every pass they
+    /// hold), so they are not dealt again. A tile that does not fit the job's grid is
+    /// left to be traced again.
     fn keep(&mut self, tiles: Vec<CommittedTile>) {
-        for CommittedTile { tile, sums } in tiles {
+        let total = self.passes_total();
+        let mut kept = 0usize;
+        for CommittedTile { tile, sums, passes } in tiles {
             let t = tile as usize;
+            let passes = passes.unwrap_or(total).min(total);
             let fits = self.tiles.get(t).is_some_and(|x| {
                 !x.coarse && sums.len() as u64 == u64::from(x.width) * u64::from(x.height)
             });
-            if !fits || self.tile_complete(t) {
+            if !fits || passes == 0 || self.tile_passes[t] > 0 {
                 tracing::warn!(tile, "a stored tile does not fit the job: traced again");
                 continue;
             }
@@ -186,9 +203,71 @@ impl RunningJob {
                     }
                 }
             }
-            self.tile_back[t] = x.credit;
-            self.tiles_done += 1;
+            self.tile_passes[t] = passes;
+            kept += 1;
         }
+        if kept == 0 {
+            return;
+        }
+        let first_open = self.tile_passes.iter().copied().min().unwrap_or(0);
+        self.enter_pass((first_open as usize).min(total.saturating_sub(1) as usize));
+    }
+
+    /// Go to pass `pass`: the film so far becomes the pass image (shown by GetImage
+    /// when the pass is not the first, and the base a retried tile returns to); tiles
+    /// that hold more passes (taken back from the job store) are complete in it, the
+    /// others start with no credit back.
+    fn enter_pass(&mut self, pass: usize) {
+        let image = Arc::new(self.film.clone());
+        self.pass = pass;
+        if pass > 0 {
+            self.entry.passes.publish(image.clone(), pass as u32);
+        }
+        self.pass_base = Some(image);
+        self.tiles_done = 0;
+        for t in 0..self.image_tiles {
+            if self.tile_passes[t] as usize > pass {
+                self.tile_back[t] = self.tiles[t].credit;
+                self.tiles_done += 1;
+            } else {
+                self.tile_back[t] = 0;
+            }
+        }
+    }
+
+    /// Passes in the job.
+    pub(super) fn passes_total(&self) -> u32 {
+        self.entry.passes.total()
+    }
+
+    /// Whether the image's tiles are in the last pass.
+    pub(super) fn last_pass(&self) -> bool {
+        self.pass + 1 >= self.passes_total() as usize
+    }
+
+    /// Image tile `t`'s credit is all back: it has one more pass complete, and is
+    /// committed with it (kept in the job store when there is one).
+    pub(super) fn tile_finished(&mut self, t: usize) {
+        self.tiles_done += 1;
+        self.tile_passes[t] = self.pass as u32 + 1;
+        if self.entry.store().is_some() {
+            self.committed.push(t);
+        }
+    }
+
+    /// Whether every image tile has finished a pass that is not the last: the next
+    /// one can start.
+    pub(super) fn pass_complete(&self) -> bool {
+        self.coarse_done && !self.last_pass() && self.tiles_done as usize == self.image_tiles
+    }
+
+    /// Start the next pass: the image so far becomes the pass image (shown by GetImage,
+    /// and the base a retried tile returns to); every tile that has not finished it yet
+    /// goes out again with the next samples. Returns the tiles to deal.
+    pub(super) fn next_pass(&mut self) -> Vec<Tile> {
+        self.enter_pass(self.pass + 1);
+        self.publish();
+        self.incomplete_tiles()
     }
 
     /// Post the tiles completed since the last call, with their exact sums, to the job
@@ -215,6 +294,7 @@ impl RunningJob {
                 CommittedTile {
                     tile: t as u32,
                     sums,
+                    passes: Some(self.tile_passes[t]),
                 }
             })
             .collect();
@@ -466,22 +546,30 @@ impl RunningJob {
     }
 
     /// The tiles whose credit is not all back, of the phase the job is in: the coarse
-    /// pass's until it is complete, then the image's.
+    /// pass's until it is complete, then the image's, in the current pass's samples.
     pub(super) fn incomplete_tiles(&self) -> Vec<Tile> {
         let range = if self.coarse_done {
             0..self.image_tiles
         } else {
             self.image_tiles..self.tiles.len()
         };
+        let samples = self.entry.passes.ranges().get(self.pass).cloned();
         range
             .filter(|&t| !self.tile_complete(t))
-            .map(|t| self.tiles[t])
+            .map(|t| match &samples {
+                Some(s) if !self.tiles[t].coarse => Tile {
+                    first_sample: s.start,
+                    samples: s.len() as u32,
+                    ..self.tiles[t]
+                },
+                _ => self.tiles[t],
+            })
             .collect()
     }
 
-    /// Whether every tile, image and coarse, is complete.
+    /// Whether every tile, image and coarse, is complete in the last pass.
     pub(super) fn all_complete(&self) -> bool {
-        self.coarse_done && self.tiles_done as usize == self.image_tiles
+        self.coarse_done && self.last_pass() && self.tiles_done as usize == self.image_tiles
     }
 
     /// Whether the coarse pass has just completed (every coarse tile's credit is back
@@ -495,8 +583,9 @@ impl RunningJob {
         self.caches.as_ref().is_some_and(|c| c.pending.is_some())
     }
 
-    /// Set every pixel of tile `t` back to zero, exactly (wrapping integer sums: adding
-    /// the negated sum gives 0 whatever the sum was).
+    /// Set every pixel of tile `t` back to what it was when the current pass started
+    /// (zero in the first), exactly: wrapping integer sums, adding the difference gives
+    /// the base whatever the sum was.
     pub(super) fn clear_tile(&mut self, t: usize) {
         let tile = self.tiles[t];
         if tile.coarse {
@@ -509,7 +598,9 @@ impl RunningJob {
             for x in tile.x0..tile.x0.saturating_add(tile.width).min(width) {
                 let p = y * width + x;
                 let s = self.film.sum_fixed(p);
-                self.film.add_fixed(p, s.map(i64::wrapping_neg));
+                let base = self.pass_base.as_ref().map_or([0; 3], |b| b.sum_fixed(p));
+                self.film
+                    .add_fixed(p, std::array::from_fn(|c| base[c].wrapping_sub(s[c])));
             }
         }
         self.tile_back[t] = 0;
@@ -558,6 +649,24 @@ impl RunningJob {
             c.tally.publish(&self.entry);
         }
         self.detail_stale.set(true);
+    }
+
+    /// What ListWorkers shows of this job: owners, queues, rays per worker.
+    pub(super) fn view(&self) -> super::view::JobView {
+        let routes = self.sched.routing().routes();
+        super::view::JobView {
+            job_id: self.entry.id.clone(),
+            submitted_at: Some(self.entry.submitted_at),
+            schedule: self.sched.schedule().name().to_string(),
+            version: self.sched.version(),
+            attempt: self.sched.attempt(),
+            domains: self.sched.domains(),
+            local: routes.is_local(),
+            owners: routes.all_owners().to_vec(),
+            workers: self.sched.worker_ids(),
+            queues: self.sched.reports().clone(),
+            traced: self.metrics.traced().collect(),
+        }
     }
 
     /// Copy the per-worker detail (`JobStats.workers_detail`) into the public record:

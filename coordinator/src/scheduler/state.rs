@@ -192,6 +192,11 @@ impl JobSchedule {
         self.fresh = true;
     }
 
+    /// Each worker's latest queue report, this attempt.
+    pub fn reports(&self) -> &BTreeMap<String, Vec<DomainQueue>> {
+        &self.reports
+    }
+
     /// Rays queued at the job's workers, as of each one's latest report.
     pub fn rays_queued(&self) -> u64 {
         self.queued

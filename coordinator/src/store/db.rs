@@ -21,7 +21,7 @@ use super::writer::{Op, Writer};
 use super::{CommittedTile, StoreError, StoredJob, from_millis};
 
 /// The schema this build writes and the newest it reads (`PRAGMA user_version`).
-pub const SCHEMA_VERSION: u32 = 1;
+pub const SCHEMA_VERSION: u32 = 2;
 
 /// `PRAGMA application_id` of a dray job store ("dray"), so another program's SQLite
 /// file is never taken for one.
@@ -55,9 +55,13 @@ CREATE TABLE tiles (
     job_id TEXT NOT NULL,
     tile INTEGER NOT NULL,
     sums BLOB NOT NULL,               -- 3 x i64 little-endian per pixel, row-major
+    passes INTEGER,                   -- progressive passes in the sums; NULL: every pass
     PRIMARY KEY (job_id, tile)
 ) WITHOUT ROWID;
 ";
+
+/// From schema 1 (no progressive passes: a stored tile was complete) to 2.
+const MIGRATE_1_TO_2: &str = "ALTER TABLE tiles ADD COLUMN passes INTEGER;";
 
 /// An open job store: the lock, and the thread that writes the database.
 pub struct JobStore {
@@ -259,9 +263,15 @@ fn open_db(path: &Path) -> Result<Connection, StoreError> {
         tx.pragma_update(None, "user_version", SCHEMA_VERSION)
             .map_err(sql)?;
         tx.commit().map_err(sql)?;
+    } else if version == 1 {
+        let tx = conn.unchecked_transaction().map_err(sql)?;
+        tx.execute_batch(MIGRATE_1_TO_2).map_err(sql)?;
+        tx.pragma_update(None, "user_version", SCHEMA_VERSION)
+            .map_err(sql)?;
+        tx.commit().map_err(sql)?;
     } else if version < SCHEMA_VERSION {
-        // No older schema has been released: a dray store with a lower version is not
-        // one this build wrote.
+        // Schema 1 is the oldest released: a dray store with a lower version is not one
+        // this build wrote.
         return Err(corrupt(&format!("unknown schema version {version}")));
     }
     Ok(conn)
@@ -307,7 +317,8 @@ fn load(conn: &Connection, images: &Path) -> rusqlite::Result<Vec<StoredJob>> {
         })
     })?;
     let mut jobs = rows.collect::<rusqlite::Result<Vec<_>>>()?;
-    let mut tiles = conn.prepare("SELECT tile, sums FROM tiles WHERE job_id = ?1 ORDER BY tile")?;
+    let mut tiles =
+        conn.prepare("SELECT tile, sums, passes FROM tiles WHERE job_id = ?1 ORDER BY tile")?;
     for j in jobs.iter_mut().filter(|j| !ended(j.state)) {
         j.tiles = tiles
             .query_map([&j.id], |r| {
@@ -318,6 +329,7 @@ fn load(conn: &Connection, images: &Path) -> rusqlite::Result<Vec<StoredJob>> {
                         .chunks_exact(24)
                         .map(super::image_file::read_sums)
                         .collect(),
+                    passes: r.get(2)?,
                 })
             })?
             .collect::<rusqlite::Result<Vec<_>>>()?;
@@ -387,6 +399,7 @@ mod tests {
                 tiles: vec![CommittedTile {
                     tile: 3,
                     sums: vec![[1, -2, i64::MAX], [i64::MIN, 0, 7]],
+                    passes: Some(2),
                 }],
             });
             assert!(store.post_durable(
@@ -407,7 +420,8 @@ mod tests {
             jobs[0].tiles,
             [CommittedTile {
                 tile: 3,
-                sums: vec![[1, -2, i64::MAX], [i64::MIN, 0, 7]]
+                sums: vec![[1, -2, i64::MAX], [i64::MIN, 0, 7]],
+                passes: Some(2),
             }]
         );
         assert_eq!(jobs[1].state, JobState::Queued);
@@ -462,6 +476,49 @@ mod tests {
             .query_row("SELECT count(*) FROM t", [], |r| r.get(0))
             .unwrap();
         assert_eq!(n, 1, "its data is untouched");
+    }
+
+    #[test]
+    fn a_schema_1_store_is_migrated_and_its_tiles_count_as_complete() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join(DB_FILE);
+        {
+            let c = Connection::open(&db).unwrap();
+            c.execute_batch(&SCHEMA.replace(
+                "    passes INTEGER,                   -- progressive passes in the sums; NULL: every pass\n",
+                "",
+            ))
+            .unwrap();
+            c.pragma_update(None, "application_id", APPLICATION_ID)
+                .unwrap();
+            c.pragma_update(None, "user_version", 1).unwrap();
+            c.execute(
+                "INSERT INTO jobs (seq, id, spec, label, state, submitted_ms) \
+                 VALUES (1, 'job-1-x', x'', '', 3, 1)",
+                [],
+            )
+            .unwrap();
+            c.execute(
+                "INSERT INTO tiles (job_id, tile, sums) VALUES ('job-1-x', 0, ?1)",
+                [vec![0u8; 24]],
+            )
+            .unwrap();
+        }
+        let (_store, jobs) = JobStore::open(dir.path()).unwrap();
+        assert_eq!(jobs.len(), 1);
+        assert_eq!(
+            jobs[0].tiles,
+            [CommittedTile {
+                tile: 0,
+                sums: vec![[0, 0, 0]],
+                passes: None,
+            }]
+        );
+        let c = Connection::open(&db).unwrap();
+        let v: u32 = c
+            .pragma_query_value(None, "user_version", |r| r.get(0))
+            .unwrap();
+        assert_eq!(v, SCHEMA_VERSION);
     }
 
     #[test]

@@ -93,6 +93,9 @@ pub struct CommittedTile {
     pub tile: u32,
     /// Its pixels' fixed-point sums.
     pub sums: Vec<[i64; 3]>,
+    /// Progressive passes the sums hold (the tile is complete in passes `0..passes`);
+    /// None: every pass (tiles written before passes were kept per tile).
+    pub passes: Option<u32>,
 }
 
 /// One job as the store holds it.

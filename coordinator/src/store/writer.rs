@@ -252,8 +252,10 @@ fn apply(tx: &Transaction<'_>, op: Op, written: &[String]) -> rusqlite::Result<(
             )?;
         }
         Op::Tiles { id, tiles } => {
-            let mut q = tx
-                .prepare("INSERT OR REPLACE INTO tiles (job_id, tile, sums) VALUES (?1, ?2, ?3)")?;
+            let mut q = tx.prepare(
+                "INSERT OR REPLACE INTO tiles (job_id, tile, sums, passes) \
+                     VALUES (?1, ?2, ?3, ?4)",
+            )?;
             for t in tiles {
                 let mut sums = Vec::with_capacity(t.sums.len() * 24);
                 for s in &t.sums {
@@ -261,7 +263,7 @@ fn apply(tx: &Transaction<'_>, op: Op, written: &[String]) -> rusqlite::Result<(
                         sums.extend_from_slice(&c.to_le_bytes());
                     }
                 }
-                q.execute(params![id, t.tile, sums])?;
+                q.execute(params![id, t.tile, sums, t.passes])?;
             }
         }
         Op::Finish {

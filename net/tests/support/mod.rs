@@ -65,6 +65,19 @@ impl RenderService for Stub {
     ) -> Result<Response<GetImageResponse>, Status> {
         Err(Status::unimplemented("stub"))
     }
+    type WatchImageStream = Pin<Box<dyn Stream<Item = Result<GetImageResponse, Status>> + Send>>;
+    async fn watch_image(
+        &self,
+        _: Request<WatchImageRequest>,
+    ) -> Result<Response<Self::WatchImageStream>, Status> {
+        Err(Status::unimplemented("stub"))
+    }
+    async fn list_workers(
+        &self,
+        _: Request<ListWorkersRequest>,
+    ) -> Result<Response<ListWorkersResponse>, Status> {
+        Err(Status::unimplemented("stub"))
+    }
 }
 
 /// A server running until dropped.

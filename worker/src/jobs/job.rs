@@ -241,5 +241,7 @@ pub(super) fn tile_ref(t: &dray_proto::v1::Tile) -> TileRef {
         height: t.height,
         credit: dray_core::credit::Credit::from_wire(t.credit),
         coarse: t.coarse,
+        first_sample: t.first_sample,
+        samples: t.samples,
     }
 }

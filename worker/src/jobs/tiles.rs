@@ -79,6 +79,8 @@ mod tests {
             height: 2,
             credit: Credit::from_wire(1),
             coarse: false,
+            first_sample: 0,
+            samples: 0,
         }
     }
 

@@ -26,6 +26,10 @@ pub struct TileRef {
     /// A tile of the ray-cache coarse pass: its pixels are those of the coarse image,
     /// one regular ray each.
     pub coarse: bool,
+    /// The progressive pass (`dray_core::passes`): samples `first_sample..first_sample
+    /// + samples` of every pixel; `samples` 0 means every sample of the job.
+    pub first_sample: u32,
+    pub samples: u32,
 }
 
 impl TileRef {
@@ -43,14 +47,34 @@ impl TileRef {
                 height: t.h,
                 credit,
                 coarse: false,
+                first_sample: 0,
+                samples: 0,
             })
             .collect()
     }
 
+    /// This tile in the pass of samples `samples` (credit as given).
+    pub fn in_pass(self, samples: std::ops::Range<u32>) -> TileRef {
+        TileRef {
+            first_sample: samples.start,
+            samples: samples.len() as u32,
+            ..self
+        }
+    }
+
+    /// Samples per pixel this tile traces of a `spp`-sample job: its pass's, or all
+    /// (one for a coarse tile).
+    pub fn samples_per_pixel(&self, spp: u32) -> u32 {
+        match (self.coarse, self.samples) {
+            (true, _) => 1,
+            (false, 0) => spp.max(1),
+            (false, n) => n,
+        }
+    }
+
     /// Camera rays in the tile: pixels times samples (one per pixel for a coarse tile).
     pub fn camera_rays(&self, spp: u32) -> u64 {
-        let spp = if self.coarse { 1 } else { spp.max(1) };
-        self.width as u64 * self.height as u64 * spp as u64
+        self.width as u64 * self.height as u64 * u64::from(self.samples_per_pixel(spp))
     }
 }
 
@@ -78,12 +102,20 @@ impl JobTracer {
         residency: &dyn Residency,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
-        let spp = if tile.coarse {
-            1
-        } else {
-            self.settings.spp.max(1) as u64
-        };
-        let total = tile.camera_rays(spp as u32);
+        let spp = u64::from(tile.samples_per_pixel(self.settings.spp));
+        let job_spp = self.settings.spp.max(1);
+        if !tile.coarse
+            && tile.samples > 0
+            && u64::from(tile.first_sample) + u64::from(tile.samples) > u64::from(job_spp)
+        {
+            return Err(TraceError::BadSamples {
+                tile: tile.index,
+                first: tile.first_sample,
+                count: tile.samples,
+                spp: job_spp,
+            });
+        }
+        let total = tile.camera_rays(self.settings.spp);
         if tile.credit.camera_share(total, 0).is_none() {
             return Err(TraceError::TileCredit {
                 tile: tile.index,
@@ -125,7 +157,7 @@ impl JobTracer {
         });
         let end = start.saturating_add(count).min(total);
         for i in start..end {
-            let (p, sample) = (i / spp, (i % spp) as u32);
+            let (p, sample) = (i / spp, tile.first_sample + (i % spp) as u32);
             let (lx, ly) = (
                 (p % tile.width as u64) as u32,
                 (p / tile.width as u64) as u32,

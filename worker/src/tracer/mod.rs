@@ -88,6 +88,13 @@ pub enum TraceError {
         width: u32,
         height: u32,
     },
+    #[error("tile {tile}'s pass, samples {first}..+{count}, is not inside the job's {spp} spp")]
+    BadSamples {
+        tile: u32,
+        first: u32,
+        count: u32,
+        spp: u32,
+    },
     #[error(transparent)]
     Credit(#[from] CreditError),
     #[error(

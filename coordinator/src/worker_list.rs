@@ -1,0 +1,280 @@
+//! `ListWorkers`: the cluster as a dashboard shows it. Put together from three owners
+//! that each know part of it: the membership (address, threads, memory and queue from
+//! the last heartbeat), the running jobs' actors (owners, queue reports, rays traced per
+//! worker: [`JobView`]) and the rate window here (rays per second between listings).
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use dray_proto::v1::{DomainOwners, JobDomains, ListWorkersResponse, WorkerDomain, WorkerStatus};
+
+use crate::job::JobView;
+use crate::membership::{HeartbeatConfig, WorkerRecord};
+
+/// Shortest window a rate is measured over: listings closer together than this reuse
+/// the last rates (a burst of calls would otherwise measure noise).
+const MIN_WINDOW: Duration = Duration::from_millis(500);
+
+/// Longest window: an older sample says little about the rate now, so it is replaced and
+/// the rate falls back to each job's average.
+const MAX_WINDOW: Duration = Duration::from_secs(30);
+
+/// Rays per second per worker, measured between `ListWorkers` calls from the rays each
+/// job's actor counted per worker. Nothing is sampled while no one lists the workers.
+#[derive(Default)]
+pub struct RateWindow {
+    inner: Mutex<RateState>,
+}
+
+/// Rays traced per (job, worker) at one moment.
+type Sample = HashMap<(String, String), u64>;
+
+#[derive(Default)]
+struct RateState {
+    /// The previous sample, and when it was taken.
+    last: Option<(Instant, Sample)>,
+    /// Rates measured at the last sample.
+    rates: HashMap<String, f64>,
+}
+
+impl RateWindow {
+    /// Rays per second per worker over the window that ends `now`. A (job, worker) pair
+    /// seen in both samples adds its difference; one that is new adds its whole count
+    /// only when no earlier sample exists (a first listing then reads as 0 for it).
+    pub fn rates(&self, views: &[JobView], now: Instant) -> HashMap<String, f64> {
+        let sample: Sample = views
+            .iter()
+            .flat_map(|v| {
+                v.traced
+                    .iter()
+                    .map(|(w, n)| ((v.job_id.clone(), w.clone()), *n))
+            })
+            .collect();
+        let mut s = self.inner.lock().unwrap_or_else(|p| p.into_inner());
+        match &s.last {
+            Some((at, _)) if now.saturating_duration_since(*at) < MIN_WINDOW => {
+                return s.rates.clone();
+            }
+            Some((at, prev)) if now.saturating_duration_since(*at) <= MAX_WINDOW => {
+                let dt = now.saturating_duration_since(*at).as_secs_f64();
+                let mut rates: HashMap<String, f64> = HashMap::new();
+                for ((job, w), n) in &sample {
+                    let before = prev.get(&(job.clone(), w.clone())).copied().unwrap_or(0);
+                    *rates.entry(w.clone()).or_default() += n.saturating_sub(before) as f64 / dt;
+                }
+                s.rates = rates;
+            }
+            _ => s.rates.clear(),
+        }
+        s.last = Some((now, sample));
+        s.rates.clone()
+    }
+}
+
+/// The ListWorkers answer for `workers` (registered, in the order given) and the
+/// running jobs' `views`, with `rates` from [`RateWindow::rates`]. A worker is "silent"
+/// once it missed two heartbeats, "busy" while some running job lists it, else "idle".
+/// Jobs are listed newest first, unless `omit_jobs`.
+pub fn list(
+    workers: &[WorkerRecord],
+    mut views: Vec<JobView>,
+    rates: &HashMap<String, f64>,
+    heartbeat: HeartbeatConfig,
+    now: Instant,
+    omit_jobs: bool,
+) -> ListWorkersResponse {
+    views.sort_by(|a, b| {
+        b.submitted_at
+            .cmp(&a.submitted_at)
+            .then_with(|| a.job_id.cmp(&b.job_id))
+    });
+    let mut jobs_of: BTreeMap<&str, Vec<String>> = BTreeMap::new();
+    let mut domains_of: BTreeMap<&str, Vec<WorkerDomain>> = BTreeMap::new();
+    for v in &views {
+        for w in &v.workers {
+            jobs_of
+                .entry(w.as_str())
+                .or_default()
+                .push(v.job_id.clone());
+        }
+        for (w, queues) in &v.queues {
+            let mine = domains_of.entry(w.as_str()).or_default();
+            for q in queues {
+                mine.push(WorkerDomain {
+                    job_id: v.job_id.clone(),
+                    domain: q.domain,
+                    resident: q.resident,
+                    rays_queued: q.rays_queued,
+                    owned: v.owns(w, q.domain),
+                    resident_bytes: q.resident_bytes,
+                });
+            }
+        }
+        // Owned domains the worker has not reported yet (a new table, or no report).
+        for (d, owners) in v.owners.iter().enumerate() {
+            for w in owners {
+                let mine = domains_of.entry(w.as_str()).or_default();
+                let d = d as u32;
+                if !mine.iter().any(|x| x.job_id == v.job_id && x.domain == d) {
+                    mine.push(WorkerDomain {
+                        job_id: v.job_id.clone(),
+                        domain: d,
+                        owned: true,
+                        ..Default::default()
+                    });
+                }
+            }
+        }
+    }
+    let silent_after = heartbeat.interval.saturating_mul(2);
+    let workers = workers
+        .iter()
+        .map(|w| {
+            let since = now.saturating_duration_since(w.last_seen);
+            let jobs = jobs_of.remove(w.id.as_str()).unwrap_or_default();
+            let mut domains = domains_of.remove(w.id.as_str()).unwrap_or_default();
+            domains.sort_by(|a, b| (&a.job_id, a.domain).cmp(&(&b.job_id, b.domain)));
+            let state = if since > silent_after {
+                "silent"
+            } else if jobs.is_empty() {
+                "idle"
+            } else {
+                "busy"
+            };
+            WorkerStatus {
+                worker_id: w.id.clone(),
+                endpoint: w.endpoint.clone(),
+                hostname: w.hostname.clone(),
+                state: state.into(),
+                threads: w.threads,
+                memory_used_bytes: w.memory_used_bytes,
+                memory_budget_bytes: w.memory_budget_bytes,
+                rays_queued: w.rays_queued,
+                rays_per_second: rates.get(&w.id).copied().unwrap_or(0.0),
+                jobs,
+                domains,
+                since_heartbeat: Some(prost_types::Duration {
+                    seconds: since.as_secs() as i64,
+                    nanos: since.subsec_nanos() as i32,
+                }),
+                cache_endpoint: w.cache_endpoint.clone().unwrap_or_default(),
+            }
+        })
+        .collect();
+    let jobs = if omit_jobs {
+        Vec::new()
+    } else {
+        views
+            .iter()
+            .map(|v| JobDomains {
+                job_id: v.job_id.clone(),
+                schedule: v.schedule.clone(),
+                routing_version: v.version,
+                attempt: v.attempt,
+                domains: (0..v.domains)
+                    .map(|d| DomainOwners {
+                        domain: d,
+                        worker_ids: v.owners.get(d as usize).cloned().unwrap_or_default(),
+                        rays_queued: v.queued_for(d),
+                    })
+                    .collect(),
+            })
+            .collect()
+    };
+    ListWorkersResponse { workers, jobs }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dray_proto::v1::DomainQueue;
+
+    fn view(job: &str, traced: &[(&str, u64)]) -> JobView {
+        JobView {
+            job_id: job.into(),
+            domains: 2,
+            owners: vec![vec!["w1".into()], vec!["w2".into(), "w1".into()]],
+            workers: vec!["w1".into(), "w2".into()],
+            queues: [(
+                "w2".to_string(),
+                vec![DomainQueue {
+                    domain: 1,
+                    rays_queued: 7,
+                    resident: true,
+                    resident_bytes: 100,
+                }],
+            )]
+            .into_iter()
+            .collect(),
+            traced: traced.iter().map(|(w, n)| (w.to_string(), *n)).collect(),
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn rates_are_differences_over_the_window_and_zero_at_first() {
+        let r = RateWindow::default();
+        let t0 = Instant::now();
+        let first = r.rates(&[view("j", &[("w1", 100)])], t0);
+        assert_eq!(first.get("w1").copied().unwrap_or(0.0), 0.0);
+        // Too soon: the last rates again.
+        let soon = r.rates(
+            &[view("j", &[("w1", 150)])],
+            t0 + Duration::from_millis(100),
+        );
+        assert_eq!(soon.get("w1").copied().unwrap_or(0.0), 0.0);
+        let later = r.rates(&[view("j", &[("w1", 300)])], t0 + Duration::from_secs(2));
+        assert_eq!(later["w1"], 100.0);
+        // A job that ended no longer counts; a new one counts its whole count.
+        let next = r.rates(&[view("k", &[("w1", 40)])], t0 + Duration::from_secs(4));
+        assert_eq!(next["w1"], 20.0);
+    }
+
+    #[test]
+    fn owners_queues_and_states_come_together() {
+        let hb = HeartbeatConfig::default();
+        let now = Instant::now();
+        let rec = |id: &str, ago: Duration| WorkerRecord {
+            id: id.into(),
+            endpoint: format!("http://{id}"),
+            cache_endpoint: None,
+            threads: 2,
+            memory_budget_bytes: 1000,
+            hostname: "h".into(),
+            last_seen: now - ago,
+            memory_used_bytes: 10,
+            rays_queued: 7,
+            outbox: Default::default(),
+            member_token: dray_net::Token::generate().expect("a token"),
+        };
+        let workers = [
+            rec("w1", Duration::ZERO),
+            rec("w2", Duration::ZERO),
+            rec("w3", Duration::ZERO),
+            rec("w4", Duration::from_secs(5)),
+        ];
+        let rates = HashMap::from([("w1".to_string(), 5.0)]);
+        let out = list(&workers, vec![view("j", &[])], &rates, hb, now, false);
+        let states: Vec<&str> = out.workers.iter().map(|w| w.state.as_str()).collect();
+        assert_eq!(states, ["busy", "busy", "idle", "silent"]);
+        assert_eq!(out.workers[0].rays_per_second, 5.0);
+        let w1: Vec<(u32, bool)> = out.workers[0]
+            .domains
+            .iter()
+            .map(|d| (d.domain, d.owned))
+            .collect();
+        assert_eq!(w1, [(0, true), (1, true)]);
+        let w2 = &out.workers[1].domains;
+        assert_eq!(w2.len(), 1);
+        assert!(w2[0].resident && w2[0].owned && w2[0].rays_queued == 7);
+        assert_eq!(out.jobs.len(), 1);
+        assert_eq!(out.jobs[0].domains[1].worker_ids, ["w2", "w1"]);
+        assert_eq!(out.jobs[0].domains[1].rays_queued, 7);
+        assert!(
+            list(&workers, vec![view("j", &[])], &rates, hb, now, true)
+                .jobs
+                .is_empty()
+        );
+    }
+}

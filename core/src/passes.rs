@@ -1,0 +1,107 @@
+//! Progressive passes: how a job's samples per pixel are cut into passes, so the image
+//! of a running job can be shown after each one (docs/architecture.md "Passes").
+//!
+//! Pass `k` traces samples `ranges()[k]` of every pixel. Each sample's random numbers
+//! are keyed by pixel and sample index, and the film adds fixed-point integers, so the
+//! final image is the same bits however the samples are cut: passes change when an
+//! image can be seen, never what it is.
+
+use std::ops::Range;
+
+/// The default cut: [`Passes::Doubling`].
+pub const DEFAULT: &str = "doubling";
+
+/// How the samples are cut.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Passes {
+    /// 1, 1, 2, 4, ... samples per pixel: after pass `k` the image has `2^k` samples
+    /// (the last pass takes what is left), about log2(spp) + 1 passes. Early previews
+    /// come fast, and the waits before pass boundaries (the slowest tile of each pass)
+    /// stay few.
+    Doubling,
+    /// Passes of this many samples (the last one smaller); `Every(spp)` is one pass.
+    Every(u32),
+}
+
+impl Passes {
+    /// Parse the JobSpec/CLI form: "doubling", "one", or a number of samples per pass
+    /// (1..=spp). Empty means [`DEFAULT`].
+    pub fn parse(s: &str, spp: u32) -> Result<Passes, String> {
+        match s.trim() {
+            "" | "doubling" => Ok(Passes::Doubling),
+            "one" => Ok(Passes::Every(spp.max(1))),
+            n => match n.parse::<u32>() {
+                Ok(n) if (1..=spp.max(1)).contains(&n) => Ok(Passes::Every(n)),
+                _ => Err(format!(
+                    "{s:?} is not \"doubling\", \"one\" or a number of samples per pass \
+                     1..={spp}"
+                )),
+            },
+        }
+    }
+
+    /// The sample ranges of the passes of a `spp`-sample image, in order: contiguous,
+    /// non-empty, covering `0..spp` (one pass `0..1` for spp 0, taken as 1).
+    pub fn ranges(self, spp: u32) -> Vec<Range<u32>> {
+        let spp = spp.max(1);
+        let mut out = Vec::new();
+        let mut at = 0u32;
+        while at < spp {
+            let end = match self {
+                Passes::Doubling => at.saturating_mul(2).max(1).min(spp),
+                Passes::Every(n) => at.saturating_add(n.max(1)).min(spp),
+            };
+            out.push(at..end);
+            at = end;
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+// One pass is one range: a list of one range is what is meant.
+#[allow(clippy::single_range_in_vec_init)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn doubling_shows_powers_of_two_and_ends_at_spp() {
+        assert_eq!(Passes::Doubling.ranges(1), [0..1]);
+        assert_eq!(Passes::Doubling.ranges(8), [0..1, 1..2, 2..4, 4..8]);
+        assert_eq!(
+            Passes::Doubling.ranges(100),
+            [0..1, 1..2, 2..4, 4..8, 8..16, 16..32, 32..64, 64..100]
+        );
+        assert_eq!(Passes::Doubling.ranges(65536).len(), 17);
+    }
+
+    #[test]
+    fn fixed_passes_and_one_pass() {
+        assert_eq!(Passes::Every(3).ranges(8), [0..3, 3..6, 6..8]);
+        assert_eq!(Passes::parse("one", 16).unwrap().ranges(16), [0..16]);
+        assert_eq!(Passes::parse("", 16).unwrap(), Passes::Doubling);
+        assert_eq!(Passes::parse("16", 16).unwrap(), Passes::Every(16));
+        for bad in ["0", "17", "-1", "half", "1.5"] {
+            let e = Passes::parse(bad, 16).unwrap_err();
+            assert!(e.contains("doubling"), "{e}");
+        }
+    }
+
+    #[test]
+    fn every_cut_covers_every_sample_once() {
+        for spp in [1u32, 2, 3, 7, 64, 1000] {
+            for p in [
+                Passes::Doubling,
+                Passes::Every(1),
+                Passes::Every(5),
+                Passes::Every(spp),
+            ] {
+                let r = p.ranges(spp);
+                assert_eq!(r[0].start, 0);
+                assert_eq!(r.last().unwrap().end, spp);
+                assert!(r.windows(2).all(|w| w[0].end == w[1].start));
+                assert!(r.iter().all(|x| !x.is_empty()));
+            }
+        }
+    }
+}
