@@ -6,8 +6,10 @@ use anyhow::{Result, bail};
 use clap::Args;
 use dray_coordinator::scheduler::Schedule;
 use dray_coordinator::scheduler::policy::{SCHEDULE_NAMES, ScheduleError};
-use dray_coordinator::service::MAX_EXPOSURE_STOPS;
 use dray_coordinator::validate::{DEFAULT_AO_SAMPLES, DEFAULT_INTEGRATOR, DEFAULT_MAX_DEPTH};
+use dray_core::display::Display;
+use dray_core::exposure::Exposure;
+use dray_core::tonemap::{Tonemap, UnknownTonemap};
 use dray_proto::v1::{JobSpec, PhmSettings, RayCacheSettings, Rgb, Vec3};
 
 use crate::options::parse_vec3;
@@ -59,10 +61,29 @@ pub struct JobFlags {
     /// pass), or N samples per pass. No effect on the final image.
     #[arg(long, default_value = dray_core::passes::DEFAULT)]
     pub passes: String,
-    /// Exposure in stops for the PNG (radiance is scaled by 2^EV; the EXR stays linear).
-    /// Scenes in photometric units, such as a 68000-lux sun, want about -16.
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    pub exposure: f32,
+    /// Exposure of the PNG: `auto` maps the image's log-average luminance (robust to a
+    /// few very bright pixels) to mid-grey, so scenes in photometric units (a 68000-lux
+    /// sun) come out well exposed; a number is stops (radiance times 2^EV, -64..=64).
+    /// The EXR stays linear.
+    #[arg(
+        long,
+        default_value = "auto",
+        value_name = "auto|EV",
+        allow_hyphen_values = true,
+        value_parser = parse_exposure
+    )]
+    pub exposure: Exposure,
+    /// Tone curve of the PNG: clamp (none: values above 1 clip; with --exposure 0 the
+    /// encoding of dray before curves), reinhard, aces (ACES filmic) or agx (AgX, as
+    /// Blender; the default: 6.5 stops of highlights above mid-grey, bright colours go
+    /// to white). The EXR stays linear.
+    #[arg(
+        long,
+        default_value = Tonemap::DEFAULT.name(),
+        value_name = "NAME",
+        value_parser = parse_tonemap
+    )]
+    pub tonemap: Tonemap,
     /// 8-bit sRGB PNG to write.
     #[arg(long, default_value = "dray.png")]
     pub output: std::path::PathBuf,
@@ -109,6 +130,20 @@ fn default_schedule() -> &'static str {
     Schedule::parse("", false).map_or("", |s| s.name())
 }
 
+/// `--exposure auto|EV`.
+fn parse_exposure(s: &str) -> Result<Exposure, String> {
+    Exposure::parse(s).map_err(|e| e.to_string())
+}
+
+/// `--tonemap NAME`: one of [`Tonemap::NAMES`] (the empty name is not one here: on the
+/// command line the default is spelt out).
+fn parse_tonemap(s: &str) -> Result<Tonemap, String> {
+    if s.is_empty() {
+        return Err(UnknownTonemap(String::new()).to_string());
+    }
+    Tonemap::parse(s).map_err(|e| e.to_string())
+}
+
 /// `--schedule NAME`: one of the coordinator's [`SCHEDULE_NAMES`], or a one-line error
 /// naming them.
 fn parse_schedule(s: &str) -> Result<String, String> {
@@ -142,16 +177,12 @@ impl JobFlags {
             .map_err(|e| anyhow::anyhow!("--passes: {e}"))
     }
 
-    /// `--exposure`: finite, within the coordinator's GetImage range.
-    pub fn check_exposure(&self) -> Result<()> {
-        if !self.exposure.is_finite() || self.exposure.abs() > MAX_EXPOSURE_STOPS {
-            bail!(
-                "--exposure {} is out of range (-{MAX_EXPOSURE_STOPS}..={MAX_EXPOSURE_STOPS} \
-                 stops)",
-                self.exposure
-            );
+    /// The display transform of the PNG (`--exposure`, `--tonemap`).
+    pub fn display(&self) -> Display {
+        Display {
+            exposure: self.exposure,
+            tonemap: self.tonemap,
         }
-        Ok(())
     }
 
     /// The job spec these flags describe, with `scene` as given. `max_depth` and
@@ -227,5 +258,19 @@ mod tests {
         );
         assert!(parse_schedule("Dynamic").is_err());
         assert_eq!(parse_schedule(default_schedule()).as_deref(), Ok("dynamic"));
+    }
+
+    #[test]
+    fn exposure_and_tone_curve_flags() {
+        assert_eq!(parse_exposure("auto"), Ok(Exposure::Auto));
+        assert_eq!(parse_exposure("-12"), Ok(Exposure::Stops(-12.0)));
+        let e = parse_exposure("65").expect_err("out of range");
+        assert!(e.contains("65 is out of range (-64..=64 stops)"), "{e}");
+        for (t, n) in Tonemap::ALL.into_iter().zip(Tonemap::NAMES) {
+            assert_eq!(parse_tonemap(n), Ok(t));
+        }
+        let e = parse_tonemap("").expect_err("empty");
+        assert!(e.contains("expected clamp, reinhard, aces or agx"), "{e}");
+        assert!(parse_tonemap("filmic").is_err());
     }
 }

@@ -4,6 +4,7 @@
 
 use std::path::{Path, PathBuf};
 
+use dray_core::display::Display;
 use dray_net::AuthChannel;
 use dray_proto::v1::render_service_client::RenderServiceClient;
 use dray_proto::v1::{ImageFormat, WatchImageRequest};
@@ -15,14 +16,16 @@ pub fn spawn(
     mut client: RenderServiceClient<AuthChannel>,
     id: String,
     path: PathBuf,
-    exposure: f32,
+    display: Display,
     quiet: bool,
 ) -> tokio::task::JoinHandle<()> {
     tokio::spawn(async move {
+        let (exposure, tonemap) = crate::submit_cmd::wire_display(display);
         let req = WatchImageRequest {
             job_id: id,
             format: ImageFormat::Png as i32,
             exposure,
+            tonemap,
             min_interval: None,
         };
         let mut stream = match client.watch_image(req).await {

@@ -16,7 +16,9 @@ use dray_core::trace::Trace;
 use dray_scene::partition::LayoutSpec;
 
 use crate::options::{apply_effects, parse_vec3};
-use crate::summary::{PhmSummary, RayCacheSummary, SceneFacts, Scheduling, Summary, print_summary};
+use crate::summary::{
+    DisplaySummary, PhmSummary, RayCacheSummary, SceneFacts, Scheduling, Summary, print_summary,
+};
 
 /// Most in-process worker actors: each has its own threads, queues and loopback server.
 pub const MAX_WORKERS: usize = 64;
@@ -92,7 +94,6 @@ pub fn check_args(a: &RenderArgs) -> Result<IntegratorKind> {
             Limits::MAX_DEPTH
         );
     }
-    a.job.check_exposure()?;
     if let Some(d) = a.domains
         && (d == 0 || d > Limits::MAX_DOMAINS)
     {
@@ -273,8 +274,11 @@ pub fn run(a: RenderArgs) -> Result<()> {
         mut summary,
         start,
     } = rendered?;
-    film.write_png(&a.job.output, a.job.spp, 2f32.powf(a.job.exposure))
+    let display = a.job.display();
+    let stops = display
+        .write(&film, a.job.spp, &a.job.output)
         .with_context(|| format!("cannot write {}", a.job.output.display()))?;
+    summary.display = Some(DisplaySummary::of(display, stops));
     if let Some(p) = &a.job.exr {
         film.write_exr(p, a.job.spp)
             .with_context(|| format!("cannot write {}", p.display()))?;

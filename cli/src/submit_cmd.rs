@@ -5,8 +5,8 @@
 //! defaults, so `dray submit` and `dray render` with the same flags give the same bits.
 //! Validation is the server's job: it answers `INVALID_ARGUMENT` with a message naming the
 //! field, which is printed as it is, so the rules live in one place. Only what never
-//! reaches the server (the address, `--env`/`--translate` syntax, exposure, which is
-//! applied at fetch time) is checked here, before anything is submitted.
+//! reaches the server (the address, `--env`/`--translate` syntax, exposure and tone
+//! curve, which are applied at fetch time) is checked here, before anything is submitted.
 
 use std::collections::BTreeMap;
 use std::io::IsTerminal;
@@ -15,6 +15,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
 use clap::Args;
+use dray_core::display::Display;
+use dray_core::exposure::Exposure;
 use dray_net::{AuthChannel, ClientOptions};
 use dray_proto::v1::render_service_client::RenderServiceClient;
 use dray_proto::v1::{
@@ -182,7 +184,6 @@ fn rpc_error(what: &str, url: &str, s: tonic::Status) -> anyhow::Error {
 
 pub fn run(a: SubmitArgs) -> Result<()> {
     let spec = job_spec(&a)?;
-    a.job.check_exposure()?;
     a.job.check_passes()?;
     let url = endpoint_url(&a.coordinator)?;
     let rt = tokio::runtime::Builder::new_current_thread()
@@ -213,7 +214,7 @@ async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
     let url = net.url(&url);
     let mut client = connect(&net, &url).await?;
     let reconnect = Duration::from_secs(a.reconnect_wait);
-    let preview = a.preview.clone().map(|p| (p, a.job.exposure));
+    let preview = a.preview.clone().map(|p| (p, a.job.display()));
     let (id, last) = run_job(
         &mut client,
         spec,
@@ -225,11 +226,11 @@ async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
     )
     .await?;
 
-    let png = fetch(&mut client, &id, ImageFormat::Png, a.job.exposure, &url).await?;
+    let png = fetch(&mut client, &id, ImageFormat::Png, a.job.display(), &url).await?;
     std::fs::write(&a.job.output, &png)
         .with_context(|| format!("cannot write {}", a.job.output.display()))?;
     if let Some(path) = &a.job.exr {
-        let exr = fetch(&mut client, &id, ImageFormat::Exr, 0.0, &url).await?;
+        let exr = fetch(&mut client, &id, ImageFormat::Exr, Display::default(), &url).await?;
         std::fs::write(path, &exr).with_context(|| format!("cannot write {}", path.display()))?;
     }
     // The final statistics (scheduling metrics included) are GetJob's: WatchJob carries
@@ -286,7 +287,7 @@ pub(crate) async fn run_job(
     quiet: bool,
     who: &str,
     reconnect: Duration,
-    preview: Option<(PathBuf, f32)>,
+    preview: Option<(PathBuf, Display)>,
 ) -> Result<(String, JobProgress)> {
     // SubmitJob answers after the scene is loaded, which can take a while; a Ctrl-C in
     // that window must still cancel the job the server is about to accept.
@@ -318,8 +319,8 @@ pub(crate) async fn run_job(
         eprintln!("{who}: job {id} accepted by {url}");
     }
 
-    let preview = preview.map(|(path, exposure)| {
-        crate::preview::spawn(client.clone(), id.clone(), path, exposure, quiet)
+    let preview = preview.map(|(path, display)| {
+        crate::preview::spawn(client.clone(), id.clone(), path, display, quiet)
     });
     let watcher = client.clone();
     let last = tokio::select! {
@@ -378,17 +379,31 @@ async fn cancel(client: &mut RenderServiceClient<AuthChannel>, id: &str) {
     }
 }
 
+/// `display` as GetImageRequest and WatchImageRequest spell it: `exposure` absent for
+/// automatic, the curve by name.
+pub(crate) fn wire_display(display: Display) -> (Option<f32>, String) {
+    let exposure = match display.exposure {
+        Exposure::Auto => None,
+        Exposure::Stops(ev) => Some(ev),
+    };
+    (exposure, display.tonemap.name().to_string())
+}
+
+/// GetImage: the job's image as `format`, a PNG through `display` (which the
+/// coordinator applies to the assembled film, as `dray render` does to its own).
 pub(crate) async fn fetch(
     client: &mut RenderServiceClient<AuthChannel>,
     id: &str,
     format: ImageFormat,
-    exposure: f32,
+    display: Display,
     url: &str,
 ) -> Result<Vec<u8>> {
+    let (exposure, tonemap) = wire_display(display);
     let req = GetImageRequest {
         job_id: id.to_string(),
         format: format as i32,
         exposure,
+        tonemap,
     };
     Ok(client
         .get_image(req)

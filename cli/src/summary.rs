@@ -3,6 +3,7 @@
 use std::collections::BTreeMap;
 use std::time::Duration;
 
+use dray_core::display::Display;
 use dray_core::integrator::{RayKind, RenderSettings};
 use dray_core::render::{RayCounts, RenderOutput};
 use dray_core::scene::Scene;
@@ -50,6 +51,43 @@ pub struct Summary {
     /// What the hit maps did; absent when the job had none.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub phm: Option<PhmSummary>,
+    /// How the 8-bit image was exposed and tone-mapped; absent until it is written.
+    #[serde(flatten)]
+    pub display: Option<DisplaySummary>,
+}
+
+/// The display transform the 8-bit image got, as the `--stats` JSON spells it.
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct DisplaySummary {
+    /// `--exposure`: "auto" or the stops given.
+    pub exposure: String,
+    /// The exposure applied, in stops (the one chosen, with `auto`).
+    pub exposure_stops: f32,
+    /// `--tonemap`.
+    pub tonemap: &'static str,
+}
+
+impl DisplaySummary {
+    pub fn of(d: Display, stops: f32) -> DisplaySummary {
+        DisplaySummary {
+            exposure: d.exposure.to_string(),
+            exposure_stops: stops,
+            tonemap: d.tonemap.name(),
+        }
+    }
+
+    /// "exposure -12.41 EV (auto), tone curve agx".
+    pub fn line(&self) -> String {
+        let how = if self.exposure == "auto" {
+            " (auto)"
+        } else {
+            ""
+        };
+        format!(
+            "exposure {:.2} EV{how}, tone curve {}",
+            self.exposure_stops, self.tonemap
+        )
+    }
 }
 
 /// A job's hit-map statistics (`JobStats.phm`), as the `--stats` JSON spells them.
@@ -494,6 +532,7 @@ impl Summary {
             scheduling: Scheduling::none(),
             ray_cache: None,
             phm: None,
+            display: None,
         }
     }
 }
@@ -545,6 +584,9 @@ pub fn print_summary(s: &Summary) {
     }
     if let Some(p) = &s.phm {
         eprintln!("hit maps     {}", p.line());
+    }
+    if let Some(p) = &s.display {
+        eprintln!("display      {}", p.line());
     }
     if s.nonfinite_contributions > 0 {
         eprintln!(

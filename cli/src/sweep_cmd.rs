@@ -14,6 +14,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow};
 use clap::{Args, CommandFactory, Parser};
+use dray_core::display::Display;
+use dray_core::exposure::Exposure;
 use dray_proto::v1::ImageFormat;
 use dray_proto::v1::render_service_client::RenderServiceClient;
 use serde_json::Value;
@@ -194,7 +196,7 @@ impl Renderer {
             (Renderer::Remote(r), Job::Submit(a)) => {
                 let Remote { rt, client, url } = &mut **r;
                 let spec = submit_cmd::job_spec(a)?;
-                let exposure = a.job.exposure;
+                let display = a.job.display();
                 if show {
                     // `dray submit`'s progress view names the job, not the setting.
                     eprintln!("dray sweep: {label}");
@@ -212,11 +214,12 @@ impl Renderer {
                     )
                     .await?;
                     let png =
-                        submit_cmd::fetch(client, &id, ImageFormat::Png, exposure, url).await?;
+                        submit_cmd::fetch(client, &id, ImageFormat::Png, display, url).await?;
                     // The clock stops with the image in hand: the EXR and the statistics
                     // are fetched for the comparison, not part of the render.
                     let wall = start.elapsed();
-                    let exr = submit_cmd::fetch(client, &id, ImageFormat::Exr, 0.0, url).await?;
+                    let exr =
+                        submit_cmd::fetch(client, &id, ImageFormat::Exr, display, url).await?;
                     let job = submit_cmd::get_job(client, &id, url).await?;
                     anyhow::Ok((png, wall, exr, job))
                 })?;
@@ -225,7 +228,7 @@ impl Renderer {
                 let stats = serde_json::to_value(submit_cmd::SubmitStats::of(&job, url, wall))
                     .context("cannot encode statistics")?;
                 Ok(Output {
-                    picture: decode(&png_bytes, &exr_bytes)?,
+                    picture: decode(&exr_bytes, metric_display(&a.job))?,
                     render_s: stats["job_time_s"].as_f64().unwrap_or(0.0),
                     cpu_s: job.stats.as_ref().map_or(0.0, |s| s.cpu_seconds),
                     stats,
@@ -276,22 +279,18 @@ fn render_here(a: &RenderArgs, png: &Path, label: &str, show: bool) -> Result<Ou
         b.finish_and_clear();
     }
     let r = r?;
-    let (spp, scale) = (a.job.spp, 2f32.powf(a.job.exposure));
-    r.film
-        .write_png(png, spp, scale)
+    let spp = a.job.spp;
+    a.job
+        .display()
+        .write(&r.film, spp, png)
         .with_context(|| format!("cannot write {}", png.display()))?;
-    let linear = r
-        .film
-        .linear(spp)
-        .iter()
-        .flat_map(|v| v.to_array())
-        .collect();
+    let linear = r.film.linear(spp);
     Ok(Output {
         picture: Picture::new(
             r.film.width,
             r.film.height,
-            r.film.srgb8(spp, scale),
-            linear,
+            metric_display(&a.job).develop_linear(&linear).srgb8,
+            linear.iter().flat_map(|v| v.to_array()).collect(),
         )?,
         stats: serde_json::to_value(&r.summary).context("cannot encode statistics")?,
         wall_s: r.summary.wall_time_s,
@@ -300,21 +299,35 @@ fn render_here(a: &RenderArgs, png: &Path, label: &str, show: bool) -> Result<Ou
     })
 }
 
-/// The picture a coordinator sent: its PNG (8-bit sRGB) and EXR (linear radiance).
-fn decode(png: &[u8], exr: &[u8]) -> Result<Picture> {
+/// How the sweep's sRGB metrics (`rmse`, `flip`) see an image: at the fixed exposure
+/// given (0 with `--exposure auto`) and no tone curve, as before dray had either. The
+/// images written get the display transform a user asked for, but the metrics must not
+/// change with it: every setting's automatic exposure differs from the exact image's by
+/// a hair, which would count as error, and a curve changes what 1/255 means.
+fn metric_display(job: &crate::job_flags::JobFlags) -> Display {
+    match job.exposure {
+        Exposure::Stops(ev) => Display::fixed(ev),
+        Exposure::Auto => Display::fixed(0.0),
+    }
+}
+
+/// The picture of the EXR (linear radiance) a coordinator sent, its sRGB through
+/// `metric` as [`render_here`] makes it from the film (the EXR holds the film's linear
+/// values exactly).
+fn decode(exr: &[u8], metric: Display) -> Result<Picture> {
     use exr::prelude::{ReadChannels, ReadLayers};
-    let img = image::load_from_memory_with_format(png, image::ImageFormat::Png)
-        .context("cannot decode the PNG the coordinator sent")?
-        .to_rgb8();
-    let (w, h) = img.dimensions();
-    let linear = exr::prelude::read()
+    let (w, h, pixels) = exr::prelude::read()
         .no_deep_data()
         .largest_resolution_level()
         .rgba_channels(
-            |size, _| (size.width(), vec![0f32; size.width() * size.height() * 3]),
-            |(width, px): &mut (usize, Vec<f32>), pos, (r, g, b, _): (f32, f32, f32, f32)| {
-                let i = (pos.y() * *width + pos.x()) * 3;
-                px[i..i + 3].copy_from_slice(&[r, g, b]);
+            |size, _| {
+                let (w, h) = (size.width(), size.height());
+                (w, h, vec![glam::Vec3::ZERO; w * h])
+            },
+            |(w, _, px): &mut (usize, usize, Vec<glam::Vec3>),
+             pos,
+             (r, g, b, _): (f32, f32, f32, f32)| {
+                px[pos.y() * *w + pos.x()] = glam::Vec3::new(r, g, b);
             },
         )
         .first_valid_layer()
@@ -323,9 +336,14 @@ fn decode(png: &[u8], exr: &[u8]) -> Result<Picture> {
         .context("cannot decode the EXR the coordinator sent")?
         .layer_data
         .channel_data
-        .pixels
-        .1;
-    Picture::new(w, h, img.into_raw(), linear)
+        .pixels;
+    let size = |n: usize| u32::try_from(n).context("the EXR the coordinator sent is too large");
+    Picture::new(
+        size(w)?,
+        size(h)?,
+        metric.develop_linear(&pixels).srgb8,
+        pixels.iter().flat_map(|v| v.to_array()).collect(),
+    )
 }
 
 /// A word as a shell would need it: quoted when it holds anything but plain characters.
@@ -575,15 +593,14 @@ mod tests {
         film.add(0, glam::Vec3::new(0.25, 0.5, 2.0));
         let dir = std::env::temp_dir().join(format!("dray-sweep-decode-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        film.write_png(&dir.join("a.png"), 1, 1.0).unwrap();
         film.write_exr(&dir.join("a.exr"), 1).unwrap();
-        let p = decode(
-            &std::fs::read(dir.join("a.png")).unwrap(),
-            &std::fs::read(dir.join("a.exr")).unwrap(),
-        )
-        .unwrap();
+        let exr = std::fs::read(dir.join("a.exr")).unwrap();
+        let p = decode(&exr, Display::fixed(0.0)).unwrap();
         assert_eq!((p.width, p.height), (2, 1));
+        // The metrics' sRGB is the old fixed encoding of the film, exactly.
         assert_eq!(p.srgb8, film.srgb8(1, 1.0));
+        let p = decode(&exr, Display::fixed(-1.0)).unwrap();
+        assert_eq!(p.srgb8, film.srgb8(1, 0.5));
         let want: Vec<f32> = film.linear(1).iter().flat_map(|v| v.to_array()).collect();
         assert_eq!(p.linear, want);
         let _ = std::fs::remove_dir_all(&dir);

@@ -116,7 +116,7 @@ fn get_png(addr: &str, id: &str) -> Result<Vec<u8>, String> {
         c.get_image(GetImageRequest {
             job_id: id.to_string(),
             format: ImageFormat::Png as i32,
-            exposure: 0.0,
+            ..Default::default()
         })
         .await
         .map(|r| r.into_inner().data)

@@ -378,6 +378,50 @@ fn the_readme_grpcurl_flow_renders_the_same_png_as_dray_render() {
         png.len(),
         want.len()
     );
+
+    // The fixed encoding of before automatic exposure, as docs/exposure.md tells grpcurl
+    // users to ask for it: `"exposure": 0` is sent (the field is optional, so a 0 is
+    // present on the wire), and is `dray render --exposure 0 --tonemap clamp`.
+    let fixed_req = format!(
+        r#"{{"jobId": "{job}", "format": "IMAGE_FORMAT_PNG", "exposure": 0, "tonemap": "clamp"}}"#
+    );
+    let fixed = json(&ok(
+        &grpcurl,
+        &[
+            "-plaintext",
+            "-max-msg-sz",
+            "1073741824",
+            "-d",
+            &fixed_req,
+            addr,
+            "dray.v1.RenderService/GetImage",
+        ],
+    ));
+    let fixed = base64_decode(fixed["data"].as_str().expect("data"));
+    let reference = common::render(
+        &dir,
+        "embedded-fixed",
+        "cornell",
+        &[
+            "--width",
+            "320",
+            "--height",
+            "240",
+            "--spp",
+            "16",
+            "--exposure",
+            "0",
+            "--tonemap",
+            "clamp",
+        ],
+    );
+    assert!(reference.ok, "{}", reference.stderr);
+    let want_fixed = std::fs::read(reference.png.expect("png")).expect("embedded png");
+    assert!(
+        fixed == want_fixed,
+        "exposure 0 with clamp over grpcurl is not dray render's"
+    );
+    assert!(fixed != png, "exposure 0 with clamp is the default image");
     drop(cluster);
     let _ = std::fs::remove_dir_all(&dir);
 }

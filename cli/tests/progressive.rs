@@ -54,7 +54,8 @@ fn a_running_job_shows_each_pass_and_ends_with_the_exact_image() {
             .watch_image(WatchImageRequest {
                 job_id: id.clone(),
                 format: ImageFormat::Exr as i32,
-                exposure: 0.0,
+                exposure: None,
+                tonemap: String::new(),
                 min_interval: Some(prost_types::Duration {
                     seconds: 0,
                     nanos: 50_000_000,
@@ -84,7 +85,7 @@ fn a_running_job_shows_each_pass_and_ends_with_the_exact_image() {
                     .get_image(GetImageRequest {
                         job_id: id.clone(),
                         format: ImageFormat::Png as i32,
-                        exposure: 0.0,
+                        ..Default::default()
                     })
                     .await
                     .ok()

@@ -4,51 +4,14 @@
 
 mod common;
 
-use std::path::{Path, PathBuf};
-
 use common::{render, rgb, tmp};
-
-fn scenes_dir() -> Option<PathBuf> {
-    let dir = std::env::var_os("DRAY_SCENES")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/scenes"));
-    if dir.is_dir() {
-        Some(dir)
-    } else {
-        common::dependency_missing(&format!(
-            "realistic tier: no scenes folder at {} (set DRAY_SCENES to the shared scenes)",
-            dir.display()
-        ));
-        None
-    }
-}
-
-fn models(dir: &Path) -> Vec<PathBuf> {
-    let mut out = Vec::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        let Ok(entries) = std::fs::read_dir(&d) else {
-            continue;
-        };
-        for e in entries.flatten() {
-            let p = e.path();
-            if p.is_dir() {
-                stack.push(p);
-            } else if let Some(ext) = p.extension().and_then(|e| e.to_str())
-                && ["gltf", "glb", "ply", "obj"].contains(&ext.to_ascii_lowercase().as_str())
-            {
-                out.push(p);
-            }
-        }
-    }
-    out.sort();
-    out
-}
 
 #[test]
 fn every_shared_model_renders_finite_and_not_blank() {
-    let Some(dir) = scenes_dir() else { return };
-    let list = models(&dir);
+    let Some(dir) = common::scenes_dir() else {
+        return;
+    };
+    let list = common::model_files(&dir, &["gltf", "glb", "ply", "obj"]);
     assert!(!list.is_empty(), "no models found under {}", dir.display());
     let out = tmp("realistic");
     for (i, model) in list.iter().enumerate() {

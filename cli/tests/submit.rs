@@ -60,6 +60,8 @@ fn submit_writes_the_same_bits_as_render() {
                 "4",
                 "--exposure",
                 "0.5",
+                "--tonemap",
+                "aces",
             ],
         ),
         (

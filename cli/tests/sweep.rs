@@ -233,6 +233,39 @@ fn sweeps_ray_cache_radius_and_spp_in_this_process() {
 }
 
 #[test]
+fn the_metrics_do_not_depend_on_the_pngs_exposure_or_tone_curve() {
+    // rmse, psnr and flip compare the linear images at a fixed exposure with no curve
+    // (README "dray sweep"): the default (automatic exposure, AgX), the old fixed
+    // encoding and another curve give other PNGs but the same numbers.
+    let dir = common::tmp("sweep-display");
+    let mut metrics = Vec::new();
+    let mut exact_pngs = Vec::new();
+    for (tag, flags) in [
+        ("default", &[][..]),
+        ("fixed", &["--exposure", "0", "--tonemap", "clamp"][..]),
+        ("aces", &["--tonemap", "aces"][..]),
+    ] {
+        let out = dir.join(tag);
+        let o = sweep(
+            &[&BASE[..], flags, &["--workers", "0", "--vary", "spp=1"]].concat(),
+            &out,
+            &[],
+        );
+        assert!(o.status.success(), "{tag}: {}", stderr(&o));
+        let (_, rows) = read_csv(&out.join("results.csv"));
+        metrics.push(["rmse", "rmse_linear", "psnr", "flip"].map(|c| rows[1][c].clone()));
+        exact_pngs.push(common::rgb(&out.join("exact.png")));
+    }
+    assert!(
+        metrics[1][0] != "0",
+        "spp 1 is not the exact image: {metrics:?}"
+    );
+    assert_eq!(metrics[0], metrics[1]);
+    assert_eq!(metrics[0], metrics[2]);
+    assert!(exact_pngs[0] != exact_pngs[1] && exact_pngs[1] != exact_pngs[2]);
+}
+
+#[test]
 fn sweeps_hit_map_thresholds() {
     let dir = common::tmp("sweep-phm");
     let out = dir.join("out");

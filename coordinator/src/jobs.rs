@@ -1,5 +1,6 @@
 //! The job table: every job the server accepted, its state and progress, and the finished
-//! film (fixed-point sums, so GetImage can encode PNG at any exposure, or EXR).
+//! film (fixed-point sums, so GetImage can encode PNG at any exposure and tone curve, or
+//! EXR).
 //!
 //! With workers registered, a job runs on them (`dispatch`, `job`). With none, jobs
 //! run one at a time, in submission order, in this process: a job waits QUEUED for the
@@ -13,11 +14,14 @@ use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
 use std::time::{Duration, Instant, SystemTime};
 
 use dray_core::bvh::Accel;
+use dray_core::display::Display;
+use dray_core::exposure::Exposure;
 use dray_core::film::Film;
 use dray_core::integrator::Integrator;
 use dray_core::render;
 use dray_core::scene::Scene;
 use dray_core::tiles::TileGrid;
+use dray_core::tonemap::Tonemap;
 use dray_core::trace::Trace;
 use dray_proto::v1::{Job, JobProgress, JobSpec, JobState, JobStats, RayCounts};
 use dray_scene::partition::LayoutSpec;
@@ -625,21 +629,23 @@ pub fn build_geometry(scene: &Scene, domains: u32, layout: &str) -> Result<Box<d
     Ok(Box::new(set))
 }
 
-/// The film as an 8-bit sRGB PNG of radiance times 2^`exposure`: the same bytes
-/// `dray render --output` writes.
-pub fn encode_png(film: &Film, spp: u32, exposure: f32) -> Result<Vec<u8>, String> {
-    use image::ImageEncoder;
-    let buf = film.srgb8(spp, 2f32.powf(exposure));
-    let mut out = Vec::new();
-    image::codecs::png::PngEncoder::new(&mut out)
-        .write_image(
-            &buf,
-            film.width,
-            film.height,
-            image::ExtendedColorType::Rgb8,
-        )
-        .map_err(|e| format!("cannot encode PNG: {e}"))?;
-    Ok(out)
+/// The film as an 8-bit sRGB PNG through `display` (exposure, tone curve): the same
+/// bytes `dray render --output` writes with the same `--exposure` and `--tonemap`. Called
+/// on the assembled film, so an automatic exposure sees the whole image, whatever the
+/// number of workers that traced it.
+pub fn encode_png(film: &Film, spp: u32, display: Display) -> Result<Vec<u8>, String> {
+    display.encode_png(film, spp)
+}
+
+/// The display transform a GetImage request asks for: `exposure` absent is automatic,
+/// `tonemap` empty the default curve. Errors name the request's field.
+pub fn requested_display(exposure: Option<f32>, tonemap: &str) -> Result<Display, String> {
+    let exposure = match exposure {
+        None => Exposure::Auto,
+        Some(ev) => Exposure::stops(ev).map_err(|e| format!("exposure: {e}"))?,
+    };
+    let tonemap = Tonemap::parse(tonemap).map_err(|e| format!("tonemap: {e}"))?;
+    Ok(Display { exposure, tonemap })
 }
 
 /// The film as linear f32 RGB OpenEXR, the bytes `dray render --exr` writes.
@@ -651,6 +657,35 @@ pub fn encode_exr(film: &Film, spp: u32) -> Result<Vec<u8>, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn get_image_display_errors_name_the_field() {
+        assert_eq!(requested_display(None, ""), Ok(Display::default()));
+        assert_eq!(
+            requested_display(Some(0.0), "clamp"),
+            Ok(Display::fixed(0.0))
+        );
+        assert_eq!(
+            requested_display(Some(-2.0), "reinhard").map(|d| d.exposure),
+            Ok(Exposure::Stops(-2.0))
+        );
+        for (e, t, want) in [
+            (
+                Some(f32::NAN),
+                "",
+                "exposure: NaN is out of range (-64..=64 stops)",
+            ),
+            (
+                Some(65.0),
+                "",
+                "exposure: 65 is out of range (-64..=64 stops)",
+            ),
+            (None, "ACES", "tonemap: unknown tone curve \"ACES\""),
+        ] {
+            let got = requested_display(e, t).expect_err(want);
+            assert!(got.starts_with(want), "{got}");
+        }
+    }
 
     fn spec(seed: u64) -> JobSpec {
         JobSpec {

@@ -7,6 +7,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::time::Duration;
 
+use dray_core::display::Display;
 use dray_core::scene::Scene;
 use dray_proto::v1::cluster_service_server::ClusterServiceServer;
 use dray_proto::v1::package_service_server::PackageServiceServer;
@@ -23,7 +24,7 @@ use tonic::{Request, Response, Status};
 
 use crate::cluster::{Cluster, ClusterApi, ClusterOptions};
 use crate::dispatch;
-use crate::jobs::{JobEntry, JobTable, encode_exr, encode_png};
+use crate::jobs::{JobEntry, JobTable, encode_exr, encode_png, requested_display};
 use crate::package_service::PackageApi;
 use crate::store::{JobStore, Resume, StoredJob};
 use crate::validate::{Limits, bounded, prepare, validate};
@@ -34,8 +35,6 @@ pub const DEFAULT_IMAGE_INTERVAL: Duration = Duration::from_millis(500);
 const VIEW_WAIT: Duration = Duration::from_secs(2);
 /// Default least time between two WatchJob messages.
 pub const DEFAULT_WATCH_INTERVAL: Duration = Duration::from_millis(250);
-/// Largest GetImage exposure either way, in stops (and `dray render`'s `--exposure`).
-pub const MAX_EXPOSURE_STOPS: f32 = 64.0;
 /// Default and largest ListJobs page.
 pub const DEFAULT_PAGE_SIZE: usize = 50;
 const MAX_PAGE_SIZE: usize = 1000;
@@ -541,7 +540,7 @@ impl RenderService for Coordinator {
         r: Request<GetImageRequest>,
     ) -> Result<Response<GetImageResponse>, Status> {
         let r = r.into_inner();
-        let format = image_format(r.format, r.exposure)?;
+        let (format, display) = image_request(r.format, r.exposure, &r.tonemap)?;
         self.table.sweep();
         let job = self.job(&r.job_id)?;
         let image = match job_image(&job)? {
@@ -556,7 +555,7 @@ impl RenderService for Coordinator {
             }
         };
         Ok(Response::new(
-            encode_image(&job, image, format, r.exposure).await?,
+            encode_image(&job, image, format, display).await?,
         ))
     }
 
@@ -567,7 +566,7 @@ impl RenderService for Coordinator {
         r: Request<WatchImageRequest>,
     ) -> Result<Response<Self::WatchImageStream>, Status> {
         let r = r.into_inner();
-        let format = image_format(r.format, r.exposure)?;
+        let (format, display) = image_request(r.format, r.exposure, &r.tonemap)?;
         let job = self.job(&r.job_id)?;
         job_image(&job)?;
         let interval = r
@@ -593,7 +592,7 @@ impl RenderService for Coordinator {
                 if let Some(image) = image {
                     let key = (image.passes_done, image.final_image);
                     if sent != Some(key) {
-                        let msg = encode_image(&job, image, format, r.exposure).await;
+                        let msg = encode_image(&job, image, format, display).await;
                         let end = msg.is_err() || key.1;
                         if tx.send(msg).await.is_err() || end {
                             return;
@@ -639,17 +638,17 @@ impl RenderService for Coordinator {
     }
 }
 
-/// The encoding GetImage and WatchImage are asked for, with the exposure checked.
-fn image_format(format: i32, exposure: f32) -> Result<ImageFormat, Status> {
-    if !exposure.is_finite() || exposure.abs() > MAX_EXPOSURE_STOPS {
-        return Err(Status::invalid_argument(format!(
-            "exposure: {exposure} is out of range (-{MAX_EXPOSURE_STOPS}..={MAX_EXPOSURE_STOPS} \
-             stops)"
-        )));
-    }
+/// The encoding GetImage and WatchImage are asked for, and the display transform of a
+/// PNG (`exposure` absent: automatic; `tonemap` empty: the default), checked.
+fn image_request(
+    format: i32,
+    exposure: Option<f32>,
+    tonemap: &str,
+) -> Result<(ImageFormat, Display), Status> {
+    let display = requested_display(exposure, tonemap).map_err(Status::invalid_argument)?;
     match ImageFormat::try_from(format) {
-        Ok(ImageFormat::Unspecified | ImageFormat::Png) => Ok(ImageFormat::Png),
-        Ok(ImageFormat::Exr) => Ok(ImageFormat::Exr),
+        Ok(ImageFormat::Unspecified | ImageFormat::Png) => Ok((ImageFormat::Png, display)),
+        Ok(ImageFormat::Exr) => Ok((ImageFormat::Exr, display)),
         Err(_) => Err(Status::invalid_argument(format!(
             "format: unknown image format {format}"
         ))),
@@ -712,7 +711,7 @@ async fn encode_image(
     job: &JobEntry,
     image: JobImage,
     format: ImageFormat,
-    exposure: f32,
+    display: Display,
 ) -> Result<GetImageResponse, Status> {
     let samples = image.samples;
     let film = image.film;
@@ -726,7 +725,7 @@ async fn encode_image(
         };
         match format {
             ImageFormat::Exr => encode_exr(&film, samples),
-            _ => encode_png(&film, samples, exposure),
+            _ => encode_png(&film, samples, display),
         }
     })
     .await

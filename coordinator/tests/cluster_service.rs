@@ -305,7 +305,7 @@ async fn a_job_runs_on_a_registered_worker_and_returns_its_sums() {
         .get_image(GetImageRequest {
             job_id: id.clone(),
             format: ImageFormat::Exr as i32,
-            exposure: 0.0,
+            ..Default::default()
         })
         .await
         .unwrap()

@@ -202,7 +202,7 @@ async fn finished_images_beyond_keep_finished_are_dropped_and_get_image_says_so(
     let image = |id: &str| GetImageRequest {
         job_id: id.into(),
         format: ImageFormat::Png as i32,
-        exposure: 0.0,
+        ..Default::default()
     };
     assert!(c.get_image(image(&first)).await.is_ok());
     let second = submit(&mut c, cornell(16, 16, 1)).await.unwrap();
@@ -239,7 +239,7 @@ async fn finished_images_are_kept_within_a_byte_budget() {
     let image = |id: &str| GetImageRequest {
         job_id: id.into(),
         format: ImageFormat::Png as i32,
-        exposure: 0.0,
+        ..Default::default()
     };
     let mut ids = Vec::new();
     for _ in 0..3 {

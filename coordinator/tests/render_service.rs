@@ -191,6 +191,8 @@ async fn render_service_end_to_end() {
     }
 
     // A small job: watch to SUCCEEDED, fetch the PNG, compare with the embedded path.
+    // Exposure 0 with no tone curve is the encoding of dray before automatic exposure,
+    // byte for byte.
     let id = submit(&mut c, cornell(64, 64, 4)).await.unwrap();
     let (state, msgs) = watch(&mut c, &id).await;
     assert_eq!(state, JobState::Succeeded);
@@ -199,7 +201,8 @@ async fn render_service_end_to_end() {
         .get_image(GetImageRequest {
             job_id: id.clone(),
             format: ImageFormat::Png as i32,
-            exposure: 0.0,
+            exposure: Some(0.0),
+            tonemap: "clamp".into(),
         })
         .await
         .unwrap()
@@ -210,11 +213,39 @@ async fn render_service_end_to_end() {
         img.data == reference_png(64, 64, 4),
         "PNG differs from dray render's"
     );
+    // Nothing said: automatic exposure and the default curve, another image.
+    let auto = c
+        .get_image(GetImageRequest {
+            job_id: id.clone(),
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(auto.content_type, "image/png");
+    assert!(auto.data != img.data, "the default is the fixed encoding");
+    // A bad exposure or curve is INVALID_ARGUMENT naming the field.
+    for (exposure, tonemap, field) in [
+        (Some(f32::INFINITY), "", "exposure: "),
+        (None, "filmic", "tonemap: "),
+    ] {
+        let e = c
+            .get_image(GetImageRequest {
+                job_id: id.clone(),
+                exposure,
+                tonemap: tonemap.into(),
+                ..Default::default()
+            })
+            .await
+            .unwrap_err();
+        assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+        assert!(e.message().starts_with(field), "{}", e.message());
+    }
     let exr = c
         .get_image(GetImageRequest {
             job_id: id.clone(),
             format: ImageFormat::Exr as i32,
-            exposure: 0.0,
+            ..Default::default()
         })
         .await
         .unwrap()

@@ -177,20 +177,10 @@ impl Film {
         out
     }
 
-    /// Write an 8-bit sRGB PNG of radiance times `scale` (2^exposure).
+    /// Write an 8-bit sRGB PNG of radiance times `scale` (2^exposure), with no tone
+    /// curve (`crate::display::Display` writes the others).
     pub fn write_png(&self, path: &Path, spp: u32, scale: f32) -> Result<(), FilmError> {
-        let buf = self.srgb8(spp, scale);
-        image::save_buffer(
-            path,
-            &buf,
-            self.width,
-            self.height,
-            image::ExtendedColorType::Rgb8,
-        )
-        .map_err(|e| FilmError::Png {
-            path: path.display().to_string(),
-            message: e.to_string(),
-        })
+        save_srgb8(path, self.width, self.height, &self.srgb8(spp, scale))
     }
 
     /// Write [`Film::encode_exr`]'s bytes to `path`.
@@ -221,6 +211,26 @@ impl Film {
             .to_buffered(&mut out)
             .map_err(|e| e.to_string())?;
         Ok(out.into_inner())
+    }
+}
+
+/// Write 8-bit sRGB pixels (RGB, row-major) as PNG or JPEG, by `path`'s extension.
+pub fn save_srgb8(path: &Path, width: u32, height: u32, buf: &[u8]) -> Result<(), FilmError> {
+    image::save_buffer(path, buf, width, height, image::ExtendedColorType::Rgb8).map_err(|e| {
+        FilmError::Png {
+            path: path.display().to_string(),
+            message: e.to_string(),
+        }
+    })
+}
+
+/// The inverse of the sRGB transfer function for an 8-bit value (what a viewer shows).
+pub fn srgb8_to_linear(c: u8) -> f32 {
+    let s = f32::from(c) / 255.0;
+    if s <= 0.04045 {
+        s / 12.92
+    } else {
+        ((s + 0.055) / 1.055).powf(2.4)
     }
 }
 
@@ -414,5 +424,8 @@ mod tests {
         assert_eq!(linear_to_srgb8(1.0), 255);
         assert_eq!(linear_to_srgb8(f32::NAN), 0);
         assert_eq!(linear_to_srgb8(0.2158605), 128);
+        for c in 0..=255u8 {
+            assert_eq!(linear_to_srgb8(srgb8_to_linear(c)), c);
+        }
     }
 }

@@ -4,8 +4,9 @@
 //! ([`scene`]), the BVH and the one watertight leaf test ([`bvh`], [`intersect`]),
 //! counter-based sampling ([`sampling`]), materials and BSDFs ([`material`], [`bsdf`]),
 //! lights ([`light`]), cameras ([`camera`]), the integrators' per-ray steps
-//! ([`integrator`]), the exact, order-free film ([`film`]) and the credit that tells when
-//! a tile is complete ([`credit`]).
+//! ([`integrator`]), the exact, order-free film ([`film`]), the display transform of its
+//! 8-bit images (exposure, tone curve: [`display`]) and the credit that tells when a tile
+//! is complete ([`credit`]).
 
 pub mod bsdf;
 pub mod camera;
@@ -18,7 +19,9 @@ pub mod texture;
 pub use glam::{Mat4, Vec2, Vec3, Vec4};
 pub mod bvh;
 pub mod credit;
+pub mod display;
 pub mod domain;
+pub mod exposure;
 pub mod film;
 pub mod integrator;
 pub mod intersect;
@@ -31,5 +34,6 @@ pub mod sampling;
 pub mod sheen;
 pub mod surface;
 pub mod tiles;
+pub mod tonemap;
 pub mod trace;
 pub mod wall;

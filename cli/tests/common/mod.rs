@@ -103,3 +103,44 @@ pub fn dependency_missing(why: &str) {
     }
     eprintln!("SKIPPED (not under CI): {why}");
 }
+
+/// The shared scenes folder of the realistic tier: `DRAY_SCENES`, else `../shared/scenes`
+/// beside the repository; `None` (after [`dependency_missing`] says so) when absent.
+pub fn scenes_dir() -> Option<PathBuf> {
+    let dir = std::env::var_os("DRAY_SCENES")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/scenes"));
+    if dir.is_dir() {
+        Some(dir)
+    } else {
+        dependency_missing(&format!(
+            "realistic tier: no scenes folder at {} (set DRAY_SCENES to the shared scenes)",
+            dir.display()
+        ));
+        None
+    }
+}
+
+/// Every model file under `dir` whose extension (lower-cased) is one of `extensions`,
+/// sorted.
+pub fn model_files(dir: &Path, extensions: &[&str]) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        let Ok(entries) = std::fs::read_dir(&d) else {
+            continue;
+        };
+        for e in entries.flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if let Some(ext) = p.extension().and_then(|e| e.to_str())
+                && extensions.contains(&ext.to_ascii_lowercase().as_str())
+            {
+                out.push(p);
+            }
+        }
+    }
+    out.sort();
+    out
+}
