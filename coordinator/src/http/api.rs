@@ -135,14 +135,18 @@ fn detail(job: Option<Job>, method: &str) -> Result<Json<JobDetail>, ApiError> {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ImageQuery {
+    /// Stops; absent: automatic (GetImageRequest.exposure).
     #[serde(default)]
-    pub exposure: f32,
+    pub exposure: Option<f32>,
+    /// The tone curve; absent: the default (GetImageRequest.tonemap).
+    #[serde(default)]
+    pub tonemap: Option<String>,
     /// Ignored: lets the page ask again for a new image without a cached answer.
     #[serde(default, rename = "v")]
     pub _version: Option<String>,
 }
 
-/// `GET /api/jobs/{id}/image.png?exposure=EV`: GetImage as PNG (409 while the job has no
+/// `GET /api/jobs/{id}/image.png?exposure=EV&tonemap=NAME`: GetImage as PNG (409 while the job has no
 /// image to give).
 pub async fn image(
     State(d): State<Dashboard>,
@@ -155,6 +159,7 @@ pub async fn image(
             job_id: id,
             format: ImageFormat::Png as i32,
             exposure: q.exposure,
+            tonemap: q.tonemap.unwrap_or_default(),
         }))
         .await?
         .into_inner();
