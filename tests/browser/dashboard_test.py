@@ -38,6 +38,7 @@ from pathlib import Path
 from PIL import Image
 from selenium import webdriver
 from selenium.webdriver.chrome.service import Service
+from selenium.common.exceptions import NoSuchElementException, StaleElementReferenceException
 from selenium.webdriver.common.by import By
 
 from cluster import Cluster, wait_for
@@ -200,13 +201,24 @@ def cancel_from_page(d, c: Cluster, artifacts: Path) -> None:
         wait_for("domains listed at the workers", lambda: d.execute_script(
             "return document.querySelectorAll('#workers tbody td.chips .chip').length") > 0)
         d.save_screenshot(str(artifacts / "running-domains.png"))
-    d.find_element(By.CSS_SELECTOR, f'button[data-cancel="{job}"]').click()
+    wait_for("the cancel button to take the click", lambda: click(
+        d, f'button[data-cancel="{job}"]'))
     wait_for("the page to show it CANCELLED", lambda: any(
         r["id"] == job and r["state"] == "CANCELLED" for r in rows(d)))
     got = c.grpcurl(GRPCURL, "GetJob", {"jobId": job})
     state = got["job"]["progress"]["state"]
     assert state == "JOB_STATE_CANCELLED", got
     d.save_screenshot(str(artifacts / "cancelled.png"))
+
+
+def click(d, css: str) -> bool:
+    """Click the element `css` selects; False (try again) when a live update redrew it
+    between finding and clicking."""
+    try:
+        d.find_element(By.CSS_SELECTOR, css).click()
+        return True
+    except (StaleElementReferenceException, NoSuchElementException):
+        return False
 
 
 def has_list_workers(c: Cluster) -> bool:
@@ -242,9 +254,9 @@ def many_jobs(d, c: Cluster, artifacts: Path) -> None:
         assert status == 200, (status, got)
     wait_for("100 rows and an older page", lambda: len(rows(d)) == 100 and d.execute_script(
         "return !!document.querySelector('#jobs-pager button')"))
-    d.find_element(By.CSS_SELECTOR, "#jobs-pager button").click()
+    wait_for("a click on " + "#jobs-pager button", lambda: click(d, "#jobs-pager button"))
     wait_for("the older page", lambda: 0 < len(rows(d)) < 100)
-    d.find_element(By.CSS_SELECTOR, '#jobs-pager button[data-page="newest"]').click()
+    wait_for("a click on " + '#jobs-pager button[data-page="newest"]', lambda: click(d, '#jobs-pager button[data-page="newest"]'))
     wait_for("the newest page again", lambda: len(rows(d)) == 100)
 
 
@@ -253,7 +265,7 @@ def readme_screenshot(d, artifacts: Path) -> None:
     job = d.execute_script(
         "return [...document.querySelectorAll('#jobs tbody tr')]"
         ".find(r => r.dataset.state === 'SUCCEEDED').dataset.id")
-    d.find_element(By.CSS_SELECTOR, f'#jobs tbody tr[data-id="{job}"]').click()
+    wait_for("a click on " + f'#jobs tbody tr[data-id="{job}"]', lambda: click(d, f'#jobs tbody tr[data-id="{job}"]'))
     wait_for("its image", lambda: d.find_element(By.ID, "preview").get_attribute("data-version") != "0")
     # The whole page, not just the window.
     height = d.execute_script("return document.documentElement.scrollHeight")
