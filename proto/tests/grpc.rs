@@ -57,7 +57,9 @@ fn descriptor_set_has_the_services() {
             "GetJob",
             "ListJobs",
             "CancelJob",
-            "GetImage"
+            "GetImage",
+            "WatchImage",
+            "ListWorkers"
         ]
     );
     let streaming: BTreeMap<&str, (bool, bool)> =
