@@ -1,32 +1,36 @@
-//! The acceleration structure: an obvhs compressed wide BVH (CWBVH) over the scene's
-//! triangles, with the watertight test of [`crate::intersect`] as the only leaf test.
+//! The acceleration structure: an 8-wide BVH over the scene's triangles, with the
+//! watertight test of [`crate::intersect`] as the only leaf test.
 //!
-//! obvhs's node test clamps the entry distance to an absolute epsilon of 1e-4, which would
-//! lose hits near a ray's origin in small scenes. The accelerator therefore works in its
-//! own space: world coordinates scaled by a power of two `s` chosen so the scene spans
-//! about 2^20 units. Scaling by a power of two is exact, so hits, barycentrics and
-//! watertightness are unchanged, and the node epsilon becomes ~1e-10 of the scene.
+//! What is obvhs's and what is dray's own:
+//! - the binary tree is dray's (`build`): a binned-SAH build with a bounded depth,
+//!   because obvhs's PLOC builder goes quadratic and arbitrarily deep on coincident
+//!   triangles; it produces obvhs's `Bvh2` type;
+//! - the collapse to 8-wide nodes is obvhs's algorithm (Ylitie et al. 2017's cost-based
+//!   collapse, children ordered by octant), run in parallel by `convert` with the same
+//!   result node for node as obvhs's `bvh2_to_cwbvh` (tested);
+//! - the node layout is dray's (`wide`): exact f32 child planes, as Embree's BVH8,
+//!   instead of obvhs's 8-bit quantised ones; the node test (`node_test`: SSE2 on every
+//!   x86-64, AVX2 with FMA picked at run time, portable elsewhere), the traversal loop
+//!   (`traverse`, obvhs's node-group loop) and the leaf layout (`leaf`) are dray's.
+//!
+//! The accelerator works in its own space: world coordinates scaled by a power of two
+//! `s` chosen so the scene spans about 2^20 units. Scaling by a power of two is exact,
+//! so hits, barycentrics and watertightness are unchanged.
 //!
 //! Node boxes are exactly the bounds of their triangles; the node test instead grows
 //! every box, per ray, by 2^-17 of the largest distance from the ray's origin to the
-//! scene's box ([`BOX_MARGIN`]), so that rounding in the slab test, in the boxes'
-//! quantisation or in the leaf test can never cull a box whose triangle the leaf test
-//! would hit (see `node_test`). The margin scales with the distances the arithmetic
-//! works with, never with the coordinates' magnitude, so a scene far from the origin is
-//! traversed as fast as at the origin.
+//! scene's box ([`BOX_MARGIN`]), so that rounding in the slab test or in the leaf test
+//! can never cull a box whose triangle the leaf test would hit (see `node_test`). The
+//! margin scales with the distances the arithmetic works with, never with the
+//! coordinates' magnitude, so a scene far from the origin is traversed as fast as at the
+//! origin. Triangles with a non-finite corner are left out (nothing can hit them), and
+//! the scene's bounds are taken in f64 so that coordinates near the f32 range cannot
+//! make the scale or a box infinite.
 //!
-//! The binary tree under the CWBVH is dray's own (see `build`): a binned-SAH build with
-//! a bounded depth, because obvhs's PLOC builder goes quadratic and arbitrarily deep on
-//! coincident triangles. Triangles with a non-finite corner are left out (nothing can
-//! hit them), and the scene's bounds are taken in f64 so that coordinates near the f32
-//! range cannot make the scale or a box infinite.
-//!
-//! Traversal is dray's own loop over obvhs's compressed nodes (`traverse`), with the
-//! nodes re-laid out for an eight-children-at-once box test (`wide`, `node_test`: SSE2 on
-//! every x86-64, AVX2 picked at run time) and the triangles stored in leaf order for the
-//! watertight test (`leaf`). Both tests are obvhs's and [`crate::intersect`]'s arithmetic,
-//! operation for operation, and the loop visits nodes and triangles in obvhs's order, so
-//! the answers are the same bits as with obvhs's `traverse!`.
+//! The closest hit is the smallest distance the leaf test finds, ties going to the lower
+//! triangle id: it does not depend on which boxes the node test lets through (as long as
+//! it is conservative) nor on the order of visits, so every build of the node test, and
+//! any future layout, gives the same answers.
 
 use std::time::Duration;
 
@@ -72,8 +76,9 @@ pub struct QueryRay {
 /// The part of the largest distance from a ray's origin to the scene's box by which the
 /// node test grows every box (see `node_test`, "Conservative"). The roundings it covers
 /// add up to well under 2^-19 of that distance (about 50 units of 2^-24: the slab
-/// arithmetic, the quantisation of child planes and the leaf test's shear and edge
-/// functions); 2^-17 leaves a factor of about 2.5, and is still 10^-5 of the scene.
+/// arithmetic and the leaf test's shear and edge functions; it was sized when child
+/// planes were also quantised, which they no longer are); 2^-17 leaves a factor of at
+/// least 2.5, and is still 10^-5 of the scene.
 pub const BOX_MARGIN: f32 = 1.0 / (1u32 << 17) as f32;
 
 struct Tri {
@@ -187,13 +192,13 @@ impl Accel {
                 }
             })
             .collect();
-        let tris = bvh
+        let tris: Vec<PackedTri> = bvh
             .primitive_indices
             .par_iter()
             .map(|&i| PackedTri::new(prims[i as usize].v))
             .collect();
         Accel {
-            nodes: wide::from_cwbvh(&bvh),
+            nodes: wide::from_cwbvh(&bvh, &tris),
             tris,
             ids,
             lo: box_lo,
@@ -418,13 +423,13 @@ impl Accel {
     }
 }
 
-/// [`traverse::walk`] with the AVX2 node test, compiled for AVX2 (and the POPCNT and
-/// LZCNT that come with it) so the whole loop, leaf test included, uses them.
+/// [`traverse::walk`] with the AVX2 node test, compiled for AVX2 and FMA (and the POPCNT
+/// and LZCNT that come with them) so the whole loop, leaf test included, uses them.
 ///
 /// # Safety
-/// The CPU must support AVX2, POPCNT and LZCNT; `nodes` as for [`traverse::walk`].
+/// The CPU must support AVX2, FMA, POPCNT and LZCNT; `nodes` as for [`traverse::walk`].
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,popcnt,lzcnt")]
+#[target_feature(enable = "avx2,fma,popcnt,lzcnt")]
 unsafe fn walk_avx2<C: Counter>(
     nodes: &[WideNode],
     ray: &NodeRay,
@@ -573,17 +578,15 @@ mod tests {
                     continue;
                 }
                 let (want, seen_by) = leaf_hits(o, d);
-                // Every build of the node test visits the same slots, in the same order.
-                assert!(
-                    seen_by.windows(2).all(|w| w[0] == w[1]),
-                    "ray {i}: builds differ"
-                );
-                let seen = &seen_by[0];
-                for s in &want {
-                    assert!(
-                        seen.contains(s),
-                        "scale {scale} shift {shift} ray {i}: slot {s} is hit but its box is culled"
-                    );
+                // Every build of the node test visits every slot the leaf test hits.
+                for (seen, simd) in seen_by.iter().zip(&levels) {
+                    for s in &want {
+                        assert!(
+                            seen.contains(s),
+                            "scale {scale} shift {shift} ray {i} {simd:?}: slot {s} is hit \
+                             but its box is culled"
+                        );
+                    }
                 }
                 hits += want.len() as u64;
             }

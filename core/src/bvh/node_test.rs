@@ -1,38 +1,34 @@
 //! The ray/8-box test of one [`WideNode`], all children at once.
 //!
-//! The arithmetic is obvhs's `CwBvhNode::intersect_ray_simd`, operation for operation, so
-//! the same boxes are hit to the bit:
-//! - per node, `adj_inv = extent * inv_dir` and `adj_orig = (p - origin) * inv_dir`;
-//! - per child and axis, `t = q * adj_inv + adj_orig` (a multiply, then an add: no FMA),
-//!   with `q` the child's lower plane on that axis for the entry distance and the upper
-//!   one for the exit, swapped where the direction is negative (`dir < 0`), and
-//!   `adj_orig` lowered by the ray's slack `pad` for entry distances and raised by it for
-//!   exit distances (dray's addition: see "Conservative" below);
-//! - `tmin = max(tx, max(ty, tz))`, then `max(tmin, 1e-4)`; `tmax = min(tx, min(ty, tz))`,
-//!   then `min(tmax, ray.tmax)` (same operand order, so NaNs fall the same way);
+//! Per child and axis, with `n` and `f` the child's near and far planes on that axis
+//! (the lower and upper plane, swapped where the direction is negative):
+//! - `tn = (n - origin) * inv_dir - pad`, `tf = (f - origin) * inv_dir + pad`;
+//! - `tmin = max(tn_x, max(tn_y, tn_z))`, then `max(tmin, 0)`;
+//!   `tmax = min(tf_x, min(tf_y, tf_z))`, then `min(tmax, ray.tmax)`;
 //! - hit when `tmin <= tmax`.
 //!
-//! Conservative: `pad[a]` is the ray's spatial margin `m` (in accelerator units) divided
-//! by `|dir[a]|`, so every child box is tested grown by `m` on each side. `Accel` sets
+//! The difference `n - origin` comes first, so its rounding is relative to the distance
+//! from the origin to the plane, never to the coordinates' magnitude (a ray far from the
+//! world's origin is tested as exactly as one near it).
+//!
+//! Conservative: `pad[a]` is the ray's spatial margin `m` (in accelerator units) times
+//! `|inv_dir[a]|`, so every child box is tested grown by `m` on each side. `Accel` sets
 //! `m` to 2^-17 of the largest distance from the ray's origin to the scene's box, which
 //! exceeds every rounding that could make the test miss a box whose triangle the leaf
-//! test hits: this test's own arithmetic (relative to the distances from the origin to
-//! the node's planes and to the node's size), the 8-bit quantisation of child planes
-//! (relative to the parent's size), and the leaf test's shear (relative to the distance
-//! from the origin to the corners). None of these depends on the coordinates' magnitude,
-//! so boxes stay tight far from the origin (docs/numerics.md "Far from the origin").
-//! With a zero `pad` the test is obvhs's, bit for bit.
+//! test hits: this test's own arithmetic (a subtraction and a multiply, or one fused
+//! multiply-add, each rounding relative to the distance from the origin to the plane)
+//! and the leaf test's shear (relative to the distance from the origin to the corners).
+//! None of these depends on the coordinates' magnitude, so boxes stay tight far from the
+//! origin (docs/numerics.md "Far from the origin"). The planes themselves are exact.
 //!
-//! What changes is the decoding: a child's planes are converted eight at a time
-//! (`u8 -> i32 -> f32`, exact), the near/far choice is a per-ray byte offset instead of a
-//! branch, and the hit mask is the OR of the hit children's precomputed bits instead of a
-//! loop over the children. Two builds of the same code: SSE2 (every x86-64) and AVX2,
-//! picked at run time; elsewhere a portable scalar version with the same semantics.
+//! Builds: portable Rust (one child at a time), SSE2 (four at a time, every x86-64) and
+//! AVX2 with FMA (eight at a time, picked at run time). The FMA build rounds once where
+//! the others round twice, so a box within a rounding of the margin's edge may be visited
+//! by one build and not another; all are conservative, and the closest hit does not depend
+//! on which boxes are visited or in which order (ties go to the lower triangle id), so
+//! every build returns the same answers (tested).
 
 use super::wide::WideNode;
-
-/// obvhs's lower bound on a box's entry distance (`cwbvh::node::EPSILON`).
-pub(crate) const NODE_EPSILON: f32 = 0.0001;
 
 /// `NodeRay::order_bits` for each `oct_inv`.
 const ORDER_BITS: [[u32; 8]; 8] = {
@@ -55,9 +51,9 @@ pub(crate) struct NodeRay {
     /// Origin and inverse direction (x, y, z, 0), accelerator space.
     pub origin: [f32; 4],
     pub inv_dir: [f32; 4],
-    /// Per axis: the ray's spatial margin divided by `|dir|`, `m * |inv_dir|` (x, y, z, 0).
+    /// Per axis: the ray's spatial margin times `|inv_dir|` (x, y, z, 0), finite.
     pub pad: [f32; 4],
-    /// Byte offset of the near planes in each axis row of `WideNode::q` (0 or 8).
+    /// Float offset of the near planes in each axis row of `WideNode::planes` (0 or 8).
     pub near: [usize; 3],
     /// Per slot: the traversal-order bit of an internal child, `1 << (24 + (slot ^
     /// oct_inv))`, with the low 24 bits set so that leaf bits pass unchanged.
@@ -74,15 +70,13 @@ impl NodeRay {
         let oct_inv = (if dir[0] < 0.0 { 0 } else { 4 })
             | (if dir[1] < 0.0 { 0 } else { 2 })
             | (if dir[2] < 0.0 { 0 } else { 1 });
+        // Capped below infinity: an infinite pad would meet an infinite distance (an
+        // empty slot's plane) as inf - inf = NaN. f32::MAX keeps every box it grows hit.
+        let pad = |i: f32| (margin * i.abs()).min(f32::MAX);
         NodeRay {
             origin: [origin[0], origin[1], origin[2], 0.0],
             inv_dir: [inv_dir[0], inv_dir[1], inv_dir[2], 0.0],
-            pad: [
-                margin * inv_dir[0].abs(),
-                margin * inv_dir[1].abs(),
-                margin * inv_dir[2].abs(),
-                0.0,
-            ],
+            pad: [pad(inv_dir[0]), pad(inv_dir[1]), pad(inv_dir[2]), 0.0],
             near: dir.map(|d| if d < 0.0 { 8 } else { 0 }),
             order_bits: ORDER_BITS[oct_inv as usize],
             oct_inv,
@@ -96,15 +90,6 @@ impl NodeRay {
 #[inline(always)]
 #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
 pub(crate) fn hits_portable(node: &WideNode, ray: &NodeRay, tmax: f32) -> u32 {
-    let mut adj_inv = [0f32; 3];
-    let mut orig_near = [0f32; 3];
-    let mut orig_far = [0f32; 3];
-    for a in 0..3 {
-        adj_inv[a] = node.extent[a] * ray.inv_dir[a];
-        let adj_orig = (node.p[a] - ray.origin[a]) * ray.inv_dir[a];
-        orig_near[a] = adj_orig - ray.pad[a];
-        orig_far[a] = adj_orig + ray.pad[a];
-    }
     // SSE's max/min: the second operand unless the first is strictly greater/less.
     let max = |a: f32, b: f32| if a > b { a } else { b };
     let min = |a: f32, b: f32| if a < b { a } else { b };
@@ -114,12 +99,12 @@ pub(crate) fn hits_portable(node: &WideNode, ray: &NodeRay, tmax: f32) -> u32 {
         let mut tf = [0f32; 3];
         for a in 0..3 {
             let near = ray.near[a];
-            let qn = f32::from(node.q[a][near + slot]);
-            let qf = f32::from(node.q[a][8 - near + slot]);
-            tn[a] = qn * adj_inv[a] + orig_near[a];
-            tf[a] = qf * adj_inv[a] + orig_far[a];
+            let n = node.planes[a][near + slot];
+            let f = node.planes[a][8 - near + slot];
+            tn[a] = (n - ray.origin[a]) * ray.inv_dir[a] - ray.pad[a];
+            tf[a] = (f - ray.origin[a]) * ray.inv_dir[a] + ray.pad[a];
         }
-        let tmin = max(max(tn[0], max(tn[1], tn[2])), NODE_EPSILON);
+        let tmin = max(max(tn[0], max(tn[1], tn[2])), 0.0);
         let tmax_c = min(min(tf[0], min(tf[1], tf[2])), tmax);
         if tmin <= tmax_c {
             mask |= node.bits[slot] & ray.order_bits[slot];
@@ -130,7 +115,7 @@ pub(crate) fn hits_portable(node: &WideNode, ray: &NodeRay, tmax: f32) -> u32 {
 
 #[cfg(target_arch = "x86_64")]
 pub(crate) mod x86 {
-    use super::{NODE_EPSILON, NodeRay, WideNode};
+    use super::{NodeRay, WideNode};
     use std::arch::x86_64::*;
 
     /// [`super::hits_portable`] with SSE2, four children at a time.
@@ -140,69 +125,28 @@ pub(crate) mod x86 {
     #[inline(always)]
     pub(crate) unsafe fn hits_sse2(node: &WideNode, ray: &NodeRay, tmax: f32) -> u32 {
         unsafe {
-            let inv = _mm_loadu_ps(ray.inv_dir.as_ptr());
-            let adj_inv = _mm_mul_ps(_mm_loadu_ps(node.extent.as_ptr()), inv);
-            let adj_orig = _mm_mul_ps(
-                _mm_sub_ps(
-                    _mm_loadu_ps(node.p.as_ptr()),
-                    _mm_loadu_ps(ray.origin.as_ptr()),
-                ),
-                inv,
-            );
-            let pad = _mm_loadu_ps(ray.pad.as_ptr());
-            let (near_orig, far_orig) = (_mm_sub_ps(adj_orig, pad), _mm_add_ps(adj_orig, pad));
-            let zero = _mm_setzero_si128();
-            // Eight bytes to two vectors of four floats (exact).
-            let planes = |row: &[u8; 16], off: usize| -> (__m128, __m128) {
-                let b = _mm_loadl_epi64(row.as_ptr().add(off) as *const __m128i);
-                let w = _mm_unpacklo_epi8(b, zero);
-                (
-                    _mm_cvtepi32_ps(_mm_unpacklo_epi16(w, zero)),
-                    _mm_cvtepi32_ps(_mm_unpackhi_epi16(w, zero)),
-                )
-            };
             let mut tn = [[_mm_setzero_ps(); 2]; 3];
             let mut tf = [[_mm_setzero_ps(); 2]; 3];
-            // Per axis: the node's grid step, and its origin for entry and exit distances.
-            let lanes = [
-                (
-                    _mm_shuffle_ps::<0x00>(adj_inv, adj_inv),
-                    _mm_shuffle_ps::<0x00>(near_orig, near_orig),
-                    _mm_shuffle_ps::<0x00>(far_orig, far_orig),
-                ),
-                (
-                    _mm_shuffle_ps::<0x55>(adj_inv, adj_inv),
-                    _mm_shuffle_ps::<0x55>(near_orig, near_orig),
-                    _mm_shuffle_ps::<0x55>(far_orig, far_orig),
-                ),
-                (
-                    _mm_shuffle_ps::<0xaa>(adj_inv, adj_inv),
-                    _mm_shuffle_ps::<0xaa>(near_orig, near_orig),
-                    _mm_shuffle_ps::<0xaa>(far_orig, far_orig),
-                ),
-            ];
             for a in 0..3 {
                 let near = *ray.near.get_unchecked(a);
-                let row = node.q.get_unchecked(a);
-                let (n0, n1) = planes(row, near);
-                let (f0, f1) = planes(row, 8 - near);
-                let (s, on, of) = lanes[a];
-                tn[a] = [
-                    _mm_add_ps(_mm_mul_ps(n0, s), on),
-                    _mm_add_ps(_mm_mul_ps(n1, s), on),
-                ];
-                tf[a] = [
-                    _mm_add_ps(_mm_mul_ps(f0, s), of),
-                    _mm_add_ps(_mm_mul_ps(f1, s), of),
-                ];
+                let row = node.planes.get_unchecked(a).as_ptr();
+                let o = _mm_set1_ps(*ray.origin.get_unchecked(a));
+                let inv = _mm_set1_ps(*ray.inv_dir.get_unchecked(a));
+                let pad = _mm_set1_ps(*ray.pad.get_unchecked(a));
+                for h in 0..2 {
+                    let n = _mm_load_ps(row.add(near + 4 * h));
+                    let f = _mm_load_ps(row.add(8 - near + 4 * h));
+                    tn[a][h] = _mm_sub_ps(_mm_mul_ps(_mm_sub_ps(n, o), inv), pad);
+                    tf[a][h] = _mm_add_ps(_mm_mul_ps(_mm_sub_ps(f, o), inv), pad);
+                }
             }
-            let eps = _mm_set1_ps(NODE_EPSILON);
+            let zero = _mm_setzero_ps();
             let tm = _mm_set1_ps(tmax);
             let mut acc = _mm_setzero_si128();
             for h in 0..2 {
                 let tmin = _mm_max_ps(tn[0][h], _mm_max_ps(tn[1][h], tn[2][h]));
                 let tmax4 = _mm_min_ps(tf[0][h], _mm_min_ps(tf[1][h], tf[2][h]));
-                let tmin = _mm_max_ps(tmin, eps);
+                let tmin = _mm_max_ps(tmin, zero);
                 let tmax4 = _mm_min_ps(tmax4, tm);
                 let hit = _mm_castps_si128(_mm_cmple_ps(tmin, tmax4));
                 let bits = _mm_and_si128(
@@ -217,59 +161,34 @@ pub(crate) mod x86 {
         }
     }
 
-    /// [`hits_sse2`] with AVX2, all eight children in one vector.
+    /// [`hits_sse2`] with AVX2 and FMA, all eight children in one vector.
     ///
     /// # Safety
-    /// The CPU must support AVX2.
+    /// The CPU must support AVX2 and FMA.
     #[inline]
-    #[target_feature(enable = "avx2")]
+    #[target_feature(enable = "avx2,fma")]
     pub(crate) unsafe fn hits_avx2(node: &WideNode, ray: &NodeRay, tmax: f32) -> u32 {
         unsafe {
-            let inv = _mm_loadu_ps(ray.inv_dir.as_ptr());
-            let adj_inv = _mm_mul_ps(_mm_loadu_ps(node.extent.as_ptr()), inv);
-            let adj_orig = _mm_mul_ps(
-                _mm_sub_ps(
-                    _mm_loadu_ps(node.p.as_ptr()),
-                    _mm_loadu_ps(ray.origin.as_ptr()),
-                ),
-                inv,
-            );
-            let pad = _mm_loadu_ps(ray.pad.as_ptr());
-            let (near_orig, far_orig) = (_mm_sub_ps(adj_orig, pad), _mm_add_ps(adj_orig, pad));
-            let planes = |row: &[u8; 16], off: usize| -> __m256 {
-                let b = _mm_loadl_epi64(row.as_ptr().add(off) as *const __m128i);
-                _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(b))
-            };
-            let s = [
-                _mm256_broadcastss_ps(adj_inv),
-                _mm256_broadcastss_ps(_mm_shuffle_ps::<0x55>(adj_inv, adj_inv)),
-                _mm256_broadcastss_ps(_mm_shuffle_ps::<0xaa>(adj_inv, adj_inv)),
-            ];
-            let on = [
-                _mm256_broadcastss_ps(near_orig),
-                _mm256_broadcastss_ps(_mm_shuffle_ps::<0x55>(near_orig, near_orig)),
-                _mm256_broadcastss_ps(_mm_shuffle_ps::<0xaa>(near_orig, near_orig)),
-            ];
-            let of = [
-                _mm256_broadcastss_ps(far_orig),
-                _mm256_broadcastss_ps(_mm_shuffle_ps::<0x55>(far_orig, far_orig)),
-                _mm256_broadcastss_ps(_mm_shuffle_ps::<0xaa>(far_orig, far_orig)),
-            ];
             let mut tn = [_mm256_setzero_ps(); 3];
             let mut tf = [_mm256_setzero_ps(); 3];
             for a in 0..3 {
                 let near = *ray.near.get_unchecked(a);
-                let row = node.q.get_unchecked(a);
-                tn[a] = _mm256_add_ps(_mm256_mul_ps(planes(row, near), s[a]), on[a]);
-                tf[a] = _mm256_add_ps(_mm256_mul_ps(planes(row, 8 - near), s[a]), of[a]);
+                let row = node.planes.get_unchecked(a).as_ptr();
+                let o = _mm256_broadcast_ss(ray.origin.get_unchecked(a));
+                let inv = _mm256_broadcast_ss(ray.inv_dir.get_unchecked(a));
+                let pad = _mm256_broadcast_ss(ray.pad.get_unchecked(a));
+                let n = _mm256_load_ps(row.add(near));
+                let f = _mm256_load_ps(row.add(8 - near));
+                tn[a] = _mm256_fmsub_ps(_mm256_sub_ps(n, o), inv, pad);
+                tf[a] = _mm256_fmadd_ps(_mm256_sub_ps(f, o), inv, pad);
             }
             let tmin = _mm256_max_ps(tn[0], _mm256_max_ps(tn[1], tn[2]));
             let tmax8 = _mm256_min_ps(tf[0], _mm256_min_ps(tf[1], tf[2]));
-            let tmin = _mm256_max_ps(tmin, _mm256_set1_ps(NODE_EPSILON));
+            let tmin = _mm256_max_ps(tmin, _mm256_setzero_ps());
             let tmax8 = _mm256_min_ps(tmax8, _mm256_set1_ps(tmax));
             let hit = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_LE_OS>(tmin, tmax8));
             let bits = _mm256_and_si256(
-                _mm256_loadu_si256(node.bits.as_ptr() as *const __m256i),
+                _mm256_load_si256(node.bits.as_ptr() as *const __m256i),
                 _mm256_loadu_si256(ray.order_bits.as_ptr() as *const __m256i),
             );
             let v = _mm256_and_si256(hit, bits);

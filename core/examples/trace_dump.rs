@@ -1,0 +1,94 @@
+//! Closest-hit throughput of the core alone, on triangles and rays dumped by
+//! `dray bench-rays --dump-mesh M --dump-rays R` (little-endian f32 records), so a change
+//! to the BVH can be timed after rebuilding `dray-core` only, not the whole CLI.
+//!
+//! Usage: `cargo run --release -p dray-core --example trace_dump -- MESH RAYS [REPEAT] [SIMD]`
+//! (SIMD: auto, avx2, sse2 or portable). Prints the build time, the median pass's
+//! Mrays/s on one thread, hits and the sum of hit distances (to compare answers between
+//! builds), and the nodes and triangles tested per ray.
+
+use std::time::Instant;
+
+use dray_core::bvh::{Accel, QueryRay, Simd, TraversalCounts};
+use dray_core::scene::Mesh;
+use glam::Vec3;
+
+fn read_f32s(path: &str) -> Vec<f32> {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("cannot read {path}: {e}"));
+    bytes
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    if args.len() < 3 {
+        eprintln!("usage: trace_dump MESH_F32 RAYS_F32 [REPEAT] [auto|avx2|sse2|portable]");
+        std::process::exit(2);
+    }
+    let repeat: usize = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(5);
+    let simd = match args.get(4).map(String::as_str) {
+        Some("avx2") => Some(Simd::Avx2),
+        Some("sse2") => Some(Simd::Sse2),
+        Some("portable") => Some(Simd::Portable),
+        _ => None,
+    };
+    let pts: Vec<Vec3> = read_f32s(&args[1])
+        .chunks_exact(3)
+        .map(|c| Vec3::new(c[0], c[1], c[2]))
+        .collect();
+    let rays: Vec<QueryRay> = read_f32s(&args[2])
+        .chunks_exact(6)
+        .map(|c| QueryRay {
+            origin: Vec3::new(c[0], c[1], c[2]),
+            dir: Vec3::new(c[3], c[4], c[5]),
+            tmin: 0.0,
+            tmax: f32::INFINITY,
+        })
+        .collect();
+    let mut mesh = Mesh::default();
+    mesh.push_vertices(&pts);
+    let t = pts.len() as u32 / 3;
+    mesh.indices = (0..t).map(|i| [3 * i, 3 * i + 1, 3 * i + 2]).collect();
+    mesh.material = vec![0; t as usize];
+    let t0 = Instant::now();
+    let mut accel = Accel::build(&mesh);
+    let build_s = t0.elapsed().as_secs_f64();
+    if let Some(s) = simd
+        && !accel.set_simd(s)
+    {
+        eprintln!("this CPU cannot run {s:?}");
+        std::process::exit(2);
+    }
+    let mut times = Vec::new();
+    let (mut hits, mut t_sum) = (0u64, 0f64);
+    for _ in 0..repeat {
+        let start = Instant::now();
+        hits = 0;
+        t_sum = 0.0;
+        for r in &rays {
+            if let Some(h) = accel.closest(r, |_, _| true) {
+                hits += 1;
+                t_sum += f64::from(h.t);
+            }
+        }
+        times.push(start.elapsed().as_secs_f64());
+    }
+    times.sort_by(f64::total_cmp);
+    let median = times[times.len() / 2];
+    let mut counts = TraversalCounts::default();
+    for r in &rays {
+        accel.closest_counted(r, |_, _| true, &mut counts);
+    }
+    let n = rays.len() as f64;
+    println!(
+        "triangles {t} build {build_s:.3} s simd {:?} rays {} median {median:.4} s \
+         {:.3} Mrays/s hits {hits} t_sum {t_sum:.6e} nodes/ray {:.2} tris/ray {:.2}",
+        accel.simd(),
+        rays.len(),
+        n / median / 1e6,
+        counts.nodes as f64 / n,
+        counts.triangles as f64 / n,
+    );
+}
