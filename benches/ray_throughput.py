@@ -8,6 +8,11 @@ through embreex and traced with closest-hit queries (tmin 0, tmax "infinite" = 1
 Both processes are pinned to one core with `taskset -c CORE` (Embree would otherwise
 start one TBB thread per core for its build) and dray runs with `--threads 1`.
 
+dray runs twice on each ray set: one ray at a time (`Accel::closest`, what the renderer
+calls today) and `--batch` (`Accel::closest_batch`, 16 rays in flight with their memory
+loads overlapped; the script checks that it finds the same hits and distance sum).
+Embree is traced one ray at a time by embreex's loop (rtcIntersect1).
+
 Reported per mesh and ray kind: Mrays/s of each (median of --repeat passes), the ratio
 dray/Embree, hit counts and their agreement, the sum of hit distances, and the fixed cost
 of calling Embree from Python (a 1-ray batch, and a batch of rays that miss the scene's
@@ -169,6 +174,18 @@ def main() -> None:
             d["cmd"] = r["cmd"]
             env.log(f"  dray: {d['triangles']} triangles, {d['rays']} rays, {d['mrays_per_s']:.3f} Mrays/s, "
                     f"{d['hits']} hits, build {d['build_s']:.2f} s")
+            # The same rays through closest_batch (16 rays in flight): same answers.
+            bcmd = [dray, "bench-rays", spec, "--kind", kind, "--threads", 1, "--seed", args.seed,
+                    "--repeat", args.repeat, "--res", args.res, "--rays", args.rays, "--batch"]
+            o = env.OtherLoad(env.parse_cores(args.core))
+            br = env.run_timed(env.pin(args.core, bcmd))
+            batch_others = o.cores()
+            b = env.last_json_line(br["stdout"])
+            b["cmd"] = br["cmd"]
+            if (b["hits"], b["t_sum"]) != (d["hits"], d["t_sum"]):
+                raise RuntimeError(f"closest_batch answers differ: {b['hits']} hits, t_sum {b['t_sum']} "
+                                   f"against {d['hits']}, {d['t_sum']}")
+            env.log(f"  dray --batch: {b['mrays_per_s']:.3f} Mrays/s")
 
             env.log("  embree (embreex) on the same triangles and rays")
             ecmd = [sys.executable, Path(__file__).resolve(), "--embree-worker", mesh_f, rays_f,
@@ -189,12 +206,14 @@ def main() -> None:
             per_ray_ns = e["median_s"] / e["rays"] * 1e9
             results.append({
                 "mesh": spec, "kind": kind, "triangles": d["triangles"], "rays": d["rays"],
-                "dray": d, "embree": e,
+                "dray": d, "dray_batch": b, "embree": e,
                 "ratio_dray_over_embree": d["mrays_per_s"] / e["mrays_per_s"],
+                "ratio_dray_batch_over_embree": b["mrays_per_s"] / e["mrays_per_s"],
                 "hit_count_agreement_pct": agree,
                 "t_sum_rel_diff": tsum_rel,
                 "embree_miss_floor_share_pct": 100.0 * e["miss_floor_ns_per_ray"] / per_ray_ns,
-                "other_load_on_core": {"dray": dray_others, "embree": embree_others},
+                "other_load_on_core": {"dray": dray_others, "dray_batch": batch_others,
+                                       "embree": embree_others},
             })
             if not args.keep_dumps:
                 rays_f.unlink(missing_ok=True)
@@ -208,13 +227,16 @@ def main() -> None:
           f"embreex {info['packages']['embreex']}")
     print(f"# other processes used {info['other_processes_cores_during_run']:.2f} cores on average during the run "
           f"({info['busy_cores_before_start']:.2f} busy just before it)")
-    print("| mesh | triangles | rays | kind | dray Mrays/s | Embree Mrays/s | dray/Embree | hits dray | hits Embree "
+    print("| mesh | triangles | rays | kind | dray Mrays/s | dray batch Mrays/s | Embree Mrays/s | dray/Embree "
+          "| batch/Embree | hits dray | hits Embree "
           "| hit agreement | t_sum rel. diff | build dray s | build Embree s | of which Embree commit s "
           "| other load on core |")
-    print("|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in results:
         print(f"| `{r['mesh']}` | {r['triangles']:,} | {r['rays']:,} | {r['kind']} | {r['dray']['mrays_per_s']:.3f} | "
-              f"{r['embree']['mrays_per_s']:.3f} | {r['ratio_dray_over_embree']:.2f} | {r['dray']['hits']:,} | "
+              f"{r['dray_batch']['mrays_per_s']:.3f} | "
+              f"{r['embree']['mrays_per_s']:.3f} | {r['ratio_dray_over_embree']:.2f} | "
+              f"{r['ratio_dray_batch_over_embree']:.2f} | {r['dray']['hits']:,} | "
               f"{r['embree']['hits']:,} | {r['hit_count_agreement_pct']:.4f}% | {r['t_sum_rel_diff']:.2e} | "
               f"{r['dray']['build_s']:.2f} | {r['embree']['build_s']:.2f} | {r['embree']['commit_s']:.2f} | "
               f"{max(r['other_load_on_core'].values()):.2f} |")

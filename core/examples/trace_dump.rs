@@ -5,7 +5,8 @@
 //! Usage: `cargo run --release -p dray-core --example trace_dump -- MESH RAYS [REPEAT] [SIMD]`
 //! (SIMD: auto, avx2, sse2 or portable). Prints the build time, the median pass's
 //! Mrays/s on one thread, hits and the sum of hit distances (to compare answers between
-//! builds), and the nodes and triangles tested per ray.
+//! builds), and the nodes and triangles tested per ray; then the same for
+//! `Accel::closest_batch`, with the number of rays whose answer differs (must be 0).
 
 use std::time::Instant;
 
@@ -77,6 +78,19 @@ fn main() {
     }
     times.sort_by(f64::total_cmp);
     let median = times[times.len() / 2];
+    // The same rays through `closest_batch`: the same answers, ray for ray.
+    let single: Vec<Option<dray_core::bvh::Hit>> =
+        rays.iter().map(|r| accel.closest(r, |_, _| true)).collect();
+    let mut batch = vec![None; rays.len()];
+    let mut batch_times = Vec::new();
+    for _ in 0..repeat {
+        let start = Instant::now();
+        accel.closest_batch(&rays, |_, _, _| true, &mut batch);
+        batch_times.push(start.elapsed().as_secs_f64());
+    }
+    let differ = single.iter().zip(&batch).filter(|(a, b)| a != b).count();
+    batch_times.sort_by(f64::total_cmp);
+    let batch_median = batch_times[batch_times.len() / 2];
     let mut counts = TraversalCounts::default();
     for r in &rays {
         accel.closest_counted(r, |_, _| true, &mut counts);
@@ -84,10 +98,12 @@ fn main() {
     let n = rays.len() as f64;
     println!(
         "triangles {t} build {build_s:.3} s simd {:?} rays {} median {median:.4} s \
-         {:.3} Mrays/s hits {hits} t_sum {t_sum:.6e} nodes/ray {:.2} tris/ray {:.2}",
+         {:.3} Mrays/s batch {batch_median:.4} s {:.3} Mrays/s ({differ} answers differ) \
+         hits {hits} t_sum {t_sum:.6e} nodes/ray {:.2} tris/ray {:.2}",
         accel.simd(),
         rays.len(),
         n / median / 1e6,
+        n / batch_median / 1e6,
         counts.nodes as f64 / n,
         counts.triangles as f64 / n,
     );

@@ -41,6 +41,7 @@ use rayon::prelude::*;
 use crate::intersect::{TriangleHit, WatertightRay};
 use crate::scene::Mesh;
 
+mod batch;
 mod build;
 mod convert;
 mod leaf;
@@ -48,6 +49,7 @@ mod node_test;
 mod traverse;
 mod wide;
 
+pub use batch::LANES;
 use leaf::PackedTri;
 use node_test::NodeRay;
 use traverse::{Counter, Leaf};
@@ -229,9 +231,9 @@ impl Accel {
         self.ids.len()
     }
 
-    #[inline]
+    #[inline(always)]
     fn prepare(&self, ray: &QueryRay) -> (NodeRay, WatertightRay, f32, f32) {
-        let o = ray.origin * self.scale;
+        let o = Vec3A::from(ray.origin) * self.scale;
         let tmax = if ray.tmax.is_finite() {
             ray.tmax * self.scale
         } else {
@@ -241,29 +243,24 @@ impl Accel {
         // bit, so -0.0 would flip a slab and lose the box: fold signed zeros to +0.0.
         // Its inverse also caps at 1/f32::EPSILON, which under-estimates slab distances
         // for nearly axis-parallel rays; use the true inverse, capped far beyond any
-        // distance in accelerator space (and far from f32 overflow after quantisation).
-        let dir = ray.dir + Vec3::ZERO;
-        let inv = |d: f32| {
-            if d.abs() >= 1e-28 {
-                1.0 / d
-            } else if d < 0.0 {
-                -1e28
-            } else {
-                1e28
-            }
-        };
+        // distance in accelerator space (and far from f32 overflow after quantisation),
+        // with the direction's sign.
+        let dir = Vec3A::from(ray.dir) + Vec3A::ZERO;
+        let inv = Vec3A::select(
+            dir.abs().cmpge(Vec3A::splat(1e-28)),
+            Vec3A::ONE / dir,
+            Vec3A::splat(1e28).copysign(dir),
+        );
         // The node test's margin: 2^-17 of the farthest the scene's box reaches from
         // the origin along any axis (exact but for one rounding of each difference).
-        let reach = (self.hi - o).abs().max((self.lo - o).abs()).max_element();
-        let node_ray = NodeRay::new(
-            o.to_array(),
-            dir.to_array(),
-            [inv(dir.x), inv(dir.y), inv(dir.z)],
-            reach * BOX_MARGIN,
-        );
+        let reach = (Vec3A::from(self.hi) - o)
+            .abs()
+            .max((Vec3A::from(self.lo) - o).abs())
+            .max_element();
+        let node_ray = NodeRay::new(o, dir, inv, reach * BOX_MARGIN);
         (
             node_ray,
-            WatertightRay::new(o, dir),
+            WatertightRay::new(o.into(), dir.into()),
             ray.tmin * self.scale,
             tmax,
         )

@@ -50,27 +50,47 @@ pub struct TriangleHit {
 impl WatertightRay {
     /// `dir` need not be unit length; hit distances are in units of `dir`.
     pub fn new(origin: Vec3, dir: Vec3) -> WatertightRay {
-        let a = dir.abs();
-        let kz = if a.x > a.y {
-            if a.x > a.z { 0 } else { 2 }
-        } else if a.y > a.z {
-            1
-        } else {
-            2
+        // kz: the axis of the largest |dir| (ties to the later axis, as `a.x > a.y ?
+        // (a.x > a.z ? x : z) : (a.y > a.z ? y : z)`), looked up from the three
+        // comparisons rather than branched on: an incoherent ray's axis is a coin toss
+        // that a branch predictor loses.
+        const KZ: [u8; 8] = {
+            let mut t = [0u8; 8];
+            let mut c = 0;
+            while c < 8 {
+                let (xy, xz, yz) = (c & 1 != 0, c & 2 != 0, c & 4 != 0);
+                t[c] = if xy {
+                    if xz { 0 } else { 2 }
+                } else if yz {
+                    1
+                } else {
+                    2
+                };
+                c += 1;
+            }
+            t
         };
-        let mut kx = (kz + 1) % 3;
-        let mut ky = (kx + 1) % 3;
-        if dir[kz] < 0.0 {
-            std::mem::swap(&mut kx, &mut ky);
-        }
-        let sz = 1.0 / dir[kz];
+        let a = dir.abs();
+        let c = usize::from(a.x > a.y) | usize::from(a.x > a.z) << 1 | usize::from(a.y > a.z) << 2;
+        let kz = usize::from(KZ[c]);
+        let d = dir.to_array();
+        let dz = d[kz];
+        // The next two axes in cyclic order, swapped when dir[kz] < 0 to keep the
+        // triangle's winding.
+        let (next, after) = ((kz + 1) % 3, (kz + 2) % 3);
+        let (kx, ky) = if dz < 0.0 {
+            (after, next)
+        } else {
+            (next, after)
+        };
+        let sz = 1.0 / dz;
         WatertightRay {
             origin,
             kx,
             ky,
             kz,
-            sx: dir[kx] * sz,
-            sy: dir[ky] * sz,
+            sx: d[kx] * sz,
+            sy: d[ky] * sz,
             sz,
         }
     }

@@ -28,6 +28,8 @@
 //! on which boxes are visited or in which order (ties go to the lower triangle id), so
 //! every build returns the same answers (tested).
 
+use glam::Vec3A;
+
 use super::wide::WideNode;
 
 /// `NodeRay::order_bits` for each `oct_inv`.
@@ -57,7 +59,7 @@ pub(crate) struct NodeRay {
     pub near: [usize; 3],
     /// Per slot: the traversal-order bit of an internal child, `1 << (24 + (slot ^
     /// oct_inv))`, with the low 24 bits set so that leaf bits pass unchanged.
-    pub order_bits: [u32; 8],
+    pub order_bits: &'static [u32; 8],
     /// obvhs's `ray_get_octant_inv4` byte: bit 2 set when `dir.x >= 0`, bit 1 for y,
     /// bit 0 for z.
     pub oct_inv: u32,
@@ -66,19 +68,20 @@ pub(crate) struct NodeRay {
 impl NodeRay {
     /// `dir` must already have its signed zeros folded to +0.0; `margin` (non-negative)
     /// grows every box by that much on each side.
-    pub fn new(origin: [f32; 3], dir: [f32; 3], inv_dir: [f32; 3], margin: f32) -> NodeRay {
-        let oct_inv = (if dir[0] < 0.0 { 0 } else { 4 })
-            | (if dir[1] < 0.0 { 0 } else { 2 })
-            | (if dir[2] < 0.0 { 0 } else { 1 });
+    #[inline(always)]
+    pub fn new(origin: Vec3A, dir: Vec3A, inv_dir: Vec3A, margin: f32) -> NodeRay {
+        // Bit a set when dir[a] < 0.
+        let negative = dir.cmplt(Vec3A::ZERO).bitmask();
+        let oct_inv = (!negative & 1) << 2 | (!negative & 2) | (!negative & 4) >> 2;
         // Capped below infinity: an infinite pad would meet an infinite distance (an
         // empty slot's plane) as inf - inf = NaN. f32::MAX keeps every box it grows hit.
-        let pad = |i: f32| (margin * i.abs()).min(f32::MAX);
+        let pad = (inv_dir.abs() * margin).min(Vec3A::splat(f32::MAX));
         NodeRay {
-            origin: [origin[0], origin[1], origin[2], 0.0],
-            inv_dir: [inv_dir[0], inv_dir[1], inv_dir[2], 0.0],
-            pad: [pad(inv_dir[0]), pad(inv_dir[1]), pad(inv_dir[2]), 0.0],
-            near: dir.map(|d| if d < 0.0 { 8 } else { 0 }),
-            order_bits: ORDER_BITS[oct_inv as usize],
+            origin: origin.extend(0.0).to_array(),
+            inv_dir: inv_dir.extend(0.0).to_array(),
+            pad: pad.extend(0.0).to_array(),
+            near: [0, 1, 2].map(|a| ((negative >> a) & 1) as usize * 8),
+            order_bits: &ORDER_BITS[oct_inv as usize],
             oct_inv,
         }
     }

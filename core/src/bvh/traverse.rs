@@ -4,7 +4,8 @@
 //!
 //! The stack holds node groups (a first-child index and the hit children left to visit,
 //! in traversal order in the top byte, the node's internal-child mask in the low byte),
-//! as in obvhs: 32 entries, saturating at the top like obvhs's `StackStack`. Children are
+//! as in obvhs, saturating at the top like obvhs's `StackStack` (but never full: see
+//! [`STACK_SIZE`]). Children are
 //! taken highest traversal-order bit first and a node's primitives highest offset first,
 //! as obvhs does; with exact boxes (`wide`) a ray visits fewer of them than with obvhs's
 //! quantised ones, in the same order.
@@ -12,8 +13,10 @@
 use super::node_test::NodeRay;
 use super::wide::WideNode;
 
-/// Entries of the group stack (obvhs's `TRAVERSAL_STACK_SIZE`).
-const STACK_SIZE: usize = 32;
+/// Entries of the group stack: one per level at most, and no leaf is deeper than
+/// [`super::build::MAX_DEPTH`] (obvhs's `TRAVERSAL_STACK_SIZE` is 32, which a deep tree
+/// could overflow; the stack saturates rather than overrun, but would then lose nodes).
+const STACK_SIZE: usize = super::build::MAX_DEPTH as usize;
 
 /// Which build of the node test runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -134,17 +137,8 @@ pub(crate) unsafe fn walk<C: Counter>(
             }
         }
         if group.1 & 0xff00_0000 != 0 {
-            let hits_imask = group.1;
-            let bit = 31 - hits_imask.leading_zeros();
-            group.1 &= !(1u32 << bit);
-            if group.1 & 0xff00_0000 != 0 {
-                // SAFETY: `sp < STACK_SIZE` always (it saturates below).
-                unsafe { stack.get_unchecked_mut(sp).write(group) };
-                sp = (sp + 1).min(STACK_SIZE - 1);
-            }
-            let slot = (bit - 24) ^ ray.oct_inv;
-            let rel = (hits_imask & !(u32::MAX << slot)).count_ones();
-            let index = (group.0 + rel) as usize;
+            // SAFETY: `sp < STACK_SIZE` always.
+            let index = unsafe { take_child(&mut group, &mut stack, &mut sp, ray.oct_inv) };
             debug_assert!(index < nodes.len());
             // SAFETY: child indices of a built CWBVH are in range.
             let node = unsafe { nodes.get_unchecked(index) };
@@ -164,6 +158,139 @@ pub(crate) unsafe fn walk<C: Counter>(
             // SAFETY: `sp < STACK_SIZE`, and every entry below the top was written.
             group = unsafe { stack.get_unchecked(sp).assume_init() };
         }
+    }
+}
+
+/// Take the next child (highest traversal-order bit) out of `group`, which must have one,
+/// pushing what is left of the group when anything is; returns the child's node index.
+///
+/// # Safety
+/// `*sp < STACK_SIZE`.
+#[inline(always)]
+unsafe fn take_child(
+    group: &mut (u32, u32),
+    stack: &mut [std::mem::MaybeUninit<(u32, u32)>; STACK_SIZE],
+    sp: &mut usize,
+    oct_inv: u32,
+) -> usize {
+    let hits_imask = group.1;
+    let bit = 31 - hits_imask.leading_zeros();
+    group.1 &= !(1u32 << bit);
+    if group.1 & 0xff00_0000 != 0 {
+        // SAFETY: as the caller promises; `sp` saturates below.
+        unsafe { stack.get_unchecked_mut(*sp).write(*group) };
+        *sp = (*sp + 1).min(STACK_SIZE - 1);
+    }
+    let slot = (bit - 24) ^ oct_inv;
+    let rel = (hits_imask & !(u32::MAX << slot)).count_ones();
+    (group.0 + rel) as usize
+}
+
+/// One ray's walk, paused between choosing a node and testing it, so that a caller can
+/// start loading the node and turn to other rays meanwhile (`super::batch`).
+///
+/// The stack holds node groups as described above; `next` is the node chosen to be
+/// tested next.
+pub(crate) struct Walk {
+    /// Only entries below `sp` are ever read.
+    stack: [std::mem::MaybeUninit<(u32, u32)>; STACK_SIZE],
+    sp: usize,
+    group: (u32, u32),
+    prims: (u32, u32),
+    next: usize,
+}
+
+impl Walk {
+    /// A walk that starts at the root (none if `nodes` is empty).
+    #[inline(always)]
+    pub(crate) fn new(nodes: &[WideNode]) -> Walk {
+        Walk {
+            stack: [std::mem::MaybeUninit::uninit(); STACK_SIZE],
+            sp: 0,
+            // The root as a group of one: bit 31 with an empty internal mask finds node
+            // 0; an empty tree as an empty group.
+            group: if nodes.is_empty() {
+                (0, 0)
+            } else {
+                (0, 0x8000_0000)
+            },
+            prims: (0, 0),
+            next: 0,
+        }
+    }
+
+    /// Test the primitives waiting from the last node, then choose the next node to test
+    /// (`self.next`). False when the walk is over (nothing left, or `leaf` said stop).
+    ///
+    /// # Safety
+    /// As for [`walk`].
+    #[inline(always)]
+    pub(crate) unsafe fn step<C: Counter>(
+        &mut self,
+        nodes: &[WideNode],
+        ray: &NodeRay,
+        tmax: &mut f32,
+        counter: &mut C,
+        leaf: &mut impl FnMut(u32, &mut f32, &mut C) -> Leaf,
+    ) -> bool {
+        while self.prims.1 != 0 {
+            let i = 31 - self.prims.1.leading_zeros();
+            self.prims.1 &= !(1u32 << i);
+            counter.triangle();
+            if let Leaf::Stop = leaf(self.prims.0 + i, tmax, counter) {
+                return false;
+            }
+        }
+        loop {
+            if self.group.1 & 0xff00_0000 != 0 {
+                // SAFETY: `sp < STACK_SIZE` always.
+                self.next = unsafe {
+                    take_child(&mut self.group, &mut self.stack, &mut self.sp, ray.oct_inv)
+                };
+                debug_assert!(self.next < nodes.len());
+                return true;
+            }
+            if self.sp == 0 {
+                return false;
+            }
+            self.sp -= 1;
+            // SAFETY: `sp < STACK_SIZE`, and every entry below the top was written.
+            self.group = unsafe { self.stack.get_unchecked(self.sp).assume_init() };
+        }
+    }
+
+    /// The node `step` chose.
+    #[inline(always)]
+    pub(crate) fn next(&self) -> usize {
+        self.next
+    }
+
+    /// Test the node `step` chose: its hit children become the current group, the
+    /// primitives of its hit leaves wait for the next `step`.
+    ///
+    /// # Safety
+    /// As for [`walk`], after a `step` that returned true.
+    #[inline(always)]
+    pub(crate) unsafe fn test<C: Counter>(
+        &mut self,
+        nodes: &[WideNode],
+        ray: &NodeRay,
+        tmax: f32,
+        counter: &mut C,
+        hits: &mut impl FnMut(&WideNode, &NodeRay, f32) -> u32,
+    ) {
+        // SAFETY: child indices of a built CWBVH are in range.
+        let node = unsafe { nodes.get_unchecked(self.next) };
+        counter.node();
+        let h = hits(node, ray, tmax);
+        self.group = (node.child_base, (h & 0xff00_0000) | node.imask);
+        self.prims = (node.prim_base, h & 0x00ff_ffff);
+    }
+
+    /// The primitive slots waiting to be tested: the first slot and a mask of offsets.
+    #[inline(always)]
+    pub(crate) fn prims(&self) -> (u32, u32) {
+        self.prims
     }
 }
 
@@ -288,9 +415,9 @@ mod tests {
     fn with_walk(nodes: &[WideNode], tris: &[PackedTri], simd: Simd, o: Vec3, d: Vec3) -> Trace {
         let d = d + Vec3::ZERO;
         let ray = NodeRay::new(
-            o.to_array(),
-            d.to_array(),
-            [inv(d.x), inv(d.y), inv(d.z)],
+            Vec3A::from(o),
+            Vec3A::from(d),
+            Vec3A::new(inv(d.x), inv(d.y), inv(d.z)),
             0.0,
         );
         let wt = WatertightRay::new(o, d);
