@@ -11,7 +11,8 @@
 //! - the node layout is dray's (`wide`): exact f32 child planes, as Embree's BVH8,
 //!   instead of obvhs's 8-bit quantised ones; the node test (`node_test`: SSE2 on every
 //!   x86-64, AVX2 with FMA picked at run time, portable elsewhere), the traversal loop
-//!   (`traverse`, obvhs's node-group loop) and the leaf layout (`leaf`) are dray's.
+//!   (`traverse`: nearest child first, far entries dropped unread) and the leaf layout
+//!   (`leaf`) are dray's.
 //!
 //! The accelerator works in its own space: world coordinates scaled by a power of two
 //! `s` chosen so the scene spans about 2^20 units. Scaling by a power of two is exact,

@@ -12,6 +12,7 @@
 //! test, leaf test and tie rule (smaller distance, then lower triangle id), which do not
 //! depend on the order of visits.
 
+use super::node_test::NodeHits;
 use super::traverse::{Leaf, Walk};
 use super::{Accel, Hit, NodeRay, PackedTri, Simd, WideNode, leaf, next_up, node_test};
 use crate::bvh::QueryRay;
@@ -112,7 +113,7 @@ impl Accel {
         rays: &[QueryRay],
         accept: &mut impl FnMut(usize, u32, &TriangleHit) -> bool,
         out: &mut [Option<Hit>],
-        mut hits: impl FnMut(&WideNode, &NodeRay, f32) -> u32,
+        mut hits: impl FnMut(&WideNode, &NodeRay, f32) -> NodeHits,
     ) {
         let mut lanes: [Option<Lane>; LANES] = std::array::from_fn(|_| None);
         let mut next = 0usize;
@@ -170,15 +171,7 @@ impl Accel {
                     Leaf::Continue
                 };
                 // SAFETY: as for `walk`.
-                let more = unsafe {
-                    lane.walk.step(
-                        &self.nodes,
-                        &lane.node_ray,
-                        &mut lane.tmax,
-                        &mut (),
-                        &mut leaf_test,
-                    )
-                };
+                let more = unsafe { lane.walk.step(&mut lane.tmax, &mut (), &mut leaf_test) };
                 if more {
                     prefetch(
                         &self.nodes[lane.walk.next()],

@@ -30,22 +30,7 @@
 
 use glam::Vec3A;
 
-use super::wide::WideNode;
-
-/// `NodeRay::order_bits` for each `oct_inv`.
-const ORDER_BITS: [[u32; 8]; 8] = {
-    let mut t = [[0u32; 8]; 8];
-    let mut oct = 0;
-    while oct < 8 {
-        let mut slot = 0;
-        while slot < 8 {
-            t[oct][slot] = (1u32 << (24 + (slot ^ oct))) | 0x00ff_ffff;
-            slot += 1;
-        }
-        oct += 1;
-    }
-    t
-};
+use super::wide::{INTERNAL, WideNode};
 
 /// Per-ray constants of the node test.
 #[derive(Clone, Copy, Debug)]
@@ -57,12 +42,18 @@ pub(crate) struct NodeRay {
     pub pad: [f32; 4],
     /// Float offset of the near planes in each axis row of `WideNode::planes` (0 or 8).
     pub near: [usize; 3],
-    /// Per slot: the traversal-order bit of an internal child, `1 << (24 + (slot ^
-    /// oct_inv))`, with the low 24 bits set so that leaf bits pass unchanged.
-    pub order_bits: &'static [u32; 8],
-    /// obvhs's `ray_get_octant_inv4` byte: bit 2 set when `dir.x >= 0`, bit 1 for y,
-    /// bit 0 for z.
-    pub oct_inv: u32,
+}
+
+/// What the node test found: the hit children, their entry distances and the primitives
+/// of the hit leaves.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct NodeHits {
+    /// Bit `s` set when child slot `s`'s box is hit (empty slots never are).
+    pub mask: u32,
+    /// The OR of the hit leaf children's words: primitive offsets from `prim_base`.
+    pub prims: u32,
+    /// Entry distance of each child's box (meaningful where `mask` has the slot).
+    pub tnear: [f32; 8],
 }
 
 impl NodeRay {
@@ -72,7 +63,6 @@ impl NodeRay {
     pub fn new(origin: Vec3A, dir: Vec3A, inv_dir: Vec3A, margin: f32) -> NodeRay {
         // Bit a set when dir[a] < 0.
         let negative = dir.cmplt(Vec3A::ZERO).bitmask();
-        let oct_inv = (!negative & 1) << 2 | (!negative & 2) | (!negative & 4) >> 2;
         // Capped below infinity: an infinite pad would meet an infinite distance (an
         // empty slot's plane) as inf - inf = NaN. f32::MAX keeps every box it grows hit.
         let pad = (inv_dir.abs() * margin).min(Vec3A::splat(f32::MAX));
@@ -81,22 +71,23 @@ impl NodeRay {
             inv_dir: inv_dir.extend(0.0).to_array(),
             pad: pad.extend(0.0).to_array(),
             near: [0, 1, 2].map(|a| ((negative >> a) & 1) as usize * 8),
-            order_bits: &ORDER_BITS[oct_inv as usize],
-            oct_inv,
         }
     }
 }
 
-/// The node's hit mask for a ray whose current far limit is `tmax`: internal children
-/// hit in the top byte (traversal-order bits), primitives of hit leaves in the low 24
-/// bits (offsets from `prim_base`). Portable version.
+/// The children of `node` a ray whose current far limit is `tmax` enters. Portable
+/// version.
 #[inline(always)]
 #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
-pub(crate) fn hits_portable(node: &WideNode, ray: &NodeRay, tmax: f32) -> u32 {
+pub(crate) fn hits_portable(node: &WideNode, ray: &NodeRay, tmax: f32) -> NodeHits {
     // SSE's max/min: the second operand unless the first is strictly greater/less.
     let max = |a: f32, b: f32| if a > b { a } else { b };
     let min = |a: f32, b: f32| if a < b { a } else { b };
-    let mut mask = 0u32;
+    let mut out = NodeHits {
+        mask: 0,
+        prims: 0,
+        tnear: [0.0; 8],
+    };
     for slot in 0..8 {
         let mut tn = [0f32; 3];
         let mut tf = [0f32; 3];
@@ -109,24 +100,35 @@ pub(crate) fn hits_portable(node: &WideNode, ray: &NodeRay, tmax: f32) -> u32 {
         }
         let tmin = max(max(tn[0], max(tn[1], tn[2])), 0.0);
         let tmax_c = min(min(tf[0], min(tf[1], tf[2])), tmax);
+        out.tnear[slot] = tmin;
         if tmin <= tmax_c {
-            mask |= node.bits[slot] & ray.order_bits[slot];
+            out.mask |= 1 << slot;
+            if node.slot[slot] & INTERNAL == 0 {
+                out.prims |= node.slot[slot];
+            }
         }
     }
-    mask
+    out
 }
 
 #[cfg(target_arch = "x86_64")]
 pub(crate) mod x86 {
-    use super::{NodeRay, WideNode};
+    use super::{NodeHits, NodeRay, WideNode};
     use std::arch::x86_64::*;
+
+    /// The primitive mask of the hit leaves: the OR of the words of hit slots whose top
+    /// bit (the internal flag) is clear, over one vector of four slots' words.
+    #[inline(always)]
+    unsafe fn leaf_words(hit: __m128i, words: __m128i) -> __m128i {
+        unsafe { _mm_andnot_si128(_mm_srai_epi32::<31>(words), _mm_and_si128(hit, words)) }
+    }
 
     /// [`super::hits_portable`] with SSE2, four children at a time.
     ///
     /// # Safety
     /// SSE2 is part of x86-64, so always safe to call; `unsafe` only for the intrinsics.
     #[inline(always)]
-    pub(crate) unsafe fn hits_sse2(node: &WideNode, ray: &NodeRay, tmax: f32) -> u32 {
+    pub(crate) unsafe fn hits_sse2(node: &WideNode, ray: &NodeRay, tmax: f32) -> NodeHits {
         unsafe {
             let mut tn = [[_mm_setzero_ps(); 2]; 3];
             let mut tf = [[_mm_setzero_ps(); 2]; 3];
@@ -145,22 +147,27 @@ pub(crate) mod x86 {
             }
             let zero = _mm_setzero_ps();
             let tm = _mm_set1_ps(tmax);
+            let mut out = NodeHits {
+                mask: 0,
+                prims: 0,
+                tnear: [0.0; 8],
+            };
             let mut acc = _mm_setzero_si128();
             for h in 0..2 {
                 let tmin = _mm_max_ps(tn[0][h], _mm_max_ps(tn[1][h], tn[2][h]));
                 let tmax4 = _mm_min_ps(tf[0][h], _mm_min_ps(tf[1][h], tf[2][h]));
                 let tmin = _mm_max_ps(tmin, zero);
                 let tmax4 = _mm_min_ps(tmax4, tm);
-                let hit = _mm_castps_si128(_mm_cmple_ps(tmin, tmax4));
-                let bits = _mm_and_si128(
-                    _mm_loadu_si128(node.bits.as_ptr().add(4 * h) as *const __m128i),
-                    _mm_loadu_si128(ray.order_bits.as_ptr().add(4 * h) as *const __m128i),
-                );
-                acc = _mm_or_si128(acc, _mm_and_si128(hit, bits));
+                let hit = _mm_cmple_ps(tmin, tmax4);
+                _mm_storeu_ps(out.tnear.as_mut_ptr().add(4 * h), tmin);
+                out.mask |= (_mm_movemask_ps(hit) as u32) << (4 * h);
+                let words = _mm_load_si128(node.slot.as_ptr().add(4 * h) as *const __m128i);
+                acc = _mm_or_si128(acc, leaf_words(_mm_castps_si128(hit), words));
             }
             acc = _mm_or_si128(acc, _mm_shuffle_epi32::<0x4e>(acc));
             acc = _mm_or_si128(acc, _mm_shuffle_epi32::<0xb1>(acc));
-            _mm_cvtsi128_si32(acc) as u32
+            out.prims = _mm_cvtsi128_si32(acc) as u32;
+            out
         }
     }
 
@@ -170,7 +177,7 @@ pub(crate) mod x86 {
     /// The CPU must support AVX2 and FMA.
     #[inline]
     #[target_feature(enable = "avx2,fma")]
-    pub(crate) unsafe fn hits_avx2(node: &WideNode, ray: &NodeRay, tmax: f32) -> u32 {
+    pub(crate) unsafe fn hits_avx2(node: &WideNode, ray: &NodeRay, tmax: f32) -> NodeHits {
         unsafe {
             let mut tn = [_mm256_setzero_ps(); 3];
             let mut tf = [_mm256_setzero_ps(); 3];
@@ -189,16 +196,22 @@ pub(crate) mod x86 {
             let tmax8 = _mm256_min_ps(tf[0], _mm256_min_ps(tf[1], tf[2]));
             let tmin = _mm256_max_ps(tmin, _mm256_setzero_ps());
             let tmax8 = _mm256_min_ps(tmax8, _mm256_set1_ps(tmax));
-            let hit = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_LE_OS>(tmin, tmax8));
-            let bits = _mm256_and_si256(
-                _mm256_load_si256(node.bits.as_ptr() as *const __m256i),
-                _mm256_loadu_si256(ray.order_bits.as_ptr() as *const __m256i),
-            );
-            let v = _mm256_and_si256(hit, bits);
+            let hit = _mm256_cmp_ps::<_CMP_LE_OS>(tmin, tmax8);
+            let mut out = NodeHits {
+                mask: _mm256_movemask_ps(hit) as u32,
+                prims: 0,
+                tnear: [0.0; 8],
+            };
+            _mm256_storeu_ps(out.tnear.as_mut_ptr(), tmin);
+            let words = _mm256_load_si256(node.slot.as_ptr() as *const __m256i);
+            let hit = _mm256_castps_si256(hit);
+            let v =
+                _mm256_andnot_si256(_mm256_srai_epi32::<31>(words), _mm256_and_si256(hit, words));
             let mut acc = _mm_or_si128(_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
             acc = _mm_or_si128(acc, _mm_shuffle_epi32::<0x4e>(acc));
             acc = _mm_or_si128(acc, _mm_shuffle_epi32::<0xb1>(acc));
-            _mm_cvtsi128_si32(acc) as u32
+            out.prims = _mm_cvtsi128_si32(acc) as u32;
+            out
         }
     }
 }

@@ -1,22 +1,17 @@
-//! The traversal loop over [`WideNode`]s: obvhs's `traverse!` (Ylitie et al. 2017's
-//! node groups), step for step, with the node test of `node_test` and the leaf test of
-//! `leaf` inlined into one function per instruction set.
+//! The traversal loop over [`WideNode`]s, with the node test of `node_test` and the leaf
+//! test of `leaf` inlined into one function per instruction set.
 //!
-//! The stack holds node groups (a first-child index and the hit children left to visit,
-//! in traversal order in the top byte, the node's internal-child mask in the low byte),
-//! as in obvhs, saturating at the top like obvhs's `StackStack` (but never full: see
-//! [`STACK_SIZE`]). Children are
-//! taken highest traversal-order bit first and a node's primitives highest offset first,
-//! as obvhs does; with exact boxes (`wide`) a ray visits fewer of them than with obvhs's
-//! quantised ones, in the same order.
+//! Nearest child first, as Embree's single-ray traversal does: a node's test gives each
+//! hit child's entry distance; the primitives of its hit leaves are tested first (they
+//! may lower the far limit), then the nearest internal child is visited next and the
+//! others wait on a stack with their distances, nearest on top. An entry the far limit no
+//! longer reaches is dropped when it comes off the stack, without loading its node. (The
+//! first traversal was obvhs's: children in a fixed order by the ray's octant, Ylitie et
+//! al. 2017, and node groups on the stack; it visited more nodes and could not drop them
+//! unread.) The answers do not depend on the order: see `super`'s doc.
 
-use super::node_test::NodeRay;
-use super::wide::WideNode;
-
-/// Entries of the group stack: one per level at most, and no leaf is deeper than
-/// [`super::build::MAX_DEPTH`] (obvhs's `TRAVERSAL_STACK_SIZE` is 32, which a deep tree
-/// could overflow; the stack saturates rather than overrun, but would then lose nodes).
-const STACK_SIZE: usize = super::build::MAX_DEPTH as usize;
+use super::node_test::{NodeHits, NodeRay};
+use super::wide::{INTERNAL, WideNode};
 
 /// Which build of the node test runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -107,97 +102,159 @@ pub(crate) enum Leaf {
 /// every hit leaf. `tmax` is the far limit of the node test; the callback may lower it.
 ///
 /// # Safety
-/// `hits` must be runnable on this CPU; `nodes` must be a well-formed CWBVH (every child
-/// index in range), which [`super::Accel`] guarantees by building it.
+/// `hits` must be runnable on this CPU; `nodes` must be well formed (every child index
+/// in range), which [`super::Accel`] guarantees by building them.
 #[inline(always)]
 pub(crate) unsafe fn walk<C: Counter>(
     nodes: &[WideNode],
     ray: &NodeRay,
     mut tmax: f32,
     counter: &mut C,
-    mut hits: impl FnMut(&WideNode, &NodeRay, f32) -> u32,
+    mut hits: impl FnMut(&WideNode, &NodeRay, f32) -> NodeHits,
     mut leaf: impl FnMut(u32, &mut f32, &mut C) -> Leaf,
 ) {
     if nodes.is_empty() {
         return;
     }
-    // Only entries below `sp` are ever read.
-    let mut stack = [std::mem::MaybeUninit::<(u32, u32)>::uninit(); STACK_SIZE];
-    let mut sp = 0usize;
-    // The root as a group of one: bit 31 with an empty internal mask finds node 0.
-    let mut group = (0u32, 0x8000_0000u32);
-    let mut prims = (0u32, 0u32);
+    let mut stack = Stack::new();
+    let mut index = 0usize;
     loop {
-        while prims.1 != 0 {
-            let i = 31 - prims.1.leading_zeros();
-            prims.1 &= !(1u32 << i);
+        // SAFETY: child indices of built nodes are in range.
+        let node = unsafe { nodes.get_unchecked(index) };
+        counter.node();
+        let h = hits(node, ray, tmax);
+        let mut prims = h.prims;
+        while prims != 0 {
+            let i = prims.trailing_zeros();
+            prims &= prims - 1;
             counter.triangle();
-            if let Leaf::Stop = leaf(prims.0 + i, &mut tmax, counter) {
+            if let Leaf::Stop = leaf(node.prim_base + i, &mut tmax, counter) {
                 return;
             }
         }
-        if group.1 & 0xff00_0000 != 0 {
-            // SAFETY: `sp < STACK_SIZE` always.
-            let index = unsafe { take_child(&mut group, &mut stack, &mut sp, ray.oct_inv) };
-            debug_assert!(index < nodes.len());
-            // SAFETY: child indices of a built CWBVH are in range.
-            let node = unsafe { nodes.get_unchecked(index) };
-            counter.node();
-            let h = hits(node, ray, tmax);
-            prefetch_children(nodes, node, ray.oct_inv, h);
-            group = (node.child_base, (h & 0xff00_0000) | node.imask);
-            prims = (node.prim_base, h & 0x00ff_ffff);
-        } else {
-            group = (0, 0);
-        }
-        if prims.1 == 0 && group.1 & 0xff00_0000 == 0 {
-            if sp == 0 {
-                return;
-            }
-            sp -= 1;
-            // SAFETY: `sp < STACK_SIZE`, and every entry below the top was written.
-            group = unsafe { stack.get_unchecked(sp).assume_init() };
+        // The nearest hit child next, the others on the stack; else the nearest entry
+        // of the stack that the (possibly lowered) far limit still reaches.
+        let next = match stack.push_children(node, &h, tmax) {
+            Some((child, _)) => Some(child),
+            None => stack.pop(tmax),
+        };
+        match next {
+            Some(child) => index = child,
+            None => return,
         }
     }
 }
 
-/// Take the next child (highest traversal-order bit) out of `group`, which must have one,
-/// pushing what is left of the group when anything is; returns the child's node index.
-///
-/// # Safety
-/// `*sp < STACK_SIZE`.
-#[inline(always)]
-unsafe fn take_child(
-    group: &mut (u32, u32),
-    stack: &mut [std::mem::MaybeUninit<(u32, u32)>; STACK_SIZE],
-    sp: &mut usize,
-    oct_inv: u32,
-) -> usize {
-    let hits_imask = group.1;
-    let bit = 31 - hits_imask.leading_zeros();
-    group.1 &= !(1u32 << bit);
-    if group.1 & 0xff00_0000 != 0 {
-        // SAFETY: as the caller promises; `sp` saturates below.
-        unsafe { stack.get_unchecked_mut(*sp).write(*group) };
-        *sp = (*sp + 1).min(STACK_SIZE - 1);
+/// Entries of the node stack: a node pushes at most seven (its hit children but the
+/// nearest) and holds them while its subtree is walked, and no leaf is deeper than
+/// [`super::build::MAX_DEPTH`], so the stack never fills.
+const STACK_SIZE: usize = 7 * super::build::MAX_DEPTH as usize + 1;
+
+/// Nodes waiting to be visited, each with its box's entry distance.
+pub(crate) struct Stack {
+    /// Only entries below `sp` are ever read.
+    entries: [std::mem::MaybeUninit<(u32, f32)>; STACK_SIZE],
+    sp: usize,
+}
+
+impl Stack {
+    #[inline(always)]
+    pub(crate) fn new() -> Stack {
+        Stack {
+            // SAFETY: an array of `MaybeUninit` needs no initialisation (the idiom of
+            // `MaybeUninit`'s docs; `[MaybeUninit::uninit(); N]` compiled to a memset of
+            // the whole stack per ray here).
+            entries: unsafe { std::mem::MaybeUninit::uninit().assume_init() },
+            sp: 0,
+        }
     }
-    let slot = (bit - 24) ^ oct_inv;
-    let rel = (hits_imask & !(u32::MAX << slot)).count_ones();
-    (group.0 + rel) as usize
+
+    /// Push the internal children `h` found whose boxes the ray enters before `tmax`,
+    /// farthest first, all but the nearest, which is returned.
+    #[inline(always)]
+    pub(crate) fn push_children(
+        &mut self,
+        node: &WideNode,
+        h: &NodeHits,
+        tmax: f32,
+    ) -> Option<(usize, f32)> {
+        let base = self.sp;
+        let mut nearest: Option<(u32, f32)> = None;
+        let mut mask = h.mask;
+        while mask != 0 {
+            let s = mask.trailing_zeros() as usize;
+            mask &= mask - 1;
+            // SAFETY: `s < 8`.
+            let (word, t) = unsafe { (*node.slot.get_unchecked(s), *h.tnear.get_unchecked(s)) };
+            if word & INTERNAL == 0 || t > tmax {
+                continue;
+            }
+            let child = (word & !INTERNAL, t);
+            match nearest {
+                None => nearest = Some(child),
+                Some(n) => {
+                    // The farther of the two waits on the stack, kept sorted near the
+                    // top so the nearer of the waiting ones comes off first.
+                    let (keep, wait) = if t < n.1 { (child, n) } else { (n, child) };
+                    self.push_sorted(wait, base);
+                    nearest = Some(keep);
+                }
+            }
+        }
+        nearest.map(|(i, t)| (i as usize, t))
+    }
+
+    /// Push `e`, moving it below the entries just pushed for the same node that are
+    /// nearer (at most six), so that a node's children come off nearest first.
+    #[inline(always)]
+    fn push_sorted(&mut self, e: (u32, f32), base: usize) {
+        debug_assert!(self.sp < STACK_SIZE);
+        // SAFETY: `sp < STACK_SIZE` (see `STACK_SIZE`); entries below `sp` are written,
+        // and `base <= j <= sp`.
+        unsafe {
+            let mut j = self.sp;
+            while j > base {
+                let below = self.entries.get_unchecked(j - 1).assume_init();
+                if below.1 >= e.1 {
+                    break;
+                }
+                self.entries.get_unchecked_mut(j).write(below);
+                j -= 1;
+            }
+            self.entries.get_unchecked_mut(j).write(e);
+            self.sp += 1;
+        }
+    }
+
+    /// The nearest remaining entry whose distance `tmax` still reaches (farther ones
+    /// are dropped: the far limit only ever decreases).
+    #[inline(always)]
+    pub(crate) fn pop(&mut self, tmax: f32) -> Option<usize> {
+        while self.sp > 0 {
+            self.sp -= 1;
+            // SAFETY: every entry below the old `sp` was written.
+            let (i, t) = unsafe { self.entries.get_unchecked(self.sp).assume_init() };
+            if t <= tmax {
+                return Some(i as usize);
+            }
+        }
+        None
+    }
 }
 
 /// One ray's walk, paused between choosing a node and testing it, so that a caller can
 /// start loading the node and turn to other rays meanwhile (`super::batch`).
-///
-/// The stack holds node groups as described above; `next` is the node chosen to be
-/// tested next.
 pub(crate) struct Walk {
-    /// Only entries below `sp` are ever read.
-    stack: [std::mem::MaybeUninit<(u32, u32)>; STACK_SIZE],
-    sp: usize,
-    group: (u32, u32),
-    prims: (u32, u32),
+    stack: Stack,
+    /// The node chosen to be tested next.
     next: usize,
+    /// Whether `next` holds a node (false when the walk is over or not started).
+    has_next: bool,
+    /// The primitives of the last tested node's hit leaves, waiting for `step`.
+    prims: (u32, u32),
+    /// The last tested node's nearest hit child, to be visited after its primitives
+    /// (which may lower the far limit below it).
+    near_child: Option<(usize, f32)>,
 }
 
 impl Walk {
@@ -205,17 +262,11 @@ impl Walk {
     #[inline(always)]
     pub(crate) fn new(nodes: &[WideNode]) -> Walk {
         Walk {
-            stack: [std::mem::MaybeUninit::uninit(); STACK_SIZE],
-            sp: 0,
-            // The root as a group of one: bit 31 with an empty internal mask finds node
-            // 0; an empty tree as an empty group.
-            group: if nodes.is_empty() {
-                (0, 0)
-            } else {
-                (0, 0x8000_0000)
-            },
-            prims: (0, 0),
+            stack: Stack::new(),
             next: 0,
+            has_next: !nodes.is_empty(),
+            prims: (0, 0),
+            near_child: None,
         }
     }
 
@@ -227,35 +278,33 @@ impl Walk {
     #[inline(always)]
     pub(crate) unsafe fn step<C: Counter>(
         &mut self,
-        nodes: &[WideNode],
-        ray: &NodeRay,
         tmax: &mut f32,
         counter: &mut C,
         leaf: &mut impl FnMut(u32, &mut f32, &mut C) -> Leaf,
     ) -> bool {
+        if self.has_next {
+            // The root, before anything was tested.
+            return true;
+        }
         while self.prims.1 != 0 {
-            let i = 31 - self.prims.1.leading_zeros();
-            self.prims.1 &= !(1u32 << i);
+            let i = self.prims.1.trailing_zeros();
+            self.prims.1 &= self.prims.1 - 1;
             counter.triangle();
             if let Leaf::Stop = leaf(self.prims.0 + i, tmax, counter) {
                 return false;
             }
         }
-        loop {
-            if self.group.1 & 0xff00_0000 != 0 {
-                // SAFETY: `sp < STACK_SIZE` always.
-                self.next = unsafe {
-                    take_child(&mut self.group, &mut self.stack, &mut self.sp, ray.oct_inv)
-                };
-                debug_assert!(self.next < nodes.len());
-                return true;
+        let next = match self.near_child.take() {
+            Some((i, t)) if t <= *tmax => Some(i),
+            _ => self.stack.pop(*tmax),
+        };
+        match next {
+            Some(i) => {
+                self.next = i;
+                self.has_next = true;
+                true
             }
-            if self.sp == 0 {
-                return false;
-            }
-            self.sp -= 1;
-            // SAFETY: `sp < STACK_SIZE`, and every entry below the top was written.
-            self.group = unsafe { self.stack.get_unchecked(self.sp).assume_init() };
+            None => false,
         }
     }
 
@@ -265,8 +314,8 @@ impl Walk {
         self.next
     }
 
-    /// Test the node `step` chose: its hit children become the current group, the
-    /// primitives of its hit leaves wait for the next `step`.
+    /// Test the node `step` chose: its hit children go on the stack (the nearest kept
+    /// aside), the primitives of its hit leaves wait for the next `step`.
     ///
     /// # Safety
     /// As for [`walk`], after a `step` that returned true.
@@ -277,14 +326,15 @@ impl Walk {
         ray: &NodeRay,
         tmax: f32,
         counter: &mut C,
-        hits: &mut impl FnMut(&WideNode, &NodeRay, f32) -> u32,
+        hits: &mut impl FnMut(&WideNode, &NodeRay, f32) -> NodeHits,
     ) {
-        // SAFETY: child indices of a built CWBVH are in range.
+        // SAFETY: child indices of built nodes are in range.
         let node = unsafe { nodes.get_unchecked(self.next) };
+        self.has_next = false;
         counter.node();
         let h = hits(node, ray, tmax);
-        self.group = (node.child_base, (h & 0xff00_0000) | node.imask);
-        self.prims = (node.prim_base, h & 0x00ff_ffff);
+        self.prims = (node.prim_base, h.prims);
+        self.near_child = self.stack.push_children(node, &h, tmax);
     }
 
     /// The primitive slots waiting to be tested: the first slot and a mask of offsets.
@@ -292,36 +342,6 @@ impl Walk {
     pub(crate) fn prims(&self) -> (u32, u32) {
         self.prims
     }
-}
-
-/// Start loading every internal child the node test hit, so that the ones visited
-/// later (after the first child's subtree) are in cache by then and the first one's
-/// four lines are fetched together.
-#[inline(always)]
-fn prefetch_children(nodes: &[WideNode], node: &WideNode, oct_inv: u32, h: u32) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-        let mut order = h >> 24;
-        while order != 0 {
-            let bit = order.trailing_zeros();
-            order &= order - 1;
-            let slot = bit ^ oct_inv;
-            let rel = (node.imask & !(u32::MAX << slot)).count_ones();
-            if let Some(child) = nodes.get((node.child_base + rel) as usize) {
-                let p = child as *const WideNode as *const i8;
-                // SAFETY: prefetching never faults; the lines are inside `child`.
-                unsafe {
-                    _mm_prefetch::<_MM_HINT_T0>(p);
-                    _mm_prefetch::<_MM_HINT_T0>(p.add(64));
-                    _mm_prefetch::<_MM_HINT_T0>(p.add(128));
-                    _mm_prefetch::<_MM_HINT_T0>(p.add(192));
-                }
-            }
-        }
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (nodes, node, oct_inv, h);
 }
 
 #[cfg(test)]

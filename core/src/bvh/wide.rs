@@ -10,12 +10,12 @@
 //! operations per plane and culls more. The cost is memory: 256 bytes per node instead
 //! of obvhs's 80 (four cache lines, all read per visit).
 //!
-//! Each child slot also carries the bits it adds to the node's hit mask when its box is
-//! hit, precomputed from obvhs's `child_meta`:
+//! Each child slot also carries one word, `slot[s]`:
+//! - an internal child: its node index with the top bit set ([`INTERNAL`]), so the
+//!   traversal reads the child's index directly;
 //! - a leaf child: its primitives' unary count shifted to their offset from `prim_base`
-//!   (what obvhs's `get_child_and_index_bits` computes per visit),
-//! - an internal child: `0xff00_0000`, narrowed per ray to the child's traversal-order
-//!   bit `1 << (24 + (slot ^ oct_inv))` by one AND (see `node_test`),
+//!   (what obvhs's `get_child_and_index_bits` computes per visit), so the node test ORs
+//!   the words of its hit leaves into one mask of primitives to test;
 //! - an empty slot: 0 (its planes are an empty box, +inf below and -inf above).
 
 use obvhs::cwbvh::CwBvh;
@@ -28,16 +28,16 @@ use super::leaf::PackedTri;
 pub(crate) struct WideNode {
     /// Per axis (x, y, z): floats 0..8 the children's lower planes, 8..16 the upper.
     pub planes: [[f32; 16]; 3],
-    /// Hit-mask bits contributed by each child slot when its box is hit.
-    pub bits: [u32; 8],
-    /// Index of the first internal child (the others follow in slot order).
-    pub child_base: u32,
+    /// Per child slot: an internal child's node index | [`INTERNAL`], or a leaf child's
+    /// primitive bits (offsets from `prim_base`), or 0 for an empty slot.
+    pub slot: [u32; 8],
     /// Leaf slot of the first primitive of the node's leaf children.
     pub prim_base: u32,
-    /// Bit `s` set when slot `s` is an internal node.
-    pub imask: u32,
-    _pad: u32,
+    _pad: [u32; 7],
 }
+
+/// The flag of an internal child's word in [`WideNode::slot`].
+pub(crate) const INTERNAL: u32 = 0x8000_0000;
 
 impl Default for WideNode {
     fn default() -> WideNode {
@@ -48,11 +48,9 @@ impl Default for WideNode {
         }
         WideNode {
             planes,
-            bits: [0; 8],
-            child_base: 0,
+            slot: [0; 8],
             prim_base: 0,
-            imask: 0,
-            _pad: 0,
+            _pad: [0; 7],
         }
     }
 }
@@ -94,11 +92,14 @@ pub(crate) fn from_cwbvh(bvh: &CwBvh, tris: &[PackedTri]) -> Vec<WideNode> {
         let mut internal = 0u32;
         for slot in 0..8 {
             let meta = u32::from(cw.child_meta[slot]);
-            let (b, bits) = if cw.imask & (1 << slot) != 0 {
+            let (b, word) = if cw.imask & (1 << slot) != 0 {
                 let c = (cw.child_base_idx + internal) as usize;
                 internal += 1;
-                assert!(c > i && c < n, "CWBVH child {c} of node {i} out of order");
-                (node_bounds[c], 0xff00_0000)
+                assert!(
+                    c > i && c < n && (c as u32) < INTERNAL,
+                    "CWBVH child {c} of node {i} out of order"
+                );
+                (node_bounds[c], c as u32 | INTERNAL)
             } else if meta >> 5 != 0 {
                 // Unary primitive count (high 3 bits) at the primitive offset (low 5).
                 let first = (cw.primitive_base_idx + (meta & 0x1f)) as usize;
@@ -115,12 +116,10 @@ pub(crate) fn from_cwbvh(bvh: &CwBvh, tris: &[PackedTri]) -> Vec<WideNode> {
                 node.planes[a][slot] = b.0[a];
                 node.planes[a][8 + slot] = b.1[a];
             }
-            node.bits[slot] = bits;
+            node.slot[slot] = word;
             whole = union(whole, b);
         }
-        node.child_base = cw.child_base_idx;
         node.prim_base = cw.primitive_base_idx;
-        node.imask = u32::from(cw.imask);
         node_bounds[i] = whole;
     }
     out
