@@ -48,7 +48,7 @@ pub(crate) struct NodeRay {
 /// of the hit leaves.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct NodeHits {
-    /// Bit `s` set when child slot `s`'s box is hit (empty slots never are).
+    /// Bit `s` set when child slot `s` is an internal node whose box is hit.
     pub mask: u32,
     /// The OR of the hit leaf children's words: primitive offsets from `prim_base`.
     pub prims: u32,
@@ -102,8 +102,9 @@ pub(crate) fn hits_portable(node: &WideNode, ray: &NodeRay, tmax: f32) -> NodeHi
         let tmax_c = min(min(tf[0], min(tf[1], tf[2])), tmax);
         out.tnear[slot] = tmin;
         if tmin <= tmax_c {
-            out.mask |= 1 << slot;
-            if node.slot[slot] & INTERNAL == 0 {
+            if node.slot[slot] & INTERNAL != 0 {
+                out.mask |= 1 << slot;
+            } else {
                 out.prims |= node.slot[slot];
             }
         }
@@ -160,8 +161,9 @@ pub(crate) mod x86 {
                 let tmax4 = _mm_min_ps(tmax4, tm);
                 let hit = _mm_cmple_ps(tmin, tmax4);
                 _mm_storeu_ps(out.tnear.as_mut_ptr().add(4 * h), tmin);
-                out.mask |= (_mm_movemask_ps(hit) as u32) << (4 * h);
                 let words = _mm_load_si128(node.slot.as_ptr().add(4 * h) as *const __m128i);
+                let internal = _mm_movemask_ps(_mm_castsi128_ps(words)) as u32;
+                out.mask |= ((_mm_movemask_ps(hit) as u32) & internal) << (4 * h);
                 acc = _mm_or_si128(acc, leaf_words(_mm_castps_si128(hit), words));
             }
             acc = _mm_or_si128(acc, _mm_shuffle_epi32::<0x4e>(acc));
@@ -197,13 +199,15 @@ pub(crate) mod x86 {
             let tmin = _mm256_max_ps(tmin, _mm256_setzero_ps());
             let tmax8 = _mm256_min_ps(tmax8, _mm256_set1_ps(tmax));
             let hit = _mm256_cmp_ps::<_CMP_LE_OS>(tmin, tmax8);
+            let words = _mm256_load_si256(node.slot.as_ptr() as *const __m256i);
+            // The words' top bits are the internal flags.
+            let internal = _mm256_movemask_ps(_mm256_castsi256_ps(words)) as u32;
             let mut out = NodeHits {
-                mask: _mm256_movemask_ps(hit) as u32,
+                mask: _mm256_movemask_ps(hit) as u32 & internal,
                 prims: 0,
                 tnear: [0.0; 8],
             };
             _mm256_storeu_ps(out.tnear.as_mut_ptr(), tmin);
-            let words = _mm256_load_si256(node.slot.as_ptr() as *const __m256i);
             let hit = _mm256_castps_si256(hit);
             let v =
                 _mm256_andnot_si256(_mm256_srai_epi32::<31>(words), _mm256_and_si256(hit, words));

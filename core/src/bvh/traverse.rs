@@ -186,7 +186,8 @@ impl Stack {
             mask &= mask - 1;
             // SAFETY: `s < 8`.
             let (word, t) = unsafe { (*node.slot.get_unchecked(s), *h.tnear.get_unchecked(s)) };
-            if word & INTERNAL == 0 || t > tmax {
+            debug_assert!(word & INTERNAL != 0);
+            if t > tmax {
                 continue;
             }
             let child = (word & !INTERNAL, t);
