@@ -13,7 +13,7 @@
 //! depend on the order of visits.
 
 use super::node_test::NodeHits;
-use super::traverse::{Leaf, Walk};
+use super::traverse::{Leaf, Walk, prefetch};
 use super::{Accel, Hit, NodeRay, PackedTri, Simd, WideNode, leaf, next_up, node_test};
 use crate::bvh::QueryRay;
 use crate::intersect::{TriangleHit, WatertightRay};
@@ -35,23 +35,6 @@ struct Lane {
     walk: Walk,
     /// `walk` has chosen a node (being loaded) that is not tested yet.
     node_pending: bool,
-}
-
-#[inline(always)]
-fn prefetch<T>(p: *const T, bytes: usize) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-        let p = p as *const i8;
-        let mut off = 0;
-        while off < bytes {
-            // SAFETY: prefetching never faults.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(off)) };
-            off += 64;
-        }
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (p, bytes);
 }
 
 impl Accel {
