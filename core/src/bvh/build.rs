@@ -180,6 +180,11 @@ fn sequential(
 /// Cut `range` (at least two primitives, at `depth`) in two: reorders it so the left
 /// side comes first and returns the cut with the two sides' bounds.
 fn cut(input: &Input, range: &mut [u32], depth: u32) -> (usize, Aabb, Aabb) {
+    // Two primitives have one cut, one each side: no bins needed (a third of all cuts,
+    // each of which would clear and sweep 48 bins).
+    if let [a, b] = *range {
+        return (1, input.aabbs[a as usize], input.aabbs[b as usize]);
+    }
     // A median cut from here ends at depth + ceil(log2(count)); once that reaches
     // the limit, only median cuts keep the promise.
     let force_median = depth + ceil_log2(range.len()) >= MAX_DEPTH;
