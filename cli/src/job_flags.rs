@@ -58,9 +58,11 @@ pub struct JobFlags {
     pub translate: Option<String>,
     /// Progressive passes: "doubling" (1, 1, 2, 4, ... samples per pixel; GetImage and
     /// `dray submit --preview` show the image after each), "one" (every sample in one
-    /// pass), or N samples per pass. No effect on the final image.
-    #[arg(long, default_value = dray_core::passes::DEFAULT)]
-    pub passes: String,
+    /// pass), or N samples per pass. No effect on the final image. Default: "doubling"
+    /// for a job others can watch (`dray submit`), "one" for `dray render`, which shows
+    /// nothing before the end (each pass waits for its slowest tile).
+    #[arg(long)]
+    pub passes: Option<String>,
     /// Exposure of the PNG: `auto` maps the image's log-average luminance (robust to a
     /// few very bright pixels) to mid-grey, so scenes in photometric units (a 68000-lux
     /// sun) come out well exposed; a number is stops (radiance times 2^EV, -64..=64).
@@ -172,9 +174,14 @@ impl JobFlags {
 
     /// `--passes`: a cut of `--spp` the coordinator accepts.
     pub fn check_passes(&self) -> Result<()> {
-        dray_core::passes::Passes::parse(&self.passes, self.spp)
+        dray_core::passes::Passes::parse(self.passes_or_default(), self.spp)
             .map(drop)
             .map_err(|e| anyhow::anyhow!("--passes: {e}"))
+    }
+
+    /// `--passes`, or the coordinator's default (`doubling`) when not given.
+    pub fn passes_or_default(&self) -> &str {
+        self.passes.as_deref().unwrap_or(dray_core::passes::DEFAULT)
     }
 
     /// The display transform of the PNG (`--exposure`, `--tonemap`).
@@ -237,7 +244,7 @@ impl JobFlags {
             replicate: self.replicate,
             ray_cache: self.ray_cache.clone(),
             phm: self.phm.clone(),
-            passes: self.passes.clone(),
+            passes: self.passes_or_default().to_string(),
         })
     }
 }
