@@ -132,6 +132,11 @@ pub struct BsdfParams {
     /// space (the GGX lobe is stretched along it: `alpha_t = mix(alpha, 1, strength^2)`).
     pub anisotropy: f32,
     pub anisotropy_direction: Vec3,
+    /// `KHR_materials_iridescence` strength (0: no film), the film's refraction index
+    /// and its thickness in nanometres (0: no film).
+    pub iridescence: f32,
+    pub iridescence_ior: f32,
+    pub iridescence_thickness: f32,
 }
 
 impl Default for BsdfParams {
@@ -151,6 +156,9 @@ impl Default for BsdfParams {
             sheen_roughness: 0.0,
             anisotropy: 0.0,
             anisotropy_direction: Vec3::ZERO,
+            iridescence: 0.0,
+            iridescence_ior: crate::iridescence::DEFAULT_IOR,
+            iridescence_thickness: 0.0,
         }
     }
 }
@@ -173,6 +181,11 @@ impl BsdfParams {
             // The direction needs the surface's tangent frame ([`crate::surface`]).
             anisotropy: 0.0,
             anisotropy_direction: Vec3::ZERO,
+            iridescence: m.iridescence.map_or(0.0, |i| i.factor),
+            iridescence_ior: m
+                .iridescence
+                .map_or(crate::iridescence::DEFAULT_IOR, |i| i.ior),
+            iridescence_thickness: m.iridescence.map_or(0.0, |i| i.thickness_max),
         }
     }
 }
@@ -253,6 +266,11 @@ pub struct Bsdf {
     sheen: Vec3,
     sheen_max: f32,
     sheen_roughness: f32,
+    /// Thin-film strength (0: none; also 0 when the film has no thickness), the film's
+    /// index and thickness (nm).
+    irid: f32,
+    irid_ior: f32,
+    irid_thickness: f32,
 }
 
 /// Local shading frame for one `wo`: `n` is the shading normal on `wo`'s side.
@@ -370,6 +388,22 @@ impl Bsdf {
         let coat_roughness = sat(params.clearcoat_roughness);
         let coat_a = coat_roughness * coat_roughness;
         let sheen = sat3(params.sheen_color);
+        let irid_thickness = if params.iridescence_thickness.is_finite() {
+            params.iridescence_thickness.clamp(0.0, 1e6)
+        } else {
+            0.0
+        };
+        // A film of no thickness is no film (the Sample Viewer drops it too).
+        let irid = if irid_thickness > 0.0 {
+            sat(params.iridescence)
+        } else {
+            0.0
+        };
+        let irid_ior = if params.iridescence_ior.is_finite() {
+            params.iridescence_ior.clamp(1.0, MAX_IOR)
+        } else {
+            crate::iridescence::DEFAULT_IOR
+        };
         Bsdf {
             n_in,
             n,
@@ -403,6 +437,9 @@ impl Bsdf {
             sheen,
             sheen_max: sheen.max_element(),
             sheen_roughness: sat(params.sheen_roughness),
+            irid,
+            irid_ior,
+            irid_thickness,
         }
     }
 
@@ -687,11 +724,23 @@ impl Bsdf {
     fn weights(&self, c: f32, etap: f32) -> Weights {
         let c = c.clamp(0.0, 1.0);
         let outer = self.outer_cos(c, etap);
-        let fd = match outer {
+        let mut fd = match outer {
             Some(co) => self.f0 + (Vec3::ONE - self.f0) * schlick_w(co),
             None => Vec3::ONE,
         };
-        let fm = self.base + (Vec3::ONE - self.base) * schlick_w(c);
+        let mut fm = self.base + (Vec3::ONE - self.base) * schlick_w(c);
+        if self.irid > 0.0 {
+            // KHR_materials_iridescence: F = mix(F_schlick, F_film, factor), for the
+            // dielectric (at the outer cosine, like its Schlick term; total internal
+            // reflection stays total) and for the metal. Both stay in [0, 1], so the
+            // layering below conserves energy as without the film.
+            if let Some(co) = outer {
+                fd = fd.lerp(self.film(co, self.f0), self.irid);
+            }
+            if self.metallic > 0.0 {
+                fm = fm.lerp(self.film(c, self.base), self.irid);
+            }
+        }
         let refl = fd * ((1.0 - self.metallic) * self.specular) + fm * self.metallic;
         let base_scale = (1.0 - self.specular * fd.max_element()).max(0.0);
         let trans = if outer.is_some() {
@@ -704,6 +753,12 @@ impl Bsdf {
             base_scale,
             trans,
         }
+    }
+
+    /// The thin film's Fresnel reflectance at cosine `c` over a base of normal-incidence
+    /// reflectance `f0`.
+    fn film(&self, c: f32, f0: Vec3) -> Vec3 {
+        crate::iridescence::fresnel(1.0, self.irid_ior, c, self.irid_thickness, f0)
     }
 
     /// Probability of reflecting (vs refracting) on a microfacet with weights `w`.
@@ -1269,6 +1324,9 @@ mod tests {
             sheen_roughness: 0.0,
             anisotropy: 0.0,
             anisotropy_direction: Vec3::ZERO,
+            iridescence: 0.0,
+            iridescence_ior: 1.3,
+            iridescence_thickness: 0.0,
         }
     }
 
@@ -1626,6 +1684,79 @@ mod tests {
         assert!((plain.eval(wo, along).x - plain.eval(wo, across).x).abs() < 1e-4);
     }
 
+    fn iridescent(base: BsdfParams, factor: f32, thickness: f32) -> BsdfParams {
+        BsdfParams {
+            iridescence: factor,
+            iridescence_ior: 1.3,
+            iridescence_thickness: thickness,
+            ..base
+        }
+    }
+
+    /// The thin film changes only the Fresnel term, and keeps it a fraction: over white
+    /// bases (dielectric, metal, glass, coated) nothing gains energy; sampling and
+    /// evaluation agree; factor 0 (or thickness 0) is the material without the film, to
+    /// the bit; and the film's thickness changes the hue of the reflection.
+    #[test]
+    fn iridescence_furnace_bits_and_colour() {
+        let mut rng = Rng(17);
+        let bases = [
+            p(1.0, 0.0, 1.0, 1.0, 0.0),
+            p(1.0, 0.0, 0.3, 1.0, 0.0),
+            p(1.0, 1.0, 0.0, 1.0, 0.0),
+            p(1.0, 1.0, 0.4, 1.0, 0.0),
+            p(1.0, 0.5, 0.2, 1.0, 0.0),
+            p(1.0, 0.0, 0.0, 1.0, 1.0),
+            p(1.0, 0.0, 0.5, 1.0, 1.0),
+            coated(p(1.0, 0.0, 0.4, 1.0, 0.0), 1.0, 0.2),
+        ];
+        // The "roughness" argument is the film's thickness here.
+        assert_no_gain(
+            "iridescence",
+            &bases,
+            &[150.0, 400.0, 900.0],
+            &mut rng,
+            |b, t| iridescent(b, 1.0, t),
+        );
+        let mats = [
+            iridescent(p(0.8, 0.0, 0.5, 1.0, 0.0), 1.0, 300.0),
+            iridescent(p(0.9, 1.0, 0.4, 1.0, 0.0), 0.7, 500.0),
+            iridescent(p(1.0, 0.0, 0.5, 1.0, 1.0), 1.0, 250.0),
+        ];
+        assert_sampling_matches_eval(&mats, &[dir(10.0), dir(60.0), -dir(40.0)], &mut rng);
+
+        for base in [p(0.7, 0.3, 0.4, 1.0, 0.0), p(1.0, 0.0, 0.3, 1.0, 1.0)] {
+            let plain = flat(&base);
+            for off in [iridescent(base, 0.0, 400.0), iridescent(base, 1.0, 0.0)] {
+                let off = flat(&off);
+                for _ in 0..1_000 {
+                    let (wo, wi) = (rng.sphere(), rng.sphere());
+                    assert_eq!(off.eval(wo, wi), plain.eval(wo, wi));
+                    assert_eq!(off.pdf(wo, wi), plain.pdf(wo, wi));
+                    let (ul, u) = (rng.f32(), rng.vec2());
+                    assert_eq!(off.sample(wo, ul, u), plain.sample(wo, ul, u));
+                }
+            }
+        }
+
+        // A smooth black dielectric reflects only its Fresnel term: grey without the film,
+        // coloured with it, and differently coloured for another thickness.
+        let chroma = |b: &Bsdf| {
+            let w = b.mirror(dir(0.0)).unwrap().1;
+            w / w.element_sum()
+        };
+        let black = p(0.0, 0.0, 0.0, 1.0, 0.0);
+        let grey = chroma(&flat(&black));
+        assert!((grey - Vec3::splat(1.0 / 3.0)).abs().max_element() < 1e-6);
+        let thin = chroma(&flat(&iridescent(black, 1.0, 250.0)));
+        let thick = chroma(&flat(&iridescent(black, 1.0, 400.0)));
+        assert!((thin - grey).abs().max_element() > 0.05, "{thin}");
+        assert!(
+            (thin - thick).abs().max_element() > 0.05,
+            "{thin} vs {thick}"
+        );
+    }
+
     #[test]
     fn pdf_integral_lambert_is_one() {
         let b = flat(&p(0.5, 0.0, 1.0, 0.0, 0.0));
@@ -1662,6 +1793,9 @@ mod tests {
                 sheen_roughness: rng.f32(),
                 anisotropy: if rng.f32() < 0.5 { 0.0 } else { rng.f32() },
                 anisotropy_direction: rng.sphere(),
+                iridescence: if rng.f32() < 0.5 { 0.0 } else { rng.f32() },
+                iridescence_ior: 1.0 + rng.f32(),
+                iridescence_thickness: rng.f32() * 1000.0,
             };
             let b = flat(&m);
             let wo = rng.sphere();
@@ -1701,6 +1835,9 @@ mod tests {
                 sheen_roughness: 0.5,
                 anisotropy: 0.0,
                 anisotropy_direction: Vec3::ZERO,
+                iridescence: 0.8,
+                iridescence_ior: 1.6,
+                iridescence_thickness: 300.0,
             },
         ];
         for m in &mats {
@@ -1868,6 +2005,9 @@ mod tests {
                     1 => Vec3::NAN,
                     _ => rng.sphere(),
                 },
+                iridescence: pick(&mut rng, &[0.0, 1.0, 0.5]),
+                iridescence_ior: pick(&mut rng, &[1.0, 1.3, 0.0, f32::INFINITY, f32::NAN]),
+                iridescence_thickness: pick(&mut rng, &[0.0, 1e-6, 0.01, 400.0, 1e9, f32::NAN]),
             };
             let ng = rng.sphere();
             let n = match i % 4 {
@@ -1940,6 +2080,9 @@ mod tests {
             sheen_roughness: f32::NAN,
             anisotropy: 0.0,
             anisotropy_direction: Vec3::ZERO,
+            iridescence: f32::NAN,
+            iridescence_ior: f32::NAN,
+            iridescence_thickness: f32::INFINITY,
         });
         for wo in [Vec3::Z, Vec3::X, Vec3::NAN, Vec3::ZERO, dir(89.999)] {
             let _ = b

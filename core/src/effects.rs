@@ -34,10 +34,12 @@ pub enum Effect {
     Anisotropy,
     /// Some transmissive material absorbs inside (`KHR_materials_volume`).
     Volume,
+    /// Some material has a thin-film layer (`KHR_materials_iridescence`).
+    Iridescence,
 }
 
 impl Effect {
-    pub const ALL: [Effect; 12] = [
+    pub const ALL: [Effect; 13] = [
         Effect::DirectLight,
         Effect::Specular,
         Effect::Transmission,
@@ -50,6 +52,7 @@ impl Effect {
         Effect::Sheen,
         Effect::Anisotropy,
         Effect::Volume,
+        Effect::Iridescence,
     ];
 
     fn bit(self) -> u16 {
@@ -70,6 +73,7 @@ impl Effect {
             Effect::Sheen => "sheen",
             Effect::Anisotropy => "anisotropy",
             Effect::Volume => "volume",
+            Effect::Iridescence => "iridescence",
         }
     }
 

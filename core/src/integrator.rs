@@ -566,6 +566,9 @@ impl<'a> Integrator<'a> {
             sheen_roughness: sv.sheen_roughness,
             anisotropy: sv.anisotropy,
             anisotropy_direction: sv.anisotropy_direction,
+            iridescence: sv.iridescence,
+            iridescence_ior: sv.iridescence_ior,
+            iridescence_thickness: sv.iridescence_thickness,
         };
         // The BSDF tells inside from outside by the outward (winding) normal.
         let outward = if surf.front { surf.ng } else { -surf.ng };

@@ -25,6 +25,7 @@ pub mod exposure;
 pub mod film;
 pub mod integrator;
 pub mod intersect;
+pub mod iridescence;
 pub mod kind_set;
 pub mod light_sampler;
 pub mod passes;

@@ -75,6 +75,22 @@ pub struct Anisotropy {
     pub tex: Option<TexRef>,
 }
 
+/// `KHR_materials_iridescence`: a thin dielectric film over the material whose
+/// interference colours its specular reflection (soap bubbles, oil, beetles).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Iridescence {
+    /// Strength in [0, 1] mixing the film's Fresnel term in (texture R multiplies it).
+    pub factor: f32,
+    pub tex: Option<TexRef>,
+    /// Refraction index of the film.
+    pub ior: f32,
+    /// Film thickness in nanometres: `thickness_max` without a texture, else
+    /// `mix(thickness_min, thickness_max, texture G)`.
+    pub thickness_min: f32,
+    pub thickness_max: f32,
+    pub thickness_tex: Option<TexRef>,
+}
+
 /// `KHR_materials_volume`: the medium inside a transmissive object, attenuating light
 /// by Beer-Lambert over the distance travelled inside.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -159,6 +175,7 @@ pub struct Material {
     pub sheen: Option<Sheen>,
     pub anisotropy: Option<Anisotropy>,
     pub volume: Option<Volume>,
+    pub iridescence: Option<Iridescence>,
 }
 
 impl Default for Material {
@@ -189,6 +206,7 @@ impl Default for Material {
             sheen: None,
             anisotropy: None,
             volume: None,
+            iridescence: None,
         }
     }
 }
@@ -281,6 +299,10 @@ impl Material {
         !self.unlit && self.anisotropy.is_some_and(|a| a.strength > 0.0)
     }
 
+    pub fn has_iridescence(&self) -> bool {
+        !self.unlit && self.iridescence.is_some_and(|i| i.factor > 0.0)
+    }
+
     /// A transmissive material whose inside absorbs.
     pub fn has_volume(&self) -> bool {
         !self.unlit && self.has_transmission() && self.volume.is_some_and(|v| v.absorbs())
@@ -301,6 +323,8 @@ impl Material {
             self.sheen.and_then(|s| s.color_tex),
             self.sheen.and_then(|s| s.roughness_tex),
             self.anisotropy.and_then(|a| a.tex),
+            self.iridescence.and_then(|i| i.tex),
+            self.iridescence.and_then(|i| i.thickness_tex),
         ]
         .into_iter()
         .flatten()

@@ -56,6 +56,10 @@ pub struct ShadingValues {
     /// `KHR_materials_anisotropy` strength (0: isotropic) and world direction.
     pub anisotropy: f32,
     pub anisotropy_direction: Vec3,
+    /// `KHR_materials_iridescence` strength (0: no film), film index and thickness (nm).
+    pub iridescence: f32,
+    pub iridescence_ior: f32,
+    pub iridescence_thickness: f32,
 }
 
 fn tex(scene: &Scene, r: Option<TexRef>, uv: Vec2, srgb: bool) -> Vec4 {
@@ -201,6 +205,9 @@ impl Surface {
             sheen_roughness: 0.0,
             anisotropy: 0.0,
             anisotropy_direction: Vec3::ZERO,
+            iridescence: 0.0,
+            iridescence_ior: crate::iridescence::DEFAULT_IOR,
+            iridescence_thickness: 0.0,
         };
         if let Some(a) = m.anisotropy
             && effects.contains(Effect::Anisotropy)
@@ -231,6 +238,20 @@ impl Surface {
                 (sh.color * t(sh.color_tex, true).truncate()).clamp(Vec3::ZERO, Vec3::ONE);
             v.sheen_roughness = (sh.roughness * t(sh.roughness_tex, false).w).clamp(0.0, 1.0);
         }
+        if let Some(ir) = m.iridescence
+            && effects.contains(Effect::Iridescence)
+        {
+            v.iridescence = (ir.factor * t(ir.tex, false).x).clamp(0.0, 1.0);
+            v.iridescence_ior = ir.ior;
+            // Without a thickness texture the film is `thickness_max` thick.
+            v.iridescence_thickness = match ir.thickness_tex {
+                Some(_) if textured => {
+                    let g = t(ir.thickness_tex, false).y;
+                    ir.thickness_min + (ir.thickness_max - ir.thickness_min) * g
+                }
+                _ => ir.thickness_max,
+            };
+        }
 
         if !m.double_sided && !self.front {
             // Back faces of single-sided surfaces do not emit.
@@ -258,6 +279,7 @@ impl Surface {
             v.transmission = 0.0;
             v.clearcoat = 0.0;
             v.sheen_color = Vec3::ZERO;
+            v.iridescence = 0.0;
         }
         v
     }

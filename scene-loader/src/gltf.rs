@@ -15,7 +15,9 @@ use std::path::Path;
 
 use dray_core::camera::{Camera, Projection};
 use dray_core::light::Light;
-use dray_core::material::{AlphaMode, Anisotropy, Clearcoat, Material, Sheen, TexRef, Volume};
+use dray_core::material::{
+    AlphaMode, Anisotropy, Clearcoat, Iridescence, Material, Sheen, TexRef, Volume,
+};
 use dray_core::scene::Scene;
 use dray_core::texture::{Filter, Sampler, Texture, Wrap};
 use glam::{DMat3, DMat4, DQuat, DVec3, Vec2, Vec3, Vec4};
@@ -39,6 +41,7 @@ pub const SUPPORTED_EXTENSIONS: &[&str] = &[
     "KHR_materials_sheen",
     "KHR_materials_anisotropy",
     "KHR_materials_volume",
+    "KHR_materials_iridescence",
     "KHR_texture_transform",
     "KHR_mesh_quantization",
     "EXT_meshopt_compression",
@@ -752,6 +755,21 @@ impl Loader<'_> {
                     strength: a.strength,
                     rotation: a.rotation,
                     tex: self.tex_json(&name, "anisotropyTexture", a.texture),
+                });
+            }
+            if let Some(ir) = m.extension_value("KHR_materials_iridescence") {
+                let ir = gltf_ext::iridescence(ir);
+                mat.iridescence = Some(Iridescence {
+                    factor: ir.factor,
+                    tex: self.tex_json(&name, "iridescenceTexture", ir.texture),
+                    ior: ir.ior,
+                    thickness_min: ir.thickness_min,
+                    thickness_max: ir.thickness_max,
+                    thickness_tex: self.tex_json(
+                        &name,
+                        "iridescenceThicknessTexture",
+                        ir.thickness_texture,
+                    ),
                 });
             }
             mat.unlit = m.unlit();

@@ -1,6 +1,7 @@
 //! The parts of glTF extensions the `gltf` crate does not type for dray: texture
 //! transforms on any texture slot, and the material extensions it does not know
-//! (`KHR_materials_clearcoat`, `KHR_materials_sheen`), read from their JSON.
+//! (`KHR_materials_clearcoat`, `KHR_materials_sheen`, `KHR_materials_anisotropy`,
+//! `KHR_materials_iridescence`), read from their JSON.
 //!
 //! Values are taken as the extensions' schemas give them, with their defaults; a value
 //! of the wrong JSON type counts as absent (the default), as the crate treats the
@@ -141,6 +142,31 @@ pub fn anisotropy(v: &Value) -> AnisotropyJson {
         strength: number(v.get("anisotropyStrength")).unwrap_or(0.0),
         rotation: number(v.get("anisotropyRotation")).unwrap_or(0.0),
         texture: slot(v.get("anisotropyTexture")),
+    }
+}
+
+/// `KHR_materials_iridescence` as written in a material's extensions.
+#[derive(Clone, Debug, PartialEq)]
+pub struct IridescenceJson {
+    pub factor: f32,
+    pub texture: Option<SlotJson>,
+    pub ior: f32,
+    pub thickness_min: f32,
+    pub thickness_max: f32,
+    pub thickness_texture: Option<SlotJson>,
+}
+
+pub fn iridescence(v: &Value) -> IridescenceJson {
+    IridescenceJson {
+        factor: number(v.get("iridescenceFactor")).unwrap_or(0.0),
+        texture: slot(v.get("iridescenceTexture")),
+        // The ratified schema spells it `iridescenceIor`; drafts wrote `iridescenceIOR`.
+        ior: number(v.get("iridescenceIor"))
+            .or_else(|| number(v.get("iridescenceIOR")))
+            .unwrap_or(1.3),
+        thickness_min: number(v.get("iridescenceThicknessMinimum")).unwrap_or(100.0),
+        thickness_max: number(v.get("iridescenceThicknessMaximum")).unwrap_or(400.0),
+        thickness_texture: slot(v.get("iridescenceThicknessTexture")),
     }
 }
 

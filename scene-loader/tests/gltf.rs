@@ -344,7 +344,7 @@ fn extensions_required_and_used() {
     // Used but not required: loads, with one warning.
     let rest = format!(
         r#"{TRI_MESH},"nodes":[{{"mesh":0}}],
-        "extensionsUsed":["KHR_materials_iridescence"]"#
+        "extensionsUsed":["KHR_materials_diffuse_transmission"]"#
     );
     let path = b.write(&dir, "used", &rest);
     let scene = load_gltf(&path).unwrap();
@@ -353,7 +353,7 @@ fn extensions_required_and_used() {
             .stats
             .warnings
             .iter()
-            .filter(|w| w.contains("KHR_materials_iridescence"))
+            .filter(|w| w.contains("KHR_materials_diffuse_transmission"))
             .count(),
         1
     );
@@ -1451,5 +1451,71 @@ fn anisotropy_is_read_and_gets_tangents() {
     let want = surf.tangent * 0.5f32.cos() + surf.bitangent * 0.5f32.sin();
     assert!((sv.anisotropy_direction - want).length() < 1e-6);
     assert!(surf.tangent.length() > 0.99);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn iridescence_is_read_counted_and_shaded() {
+    use dray_core::effects::Effect;
+    let dir = test_dir("iridescence");
+    let b = two_uv_sets();
+    let rest = format!(
+        r#""meshes":[{{"primitives":[
+  {{"attributes":{{"POSITION":0,"NORMAL":1,"TEXCOORD_0":5}},"indices":3,"material":0}},
+  {{"attributes":{{"POSITION":0,"NORMAL":1,"TEXCOORD_0":5}},"indices":3,"material":1}}]}}],
+"nodes":[{{"mesh":0}}],
+"extensionsUsed":["KHR_materials_iridescence"],"extensionsRequired":["KHR_materials_iridescence"],
+"materials":[
+  {{"extensions":{{"KHR_materials_iridescence":{{"iridescenceFactor":0.75,
+    "iridescenceTexture":{{"index":0}},"iridescenceIor":1.42,
+    "iridescenceThicknessMinimum":120,"iridescenceThicknessMaximum":620,
+    "iridescenceThicknessTexture":{{"index":0}}}}}}}},
+  {{"extensions":{{"KHR_materials_iridescence":{{"iridescenceFactor":1}}}}}}],
+{}"#,
+        one_texture()
+    );
+    // A file that requires the extension loads, without a warning.
+    let scene = load_gltf(&b.write(&dir, "film", &rest)).unwrap();
+    assert!(
+        scene.stats.warnings.is_empty(),
+        "{:?}",
+        scene.stats.warnings
+    );
+    let ir = scene.materials[0].iridescence.unwrap();
+    assert_eq!(
+        (ir.factor, ir.ior, ir.thickness_min, ir.thickness_max),
+        (0.75, 1.42, 120.0, 620.0)
+    );
+    assert_eq!(ir.tex.map(|t| t.texture), Some(0));
+    assert_eq!(ir.thickness_tex.map(|t| t.texture), Some(0));
+    // The extension's defaults.
+    let d = scene.materials[1].iridescence.unwrap();
+    assert_eq!(
+        (d.factor, d.ior, d.thickness_min, d.thickness_max, d.tex),
+        (1.0, 1.3, 100.0, 400.0, None)
+    );
+    let fx = dray_scene::effects::analyze(&scene, Vec3::ONE);
+    assert!(fx.contains(Effect::Iridescence));
+
+    // Shading: factor x texture R; thickness mix(min, max, texture G).
+    let (surf, sv) = shade_first_triangle(&scene, fx);
+    let texel = scene.textures[0].sample(surf.uv, false);
+    assert!((sv.iridescence - 0.75 * texel.x).abs() < 1e-6, "{sv:?}");
+    let want = 120.0 + 500.0 * texel.y;
+    assert!((sv.iridescence_thickness - want).abs() < 1e-3, "{sv:?}");
+    assert_eq!(sv.iridescence_ior, 1.42);
+    // `--effects -iridescence` turns the film off.
+    let mut off = fx;
+    off.set(Effect::Iridescence, false);
+    assert_eq!(shade_first_triangle(&scene, off).1.iridescence, 0.0);
+
+    // A scene without the extension does not ask for it.
+    let plain = load_gltf(&triangle_builder().write(
+        &dir,
+        "plain",
+        &format!(r#"{TRI_MESH},"nodes":[{{"mesh":0}}]"#),
+    ))
+    .unwrap();
+    assert!(!dray_scene::effects::analyze(&plain, Vec3::ONE).contains(Effect::Iridescence));
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -29,7 +29,9 @@ use std::path::Path;
 
 use dray_core::camera::{Camera, Projection};
 use dray_core::light::Light;
-use dray_core::material::{AlphaMode, Anisotropy, Clearcoat, Material, Sheen, TexRef, Volume};
+use dray_core::material::{
+    AlphaMode, Anisotropy, Clearcoat, Iridescence, Material, Sheen, TexRef, Volume,
+};
 use dray_core::texture::{Filter, Sampler, Wrap};
 use glam::{Affine2, Mat4, Vec3, Vec4};
 use serde::de::{self, Visitor};
@@ -159,6 +161,17 @@ pub struct VolumeDesc {
     pub attenuation_distance: Real,
 }
 
+/// Mirror of [`Iridescence`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct IridescenceDesc {
+    pub factor: Real,
+    pub tex: Option<TexRefDesc>,
+    pub ior: Real,
+    pub thickness_min: Real,
+    pub thickness_max: Real,
+    pub thickness_tex: Option<TexRefDesc>,
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "mode", rename_all = "snake_case")]
 pub enum AlphaModeDesc {
@@ -201,6 +214,8 @@ pub struct MaterialDesc {
     pub anisotropy: Option<AnisotropyDesc>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub volume: Option<VolumeDesc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub iridescence: Option<IridescenceDesc>,
 }
 
 fn tex_out(t: Option<TexRef>) -> Option<TexRefDesc> {
@@ -271,6 +286,14 @@ impl From<&Material> for MaterialDesc {
                 attenuation_color: v3(v.attenuation_color),
                 attenuation_distance: Real(v.attenuation_distance),
             }),
+            iridescence: m.iridescence.map(|i| IridescenceDesc {
+                factor: Real(i.factor),
+                tex: tex_out(i.tex),
+                ior: Real(i.ior),
+                thickness_min: Real(i.thickness_min),
+                thickness_max: Real(i.thickness_max),
+                thickness_tex: tex_out(i.thickness_tex),
+            }),
         }
     }
 }
@@ -323,6 +346,14 @@ impl MaterialDesc {
                 attenuation_color: from_v3(v.attenuation_color),
                 attenuation_distance: v.attenuation_distance.0,
             }),
+            iridescence: self.iridescence.map(|i| Iridescence {
+                factor: i.factor.0,
+                tex: tex_in(i.tex),
+                ior: i.ior.0,
+                thickness_min: i.thickness_min.0,
+                thickness_max: i.thickness_max.0,
+                thickness_tex: tex_in(i.thickness_tex),
+            }),
         }
     }
 
@@ -340,6 +371,8 @@ impl MaterialDesc {
             self.sheen.and_then(|s| s.color_tex),
             self.sheen.and_then(|s| s.roughness_tex),
             self.anisotropy.and_then(|a| a.tex),
+            self.iridescence.and_then(|i| i.tex),
+            self.iridescence.and_then(|i| i.thickness_tex),
         ]
         .into_iter()
         .flatten()
@@ -913,6 +946,7 @@ mod tests {
             "sheen",
             "anisotropy",
             "volume",
+            "iridescence",
             "transform",
         ] {
             assert!(!plain.contains(absent), "{absent} in {plain}");
@@ -946,6 +980,14 @@ mod tests {
         m.volume = Some(Volume {
             attenuation_color: Vec3::new(0.5, 0.9, 1.0),
             attenuation_distance: f32::INFINITY,
+        });
+        m.iridescence = Some(Iridescence {
+            factor: 0.75,
+            tex: Some(TexRef::new(0)),
+            ior: 1.8,
+            thickness_min: 120.0,
+            thickness_max: 650.0,
+            thickness_tex: Some(TexRef::new(1)),
         });
         let json = serde_json::to_string(&MaterialDesc::from(&m)).unwrap();
         let back: MaterialDesc = serde_json::from_str(&json).unwrap();
