@@ -125,6 +125,9 @@ pub struct BsdfParams {
     /// `KHR_materials_clearcoat` factor (0: no coat) and perceptual roughness.
     pub clearcoat: f32,
     pub clearcoat_roughness: f32,
+    /// The coat's own shading normal (`clearcoatNormalTexture`), zero when it has none
+    /// (it then uses the shading normal `n`).
+    pub clearcoat_normal: Vec3,
     /// `KHR_materials_sheen` colour (black: no sheen) and roughness.
     pub sheen_color: Vec3,
     pub sheen_roughness: f32,
@@ -152,6 +155,7 @@ impl Default for BsdfParams {
             ior: 1.5,
             clearcoat: 0.0,
             clearcoat_roughness: 0.0,
+            clearcoat_normal: Vec3::ZERO,
             sheen_color: Vec3::ZERO,
             sheen_roughness: 0.0,
             anisotropy: 0.0,
@@ -176,6 +180,8 @@ impl BsdfParams {
             ior: m.ior,
             clearcoat: m.clearcoat.map_or(0.0, |c| c.factor),
             clearcoat_roughness: m.clearcoat.map_or(0.0, |c| c.roughness),
+            // The coat's normal map needs the surface's tangent frame too.
+            clearcoat_normal: Vec3::ZERO,
             sheen_color: m.sheen.map_or(Vec3::ZERO, |s| s.color),
             sheen_roughness: m.sheen.map_or(0.0, |s| s.roughness),
             // The direction needs the surface's tangent frame ([`crate::surface`]).
@@ -262,6 +268,9 @@ pub struct Bsdf {
     coat_alpha: f32,
     coat_roughness: f32,
     coat_delta: bool,
+    /// The coat's own shading normal, on `ng`'s side; `None`: the coat uses `n` (and
+    /// every function keeps the bits it had before coat normals existed).
+    coat_n: Option<Vec3>,
     /// Sheen colour (black: none), its largest channel and its roughness.
     sheen: Vec3,
     sheen_max: f32,
@@ -387,6 +396,9 @@ impl Bsdf {
         let coat = sat(params.clearcoat);
         let coat_roughness = sat(params.clearcoat_roughness);
         let coat_a = coat_roughness * coat_roughness;
+        let coat_n = unit(params.clearcoat_normal)
+            .filter(|_| coat > 0.0)
+            .map(|c| if c.dot(ng) < 0.0 { -c } else { c });
         let sheen = sat3(params.sheen_color);
         let irid_thickness = if params.iridescence_thickness.is_finite() {
             params.iridescence_thickness.clamp(0.0, 1e6)
@@ -434,6 +446,7 @@ impl Bsdf {
             coat_alpha: coat_a.max(MIN_ALPHA),
             coat_roughness,
             coat_delta: coat_a < DELTA_ALPHA,
+            coat_n,
             sheen,
             sheen_max: sheen.max_element(),
             sheen_roughness: sat(params.sheen_roughness),
@@ -473,8 +486,17 @@ impl Bsdf {
         let (fr, wo_l) = self.frame(wo)?;
         let w_o = self.weights(wo_l.z, fr.etap);
         let coat_on = self.coat_on(&fr);
+        let coat_fr = if coat_on {
+            self.coat_frame(&fr, wo_l)
+        } else {
+            None
+        };
+        let coat_wo_l = coat_fr.map_or(wo_l, |cf| cf.local(fr.world(wo_l)));
         let (att_o, coat_w) = if coat_on {
-            (self.coat_att(wo_l.z), self.coat * coat_fresnel(wo_l.z))
+            (
+                self.coat_att(coat_wo_l.z),
+                self.coat * coat_fresnel(coat_wo_l.z),
+            )
         } else {
             (1.0, 0.0)
         };
@@ -489,7 +511,7 @@ impl Bsdf {
         let a2 = self.alpha * self.alpha;
         let coat_a2 = self.coat_alpha * self.coat_alpha;
         let coat_lambda_o = if coat_on && !self.coat_delta {
-            ggx_lambda(wo_l, coat_a2)
+            ggx_lambda(coat_wo_l, coat_a2)
         } else {
             0.0
         };
@@ -513,6 +535,8 @@ impl Bsdf {
             coat_w,
             coat_a2,
             coat_lambda_o,
+            coat_fr,
+            coat_wo_l,
             sheen_on,
             sheen_att_o,
         })
@@ -558,12 +582,32 @@ impl Bsdf {
         1.0 - self.coat * coat_fresnel(c)
     }
 
+    /// The clear coat's own frame for the base frame `fr` and local `wo_l`, when the
+    /// coat has a normal of its own: its normal on `wo`'s side, or the geometric normal
+    /// when `wo` is below it (as [`Bsdf::frame`] does for the shading normal).
+    fn coat_frame(&self, fr: &Frame, wo_l: Vec3) -> Option<Frame> {
+        let nc = self.coat_n?;
+        let nc = if fr.outside { nc } else { -nc };
+        let wo = fr.world(wo_l);
+        let n = if wo.dot(nc) < COS_EPS { fr.ng } else { nc };
+        let (t, b) = n.any_orthonormal_pair();
+        let cf = Frame { t, b, n, ..*fr };
+        (cf.local(wo).z >= COS_EPS).then_some(cf)
+    }
+
+    /// The cosine of world direction `w` to the coat's normal (`fallback`, the cosine to
+    /// the shading normal, when the coat has no normal of its own).
+    fn coat_cos(&self, w: Vec3, fallback: f32) -> f32 {
+        self.coat_n.map_or(fallback, |nc| w.dot(nc).abs())
+    }
+
     /// The coat's attenuation of a transmitted path: the coat is crossed once, on the
     /// outside, at the outside direction's cosine (`cos_out`, the macro cosine of
-    /// whichever of `wo` and `wi` is outside). 1 without a coat.
-    fn coat_att_transmitted(&self, cos_out: f32) -> f32 {
+    /// whichever of `wo` and `wi` is outside; `coat_cos_out` the same to the coat's
+    /// normal). 1 without a coat.
+    fn coat_att_transmitted(&self, cos_out: f32, coat_cos_out: f32) -> f32 {
         let coat = if self.coat > 0.0 {
-            self.coat_att(cos_out.abs())
+            self.coat_att(coat_cos_out.abs())
         } else {
             1.0
         };
@@ -623,15 +667,28 @@ impl Bsdf {
             return None;
         }
         let (fr, wo_l) = self.frame(wo)?;
-        let wi = unit(fr.world(Vec3::new(-wo_l.x, -wo_l.y, wo_l.z)))?;
+        let coat_on = self.coat_on(&fr);
+        let coat_fr = if coat_on {
+            self.coat_frame(&fr, wo_l)
+        } else {
+            None
+        };
+        // One mirror direction: the base's, or the coat's own when only the coat is
+        // smooth and it has a normal of its own.
+        let coat_wo_l = coat_fr.map_or(wo_l, |cf| cf.local(fr.world(wo_l)));
+        let (mfr, mwo) = match coat_fr {
+            Some(cf) if !base_ok => (cf, coat_wo_l),
+            _ => (fr, wo_l),
+        };
+        let wi = unit(mfr.world(Vec3::new(-mwo.x, -mwo.y, mwo.z)))?;
         if wi.dot(fr.ng) <= 0.0 {
             return None;
         }
         let w = self.weights(wo_l.z, fr.etap);
         // Under a coat the base's mirror is crossed twice at the same angle.
-        let (att, coat_w) = if self.coat_on(&fr) {
-            let a = self.coat_att(wo_l.z);
-            (a * a, self.coat * coat_fresnel(wo_l.z))
+        let (att, coat_w) = if coat_on {
+            let a = self.coat_att(coat_wo_l.z);
+            (a * a, self.coat * coat_fresnel(coat_wo_l.z))
         } else {
             (1.0, 0.0)
         };
@@ -661,7 +718,8 @@ impl Bsdf {
         }
         let w = self.weights(wo_l.z, fr.etap);
         let cos_out = if fr.outside { wo_l.z } else { wi_l.z };
-        let trans = w.trans * self.coat_att_transmitted(cos_out);
+        let out = if fr.outside { fr.world(wo_l) } else { wi };
+        let trans = w.trans * self.coat_att_transmitted(cos_out, self.coat_cos(out, cos_out));
         (trans.max_element() > 0.0 && trans.is_finite()).then_some((wi, trans))
     }
 
@@ -870,6 +928,10 @@ pub struct BsdfAt<'a> {
     /// Coat GGX `alpha^2`, and Smith Λ of `wo` under it (0 when the coat is delta).
     coat_a2: f32,
     coat_lambda_o: f32,
+    /// The coat's own frame when it has a normal of its own (`None`: it uses `fr`), and
+    /// `wo` in it.
+    coat_fr: Option<Frame>,
+    coat_wo_l: Vec3,
     /// The sheen faces `wo` ([`Bsdf::sheen_on`]), and what it passes down at `wo`.
     sheen_on: bool,
     sheen_att_o: f32,
@@ -905,9 +967,13 @@ impl BsdfAt<'_> {
             // The base is attenuated by the dielectric layer's Fresnel on the way in and out
             // (not at VdotH as in glTF Appendix B, which gains energy under a smooth layer).
             let base_scale = self.w_o.base_scale * b.weights(cos_i, fr.etap).base_scale;
-            // A clear coat attenuates what lies under it the same way, in and out.
+            // A clear coat attenuates what lies under it the same way, in and out. (With
+            // a normal of its own, `wi` may lie below the coat's normal though above the
+            // surface: its cosine's magnitude is used, so no direction the base lobes
+            // sample is blacked out.)
+            let coat_wi_l = self.coat_fr.map_or(wi_l, |cf| cf.local(wi));
             let coat_att = if self.coat_on {
-                self.att_o * b.coat_att(cos_i)
+                self.att_o * b.coat_att(coat_wi_l.z.abs())
             } else {
                 1.0
             };
@@ -925,14 +991,26 @@ impl BsdfAt<'_> {
                 f += b.sheen * (lobe * coat_att);
                 pdf += sel.p_sheen * cos_i * FRAC_1_PI;
             }
-            if self.coat_on && !b.coat_delta {
-                let d = ggx_d(h, self.coat_a2);
+            // With a normal of its own the coat's lobe lives in its frame; its value is
+            // divided by the shading cosine the integrator multiplies by (not the coat's),
+            // so `f cos_i / pdf` stays the coat's `F G2 / G1`.
+            let coat_h = match self.coat_fr {
+                Some(_) => unit(self.coat_wo_l + coat_wi_l),
+                None => Some(h),
+            };
+            if let Some(coat_h) = coat_h
+                && self.coat_on
+                && !b.coat_delta
+                && coat_wi_l.z > 0.0
+            {
+                let coat_cos_o = self.coat_wo_l.z;
+                let d = ggx_d(coat_h, self.coat_a2);
                 let lo = self.coat_lambda_o;
-                let li = ggx_lambda(wi_l, self.coat_a2);
+                let li = ggx_lambda(coat_wi_l, self.coat_a2);
                 let g2 = 1.0 / (1.0 + lo + li);
                 let g1 = 1.0 / (1.0 + lo);
-                f += Vec3::splat(b.coat * coat_fresnel(c) * d * g2 / (4.0 * cos_o * cos_i));
-                pdf += sel.p_coat * g1 * d / (4.0 * cos_o);
+                f += Vec3::splat(b.coat * coat_fresnel(c) * d * g2 / (4.0 * coat_cos_o * cos_i));
+                pdf += sel.p_coat * g1 * d / (4.0 * coat_cos_o);
             }
             if b.has_refl && !b.refl_delta {
                 let w = b.weights(c, fr.etap);
@@ -976,9 +1054,10 @@ impl BsdfAt<'_> {
             let g2 = 1.0 / (1.0 + lo + li);
             let g1 = 1.0 / (1.0 + lo);
             let cos_out = if fr.outside { cos_o } else { cos_i };
+            let out = if fr.outside { fr.world(wo_l) } else { wi };
             f += w.trans
                 * (d * g2 * (-c_i) * c_o / (-cos_i * cos_o * den2))
-                * b.coat_att_transmitted(cos_out);
+                * b.coat_att_transmitted(cos_out, b.coat_cos(out, cos_out));
             let vndf = g1 * c_o * d / cos_o;
             pdf += sel.p_spec * (1.0 - b.pr(&w)) * vndf * (-c_i) / den2;
         }
@@ -1025,10 +1104,15 @@ impl BsdfAt<'_> {
                 if wi.dot(fr.ng) <= 0.0 {
                     return None;
                 }
-                // Under a coat the mirror is crossed twice at the same angle.
+                // Under a coat the mirror is crossed twice at the same angle (to the
+                // coat's own normal, the angles in and out may differ).
+                let att_i = match self.coat_fr {
+                    Some(cf) => b.coat_att(cf.local(wi).z.abs()),
+                    None => self.att_o,
+                };
                 return b.delta_sample(
                     wi,
-                    w.refl * (self.att_o * self.att_o * self.sheen_att_o),
+                    w.refl * (self.att_o * att_i * self.sheen_att_o),
                     sel.p_spec * sel.pr_macro,
                     Lobe::SpecularReflection,
                 );
@@ -1039,9 +1123,10 @@ impl BsdfAt<'_> {
                 return None;
             }
             let cos_out = if fr.outside { wo_l.z } else { wi_l.z };
+            let out = if fr.outside { fr.world(wo_l) } else { wi };
             return b.delta_sample(
                 wi,
-                w.trans * b.coat_att_transmitted(cos_out),
+                w.trans * b.coat_att_transmitted(cos_out, b.coat_cos(out, cos_out)),
                 sel.p_spec * (1.0 - sel.pr_macro),
                 Lobe::SpecularTransmission,
             );
@@ -1070,7 +1155,8 @@ impl BsdfAt<'_> {
     /// the coat's visible normals.
     fn sample_coat(&self, u: Vec2) -> Option<BsdfSample> {
         let b = self.bsdf;
-        let (fr, wo_l) = (&self.fr, self.wo_l);
+        // In the coat's own frame when it has a normal of its own.
+        let (fr, wo_l) = (self.coat_fr.as_ref().unwrap_or(&self.fr), self.coat_wo_l);
         if !self.coat_on {
             return None;
         }
@@ -1320,6 +1406,7 @@ mod tests {
             ior: 1.5,
             clearcoat: 0.0,
             clearcoat_roughness: 0.0,
+            clearcoat_normal: Vec3::ZERO,
             sheen_color: Vec3::ZERO,
             sheen_roughness: 0.0,
             anisotropy: 0.0,
@@ -1574,6 +1661,94 @@ mod tests {
         assert_sampling_matches_eval(&mats, &[dir(10.0), dir(70.0), -dir(40.0)], &mut Rng(13));
     }
 
+    fn coat_normal(base: BsdfParams, n: Vec3) -> BsdfParams {
+        BsdfParams {
+            clearcoat_normal: n,
+            ..base
+        }
+    }
+
+    fn reflect(wo: Vec3, n: Vec3) -> Vec3 {
+        n * (2.0 * wo.dot(n)) - wo
+    }
+
+    /// `clearcoatNormalTexture`: the coat reflects about its own normal and the base
+    /// about its own; nothing gains energy, sampling and evaluation agree, and a coat
+    /// normal equal to the shading normal changes nothing.
+    #[test]
+    fn clearcoat_normal_moves_the_coat_not_the_base() {
+        let mut rng = Rng(18);
+        let tilt = Vec3::new(0.3, 0.1, 1.0).normalize();
+        let bases = [
+            p(1.0, 0.0, 1.0, 0.0, 0.0),
+            p(1.0, 1.0, 0.3, 1.0, 0.0),
+            p(1.0, 0.0, 0.4, 1.0, 0.0),
+            p(1.0, 0.0, 0.5, 1.0, 1.0),
+        ];
+        assert_no_gain("coat normal", &bases, &[0.0, 0.1, 0.4], &mut rng, |b, r| {
+            coat_normal(coated(b, 1.0, r), tilt)
+        });
+        let mats = [
+            coat_normal(coated(p(0.8, 0.0, 0.6, 1.0, 0.0), 1.0, 0.3), tilt),
+            coat_normal(
+                coated(p(0.9, 1.0, 0.5, 1.0, 0.0), 0.6, 0.15),
+                Vec3::new(-0.4, 0.2, 1.0),
+            ),
+            coat_normal(coated(p(1.0, 0.0, 0.5, 1.0, 1.0), 1.0, 0.4), tilt),
+        ];
+        assert_sampling_matches_eval(&mats, &[dir(10.0), dir(60.0), -dir(40.0)], &mut rng);
+
+        let wo = dir(30.0);
+        let (m_n, m_c) = (reflect(wo, Vec3::Z), reflect(wo, tilt));
+        // A rough coat over a black base: its highlight follows the coat's normal.
+        let black = p(0.0, 0.0, 1.0, 0.0, 0.0);
+        let b = flat(&coat_normal(coated(black, 1.0, 0.15), tilt));
+        let (at_c, at_n) = (b.eval(wo, m_c).x, b.eval(wo, m_n).x);
+        assert!(
+            at_c > 5.0 * at_n,
+            "coat mirror {at_c} vs base mirror {at_n}"
+        );
+        let plain = flat(&coated(black, 1.0, 0.15));
+        assert!(plain.eval(wo, m_n).x > 5.0 * plain.eval(wo, m_c).x);
+        // A smooth coat's mirror sample is about its own normal; the rough metal under
+        // it still reflects about the shading normal, only attenuated a little
+        // differently.
+        let metal = p(0.9, 1.0, 0.3, 1.0, 0.0);
+        let b = flat(&coat_normal(coated(metal, 1.0, 0.0), tilt));
+        let untilted = flat(&coated(metal, 1.0, 0.0));
+        let mut coat_samples = 0;
+        for _ in 0..2_000 {
+            if let Some(s) = b.sample(wo, rng.f32(), rng.vec2())
+                && s.lobe == Lobe::CoatReflection
+            {
+                assert!((s.wi - m_c).length() < 1e-5, "{s:?}");
+                coat_samples += 1;
+            }
+        }
+        assert!(coat_samples > 20, "{coat_samples}");
+        let (f_t, f_u) = (b.eval(wo, m_n), untilted.eval(wo, m_n));
+        assert!(
+            (f_t - f_u).abs().max_element() < 0.05 * f_u.max_element(),
+            "{f_t} vs {f_u}"
+        );
+        // A coat normal equal to the shading normal is no change.
+        for m in [
+            coated(metal, 1.0, 0.3),
+            coated(p(0.5, 0.0, 0.4, 1.0, 1.0), 0.7, 0.2),
+        ] {
+            let same = flat(&coat_normal(m, Vec3::Z));
+            let plain = flat(&m);
+            for _ in 0..1_000 {
+                let (wo, wi) = (rng.sphere(), rng.sphere());
+                let (a, c) = (same.eval(wo, wi), plain.eval(wo, wi));
+                for k in 0..3 {
+                    assert!(rel_eq(a[k], c[k], 1e-4), "{a} vs {c}");
+                }
+                assert!(rel_eq(same.pdf(wo, wi), plain.pdf(wo, wi), 1e-4));
+            }
+        }
+    }
+
     fn sheened(base: BsdfParams, color: f32, roughness: f32) -> BsdfParams {
         BsdfParams {
             sheen_color: Vec3::splat(color),
@@ -1785,6 +1960,11 @@ mod tests {
                 ior: 1.1 + rng.f32(),
                 clearcoat: if rng.f32() < 0.5 { 0.0 } else { rng.f32() },
                 clearcoat_roughness: 0.05 + rng.f32() * 0.95,
+                clearcoat_normal: if rng.f32() < 0.5 {
+                    Vec3::ZERO
+                } else {
+                    Vec3::Z + rng.sphere() * 0.5
+                },
                 sheen_color: if rng.f32() < 0.5 {
                     Vec3::ZERO
                 } else {
@@ -1831,6 +2011,7 @@ mod tests {
                 ior: 1.8,
                 clearcoat: 0.7,
                 clearcoat_roughness: 0.3,
+                clearcoat_normal: Vec3::ZERO,
                 sheen_color: Vec3::new(0.5, 0.8, 0.2),
                 sheen_roughness: 0.5,
                 anisotropy: 0.0,
@@ -1993,6 +2174,11 @@ mod tests {
                 } else {
                     rng.f32()
                 },
+                clearcoat_normal: match i % 5 {
+                    0 => Vec3::ZERO,
+                    1 => Vec3::NAN,
+                    _ => rng.sphere(),
+                },
                 sheen_color: if i % 4 == 1 {
                     Vec3::new(rng.f32(), rng.f32(), rng.f32())
                 } else {
@@ -2076,6 +2262,7 @@ mod tests {
             ior: f32::NAN,
             clearcoat: f32::NAN,
             clearcoat_roughness: f32::NAN,
+            clearcoat_normal: Vec3::NAN,
             sheen_color: Vec3::NAN,
             sheen_roughness: f32::NAN,
             anisotropy: 0.0,

@@ -566,6 +566,7 @@ impl<'a> Integrator<'a> {
             sheen_roughness: sv.sheen_roughness,
             anisotropy: sv.anisotropy,
             anisotropy_direction: sv.anisotropy_direction,
+            clearcoat_normal: surf.coat_n,
             iridescence: sv.iridescence,
             iridescence_ior: sv.iridescence_ior,
             iridescence_thickness: sv.iridescence_thickness,

@@ -49,6 +49,10 @@ pub struct Clearcoat {
     /// Coat perceptual roughness (texture G multiplies it).
     pub roughness: f32,
     pub roughness_tex: Option<TexRef>,
+    /// `clearcoatNormalTexture`: the coat's own normal map, read in the same tangent
+    /// frame as the material's normal map, its XY scaled by `normal_scale`.
+    pub normal_tex: Option<TexRef>,
+    pub normal_scale: f32,
 }
 
 /// `KHR_materials_sheen`: a velvet-like layer of fibres (the Charlie distribution)
@@ -320,6 +324,7 @@ impl Material {
             self.specular_color_tex,
             self.clearcoat.and_then(|c| c.tex),
             self.clearcoat.and_then(|c| c.roughness_tex),
+            self.clearcoat.and_then(|c| c.normal_tex),
             self.sheen.and_then(|s| s.color_tex),
             self.sheen.and_then(|s| s.roughness_tex),
             self.anisotropy.and_then(|a| a.tex),

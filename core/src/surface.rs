@@ -22,6 +22,9 @@ pub struct Surface {
     pub ng: Vec3,
     /// Unit shading normal on the same side as `ng`.
     pub n: Vec3,
+    /// The clear coat's own shading normal (`clearcoatNormalTexture`), on the same side
+    /// as `ng`; zero when the coat has no normal map (it then uses `n`).
+    pub coat_n: Vec3,
     pub uv: Vec2,
     /// Interpolated vertex colour (white when the mesh has none).
     pub color: Vec4,
@@ -115,28 +118,49 @@ impl Surface {
         let uv = interpolate_uv(scene, hit.tri, bary);
         let color = interpolate_color(scene, hit.tri, bary);
         let material = mesh.material[hit.tri as usize];
+        let mut coat_n = Vec3::ZERO;
         if let Some(m) = scene.materials.get(material as usize)
             && effects.contains(Effect::Textures)
-            && let Some(nt) = m.normal_tex
             && n != Vec3::ZERO
         {
-            let ts = idx.map(|i| mesh.tangents[i as usize]);
-            let t4 = ts[0] * bary[0] + ts[1] * bary[1] + ts[2] * bary[2];
-            let t = (t4.truncate() - n * n.dot(t4.truncate())).normalize_or_zero();
-            if t != Vec3::ZERO {
-                let sign = if ts[0].w < 0.0 { -1.0 } else { 1.0 };
-                let bt = n.cross(t) * sign;
-                let s = tex(scene, Some(nt), uv, false);
-                let k = Vec3::new(
-                    (s.x * 2.0 - 1.0) * m.normal_scale,
-                    (s.y * 2.0 - 1.0) * m.normal_scale,
-                    s.z * 2.0 - 1.0,
-                );
-                let mapped = (t * k.x + bt * k.y + n * k.z).normalize_or_zero();
-                if mapped != Vec3::ZERO {
-                    n = mapped;
+            // The coat's map is read in the same tangent frame as the base's: both
+            // perturb the interpolated vertex normal.
+            let coat_map = m
+                .clearcoat
+                .filter(|c| c.factor > 0.0 && effects.contains(Effect::Clearcoat))
+                .and_then(|c| Some((c.normal_tex?, c.normal_scale)));
+            let base_map = m.normal_tex.map(|t| (t, m.normal_scale));
+            if base_map.is_some() || coat_map.is_some() {
+                let ts = idx.map(|i| mesh.tangents[i as usize]);
+                let t4 = ts[0] * bary[0] + ts[1] * bary[1] + ts[2] * bary[2];
+                let t = (t4.truncate() - n * n.dot(t4.truncate())).normalize_or_zero();
+                if t != Vec3::ZERO {
+                    let sign = if ts[0].w < 0.0 { -1.0 } else { 1.0 };
+                    let bt = n.cross(t) * sign;
+                    let n0 = n;
+                    let apply = |(map, scale): (TexRef, f32)| {
+                        let s = tex(scene, Some(map), uv, false);
+                        let k = Vec3::new(
+                            (s.x * 2.0 - 1.0) * scale,
+                            (s.y * 2.0 - 1.0) * scale,
+                            s.z * 2.0 - 1.0,
+                        );
+                        (t * k.x + bt * k.y + n0 * k.z).normalize_or_zero()
+                    };
+                    if let Some(map) = coat_map {
+                        coat_n = apply(map);
+                    }
+                    if let Some(map) = base_map {
+                        let mapped = apply(map);
+                        if mapped != Vec3::ZERO {
+                            n = mapped;
+                        }
+                    }
                 }
             }
+        }
+        if coat_n.dot(ng) < 0.0 {
+            coat_n = -coat_n;
         }
         let (tangent, bitangent) = match scene.materials.get(material as usize) {
             Some(m) if m.has_anisotropy() && effects.contains(Effect::Anisotropy) => {
@@ -154,6 +178,7 @@ impl Surface {
             p_err,
             ng,
             n,
+            coat_n,
             uv,
             color,
             tangent,

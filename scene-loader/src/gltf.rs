@@ -718,13 +718,6 @@ impl Loader<'_> {
             }
             if let Some(c) = m.extension_value("KHR_materials_clearcoat") {
                 let c = gltf_ext::clearcoat(c);
-                if c.has_normal_texture {
-                    self.warn(format!(
-                        "{}: material {name:?} clearcoatNormalTexture is not supported; the \
-                         coat uses the material's shading normal",
-                        self.path.display()
-                    ));
-                }
                 mat.clearcoat = Some(Clearcoat {
                     factor: c.factor,
                     tex: self.tex_json(&name, "clearcoatTexture", c.texture),
@@ -734,6 +727,8 @@ impl Loader<'_> {
                         "clearcoatRoughnessTexture",
                         c.roughness_texture,
                     ),
+                    normal_tex: self.tex_json(&name, "clearcoatNormalTexture", c.normal_texture),
+                    normal_scale: c.normal_scale,
                 });
             }
             if let Some(sh) = m.extension_value("KHR_materials_sheen") {
@@ -1195,13 +1190,16 @@ impl Loader<'_> {
                 Mode::TriangleFan => validate::fan_to_list(&raw_indices),
                 _ => raw_indices,
             };
-            // Tangents are made for a normal map, and for an anisotropic lobe (its
-            // direction is given in tangent space) from the UV set the material reads.
+            // Tangents are made for a normal map (the material's or its clear coat's),
+            // and for an anisotropic lobe (its direction is given in tangent space) from
+            // the UV set the material reads.
             let normal_map = self.scene.materials.get(material as usize).and_then(|m| {
-                m.normal_tex.or(m.has_anisotropy().then_some(TexRef {
-                    tex_coord: uv_set,
-                    ..TexRef::new(0)
-                }))
+                m.normal_tex.or(m.clearcoat.and_then(|c| c.normal_tex)).or(m
+                    .has_anisotropy()
+                    .then_some(TexRef {
+                        tex_coord: uv_set,
+                        ..TexRef::new(0)
+                    }))
             });
             if let (Some(map), None) = (normal_map, &tangents) {
                 match (&mut normals, &mut uvs) {

@@ -97,8 +97,9 @@ pub struct ClearcoatJson {
     pub texture: Option<SlotJson>,
     pub roughness: f32,
     pub roughness_texture: Option<SlotJson>,
-    /// `clearcoatNormalTexture` is read only to warn that it is ignored.
-    pub has_normal_texture: bool,
+    pub normal_texture: Option<SlotJson>,
+    /// `clearcoatNormalTexture.scale`.
+    pub normal_scale: f32,
 }
 
 pub fn clearcoat(v: &Value) -> ClearcoatJson {
@@ -107,7 +108,11 @@ pub fn clearcoat(v: &Value) -> ClearcoatJson {
         texture: slot(v.get("clearcoatTexture")),
         roughness: number(v.get("clearcoatRoughnessFactor")).unwrap_or(0.0),
         roughness_texture: slot(v.get("clearcoatRoughnessTexture")),
-        has_normal_texture: v.get("clearcoatNormalTexture").is_some(),
+        normal_texture: slot(v.get("clearcoatNormalTexture")),
+        normal_scale: v
+            .get("clearcoatNormalTexture")
+            .and_then(|t| number(t.get("scale")))
+            .unwrap_or(1.0),
     }
 }
 

@@ -1519,3 +1519,84 @@ fn iridescence_is_read_counted_and_shaded() {
     assert!(!dray_scene::effects::analyze(&plain, Vec3::ONE).contains(Effect::Iridescence));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A 1x1 PNG of one RGBA texel.
+fn png_1x1(texel: [u8; 4]) -> Vec<u8> {
+    let img = image::RgbaImage::from_raw(1, 1, texel.to_vec()).unwrap();
+    let mut out = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut out, image::ImageFormat::Png).unwrap();
+    out.into_inner()
+}
+
+#[test]
+fn clearcoat_normal_texture_tilts_the_coat_only() {
+    use dray_core::effects::Effect;
+    let dir = test_dir("coat-normal");
+    // NORMAL and TEXCOORD_0 but no TANGENT: the coat's normal map asks for tangents.
+    let b = normal_mapped_quad();
+    let file = |name: &str, coat_normal: &str| {
+        let rest = format!(
+            r#""meshes":[{{"primitives":[{{"attributes":{{"POSITION":0,"NORMAL":1,"TEXCOORD_0":2}},
+  "indices":3,"material":0}}]}}],
+"nodes":[{{"mesh":0}}],
+"extensionsUsed":["KHR_materials_clearcoat"],"extensionsRequired":["KHR_materials_clearcoat"],
+"materials":[{{"extensions":{{"KHR_materials_clearcoat":{{"clearcoatFactor":1{coat_normal}}}}}}}],
+"textures":[{{"source":0}}],
+"images":[{{"uri":"data:image/png;base64,{}"}}]"#,
+            base64(&png_1x1([255, 128, 180, 255]))
+        );
+        load_gltf(&b.write(&dir, name, &rest)).unwrap()
+    };
+    let scene = file(
+        "mapped",
+        r#","clearcoatNormalTexture":{"index":0,"scale":0.5}"#,
+    );
+    assert!(
+        scene.stats.warnings.is_empty(),
+        "{:?}",
+        scene.stats.warnings
+    );
+    let c = scene.materials[0].clearcoat.unwrap();
+    assert_eq!(
+        (c.normal_tex.map(|t| t.texture), c.normal_scale),
+        (Some(0), 0.5)
+    );
+    assert!(
+        scene
+            .mesh
+            .tangents
+            .iter()
+            .all(|t| t.truncate().length() > 0.5)
+    );
+    let fx = dray_scene::effects::analyze(&scene, Vec3::ONE);
+    let (surf, _) = shade_first_triangle(&scene, fx);
+    // The texel (255, 128, 180) leans toward +U = +X, by 0.5 x 1 against its z 0.41.
+    let s = scene.textures[0].sample(surf.uv, false);
+    let k = Vec3::new(
+        (s.x * 2.0 - 1.0) * 0.5,
+        (s.y * 2.0 - 1.0) * 0.5,
+        s.z * 2.0 - 1.0,
+    );
+    assert!(
+        (surf.coat_n - k.normalize()).length() < 1e-5,
+        "{} vs {k}",
+        surf.coat_n
+    );
+    assert!(surf.coat_n.x > 0.5);
+    // The base keeps the vertex normal.
+    assert_eq!(surf.n, Vec3::Z);
+    // Without textures, or without the coat, there is no coat normal.
+    let mut off = fx;
+    off.set(Effect::Clearcoat, false);
+    assert_eq!(shade_first_triangle(&scene, off).0.coat_n, Vec3::ZERO);
+    let mut off = fx;
+    off.set(Effect::Textures, false);
+    assert_eq!(shade_first_triangle(&scene, off).0.coat_n, Vec3::ZERO);
+    // Without the map: the same surface, bit for bit, and no coat normal.
+    let plain = file("plain", "");
+    let fx = dray_scene::effects::analyze(&plain, Vec3::ONE);
+    let (p, _) = shade_first_triangle(&plain, fx);
+    assert_eq!(p.coat_n, Vec3::ZERO);
+    assert_eq!((p.n, p.p, p.uv), (surf.n, surf.p, surf.uv));
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -135,6 +135,20 @@ pub struct ClearcoatDesc {
     pub tex: Option<TexRefDesc>,
     pub roughness: Real,
     pub roughness_tex: Option<TexRefDesc>,
+    /// The coat's normal map and its scale, left out without a map (older manifests
+    /// keep their bytes).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub normal_tex: Option<TexRefDesc>,
+    #[serde(default = "one", skip_serializing_if = "is_one")]
+    pub normal_scale: Real,
+}
+
+fn one() -> Real {
+    Real(1.0)
+}
+
+fn is_one(r: &Real) -> bool {
+    r.0.to_bits() == 1f32.to_bits()
 }
 
 /// Mirror of [`Sheen`].
@@ -270,6 +284,8 @@ impl From<&Material> for MaterialDesc {
                 tex: tex_out(c.tex),
                 roughness: Real(c.roughness),
                 roughness_tex: tex_out(c.roughness_tex),
+                normal_tex: tex_out(c.normal_tex),
+                normal_scale: Real(c.normal_scale),
             }),
             sheen: m.sheen.map(|s| SheenDesc {
                 color: v3(s.color),
@@ -330,6 +346,8 @@ impl MaterialDesc {
                 tex: tex_in(c.tex),
                 roughness: c.roughness.0,
                 roughness_tex: tex_in(c.roughness_tex),
+                normal_tex: tex_in(c.normal_tex),
+                normal_scale: c.normal_scale.0,
             }),
             sheen: self.sheen.map(|s| Sheen {
                 color: from_v3(s.color),
@@ -368,6 +386,7 @@ impl MaterialDesc {
             self.specular_color_tex,
             self.clearcoat.and_then(|c| c.tex),
             self.clearcoat.and_then(|c| c.roughness_tex),
+            self.clearcoat.and_then(|c| c.normal_tex),
             self.sheen.and_then(|s| s.color_tex),
             self.sheen.and_then(|s| s.roughness_tex),
             self.anisotropy.and_then(|a| a.tex),
@@ -965,6 +984,8 @@ mod tests {
             tex: Some(TexRef::new(1)),
             roughness: 0.25,
             roughness_tex: None,
+            normal_tex: Some(TexRef::new(2)),
+            normal_scale: 0.5,
         });
         m.sheen = Some(Sheen {
             color: Vec3::new(0.5, 0.25, 1.0),
@@ -989,6 +1010,14 @@ mod tests {
             thickness_max: 650.0,
             thickness_tex: Some(TexRef::new(1)),
         });
+        // A coat without a normal map writes what it wrote before coat normals existed.
+        let bare = ClearcoatDesc {
+            normal_tex: None,
+            normal_scale: Real(1.0),
+            ..MaterialDesc::from(&m).clearcoat.unwrap()
+        };
+        let bare = serde_json::to_string(&bare).unwrap();
+        assert!(!bare.contains("normal"), "{bare}");
         let json = serde_json::to_string(&MaterialDesc::from(&m)).unwrap();
         let back: MaterialDesc = serde_json::from_str(&json).unwrap();
         assert_eq!(back.to_core(), m);
