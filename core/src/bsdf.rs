@@ -486,12 +486,7 @@ impl Bsdf {
         let (fr, wo_l) = self.frame(wo)?;
         let w_o = self.weights(wo_l.z, fr.etap);
         let coat_on = self.coat_on(&fr);
-        let coat_fr = if coat_on {
-            self.coat_frame(&fr, wo_l)
-        } else {
-            None
-        };
-        let coat_wo_l = coat_fr.map_or(wo_l, |cf| cf.local(fr.world(wo_l)));
+        let (coat_fr, coat_wo_l) = self.coat_frame(&fr, wo_l);
         let (att_o, coat_w) = if coat_on {
             (
                 self.coat_att(coat_wo_l.z),
@@ -582,17 +577,20 @@ impl Bsdf {
         1.0 - self.coat * coat_fresnel(c)
     }
 
-    /// The clear coat's own frame for the base frame `fr` and local `wo_l`, when the
-    /// coat has a normal of its own: its normal on `wo`'s side, or the geometric normal
-    /// when `wo` is below it (as [`Bsdf::frame`] does for the shading normal).
-    fn coat_frame(&self, fr: &Frame, wo_l: Vec3) -> Option<Frame> {
-        let nc = self.coat_n?;
-        let nc = if fr.outside { nc } else { -nc };
+    /// The clear coat's own frame for the base frame `fr` and local `wo_l`, and `wo` in
+    /// it, when the coat faces `wo` and has a normal of its own: its normal on `wo`'s
+    /// side, or the geometric normal when `wo` is below it (as [`Bsdf::frame`] does for
+    /// the shading normal). Otherwise `None` and `wo_l`: the coat uses `fr`.
+    fn coat_frame(&self, fr: &Frame, wo_l: Vec3) -> (Option<Frame>, Vec3) {
         let wo = fr.world(wo_l);
-        let n = if wo.dot(nc) < COS_EPS { fr.ng } else { nc };
-        let (t, b) = n.any_orthonormal_pair();
-        let cf = Frame { t, b, n, ..*fr };
-        (cf.local(wo).z >= COS_EPS).then_some(cf)
+        let cf = self.coat_n.filter(|_| self.coat_on(fr)).and_then(|nc| {
+            let nc = if fr.outside { nc } else { -nc };
+            let n = if wo.dot(nc) < COS_EPS { fr.ng } else { nc };
+            let (t, b) = n.any_orthonormal_pair();
+            let cf = Frame { t, b, n, ..*fr };
+            (cf.local(wo).z >= COS_EPS).then_some(cf)
+        });
+        (cf, cf.map_or(wo_l, |cf| cf.local(wo)))
     }
 
     /// The cosine of world direction `w` to the coat's normal (`fallback`, the cosine to
@@ -668,14 +666,9 @@ impl Bsdf {
         }
         let (fr, wo_l) = self.frame(wo)?;
         let coat_on = self.coat_on(&fr);
-        let coat_fr = if coat_on {
-            self.coat_frame(&fr, wo_l)
-        } else {
-            None
-        };
         // One mirror direction: the base's, or the coat's own when only the coat is
         // smooth and it has a normal of its own.
-        let coat_wo_l = coat_fr.map_or(wo_l, |cf| cf.local(fr.world(wo_l)));
+        let (coat_fr, coat_wo_l) = self.coat_frame(&fr, wo_l);
         let (mfr, mwo) = match coat_fr {
             Some(cf) if !base_ok => (cf, coat_wo_l),
             _ => (fr, wo_l),
