@@ -36,10 +36,12 @@ pub enum Effect {
     Volume,
     /// Some material has a thin-film layer (`KHR_materials_iridescence`).
     Iridescence,
+    /// Some transmissive material disperses light (`KHR_materials_dispersion`).
+    Dispersion,
 }
 
 impl Effect {
-    pub const ALL: [Effect; 13] = [
+    pub const ALL: [Effect; 14] = [
         Effect::DirectLight,
         Effect::Specular,
         Effect::Transmission,
@@ -53,6 +55,7 @@ impl Effect {
         Effect::Anisotropy,
         Effect::Volume,
         Effect::Iridescence,
+        Effect::Dispersion,
     ];
 
     fn bit(self) -> u16 {
@@ -74,6 +77,7 @@ impl Effect {
             Effect::Anisotropy => "anisotropy",
             Effect::Volume => "volume",
             Effect::Iridescence => "iridescence",
+            Effect::Dispersion => "dispersion",
         }
     }
 

@@ -19,6 +19,7 @@ pub mod texture;
 pub use glam::{Mat4, Vec2, Vec3, Vec4};
 pub mod bvh;
 pub mod credit;
+pub mod dispersion;
 pub mod display;
 pub mod domain;
 pub mod exposure;

@@ -180,6 +180,9 @@ pub struct Material {
     pub anisotropy: Option<Anisotropy>,
     pub volume: Option<Volume>,
     pub iridescence: Option<Iridescence>,
+    /// `KHR_materials_dispersion`: 20 / Abbe number (0: the index is the same for every
+    /// wavelength). Only transmission shows it.
+    pub dispersion: f32,
 }
 
 impl Default for Material {
@@ -211,6 +214,7 @@ impl Default for Material {
             anisotropy: None,
             volume: None,
             iridescence: None,
+            dispersion: 0.0,
         }
     }
 }
@@ -305,6 +309,11 @@ impl Material {
 
     pub fn has_iridescence(&self) -> bool {
         !self.unlit && self.iridescence.is_some_and(|i| i.factor > 0.0)
+    }
+
+    /// A transmissive material whose index depends on the wavelength.
+    pub fn has_dispersion(&self) -> bool {
+        !self.unlit && self.has_transmission() && self.dispersion > 0.0
     }
 
     /// A transmissive material whose inside absorbs.

@@ -63,6 +63,8 @@ pub struct ShadingValues {
     pub iridescence: f32,
     pub iridescence_ior: f32,
     pub iridescence_thickness: f32,
+    /// `KHR_materials_dispersion` (20 / Abbe number; 0: none).
+    pub dispersion: f32,
 }
 
 fn tex(scene: &Scene, r: Option<TexRef>, uv: Vec2, srgb: bool) -> Vec4 {
@@ -233,6 +235,7 @@ impl Surface {
             iridescence: 0.0,
             iridescence_ior: crate::iridescence::DEFAULT_IOR,
             iridescence_thickness: 0.0,
+            dispersion: 0.0,
         };
         if let Some(a) = m.anisotropy
             && effects.contains(Effect::Anisotropy)
@@ -278,6 +281,10 @@ impl Surface {
             };
         }
 
+        if m.has_dispersion() && effects.contains(Effect::Dispersion) {
+            v.dispersion = m.dispersion;
+        }
+
         if !m.double_sided && !self.front {
             // Back faces of single-sided surfaces do not emit.
             v.emission = Vec3::ZERO;
@@ -291,6 +298,7 @@ impl Surface {
         }
         if !effects.contains(Effect::Transmission) {
             v.transmission = 0.0;
+            v.dispersion = 0.0;
         }
         if m.unlit && effects.contains(Effect::Unlit) {
             // The base colour is what the eye (or a bounce) sees, unlit and lighting
@@ -305,6 +313,7 @@ impl Surface {
             v.clearcoat = 0.0;
             v.sheen_color = Vec3::ZERO;
             v.iridescence = 0.0;
+            v.dispersion = 0.0;
         }
         v
     }

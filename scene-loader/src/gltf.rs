@@ -42,6 +42,7 @@ pub const SUPPORTED_EXTENSIONS: &[&str] = &[
     "KHR_materials_anisotropy",
     "KHR_materials_volume",
     "KHR_materials_iridescence",
+    "KHR_materials_dispersion",
     "KHR_texture_transform",
     "KHR_mesh_quantization",
     "EXT_meshopt_compression",
@@ -766,6 +767,9 @@ impl Loader<'_> {
                         ir.thickness_texture,
                     ),
                 });
+            }
+            if let Some(d) = m.extension_value("KHR_materials_dispersion") {
+                mat.dispersion = gltf_ext::dispersion(d);
             }
             mat.unlit = m.unlit();
             let set = self.choose_uv_set(&mat);

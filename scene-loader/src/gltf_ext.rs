@@ -1,7 +1,7 @@
 //! The parts of glTF extensions the `gltf` crate does not type for dray: texture
 //! transforms on any texture slot, and the material extensions it does not know
 //! (`KHR_materials_clearcoat`, `KHR_materials_sheen`, `KHR_materials_anisotropy`,
-//! `KHR_materials_iridescence`), read from their JSON.
+//! `KHR_materials_iridescence`, `KHR_materials_dispersion`), read from their JSON.
 //!
 //! Values are taken as the extensions' schemas give them, with their defaults; a value
 //! of the wrong JSON type counts as absent (the default), as the crate treats the
@@ -173,6 +173,11 @@ pub fn iridescence(v: &Value) -> IridescenceJson {
         thickness_max: number(v.get("iridescenceThicknessMaximum")).unwrap_or(400.0),
         thickness_texture: slot(v.get("iridescenceThicknessTexture")),
     }
+}
+
+/// `KHR_materials_dispersion`'s `dispersion` (20 / Abbe number; default 0).
+pub fn dispersion(v: &Value) -> f32 {
+    number(v.get("dispersion")).unwrap_or(0.0)
 }
 
 fn number(v: Option<&Value>) -> Option<f32> {

@@ -1600,3 +1600,48 @@ fn clearcoat_normal_texture_tilts_the_coat_only() {
     assert_eq!((p.n, p.p, p.uv), (surf.n, surf.p, surf.uv));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn dispersion_is_read_and_counted_on_transmissive_materials() {
+    use dray_core::effects::Effect;
+    let dir = test_dir("dispersion");
+    let b = triangle_builder();
+    let rest = r#""meshes":[{"primitives":[
+  {"attributes":{"POSITION":0},"indices":3,"material":0},
+  {"attributes":{"POSITION":0},"indices":3,"material":1}]}],
+"nodes":[{"mesh":0}],
+"extensionsUsed":["KHR_materials_dispersion","KHR_materials_transmission",
+  "KHR_materials_volume"],
+"extensionsRequired":["KHR_materials_dispersion"],
+"materials":[
+  {"extensions":{"KHR_materials_transmission":{"transmissionFactor":1},
+    "KHR_materials_volume":{"thicknessFactor":1},
+    "KHR_materials_dispersion":{"dispersion":0.36}}},
+  {"extensions":{"KHR_materials_dispersion":{"dispersion":2}}}]"#;
+    let scene = load_gltf(&b.write(&dir, "prism", rest)).unwrap();
+    assert!(
+        scene.stats.warnings.is_empty(),
+        "{:?}",
+        scene.stats.warnings
+    );
+    assert_eq!(scene.materials[0].dispersion, 0.36);
+    assert!(scene.materials[0].has_dispersion());
+    // An opaque material shows no dispersion.
+    assert_eq!(scene.materials[1].dispersion, 2.0);
+    assert!(!scene.materials[1].has_dispersion());
+    let fx = dray_scene::effects::analyze(&scene, Vec3::ONE);
+    assert!(fx.contains(Effect::Dispersion));
+    let (_, sv) = shade_first_triangle(&scene, fx);
+    assert_eq!(sv.dispersion, 0.36);
+    let mut off = fx;
+    off.set(Effect::Dispersion, false);
+    assert_eq!(shade_first_triangle(&scene, off).1.dispersion, 0.0);
+    let plain = load_gltf(&triangle_builder().write(
+        &dir,
+        "plain",
+        &format!(r#"{TRI_MESH},"nodes":[{{"mesh":0}}]"#),
+    ))
+    .unwrap();
+    assert!(!dray_scene::effects::analyze(&plain, Vec3::ONE).contains(Effect::Dispersion));
+    let _ = std::fs::remove_dir_all(&dir);
+}

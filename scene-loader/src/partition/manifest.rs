@@ -151,6 +151,14 @@ fn is_one(r: &Real) -> bool {
     r.0.to_bits() == 1f32.to_bits()
 }
 
+fn zero() -> Real {
+    Real(0.0)
+}
+
+fn is_zero(r: &Real) -> bool {
+    r.0.to_bits() == 0f32.to_bits()
+}
+
 /// Mirror of [`Sheen`].
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SheenDesc {
@@ -230,6 +238,8 @@ pub struct MaterialDesc {
     pub volume: Option<VolumeDesc>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub iridescence: Option<IridescenceDesc>,
+    #[serde(default = "zero", skip_serializing_if = "is_zero")]
+    pub dispersion: Real,
 }
 
 fn tex_out(t: Option<TexRef>) -> Option<TexRefDesc> {
@@ -310,6 +320,7 @@ impl From<&Material> for MaterialDesc {
                 thickness_max: Real(i.thickness_max),
                 thickness_tex: tex_out(i.thickness_tex),
             }),
+            dispersion: Real(m.dispersion),
         }
     }
 }
@@ -372,6 +383,7 @@ impl MaterialDesc {
                 thickness_max: i.thickness_max.0,
                 thickness_tex: tex_in(i.thickness_tex),
             }),
+            dispersion: self.dispersion.0,
         }
     }
 
@@ -966,6 +978,7 @@ mod tests {
             "anisotropy",
             "volume",
             "iridescence",
+            "dispersion",
             "transform",
         ] {
             assert!(!plain.contains(absent), "{absent} in {plain}");
@@ -1010,6 +1023,7 @@ mod tests {
             thickness_max: 650.0,
             thickness_tex: Some(TexRef::new(1)),
         });
+        m.dispersion = 0.5;
         // A coat without a normal map writes what it wrote before coat normals existed.
         let bare = ClearcoatDesc {
             normal_tex: None,
