@@ -125,6 +125,9 @@ pub struct BsdfParams {
     /// `KHR_materials_clearcoat` factor (0: no coat) and perceptual roughness.
     pub clearcoat: f32,
     pub clearcoat_roughness: f32,
+    /// The coat's own shading normal (`clearcoatNormalTexture`), zero when it has none
+    /// (it then uses the shading normal `n`).
+    pub clearcoat_normal: Vec3,
     /// `KHR_materials_sheen` colour (black: no sheen) and roughness.
     pub sheen_color: Vec3,
     pub sheen_roughness: f32,
@@ -132,6 +135,11 @@ pub struct BsdfParams {
     /// space (the GGX lobe is stretched along it: `alpha_t = mix(alpha, 1, strength^2)`).
     pub anisotropy: f32,
     pub anisotropy_direction: Vec3,
+    /// `KHR_materials_iridescence` strength (0: no film), the film's refraction index
+    /// and its thickness in nanometres (0: no film).
+    pub iridescence: f32,
+    pub iridescence_ior: f32,
+    pub iridescence_thickness: f32,
 }
 
 impl Default for BsdfParams {
@@ -147,10 +155,14 @@ impl Default for BsdfParams {
             ior: 1.5,
             clearcoat: 0.0,
             clearcoat_roughness: 0.0,
+            clearcoat_normal: Vec3::ZERO,
             sheen_color: Vec3::ZERO,
             sheen_roughness: 0.0,
             anisotropy: 0.0,
             anisotropy_direction: Vec3::ZERO,
+            iridescence: 0.0,
+            iridescence_ior: crate::iridescence::DEFAULT_IOR,
+            iridescence_thickness: 0.0,
         }
     }
 }
@@ -168,11 +180,18 @@ impl BsdfParams {
             ior: m.ior,
             clearcoat: m.clearcoat.map_or(0.0, |c| c.factor),
             clearcoat_roughness: m.clearcoat.map_or(0.0, |c| c.roughness),
+            // The coat's normal map needs the surface's tangent frame too.
+            clearcoat_normal: Vec3::ZERO,
             sheen_color: m.sheen.map_or(Vec3::ZERO, |s| s.color),
             sheen_roughness: m.sheen.map_or(0.0, |s| s.roughness),
             // The direction needs the surface's tangent frame ([`crate::surface`]).
             anisotropy: 0.0,
             anisotropy_direction: Vec3::ZERO,
+            iridescence: m.iridescence.map_or(0.0, |i| i.factor),
+            iridescence_ior: m
+                .iridescence
+                .map_or(crate::iridescence::DEFAULT_IOR, |i| i.ior),
+            iridescence_thickness: m.iridescence.map_or(0.0, |i| i.thickness_max),
         }
     }
 }
@@ -249,10 +268,18 @@ pub struct Bsdf {
     coat_alpha: f32,
     coat_roughness: f32,
     coat_delta: bool,
+    /// The coat's own shading normal, on `ng`'s side; `None`: the coat uses `n` (and
+    /// every function keeps the bits it had before coat normals existed).
+    coat_n: Option<Vec3>,
     /// Sheen colour (black: none), its largest channel and its roughness.
     sheen: Vec3,
     sheen_max: f32,
     sheen_roughness: f32,
+    /// Thin-film strength (0: none; also 0 when the film has no thickness), the film's
+    /// index and thickness (nm).
+    irid: f32,
+    irid_ior: f32,
+    irid_thickness: f32,
 }
 
 /// Local shading frame for one `wo`: `n` is the shading normal on `wo`'s side.
@@ -369,7 +396,26 @@ impl Bsdf {
         let coat = sat(params.clearcoat);
         let coat_roughness = sat(params.clearcoat_roughness);
         let coat_a = coat_roughness * coat_roughness;
+        let coat_n = unit(params.clearcoat_normal)
+            .filter(|_| coat > 0.0)
+            .map(|c| if c.dot(ng) < 0.0 { -c } else { c });
         let sheen = sat3(params.sheen_color);
+        let irid_thickness = if params.iridescence_thickness.is_finite() {
+            params.iridescence_thickness.clamp(0.0, 1e6)
+        } else {
+            0.0
+        };
+        // A film of no thickness is no film (the Sample Viewer drops it too).
+        let irid = if irid_thickness > 0.0 {
+            sat(params.iridescence)
+        } else {
+            0.0
+        };
+        let irid_ior = if params.iridescence_ior.is_finite() {
+            params.iridescence_ior.clamp(1.0, MAX_IOR)
+        } else {
+            crate::iridescence::DEFAULT_IOR
+        };
         Bsdf {
             n_in,
             n,
@@ -400,9 +446,13 @@ impl Bsdf {
             coat_alpha: coat_a.max(MIN_ALPHA),
             coat_roughness,
             coat_delta: coat_a < DELTA_ALPHA,
+            coat_n,
             sheen,
             sheen_max: sheen.max_element(),
             sheen_roughness: sat(params.sheen_roughness),
+            irid,
+            irid_ior,
+            irid_thickness,
         }
     }
 
@@ -436,8 +486,12 @@ impl Bsdf {
         let (fr, wo_l) = self.frame(wo)?;
         let w_o = self.weights(wo_l.z, fr.etap);
         let coat_on = self.coat_on(&fr);
+        let (coat_fr, coat_wo_l) = self.coat_frame(&fr, wo_l);
         let (att_o, coat_w) = if coat_on {
-            (self.coat_att(wo_l.z), self.coat * coat_fresnel(wo_l.z))
+            (
+                self.coat_att(coat_wo_l.z),
+                self.coat * coat_fresnel(coat_wo_l.z),
+            )
         } else {
             (1.0, 0.0)
         };
@@ -452,7 +506,7 @@ impl Bsdf {
         let a2 = self.alpha * self.alpha;
         let coat_a2 = self.coat_alpha * self.coat_alpha;
         let coat_lambda_o = if coat_on && !self.coat_delta {
-            ggx_lambda(wo_l, coat_a2)
+            ggx_lambda(coat_wo_l, coat_a2)
         } else {
             0.0
         };
@@ -476,6 +530,8 @@ impl Bsdf {
             coat_w,
             coat_a2,
             coat_lambda_o,
+            coat_fr,
+            coat_wo_l,
             sheen_on,
             sheen_att_o,
         })
@@ -521,12 +577,35 @@ impl Bsdf {
         1.0 - self.coat * coat_fresnel(c)
     }
 
+    /// The clear coat's own frame for the base frame `fr` and local `wo_l`, and `wo` in
+    /// it, when the coat faces `wo` and has a normal of its own: its normal on `wo`'s
+    /// side, or the geometric normal when `wo` is below it (as [`Bsdf::frame`] does for
+    /// the shading normal). Otherwise `None` and `wo_l`: the coat uses `fr`.
+    fn coat_frame(&self, fr: &Frame, wo_l: Vec3) -> (Option<Frame>, Vec3) {
+        let wo = fr.world(wo_l);
+        let cf = self.coat_n.filter(|_| self.coat_on(fr)).and_then(|nc| {
+            let nc = if fr.outside { nc } else { -nc };
+            let n = if wo.dot(nc) < COS_EPS { fr.ng } else { nc };
+            let (t, b) = n.any_orthonormal_pair();
+            let cf = Frame { t, b, n, ..*fr };
+            (cf.local(wo).z >= COS_EPS).then_some(cf)
+        });
+        (cf, cf.map_or(wo_l, |cf| cf.local(wo)))
+    }
+
+    /// The cosine of world direction `w` to the coat's normal (`fallback`, the cosine to
+    /// the shading normal, when the coat has no normal of its own).
+    fn coat_cos(&self, w: Vec3, fallback: f32) -> f32 {
+        self.coat_n.map_or(fallback, |nc| w.dot(nc).abs())
+    }
+
     /// The coat's attenuation of a transmitted path: the coat is crossed once, on the
     /// outside, at the outside direction's cosine (`cos_out`, the macro cosine of
-    /// whichever of `wo` and `wi` is outside). 1 without a coat.
-    fn coat_att_transmitted(&self, cos_out: f32) -> f32 {
+    /// whichever of `wo` and `wi` is outside; `coat_cos_out` the same to the coat's
+    /// normal). 1 without a coat.
+    fn coat_att_transmitted(&self, cos_out: f32, coat_cos_out: f32) -> f32 {
         let coat = if self.coat > 0.0 {
-            self.coat_att(cos_out.abs())
+            self.coat_att(coat_cos_out.abs())
         } else {
             1.0
         };
@@ -586,15 +665,23 @@ impl Bsdf {
             return None;
         }
         let (fr, wo_l) = self.frame(wo)?;
-        let wi = unit(fr.world(Vec3::new(-wo_l.x, -wo_l.y, wo_l.z)))?;
+        let coat_on = self.coat_on(&fr);
+        // One mirror direction: the base's, or the coat's own when only the coat is
+        // smooth and it has a normal of its own.
+        let (coat_fr, coat_wo_l) = self.coat_frame(&fr, wo_l);
+        let (mfr, mwo) = match coat_fr {
+            Some(cf) if !base_ok => (cf, coat_wo_l),
+            _ => (fr, wo_l),
+        };
+        let wi = unit(mfr.world(Vec3::new(-mwo.x, -mwo.y, mwo.z)))?;
         if wi.dot(fr.ng) <= 0.0 {
             return None;
         }
         let w = self.weights(wo_l.z, fr.etap);
         // Under a coat the base's mirror is crossed twice at the same angle.
-        let (att, coat_w) = if self.coat_on(&fr) {
-            let a = self.coat_att(wo_l.z);
-            (a * a, self.coat * coat_fresnel(wo_l.z))
+        let (att, coat_w) = if coat_on {
+            let a = self.coat_att(coat_wo_l.z);
+            (a * a, self.coat * coat_fresnel(coat_wo_l.z))
         } else {
             (1.0, 0.0)
         };
@@ -624,7 +711,8 @@ impl Bsdf {
         }
         let w = self.weights(wo_l.z, fr.etap);
         let cos_out = if fr.outside { wo_l.z } else { wi_l.z };
-        let trans = w.trans * self.coat_att_transmitted(cos_out);
+        let out = if fr.outside { fr.world(wo_l) } else { wi };
+        let trans = w.trans * self.coat_att_transmitted(cos_out, self.coat_cos(out, cos_out));
         (trans.max_element() > 0.0 && trans.is_finite()).then_some((wi, trans))
     }
 
@@ -687,11 +775,23 @@ impl Bsdf {
     fn weights(&self, c: f32, etap: f32) -> Weights {
         let c = c.clamp(0.0, 1.0);
         let outer = self.outer_cos(c, etap);
-        let fd = match outer {
+        let mut fd = match outer {
             Some(co) => self.f0 + (Vec3::ONE - self.f0) * schlick_w(co),
             None => Vec3::ONE,
         };
-        let fm = self.base + (Vec3::ONE - self.base) * schlick_w(c);
+        let mut fm = self.base + (Vec3::ONE - self.base) * schlick_w(c);
+        if self.irid > 0.0 {
+            // KHR_materials_iridescence: F = mix(F_schlick, F_film, factor), for the
+            // dielectric (at the outer cosine, like its Schlick term; total internal
+            // reflection stays total) and for the metal. Both stay in [0, 1], so the
+            // layering below conserves energy as without the film.
+            if let Some(co) = outer {
+                fd = fd.lerp(self.film(co, self.f0), self.irid);
+            }
+            if self.metallic > 0.0 {
+                fm = fm.lerp(self.film(c, self.base), self.irid);
+            }
+        }
         let refl = fd * ((1.0 - self.metallic) * self.specular) + fm * self.metallic;
         let base_scale = (1.0 - self.specular * fd.max_element()).max(0.0);
         let trans = if outer.is_some() {
@@ -704,6 +804,12 @@ impl Bsdf {
             base_scale,
             trans,
         }
+    }
+
+    /// The thin film's Fresnel reflectance at cosine `c` over a base of normal-incidence
+    /// reflectance `f0`.
+    fn film(&self, c: f32, f0: Vec3) -> Vec3 {
+        crate::iridescence::fresnel(1.0, self.irid_ior, c, self.irid_thickness, f0)
     }
 
     /// Probability of reflecting (vs refracting) on a microfacet with weights `w`.
@@ -815,6 +921,10 @@ pub struct BsdfAt<'a> {
     /// Coat GGX `alpha^2`, and Smith Λ of `wo` under it (0 when the coat is delta).
     coat_a2: f32,
     coat_lambda_o: f32,
+    /// The coat's own frame when it has a normal of its own (`None`: it uses `fr`), and
+    /// `wo` in it.
+    coat_fr: Option<Frame>,
+    coat_wo_l: Vec3,
     /// The sheen faces `wo` ([`Bsdf::sheen_on`]), and what it passes down at `wo`.
     sheen_on: bool,
     sheen_att_o: f32,
@@ -850,9 +960,13 @@ impl BsdfAt<'_> {
             // The base is attenuated by the dielectric layer's Fresnel on the way in and out
             // (not at VdotH as in glTF Appendix B, which gains energy under a smooth layer).
             let base_scale = self.w_o.base_scale * b.weights(cos_i, fr.etap).base_scale;
-            // A clear coat attenuates what lies under it the same way, in and out.
+            // A clear coat attenuates what lies under it the same way, in and out. (With
+            // a normal of its own, `wi` may lie below the coat's normal though above the
+            // surface: its cosine's magnitude is used, so no direction the base lobes
+            // sample is blacked out.)
+            let coat_wi_l = self.coat_fr.map_or(wi_l, |cf| cf.local(wi));
             let coat_att = if self.coat_on {
-                self.att_o * b.coat_att(cos_i)
+                self.att_o * b.coat_att(coat_wi_l.z.abs())
             } else {
                 1.0
             };
@@ -870,14 +984,26 @@ impl BsdfAt<'_> {
                 f += b.sheen * (lobe * coat_att);
                 pdf += sel.p_sheen * cos_i * FRAC_1_PI;
             }
-            if self.coat_on && !b.coat_delta {
-                let d = ggx_d(h, self.coat_a2);
+            // With a normal of its own the coat's lobe lives in its frame; its value is
+            // divided by the shading cosine the integrator multiplies by (not the coat's),
+            // so `f cos_i / pdf` stays the coat's `F G2 / G1`.
+            let coat_h = match self.coat_fr {
+                Some(_) => unit(self.coat_wo_l + coat_wi_l),
+                None => Some(h),
+            };
+            if let Some(coat_h) = coat_h
+                && self.coat_on
+                && !b.coat_delta
+                && coat_wi_l.z > 0.0
+            {
+                let coat_cos_o = self.coat_wo_l.z;
+                let d = ggx_d(coat_h, self.coat_a2);
                 let lo = self.coat_lambda_o;
-                let li = ggx_lambda(wi_l, self.coat_a2);
+                let li = ggx_lambda(coat_wi_l, self.coat_a2);
                 let g2 = 1.0 / (1.0 + lo + li);
                 let g1 = 1.0 / (1.0 + lo);
-                f += Vec3::splat(b.coat * coat_fresnel(c) * d * g2 / (4.0 * cos_o * cos_i));
-                pdf += sel.p_coat * g1 * d / (4.0 * cos_o);
+                f += Vec3::splat(b.coat * coat_fresnel(c) * d * g2 / (4.0 * coat_cos_o * cos_i));
+                pdf += sel.p_coat * g1 * d / (4.0 * coat_cos_o);
             }
             if b.has_refl && !b.refl_delta {
                 let w = b.weights(c, fr.etap);
@@ -921,9 +1047,10 @@ impl BsdfAt<'_> {
             let g2 = 1.0 / (1.0 + lo + li);
             let g1 = 1.0 / (1.0 + lo);
             let cos_out = if fr.outside { cos_o } else { cos_i };
+            let out = if fr.outside { fr.world(wo_l) } else { wi };
             f += w.trans
                 * (d * g2 * (-c_i) * c_o / (-cos_i * cos_o * den2))
-                * b.coat_att_transmitted(cos_out);
+                * b.coat_att_transmitted(cos_out, b.coat_cos(out, cos_out));
             let vndf = g1 * c_o * d / cos_o;
             pdf += sel.p_spec * (1.0 - b.pr(&w)) * vndf * (-c_i) / den2;
         }
@@ -970,10 +1097,15 @@ impl BsdfAt<'_> {
                 if wi.dot(fr.ng) <= 0.0 {
                     return None;
                 }
-                // Under a coat the mirror is crossed twice at the same angle.
+                // Under a coat the mirror is crossed twice at the same angle (to the
+                // coat's own normal, the angles in and out may differ).
+                let att_i = match self.coat_fr {
+                    Some(cf) => b.coat_att(cf.local(wi).z.abs()),
+                    None => self.att_o,
+                };
                 return b.delta_sample(
                     wi,
-                    w.refl * (self.att_o * self.att_o * self.sheen_att_o),
+                    w.refl * (self.att_o * att_i * self.sheen_att_o),
                     sel.p_spec * sel.pr_macro,
                     Lobe::SpecularReflection,
                 );
@@ -984,9 +1116,10 @@ impl BsdfAt<'_> {
                 return None;
             }
             let cos_out = if fr.outside { wo_l.z } else { wi_l.z };
+            let out = if fr.outside { fr.world(wo_l) } else { wi };
             return b.delta_sample(
                 wi,
-                w.trans * b.coat_att_transmitted(cos_out),
+                w.trans * b.coat_att_transmitted(cos_out, b.coat_cos(out, cos_out)),
                 sel.p_spec * (1.0 - sel.pr_macro),
                 Lobe::SpecularTransmission,
             );
@@ -1015,7 +1148,8 @@ impl BsdfAt<'_> {
     /// the coat's visible normals.
     fn sample_coat(&self, u: Vec2) -> Option<BsdfSample> {
         let b = self.bsdf;
-        let (fr, wo_l) = (&self.fr, self.wo_l);
+        // In the coat's own frame when it has a normal of its own.
+        let (fr, wo_l) = (self.coat_fr.as_ref().unwrap_or(&self.fr), self.coat_wo_l);
         if !self.coat_on {
             return None;
         }
@@ -1265,10 +1399,14 @@ mod tests {
             ior: 1.5,
             clearcoat: 0.0,
             clearcoat_roughness: 0.0,
+            clearcoat_normal: Vec3::ZERO,
             sheen_color: Vec3::ZERO,
             sheen_roughness: 0.0,
             anisotropy: 0.0,
             anisotropy_direction: Vec3::ZERO,
+            iridescence: 0.0,
+            iridescence_ior: 1.3,
+            iridescence_thickness: 0.0,
         }
     }
 
@@ -1516,6 +1654,94 @@ mod tests {
         assert_sampling_matches_eval(&mats, &[dir(10.0), dir(70.0), -dir(40.0)], &mut Rng(13));
     }
 
+    fn coat_normal(base: BsdfParams, n: Vec3) -> BsdfParams {
+        BsdfParams {
+            clearcoat_normal: n,
+            ..base
+        }
+    }
+
+    fn reflect(wo: Vec3, n: Vec3) -> Vec3 {
+        n * (2.0 * wo.dot(n)) - wo
+    }
+
+    /// `clearcoatNormalTexture`: the coat reflects about its own normal and the base
+    /// about its own; nothing gains energy, sampling and evaluation agree, and a coat
+    /// normal equal to the shading normal changes nothing.
+    #[test]
+    fn clearcoat_normal_moves_the_coat_not_the_base() {
+        let mut rng = Rng(18);
+        let tilt = Vec3::new(0.3, 0.1, 1.0).normalize();
+        let bases = [
+            p(1.0, 0.0, 1.0, 0.0, 0.0),
+            p(1.0, 1.0, 0.3, 1.0, 0.0),
+            p(1.0, 0.0, 0.4, 1.0, 0.0),
+            p(1.0, 0.0, 0.5, 1.0, 1.0),
+        ];
+        assert_no_gain("coat normal", &bases, &[0.0, 0.1, 0.4], &mut rng, |b, r| {
+            coat_normal(coated(b, 1.0, r), tilt)
+        });
+        let mats = [
+            coat_normal(coated(p(0.8, 0.0, 0.6, 1.0, 0.0), 1.0, 0.3), tilt),
+            coat_normal(
+                coated(p(0.9, 1.0, 0.5, 1.0, 0.0), 0.6, 0.15),
+                Vec3::new(-0.4, 0.2, 1.0),
+            ),
+            coat_normal(coated(p(1.0, 0.0, 0.5, 1.0, 1.0), 1.0, 0.4), tilt),
+        ];
+        assert_sampling_matches_eval(&mats, &[dir(10.0), dir(60.0), -dir(40.0)], &mut rng);
+
+        let wo = dir(30.0);
+        let (m_n, m_c) = (reflect(wo, Vec3::Z), reflect(wo, tilt));
+        // A rough coat over a black base: its highlight follows the coat's normal.
+        let black = p(0.0, 0.0, 1.0, 0.0, 0.0);
+        let b = flat(&coat_normal(coated(black, 1.0, 0.15), tilt));
+        let (at_c, at_n) = (b.eval(wo, m_c).x, b.eval(wo, m_n).x);
+        assert!(
+            at_c > 5.0 * at_n,
+            "coat mirror {at_c} vs base mirror {at_n}"
+        );
+        let plain = flat(&coated(black, 1.0, 0.15));
+        assert!(plain.eval(wo, m_n).x > 5.0 * plain.eval(wo, m_c).x);
+        // A smooth coat's mirror sample is about its own normal; the rough metal under
+        // it still reflects about the shading normal, only attenuated a little
+        // differently.
+        let metal = p(0.9, 1.0, 0.3, 1.0, 0.0);
+        let b = flat(&coat_normal(coated(metal, 1.0, 0.0), tilt));
+        let untilted = flat(&coated(metal, 1.0, 0.0));
+        let mut coat_samples = 0;
+        for _ in 0..2_000 {
+            if let Some(s) = b.sample(wo, rng.f32(), rng.vec2())
+                && s.lobe == Lobe::CoatReflection
+            {
+                assert!((s.wi - m_c).length() < 1e-5, "{s:?}");
+                coat_samples += 1;
+            }
+        }
+        assert!(coat_samples > 20, "{coat_samples}");
+        let (f_t, f_u) = (b.eval(wo, m_n), untilted.eval(wo, m_n));
+        assert!(
+            (f_t - f_u).abs().max_element() < 0.05 * f_u.max_element(),
+            "{f_t} vs {f_u}"
+        );
+        // A coat normal equal to the shading normal is no change.
+        for m in [
+            coated(metal, 1.0, 0.3),
+            coated(p(0.5, 0.0, 0.4, 1.0, 1.0), 0.7, 0.2),
+        ] {
+            let same = flat(&coat_normal(m, Vec3::Z));
+            let plain = flat(&m);
+            for _ in 0..1_000 {
+                let (wo, wi) = (rng.sphere(), rng.sphere());
+                let (a, c) = (same.eval(wo, wi), plain.eval(wo, wi));
+                for k in 0..3 {
+                    assert!(rel_eq(a[k], c[k], 1e-4), "{a} vs {c}");
+                }
+                assert!(rel_eq(same.pdf(wo, wi), plain.pdf(wo, wi), 1e-4));
+            }
+        }
+    }
+
     fn sheened(base: BsdfParams, color: f32, roughness: f32) -> BsdfParams {
         BsdfParams {
             sheen_color: Vec3::splat(color),
@@ -1626,6 +1852,79 @@ mod tests {
         assert!((plain.eval(wo, along).x - plain.eval(wo, across).x).abs() < 1e-4);
     }
 
+    fn iridescent(base: BsdfParams, factor: f32, thickness: f32) -> BsdfParams {
+        BsdfParams {
+            iridescence: factor,
+            iridescence_ior: 1.3,
+            iridescence_thickness: thickness,
+            ..base
+        }
+    }
+
+    /// The thin film changes only the Fresnel term, and keeps it a fraction: over white
+    /// bases (dielectric, metal, glass, coated) nothing gains energy; sampling and
+    /// evaluation agree; factor 0 (or thickness 0) is the material without the film, to
+    /// the bit; and the film's thickness changes the hue of the reflection.
+    #[test]
+    fn iridescence_furnace_bits_and_colour() {
+        let mut rng = Rng(17);
+        let bases = [
+            p(1.0, 0.0, 1.0, 1.0, 0.0),
+            p(1.0, 0.0, 0.3, 1.0, 0.0),
+            p(1.0, 1.0, 0.0, 1.0, 0.0),
+            p(1.0, 1.0, 0.4, 1.0, 0.0),
+            p(1.0, 0.5, 0.2, 1.0, 0.0),
+            p(1.0, 0.0, 0.0, 1.0, 1.0),
+            p(1.0, 0.0, 0.5, 1.0, 1.0),
+            coated(p(1.0, 0.0, 0.4, 1.0, 0.0), 1.0, 0.2),
+        ];
+        // The "roughness" argument is the film's thickness here.
+        assert_no_gain(
+            "iridescence",
+            &bases,
+            &[150.0, 400.0, 900.0],
+            &mut rng,
+            |b, t| iridescent(b, 1.0, t),
+        );
+        let mats = [
+            iridescent(p(0.8, 0.0, 0.5, 1.0, 0.0), 1.0, 300.0),
+            iridescent(p(0.9, 1.0, 0.4, 1.0, 0.0), 0.7, 500.0),
+            iridescent(p(1.0, 0.0, 0.5, 1.0, 1.0), 1.0, 250.0),
+        ];
+        assert_sampling_matches_eval(&mats, &[dir(10.0), dir(60.0), -dir(40.0)], &mut rng);
+
+        for base in [p(0.7, 0.3, 0.4, 1.0, 0.0), p(1.0, 0.0, 0.3, 1.0, 1.0)] {
+            let plain = flat(&base);
+            for off in [iridescent(base, 0.0, 400.0), iridescent(base, 1.0, 0.0)] {
+                let off = flat(&off);
+                for _ in 0..1_000 {
+                    let (wo, wi) = (rng.sphere(), rng.sphere());
+                    assert_eq!(off.eval(wo, wi), plain.eval(wo, wi));
+                    assert_eq!(off.pdf(wo, wi), plain.pdf(wo, wi));
+                    let (ul, u) = (rng.f32(), rng.vec2());
+                    assert_eq!(off.sample(wo, ul, u), plain.sample(wo, ul, u));
+                }
+            }
+        }
+
+        // A smooth black dielectric reflects only its Fresnel term: grey without the film,
+        // coloured with it, and differently coloured for another thickness.
+        let chroma = |b: &Bsdf| {
+            let w = b.mirror(dir(0.0)).unwrap().1;
+            w / w.element_sum()
+        };
+        let black = p(0.0, 0.0, 0.0, 1.0, 0.0);
+        let grey = chroma(&flat(&black));
+        assert!((grey - Vec3::splat(1.0 / 3.0)).abs().max_element() < 1e-6);
+        let thin = chroma(&flat(&iridescent(black, 1.0, 250.0)));
+        let thick = chroma(&flat(&iridescent(black, 1.0, 400.0)));
+        assert!((thin - grey).abs().max_element() > 0.05, "{thin}");
+        assert!(
+            (thin - thick).abs().max_element() > 0.05,
+            "{thin} vs {thick}"
+        );
+    }
+
     #[test]
     fn pdf_integral_lambert_is_one() {
         let b = flat(&p(0.5, 0.0, 1.0, 0.0, 0.0));
@@ -1654,6 +1953,11 @@ mod tests {
                 ior: 1.1 + rng.f32(),
                 clearcoat: if rng.f32() < 0.5 { 0.0 } else { rng.f32() },
                 clearcoat_roughness: 0.05 + rng.f32() * 0.95,
+                clearcoat_normal: if rng.f32() < 0.5 {
+                    Vec3::ZERO
+                } else {
+                    Vec3::Z + rng.sphere() * 0.5
+                },
                 sheen_color: if rng.f32() < 0.5 {
                     Vec3::ZERO
                 } else {
@@ -1662,6 +1966,9 @@ mod tests {
                 sheen_roughness: rng.f32(),
                 anisotropy: if rng.f32() < 0.5 { 0.0 } else { rng.f32() },
                 anisotropy_direction: rng.sphere(),
+                iridescence: if rng.f32() < 0.5 { 0.0 } else { rng.f32() },
+                iridescence_ior: 1.0 + rng.f32(),
+                iridescence_thickness: rng.f32() * 1000.0,
             };
             let b = flat(&m);
             let wo = rng.sphere();
@@ -1697,10 +2004,14 @@ mod tests {
                 ior: 1.8,
                 clearcoat: 0.7,
                 clearcoat_roughness: 0.3,
+                clearcoat_normal: Vec3::ZERO,
                 sheen_color: Vec3::new(0.5, 0.8, 0.2),
                 sheen_roughness: 0.5,
                 anisotropy: 0.0,
                 anisotropy_direction: Vec3::ZERO,
+                iridescence: 0.8,
+                iridescence_ior: 1.6,
+                iridescence_thickness: 300.0,
             },
         ];
         for m in &mats {
@@ -1856,6 +2167,11 @@ mod tests {
                 } else {
                     rng.f32()
                 },
+                clearcoat_normal: match i % 5 {
+                    0 => Vec3::ZERO,
+                    1 => Vec3::NAN,
+                    _ => rng.sphere(),
+                },
                 sheen_color: if i % 4 == 1 {
                     Vec3::new(rng.f32(), rng.f32(), rng.f32())
                 } else {
@@ -1868,6 +2184,9 @@ mod tests {
                     1 => Vec3::NAN,
                     _ => rng.sphere(),
                 },
+                iridescence: pick(&mut rng, &[0.0, 1.0, 0.5]),
+                iridescence_ior: pick(&mut rng, &[1.0, 1.3, 0.0, f32::INFINITY, f32::NAN]),
+                iridescence_thickness: pick(&mut rng, &[0.0, 1e-6, 0.01, 400.0, 1e9, f32::NAN]),
             };
             let ng = rng.sphere();
             let n = match i % 4 {
@@ -1936,10 +2255,14 @@ mod tests {
             ior: f32::NAN,
             clearcoat: f32::NAN,
             clearcoat_roughness: f32::NAN,
+            clearcoat_normal: Vec3::NAN,
             sheen_color: Vec3::NAN,
             sheen_roughness: f32::NAN,
             anisotropy: 0.0,
             anisotropy_direction: Vec3::ZERO,
+            iridescence: f32::NAN,
+            iridescence_ior: f32::NAN,
+            iridescence_thickness: f32::INFINITY,
         });
         for wo in [Vec3::Z, Vec3::X, Vec3::NAN, Vec3::ZERO, dir(89.999)] {
             let _ = b

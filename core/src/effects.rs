@@ -34,10 +34,14 @@ pub enum Effect {
     Anisotropy,
     /// Some transmissive material absorbs inside (`KHR_materials_volume`).
     Volume,
+    /// Some material has a thin-film layer (`KHR_materials_iridescence`).
+    Iridescence,
+    /// Some transmissive material disperses light (`KHR_materials_dispersion`).
+    Dispersion,
 }
 
 impl Effect {
-    pub const ALL: [Effect; 12] = [
+    pub const ALL: [Effect; 14] = [
         Effect::DirectLight,
         Effect::Specular,
         Effect::Transmission,
@@ -50,6 +54,8 @@ impl Effect {
         Effect::Sheen,
         Effect::Anisotropy,
         Effect::Volume,
+        Effect::Iridescence,
+        Effect::Dispersion,
     ];
 
     fn bit(self) -> u16 {
@@ -70,6 +76,8 @@ impl Effect {
             Effect::Sheen => "sheen",
             Effect::Anisotropy => "anisotropy",
             Effect::Volume => "volume",
+            Effect::Iridescence => "iridescence",
+            Effect::Dispersion => "dispersion",
         }
     }
 

@@ -552,6 +552,24 @@ impl<'a> Integrator<'a> {
             return;
         }
 
+        // KHR_materials_dispersion: the path follows one colour channel from here, with
+        // that channel's index (core/src/dispersion.rs).
+        let mut ior = sv.ior;
+        let dispersed;
+        let ray = match (sv.dispersion > 0.0 && sv.transmission > 0.0)
+            .then(|| {
+                let u = key.uniform(ray.depth, Purpose::Dispersion, 0);
+                crate::dispersion::pick_channel(ray.weight, u)
+            })
+            .flatten()
+        {
+            Some((channel, weight)) => {
+                ior = crate::dispersion::channel_ior(sv.ior, sv.dispersion, channel);
+                dispersed = RayState { weight, ..*ray };
+                &dispersed
+            }
+            None => ray,
+        };
         let params = BsdfParams {
             base_color: sv.base_color,
             metallic: sv.metallic,
@@ -559,13 +577,17 @@ impl<'a> Integrator<'a> {
             specular: sv.specular,
             specular_color: sv.specular_color,
             transmission: sv.transmission,
-            ior: sv.ior,
+            ior,
             clearcoat: sv.clearcoat,
             clearcoat_roughness: sv.clearcoat_roughness,
             sheen_color: sv.sheen_color,
             sheen_roughness: sv.sheen_roughness,
             anisotropy: sv.anisotropy,
             anisotropy_direction: sv.anisotropy_direction,
+            clearcoat_normal: surf.coat_n,
+            iridescence: sv.iridescence,
+            iridescence_ior: sv.iridescence_ior,
+            iridescence_thickness: sv.iridescence_thickness,
         };
         // The BSDF tells inside from outside by the outward (winding) normal.
         let outward = if surf.front { surf.ng } else { -surf.ng };

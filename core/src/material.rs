@@ -49,6 +49,10 @@ pub struct Clearcoat {
     /// Coat perceptual roughness (texture G multiplies it).
     pub roughness: f32,
     pub roughness_tex: Option<TexRef>,
+    /// `clearcoatNormalTexture`: the coat's own normal map, read in the same tangent
+    /// frame as the material's normal map, its XY scaled by `normal_scale`.
+    pub normal_tex: Option<TexRef>,
+    pub normal_scale: f32,
 }
 
 /// `KHR_materials_sheen`: a velvet-like layer of fibres (the Charlie distribution)
@@ -73,6 +77,22 @@ pub struct Anisotropy {
     pub rotation: f32,
     /// RG: the direction in tangent space in [-1, 1]; B: strength.
     pub tex: Option<TexRef>,
+}
+
+/// `KHR_materials_iridescence`: a thin dielectric film over the material whose
+/// interference colours its specular reflection (soap bubbles, oil, beetles).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Iridescence {
+    /// Strength in [0, 1] mixing the film's Fresnel term in (texture R multiplies it).
+    pub factor: f32,
+    pub tex: Option<TexRef>,
+    /// Refraction index of the film.
+    pub ior: f32,
+    /// Film thickness in nanometres: `thickness_max` without a texture, else
+    /// `mix(thickness_min, thickness_max, texture G)`.
+    pub thickness_min: f32,
+    pub thickness_max: f32,
+    pub thickness_tex: Option<TexRef>,
 }
 
 /// `KHR_materials_volume`: the medium inside a transmissive object, attenuating light
@@ -159,6 +179,10 @@ pub struct Material {
     pub sheen: Option<Sheen>,
     pub anisotropy: Option<Anisotropy>,
     pub volume: Option<Volume>,
+    pub iridescence: Option<Iridescence>,
+    /// `KHR_materials_dispersion`: 20 / Abbe number (0: the index is the same for every
+    /// wavelength). Only transmission shows it.
+    pub dispersion: f32,
 }
 
 impl Default for Material {
@@ -189,6 +213,8 @@ impl Default for Material {
             sheen: None,
             anisotropy: None,
             volume: None,
+            iridescence: None,
+            dispersion: 0.0,
         }
     }
 }
@@ -281,6 +307,15 @@ impl Material {
         !self.unlit && self.anisotropy.is_some_and(|a| a.strength > 0.0)
     }
 
+    pub fn has_iridescence(&self) -> bool {
+        !self.unlit && self.iridescence.is_some_and(|i| i.factor > 0.0)
+    }
+
+    /// A transmissive material whose index depends on the wavelength.
+    pub fn has_dispersion(&self) -> bool {
+        !self.unlit && self.has_transmission() && self.dispersion > 0.0
+    }
+
     /// A transmissive material whose inside absorbs.
     pub fn has_volume(&self) -> bool {
         !self.unlit && self.has_transmission() && self.volume.is_some_and(|v| v.absorbs())
@@ -298,9 +333,12 @@ impl Material {
             self.specular_color_tex,
             self.clearcoat.and_then(|c| c.tex),
             self.clearcoat.and_then(|c| c.roughness_tex),
+            self.clearcoat.and_then(|c| c.normal_tex),
             self.sheen.and_then(|s| s.color_tex),
             self.sheen.and_then(|s| s.roughness_tex),
             self.anisotropy.and_then(|a| a.tex),
+            self.iridescence.and_then(|i| i.tex),
+            self.iridescence.and_then(|i| i.thickness_tex),
         ]
         .into_iter()
         .flatten()

@@ -18,6 +18,8 @@ pub enum Purpose {
     AmbientOcclusion = 7,
     /// Stochastic alpha for blended materials.
     Alpha = 8,
+    /// The colour channel a path follows through a dispersive surface.
+    Dispersion = 9,
 }
 
 /// The coordinates of one path: everything but the bounce and purpose.

@@ -22,6 +22,9 @@ pub struct Surface {
     pub ng: Vec3,
     /// Unit shading normal on the same side as `ng`.
     pub n: Vec3,
+    /// The clear coat's own shading normal (`clearcoatNormalTexture`), on the same side
+    /// as `ng`; zero when the coat has no normal map (it then uses `n`).
+    pub coat_n: Vec3,
     pub uv: Vec2,
     /// Interpolated vertex colour (white when the mesh has none).
     pub color: Vec4,
@@ -56,6 +59,12 @@ pub struct ShadingValues {
     /// `KHR_materials_anisotropy` strength (0: isotropic) and world direction.
     pub anisotropy: f32,
     pub anisotropy_direction: Vec3,
+    /// `KHR_materials_iridescence` strength (0: no film), film index and thickness (nm).
+    pub iridescence: f32,
+    pub iridescence_ior: f32,
+    pub iridescence_thickness: f32,
+    /// `KHR_materials_dispersion` (20 / Abbe number; 0: none).
+    pub dispersion: f32,
 }
 
 fn tex(scene: &Scene, r: Option<TexRef>, uv: Vec2, srgb: bool) -> Vec4 {
@@ -111,28 +120,49 @@ impl Surface {
         let uv = interpolate_uv(scene, hit.tri, bary);
         let color = interpolate_color(scene, hit.tri, bary);
         let material = mesh.material[hit.tri as usize];
+        let mut coat_n = Vec3::ZERO;
         if let Some(m) = scene.materials.get(material as usize)
             && effects.contains(Effect::Textures)
-            && let Some(nt) = m.normal_tex
             && n != Vec3::ZERO
         {
-            let ts = idx.map(|i| mesh.tangents[i as usize]);
-            let t4 = ts[0] * bary[0] + ts[1] * bary[1] + ts[2] * bary[2];
-            let t = (t4.truncate() - n * n.dot(t4.truncate())).normalize_or_zero();
-            if t != Vec3::ZERO {
-                let sign = if ts[0].w < 0.0 { -1.0 } else { 1.0 };
-                let bt = n.cross(t) * sign;
-                let s = tex(scene, Some(nt), uv, false);
-                let k = Vec3::new(
-                    (s.x * 2.0 - 1.0) * m.normal_scale,
-                    (s.y * 2.0 - 1.0) * m.normal_scale,
-                    s.z * 2.0 - 1.0,
-                );
-                let mapped = (t * k.x + bt * k.y + n * k.z).normalize_or_zero();
-                if mapped != Vec3::ZERO {
-                    n = mapped;
+            // The coat's map is read in the same tangent frame as the base's: both
+            // perturb the interpolated vertex normal.
+            let coat_map = m
+                .clearcoat
+                .filter(|c| c.factor > 0.0 && effects.contains(Effect::Clearcoat))
+                .and_then(|c| Some((c.normal_tex?, c.normal_scale)));
+            let base_map = m.normal_tex.map(|t| (t, m.normal_scale));
+            if base_map.is_some() || coat_map.is_some() {
+                let ts = idx.map(|i| mesh.tangents[i as usize]);
+                let t4 = ts[0] * bary[0] + ts[1] * bary[1] + ts[2] * bary[2];
+                let t = (t4.truncate() - n * n.dot(t4.truncate())).normalize_or_zero();
+                if t != Vec3::ZERO {
+                    let sign = if ts[0].w < 0.0 { -1.0 } else { 1.0 };
+                    let bt = n.cross(t) * sign;
+                    let n0 = n;
+                    let apply = |(map, scale): (TexRef, f32)| {
+                        let s = tex(scene, Some(map), uv, false);
+                        let k = Vec3::new(
+                            (s.x * 2.0 - 1.0) * scale,
+                            (s.y * 2.0 - 1.0) * scale,
+                            s.z * 2.0 - 1.0,
+                        );
+                        (t * k.x + bt * k.y + n0 * k.z).normalize_or_zero()
+                    };
+                    if let Some(map) = coat_map {
+                        coat_n = apply(map);
+                    }
+                    if let Some(map) = base_map {
+                        let mapped = apply(map);
+                        if mapped != Vec3::ZERO {
+                            n = mapped;
+                        }
+                    }
                 }
             }
+        }
+        if coat_n.dot(ng) < 0.0 {
+            coat_n = -coat_n;
         }
         let (tangent, bitangent) = match scene.materials.get(material as usize) {
             Some(m) if m.has_anisotropy() && effects.contains(Effect::Anisotropy) => {
@@ -150,6 +180,7 @@ impl Surface {
             p_err,
             ng,
             n,
+            coat_n,
             uv,
             color,
             tangent,
@@ -201,6 +232,10 @@ impl Surface {
             sheen_roughness: 0.0,
             anisotropy: 0.0,
             anisotropy_direction: Vec3::ZERO,
+            iridescence: 0.0,
+            iridescence_ior: crate::iridescence::DEFAULT_IOR,
+            iridescence_thickness: 0.0,
+            dispersion: 0.0,
         };
         if let Some(a) = m.anisotropy
             && effects.contains(Effect::Anisotropy)
@@ -231,6 +266,24 @@ impl Surface {
                 (sh.color * t(sh.color_tex, true).truncate()).clamp(Vec3::ZERO, Vec3::ONE);
             v.sheen_roughness = (sh.roughness * t(sh.roughness_tex, false).w).clamp(0.0, 1.0);
         }
+        if let Some(ir) = m.iridescence
+            && effects.contains(Effect::Iridescence)
+        {
+            v.iridescence = (ir.factor * t(ir.tex, false).x).clamp(0.0, 1.0);
+            v.iridescence_ior = ir.ior;
+            // Without a thickness texture the film is `thickness_max` thick.
+            v.iridescence_thickness = match ir.thickness_tex {
+                Some(_) if textured => {
+                    let g = t(ir.thickness_tex, false).y;
+                    ir.thickness_min + (ir.thickness_max - ir.thickness_min) * g
+                }
+                _ => ir.thickness_max,
+            };
+        }
+
+        if m.has_dispersion() && effects.contains(Effect::Dispersion) {
+            v.dispersion = m.dispersion;
+        }
 
         if !m.double_sided && !self.front {
             // Back faces of single-sided surfaces do not emit.
@@ -245,6 +298,7 @@ impl Surface {
         }
         if !effects.contains(Effect::Transmission) {
             v.transmission = 0.0;
+            v.dispersion = 0.0;
         }
         if m.unlit && effects.contains(Effect::Unlit) {
             // The base colour is what the eye (or a bounce) sees, unlit and lighting
@@ -258,6 +312,8 @@ impl Surface {
             v.transmission = 0.0;
             v.clearcoat = 0.0;
             v.sheen_color = Vec3::ZERO;
+            v.iridescence = 0.0;
+            v.dispersion = 0.0;
         }
         v
     }

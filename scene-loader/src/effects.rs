@@ -60,6 +60,12 @@ pub fn analyze(scene: &Scene, environment: Vec3) -> Effects {
         if m.has_volume() {
             fx.set(Effect::Volume, true);
         }
+        if m.has_iridescence() {
+            fx.set(Effect::Iridescence, true);
+        }
+        if m.has_dispersion() {
+            fx.set(Effect::Dispersion, true);
+        }
     }
     if !scene.lights.is_empty() || fx.contains(Effect::Emission) {
         fx.set(Effect::DirectLight, true);

@@ -15,7 +15,9 @@ use std::path::Path;
 
 use dray_core::camera::{Camera, Projection};
 use dray_core::light::Light;
-use dray_core::material::{AlphaMode, Anisotropy, Clearcoat, Material, Sheen, TexRef, Volume};
+use dray_core::material::{
+    AlphaMode, Anisotropy, Clearcoat, Iridescence, Material, Sheen, TexRef, Volume,
+};
 use dray_core::scene::Scene;
 use dray_core::texture::{Filter, Sampler, Texture, Wrap};
 use glam::{DMat3, DMat4, DQuat, DVec3, Vec2, Vec3, Vec4};
@@ -39,6 +41,8 @@ pub const SUPPORTED_EXTENSIONS: &[&str] = &[
     "KHR_materials_sheen",
     "KHR_materials_anisotropy",
     "KHR_materials_volume",
+    "KHR_materials_iridescence",
+    "KHR_materials_dispersion",
     "KHR_texture_transform",
     "KHR_mesh_quantization",
     "EXT_meshopt_compression",
@@ -715,13 +719,6 @@ impl Loader<'_> {
             }
             if let Some(c) = m.extension_value("KHR_materials_clearcoat") {
                 let c = gltf_ext::clearcoat(c);
-                if c.has_normal_texture {
-                    self.warn(format!(
-                        "{}: material {name:?} clearcoatNormalTexture is not supported; the \
-                         coat uses the material's shading normal",
-                        self.path.display()
-                    ));
-                }
                 mat.clearcoat = Some(Clearcoat {
                     factor: c.factor,
                     tex: self.tex_json(&name, "clearcoatTexture", c.texture),
@@ -731,6 +728,8 @@ impl Loader<'_> {
                         "clearcoatRoughnessTexture",
                         c.roughness_texture,
                     ),
+                    normal_tex: self.tex_json(&name, "clearcoatNormalTexture", c.normal_texture),
+                    normal_scale: c.normal_scale,
                 });
             }
             if let Some(sh) = m.extension_value("KHR_materials_sheen") {
@@ -753,6 +752,24 @@ impl Loader<'_> {
                     rotation: a.rotation,
                     tex: self.tex_json(&name, "anisotropyTexture", a.texture),
                 });
+            }
+            if let Some(ir) = m.extension_value("KHR_materials_iridescence") {
+                let ir = gltf_ext::iridescence(ir);
+                mat.iridescence = Some(Iridescence {
+                    factor: ir.factor,
+                    tex: self.tex_json(&name, "iridescenceTexture", ir.texture),
+                    ior: ir.ior,
+                    thickness_min: ir.thickness_min,
+                    thickness_max: ir.thickness_max,
+                    thickness_tex: self.tex_json(
+                        &name,
+                        "iridescenceThicknessTexture",
+                        ir.thickness_texture,
+                    ),
+                });
+            }
+            if let Some(d) = m.extension_value("KHR_materials_dispersion") {
+                mat.dispersion = gltf_ext::dispersion(d);
             }
             mat.unlit = m.unlit();
             let set = self.choose_uv_set(&mat);
@@ -1177,13 +1194,16 @@ impl Loader<'_> {
                 Mode::TriangleFan => validate::fan_to_list(&raw_indices),
                 _ => raw_indices,
             };
-            // Tangents are made for a normal map, and for an anisotropic lobe (its
-            // direction is given in tangent space) from the UV set the material reads.
+            // Tangents are made for a normal map (the material's or its clear coat's),
+            // and for an anisotropic lobe (its direction is given in tangent space) from
+            // the UV set the material reads.
             let normal_map = self.scene.materials.get(material as usize).and_then(|m| {
-                m.normal_tex.or(m.has_anisotropy().then_some(TexRef {
-                    tex_coord: uv_set,
-                    ..TexRef::new(0)
-                }))
+                m.normal_tex.or(m.clearcoat.and_then(|c| c.normal_tex)).or(m
+                    .has_anisotropy()
+                    .then_some(TexRef {
+                        tex_coord: uv_set,
+                        ..TexRef::new(0)
+                    }))
             });
             if let (Some(map), None) = (normal_map, &tangents) {
                 match (&mut normals, &mut uvs) {

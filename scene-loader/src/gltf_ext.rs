@@ -1,6 +1,7 @@
 //! The parts of glTF extensions the `gltf` crate does not type for dray: texture
 //! transforms on any texture slot, and the material extensions it does not know
-//! (`KHR_materials_clearcoat`, `KHR_materials_sheen`), read from their JSON.
+//! (`KHR_materials_clearcoat`, `KHR_materials_sheen`, `KHR_materials_anisotropy`,
+//! `KHR_materials_iridescence`, `KHR_materials_dispersion`), read from their JSON.
 //!
 //! Values are taken as the extensions' schemas give them, with their defaults; a value
 //! of the wrong JSON type counts as absent (the default), as the crate treats the
@@ -96,8 +97,9 @@ pub struct ClearcoatJson {
     pub texture: Option<SlotJson>,
     pub roughness: f32,
     pub roughness_texture: Option<SlotJson>,
-    /// `clearcoatNormalTexture` is read only to warn that it is ignored.
-    pub has_normal_texture: bool,
+    pub normal_texture: Option<SlotJson>,
+    /// `clearcoatNormalTexture.scale`.
+    pub normal_scale: f32,
 }
 
 pub fn clearcoat(v: &Value) -> ClearcoatJson {
@@ -106,7 +108,11 @@ pub fn clearcoat(v: &Value) -> ClearcoatJson {
         texture: slot(v.get("clearcoatTexture")),
         roughness: number(v.get("clearcoatRoughnessFactor")).unwrap_or(0.0),
         roughness_texture: slot(v.get("clearcoatRoughnessTexture")),
-        has_normal_texture: v.get("clearcoatNormalTexture").is_some(),
+        normal_texture: slot(v.get("clearcoatNormalTexture")),
+        normal_scale: v
+            .get("clearcoatNormalTexture")
+            .and_then(|t| number(t.get("scale")))
+            .unwrap_or(1.0),
     }
 }
 
@@ -142,6 +148,36 @@ pub fn anisotropy(v: &Value) -> AnisotropyJson {
         rotation: number(v.get("anisotropyRotation")).unwrap_or(0.0),
         texture: slot(v.get("anisotropyTexture")),
     }
+}
+
+/// `KHR_materials_iridescence` as written in a material's extensions.
+#[derive(Clone, Debug, PartialEq)]
+pub struct IridescenceJson {
+    pub factor: f32,
+    pub texture: Option<SlotJson>,
+    pub ior: f32,
+    pub thickness_min: f32,
+    pub thickness_max: f32,
+    pub thickness_texture: Option<SlotJson>,
+}
+
+pub fn iridescence(v: &Value) -> IridescenceJson {
+    IridescenceJson {
+        factor: number(v.get("iridescenceFactor")).unwrap_or(0.0),
+        texture: slot(v.get("iridescenceTexture")),
+        // The ratified schema spells it `iridescenceIor`; drafts wrote `iridescenceIOR`.
+        ior: number(v.get("iridescenceIor"))
+            .or_else(|| number(v.get("iridescenceIOR")))
+            .unwrap_or(1.3),
+        thickness_min: number(v.get("iridescenceThicknessMinimum")).unwrap_or(100.0),
+        thickness_max: number(v.get("iridescenceThicknessMaximum")).unwrap_or(400.0),
+        thickness_texture: slot(v.get("iridescenceThicknessTexture")),
+    }
+}
+
+/// `KHR_materials_dispersion`'s `dispersion` (20 / Abbe number; default 0).
+pub fn dispersion(v: &Value) -> f32 {
+    number(v.get("dispersion")).unwrap_or(0.0)
 }
 
 fn number(v: Option<&Value>) -> Option<f32> {

@@ -344,7 +344,7 @@ fn extensions_required_and_used() {
     // Used but not required: loads, with one warning.
     let rest = format!(
         r#"{TRI_MESH},"nodes":[{{"mesh":0}}],
-        "extensionsUsed":["KHR_materials_iridescence"]"#
+        "extensionsUsed":["KHR_materials_diffuse_transmission"]"#
     );
     let path = b.write(&dir, "used", &rest);
     let scene = load_gltf(&path).unwrap();
@@ -353,7 +353,7 @@ fn extensions_required_and_used() {
             .stats
             .warnings
             .iter()
-            .filter(|w| w.contains("KHR_materials_iridescence"))
+            .filter(|w| w.contains("KHR_materials_diffuse_transmission"))
             .count(),
         1
     );
@@ -1451,5 +1451,197 @@ fn anisotropy_is_read_and_gets_tangents() {
     let want = surf.tangent * 0.5f32.cos() + surf.bitangent * 0.5f32.sin();
     assert!((sv.anisotropy_direction - want).length() < 1e-6);
     assert!(surf.tangent.length() > 0.99);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn iridescence_is_read_counted_and_shaded() {
+    use dray_core::effects::Effect;
+    let dir = test_dir("iridescence");
+    let b = two_uv_sets();
+    let rest = format!(
+        r#""meshes":[{{"primitives":[
+  {{"attributes":{{"POSITION":0,"NORMAL":1,"TEXCOORD_0":5}},"indices":3,"material":0}},
+  {{"attributes":{{"POSITION":0,"NORMAL":1,"TEXCOORD_0":5}},"indices":3,"material":1}}]}}],
+"nodes":[{{"mesh":0}}],
+"extensionsUsed":["KHR_materials_iridescence"],"extensionsRequired":["KHR_materials_iridescence"],
+"materials":[
+  {{"extensions":{{"KHR_materials_iridescence":{{"iridescenceFactor":0.75,
+    "iridescenceTexture":{{"index":0}},"iridescenceIor":1.42,
+    "iridescenceThicknessMinimum":120,"iridescenceThicknessMaximum":620,
+    "iridescenceThicknessTexture":{{"index":0}}}}}}}},
+  {{"extensions":{{"KHR_materials_iridescence":{{"iridescenceFactor":1}}}}}}],
+{}"#,
+        one_texture()
+    );
+    // A file that requires the extension loads, without a warning.
+    let scene = load_gltf(&b.write(&dir, "film", &rest)).unwrap();
+    assert!(
+        scene.stats.warnings.is_empty(),
+        "{:?}",
+        scene.stats.warnings
+    );
+    let ir = scene.materials[0].iridescence.unwrap();
+    assert_eq!(
+        (ir.factor, ir.ior, ir.thickness_min, ir.thickness_max),
+        (0.75, 1.42, 120.0, 620.0)
+    );
+    assert_eq!(ir.tex.map(|t| t.texture), Some(0));
+    assert_eq!(ir.thickness_tex.map(|t| t.texture), Some(0));
+    // The extension's defaults.
+    let d = scene.materials[1].iridescence.unwrap();
+    assert_eq!(
+        (d.factor, d.ior, d.thickness_min, d.thickness_max, d.tex),
+        (1.0, 1.3, 100.0, 400.0, None)
+    );
+    let fx = dray_scene::effects::analyze(&scene, Vec3::ONE);
+    assert!(fx.contains(Effect::Iridescence));
+
+    // Shading: factor x texture R; thickness mix(min, max, texture G).
+    let (surf, sv) = shade_first_triangle(&scene, fx);
+    let texel = scene.textures[0].sample(surf.uv, false);
+    assert!((sv.iridescence - 0.75 * texel.x).abs() < 1e-6, "{sv:?}");
+    let want = 120.0 + 500.0 * texel.y;
+    assert!((sv.iridescence_thickness - want).abs() < 1e-3, "{sv:?}");
+    assert_eq!(sv.iridescence_ior, 1.42);
+    // `--effects -iridescence` turns the film off.
+    let mut off = fx;
+    off.set(Effect::Iridescence, false);
+    assert_eq!(shade_first_triangle(&scene, off).1.iridescence, 0.0);
+
+    // A scene without the extension does not ask for it.
+    let plain = load_gltf(&triangle_builder().write(
+        &dir,
+        "plain",
+        &format!(r#"{TRI_MESH},"nodes":[{{"mesh":0}}]"#),
+    ))
+    .unwrap();
+    assert!(!dray_scene::effects::analyze(&plain, Vec3::ONE).contains(Effect::Iridescence));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A 1x1 PNG of one RGBA texel.
+fn png_1x1(texel: [u8; 4]) -> Vec<u8> {
+    let img = image::RgbaImage::from_raw(1, 1, texel.to_vec()).unwrap();
+    let mut out = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut out, image::ImageFormat::Png).unwrap();
+    out.into_inner()
+}
+
+#[test]
+fn clearcoat_normal_texture_tilts_the_coat_only() {
+    use dray_core::effects::Effect;
+    let dir = test_dir("coat-normal");
+    // NORMAL and TEXCOORD_0 but no TANGENT: the coat's normal map asks for tangents.
+    let b = normal_mapped_quad();
+    let file = |name: &str, coat_normal: &str| {
+        let rest = format!(
+            r#""meshes":[{{"primitives":[{{"attributes":{{"POSITION":0,"NORMAL":1,"TEXCOORD_0":2}},
+  "indices":3,"material":0}}]}}],
+"nodes":[{{"mesh":0}}],
+"extensionsUsed":["KHR_materials_clearcoat"],"extensionsRequired":["KHR_materials_clearcoat"],
+"materials":[{{"extensions":{{"KHR_materials_clearcoat":{{"clearcoatFactor":1{coat_normal}}}}}}}],
+"textures":[{{"source":0}}],
+"images":[{{"uri":"data:image/png;base64,{}"}}]"#,
+            base64(&png_1x1([255, 128, 180, 255]))
+        );
+        load_gltf(&b.write(&dir, name, &rest)).unwrap()
+    };
+    let scene = file(
+        "mapped",
+        r#","clearcoatNormalTexture":{"index":0,"scale":0.5}"#,
+    );
+    assert!(
+        scene.stats.warnings.is_empty(),
+        "{:?}",
+        scene.stats.warnings
+    );
+    let c = scene.materials[0].clearcoat.unwrap();
+    assert_eq!(
+        (c.normal_tex.map(|t| t.texture), c.normal_scale),
+        (Some(0), 0.5)
+    );
+    assert!(
+        scene
+            .mesh
+            .tangents
+            .iter()
+            .all(|t| t.truncate().length() > 0.5)
+    );
+    let fx = dray_scene::effects::analyze(&scene, Vec3::ONE);
+    let (surf, _) = shade_first_triangle(&scene, fx);
+    // The texel (255, 128, 180) leans toward +U = +X, by 0.5 x 1 against its z 0.41.
+    let s = scene.textures[0].sample(surf.uv, false);
+    let k = Vec3::new(
+        (s.x * 2.0 - 1.0) * 0.5,
+        (s.y * 2.0 - 1.0) * 0.5,
+        s.z * 2.0 - 1.0,
+    );
+    assert!(
+        (surf.coat_n - k.normalize()).length() < 1e-5,
+        "{} vs {k}",
+        surf.coat_n
+    );
+    assert!(surf.coat_n.x > 0.5);
+    // The base keeps the vertex normal.
+    assert_eq!(surf.n, Vec3::Z);
+    // Without textures, or without the coat, there is no coat normal.
+    let mut off = fx;
+    off.set(Effect::Clearcoat, false);
+    assert_eq!(shade_first_triangle(&scene, off).0.coat_n, Vec3::ZERO);
+    let mut off = fx;
+    off.set(Effect::Textures, false);
+    assert_eq!(shade_first_triangle(&scene, off).0.coat_n, Vec3::ZERO);
+    // Without the map: the same surface, bit for bit, and no coat normal.
+    let plain = file("plain", "");
+    let fx = dray_scene::effects::analyze(&plain, Vec3::ONE);
+    let (p, _) = shade_first_triangle(&plain, fx);
+    assert_eq!(p.coat_n, Vec3::ZERO);
+    assert_eq!((p.n, p.p, p.uv), (surf.n, surf.p, surf.uv));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn dispersion_is_read_and_counted_on_transmissive_materials() {
+    use dray_core::effects::Effect;
+    let dir = test_dir("dispersion");
+    let b = triangle_builder();
+    let rest = r#""meshes":[{"primitives":[
+  {"attributes":{"POSITION":0},"indices":3,"material":0},
+  {"attributes":{"POSITION":0},"indices":3,"material":1}]}],
+"nodes":[{"mesh":0}],
+"extensionsUsed":["KHR_materials_dispersion","KHR_materials_transmission",
+  "KHR_materials_volume"],
+"extensionsRequired":["KHR_materials_dispersion"],
+"materials":[
+  {"extensions":{"KHR_materials_transmission":{"transmissionFactor":1},
+    "KHR_materials_volume":{"thicknessFactor":1},
+    "KHR_materials_dispersion":{"dispersion":0.36}}},
+  {"extensions":{"KHR_materials_dispersion":{"dispersion":2}}}]"#;
+    let scene = load_gltf(&b.write(&dir, "prism", rest)).unwrap();
+    assert!(
+        scene.stats.warnings.is_empty(),
+        "{:?}",
+        scene.stats.warnings
+    );
+    assert_eq!(scene.materials[0].dispersion, 0.36);
+    assert!(scene.materials[0].has_dispersion());
+    // An opaque material shows no dispersion.
+    assert_eq!(scene.materials[1].dispersion, 2.0);
+    assert!(!scene.materials[1].has_dispersion());
+    let fx = dray_scene::effects::analyze(&scene, Vec3::ONE);
+    assert!(fx.contains(Effect::Dispersion));
+    let (_, sv) = shade_first_triangle(&scene, fx);
+    assert_eq!(sv.dispersion, 0.36);
+    let mut off = fx;
+    off.set(Effect::Dispersion, false);
+    assert_eq!(shade_first_triangle(&scene, off).1.dispersion, 0.0);
+    let plain = load_gltf(&triangle_builder().write(
+        &dir,
+        "plain",
+        &format!(r#"{TRI_MESH},"nodes":[{{"mesh":0}}]"#),
+    ))
+    .unwrap();
+    assert!(!dray_scene::effects::analyze(&plain, Vec3::ONE).contains(Effect::Dispersion));
     let _ = std::fs::remove_dir_all(&dir);
 }

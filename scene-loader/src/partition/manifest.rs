@@ -29,7 +29,9 @@ use std::path::Path;
 
 use dray_core::camera::{Camera, Projection};
 use dray_core::light::Light;
-use dray_core::material::{AlphaMode, Anisotropy, Clearcoat, Material, Sheen, TexRef, Volume};
+use dray_core::material::{
+    AlphaMode, Anisotropy, Clearcoat, Iridescence, Material, Sheen, TexRef, Volume,
+};
 use dray_core::texture::{Filter, Sampler, Wrap};
 use glam::{Affine2, Mat4, Vec3, Vec4};
 use serde::de::{self, Visitor};
@@ -133,6 +135,28 @@ pub struct ClearcoatDesc {
     pub tex: Option<TexRefDesc>,
     pub roughness: Real,
     pub roughness_tex: Option<TexRefDesc>,
+    /// The coat's normal map and its scale, left out without a map (older manifests
+    /// keep their bytes).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub normal_tex: Option<TexRefDesc>,
+    #[serde(default = "one", skip_serializing_if = "is_one")]
+    pub normal_scale: Real,
+}
+
+fn one() -> Real {
+    Real(1.0)
+}
+
+fn is_one(r: &Real) -> bool {
+    r.0.to_bits() == 1f32.to_bits()
+}
+
+fn zero() -> Real {
+    Real(0.0)
+}
+
+fn is_zero(r: &Real) -> bool {
+    r.0.to_bits() == 0f32.to_bits()
 }
 
 /// Mirror of [`Sheen`].
@@ -157,6 +181,17 @@ pub struct AnisotropyDesc {
 pub struct VolumeDesc {
     pub attenuation_color: [Real; 3],
     pub attenuation_distance: Real,
+}
+
+/// Mirror of [`Iridescence`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct IridescenceDesc {
+    pub factor: Real,
+    pub tex: Option<TexRefDesc>,
+    pub ior: Real,
+    pub thickness_min: Real,
+    pub thickness_max: Real,
+    pub thickness_tex: Option<TexRefDesc>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -201,6 +236,10 @@ pub struct MaterialDesc {
     pub anisotropy: Option<AnisotropyDesc>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub volume: Option<VolumeDesc>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub iridescence: Option<IridescenceDesc>,
+    #[serde(default = "zero", skip_serializing_if = "is_zero")]
+    pub dispersion: Real,
 }
 
 fn tex_out(t: Option<TexRef>) -> Option<TexRefDesc> {
@@ -255,6 +294,8 @@ impl From<&Material> for MaterialDesc {
                 tex: tex_out(c.tex),
                 roughness: Real(c.roughness),
                 roughness_tex: tex_out(c.roughness_tex),
+                normal_tex: tex_out(c.normal_tex),
+                normal_scale: Real(c.normal_scale),
             }),
             sheen: m.sheen.map(|s| SheenDesc {
                 color: v3(s.color),
@@ -271,6 +312,15 @@ impl From<&Material> for MaterialDesc {
                 attenuation_color: v3(v.attenuation_color),
                 attenuation_distance: Real(v.attenuation_distance),
             }),
+            iridescence: m.iridescence.map(|i| IridescenceDesc {
+                factor: Real(i.factor),
+                tex: tex_out(i.tex),
+                ior: Real(i.ior),
+                thickness_min: Real(i.thickness_min),
+                thickness_max: Real(i.thickness_max),
+                thickness_tex: tex_out(i.thickness_tex),
+            }),
+            dispersion: Real(m.dispersion),
         }
     }
 }
@@ -307,6 +357,8 @@ impl MaterialDesc {
                 tex: tex_in(c.tex),
                 roughness: c.roughness.0,
                 roughness_tex: tex_in(c.roughness_tex),
+                normal_tex: tex_in(c.normal_tex),
+                normal_scale: c.normal_scale.0,
             }),
             sheen: self.sheen.map(|s| Sheen {
                 color: from_v3(s.color),
@@ -323,6 +375,15 @@ impl MaterialDesc {
                 attenuation_color: from_v3(v.attenuation_color),
                 attenuation_distance: v.attenuation_distance.0,
             }),
+            iridescence: self.iridescence.map(|i| Iridescence {
+                factor: i.factor.0,
+                tex: tex_in(i.tex),
+                ior: i.ior.0,
+                thickness_min: i.thickness_min.0,
+                thickness_max: i.thickness_max.0,
+                thickness_tex: tex_in(i.thickness_tex),
+            }),
+            dispersion: self.dispersion.0,
         }
     }
 
@@ -337,9 +398,12 @@ impl MaterialDesc {
             self.specular_color_tex,
             self.clearcoat.and_then(|c| c.tex),
             self.clearcoat.and_then(|c| c.roughness_tex),
+            self.clearcoat.and_then(|c| c.normal_tex),
             self.sheen.and_then(|s| s.color_tex),
             self.sheen.and_then(|s| s.roughness_tex),
             self.anisotropy.and_then(|a| a.tex),
+            self.iridescence.and_then(|i| i.tex),
+            self.iridescence.and_then(|i| i.thickness_tex),
         ]
         .into_iter()
         .flatten()
@@ -913,6 +977,8 @@ mod tests {
             "sheen",
             "anisotropy",
             "volume",
+            "iridescence",
+            "dispersion",
             "transform",
         ] {
             assert!(!plain.contains(absent), "{absent} in {plain}");
@@ -931,6 +997,8 @@ mod tests {
             tex: Some(TexRef::new(1)),
             roughness: 0.25,
             roughness_tex: None,
+            normal_tex: Some(TexRef::new(2)),
+            normal_scale: 0.5,
         });
         m.sheen = Some(Sheen {
             color: Vec3::new(0.5, 0.25, 1.0),
@@ -947,6 +1015,23 @@ mod tests {
             attenuation_color: Vec3::new(0.5, 0.9, 1.0),
             attenuation_distance: f32::INFINITY,
         });
+        m.iridescence = Some(Iridescence {
+            factor: 0.75,
+            tex: Some(TexRef::new(0)),
+            ior: 1.8,
+            thickness_min: 120.0,
+            thickness_max: 650.0,
+            thickness_tex: Some(TexRef::new(1)),
+        });
+        m.dispersion = 0.5;
+        // A coat without a normal map writes what it wrote before coat normals existed.
+        let bare = ClearcoatDesc {
+            normal_tex: None,
+            normal_scale: Real(1.0),
+            ..MaterialDesc::from(&m).clearcoat.unwrap()
+        };
+        let bare = serde_json::to_string(&bare).unwrap();
+        assert!(!bare.contains("normal"), "{bare}");
         let json = serde_json::to_string(&MaterialDesc::from(&m)).unwrap();
         let back: MaterialDesc = serde_json::from_str(&json).unwrap();
         assert_eq!(back.to_core(), m);
