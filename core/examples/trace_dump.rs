@@ -97,9 +97,10 @@ fn main() {
     }
     let n = rays.len() as f64;
     println!(
-        "triangles {t} build {build_s:.3} s simd {:?} rays {} median {median:.4} s \
+        "triangles {t} bvh {:.1} B/triangle build {build_s:.3} s simd {:?} rays {} median {median:.4} s \
          {:.3} Mrays/s batch {batch_median:.4} s {:.3} Mrays/s ({differ} answers differ) \
          hits {hits} t_sum {t_sum:.6e} nodes/ray {:.2} tris/ray {:.2}",
+        accel.bytes() as f64 / f64::from(t.max(1)),
         accel.simd(),
         rays.len(),
         n / median / 1e6,

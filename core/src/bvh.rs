@@ -232,6 +232,13 @@ impl Accel {
         self.ids.len()
     }
 
+    /// Bytes held by the nodes, the leaf-ordered triangles and their ids.
+    pub fn bytes(&self) -> usize {
+        self.nodes.len() * std::mem::size_of::<WideNode>()
+            + self.tris.len() * std::mem::size_of::<PackedTri>()
+            + self.ids.len() * std::mem::size_of::<u32>()
+    }
+
     #[inline(always)]
     fn prepare(&self, ray: &QueryRay) -> (NodeRay, WatertightRay, f32, f32) {
         let o = Vec3A::from(ray.origin) * self.scale;
