@@ -352,24 +352,47 @@ impl Accel {
             counter,
             #[inline(always)]
             |slot, tmax, _| {
-                let slot = slot as usize;
-                // Inclusive upper bound so that equal-distance hits reach the tie-break.
-                if let Some(tri) = self.tris.get(slot)
-                    && let Some(h) = leaf::intersect(&wt, tri, tmin, next_up(*tmax))
-                {
-                    let id = self.ids[slot];
-                    let better = match &best {
-                        None => true,
-                        Some((bh, bid)) => h.t < bh.t || (h.t == bh.t && id < *bid),
-                    };
-                    if better && accept(id, &h) {
-                        *tmax = h.t;
-                        best = Some((h, id));
-                    }
-                }
+                self.closer(&wt, slot, tmin, tmax, &mut best, &mut accept);
                 Leaf::Continue
             },
         );
+        self.world_hit(best)
+    }
+
+    /// The leaf step of a closest-hit query: test triangle `slot`, and keep it in `best`
+    /// (lowering `tmax` to it) when it is nearer than `best`, or as near with a lower
+    /// triangle id, and `accept` agrees. Shared by [`Accel::closest`] and
+    /// [`Accel::closest_batch`], so both answer alike.
+    #[inline(always)]
+    fn closer(
+        &self,
+        wt: &WatertightRay,
+        slot: u32,
+        tmin: f32,
+        tmax: &mut f32,
+        best: &mut Option<(TriangleHit, u32)>,
+        accept: &mut impl FnMut(u32, &TriangleHit) -> bool,
+    ) {
+        let slot = slot as usize;
+        // Inclusive upper bound so that equal-distance hits reach the tie-break.
+        if let Some(tri) = self.tris.get(slot)
+            && let Some(h) = leaf::intersect(wt, tri, tmin, next_up(*tmax))
+        {
+            let id = self.ids[slot];
+            let better = match best {
+                None => true,
+                Some((bh, bid)) => h.t < bh.t || (h.t == bh.t && id < *bid),
+            };
+            if better && accept(id, &h) {
+                *tmax = h.t;
+                *best = Some((h, id));
+            }
+        }
+    }
+
+    /// A closest hit in accelerator units as the world-space answer.
+    #[inline(always)]
+    fn world_hit(&self, best: Option<(TriangleHit, u32)>) -> Option<Hit> {
         best.map(|(h, id)| Hit {
             t: h.t * self.inv_scale,
             tri: id,

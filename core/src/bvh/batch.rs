@@ -14,7 +14,7 @@
 
 use super::node_test::NodeHits;
 use super::traverse::{Leaf, Walk, prefetch};
-use super::{Accel, Hit, NodeRay, PackedTri, Simd, WideNode, leaf, next_up, node_test};
+use super::{Accel, Hit, NodeRay, PackedTri, Simd, WideNode, node_test};
 use crate::bvh::QueryRay;
 use crate::intersect::{TriangleHit, WatertightRay};
 
@@ -136,21 +136,9 @@ impl Accel {
                     }
                 }
                 let (wt, tmin, best, index) = (&lane.wt, lane.tmin, &mut lane.best, lane.index);
+                let mut accept_here = |id: u32, h: &TriangleHit| accept(index, id, h);
                 let mut leaf_test = |slot: u32, tmax: &mut f32, _: &mut ()| {
-                    let slot = slot as usize;
-                    if let Some(tri) = tris.get(slot)
-                        && let Some(h) = leaf::intersect(wt, tri, tmin, next_up(*tmax))
-                    {
-                        let id = self.ids[slot];
-                        let better = match best {
-                            None => true,
-                            Some((bh, bid)) => h.t < bh.t || (h.t == bh.t && id < *bid),
-                        };
-                        if better && accept(index, id, &h) {
-                            *tmax = h.t;
-                            *best = Some((h, id));
-                        }
-                    }
+                    self.closer(wt, slot, tmin, tmax, best, &mut accept_here);
                     Leaf::Continue
                 };
                 // SAFETY: as for `walk`.
@@ -162,13 +150,7 @@ impl Accel {
                     );
                     lane.node_pending = true;
                 } else {
-                    out[lane.index] = lane.best.map(|(h, id)| Hit {
-                        t: h.t * self.inv_scale,
-                        tri: id,
-                        b0: h.b0,
-                        b1: h.b1,
-                        b2: h.b2,
-                    });
+                    out[lane.index] = self.world_hit(lane.best);
                     *slot = None;
                     active -= 1;
                 }
