@@ -280,6 +280,12 @@ pub struct Bsdf {
     irid: f32,
     irid_ior: f32,
     irid_thickness: f32,
+    /// Only the diffuse lobe: no dielectric or metal reflection (`specular` and
+    /// `metallic` 0), no transmission, coat or sheen. [`Bsdf::at`] and
+    /// [`BsdfAt::eval_pdf`] then skip the layers' Fresnel weights and lobe selection,
+    /// whose values are known (base scale 1, diffuse probability 1 or 0): the bits are
+    /// those of the general path (test `lambert_fast_path_gives_the_general_bits`).
+    lambert: bool,
 }
 
 /// Local shading frame for one `wo`: `n` is the shading normal on `wo`'s side.
@@ -453,6 +459,10 @@ impl Bsdf {
             irid,
             irid_ior,
             irid_thickness,
+            lambert: !(dielectric > 0.0 || metallic > 0.0)
+                && trans_tint.max_element() <= 0.0
+                && coat <= 0.0
+                && sheen.max_element() <= 0.0,
         }
     }
 
@@ -484,6 +494,9 @@ impl Bsdf {
     /// tangent to the surface (every evaluation is then zero and every sample absorbed).
     pub fn at(&self, wo: Vec3) -> Option<BsdfAt<'_>> {
         let (fr, wo_l) = self.frame(wo)?;
+        if self.lambert {
+            return Some(self.at_lambert(fr, wo_l));
+        }
         let w_o = self.weights(wo_l.z, fr.etap);
         let coat_on = self.coat_on(&fr);
         let (coat_fr, coat_wo_l) = self.coat_frame(&fr, wo_l);
@@ -535,6 +548,44 @@ impl Bsdf {
             sheen_on,
             sheen_att_o,
         })
+    }
+
+    /// [`Bsdf::at`] of a diffuse-only BSDF: what the general path computes, without
+    /// computing it. The layers above the base pass everything (`specular` 0: base
+    /// scale `1 - 0 F = 1`; no coat or sheen: attenuations 1), so the diffuse lobe's
+    /// selection weight is the luminance of its tint and the total is that weight plus
+    /// zeros: its probability is exactly 1 (or 0 for a black or invalid tint).
+    fn at_lambert(&self, fr: Frame, wo_l: Vec3) -> BsdfAt<'_> {
+        let wd = lum(self.diffuse_tint);
+        let p_diffuse = if wd > 0.0 && wd.is_finite() { 1.0 } else { 0.0 };
+        BsdfAt {
+            bsdf: self,
+            fr,
+            wo_l,
+            w_o: Weights {
+                refl: Vec3::ZERO,
+                base_scale: 1.0,
+                trans: Vec3::ZERO,
+            },
+            sel: Selection {
+                p_diffuse,
+                p_coat: 0.0,
+                p_sheen: 0.0,
+                p_spec: 0.0,
+                pr_macro: 1.0,
+            },
+            a2: self.alpha * self.alpha,
+            lambda_o: 0.0,
+            coat_on: false,
+            att_o: 1.0,
+            coat_w: 0.0,
+            coat_a2: self.coat_alpha * self.coat_alpha,
+            coat_lambda_o: 0.0,
+            coat_fr: None,
+            coat_wo_l: wo_l,
+            sheen_on: false,
+            sheen_att_o: 1.0,
+        }
     }
 
     /// The base GGX distribution at local microfacet normal `m` (`a2` = alpha^2).
@@ -951,6 +1002,22 @@ impl BsdfAt<'_> {
         let (cos_o, cos_i) = (wo_l.z, wi_l.z);
         let mut f = Vec3::ZERO;
         let mut pdf = 0.0;
+
+        if b.lambert {
+            // The general path below with its known factors (see `Bsdf::at_lambert`):
+            // base scale and attenuation 1, no other lobe; the half vector it checks
+            // always exists here (both cosines are at least COS_EPS).
+            if !(cos_i >= COS_EPS && gi > 0.0) {
+                return zero;
+            }
+            let f = Vec3::ZERO + b.diffuse_tint * FRAC_1_PI;
+            let pdf = 0.0 + sel.p_diffuse * cos_i * FRAC_1_PI;
+            return if f.is_finite() && pdf.is_finite() && pdf >= 0.0 {
+                (f.max(Vec3::ZERO), pdf)
+            } else {
+                zero
+            };
+        }
 
         if cos_i >= COS_EPS && gi > 0.0 {
             let Some(h) = unit(wo_l + wi_l) else {
@@ -1371,6 +1438,92 @@ mod tests {
             );
             uniform_sphere(u.min(Vec2::splat(ONE_MINUS_EPS)))
         }
+    }
+
+    /// Bits of an `eval_pdf` answer, for exact comparisons.
+    fn bits(fp: (Vec3, f32)) -> [u32; 4] {
+        [fp.0.x, fp.0.y, fp.0.z, fp.1].map(f32::to_bits)
+    }
+
+    #[test]
+    fn lambert_fast_path_gives_the_general_bits() {
+        let mut rng = Rng(41);
+        let bases = [
+            Vec3::new(0.8, 0.8, 0.8),
+            Vec3::new(0.9, 0.2, 0.05),
+            Vec3::ZERO,
+            Vec3::new(-0.0, 0.0, -0.0),
+            Vec3::new(1e-30, 0.0, 0.0),
+            Vec3::new(f32::NAN, 0.5, 2.0),
+        ];
+        let mut checked = 0;
+        for (k, &base) in bases.iter().enumerate() {
+            let params = BsdfParams {
+                base_color: base,
+                metallic: 0.0,
+                specular: 0.0,
+                roughness: 0.3,
+                // Ignored without a reflective layer, but they must not change the bits.
+                iridescence: 1.0,
+                iridescence_thickness: 400.0,
+                anisotropy: if k % 2 == 0 { 0.7 } else { 0.0 },
+                anisotropy_direction: Vec3::X,
+                ..BsdfParams::default()
+            };
+            for _ in 0..2000 {
+                let n = rng.sphere();
+                let ng = (n + rng.sphere() * 0.3).normalize_or(n);
+                let fast = Bsdf::new(&params, n, ng);
+                assert!(fast.lambert);
+                let general = Bsdf {
+                    lambert: false,
+                    ..fast
+                };
+                let wo = rng.sphere();
+                let (Some(a), Some(b)) = (fast.at(wo), general.at(wo)) else {
+                    assert!(fast.at(wo).is_none() && general.at(wo).is_none());
+                    continue;
+                };
+                for _ in 0..4 {
+                    let wi = rng.sphere();
+                    assert_eq!(
+                        bits(a.eval_pdf(wi)),
+                        bits(b.eval_pdf(wi)),
+                        "base {base} wo {wo} wi {wi}"
+                    );
+                    let (ul, u) = (rng.f32(), rng.vec2());
+                    let (sa, sb) = (a.sample(ul, u), b.sample(ul, u));
+                    assert_eq!(sa.is_some(), sb.is_some());
+                    if let (Some(sa), Some(sb)) = (sa, sb) {
+                        assert_eq!(
+                            sa.wi.to_array().map(f32::to_bits),
+                            sb.wi.to_array().map(f32::to_bits)
+                        );
+                        assert_eq!(bits((sa.f, sa.pdf)), bits((sb.f, sb.pdf)));
+                        assert_eq!((sa.lobe, sa.delta), (sb.lobe, sb.delta));
+                    }
+                    checked += 1;
+                }
+            }
+        }
+        assert!(checked > 30_000, "only {checked} directions compared");
+        // Any reflective, transmissive, coated or sheened layer takes the general path.
+        for params in [
+            p(0.8, 0.0, 1.0, 1.0, 0.0),
+            p(0.8, 0.1, 1.0, 0.0, 0.0),
+            p(0.8, 0.0, 1.0, 0.0, 0.5),
+            BsdfParams {
+                clearcoat: 0.5,
+                ..p(0.8, 0.0, 1.0, 0.0, 0.0)
+            },
+            BsdfParams {
+                sheen_color: Vec3::splat(0.5),
+                ..p(0.8, 0.0, 1.0, 0.0, 0.0)
+            },
+        ] {
+            assert!(!Bsdf::new(&params, Vec3::Z, Vec3::Z).lambert, "{params:?}");
+        }
+        assert!(Bsdf::new(&p(0.8, 0.0, 1.0, 0.0, 0.0), Vec3::Z, Vec3::Z).lambert);
     }
 
     const STRAT_SIDE: usize = 700;

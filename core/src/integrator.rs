@@ -21,7 +21,7 @@ use crate::effects::{Effect, Effects};
 use crate::intersect::offset_ray_origin;
 use crate::light_sampler::{LightRef, LightSample, LightSampler};
 use crate::material::Material;
-use crate::sampling::{PathKey, Purpose, cosine_hemisphere};
+use crate::sampling::{PathKey, PathStream, Purpose, cosine_hemisphere};
 use crate::scene::Scene;
 use crate::surface::{Surface, alpha_passes};
 use crate::trace::Trace;
@@ -340,12 +340,13 @@ impl<'a> Integrator<'a> {
         Credit::from_wire(need.min(u128::from(u64::MAX)) as u64)
     }
 
-    fn key(&self, ray: &RayState) -> PathKey {
+    fn key(&self, ray: &RayState) -> PathStream {
         PathKey {
             seed: self.settings.seed,
             pixel: ray.pixel,
             sample: ray.sample,
         }
+        .stream()
     }
 
     fn env(&self) -> Vec3 {
@@ -673,7 +674,7 @@ impl<'a> Integrator<'a> {
         ray: &RayState,
         surf: &Surface,
         bsdf: &BsdfAt,
-        key: PathKey,
+        key: PathStream,
         mis: bool,
         sink: &mut impl Sink,
     ) {
@@ -688,6 +689,9 @@ impl<'a> Integrator<'a> {
                     sink.spawn(s);
                 }
             }
+        }
+        if !self.lights.has_area() {
+            return;
         }
         let u_sel = key.uniform(ray.depth, Purpose::LightSelect, 0);
         if let Some((e, p)) = self.lights.choose_area(u_sel) {
@@ -791,7 +795,7 @@ impl<'a> Integrator<'a> {
         surf: &Surface,
         bsdf: &Bsdf,
         wo: Vec3,
-        key: PathKey,
+        key: PathStream,
         sink: &mut impl Sink,
     ) {
         let depth = ray.depth;

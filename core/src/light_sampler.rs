@@ -170,10 +170,16 @@ impl LightSampler {
         Some((i, self.pmf[i]))
     }
 
+    /// Whether any light has an area (emissive triangles): without one, a shaded hit
+    /// draws no number to choose among them.
+    pub fn has_area(&self) -> bool {
+        !self.area_entries.is_empty()
+    }
+
     /// Choose an emissive-triangle entry with probability proportional to power.
     #[inline]
     pub fn choose_area(&self, u: f32) -> Option<(usize, f32)> {
-        if self.area_entries.is_empty() {
+        if !self.has_area() {
             return None;
         }
         let i = self

@@ -39,12 +39,48 @@ fn mix64(mut z: u64) -> u64 {
 }
 
 impl PathKey {
+    /// The path's stream: the hash of (seed, pixel, sample), done once for all of the
+    /// path's numbers at one vertex.
+    #[inline]
+    pub fn stream(&self) -> PathStream {
+        let a = mix64(self.seed ^ 0x9e37_79b9_7f4a_7c15);
+        PathStream {
+            path: mix64(a ^ ((self.pixel as u64) << 32 | self.sample as u64)),
+        }
+    }
+
     /// 64 random bits for (bounce, purpose, index).
     #[inline]
     pub fn bits(&self, bounce: u32, purpose: Purpose, index: u32) -> u64 {
-        let a = mix64(self.seed ^ 0x9e37_79b9_7f4a_7c15);
-        let b = mix64(a ^ ((self.pixel as u64) << 32 | self.sample as u64));
-        let c = mix64(b ^ ((bounce as u64) << 40 | (purpose as u64) << 32 | index as u64));
+        self.stream().bits(bounce, purpose, index)
+    }
+
+    /// A uniform number in [0, 1).
+    #[inline]
+    pub fn uniform(&self, bounce: u32, purpose: Purpose, index: u32) -> f32 {
+        to_unit(self.bits(bounce, purpose, index))
+    }
+
+    /// Two uniform numbers in [0, 1).
+    #[inline]
+    pub fn uniform2(&self, bounce: u32, purpose: Purpose, index: u32) -> Vec2 {
+        let b = self.bits(bounce, purpose, index);
+        Vec2::new(to_unit(b), to_unit(b << 24))
+    }
+}
+
+/// One path's random numbers ([`PathKey::stream`]): the same numbers as the key's, for
+/// half the hashing (a shaded hit draws five to seven of them).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PathStream {
+    path: u64,
+}
+
+impl PathStream {
+    /// 64 random bits for (bounce, purpose, index).
+    #[inline]
+    pub fn bits(&self, bounce: u32, purpose: Purpose, index: u32) -> u64 {
+        let c = mix64(self.path ^ ((bounce as u64) << 40 | (purpose as u64) << 32 | index as u64));
         mix64(c.wrapping_add(0x632b_e59b_d9b4_e019))
     }
 
@@ -110,6 +146,32 @@ mod tests {
         assert_ne!(k.bits(1, Purpose::Film, 0), k.bits(2, Purpose::Film, 0));
         let k2 = PathKey { sample: 4, ..k };
         assert_ne!(k.bits(1, Purpose::Film, 0), k2.bits(1, Purpose::Film, 0));
+    }
+
+    #[test]
+    fn stream_gives_the_keys_bits() {
+        // The formula before streams existed (2026-11-26): images keep their bits.
+        fn old_bits(k: &PathKey, bounce: u32, purpose: Purpose, index: u32) -> u64 {
+            let a = mix64(k.seed ^ 0x9e37_79b9_7f4a_7c15);
+            let b = mix64(a ^ ((k.pixel as u64) << 32 | k.sample as u64));
+            let c = mix64(b ^ ((bounce as u64) << 40 | (purpose as u64) << 32 | index as u64));
+            mix64(c.wrapping_add(0x632b_e59b_d9b4_e019))
+        }
+        for i in 0..1000u32 {
+            let k = PathKey {
+                seed: u64::from(i) * 0x1234_5678_9abc,
+                pixel: i * 7919,
+                sample: i % 37,
+            };
+            let s = k.stream();
+            for (bounce, purpose) in [(0, Purpose::Film), (i % 64, Purpose::BsdfLobe)] {
+                assert_eq!(
+                    s.bits(bounce, purpose, i % 3),
+                    old_bits(&k, bounce, purpose, i % 3)
+                );
+                assert_eq!(k.bits(bounce, purpose, 1), old_bits(&k, bounce, purpose, 1));
+            }
+        }
     }
 
     #[test]
