@@ -58,14 +58,13 @@ impl PathKey {
     /// A uniform number in [0, 1).
     #[inline]
     pub fn uniform(&self, bounce: u32, purpose: Purpose, index: u32) -> f32 {
-        to_unit(self.bits(bounce, purpose, index))
+        self.stream().uniform(bounce, purpose, index)
     }
 
     /// Two uniform numbers in [0, 1).
     #[inline]
     pub fn uniform2(&self, bounce: u32, purpose: Purpose, index: u32) -> Vec2 {
-        let b = self.bits(bounce, purpose, index);
-        Vec2::new(to_unit(b), to_unit(b << 24))
+        self.stream().uniform2(bounce, purpose, index)
     }
 }
 
