@@ -366,7 +366,7 @@ impl Bsdf {
         let specular_color = params
             .specular_color
             .to_array()
-            .map(|c| if c.is_nan() { 0.0 } else { c.clamp(0.0, 1e6) });
+            .map(|c| if c >= 0.0 { c.min(1e6) } else { 0.0 });
         let transmission = sat(params.transmission);
         let ior = params.ior;
         let f0_ior = if ior.is_nan() {
@@ -1279,8 +1279,10 @@ fn unit(v: Vec3) -> Option<Vec3> {
     }
 }
 
+/// `x` clamped to [0, 1], NaN to 0 (`-0.0` stays `-0.0`, as `clamp` leaves it): one
+/// compare and one `min`, where `is_nan` and `clamp` took three branches.
 fn sat(x: f32) -> f32 {
-    if x.is_nan() { 0.0 } else { x.clamp(0.0, 1.0) }
+    if x >= 0.0 { x.min(1.0) } else { 0.0 }
 }
 
 fn sat3(v: Vec3) -> Vec3 {
@@ -1443,6 +1445,28 @@ mod tests {
     /// Bits of an `eval_pdf` answer, for exact comparisons.
     fn bits(fp: (Vec3, f32)) -> [u32; 4] {
         [fp.0.x, fp.0.y, fp.0.z, fp.1].map(f32::to_bits)
+    }
+
+    #[test]
+    fn sat_is_nan_to_zero_then_clamp() {
+        for x in [
+            f32::NAN,
+            -f32::NAN,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            -0.0,
+            0.0,
+            1.0,
+            1.5,
+            -2.0,
+            0.25,
+            f32::MIN_POSITIVE,
+            1.0 - f32::EPSILON,
+            -f32::MIN_POSITIVE,
+        ] {
+            let old = if x.is_nan() { 0.0 } else { x.clamp(0.0, 1.0) };
+            assert_eq!(sat(x).to_bits(), old.to_bits(), "{x}");
+        }
     }
 
     #[test]

@@ -262,15 +262,17 @@ fn sah_cut(range: &mut [u32], aabbs: &[Aabb], centroids: &[Vec3A]) -> Option<(us
     let to_bin = Vec3A::from([0, 1, 2].map(|axis| bin_scale(extent[axis])));
     let mut count = [[0u32; BINS]; 3];
     let mut boxes = [[Aabb::empty(); BINS]; 3];
+    // Every axis is binned, also one with no bins to place (its lanes land in bins the
+    // sweep below never reads): no branch per axis. `k & (BINS - 1)` is `k` (bins_of
+    // clamps to the last bin) and lets the compiler drop the bounds checks.
+    const _: () = assert!(BINS.is_power_of_two());
     for &i in range.iter() {
         let (c, b) = (centroids[i as usize], &aabbs[i as usize]);
         let bins = bins_of(c, lo, to_bin);
         for axis in 0..3 {
-            if binned[axis] {
-                let k = bins[axis];
-                count[axis][k] += 1;
-                boxes[axis][k] = boxes[axis][k].union(b);
-            }
+            let k = bins[axis] & (BINS - 1);
+            count[axis][k] += 1;
+            boxes[axis][k] = boxes[axis][k].union(b);
         }
     }
     let mut best: Option<(f32, usize, usize)> = None; // (cost, axis, first right bin)
