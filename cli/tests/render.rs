@@ -523,6 +523,107 @@ fn vertex_colours_tint_the_render() {
     );
 }
 
+/// A quad facing +Z whose material's base colour (black factor) reads TEXCOORD_0 and
+/// whose emission reads TEXCOORD_`emissive_set` of a 2x1 texture, red on the left and
+/// blue on the right; TEXCOORD_0 points at the red texel, TEXCOORD_1 at the blue one.
+fn write_two_set_quad_gltf(
+    dir: &std::path::Path,
+    name: &str,
+    emissive_set: u32,
+) -> std::path::PathBuf {
+    let pos: [f32; 12] = [
+        -1.0, -1.0, 0.0, 1.0, -1.0, 0.0, 1.0, 1.0, 0.0, -1.0, 1.0, 0.0,
+    ];
+    let set0 = [0.25f32, 0.5].repeat(4);
+    let set1 = [0.75f32, 0.5].repeat(4);
+    let idx: [u16; 6] = [0, 1, 2, 0, 2, 3];
+    let mut bin: Vec<u8> = pos.iter().flat_map(|v| v.to_le_bytes()).collect();
+    bin.extend(set0.iter().chain(&set1).flat_map(|v| v.to_le_bytes()));
+    bin.extend(idx.iter().flat_map(|v| v.to_le_bytes()));
+    std::fs::write(dir.join(format!("{name}.bin")), &bin).unwrap();
+    let img = image::RgbaImage::from_raw(2, 1, vec![255, 0, 0, 255, 0, 0, 255, 255]).unwrap();
+    img.save(dir.join(format!("{name}.png"))).unwrap();
+    let json = format!(
+        r#"{{"asset":{{"version":"2.0"}},
+"buffers":[{{"uri":"{name}.bin","byteLength":{}}}],
+"bufferViews":[{{"buffer":0,"byteLength":48}},{{"buffer":0,"byteOffset":48,"byteLength":32}},
+ {{"buffer":0,"byteOffset":80,"byteLength":32}},{{"buffer":0,"byteOffset":112,"byteLength":12}}],
+"accessors":[
+ {{"bufferView":0,"componentType":5126,"count":4,"type":"VEC3","min":[-1,-1,0],"max":[1,1,0]}},
+ {{"bufferView":1,"componentType":5126,"count":4,"type":"VEC2"}},
+ {{"bufferView":2,"componentType":5126,"count":4,"type":"VEC2"}},
+ {{"bufferView":3,"componentType":5123,"count":6,"type":"SCALAR"}}],
+"images":[{{"uri":"{name}.png"}}],"samplers":[{{"magFilter":9728}}],
+"textures":[{{"source":0,"sampler":0}}],
+"materials":[{{"pbrMetallicRoughness":{{"baseColorFactor":[0,0,0,1],"metallicFactor":0,
+   "baseColorTexture":{{"index":0}}}},
+  "emissiveFactor":[1,1,1],"emissiveTexture":{{"index":0,"texCoord":{emissive_set}}},
+  "doubleSided":true}}],
+"meshes":[{{"primitives":[{{"attributes":{{"POSITION":0,"TEXCOORD_0":1,"TEXCOORD_1":2}},
+  "indices":3,"material":0}}]}}],
+"nodes":[{{"mesh":0}}],"scenes":[{{"nodes":[0]}}]}}"#,
+        bin.len()
+    );
+    let path = dir.join(format!("{name}.gltf"));
+    std::fs::write(&path, json).unwrap();
+    path
+}
+
+/// Each texture reads the UV set it names in the rendered image: the emission on
+/// TEXCOORD_1 shows the blue texel (with one UV set per vertex it showed TEXCOORD_0's
+/// red), with the same bits from the tile renderer and from 1 or 3 workers over 4
+/// domains; the same file with the emission on TEXCOORD_0 shows red.
+#[test]
+fn each_texture_reads_its_own_uv_set_in_the_render() {
+    let d = tmp("uv-sets");
+    let args = [
+        "--width",
+        "16",
+        "--height",
+        "16",
+        "--spp",
+        "2",
+        "--exposure",
+        "0",
+        "--tonemap",
+        "clamp",
+        "--domains",
+        "4",
+    ];
+    let run = |name: &str, set: u32, workers: &str| {
+        let scene = write_two_set_quad_gltf(&d, name, set);
+        let tag = format!("{name}-{workers}");
+        let r = render(
+            &d,
+            &tag,
+            scene.to_str().unwrap(),
+            &[&args[..], &["--workers", workers]].concat(),
+        );
+        assert!(r.ok, "{tag}: {}", r.stderr);
+        assert!(!r.stderr.contains("TEXCOORD"), "{tag}: {}", r.stderr);
+        std::fs::read(r.png.as_ref().unwrap()).unwrap()
+    };
+    let centre = |png: &[u8]| {
+        image::load_from_memory(png)
+            .unwrap()
+            .to_rgb8()
+            .get_pixel(8, 8)
+            .0
+    };
+    let two = run("two", 1, "0");
+    // The emission, plus the grey of the sky's specular reflection.
+    let [r, g, b] = centre(&two);
+    assert!(b > 200 && r == g && r + 150 < b, "not blue: {r} {g} {b}");
+    for workers in ["1", "3"] {
+        assert!(
+            run("two", 1, workers) == two,
+            "{workers} workers differ from the tile renderer"
+        );
+    }
+    let [r, g, b] = centre(&run("one", 0, "0"));
+    assert!(r > 200 && g == b && g + 150 < r, "not red: {r} {g} {b}");
+}
+
 /// The film cannot wrap (docs/numerics.md "The film"): one pixel at the most samples a
 /// job accepts, each with a contribution far above the clamp, reads the clamp (white, not
 /// the black of a wrapped negative sum), saturates nothing, counts the clamps, and has

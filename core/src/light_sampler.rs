@@ -6,7 +6,7 @@ use glam::{Vec2, Vec3};
 
 use crate::intersect::interpolate_with_error;
 use crate::light::Light;
-use crate::material::Material;
+use crate::material::{Material, TexCoords};
 use crate::sampling::uniform_triangle;
 use crate::scene::Scene;
 use crate::surface::interpolate_uv;
@@ -327,8 +327,9 @@ impl LightSampler {
     }
 }
 
-/// Emitted radiance of material `m` at `uv` (both sides handled by the caller).
-pub fn emitted(scene: &Scene, m: &Material, uv: Vec2) -> Vec3 {
+/// Emitted radiance of material `m` at texture coordinates `uv` (both sides handled by
+/// the caller).
+pub fn emitted(scene: &Scene, m: &Material, uv: TexCoords) -> Vec3 {
     let t = m
         .emissive_tex
         .and_then(|r| Some((scene.textures.get(r.texture as usize)?, r.uv(uv))))

@@ -5,15 +5,39 @@
 
 use glam::{Affine2, Vec2, Vec3, Vec4};
 
+/// The texture coordinates of a surface point: the mesh's first UV set
+/// ([`crate::scene::Mesh::uvs`]) and its second ([`crate::scene::Mesh::uvs2`], zero when
+/// the mesh has none). Each [`TexRef`] says which of the two it reads.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TexCoords {
+    pub first: Vec2,
+    pub second: Vec2,
+}
+
+impl TexCoords {
+    /// Coordinates with only a first set (the second zero, as a mesh without one reads).
+    pub fn first(uv: Vec2) -> TexCoords {
+        TexCoords {
+            first: uv,
+            second: Vec2::ZERO,
+        }
+    }
+}
+
 /// A reference from a material slot to a texture in [`crate::scene::Scene::textures`].
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TexRef {
     /// Index into `Scene::textures`.
     pub texture: u32,
-    /// Which UV set of the source file the texture reads. The mesh keeps one UV set per
-    /// vertex: loaders store there the set each triangle's material reads (docs/gltf.md,
-    /// "Texture coordinates"), so shading never looks this up.
+    /// Which UV set of the source file the texture reads (`TEXCOORD_n`), for messages
+    /// and tests: shading reads [`TexRef::second_uv`]. A slot that named a third set of
+    /// its material holds the first set's here, as that is what it reads.
     pub tex_coord: u32,
+    /// Whether the texture reads the mesh's second UV set ([`crate::scene::Mesh::uvs2`])
+    /// rather than its first ([`crate::scene::Mesh::uvs`]). A mesh keeps per triangle the
+    /// set its material reads first and, only for materials whose slots name two sets,
+    /// the other one (docs/gltf.md, "Texture coordinates").
+    pub second_uv: bool,
     /// `KHR_texture_transform`: the affine map from the mesh's UV to the texture's UV
     /// (offset, rotation and scale composed), `None` for the identity. Kept as `None`
     /// rather than an identity matrix so untransformed lookups keep their bits.
@@ -26,13 +50,16 @@ impl TexRef {
         TexRef {
             texture,
             tex_coord: 0,
+            second_uv: false,
             transform: None,
         }
     }
 
-    /// The texture-space coordinate for the mesh coordinate `uv`.
+    /// The texture-space coordinate at a point with mesh coordinates `at`: the set this
+    /// reference reads, transformed.
     #[inline]
-    pub fn uv(&self, uv: Vec2) -> Vec2 {
+    pub fn uv(&self, at: TexCoords) -> Vec2 {
+        let uv = if self.second_uv { at.second } else { at.first };
         match &self.transform {
             Some(t) => t.transform_point2(uv),
             None => uv,
@@ -342,5 +369,32 @@ impl Material {
         ]
         .into_iter()
         .flatten()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A reference reads the set it is marked with, and its transform applies to that.
+    #[test]
+    fn a_reference_reads_its_own_set() {
+        let at = TexCoords {
+            first: Vec2::new(0.25, 0.5),
+            second: Vec2::new(0.75, 0.125),
+        };
+        let first = TexRef::new(0);
+        let second = TexRef {
+            tex_coord: 1,
+            second_uv: true,
+            ..TexRef::new(0)
+        };
+        assert_eq!(first.uv(at), at.first);
+        assert_eq!(second.uv(at), at.second);
+        let moved = TexRef {
+            transform: Some(Affine2::from_translation(Vec2::new(1.0, 2.0))),
+            ..second
+        };
+        assert_eq!(moved.uv(at), Vec2::new(1.75, 2.125));
     }
 }

@@ -20,8 +20,14 @@ pub struct Mesh {
     pub normals: Vec<Vec3>,
     /// Per-vertex tangents (xyz, w = bitangent sign); zero where the source had none.
     pub tangents: Vec<Vec4>,
-    /// Per-vertex `TEXCOORD_0`; zero where the source had none.
+    /// Per-vertex texture coordinates: the first UV set its triangle's material reads
+    /// (`TEXCOORD_0` unless its textures name another); zero where the source had none.
     pub uvs: Vec<Vec2>,
+    /// Per-vertex second UV set, for the triangles whose material's texture slots name
+    /// two sets ([`crate::material::TexRef::second_uv`]); zero elsewhere. Empty when no
+    /// vertex has a nonzero one, so scenes whose materials read one set each (nearly
+    /// all) spend no memory on it: empty means zero everywhere.
+    pub uvs2: Vec<Vec2>,
     /// Per-vertex linear RGBA colour (glTF `COLOR_0`), multiplying the base colour; white
     /// where the source had none. Empty when no vertex has one, so scenes without vertex
     /// colours (nearly all) spend no memory on them: empty means white everywhere.
@@ -44,6 +50,9 @@ impl Mesh {
         self.normals.resize(self.positions.len(), Vec3::ZERO);
         self.tangents.resize(self.positions.len(), Vec4::ZERO);
         self.uvs.resize(self.positions.len(), Vec2::ZERO);
+        if !self.uvs2.is_empty() {
+            self.uvs2.resize(self.positions.len(), Vec2::ZERO);
+        }
         if !self.colors.is_empty() {
             self.colors.resize(self.positions.len(), Vec4::ONE);
         }
@@ -62,6 +71,23 @@ impl Mesh {
             }
             None if self.colors.is_empty() => {}
             None => self.colors.resize(self.positions.len(), Vec4::ONE),
+        }
+    }
+
+    /// Append second-set UVs for the vertices from `first` on (`uvs2` holds one per
+    /// vertex from `first`, or is `None` for none), keeping [`Mesh::uvs2`] empty while
+    /// every one is zero (bit for bit: `-0.0` is kept). Call after the positions are
+    /// appended.
+    pub fn extend_uvs2(&mut self, first: usize, uvs2: Option<&[Vec2]>) {
+        let zero = |u: &Vec2| u.x.to_bits() == 0 && u.y.to_bits() == 0;
+        match uvs2 {
+            Some(us) if self.uvs2.is_empty() && us.iter().all(zero) => {}
+            Some(us) => {
+                self.uvs2.resize(first, Vec2::ZERO);
+                self.uvs2.extend_from_slice(us);
+            }
+            None if self.uvs2.is_empty() => {}
+            None => self.uvs2.resize(self.positions.len(), Vec2::ZERO),
         }
     }
 
@@ -101,6 +127,8 @@ impl Mesh {
         self.normals.extend_from_slice(&other.normals);
         self.tangents.extend_from_slice(&other.tangents);
         self.uvs.extend_from_slice(&other.uvs);
+        let uvs2 = (!other.uvs2.is_empty()).then_some(other.uvs2.as_slice());
+        self.extend_uvs2(base as usize, uvs2);
         let colors = (!other.colors.is_empty()).then_some(other.colors.as_slice());
         self.extend_colors(base as usize, colors);
         self.indices
@@ -207,5 +235,36 @@ impl Scene {
             return Err(CameraChoiceError::Malformed { name: cam.name });
         }
         Ok(cam)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The second UV set costs nothing until a vertex has a nonzero one (a `-0.0` counts),
+    /// and from then on has one entry per vertex, zero where none was given.
+    #[test]
+    fn a_second_uv_set_is_stored_only_when_used() {
+        let mut m = Mesh::default();
+        m.push_vertices(&[Vec3::ZERO, Vec3::X]);
+        m.extend_uvs2(0, Some(&[Vec2::ZERO, Vec2::ZERO]));
+        m.extend_uvs2(2, None);
+        assert!(m.uvs2.is_empty());
+        m.push_vertices(&[Vec3::Y]);
+        m.extend_uvs2(2, Some(&[Vec2::new(-0.0, 0.0)]));
+        assert_eq!(m.uvs2.len(), 3);
+        assert_eq!(m.uvs2[2].x.to_bits(), (-0.0f32).to_bits());
+        m.push_vertices(&[Vec3::Z]);
+        assert_eq!(m.uvs2.len(), 4);
+        let mut whole = Mesh::default();
+        whole.push_vertices(&[Vec3::ONE]);
+        whole.append(&m, 0);
+        assert_eq!(whole.uvs2.len(), 5);
+        assert_eq!(whole.uvs2[0], Vec2::ZERO);
+        let mut plain = Mesh::default();
+        plain.push_vertices(&[Vec3::ONE]);
+        plain.append(&Mesh::default(), 0);
+        assert!(plain.uvs2.is_empty());
     }
 }

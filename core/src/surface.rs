@@ -6,7 +6,7 @@ use glam::{Vec2, Vec3, Vec4};
 use crate::bvh::Hit;
 use crate::effects::{Effect, Effects};
 use crate::intersect::interpolate_with_error;
-use crate::material::{AlphaMode, Material, TexRef};
+use crate::material::{AlphaMode, Material, TexCoords, TexRef};
 use crate::scene::Scene;
 
 /// A hit point with everything shading needs.
@@ -25,7 +25,8 @@ pub struct Surface {
     /// The clear coat's own shading normal (`clearcoatNormalTexture`), on the same side
     /// as `ng`; zero when the coat has no normal map (it then uses `n`).
     pub coat_n: Vec3,
-    pub uv: Vec2,
+    /// Texture coordinates (both UV sets; each texture reads the one it names).
+    pub uv: TexCoords,
     /// Interpolated vertex colour (white when the mesh has none).
     pub color: Vec4,
     /// Unit tangent and bitangent of the shading frame (from the mesh's tangents), for
@@ -67,18 +68,28 @@ pub struct ShadingValues {
     pub dispersion: f32,
 }
 
-fn tex(scene: &Scene, r: Option<TexRef>, uv: Vec2, srgb: bool) -> Vec4 {
+fn tex(scene: &Scene, r: Option<TexRef>, uv: TexCoords, srgb: bool) -> Vec4 {
     match r.and_then(|r| Some((scene.textures.get(r.texture as usize)?, r.uv(uv)))) {
         Some((t, uv)) => t.sample(uv, srgb),
         None => Vec4::ONE,
     }
 }
 
-/// Interpolated UV of triangle `tri` at barycentrics.
-pub fn interpolate_uv(scene: &Scene, tri: u32, b: [f32; 3]) -> Vec2 {
+/// Interpolated texture coordinates of triangle `tri` at barycentrics: both UV sets,
+/// the second zero (and not computed) when the mesh has none.
+pub fn interpolate_uv(scene: &Scene, tri: u32, b: [f32; 3]) -> TexCoords {
     let idx = scene.mesh.indices[tri as usize];
     let uvs = &scene.mesh.uvs;
-    uvs[idx[0] as usize] * b[0] + uvs[idx[1] as usize] * b[1] + uvs[idx[2] as usize] * b[2]
+    let first =
+        uvs[idx[0] as usize] * b[0] + uvs[idx[1] as usize] * b[1] + uvs[idx[2] as usize] * b[2];
+    let uvs2 = &scene.mesh.uvs2;
+    let second = if uvs2.is_empty() {
+        Vec2::ZERO
+    } else {
+        let at = |k: usize| uvs2.get(idx[k] as usize).copied().unwrap_or(Vec2::ZERO);
+        at(0) * b[0] + at(1) * b[1] + at(2) * b[2]
+    };
+    TexCoords { first, second }
 }
 
 /// Interpolated vertex colour of triangle `tri` at barycentrics; white when the mesh
@@ -95,7 +106,7 @@ pub fn interpolate_color(scene: &Scene, tri: u32, b: [f32; 3]) -> Vec4 {
 
 /// Alpha of a surface point (base colour alpha times texture alpha times vertex colour
 /// alpha, as glTF multiplies them).
-pub fn alpha_at(scene: &Scene, m: &Material, uv: Vec2, vertex_alpha: f32) -> f32 {
+pub fn alpha_at(scene: &Scene, m: &Material, uv: TexCoords, vertex_alpha: f32) -> f32 {
     m.base_color.w * tex(scene, m.base_color_tex, uv, true).w * vertex_alpha
 }
 

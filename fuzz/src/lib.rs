@@ -171,6 +171,10 @@ pub fn check_scene_with(scene: &Scene, finite_positions: bool) {
     assert_eq!(m.normals.len(), n, "normals per vertex");
     assert_eq!(m.tangents.len(), n, "tangents per vertex");
     assert_eq!(m.uvs.len(), n, "uvs per vertex");
+    assert!(
+        m.uvs2.is_empty() || m.uvs2.len() == n,
+        "second uvs: none or one per vertex"
+    );
     assert_eq!(m.material.len(), m.indices.len(), "material per triangle");
     if finite_positions {
         for (i, p) in m.positions.iter().enumerate() {

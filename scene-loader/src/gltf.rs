@@ -497,11 +497,71 @@ struct DecodedPrimitive {
     normals: Option<Vec<Vec3>>,
     tangents: Option<Vec<Vec4>>,
     uvs: Option<Vec<Vec2>>,
+    /// The second UV set, read only when the material's textures name two.
+    uvs2: Option<Vec<Vec2>>,
+    /// The source's numbers of `uvs` and `uvs2` (`TEXCOORD_n`).
+    uv_sets: [u32; 2],
     /// `COLOR_0` as linear RGBA.
     colors: Option<Vec<Vec4>>,
     /// Triangle list (strips and fans already converted).
     indices: Vec<u32>,
     material: u32,
+}
+
+/// The UV sets a material's textures read: every slot reads `first` except those marked
+/// [`TexRef::second_uv`], which read `second`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+struct UvSets {
+    first: u32,
+    second: Option<u32>,
+}
+
+/// Every texture slot of `m` in use, named as in glTF, in [`Material::texture_refs`]'s
+/// order.
+fn named_slots(m: &mut Material) -> Vec<(&'static str, &mut TexRef)> {
+    let Material {
+        base_color_tex,
+        metallic_roughness_tex,
+        normal_tex,
+        emissive_tex,
+        transmission_tex,
+        specular_tex,
+        specular_color_tex,
+        clearcoat,
+        sheen,
+        anisotropy,
+        iridescence,
+        ..
+    } = m;
+    let mut slots = vec![
+        ("baseColorTexture", base_color_tex.as_mut()),
+        ("metallicRoughnessTexture", metallic_roughness_tex.as_mut()),
+        ("normalTexture", normal_tex.as_mut()),
+        ("emissiveTexture", emissive_tex.as_mut()),
+        ("transmissionTexture", transmission_tex.as_mut()),
+        ("specularTexture", specular_tex.as_mut()),
+        ("specularColorTexture", specular_color_tex.as_mut()),
+    ];
+    if let Some(c) = clearcoat {
+        slots.push(("clearcoatTexture", c.tex.as_mut()));
+        slots.push(("clearcoatRoughnessTexture", c.roughness_tex.as_mut()));
+        slots.push(("clearcoatNormalTexture", c.normal_tex.as_mut()));
+    }
+    if let Some(sh) = sheen {
+        slots.push(("sheenColorTexture", sh.color_tex.as_mut()));
+        slots.push(("sheenRoughnessTexture", sh.roughness_tex.as_mut()));
+    }
+    if let Some(a) = anisotropy {
+        slots.push(("anisotropyTexture", a.tex.as_mut()));
+    }
+    if let Some(ir) = iridescence {
+        slots.push(("iridescenceTexture", ir.tex.as_mut()));
+        slots.push(("iridescenceThicknessTexture", ir.thickness_tex.as_mut()));
+    }
+    slots
+        .into_iter()
+        .filter_map(|(name, t)| Some((name, t?)))
+        .collect()
 }
 
 /// An image decoded to RGBA8, shared by the textures that use it.
@@ -530,8 +590,8 @@ struct Loader<'a> {
     scene: Scene,
     /// Index of the default material once a primitive without one has needed it.
     default_material: Option<u32>,
-    /// Per glTF material, the UV set its triangles store ([`Loader::choose_uv_set`]).
-    uv_sets: Vec<u32>,
+    /// Per glTF material, the UV sets its triangles store ([`Loader::choose_uv_sets`]).
+    uv_sets: Vec<UvSets>,
 }
 
 impl Loader<'_> {
@@ -772,8 +832,8 @@ impl Loader<'_> {
                 mat.dispersion = gltf_ext::dispersion(d);
             }
             mat.unlit = m.unlit();
-            let set = self.choose_uv_set(&mat);
-            self.uv_sets.push(set);
+            let sets = self.choose_uv_sets(&mut mat);
+            self.uv_sets.push(sets);
             self.scene.materials.push(mat);
         }
     }
@@ -835,32 +895,49 @@ impl Loader<'_> {
         Some(TexRef {
             texture: u32::try_from(texture).ok()?,
             tex_coord: transform.and_then(|t| t.tex_coord).unwrap_or(tex_coord),
+            // Set by `choose_uv_sets` once every slot is known.
+            second_uv: false,
             transform: transform.and_then(|t| t.affine()),
         })
     }
 
-    /// The UV set the mesh stores for triangles of material `material`: the one its
-    /// textures read. A material whose slots read different sets keeps the base colour's
-    /// (else the first slot's) and warns for the others, which then read it too.
-    fn choose_uv_set(&mut self, material: &Material) -> u32 {
+    /// The UV sets the mesh stores for triangles of `material`: the one its base colour
+    /// reads (else its first slot's), and the first other set a slot names, if any. Each
+    /// slot is marked with the one it reads ([`TexRef::second_uv`]). A slot naming a
+    /// third set reads the first, with a warning: a vertex keeps at most two sets, which
+    /// covers the files seen in practice (a second set serves light maps or ambient
+    /// occlusion, and the Sample Models use at most two).
+    fn choose_uv_sets(&mut self, material: &mut Material) -> UvSets {
         let first = material
             .base_color_tex
             .or_else(|| material.texture_refs().next())
             .map_or(0, |t| t.tex_coord);
-        let others: Vec<u32> = material
-            .texture_refs()
-            .map(|t| t.tex_coord)
-            .filter(|&k| k != first)
-            .collect();
-        if let Some(k) = others.first() {
+        let mut second = None;
+        let mut ignored = Vec::new();
+        for (slot, t) in named_slots(material) {
+            let k = t.tex_coord;
+            if k == first {
+                continue;
+            }
+            if second.is_none_or(|s| s == k) {
+                second = Some(k);
+                t.second_uv = true;
+            } else {
+                ignored.push((slot, k));
+                t.tex_coord = first;
+            }
+        }
+        for (slot, k) in ignored {
             self.warn(format!(
-                "{}: material {:?} reads TEXCOORD_{first} and TEXCOORD_{k}; dray keeps one UV \
-                 set per vertex, so its textures all read TEXCOORD_{first}",
+                "{}: material {:?} {slot} reads TEXCOORD_{k}, a third UV set after \
+                 TEXCOORD_{first} and TEXCOORD_{}; dray keeps at most two per vertex, so it \
+                 reads TEXCOORD_{first}",
                 self.path.display(),
-                material.name
+                material.name,
+                second.unwrap_or(first),
             ));
         }
-        first
+        UvSets { first, second }
     }
 
     fn default_material(&mut self) -> u32 {
@@ -1162,17 +1239,28 @@ impl Loader<'_> {
                     .ok_or_else(|| origin.error(format!("material {i} does not exist")))?,
                 None => self.default_material(),
             };
-            // The UV set this primitive's material reads (TEXCOORD_0 unless its
-            // textures ask for another).
-            let uv_set = self.uv_sets.get(material as usize).copied().unwrap_or(0);
-            let mut uvs = match attr(Semantic::TexCoords(uv_set)) {
-                Some(a) => Some(
-                    self.read_accessor::<f32>(a, 2)
-                        .map_err(|m| err(&format!("TEXCOORD_{uv_set}"), m))?
-                        .chunks_exact(2)
-                        .map(Vec2::from_slice)
-                        .collect::<Vec<_>>(),
-                ),
+            // The UV sets this primitive's material reads (TEXCOORD_0 unless its
+            // textures ask for another, and a second only when they name two).
+            let sets = self
+                .uv_sets
+                .get(material as usize)
+                .copied()
+                .unwrap_or_default();
+            let read_uvs = |set: u32| -> Result<Option<Vec<Vec2>>> {
+                match attr(Semantic::TexCoords(set)) {
+                    Some(a) => Ok(Some(
+                        self.read_accessor::<f32>(a, 2)
+                            .map_err(|m| err(&format!("TEXCOORD_{set}"), m))?
+                            .chunks_exact(2)
+                            .map(Vec2::from_slice)
+                            .collect::<Vec<_>>(),
+                    )),
+                    None => Ok(None),
+                }
+            };
+            let mut uvs = read_uvs(sets.first)?;
+            let mut uvs2 = match sets.second {
+                Some(set) => read_uvs(set)?,
                 None => None,
             };
             let mut colors = match attr(Semantic::Colors(0)) {
@@ -1195,19 +1283,20 @@ impl Loader<'_> {
                 _ => raw_indices,
             };
             // Tangents are made for a normal map (the material's or its clear coat's),
-            // and for an anisotropic lobe (its direction is given in tangent space) from
-            // the UV set the material reads.
+            // from the UV set that map reads, and for an anisotropic lobe (its direction
+            // is given in tangent space) from the first set.
             let normal_map = self.scene.materials.get(material as usize).and_then(|m| {
                 m.normal_tex.or(m.clearcoat.and_then(|c| c.normal_tex)).or(m
                     .has_anisotropy()
                     .then_some(TexRef {
-                        tex_coord: uv_set,
+                        tex_coord: sets.first,
                         ..TexRef::new(0)
                     }))
             });
             if let (Some(map), None) = (normal_map, &tangents) {
-                match (&mut normals, &mut uvs) {
-                    (Some(ns), Some(us)) if map.tex_coord == uv_set => {
+                let frame_uvs = if map.second_uv { &uvs2 } else { &uvs };
+                match (&mut normals, frame_uvs) {
+                    (Some(ns), Some(us)) => {
                         // MikkTSpace reads what shading will read (cleaned values),
                         // with V pointing up as in the tools that bake normal maps:
                         // glTF's V points down the image, and a normal map's green
@@ -1231,7 +1320,12 @@ impl Loader<'_> {
                         );
                         split.apply(&mut positions);
                         split.apply(ns);
-                        split.apply(us);
+                        if let Some(us) = uvs.as_mut() {
+                            split.apply(us);
+                        }
+                        if let Some(us) = uvs2.as_mut() {
+                            split.apply(us);
+                        }
                         if let Some(cs) = colors.as_mut() {
                             split.apply(cs);
                         }
@@ -1254,6 +1348,8 @@ impl Loader<'_> {
                 normals,
                 tangents,
                 uvs,
+                uvs2,
+                uv_sets: [sets.first, sets.second.unwrap_or(sets.first)],
                 colors,
                 indices,
                 material,
@@ -1397,6 +1493,8 @@ impl Loader<'_> {
                 normals: normals.as_deref(),
                 tangents: tangents.as_deref(),
                 uvs: prim.uvs.as_deref(),
+                uvs2: prim.uvs2.as_deref(),
+                uv_sets: prim.uv_sets,
                 colors: prim.colors.as_deref(),
                 indices: &indices,
                 material: prim.material,

@@ -201,6 +201,8 @@ pub fn load_obj(path: &Path) -> Result<Scene> {
                 normals: normals.as_deref(),
                 tangents: None,
                 uvs: uvs.as_deref(),
+                uvs2: None,
+                uv_sets: [0, 1],
                 colors: None,
                 indices: &mesh.indices,
                 material,

@@ -51,6 +51,8 @@ pub fn load_ply(path: &Path) -> Result<Scene> {
             normals: vertices.normals.as_deref(),
             tangents: None,
             uvs: vertices.uvs.as_deref(),
+            uvs2: None,
+            uv_sets: [0, 1],
             colors: None,
             indices: &body.indices,
             material: 0,

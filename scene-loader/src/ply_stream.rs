@@ -179,6 +179,7 @@ impl Body for Emit<'_, '_> {
             normals,
             tangents: [Vec4::ZERO; 3],
             uvs,
+            uvs2: [Vec2::ZERO; 3],
             colors: [Vec4::ONE; 3],
         };
         (self.f)(&t)?;

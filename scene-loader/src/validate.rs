@@ -34,6 +34,11 @@ pub struct Primitive<'a> {
     pub normals: Option<&'a [Vec3]>,
     pub tangents: Option<&'a [Vec4]>,
     pub uvs: Option<&'a [Vec2]>,
+    /// The second UV set, for primitives whose material's textures read two
+    /// ([`dray_core::material::TexRef::second_uv`]); `None` for all others.
+    pub uvs2: Option<&'a [Vec2]>,
+    /// The source's numbers of the two sets (`TEXCOORD_n`), for messages.
+    pub uv_sets: [u32; 2],
     /// Linear RGBA vertex colours (glTF `COLOR_0`; RGB sources with alpha 1).
     pub colors: Option<&'a [Vec4]>,
     /// Triangle-list indices (three per triangle).
@@ -62,7 +67,9 @@ pub fn add_primitive(
     };
     check_len("NORMAL", prim.normals.map(<[_]>::len))?;
     check_len("TANGENT", prim.tangents.map(<[_]>::len))?;
-    check_len("TEXCOORD_0", prim.uvs.map(<[_]>::len))?;
+    let [set, set2] = prim.uv_sets;
+    check_len(&format!("TEXCOORD_{set}"), prim.uvs.map(<[_]>::len))?;
+    check_len(&format!("TEXCOORD_{set2}"), prim.uvs2.map(<[_]>::len))?;
     check_len("COLOR_0", prim.colors.map(<[_]>::len))?;
     if !prim.indices.len().is_multiple_of(3) {
         return Err(origin.error(format!(
@@ -101,6 +108,10 @@ pub fn add_primitive(
         Some(us) => mesh.uvs.extend(us.iter().map(|&v| clean_uv(v))),
         None => mesh.uvs.resize(mesh.positions.len(), Vec2::ZERO),
     }
+    let uvs2: Option<Vec<Vec2>> = prim
+        .uvs2
+        .map(|us| us.iter().map(|&v| clean_uv(v)).collect());
+    mesh.extend_uvs2(base as usize, uvs2.as_deref());
     let colors: Option<Vec<Vec4>> = prim
         .colors
         .map(|cs| cs.iter().map(|&c| clean_color(c)).collect());
@@ -215,6 +226,8 @@ mod tests {
             normals: None,
             tangents: None,
             uvs: None,
+            uvs2: None,
+            uv_sets: [0, 1],
             colors: None,
             indices: idx,
             material: 0,

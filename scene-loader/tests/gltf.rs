@@ -521,21 +521,22 @@ fn check_textured(scene: &Scene) {
     assert_eq!(scene.textures[1].sampler.wrap_s, Wrap::Repeat);
     let m = &scene.materials[0];
     assert_eq!(m.base_color_tex.map(|t| t.texture), Some(0));
+    // The metallic-roughness texture reads TEXCOORD_1, the others TEXCOORD_0: two sets,
+    // no warning (the primitive has neither, so both read zero).
     assert_eq!(
-        m.metallic_roughness_tex.map(|t| (t.texture, t.tex_coord)),
-        Some((1, 1))
+        m.metallic_roughness_tex
+            .map(|t| (t.texture, t.tex_coord, t.second_uv)),
+        Some((1, 1, true))
     );
+    assert_eq!(m.base_color_tex.map(|t| t.second_uv), Some(false));
     assert_eq!(m.normal_tex.map(|t| t.texture), Some(1));
     assert_eq!(m.normal_scale, 0.5);
     assert!(
-        scene
-            .stats
-            .warnings
-            .iter()
-            .any(|w| w.contains("TEXCOORD_1")),
+        scene.stats.warnings.iter().all(|w| !w.contains("UV set")),
         "{:?}",
         scene.stats.warnings
     );
+    assert!(scene.mesh.uvs2.is_empty());
 }
 
 #[test]
@@ -1154,6 +1155,8 @@ fn each_material_reads_its_own_uv_set() {
     assert_eq!(scene.mesh.uvs[0..3], set1, "texCoord 1");
     assert_eq!(scene.mesh.uvs[3..6], [glam::Vec2::ZERO; 3], "texCoord 0");
     assert_eq!(scene.mesh.uvs[6..9], set1, "texCoord 1 from the transform");
+    // Each material reads one set, so no second set is stored.
+    assert!(scene.mesh.uvs2.is_empty());
     assert_eq!(
         scene.materials[2].base_color_tex.map(|t| t.tex_coord),
         Some(1)
@@ -1168,6 +1171,194 @@ fn each_material_reads_its_own_uv_set() {
         "{:?}",
         scene.stats.warnings
     );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A triangle whose TEXCOORD_0 (accessor 4) reads the left (red) texel of
+/// [`png_2x1`] and whose TEXCOORD_1 (accessor 5) reads the right (blue) one, at every
+/// vertex; TEXCOORD_2 (accessor 6) reads the left one again.
+fn red_and_blue_uv_sets() -> Builder {
+    let mut b = triangle_builder();
+    b.floats(&[0.25, 0.5].repeat(3), "VEC2");
+    b.floats(&[0.75, 0.5].repeat(3), "VEC2");
+    b.floats(&[0.25, 0.5].repeat(3), "VEC2");
+    b
+}
+
+/// The rest of a file with one triangle of material 0 (`material`, JSON) over
+/// [`red_and_blue_uv_sets`], with the 2x1 texture and nearest filtering.
+fn red_and_blue_rest(material: &str) -> String {
+    format!(
+        r#""meshes":[{{"primitives":[{{"attributes":{{"POSITION":0,"NORMAL":1,
+  "TEXCOORD_0":4,"TEXCOORD_1":5,"TEXCOORD_2":6}},"indices":3,"material":0}}]}}],
+"nodes":[{{"mesh":0}}],"extensionsUsed":["KHR_texture_transform"],
+"materials":[{material}],
+"samplers":[{{"magFilter":9728}}],
+"images":[{{"uri":"data:image/png;base64,{}"}}],"textures":[{{"source":0,"sampler":0}}]"#,
+        base64(&png_2x1())
+    )
+}
+
+/// Every texture slot reads the UV set it names, as the glTF spec and the Sample Viewer
+/// do: base colour on TEXCOORD_0 (red texel), emission on TEXCOORD_1 (blue texel), in the
+/// shading values a render reads. With one UV set per vertex, the emission read red.
+#[test]
+fn each_texture_slot_reads_the_uv_set_it_names() {
+    let dir = test_dir("slot-sets");
+    let b = red_and_blue_uv_sets();
+    let file = |name: &str, emissive_set: u32| {
+        let material = format!(
+            r#"{{"name":"TwoSets","pbrMetallicRoughness":{{"baseColorTexture":{{"index":0}}}},
+  "emissiveFactor":[1,1,1],"emissiveTexture":{{"index":0,"texCoord":{emissive_set}}}}}"#
+        );
+        load_gltf(&b.write(&dir, name, &red_and_blue_rest(&material))).unwrap()
+    };
+    let scene = file("two", 1);
+    assert!(
+        scene.stats.warnings.is_empty(),
+        "{:?}",
+        scene.stats.warnings
+    );
+    let m = &scene.materials[0];
+    assert_eq!(
+        (
+            m.base_color_tex.unwrap().second_uv,
+            m.emissive_tex.unwrap().second_uv
+        ),
+        (false, true)
+    );
+    assert_eq!(scene.mesh.uvs, [glam::Vec2::new(0.25, 0.5); 3]);
+    assert_eq!(scene.mesh.uvs2, [glam::Vec2::new(0.75, 0.5); 3]);
+    let fx = dray_scene::effects::analyze(&scene, Vec3::ONE);
+    let (_, sv) = shade_first_triangle(&scene, fx);
+    assert!(approx(sv.base_color, Vec3::new(1.0, 0.0, 0.0)), "{sv:?}");
+    assert!(approx(sv.emission, Vec3::new(0.0, 0.0, 1.0)), "{sv:?}");
+    // Light sampling sees the same emission as a camera ray.
+    let uv = dray_core::surface::interpolate_uv(&scene, 0, [0.2, 0.3, 0.5]);
+    assert!(approx(
+        dray_core::light_sampler::emitted(&scene, m, uv),
+        Vec3::new(0.0, 0.0, 1.0)
+    ));
+
+    // Both slots on TEXCOORD_0: one set stored (no memory for a second), red emission.
+    let one = file("one", 0);
+    assert!(one.mesh.uvs2.is_empty());
+    let (_, sv) = shade_first_triangle(&one, fx);
+    assert!(approx(sv.emission, Vec3::new(1.0, 0.0, 0.0)), "{sv:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `KHR_texture_transform`'s `texCoord` overrides the slot's, and the slot then reads
+/// that set beside the others.
+#[test]
+fn a_texture_transform_tex_coord_picks_the_set() {
+    let dir = test_dir("transform-set");
+    let b = red_and_blue_uv_sets();
+    let material = r#"{"pbrMetallicRoughness":{"baseColorTexture":{"index":0,"texCoord":0}},
+  "emissiveFactor":[1,1,1],"emissiveTexture":{"index":0,"texCoord":0,
+    "extensions":{"KHR_texture_transform":{"texCoord":1}}}}"#;
+    let scene = load_gltf(&b.write(&dir, "override", &red_and_blue_rest(material))).unwrap();
+    assert!(
+        scene.stats.warnings.is_empty(),
+        "{:?}",
+        scene.stats.warnings
+    );
+    let e = scene.materials[0].emissive_tex.unwrap();
+    assert_eq!((e.tex_coord, e.second_uv, e.transform), (1, true, None));
+    let fx = dray_scene::effects::analyze(&scene, Vec3::ONE);
+    let (_, sv) = shade_first_triangle(&scene, fx);
+    assert!(approx(sv.base_color, Vec3::new(1.0, 0.0, 0.0)), "{sv:?}");
+    assert!(approx(sv.emission, Vec3::new(0.0, 0.0, 1.0)), "{sv:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A material whose slots name three sets keeps two (the first is the base colour's, the
+/// second the first other one in slot order): a slot naming a third reads the first set,
+/// with a warning naming the material, the slot and the sets (never a panic).
+#[test]
+fn a_third_uv_set_falls_back_to_the_first_with_a_warning() {
+    let dir = test_dir("three-sets");
+    let b = red_and_blue_uv_sets();
+    let material = r#"{"name":"ThreeSets","pbrMetallicRoughness":{"baseColorTexture":{"index":0},
+    "metallicRoughnessTexture":{"index":0,"texCoord":1}},
+  "normalTexture":{"index":0,"texCoord":2},
+  "emissiveFactor":[1,1,1],"emissiveTexture":{"index":0,"texCoord":1}}"#;
+    let scene = load_gltf(&b.write(&dir, "three", &red_and_blue_rest(material))).unwrap();
+    let w = &scene.stats.warnings;
+    assert_eq!(w.len(), 1, "{w:?}");
+    for word in [
+        "ThreeSets",
+        "normalTexture",
+        "TEXCOORD_2",
+        "TEXCOORD_0",
+        "TEXCOORD_1",
+        "third",
+    ] {
+        assert!(w[0].contains(word), "{word:?} not in {w:?}");
+    }
+    let m = &scene.materials[0];
+    let normal = m.normal_tex.unwrap();
+    assert_eq!((normal.tex_coord, normal.second_uv), (0, false));
+    assert!(m.metallic_roughness_tex.unwrap().second_uv);
+    assert!(m.emissive_tex.unwrap().second_uv);
+    assert_eq!(scene.mesh.uvs2, [glam::Vec2::new(0.75, 0.5); 3]);
+    let fx = dray_scene::effects::analyze(&scene, Vec3::ONE);
+    let (_, sv) = shade_first_triangle(&scene, fx);
+    assert!(approx(sv.emission, Vec3::new(0.0, 0.0, 1.0)), "{sv:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Occlusion maps are not read (a path tracer computes occlusion), so an
+/// `occlusionTexture` on another set asks for no second set and warns of nothing.
+#[test]
+fn an_occlusion_map_on_another_set_stores_no_second_set() {
+    let dir = test_dir("occlusion-set");
+    let b = red_and_blue_uv_sets();
+    let material = r#"{"pbrMetallicRoughness":{"baseColorTexture":{"index":0}},
+  "occlusionTexture":{"index":0,"texCoord":1}}"#;
+    let scene = load_gltf(&b.write(&dir, "occlusion", &red_and_blue_rest(material))).unwrap();
+    assert!(scene.mesh.uvs2.is_empty());
+    assert!(
+        scene.stats.warnings.is_empty(),
+        "{:?}",
+        scene.stats.warnings
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A normal map on TEXCOORD_1 gets its tangents from TEXCOORD_1 when the file has none:
+/// there U runs along +Y, where TEXCOORD_0's runs along +X.
+#[test]
+fn generated_tangents_follow_the_normal_maps_own_set() {
+    let dir = test_dir("tangent-set");
+    let mut b = triangle_builder();
+    b.floats(&[0.0, 0.0, 1.0, 0.0, 0.0, 1.0], "VEC2");
+    b.floats(&[0.0, 0.0, 0.0, 1.0, 1.0, 0.0], "VEC2");
+    let file = |name: &str, normal_set: u32| {
+        let rest = format!(
+            r#""meshes":[{{"primitives":[{{"attributes":{{"POSITION":0,"NORMAL":1,
+  "TEXCOORD_0":4,"TEXCOORD_1":5}},"indices":3,"material":0}}]}}],
+"nodes":[{{"mesh":0}}],
+"materials":[{{"pbrMetallicRoughness":{{"baseColorTexture":{{"index":0}}}},
+  "normalTexture":{{"index":0,"texCoord":{normal_set}}}}}],
+"images":[{{"uri":"data:image/png;base64,{}"}}],"textures":[{{"source":0}}]"#,
+            base64(&png_2x1())
+        );
+        load_gltf(&b.write(&dir, name, &rest)).unwrap()
+    };
+    for (set, along) in [(0, Vec3::X), (1, Vec3::Y)] {
+        let scene = file(&format!("set{set}"), set);
+        assert!(
+            scene.stats.warnings.is_empty(),
+            "{:?}",
+            scene.stats.warnings
+        );
+        assert!(!scene.mesh.tangents.is_empty());
+        for t in &scene.mesh.tangents {
+            assert!(approx(t.truncate(), along), "set {set}: {t}");
+        }
+        assert_eq!(scene.mesh.uvs2.is_empty(), set == 0);
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -1194,7 +1385,9 @@ fn texture_transforms_map_uvs_on_every_slot() {
     let m = &scene.materials[0];
     let base = m.base_color_tex.unwrap();
     // The extension's own example: the lower-left quadrant, turned clockwise.
-    let at = |t: dray_core::material::TexRef, u: f32, v: f32| t.uv(glam::Vec2::new(u, v));
+    let at = |t: dray_core::material::TexRef, u: f32, v: f32| {
+        t.uv(dray_core::material::TexCoords::first(glam::Vec2::new(u, v)))
+    };
     assert!((at(base, 1.0, 0.0) - glam::Vec2::new(0.0, 0.5)).length() < 1e-6);
     assert!((at(base, 0.0, 1.0) - glam::Vec2::new(0.5, 1.0)).length() < 1e-6);
     assert_eq!(
@@ -1499,7 +1692,7 @@ fn iridescence_is_read_counted_and_shaded() {
 
     // Shading: factor x texture R; thickness mix(min, max, texture G).
     let (surf, sv) = shade_first_triangle(&scene, fx);
-    let texel = scene.textures[0].sample(surf.uv, false);
+    let texel = scene.textures[0].sample(surf.uv.first, false);
     assert!((sv.iridescence - 0.75 * texel.x).abs() < 1e-6, "{sv:?}");
     let want = 120.0 + 500.0 * texel.y;
     assert!((sv.iridescence_thickness - want).abs() < 1e-3, "{sv:?}");
@@ -1571,7 +1764,7 @@ fn clearcoat_normal_texture_tilts_the_coat_only() {
     let fx = dray_scene::effects::analyze(&scene, Vec3::ONE);
     let (surf, _) = shade_first_triangle(&scene, fx);
     // The texel (255, 128, 180) leans toward +U = +X, by 0.5 x 1 against its z 0.41.
-    let s = scene.textures[0].sample(surf.uv, false);
+    let s = scene.textures[0].sample(surf.uv.first, false);
     let k = Vec3::new(
         (s.x * 2.0 - 1.0) * 0.5,
         (s.y * 2.0 - 1.0) * 0.5,

@@ -393,6 +393,8 @@ fn bits(m: &Mesh) -> Vec<u32> {
             .map(f32::to_bits),
     );
     out.extend(m.uvs.iter().flat_map(|v| v.to_array()).map(f32::to_bits));
+    out.push(m.uvs2.len() as u32);
+    out.extend(m.uvs2.iter().flat_map(|v| v.to_array()).map(f32::to_bits));
     out.push(m.colors.len() as u32);
     out.extend(m.colors.iter().flat_map(|v| v.to_array()).map(f32::to_bits));
     out
@@ -414,6 +416,35 @@ fn coloured_scene() -> Scene {
     scene
 }
 
+/// [`coloured_scene`] with a second UV set on a third of the vertices (zero on the rest)
+/// and a material whose emissive texture reads it.
+fn two_set_scene() -> Scene {
+    let mut scene = coloured_scene();
+    let n = scene.mesh.positions.len();
+    scene.mesh.uvs2 = (0..n)
+        .map(|i| {
+            if i % 3 == 0 {
+                Vec2::new(0.5, 0.05 * (i % 20) as f32)
+            } else {
+                Vec2::ZERO
+            }
+        })
+        .collect();
+    scene.materials.push(Material {
+        base_color_tex: Some(TexRef::new(0)),
+        emissive: Vec3::ONE,
+        emissive_tex: Some(TexRef {
+            tex_coord: 1,
+            second_uv: true,
+            ..TexRef::new(0)
+        }),
+        ..Material::default()
+    });
+    let m = scene.materials.len() as u32 - 1;
+    scene.mesh.material[1] = m;
+    scene
+}
+
 fn write(dir: &Path, scene: &Scene, spec: LayoutSpec) {
     // A tiny spill buffer forces many flushes per domain.
     let options = WriteOptions {
@@ -430,6 +461,12 @@ fn package_round_trip_is_exact() {
         ("rich-grid", rich_scene(), LayoutSpec::Grid([2, 2, 1])),
         ("soup-kd", load("soup:5000"), LayoutSpec::Kd(6)),
         ("coloured-kd", coloured_scene(), LayoutSpec::Kd(5)),
+        ("two-sets-kd", two_set_scene(), LayoutSpec::Kd(5)),
+        (
+            "two-sets-grid",
+            two_set_scene(),
+            LayoutSpec::Grid([2, 2, 1]),
+        ),
     ] {
         let tmp = TmpDir::new(name);
         write(&tmp.0, &scene, spec);
@@ -465,6 +502,29 @@ fn package_round_trip_is_exact() {
             .filter(|&d| !pkg.load_domain(d).unwrap().mesh.colors.is_empty())
             .count();
         assert_eq!(coloured > 0, !scene.mesh.colors.is_empty(), "{name}");
+        // So does a second UV set, and only a package with one is format version 3
+        // (earlier dray refuses it rather than render its textures on the wrong set).
+        let two_sets = (0..pkg.domain_count())
+            .filter(|&d| !pkg.load_domain(d).unwrap().mesh.uvs2.is_empty())
+            .count();
+        assert_eq!(two_sets > 0, !scene.mesh.uvs2.is_empty(), "{name}");
+        assert_eq!(
+            m.domains.iter().filter(|e| e.uvs2).count(),
+            two_sets,
+            "{name}"
+        );
+        let text = std::fs::read_to_string(tmp.0.join("manifest.json")).unwrap();
+        let version = if scene.mesh.uvs2.is_empty() { 2 } else { 3 };
+        assert!(
+            text.contains(&format!("\"version\": {version},")),
+            "{name}: {}",
+            &text[..120]
+        );
+        assert_eq!(
+            text.contains("uvs2") || text.contains("second_uv"),
+            version == 3,
+            "{name}"
+        );
         assert!(pkg.load_domain(pkg.domain_count()).is_err());
     }
 }
@@ -649,6 +709,42 @@ fn a_wrong_version_is_a_version_error() {
     );
 }
 
+/// A package with a second UV set is format version 3, which this dray reads along with
+/// version 2; one relabelled as version 2 (what earlier dray reads, and would misread)
+/// is refused, and so is a domain file whose header disagrees with its manifest entry.
+#[test]
+fn a_second_uv_set_is_format_version_3() {
+    let tmp = TmpDir::new("uvs2-version");
+    write(&tmp.0, &two_set_scene(), LayoutSpec::Kd(1));
+    open_package(&tmp.0).unwrap().verify().unwrap();
+    let p = tmp.0.join("manifest.json");
+    let text = std::fs::read_to_string(&p).unwrap();
+    assert!(text.contains("\"version\": 3,"), "{text}");
+    let f = tmp.0.join("domain-00000.bin");
+    let bytes = std::fs::read(&f).unwrap();
+    assert_eq!(bytes[8..12], 3u32.to_le_bytes());
+
+    std::fs::write(&p, text.replacen("\"version\": 3,", "\"version\": 2,", 1)).unwrap();
+    let e = open_package(&tmp.0).unwrap_err().to_string();
+    assert!(
+        e.contains("manifest.json") && e.contains("second UV set") && e.contains("version 3"),
+        "{e}"
+    );
+    std::fs::write(&p, text.replacen("\"version\": 3,", "\"version\": 1,", 1)).unwrap();
+    let e = open_package(&tmp.0).unwrap_err().to_string();
+    assert!(e.contains("version 1 is not supported"), "{e}");
+
+    std::fs::write(&p, &text).unwrap();
+    let mut damaged = bytes.clone();
+    damaged[8..12].copy_from_slice(&2u32.to_le_bytes());
+    std::fs::write(&f, &damaged).unwrap();
+    let e = load_err(&tmp.0, 0);
+    assert!(
+        e.contains("domain-00000.bin") && e.contains("version 2"),
+        "{e}"
+    );
+}
+
 #[test]
 fn a_damaged_manifest_is_refused() {
     let (tmp, _) = damaged("manifest");
@@ -796,6 +892,10 @@ impl TriangleSource for StreamOnly<'_> {
     fn has_colors(&self) -> bool {
         self.0.has_colors()
     }
+
+    fn has_uvs2(&self) -> bool {
+        self.0.has_uvs2()
+    }
 }
 
 /// Spilling global ids and making the triangles again from the source's lookup writes
@@ -806,10 +906,11 @@ fn spilling_ids_writes_the_same_package_as_spilling_triangles() {
     let grid = dray_scene::procedural::stream("grid:cornell:glass:3x2x2", &dray_scene::load)
         .unwrap()
         .expect("grid specs stream");
-    let (rich, coloured) = (rich_scene(), coloured_scene());
-    let cases: [(&str, &dyn TriangleSource, &Scene); 3] = [
+    let (rich, coloured, two_sets) = (rich_scene(), coloured_scene(), two_set_scene());
+    let cases: [(&str, &dyn TriangleSource, &Scene); 4] = [
         ("rich", &rich, &rich),
         ("coloured", &coloured, &coloured),
+        ("two-sets", &two_sets, &two_sets),
         ("grid", &grid, grid.tables()),
     ];
     for (name, source, tables) in cases {

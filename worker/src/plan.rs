@@ -204,7 +204,7 @@ fn domains_of(
             .manifest()
             .domains
             .iter()
-            .map(|d| (d.vertices, d.triangles))
+            .map(|d| (d.vertices, d.triangles, d.uvs2))
             .collect(),
         package,
         shared: SharedParts::new(tables, emitters, bounds, settings),
@@ -305,13 +305,15 @@ impl SharedParts {
         }
     }
 
-    /// [`SharedParts::finish`]'s size for a domain of `vertices` and `triangles`.
-    fn estimate(&self, vertices: u64, triangles: u64) -> u64 {
+    /// [`SharedParts::finish`]'s size for a domain of `vertices` and `triangles`, `uvs2`
+    /// when its file has a second UV set.
+    fn estimate(&self, vertices: u64, triangles: u64, uvs2: bool) -> u64 {
         let e = &self.emitters.mesh;
         resident_bytes(
             vertices + e.positions.len() as u64,
             triangles + e.indices.len() as u64,
             triangles,
+            uvs2 || !e.uvs2.is_empty(),
         )
     }
 }
@@ -319,8 +321,8 @@ impl SharedParts {
 /// A job's domains in a package directory.
 struct PackageDomains {
     package: Package,
-    /// (vertices, triangles) per domain, from the manifest.
-    sizes: Vec<(u64, u64)>,
+    /// (vertices, triangles, second UV set) per domain, from the manifest.
+    sizes: Vec<(u64, u64, bool)>,
     shared: SharedParts,
     /// Where the files come from when the package is fetched from the coordinator.
     remote: Option<RemotePackage>,
@@ -328,8 +330,8 @@ struct PackageDomains {
 
 impl DomainSource for PackageDomains {
     fn estimate_bytes(&self, d: u32) -> u64 {
-        let (v, t) = self.sizes.get(d as usize).copied().unwrap_or_default();
-        self.shared.estimate(v, t)
+        let (v, t, uvs2) = self.sizes.get(d as usize).copied().unwrap_or_default();
+        self.shared.estimate(v, t, uvs2)
     }
 
     fn load(&self, d: u32) -> Result<LoadedDomain, String> {
@@ -352,8 +354,11 @@ struct MemoryDomains {
 impl DomainSource for MemoryDomains {
     fn estimate_bytes(&self, d: u32) -> u64 {
         self.package.domain_mesh(d).map_or(0, |m| {
-            self.shared
-                .estimate(m.mesh.positions.len() as u64, m.triangle_count() as u64)
+            self.shared.estimate(
+                m.mesh.positions.len() as u64,
+                m.triangle_count() as u64,
+                !m.mesh.uvs2.is_empty(),
+            )
         })
     }
 

@@ -44,9 +44,20 @@ use crate::error::{Result, SceneError};
 
 /// The `format` field of every manifest.
 pub const FORMAT_NAME: &str = "dray-scene-package";
-/// The package format version this code reads and writes (manifest and binary files).
-/// Bump it on any change a reader of the previous version would misread.
-pub const FORMAT_VERSION: u32 = 2;
+/// The newest package format version this code reads and writes (manifest and binary
+/// files). Bump it on any change a reader of the previous version would misread.
+///
+/// Version 3 added a second UV set (a `uvs2` section in domain files, and texture
+/// references that read it). A package is written with the lowest version that holds it
+/// ([`Manifest::version`]): one without a second set is a version 2 package, bit for bit
+/// what earlier dray wrote, and one with it is refused by earlier dray by its version
+/// rather than rendered with textures on the wrong UVs.
+pub const FORMAT_VERSION: u32 = 3;
+/// The oldest package format version this code reads: version 2 packages are version 3
+/// packages without a second UV set.
+pub const MIN_FORMAT_VERSION: u32 = 2;
+/// The version that introduced the second UV set.
+pub const UVS2_VERSION: u32 = 3;
 /// The manifest's file name inside a package directory.
 pub const MANIFEST_FILE: &str = "manifest.json";
 
@@ -121,6 +132,10 @@ fn from_v3(v: [Real; 3]) -> Vec3 {
 pub struct TexRefDesc {
     pub texture: u32,
     pub tex_coord: u32,
+    /// [`TexRef::second_uv`]: written only when true (format version 3), so manifests of
+    /// scenes whose materials read one UV set each are what they were.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub second_uv: bool,
     /// `KHR_texture_transform` as the affine map's columns (`x_axis`, `y_axis`,
     /// `translation`); left out when there is none, so manifests of scenes without
     /// transforms are unchanged.
@@ -246,6 +261,7 @@ fn tex_out(t: Option<TexRef>) -> Option<TexRefDesc> {
     t.map(|t| TexRefDesc {
         texture: t.texture,
         tex_coord: t.tex_coord,
+        second_uv: t.second_uv,
         transform: t.transform.map(|a| a.to_cols_array().map(Real)),
     })
 }
@@ -254,6 +270,7 @@ fn tex_in(t: Option<TexRefDesc>) -> Option<TexRef> {
     t.map(|t| TexRef {
         texture: t.texture,
         tex_coord: t.tex_coord,
+        second_uv: t.second_uv,
         transform: t
             .transform
             .map(|a| Affine2::from_cols_array(&a.map(|r| r.0))),
@@ -660,6 +677,11 @@ pub struct DomainEntry {
     /// The same for the uv section (8 bytes a vertex).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub no_uvs: bool,
+    /// Whether the file carries a second UV set section (8 bytes a vertex; format
+    /// version 3), present only when some vertex of the domain has a nonzero one. Written
+    /// only when true.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub uvs2: bool,
     pub bytes: u64,
     pub xxh3: String,
 }
@@ -746,7 +768,7 @@ pub fn encode(m: &Manifest) -> std::result::Result<String, serde_json::Error> {
     let raw = RawValue::from_string(body)?;
     let mut text = serde_json::to_string_pretty(&EnvelopeOut {
         format: FORMAT_NAME,
-        version: FORMAT_VERSION,
+        version: m.version(),
         body_xxh3,
         body: &raw,
     })?;
@@ -772,12 +794,13 @@ pub fn decode(text: &str, path: &Path) -> Result<Manifest> {
             head.format.unwrap_or_default()
         )));
     }
-    match head.version.as_ref().and_then(|v| v.as_u64()) {
-        Some(v) if v == FORMAT_VERSION as u64 => {}
+    let version = match head.version.as_ref().and_then(|v| v.as_u64()) {
+        Some(v) if (MIN_FORMAT_VERSION as u64..=FORMAT_VERSION as u64).contains(&v) => v as u32,
         Some(v) => {
             return Err(err(format!(
-                "package format version {v} is not supported (this dray reads version \
-                 {FORMAT_VERSION}); partition the scene again with this dray"
+                "package format version {v} is not supported (this dray reads versions \
+                 {MIN_FORMAT_VERSION} to {FORMAT_VERSION}); partition the scene again with \
+                 this dray"
             )));
         }
         None => {
@@ -787,7 +810,7 @@ pub fn decode(text: &str, path: &Path) -> Result<Manifest> {
                     .map_or("nothing".to_string(), |v| v.to_string())
             )));
         }
-    }
+    };
     let env: EnvelopeIn =
         serde_json::from_str(text).map_err(|e| err(format!("malformed manifest: {e}")))?;
     let expected = from_hex(&env.body_xxh3)
@@ -804,10 +827,31 @@ pub fn decode(text: &str, path: &Path) -> Result<Manifest> {
     let m: Manifest = serde_json::from_str(env.body.get())
         .map_err(|e| err(format!("malformed manifest body: {e}")))?;
     m.check().map_err(err)?;
+    if m.version() > version {
+        return Err(err(format!(
+            "the manifest says format version {version} but uses a second UV set, which \
+             version {UVS2_VERSION} introduced; the manifest is corrupt"
+        )));
+    }
     Ok(m)
 }
 
 impl Manifest {
+    /// The lowest format version that holds this manifest and its files: 3 when a domain
+    /// file has a second UV set or a texture reads one, else 2.
+    pub fn version(&self) -> u32 {
+        let uvs2 = self.domains.iter().chain(&self.emitters).any(|e| e.uvs2)
+            || self
+                .materials
+                .iter()
+                .any(|m| m.tex_refs().any(|t| t.second_uv));
+        if uvs2 {
+            UVS2_VERSION
+        } else {
+            MIN_FORMAT_VERSION
+        }
+    }
+
     /// One listed binary file (`what` names it in messages): its name, checksum and counts.
     fn check_entry(
         &self,

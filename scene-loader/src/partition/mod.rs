@@ -66,6 +66,8 @@ pub struct SourceTriangle {
     pub normals: [Vec3; 3],
     pub tangents: [Vec4; 3],
     pub uvs: [Vec2; 3],
+    /// The second UV set ([`Mesh::uvs2`]; zero where the source has none).
+    pub uvs2: [Vec2; 3],
     /// Vertex colours (white where the source has none).
     pub colors: [Vec4; 3],
 }
@@ -80,6 +82,7 @@ impl Default for SourceTriangle {
             normals: [Vec3::ZERO; 3],
             tangents: [Vec4::ZERO; 3],
             uvs: [Vec2::ZERO; 3],
+            uvs2: [Vec2::ZERO; 3],
             colors: [Vec4::ONE; 3],
         }
     }
@@ -109,6 +112,12 @@ pub trait TriangleSource {
     /// Whether any triangle may have a vertex colour other than white. Sources without
     /// them (the default) are partitioned without a colour section anywhere.
     fn has_colors(&self) -> bool {
+        false
+    }
+
+    /// Whether any triangle may have a nonzero second UV set. Sources without one (the
+    /// default) spill and store none.
+    fn has_uvs2(&self) -> bool {
         false
     }
 
@@ -155,6 +164,7 @@ fn mesh_triangle(mesh: &Mesh, i: usize) -> SourceTriangle {
         normals: std::array::from_fn(|k| mesh.normals.get(at(k)).copied().unwrap_or(Vec3::ZERO)),
         tangents: std::array::from_fn(|k| mesh.tangents.get(at(k)).copied().unwrap_or(Vec4::ZERO)),
         uvs: std::array::from_fn(|k| mesh.uvs.get(at(k)).copied().unwrap_or(Vec2::ZERO)),
+        uvs2: std::array::from_fn(|k| mesh.uvs2.get(at(k)).copied().unwrap_or(Vec2::ZERO)),
         colors: std::array::from_fn(|k| mesh.colors.get(at(k)).copied().unwrap_or(Vec4::ONE)),
     }
 }
@@ -182,6 +192,10 @@ impl TriangleSource for Mesh {
 
     fn has_colors(&self) -> bool {
         !self.colors.is_empty()
+    }
+
+    fn has_uvs2(&self) -> bool {
+        !self.uvs2.is_empty()
     }
 
     fn lookup(&self) -> Option<&dyn TriangleLookup> {
@@ -212,6 +226,10 @@ impl TriangleSource for Scene {
         self.mesh.has_colors()
     }
 
+    fn has_uvs2(&self) -> bool {
+        self.mesh.has_uvs2()
+    }
+
     fn lookup(&self) -> Option<&dyn TriangleLookup> {
         self.mesh.lookup()
     }
@@ -236,12 +254,17 @@ impl DomainMesh {
     }
 }
 
-/// A vertex's identity: the bits of all its attributes (position, normal, tangent, uv as
-/// little-endian f32). Vertices are shared within a domain when they are bitwise
-/// identical, which loses nothing (shading reads only the attributes) and needs no global
-/// vertex ids from the source.
+/// A vertex's identity: the bits of all its attributes (position, normal, tangent, uv,
+/// colour, and in [`VertexKey2`] the second uv, as little-endian f32). Vertices are
+/// shared within a domain when they are bitwise identical, which loses nothing (shading
+/// reads only the attributes) and needs no global vertex ids from the source.
 #[derive(Clone, Copy, PartialEq, Eq)]
 struct VertexKey([u8; 64]);
+
+/// [`VertexKey`] with the second UV set: used only once a domain meets a triangle that
+/// has one, so the vertex map of every other domain keeps its size.
+#[derive(Clone, Copy, PartialEq, Eq)]
+struct VertexKey2([u8; 72]);
 
 impl std::hash::Hash for VertexKey {
     fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
@@ -250,6 +273,13 @@ impl std::hash::Hash for VertexKey {
         // colour (the last 16) is left out of the hash, which costs colourless scenes
         // nothing; equality still compares it, so vertices that differ only in colour
         // stay apart (they merely share a hash).
+        state.write_u64(xxhash_rust::xxh3::xxh3_64(&self.0[..48]));
+    }
+}
+
+impl std::hash::Hash for VertexKey2 {
+    fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
+        // As VertexKey's; the second uv (the last 8) is compared, not hashed.
         state.write_u64(xxhash_rust::xxh3::xxh3_64(&self.0[..48]));
     }
 }
@@ -289,12 +319,31 @@ fn vertex_key(t: &SourceTriangle, k: usize) -> VertexKey {
     VertexKey(key)
 }
 
+/// `key` with the second uv `uv2` appended.
+fn with_uv2(key: VertexKey, uv2: Vec2) -> VertexKey2 {
+    let mut k = [0u8; 72];
+    k[..64].copy_from_slice(&key.0);
+    k[64..68].copy_from_slice(&uv2.x.to_le_bytes());
+    k[68..].copy_from_slice(&uv2.y.to_le_bytes());
+    VertexKey2(k)
+}
+
+type VertexMap<K> = HashMap<K, u32, BuildHasherDefault<PassThrough>>;
+
+/// A domain's vertices by content: without second uvs until the first triangle that has
+/// a nonzero one, then with them (the vertices so far keep their index, their second uv
+/// being zero).
+enum Vertices {
+    OneSet(VertexMap<VertexKey>),
+    TwoSets(VertexMap<VertexKey2>),
+}
+
 /// Builds one domain's indexed mesh from its triangles in arrival order. The in-memory
 /// partition and the package writer both use it, so they give identical meshes.
 pub(crate) struct DomainBuilder {
     mesh: Mesh,
     global_ids: Vec<u32>,
-    vertices: HashMap<VertexKey, u32, BuildHasherDefault<PassThrough>>,
+    vertices: Vertices,
 }
 
 impl DomainBuilder {
@@ -311,20 +360,40 @@ impl DomainBuilder {
         DomainBuilder {
             mesh,
             global_ids: Vec::with_capacity(triangles),
-            vertices: HashMap::with_capacity_and_hasher(triangles, Default::default()),
+            vertices: Vertices::OneSet(HashMap::with_capacity_and_hasher(
+                triangles,
+                Default::default(),
+            )),
         }
     }
 
     pub(crate) fn push(&mut self, t: &SourceTriangle) {
+        let zero = |u: &Vec2| u.x.to_bits() == 0 && u.y.to_bits() == 0;
+        if let Vertices::OneSet(map) = &mut self.vertices
+            && !t.uvs2.iter().all(zero)
+        {
+            let two = std::mem::take(map)
+                .into_iter()
+                .map(|(key, i)| (with_uv2(key, Vec2::ZERO), i))
+                .collect();
+            self.vertices = Vertices::TwoSets(two);
+        }
         let idx = std::array::from_fn(|k| {
             let next = self.mesh.positions.len() as u32;
-            let i = *self.vertices.entry(vertex_key(t, k)).or_insert(next);
+            let key = vertex_key(t, k);
+            let i = match &mut self.vertices {
+                Vertices::OneSet(map) => *map.entry(key).or_insert(next),
+                Vertices::TwoSets(map) => *map.entry(with_uv2(key, t.uvs2[k])).or_insert(next),
+            };
             if i == next {
                 self.mesh.positions.push(t.positions[k]);
                 self.mesh.normals.push(t.normals[k]);
                 self.mesh.tangents.push(t.tangents[k]);
                 self.mesh.uvs.push(t.uvs[k]);
-                // Stays empty while every colour is white.
+                // Both stay empty while every second uv is zero and every colour white.
+                let uv2 = t.uvs2[k];
+                self.mesh
+                    .extend_uvs2(i as usize, Some(std::slice::from_ref(&uv2)));
                 let colour = t.colors[k];
                 self.mesh
                     .extend_colors(i as usize, Some(std::slice::from_ref(&colour)));

@@ -19,7 +19,7 @@
 //! ```text
 //! offset  size      field
 //! 0       8         magic "DRAYDOM\0"
-//! 8       4         u32 format version (= FORMAT_VERSION)
+//! 8       4         u32 format version (3 with a uvs2 section, else 2)
 //! 12      4         u32 domain index
 //! 16      8         u64 vertex count V
 //! 24      8         u64 triangle count T
@@ -28,17 +28,19 @@
 //!         16 V      tangents    [f32; 4]   (zero = absent; left out, all zero, when the
 //!                                          manifest entry says `no_tangents`)
 //!          8 V      uvs         [f32; 2]   (left out, all zero, when it says `no_uvs`)
+//!          8 V      uvs2        [f32; 2]   (only when it says `uvs2`: the second UV set)
 //!         16 V      colours     [f32; 4]   (only when the manifest entry says `colors`)
 //!         12 T      indices     [u32; 3]   (into this file's vertices)
 //!          4 T      material    u32        (into the manifest's materials)
 //!          4 T      global id   u32        (index in the unpartitioned scene)
 //! ```
 //!
-//! so a domain file is exactly `32 + 48 V + 20 T` bytes, `+ 16 V` with colours, `- 16 V`
-//! without tangents and `- 8 V` without uvs (see [`Sections`]). Sections rather than
-//! records keep each attribute contiguous, as the BVH builder and shading want them.
+//! so a domain file is exactly `32 + 48 V + 20 T` bytes, `+ 16 V` with colours, `+ 8 V`
+//! with a second UV set, `- 16 V` without tangents and `- 8 V` without uvs (see
+//! [`Sections`]). Sections rather than records keep each attribute contiguous, as the BVH
+//! builder and shading want them.
 //!
-//! `textures.bin`: magic `"DRAYTEX\0"`, u32 version, u32 texture count, then each
+//! `textures.bin`: magic `"DRAYTEX\0"`, u32 version (2), u32 texture count, then each
 //! texture's RGBA8 texels at the offset the manifest gives.
 //!
 //! # Reading safely
@@ -65,7 +67,8 @@ use super::checksum::{HashingReader, HashingWriter, from_hex, to_hex};
 use super::layout::{Aabb, DomainLayout, LayoutSpec};
 use super::manifest::{
     self, DomainEntry, EMITTERS_DOMAIN, EMITTERS_FILE, FORMAT_VERSION, FileEntry, MANIFEST_FILE,
-    Manifest, StatsDesc, TEXTURES_FILE, TextureDesc, domain_file_name,
+    MIN_FORMAT_VERSION, Manifest, StatsDesc, TEXTURES_FILE, TextureDesc, UVS2_VERSION,
+    domain_file_name,
 };
 use super::{
     DEFAULT_SAMPLE_CAPACITY, DomainBuilder, DomainMesh, SourceTriangle, TriangleLookup,
@@ -80,17 +83,21 @@ const TEXTURE_HEADER_BYTES: u64 = 16;
 const VERTEX_BYTES: u64 = 48;
 const TRIANGLE_BYTES: u64 = 20;
 /// A triangle in a spill file: id, material, then per corner position, normal, tangent
-/// and uv (12 f32), and the colour (4 f32) when the source has vertex colours, so
-/// scenes without them do not spill a third more.
-fn record_bytes(colors: bool) -> usize {
-    8 + 3 * if colors { 64 } else { 48 }
+/// and uv (12 f32), the second uv (2 f32) when the source has a second UV set, and the
+/// colour (4 f32) when it has vertex colours, so scenes without them do not spill more.
+fn record_bytes(colors: bool, uvs2: bool) -> usize {
+    8 + 3 * corner_bytes(colors, uvs2)
+}
+
+fn corner_bytes(colors: bool, uvs2: bool) -> usize {
+    48 + if uvs2 { 8 } else { 0 } + if colors { 16 } else { 0 }
 }
 
 /// What pass 2 writes to a domain's spill file for each of its triangles.
 #[derive(Clone, Copy)]
 enum SpillFormat<'a> {
     /// Whole triangles ([`encode_record`]), for sources that can only be streamed.
-    Records { colors: bool },
+    Records { colors: bool, uvs2: bool },
     /// The global id alone (u32, little-endian): compaction makes the triangle again
     /// from the source's [`TriangleLookup`], so the spill is 4 bytes a triangle instead
     /// of 152 or more.
@@ -100,22 +107,23 @@ enum SpillFormat<'a> {
 impl SpillFormat<'_> {
     fn bytes(self) -> usize {
         match self {
-            SpillFormat::Records { colors } => record_bytes(colors),
+            SpillFormat::Records { colors, uvs2 } => record_bytes(colors, uvs2),
             SpillFormat::Ids(_) => 4,
         }
     }
 
     fn encode(self, t: &SourceTriangle, out: &mut Vec<u8>) {
         match self {
-            SpillFormat::Records { colors } => encode_record(t, colors, out),
+            SpillFormat::Records { colors, uvs2 } => encode_record(t, colors, uvs2, out),
             SpillFormat::Ids(_) => out.extend_from_slice(&t.id.to_le_bytes()),
         }
     }
 }
 const IO_BUFFER: usize = 1 << 20;
 
-/// Bytes per vertex of the optional colour section.
+/// Bytes per vertex of the optional colour and second UV set sections.
 const COLOR_BYTES: u64 = 16;
+const UVS2_BYTES: u64 = 8;
 /// Bytes per vertex of the tangent and uv sections, which are left out when all zero.
 const TANGENT_BYTES: u64 = 16;
 const UV_BYTES: u64 = 8;
@@ -130,14 +138,18 @@ pub struct Sections {
     pub tangents: bool,
     pub uvs: bool,
     pub colors: bool,
+    /// The second UV set: present only when some vertex has a nonzero one (then the
+    /// file is format version 3).
+    pub uvs2: bool,
 }
 
 impl Sections {
-    /// Every section (colours too): the fullest file.
+    /// Every section (colours and the second UV set too): the fullest file.
     pub const ALL: Sections = Sections {
         tangents: true,
         uvs: true,
         colors: true,
+        uvs2: true,
     };
 
     /// The sections a manifest entry says its file has.
@@ -146,6 +158,7 @@ impl Sections {
             tangents: !e.no_tangents,
             uvs: !e.no_uvs,
             colors: e.colors,
+            uvs2: e.uvs2,
         }
     }
 
@@ -156,6 +169,16 @@ impl Sections {
             tangents: !mesh.tangents.iter().all(|t| zero(&t.to_array())),
             uvs: !mesh.uvs.iter().all(|u| zero(&u.to_array())),
             colors: !mesh.colors.is_empty(),
+            uvs2: !mesh.uvs2.iter().all(|u| zero(&u.to_array())),
+        }
+    }
+
+    /// The format version of a file with these sections.
+    fn version(self) -> u32 {
+        if self.uvs2 {
+            UVS2_VERSION
+        } else {
+            MIN_FORMAT_VERSION
         }
     }
 
@@ -165,6 +188,7 @@ impl Sections {
             + optional(self.tangents, TANGENT_BYTES)
             + optional(self.uvs, UV_BYTES)
             + optional(self.colors, COLOR_BYTES)
+            + optional(self.uvs2, UVS2_BYTES)
     }
 }
 
@@ -338,9 +362,10 @@ pub fn write_package(
     let domain_count = layout.domain_count() as usize;
     let per_domain = (options.buffer_bytes / domain_count).clamp(4096, 1 << 20);
     let colors = source.has_colors();
+    let uvs2 = source.has_uvs2();
     let format = match source.lookup() {
         Some(lookup) => SpillFormat::Ids(lookup),
-        None => SpillFormat::Records { colors },
+        None => SpillFormat::Records { colors, uvs2 },
     };
     let record_len = format.bytes();
     let per_domain = per_domain.div_ceil(record_len) * record_len;
@@ -643,13 +668,18 @@ impl Spill {
     }
 }
 
-fn encode_record(t: &SourceTriangle, colors: bool, out: &mut Vec<u8>) {
+fn encode_record(t: &SourceTriangle, colors: bool, uvs2: bool, out: &mut Vec<u8>) {
     out.extend_from_slice(&t.id.to_le_bytes());
     out.extend_from_slice(&t.material.to_le_bytes());
     for k in 0..3 {
         let (p, n, g, u) = (t.positions[k], t.normals[k], t.tangents[k], t.uvs[k]);
         for x in [p.x, p.y, p.z, n.x, n.y, n.z, g.x, g.y, g.z, g.w, u.x, u.y] {
             out.extend_from_slice(&x.to_le_bytes());
+        }
+        if uvs2 {
+            for x in t.uvs2[k].to_array() {
+                out.extend_from_slice(&x.to_le_bytes());
+            }
         }
         if colors {
             for x in t.colors[k].to_array() {
@@ -659,10 +689,12 @@ fn encode_record(t: &SourceTriangle, colors: bool, out: &mut Vec<u8>) {
     }
 }
 
-fn decode_record(b: &[u8], colors: bool) -> SourceTriangle {
+fn decode_record(b: &[u8], colors: bool, uvs2: bool) -> SourceTriangle {
     let u = |i: usize| u32::from_le_bytes(b[i..i + 4].try_into().unwrap());
     let f = |i: usize| f32::from_bits(u(i));
-    let stride = if colors { 64 } else { 48 };
+    let stride = corner_bytes(colors, uvs2);
+    // The colour follows the second uv when there is one.
+    let color_at = if uvs2 { 56 } else { 48 };
     let corner = |k: usize| 8 + stride * k;
     SourceTriangle {
         id: u(0),
@@ -683,8 +715,16 @@ fn decode_record(b: &[u8], colors: bool) -> SourceTriangle {
             let o = corner(k) + 40;
             Vec2::new(f(o), f(o + 4))
         }),
-        colors: std::array::from_fn(|k| {
+        uvs2: std::array::from_fn(|k| {
             let o = corner(k) + 48;
+            if uvs2 {
+                Vec2::new(f(o), f(o + 4))
+            } else {
+                Vec2::ZERO
+            }
+        }),
+        colors: std::array::from_fn(|k| {
+            let o = corner(k) + color_at;
             if colors {
                 Vec4::new(f(o), f(o + 4), f(o + 8), f(o + 12))
             } else {
@@ -709,7 +749,7 @@ fn read_spill(
         }
         for rec in chunk[..n].chunks_exact(record_len) {
             match format {
-                SpillFormat::Records { colors } => f(&decode_record(rec, colors))?,
+                SpillFormat::Records { colors, uvs2 } => f(&decode_record(rec, colors, uvs2))?,
                 SpillFormat::Ids(lookup) => {
                     let id = u32::from_le_bytes([rec[0], rec[1], rec[2], rec[3]]);
                     let t = lookup.triangle(id).ok_or_else(|| {
@@ -760,6 +800,7 @@ impl WrittenDomain {
             colors: self.sections.colors,
             no_tangents: !self.sections.tangents,
             no_uvs: !self.sections.uvs,
+            uvs2: self.sections.uvs2,
             bytes: self.bytes,
             xxh3: to_hex(self.xxh3),
         }
@@ -775,7 +816,7 @@ pub fn write_domain_file(path: &Path, mesh: &DomainMesh) -> Result<WrittenDomain
     let m = &mesh.mesh;
     let result = (|| -> io::Result<()> {
         w.write_all(&DOMAIN_MAGIC)?;
-        w.write_all(&FORMAT_VERSION.to_le_bytes())?;
+        w.write_all(&sections.version().to_le_bytes())?;
         w.write_all(&mesh.domain.to_le_bytes())?;
         w.write_all(&(m.positions.len() as u64).to_le_bytes())?;
         w.write_all(&(m.indices.len() as u64).to_le_bytes())?;
@@ -793,6 +834,11 @@ pub fn write_domain_file(path: &Path, mesh: &DomainMesh) -> Result<WrittenDomain
         }
         if sections.uvs {
             for v in &m.uvs {
+                v.to_array().iter().try_for_each(|x| put(x.to_bits()))?;
+            }
+        }
+        if sections.uvs2 {
+            for v in &m.uvs2 {
                 v.to_array().iter().try_for_each(|x| put(x.to_bits()))?;
             }
         }
@@ -831,7 +877,8 @@ fn write_textures(
     let mut offset = TEXTURE_HEADER_BYTES;
     let result = (|| -> io::Result<()> {
         w.write_all(&TEXTURE_MAGIC)?;
-        w.write_all(&FORMAT_VERSION.to_le_bytes())?;
+        // Unchanged since version 2, so written as 2 (a version 2 package stays one).
+        w.write_all(&MIN_FORMAT_VERSION.to_le_bytes())?;
         w.write_all(&(textures.len() as u32).to_le_bytes())?;
         for t in textures {
             for px in t.texels.iter() {
@@ -1155,11 +1202,12 @@ impl Package {
         if !header_ok {
             return Err(format_error(&path, "not a dray texture file (bad magic)"));
         }
-        if version != FORMAT_VERSION {
+        if !(MIN_FORMAT_VERSION..=FORMAT_VERSION).contains(&version) {
             return Err(format_error(
                 &path,
                 format!(
-                    "texture file format version {version} is not supported (expected {FORMAT_VERSION})"
+                    "texture file format version {version} is not supported (expected \
+                     {MIN_FORMAT_VERSION} to {FORMAT_VERSION})"
                 ),
             ));
         }
@@ -1261,11 +1309,22 @@ fn decode_domain(
     let u32_at = |i: usize| u32::from_le_bytes(header[i..i + 4].try_into().unwrap());
     let u64_at = |i: usize| u64::from_le_bytes(header[i..i + 8].try_into().unwrap());
     let version = u32_at(8);
-    if version != FORMAT_VERSION {
+    if !(MIN_FORMAT_VERSION..=FORMAT_VERSION).contains(&version) {
         return Err(format_error(
             path,
             format!(
-                "domain file format version {version} is not supported (expected {FORMAT_VERSION})"
+                "domain file format version {version} is not supported (expected \
+                 {MIN_FORMAT_VERSION} to {FORMAT_VERSION})"
+            ),
+        ));
+    }
+    let expected = Sections::of_entry(entry).version();
+    if version != expected {
+        return Err(format_error(
+            path,
+            format!(
+                "domain file format version {version}, but the manifest entry makes it \
+                 version {expected}; the file is corrupt"
             ),
         ));
     }
@@ -1299,6 +1358,11 @@ fn decode_domain(
     } else {
         read_items(r, v, 8, path, |b| Vec2::new(f(b, 0), f(b, 1)))?
     };
+    let uvs2 = if entry.uvs2 {
+        read_items(r, v, 8, path, |b| Vec2::new(f(b, 0), f(b, 1)))?
+    } else {
+        Vec::new()
+    };
     let colors = if entry.colors {
         read_items(r, v, 16, path, |b| {
             Vec4::new(f(b, 0), f(b, 1), f(b, 2), f(b, 3))
@@ -1315,6 +1379,7 @@ fn decode_domain(
             normals,
             tangents,
             uvs,
+            uvs2,
             colors,
             indices,
             material,
@@ -1368,20 +1433,37 @@ mod tests {
             normals: [Vec3::Z; 3],
             tangents: [Vec4::new(1.0, 0.0, 0.0, -1.0); 3],
             uvs: [Vec2::new(0.25, 0.75), Vec2::ZERO, Vec2::ONE],
+            uvs2: [Vec2::ZERO; 3],
             colors: [Vec4::ONE; 3],
         };
         let mut b = Vec::new();
-        encode_record(&t, false, &mut b);
-        assert_eq!(b.len(), record_bytes(false));
-        assert_eq!(decode_record(&b, false), t);
+        encode_record(&t, false, false, &mut b);
+        assert_eq!(b.len(), record_bytes(false, false));
+        assert_eq!(b.len(), 152, "a one-set record is what it was");
+        assert_eq!(decode_record(&b, false, false), t);
         let t = SourceTriangle {
             colors: [Vec4::new(0.5, 0.25, 1.0, 0.75), Vec4::ONE, Vec4::ZERO],
             ..t
         };
         b.clear();
-        encode_record(&t, true, &mut b);
-        assert_eq!(b.len(), record_bytes(true));
-        assert_eq!(decode_record(&b, true), t);
+        encode_record(&t, true, false, &mut b);
+        assert_eq!(b.len(), record_bytes(true, false));
+        assert_eq!(decode_record(&b, true, false), t);
+        // The second UV set, alone and with colours.
+        let t = SourceTriangle {
+            uvs2: [Vec2::new(0.5, 0.125), Vec2::ONE, Vec2::new(-1.0, 2.0)],
+            ..t
+        };
+        for colors in [false, true] {
+            let t = SourceTriangle {
+                colors: if colors { t.colors } else { [Vec4::ONE; 3] },
+                ..t
+            };
+            b.clear();
+            encode_record(&t, colors, true, &mut b);
+            assert_eq!(b.len(), record_bytes(colors, true));
+            assert_eq!(decode_record(&b, colors, true), t, "colours {colors}");
+        }
     }
 
     #[test]
@@ -1398,18 +1480,20 @@ mod tests {
     fn file_size_formula_overflows_safely() {
         let plain = Sections {
             colors: false,
+            uvs2: false,
             ..Sections::ALL
         };
         let bare = Sections {
             tangents: false,
             uvs: false,
             colors: false,
+            uvs2: false,
         };
         assert_eq!(domain_file_bytes(0, 0, plain), Some(32));
         assert_eq!(domain_file_bytes(3, 1, plain), Some(32 + 144 + 20));
         assert_eq!(
             domain_file_bytes(3, 1, Sections::ALL),
-            Some(32 + 144 + 48 + 20)
+            Some(32 + 144 + 48 + 24 + 20)
         );
         assert_eq!(domain_file_bytes(3, 1, bare), Some(32 + 72 + 20));
         assert_eq!(domain_file_bytes(u64::MAX / 2, 1, plain), None);

@@ -53,19 +53,26 @@ impl ResidentScene {
     pub fn bytes(&self) -> u64 {
         let m = &self.scene.mesh;
         let bvh: u64 = self.domains.iter().map(|d| d.triangles as u64).sum();
-        resident_bytes(m.positions.len() as u64, m.indices.len() as u64, bvh)
+        resident_bytes(
+            m.positions.len() as u64,
+            m.indices.len() as u64,
+            bvh,
+            !m.uvs2.is_empty(),
+        )
     }
 }
 
 /// Bytes a resident scene of `vertices` and `triangles` (merged mesh) with BVHs over
-/// `bvh_triangles` takes, roughly; [`ResidentScene::bytes`] and the estimates a worker
-/// makes from a manifest before loading both use it, so they agree.
-pub fn resident_bytes(vertices: u64, triangles: u64, bvh_triangles: u64) -> u64 {
-    // Position, normal, tangent, uv per vertex; indices, material and global id per
-    // triangle; each BVH keeps its own copy of its triangles (three corners, 48 bytes),
-    // their ids (4) and its 256-byte nodes (about 26 bytes a triangle: `Accel::bytes`
-    // measured 77-79 bytes a triangle on Lucy and a 1.3M-triangle gyroid).
-    let vertex = 12 + 12 + 16 + 8;
+/// `bvh_triangles` takes, roughly, `uvs2` when its mesh keeps a second UV set;
+/// [`ResidentScene::bytes`] and the estimates a worker makes from a manifest before
+/// loading both use it, so they agree.
+pub fn resident_bytes(vertices: u64, triangles: u64, bvh_triangles: u64, uvs2: bool) -> u64 {
+    // Position, normal, tangent, uv (and the second uv) per vertex; indices, material
+    // and global id per triangle; each BVH keeps its own copy of its triangles (three
+    // corners, 48 bytes), their ids (4) and its 256-byte nodes (about 26 bytes a
+    // triangle: `Accel::bytes` measured 77-79 bytes a triangle on Lucy and a
+    // 1.3M-triangle gyroid).
+    let vertex = 12 + 12 + 16 + 8 + if uvs2 { 8 } else { 0 };
     let per_tri = 12 + 4 + 4;
     vertices * vertex + triangles * per_tri + bvh_triangles * 80
 }
@@ -142,6 +149,8 @@ fn merge(
                 mesh.normals.push(src.normals[v as usize]);
                 mesh.tangents.push(src.tangents[v as usize]);
                 mesh.uvs.push(src.uvs[v as usize]);
+                let uv2 = src.uvs2.get(v as usize).map(std::slice::from_ref);
+                mesh.extend_uvs2(*slot as usize, uv2);
                 let colour = src.colors.get(v as usize).map(std::slice::from_ref);
                 mesh.extend_colors(*slot as usize, colour);
             }
@@ -197,6 +206,7 @@ fn merged_is_the_part(parts: &[DomainMesh], emitters: &DomainMesh) -> bool {
         && m.tangents.len() == n
         && m.uvs.len() == n
         && (m.colors.is_empty() || m.colors.len() == n)
+        && (m.uvs2.is_empty() || m.uvs2.len() == n)
         && ids.windows(2).all(|w| w[0] < w[1])
         && emitters
             .global_ids
@@ -277,13 +287,19 @@ mod tests {
                 let n = m.normals[v].to_array();
                 let g = m.tangents[v].to_array();
                 let u = m.uvs[v].to_array();
+                let u2 = m
+                    .uvs2
+                    .get(v)
+                    .copied()
+                    .unwrap_or(glam::Vec2::ZERO)
+                    .to_array();
                 let c = m
                     .colors
                     .get(v)
                     .copied()
                     .unwrap_or(glam::Vec4::ONE)
                     .to_array();
-                let all = p.iter().chain(&n).chain(&g).chain(&u).chain(&c);
+                let all = p.iter().chain(&n).chain(&g).chain(&u).chain(&u2).chain(&c);
                 out.extend(all.map(|x| x.to_bits()));
             }
         }

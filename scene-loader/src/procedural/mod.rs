@@ -298,6 +298,8 @@ impl Sink for Builder<'_> {
                 normals,
                 tangents: None,
                 uvs: None,
+                uvs2: None,
+                uv_sets: [0, 1],
                 colors: None,
                 indices,
                 material,

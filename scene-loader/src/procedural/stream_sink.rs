@@ -87,6 +87,8 @@ impl Sink for StreamSink<'_> {
                 normals,
                 tangents: None,
                 uvs: None,
+                uvs2: None,
+                uv_sets: [0, 1],
                 colors: None,
                 indices,
                 material,
