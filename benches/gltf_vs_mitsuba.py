@@ -53,9 +53,12 @@ extension (a 16 spp render each; the EXR's float pixels are compared).
 
 Quality: dray and Mitsuba (llvm_ad_rgb; scalar_rgb when the llvm variant cannot run)
 render each case at --spp; the LDR images (clamp to [0,1], sRGB) are compared with NVIDIA
-FLIP (PyPI flip-evaluator); a second Mitsuba render with another seed gives the noise
-floor (FLIP Mitsuba against Mitsuba). The mean linear radiance ratio dray/Mitsuba per
-channel is reported too, so a bias shows even where FLIP stays low.
+FLIP (PyPI flip-evaluator), averaged over the image and over the sphere's pixels (the
+ground is the same in every case); a second Mitsuba render with another seed gives the
+noise floor (FLIP Mitsuba against Mitsuba), and for volume and dispersion, whose dray
+renders are noisier than Mitsuba's, a second dray render gives dray's. The sphere's mean
+linear radiance, dray / Mitsuba per channel, is reported too, overall and in three bands
+of the viewing cosine, so a bias shows even where FLIP stays low and says where it is.
 
 Timed: dray's render_time_s (the renderer's own, from --stats) and the wall time of the
 whole `dray render` process; Mitsuba's `mi.render` of the second seed (the first one
