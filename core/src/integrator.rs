@@ -19,7 +19,7 @@ use crate::camera::{Camera, Frustum};
 use crate::credit::Credit;
 use crate::effects::{Effect, Effects};
 use crate::intersect::offset_ray_origin;
-use crate::light_sampler::{LightRef, LightSample, LightSampler};
+use crate::light_sampler::{LightSample, LightSampler};
 use crate::material::Material;
 use crate::sampling::{PathKey, PathStream, Purpose, cosine_hemisphere};
 use crate::scene::Scene;
@@ -300,12 +300,7 @@ impl<'a> Integrator<'a> {
     /// [`crate::credit::CreditError`], never give a wrong image.
     pub fn credit_needed(&self) -> Credit {
         let s = &self.settings;
-        let punctual = self
-            .lights
-            .entries()
-            .iter()
-            .filter(|l| matches!(l, LightRef::Punctual(_)))
-            .count() as u128;
+        let punctual = self.lights.punctual_entries().len() as u128;
         let area = u128::from(self.lights.choose_area(0.0).is_some());
         let shadows = if s.effects.contains(Effect::DirectLight) {
             punctual + area
@@ -678,11 +673,10 @@ impl<'a> Integrator<'a> {
         mis: bool,
         sink: &mut impl Sink,
     ) {
-        for (e, r) in self.lights.entries().iter().enumerate() {
-            if let LightRef::Punctual(_) = r
-                && let Some(ls) = self
-                    .lights
-                    .sample_entry(self.scene, e, 1.0, surf.p, Vec2::ZERO)
+        for e in self.lights.punctual_entries() {
+            if let Some(ls) = self
+                .lights
+                .sample_entry(self.scene, e, 1.0, surf.p, Vec2::ZERO)
             {
                 let c = ray.weight * bsdf.eval(ls.wi) * surf.n.dot(ls.wi).abs() * ls.li / ls.pdf;
                 if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {

@@ -40,7 +40,10 @@ pub struct LightSample {
 }
 
 pub struct LightSampler {
+    /// The punctual lights first (`..punctual`), then the emissive triangles.
     entries: Vec<LightRef>,
+    /// How many entries are punctual lights.
+    punctual: usize,
     pmf: Vec<f32>,
     cdf: Vec<f32>,
     /// Entries of the emissive triangles only, with their own distribution, for the
@@ -113,6 +116,10 @@ impl LightSampler {
                 }
             }
         }
+        let punctual = entries
+            .iter()
+            .take_while(|r| matches!(r, LightRef::Punctual(_)))
+            .count();
         let (pmf, cdf) = distribution(&weights);
         let area_entries: Vec<u32> = (0..entries.len() as u32)
             .filter(|&e| matches!(entries[e as usize], LightRef::Triangle(_)))
@@ -130,6 +137,7 @@ impl LightSampler {
         tri_entry.sort_unstable();
         LightSampler {
             entries,
+            punctual,
             pmf,
             cdf,
             area_entries,
@@ -168,6 +176,13 @@ impl LightSampler {
             .partition_point(|&c| c <= u)
             .min(self.entries.len() - 1);
         Some((i, self.pmf[i]))
+    }
+
+    /// The entries of the punctual lights, which direct lighting visits every one of:
+    /// a range, so a scene with thousands of emissive triangles does not walk past them
+    /// all at every shaded point to find its few punctual lights.
+    pub fn punctual_entries(&self) -> std::ops::Range<usize> {
+        0..self.punctual
     }
 
     /// Whether any light has an area (emissive triangles): without one, a shaded hit
@@ -336,4 +351,47 @@ pub fn emitted(scene: &Scene, m: &Material, uv: TexCoords) -> Vec3 {
         .map(|(t, uv)| t.sample(uv, true).truncate())
         .unwrap_or(Vec3::ONE);
     (m.emissive * t).max(Vec3::ZERO)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::material::Material;
+
+    #[test]
+    fn punctual_entries_are_exactly_the_punctual_lights() {
+        // Emissive triangles and punctual lights; the triangles' entries must not be
+        // walked to find the lights (direct lighting visits the range at every hit).
+        let mut scene = Scene::default();
+        for k in 0..5 {
+            let o = Vec3::new(k as f32, 0.0, 0.0);
+            let base = scene.mesh.push_vertices(&[o, o + Vec3::X, o + Vec3::Y]);
+            scene.mesh.indices.push([base, base + 1, base + 2]);
+            scene.mesh.material.push(0);
+        }
+        scene.materials.push(Material {
+            emissive: Vec3::ONE,
+            ..Material::default()
+        });
+        scene.lights = (0..3)
+            .map(|i| Light::Point {
+                position: Vec3::new(i as f32, 2.0, 0.0),
+                intensity: Vec3::ONE,
+            })
+            .collect();
+        let s = LightSampler::new(&scene, true);
+        let range = s.punctual_entries();
+        assert_eq!(range, 0..3);
+        for (e, r) in s.entries().iter().enumerate() {
+            assert_eq!(
+                range.contains(&e),
+                matches!(r, LightRef::Punctual(_)),
+                "entry {e}"
+            );
+        }
+        assert!(s.has_area());
+        // Without emission the triangles are no lights at all.
+        let s = LightSampler::new(&scene, false);
+        assert_eq!((s.punctual_entries(), s.has_area()), (0..3, false));
+    }
 }
