@@ -355,7 +355,16 @@ impl<'a> Integrator<'a> {
     /// The camera ray for `pixel` (row-major) and `sample`.
     pub fn camera_ray(&self, pixel: u32, sample: u32) -> RayState {
         let w = self.settings.width.max(1);
-        let (x, y) = (pixel % w, pixel / w);
+        self.camera_ray_xy(pixel % w, pixel / w, sample)
+    }
+
+    /// [`Integrator::camera_ray`] for the pixel at column `x`, row `y`: the same ray,
+    /// for a caller that walks pixels by row and column and so needs no division per
+    /// ray (an integer division costs as much as the rest of a camera ray's set-up).
+    #[inline]
+    pub fn camera_ray_xy(&self, x: u32, y: u32, sample: u32) -> RayState {
+        let w = self.settings.width.max(1);
+        let pixel = y * w + x;
         let key = PathKey {
             seed: self.settings.seed,
             pixel,

@@ -148,9 +148,8 @@ pub fn render_passes(
                 let mut local = [0u64; RayKind::COUNT];
                 for y in tile.y0..tile.y0 + tile.h {
                     for x in tile.x0..tile.x0 + tile.w {
-                        let pixel = y * width + x;
                         for sample in samples.clone() {
-                            sink.stack.push(integrator.camera_ray(pixel, sample));
+                            sink.stack.push(integrator.camera_ray_xy(x, y, sample));
                             while let Some(ray) = sink.stack.pop() {
                                 local[ray.kind as usize] += 1;
                                 if ray.kind.is_occlusion() {

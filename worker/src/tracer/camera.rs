@@ -156,13 +156,26 @@ impl JobTracer {
                 .map(|(loaded, integrator)| (d, loaded, integrator))
         });
         let end = start.saturating_add(count).min(total);
+        if start >= end {
+            return Ok(());
+        }
+        // Ray `i` is sample `i % spp` of the tile's pixel `i / spp`, row-major: found by
+        // division for the first ray, then stepped, with no division per ray (a 64-bit
+        // division costs as much as making the camera ray). Every ray but the tile's
+        // first has the same share.
+        let (first_share, share_rest) = (
+            tile.credit.camera_share(total, 0).unwrap_or(Credit::ZERO),
+            tile.credit.camera_share(total, 1).unwrap_or(Credit::ZERO),
+        );
+        let p = start / spp;
+        let mut s = start % spp;
+        let (mut lx, mut ly) = (
+            (p % tile.width as u64) as u32,
+            (p / tile.width as u64) as u32,
+        );
         for i in start..end {
-            let (p, sample) = (i / spp, tile.first_sample + (i % spp) as u32);
-            let (lx, ly) = (
-                (p % tile.width as u64) as u32,
-                (p / tile.width as u64) as u32,
-            );
-            let share = tile.credit.camera_share(total, i).unwrap_or(Credit::ZERO);
+            let sample = tile.first_sample + s as u32;
+            let share = if i == 0 { first_share } else { share_rest };
             let (ray, lin) = if tile.coarse {
                 // One regular ray through the coarse pixel's centre, its random numbers
                 // keyed apart from every sample of the image.
@@ -180,9 +193,21 @@ impl JobTracer {
                     lin,
                 )
             } else {
-                let pixel = (tile.y0 + ly) * self.settings.width + tile.x0 + lx;
-                (bare.camera_ray(pixel, sample), Lineage::default())
+                (
+                    bare.camera_ray_xy(tile.x0 + lx, tile.y0 + ly, sample),
+                    Lineage::default(),
+                )
             };
+            // The next ray's sample and pixel.
+            s += 1;
+            if s == spp {
+                s = 0;
+                lx += 1;
+                if lx == tile.width {
+                    lx = 0;
+                    ly += 1;
+                }
+            }
             out.traced[RayKind::Camera as usize] += 1;
             let flight = InFlight {
                 ray,
