@@ -305,12 +305,19 @@ impl JobTracer {
             .domains
             .first()
             .ok_or(TraceError::NotResident { domain })?;
-        // One ray of the tree at a time in `f`: the tile and lineage are the root's.
+        // One ray of the tree at a time in `f`: the tile and lineage are the root's. The
+        // root is traced where it is; only its descendants go through `step.tree` (a
+        // push and a pop per camera ray cost stalls on loads of what was just stored).
         let mut f = root;
         step.tree.clear();
-        step.tree.push((f.ray, f.credit));
-        while let Some((ray, credit)) = step.tree.pop() {
-            (f.ray, f.credit) = (ray, credit);
+        let mut first = true;
+        loop {
+            if !std::mem::take(&mut first) {
+                let Some((ray, credit)) = step.tree.pop() else {
+                    break;
+                };
+                (f.ray, f.credit) = (ray, credit);
+            }
             // As in `forward`: a depth a ray record cannot carry ends the ray.
             if u16::try_from(f.ray.depth).is_err() {
                 out.give_back(f.tile, f.credit, f.lineage, false);
