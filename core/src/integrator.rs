@@ -27,9 +27,10 @@ use crate::surface::{Surface, alpha_passes};
 use crate::trace::Trace;
 
 /// The kinds of rays, counted separately in every summary.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum RayKind {
+    #[default]
     Camera = 0,
     Shadow = 1,
     Reflection = 2,
@@ -182,7 +183,10 @@ pub struct RenderSettings {
 }
 
 /// One ray in flight. Self-contained: it can be traced anywhere, in any order.
-#[derive(Clone, Copy, Debug, PartialEq)]
+///
+/// The default (a camera ray at the origin with a zero direction) traces nothing: it is
+/// a slot to be overwritten, for loops that reuse one ray in place.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct RayState {
     pub origin: Vec3,
     pub dir: Vec3,
@@ -379,7 +383,10 @@ impl<'a> Integrator<'a> {
     }
 
     /// The camera ray through `film` (image coordinates in [0, 1]^2, y down), labelled
-    /// with `pixel` and `sample` (which key its path's random numbers).
+    /// with `pixel` and `sample` (which key its path's random numbers). Inlined: a
+    /// caller in another crate (the worker's loop) would otherwise get the ray through
+    /// memory and stall reloading what was just stored.
+    #[inline]
     pub fn camera_ray_through(&self, film: Vec2, pixel: u32, sample: u32) -> RayState {
         let r = self.frustum.generate(film);
         RayState {

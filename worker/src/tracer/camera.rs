@@ -1,7 +1,7 @@
 //! Camera rays: a tile's rays, each with its share of the tile's credit.
 
 use dray_core::credit::Credit;
-use dray_core::integrator::RayKind;
+use dray_core::integrator::{RayKind, RayState};
 use dray_core::tiles::TileGrid;
 
 use super::outbox::Outbox;
@@ -173,30 +173,35 @@ impl JobTracer {
             (p % tile.width as u64) as u32,
             (p / tile.width as u64) as u32,
         );
+        // One lineage for the tile's rays: a camera ray has no tickets, and is coarse
+        // when its tile is.
+        let lin = Lineage {
+            tickets: None,
+            coarse: tile.coarse,
+            probe: false,
+        };
+        // The ray in flight, rewritten in place for each camera ray: a one-domain tree
+        // is traced from here without the ray being copied through temporaries (each
+        // copy of a just-written ray stalled on store forwarding).
+        let mut f = InFlight {
+            ray: RayState::default(),
+            credit: first_share,
+            tile: tile.index,
+            lineage: &lin,
+        };
         for i in start..end {
             let sample = tile.first_sample + s as u32;
-            let share = if i == 0 { first_share } else { share_rest };
-            let (ray, lin) = if tile.coarse {
+            f.credit = if i == 0 { first_share } else { share_rest };
+            f.ray = if tile.coarse {
                 // One regular ray through the coarse pixel's centre, its random numbers
                 // keyed apart from every sample of the image.
                 let n = self.coarse.max(1);
                 let (cx, cy) = (tile.x0 + lx, tile.y0 + ly);
                 let film =
                     glam::Vec2::new((cx as f32 + 0.5) / n as f32, (cy as f32 + 0.5) / n as f32);
-                let lin = Lineage {
-                    tickets: None,
-                    coarse: true,
-                    probe: false,
-                };
-                (
-                    bare.camera_ray_through(film, cy * n + cx, COARSE_SAMPLE),
-                    lin,
-                )
+                bare.camera_ray_through(film, cy * n + cx, COARSE_SAMPLE)
             } else {
-                (
-                    bare.camera_ray_xy(tile.x0 + lx, tile.y0 + ly, sample),
-                    Lineage::default(),
-                )
+                bare.camera_ray_xy(tile.x0 + lx, tile.y0 + ly, sample)
             };
             // The next ray's sample and pixel.
             s += 1;
@@ -209,16 +214,16 @@ impl JobTracer {
                 }
             }
             out.traced[RayKind::Camera as usize] += 1;
+            if let Some(whole) = whole {
+                self.trace_tree(whole, &mut f, &mut step, out)?;
+                continue;
+            }
             let flight = InFlight {
-                ray,
-                credit: share,
+                ray: f.ray,
+                credit: f.credit,
                 tile: tile.index,
                 lineage: &lin,
             };
-            if let Some(whole) = whole {
-                self.trace_tree(whole, flight, &mut step, out)?;
-                continue;
-            }
             self.route_new(&ctx, bare, flight, out);
             // Depth first, one camera ray's tree at a time: the stack of local rays stays
             // a few entries deep and in cache, where making the whole chunk's camera rays

@@ -296,7 +296,7 @@ impl JobTracer {
     pub(super) fn trace_tree(
         &self,
         (domain, loaded, integrator): (u32, &LoadedDomain, &Integrator<'_>),
-        root: InFlight<'_>,
+        f: &mut InFlight<'_>,
         step: &mut Step,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
@@ -305,10 +305,11 @@ impl JobTracer {
             .domains
             .first()
             .ok_or(TraceError::NotResident { domain })?;
-        // One ray of the tree at a time in `f`: the tile and lineage are the root's. The
-        // root is traced where it is; only its descendants go through `step.tree` (a
-        // push and a pop per camera ray cost stalls on loads of what was just stored).
-        let mut f = root;
+        // One ray of the tree at a time in `f`, the caller's slot, rewritten in place:
+        // the tile and lineage are the root's. The root is traced where the caller made
+        // it; only its descendants go through `step.tree` (a push and a pop per camera
+        // ray, or a copy of a ray just made, cost stalls on loads of what was just
+        // stored).
         step.tree.clear();
         let mut first = true;
         loop {
@@ -331,9 +332,9 @@ impl JobTracer {
                     t1: f.ray.tmax,
                 },
             };
-            match in_span(integrator, &geometry, &f, step, out)? {
+            match in_span(integrator, &geometry, f, step, out)? {
                 InSpan::Blocked => out.give_back(f.tile, f.credit, f.lineage, false),
-                InSpan::Through => finish_unblocked(integrator, &f, out),
+                InSpan::Through => finish_unblocked(integrator, f, out),
                 InSpan::Shaded { back } => {
                     out.give_back(f.tile, back, f.lineage, false);
                     for (child, &share) in step.children.drain(..).zip(&step.shares) {
