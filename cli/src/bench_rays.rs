@@ -29,8 +29,9 @@ pub enum RayKindArg {
 #[derive(Clone, Copy, Debug, ValueEnum, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum SimdArg {
-    /// The best this CPU runs (AVX2 if present, else SSE2).
+    /// The best this CPU runs (AVX-512 if present, else AVX2, else SSE2).
     Auto,
+    Avx512,
     Avx2,
     Sse2,
     /// Plain Rust, one child at a time.
@@ -158,6 +159,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
     let build_s = t0.elapsed().as_secs_f64();
     let want = match a.simd {
         SimdArg::Auto => None,
+        SimdArg::Avx512 => Some(Simd::Avx512),
         SimdArg::Avx2 => Some(Simd::Avx2),
         SimdArg::Sse2 => Some(Simd::Sse2),
         SimdArg::Portable => Some(Simd::Portable),

@@ -30,6 +30,7 @@ fn main() {
     }
     let repeat: usize = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(5);
     let simd = match args.get(4).map(String::as_str) {
+        Some("avx512") => Some(Simd::Avx512),
         Some("avx2") => Some(Simd::Avx2),
         Some("sse2") => Some(Simd::Sse2),
         Some("portable") => Some(Simd::Portable),

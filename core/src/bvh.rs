@@ -290,6 +290,8 @@ impl Accel {
                 #[cfg(target_arch = "x86_64")]
                 Simd::Avx2 => walk_avx2(&self.nodes, ray, tmax, counter, leaf),
                 #[cfg(target_arch = "x86_64")]
+                Simd::Avx512 => walk_avx512(&self.nodes, ray, tmax, counter, leaf),
+                #[cfg(target_arch = "x86_64")]
                 Simd::Sse2 => traverse::walk(
                     &self.nodes,
                     ray,
@@ -478,6 +480,33 @@ unsafe fn walk_avx2<C: Counter>(
     }
 }
 
+/// [`traverse::walk`] with the AVX2 node test, the loop (leaf test included) compiled for
+/// AVX-512 and BMI too: see [`Simd::Avx512`].
+///
+/// # Safety
+/// The CPU must support what [`Simd::Avx512`] detects; `nodes` as for [`traverse::walk`].
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,popcnt,lzcnt,avx512f,avx512vl,avx512bw,avx512dq,bmi1,bmi2")]
+unsafe fn walk_avx512<C: Counter>(
+    nodes: &[WideNode],
+    ray: &NodeRay,
+    tmax: f32,
+    counter: &mut C,
+    leaf: impl FnMut(u32, &mut f32, &mut C) -> Leaf,
+) {
+    // SAFETY: as the caller promises.
+    unsafe {
+        traverse::walk(
+            nodes,
+            ray,
+            tmax,
+            counter,
+            |n, r, t| node_test::x86::hits_avx2(n, r, t),
+            leaf,
+        )
+    }
+}
+
 /// The next float above `x` (for positive finite `x`; infinity stays infinity).
 #[inline]
 fn next_up(x: f32) -> f32 {
@@ -556,10 +585,7 @@ mod tests {
         for (scale, shift) in cases {
             let m = mesh(scale, shift);
             let mut accel = Accel::build(&m);
-            let levels: Vec<Simd> = [Simd::Portable, Simd::Sse2, Simd::Avx2]
-                .into_iter()
-                .filter(|s| s.supported())
-                .collect();
+            let levels: Vec<Simd> = traverse::testable_levels();
             // The slots the leaf test hits, and the slots each build of the node test
             // visits (the far limit never lowered, so every box the ray crosses).
             let mut leaf_hits = |o: Vec3, d: Vec3| -> (Vec<u32>, Vec<Vec<u32>>) {

@@ -58,6 +58,8 @@ impl Accel {
                 #[cfg(target_arch = "x86_64")]
                 Simd::Avx2 => batch_avx2(self, rays, &mut accept, out),
                 #[cfg(target_arch = "x86_64")]
+                Simd::Avx512 => batch_avx512(self, rays, &mut accept, out),
+                #[cfg(target_arch = "x86_64")]
                 Simd::Sse2 => self.batch(rays, &mut accept, out, |n, r, t| {
                     node_test::x86::hits_sse2(n, r, t)
                 }),
@@ -183,6 +185,27 @@ unsafe fn batch_avx2(
     }
 }
 
+/// [`Accel::batch`] with the AVX2 node test, compiled for AVX-512 and BMI too like
+/// `super::walk_avx512`.
+///
+/// # Safety
+/// The CPU must support what [`Simd::Avx512`] detects.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,popcnt,lzcnt,avx512f,avx512vl,avx512bw,avx512dq,bmi1,bmi2")]
+unsafe fn batch_avx512(
+    accel: &Accel,
+    rays: &[QueryRay],
+    accept: &mut impl FnMut(usize, u32, &TriangleHit) -> bool,
+    out: &mut [Option<Hit>],
+) {
+    // SAFETY: as the caller promises.
+    unsafe {
+        accel.batch(rays, accept, out, |n, r, t| {
+            node_test::x86::hits_avx2(n, r, t)
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use glam::Vec3;
@@ -259,10 +282,7 @@ mod tests {
             let mut accel = Accel::build(&soup(n, scale));
             let rays = rays(4_000, scale);
             let reject = |tri: u32| tri % 7 == 3;
-            let levels: Vec<Simd> = [Simd::Portable, Simd::Sse2, Simd::Avx2]
-                .into_iter()
-                .filter(|s| s.supported())
-                .collect();
+            let levels: Vec<Simd> = crate::bvh::traverse::testable_levels();
             for simd in levels {
                 assert!(accel.set_simd(simd));
                 for filtered in [false, true] {
