@@ -453,59 +453,54 @@ impl Accel {
     }
 }
 
-/// [`traverse::walk`] with the AVX2 node test, compiled for AVX2 and FMA (and the POPCNT
-/// and LZCNT that come with them) so the whole loop, leaf test included, uses them.
-///
-/// # Safety
-/// The CPU must support AVX2, FMA, POPCNT and LZCNT; `nodes` as for [`traverse::walk`].
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma,popcnt,lzcnt")]
-unsafe fn walk_avx2<C: Counter>(
-    nodes: &[WideNode],
-    ray: &NodeRay,
-    tmax: f32,
-    counter: &mut C,
-    leaf: impl FnMut(u32, &mut f32, &mut C) -> Leaf,
-) {
-    // SAFETY: as the caller promises.
-    unsafe {
-        traverse::walk(
-            nodes,
-            ray,
-            tmax,
-            counter,
-            |n, r, t| node_test::x86::hits_avx2(n, r, t),
-            leaf,
-        )
-    }
+/// Defines an `unsafe fn $name`: [`traverse::walk`] with the AVX2 node test, the whole
+/// loop (leaf test included) compiled for `$features`. One body for every x86 level
+/// above SSE2: `#[target_feature]` is per function, so each level is its own copy.
+macro_rules! walk_compiled_for {
+    ($(#[$doc:meta])* $name:ident, $features:literal) => {
+        $(#[$doc])*
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = $features)]
+        unsafe fn $name<C: Counter>(
+            nodes: &[WideNode],
+            ray: &NodeRay,
+            tmax: f32,
+            counter: &mut C,
+            leaf: impl FnMut(u32, &mut f32, &mut C) -> Leaf,
+        ) {
+            // SAFETY: as the caller promises.
+            unsafe {
+                traverse::walk(
+                    nodes,
+                    ray,
+                    tmax,
+                    counter,
+                    |n, r, t| node_test::x86::hits_avx2(n, r, t),
+                    leaf,
+                )
+            }
+        }
+    };
 }
 
-/// [`traverse::walk`] with the AVX2 node test, the loop (leaf test included) compiled for
-/// AVX-512 and BMI too: see [`Simd::Avx512`].
-///
-/// # Safety
-/// The CPU must support what [`Simd::Avx512`] detects; `nodes` as for [`traverse::walk`].
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma,popcnt,lzcnt,avx512f,avx512vl,avx512bw,avx512dq,bmi1,bmi2")]
-unsafe fn walk_avx512<C: Counter>(
-    nodes: &[WideNode],
-    ray: &NodeRay,
-    tmax: f32,
-    counter: &mut C,
-    leaf: impl FnMut(u32, &mut f32, &mut C) -> Leaf,
-) {
-    // SAFETY: as the caller promises.
-    unsafe {
-        traverse::walk(
-            nodes,
-            ray,
-            tmax,
-            counter,
-            |n, r, t| node_test::x86::hits_avx2(n, r, t),
-            leaf,
-        )
-    }
-}
+walk_compiled_for!(
+    /// [`traverse::walk`] for [`Simd::Avx2`]: AVX2 and FMA (and the POPCNT and LZCNT that
+    /// come with them).
+    ///
+    /// # Safety
+    /// The CPU must support AVX2, FMA, POPCNT and LZCNT; `nodes` as for [`traverse::walk`].
+    walk_avx2,
+    "avx2,fma,popcnt,lzcnt"
+);
+
+walk_compiled_for!(
+    /// [`traverse::walk`] for [`Simd::Avx512`]: AVX2's code with AVX-512 and BMI too.
+    ///
+    /// # Safety
+    /// The CPU must support what [`Simd::Avx512`] detects; `nodes` as for [`traverse::walk`].
+    walk_avx512,
+    "avx2,fma,popcnt,lzcnt,avx512f,avx512vl,avx512bw,avx512dq,bmi1,bmi2"
+);
 
 /// The next float above `x` (for positive finite `x`; infinity stays infinity).
 #[inline]

@@ -164,47 +164,46 @@ impl Accel {
     }
 }
 
-/// [`Accel::batch`] with the AVX2 node test, compiled for AVX2 and FMA like
-/// `super::walk_avx2`.
-///
-/// # Safety
-/// The CPU must support AVX2, FMA, POPCNT and LZCNT.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma,popcnt,lzcnt")]
-unsafe fn batch_avx2(
-    accel: &Accel,
-    rays: &[QueryRay],
-    accept: &mut impl FnMut(usize, u32, &TriangleHit) -> bool,
-    out: &mut [Option<Hit>],
-) {
-    // SAFETY: as the caller promises.
-    unsafe {
-        accel.batch(rays, accept, out, |n, r, t| {
-            node_test::x86::hits_avx2(n, r, t)
-        })
-    }
+/// Defines an `unsafe fn $name`: [`Accel::batch`] with the AVX2 node test, compiled for
+/// `$features` like `super::walk_avx2` and `super::walk_avx512`.
+macro_rules! batch_compiled_for {
+    ($(#[$doc:meta])* $name:ident, $features:literal) => {
+        $(#[$doc])*
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = $features)]
+        unsafe fn $name(
+            accel: &Accel,
+            rays: &[QueryRay],
+            accept: &mut impl FnMut(usize, u32, &TriangleHit) -> bool,
+            out: &mut [Option<Hit>],
+        ) {
+            // SAFETY: as the caller promises.
+            unsafe {
+                accel.batch(rays, accept, out, |n, r, t| {
+                    node_test::x86::hits_avx2(n, r, t)
+                })
+            }
+        }
+    };
 }
 
-/// [`Accel::batch`] with the AVX2 node test, compiled for AVX-512 and BMI too like
-/// `super::walk_avx512`.
-///
-/// # Safety
-/// The CPU must support what [`Simd::Avx512`] detects.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma,popcnt,lzcnt,avx512f,avx512vl,avx512bw,avx512dq,bmi1,bmi2")]
-unsafe fn batch_avx512(
-    accel: &Accel,
-    rays: &[QueryRay],
-    accept: &mut impl FnMut(usize, u32, &TriangleHit) -> bool,
-    out: &mut [Option<Hit>],
-) {
-    // SAFETY: as the caller promises.
-    unsafe {
-        accel.batch(rays, accept, out, |n, r, t| {
-            node_test::x86::hits_avx2(n, r, t)
-        })
-    }
-}
+batch_compiled_for!(
+    /// [`Accel::batch`] for [`Simd::Avx2`].
+    ///
+    /// # Safety
+    /// The CPU must support AVX2, FMA, POPCNT and LZCNT.
+    batch_avx2,
+    "avx2,fma,popcnt,lzcnt"
+);
+
+batch_compiled_for!(
+    /// [`Accel::batch`] for [`Simd::Avx512`].
+    ///
+    /// # Safety
+    /// The CPU must support what [`Simd::Avx512`] detects.
+    batch_avx512,
+    "avx2,fma,popcnt,lzcnt,avx512f,avx512vl,avx512bw,avx512dq,bmi1,bmi2"
+);
 
 #[cfg(test)]
 mod tests {
