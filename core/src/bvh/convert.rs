@@ -48,53 +48,52 @@ enum Kind {
     Distribute,
 }
 
-/// obvhs's `Decision`: what a node becomes when it may fill `i + 1` child slots.
+/// obvhs's `Decision` less its cost: what a node becomes when it may fill `i + 1` child
+/// slots, and how it splits them between its two children. Packed in one byte: the kind
+/// in bits 0..2, `left` in 2..5 and `right` in 5..8 (both at most 6).
 #[derive(Clone, Copy, Debug)]
 struct Decision {
-    cost: f32,
     kind: Kind,
     left: u8,
     right: u8,
 }
 
 impl Decision {
-    fn pack(self) -> u64 {
+    fn pack(self) -> u8 {
         let kind = match self.kind {
-            Kind::Leaf => 0u64,
+            Kind::Leaf => 0u8,
             Kind::Internal => 1,
             Kind::Distribute => 2,
         };
-        u64::from(self.cost.to_bits())
-            | kind << 32
-            | u64::from(self.left) << 40
-            | u64::from(self.right) << 48
+        kind | self.left << 2 | self.right << 5
     }
 
-    fn unpack(v: u64) -> Decision {
+    fn unpack(v: u8) -> Decision {
         Decision {
-            cost: f32::from_bits(v as u32),
-            kind: match (v >> 32) as u8 {
+            kind: match v & 3 {
                 0 => Kind::Leaf,
                 1 => Kind::Internal,
                 _ => Kind::Distribute,
             },
-            left: (v >> 40) as u8,
-            right: (v >> 48) as u8,
+            left: v >> 2 & 7,
+            right: v >> 5,
         }
     }
 }
 
-/// obvhs's `Decision::default()`.
-const DEFAULT: Decision = Decision {
-    cost: 0.0,
-    kind: Kind::Distribute,
+/// A leaf's decisions: a leaf whatever the slots (obvhs leaves `left` and `right` at
+/// their defaults, 0; nothing reads them).
+const LEAF: Decision = Decision {
+    kind: Kind::Leaf,
     left: 0,
     right: 0,
 };
 
 struct Converter<'a> {
     bvh2: &'a Bvh2,
-    /// `SLOTS` decisions per BVH2 node.
+    /// Each BVH2 node's `SLOTS` decisions, one byte each (slot `i` in bits `8i..8i + 8`).
+    /// Their costs are not kept: a node's are needed only by its parent's, which the
+    /// cost pass hands up on the stack.
     decisions: Vec<AtomicU64>,
     /// Primitives under each BVH2 node (set by the cost pass).
     prims: Vec<AtomicU32>,
@@ -118,10 +117,7 @@ pub(crate) fn to_cwbvh(bvh2: &Bvh2, max_prims_per_leaf: u32) -> CwBvh {
     let n = bvh2.nodes.len();
     let c = Converter {
         bvh2,
-        decisions: (0..n * SLOTS)
-            .into_par_iter()
-            .map(|_| AtomicU64::new(DEFAULT.pack()))
-            .collect(),
+        decisions: (0..n).into_par_iter().map(|_| AtomicU64::new(0)).collect(),
         prims: (0..n).into_par_iter().map(|_| AtomicU32::new(0)).collect(),
         directions: std::array::from_fn(|s| {
             vec3a(
@@ -131,7 +127,7 @@ pub(crate) fn to_cwbvh(bvh2: &Bvh2, max_prims_per_leaf: u32) -> CwBvh {
             )
         }),
     };
-    c.cost(0, max_prims_per_leaf, 0);
+    c.cost(0, max_prims_per_leaf, 0, &mut [0.0; SLOTS]);
     let mut part = Part::default();
     part.nodes.reserve(bvh2.primitive_indices.len());
     part.primitive_indices.reserve(bvh2.primitive_indices.len());
@@ -147,121 +143,109 @@ pub(crate) fn to_cwbvh(bvh2: &Bvh2, max_prims_per_leaf: u32) -> CwBvh {
 }
 
 impl Converter<'_> {
-    fn decision(&self, i: usize) -> Decision {
-        Decision::unpack(self.decisions[i].load(Ordering::Relaxed))
-    }
-
-    fn set(&self, i: usize, d: Decision) {
-        self.decisions[i].store(d.pack(), Ordering::Relaxed);
+    /// Node `index`'s decision for `slot`.
+    fn decision(&self, index: usize, slot: usize) -> Decision {
+        let word = self.decisions[index].load(Ordering::Relaxed);
+        Decision::unpack((word >> (8 * slot)) as u8)
     }
 
     /// obvhs's `calculate_cost_impl`: fill node `index`'s decisions, its children's
-    /// first; returns the primitives under it.
-    fn cost(&self, index: usize, max_prims_per_leaf: u32, depth: u32) -> u32 {
+    /// first, and its seven costs into `costs`; returns the primitives under it.
+    ///
+    /// The same costs, compared in the same order, as obvhs's: each slot's best split
+    /// is the first strictly cheaper one, and a slot with none copies the slot before.
+    fn cost(
+        &self,
+        index: usize,
+        max_prims_per_leaf: u32,
+        depth: u32,
+        costs: &mut [f32; SLOTS],
+    ) -> u32 {
         let node = &self.bvh2.nodes[index];
         let half_area = node.aabb().half_area();
         let first = node.first_index as usize;
-        let base = index * SLOTS;
-        let (first_7, next_7) = (first * SLOTS, (first + 1) * SLOTS);
         let num_primitives;
+        let word;
         if node.prim_count != 0 {
             num_primitives = node.prim_count;
             assert!(
                 num_primitives == 1,
                 "the CWBVH conversion expects one primitive per BVH2 leaf"
             );
-            let cost = half_area * (num_primitives as f32) * PRIM_COST;
-            for i in 0..SLOTS {
-                self.set(
-                    base + i,
-                    Decision {
-                        kind: Kind::Leaf,
-                        cost,
-                        ..self.decision(base + i)
-                    },
-                );
-            }
+            *costs = [half_area * (num_primitives as f32) * PRIM_COST; SLOTS];
+            word = u64::from_le_bytes([LEAF.pack(); 8]);
         } else {
+            let (mut cl, mut cr) = ([0f32; SLOTS], [0f32; SLOTS]);
             let (l, r) = if depth < PARALLEL_COST_DEPTH {
                 rayon::join(
-                    || self.cost(first, max_prims_per_leaf, depth + 1),
-                    || self.cost(first + 1, max_prims_per_leaf, depth + 1),
+                    || self.cost(first, max_prims_per_leaf, depth + 1, &mut cl),
+                    || self.cost(first + 1, max_prims_per_leaf, depth + 1, &mut cr),
                 )
             } else {
                 (
-                    self.cost(first, max_prims_per_leaf, depth + 1),
-                    self.cost(first + 1, max_prims_per_leaf, depth + 1),
+                    self.cost(first, max_prims_per_leaf, depth + 1, &mut cl),
+                    self.cost(first + 1, max_prims_per_leaf, depth + 1, &mut cr),
                 )
             };
             num_primitives = l + r;
-            let child = |i: usize| self.decision(i).cost;
-            {
-                let cost_leaf = if num_primitives <= max_prims_per_leaf {
-                    (num_primitives as f32) * half_area * PRIM_COST
-                } else {
-                    f32::INFINITY
-                };
-                let mut cost_distribute = f32::INFINITY;
-                let (mut left, mut right) = (INVALID, INVALID);
-                for k in 0..SLOTS {
-                    let c = child(first_7 + k) + child(next_7 + 6 - k);
+            let cost_leaf = if num_primitives <= max_prims_per_leaf {
+                (num_primitives as f32) * half_area * PRIM_COST
+            } else {
+                f32::INFINITY
+            };
+            let mut cost_distribute = f32::INFINITY;
+            let (mut left, mut right) = (INVALID, INVALID);
+            for k in 0..SLOTS {
+                let c = cl[k] + cr[6 - k];
+                if c < cost_distribute {
+                    cost_distribute = c;
+                    left = k as u8;
+                    right = 6 - k as u8;
+                }
+            }
+            if left == INVALID {
+                // Every split costs infinity or NaN: boxes whose half-areas overflow
+                // f32 (coordinates far beyond the import bound, moved there). obvhs
+                // leaves the slots unset and the conversion then indexes slot 255;
+                // any split gives a valid tree, so take the first.
+                (left, right) = (0, 6);
+            }
+            let cost_internal = cost_distribute + half_area;
+            let (kind, cost) = if cost_leaf < cost_internal {
+                (Kind::Leaf, cost_leaf)
+            } else {
+                (Kind::Internal, cost_internal)
+            };
+            costs[0] = cost;
+            let mut byte = Decision { kind, left, right }.pack();
+            let mut slots = u64::from(byte);
+            for i in 1..SLOTS {
+                let mut cost_distribute = costs[i - 1];
+                let mut split = None;
+                for k in 0..i {
+                    let c = cl[k] + cr[i - k - 1];
                     if c < cost_distribute {
                         cost_distribute = c;
-                        left = k as u8;
-                        right = 6 - k as u8;
+                        split = Some(k as u8);
                     }
                 }
-                if left == INVALID {
-                    // Every split costs infinity or NaN: boxes whose half-areas overflow
-                    // f32 (coordinates far beyond the import bound, moved there). obvhs
-                    // leaves the slots unset and the conversion then indexes slot 255;
-                    // any split gives a valid tree, so take the first.
-                    (left, right) = (0, 6);
-                }
-                let cost_internal = cost_distribute + half_area;
-                let (kind, cost) = if cost_leaf < cost_internal {
-                    (Kind::Leaf, cost_leaf)
-                } else {
-                    (Kind::Internal, cost_internal)
-                };
-                self.set(
-                    base,
-                    Decision {
-                        cost,
-                        kind,
+                // Without a cheaper split, obvhs copies the previous decision (its
+                // cost too).
+                if let Some(left) = split {
+                    let right = i as u8 - left - 1;
+                    byte = Decision {
+                        kind: Kind::Distribute,
                         left,
                         right,
-                    },
-                );
-            }
-            for i in 1..SLOTS {
-                let at = base + i;
-                let mut cost_distribute = self.decision(at - 1).cost;
-                let (mut left, mut right) = (INVALID, INVALID);
-                for k in 0..i {
-                    let c = child(first_7 + k) + child(next_7 + i - k - 1);
-                    if c < cost_distribute {
-                        cost_distribute = c;
-                        left = k as u8;
-                        right = i as u8 - k as u8 - 1;
                     }
+                    .pack();
                 }
-                if left != INVALID {
-                    self.set(
-                        at,
-                        Decision {
-                            cost: cost_distribute,
-                            kind: Kind::Distribute,
-                            left,
-                            right,
-                        },
-                    );
-                } else {
-                    // obvhs sets the cost, then copies the previous decision over it.
-                    self.set(at, self.decision(at - 1));
-                }
+                costs[i] = cost_distribute;
+                slots |= u64::from(byte) << (8 * i);
             }
+            word = slots;
         }
+        self.decisions[index].store(word, Ordering::Relaxed);
         self.prims[index].store(num_primitives, Ordering::Relaxed);
         num_primitives
     }
@@ -274,10 +258,10 @@ impl Converter<'_> {
             *count += 1;
             return;
         }
-        let d = self.decision(index * SLOTS + i);
+        let d = self.decision(index, i);
         let first = node.first_index as usize;
         for (child, slot) in [(first, d.left), (first + 1, d.right)] {
-            if self.decision(child * SLOTS + slot as usize).kind == Kind::Distribute {
+            if self.decision(child, slot as usize).kind == Kind::Distribute {
                 self.children(child, out, count, slot as usize);
             } else {
                 out[*count] = child as u32;
@@ -379,7 +363,7 @@ impl Converter<'_> {
             node.child_max_x[i] = child_max.x as u8;
             node.child_max_y[i] = child_max.y as u8;
             node.child_max_z[i] = child_max.z as u8;
-            match self.decision(child as usize * SLOTS).kind {
+            match self.decision(child as usize, 0).kind {
                 Kind::Leaf => {
                     let n = self.push_primitives(child as usize, &mut part.primitive_indices);
                     node.child_meta[i] = num_primitives as u8
