@@ -351,30 +351,35 @@ fn sah_cut(range: &mut Range, centroids: Centroids) -> Option<Cut> {
     // below `split` exactly when its scaled offset is not at least `split` (bins_of
     // clamps, then truncates; `split` is a whole number in 1..BINS, and a NaN offset
     // goes to bin 0), so no bin index is needed: one compare of all three lanes.
+    //
+    // Without a branch per primitive (which side it goes is a coin toss to the branch
+    // predictor): a left primitive is swapped with the one at `mid`, a right one with
+    // itself. The sides' centroid bounds are taken after, a pass over each (selecting
+    // per primitive which side's bounds to grow cost more than the passes).
     let edge = Vec3A::splat(split as f32);
-    let (mut left, mut right) = (NO_CENTROIDS, NO_CENTROIDS);
+    let axis_bit = 1u32 << axis;
     let mut mid = 0;
-    for j in 0..range.len() {
-        let c = range.boxes[j].center();
-        let right_side = ((c - lo) * to_bin).cmpge(edge).bitmask() >> axis & 1 != 0;
-        if right_side {
-            right = (right.0.min(c), right.1.max(c));
-        } else {
-            left = (left.0.min(c), left.1.max(c));
-            range.boxes.swap(j, mid);
-            range.order.swap(j, mid);
-            mid += 1;
-        }
+    let (prims, order) = (&mut *range.boxes, &mut *range.order);
+    for j in 0..prims.len() {
+        let b = prims[j];
+        let goes_right = ((b.center() - lo) * to_bin).cmpge(edge).bitmask() & axis_bit != 0;
+        // The swap partner: `mid` for a left primitive, `j` itself for a right one.
+        let to = if goes_right { j } else { mid };
+        prims[j] = prims[to];
+        prims[to] = b;
+        order.swap(j, to);
+        mid += usize::from(!goes_right);
     }
     if !(mid > 0 && mid < range.len()) {
         return None;
     }
     let union = |bins: &[Aabb]| bins.iter().fold(Aabb::empty(), |a, b| a.union(b));
     let sides = (union(&boxes[axis][..split]), union(&boxes[axis][split..]));
+    let (left, right) = range.boxes.split_at(mid);
     Some(Cut {
         mid,
         boxes: sides,
-        centroids: (left, right),
+        centroids: (centroid_bounds(left), centroid_bounds(right)),
     })
 }
 
