@@ -729,8 +729,9 @@ mod tests {
 
     /// The build makes the very trees it made before its cuts were reworked for speed
     /// (hashes taken from that build): random boxes (SAH cuts, some clustered with
-    /// ties), coincident and nested ones (median cuts, the depth limit), large enough
-    /// for the parallel top. A change that alters any tree must say so here.
+    /// ties), coincident and nested ones (median cuts by index, the depth limit), boxes
+    /// too large for finite costs (median cuts by centroid), large enough for the
+    /// parallel top. A change that alters any tree must say so here.
     #[test]
     fn the_trees_are_the_ones_the_build_always_made() {
         let mut next = uniforms(0x1234_5678_9ABC_DEF1u64);
@@ -750,7 +751,15 @@ mod tests {
         let nested: Vec<Aabb> = (1..=9_000)
             .map(|i| Aabb::new(Vec3A::splat(-(i as f32)), Vec3A::splat(i as f32)))
             .collect();
-        let got: Vec<String> = [random, clustered, coincident, nested]
+        // Boxes whose half-areas overflow f32: every SAH cost is infinite, so every cut
+        // is a median cut over distinct centroids.
+        let huge: Vec<Aabb> = (0..5_000)
+            .map(|_| {
+                let c = Vec3A::new(next(), next(), next()) * 1e24;
+                Aabb::new(c - 1e21, c + 1e21)
+            })
+            .collect();
+        let got: Vec<String> = [random, clustered, coincident, nested, huge]
             .iter()
             .map(|b| format!("{:016x}", tree_hash(&build(b))))
             .collect();
@@ -761,6 +770,7 @@ mod tests {
                 "5e287189d4fbe836",
                 "16f256c37ee431d0",
                 "183c005f432bd1d0",
+                "27684802bef11a03",
             ]
         );
     }
