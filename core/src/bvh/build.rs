@@ -89,15 +89,15 @@ impl Range<'_> {
 
 /// A BVH2 over `aabbs` with one primitive per leaf (what the CWBVH conversion expects),
 /// at most [`MAX_DEPTH`] deep. Every box must be finite; `aabbs` must not be empty and
-/// must have fewer than 2^31 entries.
+/// must have fewer than 2^31 entries. The boxes are reordered in place (into leaf
+/// order) rather than copied: on a large mesh every fresh page costs a fault.
 ///
 /// The top of the tree is built in parallel (the two sides of a cut are independent),
 /// and the nodes are numbered as one thread working through a stack, left side first,
 /// would number them: the tree is the same, node for node, on any number of threads.
-pub fn build(aabbs: &[Aabb]) -> Bvh2 {
-    let n = aabbs.len();
+pub fn build(mut boxes: Vec<Aabb>) -> Bvh2 {
+    let n = boxes.len();
     let mut order: Vec<u32> = (0..n as u32).collect();
-    let mut boxes = aabbs.to_vec();
     let root = boxes.iter().fold(Aabb::empty(), |a, b| a.union(b));
     let centroids = centroid_bounds(&boxes);
     let mut nodes = vec![Bvh2Node::default(); 2 * n - 1];
@@ -106,7 +106,7 @@ pub fn build(aabbs: &[Aabb]) -> Bvh2 {
         order: &mut order,
         boxes: &mut boxes,
     };
-    top[0] = subtree(aabbs, range, 0, 0, (root, centroids), rest, 1);
+    top[0] = subtree(range, 0, 0, (root, centroids), rest, 1);
     Bvh2 {
         nodes,
         primitive_indices: order,
@@ -121,12 +121,11 @@ pub fn build(aabbs: &[Aabb]) -> Bvh2 {
 /// when the cut is made, the left side's subtree before the right's. A subtree over `k`
 /// primitives has `2k - 1` nodes; its root is returned (its parent places it), the other
 /// `2k - 2` are written into `rest`, which the whole tree numbers from `offset`. Leaves
-/// point into the whole order. `aabbs` is the whole input (for median cuts).
+/// point into the whole order.
 ///
 /// Large subtrees cut in parallel: the two sides' nodes go to the two halves of `rest`
 /// after the children's pair, each written once, in place.
 fn subtree(
-    aabbs: &[Aabb],
     mut range: Range,
     start: usize,
     depth: u32,
@@ -138,7 +137,7 @@ fn subtree(
     debug_assert_eq!(rest.len(), 2 * count - 2);
     let (aabb, centroids) = bounds;
     if count < PARALLEL_MIN {
-        let local = sequential(aabbs, range, start, depth, bounds);
+        let local = sequential(range, start, depth, bounds);
         // Local node k >= 1 is node `offset + k - 1` of the whole tree.
         let moved = |node: &Bvh2Node| {
             if node.prim_count == 0 {
@@ -156,7 +155,7 @@ fn subtree(
         }
         return moved(&local[0]);
     }
-    let cut = cut(aabbs, &mut range, depth, centroids);
+    let cut = cut(&mut range, depth, centroids);
     let mid = cut.mid;
     let (left, right) = range.split_at(mid);
     // The children's pair, then the rest of the left subtree, then the right's.
@@ -166,10 +165,9 @@ fn subtree(
     let l_bounds = (cut.boxes.0, cut.centroids.0);
     let r_bounds = (cut.boxes.1, cut.centroids.1);
     let (l, r) = rayon::join(
-        || subtree(aabbs, left, start, depth + 1, l_bounds, left_rest, l_offset),
+        || subtree(left, start, depth + 1, l_bounds, left_rest, l_offset),
         || {
             subtree(
-                aabbs,
                 right,
                 start + mid,
                 depth + 1,
@@ -186,7 +184,6 @@ fn subtree(
 
 /// [`subtree`] on one thread, with an explicit work stack.
 fn sequential(
-    aabbs: &[Aabb],
     mut range: Range,
     start: usize,
     depth: u32,
@@ -210,7 +207,7 @@ fn sequential(
             continue;
         }
         let mut sub = range.sub(task.start, task.end);
-        let cut = cut(aabbs, &mut sub, task.depth, task.centroids);
+        let cut = cut(&mut sub, task.depth, task.centroids);
         let first = nodes.len();
         nodes.push(Bvh2Node::new(cut.boxes.0, 0, 0));
         nodes.push(Bvh2Node::new(cut.boxes.1, 0, 0));
@@ -236,7 +233,7 @@ fn sequential(
 
 /// Cut `range` (at least two primitives, at `depth`, centroids within `centroids`) in
 /// two: reorders it so the left side comes first and returns the cut.
-fn cut(aabbs: &[Aabb], range: &mut Range, depth: u32, centroids: Centroids) -> Cut {
+fn cut(range: &mut Range, depth: u32, centroids: Centroids) -> Cut {
     // Two primitives have one cut, one each side: no bins needed (a third of all cuts,
     // each of which would clear and sweep 48 bins). The sides are leaves, which read
     // no centroid bounds.
@@ -258,7 +255,7 @@ fn cut(aabbs: &[Aabb], range: &mut Range, depth: u32, centroids: Centroids) -> C
     match sah {
         Some(cut) => cut,
         None => {
-            let mid = median_cut(range, aabbs, centroids);
+            let mid = median_cut(range, centroids);
             let (left, right) = range.boxes.split_at(mid);
             let whole = |b: &[Aabb]| b.iter().fold(Aabb::empty(), |a, b| a.union(b));
             Cut {
@@ -287,10 +284,12 @@ fn centroid_bounds(boxes: &[Aabb]) -> Centroids {
 /// Reorder `range` about its median on the centroids' longest axis and return the cut
 /// (`len / 2`). With every centroid at one point the order is left as it is.
 ///
-/// The order is selected by index (the reordering of `select_nth_unstable_by` depends
-/// only on the comparisons, so it is the one the build always made), then the boxes
-/// are gathered to follow it: median cuts are rare (degenerate input, the depth limit).
-fn median_cut(range: &mut Range, aabbs: &[Aabb], centroids: Centroids) -> usize {
+/// The selection runs on the range's positions, each compared by what it holds
+/// (centroid, then primitive index): `select_nth_unstable_by` on `u32`s reorders by the
+/// comparisons alone, so the positions end as the indices themselves would (as the
+/// build always selected them); the order and the boxes then follow. Median cuts are
+/// rare (degenerate input, the depth limit), so the two scratch lists cost little.
+fn median_cut(range: &mut Range, centroids: Centroids) -> usize {
     let mid = range.len() / 2;
     let (lo, hi) = centroids;
     let extent = hi - lo;
@@ -302,13 +301,20 @@ fn median_cut(range: &mut Range, aabbs: &[Aabb], centroids: Centroids) -> usize 
         2
     };
     if extent[axis] > 0.0 {
-        range.order.select_nth_unstable_by(mid, |&a, &b| {
-            let ca = aabbs[a as usize].center_axis(axis);
-            let cb = aabbs[b as usize].center_axis(axis);
-            ca.total_cmp(&cb).then(a.cmp(&b))
+        let (order, boxes) = (&mut *range.order, &mut *range.boxes);
+        let mut at: Vec<u32> = (0..order.len() as u32).collect();
+        at.select_nth_unstable_by(mid, |&a, &b| {
+            let (a, b) = (a as usize, b as usize);
+            let ca = boxes[a].center_axis(axis);
+            let cb = boxes[b].center_axis(axis);
+            ca.total_cmp(&cb).then(order[a].cmp(&order[b]))
         });
-        for (b, &i) in range.boxes.iter_mut().zip(range.order.iter()) {
-            *b = aabbs[i as usize];
+        let moved: Vec<(u32, Aabb)> = at
+            .iter()
+            .map(|&p| (order[p as usize], boxes[p as usize]))
+            .collect();
+        for ((o, b), (i, aabb)) in order.iter_mut().zip(boxes.iter_mut()).zip(moved) {
+            (*o, *b) = (i, aabb);
         }
     }
     mid
@@ -616,7 +622,7 @@ mod tests {
     #[test]
     fn coincident_boxes_give_a_balanced_tree() {
         let b = Aabb::new(Vec3A::ZERO, Vec3A::ONE);
-        let bvh = build(&vec![b; 100_000]);
+        let bvh = build(vec![b; 100_000]);
         assert_eq!(bvh.nodes.len(), 2 * 100_000 - 1);
         assert_eq!(depth(&bvh), 17);
         assert_eq!(leaves(&bvh), (0..100_000).collect::<Vec<_>>());
@@ -632,7 +638,7 @@ mod tests {
                 Aabb::new(Vec3A::splat(-r), Vec3A::splat(r))
             })
             .collect();
-        let bvh = build(&boxes);
+        let bvh = build(boxes.clone());
         assert!(depth(&bvh) <= MAX_DEPTH, "{}", depth(&bvh));
         assert_eq!(leaves(&bvh).len(), 50_000);
         // Geometric growth: SAH alone would peel one box per level.
@@ -642,7 +648,7 @@ mod tests {
                 Aabb::new(Vec3A::new(-r, 0.0, 0.0), Vec3A::new(r, 1.0, 1.0))
             })
             .collect();
-        assert!(depth(&build(&boxes)) <= MAX_DEPTH);
+        assert!(depth(&build(boxes.clone())) <= MAX_DEPTH);
     }
 
     #[test]
@@ -653,7 +659,7 @@ mod tests {
                 Aabb::new(p, p + 0.5)
             })
             .collect();
-        let bvh = build(&boxes);
+        let bvh = build(boxes.clone());
         assert_eq!(leaves(&bvh), (0..1000).collect::<Vec<_>>());
         for node in &bvh.nodes {
             if node.prim_count == 0 {
@@ -686,7 +692,7 @@ mod tests {
                 boxes.len() >= 4 * PARALLEL_MIN,
                 "the top levels must run in parallel"
             );
-            let parallel = build(&boxes);
+            let parallel = build(boxes.clone());
             let mut order: Vec<u32> = (0..boxes.len() as u32).collect();
             let mut copy = boxes.clone();
             let root = copy.iter().fold(Aabb::empty(), |a, b| a.union(b));
@@ -695,7 +701,7 @@ mod tests {
                 order: &mut order,
                 boxes: &mut copy,
             };
-            let one = sequential(&boxes, range, 0, 0, bounds);
+            let one = sequential(range, 0, 0, bounds);
             assert_eq!(parallel.primitive_indices, order);
             assert_eq!(parallel.nodes.len(), one.len());
             for (i, (a, b)) in parallel.nodes.iter().zip(&one).enumerate() {
@@ -761,7 +767,7 @@ mod tests {
             .collect();
         let got: Vec<String> = [random, clustered, coincident, nested, huge]
             .iter()
-            .map(|b| format!("{:016x}", tree_hash(&build(b))))
+            .map(|b| format!("{:016x}", tree_hash(&build(b.clone()))))
             .collect();
         assert_eq!(
             got,

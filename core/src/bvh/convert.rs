@@ -494,7 +494,7 @@ mod tests {
             (30_000, 1),
             (20_000, 0),
         ] {
-            let bvh2 = build::build(&boxes(n, 7 + n, kind));
+            let bvh2 = build::build(boxes(n, 7 + n, kind));
             for leaf in 1..=3 {
                 let want = bvh2_to_cwbvh(&bvh2, leaf, true, false);
                 let got = to_cwbvh(&bvh2, leaf);
@@ -525,7 +525,7 @@ mod tests {
                 })
                 .collect();
             assert!(!aabbs[0].half_area().is_finite(), "{side}");
-            let bvh2 = build::build(&aabbs);
+            let bvh2 = build::build(aabbs.clone());
             for leaf in 1..=3 {
                 let got = to_cwbvh(&bvh2, leaf);
                 let mut prims = got.primitive_indices.clone();
