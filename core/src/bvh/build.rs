@@ -137,23 +137,7 @@ fn subtree(
     debug_assert_eq!(rest.len(), 2 * count - 2);
     let (aabb, centroids) = bounds;
     if count < PARALLEL_MIN {
-        let local = sequential(range, start, depth, bounds);
-        // Local node k >= 1 is node `offset + k - 1` of the whole tree.
-        let moved = |node: &Bvh2Node| {
-            if node.prim_count == 0 {
-                Bvh2Node::new(
-                    *node.aabb(),
-                    0,
-                    (offset + node.first_index as usize - 1) as u32,
-                )
-            } else {
-                *node
-            }
-        };
-        for (slot, node) in rest.iter_mut().zip(&local[1..]) {
-            *slot = moved(node);
-        }
-        return moved(&local[0]);
+        return sequential(range, start, depth, bounds, rest, offset);
     }
     let cut = cut(&mut range, depth, centroids);
     let mid = cut.mid;
@@ -182,16 +166,25 @@ fn subtree(
     Bvh2Node::new(aabb, 0, offset as u32)
 }
 
-/// [`subtree`] on one thread, with an explicit work stack.
+/// [`subtree`] on one thread, with an explicit work stack: the same numbering, each
+/// node written once, in place. A side of one primitive is made a leaf when its cut's
+/// pair is written (a leaf numbers no nodes, so when does not matter).
 fn sequential(
     mut range: Range,
     start: usize,
     depth: u32,
     bounds: (Aabb, Centroids),
-) -> Vec<Bvh2Node> {
+    rest: &mut [Bvh2Node],
+    offset: usize,
+) -> Bvh2Node {
     let n = range.len();
-    let mut nodes: Vec<Bvh2Node> = Vec::with_capacity((2 * n).saturating_sub(1));
-    nodes.push(Bvh2Node::new(bounds.0, 0, 0));
+    if n <= 1 {
+        return Bvh2Node::new(bounds.0, 1, start as u32);
+    }
+    // Node `k` of the subtree: its root for 0, else `rest[k - 1]` (`offset + k - 1` in
+    // the whole tree).
+    let mut root = Bvh2Node::new(bounds.0, 0, 0);
+    let mut next = 1;
     let mut stack = vec![Task {
         node: 0,
         start: 0,
@@ -200,35 +193,46 @@ fn sequential(
         centroids: bounds.1,
     }];
     while let Some(task) = stack.pop() {
-        let count = task.end - task.start;
-        if count <= 1 {
-            let aabb = *nodes[task.node].aabb();
-            nodes[task.node] = Bvh2Node::new(aabb, 1, (start + task.start) as u32);
-            continue;
-        }
         let mut sub = range.sub(task.start, task.end);
         let cut = cut(&mut sub, task.depth, task.centroids);
-        let first = nodes.len();
-        nodes.push(Bvh2Node::new(cut.boxes.0, 0, 0));
-        nodes.push(Bvh2Node::new(cut.boxes.1, 0, 0));
-        let aabb = *nodes[task.node].aabb();
-        nodes[task.node] = Bvh2Node::new(aabb, 0, first as u32);
-        stack.push(Task {
-            node: first + 1,
-            start: task.start + cut.mid,
-            end: task.end,
-            depth: task.depth + 1,
-            centroids: cut.centroids.1,
-        });
-        stack.push(Task {
-            node: first,
-            start: task.start,
-            end: task.start + cut.mid,
-            depth: task.depth + 1,
-            centroids: cut.centroids.0,
-        });
+        let first = next;
+        next += 2;
+        let node = if task.node == 0 {
+            &mut root
+        } else {
+            &mut rest[task.node - 1]
+        };
+        node.first_index = (offset + first - 1) as u32;
+        let sides = [
+            (
+                task.start,
+                task.start + cut.mid,
+                cut.boxes.0,
+                cut.centroids.0,
+            ),
+            (task.start + cut.mid, task.end, cut.boxes.1, cut.centroids.1),
+        ];
+        for (k, (begin, end, aabb, _)) in sides.into_iter().enumerate() {
+            rest[first + k - 1] = if end - begin == 1 {
+                Bvh2Node::new(aabb, 1, (start + begin) as u32)
+            } else {
+                Bvh2Node::new(aabb, 0, 0)
+            };
+        }
+        // Right side below the left on the stack: the left is cut first.
+        for (k, (begin, end, _, centroids)) in sides.into_iter().enumerate().rev() {
+            if end - begin > 1 {
+                stack.push(Task {
+                    node: first + k,
+                    start: begin,
+                    end,
+                    depth: task.depth + 1,
+                    centroids,
+                });
+            }
+        }
     }
-    nodes
+    root
 }
 
 /// Cut `range` (at least two primitives, at `depth`, centroids within `centroids`) in
@@ -701,7 +705,9 @@ mod tests {
                 order: &mut order,
                 boxes: &mut copy,
             };
-            let one = sequential(range, 0, 0, bounds);
+            let mut one = vec![Bvh2Node::default(); 2 * boxes.len() - 1];
+            let (top, rest) = one.split_at_mut(1);
+            top[0] = sequential(range, 0, 0, bounds, rest, 1);
             assert_eq!(parallel.primitive_indices, order);
             assert_eq!(parallel.nodes.len(), one.len());
             for (i, (a, b)) in parallel.nodes.iter().zip(&one).enumerate() {
