@@ -160,13 +160,13 @@ impl Accel {
         // Exact: the corners are f32 and the scale a power of two.
         let (box_lo, box_hi) = (lo.as_vec3() * scale, hi.as_vec3() * scale);
 
-        // A triangle's corners in accelerator space, from its mesh index. Taken twice (for
-        // its box, then in leaf order for the leaf layout) rather than kept in between:
-        // one list fewer of every triangle, whose fresh pages cost more than the reads.
-        let scaled = |i: u32| Tri {
-            v: mesh.corners(i as usize).map(|p| p * scale),
-        };
-        if kept.is_empty() {
+        let prims: Vec<Tri> = kept
+            .par_iter()
+            .map(|&i| Tri {
+                v: mesh.corners(i as usize).map(|p| p * scale),
+            })
+            .collect();
+        if prims.is_empty() {
             return Accel {
                 nodes: Vec::new(),
                 tris: Vec::new(),
@@ -179,7 +179,7 @@ impl Accel {
                 build_time: start.elapsed(),
             };
         }
-        let aabbs: Vec<Aabb> = kept.par_iter().map(|&i| scaled(i).aabb()).collect();
+        let aabbs: Vec<Aabb> = prims.par_iter().map(Boundable::aabb).collect();
         let bvh2 = build::build(aabbs);
         // At most 3 triangles per leaf, as obvhs's own CWBVH builder converts; obvhs's
         // conversion, with large subtrees on rayon's pool.
@@ -198,7 +198,7 @@ impl Accel {
         let tris: Vec<PackedTri> = bvh
             .primitive_indices
             .par_iter()
-            .map(|&p| PackedTri::new(scaled(kept[p as usize]).v))
+            .map(|&i| PackedTri::new(prims[i as usize].v))
             .collect();
         Accel {
             nodes: wide::from_cwbvh(&bvh, &tris),
