@@ -100,7 +100,9 @@ pub fn build(mut boxes: Vec<Aabb>) -> Bvh2 {
     let mut order: Vec<u32> = (0..n as u32).collect();
     let root = boxes.iter().fold(Aabb::empty(), |a, b| a.union(b));
     let centroids = centroid_bounds(&boxes);
-    let mut nodes = vec![Bvh2Node::default(); 2 * n - 1];
+    // Every node is written by the build; zeroed memory (a `Bvh2Node` of zero bits is its
+    // default) spares a pass writing defaults over the whole list first.
+    let mut nodes: Vec<Bvh2Node> = bytemuck::zeroed_vec(2 * n - 1);
     let (top, rest) = nodes.split_at_mut(1);
     let range = Range {
         order: &mut order,

@@ -27,7 +27,6 @@ use glam::{Vec3A, vec3a};
 use obvhs::bvh2::Bvh2;
 use obvhs::cwbvh::node::CwBvhNode;
 use obvhs::cwbvh::{BRANCHING, CwBvh};
-use rayon::prelude::*;
 
 /// obvhs's `PRIM_COST`.
 const PRIM_COST: f32 = 0.3;
@@ -121,8 +120,9 @@ pub(crate) fn to_cwbvh(bvh2: &Bvh2, max_prims_per_leaf: u32) -> CwBvh {
     let n = bvh2.nodes.len();
     let c = Converter {
         bvh2,
-        decisions: (0..n).into_par_iter().map(|_| AtomicU64::new(0)).collect(),
-        prims: (0..n).into_par_iter().map(|_| AtomicU32::new(0)).collect(),
+        // Zeroed memory: the cost pass writes every node's entries once.
+        decisions: bytemuck::zeroed_vec(n),
+        prims: bytemuck::zeroed_vec(n),
         directions: std::array::from_fn(|s| {
             vec3a(
                 if (s & 0b100) != 0 { -1.0 } else { 1.0 },
