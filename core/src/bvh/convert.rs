@@ -199,13 +199,14 @@ impl Converter<'_> {
             };
             let mut cost_distribute = f32::INFINITY;
             let (mut left, mut right) = (INVALID, INVALID);
+            // The minimum by selects, not branches (which way each compare goes is
+            // data, and the branches were mispredicted).
             for k in 0..SLOTS {
                 let c = cl[k] + cr[6 - k];
-                if c < cost_distribute {
-                    cost_distribute = c;
-                    left = k as u8;
-                    right = 6 - k as u8;
-                }
+                let better = c < cost_distribute;
+                cost_distribute = if better { c } else { cost_distribute };
+                left = if better { k as u8 } else { left };
+                right = if better { 6 - k as u8 } else { right };
             }
             if left == INVALID {
                 // Every split costs infinity or NaN: boxes whose half-areas overflow
@@ -225,14 +226,14 @@ impl Converter<'_> {
             let mut slots = u64::from(byte);
             for i in 1..SLOTS {
                 let mut cost_distribute = costs[i - 1];
-                let mut split = None;
+                let mut split = INVALID;
                 for k in 0..i {
                     let c = cl[k] + cr[i - k - 1];
-                    if c < cost_distribute {
-                        cost_distribute = c;
-                        split = Some(k as u8);
-                    }
+                    let better = c < cost_distribute;
+                    cost_distribute = if better { c } else { cost_distribute };
+                    split = if better { k as u8 } else { split };
                 }
+                let split = (split != INVALID).then_some(split);
                 // Without a cheaper split, obvhs copies the previous decision (its
                 // cost too).
                 if let Some(left) = split {
