@@ -180,7 +180,7 @@ impl Accel {
             };
         }
         let aabbs: Vec<Aabb> = prims.par_iter().map(Boundable::aabb).collect();
-        let bvh2 = build::build(&aabbs);
+        let bvh2 = build::build(aabbs);
         // At most 3 triangles per leaf, as obvhs's own CWBVH builder converts; obvhs's
         // conversion, with large subtrees on rayon's pool.
         let bvh = convert::to_cwbvh(&bvh2, 3);
@@ -230,6 +230,35 @@ impl Accel {
 
     pub fn triangle_count(&self) -> usize {
         self.ids.len()
+    }
+
+    /// A hash of everything the traversal reads (every node's planes, slot words and
+    /// primitive base, the leaf-ordered triangles and their ids, the scene box and the
+    /// scale), bit for bit: two builds with the same digest are, but for a hash
+    /// collision, the same tree, and give the same answer to every ray. For checking that
+    /// a change to the build leaves the tree as it was (`examples/build_time.rs`).
+    pub fn digest(&self) -> u64 {
+        // FNV-1a over 32-bit words: stable across runs and platforms, unlike std's
+        // randomly keyed hasher.
+        let mut h = 0xcbf2_9ce4_8422_2325u64;
+        let mut word = |w: u32| {
+            h ^= u64::from(w);
+            h = h.wrapping_mul(0x0000_0100_0000_01b3);
+        };
+        for node in &self.nodes {
+            node.planes.iter().flatten().for_each(|p| word(p.to_bits()));
+            node.slot.iter().for_each(|&s| word(s));
+            word(node.prim_base);
+        }
+        for t in &self.tris {
+            t.rows.iter().flatten().for_each(|p| word(p.to_bits()));
+        }
+        self.ids.iter().for_each(|&i| word(i));
+        let box_bits = self.lo.to_array().into_iter().chain(self.hi.to_array());
+        box_bits.for_each(|p| word(p.to_bits()));
+        word(self.scale.to_bits());
+        word(self.nodes.len() as u32);
+        h
     }
 
     /// Bytes held by the nodes, the leaf-ordered triangles and their ids.

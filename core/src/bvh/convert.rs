@@ -4,7 +4,11 @@
 //!
 //! obvhs converts on one thread; on a 1.7M-triangle scene that is a third of a second
 //! with the other core idle, as long as the parallel binned-SAH build before it. The
-//! result here is obvhs's own, node for node (a test compares the two with `==`):
+//! result here is obvhs's own tree, node for node and primitive for primitive (a test
+//! compares the two), less the 8-bit quantised child boxes (each node's `p`, `e` and
+//! `child_min_*`/`child_max_*`, left at zero): dray's wide nodes (`wide`) take exact
+//! planes from the triangles and never read them, and quantising every child was a
+//! tenth of the conversion's instructions.
 //! - **Costs** (bottom up): each node's seven decisions need only its children's, so
 //!   the two sides of the top levels are costed in parallel (`rayon::join`). Each
 //!   node's decisions are written once, by the task that owns the node, into atomics
@@ -19,14 +23,11 @@
 
 use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 
-use glam::{UVec3, Vec3A, vec3a};
+use glam::{Vec3A, vec3a};
 use obvhs::bvh2::Bvh2;
 use obvhs::cwbvh::node::CwBvhNode;
 use obvhs::cwbvh::{BRANCHING, CwBvh};
-use rayon::prelude::*;
 
-/// obvhs's `DENOM`: one step of the 8-bit child-plane grid.
-const DENOM: f32 = 1.0 / 255.0;
 /// obvhs's `PRIM_COST`.
 const PRIM_COST: f32 = 0.3;
 /// Directions of the child-ordering table (octants).
@@ -48,53 +49,52 @@ enum Kind {
     Distribute,
 }
 
-/// obvhs's `Decision`: what a node becomes when it may fill `i + 1` child slots.
+/// obvhs's `Decision` less its cost: what a node becomes when it may fill `i + 1` child
+/// slots, and how it splits them between its two children. Packed in one byte: the kind
+/// in bits 0..2, `left` in 2..5 and `right` in 5..8 (both at most 6).
 #[derive(Clone, Copy, Debug)]
 struct Decision {
-    cost: f32,
     kind: Kind,
     left: u8,
     right: u8,
 }
 
 impl Decision {
-    fn pack(self) -> u64 {
+    fn pack(self) -> u8 {
         let kind = match self.kind {
-            Kind::Leaf => 0u64,
+            Kind::Leaf => 0u8,
             Kind::Internal => 1,
             Kind::Distribute => 2,
         };
-        u64::from(self.cost.to_bits())
-            | kind << 32
-            | u64::from(self.left) << 40
-            | u64::from(self.right) << 48
+        kind | self.left << 2 | self.right << 5
     }
 
-    fn unpack(v: u64) -> Decision {
+    fn unpack(v: u8) -> Decision {
         Decision {
-            cost: f32::from_bits(v as u32),
-            kind: match (v >> 32) as u8 {
+            kind: match v & 3 {
                 0 => Kind::Leaf,
                 1 => Kind::Internal,
                 _ => Kind::Distribute,
             },
-            left: (v >> 40) as u8,
-            right: (v >> 48) as u8,
+            left: v >> 2 & 7,
+            right: v >> 5,
         }
     }
 }
 
-/// obvhs's `Decision::default()`.
-const DEFAULT: Decision = Decision {
-    cost: 0.0,
-    kind: Kind::Distribute,
+/// A leaf's decisions: a leaf whatever the slots (obvhs leaves `left` and `right` at
+/// their defaults, 0; nothing reads them).
+const LEAF: Decision = Decision {
+    kind: Kind::Leaf,
     left: 0,
     right: 0,
 };
 
 struct Converter<'a> {
     bvh2: &'a Bvh2,
-    /// `SLOTS` decisions per BVH2 node.
+    /// Each BVH2 node's `SLOTS` decisions, one byte each (slot `i` in bits `8i..8i + 8`).
+    /// Their costs are not kept: a node's are needed only by its parent's, which the
+    /// cost pass hands up on the stack.
     decisions: Vec<AtomicU64>,
     /// Primitives under each BVH2 node (set by the cost pass).
     prims: Vec<AtomicU32>,
@@ -109,8 +109,10 @@ struct Part {
     primitive_indices: Vec<u32>,
 }
 
-/// obvhs's `bvh2_to_cwbvh(bvh2, max_prims_per_leaf, true, false)`, the same to the bit.
-/// `bvh2` must have one primitive per leaf (as obvhs requires).
+/// obvhs's `bvh2_to_cwbvh(bvh2, max_prims_per_leaf, true, false)`, the same to the bit
+/// but for the quantised child boxes, which are not computed (zero): the same nodes,
+/// children, child order, leaves and primitive order, which is all `wide::from_cwbvh`
+/// reads. `bvh2` must have one primitive per leaf (as obvhs requires).
 pub(crate) fn to_cwbvh(bvh2: &Bvh2, max_prims_per_leaf: u32) -> CwBvh {
     if bvh2.nodes.is_empty() {
         return CwBvh::default();
@@ -118,11 +120,9 @@ pub(crate) fn to_cwbvh(bvh2: &Bvh2, max_prims_per_leaf: u32) -> CwBvh {
     let n = bvh2.nodes.len();
     let c = Converter {
         bvh2,
-        decisions: (0..n * SLOTS)
-            .into_par_iter()
-            .map(|_| AtomicU64::new(DEFAULT.pack()))
-            .collect(),
-        prims: (0..n).into_par_iter().map(|_| AtomicU32::new(0)).collect(),
+        // Zeroed memory: the cost pass writes every node's entries once.
+        decisions: bytemuck::zeroed_vec(n),
+        prims: bytemuck::zeroed_vec(n),
         directions: std::array::from_fn(|s| {
             vec3a(
                 if (s & 0b100) != 0 { -1.0 } else { 1.0 },
@@ -131,7 +131,7 @@ pub(crate) fn to_cwbvh(bvh2: &Bvh2, max_prims_per_leaf: u32) -> CwBvh {
             )
         }),
     };
-    c.cost(0, max_prims_per_leaf, 0);
+    c.cost(0, max_prims_per_leaf, 0, &mut [0.0; SLOTS]);
     let mut part = Part::default();
     part.nodes.reserve(bvh2.primitive_indices.len());
     part.primitive_indices.reserve(bvh2.primitive_indices.len());
@@ -147,121 +147,110 @@ pub(crate) fn to_cwbvh(bvh2: &Bvh2, max_prims_per_leaf: u32) -> CwBvh {
 }
 
 impl Converter<'_> {
-    fn decision(&self, i: usize) -> Decision {
-        Decision::unpack(self.decisions[i].load(Ordering::Relaxed))
-    }
-
-    fn set(&self, i: usize, d: Decision) {
-        self.decisions[i].store(d.pack(), Ordering::Relaxed);
+    /// Node `index`'s decision for `slot`.
+    fn decision(&self, index: usize, slot: usize) -> Decision {
+        let word = self.decisions[index].load(Ordering::Relaxed);
+        Decision::unpack((word >> (8 * slot)) as u8)
     }
 
     /// obvhs's `calculate_cost_impl`: fill node `index`'s decisions, its children's
-    /// first; returns the primitives under it.
-    fn cost(&self, index: usize, max_prims_per_leaf: u32, depth: u32) -> u32 {
+    /// first, and its seven costs into `costs`; returns the primitives under it.
+    ///
+    /// The same costs, compared in the same order, as obvhs's: each slot's best split
+    /// is the first strictly cheaper one, and a slot with none copies the slot before.
+    fn cost(
+        &self,
+        index: usize,
+        max_prims_per_leaf: u32,
+        depth: u32,
+        costs: &mut [f32; SLOTS],
+    ) -> u32 {
         let node = &self.bvh2.nodes[index];
         let half_area = node.aabb().half_area();
         let first = node.first_index as usize;
-        let base = index * SLOTS;
-        let (first_7, next_7) = (first * SLOTS, (first + 1) * SLOTS);
         let num_primitives;
+        let word;
         if node.prim_count != 0 {
             num_primitives = node.prim_count;
             assert!(
                 num_primitives == 1,
                 "the CWBVH conversion expects one primitive per BVH2 leaf"
             );
-            let cost = half_area * (num_primitives as f32) * PRIM_COST;
-            for i in 0..SLOTS {
-                self.set(
-                    base + i,
-                    Decision {
-                        kind: Kind::Leaf,
-                        cost,
-                        ..self.decision(base + i)
-                    },
-                );
-            }
+            *costs = [half_area * (num_primitives as f32) * PRIM_COST; SLOTS];
+            word = u64::from_le_bytes([LEAF.pack(); 8]);
         } else {
+            let (mut cl, mut cr) = ([0f32; SLOTS], [0f32; SLOTS]);
             let (l, r) = if depth < PARALLEL_COST_DEPTH {
                 rayon::join(
-                    || self.cost(first, max_prims_per_leaf, depth + 1),
-                    || self.cost(first + 1, max_prims_per_leaf, depth + 1),
+                    || self.cost(first, max_prims_per_leaf, depth + 1, &mut cl),
+                    || self.cost(first + 1, max_prims_per_leaf, depth + 1, &mut cr),
                 )
             } else {
                 (
-                    self.cost(first, max_prims_per_leaf, depth + 1),
-                    self.cost(first + 1, max_prims_per_leaf, depth + 1),
+                    self.cost(first, max_prims_per_leaf, depth + 1, &mut cl),
+                    self.cost(first + 1, max_prims_per_leaf, depth + 1, &mut cr),
                 )
             };
             num_primitives = l + r;
-            let child = |i: usize| self.decision(i).cost;
-            {
-                let cost_leaf = if num_primitives <= max_prims_per_leaf {
-                    (num_primitives as f32) * half_area * PRIM_COST
-                } else {
-                    f32::INFINITY
-                };
-                let mut cost_distribute = f32::INFINITY;
-                let (mut left, mut right) = (INVALID, INVALID);
-                for k in 0..SLOTS {
-                    let c = child(first_7 + k) + child(next_7 + 6 - k);
-                    if c < cost_distribute {
-                        cost_distribute = c;
-                        left = k as u8;
-                        right = 6 - k as u8;
-                    }
+            let cost_leaf = if num_primitives <= max_prims_per_leaf {
+                (num_primitives as f32) * half_area * PRIM_COST
+            } else {
+                f32::INFINITY
+            };
+            let mut cost_distribute = f32::INFINITY;
+            let (mut left, mut right) = (INVALID, INVALID);
+            // The minimum by selects, not branches (which way each compare goes is
+            // data, and the branches were mispredicted).
+            for k in 0..SLOTS {
+                let c = cl[k] + cr[6 - k];
+                let better = c < cost_distribute;
+                cost_distribute = if better { c } else { cost_distribute };
+                left = if better { k as u8 } else { left };
+                right = if better { 6 - k as u8 } else { right };
+            }
+            if left == INVALID {
+                // Every split costs infinity or NaN: boxes whose half-areas overflow
+                // f32 (coordinates far beyond the import bound, moved there). obvhs
+                // leaves the slots unset and the conversion then indexes slot 255;
+                // any split gives a valid tree, so take the first.
+                (left, right) = (0, 6);
+            }
+            let cost_internal = cost_distribute + half_area;
+            let (kind, cost) = if cost_leaf < cost_internal {
+                (Kind::Leaf, cost_leaf)
+            } else {
+                (Kind::Internal, cost_internal)
+            };
+            costs[0] = cost;
+            let mut byte = Decision { kind, left, right }.pack();
+            let mut slots = u64::from(byte);
+            for i in 1..SLOTS {
+                let mut cost_distribute = costs[i - 1];
+                let mut split = INVALID;
+                for k in 0..i {
+                    let c = cl[k] + cr[i - k - 1];
+                    let better = c < cost_distribute;
+                    cost_distribute = if better { c } else { cost_distribute };
+                    split = if better { k as u8 } else { split };
                 }
-                if left == INVALID {
-                    // Every split costs infinity or NaN: boxes whose half-areas overflow
-                    // f32 (coordinates far beyond the import bound, moved there). obvhs
-                    // leaves the slots unset and the conversion then indexes slot 255;
-                    // any split gives a valid tree, so take the first.
-                    (left, right) = (0, 6);
-                }
-                let cost_internal = cost_distribute + half_area;
-                let (kind, cost) = if cost_leaf < cost_internal {
-                    (Kind::Leaf, cost_leaf)
-                } else {
-                    (Kind::Internal, cost_internal)
-                };
-                self.set(
-                    base,
-                    Decision {
-                        cost,
-                        kind,
+                let split = (split != INVALID).then_some(split);
+                // Without a cheaper split, obvhs copies the previous decision (its
+                // cost too).
+                if let Some(left) = split {
+                    let right = i as u8 - left - 1;
+                    byte = Decision {
+                        kind: Kind::Distribute,
                         left,
                         right,
-                    },
-                );
-            }
-            for i in 1..SLOTS {
-                let at = base + i;
-                let mut cost_distribute = self.decision(at - 1).cost;
-                let (mut left, mut right) = (INVALID, INVALID);
-                for k in 0..i {
-                    let c = child(first_7 + k) + child(next_7 + i - k - 1);
-                    if c < cost_distribute {
-                        cost_distribute = c;
-                        left = k as u8;
-                        right = i as u8 - k as u8 - 1;
                     }
+                    .pack();
                 }
-                if left != INVALID {
-                    self.set(
-                        at,
-                        Decision {
-                            cost: cost_distribute,
-                            kind: Kind::Distribute,
-                            left,
-                            right,
-                        },
-                    );
-                } else {
-                    // obvhs sets the cost, then copies the previous decision over it.
-                    self.set(at, self.decision(at - 1));
-                }
+                costs[i] = cost_distribute;
+                slots |= u64::from(byte) << (8 * i);
             }
+            word = slots;
         }
+        self.decisions[index].store(word, Ordering::Relaxed);
         self.prims[index].store(num_primitives, Ordering::Relaxed);
         num_primitives
     }
@@ -274,10 +263,10 @@ impl Converter<'_> {
             *count += 1;
             return;
         }
-        let d = self.decision(index * SLOTS + i);
+        let d = self.decision(index, i);
         let first = node.first_index as usize;
         for (child, slot) in [(first, d.left), (first + 1, d.right)] {
-            if self.decision(child * SLOTS + slot as usize).kind == Kind::Distribute {
+            if self.decision(child, slot as usize).kind == Kind::Distribute {
                 self.children(child, out, count, slot as usize);
             } else {
                 out[*count] = child as u32;
@@ -340,17 +329,6 @@ impl Converter<'_> {
     /// children; large ones on their own, in parallel, appended in slot order.
     fn convert(&self, part: &mut Part, at: usize, index: usize) {
         let mut node = part.nodes[at];
-        let aabb = self.bvh2.nodes[index].aabb();
-        let node_p = aabb.min;
-        node.p = node_p.into();
-        let e = ((aabb.max - aabb.min).max(Vec3A::splat(1e-20)) * DENOM)
-            .log2()
-            .ceil()
-            .exp2();
-        let rcp_e = 1.0 / e;
-        let e: UVec3 = UVec3::new(e.x.to_bits(), e.y.to_bits(), e.z.to_bits()) >> 23u32;
-        node.e = [e.x as u8, e.y as u8, e.z as u8];
-
         let mut children = [INVALID32; 8];
         let mut count = 0;
         self.children(index, &mut children, &mut count, 0);
@@ -365,21 +343,7 @@ impl Converter<'_> {
             if child == INVALID32 {
                 continue;
             }
-            let child_aabb = self.bvh2.nodes[child as usize].aabb();
-            const PAD: f32 = 0.0;
-            let child_min = ((child_aabb.min - node_p - PAD) * rcp_e)
-                .floor()
-                .clamp(Vec3A::ZERO, Vec3A::splat(255.0));
-            let child_max = ((child_aabb.max - node_p + PAD) * rcp_e)
-                .ceil()
-                .clamp(Vec3A::ZERO, Vec3A::splat(255.0));
-            node.child_min_x[i] = child_min.x as u8;
-            node.child_min_y[i] = child_min.y as u8;
-            node.child_min_z[i] = child_min.z as u8;
-            node.child_max_x[i] = child_max.x as u8;
-            node.child_max_y[i] = child_max.y as u8;
-            node.child_max_z[i] = child_max.z as u8;
-            match self.decision(child as usize * SLOTS).kind {
+            match self.decision(child as usize, 0).kind {
                 Kind::Leaf => {
                     let n = self.push_primitives(child as usize, &mut part.primitive_indices);
                     node.child_meta[i] = num_primitives as u8
@@ -496,8 +460,9 @@ mod tests {
             .collect()
     }
 
-    /// The parallel conversion is obvhs's, node for node and primitive for primitive,
-    /// on random, clustered and coincident boxes, small (one thread) and large (parallel
+    /// The parallel conversion is obvhs's, node for node (every field but the quantised
+    /// child boxes, which it leaves at zero) and primitive for primitive, on random,
+    /// clustered and coincident boxes, small (one thread) and large (parallel
     /// subtrees), and with 1, 2 or 3 primitives per leaf.
     #[test]
     fn same_tree_as_obvhs() {
@@ -510,19 +475,31 @@ mod tests {
             (30_000, 1),
             (20_000, 0),
         ] {
-            let bvh2 = build::build(&boxes(n, 7 + n, kind));
+            let bvh2 = build::build(boxes(n, 7 + n, kind));
             for leaf in 1..=3 {
                 let want = bvh2_to_cwbvh(&bvh2, leaf, true, false);
                 let got = to_cwbvh(&bvh2, leaf);
                 assert_eq!(got.nodes.len(), want.nodes.len(), "{n} {kind} {leaf}");
                 for (i, (g, w)) in got.nodes.iter().zip(&want.nodes).enumerate() {
+                    // obvhs's node with its quantised boxes taken out.
+                    let w = CwBvhNode {
+                        p: Default::default(),
+                        e: [0; 3],
+                        child_min_x: [0; 8],
+                        child_min_y: [0; 8],
+                        child_min_z: [0; 8],
+                        child_max_x: [0; 8],
+                        child_max_y: [0; 8],
+                        child_max_z: [0; 8],
+                        ..*w
+                    };
                     assert!(
-                        g == w,
+                        *g == w,
                         "{n} boxes, kind {kind}, leaf {leaf}: node {i} differs"
                     );
                 }
                 assert_eq!(got.primitive_indices, want.primitive_indices);
-                assert!(got == want, "{n} {kind} {leaf}");
+                assert_eq!(got.total_aabb, want.total_aabb);
             }
         }
     }
@@ -541,7 +518,7 @@ mod tests {
                 })
                 .collect();
             assert!(!aabbs[0].half_area().is_finite(), "{side}");
-            let bvh2 = build::build(&aabbs);
+            let bvh2 = build::build(aabbs.clone());
             for leaf in 1..=3 {
                 let got = to_cwbvh(&bvh2, leaf);
                 let mut prims = got.primitive_indices.clone();

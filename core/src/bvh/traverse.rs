@@ -573,7 +573,7 @@ mod tests {
                 Aabb::new(Vec3A::from(lo), Vec3A::from(hi))
             })
             .collect();
-        let bvh = bvh2_to_cwbvh(&build::build(&aabbs), 3, true, false);
+        let bvh = bvh2_to_cwbvh(&build::build(aabbs.clone()), 3, true, false);
         let ordered: Vec<[Vec3; 3]> = bvh
             .primitive_indices
             .iter()
