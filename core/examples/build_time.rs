@@ -12,8 +12,9 @@
 use std::time::Instant;
 
 use dray_core::bvh::Accel;
-use dray_core::scene::Mesh;
-use glam::Vec3;
+
+#[path = "shared/dump.rs"]
+mod dump;
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
@@ -22,22 +23,8 @@ fn main() {
         std::process::exit(2);
     };
     let repeat: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(5).max(1);
-    let bytes = std::fs::read(path).unwrap_or_else(|e| {
-        eprintln!("cannot read {path}: {e}");
-        std::process::exit(2);
-    });
-    let pts: Vec<Vec3> = bytes
-        .chunks_exact(12)
-        .map(|c| {
-            let f = |k: usize| f32::from_le_bytes([c[k], c[k + 1], c[k + 2], c[k + 3]]);
-            Vec3::new(f(0), f(4), f(8))
-        })
-        .collect();
-    let mut mesh = Mesh::default();
-    mesh.push_vertices(&pts);
-    let t = pts.len() as u32 / 3;
-    mesh.indices = (0..t).map(|i| [3 * i, 3 * i + 1, 3 * i + 2]).collect();
-    mesh.material = vec![0; t as usize];
+    let mesh = dump::read_mesh(path);
+    let t = mesh.indices.len();
     let mut times = Vec::with_capacity(repeat);
     let mut digest = None;
     for _ in 0..repeat {

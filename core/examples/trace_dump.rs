@@ -3,7 +3,7 @@
 //! to the BVH can be timed after rebuilding `dray-core` only, not the whole CLI.
 //!
 //! Usage: `cargo run --release -p dray-core --example trace_dump -- MESH RAYS [REPEAT] [SIMD]`
-//! (SIMD: auto, avx2, sse2 or portable). Prints the build time, the median pass's
+//! (SIMD: auto, avx512, avx2, sse2 or portable). Prints the build time, the median pass's
 //! Mrays/s on one thread, hits and the sum of hit distances (to compare answers between
 //! builds), and the nodes and triangles tested per ray; then the same for
 //! `Accel::closest_batch`, with the number of rays whose answer differs (must be 0).
@@ -11,21 +11,15 @@
 use std::time::Instant;
 
 use dray_core::bvh::{Accel, QueryRay, Simd, TraversalCounts};
-use dray_core::scene::Mesh;
 use glam::Vec3;
 
-fn read_f32s(path: &str) -> Vec<f32> {
-    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("cannot read {path}: {e}"));
-    bytes
-        .chunks_exact(4)
-        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect()
-}
+#[path = "shared/dump.rs"]
+mod dump;
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     if args.len() < 3 {
-        eprintln!("usage: trace_dump MESH_F32 RAYS_F32 [REPEAT] [auto|avx2|sse2|portable]");
+        eprintln!("usage: trace_dump MESH_F32 RAYS_F32 [REPEAT] [auto|avx512|avx2|sse2|portable]");
         std::process::exit(2);
     }
     let repeat: usize = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(5);
@@ -36,11 +30,7 @@ fn main() {
         Some("portable") => Some(Simd::Portable),
         _ => None,
     };
-    let pts: Vec<Vec3> = read_f32s(&args[1])
-        .chunks_exact(3)
-        .map(|c| Vec3::new(c[0], c[1], c[2]))
-        .collect();
-    let rays: Vec<QueryRay> = read_f32s(&args[2])
+    let rays: Vec<QueryRay> = dump::read_f32s(&args[2])
         .chunks_exact(6)
         .map(|c| QueryRay {
             origin: Vec3::new(c[0], c[1], c[2]),
@@ -49,11 +39,8 @@ fn main() {
             tmax: f32::INFINITY,
         })
         .collect();
-    let mut mesh = Mesh::default();
-    mesh.push_vertices(&pts);
-    let t = pts.len() as u32 / 3;
-    mesh.indices = (0..t).map(|i| [3 * i, 3 * i + 1, 3 * i + 2]).collect();
-    mesh.material = vec![0; t as usize];
+    let mesh = dump::read_mesh(&args[1]);
+    let t = mesh.indices.len() as u32;
     let t0 = Instant::now();
     let mut accel = Accel::build(&mesh);
     let build_s = t0.elapsed().as_secs_f64();
