@@ -251,11 +251,6 @@ impl JobActor {
         self.shared.notify();
     }
 
-    /// Start sending what was gathered (with `force`, even if that is only idle time),
-    /// if there is anything to send. What is owed to ray-cache tickets goes to their
-    /// cache actors first, and the report waits until they have applied it: a tile
-    /// whose credit is complete at the coordinator has then closed every ticket of its
-    /// rays.
     /// Whether the report should go on the short tick ([`REPORT_INTERVAL`]) rather than
     /// wait for the queue report's ([`QUEUE_REPORT_INTERVAL`]): when this worker has no
     /// camera ray left to make (the end of its share of a pass, or of the job: the
@@ -270,6 +265,11 @@ impl JobActor {
         self.job.tiles().is_empty() || !self.report.tickets.is_empty()
     }
 
+    /// Start sending what was gathered (with `force`, even if that is only idle time),
+    /// if there is anything to send. What is owed to ray-cache tickets goes to their
+    /// cache actors first, and the report waits until they have applied it: a tile
+    /// whose credit is complete at the coordinator has then closed every ticket of its
+    /// rays.
     fn start(&mut self, force: bool) -> Option<InFlight> {
         let queued: u64 = self
             .shared
