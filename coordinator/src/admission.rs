@@ -4,8 +4,9 @@
 //!
 //! The estimate covers what grows with the request:
 //! - the film: integer sums per pixel, plus the encoded image GetImage builds;
-//! - a scene file: its size times [`IMPORT_FACTOR`] (meshes, the BVH or the partition
-//!   built from it), and for `grid:<file>:XxYxZ` that times the copies;
+//! - a scene file: its size, plus what its compressed glTF views declare they decode to
+//!   ([`dray_scene::gltf::declared_expansion`]), times [`IMPORT_FACTOR`] (meshes, the BVH
+//!   or the partition built from it), and for `grid:<file>:XxYxZ` that times the copies;
 //! - a procedural scene: the generator's own triangle estimate
 //!   ([`dray_scene::procedural::triangle_estimate`]) times [`PROCEDURAL_BYTES_PER_TRIANGLE`].
 //!   The generators' caps (200M triangles) keep a typo from asking for terabytes, but
@@ -72,7 +73,14 @@ fn scene_bytes(spec: &str, package: bool) -> u64 {
         return 0;
     }
     match std::fs::metadata(spec) {
-        Ok(m) if m.is_file() => m.len().saturating_mul(IMPORT_FACTOR),
+        // What compressed views decode to counts as if it were in the file: a small
+        // file whose views expand a thousandfold is priced at what it will take.
+        Ok(m) if m.is_file() => m
+            .len()
+            .saturating_add(dray_scene::gltf::declared_expansion(std::path::Path::new(
+                spec,
+            )))
+            .saturating_mul(IMPORT_FACTOR),
         _ => 0,
     }
 }
@@ -97,6 +105,32 @@ pub fn admit(v: &Validated, limits: &Limits) -> Result<(), Status> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A small glTF whose compressed views declare gigabytes (a decompression bomb,
+    /// issue 45) is priced at what it declares, so admission refuses it before the
+    /// loader allocates anything; the same file without the views is priced by size.
+    #[test]
+    fn compressed_views_are_priced_at_their_declared_size() {
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("bomb.gltf");
+        let view = r#"{"buffer":0,"byteLength":16,"extensions":{"EXT_meshopt_compression":
+            {"buffer":0,"byteLength":16,"byteStride":16,"count":33554432,"mode":"ATTRIBUTES"}}}"#;
+        let views = [view; 12].join(",");
+        let json = format!(
+            r#"{{"asset":{{"version":"2.0"}},"buffers":[{{"byteLength":16}}],"bufferViews":[{views}]}}"#
+        );
+        std::fs::write(&f, &json).unwrap();
+        let p = f.display().to_string();
+        let declared = 12u64 * 33_554_432 * 16;
+        assert_eq!(
+            scene_bytes(&p, false),
+            (json.len() as u64 + declared) * IMPORT_FACTOR
+        );
+        let plain = dir.path().join("plain.gltf");
+        std::fs::write(&plain, r#"{"asset":{"version":"2.0"}}"#).unwrap();
+        let p = plain.display().to_string();
+        assert_eq!(scene_bytes(&p, false), 27 * IMPORT_FACTOR);
+    }
 
     #[test]
     fn grid_copies_multiply_a_file() {

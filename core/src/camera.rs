@@ -103,9 +103,25 @@ impl Frustum {
 /// provably stays outside the box.
 const BOX_MARGIN: f32 = 1.0 / (1u32 << 17) as f32;
 
+/// The least distance [`advance_to_box`] leaves between the moved origin and the box,
+/// relative to the box's largest extent: 1/64 of it.
+///
+/// The margin above only keeps the origin provably outside. A triangle lying on the box
+/// (a cube whose faces are the scene's bounds) was then hit at a distance of about
+/// 2^-17 of the scene, below the watertight test's own error bound on the distance
+/// (pbrt-v4's, `intersect::t_error_bound`, which grows with the triangle's extent around
+/// the ray and refuses hits it cannot tell from the origin): rays passed through the
+/// cube's near faces in curved patches (issue 38, Khronos `BoxVertexColors`). Starting
+/// 1/64 of the scene away keeps every hit far above that bound for any triangle no
+/// larger than the scene with an aspect below about a thousand, and costs no precision:
+/// the origin's coordinates are of the box's own magnitude.
+const BOX_STANDOFF: f32 = 1.0 / 64.0;
+
 /// `origin` moved along `dir` to just outside the box `[lo, hi]` when it starts outside
 /// and the ray meets the box; otherwise `origin`. Done twice: the first step's margin
 /// is relative to the (possibly huge) distance of the origin, the second's to the box.
+/// The origin stays at least [`BOX_STANDOFF`] of the box's extent away from it (a
+/// camera already closer than that keeps its own position).
 ///
 /// All three slabs at once in SSE lanes (every camera ray pays for this: the loop over
 /// axes it replaces cost about 350 instructions a ray). The arithmetic per axis is that
@@ -115,12 +131,13 @@ pub fn advance_to_box(origin: Vec3, dir: Vec3, lo: Vec3, hi: Vec3) -> Vec3 {
     let d = Vec3A::from(dir);
     let (lo, hi) = (Vec3A::from(lo), Vec3A::from(hi));
     let size = lo.abs().max(hi.abs()).max_element();
+    let standoff = (hi - lo).max_element() * BOX_STANDOFF;
     let parallel = d.cmpeq(Vec3A::ZERO);
     // Infinite on a parallel axis, whose distances are replaced below.
     let inv = Vec3A::ONE / d;
     let mut o = Vec3A::from(origin);
     for _ in 0..2 {
-        let m = (o.abs().max_element() + size) * BOX_MARGIN;
+        let m = ((o.abs().max_element() + size) * BOX_MARGIN).max(standoff);
         let (blo, bhi) = (lo - m, hi + m);
         if (parallel & (o.cmplt(blo) | o.cmpgt(bhi))).any() {
             return o.into();
@@ -299,9 +316,10 @@ mod tests {
         let mut o = origin.to_array();
         let d = dir.to_array();
         let size = lo.abs().max(hi.abs()).max_element();
+        let standoff = (hi - lo).max_element() * BOX_STANDOFF;
         let (lo, hi) = (lo.to_array(), hi.to_array());
         for _ in 0..2 {
-            let m = (Vec3::from_array(o).abs().max_element() + size) * BOX_MARGIN;
+            let m = ((Vec3::from_array(o).abs().max_element() + size) * BOX_MARGIN).max(standoff);
             let (mut t0, mut t1) = (0.0f32, f32::INFINITY);
             for a in 0..3 {
                 let (blo, bhi) = (lo[a] - m, hi[a] + m);

@@ -90,6 +90,42 @@ pub fn load_gltf(path: &Path) -> Result<Scene> {
     }
 }
 
+/// The bytes loading the glTF file at `path` decodes beyond the file itself: what its
+/// `EXT_meshopt_compression` views declare (see [`crate::meshopt::declared_decoded_bytes`]).
+/// Only the JSON is read (a GLB's first chunk), so admission can count a decompression
+/// bomb before anything is decoded. 0 for a file that is not glTF or cannot be read: the
+/// load itself reports those.
+pub fn declared_expansion(path: &Path) -> u64 {
+    use std::io::Read;
+    let Ok(opened) = crate::reference::open_scene_file(path) else {
+        return 0;
+    };
+    let mut file = opened.file;
+    let mut head = [0u8; 20];
+    let json = match file.read_exact(&mut head) {
+        Ok(()) if &head[..4] == b"glTF" => {
+            let len = u32::from_le_bytes([head[12], head[13], head[14], head[15]]);
+            let mut json = Vec::new();
+            if (&mut file)
+                .take(u64::from(len))
+                .read_to_end(&mut json)
+                .is_err()
+            {
+                return 0;
+            }
+            json
+        }
+        _ => match crate::reference::read_scene_file(path) {
+            Ok(b) => b,
+            Err(_) => return 0,
+        },
+    };
+    let text = json.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(&json);
+    serde_json::from_slice::<serde_json::Value>(text)
+        .map(|root| crate::meshopt::declared_decoded_bytes(&root))
+        .unwrap_or(0)
+}
+
 fn format_error(path: &Path, message: impl Into<String>) -> SceneError {
     SceneError::Format {
         path: path.to_path_buf(),
@@ -279,6 +315,11 @@ fn decode_meshopt_views(
     buffers: &[Vec<u8>],
 ) -> Result<Vec<Option<Vec<u8>>>> {
     let mut out = Vec::with_capacity(root.buffer_views.len());
+    let buffer_bytes = buffers
+        .iter()
+        .map(Vec::len)
+        .fold(0usize, usize::saturating_add);
+    let mut budget = crate::meshopt::DecodeBudget::for_buffers(buffer_bytes);
     for (i, view) in root.buffer_views.iter().enumerate() {
         let Some(ext) = view
             .extensions
@@ -311,7 +352,7 @@ fn decode_meshopt_views(
                     source.len()
                 ))
             })?;
-        out.push(Some(c.decode(data).map_err(fail)?));
+        out.push(Some(c.decode(data, &mut budget).map_err(fail)?));
     }
     Ok(out)
 }

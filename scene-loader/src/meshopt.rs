@@ -13,6 +13,52 @@ use serde_json::Value;
 /// allocation (the output size is `count * byteStride`, both from the file).
 const MAX_DECODED_BYTES: usize = 1 << 31;
 
+/// The most meshoptimizer's codecs expand their input: version 1 of the attribute codec
+/// spends one control byte on four byte channels of a block of up to 256 vertices when
+/// they are all zero (1024:1; version 0's smallest group is 2 bits for 16 bytes, 64:1);
+/// the index codecs spend at least a byte a triangle (12:1) or an index (4:1). A view
+/// that claims more than this times its compressed bytes (plus a block's slack) cannot
+/// be real, and a file's views together decode to at most this times the bytes of its
+/// buffers: twelve views naming one stream (a decompression bomb) share one allowance,
+/// not twelve. The bound that matters for memory is admission's, which prices the
+/// declared total ([`declared_decoded_bytes`]) before anything is loaded; this one keeps
+/// a file from asking for what its bytes cannot hold.
+pub const MAX_EXPANSION: usize = 1024;
+
+/// Decoded bytes a view may claim beyond [`MAX_EXPANSION`] times its input: one block
+/// of the largest vertex (256 vertices of 256 bytes).
+const EXPANSION_SLACK: usize = 256 * 256;
+
+/// Bytes a file's compressed views may still decode to ([`MAX_EXPANSION`] times its
+/// buffers' bytes), drawn down view by view.
+#[derive(Clone, Copy, Debug)]
+pub struct DecodeBudget {
+    left: usize,
+}
+
+impl DecodeBudget {
+    /// The allowance of a file whose buffers hold `buffer_bytes` bytes in all.
+    pub fn for_buffers(buffer_bytes: usize) -> DecodeBudget {
+        DecodeBudget {
+            left: buffer_bytes.saturating_mul(MAX_EXPANSION),
+        }
+    }
+
+    /// Take `bytes` from the allowance, or say why not.
+    fn take(&mut self, bytes: usize) -> Result<(), String> {
+        if bytes > self.left {
+            return Err(format!(
+                "decodes to {bytes} bytes, beyond what is left of the file's allowance \
+                 ({} bytes: compressed views decode to at most {MAX_EXPANSION} times the \
+                 bytes of the file's buffers, all views together)",
+                self.left
+            ));
+        }
+        self.left -= bytes;
+        Ok(())
+    }
+}
+
 /// One compressed buffer view as the extension describes it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Compressed {
@@ -78,7 +124,10 @@ impl Compressed {
 
     /// Decode `data` (the `byteLength` bytes at `byteOffset` of the compressed buffer)
     /// into `count * byteStride` bytes.
-    pub fn decode(&self, data: &[u8]) -> Result<Vec<u8>, String> {
+    ///
+    /// The output is taken from `budget` before it is allocated, and allocated fallibly:
+    /// a file that asks for more than the process can have is an error, never an abort.
+    pub fn decode(&self, data: &[u8], budget: &mut DecodeBudget) -> Result<Vec<u8>, String> {
         let (stride, count) = (self.byte_stride, self.count);
         let stride_ok = match self.mode {
             Mode::Attributes => stride > 0 && stride <= 256 && stride.is_multiple_of(4),
@@ -112,7 +161,22 @@ impl Compressed {
             .checked_mul(stride)
             .filter(|&b| b <= MAX_DECODED_BYTES)
             .ok_or_else(|| format!("count {count} x byteStride {stride} is too large"))?;
-        let mut out = vec![0u8; bytes];
+        let possible = data
+            .len()
+            .saturating_mul(MAX_EXPANSION)
+            .saturating_add(EXPANSION_SLACK);
+        if bytes > possible {
+            return Err(format!(
+                "count {count} x byteStride {stride} = {bytes} bytes cannot come from {} \
+                 compressed bytes (meshoptimizer expands at most {MAX_EXPANSION}-fold)",
+                data.len()
+            ));
+        }
+        budget.take(bytes)?;
+        let mut out = Vec::new();
+        out.try_reserve_exact(bytes)
+            .map_err(|_| format!("cannot allocate {bytes} bytes to decode it"))?;
+        out.resize(bytes, 0u8);
         // SAFETY: `out` holds exactly `count * stride` bytes, the output size each
         // decoder writes for `count` elements of `stride` bytes; `data` is a valid slice
         // passed with its length, which the decoders never read past; the stride values
@@ -151,6 +215,22 @@ impl Compressed {
         }
         Ok(out)
     }
+}
+
+/// The bytes the compressed views of a glTF document (its JSON) declare they decode to,
+/// all views together: what loading the file allocates beyond its own size, for
+/// admission to count before the file is loaded. Views that are malformed count nothing
+/// (the load refuses them).
+pub fn declared_decoded_bytes(root: &Value) -> u64 {
+    let Some(views) = root.get("bufferViews").and_then(Value::as_array) else {
+        return 0;
+    };
+    views
+        .iter()
+        .filter_map(|v| v.get("extensions")?.get("EXT_meshopt_compression"))
+        .filter_map(|ext| Compressed::from_json(ext).ok())
+        .map(|c| (c.count as u64).saturating_mul(c.byte_stride as u64))
+        .fold(0u64, u64::saturating_add)
 }
 
 /// True when a buffer is only a placeholder for data that is present compressed

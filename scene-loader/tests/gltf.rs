@@ -1552,6 +1552,57 @@ fn meshopt_compressed_buffer_views_are_decoded() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A decompression bomb (issue 45): one small compressed stream named by many views,
+/// each declaring the whole expansion. Each view alone is within the per-view cap, so
+/// before the file's shared allowance the loader allocated once per view (an 8 MiB file
+/// with 12 views took 6 GiB and aborted). Now a view past the allowance is an error
+/// naming it, and admission sees the declared total without decoding anything.
+#[test]
+fn a_meshopt_decompression_bomb_is_an_error_not_an_allocation() {
+    let dir = test_dir("meshopt_bomb");
+    let count = 1usize << 18;
+    let zeros = vec![[0f32; 4]; count];
+    let stream = meshopt::encode_vertex_buffer(&zeros).unwrap();
+    // Enough views for the declared total to pass the file's allowance whatever ratio
+    // this encoder reaches on zeros.
+    let allowance = dray_scene::meshopt::MAX_EXPANSION * stream.len();
+    let views = allowance / (count * 16) + 2;
+    let view = |i: usize| {
+        format!(
+            r#"{{"buffer":1,"byteOffset":{},"byteLength":{},"byteStride":16,"extensions":{{"EXT_meshopt_compression":
+    {{"buffer":0,"byteLength":{},"byteStride":16,"count":{count},"mode":"ATTRIBUTES"}}}}}}"#,
+            i * count * 16,
+            count * 16,
+            stream.len()
+        )
+    };
+    let json = format!(
+        r#"{{"asset":{{"version":"2.0"}},
+"extensionsUsed":["EXT_meshopt_compression"],"extensionsRequired":["EXT_meshopt_compression"],
+"buffers":[{{"uri":"bomb.bin","byteLength":{}}},
+  {{"byteLength":{},"extensions":{{"EXT_meshopt_compression":{{"fallback":true}}}}}}],
+"bufferViews":[{}],
+"accessors":[{{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[0,0,0]}}],
+"meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}}}}]}}],
+"nodes":[{{"mesh":0}}]}}"#,
+        stream.len(),
+        views * count * 16,
+        (0..views).map(view).collect::<Vec<_>>().join(",")
+    );
+    std::fs::write(dir.join("bomb.bin"), &stream).unwrap();
+    let path = dir.join("bomb.gltf");
+    std::fs::write(&path, &json).unwrap();
+    let declared = dray_scene::gltf::declared_expansion(&path);
+    assert_eq!(declared, (views * count * 16) as u64);
+    assert!(declared > allowance as u64, "{declared} vs {allowance}");
+    let msg = load_gltf(&path).unwrap_err().to_string();
+    assert!(
+        msg.contains("allowance") && msg.contains("buffer view"),
+        "{msg}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn clearcoat_sheen_and_volume_are_read_and_counted() {
     use dray_core::effects::Effect;

@@ -7,7 +7,7 @@
 //! or comes from a newer dray is an error naming the file, and nothing is changed or
 //! deleted: the user decides what to do with it.
 
-use std::fs::{File, OpenOptions, TryLockError};
+use std::fs::{File, TryLockError};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
@@ -17,6 +17,7 @@ use dray_proto::v1::{JobSpec, JobState, JobStats};
 use prost::Message;
 use rusqlite::{Connection, ErrorCode, OpenFlags};
 
+use super::state_dir;
 use super::writer::{Op, Writer};
 use super::{CommittedTile, StoreError, StoredJob, from_millis};
 
@@ -84,11 +85,14 @@ impl JobStore {
             let path = path.to_path_buf();
             move |source| StoreError::Io { path, source }
         };
-        std::fs::create_dir_all(dir).map_err(io(dir))?;
+        state_dir::prepare(dir, "state directory")?;
         let lock = lock(&dir.join(LOCK_FILE))?;
         let images = dir.join(IMAGES_DIR);
-        std::fs::create_dir_all(&images).map_err(io(&images))?;
+        state_dir::prepare_inner(&images, "images directory")?;
         let path = dir.join(DB_FILE);
+        // Made here first (mode 0600, never through a link), so SQLite, which gives its
+        // journal the database's mode, makes no file others can read.
+        drop(state_dir::open_file(&path)?);
         let conn = open_db(&path)?;
         let jobs = load(&conn, &images).map_err(|e| classify(&path, e))?;
         let writer = Writer::spawn(conn, path, images, lock).map_err(io(dir))?;
@@ -160,13 +164,7 @@ fn lock(path: &Path) -> Result<File, StoreError> {
         path: path.to_path_buf(),
         source,
     };
-    let mut f = OpenOptions::new()
-        .read(true)
-        .write(true)
-        .create(true)
-        .truncate(false)
-        .open(path)
-        .map_err(io)?;
+    let mut f = state_dir::open_file(path)?;
     match f.try_lock() {
         Ok(()) => {}
         Err(TryLockError::WouldBlock) => {
@@ -186,6 +184,11 @@ fn lock(path: &Path) -> Result<File, StoreError> {
     f.set_len(0).map_err(io)?;
     writeln!(f, "{}", std::process::id()).map_err(io)?;
     Ok(f)
+}
+
+/// Whether `name` is one file name: no separator, not `.` or `..`, not empty.
+fn plain_file_name(name: &str) -> bool {
+    !name.is_empty() && name != "." && name != ".." && !name.contains(['/', '\\', '\0'])
 }
 
 /// A rusqlite error on `file` as the store's error: a file SQLite cannot read as a
@@ -215,7 +218,9 @@ fn open_db(path: &Path) -> Result<Connection, StoreError> {
         path,
         OpenFlags::SQLITE_OPEN_READ_WRITE
             | OpenFlags::SQLITE_OPEN_CREATE
-            | OpenFlags::SQLITE_OPEN_NO_MUTEX,
+            | OpenFlags::SQLITE_OPEN_NO_MUTEX
+            // A link planted in place of the database (or its journal) is an error.
+            | OpenFlags::SQLITE_OPEN_NOFOLLOW,
     )
     .map_err(sql)?;
     let app: i32 = conn
@@ -311,7 +316,12 @@ fn load(conn: &Connection, images: &Path) -> rusqlite::Result<Vec<StoredJob>> {
                 .map_err(|e| decode_err(8, e))?
                 .unwrap_or_default(),
             attempt: r.get(9)?,
-            image: r.get::<_, Option<String>>(10)?.map(|n| images.join(n)),
+            // Only a plain name in images/: a row naming an absolute path or `..` (a
+            // hand-edited or foreign database) names no image.
+            image: r
+                .get::<_, Option<String>>(10)?
+                .filter(|n| plain_file_name(n))
+                .map(|n| images.join(n)),
             dropped: r.get(11)?,
             tiles: Vec::new(),
         })
@@ -347,6 +357,16 @@ pub(crate) fn ended(s: JobState) -> bool {
 
 #[cfg(test)]
 mod tests {
+    /// The `image` column names a file in `images/` only (issue 45, item 6: a row could
+    /// hold an absolute path, which `Path::join` takes as is).
+    #[test]
+    fn only_plain_names_are_image_files() {
+        for bad in ["", ".", "..", "/etc/shadow", "../x", "a/b", "a\\b", "a\0b"] {
+            assert!(!plain_file_name(bad), "{bad:?}");
+        }
+        assert!(plain_file_name("0123-abc.film"));
+    }
+
     use super::*;
     use rusqlite::OptionalExtension;
 

@@ -91,12 +91,45 @@ pub(crate) fn read_sums(px: &[u8]) -> [i64; 3] {
     s
 }
 
-/// Read the film at `path`.
+/// The largest image file read back: the header, 24 bytes a pixel for the largest film a
+/// job may ask for (65,536 x 65,536 is beyond every limit; this is a bound on what a
+/// damaged or planted file can make the coordinator allocate, not a policy).
+const MAX_FILE_BYTES: u64 = (HEADER as u64) + (1u64 << 36) + 8;
+
+/// Read the film at `path`: a regular file only (never through a link, a device or a
+/// FIFO, which could read forever or block a thread for good), of a bounded size.
 pub fn read(path: &Path) -> Result<Film, StoreError> {
-    let bytes = std::fs::read(path).map_err(|source| StoreError::Io {
+    use std::io::Read;
+    use std::os::unix::fs::OpenOptionsExt;
+    let io = |source| StoreError::Io {
         path: path.to_path_buf(),
         source,
-    })?;
+    };
+    let corrupt = |why: &str| StoreError::Corrupt {
+        file: path.to_path_buf(),
+        why: why.to_string(),
+    };
+    // O_NONBLOCK: opening a FIFO must not wait for a writer; a regular file ignores it.
+    let f = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK)
+        .open(path)
+        .map_err(|e| {
+            if e.raw_os_error() == Some(libc::ELOOP) {
+                corrupt("it is a symbolic link, which the job store never follows")
+            } else {
+                io(e)
+            }
+        })?;
+    let meta = f.metadata().map_err(io)?;
+    if !meta.is_file() {
+        return Err(corrupt("it is not a regular file"));
+    }
+    if meta.len() > MAX_FILE_BYTES {
+        return Err(corrupt("it is larger than any image the store writes"));
+    }
+    let mut bytes = Vec::with_capacity(meta.len() as usize);
+    f.take(meta.len()).read_to_end(&mut bytes).map_err(io)?;
     decode(&bytes, path)
 }
 
@@ -110,7 +143,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
     let dir = path.parent().unwrap_or(Path::new("."));
     let name = path.file_name().map(|n| n.to_string_lossy().into_owned());
     let tmp: PathBuf = dir.join(format!(".{}.tmp", name.unwrap_or_default()));
-    let mut f = std::fs::File::create(&tmp).map_err(io(&tmp))?;
+    let mut f = super::state_dir::create_file(&tmp)?;
     f.write_all(bytes).map_err(io(&tmp))?;
     f.sync_all().map_err(io(&tmp))?;
     drop(f);
@@ -131,6 +164,32 @@ pub fn sync_dir(dir: &Path) -> Result<(), StoreError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A link to `/dev/zero` read until allocation failed; a FIFO pinned the reading
+    /// thread for good (issue 45, item 6). Both are errors at once now, and so is a
+    /// planted link to a real image.
+    #[test]
+    fn links_devices_and_fifos_are_not_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let zero = dir.path().join("zero.film");
+        std::os::unix::fs::symlink("/dev/zero", &zero).unwrap();
+        let e = read(&zero).unwrap_err().to_string();
+        assert!(e.contains("symbolic link"), "{e}");
+        let real = dir.path().join("real.film");
+        write_atomic(&real, &encode(&film())).unwrap();
+        let link = dir.path().join("link.film");
+        std::os::unix::fs::symlink(&real, &link).unwrap();
+        assert!(read(&link).is_err());
+        assert_eq!(read(&real).unwrap().sum_fixed(1), film().sum_fixed(1));
+        let fifo = dir.path().join("fifo.film");
+        let c = std::ffi::CString::new(fifo.as_os_str().as_encoded_bytes()).unwrap();
+        // SAFETY: a valid NUL-terminated path.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+        let e = read(&fifo).unwrap_err().to_string();
+        assert!(e.contains("not a regular file"), "{e}");
+        let e = read(Path::new("/dev/zero")).unwrap_err().to_string();
+        assert!(e.contains("not a regular file"), "{e}");
+    }
 
     fn film() -> Film {
         let mut f = Film::new(3, 2);

@@ -9,6 +9,8 @@
 //!   in batched transactions, what the coordinator posts to it; nothing on the request
 //!   or report path waits for a disk.
 //! - [`image_file`]: finished images as files beside the database, written atomically.
+//! - [`state_dir`]: the directory taken only when no other user can change it, its
+//!   files opened without following links.
 //!
 //! SQLite (through `rusqlite`, compiled in with its `bundled` feature, so no system
 //! library is needed) was chosen because it gives transactions that survive a kill at
@@ -18,6 +20,7 @@
 
 pub mod db;
 pub mod image_file;
+pub mod state_dir;
 pub mod writer;
 
 use std::path::PathBuf;
@@ -82,6 +85,15 @@ pub enum StoreError {
         file: PathBuf,
         /// Why.
         source: rusqlite::Error,
+    },
+    /// The state directory, or something in it, could be changed by another user, or is
+    /// a link where the store makes its own files (`state_dir`).
+    #[error("{path}: {why}; nothing in it was opened or changed")]
+    Unsafe {
+        /// The directory or file.
+        path: PathBuf,
+        /// What is wrong and how to fix it.
+        why: String,
     },
 }
 
