@@ -205,6 +205,10 @@ impl Coordinator {
     async fn run_again(&self, entry: &Arc<JobEntry>, job: StoredJob) -> Result<(), String> {
         let v = validate(&job.spec, &self.limits, &self.scene_root)
             .map_err(|s| s.message().to_string())?;
+        // Admission again, under this coordinator's limits (which may be lower than the
+        // one that accepted the job, or the file may have grown): a job that does not fit
+        // fails here, named, rather than taking the process down on every start.
+        crate::admission::admit(&v, &self.limits).map_err(|s| s.message().to_string())?;
         let v2 = v.clone();
         let cancel = entry.cancel_flag().clone();
         let prepared = tokio::task::spawn_blocking(move || prepare(&v2, None, &cancel))

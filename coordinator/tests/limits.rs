@@ -259,3 +259,72 @@ async fn finished_images_are_kept_within_a_byte_budget() {
         assert!(c.get_image(image(id)).await.is_ok(), "{id}");
     }
 }
+
+/// A job stored by a coordinator with a larger `--max-job-bytes` (or a file that grew
+/// since) is held to the limits of the coordinator that resumes it (issue 45, item 5: a
+/// stored `soup:100000000` aborted the coordinator on every start). The job fails,
+/// naming the limit; the coordinator goes on serving.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stored_job_beyond_the_limits_fails_on_resume_instead_of_running() {
+    use dray_coordinator::store::{JobStore, Op};
+    let dir = tempfile::tempdir().unwrap();
+    {
+        let (store, _) = JobStore::open(dir.path()).unwrap();
+        store.post(Op::Insert {
+            id: "huge".into(),
+            spec: JobSpec {
+                scene: "soup:100000000".into(),
+                ..cornell(16, 16, 1)
+            },
+            submitted_ms: 1,
+        });
+        store.flush();
+    }
+    let (store, stored) = JobStore::open(dir.path()).unwrap();
+    assert_eq!(stored.len(), 1);
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let coordinator = Coordinator::new(&std::env::temp_dir(), 1)
+        .unwrap()
+        .with_admission(
+            8,
+            1 << 30,
+            Retention {
+                keep_finished: 10,
+                ttl: None,
+                max_bytes: None,
+            },
+        )
+        .with_store(std::sync::Arc::new(store));
+    assert_eq!(
+        coordinator.resume(stored, std::time::Duration::from_millis(10)),
+        1
+    );
+    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+    let task = tokio::spawn(async move {
+        dray_coordinator::serve(listener, coordinator, async {
+            rx.await.ok();
+        })
+        .await
+        .unwrap();
+    });
+    let server = Server {
+        addr,
+        stop: Some(tx),
+        task,
+    };
+    let mut c = server.client().await;
+    assert_eq!(wait_end(&mut c, "huge").await, JobState::Failed);
+    let job = c
+        .get_job(GetJobRequest {
+            job_id: "huge".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let why = format!("{job:?}");
+    assert!(why.contains("--max-job-bytes"), "{why}");
+    // The coordinator still takes and runs jobs.
+    let id = submit(&mut c, cornell(16, 16, 1)).await.unwrap();
+    assert_eq!(wait_end(&mut c, &id).await, JobState::Succeeded);
+}
