@@ -9,9 +9,20 @@
 //! A peer that cannot be reached is not a reason to fail the job here: its rays are
 //! dropped, and the peer is named to the coordinator (`unreachable_peers`), which treats
 //! it as lost and traces the unfinished tiles again on the workers that remain.
+//!
+//! **A stream is to one peer, not to an address.** A worker started again on the same
+//! port (`dray cluster` restarts a killed worker there) registers under a new id while
+//! its predecessor may still be in a job's table; streams are kept by (id, endpoint), so
+//! rays for the newcomer never ride a stream opened for the old id. They used to: when
+//! that stream then failed, the rays were dropped and the *old* id named, which the
+//! coordinator ignores once the old worker is out of the job, so the credit never came
+//! back and the job stayed RUNNING for ever (issue 38). And when a stream fails, every
+//! job whose rays it carried (queued, in open batches, or sent and not yet acknowledged)
+//! names the peer, not only the job of the message at hand: a ray lost without a name is
+//! a hang.
 
 use std::collections::HashMap;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, Weak};
 use std::time::Duration;
 
 use dray_core::ray::RayRecord;
@@ -37,8 +48,8 @@ pub(crate) struct PeerMessage {
 
 /// The streams to this worker's peers.
 pub(crate) struct Peers {
-    /// By endpoint.
-    outboxes: Mutex<HashMap<String, mpsc::UnboundedSender<PeerMessage>>>,
+    /// By peer: (worker id, endpoint). Never by endpoint alone: see the module docs.
+    outboxes: Mutex<HashMap<(String, String), mpsc::UnboundedSender<PeerMessage>>>,
     tasks: Mutex<JoinSet<()>>,
     runtime: tokio::runtime::Handle,
 }
@@ -58,11 +69,12 @@ impl Peers {
         msg.job.outgoing_add(n);
         let tx = {
             let mut outboxes = lock(&self.outboxes);
-            match outboxes.get(&peer.endpoint) {
+            let key = (peer.id.clone(), peer.endpoint.clone());
+            match outboxes.get(&key) {
                 Some(tx) if !tx.is_closed() => tx.clone(),
                 _ => {
                     let (tx, rx) = mpsc::unbounded_channel();
-                    outboxes.insert(peer.endpoint.clone(), tx.clone());
+                    outboxes.insert(key, tx.clone());
                     let mut tasks = lock(&self.tasks);
                     // Reap finished streams so the set does not grow.
                     while tasks.try_join_next().is_some() {}
@@ -140,10 +152,11 @@ async fn peer_loop(shared: Arc<Shared>, peer: Peer, mut rx: mpsc::UnboundedRecei
     let mut sender = match opened {
         Ok(s) => s,
         Err(e) => {
-            peer_failed(&shared, &mut rx, &peer, &e);
+            peer_failed(&shared, &mut rx, &peer, &e, &Carried::default());
             return;
         }
     };
+    let mut carried = Carried::default();
     loop {
         let msg = match sender.next_deadline() {
             Some(at) => {
@@ -151,7 +164,7 @@ async fn peer_loop(shared: Arc<Shared>, peer: Peer, mut rx: mpsc::UnboundedRecei
                     m = rx.recv() => m,
                     _ = tokio::time::sleep_until(at) => {
                         if let Err(e) = sender.flush_due().await {
-                            peer_failed(&shared, &mut rx, &peer, &e.to_string());
+                            peer_failed(&shared, &mut rx, &peer, &e.to_string(), &carried);
                             return;
                         }
                         continue;
@@ -165,6 +178,7 @@ async fn peer_loop(shared: Arc<Shared>, peer: Peer, mut rx: mpsc::UnboundedRecei
             return;
         };
         let n = m.rays.len();
+        carried.note(&m.job);
         let key = BatchKey {
             job_id: m.job.key.id.to_string(),
             domain: m.domain,
@@ -188,26 +202,60 @@ async fn peer_loop(shared: Arc<Shared>, peer: Peer, mut rx: mpsc::UnboundedRecei
         // Room for camera rays again, perhaps.
         shared.notify();
         if let Err(e) = sent {
-            if m.job.is_active() {
-                unreachable(&m.job, &peer.id);
-            }
-            peer_failed(&shared, &mut rx, &peer, &e);
+            peer_failed(&shared, &mut rx, &peer, &e, &carried);
             return;
         }
     }
 }
 
-/// A peer cannot be reached: drop its rays, now and until the stream is opened again.
+/// The jobs whose rays a stream has carried, held weakly (a released job's tracer and
+/// scene are not kept alive by a stream that outlives it): when the stream fails, each
+/// one still running lost rays with it (in open batches, or sent and not yet queued by
+/// the peer) and must name the peer.
+#[derive(Default)]
+struct Carried(Vec<Weak<Job>>);
+
+impl Carried {
+    /// `job`'s rays go on the stream. Jobs released meanwhile are let go.
+    fn note(&mut self, job: &Arc<Job>) {
+        if self
+            .0
+            .iter()
+            .any(|j| std::ptr::eq(j.as_ptr(), Arc::as_ptr(job)))
+        {
+            return;
+        }
+        self.0
+            .retain(|j| j.upgrade().is_some_and(|j| j.is_active()));
+        self.0.push(Arc::downgrade(job));
+    }
+
+    /// The jobs carried that still run.
+    fn active(&self) -> impl Iterator<Item = Arc<Job>> + '_ {
+        self.0
+            .iter()
+            .filter_map(Weak::upgrade)
+            .filter(|j| j.is_active())
+    }
+}
+
+/// A peer cannot be reached: drop its rays, now and until the stream is opened again,
+/// and name it to every running job that lost rays with the stream (`carried`, and the
+/// jobs of the messages still queued for it).
 fn peer_failed(
     shared: &Shared,
     rx: &mut mpsc::UnboundedReceiver<PeerMessage>,
     peer: &Peer,
     error: &str,
+    carried: &Carried,
 ) {
     tracing::warn!(worker = %shared.id(), peer = %peer.id, endpoint = %peer.endpoint, "cannot send rays: {error}");
     rx.close();
     // The next rays for this peer open a new stream.
     lock(&shared.peers.outboxes).retain(|_, tx| !tx.is_closed());
+    for job in carried.active() {
+        unreachable(&job, &peer.id);
+    }
     while let Ok(m) = rx.try_recv() {
         m.job.outgoing_sub(m.rays.len());
         if m.job.is_active() {
