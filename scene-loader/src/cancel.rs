@@ -48,8 +48,22 @@ pub fn with_cancel<R>(cancel: &Arc<AtomicBool>, f: impl FnOnce() -> R) -> R {
     f()
 }
 
+#[cfg(test)]
+thread_local! {
+    /// Looks at the flag made on this thread, so tests can see that a loop looks.
+    static CHECKS: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
+}
+
+/// How many times this thread has looked at its flag (tests only).
+#[cfg(test)]
+pub(crate) fn checks_made() -> usize {
+    CHECKS.with(std::cell::Cell::get)
+}
+
 /// `Err(Cancelled)` when the load running on this thread was cancelled.
 pub(crate) fn check() -> Result<()> {
+    #[cfg(test)]
+    CHECKS.with(|c| c.set(c.get() + 1));
     let cancelled = FLAG.with(|f| {
         f.borrow()
             .as_ref()

@@ -34,13 +34,17 @@ pub struct JobView {
 }
 
 impl JobView {
-    /// Rays waiting for domain `d` over all the job's workers.
-    pub fn queued_for(&self, d: u32) -> u64 {
-        self.queues
-            .values()
-            .flatten()
-            .filter(|q| q.domain == d)
-            .fold(0u64, |a, q| a.saturating_add(q.rays_queued))
+    /// Rays waiting for each domain (index = domain) over all the job's workers, in one
+    /// pass over the queue reports. Reports naming a domain beyond the job's count are
+    /// left out.
+    pub fn queued_by_domain(&self) -> Vec<u64> {
+        let mut out = vec![0u64; self.domains as usize];
+        for q in self.queues.values().flatten() {
+            if let Some(n) = out.get_mut(q.domain as usize) {
+                *n = n.saturating_add(q.rays_queued);
+            }
+        }
+        out
     }
 
     /// Whether the routing table names `worker` an owner of domain `d`.
