@@ -471,6 +471,27 @@ impl JobTable {
         self.jobs.lock().unwrap_or_else(|p| p.into_inner())
     }
 
+    /// Whether the job store (if any) is writing: `Err(why)` while its last transaction
+    /// failed, so a new job would not survive a restart.
+    pub fn store_health(&self) -> Result<(), String> {
+        self.store.get().map_or(Ok(()), |s| s.health())
+    }
+
+    /// Wait until every job record posted so far (a new job's included) is on disk, at
+    /// most 10 s, off the runtime's threads. False when the store could not write it.
+    /// True without a store.
+    pub async fn confirm_kept(&self) -> bool {
+        let Some(store) = self.store.get().cloned() else {
+            return true;
+        };
+        // Everything posted before is confirmed with it, the entry's Insert included.
+        tokio::task::spawn_blocking(move || {
+            store.post_durable(Op::Nothing, std::time::Duration::from_secs(10))
+        })
+        .await
+        .unwrap_or(false)
+    }
+
     /// Add a job QUEUED, without starting anything: the caller runs it (in process with
     /// [`JobTable::submit`], or on workers through the dispatcher).
     pub fn insert(&self, spec: JobSpec) -> Arc<JobEntry> {

@@ -243,6 +243,22 @@ impl Coordinator {
             .map_err(|s| s.message().to_string())
     }
 
+    /// A job just inserted is answered to its client only once the store has it: a
+    /// store that cannot write (a full disk) fails the job, named, and SubmitJob says
+    /// UNAVAILABLE, instead of accepting a job a restart would lose.
+    async fn confirm_kept(&self, job: &Arc<JobEntry>) -> Result<(), Status> {
+        if self.table.confirm_kept().await {
+            return Ok(());
+        }
+        let why = self
+            .table
+            .store_health()
+            .err()
+            .unwrap_or_else(|| "the job store did not confirm the job within 10 s".into());
+        job.finish(JobState::Failed, format!("not kept: {why}"), None);
+        Err(store_unavailable(why))
+    }
+
     /// How many jobs the coordinator lists.
     pub fn job_count(&self) -> usize {
         self.table.list().len()
@@ -300,10 +316,12 @@ impl Coordinator {
                 .await
                 .map_err(|e| Status::internal(format!("scene loading task died: {e}")))??;
             let job = self.table.insert(v.spec.clone());
+            self.confirm_kept(&job).await?;
             self.launch(&job, &v, prepared, None)?;
             return Ok(job.id.clone());
         }
         let job = self.table.insert(v.spec.clone());
+        self.confirm_kept(&job).await?;
         job.set_state(JobState::Preparing);
         tracing::info!(id = %job.id, scene = %job.spec.scene, "job accepted; preparing its scene");
         let (this, entry) = (self.clone(), job.clone());
@@ -640,6 +658,14 @@ impl RenderService for Coordinator {
             r.get_ref().omit_jobs,
         )))
     }
+}
+
+/// SubmitJob's answer while the job store cannot write.
+fn store_unavailable(why: String) -> Status {
+    Status::unavailable(format!(
+        "{why}; new jobs are refused until the job store can write again (free space in \
+         the --state-dir), since they would not survive a restart"
+    ))
 }
 
 /// The encoding GetImage and WatchImage are asked for, and the display transform of a

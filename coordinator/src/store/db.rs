@@ -18,7 +18,7 @@ use prost::Message;
 use rusqlite::{Connection, ErrorCode, OpenFlags};
 
 use super::state_dir;
-use super::writer::{Op, Writer};
+use super::writer::{Health, Op, Writer};
 use super::{CommittedTile, StoreError, StoredJob, from_millis};
 
 /// The schema this build writes and the newest it reads (`PRAGMA user_version`).
@@ -68,6 +68,8 @@ const MIGRATE_1_TO_2: &str = "ALTER TABLE tiles ADD COLUMN passes INTEGER;";
 pub struct JobStore {
     dir: PathBuf,
     writer: Mutex<Option<Writer>>,
+    /// Why the writer's last transaction failed, if it did.
+    health: Health,
 }
 
 impl std::fmt::Debug for JobStore {
@@ -95,11 +97,14 @@ impl JobStore {
         drop(state_dir::open_file(&path)?);
         let conn = open_db(&path)?;
         let jobs = load(&conn, &images).map_err(|e| classify(&path, e))?;
-        let writer = Writer::spawn(conn, path, images, lock).map_err(io(dir))?;
+        remove_stale_temporaries(&images);
+        let health = Health::default();
+        let writer = Writer::spawn(conn, path, images, lock, health.clone()).map_err(io(dir))?;
         Ok((
             JobStore {
                 dir: dir.to_path_buf(),
                 writer: Mutex::new(Some(writer)),
+                health,
             },
             jobs,
         ))
@@ -119,7 +124,8 @@ impl JobStore {
 
     /// Post `op` and wait (at most `timeout`) until it is in the database: for the rare
     /// writes that must be on disk before the coordinator acts on them (a new attempt,
-    /// which workers remember). False when it could not be confirmed.
+    /// which workers remember; a new job, before SubmitJob answers). False when it could
+    /// not be confirmed: the transaction failed, or `timeout` passed.
     pub fn post_durable(&self, op: Op, timeout: Duration) -> bool {
         let (tx, rx) = std::sync::mpsc::sync_channel(1);
         {
@@ -128,7 +134,21 @@ impl JobStore {
             w.post(op);
             w.post(Op::Flush(tx));
         }
-        rx.recv_timeout(timeout).is_ok()
+        rx.recv_timeout(timeout).unwrap_or(false)
+    }
+
+    /// `Err(why)` while the store's last transaction failed (a full or read-only disk):
+    /// what it was asked to keep since is not kept. Clears once a transaction succeeds.
+    pub fn health(&self) -> Result<(), String> {
+        match self
+            .health
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .as_ref()
+        {
+            Some(why) => Err(why.clone()),
+            None => Ok(()),
+        }
     }
 
     /// Wait until everything posted so far is in the database.
@@ -154,6 +174,25 @@ impl JobStore {
 impl Drop for JobStore {
     fn drop(&mut self) {
         self.seal();
+    }
+}
+
+/// Remove the temporary files of image writes a killed or failing coordinator left
+/// (`.NAME.tmp`, see `image_file::write_atomic`): nothing names them, and on a full disk
+/// they held the space the store needed (issue 45, item 7: 13 were left).
+fn remove_stale_temporaries(images: &Path) {
+    let Ok(entries) = std::fs::read_dir(images) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let name = e.file_name();
+        let name = name.to_string_lossy();
+        let stale = name.starts_with('.')
+            && name.ends_with(".tmp")
+            && e.file_type().is_ok_and(|t| t.is_file());
+        if stale && let Err(err) = std::fs::remove_file(e.path()) {
+            tracing::warn!("cannot remove {}: {err}", e.path().display());
+        }
     }
 }
 

@@ -144,10 +144,16 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
     let name = path.file_name().map(|n| n.to_string_lossy().into_owned());
     let tmp: PathBuf = dir.join(format!(".{}.tmp", name.unwrap_or_default()));
     let mut f = super::state_dir::create_file(&tmp)?;
-    f.write_all(bytes).map_err(io(&tmp))?;
-    f.sync_all().map_err(io(&tmp))?;
+    let written = f
+        .write_all(bytes)
+        .and_then(|()| f.sync_all())
+        .map_err(io(&tmp));
     drop(f);
-    std::fs::rename(&tmp, path).map_err(io(path))?;
+    if let Err(e) = written.and_then(|()| std::fs::rename(&tmp, path).map_err(io(path))) {
+        // A full disk: the partial file must not keep the space (nor outlive us).
+        let _ = std::fs::remove_file(&tmp);
+        return Err(e);
+    }
     sync_dir(dir)
 }
 

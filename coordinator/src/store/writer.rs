@@ -89,8 +89,9 @@ pub enum Op {
         /// Why.
         why: String,
     },
-    /// Answered once every earlier operation is committed.
-    Flush(SyncSender<()>),
+    /// Answered once every earlier operation is committed (`true`), or with `false`
+    /// when the transaction holding them failed (a full disk).
+    Flush(SyncSender<bool>),
 }
 
 /// The writer thread and its mailbox.
@@ -98,6 +99,11 @@ pub(crate) struct Writer {
     tx: Sender<Op>,
     thread: std::thread::JoinHandle<()>,
 }
+
+/// Why the last transaction failed, until one succeeds again: what SubmitJob tells a
+/// client instead of accepting a job the store cannot keep (issue 45, item 7: on a full
+/// disk every submit succeeded and the jobs were gone after a restart).
+pub(crate) type Health = Arc<std::sync::Mutex<Option<String>>>;
 
 impl Writer {
     /// Start the thread over `conn` (the database at `path`), writing images into
@@ -107,13 +113,14 @@ impl Writer {
         path: PathBuf,
         images: PathBuf,
         lock: File,
+        health: Health,
     ) -> std::io::Result<Writer> {
         let (tx, rx) = std::sync::mpsc::channel();
         let thread = std::thread::Builder::new()
             .name("dray-job-store".into())
             .spawn(move || {
                 let _lock = lock;
-                run(conn, &path, &images, &rx);
+                run(conn, &path, &images, &rx, &health);
             })?;
         Ok(Writer { tx, thread })
     }
@@ -132,7 +139,8 @@ impl Writer {
     }
 }
 
-fn run(mut conn: Connection, path: &Path, images: &Path, rx: &Receiver<Op>) {
+fn run(mut conn: Connection, path: &Path, images: &Path, rx: &Receiver<Op>, health: &Health) {
+    let mut failed_since_flush = false;
     while let Ok(first) = rx.recv() {
         let mut batch = vec![first];
         while batch.len() < BATCH {
@@ -141,7 +149,18 @@ fn run(mut conn: Connection, path: &Path, images: &Path, rx: &Receiver<Op>) {
                 Err(_) => break,
             }
         }
-        write_batch(&mut conn, path, images, batch);
+        let (failed, flushes) = write_batch(&mut conn, path, images, batch);
+        // A flush confirms every operation posted before it, and those may have been in
+        // an earlier batch (the thread takes what is waiting): it answers true only when
+        // no batch failed since the last flush was answered.
+        failed_since_flush |= failed.is_some();
+        if !flushes.is_empty() {
+            for f in flushes {
+                let _ = f.send(!failed_since_flush);
+            }
+            failed_since_flush = false;
+        }
+        *health.lock().unwrap_or_else(|p| p.into_inner()) = failed;
     }
 }
 
@@ -150,9 +169,17 @@ pub(crate) fn image_name(id: &str) -> String {
     format!("{id}.film")
 }
 
-fn write_batch(conn: &mut Connection, path: &Path, images: &Path, batch: Vec<Op>) {
+/// Write `batch` in one transaction: `Some(why)` when it failed (nothing of it kept) or
+/// an image could not be kept, and the flushes it held, to be answered by the caller.
+fn write_batch(
+    conn: &mut Connection,
+    path: &Path,
+    images: &Path,
+    batch: Vec<Op>,
+) -> (Option<String>, Vec<SyncSender<bool>>) {
     // Images first: a row names only an image already whole on disk.
     let mut written = Vec::new();
+    let mut image_failed = None;
     for op in &batch {
         if let Op::Finish {
             id,
@@ -163,7 +190,10 @@ fn write_batch(conn: &mut Connection, path: &Path, images: &Path, batch: Vec<Op>
             let file = images.join(image_name(id));
             match image_file::write_atomic(&file, &image_file::encode(film)) {
                 Ok(()) => written.push(id.clone()),
-                Err(e) => tracing::error!("cannot keep job {id}'s image: {e}"),
+                Err(e) => {
+                    tracing::error!("cannot keep job {id}'s image: {e}");
+                    image_failed = Some(format!("cannot keep job {id}'s image: {e}"));
+                }
             }
         }
     }
@@ -195,14 +225,21 @@ fn write_batch(conn: &mut Connection, path: &Path, images: &Path, batch: Vec<Op>
                     tracing::warn!("cannot remove the dropped image {}: {e}", f.display());
                 }
             }
-            for f in flushes {
-                let _ = f.send(());
-            }
+            (image_failed, flushes)
         }
-        Err(e) => tracing::error!(
-            "cannot write to the job store {}: {e} (those changes are not kept)",
-            path.display()
-        ),
+        Err(e) => {
+            tracing::error!(
+                "cannot write to the job store {}: {e} (those changes are not kept)",
+                path.display()
+            );
+            (
+                Some(format!(
+                    "cannot write to the job store {}: {e}",
+                    path.display()
+                )),
+                flushes,
+            )
+        }
     }
 }
 
