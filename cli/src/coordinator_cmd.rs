@@ -277,8 +277,11 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
         // One line on stdout, so scripts and tests can find the port.
         println!("dray coordinator listening on {addr}");
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let client_certs = a.member.tls.tls_ca.is_some();
         let dashboard = match &a.http_listen {
-            Some(http) => Some(start_dashboard(http, &coordinator, api, stop_rx).await?),
+            Some(http) => {
+                Some(start_dashboard(http, &coordinator, api, client_certs, stop_rx).await?)
+            }
             None => None,
         };
         eprintln!(
@@ -360,6 +363,7 @@ async fn start_dashboard(
     http: &str,
     coordinator: &dray_coordinator::Coordinator,
     api: Option<dray_net::Token>,
+    client_certs: bool,
     mut stop: tokio::sync::watch::Receiver<bool>,
 ) -> Result<tokio::task::JoinHandle<()>> {
     let listener = tokio::net::TcpListener::bind(http)
@@ -368,16 +372,21 @@ async fn start_dashboard(
     let addr = listener
         .local_addr()
         .context("cannot read the dashboard's bound address")?;
+    let warning = dashboard_exposure(addr, api.is_some(), client_certs)?;
     let dashboard = dray_coordinator::http::Dashboard::new(coordinator.clone(), api.clone())?;
     println!("dray coordinator dashboard on http://{addr}");
     eprintln!(
-        "dray coordinator: dashboard on http://{addr} ({})",
+        "dray coordinator: dashboard on http://{addr} ({}; requests must name an IP address \
+         or localhost as their Host)",
         if api.is_some() {
             "the API token is required"
         } else {
-            "OPEN: no API token; answers requests to an IP address or localhost only"
+            "OPEN: no API token"
         }
     );
+    if let Some(w) = warning {
+        eprintln!("dray coordinator: WARNING: {w}");
+    }
     let shutdown = async move {
         let _ = stop.wait_for(|s| *s).await;
     };
@@ -388,6 +397,38 @@ async fn start_dashboard(
     }))
 }
 
+/// What serving the plain-HTTP dashboard on `addr` exposes: nothing to say on loopback;
+/// a warning on any other address (the API token, the session cookie and images cross
+/// the network unencrypted, and without a token anyone who reaches the port may submit
+/// and cancel jobs); a refusal when the gRPC side requires client certificates
+/// (`--tls-ca`), since the dashboard would be a way around them.
+fn dashboard_exposure(
+    addr: std::net::SocketAddr,
+    api_token: bool,
+    client_certs: bool,
+) -> Result<Option<String>> {
+    if addr.ip().is_loopback() {
+        return Ok(None);
+    }
+    if client_certs {
+        bail!(
+            "--http-listen {addr}: the dashboard is plain HTTP without client certificates, \
+             so on a non-loopback address it would let anyone who reaches it past the \
+             certificates --tls-ca requires; bind it to 127.0.0.1 (or [::1]) and reach it \
+             through an SSH tunnel, kubectl port-forward or a TLS proxy"
+        );
+    }
+    Ok(Some(format!(
+        "the dashboard on http://{addr} is plain HTTP on a non-loopback address: {}; bind it \
+         to 127.0.0.1 and reach it through an SSH tunnel, kubectl port-forward or a TLS proxy",
+        if api_token {
+            "the API token and the session cookie cross the network unencrypted"
+        } else {
+            "with no API token, anyone who reaches this port can submit and cancel jobs"
+        }
+    )))
+}
+
 /// `--max-jobs`: 1..=[`MAX_COORDINATOR_JOBS`](dray_worker::setup_bounds::MAX_COORDINATOR_JOBS),
 /// so a worker never refuses a job the coordinator admitted.
 fn parse_max_jobs(s: &str) -> Result<usize, String> {
@@ -395,5 +436,39 @@ fn parse_max_jobs(s: &str) -> Result<usize, String> {
     match s.parse::<usize>() {
         Ok(n) if (1..=max).contains(&n) => Ok(n),
         _ => Err(format!("expected a whole number in 1..={max}")),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::dashboard_exposure;
+
+    /// Issue 45, item 10: a plain-HTTP dashboard on a public address said nothing, even
+    /// when the gRPC side required client certificates.
+    #[test]
+    fn a_public_plain_http_dashboard_is_warned_about_or_refused() {
+        let public = "0.0.0.0:8080".parse().expect("address");
+        let lan = "192.168.1.5:8080".parse().expect("address");
+        for local in ["127.0.0.1:8080", "[::1]:8080", "127.0.0.2:1"] {
+            let a = local.parse().expect("address");
+            assert!(
+                dashboard_exposure(a, false, true)
+                    .expect("loopback is fine")
+                    .is_none()
+            );
+        }
+        let open = dashboard_exposure(public, false, false)
+            .expect("a warning, not a refusal")
+            .expect("a warning");
+        assert!(
+            open.contains("anyone") && open.contains("127.0.0.1"),
+            "{open}"
+        );
+        let token = dashboard_exposure(lan, true, false)
+            .expect("a warning")
+            .expect("a warning");
+        assert!(token.contains("unencrypted"), "{token}");
+        let refused = dashboard_exposure(public, true, true).expect_err("refused");
+        assert!(refused.to_string().contains("--tls-ca"), "{refused}");
     }
 }
