@@ -34,6 +34,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .build_server(true)
         .build_transport(true)
         .emit_rerun_if_changed(false)
+        // An encoded image is shared by every caller that asked for it (coordinator
+        // `image_memo`): `Bytes` is a reference-counted buffer, not a copy per stream.
+        .bytes(".dray.v1.GetImageResponse.data")
         .compile_fds(fds)?;
     Ok(())
 }

@@ -410,7 +410,8 @@ pub(crate) async fn fetch(
         .await
         .map_err(|s| rpc_error("GetImage", url, s))?
         .into_inner()
-        .data)
+        .data
+        .to_vec())
 }
 
 fn is_terminal(s: JobState) -> bool {

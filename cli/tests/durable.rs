@@ -119,7 +119,7 @@ fn get_png(addr: &str, id: &str) -> Result<Vec<u8>, String> {
             ..Default::default()
         })
         .await
-        .map(|r| r.into_inner().data)
+        .map(|r| r.into_inner().data.to_vec())
         .map_err(|s| format!("{:?}: {}", s.code(), s.message()))
     })
 }

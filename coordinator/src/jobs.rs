@@ -52,6 +52,8 @@ pub struct JobEntry {
     store: Option<Arc<JobStore>>,
     /// Its progressive passes and the image after the last complete one.
     pub passes: crate::pass_images::PassImages,
+    /// Its images as last encoded, shared by every caller (`image_memo`).
+    pub images: crate::image_memo::ImageMemo,
 }
 
 struct Inner {
@@ -382,6 +384,7 @@ impl JobTable {
                 ended: tokio::sync::Notify::new(),
                 store: self.store.get().cloned(),
                 passes: crate::pass_images::PassImages::new(&j.spec.passes, j.spec.spp),
+                images: Default::default(),
             });
             if ended {
                 if state == JobState::Succeeded {
@@ -519,6 +522,7 @@ impl JobTable {
             ended: tokio::sync::Notify::new(),
             store: self.store.get().cloned(),
             passes: crate::pass_images::PassImages::new(&spec.passes, spec.spp),
+            images: Default::default(),
             spec,
         });
         if let Some(store) = &entry.store {

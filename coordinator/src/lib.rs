@@ -40,6 +40,7 @@ pub mod cluster;
 pub mod cpu_tally;
 pub mod dispatch;
 pub mod http;
+pub mod image_memo;
 pub mod job;
 pub mod jobs;
 pub mod membership;

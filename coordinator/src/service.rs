@@ -745,22 +745,38 @@ async fn encode_image(
 ) -> Result<GetImageResponse, Status> {
     let samples = image.samples;
     let film = image.film;
-    let data = tokio::task::spawn_blocking(move || {
-        let film = match film {
-            Ok(film) => film,
-            Err(file) => Arc::new(
-                crate::store::image_file::read(&file)
-                    .map_err(|e| format!("cannot read the stored image: {e}"))?,
-            ),
-        };
-        match format {
-            ImageFormat::Exr => encode_exr(&film, samples),
-            _ => encode_png(&film, samples, display),
-        }
-    })
-    .await
-    .map_err(|e| Status::internal(format!("image encoding task died: {e}")))?
-    .map_err(Status::internal)?;
+    let key = crate::image_memo::ImageKey {
+        passes_done: image.passes_done,
+        final_image: image.final_image,
+        format: format as i32,
+        display: match format {
+            ImageFormat::Exr => String::new(),
+            _ => format!("{display:?}"),
+        },
+    };
+    // One encode per key, shared by every caller (see `image_memo`).
+    let data = job
+        .images
+        .get_or_encode(key, || async move {
+            tokio::task::spawn_blocking(move || {
+                let film = match film {
+                    Ok(film) => film,
+                    Err(file) => Arc::new(
+                        crate::store::image_file::read(&file)
+                            .map_err(|e| format!("cannot read the stored image: {e}"))?,
+                    ),
+                };
+                match format {
+                    ImageFormat::Exr => encode_exr(&film, samples),
+                    _ => encode_png(&film, samples, display),
+                }
+                .map(prost::bytes::Bytes::from)
+            })
+            .await
+            .map_err(|e| Status::internal(format!("image encoding task died: {e}")))?
+            .map_err(Status::internal)
+        })
+        .await?;
     Ok(GetImageResponse {
         data,
         format: format as i32,
