@@ -278,7 +278,10 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
         println!("dray coordinator listening on {addr}");
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
         let dashboard = match &a.http_listen {
-            Some(http) => Some(start_dashboard(http, &coordinator, api, stop_rx).await?),
+            Some(http) => Some(
+                start_dashboard(http, &coordinator, api, server.connection_limits(), stop_rx)
+                    .await?,
+            ),
             None => None,
         };
         eprintln!(
@@ -360,6 +363,7 @@ async fn start_dashboard(
     http: &str,
     coordinator: &dray_coordinator::Coordinator,
     api: Option<dray_net::Token>,
+    limits: dray_net::connections::ConnectionLimits,
     mut stop: tokio::sync::watch::Receiver<bool>,
 ) -> Result<tokio::task::JoinHandle<()>> {
     let listener = tokio::net::TcpListener::bind(http)
@@ -382,7 +386,7 @@ async fn start_dashboard(
         let _ = stop.wait_for(|s| *s).await;
     };
     Ok(tokio::spawn(async move {
-        if let Err(e) = dray_coordinator::http::serve(listener, dashboard, shutdown).await {
+        if let Err(e) = dray_coordinator::http::serve(listener, dashboard, limits, shutdown).await {
             eprintln!("dray coordinator: {e}");
         }
     }))
