@@ -279,9 +279,17 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
         let client_certs = a.member.tls.tls_ca.is_some();
         let dashboard = match &a.http_listen {
-            Some(http) => {
-                Some(start_dashboard(http, &coordinator, api, client_certs, stop_rx).await?)
-            }
+            Some(http) => Some(
+                start_dashboard(
+                    http,
+                    &coordinator,
+                    api,
+                    client_certs,
+                    server.connection_limits(),
+                    stop_rx,
+                )
+                .await?,
+            ),
             None => None,
         };
         eprintln!(
@@ -364,6 +372,7 @@ async fn start_dashboard(
     coordinator: &dray_coordinator::Coordinator,
     api: Option<dray_net::Token>,
     client_certs: bool,
+    limits: dray_net::connections::ConnectionLimits,
     mut stop: tokio::sync::watch::Receiver<bool>,
 ) -> Result<tokio::task::JoinHandle<()>> {
     let listener = tokio::net::TcpListener::bind(http)
@@ -391,7 +400,7 @@ async fn start_dashboard(
         let _ = stop.wait_for(|s| *s).await;
     };
     Ok(tokio::spawn(async move {
-        if let Err(e) = dray_coordinator::http::serve(listener, dashboard, shutdown).await {
+        if let Err(e) = dray_coordinator::http::serve(listener, dashboard, limits, shutdown).await {
             eprintln!("dray coordinator: {e}");
         }
     }))

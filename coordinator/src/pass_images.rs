@@ -2,10 +2,11 @@
 //! (`dray_core::passes`), how many passes are complete, and the image after the last
 //! complete one, which GetImage and WatchImage serve while the job runs.
 //!
-//! The image is a snapshot of the film taken when a pass completes (a copy of the
-//! fixed-point sums, 24 bytes a pixel): the job's actor goes on adding the next pass to
-//! its own film meanwhile. The snapshot is dropped when the job ends; a job of one pass
-//! ("one") never makes one.
+//! The image is a copy of the film as a pass completed (the fixed-point sums, 24 bytes a
+//! pixel), built by the job's actor a tile at a time as each tile finishes the pass
+//! (`RunningJob::tile_finished`); the actor goes on adding the next pass to its own film
+//! meanwhile. The image is dropped when the job ends; a job of one pass ("one") never
+//! makes one.
 
 use std::ops::Range;
 use std::sync::{Arc, Mutex};

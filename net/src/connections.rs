@@ -2,9 +2,11 @@
 //! never speaks must not take the server's file descriptors.
 //!
 //! - [`Limited`] wraps the listener's stream of accepted sockets: at most
-//!   `max_connections` are open at once; a socket accepted beyond that is closed at
-//!   once (the client sees its connection closed, the server keeps no descriptor for
-//!   it). An accept error (EMFILE: the process is out of descriptors) pauses accepting
+//!   `max_connections` are open at once, and at most `max_per_address` from one source
+//!   address (an IPv6 address counts by its /64, what one host is usually given), so
+//!   one address cannot take every place and lock the others out; a socket accepted
+//!   beyond either bound is closed at once (the client sees its connection closed, the
+//!   server keeps no descriptor for it). An accept error (EMFILE: the process is out of descriptors) pauses accepting
 //!   briefly instead of spinning.
 //! - [`Guarded`] wraps each accepted socket and holds its place. Its first
 //!   [`HANDSHAKE_BYTES`] bytes (the HTTP/2 connection preface, or the start of a TLS
@@ -17,10 +19,12 @@
 //! - With a [`LinkEmulation`], each accepted socket is shaped beneath everything else
 //!   (TLS included) by [`crate::emulate`]: both directions of every link are shaped once.
 
+use std::collections::HashMap;
 use std::future::Future;
 use std::io;
+use std::net::IpAddr;
 use std::pin::Pin;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll};
 use std::time::Duration;
 
@@ -49,6 +53,9 @@ const REFUSALS_PER_POLL: usize = 64;
 pub struct ConnectionLimits {
     /// Connections open at once; more are closed as soon as they are accepted.
     pub max_connections: usize,
+    /// Connections open at once from one source address (see the module); more from
+    /// it are closed as soon as they are accepted.
+    pub max_per_address: usize,
     /// Time for a new connection's first [`HANDSHAKE_BYTES`] bytes (and for a TLS
     /// handshake).
     pub handshake_timeout: Duration,
@@ -64,6 +71,7 @@ pub struct ConnectionLimits {
 pub struct Limited<I> {
     inner: I,
     slots: Arc<Semaphore>,
+    addresses: Arc<Mutex<HashMap<IpAddr, usize>>>,
     limits: ConnectionLimits,
     pause: Option<Pin<Box<Sleep>>>,
     /// Whether the last socket was refused (to warn once per burst, not per socket).
@@ -76,6 +84,7 @@ impl<I> Limited<I> {
         Limited {
             inner,
             slots: Arc::new(Semaphore::new(limits.max_connections.max(1))),
+            addresses: Arc::default(),
             limits,
             pause: None,
             refusing: false,
@@ -115,22 +124,37 @@ where
                         this.pause = Some(Box::pin(tokio::time::sleep(ACCEPT_ERROR_PAUSE)));
                     }
                 }
-                Some(Ok(stream)) => match this.slots.clone().try_acquire_owned() {
-                    Ok(slot) => {
-                        this.refusing = false;
-                        return Poll::Ready(Some(Ok(Guarded::new(stream, slot, this.limits))));
-                    }
-                    Err(_) => {
-                        if !this.refusing {
-                            tracing::warn!(
-                                limit = this.limits.max_connections,
-                                "too many connections open: new ones are closed at once"
-                            );
+                Some(Ok(stream)) => {
+                    let address = AddressSlot::take(&this.addresses, &stream, &this.limits);
+                    match (address, this.slots.clone().try_acquire_owned()) {
+                        (Ok(address), Ok(slot)) => {
+                            this.refusing = false;
+                            return Poll::Ready(Some(Ok(Guarded::new(
+                                stream,
+                                slot,
+                                address,
+                                this.limits,
+                            ))));
                         }
-                        this.refusing = true;
-                        drop(stream);
+                        (address, _) => {
+                            if !this.refusing {
+                                match address {
+                                    Err(peer) => tracing::warn!(
+                                        %peer,
+                                        limit = this.limits.max_per_address,
+                                        "too many connections open from one address: its new ones are closed at once"
+                                    ),
+                                    Ok(_) => tracing::warn!(
+                                        limit = this.limits.max_connections,
+                                        "too many connections open: new ones are closed at once"
+                                    ),
+                                }
+                            }
+                            this.refusing = true;
+                            drop(stream);
+                        }
                     }
-                },
+                }
             }
         }
         cx.waker().wake_by_ref();
@@ -138,10 +162,71 @@ where
     }
 }
 
+/// One connection's place among its source address's (see the module): given back
+/// when the connection is dropped.
+struct AddressSlot {
+    addresses: Arc<Mutex<HashMap<IpAddr, usize>>>,
+    key: IpAddr,
+}
+
+impl AddressSlot {
+    /// A place for `stream`'s source address, or that address when it has every place
+    /// it may have. A socket whose peer cannot be read (already gone) takes no place.
+    fn take(
+        addresses: &Arc<Mutex<HashMap<IpAddr, usize>>>,
+        stream: &TcpStream,
+        limits: &ConnectionLimits,
+    ) -> Result<Option<AddressSlot>, IpAddr> {
+        let Ok(peer) = stream.peer_addr() else {
+            return Ok(None);
+        };
+        let key = address_key(peer.ip());
+        let mut map = addresses.lock().unwrap_or_else(|p| p.into_inner());
+        let n = map.entry(key).or_insert(0);
+        if *n >= limits.max_per_address.max(1) {
+            return Err(key);
+        }
+        *n += 1;
+        Ok(Some(AddressSlot {
+            addresses: addresses.clone(),
+            key,
+        }))
+    }
+}
+
+impl Drop for AddressSlot {
+    fn drop(&mut self) {
+        let mut map = self.addresses.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(n) = map.get_mut(&self.key) {
+            *n = n.saturating_sub(1);
+            if *n == 0 {
+                map.remove(&self.key);
+            }
+        }
+    }
+}
+
+/// What a source address counts as: an IPv4 address (an IPv4-mapped IPv6 one too) as
+/// itself, an IPv6 address by its /64 (one host usually holds a whole /64, so counting
+/// its addresses one by one would bound nothing).
+pub fn address_key(ip: IpAddr) -> IpAddr {
+    match ip {
+        IpAddr::V4(_) => ip,
+        IpAddr::V6(v6) => match v6.to_ipv4_mapped() {
+            Some(v4) => IpAddr::V4(v4),
+            None => {
+                let s = v6.segments();
+                IpAddr::V6(std::net::Ipv6Addr::new(s[0], s[1], s[2], s[3], 0, 0, 0, 0))
+            }
+        },
+    }
+}
+
 /// An accepted connection holding its place; see the module.
 pub struct Guarded {
     io: MaybeEmulated<TcpStream>,
     _slot: OwnedSemaphorePermit,
+    _address: Option<AddressSlot>,
     /// Bytes still owed before the handshake timeout stops applying (0 after).
     owed: usize,
     idle_timeout: Option<Duration>,
@@ -151,11 +236,17 @@ pub struct Guarded {
 }
 
 impl Guarded {
-    fn new(io: TcpStream, slot: OwnedSemaphorePermit, limits: ConnectionLimits) -> Guarded {
+    fn new(
+        io: TcpStream,
+        slot: OwnedSemaphorePermit,
+        address: Option<AddressSlot>,
+        limits: ConnectionLimits,
+    ) -> Guarded {
         let now = Instant::now();
         Guarded {
             io: MaybeEmulated::new(io, limits.emulate),
             _slot: slot,
+            _address: address,
             owed: HANDSHAKE_BYTES,
             idle_timeout: limits.idle_timeout,
             last_read: now,
@@ -295,6 +386,7 @@ mod tests {
             accepted,
             ConnectionLimits {
                 max_connections: 1,
+                max_per_address: 1,
                 handshake_timeout: Duration::from_secs(10),
                 idle_timeout: None,
                 emulate: None,
@@ -307,5 +399,19 @@ mod tests {
             client.local_addr().ok()
         );
         assert!(limited.next().await.is_none());
+    }
+
+    #[test]
+    fn ipv6_addresses_count_by_their_64_and_mapped_ipv4_as_ipv4() {
+        let a: IpAddr = "2001:db8:1:2:aaaa::1".parse().expect("address");
+        let b: IpAddr = "2001:db8:1:2:bbbb::7".parse().expect("address");
+        let c: IpAddr = "2001:db8:1:3::1".parse().expect("address");
+        assert_eq!(address_key(a), address_key(b));
+        assert_ne!(address_key(a), address_key(c));
+        let mapped: IpAddr = "::ffff:127.0.0.2".parse().expect("address");
+        assert_eq!(
+            address_key(mapped),
+            "127.0.0.2".parse::<IpAddr>().expect("v4")
+        );
     }
 }

@@ -17,8 +17,9 @@
 //!    instead of taking the connection (and every other call on it) down.
 //!
 //! Below the layers, connections are bounded before anyone is authenticated
-//! ([`crate::connections`]): at most `max_connections` open at once (more are closed as
-//! soon as accepted); a connection must start its handshake (the HTTP/2 preface or TLS)
+//! ([`crate::connections`]): at most `max_connections` open at once, and at most
+//! `max_connections_per_address` from one source address (more are closed as soon as
+//! accepted); a connection must start its handshake (the HTTP/2 preface or TLS)
 //! within `handshake_timeout`, and a TLS handshake must end within it; a connection
 //! from which nothing is read for `idle_timeout` is closed. HTTP/2 keep-alive PINGs
 //! every `keepalive_interval` (answered within `keepalive_timeout`) keep live peers
@@ -64,6 +65,10 @@ pub const DEFAULT_BODY_TIMEOUT: Duration = Duration::from_secs(20);
 /// Connections a server keeps open at once by default (well under the usual
 /// descriptor limits of a server process).
 pub const DEFAULT_MAX_CONNECTIONS: usize = 4096;
+/// Connections one source address keeps open at once by default: a quarter of
+/// [`DEFAULT_MAX_CONNECTIONS`], so one address cannot lock the others out, and room
+/// for a whole `dray cluster` on one host (all on 127.0.0.1).
+pub const DEFAULT_MAX_CONNECTIONS_PER_ADDRESS: usize = 1024;
 /// How long a new connection may take to start its handshake (or to finish TLS).
 pub const DEFAULT_HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
 /// How long a connection may send nothing at all before it is closed.
@@ -92,6 +97,9 @@ pub struct ServerOptions {
     pub body_timeout: Duration,
     /// Connections open at once; more are closed as soon as they are accepted.
     pub max_connections: usize,
+    /// Connections open at once from one source address (an IPv6 one by its /64);
+    /// more from it are closed as soon as they are accepted.
+    pub max_connections_per_address: usize,
     /// Longest a new connection may take to send its first bytes (the HTTP/2 preface
     /// or a TLS ClientHello), and a TLS handshake to finish.
     pub handshake_timeout: Duration,
@@ -120,6 +128,7 @@ impl Default for ServerOptions {
             api_timeout: DEFAULT_API_TIMEOUT,
             body_timeout: DEFAULT_BODY_TIMEOUT,
             max_connections: DEFAULT_MAX_CONNECTIONS,
+            max_connections_per_address: DEFAULT_MAX_CONNECTIONS_PER_ADDRESS,
             handshake_timeout: DEFAULT_HANDSHAKE_TIMEOUT,
             idle_timeout: DEFAULT_IDLE_TIMEOUT,
             keepalive_interval: Some(DEFAULT_KEEPALIVE_INTERVAL),
@@ -163,6 +172,7 @@ impl ServerOptions {
         let slack = Duration::from_secs(5);
         ConnectionLimits {
             max_connections: self.max_connections,
+            max_per_address: self.max_connections_per_address,
             handshake_timeout: self.handshake_timeout,
             idle_timeout: self
                 .keepalive_interval

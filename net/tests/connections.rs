@@ -80,6 +80,30 @@ async fn sockets_beyond_the_limit_are_closed_at_once() {
     );
 }
 
+/// One address cannot lock the others out (issue 38): 40 silent sockets from
+/// 127.0.0.1 against 32 places per address and 40 in all; the 8 beyond its 32 are
+/// closed at once, and health from 127.0.0.2 answers every probe.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_address_cannot_take_every_place() {
+    let server = start(ServerOptions {
+        max_connections: 40,
+        max_connections_per_address: 32,
+        handshake_timeout: Duration::from_secs(600),
+        ..ServerOptions::default()
+    })
+    .await;
+    let mut rx = idle_sockets(server.addr, 40).await;
+    let _closed = closed(&mut rx, 8).await;
+    let other = Some("127.0.0.2".parse().expect("address"));
+    for probe in 0..8 {
+        assert_eq!(
+            health_from(server.addr, other).await,
+            Ok(SERVING),
+            "probe {probe} from another address"
+        );
+    }
+}
+
 /// Silent sockets (and one that sends half a preface) are closed after the handshake
 /// timeout; the server then answers health checks.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

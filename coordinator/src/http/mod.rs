@@ -27,8 +27,14 @@ use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use dray_net::Token;
+use dray_net::connections::{ConnectionLimits, Guarded, Limited};
+use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
+use hyper_util::server::conn::auto::Builder;
+use hyper_util::service::TowerToHyperService;
 use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
+use tokio_stream::StreamExt;
+use tonic::transport::server::TcpIncoming;
 
 use crate::Coordinator;
 use auth::Gate;
@@ -117,24 +123,82 @@ async fn not_found() -> ApiError {
 
 /// Serve `dashboard` on `listener` until `shutdown` completes (open event streams then
 /// get [`SHUTDOWN_GRACE`] to end before they are cut).
+///
+/// Connections are bounded as the gRPC servers' are (`dray_net::connections`, with
+/// `limits`, a budget of the dashboard's own): at most `limits.max_connections` open,
+/// at most `limits.max_per_address` from one source address, more closed at once; the
+/// first bytes within `limits.handshake_timeout`. Beyond that the dashboard speaks
+/// HTTP/1 and its event streams read nothing from the client for as long as they last,
+/// so there is no idle timeout below HTTP: hyper's header timer closes a connection
+/// whose request head has not all arrived `limits.handshake_timeout` after it started
+/// waiting for it (a slow-header client, or a kept-alive connection left idle).
 pub async fn serve(
     listener: TcpListener,
     dashboard: Dashboard,
+    limits: ConnectionLimits,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), DashboardError> {
-    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     let app = dashboard.router();
-    let server = axum::serve(listener, app).with_graceful_shutdown(async move {
-        shutdown.await;
-        let _ = stop_tx.send(true);
-    });
-    let mut stopped = stop_rx;
-    tokio::select! {
-        r = server => r?,
-        _ = async {
-            let _ = stopped.wait_for(|s| *s).await;
-            tokio::time::sleep(SHUTDOWN_GRACE).await;
-        } => {}
+    let head_timeout = limits.handshake_timeout;
+    let mut incoming = Limited::new(
+        TcpIncoming::from(listener).with_nodelay(Some(true)),
+        ConnectionLimits {
+            idle_timeout: None,
+            emulate: None,
+            ..limits
+        },
+    );
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let mut connections = tokio::task::JoinSet::new();
+    let mut shutdown = std::pin::pin!(shutdown);
+    loop {
+        tokio::select! {
+            _ = &mut shutdown => break,
+            next = incoming.next() => match next {
+                Some(Ok(io)) => {
+                    let service = TowerToHyperService::new(app.clone());
+                    let stop = stop_rx.clone();
+                    connections.spawn(connection(io, service, head_timeout, stop));
+                }
+                Some(Err(e)) => tracing::debug!(error = %e, "a dashboard connection failed"),
+                None => break,
+            },
+            Some(_) = connections.join_next(), if !connections.is_empty() => {}
+        }
     }
+    drop(incoming);
+    let _ = stop_tx.send(true);
+    let _ = tokio::time::timeout(SHUTDOWN_GRACE, async {
+        while connections.join_next().await.is_some() {}
+    })
+    .await;
+    // Dropping the set cuts what is still open.
     Ok(())
+}
+
+/// Serve one connection until it ends, or until `stop` (then it ends gracefully: the
+/// response in progress completes, nothing more is read).
+async fn connection(
+    io: Guarded,
+    service: TowerToHyperService<Router>,
+    head_timeout: Duration,
+    mut stop: tokio::sync::watch::Receiver<bool>,
+) {
+    let mut builder = Builder::new(TokioExecutor::new());
+    builder
+        .http1()
+        .timer(TokioTimer::new())
+        .header_read_timeout(head_timeout);
+    let conn = builder.serve_connection_with_upgrades(TokioIo::new(io), service);
+    let mut conn = std::pin::pin!(conn);
+    tokio::select! {
+        r = conn.as_mut() => {
+            if let Err(e) = r {
+                tracing::debug!(error = %e, "a dashboard connection ended");
+            }
+            return;
+        }
+        _ = stop.wait_for(|s| *s) => conn.as_mut().graceful_shutdown(),
+    }
+    let _ = conn.await;
 }

@@ -187,10 +187,8 @@ pub fn apply(job: &mut RunningJob, r: &ReportContributionsRequest) -> Applied {
             .unwrap_or(failure);
         return Applied::WorkerFailed(format!("worker {} failed: {failure}", r.worker_id));
     }
-    for (i, &p) in r.pixels.iter().enumerate() {
-        let s = &r.sums[3 * i..3 * i + 3];
-        job.film.add_fixed(p, [s[0], s[1], s[2]]);
-    }
+    // `check` made it three sums per pixel, every pixel inside the film.
+    job.film.add_fixed_run(&r.pixels, &r.sums);
     let mut overdrawn = None;
     for c in &r.credits {
         let t = c.tile as usize;
@@ -248,7 +246,7 @@ pub fn apply(job: &mut RunningJob, r: &ReportContributionsRequest) -> Applied {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
     use crate::job::running::JobPlan;
     use crate::jobs::JobTable;
@@ -271,11 +269,17 @@ mod tests {
 
     /// A 4x2 job of two 2x2 tiles (credit 10 each) on workers w1 and w2.
     fn job() -> RunningJob {
+        job_of(2, 1)
+    }
+
+    /// A `2 tiles` x 2 job of `tiles` 2x2 tiles side by side (credit 10 each), with `spp`
+    /// samples cut in the default (doubling) passes, on workers w1 and w2.
+    pub(in crate::job) fn job_of(tiles: u32, spp: u32) -> RunningJob {
         let table = JobTable::new(1);
         let entry = table.insert(JobSpec {
-            width: 4,
+            width: 2 * tiles,
             height: 2,
-            spp: 1,
+            spp,
             ..Default::default()
         });
         let workers = ["w1", "w2"].map(|w| JobWorker {
@@ -299,14 +303,18 @@ mod tests {
             entry,
             setup: JobSetup::default(),
             sched,
-            tiles: vec![tile(0), tile(1)],
+            tiles: (0..tiles).map(tile).collect(),
             owned_package: None,
             caches: None,
             resume: None,
         })
     }
 
-    fn report(worker: &str, seq: u64, credits: &[(u32, u64)]) -> ReportContributionsRequest {
+    pub(in crate::job) fn report(
+        worker: &str,
+        seq: u64,
+        credits: &[(u32, u64)],
+    ) -> ReportContributionsRequest {
         ReportContributionsRequest {
             worker_id: worker.into(),
             sequence: seq,

@@ -116,6 +116,17 @@ pub struct RunningJob {
     /// The film as the current pass started (the previous pass's image): a tile traced
     /// again after a lost worker goes back to it. None in the first pass (zero).
     pub(super) pass_base: Option<Arc<Film>>,
+    /// The image after the current pass, built a tile at a time: each tile's pixels are
+    /// copied in when its credit of the pass is all back (they are final for the pass
+    /// then: by the workers' contract, [`super::report`], no contribution of the pass
+    /// comes after its credit). When the pass ends every tile is in it, and it becomes
+    /// the pass image without a copy of the film: a copy of a whole film (50 MB at
+    /// 1080p) inside the report that ends a pass would stall every report of the job
+    /// behind it. None in the last pass (no image follows it).
+    pass_next: Option<Film>,
+    /// Pixels copied into pass images so far (what a report may cost beyond its own
+    /// sums; tests hold it to the tiles a report finishes).
+    pub(super) pass_copied: u64,
 }
 
 /// How a job's workers are released.
@@ -145,6 +156,7 @@ impl RunningJob {
             metrics.add_worker(&id);
         }
         let image_tiles = tiles.iter().filter(|t| !t.coarse).count();
+        let pass_next = (entry.passes.total() > 1).then(|| Film::new(w, h));
         let mut job = RunningJob {
             entry,
             owned_package,
@@ -172,6 +184,8 @@ impl RunningJob {
             pass: 0,
             tile_passes: vec![0; image_tiles],
             pass_base: None,
+            pass_next,
+            pass_copied: 0,
         };
         if let Some(r) = resume {
             job.keep(r.tiles);
@@ -213,27 +227,63 @@ impl RunningJob {
             return;
         }
         let first_open = self.tile_passes.iter().copied().min().unwrap_or(0);
-        self.enter_pass((first_open as usize).min(total.saturating_sub(1) as usize));
+        // Taken back at a job's start, not on a report: the film as it is now is the
+        // base of the pass it goes on from.
+        let image = Arc::new(self.film.clone());
+        self.enter_pass(
+            (first_open as usize).min(total.saturating_sub(1) as usize),
+            image,
+        );
     }
 
-    /// Go to pass `pass`: the film so far becomes the pass image (shown by GetImage
-    /// when the pass is not the first, and the base a retried tile returns to); tiles
-    /// that hold more passes (taken back from the job store) are complete in it, the
-    /// others start with no credit back.
-    fn enter_pass(&mut self, pass: usize) {
-        let image = Arc::new(self.film.clone());
+    /// Go to pass `pass`, `image` being the film as it starts: the pass image (shown by
+    /// GetImage when the pass is not the first, and the base a retried tile returns
+    /// to). Tiles that hold more passes (taken back from the job store) are complete in
+    /// it, and their pixels are final: they go into the next pass image now; the others
+    /// start with no credit back and go into it as they finish.
+    fn enter_pass(&mut self, pass: usize, image: Arc<Film>) {
         self.pass = pass;
         if pass > 0 {
             self.entry.passes.publish(image.clone(), pass as u32);
         }
-        self.pass_base = Some(image);
+        let previous = self.pass_base.replace(image);
+        self.pass_next = (!self.last_pass()).then(|| {
+            // Every tile of the next image is written before it is shown, so the image
+            // before this one can hold it when no reader has it any more (no new
+            // allocation, and its pages are already mapped).
+            let (w, h) = (self.film.width, self.film.height);
+            previous
+                .and_then(|p| Arc::try_unwrap(p).ok())
+                .filter(|f| (f.width, f.height) == (w, h))
+                .unwrap_or_else(|| Film::new(w, h))
+        });
         self.tiles_done = 0;
         for t in 0..self.image_tiles {
             if self.tile_passes[t] as usize > pass {
                 self.tile_back[t] = self.tiles[t].credit;
                 self.tiles_done += 1;
+                self.copy_to_next(t);
             } else {
                 self.tile_back[t] = 0;
+            }
+        }
+    }
+
+    /// Copy image tile `t`'s pixels into the next pass image, if one is being built.
+    fn copy_to_next(&mut self, t: usize) {
+        let Some(next) = self.pass_next.as_mut() else {
+            return;
+        };
+        let x = self.tiles[t];
+        let width = self.film.width;
+        for y in x.y0..x.y0.saturating_add(x.height).min(self.film.height) {
+            for xx in x.x0..x.x0.saturating_add(x.width).min(width) {
+                let p = y * width + xx;
+                // The next image's pixel may hold an older pass's sums (a reused
+                // buffer): adding the difference sets it exactly.
+                let (now, old) = (self.film.sum_fixed(p), next.sum_fixed(p));
+                next.add_fixed(p, std::array::from_fn(|c| now[c].wrapping_sub(old[c])));
+                self.pass_copied += 1;
             }
         }
     }
@@ -253,6 +303,7 @@ impl RunningJob {
     pub(super) fn tile_finished(&mut self, t: usize) {
         self.tiles_done += 1;
         self.tile_passes[t] = self.pass as u32 + 1;
+        self.copy_to_next(t);
         if self.entry.store().is_some() {
             self.committed.push(t);
         }
@@ -268,7 +319,10 @@ impl RunningJob {
     /// and the base a retried tile returns to); every tile that has not finished it yet
     /// goes out again with the next samples. Returns the tiles to deal.
     pub(super) fn next_pass(&mut self) -> Vec<Tile> {
-        self.enter_pass(self.pass + 1);
+        // (There is always a next image before the last pass; a copy is the right
+        // image should there not be.)
+        let image = Arc::new(self.pass_next.take().unwrap_or_else(|| self.film.clone()));
+        self.enter_pass(self.pass + 1, image);
         self.publish();
         self.incomplete_tiles()
     }
@@ -689,4 +743,75 @@ impl RunningJob {
 /// An assignment carrying `c`.
 pub(super) fn command(c: Command) -> Assignment {
     Assignment { command: Some(c) }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::report::tests::{job_of, report};
+    use super::super::report::{Applied, apply};
+
+    /// Pixels in one tile of [`job_of`]'s jobs.
+    const TILE_PIXELS: u64 = 4;
+
+    /// The film and the latest pass image hold the same sums in every pixel.
+    fn assert_image_is_film(j: &super::RunningJob, passes_done: u32) {
+        let img = j.entry.passes.latest().expect("a pass image");
+        assert_eq!(img.passes_done, passes_done);
+        for p in 0..j.film.width * j.film.height {
+            assert_eq!(img.film.sum_fixed(p), j.film.sum_fixed(p), "pixel {p}");
+        }
+    }
+
+    /// Nothing proportional to the image on the report path: however a pass ends, a
+    /// report copies at most the pixels of the tiles whose credit it brings back (into
+    /// the next pass image), and the pass images are the film as each pass ended, bit
+    /// for bit; a tile traced again goes back to its pass image exactly.
+    #[test]
+    fn a_report_copies_at_most_the_tiles_it_finishes() {
+        // Three 2x2 tiles side by side (a 6x2 image), 8 spp: passes 0..1, 1..2, 2..4,
+        // 4..8 (the third pass's image is built in the first one's buffer).
+        let mut j = job_of(3, 8);
+        assert_eq!(j.passes_total(), 4);
+        let mut seq = 0;
+        for pass in 0..4u32 {
+            if pass == 1 {
+                // Half of tile 0's credit of pass 1, then a lost worker: back to the
+                // image after pass 0.
+                let mut r = report("w2", 1, &[(0, 4)]);
+                r.pixels = vec![0, 7];
+                r.sums = vec![9, 9, 9, 1, 2, 3];
+                assert_eq!(apply(&mut j, &r), Applied::Counted);
+                j.clear_tile(0);
+                assert_image_is_film(&j, 1);
+            }
+            for t in 0..3u32 {
+                seq += 1;
+                let mut r = report("w1", seq, &[(t, 10)]);
+                // One pixel in each row of tile t.
+                r.pixels = vec![2 * t, 6 + 2 * t + 1];
+                r.sums = vec![i64::from(pass) + 1, i64::from(t), 7, 1, 2, 3];
+                let before = j.pass_copied;
+                assert_eq!(apply(&mut j, &r), Applied::Counted);
+                if j.pass_complete() {
+                    j.next_pass();
+                }
+                let copied = j.pass_copied - before;
+                assert!(
+                    copied <= TILE_PIXELS,
+                    "the report finishing tile {t} of pass {pass} copied {copied} pixels, \
+                     more than its tile's {TILE_PIXELS}"
+                );
+            }
+            if pass < 3 {
+                assert_eq!(j.pass, pass as usize + 1, "pass {pass} ended");
+                assert_image_is_film(&j, pass + 1);
+            }
+        }
+        assert!(j.all_complete());
+        assert_eq!(
+            j.film.sum_fixed(0),
+            [10, 0, 28],
+            "four passes' sums of pixel 0"
+        );
+    }
 }

@@ -121,10 +121,16 @@ pub async fn start(options: ServerOptions) -> Server {
 
 /// A health check of the render service on a new connection: its status, or the error.
 pub async fn health(addr: SocketAddr) -> Result<i32, String> {
+    health_from(addr, None).await
+}
+
+/// [`health`] from the source address `from` (None: the system's choice).
+pub async fn health_from(addr: SocketAddr, from: Option<std::net::IpAddr>) -> Result<i32, String> {
     use tonic_health::pb::HealthCheckRequest;
     use tonic_health::pb::health_client::HealthClient;
     let channel = tonic::transport::Endpoint::from_shared(format!("http://{addr}"))
         .map_err(|e| e.to_string())?
+        .local_address(from)
         .connect()
         .await
         .map_err(|e| e.to_string())?;
