@@ -21,10 +21,6 @@ use support::{Proc, capture_stderr, dray, eventually, free_port};
 /// A limit that only catches hangs.
 const HANG_SECS: f64 = 300.0;
 
-fn text(log: &support::Captured) -> String {
-    log.lock().unwrap_or_else(|p| p.into_inner()).clone()
-}
-
 /// A coordinator on `port` keeping its jobs in `state`.
 fn coordinator(dir: &Path, state: &Path, port: u16) -> (Proc, String, support::Captured) {
     let work = dir.join("work");
@@ -75,11 +71,7 @@ fn submit(addr: &str, dir: &Path, tag: &str, flags: &[&str]) -> Submit {
 
 impl Submit {
     fn id(&self) -> Option<String> {
-        text(&self.log).lines().find_map(|l| {
-            l.strip_prefix("dray submit: job ")?
-                .split_once(" accepted by ")
-                .map(|(id, _)| id.to_string())
-        })
+        support::submitted_job_id(&self.log.text())
     }
 
     /// Wait for the client to end; its exit status and output.
@@ -174,10 +166,12 @@ fn a_coordinator_killed_mid_job_resumes_it_with_the_same_bits() {
     let mut coord = Some((coord, log));
     let workers = [worker(&addr), worker(&addr)];
     let registered = |log: &support::Captured, n: usize| {
-        eventually(60.0, || text(log).matches("worker registered").count() >= n)
+        eventually(60.0, || {
+            log.text().matches("worker registered").count() >= n
+        })
     };
     let log = |c: &Option<(Proc, support::Captured)>| {
-        c.as_ref().map(|(_, l)| text(l)).unwrap_or_default()
+        c.as_ref().map(|(_, l)| l.text()).unwrap_or_default()
     };
     assert!(
         registered(&coord.as_ref().expect("coordinator").1, 2),
@@ -196,28 +190,21 @@ fn a_coordinator_killed_mid_job_resumes_it_with_the_same_bits() {
         std::fs::read(&png).expect("png") == want_small,
         "the first image differs"
     );
-    let small_id = out
-        .lines()
-        .find_map(|l| {
-            l.strip_prefix("dray submit: job ")?
-                .split_once(" accepted by ")
-                .map(|(i, _)| i.to_string())
-        })
-        .expect("the first job's id");
+    let small_id = support::submitted_job_id(&out).expect("the first job's id");
 
     // The long job, and one behind it; the coordinator dies once some tiles are in.
     let long = submit(&addr, &dir, "long", LONG);
     assert!(
         eventually(HANG_SECS, || long.id().is_some()),
         "{}",
-        text(&long.log)
+        long.log.text()
     );
     let long_id = long.id().expect("id");
     let behind = submit(&addr, &dir, "behind", BEHIND);
     assert!(
         eventually(HANG_SECS, || behind.id().is_some()),
         "{}",
-        text(&behind.log)
+        behind.log.text()
     );
     assert!(
         eventually(HANG_SECS, || tiles_done(&addr, &long_id) >= 4),
