@@ -8,7 +8,7 @@
 # counts (jobs, kills, stops, coordinator restarts, hangs, wrong images, seconds).
 #
 # Usage: benches/chaos.sh [--long] [--jobs N] [--seed S]
-#   default: the test's own job count (24, what CI runs); --long: 300 jobs.
+#   default: the test's own job count (40, what CI runs); --long: 300 jobs.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 jobs=""

@@ -14,10 +14,10 @@
 //!
 //! Seeded: the seed is printed, `DRAY_CHAOS_SEED` replays it (the same jobs and the same
 //! faults in the same order; their moments relative to the jobs depend on the machine),
-//! `DRAY_CHAOS_JOBS` sets the number of jobs (default 24; `benches/chaos.sh --long` runs
+//! `DRAY_CHAOS_JOBS` sets the number of jobs (default 40; `benches/chaos.sh --long` runs
 //! hundreds); with `DRAY_CHAOS_LOGS` set, every process's log is printed when a job
-//! fails (it always is for a hang). Nothing here bounds elapsed time but the hang bound, which only catches
-//! hangs.
+//! fails (it always is for a hang). Nothing here bounds elapsed time but the hang bound,
+//! which only catches hangs.
 
 mod common;
 mod support;
@@ -28,7 +28,7 @@ use std::time::{Duration, Instant};
 
 use support::port_worker::PortWorker;
 use support::seeded::{self, Rng};
-use support::{Captured, Proc, capture_stderr, dray, eventually, free_port};
+use support::{Captured, Proc, capture_stderr, dray, eventually};
 
 /// Workers of the cluster; at most `WORKERS - 1` are down or stopped at once.
 const WORKERS: usize = 3;
@@ -225,10 +225,18 @@ struct Cluster {
 
 impl Cluster {
     fn start(dir: &Path) -> Cluster {
-        let port = free_port();
+        // Ports below the kernel's ephemeral range, so that no outgoing connection takes
+        // one between a kill and the restart on it.
+        let port = (0..8)
+            .map(|attempt| support::cluster_base_port(0, attempt))
+            .find(|&p| {
+                (0..=WORKERS as u16)
+                    .all(|i| std::net::TcpListener::bind(("127.0.0.1", p + i)).is_ok())
+            })
+            .expect("no free ports for the chaos cluster");
         let (proc, addr, log) = Cluster::coordinator(dir, port);
-        let workers: Vec<PortWorker> = (0..WORKERS)
-            .map(|_| PortWorker::start(&addr, free_port()))
+        let workers: Vec<PortWorker> = (1..=WORKERS as u16)
+            .map(|i| PortWorker::start(&addr, port + i))
             .collect();
         assert!(
             eventually(60.0, || log.text().matches("worker registered").count()
@@ -418,7 +426,7 @@ fn judge(job: &mut Job, ok: bool) -> End {
 #[test]
 fn jobs_under_kills_stops_and_coordinator_restarts_succeed_with_the_bits_or_fail_with_a_reason() {
     let seed = seeded::seed("DRAY_CHAOS_SEED");
-    let jobs = seeded::count("DRAY_CHAOS_JOBS", 24);
+    let jobs = seeded::count("DRAY_CHAOS_JOBS", 40);
     eprintln!("chaos: seed {seed} (DRAY_CHAOS_SEED={seed} replays it), {jobs} jobs");
     let mut rng = Rng(seed);
     let dir = common::tmp("chaos");

@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 use std::process::Stdio;
 
 use dray_proto::v1::render_service_client::RenderServiceClient;
-use dray_proto::v1::{GetImageRequest, ImageFormat, ListJobsRequest};
+use dray_proto::v1::{GetImageRequest, ImageFormat, JobSpec, ListJobsRequest, SubmitJobRequest};
 use support::{Proc, capture_stderr, dray, eventually, free_port};
 
 /// A limit that only catches hangs.
@@ -314,5 +314,55 @@ fn a_coordinator_killed_mid_job_resumes_it_with_the_same_bits() {
     );
     drop(workers);
     drop(coord);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Found by cli/tests/chaos.rs: SubmitJob answered before the job's row was on disk, so a
+/// coordinator SIGKILLed just after the answer came back without a job its client had
+/// been told was accepted (and `dray submit` blamed a missing state directory). Jobs are
+/// submitted back to back, the last answer is followed at once by the kill: every job
+/// accepted is there after the restart.
+#[test]
+fn every_job_accepted_before_a_kill_comes_back() {
+    let dir = common::tmp("durable-accepted");
+    let state = dir.join("state");
+    let port = free_port();
+    let (coord, addr, _log) = coordinator(&dir, &state, port);
+    let accepted: Vec<String> = rt().block_on(async {
+        let mut c = RenderServiceClient::connect(format!("http://{addr}"))
+            .await
+            .expect("connect");
+        let mut ids = Vec::new();
+        for seed in 0..40 {
+            let spec = JobSpec {
+                scene: "cornell".into(),
+                width: 8,
+                height: 8,
+                spp: 1,
+                seed,
+                ..Default::default()
+            };
+            let r = c
+                .submit_job(SubmitJobRequest { spec: Some(spec) })
+                .await
+                .expect("submit");
+            ids.push(r.into_inner().job_id);
+        }
+        ids
+    });
+    coord.signal(libc::SIGKILL);
+    drop(coord);
+    let (_coord, addr, log) = coordinator(&dir, &state, port);
+    let missing: Vec<&String> = accepted
+        .iter()
+        .filter(|id| support::get_job(&addr, id).is_none())
+        .collect();
+    assert!(
+        missing.is_empty(),
+        "{} of {} accepted jobs did not come back: {missing:?}\n{}",
+        missing.len(),
+        accepted.len(),
+        log.text()
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -301,10 +301,12 @@ impl Coordinator {
                 .map_err(|e| Status::internal(format!("scene loading task died: {e}")))??;
             let job = self.table.insert(v.spec.clone());
             self.launch(&job, &v, prepared, None)?;
+            kept(&job).await;
             return Ok(job.id.clone());
         }
         let job = self.table.insert(v.spec.clone());
         job.set_state(JobState::Preparing);
+        kept(&job).await;
         tracing::info!(id = %job.id, scene = %job.spec.scene, "job accepted; preparing its scene");
         let (this, entry) = (self.clone(), job.clone());
         tokio::spawn(async move {
@@ -421,6 +423,33 @@ fn is_terminal(s: i32) -> bool {
         Ok(JobState::Succeeded | JobState::Failed | JobState::Cancelled)
     )
 }
+
+/// Wait until `job`'s row is in its job store, if it has one: SubmitJob's answer promises
+/// that a coordinator killed and started again on its state directory still has the job
+/// (`dray submit` follows it across the restart). Posted without a wait, a job accepted
+/// in the moments before a SIGKILL was gone after it (found by cli/tests/chaos.rs). The
+/// wait is one batch of the store's writer; a store that does not confirm within
+/// [`ACCEPT_DURABLE_WAIT`] is logged and the job goes on in memory.
+async fn kept(job: &Arc<JobEntry>) {
+    let Some(store) = job.store().cloned() else {
+        return;
+    };
+    let confirmed = tokio::task::spawn_blocking(move || {
+        store.post_durable(crate::store::Op::Nothing, ACCEPT_DURABLE_WAIT)
+    })
+    .await
+    .unwrap_or(false);
+    if !confirmed {
+        tracing::warn!(
+            id = %job.id,
+            "the job store did not confirm the accepted job within {} s: a restart may lose it",
+            ACCEPT_DURABLE_WAIT.as_secs()
+        );
+    }
+}
+
+/// How long SubmitJob waits for the job store to confirm a job it accepts.
+const ACCEPT_DURABLE_WAIT: Duration = Duration::from_secs(10);
 
 #[tonic::async_trait]
 impl RenderService for Coordinator {
