@@ -365,16 +365,24 @@ impl Cluster {
         true
     }
 
-    /// Every log, for the report of a hang.
+    /// The logs that tell a hang's story: the last processes killed, the live ones; each
+    /// cut to its end (a long run's logs would bury the moment).
     fn logs(&self) -> String {
-        let mut out = self.old_logs.join("\n");
+        let mut parts = self.old_logs[self.old_logs.len().saturating_sub(6)..].to_vec();
         if let Some((_, log)) = &self.coordinator {
-            out += &format!("\n--- coordinator ---\n{}", log.text());
+            parts.push(format!("--- coordinator ---\n{}", log.text()));
         }
         for (i, w) in self.workers.iter().enumerate() {
-            out += &format!("\n--- worker {i} ---\n{}", w.log.text());
+            parts.push(format!("--- worker {i} ---\n{}", w.log.text()));
         }
-        out
+        parts
+            .iter()
+            .map(|p| match p.char_indices().rev().nth(20_000) {
+                Some((at, _)) => format!("[...]{}", &p[at..]),
+                None => p.clone(),
+            })
+            .collect::<Vec<_>>()
+            .join("\n")
     }
 }
 
@@ -435,7 +443,7 @@ fn jobs_under_kills_stops_and_coordinator_restarts_succeed_with_the_bits_or_fail
     let mut running: Vec<Job> = Vec::new();
     let (mut submitted, mut succeeded, mut failed) = (0, 0, 0);
     let mut bad: Vec<String> = Vec::new();
-    let (mut hangs, mut wrong, mut disturbed_jobs) = (0, 0, 0);
+    let (mut hangs, mut wrong, mut unexplained, mut disturbed_jobs) = (0, 0, 0, 0);
     let mut next_fault = Instant::now() + Duration::from_millis(rng.between(200, 1500));
     while submitted < jobs || !running.is_empty() {
         let now = Instant::now();
@@ -513,7 +521,10 @@ fn jobs_under_kills_stops_and_coordinator_restarts_succeed_with_the_bits_or_fail
                             hangs += 1;
                             "HANG"
                         }
-                        _ => "ENDED WITHOUT SUCCESS OR A REASON",
+                        _ => {
+                            unexplained += 1;
+                            "ENDED WITHOUT SUCCESS OR A REASON"
+                        }
                     };
                     eprintln!("chaos: {what}: {label} (seed {seed}): {other:?}");
                     bad.push(format!("{label}: {what}: {:?}", job.spec));
@@ -526,7 +537,7 @@ fn jobs_under_kills_stops_and_coordinator_restarts_succeed_with_the_bits_or_fail
         "chaos: seed {seed}: {jobs} jobs ({succeeded} succeeded with dray render's bits, \
          {failed} failed with a reason), {} worker kills, {} stops, {} coordinator \
          restarts ({disturbed_jobs} running jobs disturbed), {hangs} hangs, {wrong} wrong \
-         images, {} s",
+         images, {unexplained} ended without success or a reason, {} s",
         cluster.kills,
         cluster.stops,
         cluster.restarts,

@@ -366,3 +366,70 @@ fn every_job_accepted_before_a_kill_comes_back() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Found by cli/tests/chaos.rs: `dray submit` followed its job across a coordinator
+/// restart, but once the job had ended, GetImage went once: a coordinator lost between the
+/// job's end and that call failed the client ("GetImage failed: transport error") though
+/// the job had succeeded and its image was kept. Here the client is stopped while its job
+/// ends (the last progress waits in its socket), the coordinator is killed, the client
+/// continued, and the coordinator started again a moment later: the client waits for it
+/// and writes the image.
+#[test]
+fn a_coordinator_lost_between_the_end_and_the_image_is_waited_for() {
+    let dir = common::tmp("durable-image");
+    let state = dir.join("state");
+    let port = free_port();
+    let (coord, addr, log) = coordinator(&dir, &state, port);
+    // No worker: the coordinator renders the job itself (the same bits).
+    let want = reference(&dir, "ref-long", LONG);
+    let sub = submit(&addr, &dir, "long", LONG);
+    assert!(
+        eventually(HANG_SECS, || sub.id().is_some()),
+        "{}",
+        sub.log.text()
+    );
+    let id = sub.id().expect("id");
+    sub.proc.signal(libc::SIGSTOP);
+    assert!(
+        support::get_job(&addr, &id)
+            .and_then(|j| j.progress)
+            .is_some_and(|p| !matches!(p.state(), dray_proto::v1::JobState::Succeeded)),
+        "the job ended before the client was stopped: make it longer"
+    );
+    let ended = eventually(HANG_SECS, || {
+        support::get_job(&addr, &id)
+            .and_then(|j| j.progress)
+            .is_some_and(|p| p.state() == dray_proto::v1::JobState::Succeeded)
+    });
+    // Let the last progress reach the client's socket before the coordinator goes.
+    std::thread::sleep(std::time::Duration::from_millis(500));
+    coord.signal(libc::SIGKILL);
+    drop(coord);
+    sub.proc.signal(libc::SIGCONT);
+    assert!(ended, "the job did not succeed: {}", log.text());
+    // The client read the job's end from its socket, and finds the coordinator gone
+    // when it asks for the image (had the end been lost with the connection, WatchJob's
+    // wait would have covered it: not this test's case).
+    assert!(
+        eventually(HANG_SECS, || {
+            let t = sub.log.text();
+            t.contains("succeeded") || t.contains("lost the coordinator")
+        }),
+        "{}",
+        sub.log.text()
+    );
+    assert!(
+        sub.log.text().contains("succeeded"),
+        "the client did not see the job's end before the coordinator went: {}",
+        sub.log.text()
+    );
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    let (_coord, _addr, log) = coordinator(&dir, &state, port);
+    let (ok, out, png) = sub.finish();
+    assert!(ok, "dray submit failed: {out}\n{}", log.text());
+    assert!(
+        std::fs::read(&png).expect("png") == want,
+        "the image differs from dray render's"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
