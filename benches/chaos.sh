@@ -30,7 +30,7 @@ trap 'rm -f "$log"' EXIT
 start=$SECONDS
 set +e
 nice cargo test --release -p dray --test chaos -- --nocapture 2>&1 | tee "$log" \
-    | grep --line-buffered -E '^chaos: (seed|job [0-9]+ .*(SUCCEEDED|FAILED|WRONG|HANG|ENDED))'
+    | grep --line-buffered -E '^chaos: (seed [0-9]+ \(|job [0-9]+ .*(SUCCEEDED|FAILED|WRONG|HANG|ENDED))'
 status=${PIPESTATUS[0]}
 set -e
 echo "benches/chaos.sh: exit $status, $((SECONDS - start)) s wall including the build"
