@@ -226,17 +226,36 @@ async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
     )
     .await?;
 
-    let png = fetch(&mut client, &id, ImageFormat::Png, a.job.display(), &url).await?;
+    // The job has ended; the coordinator may still go away before its image is fetched
+    // (a coordinator with a state directory keeps it): each call waits for it as the
+    // watch did.
+    let again = Reconnect {
+        who: "dray submit",
+        wait: reconnect,
+    };
+    let png = across_restarts(&url, &again, "GetImage", || {
+        image(client.clone(), &id, ImageFormat::Png, a.job.display())
+    })
+    .await?;
     std::fs::write(&a.job.output, &png)
         .with_context(|| format!("cannot write {}", a.job.output.display()))?;
     if let Some(path) = &a.job.exr {
-        let exr = fetch(&mut client, &id, ImageFormat::Exr, Display::default(), &url).await?;
+        let exr = across_restarts(&url, &again, "GetImage", || {
+            image(client.clone(), &id, ImageFormat::Exr, Display::default())
+        })
+        .await?;
         std::fs::write(path, &exr).with_context(|| format!("cannot write {}", path.display()))?;
     }
     // The final statistics (scheduling metrics included) are GetJob's: WatchJob carries
     // progress only.
     let job = if a.stats.is_some() || !a.job.quiet {
-        Some(get_job(&mut client, &id, &url).await?)
+        let job = across_restarts(&url, &again, "GetJob", || {
+            let mut c = client.clone();
+            let job_id = id.clone();
+            async move { Ok(c.get_job(GetJobRequest { job_id }).await?.into_inner().job) }
+        })
+        .await?;
+        Some(job.with_context(|| format!("GetJob: no job {id}"))?)
     } else {
         None
     };
@@ -398,6 +417,18 @@ pub(crate) async fn fetch(
     display: Display,
     url: &str,
 ) -> Result<Vec<u8>> {
+    image(client.clone(), id, format, display)
+        .await
+        .map_err(|s| rpc_error("GetImage", url, s))
+}
+
+/// [`fetch`]'s call, its status kept (to tell a coordinator gone from an answer).
+fn image(
+    mut client: RenderServiceClient<AuthChannel>,
+    id: &str,
+    format: ImageFormat,
+    display: Display,
+) -> impl Future<Output = Result<Vec<u8>, tonic::Status>> + use<> {
     let (exposure, tonemap) = wire_display(display);
     let req = GetImageRequest {
         job_id: id.to_string(),
@@ -405,13 +436,43 @@ pub(crate) async fn fetch(
         exposure,
         tonemap,
     };
-    Ok(client
-        .get_image(req)
-        .await
-        .map_err(|s| rpc_error("GetImage", url, s))?
-        .into_inner()
-        .data
-        .to_vec())
+    async move { Ok(client.get_image(req).await?.into_inner().data.to_vec()) }
+}
+
+/// `call` (named `what` in errors), made again while the coordinator is gone, for at most
+/// `reconnect.wait` (saying so once): for the calls after a job's end, whose coordinator
+/// may restart in between and, with a state directory, still answers for the job.
+async fn across_restarts<T, F>(
+    url: &str,
+    reconnect: &Reconnect<'_>,
+    what: &str,
+    mut call: impl FnMut() -> F,
+) -> Result<T>
+where
+    F: Future<Output = Result<T, tonic::Status>>,
+{
+    let mut lost: Option<Instant> = None;
+    loop {
+        let status = match call().await {
+            Ok(v) => return Ok(v),
+            Err(s) if coordinator_gone(&s) => s,
+            Err(s) => return Err(rpc_error(what, url, s)),
+        };
+        let since = *lost.get_or_insert_with(|| {
+            eprintln!(
+                "{}: lost the coordinator at {url} ({}) after the job's end; waiting up to \
+                 {} s for it to come back ({what})",
+                reconnect.who,
+                status.message().replace('\n', " "),
+                reconnect.wait.as_secs()
+            );
+            Instant::now()
+        });
+        if since.elapsed() >= reconnect.wait {
+            return Err(rpc_error(what, url, status));
+        }
+        tokio::time::sleep(Duration::from_secs(1)).await;
+    }
 }
 
 fn is_terminal(s: JobState) -> bool {

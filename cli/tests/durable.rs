@@ -15,15 +15,11 @@ use std::path::{Path, PathBuf};
 use std::process::Stdio;
 
 use dray_proto::v1::render_service_client::RenderServiceClient;
-use dray_proto::v1::{GetImageRequest, ImageFormat, ListJobsRequest};
+use dray_proto::v1::{GetImageRequest, ImageFormat, JobSpec, ListJobsRequest, SubmitJobRequest};
 use support::{Proc, capture_stderr, dray, eventually, free_port};
 
 /// A limit that only catches hangs.
 const HANG_SECS: f64 = 300.0;
-
-fn text(log: &support::Captured) -> String {
-    log.lock().unwrap_or_else(|p| p.into_inner()).clone()
-}
 
 /// A coordinator on `port` keeping its jobs in `state`.
 fn coordinator(dir: &Path, state: &Path, port: u16) -> (Proc, String, support::Captured) {
@@ -75,11 +71,7 @@ fn submit(addr: &str, dir: &Path, tag: &str, flags: &[&str]) -> Submit {
 
 impl Submit {
     fn id(&self) -> Option<String> {
-        text(&self.log).lines().find_map(|l| {
-            l.strip_prefix("dray submit: job ")?
-                .split_once(" accepted by ")
-                .map(|(id, _)| id.to_string())
-        })
+        support::submitted_job_id(&self.log.text())
     }
 
     /// Wait for the client to end; its exit status and output.
@@ -174,10 +166,12 @@ fn a_coordinator_killed_mid_job_resumes_it_with_the_same_bits() {
     let mut coord = Some((coord, log));
     let workers = [worker(&addr), worker(&addr)];
     let registered = |log: &support::Captured, n: usize| {
-        eventually(60.0, || text(log).matches("worker registered").count() >= n)
+        eventually(60.0, || {
+            log.text().matches("worker registered").count() >= n
+        })
     };
     let log = |c: &Option<(Proc, support::Captured)>| {
-        c.as_ref().map(|(_, l)| text(l)).unwrap_or_default()
+        c.as_ref().map(|(_, l)| l.text()).unwrap_or_default()
     };
     assert!(
         registered(&coord.as_ref().expect("coordinator").1, 2),
@@ -196,28 +190,21 @@ fn a_coordinator_killed_mid_job_resumes_it_with_the_same_bits() {
         std::fs::read(&png).expect("png") == want_small,
         "the first image differs"
     );
-    let small_id = out
-        .lines()
-        .find_map(|l| {
-            l.strip_prefix("dray submit: job ")?
-                .split_once(" accepted by ")
-                .map(|(i, _)| i.to_string())
-        })
-        .expect("the first job's id");
+    let small_id = support::submitted_job_id(&out).expect("the first job's id");
 
     // The long job, and one behind it; the coordinator dies once some tiles are in.
     let long = submit(&addr, &dir, "long", LONG);
     assert!(
         eventually(HANG_SECS, || long.id().is_some()),
         "{}",
-        text(&long.log)
+        long.log.text()
     );
     let long_id = long.id().expect("id");
     let behind = submit(&addr, &dir, "behind", BEHIND);
     assert!(
         eventually(HANG_SECS, || behind.id().is_some()),
         "{}",
-        text(&behind.log)
+        behind.log.text()
     );
     assert!(
         eventually(HANG_SECS, || tiles_done(&addr, &long_id) >= 4),
@@ -327,5 +314,122 @@ fn a_coordinator_killed_mid_job_resumes_it_with_the_same_bits() {
     );
     drop(workers);
     drop(coord);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Found by cli/tests/chaos.rs: SubmitJob answered before the job's row was on disk, so a
+/// coordinator SIGKILLed just after the answer came back without a job its client had
+/// been told was accepted (and `dray submit` blamed a missing state directory). Jobs are
+/// submitted back to back, the last answer is followed at once by the kill: every job
+/// accepted is there after the restart.
+#[test]
+fn every_job_accepted_before_a_kill_comes_back() {
+    let dir = common::tmp("durable-accepted");
+    let state = dir.join("state");
+    let port = free_port();
+    let (coord, addr, _log) = coordinator(&dir, &state, port);
+    let accepted: Vec<String> = rt().block_on(async {
+        let mut c = RenderServiceClient::connect(format!("http://{addr}"))
+            .await
+            .expect("connect");
+        let mut ids = Vec::new();
+        for seed in 0..40 {
+            let spec = JobSpec {
+                scene: "cornell".into(),
+                width: 8,
+                height: 8,
+                spp: 1,
+                seed,
+                ..Default::default()
+            };
+            let r = c
+                .submit_job(SubmitJobRequest { spec: Some(spec) })
+                .await
+                .expect("submit");
+            ids.push(r.into_inner().job_id);
+        }
+        ids
+    });
+    coord.signal(libc::SIGKILL);
+    drop(coord);
+    let (_coord, addr, log) = coordinator(&dir, &state, port);
+    let missing: Vec<&String> = accepted
+        .iter()
+        .filter(|id| support::get_job(&addr, id).is_none())
+        .collect();
+    assert!(
+        missing.is_empty(),
+        "{} of {} accepted jobs did not come back: {missing:?}\n{}",
+        missing.len(),
+        accepted.len(),
+        log.text()
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Found by cli/tests/chaos.rs: `dray submit` followed its job across a coordinator
+/// restart, but once the job had ended, GetImage went once: a coordinator lost between the
+/// job's end and that call failed the client ("GetImage failed: transport error") though
+/// the job had succeeded and its image was kept. Here the client is stopped while its job
+/// ends (the last progress waits in its socket), the coordinator is killed, the client
+/// continued, and the coordinator started again a moment later: the client waits for it
+/// and writes the image.
+#[test]
+fn a_coordinator_lost_between_the_end_and_the_image_is_waited_for() {
+    let dir = common::tmp("durable-image");
+    let state = dir.join("state");
+    let port = free_port();
+    let (coord, addr, log) = coordinator(&dir, &state, port);
+    // No worker: the coordinator renders the job itself (the same bits).
+    let want = reference(&dir, "ref-long", LONG);
+    let sub = submit(&addr, &dir, "long", LONG);
+    assert!(
+        eventually(HANG_SECS, || sub.id().is_some()),
+        "{}",
+        sub.log.text()
+    );
+    let id = sub.id().expect("id");
+    sub.proc.signal(libc::SIGSTOP);
+    assert!(
+        support::get_job(&addr, &id)
+            .and_then(|j| j.progress)
+            .is_some_and(|p| !matches!(p.state(), dray_proto::v1::JobState::Succeeded)),
+        "the job ended before the client was stopped: make it longer"
+    );
+    let ended = eventually(HANG_SECS, || {
+        support::get_job(&addr, &id)
+            .and_then(|j| j.progress)
+            .is_some_and(|p| p.state() == dray_proto::v1::JobState::Succeeded)
+    });
+    // Let the last progress reach the client's socket before the coordinator goes.
+    std::thread::sleep(std::time::Duration::from_millis(500));
+    coord.signal(libc::SIGKILL);
+    drop(coord);
+    sub.proc.signal(libc::SIGCONT);
+    assert!(ended, "the job did not succeed: {}", log.text());
+    // The client read the job's end from its socket, and finds the coordinator gone
+    // when it asks for the image (had the end been lost with the connection, WatchJob's
+    // wait would have covered it: not this test's case).
+    assert!(
+        eventually(HANG_SECS, || {
+            let t = sub.log.text();
+            t.contains("succeeded") || t.contains("lost the coordinator")
+        }),
+        "{}",
+        sub.log.text()
+    );
+    assert!(
+        sub.log.text().contains("succeeded"),
+        "the client did not see the job's end before the coordinator went: {}",
+        sub.log.text()
+    );
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    let (_coord, _addr, log) = coordinator(&dir, &state, port);
+    let (ok, out, png) = sub.finish();
+    assert!(ok, "dray submit failed: {out}\n{}", log.text());
+    assert!(
+        std::fs::read(&png).expect("png") == want,
+        "the image differs from dray render's"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }

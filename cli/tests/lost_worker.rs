@@ -22,6 +22,8 @@ use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use dray_proto::v1::JobState;
+use support::port_worker::PortWorker;
+use support::seeded::{self, Rng};
 use support::{Captured, Proc, capture_stderr, dray, eventually, free_port};
 
 const SCENE: &str = "spheres:200";
@@ -60,55 +62,12 @@ fn hang_bound() -> Duration {
     Duration::from_secs(60 + work / 50_000)
 }
 
-/// Knuth's MMIX linear congruential generator, its high bits: the test's only source of
-/// randomness, from the printed seed (moments and victims need nothing better).
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self
-            .0
-            .wrapping_mul(6_364_136_223_846_793_005)
-            .wrapping_add(1_442_695_040_888_963_407);
-        self.0 >> 33
-    }
-
-    /// Uniform in `0..n`.
-    fn below(&mut self, n: u64) -> u64 {
-        self.next() % n.max(1)
-    }
-}
-
-fn text(c: &Captured) -> String {
-    c.lock().unwrap_or_else(|p| p.into_inner()).clone()
-}
-
-/// A worker on a fixed port, so that its replacement takes the same endpoint.
-struct Worker {
-    port: u16,
-    proc: Proc,
-    log: Captured,
-}
-
-fn start_worker(addr: &str, port: u16) -> Worker {
-    let mut cmd = dray();
-    cmd.args(["worker", "--coordinator", &format!("http://{addr}")])
-        .args(["--listen", &format!("127.0.0.1:{port}"), "--threads", "1"])
-        .env("NO_COLOR", "1")
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped());
-    let mut proc = Proc::spawn(cmd);
-    let log = capture_stderr(&mut proc.child);
-    Worker { port, proc, log }
-}
-
 fn registered(log: &Captured) -> usize {
-    text(log).matches("worker registered").count()
+    log.text().matches("worker registered").count()
 }
 
 fn lost(log: &Captured) -> usize {
-    text(log).matches("worker lost").count()
+    log.text().matches("worker lost").count()
 }
 
 /// The reference image: `dray render --workers 0` with the job's flags.
@@ -137,37 +96,25 @@ fn submit(addr: &str, png: &PathBuf) -> (Proc, Captured) {
 }
 
 fn job_id(log: &Captured) -> Option<String> {
-    text(log).lines().find_map(|l| {
-        l.strip_prefix("dray submit: job ")?
-            .split_once(" accepted by ")
-            .map(|(id, _)| id.to_string())
-    })
+    support::submitted_job_id(&log.text())
 }
 
 #[test]
 fn a_worker_killed_and_restarted_on_its_port_mid_pass_never_hangs_a_job() {
-    let seed = std::env::var("DRAY_KILL_SEED")
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or_else(|| {
-            std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map_or(1, |d| d.as_nanos() as u64)
-        });
-    let runs: usize = std::env::var("DRAY_KILL_RUNS")
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(16);
+    let seed = seeded::seed("DRAY_KILL_SEED");
+    let runs = seeded::count("DRAY_KILL_RUNS", 16);
     eprintln!("lost_worker: seed {seed} (DRAY_KILL_SEED={seed} replays it), {runs} runs");
     let mut rng = Rng(seed);
     let dir = common::tmp("lost-worker");
     let want = reference(&dir);
     let (_coordinator, addr, clog) = support::logged_coordinator(&dir, 0, &[]);
-    let mut workers: Vec<Worker> = (0..3).map(|_| start_worker(&addr, free_port())).collect();
+    let mut workers: Vec<PortWorker> = (0..3)
+        .map(|_| PortWorker::start(&addr, free_port()))
+        .collect();
     assert!(
         eventually(60.0, || registered(&clog) >= 3),
         "the workers did not register: {}",
-        text(&clog)
+        clog.text()
     );
     let bound = hang_bound();
     let (mut succeeded, mut failed, mut killed_mid_job) = (0, 0, 0);
@@ -176,9 +123,9 @@ fn a_worker_killed_and_restarted_on_its_port_mid_pass_never_hangs_a_job() {
         let _ = std::fs::remove_file(&png);
         let (mut sub, slog) = submit(&addr, &png);
         assert!(
-            eventually(bound.as_secs_f64(), || text(&slog).contains(": running, ")),
+            eventually(bound.as_secs_f64(), || slog.text().contains(": running, ")),
             "run {run}: the job never ran: {}",
-            text(&slog)
+            slog.text()
         );
         let id = job_id(&slog).expect("a job id");
         // A random moment of the job (it takes about two seconds undisturbed), a random worker,
@@ -195,7 +142,7 @@ fn a_worker_killed_and_restarted_on_its_port_mid_pass_never_hangs_a_job() {
         let _ = workers[victim].proc.wait_timeout(30.0);
         std::thread::sleep(pause);
         let port = workers[victim].port;
-        workers[victim] = start_worker(&addr, port);
+        workers[victim] = PortWorker::start(&addr, port);
         if state == Some(JobState::Running) {
             killed_mid_job += 1;
         }
@@ -207,7 +154,7 @@ fn a_worker_killed_and_restarted_on_its_port_mid_pass_never_hangs_a_job() {
         );
         let started = Instant::now();
         let status = sub.wait_timeout(bound.as_secs_f64());
-        let out = text(&slog);
+        let out = slog.text();
         let Some(status) = status else {
             let job = support::get_job(&addr, &id);
             panic!(
@@ -215,10 +162,10 @@ fn a_worker_killed_and_restarted_on_its_port_mid_pass_never_hangs_a_job() {
                  --- dray submit ---\n{out}\n--- coordinator ---\n{}\n--- worker logs ---\n{}",
                 started.elapsed().as_secs(),
                 job.and_then(|j| j.progress),
-                text(&clog),
+                clog.text(),
                 workers
                     .iter()
-                    .map(|w| text(&w.log))
+                    .map(|w| w.log.text())
                     .collect::<Vec<_>>()
                     .join("\n---\n")
             );
@@ -247,7 +194,7 @@ fn a_worker_killed_and_restarted_on_its_port_mid_pass_never_hangs_a_job() {
                 && lost(&clog) > lost_before),
             "run {run}: the replacement did not register, or the killed worker was never \
              declared lost:\n{}",
-            text(&clog)
+            clog.text()
         );
     }
     eprintln!(

@@ -3,6 +3,9 @@
 //! dropped, so a failing assertion never leaves a server behind.
 #![allow(dead_code)]
 
+pub mod port_worker;
+pub mod seeded;
+
 use std::io::{BufRead, BufReader};
 use std::path::Path;
 use std::process::{Child, ChildStdout, Command, Stdio};
@@ -370,6 +373,11 @@ impl std::ops::Deref for Captured {
 }
 
 impl Captured {
+    /// The text so far.
+    pub fn text(&self) -> String {
+        self.log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
     /// Everything the child wrote, once its stderr has closed (it exited, and so did any
     /// child of its holding the pipe). Waits for that event, up to 60 s, a limit that
     /// only catches hangs; then it panics.
@@ -391,6 +399,16 @@ impl Captured {
             self.log.lock().unwrap_or_else(|p| p.into_inner()).clone()
         }
     }
+}
+
+/// The job id in `dray submit`'s stderr ("dray submit: job ID accepted by ..."), once
+/// it has said it.
+pub fn submitted_job_id(stderr: &str) -> Option<String> {
+    stderr.lines().find_map(|l| {
+        l.strip_prefix("dray submit: job ")?
+            .split_once(" accepted by ")
+            .map(|(id, _)| id.to_string())
+    })
 }
 
 /// Collect a child's piped stderr on a thread, as it comes.

@@ -205,7 +205,7 @@ impl JobActor {
         }
     }
 
-    fn send_attempt(&self) {
+    fn send_attempt(&mut self) {
         self.job.send_attempt(&self.membership);
     }
 
@@ -330,7 +330,8 @@ impl JobActor {
             tiles = coarse,
             "coarse pass complete; the image's tiles go out"
         );
-        let commands = job.commands(&job.incomplete_tiles(), false);
+        let tiles = job.incomplete_tiles();
+        let commands = job.commands(&tiles, false);
         for (w, a) in commands {
             if !self.membership.send_shared(&w, a) {
                 tracing::debug!(worker = %w, "worker gone before the image's tiles");

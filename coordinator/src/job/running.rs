@@ -482,7 +482,7 @@ impl RunningJob {
     }
 
     /// Send every worker of the current attempt its JobSetup and the incomplete tiles.
-    pub fn send_attempt(&self, membership: &Membership) {
+    pub fn send_attempt(&mut self, membership: &Membership) {
         for (w, a) in self.attempt_commands() {
             // A survivor that is gone too has its own loss event queued: it restarts
             // the job again then.
@@ -541,14 +541,18 @@ impl RunningJob {
     /// For each worker of the current attempt, in job order: its JobSetup, then the
     /// incomplete tiles of the phase the job is in, dealt by the schedule's rule, in
     /// messages of at most [`TILES_PER_MESSAGE`].
-    pub(super) fn attempt_commands(&self) -> Vec<(String, Arc<Assignment>)> {
+    pub(super) fn attempt_commands(&mut self) -> Vec<(String, Arc<Assignment>)> {
         self.commands(&self.incomplete_tiles(), true)
     }
 
     /// `tiles` dealt to the current attempt's workers, each worker's JobSetup first when
     /// `setup`. The JobSetup (which carries the whole routing table) is one shared copy
     /// for every worker: at 10,000 workers a copy each would be gigabytes.
-    pub(super) fn commands(&self, tiles: &[Tile], setup: bool) -> Vec<(String, Arc<Assignment>)> {
+    pub(super) fn commands(
+        &mut self,
+        tiles: &[Tile],
+        setup: bool,
+    ) -> Vec<(String, Arc<Assignment>)> {
         let job_setup = setup.then(|| Arc::new(command(Command::Setup(self.current_setup()))));
         let mut out = Vec::new();
         for (w, mine) in self.sched.deal(tiles) {

@@ -59,8 +59,9 @@ pub struct JobSchedule {
     queued: u64,
     /// Domains given out by a round whose new owner has not reported them resident yet.
     loading: BTreeSet<(u32, String)>,
-    /// Workers that may hold some of this attempt's credit: those it started with (they
-    /// were dealt tiles) and every owner a round gave a domain (rays were sent to it).
+    /// Workers that may hold some of this attempt's credit: those it started with, every
+    /// joiner dealt tiles of a later pass ([`JobSchedule::deal`]) and every owner a
+    /// round gave a domain (rays were sent to it).
     /// A worker outside this set holds no credit, so losing it loses nothing.
     holders: BTreeSet<String>,
     /// A report arrived since the last round.
@@ -159,11 +160,15 @@ impl JobSchedule {
     }
 
     /// Deal `tiles` over the current workers by the schedule's tile rule, each stamped
-    /// with the current attempt: (worker id, its tiles) in job order.
-    pub fn deal(&self, tiles: &[Tile]) -> Vec<(String, Vec<Tile>)> {
+    /// with the current attempt: (worker id, its tiles) in job order. A worker dealt a
+    /// tile holds this attempt's credit from then on, joiners too (a later pass is dealt
+    /// over every worker of the job): losing it needs a new attempt, not
+    /// [`JobSchedule::remove_unused`], or its tiles would never finish.
+    pub fn deal(&mut self, tiles: &[Tile]) -> Vec<(String, Vec<Tile>)> {
         let ids = self.worker_ids();
         let attempt = self.attempt();
-        self.schedule
+        let dealt: Vec<(String, Vec<Tile>)> = self
+            .schedule
             .deal_tiles(tiles.len(), ids.len())
             .into_iter()
             .zip(ids)
@@ -175,7 +180,13 @@ impl JobSchedule {
                     .collect();
                 (id, mine)
             })
-            .collect()
+            .collect();
+        for (id, mine) in &dealt {
+            if !mine.is_empty() {
+                self.holders.insert(id.clone());
+            }
+        }
+        dealt
     }
 
     /// Store a queue report of the current attempt from one of the job's workers (the
@@ -259,7 +270,7 @@ impl JobSchedule {
     }
 
     /// Drop `lost` from the job without a new attempt if it holds none of this
-    /// attempt's credit (a worker that joined and was never given a domain): a new table
+    /// attempt's credit (a worker that joined and was never given a domain or a tile): a new table
     /// for the others. None when it is not a worker of the job or may hold credit.
     pub fn remove_unused(&mut self, lost: &str) -> Option<RoutingTable> {
         if self.holders.contains(lost) {
@@ -401,5 +412,35 @@ mod tests {
         assert!(s.remove_unused("c").is_none());
         let t = s.restart_without("c").unwrap();
         assert_eq!((t.attempt, t.workers.len()), (1, 1));
+    }
+
+    /// Issue 38: a pass after the first is dealt over every worker of the job, joiners
+    /// too; a joiner lost holding next-pass tiles held credit, and dropping it without a
+    /// new attempt left those tiles undone for good (the job hung).
+    #[test]
+    fn a_joiner_dealt_tiles_of_a_later_pass_costs_an_attempt_when_lost() {
+        let ws = [worker("a", 0), worker("b", 0)];
+        let mut s = JobSchedule::new("j", Schedule::Dynamic { replicate: false }, 2, &ws);
+        s.add_worker(worker("c", 0)).unwrap();
+        let tiles: Vec<Tile> = (0..6)
+            .map(|index| Tile {
+                index,
+                ..Default::default()
+            })
+            .collect();
+        let dealt = s.deal(&tiles);
+        assert!(dealt.iter().any(|(w, mine)| w == "c" && !mine.is_empty()));
+        assert!(
+            s.remove_unused("c").is_none(),
+            "c holds tiles of this attempt"
+        );
+        let t = s.restart_without("c").unwrap();
+        assert_eq!((t.attempt, t.workers.len()), (1, 2));
+        // A joiner dealt nothing (more workers than tiles) still goes without an attempt.
+        s.add_worker(worker("d", 0)).unwrap();
+        s.add_worker(worker("e", 0)).unwrap();
+        let dealt = s.deal(&tiles[..2]);
+        assert!(dealt.iter().any(|(w, mine)| w == "e" && mine.is_empty()));
+        assert!(s.remove_unused("e").is_some());
     }
 }
