@@ -565,13 +565,17 @@ pub fn prepare(
     let (mut scene, package) = match (&v.package, loaded) {
         (_, Some(scene)) => (scene, None),
         (Some(dir), None) => {
-            let pkg = open_package(dir)
-                .map_err(|e| bad(format!("scene: cannot open the package {:?}: {e}", s.scene)))?;
+            let pkg = open_package(dir).map_err(|e| {
+                let e = as_given(&e.to_string(), &dir.to_string_lossy(), &s.scene);
+                bad(format!("scene: cannot open the package {:?}: {e}", s.scene))
+            })?;
             (package_scene(&pkg), Some(pkg))
         }
         (None, None) => {
-            let scene = dray_scene::load_cancellable(&v.scene_spec, cancel)
-                .map_err(|e| bad(format!("scene: cannot load {:?}: {e}", s.scene)))?;
+            let scene = dray_scene::load_cancellable(&v.scene_spec, cancel).map_err(|e| {
+                let e = as_given(&e.to_string(), &v.scene_spec, &s.scene);
+                bad(format!("scene: cannot load {:?}: {e}", s.scene))
+            })?;
             (scene, None)
         }
     };
@@ -618,6 +622,16 @@ pub fn prepare(
         camera,
         settings,
     })
+}
+
+/// `message` with the scene's canonical path (which starts with the coordinator's
+/// scene root, a detail of its file system) written as the client gave it (issue 45,
+/// item 11: API errors showed the absolute scene root).
+fn as_given(message: &str, canonical: &str, given: &str) -> String {
+    if canonical.is_empty() {
+        return message.to_string();
+    }
+    message.replace(canonical, given)
 }
 
 /// A package's scene without its triangles, for the checks and the effect analysis
@@ -667,6 +681,29 @@ mod tests {
             spp: 1,
             ..Default::default()
         }
+    }
+
+    /// A scene that fails to load is named as the client gave it, never by the
+    /// coordinator's absolute scene root (issue 45, item 11).
+    #[test]
+    fn load_errors_do_not_show_the_scene_root() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().canonicalize().unwrap();
+        std::fs::create_dir(root.join("models")).unwrap();
+        std::fs::write(root.join("models/bad.gltf"), b"{ not json").unwrap();
+        let s = JobSpec {
+            scene: "models/bad.gltf".into(),
+            ..spec()
+        };
+        let v = validate(&s, &Limits::default(), &root).unwrap();
+        let never = Arc::new(AtomicBool::new(false));
+        let e = match prepare(&v, None, &never) {
+            Err(e) => e,
+            Ok(_) => panic!("a broken file loaded"),
+        };
+        let msg = e.message();
+        assert!(msg.contains("models/bad.gltf"), "{msg}");
+        assert!(!msg.contains(&*root.to_string_lossy()), "{msg}");
     }
 
     /// docs/security.md "Hardening, second round", item 3: a scene moved beyond the import

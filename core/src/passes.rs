@@ -11,6 +11,11 @@ use std::ops::Range;
 /// The default cut: [`Passes::Doubling`].
 pub const DEFAULT: &str = "doubling";
 
+/// The most passes a fixed cut may make. Each pass ends at a barrier (its slowest tile)
+/// and makes an image: 1 sample per pass of a 65,536-sample job ran 32,628 passes in
+/// 300 s where one pass took 16 s (issue 45, item 13). Doubling makes at most 17.
+pub const MAX_PASSES: u32 = 256;
+
 /// How the samples are cut.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Passes {
@@ -25,13 +30,26 @@ pub enum Passes {
 
 impl Passes {
     /// Parse the JobSpec/CLI form: "doubling", "one", or a number of samples per pass
-    /// (1..=spp). Empty means [`DEFAULT`].
+    /// (1..=spp, in digits only: `" 1"` or `"+1"` is refused, not read as 1) making at
+    /// most [`MAX_PASSES`] passes. Empty means [`DEFAULT`].
     pub fn parse(s: &str, spp: u32) -> Result<Passes, String> {
-        match s.trim() {
+        let spp = spp.max(1);
+        match s {
             "" | "doubling" => Ok(Passes::Doubling),
-            "one" => Ok(Passes::Every(spp.max(1))),
+            "one" => Ok(Passes::Every(spp)),
             n => match n.parse::<u32>() {
-                Ok(n) if (1..=spp.max(1)).contains(&n) => Ok(Passes::Every(n)),
+                Ok(k) if n.bytes().all(|b| b.is_ascii_digit()) && (1..=spp).contains(&k) => {
+                    let least = spp.div_ceil(MAX_PASSES);
+                    if k < least {
+                        return Err(format!(
+                            "{k} samples per pass would make {} passes of {spp} samples, more \
+                             than {MAX_PASSES} (every pass is a barrier and an image): give at \
+                             least {least} samples per pass, or \"doubling\"",
+                            spp.div_ceil(k)
+                        ));
+                    }
+                    Ok(Passes::Every(k))
+                }
                 _ => Err(format!(
                     "{s:?} is not \"doubling\", \"one\" or a number of samples per pass \
                      1..={spp}"
@@ -81,10 +99,27 @@ mod tests {
         assert_eq!(Passes::parse("one", 16).unwrap().ranges(16), [0..16]);
         assert_eq!(Passes::parse("", 16).unwrap(), Passes::Doubling);
         assert_eq!(Passes::parse("16", 16).unwrap(), Passes::Every(16));
-        for bad in ["0", "17", "-1", "half", "1.5"] {
+        for bad in [
+            "0", "17", "-1", "half", "1.5", " 1", "1 ", "+1", " one", "Doubling",
+        ] {
             let e = Passes::parse(bad, 16).unwrap_err();
             assert!(e.contains("doubling"), "{e}");
         }
+    }
+
+    #[test]
+    fn fixed_cuts_make_at_most_max_passes() {
+        let e = Passes::parse("1", 65536).unwrap_err();
+        assert!(
+            e.contains("65536 passes") && e.contains("at least 256"),
+            "{e}"
+        );
+        assert_eq!(
+            Passes::parse("256", 65536).unwrap().ranges(65536).len(),
+            256
+        );
+        assert_eq!(Passes::parse("1", 256).unwrap().ranges(256).len(), 256);
+        assert!(Passes::parse("1", 257).is_err());
     }
 
     #[test]
