@@ -365,7 +365,24 @@ fn load(conn: &Connection, images: &Path) -> rusqlite::Result<Vec<StoredJob>> {
             tiles: Vec::new(),
         })
     })?;
-    let mut jobs = rows.collect::<rusqlite::Result<Vec<_>>>()?;
+    // A row whose fields cannot be read (a spec that does not decode, a value of the
+    // wrong type: a hand-edited or damaged row) is left out with a warning, and stays in
+    // the database untouched; it no longer keeps every other job from coming back (issue
+    // 45, item 11). Any other error (the file itself) still fails the open.
+    let mut jobs = Vec::new();
+    for row in rows {
+        match row {
+            Ok(job) => jobs.push(job),
+            Err(
+                e @ (rusqlite::Error::FromSqlConversionFailure(..)
+                | rusqlite::Error::InvalidColumnType(..)
+                | rusqlite::Error::IntegralValueOutOfRange(..)),
+            ) => {
+                tracing::warn!("a job in the store cannot be read and is left out: {e}");
+            }
+            Err(e) => return Err(e),
+        }
+    }
     let mut tiles =
         conn.prepare("SELECT tile, sums, passes FROM tiles WHERE job_id = ?1 ORDER BY tile")?;
     for j in jobs.iter_mut().filter(|j| !ended(j.state)) {
@@ -404,6 +421,38 @@ mod tests {
             assert!(!plain_file_name(bad), "{bad:?}");
         }
         assert!(plain_file_name("0123-abc.film"));
+    }
+
+    /// One damaged row (a spec that does not decode) is left out; the other jobs come
+    /// back (issue 45, item 11: one bad row stopped the whole store from opening).
+    #[test]
+    fn one_unreadable_row_does_not_keep_the_others_out() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            let (store, _) = JobStore::open(dir.path()).unwrap();
+            for id in ["good-1", "bad", "good-2"] {
+                store.post(Op::Insert {
+                    id: id.into(),
+                    spec: JobSpec {
+                        scene: "cornell".into(),
+                        width: 8,
+                        height: 8,
+                        spp: 1,
+                        ..Default::default()
+                    },
+                    submitted_ms: 1,
+                });
+            }
+            store.flush();
+        }
+        {
+            let conn = Connection::open(dir.path().join(DB_FILE)).unwrap();
+            conn.execute("UPDATE jobs SET spec = x'ffffffff' WHERE id = 'bad'", [])
+                .unwrap();
+        }
+        let (_store, jobs) = JobStore::open(dir.path()).unwrap();
+        let ids: Vec<&str> = jobs.iter().map(|j| j.id.as_str()).collect();
+        assert_eq!(ids, ["good-1", "good-2"]);
     }
 
     use super::*;

@@ -150,8 +150,14 @@ pub(crate) fn to_millis(t: SystemTime) -> i64 {
 
 /// The time `ms` milliseconds after the Unix epoch.
 pub(crate) fn from_millis(ms: i64) -> SystemTime {
-    SystemTime::UNIX_EPOCH + Duration::from_millis(u64::try_from(ms).unwrap_or(0))
+    SystemTime::UNIX_EPOCH + Duration::from_millis(u64::try_from(ms).unwrap_or(0).min(MAX_MILLIS))
 }
+
+/// The last millisecond of year 9999, the latest time a protobuf `Timestamp` may hold: a
+/// stored time beyond it (a damaged or hand-edited row: `submitted_ms = i64::MAX`) made
+/// ListJobs answer a Timestamp that grpcurl and other JSON clients refuse, so every
+/// listing failed (issue 45, item 11). Times are clamped to it when read.
+const MAX_MILLIS: u64 = 253_402_300_799_999;
 
 /// Where a job taken back from the store starts again on workers.
 #[derive(Clone, Debug, Default)]
@@ -161,4 +167,24 @@ pub struct Resume {
     pub attempt: u32,
     /// The tiles it keeps.
     pub tiles: Vec<CommittedTile>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stored_times_stay_within_what_a_timestamp_holds() {
+        let t = from_millis(i64::MAX);
+        let ms = t
+            .duration_since(SystemTime::UNIX_EPOCH)
+            .unwrap()
+            .as_millis();
+        assert_eq!(ms, u128::from(MAX_MILLIS));
+        assert_eq!(from_millis(-5), SystemTime::UNIX_EPOCH);
+        assert_eq!(
+            from_millis(1_700_000_000_000),
+            SystemTime::UNIX_EPOCH + Duration::from_millis(1_700_000_000_000)
+        );
+    }
 }
