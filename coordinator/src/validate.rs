@@ -495,6 +495,8 @@ pub fn resolve_scene(scene: &str, root: &Path) -> Result<String, Status> {
         return Err(bad("scene: empty scene".into()));
     }
     if dray_scene::procedural::is_procedural(scene) {
+        // What its generator would refuse is refused now, not when the job loads it.
+        dray_scene::procedural::check(scene).map_err(|e| bad(format!("scene: {e}")))?;
         if let Some(rest) = scene.strip_prefix("grid:")
             && let Some((inner, dims)) = rest.rsplit_once(':')
             && !inner.is_empty()
@@ -680,6 +682,47 @@ mod tests {
             height: 8,
             spp: 1,
             ..Default::default()
+        }
+    }
+
+    /// Procedural specs the generators would refuse are refused at submission (issue
+    /// 45, item 13: they were accepted and failed only when loaded).
+    #[test]
+    fn procedural_specs_beyond_their_generators_are_refused_at_once() {
+        let root = std::env::temp_dir().canonicalize().unwrap();
+        for bad_scene in [
+            "spheres:4294967296",
+            "spheres:10:gold",
+            "iso:sphere:100000",
+            "city:1e9",
+            "soup:0",
+            "cornell:velvet",
+            "grid:spheres:4294967296:2x2x2",
+            "grid:cornell:0x1x1",
+        ] {
+            let s = JobSpec {
+                scene: bad_scene.into(),
+                ..spec()
+            };
+            let e = match validate(&s, &Limits::default(), &root) {
+                Err(e) => e,
+                Ok(_) => panic!("{bad_scene} was accepted"),
+            };
+            assert_eq!(e.code(), tonic::Code::InvalidArgument, "{bad_scene}: {e:?}");
+            assert!(e.message().starts_with("scene: "), "{}", e.message());
+        }
+        for good in [
+            "cornell",
+            "cornell:glass",
+            "spheres:10:mirror",
+            "iso:sphere:64",
+            "grid:cornell:2x1x1",
+        ] {
+            let s = JobSpec {
+                scene: good.into(),
+                ..spec()
+            };
+            assert!(validate(&s, &Limits::default(), &root).is_ok(), "{good}");
         }
     }
 

@@ -32,6 +32,25 @@ pub(super) fn triangle_estimate(spec: &str, args: Option<&str>) -> Option<u64> {
     Some(n * TRIANGLES_PER_SPHERE + 2)
 }
 
+/// Check `spheres:N[:mirror]`'s arguments without making anything: what
+/// [`generate`] would refuse.
+pub(super) fn check(spec: &str, args: Option<&str>) -> Result<()> {
+    let (count, variant) = match args.map(|a| a.split_once(':')) {
+        Some(Some((n, v))) => (n, Some(v)),
+        Some(None) => (args.unwrap_or(DEFAULT_COUNT), None),
+        None => (DEFAULT_COUNT, None),
+    };
+    let max = (MAX_TRIANGLES - 2) / TRIANGLES_PER_SPHERE;
+    parse_count(spec, "sphere count", count, 1, max)?;
+    match variant {
+        None | Some("mirror") => Ok(()),
+        Some(other) => Err(crate::error::SceneError::Procedural {
+            spec: spec.to_string(),
+            message: format!("unknown spheres variant {other:?} (expected `mirror`)"),
+        }),
+    }
+}
+
 pub(super) fn generate(spec: &str, args: Option<&str>) -> Result<Scene> {
     let max = (MAX_TRIANGLES - 2) / TRIANGLES_PER_SPHERE;
     let (count, variant) = match args.map(|a| a.split_once(':')) {
