@@ -126,10 +126,16 @@ impl Gate {
         }
         if let Some(origin) = headers.get(header::ORIGIN) {
             let host = headers.get(header::HOST).and_then(|h| h.to_str().ok());
+            // The scheme must be one a browser loads this page over: plain HTTP, or
+            // HTTPS through a TLS proxy in front of it. Any other (`file://`, a custom
+            // scheme of an app) is another origin even with this host (issue 45, item 12).
             let origin_host = origin
                 .to_str()
                 .ok()
                 .and_then(|o| o.split_once("://"))
+                .filter(|(scheme, _)| {
+                    scheme.eq_ignore_ascii_case("http") || scheme.eq_ignore_ascii_case("https")
+                })
                 .map(|(_, rest)| rest);
             match (origin_host, host) {
                 (Some(o), Some(h)) if o.eq_ignore_ascii_case(h) => {}

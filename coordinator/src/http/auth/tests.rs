@@ -145,6 +145,17 @@ fn state_changing_requests_need_the_csrf_header_and_their_own_origin() {
     let same = (header::ORIGIN, "http://127.0.0.1:8080");
     let evil = (header::ORIGIN, "https://evil.example");
     let null = (header::ORIGIN, "null");
+    let other_scheme = (header::ORIGIN, "file://127.0.0.1:8080");
+    let app_scheme = (header::ORIGIN, "chrome-extension://127.0.0.1:8080");
+    let tls_proxy = (header::ORIGIN, "https://127.0.0.1:8080");
+    assert_eq!(
+        Gate::check_csrf(
+            &post,
+            &headers(&[host.clone(), csrf.clone(), tls_proxy]),
+            Credential::Session
+        ),
+        Ok(())
+    );
     assert_eq!(
         Gate::check_csrf(
             &post,
@@ -153,7 +164,7 @@ fn state_changing_requests_need_the_csrf_header_and_their_own_origin() {
         ),
         Ok(())
     );
-    for o in [evil, null] {
+    for o in [evil, null, other_scheme, app_scheme] {
         assert!(matches!(
             Gate::check_csrf(
                 &post,
