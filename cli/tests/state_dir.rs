@@ -6,41 +6,38 @@
 //! `images` link is refused. Nothing is written through any of them.
 
 mod common;
+mod support;
 
 use std::os::unix::fs::PermissionsExt;
 use std::path::Path;
 use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
+
+use support::Proc;
 
 const NOBODY: u32 = 65534;
 
-/// Run `dray coordinator --state-dir DIR` and return its stderr once it exits; a
-/// coordinator that accepted the directory keeps running, so it is stopped after 60 s
-/// and the test fails.
-fn coordinator_refuses(dir: &Path) -> String {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_dray"))
-        .args(["coordinator", "--listen", "127.0.0.1:0"])
+/// `dray coordinator --state-dir DIR` on a free port, killed and reaped when dropped
+/// (also when an assertion fails).
+fn coordinator(dir: &Path, stderr: Stdio) -> Proc {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_dray"));
+    cmd.args(["coordinator", "--listen", "127.0.0.1:0"])
         .arg("--state-dir")
         .arg(dir)
         .stdin(Stdio::null())
         .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("start dray coordinator");
-    let deadline = Instant::now() + Duration::from_secs(60);
-    let status = loop {
-        if let Some(s) = child.try_wait().expect("wait") {
-            break Some(s);
-        }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            let _ = child.wait();
-            break None;
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    };
+        .stderr(stderr);
+    Proc::spawn(cmd)
+}
+
+/// Run `dray coordinator --state-dir DIR` and return its stderr once it exits; a
+/// coordinator that accepted the directory keeps running, so after 60 s without an exit
+/// the test fails (and the process is killed).
+fn coordinator_refuses(dir: &Path) -> String {
+    let mut p = coordinator(dir, Stdio::piped());
+    let status = p.wait_timeout(60.0);
     let mut err = String::new();
-    if let Some(mut e) = child.stderr.take() {
+    if let Some(mut e) = p.child.stderr.take() {
         use std::io::Read;
         let _ = e.read_to_string(&mut err);
     }
@@ -174,30 +171,21 @@ fn a_state_dir_another_user_prepared_is_refused_and_nothing_is_written_through_i
 fn a_new_state_dir_and_its_files_are_private() {
     let base = common::tmp("state-dir-new");
     let state = base.join("a").join("state");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_dray"))
-        .args(["coordinator", "--listen", "127.0.0.1:0"])
-        .arg("--state-dir")
-        .arg(&state)
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("start dray coordinator");
-    // Wait for the database, which is made after the lock and the images folder.
+    let mut p = coordinator(&state, Stdio::null());
+    // Wait for the database, which is made after the lock and the images folder. The
+    // coordinator exiting first is the failure; the count of polls only keeps a hung
+    // coordinator from hanging the test run (about 10 minutes), it times nothing.
     let db = state.join("jobs.sqlite3");
-    let deadline = Instant::now() + Duration::from_secs(120);
+    let mut polls = 0u32;
     while !db.exists() {
-        assert!(
-            Instant::now() < deadline,
-            "the coordinator made no database"
-        );
-        if let Some(s) = child.try_wait().expect("wait") {
+        if let Ok(Some(s)) = p.child.try_wait() {
             panic!("the coordinator exited: {s}");
         }
+        polls += 1;
+        assert!(polls < 12_000, "the coordinator never made its database");
         std::thread::sleep(Duration::from_millis(50));
     }
-    let _ = child.kill();
-    let _ = child.wait();
+    drop(p);
     let mode = |p: &Path| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
     assert_eq!(mode(&state), 0o700);
     assert_eq!(mode(&state.join("images")), 0o700);

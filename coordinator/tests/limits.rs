@@ -24,7 +24,6 @@ struct Server {
 impl Server {
     async fn start(max_jobs: usize, max_job_bytes: u64, keep_finished: usize) -> Server {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let addr = listener.local_addr().unwrap();
         let coordinator = Coordinator::new(&std::env::temp_dir(), 1)
             .unwrap()
             .with_admission(
@@ -36,6 +35,12 @@ impl Server {
                     max_bytes: None,
                 },
             );
+        Server::serve(listener, coordinator)
+    }
+
+    /// Serve `coordinator` on `listener` until dropped.
+    fn serve(listener: tokio::net::TcpListener, coordinator: Coordinator) -> Server {
+        let addr = listener.local_addr().unwrap();
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
         let task = tokio::spawn(async move {
             dray_coordinator::serve(listener, coordinator, async {
@@ -283,7 +288,6 @@ async fn a_stored_job_beyond_the_limits_fails_on_resume_instead_of_running() {
     let (store, stored) = JobStore::open(dir.path()).unwrap();
     assert_eq!(stored.len(), 1);
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
     let coordinator = Coordinator::new(&std::env::temp_dir(), 1)
         .unwrap()
         .with_admission(
@@ -300,19 +304,7 @@ async fn a_stored_job_beyond_the_limits_fails_on_resume_instead_of_running() {
         coordinator.resume(stored, std::time::Duration::from_millis(10)),
         1
     );
-    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-    let task = tokio::spawn(async move {
-        dray_coordinator::serve(listener, coordinator, async {
-            rx.await.ok();
-        })
-        .await
-        .unwrap();
-    });
-    let server = Server {
-        addr,
-        stop: Some(tx),
-        task,
-    };
+    let server = Server::serve(listener, coordinator);
     let mut c = server.client().await;
     assert_eq!(wait_end(&mut c, "huge").await, JobState::Failed);
     let job = c
