@@ -306,6 +306,9 @@ pub struct Scheduling {
     pub routing_version: u64,
     /// Tiles traced again after a worker was lost.
     pub tiles_retraced: u32,
+    /// Passes the workers could trace ahead of the job's (JobStats.passes_ahead; 0:
+    /// each pass waited for the one before).
+    pub passes_ahead: u32,
     /// Per worker of the job.
     pub workers: Vec<WorkerSummary>,
     /// Workers that took part (0: no actors).
@@ -383,6 +386,7 @@ impl Scheduling {
             scheduler_rounds: 0,
             routing_version: 0,
             tiles_retraced: 0,
+            passes_ahead: 0,
             workers: Vec::new(),
             worker_count: 0,
         }
@@ -410,6 +414,7 @@ impl Scheduling {
             scheduler_rounds: s.scheduler_rounds,
             routing_version: s.routing_version,
             tiles_retraced: s.tiles_retried,
+            passes_ahead: s.passes_ahead,
             workers: s
                 .workers_detail
                 .iter()
@@ -433,7 +438,7 @@ impl Scheduling {
         (self.worker_count > 0).then(|| {
             format!(
                 "{} on {} worker{}: domain loads {} ({:.3} s){}, evictions {}, rays exchanged {}, \
-                 tiles re-traced {}; {} bytes between processes, {:.3} CPU s",
+                 tiles re-traced {}{}; {} bytes between processes, {:.3} CPU s",
                 self.schedule,
                 self.worker_count,
                 if self.worker_count == 1 { "" } else { "s" },
@@ -447,6 +452,11 @@ impl Scheduling {
                 self.evictions,
                 self.rays_exchanged,
                 self.tiles_retraced,
+                if self.passes_ahead > 0 {
+                    format!(", passes traced up to {} ahead", self.passes_ahead)
+                } else {
+                    String::new()
+                },
                 self.traffic.total,
                 self.cpu_seconds
             )

@@ -223,6 +223,17 @@ struct Cluster {
     restarts: usize,
 }
 
+/// Worker `i`'s flags: the first has a memory budget (ample for these scenes), so a job
+/// dealt while it is in the cluster traces its passes ahead (docs/architecture.md "Trace
+/// ahead") and one dealt while it is down does not: kills meet both.
+fn worker_flags(i: usize) -> &'static [&'static str] {
+    if i == 0 {
+        &["--memory-budget", "512M"]
+    } else {
+        &[]
+    }
+}
+
 impl Cluster {
     fn start(dir: &Path) -> Cluster {
         // Ports below the kernel's ephemeral range, so that no outgoing connection takes
@@ -236,7 +247,7 @@ impl Cluster {
             .expect("no free ports for the chaos cluster");
         let (proc, addr, log) = Cluster::coordinator(dir, port);
         let workers: Vec<PortWorker> = (1..=WORKERS as u16)
-            .map(|i| PortWorker::start(&addr, port + i))
+            .map(|i| PortWorker::start_with(&addr, port + i, worker_flags(usize::from(i) - 1)))
             .collect();
         assert!(
             eventually(60.0, || log.text().matches("worker registered").count()
@@ -289,7 +300,7 @@ impl Cluster {
                 }
                 Fault::Down(at) if now >= at => {
                     let port = self.workers[i].port;
-                    self.workers[i] = PortWorker::start(&self.addr, port);
+                    self.workers[i] = PortWorker::start_with(&self.addr, port, worker_flags(i));
                     eprintln!("chaos: worker {i} started again on port {port}");
                 }
                 _ => continue,

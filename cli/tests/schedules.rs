@@ -100,6 +100,7 @@ fn check_scheduling_stats(stats: &Value, schedule: &str, workers: usize, what: &
         "scheduler_rounds",
         "routing_version",
         "tiles_retraced",
+        "passes_ahead",
     ] {
         u64_of(stats, key);
     }
@@ -443,6 +444,10 @@ fn a_cluster_with_a_memory_budget_evicts_keeps_the_bits_and_survives_a_job_too_b
             u64_of(&stats, "evictions") > 0,
             "{tag}: nothing evicted with {CLUSTER_BUDGET} per worker: {stats}"
         );
+        // `dray submit`'s doubling passes of 2 spp, under a budget: the workers trace
+        // the second pass ahead of the first (docs/architecture.md "Trace ahead"), and
+        // the image is still `dray render`'s.
+        assert_eq!(u64_of(&stats, "passes_ahead"), 1, "{tag}: {stats}");
     }
 
     // The whole scene as one domain does not fit: a clear job error, nothing killed.

@@ -522,7 +522,11 @@ async fn run(
         schedule: schedule.name().to_string(),
         // The job's span (this task runs in it): the workers' spans join its trace.
         trace_context: dray_net::trace::inject(&tracing::Span::current()),
+        // Set below, once the tiles are known.
+        passes_ahead: 0,
+        pass: 0,
     };
+    let mut setup = setup;
     let mut tiles = image_tiles(entry.spec.width, entry.spec.height);
     // The coarse pass's tiles come after the image's: traced first, they fill the caches
     // before any image ray looks them up (see `crate::job::running`).
@@ -535,6 +539,13 @@ async fn run(
         let first = tiles.len() as u32;
         tiles.extend(coarse_tiles(coarse, first));
     }
+    setup.passes_ahead = crate::job::ahead::passes_ahead(
+        entry.passes.total(),
+        u64::from(entry.spec.width) * u64::from(entry.spec.height),
+        tiles.len(),
+        workers.iter().any(|w| w.budget > 0),
+        walled,
+    );
     let n = workers.len();
     entry.update_stats(|s| {
         s.triangles = prepared.triangles;

@@ -16,6 +16,12 @@ pub const DEFAULT: &str = "doubling";
 /// 300 s where one pass took 16 s (issue 45, item 13). Doubling makes at most 17.
 pub const MAX_PASSES: u32 = 256;
 
+/// Bits of a worker's tile key below the pass, when a job traces passes ahead
+/// (`JobSetup.passes_ahead`; the worker's `tracer::pass_tag`): such a job has fewer than
+/// 2^24 tiles, and its [`MAX_PASSES`] passes fit the 8 bits above.
+pub const AHEAD_TILE_BITS: u32 = 24;
+const _: () = assert!(MAX_PASSES <= 1 << (32 - AHEAD_TILE_BITS));
+
 /// How the samples are cut.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Passes {

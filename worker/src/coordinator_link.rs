@@ -276,7 +276,11 @@ async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
         .unwrap_or(crate::map_merge::DEFAULT_MERGE_EVERY);
     let (job, mailbox) = Job::new(key, plan.tracer, plan.source, routes);
     let job = Arc::new(job.with_span(span).with_merges_every(merge_every));
-    let actor = JobActor::new(shared.clone(), job.clone(), mailbox, setup.routing);
+    // Tracing passes ahead when the coordinator asks and the tracer tags them (see
+    // `plan::tracer`).
+    let ahead = (setup.passes_ahead > 0 && job.tracer.pass_tags().is_some())
+        .then(|| crate::jobs::ahead::Ahead::new(setup.passes_ahead, setup.pass));
+    let actor = JobActor::new(shared.clone(), job.clone(), mailbox, setup.routing, ahead);
     let owned = job.routes().owned().len();
     let (started, replaced) = shared.jobs.start(job.clone(), actor);
     if let Some(old) = replaced {

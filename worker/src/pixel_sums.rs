@@ -15,20 +15,21 @@ use dray_core::film::add_sums;
 /// A deterministic fast hash: pixel indices are not attacker-chosen keys.
 type FastState = foldhash::fast::FixedState;
 
-/// Fixed-point RGB sums by pixel, each pixel once.
+/// Fixed-point RGB sums by sum key, each key once: the pixel in the low 32 bits, and for
+/// a job tracing passes ahead the pass above it (`crate::tracer::pass_tag`).
 #[derive(Debug, Default)]
 pub struct PixelSums {
-    sums: HashMap<u32, [i64; 3], FastState>,
+    sums: HashMap<u64, [i64; 3], FastState>,
 }
 
 impl PixelSums {
-    /// Add `value` to `pixel`'s sum.
-    pub fn add(&mut self, pixel: u32, value: [i64; 3]) {
-        add_sums(self.sums.entry(pixel).or_insert([0; 3]), value);
+    /// Add `value` to `key`'s sum.
+    pub fn add(&mut self, key: u64, value: [i64; 3]) {
+        add_sums(self.sums.entry(key).or_insert([0; 3]), value);
     }
 
     /// Add every entry of `entries`.
-    pub fn extend(&mut self, entries: &[(u32, [i64; 3])]) {
+    pub fn extend(&mut self, entries: &[(u64, [i64; 3])]) {
         self.sums.reserve(entries.len().min(1 << 16));
         for &(p, v) in entries {
             self.add(p, v);
@@ -56,9 +57,22 @@ impl PixelSums {
         self.sums.is_empty()
     }
 
-    /// All sums as (pixel, sum), in no particular order, leaving this empty.
-    pub fn drain(&mut self) -> Vec<(u32, [i64; 3])> {
+    /// All sums as (key, sum), in no particular order, leaving this empty.
+    pub fn drain(&mut self) -> Vec<(u64, [i64; 3])> {
         self.sums.drain().collect()
+    }
+
+    /// Take out the sums `keep` says no to (by key), leaving the rest here.
+    pub fn split_off(&mut self, keep: impl Fn(u64) -> bool) -> Vec<(u64, [i64; 3])> {
+        let mut out = Vec::new();
+        self.sums.retain(|&k, v| {
+            let stay = keep(k);
+            if !stay {
+                out.push((k, *v));
+            }
+            stay
+        });
+        out
     }
 }
 
@@ -68,8 +82,13 @@ mod tests {
 
     #[test]
     fn merged_sums_equal_entry_by_entry_sums() {
-        let entries: Vec<(u32, [i64; 3])> = (0..1000u32)
-            .map(|i| (i % 37, [i as i64, (i as i64) << 45, i64::MAX - i as i64]))
+        let entries: Vec<(u64, [i64; 3])> = (0..1000u32)
+            .map(|i| {
+                (
+                    u64::from(i % 37),
+                    [i as i64, (i as i64) << 45, i64::MAX - i as i64],
+                )
+            })
             .collect();
         let mut merged = PixelSums::default();
         merged.extend(&entries[..400]);

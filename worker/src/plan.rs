@@ -381,6 +381,45 @@ fn tracer(
     counts: &[u64],
     setup: &JobSetup,
 ) -> Result<JobTracer, JobError> {
+    let tracer = plain_tracer(settings, camera, layout, counts, setup)?;
+    if setup.passes_ahead == 0 {
+        return Ok(tracer);
+    }
+    let tags = pass_tags(setup)?;
+    if tracer.tile_count() >= crate::tracer::pass_tag::MAX_TAGGED_TILES {
+        return Err(JobError::Invalid(format!(
+            "passes_ahead with {} tiles: a job tracing passes ahead has fewer than {}",
+            tracer.tile_count(),
+            crate::tracer::pass_tag::MAX_TAGGED_TILES
+        )));
+    }
+    Ok(tracer.with_pass_tags(tags))
+}
+
+/// The passes of a job tracing them ahead (`JobSetup.passes_ahead`): at least two, at
+/// most 256.
+fn pass_tags(setup: &JobSetup) -> Result<crate::tracer::pass_tag::PassTags, JobError> {
+    let spec = setup.spec.as_ref();
+    let spp = spec.map_or(1, |s| s.spp);
+    let passes = spec.map_or("", |s| s.passes.as_str());
+    let cut = dray_core::passes::Passes::parse(passes, spp)
+        .map_err(|e| JobError::Invalid(format!("passes: {e}")))?;
+    crate::tracer::pass_tag::PassTags::new(cut.ranges(spp)).ok_or_else(|| {
+        JobError::Invalid(format!(
+            "passes_ahead {} with passes {passes:?} at {spp} spp: tracing ahead needs 2 to \
+             256 passes",
+            setup.passes_ahead
+        ))
+    })
+}
+
+fn plain_tracer(
+    settings: RenderSettings,
+    camera: Camera,
+    layout: &DomainLayout,
+    counts: &[u64],
+    setup: &JobSetup,
+) -> Result<JobTracer, JobError> {
     Ok(JobTracer::new(
         settings,
         camera,

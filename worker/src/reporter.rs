@@ -61,6 +61,13 @@ pub(crate) fn requests(
             None,
         ));
     }
+    if job.tracer.pass_tags().is_some() {
+        // A job tracing passes ahead: what its actor lets go is of the job's pass (or
+        // earlier); the coordinator counts credit by tile.
+        for c in &mut report.credits {
+            c.0 = crate::tracer::pass_tag::split_tile_key(c.0).1;
+        }
+    }
     report.credits.sort_unstable_by_key(|c| c.0);
     report.credits.dedup_by(|next, kept| {
         let same = next.0 == kept.0;
@@ -138,7 +145,7 @@ fn request(
     shared: &Shared,
     job: &Job,
     sequence: u64,
-    sums: Vec<(u32, [i64; 3])>,
+    sums: Vec<(u64, [i64; 3])>,
     credits: Vec<TileCredit>,
     r: &Report,
     counters: Option<WorkerCounters>,
@@ -149,7 +156,8 @@ fn request(
         job_id: job.key.id.to_string(),
         attempt: job.key.attempt,
         sequence,
-        pixels: sums.iter().map(|(p, _)| *p).collect(),
+        // The pixel is a sum key's low half (`tracer::pass_tag`).
+        pixels: sums.iter().map(|(k, _)| *k as u32).collect(),
         sums: sums.iter().flat_map(|(_, v)| *v).collect(),
         credits,
         traced: Some(RayCounts::from_kinds(*t)),

@@ -150,6 +150,16 @@ fn next_work(shared: &Shared) -> Option<Work> {
             })
         })
         .map_or(0, |(_, n)| *n);
+    // Under a memory budget, when no resident domain has rays, camera rays come before
+    // a load, as many as the in-flight limit allows: each load then serves them too.
+    // Made only once the queues drain, every chunk of camera rays walked the domains
+    // again (and a job tracing passes ahead walked once per pass: issue 38).
+    if resident_best == 0
+        && shared.store.budget() > 0
+        && let Some(w) = camera_work(shared)
+    {
+        return Some(w);
+    }
     for (key, _) in lengths {
         let job = match shared.jobs.standing(&key.job_id, key.attempt) {
             Standing::Running(job) if !job.has_failed() => job,
@@ -207,19 +217,25 @@ fn next_work(shared: &Shared) -> Option<Work> {
             return Some(Work::Rays(job, held, b));
         }
     }
-    if shared.in_flight() < shared.limits.in_flight_limit {
-        for job in shared.jobs.all() {
-            if job.has_failed() {
-                continue;
-            }
-            if job.tiles().is_empty() || !camera_ready(shared, &job) {
-                continue;
-            }
-            let spp = job.tracer.settings().spp;
-            if let Some((t, start, count)) = job.tiles().take(CAMERA_CHUNK, |t| t.camera_rays(spp))
-            {
-                return Some(Work::Camera(job, t, start, count));
-            }
+    camera_work(shared)
+}
+
+/// The next chunk of some job's camera rays, while the worker's rays in flight are under
+/// its limit.
+fn camera_work(shared: &Shared) -> Option<Work> {
+    if shared.in_flight() >= shared.limits.in_flight_limit {
+        return None;
+    }
+    for job in shared.jobs.all() {
+        if job.has_failed() {
+            continue;
+        }
+        if job.tiles().is_empty() || !camera_ready(shared, &job) {
+            continue;
+        }
+        let spp = job.tracer.settings().spp;
+        if let Some((t, start, count)) = job.tiles().take(CAMERA_CHUNK, |t| t.camera_rays(spp)) {
+            return Some(Work::Camera(job, t, start, count));
         }
     }
     None

@@ -24,6 +24,7 @@ use dray_scene::partition::{
     DomainLayout, LayoutSpec, load_resident, open_package, partition_in_memory, write_scene_package,
 };
 use dray_worker::plan::{memory_domains, package_domains};
+use dray_worker::tracer::pass_tag::{PassTags, split_sum_key, tile_key};
 use dray_worker::{DomainSource, JobTracer, LoadedDomain, Outbox, TileRef};
 
 const TILE: u32 = 16;
@@ -55,6 +56,8 @@ fn camera(scene: &Scene, s: &RenderSettings) -> Camera {
 struct Distributed {
     film: Film,
     rays: [u64; 6],
+    /// Traced ahead: each pass's sums alone, as their tags say.
+    pass_films: Vec<Film>,
 }
 
 /// Trace the job on `workers` tracers, domains dealt round-robin, tiles too.
@@ -77,11 +80,15 @@ fn distributed(
         scramble,
         source.as_ref(),
         std::slice::from_ref(&all),
+        false,
     )
 }
 
 /// Trace the job in `passes` (sample ranges), each dealt and traded to the end before
-/// the next, as the coordinator deals progressive passes.
+/// the next, as the coordinator deals progressive passes; or, `ahead`, every pass's
+/// camera rays at once by tracers that tag results with their pass, as workers tracing
+/// passes ahead make them.
+#[allow(clippy::too_many_arguments)]
 fn distributed_with(
     scene: &Scene,
     s: &RenderSettings,
@@ -90,7 +97,9 @@ fn distributed_with(
     scramble: u64,
     source: &dyn DomainSource,
     passes: &[std::ops::Range<u32>],
+    ahead: bool,
 ) -> Distributed {
+    let tags = ahead.then(|| PassTags::new(passes.to_vec()).expect("passes to trace ahead"));
     let n = layout.domain_count();
     let mut counts = vec![0u64; n as usize];
     for p in partition_in_memory(scene, layout).unwrap() {
@@ -118,14 +127,18 @@ fn distributed_with(
         .collect();
     let tracers: Vec<JobTracer> = (0..workers)
         .map(|_| {
-            JobTracer::new(
+            let t = JobTracer::new(
                 s.clone(),
                 camera(scene, s),
                 layout.to_domain_tree(),
                 layout.epsilon(),
                 &counts,
                 TILE,
-            )
+            );
+            match &tags {
+                Some(tags) => t.with_pass_tags(tags.clone()),
+                None => t,
+            }
         })
         .collect();
 
@@ -133,13 +146,27 @@ fn distributed_with(
     let mut rays = [0u64; 6];
     let mut credit: BTreeMap<u32, Credit> = BTreeMap::new();
     let mut queues: HashMap<u32, Vec<RayRecord>> = HashMap::new();
+    let mut pass_films: Vec<Film> = passes
+        .iter()
+        .map(|_| Film::new(s.width, s.height))
+        .collect();
     let tile_refs = TileRef::all(&TileGrid::new(s.width, s.height, TILE), TILE_CREDIT);
     assert!(!tile_refs.is_empty());
-    for samples in passes {
+    // What is dealt before the rays are traded to the end: one pass at a time, or all.
+    let rounds: Vec<&[std::ops::Range<u32>]> = if ahead {
+        vec![passes]
+    } else {
+        passes.chunks(1).collect()
+    };
+    for round in rounds {
         credit.clear();
         let mut absorb = |out: Outbox, queues: &mut HashMap<u32, Vec<RayRecord>>| {
-            for (p, v) in out.sums {
-                film.add_fixed(p, v);
+            for (key, v) in out.sums {
+                film.add_fixed(key as u32, v);
+                if ahead {
+                    let (pass, pixel) = split_sum_key(key);
+                    pass_films[pass as usize].add_fixed(pixel, v);
+                }
             }
             for (t, c) in out.credits {
                 let sum = credit.entry(t).or_default();
@@ -157,18 +184,20 @@ fn distributed_with(
         };
 
         // The tiles as the coordinator deals them (dispatch::image_tiles), at this size.
-        for (i, t) in tile_refs.iter().enumerate() {
-            let t = &t.in_pass(samples.clone());
-            let w = &tracers[i % workers as usize];
-            let mine = &held[i % workers as usize];
-            // Camera rays in two ranges, as a worker generating them lazily would.
-            let total = t.camera_rays(s.spp);
-            let half = total / 2;
-            let mut out = Outbox::default();
-            w.camera_rays(t, 0, half, mine, &mut out).unwrap();
-            w.camera_rays(t, half, total - half, mine, &mut out)
-                .unwrap();
-            absorb(out, &mut queues);
+        for samples in round {
+            for (i, t) in tile_refs.iter().enumerate() {
+                let t = &t.in_pass(samples.clone());
+                let w = &tracers[i % workers as usize];
+                let mine = &held[i % workers as usize];
+                // Camera rays in two ranges, as a worker generating them lazily would.
+                let total = t.camera_rays(s.spp);
+                let half = total / 2;
+                let mut out = Outbox::default();
+                w.camera_rays(t, 0, half, mine, &mut out).unwrap();
+                w.camera_rays(t, half, total - half, mine, &mut out)
+                    .unwrap();
+                absorb(out, &mut queues);
+            }
         }
         // Trade rays until none is left, in an order that depends on `scramble`.
         let mut step = scramble;
@@ -196,16 +225,29 @@ fn distributed_with(
                 .unwrap();
             absorb(out, &mut queues);
         }
-        for t in &tile_refs {
-            assert_eq!(
-                credit.get(&t.index).copied(),
-                Some(TILE_CREDIT),
-                "tile {} credit, pass {samples:?}",
-                t.index
-            );
+        // Each tile's credit of each pass comes back whole, under the pass's tag.
+        for (k, samples) in round.iter().enumerate() {
+            for t in &tile_refs {
+                let key = if ahead {
+                    tile_key(t.index, k as u32)
+                } else {
+                    t.index
+                };
+                assert_eq!(
+                    credit.get(&key).copied(),
+                    Some(TILE_CREDIT),
+                    "tile {} credit, pass {samples:?}",
+                    t.index
+                );
+            }
         }
+        assert_eq!(credit.len(), tile_refs.len() * round.len(), "no other key");
     }
-    Distributed { film, rays }
+    Distributed {
+        film,
+        rays,
+        pass_films,
+    }
 }
 
 fn reference(scene: &Scene, s: &RenderSettings) -> (Film, [u64; 6]) {
@@ -257,9 +299,14 @@ fn passes_give_the_same_bits_as_one_pass() {
     for cut in [Passes::Doubling, Passes::Every(3), Passes::Every(1)] {
         let passes = cut.ranges(s.spp);
         assert!(passes.len() > 1);
-        let d = distributed_with(&scene, &s, &layout, 3, 17, source.as_ref(), &passes);
+        let d = distributed_with(&scene, &s, &layout, 3, 17, source.as_ref(), &passes, false);
         assert_eq!(d.rays, rays, "{cut:?}: ray counts");
         assert!(d.film == film, "{cut:?}: the image differs from one pass");
+        // Every pass traced at once, ahead of the ones before it (workers tracing passes
+        // ahead): the same image, and each pass's results tagged with their pass.
+        let ahead = distributed_with(&scene, &s, &layout, 3, 17, source.as_ref(), &passes, true);
+        assert_eq!(ahead.rays, rays, "{cut:?} ahead: ray counts");
+        assert!(ahead.film == film, "{cut:?} ahead: the image differs");
         let integrator = Integrator::new(&scene, camera(&scene, &s), s.clone());
         let accel = Accel::build(&scene.mesh);
         let seen = std::sync::Mutex::new(Vec::new());
@@ -280,6 +327,14 @@ fn passes_give_the_same_bits_as_one_pass() {
         let seen = seen.into_inner().unwrap();
         assert_eq!(seen.len(), passes.len(), "one image per pass");
         assert!(seen.last().unwrap().1 == film);
+        // The passes' tagged sums add up to each pass image.
+        let mut upto = Film::new(s.width, s.height);
+        for (k, pass) in ahead.pass_films.iter().enumerate() {
+            for p in 0..s.width * s.height {
+                upto.add_fixed(p, pass.sum_fixed(p));
+            }
+            assert!(upto == seen[k].1, "{cut:?} ahead: pass {k}'s image");
+        }
         // Each pass adds light: the first image is not the last.
         assert!(seen[0].1 != film);
     }
@@ -346,6 +401,7 @@ fn a_package_on_disk_gives_the_same_image() {
         11,
         source.as_ref(),
         std::slice::from_ref(&all),
+        false,
     );
     let _ = std::fs::remove_dir_all(&dir);
     assert!(d.film == film, "image from the package differs");

@@ -17,9 +17,15 @@ impl PortWorker {
     /// Start a one-thread worker on 127.0.0.1:`port` registering with the coordinator at
     /// `addr` (host:port).
     pub fn start(addr: &str, port: u16) -> PortWorker {
+        PortWorker::start_with(addr, port, &[])
+    }
+
+    /// [`PortWorker::start`] with `extra` flags.
+    pub fn start_with(addr: &str, port: u16, extra: &[&str]) -> PortWorker {
         let mut cmd = dray();
         cmd.args(["worker", "--coordinator", &format!("http://{addr}")])
             .args(["--listen", &format!("127.0.0.1:{port}"), "--threads", "1"])
+            .args(extra)
             .env("NO_COLOR", "1")
             .stdin(Stdio::null())
             .stdout(Stdio::null())

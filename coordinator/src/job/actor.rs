@@ -350,6 +350,11 @@ impl JobActor {
             tiles = tiles.len(),
             "pass complete; the next pass's tiles go out"
         );
+        if let Some((workers, marker)) = self.job.pass_markers() {
+            for w in workers {
+                self.membership.send_shared(&w, marker.clone());
+            }
+        }
         for (w, a) in self.job.commands(&tiles, false) {
             if !self.membership.send_shared(&w, a) {
                 tracing::debug!(worker = %w, "worker gone before the next pass's tiles");

@@ -275,6 +275,11 @@ pub(super) mod tests {
     /// A `2 tiles` x 2 job of `tiles` 2x2 tiles side by side (credit 10 each), with `spp`
     /// samples cut in the default (doubling) passes, on workers w1 and w2.
     pub(in crate::job) fn job_of(tiles: u32, spp: u32) -> RunningJob {
+        job_with(tiles, spp, JobSetup::default())
+    }
+
+    /// [`job_of`] with `setup` as the job's JobSetup.
+    pub(in crate::job) fn job_with(tiles: u32, spp: u32, setup: JobSetup) -> RunningJob {
         let table = JobTable::new(1);
         let entry = table.insert(JobSpec {
             width: 2 * tiles,
@@ -301,7 +306,7 @@ pub(super) mod tests {
         };
         RunningJob::new(JobPlan {
             entry,
-            setup: JobSetup::default(),
+            setup,
             sched,
             tiles: (0..tiles).map(tile).collect(),
             owned_package: None,

@@ -127,6 +127,9 @@ pub struct RunningJob {
     /// Pixels copied into pass images so far (what a report may cost beyond its own
     /// sums; tests hold it to the tiles a report finishes).
     pub(super) pass_copied: u64,
+    /// For a job whose workers trace passes ahead (`JobSetup.passes_ahead`): the image
+    /// tiles a worker of the current attempt holds, which are not dealt again.
+    held: Option<super::ahead::Held>,
 }
 
 /// How a job's workers are released.
@@ -157,6 +160,8 @@ impl RunningJob {
         }
         let image_tiles = tiles.iter().filter(|t| !t.coarse).count();
         let pass_next = (entry.passes.total() > 1).then(|| Film::new(w, h));
+        let held = (setup.passes_ahead > 0).then(|| super::ahead::Held::new(image_tiles));
+        entry.update_stats(|s| s.passes_ahead = setup.passes_ahead);
         let mut job = RunningJob {
             entry,
             owned_package,
@@ -186,6 +191,7 @@ impl RunningJob {
             pass_base: None,
             pass_next,
             pass_copied: 0,
+            held,
         };
         if let Some(r) = resume {
             job.keep(r.tiles);
@@ -324,7 +330,25 @@ impl RunningJob {
         let image = Arc::new(self.pass_next.take().unwrap_or_else(|| self.film.clone()));
         self.enter_pass(self.pass + 1, image);
         self.publish();
-        self.incomplete_tiles()
+        let mut tiles = self.incomplete_tiles();
+        if let Some(held) = &self.held {
+            // Their holders trace this pass already (tracing ahead).
+            tiles.retain(|t| t.coarse || !held.holds(t.index as usize));
+        }
+        tiles
+    }
+
+    /// For a job tracing passes ahead, what tells every worker of the attempt that the
+    /// job is in its current pass (they then report what they held of it): an empty
+    /// TileAssignment with the pass, one shared copy. None for any other job.
+    pub(super) fn pass_markers(&self) -> Option<(Vec<String>, Arc<Assignment>)> {
+        self.held.as_ref()?;
+        let marker = Arc::new(command(Command::Tiles(TileAssignment {
+            job_id: self.entry.id.clone(),
+            tiles: Vec::new(),
+            pass: self.pass as u32,
+        })));
+        Some((self.sched.worker_ids(), marker))
     }
 
     /// Post the tiles completed since the last call, with their exact sums, to the job
@@ -534,6 +558,7 @@ impl RunningJob {
             attempt: self.sched.attempt(),
             routing: Some(self.sched.table()),
             schedule: self.sched.schedule().name().to_string(),
+            pass: self.pass as u32,
             ..self.setup.clone()
         }
     }
@@ -542,6 +567,10 @@ impl RunningJob {
     /// incomplete tiles of the phase the job is in, dealt by the schedule's rule, in
     /// messages of at most [`TILES_PER_MESSAGE`].
     pub(super) fn attempt_commands(&mut self) -> Vec<(String, Arc<Assignment>)> {
+        if let Some(held) = self.held.as_mut() {
+            // A new attempt's workers start afresh: they hold what they are dealt now.
+            held.clear();
+        }
         self.commands(&self.incomplete_tiles(), true)
     }
 
@@ -554,6 +583,12 @@ impl RunningJob {
         setup: bool,
     ) -> Vec<(String, Arc<Assignment>)> {
         let job_setup = setup.then(|| Arc::new(command(Command::Setup(self.current_setup()))));
+        if let Some(held) = self.held.as_mut() {
+            for t in tiles.iter().filter(|t| !t.coarse) {
+                held.deal(t.index as usize);
+            }
+        }
+        let pass = self.pass as u32;
         let mut out = Vec::new();
         for (w, mine) in self.sched.deal(tiles) {
             if let Some(s) = &job_setup {
@@ -565,6 +600,7 @@ impl RunningJob {
                     Arc::new(command(Command::Tiles(TileAssignment {
                         job_id: self.entry.id.clone(),
                         tiles: chunk.to_vec(),
+                        pass,
                     }))),
                 ));
             }
@@ -751,8 +787,86 @@ pub(super) fn command(c: Command) -> Assignment {
 
 #[cfg(test)]
 mod tests {
-    use super::super::report::tests::{job_of, report};
+    use super::super::report::tests::{job_of, job_with, report};
     use super::super::report::{Applied, apply};
+    use dray_proto::v1::{Assignment, JobSetup, assignment::Command};
+
+    /// The tiles in `commands` (TileAssignments), as (first sample, tile), and the
+    /// passes the assignments and setups name.
+    fn dealt(commands: &[(String, std::sync::Arc<Assignment>)]) -> (Vec<(u32, u32)>, Vec<u32>) {
+        let (mut tiles, mut passes) = (Vec::new(), Vec::new());
+        for (_, a) in commands {
+            match &a.command {
+                Some(Command::Tiles(t)) => {
+                    passes.push(t.pass);
+                    tiles.extend(t.tiles.iter().map(|x| (x.first_sample, x.index)));
+                }
+                Some(Command::Setup(s)) => passes.push(s.pass),
+                _ => {}
+            }
+        }
+        tiles.sort_unstable();
+        (tiles, passes)
+    }
+
+    /// A job whose workers trace passes ahead deals a tile once per attempt: later passes
+    /// send every worker a marker and only the tiles no worker holds; a new attempt deals
+    /// every incomplete tile again, in the pass the job is in.
+    #[test]
+    fn a_job_tracing_ahead_deals_each_tile_once_per_attempt() {
+        // Three tiles, 8 spp: passes 0..1, 1..2, 2..4, 4..8.
+        let setup = JobSetup {
+            passes_ahead: 3,
+            ..Default::default()
+        };
+        let mut j = job_with(3, 8, setup);
+        let (tiles, passes) = dealt(&j.attempt_commands());
+        assert_eq!(tiles, vec![(0, 0), (0, 1), (0, 2)]);
+        assert!(passes.iter().all(|&p| p == 0));
+        for t in 0..3u32 {
+            assert_eq!(
+                apply(&mut j, &report("w1", u64::from(t) + 1, &[(t, 10)])),
+                Applied::Counted
+            );
+        }
+        assert!(j.pass_complete());
+        assert!(
+            j.next_pass().is_empty(),
+            "every tile is held: none dealt again"
+        );
+        let (workers, marker) = j.pass_markers().expect("markers for a job tracing ahead");
+        assert_eq!(workers.len(), 2, "every worker of the attempt");
+        assert_eq!(dealt(&[(workers[0].clone(), marker)]), (vec![], vec![1]));
+        // Tile 0 finishes pass 1; then a worker is lost: the new attempt deals tiles 1
+        // and 2 in pass 1 (held again by their new workers), and its setup names pass 1.
+        assert_eq!(
+            apply(&mut j, &report("w1", 4, &[(0, 10)])),
+            Applied::Counted
+        );
+        assert!(j.sched.restart_without("w2").is_some());
+        assert_eq!(j.clear_for_retry(), 2);
+        let (tiles, passes) = dealt(&j.attempt_commands());
+        assert_eq!(tiles, vec![(1, 1), (1, 2)]);
+        assert!(passes.iter().all(|&p| p == 1), "{passes:?}");
+        for t in 1..3u32 {
+            assert_eq!(
+                apply(&mut j, &report("w1", u64::from(t), &[(t, 10)])),
+                Applied::Counted
+            );
+        }
+        assert!(j.pass_complete());
+        // Pass 2: tile 0 was not dealt in this attempt (complete before it), so it goes out.
+        let next: Vec<(u32, u32)> = j
+            .next_pass()
+            .iter()
+            .map(|t| (t.first_sample, t.index))
+            .collect();
+        assert_eq!(next, vec![(2, 0)]);
+        // A job that does not trace ahead has no markers, and deals every tile each pass.
+        let mut plain = job_of(3, 8);
+        plain.attempt_commands();
+        assert!(plain.pass_markers().is_none());
+    }
 
     /// Pixels in one tile of [`job_of`]'s jobs.
     const TILE_PIXELS: u64 = 4;

@@ -25,6 +25,7 @@ use crate::node::Shared;
 use crate::reporter::{self, QUEUE_REPORT_INTERVAL, REPORT_INTERVAL, Sent};
 use crate::routing::Routes;
 
+use super::ahead::Ahead;
 use super::job::{Job, JobEvent, Mailbox, tile_ref};
 use super::report::Report;
 
@@ -55,6 +56,8 @@ pub(crate) struct JobActor {
     queue_peak: u64,
     /// Names already warned about (lost peers and cache hosts), so each is logged once.
     warned: std::collections::HashSet<String>,
+    /// For a job tracing passes ahead: what it holds back of later passes.
+    ahead: Option<Ahead>,
 }
 
 impl JobActor {
@@ -63,7 +66,11 @@ impl JobActor {
         job: Arc<Job>,
         mailbox: Mailbox,
         table: Option<RoutingTable>,
+        ahead: Option<Ahead>,
     ) -> JobActor {
+        if let Some(a) = &ahead {
+            job.tiles().open_through(a.open_through());
+        }
         JobActor {
             shared,
             job,
@@ -73,6 +80,7 @@ impl JobActor {
             sequence: 0,
             queue_peak: 0,
             warned: Default::default(),
+            ahead,
         }
     }
 
@@ -153,11 +161,14 @@ impl JobActor {
 
     async fn handle(&mut self, event: JobEvent) {
         match event {
-            JobEvent::Results(r) => {
+            JobEvent::Results(mut r) => {
                 for name in r.unreachable.iter().chain(&r.lost_cache_hosts) {
                     if self.warned.insert(name.clone()) {
                         tracing::warn!(job = %self.job.key.id, %name, "unreachable: rays for it are dropped or go past its walls");
                     }
+                }
+                if let Some(a) = self.ahead.as_mut() {
+                    a.hold(&mut r);
                 }
                 self.report.absorb(*r);
             }
@@ -166,22 +177,46 @@ impl JobActor {
         }
     }
 
-    /// Tiles dealt by the coordinator, queued for the tracing threads.
+    /// Tiles dealt by the coordinator, queued for the tracing threads. For a job tracing
+    /// passes ahead, each tile in its pass and every later one (the coordinator does not
+    /// deal it again in this attempt), and the pass the job is in moves on.
     fn deal(&mut self, t: dray_proto::v1::TileAssignment) {
-        let job = &self.job;
+        let job = self.job.clone();
+        let tags = job.tracer.pass_tags();
         let mut tiles = Vec::with_capacity(t.tiles.len());
+        let mut pass = t.pass;
         for tile in &t.tiles {
             if tile.attempt != job.key.attempt {
                 tracing::warn!(job = %t.job_id, attempt = tile.attempt, "tile of another attempt ignored");
                 continue;
             }
-            tiles.push(tile_ref(tile));
+            let r = tile_ref(tile);
+            match tags {
+                Some(tags) if self.ahead.is_some() && !r.coarse => {
+                    let first = tags.pass_of(r.first_sample);
+                    pass = pass.max(first);
+                    tiles.extend(
+                        (first..tags.count()).filter_map(|p| Some((p, r.in_pass(tags.range(p)?)))),
+                    );
+                }
+                _ => tiles.push((0, r)),
+            }
         }
-        if let Err(e) = job.tiles().deal(tiles, job.tracer.tile_count()) {
+        let limit = job.tracer.tile_count()
+            * tags
+                .filter(|_| self.ahead.is_some())
+                .map_or(1, |t| u64::from(t.count()));
+        if let Some(a) = self.ahead.as_mut()
+            && a.enter(pass, &mut self.report)
+        {
+            tracing::debug!(job = %t.job_id, pass, still_held = a.held_sums(), "the job is in a later pass: its held results go out");
+            job.tiles().open_through(a.open_through());
+        }
+        if let Err(e) = job.tiles().deal(tiles, limit) {
             job.fail(format!(
-                "worker {}: more tiles dealt than the job's {} ({} queued, {} more dealt; refused)",
+                "worker {}: more tiles dealt than the job's {limit} ({} queued, {} more dealt; \
+                 refused)",
                 self.shared.id(),
-                job.tracer.tile_count(),
                 e.queued,
                 e.dealt
             ));

@@ -8,10 +8,12 @@
 //!
 //! - [`job`]: the handle the worker's parts hold, and the events they post.
 //! - [`actor`]: the one owner of a job's report, routing table and tiles.
+//! - [`ahead`]: what a job tracing passes ahead holds back of later passes.
 //! - [`report`]: what a job has to report.
 //! - [`tiles`]: the tiles whose camera rays are still to be made.
 
 pub(crate) mod actor;
+pub(crate) mod ahead;
 pub mod job;
 pub mod report;
 pub mod tiles;

@@ -84,12 +84,28 @@ impl JobTracer {
         u64::from(self.tiles.count()) + u64::from(self.coarse_tiles.count())
     }
 
-    /// The tile holding `pixel` (of the coarse image for a coarse-pass ray).
-    pub fn tile_of(&self, pixel: u32, coarse: bool) -> u32 {
+    /// The key credit of a ray of `pixel`, sample `sample` goes back to: the tile
+    /// holding the pixel (of the coarse image for a coarse-pass ray), tagged with the
+    /// sample's pass when the job traces passes ahead ([`super::pass_tag`]).
+    pub fn tile_of(&self, pixel: u32, sample: u32, coarse: bool) -> u32 {
         if coarse {
             return self.tiles.count() + self.coarse_tiles.index_of_pixel(pixel);
         }
-        self.tiles.index_of_pixel(pixel)
+        let tile = self.tiles.index_of_pixel(pixel);
+        match &self.tags {
+            Some(t) => super::pass_tag::tile_key(tile, t.pass_of(sample)),
+            None => tile,
+        }
+    }
+
+    /// The key `tile`'s camera rays give credit back to (see [`JobTracer::tile_of`]).
+    pub fn tile_key(&self, tile: &TileRef) -> u32 {
+        match &self.tags {
+            Some(t) if !tile.coarse => {
+                super::pass_tag::tile_key(tile.index, t.pass_of(tile.first_sample))
+            }
+            _ => tile.index,
+        }
     }
 
     /// Camera rays `start..start + count` of `tile` (ray i is pixel i / spp of the tile,
@@ -183,10 +199,11 @@ impl JobTracer {
         // The ray in flight, rewritten in place for each camera ray: a one-domain tree
         // is traced from here without the ray being copied through temporaries (each
         // copy of a just-written ray stalled on store forwarding).
+        let key = self.tile_key(tile);
         let mut f = InFlight {
             ray: RayState::default(),
             credit: first_share,
-            tile: tile.index,
+            tile: key,
             lineage: &lin,
         };
         for i in start..end {
@@ -221,7 +238,7 @@ impl JobTracer {
             let flight = InFlight {
                 ray: f.ray,
                 credit: f.credit,
-                tile: tile.index,
+                tile: key,
                 lineage: &lin,
             };
             self.route_new(&ctx, bare, flight, out);

@@ -43,6 +43,7 @@
 
 mod camera;
 mod outbox;
+pub mod pass_tag;
 mod residency;
 #[cfg(test)]
 mod tests;
@@ -144,6 +145,9 @@ pub struct JobTracer {
     /// after the image's).
     coarse: u32,
     coarse_tiles: TileGrid,
+    /// The job's passes, when it traces them ahead: results then carry their pass
+    /// ([`pass_tag`]).
+    tags: Option<pass_tag::PassTags>,
 }
 
 impl JobTracer {
@@ -174,6 +178,7 @@ impl JobTracer {
             coarse: 0,
             coarse_tiles: TileGrid::new(0, 0, tile_size),
             tiles: TileGrid::new(settings.width, settings.height, tile_size),
+            tags: None,
             camera,
             settings,
             tree,
@@ -215,6 +220,17 @@ impl JobTracer {
         self.coarse = n;
         self.coarse_tiles = TileGrid::new(n, n, self.tiles.size());
         self
+    }
+
+    /// Tag what rays hand back with their pass (a job tracing passes ahead).
+    pub fn with_pass_tags(mut self, tags: pass_tag::PassTags) -> JobTracer {
+        self.tags = Some(tags);
+        self
+    }
+
+    /// The job's passes, when it traces them ahead.
+    pub fn pass_tags(&self) -> Option<&pass_tag::PassTags> {
+        self.tags.as_ref()
     }
 
     pub fn settings(&self) -> &RenderSettings {

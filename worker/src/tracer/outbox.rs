@@ -9,6 +9,7 @@ use dray_core::integrator::RayKind;
 use dray_core::ray::RayRecord;
 use glam::Vec3;
 
+use super::pass_tag::sum_key;
 use super::trace::Entering;
 use crate::tickets::{Lineage, RayBundle, TicketLedger};
 
@@ -18,11 +19,14 @@ type FastState = foldhash::fast::FixedState;
 /// Everything that comes out of tracing, to be reported or sent on.
 #[derive(Debug, Default)]
 pub struct Outbox {
-    /// Contributions in fixed point, by pixel; a pixel may repeat (the coordinator's sums
-    /// are exact in any grouping; the worker merges them per report, see `pixel_sums`).
-    pub sums: Vec<(u32, [i64; 3])>,
-    /// Credit handed back by rays that terminated, by tile; a tile may repeat, but
-    /// consecutive returns to one tile share an entry.
+    /// Contributions in fixed point, by sum key (the pixel, and the pass of a job that
+    /// traces passes ahead: [`super::pass_tag`]); a key may repeat (the coordinator's
+    /// sums are exact in any grouping; the worker merges them per report, see
+    /// `pixel_sums`).
+    pub sums: Vec<(u64, [i64; 3])>,
+    /// Credit handed back by rays that terminated, by tile key (the tile, and the pass of
+    /// a job that traces passes ahead); a key may repeat, but consecutive returns to one
+    /// key share an entry.
     pub credits: Vec<(u32, Credit)>,
     /// Rays to trace next on other workers, by the domain they enter next, with their
     /// tickets.
@@ -70,10 +74,10 @@ impl Outbox {
         self.rays.values().map(RayBundle::len).sum()
     }
 
-    /// A contribution to `pixel` (none for a coarse-pass ray), owed also to the ray's
-    /// tickets; `cached` when it is a cache's answer.
+    /// A contribution to `pixel` by a ray of tile key `tile` (none for a coarse-pass
+    /// ray), owed also to the ray's tickets; `cached` when it is a cache's answer.
     #[inline]
-    pub(super) fn add(&mut self, pixel: u32, value: Vec3, lin: &Lineage, cached: bool) {
+    pub(super) fn add(&mut self, pixel: u32, tile: u32, value: Vec3, lin: &Lineage, cached: bool) {
         match to_fixed_clamped(value) {
             Some((f, clamped)) => {
                 self.clamped += u64::from(clamped);
@@ -81,9 +85,10 @@ impl Outbox {
                     // A pixel's samples are traced one after another, so most
                     // contributions land on the pixel of the one before: add them up
                     // here (saturating sums of non-negative values, exact in any grouping).
+                    let key = sum_key(pixel, tile);
                     match self.sums.last_mut() {
-                        Some((p, s)) if *p == pixel => add_sums(s, f),
-                        _ => self.sums.push((pixel, f)),
+                        Some((k, s)) if *k == key => add_sums(s, f),
+                        _ => self.sums.push((key, f)),
                     }
                 }
                 if let Some(t) = &lin.tickets {

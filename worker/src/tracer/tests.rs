@@ -190,11 +190,14 @@ fn credit_by_tile(tracer: &JobTracer, out: &Outbox) -> BTreeMap<u32, Credit> {
     }
     for bundle in out.rays.values() {
         for r in &bundle.rays {
-            add(tracer.tile_of(r.pixel, false), r.credit);
+            add(tracer.tile_of(r.pixel, r.sample, false), r.credit);
         }
     }
     for l in &out.lookups {
-        add(tracer.tile_of(l.ray.pixel, false), l.ray.credit);
+        add(
+            tracer.tile_of(l.ray.pixel, l.ray.sample, false),
+            l.ray.credit,
+        );
     }
     by_tile
 }
@@ -202,7 +205,8 @@ fn credit_by_tile(tracer: &JobTracer, out: &Outbox) -> BTreeMap<u32, Credit> {
 /// Sums by pixel (the outbox may list a pixel more than once).
 fn sums_by_pixel(out: &Outbox) -> BTreeMap<u32, [i64; 3]> {
     let mut sums = BTreeMap::new();
-    for &(p, v) in &out.sums {
+    for &(k, v) in &out.sums {
+        let p = k as u32;
         let s: &mut [i64; 3] = sums.entry(p).or_insert([0; 3]);
         for c in 0..3 {
             s[c] = s[c].wrapping_add(v[c]);
@@ -327,7 +331,7 @@ fn a_ray_crossing_into_a_domain_traced_here_is_traced_in_the_same_step() {
     assert_eq!(out.ray_count(), 0);
     assert_eq!(
         credit_by_tile(&f.tracer, &out),
-        BTreeMap::from([(f.tracer.tile_of(0, false), RAY_CREDIT)]),
+        BTreeMap::from([(f.tracer.tile_of(0, 0, false), RAY_CREDIT)]),
         "the credit comes back whole, split among the hit's children"
     );
     assert!(
@@ -353,10 +357,10 @@ fn a_ray_that_hits_nothing_sees_the_environment_and_hands_back_its_credit() {
         f.tracer
             .trace_batch(a, &[rec], &[], &f.holding(&held), &mut out)
             .expect("trace");
-        assert_eq!(out.sums, vec![(rec.pixel, expected)]);
+        assert_eq!(out.sums, vec![(u64::from(rec.pixel), expected)]);
         assert_eq!(
             out.credits,
-            vec![(f.tracer.tile_of(rec.pixel, false), RAY_CREDIT)]
+            vec![(f.tracer.tile_of(rec.pixel, rec.sample, false), RAY_CREDIT)]
         );
         assert_eq!(out.ray_count(), 0);
         assert_eq!(out.nonfinite, 0);

@@ -49,12 +49,14 @@ pub(super) struct Entering {
 struct HitSink<'a> {
     out: &'a mut Outbox,
     lineage: &'a Lineage,
+    /// The shaded ray's tile key (its pass, for a job tracing passes ahead).
+    tile: u32,
     children: &'a mut Vec<RayState>,
 }
 
 impl Sink for HitSink<'_> {
     fn contribute(&mut self, pixel: u32, value: Vec3) {
-        self.out.add(pixel, value, self.lineage, false);
+        self.out.add(pixel, self.tile, value, self.lineage, false);
     }
     fn spawn(&mut self, ray: RayState) {
         self.children.push(ray);
@@ -67,11 +69,13 @@ impl Sink for HitSink<'_> {
 struct ContributionsOnly<'a> {
     out: &'a mut Outbox,
     lineage: &'a Lineage,
+    /// The ray's tile key.
+    tile: u32,
 }
 
 impl Sink for ContributionsOnly<'_> {
     fn contribute(&mut self, pixel: u32, value: Vec3) {
-        self.out.add(pixel, value, self.lineage, false);
+        self.out.add(pixel, self.tile, value, self.lineage, false);
     }
     fn spawn(&mut self, _ray: RayState) {
         debug_assert!(false, "a miss or an occlusion result made a ray");
@@ -146,6 +150,7 @@ fn shade(
         &mut HitSink {
             out,
             lineage: flight.lineage,
+            tile: flight.tile,
             children: &mut step.children,
         },
     );
@@ -270,7 +275,7 @@ impl JobTracer {
                 hop: None,
                 ray: rec.to_state(),
                 credit: rec.credit,
-                tile: self.tile_of(rec.pixel, lin.coarse),
+                tile: self.tile_of(rec.pixel, rec.sample, lin.coarse),
                 lineage: lin,
             };
             self.trace_one(&ctx, entering, &mut step, out)?;
@@ -441,7 +446,11 @@ pub(super) fn finish_unblocked(
     out: &mut Outbox,
 ) {
     let (ray, lineage) = (&flight.ray, flight.lineage);
-    let mut sink = ContributionsOnly { out, lineage };
+    let mut sink = ContributionsOnly {
+        out,
+        lineage,
+        tile: flight.tile,
+    };
     if ray.kind.is_occlusion() {
         integrator.shadow_result(ray, false, &mut sink);
     } else {

@@ -41,7 +41,7 @@ impl JobTracer {
         let pins = Pins::new(residency, self.nonempty.len());
         let ctx = StepCtx::new(self, &pins);
         let state = ray.to_state();
-        let tile = self.tile_of(ray.pixel, lineage.coarse);
+        let tile = self.tile_of(ray.pixel, ray.sample, lineage.coarse);
         let hop = self
             .hop_in(&state, domain)
             .ok_or(TraceError::Misrouted { domain })?;
@@ -77,7 +77,7 @@ impl JobTracer {
     /// An occlusion ray whose wall's hit map predicts a hit: it is occluded, adding
     /// nothing; its credit goes back (its tickets tainted).
     pub fn answer_occluded(&self, ray: &RayRecord, lineage: &Lineage, out: &mut Outbox) {
-        let tile = self.tile_of(ray.pixel, lineage.coarse);
+        let tile = self.tile_of(ray.pixel, ray.sample, lineage.coarse);
         out.give_back(tile, ray.credit, lineage, true);
     }
 
@@ -86,9 +86,9 @@ impl JobTracer {
     /// a cache.
     pub fn answer_hit(&self, ray: &RayRecord, lineage: &Lineage, radiance: Vec3, out: &mut Outbox) {
         let pixels = self.settings.width as u64 * self.settings.height as u64;
-        let tile = self.tile_of(ray.pixel, lineage.coarse);
+        let tile = self.tile_of(ray.pixel, ray.sample, lineage.coarse);
         if lineage.coarse || (ray.pixel as u64) < pixels {
-            out.add(ray.pixel, ray.weight * radiance, lineage, true);
+            out.add(ray.pixel, tile, ray.weight * radiance, lineage, true);
         }
         out.give_back(tile, ray.credit, lineage, true);
     }
