@@ -11,7 +11,7 @@ use axum::response::{IntoResponse, Response};
 use dray_proto::v1::render_service_server::RenderService;
 use dray_proto::v1::{
     CancelJobRequest, GetImageRequest, GetJobRequest, ImageFormat, Job, ListJobsRequest,
-    ListWorkersRequest, SubmitJobRequest,
+    ListWorkersRequest, ListWorkersResponse, SubmitJobRequest,
 };
 use serde::{Deserialize, Serialize};
 use tonic::Request;
@@ -20,6 +20,7 @@ use super::Dashboard;
 use super::auth::{Credential, Gate};
 use super::dto::{JobDetail, JobPage, SubmitForm, Submitted, Workers};
 use super::error::ApiError;
+use crate::worker_list::MAX_PAGE_SIZE;
 
 /// `GET /api/session`: whether the token is required and this request has it, so the
 /// page knows whether to show its login.
@@ -196,13 +197,27 @@ impl Dashboard {
         Ok(JobPage::from(&r))
     }
 
-    /// The workers and the running jobs' domain owners through ListWorkers.
+    /// Every worker and the running jobs' domain owners through ListWorkers, page after
+    /// page: the page shows the whole cluster. The jobs' tables come with the first
+    /// page; the later ones add workers.
     pub async fn workers(&self) -> Result<Workers, ApiError> {
-        let r = self
-            .coordinator
-            .list_workers(Request::new(ListWorkersRequest { omit_jobs: false }))
-            .await?
-            .into_inner();
-        Ok(Workers::from(&r))
+        let mut all = ListWorkersResponse::default();
+        loop {
+            let page = self
+                .coordinator
+                .list_workers(Request::new(ListWorkersRequest {
+                    omit_jobs: false,
+                    page_size: MAX_PAGE_SIZE as u32,
+                    page_token: std::mem::take(&mut all.next_page_token),
+                }))
+                .await?
+                .into_inner();
+            all.workers.extend(page.workers);
+            all.jobs.extend(page.jobs);
+            all.next_page_token = page.next_page_token;
+            if all.next_page_token.is_empty() {
+                return Ok(Workers::from(&all));
+            }
+        }
     }
 }
