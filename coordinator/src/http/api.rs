@@ -50,15 +50,21 @@ pub async fn login(
     headers: HeaderMap,
     Json(body): Json<Login>,
 ) -> Result<Response, ApiError> {
-    Gate::check_csrf(&method, &headers, Credential::Session)?;
+    // No credential yet, and none a browser adds by itself: held to the cross-site rules.
+    Gate::check_csrf(&method, &headers, Credential::Open)?;
     let cookie = d.gate.login(&body.token, SystemTime::now())?;
     with_cookie(cookie)
 }
 
-/// `POST /api/logout`: ends the session cookie.
-pub async fn logout(method: Method, headers: HeaderMap) -> Result<Response, ApiError> {
-    Gate::check_csrf(&method, &headers, Credential::Session)?;
-    with_cookie(Gate::logout_cookie())
+/// `POST /api/logout`: ends the session (every copy of its cookie is refused from now
+/// on) and clears the browser's cookie.
+pub async fn logout(
+    State(d): State<Dashboard>,
+    method: Method,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    Gate::check_csrf(&method, &headers, Credential::Open)?;
+    with_cookie(d.gate.logout(&headers))
 }
 
 fn with_cookie(cookie: String) -> Result<Response, ApiError> {
