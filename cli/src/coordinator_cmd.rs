@@ -286,6 +286,7 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
                     api,
                     client_certs,
                     server.connection_limits(),
+                    server.max_calls,
                     stop_rx,
                 )
                 .await?,
@@ -373,6 +374,7 @@ async fn start_dashboard(
     api: Option<dray_net::Token>,
     client_certs: bool,
     limits: dray_net::connections::ConnectionLimits,
+    max_calls: usize,
     mut stop: tokio::sync::watch::Receiver<bool>,
 ) -> Result<tokio::task::JoinHandle<()>> {
     let listener = tokio::net::TcpListener::bind(http)
@@ -382,7 +384,9 @@ async fn start_dashboard(
         .local_addr()
         .context("cannot read the dashboard's bound address")?;
     let warning = dashboard_exposure(addr, api.is_some(), client_certs)?;
-    let dashboard = dray_coordinator::http::Dashboard::new(coordinator.clone(), api.clone())?;
+    // Its calls in progress under --max-calls, as each class of gRPC caller's are.
+    let dashboard = dray_coordinator::http::Dashboard::new(coordinator.clone(), api.clone())?
+        .with_max_calls(max_calls);
     println!("dray coordinator dashboard on http://{addr}");
     eprintln!(
         "dray coordinator: dashboard on http://{addr} ({}; requests must name an IP address \

@@ -313,6 +313,8 @@ fn the_readme_grpcurl_flow_renders_the_same_png_as_dray_render() {
         .as_array()
         .unwrap_or_else(|| panic!("no workers in {workers}"));
     assert_eq!(listed.len(), 2, "{workers}");
+    // Two workers fit the default page (100): no next page (an empty token is left out).
+    assert!(workers["nextPageToken"].is_null(), "{workers}");
     for w in listed {
         assert!(
             w["endpoint"]

@@ -163,8 +163,10 @@ fn a_running_job_shows_each_pass_and_ends_with_the_exact_image() {
     assert_eq!(&running.data[1..4], b"PNG");
 
     // ListWorkers while the job ran: both workers, the job's four domains owned.
+    // Two workers fit the default page (100): one page is the whole cluster, and says so.
     let listing = listing.expect("a listing while the job ran");
     assert_eq!(listing.workers.len(), 2, "{listing:?}");
+    assert!(listing.next_page_token.is_empty(), "{listing:?}");
     for w in &listing.workers {
         assert!(w.endpoint.starts_with("http://"), "{w:?}");
         assert!(w.threads > 0);

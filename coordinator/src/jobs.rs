@@ -232,10 +232,40 @@ impl JobEntry {
         }
     }
 
-    /// Move to a terminal state unless the job is already in one.
+    /// Move to a terminal state unless the job is already in one. With a job store, a
+    /// job succeeds only once its image is on disk: one whose image cannot be written
+    /// (a full disk) ends FAILED naming the write (issue 45, item 7: it was SUCCEEDED
+    /// with no image, and "not found" after a restart), as a render farm fails a frame
+    /// whose output cannot be saved: the render is lost either way, and a client told
+    /// SUCCEEDED would fetch nothing.
     pub(crate) fn finish(&self, s: JobState, error: String, film: Option<Film>) {
+        let (s, error, film, image) = match (s, film, &self.store) {
+            (JobState::Succeeded, Some(film), Some(store)) if !self.is_terminal() => {
+                match blocking(|| store.keep_image(&self.id, &film)) {
+                    Ok(()) => (s, error, Some(film), true),
+                    Err(e) => {
+                        tracing::error!(job = %self.id, "cannot keep the finished image: {e}");
+                        (
+                            JobState::Failed,
+                            format!(
+                                "the render finished but its image could not be written to \
+                                 the state directory ({e}); free space in the --state-dir \
+                                 and submit the job again"
+                            ),
+                            None,
+                            false,
+                        )
+                    }
+                }
+            }
+            (s, film, _) => (s, error, film, false),
+        };
         let mut g = self.lock();
         if terminal(g.state) {
+            if image && let Some(store) = &self.store {
+                // A cancel came while the image was written: it is nobody's.
+                store.forget_image(&self.id);
+            }
             return;
         }
         g.state = s;
@@ -253,7 +283,7 @@ impl JobEntry {
                 finished_ms: to_millis(now),
                 elapsed_ms: i64::try_from(elapsed.as_millis()).unwrap_or(i64::MAX),
                 stats: Box::new(g.stats.clone()),
-                film: g.film.clone(),
+                image,
             });
         }
         drop(g);
@@ -277,6 +307,19 @@ impl JobEntry {
             }
             notified.await;
         }
+    }
+}
+
+/// Run `f`, which blocks (a file write), where blocking is allowed: on a worker of the
+/// multi-threaded runtime through `block_in_place` (its other tasks move to other
+/// workers meanwhile); elsewhere (a blocking thread, a current-thread runtime, no
+/// runtime) as it is.
+fn blocking<T>(f: impl FnOnce() -> T) -> T {
+    match tokio::runtime::Handle::try_current() {
+        Ok(h) if h.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread => {
+            tokio::task::block_in_place(f)
+        }
+        _ => f(),
     }
 }
 

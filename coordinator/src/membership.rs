@@ -389,6 +389,19 @@ impl Membership {
         self.lock().values().cloned().collect()
     }
 
+    /// At most `n` registered workers whose ids sort after `after` (from the first
+    /// when `None`), in id order, and whether more follow them: one ListWorkers page.
+    /// A cursor by id, not by position, so a worker leaving between two pages does not
+    /// shift a worker that stays onto a page already sent.
+    pub fn workers_after(&self, after: Option<&str>, n: usize) -> (Vec<WorkerRecord>, bool) {
+        use std::ops::Bound;
+        let workers = self.lock();
+        let from = after.map_or(Bound::Unbounded, |a| Bound::Excluded(a.to_string()));
+        let mut range = workers.range((from, Bound::Unbounded));
+        let page: Vec<WorkerRecord> = range.by_ref().take(n).map(|(_, w)| w.clone()).collect();
+        (page, range.next().is_some())
+    }
+
     /// Number of registered workers.
     pub fn len(&self) -> usize {
         self.lock().len()

@@ -645,18 +645,28 @@ impl RenderService for Coordinator {
         &self,
         r: Request<ListWorkersRequest>,
     ) -> Result<Response<ListWorkersResponse>, Status> {
+        let r = r.into_inner();
+        let page = crate::worker_list::PageRequest::parse(r.page_size, &r.page_token)
+            .map_err(Status::invalid_argument)?;
         let cluster = &self.cluster;
         let views = cluster.jobs.views(VIEW_WAIT).await;
         let now = std::time::Instant::now();
         let rates = self.rates.rates(&views, now);
-        Ok(Response::new(crate::worker_list::list(
-            &cluster.membership.workers(),
+        let (workers, more) = cluster
+            .membership
+            .workers_after(page.after.as_deref(), page.size);
+        let mut out = crate::worker_list::list(
+            &workers,
             views,
             &rates,
             cluster.membership.heartbeat,
             now,
-            r.get_ref().omit_jobs,
-        )))
+            page.first() && !r.omit_jobs,
+        );
+        if more && let Some(last) = workers.last() {
+            out.next_page_token = last.id.clone();
+        }
+        Ok(Response::new(out))
     }
 }
 

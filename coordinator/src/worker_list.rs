@@ -72,23 +72,86 @@ impl RateWindow {
     }
 }
 
-/// The ListWorkers answer for `workers` (registered, in the order given) and the
-/// running jobs' `views`, with `rates` from [`RateWindow::rates`]. A worker is "silent"
-/// once it missed two heartbeats, "busy" while some running job lists it, else "idle".
-/// Jobs are listed newest first, unless `omit_jobs`.
+/// Workers on a ListWorkers page when the request says 0: a cluster of up to this many
+/// comes in one page.
+pub const DEFAULT_PAGE_SIZE: usize = 100;
+/// Most workers on one page, whatever the request asks (ListJobs's largest page too).
+pub const MAX_PAGE_SIZE: usize = 1000;
+
+/// Where a ListWorkers page starts and how many workers it holds, from the request.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct PageRequest {
+    /// List workers whose ids sort after this one; `None` for the first page.
+    pub after: Option<String>,
+    /// Most workers on the page.
+    pub size: usize,
+}
+
+impl PageRequest {
+    /// `page_size` (0: [`DEFAULT_PAGE_SIZE`], at most [`MAX_PAGE_SIZE`]) and
+    /// `page_token` (empty, or a `next_page_token` this server gave: the id of the last
+    /// worker of the previous page). Anything else is an error naming the field.
+    pub fn parse(page_size: u32, page_token: &str) -> Result<PageRequest, String> {
+        let size = match page_size as usize {
+            0 => DEFAULT_PAGE_SIZE,
+            n => n.min(MAX_PAGE_SIZE),
+        };
+        if page_token.is_empty() {
+            return Ok(PageRequest { after: None, size });
+        }
+        if !is_worker_id(page_token) {
+            return Err(format!(
+                "page_token: {} is not a ListWorkers page token; pass the previous page's \
+                 next_page_token, or none for the first page",
+                crate::validate::bounded(page_token)
+            ));
+        }
+        Ok(PageRequest {
+            after: Some(page_token.to_string()),
+            size,
+        })
+    }
+
+    /// Whether this is the first page (the one that carries the jobs' tables).
+    pub fn first(&self) -> bool {
+        self.after.is_none()
+    }
+}
+
+/// Whether `s` has the shape of a worker id (`Membership::register`: `w`, a number, `-`,
+/// eight hex digits). A token from an earlier coordinator passes: it is still a place
+/// in id order.
+fn is_worker_id(s: &str) -> bool {
+    let Some((n, nonce)) = s.strip_prefix('w').and_then(|r| r.split_once('-')) else {
+        return false;
+    };
+    !n.is_empty()
+        && n.len() <= 20
+        && n.bytes().all(|b| b.is_ascii_digit())
+        && nonce.len() == 8
+        && nonce.bytes().all(|b| b.is_ascii_hexdigit())
+}
+
+/// The ListWorkers answer for `workers` (one page of the registered workers, in the
+/// order given) and the running jobs' `views`, with `rates` from
+/// [`RateWindow::rates`]. A worker is "silent" once it missed two heartbeats, "busy"
+/// while some running job lists it, else "idle". Jobs are listed newest first when
+/// `with_jobs`. `next_page_token` is left empty for the caller to fill.
 pub fn list(
     workers: &[WorkerRecord],
     mut views: Vec<JobView>,
     rates: &HashMap<String, f64>,
     heartbeat: HeartbeatConfig,
     now: Instant,
-    omit_jobs: bool,
+    with_jobs: bool,
 ) -> ListWorkersResponse {
     views.sort_by(|a, b| {
         b.submitted_at
             .cmp(&a.submitted_at)
             .then_with(|| a.job_id.cmp(&b.job_id))
     });
+    // Only this page's workers get their lists made.
+    let on_page: HashSet<&str> = workers.iter().map(|w| w.id.as_str()).collect();
     let mut jobs_of: BTreeMap<&str, Vec<String>> = BTreeMap::new();
     let mut domains_of: BTreeMap<&str, Vec<WorkerDomain>> = BTreeMap::new();
     // Everything below is linear in the domains and queue entries: with 65,536 domains
@@ -97,13 +160,17 @@ pub fn list(
     for v in &views {
         // Domains each worker reported a queue for, in this job.
         let mut reported: HashMap<&str, HashSet<u32>> = HashMap::new();
-        for w in &v.workers {
+        for w in v.workers.iter().filter(|w| on_page.contains(w.as_str())) {
             jobs_of
                 .entry(w.as_str())
                 .or_default()
                 .push(v.job_id.clone());
         }
-        for (w, queues) in &v.queues {
+        for (w, queues) in v
+            .queues
+            .iter()
+            .filter(|(w, _)| on_page.contains(w.as_str()))
+        {
             let mine = domains_of.entry(w.as_str()).or_default();
             let seen = reported.entry(w.as_str()).or_default();
             for q in queues {
@@ -120,7 +187,7 @@ pub fn list(
         }
         // Owned domains the worker has not reported yet (a new table, or no report).
         for (d, owners) in v.owners.iter().enumerate() {
-            for w in owners {
+            for w in owners.iter().filter(|w| on_page.contains(w.as_str())) {
                 let d = d as u32;
                 if !reported.get(w.as_str()).is_some_and(|r| r.contains(&d)) {
                     domains_of
@@ -171,7 +238,7 @@ pub fn list(
             }
         })
         .collect();
-    let jobs = if omit_jobs {
+    let jobs = if !with_jobs {
         Vec::new()
     } else {
         views
@@ -194,7 +261,11 @@ pub fn list(
             })
             .collect()
     };
-    ListWorkersResponse { workers, jobs }
+    ListWorkersResponse {
+        workers,
+        jobs,
+        next_page_token: String::new(),
+    }
 }
 
 #[cfg(test)]
@@ -267,7 +338,7 @@ mod tests {
             rec("w4", Duration::from_secs(5)),
         ];
         let rates = HashMap::from([("w1".to_string(), 5.0)]);
-        let out = list(&workers, vec![view("j", &[])], &rates, hb, now, false);
+        let out = list(&workers, vec![view("j", &[])], &rates, hb, now, true);
         let states: Vec<&str> = out.workers.iter().map(|w| w.state.as_str()).collect();
         assert_eq!(states, ["busy", "busy", "idle", "silent"]);
         assert_eq!(out.workers[0].rays_per_second, 5.0);
@@ -284,10 +355,34 @@ mod tests {
         assert_eq!(out.jobs[0].domains[1].worker_ids, ["w2", "w1"]);
         assert_eq!(out.jobs[0].domains[1].rays_queued, 7);
         assert!(
-            list(&workers, vec![view("j", &[])], &rates, hb, now, true)
+            list(&workers, vec![view("j", &[])], &rates, hb, now, false)
                 .jobs
                 .is_empty()
         );
+    }
+
+    #[test]
+    fn page_sizes_are_defaulted_and_capped_and_tokens_are_worker_ids() {
+        let first = PageRequest::parse(0, "").unwrap();
+        assert_eq!((first.size, first.first()), (DEFAULT_PAGE_SIZE, true));
+        assert_eq!(PageRequest::parse(5000, "").unwrap().size, MAX_PAGE_SIZE);
+        assert_eq!(PageRequest::parse(7, "").unwrap().size, 7);
+        let next = PageRequest::parse(7, "w12-0badf00d").unwrap();
+        assert_eq!(next.after.as_deref(), Some("w12-0badf00d"));
+        assert!(!next.first());
+        let long = "w".repeat(10_000);
+        for bad in [
+            "7",
+            " w1-0badf00d",
+            "w1-0badf00",
+            "w1-0badf00dd",
+            "wx-0badf00d",
+            &long,
+        ] {
+            let e = PageRequest::parse(0, bad).unwrap_err();
+            assert!(e.starts_with("page_token: "), "{e}");
+            assert!(e.len() < 300, "the token is echoed bounded: {e}");
+        }
     }
 
     /// Many domains (issue 45, item 8: 65,536 domains took 7 s a listing, quadratic in
@@ -350,7 +445,7 @@ mod tests {
             &HashMap::new(),
             HeartbeatConfig::default(),
             Instant::now(),
-            false,
+            true,
         );
         for (k, w) in out.workers.iter().enumerate() {
             let owned: Vec<u32> = w

@@ -226,7 +226,7 @@ pub fn address_key(ip: IpAddr) -> IpAddr {
 pub struct Guarded {
     io: MaybeEmulated<TcpStream>,
     _slot: OwnedSemaphorePermit,
-    _address: Option<AddressSlot>,
+    address: Option<AddressSlot>,
     /// Bytes still owed before the handshake timeout stops applying (0 after).
     owed: usize,
     idle_timeout: Option<Duration>,
@@ -236,6 +236,12 @@ pub struct Guarded {
 }
 
 impl Guarded {
+    /// The source address this connection counts against (its key: an IPv6 address by
+    /// its /64); `None` when the peer could not be read as it was accepted.
+    pub fn source(&self) -> Option<IpAddr> {
+        self.address.as_ref().map(|a| a.key)
+    }
+
     fn new(
         io: TcpStream,
         slot: OwnedSemaphorePermit,
@@ -246,7 +252,7 @@ impl Guarded {
         Guarded {
             io: MaybeEmulated::new(io, limits.emulate),
             _slot: slot,
-            _address: address,
+            address,
             owed: HANDSHAKE_BYTES,
             idle_timeout: limits.idle_timeout,
             last_read: now,

@@ -11,7 +11,7 @@ use axum::response::{IntoResponse, Response};
 use dray_proto::v1::render_service_server::RenderService;
 use dray_proto::v1::{
     CancelJobRequest, GetImageRequest, GetJobRequest, ImageFormat, Job, ListJobsRequest,
-    ListWorkersRequest, SubmitJobRequest,
+    ListWorkersRequest, ListWorkersResponse, SubmitJobRequest,
 };
 use serde::{Deserialize, Serialize};
 use tonic::Request;
@@ -20,6 +20,7 @@ use super::Dashboard;
 use super::auth::{Credential, Gate};
 use super::dto::{JobDetail, JobPage, SubmitForm, Submitted, Workers};
 use super::error::ApiError;
+use crate::worker_list::MAX_PAGE_SIZE;
 
 /// `GET /api/session`: whether the token is required and this request has it, so the
 /// page knows whether to show its login.
@@ -49,15 +50,21 @@ pub async fn login(
     headers: HeaderMap,
     Json(body): Json<Login>,
 ) -> Result<Response, ApiError> {
-    Gate::check_csrf(&method, &headers, Credential::Session)?;
+    // No credential yet, and none a browser adds by itself: held to the cross-site rules.
+    Gate::check_csrf(&method, &headers, Credential::Open)?;
     let cookie = d.gate.login(&body.token, SystemTime::now())?;
     with_cookie(cookie)
 }
 
-/// `POST /api/logout`: ends the session cookie.
-pub async fn logout(method: Method, headers: HeaderMap) -> Result<Response, ApiError> {
-    Gate::check_csrf(&method, &headers, Credential::Session)?;
-    with_cookie(Gate::logout_cookie())
+/// `POST /api/logout`: ends the session (every copy of its cookie is refused from now
+/// on) and clears the browser's cookie.
+pub async fn logout(
+    State(d): State<Dashboard>,
+    method: Method,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    Gate::check_csrf(&method, &headers, Credential::Open)?;
+    with_cookie(d.gate.logout(&headers))
 }
 
 fn with_cookie(cookie: String) -> Result<Response, ApiError> {
@@ -196,13 +203,27 @@ impl Dashboard {
         Ok(JobPage::from(&r))
     }
 
-    /// The workers and the running jobs' domain owners through ListWorkers.
+    /// Every worker and the running jobs' domain owners through ListWorkers, page after
+    /// page: the page shows the whole cluster. The jobs' tables come with the first
+    /// page; the later ones add workers.
     pub async fn workers(&self) -> Result<Workers, ApiError> {
-        let r = self
-            .coordinator
-            .list_workers(Request::new(ListWorkersRequest { omit_jobs: false }))
-            .await?
-            .into_inner();
-        Ok(Workers::from(&r))
+        let mut all = ListWorkersResponse::default();
+        loop {
+            let page = self
+                .coordinator
+                .list_workers(Request::new(ListWorkersRequest {
+                    omit_jobs: false,
+                    page_size: MAX_PAGE_SIZE as u32,
+                    page_token: std::mem::take(&mut all.next_page_token),
+                }))
+                .await?
+                .into_inner();
+            all.workers.extend(page.workers);
+            all.jobs.extend(page.jobs);
+            all.next_page_token = page.next_page_token;
+            if all.next_page_token.is_empty() {
+                return Ok(Workers::from(&all));
+            }
+        }
     }
 }

@@ -4,10 +4,12 @@
 //!   on every `/api/` endpoint, as the gRPC API requires it on RenderService: either as
 //!   `Authorization: Bearer TOKEN` (scripts) or as the session cookie that `POST
 //!   /api/login` sets once the token was typed into the page. The cookie holds no token:
-//!   it is an expiry time signed with a key made when the process started (HMAC-SHA256),
-//!   so it is useless once the coordinator restarts or the time passes, and it is
-//!   `HttpOnly` (scripts on the page cannot read it) and `SameSite=Strict` (a request
-//!   another site makes the browser send does not carry it).
+//!   it is an expiry time and a random session id, signed with a key made when the
+//!   process started (HMAC-SHA256), so it is useless once the coordinator restarts or
+//!   the time passes; and the id must be one of the live sessions ([`sessions`]), so
+//!   `POST /api/logout` ends it for every copy of the cookie, not only the browser's.
+//!   It is `HttpOnly` (scripts on the page cannot read it) and `SameSite=Strict` (a
+//!   request another site makes the browser send does not carry it).
 //! - **Cross-site requests**: a request that changes anything (any method but GET and
 //!   HEAD) must carry the header `X-Dray-Csrf: 1`, which a form or a link on another
 //!   site cannot add and a cross-origin script may add only after a CORS preflight this
@@ -25,6 +27,10 @@ use axum::http::{HeaderMap, Method, header};
 use dray_net::Token;
 use ring::hmac;
 
+pub mod sessions;
+
+use sessions::{SessionId, Sessions};
+
 /// The session cookie's name.
 pub const SESSION_COOKIE: &str = "dray_session";
 /// The header a state-changing request must carry (any value but empty).
@@ -39,8 +45,8 @@ pub enum Credential {
     Open,
     /// `Authorization: Bearer` with the API token.
     Bearer,
-    /// A valid session cookie.
-    Session,
+    /// A valid session cookie of this live session.
+    Session(SessionId),
 }
 
 /// Why a request is refused.
@@ -50,6 +56,8 @@ pub enum Denied {
     Unauthenticated(String),
     /// A cross-site request, or a host name an open dashboard does not answer: 403.
     Forbidden(String),
+    /// The server cannot make a session now (no random numbers): 503.
+    Unavailable(String),
 }
 
 /// The dashboard's credentials: the API token, if any, and the key sessions are
@@ -57,13 +65,18 @@ pub enum Denied {
 pub struct Gate {
     token: Option<Token>,
     key: hmac::Key,
+    sessions: Sessions,
 }
 
 impl Gate {
     /// A gate for `token` (none: the dashboard is open), with a new random session key.
     pub fn new(token: Option<Token>) -> Result<Gate, ring::error::Unspecified> {
         let key = hmac::Key::generate(hmac::HMAC_SHA256, &ring::rand::SystemRandom::new())?;
-        Ok(Gate { token, key })
+        Ok(Gate {
+            token,
+            key,
+            sessions: Sessions::default(),
+        })
     }
 
     /// A gate whose session key is `key` (tests).
@@ -71,6 +84,7 @@ impl Gate {
         Gate {
             token,
             key: hmac::Key::new(hmac::HMAC_SHA256, key),
+            sessions: Sessions::default(),
         }
     }
 
@@ -97,10 +111,14 @@ impl Gate {
             };
         }
         match cookie(headers, SESSION_COOKIE) {
-            Some(v) if self.session_valid(v, now) => Ok(Credential::Session),
-            Some(_) => Err(Denied::Unauthenticated(
-                "the session has expired or is from an earlier coordinator: log in again".into(),
-            )),
+            Some(v) => match self.live_session(v, now) {
+                Some(id) => Ok(Credential::Session(id)),
+                None => Err(Denied::Unauthenticated(
+                    "the session has expired, was logged out or is from an earlier \
+                     coordinator: log in again"
+                        .into(),
+                )),
+            },
             None => Err(Denied::Unauthenticated(
                 "this dashboard needs the API token: log in, or send \"Authorization: Bearer \
                  TOKEN\""
@@ -159,33 +177,60 @@ impl Gate {
         if !token.matches(presented.trim().as_bytes()) {
             return Err(Denied::Unauthenticated("that is not the API token".into()));
         }
-        let expires = unix_seconds(now).saturating_add(SESSION_LIFETIME.as_secs());
+        let id = SessionId::generate()
+            .map_err(|_| Denied::Unavailable("cannot make a session id: try again".into()))?;
+        let now = unix_seconds(now);
+        let expires = now.saturating_add(SESSION_LIFETIME.as_secs());
+        self.sessions.start(id, expires, now);
         Ok(format!(
             "{SESSION_COOKIE}={}; Path=/; HttpOnly; SameSite=Strict; Max-Age={}",
-            self.session_value(expires),
+            self.session_value(expires, &id),
             SESSION_LIFETIME.as_secs()
         ))
     }
 
-    /// The `Set-Cookie` value that ends a session.
-    pub fn logout_cookie() -> String {
+    /// Log out: the session of the cookie in `headers`, if it carries a genuine one,
+    /// ends (every copy of the cookie is refused from now on). The `Set-Cookie` value
+    /// that clears the browser's cookie.
+    pub fn logout(&self, headers: &HeaderMap) -> String {
+        if let Some((id, _)) = cookie(headers, SESSION_COOKIE).and_then(|v| self.signed(v)) {
+            self.sessions.end(&id);
+        }
         format!("{SESSION_COOKIE}=; Path=/; HttpOnly; SameSite=Strict; Max-Age=0")
     }
 
-    /// `EXPIRES.MAC`: the expiry in Unix seconds and its HMAC, hex.
-    fn session_value(&self, expires: u64) -> String {
-        let tag = hmac::sign(&self.key, expires.to_string().as_bytes());
-        format!("{expires}.{}", hex(tag.as_ref()))
+    /// Whether session `id` is still live at `now` (not logged out, not expired, not pushed out
+    /// by newer logins): an event stream it opened ends when it is not.
+    pub fn session_live(&self, id: &SessionId, now: SystemTime) -> bool {
+        self.sessions.contains(id, unix_seconds(now))
     }
 
-    fn session_valid(&self, value: &str, now: SystemTime) -> bool {
-        let Some((expires, mac)) = value.split_once('.') else {
-            return false;
-        };
-        let (Ok(exp), Some(mac)) = (expires.parse::<u64>(), unhex(mac)) else {
-            return false;
-        };
-        exp > unix_seconds(now) && hmac::verify(&self.key, expires.as_bytes(), &mac).is_ok()
+    /// `EXPIRES.ID.MAC`: the expiry in Unix seconds, the session id and their HMAC, hex.
+    fn session_value(&self, expires: u64, id: &SessionId) -> String {
+        let signed = format!("{expires}.{}", id.hex());
+        let tag = hmac::sign(&self.key, signed.as_bytes());
+        format!("{signed}.{}", hex(tag.as_ref()))
+    }
+
+    /// The session id and expiry of a cookie value signed with this gate's key.
+    fn signed(&self, value: &str) -> Option<(SessionId, u64)> {
+        let (signed, mac) = value.rsplit_once('.')?;
+        let (expires, id) = signed.split_once('.')?;
+        let (exp, id, mac) = (
+            expires.parse::<u64>().ok()?,
+            SessionId::parse(id)?,
+            unhex(mac)?,
+        );
+        hmac::verify(&self.key, signed.as_bytes(), &mac).ok()?;
+        Some((id, exp))
+    }
+
+    /// The session of a cookie value that is genuine, unexpired at `now` and live.
+    fn live_session(&self, value: &str, now: SystemTime) -> Option<SessionId> {
+        let (id, exp) = self.signed(value)?;
+        self.sessions
+            .live(&id, exp, unix_seconds(now))
+            .then_some(id)
     }
 }
 

@@ -67,6 +67,9 @@ impl From<Denied> for ApiError {
                 ApiError::new(StatusCode::UNAUTHORIZED, "UNAUTHENTICATED", m)
             }
             Denied::Forbidden(m) => ApiError::new(StatusCode::FORBIDDEN, "PERMISSION_DENIED", m),
+            Denied::Unavailable(m) => {
+                ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "UNAVAILABLE", m)
+            }
         }
     }
 }

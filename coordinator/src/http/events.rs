@@ -9,14 +9,17 @@
 //!   statistics) as `progress` events, at most every 500 ms, ending after the terminal
 //!   state; an error (an unknown job) is one `failed` event.
 //!
-//! At most [`MAX_STREAMS`] streams are open at once; more are refused with 503 (the page
-//! tries again later), so a crowd of open tabs cannot pile work on the coordinator.
+//! At most [`MAX_STREAMS`] streams are open at once, and at most
+//! [`MAX_STREAMS_PER_CLIENT`] of one client ([`super::streams`]); more are refused with
+//! 503 (the page tries again later), so a crowd of open tabs cannot pile work on the
+//! coordinator and one client cannot lock the others out. A stream a session opened
+//! ends when the session does (logout).
 
 use std::convert::Infallible;
 use std::time::Duration;
 
+use axum::Extension;
 use axum::extract::{Path, Query, State};
-use axum::http::StatusCode;
 use axum::response::sse::{Event, KeepAlive, KeepAliveStream, Sse};
 use dray_proto::v1::WatchJobRequest;
 use dray_proto::v1::render_service_server::RenderService;
@@ -26,11 +29,10 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::Request;
 
 use super::Dashboard;
+use super::client::Client;
 use super::dto::{JobPage, Progress, Workers};
 use super::error::ApiError;
-
-/// Event streams open at once, over every client.
-pub const MAX_STREAMS: usize = 64;
+pub use super::streams::{MAX_STREAMS, MAX_STREAMS_PER_CLIENT};
 /// Default, least and largest time between two snapshots.
 const SNAPSHOT_INTERVAL: Duration = Duration::from_millis(1000);
 const MIN_SNAPSHOT_INTERVAL: Duration = Duration::from_millis(250);
@@ -70,9 +72,10 @@ fn events(rx: tokio::sync::mpsc::Receiver<Result<Event, Infallible>>) -> Events 
 /// `GET /api/events`.
 pub async fn snapshots(
     State(d): State<Dashboard>,
+    Extension(client): Extension<Client>,
     Query(q): Query<SnapshotQuery>,
 ) -> Result<Events, ApiError> {
-    let permit = d.stream_slot()?;
+    let permit = d.streams.take(client)?;
     let jobs = q.jobs.unwrap_or(SNAPSHOT_JOBS).clamp(1, MAX_SNAPSHOT_JOBS);
     let interval = q
         .interval_ms
@@ -107,6 +110,10 @@ pub async fn snapshots(
                 _ = tokio::time::sleep(interval) => {}
                 _ = tx.closed() => return,
             }
+            if let Some(ended) = d.session_ended(client) {
+                let _ = tx.send(Ok(ended)).await;
+                return;
+            }
             next = d.snapshot(jobs, q.page_token.clone()).await;
         }
     });
@@ -116,9 +123,10 @@ pub async fn snapshots(
 /// `GET /api/jobs/{id}/events`.
 pub async fn job_progress(
     State(d): State<Dashboard>,
+    Extension(client): Extension<Client>,
     Path(id): Path<String>,
 ) -> Result<Events, ApiError> {
-    let permit = d.stream_slot()?;
+    let permit = d.streams.take(client)?;
     let mut watch = d
         .coordinator
         .watch_job(Request::new(WatchJobRequest {
@@ -135,6 +143,10 @@ pub async fn job_progress(
                 item = watch.next() => item,
                 _ = tx.closed() => return,
             };
+            if let Some(ended) = d.session_ended(client) {
+                let _ = tx.send(Ok(ended)).await;
+                return;
+            }
             let event = match item {
                 None => return,
                 Some(Ok(p)) => {
@@ -152,16 +164,20 @@ pub async fn job_progress(
 }
 
 impl Dashboard {
-    /// A place for one more event stream, held until the stream ends; 503 when all
-    /// [`MAX_STREAMS`] are taken.
-    fn stream_slot(&self) -> Result<tokio::sync::OwnedSemaphorePermit, ApiError> {
-        self.streams.clone().try_acquire_owned().map_err(|_| {
-            ApiError::new(
-                StatusCode::SERVICE_UNAVAILABLE,
-                "UNAVAILABLE",
-                format!("{MAX_STREAMS} event streams are open already; try again later"),
-            )
-        })
+    /// The last event of a stream whose session has ended (logged out, or expired), so
+    /// a copied cookie's stream does not outlive the logout; `None` while it lives, and
+    /// for a client that is no session.
+    fn session_ended(&self, client: Client) -> Option<Event> {
+        match client {
+            Client::Session(id) if !self.gate.session_live(&id, std::time::SystemTime::now()) => {
+                Some(
+                    Event::default()
+                        .event("failed")
+                        .data("the session has ended: log in again"),
+                )
+            }
+            _ => None,
+        }
     }
 
     /// One snapshot: the first `jobs` jobs from `page_token`.

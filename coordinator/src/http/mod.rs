@@ -7,15 +7,20 @@
 //! Every endpoint calls the coordinator's RenderService methods in process, so what
 //! the page can do, and what it is refused, is exactly what a gRPC client can do and
 //! is refused. Who may call them is [`auth`]: the API token (as a bearer header or a
-//! login cookie), and checks against cross-site requests. The endpoints are listed in
+//! login cookie), and checks against cross-site requests. What a client may hold at
+//! once is bounded: calls in progress ([`calls`], `--max-calls`) and event streams
+//! ([`streams`], per client: [`client`]). The endpoints are listed in
 //! docs/dashboard.md.
 
 pub mod api;
 pub mod assets;
 pub mod auth;
+pub mod calls;
+pub mod client;
 pub mod dto;
 pub mod error;
 pub mod events;
+pub mod streams;
 
 use std::future::Future;
 use std::sync::Arc;
@@ -32,25 +37,29 @@ use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
 use hyper_util::server::conn::auto::Builder;
 use hyper_util::service::TowerToHyperService;
 use tokio::net::TcpListener;
-use tokio::sync::Semaphore;
 use tokio_stream::StreamExt;
 use tonic::transport::server::TcpIncoming;
 
 use crate::Coordinator;
 use auth::Gate;
+use calls::CallBudget;
+use client::{Client, SourceAddress};
 use error::ApiError;
+use streams::StreamSlots;
 
 /// Largest request body (a submission is a few hundred bytes).
 const MAX_BODY: usize = 64 * 1024;
 /// How long open connections (event streams) get to end after the stop signal.
 const SHUTDOWN_GRACE: Duration = Duration::from_secs(1);
 
-/// What every handler shares: the coordinator, the credentials, the open event streams.
+/// What every handler shares: the coordinator, the credentials, the calls in progress
+/// and the open event streams.
 #[derive(Clone)]
 pub struct Dashboard {
     pub coordinator: Coordinator,
     pub gate: Arc<Gate>,
-    pub streams: Arc<Semaphore>,
+    pub calls: Arc<CallBudget>,
+    pub streams: Arc<StreamSlots>,
 }
 
 /// Why the dashboard cannot start.
@@ -64,13 +73,24 @@ pub enum DashboardError {
 
 impl Dashboard {
     /// The dashboard of `coordinator`, requiring `api_token` when given (the one the
-    /// gRPC API requires).
+    /// gRPC API requires), with the gRPC servers' default bound on calls in progress.
     pub fn new(coordinator: Coordinator, api_token: Option<Token>) -> Result<Self, DashboardError> {
         Ok(Dashboard {
             coordinator,
             gate: Arc::new(Gate::new(api_token).map_err(|_| DashboardError::Key)?),
-            streams: Arc::new(Semaphore::new(events::MAX_STREAMS)),
+            calls: Arc::new(CallBudget::new(dray_net::server::DEFAULT_MAX_CALLS)),
+            streams: Arc::new(StreamSlots::new(
+                streams::MAX_STREAMS,
+                streams::MAX_STREAMS_PER_CLIENT,
+            )),
         })
+    }
+
+    /// At most `max_calls` API calls in progress at once (`--max-calls`, the gRPC
+    /// servers' bound per class of caller), in a budget of the dashboard's own.
+    pub fn with_max_calls(mut self, max_calls: usize) -> Self {
+        self.calls = Arc::new(CallBudget::new(max_calls));
+        self
     }
 
     /// The routes: the page and its files (open: they hold no data), the session
@@ -84,6 +104,8 @@ impl Dashboard {
             .route("/api/jobs/{id}/events", get(events::job_progress))
             .route("/api/workers", get(api::workers))
             .route("/api/events", get(events::snapshots))
+            // Layers run last-added first: the credential, then a place among the calls.
+            .route_layer(middleware::from_fn_with_state(self.clone(), calls::admit))
             .route_layer(middleware::from_fn_with_state(self.clone(), guard));
         Router::new()
             .route("/", get(assets::index))
@@ -101,14 +123,18 @@ impl Dashboard {
 }
 
 /// Lets a request to the API through only with a credential, and a state-changing one
-/// only from this page ([`auth`]).
-async fn guard(State(d): State<Dashboard>, req: Request, next: Next) -> Response {
+/// only from this page ([`auth`]); tells the handlers which [`Client`] it is from.
+async fn guard(State(d): State<Dashboard>, mut req: Request, next: Next) -> Response {
     let checked = d
         .gate
         .authenticate(req.headers(), SystemTime::now())
-        .and_then(|c| Gate::check_csrf(req.method(), req.headers(), c));
+        .and_then(|c| Gate::check_csrf(req.method(), req.headers(), c).map(|()| c));
     match checked {
-        Ok(()) => next.run(req).await,
+        Ok(credential) => {
+            let source = req.extensions().get::<SourceAddress>().copied();
+            req.extensions_mut().insert(Client::of(credential, source));
+            next.run(req).await
+        }
         Err(denied) => ApiError::from(denied).into_response(),
     }
 }
@@ -156,7 +182,10 @@ pub async fn serve(
             _ = &mut shutdown => break,
             next = incoming.next() => match next {
                 Some(Ok(io)) => {
-                    let service = TowerToHyperService::new(app.clone());
+                    let service = TowerToHyperService::new(FromSource {
+                        app: app.clone(),
+                        source: io.source().map(SourceAddress),
+                    });
                     let stop = stop_rx.clone();
                     connections.spawn(connection(io, service, head_timeout, stop));
                 }
@@ -176,11 +205,41 @@ pub async fn serve(
     Ok(())
 }
 
+/// The router, with each request told the source address of its connection.
+#[derive(Clone)]
+struct FromSource {
+    app: Router,
+    source: Option<SourceAddress>,
+}
+
+impl<B> tower::Service<axum::http::Request<B>> for FromSource
+where
+    Router: tower::Service<axum::http::Request<B>>,
+{
+    type Response = <Router as tower::Service<axum::http::Request<B>>>::Response;
+    type Error = <Router as tower::Service<axum::http::Request<B>>>::Error;
+    type Future = <Router as tower::Service<axum::http::Request<B>>>::Future;
+
+    fn poll_ready(
+        &mut self,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Result<(), Self::Error>> {
+        tower::Service::<axum::http::Request<B>>::poll_ready(&mut self.app, cx)
+    }
+
+    fn call(&mut self, mut req: axum::http::Request<B>) -> Self::Future {
+        if let Some(source) = self.source {
+            req.extensions_mut().insert(source);
+        }
+        tower::Service::call(&mut self.app, req)
+    }
+}
+
 /// Serve one connection until it ends, or until `stop` (then it ends gracefully: the
 /// response in progress completes, nothing more is read).
 async fn connection(
     io: Guarded,
-    service: TowerToHyperService<Router>,
+    service: TowerToHyperService<FromSource>,
     head_timeout: Duration,
     mut stop: tokio::sync::watch::Receiver<bool>,
 ) {

@@ -17,9 +17,11 @@ use dray_proto::v1::{JobSpec, JobState, JobStats};
 use prost::Message;
 use rusqlite::{Connection, ErrorCode, OpenFlags};
 
-use super::state_dir;
-use super::writer::{Health, Op, Writer};
+use dray_core::film::Film;
+
+use super::writer::{Health, Op, Writer, image_name};
 use super::{CommittedTile, StoreError, StoredJob, from_millis};
+use super::{image_file, state_dir};
 
 /// The schema this build writes and the newest it reads (`PRAGMA user_version`).
 pub const SCHEMA_VERSION: u32 = 2;
@@ -148,6 +150,31 @@ impl JobStore {
         {
             Some(why) => Err(why.clone()),
             None => Ok(()),
+        }
+    }
+
+    /// Write job `id`'s finished image into `images/` (atomically, synced), before the
+    /// job is called SUCCEEDED: a job whose image cannot be kept (a full disk) fails
+    /// naming why, instead of succeeding with no image (issue 45, item 7). Nothing is
+    /// written once the store is sealed (the coordinator is stopping; the job is
+    /// resumed from its tiles). Blocks for the write: a caller on the runtime's threads
+    /// wraps it in `block_in_place`.
+    pub fn keep_image(&self, id: &str, film: &Film) -> Result<(), StoreError> {
+        if self.lock().is_none() {
+            return Ok(());
+        }
+        let file = self.dir.join(IMAGES_DIR).join(image_name(id));
+        image_file::write_atomic(&file, &image_file::encode(film))
+    }
+
+    /// Remove job `id`'s image file, written by [`JobStore::keep_image`] for a job that
+    /// then did not succeed after all (a cancel came first).
+    pub fn forget_image(&self, id: &str) {
+        let file = self.dir.join(IMAGES_DIR).join(image_name(id));
+        if let Err(e) = std::fs::remove_file(&file)
+            && e.kind() != std::io::ErrorKind::NotFound
+        {
+            tracing::warn!("cannot remove the unused image {}: {e}", file.display());
         }
     }
 

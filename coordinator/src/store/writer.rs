@@ -4,21 +4,21 @@
 //! while it counts reports; a tile committed in memory reaches the disk a moment later,
 //! and a tile lost in that moment is only traced again.
 //!
-//! An image is written to its file (atomically) before the transaction that names it, so
-//! the database never points at a missing or half-written image; a dropped image's file
-//! is removed after the transaction that forgets it.
+//! An image is written to its file (atomically, by [`super::JobStore::keep_image`])
+//! before the job is called SUCCEEDED and before the transaction that names it, so the
+//! database never points at a missing or half-written image; a dropped image's file is
+//! removed after the transaction that forgets it.
 
 use std::fs::File;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::mpsc::{Receiver, Sender, SyncSender};
 
-use dray_core::film::Film;
 use dray_proto::v1::{JobSpec, JobState, JobStats};
 use prost::Message;
 use rusqlite::{Connection, Transaction, params};
 
-use super::{CommittedTile, image_file};
+use super::CommittedTile;
 
 /// Most operations in one transaction.
 const BATCH: usize = 4096;
@@ -79,8 +79,10 @@ pub enum Op {
         elapsed_ms: i64,
         /// Its final statistics.
         stats: Box<JobStats>,
-        /// Its image, when it succeeded.
-        film: Option<Arc<Film>>,
+        /// Its image is on disk ([`super::JobStore::keep_image`] wrote it): the row names
+        /// it. A job that succeeded always has one (one whose image could not be written
+        /// did not succeed).
+        image: bool,
     },
     /// The retention policy dropped the job's image.
     Dropped {
@@ -169,34 +171,14 @@ pub(crate) fn image_name(id: &str) -> String {
     format!("{id}.film")
 }
 
-/// Write `batch` in one transaction: `Some(why)` when it failed (nothing of it kept) or
-/// an image could not be kept, and the flushes it held, to be answered by the caller.
+/// Write `batch` in one transaction: `Some(why)` when it failed (nothing of it kept),
+/// and the flushes it held, to be answered by the caller.
 fn write_batch(
     conn: &mut Connection,
     path: &Path,
     images: &Path,
     batch: Vec<Op>,
 ) -> (Option<String>, Vec<SyncSender<bool>>) {
-    // Images first: a row names only an image already whole on disk.
-    let mut written = Vec::new();
-    let mut image_failed = None;
-    for op in &batch {
-        if let Op::Finish {
-            id,
-            film: Some(film),
-            ..
-        } = op
-        {
-            let file = images.join(image_name(id));
-            match image_file::write_atomic(&file, &image_file::encode(film)) {
-                Ok(()) => written.push(id.clone()),
-                Err(e) => {
-                    tracing::error!("cannot keep job {id}'s image: {e}");
-                    image_failed = Some(format!("cannot keep job {id}'s image: {e}"));
-                }
-            }
-        }
-    }
     let mut flushes = Vec::new();
     let mut removed = Vec::new();
     let result = (|| -> rusqlite::Result<()> {
@@ -211,7 +193,7 @@ fn write_batch(
                     )?;
                     removed.push(images.join(image_name(&id)));
                 }
-                op => apply(&tx, op, &written)?,
+                op => apply(&tx, op)?,
             }
         }
         tx.commit()
@@ -225,7 +207,7 @@ fn write_batch(
                     tracing::warn!("cannot remove the dropped image {}: {e}", f.display());
                 }
             }
-            (image_failed, flushes)
+            (None, flushes)
         }
         Err(e) => {
             tracing::error!(
@@ -243,7 +225,7 @@ fn write_batch(
     }
 }
 
-fn apply(tx: &Transaction<'_>, op: Op, written: &[String]) -> rusqlite::Result<()> {
+fn apply(tx: &Transaction<'_>, op: Op) -> rusqlite::Result<()> {
     match op {
         Op::Nothing | Op::Flush(_) | Op::Dropped { .. } => {}
         Op::Insert {
@@ -310,14 +292,12 @@ fn apply(tx: &Transaction<'_>, op: Op, written: &[String]) -> rusqlite::Result<(
             finished_ms,
             elapsed_ms,
             stats,
-            film,
+            image,
         } => {
-            let image = (film.is_some() && written.contains(&id)).then(|| image_name(&id));
-            let dropped = (film.is_some() && image.is_none())
-                .then_some("the coordinator could not write it to its state directory");
+            let image = image.then(|| image_name(&id));
             tx.execute(
                 "UPDATE jobs SET state = ?2, error = ?3, finished_ms = ?4, elapsed_ms = ?5, \
-                 stats = ?6, image = ?7, dropped = ?8 WHERE id = ?1",
+                 stats = ?6, image = ?7 WHERE id = ?1",
                 params![
                     id,
                     state as i32,
@@ -325,8 +305,7 @@ fn apply(tx: &Transaction<'_>, op: Op, written: &[String]) -> rusqlite::Result<(
                     finished_ms,
                     elapsed_ms,
                     stats.encode_to_vec(),
-                    image,
-                    dropped
+                    image
                 ],
             )?;
             tx.execute("DELETE FROM tiles WHERE job_id = ?1", params![id])?;

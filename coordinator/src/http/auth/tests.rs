@@ -7,6 +7,8 @@ use axum::http::{HeaderMap, HeaderValue, Method, header};
 use super::*;
 
 const TOKEN: &str = "0123456789abcdef-api";
+/// A session credential, for the cross-site checks (which look only at its kind).
+const SESSION: Credential = Credential::Session(sessions::SessionId([7; 16]));
 
 fn gate() -> Gate {
     Gate::with_key(Some(Token::parse(TOKEN, "test").unwrap()), b"session key")
@@ -74,14 +76,58 @@ fn login_sets_an_httponly_strict_cookie_that_lets_in_until_it_expires() {
         header::COOKIE,
         &format!("theme=dark; {}", cookie_pair(&set)),
     )]);
-    assert_eq!(g.authenticate(&h, at(1000)), Ok(Credential::Session));
+    assert!(matches!(
+        g.authenticate(&h, at(1000)),
+        Ok(Credential::Session(_))
+    ));
     let end = 1000 + SESSION_LIFETIME.as_secs();
-    assert_eq!(g.authenticate(&h, at(end - 1)), Ok(Credential::Session));
+    assert!(matches!(
+        g.authenticate(&h, at(end - 1)),
+        Ok(Credential::Session(_))
+    ));
     assert!(matches!(
         g.authenticate(&h, at(end)),
         Err(Denied::Unauthenticated(_))
     ));
-    assert!(Gate::logout_cookie().contains("Max-Age=0"));
+}
+
+/// Issue 45, item 12: sessions were an expiry signed with the process's key, so a
+/// cookie copied before logout still worked after it. Logout now ends the session for
+/// every copy; another session goes on.
+#[test]
+fn a_cookie_used_after_logout_is_refused() {
+    let g = gate();
+    let cookie_of = |set: &str| headers(&[(header::COOKIE, &cookie_pair(set))]);
+    let mine = cookie_of(&g.login(TOKEN, at(1000)).unwrap());
+    let other = cookie_of(&g.login(TOKEN, at(1000)).unwrap());
+    let Ok(Credential::Session(a)) = g.authenticate(&mine, at(1001)) else {
+        panic!("a fresh session lets in");
+    };
+    let Ok(Credential::Session(b)) = g.authenticate(&other, at(1001)) else {
+        panic!("a fresh session lets in");
+    };
+    assert_ne!(a, b, "each login is its own session");
+    let cleared = g.logout(&mine);
+    assert!(cleared.contains("Max-Age=0"), "{cleared}");
+    // The copy kept from before logout: refused, now and later.
+    for t in [1002, 2000] {
+        assert!(
+            matches!(
+                g.authenticate(&mine, at(t)),
+                Err(Denied::Unauthenticated(_))
+            ),
+            "at {t}"
+        );
+    }
+    assert!(!g.session_live(&a, at(1002)));
+    assert_eq!(g.authenticate(&other, at(1002)), Ok(Credential::Session(b)));
+    // Logging out with no cookie, or a forged one, ends nothing.
+    g.logout(&HeaderMap::new());
+    g.logout(&headers(&[(
+        header::COOKIE,
+        &format!("{SESSION_COOKIE}=1.2.3"),
+    )]));
+    assert!(g.session_live(&b, at(1002)));
 }
 
 #[test]
@@ -123,15 +169,11 @@ fn state_changing_requests_need_the_csrf_header_and_their_own_origin() {
     let post = Method::POST;
     // Reads need nothing.
     assert_eq!(
-        Gate::check_csrf(
-            &Method::GET,
-            &headers(std::slice::from_ref(&host)),
-            Credential::Session
-        ),
+        Gate::check_csrf(&Method::GET, &headers(std::slice::from_ref(&host)), SESSION),
         Ok(())
     );
     // A cookie or an open dashboard: the header is required.
-    for c in [Credential::Session, Credential::Open] {
+    for c in [SESSION, Credential::Open] {
         assert!(matches!(
             Gate::check_csrf(&post, &headers(std::slice::from_ref(&host)), c),
             Err(Denied::Forbidden(_))
@@ -152,7 +194,7 @@ fn state_changing_requests_need_the_csrf_header_and_their_own_origin() {
         Gate::check_csrf(
             &post,
             &headers(&[host.clone(), csrf.clone(), tls_proxy]),
-            Credential::Session
+            SESSION
         ),
         Ok(())
     );
@@ -160,17 +202,13 @@ fn state_changing_requests_need_the_csrf_header_and_their_own_origin() {
         Gate::check_csrf(
             &post,
             &headers(&[host.clone(), csrf.clone(), same]),
-            Credential::Session
+            SESSION
         ),
         Ok(())
     );
     for o in [evil, null, other_scheme, app_scheme] {
         assert!(matches!(
-            Gate::check_csrf(
-                &post,
-                &headers(&[host.clone(), csrf.clone(), o]),
-                Credential::Session
-            ),
+            Gate::check_csrf(&post, &headers(&[host.clone(), csrf.clone(), o]), SESSION),
             Err(Denied::Forbidden(_))
         ));
     }
