@@ -16,6 +16,7 @@
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 use dray_proto::v1::DomainQueue;
+use dray_scene::partition::resident::load_reserve;
 
 use super::table::Ownership;
 
@@ -238,15 +239,17 @@ impl Change {
 }
 
 /// Domains `w` can hold at once, judged from its budget and the largest domain the
-/// reports sized: a quarter of a worker's budget is for rays, and its store keeps room
-/// to build one more domain (twice a domain's size) beside the resident ones. None when
-/// the budget is unlimited or no size is known yet.
+/// reports sized: a quarter of a worker's budget is for rays, and its store loads the
+/// last of them only with room for that load's peak ([`load_reserve`], the domain
+/// itself included) beside the others. So `cap` domains fit when `cap - 1` of them and
+/// one load do. At least 1; None when the budget is unlimited or no size is known yet.
 fn capacity(w: &WorkerView<'_>, size: u64) -> Option<usize> {
     if w.budget == 0 || size == 0 {
         return None;
     }
     let share = w.budget / 4 * 3;
-    Some(((share / size) as usize).saturating_sub(2).max(1))
+    let others = share.saturating_sub(load_reserve(size)) / size;
+    Some((others as usize).saturating_add(1))
 }
 
 /// What a round decided.
@@ -526,6 +529,45 @@ mod tests {
         for name in SCHEDULE_NAMES {
             assert_eq!(Schedule::parse(name, false).unwrap().name(), name);
         }
+    }
+
+    /// The capacity is what the worker's store holds: `cap - 1` domains resident and
+    /// the load of one more (its reserve, the domain included) within the three quarters
+    /// of the budget left for domains, and not one more.
+    #[test]
+    fn capacity_is_what_the_store_holds_with_one_load() {
+        let view = |budget| WorkerView {
+            id: "w",
+            budget,
+            queues: &[],
+        };
+        for (budget, size) in [
+            (800, 100),
+            (700, 100),
+            (80_000_000, 9_100_000),
+            (80_000_000, 7_930_000),
+            (92_000_000, 9_100_000),
+            (1 << 40, 12_345_678),
+        ] {
+            let share = budget / 4 * 3;
+            let cap = capacity(&view(budget), size).unwrap() as u64;
+            assert!(
+                (cap - 1) * size + load_reserve(size) <= share,
+                "{cap} x {size} do not fit {share}"
+            );
+            assert!(
+                cap * size + load_reserve(size) > share,
+                "{} x {size} would fit {share}",
+                cap + 1
+            );
+        }
+        // benches/passes.sh: 9.1 MB domains in 60 MB hold 6 (the rule before counted
+        // two domains' room for a build beside all of them: 4).
+        assert_eq!(capacity(&view(80_000_000), 9_100_000), Some(6));
+        // Too small a budget for even one load still owns one domain; no size, no bound.
+        assert_eq!(capacity(&view(100), 1_000), Some(1));
+        assert_eq!(capacity(&view(100), 0), None);
+        assert_eq!(capacity(&view(0), 1_000), None);
     }
 
     #[test]
