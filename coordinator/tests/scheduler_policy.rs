@@ -429,7 +429,8 @@ fn tiles_are_dealt_with_the_attempt() {
 /// idle worker is then given the most wanted of those.
 #[test]
 fn ownership_is_bounded_by_what_a_worker_can_hold() {
-    // Domains of 100 bytes; a's budget of 800 holds (600 / 100) - 2 = 4 of them.
+    // Domains of 100 bytes; a's budget of 700 leaves 525 for domains: 3 of them and the
+    // load of a fourth (its reserve, 155 bytes with the domain) fit, so a holds 4.
     let routes = Ownership::from_owners((0..7).map(|_| ids(&["a"])).collect());
     let a = queues(&[
         (0, 5, true, 100),
@@ -440,8 +441,10 @@ fn ownership_is_bounded_by_what_a_worker_can_hold() {
         (5, 10, false, 100),
         (6, 0, true, 100),
     ]);
-    // Everyone busy: a lets the two least wanted unloaded domains go.
-    let d = round(7, &routes, &[("a", 800, a.clone())], false).unwrap();
+    // Everyone busy: a keeps its loaded domains (6 too, though nothing wants it now: it
+    // counts against what a holds) and the two most wanted of the rest, and lets the
+    // three least wanted unloaded domains go.
+    let d = round(7, &routes, &[("a", 700, a.clone())], false).unwrap();
     let released: Vec<u32> = d
         .changes
         .iter()
@@ -450,16 +453,21 @@ fn ownership_is_bounded_by_what_a_worker_can_hold() {
             _ => None,
         })
         .collect();
-    assert_eq!(released, [4, 5]);
+    assert_eq!(released, [3, 4, 5]);
     assert!(d.routes.owners(4).is_empty() && d.routes.owners(5).is_empty());
     assert_eq!(d.routes.owners(0), ["a"], "a loaded domain stays");
+    assert_eq!(
+        d.routes.owners(6),
+        ["a"],
+        "a loaded domain stays, wanted or not"
+    );
     assert_eq!(d.routes.owners(1), ["a"]);
     // With an idle worker, the most wanted domain not loaded anywhere goes to it (a
     // kept it, but has not loaded it); the released ones wait for the next rounds.
     let d = round(
         7,
         &routes,
-        &[("a", 800, a.clone()), ("b", 800, vec![])],
+        &[("a", 700, a.clone()), ("b", 800, vec![])],
         false,
     )
     .unwrap();
@@ -467,4 +475,62 @@ fn ownership_is_bounded_by_what_a_worker_can_hold() {
     assert!(d.routes.owners(4).is_empty() && d.routes.owners(5).is_empty());
     // An unlimited budget bounds nothing.
     assert!(round(7, &routes, &[("a", 0, a)], false).is_none());
+}
+
+/// An idle worker given a domain when it already owns as many as it holds lets go of one
+/// of its own in the same round (one not loaded there first, then the lowest loaded
+/// one): its store evicts that one when the table comes, rather than its least recently
+/// used domain, which it would still own and load again when rays come for it.
+#[test]
+fn a_worker_given_a_domain_beyond_what_it_holds_lets_one_of_its_own_go() {
+    // Domains of 100 bytes; a budget of 700 holds 4 (see above), 800 holds 5.
+    let mut table: Vec<Vec<String>> = (0..4).map(|_| ids(&["a"])).collect();
+    table.extend([ids(&["b"]), ids(&["b"])]);
+    let routes = Ownership::from_owners(table);
+    // a: idle, 0-2 loaded, 3 owned but not loaded. b: busy with 4, and 5 waits unloaded.
+    let a = queues(&[(0, 0, true, 100), (1, 0, true, 100), (2, 0, true, 100)]);
+    let b = queues(&[(4, 30, true, 100), (5, 50, false, 100)]);
+    let d = round(
+        6,
+        &routes,
+        &[("a", 700, a.clone()), ("b", 700, b.clone())],
+        false,
+    )
+    .unwrap();
+    assert_eq!(
+        d.changes,
+        [
+            Change::Move {
+                domain: 5,
+                from: ids(&["b"]),
+                to: "a".into(),
+            },
+            Change::Release {
+                domain: 3,
+                from: "a".into(),
+            },
+        ]
+    );
+    // Every domain of a loaded: the lowest goes.
+    let all = queues(&[
+        (0, 0, true, 100),
+        (1, 0, true, 100),
+        (2, 0, true, 100),
+        (3, 0, true, 100),
+    ]);
+    let d = round(
+        6,
+        &routes,
+        &[("a", 700, all.clone()), ("b", 700, b.clone())],
+        false,
+    )
+    .unwrap();
+    assert_eq!(d.routes.owners(5), ["a"]);
+    assert!(d.routes.owners(0).is_empty());
+    assert_eq!(d.routes.owners(3), ["a"]);
+    // Room for one more: nothing of a's goes.
+    let d = round(6, &routes, &[("a", 800, all), ("b", 700, b)], false).unwrap();
+    assert_eq!(d.changes.len(), 1, "{:?}", d.changes);
+    assert_eq!(d.routes.owners(5), ["a"]);
+    assert!((0..4).all(|x| d.routes.owners(x) == ["a"]));
 }

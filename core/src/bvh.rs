@@ -160,13 +160,19 @@ impl Accel {
         // Exact: the corners are f32 and the scale a power of two.
         let (box_lo, box_hi) = (lo.as_vec3() * scale, hi.as_vec3() * scale);
 
-        let prims: Vec<Tri> = kept
-            .par_iter()
-            .map(|&i| Tri {
-                v: mesh.corners(i as usize).map(|p| p * scale),
-            })
-            .collect();
-        if prims.is_empty() {
+        // What a domain load holds at its peak is mostly this build (the worker reserves
+        // room for it before loading: `resident::load_reserve`), so each array lives only
+        // as long as it is needed: the accelerator-space corners are made from the mesh
+        // where they are used (scaling by a power of two is exact, so every copy is the
+        // same bits) instead of being kept beside the tree, the list of kept triangles
+        // is dropped when it keeps them all (the usual case), and the binary tree is
+        // dropped as soon as the 8-wide one is made.
+        let count = kept.len() as u32;
+        let kept = (kept.len() < mesh.indices.len()).then_some(kept);
+        // The mesh index of the build's primitive `p`.
+        let index = |p: u32| kept.as_ref().map_or(p, |k| k[p as usize]);
+        let corners = |p: u32| mesh.corners(index(p) as usize).map(|c| c * scale);
+        if count == 0 {
             return Accel {
                 nodes: Vec::new(),
                 tris: Vec::new(),
@@ -179,16 +185,20 @@ impl Accel {
                 build_time: start.elapsed(),
             };
         }
-        let aabbs: Vec<Aabb> = prims.par_iter().map(Boundable::aabb).collect();
+        let aabbs: Vec<Aabb> = (0..count)
+            .into_par_iter()
+            .map(|p| Tri { v: corners(p) }.aabb())
+            .collect();
         let bvh2 = build::build(aabbs);
         // At most 3 triangles per leaf, as obvhs's own CWBVH builder converts; obvhs's
         // conversion, with large subtrees on rayon's pool.
         let bvh = convert::to_cwbvh(&bvh2, 3);
+        drop(bvh2);
         let ids = bvh
             .primitive_indices
             .par_iter()
             .map(|&p| {
-                let i = kept[p as usize];
+                let i = index(p);
                 match global_ids {
                     Some(g) => g.get(i as usize).copied().unwrap_or(i),
                     None => i,
@@ -198,7 +208,7 @@ impl Accel {
         let tris: Vec<PackedTri> = bvh
             .primitive_indices
             .par_iter()
-            .map(|&i| PackedTri::new(prims[i as usize].v))
+            .map(|&p| PackedTri::new(corners(p)))
             .collect();
         Accel {
             nodes: wide::from_cwbvh(&bvh, &tris),

@@ -10,7 +10,8 @@
 //! **Budget.** The store keeps the bytes of resident domains, and of loads under way, at
 //! or below its budget: a load first evicts the least recently used domains (of any
 //! job) until the newcomer fits together with what its build holds for a moment
-//! ([`LOAD_OVERHEAD`] times its size). A domain that could never fit fails its job with
+//! ([`load_reserve`]: the domain and its build's peak, measured by `tests/load_peak.rs`).
+//! A domain that could never fit fails its job with
 //! a message saying so, instead of the kernel killing the worker. Tracing steps hold the
 //! domains they touch through an `Arc` for the length of one batch, so an evicted
 //! domain's memory is freed when the steps using it end: the stated margin over the
@@ -37,6 +38,7 @@ use std::time::{Duration, Instant};
 
 use dray_core::light_sampler::LightSampler;
 use dray_scene::partition::ResidentScene;
+use dray_scene::partition::resident::load_reserve;
 
 /// A job attempt, as the store and the queues know it.
 #[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
@@ -93,12 +95,6 @@ pub enum LoadError {
     Failed { domain: u32, message: String },
 }
 
-/// Bytes a load holds while it runs, as a multiple of the domain's resident size:
-/// the domain file as read, the merged mesh, the padded triangles handed to the BVH
-/// builder and the builder's own arrays live at once for a moment. Room for all of it
-/// is made before the load starts, so loads do not push the worker past its budget.
-pub const LOAD_OVERHEAD: u64 = 2;
-
 /// What the store did for one job attempt since it was last asked ([`DomainStore::take_counters`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct StoreCounters {
@@ -110,10 +106,15 @@ pub struct StoreCounters {
 }
 
 enum Slot {
-    /// A thread is loading it; `bytes` are reserved. `dropped`: the worker let the domain
-    /// go while it loaded ([`DomainStore::evict`]), so the load hands the domain to its
-    /// caller but does not keep it.
-    Loading { bytes: u64, dropped: bool },
+    /// A thread is loading it; `bytes` are reserved (what the load holds at its peak),
+    /// `estimate` is what the domain will hold once loaded. `dropped`: the worker let the
+    /// domain go while it loaded ([`DomainStore::evict`]), so the load hands the domain
+    /// to its caller but does not keep it.
+    Loading {
+        bytes: u64,
+        estimate: u64,
+        dropped: bool,
+    },
     Ready {
         domain: Arc<LoadedDomain>,
         last_used: u64,
@@ -124,6 +125,15 @@ impl Slot {
     fn bytes(&self) -> u64 {
         match self {
             Slot::Loading { bytes, .. } => *bytes,
+            Slot::Ready { domain, .. } => domain.bytes,
+        }
+    }
+
+    /// The domain's own size: resident, or once loaded. The scheduler sizes domains by
+    /// it; a load's reserve would make a domain look larger than it is while it loads.
+    fn domain_bytes(&self) -> u64 {
+        match self {
+            Slot::Loading { estimate, .. } => *estimate,
             Slot::Ready { domain, .. } => domain.bytes,
         }
     }
@@ -247,10 +257,10 @@ impl DomainStore {
         source: &dyn DomainSource,
     ) -> Result<Arc<LoadedDomain>, LoadError> {
         let estimate = source.estimate_bytes(d);
-        // What the load holds while it runs (see LOAD_OVERHEAD), within the budget: a
+        // What the load holds while it runs (see load_reserve), within the budget: a
         // domain that fits only without its build transients still loads, alone.
         let reserve = if self.budget > 0 {
-            estimate.saturating_mul(LOAD_OVERHEAD).min(self.budget)
+            load_reserve(estimate).min(self.budget)
         } else {
             estimate
         };
@@ -284,6 +294,7 @@ impl DomainStore {
                 key.clone(),
                 Slot::Loading {
                     bytes: reserve,
+                    estimate,
                     dropped: false,
                 },
             );
@@ -456,8 +467,8 @@ impl DomainStore {
     }
 
     /// Resident domains of `job` with their bytes, in domain order, and those being
-    /// loaded now (with their estimated bytes): the scheduler must not move a domain
-    /// whose load is under way, or the load is thrown away.
+    /// loaded now (with their estimated bytes, not the load's reserve): the scheduler
+    /// must not move a domain whose load is under way, or the load is thrown away.
     pub fn resident(&self, job: &JobKey) -> Vec<(u32, u64)> {
         let g = self.lock();
         let content = Self::key(&g, job, 0).0;
@@ -465,7 +476,7 @@ impl DomainStore {
             .slots
             .iter()
             .filter(|((c, _), _)| *c == content)
-            .map(|((_, d), s)| (*d, s.bytes()))
+            .map(|((_, d), s)| (*d, s.domain_bytes()))
             .collect();
         v.sort_unstable();
         v
@@ -626,8 +637,9 @@ mod tests {
             bytes: 100,
             loads: AtomicU64::new(0),
         };
-        // Room for three resident domains while a fourth is being built (2 x 100).
-        let store = DomainStore::new(450, Duration::ZERO);
+        // Room for three resident domains while a fourth is being built (its reserve,
+        // 155), but not for four and a fifth's build.
+        let store = DomainStore::new(460, Duration::ZERO);
         let j = job(0);
         store.load(&j, 0, &src).unwrap();
         store.load(&j, 1, &src).unwrap();
@@ -641,13 +653,20 @@ mod tests {
         assert!(store.get(&j, 0).is_some());
         store.load(&j, 2, &src).unwrap();
         assert_eq!(store.used_bytes(), 300);
-        // 300 resident + 200 for the build exceed 450: the LRU domain goes first.
+        // 300 resident + 155 for the build fit 460: nothing goes.
         store.load(&j, 3, &src).unwrap();
-        assert!(store.is_resident(&j, 0) && store.is_resident(&j, 2));
+        assert_eq!(store.used_bytes(), 400);
+        assert_eq!(store.take_counters(&j).evictions, 0);
+        // Touch 0, 2 and 3, so 1 is the least recently used; 400 + 155 exceed 460.
+        for d in [0, 2, 3] {
+            assert!(store.get(&j, d).is_some());
+        }
+        store.load(&j, 4, &src).unwrap();
+        assert!([0, 2, 3, 4].iter().all(|&d| store.is_resident(&j, d)));
         assert!(!store.is_resident(&j, 1), "the LRU domain went");
-        assert!(store.used_bytes() <= 450);
+        assert!(store.used_bytes() <= 460);
         let c = store.take_counters(&j);
-        assert_eq!((c.loads, c.evictions), (4, 1));
+        assert_eq!((c.loads, c.evictions), (1, 1));
         assert_eq!(store.take_counters(&j).loads, 0, "counters are deltas");
     }
 
@@ -657,7 +676,8 @@ mod tests {
             bytes: 100,
             loads: AtomicU64::new(0),
         };
-        let store = DomainStore::new(150, Duration::ZERO);
+        // The reserve (155) is more than the budget: the load takes the whole budget.
+        let store = DomainStore::new(140, Duration::ZERO);
         store.load(&job(0), 0, &src).unwrap();
         store.load(&job(0), 1, &src).unwrap();
         assert!(!store.is_resident(&job(0), 0), "one at a time");
@@ -782,9 +802,10 @@ mod tests {
             started.recv().unwrap();
             assert_eq!(
                 store.resident(&j),
-                vec![(4, 200)],
-                "the load reserves its room"
+                vec![(4, 100)],
+                "a loading domain is reported at its size"
             );
+            assert_eq!(store.used_bytes(), 155, "the load reserves its room");
             store.evict(&j, 4);
             go.send(()).unwrap();
             let loaded = loading.join().unwrap().unwrap();
@@ -816,7 +837,7 @@ mod tests {
             bytes: 100,
             loads: AtomicU64::new(0),
         };
-        let store = DomainStore::new(450, Duration::ZERO);
+        let store = DomainStore::new(440, Duration::ZERO);
         let (a, b) = (named("a"), named("b"));
         store.open(&a, "pkg-1".into());
         for d in 0..3 {
@@ -827,7 +848,7 @@ mod tests {
         // recently used idle one makes room, as any resident domain would.
         store.open(&b, "pkg-1".into());
         store.load(&b, 3, &src).unwrap();
-        assert!(store.used_bytes() <= 450);
+        assert!(store.used_bytes() <= 440);
         assert_eq!(store.resident(&b).len(), 3);
     }
 }

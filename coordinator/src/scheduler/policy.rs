@@ -8,14 +8,15 @@
 //! - **domain**: static round robin (domain `d` to worker `d % n`), tiles round robin.
 //!   Changes only when a worker is lost.
 //! - **dynamic** (ray-weighted): starts as domain; then each round ([`rebalance`]) bounds
-//!   every worker's wanted domains by what its budget holds (the rest lose their owner
-//!   and their rays wait where they are), gives the most-wanted domains that no owner
-//!   holds to workers that no ray needs, and with `replicate`, adds idle workers as extra
-//!   owners of hot resident domains.
+//!   every worker's domains by what its budget holds (the rest lose their owner and
+//!   their rays wait where they are), gives the most-wanted domains that no owner holds
+//!   to workers that no ray needs (each letting one of its own go if it is full), and
+//!   with `replicate`, adds idle workers as extra owners of hot resident domains.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 use dray_proto::v1::DomainQueue;
+use dray_scene::partition::resident::load_reserve;
 
 use super::table::Ownership;
 
@@ -238,15 +239,17 @@ impl Change {
 }
 
 /// Domains `w` can hold at once, judged from its budget and the largest domain the
-/// reports sized: a quarter of a worker's budget is for rays, and its store keeps room
-/// to build one more domain (twice a domain's size) beside the resident ones. None when
-/// the budget is unlimited or no size is known yet.
+/// reports sized: a quarter of a worker's budget is for rays, and its store loads the
+/// last of them only with room for that load's peak ([`load_reserve`], the domain
+/// itself included) beside the others. So `cap` domains fit when `cap - 1` of them and
+/// one load do. At least 1; None when the budget is unlimited or no size is known yet.
 fn capacity(w: &WorkerView<'_>, size: u64) -> Option<usize> {
     if w.budget == 0 || size == 0 {
         return None;
     }
     let share = w.budget / 4 * 3;
-    Some(((share / size) as usize).saturating_sub(2).max(1))
+    let others = share.saturating_sub(load_reserve(size)) / size;
+    Some((others as usize).saturating_add(1))
 }
 
 /// What a round decided.
@@ -269,9 +272,11 @@ struct DomainView {
     bytes: u64,
 }
 
-/// One dynamic round. First, a worker owning more wanted domains than its budget holds
-/// (see `capacity`) keeps the ones loaded or loading there and the most wanted of the
-/// rest, and releases the others (no owner: their rays wait where they are). Then
+/// One dynamic round. First, a worker owning alone more domains than its budget holds
+/// (see `capacity`; wanted or not: an unwanted domain it owns is loaded again when its
+/// rays come, evicting another) keeps the ones loaded or loading there and the most
+/// wanted of the rest, and releases the others (no owner: their rays wait where they
+/// are). Then
 /// `want(d)` is the sum of the rays queued for `d` at every worker. A
 /// worker is idle when no domain it owns is wanted; a domain is unloaded when it is
 /// neither resident nor [being loaded](RoundInput::loading) at any of its owners. The
@@ -282,7 +287,8 @@ struct DomainView {
 /// first in job order. The domain leaves its previous owners. Loaded domains stay.
 /// With `replicate`, idle workers left over become extra owners of the most-wanted
 /// domains resident somewhere (one new replica per domain per round, never more owners
-/// than workers). `None` when nothing changes.
+/// than workers). Last, a worker given domains beyond what it holds lets go of as many
+/// of its own (`release_for_gifts`). `None` when nothing changes.
 pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
     if input.routes.is_local() || input.workers.is_empty() {
         return None;
@@ -309,20 +315,23 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
     let loading_at = |d: usize, w: &str| input.loading.contains(&(d as u32, w.to_string()));
     let mut changes = Vec::new();
     // Ownership bounded by what a worker can hold (Navratil et al.): a worker that owns
-    // more wanted domains than it can hold keeps those loaded (or loading) there and the
+    // more domains than it can hold keeps those loaded (or loading) there and the
     // most wanted of the rest, and lets the others go; their rays wait where they are
     // until a worker with nothing to do is given them, so one load serves them all
     // instead of the owner swapping its domains in and out.
     let size = view.iter().map(|v| v.bytes).max().unwrap_or(0);
-    // Each worker's wanted domains it owns alone, ascending, from one pass over the
+    // Each worker's domains it owns alone, ascending, from one pass over the
     // domains (not one pass per worker: that is N x D at 10,000 workers). A worker's
     // releases below touch only its own domains, so the lists stay true as it goes.
     let mut sole: HashMap<String, Vec<usize>> = HashMap::new();
     for (d, o) in owners.iter().enumerate() {
-        if wanted(d) && o.len() == 1 {
-            sole.entry(o[0].clone()).or_default().push(d);
+        if let [only] = o.as_slice() {
+            sole.entry(only.clone()).or_default().push(d);
         }
     }
+    // What each bounded worker keeps of the domains it owns alone, for the bound after
+    // the moves below.
+    let mut kept: HashMap<&str, (usize, Vec<usize>)> = HashMap::new();
     for w in input.workers {
         let Some(cap) = capacity(w, size) else {
             continue;
@@ -330,6 +339,7 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
         let here = |d: usize| view[d].resident_at.contains(w.id) || loading_at(d, w.id);
         let mut mine: Vec<usize> = sole.remove(w.id).unwrap_or_default();
         if mine.len() <= cap {
+            kept.insert(w.id, (cap, mine));
             continue;
         }
         mine.sort_by(|&a, &b| {
@@ -348,6 +358,8 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
                 from: w.id.to_string(),
             });
         }
+        mine.retain(|&d| !owners[d].is_empty());
+        kept.insert(w.id, (cap, mine));
     }
     // Owners of a wanted domain are busy; one pass over the domains, not one per worker.
     let busy: BTreeSet<&str> = owners
@@ -453,6 +465,8 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
         }
     }
 
+    release_for_gifts(&mut owners, &mut changes, kept, &view, input);
+
     if changes.is_empty() {
         return None;
     }
@@ -460,6 +474,51 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
         routes: Ownership::from_owners(owners),
         changes,
     })
+}
+
+/// The bound on what a worker holds, after a round's moves and replicas: a worker given
+/// domains beyond its capacity lets go of as many of those it owns alone (`kept`:
+/// capacity and domains per bounded worker), unwanted ones only (a worker is given
+/// domains only when it is idle, so all of its own are), those not loaded there first,
+/// then resident ones, never one being loaded. Its store then evicts them when the table
+/// arrives. Without this, the store makes room for the new domain by evicting its least
+/// recently used one, which it still owns: rays that come for it before the next round
+/// releases it load it back, evicting another.
+fn release_for_gifts(
+    owners: &mut [Vec<String>],
+    changes: &mut Vec<Change>,
+    mut kept: HashMap<&str, (usize, Vec<usize>)>,
+    view: &[DomainView],
+    input: &RoundInput<'_>,
+) {
+    let mut gifts: BTreeMap<String, usize> = BTreeMap::new();
+    for c in changes.iter() {
+        if let Some((_, to)) = c.given() {
+            *gifts.entry(to.to_string()).or_default() += 1;
+        }
+    }
+    for (w, given) in gifts {
+        let Some((cap, mut mine)) = kept.remove(w.as_str()) else {
+            continue;
+        };
+        // Still its own alone: a move may have taken one away this round.
+        mine.retain(|&d| owners[d].len() == 1 && owners[d][0] == w);
+        let excess = (mine.len() + given).saturating_sub(cap);
+        if excess == 0 {
+            continue;
+        }
+        let resident = |d: usize| view[d].resident_at.contains(&w);
+        let loading = |d: usize| input.loading.contains(&(d as u32, w.clone()));
+        mine.retain(|&d| view[d].want == 0 && !loading(d));
+        mine.sort_by_key(|&d| (resident(d), d));
+        for &d in mine.iter().take(excess) {
+            owners[d].clear();
+            changes.push(Change::Release {
+                domain: d as u32,
+                from: w.clone(),
+            });
+        }
+    }
 }
 
 /// Empty slot `i` of `idle` and return its worker, keeping `first` at the first slot
@@ -526,6 +585,45 @@ mod tests {
         for name in SCHEDULE_NAMES {
             assert_eq!(Schedule::parse(name, false).unwrap().name(), name);
         }
+    }
+
+    /// The capacity is what the worker's store holds: `cap - 1` domains resident and
+    /// the load of one more (its reserve, the domain included) within the three quarters
+    /// of the budget left for domains, and not one more.
+    #[test]
+    fn capacity_is_what_the_store_holds_with_one_load() {
+        let view = |budget| WorkerView {
+            id: "w",
+            budget,
+            queues: &[],
+        };
+        for (budget, size) in [
+            (800, 100),
+            (700, 100),
+            (80_000_000, 9_100_000),
+            (80_000_000, 7_930_000),
+            (92_000_000, 9_100_000),
+            (1 << 40, 12_345_678),
+        ] {
+            let share = budget / 4 * 3;
+            let cap = capacity(&view(budget), size).unwrap() as u64;
+            assert!(
+                (cap - 1) * size + load_reserve(size) <= share,
+                "{cap} x {size} do not fit {share}"
+            );
+            assert!(
+                cap * size + load_reserve(size) > share,
+                "{} x {size} would fit {share}",
+                cap + 1
+            );
+        }
+        // benches/passes.sh: 9.1 MB domains in 60 MB hold 6 (the rule before counted
+        // two domains' room for a build beside all of them: 4).
+        assert_eq!(capacity(&view(80_000_000), 9_100_000), Some(6));
+        // Too small a budget for even one load still owns one domain; no size, no bound.
+        assert_eq!(capacity(&view(100), 1_000), Some(1));
+        assert_eq!(capacity(&view(100), 0), None);
+        assert_eq!(capacity(&view(0), 1_000), None);
     }
 
     #[test]

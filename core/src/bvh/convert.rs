@@ -21,7 +21,7 @@
 //!   converted on its own, into lists numbered from its own start, and its runs are
 //!   appended with its indices moved by where they land.
 
-use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use glam::{Vec3A, vec3a};
 use obvhs::bvh2::Bvh2;
@@ -96,8 +96,6 @@ struct Converter<'a> {
     /// Their costs are not kept: a node's are needed only by its parent's, which the
     /// cost pass hands up on the stack.
     decisions: Vec<AtomicU64>,
-    /// Primitives under each BVH2 node (set by the cost pass).
-    prims: Vec<AtomicU32>,
     directions: [Vec3A; DIRECTIONS],
 }
 
@@ -122,7 +120,6 @@ pub(crate) fn to_cwbvh(bvh2: &Bvh2, max_prims_per_leaf: u32) -> CwBvh {
         bvh2,
         // Zeroed memory: the cost pass writes every node's entries once.
         decisions: bytemuck::zeroed_vec(n),
-        prims: bytemuck::zeroed_vec(n),
         directions: std::array::from_fn(|s| {
             vec3a(
                 if (s & 0b100) != 0 { -1.0 } else { 1.0 },
@@ -133,7 +130,10 @@ pub(crate) fn to_cwbvh(bvh2: &Bvh2, max_prims_per_leaf: u32) -> CwBvh {
     };
     c.cost(0, max_prims_per_leaf, 0, &mut [0.0; SLOTS]);
     let mut part = Part::default();
-    part.nodes.reserve(bvh2.primitive_indices.len());
+    // Every primitive lands once; the nodes are far fewer than the primitives (a tenth
+    // or so: up to 3 primitives a leaf, 8 children a node), so they grow as they come
+    // instead of reserving a node per primitive (80 bytes a triangle held through the
+    // build, more than the whole 8-wide tree).
     part.primitive_indices.reserve(bvh2.primitive_indices.len());
     part.nodes.push(CwBvhNode::default());
     c.convert(&mut part, 0, 0);
@@ -251,8 +251,27 @@ impl Converter<'_> {
             word = slots;
         }
         self.decisions[index].store(word, Ordering::Relaxed);
-        self.prims[index].store(num_primitives, Ordering::Relaxed);
         num_primitives
+    }
+
+    /// Primitives under BVH2 node `index`, from its leftmost and rightmost leaves: the
+    /// build numbers the primitives of every subtree as one run of the order (see
+    /// `build`), so this walks two paths instead of keeping a count per node (4 bytes a
+    /// node, 8 a triangle, held through the conversion, whose peak is what a domain load
+    /// reserves). Only a hint (which subtrees convert in parallel, what a part reserves):
+    /// the tree converted does not depend on it.
+    fn primitives_under(&self, index: usize) -> u32 {
+        let nodes = &self.bvh2.nodes;
+        let leaf = |right: usize| {
+            let mut i = index;
+            while let Some(node) = nodes.get(i)
+                && !node.is_leaf()
+            {
+                i = node.first_index as usize + right;
+            }
+            nodes.get(i).map_or(0, |n| n.first_index)
+        };
+        leaf(1).saturating_sub(leaf(0)).saturating_add(1)
     }
 
     /// obvhs's `get_children`.
@@ -377,7 +396,7 @@ impl Converter<'_> {
             }
         }
         let inner = &slots[..n];
-        let large = |c: usize| self.prims[c].load(Ordering::Relaxed) >= PARALLEL_MIN;
+        let large = |c: usize| self.primitives_under(c) >= PARALLEL_MIN;
         if inner.iter().filter(|&&c| large(c)).count() < 2 {
             for (offset, &child) in inner.iter().enumerate() {
                 self.convert(part, block + offset, child);
@@ -392,6 +411,9 @@ impl Converter<'_> {
                 if large(child) {
                     s.spawn(move |_| {
                         let mut sub = Part::default();
+                        // Exactly the subtree's primitives land here: no slack.
+                        let prims = self.primitives_under(child) as usize;
+                        sub.primitive_indices.reserve_exact(prims);
                         sub.nodes.push(CwBvhNode::default());
                         self.convert(&mut sub, 0, child);
                         *slot = Some(sub);

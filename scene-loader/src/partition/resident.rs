@@ -77,6 +77,25 @@ pub fn resident_bytes(vertices: u64, triangles: u64, bvh_triangles: u64, uvs2: b
     vertices * vertex + triangles * per_tri + bvh_triangles * 80
 }
 
+/// What a domain's load holds at its peak, in hundredths of the domain's resident size
+/// ([`resident_bytes`]): the resident domain itself plus what its BVH build holds beside
+/// it for a moment. The peak is the 8-wide collapse: the binary tree (two 48-byte nodes a
+/// triangle) and the collapse's decisions (8 bytes a node) beside the mesh, 1.53 times
+/// the resident size at most on benches/passes.sh's gyroid (1.51 on the regression
+/// guard's), measured by `worker/tests/load_peak.rs`, which fails if a load peaks above
+/// it (docs/history/2026-11-29-passes-under-a-budget.md). Reading the domain file holds
+/// less (its bytes and the mesh decoded from them).
+pub const LOAD_PEAK_PERCENT: u64 = 155;
+
+/// Bytes to make room for before loading a domain of `resident` bytes (see
+/// [`LOAD_PEAK_PERCENT`]): the worker's store reserves it, and the scheduler's count of
+/// the domains a worker can hold leaves room for one such load beside the others.
+pub fn load_reserve(resident: u64) -> u64 {
+    (resident / 100)
+        .saturating_mul(LOAD_PEAK_PERCENT)
+        .saturating_add(resident % 100 * LOAD_PEAK_PERCENT / 100)
+}
+
 /// Load `owned` domains and the emitters of `package` (checking every file) and
 /// assemble them with [`assemble`].
 pub fn load_resident(package: &Package, owned: &[u32]) -> Result<ResidentScene> {
