@@ -124,6 +124,9 @@ pub struct JobFlags {
         value_parser = crate::phm_flag::parse_phm
     )]
     pub phm: Option<PhmSettings>,
+    /// Camera placement and lens (`JobSpec.view`).
+    #[command(flatten)]
+    pub view: crate::view_flags::ViewFlags,
 }
 
 /// The schedule of a job that names none: the coordinator's choice for an empty
@@ -245,6 +248,7 @@ impl JobFlags {
             ray_cache: self.ray_cache.clone(),
             phm: self.phm.clone(),
             passes: self.passes_or_default().to_string(),
+            view: self.view.spec()?,
         })
     }
 }

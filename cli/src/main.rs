@@ -28,6 +28,7 @@ mod sweep;
 mod sweep_cmd;
 mod telemetry;
 mod threads;
+mod view_flags;
 mod worker_cmd;
 
 use clap::{Parser, Subcommand};

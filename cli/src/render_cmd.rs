@@ -329,6 +329,18 @@ pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Resul
     }
     let aspect = a.job.width as f32 / a.job.height as f32;
     let camera = choose_camera(&scene, a.job.camera.as_deref(), aspect)?;
+    // The view is checked and resolved by the coordinator's code, as a submitted job's.
+    let camera = match a.job.view.spec()? {
+        Some(v) => {
+            let status = |e: tonic::Status| anyhow::anyhow!("{}", e.message());
+            dray_coordinator::view::check(&v, a.job.camera.as_deref()).map_err(status)?;
+            let offset = translate.unwrap_or(glam::Vec3::ZERO);
+            dray_coordinator::view::resolve(&v, &camera, scene.bounds(), aspect, offset)
+                .map_err(status)?
+                .1
+        }
+        None => camera,
+    };
 
     let settings = RenderSettings {
         width: a.job.width,

@@ -43,7 +43,7 @@ fn render(dir: &Path, tag: &str, scene: &str, flags: &[&str]) -> (Vec<u8>, Vec<u
 fn submit_writes_the_same_bits_as_render() {
     let dir = common::tmp("submit-same");
     let server = coordinator(&dir);
-    let cases: [(&str, &str, &[&str]); 2] = [
+    let cases: [(&str, &str, &[&str]); 3] = [
         (
             "path",
             "cornell:glass",
@@ -90,6 +90,29 @@ fn submit_writes_the_same_bits_as_render() {
                 "grid",
                 "--effects",
                 "-environment",
+            ],
+        ),
+        (
+            // The camera flags (JobSpec.view), resolved once, with a moved scene.
+            "view",
+            "cornell",
+            &[
+                "--width",
+                "40",
+                "--height",
+                "30",
+                "--spp",
+                "2",
+                "--orbit",
+                "-25,15",
+                "--fov",
+                "50",
+                "--aperture",
+                "f/0.2",
+                "--focus-on",
+                "0.3,0.2,0.1",
+                "--translate",
+                "50,0,0",
             ],
         ),
     ];

@@ -37,7 +37,10 @@
 //! The JobSetup's spec is what the worker must render, resolved so every worker reads the
 //! same thing: `camera` is always set, to the index (as a decimal string) of the camera in
 //! the package's camera list; `translate` is cleared because the package was written from
-//! the already translated scene; `domains` and `layout` say how the package was cut.
+//! the already translated scene; `domains` and `layout` say how the package was cut;
+//! `view`, when the job has one, is resolved (`crate::view::resolve`: no orbit, no
+//! f-number, points already translated) and is the camera workers build, whatever
+//! `camera` says.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -316,6 +319,8 @@ pub fn plan(mut p: Prepared, mut spec: JobSpec, layout: LayoutSpec, schedule: Sc
         triangles: p.triangles,
     };
     spec.translate = None;
+    // A view travels resolved in the spec, and workers build the camera from it.
+    spec.view = p.view.take();
     let index = camera_index(&p.scene, spec.camera.as_deref());
     let package = match p.package {
         Some(pkg) => {
@@ -323,11 +328,16 @@ pub fn plan(mut p: Prepared, mut spec: JobSpec, layout: LayoutSpec, schedule: Sc
             PackageSource::Existing(pkg.dir().to_path_buf())
         }
         None => {
-            let index = index.unwrap_or_else(|| {
-                p.scene.cameras.push(p.camera.clone());
-                p.scene.cameras.len() - 1
-            });
-            spec.camera = Some(index.to_string());
+            // Without a view, the package's camera list holds the camera the job
+            // renders with (the framing camera added when the scene has none).
+            spec.camera = match index {
+                Some(i) => Some(i.to_string()),
+                None if spec.view.is_some() => None,
+                None => {
+                    p.scene.cameras.push(p.camera.clone());
+                    Some((p.scene.cameras.len() - 1).to_string())
+                }
+            };
             PackageSource::Write {
                 scene: Box::new(p.scene),
                 layout,

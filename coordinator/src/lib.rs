@@ -53,6 +53,7 @@ pub mod service;
 pub mod store;
 pub mod traffic;
 pub mod validate;
+pub mod view;
 pub mod work_dir;
 pub mod worker_list;
 

@@ -217,6 +217,9 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
     {
         return Err(bad(format!("ao_distance: must be positive, got {d}")));
     }
+    if let Some(v) = &spec.view {
+        crate::view::check(v, spec.camera.as_deref())?;
+    }
     if let Some(c) = &spec.camera
         && c.trim().is_empty()
     {
@@ -546,6 +549,9 @@ pub struct Prepared {
     pub package: Option<dray_scene::partition::Package>,
     /// The camera chosen by the spec.
     pub camera: Camera,
+    /// The spec's `view` resolved against the scene (`crate::view::resolve`), what
+    /// workers build `camera` from.
+    pub view: Option<dray_proto::v1::CameraSpec>,
     /// Everything the integrator needs.
     pub settings: RenderSettings,
 }
@@ -597,13 +603,27 @@ pub fn prepare(
         effects.set(*e, *on);
     }
     let aspect = s.width as f32 / s.height as f32;
-    let camera = match &package {
-        // The package has no mesh to take bounds from; its manifest has them.
-        Some(p) if scene.cameras.is_empty() && s.camera.is_none() => {
+    // The package has no mesh to take bounds from; its manifest has them.
+    let bounds = match &package {
+        Some(p) => {
             let b = p.layout().scene_bounds();
-            Camera::framing(b.min, b.max, aspect)
+            (b.min, b.max)
+        }
+        None => scene.bounds(),
+    };
+    let camera = match &package {
+        Some(_) if scene.cameras.is_empty() && s.camera.is_none() => {
+            Camera::framing(bounds.0, bounds.1, aspect)
         }
         _ => choose_camera(&scene, s.camera.as_deref(), aspect)?,
+    };
+    let (view, camera) = match &s.view {
+        Some(view) => {
+            let offset = v.translate.unwrap_or(Vec3::ZERO);
+            let (resolved, camera) = crate::view::resolve(view, &camera, bounds, aspect, offset)?;
+            (Some(resolved), camera)
+        }
+        None => (None, camera),
     };
     let settings = RenderSettings {
         width: s.width,
@@ -622,6 +642,7 @@ pub fn prepare(
         triangles,
         package,
         camera,
+        view,
         settings,
     })
 }

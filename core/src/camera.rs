@@ -21,6 +21,40 @@ pub struct Camera {
     pub projection: Projection,
     /// Near clip distance along the view axis (glTF `znear`); rays start there.
     pub znear: f32,
+    /// A thin lens (depth of field), or None for a pinhole: every ray through the pixel
+    /// passes through one point. glTF cameras have none; `JobSpec.view` adds one.
+    pub lens: Option<Lens>,
+}
+
+/// A thin lens (pbrt's `PerspectiveCamera` with a lens radius): rays start on a disc of
+/// `radius` around the camera's position, in its image plane, and all rays through one
+/// film point meet at `focus_distance` along the view axis, so points at that depth are
+/// as sharp as through a pinhole and others blur in proportion to their distance from it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Lens {
+    /// Radius of the aperture in scene units, > 0.
+    pub radius: f32,
+    /// Distance of the plane in focus along the view axis, in scene units, > 0.
+    pub focus_distance: f32,
+}
+
+/// A point of the unit disc from a point of the unit square, by Shirley and Chiu's
+/// concentric map (what pbrt and Mitsuba use for lens samples): it keeps the strata of
+/// the square, so nearby samples stay nearby on the lens.
+pub fn concentric_disk(u: Vec2) -> Vec2 {
+    let o = u * 2.0 - Vec2::ONE;
+    if o.x == 0.0 && o.y == 0.0 {
+        return Vec2::ZERO;
+    }
+    let (r, theta) = if o.x.abs() > o.y.abs() {
+        (o.x, std::f32::consts::FRAC_PI_4 * (o.y / o.x))
+    } else {
+        (
+            o.y,
+            std::f32::consts::FRAC_PI_2 - std::f32::consts::FRAC_PI_4 * (o.x / o.y),
+        )
+    };
+    Vec2::new(theta.cos(), theta.sin()) * r
 }
 
 /// A camera ray before it is given pixel and sample bookkeeping.
@@ -40,6 +74,8 @@ pub struct Frustum {
     znear: f32,
     /// The scene's box, when rays start at it (see [`Frustum::clipped_to`]).
     scene: Option<(Vec3, Vec3)>,
+    /// The camera's thin lens, if any (see [`Frustum::generate_through_lens`]).
+    lens: Option<Lens>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -52,6 +88,21 @@ impl Frustum {
     /// The ray through film position `film` in [0,1]^2 (x right, y down).
     #[inline]
     pub fn generate(&self, film: Vec2) -> CameraRay {
+        self.generate_through_lens(film, Vec2::splat(0.5))
+    }
+
+    /// Whether the camera has a thin lens, so its rays need a lens sample.
+    #[inline]
+    pub fn has_lens(&self) -> bool {
+        self.lens.is_some()
+    }
+
+    /// The ray through film position `film` and lens position `lens_u` in [0,1]^2 (the
+    /// lens's centre at (0.5, 0.5), ignored without a lens): the pinhole ray is moved to
+    /// start at the lens point and aimed at the pinhole ray's point on the plane in focus
+    /// (pbrt-v4 `PerspectiveCamera::GenerateRay`; the same for an orthographic camera).
+    #[inline]
+    pub fn generate_through_lens(&self, film: Vec2, lens_u: Vec2) -> CameraRay {
         let sx = film.x * 2.0 - 1.0;
         let sy = 1.0 - film.y * 2.0;
         let (o_local, d_local) = match self.shape {
@@ -66,6 +117,16 @@ impl Frustum {
                 Vec3::new(sx * xmag, sy * ymag, -self.znear),
                 Vec3::new(0.0, 0.0, -1.0),
             ),
+        };
+        // `d_local.z` is -1 for both shapes: `o + d * f` lies `f` further along the axis.
+        let (o_local, d_local) = match self.lens {
+            Some(l) => {
+                let focus = o_local + d_local * l.focus_distance;
+                let p = concentric_disk(lens_u) * l.radius;
+                let o = o_local + Vec3::new(p.x, p.y, 0.0);
+                (o, focus - o)
+            }
+            None => (o_local, d_local),
         };
         let origin = self.transform.transform_point3(o_local);
         let dir = self
@@ -155,6 +216,20 @@ pub fn advance_to_box(origin: Vec3, dir: Vec3, lo: Vec3, hi: Vec3) -> Vec3 {
     o.into()
 }
 
+/// Where a camera with vertical field of view `yfov` (radians) must stand, on the side
+/// `dir` (unit) of the box `[min, max]`, to see the box's bounding sphere whole in an
+/// image of `image_aspect`; and the box's centre it looks at. [`Camera::framing`] and
+/// `--orbit` (`crate::view`) stand there.
+pub fn framing_eye(min: Vec3, max: Vec3, image_aspect: f32, dir: Vec3, yfov: f32) -> (Vec3, Vec3) {
+    let center = (min + max) * 0.5;
+    let radius = ((max - min).length() * 0.5).max(1e-6);
+    let half = (yfov * 0.5).tan();
+    // The bounding sphere must fit both vertically and horizontally.
+    let fit = half.min(half * image_aspect.max(1e-3));
+    let dist = radius / (fit.atan()).sin();
+    (center + dir * dist, center)
+}
+
 impl Camera {
     /// A perspective camera at `eye` looking at `target`.
     pub fn look_at(name: &str, eye: Vec3, target: Vec3, up: Vec3, yfov: f32) -> Camera {
@@ -177,21 +252,16 @@ impl Camera {
             transform,
             projection: Projection::Perspective { yfov, aspect: None },
             znear: 0.0,
+            lens: None,
         }
     }
 
     /// A camera that frames a bounding box from a three-quarter view, so a scene without
     /// a camera still gives a useful picture.
     pub fn framing(min: Vec3, max: Vec3, image_aspect: f32) -> Camera {
-        let center = (min + max) * 0.5;
-        let radius = ((max - min).length() * 0.5).max(1e-6);
         let yfov = 40f32.to_radians();
-        let half = (yfov * 0.5).tan();
-        // The bounding sphere must fit both vertically and horizontally.
-        let fit = half.min(half * image_aspect.max(1e-3));
-        let dist = radius / (fit.atan()).sin();
         let dir = Vec3::new(0.55, 0.45, 1.0).normalize();
-        let eye = center + dir * dist;
+        let (eye, center) = framing_eye(min, max, image_aspect, dir, yfov);
         Camera::look_at("auto", eye, center, Vec3::Y, yfov)
     }
 
@@ -226,6 +296,7 @@ impl Camera {
             shape,
             znear: self.znear.max(0.0),
             scene: None,
+            lens: self.lens,
         }
     }
     /// True when the camera gives finite, non-degenerate rays.
@@ -241,7 +312,13 @@ impl Camera {
                 xmag.is_finite() && ymag.is_finite() && xmag != 0.0 && ymag != 0.0
             }
         };
-        t_ok && p_ok && self.znear.is_finite()
+        let l_ok = self.lens.is_none_or(|l| {
+            l.radius.is_finite()
+                && l.radius > 0.0
+                && l.focus_distance.is_finite()
+                && l.focus_distance > 0.0
+        });
+        t_ok && p_ok && l_ok && self.znear.is_finite()
     }
 }
 
@@ -259,6 +336,7 @@ mod tests {
                 aspect: Some(1.0),
             },
             znear: 0.01,
+            lens: None,
         };
         let r = cam.generate(Vec2::new(0.5, 0.5), 1.0);
         assert!((r.dir - Vec3::new(0.0, 0.0, -1.0)).length() < 1e-6);
@@ -282,6 +360,7 @@ mod tests {
                 aspect: Some(1.0),
             },
             znear: 0.0,
+            lens: None,
         };
         let top = persp.generate(Vec2::new(0.5, 0.0), 2.0).dir;
         let right = persp.generate(Vec2::new(1.0, 0.5), 2.0).dir;
@@ -300,6 +379,76 @@ mod tests {
         let right = ortho.generate(Vec2::new(1.0, 0.5), 2.0).origin;
         assert!((top.y - 1.0).abs() < 1e-6, "{top}");
         assert!((right.x - 2.0).abs() < 1e-6, "{right}");
+    }
+
+    /// Every ray through one film point, wherever it crosses the lens, meets the
+    /// pinhole ray at the plane in focus; the lens's centre gives the pinhole's
+    /// direction; lens samples cover the disc of the lens's radius.
+    #[test]
+    fn thin_lens_rays_meet_at_the_focus_plane() {
+        let lens = Lens {
+            radius: 0.2,
+            focus_distance: 4.0,
+        };
+        for projection in [
+            Projection::Perspective {
+                yfov: 0.7,
+                aspect: None,
+            },
+            Projection::Orthographic {
+                xmag: 1.0,
+                ymag: 1.0,
+            },
+        ] {
+            let pinhole = Camera {
+                name: "c".into(),
+                transform: Mat4::from_translation(Vec3::new(0.5, -1.0, 3.0))
+                    * Mat4::from_rotation_y(0.3),
+                projection,
+                znear: 0.0,
+                lens: None,
+            };
+            let thin = Camera {
+                lens: Some(lens),
+                ..pinhole.clone()
+            };
+            let axis = pinhole.transform.transform_vector3(Vec3::NEG_Z);
+            let (p, t) = (pinhole.frustum(1.0), thin.frustum(1.0));
+            for film in [
+                Vec2::new(0.5, 0.5),
+                Vec2::new(0.1, 0.8),
+                Vec2::new(0.9, 0.2),
+            ] {
+                let a = p.generate(film);
+                let in_focus = a.origin + a.dir * (lens.focus_distance / a.dir.dot(axis));
+                let mut widest = 0.0f32;
+                for u in [
+                    Vec2::new(0.0, 0.0),
+                    Vec2::new(0.99, 0.3),
+                    Vec2::new(0.2, 0.7),
+                ] {
+                    let b = t.generate_through_lens(film, u);
+                    let depth = (in_focus - b.origin).dot(axis);
+                    let at = b.origin + b.dir * (depth / b.dir.dot(axis));
+                    assert!((at - in_focus).length() < 1e-5, "{projection:?} {film} {u}");
+                    widest = widest.max((b.origin - a.origin).length());
+                }
+                assert!(widest > 0.15 && widest <= 0.2 + 1e-6, "{widest}");
+                let c = t.generate_through_lens(film, Vec2::splat(0.5));
+                assert!((c.dir - a.dir).length() < 1e-6);
+            }
+        }
+    }
+
+    #[test]
+    fn concentric_disk_stays_in_the_disc() {
+        for i in 0..=16 {
+            for j in 0..=16 {
+                let u = Vec2::new(i as f32 / 16.0, j as f32 / 16.0);
+                assert!(concentric_disk(u).length() <= 1.0 + 1e-6, "{u}");
+            }
+        }
+        assert!((concentric_disk(Vec2::new(1.0, 0.5)) - Vec2::X).length() < 1e-6);
     }
 
     #[test]

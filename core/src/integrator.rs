@@ -388,7 +388,19 @@ impl<'a> Integrator<'a> {
     /// memory and stall reloading what was just stored.
     #[inline]
     pub fn camera_ray_through(&self, film: Vec2, pixel: u32, sample: u32) -> RayState {
-        let r = self.frustum.generate(film);
+        let r = if self.frustum.has_lens() {
+            // The lens point is keyed by the ray's pixel and sample like every other
+            // random number, so any process tracing this ray makes the same one.
+            let key = PathKey {
+                seed: self.settings.seed,
+                pixel,
+                sample,
+            };
+            self.frustum
+                .generate_through_lens(film, key.uniform2(0, Purpose::Lens, 0))
+        } else {
+            self.frustum.generate(film)
+        };
         RayState {
             origin: r.origin,
             dir: r.dir,

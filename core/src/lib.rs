@@ -38,4 +38,5 @@ pub mod surface;
 pub mod tiles;
 pub mod tonemap;
 pub mod trace;
+pub mod view;
 pub mod wall;

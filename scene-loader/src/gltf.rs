@@ -1097,6 +1097,7 @@ impl Loader<'_> {
             transform: world.as_mat4(),
             projection,
             znear,
+            lens: None,
         });
     }
 

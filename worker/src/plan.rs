@@ -500,7 +500,29 @@ fn check_domain_count(found: u32, setup: &JobSetup) -> Result<(), JobError> {
     Ok(())
 }
 
-/// The job's camera: by index into the package's cameras, or framing its bounds.
+/// The camera of a resolved `JobSpec.view` (the coordinator resolved it:
+/// `dray_coordinator::view::resolve`), read as the coordinator reads it
+/// (`dray_coordinator::view::camera_of_resolved`), so both build the same camera.
+fn view_camera(v: &dray_proto::v1::CameraSpec) -> Result<Camera, String> {
+    let get = |name: &str, p: Option<&dray_proto::v1::Vec3>| {
+        p.map(|p| Vec3::new(p.x, p.y, p.z))
+            .ok_or(format!("{name}: not resolved"))
+    };
+    let view = dray_core::view::View::from_resolved(
+        get("look_from", v.look_from.as_ref())?,
+        get("look_at", v.look_at.as_ref())?,
+        get("up", v.up.as_ref())?,
+        v.fov.ok_or("fov: not resolved")?,
+        v.orthographic,
+        &v.aperture,
+        v.focus_distance,
+    )
+    .map_err(|e| e.to_string())?;
+    Ok(view.camera())
+}
+
+/// The job's camera: from the spec's resolved view, by index into the package's
+/// cameras, or framing its bounds.
 fn job_camera(
     setup: &JobSetup,
     settings: &RenderSettings,
@@ -509,6 +531,9 @@ fn job_camera(
 ) -> Result<Camera, JobError> {
     let spec = setup.spec.as_ref().ok_or(JobError::Missing("spec"))?;
     let aspect = settings.width as f32 / settings.height as f32;
+    if let Some(v) = &spec.view {
+        return view_camera(v).map_err(|e| JobError::Invalid(format!("view.{e}")));
+    }
     match spec.camera.as_deref() {
         Some(c) => {
             let i: usize = c.parse().map_err(|_| {

@@ -3,9 +3,10 @@
 //! their own. Field names are snake_case; durations are seconds; times are Unix
 //! seconds; states drop their `JOB_STATE_` prefix (`"RUNNING"`).
 
+use dray_proto::v1::camera_spec::Orbit;
 use dray_proto::v1::{
-    Job, JobProgress, JobSpec, JobState, JobStats, ListJobsResponse, ListWorkersResponse,
-    WorkerJobStats, WorkerStatus,
+    CameraSpec, Job, JobProgress, JobSpec, JobState, JobStats, ListJobsResponse,
+    ListWorkersResponse, Vec3, WorkerJobStats, WorkerStatus,
 };
 use serde::{Deserialize, Serialize};
 
@@ -130,6 +131,40 @@ pub struct SubmitForm {
     pub label: String,
     #[serde(default)]
     pub replicate: bool,
+    /// The camera (`JobSpec.view`, docs/cameras.md): points as [x, y, z], the orbit as
+    /// [azimuth, elevation] in degrees. None of them set means the scene's camera.
+    pub look_from: Option<[f32; 3]>,
+    pub look_at: Option<[f32; 3]>,
+    pub up: Option<[f32; 3]>,
+    pub fov: Option<f32>,
+    pub orbit: Option<[f32; 2]>,
+    #[serde(default)]
+    pub orthographic: bool,
+    #[serde(default)]
+    pub aperture: String,
+    pub focus_distance: Option<f32>,
+    pub focus_on: Option<[f32; 3]>,
+}
+
+impl SubmitForm {
+    /// The form's camera fields as `JobSpec.view`; None when none is set.
+    fn view(&self) -> Option<CameraSpec> {
+        let p = |v: Option<[f32; 3]>| v.map(|[x, y, z]| Vec3 { x, y, z });
+        let view = CameraSpec {
+            look_from: p(self.look_from),
+            look_at: p(self.look_at),
+            up: p(self.up),
+            fov: self.fov,
+            orbit: self
+                .orbit
+                .map(|[azimuth, elevation]| Orbit { azimuth, elevation }),
+            orthographic: self.orthographic,
+            aperture: self.aperture.trim().to_string(),
+            focus_distance: self.focus_distance,
+            focus_on: p(self.focus_on),
+        };
+        (view != CameraSpec::default()).then_some(view)
+    }
 }
 
 /// SubmitJob's answer.
@@ -140,7 +175,9 @@ pub struct Submitted {
 
 impl From<SubmitForm> for JobSpec {
     fn from(f: SubmitForm) -> JobSpec {
+        let view = f.view();
         JobSpec {
+            view,
             scene: f.scene,
             width: f.width,
             height: f.height,
@@ -390,5 +427,41 @@ impl From<&WorkerStatus> for WorkerRow {
                 .collect(),
             since_heartbeat_s: seconds(w.since_heartbeat.as_ref()),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The dashboard's camera fields become `JobSpec.view`; a form without them leaves
+    /// the scene's camera.
+    #[test]
+    fn the_forms_camera_fields_make_the_view() {
+        let form: SubmitForm = serde_json::from_str(
+            r#"{"scene":"cornell","width":8,"height":8,"spp":1,
+                "orbit":[30,-10],"fov":50,"aperture":" f/2.8 ","focus_on":[0,1,2]}"#,
+        )
+        .unwrap();
+        let spec = JobSpec::from(form);
+        let v = spec.view.expect("a view");
+        assert_eq!(
+            v.orbit,
+            Some(Orbit {
+                azimuth: 30.0,
+                elevation: -10.0
+            })
+        );
+        assert_eq!((v.fov, v.aperture.as_str()), (Some(50.0), "f/2.8"));
+        assert_eq!(v.focus_on.map(|p| p.z), Some(2.0));
+        let plain: SubmitForm =
+            serde_json::from_str(r#"{"scene":"cornell","width":8,"height":8,"spp":1}"#).unwrap();
+        assert_eq!(JobSpec::from(plain).view, None);
+        assert!(
+            serde_json::from_str::<SubmitForm>(
+                r#"{"scene":"c","width":8,"height":8,"spp":1,"look_at":[1,2]}"#
+            )
+            .is_err()
+        );
     }
 }

@@ -644,6 +644,9 @@ impl CameraDesc {
                 },
             },
             znear: self.znear.0,
+            // A package's cameras are the scene file's, which have no lens; a job's
+            // lens travels in its spec (`JobSpec.view`), not in the package.
+            lens: None,
         }
     }
 }

@@ -254,7 +254,22 @@ $("submit-form").addEventListener("submit", async (e) => {
     schedule: f.get("schedule"),
     seed: num("seed") ?? 0,
     label: f.get("label"),
+    fov: num("fov"),
+    orthographic: f.get("orthographic") === "on",
+    aperture: f.get("aperture") ?? "",
+    focus_distance: num("focus_distance"),
   };
+  // "X,Y,Z" and "AZ,EL" fields as arrays of numbers; the coordinator checks the values.
+  for (const [k, n] of [["look_from", 3], ["look_at", 3], ["up", 3], ["orbit", 2], ["focus_on", 3]]) {
+    const text = (f.get(k) ?? "").trim();
+    if (text === "") continue;
+    const v = text.split(",").map((t) => Number(t.trim()));
+    if (v.length !== n || v.some((x) => !Number.isFinite(x))) {
+      $("submit-error").textContent = `${k}: expected ${n} comma-separated numbers, got "${text}"`;
+      return;
+    }
+    body[k] = v;
+  }
   $("submit-error").textContent = "";
   $("submit-button").disabled = true;
   try {
