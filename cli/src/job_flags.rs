@@ -124,6 +124,8 @@ pub struct JobFlags {
         value_parser = crate::phm_flag::parse_phm
     )]
     pub phm: Option<PhmSettings>,
+    #[command(flatten)]
+    pub lights: crate::light_flags::LightFlags,
 }
 
 /// The schedule of a job that names none: the coordinator's choice for an empty
@@ -245,6 +247,7 @@ impl JobFlags {
             ray_cache: self.ray_cache.clone(),
             phm: self.phm.clone(),
             passes: self.passes_or_default().to_string(),
+            lighting: self.lights.lighting_spec(),
         })
     }
 }

@@ -38,10 +38,13 @@ pub enum Effect {
     Iridescence,
     /// Some transmissive material disperses light (`KHR_materials_dispersion`).
     Dispersion,
+    /// The job spec adds a sun (`--sun`): one more light sample per hit, and bounce
+    /// rays leaving the scene look for its disk.
+    Sun,
 }
 
 impl Effect {
-    pub const ALL: [Effect; 14] = [
+    pub const ALL: [Effect; 15] = [
         Effect::DirectLight,
         Effect::Specular,
         Effect::Transmission,
@@ -56,6 +59,7 @@ impl Effect {
         Effect::Volume,
         Effect::Iridescence,
         Effect::Dispersion,
+        Effect::Sun,
     ];
 
     fn bit(self) -> u16 {
@@ -78,6 +82,7 @@ impl Effect {
             Effect::Volume => "volume",
             Effect::Iridescence => "iridescence",
             Effect::Dispersion => "dispersion",
+            Effect::Sun => "sun",
         }
     }
 

@@ -20,9 +20,11 @@ use crate::credit::Credit;
 use crate::effects::{Effect, Effects};
 use crate::intersect::offset_ray_origin;
 use crate::light_sampler::{LightSample, LightSampler};
+use crate::lighting::Lighting;
 use crate::material::Material;
 use crate::sampling::{PathKey, PathStream, Purpose, cosine_hemisphere};
 use crate::scene::Scene;
+use crate::sun::Sun;
 use crate::surface::{Surface, alpha_passes};
 use crate::trace::Trace;
 
@@ -180,6 +182,8 @@ pub struct RenderSettings {
     pub ao_samples: u32,
     /// Occlusion distance for `ao`, in scene units (infinite by default).
     pub ao_distance: f32,
+    /// Lights the job spec adds (a sun), used under their effects.
+    pub lighting: Lighting,
 }
 
 /// One ray in flight. Self-contained: it can be traced anywhere, in any order.
@@ -306,8 +310,9 @@ impl<'a> Integrator<'a> {
         let s = &self.settings;
         let punctual = self.lights.punctual_entries().len() as u128;
         let area = u128::from(self.lights.choose_area(0.0).is_some());
+        let sun = u128::from(self.sun().is_some());
         let shadows = if s.effects.contains(Effect::DirectLight) {
-            punctual + area
+            punctual + area + sun
         } else {
             0
         };
@@ -353,6 +358,15 @@ impl<'a> Integrator<'a> {
             self.settings.environment
         } else {
             Vec3::ZERO
+        }
+    }
+
+    /// The spec's sun, when the job uses it.
+    fn sun(&self) -> Option<&Sun> {
+        if self.settings.effects.contains(Effect::Sun) {
+            self.settings.lighting.sun.as_ref()
+        } else {
+            None
         }
     }
 
@@ -493,6 +507,18 @@ impl<'a> Integrator<'a> {
         let env = self.env();
         if env != Vec3::ZERO {
             sink.contribute(ray.pixel, ray.weight * env);
+        }
+        // The sun's disk: seen at full weight by a ray no light sample competed with
+        // (camera rays, delta bounces), weighted against the sun's sample otherwise.
+        if let Some(sun) = self.sun()
+            && sun.contains(ray.dir)
+        {
+            let w = if ray.bsdf_pdf > 0.0 {
+                power_heuristic(ray.bsdf_pdf, sun.pdf())
+            } else {
+                1.0
+            };
+            sink.contribute(ray.pixel, ray.weight * sun.radiance() * w);
         }
     }
 
@@ -676,8 +702,8 @@ impl<'a> Integrator<'a> {
     }
 
     /// Direct light: every punctual light with its own shadow ray (they are few and
-    /// cheap, and sampling one by power starves dim-but-near lights), plus one
-    /// emissive-triangle sample chosen by power. With `mis`, the area sample is weighted
+    /// cheap, and sampling one by power starves dim-but-near lights), one sample of the
+    /// sun's disk, plus one emissive-triangle sample chosen by power. With `mis`, the area sample is weighted
     /// against BSDF sampling (path tracing); raycast and Whitted take it at full weight.
     #[allow(clippy::too_many_arguments)]
     fn direct_light(
@@ -698,6 +724,29 @@ impl<'a> Integrator<'a> {
                 if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
                     sink.spawn(s);
                 }
+            }
+        }
+        if let Some(sun) = self.sun() {
+            let wi = sun.sample(key.uniform2(ray.depth, Purpose::SunPoint, 0));
+            let (f, pdf) = bsdf.eval_pdf(wi);
+            let w = if mis {
+                power_heuristic(sun.pdf(), pdf)
+            } else {
+                1.0
+            };
+            let ls = LightSample {
+                wi,
+                dist: f32::INFINITY,
+                li: sun.radiance(),
+                pdf: sun.pdf(),
+                delta: false,
+                light_p: surf.p,
+                light_p_err: Vec3::ZERO,
+                light_n: -wi,
+            };
+            let c = ray.weight * f * surf.n.dot(wi).abs() * ls.li * (w / ls.pdf);
+            if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
+                sink.spawn(s);
             }
         }
         if !self.lights.has_area() {
@@ -815,7 +864,7 @@ impl<'a> Integrator<'a> {
         let effects = self.settings.effects;
         let nee = effects.contains(Effect::DirectLight)
             && !bsdf.is_delta_only()
-            && !self.lights.is_empty();
+            && (!self.lights.is_empty() || self.sun().is_some());
         // With no frame for `wo` every evaluation is zero and every sample absorbed:
         // neither a shadow ray nor a bounce would carry anything.
         let Some(at) = bsdf.at(wo) else {
@@ -905,6 +954,10 @@ mod tests {
                 effects: Effect::ALL.into_iter().fold(Effects::NONE, Effects::with),
                 ao_samples: 4096,
                 ao_distance: f32::INFINITY,
+                // And a sun: one more shadow ray per hit.
+                lighting: Lighting {
+                    sun: Some(Sun::new(0.0, 45.0, 1.0, crate::sun::SUN_DIAMETER_DEG).expect("sun")),
+                },
             };
             let cam = Camera::look_at("c", Vec3::Z, Vec3::ZERO, Vec3::Y, 0.5);
             let need = Integrator::new(&scene, cam, settings).credit_needed();

@@ -20,6 +20,8 @@ pub enum Purpose {
     Alpha = 8,
     /// The colour channel a path follows through a dispersive surface.
     Dispersion = 9,
+    /// The direction inside the sun's disk of a light sample.
+    SunPoint = 10,
 }
 
 /// The coordinates of one path: everything but the bounce and purpose.
