@@ -44,7 +44,7 @@ pub struct JobFlags {
     pub env: Option<String>,
     /// Force effects on or off, e.g. "+specular,-transmission" (names: direct_light,
     /// specular, transmission, emission, textures, alpha, environment, unlit, clearcoat,
-    /// sheen, anisotropy, volume, iridescence, dispersion).
+    /// sheen, anisotropy, volume, iridescence, dispersion, sun, env_map).
     #[arg(long, allow_hyphen_values = true)]
     pub effects: Option<String>,
     /// Rays per hit for the ao integrator.

@@ -41,10 +41,13 @@ pub enum Effect {
     /// The job spec adds a sun (`--sun`): one more light sample per hit, and bounce
     /// rays leaving the scene look for its disk.
     Sun,
+    /// The job spec adds an environment map (`--env-map`): one more light sample per
+    /// hit, and rays leaving the scene look it up.
+    EnvMap,
 }
 
 impl Effect {
-    pub const ALL: [Effect; 15] = [
+    pub const ALL: [Effect; 16] = [
         Effect::DirectLight,
         Effect::Specular,
         Effect::Transmission,
@@ -60,6 +63,7 @@ impl Effect {
         Effect::Iridescence,
         Effect::Dispersion,
         Effect::Sun,
+        Effect::EnvMap,
     ];
 
     fn bit(self) -> u16 {
@@ -83,6 +87,7 @@ impl Effect {
             Effect::Iridescence => "iridescence",
             Effect::Dispersion => "dispersion",
             Effect::Sun => "sun",
+            Effect::EnvMap => "env_map",
         }
     }
 

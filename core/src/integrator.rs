@@ -18,6 +18,7 @@ use crate::bvh::{Hit, QueryRay};
 use crate::camera::{Camera, Frustum};
 use crate::credit::Credit;
 use crate::effects::{Effect, Effects};
+use crate::env_map::EnvMap;
 use crate::intersect::offset_ray_origin;
 use crate::light_sampler::{LightSample, LightSampler};
 use crate::lighting::Lighting;
@@ -310,7 +311,7 @@ impl<'a> Integrator<'a> {
         let s = &self.settings;
         let punctual = self.lights.punctual_entries().len() as u128;
         let area = u128::from(self.lights.choose_area(0.0).is_some());
-        let sun = u128::from(self.sun().is_some());
+        let sun = u128::from(self.sun().is_some()) + u128::from(self.env_map().is_some());
         let shadows = if s.effects.contains(Effect::DirectLight) {
             punctual + area + sun
         } else {
@@ -365,6 +366,15 @@ impl<'a> Integrator<'a> {
     fn sun(&self) -> Option<&Sun> {
         if self.settings.effects.contains(Effect::Sun) {
             self.settings.lighting.sun.as_ref()
+        } else {
+            None
+        }
+    }
+
+    /// The spec's environment map, when the job uses it.
+    fn env_map(&self) -> Option<&EnvMap> {
+        if self.settings.effects.contains(Effect::EnvMap) {
+            self.settings.lighting.env_map.as_deref()
         } else {
             None
         }
@@ -519,6 +529,18 @@ impl<'a> Integrator<'a> {
                 1.0
             };
             sink.contribute(ray.pixel, ray.weight * sun.radiance() * w);
+        }
+        // The environment map, weighted against its light sample as the sun is.
+        if let Some(map) = self.env_map() {
+            let w = if ray.bsdf_pdf > 0.0 {
+                power_heuristic(ray.bsdf_pdf, map.pdf(ray.dir))
+            } else {
+                1.0
+            };
+            let l = map.radiance(ray.dir);
+            if l != Vec3::ZERO {
+                sink.contribute(ray.pixel, ray.weight * l * w);
+            }
         }
     }
 
@@ -728,26 +750,12 @@ impl<'a> Integrator<'a> {
         }
         if let Some(sun) = self.sun() {
             let wi = sun.sample(key.uniform2(ray.depth, Purpose::SunPoint, 0));
-            let (f, pdf) = bsdf.eval_pdf(wi);
-            let w = if mis {
-                power_heuristic(sun.pdf(), pdf)
-            } else {
-                1.0
-            };
-            let ls = LightSample {
-                wi,
-                dist: f32::INFINITY,
-                li: sun.radiance(),
-                pdf: sun.pdf(),
-                delta: false,
-                light_p: surf.p,
-                light_p_err: Vec3::ZERO,
-                light_n: -wi,
-            };
-            let c = ray.weight * f * surf.n.dot(wi).abs() * ls.li * (w / ls.pdf);
-            if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
-                sink.spawn(s);
-            }
+            self.distant_sample(ray, surf, bsdf, (wi, sun.radiance(), sun.pdf()), mis, sink);
+        }
+        if let Some(map) = self.env_map()
+            && let Some(sample) = map.sample(key.uniform2(ray.depth, Purpose::EnvMapPoint, 0))
+        {
+            self.distant_sample(ray, surf, bsdf, sample, mis, sink);
         }
         if !self.lights.has_area() {
             return;
@@ -767,6 +775,41 @@ impl<'a> Integrator<'a> {
                     sink.spawn(s);
                 }
             }
+        }
+    }
+
+    /// A shadow ray toward a light at infinity (the sun, the environment map) along
+    /// `wi`, of radiance `li` sampled with solid-angle density `pdf_l`; with `mis`,
+    /// weighted against BSDF sampling, as the miss that finds the same light is
+    /// ([`Integrator::shade_miss`]).
+    fn distant_sample(
+        &self,
+        ray: &RayState,
+        surf: &Surface,
+        bsdf: &BsdfAt,
+        (wi, li, pdf_l): (Vec3, Vec3, f32),
+        mis: bool,
+        sink: &mut impl Sink,
+    ) {
+        let (f, pdf) = bsdf.eval_pdf(wi);
+        let w = if mis {
+            power_heuristic(pdf_l, pdf)
+        } else {
+            1.0
+        };
+        let ls = LightSample {
+            wi,
+            dist: f32::INFINITY,
+            li,
+            pdf: pdf_l,
+            delta: false,
+            light_p: surf.p,
+            light_p_err: Vec3::ZERO,
+            light_n: -wi,
+        };
+        let c = ray.weight * f * surf.n.dot(wi).abs() * li * (w / pdf_l);
+        if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
+            sink.spawn(s);
         }
     }
 
@@ -864,7 +907,7 @@ impl<'a> Integrator<'a> {
         let effects = self.settings.effects;
         let nee = effects.contains(Effect::DirectLight)
             && !bsdf.is_delta_only()
-            && (!self.lights.is_empty() || self.sun().is_some());
+            && (!self.lights.is_empty() || self.sun().is_some() || self.env_map().is_some());
         // With no frame for `wo` every evaluation is zero and every sample absorbed:
         // neither a shadow ray nor a bounce would carry anything.
         let Some(at) = bsdf.at(wo) else {
@@ -957,6 +1000,9 @@ mod tests {
                 // And a sun: one more shadow ray per hit.
                 lighting: Lighting {
                     sun: Some(Sun::new(0.0, 45.0, 1.0, crate::sun::SUN_DIAMETER_DEG).expect("sun")),
+                    env_map: Some(Arc::new(
+                        EnvMap::new(1, 1, vec![Vec3::ONE], 0.0, 1.0).expect("map"),
+                    )),
                 },
             };
             let cam = Camera::look_at("c", Vec3::Z, Vec3::ZERO, Vec3::Y, 0.5);

@@ -22,6 +22,8 @@ pub enum Purpose {
     Dispersion = 9,
     /// The direction inside the sun's disk of a light sample.
     SunPoint = 10,
+    /// The direction of a light sample of the environment map.
+    EnvMapPoint = 11,
 }
 
 /// The coordinates of one path: everything but the bounce and purpose.

@@ -76,7 +76,10 @@ fn render_sun(integrator: IntegratorKind, diameter: f32, spp: u32) -> Vec<(f32, 
         effects: Effects::NONE.with(Effect::DirectLight).with(Effect::Sun),
         ao_samples: 1,
         ao_distance: f32::INFINITY,
-        lighting: Lighting { sun: Some(sun) },
+        lighting: Lighting {
+            sun: Some(sun),
+            env_map: None,
+        },
     };
     // Straight down from high above, seeing x in about [-3, 3].
     let camera = Camera::look_at(

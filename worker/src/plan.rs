@@ -107,7 +107,10 @@ fn lighting(spec: &dray_proto::v1::JobSpec) -> Result<Lighting, JobError> {
             .ok_or(JobError::Missing("spec.lighting.sun.angular_diameter_deg"))?,
     )
     .map_err(|e| JobError::Invalid(format!("lighting.sun: {e}")))?;
-    Ok(Lighting { sun: Some(sun) })
+    Ok(Lighting {
+        sun: Some(sun),
+        env_map: None,
+    })
 }
 
 /// A job's tracer and where its domains come from, made from its setup. Reads the
