@@ -44,7 +44,7 @@ pub struct JobFlags {
     pub env: Option<String>,
     /// Force effects on or off, e.g. "+specular,-transmission" (names: direct_light,
     /// specular, transmission, emission, textures, alpha, environment, unlit, clearcoat,
-    /// sheen, anisotropy, volume, iridescence, dispersion).
+    /// sheen, anisotropy, volume, iridescence, dispersion, sun, env_map).
     #[arg(long, allow_hyphen_values = true)]
     pub effects: Option<String>,
     /// Rays per hit for the ao integrator.
@@ -127,6 +127,8 @@ pub struct JobFlags {
     /// Camera placement and lens (`JobSpec.view`).
     #[command(flatten)]
     pub view: crate::view_flags::ViewFlags,
+    #[command(flatten)]
+    pub lights: crate::light_flags::LightFlags,
 }
 
 /// The schedule of a job that names none: the coordinator's choice for an empty
@@ -249,6 +251,7 @@ impl JobFlags {
             phm: self.phm.clone(),
             passes: self.passes_or_default().to_string(),
             view: self.view.spec()?,
+            lighting: self.lights.lighting_spec(),
         })
     }
 }

@@ -15,6 +15,7 @@ mod embedded;
 mod health_cmd;
 mod job_flags;
 mod kv_flag;
+mod light_flags;
 mod net_flags;
 mod options;
 mod partition_cmd;

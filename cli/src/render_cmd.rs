@@ -322,8 +322,13 @@ pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Resul
         tracing::warn!("{w}");
     }
     let load_time = start.elapsed();
-    let environment = env_arg.unwrap_or_else(|| dray_scene::effects::default_environment(&scene));
-    let mut effects = dray_scene::effects::analyze(&scene, environment);
+    // The lights as the coordinator resolves them from the spec, so `--workers 0` and
+    // workers render the same lights.
+    let lighting = dray_coordinator::lighting::check_lighting(&mut a.job.lights.lighting_spec())
+        .map_err(|e| anyhow::anyhow!("--sun: {}", e.message()))?;
+    let environment =
+        env_arg.unwrap_or_else(|| dray_scene::effects::default_environment_lit(&scene, &lighting));
+    let mut effects = dray_scene::effects::analyze_lit(&scene, environment, &lighting);
     if let Some(spec) = &a.job.effects {
         effects = apply_effects(effects, spec)?;
     }
@@ -353,6 +358,7 @@ pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Resul
         effects,
         ao_samples: a.job.ao_samples,
         ao_distance: a.job.ao_distance.unwrap_or(f32::INFINITY),
+        lighting,
     };
     let facts = SceneFacts::of(&scene);
     let mut build_time = std::time::Duration::ZERO;

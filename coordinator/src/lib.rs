@@ -43,6 +43,7 @@ pub mod http;
 pub mod image_memo;
 pub mod job;
 pub mod jobs;
+pub mod lighting;
 pub mod membership;
 pub mod metrics;
 pub mod owned_package;

@@ -14,6 +14,7 @@ use dray_core::camera::Camera;
 use dray_core::effects::Effect;
 use dray_core::integrator::{IntegratorKind, RayKind, RenderSettings};
 use dray_core::kind_set::KindSet;
+use dray_core::lighting::Lighting;
 use dray_core::scene::{Mesh, Scene};
 use dray_proto::v1::{JobSpec, PhmSettings, RayCacheSettings};
 use dray_scene::partition::manifest::MANIFEST_FILE;
@@ -111,6 +112,8 @@ pub struct Validated {
     pub effects: Vec<(Effect, bool)>,
     /// Explicit environment radiance.
     pub env: Option<Vec3>,
+    /// The lights the spec adds (`spec.lighting`, defaults filled in).
+    pub lighting: Lighting,
     /// Scene offset.
     pub translate: Option<Vec3>,
     /// The scene is a scene package at this (canonical) directory.
@@ -256,6 +259,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         })
         .transpose()?;
     let effects = parse_effects(&spec.effects)?;
+    let lighting = crate::lighting::check_lighting(&mut spec.lighting)?;
     let domains_auto = spec.domains == 0;
     if spec.domains == 0 {
         spec.domains = 1;
@@ -301,6 +305,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         integrator,
         effects,
         env,
+        lighting,
         translate,
         domains_auto,
         schedule,
@@ -597,8 +602,8 @@ pub fn prepare(
     };
     let environment = v
         .env
-        .unwrap_or_else(|| dray_scene::effects::default_environment(&scene));
-    let mut effects = dray_scene::effects::analyze(&scene, environment);
+        .unwrap_or_else(|| dray_scene::effects::default_environment_lit(&scene, &v.lighting));
+    let mut effects = dray_scene::effects::analyze_lit(&scene, environment, &v.lighting);
     for (e, on) in &v.effects {
         effects.set(*e, *on);
     }
@@ -636,6 +641,7 @@ pub fn prepare(
         effects,
         ao_samples: s.ao_samples.unwrap_or(DEFAULT_AO_SAMPLES),
         ao_distance: s.ao_distance.unwrap_or(f32::INFINITY),
+        lighting: v.lighting.clone(),
     };
     Ok(Prepared {
         scene,

@@ -146,6 +146,7 @@ fn reference_png(width: u32, height: u32, spp: u32) -> Vec<u8> {
         effects,
         ao_samples: 16,
         ao_distance: f32::INFINITY,
+        lighting: Default::default(),
     };
     let integrator = Integrator::new(&scene, camera, settings);
     let accel = Accel::build(&scene.mesh);

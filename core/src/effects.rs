@@ -38,10 +38,16 @@ pub enum Effect {
     Iridescence,
     /// Some transmissive material disperses light (`KHR_materials_dispersion`).
     Dispersion,
+    /// The job spec adds a sun (`--sun`): one more light sample per hit, and bounce
+    /// rays leaving the scene look for its disk.
+    Sun,
+    /// The job spec adds an environment map (`--env-map`): one more light sample per
+    /// hit, and rays leaving the scene look it up.
+    EnvMap,
 }
 
 impl Effect {
-    pub const ALL: [Effect; 14] = [
+    pub const ALL: [Effect; 16] = [
         Effect::DirectLight,
         Effect::Specular,
         Effect::Transmission,
@@ -56,6 +62,8 @@ impl Effect {
         Effect::Volume,
         Effect::Iridescence,
         Effect::Dispersion,
+        Effect::Sun,
+        Effect::EnvMap,
     ];
 
     fn bit(self) -> u16 {
@@ -78,6 +86,8 @@ impl Effect {
             Effect::Volume => "volume",
             Effect::Iridescence => "iridescence",
             Effect::Dispersion => "dispersion",
+            Effect::Sun => "sun",
+            Effect::EnvMap => "env_map",
         }
     }
 

@@ -18,11 +18,14 @@ use crate::bvh::{Hit, QueryRay};
 use crate::camera::{Camera, Frustum};
 use crate::credit::Credit;
 use crate::effects::{Effect, Effects};
+use crate::env_map::EnvMap;
 use crate::intersect::offset_ray_origin;
 use crate::light_sampler::{LightSample, LightSampler};
+use crate::lighting::Lighting;
 use crate::material::Material;
 use crate::sampling::{PathKey, PathStream, Purpose, cosine_hemisphere};
 use crate::scene::Scene;
+use crate::sun::Sun;
 use crate::surface::{Surface, alpha_passes};
 use crate::trace::Trace;
 
@@ -180,6 +183,8 @@ pub struct RenderSettings {
     pub ao_samples: u32,
     /// Occlusion distance for `ao`, in scene units (infinite by default).
     pub ao_distance: f32,
+    /// Lights the job spec adds (a sun), used under their effects.
+    pub lighting: Lighting,
 }
 
 /// One ray in flight. Self-contained: it can be traced anywhere, in any order.
@@ -306,8 +311,9 @@ impl<'a> Integrator<'a> {
         let s = &self.settings;
         let punctual = self.lights.punctual_entries().len() as u128;
         let area = u128::from(self.lights.choose_area(0.0).is_some());
+        let sun = u128::from(self.sun().is_some()) + u128::from(self.env_map().is_some());
         let shadows = if s.effects.contains(Effect::DirectLight) {
-            punctual + area
+            punctual + area + sun
         } else {
             0
         };
@@ -353,6 +359,24 @@ impl<'a> Integrator<'a> {
             self.settings.environment
         } else {
             Vec3::ZERO
+        }
+    }
+
+    /// The spec's sun, when the job uses it.
+    fn sun(&self) -> Option<&Sun> {
+        if self.settings.effects.contains(Effect::Sun) {
+            self.settings.lighting.sun.as_ref()
+        } else {
+            None
+        }
+    }
+
+    /// The spec's environment map, when the job uses it.
+    fn env_map(&self) -> Option<&EnvMap> {
+        if self.settings.effects.contains(Effect::EnvMap) {
+            self.settings.lighting.env_map.as_deref()
+        } else {
+            None
         }
     }
 
@@ -505,6 +529,30 @@ impl<'a> Integrator<'a> {
         let env = self.env();
         if env != Vec3::ZERO {
             sink.contribute(ray.pixel, ray.weight * env);
+        }
+        // The sun's disk: seen at full weight by a ray no light sample competed with
+        // (camera rays, delta bounces), weighted against the sun's sample otherwise.
+        if let Some(sun) = self.sun()
+            && sun.contains(ray.dir)
+        {
+            let w = if ray.bsdf_pdf > 0.0 {
+                power_heuristic(ray.bsdf_pdf, sun.pdf())
+            } else {
+                1.0
+            };
+            sink.contribute(ray.pixel, ray.weight * sun.radiance() * w);
+        }
+        // The environment map, weighted against its light sample as the sun is.
+        if let Some(map) = self.env_map() {
+            let w = if ray.bsdf_pdf > 0.0 {
+                power_heuristic(ray.bsdf_pdf, map.pdf(ray.dir))
+            } else {
+                1.0
+            };
+            let l = map.radiance(ray.dir);
+            if l != Vec3::ZERO {
+                sink.contribute(ray.pixel, ray.weight * l * w);
+            }
         }
     }
 
@@ -688,8 +736,8 @@ impl<'a> Integrator<'a> {
     }
 
     /// Direct light: every punctual light with its own shadow ray (they are few and
-    /// cheap, and sampling one by power starves dim-but-near lights), plus one
-    /// emissive-triangle sample chosen by power. With `mis`, the area sample is weighted
+    /// cheap, and sampling one by power starves dim-but-near lights), one sample of the
+    /// sun's disk, plus one emissive-triangle sample chosen by power. With `mis`, the area sample is weighted
     /// against BSDF sampling (path tracing); raycast and Whitted take it at full weight.
     #[allow(clippy::too_many_arguments)]
     fn direct_light(
@@ -712,6 +760,15 @@ impl<'a> Integrator<'a> {
                 }
             }
         }
+        if let Some(sun) = self.sun() {
+            let wi = sun.sample(key.uniform2(ray.depth, Purpose::SunPoint, 0));
+            self.distant_sample(ray, surf, bsdf, (wi, sun.radiance(), sun.pdf()), mis, sink);
+        }
+        if let Some(map) = self.env_map()
+            && let Some(sample) = map.sample(key.uniform2(ray.depth, Purpose::EnvMapPoint, 0))
+        {
+            self.distant_sample(ray, surf, bsdf, sample, mis, sink);
+        }
         if !self.lights.has_area() {
             return;
         }
@@ -730,6 +787,41 @@ impl<'a> Integrator<'a> {
                     sink.spawn(s);
                 }
             }
+        }
+    }
+
+    /// A shadow ray toward a light at infinity (the sun, the environment map) along
+    /// `wi`, of radiance `li` sampled with solid-angle density `pdf_l`; with `mis`,
+    /// weighted against BSDF sampling, as the miss that finds the same light is
+    /// ([`Integrator::shade_miss`]).
+    fn distant_sample(
+        &self,
+        ray: &RayState,
+        surf: &Surface,
+        bsdf: &BsdfAt,
+        (wi, li, pdf_l): (Vec3, Vec3, f32),
+        mis: bool,
+        sink: &mut impl Sink,
+    ) {
+        let (f, pdf) = bsdf.eval_pdf(wi);
+        let w = if mis {
+            power_heuristic(pdf_l, pdf)
+        } else {
+            1.0
+        };
+        let ls = LightSample {
+            wi,
+            dist: f32::INFINITY,
+            li,
+            pdf: pdf_l,
+            delta: false,
+            light_p: surf.p,
+            light_p_err: Vec3::ZERO,
+            light_n: -wi,
+        };
+        let c = ray.weight * f * surf.n.dot(wi).abs() * li * (w / pdf_l);
+        if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
+            sink.spawn(s);
         }
     }
 
@@ -827,7 +919,7 @@ impl<'a> Integrator<'a> {
         let effects = self.settings.effects;
         let nee = effects.contains(Effect::DirectLight)
             && !bsdf.is_delta_only()
-            && !self.lights.is_empty();
+            && (!self.lights.is_empty() || self.sun().is_some() || self.env_map().is_some());
         // With no frame for `wo` every evaluation is zero and every sample absorbed:
         // neither a shadow ray nor a bounce would carry anything.
         let Some(at) = bsdf.at(wo) else {
@@ -917,6 +1009,13 @@ mod tests {
                 effects: Effect::ALL.into_iter().fold(Effects::NONE, Effects::with),
                 ao_samples: 4096,
                 ao_distance: f32::INFINITY,
+                // And a sun: one more shadow ray per hit.
+                lighting: Lighting {
+                    sun: Some(Sun::new(0.0, 45.0, 1.0, crate::sun::SUN_DIAMETER_DEG).expect("sun")),
+                    env_map: Some(Arc::new(
+                        EnvMap::new(1, 1, vec![Vec3::ONE], 0.0, 1.0).expect("map"),
+                    )),
+                },
             };
             let cam = Camera::look_at("c", Vec3::Z, Vec3::ZERO, Vec3::Y, 0.5);
             let need = Integrator::new(&scene, cam, settings).credit_needed();

@@ -22,6 +22,10 @@ pub enum Purpose {
     Dispersion = 9,
     /// The point on a thin lens a camera ray starts from (`camera::Lens`).
     Lens = 10,
+    /// The direction inside the sun's disk of a light sample.
+    SunPoint = 11,
+    /// The direction of a light sample of the environment map.
+    EnvMapPoint = 12,
 }
 
 /// The coordinates of one path: everything but the bounce and purpose.

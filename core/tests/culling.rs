@@ -46,6 +46,7 @@ fn settings() -> RenderSettings {
         effects: Effects::NONE,
         ao_samples: 1,
         ao_distance: f32::INFINITY,
+        lighting: Default::default(),
     }
 }
 

@@ -57,6 +57,7 @@ fn bounces(scene: &Scene, effects: Effects, samples: u32, weight: Vec3) -> Vec<R
         effects,
         ao_samples: 1,
         ao_distance: f32::INFINITY,
+        lighting: Default::default(),
     };
     let t = INCIDENCE_DEG.to_radians();
     let dir = Vec3::new(t.sin(), 0.0, -t.cos());

@@ -148,6 +148,7 @@ fn check(lo: Vec3, hi: Vec3, dists: &[f32]) {
             effects: Effects::NONE.with(Effect::Environment),
             ao_samples: 1,
             ao_distance: f32::INFINITY,
+            lighting: Default::default(),
         };
         let integ = Integrator::new(&scene, cam, settings);
         for y in 0..SIZE {

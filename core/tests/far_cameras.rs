@@ -118,6 +118,7 @@ fn settings() -> RenderSettings {
         effects: Effects::NONE.with(Effect::Environment),
         ao_samples: 1,
         ao_distance: f32::INFINITY,
+        lighting: Default::default(),
     }
 }
 

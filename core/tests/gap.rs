@@ -296,6 +296,7 @@ fn ao_image(scene: &Scene, eye: [Vec3; 2]) -> Vec<i64> {
         effects: Effects::NONE,
         ao_samples: 8,
         ao_distance: f32::INFINITY,
+        lighting: Default::default(),
     };
     let integrator = Integrator::new(scene, cam, settings);
     let accel = Accel::build(&scene.mesh);

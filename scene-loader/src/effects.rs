@@ -2,6 +2,7 @@
 //! spawn only the ray kinds that can change the image.
 
 use dray_core::effects::{Effect, Effects};
+use dray_core::lighting::Lighting;
 use dray_core::scene::Scene;
 use glam::Vec3;
 
@@ -99,6 +100,28 @@ pub fn default_environment(scene: &Scene) -> Vec3 {
 
 /// Radiance of the default sky for scenes with no lights.
 pub const DEFAULT_SKY: f32 = 1.0;
+
+/// [`default_environment`] for `scene` lit by the job's `lighting` as well: a sun is a
+/// light like the scene's own, so it makes the default sky black (the scene's own
+/// environment, when it names one, still wins).
+pub fn default_environment_lit(scene: &Scene, lighting: &Lighting) -> Vec3 {
+    if lighting.any() && scene.environment.is_none() {
+        Vec3::ZERO
+    } else {
+        default_environment(scene)
+    }
+}
+
+/// [`analyze`] for `scene` lit by the job's `lighting` as well: a sun is the effect
+/// [`Effect::Sun`] and needs direct light.
+pub fn analyze_lit(scene: &Scene, environment: Vec3, lighting: &Lighting) -> Effects {
+    let mut fx = analyze(scene, environment);
+    if lighting.sun.is_some() {
+        fx.set(Effect::Sun, true);
+        fx.set(Effect::DirectLight, true);
+    }
+    fx
+}
 
 #[cfg(test)]
 mod tests {

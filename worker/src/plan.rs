@@ -15,7 +15,9 @@ use dray_core::effects::{Effect, Effects};
 use dray_core::integrator::{IntegratorKind, RayKind, RenderSettings};
 use dray_core::kind_set::KindSet;
 use dray_core::light_sampler::LightSampler;
+use dray_core::lighting::Lighting;
 use dray_core::scene::Scene;
+use dray_core::sun::Sun;
 use dray_core::wall::PhmBins;
 use dray_proto::v1::JobSetup;
 use dray_scene::partition::checksum::{checksum, to_hex};
@@ -86,6 +88,28 @@ pub fn settings(setup: &JobSetup) -> Result<RenderSettings, JobError> {
             .ao_samples
             .ok_or(JobError::Missing("spec.ao_samples"))?,
         ao_distance: spec.ao_distance.unwrap_or(f32::INFINITY),
+        lighting: lighting(spec)?,
+    })
+}
+
+/// The lights the spec adds, as the coordinator resolved them (every default filled
+/// in, so nothing here can pick another value than the coordinator's renderer did).
+fn lighting(spec: &dray_proto::v1::JobSpec) -> Result<Lighting, JobError> {
+    let Some(sun) = spec.lighting.as_ref().and_then(|l| l.sun.as_ref()) else {
+        return Ok(Lighting::default());
+    };
+    let sun = Sun::new(
+        sun.azimuth_deg,
+        sun.elevation_deg,
+        sun.irradiance
+            .ok_or(JobError::Missing("spec.lighting.sun.irradiance"))?,
+        sun.angular_diameter_deg
+            .ok_or(JobError::Missing("spec.lighting.sun.angular_diameter_deg"))?,
+    )
+    .map_err(|e| JobError::Invalid(format!("lighting.sun: {e}")))?;
+    Ok(Lighting {
+        sun: Some(sun),
+        env_map: None,
     })
 }
 

@@ -43,6 +43,7 @@ fn settings(scene: &Scene, kind: IntegratorKind, w: u32, h: u32, spp: u32) -> Re
         effects: dray_scene::effects::analyze(scene, environment),
         ao_samples: 4,
         ao_distance: f32::INFINITY,
+        lighting: Default::default(),
     }
 }
 

@@ -78,6 +78,7 @@ impl Fixture {
             effects: dray_scene::effects::analyze(&scene, environment),
             ao_samples: 2,
             ao_distance: f32::INFINITY,
+            lighting: Default::default(),
         };
         let layout = DomainLayout::for_source(&scene, &spec).expect("layout");
         let mut counts = vec![0u64; layout.domain_count() as usize];
