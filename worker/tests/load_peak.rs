@@ -93,6 +93,7 @@ fn settings(scene: &dray_core::scene::Scene) -> RenderSettings {
         effects: dray_scene::effects::analyze(scene, environment),
         ao_samples: 4,
         ao_distance: f32::INFINITY,
+        lighting: Default::default(),
     }
 }
 
