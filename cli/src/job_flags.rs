@@ -9,6 +9,7 @@ use dray_coordinator::scheduler::policy::{SCHEDULE_NAMES, ScheduleError};
 use dray_coordinator::validate::{DEFAULT_AO_SAMPLES, DEFAULT_INTEGRATOR, DEFAULT_MAX_DEPTH};
 use dray_core::display::Display;
 use dray_core::exposure::Exposure;
+use dray_core::integrator::IntegratorKind;
 use dray_core::tonemap::{Tonemap, UnknownTonemap};
 use dray_proto::v1::{JobSpec, PhmSettings, RayCacheSettings, Rgb, Vec3};
 
@@ -29,7 +30,7 @@ pub struct JobFlags {
     #[arg(long, default_value_t = 16)]
     pub spp: u32,
     /// raycast | whitted | path | ao
-    #[arg(long, default_value = DEFAULT_INTEGRATOR.name())]
+    #[arg(long, default_value = DEFAULT_INTEGRATOR.name(), value_name = "NAME", value_parser = parse_integrator)]
     pub integrator: String,
     /// Maximum number of surface interactions along a path.
     #[arg(long, default_value_t = DEFAULT_MAX_DEPTH)]
@@ -149,6 +150,18 @@ fn parse_tonemap(s: &str) -> Result<Tonemap, String> {
         return Err(UnknownTonemap(String::new()).to_string());
     }
     Tonemap::parse(s).map_err(|e| e.to_string())
+}
+
+/// `--integrator NAME`: refused here, as every other bad flag value is (a usage error,
+/// exit code 2), rather than after the scene has loaded.
+fn parse_integrator(s: &str) -> Result<String, String> {
+    match IntegratorKind::from_name(s) {
+        Some(_) => Ok(s.to_string()),
+        None => Err(format!(
+            "unknown integrator {s:?} (expected {})",
+            IntegratorKind::choices()
+        )),
+    }
 }
 
 /// `--schedule NAME`: one of the coordinator's [`SCHEDULE_NAMES`], or a one-line error

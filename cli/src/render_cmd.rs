@@ -188,8 +188,14 @@ pub fn check_output(flag: &str, path: &Path, extensions: &[&str]) -> Result<()> 
             .map(str::to_ascii_lowercase);
         if !ext.as_deref().is_some_and(|e| extensions.contains(&e)) {
             let expected: Vec<String> = extensions.iter().map(|e| format!(".{e}")).collect();
+            // The one mix-up worth naming: the PNG flag given an EXR name.
+            let hint = if flag == "--output" && ext.as_deref() == Some("exr") {
+                format!("; linear OpenEXR is written with --exr {shown}")
+            } else {
+                String::new()
+            };
             bail!(
-                "{flag} {shown}: unsupported file type (expected {})",
+                "{flag} {shown}: unsupported file type (expected {}){hint}",
                 expected.join(" or ")
             );
         }
@@ -361,7 +367,8 @@ pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Resul
         lighting,
     };
     let facts = SceneFacts::of(&scene);
-    let mut build_time = std::time::Duration::ZERO;
+    let build_time: std::time::Duration;
+    let build_summed: bool;
     let (out, domains, scheduling, walls): (
         RenderOutput,
         u32,
@@ -372,6 +379,10 @@ pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Resul
         // The scene goes to the in-process coordinator as it is (translated), so it is
         // not loaded twice; the coordinator repeats the checks made above.
         let r = crate::embedded::render_on_actors(a, a.workers, scene, progress)?;
+        // The workers build the BVHs as they load their domains: their load time (read
+        // plus build, summed over workers) is the build time here.
+        build_time = std::time::Duration::from_secs_f64(r.stats.domain_load_seconds.max(0.0));
+        build_summed = true;
         (
             r.out,
             r.stats.domains,
@@ -384,6 +395,7 @@ pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Resul
         let build_start = Instant::now();
         let geometry = build_geometry(&scene, domains, &a.layout)?;
         build_time = build_start.elapsed();
+        build_summed = false;
         let integrator = Integrator::new(&scene, camera, settings.clone());
         let out = render::render(&integrator, geometry.as_ref(), a.threads, progress)
             .context("cannot start the thread pool")?;
@@ -405,6 +417,7 @@ pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Resul
         start.elapsed(),
     );
     summary.domains = domains;
+    summary.build_summed_over_workers = build_summed;
     // Counted by the tile renderer, and by the workers (JobStats.clamped).
     summary.clamped_contributions = Some(out.film.clamped);
     summary.scheduling = scheduling;

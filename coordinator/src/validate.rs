@@ -518,7 +518,10 @@ pub fn resolve_scene(scene: &str, root: &Path) -> Result<String, Status> {
         bad(format!(
             "scene: {scene:?} is not a procedural scene name (cornell, cornell:mirror, \
              cornell:glass, spheres:N, soup:N, grid:<scene>:XxYxZ, city:N, iso:<field>:<res>) \
-             nor a file under the scene root ({e})"
+             nor a file under the scene root ({e}){}",
+            dray_scene::suggest::suggest_procedural(scene)
+                .map(|s| format!("; did you mean {s:?}?"))
+                .unwrap_or_default()
         ))
     })?;
     if !canon.starts_with(root) {

@@ -5,11 +5,19 @@ use std::path::PathBuf;
 
 #[derive(Debug, thiserror::Error)]
 pub enum SceneError {
-    #[error("{path}: cannot read: {source}")]
+    // The reason is in the message, not also a `source`: error reports that print the
+    // chain (anyhow's `{:#}`) would print it twice.
+    #[error("{path}: cannot read: {error}")]
     Io {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
+    },
+    /// A spec that is neither a file nor a procedural scene name.
+    #[error("{spec}: no such file, and not a procedural scene name (cornell, cornell:mirror, cornell:glass, spheres:N, soup:N, grid:<scene>:XxYxZ, city:N, iso:<field>:<res>){}", did_you_mean(.suggestion))]
+    NotFound {
+        spec: String,
+        /// The closest procedural name or file next to the path, if one is close.
+        suggestion: Option<String>,
     },
     #[error("{path}: unrecognised scene format (expected .gltf, .glb, .ply or .obj)")]
     UnknownFormat { path: PathBuf },
@@ -32,6 +40,13 @@ pub enum SceneError {
     /// The load was cancelled ([`crate::cancel::load_cancellable`]).
     #[error("loading was cancelled")]
     Cancelled,
+}
+
+fn did_you_mean(suggestion: &Option<String>) -> String {
+    suggestion
+        .as_ref()
+        .map(|s| format!("; did you mean {s:?}?"))
+        .unwrap_or_default()
 }
 
 pub type Result<T> = std::result::Result<T, SceneError>;

@@ -16,6 +16,7 @@ pub mod ply_stream;
 pub mod private_fs;
 pub mod procedural;
 pub mod reference;
+pub mod suggest;
 pub mod tangents;
 pub mod translate;
 pub mod validate;

@@ -20,12 +20,9 @@ pub fn load(spec: &str) -> Result<Scene> {
         .map(str::to_ascii_lowercase)
         .unwrap_or_default();
     if !path.exists() {
-        return Err(SceneError::Io {
-            path: path.to_path_buf(),
-            source: std::io::Error::new(
-                std::io::ErrorKind::NotFound,
-                "no such file (and not a procedural scene name such as cornell, spheres:N, soup:N, grid:<scene>:XxYxZ, city:N, iso:<field>:<res>)",
-            ),
+        return Err(SceneError::NotFound {
+            spec: spec.to_string(),
+            suggestion: crate::suggest::suggest(spec),
         });
     }
     let mut scene = match ext.as_str() {

@@ -174,9 +174,9 @@ fn open_nonblocking(path: &Path) -> std::io::Result<File> {
 /// The scene file itself must be a regular file: `/dev/zero` (or a symlink to it) would
 /// be read until memory runs out, and a FIFO would block the loader forever.
 pub fn check_scene_file(path: &Path) -> Result<(), SceneError> {
-    let io = |source| SceneError::Io {
+    let io = |error| SceneError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     };
     let meta = std::fs::metadata(path).map_err(io)?;
     if !meta.is_file() {
@@ -192,9 +192,9 @@ pub fn check_scene_file(path: &Path) -> Result<(), SceneError> {
 /// FIFO swapped in since, and check again on the open file.
 pub fn open_scene_file(path: &Path) -> Result<Opened, SceneError> {
     check_scene_file(path)?;
-    let io = |source| SceneError::Io {
+    let io = |error| SceneError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     };
     let file = open_nonblocking(path).map_err(io)?;
     let meta = file.metadata().map_err(io)?;
@@ -216,9 +216,9 @@ pub fn open_scene_file(path: &Path) -> Result<Opened, SceneError> {
 pub fn read_scene_file(path: &Path) -> Result<Vec<u8>, SceneError> {
     open_scene_file(path)?
         .read_all()
-        .map_err(|source| SceneError::Io {
+        .map_err(|error| SceneError::Io {
             path: path.to_path_buf(),
-            source,
+            error,
         })
 }
 

@@ -210,9 +210,9 @@ fn format_error(path: &Path, message: impl Into<String>) -> SceneError {
 }
 
 fn io_error(path: &Path) -> impl FnOnce(io::Error) -> SceneError + '_ {
-    move |source| SceneError::Io {
+    move |error| SceneError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     }
 }
 
