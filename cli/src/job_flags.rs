@@ -23,39 +23,51 @@ pub struct JobFlags {
     /// scene package directory works too.
     pub scene: String,
     #[arg(long, default_value_t = 640)]
+    #[arg(help_heading = crate::help_heading::IMAGE)]
     pub width: u32,
     #[arg(long, default_value_t = 480)]
+    #[arg(help_heading = crate::help_heading::IMAGE)]
     pub height: u32,
     /// Samples per pixel.
     #[arg(long, default_value_t = 16)]
+    #[arg(help_heading = crate::help_heading::IMAGE)]
     pub spp: u32,
     /// raycast | whitted | path | ao
     #[arg(long, default_value = DEFAULT_INTEGRATOR.name(), value_name = "NAME", value_parser = parse_integrator)]
+    #[arg(help_heading = crate::help_heading::INTEGRATOR)]
     pub integrator: String,
     /// Maximum number of surface interactions along a path.
     #[arg(long, default_value_t = DEFAULT_MAX_DEPTH)]
+    #[arg(help_heading = crate::help_heading::INTEGRATOR)]
     pub max_depth: u32,
     #[arg(long, default_value_t = 0)]
+    #[arg(help_heading = crate::help_heading::IMAGE)]
     pub seed: u64,
     /// A camera of the scene, by name or index (default: the first, or one framing the bounds).
     #[arg(long)]
+    #[arg(help_heading = crate::help_heading::CAMERA)]
     pub camera: Option<String>,
     /// Constant environment radiance "R,G,B" (default: black with lights or emitters, 1.0 otherwise).
     #[arg(long)]
+    #[arg(help_heading = crate::help_heading::LIGHTS)]
     pub env: Option<String>,
     /// Force effects on or off, e.g. "+specular,-transmission" (names: direct_light,
     /// specular, transmission, emission, textures, alpha, environment, unlit, clearcoat,
     /// sheen, anisotropy, volume, iridescence, dispersion, sun, env_map).
     #[arg(long, allow_hyphen_values = true)]
+    #[arg(help_heading = crate::help_heading::INTEGRATOR)]
     pub effects: Option<String>,
     /// Rays per hit for the ao integrator.
     #[arg(long, default_value_t = DEFAULT_AO_SAMPLES)]
+    #[arg(help_heading = crate::help_heading::INTEGRATOR)]
     pub ao_samples: u32,
     /// Occlusion distance for the ao integrator (default: unlimited).
     #[arg(long)]
+    #[arg(help_heading = crate::help_heading::INTEGRATOR)]
     pub ao_distance: Option<f32>,
     /// Move the whole scene by "X,Y,Z" before rendering (tests precision far from the origin).
     #[arg(long, allow_hyphen_values = true)]
+    #[arg(help_heading = crate::help_heading::IMAGE)]
     pub translate: Option<String>,
     /// Progressive passes: "doubling" (1, 1, 2, 4, ... samples per pixel; GetImage and
     /// `dray submit --preview` show the image after each), "one" (every sample in one
@@ -63,6 +75,7 @@ pub struct JobFlags {
     /// for a job others can watch (`dray submit`), "one" for `dray render`, which shows
     /// nothing before the end (each pass waits for its slowest tile).
     #[arg(long)]
+    #[arg(help_heading = crate::help_heading::IMAGE)]
     pub passes: Option<String>,
     /// Exposure of the PNG: `auto` maps the image's log-average luminance (robust to a
     /// few very bright pixels) to mid-grey, so scenes in photometric units (a 68000-lux
@@ -75,6 +88,7 @@ pub struct JobFlags {
         allow_hyphen_values = true,
         value_parser = parse_exposure
     )]
+    #[arg(help_heading = crate::help_heading::OUTPUT)]
     pub exposure: Exposure,
     /// Tone curve of the PNG: clamp (none: values above 1 clip; with --exposure 0 the
     /// encoding of dray before curves), reinhard, aces (ACES filmic) or agx (AgX, as
@@ -86,15 +100,19 @@ pub struct JobFlags {
         value_name = "NAME",
         value_parser = parse_tonemap
     )]
+    #[arg(help_heading = crate::help_heading::OUTPUT)]
     pub tonemap: Tonemap,
     /// 8-bit sRGB PNG to write.
     #[arg(long, default_value = "dray.png")]
+    #[arg(help_heading = crate::help_heading::OUTPUT)]
     pub output: std::path::PathBuf,
     /// Also write linear radiance as OpenEXR.
     #[arg(long)]
+    #[arg(help_heading = crate::help_heading::OUTPUT)]
     pub exr: Option<std::path::PathBuf>,
     /// No progress bar or summary.
     #[arg(long, short)]
+    #[arg(help_heading = crate::help_heading::OUTPUT)]
     pub quiet: bool,
     /// How the job's domains and rays are scheduled on workers: image-plane (each worker
     /// traces its own block of tiles and every ray they lead to, loading the domains it
@@ -103,9 +121,11 @@ pub struct JobFlags {
     /// is the same under every schedule. No effect with `dray render --workers 0` (the
     /// reference renderer has no workers to schedule).
     #[arg(long, default_value = default_schedule(), value_name = "NAME", value_parser = parse_schedule)]
+    #[arg(help_heading = crate::help_heading::CLUSTER)]
     pub schedule: String,
     /// With --schedule dynamic: also replicate the most-wanted domains on idle workers.
     #[arg(long)]
+    #[arg(help_heading = crate::help_heading::CLUSTER)]
     pub replicate: bool,
     /// Ray caches on domain walls, e.g. radius=0.005,kinds=camera+diffuse, or `on` (keys:
     /// radius, angle-deg, retrieve, coarse, kinds, fill; --help says more).
@@ -115,6 +135,7 @@ pub struct JobFlags {
         long_help = crate::ray_cache_flag::help(),
         value_parser = crate::ray_cache_flag::parse_ray_cache
     )]
+    #[arg(help_heading = crate::help_heading::APPROXIMATIONS)]
     pub ray_cache: Option<RayCacheSettings>,
     /// Probability hit maps on domain walls, e.g. miss=0.1,hit=0.9,kinds=shadow, or `on`
     /// (keys: res, dirs, prior, miss, hit, mode, reprobe, kinds; --help says more).
@@ -124,6 +145,7 @@ pub struct JobFlags {
         long_help = crate::phm_flag::help(),
         value_parser = crate::phm_flag::parse_phm
     )]
+    #[arg(help_heading = crate::help_heading::APPROXIMATIONS)]
     pub phm: Option<PhmSettings>,
     /// Camera placement and lens (`JobSpec.view`).
     #[command(flatten)]

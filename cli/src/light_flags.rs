@@ -6,6 +6,7 @@ use dray_core::sun::{SUN_DIAMETER_DEG, Sun};
 use dray_proto::v1::{LightingSpec, SunSpec};
 
 #[derive(Args, Debug, Clone, Default)]
+#[command(next_help_heading = crate::help_heading::LIGHTS)]
 pub struct LightFlags {
     /// A sun at azimuth AZ (degrees around +Y, from +Z toward +X) and elevation EL
     /// (degrees above the XZ plane, -90..=90), giving IRRADIANCE (default 1) to a surface

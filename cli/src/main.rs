@@ -13,6 +13,7 @@ mod cluster_cmd;
 mod coordinator_cmd;
 mod embedded;
 mod health_cmd;
+mod help_heading;
 mod job_flags;
 mod kv_flag;
 mod light_flags;

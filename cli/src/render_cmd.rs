@@ -31,7 +31,7 @@ pub const MAX_THREADS: usize = 4096;
 pub struct RenderArgs {
     #[command(flatten)]
     pub job: crate::job_flags::JobFlags,
-    #[command(flatten)]
+    #[command(flatten, next_help_heading = crate::help_heading::PERFORMANCE)]
     pub otlp: crate::telemetry::OtlpArgs,
     /// Worker threads (0 = all cores; at most 4096).
     #[arg(
@@ -39,32 +39,39 @@ pub struct RenderArgs {
         default_value_t = 0,
         value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(0..=MAX_THREADS as u64)
     )]
+    #[arg(help_heading = crate::help_heading::PERFORMANCE)]
     pub threads: usize,
     /// Write run statistics as JSON.
     #[arg(long)]
+    #[arg(help_heading = crate::help_heading::OUTPUT)]
     pub stats: Option<PathBuf>,
     /// Cut the scene into N spatial domains, each with its own BVH, and walk every ray
     /// through them (the image is bit-identical to 1 domain). Default: 1 domain on one
     /// worker; with several workers, the coordinator's choice (4 per worker).
     #[arg(long)]
+    #[arg(help_heading = crate::help_heading::CLUSTER)]
     pub domains: Option<u32>,
     /// Domain layout for --domains: a uniform grid or a kd split balanced by triangle count.
     #[arg(long, default_value = DEFAULT_LAYOUT)]
+    #[arg(help_heading = crate::help_heading::CLUSTER)]
     pub layout: String,
     /// Worker actors to run the job on, all in this process with a coordinator, talking
     /// over loopback gRPC exactly as `dray cluster` does. 0: the reference renderer,
     /// which traces tiles straight through the domains with no actors (the image is the
     /// same, bit for bit).
     #[arg(long, default_value_t = 1)]
+    #[arg(help_heading = crate::help_heading::CLUSTER)]
     pub workers: usize,
     /// Memory of each in-process worker for resident domains and queued rays, in bytes
     /// (suffixes K, M, G, T are powers of 1024: 512M, 2GiB; 0 = unlimited), as
     /// `dray worker --memory-budget`. No effect with --workers 0.
     #[arg(long, default_value = "0", value_name = "BYTES", value_parser = crate::bytes::parse_bytes)]
+    #[arg(help_heading = crate::help_heading::CLUSTER)]
     pub memory_budget: u64,
     /// Milliseconds added to every domain load of the in-process workers, to emulate slow
     /// shared storage. No effect with --workers 0.
     #[arg(long, default_value_t = 0, value_name = "MS")]
+    #[arg(help_heading = crate::help_heading::CLUSTER)]
     pub load_delay_ms: u64,
 }
 

@@ -33,31 +33,38 @@ pub struct SubmitArgs {
     pub job: crate::job_flags::JobFlags,
     /// The coordinator's gRPC address: host:port or http://host:port.
     #[arg(long)]
+    #[arg(help_heading = crate::help_heading::SUBMIT)]
     pub coordinator: String,
     /// Spatial domains to cut the scene into (default: the coordinator chooses; ignored
     /// for scene packages, which carry their own).
     #[arg(long)]
+    #[arg(help_heading = crate::help_heading::CLUSTER)]
     pub domains: Option<u32>,
     /// Domain layout: grid or kd (default: the coordinator's).
     #[arg(long)]
+    #[arg(help_heading = crate::help_heading::CLUSTER)]
     pub layout: Option<String>,
     /// A label shown by ListJobs; no effect on the image.
     #[arg(long)]
+    #[arg(help_heading = crate::help_heading::SUBMIT)]
     pub label: Option<String>,
     /// When the coordinator goes away while the job runs, wait this many seconds for it
     /// to come back and follow the job again (a coordinator with a state directory keeps
     /// its jobs across restarts); 0 fails at once.
     #[arg(long, value_name = "SECONDS", default_value_t = RECONNECT_WAIT.as_secs())]
+    #[arg(help_heading = crate::help_heading::SUBMIT)]
     pub reconnect_wait: u64,
     /// Rewrite this PNG with the running job's image after each progressive pass
     /// (`--passes`), so a viewer can watch it sharpen; the final image goes to --output.
     #[arg(long, value_name = "FILE")]
+    #[arg(help_heading = crate::help_heading::OUTPUT)]
     pub preview: Option<PathBuf>,
     /// Write the finished job's statistics as JSON (GetJob's: rays by kind, domains,
     /// and the scheduling metrics, per worker too).
     #[arg(long, value_name = "FILE")]
+    #[arg(help_heading = crate::help_heading::OUTPUT)]
     pub stats: Option<PathBuf>,
-    #[command(flatten)]
+    #[command(flatten, next_help_heading = crate::help_heading::SUBMIT)]
     pub api_token: crate::net_flags::ApiTokenArgs,
     #[command(flatten)]
     pub tls: crate::net_flags::TlsArgs,

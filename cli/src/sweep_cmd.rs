@@ -50,27 +50,32 @@ pub struct SweepArgs {
     /// A knob to vary: KEY=V1,V2,... (ray-cache.<knob>, phm.<knob> or a render flag such
     /// as spp; --help says more).
     #[arg(long, value_name = "KEY=V1,V2,...", long_help = VARY_HELP)]
+    #[arg(help_heading = crate::help_heading::SWEEP)]
     pub vary: Vec<String>,
     /// Directory for results.csv, table.md, pareto.png and the images (created if
     /// missing; files of the same names are replaced).
     #[arg(long, value_name = "DIR")]
+    #[arg(help_heading = crate::help_heading::SWEEP)]
     pub out: PathBuf,
     /// Render every setting on this coordinator (host:port or http://host:port), as
     /// `dray submit` does, instead of in this process.
     #[arg(long, value_name = "ADDR")]
+    #[arg(help_heading = crate::help_heading::SWEEP)]
     pub coordinator: Option<String>,
     /// Render every setting (the exact one included) N times, in N interleaved rounds,
     /// and report the median times: this machine's noise then moves every setting
     /// alike. Errors and statistics are those of the first round.
     #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=100))]
+    #[arg(help_heading = crate::help_heading::SWEEP)]
     pub repeat: u32,
     /// With --coordinator, do not render the exact job once, unmeasured, before the
     /// sweep. Workers keep the last package's domains resident between jobs, so without
     /// the warm-up the first render alone would pay for loading them.
     #[arg(long)]
+    #[arg(help_heading = crate::help_heading::SWEEP)]
     pub no_warmup: bool,
     /// With --coordinator: the API token to present.
-    #[command(flatten)]
+    #[command(flatten, next_help_heading = crate::help_heading::SWEEP)]
     pub api_token: crate::net_flags::ApiTokenArgs,
     /// With --coordinator: TLS.
     #[command(flatten)]

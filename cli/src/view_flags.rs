@@ -9,7 +9,7 @@ use dray_proto::v1::camera_spec::Orbit;
 use dray_proto::v1::{CameraSpec, Vec3};
 
 #[derive(Args, Debug, Clone, Default)]
-#[command(next_help_heading = "Camera (docs/cameras.md)")]
+#[command(next_help_heading = crate::help_heading::CAMERA)]
 pub struct ViewFlags {
     /// Place the camera at "X,Y,Z" (scene units, moved with --translate); with --look-at.
     #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
