@@ -424,6 +424,85 @@ fn the_readme_grpcurl_flow_renders_the_same_png_as_dray_render() {
         "exposure 0 with clamp over grpcurl is not dray render's"
     );
     assert!(fixed != png, "exposure 0 with clamp is the default image");
+
+    // The README's framed and lit job: a camera of the job's own with a thin lens
+    // focused on a point, and a sun, all in the spec (`JobSpec.view`, `.lighting`).
+    let lit_spec = r#"{"spec": {"scene": "cornell", "width": 160, "height": 120, "spp": 8,
+        "view": {"lookFrom": {"x": 0.2, "y": 0.6, "z": 2.4}, "lookAt": {"x": 0, "y": 0.4, "z": 0},
+                 "fov": 45, "aperture": "f/2", "focusOn": {"x": 0, "y": 0.4, "z": 0}},
+        "lighting": {"sun": {"azimuthDeg": 30, "elevationDeg": 50, "irradiance": 3}}}}"#;
+    let lit = json(&ok(
+        &grpcurl,
+        &[
+            "-plaintext",
+            "-d",
+            lit_spec,
+            addr,
+            "dray.v1.RenderService/SubmitJob",
+        ],
+    ));
+    let lit_job = lit["jobId"].as_str().expect("jobId").to_string();
+    assert_eq!(lit["spec"]["view"]["aperture"], "f/2", "{lit}");
+    let lit_req = format!(r#"{{"jobId": "{lit_job}"}}"#);
+    let watch = json_stream(&ok(
+        &grpcurl,
+        &[
+            "-plaintext",
+            "-d",
+            &lit_req,
+            addr,
+            "dray.v1.RenderService/WatchJob",
+        ],
+    ));
+    let last = watch.last().expect("WatchJob sent nothing");
+    assert_eq!(last["state"], "JOB_STATE_SUCCEEDED", "{last}");
+    let lit_image_req = format!(r#"{{"jobId": "{lit_job}", "format": "IMAGE_FORMAT_PNG"}}"#);
+    let lit_png = json(&ok(
+        &grpcurl,
+        &[
+            "-plaintext",
+            "-max-msg-sz",
+            "1073741824",
+            "-d",
+            &lit_image_req,
+            addr,
+            "dray.v1.RenderService/GetImage",
+        ],
+    ));
+    let lit_png = base64_decode(lit_png["data"].as_str().expect("data"));
+    // dray render cornell --width 160 --height 120 --spp 8 --look-from 0.2,0.6,2.4
+    //   --look-at 0,0.4,0 --fov 45 --aperture f/2 --focus-on 0,0.4,0 --sun 30,50,3
+    let reference = common::render(
+        &dir,
+        "embedded-lit",
+        "cornell",
+        &[
+            "--width",
+            "160",
+            "--height",
+            "120",
+            "--spp",
+            "8",
+            "--look-from",
+            "0.2,0.6,2.4",
+            "--look-at",
+            "0,0.4,0",
+            "--fov",
+            "45",
+            "--aperture",
+            "f/2",
+            "--focus-on",
+            "0,0.4,0",
+            "--sun",
+            "30,50,3",
+        ],
+    );
+    assert!(reference.ok, "{}", reference.stderr);
+    let want_lit = std::fs::read(reference.png.expect("png")).expect("embedded png");
+    assert!(
+        lit_png == want_lit,
+        "the framed and lit job over grpcurl is not dray render's with the same flags"
+    );
     drop(cluster);
     let _ = std::fs::remove_dir_all(&dir);
 }
