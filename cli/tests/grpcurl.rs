@@ -105,6 +105,23 @@ fn ok(grpcurl: &PathBuf, args: &[&str]) -> String {
 }
 
 /// Every JSON value in `text` (grpcurl prints one pretty-printed object per message).
+/// `grpcurl -plaintext -max-msg-sz 1073741824 -d REQ $addr dray.v1.RenderService/GetImage`:
+/// the reply as JSON (its `data` is the image, base64-encoded).
+fn get_image(grpcurl: &PathBuf, addr: &str, req: &str) -> serde_json::Value {
+    json(&ok(
+        grpcurl,
+        &[
+            "-plaintext",
+            "-max-msg-sz",
+            "1073741824",
+            "-d",
+            req,
+            addr,
+            "dray.v1.RenderService/GetImage",
+        ],
+    ))
+}
+
 fn json_stream(text: &str) -> Vec<serde_json::Value> {
     serde_json::Deserializer::from_str(text)
         .into_iter::<serde_json::Value>()
@@ -346,18 +363,7 @@ fn the_readme_grpcurl_flow_renders_the_same_png_as_dray_render() {
     // grpcurl -plaintext -max-msg-sz 1073741824 -d "{\"jobId\": \"$job\", \"format\":
     //   \"IMAGE_FORMAT_PNG\"}" $addr dray.v1.RenderService/GetImage | jq -r .data | base64 -d
     let image_req = format!(r#"{{"jobId": "{job}", "format": "IMAGE_FORMAT_PNG"}}"#);
-    let image = json(&ok(
-        &grpcurl,
-        &[
-            "-plaintext",
-            "-max-msg-sz",
-            "1073741824",
-            "-d",
-            &image_req,
-            addr,
-            "dray.v1.RenderService/GetImage",
-        ],
-    ));
+    let image = get_image(&grpcurl, addr, &image_req);
     let data = image["data"]
         .as_str()
         .unwrap_or_else(|| panic!("no data in GetImage's reply (keys: {:?})", keys(&image)));
@@ -387,18 +393,7 @@ fn the_readme_grpcurl_flow_renders_the_same_png_as_dray_render() {
     let fixed_req = format!(
         r#"{{"jobId": "{job}", "format": "IMAGE_FORMAT_PNG", "exposure": 0, "tonemap": "clamp"}}"#
     );
-    let fixed = json(&ok(
-        &grpcurl,
-        &[
-            "-plaintext",
-            "-max-msg-sz",
-            "1073741824",
-            "-d",
-            &fixed_req,
-            addr,
-            "dray.v1.RenderService/GetImage",
-        ],
-    ));
+    let fixed = get_image(&grpcurl, addr, &fixed_req);
     let fixed = base64_decode(fixed["data"].as_str().expect("data"));
     let reference = common::render(
         &dir,
@@ -457,18 +452,7 @@ fn the_readme_grpcurl_flow_renders_the_same_png_as_dray_render() {
     let last = watch.last().expect("WatchJob sent nothing");
     assert_eq!(last["state"], "JOB_STATE_SUCCEEDED", "{last}");
     let lit_image_req = format!(r#"{{"jobId": "{lit_job}", "format": "IMAGE_FORMAT_PNG"}}"#);
-    let lit_png = json(&ok(
-        &grpcurl,
-        &[
-            "-plaintext",
-            "-max-msg-sz",
-            "1073741824",
-            "-d",
-            &lit_image_req,
-            addr,
-            "dray.v1.RenderService/GetImage",
-        ],
-    ));
+    let lit_png = get_image(&grpcurl, addr, &lit_image_req);
     let lit_png = base64_decode(lit_png["data"].as_str().expect("data"));
     // dray render cornell --width 160 --height 120 --spp 8 --look-from 0.2,0.6,2.4
     //   --look-at 0,0.4,0 --fov 45 --aperture f/2 --focus-on 0,0.4,0 --sun 30,50,3
