@@ -13,3 +13,4 @@ pub const APPROXIMATIONS: &str = "Approximations: ray caches and hit maps (docs/
 pub const PERFORMANCE: &str = "Threads and telemetry";
 pub const SUBMIT: &str = "Coordinator";
 pub const SWEEP: &str = "Sweep";
+pub const ANIMATION: &str = "Animation";

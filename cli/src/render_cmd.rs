@@ -73,6 +73,19 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = 0, value_name = "MS")]
     #[arg(help_heading = crate::help_heading::CLUSTER)]
     pub load_delay_ms: u64,
+    /// Render the scene's glTF animation at this many seconds: node translations,
+    /// rotations, scales and morph weights as their keyframes give them then (before
+    /// the first key the first, after the last the last; skins stay in bind pose).
+    /// Default: the file's rest pose. `dray render` only, for now (a job's spec has no
+    /// time yet).
+    #[arg(long, value_name = "SECONDS", allow_hyphen_values = true)]
+    #[arg(help_heading = crate::help_heading::ANIMATION)]
+    pub time: Option<f64>,
+    /// The animation --time samples, by name or index (default: the first; a file may
+    /// hold one per action, "Idle", "Walk", …, which are not played together).
+    #[arg(long, value_name = "NAME", requires = "time")]
+    #[arg(help_heading = crate::help_heading::ANIMATION)]
+    pub animation: Option<String>,
 }
 
 /// The checks clap cannot make, shared with `dray sweep` (which runs them on every
@@ -325,7 +338,11 @@ pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Resul
         .map(|s| parse_vec3("--translate", s))
         .transpose()?;
 
-    let mut scene = dray_scene::load(&a.job.scene)
+    let time = a.time.map(|seconds| dray_scene::animation::AnimationTime {
+        seconds,
+        animation: a.animation.clone(),
+    });
+    let mut scene = dray_scene::load_at(&a.job.scene, time.as_ref())
         .with_context(|| format!("cannot load scene {:?}", a.job.scene))?;
     if let Some(t) = translate {
         dray_scene::translate::translate(&mut scene, t)

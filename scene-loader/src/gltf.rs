@@ -24,6 +24,7 @@ use glam::{DMat3, DMat4, DQuat, DVec3, Vec2, Vec3, Vec4};
 use gltf::json;
 use gltf::json::validation::Checked;
 
+use crate::animation::{AnimationTime, Channel, Interpolation, NodePose, Pose, Target};
 use crate::error::{Result, SceneError};
 use crate::gltf_ext::{self, SlotJson, TextureTransform};
 use crate::validate::{self, Origin, Primitive};
@@ -70,11 +71,18 @@ const MAX_ZERO_FILLED_COMPONENTS: usize = 1 << 28;
 /// where they apply, the URI, mesh and primitive; ignored features are listed in
 /// `scene.stats.warnings`.
 pub fn load_gltf(path: &Path) -> Result<Scene> {
+    load_gltf_at(path, None)
+}
+
+/// [`load_gltf`] with the file's animation sampled at `time` (node transforms and morph
+/// weights as they are at that moment; see [`crate::animation`]); `None` is the rest
+/// pose the file shows.
+pub fn load_gltf_at(path: &Path, time: Option<&AnimationTime>) -> Result<Scene> {
     // The loader checks every offset itself, but it still calls into the `gltf` crate,
     // whose validator and wrappers index and unwrap internally. A panic there on some
     // input we did not foresee must not take down a render node: it becomes an error
     // naming the file.
-    match std::panic::catch_unwind(AssertUnwindSafe(|| load_unguarded(path))) {
+    match std::panic::catch_unwind(AssertUnwindSafe(|| load_unguarded(path, time))) {
         Ok(result) => result,
         Err(payload) => {
             let what = payload
@@ -133,7 +141,7 @@ fn format_error(path: &Path, message: impl Into<String>) -> SceneError {
     }
 }
 
-fn load_unguarded(path: &Path) -> Result<Scene> {
+fn load_unguarded(path: &Path, time: Option<&AnimationTime>) -> Result<Scene> {
     let bytes = crate::reference::read_scene_file(path)?;
     // serde_json refuses a UTF-8 byte order mark, which some exporters write. The GLB
     // check comes after, on what the crate will see (a mark before "glTF" must not
@@ -188,9 +196,13 @@ fn load_unguarded(path: &Path) -> Result<Scene> {
         },
         default_material: None,
         uv_sets: Vec::new(),
+        pose: Pose::default(),
     };
     for w in warnings {
         loader.warn(w);
+    }
+    if let Some(time) = time {
+        loader.pose = loader.pose_at(time)?;
     }
     loader.load()?;
     if loader.scene.mesh.triangle_count() == 0 {
@@ -633,6 +645,9 @@ struct Loader<'a> {
     default_material: Option<u32>,
     /// Per glTF material, the UV sets its triangles store ([`Loader::choose_uv_sets`]).
     uv_sets: Vec<UvSets>,
+    /// The animated nodes' transforms and weights at the requested time (empty: the
+    /// file's rest pose).
+    pose: Pose,
 }
 
 impl Loader<'_> {
@@ -991,6 +1006,103 @@ impl Loader<'_> {
         i
     }
 
+    // ----- animation -------------------------------------------------------------------
+
+    /// The pose of the animation `time` names at `time.seconds`: its channels decoded,
+    /// checked and sampled. A file without animations renders its rest pose (warned); an
+    /// animation asked for by a name or index the file does not have is an error.
+    fn pose_at(&mut self, time: &AnimationTime) -> Result<Pose> {
+        if !time.seconds.is_finite() {
+            return Err(self.error(format!(
+                "animation time {} s is not a finite number",
+                time.seconds
+            )));
+        }
+        let doc = self.doc;
+        let animations: Vec<gltf::Animation<'_>> = doc.animations().collect();
+        if animations.is_empty() {
+            if time.animation.is_some() {
+                return Err(self.error("has no animations to choose from"));
+            }
+            self.warn(format!(
+                "{}: has no animations; every time shows the rest pose",
+                self.path.display()
+            ));
+            return Ok(Pose::default());
+        }
+        let label = |a: &gltf::Animation<'_>| {
+            a.name()
+                .map(|n| format!("{n:?}"))
+                .unwrap_or_else(|| format!("#{}", a.index()))
+        };
+        let chosen = match time.animation.as_deref() {
+            None => &animations[0],
+            Some(want) => animations
+                .iter()
+                .find(|a| a.name() == Some(want))
+                .or_else(|| want.parse::<usize>().ok().and_then(|i| animations.get(i)))
+                .ok_or_else(|| {
+                    let names: Vec<String> = animations.iter().map(label).collect();
+                    self.error(format!(
+                        "no animation {want:?} (the file has {})",
+                        names.join(", ")
+                    ))
+                })?,
+        };
+        let name = label(chosen);
+        let mut channels = Vec::new();
+        for channel in chosen.channels() {
+            let sampler = channel.sampler();
+            let target = match channel.target().property() {
+                gltf::animation::Property::Translation => Target::Translation,
+                gltf::animation::Property::Rotation => Target::Rotation,
+                gltf::animation::Property::Scale => Target::Scale,
+                gltf::animation::Property::MorphTargetWeights => Target::Weights,
+            };
+            let interpolation = match sampler.interpolation() {
+                gltf::animation::Interpolation::Linear => Interpolation::Linear,
+                gltf::animation::Interpolation::Step => Interpolation::Step,
+                gltf::animation::Interpolation::CubicSpline => Interpolation::CubicSpline,
+            };
+            let at = |m: String| {
+                format_error(
+                    self.path,
+                    format!("animation {name} channel {}: {m}", channel.index()),
+                )
+            };
+            let times: Vec<f32> = self.read_accessor(sampler.input().index(), 1).map_err(at)?;
+            let dims = match target {
+                Target::Translation | Target::Scale => 3,
+                Target::Rotation => 4,
+                Target::Weights => 1,
+            };
+            let values: Vec<f32> = self
+                .read_accessor(sampler.output().index(), dims)
+                .map_err(at)?;
+            let per_key = if interpolation == Interpolation::CubicSpline {
+                3
+            } else {
+                1
+            };
+            let width = match target {
+                // One scalar per morph target per element.
+                Target::Weights => values.len() / (times.len() * per_key).max(1),
+                _ => dims,
+            };
+            let c = Channel {
+                node: channel.target().node().index(),
+                target,
+                interpolation,
+                times,
+                values,
+                width,
+            };
+            c.check().map_err(|e| at(e.to_string()))?;
+            channels.push(c);
+        }
+        Ok(Pose::sample(&channels, time.seconds))
+    }
+
     // ----- node hierarchy --------------------------------------------------------------
 
     /// Walk the chosen scene, composing transforms in f64, and collect mesh instances,
@@ -1040,7 +1152,8 @@ impl Loader<'_> {
                     "node hierarchy expands to more than {MAX_NODE_VISITS} node instances"
                 )));
             }
-            let world = parent * local_matrix(&node);
+            let posed = self.pose.nodes.get(&node.index());
+            let world = parent * local_matrix(&node, posed);
             if !world.is_finite() {
                 return Err(self.error(format!(
                     "node {node_name}: transform is not finite (check matrix, rotation, scale)"
@@ -1049,7 +1162,7 @@ impl Loader<'_> {
             if let Some(mesh) = node.mesh() {
                 placements
                     .meshes
-                    .push((mesh.index(), world, node.weights().map(<[f32]>::to_vec)));
+                    .push((mesh.index(), world, node_weights(&node, posed)));
                 if node.skin().is_some() && !skinned_warned {
                     skinned_warned = true;
                     self.warn(format!(
@@ -1799,7 +1912,9 @@ impl Loader<'_> {
 
 /// A node's local transform in f64. Rotations are renormalised: exporters write
 /// quaternions rounded to a few digits.
-fn local_matrix(node: &gltf::Node<'_>) -> DMat4 {
+/// The node's local transform, with what an animation sets at the requested time in
+/// place of the file's values (glTF animates only nodes with decomposed transforms).
+fn local_matrix(node: &gltf::Node<'_>, posed: Option<&NodePose>) -> DMat4 {
     match node.transform() {
         gltf::scene::Transform::Matrix { matrix } => {
             DMat4::from_cols_array_2d(&matrix.map(|col| col.map(f64::from)))
@@ -1810,13 +1925,25 @@ fn local_matrix(node: &gltf::Node<'_>) -> DMat4 {
             scale,
         } => {
             let [x, y, z, w] = rotation.map(f64::from);
+            let pose = posed.cloned().unwrap_or_default();
             DMat4::from_scale_rotation_translation(
-                DVec3::from(scale.map(f64::from)),
-                DQuat::from_xyzw(x, y, z, w).normalize(),
-                DVec3::from(translation.map(f64::from)),
+                pose.scale.unwrap_or(DVec3::from(scale.map(f64::from))),
+                pose.rotation
+                    .unwrap_or(DQuat::from_xyzw(x, y, z, w))
+                    .normalize(),
+                pose.translation
+                    .unwrap_or(DVec3::from(translation.map(f64::from))),
             )
         }
     }
+}
+
+/// The node's morph weights: the animation's at the requested time, else the node's own
+/// (either overrides the mesh's).
+fn node_weights(node: &gltf::Node<'_>, posed: Option<&NodePose>) -> Option<Vec<f32>> {
+    posed
+        .and_then(|p| p.weights.clone())
+        .or_else(|| node.weights().map(<[f32]>::to_vec))
 }
 
 fn convert_sampler(s: &json::texture::Sampler) -> Sampler {

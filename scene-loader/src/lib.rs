@@ -1,6 +1,7 @@
 //! Scene import for dray: glTF 2.0, PLY and OBJ files and procedural scenes, with
 //! validation and effect analysis.
 
+pub mod animation;
 pub mod cancel;
 pub mod effects;
 pub mod error;
@@ -23,4 +24,4 @@ pub mod validate;
 
 pub use cancel::load_cancellable;
 pub use error::{Result, SceneError};
-pub use load::load;
+pub use load::{load, load_at};

@@ -5,10 +5,17 @@ use std::path::Path;
 
 use dray_core::scene::Scene;
 
+use crate::animation::AnimationTime;
 use crate::error::{Result, SceneError};
 
 /// Load the scene `spec` names.
 pub fn load(spec: &str) -> Result<Scene> {
+    load_at(spec, None)
+}
+
+/// [`load`] at a moment of the file's animation (glTF only: other formats and
+/// procedural scenes have none, and `time` changes nothing for them).
+pub fn load_at(spec: &str, time: Option<&AnimationTime>) -> Result<Scene> {
     let _span = tracing::info_span!("load_scene", spec).entered();
     if let Some(scene) = crate::procedural::generate(spec, &load)? {
         return Ok(scene);
@@ -26,7 +33,7 @@ pub fn load(spec: &str) -> Result<Scene> {
         });
     }
     let mut scene = match ext.as_str() {
-        "gltf" | "glb" => crate::gltf::load_gltf(path)?,
+        "gltf" | "glb" => crate::gltf::load_gltf_at(path, time)?,
         "ply" => crate::ply::load_ply(path)?,
         "obj" => crate::obj::load_obj(path)?,
         _ => {
