@@ -75,7 +75,7 @@ pub struct RenderArgs {
     pub load_delay_ms: u64,
     /// Render the scene's glTF animation at this many seconds: node translations,
     /// rotations, scales and morph weights as their keyframes give them then (before
-    /// the first key the first, after the last the last; skins stay in bind pose).
+    /// the first key the first, after the last the last; skins follow their joints).
     /// Default: the file's rest pose. `dray render` only, for now (a job's spec has no
     /// time yet).
     #[arg(long, value_name = "SECONDS", allow_hyphen_values = true)]

@@ -10,8 +10,8 @@
 //! Which animation: a file may hold several (an exporter writes one per action: "Idle",
 //! "Walk", …, each driving the same nodes), so one is chosen, the first unless named;
 //! playing them all at once would mix actions. Times before the first key hold the first
-//! value and after the last the last (glTF leaves looping to the application). Skins are
-//! not evaluated here: a skinned mesh stays in its bind pose (the loader warns).
+//! value and after the last the last (glTF leaves looping to the application). Skinned
+//! meshes follow the joints' animated nodes ([`crate::skin`]).
 
 use std::collections::HashMap;
 

@@ -17,6 +17,7 @@ pub mod ply_stream;
 pub mod private_fs;
 pub mod procedural;
 pub mod reference;
+pub mod skin;
 pub mod suggest;
 pub mod tangents;
 pub mod translate;

@@ -212,3 +212,58 @@ fn a_file_without_animations_warns_and_shows_its_rest_pose() {
     assert!(err.contains("has no animations"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A skinned triangle: joint "root" (node 1) at the origin, joint "tip" (node 2, its
+/// child) sliding from the origin to y = 2 over one second; vertex 0 follows the root,
+/// vertex 1 the tip, vertex 2 both half and half. The mesh's node (0) is moved far away,
+/// which a skin ignores.
+fn skinned_file(dir: &std::path::Path) -> std::path::PathBuf {
+    let mut b = triangle_builder();
+    let joints: Vec<u8> = [0u16, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0]
+        .iter()
+        .flat_map(|j| j.to_le_bytes())
+        .collect();
+    let view = b.view(&joints);
+    b.accessors.push(format!(
+        r#"{{"bufferView":{view},"componentType":5123,"count":3,"type":"VEC4"}}"#
+    ));
+    let joints = b.accessors.len() - 1;
+    let weights = b.floats(
+        &[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.5, 0.5, 0.0, 0.0],
+        "VEC4",
+    );
+    let times = b.floats(&[0.0, 1.0], "SCALAR");
+    let slide = b.floats(&[0.0, 0.0, 0.0, 0.0, 2.0, 0.0], "VEC3");
+    let rest = format!(
+        r#""meshes":[{{"name":"Skinned","primitives":[{{"attributes":{{"POSITION":0,"NORMAL":1,"TANGENT":2,"JOINTS_0":{joints},"WEIGHTS_0":{weights}}},"indices":3}}]}}],
+"skins":[{{"joints":[1,2]}}],
+"nodes":[{{"mesh":0,"skin":0,"translation":[100,0,0]}},{{"name":"root","children":[2]}},{{"name":"tip"}}],
+"scenes":[{{"nodes":[0,1]}}],
+"animations":[{{"name":"raise","samplers":[{{"input":{times},"output":{slide}}}],
+  "channels":[{{"sampler":0,"target":{{"node":2,"path":"translation"}}}}]}}]"#
+    );
+    b.write(dir, "skinned", &rest)
+}
+
+#[test]
+fn a_skin_follows_its_joints_and_ignores_its_node() {
+    let dir = test_dir("anim-skin");
+    let path = skinned_file(&dir);
+    // The joints where the file puts them: the triangle as written, not at x = 100.
+    let rest = load_gltf(&path).unwrap();
+    same(
+        triangle(&rest.mesh.positions),
+        [Vec3::ZERO, Vec3::X, Vec3::Y],
+    );
+    // Halfway: the tip joint is at y = 1; vertex 1 follows it, vertex 2 half of it.
+    let mid = load_gltf_at(&path, Some(&at(0.5))).unwrap();
+    same(
+        triangle(&mid.mesh.positions),
+        [
+            Vec3::ZERO,
+            Vec3::new(1.0, 1.0, 0.0),
+            Vec3::new(0.0, 1.5, 0.0),
+        ],
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
