@@ -32,7 +32,10 @@ BIG_BUDGET=${BIG_BUDGET:-12000000}
 OUT=$(mktemp -d)
 CLUSTER=
 cleanup() {
-    [[ -n "$CLUSTER" ]] && kill "$CLUSTER" 2>/dev/null && wait "$CLUSTER" 2>/dev/null
+    if [[ -n "$CLUSTER" ]]; then
+        kill "$CLUSTER" 2>/dev/null || true
+        wait "$CLUSTER" 2>/dev/null || true
+    fi
     rm -rf "$OUT"
 }
 trap cleanup EXIT
@@ -52,11 +55,16 @@ start_cluster() { # workers, budget
     "$DRAY_BIN" cluster --workers "$1" --threads 1 --base-port 0 --memory-budget "$2" \
         --work-dir "$OUT/work-$1-$2" >"$OUT/cluster.out" 2>"$OUT/cluster.err" &
     CLUSTER=$!
-    for _ in $(seq 1 300); do
+    for _ in $(seq 1 600); do
         grep -q ready "$OUT/cluster.out" 2>/dev/null && break
+        kill -0 "$CLUSTER" 2>/dev/null || break
         sleep 0.2
     done
-    grep -q ready "$OUT/cluster.out" || { cat "$OUT/cluster.err" >&2; exit 1; }
+    if ! grep -q ready "$OUT/cluster.out"; then
+        echo "dray cluster --workers $1 did not become ready:" >&2
+        cat "$OUT/cluster.out" "$OUT/cluster.err" >&2
+        exit 1
+    fi
     ADDR=$(grep -o '127.0.0.1:[0-9]*' "$OUT/cluster.out" | head -1)
 }
 
