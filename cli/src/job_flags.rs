@@ -4,7 +4,7 @@
 
 use anyhow::{Result, bail};
 use clap::Args;
-use dray_coordinator::scheduler::Schedule;
+use dray_coordinator::scheduler::ScheduleRequest;
 use dray_coordinator::scheduler::policy::{SCHEDULE_NAMES, ScheduleError};
 use dray_coordinator::validate::{DEFAULT_AO_SAMPLES, DEFAULT_INTEGRATOR, DEFAULT_MAX_DEPTH};
 use dray_core::display::Display;
@@ -114,7 +114,10 @@ pub struct JobFlags {
     #[arg(long, short)]
     #[arg(help_heading = crate::help_heading::OUTPUT)]
     pub quiet: bool,
-    /// How the job's domains and rays are scheduled on workers: image-plane (each worker
+    /// How the job's domains and rays are scheduled on workers: auto (the default:
+    /// replicated when the scene fits every worker's --memory-budget, else dynamic;
+    /// `--stats` says which and why), replicated (every worker holds the whole scene and
+    /// traces whole paths for its tiles; no rays exchanged), image-plane (each worker
     /// traces its own block of tiles and every ray they lead to, loading the domains it
     /// needs; no rays exchanged), domain (static round-robin ownership, rays sent to
     /// owners) or dynamic (ray-weighted: domains move to where the rays wait). The image
@@ -123,7 +126,8 @@ pub struct JobFlags {
     #[arg(long, default_value = default_schedule(), value_name = "NAME", value_parser = parse_schedule)]
     #[arg(help_heading = crate::help_heading::CLUSTER)]
     pub schedule: String,
-    /// With --schedule dynamic: also replicate the most-wanted domains on idle workers.
+    /// With --schedule dynamic (or auto, when it chooses dynamic): also replicate the
+    /// most-wanted domains on idle workers.
     #[arg(long)]
     #[arg(help_heading = crate::help_heading::CLUSTER)]
     pub replicate: bool,
@@ -157,7 +161,7 @@ pub struct JobFlags {
 /// The schedule of a job that names none: the coordinator's choice for an empty
 /// `JobSpec.schedule`.
 fn default_schedule() -> &'static str {
-    Schedule::parse("", false).map_or("", |s| s.name())
+    ScheduleRequest::parse("", false).map_or("", |s| s.name())
 }
 
 /// `--exposure auto|EV`.
@@ -205,7 +209,7 @@ impl JobFlags {
     /// Flags that clap cannot check one at a time, by the coordinator's rules.
     pub fn check_schedule(&self) -> Result<()> {
         if let Err(e @ ScheduleError::ReplicateNeedsDynamic(_)) =
-            Schedule::parse(&self.schedule, self.replicate)
+            ScheduleRequest::parse(&self.schedule, self.replicate)
         {
             bail!("--replicate with --schedule {}: {e}", self.schedule);
         }
@@ -302,11 +306,12 @@ mod tests {
         }
         let e = parse_schedule("bogus").expect_err("bogus");
         assert!(
-            e.contains("\"bogus\"") && e.contains("image-plane, domain or dynamic"),
+            e.contains("\"bogus\"")
+                && e.contains("auto, replicated, image-plane, domain or dynamic"),
             "{e}"
         );
         assert!(parse_schedule("Dynamic").is_err());
-        assert_eq!(parse_schedule(default_schedule()).as_deref(), Ok("dynamic"));
+        assert_eq!(parse_schedule(default_schedule()).as_deref(), Ok("auto"));
     }
 
     #[test]

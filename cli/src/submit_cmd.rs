@@ -288,8 +288,12 @@ async fn submit(a: SubmitArgs, spec: JobSpec, url: String) -> Result<()> {
                 .unwrap_or_default()
         );
         let stats = job.and_then(|j| j.stats).unwrap_or_default();
-        if let Some(line) = Scheduling::of(&stats).line() {
+        let scheduling = Scheduling::of(&stats);
+        if let Some(line) = scheduling.line() {
             eprintln!("dray submit: schedule {line}");
+        }
+        if let Some(why) = scheduling.placement_line() {
+            eprintln!("dray submit: placement {why}");
         }
         if let Some(rc) = RayCacheSummary::of(&stats) {
             for line in rc.lines() {

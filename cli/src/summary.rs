@@ -278,9 +278,12 @@ impl RayCacheSummary {
 /// JSON of `dray render` and `dray submit` spells them.
 #[derive(Serialize, Debug, Clone, PartialEq)]
 pub struct Scheduling {
-    /// "image-plane", "domain" or "dynamic"; "none" when no worker took part (the
-    /// reference renderer, or a coordinator rendering in its own process).
+    /// "replicated", "image-plane", "domain" or "dynamic"; "none" when no worker took
+    /// part (the reference renderer, or a coordinator rendering in its own process).
     pub schedule: String,
+    /// Why the job ran with `schedule` (JobStats.placement: what `auto` found, or that
+    /// the job forced it); empty when no worker took part.
+    pub placement: String,
     /// Domain loads by workers (a domain loaded twice counts twice).
     pub domain_loads: u64,
     /// Domains workers found resident from an earlier or concurrent job of the same
@@ -376,6 +379,7 @@ impl Scheduling {
     pub fn none() -> Scheduling {
         Scheduling {
             schedule: "none".into(),
+            placement: String::new(),
             domain_loads: 0,
             domains_warm: 0,
             domain_load_seconds: 0.0,
@@ -404,6 +408,7 @@ impl Scheduling {
         };
         Scheduling {
             schedule,
+            placement: s.placement.clone(),
             domain_loads: s.domain_loads,
             domains_warm: s.domains_warm,
             domain_load_seconds: s.domain_load_seconds,
@@ -434,6 +439,12 @@ impl Scheduling {
                 .collect(),
             worker_count: s.workers,
         }
+    }
+
+    /// Why the schedule, for the human summary, when the job ran on workers and the
+    /// coordinator said.
+    pub fn placement_line(&self) -> Option<&str> {
+        (self.worker_count > 0 && !self.placement.is_empty()).then_some(self.placement.as_str())
     }
 
     /// One line for the human summary, when the job ran on workers.
@@ -592,6 +603,9 @@ pub fn print_summary(s: &Summary) {
     if let Some(line) = s.scheduling.line() {
         eprintln!("schedule     {line}");
     }
+    if let Some(why) = s.scheduling.placement_line() {
+        eprintln!("placement    {why}");
+    }
     if let Some(rc) = &s.ray_cache {
         for (i, line) in rc.lines().iter().enumerate() {
             eprintln!(
@@ -637,6 +651,7 @@ mod tests {
         let stats = JobStats {
             workers: 2,
             schedule: "domain".into(),
+            placement: "domain: forced by the job (--schedule domain)".into(),
             domain_loads: 9,
             domain_load_seconds: 0.5,
             evictions: 1,
@@ -659,6 +674,10 @@ mod tests {
         };
         let s = Scheduling::of(&stats);
         assert_eq!(s.schedule, "domain");
+        assert_eq!(
+            s.placement_line(),
+            Some("domain: forced by the job (--schedule domain)")
+        );
         assert_eq!(s.tiles_retraced, 3);
         assert_eq!(s.workers[0].worker_id, "w1");
         let json = serde_json::to_value(&s).expect("json");
@@ -679,6 +698,7 @@ mod tests {
         let alone = Scheduling::of(&JobStats::default());
         assert_eq!(alone.schedule, "none");
         assert_eq!(alone.line(), None);
+        assert_eq!(alone.placement_line(), None);
         assert_eq!(Scheduling::none(), alone);
     }
 

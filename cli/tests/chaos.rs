@@ -67,7 +67,14 @@ impl Spec {
             1 | 2 => "doubling".to_string(),
             _ => rng.between(1, u64::from(spp)).to_string(),
         };
-        let schedule = rng.pick(&["image-plane", "domain", "dynamic", "dynamic"]);
+        let schedule = rng.pick(&[
+            "auto",
+            "replicated",
+            "image-plane",
+            "domain",
+            "dynamic",
+            "dynamic",
+        ]);
         Spec {
             scene,
             width: rng.between(48, 160) as u32,
@@ -79,7 +86,7 @@ impl Spec {
             domains: rng.between(1, 8) as u32,
             layout: rng.pick(&["grid", "kd"]),
             schedule,
-            replicate: schedule == "dynamic" && rng.below(3) == 0,
+            replicate: matches!(schedule, "dynamic" | "auto") && rng.below(3) == 0,
             passes,
         }
     }

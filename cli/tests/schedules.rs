@@ -1,5 +1,5 @@
 //! Schedules and memory budgets end to end (docs/architecture.md "Scheduling"): every
-//! schedule (image-plane, domain,
+//! schedule (auto, replicated, image-plane, domain,
 //! dynamic) gives the reference renderer's bits (`dray render --workers 0`) on 1, 2 and 4
 //! in-process workers and on a real `dray cluster` with `dray submit`, with and without a
 //! memory budget that forces domains to be evicted; a budget smaller than one domain is a
@@ -16,7 +16,25 @@ use serde_json::Value;
 use support::{Proc, WorkerCluster, capture_stderr, dray};
 
 /// Every schedule a job can ask for.
-const SCHEDULES: [&str; 3] = dray_coordinator::scheduler::policy::SCHEDULE_NAMES;
+const SCHEDULES: [&str; 5] = dray_coordinator::scheduler::policy::SCHEDULE_NAMES;
+
+/// The schedule a job asking for `schedule` ran with, from its stats: the one forced,
+/// or for `auto` the one it chose (replicated or dynamic), with a reason that says auto
+/// chose it.
+fn ran_as(schedule: &str, stats: &Value, what: &str) -> String {
+    let ran = stats["schedule"].as_str().unwrap_or_default().to_string();
+    let why = stats["placement"].as_str().unwrap_or_default();
+    if schedule == "auto" {
+        assert!(
+            (ran == "replicated" || ran == "dynamic") && why.starts_with(&format!("{ran} (auto)")),
+            "{what}: auto ran as {ran:?} because {why:?}"
+        );
+    } else {
+        assert_eq!(ran, schedule, "{what}: {stats}");
+        assert!(why.contains("forced"), "{what}: placement {why:?}");
+    }
+    ran
+}
 
 /// The scene: 8 kd domains of about 85 kB each (as the workers count them).
 const SCENE: &str = "cornell:glass";
@@ -89,7 +107,7 @@ fn u64_of(stats: &Value, key: &str) -> u64 {
 /// The scheduling keys of a `--stats` JSON for a job that ran on `workers` workers
 /// under `schedule`: all there, with loads counted and per-worker entries that add up.
 fn check_scheduling_stats(stats: &Value, schedule: &str, workers: usize, what: &str) {
-    assert_eq!(stats["schedule"], schedule, "{what}: {stats}");
+    let schedule = ran_as(schedule, stats, what);
     for key in [
         "domain_loads",
         "evictions",
@@ -149,11 +167,11 @@ fn check_scheduling_stats(stats: &Value, schedule: &str, workers: usize, what: &
     assert_eq!(loads, u64_of(stats, "domain_loads"), "{what}: {stats}");
     assert_eq!(warm, u64_of(stats, "domains_warm"), "{what}: {stats}");
     assert_eq!(evictions, u64_of(stats, "evictions"), "{what}: {stats}");
-    if schedule == "image-plane" {
+    if schedule == "image-plane" || schedule == "replicated" {
         assert_eq!(
             u64_of(stats, "rays_exchanged"),
             0,
-            "{what}: image-plane exchanged rays: {stats}"
+            "{what}: {schedule} exchanged rays: {stats}"
         );
     }
 }
@@ -201,16 +219,21 @@ fn every_schedule_gives_the_reference_bits_on_1_2_and_4_in_process_workers() {
                 let what = format!("{integrator} {schedule} on {workers}: {stats}");
                 // Unlimited memory under a static schedule: nothing is evicted; each
                 // domain is loaded once by its owner (domain), at most once per worker
-                // (image-plane). The dynamic schedule may move domains.
-                match schedule {
+                // (image-plane, replicated). The dynamic schedule may move domains.
+                // Unlimited memory: auto replicates (the scene fits every worker).
+                let ran = ran_as(schedule, &stats, &what);
+                if schedule == "auto" {
+                    assert_eq!(ran, "replicated", "{what}");
+                }
+                match ran.as_str() {
                     "domain" => assert_eq!(u64_of(&stats, "domain_loads"), 8, "{what}"),
-                    "image-plane" => assert!(
+                    "image-plane" | "replicated" => assert!(
                         u64_of(&stats, "domain_loads") <= 8 * workers as u64,
                         "{what}"
                     ),
                     _ => {}
                 }
-                if schedule != "dynamic" {
+                if ran != "dynamic" {
                     assert_eq!(u64_of(&stats, "evictions"), 0, "{what}");
                 }
             }
@@ -374,20 +397,28 @@ fn submit_and_compare(
         "{tag}: the image differs from dray render --workers 0"
     );
     let stats = stats.unwrap_or_else(|| panic!("{tag}: no --stats file"));
-    let schedule = flags
+    let asked = flags
         .iter()
         .position(|f| *f == "--schedule")
-        .map_or("dynamic", |i| flags[i + 1]);
-    check_scheduling_stats(&stats, schedule, workers, tag);
+        .map_or("auto", |i| flags[i + 1]);
+    check_scheduling_stats(&stats, asked, workers, tag);
+    let schedule = ran_as(asked, &stats, tag);
     // The keys `dray render --stats` has too.
     for key in ["triangles", "domains", "rays_total", "wall_time_s", "rays"] {
         assert!(!stats[key].is_null(), "{tag}: no {key} in {stats}");
     }
-    assert_eq!(stats["domains"], 8, "{tag}: {stats}");
-    // The summary names the schedule and the loads.
+    // The package's cut: the job's --domains, or one domain when auto replicates a
+    // scene cut for the job.
+    let cut = flags
+        .iter()
+        .position(|f| *f == "--domains")
+        .map_or(1, |i| flags[i + 1].parse::<u64>().expect("--domains N"));
+    assert_eq!(u64_of(&stats, "domains"), cut, "{tag}: {stats}");
+    // The summary names the schedule, the loads and why.
     assert!(
         err.contains(&format!("schedule {schedule} on {workers} worker"))
-            && err.contains("domain loads"),
+            && err.contains("domain loads")
+            && err.contains(&format!("placement {schedule}")),
         "{tag}: {err}"
     );
     stats
@@ -421,6 +452,27 @@ fn every_schedule_on_a_cluster_gives_the_reference_bits() {
         warm[1..].iter().all(|&w| w > 0),
         "a later job of the same package loaded every domain again: {warm:?}"
     );
+
+    // The defaults on a cluster with no budget (issue 40): auto replicates the scene,
+    // cut as one domain, and every worker traces whole paths for its tiles: no ray
+    // between processes, no round, the passes traced ahead instead of each waiting at
+    // its barrier, and the reference bits.
+    let (want, _) = reference(&dir, "path");
+    let mut f = flags("path");
+    let at = f.iter().position(|x| *x == "--domains").expect("--domains");
+    f.drain(at..at + 2);
+    let stats = submit_and_compare(&cluster, 3, &dir, "cluster-defaults", &f, &want);
+    assert_eq!(stats["schedule"], "replicated", "{stats}");
+    for zero in ["rays_exchanged", "rays_forwarded", "scheduler_rounds"] {
+        assert_eq!(u64_of(&stats, zero), 0, "{zero}: {stats}");
+    }
+    assert_eq!(stats["traffic"]["rays"], 0, "{stats}");
+    assert_eq!(u64_of(&stats, "passes_ahead"), 1, "{stats}");
+    let why = stats["placement"].as_str().unwrap_or_default();
+    assert!(
+        why.contains("fits every worker") && why.contains("unlimited"),
+        "{why}"
+    );
     assert!(cluster.all_alive(), "{}", cluster.log());
     drop(cluster);
     let _ = std::fs::remove_dir_all(&dir);
@@ -440,6 +492,13 @@ fn a_cluster_with_a_memory_budget_evicts_keeps_the_bits_and_survives_a_job_too_b
         let tag = format!("budget-{schedule}");
         let f = [&flags("path")[..], &["--schedule", schedule]].concat();
         let stats = submit_and_compare(&cluster, 2, &dir, &tag, &f, &want);
+        if schedule == "auto" {
+            // Eight domains of about 85 kB do not fit in three quarters of 700 kB: auto
+            // owns domains and moves rays, and names the worker that decided it.
+            assert_eq!(stats["schedule"], "dynamic", "{tag}: {stats}");
+            let why = stats["placement"].as_str().unwrap_or_default();
+            assert!(why.contains("does not fit worker"), "{tag}: {why}");
+        }
         assert!(
             u64_of(&stats, "evictions") > 0,
             "{tag}: nothing evicted with {CLUSTER_BUDGET} per worker: {stats}"
@@ -497,7 +556,7 @@ fn one_line_error(args: &[&str], words: &[&str]) {
 
 #[test]
 fn bad_schedule_and_budget_flags_are_one_line_errors() {
-    let valid = ["bogus", "image-plane, domain or dynamic"];
+    let valid = ["bogus", "auto, replicated, image-plane, domain or dynamic"];
     one_line_error(&["render", "cornell", "--schedule", "bogus"], &valid);
     one_line_error(
         &["render", "cornell", "--workers", "0", "--schedule", "bogus"],

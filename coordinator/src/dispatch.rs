@@ -61,11 +61,13 @@ use crate::caches::lifecycle;
 use crate::cluster::Cluster;
 use crate::job::JobPlan;
 use crate::jobs::JobEntry;
+use crate::membership::Membership;
 use crate::owned_package::{OwnedPackage, remove_package};
 use crate::scheduler::Schedule;
+use crate::scheduler::auto::{self, Choice, JobNeeds, SceneSize};
 use crate::scheduler::state::{JobSchedule, JobWorker};
 use crate::store::Resume;
-use crate::validate::Prepared;
+use crate::validate::{Prepared, Validated};
 
 /// Tile edge in pixels: the same tiles as `dray render`, so progress reads the same.
 pub use dray_core::tiles::TILE_SIZE;
@@ -138,6 +140,32 @@ pub fn choose_domains(requested: Option<u32>, workers: usize, triangles: u64, ma
     let wanted = (workers as u64).saturating_mul(u64::from(DOMAINS_PER_WORKER));
     let by_size = triangles / MIN_TRIANGLES_PER_DOMAIN;
     wanted.min(by_size).min(u64::from(max)).max(1) as u32
+}
+
+/// The schedule job `v` runs with on the registered workers: what it forced, or what
+/// `auto` makes of the scene's resident size (`prepared`'s scene, or its package's
+/// domains) against every worker's budget ([`auto::choose`]).
+pub fn choose_schedule(membership: &Membership, v: &Validated, prepared: &Prepared) -> Choice {
+    let size = match &prepared.package {
+        Some(pkg) => SceneSize::of_manifest(pkg.manifest()),
+        None => SceneSize::of_scene(&prepared.scene),
+    };
+    let budgets: Vec<(String, u64)> = membership
+        .workers()
+        .iter()
+        .map(|w| (w.id.clone(), w.memory_budget_bytes))
+        .collect();
+    let needs = JobNeeds {
+        walls: v.spec.ray_cache.is_some() || v.spec.phm.is_some(),
+    };
+    let choice = auto::choose(v.schedule, size, &budgets, needs);
+    tracing::info!(
+        schedule = choice.schedule.name(),
+        scene_bytes = size.bytes,
+        reason = %choice.reason,
+        "schedule chosen"
+    );
+    choice
 }
 
 /// The package a job renders from.
@@ -306,7 +334,7 @@ pub struct PreparedSummary {
 /// chose, so the package's camera list holds exactly the camera the job renders with.
 /// A scene package is used as it is: a package without cameras leaves `spec.camera`
 /// unset, meaning the camera framing the manifest's bounds.
-pub fn plan(mut p: Prepared, mut spec: JobSpec, layout: LayoutSpec, schedule: Schedule) -> Planned {
+pub fn plan(mut p: Prepared, mut spec: JobSpec, layout: LayoutSpec, choice: Choice) -> Planned {
     let summary = PreparedSummary {
         environment: p.settings.environment,
         effects: p
@@ -348,7 +376,8 @@ pub fn plan(mut p: Prepared, mut spec: JobSpec, layout: LayoutSpec, schedule: Sc
         setup_spec: spec,
         prepared: summary,
         package,
-        schedule,
+        schedule: choice.schedule,
+        placement: choice.reason,
     }
 }
 
@@ -362,6 +391,8 @@ pub struct Planned {
     pub package: PackageSource,
     /// How domains and rays are placed on the workers.
     pub schedule: Schedule,
+    /// Why (`JobStats.placement`).
+    pub placement: String,
 }
 
 /// The index of the camera `which` names (an index first, then a name, as
@@ -436,6 +467,7 @@ async fn run(
         prepared,
         package,
         schedule,
+        placement,
     } = planned;
     entry.set_state(JobState::Preparing);
     // Counted until the cut has ended and, on failure, its folder is gone.
@@ -553,7 +585,7 @@ async fn run(
         entry.passes.total(),
         u64::from(entry.spec.width) * u64::from(entry.spec.height),
         tiles.len(),
-        workers.iter().any(|w| w.budget > 0),
+        workers.iter().any(|w| w.budget > 0) || schedule == Schedule::Replicated,
         walled,
     );
     let n = workers.len();
@@ -563,6 +595,7 @@ async fn run(
         s.workers = n as u32;
         s.effects = prepared.effects.clone();
         s.schedule = schedule.name().to_string();
+        s.placement = placement;
     });
     let tile_count = tiles.len();
     // What to close if the job never starts (cancelled while its walls opened).

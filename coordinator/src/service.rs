@@ -26,6 +26,7 @@ use crate::cluster::{Cluster, ClusterApi, ClusterOptions};
 use crate::dispatch;
 use crate::jobs::{JobEntry, JobTable, encode_exr, encode_png, requested_display};
 use crate::package_service::PackageApi;
+use crate::scheduler::Schedule;
 use crate::store::{JobStore, Resume, StoredJob};
 use crate::validate::{Limits, bounded, prepare, validate};
 
@@ -403,10 +404,17 @@ impl Coordinator {
             // On workers: the spec shows the domain count and layout the package is cut
             // with, so GetJob says what ran.
             let mut spec = v.spec.clone();
+            let choice = dispatch::choose_schedule(&self.cluster.membership, v, &prepared);
+            spec.schedule = choice.schedule.name().to_string();
             match &prepared.package {
                 Some(pkg) => {
                     spec.domains = pkg.domain_count();
                     spec.layout = pkg.layout().kind_name().to_string();
+                }
+                // Every worker holds the whole scene: one BVH over it, no walk between
+                // domains, unless the job asked for domains.
+                None if choice.schedule == Schedule::Replicated && v.domains_auto => {
+                    spec.domains = 1;
                 }
                 None => {
                     spec.domains = dispatch::choose_domains(
@@ -418,7 +426,7 @@ impl Coordinator {
                 }
             }
             let layout = dispatch::layout_spec(&spec.layout, spec.domains);
-            let planned = dispatch::plan(prepared, spec.clone(), layout, v.schedule);
+            let planned = dispatch::plan(prepared, spec.clone(), layout, choice);
             job.resolve(spec);
             dispatch::spawn(self.cluster.clone(), job.clone(), planned, resume);
         }

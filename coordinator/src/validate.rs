@@ -22,7 +22,7 @@ use dray_scene::partition::open_package;
 use glam::Vec3;
 use tonic::Status;
 
-use crate::scheduler::Schedule;
+use crate::scheduler::ScheduleRequest;
 
 /// Limits a job must respect. The defaults are those of `dray render`.
 #[derive(Clone, Debug)]
@@ -121,9 +121,9 @@ pub struct Validated {
     /// The spec left `domains` at 0: in process that means one BVH (`spec.domains` is
     /// 1); on workers the coordinator chooses the count.
     pub domains_auto: bool,
-    /// The schedule on workers (`spec.schedule` holds its name; the in-process path
-    /// ignores it).
-    pub schedule: Schedule,
+    /// The schedule asked for on workers (`spec.schedule` holds its name; `auto` is
+    /// resolved when the job starts; the in-process path ignores it).
+    pub schedule: ScheduleRequest,
 }
 
 fn bad(msg: String) -> Status {
@@ -275,7 +275,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         )));
     }
     let schedule =
-        Schedule::parse(&spec.schedule, spec.replicate).map_err(|e| bad(e.to_string()))?;
+        ScheduleRequest::parse(&spec.schedule, spec.replicate).map_err(|e| bad(e.to_string()))?;
     spec.schedule = schedule.name().to_string();
     if let Some(rc) = spec.ray_cache.as_mut() {
         check_ray_cache(rc)?;
@@ -704,6 +704,7 @@ pub fn choose_camera(scene: &Scene, which: Option<&str>, aspect: f32) -> Result<
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scheduler::Schedule;
 
     fn spec() -> JobSpec {
         JobSpec {
@@ -819,8 +820,8 @@ mod tests {
         assert_eq!(v.spec.max_depth, Some(5));
         assert_eq!(v.spec.layout, "kd");
         assert_eq!(v.spec.domains, 1);
-        assert_eq!(v.spec.schedule, "dynamic");
-        assert_eq!(v.schedule, Schedule::Dynamic { replicate: false });
+        assert_eq!(v.spec.schedule, "auto");
+        assert_eq!(v.schedule, ScheduleRequest::Auto { replicate: false });
         let field = |s: JobSpec| validate(&s, &l, &root).unwrap_err().message().to_string();
         assert!(field(JobSpec { width: 0, ..spec() }).starts_with("width:"));
         assert!(
@@ -857,7 +858,8 @@ mod tests {
         };
         let msg = field(sched);
         assert!(
-            msg.starts_with("schedule:") && msg.contains("image-plane, domain or dynamic"),
+            msg.starts_with("schedule:")
+                && msg.contains("auto, replicated, image-plane, domain or dynamic"),
             "{msg}"
         );
         let rep = JobSpec {
@@ -867,9 +869,14 @@ mod tests {
         };
         assert!(field(rep).starts_with("replicate:"));
         for (name, want) in [
-            ("image-plane", Schedule::ImagePlane),
-            ("domain", Schedule::Domain),
-            ("dynamic", Schedule::Dynamic { replicate: false }),
+            ("auto", ScheduleRequest::Auto { replicate: false }),
+            ("replicated", ScheduleRequest::Forced(Schedule::Replicated)),
+            ("image-plane", ScheduleRequest::Forced(Schedule::ImagePlane)),
+            ("domain", ScheduleRequest::Forced(Schedule::Domain)),
+            (
+                "dynamic",
+                ScheduleRequest::Forced(Schedule::Dynamic { replicate: false }),
+            ),
         ] {
             let s = JobSpec {
                 schedule: name.into(),
@@ -883,7 +890,7 @@ mod tests {
             ..spec()
         };
         let v = validate(&s, &l, &root).unwrap();
-        assert_eq!(v.schedule, Schedule::Dynamic { replicate: true });
+        assert_eq!(v.schedule, ScheduleRequest::Auto { replicate: true });
     }
 
     fn cache(rc: RayCacheSettings) -> Result<RayCacheSettings, String> {

@@ -98,6 +98,90 @@ async fn image_plane_deals_contiguous_blocks_with_a_local_table() {
     );
 }
 
+/// Workers on ports 7001, 7002, ... with these memory budgets, in order.
+async fn join_with_budgets(
+    channel: &tonic::transport::Channel,
+    budgets: &[u64],
+) -> Vec<FakeWorker> {
+    let mut ws = Vec::new();
+    for (port, &budget) in (7001..).zip(budgets) {
+        let req = RegisterWorkerRequest {
+            memory_budget_bytes: budget,
+            ..register_request(&format!("http://127.0.0.1:{port}"))
+        };
+        ws.push(FakeWorker::join_with(channel.clone(), req).await);
+    }
+    ws
+}
+
+/// `auto` (the default) on workers whose budgets all hold the scene: the replicated
+/// schedule, one domain, a local table, tiles dealt round robin (interleaved, not in
+/// blocks), the reason in GetJob's statistics; with one worker too small for it: the
+/// dynamic schedule over owned domains, naming that worker (issue 40).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn auto_replicates_a_scene_every_worker_holds_and_owns_domains_otherwise() {
+    let server = Server::start("auto", slow_heartbeat()).await;
+    let channel = server.channel().await;
+    // cornell's resident size is far below a megabyte: 10 MB holds it with its load.
+    let mut ws = join_with_budgets(&channel, &[0, 10_000_000]).await;
+    // 128x64: 4 x 2 = 8 tiles, 4 per worker; no --domains, no --schedule.
+    let id = submit(&channel, with_schedule(spec(128, 64, 0), "")).await;
+    let mut setups = Vec::new();
+    for w in &mut ws {
+        setups.push(w.setup_and_tiles(4).await);
+    }
+    let table = setups[0].0.routing.clone().unwrap();
+    assert!(table.local && table.routes.is_empty(), "{table:?}");
+    let order = table_workers(&table);
+    for (w, (setup, tiles)) in ws.iter().zip(&setups) {
+        assert_eq!(setup.schedule, "replicated");
+        assert_eq!(setup.domain_count, 1, "the whole scene as one domain");
+        assert_eq!(setup.spec.as_ref().unwrap().schedule, "replicated");
+        let i = order.iter().position(|o| *o == w.id).unwrap() as u32;
+        assert_eq!(
+            sorted_indices(tiles),
+            (0..8).filter(|t| t % 2 == i).collect::<Vec<_>>(),
+            "round robin"
+        );
+    }
+    let job = get_job(&channel, &id).await;
+    assert_eq!(
+        job.spec.unwrap().schedule,
+        "replicated",
+        "GetJob says what ran"
+    );
+    let stats = job.stats.unwrap();
+    assert_eq!((stats.schedule.as_str(), stats.domains), ("replicated", 1));
+    assert!(
+        stats.placement.starts_with("replicated (auto)")
+            && stats.placement.contains("smallest 10.00 MB"),
+        "{}",
+        stats.placement
+    );
+    drop(ws);
+    drop(server);
+
+    let server = Server::start("auto-small", slow_heartbeat()).await;
+    let channel = server.channel().await;
+    // About 7 kB resident: it loads with 11 kB, and three quarters of 5 kB do not hold
+    // that.
+    let mut ws = join_with_budgets(&channel, &[0, 5_000]).await;
+    let id = submit(&channel, with_schedule(spec(128, 64, 0), "")).await;
+    for w in &mut ws {
+        let (setup, _) = w.setup_and_tiles(4).await;
+        assert_eq!(setup.schedule, "dynamic");
+        assert!(!setup.routing.unwrap().local);
+    }
+    let stats = get_job(&channel, &id).await.stats.unwrap();
+    assert_eq!(stats.schedule, "dynamic");
+    assert!(
+        stats.placement.starts_with("dynamic (auto)")
+            && stats.placement.contains(&format!("worker {}", ws[1].id)),
+        "{}",
+        stats.placement
+    );
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn domain_schedule_is_round_robin_and_static() {
     let server = Server::start_with(
@@ -159,7 +243,8 @@ async fn schedules_are_validated_and_resolved() {
     assert_eq!(e.code(), Code::InvalidArgument);
     assert!(
         e.message().starts_with("schedule:")
-            && e.message().contains("image-plane, domain or dynamic"),
+            && e.message()
+                .contains("auto, replicated, image-plane, domain or dynamic"),
         "{}",
         e.message()
     );
@@ -174,16 +259,16 @@ async fn schedules_are_validated_and_resolved() {
         .unwrap_err();
     assert_eq!(e.code(), Code::InvalidArgument);
     assert!(e.message().starts_with("replicate:"), "{}", e.message());
-    // Empty means dynamic, and the reply says so (no worker: it renders in process,
-    // which ignores the schedule).
+    // Empty means auto, and the reply says so (no worker: it renders in process,
+    // which ignores the schedule, so auto is never resolved).
     let r = render
         .submit_job(SubmitJobRequest {
-            spec: Some(spec(8, 8, 1)),
+            spec: Some(with_schedule(spec(8, 8, 1), "")),
         })
         .await
         .unwrap()
         .into_inner();
-    assert_eq!(r.spec.unwrap().schedule, "dynamic");
+    assert_eq!(r.spec.unwrap().schedule, "auto");
     wait_state(&channel, &r.job_id, JobState::Succeeded).await;
 }
 

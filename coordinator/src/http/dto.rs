@@ -89,6 +89,8 @@ pub struct Stats {
     pub scheduler_rounds: u32,
     pub routing_version: u64,
     pub schedule: String,
+    /// Why the job runs with `schedule` (JobStats.placement).
+    pub placement: String,
     pub traffic_bytes: u64,
     pub cpu_seconds: f64,
     pub workers_detail: Vec<WorkerShare>,
@@ -299,6 +301,7 @@ impl From<&JobStats> for Stats {
             scheduler_rounds: s.scheduler_rounds,
             routing_version: s.routing_version,
             schedule: s.schedule.clone(),
+            placement: s.placement.clone(),
             traffic_bytes: s.traffic.as_ref().map_or(0, |t| t.total),
             cpu_seconds: s.cpu_seconds,
             workers_detail: s.workers_detail.iter().map(WorkerShare::from).collect(),

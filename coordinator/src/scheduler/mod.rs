@@ -4,7 +4,10 @@
 //! queue reports, joins and losses, and runs its rounds on its own timer, one round per
 //! [`SchedulerOptions::round_interval`] at most.
 //!
-//! - [`policy`]: the schedules (image-plane, domain, dynamic) as pure functions: the first
+//! - [`auto`]: the default, `auto`: replicated when the scene fits every worker's budget,
+//!   dynamic when it does not, chosen when the job starts, with the reason.
+//! - [`policy`]: the schedules (replicated, image-plane, domain, dynamic) as pure
+//!   functions: the first
 //!   ownership, how tiles are dealt, the ownership after a loss, and the dynamic round
 //!   ([`policy::rebalance`]).
 //! - [`table`]: ownership ([`table::Ownership`]) and the versioned table workers receive.
@@ -14,13 +17,14 @@
 //! worker of the job as `Assignment{routing}`; JobStats shows the last version and the
 //! number of rounds.
 
+pub mod auto;
 pub mod policy;
 pub mod state;
 pub mod table;
 
 use std::time::Duration;
 
-pub use policy::Schedule;
+pub use policy::{Schedule, ScheduleRequest};
 
 /// Scheduler settings.
 #[derive(Clone, Copy, Debug)]

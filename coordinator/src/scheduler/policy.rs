@@ -2,6 +2,10 @@
 //! nothing) out. No clocks, no gRPC, no hash-map order: the same inputs give the same
 //! table, so every decision is unit-tested and replayable.
 //!
+//! - **replicated**: no routing ([`Ownership::local`]): every worker holds the whole
+//!   scene and traces whole paths for its tiles, dealt round robin (interleaved, so every
+//!   worker gets a share of the cheap and the costly parts of the image). What `auto`
+//!   ([`super::auto`]) chooses when the scene fits every worker's budget.
 //! - **image-plane**: no routing ([`Ownership::local`]); tiles in contiguous blocks, worker
 //!   `i` of `n` getting tiles `[i*T/n, (i+1)*T/n)`. Each worker loads whatever domain its
 //!   fullest queue needs. The table never changes.
@@ -20,12 +24,47 @@ use dray_scene::partition::resident::load_reserve;
 
 use super::table::Ownership;
 
-/// The schedule names a job may ask for (JobSpec.schedule; empty means dynamic).
-pub const SCHEDULE_NAMES: [&str; 3] = ["image-plane", "domain", "dynamic"];
+/// The schedule names a job may ask for (JobSpec.schedule; empty means auto).
+pub const SCHEDULE_NAMES: [&str; 5] = ["auto", "replicated", "image-plane", "domain", "dynamic"];
+
+/// The schedule a job asks for: one by name, or `auto`, which the coordinator resolves
+/// when the job starts, from the scene's size and the workers' budgets
+/// ([`super::auto::choose`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ScheduleRequest {
+    /// Replicate the scene when it fits every worker, else dynamic.
+    Auto {
+        /// With the dynamic schedule, also replicate hot resident domains.
+        replicate: bool,
+    },
+    /// This schedule, whatever the scene.
+    Forced(Schedule),
+}
+
+impl ScheduleRequest {
+    /// The request JobSpec `schedule` and `replicate` make ("" is auto).
+    pub fn parse(name: &str, replicate: bool) -> Result<ScheduleRequest, ScheduleError> {
+        match name {
+            "" | "auto" => Ok(ScheduleRequest::Auto { replicate }),
+            other => Schedule::parse(other, replicate).map(ScheduleRequest::Forced),
+        }
+    }
+
+    /// The name, as JobSpec spells it.
+    pub fn name(self) -> &'static str {
+        match self {
+            ScheduleRequest::Auto { .. } => "auto",
+            ScheduleRequest::Forced(s) => s.name(),
+        }
+    }
+}
 
 /// How a job's domains and rays are placed on its workers.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Schedule {
+    /// Every worker holds the whole scene and traces its tiles' whole paths; tiles dealt
+    /// round robin.
+    Replicated,
     /// Each worker traces its own block of tiles and every ray they lead to.
     ImagePlane,
     /// Static round-robin ownership; rays go to owners.
@@ -42,23 +81,26 @@ pub enum Schedule {
 pub enum ScheduleError {
     /// Not one of [`SCHEDULE_NAMES`].
     #[error(
-        "schedule: unknown schedule {0:?} (expected image-plane, domain or dynamic; empty \
-         means dynamic)"
+        "schedule: unknown schedule {0:?} (expected auto, replicated, image-plane, domain or \
+         dynamic; empty means auto)"
     )]
     Unknown(String),
     /// `replicate` with a static schedule.
     #[error(
         "replicate: hot-domain replication needs the dynamic schedule, not {0:?} (leave \
-         schedule empty or set it to dynamic)"
+         schedule empty, or set it to auto or dynamic)"
     )]
     ReplicateNeedsDynamic(&'static str),
 }
 
 impl Schedule {
-    /// The schedule JobSpec `schedule` and `replicate` ask for ("" is dynamic).
+    /// The schedule a resolved JobSpec `schedule` and `replicate` name (what JobSetup
+    /// carries; "" is dynamic, as it was before `auto`: a job taken back from an older
+    /// store). `auto` is not a schedule: see [`ScheduleRequest::parse`].
     pub fn parse(name: &str, replicate: bool) -> Result<Schedule, ScheduleError> {
         let s = match name {
             "" | "dynamic" => return Ok(Schedule::Dynamic { replicate }),
+            "replicated" => Schedule::Replicated,
             "image-plane" => Schedule::ImagePlane,
             "domain" => Schedule::Domain,
             other => return Err(ScheduleError::Unknown(other.to_string())),
@@ -72,6 +114,7 @@ impl Schedule {
     /// The name, as JobSpec, JobSetup and JobStats spell it.
     pub fn name(self) -> &'static str {
         match self {
+            Schedule::Replicated => "replicated",
             Schedule::ImagePlane => "image-plane",
             Schedule::Domain => "domain",
             Schedule::Dynamic { .. } => "dynamic",
@@ -86,15 +129,17 @@ impl Schedule {
     /// The first ownership of `domains` domains over `workers` (in job order).
     pub fn initial_routes(self, domains: u32, workers: &[String]) -> Ownership {
         match self {
-            Schedule::ImagePlane => Ownership::local(),
+            Schedule::Replicated | Schedule::ImagePlane => Ownership::local(),
             Schedule::Domain | Schedule::Dynamic { .. } => Ownership::round_robin(domains, workers),
         }
     }
 
     /// Deal `tiles` tiles (positions `0..tiles` of a row-major list) over `workers`
     /// workers: for each worker, the positions it gets, ascending. Image-plane: contiguous
-    /// blocks, worker `i` getting `[i*T/n, (i+1)*T/n)`; otherwise round robin, position
-    /// `j` to worker `j % n`. No workers: nothing dealt.
+    /// blocks, worker `i` getting `[i*T/n, (i+1)*T/n)` (a worker's rays stay near each
+    /// other, so its domain loads serve more of them); otherwise round robin, position
+    /// `j` to worker `j % n` (the replicated schedule loads nothing, and interleaved tiles
+    /// even out the cost of the image's parts). No workers: nothing dealt.
     pub fn deal_tiles(self, tiles: usize, workers: usize) -> Vec<Vec<usize>> {
         let mut out = vec![Vec::new(); workers];
         if workers == 0 {
@@ -108,7 +153,7 @@ impl Schedule {
                     mine.extend((i * t / n) as usize..((i + 1) * t / n) as usize);
                 }
             }
-            Schedule::Domain | Schedule::Dynamic { .. } => {
+            Schedule::Replicated | Schedule::Domain | Schedule::Dynamic { .. } => {
                 for j in 0..tiles {
                     out[j % workers].push(j);
                 }
@@ -118,8 +163,8 @@ impl Schedule {
     }
 
     /// The ownership once only `survivors` (non-empty, in job order) are left of the
-    /// job's workers. Image-plane stays local; domain is dealt round robin again over the
-    /// survivors; dynamic keeps every surviving owner where it is (its domains may still
+    /// job's workers. Replicated and image-plane stay local; domain is dealt round robin
+    /// again over the survivors; dynamic keeps every surviving owner where it is (its domains may still
     /// be loaded there) and deals the domains left without an owner round robin, in
     /// domain order, over the survivors.
     pub fn routes_after_loss(
@@ -129,7 +174,7 @@ impl Schedule {
         survivors: &[String],
     ) -> Ownership {
         match self {
-            Schedule::ImagePlane => Ownership::local(),
+            Schedule::Replicated | Schedule::ImagePlane => Ownership::local(),
             Schedule::Domain => Ownership::round_robin(domains, survivors),
             Schedule::Dynamic { .. } => {
                 if survivors.is_empty() {
@@ -583,8 +628,25 @@ mod tests {
             Err(ScheduleError::Unknown(_))
         ));
         for name in SCHEDULE_NAMES {
-            assert_eq!(Schedule::parse(name, false).unwrap().name(), name);
+            assert_eq!(ScheduleRequest::parse(name, false).unwrap().name(), name);
         }
+        // Empty is auto for a job; a resolved schedule is never auto.
+        assert_eq!(
+            ScheduleRequest::parse("", true),
+            Ok(ScheduleRequest::Auto { replicate: true })
+        );
+        assert_eq!(
+            ScheduleRequest::parse("replicated", false),
+            Ok(ScheduleRequest::Forced(Schedule::Replicated))
+        );
+        assert!(matches!(
+            ScheduleRequest::parse("replicated", true),
+            Err(ScheduleError::ReplicateNeedsDynamic("replicated"))
+        ));
+        assert!(matches!(
+            Schedule::parse("auto", false),
+            Err(ScheduleError::Unknown(_))
+        ));
     }
 
     /// The capacity is what the worker's store holds: `cap - 1` domains resident and

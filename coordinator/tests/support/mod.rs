@@ -315,6 +315,9 @@ impl FakeWorker {
     }
 }
 
+/// A small job on the dynamic schedule: these tests are about the protocol of owned
+/// domains (tables, rounds, joins, losses), which `auto`, the default, would replace by
+/// the replicated schedule on fake workers without a budget.
 pub fn spec(width: u32, height: u32, domains: u32) -> JobSpec {
     JobSpec {
         scene: "cornell".into(),
@@ -322,6 +325,7 @@ pub fn spec(width: u32, height: u32, domains: u32) -> JobSpec {
         height,
         spp: 1,
         domains,
+        schedule: "dynamic".into(),
         ..Default::default()
     }
 }

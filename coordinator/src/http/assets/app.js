@@ -357,6 +357,7 @@ function renderProgress(p) {
     ["domains", s.domains],
     ["workers", s.workers],
     ["schedule", s.schedule],
+    ["placement", s.placement],
     ["domain loads", s.domain_loads != null ? `${s.domain_loads} (${fmtSecs(s.domain_load_seconds)}), ${s.domains_warm} warm, ${s.evictions} evicted` : ""],
     ["rays exchanged", fmtCount(s.rays_exchanged)],
     ["queue peak", fmtCount(s.queue_peak)],
