@@ -146,6 +146,9 @@ pub(crate) fn requests(
     out
 }
 
+/// Sums of `N` words by sum key, as a report's chunk carries them.
+type Entries<const N: usize> = Vec<(u64, [i64; N])>;
+
 /// Send `requests` in order, each retried with its sequence number (the coordinator
 /// applies it once); stops at the first that cannot be sent.
 pub(crate) async fn send_all(
@@ -166,7 +169,7 @@ fn request(
     shared: &Shared,
     job: &Job,
     sequence: u64,
-    (sums, aovs): (Vec<(u64, [i64; 3])>, Vec<(u64, [i64; AOV_WORDS])>),
+    (sums, aovs): (Entries<3>, Entries<AOV_WORDS>),
     credits: Vec<TileCredit>,
     r: &Report,
     counters: Option<WorkerCounters>,
