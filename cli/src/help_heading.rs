@@ -7,6 +7,7 @@ pub const IMAGE: &str = "Image";
 pub const INTEGRATOR: &str = "Integrator and effects";
 pub const CAMERA: &str = "Camera (docs/cameras.md)";
 pub const LIGHTS: &str = "Lights (docs/lights.md)";
+pub const NOISE: &str = "Noise and outputs for a denoiser (docs/noise.md)";
 pub const OUTPUT: &str = "Output";
 pub const CLUSTER: &str = "Workers and scheduling (docs/architecture.md)";
 pub const APPROXIMATIONS: &str = "Approximations: ray caches and hit maps (docs/benchmarks.md)";

@@ -156,6 +156,9 @@ pub struct JobFlags {
     pub view: crate::view_flags::ViewFlags,
     #[command(flatten)]
     pub lights: crate::light_flags::LightFlags,
+    /// Noise controls (`JobSpec.clamp_indirect`).
+    #[command(flatten)]
+    pub noise: crate::noise_flags::NoiseFlags,
 }
 
 /// The schedule of a job that names none: the coordinator's choice for an empty
@@ -221,6 +224,17 @@ impl JobFlags {
         dray_core::passes::Passes::parse(self.passes_or_default(), self.spp)
             .map(drop)
             .map_err(|e| anyhow::anyhow!("--passes: {e}"))
+    }
+
+    /// `--aov`: known names, each once, and an `--exr` file to hold them.
+    pub fn check_aovs(&self) -> Result<()> {
+        if self.noise.aovs()?.is_empty() {
+            return Ok(());
+        }
+        if self.exr.is_none() {
+            bail!("--aov writes its channels into the EXR image: give --exr FILE too");
+        }
+        Ok(())
     }
 
     /// `--passes`, or the coordinator's default (`doubling`) when not given.
@@ -291,6 +305,8 @@ impl JobFlags {
             passes: self.passes_or_default().to_string(),
             view: self.view.spec()?,
             lighting: self.lights.lighting_spec(),
+            clamp_indirect: self.noise.clamp_indirect,
+            aovs: self.noise.aov.clone(),
         })
     }
 }

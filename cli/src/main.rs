@@ -18,6 +18,7 @@ mod job_flags;
 mod kv_flag;
 mod light_flags;
 mod net_flags;
+mod noise_flags;
 mod options;
 mod partition_cmd;
 mod phm_flag;

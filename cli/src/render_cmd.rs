@@ -269,6 +269,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
     if let Some(p) = &a.job.exr {
         check_output("--exr", p, &["exr"])?;
     }
+    a.job.check_aovs()?;
     if let Some(p) = &a.stats {
         check_output("--stats", p, &[])?;
     }
@@ -389,6 +390,8 @@ pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Resul
         ao_samples: a.job.ao_samples,
         ao_distance: a.job.ao_distance.unwrap_or(f32::INFINITY),
         lighting,
+        clamp_indirect: a.job.noise.clamp_indirect,
+        aovs: a.job.noise.aovs()?,
     };
     let facts = SceneFacts::of(&scene);
     let build_time: std::time::Duration;
@@ -444,6 +447,8 @@ pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Resul
     summary.build_summed_over_workers = build_summed;
     // Counted by the tile renderer, and by the workers (JobStats.clamped).
     summary.clamped_contributions = Some(out.film.clamped);
+    // Counted by the tile renderer, and by the workers (JobStats.clamped_indirect).
+    summary.clamped_indirect = out.film.clamped_indirect;
     summary.scheduling = scheduling;
     (summary.ray_cache, summary.phm) = walls;
     Ok(Rendered {

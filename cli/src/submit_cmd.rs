@@ -92,6 +92,8 @@ pub(crate) struct SubmitStats {
     nonfinite_contributions: u64,
     /// Contributions clamped to the film's largest radiance.
     clamped_contributions: u64,
+    /// Contributions of indirect light scaled down by `--clamp-indirect`.
+    clamped_indirect: u64,
     /// The coordinator's time for the job, preparation included.
     job_time_s: f64,
     /// From submission to the image written, as seen here.
@@ -128,6 +130,7 @@ impl SubmitStats {
             domains: stats.domains,
             nonfinite_contributions: stats.nonfinite,
             clamped_contributions: stats.clamped,
+            clamped_indirect: stats.clamped_indirect,
             job_time_s: job
                 .progress
                 .as_ref()
@@ -192,6 +195,7 @@ fn rpc_error(what: &str, url: &str, s: tonic::Status) -> anyhow::Error {
 pub fn run(a: SubmitArgs) -> Result<()> {
     let spec = job_spec(&a)?;
     a.job.check_passes()?;
+    a.job.check_aovs()?;
     let url = endpoint_url(&a.coordinator)?;
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()

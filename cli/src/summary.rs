@@ -44,6 +44,8 @@ pub struct Summary {
     /// (`--workers 0`) only, absent on actors.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub clamped_contributions: Option<u64>,
+    /// Contributions of indirect light scaled down by `--clamp-indirect` (0 without it).
+    pub clamped_indirect: u64,
     pub warnings: Vec<String>,
     /// How the job was scheduled on workers, and what that cost.
     #[serde(flatten)]
@@ -553,6 +555,7 @@ impl Summary {
             nonfinite_contributions: out.film.nonfinite,
             saturated_pixels: out.film.saturated(),
             clamped_contributions: None,
+            clamped_indirect: 0,
             warnings: scene.warnings.clone(),
             scheduling: Scheduling::none(),
             ray_cache: None,
@@ -632,6 +635,12 @@ pub fn print_summary(s: &Summary) {
     }
     if let Some(n) = s.clamped_contributions.filter(|&n| n > 0) {
         eprintln!("clamped      {n} contributions above the film's largest");
+    }
+    if s.clamped_indirect > 0 {
+        eprintln!(
+            "clamped      {} indirect contributions (--clamp-indirect)",
+            s.clamped_indirect
+        );
     }
     if s.saturated_pixels > 0 {
         eprintln!(

@@ -676,6 +676,7 @@ fn run(job: &JobEntry, p: Prepared, threads: usize) {
                 g.stats.rays = Some(RayCounts::from_kinds(out.rays.0));
                 g.stats.nonfinite = out.film.nonfinite;
                 g.stats.clamped = out.film.clamped;
+                g.stats.clamped_indirect = out.film.clamped_indirect;
             }
             job.finish(JobState::Succeeded, String::new(), Some(out.film));
         }

@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
+use dray_core::aov::AovSet;
 use dray_core::camera::Camera;
 use dray_core::effects::Effect;
 use dray_core::integrator::{IntegratorKind, RayKind, RenderSettings};
@@ -114,6 +115,8 @@ pub struct Validated {
     pub env: Option<Vec3>,
     /// The lights the spec adds (`spec.lighting`, defaults filled in).
     pub lighting: Lighting,
+    /// The AOVs the job writes (`spec.aovs`).
+    pub aovs: AovSet,
     /// Scene offset.
     pub translate: Option<Vec3>,
     /// The scene is a scene package at this (canonical) directory.
@@ -260,6 +263,12 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         .transpose()?;
     let effects = parse_effects(&spec.effects)?;
     let lighting = crate::lighting::check_lighting(&mut spec.lighting)?;
+    if let Some(c) = spec.clamp_indirect {
+        dray_core::clamp::check_limit(c).map_err(|e| bad(format!("clamp_indirect: {e}")))?;
+    }
+    let aovs = AovSet::parse(&spec.aovs).map_err(|e| bad(format!("aovs: {e}")))?;
+    // In one order, so equal sets read alike in GetJob.
+    spec.aovs = aovs.names();
     let domains_auto = spec.domains == 0;
     if spec.domains == 0 {
         spec.domains = 1;
@@ -306,6 +315,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         effects,
         env,
         lighting,
+        aovs,
         translate,
         domains_auto,
         schedule,
@@ -645,6 +655,8 @@ pub fn prepare(
         ao_samples: s.ao_samples.unwrap_or(DEFAULT_AO_SAMPLES),
         ao_distance: s.ao_distance.unwrap_or(f32::INFINITY),
         lighting: v.lighting.clone(),
+        clamp_indirect: s.clamp_indirect,
+        aovs: v.aovs,
     };
     Ok(Prepared {
         scene,

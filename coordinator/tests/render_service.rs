@@ -147,6 +147,8 @@ fn reference_png(width: u32, height: u32, spp: u32) -> Vec<u8> {
         ao_samples: 16,
         ao_distance: f32::INFINITY,
         lighting: Default::default(),
+        clamp_indirect: None,
+        aovs: Default::default(),
     };
     let integrator = Integrator::new(&scene, camera, settings);
     let accel = Accel::build(&scene.mesh);

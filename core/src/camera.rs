@@ -231,6 +231,21 @@ pub fn framing_eye(min: Vec3, max: Vec3, image_aspect: f32, dir: Vec3, yfov: f32
 }
 
 impl Camera {
+    /// How far `p` is from the camera, as the depth AOV (`crate::aov`) gives it: from
+    /// its position (the lens's centre) for a perspective camera, from its image plane
+    /// along the view axis for an orthographic one. Not from a camera ray's origin,
+    /// which starts at the scene's box ([`Frustum::clipped_to`]).
+    pub fn depth_of(&self, p: Vec3) -> f32 {
+        let eye = self.transform.w_axis.truncate();
+        match self.projection {
+            Projection::Perspective { .. } => (p - eye).length(),
+            Projection::Orthographic { .. } => {
+                let forward = -self.transform.z_axis.truncate().normalize_or_zero();
+                (p - eye).dot(forward)
+            }
+        }
+    }
+
     /// A perspective camera at `eye` looking at `target`.
     pub fn look_at(name: &str, eye: Vec3, target: Vec3, up: Vec3, yfov: f32) -> Camera {
         // Camera-to-world with the camera looking down its local -Z.

@@ -20,6 +20,8 @@ use std::path::Path;
 
 use glam::Vec3;
 
+use crate::aov::{AovFilm, AovSet};
+
 /// Fixed-point scale: 2^24 steps per unit of radiance.
 pub const FIXED_SCALE: f64 = (1u64 << 24) as f64;
 /// The most samples per pixel a job accepts (`spp`), which [`MAX_CONTRIBUTION`] is sized for.
@@ -86,6 +88,11 @@ pub struct Film {
     /// Contributions with a component clamped to [`MAX_CONTRIBUTION`] (counted where a
     /// film adds values itself; sums added in fixed point bring no count).
     pub clamped: u64,
+    /// Contributions of indirect light scaled down by `--clamp-indirect`
+    /// (`crate::clamp`), counted as [`Film::clamped`] is.
+    pub clamped_indirect: u64,
+    /// The AOVs' sums (`crate::aov`), when the job asks for any.
+    pub aovs: Option<AovFilm>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -104,13 +111,30 @@ impl Film {
             sums: vec![[0; 3]; width as usize * height as usize],
             nonfinite: 0,
             clamped: 0,
+            clamped_indirect: 0,
+            aovs: None,
         }
+    }
+
+    /// A film that also keeps the sums of `aovs` (none when the set is empty).
+    pub fn with_aovs(width: u32, height: u32, aovs: AovSet) -> Film {
+        Film {
+            aovs: (!aovs.is_empty()).then(|| AovFilm::new(aovs, width as usize * height as usize)),
+            ..Film::new(width, height)
+        }
+    }
+
+    /// The AOVs this film keeps.
+    pub fn aov_set(&self) -> AovSet {
+        self.aovs.as_ref().map_or(AovSet::NONE, |a| a.set)
     }
 
     /// The bytes its sums take in memory (what a coordinator keeping finished images
     /// counts against its budget).
     pub fn heap_bytes(&self) -> u64 {
-        (self.sums.len() as u64).saturating_mul(std::mem::size_of::<[i64; 3]>() as u64)
+        (self.sums.len() as u64)
+            .saturating_mul(std::mem::size_of::<[i64; 3]>() as u64)
+            .saturating_add(self.aovs.as_ref().map_or(0, AovFilm::heap_bytes))
     }
 
     /// Add a contribution to pixel `pixel` (row-major index). Out-of-range pixels are ignored.
@@ -161,6 +185,21 @@ impl Film {
         }
     }
 
+    /// Set pixel `pixel`'s sums, beauty and AOVs, to `from`'s (a film of the same size
+    /// and AOVs), or to zero without it: the exact copy a pass image is built from and a
+    /// retried tile goes back to.
+    pub fn set_pixel_from(&mut self, pixel: u32, from: Option<&Film>) {
+        if let Some(s) = self.sums.get_mut(pixel as usize) {
+            *s = from.map_or([0; 3], |f| f.sum_fixed(pixel));
+        }
+        if let Some(a) = self.aovs.as_mut() {
+            let v = from
+                .and_then(|f| f.aovs.as_ref())
+                .map_or([0; crate::aov::AOV_WORDS], |b| b.sum_fixed(pixel));
+            a.set_fixed(pixel, v);
+        }
+    }
+
     /// Merge another film of the same size (exact, order-free).
     pub fn merge(&mut self, other: &Film) {
         for (a, b) in self.sums.iter_mut().zip(&other.sums) {
@@ -168,6 +207,10 @@ impl Film {
         }
         self.nonfinite += other.nonfinite;
         self.clamped += other.clamped;
+        self.clamped_indirect += other.clamped_indirect;
+        if let (Some(a), Some(b)) = (self.aovs.as_mut(), other.aovs.as_ref()) {
+            a.merge(b);
+        }
     }
 
     /// Pixels with a component at [`MAX_SUM`]: brighter than the film can represent
@@ -225,8 +268,12 @@ impl Film {
 
     /// The image as linear f32 RGB OpenEXR (`dray render --exr`, GetImage). The same
     /// film gives the same bytes: blocks are compressed on one thread, because in
-    /// parallel they land in the file in the order they finish.
+    /// parallel they land in the file in the order they finish. A film with AOVs gives
+    /// one image with their channels too ([`Film::encode_exr_with_aovs`]).
     pub fn encode_exr(&self, spp: u32) -> Result<Vec<u8>, String> {
+        if let Some(aovs) = &self.aovs {
+            return self.encode_exr_with_aovs(aovs, spp);
+        }
         use exr::prelude::{Image, SpecificChannels, Vec2, WritableImage};
         let lin = self.linear(spp);
         let w = self.width as usize;
@@ -236,6 +283,43 @@ impl Film {
         });
         let mut out = std::io::Cursor::new(Vec::new());
         Image::from_channels((w, self.height as usize), channels)
+            .write()
+            .non_parallel()
+            .to_buffered(&mut out)
+            .map_err(|e| e.to_string())?;
+        Ok(out.into_inner())
+    }
+}
+
+impl Film {
+    /// The beauty (`R`, `G`, `B`) and the AOVs' channels (`albedo.R`, `normal.X`,
+    /// `depth.Z`, ...: one part whose channel names carry the layer, as Cycles and Nuke
+    /// write multi-layer files and every OpenEXR reader understands), f32.
+    fn encode_exr_with_aovs(&self, aovs: &AovFilm, spp: u32) -> Result<Vec<u8>, String> {
+        use exr::prelude::{
+            AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer, LayerAttributes, Vec2,
+            WritableImage,
+        };
+        let lin = self.linear(spp);
+        let mut channels: Vec<AnyChannel<FlatSamples>> = ["R", "G", "B"]
+            .into_iter()
+            .enumerate()
+            .map(|(k, name)| {
+                AnyChannel::new(name, FlatSamples::F32(lin.iter().map(|p| p[k]).collect()))
+            })
+            .collect();
+        for (name, values) in aovs.channels(spp) {
+            channels.push(AnyChannel::new(name, FlatSamples::F32(values)));
+        }
+        let size = Vec2(self.width as usize, self.height as usize);
+        let layer = Layer::new(
+            size,
+            LayerAttributes::default(),
+            Encoding::default(),
+            AnyChannels::sort(channels.into()),
+        );
+        let mut out = std::io::Cursor::new(Vec::new());
+        Image::from_layer(layer)
             .write()
             .non_parallel()
             .to_buffered(&mut out)

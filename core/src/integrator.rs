@@ -13,6 +13,7 @@ use std::sync::Arc;
 use glam::{Vec2, Vec3};
 use serde::Serialize;
 
+use crate::aov::{AovSet, FirstHit};
 use crate::bsdf::{Bsdf, BsdfAt, BsdfParams, Lobe};
 use crate::bvh::{Hit, QueryRay};
 use crate::camera::{Camera, Frustum};
@@ -185,6 +186,12 @@ pub struct RenderSettings {
     pub ao_distance: f32,
     /// Lights the job spec adds (a sun), used under their effects.
     pub lighting: Lighting,
+    /// `--clamp-indirect`: the largest component a contribution of indirect light may
+    /// have (`crate::clamp`); `None` clamps nothing.
+    pub clamp_indirect: Option<f32>,
+    /// The AOVs the job writes (`crate::aov`); camera rays' first hits are recorded only
+    /// when one of them needs them.
+    pub aovs: AovSet,
 }
 
 /// One ray in flight. Self-contained: it can be traced anywhere, in any order.
@@ -213,6 +220,12 @@ pub struct RayState {
 pub trait Sink {
     fn contribute(&mut self, pixel: u32, value: Vec3);
     fn spawn(&mut self, ray: RayState);
+    /// The contribution just made was scaled down by `--clamp-indirect`. Sinks that keep
+    /// statistics count it (the film's `clamped_indirect`); the default ignores it.
+    fn clamped_indirect(&mut self) {}
+    /// A camera ray's first hit, for the AOVs (made only when the job asks for AOVs that
+    /// need it). Sinks that keep AOV sums add it to `pixel`'s; the default ignores it.
+    fn first_hit(&mut self, _pixel: u32, _hit: &FirstHit) {}
 }
 
 /// The scene-wide state the steps read: the scene, its lights and the settings.
@@ -359,6 +372,19 @@ impl<'a> Integrator<'a> {
             self.settings.environment
         } else {
             Vec3::ZERO
+        }
+    }
+
+    /// Add `value`, light reflected by `bounces` surfaces on its way to the eye, to
+    /// `pixel`, clamped when it is indirect light and the job clamps it
+    /// (`crate::clamp`). Every radiance contribution of the integrators goes through here.
+    #[inline]
+    fn emit(&self, pixel: u32, bounces: u32, value: Vec3, sink: &mut impl Sink) {
+        let (value, clamped) =
+            crate::clamp::clamp_indirect(self.settings.clamp_indirect, bounces, value);
+        sink.contribute(pixel, value);
+        if clamped {
+            sink.clamped_indirect();
         }
     }
 
@@ -520,15 +546,18 @@ impl<'a> Integrator<'a> {
     /// An occlusion ray came back: add its carried contribution if nothing blocked it.
     pub fn shadow_result(&self, ray: &RayState, occluded: bool, sink: &mut impl Sink) {
         if !occluded {
-            sink.contribute(ray.pixel, ray.weight);
+            // Made at a hit of depth `ray.depth - 1`: the light it carries is reflected
+            // there and at every surface before.
+            self.emit(ray.pixel, ray.depth, ray.weight, sink);
         }
     }
 
     /// A camera or bounce ray left the scene: it sees the environment.
     pub fn shade_miss(&self, ray: &RayState, sink: &mut impl Sink) {
         let env = self.env();
+        // A ray of depth d saw this light after d reflections.
         if env != Vec3::ZERO {
-            sink.contribute(ray.pixel, ray.weight * env);
+            self.emit(ray.pixel, ray.depth, ray.weight * env, sink);
         }
         // The sun's disk: seen at full weight by a ray no light sample competed with
         // (camera rays, delta bounces), weighted against the sun's sample otherwise.
@@ -540,7 +569,7 @@ impl<'a> Integrator<'a> {
             } else {
                 1.0
             };
-            sink.contribute(ray.pixel, ray.weight * sun.radiance() * w);
+            self.emit(ray.pixel, ray.depth, ray.weight * sun.radiance() * w, sink);
         }
         // The environment map, weighted against its light sample as the sun is.
         if let Some(map) = self.env_map() {
@@ -551,7 +580,7 @@ impl<'a> Integrator<'a> {
             };
             let l = map.radiance(ray.dir);
             if l != Vec3::ZERO {
-                sink.contribute(ray.pixel, ray.weight * l * w);
+                self.emit(ray.pixel, ray.depth, ray.weight * l * w, sink);
             }
         }
     }
@@ -578,6 +607,16 @@ impl<'a> Integrator<'a> {
         let effects = self.settings.effects;
         let surf = Surface::new(self.scene, hit, ray.dir, effects);
         let sv = surf.shading(self.scene, effects);
+        if ray.kind == RayKind::Camera && self.settings.aovs.records_hits() {
+            sink.first_hit(
+                ray.pixel,
+                &FirstHit {
+                    albedo: sv.base_color,
+                    normal: surf.n,
+                    depth: self.camera.depth_of(surf.p),
+                },
+            );
+        }
         let wo = -ray.dir;
         let key = self.key(ray);
         let attenuated;
@@ -601,7 +640,7 @@ impl<'a> Integrator<'a> {
                     .pdf_triangle(self.scene, surf.tri, ray.origin, surf.p);
                 w = power_heuristic(ray.bsdf_pdf, pl);
             }
-            sink.contribute(ray.pixel, ray.weight * sv.emission * w);
+            self.emit(ray.pixel, ray.depth, ray.weight * sv.emission * w, sink);
         }
 
         if self.settings.integrator == IntegratorKind::Ao {
@@ -679,7 +718,8 @@ impl<'a> Integrator<'a> {
                 if env != Vec3::ZERO {
                     let facing = surf.n.dot(wo).abs();
                     let ambient = bsdf.diffuse_albedo() * env * (0.25 + 0.75 * facing);
-                    sink.contribute(ray.pixel, ray.weight * ambient);
+                    // Reflected here too: one surface more than the ray's depth.
+                    self.emit(ray.pixel, ray.depth + 1, ray.weight * ambient, sink);
                 }
                 if self.settings.integrator == IntegratorKind::Whitted
                     && ray.depth + 1 < self.settings.max_depth
@@ -1016,6 +1056,8 @@ mod tests {
                         EnvMap::new(1, 1, vec![Vec3::ONE], 0.0, 1.0).expect("map"),
                     )),
                 },
+                clamp_indirect: None,
+                aovs: Default::default(),
             };
             let cam = Camera::look_at("c", Vec3::Z, Vec3::ZERO, Vec3::Y, 0.5);
             let need = Integrator::new(&scene, cam, settings).credit_needed();

@@ -8,8 +8,10 @@
 //! 8-bit images (exposure, tone curve: [`display`]) and the credit that tells when a tile
 //! is complete ([`credit`]).
 
+pub mod aov;
 pub mod bsdf;
 pub mod camera;
+pub mod clamp;
 pub mod effects;
 pub mod light;
 pub mod material;

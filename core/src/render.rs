@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 use glam::Vec3;
 use rayon::prelude::*;
 
+use crate::aov::{AOV_WORDS, FirstHit, add_aov_sums};
 use crate::film::{Film, add_sums, to_fixed_clamped};
 use crate::integrator::{Integrator, RayKind, RayState, Sink};
 use crate::tiles::{Tile, TileGrid};
@@ -41,20 +42,31 @@ struct TileSink {
     sums: Vec<[i64; 3]>,
     nonfinite: u64,
     clamped: u64,
+    clamped_indirect: u64,
+    /// AOV sums by pixel of the tile; empty when the job records no first hits.
+    aovs: Vec<[i64; AOV_WORDS]>,
     stack: Vec<RayState>,
+}
+
+impl TileSink {
+    /// `pixel`'s index in the tile's buffers, if it is in the tile.
+    #[inline]
+    fn local(&self, pixel: u32) -> Option<usize> {
+        let (x, y) = (pixel % self.width, pixel / self.width);
+        let (lx, ly) = (x.wrapping_sub(self.tile.x0), y.wrapping_sub(self.tile.y0));
+        (lx < self.tile.w && ly < self.tile.h).then(|| (ly * self.tile.w + lx) as usize)
+    }
 }
 
 impl Sink for TileSink {
     fn contribute(&mut self, pixel: u32, value: Vec3) {
-        let (x, y) = (pixel % self.width, pixel / self.width);
-        let (lx, ly) = (x.wrapping_sub(self.tile.x0), y.wrapping_sub(self.tile.y0));
-        if lx >= self.tile.w || ly >= self.tile.h {
+        let Some(i) = self.local(pixel) else {
             return;
-        }
+        };
         match to_fixed_clamped(value) {
             Some((f, clamped)) => {
                 self.clamped += u64::from(clamped);
-                add_sums(&mut self.sums[(ly * self.tile.w + lx) as usize], f);
+                add_sums(&mut self.sums[i], f);
             }
             None => self.nonfinite += 1,
         }
@@ -62,6 +74,18 @@ impl Sink for TileSink {
 
     fn spawn(&mut self, ray: RayState) {
         self.stack.push(ray);
+    }
+
+    fn clamped_indirect(&mut self) {
+        self.clamped_indirect += 1;
+    }
+
+    fn first_hit(&mut self, pixel: u32, hit: &FirstHit) {
+        if let (Some(i), Some(f)) = (self.local(pixel), hit.to_fixed())
+            && let Some(s) = self.aovs.get_mut(i)
+        {
+            add_aov_sums(s, &f);
+        }
     }
 }
 
@@ -122,7 +146,8 @@ pub fn render_passes(
     let s = &integrator.settings;
     let (width, height) = (s.width, s.height);
     let tiles: Vec<Tile> = TileGrid::image(width, height).iter().collect();
-    let film = Mutex::new(Film::new(width, height));
+    let film = Mutex::new(Film::with_aovs(width, height, s.aovs));
+    let records_hits = s.aovs.records_hits();
     let counts: Vec<AtomicU64> = (0..RayKind::COUNT).map(|_| AtomicU64::new(0)).collect();
     let done = AtomicU64::new(0);
     let pool = rayon::ThreadPoolBuilder::new()
@@ -143,6 +168,12 @@ pub fn render_passes(
                     sums: vec![[0; 3]; (tile.w * tile.h) as usize],
                     nonfinite: 0,
                     clamped: 0,
+                    clamped_indirect: 0,
+                    aovs: if records_hits {
+                        vec![[0; AOV_WORDS]; (tile.w * tile.h) as usize]
+                    } else {
+                        Vec::new()
+                    },
                     stack: Vec::with_capacity(64),
                 };
                 let mut local = [0u64; RayKind::COUNT];
@@ -178,6 +209,13 @@ pub fn render_passes(
                     }
                     f.nonfinite += sink.nonfinite;
                     f.clamped += sink.clamped;
+                    f.clamped_indirect += sink.clamped_indirect;
+                    if let Some(a) = f.aovs.as_mut() {
+                        for (i, s) in sink.aovs.iter().enumerate() {
+                            let (lx, ly) = (i as u32 % tile.w, i as u32 / tile.w);
+                            a.add_fixed((tile.y0 + ly) * width + tile.x0 + lx, s);
+                        }
+                    }
                 }
                 let d = done.fetch_add(1, Ordering::Relaxed) + 1;
                 progress(d as usize, tiles.len());

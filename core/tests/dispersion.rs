@@ -58,6 +58,8 @@ fn bounces(scene: &Scene, effects: Effects, samples: u32, weight: Vec3) -> Vec<R
         ao_samples: 1,
         ao_distance: f32::INFINITY,
         lighting: Default::default(),
+        clamp_indirect: None,
+        aovs: Default::default(),
     };
     let t = INCIDENCE_DEG.to_radians();
     let dir = Vec3::new(t.sin(), 0.0, -t.cos());

@@ -61,6 +61,8 @@ fn image(environment: Vec3, effects: Effects, lighting: Lighting) -> Vec<Vec3> {
         ao_samples: 1,
         ao_distance: f32::INFINITY,
         lighting,
+        clamp_indirect: None,
+        aovs: Default::default(),
     };
     let camera = Camera::look_at("c", Vec3::new(3.0, 4.0, 5.0), Vec3::ZERO, Vec3::Y, 0.9);
     let accel = Accel::build(&scene.mesh);

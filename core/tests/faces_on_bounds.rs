@@ -149,6 +149,8 @@ fn check(lo: Vec3, hi: Vec3, dists: &[f32]) {
             ao_samples: 1,
             ao_distance: f32::INFINITY,
             lighting: Default::default(),
+            clamp_indirect: None,
+            aovs: Default::default(),
         };
         let integ = Integrator::new(&scene, cam, settings);
         for y in 0..SIZE {

@@ -119,6 +119,8 @@ fn settings() -> RenderSettings {
         ao_samples: 1,
         ao_distance: f32::INFINITY,
         lighting: Default::default(),
+        clamp_indirect: None,
+        aovs: Default::default(),
     }
 }
 

@@ -297,6 +297,8 @@ fn ao_image(scene: &Scene, eye: [Vec3; 2]) -> Vec<i64> {
         ao_samples: 8,
         ao_distance: f32::INFINITY,
         lighting: Default::default(),
+        clamp_indirect: None,
+        aovs: Default::default(),
     };
     let integrator = Integrator::new(scene, cam, settings);
     let accel = Accel::build(&scene.mesh);

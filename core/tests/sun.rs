@@ -80,6 +80,8 @@ fn render_sun(integrator: IntegratorKind, diameter: f32, spp: u32) -> Vec<(f32, 
             sun: Some(sun),
             env_map: None,
         },
+        clamp_indirect: None,
+        aovs: Default::default(),
     };
     // Straight down from high above, seeing x in about [-3, 3].
     let camera = Camera::look_at(

@@ -54,6 +54,8 @@ fn first_contribution(scene: &Scene, effects: Effects, origin: Vec3, dir: Vec3) 
         ao_samples: 1,
         ao_distance: f32::INFINITY,
         lighting: Default::default(),
+        clamp_indirect: None,
+        aovs: Default::default(),
     };
     let camera = Camera::look_at("c", origin, origin + dir, Vec3::Y, 1.0);
     let integrator = Integrator::new(scene, camera, settings);

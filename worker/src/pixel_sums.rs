@@ -7,29 +7,42 @@
 //! many times over. The sums are non-negative fixed-point integers added with saturating
 //! arithmetic (`dray_core::film::add_sums`), which is then associative and commutative:
 //! merging on the worker gives the coordinator the very same bits as sending every entry.
+//!
+//! AOV sums (`dray_core::aov`, eight words a pixel) merge the same way: their values are
+//! bounded so that no sum comes near the limits, where the addition is exact.
 
 use std::collections::HashMap;
-
-use dray_core::film::add_sums;
 
 /// A deterministic fast hash: pixel indices are not attacker-chosen keys.
 type FastState = foldhash::fast::FixedState;
 
-/// Fixed-point RGB sums by sum key, each key once: the pixel in the low 32 bits, and for
-/// a job tracing passes ahead the pass above it (`crate::tracer::pass_tag`).
-#[derive(Debug, Default)]
-pub struct PixelSums {
-    sums: HashMap<u64, [i64; 3], FastState>,
+/// Fixed-point sums of `N` words (RGB, or a pixel's AOVs) by sum key, each key once:
+/// the pixel in the low 32 bits, and for a job tracing passes ahead the pass above it
+/// (`crate::tracer::pass_tag`).
+#[derive(Debug)]
+pub struct PixelSums<const N: usize = 3> {
+    sums: HashMap<u64, [i64; N], FastState>,
 }
 
-impl PixelSums {
-    /// Add `value` to `key`'s sum.
-    pub fn add(&mut self, key: u64, value: [i64; 3]) {
-        add_sums(self.sums.entry(key).or_insert([0; 3]), value);
+impl<const N: usize> Default for PixelSums<N> {
+    fn default() -> Self {
+        PixelSums {
+            sums: HashMap::default(),
+        }
+    }
+}
+
+impl<const N: usize> PixelSums<N> {
+    /// Add `value` to `key`'s sum (saturating, as `dray_core::film::add_sums`).
+    pub fn add(&mut self, key: u64, value: [i64; N]) {
+        let s = self.sums.entry(key).or_insert([0; N]);
+        for (a, b) in s.iter_mut().zip(value) {
+            *a = a.saturating_add(b);
+        }
     }
 
     /// Add every entry of `entries`.
-    pub fn extend(&mut self, entries: &[(u64, [i64; 3])]) {
+    pub fn extend(&mut self, entries: &[(u64, [i64; N])]) {
         self.sums.reserve(entries.len().min(1 << 16));
         for &(p, v) in entries {
             self.add(p, v);
@@ -37,7 +50,7 @@ impl PixelSums {
     }
 
     /// Add every sum of `other`.
-    pub fn absorb(&mut self, other: PixelSums) {
+    pub fn absorb(&mut self, other: PixelSums<N>) {
         if self.sums.is_empty() {
             self.sums = other.sums;
             return;
@@ -58,12 +71,12 @@ impl PixelSums {
     }
 
     /// All sums as (key, sum), in no particular order, leaving this empty.
-    pub fn drain(&mut self) -> Vec<(u64, [i64; 3])> {
+    pub fn drain(&mut self) -> Vec<(u64, [i64; N])> {
         self.sums.drain().collect()
     }
 
     /// Take out the sums `keep` says no to (by key), leaving the rest here.
-    pub fn split_off(&mut self, keep: impl Fn(u64) -> bool) -> Vec<(u64, [i64; 3])> {
+    pub fn split_off(&mut self, keep: impl Fn(u64) -> bool) -> Vec<(u64, [i64; N])> {
         let mut out = Vec::new();
         self.sums.retain(|&k, v| {
             let stay = keep(k);

@@ -10,6 +10,7 @@
 use std::path::Path;
 use std::sync::Arc;
 
+use dray_core::aov::AovSet;
 use dray_core::camera::Camera;
 use dray_core::effects::{Effect, Effects};
 use dray_core::integrator::{IntegratorKind, RayKind, RenderSettings};
@@ -89,6 +90,12 @@ pub fn settings(setup: &JobSetup) -> Result<RenderSettings, JobError> {
             .ok_or(JobError::Missing("spec.ao_samples"))?,
         ao_distance: spec.ao_distance.unwrap_or(f32::INFINITY),
         lighting: lighting(spec)?,
+        clamp_indirect: spec
+            .clamp_indirect
+            .map(dray_core::clamp::check_limit)
+            .transpose()
+            .map_err(|e| JobError::Invalid(format!("clamp_indirect: {e}")))?,
+        aovs: AovSet::parse(&spec.aovs).map_err(|e| JobError::Invalid(format!("aovs: {e}")))?,
     })
 }
 

@@ -12,6 +12,8 @@ use dray_proto::v1::{
     TileCredit, WorkerCounters,
 };
 
+use dray_core::aov::AOV_WORDS;
+
 use crate::domain_store::StoreCounters;
 use crate::jobs::{Job, Report};
 use crate::node::Shared;
@@ -20,6 +22,9 @@ use crate::node::Shared;
 pub const REPORT_INTERVAL: Duration = Duration::from_millis(10);
 /// Contributions per ReportContributions message: about 2 MB, half gRPC's default limit.
 const MAX_SUMS_PER_REPORT: usize = 64 * 1024;
+/// AOV entries per message (eight words each, against a contribution's three): about
+/// the same 2 MB.
+const MAX_AOVS_PER_REPORT: usize = 24 * 1024;
 /// How often queue lengths are reported (the scheduler's input).
 pub const QUEUE_REPORT_INTERVAL: Duration = Duration::from_millis(100);
 
@@ -55,7 +60,23 @@ pub(crate) fn requests(
             shared,
             job,
             *sequence,
-            chunk,
+            (chunk, Vec::new()),
+            Vec::new(),
+            &Report::default(),
+            None,
+        ));
+    }
+    // AOV sums travel like the contributions: before the credit of the same rays.
+    let mut aovs = report.aovs.drain();
+    while aovs.len() > MAX_AOVS_PER_REPORT {
+        let rest = aovs.split_off(MAX_AOVS_PER_REPORT);
+        let chunk = std::mem::replace(&mut aovs, rest);
+        *sequence += 1;
+        out.push(request(
+            shared,
+            job,
+            *sequence,
+            (Vec::new(), chunk),
             Vec::new(),
             &Report::default(),
             None,
@@ -117,13 +138,16 @@ pub(crate) fn requests(
         shared,
         job,
         *sequence,
-        sums,
+        (sums, aovs),
         credits,
         &report,
         Some(counters),
     ));
     out
 }
+
+/// Sums of `N` words by sum key, as a report's chunk carries them.
+type Entries<const N: usize> = Vec<(u64, [i64; N])>;
 
 /// Send `requests` in order, each retried with its sequence number (the coordinator
 /// applies it once); stops at the first that cannot be sent.
@@ -145,7 +169,7 @@ fn request(
     shared: &Shared,
     job: &Job,
     sequence: u64,
-    sums: Vec<(u64, [i64; 3])>,
+    (sums, aovs): (Entries<3>, Entries<AOV_WORDS>),
     credits: Vec<TileCredit>,
     r: &Report,
     counters: Option<WorkerCounters>,
@@ -159,10 +183,13 @@ fn request(
         // The pixel is a sum key's low half (`tracer::pass_tag`).
         pixels: sums.iter().map(|(k, _)| *k as u32).collect(),
         sums: sums.iter().flat_map(|(_, v)| *v).collect(),
+        aov_pixels: aovs.iter().map(|(k, _)| *k as u32).collect(),
+        aov_sums: aovs.iter().flat_map(|(_, v)| *v).collect(),
         credits,
         traced: Some(RayCounts::from_kinds(*t)),
         nonfinite: r.nonfinite,
         clamped: r.clamped,
+        clamped_indirect: r.clamped_indirect,
         ray_bytes_sent: r.bytes,
         failure: r.failure.clone().unwrap_or_default(),
         counters,

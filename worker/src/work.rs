@@ -497,12 +497,14 @@ pub(crate) fn deliver_with(
     }
     let r = &mut report;
     r.sums.extend(&out.sums);
+    r.aovs.extend(&out.aovs);
     r.credits.append(&mut out.credits);
     for (k, n) in out.traced.iter().enumerate() {
         r.traced[k] += n;
     }
     r.nonfinite += out.nonfinite;
     r.clamped += out.clamped;
+    r.clamped_indirect += out.clamped_indirect;
     r.tickets.merge(std::mem::take(&mut out.tickets));
     r.bytes += sent * RAY_RECORD_BYTES as u64;
     r.rays_sent += sent;

@@ -94,6 +94,8 @@ fn settings(scene: &dray_core::scene::Scene) -> RenderSettings {
         ao_samples: 4,
         ao_distance: f32::INFINITY,
         lighting: Default::default(),
+        clamp_indirect: None,
+        aovs: Default::default(),
     }
 }
 

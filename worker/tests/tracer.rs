@@ -44,6 +44,8 @@ fn settings(scene: &Scene, kind: IntegratorKind, w: u32, h: u32, spp: u32) -> Re
         ao_samples: 4,
         ao_distance: f32::INFINITY,
         lighting: Default::default(),
+        clamp_indirect: None,
+        aovs: Default::default(),
     }
 }
 

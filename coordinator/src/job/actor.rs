@@ -629,6 +629,7 @@ impl JobActor {
             mut film,
             nonfinite,
             clamped,
+            clamped_indirect,
             caches,
             ..
         } = self.job;
@@ -637,6 +638,7 @@ impl JobActor {
         }
         film.nonfinite = nonfinite;
         film.clamped = clamped;
+        film.clamped_indirect = clamped_indirect;
         let film = (state == JobState::Succeeded).then_some(film);
         entry.finish(state, error, film);
         remove_package(owned_package.as_ref());

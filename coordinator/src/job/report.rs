@@ -18,6 +18,7 @@
 use std::collections::BTreeSet;
 use std::time::Instant;
 
+use dray_core::aov::AOV_WORDS;
 use dray_core::credit::Credit;
 use dray_proto::v1::{RayCounts, ReportContributionsRequest};
 use tonic::Status;
@@ -144,6 +145,7 @@ pub fn check(
             r.pixels[i / 3]
         )));
     }
+    check_aovs(job, r)?;
     if let Some(c) = r
         .credits
         .iter()
@@ -159,6 +161,44 @@ pub fn check(
         metrics::check(c).map_err(|e| Status::invalid_argument(e.to_string()))?;
     }
     Ok(None)
+}
+
+/// A report's AOV sums: only for a job that writes AOVs, eight words per pixel, every
+/// pixel inside the film, and the words that cannot be negative (albedo, depth, hits)
+/// not negative.
+fn check_aovs(job: &RunningJob, r: &ReportContributionsRequest) -> Result<(), Status> {
+    if r.aov_pixels.is_empty() && r.aov_sums.is_empty() {
+        return Ok(());
+    }
+    if job.film.aovs.is_none() {
+        return Err(Status::invalid_argument(format!(
+            "aov_pixels: job {:?} writes no AOVs",
+            r.job_id
+        )));
+    }
+    if r.aov_sums.len() != AOV_WORDS * r.aov_pixels.len() {
+        return Err(Status::invalid_argument(format!(
+            "aov_sums: {} values for {} pixels ({AOV_WORDS} per pixel expected)",
+            r.aov_sums.len(),
+            r.aov_pixels.len()
+        )));
+    }
+    let npix = u64::from(job.film.width) * u64::from(job.film.height);
+    if let Some(p) = r.aov_pixels.iter().find(|&&p| u64::from(p) >= npix) {
+        return Err(Status::invalid_argument(format!(
+            "aov_pixels: {p} is outside the {}x{} image",
+            job.film.width, job.film.height
+        )));
+    }
+    for (i, v) in r.aov_sums.chunks_exact(AOV_WORDS).enumerate() {
+        if [0, 1, 2, 6, 7].iter().any(|&w| v[w] < 0) {
+            return Err(Status::invalid_argument(format!(
+                "aov_sums: pixel {}'s albedo, depth or hit count is negative",
+                r.aov_pixels[i]
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// What applying a report found, for the actor's transitions.
@@ -189,6 +229,12 @@ pub fn apply(job: &mut RunningJob, r: &ReportContributionsRequest) -> Applied {
     }
     // `check` made it three sums per pixel, every pixel inside the film.
     job.film.add_fixed_run(&r.pixels, &r.sums);
+    // `check_aovs` made them eight words per pixel, every pixel inside the film.
+    if let Some(a) = job.film.aovs.as_mut() {
+        for (&p, v) in r.aov_pixels.iter().zip(r.aov_sums.chunks_exact(AOV_WORDS)) {
+            a.add_fixed(p, &std::array::from_fn(|w| v[w]));
+        }
+    }
     let mut overdrawn = None;
     for c in &r.credits {
         let t = c.tile as usize;
@@ -219,6 +265,7 @@ pub fn apply(job: &mut RunningJob, r: &ReportContributionsRequest) -> Applied {
     }
     job.nonfinite += r.nonfinite;
     job.clamped = job.clamped.saturating_add(r.clamped);
+    job.clamped_indirect = job.clamped_indirect.saturating_add(r.clamped_indirect);
     job.ray_bytes_sent += r.ray_bytes_sent;
     if let Some(t) = r.counters.as_ref().and_then(|c| c.traffic.as_ref()) {
         crate::traffic::add(&mut job.traffic, t);

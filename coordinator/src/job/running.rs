@@ -23,6 +23,7 @@ use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use dray_core::aov::AovSet;
 use dray_core::film::Film;
 use dray_proto::v1::{
     Assignment, JobRelease, JobSetup, JobState, RayCounts, ReportQueuesRequest, Tile,
@@ -91,6 +92,8 @@ pub struct RunningJob {
     pub(super) nonfinite: u64,
     /// Contributions the workers clamped to the film's largest.
     pub(super) clamped: u64,
+    /// Contributions the workers scaled down by `--clamp-indirect`.
+    pub(super) clamped_indirect: u64,
     pub(super) ray_bytes_sent: u64,
     /// Bytes between processes by kind, summed over the workers' reports.
     pub(super) traffic: dray_proto::v1::TrafficStats,
@@ -154,12 +157,14 @@ impl RunningJob {
             resume,
         } = plan;
         let (w, h) = (entry.spec.width, entry.spec.height);
+        // Validated when the job was accepted.
+        let aovs = AovSet::parse(&entry.spec.aovs).unwrap_or(AovSet::NONE);
         let mut metrics = JobMetrics::default();
         for id in sched.worker_ids() {
             metrics.add_worker(&id);
         }
         let image_tiles = tiles.iter().filter(|t| !t.coarse).count();
-        let pass_next = (entry.passes.total() > 1).then(|| Film::new(w, h));
+        let pass_next = (entry.passes.total() > 1).then(|| Film::with_aovs(w, h, aovs));
         let held = (setup.passes_ahead > 0).then(|| super::ahead::Held::new(image_tiles));
         entry.update_stats(|s| s.passes_ahead = setup.passes_ahead);
         let mut job = RunningJob {
@@ -173,11 +178,12 @@ impl RunningJob {
             tiles,
             tiles_done: 0,
             tiles_retried: 0,
-            film: Film::new(w, h),
+            film: Film::with_aovs(w, h, aovs),
             seen: HashMap::new(),
             rays: RayCounts::default(),
             nonfinite: 0,
             clamped: 0,
+            clamped_indirect: 0,
             ray_bytes_sent: 0,
             traffic: Default::default(),
             cpu: crate::cpu_tally::CpuTally::here(),
@@ -257,11 +263,11 @@ impl RunningJob {
             // Every tile of the next image is written before it is shown, so the image
             // before this one can hold it when no reader has it any more (no new
             // allocation, and its pages are already mapped).
-            let (w, h) = (self.film.width, self.film.height);
+            let (w, h, aovs) = (self.film.width, self.film.height, self.film.aov_set());
             previous
                 .and_then(|p| Arc::try_unwrap(p).ok())
-                .filter(|f| (f.width, f.height) == (w, h))
-                .unwrap_or_else(|| Film::new(w, h))
+                .filter(|f| (f.width, f.height, f.aov_set()) == (w, h, aovs))
+                .unwrap_or_else(|| Film::with_aovs(w, h, aovs))
         });
         self.tiles_done = 0;
         for t in 0..self.image_tiles {
@@ -284,11 +290,9 @@ impl RunningJob {
         let width = self.film.width;
         for y in x.y0..x.y0.saturating_add(x.height).min(self.film.height) {
             for xx in x.x0..x.x0.saturating_add(x.width).min(width) {
-                let p = y * width + xx;
                 // The next image's pixel may hold an older pass's sums (a reused
-                // buffer): adding the difference sets it exactly.
-                let (now, old) = (self.film.sum_fixed(p), next.sum_fixed(p));
-                next.add_fixed(p, std::array::from_fn(|c| now[c].wrapping_sub(old[c])));
+                // buffer): it is set, not added to.
+                next.set_pixel_from(y * width + xx, Some(&self.film));
                 self.pass_copied += 1;
             }
         }
@@ -693,11 +697,8 @@ impl RunningJob {
         let width = self.film.width;
         for y in tile.y0..tile.y0.saturating_add(tile.height).min(self.film.height) {
             for x in tile.x0..tile.x0.saturating_add(tile.width).min(width) {
-                let p = y * width + x;
-                let s = self.film.sum_fixed(p);
-                let base = self.pass_base.as_ref().map_or([0; 3], |b| b.sum_fixed(p));
                 self.film
-                    .add_fixed(p, std::array::from_fn(|c| base[c].wrapping_sub(s[c])));
+                    .set_pixel_from(y * width + x, self.pass_base.as_deref());
             }
         }
         self.tile_back[t] = 0;
@@ -734,6 +735,7 @@ impl RunningJob {
             s.rays = Some(self.rays);
             s.nonfinite = self.nonfinite;
             s.clamped = self.clamped;
+            s.clamped_indirect = self.clamped_indirect;
             s.ray_bytes_sent = self.ray_bytes_sent;
             s.traffic = Some(self.traffic);
             s.cpu_seconds = self.cpu.seconds();

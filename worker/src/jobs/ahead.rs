@@ -13,6 +13,7 @@
 
 use std::collections::BTreeMap;
 
+use dray_core::aov::AOV_WORDS;
 use dray_core::credit::Credit;
 
 use super::report::Report;
@@ -33,6 +34,7 @@ pub(crate) struct Ahead {
 #[derive(Debug, Default)]
 struct Held {
     sums: PixelSums,
+    aovs: PixelSums<AOV_WORDS>,
     credits: Vec<(u32, Credit)>,
 }
 
@@ -61,6 +63,13 @@ impl Ahead {
                 .sums
                 .add(key, v);
         }
+        for (key, v) in report.aovs.split_off(|k| split_sum_key(k).0 <= pass) {
+            self.held
+                .entry(split_sum_key(key).0)
+                .or_default()
+                .aovs
+                .add(key, v);
+        }
         let held = &mut self.held;
         report.credits.retain(|&(key, credit)| {
             let p = split_tile_key(key).0;
@@ -82,6 +91,7 @@ impl Ahead {
         let later = self.held.split_off(&(pass + 1));
         for (_, h) in std::mem::replace(&mut self.held, later) {
             report.sums.absorb(h.sums);
+            report.aovs.absorb(h.aovs);
             report.credits.extend(h.credits);
         }
         true

@@ -7,6 +7,7 @@
 //! tracing step's results travel as one `Report`, so they always land in the same report
 //! to the coordinator: no credit arrives there before the contributions of its rays.
 
+use dray_core::aov::AOV_WORDS;
 use dray_core::credit::Credit;
 use dray_core::integrator::RayKind;
 
@@ -17,10 +18,14 @@ use crate::tickets::TicketLedger;
 #[derive(Default)]
 pub struct Report {
     pub sums: PixelSums,
+    /// AOV sums of first hits (`dray_core::aov`), merged by sum key as `sums`.
+    pub aovs: PixelSums<AOV_WORDS>,
     pub credits: Vec<(u32, Credit)>,
     pub traced: [u64; RayKind::COUNT],
     pub nonfinite: u64,
     pub clamped: u64,
+    /// Contributions scaled down by `--clamp-indirect`.
+    pub clamped_indirect: u64,
     pub bytes: u64,
     pub rays_sent: u64,
     pub rays_forwarded: u64,
@@ -51,10 +56,12 @@ impl Report {
     /// next report, or with the queue report's tick).
     pub fn is_empty(&self) -> bool {
         self.sums.is_empty()
+            && self.aovs.is_empty()
             && self.credits.is_empty()
             && self.traced.iter().all(|&n| n == 0)
             && self.nonfinite == 0
             && self.clamped == 0
+            && self.clamped_indirect == 0
             && self.bytes == 0
             && self.rays_sent == 0
             && self.rays_forwarded == 0
@@ -74,10 +81,12 @@ impl Report {
     pub fn absorb(&mut self, other: Report) {
         let Report {
             sums,
+            aovs,
             mut credits,
             traced,
             nonfinite,
             clamped,
+            clamped_indirect,
             bytes,
             rays_sent,
             rays_forwarded,
@@ -93,12 +102,14 @@ impl Report {
             traffic,
         } = other;
         self.sums.absorb(sums);
+        self.aovs.absorb(aovs);
         self.credits.append(&mut credits);
         for (k, n) in traced.iter().enumerate() {
             self.traced[k] += n;
         }
         self.nonfinite += nonfinite;
         self.clamped += clamped;
+        self.clamped_indirect += clamped_indirect;
         self.bytes += bytes;
         self.rays_sent += rays_sent;
         self.rays_forwarded += rays_forwarded;

@@ -3,6 +3,7 @@
 
 use std::collections::HashMap;
 
+use dray_core::aov::{AOV_WORDS, FirstHit, add_aov_sums};
 use dray_core::credit::Credit;
 use dray_core::film::{add_sums, to_fixed_clamped};
 use dray_core::integrator::RayKind;
@@ -24,6 +25,9 @@ pub struct Outbox {
     /// sums are exact in any grouping; the worker merges them per report, see
     /// `pixel_sums`).
     pub sums: Vec<(u64, [i64; 3])>,
+    /// AOV sums of camera rays' first hits (`dray_core::aov`), by sum key as `sums`;
+    /// empty unless the job writes AOVs that need them.
+    pub aovs: Vec<(u64, [i64; AOV_WORDS])>,
     /// Credit handed back by rays that terminated, by tile key (the tile, and the pass of
     /// a job that traces passes ahead); a key may repeat, but consecutive returns to one
     /// key share an entry.
@@ -48,6 +52,9 @@ pub struct Outbox {
     /// Contributions with a component clamped to the film's largest
     /// (`dray_core::film::MAX_CONTRIBUTION`).
     pub clamped: u64,
+    /// Contributions of indirect light scaled down by `--clamp-indirect`
+    /// (`dray_core::clamp`).
+    pub clamped_indirect: u64,
     /// Rays a hit map consulted in place skipped or occluded on their way to another
     /// worker's domain: rays not sent.
     pub phm_not_sent: u64,
@@ -59,6 +66,7 @@ impl Outbox {
     /// Whether nothing is waiting to be reported or sent.
     pub fn is_empty(&self) -> bool {
         self.sums.is_empty()
+            && self.aovs.is_empty()
             && self.credits.is_empty()
             && self.rays.values().all(RayBundle::is_empty)
             && self.lookups.is_empty()
@@ -67,6 +75,7 @@ impl Outbox {
             && self.traced.iter().all(|&n| n == 0)
             && self.nonfinite == 0
             && self.clamped == 0
+            && self.clamped_indirect == 0
     }
 
     /// Rays waiting to be sent.
@@ -96,6 +105,24 @@ impl Outbox {
                 }
             }
             None => self.nonfinite += 1,
+        }
+    }
+
+    /// A camera ray's first hit on `pixel`, of tile key `tile`, for the AOVs (none for a
+    /// coarse-pass ray, which adds nothing to the image). A non-finite one is dropped,
+    /// as a non-finite contribution is.
+    #[inline]
+    pub(super) fn add_first_hit(&mut self, pixel: u32, tile: u32, hit: &FirstHit, lin: &Lineage) {
+        if lin.coarse {
+            return;
+        }
+        let Some(f) = hit.to_fixed() else {
+            return;
+        };
+        let key = sum_key(pixel, tile);
+        match self.aovs.last_mut() {
+            Some((k, s)) if *k == key => add_aov_sums(s, &f),
+            _ => self.aovs.push((key, f)),
         }
     }
 

@@ -79,6 +79,8 @@ impl Fixture {
             ao_samples: 2,
             ao_distance: f32::INFINITY,
             lighting: Default::default(),
+            clamp_indirect: None,
+            aovs: Default::default(),
         };
         let layout = DomainLayout::for_source(&scene, &spec).expect("layout");
         let mut counts = vec![0u64; layout.domain_count() as usize];

@@ -1,6 +1,7 @@
 //! Tracing rays in the domains traced here: a ray's span in its domain, its hit shaded,
 //! and each ray it makes routed on.
 
+use dray_core::aov::FirstHit;
 use dray_core::bvh::Hit;
 use dray_core::credit::Credit;
 use dray_core::domain::{Hop, Span};
@@ -61,6 +62,12 @@ impl Sink for HitSink<'_> {
     fn spawn(&mut self, ray: RayState) {
         self.children.push(ray);
     }
+    fn clamped_indirect(&mut self) {
+        self.out.clamped_indirect += 1;
+    }
+    fn first_hit(&mut self, pixel: u32, hit: &FirstHit) {
+        self.out.add_first_hit(pixel, self.tile, hit, self.lineage);
+    }
 }
 
 /// The sink of a ray's last step (a miss, an unblocked occlusion ray): contributions go
@@ -79,6 +86,9 @@ impl Sink for ContributionsOnly<'_> {
     }
     fn spawn(&mut self, _ray: RayState) {
         debug_assert!(false, "a miss or an occlusion result made a ray");
+    }
+    fn clamped_indirect(&mut self) {
+        self.out.clamped_indirect += 1;
     }
 }
 
