@@ -285,7 +285,7 @@ mod tests {
         h: usize,
         f: impl Fn(usize, usize) -> (f32, f32, f32) + Sync,
     ) {
-        exr::prelude::write_rgb_file(path, w, h, |x, y| f(x, y)).unwrap();
+        exr::prelude::write_rgb_file(path, w, h, f).unwrap();
     }
 
     #[test]
