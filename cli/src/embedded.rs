@@ -72,6 +72,11 @@ pub fn render_on_actors(
     )?;
     // The caller translated the scene it hands over.
     spec.translate = None;
+    // The in-process coordinator's scene root is `/`: the map is named as `dray render`
+    // was given it, from its working directory.
+    if let Some(e) = spec.lighting.as_mut().and_then(|l| l.env_map.as_mut()) {
+        e.path = absolute_scene(&e.path);
+    }
     // Nobody watches an embedded render's passes, and each pass waits for its slowest
     // tile (14% of the wall time of a 16-spp bunny with doubling passes, 2 threads): one
     // pass unless asked. The image is the same bits either way.

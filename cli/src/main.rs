@@ -95,9 +95,18 @@ fn main() -> std::process::ExitCode {
                     std::process::ExitCode::SUCCESS
                 };
             }
-            // One line, like every other error: clap's first line without its prefix.
+            // One line, like every other error: clap's first line without its prefix
+            // (and, for missing arguments, the indented lines naming them, which clap
+            // puts under it).
             let text = e.to_string();
-            let first = text.lines().next().unwrap_or("invalid arguments");
+            let mut lines = text.lines();
+            let mut first = lines.next().unwrap_or("invalid arguments").to_string();
+            if e.kind() == ErrorKind::MissingRequiredArgument {
+                for l in lines.take_while(|l| l.starts_with("  ")) {
+                    first.push(' ');
+                    first.push_str(l.trim());
+                }
+            }
             eprintln!(
                 "dray: error: {} (see dray --help)",
                 first.trim_start_matches("error: ")

@@ -355,8 +355,22 @@ pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Resul
     let load_time = start.elapsed();
     // The lights as the coordinator resolves them from the spec, so `--workers 0` and
     // workers render the same lights.
-    let lighting = dray_coordinator::lighting::check_lighting(&mut a.job.lights.lighting_spec())
-        .map_err(|e| anyhow::anyhow!("--sun: {}", e.message()))?;
+    let mut lighting_spec = a.job.lights.lighting_spec();
+    let flag_err =
+        |e: tonic::Status| anyhow::anyhow!("{}", crate::light_flags::flag_error(e.message()));
+    let mut lighting =
+        dray_coordinator::lighting::check_lighting(&mut lighting_spec).map_err(flag_err)?;
+    // The map is read from here (no scene root); with workers the in-process
+    // coordinator reads it again for them (docs/lights.md).
+    if let Some(e) = lighting_spec.as_ref().and_then(|l| l.env_map.as_ref()) {
+        let loaded = dray_coordinator::lighting::load_env_map(
+            e,
+            std::path::Path::new(&e.path),
+            "lighting.env_map.path",
+        )
+        .map_err(flag_err)?;
+        lighting.env_map = Some(loaded.map);
+    }
     let environment =
         env_arg.unwrap_or_else(|| dray_scene::effects::default_environment_lit(&scene, &lighting));
     let mut effects = dray_scene::effects::analyze_lit(&scene, environment, &lighting);

@@ -48,7 +48,7 @@ use std::sync::Arc;
 use dray_core::credit::Credit;
 use dray_core::scene::Scene;
 use dray_core::tiles::TileGrid;
-use dray_proto::v1::{JobSetup, JobSpec, JobState, Rgb, Tile};
+use dray_proto::v1::{EnvMapFile, JobSetup, JobSpec, JobState, Rgb, Tile};
 use dray_scene::partition::checksum::{checksum, to_hex};
 use dray_scene::partition::manifest::MANIFEST_FILE;
 use dray_scene::partition::memory::{MemoryPackage, MemoryPackages};
@@ -62,6 +62,7 @@ use crate::cluster::Cluster;
 use crate::job::JobPlan;
 use crate::jobs::JobEntry;
 use crate::membership::Membership;
+use crate::lighting::LoadedEnvMap;
 use crate::owned_package::{OwnedPackage, remove_package};
 use crate::scheduler::Schedule;
 use crate::scheduler::auto::{self, Choice, JobNeeds, SceneSize};
@@ -327,6 +328,9 @@ pub struct PreparedSummary {
     pub effects: Vec<String>,
     /// Triangles in the scene.
     pub triangles: u64,
+    /// The environment map, when the job has one: its file for the workers, and the
+    /// decoded map for workers in this process.
+    pub env_map: Option<LoadedEnvMap>,
 }
 
 /// Plan a prepared job for workers: resolve `spec` (camera index, no translate) and keep
@@ -345,6 +349,7 @@ pub fn plan(mut p: Prepared, mut spec: JobSpec, layout: LayoutSpec, choice: Choi
             .map(String::from)
             .collect(),
         triangles: p.triangles,
+        env_map: p.env_map.take(),
     };
     spec.translate = None;
     // A view travels resolved in the spec, and workers build the camera from it.
@@ -544,6 +549,22 @@ async fn run(
         _ => None,
     };
     let env = prepared.environment;
+    // Workers in this process take the decoded map from memory, the others the file.
+    let (env_map, owned) = match (prepared.env_map.clone(), &cluster.options.memory_packages) {
+        (Some(e), Some(store)) => {
+            let name = store.insert_env_map(e.map);
+            let owned_map = OwnedPackage::Memory {
+                store: store.clone(),
+                name: name.clone(),
+            };
+            let file = EnvMapFile {
+                path: name,
+                ..e.file
+            };
+            (Some(file), OwnedPackage::with(owned, owned_map))
+        }
+        (e, _) => (e.map(|e| e.file), owned),
+    };
     let setup = JobSetup {
         job_id: entry.id.clone(),
         spec: Some(setup_spec),
@@ -567,6 +588,7 @@ async fn run(
         // Set below, once the tiles are known.
         passes_ahead: 0,
         pass: 0,
+        env_map,
     };
     let mut setup = setup;
     let mut tiles = image_tiles(entry.spec.width, entry.spec.height);

@@ -3,7 +3,8 @@
 //! A package the coordinator wrote from a scene belongs to that job: a directory in the
 //! work directory on a cluster, or an entry of the in-memory store when the workers share
 //! the coordinator's process (`dray render`). A package the job was submitted as is the
-//! user's and is never removed, so it has no `OwnedPackage`.
+//! user's and is never removed, so it has no `OwnedPackage`. A job's environment map,
+//! decoded into the in-memory store for workers in the process, goes with it too.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -22,6 +23,8 @@ pub enum OwnedPackage {
         /// The entry (`memory:N`).
         name: String,
     },
+    /// Several of these: a job's package and its environment map in memory.
+    Many(Vec<OwnedPackage>),
 }
 
 impl OwnedPackage {
@@ -36,7 +39,20 @@ impl OwnedPackage {
                 }
             }
             OwnedPackage::Memory { store, name } => store.remove(name),
+            OwnedPackage::Many(all) => all.iter().for_each(OwnedPackage::remove),
         }
+    }
+
+    /// `first` (if any) and `more`, removed together.
+    pub fn with(first: Option<OwnedPackage>, more: OwnedPackage) -> Option<OwnedPackage> {
+        Some(match first {
+            None => more,
+            Some(OwnedPackage::Many(mut all)) => {
+                all.push(more);
+                OwnedPackage::Many(all)
+            }
+            Some(p) => OwnedPackage::Many(vec![p, more]),
+        })
     }
 }
 

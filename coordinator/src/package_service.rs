@@ -8,6 +8,13 @@
 //! must be listed by the manifest, the path must be a regular file (not a symlink, device
 //! or FIFO) inside the package directory, and the file opened must be the one checked.
 //! So no request, however it is spelt, reads anything outside the package directory.
+//!
+//! **The environment map.** A job with `lighting.env_map` has one more file: its map,
+//! served by the name its setup gives it (`JobSetup.env_map.name`,
+//! `env-map-<xxh3>.<ext>`), read from the path the coordinator resolved under its scene
+//! root when it accepted the job (a regular file, its size checked against the setup's),
+//! with the checksum it computed then. Only that name, only for that job, only while it
+//! runs.
 //! The service is a cluster service (`dray_net::auth` classes it by path): the cluster
 //! token is required and the API token refused.
 //!
@@ -220,6 +227,9 @@ impl PackageService for PackageApi {
     ) -> Result<Response<Self::FetchFileStream>, Status> {
         let r = r.into_inner();
         let name = plain_file_name(&r.path)?.to_string();
+        if name.starts_with(crate::lighting::ENV_MAP_FILE_PREFIX) {
+            return self.fetch_env_map(r, name).await;
+        }
         let files = self.files(&r.job_id).await?;
         if !r.package_checksum.is_empty() && r.package_checksum != files.checksum {
             return Err(Status::failed_precondition(format!(
@@ -254,6 +264,72 @@ impl PackageService for PackageApi {
         }
         let (tx, rx) = tokio::sync::mpsc::channel(CHUNKS_AHEAD);
         tokio::spawn(send_file(file, name, r.offset, len, listed.xxh3, tx));
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+}
+
+impl PackageApi {
+    /// FetchFile of job `r.job_id`'s environment map, named `name`.
+    async fn fetch_env_map(
+        &self,
+        r: FetchFileRequest,
+        name: String,
+    ) -> Result<Response<ReceiverStream<Result<FileChunk, Status>>>, Status> {
+        let Some((_, checksum)) = self.jobs.package(&r.job_id) else {
+            return Err(Status::not_found(format!(
+                "job {:?} is not running on workers: there is no environment map to fetch",
+                r.job_id
+            )));
+        };
+        if !r.package_checksum.is_empty() && r.package_checksum != checksum {
+            return Err(Status::failed_precondition(format!(
+                "job {:?} runs package {checksum}, not {}",
+                r.job_id, r.package_checksum
+            )));
+        }
+        let file = self
+            .jobs
+            .env_map(&r.job_id)
+            .filter(|f| f.name == name)
+            .ok_or_else(|| {
+                Status::not_found(format!(
+                    "{name:?} is not the environment map of job {:?}",
+                    r.job_id
+                ))
+            })?;
+        if is_memory_package(&file.path) {
+            return Err(Status::failed_precondition(format!(
+                "job {:?}'s environment map is held in the coordinator's memory, not on disk",
+                r.job_id
+            )));
+        }
+        let path = PathBuf::from(&file.path);
+        let (dir, base) = match (path.parent(), path.file_name().and_then(|n| n.to_str())) {
+            (Some(d), Some(b)) => (d.to_path_buf(), b.to_string()),
+            _ => {
+                return Err(Status::internal(
+                    "the environment map's path has no file name",
+                ));
+            }
+        };
+        let (f, len) = tokio::task::spawn_blocking(move || open_in(&dir, &base))
+            .await
+            .map_err(|e| Status::internal(format!("file opening task died: {e}")))??;
+        if len != file.bytes {
+            return Err(Status::data_loss(format!(
+                "the environment map is {len} bytes on the coordinator, but was {} when the \
+                 job was accepted (it changed since)",
+                file.bytes
+            )));
+        }
+        if r.offset > len {
+            return Err(Status::out_of_range(format!(
+                "offset {} is past the end of {name:?} ({len} bytes)",
+                r.offset
+            )));
+        }
+        let (tx, rx) = tokio::sync::mpsc::channel(CHUNKS_AHEAD);
+        tokio::spawn(send_file(f, name, r.offset, len, file.xxh3, tx));
         Ok(Response::new(ReceiverStream::new(rx)))
     }
 }

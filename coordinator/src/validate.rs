@@ -113,10 +113,13 @@ pub struct Validated {
     pub effects: Vec<(Effect, bool)>,
     /// Explicit environment radiance.
     pub env: Option<Vec3>,
-    /// The lights the spec adds (`spec.lighting`, defaults filled in).
+    /// The lights the spec adds (`spec.lighting`, defaults filled in), without the
+    /// environment map, which [`prepare`] reads.
     pub lighting: Lighting,
     /// The AOVs the job writes (`spec.aovs`).
     pub aovs: AovSet,
+    /// `spec.lighting.env_map.path` resolved under the scene root (canonical).
+    pub env_map_path: Option<PathBuf>,
     /// Scene offset.
     pub translate: Option<Vec3>,
     /// The scene is a scene package at this (canonical) directory.
@@ -269,6 +272,12 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
     let aovs = AovSet::parse(&spec.aovs).map_err(|e| bad(format!("aovs: {e}")))?;
     // In one order, so equal sets read alike in GetJob.
     spec.aovs = aovs.names();
+    let env_map_path = spec
+        .lighting
+        .as_ref()
+        .and_then(|l| l.env_map.as_ref())
+        .map(|e| crate::lighting::resolve_env_map_path(&e.path, scene_root))
+        .transpose()?;
     let domains_auto = spec.domains == 0;
     if spec.domains == 0 {
         spec.domains = 1;
@@ -316,6 +325,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         env,
         lighting,
         aovs,
+        env_map_path,
         translate,
         domains_auto,
         schedule,
@@ -572,6 +582,9 @@ pub struct Prepared {
     pub view: Option<dray_proto::v1::CameraSpec>,
     /// Everything the integrator needs.
     pub settings: RenderSettings,
+    /// The environment map's file, for the workers (`JobSetup.env_map`); its decoded
+    /// map is `settings.lighting.env_map`.
+    pub env_map: Option<crate::lighting::LoadedEnvMap>,
 }
 
 /// Load the scene and make the scene-dependent checks (camera, effects), exactly as
@@ -613,10 +626,23 @@ pub fn prepare(
         Some(p) => p.manifest().source_triangles,
         None => scene.mesh.triangle_count() as u64,
     };
+    let env_map = match (
+        &v.env_map_path,
+        s.lighting.as_ref().and_then(|l| l.env_map.as_ref()),
+    ) {
+        (Some(path), Some(spec)) => Some(crate::lighting::load_env_map(
+            spec,
+            path,
+            "lighting.env_map.path",
+        )?),
+        _ => None,
+    };
+    let mut lighting = v.lighting.clone();
+    lighting.env_map = env_map.as_ref().map(|e| e.map.clone());
     let environment = v
         .env
-        .unwrap_or_else(|| dray_scene::effects::default_environment_lit(&scene, &v.lighting));
-    let mut effects = dray_scene::effects::analyze_lit(&scene, environment, &v.lighting);
+        .unwrap_or_else(|| dray_scene::effects::default_environment_lit(&scene, &lighting));
+    let mut effects = dray_scene::effects::analyze_lit(&scene, environment, &lighting);
     for (e, on) in &v.effects {
         effects.set(*e, *on);
     }
@@ -654,7 +680,7 @@ pub fn prepare(
         effects,
         ao_samples: s.ao_samples.unwrap_or(DEFAULT_AO_SAMPLES),
         ao_distance: s.ao_distance.unwrap_or(f32::INFINITY),
-        lighting: v.lighting.clone(),
+        lighting,
         clamp_indirect: s.clamp_indirect,
         aovs: v.aovs,
     };
@@ -665,13 +691,14 @@ pub fn prepare(
         camera,
         view,
         settings,
+        env_map,
     })
 }
 
 /// `message` with the scene's canonical path (which starts with the coordinator's
 /// scene root, a detail of its file system) written as the client gave it (issue 45,
 /// item 11: API errors showed the absolute scene root).
-fn as_given(message: &str, canonical: &str, given: &str) -> String {
+pub(crate) fn as_given(message: &str, canonical: &str, given: &str) -> String {
     if canonical.is_empty() {
         return message.to_string();
     }

@@ -1,4 +1,4 @@
-//! An environment map (`--env-map FILE`, not yet wired to the flags): an
+//! An environment map (`--env-map FILE`, read by [`crate::env_map_file`]): an
 //! equirectangular image of the radiance arriving from every direction, looked up per
 //! pixel (piecewise constant, so the importance sampler's density is exactly
 //! proportional to what it samples) and importance-sampled by a [`Distribution2D`]

@@ -26,6 +26,7 @@ pub mod display;
 pub mod distribution;
 pub mod domain;
 pub mod env_map;
+pub mod env_map_file;
 pub mod exposure;
 pub mod film;
 pub mod integrator;

@@ -113,11 +113,17 @@ pub fn default_environment_lit(scene: &Scene, lighting: &Lighting) -> Vec3 {
 }
 
 /// [`analyze`] for `scene` lit by the job's `lighting` as well: a sun is the effect
-/// [`Effect::Sun`] and needs direct light.
+/// [`Effect::Sun`], an environment map [`Effect::EnvMap`], and each needs direct light
+/// (the light sample each shaded hit takes). Without them neither effect is on, so a
+/// job without them pays nothing.
 pub fn analyze_lit(scene: &Scene, environment: Vec3, lighting: &Lighting) -> Effects {
     let mut fx = analyze(scene, environment);
     if lighting.sun.is_some() {
         fx.set(Effect::Sun, true);
+        fx.set(Effect::DirectLight, true);
+    }
+    if lighting.env_map.is_some() {
+        fx.set(Effect::EnvMap, true);
         fx.set(Effect::DirectLight, true);
     }
     fx

@@ -22,6 +22,7 @@ pub mod config;
 pub(crate) mod contain;
 pub(crate) mod coordinator_link;
 pub mod domain_store;
+pub mod env_map;
 pub mod jobs;
 pub mod map_merge;
 pub(crate) mod metrics;

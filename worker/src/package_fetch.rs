@@ -10,7 +10,8 @@
 //! **What, and when.** The manifest first (at job setup, checked against the setup's
 //! package checksum), then the files every domain shares (emitters, textures), then each
 //! domain file when the domain store first loads that domain, on the tracing thread that
-//! needs it: a worker downloads only the domains it traces.
+//! needs it: a worker downloads only the domains it traces. A job's environment map is
+//! one more file of its package here, fetched at setup (`crate::env_map`).
 //!
 //! **Where.** Under a cache directory, one sub-directory per package named by its
 //! manifest checksum, so later jobs of the same package (a sweep, a retried attempt)
@@ -285,6 +286,11 @@ impl PackageFetcher {
     /// The cache directory.
     pub fn root(&self) -> &Path {
         &self.root
+    }
+
+    /// When this fetcher fetches.
+    pub fn mode(&self) -> FetchMode {
+        self.mode
     }
 
     /// Whether a job whose package is at `path` (as the coordinator sees it), with

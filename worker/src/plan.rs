@@ -101,6 +101,8 @@ pub fn settings(setup: &JobSetup) -> Result<RenderSettings, JobError> {
 
 /// The lights the spec adds, as the coordinator resolved them (every default filled
 /// in, so nothing here can pick another value than the coordinator's renderer did).
+/// The environment map, which needs its file, is added by [`plan_job_with`]
+/// (`crate::env_map`).
 fn lighting(spec: &dray_proto::v1::JobSpec) -> Result<Lighting, JobError> {
     let Some(sun) = spec.lighting.as_ref().and_then(|l| l.sun.as_ref()) else {
         return Ok(Lighting::default());
@@ -157,7 +159,8 @@ pub fn plan_job_with(
     memory: Option<&MemoryPackages>,
     fetcher: Option<&Arc<PackageFetcher>>,
 ) -> Result<JobPlan, JobError> {
-    let settings = settings(setup)?;
+    let mut settings = settings(setup)?;
+    settings.lighting.env_map = crate::env_map::job_env_map(setup, memory, fetcher)?;
     if is_memory_package(&setup.package_path) {
         return memory_plan(setup, settings, memory);
     }

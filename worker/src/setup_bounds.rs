@@ -145,6 +145,17 @@ pub fn check_setup(setup: &JobSetup) -> Result<(), BoundError> {
             at_most("spec.phm.kinds (bytes)", p.kinds.len(), MAX_ID_BYTES)?;
         }
     }
+    if let Some(e) = &setup.env_map {
+        at_most("env_map.path (bytes)", e.path.len(), MAX_PATH_BYTES)?;
+        at_most("env_map.name (bytes)", e.name.len(), MAX_ID_BYTES)?;
+        at_most("env_map.xxh3 (bytes)", e.xxh3.len(), MAX_ID_BYTES)?;
+        within(
+            "env_map.bytes",
+            e.bytes,
+            1,
+            dray_core::env_map_file::MAX_ENV_MAP_FILE_BYTES,
+        )?;
+    }
     if let Some(t) = &setup.routing {
         check_routing(t, setup.domain_count)?;
     }

@@ -5,8 +5,8 @@
 
 use dray_proto::v1::camera_spec::Orbit;
 use dray_proto::v1::{
-    CameraSpec, Job, JobProgress, JobSpec, JobState, JobStats, ListJobsResponse,
-    ListWorkersResponse, Vec3, WorkerJobStats, WorkerStatus,
+    CameraSpec, EnvMapSpec, Job, JobProgress, JobSpec, JobState, JobStats, LightingSpec,
+    ListJobsResponse, ListWorkersResponse, Vec3, WorkerJobStats, WorkerStatus,
 };
 use serde::{Deserialize, Serialize};
 
@@ -146,6 +146,12 @@ pub struct SubmitForm {
     pub aperture: String,
     pub focus_distance: Option<f32>,
     pub focus_on: Option<[f32; 3]>,
+    /// An environment map (`JobSpec.lighting.env_map`, docs/lights.md): a file under
+    /// the scene root; empty means none. Its rotation and intensity as over gRPC.
+    #[serde(default)]
+    pub env_map: String,
+    pub env_rotation: Option<f32>,
+    pub env_intensity: Option<f32>,
 }
 
 impl SubmitForm {
@@ -167,6 +173,19 @@ impl SubmitForm {
         };
         (view != CameraSpec::default()).then_some(view)
     }
+
+    /// The form's environment map as `JobSpec.lighting`; None without a path.
+    fn lighting(&self) -> Option<LightingSpec> {
+        let path = self.env_map.trim();
+        (!path.is_empty()).then(|| LightingSpec {
+            sun: None,
+            env_map: Some(EnvMapSpec {
+                path: path.to_string(),
+                rotation_deg: self.env_rotation,
+                intensity: self.env_intensity,
+            }),
+        })
+    }
 }
 
 /// SubmitJob's answer.
@@ -178,8 +197,10 @@ pub struct Submitted {
 impl From<SubmitForm> for JobSpec {
     fn from(f: SubmitForm) -> JobSpec {
         let view = f.view();
+        let lighting = f.lighting();
         JobSpec {
             view,
+            lighting,
             scene: f.scene,
             width: f.width,
             height: f.height,
@@ -436,6 +457,30 @@ impl From<&WorkerStatus> for WorkerRow {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The dashboard's environment-map fields become `JobSpec.lighting.env_map`; an
+    /// empty path is no map.
+    #[test]
+    fn the_forms_env_map_fields_make_the_lighting() {
+        let form: SubmitForm = serde_json::from_str(
+            r#"{"scene":"cornell","width":8,"height":8,"spp":1,
+                "env_map":" skies/a.hdr ","env_rotation":-45,"env_intensity":2}"#,
+        )
+        .unwrap();
+        let e = JobSpec::from(form)
+            .lighting
+            .and_then(|l| l.env_map)
+            .expect("a map");
+        assert_eq!(
+            (e.path.as_str(), e.rotation_deg, e.intensity),
+            ("skies/a.hdr", Some(-45.0), Some(2.0))
+        );
+        let plain: SubmitForm = serde_json::from_str(
+            r#"{"scene":"cornell","width":8,"height":8,"spp":1,"env_map":""}"#,
+        )
+        .unwrap();
+        assert_eq!(JobSpec::from(plain).lighting, None);
+    }
 
     /// The dashboard's camera fields become `JobSpec.view`; a form without them leaves
     /// the scene's camera.

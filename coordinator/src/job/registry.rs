@@ -33,6 +33,9 @@ pub struct JobHandle {
     /// The job's package path and checksum (fixed for its life): what the
     /// PackageService may serve for it.
     package: (String, String),
+    /// The job's environment map file (`JobSetup.env_map`), which the PackageService
+    /// serves with the package.
+    env_map: Option<dray_proto::v1::EnvMapFile>,
 }
 
 /// Every job running on workers, each served by its own actor.
@@ -67,6 +70,7 @@ impl JobRegistry {
                 v.insert(JobHandle {
                     tx,
                     package: job.package(),
+                    env_map: job.env_map_file(),
                 });
             }
         }
@@ -189,6 +193,12 @@ impl JobRegistry {
     /// while the job runs.
     pub fn package(&self, id: &str) -> Option<(String, String)> {
         self.jobs.get(id).map(|h| h.package.clone())
+    }
+
+    /// The environment map file of running job `id` (`JobSetup.env_map`), if it has
+    /// one: the PackageService serves it with the package, only while the job runs.
+    pub fn env_map(&self, id: &str) -> Option<dray_proto::v1::EnvMapFile> {
+        self.jobs.get(id).and_then(|h| h.env_map.clone())
     }
 
     /// Whether job `id` is running on workers.

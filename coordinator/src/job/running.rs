@@ -424,6 +424,11 @@ impl RunningJob {
         )
     }
 
+    /// The job's environment map file (`JobSetup.env_map`), fixed for its life.
+    pub fn env_map_file(&self) -> Option<dray_proto::v1::EnvMapFile> {
+        self.setup.env_map.clone()
+    }
+
     /// Send each worker of the first attempt its JobSetup and tiles, and mark the job
     /// RUNNING. Fails (sending nothing) when the job was cancelled meanwhile, or names
     /// the first worker that is gone. A dynamic job also takes on the workers that

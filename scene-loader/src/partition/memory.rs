@@ -17,6 +17,7 @@ use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
+use dray_core::env_map::EnvMap;
 use dray_core::scene::{Mesh, Scene};
 
 use super::manifest::EMITTERS_DOMAIN;
@@ -164,10 +165,13 @@ fn emitters_of(mesh: &Mesh, scene: &Scene, out: &mut DomainBuilder) -> Result<()
     })
 }
 
-/// The in-memory packages of one process, by name.
+/// The in-memory packages of one process, by name, and the decoded environment maps of
+/// their jobs (`--env-map`: workers in the process take the coordinator's map instead
+/// of reading and decoding the file again).
 #[derive(Default)]
 pub struct MemoryPackages {
     packages: Mutex<HashMap<String, Arc<MemoryPackage>>>,
+    env_maps: Mutex<HashMap<String, Arc<EnvMap>>>,
     next: AtomicU64,
 }
 
@@ -179,19 +183,41 @@ impl std::fmt::Debug for MemoryPackages {
     }
 }
 
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
 impl MemoryPackages {
     fn lock(&self) -> MutexGuard<'_, HashMap<String, Arc<MemoryPackage>>> {
-        self.packages.lock().unwrap_or_else(|p| p.into_inner())
+        lock(&self.packages)
+    }
+
+    /// A fresh name, `memory:N`.
+    fn fresh_name(&self) -> String {
+        format!(
+            "{MEMORY_PREFIX}{}",
+            self.next.fetch_add(1, Ordering::Relaxed) + 1
+        )
     }
 
     /// Keep `package` under a fresh name (`memory:N`) and return the name.
     pub fn insert(&self, package: MemoryPackage) -> String {
-        let name = format!(
-            "{MEMORY_PREFIX}{}",
-            self.next.fetch_add(1, Ordering::Relaxed) + 1
-        );
+        let name = self.fresh_name();
         self.lock().insert(name.clone(), Arc::new(package));
         name
+    }
+
+    /// Keep a job's decoded environment map under a fresh name (`memory:N`), which
+    /// [`MemoryPackages::remove`] forgets, and return the name.
+    pub fn insert_env_map(&self, map: Arc<EnvMap>) -> String {
+        let name = self.fresh_name();
+        lock(&self.env_maps).insert(name.clone(), map);
+        name
+    }
+
+    /// The environment map called `name`, if this process holds it.
+    pub fn env_map(&self, name: &str) -> Option<Arc<EnvMap>> {
+        lock(&self.env_maps).get(name).cloned()
     }
 
     /// The package called `name`, if this process holds it.
@@ -202,6 +228,7 @@ impl MemoryPackages {
     /// Forget `name` (its memory goes when the last worker drops its handle).
     pub fn remove(&self, name: &str) {
         self.lock().remove(name);
+        lock(&self.env_maps).remove(name);
     }
 
     /// Packages held.

@@ -258,6 +258,9 @@ $("submit-form").addEventListener("submit", async (e) => {
     orthographic: f.get("orthographic") === "on",
     aperture: f.get("aperture") ?? "",
     focus_distance: num("focus_distance"),
+    env_map: (f.get("env_map") ?? "").trim(),
+    env_rotation: num("env_rotation"),
+    env_intensity: num("env_intensity"),
   };
   // "X,Y,Z" and "AZ,EL" fields as arrays of numbers; the coordinator checks the values.
   for (const [k, n] of [["look_from", 3], ["look_at", 3], ["up", 3], ["orbit", 2], ["focus_on", 3]]) {
