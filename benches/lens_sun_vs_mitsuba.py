@@ -14,7 +14,7 @@ ground, scaled), written as a glTF for dray and given to Mitsuba as the same tri
 Cases:
 - pinhole: `--look-from/--look-at/--fov` against Mitsuba's `perspective` (fov_axis "y": dray's
   --fov is vertical). Lit by the glTF's directional light (a delta, as Mitsuba's
-  `directional`) and a constant environment.
+  `directional`) and a constant environment. Control: Mitsuba's default fov_axis "x".
 - lens_radius: `--aperture R --focus-distance D` against `thinlens` with aperture_radius R and
   focus_distance D, focused on the near sphere. Both put the plane in focus D along the view
   axis (dray `Frustum::generate_through_lens`: the pinhole ray's point at depth D; Mitsuba
@@ -136,7 +136,9 @@ def build_cases() -> dict:
     gltf_sun = {"type": "directional", "direction": list(gvm.SUN_DIRECTION), "irradiance": gvm.SUN_IRRADIANCE}
     return {
         "pinhole": {"what": "pinhole, --fov 30 (vertical)", "dray": [], "sensor": persp, "light": gltf_sun,
-                    "mapping": "perspective, fov 30, fov_axis y"},
+                    "mapping": "perspective, fov 30, fov_axis y",
+                    "controls": [{"what": "fov_axis x (Mitsuba's default: a horizontal field of view)",
+                                  "sensor": dict(persp, fov_axis="x")}]},
         "lens_radius": {
             "what": f"--aperture {LENS_RADIUS} --focus-distance {axial_depth(near):.4f} (near sphere)",
             "dray": ["--aperture", LENS_RADIUS, "--focus-distance", f"{axial_depth(near):.6f}"],
@@ -267,7 +269,7 @@ def mitsuba_worker(cfg_path: Path) -> None:
     runs = []
     for run in cfg["runs"]:
         t0 = time.perf_counter()
-        sensor = dict(run["sensor"], fov=FOV_DEG, fov_axis="y", near_clip=NEAR_CLIP, far_clip=1e4, film=film,
+        sensor = dict({"fov_axis": "y"}, **run["sensor"], fov=FOV_DEG, near_clip=NEAR_CLIP, far_clip=1e4, film=film,
                       to_world=mi.ScalarTransform4f().look_at(origin=EYE, target=TARGET, up=UP),
                       sampler={"type": "independent", "sample_count": cfg["spp"]})
         light = dict(run["light"], irradiance=gvm.rgb(run["light"]["irradiance"]))
