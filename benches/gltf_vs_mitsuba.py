@@ -585,13 +585,10 @@ def mitsuba_worker(cfg_path: Path) -> None:
 # Driver
 # ---------------------------------------------------------------------------------------
 
-def parse_args():
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", help="comma-separated case names (default: all): " +
-                    ", ".join(c["name"] for c in build_cases()))
-    ap.add_argument("--spp", type=int, default=256, help="samples per pixel of every render (default 256)")
-    ap.add_argument("--bits-spp", type=int, default=16, help="spp of the bit-for-bit dray checks (default 16)")
-    ap.add_argument("--max-depth", type=int, default=16, help="dray's --max-depth; Mitsuba's is one more")
+def add_comparison_args(ap, out: Path) -> None:
+    """The options every dray-against-Mitsuba comparison with FLIP takes (this script's and
+    benches/lens_sun_vs_mitsuba.py's): timed runs, threads and cores, seed, variant, outputs,
+    and the hidden worker mode."""
     ap.add_argument("--runs", type=int, default=1, help="timed renders per renderer and case (medians; FLIP "
                     "uses the first); default 1")
     ap.add_argument("--threads", type=int, default=2)
@@ -599,8 +596,18 @@ def parse_args():
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--variant", choices=("llvm_ad_rgb", "scalar_rgb"), default="llvm_ad_rgb",
                     help="Mitsuba variant (falls back to scalar_rgb when llvm cannot run)")
-    ap.add_argument("--out", type=Path, default=env.OUT / "gltf_vs_mitsuba")
+    ap.add_argument("--out", type=Path, default=out)
     ap.add_argument("--mitsuba-worker", type=Path, help=argparse.SUPPRESS)
+
+
+def parse_args():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cases", help="comma-separated case names (default: all): " +
+                    ", ".join(c["name"] for c in build_cases()))
+    ap.add_argument("--spp", type=int, default=256, help="samples per pixel of every render (default 256)")
+    ap.add_argument("--bits-spp", type=int, default=16, help="spp of the bit-for-bit dray checks (default 16)")
+    ap.add_argument("--max-depth", type=int, default=16, help="dray's --max-depth; Mitsuba's is one more")
+    add_comparison_args(ap, env.OUT / "gltf_vs_mitsuba")
     args = ap.parse_args()
     if args.mitsuba_worker:
         return args
