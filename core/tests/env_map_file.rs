@@ -82,6 +82,8 @@ fn image(lighting: Lighting) -> Vec<Vec3> {
         ao_samples: 1,
         ao_distance: f32::INFINITY,
         lighting,
+        clamp_indirect: None,
+        aovs: Default::default(),
     };
     let camera = Camera::look_at(
         "down",
