@@ -154,7 +154,7 @@ fn invalid_jobs_and_unreachable_coordinators_are_one_line_errors() {
     let png = dir.join("never.png");
     let cases: [(&str, &[&str], &str); 3] = [
         ("cornell", &["--spp", "0"], "spp"),
-        ("cornell", &["--integrator", "bogus", "-q"], "integrator"),
+        ("cornell", &["--max-depth", "100000", "-q"], "max_depth"),
         ("../outside.ply", &["-q"], "scene"),
     ];
     for (scene, flags, field) in cases {

@@ -591,7 +591,7 @@ fn invalid_jobs_are_rejected_while_workers_are_registered() {
         ("cornell", &["--spp", "0"], "spp"),
         ("cornell", &["--width", "0"], "width"),
         ("cornell", &["--height", "20000"], "height"),
-        ("cornell", &["--integrator", "bogus"], "integrator"),
+        ("cornell", &["--max-depth", "100000"], "max_depth"),
         ("no_such_scene", &[], "scene"),
         ("missing/model.gltf", &[], "scene"),
         ("../outside.gltf", &[], "scene"),
