@@ -86,6 +86,10 @@ def parse_args() -> argparse.Namespace:
     ap.add_argument("--integrator", default="path")
     ap.add_argument("--domains", type=int, default=16)
     ap.add_argument("--layout", default="kd")
+    ap.add_argument("--schedule", default="dynamic",
+                    help="overhead: the schedule of the embedded and cluster runs (default dynamic, the "
+                         "ray-exchange path this benchmark measures; auto, dray's default, replicates a "
+                         "scene that fits and exchanges no rays)")
     ap.add_argument("--big", default="grid:iso:gyroid:200:3x3x3", help="big: the 10M+-triangle scene")
     ap.add_argument("--big-domains", type=int, default=64)
     ap.add_argument("--big-res", type=int, default=256, help="big: square image size")
@@ -290,7 +294,8 @@ def overhead(a, dray: Path, work: Path) -> dict:
     scenes = env.scenes_dir()
     rel = f"grid:{a.scene}:{a.grid}" if a.grid else a.scene
     absolute = f"grid:{scenes / a.scene}:{a.grid}" if a.grid else str(scenes / a.scene)
-    flags = ["--width", a.width, "--height", a.height, "--spp", a.spp, "--integrator", a.integrator]
+    flags = ["--width", a.width, "--height", a.height, "--spp", a.spp, "--integrator", a.integrator,
+             "--schedule", a.schedule]
     cl = Cluster(dray, a.workers, a.base_port, scenes, work / "overhead_cluster.log")
     rounds = []
     try:
