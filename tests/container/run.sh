@@ -186,7 +186,7 @@ fi
 ctx=$work/context
 rm -rf "$ctx"
 mkdir -p "$ctx"
-tar -C "$repo" --exclude=./target --exclude=./.git --exclude=./vendor -c . | tar -C "$ctx" -x
+tar -C "$repo" --exclude=./target --exclude='./*/target' --exclude=./.git --exclude=./vendor -c . | tar -C "$ctx" -x
 cp -al "$work/vendor" "$ctx/vendor"
 old_id=$(docker image inspect -f '{{.Id}}' "$IMAGE" 2>/dev/null || true)
 say "docker build --network none --force-rm --build-arg OFFLINE=1 -t $IMAGE (build stage tagged $IMAGE-build; RUST_IMAGE=$RUST_IMAGE, RUNTIME_IMAGE=$RUNTIME_IMAGE)"
