@@ -6,7 +6,7 @@
 use dray_proto::v1::camera_spec::Orbit;
 use dray_proto::v1::{
     CameraSpec, EnvMapSpec, Job, JobProgress, JobSpec, JobState, JobStats, LightingSpec,
-    ListJobsResponse, ListWorkersResponse, Vec3, WorkerJobStats, WorkerStatus,
+    ListJobsResponse, ListWorkersResponse, SunSpec, Vec3, WorkerJobStats, WorkerStatus,
 };
 use serde::{Deserialize, Serialize};
 
@@ -152,6 +152,9 @@ pub struct SubmitForm {
     pub env_map: String,
     pub env_rotation: Option<f32>,
     pub env_intensity: Option<f32>,
+    /// A sun (`JobSpec.lighting.sun`, docs/lights.md) as [azimuth, elevation] or
+    /// [azimuth, elevation, irradiance] in degrees; the page sends only those lengths.
+    pub sun: Option<Vec<f32>>,
 }
 
 impl SubmitForm {
@@ -174,17 +177,26 @@ impl SubmitForm {
         (view != CameraSpec::default()).then_some(view)
     }
 
-    /// The form's environment map as `JobSpec.lighting`; None without a path.
+    /// The form's sun and environment map as `JobSpec.lighting`; None without either.
     fn lighting(&self) -> Option<LightingSpec> {
         let path = self.env_map.trim();
-        (!path.is_empty()).then(|| LightingSpec {
-            sun: None,
-            env_map: Some(EnvMapSpec {
-                path: path.to_string(),
-                rotation_deg: self.env_rotation,
-                intensity: self.env_intensity,
-            }),
-        })
+        let env_map = (!path.is_empty()).then(|| EnvMapSpec {
+            path: path.to_string(),
+            rotation_deg: self.env_rotation,
+            intensity: self.env_intensity,
+        });
+        let sun = match self.sun.as_deref() {
+            Some(&[azimuth_deg, elevation_deg, ref rest @ ..]) if rest.len() <= 1 => {
+                Some(SunSpec {
+                    azimuth_deg,
+                    elevation_deg,
+                    irradiance: rest.first().copied(),
+                    angular_diameter_deg: None,
+                })
+            }
+            _ => None,
+        };
+        (sun.is_some() || env_map.is_some()).then_some(LightingSpec { sun, env_map })
     }
 }
 
@@ -480,6 +492,30 @@ mod tests {
         )
         .unwrap();
         assert_eq!(JobSpec::from(plain).lighting, None);
+    }
+
+    /// The dashboard's sun field becomes `JobSpec.lighting.sun`, with or without an
+    /// irradiance, beside an environment map.
+    #[test]
+    fn the_forms_sun_field_makes_the_lighting() {
+        let form: SubmitForm = serde_json::from_str(
+            r#"{"scene":"cornell","width":8,"height":8,"spp":1,"sun":[30,45,3],"env_map":"a.hdr"}"#,
+        )
+        .unwrap();
+        let l = JobSpec::from(form).lighting.expect("lighting");
+        let sun = l.sun.expect("a sun");
+        assert_eq!(
+            (sun.azimuth_deg, sun.elevation_deg, sun.irradiance),
+            (30.0, 45.0, Some(3.0))
+        );
+        assert!(l.env_map.is_some());
+        let form: SubmitForm = serde_json::from_str(
+            r#"{"scene":"cornell","width":8,"height":8,"spp":1,"sun":[-10,60]}"#,
+        )
+        .unwrap();
+        let l = JobSpec::from(form).lighting.expect("lighting");
+        assert_eq!(l.sun.and_then(|s| s.irradiance), None);
+        assert_eq!(l.env_map, None);
     }
 
     /// The dashboard's camera fields become `JobSpec.view`; a form without them leaves

@@ -273,6 +273,16 @@ $("submit-form").addEventListener("submit", async (e) => {
     }
     body[k] = v;
   }
+  // The sun: "AZ,EL" or "AZ,EL,IRRADIANCE".
+  const sunText = (f.get("sun") ?? "").trim();
+  if (sunText !== "") {
+    const v = sunText.split(",").map((t) => Number(t.trim()));
+    if (v.length < 2 || v.length > 3 || v.some((x) => !Number.isFinite(x))) {
+      $("submit-error").textContent = `sun: expected AZ,EL or AZ,EL,IRRADIANCE, got "${sunText}"`;
+      return;
+    }
+    body.sun = v;
+  }
   $("submit-error").textContent = "";
   $("submit-button").disabled = true;
   try {
