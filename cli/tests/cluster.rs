@@ -257,16 +257,8 @@ fn submit_small(addr: &str, dir: &std::path::Path, tag: &str, want: &[u8]) -> se
         .arg("--output")
         .arg(&png)
         .arg("--stats")
-        .arg(&stats)
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped());
-    let mut p = Proc::spawn(cmd);
-    let err = support::capture_stderr(&mut p.child);
-    let status = p.wait_timeout(180.0);
-    let err = err.after(status.is_some());
-    let status = status.unwrap_or_else(|| panic!("HANG: dray submit {tag}: {err}"));
-    assert!(status.success(), "{tag}: {err}");
+        .arg(&stats);
+    support::run_to_success(cmd, &format!("dray submit {tag}"), 180.0);
     assert!(
         std::fs::read(&png).expect("png") == want,
         "{tag}: the image differs from dray render's"

@@ -9,6 +9,7 @@
 mod common;
 mod support;
 
+use common::effects;
 use std::path::Path;
 
 use support::WorkerCluster;
@@ -77,15 +78,6 @@ fn render(dir: &Path, tag: &str, workers: &str, extra: &[&str]) -> (Vec<u8>, ser
         std::fs::read(&exr).expect("read exr"),
         r.stats.expect("stats"),
     )
-}
-
-fn effects(stats: &serde_json::Value) -> Vec<String> {
-    stats["effects"]
-        .as_array()
-        .unwrap_or_else(|| panic!("no effects in {stats}"))
-        .iter()
-        .filter_map(|e| e.as_str().map(str::to_string))
-        .collect()
 }
 
 /// `dray submit` to `addr` with `args`, waited for (its stderr and whether it

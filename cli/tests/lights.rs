@@ -5,6 +5,7 @@
 
 mod common;
 
+use common::effects;
 use std::path::Path;
 
 /// A box on a ground quad (no lights of its own), lit by `extra`, on `workers`.
@@ -53,15 +54,6 @@ fn render(
         std::fs::read(&exr).expect("read exr"),
         r.stats.expect("stats"),
     )
-}
-
-fn effects(stats: &serde_json::Value) -> Vec<String> {
-    stats["effects"]
-        .as_array()
-        .unwrap_or_else(|| panic!("no effects in {stats}"))
-        .iter()
-        .filter_map(|e| e.as_str().map(str::to_string))
-        .collect()
 }
 
 #[test]

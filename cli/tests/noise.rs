@@ -8,9 +8,8 @@ mod common;
 mod support;
 
 use std::path::Path;
-use std::process::Stdio;
 
-use support::{Proc, dray};
+use support::dray;
 
 /// The Cornell box with a glass sphere: caustics, so fireflies for the clamp.
 const SCENE: &str = "cornell:glass";
@@ -196,16 +195,8 @@ fn a_cluster_gives_dray_renders_bits_with_the_clamp_and_aovs() {
         .arg("--exr")
         .arg(&exr)
         .arg("--stats")
-        .arg(&json)
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped());
-    let mut p = Proc::spawn(cmd);
-    let err = support::capture_stderr(&mut p.child);
-    let status = p.wait_timeout(180.0);
-    let err = err.after(status.is_some());
-    let status = status.unwrap_or_else(|| panic!("HANG: dray submit: {err}"));
-    assert!(status.success(), "{err}");
+        .arg(&json);
+    support::run_to_success(cmd, "dray submit", 180.0);
     assert!(
         std::fs::read(&exr).expect("exr") == want,
         "the cluster's EXR differs from dray render's"

@@ -144,3 +144,13 @@ pub fn model_files(dir: &Path, extensions: &[&str]) -> Vec<PathBuf> {
     out.sort();
     out
 }
+
+/// The effects a `--stats` JSON lists.
+pub fn effects(stats: &serde_json::Value) -> Vec<String> {
+    stats["effects"]
+        .as_array()
+        .unwrap_or_else(|| panic!("no effects in {stats}"))
+        .iter()
+        .filter_map(|e| e.as_str().map(str::to_string))
+        .collect()
+}

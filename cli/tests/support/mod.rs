@@ -434,6 +434,22 @@ pub fn capture_stderr(child: &mut Child) -> Captured {
     Captured { log, ended }
 }
 
+/// Run `cmd` (stdin and stdout to null, stderr captured) to its end and require success:
+/// a run still going after `secs` is a hang, killed and reported with `what` and its
+/// stderr, as is a failure. Returns the stderr.
+pub fn run_to_success(mut cmd: Command, what: &str, secs: f64) -> String {
+    cmd.stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped());
+    let mut p = Proc::spawn(cmd);
+    let err = capture_stderr(&mut p.child);
+    let status = p.wait_timeout(secs);
+    let err = err.after(status.is_some());
+    let status = status.unwrap_or_else(|| panic!("HANG: {what}: {err}"));
+    assert!(status.success(), "{what}: {err}");
+    err
+}
+
 /// Job `id` as the coordinator at `addr` reports it (GetJob); None when the coordinator
 /// cannot be reached or does not know the job.
 pub fn get_job(addr: &str, id: &str) -> Option<dray_proto::v1::Job> {
