@@ -11,8 +11,9 @@
 //!
 //! Two modes, as in the source:
 //! - consistent: a decided cell follows its counts (it can change its mind), and a
-//!   deterministic fraction `reprobe` of its rays is probed anyway, so a wrong decision
-//!   is eventually corrected;
+//!   deterministic fraction `reprobe` of its rays is probed anyway, so a decision its
+//!   counts come to contradict is eventually corrected (a cell whose true hit rate lies
+//!   past a threshold stays decided, and keeps the bias of the rays it answers);
 //! - inconsistent: once a cell has decided, it ignores further outcomes, which freezes
 //!   its counts and so its decision. Freezing the counts instead of storing a separate
 //!   decision means a cell never un-decides, even one decided by its prior alone (a

@@ -180,7 +180,10 @@ pub const DEFAULT_PHM_REPROBE: f32 = 0.1;
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum PhmMode {
     /// Decided cells keep being probed at rate `reprobe` and follow their counts, so a
-    /// wrong decision is corrected: the image converges to the exact one.
+    /// decision the evidence contradicts is corrected. It does not converge to the exact
+    /// image: a cell whose true hit rate lies at or below `miss` (or at or above `hit`)
+    /// stays decided, and the rays it skips (or occludes) that would have gone the other
+    /// way keep their bias at any sample count.
     Consistent,
     /// A cell that has decided never changes again (Bolstad's original scheme): no
     /// probes are spent on decided cells, at the price of keeping early mistakes.

@@ -471,8 +471,9 @@ pub fn check_ray_cache(rc: &mut RayCacheSettings) -> Result<(), Status> {
         kinds
     }
     .names();
-    // A coarse pass fills the caches, which then stay frozen (Little 2011; the same
-    // bits every run); without one, the main pass must fill them or they stay empty.
+    // A coarse pass fills the caches, which then stay frozen (the same bits every run;
+    // dray's default, where Little 2011 keeps inserting during the render, which
+    // `fill=true` does); without one, the main pass must fill them or they stay empty.
     rc.fill.get_or_insert(rc.coarse == 0);
     if rc.placement.is_empty() {
         rc.placement = CACHE_PLACEMENT_SENDER.into();

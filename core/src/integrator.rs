@@ -109,7 +109,10 @@ impl RayKind {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum IntegratorKind {
-    /// Primary rays, direct light and shadow rays (the ray-cache thesis's mode).
+    /// Primary rays, direct light with its shadow rays, and unshadowed ambient light.
+    /// `benches/caches.py` runs Little 2011's Table 5.1 with it, but it is not the
+    /// thesis's renderer, which casts camera rays only (no shadow or other secondary
+    /// rays; docs/caches.md "Faithful to / departs from").
     Raycast,
     /// Shadows plus perfect mirror reflection and refraction to the maximum depth.
     Whitted,

@@ -1,7 +1,9 @@
 //! How far a setting's image is from the exact one: RMSE on the 8-bit sRGB values a
-//! viewer sees (the thesis's measure), RMSE on linear radiance (what the renderer
-//! computes, unclamped), PSNR, and NVIDIA's FLIP (a perceptual difference, mean over
-//! pixels in [0, 1]; NVIDIA's reference C++ through the `nv-flip` crate).
+//! viewer sees, scaled to [0, 1] (the kind of RMS error Little 2011's Table 5.1
+//! reports, not shown to be the thesis's definition: its images, colour handling and
+//! scale are not reproduced), RMSE on linear radiance (what the renderer computes,
+//! unclamped), PSNR, and NVIDIA's FLIP (a perceptual difference, mean over pixels in
+//! [0, 1]; NVIDIA's reference C++ through the `nv-flip` crate).
 
 use anyhow::{Result, bail};
 

@@ -69,8 +69,9 @@ impl JobCaches {
     }
 
     /// Whether the job's walls, with their caches and maps, are replicated beside
-    /// every worker (sender placement: Little 2011 for ray caches, Bolstad 2017 for
-    /// hit maps). Validation made the two settings agree when the job has both.
+    /// every worker (sender placement: dray's own for ray caches, which Little 2011
+    /// does not replicate; after Bolstad 2017's per-server map proxies for hit maps).
+    /// Validation made the two settings agree when the job has both.
     pub fn sender_placement(&self) -> bool {
         let sender = crate::validate::CACHE_PLACEMENT_SENDER;
         let cache = self.settings.as_ref().map(|s| s.placement == sender);

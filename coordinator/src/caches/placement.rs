@@ -9,9 +9,10 @@
 //! worker, an owner may announce no cache endpoint) goes round robin over the hosts by
 //! domain (`d % hosts`), which spreads neighbouring domains, as domain ownership does.
 //!
-//! **Sender placement** ([`Placement::replicated`], Little 2011): every host holds a
-//! replica of every wall, so a worker looks up a ray in its own process, the one the
-//! ray is leaving; host `i` is replica `i + 1` (tickets carry the number, so returns
+//! **Sender placement** ([`Placement::replicated`]; dray's, not Little 2011's, whose
+//! caches have no replicas): every host holds a replica of every wall, so a worker
+//! looks up a ray in its own process, the one the ray is leaving, and a hit sends
+//! nothing; host `i` is replica `i + 1` (tickets carry the number, so returns
 //! find the replica that issued them). Each wall still has a *home* by the rule above,
 //! where workers without a host of their own look up.
 //!
