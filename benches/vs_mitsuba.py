@@ -40,6 +40,12 @@ Options beyond the defaults: --width/--height, --max-depth (dray's; Mitsuba's is
 more), --threads as a list (e.g. 1,2: every round runs every count; N threads run on the
 first N of --cores), --up z for Z-up models (rotated to Y-up in both renderers' files).
 
+--case ground is issue 41's kind of scene: the Stanford bunny (69,451 triangles) standing on
+a ground plane 40 bounding-sphere radii wide (two triangles), otherwise as deep (256x256, 64
+spp, --max-depth 64, the sun and the constant environment, threads 1 and 2); most shading
+points are on the ground and send a shadow ray past the model. Outputs go to
+benches/out/vs_mitsuba_ground/.
+
 --case deep is the scanned-model case: Lucy ($DRAY_SCENES/lucy_100k/lucy.ply,
 99,970 triangles; the bunny if Lucy is missing), 256x256, 64 spp, --max-depth 64 (Mitsuba
 max_depth 65, rr_depth 4), the same sun and constant environment, scalar_rgb and
@@ -51,6 +57,7 @@ Usage (from the repository root; creates benches/.venv on first use):
     benches/vs_mitsuba.sh                 # builds dray, then runs this
     python3 benches/vs_mitsuba.py [--spp 16] [--ref-spp 256] [--cores 0,1]
     benches/vs_mitsuba.sh --case deep     # Lucy, 256x256, 64 spp, depth 64, 1 and 2 threads
+    benches/vs_mitsuba.sh --case ground   # the bunny on a ground plane, as deep otherwise
 """
 
 from __future__ import annotations
@@ -84,10 +91,19 @@ LLVM_DEB = "libllvm19"
 # "Path tracing against Mitsuba 3"). Values given on the command line win over the case's.
 CASES = {
     "default": {"width": 512, "height": 512, "spp": 16, "ref_spp": 256, "max_depth": 2, "threads": "2",
-                "up": "y", "mesh": None, "out": "vs_mitsuba"},
+                "up": "y", "mesh": None, "ground": False, "out": "vs_mitsuba"},
     "deep": {"width": 256, "height": 256, "spp": 64, "ref_spp": 256, "max_depth": 64, "threads": "1,2",
-             "up": None, "mesh": "lucy", "out": "vs_mitsuba_deep"},
+             "up": None, "mesh": "lucy", "ground": False, "out": "vs_mitsuba_deep"},
+    # Issue 41's kind of scene: a scanned model standing on a large ground plane, lit by the sun
+    # and the constant environment, path traced deep: most shading points are on the ground,
+    # most of them send a shadow ray past the model, and many paths bounce between the two.
+    "ground": {"width": 256, "height": 256, "spp": 64, "ref_spp": 256, "max_depth": 64, "threads": "1,2",
+               "up": "y", "mesh": "bunny", "ground": True, "out": "vs_mitsuba_ground"},
 }
+
+# The ground plane of --case ground: a square this many bounding-sphere radii wide, at the
+# model's lowest point, two triangles.
+GROUND_RADII = 40.0
 
 
 def mitsuba_max_depth(dray_max_depth: int) -> int:
@@ -97,8 +113,9 @@ def mitsuba_max_depth(dray_max_depth: int) -> int:
 def parse_args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--case", choices=sorted(CASES), default="default",
-                    help="preset: default (bunny, 512x512, 16 spp, --max-depth 2, 2 threads) or deep (Lucy, "
-                         "256x256, 64 spp, --max-depth 64, threads 1 and 2)")
+                    help="preset: default (bunny, 512x512, 16 spp, --max-depth 2, 2 threads), deep (Lucy, "
+                         "256x256, 64 spp, --max-depth 64, threads 1 and 2) or ground (the bunny on a ground "
+                         "plane, otherwise as deep)")
     ap.add_argument("--mesh", help="mesh spec for dray (default: the Stanford bunny, else " + FALLBACK_MESH +
                     "; --case deep: Lucy, else the bunny)")
     ap.add_argument("--width", type=int, help="image width (default 512; deep 256)")
@@ -397,12 +414,30 @@ def read_exr(path: str):
     return np.array(mi.Bitmap(path), dtype=np.float32)[..., :3]
 
 
+def ground_plane(lo, hi):
+    """Two triangles of a square ground under the model's bounds (y = the lowest point), facing
+    +Y, GROUND_RADII bounding-sphere radii wide, centred under the model."""
+    import numpy as np
+
+    cx, cz = (lo[0] + hi[0]) / 2, (lo[2] + hi[2]) / 2
+    h = GROUND_RADII * 0.5 * math.dist(lo, hi) / 2
+    y = lo[1]
+    a, b, c, d = (cx - h, y, cz - h), (cx + h, y, cz - h), (cx + h, y, cz + h), (cx - h, y, cz + h)
+    # Counter-clockwise seen from +Y: a, d, c and a, c, b.
+    return np.array([[a, d, c], [a, c, b]], dtype="<f4")
+
+
 def pick_mesh(args, scenes: Path) -> str:
     """The mesh spec (and, when not given, the model's up axis into args.up)."""
     bunny = scenes / "stanford_bunny" / "bun_zipper.ply"
     lucy = scenes / "lucy_100k" / "lucy.ply"
     if args.mesh:
         spec = args.mesh
+    elif CASES[args.case]["mesh"] == "bunny":
+        if not bunny.exists():
+            sys.exit(f"--case {args.case} renders the Stanford bunny, and {bunny} does not exist: set DRAY_SCENES "
+                     "to the shared scenes folder (default ../shared/scenes beside the repository) or pass --mesh")
+        spec = str(bunny)
     elif CASES[args.case]["mesh"] == "lucy":
         if lucy.exists():
             spec = str(lucy)
@@ -474,9 +509,11 @@ def main() -> None:
     if args.up == "z":  # +Z up -> +Y up: (x, y, z) -> (-x, z, y), a rotation (det +1, winding kept); the
         # camera (on +Z after it) then looks at the model's +Y side: Lucy's front
         tris = np.ascontiguousarray(np.stack([-tris[..., 0], tris[..., 2], tris[..., 1]], axis=-1), dtype="<f4")
+    lo, hi = tris.reshape(-1, 3).min(0).tolist(), tris.reshape(-1, 3).max(0).tolist()
+    if CASES[args.case]["ground"]:
+        tris = np.concatenate([tris, ground_plane(lo, hi)])
     mesh = write_meshes(tris, args.out)
-    lo, hi = mesh["min"], mesh["max"]
-    cam = camera_frame(lo, hi)
+    cam = camera_frame(lo, hi)  # frames the model; the ground runs out of the picture
     gltf = write_gltf(mesh, cam, args.out, args.width, args.height)
     env.log(f"scene: {spec}: {mesh['triangles']} triangles, {mesh['vertices']} vertices"
             + (" (Z up, rotated to Y up)" if args.up == "z" else "") + f" -> {gltf}, {mesh['ply']}")
@@ -489,7 +526,8 @@ def main() -> None:
     info["packages"] = env.package_versions(["mitsuba", "drjit", "flip-evaluator", "numpy"])
     info["dray_binary"] = env.binary_info(dray)
     res = {"machine": info, "case": args.case,
-           "scene": {"mesh": spec, "triangles": mesh["triangles"], "up": args.up, "width": args.width,
+           "scene": {"mesh": spec, "ground_plane": CASES[args.case]["ground"], "triangles": mesh["triangles"],
+                     "up": args.up, "width": args.width,
                      "height": args.height, "spp": args.spp, "ref_spp": args.ref_spp,
                      "mitsuba_max_depth": args.mitsuba_max_depth, "dray_max_depth": args.max_depth,
                      "mitsuba_rr_depth": MITSUBA_RR_DEPTH, "dray_rr_from_vertex_depth": DRAY_RR_START,
