@@ -152,6 +152,48 @@ mod tests {
         assert_eq!(member_of("grp-1-00000abc-fx"), None);
     }
 
+    /// A coordinator restarted on its store lists each frame in its group again: the
+    /// group is in the id, which the store keeps.
+    #[test]
+    fn a_frame_taken_back_from_the_store_is_in_its_group() {
+        use dray_proto::v1::{JobState, JobStats};
+        let table = crate::jobs::JobTable::new(1);
+        let stored = |id: &str| crate::store::StoredJob {
+            id: id.into(),
+            spec: JobSpec {
+                scene: "cornell".into(),
+                width: 8,
+                height: 8,
+                spp: 1,
+                time: Some(0.5),
+                ..Default::default()
+            },
+            resolved: None,
+            state: JobState::Succeeded,
+            error: String::new(),
+            submitted_at: std::time::SystemTime::now(),
+            finished_at: None,
+            elapsed: None,
+            stats: JobStats::default(),
+            attempt: None,
+            image: None,
+            dropped: None,
+            tiles: Vec::new(),
+        };
+        table.restore(vec![stored("grp-4-0000beef-f12"), stored("job-5-0000beef")]);
+        let group = |id: &str| table.get(id).and_then(|j| j.to_job().group);
+        assert_eq!(
+            group("grp-4-0000beef-f12"),
+            Some(JobGroupMember {
+                group_id: "grp-4-0000beef".into(),
+                frame: 12
+            })
+        );
+        assert_eq!(group("job-5-0000beef"), None);
+        // A new group after the restart has an id of its own.
+        assert_ne!(table.new_group_id(), "grp-4-0000beef");
+    }
+
     #[test]
     fn a_range_expands_to_one_spec_per_frame_at_its_time() {
         let spec = JobSpec {
