@@ -152,6 +152,12 @@ mod tests {
         assert_eq!(member_of("grp-1-00000abc-fx"), None);
     }
 
+    fn one_frame() -> JobSpec {
+        let mut spec = JobSpec::default();
+        (spec.scene, spec.width, spec.height, spec.spp) = ("cornell".into(), 8, 8, 1);
+        spec
+    }
+
     /// A coordinator restarted on its store lists each frame in its group again: the
     /// group is in the id, which the store keeps.
     #[test]
@@ -161,12 +167,8 @@ mod tests {
         let stored = |id: &str| crate::store::StoredJob {
             id: id.into(),
             spec: JobSpec {
-                scene: "cornell".into(),
-                width: 8,
-                height: 8,
-                spp: 1,
                 time: Some(0.5),
-                ..Default::default()
+                ..one_frame()
             },
             resolved: None,
             state: JobState::Succeeded,
