@@ -159,6 +159,9 @@ pub struct JobFlags {
     /// Noise controls (`JobSpec.clamp_indirect`).
     #[command(flatten)]
     pub noise: crate::noise_flags::NoiseFlags,
+    /// The moment of the animation, or a range of frames (`JobSpec.time`, `frames`).
+    #[command(flatten)]
+    pub anim: crate::animation_flags::AnimationFlags,
 }
 
 /// The schedule of a job that names none: the coordinator's choice for an empty
@@ -261,6 +264,7 @@ impl JobFlags {
         label: &str,
     ) -> Result<JobSpec> {
         self.check_schedule()?;
+        self.anim.check()?;
         let env = self
             .env
             .as_deref()
@@ -307,6 +311,10 @@ impl JobFlags {
             lighting: self.lights.lighting_spec(),
             clamp_indirect: self.noise.clamp_indirect,
             aovs: self.noise.aov.clone(),
+            time: self.anim.time,
+            animation: self.anim.animation.clone().unwrap_or_default(),
+            frames: self.anim.frames_text(),
+            fps: self.anim.fps,
         })
     }
 }

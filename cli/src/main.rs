@@ -5,6 +5,7 @@
 //! the job client (`dray submit`), the partitioner and the ray-throughput benchmark
 //! (`dray bench-rays`).
 
+mod animation_flags;
 mod bench_rays;
 mod bytes;
 mod cache_cmd;
@@ -12,6 +13,7 @@ mod cache_host;
 mod cluster_cmd;
 mod coordinator_cmd;
 mod embedded;
+mod frames;
 mod health_cmd;
 mod help_heading;
 mod job_flags;

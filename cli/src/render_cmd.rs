@@ -73,19 +73,6 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = 0, value_name = "MS")]
     #[arg(help_heading = crate::help_heading::CLUSTER)]
     pub load_delay_ms: u64,
-    /// Render the scene's glTF animation at this many seconds: node translations,
-    /// rotations, scales and morph weights as their keyframes give them then (before
-    /// the first key the first, after the last the last; skins follow their joints).
-    /// Default: the file's rest pose. `dray render` only, for now (a job's spec has no
-    /// time yet).
-    #[arg(long, value_name = "SECONDS", allow_hyphen_values = true)]
-    #[arg(help_heading = crate::help_heading::ANIMATION)]
-    pub time: Option<f64>,
-    /// The animation --time samples, by name or index (default: the first; a file may
-    /// hold one per action, "Idle", "Walk", …, which are not played together).
-    #[arg(long, value_name = "NAME", requires = "time")]
-    #[arg(help_heading = crate::help_heading::ANIMATION)]
-    pub animation: Option<String>,
 }
 
 /// The checks clap cannot make, shared with `dray sweep` (which runs them on every
@@ -93,6 +80,9 @@ pub struct RenderArgs {
 pub fn check_args(a: &RenderArgs) -> Result<IntegratorKind> {
     // The coordinator's default limits (a job on workers is checked against them too).
     const MAX_SIDE: u32 = Limits::MAX_SIDE;
+    if a.job.anim.frames.is_some() {
+        bail!("--frames renders one image per frame: `dray render --frames`, not here");
+    }
     if a.job.width == 0 || a.job.height == 0 || a.job.width > MAX_SIDE || a.job.height > MAX_SIDE {
         bail!(
             "image size {}x{} is out of range (1..={MAX_SIDE} per side)",
@@ -263,6 +253,14 @@ pub fn check_output(flag: &str, path: &Path, extensions: &[&str]) -> Result<()> 
 
 pub fn run(a: RenderArgs) -> Result<()> {
     crate::threads::limit_build_threads(a.threads);
+    if a.job.anim.frames.is_some() {
+        return crate::frames::render_frames(a);
+    }
+    run_one(&a)
+}
+
+/// `dray render` of one image (one frame of `--frames`).
+pub fn run_one(a: &RenderArgs) -> Result<()> {
     a.job.check_passes()?;
     // Every file this run will write is checked before the render, not after it.
     check_output("--output", &a.job.output, &["png", "jpg", "jpeg"])?;
@@ -276,7 +274,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
     // The bar appears with the first progress report, once the scene is loaded.
     let bar = std::sync::OnceLock::new();
     let show = !a.job.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr());
-    let rendered = render(&a, &|done, total| {
+    let rendered = render(a, &|done, total| {
         if show {
             let b = bar.get_or_init(|| {
                 let b = indicatif::ProgressBar::new(total as u64);
@@ -339,10 +337,8 @@ pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Resul
         .map(|s| parse_vec3("--translate", s))
         .transpose()?;
 
-    let time = a.time.map(|seconds| dray_scene::animation::AnimationTime {
-        seconds,
-        animation: a.animation.clone(),
-    });
+    a.job.anim.check()?;
+    let time = a.job.anim.moment();
     let mut scene = dray_scene::load_at(&a.job.scene, time.as_ref())
         .with_context(|| format!("cannot load scene {:?}", a.job.scene))?;
     if let Some(t) = translate {

@@ -178,7 +178,7 @@ pub(crate) fn job_spec(a: &SubmitArgs) -> Result<JobSpec> {
 }
 
 /// A gRPC failure as one line: what was being done and what the server said.
-fn rpc_error(what: &str, url: &str, s: tonic::Status) -> anyhow::Error {
+pub(crate) fn rpc_error(what: &str, url: &str, s: tonic::Status) -> anyhow::Error {
     let msg = s.message().replace('\n', " ");
     match s.code() {
         tonic::Code::InvalidArgument => anyhow!("the coordinator rejected the job: {msg}"),
@@ -201,6 +201,9 @@ pub fn run(a: SubmitArgs) -> Result<()> {
         .enable_all()
         .build()
         .context("cannot start the async runtime")?;
+    if let Some(range) = a.job.anim.frames {
+        return rt.block_on(crate::frames::submit_frames(a, spec, url, range));
+    }
     rt.block_on(submit(a, spec, url))
 }
 
@@ -402,7 +405,7 @@ pub(crate) async fn get_job(
 }
 
 /// Best effort: the user asked to stop, so a failure to cancel is reported, not fatal.
-async fn cancel(client: &mut RenderServiceClient<AuthChannel>, id: &str) {
+pub(crate) async fn cancel(client: &mut RenderServiceClient<AuthChannel>, id: &str) {
     let req = CancelJobRequest {
         job_id: id.to_string(),
     };
@@ -438,7 +441,7 @@ pub(crate) async fn fetch(
 }
 
 /// [`fetch`]'s call, its status kept (to tell a coordinator gone from an answer).
-fn image(
+pub(crate) fn image(
     mut client: RenderServiceClient<AuthChannel>,
     id: &str,
     format: ImageFormat,
@@ -457,7 +460,7 @@ fn image(
 /// `call` (named `what` in errors), made again while the coordinator is gone, for at most
 /// `reconnect.wait` (saying so once): for the calls after a job's end, whose coordinator
 /// may restart in between and, with a state directory, still answers for the job.
-async fn across_restarts<T, F>(
+pub(crate) async fn across_restarts<T, F>(
     url: &str,
     reconnect: &Reconnect<'_>,
     what: &str,
@@ -506,11 +509,11 @@ fn state_name(s: JobState) -> String {
 
 /// How [`watch`] follows a job across a coordinator that goes away.
 #[derive(Clone, Copy)]
-struct Reconnect<'a> {
+pub(crate) struct Reconnect<'a> {
     /// Prefix of the messages.
-    who: &'a str,
+    pub(crate) who: &'a str,
     /// Longest wait for the coordinator to come back.
-    wait: Duration,
+    pub(crate) wait: Duration,
 }
 
 /// Whether `s` says the coordinator went away (a restart, a dropped connection), rather
@@ -532,7 +535,7 @@ fn coordinator_gone(s: &tonic::Status) -> bool {
 /// the job is watched again. When the coordinator goes away, it is waited for (at most
 /// `reconnect.wait`, saying so) and the same job followed again once it is back: a
 /// coordinator with a state directory resumes its jobs.
-async fn watch(
+pub(crate) async fn watch(
     mut client: RenderServiceClient<AuthChannel>,
     id: &str,
     url: &str,

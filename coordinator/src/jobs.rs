@@ -54,6 +54,8 @@ pub struct JobEntry {
     pub passes: crate::pass_images::PassImages,
     /// Its images as last encoded, shared by every caller (`image_memo`).
     pub images: crate::image_memo::ImageMemo,
+    /// The job group it is a frame of (read from its id: `crate::job_group`).
+    pub group: Option<dray_proto::v1::JobGroupMember>,
 }
 
 struct Inner {
@@ -162,6 +164,7 @@ impl JobEntry {
             stats: Some(g.stats.clone()),
             submitted_at: Some(self.submitted_at.into()),
             finished_at: g.finished_at.map(Into::into),
+            group: self.group.clone(),
         }
     }
 
@@ -405,6 +408,7 @@ impl JobTable {
             let ended = terminal(j.state);
             let state = if ended { j.state } else { JobState::Queued };
             let entry = Arc::new(JobEntry {
+                group: crate::job_group::member_of(&j.id),
                 id: j.id.clone(),
                 tiles_total: TileGrid::image(j.spec.width, j.spec.height).count(),
                 spec: j.spec.clone(),
@@ -538,13 +542,29 @@ impl JobTable {
         .unwrap_or(false)
     }
 
+    /// A new job group's id, unique as job ids are (`crate::job_group`).
+    pub fn new_group_id(&self) -> String {
+        let n = self.next_id.fetch_add(1, Ordering::Relaxed);
+        crate::job_group::group_id(n, self.nonce)
+    }
+
     /// Add a job QUEUED, without starting anything: the caller runs it (in process with
     /// [`JobTable::submit`], or on workers through the dispatcher).
     pub fn insert(&self, spec: JobSpec) -> Arc<JobEntry> {
+        self.insert_as(spec, None)
+    }
+
+    /// [`JobTable::insert`] under `id` when given (a frame of a job group, whose id
+    /// [`JobTable::new_group_id`] and `crate::job_group::frame_id` made), else a new id.
+    pub fn insert_as(&self, spec: JobSpec, id: Option<String>) -> Arc<JobEntry> {
         self.sweep();
-        let n = self.next_id.fetch_add(1, Ordering::Relaxed);
+        let id = id.unwrap_or_else(|| {
+            let n = self.next_id.fetch_add(1, Ordering::Relaxed);
+            format!("job-{n}-{:08x}", self.nonce)
+        });
         let entry = Arc::new(JobEntry {
-            id: format!("job-{n}-{:08x}", self.nonce),
+            group: crate::job_group::member_of(&id),
+            id,
             tiles_total: TileGrid::image(spec.width, spec.height).count(),
             submitted_at: SystemTime::now(),
             cancel: Arc::new(AtomicBool::new(false)),

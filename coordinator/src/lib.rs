@@ -14,6 +14,8 @@
 //!
 //! - [`validate`]: checks a [`JobSpec`](dray_proto::v1::JobSpec) against the limits and
 //!   the scene root; every rejection is `INVALID_ARGUMENT` naming the field.
+//! - [`job_group`]: a spec with `frames` made into one job per frame (a job group);
+//!   [`animation_time`]: the moment of the animation a job's scene is loaded at.
 //! - [`jobs`]: the job table, the in-process render task, cancellation, image encoding.
 //! - [`membership`]: registered workers, heartbeats, per-worker command outboxes.
 //! - [`dispatch`]: a job's package, JobSetup and tiles: the plan a job starts from.
@@ -35,6 +37,7 @@
 //!   same RenderService methods, live updates by server-sent events.
 
 pub mod admission;
+pub mod animation_time;
 pub mod caches;
 pub mod cluster;
 pub mod cpu_tally;
@@ -42,6 +45,7 @@ pub mod dispatch;
 pub mod http;
 pub mod image_memo;
 pub mod job;
+pub mod job_group;
 pub mod jobs;
 pub mod lighting;
 pub mod membership;

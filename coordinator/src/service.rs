@@ -299,6 +299,17 @@ impl Coordinator {
     /// scene is loaded off the request path; an error then fails the job (GetJob and
     /// WatchJob say why), and CancelJob ends it at once without waiting for the load.
     async fn submit(&self, spec: JobSpec, loaded: Option<Scene>) -> Result<String, Status> {
+        self.submit_as(spec, loaded, None).await
+    }
+
+    /// [`Coordinator::submit`] under `id` when given (a frame of a job group,
+    /// `crate::job_group`).
+    pub(crate) async fn submit_as(
+        &self,
+        spec: JobSpec,
+        loaded: Option<Scene>,
+        id: Option<String>,
+    ) -> Result<String, Status> {
         let active = self.table.active();
         if active >= self.limits.max_jobs {
             return Err(Status::resource_exhausted(format!(
@@ -316,12 +327,12 @@ impl Coordinator {
             let prepared = tokio::task::spawn_blocking(move || prepare(&v2, loaded, &never))
                 .await
                 .map_err(|e| Status::internal(format!("scene loading task died: {e}")))??;
-            let job = self.table.insert(v.spec.clone());
+            let job = self.table.insert_as(v.spec.clone(), id);
             self.confirm_kept(&job).await?;
             self.launch(&job, &v, prepared, None)?;
             return Ok(job.id.clone());
         }
-        let job = self.table.insert(v.spec.clone());
+        let job = self.table.insert_as(v.spec.clone(), id);
         self.confirm_kept(&job).await?;
         job.set_state(JobState::Preparing);
         tracing::info!(id = %job.id, scene = %job.spec.scene, "job accepted; preparing its scene");
@@ -434,6 +445,16 @@ impl Coordinator {
         Ok(())
     }
 
+    /// Jobs queued, preparing or running, and the most taken at once (`--max-jobs`).
+    pub(crate) fn job_room(&self) -> (usize, usize) {
+        (self.table.active(), self.limits.max_jobs)
+    }
+
+    /// A new job group's id (`crate::job_group`).
+    pub(crate) fn new_group_id(&self) -> String {
+        self.table.new_group_id()
+    }
+
     fn job(&self, id: &str) -> Result<Arc<JobEntry>, Status> {
         self.table
             .get(id)
@@ -458,11 +479,25 @@ impl RenderService for Coordinator {
             .into_inner()
             .spec
             .ok_or_else(|| Status::invalid_argument("spec: missing"))?;
-        let id = self.submit(spec, None).await?;
+        let (group_id, job_ids) = if spec.frames.is_empty() {
+            (String::new(), vec![self.submit(spec, None).await?])
+        } else {
+            self.submit_group(spec).await?
+        };
+        let id = job_ids
+            .first()
+            .cloned()
+            .ok_or_else(|| Status::internal("a job group of no jobs"))?;
         let job = self.job(&id)?;
         Ok(Response::new(SubmitJobResponse {
             job_id: id,
             spec: job.to_job().spec,
+            job_ids: if group_id.is_empty() {
+                Vec::new()
+            } else {
+                job_ids
+            },
+            group_id,
         }))
     }
 
@@ -534,7 +569,10 @@ impl RenderService for Coordinator {
                 ))
             })?
         };
-        let all = self.table.list();
+        let mut all = self.table.list();
+        if !r.group_id.is_empty() {
+            all.retain(|j| j.group.as_ref().is_some_and(|g| g.group_id == r.group_id));
+        }
         let end = (start + size).min(all.len());
         let jobs = all
             .get(start..end)

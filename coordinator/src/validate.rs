@@ -130,6 +130,8 @@ pub struct Validated {
     /// The schedule asked for on workers (`spec.schedule` holds its name; `auto` is
     /// resolved when the job starts; the in-process path ignores it).
     pub schedule: ScheduleRequest,
+    /// The moment of the scene's animation to load (`spec.time`, `spec.animation`).
+    pub time: Option<dray_scene::animation::AnimationTime>,
 }
 
 fn bad(msg: String) -> Status {
@@ -183,6 +185,8 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         ("schedule", &spec.schedule),
         ("effects", &spec.effects),
         ("passes", &spec.passes),
+        ("animation", &spec.animation),
+        ("frames", &spec.frames),
     ];
     for (field, v) in names {
         check_text(field, v, MAX_NAME_BYTES)?;
@@ -309,8 +313,16 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
             limits.max_label
         )));
     }
+    let time = crate::animation_time::check(&spec)?;
     let scene_spec = resolve_scene(&spec.scene, scene_root)?;
     let package = Some(PathBuf::from(&scene_spec)).filter(|p| p.is_dir());
+    if package.is_some() && time.is_some() {
+        return Err(bad(
+            "time: a scene package has no animation (its geometry is cut already): \
+             partition the posed scene, or submit the glTF file"
+                .into(),
+        ));
+    }
     if package.is_some() && translate.is_some() {
         return Err(bad(
             "translate: a scene package cannot be moved (partition the moved scene instead)".into(),
@@ -329,6 +341,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         translate,
         domains_auto,
         schedule,
+        time,
     })
 }
 
@@ -612,7 +625,10 @@ pub fn prepare(
             (package_scene(&pkg), Some(pkg))
         }
         (None, None) => {
-            let scene = dray_scene::load_cancellable(&v.scene_spec, cancel).map_err(|e| {
+            let scene = dray_scene::cancel::with_cancel(cancel, || {
+                dray_scene::load_at(&v.scene_spec, v.time.as_ref())
+            })
+            .map_err(|e| {
                 let e = as_given(&e.to_string(), &v.scene_spec, &s.scene);
                 bad(format!("scene: cannot load {:?}: {e}", s.scene))
             })?;

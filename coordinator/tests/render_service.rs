@@ -389,6 +389,7 @@ async fn render_service_end_to_end() {
         .list_jobs(ListJobsRequest {
             page_size: 2,
             page_token: String::new(),
+            ..Default::default()
         })
         .await
         .unwrap()
@@ -479,4 +480,82 @@ async fn get(c: &mut RenderServiceClient<Channel>, id: &str) -> dray_proto::v1::
         .into_inner()
         .job
         .unwrap()
+}
+
+/// A spec with `frames` is a job group over gRPC: one job per frame, each with its time
+/// and its place in the group, ListJobs lists the group alone; bad ranges and rates are
+/// INVALID_ARGUMENT naming the field, and nothing is accepted then.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn frames_make_a_job_group_and_bad_ranges_are_refused() {
+    let root = std::env::temp_dir();
+    let server = Server::start(&root).await;
+    let mut c = RenderServiceClient::new(server.channel().await);
+    let before = server.coordinator.job_count();
+    for (frames, fps, words) in [
+        (
+            "5..1",
+            Some(24.0),
+            "frames: \"5..1\": the range ends before it starts",
+        ),
+        ("1..", Some(24.0), "frames: \"1..\" is not a frame range"),
+        ("1..3:0", Some(24.0), "the step must be at least 1"),
+        (
+            "1..3",
+            Some(0.0),
+            "fps: the frame rate must be finite and above 0",
+        ),
+        ("1..3", None, "fps: required with frames"),
+    ] {
+        let spec = JobSpec {
+            frames: frames.into(),
+            fps,
+            ..cornell(8, 8, 1)
+        };
+        let e = submit(&mut c, spec).await.unwrap_err();
+        assert_eq!(e.code(), Code::InvalidArgument, "{frames} {fps:?}");
+        assert!(e.message().contains(words), "{frames}: {}", e.message());
+    }
+    assert_eq!(
+        server.coordinator.job_count(),
+        before,
+        "a refused group left jobs"
+    );
+
+    let r = c
+        .submit_job(SubmitJobRequest {
+            spec: Some(JobSpec {
+                frames: "2..6:2".into(),
+                fps: Some(8.0),
+                ..cornell(8, 8, 1)
+            }),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(r.job_ids.len(), 3);
+    assert_eq!(r.job_id, r.job_ids[0]);
+    for (id, (frame, time)) in r.job_ids.iter().zip([(2, 0.25), (4, 0.5), (6, 0.75)]) {
+        assert_eq!(watch(&mut c, id).await.0, JobState::Succeeded);
+        let job = get(&mut c, id).await;
+        let g = job.group.expect("a frame names its group");
+        assert_eq!((g.group_id.as_str(), g.frame), (r.group_id.as_str(), frame));
+        let spec = job.spec.unwrap();
+        assert_eq!(spec.time, Some(time));
+        assert!(spec.frames.is_empty() && spec.fps.is_none());
+    }
+    let listed = c
+        .list_jobs(ListJobsRequest {
+            group_id: r.group_id.clone(),
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let mut ids: Vec<String> = listed.jobs.into_iter().map(|j| j.job_id).collect();
+    ids.reverse();
+    assert_eq!(ids, r.job_ids, "ListJobs of the group, newest first");
+    // A lone job is in no group.
+    let lone = submit(&mut c, cornell(8, 8, 1)).await.unwrap();
+    assert!(get(&mut c, &lone).await.group.is_none());
+    drop(server);
 }

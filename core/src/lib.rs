@@ -29,6 +29,7 @@ pub mod env_map;
 pub mod env_map_file;
 pub mod exposure;
 pub mod film;
+pub mod frames;
 pub mod integrator;
 pub mod intersect;
 pub mod iridescence;

@@ -450,19 +450,33 @@ pub fn run_to_success(mut cmd: Command, what: &str, secs: f64) -> String {
     err
 }
 
-/// Job `id` as the coordinator at `addr` reports it (GetJob); None when the coordinator
-/// cannot be reached or does not know the job.
-pub fn get_job(addr: &str, id: &str) -> Option<dray_proto::v1::Job> {
+/// `call` with a RenderService client of the coordinator at `addr`, on a runtime of its
+/// own; None when the coordinator cannot be reached or `call` gives none.
+pub fn with_client<T, F, Fut>(addr: &str, call: F) -> Option<T>
+where
+    F: FnOnce(
+        dray_proto::v1::render_service_client::RenderServiceClient<tonic::transport::Channel>,
+    ) -> Fut,
+    Fut: std::future::Future<Output = Option<T>>,
+{
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
         .expect("runtime");
     rt.block_on(async {
-        let mut c = dray_proto::v1::render_service_client::RenderServiceClient::connect(format!(
+        let c = dray_proto::v1::render_service_client::RenderServiceClient::connect(format!(
             "http://{addr}"
         ))
         .await
         .ok()?;
+        call(c).await
+    })
+}
+
+/// Job `id` as the coordinator at `addr` reports it (GetJob); None when the coordinator
+/// cannot be reached or does not know the job.
+pub fn get_job(addr: &str, id: &str) -> Option<dray_proto::v1::Job> {
+    with_client(addr, |mut c| async move {
         c.get_job(dray_proto::v1::GetJobRequest {
             job_id: id.to_string(),
         })
@@ -470,5 +484,21 @@ pub fn get_job(addr: &str, id: &str) -> Option<dray_proto::v1::Job> {
         .ok()?
         .into_inner()
         .job
+    })
+}
+
+/// The jobs of job group `group` (ListJobs with its `group_id`, one page of up to 1000);
+/// None when the coordinator cannot be reached or refuses.
+pub fn list_group(addr: &str, group: &str) -> Option<Vec<dray_proto::v1::Job>> {
+    with_client(addr, |mut c| async move {
+        let r = c
+            .list_jobs(dray_proto::v1::ListJobsRequest {
+                group_id: group.to_string(),
+                page_size: 1000,
+                ..Default::default()
+            })
+            .await
+            .ok()?;
+        Some(r.into_inner().jobs)
     })
 }

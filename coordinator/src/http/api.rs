@@ -104,7 +104,10 @@ pub async fn submit(
         }))
         .await?
         .into_inner();
-    Ok(Json(Submitted { id: r.job_id }))
+    Ok(Json(Submitted {
+        id: r.job_id,
+        group_id: r.group_id,
+    }))
 }
 
 /// `GET /api/jobs/{id}`: GetJob, with statistics.
@@ -197,6 +200,7 @@ impl Dashboard {
             .list_jobs(Request::new(ListJobsRequest {
                 page_size,
                 page_token,
+                ..Default::default()
             }))
             .await?
             .into_inner();

@@ -29,6 +29,15 @@ pub struct JobSummary {
     pub submitted_at: Option<i64>,
     /// When it reached a terminal state.
     pub finished_at: Option<i64>,
+    /// The job group it is a frame of (`Job.group`), and which frame; absent for a lone
+    /// job.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub group: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub frame: Option<u32>,
+    /// The moment of the animation it renders (`JobSpec.time`), in seconds.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub time: Option<f64>,
 }
 
 /// A job's progress (WatchJob's JobProgress), with its statistics when the message
@@ -155,6 +164,14 @@ pub struct SubmitForm {
     /// A sun (`JobSpec.lighting.sun`, docs/lights.md) as [azimuth, elevation] or
     /// [azimuth, elevation, irradiance] in degrees; the page sends only those lengths.
     pub sun: Option<Vec<f32>>,
+    /// The animation (`JobSpec.time`, `animation`), or a job group of frames
+    /// (`JobSpec.frames` "A..B[:STEP]" at `fps`).
+    pub time: Option<f64>,
+    #[serde(default)]
+    pub animation: String,
+    #[serde(default)]
+    pub frames: String,
+    pub fps: Option<f64>,
 }
 
 impl SubmitForm {
@@ -204,6 +221,9 @@ impl SubmitForm {
 #[derive(Serialize, Debug)]
 pub struct Submitted {
     pub id: String,
+    /// For a range of frames: the job group (`id` is its first frame's job).
+    #[serde(skip_serializing_if = "String::is_empty")]
+    pub group_id: String,
 }
 
 impl From<SubmitForm> for JobSpec {
@@ -225,6 +245,10 @@ impl From<SubmitForm> for JobSpec {
             layout: f.layout,
             label: f.label,
             replicate: f.replicate,
+            time: f.time,
+            animation: f.animation,
+            frames: f.frames.trim().to_string(),
+            fps: f.fps,
             ..JobSpec::default()
         }
     }
@@ -292,6 +316,9 @@ impl From<&Job> for JobSummary {
             progress,
             submitted_at: j.submitted_at.as_ref().map(|t| t.seconds),
             finished_at: j.finished_at.as_ref().map(|t| t.seconds),
+            group: j.group.as_ref().map(|g| g.group_id.clone()),
+            frame: j.group.as_ref().map(|g| g.frame),
+            time: spec.time,
         }
     }
 }

@@ -180,7 +180,10 @@ function renderJobs(page) {
   $("summary").textContent = `${running} active job${running === 1 ? "" : "s"}`;
   $("jobs-empty").hidden = jobs.length > 0;
   const rows = jobs.map((j) => {
-    const title = j.label ? `${esc(j.label)} <small>${esc(j.id)}</small>` : esc(j.id);
+    const name = j.label ? `${esc(j.label)} <small>${esc(j.id)}</small>` : esc(j.id);
+    // A frame of a job group: its frame and group beside the id.
+    const title = j.group === undefined ? name
+      : `${name} <small class="group" title="job group ${esc(j.group)}">frame ${j.frame} of ${esc(j.group)}</small>`;
     const cancel = TERMINAL.has(j.state)
       ? ""
       : `<button class="cancel" data-cancel="${esc(j.id)}" title="CancelJob">cancel</button>`;
@@ -261,6 +264,10 @@ $("submit-form").addEventListener("submit", async (e) => {
     env_map: (f.get("env_map") ?? "").trim(),
     env_rotation: num("env_rotation"),
     env_intensity: num("env_intensity"),
+    time: num("time"),
+    animation: (f.get("animation") ?? "").trim(),
+    frames: (f.get("frames") ?? "").trim(),
+    fps: num("fps"),
   };
   // "X,Y,Z" and "AZ,EL" fields as arrays of numbers; the coordinator checks the values.
   for (const [k, n] of [["look_from", 3], ["look_at", 3], ["up", 3], ["orbit", 2], ["focus_on", 3]]) {
