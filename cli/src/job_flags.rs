@@ -307,6 +307,9 @@ impl JobFlags {
             lighting: self.lights.lighting_spec(),
             clamp_indirect: self.noise.clamp_indirect,
             aovs: self.noise.aov.clone(),
+            // `dray submit --priority` sets it (submit_cmd.rs); nothing to queue behind
+            // in `dray render`.
+            priority: 0,
         })
     }
 }

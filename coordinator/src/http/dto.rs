@@ -65,6 +65,9 @@ pub struct JobDetail {
     #[serde(flatten)]
     pub job: JobSummary,
     pub stats: Option<Stats>,
+    /// Its priority, attempts, lineage and event log (`super::actions`).
+    #[serde(flatten)]
+    pub operator: super::actions::OperatorView,
 }
 
 /// A job's statistics (JobStats), the fields a person reads.
@@ -115,6 +118,9 @@ pub struct WorkerShare {
 #[serde(deny_unknown_fields)]
 pub struct SubmitForm {
     pub scene: String,
+    /// JobSpec.priority; absent: 0.
+    #[serde(default)]
+    pub priority: i32,
     pub width: u32,
     pub height: u32,
     pub spp: u32,
@@ -225,6 +231,7 @@ impl From<SubmitForm> for JobSpec {
             layout: f.layout,
             label: f.label,
             replicate: f.replicate,
+            priority: f.priority,
             ..JobSpec::default()
         }
     }
@@ -301,6 +308,7 @@ impl From<&Job> for JobDetail {
         JobDetail {
             job: JobSummary::from(j),
             stats: j.stats.as_ref().map(Stats::from),
+            operator: super::actions::OperatorView::from(j),
         }
     }
 }
