@@ -315,6 +315,9 @@ impl JobFlags {
             animation: self.anim.animation.clone().unwrap_or_default(),
             frames: self.anim.frames_text(),
             fps: self.anim.fps,
+            // `dray submit --priority` sets it (submit_cmd.rs); nothing to queue behind
+            // in `dray render`.
+            priority: 0,
         })
     }
 }

@@ -48,6 +48,11 @@ pub struct SubmitArgs {
     #[arg(long)]
     #[arg(help_heading = crate::help_heading::SUBMIT)]
     pub label: Option<String>,
+    /// Where the job stands among queued jobs (JobSpec.priority): a higher one is dealt
+    /// first; running jobs are not pre-empted. No effect on the image.
+    #[arg(long, default_value_t = 0, allow_hyphen_values = true)]
+    #[arg(help_heading = crate::help_heading::SUBMIT)]
+    pub priority: i32,
     /// When the coordinator goes away while the job runs, wait this many seconds for it
     /// to come back and follow the job again (a coordinator with a state directory keeps
     /// its jobs across restarts); 0 fails at once.
@@ -169,12 +174,16 @@ pub fn endpoint_url(addr: &str) -> Result<String> {
 
 /// The job spec the flags describe.
 pub(crate) fn job_spec(a: &SubmitArgs) -> Result<JobSpec> {
-    a.job.job_spec(
+    let spec = a.job.job_spec(
         a.job.scene.clone(),
         a.domains.unwrap_or(0),
         a.layout.as_deref().unwrap_or_default(),
         a.label.as_deref().unwrap_or_default(),
-    )
+    )?;
+    Ok(JobSpec {
+        priority: a.priority,
+        ..spec
+    })
 }
 
 /// A gRPC failure as one line: what was being done and what the server said.

@@ -21,7 +21,7 @@ use std::path::{Path, PathBuf};
 use std::process::Stdio;
 use std::time::{Duration, Instant};
 
-use dray_proto::v1::JobState;
+use dray_proto::v1::{JobEventKind, JobState};
 use support::port_worker::PortWorker;
 use support::seeded::{self, Rng};
 use support::{Captured, Proc, capture_stderr, dray, eventually, free_port};
@@ -184,6 +184,22 @@ fn a_worker_killed_and_restarted_on_its_port_mid_pass_never_hangs_a_job() {
                 "run {run} (seed {seed}): the job ended without success or a reason: {out}"
             );
             failed += 1;
+        }
+        // The job's event log says what happened (issue 42): each lost worker whose
+        // tiles were traced again is a WORKER_LOST event and one more attempt.
+        if let Some(job) = support::get_job(&addr, &id) {
+            let lost_events = job
+                .events
+                .iter()
+                .filter(|e| e.kind == JobEventKind::WorkerLost as i32)
+                .count();
+            let retried = job.stats.as_ref().map_or(0, |s| s.tiles_retried);
+            assert!(
+                (retried == 0 || lost_events > 0) && job.attempts as usize == 1 + lost_events,
+                "run {run} (seed {seed}): {retried} tiles retried, {} attempts, events {:?}",
+                job.attempts,
+                job.events
+            );
         }
         // The next run starts with three live workers: the replacement registered and
         // the killed one declared lost (its heartbeat timeout, if the job did not end

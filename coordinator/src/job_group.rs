@@ -181,6 +181,8 @@ mod tests {
             image: None,
             dropped: None,
             tiles: Vec::new(),
+            events: Vec::new(),
+            retried_from: None,
         };
         table.restore(vec![stored("grp-4-0000beef-f12"), stored("job-5-0000beef")]);
         let group = |id: &str| table.get(id).and_then(|j| j.to_job().group);

@@ -3,8 +3,8 @@
 //! EXR).
 //!
 //! With workers registered, a job runs on them (`dispatch`, `job`). With none, jobs
-//! run one at a time, in submission order, in this process: a job waits QUEUED for the
-//! render gate, builds its geometry (PREPARING), then traces tiles on a blocking thread
+//! run one at a time in this process, by priority then submission order: a job waits
+//! QUEUED (or PAUSED) in the deal queue (`priority`), builds its geometry (PREPARING), then traces tiles on a blocking thread
 //! (RUNNING). Cancellation is cooperative: a flag the
 //! render loop checks before each tile.
 
@@ -23,9 +23,8 @@ use dray_core::scene::Scene;
 use dray_core::tiles::TileGrid;
 use dray_core::tonemap::Tonemap;
 use dray_core::trace::Trace;
-use dray_proto::v1::{Job, JobProgress, JobSpec, JobState, JobStats, RayCounts};
+use dray_proto::v1::{Job, JobEventKind, JobProgress, JobSpec, JobState, JobStats, RayCounts};
 use dray_scene::partition::LayoutSpec;
-use tokio::sync::Semaphore;
 
 use crate::store::{JobStore, Op, StoredJob, to_millis};
 use crate::validate::{Prepared, Validated};
@@ -56,6 +55,8 @@ pub struct JobEntry {
     pub images: crate::image_memo::ImageMemo,
     /// The job group it is a frame of (read from its id: `crate::job_group`).
     pub group: Option<dray_proto::v1::JobGroupMember>,
+    /// What happened to it, its lineage and attempts (`job_events`).
+    pub log: crate::job_events::EventLog,
 }
 
 struct Inner {
@@ -165,7 +166,40 @@ impl JobEntry {
             submitted_at: Some(self.submitted_at.into()),
             finished_at: g.finished_at.map(Into::into),
             group: self.group.clone(),
+            retried_from: self.log.retried_from(),
+            attempts: self.log.attempts(),
+            events: self.log.events(),
         }
+    }
+
+    /// Record an event in the job's log (and its store).
+    pub(crate) fn note(&self, kind: JobEventKind, message: String) {
+        self.log
+            .record(&self.id, self.store.as_ref(), kind, message);
+    }
+
+    /// Hold a QUEUED job (`paused`) or put a PAUSED one back in the queue: the state
+    /// it had when the move is refused. The caller checks that the job waits in the
+    /// deal queue.
+    pub(crate) fn hold(&self, paused: bool) -> Result<(), JobState> {
+        let (from, to) = if paused {
+            (JobState::Queued, JobState::Paused)
+        } else {
+            (JobState::Paused, JobState::Queued)
+        };
+        let mut g = self.lock();
+        if g.state != from {
+            return Err(g.state);
+        }
+        g.state = to;
+        drop(g);
+        if let Some(store) = &self.store {
+            store.post(Op::State {
+                id: self.id.clone(),
+                state: to,
+            });
+        }
+        Ok(())
     }
 
     /// Ask the job to stop. A queued or running job becomes CANCELLED at once (a running
@@ -228,9 +262,15 @@ impl JobEntry {
                     state: s,
                 });
             }
+            let started = s == JobState::Running && g.state != JobState::Running;
             g.state = s;
             if g.started.is_none() {
                 g.started = Some(Instant::now());
+            }
+            drop(g);
+            if started {
+                let n = self.log.attempts() + 1;
+                self.note(JobEventKind::Started, format!("started: attempt {n}"));
             }
         }
     }
@@ -272,6 +312,7 @@ impl JobEntry {
             return;
         }
         g.state = s;
+        let error_copy = error.clone();
         g.error = error;
         g.film = film.map(Arc::new);
         let elapsed = g.started.map(|t| t.elapsed()).unwrap_or_default();
@@ -290,6 +331,12 @@ impl JobEntry {
             });
         }
         drop(g);
+        let (kind, message) = match s {
+            JobState::Succeeded => (JobEventKind::Succeeded, "succeeded".to_string()),
+            JobState::Cancelled => (JobEventKind::Cancelled, "cancelled".to_string()),
+            _ => (JobEventKind::Failed, format!("failed: {error_copy}")),
+        };
+        self.note(kind, message);
         if s == JobState::Succeeded {
             self.passes.complete();
         } else {
@@ -333,7 +380,8 @@ pub struct JobTable {
     /// Makes this coordinator's job ids differ from an earlier run's: a worker that
     /// outlived a coordinator restart must not take a new `job-1` for the old one.
     nonce: u32,
-    gate: Arc<Semaphore>,
+    /// Jobs waiting for the one in-process render slot, by priority (`priority`).
+    queue: Arc<crate::priority::DealQueue>,
     threads: usize,
     retention: Retention,
     /// Where jobs are kept across restarts, once set ([`JobTable::keep_in`]).
@@ -385,7 +433,7 @@ impl JobTable {
                 (t.subsec_nanos() ^ (t.as_secs() as u32).rotate_left(13))
                     ^ std::process::id().rotate_left(7)
             },
-            gate: Arc::new(Semaphore::new(1)),
+            queue: Arc::new(crate::priority::DealQueue::new(1)),
             threads,
             retention: Retention::default(),
             store: OnceLock::new(),
@@ -406,7 +454,12 @@ impl JobTable {
         let mut resumable = Vec::new();
         for j in stored {
             let ended = terminal(j.state);
-            let state = if ended { j.state } else { JobState::Queued };
+            // A held job stays held across the restart.
+            let state = match j.state {
+                s if ended => s,
+                JobState::Paused => JobState::Paused,
+                _ => JobState::Queued,
+            };
             let entry = Arc::new(JobEntry {
                 group: crate::job_group::member_of(&j.id),
                 id: j.id.clone(),
@@ -432,18 +485,29 @@ impl JobTable {
                 store: self.store.get().cloned(),
                 passes: crate::pass_images::PassImages::new(&j.spec.passes, j.spec.spp),
                 images: Default::default(),
+                log: crate::job_events::EventLog::restored(
+                    j.events.clone(),
+                    j.retried_from.clone(),
+                ),
             });
             if ended {
                 if state == JobState::Succeeded {
                     entry.set_tiles_done(entry.tiles_total);
                 }
             } else {
-                if j.state != JobState::Queued
+                entry.note(
+                    JobEventKind::Restored,
+                    format!(
+                        "taken back by a restarted coordinator ({} then); queued again",
+                        j.state.as_str_name()
+                    ),
+                );
+                if j.state != state
                     && let Some(store) = &entry.store
                 {
                     store.post(Op::State {
                         id: j.id.clone(),
-                        state: JobState::Queued,
+                        state,
                     });
                 }
                 resumable.push((entry.clone(), j));
@@ -458,6 +522,11 @@ impl JobTable {
         // (The budget defaults to --max-job-bytes in `with_admission`.)
         self.retention = retention;
         self
+    }
+
+    /// The queue of jobs waiting to render in this process.
+    pub(crate) fn queue(&self) -> &Arc<crate::priority::DealQueue> {
+        &self.queue
     }
 
     /// Render threads for jobs in this process (0 = all cores).
@@ -586,6 +655,7 @@ impl JobTable {
             store: self.store.get().cloned(),
             passes: crate::pass_images::PassImages::new(&spec.passes, spec.spp),
             images: Default::default(),
+            log: Default::default(),
             spec,
         });
         if let Some(store) = &entry.store {
@@ -596,6 +666,10 @@ impl JobTable {
             });
         }
         self.jobs().push(entry.clone());
+        entry.note(
+            JobEventKind::Queued,
+            format!("queued at priority {}", entry.spec.priority),
+        );
         crate::metrics::otel::job_accepted();
         entry
     }
@@ -611,10 +685,14 @@ impl JobTable {
     /// Start the in-process render of `entry`, a job already in the table whose scene
     /// has been prepared. Must be called within a tokio runtime.
     pub fn start(&self, entry: &Arc<JobEntry>, prepared: Prepared) {
-        let (gate, threads, job) = (self.gate.clone(), self.threads, entry.clone());
+        let (queue, threads, job) = (self.queue.clone(), self.threads, entry.clone());
+        // Waiting for the slot is QUEUED (a scene file was loaded PREPARING).
+        let waiting = queue.join(&job);
+        if job.state() == JobState::Preparing {
+            job.set_state(JobState::Queued);
+        }
         tokio::spawn(async move {
-            let Ok(_permit) = gate.acquire_owned().await else {
-                job.finish(JobState::Failed, "the server is shutting down".into(), None);
+            let Some(_slot) = waiting.turn().await else {
                 return;
             };
             if job.cancel.load(Ordering::Relaxed) {
@@ -669,6 +747,10 @@ fn run(job: &JobEntry, p: Prepared, threads: usize) {
         // The last pass's image is the job's final one (`finish`).
         if k + 1 < passes.len() {
             job.passes.publish(Arc::new(film.clone()), k as u32 + 1);
+            job.note(
+                JobEventKind::PassFinished,
+                format!("pass {} of {} finished", k + 1, passes.len()),
+            );
             job.tiles_done.store(0, Ordering::Relaxed);
         }
     };

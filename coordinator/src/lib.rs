@@ -32,6 +32,9 @@
 //! - [`cluster`]: the tonic `ClusterService` over the above.
 //! - [`package_service`]: the tonic `PackageService`: running jobs' package files for
 //!   workers that do not share the coordinator's disk.
+//! - [`operator`]: the operator actions (retry, requeue, pause, resume), over
+//!   [`priority`] (the deal queue: priorities, paused jobs) and [`job_events`] (each
+//!   job's event log, lineage and attempts, kept in the job store).
 //! - [`service`]: the tonic `RenderService` and [`serve`].
 //! - [`http`]: the web dashboard (`--http-listen`): a page and JSON endpoints over the
 //!   same RenderService methods, live updates by server-sent events.
@@ -46,13 +49,16 @@ pub mod http;
 pub mod image_memo;
 pub mod job;
 pub mod job_group;
+pub mod job_events;
 pub mod jobs;
 pub mod lighting;
 pub mod membership;
 pub mod metrics;
+pub mod operator;
 pub mod owned_package;
 pub mod package_service;
 pub mod pass_images;
+pub mod priority;
 pub mod scheduler;
 pub mod service;
 pub mod store;

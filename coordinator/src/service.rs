@@ -15,8 +15,8 @@ use dray_proto::v1::render_service_server::{RenderService, RenderServiceServer};
 use dray_proto::v1::{
     CancelJobRequest, CancelJobResponse, GetImageRequest, GetImageResponse, GetJobRequest,
     GetJobResponse, ImageFormat, JobProgress, JobSpec, JobState, ListJobsRequest, ListJobsResponse,
-    ListWorkersRequest, ListWorkersResponse, SubmitJobRequest, SubmitJobResponse,
-    WatchImageRequest, WatchJobRequest,
+    ListWorkersRequest, ListWorkersResponse, PauseJobRequest, PauseJobResponse, RetryJobRequest,
+    RetryJobResponse, SubmitJobRequest, SubmitJobResponse, WatchImageRequest, WatchJobRequest,
 };
 use tokio::net::TcpListener;
 use tokio_stream::wrappers::ReceiverStream;
@@ -298,7 +298,7 @@ impl Coordinator {
     /// procedural scene may take minutes to load: the job is accepted PREPARING and its
     /// scene is loaded off the request path; an error then fails the job (GetJob and
     /// WatchJob say why), and CancelJob ends it at once without waiting for the load.
-    async fn submit(&self, spec: JobSpec, loaded: Option<Scene>) -> Result<String, Status> {
+    pub(crate) async fn submit(&self, spec: JobSpec, loaded: Option<Scene>) -> Result<String, Status> {
         self.submit_as(spec, loaded, None).await
     }
 
@@ -455,7 +455,12 @@ impl Coordinator {
         self.table.new_group_id()
     }
 
-    fn job(&self, id: &str) -> Result<Arc<JobEntry>, Status> {
+    /// The queue of jobs waiting to render in this process (`priority`).
+    pub(crate) fn queue(&self) -> &Arc<crate::priority::DealQueue> {
+        self.table.queue()
+    }
+
+    pub(crate) fn job(&self, id: &str) -> Result<Arc<JobEntry>, Status> {
         self.table
             .get(id)
             .ok_or_else(|| Status::not_found(format!("no job {}", bounded(id))))
@@ -713,6 +718,38 @@ impl RenderService for Coordinator {
             out.next_page_token = last.id.clone();
         }
         Ok(Response::new(out))
+    }
+
+    async fn retry_job(
+        &self,
+        r: Request<RetryJobRequest>,
+    ) -> Result<Response<RetryJobResponse>, Status> {
+        Ok(Response::new(
+            self.retry_or_requeue(r.into_inner(), false).await?,
+        ))
+    }
+
+    async fn requeue_job(
+        &self,
+        r: Request<RetryJobRequest>,
+    ) -> Result<Response<RetryJobResponse>, Status> {
+        Ok(Response::new(
+            self.retry_or_requeue(r.into_inner(), true).await?,
+        ))
+    }
+
+    async fn pause_job(
+        &self,
+        r: Request<PauseJobRequest>,
+    ) -> Result<Response<PauseJobResponse>, Status> {
+        Ok(Response::new(self.hold_job(&r.get_ref().job_id, true)?))
+    }
+
+    async fn resume_job(
+        &self,
+        r: Request<PauseJobRequest>,
+    ) -> Result<Response<PauseJobResponse>, Status> {
+        Ok(Response::new(self.hold_job(&r.get_ref().job_id, false)?))
     }
 }
 

@@ -9,7 +9,8 @@ use dray_proto::v1::render_service_server::{RenderService, RenderServiceServer};
 use dray_proto::v1::{
     CancelJobRequest, CancelJobResponse, GetImageRequest, GetImageResponse, GetJobRequest,
     GetJobResponse, JobProgress, ListJobsRequest, ListJobsResponse, ListWorkersRequest,
-    ListWorkersResponse, SubmitJobRequest, SubmitJobResponse, WatchImageRequest, WatchJobRequest,
+    ListWorkersResponse, PauseJobRequest, PauseJobResponse, RetryJobRequest, RetryJobResponse,
+    SubmitJobRequest, SubmitJobResponse, WatchImageRequest, WatchJobRequest,
 };
 use prost::Message;
 use prost_types::FileDescriptorSet;
@@ -163,6 +164,30 @@ impl RenderService for NoJobs {
         _: Request<ListWorkersRequest>,
     ) -> Result<Response<ListWorkersResponse>, Status> {
         Ok(Response::new(ListWorkersResponse::default()))
+    }
+    async fn retry_job(
+        &self,
+        _: Request<RetryJobRequest>,
+    ) -> Result<Response<RetryJobResponse>, Status> {
+        Err(Status::unimplemented("stub"))
+    }
+    async fn requeue_job(
+        &self,
+        _: Request<RetryJobRequest>,
+    ) -> Result<Response<RetryJobResponse>, Status> {
+        Err(Status::unimplemented("stub"))
+    }
+    async fn pause_job(
+        &self,
+        _: Request<PauseJobRequest>,
+    ) -> Result<Response<PauseJobResponse>, Status> {
+        Err(Status::unimplemented("stub"))
+    }
+    async fn resume_job(
+        &self,
+        _: Request<PauseJobRequest>,
+    ) -> Result<Response<PauseJobResponse>, Status> {
+        Err(Status::unimplemented("stub"))
     }
 }
 

@@ -8,8 +8,11 @@ Headless Chromium, driven over WebDriver by Selenium, against a real
   3. its image is shown, and the last frame has the pixels of `dray render`'s PNG for
      the same spec (decoded and compared); frames shown while it runs (when the
      coordinator serves progressive images) change as samples are added;
-  4. cancelling a running job from the page cancels it (checked through gRPC with
-     grpcurl: GetJob says CANCELLED);
+  4. cancelling a running job from the page asks first (a second click on the armed
+     button), then cancels it (checked through gRPC with grpcurl: GetJob says
+     CANCELLED); the cancelled job retried from the page is a new job linked to it
+     (GetJob's retriedFrom), and the finished job's PNG and EXR download as attachments
+     (the PNG the bytes the page shows, the EXR GetImage's);
   5. the workers are listed with their domains;
   6. 100 jobs are listed at once, and older ones are a page away;
   7. with --auth-token-file, the page shows its login, the API refuses requests without
@@ -204,14 +207,88 @@ def cancel_from_page(d, c: Cluster, artifacts: Path) -> None:
         wait_for("domains listed at the workers", lambda: d.execute_script(
             "return document.querySelectorAll('#workers tbody td.chips .chip').length") > 0)
         d.save_screenshot(str(artifacts / "running-domains.png"))
-    wait_for("the cancel button to take the click", lambda: click(
-        d, f'button[data-cancel="{job}"]'))
+    cancel_twice(d, job)
     wait_for("the page to show it CANCELLED", lambda: any(
         r["id"] == job and r["state"] == "CANCELLED" for r in rows(d)))
     got = c.grpcurl(GRPCURL, "GetJob", {"jobId": job})
     state = got["job"]["progress"]["state"]
     assert state == "JOB_STATE_CANCELLED", got
     d.save_screenshot(str(artifacts / "cancelled.png"))
+    retry_from_page(d, c, job, artifacts)
+
+
+def cancel_twice(d, job: str) -> None:
+    """Cancel `job` as a person does: the first click only arms the button (nothing is
+    cancelled: checked), the second, on "really cancel?", cancels."""
+    wait_for("the cancel button to take the click", lambda: click(
+        d, f'button[data-cancel="{job}"]:not([data-armed])'))
+    wait_for("the button to ask for confirmation", lambda: d.execute_script(
+        "return !!document.querySelector(`button[data-cancel='${arguments[0]}'][data-armed]`)",
+        job))
+    assert any(r["id"] == job and r["state"] != "CANCELLED" for r in rows(d)), \
+        "the first click alone cancelled the job"
+    wait_for("the confirmation to take the click", lambda: click(
+        d, f'button[data-cancel="{job}"][data-armed]'))
+
+
+def retry_from_page(d, c: Cluster, job: str, artifacts: Path) -> None:
+    """Retry the cancelled `job` with the page's button: a new job, linked to it."""
+    wait_for("a click on the cancelled job", lambda: click(d, f'#jobs tbody tr[data-id="{job}"]'))
+    wait_for("the retry button", lambda: click(d, '#job-operator button[data-op="retry"]'))
+    new = wait_for("the retried job selected", lambda: (lambda s: s if s and s != job else None)(
+        d.execute_script("return document.querySelector('#jobs tbody tr.selected')?.dataset.id")))
+    got = c.grpcurl(GRPCURL, "GetJob", {"jobId": new})
+    assert got["job"].get("retriedFrom") == job, got
+    wait_for("the page to show where it was retried from", lambda: d.execute_script(
+        "return document.querySelector(`#job-operator a[data-job='${arguments[0]}']`) != null",
+        job))
+    events = c.grpcurl(GRPCURL, "GetJob", {"jobId": job})["job"].get("events", [])
+    assert any(e.get("kind") == "JOB_EVENT_KIND_RETRIED" and new in e.get("message", "")
+               for e in events), events
+    d.save_screenshot(str(artifacts / "retried.png"))
+    wait_for(f"the retried job {new} in the table", lambda: any(r["id"] == new for r in rows(d)))
+    if c.grpcurl(GRPCURL, "GetJob", {"jobId": new})["job"]["progress"]["state"] not in (
+            "JOB_STATE_SUCCEEDED", "JOB_STATE_FAILED", "JOB_STATE_CANCELLED"):
+        cancel_twice(d, new)
+        wait_for("the retried job CANCELLED", lambda: any(
+            r["id"] == new and r["state"] == "CANCELLED" for r in rows(d)))
+
+
+def fetch_in_page(d, url: str) -> tuple[int, str, bytes]:
+    """GET `url` from inside the page (its cookie and origin): status, the
+    Content-Disposition header and the body."""
+    got = d.execute_async_script("""
+        const done = arguments[arguments.length - 1];
+        fetch(arguments[0], {credentials: 'same-origin'})
+          .then(async r => { const u = new Uint8Array(await r.arrayBuffer()); let s = '';
+                             for (let i = 0; i < u.length; i += 0x8000)
+                               s += String.fromCharCode.apply(null, u.subarray(i, i + 0x8000));
+                             done([r.status, r.headers.get('content-disposition') || '', btoa(s)]); })
+          .catch(e => done([0, 'ERROR ' + e, '']));""", url)
+    return got[0], got[1], base64.b64decode(got[2])
+
+
+@step("the finished job's PNG and EXR download from the page")
+def download_from_page(d, c: Cluster, artifacts: Path) -> None:
+    job = d.execute_script(
+        "return [...document.querySelectorAll('#jobs tbody tr')]"
+        ".find(r => r.dataset.state === 'SUCCEEDED').dataset.id")
+    wait_for("a click on the finished job", lambda: click(d, f'#jobs tbody tr[data-id="{job}"]'))
+    wait_for("its image", lambda: d.find_element(By.ID, "preview").get_attribute("data-version") != "0")
+    links = wait_for("the download links", lambda: d.execute_script(
+        "const a = [...document.querySelectorAll('#job-operator a.download')].map(a => a.href);"
+        "return a.length === 2 ? a : null"))
+    png = [u for u in links if u.endswith("image.png")][0]
+    exr = [u for u in links if u.endswith("image.exr")][0]
+    status, disposition, body = fetch_in_page(d, png)
+    assert status == 200, (status, disposition)
+    assert disposition == f'attachment; filename="{job}.png"', disposition
+    assert body == displayed_png(d), "the downloaded PNG is not the image the page shows"
+    status, disposition, body = fetch_in_page(d, exr)
+    assert status == 200 and disposition == f'attachment; filename="{job}.exr"', disposition
+    # (160x120: well within grpcurl's 4 MiB default message limit.)
+    got = c.grpcurl(GRPCURL, "GetImage", {"jobId": job, "format": "IMAGE_FORMAT_EXR"})
+    assert body == base64.b64decode(got["data"]), "the downloaded EXR is not GetImage's"
 
 
 def click(d, css: str) -> bool:
@@ -360,6 +437,7 @@ def main() -> int:
             guarded("submit and image", submit_and_image, d, c, artifacts, dray, tmp)
             guarded("workers listed", workers_listed, d, c, artifacts)
             guarded("cancel", cancel_from_page, d, c, artifacts)
+            guarded("download", download_from_page, d, c, artifacts)
             guarded("README screenshot", readme_screenshot, d, artifacts)
             guarded("many jobs", many_jobs, d, c, artifacts)
             c.stop()

@@ -1,4 +1,4 @@
-//! The page and its two files, embedded in the binary (there is no npm: plain HTML, CSS
+//! The page and its files, embedded in the binary (there is no npm: plain HTML, CSS
 //! and JavaScript in `assets/`), and the headers every answer carries.
 
 use axum::extract::Request;
@@ -8,6 +8,7 @@ use axum::response::{IntoResponse, Response};
 
 const INDEX: &str = include_str!("assets/index.html");
 const SCRIPT: &str = include_str!("assets/app.js");
+const OPERATOR_SCRIPT: &str = include_str!("assets/operator.js");
 const STYLE: &str = include_str!("assets/style.css");
 
 /// Only this server's own scripts, styles, images and connections; no frames, no
@@ -35,6 +36,10 @@ pub async fn index() -> Response {
 
 pub async fn script() -> Response {
     file("text/javascript; charset=utf-8", SCRIPT)
+}
+
+pub async fn operator_script() -> Response {
+    file("text/javascript; charset=utf-8", OPERATOR_SCRIPT)
 }
 
 pub async fn style() -> Response {

@@ -74,6 +74,9 @@ pub struct JobDetail {
     #[serde(flatten)]
     pub job: JobSummary,
     pub stats: Option<Stats>,
+    /// Its priority, attempts, lineage and event log (`super::actions`).
+    #[serde(flatten)]
+    pub operator: super::actions::OperatorView,
 }
 
 /// A job's statistics (JobStats), the fields a person reads.
@@ -124,6 +127,9 @@ pub struct WorkerShare {
 #[serde(deny_unknown_fields)]
 pub struct SubmitForm {
     pub scene: String,
+    /// JobSpec.priority; absent: 0.
+    #[serde(default)]
+    pub priority: i32,
     pub width: u32,
     pub height: u32,
     pub spp: u32,
@@ -249,6 +255,7 @@ impl From<SubmitForm> for JobSpec {
             animation: f.animation,
             frames: f.frames.trim().to_string(),
             fps: f.fps,
+            priority: f.priority,
             ..JobSpec::default()
         }
     }
@@ -328,6 +335,7 @@ impl From<&Job> for JobDetail {
         JobDetail {
             job: JobSummary::from(j),
             stats: j.stats.as_ref().map(Stats::from),
+            operator: super::actions::OperatorView::from(j),
         }
     }
 }

@@ -12,6 +12,7 @@
 //! ([`streams`], per client: [`client`]). The endpoints are listed in
 //! docs/dashboard.md.
 
+pub mod actions;
 pub mod api;
 pub mod assets;
 pub mod auth;
@@ -101,6 +102,11 @@ impl Dashboard {
             .route("/api/jobs/{id}", get(api::get_job))
             .route("/api/jobs/{id}/cancel", post(api::cancel))
             .route("/api/jobs/{id}/image.png", get(api::image))
+            .route("/api/jobs/{id}/retry", post(actions::retry))
+            .route("/api/jobs/{id}/requeue", post(actions::requeue))
+            .route("/api/jobs/{id}/pause", post(actions::pause))
+            .route("/api/jobs/{id}/resume", post(actions::resume))
+            .route("/api/jobs/{id}/download/{file}", get(actions::download))
             .route("/api/jobs/{id}/events", get(events::job_progress))
             .route("/api/workers", get(api::workers))
             .route("/api/events", get(events::snapshots))
@@ -110,6 +116,7 @@ impl Dashboard {
         Router::new()
             .route("/", get(assets::index))
             .route("/app.js", get(assets::script))
+            .route("/operator.js", get(assets::operator_script))
             .route("/style.css", get(assets::style))
             .route("/api/session", get(api::session))
             .route("/api/login", post(api::login))

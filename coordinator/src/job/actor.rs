@@ -438,6 +438,16 @@ impl JobActor {
             workers = self.job.sched.worker_ids().len(),
             "{reason}"
         );
+        let entry = &self.job.entry;
+        entry.note(dray_proto::v1::JobEventKind::WorkerLost, reason.clone());
+        let n = entry.log.attempts() + 1;
+        entry.note(
+            dray_proto::v1::JobEventKind::Started,
+            format!(
+                "started: attempt {n}, on the {} workers left",
+                self.job.sched.worker_ids().len()
+            ),
+        );
         self.send_all(self.job.releases_of(old, Release::Cancel, &reason));
         self.job.entry.set_rays_in_flight(0);
         if !self.reopen_caches() {

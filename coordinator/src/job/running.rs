@@ -257,6 +257,10 @@ impl RunningJob {
         self.pass = pass;
         if pass > 0 {
             self.entry.passes.publish(image.clone(), pass as u32);
+            self.entry.note(
+                dray_proto::v1::JobEventKind::PassFinished,
+                format!("pass {pass} of {} finished", self.entry.passes.total()),
+            );
         }
         let previous = self.pass_base.replace(image);
         self.pass_next = (!self.last_pass()).then(|| {

@@ -24,7 +24,7 @@ use super::{CommittedTile, StoreError, StoredJob, from_millis};
 use super::{image_file, state_dir};
 
 /// The schema this build writes and the newest it reads (`PRAGMA user_version`).
-pub const SCHEMA_VERSION: u32 = 2;
+pub const SCHEMA_VERSION: u32 = 3;
 
 /// `PRAGMA application_id` of a dray job store ("dray"), so another program's SQLite
 /// file is never taken for one.
@@ -329,14 +329,20 @@ fn open_db(path: &Path) -> Result<Connection, StoreError> {
     if app == 0 {
         let tx = conn.unchecked_transaction().map_err(sql)?;
         tx.execute_batch(SCHEMA).map_err(sql)?;
+        tx.execute_batch(super::events::MIGRATE_2_TO_3)
+            .map_err(sql)?;
         tx.pragma_update(None, "application_id", APPLICATION_ID)
             .map_err(sql)?;
         tx.pragma_update(None, "user_version", SCHEMA_VERSION)
             .map_err(sql)?;
         tx.commit().map_err(sql)?;
-    } else if version == 1 {
+    } else if version == 1 || version == 2 {
         let tx = conn.unchecked_transaction().map_err(sql)?;
-        tx.execute_batch(MIGRATE_1_TO_2).map_err(sql)?;
+        if version == 1 {
+            tx.execute_batch(MIGRATE_1_TO_2).map_err(sql)?;
+        }
+        tx.execute_batch(super::events::MIGRATE_2_TO_3)
+            .map_err(sql)?;
         tx.pragma_update(None, "user_version", SCHEMA_VERSION)
             .map_err(sql)?;
         tx.commit().map_err(sql)?;
@@ -390,6 +396,8 @@ fn load(conn: &Connection, images: &Path) -> rusqlite::Result<Vec<StoredJob>> {
                 .map(|n| images.join(n)),
             dropped: r.get(11)?,
             tiles: Vec::new(),
+            events: Vec::new(),
+            retried_from: None,
         })
     })?;
     // A row whose fields cannot be read (a spec that does not decode, a value of the
@@ -427,6 +435,7 @@ fn load(conn: &Connection, images: &Path) -> rusqlite::Result<Vec<StoredJob>> {
             })?
             .collect::<rusqlite::Result<Vec<_>>>()?;
     }
+    super::events::load(conn, &mut jobs)?;
     Ok(jobs)
 }
 

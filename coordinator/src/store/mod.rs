@@ -19,6 +19,7 @@
 //! database: they are large, written once, and read whole.
 
 pub mod db;
+pub mod events;
 pub mod image_file;
 pub mod state_dir;
 pub mod writer;
@@ -26,7 +27,7 @@ pub mod writer;
 use std::path::PathBuf;
 use std::time::{Duration, SystemTime};
 
-use dray_proto::v1::{JobSpec, JobState, JobStats};
+use dray_proto::v1::{JobEvent, JobSpec, JobState, JobStats};
 
 pub use db::{JobStore, SCHEMA_VERSION};
 pub use writer::Op;
@@ -140,6 +141,10 @@ pub struct StoredJob {
     pub dropped: Option<String>,
     /// Its committed tiles (jobs not ended only).
     pub tiles: Vec<CommittedTile>,
+    /// Its event log, oldest first ([`events`]).
+    pub events: Vec<JobEvent>,
+    /// The job it runs again (RetryJob, RequeueJob).
+    pub retried_from: Option<String>,
 }
 
 /// Milliseconds since the Unix epoch, as the store keeps times.

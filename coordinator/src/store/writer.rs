@@ -91,6 +91,24 @@ pub enum Op {
         /// Why.
         why: String,
     },
+    /// An event of the job's log (`crate::job_events`).
+    Event {
+        /// The job.
+        id: String,
+        /// When, in milliseconds since the Unix epoch.
+        at_ms: i64,
+        /// A `dray.v1.JobEventKind`.
+        kind: i32,
+        /// For a human.
+        message: String,
+    },
+    /// The job runs `from` again (RetryJob, RequeueJob).
+    RetriedFrom {
+        /// The new job.
+        id: String,
+        /// The job it runs again.
+        from: String,
+    },
     /// Answered once every earlier operation is committed (`true`), or with `false`
     /// when the transaction holding them failed (a full disk).
     Flush(SyncSender<bool>),
@@ -228,6 +246,7 @@ fn write_batch(
 fn apply(tx: &Transaction<'_>, op: Op) -> rusqlite::Result<()> {
     match op {
         Op::Nothing | Op::Flush(_) | Op::Dropped { .. } => {}
+        op @ (Op::Event { .. } | Op::RetriedFrom { .. }) => super::events::apply(tx, op)?,
         Op::Insert {
             id,
             spec,

@@ -78,6 +78,30 @@ impl RenderService for Stub {
     ) -> Result<Response<ListWorkersResponse>, Status> {
         Err(Status::unimplemented("stub"))
     }
+    async fn retry_job(
+        &self,
+        _: Request<RetryJobRequest>,
+    ) -> Result<Response<RetryJobResponse>, Status> {
+        Err(Status::unimplemented("stub"))
+    }
+    async fn requeue_job(
+        &self,
+        _: Request<RetryJobRequest>,
+    ) -> Result<Response<RetryJobResponse>, Status> {
+        Err(Status::unimplemented("stub"))
+    }
+    async fn pause_job(
+        &self,
+        _: Request<PauseJobRequest>,
+    ) -> Result<Response<PauseJobResponse>, Status> {
+        Err(Status::unimplemented("stub"))
+    }
+    async fn resume_job(
+        &self,
+        _: Request<PauseJobRequest>,
+    ) -> Result<Response<PauseJobResponse>, Status> {
+        Err(Status::unimplemented("stub"))
+    }
 }
 
 /// A server running until dropped.

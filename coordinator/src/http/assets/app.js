@@ -3,6 +3,7 @@
 "use strict";
 
 const TERMINAL = new Set(["SUCCEEDED", "FAILED", "CANCELLED"]);
+// A cancel asks first: the first click arms the row's button, the second cancels.
 const CSRF = { "X-Dray-Csrf": "1" };
 // A running job's image is fetched again at most this often.
 const IMAGE_REFRESH_MS = 1000;
@@ -15,6 +16,7 @@ const state = {
   lastJobs: "",          // last jobs JSON rendered (skip identical snapshots)
   lastWorkers: "",
   selected: null,        // job id
+  armed: null,           // the job whose cancel button asks for confirmation
   selectedState: null,   // its last state
   jobs: [],              // the rows of the last snapshot
   jobEvents: null,       // EventSource of the selected job's progress
@@ -175,6 +177,7 @@ function renderJobs(page) {
   state.lastJobs = json;
   const jobs = page.jobs;
   state.jobs = jobs;
+  state.nextPageToken = page.next_page_token;
   const running = jobs.filter((j) => !TERMINAL.has(j.state)).length;
   $("jobs-count").textContent = `${jobs.length} shown, ${running} active`;
   $("summary").textContent = `${running} active job${running === 1 ? "" : "s"}`;
@@ -186,7 +189,10 @@ function renderJobs(page) {
       : `${name} <small class="group" title="job group ${esc(j.group)}">frame ${j.frame} of ${esc(j.group)}</small>`;
     const cancel = TERMINAL.has(j.state)
       ? ""
-      : `<button class="cancel" data-cancel="${esc(j.id)}" title="CancelJob">cancel</button>`;
+      : state.armed === j.id
+        ? `<button class="cancel armed" data-cancel="${esc(j.id)}" data-armed="1" title="CancelJob">really cancel?</button>
+           <button class="keep" data-keep="1" title="do not cancel">keep</button>`
+        : `<button class="cancel" data-cancel="${esc(j.id)}" title="CancelJob (asks first)">cancel</button>`;
     return `<tr data-id="${esc(j.id)}" data-state="${esc(j.state)}"${j.id === state.selected ? ' class="selected"' : ""}>
       <td>${title}</td>
       <td>${esc(j.scene)}</td>
@@ -213,9 +219,25 @@ function renderJobs(page) {
 }
 
 $("jobs").addEventListener("click", async (e) => {
+  const keep = e.target.closest("button[data-keep]");
+  if (keep) {
+    e.stopPropagation();
+    state.armed = null;
+    state.lastJobs = "";
+    renderJobs({ jobs: state.jobs, next_page_token: state.nextPageToken });
+    return;
+  }
   const cancel = e.target.closest("button[data-cancel]");
+  if (cancel && !cancel.dataset.armed) {
+    e.stopPropagation();
+    state.armed = cancel.dataset.cancel;
+    state.lastJobs = "";
+    renderJobs({ jobs: state.jobs, next_page_token: state.nextPageToken });
+    return;
+  }
   if (cancel) {
     e.stopPropagation();
+    state.armed = null;
     cancel.disabled = true;
     const r = await api(`/api/jobs/${encodeURIComponent(cancel.dataset.cancel)}/cancel`, {
       method: "POST",
@@ -333,11 +355,14 @@ function selectJob(id) {
     $("preview-caption").textContent = "";
     const j = state.jobs.find((x) => x.id === id);
     if (j) renderJobHeader(j);
+    $("job-operator").innerHTML = "";
   }
+  drayOperator.show(id);
   const es = new EventSource(`/api/jobs/${encodeURIComponent(id)}/events`);
   state.jobEvents = es;
   es.addEventListener("progress", (e) => {
     const p = JSON.parse(e.data);
+    if (p.state !== state.selectedState) drayOperator.show(id);
     state.selectedState = p.state;
     renderProgress(p);
     if (p.state === "RUNNING" || p.state === "SUCCEEDED") refreshImage(p.state === "SUCCEEDED");

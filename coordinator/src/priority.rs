@@ -1,0 +1,173 @@
+//! The deal queue: jobs waiting for a render slot, dealt by priority (issue 42). A job
+//! with a higher `JobSpec.priority` is dealt before every waiting job with a lower one;
+//! among equal priorities, the one that came to the queue first. A PAUSED job is not
+//! dealt (the jobs behind it are) until it is resumed; a job that ended while it waited
+//! (cancelled) leaves the queue. A job holding a slot keeps it until it ends: nothing is
+//! pre-empted.
+//!
+//! The coordinator's own renderer (no worker registered) has one slot (`JobTable::start`),
+//! replacing the first-come semaphore it had; jobs on workers start at once and never
+//! wait here.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+
+use dray_proto::v1::JobState;
+use tokio::sync::Notify;
+
+use crate::jobs::JobEntry;
+
+/// Jobs waiting for one of `slots` slots.
+pub struct DealQueue {
+    state: Mutex<QueueState>,
+    /// Woken on every change a waiter may be waiting for: a slot freed, a job paused,
+    /// resumed or added.
+    changed: Notify,
+    next_seq: AtomicU64,
+}
+
+struct QueueState {
+    free: usize,
+    waiting: Vec<Waiter>,
+}
+
+struct Waiter {
+    job: Arc<JobEntry>,
+    seq: u64,
+}
+
+/// A slot, held until dropped.
+pub struct Slot {
+    queue: Arc<DealQueue>,
+}
+
+impl Drop for Slot {
+    fn drop(&mut self) {
+        self.queue.lock().free += 1;
+        self.queue.changed.notify_waiters();
+    }
+}
+
+impl DealQueue {
+    /// A queue with `slots` slots.
+    pub fn new(slots: usize) -> DealQueue {
+        DealQueue {
+            state: Mutex::new(QueueState {
+                free: slots,
+                waiting: Vec::new(),
+            }),
+            changed: Notify::new(),
+            next_seq: AtomicU64::new(0),
+        }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, QueueState> {
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Whether job `id` is waiting for a slot (so it may be paused).
+    pub fn is_waiting(&self, id: &str) -> bool {
+        self.lock().waiting.iter().any(|w| w.job.id == id)
+    }
+
+    /// Ids of the waiting jobs in the order they would be dealt (paused ones last).
+    pub fn order(&self) -> Vec<String> {
+        let mut g = self.lock();
+        sort(&mut g.waiting);
+        g.waiting.iter().map(|w| w.job.id.clone()).collect()
+    }
+
+    /// Pause (`paused`) or resume `job` if it waits here: under the queue's lock, so a
+    /// job is never paused just as it is dealt. The job's state when it cannot be.
+    pub fn hold(&self, job: &JobEntry, paused: bool) -> Result<(), JobState> {
+        let g = self.lock();
+        if !g.waiting.iter().any(|w| w.job.id == job.id) {
+            return Err(job.state());
+        }
+        let held = job.hold(paused);
+        drop(g);
+        self.changed.notify_waiters();
+        held
+    }
+
+    /// Tell the waiters something changed (a job paused or resumed).
+    pub fn poke(&self) {
+        self.changed.notify_waiters();
+    }
+
+    /// Put `job` in the queue now (so it can be paused at once); [`Waiting::turn`]
+    /// waits for its slot.
+    pub fn join(self: &Arc<Self>, job: &Arc<JobEntry>) -> Waiting {
+        let seq = self.next_seq.fetch_add(1, Ordering::Relaxed);
+        self.lock().waiting.push(Waiter {
+            job: job.clone(),
+            seq,
+        });
+        self.changed.notify_waiters();
+        Waiting {
+            queue: self.clone(),
+            job: job.clone(),
+            seq,
+        }
+    }
+}
+
+/// A job in the queue ([`DealQueue::join`]).
+pub struct Waiting {
+    queue: Arc<DealQueue>,
+    job: Arc<JobEntry>,
+    seq: u64,
+}
+
+impl Waiting {
+    /// Wait until the job is the first dealable one and a slot is free, and take the
+    /// slot. None when the job ends (is cancelled) while it waits.
+    pub async fn turn(self) -> Option<Slot> {
+        let (queue, job, seq) = (&self.queue, &self.job, self.seq);
+        loop {
+            let notified = queue.changed.notified();
+            tokio::pin!(notified);
+            notified.as_mut().enable();
+            {
+                let mut g = queue.lock();
+                g.waiting.retain(|w| !w.job.is_terminal());
+                if job.is_terminal() {
+                    drop(g);
+                    queue.changed.notify_waiters();
+                    return None;
+                }
+                sort(&mut g.waiting);
+                let first = g.waiting.iter().find(|w| dealable(&w.job));
+                if g.free > 0 && first.is_some_and(|w| w.seq == seq) {
+                    g.free -= 1;
+                    g.waiting.retain(|w| w.seq != seq);
+                    drop(g);
+                    // The next in line may have a slot too.
+                    queue.changed.notify_waiters();
+                    return Some(Slot {
+                        queue: queue.clone(),
+                    });
+                }
+            }
+            tokio::select! {
+                _ = notified => {}
+                _ = job.wait_ended() => {}
+            }
+        }
+    }
+}
+
+fn dealable(job: &JobEntry) -> bool {
+    job.state() != JobState::Paused && !job.is_terminal()
+}
+
+/// Dealing order: dealable first, then higher priority, then first come.
+fn sort(waiting: &mut [Waiter]) {
+    waiting.sort_by_key(|w| {
+        (
+            !dealable(&w.job),
+            std::cmp::Reverse(w.job.spec.priority),
+            w.seq,
+        )
+    });
+}
