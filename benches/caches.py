@@ -87,6 +87,10 @@ def main() -> int:
                          "loopback), e.g. bandwidth=1gbit,latency=100us")
     ap.add_argument("--fills", nargs="+", default=["true"], choices=["true", "false"],
                     help="ray-cache.fill values (false: only the coarse pass stores)")
+    ap.add_argument("--schedule", default="dynamic",
+                    help="every render's --schedule (default dynamic: the thesis's set-up, domains "
+                         "owned and rays exchanged; auto, dray's default, replicates this scene on "
+                         "every worker for the exact render, which then sends no ray to cache)")
     ap.add_argument("--no-retrieve", action="store_true",
                     help="skip the retrieval-method sweep")
     ap.add_argument("--port", type=int, default=53100)
@@ -103,7 +107,7 @@ def main() -> int:
     scale = voxel_width(package) / THESIS_VOXEL
     radii = ",".join(f"{r * scale:.6g}" for r in a.radii)
     coarse = ",".join(str(c) for c in a.coarse)
-    base = ["--ray-cache", f"angle-deg={ANGLE_DEG:.4g}"]
+    base = ["--ray-cache", f"angle-deg={ANGLE_DEG:.4g}", "--schedule", a.schedule]
     results: dict[str, list[dict]] = {}
     runs = [(m, link) for m in a.modes for link in (a.links if m == "cluster" else ["none"])]
     for i, (mode, link) in enumerate(runs):
@@ -120,7 +124,8 @@ def main() -> int:
             target = ["--workers", str(a.workers)]
         try:
             # The cluster renders the package (cut once); the embedded mode loads and
-            # cuts the scene in memory for every render (`render_s` leaves that out).
+            # cuts the scene in memory once, and its workers keep the domains between
+            # settings (`dray sweep` in one process keeps them, as a warm cluster does).
             # (the coordinator resolves scene names against its scene root, a.work)
             scene = package.name if mode == "cluster" else f"grid:{bunny}:3x3x3"
             if mode == "embedded":
@@ -135,7 +140,8 @@ def main() -> int:
                 results[name + "-retrieve"] = sweep(
                     dray, scene, a.work / f"{name}-retrieve", a.size,
                     ["ray-cache.retrieve=first,nearest,average"],
-                    ["--ray-cache", f"angle-deg={ANGLE_DEG:.4g},radius={mid},coarse={max(a.coarse)}"],
+                    ["--ray-cache", f"angle-deg={ANGLE_DEG:.4g},radius={mid},coarse={max(a.coarse)}",
+                     "--schedule", a.schedule],
                     target, a.repeat)
         finally:
             if cluster:

@@ -16,7 +16,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex, RwLock};
 
-use dray_core::ray::{RAY_RECORD_BYTES, decode_rays, record_count};
+use dray_core::ray::{RAY_RECORD_MAX_BYTES, check_count, decode_rays};
 use dray_proto::v1::cache_service_server::{CacheService, CacheServiceServer};
 use dray_proto::v1::{
     CacheAnswers, CacheLookups, CacheRequest, CacheResponse, CloseWallsRequest, CloseWallsResponse,
@@ -38,10 +38,10 @@ use crate::store_view::StoreView;
 use crate::ticket_id;
 use crate::tickets::{DEFAULT_MAX_OPEN_TICKETS, Return};
 
-/// Largest gRPC message the host accepts or sends: a lookup of 64 Ki rays (64-byte
-/// records plus up to 10 bytes of wall and option varints each), with room to spare.
+/// Largest gRPC message the host accepts or sends: a lookup of 64 Ki rays (records
+/// of at most 64 bytes plus up to 10 bytes of wall and option varints each), with room to spare.
 /// (A `PhmOutcomes` costs at most 11 bytes an outcome, so this admits over 500 Ki.)
-pub const MAX_MESSAGE_BYTES: usize = 64 * 1024 * (RAY_RECORD_BYTES + 32);
+pub const MAX_MESSAGE_BYTES: usize = 64 * 1024 * (RAY_RECORD_MAX_BYTES + 32);
 
 /// Limits of one cache host.
 #[derive(Clone, Debug)]
@@ -345,11 +345,8 @@ impl CacheHost {
     pub async fn lookups(&self, l: CacheLookups) -> Result<CacheAnswers, HostError> {
         let sequence = l.sequence;
         let bad = |detail: String| HostError::BadLookups { sequence, detail };
-        let n = record_count(l.records.len())
+        let n = check_count(u64::from(l.count), l.records.len())
             .map_err(|source| HostError::Record { sequence, source })?;
-        if usize::try_from(l.count).ok() != Some(n) {
-            return Err(bad(format!("count {} but records hold {n} rays", l.count)));
-        }
         if l.walls.len() != n {
             return Err(bad(format!("{} walls for {n} rays", l.walls.len())));
         }
@@ -357,7 +354,7 @@ impl CacheHost {
             return Err(bad(format!("{} options for {n} rays", l.options.len())));
         }
         let rays =
-            decode_rays(&l.records).map_err(|source| HostError::Record { sequence, source })?;
+            decode_rays(&l.records, n).map_err(|source| HostError::Record { sequence, source })?;
         let rays: Vec<WallLookup> = rays
             .into_iter()
             .zip(&l.walls)

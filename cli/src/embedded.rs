@@ -13,6 +13,9 @@
 //! coordinator places the walls on them; a worker reaches the host beside it through
 //! the actors' mailboxes and in-place views, and the others' over loopback gRPC.
 //! Without caches or maps none is started (nothing would use it).
+//!
+//! [`Actors`] are the running set; `dray render` starts them for its one job and stops
+//! them after, `dray sweep` keeps them for every setting ([`crate::warm`]).
 
 use std::path::Path;
 use std::sync::Arc;
@@ -23,7 +26,7 @@ use dray_coordinator::Coordinator;
 use dray_coordinator::cluster::ClusterOptions;
 use dray_core::render::RenderOutput;
 use dray_core::scene::Scene;
-use dray_proto::v1::{JobState, JobStats};
+use dray_proto::v1::{JobSpec, JobState, JobStats};
 use dray_scene::partition::memory::MemoryPackages;
 
 use crate::cache_host::LocalCacheHost;
@@ -53,14 +56,9 @@ pub struct ActorsOutput {
     pub stats: JobStats,
 }
 
-/// Render `a` on `workers` in-process worker actors; `scene` is the job's scene, loaded
-/// and translated by the caller. `progress` gets (tiles done, total).
-pub fn render_on_actors(
-    a: &RenderArgs,
-    workers: usize,
-    scene: Scene,
-    progress: &dyn Fn(usize, usize),
-) -> Result<ActorsOutput> {
+/// The job spec `dray render` sends its in-process coordinator for `a` on `workers`
+/// workers.
+fn embedded_spec(a: &RenderArgs, workers: usize) -> Result<JobSpec> {
     // One worker renders best from one domain (no hops); several want the coordinator's
     // choice (0), several domains each.
     let domains = a.domains.unwrap_or(if workers <= 1 { 1 } else { 0 });
@@ -83,44 +81,102 @@ pub fn render_on_actors(
     if a.job.passes.is_none() {
         spec.passes = "one".to_string();
     }
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let threads = if a.threads == 0 { cores } else { a.threads };
-    let per_worker = threads.div_ceil(workers).max(1);
-    // A private directory (random name, 0700, never one made beforehand by another
-    // user), removed however the render ends.
-    let work_dir = dray_coordinator::cluster::WorkDir::private("dray-embedded-")
-        .context("cannot create the coordinator's work directory")?;
-    // The coordinator cuts the scene into this store and the workers read it: no package
-    // is written to disk for a scene this process already holds.
-    let memory = Arc::new(MemoryPackages::default());
-    // The actors listen on loopback ports: a token made for this run keeps other local
-    // users' processes from joining or injecting rays.
-    let token = dray_net::Token::generate()?;
-    let clients = dray_net::ClientOptions::plain().with_token(Some(token.clone()));
-    let server_options = dray_net::ServerOptions {
-        auth: dray_net::AuthPolicy {
-            api: None,
-            cluster: Some(token),
-        },
-        ..dray_net::ServerOptions::default()
-    };
-    let coordinator = Coordinator::new(Path::new("/"), threads)
-        .context("cannot start the coordinator")?
-        .with_cluster_options(ClusterOptions {
-            work_dir,
-            memory_packages: Some(memory.clone()),
-            clients: clients.clone(),
-            // Its workers are its own threads: no member to distrust, and a slow render
-            // (a huge scene, --load-delay-ms) is not a stuck one.
-            stall_timeout: None,
-            ..ClusterOptions::default()
+    Ok(spec)
+}
+
+/// Whether a job of `a` needs cache hosts beside the workers (ray caches or hit maps).
+pub fn wants_cache_hosts(a: &RenderArgs) -> Result<bool> {
+    let spec = embedded_spec(a, a.workers)?;
+    Ok(spec.ray_cache.is_some() || spec.phm.is_some())
+}
+
+/// What in-process actors are started with. A render whose flags give the same shape
+/// can run on actors already up ([`Actors`]); another needs new ones.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ActorsShape {
+    workers: usize,
+    /// Tracing threads in all (the coordinator's, for a job it renders itself).
+    threads: usize,
+    memory_budget: u64,
+    load_delay_ms: u64,
+    /// A cache host beside each worker.
+    cache_hosts: bool,
+}
+
+impl ActorsShape {
+    /// The actors `a` asks for, on `workers` workers, with cache hosts or not.
+    pub fn of(a: &RenderArgs, workers: usize, cache_hosts: bool) -> ActorsShape {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        ActorsShape {
+            workers,
+            threads: if a.threads == 0 { cores } else { a.threads },
+            memory_budget: a.memory_budget,
+            load_delay_ms: a.load_delay_ms,
+            cache_hosts,
+        }
+    }
+}
+
+/// A coordinator, its workers and their cache hosts, running in this process on
+/// loopback ports, for one render ([`render_on_actors`]) or for many in a row (`dray
+/// sweep`, [`crate::warm::WarmProcess`]): the workers keep the domains they loaded
+/// between jobs of one package, and with [`Actors::start`]'s `keep_package` the
+/// coordinator hands a job of an equal scene and layout the package the last job used.
+pub struct Actors {
+    shape: ActorsShape,
+    rt: tokio::runtime::Runtime,
+    coordinator: Coordinator,
+    nodes: Vec<tokio::task::JoinHandle<Result<(), dray_worker::NodeError>>>,
+    caches: Vec<LocalCacheHost>,
+    server: tokio::task::JoinHandle<Result<(), dray_net::server::ServeError>>,
+    stop_tx: tokio::sync::watch::Sender<bool>,
+    stop_workers_tx: tokio::sync::watch::Sender<bool>,
+}
+
+impl Actors {
+    /// Start the actors of `shape` and wait until every worker has registered.
+    pub fn start(shape: ActorsShape, keep_package: bool) -> Result<Actors> {
+        let workers = shape.workers;
+        let threads = shape.threads;
+        let per_worker = threads.div_ceil(workers).max(1);
+        // A private directory (random name, 0700, never one made beforehand by another
+        // user), removed however the render ends.
+        let work_dir = dray_coordinator::cluster::WorkDir::private("dray-embedded-")
+            .context("cannot create the coordinator's work directory")?;
+        // The coordinator cuts the scene into this store and the workers read it: no
+        // package is written to disk for a scene this process already holds.
+        let memory = Arc::new(if keep_package {
+            MemoryPackages::keeping_last()
+        } else {
+            MemoryPackages::default()
         });
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .context("cannot start the async runtime")?;
-    rt.block_on(async {
+        // The actors listen on loopback ports: a token made for this run keeps other
+        // local users' processes from joining or injecting rays.
+        let token = dray_net::Token::generate()?;
+        let clients = dray_net::ClientOptions::plain().with_token(Some(token.clone()));
+        let server_options = dray_net::ServerOptions {
+            auth: dray_net::AuthPolicy {
+                api: None,
+                cluster: Some(token),
+            },
+            ..dray_net::ServerOptions::default()
+        };
+        let coordinator = Coordinator::new(Path::new("/"), threads)
+            .context("cannot start the coordinator")?
+            .with_cluster_options(ClusterOptions {
+                work_dir,
+                memory_packages: Some(memory.clone()),
+                clients: clients.clone(),
+                // Its workers are its own threads: no member to distrust, and a slow
+                // render (a huge scene, --load-delay-ms) is not a stuck one.
+                stall_timeout: None,
+                ..ClusterOptions::default()
+            });
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()
+            .context("cannot start the async runtime")?;
         // Workers stop first, then the coordinator: a worker that saw its coordinator go
         // first would warn that it lost it and try to register again.
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
@@ -128,54 +184,56 @@ pub fn render_on_actors(
         let stopped = |mut rx: tokio::sync::watch::Receiver<bool>| async move {
             let _ = rx.wait_for(|s| *s).await;
         };
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
-            .await
-            .context("cannot listen on a loopback port")?;
-        let addr = listener
-            .local_addr()
-            .context("cannot read the bound address")?;
-        let coordinator_server = server_options.clone();
-        let serving = coordinator.clone();
-        let stop = stopped(stop_rx.clone());
-        let server = tokio::spawn(async move {
-            dray_coordinator::serve_with(&coordinator_server, listener, serving, stop).await
-        });
-        let mut nodes = Vec::new();
-        let mut caches = Vec::new();
-        for _ in 0..workers {
-            let l = tokio::net::TcpListener::bind("127.0.0.1:0")
+        let started = rt.block_on(async {
+            let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
                 .await
                 .context("cannot listen on a loopback port")?;
-            let cache = if spec.ray_cache.is_some() || spec.phm.is_some() {
-                let h = LocalCacheHost::start("127.0.0.1:0", None, None, &server_options).await?;
-                let endpoint = (h.endpoint.clone(), h.host.clone());
-                caches.push(h);
-                Some(endpoint)
-            } else {
-                None
-            };
-            let (cache, cache_host) = cache.unzip();
-            let config = dray_worker::WorkerConfig {
-                coordinator: format!("http://{addr}"),
-                threads: per_worker,
-                memory_packages: Some(memory.clone()),
-                memory_budget: a.memory_budget,
-                load_delay: Duration::from_millis(a.load_delay_ms),
-                cache_endpoint: cache,
-                cache_host,
-                net: clients.clone(),
-                server: server_options.clone(),
-                // The workers read the coordinator's in-memory packages: nothing to fetch.
-                package_fetch: dray_worker::package_fetch::FetchMode::Never,
-                ..dray_worker::WorkerConfig::default()
-            };
-            nodes.push(tokio::spawn(dray_worker::run(
-                config,
-                l,
-                stopped(stop_workers_rx.clone()),
-            )));
-        }
-        let result = async {
+            let addr = listener
+                .local_addr()
+                .context("cannot read the bound address")?;
+            let coordinator_server = server_options.clone();
+            let serving = coordinator.clone();
+            let stop = stopped(stop_rx.clone());
+            let server = tokio::spawn(async move {
+                dray_coordinator::serve_with(&coordinator_server, listener, serving, stop).await
+            });
+            let mut nodes = Vec::new();
+            let mut caches = Vec::new();
+            for _ in 0..workers {
+                let l = tokio::net::TcpListener::bind("127.0.0.1:0")
+                    .await
+                    .context("cannot listen on a loopback port")?;
+                let cache = if shape.cache_hosts {
+                    let h =
+                        LocalCacheHost::start("127.0.0.1:0", None, None, &server_options).await?;
+                    let endpoint = (h.endpoint.clone(), h.host.clone());
+                    caches.push(h);
+                    Some(endpoint)
+                } else {
+                    None
+                };
+                let (cache, cache_host) = cache.unzip();
+                let config = dray_worker::WorkerConfig {
+                    coordinator: format!("http://{addr}"),
+                    threads: per_worker,
+                    memory_packages: Some(memory.clone()),
+                    memory_budget: shape.memory_budget,
+                    load_delay: Duration::from_millis(shape.load_delay_ms),
+                    cache_endpoint: cache,
+                    cache_host,
+                    net: clients.clone(),
+                    server: server_options.clone(),
+                    // The workers read the coordinator's in-memory packages: nothing to
+                    // fetch.
+                    package_fetch: dray_worker::package_fetch::FetchMode::Never,
+                    ..dray_worker::WorkerConfig::default()
+                };
+                nodes.push(tokio::spawn(dray_worker::run(
+                    config,
+                    l,
+                    stopped(stop_workers_rx.clone()),
+                )));
+            }
             let deadline = Instant::now() + Duration::from_secs(20);
             while coordinator.cluster().membership.workers().len() < workers {
                 if Instant::now() > deadline {
@@ -186,6 +244,44 @@ pub fn render_on_actors(
                 }
                 tokio::time::sleep(Duration::from_millis(5)).await;
             }
+            anyhow::Ok((server, nodes, caches))
+        });
+        let (server, nodes, caches) = match started {
+            Ok(s) => s,
+            Err(e) => {
+                let _ = stop_workers_tx.send(true);
+                let _ = stop_tx.send(true);
+                return Err(e);
+            }
+        };
+        Ok(Actors {
+            shape,
+            rt,
+            coordinator,
+            nodes,
+            caches,
+            server,
+            stop_tx,
+            stop_workers_tx,
+        })
+    }
+
+    /// The shape these actors were started with.
+    pub fn shape(&self) -> &ActorsShape {
+        &self.shape
+    }
+
+    /// Render `a` on these actors; `scene` is the job's scene, loaded and translated by
+    /// the caller. `progress` gets (tiles done, total).
+    pub fn render(
+        &self,
+        a: &RenderArgs,
+        scene: Scene,
+        progress: &dyn Fn(usize, usize),
+    ) -> Result<ActorsOutput> {
+        let spec = embedded_spec(a, self.shape.workers)?;
+        let coordinator = &self.coordinator;
+        self.rt.block_on(async {
             let start = Instant::now();
             let id = coordinator
                 .submit_loaded(spec, scene)
@@ -220,8 +316,20 @@ pub fn render_on_actors(
                 },
                 stats,
             })
-        }
-        .await;
+        })
+    }
+
+    /// Stop the workers, then their cache hosts and the coordinator.
+    pub fn stop(self) {
+        let Actors {
+            rt,
+            nodes,
+            caches,
+            server,
+            stop_tx,
+            stop_workers_tx,
+            ..
+        } = self;
         let _ = stop_workers_tx.send(true);
         // The image is in hand: give the actors a moment to stop cleanly, no more.
         let stop_all = async {
@@ -234,7 +342,27 @@ pub fn render_on_actors(
             let _ = stop_tx.send(true);
             let _ = server.await;
         };
-        let _ = tokio::time::timeout(Duration::from_secs(5), stop_all).await;
-        result
-    })
+        rt.block_on(async {
+            let _ = tokio::time::timeout(Duration::from_secs(5), stop_all).await;
+        });
+    }
+}
+
+/// Render `a` on `workers` in-process worker actors started for it and stopped after;
+/// `scene` is the job's scene, loaded and translated by the caller. `progress` gets
+/// (tiles done, total).
+pub fn render_on_actors(
+    a: &RenderArgs,
+    workers: usize,
+    scene: Scene,
+    progress: &dyn Fn(usize, usize),
+) -> Result<ActorsOutput> {
+    let caches = {
+        let spec = embedded_spec(a, workers)?;
+        spec.ray_cache.is_some() || spec.phm.is_some()
+    };
+    let actors = Actors::start(ActorsShape::of(a, workers, caches), false)?;
+    let result = actors.render(a, scene, progress);
+    actors.stop();
+    result
 }

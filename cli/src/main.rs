@@ -34,6 +34,7 @@ mod sweep_cmd;
 mod telemetry;
 mod threads;
 mod view_flags;
+mod warm;
 mod worker_cmd;
 
 use clap::{Parser, Subcommand};

@@ -322,6 +322,16 @@ pub fn run_one(a: &RenderArgs) -> Result<()> {
 /// Render `a` as `dray render` does (reference renderer or in-process actors), writing
 /// nothing and printing nothing; `progress` gets (tiles done, total).
 pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Result<Rendered> {
+    render_with(a, progress, None)
+}
+
+/// [`render`], taking the scene and the in-process actors from `warm` when given (and
+/// leaving them there for the next render): `dray sweep`'s renders in one process.
+pub fn render_with(
+    a: &RenderArgs,
+    progress: &(dyn Fn(usize, usize) + Sync),
+    mut warm: Option<&mut crate::warm::WarmProcess>,
+) -> Result<Rendered> {
     let start = Instant::now();
     let integrator_kind = check_args(a)?;
     let env_arg = a
@@ -339,12 +349,20 @@ pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Resul
 
     a.job.anim.check()?;
     let time = a.job.anim.moment();
-    let mut scene = dray_scene::load_at(&a.job.scene, time.as_ref())
-        .with_context(|| format!("cannot load scene {:?}", a.job.scene))?;
-    if let Some(t) = translate {
-        dray_scene::translate::translate(&mut scene, t)
-            .with_context(|| format!("--translate {}", a.job.translate.as_deref().unwrap_or("")))?;
-    }
+    let load = || -> Result<Scene> {
+        let mut scene = dray_scene::load_at(&a.job.scene, time.as_ref())
+            .with_context(|| format!("cannot load scene {:?}", a.job.scene))?;
+        if let Some(t) = translate {
+            dray_scene::translate::translate(&mut scene, t).with_context(|| {
+                format!("--translate {}", a.job.translate.as_deref().unwrap_or(""))
+            })?;
+        }
+        Ok(scene)
+    };
+    let scene = match warm.as_deref_mut() {
+        Some(w) => w.scene(a, load)?,
+        None => load()?,
+    };
     for w in &scene.stats.warnings {
         tracing::warn!("{w}");
     }
@@ -415,7 +433,10 @@ pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Resul
         let _span = tracing::info_span!("job", scene = %a.job.scene, workers = a.workers).entered();
         // The scene goes to the in-process coordinator as it is (translated), so it is
         // not loaded twice; the coordinator repeats the checks made above.
-        let r = crate::embedded::render_on_actors(a, a.workers, scene, progress)?;
+        let r = match warm {
+            Some(w) => w.actors(a)?.render(a, scene, progress)?,
+            None => crate::embedded::render_on_actors(a, a.workers, scene, progress)?,
+        };
         // The workers build the BVHs as they load their domains: their load time (read
         // plus build, summed over workers) is the build time here.
         build_time = std::time::Duration::from_secs_f64(r.stats.domain_load_seconds.max(0.0));

@@ -6,7 +6,11 @@
 //! Every render is the one `dray render` (in this process) or `dray submit` (with
 //! `--coordinator`) would make from the same flags: the settings' arguments are parsed by
 //! those commands' own definitions (`crate::sweep::plan`), and rendered by their own code.
-//! So a sweep measures exactly what a user would run.
+//! So a sweep measures exactly what a user would run, with one difference in this
+//! process: the scene, the in-process actors, the package and the domains they built are
+//! kept from one setting to the next (`crate::warm`), as a warm cluster's workers keep
+//! theirs, so a setting's time is its own work, not a cold start's; the `domain_loads`
+//! and `domains_warm` columns show it.
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -26,6 +30,7 @@ use crate::sweep::metrics::{self, Picture};
 use crate::sweep::pareto::{self, Point};
 use crate::sweep::plan::{Job, Plan, Setting, Target};
 use crate::sweep::report::{self, Row};
+use crate::warm::WarmProcess;
 
 /// The flag's long help.
 const VARY_HELP: &str = "A knob to vary, with its values: KEY=V1,V2,... (semicolons \
@@ -68,9 +73,10 @@ pub struct SweepArgs {
     #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=100))]
     #[arg(help_heading = crate::help_heading::SWEEP)]
     pub repeat: u32,
-    /// With --coordinator, do not render the exact job once, unmeasured, before the
-    /// sweep. Workers keep the last package's domains resident between jobs, so without
-    /// the warm-up the first render alone would pay for loading them.
+    /// Do not render the exact job once, unmeasured, before the sweep. Workers (a
+    /// cluster's, or this process's, which the sweep keeps between settings) keep the
+    /// last package's domains resident between jobs, so without the warm-up the first
+    /// render alone would pay for loading them.
     #[arg(long)]
     #[arg(help_heading = crate::help_heading::SWEEP)]
     pub no_warmup: bool,
@@ -120,7 +126,7 @@ pub fn run(a: SweepArgs) -> Result<()> {
     let plan = Plan::new(base, &a.vary, &target)?;
     let rounds = Rounds {
         repeat: a.repeat,
-        warmup: a.coordinator.is_some() && !a.no_warmup,
+        warmup: !a.no_warmup,
     };
     sweep(&plan, &a.out, &target, &net, a.render.job.quiet, rounds)
 }
@@ -165,9 +171,10 @@ impl Output {
     }
 }
 
-/// Where the renders run: here, or on a coordinator through one connection.
+/// Where the renders run: here (with what is kept between them), or on a coordinator
+/// through one connection.
 enum Renderer {
-    Embedded,
+    Embedded(Box<WarmProcess>),
     Remote(Box<Remote>),
 }
 
@@ -179,9 +186,19 @@ struct Remote {
 }
 
 impl Renderer {
-    fn new(target: &Target, net: &dray_net::ClientOptions) -> Result<Renderer> {
+    fn new(plan: &Plan, target: &Target, net: &dray_net::ClientOptions) -> Result<Renderer> {
         match target {
-            Target::Embedded => Ok(Renderer::Embedded),
+            Target::Embedded => {
+                // Cache hosts from the start when any setting has caches or maps, so the
+                // exact render and the cached ones share one set of actors.
+                let mut cache_hosts = false;
+                for s in &plan.settings {
+                    if let Job::Render(a) = &s.job {
+                        cache_hosts |= crate::embedded::wants_cache_hosts(a)?;
+                    }
+                }
+                Ok(Renderer::Embedded(Box::new(WarmProcess::new(cache_hosts))))
+            }
             Target::Coordinator(addr) => {
                 let url = net.url(addr);
                 let rt = tokio::runtime::Builder::new_current_thread()
@@ -197,7 +214,7 @@ impl Renderer {
     /// Render `s`, write its PNG to `png`; `label` names it on the progress bar.
     fn render(&mut self, s: &Setting, png: &Path, label: &str, show: bool) -> Result<Output> {
         match (self, &s.job) {
-            (Renderer::Embedded, Job::Render(a)) => render_here(a, png, label, show),
+            (Renderer::Embedded(warm), Job::Render(a)) => render_here(a, png, label, show, warm),
             (Renderer::Remote(r), Job::Submit(a)) => {
                 let Remote { rt, client, url } = &mut **r;
                 let spec = submit_cmd::job_spec(a)?;
@@ -248,7 +265,13 @@ impl Renderer {
 }
 
 /// A render in this process, as `dray render` makes it, with a progress bar of its own.
-fn render_here(a: &RenderArgs, png: &Path, label: &str, show: bool) -> Result<Output> {
+fn render_here(
+    a: &RenderArgs,
+    png: &Path,
+    label: &str,
+    show: bool,
+    warm: &mut WarmProcess,
+) -> Result<Output> {
     // A spinner while the scene loads and the actors start, a bar once tiles are known.
     let bar = show.then(|| {
         let b = indicatif::ProgressBar::new_spinner();
@@ -264,7 +287,7 @@ fn render_here(a: &RenderArgs, png: &Path, label: &str, show: bool) -> Result<Ou
     // Every actor runs in this process: its CPU clock across the render is the render's
     // CPU, over the same span as its wall time.
     let cpu_before = dray_net::cpu::process_cpu_seconds();
-    let r = crate::render_cmd::render(a, &|done, total| {
+    let progress = |done: usize, total: usize| {
         if let Some(b) = &bar {
             tiles_known.call_once(|| {
                 b.set_style(
@@ -278,7 +301,8 @@ fn render_here(a: &RenderArgs, png: &Path, label: &str, show: bool) -> Result<Ou
             b.set_length(total as u64);
             b.set_position(done as u64);
         }
-    });
+    };
+    let r = crate::render_cmd::render_with(a, &progress, Some(warm));
     let cpu_s = dray_net::cpu::process_cpu_seconds() - cpu_before;
     if let Some(b) = &bar {
         b.finish_and_clear();
@@ -385,7 +409,7 @@ fn sweep(
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let show = !quiet && std::io::stderr().is_terminal();
     let total = plan.settings.len() + 1;
-    let mut renderer = Renderer::new(target, net)?;
+    let mut renderer = Renderer::new(plan, target, net)?;
     let label = |i: usize, s: &Setting| format!("[{}/{total}] {}", i + 1, s.name);
 
     if rounds.warmup {

@@ -13,8 +13,10 @@ use std::process::Output;
 use support::{WorkerCluster, dray};
 
 /// The columns every results.csv has (besides one per varied key).
-const COLUMNS: [&str; 43] = [
+const COLUMNS: [&str; 45] = [
     "setting",
+    "domain_loads",
+    "domains_warm",
     "wall_s",
     "speedup",
     "rays_traced",
@@ -230,6 +232,50 @@ fn sweeps_ray_cache_radius_and_spp_in_this_process() {
     for f in ["results.csv", "table.md", "pareto.png"] {
         assert!(last.contains(f), "the last line names {f}: {last:?}");
     }
+}
+
+/// A sweep in this process keeps its actors, package and domains from one setting to
+/// the next (cli/src/warm.rs): the exact render (no warm-up before it) loads the
+/// domains, and no later setting loads one again (counted by the workers, not timed);
+/// the images keep their bits.
+#[test]
+fn the_second_setting_of_a_sweep_loads_no_domain_again() {
+    let dir = common::tmp("sweep-warm");
+    let out = dir.join("out");
+    let o = sweep(
+        &[
+            &BASE[..],
+            &[
+                "--workers",
+                "2",
+                "--schedule",
+                "domain",
+                "--no-warmup",
+                "--vary",
+                "spp=1,2",
+            ],
+        ]
+        .concat(),
+        &out,
+        &[],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let rows = check_outputs(&out, &["spp"], 2);
+    assert!(num(&rows[0], "domain_loads") > 0.0, "{:?}", rows[0]);
+    assert_eq!(num(&rows[0], "domains_warm"), 0.0, "{:?}", rows[0]);
+    for r in &rows[1..] {
+        assert_eq!(num(r, "domain_loads"), 0.0, "loaded again: {r:?}");
+        assert!(num(r, "domains_warm") > 0.0, "{r:?}");
+    }
+    // spp=2 is the exact render's setting: on warm domains, the same bits.
+    assert_eq!(rows[2]["spp"], "2");
+    assert_eq!(num(&rows[2], "rmse"), 0.0, "{:?}", rows[2]);
+    assert_eq!(
+        std::fs::read(out.join(&rows[2]["image"])).expect("png"),
+        std::fs::read(out.join("exact.png")).expect("png")
+    );
+    let table = std::fs::read_to_string(out.join("table.md")).expect("read table.md");
+    assert!(table.contains(" warm) |"), "{table}");
 }
 
 #[test]

@@ -253,7 +253,10 @@ fn make_package(
     })
 }
 
-/// Cut `scene` into the in-memory `store` (the workers share this process).
+/// Cut `scene` into the in-memory `store` (the workers share this process). A store
+/// that keeps its last package (`MemoryPackages::keeping_last`, `dray sweep`) hands the
+/// kept one back when `scene` and `layout` equal what it was cut from, so the workers
+/// find its domains resident; the kept package then belongs to the store, not the job.
 fn memory_package(
     scene: Scene,
     layout: &LayoutSpec,
@@ -261,6 +264,19 @@ fn memory_package(
     dir: &Path,
     walls: bool,
 ) -> Result<PackageInfo, DispatchError> {
+    if let Some(name) = store.kept(&scene, layout)
+        && let Some(pkg) = store.get(&name)
+    {
+        tracing::info!(package = %name, "the scene and layout of the kept package: reused");
+        return Ok(PackageInfo {
+            path: name,
+            checksum: String::new(),
+            domains: pkg.domain_count(),
+            owned: None,
+            geometry: walls.then(|| WallGeometry::of(pkg.layout())),
+        });
+    }
+    let copy = store.keeps().then(|| scene.clone());
     let pkg = MemoryPackage::new(scene, layout).map_err(|e| DispatchError::Package {
         dir: dir.to_path_buf(),
         message: e.to_string(),
@@ -268,15 +284,22 @@ fn memory_package(
     let domains = pkg.domain_count();
     let geometry = walls.then(|| WallGeometry::of(pkg.layout()));
     let name = store.insert(pkg);
+    let owned = match copy {
+        Some(scene) => {
+            store.keep(&name, scene, *layout);
+            None
+        }
+        None => Some(OwnedPackage::Memory {
+            store: store.clone(),
+            name: name.clone(),
+        }),
+    };
     Ok(PackageInfo {
-        path: name.clone(),
+        path: name,
         // The name is unique in the process that holds it; there are no bytes to pin.
         checksum: String::new(),
         domains,
-        owned: Some(OwnedPackage::Memory {
-            store: store.clone(),
-            name,
-        }),
+        owned,
         geometry,
     })
 }

@@ -1,11 +1,12 @@
-//! The ray-batch decoder: the packed 64-byte ray record (`dray_core::ray`) and the
-//! `RayBatch` a worker receives on a `RayStream` (protobuf, then the receiver's checks:
-//! record count, `count`, every record, tickets), plus the records of a cache lookup.
+//! The ray-batch decoder: the packed 32-to-64-byte ray record (`dray_core::ray`, format
+//! 2) and the `RayBatch` a worker receives on a `RayStream` (protobuf, then the receiver's
+//! checks: `count` against the bytes, every record, tickets), plus the records of a cache
+//! lookup.
 //!
 //! The first byte picks the entry, the rest is the input:
-//! - 0: raw records, `decode_rays_into` / `decode_rays`;
+//! - 0: raw records, `decode_rays_into` / `decode_rays` (the next byte is the count);
 //! - 1: a `RayStreamRequest` message as it arrives on the wire; a batch goes through the
-//!   checks of `PeerServer::accept_batch` (`record_count`, `count`, `decode_rays_into`,
+//!   checks of `PeerServer::accept_batch` (`check_count`, `decode_rays_into`,
 //!   `peer_client::check_tickets`) and then the receiver's `tickets::with_lineage`;
 //! - 2: a `CacheRequest` message; lookups' records are decoded as the cache host does.
 //!
@@ -16,9 +17,9 @@
 
 #![no_main]
 
-use dray_core::ray::{
-    RAY_RECORD_BYTES, RayRecord, decode_rays, decode_rays_into, encode_rays, record_count,
-};
+use dray_core::credit::Credit;
+use dray_core::integrator::RayKind;
+use dray_core::ray::{RayRecord, check_count, decode_rays, decode_rays_into, encode_rays};
 use dray_proto::v1::{CacheRequest, RayBatch, RayStreamRequest, cache_request, ray_stream_request};
 use dray_worker::peer_client::check_tickets;
 use dray_worker::tickets::{RayBundle, with_lineage};
@@ -31,7 +32,9 @@ fuzz_target!(init: dray_fuzz::init("ray_batch"), |data: &[u8]| {
     };
     match selector % 3 {
         0 => {
-            let _ = records(rest);
+            if let Some((&count, bytes)) = rest.split_first() {
+                let _ = records(bytes, usize::from(count));
+            }
         }
         1 => {
             if let Ok(req) = RayStreamRequest::decode(rest)
@@ -43,10 +46,9 @@ fuzz_target!(init: dray_fuzz::init("ray_batch"), |data: &[u8]| {
         _ => {
             if let Ok(req) = CacheRequest::decode(rest)
                 && let Some(cache_request::Msg::Lookups(l)) = req.msg
-                && let Ok(n) = record_count(l.records.len())
-                && usize::try_from(l.count).ok() == Some(n)
+                && let Ok(n) = check_count(u64::from(l.count), l.records.len())
             {
-                let _ = records(&l.records);
+                let _ = records(&l.records, n);
             }
         }
     }
@@ -55,17 +57,27 @@ fuzz_target!(init: dray_fuzz::init("ray_batch"), |data: &[u8]| {
 /// A sentinel already in the output buffer: decoding appends after it and must leave it
 /// alone, on success and on error.
 fn sentinel() -> RayRecord {
-    let mut b = [0x5au8; RAY_RECORD_BYTES];
-    b[62] = 0;
-    b[63] = 0;
-    RayRecord::from_bytes(&b, 0).expect("sentinel decodes")
+    let v = glam::Vec3::splat(f32::from_bits(0x5a5a_5a5a));
+    RayRecord {
+        credit: Credit::from_wire(0x5a5a),
+        origin: v,
+        dir: v,
+        tmax: 1.0,
+        weight: v,
+        bsdf_pdf: 0.5,
+        pixel: 0x5a,
+        sample: 0x5a,
+        depth: 0x5a,
+        kind: RayKind::Camera,
+        flags: 0,
+    }
 }
 
-fn records(bytes: &[u8]) -> Option<Vec<RayRecord>> {
+fn records(bytes: &[u8], count: usize) -> Option<Vec<RayRecord>> {
     let s = sentinel();
     let mut out = vec![s];
-    let into = decode_rays_into(bytes, &mut out);
-    let whole = decode_rays(bytes);
+    let into = decode_rays_into(bytes, count, &mut out);
+    let whole = decode_rays(bytes, count);
     assert_eq!(
         out[0].to_bytes(),
         s.to_bytes(),
@@ -74,7 +86,7 @@ fn records(bytes: &[u8]) -> Option<Vec<RayRecord>> {
     match into {
         Ok(()) => {
             let rays = out.split_off(1);
-            assert_eq!(rays.len(), bytes.len() / RAY_RECORD_BYTES);
+            assert_eq!(rays.len(), count);
             let mut again = Vec::new();
             encode_rays(&rays, &mut again);
             assert!(again == bytes, "decode then encode is not the identity");
@@ -85,7 +97,7 @@ fn records(bytes: &[u8]) -> Option<Vec<RayRecord>> {
             for r in &rays {
                 // The engine's view and back: everything but the flags survives.
                 let back = RayRecord::from_state(&r.to_state(), r.credit)
-                    .expect("a 16-bit depth always packs");
+                    .expect("a decoded depth always packs");
                 let mut expect = *r;
                 expect.flags = 0;
                 assert_eq!(back.to_bytes(), expect.to_bytes(), "to_state/from_state");
@@ -112,13 +124,10 @@ fn records(bytes: &[u8]) -> Option<Vec<RayRecord>> {
 /// What `PeerServer::accept_batch` checks before queueing a batch, then what the
 /// receiver does with the tickets.
 fn batch(b: &RayBatch) {
-    let Ok(n) = record_count(b.records.len()) else {
+    let Ok(n) = check_count(u64::from(b.count), b.records.len()) else {
         return;
     };
-    if usize::try_from(b.count).ok() != Some(n) {
-        return;
-    }
-    let Some(rays) = records(&b.records) else {
+    let Some(rays) = records(&b.records, n) else {
         return;
     };
     if check_tickets(&rays, &b.tickets).is_err() {

@@ -8,19 +8,19 @@
 //! - [`FILE_DESCRIPTOR_SET`]: the encoded descriptors (with comments), for gRPC server
 //!   reflection: `tonic_reflection::server::Builder::configure()
 //!   .register_encoded_file_descriptor_set(dray_proto::FILE_DESCRIPTOR_SET)`.
-//! - [`RAY_RECORD_BYTES`], [`RAY_RECORD_FORMAT`]: the ray record's size and format
-//!   number; the record itself is an engine type (`dray_core::ray`), not part of this
+//! - [`RAY_RECORD_MAX_BYTES`], [`RAY_RECORD_FORMAT`]: the ray record's largest size and
+//!   format number; the record itself is an engine type (`dray_core::ray`), not part of this
 //!   crate, which needs no engine.
 
 pub mod reflection;
 
-/// Bytes per ray in `RayBatch.records` (the layout is in rays.proto; `dray_core::ray`
-/// encodes and decodes it).
-pub const RAY_RECORD_BYTES: usize = 64;
+/// The most bytes one ray takes in `RayBatch.records` (records are 32 to 64 bytes; the
+/// layout is in rays.proto; `dray_core::ray` encodes and decodes it).
+pub const RAY_RECORD_MAX_BYTES: usize = 64;
 
 /// The ray record format of this protocol version (`RayStreamOpen.record_format`,
 /// `RegisterWorkerRequest.record_format`).
-pub const RAY_RECORD_FORMAT: u32 = 1;
+pub const RAY_RECORD_FORMAT: u32 = 2;
 
 /// Generated protobuf code, in its package's module path.
 pub mod dray {

@@ -95,7 +95,10 @@ fn descriptor_set_has_the_services() {
         .iter()
         .flat_map(|l| [l.leading_comments(), l.trailing_comments()])
         .collect();
-    assert!(comments.contains("total 64 bytes per ray"), "{comments}");
+    assert!(
+        comments.contains("Ray record layout, format 2"),
+        "{comments}"
+    );
     assert!(comments.contains("Cumulative grant"), "{comments}");
 }
 

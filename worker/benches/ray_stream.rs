@@ -1,5 +1,5 @@
 //! One ray stream on loopback, encode to decode (issue 3's benchmark; target at least
-//! 5 million rays per second): the client packs rays into 64-byte records and batches,
+//! 5 million rays per second): the client packs rays into records (32 to 64 bytes) and batches,
 //! streams them over real gRPC on 127.0.0.1, the server decodes them into a domain queue,
 //! and a task drains the queue. Each iteration sends `RAYS` rays and waits until the
 //! receiver has acknowledged them all (queued), so credit-based flow control is included.
@@ -161,7 +161,7 @@ fn ray_stream(c: &mut Criterion) {
          on the wire ({} header), {:.4} bytes per ray",
         sender.rays_sent(),
         drained.load(Ordering::Relaxed),
-        wire - BATCH_RAYS * dray_core::ray::RAY_RECORD_BYTES,
+        wire - dray_core::ray::encoded_len(&input[..BATCH_RAYS]),
         wire as f64 / BATCH_RAYS as f64,
     );
     drop(sender);

@@ -32,7 +32,7 @@ use dray_cache::wire::{
     OPTION_TICKET, PROBE,
 };
 use dray_cache::{CacheHost, Entry, LookupRay, Outcome, Return, WallLookup};
-use dray_core::ray::{FLAG_COARSE, RAY_RECORD_BYTES, RayRecord, encode_rays};
+use dray_core::ray::{FLAG_COARSE, RayRecord, encode_rays};
 use dray_proto::v1::cache_service_client::CacheServiceClient;
 use dray_proto::v1::{
     CacheAnswers, CacheLookups, CacheRequest, PhmMerge, PhmOutcomes, TicketAck, TicketReturn,
@@ -49,7 +49,7 @@ use crate::node::Shared;
 use crate::tracer::{Lookup, NoDomains, Outbox};
 use crate::traffic::Kind;
 
-/// Lookups per message: 4096 rays of 64 bytes, far inside gRPC's message limit.
+/// Lookups per message: 4096 rays of at most 64 bytes, far inside gRPC's message limit.
 const LOOKUPS_PER_MESSAGE: usize = 4096;
 /// Returns per message (about 40 bytes each).
 const RETURNS_PER_MESSAGE: usize = 16 * 1024;
@@ -506,7 +506,7 @@ async fn link_loop(
                             let chunk = std::mem::replace(&mut rest, tail);
                             sequence += 1;
                             let request = lookups_request(&job, sequence, &chunk);
-                            count(&job, chunk.len() as u64 * (RAY_RECORD_BYTES as u64 + 8), Some((Kind::Lookups, request.encoded_len())));
+                            count(&job, lookup_payload(&request, chunk.len()), Some((Kind::Lookups, request.encoded_len())));
                             pending.push_back((sequence, Pending::Lookups { job: job.clone(), lookups: chunk }));
                             if req_tx.send(request).await.is_err() {
                                 ok = false;
@@ -704,6 +704,16 @@ fn lookup_options(job: &Job, l: &Lookup) -> u32 {
         o |= OPTION_PHM;
     }
     o
+}
+
+/// Payload of a lookups message for `cache_bytes`: its ray records (32 to 64 bytes each)
+/// and 8 bytes a ray for its wall and options.
+fn lookup_payload(request: &CacheRequest, rays: usize) -> u64 {
+    let records = match &request.msg {
+        Some(cache_request::Msg::Lookups(l)) => l.records.len(),
+        _ => 0,
+    };
+    (records + 8 * rays) as u64
 }
 
 fn lookups_request(job: &Job, sequence: u64, lookups: &[Lookup]) -> CacheRequest {

@@ -3,7 +3,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use dray_core::ray::RAY_RECORD_BYTES;
+use dray_core::ray::RAY_RECORD_MAX_BYTES;
 use dray_scene::partition::memory::MemoryPackages;
 
 /// How a worker runs.
@@ -100,7 +100,7 @@ const MIN_RAYS: usize = 4096;
 impl WorkerConfig {
     /// The split of the memory budget: a quarter for rays (queued, and waiting for
     /// peers: the queue capacity and the in-flight limit each get half of it, 64 bytes
-    /// a ray), the rest for resident domains. Without a budget the configured ray
+    /// a ray, the largest record), the rest for resident domains. Without a budget the configured ray
     /// limits hold and domains are unlimited.
     pub fn limits(&self) -> Limits {
         if self.memory_budget == 0 {
@@ -110,11 +110,11 @@ impl WorkerConfig {
                 in_flight_limit: self.in_flight_limit.max(1),
             };
         }
-        let rays = (self.memory_budget / 4 / 2 / RAY_RECORD_BYTES as u64) as usize;
+        let rays = (self.memory_budget / 4 / 2 / RAY_RECORD_MAX_BYTES as u64) as usize;
         let rays = rays.max(MIN_RAYS);
         let queue_capacity = self.queue_capacity.min(rays).max(1);
         let in_flight_limit = self.in_flight_limit.min(rays).max(1);
-        let ray_bytes = ((queue_capacity + in_flight_limit) * RAY_RECORD_BYTES) as u64;
+        let ray_bytes = ((queue_capacity + in_flight_limit) * RAY_RECORD_MAX_BYTES) as u64;
         Limits {
             domain_bytes: self.memory_budget.saturating_sub(ray_bytes).max(1),
             queue_capacity,

@@ -139,7 +139,7 @@ impl Shared {
 
     /// Bytes of resident domains and queued rays.
     pub fn memory_used(&self) -> u64 {
-        self.store.used_bytes() + (self.in_flight() * dray_core::ray::RAY_RECORD_BYTES) as u64
+        self.store.used_bytes() + (self.in_flight() * dray_core::ray::RAY_RECORD_MAX_BYTES) as u64
     }
 
     /// Drop everything of a released job attempt.

@@ -1,6 +1,6 @@
 //! The sending side of `RayExchangeService.RayStream`: one [`PeerSender`] per peer.
 //!
-//! Rays are packed into 64-byte records as they are handed over and collected in one
+//! Rays are packed into records (32 to 64 bytes, `dray_core::ray`) as they are handed over and collected in one
 //! open batch per destination (job, domain, routing version). A batch is sent when it
 //! reaches `batch_rays` rays, or once it is older than `max_delay` (checked on every
 //! [`PeerSender::send`] and by [`PeerSender::flush_due`], which the owner calls when it
@@ -17,7 +17,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use dray_core::ray::FLAG_TICKETED;
-use dray_core::ray::{RAY_RECORD_BYTES, RAY_RECORD_FORMAT, RayRecord};
+use dray_core::ray::{RAY_RECORD_FORMAT, RAY_RECORD_MAX_BYTES, RayRecord};
 use dray_net::AuthChannel;
 use dray_proto::v1::ray_exchange_service_client::RayExchangeServiceClient;
 use dray_proto::v1::{
@@ -262,7 +262,7 @@ impl PeerSender {
             let take = (self.batch_rays - p.count).min(rest.len());
             let (now, later) = rest.split_at(take);
             rest = later;
-            p.records.reserve(take * RAY_RECORD_BYTES);
+            p.records.reserve(take * RAY_RECORD_MAX_BYTES);
             for r in now {
                 while let Some(t) = tickets.next_if(|t| t.record == index) {
                     p.tickets.push(RayTicket {
@@ -271,7 +271,7 @@ impl PeerSender {
                     });
                 }
                 index += 1;
-                p.records.extend_from_slice(&r.to_bytes());
+                r.write_to(&mut p.records);
                 p.count += 1;
             }
             if p.count >= self.batch_rays {
@@ -288,7 +288,7 @@ impl PeerSender {
     fn new_pending(&mut self, key: BatchKey) -> usize {
         self.pending.push(Pending {
             key,
-            records: Vec::with_capacity(self.batch_rays * RAY_RECORD_BYTES),
+            records: Vec::with_capacity(self.batch_rays * RAY_RECORD_MAX_BYTES),
             count: 0,
             tickets: Vec::new(),
             since: Instant::now(),

@@ -17,8 +17,8 @@
 use std::pin::Pin;
 use std::sync::Arc;
 
-use dray_core::ray::{RAY_RECORD_BYTES, RAY_RECORD_FORMAT, RecordError};
-use dray_core::ray::{decode_rays_into, record_count};
+use dray_core::ray::{RAY_RECORD_FORMAT, RAY_RECORD_MAX_BYTES, RecordError};
+use dray_core::ray::{check_count, decode_rays_into};
 use dray_proto::v1::ray_exchange_service_server::{RayExchangeService, RayExchangeServiceServer};
 use dray_proto::v1::{
     RayBatch, RayBatchAck, RayStreamAccept, RayStreamRequest, RayStreamResponse,
@@ -31,8 +31,9 @@ use tonic::{Code, Request, Response, Status, Streaming};
 
 use crate::queue::{QueueError, QueuedBatch, RayQueues};
 
-/// Largest gRPC message the server accepts: a batch of 64 Ki rays plus its header.
-pub const MAX_MESSAGE_BYTES: usize = 64 * 1024 * RAY_RECORD_BYTES + 64 * 1024;
+/// Largest gRPC message the server accepts: a batch of 64 Ki rays of the largest record
+/// plus its header.
+pub const MAX_MESSAGE_BYTES: usize = 64 * 1024 * RAY_RECORD_MAX_BYTES + 64 * 1024;
 
 /// Settings of a worker's ray-stream server.
 #[derive(Clone, Debug)]
@@ -81,12 +82,6 @@ pub enum StreamError {
         sequence: u64,
         #[source]
         source: RecordError,
-    },
-    #[error("batch {sequence}: count {count} but records hold {records} rays")]
-    CountMismatch {
-        sequence: u64,
-        count: u32,
-        records: usize,
     },
     #[error(
         "batch {sequence}: {count} rays exceed the grant ({granted} granted, {sent} already sent)"
@@ -347,15 +342,10 @@ impl StreamReceiver {
                 expected: self.next_sequence,
             });
         }
-        let records = record_count(batch.records.len())
+        // `count` against the bytes first (each record is 32 to 64 bytes), so the grant
+        // check below trusts a plausible count; decoding then checks it exactly.
+        let records = check_count(u64::from(batch.count), batch.records.len())
             .map_err(|source| StreamError::Record { sequence, source })?;
-        if usize::try_from(batch.count).ok() != Some(records) {
-            return Err(StreamError::CountMismatch {
-                sequence,
-                count: batch.count,
-                records,
-            });
-        }
         let n = records as u64;
         if self.sent + n > self.granted {
             return Err(StreamError::OverGrant {
@@ -366,7 +356,7 @@ impl StreamReceiver {
             });
         }
         self.scratch.clear();
-        decode_rays_into(&batch.records, &mut self.scratch)
+        decode_rays_into(&batch.records, records, &mut self.scratch)
             .map_err(|source| StreamError::Record { sequence, source })?;
         crate::peer_client::check_tickets(&self.scratch, &batch.tickets)
             .map_err(|detail| StreamError::BadTickets { sequence, detail })?;

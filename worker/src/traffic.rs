@@ -8,7 +8,6 @@
 //! the bytes the messages take, not estimates; gRPC's 5-byte frame header and HTTP/2
 //! and TLS framing are left out.
 
-use dray_core::ray::RAY_RECORD_BYTES;
 use dray_proto::v1::{RayTicket, TrafficStats};
 use prost::Message;
 
@@ -57,9 +56,10 @@ impl Traffic {
         self.cache_messages += 1;
     }
 
-    /// `rays` ray records and their `tickets` handed to a peer stream.
-    pub(crate) fn rays(&mut self, rays: usize, tickets: &[RayTicket]) {
-        self.rays += ray_bytes(rays, tickets);
+    /// Ray records of `records` bytes (`dray_core::ray::encoded_len`) and their
+    /// `tickets` handed to a peer stream.
+    pub(crate) fn rays(&mut self, records: u64, tickets: &[RayTicket]) {
+        self.rays += ray_bytes(records, tickets);
     }
 
     /// Add `other` into this.
@@ -90,9 +90,10 @@ impl Traffic {
     }
 }
 
-/// Bytes of `rays` records with `tickets` in a ray batch: the 64-byte records and each
-/// ticket as the batch's repeated `RayTicket` field encodes it (tag, length, message).
-pub(crate) fn ray_bytes(rays: usize, tickets: &[RayTicket]) -> u64 {
+/// Bytes of records taking `records` bytes with `tickets` in a ray batch: the records
+/// (32 to 64 bytes each) and each ticket as the batch's repeated `RayTicket` field
+/// encodes it (tag, length, message).
+pub(crate) fn ray_bytes(records: u64, tickets: &[RayTicket]) -> u64 {
     let tickets: usize = tickets
         .iter()
         .map(|t| {
@@ -100,7 +101,7 @@ pub(crate) fn ray_bytes(rays: usize, tickets: &[RayTicket]) -> u64 {
             1 + prost::length_delimiter_len(n) + n
         })
         .sum();
-    (rays * RAY_RECORD_BYTES + tickets) as u64
+    records + tickets as u64
 }
 
 #[cfg(test)]
@@ -142,17 +143,17 @@ mod tests {
 
     #[test]
     fn rays_count_records_and_encoded_tickets() {
-        assert_eq!(ray_bytes(3, &[]), 3 * 64);
+        assert_eq!(ray_bytes(3 * 41, &[]), 3 * 41);
         // record 1 (tag + 1-byte varint) and the largest ticket (tag + 10-byte varint):
         // 13 bytes, plus the field's tag and length.
         let t = RayTicket {
             record: 1,
             ticket: u64::MAX,
         };
-        assert_eq!(ray_bytes(2, &[t]), 2 * 64 + 15);
+        assert_eq!(ray_bytes(2 * 64, &[t]), 2 * 64 + 15);
         let mut tr = Traffic::default();
-        tr.rays(2, &[t, t]);
-        assert_eq!(tr.rays, 2 * 64 + 30);
+        tr.rays(2 * 50, &[t, t]);
+        assert_eq!(tr.rays, 2 * 50 + 30);
         assert_eq!(tr.cache_messages, 0, "ray batches are not cache messages");
     }
 }

@@ -19,7 +19,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
-use dray_core::ray::RAY_RECORD_BYTES;
+use dray_core::ray::encoded_len;
 
 use crate::contain::contained;
 use crate::domain_store::{DomainStore, JobKey, LoadError, LoadedDomain};
@@ -401,13 +401,14 @@ fn forward(shared: &Arc<Shared>, job: &Arc<Job>, domain: u32, batch: QueuedBatch
             return;
         }
     };
+    let bytes = encoded_len(&batch.rays) as u64;
     let mut report = Report {
         rays_forwarded: n,
         rays_sent: n,
-        bytes: n * RAY_RECORD_BYTES as u64,
+        bytes,
         ..Report::default()
     };
-    report.traffic.rays(batch.rays.len(), &batch.tickets);
+    report.traffic.rays(bytes, &batch.tickets);
     job.post(report);
     shared.peers.send(
         shared,
@@ -447,6 +448,7 @@ pub(crate) fn deliver_with(
     }
     let routes = job.routes();
     let mut sent = 0u64;
+    let mut bytes = 0u64;
     let mut traffic = crate::traffic::Traffic::default();
     for (d, bundle) in out.rays {
         if bundle.is_empty() {
@@ -480,8 +482,10 @@ pub(crate) fn deliver_with(
                 return;
             }
         };
+        let n = encoded_len(&rays) as u64;
         sent += rays.len() as u64;
-        traffic.rays(rays.len(), &tickets);
+        bytes += n;
+        traffic.rays(n, &tickets);
         shared.peers.send(
             shared,
             &peer,
@@ -506,7 +510,7 @@ pub(crate) fn deliver_with(
     r.clamped += out.clamped;
     r.clamped_indirect += out.clamped_indirect;
     r.tickets.merge(std::mem::take(&mut out.tickets));
-    r.bytes += sent * RAY_RECORD_BYTES as u64;
+    r.bytes += bytes;
     r.rays_sent += sent;
     r.traffic.add(&traffic);
     job.post(report);

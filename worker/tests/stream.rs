@@ -92,7 +92,7 @@ fn rays(n: usize, seed: u64, ticket_every: usize) -> Vec<RayRecord> {
             bsdf_pdf: rng.finite(),
             pixel: rng.next() as u32,
             sample: rng.next() as u32,
-            depth: rng.next() as u16,
+            depth: rng.next() as u16 & dray_core::ray::MAX_RECORD_DEPTH,
             kind: RayKind::ALL[(rng.next() % RayKind::COUNT as u64) as usize],
             flags: if ticket_every > 0 && i % ticket_every == 0 {
                 FLAG_TICKETED
@@ -311,7 +311,7 @@ async fn malformed_batch_is_refused_and_the_server_keeps_serving() {
         let (channel, _server) =
             start_server(Arc::clone(&queues), PeerServerConfig::default()).await;
 
-        // 100 bytes: one record and a truncated one.
+        // One record and 36 bytes of a second, in a batch that says it holds two.
         let mut bad = PeerSender::open(channel.clone(), PeerClientConfig::default())
             .await
             .expect("open");
@@ -324,7 +324,7 @@ async fn malformed_batch_is_refused_and_the_server_keeps_serving() {
                 domain: 1,
                 routing_version: 1,
                 sequence: 1,
-                count: 1,
+                count: 2,
                 records,
                 tickets: Vec::new(),
                 forwards: 0,
@@ -337,8 +337,7 @@ async fn malformed_batch_is_refused_and_the_server_keeps_serving() {
             Err(PeerError::Status(s)) => {
                 assert_eq!(s.code(), tonic::Code::InvalidArgument, "{s:?}");
                 assert!(
-                    s.message()
-                        .contains("not a whole number of 64-byte records"),
+                    s.message().contains("ends inside record 1 (truncated)"),
                     "{}",
                     s.message()
                 );
@@ -377,8 +376,8 @@ async fn malformed_batch_is_refused_and_the_server_keeps_serving() {
 #[test]
 fn the_record_is_the_protocols_record() {
     assert_eq!(
-        dray_core::ray::RAY_RECORD_BYTES,
-        dray_proto::RAY_RECORD_BYTES
+        dray_core::ray::RAY_RECORD_MAX_BYTES,
+        dray_proto::RAY_RECORD_MAX_BYTES
     );
     assert_eq!(
         dray_core::ray::RAY_RECORD_FORMAT,
@@ -386,5 +385,11 @@ fn the_record_is_the_protocols_record() {
     );
     let mut bytes = Vec::new();
     dray_core::ray::encode_rays(&rays(3, 1, 0), &mut bytes);
-    assert_eq!(bytes.len(), 3 * dray_proto::RAY_RECORD_BYTES);
+    assert!(bytes.len() <= 3 * dray_proto::RAY_RECORD_MAX_BYTES);
+    assert_eq!(
+        dray_core::ray::decode_rays(&bytes, 3)
+            .expect("decodes")
+            .len(),
+        3
+    );
 }

@@ -157,6 +157,8 @@ pub fn header(keys: &[String]) -> Vec<String> {
             "cache_bytes",
             "bytes_total",
             "cpu_s",
+            "domain_loads",
+            "domains_warm",
         ]
         .map(String::from),
     );
@@ -204,6 +206,8 @@ pub fn csv(keys: &[String], rows: &[Row], front: &[bool]) -> String {
         c.push(r.ray_cache("cache_bytes"));
         c.push(r.bytes_total.to_string());
         c.push(format!("{:.4}", r.cpu_s));
+        c.push(cell(r.stats.get("domain_loads")));
+        c.push(cell(r.stats.get("domains_warm")));
         c.extend(TRAFFIC_COLUMNS.iter().map(|(_, k)| r.traffic(k)));
         c.extend(RAY_CACHE_COLUMNS.iter().map(|k| r.ray_cache(k)));
         c.extend(PHM_COLUMNS.iter().map(|(_, k)| r.phm(k)));
@@ -227,6 +231,17 @@ fn percent(r: &Row, key: &str) -> String {
         .and_then(Value::as_f64)
         .map(|x| format!("{:.1}%", 100.0 * x))
         .unwrap_or_default()
+}
+
+/// Domain loads, and the domains found resident instead when there were any: `0 (27
+/// warm)`. Empty when no worker took part.
+fn loads(r: &Row) -> String {
+    let n = |k: &str| r.stats.get(k).and_then(Value::as_u64);
+    match (n("domain_loads"), n("domains_warm")) {
+        (Some(l), Some(w)) if w > 0 => format!("{l} ({w} warm)"),
+        (Some(l), _) => l.to_string(),
+        _ => String::new(),
+    }
 }
 
 /// A Markdown cell: pipes escaped.
@@ -253,11 +268,11 @@ pub fn table(title: &str, base: &str, rows: &[Row], front: &[bool], repeat: u32)
     }
     let _ = writeln!(
         out,
-        "| setting | wall s | speedup | CPU s | bytes | rays sent | outer hits | inner hits | rmse | psnr dB | flip | Pareto |"
+        "| setting | wall s | speedup | CPU s | bytes | rays sent | domain loads | outer hits | inner hits | rmse | psnr dB | flip | Pareto |"
     );
     let _ = writeln!(
         out,
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|:---:|"
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|:---:|"
     );
     for (i, r) in rows.iter().enumerate() {
         let psnr = if r.errors.psnr.is_infinite() {
@@ -267,13 +282,14 @@ pub fn table(title: &str, base: &str, rows: &[Row], front: &[bool], repeat: u32)
         };
         let _ = writeln!(
             out,
-            "| {} | {:.3} | {:.2}x | {:.3} | {} | {} | {} | {} | {:.5} | {psnr} | {:.5} | {} |",
+            "| {} | {:.3} | {:.2}x | {:.3} | {} | {} | {} | {} | {} | {:.5} | {psnr} | {:.5} | {} |",
             md(&r.setting),
             r.wall_s,
             speedup(exact_wall, r.wall_s),
             r.cpu_s,
             r.bytes_total,
             r.rays_sent(),
+            loads(r),
             percent(r, "outer_hit_ratio"),
             percent(r, "inner_hit_ratio"),
             r.errors.rmse,
@@ -292,7 +308,9 @@ pub fn table(title: &str, base: &str, rows: &[Row], front: &[bool], repeat: u32)
          `rmse_linear`, on linear radiance); PSNR = 20 log10(1 / RMSE); FLIP is the mean \
          NVIDIA FLIP error (LDR, 67 pixels per degree) against the exact PNG. Wall time runs \
          from the start of a render to its image (scene loading included); speedup = exact \
-         wall / setting wall. CPU s: user + system seconds of the processes that ran the \
+         wall / setting wall. Domain loads: domains the workers loaded (read and BVH built) \
+         for the render, and those they found resident from an earlier render of the same \
+         scene (`domain_loads`, `domains_warm`). CPU s: user + system seconds of the processes that ran the \
          render (results.csv `cpu_s`); bytes: every byte between processes \
          (`bytes_total`, docs/caches.md \"Statistics\"). Pareto: no other setting is both faster and closer to exact."
     );
@@ -336,6 +354,7 @@ mod tests {
             "ray-cache.radius=0.1",
             1.0,
             json!({"rays": {"camera": 4}, "rays_exchanged": 1, "ray_bytes_sent": 64,
+                   "domain_loads": 0, "domains_warm": 27,
                    "ray_cache": {"outer_lookups": 8, "outer_hit_ratio": 0.5, "tickets_opened": 4,
                                  "tickets_closed": 4, "cache_bytes": 99},
                    "phm": {"lookups": 7}}),
@@ -367,6 +386,9 @@ mod tests {
         assert_eq!(col(lines[2], "cache_bytes"), "99");
         assert_eq!(col(lines[2], "bytes_total"), "1000");
         assert_eq!(col(lines[2], "cpu_s"), "1.5000");
+        assert_eq!(col(lines[2], "domain_loads"), "0");
+        assert_eq!(col(lines[2], "domains_warm"), "27");
+        assert_eq!(col(lines[1], "domain_loads"), "");
         assert_eq!(col(lines[2], "phm_lookups"), "7");
         assert_eq!(col(lines[2], "rmse"), "0.25");
         assert_eq!(col(lines[2], "psnr"), "12.041199826559248");
@@ -379,6 +401,9 @@ mod tests {
             1,
         );
         assert!(t.contains("| exact | 1.000 | 1.00x |"), "{t}");
+        let warm = json!({"domain_loads": 0, "domains_warm": 27});
+        let t2 = table("c", "", &[row("s", 1.0, warm, 0.0)], &[true], 1);
+        assert!(t2.contains("| 0 (27 warm) |"), "{t2}");
         assert!(t.contains("8-bit sRGB"), "{t}");
         assert!(!t.contains("medians"), "{t}");
         let t = table(

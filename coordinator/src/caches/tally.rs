@@ -15,8 +15,10 @@ use dray_proto::v1::{PhmStats, RayCacheStats, WorkerCounters};
 
 use crate::jobs::JobEntry;
 
-/// Bytes a ray takes on the wire (the 64-byte record): what a ray not sent saves.
-pub const RAY_BYTES: u64 = dray_core::ray::RAY_RECORD_BYTES as u64;
+/// Bytes a ray takes on the wire at most (records are 32 to 64 bytes, rays.proto): what
+/// a ray not sent saves, as an upper bound (the ray was never encoded, so its own size is
+/// not known).
+pub const RAY_BYTES: u64 = dray_core::ray::RAY_RECORD_MAX_BYTES as u64;
 
 /// Most lost hosts listed per job: the names come from workers' reports, which are
 /// bounded each but not in number.

@@ -12,6 +12,13 @@
 //!
 //! A worker in another process cannot see the store; it gets a clear error naming the
 //! package, never another scene.
+//!
+//! **Kept between jobs.** A store made with [`MemoryPackages::keeping_last`] (`dray
+//! sweep`, which renders setting after setting in one process) keeps the last package
+//! cut and the scene it was cut from: a job whose scene and layout are equal to those
+//! gets the same package name, so the workers, which key resident domains by package,
+//! find its domains and BVHs already built instead of loading them again. Equality is of
+//! the whole scene (every vertex, material, light and camera), never of its name.
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -173,6 +180,16 @@ pub struct MemoryPackages {
     packages: Mutex<HashMap<String, Arc<MemoryPackage>>>,
     env_maps: Mutex<HashMap<String, Arc<EnvMap>>>,
     next: AtomicU64,
+    /// Whether the last package cut is kept for later jobs ([`MemoryPackages::keeping_last`]).
+    keeping: bool,
+    kept: Mutex<Option<Kept>>,
+}
+
+/// The package kept between jobs and what it was cut from.
+struct Kept {
+    scene: Scene,
+    layout: LayoutSpec,
+    name: String,
 }
 
 impl std::fmt::Debug for MemoryPackages {
@@ -188,6 +205,49 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl MemoryPackages {
+    /// A store that keeps the last package cut, and the scene it was cut from (a copy:
+    /// the cut consumes the job's), for the next job of an equal scene and layout
+    /// ([`MemoryPackages::kept`]). For one process rendering one job after another.
+    pub fn keeping_last() -> MemoryPackages {
+        MemoryPackages {
+            keeping: true,
+            ..MemoryPackages::default()
+        }
+    }
+
+    /// Whether this store keeps the last package ([`MemoryPackages::keeping_last`]).
+    pub fn keeps(&self) -> bool {
+        self.keeping
+    }
+
+    /// The name of the kept package, if it was cut from a scene equal to `scene` with
+    /// `layout`.
+    pub fn kept(&self, scene: &Scene, layout: &LayoutSpec) -> Option<String> {
+        let kept = lock(&self.kept);
+        kept.as_ref()
+            .filter(|k| k.layout == *layout && k.scene == *scene)
+            .map(|k| k.name.clone())
+    }
+
+    /// Keep the package `name`, cut from `scene` with `layout`, for later jobs (a store
+    /// that does not keep packages ignores it). The package kept before is forgotten
+    /// (workers still using it hold their own handle).
+    pub fn keep(&self, name: &str, scene: Scene, layout: LayoutSpec) {
+        if !self.keeping {
+            return;
+        }
+        let old = lock(&self.kept).replace(Kept {
+            scene,
+            layout,
+            name: name.to_string(),
+        });
+        if let Some(old) = old
+            && old.name != name
+        {
+            self.remove(&old.name);
+        }
+    }
+
     fn lock(&self) -> MutexGuard<'_, HashMap<String, Arc<MemoryPackage>>> {
         lock(&self.packages)
     }
@@ -239,5 +299,56 @@ impl MemoryPackages {
     /// Whether no package is held.
     pub fn is_empty(&self) -> bool {
         self.lock().is_empty()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scene(name: &str, x: f32) -> Scene {
+        let mut s = Scene {
+            name: name.into(),
+            ..Scene::default()
+        };
+        s.mesh.positions.push(glam::Vec3::new(x, 0.0, 0.0));
+        s
+    }
+
+    #[test]
+    fn a_keeping_store_finds_the_last_package_by_scene_and_layout() {
+        let store = MemoryPackages::keeping_last();
+        assert!(store.keeps());
+        let kd = LayoutSpec::Kd(4);
+        assert_eq!(store.kept(&scene("a", 1.0), &kd), None);
+        store.keep("memory:1", scene("a", 1.0), kd);
+        assert_eq!(
+            store.kept(&scene("a", 1.0), &kd).as_deref(),
+            Some("memory:1")
+        );
+        // Another vertex, another layout: not the same package.
+        assert_eq!(store.kept(&scene("a", 1.5), &kd), None);
+        assert_eq!(store.kept(&scene("a", 1.0), &LayoutSpec::Kd(8)), None);
+        // A new package replaces the kept one, which the store forgets.
+        let map = EnvMap::new(1, 1, vec![glam::Vec3::ONE], 0.0, 1.0).unwrap();
+        lock(&store.env_maps).insert("memory:1".into(), Arc::new(map));
+        store.keep("memory:2", scene("b", 2.0), kd);
+        assert_eq!(store.kept(&scene("a", 1.0), &kd), None);
+        assert_eq!(
+            store.kept(&scene("b", 2.0), &kd).as_deref(),
+            Some("memory:2")
+        );
+        assert!(
+            store.env_map("memory:1").is_none(),
+            "the replaced package is forgotten"
+        );
+    }
+
+    #[test]
+    fn a_plain_store_keeps_nothing() {
+        let store = MemoryPackages::default();
+        assert!(!store.keeps());
+        store.keep("memory:1", scene("a", 1.0), LayoutSpec::Kd(4));
+        assert_eq!(store.kept(&scene("a", 1.0), &LayoutSpec::Kd(4)), None);
     }
 }
