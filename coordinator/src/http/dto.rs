@@ -155,6 +155,9 @@ pub struct SubmitForm {
     /// A sun (`JobSpec.lighting.sun`, docs/lights.md) as [azimuth, elevation] or
     /// [azimuth, elevation, irradiance] in degrees; the page sends only those lengths.
     pub sun: Option<Vec<f32>>,
+    /// Adaptive sampling (`JobSpec.noise_threshold`, docs/noise.md); None: every tile
+    /// takes `spp`.
+    pub noise_threshold: Option<f32>,
 }
 
 impl SubmitForm {
@@ -225,6 +228,7 @@ impl From<SubmitForm> for JobSpec {
             layout: f.layout,
             label: f.label,
             replicate: f.replicate,
+            noise_threshold: f.noise_threshold,
             ..JobSpec::default()
         }
     }
@@ -492,6 +496,19 @@ mod tests {
         )
         .unwrap();
         assert_eq!(JobSpec::from(plain).lighting, None);
+    }
+
+    /// The dashboard's noise threshold becomes `JobSpec.noise_threshold`.
+    #[test]
+    fn the_forms_noise_threshold_makes_the_specs() {
+        let f: SubmitForm = serde_json::from_str(
+            r#"{"scene":"cornell","width":8,"height":8,"spp":64,"noise_threshold":0.02}"#,
+        )
+        .unwrap();
+        assert_eq!(JobSpec::from(f).noise_threshold, Some(0.02));
+        let f: SubmitForm =
+            serde_json::from_str(r#"{"scene":"cornell","width":8,"height":8,"spp":64}"#).unwrap();
+        assert_eq!(JobSpec::from(f).noise_threshold, None);
     }
 
     /// The dashboard's sun field becomes `JobSpec.lighting.sun`, with or without an

@@ -261,6 +261,7 @@ $("submit-form").addEventListener("submit", async (e) => {
     env_map: (f.get("env_map") ?? "").trim(),
     env_rotation: num("env_rotation"),
     env_intensity: num("env_intensity"),
+    noise_threshold: num("noise_threshold"),
   };
   // "X,Y,Z" and "AZ,EL" fields as arrays of numbers; the coordinator checks the values.
   for (const [k, n] of [["look_from", 3], ["look_at", 3], ["up", 3], ["orbit", 2], ["focus_on", 3]]) {
