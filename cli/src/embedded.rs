@@ -77,8 +77,9 @@ fn embedded_spec(a: &RenderArgs, workers: usize) -> Result<JobSpec> {
     }
     // Nobody watches an embedded render's passes, and each pass waits for its slowest
     // tile (14% of the wall time of a 16-spp bunny with doubling passes, 2 threads): one
-    // pass unless asked. The image is the same bits either way.
-    if a.job.passes.is_none() {
+    // pass unless asked (or adaptive sampling needs passes to stop tiles between). The
+    // image is the same bits either way.
+    if a.job.passes.is_none() && a.job.noise.noise_threshold.is_none() {
         spec.passes = "one".to_string();
     }
     Ok(spec)

@@ -156,7 +156,7 @@ pub struct JobFlags {
     pub view: crate::view_flags::ViewFlags,
     #[command(flatten)]
     pub lights: crate::light_flags::LightFlags,
-    /// Noise controls (`JobSpec.clamp_indirect`).
+    /// Noise controls (`JobSpec.clamp_indirect`, `noise_threshold`, `aovs`).
     #[command(flatten)]
     pub noise: crate::noise_flags::NoiseFlags,
     /// The moment of the animation, or a range of frames (`JobSpec.time`, `frames`).
@@ -222,11 +222,36 @@ impl JobFlags {
         Ok(())
     }
 
-    /// `--passes`: a cut of `--spp` the coordinator accepts.
+    /// `--passes`: a cut of `--spp` the coordinator accepts; with `--noise-threshold`,
+    /// one of more than one pass (tiles stop between passes).
     pub fn check_passes(&self) -> Result<()> {
-        dray_core::passes::Passes::parse(self.passes_or_default(), self.spp)
-            .map(drop)
-            .map_err(|e| anyhow::anyhow!("--passes: {e}"))
+        let cut = dray_core::passes::Passes::parse(self.passes_or_default(), self.spp)
+            .map_err(|e| anyhow::anyhow!("--passes: {e}"))?;
+        if self.noise.noise_threshold.is_some()
+            && self.spp > dray_core::adaptive::MIN_SAMPLES
+            && cut.ranges(self.spp).len() < 2
+        {
+            bail!(
+                "--noise-threshold stops tiles between passes, but --passes {} traces all {} \
+                 samples in one: leave --passes out (doubling) or give a number of samples \
+                 per pass",
+                self.passes_or_default(),
+                self.spp
+            );
+        }
+        Ok(())
+    }
+
+    /// The passes `dray render --workers 0` traces: one pass unless asked, or doubling
+    /// for adaptive sampling (which stops tiles between passes).
+    pub fn local_passes(&self) -> dray_core::passes::Passes {
+        let spp = self.spp;
+        match self.passes.as_deref() {
+            Some(p) => dray_core::passes::Passes::parse(p, spp)
+                .unwrap_or(dray_core::passes::Passes::Every(spp.max(1))),
+            None if self.noise.noise_threshold.is_some() => dray_core::passes::Passes::Doubling,
+            None => dray_core::passes::Passes::Every(spp.max(1)),
+        }
     }
 
     /// `--aov`: known names, each once, and an `--exr` file to hold them.
@@ -318,6 +343,7 @@ impl JobFlags {
             // `dray submit --priority` sets it (submit_cmd.rs); nothing to queue behind
             // in `dray render`.
             priority: 0,
+            noise_threshold: self.noise.noise_threshold,
         })
     }
 }

@@ -1,4 +1,5 @@
-//! The flags that tame noise and feed denoisers (`--clamp-indirect`, `--aov`), shared
+//! The flags that tame noise and feed denoisers (`--clamp-indirect`,
+//! `--noise-threshold`, `--aov`), shared
 //! by `dray render` and `dray submit` through [`crate::job_flags::JobFlags`], and the
 //! `JobSpec` fields they set.
 
@@ -16,6 +17,15 @@ pub struct NoiseFlags {
     /// clamp.
     #[arg(long, value_name = "X", value_parser = parse_clamp)]
     pub clamp_indirect: Option<f32>,
+    /// Adaptive sampling: after each progressive pass from 16 samples on, a 32x32 tile
+    /// whose noise estimate (the change of its pixels over the pass, relative to the
+    /// square root of their brightness, as Cycles measures it) is below X takes no more
+    /// samples. Above 0, at most 1; 0.01 is Cycles' default. Needs passes (doubling is
+    /// used unless --passes says otherwise). The summary and `--stats` count the tiles
+    /// stopped and samples saved; `--aov samples` shows each pixel's count. Default:
+    /// every tile takes --spp.
+    #[arg(long, value_name = "X", value_parser = parse_threshold)]
+    pub noise_threshold: Option<f32>,
     /// AOVs to write into the --exr file as more channels, comma-separated: albedo
     /// (albedo.R/G/B), normal (normal.X/Y/Z, world space), depth (depth.Z, distance
     /// from the camera; +inf where nothing was hit), samples (samples.Y). Each is the
@@ -41,6 +51,15 @@ fn parse_clamp(s: &str) -> Result<f32, String> {
     dray_core::clamp::check_limit(x)
 }
 
+/// `--noise-threshold X`, checked as the coordinator checks `JobSpec.noise_threshold`.
+fn parse_threshold(s: &str) -> Result<f32, String> {
+    let x = s
+        .trim()
+        .parse::<f32>()
+        .map_err(|_| format!("{s:?} is not a number"))?;
+    dray_core::adaptive::check_threshold(x)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -57,6 +76,21 @@ mod tests {
             ("NaN", "finite number above 0, got NaN"),
         ] {
             let e = parse_clamp(bad).expect_err(bad);
+            assert!(e.contains(says), "{bad}: {e}");
+        }
+    }
+
+    #[test]
+    fn threshold_values_and_their_errors() {
+        assert_eq!(parse_threshold("0.01"), Ok(0.01));
+        for (bad, says) in [
+            ("x", "\"x\" is not a number"),
+            ("0", "default), got 0"),
+            ("-0.5", "default), got -0.5"),
+            ("2", "default), got 2"),
+            ("NaN", "default), got NaN"),
+        ] {
+            let e = parse_threshold(bad).expect_err(bad);
             assert!(e.contains(says), "{bad}: {e}");
         }
     }

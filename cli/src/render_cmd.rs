@@ -455,8 +455,18 @@ pub fn render_with(
         build_time = build_start.elapsed();
         build_summed = false;
         let integrator = Integrator::new(&scene, camera, settings.clone());
-        let out = render::render(&integrator, geometry.as_ref(), a.threads, progress)
-            .context("cannot start the thread pool")?;
+        let passes = a.job.local_passes().ranges(a.job.spp);
+        let out = render::render_passes(
+            &integrator,
+            geometry.as_ref(),
+            a.threads,
+            &passes,
+            a.job.noise.noise_threshold,
+            &|done, total| progress(done, total),
+            &|_, _| {},
+            &std::sync::atomic::AtomicBool::new(false),
+        )
+        .context("cannot start the thread pool")?;
         (out, domains, Scheduling::none(), (None, None))
     };
     let threads = if a.threads == 0 {
@@ -480,6 +490,9 @@ pub fn render_with(
     summary.clamped_contributions = Some(out.film.clamped);
     // Counted by the tile renderer, and by the workers (JobStats.clamped_indirect).
     summary.clamped_indirect = out.film.clamped_indirect;
+    // Read from the film's per-pixel counts, the same bits on every configuration.
+    let saved = dray_core::adaptive::Saved::of(&out.film, a.job.spp);
+    (summary.tiles_stopped, summary.samples_saved) = (saved.tiles_stopped, saved.samples_saved);
     summary.scheduling = scheduling;
     (summary.ray_cache, summary.phm) = walls;
     Ok(Rendered {

@@ -99,6 +99,9 @@ pub(crate) struct SubmitStats {
     clamped_contributions: u64,
     /// Contributions of indirect light scaled down by `--clamp-indirect`.
     clamped_indirect: u64,
+    /// Adaptive sampling (`--noise-threshold`): tiles stopped early, samples saved.
+    tiles_stopped: u32,
+    samples_saved: u64,
     /// The coordinator's time for the job, preparation included.
     job_time_s: f64,
     /// From submission to the image written, as seen here.
@@ -136,6 +139,8 @@ impl SubmitStats {
             nonfinite_contributions: stats.nonfinite,
             clamped_contributions: stats.clamped,
             clamped_indirect: stats.clamped_indirect,
+            tiles_stopped: stats.tiles_stopped,
+            samples_saved: stats.samples_saved,
             job_time_s: job
                 .progress
                 .as_ref()

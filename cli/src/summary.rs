@@ -46,6 +46,11 @@ pub struct Summary {
     pub clamped_contributions: Option<u64>,
     /// Contributions of indirect light scaled down by `--clamp-indirect` (0 without it).
     pub clamped_indirect: u64,
+    /// Adaptive sampling (`--noise-threshold`): tiles that stopped before the last
+    /// pass, and the samples per pixel they did not take, summed over their pixels (0
+    /// without it).
+    pub tiles_stopped: u32,
+    pub samples_saved: u64,
     pub warnings: Vec<String>,
     /// How the job was scheduled on workers, and what that cost.
     #[serde(flatten)]
@@ -556,6 +561,8 @@ impl Summary {
             saturated_pixels: out.film.saturated(),
             clamped_contributions: None,
             clamped_indirect: 0,
+            tiles_stopped: 0,
+            samples_saved: 0,
             warnings: scene.warnings.clone(),
             scheduling: Scheduling::none(),
             ray_cache: None,
@@ -640,6 +647,12 @@ pub fn print_summary(s: &Summary) {
         eprintln!(
             "clamped      {} indirect contributions (--clamp-indirect)",
             s.clamped_indirect
+        );
+    }
+    if s.tiles_stopped > 0 {
+        eprintln!(
+            "adaptive     {} tiles stopped early, {} samples saved (--noise-threshold)",
+            s.tiles_stopped, s.samples_saved
         );
     }
     if s.saturated_pixels > 0 {

@@ -9,8 +9,6 @@ mod support;
 
 use std::path::Path;
 
-use support::dray;
-
 /// The Cornell box with a glass sphere: caustics, so fireflies for the clamp.
 const SCENE: &str = "cornell:glass";
 const SIZE: [&str; 8] = [
@@ -31,25 +29,6 @@ fn clamped(stats: &serde_json::Value) -> u64 {
     stats["clamped_indirect"]
         .as_u64()
         .unwrap_or_else(|| panic!("no clamped_indirect in {stats}"))
-}
-
-/// Every channel of an EXR by name.
-fn channels(bytes: &[u8]) -> Vec<(String, Vec<f32>)> {
-    use exr::prelude::{ReadChannels, ReadLayers};
-    let image = exr::prelude::read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .all_layers()
-        .all_attributes()
-        .from_buffered(std::io::Cursor::new(bytes.to_vec()))
-        .expect("read exr");
-    image.layer_data[0]
-        .channel_data
-        .list
-        .iter()
-        .map(|c| (c.name.to_string(), c.sample_data.values_as_f32().collect()))
-        .collect()
 }
 
 #[test]
@@ -119,7 +98,7 @@ fn aovs_give_the_same_bits_on_workers_and_the_walls_colours() {
             assert!(stats["passes_ahead"].as_u64() > Some(0), "{stats}");
         }
     }
-    let ch = channels(&want);
+    let ch = common::exr_channels(&want);
     let names: Vec<&str> = ch.iter().map(|c| c.0.as_str()).collect();
     assert_eq!(
         names,
@@ -161,7 +140,7 @@ fn aovs_give_the_same_bits_on_workers_and_the_walls_colours() {
     // The beauty is the image without AOVs.
     let (plain, _) = render(&dir, "plain", &["--workers", "0"]);
     let beauty = |b: &[u8]| {
-        channels(b)
+        common::exr_channels(b)
             .into_iter()
             .filter(|c| ["R", "G", "B"].contains(&c.0.as_str()))
             .collect::<Vec<_>>()
@@ -183,26 +162,13 @@ fn a_cluster_gives_dray_renders_bits_with_the_clamp_and_aovs() {
     ];
     let (want, stats) = render(&dir, "ref", &[&knobs[..], &["--workers", "0"]].concat());
     let c = support::WorkerCluster::start(2, 0, &dir, &[]);
-    let exr = dir.join("submitted.exr");
-    let json = dir.join("submitted.json");
-    let mut cmd = dray();
-    cmd.args(["submit", "--coordinator", &c.addr, SCENE, "-q"])
-        .args(SIZE)
-        .args(["--max-depth", "6"])
-        .args(knobs)
-        .arg("--output")
-        .arg(dir.join("submitted.png"))
-        .arg("--exr")
-        .arg(&exr)
-        .arg("--stats")
-        .arg(&json);
-    support::run_to_success(cmd, "dray submit", 180.0);
-    assert!(
-        std::fs::read(&exr).expect("exr") == want,
-        "the cluster's EXR differs from dray render's"
+    let (got, s) = support::submit_exr(
+        &c.addr,
+        &dir,
+        SCENE,
+        &[&SIZE[..], &["--max-depth", "6"], &knobs[..]].concat(),
     );
-    let s: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&json).expect("stats")).expect("json");
+    assert!(got == want, "the cluster's EXR differs from dray render's");
     assert_eq!(clamped(&s), clamped(&stats), "{s}");
     drop(c);
     let _ = std::fs::remove_dir_all(&dir);

@@ -632,6 +632,7 @@ async fn run(
         tiles.len(),
         workers.iter().any(|w| w.budget > 0) || schedule == Schedule::Replicated,
         walled,
+        entry.spec.noise_threshold.is_some(),
     );
     let n = workers.len();
     entry.update_stats(|s| {

@@ -759,6 +759,7 @@ fn run(job: &JobEntry, p: Prepared, threads: usize) {
         geometry.as_ref(),
         threads,
         passes,
+        job.spec.noise_threshold,
         &progress,
         &on_pass,
         &job.cancel,
@@ -779,6 +780,9 @@ fn run(job: &JobEntry, p: Prepared, threads: usize) {
                 g.stats.nonfinite = out.film.nonfinite;
                 g.stats.clamped = out.film.clamped;
                 g.stats.clamped_indirect = out.film.clamped_indirect;
+                let saved = dray_core::adaptive::Saved::of(&out.film, job.spec.spp);
+                g.stats.tiles_stopped = saved.tiles_stopped;
+                g.stats.samples_saved = saved.samples_saved;
             }
             job.finish(JobState::Succeeded, String::new(), Some(out.film));
         }

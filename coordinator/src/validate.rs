@@ -273,6 +273,20 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
     if let Some(c) = spec.clamp_indirect {
         dray_core::clamp::check_limit(c).map_err(|e| bad(format!("clamp_indirect: {e}")))?;
     }
+    if let Some(x) = spec.noise_threshold {
+        dray_core::adaptive::check_threshold(x)
+            .map_err(|e| bad(format!("noise_threshold: {e}")))?;
+        // Decisions are taken between passes: one pass of every sample leaves none.
+        let cut = dray_core::passes::Passes::parse(&spec.passes, spec.spp)
+            .map_err(|e| bad(format!("passes: {e}")))?;
+        if spec.spp > dray_core::adaptive::MIN_SAMPLES && cut.ranges(spec.spp).len() < 2 {
+            return Err(bad(format!(
+                "noise_threshold: needs more than one pass to stop tiles between them, but \
+                 passes {:?} traces all {} samples in one (use \"doubling\")",
+                spec.passes, spec.spp
+            )));
+        }
+    }
     let aovs = AovSet::parse(&spec.aovs).map_err(|e| bad(format!("aovs: {e}")))?;
     // In one order, so equal sets read alike in GetJob.
     spec.aovs = aovs.names();

@@ -320,6 +320,29 @@ async fn render_service_end_to_end() {
             },
             "env",
         ),
+        (
+            JobSpec {
+                noise_threshold: Some(0.0),
+                ..cornell(8, 8, 64)
+            },
+            "noise_threshold",
+        ),
+        (
+            JobSpec {
+                noise_threshold: Some(f32::NAN),
+                ..cornell(8, 8, 64)
+            },
+            "noise_threshold",
+        ),
+        (
+            // One pass leaves no pass end to stop a tile at.
+            JobSpec {
+                noise_threshold: Some(0.01),
+                passes: "one".into(),
+                ..cornell(8, 8, 64)
+            },
+            "noise_threshold",
+        ),
     ];
     for (spec, field) in cases {
         let err = submit(&mut c, spec).await.unwrap_err();

@@ -226,13 +226,20 @@ impl AovFilm {
     }
 
     /// The channels of the set's AOVs for an image of `spp` samples per pixel, as
-    /// (name, one value per pixel), in [`Aov::ALL`]'s order.
-    pub fn channels(&self, spp: u32) -> Vec<(&'static str, Vec<f32>)> {
-        let per_sample = 1.0 / (FIXED_SCALE * f64::from(spp.max(1)));
+    /// (name, one value per pixel), in [`Aov::ALL`]'s order. `stops` is the film's
+    /// per-pixel samples where adaptive sampling stopped a pixel early (0: `spp`).
+    pub fn channels(&self, spp: u32, stops: Option<&[u32]>) -> Vec<(&'static str, Vec<f32>)> {
+        let samples = |p: usize| -> u32 {
+            match stops.and_then(|s| s.get(p)) {
+                Some(&n) if n > 0 => n,
+                _ => spp.max(1),
+            }
+        };
         let mean = |w: usize| -> Vec<f32> {
             self.sums
                 .iter()
-                .map(|s| (s[w] as f64 * per_sample) as f32)
+                .enumerate()
+                .map(|(p, s)| (s[w] as f64 / (FIXED_SCALE * f64::from(samples(p)))) as f32)
                 .collect()
         };
         let mut out = Vec::new();
@@ -251,7 +258,10 @@ impl AovFilm {
                         })
                         .collect(),
                 )),
-                Aov::Samples => out.push((names[0], vec![spp as f32; self.sums.len()])),
+                Aov::Samples => out.push((
+                    names[0],
+                    (0..self.sums.len()).map(|p| samples(p) as f32).collect(),
+                )),
             }
         }
         out
@@ -294,7 +304,7 @@ mod tests {
         // Pixel 0: two samples hit, two missed; pixel 1: every sample missed.
         film.add_fixed(0, &f);
         film.add_fixed(0, &f);
-        let ch = film.channels(4);
+        let ch = film.channels(4, None);
         let get = |name: &str| ch.iter().find(|c| c.0 == name).expect(name).1.clone();
         assert_eq!(get("albedo.R"), [0.25, 0.0]);
         assert_eq!(get("albedo.G"), [0.5, 0.0], "clamped to 1");

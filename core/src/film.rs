@@ -93,6 +93,10 @@ pub struct Film {
     pub clamped_indirect: u64,
     /// The AOVs' sums (`crate::aov`), when the job asks for any.
     pub aovs: Option<AovFilm>,
+    /// Adaptive sampling (`crate::adaptive`): per pixel, the samples it stopped at, or 0
+    /// for a pixel that did not stop (it has the samples the image is shown with). None
+    /// until some tile stops, so a film without adaptive sampling pays nothing.
+    stops: Option<Vec<u32>>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -113,6 +117,7 @@ impl Film {
             clamped: 0,
             clamped_indirect: 0,
             aovs: None,
+            stops: None,
         }
     }
 
@@ -135,6 +140,32 @@ impl Film {
         (self.sums.len() as u64)
             .saturating_mul(std::mem::size_of::<[i64; 3]>() as u64)
             .saturating_add(self.aovs.as_ref().map_or(0, AovFilm::heap_bytes))
+            .saturating_add(self.stops.as_ref().map_or(0, |s| 4 * s.len() as u64))
+    }
+
+    /// Per pixel, the samples it stopped at under adaptive sampling (0: it did not
+    /// stop); None when no pixel stopped.
+    pub fn stops(&self) -> Option<&[u32]> {
+        self.stops.as_deref()
+    }
+
+    /// Pixel `pixel` stopped at `samples` samples (adaptive sampling): it is shown
+    /// divided by them, whatever the image's samples per pixel. 0 undoes it.
+    pub fn set_stop(&mut self, pixel: u32, samples: u32) {
+        let n = self.sums.len();
+        if (pixel as usize) < n && (samples > 0 || self.stops.is_some()) {
+            self.stops.get_or_insert_with(|| vec![0; n])[pixel as usize] = samples;
+        }
+    }
+
+    /// The samples pixel `pixel` has in an image of `spp` samples per pixel: `spp`, or
+    /// fewer where it stopped early.
+    #[inline]
+    pub fn samples_of(&self, pixel: usize, spp: u32) -> u32 {
+        match self.stops.as_ref().and_then(|s| s.get(pixel)) {
+            Some(&n) if n > 0 => n,
+            _ => spp,
+        }
     }
 
     /// Add a contribution to pixel `pixel` (row-major index). Out-of-range pixels are ignored.
@@ -198,6 +229,8 @@ impl Film {
                 .map_or([0; crate::aov::AOV_WORDS], |b| b.sum_fixed(pixel));
             a.set_fixed(pixel, v);
         }
+        let stop = from.map_or(0, |f| f.stops().map_or(0, |s| s[pixel as usize]));
+        self.set_stop(pixel, stop);
     }
 
     /// Merge another film of the same size (exact, order-free).
@@ -211,6 +244,13 @@ impl Film {
         if let (Some(a), Some(b)) = (self.aovs.as_mut(), other.aovs.as_ref()) {
             a.merge(b);
         }
+        if let Some(b) = other.stops() {
+            for (p, &n) in b.iter().enumerate() {
+                if n > self.samples_of(p, 0) {
+                    self.set_stop(p as u32, n);
+                }
+            }
+        }
     }
 
     /// Pixels with a component at [`MAX_SUM`]: brighter than the film can represent
@@ -223,12 +263,18 @@ impl Film {
         self.sums.get(pixel as usize).copied().unwrap_or([0; 3])
     }
 
-    /// Linear radiance of every pixel: the sum divided by `spp`.
+    /// Linear radiance of every pixel: the sum divided by `spp`, or by the samples it
+    /// stopped at (adaptive sampling).
     pub fn linear(&self, spp: u32) -> Vec<Vec3> {
-        let k = 1.0 / (FIXED_SCALE * spp.max(1) as f64);
+        let all = 1.0 / (FIXED_SCALE * spp.max(1) as f64);
         self.sums
             .iter()
-            .map(|s| {
+            .enumerate()
+            .map(|(p, s)| {
+                let k = match self.samples_of(p, spp) {
+                    n if n == spp => all,
+                    n => 1.0 / (FIXED_SCALE * n.max(1) as f64),
+                };
                 Vec3::new(
                     (s[0] as f64 * k) as f32,
                     (s[1] as f64 * k) as f32,
@@ -308,7 +354,7 @@ impl Film {
                 AnyChannel::new(name, FlatSamples::F32(lin.iter().map(|p| p[k]).collect()))
             })
             .collect();
-        for (name, values) in aovs.channels(spp) {
+        for (name, values) in aovs.channels(spp, self.stops()) {
             channels.push(AnyChannel::new(name, FlatSamples::F32(values)));
         }
         let size = Vec2(self.width as usize, self.height as usize);

@@ -8,6 +8,7 @@
 //! 8-bit images (exposure, tone curve: [`display`]) and the credit that tells when a tile
 //! is complete ([`credit`]).
 
+pub mod adaptive;
 pub mod aov;
 pub mod bsdf;
 pub mod camera;

@@ -122,6 +122,7 @@ pub fn render_cancellable(
         geometry,
         threads,
         std::slice::from_ref(&all),
+        None,
         progress,
         &|_, _| {},
         cancel,
@@ -134,11 +135,18 @@ pub fn render_cancellable(
 /// called with (tiles done in this pass, tiles) after every tile. The final film is the
 /// same bits as one pass of every sample: sums are fixed-point integers, and each
 /// sample's random numbers are keyed by pixel and sample index.
+///
+/// With a `noise_threshold` (adaptive sampling, `crate::adaptive`), a tile whose error
+/// after a pass is below it takes no later pass, and its pixels keep the samples they
+/// stopped at in the film: the same decisions, from the same integer sums, as the
+/// coordinator's for a job on workers.
+#[allow(clippy::too_many_arguments)]
 pub fn render_passes(
     integrator: &Integrator<'_>,
     geometry: &dyn Trace,
     threads: usize,
     passes: &[std::ops::Range<u32>],
+    noise_threshold: Option<f32>,
     progress: &(dyn Fn(usize, usize) + Sync),
     on_pass: &(dyn Fn(&Film, usize) + Sync),
     cancel: &AtomicBool,
@@ -150,15 +158,24 @@ pub fn render_passes(
     let records_hits = s.aovs.records_hits();
     let counts: Vec<AtomicU64> = (0..RayKind::COUNT).map(|_| AtomicU64::new(0)).collect();
     let done = AtomicU64::new(0);
+    // Tiles adaptive sampling stopped: written at a pass's end, read in later passes.
+    let stopped: Vec<AtomicBool> = tiles.iter().map(|_| AtomicBool::new(false)).collect();
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()?;
     let start = Instant::now();
     for (k, samples) in passes.iter().enumerate() {
         done.store(0, Ordering::Relaxed);
+        let decides = noise_threshold
+            .filter(|_| crate::adaptive::decides_after(samples, k + 1 == passes.len()));
         pool.install(|| {
-            tiles.par_iter().for_each(|tile| {
+            tiles.par_iter().enumerate().for_each(|(t, tile)| {
                 if cancel.load(Ordering::Relaxed) {
+                    return;
+                }
+                if stopped[t].load(Ordering::Relaxed) {
+                    let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+                    progress(d as usize, tiles.len());
                     return;
                 }
                 let _span = tracing::trace_span!("tile", x = tile.x0, y = tile.y0).entered();
@@ -201,6 +218,29 @@ pub fn render_passes(
                 }
                 {
                     let mut f = film.lock().unwrap_or_else(|p| p.into_inner());
+                    if let Some(threshold) = decides {
+                        let _span = tracing::trace_span!("adaptive_decision").entered();
+                        let pixels = (0..tile.h).flat_map(|ly| {
+                            (0..tile.w).map(move |lx| {
+                                (ly * tile.w + lx, (tile.y0 + ly) * width + tile.x0 + lx)
+                            })
+                        });
+                        let error = crate::adaptive::tile_error(
+                            samples,
+                            pixels.clone().map(|(i, p)| {
+                                let before = f.sum_fixed(p);
+                                let mut after = before;
+                                add_sums(&mut after, sink.sums[i as usize]);
+                                (before, after)
+                            }),
+                        );
+                        if crate::adaptive::stops(error, threshold) {
+                            stopped[t].store(true, Ordering::Relaxed);
+                            for (_, p) in pixels {
+                                f.set_stop(p, samples.end);
+                            }
+                        }
+                    }
                     for ly in 0..tile.h {
                         for lx in 0..tile.w {
                             let pixel = (tile.y0 + ly) * width + tile.x0 + lx;

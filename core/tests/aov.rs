@@ -71,7 +71,7 @@ fn all() -> AovSet {
 fn a_plane_gives_its_distance_normal_and_base_colour() {
     let f = film(all());
     let aovs = f.aovs.as_ref().expect("a film with AOVs");
-    let ch = aovs.channels(SPP);
+    let ch = aovs.channels(SPP, None);
     let get = |name: &str| &ch.iter().find(|c| c.0 == name).expect(name).1;
     let half = SIZE / 2;
     // At the image's corners the ray leaves the axis by the half-diagonal angle.

@@ -318,6 +318,7 @@ fn passes_give_the_same_bits_as_one_pass() {
             &accel,
             2,
             &passes,
+            None,
             &|_, _| {},
             &|f: &Film, k| seen.lock().unwrap().push((k, f.clone())),
             &std::sync::atomic::AtomicBool::new(false),

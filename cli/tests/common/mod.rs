@@ -154,3 +154,22 @@ pub fn effects(stats: &serde_json::Value) -> Vec<String> {
         .filter_map(|e| e.as_str().map(str::to_string))
         .collect()
 }
+
+/// Every channel of an EXR by name.
+pub fn exr_channels(bytes: &[u8]) -> Vec<(String, Vec<f32>)> {
+    use exr::prelude::{ReadChannels, ReadLayers};
+    let image = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .from_buffered(std::io::Cursor::new(bytes.to_vec()))
+        .expect("read exr");
+    image.layer_data[0]
+        .channel_data
+        .list
+        .iter()
+        .map(|c| (c.name.to_string(), c.sample_data.values_as_f32().collect()))
+        .collect()
+}

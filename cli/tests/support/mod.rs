@@ -450,6 +450,31 @@ pub fn run_to_success(mut cmd: Command, what: &str, secs: f64) -> String {
     err
 }
 
+/// `dray submit --coordinator ADDR SCENE -q ARGS` writing `DIR/submitted.{png,exr,json}`,
+/// run to success: the EXR's bytes and the `--stats` JSON.
+pub fn submit_exr(
+    addr: &str,
+    dir: &Path,
+    scene: &str,
+    args: &[&str],
+) -> (Vec<u8>, serde_json::Value) {
+    let exr = dir.join("submitted.exr");
+    let json = dir.join("submitted.json");
+    let mut cmd = dray();
+    cmd.args(["submit", "--coordinator", addr, scene, "-q"])
+        .args(args)
+        .arg("--output")
+        .arg(dir.join("submitted.png"))
+        .arg("--exr")
+        .arg(&exr)
+        .arg("--stats")
+        .arg(&json);
+    run_to_success(cmd, "dray submit", 180.0);
+    let stats =
+        serde_json::from_str(&std::fs::read_to_string(&json).expect("stats")).expect("json");
+    (std::fs::read(&exr).expect("exr"), stats)
+}
+
 /// `call` with a RenderService client of the coordinator at `addr`, on a runtime of its
 /// own; None when the coordinator cannot be reached or `call` gives none.
 pub fn with_client<T, F, Fut>(addr: &str, call: F) -> Option<T>

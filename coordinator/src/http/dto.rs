@@ -178,6 +178,9 @@ pub struct SubmitForm {
     #[serde(default)]
     pub frames: String,
     pub fps: Option<f64>,
+    /// Adaptive sampling (`JobSpec.noise_threshold`, docs/noise.md); None: every tile
+    /// takes `spp`.
+    pub noise_threshold: Option<f32>,
 }
 
 impl SubmitForm {
@@ -256,6 +259,7 @@ impl From<SubmitForm> for JobSpec {
             frames: f.frames.trim().to_string(),
             fps: f.fps,
             priority: f.priority,
+            noise_threshold: f.noise_threshold,
             ..JobSpec::default()
         }
     }
@@ -527,6 +531,19 @@ mod tests {
         )
         .unwrap();
         assert_eq!(JobSpec::from(plain).lighting, None);
+    }
+
+    /// The dashboard's noise threshold becomes `JobSpec.noise_threshold`.
+    #[test]
+    fn the_forms_noise_threshold_makes_the_specs() {
+        let f: SubmitForm = serde_json::from_str(
+            r#"{"scene":"cornell","width":8,"height":8,"spp":64,"noise_threshold":0.02}"#,
+        )
+        .unwrap();
+        assert_eq!(JobSpec::from(f).noise_threshold, Some(0.02));
+        let f: SubmitForm =
+            serde_json::from_str(r#"{"scene":"cornell","width":8,"height":8,"spp":64}"#).unwrap();
+        assert_eq!(JobSpec::from(f).noise_threshold, None);
     }
 
     /// The dashboard's sun field becomes `JobSpec.lighting.sun`, with or without an

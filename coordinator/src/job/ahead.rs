@@ -29,10 +29,19 @@ pub const HELD_PIXEL_PASSES: u64 = 1 << 23;
 /// the one before): for a job of `passes` passes and `pixels` pixels with `tiles` tiles
 /// (image and coarse), when some worker has a memory budget or the schedule is
 /// replicated (`worth`) and the job has no ray caches or hit maps (`walled`: their coarse
-/// pass and tickets are per pass).
-pub fn passes_ahead(passes: u32, pixels: u64, tiles: usize, worth: bool, walled: bool) -> u32 {
+/// pass and tickets are per pass) and no adaptive sampling (`adaptive`: whether a tile
+/// takes its next pass is decided when the pass before it ends, so a worker holding
+/// later passes would trace samples the job may not take; docs/noise.md).
+pub fn passes_ahead(
+    passes: u32,
+    pixels: u64,
+    tiles: usize,
+    worth: bool,
+    walled: bool,
+    adaptive: bool,
+) -> u32 {
     let tagged = (tiles as u64) < 1 << dray_core::passes::AHEAD_TILE_BITS;
-    if passes < 2 || !worth || walled || !tagged {
+    if passes < 2 || !worth || walled || adaptive || !tagged {
         return 0;
     }
     let by_memory = HELD_PIXEL_PASSES / pixels.max(1);
@@ -77,16 +86,33 @@ mod tests {
 
     #[test]
     fn only_jobs_under_a_budget_with_passes_trace_ahead_as_far_as_memory_allows() {
-        assert_eq!(passes_ahead(3, 192 * 192, 144, true, false), 2);
+        assert_eq!(passes_ahead(3, 192 * 192, 144, true, false, false), 2);
         assert_eq!(
-            passes_ahead(3, 192 * 192, 144, false, false),
+            passes_ahead(3, 192 * 192, 144, false, false, false),
             0,
             "no budget, not replicated"
         );
-        assert_eq!(passes_ahead(3, 192 * 192, 144, true, true), 0, "ray caches");
-        assert_eq!(passes_ahead(1, 192 * 192, 144, true, false), 0, "one pass");
-        assert_eq!(passes_ahead(12, 1920 * 1080, 8160, true, false), 4);
-        assert_eq!(passes_ahead(12, 1 << 30, 1 << 20, true, false), 0);
-        assert_eq!(passes_ahead(3, 64, 1 << 24, true, false), 0, "tile keys");
+        assert_eq!(
+            passes_ahead(3, 192 * 192, 144, true, true, false),
+            0,
+            "ray caches"
+        );
+        assert_eq!(
+            passes_ahead(1, 192 * 192, 144, true, false, false),
+            0,
+            "one pass"
+        );
+        assert_eq!(
+            passes_ahead(3, 192 * 192, 144, true, false, true),
+            0,
+            "adaptive sampling"
+        );
+        assert_eq!(passes_ahead(12, 1920 * 1080, 8160, true, false, false), 4);
+        assert_eq!(passes_ahead(12, 1 << 30, 1 << 20, true, false, false), 0);
+        assert_eq!(
+            passes_ahead(3, 64, 1 << 24, true, false, false),
+            0,
+            "tile keys"
+        );
     }
 }

@@ -2,6 +2,7 @@
 //!
 //! - [`registry`]: routes calls to jobs by id and holds every job's actor.
 //! - [`actor`]: one job's task: its mailbox, round timer, stall timeout and cache walls.
+//! - [`adaptive`]: adaptive sampling: which tiles stop after a pass.
 //! - [`ahead`]: when a job's workers trace passes ahead, and the tiles they hold.
 //! - [`event`]: what an actor is told.
 //! - [`running`]: what an actor owns: tiles and credit, the film, the schedule, the
@@ -10,6 +11,7 @@
 //! - [`view`]: the snapshot of domains and queues a job gives `ListWorkers`.
 
 pub mod actor;
+pub mod adaptive;
 pub mod ahead;
 pub mod event;
 pub mod registry;

@@ -116,6 +116,8 @@ pub struct RunningJob {
     /// for a tile taken back whole from the job store.
     pub(super) pass: usize,
     pub(super) tile_passes: Vec<u32>,
+    /// Tiles adaptive sampling stopped, and the samples they did not take.
+    pub(super) stopped: super::adaptive::Stopped,
     /// The film as the current pass started (the previous pass's image): a tile traced
     /// again after a lost worker goes back to it. None in the first pass (zero).
     pub(super) pass_base: Option<Arc<Film>>,
@@ -194,6 +196,7 @@ impl RunningJob {
             committed: Vec::new(),
             pass: 0,
             tile_passes: vec![0; image_tiles],
+            stopped: Default::default(),
             pass_base: None,
             pass_next,
             pass_copied: 0,
@@ -312,13 +315,17 @@ impl RunningJob {
         self.pass + 1 >= self.passes_total() as usize
     }
 
-    /// Image tile `t`'s credit is all back: it has one more pass complete, and is
-    /// committed with it (kept in the job store when there is one).
+    /// Image tile `t`'s credit is all back: it has one more pass complete (every pass,
+    /// if adaptive sampling stops it), and is committed with it (kept in the job store
+    /// when there is one). A job with a noise threshold commits nothing: the store keeps
+    /// no per-pixel sample counts, so it is traced again from the start after a
+    /// coordinator restart (docs/noise.md).
     pub(super) fn tile_finished(&mut self, t: usize) {
         self.tiles_done += 1;
         self.tile_passes[t] = self.pass as u32 + 1;
+        self.maybe_stop(t);
         self.copy_to_next(t);
-        if self.entry.store().is_some() {
+        if self.entry.store().is_some() && self.entry.spec.noise_threshold.is_none() {
             self.committed.push(t);
         }
     }
@@ -745,6 +752,8 @@ impl RunningJob {
             s.nonfinite = self.nonfinite;
             s.clamped = self.clamped;
             s.clamped_indirect = self.clamped_indirect;
+            s.tiles_stopped = self.stopped.tiles;
+            s.samples_saved = self.stopped.samples;
             s.ray_bytes_sent = self.ray_bytes_sent;
             s.traffic = Some(self.traffic);
             s.cpu_seconds = self.cpu.seconds();

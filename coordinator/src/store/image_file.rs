@@ -8,7 +8,9 @@
 //!
 //! Layout (little-endian): `DRAYFILM`, format version (u32), width (u32), height (u32),
 //! non-finite count (u64), width × height × 3 sums (i64), then XXH3-64 of all of the
-//! above (u64).
+//! above (u64). Format 2 (written only for a film some of whose pixels adaptive
+//! sampling stopped early) has width × height sample counts (u32, 0 for a pixel that
+//! did not stop: `Film::stops`) between the sums and the checksum.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -19,8 +21,10 @@ use dray_scene::partition::checksum::checksum;
 use super::StoreError;
 
 const MAGIC: &[u8; 8] = b"DRAYFILM";
-/// The only format written and read.
+/// The format of a film without per-pixel sample counts.
 const FORMAT: u32 = 1;
+/// The format of a film with them (adaptive sampling); the newest read.
+const FORMAT_STOPS: u32 = 2;
 const HEADER: usize = 8 + 4 + 4 + 4 + 8;
 
 /// The film as the bytes of an image file.
@@ -28,7 +32,12 @@ pub fn encode(film: &Film) -> Vec<u8> {
     let pixels = film.width as usize * film.height as usize;
     let mut out = Vec::with_capacity(HEADER + pixels * 24 + 8);
     out.extend_from_slice(MAGIC);
-    out.extend_from_slice(&FORMAT.to_le_bytes());
+    let format = if film.stops().is_some() {
+        FORMAT_STOPS
+    } else {
+        FORMAT
+    };
+    out.extend_from_slice(&format.to_le_bytes());
     out.extend_from_slice(&film.width.to_le_bytes());
     out.extend_from_slice(&film.height.to_le_bytes());
     out.extend_from_slice(&film.nonfinite.to_le_bytes());
@@ -36,6 +45,9 @@ pub fn encode(film: &Film) -> Vec<u8> {
         for c in film.sum_fixed(p) {
             out.extend_from_slice(&c.to_le_bytes());
         }
+    }
+    for n in film.stops().unwrap_or(&[]) {
+        out.extend_from_slice(&n.to_le_bytes());
     }
     let sum = checksum(&out);
     out.extend_from_slice(&sum.to_le_bytes());
@@ -58,24 +70,29 @@ pub fn decode(bytes: &[u8], path: &Path) -> Result<Film, StoreError> {
     }
     let u32_at = |o: usize| u32::from_le_bytes([body[o], body[o + 1], body[o + 2], body[o + 3]]);
     let format = u32_at(8);
-    if format != FORMAT {
+    if format != FORMAT && format != FORMAT_STOPS {
         return Err(StoreError::Newer {
             file: path.to_path_buf(),
             found: format,
-            supported: FORMAT,
+            supported: FORMAT_STOPS,
         });
     }
     let (width, height) = (u32_at(12), u32_at(16));
     let mut nf = [0u8; 8];
     nf.copy_from_slice(&body[20..28]);
     let pixels = width as usize * height as usize;
-    if body.len() != HEADER + pixels * 24 {
+    let per_pixel = if format == FORMAT_STOPS { 28 } else { 24 };
+    if body.len() != HEADER + pixels * per_pixel {
         return Err(corrupt("its size does not match its width and height"));
     }
     let mut film = Film::new(width, height);
     film.nonfinite = u64::from_le_bytes(nf);
-    for (p, px) in body[HEADER..].chunks_exact(24).enumerate() {
+    let (sums, stops) = body[HEADER..].split_at(pixels * 24);
+    for (p, px) in sums.chunks_exact(24).enumerate() {
         film.add_fixed(p as u32, read_sums(px));
+    }
+    for (p, n) in stops.chunks_exact(4).enumerate() {
+        film.set_stop(p as u32, u32::from_le_bytes([n[0], n[1], n[2], n[3]]));
     }
     Ok(film)
 }
@@ -217,6 +234,20 @@ mod tests {
             .map(|e| e.unwrap().file_name())
             .collect();
         assert_eq!(names, ["job-1.film"], "no temporary file is left");
+    }
+
+    /// A film some of whose pixels adaptive sampling stopped keeps their counts.
+    #[test]
+    fn round_trips_the_samples_of_pixels_that_stopped() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("job-2.film");
+        let mut f = film();
+        f.set_stop(1, 16);
+        f.set_stop(4, 32);
+        write_atomic(&path, &encode(&f)).unwrap();
+        let back = read(&path).unwrap();
+        assert_eq!(back.stops(), Some(&[0, 16, 0, 0, 32, 0][..]));
+        assert_eq!(back, f);
     }
 
     #[test]

@@ -290,6 +290,7 @@ $("submit-form").addEventListener("submit", async (e) => {
     animation: (f.get("animation") ?? "").trim(),
     frames: (f.get("frames") ?? "").trim(),
     fps: num("fps"),
+    noise_threshold: num("noise_threshold"),
   };
   // "X,Y,Z" and "AZ,EL" fields as arrays of numbers; the coordinator checks the values.
   for (const [k, n] of [["look_from", 3], ["look_at", 3], ["up", 3], ["orbit", 2], ["focus_on", 3]]) {
