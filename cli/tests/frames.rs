@@ -304,7 +304,15 @@ fn a_group_of_24_frames_survives_a_killed_worker_each_frame_the_bits_of_render_t
         frames as usize,
         "ListJobs of group {group}"
     );
-    eprintln!("frames-kill: {done_at_kill} of {frames} frames were done at the kill");
+    let retried: u32 = support::list_group(&addr, &group)
+        .unwrap_or_default()
+        .iter()
+        .filter_map(|j| j.stats.as_ref().map(|s| s.tiles_retried))
+        .sum();
+    eprintln!(
+        "frames-kill: {done_at_kill} of {frames} frames were done at the kill; tiles retried \
+         over the group: {retried}"
+    );
 
     // Each frame: the bits of `dray render --time frame/fps` in one process.
     for frame in 0..frames {
