@@ -16,7 +16,7 @@ use std::process::Stdio;
 
 use dray_proto::v1::render_service_client::RenderServiceClient;
 use dray_proto::v1::{GetImageRequest, ImageFormat, JobSpec, ListJobsRequest, SubmitJobRequest};
-use support::{Proc, capture_stderr, dray, eventually, free_port};
+use support::{Proc, capture_stderr, dray, eventually, free_port, worker};
 
 /// A limit that only catches hangs.
 const HANG_SECS: f64 = 300.0;
@@ -34,17 +34,6 @@ fn coordinator(dir: &Path, state: &Path, port: u16) -> (Proc, String, support::C
             state.as_os_str(),
         ],
     )
-}
-
-fn worker(addr: &str) -> Proc {
-    let mut cmd = dray();
-    cmd.args(["worker", "--coordinator", &format!("http://{addr}")])
-        .args(["--listen", "127.0.0.1:0", "--threads", "1"])
-        .env("NO_COLOR", "1")
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::null());
-    Proc::spawn(cmd)
 }
 
 /// A `dray submit` running in the background; its stderr carries progress and the id.

@@ -43,6 +43,20 @@ fn view() -> Vec<&'static str> {
         .collect()
 }
 
+/// The image of `dray render SCENE FLAGS --time TIME --workers 0`: one process, the
+/// reference every frame on a cluster must equal.
+fn render_time(dir: &Path, tag: &str, scene: &Path, flags: &[&str], time: &str) -> Vec<u8> {
+    let scene = scene.to_str().expect("utf-8");
+    let run = common::render(
+        dir,
+        tag,
+        scene,
+        &[flags, &["--time", time, "--workers", "0"]].concat(),
+    );
+    assert!(run.ok, "dray render {scene} --time {time}: {}", run.stderr);
+    std::fs::read(run.png.expect("png")).expect("read the reference png")
+}
+
 #[test]
 fn a_frame_range_on_a_cluster_is_a_job_group_each_frame_the_bits_of_render_time() {
     let dir = common::tmp("frames-cluster");
@@ -75,18 +89,7 @@ fn a_frame_range_on_a_cluster_is_a_job_group_each_frame_the_bits_of_render_time(
 
     let mut frames = Vec::new();
     for (frame, time) in [(1u32, "0.25"), (2, "0.5"), (3, "0.75")] {
-        let reference = common::render(
-            &dir,
-            &format!("render-{frame}"),
-            scene.to_str().expect("utf-8"),
-            &[&view()[..], &["--time", time, "--workers", "0"]].concat(),
-        );
-        assert!(
-            reference.ok,
-            "dray render --time {time}: {}",
-            reference.stderr
-        );
-        let want = std::fs::read(reference.png.expect("png")).expect("read");
+        let want = render_time(&dir, &format!("render-{frame}"), &scene, &view(), time);
         let got = std::fs::read(dir.join(format!("group.{frame:02}.png")))
             .unwrap_or_else(|e| panic!("frame {frame}'s image: {e}; submit said {err}"));
         assert!(
@@ -188,20 +191,235 @@ fn render_frames_writes_each_frame_under_its_name() {
         String::from_utf8_lossy(&out.stderr)
     );
     for (frame, time) in [(0, "0"), (2, "0.5"), (4, "1")] {
-        let reference = common::render(
-            &dir,
-            &format!("t{frame}"),
-            scene.to_str().expect("utf-8"),
-            &[&view()[..], &["--time", time, "--workers", "0"]].concat(),
-        );
-        assert!(reference.ok, "{}", reference.stderr);
+        let want = render_time(&dir, &format!("t{frame}"), &scene, &view(), time);
         let got = std::fs::read(dir.join(format!("f.{frame:04}.png")))
             .unwrap_or_else(|e| panic!("frame {frame}: {e}"));
         assert!(
-            got == std::fs::read(reference.png.expect("png")).expect("read"),
+            got == want,
             "frame {frame} differs from dray render --time {time}"
         );
     }
     assert!(!dir.join("f.0001.png").exists(), "step 2 skips frame 1");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A limit that only catches hangs.
+const HANG_SECS: f64 = 300.0;
+
+/// Frames long enough to lose a worker in the middle of a group: domains spread over
+/// every worker (the domain schedule), so the frame running at the kill loses some.
+fn heavy_view() -> Vec<&'static str> {
+    "--width 96 --height 72 --spp 8 --look-from 0,1.5,4 --look-at 0,0.4,0 --sun 30,60 \
+     --animation slide --domains 6 --schedule domain"
+        .split_whitespace()
+        .collect()
+}
+
+fn text(log: &std::sync::Arc<std::sync::Mutex<String>>) -> String {
+    log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+}
+
+fn succeeded(addr: &str, group: &str) -> usize {
+    support::list_group(addr, group).map_or(0, |jobs| {
+        jobs.iter()
+            .filter(|j| {
+                j.progress.as_ref().map(|p| p.state)
+                    == Some(dray_proto::v1::JobState::Succeeded as i32)
+            })
+            .count()
+    })
+}
+
+#[test]
+fn a_group_of_24_frames_survives_a_killed_worker_each_frame_the_bits_of_render_time() {
+    use std::process::Stdio;
+    let dir = common::tmp("frames-kill");
+    let scene = write_sliding(&dir);
+    // A coordinator that declares a silent worker lost after 2 s, and three workers.
+    let (_coordinator, addr, log) = support::logged_coordinator(&dir, 0, &[]);
+    let workers: Vec<support::Proc> = (0..3).map(|_| support::worker(&addr)).collect();
+    let registered = || text(&log).matches("worker registered").count();
+    assert!(
+        support::eventually(60.0, || registered() >= 3),
+        "the workers did not register: {}",
+        text(&log)
+    );
+
+    // Frames 0..23 at 24 fps: the slide's first second.
+    let (frames, fps) = (24u32, 24.0f64);
+    let mut cmd = support::dray();
+    cmd.args(["submit", "slide.gltf", "--coordinator", &addr])
+        .args(heavy_view())
+        .args(["--frames", "0..23", "--fps", "24", "--output"])
+        .arg(dir.join("kill.##.png"))
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped());
+    let mut submit = support::Proc::spawn(cmd);
+    let out = support::capture_stderr(&mut submit.child);
+    let group = || {
+        text(&out)
+            .lines()
+            .find_map(|l| l.strip_prefix("dray submit: job group "))
+            .and_then(|l| l.split(' ').next())
+            .map(str::to_string)
+    };
+    assert!(
+        support::eventually(HANG_SECS, || group().is_some()),
+        "no group in dray submit's output: {}",
+        text(&out)
+    );
+    let group = group().expect("the group id");
+
+    // Once a frame is done, and while frames remain, worker 1 is killed.
+    assert!(
+        support::eventually(HANG_SECS, || succeeded(&addr, &group) > 0),
+        "no frame finished: {}\n{}",
+        text(&out),
+        text(&log)
+    );
+    let lost_before = text(&log).matches("worker lost").count();
+    let done_at_kill = succeeded(&addr, &group);
+    workers[1].signal(libc::SIGKILL);
+    assert!(
+        done_at_kill < frames as usize,
+        "every frame ended before the kill ({done_at_kill} of {frames}): nothing was lost"
+    );
+    let status = submit.wait_timeout(HANG_SECS);
+    let said = out.after(status.is_some());
+    let status = status.unwrap_or_else(|| panic!("HANG: dray submit --frames: {said}"));
+    assert!(
+        status.success(),
+        "the group did not survive a killed worker: {said}\n{}",
+        text(&log)
+    );
+    assert!(
+        support::eventually(HANG_SECS, || text(&log).matches("worker lost").count()
+            > lost_before),
+        "the coordinator never declared the killed worker lost:\n{}",
+        text(&log)
+    );
+    assert_eq!(
+        succeeded(&addr, &group),
+        frames as usize,
+        "ListJobs of group {group}"
+    );
+    let retried: u32 = support::list_group(&addr, &group)
+        .unwrap_or_default()
+        .iter()
+        .filter_map(|j| j.stats.as_ref().map(|s| s.tiles_retried))
+        .sum();
+    eprintln!(
+        "frames-kill: {done_at_kill} of {frames} frames were done at the kill; tiles retried \
+         over the group: {retried}"
+    );
+
+    // Each frame: the bits of `dray render --time frame/fps` in one process.
+    for frame in 0..frames {
+        let time = (f64::from(frame) / fps).to_string();
+        let want = render_time(&dir, &format!("ref-{frame}"), &scene, &heavy_view(), &time);
+        let got = std::fs::read(dir.join(format!("kill.{frame:02}.png")))
+            .unwrap_or_else(|e| panic!("frame {frame}'s image: {e}; submit said {said}"));
+        assert!(
+            got == want,
+            "frame {frame}: the image differs from dray render --time {time} after a \
+             worker was killed"
+        );
+    }
+    drop(workers);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn an_unknown_animation_is_refused_at_submit_and_a_grid_poses_its_file() {
+    use dray_proto::v1::{JobSpec, SubmitJobRequest};
+    let dir = common::tmp("frames-refuse");
+    let scene = write_sliding(&dir);
+    let cluster = support::WorkerCluster::start(2, 4, &dir, &[]);
+
+    // SubmitJob answers INVALID_ARGUMENT naming the field and what the file has, for a
+    // lone job and for a group, and accepts nothing.
+    let base = JobSpec {
+        scene: "slide.gltf".into(),
+        width: 16,
+        height: 16,
+        spp: 1,
+        animation: "walk".into(),
+        ..Default::default()
+    };
+    for spec in [
+        JobSpec {
+            time: Some(0.5),
+            ..base.clone()
+        },
+        JobSpec {
+            frames: "0..3".into(),
+            fps: Some(4.0),
+            ..base.clone()
+        },
+        JobSpec {
+            scene: "grid:slide.gltf:2x1x1".into(),
+            time: Some(0.5),
+            ..base.clone()
+        },
+    ] {
+        let status = support::with_client(&cluster.addr, |mut c| async move {
+            c.submit_job(SubmitJobRequest { spec: Some(spec) })
+                .await
+                .err()
+        })
+        .expect("SubmitJob was accepted");
+        assert_eq!(status.code(), tonic::Code::InvalidArgument, "{status:?}");
+        assert_eq!(
+            status.message(),
+            "animation: \"slide.gltf\": no animation \"walk\" (the file has \"slide\")"
+        );
+    }
+    let listed = support::with_client(&cluster.addr, |mut c| async move {
+        Some(
+            c.list_jobs(dray_proto::v1::ListJobsRequest::default())
+                .await
+                .ok()?
+                .into_inner()
+                .jobs,
+        )
+    })
+    .expect("ListJobs");
+    assert!(listed.is_empty(), "a refused job was accepted: {listed:?}");
+
+    // A time on a grid of the file poses every copy: the cluster's image is the bits
+    // of `dray render --time`, and another time gives another image.
+    let grid = PathBuf::from(format!("grid:{}:2x1x1", scene.to_str().expect("utf-8")));
+    let png = dir.join("grid.png");
+    let mut cmd = support::dray();
+    cmd.args([
+        "submit",
+        "grid:slide.gltf:2x1x1",
+        "--coordinator",
+        &cluster.addr,
+    ])
+    .args(view())
+    .args(["--time", "0.25", "--output"])
+    .arg(&png);
+    support::run_to_success(cmd, "dray submit grid --time", HANG_SECS);
+    let mut images = Vec::new();
+    for time in ["0.25", "0.75"] {
+        images.push(render_time(
+            &dir,
+            &format!("grid-{time}"),
+            &grid,
+            &view(),
+            time,
+        ));
+    }
+    assert!(
+        std::fs::read(&png).expect("the grid's image") == images[0],
+        "the cluster's grid at 0.25 s differs from dray render --time 0.25"
+    );
+    assert!(
+        images[0] != images[1],
+        "the grid's copies did not move between 0.25 s and 0.75 s"
+    );
+    drop(cluster);
     let _ = std::fs::remove_dir_all(&dir);
 }

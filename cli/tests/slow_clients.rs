@@ -14,24 +14,13 @@ use std::process::Stdio;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use support::{Proc, capture_stderr, dray, eventually};
+use support::{Proc, capture_stderr, dray, eventually, worker};
 
 const SUBMIT_JOB: &str = "/dray.v1.RenderService/SubmitJob";
 const MAX_CALLS: usize = 8;
 
 fn text(log: &Arc<Mutex<String>>) -> String {
     log.lock().unwrap_or_else(|p| p.into_inner()).clone()
-}
-
-fn worker(addr: &str) -> Proc {
-    let mut cmd = dray();
-    cmd.args(["worker", "--coordinator", &format!("http://{addr}")])
-        .args(["--listen", "127.0.0.1:0", "--threads", "1"])
-        .env("NO_COLOR", "1")
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::null());
-    Proc::spawn(cmd)
 }
 
 /// Open `n` SubmitJob calls that send their headers and nothing else, on one HTTP/2

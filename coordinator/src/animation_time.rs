@@ -44,6 +44,36 @@ pub fn check(spec: &JobSpec) -> Result<Option<AnimationTime>, Status> {
     }
 }
 
+/// Refuse, before SubmitJob answers, an animation the scene's file does not have: its
+/// names are read from the file's JSON alone (`dray_scene::gltf::animation_names`), with
+/// the loader's own rule for which one a name or index chooses, so the message is the
+/// one the load would give, but the job is never accepted. `scene_spec` is the resolved
+/// spec (a path under the scene root, or a `grid:` of one), `given` the client's. A
+/// scene with no file (procedural) or a file that is not glTF is left to the load.
+pub fn check_named(
+    time: Option<&AnimationTime>,
+    scene_spec: &str,
+    given: &str,
+) -> Result<(), Status> {
+    let Some(want) = time.and_then(|t| t.animation.as_deref()) else {
+        return Ok(());
+    };
+    let Some(file) = dray_scene::animated_file(scene_spec) else {
+        return Err(Status::invalid_argument(format!(
+            "animation: {} is named, but {} is a procedural scene, which has no animations",
+            bounded(want),
+            bounded(given)
+        )));
+    };
+    let Some(names) = dray_scene::gltf::animation_names(std::path::Path::new(file)) else {
+        return Ok(());
+    };
+    let shown = dray_scene::animated_file(given).unwrap_or(given);
+    dray_scene::animation::choose(&names, want)
+        .map(|_| ())
+        .map_err(|m| Status::invalid_argument(format!("animation: {}: {m}", bounded(shown))))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

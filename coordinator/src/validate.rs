@@ -329,6 +329,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
     }
     let time = crate::animation_time::check(&spec)?;
     let scene_spec = resolve_scene(&spec.scene, scene_root)?;
+    crate::animation_time::check_named(time.as_ref(), &scene_spec, &spec.scene)?;
     let package = Some(PathBuf::from(&scene_spec)).filter(|p| p.is_dir());
     if package.is_some() && time.is_some() {
         return Err(bad(

@@ -25,6 +25,36 @@ pub struct AnimationTime {
     pub animation: Option<String>,
 }
 
+/// The index of the animation `want` names among a file's animations (`names`, each
+/// `None` when unnamed): the first with that name, else `want` read as an index. The
+/// error lists what the file has, so a typo can be fixed from the message alone. One
+/// rule for the loader and for SubmitJob's check of the JSON alone
+/// ([`crate::gltf::animation_names`]), so they never disagree.
+pub fn choose(names: &[Option<String>], want: &str) -> Result<usize, String> {
+    if names.is_empty() {
+        return Err("has no animations to choose from".into());
+    }
+    names
+        .iter()
+        .position(|n| n.as_deref() == Some(want))
+        .or_else(|| want.parse::<usize>().ok().filter(|&i| i < names.len()))
+        .ok_or_else(|| format!("no animation {want:?} (the file has {})", listed(names)))
+}
+
+/// The animations of a file as a message lists them: names quoted, unnamed ones by index.
+pub fn listed(names: &[Option<String>]) -> String {
+    let label = |(i, n): (usize, &Option<String>)| match n {
+        Some(n) => format!("{n:?}"),
+        None => format!("#{i}"),
+    };
+    names
+        .iter()
+        .enumerate()
+        .map(label)
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
 /// How a sampler interpolates between keys.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Interpolation {

@@ -104,9 +104,34 @@ pub fn load_gltf_at(path: &Path, time: Option<&AnimationTime>) -> Result<Scene> 
 /// bomb before anything is decoded. 0 for a file that is not glTF or cannot be read: the
 /// load itself reports those.
 pub fn declared_expansion(path: &Path) -> u64 {
+    json_only(path)
+        .map(|root| crate::meshopt::declared_decoded_bytes(&root))
+        .unwrap_or(0)
+}
+
+/// The names of the animations of the glTF file at `path` (`None` for an unnamed one), in
+/// file order, from its JSON alone (a GLB's first chunk), so SubmitJob can refuse an
+/// animation the file lacks before it answers, without loading the scene. `None` for a
+/// file that is not glTF or cannot be read: the load itself reports those.
+pub fn animation_names(path: &Path) -> Option<Vec<Option<String>>> {
+    let root = json_only(path)?;
+    let Some(list) = root.get("animations") else {
+        return Some(Vec::new());
+    };
+    let list = list.as_array()?;
+    Some(
+        list.iter()
+            .map(|a| a.get("name").and_then(|n| n.as_str()).map(str::to_string))
+            .collect(),
+    )
+}
+
+/// The JSON of the glTF file at `path` (a GLB's first chunk), parsed but not checked;
+/// `None` when it cannot be read or parsed.
+fn json_only(path: &Path) -> Option<serde_json::Value> {
     use std::io::Read;
     let Ok(opened) = crate::reference::open_scene_file(path) else {
-        return 0;
+        return None;
     };
     let mut file = opened.file;
     let mut head = [0u8; 20];
@@ -119,19 +144,14 @@ pub fn declared_expansion(path: &Path) -> u64 {
                 .read_to_end(&mut json)
                 .is_err()
             {
-                return 0;
+                return None;
             }
             json
         }
-        _ => match crate::reference::read_scene_file(path) {
-            Ok(b) => b,
-            Err(_) => return 0,
-        },
+        _ => crate::reference::read_scene_file(path).ok()?,
     };
     let text = json.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(&json);
-    serde_json::from_slice::<serde_json::Value>(text)
-        .map(|root| crate::meshopt::declared_decoded_bytes(&root))
-        .unwrap_or(0)
+    serde_json::from_slice::<serde_json::Value>(text).ok()
 }
 
 fn format_error(path: &Path, message: impl Into<String>) -> SceneError {
@@ -1055,17 +1075,13 @@ impl Loader<'_> {
         };
         let chosen = match time.animation.as_deref() {
             None => &animations[0],
-            Some(want) => animations
-                .iter()
-                .find(|a| a.name() == Some(want))
-                .or_else(|| want.parse::<usize>().ok().and_then(|i| animations.get(i)))
-                .ok_or_else(|| {
-                    let names: Vec<String> = animations.iter().map(label).collect();
-                    self.error(format!(
-                        "no animation {want:?} (the file has {})",
-                        names.join(", ")
-                    ))
-                })?,
+            Some(want) => {
+                let names: Vec<Option<String>> = animations
+                    .iter()
+                    .map(|a| a.name().map(str::to_string))
+                    .collect();
+                &animations[crate::animation::choose(&names, want).map_err(|m| self.error(m))?]
+            }
         };
         let name = label(chosen);
         let mut channels = Vec::new();

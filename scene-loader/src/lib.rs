@@ -25,4 +25,4 @@ pub mod validate;
 
 pub use cancel::load_cancellable;
 pub use error::{Result, SceneError};
-pub use load::{load, load_at};
+pub use load::{animated_file, load, load_at};

@@ -138,6 +138,70 @@ fn an_animation_is_chosen_by_name_or_index() {
 }
 
 #[test]
+fn the_json_alone_names_the_animations_and_chooses_as_the_loader_does() {
+    let dir = test_dir("anim-names");
+    let path = animated_file(&dir);
+    let names = dray_scene::gltf::animation_names(&path).expect("a glTF file");
+    assert_eq!(
+        names,
+        [
+            Some("move".into()),
+            Some("grow".into()),
+            Some("lift".into())
+        ]
+    );
+    use dray_scene::animation::choose;
+    assert_eq!(choose(&names, "grow"), Ok(1));
+    assert_eq!(choose(&names, "2"), Ok(2));
+    let err = choose(&names, "walk").unwrap_err();
+    let loaded = load_gltf_at(&path, Some(&named(0.0, "walk")))
+        .unwrap_err()
+        .to_string();
+    assert!(loaded.ends_with(&err), "{loaded} vs {err}");
+    assert_eq!(
+        choose(&[None, None], "3").unwrap_err(),
+        "no animation \"3\" (the file has #0, #1)"
+    );
+    assert_eq!(
+        choose(&[], "walk").unwrap_err(),
+        "has no animations to choose from"
+    );
+    // Not a glTF file: left to the load.
+    assert_eq!(
+        dray_scene::gltf::animation_names(&dir.join("missing.gltf")),
+        None
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_grid_of_a_file_replicates_the_file_posed_at_the_time() {
+    let dir = test_dir("anim-grid");
+    let path = animated_file(&dir);
+    let spec = format!("grid:{}:2x1x1", path.display());
+    // Halfway through "move" (t = 2 s) the triangle is turned 45 degrees: each copy of
+    // the grid has the posed triangle's shape, not the rest pose's.
+    let posed = load_gltf_at(&path, Some(&at(2.0))).unwrap();
+    let grid = dray_scene::load_at(&spec, Some(&at(2.0))).unwrap();
+    let rest = dray_scene::load_at(&spec, None).unwrap();
+    let p = triangle(&posed.mesh.positions);
+    let shape = |t: [Vec3; 3]| [Vec3::ZERO, t[1] - t[0], t[2] - t[0]];
+    assert_eq!(grid.mesh.positions.len(), 6, "two copies of one triangle");
+    for copy in grid.mesh.positions.chunks(3) {
+        same(shape(triangle(copy)), shape(p));
+    }
+    same(
+        shape(triangle(&rest.mesh.positions[..3])),
+        [Vec3::ZERO, Vec3::X, Vec3::Y],
+    );
+    assert!(
+        grid.mesh.positions != rest.mesh.positions,
+        "the time changed nothing in the grid"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn morph_weights_follow_a_cubic_spline() {
     let dir = test_dir("anim-lift");
     let path = animated_file(&dir);

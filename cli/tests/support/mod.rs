@@ -61,6 +61,19 @@ impl Drop for Proc {
     }
 }
 
+/// A `dray worker` of the coordinator at `addr` (host:port), one tracer thread, any
+/// port, its output dropped.
+pub fn worker(addr: &str) -> Proc {
+    let mut cmd = dray();
+    cmd.args(["worker", "--coordinator", &format!("http://{addr}")])
+        .args(["--listen", "127.0.0.1:0", "--threads", "1"])
+        .env("NO_COLOR", "1")
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null());
+    Proc::spawn(cmd)
+}
+
 /// A `dray coordinator` on a free port (port 0; the address is read from its first line).
 pub struct Coordinator {
     pub proc: Proc,
