@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Domain loads, evictions and job time of progressive passes under a memory budget
-# (issue 38, docs/benchmarks.md "Passes under a memory budget"): one 4-worker
+# (issue 38, docs/benchmarks.md "Progressive passes"): one 4-worker
 # `dray cluster --memory-budget 80000000`, then `dray submit` of the same job with each
 # schedule and pass cut, RUNS times each, one line per job.
 #

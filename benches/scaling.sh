@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Strong scaling (issue 40, docs/benchmarks.md "Strong scaling"): the same job on a
+# Strong scaling (issue 40, docs/benchmarks.md "Where data lives: auto, and strong
+# scaling"): the same job on a
 # `dray cluster --threads 1` of 1, 2, 3 workers, against `dray render --threads 1` in one
 # process, on a scene that fits every worker's budget (auto: replicated) and on one that
 # does not (auto: dynamic over owned domains). RUNS jobs per cluster; the median of each

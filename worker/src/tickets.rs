@@ -27,8 +27,9 @@ pub const MAX_TICKETS: usize = 8;
 ///
 /// Why inline: a ray's set is copied to each of its children (72 bytes), which costs less
 /// than what a shared `Arc<[u64]>` did: an allocation for every ray that gained a ticket
-/// or arrived with one, and an atomic count for every child (docs/benchmarks.md, "Lean
-/// tickets"). It reads as a slice of tickets (`iter`, `len`, `to_vec`, ...).
+/// or arrived with one, and an atomic count for every child
+/// (docs/history/2026-11-26-lean-tickets.md). It reads as a slice of tickets (`iter`, `len`,
+/// `to_vec`, ...).
 #[derive(Clone, PartialEq, Eq, Hash)]
 pub struct TicketSet {
     tickets: [u64; MAX_TICKETS],

@@ -3,8 +3,9 @@
 //! job is in is complete, and which tiles the coordinator then deals.
 //!
 //! With a barrier per pass, a job under a memory budget walks every domain once per pass:
-//! doubling passes cost 2.3-2.6x the domain loads of one pass (docs/benchmarks.md "Passes
-//! under a memory budget"). Tracing ahead lets the passes share one walk. The
+//! doubling passes cost 2.3-2.6x the domain loads of one pass
+//! (docs/history/2026-11-29-passes-under-a-budget.md). Tracing ahead lets the passes share
+//! one walk. The
 //! coordinator's side stays what it was (one pass of a tile counted at a time, pass
 //! images, retries, the job store); what changes is the dealing: a worker dealt a tile in
 //! this attempt holds it for every later pass, so the tile is not dealt again until the

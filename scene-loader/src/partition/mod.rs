@@ -126,7 +126,8 @@ pub trait TriangleSource {
     /// writer then spills 4-byte ids in pass 2 instead of whole triangles (152 bytes or
     /// more), and makes each domain's triangles again while compacting it: the spill is
     /// what bounds the disk a package needs while it is written, and whole triangles made
-    /// it about three times the finished package (docs/benchmarks.md, "`dray partition`
+    /// it about three times the finished package
+    /// (docs/history/2026-11-22-distributed-runtime.md, "`dray partition`
     /// of 104 million triangles").
     fn lookup(&self) -> Option<&dyn TriangleLookup> {
         None
