@@ -540,7 +540,8 @@ async fn bad_requests_get_clean_errors_and_the_server_stays_up() {
         Box::new(|l| {
             l.records.pop();
         }),
-        Box::new(|l| l.records[62] = 99),
+        // Kind 7 in the first record's header (bits 0-2; rays.proto: 6 and 7 reject).
+        Box::new(|l| l.records[0] |= 0b111),
         Box::new(|l| l.records[8..12].copy_from_slice(&f32::NAN.to_le_bytes())),
         Box::new(|l| {
             l.count = u32::MAX;

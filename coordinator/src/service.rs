@@ -298,7 +298,11 @@ impl Coordinator {
     /// procedural scene may take minutes to load: the job is accepted PREPARING and its
     /// scene is loaded off the request path; an error then fails the job (GetJob and
     /// WatchJob say why), and CancelJob ends it at once without waiting for the load.
-    pub(crate) async fn submit(&self, spec: JobSpec, loaded: Option<Scene>) -> Result<String, Status> {
+    pub(crate) async fn submit(
+        &self,
+        spec: JobSpec,
+        loaded: Option<Scene>,
+    ) -> Result<String, Status> {
         self.submit_as(spec, loaded, None).await
     }
 

@@ -60,7 +60,11 @@ fn descriptor_set_has_the_services() {
             "CancelJob",
             "GetImage",
             "WatchImage",
-            "ListWorkers"
+            "ListWorkers",
+            "RetryJob",
+            "RequeueJob",
+            "PauseJob",
+            "ResumeJob",
         ]
     );
     let streaming: BTreeMap<&str, (bool, bool)> =
