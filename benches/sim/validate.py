@@ -1,0 +1,91 @@
+#!/usr/bin/env python3
+"""Validate benches/sim/replay.py against real runs on this machine (docs/caches.md
+"Simulation at scale: validation").
+
+For each worker count N: ROUNDS renders of one job with `dray render --workers N
+--trace-out`, measured by the job's wall time (the trace's `job` line); the trace of the
+first round is replayed on one host of this machine's cores (`--one-host`) and its
+prediction compared with the median of the other rounds (so the trace replayed is not
+the run it is judged against). Then the trace recorded at the largest N is replayed at
+every other N (domains re-dealt), against those N's medians.
+
+    benches/sim/run.sh validate.py [--workers 2,4,8] [--rounds 5] [-- render flags]
+
+Prints a Markdown table: N, the measured median (and the spread of the rounds), the
+replay of its own trace, of the largest N's trace, and the errors.
+"""
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent.parent
+DEFAULT_JOB = ["cornell:glass", "--width", "192", "--height", "192", "--spp", "4",
+               "--integrator", "path", "--domains", "8", "--schedule", "domain"]
+
+
+def dray():
+    b = os.environ.get("DRAY_BIN")
+    return b or str(REPO / "target" / "release" / "dray")
+
+
+def record(n, job, out):
+    subprocess.run([dray(), "render", *job, "-q", "--workers", str(n), "--output", str(out.with_suffix(".png")),
+                    "--trace-out", str(out)], check=True)
+    with open(out) as f:
+        head = json.loads(f.readline())
+    return head["wall_ns"] / 1e9
+
+
+def replay(trace, *args):
+    r = subprocess.run([sys.executable, str(HERE / "replay.py"), str(trace), "--json", "--one-host", *args],
+                       check=True, capture_output=True, text=True)
+    return json.loads(r.stdout)
+
+
+def main():
+    ap = argparse.ArgumentParser(prog="benches/sim/validate.py")
+    ap.add_argument("--workers", default="2,4,8")
+    ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("job", nargs="*", help="dray render's scene and flags (default: %s)" % " ".join(DEFAULT_JOB))
+    a = ap.parse_args()
+    job = a.job or DEFAULT_JOB
+    ns = [int(x) for x in a.workers.split(",")]
+    if a.rounds < 2:
+        raise SystemExit("--rounds: at least 2 (one to replay, the others to judge it by)")
+    work = Path(tempfile.mkdtemp(prefix="dray-validate-"))
+    walls, traces = {}, {}
+    # Rounds interleaved across N, so that a change in the machine's load meanwhile
+    # touches every N alike.
+    for r in range(a.rounds):
+        for n in ns:
+            t = work / f"n{n}-r{r}.jsonl"
+            walls.setdefault(n, []).append(record(n, job, t))
+            traces.setdefault(n, t)
+    big = max(ns)
+    rows = []
+    for n in ns:
+        judged = walls[n][1:]
+        med = statistics.median(judged)
+        own = replay(traces[n])
+        cross = replay(traces[big], "--nodes", str(n)) if n != big else own
+        rows.append((n, med, min(judged), max(judged), own["predicted_s"], own["makespan_s"], own["fixed_s"],
+                     cross["predicted_s"]))
+    print(f"job: dray render {' '.join(job)} --workers N; {a.rounds} rounds; machine cores: {os.cpu_count()}")
+    print()
+    print("| workers | measured median (min-max), s | replay of its own trace, s (simulated + fixed) | error | "
+          f"replay of the {big}-worker trace, s | error |")
+    print("|---|---|---|---|---|---|")
+    for n, med, lo, hi, own, mk, fx, cross in rows:
+        print(f"| {n} | {med:.3f} ({lo:.3f}-{hi:.3f}) | {own:.3f} ({mk:.3f} + {fx:.3f}) | {100 * (own - med) / med:+.0f}% | "
+              f"{cross:.3f} | {100 * (cross - med) / med:+.0f}% |")
+
+
+if __name__ == "__main__":
+    main()
