@@ -18,8 +18,8 @@ The model, one SimGrid actor per tracing thread of each node (a node stands for 
   dependencies counted in rays, as the worker's queues merge batches); camera steps
   need nothing. Among ready steps a node takes the domain with the most rays waiting
   (the worker's fullest queue), camera steps when none is ready;
-- a step's rays out become messages of their bytes to the node that owns the
-  destination domain, over the platform's links (SimGrid's TCP model, LV08); rays for a
+- a step's rays out become one message per destination node (the owner of their
+  domains: a worker's per-peer outbox), of their bytes, over the platform's links (SimGrid's TCP model, LV08); rays for a
   domain the node owns arrive at once;
 - a domain's first step on a node loads it first: its bytes from a file-system host
   (`--fs-bandwidth`; reads are free without it, as for the in-memory packages of the
@@ -236,9 +236,8 @@ def simulate(trace, a):
             n.free.append(k)
         else:
             n.by_domain[s["domain"]].append(k)
-        for o in s["out"]:
-            if plan.owner[o["domain"]] != plan.step_node[k]:
-                ns[plan.owner[o["domain"]]].expected += 1
+        for dest in {plan.owner[o["domain"]] for o in s["out"]} - {plan.step_node[k]}:
+            ns[dest].expected += 1
     incoming = defaultdict(int)
     for s in trace.steps:
         for o in s["out"]:
@@ -288,16 +287,21 @@ def simulate(trace, a):
         n.resident.add(d)
 
     def deliver(n, s):
+        # One message per destination node, as a worker's per-peer outbox sends them.
+        batches = defaultdict(list)
         for o in s["out"]:
             dest = ns[plan.owner[o["domain"]]]
             if dest is n:
                 n.arrived[o["domain"]] += o["rays"]
             else:
-                result["messages"] += 1
-                result["bytes_sent"] += o["bytes"]
-                result["rays_sent"] += o["rays"]
-                c = Mailbox.by_name(f"n{dest.i}").put_init((o["domain"], o["rays"]), max(1, o["bytes"]))
-                c.detach()
+                batches[dest.i].append(o)
+        for i, os_ in batches.items():
+            size = sum(o["bytes"] for o in os_)
+            result["messages"] += 1
+            result["bytes_sent"] += size
+            result["rays_sent"] += sum(o["rays"] for o in os_)
+            c = Mailbox.by_name(f"n{i}").put_init([(o["domain"], o["rays"]) for o in os_], max(1, size))
+            c.detach()
         n.wake()
 
     def executor(n):
@@ -336,9 +340,9 @@ def simulate(trace, a):
     def receiver(n):
         box = Mailbox.by_name(f"n{n.i}")
         while n.received < n.expected:
-            d, rays = box.get()
+            for d, rays in box.get():
+                n.arrived[d] += rays
             n.received += 1
-            n.arrived[d] += rays
             n.wake()
 
     for n in ns:

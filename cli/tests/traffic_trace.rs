@@ -7,7 +7,8 @@
 //!   positive and finite time, and a slower link giving a longer time. SimGrid is
 //!   fetched by `benches/sim/setup.sh`; when it cannot be, the test says so and fails
 //!   under `CI=true` (it is skipped, loudly, elsewhere);
-//! - bad uses are refused, naming the flag.
+//! - bad uses are refused, naming the flag (`--trace-out` without workers, a
+//!   `dray worker --trace-dir` that is no directory).
 
 mod common;
 mod support;
@@ -236,4 +237,24 @@ fn trace_out_without_workers_is_refused_naming_the_flag() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("--trace-out"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_worker_trace_dir_that_is_no_directory_is_refused_naming_the_flag() {
+    let out = dray()
+        .args([
+            "worker",
+            "--coordinator",
+            "http://127.0.0.1:1",
+            "--trace-dir",
+            "/nonexistent/dray-traces",
+        ])
+        .output()
+        .expect("dray");
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("--trace-dir /nonexistent/dray-traces: not a directory"),
+        "{err}"
+    );
 }
