@@ -246,6 +246,8 @@ fn a_worker_trace_dir_that_is_no_directory_is_refused_naming_the_flag() {
             "worker",
             "--coordinator",
             "http://127.0.0.1:1",
+            "--listen",
+            "127.0.0.1:0",
             "--trace-dir",
             "/nonexistent/dray-traces",
         ])
