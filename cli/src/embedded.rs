@@ -82,6 +82,7 @@ fn embedded_spec(a: &RenderArgs, workers: usize) -> Result<JobSpec> {
     if a.job.passes.is_none() && a.job.noise.noise_threshold.is_none() {
         spec.passes = "one".to_string();
     }
+    spec.trace = a.trace_out.is_some();
     Ok(spec)
 }
 
@@ -102,6 +103,8 @@ pub struct ActorsShape {
     load_delay_ms: u64,
     /// A cache host beside each worker.
     cache_hosts: bool,
+    /// Where the workers write traffic traces (`--trace-out`).
+    trace_dir: Option<std::path::PathBuf>,
 }
 
 impl ActorsShape {
@@ -114,6 +117,7 @@ impl ActorsShape {
             memory_budget: a.memory_budget,
             load_delay_ms: a.load_delay_ms,
             cache_hosts,
+            trace_dir: None,
         }
     }
 }
@@ -227,6 +231,7 @@ impl Actors {
                     // The workers read the coordinator's in-memory packages: nothing to
                     // fetch.
                     package_fetch: dray_worker::package_fetch::FetchMode::Never,
+                    trace_dir: shape.trace_dir.clone(),
                     ..dray_worker::WorkerConfig::default()
                 };
                 nodes.push(tokio::spawn(dray_worker::run(
@@ -362,8 +367,32 @@ pub fn render_on_actors(
         let spec = embedded_spec(a, workers)?;
         spec.ray_cache.is_some() || spec.phm.is_some()
     };
-    let actors = Actors::start(ActorsShape::of(a, workers, caches), false)?;
+    let trace = a
+        .trace_out
+        .as_ref()
+        .map(|out| anyhow::Ok((out, crate::trace_out::TraceDir::new()?)))
+        .transpose()?;
+    let mut shape = ActorsShape::of(a, workers, caches);
+    shape.trace_dir = trace.as_ref().map(|(_, d)| d.path());
+    let threads = shape.threads.div_ceil(workers).max(1);
+    let actors = Actors::start(shape, false)?;
     let result = actors.render(a, scene, progress);
+    // Stopped first: every worker's trace is whole once its jobs are gone.
     actors.stop();
-    result
+    let result = result?;
+    if let Some((out, dir)) = trace {
+        let spec = embedded_spec(a, workers)?;
+        let facts = crate::trace_out::JobFacts {
+            wall_seconds: result.out.render_time.as_secs_f64(),
+            workers,
+            threads,
+            width: spec.width,
+            height: spec.height,
+            spp: spec.spp,
+            integrator: spec.integrator.clone(),
+            load_delay_ms: a.load_delay_ms,
+        };
+        crate::trace_out::assemble(out, &dir, &facts, &result.stats)?;
+    }
+    Ok(result)
 }

@@ -344,6 +344,8 @@ impl JobFlags {
             // in `dray render`.
             priority: 0,
             noise_threshold: self.noise.noise_threshold,
+            // `dray render --trace-out` sets it (embedded.rs).
+            trace: false,
         })
     }
 }

@@ -33,6 +33,7 @@ mod sweep;
 mod sweep_cmd;
 mod telemetry;
 mod threads;
+mod trace_out;
 mod view_flags;
 mod warm;
 mod worker_cmd;

@@ -73,6 +73,13 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = 0, value_name = "MS")]
     #[arg(help_heading = crate::help_heading::CLUSTER)]
     pub load_delay_ms: u64,
+    /// Record the job's traffic to FILE as JSON lines: every worker's traced steps
+    /// (rays in, CPU, rays out per domain, bytes), domain loads and forwards, after a
+    /// line with the job's wall time, settings and totals (docs/caches.md "The trace's
+    /// schema"), for `benches/sim/replay.py`. Needs --workers 1 or more.
+    #[arg(long, value_name = "FILE")]
+    #[arg(help_heading = crate::help_heading::CLUSTER)]
+    pub trace_out: Option<PathBuf>,
 }
 
 /// The checks clap cannot make, shared with `dray sweep` (which runs them on every
@@ -123,6 +130,12 @@ pub fn check_args(a: &RenderArgs) -> Result<IntegratorKind> {
         bail!(
             "--ray-cache needs worker actors: --workers 0 is the exact reference renderer, \
              which has no cache hosts"
+        );
+    }
+    if a.trace_out.is_some() && a.workers == 0 {
+        bail!(
+            "--trace-out records the workers' traffic: --workers 0 is the reference renderer, \
+             which has none"
         );
     }
     if a.job.phm.is_some() && a.workers == 0 {
@@ -270,6 +283,9 @@ pub fn run_one(a: &RenderArgs) -> Result<()> {
     a.job.check_aovs()?;
     if let Some(p) = &a.stats {
         check_output("--stats", p, &[])?;
+    }
+    if let Some(p) = &a.trace_out {
+        check_output("--trace-out", p, &[])?;
     }
     // The bar appears with the first progress report, once the scene is loaded.
     let bar = std::sync::OnceLock::new();
@@ -434,6 +450,9 @@ pub fn render_with(
         // The scene goes to the in-process coordinator as it is (translated), so it is
         // not loaded twice; the coordinator repeats the checks made above.
         let r = match warm {
+            Some(_) if a.trace_out.is_some() => {
+                bail!("--trace-out records one render: `dray render`, not `dray sweep`")
+            }
             Some(w) => w.actors(a)?.render(a, scene, progress)?,
             None => crate::embedded::render_on_actors(a, a.workers, scene, progress)?,
         };

@@ -53,6 +53,12 @@ pub struct SubmitArgs {
     #[arg(long, default_value_t = 0, allow_hyphen_values = true)]
     #[arg(help_heading = crate::help_heading::SUBMIT)]
     pub priority: i32,
+    /// Ask the workers to record the job's traffic (JobSpec.trace): each worker started
+    /// with `--trace-dir` writes its records there (docs/caches.md "The trace's
+    /// schema"); others record nothing. No effect on the image.
+    #[arg(long)]
+    #[arg(help_heading = crate::help_heading::SUBMIT)]
+    pub trace: bool,
     /// When the coordinator goes away while the job runs, wait this many seconds for it
     /// to come back and follow the job again (a coordinator with a state directory keeps
     /// its jobs across restarts); 0 fails at once.
@@ -187,6 +193,7 @@ pub(crate) fn job_spec(a: &SubmitArgs) -> Result<JobSpec> {
     )?;
     Ok(JobSpec {
         priority: a.priority,
+        trace: a.trace,
         ..spec
     })
 }

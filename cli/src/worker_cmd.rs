@@ -41,6 +41,11 @@ pub struct WorkerArgs {
     /// experiments.
     #[arg(long, default_value_t = 0, value_name = "MS")]
     pub load_delay_ms: u64,
+    /// Write the traffic traces of jobs that ask for one (`dray submit --trace`) into
+    /// this directory, one file per job attempt (docs/caches.md "The trace's schema").
+    /// Without it such jobs record nothing here.
+    #[arg(long, value_name = "DIR")]
+    pub trace_dir: Option<std::path::PathBuf>,
     /// Seconds to keep trying to reach the coordinator at start.
     #[arg(long, default_value_t = dray_worker::WorkerConfig::default().connect_timeout.as_secs())]
     pub connect_timeout: u64,
@@ -73,6 +78,11 @@ pub struct WorkerArgs {
 
 pub fn run(a: WorkerArgs) -> Result<()> {
     crate::threads::limit_build_threads(a.threads);
+    if let Some(d) = &a.trace_dir
+        && !d.is_dir()
+    {
+        anyhow::bail!("--trace-dir {}: not a directory", d.display());
+    }
     let (server, net) = a.member.options()?;
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -113,6 +123,7 @@ pub fn run(a: WorkerArgs) -> Result<()> {
             server,
             package_fetch: a.fetch_packages,
             package_cache: a.package_cache.clone(),
+            trace_dir: a.trace_dir.clone(),
             ..dray_worker::WorkerConfig::default()
         };
         // Ctrl-C or SIGTERM (dray cluster and Kubernetes stop workers with SIGTERM) ends

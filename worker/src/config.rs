@@ -57,6 +57,9 @@ pub struct WorkerConfig {
     /// Where fetched packages are kept; `None`: a directory of this process in the
     /// system's temp directory, removed when the worker stops.
     pub package_cache: Option<std::path::PathBuf>,
+    /// Where traffic traces of jobs that ask for one (`JobSpec.trace`) are written
+    /// ([`crate::traffic_trace`]); `None`: no trace is recorded.
+    pub trace_dir: Option<std::path::PathBuf>,
 }
 
 impl Default for WorkerConfig {
@@ -78,6 +81,7 @@ impl Default for WorkerConfig {
             server: dray_net::ServerOptions::default(),
             package_fetch: crate::package_fetch::FetchMode::Auto,
             package_cache: None,
+            trace_dir: None,
         }
     }
 }

@@ -274,8 +274,13 @@ async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
         .and_then(|s| s.phm.as_ref())
         .and_then(|p| p.merge)
         .unwrap_or(crate::map_merge::DEFAULT_MERGE_EVERY);
+    let trace = traffic_trace(shared, &setup, &me);
     let (job, mailbox) = Job::new(key, plan.tracer, plan.source, routes);
-    let job = Arc::new(job.with_span(span).with_merges_every(merge_every));
+    let job = Arc::new(
+        job.with_span(span)
+            .with_merges_every(merge_every)
+            .with_trace(trace),
+    );
     // Tracing passes ahead when the coordinator asks and the tracer tags them (see
     // `plan::tracer`).
     let ahead = (setup.passes_ahead > 0 && job.tracer.pass_tags().is_some())
@@ -290,6 +295,37 @@ async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
         tracing::info!(job = %job_id, attempt, owned, schedule = %setup.schedule, "job set up");
     }
     shared.notify();
+}
+
+/// The job's traffic trace on this worker, when its spec asks for one and the worker
+/// keeps traces. A trace that cannot be opened is a warning, not a failure: the job's
+/// image does not depend on it.
+fn traffic_trace(
+    shared: &Shared,
+    setup: &JobSetup,
+    me: &str,
+) -> Option<crate::traffic_trace::TrafficTrace> {
+    let wanted = setup.spec.as_ref().is_some_and(|s| s.trace);
+    if !wanted {
+        return None;
+    }
+    let Some(dir) = shared.trace_dir.as_deref() else {
+        tracing::warn!(job = %setup.job_id, "the job asks for a traffic trace, but this worker has no --trace-dir: none recorded");
+        return None;
+    };
+    match crate::traffic_trace::TrafficTrace::open(
+        dir,
+        &setup.job_id,
+        setup.attempt,
+        me,
+        shared.threads,
+    ) {
+        Ok(t) => Some(t),
+        Err(e) => {
+            tracing::warn!(job = %setup.job_id, "{e}");
+            None
+        }
+    }
 }
 
 /// The whole current routing table of `job_id`, from the coordinator (None when it

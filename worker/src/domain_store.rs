@@ -256,6 +256,17 @@ impl DomainStore {
         d: u32,
         source: &dyn DomainSource,
     ) -> Result<Arc<LoadedDomain>, LoadError> {
+        self.load_telling(job, d, source).map(|(domain, _)| domain)
+    }
+
+    /// [`Self::load`], and whether this call loaded the domain (false: it was resident),
+    /// for a job's traffic trace.
+    pub fn load_telling(
+        &self,
+        job: &JobKey,
+        d: u32,
+        source: &dyn DomainSource,
+    ) -> Result<(Arc<LoadedDomain>, bool), LoadError> {
         let estimate = source.estimate_bytes(d);
         // What the load holds while it runs (see load_reserve), within the budget: a
         // domain that fits only without its build transients still loads, alone.
@@ -282,7 +293,7 @@ impl DomainStore {
                 Some(Slot::Ready { domain, .. }) => {
                     let domain = domain.clone();
                     note_use(&mut g, job, d, false);
-                    return Ok(domain);
+                    return Ok((domain, false));
                 }
                 Some(Slot::Loading { .. }) => return Err(LoadError::Busy { domain: d }),
                 None => {}
@@ -334,7 +345,7 @@ impl DomainStore {
             drop(g);
             release_freed_memory();
             tracing::debug!(job = %job.id, domain = d, seconds, "domain loaded after it was let go; not kept");
-            return Ok(domain);
+            return Ok((domain, true));
         }
         // The reservation made the room; the measured size is what counts from now on.
         g.bytes += domain.bytes;
@@ -361,7 +372,7 @@ impl DomainStore {
         // The build's transients are freed now: give them back.
         release_freed_memory();
         tracing::debug!(job = %job.id, domain = d, bytes = domain.bytes, seconds, "domain loaded");
-        Ok(domain)
+        Ok((domain, true))
     }
 
     /// Evict ready domains, least recently used first, until `needed` more bytes fit.

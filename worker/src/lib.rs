@@ -40,6 +40,7 @@ pub mod setup_bounds;
 pub mod tickets;
 pub mod tracer;
 pub mod traffic;
+pub mod traffic_trace;
 pub(crate) mod work;
 
 pub use config::{Limits, NodeError, WorkerConfig};

@@ -97,6 +97,8 @@ pub(crate) struct Shared {
     pub cache_endpoint: Option<String>,
     /// Set when the worker stops: tracing threads leave.
     pub stopping: AtomicBool,
+    /// Where jobs that ask for a traffic trace write it (none: they record nothing).
+    pub trace_dir: Option<std::path::PathBuf>,
 }
 
 impl Shared {
@@ -214,6 +216,7 @@ pub async fn run(
         threads,
         cache_endpoint: config.cache_endpoint.clone(),
         stopping: AtomicBool::new(false),
+        trace_dir: config.trace_dir.clone(),
     });
     // The first registration: a refusal here is final (wrong version, bad address).
     let registration = coordinator_link::register(&shared, &endpoint).await?;

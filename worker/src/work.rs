@@ -29,6 +29,7 @@ use crate::peers::PeerMessage;
 use crate::queue::QueuedBatch;
 use crate::routing::{Peer, Routes};
 use crate::tracer::{Outbox, Residency, TileRef};
+use crate::traffic_trace::{Sent, StepRecord, thread_cpu_ns};
 
 /// Camera rays made in one tracing step.
 const CAMERA_CHUNK: u64 = 4096;
@@ -194,10 +195,7 @@ fn next_work(shared: &Shared) -> Option<Work> {
         let held = match shared.store.get(&job.key, d) {
             Some(h) => h,
             None if resident_best > 0 => continue,
-            None => match job
-                .span
-                .in_scope(|| shared.store.load(&job.key, d, job.source.as_ref()))
-            {
+            None => match load(shared, &job, d) {
                 Ok(h) => {
                     // Threads that skipped this domain's rays while it loaded (and found
                     // nothing else) are asleep: wake them to share the rays now, rather
@@ -254,10 +252,7 @@ fn camera_ready(shared: &Shared, job: &Arc<Job>) -> bool {
     if !job.routes().owns(d) || shared.store.is_resident(&job.key, d) {
         return true;
     }
-    match job
-        .span
-        .in_scope(|| shared.store.load(&job.key, d, job.source.as_ref()))
-    {
+    match load(shared, job, d) {
         Ok(_) => {
             shared.notify();
             true
@@ -270,15 +265,32 @@ fn camera_ready(shared: &Shared, job: &Arc<Job>) -> bool {
     }
 }
 
+/// Load domain `d` of `job` in the job's span; a load (not a domain found resident) goes
+/// into the job's traffic trace, if it has one.
+fn load(shared: &Shared, job: &Job, d: u32) -> Result<Arc<LoadedDomain>, LoadError> {
+    let load = || shared.store.load_telling(&job.key, d, job.source.as_ref());
+    let Some(t) = &job.trace else {
+        return job.span.in_scope(load).map(|(h, _)| h);
+    };
+    let (t0, cpu0) = (t.now_ns(), thread_cpu_ns());
+    let (h, loaded) = job.span.in_scope(load)?;
+    if loaded {
+        t.load(d, h.bytes, t0, t.now_ns(), thread_cpu_ns() - cpu0);
+    }
+    Ok(h)
+}
+
 /// Trace one piece of work and hand the results on.
 fn trace(shared: &Arc<Shared>, work: Work) {
     let mut out = Outbox::default();
+    let timing;
     let (job, result) = match work {
         Work::Rays(job, held, batch) => {
             if !job.is_active() {
                 return;
             }
             let d = held.domain;
+            timing = StepTiming::start(&job, Some(d), batch.rays.len() as u64);
             let _span = tracing::trace_span!(parent: &job.span, "batch", job = %job.key.id, domain = d, rays = batch.rays.len())
                 .entered();
             let routes = job.routes();
@@ -299,6 +311,7 @@ fn trace(shared: &Arc<Shared>, work: Work) {
             if !job.is_active() {
                 return;
             }
+            timing = StepTiming::start(&job, None, count);
             let _span =
                 tracing::trace_span!(parent: &job.span, "tile", job = %job.key.id, tile = tile.index, start).entered();
             let routes = job.routes();
@@ -321,7 +334,7 @@ fn trace(shared: &Arc<Shared>, work: Work) {
         }
     };
     match result {
-        Ok(Ok(())) => deliver(shared, &job, out),
+        Ok(Ok(())) => deliver_step(shared, &job, out, Report::default(), timing),
         Ok(Err(e)) => job.fail(format!("worker {}: {e}", shared.id())),
         Err(panic) => job.fail(format!("worker {}: {panic}", shared.id())),
     }
@@ -347,7 +360,7 @@ enum Unroutable {
 }
 
 /// Where a batch for `domain`, forwarded `forwards` times so far, goes under `routes`:
-/// the one routing decision for the rays a step sends ([`deliver`]) and for the rays
+/// the one routing decision for the rays a step sends ([`deliver_with`]) and for the rays
 /// queued here for a domain this worker no longer owns ([`forward`]). Replicas of the
 /// domain take turns by `spread` (the job's), counted only when a peer is chosen.
 fn destination(
@@ -409,6 +422,13 @@ fn forward(shared: &Arc<Shared>, job: &Arc<Job>, domain: u32, batch: QueuedBatch
         ..Report::default()
     };
     report.traffic.rays(bytes, &batch.tickets);
+    if let Some(t) = &job.trace {
+        t.forward(Sent {
+            domain,
+            rays: n,
+            bytes: report.traffic.rays,
+        });
+    }
     job.post(report);
     shared.peers.send(
         shared,
@@ -424,20 +444,68 @@ fn forward(shared: &Arc<Shared>, job: &Arc<Job>, domain: u32, batch: QueuedBatch
     );
 }
 
-/// Results into the job's report; rays to this worker's queues or to their owners,
-/// rays at walls to the walls' cache actors.
-pub(crate) fn deliver(shared: &Arc<Shared>, job: &Arc<Job>, out: Outbox) {
-    deliver_with(shared, job, out, Report::default());
+/// Results into the job's report, with `report` (counters of the caller's own), posted
+/// to the job's actor: one step's results travel together. Rays go to this worker's
+/// queues or to their owners, rays at walls to the walls' cache actors.
+pub(crate) fn deliver_with(shared: &Arc<Shared>, job: &Arc<Job>, out: Outbox, report: Report) {
+    deliver_step(shared, job, out, report, None);
 }
 
-/// [`deliver`], adding the results to `report` (counters of the caller's own) and
-/// posting it to the job's actor: one step's results travel together.
-pub(crate) fn deliver_with(
+/// When a traced step began, for the job's traffic trace (only a job with one takes
+/// the clocks).
+struct StepTiming {
+    domain: Option<u32>,
+    rays_in: u64,
+    t0_ns: u64,
+    cpu0_ns: u64,
+}
+
+impl StepTiming {
+    fn start(job: &Job, domain: Option<u32>, rays_in: u64) -> Option<StepTiming> {
+        let t = job.trace.as_ref()?;
+        Some(StepTiming {
+            domain,
+            rays_in,
+            t0_ns: t.now_ns(),
+            cpu0_ns: thread_cpu_ns(),
+        })
+    }
+}
+
+/// [`deliver_with`] for the step `timing` timed. With a traffic trace, every delivery
+/// is a `step` record there (one `timing` does not time, such as rays a cache actor
+/// answered, has no CPU and no rays in): so the trace's totals are the job's.
+fn deliver_step(
     shared: &Arc<Shared>,
     job: &Arc<Job>,
     mut out: Outbox,
     mut report: Report,
+    timing: Option<StepTiming>,
 ) {
+    let mut record = job.trace.as_ref().map(|t| {
+        let now = t.now_ns();
+        let (domain, rays_in, t0_ns, cpu_ns) = match &timing {
+            Some(s) => (
+                s.domain,
+                s.rays_in,
+                s.t0_ns,
+                thread_cpu_ns().saturating_sub(s.cpu0_ns),
+            ),
+            None => (None, 0, now, 0),
+        };
+        StepRecord {
+            domain,
+            rays_in,
+            t0_ns,
+            t1_ns: now,
+            cpu_ns,
+            traced: out.traced.iter().sum(),
+            lookups: out.lookups.len() as u64,
+            cache_not_sent: report.cache_rays_not_sent + out.cache_not_sent,
+            phm_not_sent: report.phm_rays_not_sent + out.phm_not_sent,
+            out: Vec::new(),
+        }
+    });
     report.phm_rays_not_sent += std::mem::take(&mut out.phm_not_sent);
     report.cache_rays_not_sent += std::mem::take(&mut out.cache_not_sent);
     if !out.lookups.is_empty() {
@@ -458,6 +526,17 @@ pub(crate) fn deliver_with(
         let peer = match destination(&routes, d, 0, job.spread()) {
             Ok(Destination::Peer(peer)) => peer,
             Ok(Destination::Here) => {
+                if let Some(r) = &mut record {
+                    let bytes = crate::traffic::ray_bytes(encoded_len(&rays) as u64, &tickets);
+                    r.out.push((
+                        Sent {
+                            domain: d,
+                            rays: rays.len() as u64,
+                            bytes,
+                        },
+                        false,
+                    ));
+                }
                 // Traced here, or held here until a worker is given the domain.
                 shared.queues.push_local(
                     d,
@@ -485,6 +564,16 @@ pub(crate) fn deliver_with(
         let n = encoded_len(&rays) as u64;
         sent += rays.len() as u64;
         bytes += n;
+        if let Some(r) = &mut record {
+            r.out.push((
+                Sent {
+                    domain: d,
+                    rays: rays.len() as u64,
+                    bytes: crate::traffic::ray_bytes(n, &tickets),
+                },
+                true,
+            ));
+        }
         traffic.rays(n, &tickets);
         shared.peers.send(
             shared,
@@ -514,6 +603,9 @@ pub(crate) fn deliver_with(
     r.rays_sent += sent;
     r.traffic.add(&traffic);
     job.post(report);
+    if let (Some(t), Some(rec)) = (&job.trace, record) {
+        t.step(&rec);
+    }
 }
 
 #[cfg(test)]

@@ -71,6 +71,9 @@ pub struct Job {
     /// Views of this job's walls (ray caches and hit maps) on the cache host in this
     /// process, once its walls are open there (sender placement).
     views: std::sync::OnceLock<Arc<dray_cache::WallViews>>,
+    /// The job's traffic trace here, when it asked for one and this worker keeps traces
+    /// (`crate::traffic_trace`); `None` costs the tracing threads nothing.
+    pub trace: Option<crate::traffic_trace::TrafficTrace>,
 }
 
 impl Job {
@@ -99,6 +102,7 @@ impl Job {
             spread: AtomicU64::new(0),
             merges: crate::map_merge::MapMerges::default(),
             views: std::sync::OnceLock::new(),
+            trace: None,
         };
         (job, rx)
     }
@@ -107,6 +111,12 @@ impl Job {
     /// outcomes ([`crate::map_merge`]).
     pub fn with_merges_every(mut self, every: u32) -> Job {
         self.merges = crate::map_merge::MapMerges::new(every);
+        self
+    }
+
+    /// The same job, recording its traffic to `trace`.
+    pub fn with_trace(mut self, trace: Option<crate::traffic_trace::TrafficTrace>) -> Job {
+        self.trace = trace;
         self
     }
 
@@ -174,6 +184,10 @@ impl Job {
 
     pub(super) fn deactivate(&self) {
         self.active.store(false, Ordering::Relaxed);
+        // The job's work here is over: its trace is whole for whoever reads it now.
+        if let Some(t) = &self.trace {
+            t.flush();
+        }
         self.released.send_replace(true);
     }
 

@@ -1,0 +1,428 @@
+#!/usr/bin/env python3
+"""Replay a dray traffic trace (`dray render --trace-out FILE`) in SimGrid and print the
+predicted job time (docs/caches.md "Simulation at scale").
+
+Run it through benches/sim/run.sh, which fetches SimGrid into target/simgrid and sets
+PYTHONPATH and LD_LIBRARY_PATH:
+
+    benches/sim/run.sh replay.py TRACE [--nodes N] [--bandwidth 1Gbps] [--latency 100us]
+
+The model, one SimGrid actor per tracing thread of each node (a node stands for a worker):
+- every `step` record of the trace is replayed as a computation of its thread CPU
+  nanoseconds (1 flop = 1 ns of the recording machine's core; `--speed` scales hosts),
+  times (1 + the trace's CPU overhead ratio: process CPU the steps and loads did not
+  account for, such as gRPC encoding and the coordinator's film, spread over the steps in
+  proportion);
+- a step of domain d waits until the rays it takes have arrived: the k-th step of d
+  starts once the rays sent to d reach the sum of the first k steps' `rays_in` (batch
+  dependencies counted in rays, as the worker's queues merge batches); camera steps
+  need nothing. Among ready steps a node takes the domain with the most rays waiting
+  (the worker's fullest queue), camera steps when none is ready;
+- a step's rays out become one message per destination node (the owner of their
+  domains: a worker's per-peer outbox), of their bytes, over the platform's links (SimGrid's TCP model, LV08); rays for a
+  domain the node owns arrive at once;
+- a domain's first step on a node loads it first: its bytes from a file-system host
+  (`--fs-bandwidth`; reads are free without it, as for the in-memory packages of the
+  recording), then its build CPU, plus the recording's `--load-delay-ms`.
+
+With the trace's own worker count (the default) each domain stays where the trace had
+it and each step on its worker. With `--nodes N` otherwise, domains are re-dealt round
+robin (domain i to node i mod N, as the `domain` schedule deals them) and camera steps in
+turn, the CPU per ray kept. Rays a recorded step traced through several domains its worker
+owned stay inside one step: at more nodes than the trace had, that traffic is missing,
+so record with as many workers as the domains allow.
+
+The job time predicted is the simulated makespan plus the recording's fixed part (wall
+time outside the workers' steps: submission, partitioning, the last report), which the
+simulation does not model.
+"""
+
+import argparse
+import json
+import math
+import re
+import sys
+from collections import defaultdict
+
+
+class TraceError(Exception):
+    pass
+
+
+VERSION = 1
+
+
+def parse_rate(text, unit_name):
+    """'1Gbps', '10gbit', '125MBps', '500MB/s' or a number (bytes/s) -> bytes/s."""
+    m = re.fullmatch(r"\s*([0-9.]+(?:e[0-9+-]+)?)\s*([kKmMgGtT]?)(bit|bps|Bps|B/s|B)?\s*", text)
+    if not m:
+        raise SystemExit(f"{unit_name} {text!r}: not a rate (examples: 1Gbps, 10gbit, 500MB/s)")
+    v = float(m.group(1))
+    scale = {"": 1, "k": 1e3, "m": 1e6, "g": 1e9, "t": 1e12}[m.group(2).lower()]
+    unit = m.group(3) or "B"
+    bits = unit in ("bit", "bps")
+    return v * scale / (8 if bits else 1)
+
+
+def parse_time(text, name):
+    """'100us', '1ms', '10µs', '0.5s' or a number (seconds) -> seconds."""
+    m = re.fullmatch(r"\s*([0-9.]+(?:e[0-9+-]+)?)\s*(ns|us|µs|ms|s)?\s*", text)
+    if not m:
+        raise SystemExit(f"{name} {text!r}: not a time (examples: 10us, 1ms)")
+    return float(m.group(1)) * {"ns": 1e-9, "us": 1e-6, "µs": 1e-6, "ms": 1e-3, "s": 1, None: 1}[m.group(2)]
+
+
+class Trace:
+    """A trace file, read and checked."""
+
+    def __init__(self, path):
+        self.job = None
+        self.workers = {}  # worker id -> threads
+        self.steps = []
+        self.loads = []
+        self.forwards = []
+        try:
+            f = open(path, encoding="utf-8")
+        except OSError as e:
+            raise TraceError(f"cannot read the trace {path}: {e}") from e
+        with f:
+            for n, line in enumerate(f, 1):
+                if not line.strip():
+                    continue
+                try:
+                    r = json.loads(line)
+                except json.JSONDecodeError as e:
+                    raise TraceError(f"{path}:{n}: not JSON ({e})") from e
+                if r.get("v") != VERSION:
+                    raise TraceError(f"{path}:{n}: trace version {r.get('v')!r}, this replay reads {VERSION}")
+                kind = r.get("rec")
+                if kind == "job":
+                    self.job = r
+                elif kind == "worker":
+                    self.workers[r["worker"]] = int(r.get("threads", 1))
+                elif kind == "step":
+                    self.steps.append(r)
+                elif kind == "load":
+                    self.loads.append(r)
+                elif kind == "forward":
+                    self.forwards.append(r)
+                else:
+                    raise TraceError(f"{path}:{n}: unknown record {kind!r}")
+        if self.job is None:
+            raise TraceError(f"{path}: no `job` line (was it written by `dray render --trace-out`?)")
+        if not self.workers:
+            raise TraceError(f"{path}: no worker wrote records (did the job run on workers?)")
+        for s in self.steps + self.loads:
+            if s["worker"] not in self.workers:
+                raise TraceError(f"{path}: a record of worker {s['worker']!r}, which has no `worker` line")
+
+    def totals(self):
+        rays_sent = sum(o["rays"] for s in self.steps for o in s["out"] if o["remote"])
+        bytes_sent = sum(o["bytes"] for s in self.steps for o in s["out"] if o["remote"])
+        return {
+            "steps": len(self.steps),
+            "rays_traced": sum(s["traced"] for s in self.steps),
+            "rays_sent": rays_sent + sum(f["rays"] for f in self.forwards),
+            "bytes_sent": bytes_sent + sum(f["bytes"] for f in self.forwards),
+            "loads": len(self.loads),
+            "step_cpu_s": sum(s["cpu_ns"] for s in self.steps) / 1e9,
+            "load_cpu_s": sum(l["cpu_ns"] for l in self.loads) / 1e9,
+            "busy_span_s": max((s["t1"] for s in self.steps), default=0) / 1e9,
+        }
+
+
+class Plan:
+    """Who does what in the replay: the owner node of every domain, the node of every
+    step, the loads' costs."""
+
+    def __init__(self, trace, nodes):
+        workers = sorted(trace.workers)
+        self.nodes = nodes
+        self.same = nodes == len(workers)
+        index = {w: i for i, w in enumerate(workers)}
+        domains = sorted({s["domain"] for s in trace.steps if s["domain"] is not None}
+                         | {o["domain"] for s in trace.steps for o in s["out"]})
+        # Where each domain's rays were traced in the trace (most rays in wins).
+        traced_at = defaultdict(lambda: defaultdict(int))
+        for s in trace.steps:
+            if s["domain"] is not None:
+                traced_at[s["domain"]][s["worker"]] += s["rays_in"]
+        self.owner = {}
+        for i, d in enumerate(domains):
+            if self.same and traced_at.get(d):
+                w = max(traced_at[d].items(), key=lambda kv: (kv[1], kv[0]))[0]
+                self.owner[d] = index[w]
+            else:
+                self.owner[d] = i % nodes
+        self.step_node = []
+        turn = 0
+        for s in trace.steps:
+            if s["domain"] is not None:
+                self.step_node.append(self.owner[s["domain"]])
+            elif self.same:
+                self.step_node.append(index[s["worker"]])
+            else:
+                self.step_node.append(turn % nodes)
+                turn += 1
+        # A domain's load: the trace's first load of it (bytes, build CPU).
+        self.load = {}
+        for l in sorted(trace.loads, key=lambda l: l["t0"]):
+            self.load.setdefault(l["domain"], (l["bytes"], l["cpu_ns"]))
+        self.single = domains[0] if len(domains) == 1 else None
+
+
+def simulate(trace, a):
+    import simgrid
+    from simgrid import Actor, Comm, Engine, LinkInRoute, Mailbox, NetZone, Semaphore, this_actor
+
+    nodes = a.nodes or len(trace.workers)
+    plan = Plan(trace, nodes)
+    threads = a.threads or max(trace.workers.values())
+    t = trace.totals()
+    stats = trace.job.get("stats", {})
+    accounted = t["step_cpu_s"] + t["load_cpu_s"]
+    overhead = 0.0
+    if a.overhead == "trace" and t["step_cpu_s"] > 0:
+        overhead = max(0.0, stats.get("cpu_seconds", accounted) - accounted) / t["step_cpu_s"]
+    load_delay = (a.load_delay_ms if a.load_delay_ms is not None else trace.job.get("load_delay_ms", 0)) / 1e3
+
+    e = Engine([sys.argv[0], "--log=root.thresh:critical", "--cfg=contexts/stack-size:256"])
+    zone = NetZone.create_star_zone("cluster")
+    speed = 1e9 * a.speed
+    hosts = []
+    host_count = 1 if a.one_host else nodes
+    for i in range(host_count):
+        h = zone.create_host(f"node{i}", speed)
+        h.core_count = a.cores if a.one_host else threads
+        link = zone.create_split_duplex_link(f"nic{i}", a.bandwidth).set_latency(a.latency)
+        zone.add_route(h.netpoint, None, None, None, [LinkInRoute(link, LinkInRoute.Direction.UP)], True)
+        hosts.append(h)
+    fs = None
+    if a.fs_bandwidth:
+        fs = zone.create_host("fs", speed)
+        link = zone.create_split_duplex_link("fs-nic", a.fs_bandwidth).set_latency(a.latency)
+        zone.add_route(fs.netpoint, None, None, None, [LinkInRoute(link, LinkInRoute.Direction.UP)], True)
+    zone.seal()
+
+    class Node:
+        def __init__(self, i):
+            self.i = i
+            self.host = hosts[0 if a.one_host else i]
+            self.by_domain = defaultdict(list)  # domain -> [step index], in trace order
+            self.next = defaultdict(int)  # domain -> index into by_domain[d]
+            self.need = {}  # domain -> cumulative rays_in per step
+            self.free = []  # camera and other steps that need no rays, in trace order
+            self.free_next = 0
+            self.arrived = defaultdict(int)
+            self.taken = defaultdict(int)
+            self.resident = set()
+            self.loading = set()
+            self.left = 0
+            self.waiting = 0
+            self.sem = Semaphore(0)
+            self.expected = 0  # messages this node will receive
+            self.received = 0
+
+        def wake(self):
+            n, self.waiting = self.waiting, 0
+            for _ in range(n):
+                self.sem.release()
+
+    ns = [Node(i) for i in range(nodes)]
+    for k, s in enumerate(trace.steps):
+        n = ns[plan.step_node[k]]
+        n.left += 1
+        if s["domain"] is None or s["rays_in"] == 0:
+            n.free.append(k)
+        else:
+            n.by_domain[s["domain"]].append(k)
+        for dest in {plan.owner[o["domain"]] for o in s["out"]} - {plan.step_node[k]}:
+            ns[dest].expected += 1
+    incoming = defaultdict(int)
+    for s in trace.steps:
+        for o in s["out"]:
+            incoming[o["domain"]] += o["rays"]
+    short = []
+    for n in ns:
+        for d, ks in n.by_domain.items():
+            c, cum = 0, []
+            for k in ks:
+                c += trace.steps[k]["rays_in"]
+                cum.append(c)
+            if c > incoming[d]:
+                short.append((d, c, incoming[d]))
+            # A trace whose steps take more rays than were sent (rays made in a cache
+            # actor's answer, say) must not stall: the last steps need what arrives.
+            n.need[d] = [min(x, incoming[d]) for x in cum]
+    result = {"finish": 0.0, "steps_done": 0, "rays_in": 0, "messages": 0, "bytes_sent": 0, "rays_sent": 0}
+
+    def ready_domain(n):
+        """The domain with the most rays waiting whose next step can start, resident
+        first; None if there is none."""
+        best, best_q, best_res = None, -1, False
+        for d, ks in n.by_domain.items():
+            j = n.next[d]
+            if j >= len(ks) or n.arrived[d] < n.need[d][j]:
+                continue
+            if d in n.loading:
+                continue
+            res = d in n.resident
+            q = n.arrived[d] - n.taken[d]
+            if (res, q) > (best_res, best_q):
+                best, best_q, best_res = d, q, res
+        return best
+
+    def ensure_loaded(n, d):
+        if d is None or d in n.resident:
+            return
+        n.loading.add(d)
+        size, cpu = plan.load.get(d, (0, 0))
+        if fs is not None and size > 0:
+            Comm.sendto(fs, n.host, size)
+        if load_delay > 0:
+            this_actor.sleep_for(load_delay)
+        if cpu > 0:
+            this_actor.execute(cpu)
+        n.loading.discard(d)
+        n.resident.add(d)
+
+    def deliver(n, s):
+        # One message per destination node, as a worker's per-peer outbox sends them.
+        batches = defaultdict(list)
+        for o in s["out"]:
+            dest = ns[plan.owner[o["domain"]]]
+            if dest is n:
+                n.arrived[o["domain"]] += o["rays"]
+            else:
+                batches[dest.i].append(o)
+        for i, os_ in batches.items():
+            size = sum(o["bytes"] for o in os_)
+            result["messages"] += 1
+            result["bytes_sent"] += size
+            result["rays_sent"] += sum(o["rays"] for o in os_)
+            c = Mailbox.by_name(f"n{i}").put_init([(o["domain"], o["rays"]) for o in os_], max(1, size))
+            c.detach()
+        n.wake()
+
+    def executor(n):
+        while n.left > 0:
+            d = ready_domain(n)
+            if d is not None:
+                k = n.by_domain[d][n.next[d]]
+                n.next[d] += 1
+                n.taken[d] += trace.steps[k]["rays_in"]
+                ensure_loaded(n, d)
+            elif n.free_next < len(n.free):
+                k = n.free[n.free_next]
+                n.free_next += 1
+                if plan.single is not None:
+                    if plan.single in n.loading:
+                        n.free_next -= 1
+                        n.waiting += 1
+                        n.sem.acquire()
+                        continue
+                    ensure_loaded(n, plan.single)
+            else:
+                n.waiting += 1
+                n.sem.acquire()
+                continue
+            s = trace.steps[k]
+            n.left -= 1
+            cpu = s["cpu_ns"] * (1.0 + overhead)
+            if cpu > 0:
+                this_actor.execute(cpu)
+            result["steps_done"] += 1
+            result["rays_in"] += s["rays_in"]
+            deliver(n, s)
+            result["finish"] = max(result["finish"], Engine.clock)
+        n.wake()
+
+    def receiver(n):
+        box = Mailbox.by_name(f"n{n.i}")
+        while n.received < n.expected:
+            for d, rays in box.get():
+                n.arrived[d] += rays
+            n.received += 1
+            n.wake()
+
+    for n in ns:
+        if n.expected:
+            Actor.create(f"recv{n.i}", n.host, receiver, n)
+        for th in range(threads):
+            Actor.create(f"node{n.i}.t{th}", n.host, executor, n)
+    e.run()
+    if result["steps_done"] != len(trace.steps):
+        raise TraceError(
+            f"the replay stopped with {len(trace.steps) - result['steps_done']} of "
+            f"{len(trace.steps)} steps never ready: the trace's rays in and rays out disagree"
+            + (f" (domains {short[:5]} take more rays than were sent)" if short else ""))
+    fixed = max(0.0, trace.job["wall_ns"] / 1e9 - t["busy_span_s"])
+    return {
+        "simgrid": simgrid.simgrid_version if hasattr(simgrid, "simgrid_version") else None,
+        "nodes": nodes,
+        "threads": threads,
+        "one_host": a.one_host,
+        "cores": a.cores if a.one_host else threads,
+        "bandwidth_Bps": a.bandwidth,
+        "latency_s": a.latency,
+        "speed": a.speed,
+        "cpu_overhead_ratio": overhead,
+        "makespan_s": result["finish"],
+        "fixed_s": fixed,
+        "predicted_s": result["finish"] + fixed,
+        "measured_s": trace.job["wall_ns"] / 1e9,
+        "recorded_workers": len(trace.workers),
+        "steps": result["steps_done"],
+        "rays_in": result["rays_in"],
+        "rays_traced": t["rays_traced"],
+        "rays_sent": result["rays_sent"],
+        "bytes_sent": result["bytes_sent"],
+        "messages": result["messages"],
+        "trace": t,
+    }
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="benches/sim/replay.py", description=__doc__.split("\n\n")[0])
+    ap.add_argument("trace", help="a trace from `dray render --trace-out`")
+    ap.add_argument("--nodes", type=int, help="nodes to replay on (default: the trace's workers)")
+    ap.add_argument("--threads", type=int, help="tracing threads per node (default: the trace's)")
+    ap.add_argument("--bandwidth", default="10Gbps", help="each node's link, each way (default 10Gbps)")
+    ap.add_argument("--latency", default="10us", help="each link's latency (default 10us)")
+    ap.add_argument("--speed", type=float, default=1.0, help="core speed against the recording machine's (default 1)")
+    ap.add_argument("--fs-bandwidth", help="a shared file system's link for domain loads (default: loads read nothing)")
+    ap.add_argument("--load-delay-ms", type=float, help="added to every load (default: the recording's)")
+    ap.add_argument("--one-host", action="store_true",
+                    help="every node on one host of --cores cores (validation against `dray render --workers N`)")
+    ap.add_argument("--cores", type=int, help="cores of the one host (default: the recording machine's)")
+    ap.add_argument("--overhead", choices=["trace", "none"], default="trace",
+                    help="spread the trace's CPU outside steps and loads over the steps (default) or not")
+    ap.add_argument("--json", action="store_true", help="print the result as JSON")
+    a = ap.parse_args(argv)
+    a.bandwidth = parse_rate(a.bandwidth, "--bandwidth")
+    a.latency = parse_time(a.latency, "--latency")
+    if a.fs_bandwidth:
+        a.fs_bandwidth = parse_rate(a.fs_bandwidth, "--fs-bandwidth")
+    if a.nodes is not None and a.nodes < 1:
+        raise SystemExit(f"--nodes {a.nodes}: at least 1")
+    if a.bandwidth <= 0 or not math.isfinite(a.bandwidth):
+        raise SystemExit("--bandwidth must be above 0")
+    try:
+        trace = Trace(a.trace)
+        if a.cores is None:
+            a.cores = int(trace.job.get("cores", 1))
+        r = simulate(trace, a)
+    except TraceError as e:
+        print(f"replay: {e}", file=sys.stderr)
+        return 2
+    if a.json:
+        print(json.dumps(r))
+    else:
+        print(f"predicted {r['predicted_s']:.3f} s (simulated {r['makespan_s']:.3f} s + fixed {r['fixed_s']:.3f} s) "
+              f"on {r['nodes']} nodes; recorded {r['measured_s']:.3f} s on {r['recorded_workers']} workers; "
+              f"{r['rays_sent']} rays in {r['messages']} messages, {r['bytes_sent']} bytes")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
