@@ -54,6 +54,10 @@ pub struct ClusterArgs {
     /// The coordinator's --work-dir: where job scene packages are written for the workers.
     #[arg(long, value_name = "DIR")]
     pub work_dir: Option<PathBuf>,
+    /// The coordinator's --max-running-jobs: jobs running on the workers at once; the
+    /// others wait, dealt by priority, pausable. Default: no limit.
+    #[arg(long, value_name = "N")]
+    pub max_running_jobs: Option<std::num::NonZeroUsize>,
     /// The coordinator's --heartbeat-interval-ms.
     #[arg(long, value_name = "MS")]
     pub heartbeat_interval_ms: Option<u64>,
@@ -504,7 +508,7 @@ pub fn run(a: ClusterArgs) -> Result<()> {
     if !ephemeral {
         check_port_free(a.base_port, "coordinator")?;
         for (i, w) in worker_addrs.iter().enumerate() {
-            check_port_free(w.port(), &format!("worker {}", i + 1))?;
+            check_port_free(w.port(), &format!("worker-{}", i + 1))?;
         }
     }
     let exe = std::env::current_exe().context("cannot find the dray executable to start")?;
@@ -559,6 +563,10 @@ pub fn run(a: ClusterArgs) -> Result<()> {
             args.push("--work-dir".into());
             args.push(dir.display().to_string());
         }
+        if let Some(n) = a.max_running_jobs {
+            args.push("--max-running-jobs".into());
+            args.push(n.to_string());
+        }
         if let Some(ms) = a.heartbeat_interval_ms {
             args.push("--heartbeat-interval-ms".into());
             args.push(ms.to_string());
@@ -601,12 +609,17 @@ pub fn run(a: ClusterArgs) -> Result<()> {
         let coordinator_addr = cluster.members[0].addr;
         let coordinator_url = format!("{scheme}://{coordinator_addr}");
         for (i, w) in worker_addrs.iter().enumerate() {
+            // One name for the worker everywhere: these lines, the coordinator's logs,
+            // ListWorkers and the dashboard; a worker started again keeps it.
+            let name = format!("worker-{}", i + 1);
             let mut args = vec![
                 "worker".to_string(),
                 "--coordinator".to_string(),
                 coordinator_url.clone(),
                 "--listen".to_string(),
                 w.to_string(),
+                "--name".to_string(),
+                name.clone(),
             ];
             if let Some(bytes) = a.memory_budget {
                 args.push("--memory-budget".into());
@@ -631,7 +644,7 @@ pub fn run(a: ClusterArgs) -> Result<()> {
             args.extend(shared_args.iter().cloned());
             cluster
                 .members
-                .push(spawn(&exe, format!("worker {}", i + 1), *w, &args)?);
+                .push(spawn(&exe, name, *w, &args)?);
         }
 
         // Wait until every member answers its health check.

@@ -85,6 +85,11 @@ pub struct CoordinatorArgs {
     /// that); SubmitJob refuses more with RESOURCE_EXHAUSTED.
     #[arg(long, value_name = "N", default_value_t = Limits::MAX_JOBS, value_parser = parse_max_jobs)]
     pub max_jobs: usize,
+    /// Jobs running on the workers at once (1 or more); the others wait QUEUED, dealt by
+    /// priority, and PauseJob can hold them (docs/operator.md). Default: no limit, every
+    /// job starts at once and the workers share their threads between them.
+    #[arg(long, value_name = "N")]
+    pub max_running_jobs: Option<std::num::NonZeroUsize>,
     /// Largest memory a job may need at the coordinator (image and scene, estimated
     /// before it is accepted; suffixes K, M, G, T). [default: half the machine's memory]
     #[arg(long, value_name = "BYTES", value_parser = crate::bytes::parse_bytes)]
@@ -145,6 +150,7 @@ fn cluster_options(a: &CoordinatorArgs) -> Result<ClusterOptions> {
         },
         stall_timeout: (a.stall_timeout > 0).then(|| Duration::from_secs(a.stall_timeout)),
         cache_hosts: a.cache_hosts,
+        max_running_jobs: a.max_running_jobs,
         ..ClusterOptions::default()
     };
     if let Some(dir) = &a.work_dir {

@@ -204,7 +204,7 @@ impl Actors {
             });
             let mut nodes = Vec::new();
             let mut caches = Vec::new();
-            for _ in 0..workers {
+            for i in 0..workers {
                 let l = tokio::net::TcpListener::bind("127.0.0.1:0")
                     .await
                     .context("cannot listen on a loopback port")?;
@@ -232,6 +232,9 @@ impl Actors {
                     // fetch.
                     package_fetch: dray_worker::package_fetch::FetchMode::Never,
                     trace_dir: shape.trace_dir.clone(),
+                    // Named as `dray cluster` names its workers (the host name would be
+                    // the same for all of them).
+                    name: Some(format!("worker-{}", i + 1)),
                     ..dray_worker::WorkerConfig::default()
                 };
                 nodes.push(tokio::spawn(dray_worker::run(

@@ -70,6 +70,12 @@ pub struct WorkerArgs {
     /// when the worker stops.
     #[arg(long, value_name = "DIR")]
     pub package_cache: Option<std::path::PathBuf>,
+    /// This worker's name in the coordinator's logs, ListWorkers, job events and the
+    /// dashboard, beside its id: 1 to 64 of A-Z a-z 0-9 . _ - (`dray cluster` names its
+    /// workers worker-1, worker-2, ...). Default: the host name (a Kubernetes pod's
+    /// name), or none when that is not a valid name. Names need not be unique.
+    #[arg(long, value_name = "NAME", value_parser = parse_name)]
+    pub name: Option<String>,
     #[command(flatten)]
     pub member: crate::net_flags::MemberArgs,
     #[command(flatten)]
@@ -124,6 +130,7 @@ pub fn run(a: WorkerArgs) -> Result<()> {
             package_fetch: a.fetch_packages,
             package_cache: a.package_cache.clone(),
             trace_dir: a.trace_dir.clone(),
+            name: a.name.clone(),
             ..dray_worker::WorkerConfig::default()
         };
         // Ctrl-C or SIGTERM (dray cluster and Kubernetes stop workers with SIGTERM) ends
@@ -146,6 +153,16 @@ pub fn run(a: WorkerArgs) -> Result<()> {
     // stop signal if dropping the runtime waited for it.
     rt.shutdown_timeout(Duration::from_millis(500));
     result
+}
+
+/// `--name`: 1 to 64 of A-Z a-z 0-9 . _ - (`dray_proto::worker_name`).
+pub fn parse_name(s: &str) -> Result<String, String> {
+    if s.is_empty() {
+        return Err("a name is 1 to 64 characters; leave --name out for the host name".into());
+    }
+    dray_proto::worker_name::check_worker_name(s)
+        .map(|()| s.to_string())
+        .map_err(|e| e.to_string())
 }
 
 /// `--fetch-packages`: auto, always or never.

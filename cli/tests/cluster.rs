@@ -305,7 +305,7 @@ fn a_worker_that_dies_is_reported_and_the_cluster_keeps_serving() {
         "{stats}"
     );
 
-    // SIGKILL worker 2: the cluster names it and keeps serving with worker 1.
+    // SIGKILL worker-2: the cluster names it and keeps serving with worker-1.
     let port = |i: u16| {
         c.addr
             .rsplit(':')
@@ -319,7 +319,7 @@ fn a_worker_that_dies_is_reported_and_the_cluster_keeps_serving() {
         libc::kill(w2, libc::SIGKILL);
     }
     let line = format!(
-        "dray cluster: worker 2 (pid {w2}, http://127.0.0.1:{}) exited: signal 9 (SIGKILL); \
+        "dray cluster: worker-2 (pid {w2}, http://127.0.0.1:{}) exited: signal 9 (SIGKILL); \
          the cluster keeps serving with 1 worker",
         port(2).expect("port")
     );
@@ -420,7 +420,7 @@ fn a_worker_that_dies_is_started_again_and_takes_the_next_job() {
     assert!(
         eventually(30.0, || c
             .log()
-            .contains("dray cluster: worker 2 started again (pid")),
+            .contains("dray cluster: worker-2 started again (pid")),
         "{}",
         c.log()
     );
@@ -478,8 +478,8 @@ fn a_cluster_on_ephemeral_ports_names_them_and_runs_a_job() {
     };
     let ports = [
         port_of("coordinator"),
-        port_of("worker 1"),
-        port_of("worker 2"),
+        port_of("worker-1"),
+        port_of("worker-2"),
     ];
     assert!(ports.iter().all(|&p| p != 0), "{lines:?}");
     assert!(

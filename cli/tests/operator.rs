@@ -6,7 +6,10 @@
 //! finished PNG and EXR (the bytes GetImage gives, as an attachment).
 //!
 //! With no worker registered the coordinator renders one job at a time: the queue is
-//! real, and the order jobs are dealt in is read from their events.
+//! real, and the order jobs are dealt in is read from their events. On a `dray cluster`
+//! with `--max-running-jobs 1` the same holds for jobs on workers (the cluster's deal
+//! queue), and its workers are listed, logged and named in job events under the names
+//! `dray cluster` gave them (worker-1, worker-2).
 
 mod common;
 mod support;
@@ -18,9 +21,10 @@ use std::process::Stdio;
 use dray_proto::v1::render_service_client::RenderServiceClient;
 use dray_proto::v1::{
     CancelJobRequest, GetImageRequest, GetJobRequest, ImageFormat, Job, JobEvent, JobEventKind,
-    JobSpec, JobState, PauseJobRequest, RetryJobRequest, SubmitJobRequest,
+    JobSpec, JobState, ListWorkersRequest, PauseJobRequest, RetryJobRequest, SubmitJobRequest,
+    WorkerStatus,
 };
-use support::{Proc, eventually};
+use support::{Proc, WorkerCluster, eventually};
 use tonic::transport::Channel;
 
 /// Generous bound that only catches hangs.
@@ -161,6 +165,15 @@ impl Api {
         self.rt
             .block_on(c.cancel_job(CancelJobRequest { job_id: id.into() }))
             .expect("CancelJob");
+    }
+
+    fn workers(&mut self) -> Vec<WorkerStatus> {
+        let mut c = self.c.clone();
+        self.rt
+            .block_on(c.list_workers(ListWorkersRequest::default()))
+            .expect("ListWorkers")
+            .into_inner()
+            .workers
     }
 
     fn image(&mut self, id: &str, format: ImageFormat) -> Vec<u8> {
@@ -413,5 +426,151 @@ fn priorities_pause_retry_events_and_downloads() {
     let after_new = api.job(&requeued.job_id);
     assert_eq!(after_new.retried_from, low);
     assert_eq!(after_new.events, before_new.events);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The priority and pause part of the test above, on a `dray cluster` whose coordinator
+/// runs one job on its workers at a time (`--max-running-jobs 1`): the jobs beyond it
+/// wait QUEUED in the cluster's deal queue, a priority-5 job submitted last is dealt
+/// before a priority-0 one, and a paused job stays PAUSED while the others run.
+#[test]
+fn a_cluster_limit_deals_by_priority_and_holds_paused_jobs() {
+    let dir = common::tmp("operator-cluster");
+    let c = WorkerCluster::start(1, 1, &dir, &["--max-running-jobs", "1"]);
+    let mut api = Api::connect(&c.addr);
+    assert_eq!(api.workers().len(), 1, "the job must run on the worker");
+
+    let long = api.submit(spec(65536, 0, "long"));
+    api.wait_state(&long, JobState::Running);
+    let low = api.submit(spec(4, 0, "low"));
+    let held = api.submit(spec(4, 0, "held"));
+    let high = api.submit(spec(4, 5, "high"));
+    for id in [&low, &held, &high] {
+        api.wait_state(id, JobState::Queued);
+    }
+    let paused = api.hold(&held, true).expect("PauseJob on a cluster");
+    assert_eq!(
+        paused.progress.unwrap().state,
+        JobState::Paused as i32,
+        "{:?}",
+        paused.events
+    );
+    let refused = api
+        .hold(&long, true)
+        .expect_err("a running job cannot be paused");
+    assert_eq!(refused.code(), tonic::Code::FailedPrecondition);
+    assert!(
+        refused.message().contains("--max-running-jobs"),
+        "{}",
+        refused.message()
+    );
+
+    api.cancel(&long);
+    api.wait_state(&low, JobState::Succeeded);
+    api.wait_state(&high, JobState::Succeeded);
+    let (h, l) = (api.job(&high), api.job(&low));
+    assert!(
+        millis(event(&h, JobEventKind::Succeeded)) <= millis(event(&l, JobEventKind::Started)),
+        "on the cluster too, priority 5 must run before priority 0: high {:?}, low {:?}",
+        h.events,
+        l.events
+    );
+    assert_eq!(
+        h.stats.as_ref().map(|s| s.workers),
+        Some(1),
+        "it ran on the worker: {:?}",
+        h.stats
+    );
+    assert_eq!(api.state(&held), JobState::Paused, "{:?}", api.job(&held));
+    api.hold(&held, false).expect("ResumeJob");
+    api.wait_state(&held, JobState::Succeeded);
+    assert_eq!(
+        kinds(&api.job(&held))
+            .into_iter()
+            .filter(|k| *k != JobEventKind::PassFinished)
+            .collect::<Vec<_>>(),
+        [
+            JobEventKind::Queued,
+            JobEventKind::Paused,
+            JobEventKind::Resumed,
+            JobEventKind::Started,
+            JobEventKind::Succeeded
+        ],
+        "{:?}",
+        api.job(&held).events
+    );
+    drop(c);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `dray cluster` names its workers worker-1 and worker-2, and they are those names
+/// everywhere: its own lines, the coordinator's log, ListWorkers (WorkerStatus.name,
+/// beside the `w<N>-<nonce>` id) and the WORKER_LOST event of a job that lost one.
+#[test]
+fn cluster_workers_keep_their_names_in_listings_logs_and_events() {
+    let dir = common::tmp("operator-names");
+    let c = WorkerCluster::start(
+        2,
+        2,
+        &dir,
+        &[
+            "--heartbeat-interval-ms",
+            "100",
+            "--heartbeat-timeout-ms",
+            "3000",
+            "--restart-limit",
+            "0",
+        ],
+    );
+    let mut api = Api::connect(&c.addr);
+    let mut listed: Vec<(String, String)> = api
+        .workers()
+        .into_iter()
+        .map(|w| (w.name, w.worker_id))
+        .collect();
+    listed.sort();
+    let names: Vec<&str> = listed.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(names, ["worker-1", "worker-2"], "{listed:?}");
+    let log = c.log();
+    for (name, id) in &listed {
+        assert!(id.starts_with('w') && id.contains('-'), "{id}");
+        let line = format!("worker registered: {id} ({name})");
+        assert!(log.contains(&line), "no {line:?} in:\n{log}");
+    }
+
+    // A job on both workers loses worker-2: its event says which, by id and name.
+    let job = api.submit(JobSpec {
+        width: 64,
+        height: 48,
+        ..spec(65536, 0, "names")
+    });
+    api.wait_state(&job, JobState::Running);
+    assert!(
+        eventually(HANG, || api.workers().iter().all(|w| w.jobs.contains(&job))),
+        "HANG: the job never ran on both workers: {:?}",
+        api.workers()
+    );
+    // SAFETY: kill(2) on a worker of the cluster this test started.
+    unsafe {
+        libc::kill(c.worker_pids[1], libc::SIGKILL);
+    }
+    let (_, w2) = &listed[1];
+    let label = format!("worker {w2} (worker-2)");
+    assert!(
+        eventually(HANG, || api.job(&job).events.iter().any(|e| {
+            e.kind == JobEventKind::WorkerLost as i32 && e.message.contains(&label)
+        })),
+        "HANG: no WORKER_LOST event naming {label:?}: {:?}",
+        api.job(&job).events
+    );
+    assert!(
+        c.log().contains(&format!("worker lost: {w2} (worker-2)")),
+        "{}",
+        c.log()
+    );
+    let left: Vec<String> = api.workers().into_iter().map(|w| w.name).collect();
+    assert_eq!(left, ["worker-1"]);
+    api.cancel(&job);
+    drop(c);
     let _ = std::fs::remove_dir_all(&dir);
 }

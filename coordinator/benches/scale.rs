@@ -253,6 +253,7 @@ impl Sim {
                         record_format: dray_proto::RAY_RECORD_FORMAT,
                         hostname: format!("node{i}"),
                         cache_endpoint: String::new(),
+                        name: format!("node{i}"),
                     })
                     .expect("register");
                 JobWorker {

@@ -55,6 +55,13 @@ pub struct ClusterOptions {
     /// host answers every lookup on the walls it holds, so it can change any image, and
     /// holding the cluster token must not be enough to become one (`--cache-hosts`).
     pub cache_hosts: bool,
+    /// Jobs that may run on the workers at once (`--max-running-jobs`); the others wait
+    /// QUEUED in [`Cluster::queue`], dealt by priority, pausable. None (the default):
+    /// every job starts at once, beside the others, as before the limit existed: the
+    /// workers share their threads between running jobs, so a limit trades the latency
+    /// of a small job behind a large one for priorities that mean something, which is
+    /// the operator's choice to make (docs/operator.md).
+    pub max_running_jobs: Option<std::num::NonZeroUsize>,
 }
 
 impl Default for ClusterOptions {
@@ -67,6 +74,7 @@ impl Default for ClusterOptions {
             clients: dray_net::ClientOptions::plain(),
             stall_timeout: Some(DEFAULT_STALL_TIMEOUT),
             cache_hosts: false,
+            max_running_jobs: None,
         }
     }
 }
@@ -86,6 +94,9 @@ pub struct Cluster {
     /// Package cuts in progress (a job's folder being written), so that a stopping
     /// coordinator can wait for them to stop before it removes their folders.
     pub(crate) cuts: std::sync::atomic::AtomicUsize,
+    /// Jobs waiting for one of the `max_running_jobs` slots on the workers (None: no
+    /// limit, jobs start at once).
+    pub queue: Option<Arc<crate::priority::DealQueue>>,
 }
 
 impl Cluster {
@@ -99,11 +110,15 @@ impl Cluster {
                 stall_timeout: options.stall_timeout,
             },
         ));
+        let queue = options
+            .max_running_jobs
+            .map(|n| Arc::new(crate::priority::DealQueue::new("cluster", n.get())));
         Cluster {
             jobs,
             membership,
             options,
             cuts: std::sync::atomic::AtomicUsize::new(0),
+            queue,
         }
     }
 

@@ -433,7 +433,7 @@ impl JobTable {
                 (t.subsec_nanos() ^ (t.as_secs() as u32).rotate_left(13))
                     ^ std::process::id().rotate_left(7)
             },
-            queue: Arc::new(crate::priority::DealQueue::new(1)),
+            queue: Arc::new(crate::priority::DealQueue::new("process", 1)),
             threads,
             retention: Retention::default(),
             store: OnceLock::new(),

@@ -149,6 +149,8 @@ pub struct WorkerRecord {
     pub memory_budget_bytes: u64,
     /// Host name, for logs.
     pub hostname: String,
+    /// Its name for people (RegisterWorkerRequest.name), empty when it gave none.
+    pub name: String,
     /// Last heartbeat (or registration).
     pub last_seen: Instant,
     /// From the last heartbeat.
@@ -171,6 +173,7 @@ impl std::fmt::Debug for WorkerRecord {
             .field("threads", &self.threads)
             .field("memory_budget_bytes", &self.memory_budget_bytes)
             .field("hostname", &self.hostname)
+            .field("name", &self.name)
             .finish_non_exhaustive()
     }
 }
@@ -183,6 +186,11 @@ impl WorkerRecord {
             endpoint: self.endpoint.clone(),
         }
     }
+
+    /// How logs and messages name it: `w3-1a2b3c4d (worker-2)`.
+    pub fn label(&self) -> String {
+        dray_proto::worker_name::worker_label(&self.id, &self.name)
+    }
 }
 
 /// A worker [`Membership::expire`] dropped.
@@ -190,6 +198,8 @@ impl WorkerRecord {
 pub struct LostWorker {
     /// Its id.
     pub id: String,
+    /// Its name (RegisterWorkerRequest.name), empty when it gave none.
+    pub name: String,
     /// Its endpoint, so messages can say which machine it was.
     pub endpoint: String,
     /// How long it had been silent.
@@ -197,6 +207,13 @@ pub struct LostWorker {
     /// Why it was declared lost, for messages: "no heartbeat for 2.1 s", or a peer that
     /// could not reach it.
     pub cause: String,
+}
+
+impl LostWorker {
+    /// How logs and job events name it: `w3-1a2b3c4d (worker-2)`.
+    pub fn label(&self) -> String {
+        dray_proto::worker_name::worker_label(&self.id, &self.name)
+    }
 }
 
 /// The longest endpoint URL a member may announce (a host name is at most 253 bytes).
@@ -293,6 +310,9 @@ impl Membership {
             return Err(version_mismatch("worker", &r.version));
         }
         check_hostname(&r.hostname)?;
+        dray_proto::worker_name::check_worker_name(&r.name).map_err(|e| {
+            Status::invalid_argument(format!("name: {} {e}", crate::validate::bounded(&r.name)))
+        })?;
         if r.record_format != dray_proto::RAY_RECORD_FORMAT {
             return Err(Status::failed_precondition(format!(
                 "record_format: the worker uses ray record format {} but the coordinator \
@@ -316,6 +336,7 @@ impl Membership {
             threads: r.threads,
             memory_budget_bytes: r.memory_budget_bytes,
             hostname: r.hostname.clone(),
+            name: r.name.clone(),
             last_seen: Instant::now(),
             memory_used_bytes: 0,
             rays_queued: 0,
@@ -323,14 +344,41 @@ impl Membership {
             member_token: dray_net::Token::generate()
                 .map_err(|e| Status::internal(format!("cannot make a member token: {e}")))?,
         };
-        self.lock().insert(rec.id.clone(), rec.clone());
+        let twins = {
+            let mut g = self.lock();
+            let twins: Vec<String> = if rec.name.is_empty() {
+                Vec::new()
+            } else {
+                g.values()
+                    .filter(|w| w.name == rec.name)
+                    .map(|w| w.id.clone())
+                    .collect()
+            };
+            g.insert(rec.id.clone(), rec.clone());
+            twins
+        };
         tracing::info!(
             worker = %rec.id,
+            name = %rec.name,
             endpoint = %rec.endpoint,
             cache_endpoint = %rec.cache_endpoint.as_deref().unwrap_or("none"),
             host = %rec.hostname,
-            "worker registered"
+            "worker registered: {}",
+            rec.label()
         );
+        // Allowed (see RegisterWorkerRequest.name): a restarted worker registers again
+        // under its name before its old record expires. Said, so a name given twice by
+        // mistake is seen.
+        if !twins.is_empty() {
+            tracing::warn!(
+                worker = %rec.id,
+                name = %rec.name,
+                others = %twins.join(", "),
+                "worker name {:?} is also used by {}: names are labels, ids tell them apart",
+                rec.name,
+                twins.join(", ")
+            );
+        }
         Ok(rec)
     }
 
@@ -453,9 +501,11 @@ impl Membership {
             .map(|w| {
                 w.outbox.close();
                 let silent_for = now.saturating_duration_since(w.last_seen);
-                tracing::warn!(worker = %w.id, endpoint = %w.endpoint, ?silent_for, "worker lost: no heartbeat");
+                let label = w.label();
+                tracing::warn!(worker = %w.id, name = %w.name, endpoint = %w.endpoint, ?silent_for, "worker lost: {label}, no heartbeat");
                 LostWorker {
                     id: w.id,
+                    name: w.name,
                     endpoint: w.endpoint,
                     silent_for,
                     cause: format!("no heartbeat for {:.1} s", silent_for.as_secs_f64()),
@@ -472,9 +522,11 @@ impl Membership {
         let w = self.lock().remove(id)?;
         w.outbox.close();
         let silent_for = now.saturating_duration_since(w.last_seen);
-        tracing::warn!(worker = %w.id, endpoint = %w.endpoint, peer = %by, "worker lost: a peer cannot reach it");
+        let label = w.label();
+        tracing::warn!(worker = %w.id, name = %w.name, endpoint = %w.endpoint, peer = %by, "worker lost: {label}, a peer cannot reach it");
         Some(LostWorker {
             id: w.id,
+            name: w.name,
             endpoint: w.endpoint,
             silent_for,
             cause: format!("worker {by} could not send it rays"),
@@ -650,5 +702,51 @@ mod tests {
             })
             .unwrap_err();
         assert!(e.message().contains("\"h:1\""), "{}", e.message());
+    }
+
+    /// RegisterWorkerRequest.name: checked (INVALID_ARGUMENT naming the field and what is
+    /// wrong), kept on the record and on a lost worker, and not unique: a second worker
+    /// with the same name registers under its own id (a restarted worker does so before
+    /// its old record expires).
+    #[test]
+    fn names_are_checked_kept_and_may_repeat() {
+        let m = Membership::new(HeartbeatConfig {
+            interval: Duration::from_millis(10),
+            timeout: Duration::from_secs(1),
+        });
+        let named = |name: &str| RegisterWorkerRequest {
+            endpoint: "http://h:1".into(),
+            version: VERSION.into(),
+            record_format: dray_proto::RAY_RECORD_FORMAT,
+            name: name.into(),
+            ..Default::default()
+        };
+        for (bad, why) in [
+            ("worker 2", "' ' (character 7) is not allowed"),
+            ("<script>", "'<' (character 1) is not allowed"),
+            (&"n".repeat(65), "65 characters is longer than 64"),
+        ] {
+            let e = m.register(&named(bad)).unwrap_err();
+            assert_eq!(e.code(), tonic::Code::InvalidArgument);
+            assert!(
+                e.message().starts_with("name: ") && e.message().contains(why),
+                "{}",
+                e.message()
+            );
+        }
+        let huge = m.register(&named(&"x".repeat(3 << 20))).unwrap_err();
+        assert!(huge.message().len() < 400, "{} bytes", huge.message().len());
+
+        let a = m.register(&named("worker-2")).unwrap();
+        let b = m.register(&named("worker-2")).unwrap();
+        let none = m.register(&named("")).unwrap();
+        assert_ne!(a.id, b.id);
+        assert_eq!((a.name.as_str(), b.name.as_str()), ("worker-2", "worker-2"));
+        assert_eq!(a.label(), format!("{} (worker-2)", a.id));
+        assert_eq!(none.label(), none.id);
+        assert_eq!(m.workers().len(), 3);
+        let lost = m.drop_unreachable(&a.id, "w9", Instant::now()).unwrap();
+        assert_eq!(lost.name, "worker-2");
+        assert_eq!(lost.label(), format!("{} (worker-2)", a.id));
     }
 }

@@ -279,6 +279,7 @@ pub mod otel {
     struct Instruments {
         job_duration: Histogram<f64>,
         jobs_active: UpDownCounter<i64>,
+        queue_wait: Histogram<f64>,
     }
 
     fn instruments() -> &'static Instruments {
@@ -299,6 +300,18 @@ pub mod otel {
                     .with_description("Jobs queued, preparing or running")
                     .with_unit("{job}")
                     .build(),
+                queue_wait: m
+                    .f64_histogram("dray.coordinator.job.queue_wait")
+                    .with_description(
+                        "Time a job waited in a deal queue for a render slot, by queue \
+                         (process: the coordinator's own renderer; cluster: \
+                         --max-running-jobs)",
+                    )
+                    .with_unit("s")
+                    .with_boundaries(vec![
+                        0.01, 0.1, 0.5, 1.0, 5.0, 10.0, 30.0, 60.0, 300.0, 900.0, 3600.0,
+                    ])
+                    .build(),
             }
         })
     }
@@ -306,6 +319,13 @@ pub mod otel {
     /// A job was accepted.
     pub fn job_accepted() {
         instruments().jobs_active.add(1, &[]);
+    }
+
+    /// A job was dealt a slot of deal queue `queue` after waiting `waited`.
+    pub fn job_dealt(queue: &'static str, waited: Duration) {
+        instruments()
+            .queue_wait
+            .record(waited.as_secs_f64(), &[KeyValue::new("queue", queue)]);
     }
 
     /// A job ended in `state` after running for `elapsed`.

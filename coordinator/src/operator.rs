@@ -63,13 +63,15 @@ impl Coordinator {
         })
     }
 
-    /// PauseJob (`paused`) and ResumeJob. Only a job waiting in the deal queue can be
-    /// paused: jobs on workers start at once, and a started job is not held.
+    /// PauseJob (`paused`) and ResumeJob. Only a job waiting in a deal queue can be
+    /// paused (the coordinator's own, or the cluster's under `--max-running-jobs`; without
+    /// that limit jobs on workers start at once), and a started job is not held.
     pub(crate) fn hold_job(&self, id: &str, paused: bool) -> Result<PauseJobResponse, Status> {
         let job = self.job(id)?;
-        let queue = self.queue();
         let held = if paused {
-            queue.hold(&job, true)
+            self.queues()
+                .find(|q| q.is_waiting(&job.id))
+                .map_or_else(|| Err(job.state()), |q| q.hold(&job, true))
         } else {
             // A job held before a restart may be waiting nowhere yet: it is resumed all
             // the same.
@@ -77,8 +79,9 @@ impl Coordinator {
         };
         if let Err(state) = held {
             let what = if paused {
-                "only a QUEUED job waiting for its turn can be paused (a job on workers \
-                 starts at once; cancel or requeue a started one)"
+                "only a QUEUED job waiting for its turn can be paused (on workers a job \
+                 waits only under the coordinator's --max-running-jobs, else it starts at \
+                 once; cancel or requeue a started one)"
             } else {
                 "only a PAUSED job can be resumed"
             };
@@ -88,7 +91,9 @@ impl Coordinator {
                 state.as_str_name()
             )));
         }
-        queue.poke();
+        for q in self.queues() {
+            q.poke();
+        }
         let (kind, msg) = if paused {
             (JobEventKind::Paused, "paused: held in the queue")
         } else {

@@ -5,9 +5,10 @@
 //! (cancelled) leaves the queue. A job holding a slot keeps it until it ends: nothing is
 //! pre-empted.
 //!
-//! The coordinator's own renderer (no worker registered) has one slot (`JobTable::start`),
-//! replacing the first-come semaphore it had; jobs on workers start at once and never
-//! wait here.
+//! Two queues use it. The coordinator's own renderer (no worker registered) has one slot
+//! (`JobTable::start`), replacing the first-come semaphore it had. Jobs on workers have
+//! `--max-running-jobs` slots when that is given (`Cluster::queue`, taken in
+//! `Coordinator::launch`); without it they start at once and never wait here.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -19,6 +20,8 @@ use crate::jobs::JobEntry;
 
 /// Jobs waiting for one of `slots` slots.
 pub struct DealQueue {
+    /// "process" or "cluster": which slots, for logs and the wait histogram.
+    name: &'static str,
     state: Mutex<QueueState>,
     /// Woken on every change a waiter may be waiting for: a slot freed, a job paused,
     /// resumed or added.
@@ -49,9 +52,10 @@ impl Drop for Slot {
 }
 
 impl DealQueue {
-    /// A queue with `slots` slots.
-    pub fn new(slots: usize) -> DealQueue {
+    /// A queue named `name` ("process", "cluster") with `slots` slots.
+    pub fn new(name: &'static str, slots: usize) -> DealQueue {
         DealQueue {
+            name,
             state: Mutex::new(QueueState {
                 free: slots,
                 waiting: Vec::new(),
@@ -108,6 +112,7 @@ impl DealQueue {
             queue: self.clone(),
             job: job.clone(),
             seq,
+            since: std::time::Instant::now(),
         }
     }
 }
@@ -117,6 +122,8 @@ pub struct Waiting {
     queue: Arc<DealQueue>,
     job: Arc<JobEntry>,
     seq: u64,
+    /// When it joined: the wait is logged and measured when it is dealt.
+    since: std::time::Instant,
 }
 
 impl Waiting {
@@ -141,7 +148,19 @@ impl Waiting {
                 if g.free > 0 && first.is_some_and(|w| w.seq == seq) {
                     g.free -= 1;
                     g.waiting.retain(|w| w.seq != seq);
+                    let behind = g.waiting.len();
                     drop(g);
+                    let waited = self.since.elapsed();
+                    tracing::info!(
+                        job = %job.id,
+                        queue = queue.name,
+                        priority = job.spec.priority,
+                        waited_ms = waited.as_millis() as u64,
+                        behind,
+                        "dealt a {} slot",
+                        queue.name
+                    );
+                    crate::metrics::otel::job_dealt(queue.name, waited);
                     // The next in line may have a slot too.
                     queue.changed.notify_waiters();
                     return Some(Slot {
@@ -170,4 +189,69 @@ fn sort(waiting: &mut [Waiter]) {
             w.seq,
         )
     });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::jobs::JobTable;
+    use dray_proto::v1::JobSpec;
+
+    fn spec(priority: i32) -> JobSpec {
+        JobSpec {
+            scene: "cornell".into(),
+            width: 4,
+            height: 4,
+            spp: 1,
+            priority,
+            ..Default::default()
+        }
+    }
+
+    fn ids(jobs: &[&Arc<JobEntry>]) -> Vec<String> {
+        jobs.iter().map(|j| j.id.clone()).collect()
+    }
+
+    /// A queue of two slots (the cluster's under `--max-running-jobs 2`): the highest
+    /// priority and then the first come take them, a paused job is passed over, and a
+    /// slot given back goes to the next dealable job.
+    #[tokio::test]
+    async fn slots_go_by_priority_skip_paused_jobs_and_come_back() {
+        let table = JobTable::new(1);
+        let q = Arc::new(DealQueue::new("cluster", 2));
+        let [a, b, c, d] = [0, 0, 0, 5].map(|p| table.insert(spec(p)));
+        let [wa, wb, wc, wd] = [&a, &b, &c, &d].map(|j| q.join(j));
+        assert_eq!(q.order(), ids(&[&d, &a, &b, &c]));
+        let sd = wd.turn().await.expect("the priority-5 job is dealt first");
+        let sa = wa.turn().await.expect("then the first come");
+        assert_eq!(q.order(), ids(&[&b, &c]));
+        q.hold(&b, true).expect("b waits: it can be paused");
+        assert_eq!(q.order(), ids(&[&c, &b]), "a paused job is dealt last");
+        let c_turn = tokio::spawn(wc.turn());
+        drop(sa);
+        let sc = c_turn
+            .await
+            .expect("task")
+            .expect("the slot given back goes to c, not to the paused b");
+        assert!(q.is_waiting(&b.id));
+        q.hold(&b, false).expect("resume b");
+        let b_turn = tokio::spawn(wb.turn());
+        drop(sd);
+        let sb = b_turn.await.expect("task").expect("b once resumed");
+        assert!(q.order().is_empty());
+        drop((sb, sc));
+        // A job cancelled while it waits leaves the queue without a slot.
+        let e = table.insert(spec(0));
+        let f = table.insert(spec(0));
+        let (s1, s2) = (
+            q.join(&e).turn().await.expect("slot 1"),
+            q.join(&f).turn().await.expect("slot 2"),
+        );
+        let g = table.insert(spec(9));
+        let wg = q.join(&g);
+        g.cancel();
+        assert!(wg.turn().await.is_none());
+        assert!(!q.is_waiting(&g.id));
+        drop((s1, s2));
+    }
 }

@@ -21,6 +21,7 @@ use dray_proto::v1::{
 use tokio::net::TcpListener;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status};
+use tracing::Instrument;
 
 use crate::cluster::{Cluster, ClusterApi, ClusterOptions};
 use crate::dispatch;
@@ -402,7 +403,8 @@ impl Coordinator {
 
     /// Run `job`, in the table and prepared: in process while no worker is registered,
     /// else on the workers (from where `resume` left it, for a job this coordinator
-    /// took back from its store).
+    /// took back from its store), at once or, under `--max-running-jobs`, once the
+    /// cluster's deal queue gives it a slot.
     fn launch(
         &self,
         job: &Arc<JobEntry>,
@@ -412,39 +414,98 @@ impl Coordinator {
     ) -> Result<(), Status> {
         // Workers may have come or gone while the scene loaded.
         self.check_placement(v)?;
-        let workers = self.cluster.membership.len();
-        if workers == 0 {
+        if self.cluster.membership.is_empty() {
             self.table.start(job, prepared);
-        } else {
-            // On workers: the spec shows the domain count and layout the package is cut
-            // with, so GetJob says what ran.
-            let mut spec = v.spec.clone();
-            let choice = dispatch::choose_schedule(&self.cluster.membership, v, &prepared);
-            spec.schedule = choice.schedule.name().to_string();
-            match &prepared.package {
-                Some(pkg) => {
-                    spec.domains = pkg.domain_count();
-                    spec.layout = pkg.layout().kind_name().to_string();
-                }
-                // Every worker holds the whole scene: one BVH over it, no walk between
-                // domains, unless the job asked for domains.
-                None if choice.schedule == Schedule::Replicated && v.domains_auto => {
-                    spec.domains = 1;
-                }
-                None => {
-                    spec.domains = dispatch::choose_domains(
-                        (!v.domains_auto).then_some(spec.domains),
-                        workers,
-                        prepared.triangles,
-                        self.limits.max_domains,
-                    );
-                }
-            }
-            let layout = dispatch::layout_spec(&spec.layout, spec.domains);
-            let planned = dispatch::plan(prepared, spec.clone(), layout, choice);
-            job.resolve(spec);
-            dispatch::spawn(self.cluster.clone(), job.clone(), planned, resume);
+            tracing::info!(id = %job.id, scene = %job.spec.scene, workers = 0, "job started");
+            return Ok(());
         }
+        let Some(queue) = self.cluster.queue.clone() else {
+            return self.start_on_workers(job, v, prepared, resume);
+        };
+        // Waiting for a slot is QUEUED, and PauseJob can hold it there.
+        let waiting = queue.join(job);
+        if job.state() == JobState::Preparing {
+            job.set_state(JobState::Queued);
+        }
+        let (this, job, v) = (self.clone(), job.clone(), v.clone());
+        let span = tracing::info_span!("cluster_queue", id = %job.id);
+        tokio::spawn(
+            async move {
+                let Some(slot) = waiting.turn().await else {
+                    return;
+                };
+                if job.is_cancelled() {
+                    return;
+                }
+                // Held until the job ends, whatever way it ends: a job that cannot start
+                // (its workers left, its package cannot be cut) gives its slot back at once.
+                let started = this.launch_dealt(&job, &v, prepared, resume);
+                if let Err(e) = started {
+                    job.finish(JobState::Failed, e.message().to_string(), None);
+                }
+                job.wait_ended().await;
+                drop(slot);
+            }
+            .instrument(span),
+        );
+        Ok(())
+    }
+
+    /// A job the cluster's deal queue gave a slot: on the workers, or in process (in
+    /// that queue) when every worker left while it waited.
+    fn launch_dealt(
+        &self,
+        job: &Arc<JobEntry>,
+        v: &crate::validate::Validated,
+        prepared: crate::validate::Prepared,
+        resume: Option<Resume>,
+    ) -> Result<(), Status> {
+        self.check_placement(v)?;
+        if self.cluster.membership.is_empty() {
+            self.table.start(job, prepared);
+            tracing::info!(id = %job.id, scene = %job.spec.scene, workers = 0, "job started");
+            return Ok(());
+        }
+        self.start_on_workers(job, v, prepared, resume)
+    }
+
+    /// Plan `job` on the registered workers (at least one) and start it.
+    fn start_on_workers(
+        &self,
+        job: &Arc<JobEntry>,
+        v: &crate::validate::Validated,
+        prepared: crate::validate::Prepared,
+        resume: Option<Resume>,
+    ) -> Result<(), Status> {
+        let workers = self.cluster.membership.len();
+        // On workers: the spec shows the domain count and layout the package is cut
+        // with, so GetJob says what ran.
+        let mut spec = v.spec.clone();
+        let choice = dispatch::choose_schedule(&self.cluster.membership, v, &prepared);
+        spec.schedule = choice.schedule.name().to_string();
+        match &prepared.package {
+            Some(pkg) => {
+                spec.domains = pkg.domain_count();
+                spec.layout = pkg.layout().kind_name().to_string();
+            }
+            // Every worker holds the whole scene: one BVH over it, no walk between
+            // domains, unless the job asked for domains.
+            None if choice.schedule == Schedule::Replicated && v.domains_auto => {
+                spec.domains = 1;
+            }
+            None => {
+                spec.domains = dispatch::choose_domains(
+                    (!v.domains_auto).then_some(spec.domains),
+                    workers,
+                    prepared.triangles,
+                    self.limits.max_domains,
+                );
+            }
+        }
+        let layout = dispatch::layout_spec(&spec.layout, spec.domains);
+        let planned = dispatch::plan(prepared, spec.clone(), layout, choice);
+        job.resolve(spec);
+        dispatch::spawn(self.cluster.clone(), job.clone(), planned, resume);
         tracing::info!(id = %job.id, scene = %job.spec.scene, workers, "job started");
         Ok(())
     }
@@ -459,9 +520,10 @@ impl Coordinator {
         self.table.new_group_id()
     }
 
-    /// The queue of jobs waiting to render in this process (`priority`).
-    pub(crate) fn queue(&self) -> &Arc<crate::priority::DealQueue> {
-        self.table.queue()
+    /// The deal queues (`priority`): jobs waiting to render in this process, and, under
+    /// `--max-running-jobs`, jobs waiting for a slot on the workers.
+    pub(crate) fn queues(&self) -> impl Iterator<Item = &Arc<crate::priority::DealQueue>> {
+        std::iter::once(self.table.queue()).chain(self.cluster.queue.as_ref())
     }
 
     pub(crate) fn job(&self, id: &str) -> Result<Arc<JobEntry>, Status> {

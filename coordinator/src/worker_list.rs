@@ -222,6 +222,7 @@ pub fn list(
                 worker_id: w.id.clone(),
                 endpoint: w.endpoint.clone(),
                 hostname: w.hostname.clone(),
+                name: w.name.clone(),
                 state: state.into(),
                 threads: w.threads,
                 memory_used_bytes: w.memory_used_bytes,
@@ -325,6 +326,7 @@ mod tests {
             threads: 2,
             memory_budget_bytes: 1000,
             hostname: "h".into(),
+            name: format!("n-{id}"),
             last_seen: now - ago,
             memory_used_bytes: 10,
             rays_queued: 7,
@@ -342,6 +344,8 @@ mod tests {
         let states: Vec<&str> = out.workers.iter().map(|w| w.state.as_str()).collect();
         assert_eq!(states, ["busy", "busy", "idle", "silent"]);
         assert_eq!(out.workers[0].rays_per_second, 5.0);
+        let names: Vec<&str> = out.workers.iter().map(|w| w.name.as_str()).collect();
+        assert_eq!(names, ["n-w1", "n-w2", "n-w3", "n-w4"], "WorkerStatus.name");
         let w1: Vec<(u32, bool)> = out.workers[0]
             .domains
             .iter()
@@ -432,6 +436,7 @@ mod tests {
                 threads: 1,
                 memory_budget_bytes: 0,
                 hostname: String::new(),
+                name: String::new(),
                 last_seen: Instant::now(),
                 memory_used_bytes: 0,
                 rays_queued: 0,

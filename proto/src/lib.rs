@@ -11,8 +11,11 @@
 //! - [`RAY_RECORD_MAX_BYTES`], [`RAY_RECORD_FORMAT`]: the ray record's largest size and
 //!   format number; the record itself is an engine type (`dray_core::ray`), not part of this
 //!   crate, which needs no engine.
+//! - [`worker_name`]: the rule for `RegisterWorkerRequest.name`, checked by the worker
+//!   and the coordinator alike.
 
 pub mod reflection;
+pub mod worker_name;
 
 /// The most bytes one ray takes in `RayBatch.records` (records are 32 to 64 bytes; the
 /// layout is in rays.proto; `dray_core::ray` encodes and decodes it).

@@ -13,7 +13,7 @@ Headless Chromium, driven over WebDriver by Selenium, against a real
      CANCELLED); the cancelled job retried from the page is a new job linked to it
      (GetJob's retriedFrom), and the finished job's PNG and EXR download as attachments
      (the PNG the bytes the page shows, the EXR GetImage's);
-  5. the workers are listed with their domains;
+  5. the workers are listed with their domains, under their names (worker-1, worker-2);
   6. 100 jobs are listed at once, and older ones are a page away;
   7. with --auth-token-file, the page shows its login, the API refuses requests without
      the token (401) and state-changing requests without the CSRF header (403), a wrong
@@ -320,6 +320,15 @@ def workers_listed(d, c: Cluster, artifacts: Path) -> None:
     got = c.grpcurl(GRPCURL, "ListWorkers", {})
     want = sorted(w.get("workerId", w.get("id", "")) for w in got.get("workers", []))
     assert sorted(ids) == want, f"the page lists {ids}, ListWorkers {want}"
+    # Under the names dray cluster gave them, as ListWorkers and the logs say.
+    names = d.execute_script(
+        "return [...document.querySelectorAll('#workers tbody tr')].map(r => r.dataset.name)")
+    listed = sorted(w.get("name", "") for w in got.get("workers", []))
+    assert sorted(names) == listed == ["worker-1", "worker-2"], \
+        f"the page names {names}, ListWorkers {listed}"
+    shown = d.execute_script(
+        "return [...document.querySelectorAll('#workers tbody .worker-name')].map(e => e.textContent)")
+    assert sorted(shown) == listed, f"the page shows {shown}"
 
 
 @step("100 jobs listed at once, older ones a page away")

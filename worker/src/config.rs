@@ -60,6 +60,10 @@ pub struct WorkerConfig {
     /// Where traffic traces of jobs that ask for one (`JobSpec.trace`) are written
     /// ([`crate::traffic_trace`]); `None`: no trace is recorded.
     pub trace_dir: Option<std::path::PathBuf>,
+    /// Its name for people (RegisterWorkerRequest.name: logs, ListWorkers, the
+    /// dashboard); `None`: the host name when it is a valid name, else none. Checked by
+    /// [`crate::run`] against `dray_proto::worker_name`.
+    pub name: Option<String>,
 }
 
 impl Default for WorkerConfig {
@@ -82,6 +86,7 @@ impl Default for WorkerConfig {
             package_fetch: crate::package_fetch::FetchMode::Auto,
             package_cache: None,
             trace_dir: None,
+            name: None,
         }
     }
 }
@@ -102,6 +107,21 @@ pub struct Limits {
 const MIN_RAYS: usize = 4096;
 
 impl WorkerConfig {
+    /// The name this worker registers under: [`WorkerConfig::name`] when given (checked:
+    /// a bad one is an error naming what is wrong), else the host name when it is a
+    /// valid name, else none (empty).
+    pub fn resolved_name(&self, hostname: &str) -> Result<String, NodeError> {
+        match &self.name {
+            Some(name) => dray_proto::worker_name::check_worker_name(name)
+                .map(|()| name.clone())
+                .map_err(|source| NodeError::Name {
+                    name: name.clone(),
+                    source,
+                }),
+            None => Ok(dray_proto::worker_name::default_worker_name(hostname)),
+        }
+    }
+
     /// The split of the memory budget: a quarter for rays (queued, and waiting for
     /// peers: the queue capacity and the in-flight limit each get half of it, 64 bytes
     /// a ray, the largest record), the rest for resident domains. Without a budget the configured ray
@@ -148,6 +168,11 @@ pub enum NodeError {
     Serve(String),
     #[error("cannot set up the package cache: {0}")]
     PackageCache(String),
+    #[error("--name {name:?}: {source}")]
+    Name {
+        name: String,
+        source: dray_proto::worker_name::WorkerNameError,
+    },
 }
 
 #[cfg(test)]
@@ -174,5 +199,28 @@ mod tests {
         };
         assert_eq!(tiny.limits().queue_capacity, MIN_RAYS);
         assert_eq!(tiny.limits().domain_bytes, 1);
+    }
+
+    #[test]
+    fn a_name_is_checked_and_defaults_to_the_host_name() {
+        let named = |n: &str| WorkerConfig {
+            name: Some(n.into()),
+            ..WorkerConfig::default()
+        };
+        assert_eq!(named("worker-2").resolved_name("host").unwrap(), "worker-2");
+        let e = named("worker 2")
+            .resolved_name("host")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("--name \"worker 2\": ' ' (character 7) is not allowed"),
+            "{e}"
+        );
+        let long = "n".repeat(65);
+        let e = named(&long).resolved_name("host").unwrap_err().to_string();
+        assert!(e.contains("65 characters is longer than 64"), "{e}");
+        let default = WorkerConfig::default();
+        assert_eq!(default.resolved_name("pod-7").unwrap(), "pod-7");
+        assert_eq!(default.resolved_name("not a name").unwrap(), "");
     }
 }

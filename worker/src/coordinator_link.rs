@@ -73,7 +73,9 @@ fn error_chain(e: &dyn std::error::Error) -> String {
     message
 }
 
-fn hostname() -> String {
+/// This machine's host name (empty when it cannot be read): sent at registration, and
+/// the default worker name.
+pub(crate) fn hostname() -> String {
     std::fs::read_to_string("/proc/sys/kernel/hostname")
         .map(|s| s.trim().to_string())
         .unwrap_or_default()
@@ -94,12 +96,13 @@ pub(crate) async fn register(
             record_format: RAY_RECORD_FORMAT,
             hostname: hostname(),
             cache_endpoint: shared.cache_endpoint.clone().unwrap_or_default(),
+            name: shared.name.clone(),
         })
         .await
         .map_err(|s| NodeError::Refused(s.message().to_string()))?
         .into_inner();
     shared.set_member(&reg.worker_id, &reg.member_token);
-    tracing::info!(worker = %reg.worker_id, %endpoint, "registered");
+    tracing::info!(worker = %reg.worker_id, name = %shared.name, %endpoint, "registered");
     Ok(reg)
 }
 

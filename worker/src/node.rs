@@ -95,6 +95,8 @@ pub(crate) struct Shared {
     pub threads: usize,
     /// The cache host beside this worker, announced at registration.
     pub cache_endpoint: Option<String>,
+    /// Its name, announced at registration (`WorkerConfig::resolved_name`).
+    pub name: String,
     /// Set when the worker stops: tracing threads leave.
     pub stopping: AtomicBool,
     /// Where jobs that ask for a traffic trace write it (none: they record nothing).
@@ -165,6 +167,8 @@ pub async fn run(
         .advertise
         .clone()
         .unwrap_or_else(|| format!("http://{local_addr}"));
+    // A bad --name is refused before anything is dialled.
+    let name = config.resolved_name(&coordinator_link::hostname())?;
     let channel = coordinator_link::connect(&config, config.connect_timeout).await?;
     let threads = if config.threads == 0 {
         std::thread::available_parallelism().map_or(1, |n| n.get())
@@ -215,6 +219,7 @@ pub async fn run(
         memory_budget: config.memory_budget,
         threads,
         cache_endpoint: config.cache_endpoint.clone(),
+        name,
         stopping: AtomicBool::new(false),
         trace_dir: config.trace_dir.clone(),
     });

@@ -294,7 +294,7 @@ impl WorkerCluster {
                 .unwrap_or_else(|| panic!("no pid for {name} in {lines:?}"))
         };
         let coordinator_pid = pid_of("coordinator ");
-        let worker_pids = (1..=n).map(|i| pid_of(&format!("worker {i} "))).collect();
+        let worker_pids = (1..=n).map(|i| pid_of(&format!("worker-{i} "))).collect();
         let c = WorkerCluster {
             proc,
             addr: format!("127.0.0.1:{port}"),

@@ -408,6 +408,8 @@ pub struct Workers {
 #[derive(Serialize, Debug, Clone, PartialEq)]
 pub struct WorkerRow {
     pub id: String,
+    /// Its name (`dray worker --name`; empty: none), shown before the id.
+    pub name: String,
     pub address: String,
     pub hostname: String,
     pub state: String,
@@ -480,6 +482,7 @@ impl From<&WorkerStatus> for WorkerRow {
     fn from(w: &WorkerStatus) -> WorkerRow {
         WorkerRow {
             id: w.worker_id.clone(),
+            name: w.name.clone(),
             address: w.endpoint.clone(),
             hostname: w.hostname.clone(),
             state: w.state.clone(),

@@ -412,10 +412,12 @@ impl JobActor {
             return;
         }
         let msg = format!(
-            "worker {} ({}) was lost ({}), and no worker is left to trace its tiles again",
-            lost.id, lost.endpoint, lost.cause
+            "worker {} at {} was lost ({}), and no worker is left to trace its tiles again",
+            lost.label(),
+            lost.endpoint,
+            lost.cause
         );
-        tracing::warn!(worker = %lost.id, endpoint = %lost.endpoint, "{msg}");
+        tracing::warn!(worker = %lost.id, name = %lost.name, endpoint = %lost.endpoint, "{msg}");
         self.fail(msg);
     }
 
@@ -427,11 +429,14 @@ impl JobActor {
         let n = self.job.clear_for_retry();
         let attempt = self.job.sched.attempt();
         let reason = format!(
-            "worker {} ({}) was lost ({}); {n} tiles are traced again as attempt {attempt}",
-            lost.id, lost.endpoint, lost.cause
+            "worker {} at {} was lost ({}); {n} tiles are traced again as attempt {attempt}",
+            lost.label(),
+            lost.endpoint,
+            lost.cause
         );
         tracing::warn!(
             worker = %lost.id,
+            name = %lost.name,
             endpoint = %lost.endpoint,
             attempt,
             tiles = n,

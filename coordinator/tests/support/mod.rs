@@ -81,6 +81,7 @@ impl Server {
                 stall_timeout,
                 // These tests register fake stand-alone cache hosts.
                 cache_hosts: true,
+                max_running_jobs: None,
             });
         let served = coordinator.clone();
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
@@ -135,6 +136,7 @@ pub fn register_request(endpoint: &str) -> RegisterWorkerRequest {
         record_format: dray_proto::RAY_RECORD_FORMAT,
         hostname: "test".into(),
         cache_endpoint: String::new(),
+        name: String::new(),
     }
 }
 

@@ -15,6 +15,7 @@ const state = {
   pageHistory: [],
   lastJobs: "",          // last jobs JSON rendered (skip identical snapshots)
   lastWorkers: "",
+  workerNames: new Map(), // worker id -> name, from the last workers list
   selected: null,        // job id
   armed: null,           // the job whose cancel button asks for confirmation
   selectedState: null,   // its last state
@@ -419,7 +420,7 @@ function renderProgress(p) {
   const detail = s.workers_detail || [];
   $("job-workers").innerHTML = detail.length
     ? "<thead><tr><th>worker</th><th>rays traced</th><th>domain loads</th><th>warm</th><th>evictions</th><th>idle</th><th>queue peak</th></tr></thead><tbody>" +
-      detail.map((w) => `<tr><td>${esc(w.worker_id)}</td><td class="num">${fmtCount(w.rays_traced)}</td>
+      detail.map((w) => `<tr><td>${workerLabel(w.worker_id, state.workerNames.get(w.worker_id))}</td><td class="num">${fmtCount(w.rays_traced)}</td>
         <td class="num">${w.domain_loads}</td><td class="num">${w.domains_warm}</td><td class="num">${w.evictions}</td>
         <td class="num">${fmtSecs(w.idle_seconds)}</td><td class="num">${fmtCount(w.queue_peak)}</td></tr>`).join("") +
       "</tbody>"
@@ -498,8 +499,14 @@ function renderWorkers(workers) {
   renderWorkerTable(workers);
 }
 
+// A worker as the logs name it: its name (dray worker --name) and, smaller, its id.
+function workerLabel(id, name) {
+  return name ? `<span class="worker-name">${esc(name)}</span> <small class="muted">${esc(id)}</small>` : esc(id);
+}
+
 function renderWorkerTable(workers) {
   const list = workers.workers || [];
+  state.workerNames = new Map(list.filter((w) => w.name).map((w) => [w.id, w.name]));
   const colour = new Map(list.map((w, i) => [w.id, `o${i % 12}`]));
   $("workers-count").textContent = `${list.length} registered`;
   $("workers-empty").hidden = list.length > 0;
@@ -508,8 +515,8 @@ function renderWorkerTable(workers) {
     const chips = resident.map((d) =>
       `<span class="chip ${d.owned ? colour.get(w.id) : "onone"}" title="job ${esc(d.job_id)}, domain ${d.domain}: ${d.resident ? "resident" : "not loaded"}, ${d.owned ? "owned" : "not owned"}, ${d.rays_queued} rays queued">${d.domain}</span>`).join("");
     const budget = w.memory_budget_bytes ? " / " + fmtBytes(w.memory_budget_bytes) : "";
-    return `<tr data-worker="${esc(w.id)}">
-      <td><span class="chip ${colour.get(w.id)}">&nbsp;</span> ${esc(w.id)}</td>
+    return `<tr data-worker="${esc(w.id)}" data-name="${esc(w.name || "")}">
+      <td><span class="chip ${colour.get(w.id)}">&nbsp;</span> ${workerLabel(w.id, w.name)}</td>
       <td title="${esc(w.hostname)}">${esc(w.address)}</td><td>${esc(w.state)}</td>
       <td><meter min="0" max="${w.memory_budget_bytes || w.memory_used_bytes || 1}" value="${w.memory_used_bytes}"></meter>
         ${fmtBytes(w.memory_used_bytes)}${budget}</td>
@@ -523,7 +530,7 @@ function renderWorkerTable(workers) {
   $("ownership").innerHTML = (workers.jobs || []).map((j) => {
     const cells = j.domains.map((d) => {
       const owner = d.worker_ids.length ? colour.get(d.worker_ids[0]) || "onone" : "onone";
-      const owners = d.worker_ids.length ? d.worker_ids.join(", ") : "any worker";
+      const owners = d.worker_ids.length ? d.worker_ids.map((id) => state.workerNames.has(id) ? `${state.workerNames.get(id)} (${id})` : id).join(", ") : "any worker";
       return `<span class="domain ${owner}" title="domain ${d.domain}: ${esc(owners)}">${d.domain}<span class="waiting">${fmtCount(d.rays_queued)}</span></span>`;
     }).join("");
     return `<div class="ownership-job" data-job="${esc(j.job_id)}">
