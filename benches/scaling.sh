@@ -10,6 +10,8 @@
 #   DRAY_BIN=target/release/dray RUNS=3 WORKERS="1 2 3" benches/scaling.sh
 #   FIT="cornell:glass --width 320 --height 240 --spp 64" benches/scaling.sh
 #   SCHEDULE=image-plane benches/scaling.sh    # force a schedule instead of auto
+#   CASES=big BIG_BUDGET=40000000 benches/scaling.sh   # in between: auto copies hot
+#                                  # domains (SCHEDULE=dynamic: the same without copies)
 #
 # Builds dray (cargo build --release -p dray) unless DRAY_BIN is set. Times are the
 # wall time of the command that waits for the image (`dray submit` against a running
@@ -25,6 +27,7 @@ fi
 RUNS=${RUNS:-3}
 WORKERS=${WORKERS:-1 2 3}
 SCHEDULE=${SCHEDULE:-auto}
+CASES=${CASES:-fit big}
 # Fits: 1.1 MB resident, no budget. Does not fit: 16 kd domains of about 2.6 MB against
 # a budget that holds two (the regression guard's scene and budget).
 FIT=${FIT:-spheres:64 --width 640 --height 480 --spp 64}
@@ -76,8 +79,8 @@ stop_cluster() {
 }
 
 echo "# $(date -u +%FT%TZ) $(nproc) cores, load average $(cut -d' ' -f1-3 /proc/loadavg)"
-echo "case workers median_s runs speedup_vs_1 ratio_vs_one_process schedule bytes_between_processes"
-for case in fit big; do
+echo "case workers median_s runs speedup_vs_1 ratio_vs_one_process schedule bytes_between_processes domain_loads rays_exchanged"
+for case in $CASES; do
     if [[ $case == fit ]]; then read -ra JOB <<<"$FIT"; budget=0; else read -ra JOB <<<"$BIG"; budget=$BIG_BUDGET; fi
     # One process, one tracing thread (the reference renderer, then the default
     # in-process actors with one worker).
@@ -87,7 +90,7 @@ for case in fit big; do
             --memory-budget "$budget" --output "$OUT/$case-ref.png")")
     done
     base=$(median "${one[@]}")
-    echo "$case one-process $base ${one[*]// /,} - 1.00 none 0"
+    echo "$case one-process $base ${one[*]// /,} - 1.00 none 0 0 0"
     t1=
     for n in $WORKERS; do
         start_cluster "$n" "$budget"
@@ -102,14 +105,21 @@ for case in fit big; do
         stop_cluster
         m=$(median "${runs[@]}")
         [[ -z "$t1" ]] && t1=$m
-        read -r sched bytes < <(python3 - "$OUT/$case-$n-1.json" <<'PY'
+        # Counts of the first run, the cluster's cold one (later runs find the
+        # package's domains warm: loads fall to the few evicted ones); loads and rays
+        # moved depend less on the machine's speed than times do. "+copies" when auto
+        # turned on hot-domain replication (its reason says so).
+        read -r sched bytes loads moved < <(python3 - "$OUT/$case-$n-1.json" <<'PY'
 import json, sys
 d = json.load(open(sys.argv[1]))
 s = d.get("scheduling", d)
-print(s.get("schedule", "?"), s.get("traffic", {}).get("total", 0))
+name = s.get("schedule", "?")
+if "hot-domain replication" in s.get("placement", "") or "--replicate" in s.get("placement", ""):
+    name += "+copies"
+print(name, s.get("traffic", {}).get("total", 0), s.get("domain_loads", 0), s.get("rays_exchanged", 0))
 PY
 )
-        python3 -c "import sys; t1,m,b=map(float,sys.argv[1:4]); print(sys.argv[4], sys.argv[5], f'{m:.3f}', sys.argv[6], f'{t1/m:.2f}', f'{m/b:.2f}', sys.argv[7], sys.argv[8])" \
-            "$t1" "$m" "$base" "$case" "$n" "$(IFS=,; echo "${runs[*]}")" "$sched" "$bytes"
+        python3 -c "import sys; t1,m,b=map(float,sys.argv[1:4]); print(sys.argv[4], sys.argv[5], f'{m:.3f}', sys.argv[6], f'{t1/m:.2f}', f'{m/b:.2f}', *sys.argv[7:])" \
+            "$t1" "$m" "$base" "$case" "$n" "$(IFS=,; echo "${runs[*]}")" "$sched" "$bytes" "$loads" "$moved"
     done
 done

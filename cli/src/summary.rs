@@ -319,6 +319,9 @@ pub struct Scheduling {
     pub routing_version: u64,
     /// Tiles traced again after a worker was lost.
     pub tiles_retraced: u32,
+    /// Replicated schedule: tiles dealt after their pass or attempt started, to workers
+    /// that had room or joined (JobStats.tiles_dealt_later).
+    pub tiles_dealt_later: u64,
     /// Passes the workers could trace ahead of the job's (JobStats.passes_ahead; 0:
     /// each pass waited for the one before).
     pub passes_ahead: u32,
@@ -400,6 +403,7 @@ impl Scheduling {
             scheduler_rounds: 0,
             routing_version: 0,
             tiles_retraced: 0,
+            tiles_dealt_later: 0,
             passes_ahead: 0,
             workers: Vec::new(),
             worker_count: 0,
@@ -429,6 +433,7 @@ impl Scheduling {
             scheduler_rounds: s.scheduler_rounds,
             routing_version: s.routing_version,
             tiles_retraced: s.tiles_retried,
+            tiles_dealt_later: s.tiles_dealt_later,
             passes_ahead: s.passes_ahead,
             workers: s
                 .workers_detail

@@ -4,6 +4,8 @@
 //! - a worker SIGSTOPped past the heartbeat timeout: the same; once resumed it registers
 //!   again and takes the next job;
 //! - a worker that joins mid-job (dynamic schedule) takes domains;
+//! - a worker that joins a replicated job mid-pass takes tiles nobody had started, and
+//!   the image is a 1-worker render's, byte for byte;
 //! - a coordinator restart without a state directory fails its jobs with a clear status
 //!   (dray submit waits for the coordinator, then says the job is gone), and the workers
 //!   stay up and take the next job (cli/tests/durable.rs: with one, nothing is lost).
@@ -327,6 +329,34 @@ fn a_worker_stopped_past_the_heartbeat_timeout_changes_nothing_and_rejoins() {
     let _ = std::fs::remove_dir_all(&c.dir);
 }
 
+/// Submit `flags` on SCENE to `c` (one worker), start a second worker once the job runs
+/// and wait for it to register; the job must succeed with the reference image (`dray
+/// render --workers 0`, the same bits as one worker). Its `--stats` JSON.
+fn join_mid_job(c: &mut Cluster, flags: &[&str]) -> serde_json::Value {
+    let want = reference(&c.dir, "reference", SCENE, flags);
+    let png = c.dir.join("job.png");
+    let stats = c.dir.join("job.json");
+    let s = submit(&c.addr, SCENE, flags, &png, &stats);
+    assert!(
+        eventually(HANG_SECS, || s.running()),
+        "the job never ran: {}",
+        text(&s.log)
+    );
+    c.add_worker(&[]);
+    assert!(
+        eventually(HANG_SECS, || c.registered() >= 2),
+        "{}",
+        text(&c.log)
+    );
+    let (ok, out) = s.finish();
+    assert!(ok, "{out}\n{}", text(&c.log));
+    assert!(
+        std::fs::read(&png).expect("png") == want,
+        "the image differs from the reference"
+    );
+    serde_json::from_slice(&std::fs::read(&stats).expect("read stats")).expect("stats json")
+}
+
 #[test]
 fn a_worker_joining_mid_job_takes_domains() {
     // The first worker's budget holds only some of the domains, so wanted domains wait
@@ -355,30 +385,7 @@ fn a_worker_joining_mid_job_takes_domains() {
             1,
             &["--memory-budget", "800000", "--load-delay-ms", delay_ms],
         );
-        let want = reference(&c.dir, "reference", SCENE, flags);
-        let png = c.dir.join("job.png");
-        let stats = c.dir.join("job.json");
-        let s = submit(&c.addr, SCENE, flags, &png, &stats);
-        assert!(
-            eventually(HANG_SECS, || s.running()),
-            "the job never ran: {}",
-            text(&s.log)
-        );
-        c.add_worker(&[]);
-        assert!(
-            eventually(HANG_SECS, || c.registered() >= 2),
-            "{}",
-            text(&c.log)
-        );
-        let (ok, out) = s.finish();
-        assert!(ok, "{out}\n{}", text(&c.log));
-        assert!(
-            std::fs::read(&png).expect("png") == want,
-            "the image differs"
-        );
-        let json: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(&stats).expect("read stats"))
-                .expect("stats json");
+        let json = join_mid_job(&mut c, flags);
         let workers = json["workers"].as_array().cloned().unwrap_or_default();
         eprintln!("join (load delay {delay_ms} ms): per worker {workers:?}");
         let _ = std::fs::remove_dir_all(&c.dir);
@@ -396,6 +403,67 @@ fn a_worker_joining_mid_job_takes_domains() {
         return;
     }
     panic!("the job ended before the new worker joined in every round, loads slowed to 1.5 s");
+}
+
+#[test]
+fn a_worker_joining_a_replicated_job_takes_tiles_nobody_started() {
+    // One pass (no later pass to take a share of): the newcomer's tiles can only come
+    // from those the job had not dealt when it joined. 48 tiles of 32x32 on one worker
+    // deal in windows of 12, so 36 wait for whoever has room.
+    let base: &[&str] = &[
+        "--width",
+        "256",
+        "--height",
+        "192",
+        "--integrator",
+        "path",
+        "--max-depth",
+        "6",
+        "--schedule",
+        "replicated",
+        "--passes",
+        "one",
+    ];
+    // On a machine fast enough to finish before the newcomer starts, the job runs again
+    // with more samples; the test fails (never skips) if it never overlaps.
+    for (round, spp) in ["48", "192", "768"].into_iter().enumerate() {
+        let flags = [base, &["--spp", spp]].concat();
+        let tag = format!("faults-join-replicated-{round}");
+        let mut c = Cluster::start(&tag, 1, &[]);
+        let json = join_mid_job(&mut c, &flags);
+        assert_eq!(json["schedule"], "replicated", "{json}");
+        let workers = json["workers"].as_array().cloned().unwrap_or_default();
+        eprintln!(
+            "join replicated ({spp} spp): tiles dealt later {}, per worker {workers:?}",
+            json["tiles_dealt_later"]
+        );
+        let _ = std::fs::remove_dir_all(&c.dir);
+        if workers.len() < 2 {
+            eprintln!("join replicated: the job ended before the new worker joined; more samples");
+            continue;
+        }
+        let newcomer = &workers[1];
+        assert!(
+            newcomer["rays_traced"].as_u64().unwrap_or(0) > 0,
+            "the worker that joined traced nothing: {json}"
+        );
+        assert_eq!(
+            newcomer["domain_loads"].as_u64().unwrap_or(0)
+                + newcomer["domains_warm"].as_u64().unwrap_or(0),
+            1,
+            "the newcomer holds the whole scene (one domain): {json}"
+        );
+        assert!(
+            json["tiles_dealt_later"].as_u64().unwrap_or(0) > 0,
+            "{json}"
+        );
+        assert_eq!(
+            json["rays_exchanged"], 0,
+            "replicated: no ray moves: {json}"
+        );
+        return;
+    }
+    panic!("the replicated job ended before the new worker joined in every round, at 768 spp");
 }
 
 #[test]

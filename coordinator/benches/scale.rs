@@ -292,6 +292,7 @@ impl Sim {
             owned_package: None,
             caches: None,
             resume: None,
+            scene: dray_coordinator::scheduler::auto::SceneSize::default(),
         });
         running.start(&membership).expect("start");
         Sim {

@@ -145,8 +145,14 @@ pub fn choose_domains(requested: Option<u32>, workers: usize, triangles: u64, ma
 
 /// The schedule job `v` runs with on the registered workers: what it forced, or what
 /// `auto` makes of the scene's resident size (`prepared`'s scene, or its package's
-/// domains) against every worker's budget ([`auto::choose`]).
-pub fn choose_schedule(membership: &Membership, v: &Validated, prepared: &Prepared) -> Choice {
+/// domains) against every worker's budget ([`auto::choose`]); `domains` is what the scene
+/// is cut into if it is not replicated (the room for copies is counted in them).
+pub fn choose_schedule(
+    membership: &Membership,
+    v: &Validated,
+    prepared: &Prepared,
+    domains: u32,
+) -> Choice {
     let size = match &prepared.package {
         Some(pkg) => SceneSize::of_manifest(pkg.manifest()),
         None => SceneSize::of_scene(&prepared.scene),
@@ -158,10 +164,12 @@ pub fn choose_schedule(membership: &Membership, v: &Validated, prepared: &Prepar
         .collect();
     let needs = JobNeeds {
         walls: v.spec.ray_cache.is_some() || v.spec.phm.is_some(),
+        domains,
     };
     let choice = auto::choose(v.schedule, size, &budgets, needs);
     tracing::info!(
         schedule = choice.schedule.name(),
+        replicate = matches!(choice.schedule, Schedule::Dynamic { replicate: true }),
         scene_bytes = size.bytes,
         reason = %choice.reason,
         "schedule chosen"
@@ -406,6 +414,7 @@ pub fn plan(mut p: Prepared, mut spec: JobSpec, layout: LayoutSpec, choice: Choi
         package,
         schedule: choice.schedule,
         placement: choice.reason,
+        scene: choice.scene,
     }
 }
 
@@ -421,6 +430,9 @@ pub struct Planned {
     pub schedule: Schedule,
     /// Why (`JobStats.placement`).
     pub placement: String,
+    /// The scene's size as the schedule was chosen from (a replicated job's joiners
+    /// must hold it).
+    pub scene: SceneSize,
 }
 
 /// The index of the camera `which` names (an index first, then a name, as
@@ -496,6 +508,7 @@ async fn run(
         package,
         schedule,
         placement,
+        scene,
     } = planned;
     entry.set_state(JobState::Preparing);
     // Counted until the cut has ended and, on failure, its folder is gone.
@@ -658,6 +671,7 @@ async fn run(
         owned_package: owned.clone(),
         caches,
         resume,
+        scene,
     };
     match cluster.jobs.start(plan).await {
         Ok(()) => {

@@ -481,7 +481,17 @@ impl Coordinator {
         // On workers: the spec shows the domain count and layout the package is cut
         // with, so GetJob says what ran.
         let mut spec = v.spec.clone();
-        let choice = dispatch::choose_schedule(&self.cluster.membership, v, &prepared);
+        // What the scene is cut into unless it is replicated whole.
+        let cut = match &prepared.package {
+            Some(pkg) => pkg.domain_count(),
+            None => dispatch::choose_domains(
+                (!v.domains_auto).then_some(spec.domains),
+                workers,
+                prepared.triangles,
+                self.limits.max_domains,
+            ),
+        };
+        let choice = dispatch::choose_schedule(&self.cluster.membership, v, &prepared, cut);
         spec.schedule = choice.schedule.name().to_string();
         match &prepared.package {
             Some(pkg) => {
@@ -493,14 +503,7 @@ impl Coordinator {
             None if choice.schedule == Schedule::Replicated && v.domains_auto => {
                 spec.domains = 1;
             }
-            None => {
-                spec.domains = dispatch::choose_domains(
-                    (!v.domains_auto).then_some(spec.domains),
-                    workers,
-                    prepared.triangles,
-                    self.limits.max_domains,
-                );
-            }
+            None => spec.domains = cut,
         }
         let layout = dispatch::layout_spec(&spec.layout, spec.domains);
         let planned = dispatch::plan(prepared, spec.clone(), layout, choice);

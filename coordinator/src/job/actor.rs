@@ -228,7 +228,7 @@ impl JobActor {
             }
             JobEvent::WorkerLost(lost) => self.worker_lost(&lost),
             JobEvent::WorkerJoined(w) => {
-                if self.job.sched.schedule().is_dynamic() && !self.job.entry.is_terminal() {
+                if self.job.takes_joiners() && !self.job.entry.is_terminal() {
                     self.join(&w);
                 }
             }
@@ -303,6 +303,13 @@ impl JobActor {
                     self.end(JobState::Succeeded, String::new());
                     ReportOutcome::Completed
                 } else {
+                    // A replicated job tops the reporting worker up from the tiles
+                    // nobody has started once it has room (`super::backlog`).
+                    for (w, a) in self.job.top_up(&r.worker_id) {
+                        if !self.membership.send_shared(&w, a) {
+                            tracing::debug!(worker = %w, "worker gone before its top-up");
+                        }
+                    }
                     ReportOutcome::Applied
                 }
             }

@@ -27,7 +27,8 @@ pub enum JobEvent {
     /// A worker stopped heartbeating (or its peers could not reach it) and was dropped:
     /// a job it was part of starts its next attempt on the survivors, or fails.
     WorkerLost(LostWorker),
-    /// A worker registered: a running dynamic job takes it on.
+    /// A worker registered: a running job whose schedule takes joiners takes it on
+    /// (`RunningJob::takes_joiners`).
     WorkerJoined(WorkerRecord),
     /// CancelJob (the job's record is marked CANCELLED already): release the workers.
     Cancel(oneshot::Sender<()>),

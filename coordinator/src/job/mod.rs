@@ -4,6 +4,7 @@
 //! - [`actor`]: one job's task: its mailbox, round timer, stall timeout and cache walls.
 //! - [`adaptive`]: adaptive sampling: which tiles stop after a pass.
 //! - [`ahead`]: when a job's workers trace passes ahead, and the tiles they hold.
+//! - [`backlog`]: a replicated job's tiles dealt on demand, so joiners take a share.
 //! - [`event`]: what an actor is told.
 //! - [`running`]: what an actor owns: tiles and credit, the film, the schedule, the
 //!   caches, the counters it publishes; and the commands they cause.
@@ -13,6 +14,7 @@
 pub mod actor;
 pub mod adaptive;
 pub mod ahead;
+pub mod backlog;
 pub mod event;
 pub mod registry;
 pub mod report;

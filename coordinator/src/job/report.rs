@@ -327,6 +327,16 @@ pub(super) mod tests {
 
     /// [`job_of`] with `setup` as the job's JobSetup.
     pub(in crate::job) fn job_with(tiles: u32, spp: u32, setup: JobSetup) -> RunningJob {
+        job_under(tiles, spp, setup, Schedule::Domain)
+    }
+
+    /// [`job_with`] under `schedule`.
+    pub(in crate::job) fn job_under(
+        tiles: u32,
+        spp: u32,
+        setup: JobSetup,
+        schedule: Schedule,
+    ) -> RunningJob {
         let table = JobTable::new(1);
         let entry = table.insert(JobSpec {
             width: 2 * tiles,
@@ -341,7 +351,7 @@ pub(super) mod tests {
             },
             budget: 0,
         });
-        let sched = JobSchedule::new(&entry.id, Schedule::Domain, 2, &workers);
+        let sched = JobSchedule::new(&entry.id, schedule, 2, &workers);
         let tile = |i: u32| Tile {
             index: i,
             x0: 2 * i,
@@ -359,6 +369,7 @@ pub(super) mod tests {
             owned_package: None,
             caches: None,
             resume: None,
+            scene: crate::scheduler::auto::SceneSize::default(),
         })
     }
 

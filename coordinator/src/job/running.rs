@@ -36,6 +36,8 @@ use crate::jobs::JobEntry;
 use crate::membership::{Membership, WorkerRecord};
 use crate::metrics::JobMetrics;
 use crate::owned_package::OwnedPackage;
+use crate::scheduler::Schedule;
+use crate::scheduler::auto::SceneSize;
 use crate::scheduler::state::{JobSchedule, JobWorker, RoundOutcome};
 use crate::store::{CommittedTile, Op, Resume};
 
@@ -63,6 +65,9 @@ pub struct JobPlan {
     /// For a job taken back from the job store: the tiles it keeps (its attempt is in
     /// `sched` already).
     pub resume: Option<Resume>,
+    /// The scene's size as its schedule was chosen from: a worker joining a replicated
+    /// job takes part only if its budget holds it.
+    pub scene: SceneSize,
 }
 
 /// A job running on workers: the state its actor owns.
@@ -135,6 +140,11 @@ pub struct RunningJob {
     /// For a job whose workers trace passes ahead (`JobSetup.passes_ahead`): the image
     /// tiles a worker of the current attempt holds, which are not dealt again.
     held: Option<super::ahead::Held>,
+    /// For a replicated job: the tiles of the current phase not dealt yet, dealt on
+    /// demand so that a worker joining the job takes a share ([`super::backlog`]).
+    backlog: Option<super::backlog::Backlog>,
+    /// The scene's size as the schedule was chosen from.
+    scene: SceneSize,
 }
 
 /// How a job's workers are released.
@@ -157,6 +167,7 @@ impl RunningJob {
             owned_package,
             caches,
             resume,
+            scene,
         } = plan;
         let (w, h) = (entry.spec.width, entry.spec.height);
         // Validated when the job was accepted.
@@ -168,6 +179,8 @@ impl RunningJob {
         let image_tiles = tiles.iter().filter(|t| !t.coarse).count();
         let pass_next = (entry.passes.total() > 1).then(|| Film::with_aovs(w, h, aovs));
         let held = (setup.passes_ahead > 0).then(|| super::ahead::Held::new(image_tiles));
+        let backlog =
+            (sched.schedule() == Schedule::Replicated).then(super::backlog::Backlog::default);
         entry.update_stats(|s| s.passes_ahead = setup.passes_ahead);
         let mut job = RunningJob {
             entry,
@@ -201,6 +214,8 @@ impl RunningJob {
             pass_next,
             pass_copied: 0,
             held,
+            backlog,
+            scene,
         };
         if let Some(r) = resume {
             job.keep(r.tiles);
@@ -470,7 +485,7 @@ impl RunningJob {
         }
         self.entry.set_state(JobState::Running);
         self.publish();
-        if self.sched.schedule().is_dynamic() {
+        if self.takes_joiners() {
             // Workers that registered before the job's actor existed: this is their join.
             for w in membership.workers() {
                 self.join(membership, &w);
@@ -536,9 +551,23 @@ impl RunningJob {
         }
     }
 
-    /// Add `w` to the (dynamic) job if it is not a worker of it yet: the others get the
-    /// new table (listing it), it gets a JobSetup of the current attempt. It has no tiles
-    /// and owns nothing; being idle, it gets domains from the next rounds.
+    /// Whether a worker that registers while the job runs becomes one of its workers:
+    /// under the dynamic schedule (rounds give it domains), the replicated one (it takes
+    /// tiles nobody has started, and a share of each later pass) and image-plane (a
+    /// share of each later pass). The domain schedule's owners are fixed.
+    pub(super) fn takes_joiners(&self) -> bool {
+        match self.sched.schedule() {
+            Schedule::Dynamic { .. } | Schedule::Replicated | Schedule::ImagePlane => true,
+            Schedule::Domain => false,
+        }
+    }
+
+    /// Add `w` to the job if it is not a worker of it yet: the others get the new table
+    /// (listing it), it gets a JobSetup of the current attempt. Under the dynamic
+    /// schedule it has no tiles and owns nothing; being idle, it gets domains from the
+    /// next rounds. Under the replicated schedule it is dealt a window of the tiles
+    /// nobody has started (if its budget holds the scene: otherwise it stays out of the
+    /// job, which it could only fail); under image-plane, its share of the next pass.
     pub fn join(&mut self, membership: &Membership, w: &WorkerRecord) {
         if membership.get(&w.id).is_none() {
             // Lost before its join was handled (its loss event comes next).
@@ -546,6 +575,16 @@ impl RunningJob {
         }
         if self.caches_pending() {
             // The attempt has not been sent to anyone yet; it joins when it is.
+            return;
+        }
+        let replicated = self.sched.schedule() == Schedule::Replicated;
+        if replicated && !self.scene.fits(w.memory_budget_bytes) && !self.sched.has_worker(&w.id) {
+            tracing::info!(
+                worker = %w.id,
+                budget = w.memory_budget_bytes,
+                scene_bytes = self.scene.bytes,
+                "worker's budget does not hold the replicated scene: it stays out of the job"
+            );
             return;
         }
         let Some(table) = self.sched.add_worker(JobWorker {
@@ -563,13 +602,52 @@ impl RunningJob {
             .collect();
         membership.send_all(&others, command(Command::Routing(table.clone())));
         membership.send(&w.id, command(Command::Setup(self.current_setup())));
+        let tiles = self.top_up(&w.id);
+        let dealt: usize = tiles.iter().map(|(_, a)| tile_count(a)).sum();
+        for (id, a) in tiles {
+            membership.send_shared(&id, a);
+        }
         tracing::info!(
             worker = %w.id,
             endpoint = %w.endpoint,
             version = table.version,
+            tiles = dealt,
             "worker joined the running job"
         );
         self.publish();
+    }
+
+    /// The tiles `worker` is dealt now, as messages: under the replicated schedule, a
+    /// top-up from the current phase's tiles nobody has started when it has room for it
+    /// ([`super::backlog::Backlog::top_up`]: after its reports complete tiles, or as it
+    /// joins); nothing otherwise.
+    pub(super) fn top_up(&mut self, worker: &str) -> Vec<(String, Arc<Assignment>)> {
+        if !self.sched.has_worker(worker) || self.entry.is_terminal() {
+            return Vec::new();
+        }
+        let Some(backlog) = self.backlog.as_mut() else {
+            return Vec::new();
+        };
+        let (tiles, back) = (&self.tiles, &self.tile_back);
+        let more = backlog.top_up(worker, |t| {
+            let t = t as usize;
+            tiles.get(t).is_some_and(|x| back.get(t) == Some(&x.credit))
+        });
+        if more.is_empty() {
+            return Vec::new();
+        }
+        let waiting = backlog.waiting();
+        let later = backlog.dealt_later();
+        let more = self.sched.deal_to(worker, &more);
+        tracing::debug!(
+            worker,
+            tiles = more.len(),
+            waiting,
+            dealt_later = later,
+            "tiles dealt on demand"
+        );
+        self.entry.update_stats(|s| s.tiles_dealt_later = later);
+        self.tile_messages(worker, &more)
     }
 
     /// The JobSetup of the current attempt and table.
@@ -596,36 +674,55 @@ impl RunningJob {
 
     /// `tiles` dealt to the current attempt's workers, each worker's JobSetup first when
     /// `setup`. The JobSetup (which carries the whole routing table) is one shared copy
-    /// for every worker: at 10,000 workers a copy each would be gigabytes.
+    /// for every worker: at 10,000 workers a copy each would be gigabytes. A replicated
+    /// job deals only the first windows of them now and keeps the rest for whoever has
+    /// room later ([`super::backlog`]).
     pub(super) fn commands(
         &mut self,
         tiles: &[Tile],
         setup: bool,
     ) -> Vec<(String, Arc<Assignment>)> {
         let job_setup = setup.then(|| Arc::new(command(Command::Setup(self.current_setup()))));
+        let workers = self.sched.worker_ids().len();
+        let now: std::borrow::Cow<'_, [Tile]> = match self.backlog.as_mut() {
+            Some(b) => b.start(tiles, workers).into(),
+            None => tiles.into(),
+        };
+        let mut out = Vec::new();
+        for (w, mine) in self.sched.deal(&now) {
+            if let Some(s) = &job_setup {
+                out.push((w.clone(), s.clone()));
+            }
+            if let Some(b) = self.backlog.as_mut() {
+                b.dealt(&w, &mine);
+            }
+            out.extend(self.tile_messages(&w, &mine));
+        }
+        out
+    }
+
+    /// `tiles` for `worker` (stamped with the attempt), in messages of at most
+    /// [`TILES_PER_MESSAGE`]; image tiles dealt are held by it when the job traces ahead.
+    fn tile_messages(&mut self, worker: &str, tiles: &[Tile]) -> Vec<(String, Arc<Assignment>)> {
         if let Some(held) = self.held.as_mut() {
             for t in tiles.iter().filter(|t| !t.coarse) {
                 held.deal(t.index as usize);
             }
         }
         let pass = self.pass as u32;
-        let mut out = Vec::new();
-        for (w, mine) in self.sched.deal(tiles) {
-            if let Some(s) = &job_setup {
-                out.push((w.clone(), s.clone()));
-            }
-            for chunk in mine.chunks(TILES_PER_MESSAGE) {
-                out.push((
-                    w.clone(),
+        tiles
+            .chunks(TILES_PER_MESSAGE)
+            .map(|chunk| {
+                (
+                    worker.to_string(),
                     Arc::new(command(Command::Tiles(TileAssignment {
                         job_id: self.entry.id.clone(),
                         tiles: chunk.to_vec(),
                         pass,
                     }))),
-                ));
-            }
-        }
-        out
+                )
+            })
+            .collect()
     }
 
     /// The release of the current attempt, for each of its workers.
@@ -805,6 +902,14 @@ pub(super) fn command(c: Command) -> Assignment {
     Assignment { command: Some(c) }
 }
 
+/// Tiles an assignment deals (0 for any other command).
+fn tile_count(a: &Assignment) -> usize {
+    match &a.command {
+        Some(Command::Tiles(t)) => t.tiles.len(),
+        _ => 0,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::super::report::tests::{job_of, job_with, report};
@@ -886,6 +991,95 @@ mod tests {
         let mut plain = job_of(3, 8);
         plain.attempt_commands();
         assert!(plain.pass_markers().is_none());
+    }
+
+    /// A replicated job deals each phase in windows and the rest on demand: a worker is
+    /// topped up once half its window is complete, a worker that joins takes a window at
+    /// once, a new attempt deals the incomplete tiles afresh, and every tile goes out
+    /// once per attempt until the job is complete.
+    #[test]
+    fn a_replicated_job_deals_on_demand_and_a_joiner_takes_a_share() {
+        use super::super::report::tests::job_under;
+        use crate::scheduler::Schedule;
+        use crate::scheduler::state::JobWorker;
+        use std::collections::BTreeMap;
+
+        // 40 tiles, one pass, two workers: windows of 8 (a quarter of 20 is 5, at
+        // least 8), 16 dealt at once, 24 waiting.
+        let mut j = job_under(40, 1, JobSetup::default(), Schedule::Replicated);
+        let by_worker = |c: &[(String, std::sync::Arc<Assignment>)]| {
+            let mut m: BTreeMap<String, Vec<u32>> = BTreeMap::new();
+            for (w, a) in c {
+                if let Some(Command::Tiles(t)) = &a.command {
+                    m.entry(w.clone())
+                        .or_default()
+                        .extend(t.tiles.iter().map(|x| x.index));
+                }
+            }
+            m
+        };
+        let first = by_worker(&j.attempt_commands());
+        assert_eq!(first["w1"], [0, 2, 4, 6, 8, 10, 12, 14]);
+        assert_eq!(first["w2"], [1, 3, 5, 7, 9, 11, 13, 15]);
+        let mut seq: BTreeMap<String, u64> = BTreeMap::new();
+        let finish = |seq: &mut BTreeMap<String, u64>, j: &mut super::RunningJob, w: &str, t| {
+            let s = seq.entry(w.to_string()).or_default();
+            *s += 1;
+            assert_eq!(apply(j, &report(w, *s, &[(t, 10)])), Applied::Counted);
+        };
+        // Three of w1's done: 5 open, more than half a window.
+        for t in [0, 2, 4] {
+            finish(&mut seq, &mut j, "w1", t);
+        }
+        assert!(j.top_up("w1").is_empty());
+        finish(&mut seq, &mut j, "w1", 6);
+        let more = by_worker(&j.top_up("w1"));
+        assert_eq!(more["w1"], [16, 17, 18, 19], "back to a window of 8");
+        // A worker that joins takes a window of what nobody has started.
+        j.sched
+            .add_worker(JobWorker {
+                endpoint: dray_proto::v1::WorkerEndpoint {
+                    worker_id: "w3".into(),
+                    ..Default::default()
+                },
+                budget: 0,
+            })
+            .expect("a new worker");
+        let joined = by_worker(&j.top_up("w3"));
+        assert_eq!(joined["w3"], (20..28).collect::<Vec<u32>>());
+        let mut later = 0;
+        j.entry.update_stats(|s| later = s.tiles_dealt_later);
+        assert_eq!(later, 12, "JobStats.tiles_dealt_later");
+        // w2 is lost: the new attempt deals every incomplete tile afresh over w1 and w3
+        // (36 of them: windows of max(8, 36 / 8) = 8 each, 16 at once).
+        assert!(j.sched.restart_without("w2").is_some());
+        assert_eq!(j.clear_for_retry(), 36);
+        seq.clear();
+        let again = by_worker(&j.attempt_commands());
+        assert_eq!(again["w1"].len() + again["w3"].len(), 16);
+        // Every worker finishes what it holds and asks for more until none is left:
+        // each incomplete tile goes out exactly once in this attempt.
+        let mut dealt: Vec<u32> = again.values().flatten().copied().collect();
+        let mut open = again;
+        while !j.all_complete() {
+            let Some((w, tiles)) = open.pop_first() else {
+                panic!(
+                    "tiles left but none dealt: {} waiting",
+                    j.backlog.as_ref().map_or(0, |b| b.waiting())
+                );
+            };
+            for t in tiles {
+                finish(&mut seq, &mut j, &w, t);
+            }
+            for (w, more) in by_worker(&j.top_up(&w)) {
+                dealt.extend(&more);
+                open.entry(w).or_default().extend(more);
+            }
+        }
+        dealt.sort_unstable();
+        let mut want: Vec<u32> = (0..40).filter(|t| ![0, 2, 4, 6].contains(t)).collect();
+        want.sort_unstable();
+        assert_eq!(dealt, want);
     }
 
     /// Pixels in one tile of [`job_of`]'s jobs.

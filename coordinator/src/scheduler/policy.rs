@@ -289,10 +289,17 @@ impl Change {
 /// itself included) beside the others. So `cap` domains fit when `cap - 1` of them and
 /// one load do. At least 1; None when the budget is unlimited or no size is known yet.
 fn capacity(w: &WorkerView<'_>, size: u64) -> Option<usize> {
-    if w.budget == 0 || size == 0 {
+    slots(w.budget, size)
+}
+
+/// Domains of `size` bytes a worker with `budget` holds at once (see `capacity`): the
+/// one rule for the rounds and for `auto`'s room for copies ([`super::auto`]). At least
+/// 1; None when the budget is unlimited (0) or the size unknown (0).
+pub fn slots(budget: u64, size: u64) -> Option<usize> {
+    if budget == 0 || size == 0 {
         return None;
     }
-    let share = w.budget / 4 * 3;
+    let share = budget / 4 * 3;
     let others = share.saturating_sub(load_reserve(size)) / size;
     Some((others as usize).saturating_add(1))
 }

@@ -189,6 +189,17 @@ impl JobSchedule {
         dealt
     }
 
+    /// `tiles` for `worker` alone (a top-up or a joiner's first tiles), stamped with the
+    /// current attempt; like [`JobSchedule::deal`], `worker` holds this attempt's credit
+    /// from then on.
+    pub fn deal_to(&mut self, worker: &str, tiles: &[Tile]) -> Vec<Tile> {
+        if !tiles.is_empty() {
+            self.holders.insert(worker.to_string());
+        }
+        let attempt = self.attempt();
+        tiles.iter().map(|t| Tile { attempt, ..*t }).collect()
+    }
+
     /// Store a queue report of the current attempt from one of the job's workers (the
     /// caller checks both). A domain the report shows resident is no longer loading there.
     pub fn record_queues(&mut self, r: &ReportQueuesRequest) {
