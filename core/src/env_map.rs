@@ -267,8 +267,9 @@ mod tests {
         };
         for (rotation, bright_at) in [(0.0, 180.0), (90.0, 270.0), (-90.0, 90.0), (180.0, 0.0)] {
             let m = EnvMap::new(w, h, pixels.clone(), rotation, 1.0).expect("map");
-            // Just off the column's centre line, inside the column's pixel.
-            let on = m.radiance(horizon(bright_at + 1.0));
+            // Just inside the column's pixel (u in [0.5, 0.5 + 1/64]: phi = atan2(x, -z)
+            // = 180 - azimuth in [0, 5.6] degrees, so 1 degree less azimuth).
+            let on = m.radiance(horizon(bright_at - 1.0));
             let off = m.radiance(horizon(bright_at + 90.0));
             assert_eq!(
                 (on.x, off.x),
