@@ -334,6 +334,7 @@ impl JobFlags {
             passes: self.passes_or_default().to_string(),
             view: self.view.spec()?,
             lighting: self.lights.lighting_spec(),
+            sun_color: self.lights.sun_color_spec(),
             clamp_indirect: self.noise.clamp_indirect,
             aovs: self.noise.aov.clone(),
             time: self.anim.time,

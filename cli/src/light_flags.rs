@@ -1,10 +1,11 @@
-//! The flags that add lights to a job (`--sun`, `--env-map`, `--env-rotation`,
-//! `--env-intensity`), shared by `dray render` and `dray submit` through
-//! [`crate::job_flags::JobFlags`], and their `JobSpec.lighting`.
+//! The flags that add lights to a job (`--sun`, `--sun-size`, `--sun-color`,
+//! `--env-map`, `--env-rotation`, `--env-intensity`), shared by `dray render` and
+//! `dray submit` through [`crate::job_flags::JobFlags`], and their `JobSpec.lighting`
+//! and `JobSpec.sun_color`.
 
 use clap::Args;
 use dray_core::sun::{SUN_DIAMETER_DEG, Sun};
-use dray_proto::v1::{EnvMapSpec, LightingSpec, SunSpec};
+use dray_proto::v1::{EnvMapSpec, LightingSpec, Rgb, SunSpec};
 
 #[derive(Args, Debug, Clone, Default)]
 #[command(next_help_heading = crate::help_heading::LIGHTS)]
@@ -21,6 +22,30 @@ pub struct LightFlags {
         value_parser = parse_sun
     )]
     pub sun: Option<SunSpec>,
+
+    /// The sun's angular diameter in degrees, in (0, 45]: a wider sun gives wider
+    /// penumbrae and a softer highlight, at the same irradiance. Default 0.53 (the real
+    /// sun's). Needs --sun.
+    #[arg(
+        long,
+        value_name = "DEG",
+        requires = "sun",
+        allow_hyphen_values = true,
+        value_parser = parse_sun_size
+    )]
+    pub sun_size: Option<f32>,
+
+    /// The sun's colour: linear R,G,B factors on its irradiance (each finite and >= 0),
+    /// so a surface facing it receives IRRADIANCE times each. Default 1,1,1 (white).
+    /// Needs --sun.
+    #[arg(
+        long,
+        value_name = "R,G,B",
+        requires = "sun",
+        allow_hyphen_values = true,
+        value_parser = parse_sun_color
+    )]
+    pub sun_color: Option<Rgb>,
 
     /// An environment map lighting the scene from every direction: an equirectangular
     /// Radiance .hdr or OpenEXR .exr (at most 4096x2048), +Y up, the image's centre
@@ -60,10 +85,17 @@ impl LightFlags {
             rotation_deg: Some(self.env_rotation.unwrap_or(DEFAULT_ROTATION)),
             intensity: Some(self.env_intensity.unwrap_or(DEFAULT_INTENSITY)),
         });
-        (self.sun.is_some() || env_map.is_some()).then_some(LightingSpec {
-            sun: self.sun,
-            env_map,
-        })
+        let sun = self.sun.map(|s| SunSpec {
+            angular_diameter_deg: Some(self.sun_size.unwrap_or(SUN_DIAMETER_DEG)),
+            ..s
+        });
+        (sun.is_some() || env_map.is_some()).then_some(LightingSpec { sun, env_map })
+    }
+
+    /// `JobSpec.sun_color` for these flags (absent without --sun-color: the coordinator
+    /// fills in white).
+    pub fn sun_color_spec(&self) -> Option<Rgb> {
+        self.sun_color
     }
 }
 
@@ -71,6 +103,8 @@ impl LightFlags {
 /// of the field's name, so `dray render` names what the user typed.
 pub fn flag_error(message: &str) -> String {
     for (field, flag) in [
+        ("lighting.sun.angular_diameter_deg", "--sun-size"),
+        ("sun_color", "--sun-color"),
         ("lighting.env_map.path", "--env-map"),
         ("lighting.env_map.rotation_deg", "--env-rotation"),
         ("lighting.env_map.intensity", "--env-intensity"),
@@ -139,6 +173,35 @@ fn parse_sun(s: &str) -> Result<SunSpec, String> {
     })
 }
 
+/// `--sun-size DEG`, checked as the coordinator checks `lighting.sun.angular_diameter_deg`.
+fn parse_sun_size(s: &str) -> Result<f32, String> {
+    let v: f32 = s
+        .trim()
+        .parse()
+        .map_err(|_| format!("{:?} is not a number", s.trim()))?;
+    Sun::new(0.0, 0.0, 1.0, v).map_err(|e| e.to_string())?;
+    Ok(v)
+}
+
+/// `--sun-color R,G,B`, checked as the coordinator checks `sun_color`.
+fn parse_sun_color(s: &str) -> Result<Rgb, String> {
+    let vals = s
+        .split(',')
+        .map(|p| {
+            p.trim()
+                .parse::<f32>()
+                .map_err(|_| format!("{:?} is not a number", p.trim()))
+        })
+        .collect::<Result<Vec<f32>, String>>()?;
+    let [r, g, b] = vals[..] else {
+        return Err(format!("expected R,G,B, got {s:?}"));
+    };
+    Sun::new(0.0, 0.0, 1.0, SUN_DIAMETER_DEG)
+        .and_then(|sun| sun.with_color(glam::Vec3::new(r, g, b)))
+        .map_err(|e| e.to_string())?;
+    Ok(Rgb { r, g, b })
+}
+
 /// `--sun`'s irradiance when only AZ,EL are given (the coordinator's default too).
 const DEFAULT_IRRADIANCE: f32 = dray_coordinator::lighting::DEFAULT_SUN_IRRADIANCE;
 
@@ -172,6 +235,50 @@ mod tests {
             let e = parse_sun(bad).expect_err(bad);
             assert!(e.contains(says), "{bad}: {e}");
         }
+    }
+
+    #[test]
+    fn sun_size_and_colour_values_and_their_errors() {
+        assert_eq!(parse_sun_size("2.5").unwrap(), 2.5);
+        for (bad, says) in [
+            ("0", "angular diameter must be"),
+            ("-1", "angular diameter must be"),
+            ("46", "angular diameter must be"),
+            ("nan", "angular diameter must be"),
+            ("x", "not a number"),
+        ] {
+            let e = parse_sun_size(bad).expect_err(bad);
+            assert!(e.contains(says), "{bad}: {e}");
+        }
+        let c = parse_sun_color("1, 0.8,0.6").expect("r,g,b");
+        assert_eq!((c.r, c.g, c.b), (1.0, 0.8, 0.6));
+        for (bad, says) in [
+            ("1,1", "expected R,G,B"),
+            ("1,1,1,1", "expected R,G,B"),
+            ("1,x,1", "\"x\" is not a number"),
+            ("1,-0.5,1", "colour must be"),
+            ("1,1,inf", "colour must be"),
+        ] {
+            let e = parse_sun_color(bad).expect_err(bad);
+            assert!(e.contains(says), "{bad}: {e}");
+        }
+        let flags = LightFlags {
+            sun: Some(parse_sun("10,20").expect("sun")),
+            sun_size: Some(3.0),
+            sun_color: Some(c),
+            ..LightFlags::default()
+        };
+        let sun = flags.lighting_spec().and_then(|l| l.sun).expect("sun");
+        assert_eq!(sun.angular_diameter_deg, Some(3.0));
+        assert_eq!(flags.sun_color_spec(), Some(c));
+        assert_eq!(
+            flag_error("lighting.sun.angular_diameter_deg: angular diameter must be"),
+            "--sun-size: angular diameter must be"
+        );
+        assert_eq!(
+            flag_error("sun_color: colour must be"),
+            "--sun-color: colour must be"
+        );
     }
 
     #[test]

@@ -386,10 +386,12 @@ pub fn render_with(
     // The lights as the coordinator resolves them from the spec, so `--workers 0` and
     // workers render the same lights.
     let mut lighting_spec = a.job.lights.lighting_spec();
+    let mut sun_color = a.job.lights.sun_color_spec();
     let flag_err =
         |e: tonic::Status| anyhow::anyhow!("{}", crate::light_flags::flag_error(e.message()));
     let mut lighting =
-        dray_coordinator::lighting::check_lighting(&mut lighting_spec).map_err(flag_err)?;
+        dray_coordinator::lighting::check_lighting(&mut lighting_spec, &mut sun_color)
+            .map_err(flag_err)?;
     // The map is read from here (no scene root); with workers the in-process
     // coordinator reads it again for them (docs/lights.md).
     if let Some(e) = lighting_spec.as_ref().and_then(|l| l.env_map.as_ref()) {

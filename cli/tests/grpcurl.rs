@@ -421,11 +421,14 @@ fn the_readme_grpcurl_flow_renders_the_same_png_as_dray_render() {
     assert!(fixed != png, "exposure 0 with clamp is the default image");
 
     // The README's framed and lit job: a camera of the job's own with a thin lens
-    // focused on a point, and a sun, all in the spec (`JobSpec.view`, `.lighting`).
+    // focused on a point, and a wide warm sun, all in the spec (`JobSpec.view`,
+    // `.lighting`, `.sun_color`).
     let lit_spec = r#"{"spec": {"scene": "cornell", "width": 160, "height": 120, "spp": 8,
         "view": {"lookFrom": {"x": 0.2, "y": 0.6, "z": 2.4}, "lookAt": {"x": 0, "y": 0.4, "z": 0},
                  "fov": 45, "aperture": "f/2", "focusOn": {"x": 0, "y": 0.4, "z": 0}},
-        "lighting": {"sun": {"azimuthDeg": 30, "elevationDeg": 50, "irradiance": 3}}}}"#;
+        "lighting": {"sun": {"azimuthDeg": 30, "elevationDeg": 50, "irradiance": 3,
+                             "angularDiameterDeg": 3}},
+        "sunColor": {"r": 1, "g": 0.8, "b": 0.6}}}"#;
     let lit = json(&ok(
         &grpcurl,
         &[
@@ -456,6 +459,7 @@ fn the_readme_grpcurl_flow_renders_the_same_png_as_dray_render() {
     let lit_png = base64_decode(lit_png["data"].as_str().expect("data"));
     // dray render cornell --width 160 --height 120 --spp 8 --look-from 0.2,0.6,2.4
     //   --look-at 0,0.4,0 --fov 45 --aperture f/2 --focus-on 0,0.4,0 --sun 30,50,3
+    //   --sun-size 3 --sun-color 1,0.8,0.6
     let reference = common::render(
         &dir,
         "embedded-lit",
@@ -479,6 +483,10 @@ fn the_readme_grpcurl_flow_renders_the_same_png_as_dray_render() {
             "0,0.4,0",
             "--sun",
             "30,50,3",
+            "--sun-size",
+            "3",
+            "--sun-color",
+            "1,0.8,0.6",
         ],
     );
     assert!(reference.ok, "{}", reference.stderr);

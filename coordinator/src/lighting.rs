@@ -14,7 +14,7 @@ use dray_core::env_map::EnvMap;
 use dray_core::env_map_file::{self, EnvMapFormat};
 use dray_core::lighting::Lighting;
 use dray_core::sun::{SUN_DIAMETER_DEG, Sun, SunError};
-use dray_proto::v1::{EnvMapFile, EnvMapSpec, LightingSpec};
+use dray_proto::v1::{EnvMapFile, EnvMapSpec, LightingSpec, Rgb};
 use dray_scene::partition::checksum::{checksum, to_hex};
 use tonic::Status;
 
@@ -28,10 +28,26 @@ pub const DEFAULT_ENV_INTENSITY: f32 = 1.0;
 /// The longest `lighting.env_map.path` (Linux's PATH_MAX, as a scene path).
 pub const MAX_ENV_MAP_PATH_BYTES: usize = 4096;
 
-/// Check `spec` and fill in its defaults in place; errors name the field. The
-/// environment map's file is not read here ([`load_env_map`]): the lighting returned has
-/// no map yet.
-pub fn check_lighting(spec: &mut Option<LightingSpec>) -> Result<Lighting, Status> {
+/// The default `sun_color` (with a sun): white, the same bits as a grey sun.
+pub const DEFAULT_SUN_COLOR: Rgb = Rgb {
+    r: 1.0,
+    g: 1.0,
+    b: 1.0,
+};
+
+/// Check `spec` and the sun's colour (`JobSpec.sun_color`, which needs a sun) and fill
+/// in their defaults in place; errors name the field. The environment map's file is not
+/// read here ([`load_env_map`]): the lighting returned has no map yet.
+pub fn check_lighting(
+    spec: &mut Option<LightingSpec>,
+    sun_color: &mut Option<Rgb>,
+) -> Result<Lighting, Status> {
+    let has_sun = spec.as_ref().is_some_and(|l| l.sun.is_some());
+    if sun_color.is_some() && !has_sun {
+        return Err(Status::invalid_argument(
+            "sun_color: colours a sun, and the job has none (lighting.sun)",
+        ));
+    }
     let Some(spec) = spec.as_mut() else {
         return Ok(Lighting::default());
     };
@@ -50,9 +66,15 @@ pub fn check_lighting(spec: &mut Option<LightingSpec>) -> Result<Lighting, Statu
                         SunError::Elevation(_) => "elevation_deg",
                         SunError::Irradiance(_) => "irradiance",
                         SunError::Diameter(_) => "angular_diameter_deg",
+                        // Not made by `Sun::new`; the colour is checked below.
+                        SunError::Color(_) => "color",
                     };
                     Status::invalid_argument(format!("lighting.sun.{field}: {e}"))
                 })?;
+            let c = *sun_color.get_or_insert(DEFAULT_SUN_COLOR);
+            let sun = sun
+                .with_color(glam::Vec3::new(c.r, c.g, c.b))
+                .map_err(|e| Status::invalid_argument(format!("sun_color: {e}")))?;
             Some(sun)
         }
     };
@@ -177,6 +199,17 @@ mod tests {
     use super::*;
     use dray_proto::v1::SunSpec;
 
+    fn spec_with_sun() -> Option<LightingSpec> {
+        Some(LightingSpec {
+            sun: Some(SunSpec {
+                azimuth_deg: 10.0,
+                elevation_deg: 30.0,
+                ..SunSpec::default()
+            }),
+            env_map: None,
+        })
+    }
+
     #[test]
     fn defaults_are_filled_in_and_bad_values_name_their_field() {
         let mut spec = Some(LightingSpec {
@@ -187,7 +220,7 @@ mod tests {
             }),
             env_map: None,
         });
-        let l = check_lighting(&mut spec).expect("valid");
+        let l = check_lighting(&mut spec, &mut None).expect("valid");
         let sun = l.sun.expect("a sun");
         assert_eq!(sun.irradiance, DEFAULT_SUN_IRRADIANCE);
         let s = spec.and_then(|l| l.sun).expect("sun spec");
@@ -195,8 +228,76 @@ mod tests {
             (s.irradiance, s.angular_diameter_deg),
             (Some(DEFAULT_SUN_IRRADIANCE), Some(SUN_DIAMETER_DEG))
         );
-        let none = check_lighting(&mut None).expect("none");
+        let none = check_lighting(&mut None, &mut None).expect("none");
         assert!(none.sun.is_none() && none.env_map.is_none());
+        // The colour: white by default (filled in), given per channel, and refused
+        // without a sun or with a bad channel.
+        let mut color = None;
+        let white = check_lighting(&mut spec_with_sun(), &mut color).expect("white");
+        assert_eq!(color, Some(DEFAULT_SUN_COLOR));
+        assert_eq!(white.sun.expect("sun").radiance(), sun.radiance());
+        let mut warm = Some(Rgb {
+            r: 1.0,
+            g: 0.5,
+            b: 0.25,
+        });
+        let l = check_lighting(&mut spec_with_sun(), &mut warm).expect("warm");
+        assert_eq!(
+            l.sun.expect("sun").radiance(),
+            sun.radiance() * glam::Vec3::new(1.0, 0.5, 0.25)
+        );
+        for (mut lighting, rgb, says) in [
+            (
+                None,
+                Rgb {
+                    r: 1.0,
+                    g: 1.0,
+                    b: 1.0,
+                },
+                "has none",
+            ),
+            (
+                Some(LightingSpec {
+                    sun: None,
+                    env_map: Some(EnvMapSpec {
+                        path: "sky.hdr".into(),
+                        ..EnvMapSpec::default()
+                    }),
+                }),
+                Rgb {
+                    r: 1.0,
+                    g: 1.0,
+                    b: 1.0,
+                },
+                "has none",
+            ),
+            (
+                spec_with_sun(),
+                Rgb {
+                    r: -1.0,
+                    g: 1.0,
+                    b: 1.0,
+                },
+                "non-negative",
+            ),
+            (
+                spec_with_sun(),
+                Rgb {
+                    r: 1.0,
+                    g: f32::NAN,
+                    b: 1.0,
+                },
+                "non-negative",
+            ),
+        ] {
+            let e = check_lighting(&mut lighting, &mut Some(rgb)).expect_err(says);
+            assert_eq!(e.code(), tonic::Code::InvalidArgument);
+            assert!(
+                e.message().starts_with("sun_color: ") && e.message().contains(says),
+                "{}",
+                e.message()
+            );
+        }
         for (sun, field) in [
             (
                 SunSpec {
@@ -234,10 +335,13 @@ mod tests {
                 "lighting.sun.angular_diameter_deg",
             ),
         ] {
-            let e = check_lighting(&mut Some(LightingSpec {
-                sun: Some(sun),
-                env_map: None,
-            }))
+            let e = check_lighting(
+                &mut Some(LightingSpec {
+                    sun: Some(sun),
+                    env_map: None,
+                }),
+                &mut None,
+            )
             .expect_err(field);
             assert_eq!(e.code(), tonic::Code::InvalidArgument);
             assert!(e.message().starts_with(field), "{}", e.message());
@@ -253,7 +357,7 @@ mod tests {
                 ..EnvMapSpec::default()
             }),
         });
-        let l = check_lighting(&mut spec).expect("valid");
+        let l = check_lighting(&mut spec, &mut None).expect("valid");
         assert!(l.env_map.is_none(), "the file is read later");
         let e = spec.and_then(|l| l.env_map).expect("env map spec");
         assert_eq!(
@@ -289,10 +393,13 @@ mod tests {
                 "non-negative",
             ),
         ] {
-            let e = check_lighting(&mut Some(LightingSpec {
-                sun: None,
-                env_map: Some(env),
-            }))
+            let e = check_lighting(
+                &mut Some(LightingSpec {
+                    sun: None,
+                    env_map: Some(env),
+                }),
+                &mut None,
+            )
             .expect_err(field);
             assert_eq!(e.code(), tonic::Code::InvalidArgument);
             assert!(

@@ -269,7 +269,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         })
         .transpose()?;
     let effects = parse_effects(&spec.effects)?;
-    let lighting = crate::lighting::check_lighting(&mut spec.lighting)?;
+    let lighting = crate::lighting::check_lighting(&mut spec.lighting, &mut spec.sun_color)?;
     if let Some(c) = spec.clamp_indirect {
         dray_core::clamp::check_limit(c).map_err(|e| bad(format!("clamp_indirect: {e}")))?;
     }

@@ -8,7 +8,9 @@
 //! Mapping (+Y up): a direction at polar angle theta from +Y and azimuth phi =
 //! atan2(x, -z) is pixel column (0.5 + phi / 2 pi) * width, row theta / pi * height:
 //! the image's centre looks along -Z, its top row is straight up. `rotation` turns the
-//! map about +Y.
+//! map about +Y, counter-clockwise seen from above (+Z toward +X, as a sun's azimuth).
+//! Mitsuba 3's `envmap` puts the image's left edge (u = 0) along -Z, so it shows this
+//! map turned by `rotation` with `to_world` rotate(+Y, rotation + 180).
 
 use glam::{Vec2, Vec3};
 
@@ -91,15 +93,18 @@ impl EnvMap {
         })
     }
 
-    /// `dir` in the map's own frame (the rotation undone).
+    /// `dir` in the map's own frame (the rotation undone: turned by -rotation).
     fn to_map(&self, d: Vec3) -> Vec3 {
         let (s, c) = self.rot;
-        Vec3::new(c * d.x + s * d.z, d.y, -s * d.x + c * d.z)
+        Vec3::new(c * d.x - s * d.z, d.y, s * d.x + c * d.z)
     }
 
+    /// A direction of the map's own frame in the world: turned by the rotation about
+    /// +Y, right-handed (counter-clockwise seen from above: +Z toward +X, the way a
+    /// sun's azimuth grows, and Mitsuba's `to_world` rotate about +Y).
     fn out_of_map(&self, d: Vec3) -> Vec3 {
         let (s, c) = self.rot;
-        Vec3::new(c * d.x - s * d.z, d.y, s * d.x + c * d.z)
+        Vec3::new(c * d.x + s * d.z, d.y, -s * d.x + c * d.z)
     }
 
     /// Image coordinates in [0, 1)^2 of unit direction `dir`, and sin(theta).
@@ -234,6 +239,52 @@ mod tests {
                 assert_eq!(l, m.radiance(d));
                 assert!(luminance(l) > 0.0, "sampled a black pixel at {d}");
             }
+        }
+    }
+
+    /// The rotation turns the map counter-clockwise seen from above (+Z toward +X, as
+    /// the docs and a sun's azimuth say), and the image's centre column looks along -Z.
+    /// Before this test the map turned the other way (clockwise); Mitsuba's `envmap`
+    /// with `to_world` rotate(+Y, 180 + rotation) now matches it
+    /// (benches/envmap_vs_mitsuba.py).
+    #[test]
+    fn the_rotation_turns_the_map_counter_clockwise_seen_from_above() {
+        // A bright column at the image's centre (u = 0.5), dark elsewhere.
+        let (w, h) = (64, 32);
+        let pixels = (0..w * h)
+            .map(|i| {
+                if i % w == w / 2 {
+                    Vec3::splat(10.0)
+                } else {
+                    Vec3::splat(0.01)
+                }
+            })
+            .collect::<Vec<_>>();
+        let horizon = |az_deg: f32| {
+            let a = az_deg.to_radians();
+            // The sun's azimuth convention: from +Z toward +X.
+            Vec3::new(a.sin(), 0.0, a.cos())
+        };
+        for (rotation, bright_at) in [(0.0, 180.0), (90.0, 270.0), (-90.0, 90.0), (180.0, 0.0)] {
+            let m = EnvMap::new(w, h, pixels.clone(), rotation, 1.0).expect("map");
+            // Just inside the column's pixel (u in [0.5, 0.5 + 1/64]: phi = atan2(x, -z)
+            // = 180 - azimuth in [0, 5.6] degrees, so 1 degree less azimuth).
+            let on = m.radiance(horizon(bright_at - 1.0));
+            let off = m.radiance(horizon(bright_at + 90.0));
+            assert_eq!(
+                (on.x, off.x),
+                (10.0, 0.01),
+                "rotation {rotation}: the column should be at azimuth {bright_at}"
+            );
+            // Samples land on the column, where its radiance is.
+            let (d, l, _) = m.sample(Vec2::new(0.37, 0.61)).expect("a sample");
+            assert_eq!(l.x, 10.0);
+            let az = d.x.atan2(d.z).to_degrees().rem_euclid(360.0);
+            let diff = (az - bright_at).rem_euclid(360.0);
+            assert!(
+                diff.min(360.0 - diff) < 360.0 / w as f32,
+                "rotation {rotation}: sample at {az}"
+            );
         }
     }
 

@@ -76,9 +76,7 @@ pub enum EnvMapFileError {
         format: &'static str,
         message: String,
     },
-    #[error(
-        "environment map {file}: pixel ({x}, {y}) is ({r}, {g}, {b}): radiance must be finite and non-negative"
-    )]
+    #[error("environment map {file}: pixel ({x}, {y}) is ({r}, {g}, {b}): radiance must be finite")]
     Pixel {
         file: String,
         x: usize,
@@ -98,6 +96,8 @@ pub struct EnvPixels {
     pub width: usize,
     pub height: usize,
     pub pixels: Vec<Vec3>,
+    /// Negative components read and set to 0 (see [`decode`]).
+    pub negatives_zeroed: usize,
 }
 
 /// The largest environment map file read (256 MiB): a 4096 x 2048 map of
@@ -169,7 +169,11 @@ pub fn env_map_of(
 }
 
 /// Decode `bytes`, the contents of `file` in `format`. The size is checked from the
-/// header before pixels are decoded; every pixel must be finite and non-negative.
+/// header before pixels are decoded; every pixel must be finite. Negative components
+/// are set to 0 and counted (`negatives_zeroed`, and a warning): public HDRIs carry
+/// them (every studio-light world Blender ships, from Poly Haven, has a few hundred,
+/// down to -0.004, left by colour conversion and half-float compression), a negative
+/// radiance is no light, and the importance sampler needs non-negative weights.
 pub fn decode(
     file: &str,
     format: EnvMapFormat,
@@ -208,6 +212,7 @@ pub fn decode(
                 width,
                 height,
                 pixels: img.pixels().map(|p| Vec3::from(p.0)).collect(),
+                negatives_zeroed: 0,
             }
         }
         EnvMapFormat::Exr => {
@@ -228,6 +233,7 @@ pub fn decode(
                         width: size.0,
                         height: size.1,
                         pixels: vec![Vec3::ZERO; size.0 * size.1],
+                        negatives_zeroed: 0,
                     },
                     |p: &mut EnvPixels, at, (r, g, b): (f32, f32, f32)| {
                         let w = p.width;
@@ -243,11 +249,8 @@ pub fn decode(
             p
         }
     };
-    if let Some(i) = p
-        .pixels
-        .iter()
-        .position(|c| !c.is_finite() || c.min_element() < 0.0)
-    {
+    let mut p = p;
+    if let Some(i) = p.pixels.iter().position(|c| !c.is_finite()) {
         let c = p.pixels[i];
         return Err(EnvMapFileError::Pixel {
             file: file.to_string(),
@@ -257,6 +260,25 @@ pub fn decode(
             g: c.y,
             b: c.z,
         });
+    }
+    let mut most_negative = 0.0f32;
+    for c in &mut p.pixels {
+        for v in c.as_mut() {
+            if *v < 0.0 {
+                most_negative = most_negative.min(*v);
+                *v = 0.0;
+                p.negatives_zeroed += 1;
+            }
+        }
+    }
+    if p.negatives_zeroed > 0 {
+        tracing::warn!(
+            file,
+            negatives = p.negatives_zeroed,
+            most_negative,
+            "environment map {file}: {} negative values (the lowest {most_negative}) read as 0",
+            p.negatives_zeroed
+        );
     }
     Ok(p)
 }
@@ -304,6 +326,31 @@ mod tests {
         assert_eq!((p.width, p.height), (6, 3));
         assert_eq!(p.pixels[2 * 6 + 4], Vec3::new(1.0, 2.125, 3.0));
         assert!(m.radiance(Vec3::Y).is_finite());
+    }
+
+    /// Negative components (public HDRIs have a few, near 0) read as 0, counted; the
+    /// rest of the pixel stays.
+    #[test]
+    fn negative_values_read_as_zero_and_are_counted() {
+        let exr = temp("neg.exr");
+        write_exr(&exr, 4, 2, |x, y| match (x, y) {
+            (1, 0) => (-0.003, 0.5, 2.0),
+            (2, 1) => (-1.0, -2.0, 0.25),
+            _ => (1.0, 1.0, 1.0),
+        });
+        let p = decode("neg.exr", EnvMapFormat::Exr, &read_bytes(&exr).unwrap()).unwrap();
+        assert_eq!(p.negatives_zeroed, 3);
+        assert_eq!(p.pixels[1], Vec3::new(0.0, 0.5, 2.0));
+        assert_eq!(p.pixels[4 + 2], Vec3::new(0.0, 0.0, 0.25));
+        assert!(p.pixels.iter().all(|c| c.min_element() >= 0.0));
+        assert!(read_env_map(&exr, 0.0, 1.0).is_ok());
+        let ok = decode("a.exr", EnvMapFormat::Exr, &{
+            let f = temp("pos.exr");
+            write_exr(&f, 2, 1, |_, _| (0.0, 1.0, 2.0));
+            read_bytes(&f).unwrap()
+        })
+        .unwrap();
+        assert_eq!(ok.negatives_zeroed, 0);
     }
 
     #[test]

@@ -11,6 +11,10 @@
 //! The irradiance given is the one a surface facing the sun receives: a disk of radiance
 //! `L` and half-angle `a` gives `L * pi * sin(a)^2` there, so `L` is chosen to make that
 //! exactly the irradiance asked for, at any angular size.
+//!
+//! A colour (`--sun-color R,G,B`, linear, default white) multiplies that radiance per
+//! channel, so a surface facing the sun receives `irradiance * colour`: as a glTF
+//! light's `color` times its `intensity`, and Mitsuba's `irradiance` given as RGB.
 
 use glam::{Vec2, Vec3};
 
@@ -32,6 +36,8 @@ pub enum SunError {
     Irradiance(f32),
     #[error("angular diameter must be in (0, {MAX_SUN_DIAMETER_DEG}] degrees, got {0}")]
     Diameter(f32),
+    #[error("colour must be three finite, non-negative linear values, got {0}")]
+    Color(Vec3),
 }
 
 /// A disk of uniform radiance on the sky.
@@ -39,9 +45,11 @@ pub enum SunError {
 pub struct Sun {
     /// Unit direction from the scene toward the sun's centre.
     pub direction: Vec3,
-    /// Irradiance on a surface facing the sun (grey: one number times white).
+    /// Irradiance on a surface facing the sun, before the colour.
     pub irradiance: f32,
-    /// Radiance of the disk: `irradiance / (pi sin^2 a)`.
+    /// Linear colour, a factor per channel (white by default).
+    pub color: Vec3,
+    /// Radiance of the disk before the colour: `irradiance / (pi sin^2 a)`.
     radiance: f32,
     /// `1 - cos a`, computed as `2 sin^2(a/2)` so it keeps its digits for a small `a`.
     one_minus_cos: f32,
@@ -90,6 +98,7 @@ impl Sun {
         Ok(Sun {
             direction,
             irradiance,
+            color: Vec3::ONE,
             radiance: (f64::from(irradiance) / (std::f64::consts::PI * sin2)) as f32,
             one_minus_cos: one_minus_cos as f32,
             sin2: sin2 as f32,
@@ -99,9 +108,18 @@ impl Sun {
         })
     }
 
-    /// The disk's radiance (grey).
+    /// The same sun with linear colour `color` (a factor per channel on its radiance;
+    /// white, `Vec3::ONE`, changes no bit). Each channel must be finite and >= 0.
+    pub fn with_color(self, color: Vec3) -> Result<Sun, SunError> {
+        if !color.is_finite() || color.min_element() < 0.0 {
+            return Err(SunError::Color(color));
+        }
+        Ok(Sun { color, ..self })
+    }
+
+    /// The disk's radiance, coloured (white: the same bits as a grey sun's).
     pub fn radiance(&self) -> Vec3 {
-        Vec3::splat(self.radiance)
+        Vec3::splat(self.radiance) * self.color
     }
 
     /// The solid-angle pdf of [`Sun::sample`] (the same for every direction in the disk).
@@ -186,5 +204,31 @@ mod tests {
             Err(SunError::Diameter(_))
         ));
         assert!(Sun::new(0.0, -90.0, 0.0, 0.53).is_ok());
+        let sun = Sun::new(0.0, 10.0, 1.0, 0.53).expect("sun");
+        for bad in [
+            Vec3::new(-0.1, 1.0, 1.0),
+            Vec3::new(1.0, f32::NAN, 1.0),
+            Vec3::new(1.0, 1.0, f32::INFINITY),
+        ] {
+            assert!(matches!(sun.with_color(bad), Err(SunError::Color(_))));
+        }
+    }
+
+    /// The colour scales the radiance per channel (so the irradiance a facing surface
+    /// receives is `irradiance * colour`), and white changes no bit.
+    #[test]
+    fn the_colour_scales_each_channel() {
+        let sun = Sun::new(30.0, 50.0, 2.0, 5.0).expect("sun");
+        assert_eq!(sun.with_color(Vec3::ONE).expect("white"), sun);
+        let c = Vec3::new(1.0, 0.8, 0.25);
+        let warm = sun.with_color(c).expect("warm");
+        assert_eq!(warm.radiance(), sun.radiance() * c);
+        assert_eq!(warm.pdf(), sun.pdf());
+        // Recolouring replaces the colour, it does not compound it.
+        let again = warm.with_color(Vec3::new(0.5, 0.5, 0.5)).expect("grey");
+        assert_eq!(again.radiance(), sun.radiance() * 0.5);
+        // A black channel stays black; the others keep their value.
+        let blue = sun.with_color(Vec3::new(0.0, 0.0, 1.0)).expect("blue");
+        assert_eq!(blue.radiance(), Vec3::new(0.0, 0.0, sun.radiance().z));
     }
 }

@@ -116,6 +116,15 @@ fn lighting(spec: &dray_proto::v1::JobSpec) -> Result<Lighting, JobError> {
             .ok_or(JobError::Missing("spec.lighting.sun.angular_diameter_deg"))?,
     )
     .map_err(|e| JobError::Invalid(format!("lighting.sun: {e}")))?;
+    // The coordinator fills in the colour with the sun; absent means white (as the
+    // spec says), so a coordinator from before colours existed renders the same.
+    let color = spec
+        .sun_color
+        .as_ref()
+        .map_or(glam::Vec3::ONE, |c| glam::Vec3::new(c.r, c.g, c.b));
+    let sun = sun
+        .with_color(color)
+        .map_err(|e| JobError::Invalid(format!("sun_color: {e}")))?;
     Ok(Lighting {
         sun: Some(sun),
         env_map: None,

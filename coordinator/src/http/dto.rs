@@ -6,7 +6,7 @@
 use dray_proto::v1::camera_spec::Orbit;
 use dray_proto::v1::{
     CameraSpec, EnvMapSpec, Job, JobProgress, JobSpec, JobState, JobStats, LightingSpec,
-    ListJobsResponse, ListWorkersResponse, SunSpec, Vec3, WorkerJobStats, WorkerStatus,
+    ListJobsResponse, ListWorkersResponse, Rgb, SunSpec, Vec3, WorkerJobStats, WorkerStatus,
 };
 use serde::{Deserialize, Serialize};
 
@@ -170,6 +170,18 @@ pub struct SubmitForm {
     /// A sun (`JobSpec.lighting.sun`, docs/lights.md) as [azimuth, elevation] or
     /// [azimuth, elevation, irradiance] in degrees; the page sends only those lengths.
     pub sun: Option<Vec<f32>>,
+    /// The sun's angular diameter in degrees (`lighting.sun.angular_diameter_deg`);
+    /// None: the real sun's.
+    pub sun_size: Option<f32>,
+    /// The sun's linear colour as [r, g, b] (`JobSpec.sun_color`); None: white.
+    pub sun_color: Option<[f32; 3]>,
+    /// The clamp on indirect light (`JobSpec.clamp_indirect`, docs/noise.md); None: no
+    /// clamp.
+    pub clamp_indirect: Option<f32>,
+    /// AOVs for the EXR (`JobSpec.aovs`: "albedo", "normal", "depth", "samples");
+    /// absent: none.
+    #[serde(default)]
+    pub aovs: Vec<String>,
     /// The animation (`JobSpec.time`, `animation`), or a job group of frames
     /// (`JobSpec.frames` "A..B[:STEP]" at `fps`).
     pub time: Option<f64>,
@@ -217,7 +229,7 @@ impl SubmitForm {
                     azimuth_deg,
                     elevation_deg,
                     irradiance: rest.first().copied(),
-                    angular_diameter_deg: None,
+                    angular_diameter_deg: self.sun_size,
                 })
             }
             _ => None,
@@ -260,6 +272,9 @@ impl From<SubmitForm> for JobSpec {
             fps: f.fps,
             priority: f.priority,
             noise_threshold: f.noise_threshold,
+            sun_color: f.sun_color.map(|[r, g, b]| Rgb { r, g, b }),
+            clamp_indirect: f.clamp_indirect,
+            aovs: f.aovs,
             ..JobSpec::default()
         }
     }
@@ -571,6 +586,44 @@ mod tests {
         let l = JobSpec::from(form).lighting.expect("lighting");
         assert_eq!(l.sun.and_then(|s| s.irradiance), None);
         assert_eq!(l.env_map, None);
+    }
+
+    /// The sun's size and colour, the clamp and the AOVs of the form become their
+    /// JobSpec fields; absent, they stay absent (the coordinator's defaults).
+    #[test]
+    fn the_forms_sun_size_colour_clamp_and_aovs_make_the_spec() {
+        let form: SubmitForm = serde_json::from_str(
+            r#"{"scene":"cornell","width":8,"height":8,"spp":1,"sun":[30,45],"sun_size":2.5,
+                "sun_color":[1,0.8,0.6],"clamp_indirect":4,"aovs":["albedo","depth"]}"#,
+        )
+        .unwrap();
+        let spec = JobSpec::from(form);
+        let sun = spec.lighting.and_then(|l| l.sun).expect("a sun");
+        assert_eq!(sun.angular_diameter_deg, Some(2.5));
+        assert_eq!(
+            spec.sun_color,
+            Some(Rgb {
+                r: 1.0,
+                g: 0.8,
+                b: 0.6
+            })
+        );
+        assert_eq!(spec.clamp_indirect, Some(4.0));
+        assert_eq!(spec.aovs, ["albedo", "depth"]);
+        let plain = JobSpec::from(
+            serde_json::from_str::<SubmitForm>(r#"{"scene":"c","width":8,"height":8,"spp":1}"#)
+                .unwrap(),
+        );
+        assert_eq!(
+            (plain.sun_color, plain.clamp_indirect, plain.aovs.len()),
+            (None, None, 0)
+        );
+        assert!(
+            serde_json::from_str::<SubmitForm>(
+                r#"{"scene":"c","width":8,"height":8,"spp":1,"sun_color":[1,1]}"#
+            )
+            .is_err()
+        );
     }
 
     /// The dashboard's camera fields become `JobSpec.view`; a form without them leaves

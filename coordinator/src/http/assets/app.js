@@ -292,9 +292,12 @@ $("submit-form").addEventListener("submit", async (e) => {
     frames: (f.get("frames") ?? "").trim(),
     fps: num("fps"),
     noise_threshold: num("noise_threshold"),
+    clamp_indirect: num("clamp_indirect"),
+    sun_size: num("sun_size"),
+    aovs: f.getAll("aov"),
   };
   // "X,Y,Z" and "AZ,EL" fields as arrays of numbers; the coordinator checks the values.
-  for (const [k, n] of [["look_from", 3], ["look_at", 3], ["up", 3], ["orbit", 2], ["focus_on", 3]]) {
+  for (const [k, n] of [["look_from", 3], ["look_at", 3], ["up", 3], ["orbit", 2], ["focus_on", 3], ["sun_color", 3]]) {
     const text = (f.get(k) ?? "").trim();
     if (text === "") continue;
     const v = text.split(",").map((t) => Number(t.trim()));
