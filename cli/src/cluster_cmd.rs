@@ -81,6 +81,11 @@ pub struct ClusterArgs {
     /// Fetched packages go to DIR/worker-I for worker I (its --package-cache).
     #[arg(long, value_name = "DIR")]
     pub package_cache: Option<PathBuf>,
+    /// Every worker's --trace-dir: jobs that ask for a traffic trace (`dray submit
+    /// --trace`) are recorded there, one file per job attempt and worker (created if
+    /// missing; docs/caches.md "The trace's schema").
+    #[arg(long, value_name = "DIR")]
+    pub trace_dir: Option<PathBuf>,
     /// The coordinator's API token (passed on as its --auth-token-file).
     #[command(flatten)]
     pub api_token: crate::net_flags::ApiTokenArgs,
@@ -606,6 +611,10 @@ pub fn run(a: ClusterArgs) -> Result<()> {
                 bail!("the coordinator did not name its port within {READY_TIMEOUT:?}; stopped it");
             }
         }
+        if let Some(dir) = &a.trace_dir {
+            std::fs::create_dir_all(dir)
+                .with_context(|| format!("--trace-dir {}: cannot create it", dir.display()))?;
+        }
         let coordinator_addr = cluster.members[0].addr;
         let coordinator_url = format!("{scheme}://{coordinator_addr}");
         for (i, w) in worker_addrs.iter().enumerate() {
@@ -640,6 +649,10 @@ pub fn run(a: ClusterArgs) -> Result<()> {
             if let Some(dir) = &a.package_cache {
                 args.push("--package-cache".into());
                 args.push(dir.join(format!("worker-{}", i + 1)).display().to_string());
+            }
+            if let Some(dir) = &a.trace_dir {
+                args.push("--trace-dir".into());
+                args.push(dir.display().to_string());
             }
             args.extend(shared_args.iter().cloned());
             cluster

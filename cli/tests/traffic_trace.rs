@@ -260,3 +260,53 @@ fn a_worker_trace_dir_that_is_no_directory_is_refused_naming_the_flag() {
         "{err}"
     );
 }
+
+/// `dray cluster --trace-dir` hands the directory to every worker: a job submitted with
+/// `--trace` leaves one file per worker that traced it, each with its worker header and
+/// traced steps.
+#[test]
+fn a_cluster_started_with_a_trace_dir_records_a_submitted_jobs_trace() {
+    let dir = common::tmp("cluster-trace");
+    let traces = dir.join("traces");
+    let traces_arg = traces.display().to_string();
+    let cluster = support::WorkerCluster::start(2, 0, &dir, &["--trace-dir", &traces_arg]);
+    let mut cmd = dray();
+    cmd.args([
+        "submit",
+        "--coordinator",
+        &cluster.addr,
+        "cornell:glass",
+        "--trace",
+    ])
+    .args(["--width", "48", "--height", "32", "--spp", "2"])
+    .args([
+        "--integrator",
+        "path",
+        "--domains",
+        "8",
+        "--schedule",
+        "domain",
+    ])
+    .arg("--output")
+    .arg(dir.join("img.png"));
+    support::run_to_success(cmd, "dray submit --trace", 180.0);
+    let files: Vec<PathBuf> = std::fs::read_dir(&traces)
+        .expect("the cluster made --trace-dir")
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "jsonl"))
+        .collect();
+    assert!(!files.is_empty(), "no trace file in {}", traces.display());
+    let mut steps = 0;
+    for f in &files {
+        let records = read_trace(f);
+        assert!(
+            records.iter().any(|r| r["rec"] == "worker"),
+            "{}: no worker header",
+            f.display()
+        );
+        steps += records.iter().filter(|r| r["rec"] == "step").count();
+    }
+    assert!(steps > 0, "no traced step in {files:?}");
+    drop(cluster);
+    let _ = std::fs::remove_dir_all(&dir);
+}
