@@ -39,37 +39,40 @@ fn u(v: &Value) -> u64 {
     v.as_u64().unwrap_or_else(|| panic!("not a count: {v}"))
 }
 
+/// The traced job: small, path traced, cut into 8 domains dealt to owners, so rays move
+/// between workers.
+const JOB: [&str; 13] = [
+    "cornell:glass",
+    "--width",
+    "48",
+    "--height",
+    "32",
+    "--spp",
+    "2",
+    "--integrator",
+    "path",
+    "--domains",
+    "8",
+    "--schedule",
+    "domain",
+];
+
 /// Render a small path-traced job on `workers` in-process workers with a trace; the
 /// trace's records and the `--stats` JSON.
 fn record(dir: &Path, workers: u32) -> (PathBuf, Vec<Value>, Value) {
     let trace = dir.join(format!("trace-{workers}.jsonl"));
     let stats = dir.join(format!("stats-{workers}.json"));
     let mut cmd = dray();
-    cmd.args([
-        "render",
-        "cornell:glass",
-        "-q",
-        "--width",
-        "48",
-        "--height",
-        "32",
-        "--spp",
-        "2",
-        "--integrator",
-        "path",
-        "--domains",
-        "8",
-        "--schedule",
-        "domain",
-    ])
-    .arg("--workers")
-    .arg(workers.to_string())
-    .arg("--output")
-    .arg(dir.join(format!("img-{workers}.png")))
-    .arg("--stats")
-    .arg(&stats)
-    .arg("--trace-out")
-    .arg(&trace);
+    cmd.args(["render", "-q"])
+        .args(JOB)
+        .arg("--workers")
+        .arg(workers.to_string())
+        .arg("--output")
+        .arg(dir.join(format!("img-{workers}.png")))
+        .arg("--stats")
+        .arg(&stats)
+        .arg("--trace-out")
+        .arg(&trace);
     support::run_to_success(cmd, "dray render --trace-out", 180.0);
     let s: Value =
         serde_json::from_str(&std::fs::read_to_string(&stats).expect("stats")).expect("JSON");
@@ -271,24 +274,10 @@ fn a_cluster_started_with_a_trace_dir_records_a_submitted_jobs_trace() {
     let traces_arg = traces.display().to_string();
     let cluster = support::WorkerCluster::start(2, 0, &dir, &["--trace-dir", &traces_arg]);
     let mut cmd = dray();
-    cmd.args([
-        "submit",
-        "--coordinator",
-        &cluster.addr,
-        "cornell:glass",
-        "--trace",
-    ])
-    .args(["--width", "48", "--height", "32", "--spp", "2"])
-    .args([
-        "--integrator",
-        "path",
-        "--domains",
-        "8",
-        "--schedule",
-        "domain",
-    ])
-    .arg("--output")
-    .arg(dir.join("img.png"));
+    cmd.args(["submit", "--coordinator", &cluster.addr, "--trace"])
+        .args(JOB)
+        .arg("--output")
+        .arg(dir.join("img.png"));
     support::run_to_success(cmd, "dray submit --trace", 180.0);
     let files: Vec<PathBuf> = std::fs::read_dir(&traces)
         .expect("the cluster made --trace-dir")
