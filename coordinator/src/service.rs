@@ -412,15 +412,14 @@ impl Coordinator {
         prepared: crate::validate::Prepared,
         resume: Option<Resume>,
     ) -> Result<(), Status> {
-        // Workers may have come or gone while the scene loaded.
-        self.check_placement(v)?;
-        if self.cluster.membership.is_empty() {
-            self.table.start(job, prepared);
-            tracing::info!(id = %job.id, scene = %job.spec.scene, workers = 0, "job started");
-            return Ok(());
-        }
-        let Some(queue) = self.cluster.queue.clone() else {
-            return self.start_on_workers(job, v, prepared, resume);
+        // In process, or on workers with no cluster-wide limit: now.
+        let Some(queue) = self
+            .cluster
+            .queue
+            .clone()
+            .filter(|_| !self.cluster.membership.is_empty())
+        else {
+            return self.start_now(job, v, prepared, resume);
         };
         // Waiting for a slot is QUEUED, and PauseJob can hold it there.
         let waiting = queue.join(job);
@@ -439,7 +438,7 @@ impl Coordinator {
                 }
                 // Held until the job ends, whatever way it ends: a job that cannot start
                 // (its workers left, its package cannot be cut) gives its slot back at once.
-                let started = this.launch_dealt(&job, &v, prepared, resume);
+                let started = this.start_now(&job, &v, prepared, resume);
                 if let Err(e) = started {
                     job.finish(JobState::Failed, e.message().to_string(), None);
                 }
@@ -451,15 +450,17 @@ impl Coordinator {
         Ok(())
     }
 
-    /// A job the cluster's deal queue gave a slot: on the workers, or in process (in
-    /// that queue) when every worker left while it waited.
-    fn launch_dealt(
+    /// Start `job` where it can run now: on the workers, or in process (in that
+    /// queue) when none is registered (none yet, or every worker left while it waited
+    /// for a cluster slot).
+    fn start_now(
         &self,
         job: &Arc<JobEntry>,
         v: &crate::validate::Validated,
         prepared: crate::validate::Prepared,
         resume: Option<Resume>,
     ) -> Result<(), Status> {
+        // Workers may have come or gone while the scene loaded or the job waited.
         self.check_placement(v)?;
         if self.cluster.membership.is_empty() {
             self.table.start(job, prepared);
