@@ -20,7 +20,8 @@ The model, one SimGrid actor per tracing thread of each node (a node stands for 
   (the worker's fullest queue), camera steps when none is ready;
 - a step's rays out become one message per destination node (the owner of their
   domains: a worker's per-peer outbox), of their bytes, over the platform's links (SimGrid's TCP model, LV08); rays for a
-  domain the node owns arrive at once;
+  domain the node owns arrive at once; a node takes messages in as they come (a permanent
+  receiver on its mailbox, as a TCP stream does), not one after another;
 - a domain's first step on a node loads it first: its bytes from a file-system host
   (`--fs-bandwidth`; reads are free without it, as for the in-memory packages of the
   recording), then its build CPU, plus the recording's `--load-delay-ms`.
@@ -339,6 +340,11 @@ def simulate(trace, a):
 
     def receiver(n):
         box = Mailbox.by_name(f"n{n.i}")
+        # A permanent receiver: messages flow to the node as they are sent, as on a TCP
+        # stream. Without it every message waited for this actor's next get, so the
+        # transfers into a node ran one at a time behind their latency: a 0.44 s job
+        # replayed on 2 nodes took 0.86 s at 10 us and 7.8 s at 100 us (now 0.34, 0.36).
+        box.set_receiver(Actor.self())
         while n.received < n.expected:
             for d, rays in box.get():
                 n.arrived[d] += rays

@@ -1,16 +1,24 @@
 #!/usr/bin/env python3
-"""Speed-up against node count at 1, 10 and 100 Gbit/s, by replay (docs/caches.md
-"Simulation at scale: first scaling table"): one trace of the exact render and one with
-frozen ray caches, each recorded once here with `dray render --workers W --trace-out`,
-then replayed by benches/sim/replay.py on 1 to 64 nodes (domains re-dealt round robin,
-one tracing thread per node, 10 us links). Speed-up is the simulated makespan on one node
-over that on N nodes (the recording's fixed part left out: it does not scale).
+"""Speed-up against node count by replay (docs/caches.md "Simulation at scale: scaling"):
+one trace of the exact render and one with frozen ray caches, each recorded once here with
+`dray render --workers W --trace-out` (by default one worker per domain, so that every
+domain's rays are steps of their own and a replay on up to W nodes misses no traffic),
+then replayed by benches/sim/replay.py on 1 to 64 nodes (domains re-dealt round robin, one
+tracing thread per node, 10 us links) at each link speed, with the recording's CPU outside
+the steps left out (`--overhead none`: it is the in-process gRPC of W workers on this
+machine's cores, which a node of its own would not share) and, for comparison, spread over
+the steps (`--overhead trace`). Speed-up is the simulated makespan on one node over that on
+N nodes (the recording's fixed part left out: it does not scale). `--fs-bandwidth` adds
+Navratil's regime: every first visit of a domain on a node reads it from one shared file
+system behind a link of that rate.
 
-    benches/sim/run.sh scaling.py [--workers 8] [--nodes 1,4,16,64]
+    benches/sim/run.sh scaling.py [--workers 64] [--nodes 1,2,4,8,16,32,64] \
+        [--links 100Mbps,1Gbps,10Gbps] [--fs-bandwidth 1GB/s] [--plot docs/sim-scaling.svg]
 """
 
 import argparse
 import json
+import math
 import subprocess
 import sys
 import tempfile
@@ -18,42 +26,114 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent.parent
+DOMAINS = 64
 JOB = ["cornell:glass", "--width", "128", "--height", "128", "--spp", "4", "--integrator", "path",
-       "--domains", "64", "--schedule", "domain"]
+       "--domains", str(DOMAINS), "--schedule", "domain"]
 CACHES = ["--ray-cache", "radius=0.05,coarse=64"]
+RENDERS = [("exact", []), ("ray caches", CACHES)]
 
 
-def replay(trace, nodes, bw):
-    r = subprocess.run([sys.executable, str(HERE / "replay.py"), str(trace), "--json", "--nodes", str(nodes),
-                        "--threads", "1", "--bandwidth", bw, "--latency", "10us"],
-                       check=True, capture_output=True, text=True)
+def replay(trace, nodes, bw, overhead, fs=None):
+    cmd = [sys.executable, str(HERE / "replay.py"), str(trace), "--json", "--nodes", str(nodes),
+           "--threads", "1", "--bandwidth", bw, "--latency", "10us", "--overhead", overhead]
+    if fs:
+        cmd += ["--fs-bandwidth", fs]
+    r = subprocess.run(cmd, check=True, capture_output=True, text=True)
     return json.loads(r.stdout)
+
+
+# The plot: speed-up over one node against nodes (log2 axis), a line per render and link.
+W, H, PAD = 480, 320, 52
+COLOURS = {"exact": "#1f77b4", "ray caches": "#d62728"}
+DASHES = ["", "6,4", "2,3", "8,3,2,3"]
+
+
+def plot(rows, nodes, links, dst, title):
+    """rows: (render, link, n, speed-up); an SVG with no plotting library."""
+    ymax = max(max(s for *_, s in rows), 1.0) * 1.1
+    lmax = math.log2(max(nodes))
+
+    def x(n):
+        return PAD + math.log2(n) / max(lmax, 1) * (W - 2 * PAD)
+
+    def y(s):
+        return H - PAD - s / ymax * (H - 2 * PAD)
+
+    out = [
+        f'<svg xmlns="http://www.w3.org/2000/svg" width="{W}" height="{H}" font-family="sans-serif" font-size="11">',
+        f'<rect width="{W}" height="{H}" fill="white"/>',
+        f'<text x="{W / 2}" y="16" text-anchor="middle">{title}</text>',
+        f'<line x1="{PAD}" y1="{H - PAD}" x2="{W - PAD}" y2="{H - PAD}" stroke="black"/>',
+        f'<line x1="{PAD}" y1="{PAD}" x2="{PAD}" y2="{H - PAD}" stroke="black"/>',
+        f'<text x="{W / 2}" y="{H - 12}" text-anchor="middle">nodes (one tracing thread each; log scale)</text>',
+        f'<text x="14" y="{H / 2}" transform="rotate(-90 14 {H / 2})" text-anchor="middle">'
+        'simulated speed-up over one node</text>',
+    ]
+    # The ideal (speed-up = nodes) up to the top of the plot.
+    shown = [n for n in nodes if n <= ymax]
+    ideal = " ".join(f"{x(n):.1f},{y(n):.1f}" for n in shown)
+    out.append(f'<polyline points="{ideal}" fill="none" stroke="#999" stroke-dasharray="2,3"/>')
+    out.append(f'<text x="{x(shown[-1]) + 4}" y="{y(shown[-1])}" fill="#999">ideal</text>')
+    for n in nodes:
+        out.append(f'<text x="{x(n)}" y="{H - PAD + 14}" text-anchor="middle">{n}</text>')
+    step = max(1, round(ymax / 8))
+    for k in range(0, int(ymax) + 1, step):
+        out.append(f'<text x="{PAD - 6}" y="{y(k) + 4}" text-anchor="end">{k}</text>')
+    legend = 0
+    for render in COLOURS:
+        for li, link in enumerate(links):
+            pts = sorted((n, s) for r, l, n, s in rows if r == render and l == link)
+            if not pts:
+                continue
+            dash = f' stroke-dasharray="{DASHES[li % len(DASHES)]}"' if DASHES[li % len(DASHES)] else ""
+            p = " ".join(f"{x(n):.1f},{y(s):.1f}" for n, s in pts)
+            out.append(f'<polyline points="{p}" fill="none" stroke="{COLOURS[render]}" stroke-width="2"{dash}/>')
+            ly = PAD + 14 * legend
+            out.append(f'<line x1="{PAD + 8}" y1="{ly - 4}" x2="{PAD + 36}" y2="{ly - 4}" '
+                       f'stroke="{COLOURS[render]}" stroke-width="2"{dash}/>')
+            out.append(f'<text x="{PAD + 42}" y="{ly}">{render}, {link}</text>')
+            legend += 1
+    out.append("</svg>")
+    Path(dst).write_text("\n".join(out) + "\n")
 
 
 def main():
     ap = argparse.ArgumentParser(prog="benches/sim/scaling.py")
-    ap.add_argument("--workers", type=int, default=8)
-    ap.add_argument("--nodes", default="1,4,16,64")
+    ap.add_argument("--workers", type=int, default=DOMAINS,
+                    help=f"workers of the recording (default {DOMAINS}: one per domain)")
+    ap.add_argument("--nodes", default="1,2,4,8,16,32,64")
+    ap.add_argument("--links", default="100Mbps,1Gbps,10Gbps")
+    ap.add_argument("--fs-bandwidth", help="a shared file system for domain loads (e.g. 1GB/s)")
+    ap.add_argument("--plot", help="write an SVG of the speed-ups (overhead none) here")
     a = ap.parse_args()
     nodes = [int(x) for x in a.nodes.split(",")]
+    links = a.links.split(",")
     work = Path(tempfile.mkdtemp(prefix="dray-scaling-"))
     dray = str(REPO / "target" / "release" / "dray")
     rows = []
-    for name, extra in [("exact", []), ("ray caches", CACHES)]:
+    for name, extra in RENDERS:
         t = work / f"{name.replace(' ', '-')}.jsonl"
         subprocess.run([dray, "render", *JOB, *extra, "-q", "--workers", str(a.workers),
                         "--output", str(t.with_suffix(".png")), "--trace-out", str(t)], check=True)
-        for bw in ["1Gbps", "10Gbps", "100Gbps"]:
-            base = replay(t, 1, bw)["makespan_s"]
+        for bw in links:
+            base = {o: replay(t, 1, bw, o, a.fs_bandwidth)["makespan_s"] for o in ("none", "trace")}
             for n in nodes:
-                r = replay(t, n, bw)
-                rows.append((name, bw, n, r["makespan_s"], base / r["makespan_s"], r["bytes_sent"]))
-    print(f"jobs: dray render {' '.join(JOB)} [{' '.join(CACHES)}], recorded on {a.workers} workers")
+                r = {o: replay(t, n, bw, o, a.fs_bandwidth) for o in ("none", "trace")}
+                rows.append((name, bw, n, r["none"]["makespan_s"], base["none"] / r["none"]["makespan_s"],
+                             base["trace"] / r["trace"]["makespan_s"], r["none"]["bytes_sent"],
+                             r["none"]["messages"]))
+    fs = f", loads from a {a.fs_bandwidth} file system" if a.fs_bandwidth else ""
+    print(f"jobs: dray render {' '.join(JOB)} [{' '.join(CACHES)}], recorded on {a.workers} workers{fs}")
     print()
-    print("| render | link | nodes | simulated s | speed-up | bytes between nodes |")
-    print("|---|---|---|---|---|---|")
-    for name, bw, n, t, s, b in rows:
-        print(f"| {name} | {bw} | {n} | {t:.3f} | {s:.2f} | {b} |")
+    print("| render | link | nodes | simulated s | speed-up | speed-up, overhead spread | bytes between nodes "
+          "| messages |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, bw, n, t, s, s_trace, b, m in rows:
+        print(f"| {name} | {bw} | {n} | {t:.3f} | {s:.2f} | {s_trace:.2f} | {b} | {m} |")
+    if a.plot:
+        plot([(r[0], r[1], r[2], r[4]) for r in rows], nodes, links, a.plot,
+             f"{DOMAINS} domains, cornell:glass 128x128, 4 spp{fs}")
+        print(f"\nplot: {a.plot}")
 
 
 if __name__ == "__main__":
