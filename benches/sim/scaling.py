@@ -12,8 +12,11 @@ N nodes (the recording's fixed part left out: it does not scale). `--fs-bandwidt
 Navratil's regime: every first visit of a domain on a node reads it from one shared file
 system behind a link of that rate.
 
-    benches/sim/run.sh scaling.py [--workers 64] [--nodes 1,2,4,8,16,32,64] \
+    benches/sim/run.sh scaling.py [--job cornell|little] [--workers W] [--nodes 1,2,4,8,16,32,64] \
         [--links 100Mbps,1Gbps,10Gbps] [--fs-bandwidth 1GB/s] [--plot docs/sim-scaling.svg]
+
+`--job little` is Little 2011's Table 5.1 set-up (benches/caches.py's scene, radius and
+coarse pass; the Stanford bunny from $DRAY_SCENES) on 1, 3, 9 and 27 nodes.
 """
 
 import argparse
@@ -26,11 +29,38 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent.parent
-DOMAINS = 64
-JOB = ["cornell:glass", "--width", "128", "--height", "128", "--spp", "4", "--integrator", "path",
-       "--domains", str(DOMAINS), "--schedule", "domain"]
-CACHES = ["--ray-cache", "radius=0.05,coarse=64"]
-RENDERS = [("exact", []), ("ray caches", CACHES)]
+sys.path.insert(0, str(REPO / "benches"))
+
+
+class Job:
+    """A job to record: its flags, its ray caches, its domains, the nodes to replay on."""
+
+    def __init__(self, title, flags, caches, domains, nodes):
+        self.title, self.flags, self.caches, self.domains, self.nodes = title, flags, caches, domains, nodes
+
+
+def cornell():
+    return Job("64 domains, cornell:glass 128x128, 4 spp",
+               ["cornell:glass", "--width", "128", "--height", "128", "--spp", "4", "--integrator", "path",
+                "--domains", "64", "--schedule", "domain"],
+               ["--ray-cache", "radius=0.05,coarse=64"], 64, "1,2,4,8,16,32,64")
+
+
+def little(work):
+    """Little 2011's Table 5.1 set-up as benches/caches.py runs it (docs/benchmarks.md, "Ray
+    caches"): the 3x3x3 bunny grid in 27 grid domains, `raycast` 1024^2, 1 spp, frozen
+    caches of the thesis's radius 0.005 (scaled to these voxels) after a 256^2 coarse pass,
+    replayed on the thesis's 27 processes and fewer."""
+    import _bench_env as env
+    from caches import ANGLE_DEG, THESIS_VOXEL, voxel_width
+
+    dray = REPO / "target" / "release" / "dray"
+    radius = 0.005 * voxel_width(env.bunny_grid_package(dray, work)) / THESIS_VOXEL
+    return Job("27 grid domains, bunny 3x3x3 raycast 1024x1024 (Little's Table 5.1)",
+               [f"grid:{env.bunny()}:3x3x3", "--domains", "27", "--layout", "grid", "--integrator", "raycast",
+                "--width", "1024", "--height", "1024", "--spp", "1", "--schedule", "domain"],
+               ["--ray-cache", f"angle-deg={ANGLE_DEG:.4g},radius={radius:.6g},coarse=256,fill=false"],
+               27, "1,3,9,27")
 
 
 def replay(trace, nodes, bw, overhead, fs=None):
@@ -99,21 +129,24 @@ def plot(rows, nodes, links, dst, title):
 
 def main():
     ap = argparse.ArgumentParser(prog="benches/sim/scaling.py")
-    ap.add_argument("--workers", type=int, default=DOMAINS,
-                    help=f"workers of the recording (default {DOMAINS}: one per domain)")
-    ap.add_argument("--nodes", default="1,2,4,8,16,32,64")
+    ap.add_argument("--job", choices=["cornell", "little"], default="cornell",
+                    help="cornell: cornell:glass in 64 domains (default); little: Table 5.1's bunny grid")
+    ap.add_argument("--workers", type=int, help="workers of the recording (default: one per domain)")
+    ap.add_argument("--nodes", help="node counts (default 1,2,...,64; little: 1,3,9,27)")
     ap.add_argument("--links", default="100Mbps,1Gbps,10Gbps")
     ap.add_argument("--fs-bandwidth", help="a shared file system for domain loads (e.g. 1GB/s)")
     ap.add_argument("--plot", help="write an SVG of the speed-ups (overhead none) here")
     a = ap.parse_args()
-    nodes = [int(x) for x in a.nodes.split(",")]
-    links = a.links.split(",")
     work = Path(tempfile.mkdtemp(prefix="dray-scaling-"))
+    job = little(work) if a.job == "little" else cornell()
+    nodes = [int(x) for x in (a.nodes or job.nodes).split(",")]
+    links = a.links.split(",")
+    workers = a.workers or job.domains
     dray = str(REPO / "target" / "release" / "dray")
     rows = []
-    for name, extra in RENDERS:
+    for name, extra in [("exact", []), ("ray caches", job.caches)]:
         t = work / f"{name.replace(' ', '-')}.jsonl"
-        subprocess.run([dray, "render", *JOB, *extra, "-q", "--workers", str(a.workers),
+        subprocess.run([dray, "render", *job.flags, *extra, "-q", "--workers", str(workers),
                         "--output", str(t.with_suffix(".png")), "--trace-out", str(t)], check=True)
         for bw in links:
             base = {o: replay(t, 1, bw, o, a.fs_bandwidth)["makespan_s"] for o in ("none", "trace")}
@@ -123,7 +156,7 @@ def main():
                              base["trace"] / r["trace"]["makespan_s"], r["none"]["bytes_sent"],
                              r["none"]["messages"]))
     fs = f", loads from a {a.fs_bandwidth} file system" if a.fs_bandwidth else ""
-    print(f"jobs: dray render {' '.join(JOB)} [{' '.join(CACHES)}], recorded on {a.workers} workers{fs}")
+    print(f"jobs: dray render {' '.join(job.flags)} [{' '.join(job.caches)}], recorded on {workers} workers{fs}")
     print()
     print("| render | link | nodes | simulated s | speed-up | speed-up, overhead spread | bytes between nodes "
           "| messages |")
@@ -131,8 +164,7 @@ def main():
     for name, bw, n, t, s, s_trace, b, m in rows:
         print(f"| {name} | {bw} | {n} | {t:.3f} | {s:.2f} | {s_trace:.2f} | {b} | {m} |")
     if a.plot:
-        plot([(r[0], r[1], r[2], r[4]) for r in rows], nodes, links, a.plot,
-             f"{DOMAINS} domains, cornell:glass 128x128, 4 spp{fs}")
+        plot([(r[0], r[1], r[2], r[4]) for r in rows], nodes, links, a.plot, job.title + fs)
         print(f"\nplot: {a.plot}")
 
 
