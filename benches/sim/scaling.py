@@ -16,7 +16,9 @@ system behind a link of that rate.
         [--links 100Mbps,1Gbps,10Gbps] [--fs-bandwidth 1GB/s] [--plot docs/sim-scaling.svg]
 
 `--job little` is Little 2011's Table 5.1 set-up (benches/caches.py's scene, radius and
-coarse pass; the Stanford bunny from $DRAY_SCENES) on 1, 3, 9 and 27 nodes.
+coarse pass; the Stanford bunny from $DRAY_SCENES) on 1, 3, 9 and 27 nodes; `--job bolstad`
+hit maps with Bolstad 2017's settings on the Cornell box's area light (path, 16 spp) on 1
+to 32 nodes.
 """
 
 import argparse
@@ -35,8 +37,9 @@ sys.path.insert(0, str(REPO / "benches"))
 class Job:
     """A job to record: its flags, its ray caches, its domains, the nodes to replay on."""
 
-    def __init__(self, title, flags, caches, domains, nodes):
+    def __init__(self, title, flags, caches, domains, nodes, approx="ray caches"):
         self.title, self.flags, self.caches, self.domains, self.nodes = title, flags, caches, domains, nodes
+        self.approx = approx  # what `caches` turns on, as the tables and the plot name it
 
 
 def cornell():
@@ -44,6 +47,16 @@ def cornell():
                ["cornell:glass", "--width", "128", "--height", "128", "--spp", "4", "--integrator", "path",
                 "--domains", "64", "--schedule", "domain"],
                ["--ray-cache", "radius=0.05,coarse=64"], 64, "1,2,4,8,16,32,64")
+
+
+def bolstad():
+    """Hit maps where Bolstad 2017 says they pay: path tracing at 16 spp with many shadow
+    rays (the Cornell box's area light), Bolstad's prior 100 and hit threshold 0.9 on shadow
+    rays, 32 domains, replayed on up to Bolstad's 32 servers."""
+    return Job("32 domains, cornell path 256x256, 16 spp",
+               ["cornell", "--integrator", "path", "--width", "256", "--height", "256", "--spp", "16",
+                "--domains", "32", "--schedule", "domain"],
+               ["--phm", "kinds=shadow,prior=100,hit=0.9"], 32, "1,2,4,8,16,32", approx="hit maps")
 
 
 def little(work):
@@ -74,7 +87,7 @@ def replay(trace, nodes, bw, overhead, fs=None):
 
 # The plot: speed-up over one node against nodes (log2 axis), a line per render and link.
 W, H, PAD = 480, 320, 52
-COLOURS = {"exact": "#1f77b4", "ray caches": "#d62728"}
+COLOURS = {"exact": "#1f77b4", "ray caches": "#d62728", "hit maps": "#2ca02c"}
 DASHES = ["", "6,4", "2,3", "8,3,2,3"]
 
 
@@ -129,8 +142,9 @@ def plot(rows, nodes, links, dst, title):
 
 def main():
     ap = argparse.ArgumentParser(prog="benches/sim/scaling.py")
-    ap.add_argument("--job", choices=["cornell", "little"], default="cornell",
-                    help="cornell: cornell:glass in 64 domains (default); little: Table 5.1's bunny grid")
+    ap.add_argument("--job", choices=["cornell", "little", "bolstad"], default="cornell",
+                    help="cornell: cornell:glass in 64 domains (default); little: Table 5.1's bunny grid; "
+                         "bolstad: hit maps on the Cornell box, path, 16 spp")
     ap.add_argument("--workers", type=int, help="workers of the recording (default: one per domain)")
     ap.add_argument("--nodes", help="node counts (default 1,2,...,64; little: 1,3,9,27)")
     ap.add_argument("--links", default="100Mbps,1Gbps,10Gbps")
@@ -138,13 +152,13 @@ def main():
     ap.add_argument("--plot", help="write an SVG of the speed-ups (overhead none) here")
     a = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="dray-scaling-"))
-    job = little(work) if a.job == "little" else cornell()
+    job = {"little": lambda: little(work), "bolstad": bolstad, "cornell": cornell}[a.job]()
     nodes = [int(x) for x in (a.nodes or job.nodes).split(",")]
     links = a.links.split(",")
     workers = a.workers or job.domains
     dray = str(REPO / "target" / "release" / "dray")
     rows = []
-    for name, extra in [("exact", []), ("ray caches", job.caches)]:
+    for name, extra in [("exact", []), (job.approx, job.caches)]:
         t = work / f"{name.replace(' ', '-')}.jsonl"
         subprocess.run([dray, "render", *job.flags, *extra, "-q", "--workers", str(workers),
                         "--output", str(t.with_suffix(".png")), "--trace-out", str(t)], check=True)
