@@ -420,7 +420,8 @@ impl Coordinator {
             .filter(|_| !self.cluster.membership.is_empty())
         else {
             if job.state() == JobState::Paused {
-                return Ok(self.start_when_resumed(job, v, prepared, resume));
+                self.start_when_resumed(job, v, prepared, resume);
+                return Ok(());
             }
             return self.start_now(job, v, prepared, resume);
         };
