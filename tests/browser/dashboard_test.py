@@ -498,8 +498,9 @@ def main() -> int:
             guarded("workers listed", workers_listed, d, c, artifacts)
             guarded("cancel", cancel_from_page, d, c, artifacts)
             guarded("download", download_from_page, d, c, artifacts)
-            guarded("frame range", frames_from_page, d, c, artifacts)
             guarded("README screenshot", readme_screenshot, d, artifacts)
+            # After the screenshot, which shows the newest finished job.
+            guarded("frame range", frames_from_page, d, c, artifacts)
             guarded("many jobs", many_jobs, d, c, artifacts)
             c.stop()
 
