@@ -2,7 +2,13 @@
 //!
 //! `dray render --frames` renders the frames one after another in this process, each
 //! exactly as `dray render --time f/fps` would (so each frame is the same bits as that
-//! command); every frame loads and builds its scene again, static meshes included.
+//! command). The in-process coordinator and workers are kept from frame to frame
+//! (`crate::warm`), as a cluster's are: each frame's scene is loaded and posed, the
+//! coordinator cuts it with the last frame's layout when its bounds are the same, and
+//! the domains no moving mesh touches keep their content
+//! (`MemoryPackages::cut`), so the workers find them and their BVHs resident; only the
+//! domains a moving mesh touches are built again. Each frame's `--stats` counts them
+//! (`domain_loads`, `domains_warm`).
 //! `dray submit --frames` sends one spec with `frames` and `fps`; the coordinator makes
 //! it a job group, one ordinary job per frame (`JobSpec.frames`, `Job.group`), and this
 //! follows the frames' jobs in order, writing each frame's image as it is done.
@@ -58,6 +64,11 @@ pub fn render_frames(mut a: RenderArgs) -> Result<()> {
         .ok_or_else(|| anyhow!("--frames needs --fps"))?;
     let (output, exr, stats) = (a.job.output.clone(), a.job.exr.clone(), a.stats.clone());
     let _span = tracing::info_span!("frames", frames = range.len(), fps).entered();
+    // A traffic trace records one render: such a run starts its actors per frame.
+    let mut warm = a
+        .trace_out
+        .is_none()
+        .then(|| crate::warm::WarmProcess::new(false));
     for frame in range.frames() {
         a.job.anim.time = Some(frame_time(frame, fps));
         a.job.output = frame_path(&output, frame);
@@ -71,7 +82,8 @@ pub fn render_frames(mut a: RenderArgs) -> Result<()> {
                 frame_time(frame, fps)
             );
         }
-        crate::render_cmd::run_one(&a).with_context(|| format!("frame {frame}"))?;
+        crate::render_cmd::run_one_with(&a, warm.as_mut())
+            .with_context(|| format!("frame {frame}"))?;
     }
     Ok(())
 }

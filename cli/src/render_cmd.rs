@@ -272,8 +272,14 @@ pub fn run(a: RenderArgs) -> Result<()> {
     run_one(&a)
 }
 
-/// `dray render` of one image (one frame of `--frames`).
+/// `dray render` of one image.
 pub fn run_one(a: &RenderArgs) -> Result<()> {
+    run_one_with(a, None)
+}
+
+/// [`run_one`], with the scene and in-process actors of `warm` when given: the frames
+/// of `--frames` (`crate::frames`).
+pub fn run_one_with(a: &RenderArgs, warm: Option<&mut crate::warm::WarmProcess>) -> Result<()> {
     a.job.check_passes()?;
     // Every file this run will write is checked before the render, not after it.
     check_output("--output", &a.job.output, &["png", "jpg", "jpeg"])?;
@@ -290,7 +296,7 @@ pub fn run_one(a: &RenderArgs) -> Result<()> {
     // The bar appears with the first progress report, once the scene is loaded.
     let bar = std::sync::OnceLock::new();
     let show = !a.job.quiet && std::io::IsTerminal::is_terminal(&std::io::stderr());
-    let rendered = render(a, &|done, total| {
+    let progress = |done: usize, total: usize| {
         if show {
             let b = bar.get_or_init(|| {
                 let b = indicatif::ProgressBar::new(total as u64);
@@ -306,7 +312,8 @@ pub fn run_one(a: &RenderArgs) -> Result<()> {
             b.set_length(total as u64);
             b.set_position(done as u64);
         }
-    });
+    };
+    let rendered = render_with(a, &progress, warm);
     if let Some(b) = bar.get() {
         b.finish_and_clear();
     }
@@ -336,13 +343,9 @@ pub fn run_one(a: &RenderArgs) -> Result<()> {
 }
 
 /// Render `a` as `dray render` does (reference renderer or in-process actors), writing
-/// nothing and printing nothing; `progress` gets (tiles done, total).
-pub fn render(a: &RenderArgs, progress: &(dyn Fn(usize, usize) + Sync)) -> Result<Rendered> {
-    render_with(a, progress, None)
-}
-
-/// [`render`], taking the scene and the in-process actors from `warm` when given (and
-/// leaving them there for the next render): `dray sweep`'s renders in one process.
+/// nothing and printing nothing; `progress` gets (tiles done, total). The scene and the
+/// in-process actors come from `warm` when given (and are left there for the next
+/// render): `dray sweep`'s and `dray render --frames`'s renders in one process.
 pub fn render_with(
     a: &RenderArgs,
     progress: &(dyn Fn(usize, usize) + Sync),

@@ -3,7 +3,9 @@
 //! same bits as `dray render --time frame/fps` in one process; `dray submit --time`
 //! renders the posed scene on workers too (the coordinator cuts the posed package); the
 //! group shows in GetJob and ListJobs. Bad ranges and frame rates are refused, naming
-//! what is wrong.
+//! what is wrong. Geometry that does not move stays warm from frame to frame: only the
+//! domains the moving mesh touches are loaded and built again, in one process and on a
+//! cluster, each frame still the bits of `dray render --time`.
 
 mod common;
 #[path = "../../scene-loader/tests/support/mod.rs"]
@@ -420,6 +422,175 @@ fn an_unknown_animation_is_refused_at_submit_and_a_grid_poses_its_file() {
         images[0] != images[1],
         "the grid's copies did not move between 0.25 s and 0.75 s"
     );
+    drop(cluster);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A ground quad that stays and a small triangle that slides along +X from x = 1.3 to
+/// x = 1.5 over one second ("slide"): it stays in the +x, near-z = 0 part of the ground,
+/// and every frame has the same bounds, so the frames are cut alike and the domains it
+/// never touches are the same in each.
+fn write_still_and_moving(dir: &Path) -> PathBuf {
+    let mut b = gltf_support::Builder::default();
+    let ground = [
+        -2.0, 0.0, -2.0, 2.0, 0.0, -2.0, 2.0, 0.0, 2.0, -2.0, 0.0, 2.0,
+    ];
+    b.floats(&ground, "VEC3"); // 0
+    b.indices(&[0, 2, 1, 0, 3, 2]); // 1
+    b.floats(&[-0.1, 0.0, 0.0, 0.1, 0.0, 0.0, 0.0, 1.0, 0.0], "VEC3"); // 2
+    b.floats(&[0.0, 1.0], "SCALAR"); // 3: key times
+    b.floats(&[1.3, 0.0, 0.0, 1.5, 0.0, 0.0], "VEC3"); // 4: key translations
+    let rest = r#""materials":[{"doubleSided":true}],
+"meshes":[{"name":"ground","primitives":[{"attributes":{"POSITION":0},"indices":1,"material":0}]},
+          {"name":"tri","primitives":[{"attributes":{"POSITION":2},"material":0}]}],
+"nodes":[{"mesh":0},{"mesh":1,"translation":[1.3,0,0]}],
+"scenes":[{"nodes":[0,1]}],
+"animations":[{"name":"slide","samplers":[{"input":3,"output":4}],
+  "channels":[{"sampler":0,"target":{"node":1,"path":"translation"}}]}]"#;
+    b.write(dir, "still", rest)
+}
+
+/// (domain_loads, domains_warm) of a `--stats` file.
+fn loads(path: &Path) -> (u64, u64) {
+    let text = std::fs::read_to_string(path)
+        .unwrap_or_else(|e| panic!("the statistics {}: {e}", path.display()));
+    let v: serde_json::Value = serde_json::from_str(&text).expect("statistics JSON");
+    let n = |k: &str| {
+        v[k].as_u64()
+            .unwrap_or_else(|| panic!("no {k} in {}", path.display()))
+    };
+    (n("domain_loads"), n("domains_warm"))
+}
+
+/// The frames 0..3 at 4 fps of the still-and-moving scene, cut into 4 domains.
+fn moving_view() -> Vec<&'static str> {
+    let mut v = view();
+    v.extend(["--domains", "4"]);
+    v
+}
+
+/// Per frame: after the first, the domains the triangle never touches are found warm
+/// and only the others are loaded; every domain is used in every frame.
+fn assert_static_domains_stay_warm(counts: &[(u64, u64)], what: &str) {
+    let (first, _) = counts[0];
+    assert!(first >= 2, "{what}: frame 0 loaded {counts:?}");
+    assert_eq!(
+        counts[0].1, 0,
+        "{what}: nothing is warm in frame 0: {counts:?}"
+    );
+    for (k, &(l, w)) in counts.iter().enumerate().skip(1) {
+        assert!(
+            l >= 1,
+            "{what}: frame {k} moved a mesh and loaded nothing: {counts:?}"
+        );
+        assert!(
+            w >= 1,
+            "{what}: frame {k} found no static domain warm: {counts:?}"
+        );
+        assert_eq!(
+            l + w,
+            first,
+            "{what}: frame {k} used other domains: {counts:?}"
+        );
+    }
+}
+
+/// `dray render --frames` in one process keeps its actors from frame to frame: the
+/// static domains are loaded and built once, in frame 0, the moving triangle's domains
+/// in every frame (on a 2x1x2 grid: the triangle is on the z = 0 wall of the two +x
+/// domains, so 4 loads, then 2 loads and 2 warm a frame; on a kd split, cut once with
+/// the first frame's layout, at least one is warm). Each frame is the bits of `dray
+/// render --time`.
+#[test]
+fn render_frames_loads_static_domains_once_and_keeps_the_bits() {
+    let dir = common::tmp("frames-warm");
+    let scene = write_still_and_moving(&dir);
+    let frames = [(0u32, "0"), (1, "0.25"), (2, "0.5"), (3, "0.75")];
+    for layout in ["grid", "kd"] {
+        let out = Command::new(env!("CARGO_BIN_EXE_dray"))
+            .arg("render")
+            .arg(&scene)
+            .args(moving_view())
+            .args(["--layout", layout, "--workers", "1", "-q"])
+            .args(["--frames", "0..3", "--fps", "4", "--stats"])
+            .arg(dir.join(format!("{layout}.json")))
+            .arg("--output")
+            .arg(dir.join(format!("{layout}.png")))
+            .output()
+            .expect("run dray");
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let counts: Vec<(u64, u64)> = frames
+            .iter()
+            .map(|(f, _)| loads(&dir.join(format!("{layout}.{f:04}.json"))))
+            .collect();
+        eprintln!("frames-warm {layout}: (loads, warm) per frame {counts:?}");
+        assert_static_domains_stay_warm(&counts, layout);
+        if layout == "grid" {
+            assert_eq!(counts, [(4, 0), (2, 2), (2, 2), (2, 2)]);
+        }
+        for (frame, time) in frames {
+            let want = render_time(
+                &dir,
+                &format!("{layout}-ref-{frame}"),
+                &scene,
+                &moving_view(),
+                time,
+            );
+            let got = std::fs::read(dir.join(format!("{layout}.{frame:04}.png")))
+                .unwrap_or_else(|e| panic!("frame {frame}: {e}"));
+            assert!(
+                got == want,
+                "{layout}: frame {frame} differs from dray render --time {time}"
+            );
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A job group on a one-worker cluster, one frame at a time (`--max-running-jobs 1`, in
+/// the order the frames' scenes are ready):
+/// the coordinator cuts every frame with the first frame's kd layout, and the worker,
+/// keying loaded domains by their content, loads the static domains once; each frame's
+/// PNG is the bits of `dray render --time`.
+#[test]
+fn a_group_on_a_cluster_loads_static_domains_once_and_keeps_the_bits() {
+    let dir = common::tmp("frames-warm-cluster");
+    let scene = write_still_and_moving(&dir);
+    let cluster = support::WorkerCluster::start(1, 5, &dir, &["--max-running-jobs", "1"]);
+    let mut cmd = support::dray();
+    cmd.args(["submit", "still.gltf", "--coordinator", &cluster.addr])
+        .args(moving_view())
+        .args([
+            "--layout", "kd", "--frames", "0..3", "--fps", "4", "--stats",
+        ])
+        .arg(dir.join("s.json"))
+        .arg("--output")
+        .arg(dir.join("g.png"));
+    let said = support::run_to_success(cmd, "dray submit --frames", HANG_SECS);
+    let frames = [(0u32, "0"), (1, "0.25"), (2, "0.5"), (3, "0.75")];
+    let counts: Vec<(u64, u64)> = frames
+        .iter()
+        .map(|(f, _)| loads(&dir.join(format!("s.{f:04}.json"))))
+        .collect();
+    eprintln!("frames-warm-cluster: (loads, warm) per frame {counts:?}");
+    // The frames are dealt in the order their scenes are ready, not always frame
+    // order: the one that ran first is the one that found nothing warm.
+    let mut in_run_order = counts.clone();
+    in_run_order.sort_by_key(|&(_, warm)| warm);
+    assert_static_domains_stay_warm(&in_run_order, &format!("cluster ({said})"));
+    for (frame, time) in frames {
+        let want = render_time(&dir, &format!("ref-{frame}"), &scene, &moving_view(), time);
+        let got = std::fs::read(dir.join(format!("g.{frame:04}.png")))
+            .unwrap_or_else(|e| panic!("frame {frame}: {e}; submit said {said}"));
+        assert!(
+            got == want,
+            "frame {frame}: the cluster's image differs from dray render --time {time}"
+        );
+    }
     drop(cluster);
     let _ = std::fs::remove_dir_all(&dir);
 }

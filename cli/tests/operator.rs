@@ -32,12 +32,18 @@ const HANG: f64 = 300.0;
 
 /// A coordinator on `state` with its dashboard: the process, its gRPC and HTTP addresses.
 fn start(root: &Path, state: &Path) -> (Proc, String, String) {
+    start_with(root, state, &[])
+}
+
+/// [`start`] with `extra` coordinator flags.
+fn start_with(root: &Path, state: &Path, extra: &[&str]) -> (Proc, String, String) {
     let mut cmd = support::dray();
     cmd.args(["coordinator", "--listen", "127.0.0.1:0", "--scene-root"])
         .arg(root)
         .arg("--state-dir")
         .arg(state)
         .args(["--http-listen", "127.0.0.1:0", "--threads", "1"])
+        .args(extra)
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(Stdio::null());
@@ -500,6 +506,77 @@ fn a_cluster_limit_deals_by_priority_and_holds_paused_jobs() {
         api.job(&held).events
     );
     drop(c);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A job PAUSED on a coordinator with `--max-running-jobs 1` and workers, which is
+/// killed and started again on its state directory without the limit (so jobs on
+/// workers start at once): the job comes back PAUSED and stays so while a job queued
+/// behind it is taken back and runs to the end, and runs once resumed.
+#[test]
+fn a_job_restored_paused_on_workers_without_a_limit_waits_for_its_resume() {
+    let dir = common::tmp("operator-restore-paused");
+    let state = dir.join("state");
+    let (mut coordinator, grpc, _) = start_with(&dir, &state, &["--max-running-jobs", "1"]);
+    let worker = support::worker(&grpc);
+    let mut api = Api::connect(&grpc);
+    assert!(
+        eventually(HANG, || api.workers().len() == 1),
+        "HANG: the worker never registered"
+    );
+    // The long job holds the one slot; `held` is paused behind it, `after` queued.
+    let long = api.submit(spec(65536, 0, "long"));
+    api.wait_state(&long, JobState::Running);
+    let held = api.submit(spec(4, 0, "held"));
+    api.wait_state(&held, JobState::Queued);
+    api.hold(&held, true).expect("PauseJob");
+    // SubmitJob answers once the store has every change posted before it, the pause
+    // included.
+    let after = api.submit(spec(4, 0, "after"));
+    api.wait_state(&after, JobState::Queued);
+    coordinator.signal(libc::SIGKILL);
+    coordinator.wait_timeout(HANG);
+    drop((api, worker));
+
+    let (_coordinator, grpc, _) = start(&dir, &state);
+    let _worker = support::worker(&grpc);
+    let mut api = Api::connect(&grpc);
+    api.cancel(&long);
+    assert_eq!(api.state(&held), JobState::Paused, "{:?}", api.job(&held));
+    // `after`, taken back after `held` (submission order), runs on the worker: by its
+    // end `held` would have started, had it not been held.
+    api.wait_state(&after, JobState::Succeeded);
+    assert_eq!(
+        api.job(&after).stats.map(|s| s.workers),
+        Some(1),
+        "it ran on the worker"
+    );
+    let job = api.job(&held);
+    assert_eq!(
+        job.progress.clone().unwrap_or_default().state,
+        JobState::Paused as i32,
+        "a job restored PAUSED started without a resume: {:?}",
+        job.events
+    );
+    api.hold(&held, false).expect("ResumeJob");
+    api.wait_state(&held, JobState::Succeeded);
+    let kinds: Vec<JobEventKind> = kinds(&api.job(&held))
+        .into_iter()
+        .filter(|k| *k != JobEventKind::PassFinished)
+        .collect();
+    assert_eq!(
+        kinds,
+        [
+            JobEventKind::Queued,
+            JobEventKind::Paused,
+            JobEventKind::Restored,
+            JobEventKind::Resumed,
+            JobEventKind::Started,
+            JobEventKind::Succeeded
+        ],
+        "{:?}",
+        api.job(&held).events
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -97,6 +97,8 @@ pub struct Cluster {
     /// Jobs waiting for one of the `max_running_jobs` slots on the workers (None: no
     /// limit, jobs start at once).
     pub queue: Option<Arc<crate::priority::DealQueue>>,
+    /// The layouts the frames of recent job groups are cut with (`job_group`).
+    pub(crate) group_layouts: Arc<crate::job_group::GroupLayouts>,
 }
 
 impl Cluster {
@@ -119,6 +121,7 @@ impl Cluster {
             options,
             cuts: std::sync::atomic::AtomicUsize::new(0),
             queue,
+            group_layouts: Arc::default(),
         }
     }
 

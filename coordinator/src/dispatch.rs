@@ -51,8 +51,8 @@ use dray_core::tiles::TileGrid;
 use dray_proto::v1::{EnvMapFile, JobSetup, JobSpec, JobState, Rgb, Tile};
 use dray_scene::partition::checksum::{checksum, to_hex};
 use dray_scene::partition::manifest::MANIFEST_FILE;
-use dray_scene::partition::memory::{MemoryPackage, MemoryPackages};
-use dray_scene::partition::{LayoutSpec, write_scene_package};
+use dray_scene::partition::memory::MemoryPackages;
+use dray_scene::partition::{LayoutSpec, write_scene_package_with};
 use tracing::Instrument;
 
 use crate::caches::geometry::WallGeometry;
@@ -60,6 +60,7 @@ use crate::caches::job::{self as cache_job, JobCaches, OpenAttempt};
 use crate::caches::lifecycle;
 use crate::cluster::Cluster;
 use crate::job::JobPlan;
+use crate::job_group::GroupLayouts;
 use crate::jobs::JobEntry;
 use crate::lighting::LoadedEnvMap;
 use crate::membership::Membership;
@@ -217,6 +218,7 @@ fn make_package(
     dir: &Path,
     memory: Option<&Arc<MemoryPackages>>,
     walls: bool,
+    group: Option<(Arc<GroupLayouts>, String)>,
 ) -> Result<PackageInfo, DispatchError> {
     let src = match (src, memory) {
         (PackageSource::Write { scene, layout }, Some(store)) => {
@@ -234,10 +236,17 @@ fn make_package(
                 dir: dir.to_path_buf(),
                 source,
             })?;
-            write_scene_package(dir, &scene, &layout).map_err(|e| DispatchError::Package {
+            let package_err = |e: dray_scene::SceneError| DispatchError::Package {
                 dir: dir.to_path_buf(),
                 message: e.to_string(),
-            })?;
+            };
+            let given = match &group {
+                Some((layouts, id)) => layouts
+                    .layout_for(id, &scene, &layout)
+                    .map_err(package_err)?,
+                None => None,
+            };
+            write_scene_package_with(dir, &scene, &layout, given).map_err(package_err)?;
             (dir.to_path_buf(), true)
         }
         PackageSource::Existing(d) => (d, false),
@@ -285,10 +294,13 @@ fn memory_package(
         });
     }
     let copy = store.keeps().then(|| scene.clone());
-    let pkg = MemoryPackage::new(scene, layout).map_err(|e| DispatchError::Package {
-        dir: dir.to_path_buf(),
-        message: e.to_string(),
-    })?;
+    // The next frame of an animation keeps the domains no moving mesh touches.
+    let pkg = store
+        .cut(scene, layout)
+        .map_err(|e| DispatchError::Package {
+            dir: dir.to_path_buf(),
+            message: e.to_string(),
+        })?;
     let domains = pkg.domain_count();
     let geometry = walls.then(|| WallGeometry::of(pkg.layout()));
     let name = store.insert(pkg);
@@ -517,11 +529,16 @@ async fn run(
     let dir2 = dir.clone();
     let memory = cluster.options.memory_packages.clone();
     let walls = setup_spec.ray_cache.is_some() || setup_spec.phm.is_some();
+    // A frame of a job group is cut with its group's layout.
+    let group = entry
+        .group
+        .as_ref()
+        .map(|g| (cluster.group_layouts.clone(), g.group_id.clone()));
     // CancelJob stops the cut part-way (its files are removed below).
     let cancel = entry.cancel_flag().clone();
     let info = tokio::task::spawn_blocking(move || {
         dray_scene::cancel::with_cancel(&cancel, || {
-            make_package(package, &dir2, memory.as_ref(), walls)
+            make_package(package, &dir2, memory.as_ref(), walls, group)
         })
     })
     .await

@@ -12,10 +12,26 @@
 //! and room for every frame under `--max-jobs` is made sure of before the first frame is
 //! accepted, and should a later frame be refused (a store that cannot write), the
 //! frames accepted before it are cancelled.
+//!
+//! **Static geometry stays warm.** The frames of a group are cut with one layout
+//! ([`GroupLayouts`]): the first frame cut makes it, and every later frame whose bounds
+//! are the same (its moving meshes stay within the still ones) is cut with it instead
+//! of its own (a kd split would move with the moving mesh's centroids). A domain that
+//! no moving mesh touches then has the same file in every frame's package, and a
+//! worker that loaded it for one frame finds it resident for the next (it keys loaded
+//! domains by their content, `Manifest::domain_contents`): only the domains a moving
+//! mesh touches are loaded and built again. Domains never change the image, and the
+//! bounds, which the light powers read, are the frame's own: each frame is the bits of
+//! a lone job at its time.
+
+use std::collections::VecDeque;
+use std::sync::{Arc, Mutex, MutexGuard};
 
 use dray_core::frames::{FrameRange, check_fps, frame_time};
+use dray_core::scene::Scene;
 use dray_proto::v1::render_service_server::RenderService;
 use dray_proto::v1::{CancelJobRequest, JobGroupMember, JobSpec};
+use dray_scene::partition::{DomainLayout, LayoutSpec};
 use tonic::{Request, Status};
 use tracing::Instrument;
 
@@ -50,6 +66,66 @@ pub fn member_of(id: &str) -> Option<JobGroupMember> {
         group_id: group.to_string(),
         frame: frame.parse().ok()?,
     })
+}
+
+/// Groups whose layout is kept: the frames of a group are cut one after another or
+/// side by side soon after it is submitted, so the last few groups suffice.
+const KEPT_GROUPS: usize = 8;
+
+/// One group's layout, made by its first frame cut (see "Static geometry stays warm").
+type GroupLayout = Arc<Mutex<Option<(LayoutSpec, DomainLayout)>>>;
+
+/// The layouts the frames of recent groups are cut with.
+#[derive(Default)]
+pub struct GroupLayouts {
+    groups: Mutex<VecDeque<(String, GroupLayout)>>,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+impl GroupLayouts {
+    /// The layout to cut `scene`, a frame of `group`, with for `spec`: the group's, when
+    /// it was made for `spec` and `scene` has its bounds; else `None` (cut as any job),
+    /// and the first frame's own layout becomes the group's. Frames cut side by side wait
+    /// for the first to make it. Blocking (reads the scene's triangles).
+    pub fn layout_for(
+        &self,
+        group: &str,
+        scene: &Scene,
+        spec: &LayoutSpec,
+    ) -> dray_scene::error::Result<Option<DomainLayout>> {
+        let slot = {
+            let mut groups = lock(&self.groups);
+            match groups.iter().find(|(g, _)| g == group) {
+                Some((_, slot)) => slot.clone(),
+                None => {
+                    let slot = GroupLayout::default();
+                    groups.push_back((group.to_string(), slot.clone()));
+                    if groups.len() > KEPT_GROUPS {
+                        groups.pop_front();
+                    }
+                    slot
+                }
+            }
+        };
+        let mut kept = lock(&slot);
+        match kept.as_ref() {
+            Some((kept_spec, layout)) if kept_spec == spec => {
+                let bounds = dray_scene::partition::survey(&scene.mesh, 0)?.bounds;
+                let same = bounds == layout.scene_bounds();
+                tracing::debug!(group, same, "a frame's bounds against its group's layout");
+                Ok(same.then(|| layout.clone()))
+            }
+            Some(_) => Ok(None),
+            None => {
+                let layout = DomainLayout::for_source(&scene.mesh, spec)?;
+                *kept = Some((*spec, layout.clone()));
+                Ok(Some(layout))
+            }
+        }
+    }
 }
 
 fn invalid(m: String) -> Status {

@@ -8,7 +8,9 @@
 //! Two queues use it. The coordinator's own renderer (no worker registered) has one slot
 //! (`JobTable::start`), replacing the first-come semaphore it had. Jobs on workers have
 //! `--max-running-jobs` slots when that is given (`Cluster::queue`, taken in
-//! `Coordinator::launch`); without it they start at once and never wait here.
+//! `Coordinator::launch`); without it they start at once and never wait here, except a
+//! job a restarted coordinator took back PAUSED: it waits for ResumeJob
+//! ([`DealQueue::resumed`]).
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -97,6 +99,28 @@ impl DealQueue {
     /// Tell the waiters something changed (a job paused or resumed).
     pub fn poke(&self) {
         self.changed.notify_waiters();
+    }
+
+    /// Wait while `job` is PAUSED outside any queue (taken back PAUSED by a restarted
+    /// coordinator whose jobs on workers start at once, with no slot to wait for):
+    /// woken by this queue's pokes, which ResumeJob gives every queue. True once it is
+    /// resumed; false when it ends (is cancelled) first.
+    pub async fn resumed(&self, job: &JobEntry) -> bool {
+        loop {
+            let notified = self.changed.notified();
+            tokio::pin!(notified);
+            notified.as_mut().enable();
+            if job.is_terminal() {
+                return false;
+            }
+            if job.state() != JobState::Paused {
+                return true;
+            }
+            tokio::select! {
+                _ = notified => {}
+                _ = job.wait_ended() => {}
+            }
+        }
     }
 
     /// Put `job` in the queue now (so it can be paused at once); [`Waiting::turn`]
@@ -253,5 +277,32 @@ mod tests {
         assert!(wg.turn().await.is_none());
         assert!(!q.is_waiting(&g.id));
         drop((s1, s2));
+    }
+
+    /// A job held PAUSED outside any slot queue waits until it is resumed, and a
+    /// cancelled one stops waiting.
+    #[tokio::test]
+    async fn a_paused_job_waits_for_its_resume_or_its_end() {
+        let table = JobTable::new(1);
+        let q = Arc::new(DealQueue::new("process", 1));
+        let a = table.insert(spec(0));
+        a.set_state(JobState::Paused);
+        let waiting = tokio::spawn({
+            let (q, a) = (q.clone(), a.clone());
+            async move { q.resumed(&a).await }
+        });
+        tokio::task::yield_now().await;
+        assert!(!waiting.is_finished(), "a paused job does not go on");
+        a.hold(false).expect("resume");
+        q.poke();
+        assert!(waiting.await.expect("task"), "resumed");
+        let b = table.insert(spec(0));
+        b.set_state(JobState::Paused);
+        let waiting = tokio::spawn({
+            let (q, b) = (q.clone(), b.clone());
+            async move { q.resumed(&b).await }
+        });
+        b.cancel();
+        assert!(!waiting.await.expect("task"), "cancelled while paused");
     }
 }

@@ -419,6 +419,10 @@ impl Coordinator {
             .clone()
             .filter(|_| !self.cluster.membership.is_empty())
         else {
+            if job.state() == JobState::Paused {
+                self.start_when_resumed(job, v, prepared, resume);
+                return Ok(());
+            }
             return self.start_now(job, v, prepared, resume);
         };
         // Waiting for a slot is QUEUED, and PauseJob can hold it there.
@@ -448,6 +452,33 @@ impl Coordinator {
             .instrument(span),
         );
         Ok(())
+    }
+
+    /// A job taken back PAUSED by this restarted coordinator, with no slot queue to be
+    /// held in (jobs on workers start at once without `--max-running-jobs`): it stays
+    /// PAUSED until ResumeJob, then starts as [`Coordinator::start_now`] (cancelled
+    /// meanwhile, it never starts).
+    fn start_when_resumed(
+        &self,
+        job: &Arc<JobEntry>,
+        v: &crate::validate::Validated,
+        prepared: crate::validate::Prepared,
+        resume: Option<Resume>,
+    ) {
+        let (this, job, v) = (self.clone(), job.clone(), v.clone());
+        let span = tracing::info_span!("paused", id = %job.id);
+        tokio::spawn(
+            async move {
+                tracing::info!("held PAUSED until it is resumed");
+                if !this.table.queue().resumed(&job).await {
+                    return;
+                }
+                if let Err(e) = this.start_now(&job, &v, prepared, resume) {
+                    job.finish(JobState::Failed, e.message().to_string(), None);
+                }
+            }
+            .instrument(span),
+        );
     }
 
     /// Start `job` where it can run now: on the workers, or in process (in that

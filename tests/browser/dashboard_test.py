@@ -14,6 +14,9 @@ Headless Chromium, driven over WebDriver by Selenium, against a real
      (GetJob's retriedFrom), and the finished job's PNG and EXR download as attachments
      (the PNG the bytes the page shows, the EXR GetImage's);
   5. the workers are listed with their domains, under their names (worker-1, worker-2);
+     a frame range submitted from the form is a job group: its frames are listed, each
+     marked with its frame and group (ListJobs of the group agrees), and a frame's PNG
+     downloads (GetImage's bytes);
   6. 100 jobs are listed at once, and older ones are a page away;
   7. with --auth-token-file, the page shows its login, the API refuses requests without
      the token (401) and state-changing requests without the CSRF header (403), a wrong
@@ -291,6 +294,54 @@ def download_from_page(d, c: Cluster, artifacts: Path) -> None:
     assert body == base64.b64decode(got["data"]), "the downloaded EXR is not GetImage's"
 
 
+# A small frame range: frames 1 to 3 of a tiny cornell at 24 fps (a procedural scene
+# has no animation: each frame is the rest pose, an ordinary job of its own).
+FRAMES, FRAME_COUNT = "1..3", 3
+
+
+@step("a frame range from the page is a job group: frames listed, one downloaded")
+def frames_from_page(d, c: Cluster, artifacts: Path) -> None:
+    fill_form(d, {"scene": SCENE, "width": 32, "height": 24, "spp": 4,
+                  "label": "frame range", "frames": FRAMES, "fps": 24})
+    # The form keeps what it was given: the submissions after this one are lone jobs.
+    form = d.find_element(By.ID, "submit-form")
+    for name in ("frames", "fps"):
+        form.find_element(By.NAME, name).clear()
+
+    def listed():
+        got = d.execute_script(
+            "return [...document.querySelectorAll('#jobs tbody tr')]"
+            ".filter(r => r.textContent.includes('frame range') && r.querySelector('small.group'))"
+            ".map(r => ({id: r.dataset.id, state: r.dataset.state,"
+            "            marked: r.querySelector('small.group').textContent}))")
+        done = len(got) == FRAME_COUNT and all(r["state"] == "SUCCEEDED" for r in got)
+        return got if done else None
+
+    frames = wait_for(f"the group's {FRAME_COUNT} frames listed, SUCCEEDED", listed)
+    marks = sorted(r["marked"] for r in frames)
+    groups = {m.split(" of ", 1)[1] for m in marks}
+    assert len(groups) == 1, f"the frames are marked with several groups: {marks}"
+    group = groups.pop()
+    assert [m.split(" of ", 1)[0] for m in marks] == ["frame 1", "frame 2", "frame 3"], marks
+    got = c.grpcurl(GRPCURL, "ListJobs", {"groupId": group})
+    api = sorted(j["jobId"] for j in got.get("jobs", []))
+    assert api == sorted(r["id"] for r in frames), f"the page lists {frames}, ListJobs {api}"
+    d.save_screenshot(str(artifacts / "frames.png"))
+    # Frame 2's PNG, from its download link.
+    second = next(r["id"] for r in frames if r["marked"].startswith("frame 2 "))
+    wait_for("a click on frame 2", lambda: click(d, f'#jobs tbody tr[data-id="{second}"]'))
+    link = wait_for("frame 2's PNG link", lambda: d.execute_script(
+        "const a = [...document.querySelectorAll('#job-operator a.download')]"
+        ".map(a => a.href).filter(h => h.includes(arguments[0]) && h.endsWith('image.png'));"
+        "return a.length === 1 ? a[0] : null", second))
+    status, disposition, body = fetch_in_page(d, link)
+    assert status == 200, (status, disposition)
+    assert disposition == f'attachment; filename="{second}.png"', disposition
+    want = c.grpcurl(GRPCURL, "GetImage", {"jobId": second, "format": "IMAGE_FORMAT_PNG"})
+    assert body == base64.b64decode(want["data"]), "the downloaded frame is not GetImage's PNG"
+    assert pixels(body)[0] == (32, 24), pixels(body)[0]
+
+
 def click(d, css: str) -> bool:
     """Click the element `css` selects; False (try again) when a live update redrew it
     between finding and clicking."""
@@ -448,6 +499,8 @@ def main() -> int:
             guarded("cancel", cancel_from_page, d, c, artifacts)
             guarded("download", download_from_page, d, c, artifacts)
             guarded("README screenshot", readme_screenshot, d, artifacts)
+            # After the screenshot, which shows the newest finished job.
+            guarded("frame range", frames_from_page, d, c, artifacts)
             guarded("many jobs", many_jobs, d, c, artifacts)
             c.stop()
 

@@ -31,6 +31,13 @@
 //! a sweep, an animation or a second look at the same scene does not load and build
 //! its BVHs again. At most one idle package is kept, so a worker between jobs holds no
 //! more than the last job's domains.
+//!
+//! **Per domain.** A job may say what each of its domains is made of instead
+//! ([`Contents::per_domain`]: the domain file's checksum and what every domain shares):
+//! the frames of an animation are different packages, but a domain that no moving mesh
+//! touches is the same domain in each, and a job finds it resident whichever frame
+//! loaded it; only the domains a moving mesh touches are loaded and built again
+//! (issue 42).
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -143,13 +150,59 @@ impl Slot {
 /// equal domains.
 pub type Content = Arc<str>;
 
+/// What each domain of a job is made of: one content for every domain of its package,
+/// or one per domain (see "Per domain" above).
+#[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub struct Contents {
+    /// Of every domain without one of its own.
+    package: Content,
+    /// Domain `d`'s own, when given.
+    domains: Arc<[Content]>,
+}
+
+impl Contents {
+    /// Every domain of the job is of `package`'s content.
+    pub fn package(package: Content) -> Contents {
+        Contents {
+            package,
+            domains: Arc::from([]),
+        }
+    }
+
+    /// Domain `d` is of `domains[d]`'s content (others, of `package`'s).
+    pub fn per_domain(package: Content, domains: Vec<Content>) -> Contents {
+        Contents {
+            package,
+            domains: domains.into(),
+        }
+    }
+
+    /// The slot key of domain `d`.
+    fn of(&self, d: u32) -> (Content, u32) {
+        let c = self.domains.get(d as usize).unwrap_or(&self.package);
+        (c.clone(), d)
+    }
+
+    /// Whether the slot `key` is one of these domains.
+    fn holds(&self, key: &(Content, u32)) -> bool {
+        let c = self.domains.get(key.1 as usize).unwrap_or(&self.package);
+        *c == key.0
+    }
+}
+
+impl From<Content> for Contents {
+    fn from(package: Content) -> Contents {
+        Contents::package(package)
+    }
+}
+
 #[derive(Default)]
 struct Inner {
     slots: HashMap<(Content, u32), Slot>,
-    /// The content of every open job attempt.
-    jobs: HashMap<JobKey, Content>,
-    /// The content whose domains stay resident with no open job (see "Warm domains").
-    idle: Option<Content>,
+    /// The contents of every open job attempt.
+    jobs: HashMap<JobKey, Contents>,
+    /// The contents whose domains stay resident with no open job (see "Warm domains").
+    idle: Option<Contents>,
     /// Domains each open job has used or loaded, so that a warm one counts once.
     used: HashMap<JobKey, std::collections::HashSet<u32>>,
     /// Bytes of all slots, loading ones included.
@@ -196,23 +249,21 @@ impl DomainStore {
     /// the same content (another job's, or idle ones of a finished job) are then used
     /// as they are. Idle domains of other content are dropped now. A job never opened
     /// has domains of its own.
-    pub fn open(&self, job: &JobKey, content: Content) {
+    pub fn open(&self, job: &JobKey, content: Contents) {
         let mut g = self.lock();
-        if g.idle.as_ref().is_some_and(|c| *c != content) {
-            let old = g.idle.take();
-            if let Some(old) = old {
-                drop_content(&mut g, &old);
-            }
-        } else if g.idle.as_ref() == Some(&content) {
-            g.idle = None;
-        }
         g.jobs.insert(job.clone(), content);
+        // The idle domains this job (or another open one) holds are its now; the rest go.
+        if let Some(old) = g.idle.take() {
+            drop_content(&mut g, &old);
+        }
     }
 
     /// The slot key of domain `d` of `job`.
     fn key(g: &Inner, job: &JobKey, d: u32) -> (Content, u32) {
-        let content = g.jobs.get(job).cloned().unwrap_or_else(|| private(job));
-        (content, d)
+        match g.jobs.get(job) {
+            Some(c) => c.of(d),
+            None => (private(job), d),
+        }
     }
 
     /// The budget in bytes (0: unlimited).
@@ -286,7 +337,7 @@ impl DomainStore {
         let key = {
             let mut g = self.lock();
             if !g.jobs.contains_key(job) {
-                g.jobs.insert(job.clone(), private(job));
+                g.jobs.insert(job.clone(), private(job).into());
             }
             let key = Self::key(&g, job, d);
             match g.slots.get(&key) {
@@ -412,7 +463,7 @@ impl DomainStore {
                 let jobs: Vec<JobKey> = g
                     .jobs
                     .iter()
-                    .filter(|(_, c)| **c == k.0)
+                    .filter(|(_, c)| c.holds(&k))
                     .map(|(j, _)| j.clone())
                     .collect();
                 for j in jobs {
@@ -457,14 +508,14 @@ impl DomainStore {
         for j in &closed {
             g.used.remove(j);
         }
-        let mut contents: Vec<Content> = closed.iter().filter_map(|j| g.jobs.remove(j)).collect();
+        let mut contents: Vec<Contents> = closed.iter().filter_map(|j| g.jobs.remove(j)).collect();
         contents.sort_unstable();
         contents.dedup();
         for c in contents {
             if g.jobs.values().any(|o| *o == c) || g.idle.as_ref() == Some(&c) {
                 continue;
             }
-            if closed.iter().any(|j| private(j) == c) {
+            if closed.iter().any(|j| Contents::from(private(j)) == c) {
                 // A job never opened had domains of its own: no later job can use them.
                 drop_content(&mut g, &c);
                 continue;
@@ -482,11 +533,15 @@ impl DomainStore {
     /// must not move a domain whose load is under way, or the load is thrown away.
     pub fn resident(&self, job: &JobKey) -> Vec<(u32, u64)> {
         let g = self.lock();
-        let content = Self::key(&g, job, 0).0;
+        let content = g
+            .jobs
+            .get(job)
+            .cloned()
+            .unwrap_or_else(|| private(job).into());
         let mut v: Vec<(u32, u64)> = g
             .slots
             .iter()
-            .filter(|((c, _), _)| *c == content)
+            .filter(|(k, _)| content.holds(k))
             .map(|((_, d), s)| (*d, s.domain_bytes()))
             .collect();
         v.sort_unstable();
@@ -525,12 +580,16 @@ fn private(job: &JobKey) -> Content {
     format!("job {} attempt {}", job.id, job.attempt).into()
 }
 
-/// Drop the ready domains of `content` (loads under way finish and are then kept only
-/// while their job is open).
-fn drop_content(g: &mut Inner, content: &Content) {
+/// Drop the ready domains of `content` that neither an open job nor the idle contents
+/// hold (loads under way finish and are then kept only while their job is open).
+fn drop_content(g: &mut Inner, content: &Contents) {
     let mut freed = 0;
-    g.slots.retain(|(c, _), s| {
-        let gone = c == content && matches!(s, Slot::Ready { .. });
+    let (jobs, idle) = (&g.jobs, &g.idle);
+    g.slots.retain(|k, s| {
+        let gone = content.holds(k)
+            && matches!(s, Slot::Ready { .. })
+            && !jobs.values().any(|c| c.holds(k))
+            && !idle.as_ref().is_some_and(|c| c.holds(k));
         if gone {
             freed += s.bytes();
         }
@@ -739,8 +798,8 @@ mod tests {
         };
         let store = DomainStore::new(0, Duration::ZERO);
         let (a, b, c) = (named("a"), named("b"), named("c"));
-        store.open(&a, "pkg-1".into());
-        store.open(&b, "pkg-1".into());
+        store.open(&a, Contents::package("pkg-1".into()));
+        store.open(&b, Contents::package("pkg-1".into()));
         store.load(&a, 0, &src).unwrap();
         store.load(&b, 0, &src).unwrap();
         assert_eq!(src.loads.load(Ordering::Relaxed), 1, "b used a's domain");
@@ -753,7 +812,7 @@ mod tests {
         store.release("b", 0);
         assert_eq!(store.used_bytes(), 10, "the released package stays warm");
         // A later job of the same package finds it resident.
-        store.open(&c, "pkg-1".into());
+        store.open(&c, Contents::package("pkg-1".into()));
         assert!(store.is_resident(&c, 0));
         assert!(store.get(&c, 0).is_some());
         assert_eq!(store.take_counters(&c).warm, 1);
@@ -761,7 +820,7 @@ mod tests {
         store.release("c", 0);
         // A job of another package drops the idle one.
         let d = named("d");
-        store.open(&d, "pkg-2".into());
+        store.open(&d, Contents::package("pkg-2".into()));
         assert_eq!(store.used_bytes(), 0, "idle domains of other content went");
         assert!(!store.is_resident(&d, 0));
         store.load(&d, 0, &src).unwrap();
@@ -842,6 +901,57 @@ mod tests {
         assert_eq!(src.then.loads.load(Ordering::Relaxed), 2);
     }
 
+    /// The frames of an animation: each its own package, domains 0 and 1 the same in
+    /// every frame, domain 2 moved. Only domain 2 is loaded again, whether the frames
+    /// run one after another or side by side, and the warm ones count as warm.
+    #[test]
+    fn domains_of_equal_content_stay_warm_across_packages() {
+        let src = Fake {
+            bytes: 10,
+            loads: AtomicU64::new(0),
+        };
+        let store = DomainStore::new(0, Duration::ZERO);
+        let frame = |n: u32| {
+            Contents::per_domain(
+                format!("frame {n}").into(),
+                vec!["ground".into(), "wall".into(), format!("tri at {n}").into()],
+            )
+        };
+        let f0 = named("f0");
+        store.open(&f0, frame(0));
+        for d in 0..3 {
+            store.load(&f0, d, &src).unwrap();
+        }
+        store.release("f0", 0);
+        let f1 = named("f1");
+        store.open(&f1, frame(1));
+        assert_eq!(store.used_bytes(), 20, "the moved domain of frame 0 went");
+        assert!(store.is_resident(&f1, 0) && store.is_resident(&f1, 1));
+        assert!(!store.is_resident(&f1, 2));
+        for d in 0..3 {
+            store.load(&f1, d, &src).unwrap();
+        }
+        assert_eq!(src.loads.load(Ordering::Relaxed), 4);
+        let c = store.take_counters(&f1);
+        assert_eq!((c.loads, c.warm), (1, 2));
+        assert_eq!(store.resident(&f1), vec![(0, 10), (1, 10), (2, 10)]);
+        // Two frames open at once share the static domains; releasing one keeps what
+        // the other holds, and the idle frame's shared domains outlive a later release.
+        let f2 = named("f2");
+        store.open(&f2, frame(2));
+        for d in 0..3 {
+            store.load(&f2, d, &src).unwrap();
+        }
+        assert_eq!(src.loads.load(Ordering::Relaxed), 5);
+        store.release("f1", 0);
+        store.release("f2", 0);
+        assert_eq!(store.used_bytes(), 30, "frame 2's domains stay idle");
+        let f3 = named("f3");
+        store.open(&f3, frame(3));
+        assert_eq!(store.used_bytes(), 20);
+        assert_eq!(store.resident(&f3), vec![(0, 10), (1, 10)]);
+    }
+
     #[test]
     fn idle_domains_give_way_to_the_budget() {
         let src = Fake {
@@ -850,14 +960,14 @@ mod tests {
         };
         let store = DomainStore::new(440, Duration::ZERO);
         let (a, b) = (named("a"), named("b"));
-        store.open(&a, "pkg-1".into());
+        store.open(&a, Contents::package("pkg-1".into()));
         for d in 0..3 {
             store.load(&a, d, &src).unwrap();
         }
         store.release("a", 0);
         // Another job of the same package that needs a fourth domain: the least
         // recently used idle one makes room, as any resident domain would.
-        store.open(&b, "pkg-1".into());
+        store.open(&b, Contents::package("pkg-1".into()));
         store.load(&b, 3, &src).unwrap();
         assert!(store.used_bytes() <= 440);
         assert_eq!(store.resident(&b).len(), 3);

@@ -44,7 +44,9 @@ pub mod traffic_trace;
 pub(crate) mod work;
 
 pub use config::{Limits, NodeError, WorkerConfig};
-pub use domain_store::{Content, DomainSource, DomainStore, JobKey, LoadError, LoadedDomain};
+pub use domain_store::{
+    Content, Contents, DomainSource, DomainStore, JobKey, LoadError, LoadedDomain,
+};
 pub use node::run;
 pub use peer_client::{BatchKey, PeerClientConfig, PeerError, PeerSender};
 pub use peer_server::{PeerServer, PeerServerConfig, StreamError};

@@ -28,7 +28,7 @@ use dray_scene::partition::resident::{assemble, resident_bytes};
 use dray_scene::partition::{Aabb, DomainLayout, DomainMesh, Package, open_package};
 use glam::Vec3;
 
-use crate::domain_store::{Content, DomainSource, LoadedDomain};
+use crate::domain_store::{Content, Contents, DomainSource, LoadedDomain};
 use crate::package_fetch::{PackageFetcher, RemotePackage};
 use crate::tracer::JobTracer;
 
@@ -137,11 +137,12 @@ fn lighting(spec: &dray_proto::v1::JobSpec) -> Result<Lighting, JobError> {
 pub struct JobPlan {
     pub tracer: JobTracer,
     pub source: Arc<dyn DomainSource>,
-    /// What its loaded domains are made of ([`DomainStore::open`]): jobs with equal
-    /// content share resident domains.
+    /// What its loaded domains are made of ([`DomainStore::open`]), domain by domain:
+    /// jobs with equal content share resident domains, and a domain equal in two
+    /// packages (the frames of an animation, where it does not move) is loaded once.
     ///
     /// [`DomainStore::open`]: crate::DomainStore::open
-    pub content: Content,
+    pub content: Contents,
 }
 
 /// The content key of a package's domains loaded for `settings`: the package's
@@ -151,6 +152,24 @@ pub struct JobPlan {
 fn content(identity: &str, settings: &RenderSettings) -> Content {
     let emission = settings.effects.contains(Effect::Emission);
     format!("{identity} emission={emission}").into()
+}
+
+/// The contents of the domains of a package on disk, one per domain
+/// ([`dray_scene::partition::Manifest::domain_contents`]): two packages cut from frames
+/// where a domain's triangles did not move give it the same content.
+fn disk_contents(package: &Package, found: &str, settings: &RenderSettings) -> Contents {
+    let whole = content(found, settings);
+    match package.manifest().domain_contents() {
+        Ok(domains) => Contents::per_domain(
+            whole,
+            domains
+                .iter()
+                .map(|c| content(&format!("domain {c}"), settings))
+                .collect(),
+        ),
+        // Not per domain, then: the package's domains are its own.
+        Err(_) => Contents::package(whole),
+    }
 }
 
 /// Open the job's package (a directory, or an in-memory package of this process in
@@ -215,9 +234,10 @@ pub fn plan_job_with(
         .map(|d| d.triangles)
         .collect();
     let tracer = tracer(settings.clone(), camera, package.layout(), &counts, setup)?;
+    let contents = disk_contents(&package, &found, &settings);
     let source = domains_of(package, &settings, remote).map_err(|e| pkg_err(e.to_string()))?;
     Ok(JobPlan {
-        content: content(&found, &settings),
+        content: contents,
         tracer,
         source,
     })
@@ -299,8 +319,13 @@ fn memory_plan(
     )?;
     let counts = package.triangle_counts();
     let tracer = tracer(settings.clone(), camera, layout, &counts, setup)?;
+    let domains = package
+        .domain_contents()
+        .iter()
+        .map(|c| content(&format!("memory domain {c}"), &settings))
+        .collect();
     Ok(JobPlan {
-        content: content(&setup.package_path, &settings),
+        content: Contents::per_domain(content(&setup.package_path, &settings), domains),
         tracer,
         source: memory_domains(package, &settings),
     })

@@ -723,6 +723,33 @@ pub struct Manifest {
     pub emitters: Option<DomainEntry>,
 }
 
+impl Manifest {
+    /// What each domain of the package is, for a worker that keeps loaded domains
+    /// between jobs: the checksum of everything a loaded domain holds besides its own
+    /// triangles (this manifest without its per-domain entries and counts: the layout
+    /// with every domain's box, the bounds, materials, textures, lights, cameras and the
+    /// emitters' checksum), then the domain file's checksum. The packages of two frames
+    /// of an animation, cut with one layout, give a domain no moving mesh touches the
+    /// same content; anything else that differs gives every domain another.
+    pub fn domain_contents(&self) -> Result<Vec<String>> {
+        let mut shared = self.clone();
+        let files = std::mem::take(&mut shared.domains);
+        shared.source_triangles = 0;
+        shared.assigned_triangles = 0;
+        shared.material_triangles.clear();
+        shared.stats = StatsDesc::default();
+        let bytes = serde_json::to_vec(&shared).map_err(|e| SceneError::Format {
+            path: Path::new(MANIFEST_FILE).to_path_buf(),
+            message: format!("cannot encode the manifest: {e}"),
+        })?;
+        let shared = to_hex(checksum(&bytes));
+        Ok(files
+            .iter()
+            .map(|f| format!("{shared}:{}", f.xxh3))
+            .collect())
+    }
+}
+
 /// The file name of domain `d`'s triangles.
 pub fn domain_file_name(d: u32) -> String {
     format!("domain-{d:05}.bin")

@@ -19,6 +19,15 @@
 //! gets the same package name, so the workers, which key resident domains by package,
 //! find its domains and BVHs already built instead of loading them again. Equality is of
 //! the whole scene (every vertex, material, light and camera), never of its name.
+//!
+//! **Frames.** A scene that is not equal to the kept one, but has its bounds (the next
+//! frame of an animation whose moving meshes stay inside the still ones), is cut with
+//! the kept package's layout instead of a new one ([`MemoryPackages::cut`]), and each
+//! domain whose triangles are those of the kept package's same domain (with equal
+//! tables and emitters) keeps its [content id](MemoryPackage::domain_contents): workers
+//! find it resident and only the domains a moving mesh touches are built again. The
+//! image does not change: domains never change it, and the bounds, which the light
+//! powers read, are the frame's own.
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -50,7 +59,13 @@ pub struct MemoryPackage {
     domains: Vec<DomainMesh>,
     /// Every emissive triangle, for next-event estimation on any worker.
     emitters: DomainMesh,
+    /// What each domain is, by domain index: unique in the process, or the id of an
+    /// equal domain of the package this one was cut after ([`MemoryPackages::cut`]).
+    contents: Vec<u64>,
 }
+
+/// The next domain content id of this process.
+static NEXT_CONTENT: AtomicU64 = AtomicU64::new(1);
 
 impl MemoryPackage {
     /// Cut `scene` by `spec`. The scene is consumed: one domain takes its mesh as it is,
@@ -87,12 +102,44 @@ impl MemoryPackage {
         }
         scene.mesh = Mesh::default();
         let tables = scene;
+        let contents = (0..domains.len())
+            .map(|_| NEXT_CONTENT.fetch_add(1, Ordering::Relaxed))
+            .collect();
         Ok(MemoryPackage {
             tables,
             layout,
             domains,
             emitters: emitters.finish(EMITTERS_DOMAIN, b),
+            contents,
         })
+    }
+
+    /// What each domain is, by domain index: equal ids are equal domains (box,
+    /// triangles, tables, emitters, bounds), so a worker may use one loaded for
+    /// another package.
+    pub fn domain_contents(&self) -> &[u64] {
+        &self.contents
+    }
+
+    /// Give each domain equal to `old`'s domain of the same index, in a package of
+    /// the same layout, tables and emitters, `old`'s content id. Returns how many.
+    fn inherit(&mut self, old: &MemoryPackage) -> usize {
+        if self.layout != old.layout || self.emitters != old.emitters || self.tables != old.tables {
+            return 0;
+        }
+        let mut same = 0;
+        for ((mine, id), (theirs, old_id)) in self
+            .domains
+            .iter()
+            .zip(self.contents.iter_mut())
+            .zip(old.domains.iter().zip(&old.contents))
+        {
+            if mine == theirs {
+                *id = *old_id;
+                same += 1;
+            }
+        }
+        same
     }
 
     /// The layout every worker walks rays with.
@@ -248,6 +295,30 @@ impl MemoryPackages {
         }
     }
 
+    /// Cut `scene` by `spec` (see "Frames" above): with the kept package's layout when
+    /// this store keeps one of the same spec and `scene` has its bounds, each domain
+    /// equal to the kept one's keeping its content id; else as [`MemoryPackage::new`].
+    pub fn cut(&self, scene: Scene, spec: &LayoutSpec) -> Result<MemoryPackage> {
+        let kept = lock(&self.kept)
+            .as_ref()
+            .filter(|k| k.layout == *spec)
+            .and_then(|k| self.get(&k.name));
+        let Some(old) = kept else {
+            return MemoryPackage::new(scene, spec);
+        };
+        if super::survey(&scene.mesh, 0)?.bounds != old.layout.scene_bounds() {
+            return MemoryPackage::new(scene, spec);
+        }
+        let mut pkg = MemoryPackage::with_layout(scene, old.layout.clone())?;
+        let same = pkg.inherit(&old);
+        tracing::info!(
+            domains = pkg.domain_count(),
+            same,
+            "cut with the kept package's layout; domains equal to its own kept"
+        );
+        Ok(pkg)
+    }
+
     fn lock(&self) -> MutexGuard<'_, HashMap<String, Arc<MemoryPackage>>> {
         lock(&self.packages)
     }
@@ -342,6 +413,46 @@ mod tests {
             store.env_map("memory:1").is_none(),
             "the replaced package is forgotten"
         );
+    }
+
+    /// A ground quad split across a 2x1x1 grid and a small triangle in the +x half:
+    /// moving the triangle keeps the -x domain's content, the +x domain's changes.
+    #[test]
+    fn a_moved_mesh_changes_only_the_domains_it_touches() {
+        let frame = |x: f32| {
+            let mut s = Scene::default();
+            let p = |x, y, z| glam::Vec3::new(x, y, z);
+            s.mesh.positions = vec![
+                p(-2.0, 0.0, -2.0),
+                p(2.0, 0.0, -2.0),
+                p(2.0, 0.0, 2.0),
+                p(-2.0, 0.0, 2.0),
+                p(x - 0.1, 0.0, 0.0),
+                p(x + 0.1, 0.0, 0.0),
+                p(x, 1.0, 0.0),
+            ];
+            s.mesh.indices = vec![[0, 2, 1], [0, 3, 2], [4, 5, 6]];
+            s.mesh.material = vec![0; 3];
+            s
+        };
+        let grid = LayoutSpec::Grid([2, 1, 1]);
+        let store = MemoryPackages::keeping_last();
+        let first = store.cut(frame(1.2), &grid).unwrap();
+        let ids0 = first.domain_contents().to_vec();
+        let name = store.insert(first);
+        store.keep(&name, frame(1.2), grid);
+        let second = store.cut(frame(1.5), &grid).unwrap();
+        let ids1 = second.domain_contents();
+        assert_eq!(ids1[0], ids0[0], "the -x half did not change");
+        assert_ne!(ids1[1], ids0[1], "the triangle moved in the +x half");
+        // Bounds that differ: a layout of its own, no domain shared.
+        let far = store.cut(frame(3.0), &grid).unwrap();
+        assert!(far.domain_contents().iter().all(|c| !ids0.contains(c)));
+        // A store that keeps nothing shares nothing.
+        let plain = MemoryPackages::default();
+        let a = plain.cut(frame(1.2), &grid).unwrap();
+        let b = plain.cut(frame(1.2), &grid).unwrap();
+        assert_ne!(a.domain_contents(), b.domain_contents());
     }
 
     #[test]

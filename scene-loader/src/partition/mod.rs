@@ -51,7 +51,7 @@ pub use layout::{Aabb, DomainLayout, LayoutSpec, MAX_DOMAINS};
 pub use manifest::{FORMAT_VERSION, Manifest};
 pub use package::{
     Package, PackageSummary, SceneParts, WriteOptions, open_package, write_package,
-    write_scene_package,
+    write_scene_package, write_scene_package_with,
 };
 pub use resident::{ResidentDomain, ResidentScene, load_resident};
 

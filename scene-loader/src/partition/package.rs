@@ -227,6 +227,11 @@ pub struct WriteOptions {
     /// Threads compacting domains into their files; each holds one domain in memory, so
     /// peak memory grows with this.
     pub threads: usize,
+    /// Cut with this layout instead of one made for `spec`, when the source's bounds are
+    /// its bounds (the frames of an animation, cut alike so that a domain no moving
+    /// mesh touches has the same file in each; domains never change the image). Another
+    /// bounds: a layout made for `spec`, as without it.
+    pub layout: Option<DomainLayout>,
 }
 
 impl Default for WriteOptions {
@@ -237,6 +242,7 @@ impl Default for WriteOptions {
             // Compaction is hash-map bound; a few threads help, many would only
             // multiply the memory of the largest domain.
             threads: std::thread::available_parallelism().map_or(1, |n| n.get().min(4)),
+            layout: None,
         }
     }
 }
@@ -297,13 +303,22 @@ impl PackageSummary {
 
 /// Partition an in-memory scene into a package at `dir` with default options.
 pub fn write_scene_package(dir: &Path, scene: &Scene, spec: &LayoutSpec) -> Result<PackageSummary> {
-    write_package(
-        dir,
-        SceneParts::of(scene),
-        scene,
-        spec,
-        &WriteOptions::default(),
-    )
+    write_scene_package_with(dir, scene, spec, None)
+}
+
+/// [`write_scene_package`], cut with `layout` when the scene has its bounds
+/// ([`WriteOptions::layout`]).
+pub fn write_scene_package_with(
+    dir: &Path,
+    scene: &Scene,
+    spec: &LayoutSpec,
+    layout: Option<DomainLayout>,
+) -> Result<PackageSummary> {
+    let options = WriteOptions {
+        layout,
+        ..WriteOptions::default()
+    };
+    write_package(dir, SceneParts::of(scene), scene, spec, &options)
 }
 
 /// Partition `source` by `spec` and write the package to `dir`.
@@ -348,7 +363,10 @@ pub fn write_package(
         ));
     }
     s.material_triangles.resize(parts.materials.len(), 0);
-    let layout = DomainLayout::build(s.bounds, spec, &mut s.centroids)?;
+    let layout = match &options.layout {
+        Some(given) if given.scene_bounds() == s.bounds => given.clone(),
+        _ => DomainLayout::build(s.bounds, spec, &mut s.centroids)?,
+    };
     drop(std::mem::take(&mut s.centroids));
     tracing::info!(%layout, triangles = s.triangles, "pass 1 done");
 
