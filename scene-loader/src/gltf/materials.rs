@@ -130,64 +130,67 @@ impl Loader<'_> {
                     attenuation_distance: v.attenuation_distance(),
                 });
             }
-            if let Some(c) = m.extension_value("KHR_materials_clearcoat") {
-                let c = gltf_ext::clearcoat(c);
-                mat.clearcoat = Some(Clearcoat {
-                    factor: c.factor,
-                    tex: self.tex_json(&name, "clearcoatTexture", c.texture),
-                    roughness: c.roughness,
-                    roughness_tex: self.tex_json(
-                        &name,
-                        "clearcoatRoughnessTexture",
-                        c.roughness_texture,
-                    ),
-                    normal_tex: self.tex_json(&name, "clearcoatNormalTexture", c.normal_texture),
-                    normal_scale: c.normal_scale,
-                });
-            }
-            if let Some(sh) = m.extension_value("KHR_materials_sheen") {
-                let sh = gltf_ext::sheen(sh);
-                mat.sheen = Some(Sheen {
-                    color: sh.color,
-                    color_tex: self.tex_json(&name, "sheenColorTexture", sh.color_texture),
-                    roughness: sh.roughness,
-                    roughness_tex: self.tex_json(
-                        &name,
-                        "sheenRoughnessTexture",
-                        sh.roughness_texture,
-                    ),
-                });
-            }
-            if let Some(a) = m.extension_value("KHR_materials_anisotropy") {
-                let a = gltf_ext::anisotropy(a);
-                mat.anisotropy = Some(Anisotropy {
-                    strength: a.strength,
-                    rotation: a.rotation,
-                    tex: self.tex_json(&name, "anisotropyTexture", a.texture),
-                });
-            }
-            if let Some(ir) = m.extension_value("KHR_materials_iridescence") {
-                let ir = gltf_ext::iridescence(ir);
-                mat.iridescence = Some(Iridescence {
-                    factor: ir.factor,
-                    tex: self.tex_json(&name, "iridescenceTexture", ir.texture),
-                    ior: ir.ior,
-                    thickness_min: ir.thickness_min,
-                    thickness_max: ir.thickness_max,
-                    thickness_tex: self.tex_json(
-                        &name,
-                        "iridescenceThicknessTexture",
-                        ir.thickness_texture,
-                    ),
-                });
-            }
-            if let Some(d) = m.extension_value("KHR_materials_dispersion") {
-                mat.dispersion = gltf_ext::dispersion(d);
-            }
+            self.layer_extensions(&m, &name, &mut mat);
             mat.unlit = m.unlit();
             let sets = self.choose_uv_sets(&mut mat);
             self.uv_sets.push(sets);
             self.scene.materials.push(mat);
+        }
+    }
+
+    /// The extensions the `gltf` crate does not type, read from their JSON: the layers
+    /// over the base (`KHR_materials_clearcoat`, `_sheen`, `_iridescence`), the
+    /// anisotropy of its lobe and the dispersion of its glass.
+    fn layer_extensions(&mut self, m: &gltf::Material<'_>, name: &str, mat: &mut Material) {
+        if let Some(c) = m.extension_value("KHR_materials_clearcoat") {
+            let c = gltf_ext::clearcoat(c);
+            mat.clearcoat = Some(Clearcoat {
+                factor: c.factor,
+                tex: self.tex_json(name, "clearcoatTexture", c.texture),
+                roughness: c.roughness,
+                roughness_tex: self.tex_json(
+                    name,
+                    "clearcoatRoughnessTexture",
+                    c.roughness_texture,
+                ),
+                normal_tex: self.tex_json(name, "clearcoatNormalTexture", c.normal_texture),
+                normal_scale: c.normal_scale,
+            });
+        }
+        if let Some(sh) = m.extension_value("KHR_materials_sheen") {
+            let sh = gltf_ext::sheen(sh);
+            mat.sheen = Some(Sheen {
+                color: sh.color,
+                color_tex: self.tex_json(name, "sheenColorTexture", sh.color_texture),
+                roughness: sh.roughness,
+                roughness_tex: self.tex_json(name, "sheenRoughnessTexture", sh.roughness_texture),
+            });
+        }
+        if let Some(a) = m.extension_value("KHR_materials_anisotropy") {
+            let a = gltf_ext::anisotropy(a);
+            mat.anisotropy = Some(Anisotropy {
+                strength: a.strength,
+                rotation: a.rotation,
+                tex: self.tex_json(name, "anisotropyTexture", a.texture),
+            });
+        }
+        if let Some(ir) = m.extension_value("KHR_materials_iridescence") {
+            let ir = gltf_ext::iridescence(ir);
+            mat.iridescence = Some(Iridescence {
+                factor: ir.factor,
+                tex: self.tex_json(name, "iridescenceTexture", ir.texture),
+                ior: ir.ior,
+                thickness_min: ir.thickness_min,
+                thickness_max: ir.thickness_max,
+                thickness_tex: self.tex_json(
+                    name,
+                    "iridescenceThicknessTexture",
+                    ir.thickness_texture,
+                ),
+            });
+        }
+        if let Some(d) = m.extension_value("KHR_materials_dispersion") {
+            mat.dispersion = gltf_ext::dispersion(d);
         }
     }
 
