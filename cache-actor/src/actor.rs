@@ -469,12 +469,12 @@ impl WallActor {
 
     /// The store, to read.
     fn store(&self) -> std::sync::RwLockReadGuard<'_, WallStore> {
-        self.store.read().unwrap_or_else(|p| p.into_inner())
+        dray_sync::read(&self.store)
     }
 
     /// Store one entry; false when the store refused it (full, or not finite).
     fn store_entry(&mut self, entry: Entry) -> bool {
-        let mut store = self.store.write().unwrap_or_else(|p| p.into_inner());
+        let mut store = dray_sync::write(&self.store);
         match store.insert(entry) {
             Ok(()) => true,
             Err(InsertError::Full) => {

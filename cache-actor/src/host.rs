@@ -126,7 +126,7 @@ impl CacheHost {
     fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<String, JobEntry>> {
         // A panic elsewhere cannot leave the table half-changed (every change is one
         // insert or remove), so a poisoned lock is still good.
-        self.inner.jobs.lock().unwrap_or_else(|p| p.into_inner())
+        dray_sync::lock(&self.inner.jobs)
     }
 
     /// The open attempt `attempt` of `job_id`, if that is the one open here.
@@ -209,7 +209,7 @@ impl CacheHost {
                     let job = Arc::clone(&e.job);
                     job.replica.store(replica, Ordering::Relaxed);
                     let missing: Vec<u32> = {
-                        let map = job.walls.read().unwrap_or_else(|p| p.into_inner());
+                        let map = dray_sync::read(&job.walls);
                         walls
                             .iter()
                             .copied()
@@ -217,7 +217,7 @@ impl CacheHost {
                             .collect()
                     };
                     let spawned = self.spawn_walls(&job, &missing);
-                    let mut map = job.walls.write().unwrap_or_else(|p| p.into_inner());
+                    let mut map = dray_sync::write(&job.walls);
                     for (wall, handle, task) in spawned {
                         map.insert(wall, handle);
                         e.tasks.push(task);
@@ -242,7 +242,7 @@ impl CacheHost {
             let spawned = self.spawn_walls(&job, &walls);
             let mut tasks = Vec::with_capacity(spawned.len());
             {
-                let mut map = job.walls.write().unwrap_or_else(|p| p.into_inner());
+                let mut map = dray_sync::write(&job.walls);
                 for (wall, handle, task) in spawned {
                     map.insert(wall, handle);
                     tasks.push(task);

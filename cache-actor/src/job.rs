@@ -180,13 +180,13 @@ impl JobAttempt {
     /// Handles of the given walls (`None` for walls not served), taken under a brief
     /// read lock so no lock is held while sending to the actors.
     pub fn handles<I: IntoIterator<Item = u32>>(&self, walls: I) -> Vec<Option<WallHandle>> {
-        let map = self.walls.read().unwrap_or_else(|p| p.into_inner());
+        let map = dray_sync::read(&self.walls);
         walls.into_iter().map(|w| map.get(&w).cloned()).collect()
     }
 
     /// Every wall and its handle.
     pub fn all_handles(&self) -> Vec<(u32, WallHandle)> {
-        let map = self.walls.read().unwrap_or_else(|p| p.into_inner());
+        let map = dray_sync::read(&self.walls);
         map.iter().map(|(w, h)| (*w, h.clone())).collect()
     }
 }

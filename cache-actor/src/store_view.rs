@@ -83,11 +83,7 @@ impl StoreView {
             cos_min: self.settings.cos_min,
             retrieve: self.settings.retrieve,
         };
-        let found = self
-            .store
-            .read()
-            .unwrap_or_else(|p| p.into_inner())
-            .lookup(&q);
+        let found = dray_sync::read(&self.store).lookup(&q);
         if found.is_some() {
             c.hits.fetch_add(1, Ordering::Relaxed);
         }

@@ -20,7 +20,7 @@ fn stderr(o: &Output) -> String {
 }
 
 fn text(log: &Arc<Mutex<String>>) -> String {
-    log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    dray_sync::lock(log).clone()
 }
 
 /// Assert `o` failed with exactly one line on stderr containing every one of `want`.

@@ -622,7 +622,7 @@ fn start_workers(
 }
 
 fn text(log: &Arc<Mutex<String>>) -> String {
-    log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    dray_sync::lock(log).clone()
 }
 
 /// A process whose first stdout line ends with its address.

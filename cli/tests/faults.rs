@@ -30,7 +30,7 @@ use support::{Proc, capture_stderr, dray, eventually, free_port};
 const HANG_SECS: f64 = 240.0;
 
 fn text(log: &Arc<Mutex<String>>) -> String {
-    log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    dray_sync::lock(log).clone()
 }
 
 /// A coordinator and the workers started against it, one process each.

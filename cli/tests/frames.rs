@@ -218,7 +218,7 @@ fn heavy_view() -> Vec<&'static str> {
 }
 
 fn text(log: &std::sync::Arc<std::sync::Mutex<String>>) -> String {
-    log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    dray_sync::lock(log).clone()
 }
 
 fn succeeded(addr: &str, group: &str) -> usize {

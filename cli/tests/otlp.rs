@@ -65,7 +65,7 @@ struct Receiver(Arc<Mutex<Received>>);
 
 impl Receiver {
     fn with<T>(&self, f: impl FnOnce(&Received) -> T) -> T {
-        f(&self.0.lock().unwrap_or_else(|p| p.into_inner()))
+        f(&dray_sync::lock(&self.0))
     }
 }
 
@@ -87,7 +87,7 @@ impl TraceService for Receiver {
         &self,
         request: tonic::Request<ExportTraceServiceRequest>,
     ) -> Result<tonic::Response<ExportTraceServiceResponse>, tonic::Status> {
-        let mut got = self.0.lock().unwrap_or_else(|p| p.into_inner());
+        let mut got = dray_sync::lock(&self.0);
         for rs in request.into_inner().resource_spans {
             let service = attr(&rs.resource, "service.name");
             let instance = attr(&rs.resource, "service.instance.id");
@@ -114,7 +114,7 @@ impl MetricsService for Receiver {
         &self,
         request: tonic::Request<ExportMetricsServiceRequest>,
     ) -> Result<tonic::Response<ExportMetricsServiceResponse>, tonic::Status> {
-        let mut got = self.0.lock().unwrap_or_else(|p| p.into_inner());
+        let mut got = dray_sync::lock(&self.0);
         for rm in request.into_inner().resource_metrics {
             let service = attr(&rm.resource, "service.name");
             let instance = attr(&rm.resource, "service.instance.id");

@@ -33,7 +33,7 @@ const CLUSTER_TOKEN: &str = "cluster-token-for-the-package-test-0123456789";
 const HANG_SECS: f64 = 180.0;
 
 fn text(log: &Arc<Mutex<String>>) -> String {
-    log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    dray_sync::lock(log).clone()
 }
 
 /// A token file only this user can read.

@@ -23,7 +23,7 @@ const MAX_CALLS: usize = 8;
 const WORKER_TIMEOUT: Duration = Duration::from_millis(5000);
 
 fn text(log: &Arc<Mutex<String>>) -> String {
-    log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    dray_sync::lock(log).clone()
 }
 
 /// Open `n` SubmitJob calls that send their headers and nothing else, on one HTTP/2

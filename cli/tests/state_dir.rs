@@ -72,9 +72,9 @@ fn as_nobody(args: &[&str]) {
 fn root_and_setpriv() -> bool {
     // SAFETY: geteuid has no preconditions.
     if unsafe { libc::geteuid() } != 0 {
-        eprintln!(
-            "SKIPPED: these tests play root's coordinator against another user's files and \
-             need to run as root (CI does)"
+        common::dependency_missing(
+            "not running as root: these tests play root's coordinator against another \
+             user's files (CI runs them as root)",
         );
         return false;
     }

@@ -182,7 +182,7 @@ fn submit_to(
     assert!(
         out.status.success(),
         "{tag}: dray submit {scene} {flags:?} failed: {err}\ncluster log:\n{}",
-        log.lock().unwrap_or_else(|p| p.into_inner())
+        dray_sync::lock(log)
     );
     let job = get_job(addr, &job_id(&err));
     let stats = job.stats.clone().expect("stats");

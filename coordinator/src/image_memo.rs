@@ -61,7 +61,7 @@ impl ImageMemo {
 
     /// The slot for `key`, made (and the oldest beyond [`KEPT`] forgotten) if new.
     fn slot(&self, key: ImageKey) -> Slot {
-        let mut slots = self.slots.lock().unwrap_or_else(|p| p.into_inner());
+        let mut slots = dray_sync::lock(&self.slots);
         if let Some((_, s)) = slots.iter().find(|(k, _)| *k == key) {
             return s.clone();
         }
@@ -75,7 +75,7 @@ impl ImageMemo {
 
     /// How many encodings the job holds (tests).
     pub fn len(&self) -> usize {
-        self.slots.lock().unwrap_or_else(|p| p.into_inner()).len()
+        dray_sync::lock(&self.slots).len()
     }
 
     /// Whether it holds none.

@@ -47,7 +47,7 @@ impl EventLog {
     }
 
     fn lock(&self) -> MutexGuard<'_, Log> {
-        self.inner.lock().unwrap_or_else(|p| p.into_inner())
+        dray_sync::lock(&self.inner)
     }
 
     /// Record an event of job `id` now, and post it to `store` when the job is kept.

@@ -86,7 +86,7 @@ fn terminal(s: JobState) -> bool {
 
 impl JobEntry {
     fn lock(&self) -> MutexGuard<'_, Inner> {
-        self.inner.lock().unwrap_or_else(|p| p.into_inner())
+        dray_sync::lock(&self.inner)
     }
 
     /// Current state.
@@ -587,7 +587,7 @@ impl JobTable {
     }
 
     fn jobs(&self) -> MutexGuard<'_, Vec<Arc<JobEntry>>> {
-        self.jobs.lock().unwrap_or_else(|p| p.into_inner())
+        dray_sync::lock(&self.jobs)
     }
 
     /// Whether the job store (if any) is writing: `Err(why)` while its last transaction

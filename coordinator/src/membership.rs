@@ -72,7 +72,7 @@ pub struct Outbox {
 
 impl Outbox {
     fn lock(&self) -> MutexGuard<'_, VecDeque<Arc<Assignment>>> {
-        self.queue.lock().unwrap_or_else(|p| p.into_inner())
+        dray_sync::lock(&self.queue)
     }
 
     /// Queue a command.
@@ -299,7 +299,7 @@ impl Membership {
     }
 
     fn lock(&self) -> MutexGuard<'_, BTreeMap<String, WorkerRecord>> {
-        self.workers.lock().unwrap_or_else(|p| p.into_inner())
+        dray_sync::lock(&self.workers)
     }
 
     /// Check a registration and add the worker. A version or record-format mismatch is

@@ -87,7 +87,7 @@ impl PackageApi {
     }
 
     fn lock(&self) -> MutexGuard<'_, HashMap<String, Arc<Files>>> {
-        self.tables.lock().unwrap_or_else(|p| p.into_inner())
+        dray_sync::lock(&self.tables)
     }
 
     /// The file table of running job `job` (read from its manifest on first use).

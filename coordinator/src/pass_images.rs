@@ -117,7 +117,7 @@ impl PassImages {
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Option<PassImage>> {
-        self.latest.lock().unwrap_or_else(|p| p.into_inner())
+        dray_sync::lock(&self.latest)
     }
 }
 

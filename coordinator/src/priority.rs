@@ -68,7 +68,7 @@ impl DealQueue {
     }
 
     fn lock(&self) -> MutexGuard<'_, QueueState> {
-        self.state.lock().unwrap_or_else(|p| p.into_inner())
+        dray_sync::lock(&self.state)
     }
 
     /// Whether job `id` is waiting for a slot (so it may be paused).

@@ -51,7 +51,7 @@ impl RateWindow {
                     .map(|(w, n)| ((v.job_id.clone(), w.clone()), *n))
             })
             .collect();
-        let mut s = self.inner.lock().unwrap_or_else(|p| p.into_inner());
+        let mut s = dray_sync::lock(&self.inner);
         match &s.last {
             Some((at, _)) if now.saturating_duration_since(*at) < MIN_WINDOW => {
                 return s.rates.clone();

@@ -217,7 +217,7 @@ pub fn render_passes(
                     c.fetch_add(n, Ordering::Relaxed);
                 }
                 {
-                    let mut f = film.lock().unwrap_or_else(|p| p.into_inner());
+                    let mut f = dray_sync::lock(&film);
                     if let Some(threshold) = decides {
                         let _span = tracing::trace_span!("adaptive_decision").entered();
                         let pixels = (0..tile.h).flat_map(|ly| {
@@ -264,7 +264,7 @@ pub fn render_passes(
         if cancel.load(Ordering::Relaxed) {
             break;
         }
-        on_pass(&film.lock().unwrap_or_else(|p| p.into_inner()), k);
+        on_pass(&dray_sync::lock(&film), k);
     }
     let render_time = start.elapsed();
     let mut rays = RayCounts::default();
@@ -272,7 +272,7 @@ pub fn render_passes(
         rays.0[i] = c.load(Ordering::Relaxed);
     }
     Ok(RenderOutput {
-        film: film.into_inner().unwrap_or_else(|p| p.into_inner()),
+        film: dray_sync::into_inner(film),
         rays,
         render_time,
     })

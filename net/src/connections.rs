@@ -181,7 +181,7 @@ impl AddressSlot {
             return Ok(None);
         };
         let key = address_key(peer.ip());
-        let mut map = addresses.lock().unwrap_or_else(|p| p.into_inner());
+        let mut map = dray_sync::lock(addresses);
         let n = map.entry(key).or_insert(0);
         if *n >= limits.max_per_address.max(1) {
             return Err(key);
@@ -196,7 +196,7 @@ impl AddressSlot {
 
 impl Drop for AddressSlot {
     fn drop(&mut self) {
-        let mut map = self.addresses.lock().unwrap_or_else(|p| p.into_inner());
+        let mut map = dray_sync::lock(&self.addresses);
         if let Some(n) = map.get_mut(&self.key) {
             *n = n.saturating_sub(1);
             if *n == 0 {

@@ -44,10 +44,11 @@ use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinSet;
 use tokio_stream::wrappers::ReceiverStream;
 
-use crate::jobs::{Job, Report, lock};
+use crate::jobs::{Job, Report};
 use crate::node::Shared;
 use crate::tracer::{Lookup, NoDomains, Outbox};
 use crate::traffic::Kind;
+use dray_sync::lock;
 
 /// Lookups per message: 4096 rays of at most 64 bytes, far inside gRPC's message limit.
 const LOOKUPS_PER_MESSAGE: usize = 4096;

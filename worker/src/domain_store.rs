@@ -242,7 +242,7 @@ impl DomainStore {
 
     fn lock(&self) -> MutexGuard<'_, Inner> {
         // Every update below leaves the maps consistent before it can panic.
-        self.inner.lock().unwrap_or_else(|p| p.into_inner())
+        dray_sync::lock(&self.inner)
     }
 
     /// Say what `job`'s domains are made of, before its first load: resident domains of

@@ -85,7 +85,7 @@ impl MapMerges {
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Gathered> {
-        self.gathered.lock().unwrap_or_else(|p| p.into_inner())
+        dray_sync::lock(&self.gathered)
     }
 }
 

@@ -35,10 +35,11 @@ use crate::config::Limits;
 pub use crate::config::{NodeError, WorkerConfig};
 use crate::coordinator_link;
 use crate::domain_store::DomainStore;
-use crate::jobs::{Jobs, lock};
+use crate::jobs::Jobs;
 use crate::peer_server::{PeerServer, PeerServerConfig};
 use crate::peers::Peers;
 use crate::queue::RayQueues;
+use dray_sync::lock;
 
 /// The dray version, sent at registration: the coordinator refuses another build.
 pub const VERSION: &str = env!("CARGO_PKG_VERSION");
@@ -106,23 +107,19 @@ pub(crate) struct Shared {
 impl Shared {
     /// This worker's id at the coordinator (changes when it registers again).
     pub fn id(&self) -> String {
-        self.id.read().unwrap_or_else(|p| p.into_inner()).clone()
+        dray_sync::read(&self.id).clone()
     }
 
     /// Take the id and secret the coordinator gave at registration.
     pub fn set_member(&self, id: &str, token: &str) {
-        *self.id.write().unwrap_or_else(|p| p.into_inner()) = id.to_string();
-        *self.member.write().unwrap_or_else(|p| p.into_inner()) = token.to_string();
+        *dray_sync::write(&self.id) = id.to_string();
+        *dray_sync::write(&self.member) = token.to_string();
     }
 
     /// `msg` as a request speaking for this worker: with its member secret attached.
     pub fn as_member<T>(&self, msg: T) -> tonic::Request<T> {
         let mut req = tonic::Request::new(msg);
-        let token = self
-            .member
-            .read()
-            .unwrap_or_else(|p| p.into_inner())
-            .clone();
+        let token = dray_sync::read(&self.member).clone();
         if let Ok(v) = tonic::metadata::MetadataValue::try_from(token.as_str())
             && !token.is_empty()
         {

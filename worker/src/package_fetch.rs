@@ -48,7 +48,7 @@ use std::collections::HashMap;
 use std::fs::{File, OpenOptions};
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use dray_net::AuthChannel;
@@ -57,6 +57,7 @@ use dray_proto::v1::{FetchFileRequest, FileChunk};
 use dray_scene::partition::Package;
 use dray_scene::partition::checksum::{HashingReader, from_hex, to_hex};
 use dray_scene::partition::manifest::MANIFEST_FILE;
+use dray_sync::lock;
 use tonic::Code;
 
 /// Consecutive failed calls, each without a byte of progress, after which a fetch gives
@@ -234,10 +235,6 @@ pub struct PackageFetcher {
     leases: Mutex<Leases>,
     /// [`LOCK_FILE`], locked for as long as this fetcher lives (a given directory only).
     _held: Option<std::fs::File>,
-}
-
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
 impl PackageFetcher {

@@ -383,12 +383,7 @@ impl PeerSender {
     }
 
     fn failure_or_closed(&self) -> PeerError {
-        match self
-            .failure
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .take()
-        {
+        match dray_sync::lock(&self.failure).take() {
             Some(s) => PeerError::from(s),
             None => PeerError::Closed,
         }
@@ -420,7 +415,7 @@ impl PeerSender {
 }
 
 fn set_failure(slot: &Mutex<Option<Status>>, status: Status) {
-    *slot.lock().unwrap_or_else(|e| e.into_inner()) = Some(status);
+    *dray_sync::lock(slot) = Some(status);
 }
 
 /// Tickets must name, in non-decreasing record order, exactly the records flagged

@@ -148,22 +148,19 @@ impl PeerServer {
     /// From now on, accept streams opened for `id` (the worker registered again).
     /// Clones of this server share the change.
     pub fn set_worker_id(&self, id: &str) {
-        let mut w = self.worker_id.write().unwrap_or_else(|p| p.into_inner());
+        let mut w = dray_sync::write(&self.worker_id);
         *w = id.to_string();
     }
 
     /// From now on, require senders' passes made from `secret`, this worker's member
     /// secret at its coordinator. Clones of this server share the change.
     pub fn set_member_secret(&self, secret: &str) {
-        let mut w = self.secret.write().unwrap_or_else(|p| p.into_inner());
+        let mut w = dray_sync::write(&self.secret);
         *w = secret.to_string();
     }
 
     fn worker_id(&self) -> String {
-        self.worker_id
-            .read()
-            .unwrap_or_else(|p| p.into_inner())
-            .clone()
+        dray_sync::read(&self.worker_id).clone()
     }
 
     /// The tonic service, with message limits sized for full batches.
@@ -204,11 +201,7 @@ impl RayExchangeService for PeerServer {
             }
             .into());
         }
-        let secret = self
-            .secret
-            .read()
-            .unwrap_or_else(|p| p.into_inner())
-            .clone();
+        let secret = dray_sync::read(&self.secret).clone();
         if !secret.is_empty()
             && !dray_net::peer_pass::verify_peer_pass(&secret, &open.sender_id, &open.sender_pass)
         {

@@ -30,10 +30,11 @@ use dray_proto::v1::{GetPeerPassRequest, RayTicket};
 use tokio::sync::mpsc;
 use tokio::task::JoinSet;
 
-use crate::jobs::{Job, Report, lock};
+use crate::jobs::{Job, Report};
 use crate::node::Shared;
 use crate::peer_client::{BatchKey, PeerClientConfig, PeerSender};
 use crate::routing::Peer;
+use dray_sync::lock;
 
 /// Rays for one peer.
 pub(crate) struct PeerMessage {

@@ -115,7 +115,7 @@ impl RayQueues {
     fn lock(&self) -> MutexGuard<'_, Inner> {
         // A panic while holding the lock cannot leave a queue half-updated (every update
         // is a single push or pop), so a poisoned lock is still consistent.
-        self.inner.lock().unwrap_or_else(|e| e.into_inner())
+        dray_sync::lock(&self.inner)
     }
 
     /// Have `f` called after every push that queues rays (once; later calls are ignored).

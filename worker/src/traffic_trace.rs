@@ -171,7 +171,7 @@ impl TrafficTrace {
 
     fn push(&self, mut line: String) {
         line.push('\n');
-        let mut g = crate::jobs::lock(&self.out);
+        let mut g = dray_sync::lock(&self.out);
         g.1.extend_from_slice(line.as_bytes());
         if g.1.len() >= FLUSH_AT {
             write_out(&mut g);
@@ -180,7 +180,7 @@ impl TrafficTrace {
 
     /// Write what is buffered (also done when the trace is dropped).
     pub fn flush(&self) {
-        write_out(&mut crate::jobs::lock(&self.out));
+        write_out(&mut dray_sync::lock(&self.out));
     }
 }
 

@@ -94,9 +94,10 @@ pub fn write_box_ply(path: &Path) {
     std::fs::write(path, s).expect("write ply");
 }
 
-/// A test's real dependency (grpcurl, the Python venv, the shared scenes) is missing:
-/// on a developer's machine the test says so loudly and passes; under CI (`CI=true`, as
-/// .ci/run is run) it fails, so a missing install step cannot pass silently.
+/// A test's real dependency (grpcurl, the Python venv, the shared scenes, SimGrid, root
+/// and setpriv for a second local user) is missing: on a developer's machine the test
+/// says so loudly and passes; under CI (`CI=true`, as .ci/run is run) it fails, so a
+/// missing install step cannot pass silently. Every skip in cli/tests goes through here.
 pub fn dependency_missing(why: &str) {
     if std::env::var("CI").is_ok_and(|v| v == "true") {
         panic!("CI=true but this test's dependency is missing: {why}");

@@ -119,12 +119,8 @@ pub fn logged_coordinator(
         .stderr(Stdio::piped());
     let mut p = Proc::spawn(cmd);
     let log = capture_stderr(&mut p.child);
-    let addr = listening_address(&mut p.child).unwrap_or_else(|first| {
-        panic!(
-            "no address in {first:?}: {}",
-            log.lock().unwrap_or_else(|e| e.into_inner())
-        )
-    });
+    let addr = listening_address(&mut p.child)
+        .unwrap_or_else(|first| panic!("no address in {first:?}: {}", dray_sync::lock(&log)));
     (p, addr, log)
 }
 
@@ -277,7 +273,7 @@ impl WorkerCluster {
                 break;
             }
         }
-        let text = |log: &Arc<Mutex<String>>| log.lock().unwrap_or_else(|p| p.into_inner()).clone();
+        let text = |log: &Arc<Mutex<String>>| dray_sync::lock(log).clone();
         if !lines
             .last()
             .is_some_and(|l| l.starts_with("dray cluster ready"))
@@ -320,7 +316,7 @@ impl WorkerCluster {
 
     /// The stderr of the cluster and its members so far.
     pub fn log(&self) -> String {
-        self.log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+        dray_sync::lock(&self.log).clone()
     }
 
     /// Every member is still running.
@@ -388,7 +384,7 @@ impl std::ops::Deref for Captured {
 impl Captured {
     /// The text so far.
     pub fn text(&self) -> String {
-        self.log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+        dray_sync::lock(&self.log).clone()
     }
 
     /// Everything the child wrote, once its stderr has closed (it exited, and so did any
@@ -400,7 +396,7 @@ impl Captured {
             eventually(60.0, || self.ended.load(Ordering::Acquire)),
             "the child's stderr was still open 60 s later"
         );
-        self.log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+        dray_sync::lock(&self.log).clone()
     }
 
     /// [`Captured::to_end`] when the child has exited, else the text so far (for the
@@ -409,7 +405,7 @@ impl Captured {
         if exited {
             self.to_end()
         } else {
-            self.log.lock().unwrap_or_else(|p| p.into_inner()).clone()
+            dray_sync::lock(&self.log).clone()
         }
     }
 }
@@ -438,9 +434,7 @@ pub fn capture_stderr(child: &mut Child) -> Captured {
             if k == 0 {
                 break;
             }
-            sink.lock()
-                .unwrap_or_else(|p| p.into_inner())
-                .push_str(&String::from_utf8_lossy(&buf[..k]));
+            dray_sync::lock(&sink).push_str(&String::from_utf8_lossy(&buf[..k]));
         }
         done.store(true, Ordering::Release);
     });

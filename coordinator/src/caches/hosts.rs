@@ -58,7 +58,7 @@ pub struct Registered {
 
 impl CacheHosts {
     fn lock(&self) -> MutexGuard<'_, Vec<Entry>> {
-        self.hosts.lock().unwrap_or_else(|p| p.into_inner())
+        dray_sync::lock(&self.hosts)
     }
 
     /// Check a registration and list the host (or refresh it); returns its id, `cache-N`,

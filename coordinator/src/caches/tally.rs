@@ -104,7 +104,7 @@ impl CacheTally {
     }
 
     fn both(&self) -> MutexGuard<'_, (RayCacheStats, PhmStats)> {
-        self.inner.lock().unwrap_or_else(|p| p.into_inner())
+        dray_sync::lock(&self.inner)
     }
 
     /// Add a host's hit-map statistics for a closed attempt.

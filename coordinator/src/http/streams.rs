@@ -49,7 +49,7 @@ impl StreamSlots {
     /// A place for one more stream of `client`; 503 when it has its share open, or when
     /// every place is taken.
     pub fn take(&self, client: Client) -> Result<StreamSlot, ApiError> {
-        let mut held = self.held.lock().unwrap_or_else(|p| p.into_inner());
+        let mut held = dray_sync::lock(&self.held);
         let mine = held.get(&client).copied().unwrap_or(0);
         if mine >= self.share {
             return Err(unavailable(format!(
@@ -75,7 +75,7 @@ impl StreamSlots {
 
 impl Drop for StreamSlot {
     fn drop(&mut self) {
-        let mut held = self.held.lock().unwrap_or_else(|p| p.into_inner());
+        let mut held = dray_sync::lock(&self.held);
         if let Some(n) = held.get_mut(&self.client) {
             *n = n.saturating_sub(1);
             if *n == 0 {

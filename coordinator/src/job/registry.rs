@@ -77,7 +77,7 @@ impl JobRegistry {
         let (started_tx, started) = oneshot::channel();
         let actor = JobActor::new(job, self.membership.clone(), self.jobs.clone(), self.config);
         {
-            let mut actors = self.actors.lock().unwrap_or_else(|p| p.into_inner());
+            let mut actors = dray_sync::lock(&self.actors);
             // Collect the actors that ended since, so the set holds only live ones.
             while let Some(done) = actors.try_join_next() {
                 if let Err(e) = done

@@ -142,12 +142,7 @@ impl JobStore {
     /// `Err(why)` while the store's last transaction failed (a full or read-only disk):
     /// what it was asked to keep since is not kept. Clears once a transaction succeeds.
     pub fn health(&self) -> Result<(), String> {
-        match self
-            .health
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .as_ref()
-        {
+        match dray_sync::lock(&self.health).as_ref() {
             Some(why) => Err(why.clone()),
             None => Ok(()),
         }
@@ -194,7 +189,7 @@ impl JobStore {
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Option<Writer>> {
-        self.writer.lock().unwrap_or_else(|p| p.into_inner())
+        dray_sync::lock(&self.writer)
     }
 }
 

@@ -180,7 +180,7 @@ fn run(mut conn: Connection, path: &Path, images: &Path, rx: &Receiver<Op>, heal
             }
             failed_since_flush = false;
         }
-        *health.lock().unwrap_or_else(|p| p.into_inner()) = failed;
+        *dray_sync::lock(health) = failed;
     }
 }
 

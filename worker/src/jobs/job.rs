@@ -151,16 +151,13 @@ impl Job {
 
     /// The current routing table.
     pub fn routes(&self) -> Arc<Routes> {
-        self.routes
-            .read()
-            .unwrap_or_else(|p| p.into_inner())
-            .clone()
+        dray_sync::read(&self.routes).clone()
     }
 
     /// Publish `routes` if it is newer than the table in force; returns the table it
     /// replaced. Only the actor calls this.
     pub(super) fn publish_routes(&self, routes: Routes) -> Option<Arc<Routes>> {
-        let mut g = self.routes.write().unwrap_or_else(|p| p.into_inner());
+        let mut g = dray_sync::write(&self.routes);
         if routes.version <= g.version {
             return None;
         }

@@ -19,17 +19,14 @@ pub mod report;
 pub mod tiles;
 
 use std::collections::HashMap;
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex};
 
+use dray_sync::lock;
 use tokio::task::JoinSet;
 
 pub use job::Job;
 pub(crate) use job::JobEvent;
 pub use report::Report;
-
-pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
-}
 
 /// The jobs of this worker.
 #[derive(Default)]

@@ -12,7 +12,7 @@ use std::sync::Mutex;
 
 use crate::tracer::TileRef;
 
-use super::lock;
+use dray_sync::lock;
 
 /// Tiles with the index of their next camera ray, by pass.
 pub struct TileQueue {

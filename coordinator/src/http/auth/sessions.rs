@@ -53,7 +53,7 @@ pub struct Sessions {
 
 impl Sessions {
     fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<SessionId, u64>> {
-        self.live.lock().unwrap_or_else(|p| p.into_inner())
+        dray_sync::lock(&self.live)
     }
 
     /// Keep `id` live until `expires`; at `now` the expired ones are forgotten, and the
