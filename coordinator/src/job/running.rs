@@ -102,6 +102,8 @@ pub struct RunningJob {
     pub(super) ray_bytes_sent: u64,
     /// Bytes between processes by kind, summed over the workers' reports.
     pub(super) traffic: dray_proto::v1::TrafficStats,
+    /// The reports themselves: messages applied, their bytes and the AOVs' part.
+    pub(super) reports: dray_proto::v1::ReportStats,
     /// CPU seconds of the processes that ran the job.
     pub(super) cpu: crate::cpu_tally::CpuTally,
     pub(super) metrics: JobMetrics,
@@ -201,6 +203,7 @@ impl RunningJob {
             clamped_indirect: 0,
             ray_bytes_sent: 0,
             traffic: Default::default(),
+            reports: Default::default(),
             cpu: crate::cpu_tally::CpuTally::here(),
             metrics,
             caches,
@@ -853,6 +856,7 @@ impl RunningJob {
             s.samples_saved = self.stopped.samples;
             s.ray_bytes_sent = self.ray_bytes_sent;
             s.traffic = Some(self.traffic);
+            s.reports = Some(self.reports);
             s.cpu_seconds = self.cpu.seconds();
             self.metrics.fill_totals(s);
             s.tiles_retried = self.tiles_retried;
