@@ -308,6 +308,9 @@ pub struct Scheduling {
     pub ray_bytes_sent: u64,
     /// Bytes between processes by kind, and in total.
     pub traffic: TrafficSummary,
+    /// The workers' reports to the coordinator (`JobStats.reports`): messages, bytes,
+    /// and the bytes of AOV sums among them.
+    pub reports: ReportSummary,
     /// CPU seconds (user + system) of the processes that ran the job, once per process
     /// (render.proto `JobStats.cpu_seconds`); 0 without workers.
     pub cpu_seconds: f64,
@@ -371,6 +374,16 @@ impl TrafficSummary {
     }
 }
 
+/// The workers' reports to the coordinator (`JobStats.reports`), as the `--stats`
+/// JSON spells them: zero without workers.
+#[derive(Serialize, Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ReportSummary {
+    pub messages: u64,
+    pub bytes: u64,
+    /// The part of `bytes` that carries AOV sums (`--aov`).
+    pub aov_bytes: u64,
+}
+
 /// One worker's share of a job.
 #[derive(Serialize, Debug, Clone, PartialEq)]
 pub struct WorkerSummary {
@@ -398,6 +411,7 @@ impl Scheduling {
             rays_forwarded: 0,
             ray_bytes_sent: 0,
             traffic: TrafficSummary::default(),
+            reports: ReportSummary::default(),
             cpu_seconds: 0.0,
             queue_peak: 0,
             scheduler_rounds: 0,
@@ -428,6 +442,13 @@ impl Scheduling {
             rays_forwarded: s.rays_forwarded,
             ray_bytes_sent: s.ray_bytes_sent,
             traffic: TrafficSummary::of(&s.traffic.unwrap_or_default()),
+            reports: s
+                .reports
+                .map_or_else(ReportSummary::default, |r| ReportSummary {
+                    messages: r.messages,
+                    bytes: r.bytes,
+                    aov_bytes: r.aov_bytes,
+                }),
             cpu_seconds: s.cpu_seconds,
             queue_peak: s.queue_peak,
             scheduler_rounds: s.scheduler_rounds,
@@ -692,6 +713,11 @@ mod tests {
                 ..TrafficStats::default()
             }),
             cpu_seconds: 1.25,
+            reports: Some(dray_proto::v1::ReportStats {
+                messages: 3,
+                bytes: 900,
+                aov_bytes: 600,
+            }),
             workers_detail: vec![WorkerJobStats {
                 worker_id: "w1".into(),
                 domain_loads: 9,
@@ -712,6 +738,14 @@ mod tests {
         assert_eq!(json["traffic"]["total"], 2624);
         assert_eq!(json["traffic"]["lookups"], 64);
         assert_eq!(json["cpu_seconds"], 1.25);
+        assert_eq!(
+            (
+                &json["reports"]["messages"],
+                &json["reports"]["bytes"],
+                &json["reports"]["aov_bytes"]
+            ),
+            (&3.into(), &900.into(), &600.into())
+        );
         assert_eq!(json["workers"][0]["domain_loads"], 9);
         assert!(json.get("worker_count").is_none());
         assert_eq!(

@@ -89,6 +89,16 @@ fn tiles_done(addr: &str, id: &str) -> u32 {
 
 /// GetImage as PNG, or the status message.
 fn get_png(addr: &str, id: &str) -> Result<Vec<u8>, String> {
+    get_image(addr, id, ImageFormat::Png)
+}
+
+/// GetImage as EXR, or the status message.
+fn get_exr(addr: &str, id: &str) -> Result<Vec<u8>, String> {
+    get_image(addr, id, ImageFormat::Exr)
+}
+
+/// GetImage in `format`, or the status message.
+fn get_image(addr: &str, id: &str, format: ImageFormat) -> Result<Vec<u8>, String> {
     rt().block_on(async {
         let mut c = RenderServiceClient::connect(format!("http://{addr}"))
             .await
@@ -96,7 +106,7 @@ fn get_png(addr: &str, id: &str) -> Result<Vec<u8>, String> {
             .max_decoding_message_size(usize::MAX);
         c.get_image(GetImageRequest {
             job_id: id.to_string(),
-            format: ImageFormat::Png as i32,
+            format: format as i32,
             ..Default::default()
         })
         .await
@@ -420,5 +430,181 @@ fn a_coordinator_lost_between_the_end_and_the_image_is_waited_for() {
         std::fs::read(&png).expect("png") == want,
         "the image differs from dray render's"
     );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// AOVs and adaptive sampling across a restart: the Cornell box with its glass sphere
+/// seen through a wide lens, so the tiles around it see only the black outside and stop
+/// at the first decision (16 samples, the end of pass 5 of 10) while the lit ones go on;
+/// every AOV.
+const ADAPTIVE: &[&str] = &[
+    "--width",
+    "256",
+    "--height",
+    "192",
+    "--spp",
+    "512",
+    "--fov",
+    "100",
+    "--noise-threshold",
+    "0.01",
+    "--aov",
+    "albedo,normal,depth,samples",
+    "--domains",
+    "4",
+];
+/// A small job with AOVs, finished before the kill: its image is read back from its file.
+const SMALL_AOVS: &[&str] = &[
+    "--width",
+    "32",
+    "--height",
+    "24",
+    "--spp",
+    "4",
+    "--aov",
+    "albedo,normal,depth",
+];
+
+/// `dray render --workers 0` with `flags` and `--exr`: the PNG, the EXR and the stats.
+fn reference_exr(dir: &Path, tag: &str, flags: &[&str]) -> (Vec<u8>, Vec<u8>, serde_json::Value) {
+    let exr = dir.join(format!("{tag}.exr"));
+    let exr_arg = exr.to_string_lossy().into_owned();
+    let mut all = flags.to_vec();
+    all.extend(["--workers", "0", "--exr", &exr_arg]);
+    let run = common::render(dir, tag, "cornell:glass", &all);
+    assert!(run.ok, "dray render failed: {}", run.stderr);
+    (
+        std::fs::read(run.png.expect("png")).expect("read the reference png"),
+        std::fs::read(&exr).expect("read the reference exr"),
+        run.stats.expect("stats"),
+    )
+}
+
+/// A job with AOVs and a noise threshold commits its tiles (their AOV sums, and the
+/// samples a stopped tile stopped at): a coordinator SIGKILLed after some tiles stopped
+/// resumes the job keeping them, and the PNG and the multi-layer EXR are `dray render`'s
+/// bits, with the same tiles stopped. A job with AOVs that finished before the kill is
+/// served from its image file (format 3) with its AOVs.
+#[test]
+fn a_job_with_aovs_and_adaptive_sampling_resumes_with_the_same_bits() {
+    let dir = common::tmp("durable-aovs");
+    let state = dir.join("state");
+    let port = free_port();
+    let (coord, addr, log) = coordinator(&dir, &state, port);
+    let mut coord = Some((coord, log));
+    let log = |c: &Option<(Proc, support::Captured)>| {
+        c.as_ref().map(|(_, l)| l.text()).unwrap_or_default()
+    };
+    let workers = [worker(&addr), worker(&addr)];
+    assert!(
+        eventually(60.0, || log(&coord).matches("worker registered").count()
+            >= 2),
+        "{}",
+        log(&coord)
+    );
+    let (_, want_small, _) = reference_exr(&dir, "ref-small", SMALL_AOVS);
+    let (want_png, want_exr, want_stats) = reference_exr(&dir, "ref-adaptive", ADAPTIVE);
+    let stopped_ref = want_stats["tiles_stopped"].as_u64().expect("tiles_stopped");
+    assert!(stopped_ref > 0, "no tile stops: {want_stats}");
+
+    let small_exr = dir.join("small.exr");
+    let mut flags = SMALL_AOVS.to_vec();
+    flags.extend(["--exr", small_exr.to_str().expect("utf-8 path")]);
+    let (ok, out, _) = submit(&addr, &dir, "small", &flags).finish();
+    assert!(ok, "the small job failed: {out}\n{}", log(&coord));
+    assert!(std::fs::read(&small_exr).expect("exr") == want_small);
+    let small_id = support::submitted_job_id(&out).expect("the small job's id");
+
+    let exr = dir.join("adaptive.exr");
+    let mut flags = ADAPTIVE.to_vec();
+    flags.extend(["--exr", exr.to_str().expect("utf-8 path")]);
+    let job = submit(&addr, &dir, "adaptive", &flags);
+    assert!(
+        eventually(HANG_SECS, || job.id().is_some()),
+        "{}",
+        job.log.text()
+    );
+    let id = job.id().expect("id");
+    // Killed once some tiles have stopped, two passes later: their commits, posted at
+    // the end of pass 5 (a channel send; the store's thread writes them a moment later),
+    // are on disk by then.
+    let passes_done = || {
+        support::get_job(&addr, &id)
+            .and_then(|j| j.progress)
+            .map_or(0, |p| p.passes_done)
+    };
+    assert!(
+        eventually(HANG_SECS, || passes_done() >= 7),
+        "the job did not reach pass 7: {}",
+        log(&coord)
+    );
+    let stopped = support::get_job(&addr, &id)
+        .and_then(|j| j.stats)
+        .map_or(0, |s| s.tiles_stopped);
+    assert!(stopped > 0, "no tile stopped: {}", log(&coord));
+    let running = support::get_job(&addr, &id)
+        .and_then(|j| j.progress)
+        .is_some_and(|p| p.state() == dray_proto::v1::JobState::Running);
+    let first_log = log(&coord);
+    if let Some((c, _)) = coord.take() {
+        c.signal(libc::SIGKILL);
+        drop(c);
+    }
+    assert!(running, "the job ended before the kill: make it longer");
+
+    let (c, _, log2) = coordinator(&dir, &state, port);
+    coord = Some((c, log2));
+    let (ok, out, png) = job.finish();
+    assert!(
+        ok,
+        "the resumed job failed: {out}\n--- new coordinator ---\n{}\n--- old ---\n{first_log}",
+        log(&coord)
+    );
+    assert!(
+        std::fs::read(&png).expect("png") == want_png,
+        "the resumed job's PNG differs from dray render's"
+    );
+    assert!(
+        std::fs::read(&exr).expect("exr") == want_exr,
+        "the resumed job's EXR (AOVs, samples) differs from dray render's"
+    );
+    // The tiles it kept, and the stopped ones among them (the coordinator's log).
+    let resumed = log(&coord);
+    let field = |name: &str| -> Option<u64> {
+        let l = resumed
+            .lines()
+            .find(|l| l.contains("committed tiles put back") && l.contains(&id))?;
+        let rest = &l[l.find(&format!("{name}="))? + name.len() + 1..];
+        rest.split(|c: char| !c.is_ascii_digit())
+            .next()?
+            .parse()
+            .ok()
+    };
+    let kept = field("kept").unwrap_or_else(|| panic!("no resume line for {id}: {resumed}"));
+    let kept_stopped = field("stopped").expect("stopped=");
+    assert!(
+        kept > 0 && kept_stopped > 0,
+        "kept {kept} tiles, {kept_stopped} of them stopped: {resumed}"
+    );
+    eprintln!("resumed {id} keeping {kept} tiles, {kept_stopped} of them stopped");
+    let stats = support::get_job(&addr, &id)
+        .and_then(|j| j.stats)
+        .expect("stats");
+    assert_eq!(
+        u64::from(stats.tiles_stopped),
+        stopped_ref,
+        "tiles stopped, kept ones included"
+    );
+    assert_eq!(
+        Some(stats.samples_saved),
+        want_stats["samples_saved"].as_u64()
+    );
+    // The small job's image, read back from its file, keeps its AOVs.
+    assert_eq!(
+        get_exr(&addr, &small_id).as_deref(),
+        Ok(want_small.as_slice())
+    );
+    drop(workers);
+    drop(coord);
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -174,6 +174,59 @@ fn a_cluster_gives_dray_renders_bits_with_the_clamp_and_aovs() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// The report bytes of a `--stats` JSON: (messages, bytes, aov_bytes).
+fn reports(stats: &serde_json::Value) -> (u64, u64, u64) {
+    let r = &stats["reports"];
+    let get = |k: &str| {
+        r[k].as_u64()
+            .unwrap_or_else(|| panic!("no reports.{k} in {stats}"))
+    };
+    (get("messages"), get("bytes"), get("aov_bytes"))
+}
+
+/// AOV sums travel in the workers' reports and are counted there (`JobStats.reports`):
+/// a job with AOVs reports more bytes than the same job without, and its AOV part is
+/// at least the 68 bytes of one entry for every pixel a camera ray hit (each such pixel
+/// is in some report). `coordinator/tests/cluster_service.rs` checks that the count is
+/// exactly the bytes of the messages sent.
+#[test]
+fn report_bytes_count_the_aovs() {
+    let dir = common::tmp("noise-report-bytes");
+    let workers = ["--workers", "2", "--domains", "4"];
+    let aov = ["--aov", "albedo,normal,depth"];
+    let (exr, with) = render(&dir, "aovs", &[&aov[..], &workers[..]].concat());
+    let (_, without) = render(&dir, "plain", &workers);
+    let (n_with, bytes_with, aov_with) = reports(&with);
+    let (n_without, bytes_without, aov_without) = reports(&without);
+    assert!(n_with > 0 && n_without > 0, "{with}\n{without}");
+    assert_eq!(aov_without, 0, "{without}");
+    let hit = common::exr_channels(&exr)
+        .into_iter()
+        .find(|c| c.0 == "depth.Z")
+        .expect("depth.Z")
+        .1
+        .iter()
+        .filter(|z| z.is_finite())
+        .count() as u64;
+    assert!(hit > 0);
+    assert!(
+        aov_with >= 68 * hit && aov_with < bytes_with,
+        "{aov_with} AOV bytes of {bytes_with} for {hit} pixels hit"
+    );
+    eprintln!(
+        "reports with AOVs: {n_with} messages, {bytes_with} bytes ({aov_with} of AOVs); \
+         without: {n_without} messages, {bytes_without} bytes; {hit} pixels hit"
+    );
+    assert!(
+        bytes_with > bytes_without,
+        "with AOVs {bytes_with} bytes, without {bytes_without}"
+    );
+    // `dray render --workers 0` sends no reports.
+    let (_, alone) = render(&dir, "alone", &[&aov[..], &["--workers", "0"]].concat());
+    assert_eq!(reports(&alone), (0, 0, 0), "{alone}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn bad_values_are_refused_naming_the_flag() {
     let dir = common::tmp("noise-bad");

@@ -1,8 +1,25 @@
 //! Bytes between processes for one job, by kind (`JobStats.traffic`): the workers'
-//! report deltas summed, `total` kept as the sum of the kinds; and what the ray caches
-//! and hit maps saved net of what consulting them cost.
+//! report deltas summed, `total` kept as the sum of the kinds; what the ray caches
+//! and hit maps saved net of what consulting them cost; and the bytes of the workers'
+//! reports themselves (`JobStats.reports`), which the coordinator measures as it
+//! applies each one, since a report cannot carry its own size.
 
-use dray_proto::v1::TrafficStats;
+use dray_proto::v1::{ReportContributionsRequest, ReportStats, TrafficStats};
+use prost::Message;
+
+/// `ReportContributionsRequest.aov_pixels` and `aov_sums` (cluster.proto).
+const AOV_PIXELS_TAG: u32 = 21;
+const AOV_SUMS_TAG: u32 = 22;
+
+/// Count report `r` into `a`: one message, its encoded size, and the part of it the
+/// AOV fields take (their tags, lengths and values, as prost encodes them).
+pub fn add_report(a: &mut ReportStats, r: &ReportContributionsRequest) {
+    let aov = prost::encoding::fixed32::encoded_len_packed(AOV_PIXELS_TAG, &r.aov_pixels)
+        + prost::encoding::sfixed64::encoded_len_packed(AOV_SUMS_TAG, &r.aov_sums);
+    a.messages = a.messages.saturating_add(1);
+    a.bytes = a.bytes.saturating_add(r.encoded_len() as u64);
+    a.aov_bytes = a.aov_bytes.saturating_add(aov as u64);
+}
 
 /// Add the worker's delta `b` into `a` (saturating), and make `a.total` the sum of its
 /// kinds (a worker's `total` is ignored: the coordinator sums).
@@ -92,5 +109,37 @@ mod tests {
         assert_eq!(cache_net(64, &t), -126);
         assert_eq!(phm_net(64, &t), 64 - 130);
         assert_eq!(cache_net(u64::MAX, &TrafficStats::default()), i64::MAX);
+    }
+
+    /// The AOV part is exactly what the two fields add to the message: the same report
+    /// without them is `bytes - aov_bytes` long.
+    #[test]
+    fn reports_count_their_encoded_bytes_and_the_aov_part() {
+        let with = ReportContributionsRequest {
+            worker_id: "w1".into(),
+            job_id: "job-1".into(),
+            sequence: 3,
+            pixels: vec![1, 2],
+            sums: vec![5, 6, 7, 8, 9, 10],
+            aov_pixels: vec![1, 2, 3],
+            aov_sums: (0..24).collect(),
+            ..Default::default()
+        };
+        let without = ReportContributionsRequest {
+            aov_pixels: Vec::new(),
+            aov_sums: Vec::new(),
+            ..with.clone()
+        };
+        let mut a = ReportStats::default();
+        add_report(&mut a, &with);
+        assert_eq!(a.bytes, with.encoded_len() as u64);
+        // Three fixed32 and 24 sfixed64; fields 21 and 22 take two-byte tags, and 192
+        // bytes a two-byte length.
+        assert_eq!(a.aov_bytes, (2 + 1 + 3 * 4) + (2 + 2 + 24 * 8));
+        assert_eq!(a.bytes - a.aov_bytes, without.encoded_len() as u64);
+        add_report(&mut a, &without);
+        assert_eq!(a.messages, 2);
+        assert_eq!(a.aov_bytes, 211);
+        assert_eq!(a.bytes, (with.encoded_len() + without.encoded_len()) as u64);
     }
 }

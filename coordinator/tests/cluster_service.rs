@@ -21,6 +21,7 @@ use dray_proto::v1::{
     JobSpec, JobState, RayCounts, RegisterWorkerRequest, ReportContributionsRequest,
     SubmitJobRequest, TileCredit, WatchAssignmentsRequest, WorkerCounters,
 };
+use prost::Message;
 use tonic::Code;
 
 use support::*;
@@ -318,6 +319,78 @@ async fn a_job_runs_on_a_registered_worker_and_returns_its_sums() {
     assert_eq!(px[70 * 40 - 1], [3.0, 3.0, 3.0]);
     let lit = px.iter().filter(|p| **p != [0.0; 3]).count();
     assert_eq!(lit, 3, "only the reported pixels are lit");
+}
+
+/// `JobStats.reports` counts exactly the bytes of the reports the worker sent (each
+/// sequence once: a retry of one already applied is not counted again), and the part
+/// their AOV fields take.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn report_bytes_are_counted_once_with_their_aov_part() {
+    let server = Server::start("report-bytes", slow_heartbeat()).await;
+    let channel = server.channel().await;
+    let mut w = FakeWorker::join(channel.clone(), "http://127.0.0.1:7001").await;
+    // 40x20: two tiles.
+    let id = submit(
+        &channel,
+        JobSpec {
+            aovs: vec!["albedo".into(), "depth".into()],
+            ..spec(40, 20, 1)
+        },
+    )
+    .await;
+    let (_, tiles) = w.setup_and_tiles(2).await;
+    assert_eq!(tiles.len(), 2);
+    let first = ReportContributionsRequest {
+        worker_id: w.id.clone(),
+        job_id: id.clone(),
+        sequence: 1,
+        pixels: vec![0, 5],
+        sums: vec![fixed(0.5); 6],
+        aov_pixels: vec![0, 5, 7],
+        aov_sums: vec![1; 24],
+        credits: vec![TileCredit {
+            tile: 0,
+            credit: TILE_CREDIT,
+        }],
+        ..Default::default()
+    };
+    let second = ReportContributionsRequest {
+        sequence: 2,
+        pixels: vec![39],
+        sums: vec![fixed(1.0); 3],
+        aov_pixels: Vec::new(),
+        aov_sums: Vec::new(),
+        credits: vec![TileCredit {
+            tile: 1,
+            credit: TILE_CREDIT,
+        }],
+        counters: Some(WorkerCounters {
+            queue_peak: 3,
+            ..Default::default()
+        }),
+        ..first.clone()
+    };
+    // The AOV fields (21 and 22: two-byte tags), their lengths (192 bytes: a two-byte
+    // length), 4 bytes a pixel and 8 a word.
+    let aov_bytes = (2 + 1 + 3 * 4) + (2 + 2 + 24 * 8);
+    assert!(w.report(first.clone()).await.unwrap());
+    assert!(w.report(first.clone()).await.unwrap(), "a retry");
+    let r = get_job(&channel, &id).await.stats.unwrap().reports.unwrap();
+    assert_eq!(
+        (r.messages, r.bytes, r.aov_bytes),
+        (1, first.encoded_len() as u64, aov_bytes)
+    );
+    assert!(!w.report(second.clone()).await.unwrap(), "the job is over");
+    let job = wait_state(&channel, &id, JobState::Succeeded).await;
+    let r = job.stats.unwrap().reports.unwrap();
+    assert_eq!(
+        (r.messages, r.bytes, r.aov_bytes),
+        (
+            2,
+            (first.encoded_len() + second.encoded_len()) as u64,
+            aov_bytes
+        )
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

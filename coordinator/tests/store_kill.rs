@@ -62,6 +62,8 @@ fn child(dir: &str) {
                     tile: t,
                     sums: sums(job, t),
                     passes: Some(t),
+                    aovs: None,
+                    stopped_at: None,
                 })
                 .collect(),
         });

@@ -5,9 +5,10 @@
 //! credit overdrawn: see [`super::actor`]).
 //!
 //! A report is applied at most once per `(worker, job, attempt, sequence)`, so a worker
-//! may retry a call whose answer it lost. Everything is checked before anything changes,
-//! so a malformed report leaves the job as it was (and may be sent again, fixed, under
-//! the same sequence).
+//! may retry a call whose answer it lost. Its own bytes are counted as it is applied
+//! (`JobStats.reports`, `crate::traffic::add_report`). Everything is checked before
+//! anything changes, so a malformed report leaves the job as it was (and may be sent
+//! again, fixed, under the same sequence).
 //!
 //! **Contract for workers:** a ray's contribution must be reported in the same report as
 //! the credit it returns, or an earlier one: the job succeeds (and its film is frozen)
@@ -219,6 +220,8 @@ pub fn apply(job: &mut RunningJob, r: &ReportContributionsRequest) -> Applied {
         .entry(r.worker_id.clone())
         .or_default()
         .insert(r.sequence);
+    // Counted once per sequence, as everything else in it is.
+    crate::traffic::add_report(&mut job.reports, r);
     if !r.failure.is_empty() {
         // Workers often name themselves already ("worker w1: ..."): say it once.
         let failure = r.failure.trim();

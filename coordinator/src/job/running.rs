@@ -102,6 +102,8 @@ pub struct RunningJob {
     pub(super) ray_bytes_sent: u64,
     /// Bytes between processes by kind, summed over the workers' reports.
     pub(super) traffic: dray_proto::v1::TrafficStats,
+    /// The reports themselves: messages applied, their bytes and the AOVs' part.
+    pub(super) reports: dray_proto::v1::ReportStats,
     /// CPU seconds of the processes that ran the job.
     pub(super) cpu: crate::cpu_tally::CpuTally,
     pub(super) metrics: JobMetrics,
@@ -201,6 +203,7 @@ impl RunningJob {
             clamped_indirect: 0,
             ray_bytes_sent: 0,
             traffic: Default::default(),
+            reports: Default::default(),
             cpu: crate::cpu_tally::CpuTally::here(),
             metrics,
             caches,
@@ -223,36 +226,66 @@ impl RunningJob {
         job
     }
 
-    /// Put back tiles committed before a coordinator restart: their exact sums into the
-    /// film, and how many passes each holds. The job goes on from the first pass some
-    /// tile has not finished; tiles further on are complete in it (and in every pass they
-    /// hold), so they are not dealt again. A tile that does not fit the job's grid is
-    /// left to be traced again.
+    /// Put back tiles committed before a coordinator restart: their exact sums (and AOV
+    /// sums) into the film, how many passes each holds, and, for a tile adaptive
+    /// sampling stopped, the samples its pixels stopped at. The job goes on from the
+    /// first pass some tile has not finished; tiles further on are complete in it (and in
+    /// every pass they hold; a stopped tile in all), so they are not dealt again. A tile
+    /// that does not fit the job's grid, or lacks the AOVs the job writes (stored before
+    /// schema 4), is left to be traced again.
     fn keep(&mut self, tiles: Vec<CommittedTile>) {
         let total = self.passes_total();
+        let spp = self.entry.spec.spp;
         let mut kept = 0usize;
-        for CommittedTile { tile, sums, passes } in tiles {
-            let t = tile as usize;
-            let passes = passes.unwrap_or(total).min(total);
+        for c in tiles {
+            let t = c.tile as usize;
+            let passes = match c.stopped_at {
+                Some(_) => total,
+                None => c.passes.unwrap_or(total).min(total),
+            };
             let fits = self.tiles.get(t).is_some_and(|x| {
-                !x.coarse && sums.len() as u64 == u64::from(x.width) * u64::from(x.height)
+                let n = u64::from(x.width) * u64::from(x.height);
+                !x.coarse
+                    && c.sums.len() as u64 == n
+                    && c.aovs.as_ref().map(|a| a.len() as u64) == self.film.aovs.as_ref().map(|_| n)
             });
             if !fits || passes == 0 || self.tile_passes[t] > 0 {
-                tracing::warn!(tile, "a stored tile does not fit the job: traced again");
+                tracing::warn!(
+                    tile = c.tile,
+                    "a stored tile does not fit the job: traced again"
+                );
                 continue;
             }
             let x = self.tiles[t];
-            let mut px = sums.into_iter();
-            for y in x.y0..x.y0 + x.height {
-                for xx in x.x0..x.x0 + x.width {
-                    if let Some(s) = px.next() {
-                        self.film.add_fixed(y * self.film.width + xx, s);
-                    }
+            let pixels = (x.y0..x.y0 + x.height)
+                .flat_map(|y| (x.x0..x.x0 + x.width).map(move |xx| (y, xx)))
+                .map(|(y, xx)| y * self.film.width + xx)
+                .collect::<Vec<u32>>();
+            for (&p, s) in pixels.iter().zip(c.sums) {
+                self.film.add_fixed(p, s);
+            }
+            if let (Some(film), Some(aovs)) = (self.film.aovs.as_mut(), c.aovs) {
+                for (&p, v) in pixels.iter().zip(aovs) {
+                    film.add_fixed(p, &v);
                 }
+            }
+            if let Some(n) = c.stopped_at {
+                for &p in &pixels {
+                    self.film.set_stop(p, n);
+                }
+                self.stopped.tiles += 1;
+                self.stopped.samples += pixels.len() as u64 * u64::from(spp.saturating_sub(n));
             }
             self.tile_passes[t] = passes;
             kept += 1;
         }
+        tracing::info!(
+            job = %self.entry.id,
+            kept,
+            stopped = self.stopped.tiles,
+            aovs = self.film.aovs.is_some(),
+            "committed tiles put back"
+        );
         if kept == 0 {
             return;
         }
@@ -332,15 +365,14 @@ impl RunningJob {
 
     /// Image tile `t`'s credit is all back: it has one more pass complete (every pass,
     /// if adaptive sampling stops it), and is committed with it (kept in the job store
-    /// when there is one). A job with a noise threshold commits nothing: the store keeps
-    /// no per-pixel sample counts, so it is traced again from the start after a
-    /// coordinator restart (docs/noise.md).
+    /// when there is one), with its AOV sums and, if it stopped, the samples it stopped
+    /// at (docs/noise.md).
     pub(super) fn tile_finished(&mut self, t: usize) {
         self.tiles_done += 1;
         self.tile_passes[t] = self.pass as u32 + 1;
         self.maybe_stop(t);
         self.copy_to_next(t);
-        if self.entry.store().is_some() && self.entry.spec.noise_threshold.is_none() {
+        if self.entry.store().is_some() {
             self.committed.push(t);
         }
     }
@@ -391,21 +423,31 @@ impl RunningJob {
             self.committed.clear();
             return;
         };
+        let film = &self.film;
         let tiles = self
             .committed
             .drain(..)
             .map(|t| {
                 let x = self.tiles[t];
-                let mut sums = Vec::with_capacity(x.width as usize * x.height as usize);
-                for y in x.y0..x.y0 + x.height {
-                    for xx in x.x0..x.x0 + x.width {
-                        sums.push(self.film.sum_fixed(y * self.film.width + xx));
-                    }
-                }
+                let pixels = (x.y0..x.y0 + x.height)
+                    .flat_map(|y| (x.x0..x.x0 + x.width).map(move |xx| y * film.width + xx));
+                let sums = pixels.clone().map(|p| film.sum_fixed(p)).collect();
+                let aovs = film
+                    .aovs
+                    .as_ref()
+                    .map(|a| pixels.clone().map(|p| a.sum_fixed(p)).collect());
+                // A stopped tile's pixels all stopped at the same count (`maybe_stop`).
+                let stopped_at = film
+                    .stops()
+                    .and_then(|s| s.get((x.y0 * film.width + x.x0) as usize))
+                    .copied()
+                    .filter(|&n| n > 0);
                 CommittedTile {
                     tile: t as u32,
                     sums,
                     passes: Some(self.tile_passes[t]),
+                    aovs,
+                    stopped_at,
                 }
             })
             .collect();
@@ -853,6 +895,7 @@ impl RunningJob {
             s.samples_saved = self.stopped.samples;
             s.ray_bytes_sent = self.ray_bytes_sent;
             s.traffic = Some(self.traffic);
+            s.reports = Some(self.reports);
             s.cpu_seconds = self.cpu.seconds();
             self.metrics.fill_totals(s);
             s.tiles_retried = self.tiles_retried;

@@ -17,6 +17,7 @@ use dray_proto::v1::{JobSpec, JobState, JobStats};
 use prost::Message;
 use rusqlite::{Connection, ErrorCode, OpenFlags};
 
+use dray_core::aov::AOV_WORDS;
 use dray_core::film::Film;
 
 use super::writer::{Health, Op, Writer, image_name};
@@ -24,7 +25,8 @@ use super::{CommittedTile, StoreError, StoredJob, from_millis};
 use super::{image_file, state_dir};
 
 /// The schema this build writes and the newest it reads (`PRAGMA user_version`).
-pub const SCHEMA_VERSION: u32 = 3;
+/// 4 added the committed tiles' AOV sums and adaptive-sampling stops.
+pub const SCHEMA_VERSION: u32 = 4;
 
 /// `PRAGMA application_id` of a dray job store ("dray"), so another program's SQLite
 /// file is never taken for one.
@@ -65,6 +67,16 @@ CREATE TABLE tiles (
 
 /// From schema 1 (no progressive passes: a stored tile was complete) to 2.
 const MIGRATE_1_TO_2: &str = "ALTER TABLE tiles ADD COLUMN passes INTEGER;";
+
+/// From schema 3 to 4 (also run on a new database): a committed tile's AOV sums (8 x
+/// i64 little-endian per pixel, row-major; NULL for a job without AOVs) and the samples
+/// its pixels stopped at when adaptive sampling stopped it (NULL: it did not). A job of
+/// an older store that writes AOVs traces its tiles again (they have none); one with a
+/// noise threshold committed no tiles before.
+const MIGRATE_3_TO_4: &str = "
+ALTER TABLE tiles ADD COLUMN aovs BLOB;
+ALTER TABLE tiles ADD COLUMN stopped_at INTEGER;
+";
 
 /// An open job store: the lock, and the thread that writes the database.
 pub struct JobStore {
@@ -326,18 +338,22 @@ fn open_db(path: &Path) -> Result<Connection, StoreError> {
         tx.execute_batch(SCHEMA).map_err(sql)?;
         tx.execute_batch(super::events::MIGRATE_2_TO_3)
             .map_err(sql)?;
+        tx.execute_batch(MIGRATE_3_TO_4).map_err(sql)?;
         tx.pragma_update(None, "application_id", APPLICATION_ID)
             .map_err(sql)?;
         tx.pragma_update(None, "user_version", SCHEMA_VERSION)
             .map_err(sql)?;
         tx.commit().map_err(sql)?;
-    } else if version == 1 || version == 2 {
+    } else if (1..SCHEMA_VERSION).contains(&version) {
         let tx = conn.unchecked_transaction().map_err(sql)?;
         if version == 1 {
             tx.execute_batch(MIGRATE_1_TO_2).map_err(sql)?;
         }
-        tx.execute_batch(super::events::MIGRATE_2_TO_3)
-            .map_err(sql)?;
+        if version <= 2 {
+            tx.execute_batch(super::events::MIGRATE_2_TO_3)
+                .map_err(sql)?;
+        }
+        tx.execute_batch(MIGRATE_3_TO_4).map_err(sql)?;
         tx.pragma_update(None, "user_version", SCHEMA_VERSION)
             .map_err(sql)?;
         tx.commit().map_err(sql)?;
@@ -413,19 +429,27 @@ fn load(conn: &Connection, images: &Path) -> rusqlite::Result<Vec<StoredJob>> {
             Err(e) => return Err(e),
         }
     }
-    let mut tiles =
-        conn.prepare("SELECT tile, sums, passes FROM tiles WHERE job_id = ?1 ORDER BY tile")?;
+    let mut tiles = conn.prepare(
+        "SELECT tile, sums, passes, aovs, stopped_at FROM tiles WHERE job_id = ?1 ORDER BY tile",
+    )?;
     for j in jobs.iter_mut().filter(|j| !ended(j.state)) {
         j.tiles = tiles
             .query_map([&j.id], |r| {
                 let sums: Vec<u8> = r.get(1)?;
+                let aovs: Option<Vec<u8>> = r.get(3)?;
                 Ok(CommittedTile {
                     tile: r.get(0)?,
                     sums: sums
                         .chunks_exact(24)
-                        .map(super::image_file::read_sums)
+                        .map(super::image_file::read_words)
                         .collect(),
                     passes: r.get(2)?,
+                    aovs: aovs.map(|a| {
+                        a.chunks_exact(8 * AOV_WORDS)
+                            .map(super::image_file::read_words)
+                            .collect()
+                    }),
+                    stopped_at: r.get(4)?,
                 })
             })?
             .collect::<rusqlite::Result<Vec<_>>>()?;
@@ -535,11 +559,7 @@ mod tests {
             });
             store.post(Op::Tiles {
                 id: "job-2-x".into(),
-                tiles: vec![CommittedTile {
-                    tile: 3,
-                    sums: vec![[1, -2, i64::MAX], [i64::MIN, 0, 7]],
-                    passes: Some(2),
-                }],
+                tiles: vec![plain_tile(), tile_with_aovs()],
             });
             assert!(store.post_durable(
                 Op::Attempt {
@@ -555,15 +575,87 @@ mod tests {
         assert_eq!(jobs[0].state, JobState::Running);
         assert_eq!(jobs[0].attempt, Some(4));
         assert_eq!(jobs[0].spec, spec());
-        assert_eq!(
-            jobs[0].tiles,
-            [CommittedTile {
-                tile: 3,
-                sums: vec![[1, -2, i64::MAX], [i64::MIN, 0, 7]],
-                passes: Some(2),
-            }]
-        );
+        assert_eq!(jobs[0].tiles, [plain_tile(), tile_with_aovs()]);
         assert_eq!(jobs[1].state, JobState::Queued);
+    }
+
+    /// A store as an older dray wrote it at `db`: `schema`, `version`, job `job-1-x` and
+    /// one tile of zero sums inserted by `tile` (which binds the sums as `?1`).
+    fn old_store(db: &Path, schema: &str, version: u32, tile: &str) {
+        let c = Connection::open(db).unwrap();
+        c.execute_batch(schema).unwrap();
+        c.pragma_update(None, "application_id", APPLICATION_ID)
+            .unwrap();
+        c.pragma_update(None, "user_version", version).unwrap();
+        c.execute(
+            "INSERT INTO jobs (seq, id, spec, label, state, submitted_ms) \
+             VALUES (1, 'job-1-x', x'', '', 3, 1)",
+            [],
+        )
+        .unwrap();
+        c.execute(tile, [vec![0u8; 24]]).unwrap();
+    }
+
+    /// A tile of a job without AOVs, in its second pass, with extreme sums.
+    fn plain_tile() -> CommittedTile {
+        CommittedTile {
+            tile: 3,
+            sums: vec![[1, -2, i64::MAX], [i64::MIN, 0, 7]],
+            passes: Some(2),
+            aovs: None,
+            stopped_at: None,
+        }
+    }
+
+    /// A tile of a job with AOVs that adaptive sampling stopped at 16 samples.
+    fn tile_with_aovs() -> CommittedTile {
+        CommittedTile {
+            tile: 5,
+            sums: vec![[4, 5, 6]],
+            passes: Some(7),
+            aovs: Some(vec![[1, 2, 3, -4, 5, -6, i64::MAX, 9]]),
+            stopped_at: Some(16),
+        }
+    }
+
+    /// A schema-3 store (tiles without AOVs or stops) is migrated: its tiles come back
+    /// with neither, and new tiles keep both.
+    #[test]
+    fn a_schema_3_store_is_migrated_and_keeps_aovs_and_stops_after() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join(DB_FILE);
+        old_store(
+            &db,
+            &format!("{SCHEMA}{}", super::super::events::MIGRATE_2_TO_3),
+            3,
+            "INSERT INTO tiles (job_id, tile, sums, passes) VALUES ('job-1-x', 0, ?1, 2)",
+        );
+        {
+            let (store, jobs) = JobStore::open(dir.path()).unwrap();
+            assert_eq!(
+                jobs[0].tiles,
+                [CommittedTile {
+                    tile: 0,
+                    sums: vec![[0, 0, 0]],
+                    passes: Some(2),
+                    aovs: None,
+                    stopped_at: None,
+                }]
+            );
+            store.post(Op::Tiles {
+                id: "job-1-x".into(),
+                tiles: vec![tile_with_aovs()],
+            });
+            store.flush();
+        }
+        let (_store, jobs) = JobStore::open(dir.path()).unwrap();
+        assert_eq!(jobs[0].tiles.len(), 2);
+        assert_eq!(jobs[0].tiles[1], tile_with_aovs());
+        let c = Connection::open(&db).unwrap();
+        let v: u32 = c
+            .pragma_query_value(None, "user_version", |r| r.get(0))
+            .unwrap();
+        assert_eq!(v, SCHEMA_VERSION);
     }
 
     #[test]
@@ -621,28 +713,15 @@ mod tests {
     fn a_schema_1_store_is_migrated_and_its_tiles_count_as_complete() {
         let dir = tempfile::tempdir().unwrap();
         let db = dir.path().join(DB_FILE);
-        {
-            let c = Connection::open(&db).unwrap();
-            c.execute_batch(&SCHEMA.replace(
+        old_store(
+            &db,
+            &SCHEMA.replace(
                 "    passes INTEGER,                   -- progressive passes in the sums; NULL: every pass\n",
                 "",
-            ))
-            .unwrap();
-            c.pragma_update(None, "application_id", APPLICATION_ID)
-                .unwrap();
-            c.pragma_update(None, "user_version", 1).unwrap();
-            c.execute(
-                "INSERT INTO jobs (seq, id, spec, label, state, submitted_ms) \
-                 VALUES (1, 'job-1-x', x'', '', 3, 1)",
-                [],
-            )
-            .unwrap();
-            c.execute(
-                "INSERT INTO tiles (job_id, tile, sums) VALUES ('job-1-x', 0, ?1)",
-                [vec![0u8; 24]],
-            )
-            .unwrap();
-        }
+            ),
+            1,
+            "INSERT INTO tiles (job_id, tile, sums) VALUES ('job-1-x', 0, ?1)",
+        );
         let (_store, jobs) = JobStore::open(dir.path()).unwrap();
         assert_eq!(jobs.len(), 1);
         assert_eq!(
@@ -651,6 +730,8 @@ mod tests {
                 tile: 0,
                 sums: vec![[0, 0, 0]],
                 passes: None,
+                aovs: None,
+                stopped_at: None,
             }]
         );
         let c = Connection::open(&db).unwrap();

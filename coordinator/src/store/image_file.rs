@@ -10,11 +10,17 @@
 //! non-finite count (u64), width × height × 3 sums (i64), then XXH3-64 of all of the
 //! above (u64). Format 2 (written only for a film some of whose pixels adaptive
 //! sampling stopped early) has width × height sample counts (u32, 0 for a pixel that
-//! did not stop: `Film::stops`) between the sums and the checksum.
+//! did not stop: `Film::stops`) between the sums and the checksum. Format 3 (written
+//! only for a film with AOVs, `Film::aovs`) has, after the header, a flags word (u32;
+//! bit 0: the sample counts follow the sums) and the AOV set (u32; bit `i` for
+//! `Aov::ALL[i]`), then the sums, the sample counts if flagged, width × height × 8 AOV
+//! words (i64, `AovFilm::sum_fixed`), and the checksum. Formats 1 and 2 are still
+//! written for films without AOVs, so older coordinators read them.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use dray_core::aov::{AOV_WORDS, Aov, AovSet};
 use dray_core::film::Film;
 use dray_scene::partition::checksum::checksum;
 
@@ -23,16 +29,24 @@ use super::StoreError;
 const MAGIC: &[u8; 8] = b"DRAYFILM";
 /// The format of a film without per-pixel sample counts.
 const FORMAT: u32 = 1;
-/// The format of a film with them (adaptive sampling); the newest read.
+/// The format of a film with them (adaptive sampling).
 const FORMAT_STOPS: u32 = 2;
+/// The format of a film with AOVs (and sample counts or not); the newest read.
+const FORMAT_AOVS: u32 = 3;
 const HEADER: usize = 8 + 4 + 4 + 4 + 8;
+/// Format 3's flags and AOV set.
+const AOV_HEADER: usize = 4 + 4;
+/// Format 3's flag: sample counts follow the sums.
+const HAS_STOPS: u32 = 1;
 
 /// The film as the bytes of an image file.
 pub fn encode(film: &Film) -> Vec<u8> {
     let pixels = film.width as usize * film.height as usize;
     let mut out = Vec::with_capacity(HEADER + pixels * 24 + 8);
     out.extend_from_slice(MAGIC);
-    let format = if film.stops().is_some() {
+    let format = if film.aovs.is_some() {
+        FORMAT_AOVS
+    } else if film.stops().is_some() {
         FORMAT_STOPS
     } else {
         FORMAT
@@ -41,13 +55,21 @@ pub fn encode(film: &Film) -> Vec<u8> {
     out.extend_from_slice(&film.width.to_le_bytes());
     out.extend_from_slice(&film.height.to_le_bytes());
     out.extend_from_slice(&film.nonfinite.to_le_bytes());
+    if let Some(a) = &film.aovs {
+        let flags = if film.stops().is_some() { HAS_STOPS } else { 0 };
+        out.extend_from_slice(&flags.to_le_bytes());
+        out.extend_from_slice(&set_bits(a.set).to_le_bytes());
+    }
     for p in 0..pixels as u32 {
-        for c in film.sum_fixed(p) {
-            out.extend_from_slice(&c.to_le_bytes());
-        }
+        out.extend_from_slice(&words_le(&film.sum_fixed(p)));
     }
     for n in film.stops().unwrap_or(&[]) {
         out.extend_from_slice(&n.to_le_bytes());
+    }
+    if let Some(a) = &film.aovs {
+        for p in 0..pixels as u32 {
+            out.extend_from_slice(&words_le(&a.sum_fixed(p)));
+        }
     }
     let sum = checksum(&out);
     out.extend_from_slice(&sum.to_le_bytes());
@@ -70,42 +92,92 @@ pub fn decode(bytes: &[u8], path: &Path) -> Result<Film, StoreError> {
     }
     let u32_at = |o: usize| u32::from_le_bytes([body[o], body[o + 1], body[o + 2], body[o + 3]]);
     let format = u32_at(8);
-    if format != FORMAT && format != FORMAT_STOPS {
+    if !(FORMAT..=FORMAT_AOVS).contains(&format) {
         return Err(StoreError::Newer {
             file: path.to_path_buf(),
             found: format,
-            supported: FORMAT_STOPS,
+            supported: FORMAT_AOVS,
         });
     }
     let (width, height) = (u32_at(12), u32_at(16));
     let mut nf = [0u8; 8];
     nf.copy_from_slice(&body[20..28]);
     let pixels = width as usize * height as usize;
-    let per_pixel = if format == FORMAT_STOPS { 28 } else { 24 };
-    if body.len() != HEADER + pixels * per_pixel {
+    // (flags, AOV set) and where the sums start.
+    let (has_stops, set, start) = match format {
+        FORMAT_AOVS => {
+            if body.len() < HEADER + AOV_HEADER {
+                return Err(corrupt("truncated"));
+            }
+            let flags = u32_at(HEADER);
+            let set = set_of(u32_at(HEADER + 4))
+                .filter(|s| !s.is_empty() && flags & !HAS_STOPS == 0)
+                .ok_or_else(|| corrupt("its AOV header names nothing this build writes"))?;
+            (flags & HAS_STOPS != 0, set, HEADER + AOV_HEADER)
+        }
+        f => (f == FORMAT_STOPS, AovSet::NONE, HEADER),
+    };
+    let per_pixel =
+        24 + if has_stops { 4 } else { 0 } + if set.is_empty() { 0 } else { 8 * AOV_WORDS };
+    if body.len() != start + pixels * per_pixel {
         return Err(corrupt("its size does not match its width and height"));
     }
-    let mut film = Film::new(width, height);
+    let mut film = Film::with_aovs(width, height, set);
     film.nonfinite = u64::from_le_bytes(nf);
-    let (sums, stops) = body[HEADER..].split_at(pixels * 24);
+    let (sums, rest) = body[start..].split_at(pixels * 24);
+    let (stops, aovs) = rest.split_at(if has_stops { pixels * 4 } else { 0 });
     for (p, px) in sums.chunks_exact(24).enumerate() {
-        film.add_fixed(p as u32, read_sums(px));
+        film.add_fixed(p as u32, read_words(px));
     }
     for (p, n) in stops.chunks_exact(4).enumerate() {
         film.set_stop(p as u32, u32::from_le_bytes([n[0], n[1], n[2], n[3]]));
     }
+    if let Some(a) = film.aovs.as_mut() {
+        for (p, px) in aovs.chunks_exact(8 * AOV_WORDS).enumerate() {
+            a.set_fixed(p as u32, read_words(px));
+        }
+    }
     Ok(film)
 }
 
-/// Three little-endian i64 sums from 24 bytes.
-pub(crate) fn read_sums(px: &[u8]) -> [i64; 3] {
-    let mut s = [0i64; 3];
+/// `N` little-endian i64 words from `8 N` bytes (a pixel's sums, or its AOV words).
+pub(crate) fn read_words<const N: usize>(px: &[u8]) -> [i64; N] {
+    let mut s = [0i64; N];
     for (c, b) in s.iter_mut().zip(px.chunks_exact(8)) {
         let mut a = [0u8; 8];
         a.copy_from_slice(b);
         *c = i64::from_le_bytes(a);
     }
     s
+}
+
+/// `words` as little-endian bytes, 8 a word.
+pub(crate) fn words_le<'a>(words: impl IntoIterator<Item = &'a i64>) -> Vec<u8> {
+    words.into_iter().flat_map(|w| w.to_le_bytes()).collect()
+}
+
+/// An AOV set as format 3 keeps it: bit `i` for `Aov::ALL[i]`.
+fn set_bits(set: AovSet) -> u32 {
+    Aov::ALL
+        .iter()
+        .enumerate()
+        .filter(|(_, a)| set.contains(**a))
+        .fold(0, |b, (i, _)| b | 1 << i)
+}
+
+/// The set `bits` ([`set_bits`]) stands for; None when it has a bit this build does
+/// not know.
+fn set_of(bits: u32) -> Option<AovSet> {
+    if bits >> Aov::ALL.len() != 0 {
+        return None;
+    }
+    Some(
+        Aov::ALL
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| bits & (1 << i) != 0)
+            .fold(AovSet::NONE, |s, (_, a)| s.with(*a)),
+    )
 }
 
 /// The largest image file read back: the header, 24 bytes a pixel for the largest film a
@@ -248,6 +320,45 @@ mod tests {
         let back = read(&path).unwrap();
         assert_eq!(back.stops(), Some(&[0, 16, 0, 0, 32, 0][..]));
         assert_eq!(back, f);
+    }
+
+    /// A film with AOVs (format 3) keeps them, with and without sample counts; formats
+    /// 1 and 2 are still what a film without AOVs is written as.
+    #[test]
+    fn round_trips_aovs_with_and_without_stops() {
+        let set = AovSet::parse(&["albedo", "depth", "samples"]).unwrap();
+        let mut f = Film::with_aovs(3, 2, set);
+        for p in 0..6 {
+            f.add_fixed(p, [p as i64, 1, 2]);
+            f.aovs.as_mut().unwrap().add_fixed(
+                p,
+                &[p as i64, -1, i64::MAX, 3, 4, 5, 6, i64::MIN + p as i64],
+            );
+        }
+        f.nonfinite = 2;
+        let bytes = encode(&f);
+        assert_eq!(u32::from_le_bytes(bytes[8..12].try_into().unwrap()), 3);
+        let back = decode(&bytes, Path::new("a.film")).unwrap();
+        assert_eq!(back, f);
+        assert_eq!(back.aov_set(), set);
+        f.set_stop(2, 16);
+        let back = decode(&encode(&f), Path::new("a.film")).unwrap();
+        assert_eq!(back.stops(), Some(&[0, 0, 16, 0, 0, 0][..]));
+        assert_eq!(back, f);
+        // Without AOVs: formats 1 and 2, as before.
+        let format = |f: &Film| u32::from_le_bytes(encode(f)[8..12].try_into().unwrap());
+        let mut plain = film();
+        assert_eq!(format(&plain), 1);
+        plain.set_stop(0, 8);
+        assert_eq!(format(&plain), 2);
+        // An AOV set with a bit this build does not know is damage, named.
+        let mut bad = encode(&f);
+        bad[HEADER + 4] |= 0x80;
+        let n = bad.len() - 8;
+        let sum = checksum(&bad[..n]);
+        bad[n..].copy_from_slice(&sum.to_le_bytes());
+        let e = decode(&bad, Path::new("b.film")).unwrap_err().to_string();
+        assert!(e.contains("b.film") && e.contains("AOV header"), "{e}");
     }
 
     #[test]

@@ -27,6 +27,7 @@ pub mod writer;
 use std::path::PathBuf;
 use std::time::{Duration, SystemTime};
 
+use dray_core::aov::AOV_WORDS;
 use dray_proto::v1::{JobEvent, JobSpec, JobState, JobStats};
 
 pub use db::{JobStore, SCHEMA_VERSION};
@@ -109,6 +110,13 @@ pub struct CommittedTile {
     /// Progressive passes the sums hold (the tile is complete in passes `0..passes`);
     /// None: every pass (tiles written before passes were kept per tile).
     pub passes: Option<u32>,
+    /// Its pixels' AOV sums (`Film::aovs`, row-major as `sums`), for a job that writes
+    /// AOVs. None for a job without them, and for a tile stored before schema 4 (which
+    /// a job with AOVs traces again rather than keep without them).
+    pub aovs: Option<Vec<[i64; AOV_WORDS]>>,
+    /// The samples its pixels stopped at, when adaptive sampling stopped the tile
+    /// (`Film::set_stop`; it is then complete in every pass); None when it did not.
+    pub stopped_at: Option<u32>,
 }
 
 /// One job as the store holds it.

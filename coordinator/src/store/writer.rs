@@ -291,17 +291,16 @@ fn apply(tx: &Transaction<'_>, op: Op) -> rusqlite::Result<()> {
         }
         Op::Tiles { id, tiles } => {
             let mut q = tx.prepare(
-                "INSERT OR REPLACE INTO tiles (job_id, tile, sums, passes) \
-                     VALUES (?1, ?2, ?3, ?4)",
+                "INSERT OR REPLACE INTO tiles (job_id, tile, sums, passes, aovs, stopped_at) \
+                     VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
             )?;
             for t in tiles {
-                let mut sums = Vec::with_capacity(t.sums.len() * 24);
-                for s in &t.sums {
-                    for c in s {
-                        sums.extend_from_slice(&c.to_le_bytes());
-                    }
-                }
-                q.execute(params![id, t.tile, sums, t.passes])?;
+                let sums = super::image_file::words_le(t.sums.iter().flatten());
+                let aovs = t
+                    .aovs
+                    .as_ref()
+                    .map(|a| super::image_file::words_le(a.iter().flatten()));
+                q.execute(params![id, t.tile, sums, t.passes, aovs, t.stopped_at])?;
             }
         }
         Op::Finish {
