@@ -57,8 +57,8 @@ def voxel_width(package: Path) -> float:
 
 
 def sweep(dray: Path, scene: str, out: Path, size: int, varies: list[str], base: list[str],
-          target: list[str], repeat: int) -> list[dict]:
-    cmd = [str(dray), "sweep", scene, "--integrator", "raycast", "--width", str(size),
+          target: list[str], repeat: int, integrator: str = "raycast") -> list[dict]:
+    cmd = [str(dray), "sweep", scene, "--integrator", integrator, "--width", str(size),
            "--height", str(size), "--spp", "1", *base, *target, "--repeat", str(repeat),
            "--out", str(out)]
     for v in varies:

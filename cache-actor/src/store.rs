@@ -33,6 +33,12 @@ use crate::settings::Retrieve;
 /// cannot exhaust the host's memory (about 130 bytes an entry).
 pub const DEFAULT_MAX_ENTRIES: usize = 1 << 22;
 
+/// The bytes one stored entry takes in a wall's store: the entry itself and the part of
+/// it a query reads, kept in its cell ([`Hot`]). What `JobStats.cache_bytes_per_process`
+/// multiplies entries by (Little 2011 reports each process's cache memory); the cells'
+/// index (12 bytes an occupied cell) and the vectors' spare capacity come on top.
+pub const ENTRY_BYTES: u64 = (std::mem::size_of::<Entry>() + std::mem::size_of::<Hot>()) as u64;
+
 /// The cell edge of a store made without a radius ([`WallStore::new`]), scene units.
 /// Any edge gives the same answers; one near the query radius gives them fastest.
 pub const DEFAULT_CELL: f32 = 1.0 / 64.0;
@@ -393,6 +399,12 @@ impl WallStore {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// docs/caches.md "Statistics" quotes this size.
+    #[test]
+    fn an_entry_takes_116_bytes() {
+        assert_eq!(ENTRY_BYTES, 116);
+    }
 
     fn key(pixel: u32) -> EntryKey {
         EntryKey {

@@ -11,7 +11,7 @@ use dray_core::display::Display;
 use dray_core::exposure::Exposure;
 use dray_core::integrator::IntegratorKind;
 use dray_core::tonemap::{Tonemap, UnknownTonemap};
-use dray_proto::v1::{JobSpec, PhmSettings, RayCacheSettings, Rgb, Vec3};
+use dray_proto::v1::{JobSpec, PhmSettings, Rgb, Vec3};
 
 use crate::options::parse_vec3;
 
@@ -32,7 +32,8 @@ pub struct JobFlags {
     #[arg(long, default_value_t = 16)]
     #[arg(help_heading = crate::help_heading::IMAGE)]
     pub spp: u32,
-    /// raycast | whitted | path | ao
+    /// raycast | primary | whitted | path | ao (primary: camera rays only, first hits
+    /// lit without shadows, Little 2011's ray caster)
     #[arg(long, default_value = DEFAULT_INTEGRATOR.name(), value_name = "NAME", value_parser = parse_integrator)]
     #[arg(help_heading = crate::help_heading::INTEGRATOR)]
     pub integrator: String,
@@ -120,19 +121,23 @@ pub struct JobFlags {
     /// traces whole paths for its tiles; no rays exchanged), image-plane (each worker
     /// traces its own block of tiles and every ray they lead to, loading the domains it
     /// needs; no rays exchanged), domain (static round-robin ownership, rays sent to
-    /// owners) or dynamic (ray-weighted: domains move to where the rays wait). The image
+    /// owners), dynamic (ray-weighted: domains move to where the rays wait) or
+    /// dynamic-from-image-plane (dynamic, started from image-plane as Navrátil et al.
+    /// 2012 start it: no routing until every worker has reported its queues, then each
+    /// domain owned where it is resident, then dynamic rounds). The image
     /// is the same under every schedule. No effect with `dray render --workers 0` (the
     /// reference renderer has no workers to schedule).
     #[arg(long, default_value = default_schedule(), value_name = "NAME", value_parser = parse_schedule)]
     #[arg(help_heading = crate::help_heading::CLUSTER)]
     pub schedule: String,
-    /// With --schedule dynamic (or auto, when it chooses dynamic): also replicate the
-    /// most-wanted domains on idle workers.
+    /// With --schedule dynamic or dynamic-from-image-plane (or auto, when it chooses
+    /// dynamic): also replicate the most-wanted domains on idle workers.
     #[arg(long)]
     #[arg(help_heading = crate::help_heading::CLUSTER)]
     pub replicate: bool,
     /// Ray caches on domain walls, e.g. radius=0.005,kinds=camera+diffuse, or `on` (keys:
-    /// radius, angle-deg, retrieve, coarse, kinds, fill; --help says more).
+    /// radius, angle-deg, retrieve, coarse, kinds, fill, placement, coarse-sampling;
+    /// --help says more).
     #[arg(
         long,
         value_name = "KEY=VALUE,...",
@@ -140,7 +145,7 @@ pub struct JobFlags {
         value_parser = crate::ray_cache_flag::parse_ray_cache
     )]
     #[arg(help_heading = crate::help_heading::APPROXIMATIONS)]
-    pub ray_cache: Option<RayCacheSettings>,
+    pub ray_cache: Option<crate::ray_cache_flag::RayCacheFlag>,
     /// Probability hit maps on domain walls, e.g. miss=0.1,hit=0.9,kinds=shadow, or `on`
     /// (keys: res, dirs, prior, miss, hit, mode, reprobe, kinds; --help says more).
     #[arg(
@@ -329,7 +334,12 @@ impl JobFlags {
             label: label.to_string(),
             schedule: self.schedule.clone(),
             replicate: self.replicate,
-            ray_cache: self.ray_cache.clone(),
+            ray_cache: self.ray_cache.as_ref().map(|f| f.settings.clone()),
+            coarse_sampling: self
+                .ray_cache
+                .as_ref()
+                .map(|f| f.coarse_sampling.clone())
+                .unwrap_or_default(),
             phm: self.phm.clone(),
             passes: self.passes_or_default().to_string(),
             view: self.view.spec()?,
@@ -363,7 +373,9 @@ mod tests {
         let e = parse_schedule("bogus").expect_err("bogus");
         assert!(
             e.contains("\"bogus\"")
-                && e.contains("auto, replicated, image-plane, domain or dynamic"),
+                && e.contains(
+                    "auto, replicated, image-plane, domain, dynamic or dynamic-from-image-plane"
+                ),
             "{e}"
         );
         assert!(parse_schedule("Dynamic").is_err());

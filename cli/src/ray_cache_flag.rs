@@ -1,5 +1,6 @@
 //! `--ray-cache KEY=VALUE,...`: the ray-cache knobs of `dray render` and `dray submit`,
-//! parsed into `JobSpec.ray_cache`.
+//! parsed into `JobSpec.ray_cache` (and `JobSpec.coarse_sampling`, the one knob that is
+//! not a `RayCacheSettings` field).
 //!
 //! Only the syntax is checked here (known keys, a `=`, values of the right type), each
 //! error one line naming the key; the ranges are the coordinator's to check, so the rules
@@ -24,7 +25,10 @@ fill=true|false (whether the main pass stores what it learns; default false with
 frozen, the same bits every run; true without one), \
 placement=sender|remote (sender, the default: every worker holds a replica of every wall \
 and looks rays up in its own memory, so a hit sends nothing; remote: each wall once, beside \
-its domain's owner, every lookup a round trip). `--ray-cache on` takes every default. \
+its domain's owner, every lookup a round trip), coarse-sampling=centres|random (where the \
+coarse pass's rays cross their coarse pixels: the centre, the default, or a random point, \
+as Little 2011 recommends; the same bits on any number of workers). `--ray-cache on` \
+takes every default. \
 Caches run on cache hosts: in every worker process (default) or stand-alone `dray cache` \
 processes (which hold each wall once).",
         RayKind::help_list(&RayKind::RADIANCE)
@@ -32,7 +36,7 @@ processes (which hold each wall once).",
 }
 
 /// The keys, in the order the help gives them.
-pub const KEYS: [&str; 7] = [
+pub const KEYS: [&str; 8] = [
     "radius",
     "angle-deg",
     "retrieve",
@@ -40,11 +44,21 @@ pub const KEYS: [&str; 7] = [
     "kinds",
     "fill",
     "placement",
+    "coarse-sampling",
 ];
 
+/// What `--ray-cache` sets: the job's `RayCacheSettings` and its `coarse_sampling`
+/// (empty: the coordinator's default).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RayCacheFlag {
+    pub settings: RayCacheSettings,
+    pub coarse_sampling: String,
+}
+
 /// Parse `--ray-cache` into settings; errors name the key (clap prefixes the flag).
-pub fn parse_ray_cache(s: &str) -> Result<RayCacheSettings, String> {
+pub fn parse_ray_cache(s: &str) -> Result<RayCacheFlag, String> {
     let mut rc = RayCacheSettings::default();
+    let mut coarse_sampling = String::new();
     for (key, value) in crate::kv_flag::pairs(s, &KEYS)? {
         let number = |what: &str| format!("{key}: {value:?} is not {what}");
         match key {
@@ -73,12 +87,21 @@ pub fn parse_ray_cache(s: &str) -> Result<RayCacheSettings, String> {
                 }
                 rc.placement = value.to_string();
             }
+            "coarse-sampling" => {
+                if value.is_empty() {
+                    return Err(format!("{key}: empty (centres or random)"));
+                }
+                coarse_sampling = value.to_string();
+            }
             other => {
                 return Err(format!("unknown key {other:?} (keys: {})", KEYS.join(", ")));
             }
         }
     }
-    Ok(rc)
+    Ok(RayCacheFlag {
+        settings: rc,
+        coarse_sampling,
+    })
 }
 
 #[cfg(test)]
@@ -87,20 +110,21 @@ mod tests {
 
     #[test]
     fn pairs_and_defaults() {
-        assert_eq!(parse_ray_cache("on"), Ok(RayCacheSettings::default()));
+        assert_eq!(parse_ray_cache("on"), Ok(RayCacheFlag::default()));
         assert_eq!(
-            parse_ray_cache("radius=0.005"),
+            parse_ray_cache("radius=0.005").map(|f| f.settings),
             Ok(RayCacheSettings {
                 radius: 0.005,
                 ..Default::default()
             })
         );
         let all = parse_ray_cache(
-            "radius=0.01, angle-deg=5,retrieve=average,coarse=0,kinds=camera+diffuse,fill=false,placement=remote",
+            "radius=0.01, angle-deg=5,retrieve=average,coarse=0,kinds=camera+diffuse,fill=false,placement=remote,coarse-sampling=random",
         )
         .unwrap();
+        assert_eq!(all.coarse_sampling, "random");
         assert_eq!(
-            all,
+            all.settings,
             RayCacheSettings {
                 radius: 0.01,
                 angle_deg: Some(5.0),
@@ -112,9 +136,21 @@ mod tests {
             }
         );
         // Ranges are the coordinator's to check: these parse.
-        assert_eq!(parse_ray_cache("radius=-1").unwrap().radius, -1.0);
-        assert_eq!(parse_ray_cache("retrieve=best").unwrap().retrieve, "best");
-        assert_eq!(parse_ray_cache("kinds=shadow").unwrap().kinds, "shadow");
+        assert_eq!(parse_ray_cache("radius=-1").unwrap().settings.radius, -1.0);
+        assert_eq!(
+            parse_ray_cache("retrieve=best").unwrap().settings.retrieve,
+            "best"
+        );
+        assert_eq!(
+            parse_ray_cache("kinds=shadow").unwrap().settings.kinds,
+            "shadow"
+        );
+        assert_eq!(
+            parse_ray_cache("coarse-sampling=jitter")
+                .unwrap()
+                .coarse_sampling,
+            "jitter"
+        );
     }
 
     #[test]
@@ -129,6 +165,7 @@ mod tests {
             ("kinds=", "kinds:"),
             ("retrieve=", "retrieve:"),
             ("placement=", "placement:"),
+            ("coarse-sampling=", "coarse-sampling:"),
             ("radius", "radius: missing =VALUE"),
             ("radius=1,radius=2", "radius: given twice"),
             ("radius=1,,fill=true", "an empty pair"),

@@ -176,6 +176,14 @@ pub struct RayCacheSummary {
     pub inner_lookups: u64,
     pub inner_hits: u64,
     pub inner_hit_ratio: f64,
+    /// Hits over lookups on every wall, outer and inner: the total hit ratio Little 2011
+    /// reports (0 without lookups).
+    pub hit_ratio: f64,
+    /// Seconds the coarse pass took (`JobStats.coarse_seconds`; 0 without one).
+    pub coarse_seconds: f64,
+    /// The most memory the caches' entries took in one process, bytes, estimated
+    /// (`JobStats.cache_bytes_per_process`).
+    pub bytes_per_process: u64,
     /// Rays a cache answered that would have gone to another worker, and their bytes.
     pub rays_not_sent: u64,
     pub bytes_not_sent: u64,
@@ -217,11 +225,21 @@ fn ratio(hits: u64, lookups: u64) -> f64 {
 impl RayCacheSummary {
     /// The summary of a job's statistics; None when it had no ray caches.
     pub fn of(s: &JobStats) -> Option<RayCacheSummary> {
-        s.ray_cache.as_ref().map(RayCacheSummary::from_stats)
+        s.ray_cache.as_ref().map(|r| RayCacheSummary {
+            coarse_seconds: s.coarse_seconds,
+            bytes_per_process: s.cache_bytes_per_process,
+            ..RayCacheSummary::from_stats(r)
+        })
     }
 
     fn from_stats(r: &RayCacheStats) -> RayCacheSummary {
         RayCacheSummary {
+            hit_ratio: ratio(
+                r.outer_hits.saturating_add(r.inner_hits),
+                r.outer_lookups.saturating_add(r.inner_lookups),
+            ),
+            coarse_seconds: 0.0,
+            bytes_per_process: 0,
             outer_lookups: r.outer_lookups,
             outer_hits: r.outer_hits,
             outer_hit_ratio: ratio(r.outer_hits, r.outer_lookups),
@@ -256,13 +274,17 @@ impl RayCacheSummary {
         };
         [
             format!(
-                "outer walls {} hits of {} lookups ({:.1}%), inner walls {} of {} ({:.1}%)",
+                "outer walls {} hits of {} lookups ({:.1}%), inner walls {} of {} ({:.1}%), \
+                 all {:.1}%; coarse pass {:.3} s; {} bytes per process",
                 self.outer_hits,
                 self.outer_lookups,
                 100.0 * self.outer_hit_ratio,
                 self.inner_hits,
                 self.inner_lookups,
-                100.0 * self.inner_hit_ratio
+                100.0 * self.inner_hit_ratio,
+                100.0 * self.hit_ratio,
+                self.coarse_seconds,
+                self.bytes_per_process
             ),
             format!(
                 "{} rays ({} bytes) not sent; tickets opened {}, closed {}, stored {}, open {}",
@@ -770,8 +792,8 @@ mod tests {
             ray_cache: Some(RayCacheStats {
                 outer_lookups: 1000,
                 outer_hits: 920,
-                inner_lookups: 0,
-                inner_hits: 0,
+                inner_lookups: 1000,
+                inner_hits: 80,
                 rays_not_sent: 10,
                 bytes_not_sent: 640,
                 tickets_opened: 80,
@@ -782,10 +804,16 @@ mod tests {
                 lost_hosts: vec!["http://h:1".into()],
                 ..Default::default()
             }),
+            coarse_seconds: 1.5,
+            cache_bytes_per_process: 2600,
             ..JobStats::default()
         };
         let rc = RayCacheSummary::of(&stats).expect("caches");
-        assert_eq!((rc.outer_hit_ratio, rc.inner_hit_ratio), (0.92, 0.0));
+        assert_eq!(
+            (rc.outer_hit_ratio, rc.inner_hit_ratio, rc.hit_ratio),
+            (0.92, 0.08, 0.5)
+        );
+        assert_eq!((rc.coarse_seconds, rc.bytes_per_process), (1.5, 2600));
         let json = serde_json::to_value(&rc).expect("json");
         for key in [
             "outer_lookups",
@@ -794,6 +822,9 @@ mod tests {
             "inner_lookups",
             "inner_hits",
             "inner_hit_ratio",
+            "hit_ratio",
+            "coarse_seconds",
+            "bytes_per_process",
             "rays_not_sent",
             "bytes_not_sent",
             "tickets_opened",
@@ -810,7 +841,8 @@ mod tests {
         let lines = rc.lines();
         assert_eq!(
             lines[0],
-            "outer walls 920 hits of 1000 lookups (92.0%), inner walls 0 of 0 (0.0%)"
+            "outer walls 920 hits of 1000 lookups (92.0%), inner walls 80 of 1000 (8.0%), \
+             all 50.0%; coarse pass 1.500 s; 2600 bytes per process"
         );
         assert!(lines[1].starts_with("10 rays (640 bytes) not sent; tickets opened 80"));
         assert!(lines[2].ends_with("lost hosts: http://h:1"), "{}", lines[2]);

@@ -186,6 +186,74 @@ fn a_coarse_pass_fills_the_caches_and_without_fill_every_run_gives_the_same_bits
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// `coarse-sampling=random` (Little 2011's randomized coarse positions): each coarse
+/// ray crosses its coarse pixel at a point drawn from the job's seed, so the frozen
+/// caches, and the image, are the same bits on 1, 2 and 3 workers, and not the image of
+/// rays through the centres (other points were sampled). The statistics Little reports
+/// are there: the total hit ratio, the coarse pass's time and the caches' memory per
+/// process (sender placement: every worker's replica holds every entry).
+#[test]
+fn randomized_coarse_positions_give_the_same_bits_on_any_worker_count() {
+    let dir = common::tmp("caches-coarse-random");
+    let centres = "radius=15,angle-deg=20,coarse=24,fill=false";
+    let random = format!("{centres},coarse-sampling=random");
+    let (at_centres, _) = render_ok(
+        &dir,
+        "centres",
+        &[
+            &flags("whitted")[..],
+            &["--workers", "2", "--ray-cache", centres],
+        ]
+        .concat(),
+        "centres on 2 workers",
+    );
+    let mut first: Option<Vec<u8>> = None;
+    for workers in ["1", "2", "3"] {
+        let what = format!("random coarse positions on {workers} workers");
+        let (png, stats) = render_ok(
+            &dir,
+            &format!("random-{workers}"),
+            &[
+                &flags("whitted")[..],
+                &["--workers", workers, "--ray-cache", &random],
+            ]
+            .concat(),
+            &what,
+        );
+        let rc = &stats["ray_cache"];
+        assert_eq!(u64_of(rc, "coarse_rays"), 24 * 24, "{what}: {rc}");
+        check_tickets(rc, &what);
+        let hits = u64_of(rc, "outer_hits") + u64_of(rc, "inner_hits");
+        let lookups = u64_of(rc, "outer_lookups") + u64_of(rc, "inner_lookups");
+        assert!(hits > 0, "{what}: nothing answered: {rc}");
+        assert_eq!(
+            rc["hit_ratio"].as_f64(),
+            Some(hits as f64 / lookups as f64),
+            "{what}: {rc}"
+        );
+        assert!(
+            rc["coarse_seconds"].as_f64().is_some_and(|t| t > 0.0),
+            "{what}: {rc}"
+        );
+        let n: u64 = workers.parse().expect("a number");
+        assert_eq!(
+            u64_of(rc, "bytes_per_process") * n,
+            u64_of(rc, "entries") * dray_cache::store::ENTRY_BYTES,
+            "{what}: each replica holds every entry: {rc}"
+        );
+        assert!(u64_of(rc, "entries") > 0, "{what}: {rc}");
+        assert!(
+            png != at_centres,
+            "{what}: the same image as rays through the centres"
+        );
+        match &first {
+            None => first = Some(png),
+            Some(f) => assert!(*f == png, "{what}: not the same bits as on 1 worker"),
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn hit_maps_that_never_decide_give_the_reference_bits() {
     let dir = common::tmp("phm-never");

@@ -8,7 +8,7 @@ use common::{rays, render, rgb, tmp, write_box_ply};
 #[test]
 fn same_command_same_bytes_and_thread_count_does_not_matter() {
     let d = tmp("determinism");
-    for integ in ["path", "whitted", "raycast", "ao"] {
+    for integ in ["path", "whitted", "raycast", "primary", "ao"] {
         let args = [
             "--width",
             "96",
@@ -278,6 +278,54 @@ fn hard_cases_never_put_nan_or_inf_in_the_film() {
         assert!(r.ok, "{scene}: {}", r.stderr);
         assert_eq!(r.stats.unwrap()["nonfinite_contributions"], 0, "{scene}");
     }
+}
+
+/// `primary` (Little 2011's ray caster) traces camera rays and nothing else, and lights
+/// its first hits without shadows: where `raycast`'s shadow rays find the light blocked,
+/// it is brighter, and with no shadow ray and no ambient term it is not the same image.
+#[test]
+fn primary_casts_camera_rays_only_and_lights_without_shadows() {
+    let d = tmp("primary");
+    let args = |integ: &'static str| {
+        [
+            "--width",
+            "48",
+            "--height",
+            "48",
+            "--spp",
+            "2",
+            "--integrator",
+            integ,
+        ]
+    };
+    let primary = render(&d, "primary", "cornell", &args("primary"));
+    let raycast = render(&d, "raycast", "cornell", &args("raycast"));
+    assert!(
+        primary.ok && raycast.ok,
+        "{}{}",
+        primary.stderr,
+        raycast.stderr
+    );
+    let s = primary.stats.expect("stats");
+    assert_eq!(rays(&s, "camera"), 48 * 48 * 2, "{s}");
+    for kind in [
+        "shadow",
+        "reflection",
+        "refraction",
+        "diffuse",
+        "ambient_occlusion",
+    ] {
+        assert_eq!(rays(&s, kind), 0, "{kind}: {s}");
+    }
+    assert!(rays(&raycast.stats.expect("stats"), "shadow") > 0);
+    let (p, r) = (
+        rgb(primary.png.as_ref().expect("png")),
+        rgb(raycast.png.as_ref().expect("png")),
+    );
+    assert!(p != r, "primary and raycast gave the same image");
+    // Lit: the first hits see the ceiling light (no shadow ray can block it).
+    let lit = p.pixels().filter(|q| q.0.iter().any(|&c| c > 8)).count();
+    assert!(lit > p.pixels().len() / 2, "{lit} lit pixels");
 }
 
 #[test]

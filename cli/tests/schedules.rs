@@ -1,6 +1,6 @@
 //! Schedules and memory budgets end to end (docs/architecture.md "Scheduling"): every
 //! schedule (auto, replicated, image-plane, domain,
-//! dynamic) gives the reference renderer's bits (`dray render --workers 0`) on 1, 2 and 4
+//! dynamic, dynamic-from-image-plane) gives the reference renderer's bits (`dray render --workers 0`) on 1, 2 and 4
 //! in-process workers and on a real `dray cluster` with `dray submit`, with and without a
 //! memory budget that forces domains to be evicted; a budget smaller than one domain is a
 //! clear job error that kills nothing; the `--stats` JSON of `dray render` and
@@ -16,7 +16,7 @@ use serde_json::Value;
 use support::{Proc, WorkerCluster, capture_stderr, dray};
 
 /// Every schedule a job can ask for.
-const SCHEDULES: [&str; 5] = dray_coordinator::scheduler::policy::SCHEDULE_NAMES;
+const SCHEDULES: [&str; 6] = dray_coordinator::scheduler::policy::SCHEDULE_NAMES;
 
 /// The schedule a job asking for `schedule` ran with, from its stats: the one forced,
 /// or for `auto` the one it chose (replicated or dynamic), with a reason that says auto
@@ -233,7 +233,9 @@ fn every_schedule_gives_the_reference_bits_on_1_2_and_4_in_process_workers() {
                     ),
                     _ => {}
                 }
-                if ran != "dynamic" {
+                // The dynamic schedules may move domains (and leaving image-plane lets
+                // go of those a worker no longer owns).
+                if !ran.starts_with("dynamic") {
                     assert_eq!(u64_of(&stats, "evictions"), 0, "{what}");
                 }
             }
@@ -435,7 +437,7 @@ fn every_schedule_on_a_cluster_gives_the_reference_bits() {
             let tag = format!("cluster-{integrator}-{schedule}");
             let f = [&flags(integrator)[..], &["--schedule", schedule]].concat();
             let stats = submit_and_compare(&cluster, 3, &dir, &tag, &f, &want);
-            if schedule != "dynamic" {
+            if !schedule.starts_with("dynamic") {
                 assert_eq!(u64_of(&stats, "evictions"), 0, "{tag}: {stats}");
             }
             warm.push(u64_of(&stats, "domains_warm"));
@@ -556,7 +558,10 @@ fn one_line_error(args: &[&str], words: &[&str]) {
 
 #[test]
 fn bad_schedule_and_budget_flags_are_one_line_errors() {
-    let valid = ["bogus", "auto, replicated, image-plane, domain or dynamic"];
+    let valid = [
+        "bogus",
+        "auto, replicated, image-plane, domain, dynamic or dynamic-from-image-plane",
+    ];
     one_line_error(&["render", "cornell", "--schedule", "bogus"], &valid);
     one_line_error(
         &["render", "cornell", "--workers", "0", "--schedule", "bogus"],

@@ -225,8 +225,9 @@ fn same_bits_as_dray_render_on_1_2_and_4_workers() {
     let size = [
         "--width", "48", "--height", "36", "--spp", "4", "--seed", "3",
     ];
-    let integrators: [(&str, &str, &[&str]); 4] = [
+    let integrators: [(&str, &str, &[&str]); 5] = [
         ("raycast", "city:3", &["--integrator", "raycast"]),
+        ("primary", "city:3", &["--integrator", "primary"]),
         ("whitted", "cornell:glass", &["--integrator", "whitted"]),
         (
             "path",

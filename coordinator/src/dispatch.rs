@@ -170,7 +170,7 @@ pub fn choose_schedule(
     let choice = auto::choose(v.schedule, size, &budgets, needs);
     tracing::info!(
         schedule = choice.schedule.name(),
-        replicate = matches!(choice.schedule, Schedule::Dynamic { replicate: true }),
+        replicate = choice.schedule.replicates(),
         scene_bytes = size.bytes,
         reason = %choice.reason,
         "schedule chosen"
@@ -706,8 +706,7 @@ async fn run(
             remove_package(owned.as_ref());
             if let Some((o, tally, net)) = opened {
                 let closed = lifecycle::close(&entry.id, o.attempt, &o.placement, &net).await;
-                tally.add_host(&closed.stats);
-                tally.add_host_phm(&closed.phm);
+                tally.add_closed(&closed);
                 tally.publish(entry);
             }
             if entry.is_terminal() {

@@ -187,6 +187,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         ("passes", &spec.passes),
         ("animation", &spec.animation),
         ("frames", &spec.frames),
+        ("coarse_sampling", &spec.coarse_sampling),
     ];
     for (field, v) in names {
         check_text(field, v, MAX_NAME_BYTES)?;
@@ -316,6 +317,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
     if let Some(rc) = spec.ray_cache.as_mut() {
         check_ray_cache(rc)?;
     }
+    check_coarse_sampling(&mut spec)?;
     if let Some(p) = spec.phm.as_mut() {
         check_phm(p)?;
         check_phm_placement(p, spec.ray_cache.as_ref())?;
@@ -510,6 +512,35 @@ pub fn check_ray_cache(rc: &mut RayCacheSettings) -> Result<(), Status> {
         return Err(bad(format!(
             "ray_cache.placement must be sender or remote, got {:?}",
             rc.placement
+        )));
+    }
+    Ok(())
+}
+
+/// `coarse_sampling`: each coarse-pass ray through its coarse pixel's centre (the
+/// default).
+pub const COARSE_SAMPLING_CENTRES: &str = "centres";
+/// `coarse_sampling`: each coarse-pass ray through a random point of its coarse pixel
+/// (Little 2011's recommendation).
+pub const COARSE_SAMPLING_RANDOM: &str = "random";
+
+/// Check `coarse_sampling` and fill in its default ("centres") for a job with a coarse
+/// pass. It places the coarse pass's rays, so without one it changes nothing (it is
+/// still checked, and kept: `dray sweep` checks each varied value on its own, and a
+/// sweep over samplings and coarse sizes includes coarse 0).
+pub fn check_coarse_sampling(spec: &mut JobSpec) -> Result<(), Status> {
+    let coarse = spec.ray_cache.as_ref().map_or(0, |rc| rc.coarse);
+    let s = &mut spec.coarse_sampling;
+    if s.is_empty() {
+        if coarse > 0 {
+            *s = COARSE_SAMPLING_CENTRES.into();
+        }
+        return Ok(());
+    }
+    if s != COARSE_SAMPLING_CENTRES && s != COARSE_SAMPLING_RANDOM {
+        return Err(bad(format!(
+            "coarse_sampling must be {COARSE_SAMPLING_CENTRES} or {COARSE_SAMPLING_RANDOM}, \
+             got {s:?}"
         )));
     }
     Ok(())
@@ -787,6 +818,33 @@ mod tests {
         }
     }
 
+    /// `coarse_sampling`: centres by default with a coarse pass, nothing filled in
+    /// without one, unknown values refused naming the field.
+    #[test]
+    fn coarse_sampling_is_checked_and_defaults_to_centres() {
+        let with_coarse = |coarse, sampling: &str| JobSpec {
+            ray_cache: Some(RayCacheSettings {
+                coarse,
+                ..Default::default()
+            }),
+            coarse_sampling: sampling.into(),
+            ..spec()
+        };
+        let mut s = with_coarse(16, "");
+        check_coarse_sampling(&mut s).unwrap();
+        assert_eq!(s.coarse_sampling, COARSE_SAMPLING_CENTRES);
+        let mut s = with_coarse(0, "");
+        check_coarse_sampling(&mut s).unwrap();
+        assert_eq!(s.coarse_sampling, "");
+        for ok in [COARSE_SAMPLING_RANDOM, COARSE_SAMPLING_CENTRES] {
+            let mut s = with_coarse(16, ok);
+            check_coarse_sampling(&mut s).unwrap();
+            assert_eq!(s.coarse_sampling, ok);
+        }
+        let e = check_coarse_sampling(&mut with_coarse(16, "jitter")).unwrap_err();
+        assert!(e.message().starts_with("coarse_sampling must be"), "{e:?}");
+    }
+
     /// Procedural specs the generators would refuse are refused at submission (issue
     /// 45, item 13: they were accepted and failed only when loaded).
     #[test]
@@ -930,7 +988,9 @@ mod tests {
         let msg = field(sched);
         assert!(
             msg.starts_with("schedule:")
-                && msg.contains("auto, replicated, image-plane, domain or dynamic"),
+                && msg.contains(
+                    "auto, replicated, image-plane, domain, dynamic or dynamic-from-image-plane"
+                ),
             "{msg}"
         );
         let rep = JobSpec {

@@ -243,8 +243,9 @@ async fn schedules_are_validated_and_resolved() {
     assert_eq!(e.code(), Code::InvalidArgument);
     assert!(
         e.message().starts_with("schedule:")
-            && e.message()
-                .contains("auto, replicated, image-plane, domain or dynamic"),
+            && e.message().contains(
+                "auto, replicated, image-plane, domain, dynamic or dynamic-from-image-plane"
+            ),
         "{}",
         e.message()
     );

@@ -111,9 +111,16 @@ impl RayKind {
 pub enum IntegratorKind {
     /// Primary rays, direct light with its shadow rays, and unshadowed ambient light.
     /// `benches/caches.py` runs Little 2011's Table 5.1 with it, but it is not the
-    /// thesis's renderer, which casts camera rays only (no shadow or other secondary
-    /// rays; docs/caches.md "Faithful to / departs from").
+    /// thesis's renderer, which casts camera rays only: that is [`IntegratorKind::Primary`]
+    /// (docs/caches.md "Faithful to / departs from").
     Raycast,
+    /// Camera rays only, as Little 2011's ray caster casts them: the first hit is shaded
+    /// with its emission and the direct light of every light as if nothing were in the
+    /// way (no shadow rays, no ambient term, no bounces), and a miss sees the
+    /// environment. It spawns no ray at all, so a ray cache on it caches exactly what
+    /// the thesis's caches hold: the radiance a camera ray brings back from behind a
+    /// wall.
+    Primary,
     /// Shadows plus perfect mirror reflection and refraction to the maximum depth.
     Whitted,
     /// Unidirectional path tracing with next-event estimation, MIS and Russian roulette.
@@ -123,8 +130,9 @@ pub enum IntegratorKind {
 }
 
 impl IntegratorKind {
-    pub const ALL: [IntegratorKind; 4] = [
+    pub const ALL: [IntegratorKind; 5] = [
         IntegratorKind::Raycast,
+        IntegratorKind::Primary,
         IntegratorKind::Whitted,
         IntegratorKind::Path,
         IntegratorKind::Ao,
@@ -147,6 +155,7 @@ impl IntegratorKind {
     pub fn name(self) -> &'static str {
         match self {
             IntegratorKind::Raycast => "raycast",
+            IntegratorKind::Primary => "primary",
             IntegratorKind::Whitted => "whitted",
             IntegratorKind::Path => "path",
             IntegratorKind::Ao => "ao",
@@ -262,6 +271,33 @@ fn image_aspect(settings: &RenderSettings) -> f32 {
     settings.width.max(1) as f32 / settings.height.max(1) as f32
 }
 
+/// How [`Integrator`]'s direct light treats its light samples.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct DirectMode {
+    /// Weight the area and distant samples against BSDF sampling (path tracing).
+    mis: bool,
+    /// Cast a shadow ray per sample; without, each sample counts as unoccluded.
+    shadowed: bool,
+}
+
+impl DirectMode {
+    /// Path tracing: shadow rays, MIS-weighted.
+    const MIS: DirectMode = DirectMode {
+        mis: true,
+        shadowed: true,
+    };
+    /// Raycast and Whitted: shadow rays, every sample at full weight.
+    const FULL_WEIGHT: DirectMode = DirectMode {
+        mis: false,
+        shadowed: true,
+    };
+    /// Primary: no shadow rays, every sample at full weight.
+    const UNSHADOWED: DirectMode = DirectMode {
+        mis: false,
+        shadowed: false,
+    };
+}
+
 fn power_heuristic(a: f32, b: f32) -> f32 {
     let (a2, b2) = (a * a, b * b);
     if a2 + b2 > 0.0 && (a2 + b2).is_finite() {
@@ -339,6 +375,8 @@ impl<'a> Integrator<'a> {
         let need = match s.integrator {
             IntegratorKind::Ao => u128::from(s.ao_samples.max(1)) + 1,
             IntegratorKind::Raycast => shadows + 1,
+            // A camera ray and nothing else.
+            IntegratorKind::Primary => 1,
             IntegratorKind::Path => {
                 // Hits at depth 0..depth spawn shadow rays and one bounce; at `depth`,
                 // nothing.
@@ -713,7 +751,7 @@ impl<'a> Integrator<'a> {
                     && !bsdf.is_delta_only()
                     && let Some(at) = bsdf.at(wo)
                 {
-                    self.direct_light(ray, &surf, &at, key, false, sink);
+                    self.direct_light(ray, &surf, &at, key, DirectMode::FULL_WEIGHT, sink);
                 }
                 // Unshadowed ambient light from the constant environment: raycast and
                 // Whitted trace no rays toward the sky, so this keeps unlit scenes legible.
@@ -730,7 +768,32 @@ impl<'a> Integrator<'a> {
                     self.whitted_children(ray, &surf, &bsdf, wo, sink);
                 }
             }
+            IntegratorKind::Primary => {
+                // First-hit shading (Little 2011's ray caster): every light's sample taken
+                // as the shadow rays of `raycast` would take it, its contribution added as
+                // if the shadow ray had reached the light. No ambient term.
+                if self.settings.effects.contains(Effect::DirectLight)
+                    && !bsdf.is_delta_only()
+                    && let Some(at) = bsdf.at(wo)
+                {
+                    self.direct_light(ray, &surf, &at, key, DirectMode::UNSHADOWED, sink);
+                }
+            }
             IntegratorKind::Ao => {}
+        }
+    }
+
+    /// A light sample's shadow ray `s`: traced (spawned) when `mode` casts shadow rays,
+    /// else its contribution added at once, as [`Integrator::shadow_result`] adds it for
+    /// a shadow ray that nothing blocked.
+    fn light_out(&self, s: Option<RayState>, mode: DirectMode, sink: &mut impl Sink) {
+        let Some(s) = s else {
+            return;
+        };
+        if mode.shadowed {
+            sink.spawn(s);
+        } else {
+            self.shadow_result(&s, false, sink);
         }
     }
 
@@ -780,8 +843,10 @@ impl<'a> Integrator<'a> {
 
     /// Direct light: every punctual light with its own shadow ray (they are few and
     /// cheap, and sampling one by power starves dim-but-near lights), one sample of the
-    /// sun's disk, plus one emissive-triangle sample chosen by power. With `mis`, the area sample is weighted
+    /// sun's disk, plus one emissive-triangle sample chosen by power. With `mode.mis`, the area sample is weighted
     /// against BSDF sampling (path tracing); raycast and Whitted take it at full weight.
+    /// Without `mode.shadowed` (the `primary` integrator) no shadow ray is cast: each
+    /// sample's contribution is added unoccluded.
     #[allow(clippy::too_many_arguments)]
     fn direct_light(
         &self,
@@ -789,7 +854,7 @@ impl<'a> Integrator<'a> {
         surf: &Surface,
         bsdf: &BsdfAt,
         key: PathStream,
-        mis: bool,
+        mode: DirectMode,
         sink: &mut impl Sink,
     ) {
         for e in self.lights.punctual_entries() {
@@ -798,19 +863,17 @@ impl<'a> Integrator<'a> {
                 .sample_entry(self.scene, e, 1.0, surf.p, Vec2::ZERO)
             {
                 let c = ray.weight * bsdf.eval(ls.wi) * surf.n.dot(ls.wi).abs() * ls.li / ls.pdf;
-                if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
-                    sink.spawn(s);
-                }
+                self.light_out(self.shadow_ray(ray, surf, &ls, c), mode, sink);
             }
         }
         if let Some(sun) = self.sun() {
             let wi = sun.sample(key.uniform2(ray.depth, Purpose::SunPoint, 0));
-            self.distant_sample(ray, surf, bsdf, (wi, sun.radiance(), sun.pdf()), mis, sink);
+            self.distant_sample(ray, surf, bsdf, (wi, sun.radiance(), sun.pdf()), mode, sink);
         }
         if let Some(map) = self.env_map()
             && let Some(sample) = map.sample(key.uniform2(ray.depth, Purpose::EnvMapPoint, 0))
         {
-            self.distant_sample(ray, surf, bsdf, sample, mis, sink);
+            self.distant_sample(ray, surf, bsdf, sample, mode, sink);
         }
         if !self.lights.has_area() {
             return;
@@ -820,21 +883,19 @@ impl<'a> Integrator<'a> {
             let u = key.uniform2(ray.depth, Purpose::LightPoint, 0);
             if let Some(ls) = self.lights.sample_entry(self.scene, e, p, surf.p, u) {
                 let (f, pdf) = bsdf.eval_pdf(ls.wi);
-                let w = if mis {
+                let w = if mode.mis {
                     power_heuristic(ls.pdf, pdf)
                 } else {
                     1.0
                 };
                 let c = ray.weight * f * surf.n.dot(ls.wi).abs() * ls.li * (w / ls.pdf);
-                if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
-                    sink.spawn(s);
-                }
+                self.light_out(self.shadow_ray(ray, surf, &ls, c), mode, sink);
             }
         }
     }
 
     /// A shadow ray toward a light at infinity (the sun, the environment map) along
-    /// `wi`, of radiance `li` sampled with solid-angle density `pdf_l`; with `mis`,
+    /// `wi`, of radiance `li` sampled with solid-angle density `pdf_l`; with `mode.mis`,
     /// weighted against BSDF sampling, as the miss that finds the same light is
     /// ([`Integrator::shade_miss`]).
     fn distant_sample(
@@ -843,11 +904,11 @@ impl<'a> Integrator<'a> {
         surf: &Surface,
         bsdf: &BsdfAt,
         (wi, li, pdf_l): (Vec3, Vec3, f32),
-        mis: bool,
+        mode: DirectMode,
         sink: &mut impl Sink,
     ) {
         let (f, pdf) = bsdf.eval_pdf(wi);
-        let w = if mis {
+        let w = if mode.mis {
             power_heuristic(pdf_l, pdf)
         } else {
             1.0
@@ -863,9 +924,7 @@ impl<'a> Integrator<'a> {
             light_n: -wi,
         };
         let c = ray.weight * f * surf.n.dot(wi).abs() * li * (w / pdf_l);
-        if let Some(s) = self.shadow_ray(ray, surf, &ls, c) {
-            sink.spawn(s);
-        }
+        self.light_out(self.shadow_ray(ray, surf, &ls, c), mode, sink);
     }
 
     /// Whitted's mirror and refraction rays. Up to [`WHITTED_BRANCH_DEPTH`] bounces a hit
@@ -969,7 +1028,7 @@ impl<'a> Integrator<'a> {
             return;
         };
         if nee {
-            self.direct_light(ray, surf, &at, key, true, sink);
+            self.direct_light(ray, surf, &at, key, DirectMode::MIS, sink);
         }
         let u_lobe = key.uniform(depth, Purpose::BsdfLobe, 0);
         let u = key.uniform2(depth, Purpose::BsdfDirection, 0);
@@ -1007,7 +1066,10 @@ mod tests {
             assert_eq!(IntegratorKind::from_name(k.name()), Some(k));
         }
         assert_eq!(IntegratorKind::from_name("bdpt"), None);
-        assert_eq!(IntegratorKind::choices(), "raycast, whitted, path or ao");
+        assert_eq!(
+            IntegratorKind::choices(),
+            "raycast, primary, whitted, path or ao"
+        );
     }
 
     #[test]
@@ -1035,12 +1097,7 @@ mod tests {
         let rays = u64::from(TILE_SIZE * TILE_SIZE) * u64::from(MAX_SPP);
         let per_ray = Credit::TILE.to_wire() / rays;
         let mut deepest = 0;
-        for integrator in [
-            IntegratorKind::Raycast,
-            IntegratorKind::Whitted,
-            IntegratorKind::Path,
-            IntegratorKind::Ao,
-        ] {
+        for integrator in IntegratorKind::ALL {
             let settings = RenderSettings {
                 width: 64,
                 height: 64,

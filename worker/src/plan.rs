@@ -512,7 +512,25 @@ fn plain_tracer(
             .as_ref()
             .and_then(|s| s.ray_cache.as_ref())
             .map_or(0, |rc| rc.coarse),
+        coarse_random(setup)?,
     ))
+}
+
+/// Whether the coarse pass's rays go through random points of their coarse pixels
+/// (`JobSpec.coarse_sampling`, which the coordinator checked and filled in: "centres"
+/// or "random"; empty, for a job without a coarse pass, means centres).
+fn coarse_random(setup: &JobSetup) -> Result<bool, JobError> {
+    match setup
+        .spec
+        .as_ref()
+        .map_or("", |s| s.coarse_sampling.as_str())
+    {
+        "" | "centres" => Ok(false),
+        "random" => Ok(true),
+        other => Err(JobError::Invalid(format!(
+            "coarse_sampling: {other:?} is neither centres nor random"
+        ))),
+    }
 }
 
 /// The ray kinds the job's hit maps serve (none without maps); an empty list means

@@ -135,6 +135,11 @@ pub fn check_setup(setup: &JobSetup) -> Result<(), BoundError> {
             )?;
             at_most("spec.ray_cache.kinds (bytes)", rc.kinds.len(), MAX_ID_BYTES)?;
         }
+        at_most(
+            "spec.coarse_sampling (bytes)",
+            spec.coarse_sampling.len(),
+            MAX_ID_BYTES,
+        )?;
         if let Some(p) = &spec.phm {
             if let Some(r) = p.res {
                 within("spec.phm.res", r.into(), 1, MAX_PHM_RES.into())?;

@@ -351,6 +351,7 @@ fn cornell_every_integrator_matches_one_bvh() {
         &[
             IntegratorKind::Path,
             IntegratorKind::Raycast,
+            IntegratorKind::Primary,
             IntegratorKind::Ao,
         ],
         4,

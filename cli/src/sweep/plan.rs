@@ -14,7 +14,7 @@ use crate::render_cmd::RenderArgs;
 use crate::submit_cmd::SubmitArgs;
 
 /// The knobs of `--ray-cache`, as `ray-cache.<knob>` keys vary them.
-pub const RAY_CACHE_KNOBS: [&str; 7] = crate::ray_cache_flag::KEYS;
+pub const RAY_CACHE_KNOBS: [&str; 8] = crate::ray_cache_flag::KEYS;
 /// The knobs of `--phm`, as `phm.<knob>` keys vary them.
 pub const PHM_KNOBS: [&str; 10] = crate::phm_flag::KEYS;
 
@@ -552,6 +552,8 @@ pub fn check(tokens: &[String], target: &Target) -> Result<Job, String> {
     if let Some(rc) = spec.ray_cache.as_mut() {
         dray_coordinator::validate::check_ray_cache(rc).map_err(|s| s.message().to_string())?;
     }
+    dray_coordinator::validate::check_coarse_sampling(&mut spec)
+        .map_err(|s| s.message().to_string())?;
     if let Some(p) = spec.phm.as_mut() {
         dray_coordinator::validate::check_phm(p).map_err(|s| s.message().to_string())?;
         dray_coordinator::validate::check_phm_placement(p, spec.ray_cache.as_ref())
@@ -840,7 +842,10 @@ mod tests {
             panic!("embedded")
         };
         assert_eq!(a.job.spp, 2);
-        assert_eq!(a.job.ray_cache.as_ref().map(|r| r.radius), Some(0.2));
+        assert_eq!(
+            a.job.ray_cache.as_ref().map(|r| r.settings.radius),
+            Some(0.2)
+        );
         for (vary, want) in [
             (vec!["spp=1,0"], "--vary spp=0: --spp 0 is out of range"),
             (vec!["max-depth=x"], "--vary max-depth=x: invalid value 'x'"),

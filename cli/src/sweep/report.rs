@@ -12,13 +12,16 @@ use serde_json::Value;
 use super::metrics::Errors;
 
 /// The ray-cache statistics, as `--stats` names them under `ray_cache` (and the CSV).
-pub const RAY_CACHE_COLUMNS: [&str; 13] = [
+pub const RAY_CACHE_COLUMNS: [&str; 16] = [
     "outer_lookups",
     "outer_hits",
     "outer_hit_ratio",
     "inner_lookups",
     "inner_hits",
     "inner_hit_ratio",
+    "hit_ratio",
+    "coarse_seconds",
+    "bytes_per_process",
     "rays_not_sent",
     "bytes_not_sent",
     "tickets_opened",

@@ -74,6 +74,9 @@ pub struct Closed {
     pub phm: PhmStats,
     /// Hosts that could not close.
     pub failed: Vec<HostFailure>,
+    /// The most ray-cache entries one host held (each host is one process): what
+    /// `JobStats.cache_bytes_per_process` is made from.
+    pub host_entries_max: u64,
 }
 
 /// A client for the host at `endpoint`, with the connect and call deadlines.
@@ -230,6 +233,7 @@ pub async fn close(
     while let Some(joined) = calls.join_next().await {
         match joined {
             Ok(Ok((stats, phm))) => {
+                out.host_entries_max = out.host_entries_max.max(stats.entries);
                 tally::add(&mut out.stats, &stats);
                 tally::add_phm(&mut out.phm, &phm);
             }

@@ -9,10 +9,12 @@
 //! an older sum in place of a newer one.
 
 use std::collections::BTreeSet;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Mutex, MutexGuard};
 
 use dray_proto::v1::{PhmStats, RayCacheStats, WorkerCounters};
 
+use super::lifecycle::Closed;
 use crate::jobs::JobEntry;
 
 /// Bytes a ray takes on the wire at most (records are 32 to 64 bytes, rays.proto): what
@@ -29,6 +31,9 @@ pub const MAX_LOST_HOSTS: usize = 256;
 #[derive(Debug)]
 pub struct CacheTally {
     inner: Mutex<(RayCacheStats, PhmStats)>,
+    /// The most entries one cache host held when its walls closed, over the job's
+    /// attempts (the per-process memory Little 2011 reports).
+    host_entries_max: AtomicU64,
     caches: bool,
     phm: bool,
 }
@@ -98,6 +103,7 @@ impl CacheTally {
     pub fn new(caches: bool, phm: bool) -> CacheTally {
         CacheTally {
             inner: Mutex::new(Default::default()),
+            host_entries_max: AtomicU64::new(0),
             caches,
             phm,
         }
@@ -147,6 +153,23 @@ impl CacheTally {
         add(&mut self.both().0, s);
     }
 
+    /// Add what closing an attempt's walls returned: the hosts' ray-cache and hit-map
+    /// statistics, and the most entries one host held.
+    pub fn add_closed(&self, closed: &Closed) {
+        self.add_host(&closed.stats);
+        self.add_host_phm(&closed.phm);
+        self.host_entries_max
+            .fetch_max(closed.host_entries_max, Ordering::Relaxed);
+    }
+
+    /// The most memory one cache host's entries took (bytes, estimated:
+    /// [`dray_cache::store::ENTRY_BYTES`] each).
+    pub fn bytes_per_process(&self) -> u64 {
+        self.host_entries_max
+            .load(Ordering::Relaxed)
+            .saturating_mul(dray_cache::store::ENTRY_BYTES)
+    }
+
     /// Record hosts lost to the job (OpenWalls or CloseWalls failed).
     pub fn lose<'a>(&self, hosts: impl IntoIterator<Item = &'a str>) {
         lose(&mut self.both().0, hosts);
@@ -166,6 +189,11 @@ impl CacheTally {
         // the traffic the job publishes first (zero before any worker reported).
         entry.update_stats(|s| {
             let traffic = s.traffic.unwrap_or_default();
+            s.cache_bytes_per_process = if self.caches {
+                self.bytes_per_process()
+            } else {
+                0
+            };
             s.ray_cache = self.caches.then(|| {
                 let mut c = g.0.clone();
                 c.bytes_not_sent_net = crate::traffic::cache_net(c.bytes_not_sent, &traffic);

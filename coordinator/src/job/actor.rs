@@ -322,6 +322,11 @@ impl JobActor {
     fn start_image_pass(&mut self) {
         let job = &mut self.job;
         job.coarse_done = true;
+        if let Some(t0) = job.coarse_started.take() {
+            let seconds = t0.elapsed().as_secs_f64();
+            job.entry.update_stats(|s| s.coarse_seconds = seconds);
+            tracing::info!(seconds, "coarse pass time");
+        }
         let coarse = job.tiles.len() - job.image_tiles;
         let rays: u64 = job.tiles[job.image_tiles..]
             .iter()
@@ -487,8 +492,7 @@ impl JobActor {
             if let Some(p) = prev {
                 let closed =
                     lifecycle::close(&walls.job_id, p.attempt, &p.placement, &walls.net).await;
-                tally.add_host(&closed.stats);
-                tally.add_host_phm(&closed.phm);
+                tally.add_closed(&closed);
                 tally.lose(closed.failed.iter().map(|f| f.host.endpoint.as_str()));
             }
             let opened = if placement.is_empty() {
@@ -545,8 +549,7 @@ impl JobActor {
         self.walls.spawn(async move {
             let closed =
                 lifecycle::close(&walls.job_id, walls.attempt, &placement, &walls.net).await;
-            tally.add_host(&closed.stats);
-            tally.add_host_phm(&closed.phm);
+            tally.add_closed(&closed);
             WallsDone::Closed
         });
     }
@@ -629,8 +632,7 @@ impl JobActor {
         if let Some((open, tally, net)) = open {
             let id = &self.job.entry.id;
             let closed = lifecycle::close(id, open.attempt, &open.placement, &net).await;
-            tally.add_host(&closed.stats);
-            tally.add_host_phm(&closed.phm);
+            tally.add_closed(&closed);
             tally.lose(closed.failed.iter().map(|f| f.host.endpoint.as_str()));
         }
         while let Some(done) = self.walls.join_next().await {
@@ -640,8 +642,7 @@ impl JobActor {
                     lifecycle::close(&walls.job_id, walls.attempt, &opened.placement, &walls.net)
                         .await;
                 if let Some(c) = &self.job.caches {
-                    c.tally.add_host(&closed.stats);
-                    c.tally.add_host_phm(&closed.phm);
+                    c.tally.add_closed(&closed);
                 }
             }
         }

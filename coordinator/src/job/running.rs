@@ -89,6 +89,9 @@ pub struct RunningJob {
     /// out, so every image ray's lookup sees caches the coarse pass has filled (and,
     /// with `fill=false`, only those: the same bits every run).
     pub(super) coarse_done: bool,
+    /// When the current attempt's coarse tiles went out (None without a coarse pass, or
+    /// once it is complete): `JobStats.coarse_seconds` is measured from here.
+    pub(super) coarse_started: Option<Instant>,
     pub(super) tiles_retried: u32,
     pub(super) film: Film,
     /// Sequences applied per worker, this attempt.
@@ -191,6 +194,7 @@ impl RunningJob {
             sched,
             image_tiles,
             coarse_done: image_tiles == tiles.len(),
+            coarse_started: None,
             tile_back: vec![0; tiles.len()],
             tiles,
             tiles_done: 0,
@@ -599,7 +603,10 @@ impl RunningJob {
     /// share of each later pass). The domain schedule's owners are fixed.
     pub(super) fn takes_joiners(&self) -> bool {
         match self.sched.schedule() {
-            Schedule::Dynamic { .. } | Schedule::Replicated | Schedule::ImagePlane => true,
+            Schedule::Dynamic { .. }
+            | Schedule::DynamicFromImagePlane { .. }
+            | Schedule::Replicated
+            | Schedule::ImagePlane => true,
             Schedule::Domain => false,
         }
     }
@@ -707,6 +714,10 @@ impl RunningJob {
     /// incomplete tiles of the phase the job is in, dealt by the schedule's rule, in
     /// messages of at most [`TILES_PER_MESSAGE`].
     pub(super) fn attempt_commands(&mut self) -> Vec<(String, Arc<Assignment>)> {
+        if !self.coarse_done {
+            // The attempt starts with its coarse pass: its clock starts now.
+            self.coarse_started = Some(Instant::now());
+        }
         if let Some(held) = self.held.as_mut() {
             // A new attempt's workers start afresh: they hold what they are dealt now.
             held.clear();

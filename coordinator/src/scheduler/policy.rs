@@ -16,6 +16,12 @@
 //!   their rays wait where they are), gives the most-wanted domains that no owner holds
 //!   to workers that no ray needs (each letting one of its own go if it is full), and
 //!   with `replicate`, adds idle workers as extra owners of hot resident domains.
+//! - **dynamic-from-image-plane**: the dynamic schedule started as Navrátil et al. 2012
+//!   start theirs, from image-plane: tiles in image-plane blocks and no routing, each
+//!   worker loading what its rays need, until every worker has reported its queues once;
+//!   then ([`leave_image_plane`]) each domain goes to a worker that holds it (the one
+//!   with the most rays waiting for it), the others to the workers owning fewest, and
+//!   the rounds go on as under `dynamic`.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
@@ -25,7 +31,14 @@ use dray_scene::partition::resident::load_reserve;
 use super::table::Ownership;
 
 /// The schedule names a job may ask for (JobSpec.schedule; empty means auto).
-pub const SCHEDULE_NAMES: [&str; 5] = ["auto", "replicated", "image-plane", "domain", "dynamic"];
+pub const SCHEDULE_NAMES: [&str; 6] = [
+    "auto",
+    "replicated",
+    "image-plane",
+    "domain",
+    "dynamic",
+    "dynamic-from-image-plane",
+];
 
 /// The schedule a job asks for: one by name, or `auto`, which the coordinator resolves
 /// when the job starts, from the scene's size and the workers' budgets
@@ -74,6 +87,13 @@ pub enum Schedule {
         /// Also replicate hot resident domains on idle workers.
         replicate: bool,
     },
+    /// Dynamic, started from image-plane (Navrátil et al. 2012): image-plane blocks of
+    /// tiles and no routing until every worker has reported its queues, then owners by
+    /// residency ([`leave_image_plane`]) and dynamic rounds.
+    DynamicFromImagePlane {
+        /// Also replicate hot resident domains on idle workers.
+        replicate: bool,
+    },
 }
 
 /// A schedule a job cannot have.
@@ -81,8 +101,8 @@ pub enum Schedule {
 pub enum ScheduleError {
     /// Not one of [`SCHEDULE_NAMES`].
     #[error(
-        "schedule: unknown schedule {0:?} (expected auto, replicated, image-plane, domain or \
-         dynamic; empty means auto)"
+        "schedule: unknown schedule {0:?} (expected auto, replicated, image-plane, domain, \
+         dynamic or dynamic-from-image-plane; empty means auto)"
     )]
     Unknown(String),
     /// `replicate` with a static schedule.
@@ -100,6 +120,9 @@ impl Schedule {
     pub fn parse(name: &str, replicate: bool) -> Result<Schedule, ScheduleError> {
         let s = match name {
             "" | "dynamic" => return Ok(Schedule::Dynamic { replicate }),
+            "dynamic-from-image-plane" => {
+                return Ok(Schedule::DynamicFromImagePlane { replicate });
+            }
             "replicated" => Schedule::Replicated,
             "image-plane" => Schedule::ImagePlane,
             "domain" => Schedule::Domain,
@@ -118,18 +141,33 @@ impl Schedule {
             Schedule::ImagePlane => "image-plane",
             Schedule::Domain => "domain",
             Schedule::Dynamic { .. } => "dynamic",
+            Schedule::DynamicFromImagePlane { .. } => "dynamic-from-image-plane",
         }
     }
 
     /// Whether rounds of queue reports can change the table.
     pub fn is_dynamic(self) -> bool {
-        matches!(self, Schedule::Dynamic { .. })
+        matches!(
+            self,
+            Schedule::Dynamic { .. } | Schedule::DynamicFromImagePlane { .. }
+        )
+    }
+
+    /// Whether the rounds also replicate hot resident domains on idle workers.
+    pub fn replicates(self) -> bool {
+        matches!(
+            self,
+            Schedule::Dynamic { replicate: true }
+                | Schedule::DynamicFromImagePlane { replicate: true }
+        )
     }
 
     /// The first ownership of `domains` domains over `workers` (in job order).
     pub fn initial_routes(self, domains: u32, workers: &[String]) -> Ownership {
         match self {
-            Schedule::Replicated | Schedule::ImagePlane => Ownership::local(),
+            Schedule::Replicated
+            | Schedule::ImagePlane
+            | Schedule::DynamicFromImagePlane { .. } => Ownership::local(),
             Schedule::Domain | Schedule::Dynamic { .. } => Ownership::round_robin(domains, workers),
         }
     }
@@ -146,7 +184,7 @@ impl Schedule {
             return out;
         }
         match self {
-            Schedule::ImagePlane => {
+            Schedule::ImagePlane | Schedule::DynamicFromImagePlane { .. } => {
                 let (t, n) = (tiles as u64, workers as u64);
                 for (i, mine) in out.iter_mut().enumerate() {
                     let i = i as u64;
@@ -176,7 +214,9 @@ impl Schedule {
         match self {
             Schedule::Replicated | Schedule::ImagePlane => Ownership::local(),
             Schedule::Domain => Ownership::round_robin(domains, survivors),
-            Schedule::Dynamic { .. } => {
+            // Still in its image-plane phase: it stays there.
+            Schedule::DynamicFromImagePlane { .. } if current.is_local() => Ownership::local(),
+            Schedule::Dynamic { .. } | Schedule::DynamicFromImagePlane { .. } => {
                 if survivors.is_empty() {
                     return Ownership::from_owners(Vec::new());
                 }
@@ -528,6 +568,70 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
     })
 }
 
+/// The end of `dynamic-from-image-plane`'s image-plane phase: the first ownership, made
+/// from the workers' queue reports (the caller waits until every worker has sent one).
+/// Domain by domain, in order: a domain resident at some workers goes to the one with
+/// the most rays queued for it there (ties to the first in job order), so no load is
+/// thrown away and a worker is given only what its memory already holds; a domain
+/// resident nowhere goes to the worker owning fewest domains so far whose budget it
+/// fits (0 = unlimited; ties to the first in job order; any worker when none fits, as
+/// the domain schedule would). Every domain gets one owner. `None` when the routes are
+/// not local (the phase is over) or the job has no workers.
+pub fn leave_image_plane(input: &RoundInput<'_>) -> Option<Decision> {
+    if !input.routes.is_local() || input.workers.is_empty() {
+        return None;
+    }
+    let n = input.domains as usize;
+    // Per domain: (rays queued, worker index) of each worker holding it.
+    let mut holders: Vec<Vec<(u64, usize)>> = vec![Vec::new(); n];
+    let mut bytes = vec![0u64; n];
+    for (i, w) in input.workers.iter().enumerate() {
+        for q in w.queues {
+            let d = q.domain as usize;
+            if d >= n {
+                continue;
+            }
+            bytes[d] = bytes[d].max(q.resident_bytes);
+            if q.resident {
+                holders[d].push((q.rays_queued, i));
+            }
+        }
+    }
+    let mut owned = vec![0usize; input.workers.len()];
+    let mut owners = Vec::with_capacity(n);
+    let mut changes = Vec::with_capacity(n);
+    for d in 0..n {
+        let held = holders[d]
+            .iter()
+            .max_by(|a, b| a.0.cmp(&b.0).then(b.1.cmp(&a.1)))
+            .map(|&(_, i)| i);
+        let fits = |i: usize| {
+            let b = input.workers[i].budget;
+            b == 0 || bytes[d] <= b
+        };
+        let fewest = |ok: &dyn Fn(usize) -> bool| {
+            (0..input.workers.len())
+                .filter(|&i| ok(i))
+                .min_by_key(|&i| (owned[i], i))
+        };
+        let Some(i) = held.or_else(|| fewest(&fits)).or_else(|| fewest(&|_| true)) else {
+            continue;
+        };
+        owned[i] += 1;
+        let to = input.workers[i].id.to_string();
+        owners.push(vec![to.clone()]);
+        changes.push(Change::Move {
+            domain: d as u32,
+            from: Vec::new(),
+            to,
+        });
+    }
+    Some(Decision {
+        routes: Ownership::from_owners(owners),
+        changes,
+    })
+}
+
 /// The bound on what a worker holds, after a round's moves and replicas: a worker given
 /// domains beyond its capacity lets go of as many of those it owns alone (`kept`:
 /// capacity and domains per bounded worker), unwanted ones only (a worker is given
@@ -693,6 +797,81 @@ mod tests {
         assert_eq!(capacity(&view(100), 1_000), Some(1));
         assert_eq!(capacity(&view(100), 0), None);
         assert_eq!(capacity(&view(0), 1_000), None);
+    }
+
+    /// Leaving image-plane: resident domains stay where most of their rays wait, the
+    /// rest go to the workers owning fewest (job order on ties), and every domain gets
+    /// exactly one owner; a routed table is left alone.
+    #[test]
+    fn leaving_image_plane_keeps_resident_domains_and_balances_the_rest() {
+        let q = |domain, rays_queued, resident| DomainQueue {
+            domain,
+            rays_queued,
+            resident,
+            resident_bytes: 100,
+        };
+        let a = [q(0, 5, true), q(1, 9, true), q(3, 2, false)];
+        let b = [q(1, 20, true), q(2, 0, true)];
+        let c: [DomainQueue; 0] = [];
+        let workers = [
+            WorkerView {
+                id: "a",
+                budget: 0,
+                queues: &a,
+            },
+            WorkerView {
+                id: "b",
+                budget: 0,
+                queues: &b,
+            },
+            WorkerView {
+                id: "c",
+                budget: 0,
+                queues: &c,
+            },
+        ];
+        let local = Ownership::local();
+        let loading = BTreeSet::new();
+        let input = RoundInput {
+            domains: 6,
+            routes: &local,
+            workers: &workers,
+            loading: &loading,
+            replicate: false,
+        };
+        let d = leave_image_plane(&input).expect("a first ownership");
+        let owner = |dom: u32| d.routes.owners(dom).to_vec();
+        // 0 held by a; 1 held by both, more rays wait at b; 2 held by b.
+        assert_eq!(owner(0), ["a"]);
+        assert_eq!(owner(1), ["b"]);
+        assert_eq!(owner(2), ["b"]);
+        // 3, 4, 5 resident nowhere: c owns none, then a (1) before b (2), then c again.
+        assert_eq!(owner(3), ["c"]);
+        assert_eq!(owner(4), ["a"]);
+        assert_eq!(owner(5), ["c"]);
+        assert_eq!(d.changes.len(), 6);
+        assert!(!d.routes.is_local());
+        // Once routed, nothing more to leave; a routed table is the rounds' to change.
+        let input = RoundInput {
+            routes: &d.routes,
+            ..input
+        };
+        assert_eq!(leave_image_plane(&input), None);
+        // The schedule: image-plane's tiles and first table, dynamic's rounds.
+        let s = Schedule::parse("dynamic-from-image-plane", true).expect("a schedule");
+        assert_eq!(s, Schedule::DynamicFromImagePlane { replicate: true });
+        assert!(s.is_dynamic() && s.replicates());
+        assert!(s.initial_routes(6, &["a".into()]).is_local());
+        assert_eq!(s.deal_tiles(10, 3), Schedule::ImagePlane.deal_tiles(10, 3));
+        assert!(
+            s.routes_after_loss(&local, 6, &["a".into()]).is_local(),
+            "still in its image-plane phase"
+        );
+        assert_eq!(
+            s.routes_after_loss(&d.routes, 6, &["a".into(), "c".into()])
+                .owners(1),
+            ["a"]
+        );
     }
 
     #[test]

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use dray_proto::v1::{DomainQueue, ReportQueuesRequest, RoutingTable, Tile, WorkerEndpoint};
 
-use super::policy::{Change, RoundInput, Schedule, rebalance, views};
+use super::policy::{Change, RoundInput, Schedule, leave_image_plane, rebalance, views};
 use super::table::JobRouting;
 use crate::caches::placement::Placement;
 
@@ -241,16 +241,36 @@ impl JobSchedule {
         self.rounds = self.rounds.saturating_add(1);
         let ids = self.worker_ids();
         let workers = views(&ids, &self.budgets, &self.reports);
-        let decision = rebalance(&RoundInput {
+        let input = RoundInput {
             domains: self.domains,
             routes: self.routing.routes(),
             workers: &workers,
             loading: &self.loading,
-            replicate: matches!(self.schedule, Schedule::Dynamic { replicate: true }),
-        });
+            replicate: self.schedule.replicates(),
+        };
+        // `dynamic-from-image-plane` leaves image-plane once every worker of the job has
+        // reported its queues (what each holds is then known); until then, no change.
+        let leaving = input.routes.is_local();
+        let decision = if leaving {
+            let all_reported = ids.iter().all(|w| self.reports.contains_key(w));
+            all_reported.then(|| leave_image_plane(&input)).flatten()
+        } else {
+            rebalance(&input)
+        };
         let Some(decision) = decision else {
             return RoundOutcome::Unchanged;
         };
+        if leaving {
+            // Owners by residency: nothing is being loaded for the table, and every
+            // worker already holds credit (each was dealt tiles). Workers held a local
+            // table, which a delta cannot patch: they get the whole one.
+            tracing::info!(
+                domains = self.domains,
+                "dynamic-from-image-plane: image-plane phase over, domains owned"
+            );
+            self.routing.set_routes(decision.routes);
+            return RoundOutcome::Changed(self.routing.table(), decision.changes);
+        }
         for (d, w) in decision.changes.iter().filter_map(Change::given) {
             self.loading.insert((d, w.to_string()));
             self.holders.insert(w.to_string());
@@ -384,6 +404,50 @@ mod tests {
         assert_eq!(s.round(t0 + iv, iv), RoundOutcome::Unchanged);
         assert_eq!((s.version(), s.rounds()), (2, 2));
         assert_eq!(s.round(t0 + 3 * iv, iv), RoundOutcome::Waiting);
+    }
+
+    /// `dynamic-from-image-plane`: a local table until every worker has reported, then
+    /// one whole table (a delta cannot patch a local one) owning every domain, then
+    /// dynamic rounds sending deltas.
+    #[test]
+    fn dynamic_from_image_plane_leaves_it_once_every_worker_reported() {
+        let ws = [worker("a", 0), worker("b", 0)];
+        let sched = Schedule::DynamicFromImagePlane { replicate: false };
+        let mut s = JobSchedule::new("j", sched, 4, &ws);
+        assert!(s.table().local);
+        let t0 = Instant::now();
+        let iv = Duration::ZERO;
+        s.record_queues(&report("a", &[(0, 5, true), (2, 9, false)]));
+        assert_eq!(
+            s.round(t0, iv),
+            RoundOutcome::Unchanged,
+            "b has not reported"
+        );
+        assert!(s.table().local);
+        s.record_queues(&report("b", &[(1, 3, true)]));
+        let RoundOutcome::Changed(t, changes) = s.round(t0, iv) else {
+            panic!("expected the first ownership");
+        };
+        assert_eq!((t.version, t.base_version, t.local), (2, 0, false));
+        assert_eq!(changes.len(), 4);
+        let owner = |d: u32| {
+            t.routes
+                .iter()
+                .filter(|r| r.domain == d)
+                .map(|r| r.worker_id.as_str())
+                .collect::<Vec<_>>()
+        };
+        assert_eq!((owner(0), owner(1)), (vec!["a"], vec!["b"]));
+        assert_eq!((owner(2), owner(3)), (vec!["a"], vec!["b"]));
+        // Rays wait for 2 at a, which a does not hold; b's domains are unwanted: b
+        // gets 2 in a round's delta.
+        s.record_queues(&report("a", &[(0, 0, true), (2, 9, false)]));
+        s.record_queues(&report("b", &[(1, 0, true)]));
+        let RoundOutcome::Changed(d, changes) = s.round(t0, iv) else {
+            panic!("expected a round's change");
+        };
+        assert_eq!(d.base_version, 2);
+        assert_eq!(changes[0].given(), Some((2, "b")));
     }
 
     #[test]

@@ -14,6 +14,20 @@ use crate::tickets::Lineage;
 /// sample of the image (spp is at most 65536).
 const COARSE_SAMPLE: u32 = u32::MAX;
 
+/// Where in coarse pixel `pixel` a randomized coarse-pass ray crosses, in [0, 1)^2: a
+/// counter-based random number of the job's seed and the pixel (the film jitter of
+/// sample [`COARSE_SAMPLE`], which no image sample uses), so any worker makes the same
+/// ray for it.
+fn coarse_jitter(seed: u64, pixel: u32) -> glam::Vec2 {
+    use dray_core::sampling::{PathKey, Purpose};
+    PathKey {
+        seed,
+        pixel,
+        sample: COARSE_SAMPLE,
+    }
+    .uniform2(0, Purpose::Film, 0)
+}
+
 /// A rectangle of the image whose camera rays this worker generates.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct TileRef {
@@ -210,13 +224,21 @@ impl JobTracer {
             let sample = tile.first_sample + s as u32;
             f.credit = if i == 0 { first_share } else { share_rest };
             f.ray = if tile.coarse {
-                // One regular ray through the coarse pixel's centre, its random numbers
-                // keyed apart from every sample of the image.
+                // One ray through the coarse pixel, its random numbers keyed apart from
+                // every sample of the image: through its centre, or through a point
+                // drawn from the job's seed and the coarse pixel (Little 2011's
+                // randomized positions; the same point on every worker).
                 let n = self.coarse.max(1);
                 let (cx, cy) = (tile.x0 + lx, tile.y0 + ly);
+                let pixel = cy * n + cx;
+                let at = if self.coarse_random {
+                    coarse_jitter(self.settings.seed, pixel)
+                } else {
+                    glam::Vec2::splat(0.5)
+                };
                 let film =
-                    glam::Vec2::new((cx as f32 + 0.5) / n as f32, (cy as f32 + 0.5) / n as f32);
-                bare.camera_ray_through(film, cy * n + cx, COARSE_SAMPLE)
+                    glam::Vec2::new((cx as f32 + at.x) / n as f32, (cy as f32 + at.y) / n as f32);
+                bare.camera_ray_through(film, pixel, COARSE_SAMPLE)
             } else {
                 bare.camera_ray_xy(tile.x0 + lx, tile.y0 + ly, sample)
             };

@@ -145,6 +145,9 @@ pub struct JobTracer {
     /// after the image's).
     coarse: u32,
     coarse_tiles: TileGrid,
+    /// Whether each coarse-pass ray goes through a random point of its coarse pixel
+    /// (`JobSpec.coarse_sampling` "random") rather than its centre.
+    coarse_random: bool,
     /// The job's passes, when it traces them ahead: results then carry their pass
     /// ([`pass_tag`]).
     tags: Option<pass_tag::PassTags>,
@@ -177,6 +180,7 @@ impl JobTracer {
             phm_bins: PhmBins::new(1, 1),
             coarse: 0,
             coarse_tiles: TileGrid::new(0, 0, tile_size),
+            coarse_random: false,
             tiles: TileGrid::new(settings.width, settings.height, tile_size),
             tags: None,
             camera,
@@ -215,10 +219,13 @@ impl JobTracer {
         self
     }
 
-    /// The job's ray-cache coarse pass covers an `n` x `n` image (0: none).
-    pub fn with_coarse(mut self, n: u32) -> JobTracer {
+    /// The job's ray-cache coarse pass covers an `n` x `n` image (0: none), one ray
+    /// through each coarse pixel: through its centre, or with `random` through a point
+    /// of it drawn from the job's seed and the coarse pixel (the same on every worker).
+    pub fn with_coarse(mut self, n: u32, random: bool) -> JobTracer {
         self.coarse = n;
         self.coarse_tiles = TileGrid::new(n, n, self.tiles.size());
+        self.coarse_random = random;
         self
     }
 
