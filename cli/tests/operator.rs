@@ -509,6 +509,46 @@ fn a_cluster_limit_deals_by_priority_and_holds_paused_jobs() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Pre-emption when asked: a running job is never pre-empted by a higher priority alone,
+/// but RequeueJob on it gives up its slot (the running attempt is cancelled, the same spec
+/// queued again at its priority), so the higher-priority job waiting is dealt next and
+/// the requeued one after it.
+#[test]
+fn requeueing_a_running_job_lets_a_higher_priority_one_take_its_slot() {
+    let dir = common::tmp("operator-preempt");
+    let c = WorkerCluster::start(1, 1, &dir, &["--max-running-jobs", "1"]);
+    let mut api = Api::connect(&c.addr);
+    assert_eq!(api.workers().len(), 1, "the job must run on the worker");
+
+    let long = api.submit(spec(65536, 0, "long"));
+    api.wait_state(&long, JobState::Running);
+    let high = api.submit(spec(4, 5, "high"));
+    api.wait_state(&high, JobState::Queued);
+    assert_eq!(
+        api.state(&long),
+        JobState::Running,
+        "a priority alone does not pre-empt"
+    );
+
+    let (again, old) = api.retry(&long, true, None).expect("RequeueJob");
+    assert_eq!(old.job_id, long);
+    api.wait_state(&long, JobState::Cancelled);
+    api.wait_state(&high, JobState::Succeeded);
+    api.wait_state(&again.job_id, JobState::Running);
+    let (h, a) = (api.job(&high), api.job(&again.job_id));
+    assert!(
+        millis(event(&h, JobEventKind::Succeeded)) <= millis(event(&a, JobEventKind::Started)),
+        "the priority-5 job must run before the requeued priority-0 one: high {:?}, requeued {:?}",
+        h.events,
+        a.events
+    );
+    assert_eq!(a.retried_from, long, "{:?}", a.events);
+    api.cancel(&again.job_id);
+    api.wait_state(&again.job_id, JobState::Cancelled);
+    drop(c);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// A job PAUSED on a coordinator with `--max-running-jobs 1` and workers, which is
 /// killed and started again on its state directory without the limit (so jobs on
 /// workers start at once): the job comes back PAUSED and stays so while a job queued
