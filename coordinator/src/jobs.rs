@@ -498,8 +498,13 @@ impl JobTable {
                 entry.note(
                     JobEventKind::Restored,
                     format!(
-                        "taken back by a restarted coordinator ({} then); queued again",
-                        j.state.as_str_name()
+                        "taken back by a restarted coordinator ({} then); {}",
+                        j.state.as_str_name(),
+                        if state == JobState::Paused {
+                            "paused until resumed"
+                        } else {
+                            "queued again"
+                        }
                     ),
                 );
                 if j.state != state

@@ -35,6 +35,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 
 use dray_core::env_map::EnvMap;
 use dray_core::scene::{Mesh, Scene};
+use dray_sync::lock;
 
 use super::manifest::EMITTERS_DOMAIN;
 use super::resident::{ResidentScene, assemble};
@@ -245,10 +246,6 @@ impl std::fmt::Debug for MemoryPackages {
             .field("packages", &self.lock().len())
             .finish()
     }
-}
-
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
 impl MemoryPackages {
