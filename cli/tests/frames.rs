@@ -18,23 +18,32 @@ use std::process::Command;
 /// A ground quad that stays and a triangle that slides along +X from x = -1 to x = 1
 /// over one second ("slide"), written with the glTF test builder.
 fn write_sliding(dir: &Path) -> PathBuf {
+    write_slide(dir, "slide", 0.5, -1.0, 1.0)
+}
+
+/// A 4x4 ground quad at y = 0 that stays, and a triangle `half` wide each side of its
+/// node that slides along +X from x = `from` to x = `to` over one second (the animation
+/// "slide"), written as `name`.gltf with the glTF test builder.
+fn write_slide(dir: &Path, name: &str, half: f32, from: f32, to: f32) -> PathBuf {
     let mut b = gltf_support::Builder::default();
     let ground = [
         -2.0, 0.0, -2.0, 2.0, 0.0, -2.0, 2.0, 0.0, 2.0, -2.0, 0.0, 2.0,
     ];
     b.floats(&ground, "VEC3"); // 0
     b.indices(&[0, 2, 1, 0, 3, 2]); // 1
-    b.floats(&[-0.5, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 1.0, 0.0], "VEC3"); // 2
+    b.floats(&[-half, 0.0, 0.0, half, 0.0, 0.0, 0.0, 1.0, 0.0], "VEC3"); // 2
     b.floats(&[0.0, 1.0], "SCALAR"); // 3: key times
-    b.floats(&[-1.0, 0.0, 0.0, 1.0, 0.0, 0.0], "VEC3"); // 4: key translations
-    let rest = r#""materials":[{"doubleSided":true}],
-"meshes":[{"name":"ground","primitives":[{"attributes":{"POSITION":0},"indices":1,"material":0}]},
-          {"name":"tri","primitives":[{"attributes":{"POSITION":2},"material":0}]}],
-"nodes":[{"mesh":0},{"mesh":1,"translation":[-1,0,0]}],
-"scenes":[{"nodes":[0,1]}],
-"animations":[{"name":"slide","samplers":[{"input":3,"output":4}],
-  "channels":[{"sampler":0,"target":{"node":1,"path":"translation"}}]}]"#;
-    b.write(dir, "slide", rest)
+    b.floats(&[from, 0.0, 0.0, to, 0.0, 0.0], "VEC3"); // 4: key translations
+    let rest = format!(
+        r#""materials":[{{"doubleSided":true}}],
+"meshes":[{{"name":"ground","primitives":[{{"attributes":{{"POSITION":0}},"indices":1,"material":0}}]}},
+          {{"name":"tri","primitives":[{{"attributes":{{"POSITION":2}},"material":0}}]}}],
+"nodes":[{{"mesh":0}},{{"mesh":1,"translation":[{from},0,0]}}],
+"scenes":[{{"nodes":[0,1]}}],
+"animations":[{{"name":"slide","samplers":[{{"input":3,"output":4}}],
+  "channels":[{{"sampler":0,"target":{{"node":1,"path":"translation"}}}}]}}]"#
+    );
+    b.write(dir, name, &rest)
 }
 
 /// The camera, light and image of every render here.
@@ -431,23 +440,7 @@ fn an_unknown_animation_is_refused_at_submit_and_a_grid_poses_its_file() {
 /// and every frame has the same bounds, so the frames are cut alike and the domains it
 /// never touches are the same in each.
 fn write_still_and_moving(dir: &Path) -> PathBuf {
-    let mut b = gltf_support::Builder::default();
-    let ground = [
-        -2.0, 0.0, -2.0, 2.0, 0.0, -2.0, 2.0, 0.0, 2.0, -2.0, 0.0, 2.0,
-    ];
-    b.floats(&ground, "VEC3"); // 0
-    b.indices(&[0, 2, 1, 0, 3, 2]); // 1
-    b.floats(&[-0.1, 0.0, 0.0, 0.1, 0.0, 0.0, 0.0, 1.0, 0.0], "VEC3"); // 2
-    b.floats(&[0.0, 1.0], "SCALAR"); // 3: key times
-    b.floats(&[1.3, 0.0, 0.0, 1.5, 0.0, 0.0], "VEC3"); // 4: key translations
-    let rest = r#""materials":[{"doubleSided":true}],
-"meshes":[{"name":"ground","primitives":[{"attributes":{"POSITION":0},"indices":1,"material":0}]},
-          {"name":"tri","primitives":[{"attributes":{"POSITION":2},"material":0}]}],
-"nodes":[{"mesh":0},{"mesh":1,"translation":[1.3,0,0]}],
-"scenes":[{"nodes":[0,1]}],
-"animations":[{"name":"slide","samplers":[{"input":3,"output":4}],
-  "channels":[{"sampler":0,"target":{"node":1,"path":"translation"}}]}]"#;
-    b.write(dir, "still", rest)
+    write_slide(dir, "still", 0.1, 1.3, 1.5)
 }
 
 /// (domain_loads, domains_warm) of a `--stats` file.
