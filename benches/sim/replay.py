@@ -9,10 +9,11 @@ PYTHONPATH and LD_LIBRARY_PATH:
 
 The model, one SimGrid actor per tracing thread of each node (a node stands for a worker):
 - every `step` record of the trace is replayed as a computation of its thread CPU
-  nanoseconds (1 flop = 1 ns of the recording machine's core; `--speed` scales hosts),
-  times (1 + the trace's CPU overhead ratio: process CPU the steps and loads did not
-  account for, such as gRPC encoding and the coordinator's film, spread over the steps in
-  proportion);
+  nanoseconds (1 flop = 1 ns of the recording machine's core; `--speed` scales hosts);
+  the process CPU the steps and loads did not account for (gRPC encoding, the reports,
+  the coordinator's film) runs on a runtime actor per node beside the tracing threads
+  (`--overhead-on runtime`), as the trace's total shared among the steps (`--overhead
+  trace`) or modelled from the replay's own counts (`--overhead model`);
 - a step of domain d waits until the rays it takes have arrived: the k-th step of d
   starts once the rays sent to d reach the sum of the first k steps' `rays_in` (batch
   dependencies counted in rays, as the worker's queues merge batches); camera steps
@@ -185,11 +186,29 @@ def simulate(trace, a):
     overhead = 0.0
     if a.overhead == "trace" and t["step_cpu_s"] > 0:
         overhead = max(0.0, stats.get("cpu_seconds", accounted) - accounted) / t["step_cpu_s"]
+    # The same overhead in ns per unit of each step's weight (its CPU, or the rays it took
+    # in and sent away), for `--overhead-on runtime`.
+    # `--overhead model`: the same CPU from the run's counts instead of its total, so that a
+    # trace re-dealt to other node counts pays what those nodes would: per batch sent to
+    # another node, per ray sent, and each process's background share of a core.
+    model = a.overhead == "model"
+    if model:
+        overhead = 0.0
+    weight = (lambda s: s["cpu_ns"]) if a.overhead_by == "cpu" else \
+        (lambda s: s["rays_in"] + sum(o["rays"] for o in s["out"] if o["remote"]))
+    total_weight = sum(weight(s) for s in trace.steps)
+    per_weight = overhead * t["step_cpu_s"] * 1e9 / total_weight if total_weight else 0.0
     load_delay = (a.load_delay_ms if a.load_delay_ms is not None else trace.job.get("load_delay_ms", 0)) / 1e3
 
     e = Engine([sys.argv[0], "--log=root.thresh:critical", "--cfg=contexts/stack-size:256"])
     zone = NetZone.create_star_zone("cluster")
     speed = 1e9 * a.speed
+    if model:
+        # Each process's background CPU (heartbeats, timers, its runtime's polling) taken
+        # off its host's cores as a slower core.
+        per_host = nodes if a.one_host else 1
+        cores = a.cores if a.one_host else threads
+        speed *= 1.0 - min(0.9, per_host * a.process_cpu / cores)
     hosts = []
     host_count = 1 if a.one_host else nodes
     for i in range(host_count):
@@ -223,6 +242,9 @@ def simulate(trace, a):
             self.sem = Semaphore(0)
             self.expected = 0  # messages this node will receive
             self.received = 0
+            self.pending = 0.0  # runtime CPU (ns) waiting for the node's runtime thread
+            self.executors = threads
+            self.runtime_sem = Semaphore(0)
 
         def wake(self):
             n, self.waiting = self.waiting, 0
@@ -329,14 +351,38 @@ def simulate(trace, a):
                 continue
             s = trace.steps[k]
             n.left -= 1
-            cpu = s["cpu_ns"] * (1.0 + overhead)
+            # The step's share of the process CPU outside steps (`--overhead`).
+            extra = per_weight * weight(s)
+            if model:
+                remote = [o for o in s["out"] if plan.owner[o["domain"]] != n.i]
+                extra = len(remote) * a.batch_cpu_us * 1e3 + sum(o["rays"] for o in remote) * a.ray_cpu_us * 1e3
+            cpu = s["cpu_ns"] + (extra if a.overhead_on == "thread" else 0.0)
             if cpu > 0:
                 this_actor.execute(cpu)
             result["steps_done"] += 1
             result["rays_in"] += s["rays_in"]
             deliver(n, s)
+            if a.overhead_on == "runtime" and extra > 0:
+                n.pending += extra
+                n.runtime_sem.release()
             result["finish"] = max(result["finish"], Engine.clock)
+        n.executors -= 1
+        n.runtime_sem.release()
         n.wake()
+
+    def runtime(n):
+        # The node's runtime thread: the process CPU outside the steps (encoding and
+        # decoding batches, the reports, the film), taken as the steps leave it, beside
+        # the tracing threads and competing with them for the cores, not in their way.
+        while True:
+            if n.pending > 0:
+                work, n.pending = n.pending, 0.0
+                this_actor.execute(work)
+                result["finish"] = max(result["finish"], Engine.clock)
+            elif n.executors == 0:
+                return
+            else:
+                n.runtime_sem.acquire()
 
     def receiver(n):
         box = Mailbox.by_name(f"n{n.i}")
@@ -356,6 +402,8 @@ def simulate(trace, a):
             Actor.create(f"recv{n.i}", n.host, receiver, n)
         for th in range(threads):
             Actor.create(f"node{n.i}.t{th}", n.host, executor, n)
+        if a.overhead_on == "runtime":
+            Actor.create(f"node{n.i}.runtime", n.host, runtime, n)
     e.run()
     if result["steps_done"] != len(trace.steps):
         raise TraceError(
@@ -373,6 +421,9 @@ def simulate(trace, a):
         "latency_s": a.latency,
         "speed": a.speed,
         "cpu_overhead_ratio": overhead,
+        "overhead": a.overhead,
+        "overhead_on": a.overhead_on,
+        "overhead_by": a.overhead_by,
         "makespan_s": result["finish"],
         "fixed_s": fixed,
         "predicted_s": result["finish"] + fixed,
@@ -401,8 +452,22 @@ def main(argv=None):
     ap.add_argument("--one-host", action="store_true",
                     help="every node on one host of --cores cores (validation against `dray render --workers N`)")
     ap.add_argument("--cores", type=int, help="cores of the one host (default: the recording machine's)")
-    ap.add_argument("--overhead", choices=["trace", "none"], default="trace",
-                    help="spread the trace's CPU outside steps and loads over the steps (default) or not")
+    ap.add_argument("--overhead", choices=["trace", "model", "none"], default="trace",
+                    help="the process CPU outside steps and loads: the trace's total spread over the steps "
+                         "(default), a model of it from the replay's own counts (--batch-cpu-us, --ray-cpu-us, "
+                         "--process-cpu: for traces re-dealt to other node counts), or none")
+    ap.add_argument("--batch-cpu-us", type=float, default=9.9,
+                    help="--overhead model: CPU per batch of one step's rays for one domain on another node")
+    ap.add_argument("--ray-cpu-us", type=float, default=0.44,
+                    help="--overhead model: CPU per ray sent to another node (encoding and decoding)")
+    ap.add_argument("--process-cpu", type=float, default=0.0117,
+                    help="--overhead model: each process's background share of one core")
+    ap.add_argument("--overhead-on", choices=["runtime", "thread"], default="runtime",
+                    help="where that CPU runs: on a runtime thread of each node beside the tracing threads "
+                         "(default), or added to each step on its tracing thread")
+    ap.add_argument("--overhead-by", choices=["rays", "cpu"], default="rays",
+                    help="how it is shared among steps: by the rays each step took in and sent to other "
+                         "nodes (default), or by each step's CPU")
     ap.add_argument("--json", action="store_true", help="print the result as JSON")
     a = ap.parse_args(argv)
     a.bandwidth = parse_rate(a.bandwidth, "--bandwidth")

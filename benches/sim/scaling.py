@@ -4,11 +4,12 @@ one trace of the exact render and one with frozen ray caches, each recorded once
 `dray render --workers W --trace-out` (by default one worker per domain, so that every
 domain's rays are steps of their own and a replay on up to W nodes misses no traffic),
 then replayed by benches/sim/replay.py on 1 to 64 nodes (domains re-dealt round robin, one
-tracing thread per node, 10 us links) at each link speed, with the recording's CPU outside
-the steps left out (`--overhead none`: it is the in-process gRPC of W workers on this
-machine's cores, which a node of its own would not share) and, for comparison, spread over
-the steps (`--overhead trace`). Speed-up is the simulated makespan on one node over that on
-N nodes (the recording's fixed part left out: it does not scale). `--fs-bandwidth` adds
+tracing thread per node, 10 us links) at each link speed, with the process CPU outside
+the steps modelled from the replay's own counts (`--overhead model`: per batch and per ray
+sent to another node, and each process's background share of a core; the model
+benches/sim/validate.py checks against real runs) and, for comparison, left out
+(`--overhead none`). Speed-up is the simulated makespan on one node over that on N nodes
+(the recording's fixed part left out: it does not scale). `--fs-bandwidth` adds
 Navratil's regime: every first visit of a domain on a node reads it from one shared file
 system behind a link of that rate.
 
@@ -149,7 +150,7 @@ def main():
     ap.add_argument("--nodes", help="node counts (default 1,2,...,64; little: 1,3,9,27)")
     ap.add_argument("--links", default="100Mbps,1Gbps,10Gbps")
     ap.add_argument("--fs-bandwidth", help="a shared file system for domain loads (e.g. 1GB/s)")
-    ap.add_argument("--plot", help="write an SVG of the speed-ups (overhead none) here")
+    ap.add_argument("--plot", help="write an SVG of the speed-ups (overhead modelled) here")
     a = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="dray-scaling-"))
     job = {"little": lambda: little(work), "bolstad": bolstad, "cornell": cornell}[a.job]()
@@ -163,16 +164,16 @@ def main():
         subprocess.run([dray, "render", *job.flags, *extra, "-q", "--workers", str(workers),
                         "--output", str(t.with_suffix(".png")), "--trace-out", str(t)], check=True)
         for bw in links:
-            base = {o: replay(t, 1, bw, o, a.fs_bandwidth)["makespan_s"] for o in ("none", "trace")}
+            base = {o: replay(t, 1, bw, o, a.fs_bandwidth)["makespan_s"] for o in ("model", "none")}
             for n in nodes:
-                r = {o: replay(t, n, bw, o, a.fs_bandwidth) for o in ("none", "trace")}
-                rows.append((name, bw, n, r["none"]["makespan_s"], base["none"] / r["none"]["makespan_s"],
-                             base["trace"] / r["trace"]["makespan_s"], r["none"]["bytes_sent"],
-                             r["none"]["messages"]))
+                r = {o: replay(t, n, bw, o, a.fs_bandwidth) for o in ("model", "none")}
+                rows.append((name, bw, n, r["model"]["makespan_s"], base["model"] / r["model"]["makespan_s"],
+                             base["none"] / r["none"]["makespan_s"], r["model"]["bytes_sent"],
+                             r["model"]["messages"]))
     fs = f", loads from a {a.fs_bandwidth} file system" if a.fs_bandwidth else ""
     print(f"jobs: dray render {' '.join(job.flags)} [{' '.join(job.caches)}], recorded on {workers} workers{fs}")
     print()
-    print("| render | link | nodes | simulated s | speed-up | speed-up, overhead spread | bytes between nodes "
+    print("| render | link | nodes | simulated s | speed-up | speed-up, overhead left out | bytes between nodes "
           "| messages |")
     print("|---|---|---|---|---|---|---|---|")
     for name, bw, n, t, s, s_trace, b, m in rows:

@@ -9,13 +9,13 @@ prediction compared with the median of the other rounds (so the trace replayed i
 the run it is judged against). Then the trace recorded at the largest N is replayed at
 every other N (domains re-dealt), against those N's medians.
 
-    benches/sim/run.sh validate.py [--workers 2,4,8] [--rounds 5] [-- render flags]
+    benches/sim/run.sh validate.py [--workers 2,4,8] [--rounds 5] [--keep DIR] [-- render flags]
+    benches/sim/run.sh validate.py --from DIR     # the kept runs, replayed again
 
 Prints a Markdown table: N, the measured median (and the spread of the rounds), the
-replay of its own trace, of the largest N's trace, and the errors; first on dedicated
-cores, then calibrated to the share of the cores that other processes left the render
-(/proc/stat's busy time over each round, less the render's own CPU: on a shared
-machine the replay's cores are slowed to that share, `replay.py --speed`).
+replays of its own traces, of the largest N's traces, the errors, and the share of the
+cores that other processes left the render (/proc/stat's busy time over each round, less
+the render's own CPU): near 1 the machine was quiet and the comparison means something.
 """
 
 import argparse
@@ -66,8 +66,11 @@ def record(n, job, out):
     return wall, max(0.05, (span - others) / span)
 
 
+REPLAY_ARGS = []
+
+
 def replay(trace, *args):
-    r = subprocess.run([sys.executable, str(HERE / "replay.py"), str(trace), "--json", "--one-host", *args],
+    r = subprocess.run([sys.executable, str(HERE / "replay.py"), str(trace), "--json", "--one-host", *REPLAY_ARGS, *args],
                        check=True, capture_output=True, text=True)
     return json.loads(r.stdout)
 
@@ -76,48 +79,66 @@ def main():
     ap = argparse.ArgumentParser(prog="benches/sim/validate.py")
     ap.add_argument("--workers", default="2,4,8")
     ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--keep", help="record into this folder and keep it (walls.json beside the traces)")
+    ap.add_argument("--from", dest="source",
+                    help="replay a folder kept by --keep instead of rendering (the model changes, the runs do not)")
     ap.add_argument("job", nargs="*", help="dray render's scene and flags (default: %s)" % " ".join(DEFAULT_JOB))
+    ap.add_argument("--replay-args", default="", help="more flags for replay.py (e.g. \"--overhead-on thread\")")
     a = ap.parse_args()
+    REPLAY_ARGS.extend(a.replay_args.split())
     job = a.job or DEFAULT_JOB
     ns = [int(x) for x in a.workers.split(",")]
     if a.rounds < 2:
         raise SystemExit("--rounds: at least 2 (one to replay, the others to judge it by)")
-    work = Path(tempfile.mkdtemp(prefix="dray-validate-"))
     walls, free, traces = {}, {}, {}
-    # Rounds interleaved across N, so that a change in the machine's load meanwhile
-    # touches every N alike.
-    for r in range(a.rounds):
+    if a.source:
+        work = Path(a.source)
+        kept = json.loads((work / "walls.json").read_text())
+        job, ns = kept["job"], [int(n) for n in kept["walls"]]
         for n in ns:
-            t = work / f"n{n}-r{r}.jsonl"
-            wall, share = record(n, job, t)
-            walls.setdefault(n, []).append(wall)
-            free.setdefault(n, []).append(share)
-            traces.setdefault(n, t)
+            walls[n], free[n] = kept["walls"][str(n)], kept["free"][str(n)]
+            traces[n] = [work / f"n{n}-r{r}.jsonl" for r in range(len(walls[n]))]
+    else:
+        work = Path(a.keep) if a.keep else Path(tempfile.mkdtemp(prefix="dray-validate-"))
+        work.mkdir(parents=True, exist_ok=True)
+        # Rounds interleaved across N, so that a change in the machine's load meanwhile
+        # touches every N alike.
+        for r in range(a.rounds):
+            for n in ns:
+                t = work / f"n{n}-r{r}.jsonl"
+                wall, share = record(n, job, t)
+                walls.setdefault(n, []).append(wall)
+                free.setdefault(n, []).append(share)
+                traces.setdefault(n, []).append(t)
+        (work / "walls.json").write_text(json.dumps({"job": job, "walls": walls, "free": free}))
     big = max(ns)
     rows = []
+    pct = lambda p, m: 100 * (p - m) / m
     for n in ns:
-        judged = walls[n][1:]
-        med = statistics.median(judged)
-        share = statistics.median(free[n][1:])
-        own = replay(traces[n])
-        cross = replay(traces[big], "--nodes", str(n)) if n != big else own
-        # Calibrated: the cores as fast as the share of them other processes left.
-        own_c = replay(traces[n], "--speed", f"{share:.4f}")
-        cross_c = replay(traces[big], "--nodes", str(n), "--speed", f"{share:.4f}") if n != big else own_c
-        rows.append((n, med, min(judged), max(judged), own["predicted_s"], own["makespan_s"], own["fixed_s"],
-                     cross["predicted_s"], share, own_c["predicted_s"], cross_c["predicted_s"]))
-    print(f"job: dray render {' '.join(job)} --workers N; {a.rounds} rounds; machine cores: {os.cpu_count()}")
+        w = walls[n]
+        # Every round's trace replayed, each judged by the median of the other rounds
+        # (never by the run it was recorded in); and, as a check of the model alone,
+        # by its own run.
+        own = [replay(t) for t in traces[n]]
+        loo = [pct(o["predicted_s"], statistics.median(w[:r] + w[r + 1:])) for r, o in enumerate(own)]
+        self_err = [pct(o["predicted_s"], o["measured_s"]) for o in own]
+        cross = [replay(t, "--nodes", str(n)) for t in traces[big]] if n != big else own
+        cross_p = statistics.median(c["predicted_s"] for c in cross)
+        rows.append((n, statistics.median(w), min(w), max(w),
+                     statistics.median(o["predicted_s"] for o in own), min(o["predicted_s"] for o in own),
+                     max(o["predicted_s"] for o in own), statistics.median(loo), max(loo, key=abs),
+                     statistics.median(self_err), cross_p, pct(cross_p, statistics.median(w)),
+                     statistics.median(free[n])))
+    print(f"job: dray render {' '.join(job)} --workers N; {len(walls[ns[0]])} rounds; machine cores: {os.cpu_count()}; "
+          f"replay flags: {' '.join(REPLAY_ARGS) or 'defaults'}")
     print()
-    print("| workers | measured median (min-max), s | own trace, dedicated cores, s (simulated + fixed) | error | "
-          f"{big}-worker trace, dedicated | error | cores left by others | own trace, calibrated | error | "
-          f"{big}-worker trace, calibrated | error |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
-    pct = lambda p, m: f"{100 * (p - m) / m:+.0f}%"
-    for n, med, lo, hi, own, mk, fx, cross, share, own_c, cross_c in rows:
-        print(f"| {n} | {med:.3f} ({lo:.3f}-{hi:.3f}) | {own:.3f} ({mk:.3f} + {fx:.3f}) | {pct(own, med)} | "
-              f"{cross:.3f} | {pct(cross, med)} | {share:.2f} | {own_c:.3f} | {pct(own_c, med)} | "
-              f"{cross_c:.3f} | {pct(cross_c, med)} |")
-
+    print("| workers | measured median (min-max), s | replayed, each round's trace: median (min-max), s | "
+          "error against the other rounds: median (worst) | against its own run: median | "
+          f"{big}-worker traces re-dealt: median, s | error | cores left by others |")
+    print("|---|---|---|---|---|---|---|---|")
+    for n, med, lo, hi, p, plo, phi, e, worst, own_e, cross_p, cross_e, share in rows:
+        print(f"| {n} | {med:.3f} ({lo:.3f}-{hi:.3f}) | {p:.3f} ({plo:.3f}-{phi:.3f}) | {e:+.0f}% ({worst:+.0f}%) | "
+              f"{own_e:+.0f}% | {cross_p:.3f} | {cross_e:+.0f}% | {share:.2f} |")
 
 if __name__ == "__main__":
     main()
