@@ -13,7 +13,7 @@ use std::process::Output;
 use support::{WorkerCluster, dray};
 
 /// The columns every results.csv has (besides one per varied key).
-const COLUMNS: [&str; 45] = [
+const COLUMNS: [&str; 48] = [
     "setting",
     "domain_loads",
     "domains_warm",
@@ -28,6 +28,9 @@ const COLUMNS: [&str; 45] = [
     "inner_lookups",
     "inner_hits",
     "inner_hit_ratio",
+    "hit_ratio",
+    "coarse_seconds",
+    "bytes_per_process",
     "rays_not_sent",
     "bytes_not_sent",
     "tickets_opened",
@@ -136,6 +139,13 @@ fn check_outputs(out: &Path, keys: &[&str], settings: usize) -> Vec<HashMap<Stri
         assert!(r["bytes_rays"].parse::<u64>().is_ok(), "{r:?}");
         let flip = num(r, "flip");
         assert!((0.0..=1.0).contains(&flip), "{r:?}");
+        // Little 2011's total hit ratio (both sides of a wall) is a share, its coarse
+        // pass a time and its cache memory a size, on every row that has caches.
+        if !r["hit_ratio"].is_empty() {
+            assert!((0.0..=1.0).contains(&num(r, "hit_ratio")), "{r:?}");
+            assert!(num(r, "coarse_seconds") >= 0.0, "{r:?}");
+            assert!(r["bytes_per_process"].parse::<u64>().is_ok(), "{r:?}");
+        }
         let img = common::rgb(&out.join(&r["image"]));
         assert_eq!(img.dimensions(), (32, 24), "{}", r["image"]);
     }
