@@ -224,23 +224,20 @@ def simulate(trace, a):
         zone.add_route(fs.netpoint, None, None, None, [LinkInRoute(link, LinkInRoute.Direction.UP)], True)
     zone.seal()
 
+    dynamic = a.schedule == "dynamic"
+
     class Node:
         def __init__(self, i):
             self.i = i
             self.host = hosts[0 if a.one_host else i]
-            self.by_domain = defaultdict(list)  # domain -> [step index], in trace order
-            self.next = defaultdict(int)  # domain -> index into by_domain[d]
-            self.need = {}  # domain -> cumulative rays_in per step
+            self.domains = []  # the domains this node holds (may trace), in the order given
             self.free = []  # camera and other steps that need no rays, in trace order
             self.free_next = 0
-            self.arrived = defaultdict(int)
-            self.taken = defaultdict(int)
             self.resident = set()
             self.loading = set()
-            self.left = 0
             self.waiting = 0
             self.sem = Semaphore(0)
-            self.expected = 0  # messages this node will receive
+            self.expected = 0  # messages this node will receive (static schedule)
             self.received = 0
             self.pending = 0.0  # runtime CPU (ns) waiting for the node's runtime thread
             self.executors = threads
@@ -251,14 +248,23 @@ def simulate(trace, a):
             for _ in range(n):
                 self.sem.release()
 
+    # A domain's queue is one, whichever of its holders the rays were sent to (with one
+    # holder, the static schedules, that is the owner's queue; with replicas, rays sent to
+    # one holder may be traced by another: optimistic by the time to forward them).
     ns = [Node(i) for i in range(nodes)]
+    steps_of = defaultdict(list)  # domain -> [step index], in trace order
+    next_step = defaultdict(int)
+    arrived = defaultdict(int)
+    taken = defaultdict(int)
+    holders = {d: [ns[o]] for d, o in plan.owner.items()}
+    turn = defaultdict(int)  # domain -> the next holder to send to
+    for d, o in sorted(plan.owner.items()):
+        ns[o].domains.append(d)
     for k, s in enumerate(trace.steps):
-        n = ns[plan.step_node[k]]
-        n.left += 1
         if s["domain"] is None or s["rays_in"] == 0:
-            n.free.append(k)
+            ns[plan.step_node[k]].free.append(k)
         else:
-            n.by_domain[s["domain"]].append(k)
+            steps_of[s["domain"]].append(k)
         for dest in {plan.owner[o["domain"]] for o in s["out"]} - {plan.step_node[k]}:
             ns[dest].expected += 1
     incoming = defaultdict(int)
@@ -266,39 +272,51 @@ def simulate(trace, a):
         for o in s["out"]:
             incoming[o["domain"]] += o["rays"]
     short = []
-    for n in ns:
-        for d, ks in n.by_domain.items():
-            c, cum = 0, []
-            for k in ks:
-                c += trace.steps[k]["rays_in"]
-                cum.append(c)
-            if c > incoming[d]:
-                short.append((d, c, incoming[d]))
-            # A trace whose steps take more rays than were sent (rays made in a cache
-            # actor's answer, say) must not stall: the last steps need what arrives.
-            n.need[d] = [min(x, incoming[d]) for x in cum]
-    result = {"finish": 0.0, "steps_done": 0, "rays_in": 0, "messages": 0, "bytes_sent": 0, "rays_sent": 0}
+    need = {}
+    for d, ks in steps_of.items():
+        c, cum = 0, []
+        for k in ks:
+            c += trace.steps[k]["rays_in"]
+            cum.append(c)
+        if c > incoming[d]:
+            short.append((d, c, incoming[d]))
+        # A trace whose steps take more rays than were sent (rays made in a cache
+        # actor's answer, say) must not stall: the last steps need what arrives.
+        need[d] = [min(x, incoming[d]) for x in cum]
+    untaken = {"steps": sum(len(ks) for ks in steps_of.values())}
+    result = {"finish": 0.0, "steps_done": 0, "rays_in": 0, "messages": 0, "bytes_sent": 0, "rays_sent": 0,
+              "replicas": 0, "loads": 0}
 
     def ready_domain(n):
         """The domain with the most rays waiting whose next step can start, resident
         first; None if there is none."""
         best, best_q, best_res = None, -1, False
-        for d, ks in n.by_domain.items():
-            j = n.next[d]
-            if j >= len(ks) or n.arrived[d] < n.need[d][j]:
+        for d in n.domains:
+            j = next_step[d]
+            if j >= len(steps_of[d]) or arrived[d] < need[d][j]:
                 continue
             if d in n.loading:
                 continue
             res = d in n.resident
-            q = n.arrived[d] - n.taken[d]
+            q = arrived[d] - taken[d]
             if (res, q) > (best_res, best_q):
                 best, best_q, best_res = d, q, res
         return best
+
+    def has_work(n):
+        """Whether this node may still get a step: its own camera steps, or a step of a
+        domain it holds (or, under the dynamic schedule, of any domain)."""
+        if n.free_next < len(n.free):
+            return True
+        if dynamic:
+            return untaken["steps"] > 0
+        return any(next_step[d] < len(steps_of[d]) for d in n.domains)
 
     def ensure_loaded(n, d):
         if d is None or d in n.resident:
             return
         n.loading.add(d)
+        result["loads"] += 1
         size, cpu = plan.load.get(d, (0, 0))
         if fs is not None and size > 0:
             Comm.sendto(fs, n.host, size)
@@ -309,13 +327,26 @@ def simulate(trace, a):
         n.loading.discard(d)
         n.resident.add(d)
 
+    def arrive(d, rays):
+        arrived[d] += rays
+        for h in holders[d]:
+            h.wake()
+
+    def destination(n, d):
+        """Where rays for d go: here if this node holds d, else its holders in turn."""
+        hs = holders[d]
+        if n in hs:
+            return n
+        turn[d] += 1
+        return hs[turn[d] % len(hs)]
+
     def deliver(n, s):
         # One message per destination node, as a worker's per-peer outbox sends them.
         batches = defaultdict(list)
         for o in s["out"]:
-            dest = ns[plan.owner[o["domain"]]]
+            dest = destination(n, o["domain"])
             if dest is n:
-                n.arrived[o["domain"]] += o["rays"]
+                arrive(o["domain"], o["rays"])
             else:
                 batches[dest.i].append(o)
         for i, os_ in batches.items():
@@ -325,15 +356,19 @@ def simulate(trace, a):
             result["rays_sent"] += sum(o["rays"] for o in os_)
             c = Mailbox.by_name(f"n{i}").put_init([(o["domain"], o["rays"]) for o in os_], max(1, size))
             c.detach()
-        n.wake()
+        return batches
 
     def executor(n):
-        while n.left > 0:
+        while True:
             d = ready_domain(n)
             if d is not None:
-                k = n.by_domain[d][n.next[d]]
-                n.next[d] += 1
-                n.taken[d] += trace.steps[k]["rays_in"]
+                k = steps_of[d][next_step[d]]
+                next_step[d] += 1
+                taken[d] += trace.steps[k]["rays_in"]
+                untaken["steps"] -= 1
+                if untaken["steps"] == 0 and dynamic:
+                    for m in ns:
+                        m.wake()
                 ensure_loaded(n, d)
             elif n.free_next < len(n.free):
                 k = n.free[n.free_next]
@@ -345,26 +380,32 @@ def simulate(trace, a):
                         n.sem.acquire()
                         continue
                     ensure_loaded(n, plan.single)
-            else:
+            elif has_work(n):
                 n.waiting += 1
                 n.sem.acquire()
                 continue
+            else:
+                break
             s = trace.steps[k]
-            n.left -= 1
-            # The step's share of the process CPU outside steps (`--overhead`).
-            extra = per_weight * weight(s)
-            if model:
-                remote = [o for o in s["out"] if plan.owner[o["domain"]] != n.i]
-                extra = len(remote) * a.batch_cpu_us * 1e3 + sum(o["rays"] for o in remote) * a.ray_cpu_us * 1e3
-            cpu = s["cpu_ns"] + (extra if a.overhead_on == "thread" else 0.0)
+            cpu = s["cpu_ns"]
+            if a.overhead_on == "thread" and not model:
+                cpu += per_weight * weight(s)
             if cpu > 0:
                 this_actor.execute(cpu)
             result["steps_done"] += 1
             result["rays_in"] += s["rays_in"]
-            deliver(n, s)
-            if a.overhead_on == "runtime" and extra > 0:
+            batches = deliver(n, s)
+            # The step's share of the process CPU outside steps (`--overhead`).
+            extra = per_weight * weight(s) if a.overhead_on == "runtime" else 0.0
+            if model:
+                extra = len([o for os_ in batches.values() for o in os_]) * a.batch_cpu_us * 1e3 \
+                    + sum(o["rays"] for os_ in batches.values() for o in os_) * a.ray_cpu_us * 1e3
+            if extra > 0 and a.overhead_on == "runtime":
                 n.pending += extra
                 n.runtime_sem.release()
+            elif extra > 0:
+                this_actor.execute(extra)
+            n.wake()
             result["finish"] = max(result["finish"], Engine.clock)
         n.executors -= 1
         n.runtime_sem.release()
@@ -391,19 +432,45 @@ def simulate(trace, a):
         # transfers into a node ran one at a time behind their latency: a 0.44 s job
         # replayed on 2 nodes took 0.86 s at 10 us and 7.8 s at 100 us (now 0.34, 0.36).
         box.set_receiver(Actor.self())
-        while n.received < n.expected:
+        if dynamic:
+            # Messages to a node are not known ahead under the dynamic schedule: the
+            # receiver lives as long as the simulation (a daemon).
+            Actor.self().daemonize()
+        while dynamic or n.received < n.expected:
             for d, rays in box.get():
-                n.arrived[d] += rays
+                arrive(d, rays)
             n.received += 1
-            n.wake()
+
+    def scheduler():
+        # Navratil et al. 2012's dynamic schedule, as the coordinator runs it from the
+        # workers' queue reports: every round, each node with nothing ready gets the
+        # domain with the most rays waiting per holder, loaded on its first step.
+        while untaken["steps"] > 0:
+            this_actor.sleep_for(a.round_ms / 1e3)
+            idle = [m for m in ns if m.waiting > 0 and ready_domain(m) is None and m.free_next >= len(m.free)]
+            for m in idle:
+                best, best_p = None, a.min_queue
+                for d, ks in steps_of.items():
+                    if next_step[d] >= len(ks) or m in holders[d]:
+                        continue
+                    p = (arrived[d] - taken[d]) / len(holders[d])
+                    if p > best_p:
+                        best, best_p = d, p
+                if best is not None:
+                    holders[best].append(m)
+                    m.domains.append(best)
+                    result["replicas"] += 1
+                    m.wake()
 
     for n in ns:
-        if n.expected:
+        if n.expected or dynamic:
             Actor.create(f"recv{n.i}", n.host, receiver, n)
         for th in range(threads):
             Actor.create(f"node{n.i}.t{th}", n.host, executor, n)
         if a.overhead_on == "runtime":
             Actor.create(f"node{n.i}.runtime", n.host, runtime, n)
+    if dynamic:
+        Actor.create("scheduler", hosts[0], scheduler)
     e.run()
     if result["steps_done"] != len(trace.steps):
         raise TraceError(
@@ -435,6 +502,9 @@ def simulate(trace, a):
         "rays_sent": result["rays_sent"],
         "bytes_sent": result["bytes_sent"],
         "messages": result["messages"],
+        "schedule": a.schedule,
+        "replicas": result["replicas"],
+        "loads": result["loads"],
         "trace": t,
     }
 
@@ -468,6 +538,13 @@ def main(argv=None):
     ap.add_argument("--overhead-by", choices=["rays", "cpu"], default="rays",
                     help="how it is shared among steps: by the rays each step took in and sent to other "
                          "nodes (default), or by each step's CPU")
+    ap.add_argument("--schedule", choices=["static", "dynamic"], default="static",
+                    help="static: each domain on one node (default); dynamic: every --round-ms, a node with "
+                         "nothing ready gets a replica of the domain with the most rays waiting per holder "
+                         "(Navratil et al. 2012), loaded on its first step")
+    ap.add_argument("--round-ms", type=float, default=50.0, help="--schedule dynamic: the scheduler's round")
+    ap.add_argument("--min-queue", type=float, default=1000.0,
+                    help="--schedule dynamic: rays waiting per holder below which no replica is made")
     ap.add_argument("--json", action="store_true", help="print the result as JSON")
     a = ap.parse_args(argv)
     a.bandwidth = parse_rate(a.bandwidth, "--bandwidth")

@@ -14,12 +14,16 @@ Navratil's regime: every first visit of a domain on a node reads it from one sha
 system behind a link of that rate.
 
     benches/sim/run.sh scaling.py [--job cornell|little] [--workers W] [--nodes 1,2,4,8,16,32,64] \
-        [--links 100Mbps,1Gbps,10Gbps] [--fs-bandwidth 1GB/s] [--plot docs/sim-scaling.svg]
+        [--links 100Mbps,1Gbps,10Gbps] [--fs-bandwidth 1GB/s] [--plot docs/sim-scaling.svg] \
+        [--keep DIR | --from DIR]
 
 `--job little` is Little 2011's Table 5.1 set-up (benches/caches.py's scene, radius and
 coarse pass; the Stanford bunny from $DRAY_SCENES) on 1, 3, 9 and 27 nodes; `--job bolstad`
 hit maps with Bolstad 2017's settings on the Cornell box's area light (path, 16 spp) on 1
-to 32 nodes.
+to 32 nodes; `--job navratil` Navratil et al. 2012's regime: one recording of the static
+`domain` schedule replayed static and with the replay's dynamic schedule (replicas of
+the domains with the most rays waiting, loaded from a 1 GB/s shared file system) on 1 to
+1,024 nodes.
 """
 
 import argparse
@@ -38,9 +42,24 @@ sys.path.insert(0, str(REPO / "benches"))
 class Job:
     """A job to record: its flags, its ray caches, its domains, the nodes to replay on."""
 
-    def __init__(self, title, flags, caches, domains, nodes, approx="ray caches"):
+    def __init__(self, title, flags, caches, domains, nodes, approx="ray caches", replay_flags=(), fs=None):
         self.title, self.flags, self.caches, self.domains, self.nodes = title, flags, caches, domains, nodes
         self.approx = approx  # what `caches` turns on, as the tables and the plot name it
+        # Flags of the replay (not the render) that make the second variant, and the
+        # shared file system the job is meant for (None: loads read nothing).
+        self.replay_flags, self.fs = list(replay_flags), fs
+
+
+def navratil():
+    """Navratil et al. 2012's regime: domains loaded from a shared parallel file system, the
+    image's cost concentrated in a few domains (the glass and what surrounds it), and more
+    nodes than domains. One recording of the static `domain` schedule, replayed static
+    and with the replay's dynamic schedule (a node with nothing ready gets a replica of
+    the domain with the most rays waiting per holder, loaded from the file system)."""
+    return Job("64 domains, cornell:glass 256x256, 8 spp, loads from a 1GB/s file system",
+               ["cornell:glass", "--width", "256", "--height", "256", "--spp", "8", "--integrator", "path",
+                "--domains", "64", "--schedule", "domain"],
+               [], 64, "1,4,16,64,256,1024", approx="dynamic", replay_flags=["--schedule", "dynamic"], fs="1GB/s")
 
 
 def cornell():
@@ -77,9 +96,9 @@ def little(work):
                27, "1,3,9,27")
 
 
-def replay(trace, nodes, bw, overhead, fs=None):
+def replay(trace, nodes, bw, overhead, fs=None, extra=()):
     cmd = [sys.executable, str(HERE / "replay.py"), str(trace), "--json", "--nodes", str(nodes),
-           "--threads", "1", "--bandwidth", bw, "--latency", "10us", "--overhead", overhead]
+           "--threads", "1", "--bandwidth", bw, "--latency", "10us", "--overhead", overhead, *extra]
     if fs:
         cmd += ["--fs-bandwidth", fs]
     r = subprocess.run(cmd, check=True, capture_output=True, text=True)
@@ -88,7 +107,7 @@ def replay(trace, nodes, bw, overhead, fs=None):
 
 # The plot: speed-up over one node against nodes (log2 axis), a line per render and link.
 W, H, PAD = 480, 320, 52
-COLOURS = {"exact": "#1f77b4", "ray caches": "#d62728", "hit maps": "#2ca02c"}
+COLOURS = {"exact": "#1f77b4", "static": "#1f77b4", "ray caches": "#d62728", "hit maps": "#2ca02c", "dynamic": "#9467bd"}
 DASHES = ["", "6,4", "2,3", "8,3,2,3"]
 
 
@@ -143,41 +162,57 @@ def plot(rows, nodes, links, dst, title):
 
 def main():
     ap = argparse.ArgumentParser(prog="benches/sim/scaling.py")
-    ap.add_argument("--job", choices=["cornell", "little", "bolstad"], default="cornell",
+    ap.add_argument("--job", choices=["cornell", "little", "bolstad", "navratil"], default="cornell",
                     help="cornell: cornell:glass in 64 domains (default); little: Table 5.1's bunny grid; "
-                         "bolstad: hit maps on the Cornell box, path, 16 spp")
+                         "bolstad: hit maps on the Cornell box, path, 16 spp; navratil: the static schedule "
+                         "against the dynamic one, loads from a shared file system, up to 1,024 nodes")
     ap.add_argument("--workers", type=int, help="workers of the recording (default: one per domain)")
     ap.add_argument("--nodes", help="node counts (default 1,2,...,64; little: 1,3,9,27)")
     ap.add_argument("--links", default="100Mbps,1Gbps,10Gbps")
     ap.add_argument("--fs-bandwidth", help="a shared file system for domain loads (e.g. 1GB/s)")
     ap.add_argument("--plot", help="write an SVG of the speed-ups (overhead modelled) here")
+    ap.add_argument("--keep", help="record into this folder and keep the traces (replay them later with --from)")
+    ap.add_argument("--from", dest="source",
+                    help="replay the traces a --keep run left in this folder instead of rendering again")
     a = ap.parse_args()
-    work = Path(tempfile.mkdtemp(prefix="dray-scaling-"))
-    job = {"little": lambda: little(work), "bolstad": bolstad, "cornell": cornell}[a.job]()
+    work = Path(a.source or a.keep or tempfile.mkdtemp(prefix="dray-scaling-"))
+    work.mkdir(parents=True, exist_ok=True)
+    job = {"little": lambda: little(work), "bolstad": bolstad, "cornell": cornell, "navratil": navratil}[a.job]()
+    a.fs_bandwidth = a.fs_bandwidth or job.fs
     nodes = [int(x) for x in (a.nodes or job.nodes).split(",")]
     links = a.links.split(",")
     workers = a.workers or job.domains
     dray = str(REPO / "target" / "release" / "dray")
     rows = []
-    for name, extra in [("exact", []), (job.approx, job.caches)]:
+    recorded = {}
+    first = "static" if job.replay_flags else "exact"
+    for name, extra, rflags in [(first, [], []), (job.approx, job.caches, job.replay_flags)]:
         t = work / f"{name.replace(' ', '-')}.jsonl"
-        subprocess.run([dray, "render", *job.flags, *extra, "-q", "--workers", str(workers),
-                        "--output", str(t.with_suffix(".png")), "--trace-out", str(t)], check=True)
+        if tuple(extra) in recorded:
+            t = recorded[tuple(extra)]  # the same render: one recording, replayed two ways
+        elif a.source:
+            if not t.exists():
+                raise SystemExit(f"--from {a.source}: no {t.name} (was it kept by `scaling.py --job {a.job} --keep`?)")
+            recorded[tuple(extra)] = t
+        else:
+            subprocess.run([dray, "render", *job.flags, *extra, "-q", "--workers", str(workers),
+                            "--output", str(t.with_suffix(".png")), "--trace-out", str(t)], check=True)
+            recorded[tuple(extra)] = t
         for bw in links:
-            base = {o: replay(t, 1, bw, o, a.fs_bandwidth)["makespan_s"] for o in ("model", "none")}
+            base = {o: replay(t, 1, bw, o, a.fs_bandwidth, rflags)["makespan_s"] for o in ("model", "none")}
             for n in nodes:
-                r = {o: replay(t, n, bw, o, a.fs_bandwidth) for o in ("model", "none")}
+                r = {o: replay(t, n, bw, o, a.fs_bandwidth, rflags) for o in ("model", "none")}
                 rows.append((name, bw, n, r["model"]["makespan_s"], base["model"] / r["model"]["makespan_s"],
-                             base["none"] / r["none"]["makespan_s"], r["model"]["bytes_sent"],
-                             r["model"]["messages"]))
+                             r["none"]["makespan_s"], base["none"] / r["none"]["makespan_s"],
+                             r["model"]["bytes_sent"], r["model"]["messages"]))
     fs = f", loads from a {a.fs_bandwidth} file system" if a.fs_bandwidth else ""
     print(f"jobs: dray render {' '.join(job.flags)} [{' '.join(job.caches)}], recorded on {workers} workers{fs}")
     print()
-    print("| render | link | nodes | simulated s | speed-up | speed-up, overhead left out | bytes between nodes "
+    print("| render | link | nodes | simulated s | speed-up | overhead left out: s | speed-up | bytes between nodes "
           "| messages |")
-    print("|---|---|---|---|---|---|---|---|")
-    for name, bw, n, t, s, s_trace, b, m in rows:
-        print(f"| {name} | {bw} | {n} | {t:.3f} | {s:.2f} | {s_trace:.2f} | {b} | {m} |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name, bw, n, t, s, t_none, s_none, b, m in rows:
+        print(f"| {name} | {bw} | {n} | {t:.3f} | {s:.2f} | {t_none:.3f} | {s_none:.2f} | {b} | {m} |")
     if a.plot:
         plot([(r[0], r[1], r[2], r[4]) for r in rows], nodes, links, a.plot, job.title + fs)
         print(f"\nplot: {a.plot}")

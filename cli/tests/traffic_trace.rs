@@ -223,6 +223,32 @@ fn replay_checks(trace: &Path, traced: u64, sent: u64) {
     let wide = replay(trace, &["--nodes", "8"]).expect("replayed");
     assert_eq!(u(&wide["steps"]), u(&wide["trace"]["steps"]));
     assert!(wide["predicted_s"].as_f64().is_some_and(|t| t > 0.0));
+    // The dynamic schedule (replicas of busy domains on idle nodes, rounds of 1 ms) and
+    // the overhead modelled from counts: every step still replayed exactly once.
+    let dynamic = replay(
+        trace,
+        &[
+            "--nodes",
+            "8",
+            "--schedule",
+            "dynamic",
+            "--round-ms",
+            "1",
+            "--min-queue",
+            "1",
+            "--overhead",
+            "model",
+        ],
+    )
+    .expect("replayed");
+    assert_eq!(u(&dynamic["steps"]), u(&dynamic["trace"]["steps"]));
+    assert_eq!(u(&dynamic["rays_traced"]), traced);
+    assert_eq!(dynamic["schedule"], "dynamic", "{dynamic}");
+    assert!(
+        dynamic["predicted_s"]
+            .as_f64()
+            .is_some_and(|t| t > 0.0 && t.is_finite())
+    );
 }
 
 #[test]
