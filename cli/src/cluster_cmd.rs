@@ -480,9 +480,9 @@ async fn healthy(
     }
 }
 
-pub fn run(a: ClusterArgs) -> Result<()> {
-    // --base-port 0: every member on a port the system chooses.
-    let ephemeral = a.base_port == 0;
+/// Refuse, before anything starts, flags that cannot work: ports past 65535 or taken, a
+/// scene root that is not a folder, a dashboard address in use.
+fn check_flags(a: &ClusterArgs, worker_addrs: &[SocketAddr]) -> Result<()> {
     if u32::from(a.base_port) + u32::from(a.workers) > 65535 {
         bail!(
             "--base-port {} with --workers {} needs ports up to {}, past 65535",
@@ -496,11 +496,6 @@ pub fn run(a: ClusterArgs) -> Result<()> {
     {
         bail!("--scene-root {}: not a directory", root.display());
     }
-    let port_of = |i: u16| if ephemeral { 0 } else { a.base_port + i };
-    let coordinator_addr = SocketAddr::from((Ipv4Addr::LOCALHOST, port_of(0)));
-    let worker_addrs: Vec<SocketAddr> = (1..=a.workers)
-        .map(|i| SocketAddr::from((Ipv4Addr::LOCALHOST, port_of(i))))
-        .collect();
     if let Some(http) = a.http_listen
         && http.port() != 0
         && let Err(e) = TcpListener::bind(http)
@@ -510,28 +505,316 @@ pub fn run(a: ClusterArgs) -> Result<()> {
         }
         return Err(e).with_context(|| format!("--http-listen {http}"));
     }
-    if !ephemeral {
+    if a.base_port != 0 {
         check_port_free(a.base_port, "coordinator")?;
         for (i, w) in worker_addrs.iter().enumerate() {
             check_port_free(w.port(), &format!("worker-{}", i + 1))?;
         }
     }
-    let exe = std::env::current_exe().context("cannot find the dray executable to start")?;
-    // The members' cluster token: the one given, or one made for this run.
-    // Its directory is private to this run (see `secrets_dir`), removed when the cluster
-    // stops: `_secrets` lives until `run` returns.
-    let (_secrets, token_file) = match &a.cluster_token.cluster_token_file {
-        Some(f) => (None, f.clone()),
-        None => {
-            let token = match a.cluster_token.token()? {
-                Some(t) => t,
-                None => dray_net::Token::generate()?,
-            };
-            let dir = secrets_dir()?;
-            let file = crate::net_flags::write_token_file(dir.path(), "cluster.token", &token)?;
-            (Some(dir), file)
-        }
+    Ok(())
+}
+
+/// The members' cluster token file: the one given, or one made for this run in a
+/// directory private to it (see `secrets_dir`), removed when the returned guard drops.
+fn token_file(a: &ClusterArgs) -> Result<(Option<tempfile::TempDir>, PathBuf)> {
+    if let Some(f) = &a.cluster_token.cluster_token_file {
+        return Ok((None, f.clone()));
+    }
+    let token = match a.cluster_token.token()? {
+        Some(t) => t,
+        None => dray_net::Token::generate()?,
     };
+    let dir = secrets_dir()?;
+    let file = crate::net_flags::write_token_file(dir.path(), "cluster.token", &token)?;
+    Ok((Some(dir), file))
+}
+
+/// `--flag value` for each flag that is set.
+fn push_flags(args: &mut Vec<String>, flags: &[(&str, Option<String>)]) {
+    for (flag, value) in flags {
+        if let Some(v) = value {
+            args.push((*flag).to_string());
+            args.push(v.clone());
+        }
+    }
+}
+
+/// The coordinator's command line.
+fn coordinator_args(a: &ClusterArgs, addr: SocketAddr, shared: &[String]) -> Vec<String> {
+    let mut args = vec![
+        "coordinator".to_string(),
+        "--listen".to_string(),
+        addr.to_string(),
+    ];
+    let path = |p: &Option<PathBuf>| p.as_ref().map(|p| p.display().to_string());
+    push_flags(
+        &mut args,
+        &[
+            ("--scene-root", path(&a.scene_root)),
+            ("--work-dir", path(&a.work_dir)),
+            (
+                "--max-running-jobs",
+                a.max_running_jobs.map(|n| n.to_string()),
+            ),
+            (
+                "--heartbeat-interval-ms",
+                a.heartbeat_interval_ms.map(|n| n.to_string()),
+            ),
+            (
+                "--heartbeat-timeout-ms",
+                a.heartbeat_timeout_ms.map(|n| n.to_string()),
+            ),
+            ("--auth-token-file", path(&a.api_token.auth_token_file)),
+            ("--http-listen", a.http_listen.map(|h| h.to_string())),
+        ],
+    );
+    args.extend(shared.iter().cloned());
+    args
+}
+
+/// Worker `name`'s command line.
+fn worker_args(
+    a: &ClusterArgs,
+    name: &str,
+    coordinator_url: &str,
+    addr: SocketAddr,
+    shared: &[String],
+) -> Vec<String> {
+    let mut args = vec![
+        "worker".to_string(),
+        "--coordinator".to_string(),
+        coordinator_url.to_string(),
+        "--listen".to_string(),
+        addr.to_string(),
+        "--name".to_string(),
+        name.to_string(),
+    ];
+    push_flags(
+        &mut args,
+        &[
+            ("--memory-budget", a.memory_budget.map(|b| b.to_string())),
+            ("--load-delay-ms", a.load_delay_ms.map(|n| n.to_string())),
+            ("--threads", a.threads.map(|n| n.to_string())),
+            (
+                "--fetch-packages",
+                a.fetch_packages.map(|m| m.name().to_string()),
+            ),
+            (
+                "--package-cache",
+                a.package_cache
+                    .as_ref()
+                    .map(|d| d.join(name).display().to_string()),
+            ),
+            (
+                "--trace-dir",
+                a.trace_dir.as_ref().map(|d| d.display().to_string()),
+            ),
+        ],
+    );
+    args.extend(shared.iter().cloned());
+    args
+}
+
+/// How a wait of the starting cluster ended, when it did not fail.
+enum Started {
+    Done,
+    /// A signal came: the caller stops (the members are stopped when `Cluster` drops).
+    Signalled,
+}
+
+impl Cluster {
+    /// Wait until the coordinator, started on a port of its choosing, names it.
+    async fn coordinator_port(
+        &mut self,
+        signals: &mut Signals,
+        tick: &mut tokio::time::Interval,
+        start: Instant,
+    ) -> Result<Started> {
+        while self.members[0].addr.port() == 0 {
+            tokio::select! {
+                why = signals.next() => {
+                    eprintln!("dray cluster: {why} while starting; stopping");
+                    return Ok(Started::Signalled);
+                }
+                _ = tick.tick() => {}
+            }
+            self.take_announced(false);
+            if let Some((_, name, status)) = self.exited() {
+                bail!("{name} exited while starting ({status}); stopped the others");
+            }
+            if start.elapsed() > READY_TIMEOUT {
+                bail!("the coordinator did not name its port within {READY_TIMEOUT:?}; stopped it");
+            }
+        }
+        Ok(Started::Done)
+    }
+
+    /// Wait until every member answers its health check.
+    async fn all_ready(
+        &mut self,
+        signals: &mut Signals,
+        tick: &mut tokio::time::Interval,
+        start: Instant,
+        net: &dray_net::ClientOptions,
+    ) -> Result<Started> {
+        while self.members.iter().any(|m| !m.ready) {
+            tokio::select! {
+                why = signals.next() => {
+                    eprintln!("dray cluster: {why} while starting; stopping");
+                    return Ok(Started::Signalled);
+                }
+                _ = tick.tick() => {}
+            }
+            if let Some((_, name, status)) = self.exited() {
+                bail!("{name} exited while starting ({status}); stopped the others");
+            }
+            if start.elapsed() > READY_TIMEOUT {
+                let waiting: Vec<&str> = self
+                    .members
+                    .iter()
+                    .filter(|m| !m.ready)
+                    .map(|m| m.name.as_str())
+                    .collect();
+                bail!(
+                    "not ready after {:?}: {}; stopped them all",
+                    READY_TIMEOUT,
+                    waiting.join(", ")
+                );
+            }
+            self.take_announced(false);
+            for (i, m) in self.members.iter_mut().enumerate() {
+                if !m.ready && m.addr.port() != 0 {
+                    m.ready = if i == 0 {
+                        healthy(net, m.addr, "dray.v1.RenderService", false).await
+                    } else {
+                        healthy(net, m.addr, "", true).await
+                    };
+                }
+            }
+        }
+        Ok(Started::Done)
+    }
+
+    /// A worker exited: say so, and schedule its restart within the limit. The
+    /// coordinator notices it too (its stream ends) and re-traces its share; the cluster
+    /// serves on with the others.
+    fn worker_exited(&mut self, i: usize, name: &str, status: ExitStatus, restart_limit: u32) {
+        let n = self.workers_running();
+        let m = &mut self.members[i];
+        let restart = if m.restarts < restart_limit {
+            let wait = restart_backoff(m.restarts);
+            m.restart_at = Some(tokio::time::Instant::now() + wait);
+            format!(
+                " and starts it again in {} s (restart {} of {})",
+                wait.as_secs(),
+                m.restarts + 1,
+                restart_limit
+            )
+        } else if restart_limit > 0 {
+            format!(
+                " (it was started again {} times, the --restart-limit)",
+                m.restarts
+            )
+        } else {
+            String::new()
+        };
+        eprintln!(
+            "dray cluster: {name} exited: {}; the cluster keeps serving with {n} worker{}{}{restart}",
+            describe(status),
+            if n == 1 { "" } else { "s" },
+            if n == 0 {
+                " (jobs run in the coordinator's process)"
+            } else {
+                ""
+            }
+        );
+    }
+
+    /// Serve until a signal, the coordinator's exit or the parent's: restart lost
+    /// workers, take the ports they announce.
+    async fn supervise(
+        &mut self,
+        signals: &mut Signals,
+        tick: &mut tokio::time::Interval,
+        exe: &PathBuf,
+        restart_limit: u32,
+    ) -> Result<()> {
+        let parent = std::os::unix::process::parent_id();
+        loop {
+            tokio::select! {
+                why = signals.next() => {
+                    let n = self.workers_running();
+                    eprintln!(
+                        "dray cluster: {why}; stopping the coordinator and {n} worker{}",
+                        if n == 1 { "" } else { "s" }
+                    );
+                    self.stop();
+                    return Ok(());
+                }
+                _ = tick.tick() => {}
+            }
+            while let Some((i, name, status)) = self.exited() {
+                if i == 0 {
+                    self.stop();
+                    bail!("{name} exited unexpectedly ({status}); stopped the others");
+                }
+                self.worker_exited(i, &name, status, restart_limit);
+            }
+            self.restart_due(exe, restart_limit);
+            self.take_announced(true);
+            if std::os::unix::process::parent_id() != parent {
+                eprintln!("dray cluster: the parent process is gone; stopping");
+                self.stop();
+                return Ok(());
+            }
+        }
+    }
+}
+
+/// What the cluster prints once every member is ready: the members, the dashboard and
+/// how to reach the coordinator.
+fn print_ready(
+    cluster: &Cluster,
+    a: &ClusterArgs,
+    coordinator_addr: SocketAddr,
+    tls: bool,
+    api_token: bool,
+) {
+    for m in &cluster.members {
+        println!("{:<12} http://{}  pid {}", m.name, m.addr, m.child.id());
+    }
+    if let Some(http) = a.http_listen.filter(|h| h.port() != 0) {
+        println!("{:<12} http://{http}  (open it in a browser)", "dashboard");
+    }
+    println!(
+        "example: dray submit --coordinator {coordinator_addr} cornell --width 320 --height 240 --output cornell.png"
+    );
+    let grpcurl_tls = if tls { "-cacert CA.pem" } else { "-plaintext" };
+    let header = if api_token {
+        " -H \"authorization: Bearer $(cat TOKEN_FILE)\""
+    } else {
+        ""
+    };
+    println!("example: grpcurl {grpcurl_tls}{header} {coordinator_addr} list");
+    println!(
+        "dray cluster ready: 1 coordinator, {} worker{}; coordinator at {coordinator_addr}; \
+         Ctrl-C stops them all",
+        a.workers,
+        if a.workers == 1 { "" } else { "s" }
+    );
+}
+
+pub fn run(a: ClusterArgs) -> Result<()> {
+    // --base-port 0: every member on a port the system chooses.
+    let port_of = |i: u16| if a.base_port == 0 { 0 } else { a.base_port + i };
+    let worker_addrs: Vec<SocketAddr> = (1..=a.workers)
+        .map(|i| SocketAddr::from((Ipv4Addr::LOCALHOST, port_of(i))))
+        .collect();
+    check_flags(&a, &worker_addrs)?;
+    let coordinator_addr = SocketAddr::from((Ipv4Addr::LOCALHOST, port_of(0)));
+    let exe = std::env::current_exe().context("cannot find the dray executable to start")?;
+    // `_secrets` lives until `run` returns: the token's directory goes with it.
+    let (_secrets, token_file) = token_file(&a)?;
     let api_token = a.api_token.token()?;
     let net = crate::net_flags::client_options(None, &a.tls)?;
     let scheme = if net.tls() { "https" } else { "http" };
@@ -550,66 +833,21 @@ pub fn run(a: ClusterArgs) -> Result<()> {
         .context("cannot start the async runtime")?;
     rt.block_on(async move {
         let mut signals = Signals::new()?;
-        let parent = std::os::unix::process::parent_id();
         let mut cluster = Cluster {
             members: Vec::new(),
         };
-
-        let mut args = vec![
-            "coordinator".to_string(),
-            "--listen".to_string(),
-            coordinator_addr.to_string(),
-        ];
-        if let Some(root) = &a.scene_root {
-            args.push("--scene-root".into());
-            args.push(root.display().to_string());
-        }
-        if let Some(dir) = &a.work_dir {
-            args.push("--work-dir".into());
-            args.push(dir.display().to_string());
-        }
-        if let Some(n) = a.max_running_jobs {
-            args.push("--max-running-jobs".into());
-            args.push(n.to_string());
-        }
-        if let Some(ms) = a.heartbeat_interval_ms {
-            args.push("--heartbeat-interval-ms".into());
-            args.push(ms.to_string());
-        }
-        if let Some(ms) = a.heartbeat_timeout_ms {
-            args.push("--heartbeat-timeout-ms".into());
-            args.push(ms.to_string());
-        }
-        if let Some(f) = &a.api_token.auth_token_file {
-            args.push("--auth-token-file".into());
-            args.push(f.display().to_string());
-        }
-        if let Some(http) = a.http_listen {
-            args.push("--http-listen".into());
-            args.push(http.to_string());
-        }
-        args.extend(shared_args.iter().cloned());
+        let args = coordinator_args(&a, coordinator_addr, &shared_args);
         cluster
             .members
             .push(spawn(&exe, "coordinator".into(), coordinator_addr, &args)?);
         // On a port of its choosing, the coordinator names it before the workers start.
         let start = Instant::now();
         let mut tick = tokio::time::interval(POLL);
-        while cluster.members[0].addr.port() == 0 {
-            tokio::select! {
-                why = signals.next() => {
-                    eprintln!("dray cluster: {why} while starting; stopping");
-                    return Ok(());
-                }
-                _ = tick.tick() => {}
-            }
-            cluster.take_announced(false);
-            if let Some((_, name, status)) = cluster.exited() {
-                bail!("{name} exited while starting ({status}); stopped the others");
-            }
-            if start.elapsed() > READY_TIMEOUT {
-                bail!("the coordinator did not name its port within {READY_TIMEOUT:?}; stopped it");
-            }
+        if let Started::Signalled = cluster
+            .coordinator_port(&mut signals, &mut tick, start)
+            .await?
+        {
+            return Ok(());
         }
         if let Some(dir) = &a.trace_dir {
             std::fs::create_dir_all(dir)
@@ -621,163 +859,24 @@ pub fn run(a: ClusterArgs) -> Result<()> {
             // One name for the worker everywhere: these lines, the coordinator's logs,
             // ListWorkers and the dashboard; a worker started again keeps it.
             let name = format!("worker-{}", i + 1);
-            let mut args = vec![
-                "worker".to_string(),
-                "--coordinator".to_string(),
-                coordinator_url.clone(),
-                "--listen".to_string(),
-                w.to_string(),
-                "--name".to_string(),
-                name.clone(),
-            ];
-            if let Some(bytes) = a.memory_budget {
-                args.push("--memory-budget".into());
-                args.push(bytes.to_string());
-            }
-            if let Some(ms) = a.load_delay_ms {
-                args.push("--load-delay-ms".into());
-                args.push(ms.to_string());
-            }
-            if let Some(n) = a.threads {
-                args.push("--threads".into());
-                args.push(n.to_string());
-            }
-            if let Some(mode) = a.fetch_packages {
-                args.push("--fetch-packages".into());
-                args.push(mode.name().into());
-            }
-            if let Some(dir) = &a.package_cache {
-                args.push("--package-cache".into());
-                args.push(dir.join(format!("worker-{}", i + 1)).display().to_string());
-            }
-            if let Some(dir) = &a.trace_dir {
-                args.push("--trace-dir".into());
-                args.push(dir.display().to_string());
-            }
-            args.extend(shared_args.iter().cloned());
-            cluster
-                .members
-                .push(spawn(&exe, name, *w, &args)?);
+            let args = worker_args(&a, &name, &coordinator_url, *w, &shared_args);
+            cluster.members.push(spawn(&exe, name, *w, &args)?);
         }
-
-        // Wait until every member answers its health check.
-        while cluster.members.iter().any(|m| !m.ready) {
-            tokio::select! {
-                why = signals.next() => {
-                    eprintln!("dray cluster: {why} while starting; stopping");
-                    return Ok(());
-                }
-                _ = tick.tick() => {}
-            }
-            if let Some((_, name, status)) = cluster.exited() {
-                bail!("{name} exited while starting ({status}); stopped the others");
-            }
-            if start.elapsed() > READY_TIMEOUT {
-                let waiting: Vec<&str> = cluster
-                    .members
-                    .iter()
-                    .filter(|m| !m.ready)
-                    .map(|m| m.name.as_str())
-                    .collect();
-                bail!(
-                    "not ready after {:?}: {}; stopped them all",
-                    READY_TIMEOUT,
-                    waiting.join(", ")
-                );
-            }
-            cluster.take_announced(false);
-            for (i, m) in cluster.members.iter_mut().enumerate() {
-                if !m.ready && m.addr.port() != 0 {
-                    m.ready = if i == 0 {
-                        healthy(&net, m.addr, "dray.v1.RenderService", false).await
-                    } else {
-                        healthy(&net, m.addr, "", true).await
-                    };
-                }
-            }
+        if let Started::Signalled = cluster
+            .all_ready(&mut signals, &mut tick, start, &net)
+            .await?
+        {
+            return Ok(());
         }
-
-        for m in &cluster.members {
-            println!("{:<12} http://{}  pid {}", m.name, m.addr, m.child.id());
-        }
-        if let Some(http) = a.http_listen.filter(|h| h.port() != 0) {
-            println!("{:<12} http://{http}  (open it in a browser)", "dashboard");
-        }
-        println!(
-            "example: dray submit --coordinator {coordinator_addr} cornell --width 320 --height 240 --output cornell.png"
+        print_ready(
+            &cluster,
+            &a,
+            coordinator_addr,
+            net.tls(),
+            api_token.is_some(),
         );
-        let grpcurl_tls = if net.tls() { "-cacert CA.pem" } else { "-plaintext" };
-        let header = if api_token.is_some() {
-            " -H \"authorization: Bearer $(cat TOKEN_FILE)\""
-        } else {
-            ""
-        };
-        println!("example: grpcurl {grpcurl_tls}{header} {coordinator_addr} list");
-        println!(
-            "dray cluster ready: 1 coordinator, {} worker{}; coordinator at {coordinator_addr}; \
-             Ctrl-C stops them all",
-            a.workers,
-            if a.workers == 1 { "" } else { "s" }
-        );
-
-        loop {
-            tokio::select! {
-                why = signals.next() => {
-                    let n = cluster.workers_running();
-                    eprintln!(
-                        "dray cluster: {why}; stopping the coordinator and {n} worker{}",
-                        if n == 1 { "" } else { "s" }
-                    );
-                    cluster.stop();
-                    return Ok(());
-                }
-                _ = tick.tick() => {}
-            }
-            while let Some((i, name, status)) = cluster.exited() {
-                if i == 0 {
-                    cluster.stop();
-                    bail!("{name} exited unexpectedly ({status}); stopped the others");
-                }
-                // A lost worker: the coordinator notices it too (its stream ends) and
-                // re-traces its share; the cluster serves on with the others, and starts
-                // the worker again (on the same port) within the restart limit.
-                let n = cluster.workers_running();
-                let m = &mut cluster.members[i];
-                let restart = if m.restarts < a.restart_limit {
-                    let wait = restart_backoff(m.restarts);
-                    m.restart_at = Some(tokio::time::Instant::now() + wait);
-                    format!(
-                        " and starts it again in {} s (restart {} of {})",
-                        wait.as_secs(),
-                        m.restarts + 1,
-                        a.restart_limit
-                    )
-                } else if a.restart_limit > 0 {
-                    format!(
-                        " (it was started again {} times, the --restart-limit)",
-                        m.restarts
-                    )
-                } else {
-                    String::new()
-                };
-                eprintln!(
-                    "dray cluster: {name} exited: {}; the cluster keeps serving with {n} worker{}{}{restart}",
-                    describe(status),
-                    if n == 1 { "" } else { "s" },
-                    if n == 0 {
-                        " (jobs run in the coordinator's process)"
-                    } else {
-                        ""
-                    }
-                );
-            }
-            cluster.restart_due(&exe, a.restart_limit);
-            cluster.take_announced(true);
-            if std::os::unix::process::parent_id() != parent {
-                eprintln!("dray cluster: the parent process is gone; stopping");
-                cluster.stop();
-                return Ok(());
-            }
-        }
+        cluster
+            .supervise(&mut signals, &mut tick, &exe, a.restart_limit)
+            .await
     })
 }
