@@ -398,102 +398,107 @@ fn shell_line(words: &[String]) -> String {
 
 /// Render the plan and write the results; on a failed render, what was measured so far is
 /// still written before the error is returned.
-fn sweep(
-    plan: &Plan,
-    out: &Path,
-    target: &Target,
-    net: &dray_net::ClientOptions,
-    quiet: bool,
-    rounds: Rounds,
-) -> Result<()> {
-    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
-    let show = !quiet && std::io::stderr().is_terminal();
-    let total = plan.settings.len() + 1;
-    let mut renderer = Renderer::new(plan, target, net)?;
-    let label = |i: usize, s: &Setting| format!("[{}/{total}] {}", i + 1, s.name);
+/// One row of the results: setting `s` rendered as `o`, with its errors against the
+/// exact image.
+fn row(s: &Setting, o: &Output, errors: metrics::Errors) -> Row {
+    Row {
+        setting: s.name.clone(),
+        values: s.values.clone(),
+        wall_s: o.wall_s,
+        render_s: o.render_s,
+        cpu_s: o.cpu_s,
+        bytes_total: o.bytes_total(),
+        stats: o.stats.clone(),
+        errors,
+        image: s.file.clone(),
+        args: shell_line(&s.tokens),
+    }
+}
 
-    if rounds.warmup {
-        let png = out.join(format!("warmup-{}", plan.exact.file));
-        let o = renderer
-            .render(&plan.exact, &png, "warm-up (exact, not measured)", show)
+/// What the sweep's loop shares: the renderer, where images go, how to label a render.
+struct Sweeper<'a> {
+    renderer: Renderer,
+    out: &'a Path,
+    total: usize,
+    show: bool,
+    quiet: bool,
+}
+
+impl Sweeper<'_> {
+    fn label(&self, i: usize, s: &Setting) -> String {
+        format!("[{}/{}] {}", i + 1, self.total, s.name)
+    }
+
+    /// The exact render once, not measured, so that the first measured render does not
+    /// pay for cold caches and loads.
+    fn warm_up(&mut self, exact: &Setting) -> Result<()> {
+        let png = self.out.join(format!("warmup-{}", exact.file));
+        let o = self
+            .renderer
+            .render(exact, &png, "warm-up (exact, not measured)", self.show)
             .context("the warm-up render")?;
         let _ = std::fs::remove_file(&png);
-        if !quiet {
+        if !self.quiet {
             eprintln!(
                 "dray sweep: warm-up (exact, not measured): wall {:.3} s",
                 o.wall_s
             );
         }
+        Ok(())
     }
 
-    let exact = renderer
-        .render(
-            &plan.exact,
-            &out.join(&plan.exact.file),
-            &label(0, &plan.exact),
-            show,
-        )
-        .context("the exact render")?;
-    if !quiet {
-        eprintln!(
-            "dray sweep: {}: wall {:.3} s",
-            label(0, &plan.exact),
-            exact.wall_s
-        );
-    }
-    let mut rows = vec![Row {
-        setting: plan.exact.name.clone(),
-        values: plan.exact.values.clone(),
-        wall_s: exact.wall_s,
-        render_s: exact.render_s,
-        cpu_s: exact.cpu_s,
-        bytes_total: exact.bytes_total(),
-        errors: metrics::compare(&exact.picture, &exact.picture)?,
-        stats: exact.stats,
-        image: plan.exact.file.clone(),
-        args: shell_line(&plan.exact.tokens),
-    }];
-    let mut failure = None;
-    for (i, s) in plan.settings.iter().enumerate() {
-        let result = renderer
-            .render(s, &out.join(&s.file), &label(i + 1, s), show)
-            .and_then(|o| {
-                let errors = metrics::compare(&exact.picture, &o.picture)?;
-                Ok((o, errors))
-            });
-        let (o, errors) = match result {
-            Ok(r) => r,
-            Err(e) => {
-                failure = Some(e.context(format!("setting {}", s.name)));
-                break;
-            }
-        };
-        if !quiet {
-            eprintln!(
-                "dray sweep: {}: wall {:.3} s ({:.2}x), rmse {:.5}, flip {:.5}",
-                label(i + 1, s),
-                o.wall_s,
-                report::speedup(exact.wall_s, o.wall_s),
-                errors.rmse,
-                errors.flip
-            );
+    /// The first round: the exact render, then every setting against it. A failed
+    /// setting ends the round; the rows before it are kept and the error returned beside
+    /// them.
+    fn first_round(&mut self, plan: &Plan) -> Result<(Vec<Row>, Option<anyhow::Error>)> {
+        let label = self.label(0, &plan.exact);
+        let exact = self
+            .renderer
+            .render(
+                &plan.exact,
+                &self.out.join(&plan.exact.file),
+                &label,
+                self.show,
+            )
+            .context("the exact render")?;
+        if !self.quiet {
+            eprintln!("dray sweep: {label}: wall {:.3} s", exact.wall_s);
         }
-        rows.push(Row {
-            setting: s.name.clone(),
-            values: s.values.clone(),
-            wall_s: o.wall_s,
-            render_s: o.render_s,
-            cpu_s: o.cpu_s,
-            bytes_total: o.bytes_total(),
-            stats: o.stats,
-            errors,
-            image: s.file.clone(),
-            args: shell_line(&s.tokens),
-        });
+        let mut rows = vec![row(
+            &plan.exact,
+            &exact,
+            metrics::compare(&exact.picture, &exact.picture)?,
+        )];
+        for (i, s) in plan.settings.iter().enumerate() {
+            let label = self.label(i + 1, s);
+            let result = self
+                .renderer
+                .render(s, &self.out.join(&s.file), &label, self.show)
+                .and_then(|o| {
+                    let errors = metrics::compare(&exact.picture, &o.picture)?;
+                    Ok((o, errors))
+                });
+            let (o, errors) = match result {
+                Ok(r) => r,
+                Err(e) => return Ok((rows, Some(e.context(format!("setting {}", s.name))))),
+            };
+            if !self.quiet {
+                eprintln!(
+                    "dray sweep: {label}: wall {:.3} s ({:.2}x), rmse {:.5}, flip {:.5}",
+                    o.wall_s,
+                    report::speedup(exact.wall_s, o.wall_s),
+                    errors.rmse,
+                    errors.flip
+                );
+            }
+            rows.push(row(s, &o, errors));
+        }
+        Ok((rows, None))
     }
 
-    // More rounds, interleaved, for the times only.
-    if failure.is_none() && rounds.repeat > 1 {
+    /// More rounds, interleaved, for the times only: each row's times become the
+    /// medians over the rounds, its bytes too (rounded: counts are whole).
+    fn more_rounds(&mut self, plan: &Plan, rows: &mut [Row], repeat: u32) -> Option<anyhow::Error> {
         let mut walls: Vec<Vec<f64>> = rows.iter().map(|r| vec![r.wall_s]).collect();
         let mut renders: Vec<Vec<f64>> = rows.iter().map(|r| vec![r.render_s]).collect();
         let mut cpus: Vec<Vec<f64>> = rows.iter().map(|r| vec![r.cpu_s]).collect();
@@ -501,17 +506,18 @@ fn sweep(
         let all: Vec<&Setting> = std::iter::once(&plan.exact)
             .chain(plan.settings.iter())
             .collect();
-        'rounds: for round in 2..=rounds.repeat {
+        let mut failure = None;
+        'rounds: for round in 2..=repeat {
             for (i, s) in all.iter().enumerate() {
-                let png = out.join(format!("round-{}", s.file));
-                let what = format!("{} (round {round}/{})", label(i, s), rounds.repeat);
-                match renderer.render(s, &png, &what, show) {
+                let png = self.out.join(format!("round-{}", s.file));
+                let what = format!("{} (round {round}/{repeat})", self.label(i, s));
+                match self.renderer.render(s, &png, &what, self.show) {
                     Ok(o) => {
                         walls[i].push(o.wall_s);
                         renders[i].push(o.render_s);
                         cpus[i].push(o.cpu_s);
                         bytes[i].push(o.bytes_total() as f64);
-                        if !quiet {
+                        if !self.quiet {
                             eprintln!("dray sweep: {what}: wall {:.3} s", o.wall_s);
                         }
                     }
@@ -527,11 +533,19 @@ fn sweep(
             row.wall_s = median(&mut walls[i]);
             row.render_s = median(&mut renders[i]);
             row.cpu_s = median(&mut cpus[i]);
-            // Counts are whole; a median of an even number of rounds is rounded.
             row.bytes_total = median(&mut bytes[i]).round() as u64;
         }
+        failure
     }
+}
 
+/// results.csv, table.md and pareto.png in `out`; their paths.
+fn write_results(
+    plan: &Plan,
+    out: &Path,
+    rows: &[Row],
+    repeat: u32,
+) -> Result<[std::path::PathBuf; 3]> {
     let names: Vec<String> = rows.iter().map(|r| r.setting.clone()).collect();
     let points: Vec<Point> = rows
         .iter()
@@ -545,19 +559,13 @@ fn sweep(
     let front = pareto::front(&points);
     let keys: Vec<String> = plan.varies.iter().map(|v| v.name.clone()).collect();
     let csv = out.join("results.csv");
-    std::fs::write(&csv, report::csv(&keys, &rows, &front))
+    std::fs::write(&csv, report::csv(&keys, rows, &front))
         .with_context(|| format!("cannot write {}", csv.display()))?;
     let table = out.join("table.md");
     let base = shell_line(&plan.base);
     std::fs::write(
         &table,
-        report::table(
-            &plan.exact.job.flags().scene,
-            &base,
-            &rows,
-            &front,
-            rounds.repeat,
-        ),
+        report::table(&plan.exact.job.flags().scene, &base, rows, &front, repeat),
     )
     .with_context(|| format!("cannot write {}", table.display()))?;
     let font = pareto::find_font();
@@ -569,6 +577,33 @@ fn sweep(
     }
     let plot = out.join("pareto.png");
     pareto::draw(&points, font, &plot)?;
+    Ok([csv, table, plot])
+}
+
+fn sweep(
+    plan: &Plan,
+    out: &Path,
+    target: &Target,
+    net: &dray_net::ClientOptions,
+    quiet: bool,
+    rounds: Rounds,
+) -> Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let mut sweeper = Sweeper {
+        renderer: Renderer::new(plan, target, net)?,
+        out,
+        total: plan.settings.len() + 1,
+        show: !quiet && std::io::stderr().is_terminal(),
+        quiet,
+    };
+    if rounds.warmup {
+        sweeper.warm_up(&plan.exact)?;
+    }
+    let (mut rows, mut failure) = sweeper.first_round(plan)?;
+    if failure.is_none() && rounds.repeat > 1 {
+        failure = sweeper.more_rounds(plan, &mut rows, rounds.repeat);
+    }
+    let [csv, table, plot] = write_results(plan, out, &rows, rounds.repeat)?;
     if let Some(e) = failure {
         let chain: Vec<String> = e.chain().map(|c| c.to_string()).collect();
         return Err(anyhow!(
