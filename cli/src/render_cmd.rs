@@ -342,6 +342,138 @@ pub fn run_one_with(a: &RenderArgs, warm: Option<&mut crate::warm::WarmProcess>)
     Ok(())
 }
 
+/// The scene of `a`, moved by `--translate` when given.
+fn load_scene(a: &RenderArgs, translate: Option<glam::Vec3>) -> Result<Scene> {
+    let time = a.job.anim.moment();
+    let mut scene = dray_scene::load_at(&a.job.scene, time.as_ref())
+        .with_context(|| format!("cannot load scene {:?}", a.job.scene))?;
+    if let Some(t) = translate {
+        dray_scene::translate::translate(&mut scene, t)
+            .with_context(|| format!("--translate {}", a.job.translate.as_deref().unwrap_or("")))?;
+    }
+    Ok(scene)
+}
+
+/// The lights as the coordinator resolves them from the spec, so `--workers 0` and
+/// workers render the same lights; an environment map is read from here (no scene
+/// root; with workers the in-process coordinator reads it again for them, docs/lights.md).
+fn resolve_lighting(a: &RenderArgs) -> Result<dray_core::lighting::Lighting> {
+    let mut lighting_spec = a.job.lights.lighting_spec();
+    let mut sun_color = a.job.lights.sun_color_spec();
+    let flag_err =
+        |e: tonic::Status| anyhow::anyhow!("{}", crate::light_flags::flag_error(e.message()));
+    let mut lighting =
+        dray_coordinator::lighting::check_lighting(&mut lighting_spec, &mut sun_color)
+            .map_err(flag_err)?;
+    if let Some(e) = lighting_spec.as_ref().and_then(|l| l.env_map.as_ref()) {
+        let loaded = dray_coordinator::lighting::load_env_map(
+            e,
+            std::path::Path::new(&e.path),
+            "lighting.env_map.path",
+        )
+        .map_err(flag_err)?;
+        lighting.env_map = Some(loaded.map);
+    }
+    Ok(lighting)
+}
+
+/// The camera `--camera` picks (or the default), then the view flags, checked and
+/// resolved by the coordinator's code as a submitted job's.
+fn resolve_camera(
+    a: &RenderArgs,
+    scene: &Scene,
+    translate: Option<glam::Vec3>,
+) -> Result<dray_core::camera::Camera> {
+    let aspect = a.job.width as f32 / a.job.height as f32;
+    let camera = choose_camera(scene, a.job.camera.as_deref(), aspect)?;
+    let Some(v) = a.job.view.spec()? else {
+        return Ok(camera);
+    };
+    let status = |e: tonic::Status| anyhow::anyhow!("{}", e.message());
+    dray_coordinator::view::check(&v, a.job.camera.as_deref()).map_err(status)?;
+    let offset = translate.unwrap_or(glam::Vec3::ZERO);
+    Ok(
+        dray_coordinator::view::resolve(&v, &camera, scene.bounds(), aspect, offset)
+            .map_err(status)?
+            .1,
+    )
+}
+
+/// A finished render, from the actors or from this thread pool, with what the summary
+/// says of how it ran.
+struct Traced {
+    out: RenderOutput,
+    domains: u32,
+    scheduling: Scheduling,
+    walls: (Option<RayCacheSummary>, Option<PhmSummary>),
+    /// BVH build time; with workers, their domain loads (read plus build) summed.
+    build_time: std::time::Duration,
+    build_summed: bool,
+}
+
+/// `a` on in-process actors (the ones `warm` keeps, when given). The scene goes to the
+/// in-process coordinator as it is (translated), so it is not loaded twice; the
+/// coordinator repeats the checks `render_with` made.
+fn trace_on_actors(
+    a: &RenderArgs,
+    scene: Scene,
+    progress: &(dyn Fn(usize, usize) + Sync),
+    warm: Option<&mut crate::warm::WarmProcess>,
+) -> Result<Traced> {
+    let _span = tracing::info_span!("job", scene = %a.job.scene, workers = a.workers).entered();
+    let r = match warm {
+        Some(_) if a.trace_out.is_some() => {
+            bail!("--trace-out records one render: `dray render`, not `dray sweep`")
+        }
+        Some(w) => w.actors(a)?.render(a, scene, progress)?,
+        None => crate::embedded::render_on_actors(a, a.workers, scene, progress)?,
+    };
+    Ok(Traced {
+        domains: r.stats.domains,
+        scheduling: Scheduling::of(&r.stats),
+        walls: (RayCacheSummary::of(&r.stats), PhmSummary::of(&r.stats)),
+        build_time: std::time::Duration::from_secs_f64(r.stats.domain_load_seconds.max(0.0)),
+        build_summed: true,
+        out: r.out,
+    })
+}
+
+/// `a` on the reference renderer, in this process's thread pool.
+fn trace_here(
+    a: &RenderArgs,
+    scene: &Scene,
+    camera: dray_core::camera::Camera,
+    settings: &RenderSettings,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<Traced> {
+    let _span = tracing::info_span!("job", scene = %a.job.scene).entered();
+    let domains = a.domains.unwrap_or(1);
+    let build_start = Instant::now();
+    let geometry = build_geometry(scene, domains, &a.layout)?;
+    let build_time = build_start.elapsed();
+    let integrator = Integrator::new(scene, camera, settings.clone());
+    let passes = a.job.local_passes().ranges(a.job.spp);
+    let out = render::render_passes(
+        &integrator,
+        geometry.as_ref(),
+        a.threads,
+        &passes,
+        a.job.noise.noise_threshold,
+        &|done, total| progress(done, total),
+        &|_, _| {},
+        &std::sync::atomic::AtomicBool::new(false),
+    )
+    .context("cannot start the thread pool")?;
+    Ok(Traced {
+        out,
+        domains,
+        scheduling: Scheduling::none(),
+        walls: (None, None),
+        build_time,
+        build_summed: false,
+    })
+}
+
 /// Render `a` as `dray render` does (reference renderer or in-process actors), writing
 /// nothing and printing nothing; `progress` gets (tiles done, total). The scene and the
 /// in-process actors come from `warm` when given (and are left there for the next
@@ -367,66 +499,22 @@ pub fn render_with(
         .transpose()?;
 
     a.job.anim.check()?;
-    let time = a.job.anim.moment();
-    let load = || -> Result<Scene> {
-        let mut scene = dray_scene::load_at(&a.job.scene, time.as_ref())
-            .with_context(|| format!("cannot load scene {:?}", a.job.scene))?;
-        if let Some(t) = translate {
-            dray_scene::translate::translate(&mut scene, t).with_context(|| {
-                format!("--translate {}", a.job.translate.as_deref().unwrap_or(""))
-            })?;
-        }
-        Ok(scene)
-    };
     let scene = match warm.as_deref_mut() {
-        Some(w) => w.scene(a, load)?,
-        None => load()?,
+        Some(w) => w.scene(a, || load_scene(a, translate))?,
+        None => load_scene(a, translate)?,
     };
     for w in &scene.stats.warnings {
         tracing::warn!("{w}");
     }
     let load_time = start.elapsed();
-    // The lights as the coordinator resolves them from the spec, so `--workers 0` and
-    // workers render the same lights.
-    let mut lighting_spec = a.job.lights.lighting_spec();
-    let mut sun_color = a.job.lights.sun_color_spec();
-    let flag_err =
-        |e: tonic::Status| anyhow::anyhow!("{}", crate::light_flags::flag_error(e.message()));
-    let mut lighting =
-        dray_coordinator::lighting::check_lighting(&mut lighting_spec, &mut sun_color)
-            .map_err(flag_err)?;
-    // The map is read from here (no scene root); with workers the in-process
-    // coordinator reads it again for them (docs/lights.md).
-    if let Some(e) = lighting_spec.as_ref().and_then(|l| l.env_map.as_ref()) {
-        let loaded = dray_coordinator::lighting::load_env_map(
-            e,
-            std::path::Path::new(&e.path),
-            "lighting.env_map.path",
-        )
-        .map_err(flag_err)?;
-        lighting.env_map = Some(loaded.map);
-    }
+    let lighting = resolve_lighting(a)?;
     let environment =
         env_arg.unwrap_or_else(|| dray_scene::effects::default_environment_lit(&scene, &lighting));
     let mut effects = dray_scene::effects::analyze_lit(&scene, environment, &lighting);
     if let Some(spec) = &a.job.effects {
         effects = apply_effects(effects, spec)?;
     }
-    let aspect = a.job.width as f32 / a.job.height as f32;
-    let camera = choose_camera(&scene, a.job.camera.as_deref(), aspect)?;
-    // The view is checked and resolved by the coordinator's code, as a submitted job's.
-    let camera = match a.job.view.spec()? {
-        Some(v) => {
-            let status = |e: tonic::Status| anyhow::anyhow!("{}", e.message());
-            dray_coordinator::view::check(&v, a.job.camera.as_deref()).map_err(status)?;
-            let offset = translate.unwrap_or(glam::Vec3::ZERO);
-            dray_coordinator::view::resolve(&v, &camera, scene.bounds(), aspect, offset)
-                .map_err(status)?
-                .1
-        }
-        None => camera,
-    };
-
+    let camera = resolve_camera(a, &scene, translate)?;
     let settings = RenderSettings {
         width: a.job.width,
         height: a.job.height,
@@ -443,56 +531,12 @@ pub fn render_with(
         aovs: a.job.noise.aovs()?,
     };
     let facts = SceneFacts::of(&scene);
-    let build_time: std::time::Duration;
-    let build_summed: bool;
-    let (out, domains, scheduling, walls): (
-        RenderOutput,
-        u32,
-        Scheduling,
-        (Option<RayCacheSummary>, Option<PhmSummary>),
-    ) = if a.workers > 0 {
-        let _span = tracing::info_span!("job", scene = %a.job.scene, workers = a.workers).entered();
-        // The scene goes to the in-process coordinator as it is (translated), so it is
-        // not loaded twice; the coordinator repeats the checks made above.
-        let r = match warm {
-            Some(_) if a.trace_out.is_some() => {
-                bail!("--trace-out records one render: `dray render`, not `dray sweep`")
-            }
-            Some(w) => w.actors(a)?.render(a, scene, progress)?,
-            None => crate::embedded::render_on_actors(a, a.workers, scene, progress)?,
-        };
-        // The workers build the BVHs as they load their domains: their load time (read
-        // plus build, summed over workers) is the build time here.
-        build_time = std::time::Duration::from_secs_f64(r.stats.domain_load_seconds.max(0.0));
-        build_summed = true;
-        (
-            r.out,
-            r.stats.domains,
-            Scheduling::of(&r.stats),
-            (RayCacheSummary::of(&r.stats), PhmSummary::of(&r.stats)),
-        )
+    let traced = if a.workers > 0 {
+        trace_on_actors(a, scene, progress, warm)?
     } else {
-        let _span = tracing::info_span!("job", scene = %a.job.scene).entered();
-        let domains = a.domains.unwrap_or(1);
-        let build_start = Instant::now();
-        let geometry = build_geometry(&scene, domains, &a.layout)?;
-        build_time = build_start.elapsed();
-        build_summed = false;
-        let integrator = Integrator::new(&scene, camera, settings.clone());
-        let passes = a.job.local_passes().ranges(a.job.spp);
-        let out = render::render_passes(
-            &integrator,
-            geometry.as_ref(),
-            a.threads,
-            &passes,
-            a.job.noise.noise_threshold,
-            &|done, total| progress(done, total),
-            &|_, _| {},
-            &std::sync::atomic::AtomicBool::new(false),
-        )
-        .context("cannot start the thread pool")?;
-        (out, domains, Scheduling::none(), (None, None))
+        trace_here(a, &scene, camera, &settings, progress)?
     };
+    let out = traced.out;
     let threads = if a.threads == 0 {
         rayon::current_num_threads()
     } else {
@@ -505,11 +549,11 @@ pub fn render_with(
         &out,
         threads,
         load_time,
-        build_time,
+        traced.build_time,
         start.elapsed(),
     );
-    summary.domains = domains;
-    summary.build_summed_over_workers = build_summed;
+    summary.domains = traced.domains;
+    summary.build_summed_over_workers = traced.build_summed;
     // Counted by the tile renderer, and by the workers (JobStats.clamped).
     summary.clamped_contributions = Some(out.film.clamped);
     // Counted by the tile renderer, and by the workers (JobStats.clamped_indirect).
@@ -517,8 +561,8 @@ pub fn render_with(
     // Read from the film's per-pixel counts, the same bits on every configuration.
     let saved = dray_core::adaptive::Saved::of(&out.film, a.job.spp);
     (summary.tiles_stopped, summary.samples_saved) = (saved.tiles_stopped, saved.samples_saved);
-    summary.scheduling = scheduling;
-    (summary.ray_cache, summary.phm) = walls;
+    summary.scheduling = traced.scheduling;
+    (summary.ray_cache, summary.phm) = traced.walls;
     Ok(Rendered {
         film: out.film,
         summary,
