@@ -71,7 +71,7 @@ use super::manifest::{
     domain_file_name,
 };
 use super::{
-    DEFAULT_SAMPLE_CAPACITY, DomainBuilder, DomainMesh, SourceTriangle, TriangleLookup,
+    DEFAULT_SAMPLE_CAPACITY, DomainBuilder, DomainMesh, SourceTriangle, Survey, TriangleLookup,
     TriangleSource, survey, unassigned_error,
 };
 use crate::error::{Result, SceneError};
@@ -321,25 +321,16 @@ pub fn write_scene_package_with(
     write_package(dir, SceneParts::of(scene), scene, spec, &options)
 }
 
-/// Partition `source` by `spec` and write the package to `dir`.
-///
-/// `dir` is created if needed; an existing package there is replaced, but a directory
-/// holding anything else is refused (so a typo cannot clobber a home directory). The old
-/// manifest is removed first and the new one written last (atomically, by rename), so an
-/// interrupted write never leaves a package that opens.
-pub fn write_package(
+/// Pass 1: bounds, material use and the centroid sample; the layout (the one given
+/// when it fits these bounds). Refuses a scene with no triangles, too many, or
+/// triangles whose material the scene lacks.
+fn first_pass(
     dir: &Path,
-    parts: SceneParts<'_>,
+    parts: &SceneParts<'_>,
     source: &dyn TriangleSource,
     spec: &LayoutSpec,
     options: &WriteOptions,
-) -> Result<PackageSummary> {
-    let start = Instant::now();
-    let _span = tracing::info_span!("write_package", dir = %dir.display()).entered();
-    spec.check().map_err(|m| format_error(dir, m))?;
-    prepare_dir(dir)?;
-
-    // Pass 1: bounds, material use and the centroid sample.
+) -> Result<(Survey, DomainLayout)> {
     let capacity = if spec.needs_centroids() {
         options.sample_capacity
     } else {
@@ -369,26 +360,40 @@ pub fn write_package(
     };
     drop(std::mem::take(&mut s.centroids));
     tracing::info!(%layout, triangles = s.triangles, "pass 1 done");
+    Ok((s, layout))
+}
 
-    let mut cleanup = SpillCleanup {
-        paths: (0..layout.domain_count())
-            .map(|d| dir.join(spill_file_name(d)))
-            .collect(),
-    };
+/// What pass 2 leaves: every domain's spill file (flushed), the emitting triangles
+/// (kept in memory: they are lights, few next to the scene) and the spills' format.
+struct Spilled<'a> {
+    spills: Vec<Spill>,
+    emitters: DomainBuilder,
+    format: SpillFormat<'a>,
+}
 
-    // Pass 2: every triangle to the spill buffers of its domains.
+/// Pass 2: every triangle to the spill buffers of its domains (at `paths`), a buffer
+/// flushed when full. Refuses a source that changed since pass 1.
+fn second_pass<'a>(
+    dir: &Path,
+    parts: &SceneParts<'_>,
+    source: &'a dyn TriangleSource,
+    layout: &DomainLayout,
+    triangles: u64,
+    paths: &[PathBuf],
+    buffer_bytes: usize,
+) -> Result<Spilled<'a>> {
     let domain_count = layout.domain_count() as usize;
-    let per_domain = (options.buffer_bytes / domain_count).clamp(4096, 1 << 20);
-    let colors = source.has_colors();
-    let uvs2 = source.has_uvs2();
+    let per_domain = (buffer_bytes / domain_count).clamp(4096, 1 << 20);
     let format = match source.lookup() {
         Some(lookup) => SpillFormat::Ids(lookup),
-        None => SpillFormat::Records { colors, uvs2 },
+        None => SpillFormat::Records {
+            colors: source.has_colors(),
+            uvs2: source.has_uvs2(),
+        },
     };
     let record_len = format.bytes();
     let per_domain = per_domain.div_ceil(record_len) * record_len;
-    let mut spills: Vec<Spill> = cleanup
-        .paths
+    let mut spills: Vec<Spill> = paths
         .iter()
         .map(|p| Spill {
             path: p.clone(),
@@ -398,18 +403,17 @@ pub fn write_package(
         .collect();
     let mut seen = 0u64;
     let mut domains = Vec::new();
-    // Emitters are few next to the scene (they are lights), so they are kept in memory.
     let mut emitters = DomainBuilder::new();
     let mut record = Vec::with_capacity(record_len);
     source.for_each_triangle(&mut |t| {
         crate::cancel::check_at(seen as usize)?;
         seen += 1;
-        if seen > s.triangles || t.id as u64 >= s.triangles {
+        if seen > triangles || t.id as u64 >= triangles {
             return Err(format_error(
                 dir,
                 format!(
                     "the source changed between passes (triangle id {} of {})",
-                    t.id, s.triangles
+                    t.id, triangles
                 ),
             ));
         }
@@ -440,13 +444,10 @@ pub fn write_package(
         }
         Ok(())
     })?;
-    if seen != s.triangles {
+    if seen != triangles {
         return Err(format_error(
             dir,
-            format!(
-                "the source changed between passes ({} triangles, then {seen})",
-                s.triangles
-            ),
+            format!("the source changed between passes ({triangles} triangles, then {seen})"),
         ));
     }
     for spill in &mut spills {
@@ -454,15 +455,79 @@ pub fn write_package(
         spill.buf = Vec::new();
     }
     tracing::info!("pass 2 done");
+    Ok(Spilled {
+        spills,
+        emitters,
+        format,
+    })
+}
+
+/// Write the manifest last, atomically (a temporary file renamed), after checking that
+/// what we write we can read; its length in bytes.
+fn write_manifest(dir: &Path, m: &Manifest) -> Result<u64> {
+    m.check()
+        .map_err(|e| format_error(dir, format!("internal error: inconsistent manifest: {e}")))?;
+    let text = manifest::encode(m)
+        .map_err(|e| format_error(dir, format!("cannot encode the manifest: {e}")))?;
+    let tmp = dir.join(format!("{MANIFEST_FILE}.tmp"));
+    // No write follows a symlink planted in the package directory (see private_fs).
+    crate::private_fs::create_truncate(&tmp)
+        .and_then(|mut f| f.write_all(text.as_bytes()))
+        .map_err(io_error(&tmp))?;
+    let final_path = dir.join(MANIFEST_FILE);
+    fs::rename(&tmp, &final_path).map_err(io_error(&final_path))?;
+    Ok(text.len() as u64)
+}
+
+/// Partition `source` by `spec` and write the package to `dir`.
+///
+/// `dir` is created if needed; an existing package there is replaced, but a directory
+/// holding anything else is refused (so a typo cannot clobber a home directory). The old
+/// manifest is removed first and the new one written last (atomically, by rename), so an
+/// interrupted write never leaves a package that opens.
+pub fn write_package(
+    dir: &Path,
+    parts: SceneParts<'_>,
+    source: &dyn TriangleSource,
+    spec: &LayoutSpec,
+    options: &WriteOptions,
+) -> Result<PackageSummary> {
+    let start = Instant::now();
+    let _span = tracing::info_span!("write_package", dir = %dir.display()).entered();
+    spec.check().map_err(|m| format_error(dir, m))?;
+    prepare_dir(dir)?;
+    let (s, layout) = first_pass(dir, &parts, source, spec, options)?;
+    let mut cleanup = SpillCleanup {
+        paths: (0..layout.domain_count())
+            .map(|d| dir.join(spill_file_name(d)))
+            .collect(),
+    };
+    let spilled = second_pass(
+        dir,
+        &parts,
+        source,
+        &layout,
+        s.triangles,
+        &cleanup.paths,
+        options.buffer_bytes,
+    )?;
 
     // Compact each domain into its file, a few at a time.
     crate::cancel::check()?;
-    let entries = finalize_domains(dir, &spills, &layout, options.threads, format)?;
+    let entries = finalize_domains(
+        dir,
+        &spilled.spills,
+        &layout,
+        options.threads,
+        spilled.format,
+    )?;
     cleanup.paths.clear();
     tracing::info!("domain files written");
 
-    let emitters = if emitters.triangle_count() > 0 {
-        let mesh = emitters.finish(EMITTERS_DOMAIN, layout.scene_bounds());
+    let emitters = if spilled.emitters.triangle_count() > 0 {
+        let mesh = spilled
+            .emitters
+            .finish(EMITTERS_DOMAIN, layout.scene_bounds());
         let written = write_domain_file(&dir.join(EMITTERS_FILE), &mesh)?;
         Some(written.entry(EMITTERS_FILE.to_string(), &mesh))
     } else {
@@ -496,18 +561,7 @@ pub fn write_package(
         domains: entries,
         emitters,
     };
-    // What we write, we must be able to read.
-    m.check()
-        .map_err(|e| format_error(dir, format!("internal error: inconsistent manifest: {e}")))?;
-    let text = manifest::encode(&m)
-        .map_err(|e| format_error(dir, format!("cannot encode the manifest: {e}")))?;
-    let tmp = dir.join(format!("{MANIFEST_FILE}.tmp"));
-    // No write follows a symlink planted in the package directory (see private_fs).
-    crate::private_fs::create_truncate(&tmp)
-        .and_then(|mut f| f.write_all(text.as_bytes()))
-        .map_err(io_error(&tmp))?;
-    let final_path = dir.join(MANIFEST_FILE);
-    fs::rename(&tmp, &final_path).map_err(io_error(&final_path))?;
+    let manifest_bytes = write_manifest(dir, &m)?;
 
     Ok(PackageSummary {
         domains: m.layout.domain_count(),
@@ -516,7 +570,7 @@ pub fn write_package(
         assigned_triangles: m.assigned_triangles,
         min_domain_triangles: min_domain,
         max_domain_triangles: max_domain,
-        bytes: data_bytes + text.len() as u64,
+        bytes: data_bytes + manifest_bytes,
         seconds: start.elapsed().as_secs_f64(),
     })
 }
