@@ -180,10 +180,21 @@ impl EnvMap {
         let y = p.y * h as f32 - 0.5;
         let (x0, y0) = (x.floor(), y.floor());
         let (fx, fy) = (x - x0, y - y0);
-        let left = (x0 as i64).rem_euclid(w as i64) as usize;
-        let right = (left + 1) % w;
-        let row = |j: i64| j.clamp(0, h as i64 - 1) as usize * w;
-        let (above, below) = (row(y0 as i64), row(y0 as i64 + 1));
+        // x0 is in [-1, w - 1] and y0 in [-1, h - 1] (p in [0, 1]^2): wrap and clamp
+        // by comparison, not by division (this runs on every miss and light sample).
+        let left = if x0 < 0.0 {
+            w - 1
+        } else {
+            (x0 as usize).min(w - 1)
+        };
+        let right = if left + 1 == w { 0 } else { left + 1 };
+        let above = if y0 < 0.0 {
+            0
+        } else {
+            (y0 as usize).min(h - 1)
+        };
+        let below = (above + usize::from(y0 >= 0.0)).min(h - 1);
+        let (above, below) = (above * w, below * w);
         let lerp = |a: Vec3, b: Vec3, t: f32| a + (b - a) * t;
         let px = &self.pixels;
         lerp(
