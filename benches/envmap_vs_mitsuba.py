@@ -26,11 +26,13 @@ Conventions (checked here, each by a control Mitsuba render that a wrong one wou
 - Radiance scale: both read the EXR's linear RGB as radiance, scale 1 (Mitsuba's rgb variant
   does no colour conversion). The mean linear radiance dray / Mitsuba, per region, at the
   references' spp shows a bias FLIP could hide.
-- Filtering: dray looks pixels up without filtering (piecewise constant, so its sampler is
-  exact); Mitsuba interpolates bilinearly. Seen directly (the background, magnified about 3.5
-  times here) the two differ at pixel edges; reflected by the spheres and integrated by the
-  ground they hardly do. So FLIP is reported per region: the image, the background (pixels
-  whose centre ray leaves the scene), the ground, the diffuse and the glossy sphere.
+- Filtering: both interpolate bilinearly (dray since 2026-11-30; before, it looked pixels up
+  without filtering, and the background, the map magnified about 3.5 times here, differed at
+  pixel edges). Texels are centred in u in both; in v Mitsuba puts the first and last rows at
+  the poles, dray at the rows' centres (half a row apart toward the poles, none at the
+  horizon). Reflected by the spheres and integrated by the ground such differences hardly
+  show, so FLIP is reported per region: the image, the background (pixels whose centre ray
+  leaves the scene), the ground, the diffuse and the glossy sphere.
 
 Renders: dray and Mitsuba at --spp (the comparison at equal spp), each again with another seed,
 and each at --ref-spp (its own reference). Reported per region: FLIP dray against Mitsuba at
