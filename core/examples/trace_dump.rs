@@ -5,7 +5,7 @@
 //! Usage: `cargo run --release -p dray-core --example trace_dump -- MESH RAYS [REPEAT] [SIMD]`
 //! (SIMD: auto, avx512, avx2, sse2 or portable). Prints the build time, the median pass's
 //! Mrays/s on one thread, hits and the sum of hit distances (to compare answers between
-//! builds), and the nodes and triangles tested per ray; then the same for
+//! builds), and the nodes, triangles and leaves tested per ray; then the same for
 //! `Accel::closest_batch`, with the number of rays whose answer differs (must be 0).
 
 use std::time::Instant;
@@ -87,7 +87,7 @@ fn main() {
     println!(
         "triangles {t} bvh {:.1} B/triangle build {build_s:.3} s simd {:?} rays {} median {median:.4} s \
          {:.3} Mrays/s batch {batch_median:.4} s {:.3} Mrays/s ({differ} answers differ) \
-         hits {hits} t_sum {t_sum:.6e} nodes/ray {:.2} tris/ray {:.2}",
+         hits {hits} t_sum {t_sum:.6e} nodes/ray {:.2} tris/ray {:.2} leaves/ray {:.2}",
         accel.bytes() as f64 / f64::from(t.max(1)),
         accel.simd(),
         rays.len(),
@@ -95,5 +95,6 @@ fn main() {
         n / batch_median / 1e6,
         counts.nodes as f64 / n,
         counts.triangles as f64 / n,
+        counts.leaves as f64 / n,
     );
 }

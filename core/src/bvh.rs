@@ -11,8 +11,10 @@
 //! - the node layout is dray's (`wide`): exact f32 child planes, as Embree's BVH8,
 //!   instead of obvhs's 8-bit quantised ones; the node test (`node_test`: SSE2 on every
 //!   x86-64, AVX2 with FMA picked at run time, portable elsewhere), the traversal loop
-//!   (`traverse`: nearest child first, far entries dropped unread) and the leaf layout
-//!   (`leaf`) are dray's.
+//!   (`traverse`: nearest child first, far entries dropped unread) and the leaves
+//!   (`leaf4`: up to four triangles, tested together in SSE lanes) are dray's. Where the
+//!   tree stops splitting is SAH's decision, taken in the collapse (`convert`, which
+//!   prices a leaf of up to four as one test).
 //!
 //! The accelerator works in its own space: world coordinates scaled by a power of two
 //! `s` chosen so the scene spans about 2^20 units. Scaling by a power of two is exact,
@@ -29,9 +31,12 @@
 //! make the scale or a box infinite.
 //!
 //! The closest hit is the smallest distance the leaf test finds, ties going to the lower
-//! triangle id: it does not depend on which boxes the node test lets through (as long as
-//! it is conservative) nor on the order of visits, so every build of the node test, and
-//! any future layout, gives the same answers.
+//! triangle id (the scene-wide id, not the place in a leaf or the order of leaves): it
+//! does not depend on which boxes the node test lets through (as long as it is
+//! conservative), on the order of visits, nor on which triangles share a leaf, so every
+//! build of the node test, every tree (a domain's or the whole scene's) and any future
+//! layout gives the same answers. Each lane of the leaf test gives the reference test's
+//! bits for its triangle (`leaf4`), so the distances compared are the same everywhere.
 
 use std::time::Duration;
 
@@ -45,13 +50,13 @@ use crate::scene::Mesh;
 mod batch;
 mod build;
 mod convert;
-mod leaf;
+mod leaf4;
 mod node_test;
 mod traverse;
 mod wide;
 
 pub use batch::LANES;
-use leaf::PackedTri;
+use leaf4::Tri4;
 use node_test::NodeRay;
 use traverse::{Counter, Leaf};
 pub use traverse::{Simd, TraversalCounts};
@@ -99,10 +104,11 @@ impl Boundable for Tri {
 pub struct Accel {
     /// The CWBVH's nodes, laid out for the wide node test.
     nodes: Vec<WideNode>,
-    /// Triangle corners in accelerator space, in BVH leaf order.
-    tris: Vec<PackedTri>,
-    /// Mesh triangle index of each leaf slot.
-    ids: Vec<u32>,
+    /// The leaves (up to four triangles each, in accelerator space, with the ids hits
+    /// report), in the order the nodes number them.
+    leaves: Vec<Tri4>,
+    /// Triangles in the leaves.
+    count: usize,
     /// The bounds of every triangle, accelerator space (for the node test's margin).
     lo: Vec3,
     hi: Vec3,
@@ -175,8 +181,8 @@ impl Accel {
         if count == 0 {
             return Accel {
                 nodes: Vec::new(),
-                tris: Vec::new(),
-                ids: Vec::new(),
+                leaves: Vec::new(),
+                count: 0,
                 lo: box_lo,
                 hi: box_hi,
                 scale,
@@ -190,30 +196,32 @@ impl Accel {
             .map(|p| Tri { v: corners(p) }.aabb())
             .collect();
         let bvh2 = build::build(aabbs);
-        // At most 3 triangles per leaf, as obvhs's own CWBVH builder converts; obvhs's
-        // conversion, with large subtrees on rayon's pool.
-        let bvh = convert::to_cwbvh(&bvh2, 3);
+        // Leaves of up to four, where SAH prefers them; obvhs's conversion otherwise,
+        // with large subtrees on rayon's pool.
+        let bvh = convert::to_cwbvh(&bvh2, convert::Leaves::Four);
         drop(bvh2);
-        let ids = bvh
-            .primitive_indices
+        let id = |p: u32| {
+            let i = index(p);
+            match global_ids {
+                Some(g) => g.get(i as usize).copied().unwrap_or(i),
+                None => i,
+            }
+        };
+        let leaves: Vec<Tri4> = wide::leaves(&bvh)
             .par_iter()
-            .map(|&p| {
-                let i = index(p);
-                match global_ids {
-                    Some(g) => g.get(i as usize).copied().unwrap_or(i),
-                    None => i,
+            .map(|&(first, n)| {
+                let mut tris = [([Vec3::ZERO; 3], 0u32); 4];
+                let run = &bvh.primitive_indices[first as usize..(first + n) as usize];
+                for (t, &p) in tris.iter_mut().zip(run) {
+                    *t = (corners(p), id(p));
                 }
+                Tri4::new(&tris[..run.len()])
             })
             .collect();
-        let tris: Vec<PackedTri> = bvh
-            .primitive_indices
-            .par_iter()
-            .map(|&p| PackedTri::new(corners(p)))
-            .collect();
         Accel {
-            nodes: wide::from_cwbvh(&bvh, &tris),
-            tris,
-            ids,
+            nodes: wide::from_cwbvh(&bvh, &leaves),
+            leaves,
+            count: count as usize,
             lo: box_lo,
             hi: box_hi,
             scale,
@@ -239,13 +247,13 @@ impl Accel {
     }
 
     pub fn triangle_count(&self) -> usize {
-        self.ids.len()
+        self.count
     }
 
     /// A hash of everything the traversal reads (every node's planes, slot words and
-    /// primitive base, the leaf-ordered triangles and their ids, the scene box and the
-    /// scale), bit for bit: two builds with the same digest are, but for a hash
-    /// collision, the same tree, and give the same answer to every ray. For checking that
+    /// first leaf, the leaves' corners and ids, the scene box and the scale), bit for
+    /// bit: two builds with the same digest are, but for a hash collision, the same
+    /// tree, and give the same answer to every ray. For checking that
     /// a change to the build leaves the tree as it was (`examples/build_time.rs`).
     pub fn digest(&self) -> u64 {
         // FNV-1a over 32-bit words: stable across runs and platforms, unlike std's
@@ -258,12 +266,15 @@ impl Accel {
         for node in &self.nodes {
             node.planes.iter().flatten().for_each(|p| word(p.to_bits()));
             node.slot.iter().for_each(|&s| word(s));
-            word(node.prim_base);
+            word(node.leaf_base);
         }
-        for t in &self.tris {
-            t.rows.iter().flatten().for_each(|p| word(p.to_bits()));
+        for t in &self.leaves {
+            t.v.iter()
+                .flatten()
+                .flatten()
+                .for_each(|p| word(p.to_bits()));
+            t.ids.iter().for_each(|&i| word(i));
         }
-        self.ids.iter().for_each(|&i| word(i));
         let box_bits = self.lo.to_array().into_iter().chain(self.hi.to_array());
         box_bits.for_each(|p| word(p.to_bits()));
         word(self.scale.to_bits());
@@ -271,11 +282,10 @@ impl Accel {
         h
     }
 
-    /// Bytes held by the nodes, the leaf-ordered triangles and their ids.
+    /// Bytes held by the nodes and the leaves (triangles and their ids).
     pub fn bytes(&self) -> usize {
         self.nodes.len() * std::mem::size_of::<WideNode>()
-            + self.tris.len() * std::mem::size_of::<PackedTri>()
-            + self.ids.len() * std::mem::size_of::<u32>()
+            + self.leaves.len() * std::mem::size_of::<Tri4>()
     }
 
     #[inline(always)]
@@ -382,7 +392,7 @@ impl Accel {
         mut accept: impl FnMut(u32, &TriangleHit) -> bool,
         counter: &mut C,
     ) -> Option<Hit> {
-        if self.ids.is_empty() || !ray.origin.is_finite() || !ray.dir.is_finite() {
+        if self.leaves.is_empty() || !ray.origin.is_finite() || !ray.dir.is_finite() {
             return None;
         }
         let (node_ray, wt, tmin, tmax) = self.prepare(ray);
@@ -392,34 +402,46 @@ impl Accel {
             tmax,
             counter,
             #[inline(always)]
-            |slot, tmax, _| {
-                self.closer(&wt, slot, tmin, tmax, &mut best, &mut accept);
+            |leaf, tmax, counter| {
+                self.closer(&wt, leaf, tmin, tmax, &mut best, &mut accept, counter);
                 Leaf::Continue
             },
         );
         self.world_hit(best)
     }
 
-    /// The leaf step of a closest-hit query: test triangle `slot`, and keep it in `best`
-    /// (lowering `tmax` to it) when it is nearer than `best`, or as near with a lower
-    /// triangle id, and `accept` agrees. Shared by [`Accel::closest`] and
-    /// [`Accel::closest_batch`], so both answer alike.
+    /// The leaf step of a closest-hit query: test the triangles of leaf `leaf`, and keep
+    /// each hit in `best` (lowering `tmax` to it) when it is nearer than `best`, or as
+    /// near with a lower triangle id, and `accept` agrees. Shared by [`Accel::closest`]
+    /// and [`Accel::closest_batch`], so both answer alike.
+    ///
+    /// The lanes' hits are taken in lane order, each against the best so far: what
+    /// testing the triangles one by one would keep, and `accept` is asked about the same
+    /// hits. The answer is the least accepted (distance, id) whatever the order.
     #[inline(always)]
-    fn closer(
+    #[allow(clippy::too_many_arguments)]
+    fn closer<C: Counter>(
         &self,
         wt: &WatertightRay,
-        slot: u32,
+        leaf: u32,
         tmin: f32,
         tmax: &mut f32,
         best: &mut Option<(TriangleHit, u32)>,
         accept: &mut impl FnMut(u32, &TriangleHit) -> bool,
+        counter: &mut C,
     ) {
-        let slot = slot as usize;
+        let Some(tris) = self.leaves.get(leaf as usize) else {
+            return;
+        };
+        counter.leaf(tris);
         // Inclusive upper bound so that equal-distance hits reach the tie-break.
-        if let Some(tri) = self.tris.get(slot)
-            && let Some(h) = leaf::intersect(wt, tri, tmin, next_up(*tmax))
-        {
-            let id = self.ids[slot];
+        let hits = leaf4::intersect(wt, tris, tmin, next_up(*tmax));
+        let mut mask = hits.mask;
+        while mask != 0 {
+            let lane = mask.trailing_zeros() as usize;
+            mask &= mask - 1;
+            let h = hits.lane(lane);
+            let id = tris.ids[lane];
             let better = match best {
                 None => true,
                 Some((bh, bid)) => h.t < bh.t || (h.t == bh.t && id < *bid),
@@ -466,7 +488,7 @@ impl Accel {
         mut accept: impl FnMut(u32, &TriangleHit) -> bool,
         counter: &mut C,
     ) -> bool {
-        if self.ids.is_empty() || !ray.origin.is_finite() || !ray.dir.is_finite() {
+        if self.leaves.is_empty() || !ray.origin.is_finite() || !ray.dir.is_finite() {
             return false;
         }
         let (node_ray, wt, tmin, tmax) = self.prepare(ray);
@@ -476,14 +498,20 @@ impl Accel {
             tmax,
             counter,
             #[inline(always)]
-            |slot, tmax, _| {
-                let slot = slot as usize;
-                if let Some(tri) = self.tris.get(slot)
-                    && let Some(h) = leaf::intersect(&wt, tri, tmin, *tmax)
-                    && accept(self.ids[slot], &h)
-                {
-                    hit = true;
-                    return Leaf::Stop;
+            |leaf, tmax, counter| {
+                let Some(tris) = self.leaves.get(leaf as usize) else {
+                    return Leaf::Continue;
+                };
+                counter.leaf(tris);
+                let hits = leaf4::intersect(&wt, tris, tmin, *tmax);
+                let mut mask = hits.mask;
+                while mask != 0 {
+                    let lane = mask.trailing_zeros() as usize;
+                    mask &= mask - 1;
+                    if accept(tris.ids[lane], &hits.lane(lane)) {
+                        hit = true;
+                        return Leaf::Stop;
+                    }
                 }
                 Leaf::Continue
             },
@@ -564,6 +592,16 @@ mod tests {
         }
     }
 
+    /// A ray from `o` along `d` with no limits.
+    fn unbounded(o: Vec3, d: Vec3) -> QueryRay {
+        QueryRay {
+            origin: o,
+            dir: d,
+            tmin: 0.0,
+            tmax: f32::INFINITY,
+        }
+    }
+
     /// A closed, bumpy grid surface (every edge shared) and a soup of small triangles
     /// over it, `scale` across, `shift` from the origin.
     fn mesh(scale: f32, shift: Vec3) -> Mesh {
@@ -620,28 +658,26 @@ mod tests {
             let m = mesh(scale, shift);
             let mut accel = Accel::build(&m);
             let levels: Vec<Simd> = traverse::testable_levels();
-            // The slots the leaf test hits, and the slots each build of the node test
+            // The leaves the leaf test hits, and the leaves each build of the node test
             // visits (the far limit never lowered, so every box the ray crosses).
-            let mut leaf_hits = |o: Vec3, d: Vec3| -> (Vec<u32>, Vec<Vec<u32>>) {
-                let ray = QueryRay {
-                    origin: o,
-                    dir: d,
-                    tmin: 0.0,
-                    tmax: f32::INFINITY,
-                };
+            let mut leaf_hits = |o: Vec3, d: Vec3| -> (Vec<(u32, u32)>, Vec<Vec<u32>>) {
+                let ray = unbounded(o, d);
                 let (node_ray, wt, tmin, tmax) = accel.prepare(&ray);
-                let want: Vec<u32> = (0..accel.tris.len() as u32)
-                    .filter(|&s| {
-                        leaf::intersect(&wt, &accel.tris[s as usize], tmin, tmax).is_some()
+                // (leaf, its hit lanes)
+                let want: Vec<(u32, u32)> = (0..accel.leaves.len() as u32)
+                    .map(|s| {
+                        let h = leaf4::intersect(&wt, &accel.leaves[s as usize], tmin, tmax);
+                        (s, h.mask)
                     })
+                    .filter(|&(_, mask)| mask != 0)
                     .collect();
                 let seen = levels
                     .iter()
                     .map(|&simd| {
                         assert!(accel.set_simd(simd));
                         let mut seen = Vec::new();
-                        accel.walk(&node_ray, tmax, &mut (), |slot, _, _| {
-                            seen.push(slot);
+                        accel.walk(&node_ray, tmax, &mut (), |leaf, _, _| {
+                            seen.push(leaf);
                             Leaf::Continue
                         });
                         seen
@@ -666,19 +702,86 @@ mod tests {
                     continue;
                 }
                 let (want, seen_by) = leaf_hits(o, d);
-                // Every build of the node test visits every slot the leaf test hits.
+                // Every build of the node test visits every leaf the leaf test hits.
                 for (seen, simd) in seen_by.iter().zip(&levels) {
-                    for s in &want {
+                    for (s, _) in &want {
                         assert!(
                             seen.contains(s),
-                            "scale {scale} shift {shift} ray {i} {simd:?}: slot {s} is hit \
+                            "scale {scale} shift {shift} ray {i} {simd:?}: leaf {s} is hit \
                              but its box is culled"
                         );
                     }
                 }
-                hits += want.len() as u64;
+                hits += want
+                    .iter()
+                    .map(|(_, m)| u64::from(m.count_ones()))
+                    .sum::<u64>();
             }
         }
         assert!(hits > 10_000, "{hits}");
+    }
+
+    /// The closest hit is the least (distance, triangle id) over every triangle the
+    /// reference test hits and the filter accepts, found by testing every triangle one
+    /// by one; the any-hit query finds a hit exactly when there is one. On the bumpy grid
+    /// and soup with every triangle listed twice more (once with its corners rotated,
+    /// once reversed: the same distance to the bit, so ties that only the id breaks,
+    /// wherever the copies land in the leaves), with and without a filter.
+    #[test]
+    fn closest_is_the_least_distance_then_id_over_all_triangles() {
+        let mut m = mesh(1.0, Vec3::new(3.0, -2.0, 0.5));
+        let n = m.indices.len() as u32;
+        let copies: Vec<[u32; 3]> = m.indices.iter().map(|&[a, b, c]| [b, c, a]).collect();
+        let reversed: Vec<[u32; 3]> = m.indices.iter().map(|&[a, b, c]| [a, c, b]).collect();
+        m.indices.extend(copies);
+        m.indices.extend(reversed);
+        m.material = vec![0; m.indices.len()];
+        let mut accel = Accel::build(&m);
+        let reject = |tri: u32| tri % 5 == 1;
+        let (mut hits, mut ties) = (0, 0);
+        for i in 0..3000u32 {
+            let k = key(50_000 + i);
+            let u = |d: u32| k.uniform(5, Purpose::Film, d);
+            let o = Vec3::new(u(0), u(1), u(2)) * 1.4 + Vec3::new(2.8, -2.2, 0.3);
+            let ray = unbounded(o, uniform_sphere(k.uniform2(6, Purpose::Film, 0)));
+            let (_, wt, tmin, tmax) = accel.prepare(&ray);
+            for filtered in [false, true] {
+                let mut want: Option<(u32, u32)> = None;
+                let mut at_best = 0;
+                for t in 0..m.indices.len() as u32 {
+                    if filtered && reject(t) {
+                        continue;
+                    }
+                    let [a, b, c] = m.corners(t as usize).map(|p| p * accel.scale);
+                    if let Some(h) = wt.intersect(a, b, c, tmin, tmax) {
+                        let key = (h.t.to_bits(), t);
+                        if want.is_none_or(|w| h.t < f32::from_bits(w.0)) {
+                            at_best = 0;
+                        }
+                        if want.is_none_or(|w| h.t <= f32::from_bits(w.0)) {
+                            at_best += 1;
+                        }
+                        want = Some(want.map_or(key, |w| {
+                            if (h.t, t) < (f32::from_bits(w.0), w.1) {
+                                key
+                            } else {
+                                w
+                            }
+                        }));
+                    }
+                }
+                for simd in traverse::testable_levels() {
+                    assert!(accel.set_simd(simd));
+                    let got = accel.closest(&ray, |t, _| !(filtered && reject(t)));
+                    let got = got.map(|h| ((h.t * accel.scale).to_bits(), h.tri));
+                    assert_eq!(got, want, "ray {i} filtered {filtered} {simd:?}");
+                    let any = accel.occluded(&ray, |t, _| !(filtered && reject(t)));
+                    assert_eq!(any, want.is_some(), "ray {i} filtered {filtered} {simd:?}");
+                }
+                hits += want.is_some() as u32;
+                ties += (at_best > 1) as u32;
+            }
+        }
+        assert!(n > 1000 && hits > 600 && ties > 600, "{hits} {ties}");
     }
 }

@@ -139,8 +139,8 @@ impl WatertightRay {
 /// The rest of the watertight test once the ray passes the edge tests: determinant,
 /// distance, its error bound and barycentrics. `e` are the edge functions (all of one
 /// sign), `z` the corners' scaled depths `sz * (v - o)[kz]`, `x` and `y` their sheared
-/// coordinates. The reference test and the packed leaf test (`bvh::leaf`) both end here,
-/// so they give the same bits.
+/// coordinates. The four-lane leaf test (`bvh::leaf4`) repeats these operations in each
+/// lane, in this order, so it gives the same bits (tested there).
 ///
 /// Sums are taken in an order fixed by the terms' magnitudes ([`sum3`]), not by the
 /// order the corners are stored in: a triangle listed with its corners rotated or

@@ -6,7 +6,7 @@
 //! test. [`Accel::closest_batch`] keeps [`LANES`] rays in flight, each a paused walk
 //! (`traverse::Walk`): a ray chooses its next node, starts loading it (a prefetch), and
 //! the loop turns to the next ray; by the time it comes back the node is (often) in
-//! cache. Triangles of a hit leaf are prefetched the same way before their test.
+//! cache. A hit leaf's triangles are prefetched the same way before their test.
 //!
 //! Every ray's answer is what [`Accel::closest`] finds for it, bit for bit: the same node
 //! test, leaf test and tie rule (smaller distance, then lower triangle id), which do not
@@ -14,7 +14,7 @@
 
 use super::node_test::NodeHits;
 use super::traverse::{Leaf, Walk, prefetch};
-use super::{Accel, Hit, NodeRay, PackedTri, Simd, WideNode, node_test};
+use super::{Accel, Hit, NodeRay, Simd, Tri4, WideNode, node_test};
 use crate::bvh::QueryRay;
 use crate::intersect::{TriangleHit, WatertightRay};
 
@@ -72,7 +72,7 @@ impl Accel {
     #[inline(always)]
     fn lane(&self, rays: &[QueryRay], index: usize) -> Option<Lane> {
         let ray = &rays[index];
-        if self.ids.is_empty() || !ray.origin.is_finite() || !ray.dir.is_finite() {
+        if self.leaves.is_empty() || !ray.origin.is_finite() || !ray.dir.is_finite() {
             return None;
         }
         let (node_ray, wt, tmin, tmax) = self.prepare(ray);
@@ -103,7 +103,7 @@ impl Accel {
         let mut lanes: [Option<Lane>; LANES] = std::array::from_fn(|_| None);
         let mut next = 0usize;
         let mut active = 0usize;
-        let tris: &[PackedTri] = &self.tris;
+        let leaves: &[Tri4] = &self.leaves;
         loop {
             for slot in lanes.iter_mut() {
                 // A free lane takes the next ray (rays that cannot hit are answered here).
@@ -124,14 +124,14 @@ impl Accel {
                         lane.walk
                             .test(&self.nodes, &lane.node_ray, lane.tmax, &mut (), &mut hits)
                     };
-                    let (first, mut mask) = lane.walk.prims();
+                    let (first, mut mask) = lane.walk.leaves();
                     if mask != 0 {
-                        // Load the leaf triangles now, test them on the next turn.
+                        // Load the leaves now, test them on the next turn.
                         while mask != 0 {
                             let i = mask.trailing_zeros();
                             mask &= mask - 1;
-                            if let Some(t) = tris.get((first + i) as usize) {
-                                prefetch(t, std::mem::size_of::<PackedTri>());
+                            if let Some(t) = leaves.get((first + i) as usize) {
+                                prefetch(t, std::mem::size_of::<Tri4>());
                             }
                         }
                         continue;
@@ -139,8 +139,8 @@ impl Accel {
                 }
                 let (wt, tmin, best, index) = (&lane.wt, lane.tmin, &mut lane.best, lane.index);
                 let mut accept_here = |id: u32, h: &TriangleHit| accept(index, id, h);
-                let mut leaf_test = |slot: u32, tmax: &mut f32, _: &mut ()| {
-                    self.closer(wt, slot, tmin, tmax, best, &mut accept_here);
+                let mut leaf_test = |leaf: u32, tmax: &mut f32, c: &mut ()| {
+                    self.closer(wt, leaf, tmin, tmax, best, &mut accept_here, c);
                     Leaf::Continue
                 };
                 // SAFETY: as for `walk`.

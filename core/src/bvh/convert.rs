@@ -2,6 +2,12 @@
 //! into 8-wide nodes, children ordered by octant), step for step, with the large
 //! subtrees converted on rayon's pool.
 //!
+//! The collapse is where the tree stops splitting: the binary build goes down to one
+//! triangle a leaf, and the collapse's SAH costs (each node one unit per half-area, each
+//! leaf its test's cost per half-area) choose which subtrees become leaves. obvhs prices
+//! a leaf per triangle, at most three; dray's leaves ([`Leaves::Four`]) hold up to four
+//! triangles tested together (`leaf4`), priced as one test.
+//!
 //! obvhs converts on one thread; on a 1.7M-triangle scene that is a third of a second
 //! with the other core idle, as long as the parallel binned-SAH build before it. The
 //! result here is obvhs's own tree, node for node and primitive for primitive (a test
@@ -28,8 +34,12 @@ use obvhs::bvh2::Bvh2;
 use obvhs::cwbvh::node::CwBvhNode;
 use obvhs::cwbvh::{BRANCHING, CwBvh};
 
-/// obvhs's `PRIM_COST`.
+/// obvhs's `PRIM_COST`: one triangle test, in units of one node visit.
 const PRIM_COST: f32 = 0.3;
+/// One test of a leaf of up to four triangles (`leaf4`, the four in SSE lanes), in units
+/// of one node visit: about two single-triangle tests (the edge functions and the rest of
+/// the watertight test for four lanes, against one 8-wide node test).
+const LEAF4_COST: f32 = 2.0 * PRIM_COST;
 /// Directions of the child-ordering table (octants).
 const DIRECTIONS: usize = 8;
 /// Decisions per BVH2 node: one per number of CWBVH child slots it may fill (1..=7).
@@ -41,6 +51,61 @@ const PARALLEL_COST_DEPTH: u32 = 8;
 /// Subtrees over at least this many primitives are converted on their own, in parallel
 /// with their siblings.
 const PARALLEL_MIN: u32 = 4096;
+
+/// How the collapse prices a leaf, which decides (with each node's cost) where the tree
+/// stops splitting: SAH, each cost weighted by the box's half-area.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Leaves {
+    /// obvhs's: [`PRIM_COST`] per triangle, at most this many (1 to 3) a leaf. Only the
+    /// tests build it, to hold the conversion to obvhs's own.
+    #[cfg_attr(not(test), allow(dead_code))]
+    PerTriangle(u32),
+    /// dray's: up to four triangles a leaf, tested together for [`LEAF4_COST`] whatever
+    /// their number (as Embree prices its four-triangle leaves by block, not by
+    /// triangle). A subtree of up to four is then always cheaper as one leaf than as a
+    /// node over smaller ones; the sweep decides whether its slots are better spent on
+    /// one leaf of four or on smaller leaves with tighter boxes.
+    Four,
+}
+
+impl Leaves {
+    fn max(self) -> u32 {
+        match self {
+            Leaves::PerTriangle(n) => n,
+            Leaves::Four => 4,
+        }
+    }
+
+    /// The cost of a leaf of `n` triangles (at most [`Leaves::max`]) whose box has
+    /// `half_area` (obvhs's products in obvhs's order, so the same roundings).
+    fn cost(self, half_area: f32, n: u32) -> f32 {
+        match self {
+            Leaves::PerTriangle(_) => half_area * n as f32 * PRIM_COST,
+            Leaves::Four => half_area * LEAF4_COST,
+        }
+    }
+}
+
+/// The meta bits (the high three) of a leaf of `n` triangles: obvhs's unary count for one
+/// to three, and `0b100`, which no unary count uses, for four.
+fn leaf_code(n: u32) -> u8 {
+    match n {
+        1 => 0b001,
+        2 => 0b011,
+        3 => 0b111,
+        4 => 0b100,
+        _ => panic!("a CWBVH leaf of {n} primitives (at most 4)"),
+    }
+}
+
+/// The number of triangles of a leaf child whose meta byte is `meta` (0 for an empty
+/// slot): the inverse of the encoding the conversion writes.
+pub(crate) fn leaf_size(meta: u8) -> u32 {
+    match meta >> 5 {
+        0b100 => 4,
+        code => code.count_ones(),
+    }
+}
 
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 enum Kind {
@@ -107,11 +172,13 @@ struct Part {
     primitive_indices: Vec<u32>,
 }
 
-/// obvhs's `bvh2_to_cwbvh(bvh2, max_prims_per_leaf, true, false)`, the same to the bit
-/// but for the quantised child boxes, which are not computed (zero): the same nodes,
-/// children, child order, leaves and primitive order, which is all `wide::from_cwbvh`
-/// reads. `bvh2` must have one primitive per leaf (as obvhs requires).
-pub(crate) fn to_cwbvh(bvh2: &Bvh2, max_prims_per_leaf: u32) -> CwBvh {
+/// With [`Leaves::PerTriangle`]`(n)`, obvhs's `bvh2_to_cwbvh(bvh2, n, true, false)`, the
+/// same to the bit but for the quantised child boxes, which are not computed (zero): the
+/// same nodes, children, child order, leaves and primitive order, which is all
+/// `wide::from_cwbvh` reads. With [`Leaves::Four`], the same algorithm with leaves of up
+/// to four priced as one test each (a leaf of four is coded as [`leaf_size`] reads).
+/// `bvh2` must have one primitive per leaf (as obvhs requires).
+pub(crate) fn to_cwbvh(bvh2: &Bvh2, leaves: Leaves) -> CwBvh {
     if bvh2.nodes.is_empty() {
         return CwBvh::default();
     }
@@ -128,7 +195,7 @@ pub(crate) fn to_cwbvh(bvh2: &Bvh2, max_prims_per_leaf: u32) -> CwBvh {
             )
         }),
     };
-    c.cost(0, max_prims_per_leaf, 0, &mut [0.0; SLOTS]);
+    c.cost(0, leaves, 0, &mut [0.0; SLOTS]);
     let mut part = Part::default();
     // Every primitive lands once; the nodes are far fewer than the primitives (a tenth
     // or so: up to 3 primitives a leaf, 8 children a node), so they grow as they come
@@ -158,13 +225,7 @@ impl Converter<'_> {
     ///
     /// The same costs, compared in the same order, as obvhs's: each slot's best split
     /// is the first strictly cheaper one, and a slot with none copies the slot before.
-    fn cost(
-        &self,
-        index: usize,
-        max_prims_per_leaf: u32,
-        depth: u32,
-        costs: &mut [f32; SLOTS],
-    ) -> u32 {
+    fn cost(&self, index: usize, leaves: Leaves, depth: u32, costs: &mut [f32; SLOTS]) -> u32 {
         let node = &self.bvh2.nodes[index];
         let half_area = node.aabb().half_area();
         let first = node.first_index as usize;
@@ -176,24 +237,24 @@ impl Converter<'_> {
                 num_primitives == 1,
                 "the CWBVH conversion expects one primitive per BVH2 leaf"
             );
-            *costs = [half_area * (num_primitives as f32) * PRIM_COST; SLOTS];
+            *costs = [leaves.cost(half_area, num_primitives); SLOTS];
             word = u64::from_le_bytes([LEAF.pack(); 8]);
         } else {
             let (mut cl, mut cr) = ([0f32; SLOTS], [0f32; SLOTS]);
             let (l, r) = if depth < PARALLEL_COST_DEPTH {
                 rayon::join(
-                    || self.cost(first, max_prims_per_leaf, depth + 1, &mut cl),
-                    || self.cost(first + 1, max_prims_per_leaf, depth + 1, &mut cr),
+                    || self.cost(first, leaves, depth + 1, &mut cl),
+                    || self.cost(first + 1, leaves, depth + 1, &mut cr),
                 )
             } else {
                 (
-                    self.cost(first, max_prims_per_leaf, depth + 1, &mut cl),
-                    self.cost(first + 1, max_prims_per_leaf, depth + 1, &mut cr),
+                    self.cost(first, leaves, depth + 1, &mut cl),
+                    self.cost(first + 1, leaves, depth + 1, &mut cr),
                 )
             };
             num_primitives = l + r;
-            let cost_leaf = if num_primitives <= max_prims_per_leaf {
-                (num_primitives as f32) * half_area * PRIM_COST
+            let cost_leaf = if num_primitives <= leaves.max() {
+                leaves.cost(half_area, num_primitives)
             } else {
                 f32::INFINITY
             };
@@ -365,13 +426,7 @@ impl Converter<'_> {
             match self.decision(child as usize, 0).kind {
                 Kind::Leaf => {
                     let n = self.push_primitives(child as usize, &mut part.primitive_indices);
-                    node.child_meta[i] = num_primitives as u8
-                        | match n {
-                            1 => 0b0010_0000,
-                            2 => 0b0110_0000,
-                            3 => 0b1110_0000,
-                            _ => panic!("a CWBVH leaf of {n} primitives (at most 3)"),
-                        };
+                    node.child_meta[i] = num_primitives as u8 | leaf_code(n) << 5;
                     num_primitives += n;
                 }
                 Kind::Internal => {
@@ -500,7 +555,7 @@ mod tests {
             let bvh2 = build::build(boxes(n, 7 + n, kind));
             for leaf in 1..=3 {
                 let want = bvh2_to_cwbvh(&bvh2, leaf, true, false);
-                let got = to_cwbvh(&bvh2, leaf);
+                let got = to_cwbvh(&bvh2, Leaves::PerTriangle(leaf));
                 assert_eq!(got.nodes.len(), want.nodes.len(), "{n} {kind} {leaf}");
                 for (i, (g, w)) in got.nodes.iter().zip(&want.nodes).enumerate() {
                     // obvhs's node with its quantised boxes taken out.
@@ -541,11 +596,65 @@ mod tests {
                 .collect();
             assert!(!aabbs[0].half_area().is_finite(), "{side}");
             let bvh2 = build::build(aabbs.clone());
-            for leaf in 1..=3 {
-                let got = to_cwbvh(&bvh2, leaf);
+            for leaves in [1, 2, 3]
+                .map(Leaves::PerTriangle)
+                .into_iter()
+                .chain([Leaves::Four])
+            {
+                let got = to_cwbvh(&bvh2, leaves);
                 let mut prims = got.primitive_indices.clone();
                 prims.sort_unstable();
-                assert_eq!(prims, (0..64).collect::<Vec<u32>>(), "{side} {leaf}");
+                assert_eq!(prims, (0..64).collect::<Vec<u32>>(), "{side} {leaves:?}");
+            }
+        }
+    }
+
+    /// Leaves of up to four: every primitive in exactly one leaf, the leaves' runs tiling
+    /// the primitive order node by node, sizes 1 to 4 as `leaf_size` reads them back,
+    /// on random, clustered and coincident boxes; on boxes with areas, some leaves of four
+    /// and fewer nodes than with obvhs's leaves of up to three.
+    #[test]
+    fn leaves_of_four_cover_every_primitive_once() {
+        for (n, kind) in [
+            (1, 2),
+            (5, 2),
+            (700, 2),
+            (50_000, 2),
+            (30_000, 1),
+            (20_000, 0),
+        ] {
+            let bvh2 = build::build(boxes(n, 11 + n, kind));
+            let got = to_cwbvh(&bvh2, Leaves::Four);
+            let three = to_cwbvh(&bvh2, Leaves::PerTriangle(3));
+            let mut seen = vec![0u32; n as usize];
+            let mut sizes = [0u32; 5];
+            for node in &got.nodes {
+                let mut offset = 0;
+                for slot in 0..8 {
+                    let meta = node.child_meta[slot];
+                    if node.imask & (1 << slot) != 0 || meta == 0 {
+                        continue;
+                    }
+                    let size = leaf_size(meta);
+                    assert!((1..=4).contains(&size), "{n} {kind}: {meta:08b}");
+                    assert_eq!(u32::from(meta & 0x1f), offset, "{n} {kind}");
+                    for p in 0..size {
+                        let at = (node.primitive_base_idx + offset + p) as usize;
+                        seen[got.primitive_indices[at] as usize] += 1;
+                    }
+                    offset += size;
+                    sizes[size as usize] += size;
+                }
+            }
+            assert!(seen.iter().all(|&c| c == 1), "{n} {kind}");
+            // Boxes of kinds 0 and 1 are points: every cost is zero, nothing to prefer.
+            if n >= 700 && kind == 2 {
+                assert!(
+                    sizes[4] > 0 && got.nodes.len() < three.nodes.len(),
+                    "{n} {kind}: {sizes:?}, {} nodes against {}",
+                    got.nodes.len(),
+                    three.nodes.len()
+                );
             }
         }
     }

@@ -50,8 +50,8 @@ pub(crate) struct NodeRay {
 pub(crate) struct NodeHits {
     /// Bit `s` set when child slot `s` is an internal node whose box is hit.
     pub mask: u32,
-    /// The OR of the hit leaf children's words: primitive offsets from `prim_base`.
-    pub prims: u32,
+    /// The OR of the hit leaf children's words: leaf offsets from `leaf_base`.
+    pub leaves: u32,
     /// Entry distance of each child's box (meaningful where `mask` has the slot).
     pub tnear: [f32; 8],
 }
@@ -85,7 +85,7 @@ pub(crate) fn hits_portable(node: &WideNode, ray: &NodeRay, tmax: f32) -> NodeHi
     let min = |a: f32, b: f32| if a < b { a } else { b };
     let mut out = NodeHits {
         mask: 0,
-        prims: 0,
+        leaves: 0,
         tnear: [0.0; 8],
     };
     for slot in 0..8 {
@@ -105,7 +105,7 @@ pub(crate) fn hits_portable(node: &WideNode, ray: &NodeRay, tmax: f32) -> NodeHi
             if node.slot[slot] & INTERNAL != 0 {
                 out.mask |= 1 << slot;
             } else {
-                out.prims |= node.slot[slot];
+                out.leaves |= node.slot[slot];
             }
         }
     }
@@ -150,7 +150,7 @@ pub(crate) mod x86 {
             let tm = _mm_set1_ps(tmax);
             let mut out = NodeHits {
                 mask: 0,
-                prims: 0,
+                leaves: 0,
                 tnear: [0.0; 8],
             };
             let mut acc = _mm_setzero_si128();
@@ -168,7 +168,7 @@ pub(crate) mod x86 {
             }
             acc = _mm_or_si128(acc, _mm_shuffle_epi32::<0x4e>(acc));
             acc = _mm_or_si128(acc, _mm_shuffle_epi32::<0xb1>(acc));
-            out.prims = _mm_cvtsi128_si32(acc) as u32;
+            out.leaves = _mm_cvtsi128_si32(acc) as u32;
             out
         }
     }
@@ -204,7 +204,7 @@ pub(crate) mod x86 {
             let internal = _mm256_movemask_ps(_mm256_castsi256_ps(words)) as u32;
             let mut out = NodeHits {
                 mask: _mm256_movemask_ps(hit) as u32 & internal,
-                prims: 0,
+                leaves: 0,
                 tnear: [0.0; 8],
             };
             _mm256_storeu_ps(out.tnear.as_mut_ptr(), tmin);
@@ -214,7 +214,7 @@ pub(crate) mod x86 {
             let mut acc = _mm_or_si128(_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
             acc = _mm_or_si128(acc, _mm_shuffle_epi32::<0x4e>(acc));
             acc = _mm_or_si128(acc, _mm_shuffle_epi32::<0xb1>(acc));
-            out.prims = _mm_cvtsi128_si32(acc) as u32;
+            out.leaves = _mm_cvtsi128_si32(acc) as u32;
             out
         }
     }

@@ -1,15 +1,16 @@
 //! The traversal loop over [`WideNode`]s, with the node test of `node_test` and the leaf
-//! test of `leaf` inlined into one function per instruction set.
+//! test of `leaf4` inlined into one function per instruction set.
 //!
 //! Nearest child first, as Embree's single-ray traversal does: a node's test gives each
-//! hit child's entry distance; the primitives of its hit leaves are tested first (they
-//! may lower the far limit), then the nearest internal child is visited next and the
+//! hit child's entry distance; its hit leaves are tested first (they may lower the far
+//! limit), then the nearest internal child is visited next and the
 //! others wait on a stack with their distances, nearest on top. An entry the far limit no
 //! longer reaches is dropped when it comes off the stack, without loading its node. (The
 //! first traversal was obvhs's: children in a fixed order by the ray's octant, Ylitie et
 //! al. 2017, and node groups on the stack; it visited more nodes and could not drop them
 //! unread.) The answers do not depend on the order: see `super`'s doc.
 
+use super::leaf4::Tri4;
 use super::node_test::{NodeHits, NodeRay};
 use super::wide::{INTERNAL, WideNode};
 
@@ -99,21 +100,24 @@ pub(crate) fn testable_levels() -> Vec<Simd> {
 pub struct TraversalCounts {
     /// Nodes whose eight children were tested.
     pub nodes: u64,
-    /// Triangles tested.
+    /// Triangles tested (the triangles of the leaves tested).
     pub triangles: u64,
+    /// Leaves tested (each up to four triangles, tested together).
+    pub leaves: u64,
 }
 
-/// Something that counts node and triangle tests; the `()` counter compiles to nothing.
+/// Something that counts node and leaf tests; the `()` counter compiles to nothing.
 pub(crate) trait Counter {
     fn node(&mut self);
-    fn triangle(&mut self);
+    /// The test of `leaf`.
+    fn leaf(&mut self, leaf: &Tri4);
 }
 
 impl Counter for () {
     #[inline(always)]
     fn node(&mut self) {}
     #[inline(always)]
-    fn triangle(&mut self) {}
+    fn leaf(&mut self, _: &Tri4) {}
 }
 
 impl Counter for TraversalCounts {
@@ -122,8 +126,9 @@ impl Counter for TraversalCounts {
         self.nodes += 1;
     }
     #[inline(always)]
-    fn triangle(&mut self) {
-        self.triangles += 1;
+    fn leaf(&mut self, leaf: &Tri4) {
+        self.leaves += 1;
+        self.triangles += u64::from(leaf.count());
     }
 }
 
@@ -133,8 +138,9 @@ pub(crate) enum Leaf {
     Stop,
 }
 
-/// Walk `nodes` for `ray`, calling `leaf(slot, &mut tmax)` for every primitive slot of
-/// every hit leaf. `tmax` is the far limit of the node test; the callback may lower it.
+/// Walk `nodes` for `ray`, calling `leaf(leaf, &mut tmax, counter)` for every hit leaf
+/// (an index into the accelerator's `Tri4`s). `tmax` is the far limit of the node test;
+/// the callback may lower it.
 ///
 /// # Safety
 /// `hits` must be runnable on this CPU; `nodes` must be well formed (every child index
@@ -170,12 +176,11 @@ pub(crate) unsafe fn walk<C: Counter>(
                 prefetch(child, std::mem::size_of::<WideNode>());
             }
         }
-        let mut prims = h.prims;
-        while prims != 0 {
-            let i = prims.trailing_zeros();
-            prims &= prims - 1;
-            counter.triangle();
-            if let Leaf::Stop = leaf(node.prim_base + i, &mut tmax, counter) {
+        let mut leaves = h.leaves;
+        while leaves != 0 {
+            let i = leaves.trailing_zeros();
+            leaves &= leaves - 1;
+            if let Leaf::Stop = leaf(node.leaf_base + i, &mut tmax, counter) {
                 return;
             }
         }
@@ -316,9 +321,10 @@ pub(crate) struct Walk {
     next: usize,
     /// Whether `next` holds a node (false when the walk is over or not started).
     has_next: bool,
-    /// The primitives of the last tested node's hit leaves, waiting for `step`.
-    prims: (u32, u32),
-    /// The last tested node's nearest hit child, to be visited after its primitives
+    /// The last tested node's hit leaves, waiting for `step`: the first leaf and a mask
+    /// of offsets from it.
+    leaves: (u32, u32),
+    /// The last tested node's nearest hit child, to be visited after its leaves
     /// (which may lower the far limit below it).
     near_child: Option<(usize, f32)>,
 }
@@ -331,12 +337,12 @@ impl Walk {
             stack: Stack::new(),
             next: 0,
             has_next: !nodes.is_empty(),
-            prims: (0, 0),
+            leaves: (0, 0),
             near_child: None,
         }
     }
 
-    /// Test the primitives waiting from the last node, then choose the next node to test
+    /// Test the leaves waiting from the last node, then choose the next node to test
     /// (`self.next`). False when the walk is over (nothing left, or `leaf` said stop).
     ///
     /// # Safety
@@ -352,11 +358,10 @@ impl Walk {
             // The root, before anything was tested.
             return true;
         }
-        while self.prims.1 != 0 {
-            let i = self.prims.1.trailing_zeros();
-            self.prims.1 &= self.prims.1 - 1;
-            counter.triangle();
-            if let Leaf::Stop = leaf(self.prims.0 + i, tmax, counter) {
+        while self.leaves.1 != 0 {
+            let i = self.leaves.1.trailing_zeros();
+            self.leaves.1 &= self.leaves.1 - 1;
+            if let Leaf::Stop = leaf(self.leaves.0 + i, tmax, counter) {
                 return false;
             }
         }
@@ -381,7 +386,7 @@ impl Walk {
     }
 
     /// Test the node `step` chose: its hit children go on the stack (the nearest kept
-    /// aside), the primitives of its hit leaves wait for the next `step`.
+    /// aside), its hit leaves wait for the next `step`.
     ///
     /// # Safety
     /// As for [`walk`], after a `step` that returned true.
@@ -399,14 +404,14 @@ impl Walk {
         self.has_next = false;
         counter.node();
         let h = hits(node, ray, tmax);
-        self.prims = (node.prim_base, h.prims);
+        self.leaves = (node.leaf_base, h.leaves);
         self.near_child = self.stack.push_children(node, &h, tmax);
     }
 
-    /// The primitive slots waiting to be tested: the first slot and a mask of offsets.
+    /// The leaves waiting to be tested: the first leaf and a mask of offsets.
     #[inline(always)]
-    pub(crate) fn prims(&self) -> (u32, u32) {
-        self.prims
+    pub(crate) fn leaves(&self) -> (u32, u32) {
+        self.leaves
     }
 }
 
@@ -418,7 +423,7 @@ mod tests {
     use obvhs::{aabb::Aabb, ray::Ray, traverse};
 
     use super::*;
-    use crate::bvh::leaf::{self, PackedTri};
+    use crate::bvh::leaf4::{self, Tri4};
     use crate::bvh::{build, node_test, wide};
     use crate::intersect::WatertightRay;
     use crate::sampling::{PathKey, Purpose, uniform_sphere};
@@ -498,7 +503,17 @@ mod tests {
         (nodes, slots, best)
     }
 
-    fn with_walk(nodes: &[WideNode], tris: &[PackedTri], simd: Simd, o: Vec3, d: Vec3) -> Trace {
+    /// Our walk over `nodes` and their leaves `tris`, leaf `k` holding the primitive slots
+    /// `runs[k].0..` (`runs[k].1` of them) in its lanes; a lane's hit is kept when nearer
+    /// than the last kept, lane by lane, as the one-triangle-at-a-time loop of obvhs's.
+    fn with_walk(
+        nodes: &[WideNode],
+        tris: &[Tri4],
+        runs: &[(u32, u32)],
+        simd: Simd,
+        o: Vec3,
+        d: Vec3,
+    ) -> Trace {
         let d = d + Vec3::ZERO;
         let ray = NodeRay::new(
             Vec3A::from(o),
@@ -509,11 +524,15 @@ mod tests {
         let wt = WatertightRay::new(o, d);
         let (mut visited, mut slots, mut best) = (Vec::new(), Vec::new(), None);
         let base = nodes.as_ptr() as usize;
-        let mut leaf = |slot: u32, tmax: &mut f32, _: &mut ()| {
-            slots.push(slot);
-            if let Some(h) = leaf::intersect(&wt, &tris[slot as usize], 0.0, *tmax) {
-                *tmax = h.t;
-                best = Some((h.t.to_bits(), slot));
+        let mut leaf = |k: u32, tmax: &mut f32, _: &mut ()| {
+            let (first, count) = runs[k as usize];
+            slots.extend(first..first + count);
+            let h = leaf4::intersect(&wt, &tris[k as usize], 0.0, *tmax);
+            for lane in 0..4 {
+                if h.mask >> lane & 1 != 0 && h.t[lane] < *tmax {
+                    *tmax = h.t[lane];
+                    best = Some((h.t[lane].to_bits(), first + lane as u32));
+                }
             }
             Leaf::Continue
         };
@@ -585,7 +604,16 @@ mod tests {
             .iter()
             .map(|&i| tris[i as usize])
             .collect();
-        let packed: Vec<PackedTri> = ordered.iter().map(|&t| PackedTri::new(t)).collect();
+        let runs = wide::leaves(&bvh);
+        let packed: Vec<Tri4> = runs
+            .iter()
+            .map(|&(first, count)| {
+                let tris: Vec<([Vec3; 3], u32)> = (first..first + count)
+                    .map(|p| (ordered[p as usize], p))
+                    .collect();
+                Tri4::new(&tris)
+            })
+            .collect();
         let nodes = wide::from_cwbvh(&bvh, &packed);
         let levels: Vec<Simd> = testable_levels();
         let (mut visits, mut hits, mut tested) = (0, 0, 0);
@@ -609,7 +637,7 @@ mod tests {
             visits += want.0.len();
             hits += want.2.is_some() as u32;
             for (&s, total) in levels.iter().zip(&mut ours) {
-                let got = with_walk(&nodes, &packed, s, o, d);
+                let got = with_walk(&nodes, &packed, &runs, s, o, d);
                 assert_eq!(got.2, want.2, "ray {i}, {s:?}");
                 total.0 += got.0.len();
                 total.1 += got.1.len();

@@ -13,14 +13,15 @@
 //! Each child slot also carries one word, `slot[s]`:
 //! - an internal child: its node index with the top bit set ([`INTERNAL`]), so the
 //!   traversal reads the child's index directly;
-//! - a leaf child: its primitives' unary count shifted to their offset from `prim_base`
-//!   (what obvhs's `get_child_and_index_bits` computes per visit), so the node test ORs
-//!   the words of its hit leaves into one mask of primitives to test;
+//! - a leaf child: one bit, its place among the node's leaf children (slot order), whose
+//!   leaves (`leaf4::Tri4`, up to four triangles each) are numbered from `leaf_base`, so
+//!   the node test ORs the words of its hit leaves into one mask of leaves to test;
 //! - an empty slot: 0 (its planes are an empty box, +inf below and -inf above).
 
 use obvhs::cwbvh::CwBvh;
 
-use super::leaf::PackedTri;
+use super::convert::leaf_size;
+use super::leaf4::{PAD, Tri4};
 
 /// One 8-wide node, 256 bytes (four cache lines, aligned).
 #[derive(Clone, Copy, Debug)]
@@ -29,10 +30,10 @@ pub(crate) struct WideNode {
     /// Per axis (x, y, z): floats 0..8 the children's lower planes, 8..16 the upper.
     pub planes: [[f32; 16]; 3],
     /// Per child slot: an internal child's node index | [`INTERNAL`], or a leaf child's
-    /// primitive bits (offsets from `prim_base`), or 0 for an empty slot.
+    /// bit (its leaf's offset from `leaf_base`), or 0 for an empty slot.
     pub slot: [u32; 8],
-    /// Leaf slot of the first primitive of the node's leaf children.
-    pub prim_base: u32,
+    /// Index of the leaf of the node's first leaf child (the others follow it).
+    pub leaf_base: u32,
     _pad: [u32; 7],
 }
 
@@ -49,7 +50,7 @@ impl Default for WideNode {
         WideNode {
             planes,
             slot: [0; 8],
-            prim_base: 0,
+            leaf_base: 0,
             _pad: [0; 7],
         }
     }
@@ -67,31 +68,62 @@ fn union(a: Bounds, b: Bounds) -> Bounds {
     )
 }
 
-fn tri_bounds(t: &PackedTri) -> Bounds {
-    let r = &t.rows;
-    (
-        [0, 1, 2].map(|k| r[k][0].min(r[k][1]).min(r[k][2])),
-        [0, 1, 2].map(|k| r[k][0].max(r[k][1]).max(r[k][2])),
-    )
+/// The bounds of a leaf's triangles (padding lanes left out).
+fn leaf_bounds(t: &Tri4) -> Bounds {
+    (0..4)
+        .filter(|&l| t.ids[l] != PAD)
+        .map(|l| {
+            let [a, b, c] = t.corners(l);
+            (a.min(b).min(c).to_array(), a.max(b).max(c).to_array())
+        })
+        .fold(EMPTY, union)
+}
+
+/// The leaf children of `bvh`, node by node in node order, slot by slot: each as the run
+/// `(first, count)` of `bvh.primitive_indices` it holds. Leaf `k` of this list is the
+/// one [`from_cwbvh`] numbers `k`.
+pub(crate) fn leaves(bvh: &CwBvh) -> Vec<(u32, u32)> {
+    let mut out = Vec::with_capacity(bvh.nodes.len() * 4);
+    for cw in &bvh.nodes {
+        for slot in 0..8 {
+            let meta = cw.child_meta[slot];
+            let size = leaf_size(meta);
+            if cw.imask & (1 << slot) == 0 && size != 0 {
+                out.push((cw.primitive_base_idx + u32::from(meta & 0x1f), size));
+            }
+        }
+    }
+    out
 }
 
 /// The wide nodes of `bvh`, index for index (child indices keep their meaning), with
-/// each child's box the exact bounds of its triangles. `tris` are the triangles in leaf
-/// order (`bvh.primitive_indices`).
+/// each child's box the exact bounds of its triangles. `leaves` are `bvh`'s leaves in the
+/// order of [`leaves`].
 ///
 /// A node's children always come after it in obvhs's numbering (and in `convert`'s), so
 /// one pass from the last node to the first sees every child's box before its parent.
-pub(crate) fn from_cwbvh(bvh: &CwBvh, tris: &[PackedTri]) -> Vec<WideNode> {
+pub(crate) fn from_cwbvh(bvh: &CwBvh, leaves: &[Tri4]) -> Vec<WideNode> {
     let n = bvh.nodes.len();
     let mut out = vec![WideNode::default(); n];
     let mut node_bounds = vec![EMPTY; n];
+    // Each node's first leaf: the leaf children of the nodes before it.
+    let is_leaf = |cw: &obvhs::cwbvh::node::CwBvhNode, slot: usize| {
+        cw.imask & (1 << slot) == 0 && leaf_size(cw.child_meta[slot]) != 0
+    };
+    let mut leaf_base = Vec::with_capacity(n);
+    let mut next = 0u32;
+    for cw in &bvh.nodes {
+        leaf_base.push(next);
+        next += (0..8).filter(|&s| is_leaf(cw, s)).count() as u32;
+    }
+    assert_eq!(next as usize, leaves.len(), "one Tri4 per leaf child");
     for i in (0..n).rev() {
         let cw = &bvh.nodes[i];
         let node = &mut out[i];
         let mut whole = EMPTY;
         let mut internal = 0u32;
+        let mut leaf = 0u32;
         for slot in 0..8 {
-            let meta = u32::from(cw.child_meta[slot]);
             let (b, word) = if cw.imask & (1 << slot) != 0 {
                 let c = (cw.child_base_idx + internal) as usize;
                 internal += 1;
@@ -100,15 +132,10 @@ pub(crate) fn from_cwbvh(bvh: &CwBvh, tris: &[PackedTri]) -> Vec<WideNode> {
                     "CWBVH child {c} of node {i} out of order"
                 );
                 (node_bounds[c], c as u32 | INTERNAL)
-            } else if meta >> 5 != 0 {
-                // Unary primitive count (high 3 bits) at the primitive offset (low 5).
-                let first = (cw.primitive_base_idx + (meta & 0x1f)) as usize;
-                let count = (meta >> 5).count_ones() as usize;
-                let b = tris[first..first + count]
-                    .iter()
-                    .map(tri_bounds)
-                    .fold(EMPTY, union);
-                (b, (meta >> 5) << (meta & 0x1f))
+            } else if is_leaf(cw, slot) {
+                let b = leaf_bounds(&leaves[(leaf_base[i] + leaf) as usize]);
+                leaf += 1;
+                (b, 1 << (leaf - 1))
             } else {
                 (EMPTY, 0)
             };
@@ -119,7 +146,7 @@ pub(crate) fn from_cwbvh(bvh: &CwBvh, tris: &[PackedTri]) -> Vec<WideNode> {
             node.slot[slot] = word;
             whole = union(whole, b);
         }
-        node.prim_base = cw.primitive_base_idx;
+        node.leaf_base = leaf_base[i];
         node_bounds[i] = whole;
     }
     out
