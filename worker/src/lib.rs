@@ -24,9 +24,12 @@ pub(crate) mod coordinator_link;
 pub(crate) mod domain_sources;
 pub mod domain_store;
 pub mod env_map;
+pub(crate) mod job_actor;
 pub(crate) mod job_error;
 pub mod jobs;
+pub(crate) mod links;
 pub mod map_merge;
+pub(crate) mod member;
 pub(crate) mod metrics;
 pub mod node;
 pub mod package_fetch;
@@ -39,11 +42,14 @@ pub mod queue;
 pub(crate) mod reporter;
 pub mod routing;
 pub mod setup_bounds;
+pub(crate) mod site;
 pub mod tickets;
 pub mod tracer;
 pub mod traffic;
 pub mod traffic_trace;
+pub(crate) mod wake;
 pub(crate) mod work;
+pub(crate) mod workload;
 
 pub use config::{Limits, NodeError, WorkerConfig};
 pub use domain_store::{
