@@ -45,9 +45,10 @@ use tokio::task::JoinSet;
 use tokio_stream::wrappers::ReceiverStream;
 
 use crate::jobs::{Job, Report};
-use crate::node::Shared;
+use crate::member::Member;
 use crate::tracer::{Lookup, NoDomains, Outbox};
 use crate::traffic::Kind;
+use crate::wake::Wake;
 use dray_sync::lock;
 
 /// Lookups per message: 4096 rays of at most 64 bytes, far inside gRPC's message limit.
@@ -96,51 +97,104 @@ pub(crate) enum CacheMessage {
 /// host is dead), else the entries the returns stored on replicated walls.
 pub(crate) type Acked = Option<Vec<(u32, Entry)>>;
 
+/// Where rays go on once a cache host answered them, or could not be reached: the
+/// worker's delivery ([`crate::links`]), which also feeds the lookups here. A trait, so
+/// that this file does not import the delivery back.
+pub(crate) trait Onward: Send + Sync + 'static {
+    /// Deliver `out` of `job` as a tracing step's results, with `report` (counters of
+    /// the caller's own).
+    fn deliver_onward(self: Arc<Self>, job: &Arc<Job>, out: Outbox, report: Report);
+}
+
 /// The links to cache hosts.
 pub(crate) struct CacheLinks {
+    state: Arc<State>,
+    tasks: Mutex<JoinSet<()>>,
+    runtime: tokio::runtime::Handle,
+}
+
+/// What the links' tasks share with [`CacheLinks`].
+struct State {
     /// By endpoint.
     links: Mutex<HashMap<String, mpsc::UnboundedSender<CacheMessage>>>,
     /// Hosts found unreachable.
     dead: Mutex<HashSet<String>>,
-    tasks: Mutex<JoinSet<()>>,
-    runtime: tokio::runtime::Handle,
     /// The cache host in this process and the endpoint it is announced at: messages for
     /// that endpoint go to it directly.
     local: Option<(String, CacheHost)>,
+    /// Who the worker is (named in failures and logs).
+    member: Arc<Member>,
+    /// How to reach cache hosts (token, TLS).
+    net: dray_net::ClientOptions,
+    /// Answered rays are work for the tracing threads: they hear of it here.
+    wake: Arc<Wake>,
+}
+
+/// What a link's task (and a message failed on its way) needs: the links' state, and
+/// where the rays it answers go on.
+#[derive(Clone)]
+struct Ctx {
+    state: Arc<State>,
+    onward: Arc<dyn Onward>,
+}
+
+impl Ctx {
+    fn deliver(&self, job: &Arc<Job>, out: Outbox, report: Report) {
+        self.onward.clone().deliver_onward(job, out, report);
+    }
 }
 
 impl CacheLinks {
-    pub fn new(runtime: tokio::runtime::Handle, local: Option<(String, CacheHost)>) -> CacheLinks {
+    pub fn new(
+        runtime: tokio::runtime::Handle,
+        local: Option<(String, CacheHost)>,
+        member: Arc<Member>,
+        net: dray_net::ClientOptions,
+        wake: Arc<Wake>,
+    ) -> CacheLinks {
         CacheLinks {
-            links: Mutex::new(HashMap::new()),
-            dead: Mutex::new(HashSet::new()),
+            state: Arc::new(State {
+                links: Mutex::new(HashMap::new()),
+                dead: Mutex::new(HashSet::new()),
+                local,
+                member,
+                net,
+                wake,
+            }),
             tasks: Mutex::new(JoinSet::new()),
             runtime,
-            local,
         }
     }
 
     /// The cache host in this process, when `routes` make it this worker's replica of
     /// every wall (sender placement): its maps may then be consulted in place.
     pub fn local_host(&self, routes: &crate::routing::Routes) -> Option<&CacheHost> {
-        let (endpoint, host) = self.local.as_ref()?;
+        let (endpoint, host) = self.state.local.as_ref()?;
         (routes.my_host_endpoint() == Some(endpoint.as_str())).then_some(host)
     }
 
     /// Whether the host at `endpoint` was found unreachable.
-    pub fn is_dead(&self, endpoint: &str) -> bool {
-        lock(&self.dead).contains(endpoint)
+    fn is_dead(&self, endpoint: &str) -> bool {
+        lock(&self.state.dead).contains(endpoint)
     }
 
-    /// Hand `msg` to the stream to `endpoint`, opening it if needed. Never waits; a
-    /// dead host gets the message failed at once.
-    pub fn send(&self, shared: &Arc<Shared>, endpoint: &str, msg: CacheMessage) {
+    fn ctx(&self, onward: &Arc<dyn Onward>) -> Ctx {
+        Ctx {
+            state: self.state.clone(),
+            onward: onward.clone(),
+        }
+    }
+
+    /// Hand `msg` to the stream to `endpoint`, opening it if needed (its task delivers
+    /// answered rays to `onward`). Never waits; a dead host gets the message failed at
+    /// once.
+    fn send(&self, onward: &Arc<dyn Onward>, endpoint: &str, msg: CacheMessage) {
         if self.is_dead(endpoint) {
-            fail(shared, endpoint, msg);
+            fail(&self.ctx(onward), endpoint, msg);
             return;
         }
         let tx = {
-            let mut links = lock(&self.links);
+            let mut links = lock(&self.state.links);
             match links.get(endpoint) {
                 Some(tx) if !tx.is_closed() => tx.clone(),
                 _ => {
@@ -148,26 +202,27 @@ impl CacheLinks {
                     links.insert(endpoint.to_string(), tx.clone());
                     let mut tasks = lock(&self.tasks);
                     while tasks.try_join_next().is_some() {}
-                    match &self.local {
-                        Some((e, host)) if e == endpoint => tasks
-                            .spawn_on(local_loop(shared.clone(), host.clone(), rx), &self.runtime),
-                        _ => tasks.spawn_on(
-                            link_loop(shared.clone(), endpoint.to_string(), rx),
-                            &self.runtime,
-                        ),
+                    let ctx = self.ctx(onward);
+                    match &self.state.local {
+                        Some((e, host)) if e == endpoint => {
+                            tasks.spawn_on(local_loop(ctx, host.clone(), rx), &self.runtime)
+                        }
+                        _ => {
+                            tasks.spawn_on(link_loop(ctx, endpoint.to_string(), rx), &self.runtime)
+                        }
                     };
                     tx
                 }
             }
         };
         if let Err(e) = tx.send(msg) {
-            fail(shared, endpoint, e.0);
+            fail(&self.ctx(onward), endpoint, e.0);
         }
     }
 
     /// End every stream and wait for the tasks (briefly).
     pub async fn close(&self) {
-        lock(&self.links).clear();
+        lock(&self.state.links).clear();
         let mut tasks = std::mem::take(&mut *lock(&self.tasks));
         if tokio::time::timeout(Duration::from_secs(2), async {
             while tasks.join_next().await.is_some() {}
@@ -182,7 +237,12 @@ impl CacheLinks {
 
 /// Send lookups to their walls' hosts (or straight on, for walls whose host is dead).
 /// Called with a tracing step's lookups; never waits.
-pub(crate) fn send_lookups(shared: &Arc<Shared>, job: &Arc<Job>, lookups: Vec<Lookup>) {
+pub(crate) fn send_lookups(
+    caches: &CacheLinks,
+    onward: &Arc<dyn Onward>,
+    job: &Arc<Job>,
+    lookups: Vec<Lookup>,
+) {
     let routes = job.routes();
     // Grouped by host index, and each host's liveness asked once per step, not per ray
     // (a lock and a string hash each).
@@ -212,7 +272,7 @@ pub(crate) fn send_lookups(shared: &Arc<Shared>, job: &Arc<Job>, lookups: Vec<Lo
         let Some(host) = routes.cache_host_endpoint(h as u32) else {
             continue;
         };
-        if shared.caches.is_dead(host) {
+        if caches.is_dead(host) {
             bypassed += lookups.len() as u64;
             for l in lookups {
                 bypass
@@ -224,8 +284,8 @@ pub(crate) fn send_lookups(shared: &Arc<Shared>, job: &Arc<Job>, lookups: Vec<Lo
             continue;
         }
         job.awaiting_cache_add(lookups.len());
-        shared.caches.send(
-            shared,
+        caches.send(
+            onward,
             host,
             CacheMessage::Lookups {
                 job: job.clone(),
@@ -238,7 +298,7 @@ pub(crate) fn send_lookups(shared: &Arc<Shared>, job: &Arc<Job>, lookups: Vec<Lo
             cache_rays_bypassed: bypassed,
             ..Report::default()
         };
-        crate::work::deliver_with(shared, job, bypass, counted);
+        onward.clone().deliver_onward(job, bypass, counted);
     }
 }
 
@@ -248,34 +308,37 @@ pub(crate) fn send_lookups(shared: &Arc<Shared>, job: &Arc<Job>, lookups: Vec<Lo
 /// Under sender placement every host holds a copy of every map: the copy in this
 /// worker's process learns the outcomes at once, and the others get them in merges
 /// ([`crate::map_merge`]).
-pub(crate) fn send_outcomes(shared: &Arc<Shared>, job: &Arc<Job>, outcomes: Vec<(u32, u32, bool)>) {
+pub(crate) fn send_outcomes(
+    caches: &CacheLinks,
+    onward: &Arc<dyn Onward>,
+    job: &Arc<Job>,
+    outcomes: Vec<(u32, u32, bool)>,
+) {
     let routes = job.routes();
     if routes.cache_replicas() {
         let merge = job.merges.gather(&outcomes);
         if let Some(mine) = routes.my_host_endpoint()
-            && !shared.caches.is_dead(mine)
+            && !caches.is_dead(mine)
         {
             let job = job.clone();
-            shared
-                .caches
-                .send(shared, mine, CacheMessage::Outcomes { job, outcomes });
+            caches.send(onward, mine, CacheMessage::Outcomes { job, outcomes });
         }
         if let Some(cells) = merge {
-            send_merge(shared, job, &routes, cells);
+            send_merge(caches, onward, job, &routes, cells);
         }
         return;
     }
     let mut by_host: HashMap<&str, Vec<(u32, u32, bool)>> = HashMap::new();
     for o in outcomes {
         if let Some(h) = routes.cache_host(o.0)
-            && !shared.caches.is_dead(h)
+            && !caches.is_dead(h)
         {
             by_host.entry(h).or_default().push(o);
         }
     }
     for (host, outcomes) in by_host {
-        shared.caches.send(
-            shared,
+        caches.send(
+            onward,
             host,
             CacheMessage::Outcomes {
                 job: job.clone(),
@@ -287,26 +350,27 @@ pub(crate) fn send_outcomes(shared: &Arc<Shared>, job: &Arc<Job>, outcomes: Vec<
 
 /// Send the hit-map outcomes gathered for other workers' copies of the maps, if any
 /// (sender placement; see [`crate::map_merge`]).
-pub(crate) fn flush_merges(shared: &Arc<Shared>, job: &Arc<Job>) {
+pub(crate) fn flush_merges(caches: &CacheLinks, onward: &Arc<dyn Onward>, job: &Arc<Job>) {
     if let Some(cells) = job.merges.take() {
-        send_merge(shared, job, &job.routes(), cells);
+        send_merge(caches, onward, job, &job.routes(), cells);
     }
 }
 
 /// One merge to every host but this worker's own (which learned the outcomes already).
 fn send_merge(
-    shared: &Arc<Shared>,
+    caches: &CacheLinks,
+    onward: &Arc<dyn Onward>,
     job: &Arc<Job>,
     routes: &crate::routing::Routes,
     cells: crate::map_merge::Merge,
 ) {
     let mine = routes.my_host_endpoint();
     for target in routes.cache_host_endpoints() {
-        if Some(target.as_str()) == mine || shared.caches.is_dead(target) {
+        if Some(target.as_str()) == mine || caches.is_dead(target) {
             continue;
         }
-        shared.caches.send(
-            shared,
+        caches.send(
+            onward,
             target,
             CacheMessage::Merge {
                 job: job.clone(),
@@ -322,7 +386,8 @@ fn send_merge(
 /// the coordinator. (So when the coarse pass's credit is whole, every replica holds
 /// every entry it made, and the main pass sees the same caches everywhere.)
 pub(crate) async fn return_tickets(
-    shared: &Arc<Shared>,
+    caches: &CacheLinks,
+    onward: &Arc<dyn Onward>,
     job: &Arc<Job>,
     returns: Vec<TicketReturn>,
 ) {
@@ -337,8 +402,8 @@ pub(crate) async fn return_tickets(
     let mut waits = Vec::new();
     for (host, returns) in by_host {
         let (done, wait) = oneshot::channel();
-        shared.caches.send(
-            shared,
+        caches.send(
+            onward,
             &host,
             CacheMessage::Returns {
                 job: job.clone(),
@@ -367,12 +432,12 @@ pub(crate) async fn return_tickets(
             .filter(|(origin, _)| origin != target)
             .flat_map(|(_, e)| e.iter().copied())
             .collect();
-        if entries.is_empty() || shared.caches.is_dead(target) {
+        if entries.is_empty() || caches.is_dead(target) {
             continue;
         }
         let (done, wait) = oneshot::channel();
-        shared.caches.send(
-            shared,
+        caches.send(
+            onward,
             target,
             CacheMessage::Entries {
                 job: job.clone(),
@@ -388,7 +453,7 @@ pub(crate) async fn return_tickets(
 }
 
 /// A message that cannot reach its host: lookups go straight on, returns are dropped.
-fn fail(shared: &Arc<Shared>, endpoint: &str, msg: CacheMessage) {
+fn fail(ctx: &Ctx, endpoint: &str, msg: CacheMessage) {
     match msg {
         CacheMessage::Lookups { job, lookups } => {
             job.awaiting_cache_sub(lookups.len());
@@ -406,7 +471,7 @@ fn fail(shared: &Arc<Shared>, endpoint: &str, msg: CacheMessage) {
                 ..Report::default()
             };
             if job.is_active() {
-                crate::work::deliver_with(shared, &job, out, counted);
+                ctx.deliver(&job, out, counted);
             }
         }
         CacheMessage::Returns { job, done, .. } | CacheMessage::Entries { job, done, .. } => {
@@ -417,7 +482,7 @@ fn fail(shared: &Arc<Shared>, endpoint: &str, msg: CacheMessage) {
             lost(&job, endpoint)
         }
     }
-    shared.notify();
+    ctx.state.wake.notify();
 }
 
 /// Count `cache_bytes` sent to cache hosts, and a message of `(kind, size)`, in `job`'s
@@ -457,14 +522,11 @@ enum Pending {
     },
 }
 
-async fn link_loop(
-    shared: Arc<Shared>,
-    endpoint: String,
-    mut rx: mpsc::UnboundedReceiver<CacheMessage>,
-) {
+async fn link_loop(ctx: Ctx, endpoint: String, mut rx: mpsc::UnboundedReceiver<CacheMessage>) {
     let (req_tx, req_rx) = mpsc::channel::<CacheRequest>(64);
     let opened = async {
-        let channel = shared
+        let channel = ctx
+            .state
             .net
             .endpoint(&endpoint)
             .map_err(|e| e.to_string())?
@@ -473,7 +535,7 @@ async fn link_loop(
             .connect()
             .await
             .map_err(|e| e.to_string())?;
-        let mut client = CacheServiceClient::new(shared.net.wrap(channel))
+        let mut client = CacheServiceClient::new(ctx.state.net.wrap(channel))
             .max_decoding_message_size(64 << 20)
             .max_encoding_message_size(64 << 20);
         client
@@ -486,7 +548,7 @@ async fn link_loop(
     let mut answers = match opened {
         Ok(a) => a,
         Err(e) => {
-            link_failed(&shared, &endpoint, &mut rx, VecDeque::new(), &e);
+            link_failed(&ctx, &endpoint, &mut rx, VecDeque::new(), &e);
             return;
         }
     };
@@ -626,7 +688,7 @@ async fn link_loop(
                     }
                 };
                 if !sent {
-                    link_failed(&shared, &endpoint, &mut rx, pending, "the stream closed");
+                    link_failed(&ctx, &endpoint, &mut rx, pending, "the stream closed");
                     return;
                 }
             }
@@ -634,17 +696,17 @@ async fn link_loop(
                 let response = match answer {
                     Ok(Some(r)) => r,
                     Ok(None) => {
-                        link_failed(&shared, &endpoint, &mut rx, pending, "the host ended the stream");
+                        link_failed(&ctx, &endpoint, &mut rx, pending, "the host ended the stream");
                         return;
                     }
                     Err(s) => {
-                        link_failed(&shared, &endpoint, &mut rx, pending, s.message());
+                        link_failed(&ctx, &endpoint, &mut rx, pending, s.message());
                         return;
                     }
                 };
                 let size = response.encoded_len();
                 let Some((seq, p)) = pending.pop_front() else {
-                    link_failed(&shared, &endpoint, &mut rx, pending, "an answer to nothing sent");
+                    link_failed(&ctx, &endpoint, &mut rx, pending, "an answer to nothing sent");
                     return;
                 };
                 match (response.msg, p) {
@@ -652,7 +714,7 @@ async fn link_loop(
                         if a.sequence == seq =>
                     {
                         count(&job, 0, Some((Kind::Answers, size)));
-                        apply_answers(&shared, &job, lookups, answers_of(&a));
+                        apply_answers(&ctx, &job, lookups, answers_of(&a));
                     }
                     (Some(cache_response::Msg::Ack(a)), Pending::Ack { job, kind, done }) if a.sequence == seq => {
                         let kind = if a.entries.is_empty() { kind } else { Kind::EntryCopies };
@@ -660,7 +722,7 @@ async fn link_loop(
                         match entries_of(&a) {
                             Ok(entries) => carried.extend(entries),
                             Err(e) => {
-                                link_failed(&shared, &endpoint, &mut rx, pending, &e);
+                                link_failed(&ctx, &endpoint, &mut rx, pending, &e);
                                 return;
                             }
                         }
@@ -670,7 +732,7 @@ async fn link_loop(
                     }
                     (_, p) => {
                         pending.push_front((seq, p));
-                        link_failed(&shared, &endpoint, &mut rx, pending, "answers out of order");
+                        link_failed(&ctx, &endpoint, &mut rx, pending, "answers out of order");
                         return;
                     }
                 }
@@ -790,11 +852,7 @@ fn answers_of(a: &CacheAnswers) -> impl Iterator<Item = Answer> + '_ {
 /// The link to the cache host in this process: each message is handed to the host's
 /// actors and answered before the next (the order a gRPC link keeps, so an applied
 /// return means what it means there).
-async fn local_loop(
-    shared: Arc<Shared>,
-    host: CacheHost,
-    mut rx: mpsc::UnboundedReceiver<CacheMessage>,
-) {
+async fn local_loop(ctx: Ctx, host: CacheHost, mut rx: mpsc::UnboundedReceiver<CacheMessage>) {
     while let Some(msg) = rx.recv().await {
         match msg {
             CacheMessage::Lookups { job, lookups } => {
@@ -809,12 +867,7 @@ async fn local_loop(
                     })
                     .collect();
                 let outcomes = host.lookup_rays(&job.key.id, job.key.attempt, rays).await;
-                apply_answers(
-                    &shared,
-                    &job,
-                    lookups,
-                    outcomes.into_iter().map(Answer::from),
-                );
+                apply_answers(&ctx, &job, lookups, outcomes.into_iter().map(Answer::from));
             }
             CacheMessage::Returns { job, returns, done } => {
                 let returns = returns.iter().map(|t| (t.ticket, Return::from(t)));
@@ -842,7 +895,7 @@ async fn local_loop(
 /// Apply a host's answers to the lookups they answer, ray for ray. An answer that
 /// does not fit its lookups (a host bug) sends the unanswered rays straight on.
 fn apply_answers(
-    shared: &Arc<Shared>,
+    ctx: &Ctx,
     job: &Arc<Job>,
     lookups: Vec<Lookup>,
     answers: impl Iterator<Item = Answer>,
@@ -884,7 +937,7 @@ fn apply_answers(
                     phm_not_sent += 1;
                 }
                 if let Err(e) = job.tracer.skip(&l.ray, lin, l.domain, &residency, &mut out) {
-                    job.fail(format!("worker {}: {e}", shared.id()));
+                    job.fail(format!("worker {}: {e}", ctx.state.member.id()));
                     return;
                 }
                 continue;
@@ -905,27 +958,27 @@ fn apply_answers(
         phm_rays_not_sent: phm_not_sent,
         ..Report::default()
     };
-    crate::work::deliver_with(shared, job, out, counted);
-    shared.notify();
+    ctx.deliver(job, out, counted);
+    ctx.state.wake.notify();
 }
 
 /// The stream to `endpoint` failed: the host is dead for this worker; everything sent
 /// or waiting for it is failed (lookups go straight on, returns are dropped).
 fn link_failed(
-    shared: &Arc<Shared>,
+    ctx: &Ctx,
     endpoint: &str,
     rx: &mut mpsc::UnboundedReceiver<CacheMessage>,
     pending: VecDeque<(u64, Pending)>,
     error: &str,
 ) {
-    tracing::warn!(worker = %shared.id(), host = %endpoint, "cache host lost: {error}");
-    lock(&shared.caches.dead).insert(endpoint.to_string());
+    tracing::warn!(worker = %ctx.state.member.id(), host = %endpoint, "cache host lost: {error}");
+    lock(&ctx.state.dead).insert(endpoint.to_string());
     rx.close();
-    lock(&shared.caches.links).retain(|_, tx| !tx.is_closed());
+    lock(&ctx.state.links).retain(|_, tx| !tx.is_closed());
     for (_, p) in pending {
         match p {
             Pending::Lookups { job, lookups } => {
-                fail(shared, endpoint, CacheMessage::Lookups { job, lookups })
+                fail(ctx, endpoint, CacheMessage::Lookups { job, lookups })
             }
             Pending::Ack { done, .. } => {
                 if let Some(done) = done {
@@ -935,6 +988,6 @@ fn link_failed(
         }
     }
     while let Ok(m) = rx.try_recv() {
-        fail(shared, endpoint, m);
+        fail(ctx, endpoint, m);
     }
 }

@@ -9,21 +9,32 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use dray_core::ray::RAY_RECORD_FORMAT;
 use dray_net::AuthChannel;
 use dray_proto::v1::{
-    Assignment, GetRoutingTableRequest, HeartbeatRequest, JobSetup, RegisterWorkerRequest,
-    RegisterWorkerResponse, RoutingTable, WatchAssignmentsRequest, assignment::Command,
+    Assignment, HeartbeatRequest, JobSetup, RegisterWorkerResponse, WatchAssignmentsRequest,
+    assignment::Command,
 };
 
 use crate::config::{NodeError, WorkerConfig};
 use crate::domain_store::JobKey;
-use crate::jobs::actor::JobActor;
+use crate::job_actor::JobActor;
 use crate::jobs::{Job, JobEvent};
-use crate::node::{Shared, VERSION};
+use crate::links::Links;
+use crate::member::Member;
 use crate::peer_server::PeerServer;
-use crate::plan::plan_job_with;
 use crate::routing::Routes;
+use crate::site::Site;
+use crate::workload::Workload;
+
+/// What the coordinator's commands act on: this worker's owners, each handed on to
+/// what needs it (a job's actor gets the member, the workload and the links; planning a
+/// setup the site). A plain composition: nothing below this file sees it.
+pub(crate) struct Owners {
+    pub member: Arc<Member>,
+    pub workload: Arc<Workload>,
+    pub links: Arc<Links>,
+    pub site: Site,
+}
 
 /// Connect to the coordinator, retrying for `patience`: in a cluster the workers often
 /// start before the coordinator listens.
@@ -73,43 +84,28 @@ fn error_chain(e: &dyn std::error::Error) -> String {
     message
 }
 
-/// This machine's host name (empty when it cannot be read): sent at registration, and
-/// the default worker name.
-pub(crate) fn hostname() -> String {
-    std::fs::read_to_string("/proc/sys/kernel/hostname")
-        .map(|s| s.trim().to_string())
-        .unwrap_or_default()
-}
-
-/// Register with the coordinator once; the id is stored in `shared`.
+/// Register `site` with the coordinator once, reached at `endpoint`; the id and secret
+/// are kept by `member`.
 pub(crate) async fn register(
-    shared: &Shared,
+    member: &Member,
+    site: &Site,
     endpoint: &str,
 ) -> Result<RegisterWorkerResponse, NodeError> {
-    let mut client = shared.client.clone();
-    let reg = client
-        .register_worker(RegisterWorkerRequest {
-            endpoint: endpoint.to_string(),
-            threads: shared.threads as u32,
-            memory_budget_bytes: shared.memory_budget,
-            version: VERSION.into(),
-            record_format: RAY_RECORD_FORMAT,
-            hostname: hostname(),
-            cache_endpoint: shared.cache_endpoint.clone().unwrap_or_default(),
-            name: shared.name.clone(),
-        })
+    let reg = member
+        .client()
+        .register_worker(site.registration(endpoint))
         .await
         .map_err(|s| NodeError::Refused(s.message().to_string()))?
         .into_inner();
-    shared.set_member(&reg.worker_id, &reg.member_token);
-    tracing::info!(worker = %reg.worker_id, name = %shared.name, %endpoint, "registered");
+    member.set_member(&reg.worker_id, &reg.member_token);
+    tracing::info!(worker = %reg.worker_id, name = %site.name(), %endpoint, "registered");
     Ok(reg)
 }
 
 /// Serve the coordinator: one session per registration, registering again after a
 /// lost coordinator, for as long as it can be reached within `rejoin`.
 pub(crate) async fn sessions(
-    shared: Arc<Shared>,
+    owners: &Owners,
     mut registration: RegisterWorkerResponse,
     endpoint: String,
     peer_server: PeerServer,
@@ -123,16 +119,17 @@ pub(crate) async fn sessions(
             .and_then(|d| Duration::try_from(d).ok())
             .unwrap_or(Duration::from_secs(1));
         let lost = tokio::select! {
-            e = assignment_loop(shared.clone()) => e,
-            e = heartbeat_loop(shared.clone(), heartbeat) => e,
+            e = assignment_loop(owners) => e,
+            e = heartbeat_loop(&owners.member, &owners.workload, heartbeat) => e,
         };
-        tracing::warn!(worker = %shared.id(), "{lost}; dropping this worker's jobs and registering again");
-        for j in shared.jobs.release_all() {
-            shared.forget(&j.key.id, j.key.attempt);
+        tracing::warn!(worker = %owners.member.id(), "{lost}; dropping this worker's jobs and registering again");
+        let workload = &owners.workload;
+        for j in workload.jobs().release_all() {
+            workload.forget(&j.key.id, j.key.attempt);
         }
         let start = tokio::time::Instant::now();
         registration = loop {
-            match register(&shared, &endpoint).await {
+            match register(&owners.member, &owners.site, &endpoint).await {
                 Ok(r) => break r,
                 Err(e) if start.elapsed() >= rejoin => {
                     return Err(NodeError::Lost(format!(
@@ -147,11 +144,12 @@ pub(crate) async fn sessions(
 }
 
 /// Read the coordinator's commands in order until the stream fails.
-async fn assignment_loop(shared: Arc<Shared>) -> NodeError {
-    let mut client = shared.client.clone();
-    let stream = client
-        .watch_assignments(shared.as_member(WatchAssignmentsRequest {
-            worker_id: shared.id(),
+async fn assignment_loop(owners: &Owners) -> NodeError {
+    let (member, workload) = (&owners.member, &owners.workload);
+    let stream = member
+        .client()
+        .watch_assignments(member.as_member(WatchAssignmentsRequest {
+            worker_id: member.id(),
         }))
         .await;
     let mut stream = match stream {
@@ -166,22 +164,22 @@ async fn assignment_loop(shared: Arc<Shared>) -> NodeError {
         };
         let Assignment { command } = msg;
         match command {
-            Some(Command::Setup(setup)) => setup_job(&shared, setup).await,
-            Some(Command::Tiles(t)) => match shared.jobs.get(&t.job_id) {
+            Some(Command::Setup(setup)) => setup_job(owners, setup).await,
+            Some(Command::Tiles(t)) => match workload.jobs().get(&t.job_id) {
                 Some(job) => job.tell(JobEvent::Tiles(t)),
                 None => tracing::warn!(job = %t.job_id, "tiles for a job this worker does not run"),
             },
             Some(Command::Routing(r)) => {
-                if let Some(job) = shared.jobs.get(&r.job_id) {
+                if let Some(job) = workload.jobs().get(&r.job_id) {
                     job.tell(JobEvent::Routing(r));
                 }
             }
             Some(Command::Cancel(r)) | Some(Command::Finish(r)) => {
                 tracing::info!(job = %r.job_id, attempt = r.attempt, reason = %r.reason, "job released");
-                if let Some(j) = shared.jobs.release(&r.job_id, r.attempt) {
-                    shared.forget(&j.key.id, j.key.attempt);
+                if let Some(j) = workload.jobs().release(&r.job_id, r.attempt) {
+                    workload.forget(&j.key.id, j.key.attempt);
                 } else {
-                    shared.forget(&r.job_id, r.attempt);
+                    workload.forget(&r.job_id, r.attempt);
                 }
             }
             None => {}
@@ -191,17 +189,17 @@ async fn assignment_loop(shared: Arc<Shared>) -> NodeError {
 
 /// Heartbeats until the coordinator says it does not know this worker or cannot be
 /// reached five times in a row.
-async fn heartbeat_loop(shared: Arc<Shared>, every: Duration) -> NodeError {
-    let mut client = shared.client.clone();
+async fn heartbeat_loop(member: &Member, workload: &Workload, every: Duration) -> NodeError {
+    let mut client = member.client();
     let mut failures = 0u32;
     loop {
         tokio::time::sleep(every).await;
-        let rays_queued = shared.in_flight() as u64;
+        let rays_queued = workload.in_flight() as u64;
         crate::metrics::record_queued(rays_queued);
         let r = client
-            .heartbeat(shared.as_member(HeartbeatRequest {
-                worker_id: shared.id(),
-                memory_used_bytes: shared.memory_used(),
+            .heartbeat(member.as_member(HeartbeatRequest {
+                worker_id: member.id(),
+                memory_used_bytes: workload.memory_used(),
                 rays_queued,
             }))
             .await;
@@ -225,33 +223,27 @@ async fn heartbeat_loop(shared: Arc<Shared>, every: Duration) -> NodeError {
 
 /// Set up a job attempt: plan it (reads the manifest; domains load on demand) and start
 /// taking its rays. A newer attempt replaces an older one.
-async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
+async fn setup_job(owners: &Owners, setup: JobSetup) {
+    let (member, workload) = (&owners.member, &owners.workload);
     let job_id = setup.job_id.clone();
     let attempt = setup.attempt;
-    if shared.jobs.is_released(&job_id, attempt) {
+    if workload.jobs().is_released(&job_id, attempt) {
         return;
     }
     // Before anything is sized by the setup, and before it is planned.
     let refused = crate::setup_bounds::check_setup(&setup)
         .map_err(|e| e.to_string())
-        .and_then(|()| shared.jobs.admit(&job_id));
+        .and_then(|()| workload.jobs().admit(&job_id));
     if let Err(e) = refused {
-        let me = shared.id();
+        let me = member.id();
         // An id beyond the bound is not kept among the released ones.
         let keep = job_id.len() <= crate::setup_bounds::MAX_ID_BYTES;
-        report_refusal(shared, &job_id, attempt, format!("worker {me}: {e}"), keep).await;
+        let message = format!("worker {me}: {e}");
+        report_refusal(member, workload, &job_id, attempt, message, keep).await;
         return;
     }
-    let memory = shared.memory_packages.clone();
-    let fetcher = shared.fetcher.clone();
-    let setup2 = setup.clone();
-    let planned = tokio::task::spawn_blocking(move || {
-        plan_job_with(&setup2, memory.as_deref(), fetcher.as_ref())
-    })
-    .await
-    .map_err(|e| e.to_string())
-    .and_then(|r| r.map_err(|e| e.to_string()));
-    let me = shared.id();
+    let planned = owners.site.plan(&setup).await;
+    let me = member.id();
     let routes = setup
         .routing
         .as_ref()
@@ -260,7 +252,8 @@ async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
     let (plan, routes) = match (planned, routes) {
         (Ok(p), Ok(r)) => (p, r),
         (Err(e), _) | (_, Err(e)) => {
-            report_setup_failure(shared, &job_id, attempt, format!("worker {me}: {e}")).await;
+            let message = format!("worker {me}: {e}");
+            report_refusal(member, workload, &job_id, attempt, message, true).await;
             return;
         }
     };
@@ -268,7 +261,7 @@ async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
         id: job_id.as_str().into(),
         attempt,
     };
-    shared.store.open(&key, plan.content);
+    workload.store().open(&key, plan.content);
     let span = tracing::info_span!("job", id = %job_id, attempt);
     dray_net::trace::set_parent(&span, &setup.trace_context);
     let merge_every = setup
@@ -277,7 +270,7 @@ async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
         .and_then(|s| s.phm.as_ref())
         .and_then(|p| p.merge)
         .unwrap_or(crate::map_merge::DEFAULT_MERGE_EVERY);
-    let trace = traffic_trace(shared, &setup, &me);
+    let trace = owners.site.traffic_trace(&setup, &me);
     let (job, mailbox) = Job::new(key, plan.tracer, plan.source, routes);
     let job = Arc::new(
         job.with_span(span)
@@ -288,75 +281,31 @@ async fn setup_job(shared: &Arc<Shared>, setup: JobSetup) {
     // `plan::tracer`).
     let ahead = (setup.passes_ahead > 0 && job.tracer.pass_tags().is_some())
         .then(|| crate::jobs::ahead::Ahead::new(setup.passes_ahead, setup.pass));
-    let actor = JobActor::new(shared.clone(), job.clone(), mailbox, setup.routing, ahead);
+    let actor = JobActor::new(
+        member.clone(),
+        workload.clone(),
+        owners.links.clone(),
+        job.clone(),
+        mailbox,
+        setup.routing,
+        ahead,
+    );
     let owned = job.routes().owned().len();
-    let (started, replaced) = shared.jobs.start(job.clone(), actor);
+    let (started, replaced) = workload.jobs().start(job.clone(), actor.supervised());
     if let Some(old) = replaced {
-        shared.forget(&old.key.id, old.key.attempt);
+        workload.forget(&old.key.id, old.key.attempt);
     }
     if started {
         tracing::info!(job = %job_id, attempt, owned, schedule = %setup.schedule, "job set up");
     }
-    shared.notify();
-}
-
-/// The job's traffic trace on this worker, when its spec asks for one and the worker
-/// keeps traces. A trace that cannot be opened is a warning, not a failure: the job's
-/// image does not depend on it.
-fn traffic_trace(
-    shared: &Shared,
-    setup: &JobSetup,
-    me: &str,
-) -> Option<crate::traffic_trace::TrafficTrace> {
-    let wanted = setup.spec.as_ref().is_some_and(|s| s.trace);
-    if !wanted {
-        return None;
-    }
-    let Some(dir) = shared.trace_dir.as_deref() else {
-        tracing::warn!(job = %setup.job_id, "the job asks for a traffic trace, but this worker has no --trace-dir: none recorded");
-        return None;
-    };
-    match crate::traffic_trace::TrafficTrace::open(
-        dir,
-        &setup.job_id,
-        setup.attempt,
-        me,
-        shared.threads,
-    ) {
-        Ok(t) => Some(t),
-        Err(e) => {
-            tracing::warn!(job = %setup.job_id, "{e}");
-            None
-        }
-    }
-}
-
-/// The whole current routing table of `job_id`, from the coordinator (None when it
-/// has none: the job is not running there).
-pub(crate) async fn whole_table(shared: &Shared, job_id: &str) -> Option<RoutingTable> {
-    let mut client = shared.client.clone();
-    let r = client
-        .get_routing_table(shared.as_member(GetRoutingTableRequest {
-            job_id: job_id.to_string(),
-        }))
-        .await;
-    match r {
-        Ok(r) => r.into_inner().routing,
-        Err(s) => {
-            tracing::warn!(job = %job_id, "could not fetch the whole routing table: {}", s.message());
-            None
-        }
-    }
-}
-
-async fn report_setup_failure(shared: &Shared, job_id: &str, attempt: u32, message: String) {
-    report_refusal(shared, job_id, attempt, message, true).await;
+    workload.notify();
 }
 
 /// Tell the coordinator that `job_id` fails here, and drop it; `release` keeps its id
 /// among the released ones (so that its late rays are dropped).
 async fn report_refusal(
-    shared: &Shared,
+    member: &Member,
+    workload: &Workload,
     job_id: &str,
     attempt: u32,
     message: String,
@@ -365,9 +314,9 @@ async fn report_refusal(
     let shown: String = job_id.chars().take(64).collect();
     tracing::error!(job = %shown, "{message}");
     // Nothing was reported for the attempt before: its first sequence number.
-    crate::reporter::report_failure(shared, job_id, attempt, 1, message).await;
+    crate::reporter::report_failure(member, job_id, attempt, 1, message).await;
     if release {
-        shared.jobs.release(job_id, attempt);
+        workload.jobs().release(job_id, attempt);
     }
-    shared.forget(job_id, attempt);
+    workload.forget(job_id, attempt);
 }

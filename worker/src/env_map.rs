@@ -16,8 +16,8 @@ use dray_proto::v1::{EnvMapFile, JobSetup};
 use dray_scene::partition::checksum::{checksum, to_hex};
 use dray_scene::partition::memory::{MemoryPackages, is_memory_package};
 
+use crate::job_error::JobError;
 use crate::package_fetch::{Expected, FetchMode, PackageFetcher};
-use crate::plan::JobError;
 
 /// The environment map `setup` asks for, or `None` when it has none. Blocking (reads,
 /// may fetch, decodes).

@@ -16,7 +16,6 @@
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use dray_core::ray::FLAG_TICKETED;
 use dray_core::ray::{RAY_RECORD_FORMAT, RAY_RECORD_MAX_BYTES, RayRecord};
 use dray_net::AuthChannel;
 use dray_proto::v1::ray_exchange_service_client::RayExchangeServiceClient;
@@ -30,7 +29,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::Status;
 
 use crate::peer_server::MAX_MESSAGE_BYTES;
-use crate::tickets::MAX_TICKETS;
+use crate::tickets::check_tickets;
 
 /// Largest batch sent, so that a batch always fits the receiver's message limit.
 pub const MAX_BATCH_RAYS: usize = 64 * 1024;
@@ -416,46 +415,4 @@ impl PeerSender {
 
 fn set_failure(slot: &Mutex<Option<Status>>, status: Status) {
     *dray_sync::lock(slot) = Some(status);
-}
-
-/// Tickets must name, in non-decreasing record order, exactly the records flagged
-/// TICKETED, each at least once and at most [`MAX_TICKETS`] times: what a receiver
-/// checks on arrival, so a sender checks it before sending.
-pub fn check_tickets(rays: &[RayRecord], tickets: &[RayTicket]) -> Result<(), String> {
-    let mut at = 0usize;
-    for (i, r) in rays.iter().enumerate() {
-        let start = at;
-        while at < tickets.len() && usize::try_from(tickets[at].record).ok() == Some(i) {
-            at += 1;
-        }
-        let n = at - start;
-        if r.flags & FLAG_TICKETED != 0 {
-            if n == 0 {
-                return Err(format!("record {i} is ticketed but has no ticket"));
-            }
-            if n > MAX_TICKETS {
-                return Err(format!(
-                    "record {i} has {n} tickets, more than {MAX_TICKETS}"
-                ));
-            }
-        } else if n > 0 {
-            return Err(format!("ticket for record {i}, which is not ticketed"));
-        }
-        if let Some(t) = tickets.get(at)
-            && usize::try_from(t.record).ok().is_none_or(|rec| rec <= i)
-        {
-            return Err(format!(
-                "ticket for record {} out of order after record {i}",
-                t.record
-            ));
-        }
-    }
-    match tickets.get(at) {
-        Some(t) => Err(format!(
-            "ticket for record {}, beyond the batch's {} records",
-            t.record,
-            rays.len()
-        )),
-        None => Ok(()),
-    }
 }

@@ -351,7 +351,7 @@ impl StreamReceiver {
         self.scratch.clear();
         decode_rays_into(&batch.records, records, &mut self.scratch)
             .map_err(|source| StreamError::Record { sequence, source })?;
-        crate::peer_client::check_tickets(&self.scratch, &batch.tickets)
+        crate::tickets::check_tickets(&self.scratch, &batch.tickets)
             .map_err(|detail| StreamError::BadTickets { sequence, detail })?;
         let rays = std::mem::replace(&mut self.scratch, Vec::with_capacity(records));
         let queued = QueuedBatch {

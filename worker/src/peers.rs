@@ -26,14 +26,15 @@ use std::sync::{Arc, Mutex, Weak};
 use std::time::Duration;
 
 use dray_core::ray::RayRecord;
-use dray_proto::v1::{GetPeerPassRequest, RayTicket};
+use dray_proto::v1::RayTicket;
 use tokio::sync::mpsc;
 use tokio::task::JoinSet;
 
 use crate::jobs::{Job, Report};
-use crate::node::Shared;
+use crate::member::Member;
 use crate::peer_client::{BatchKey, PeerClientConfig, PeerSender};
 use crate::routing::Peer;
+use crate::wake::Wake;
 use dray_sync::lock;
 
 /// Rays for one peer.
@@ -49,27 +50,48 @@ pub(crate) struct PeerMessage {
 
 /// The streams to this worker's peers.
 pub(crate) struct Peers {
-    /// By peer: (worker id, endpoint). Never by endpoint alone: see the module docs.
-    outboxes: Mutex<HashMap<(String, String), mpsc::UnboundedSender<PeerMessage>>>,
+    state: Arc<State>,
     tasks: Mutex<JoinSet<()>>,
     runtime: tokio::runtime::Handle,
 }
 
+/// What the streams' tasks share with [`Peers`].
+struct State {
+    /// By peer: (worker id, endpoint). Never by endpoint alone: see the module docs.
+    outboxes: Mutex<HashMap<(String, String), mpsc::UnboundedSender<PeerMessage>>>,
+    /// Who opens the streams (a stream opens with a peer pass asked for as this member).
+    member: Arc<Member>,
+    /// How to reach peers (token, TLS).
+    net: dray_net::ClientOptions,
+    /// Rays leaving make room for camera rays: the tracing threads hear of it here.
+    wake: Arc<Wake>,
+}
+
 impl Peers {
-    pub fn new(runtime: tokio::runtime::Handle) -> Peers {
+    pub fn new(
+        runtime: tokio::runtime::Handle,
+        member: Arc<Member>,
+        net: dray_net::ClientOptions,
+        wake: Arc<Wake>,
+    ) -> Peers {
         Peers {
-            outboxes: Mutex::new(HashMap::new()),
+            state: Arc::new(State {
+                outboxes: Mutex::new(HashMap::new()),
+                member,
+                net,
+                wake,
+            }),
             tasks: Mutex::new(JoinSet::new()),
             runtime,
         }
     }
 
     /// Hand `msg` to the stream to `peer`, opening it if needed. Never waits.
-    pub fn send(&self, shared: &Arc<Shared>, peer: &Peer, msg: PeerMessage) {
+    pub fn send(&self, peer: &Peer, msg: PeerMessage) {
         let n = msg.rays.len();
         msg.job.outgoing_add(n);
         let tx = {
-            let mut outboxes = lock(&self.outboxes);
+            let mut outboxes = lock(&self.state.outboxes);
             let key = (peer.id.clone(), peer.endpoint.clone());
             match outboxes.get(&key) {
                 Some(tx) if !tx.is_closed() => tx.clone(),
@@ -79,7 +101,10 @@ impl Peers {
                     let mut tasks = lock(&self.tasks);
                     // Reap finished streams so the set does not grow.
                     while tasks.try_join_next().is_some() {}
-                    tasks.spawn_on(peer_loop(shared.clone(), peer.clone(), rx), &self.runtime);
+                    tasks.spawn_on(
+                        peer_loop(self.state.clone(), peer.clone(), rx),
+                        &self.runtime,
+                    );
                     tx
                 }
             }
@@ -94,7 +119,7 @@ impl Peers {
     /// End every stream (after it sends what it holds, for a moment) and wait for the
     /// tasks.
     pub async fn close(&self) {
-        lock(&self.outboxes).clear();
+        lock(&self.state.outboxes).clear();
         let mut tasks = std::mem::take(&mut *lock(&self.tasks));
         if tokio::time::timeout(Duration::from_secs(2), async {
             while tasks.join_next().await.is_some() {}
@@ -115,29 +140,23 @@ fn unreachable(job: &Job, peer: &str) {
     });
 }
 
-async fn peer_loop(shared: Arc<Shared>, peer: Peer, mut rx: mpsc::UnboundedReceiver<PeerMessage>) {
+async fn peer_loop(state: Arc<State>, peer: Peer, mut rx: mpsc::UnboundedReceiver<PeerMessage>) {
     let opened = async {
         // The receiver authenticates the stream's sender by this pass, which only the
         // coordinator can make (see dray_net::peer_pass).
-        let me = shared.id();
-        let pass = shared
-            .client
-            .clone()
-            .get_peer_pass(shared.as_member(GetPeerPassRequest {
-                worker_id: me.clone(),
-                peer_id: peer.id.clone(),
-            }))
+        let me = state.member.id();
+        let pass = state
+            .member
+            .peer_pass(&peer.id)
             .await
-            .map_err(|s| format!("no peer pass from the coordinator: {}", s.message()))?
-            .into_inner()
-            .pass;
+            .map_err(|s| format!("no peer pass from the coordinator: {}", s.message()))?;
         let config = PeerClientConfig {
             sender_id: me,
             sender_pass: pass,
             receiver_id: peer.id.clone(),
             ..PeerClientConfig::default()
         };
-        let channel = shared
+        let channel = state
             .net
             .endpoint(&peer.endpoint)
             .map_err(|e| e.to_string())?
@@ -145,7 +164,7 @@ async fn peer_loop(shared: Arc<Shared>, peer: Peer, mut rx: mpsc::UnboundedRecei
             .connect()
             .await
             .map_err(|e| e.to_string())?;
-        PeerSender::open(shared.net.wrap(channel), config)
+        PeerSender::open(state.net.wrap(channel), config)
             .await
             .map_err(|e| e.to_string())
     }
@@ -153,7 +172,7 @@ async fn peer_loop(shared: Arc<Shared>, peer: Peer, mut rx: mpsc::UnboundedRecei
     let mut sender = match opened {
         Ok(s) => s,
         Err(e) => {
-            peer_failed(&shared, &mut rx, &peer, &e, &Carried::default());
+            peer_failed(&state, &mut rx, &peer, &e, &Carried::default());
             return;
         }
     };
@@ -165,7 +184,7 @@ async fn peer_loop(shared: Arc<Shared>, peer: Peer, mut rx: mpsc::UnboundedRecei
                     m = rx.recv() => m,
                     _ = tokio::time::sleep_until(at) => {
                         if let Err(e) = sender.flush_due().await {
-                            peer_failed(&shared, &mut rx, &peer, &e.to_string(), &carried);
+                            peer_failed(&state, &mut rx, &peer, &e.to_string(), &carried);
                             return;
                         }
                         continue;
@@ -201,9 +220,9 @@ async fn peer_loop(shared: Arc<Shared>, peer: Peer, mut rx: mpsc::UnboundedRecei
         };
         m.job.outgoing_sub(n);
         // Room for camera rays again, perhaps.
-        shared.notify();
+        state.wake.notify();
         if let Err(e) = sent {
-            peer_failed(&shared, &mut rx, &peer, &e, &carried);
+            peer_failed(&state, &mut rx, &peer, &e, &carried);
             return;
         }
     }
@@ -244,16 +263,16 @@ impl Carried {
 /// and name it to every running job that lost rays with the stream (`carried`, and the
 /// jobs of the messages still queued for it).
 fn peer_failed(
-    shared: &Shared,
+    state: &State,
     rx: &mut mpsc::UnboundedReceiver<PeerMessage>,
     peer: &Peer,
     error: &str,
     carried: &Carried,
 ) {
-    tracing::warn!(worker = %shared.id(), peer = %peer.id, endpoint = %peer.endpoint, "cannot send rays: {error}");
+    tracing::warn!(worker = %state.member.id(), peer = %peer.id, endpoint = %peer.endpoint, "cannot send rays: {error}");
     rx.close();
     // The next rays for this peer open a new stream.
-    lock(&shared.peers.outboxes).retain(|_, tx| !tx.is_closed());
+    lock(&state.outboxes).retain(|_, tx| !tx.is_closed());
     for job in carried.active() {
         unreachable(&job, &peer.id);
     }
@@ -263,5 +282,5 @@ fn peer_failed(
             unreachable(&m.job, &peer.id);
         }
     }
-    shared.notify();
+    state.wake.notify();
 }

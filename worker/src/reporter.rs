@@ -1,5 +1,5 @@
 //! Reports to the coordinator, as messages: one `ReportContributions` per report a
-//! job's actor ([`crate::jobs::actor`]) sends, in chunks that stay inside gRPC's
+//! job's actor ([`crate::job_actor`]) sends, in chunks that stay inside gRPC's
 //! message limit, retried with the same sequence number on failure; and the job's queue
 //! lengths and resident domains, the scheduler's input.
 
@@ -16,7 +16,8 @@ use dray_core::aov::AOV_WORDS;
 
 use crate::domain_store::StoreCounters;
 use crate::jobs::{Job, Report};
-use crate::node::Shared;
+use crate::member::Member;
+use crate::workload::Workload;
 
 /// How often accumulated results are reported.
 pub const REPORT_INTERVAL: Duration = Duration::from_millis(10);
@@ -43,7 +44,7 @@ pub(crate) enum Sent {
 /// message limit; the credit travels in the last one, so no credit reaches the
 /// coordinator before the contributions of the same rays.
 pub(crate) fn requests(
-    shared: &Shared,
+    member: &Member,
     job: &Job,
     mut report: Report,
     store: StoreCounters,
@@ -57,7 +58,7 @@ pub(crate) fn requests(
         let chunk = std::mem::replace(&mut sums, rest);
         *sequence += 1;
         out.push(request(
-            shared,
+            member,
             job,
             *sequence,
             (chunk, Vec::new()),
@@ -73,7 +74,7 @@ pub(crate) fn requests(
         let chunk = std::mem::replace(&mut aovs, rest);
         *sequence += 1;
         out.push(request(
-            shared,
+            member,
             job,
             *sequence,
             (Vec::new(), chunk),
@@ -135,7 +136,7 @@ pub(crate) fn requests(
     );
     *sequence += 1;
     out.push(request(
-        shared,
+        member,
         job,
         *sequence,
         (sums, aovs),
@@ -152,12 +153,12 @@ type Entries<const N: usize> = Vec<(u64, [i64; N])>;
 /// Send `requests` in order, each retried with its sequence number (the coordinator
 /// applies it once); stops at the first that cannot be sent.
 pub(crate) async fn send_all(
-    shared: &Shared,
+    member: &Member,
     job: &Job,
     requests: Vec<ReportContributionsRequest>,
 ) -> Sent {
     for r in requests {
-        match send_report(shared, job, r).await {
+        match send_report(member, job, r).await {
             Sent::Delivered => {}
             other => return other,
         }
@@ -166,7 +167,7 @@ pub(crate) async fn send_all(
 }
 
 fn request(
-    shared: &Shared,
+    member: &Member,
     job: &Job,
     sequence: u64,
     (sums, aovs): (Entries<3>, Entries<AOV_WORDS>),
@@ -176,7 +177,7 @@ fn request(
 ) -> ReportContributionsRequest {
     let t = &r.traced;
     ReportContributionsRequest {
-        worker_id: shared.id(),
+        worker_id: member.id(),
         job_id: job.key.id.to_string(),
         attempt: job.key.attempt,
         sequence,
@@ -199,14 +200,14 @@ fn request(
 
 /// Send one report, retrying with the same sequence number (the coordinator applies
 /// it once).
-async fn send_report(shared: &Shared, job: &Job, request: ReportContributionsRequest) -> Sent {
-    let mut client = shared.client.clone();
+async fn send_report(member: &Member, job: &Job, request: ReportContributionsRequest) -> Sent {
+    let mut client = member.client();
     for attempt in 0..20u32 {
         if !job.is_active() {
             return Sent::GaveUp;
         }
         match client
-            .report_contributions(shared.as_member(request.clone()))
+            .report_contributions(member.as_member(request.clone()))
             .await
         {
             Ok(r) if !r.get_ref().job_active => return Sent::JobOver,
@@ -223,16 +224,16 @@ async fn send_report(shared: &Shared, job: &Job, request: ReportContributionsReq
 
 /// Tell the coordinator that attempt `attempt` of `job_id` fails here, under `sequence`.
 pub(crate) async fn report_failure(
-    shared: &Shared,
+    member: &Member,
     job_id: &str,
     attempt: u32,
     sequence: u64,
     message: String,
 ) {
-    let mut client = shared.client.clone();
+    let mut client = member.client();
     let _ = client
-        .report_contributions(shared.as_member(ReportContributionsRequest {
-            worker_id: shared.id(),
+        .report_contributions(member.as_member(ReportContributionsRequest {
+            worker_id: member.id(),
             job_id: job_id.to_string(),
             sequence,
             failure: message,
@@ -243,9 +244,9 @@ pub(crate) async fn report_failure(
 }
 
 /// The job's queue lengths and resident domains, for the scheduler.
-pub(crate) async fn report_queues(shared: Arc<Shared>, job: Arc<Job>) {
+pub(crate) async fn report_queues(member: Arc<Member>, workload: Arc<Workload>, job: Arc<Job>) {
     let mut entries: BTreeMap<u32, DomainQueue> = BTreeMap::new();
-    for (d, n) in shared.queues.job_lengths(&job.key.id, job.key.attempt) {
+    for (d, n) in workload.queues().job_lengths(&job.key.id, job.key.attempt) {
         entries.insert(
             d,
             DomainQueue {
@@ -256,7 +257,7 @@ pub(crate) async fn report_queues(shared: Arc<Shared>, job: Arc<Job>) {
             },
         );
     }
-    for (d, bytes) in shared.store.resident(&job.key) {
+    for (d, bytes) in workload.store().resident(&job.key) {
         let e = entries.entry(d).or_insert(DomainQueue {
             domain: d,
             ..DomainQueue::default()
@@ -264,14 +265,14 @@ pub(crate) async fn report_queues(shared: Arc<Shared>, job: Arc<Job>) {
         e.resident = true;
         e.resident_bytes = bytes;
     }
-    let mut client = shared.client.clone();
+    let mut client = member.client();
     let r = client
-        .report_queues(shared.as_member(ReportQueuesRequest {
-            worker_id: shared.id(),
+        .report_queues(member.as_member(ReportQueuesRequest {
+            worker_id: member.id(),
             job_id: job.key.id.to_string(),
             routing_version: job.routes().version,
             queues: entries.into_values().collect(),
-            memory_used_bytes: shared.memory_used(),
+            memory_used_bytes: workload.memory_used(),
             attempt: job.key.attempt,
         }))
         .await;

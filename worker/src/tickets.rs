@@ -293,6 +293,48 @@ impl TicketLedger {
     }
 }
 
+/// Tickets must name, in non-decreasing record order, exactly the records flagged
+/// TICKETED, each at least once and at most [`MAX_TICKETS`] times: what a receiver
+/// checks on arrival, so a sender checks it before sending.
+pub fn check_tickets(rays: &[RayRecord], tickets: &[RayTicket]) -> Result<(), String> {
+    let mut at = 0usize;
+    for (i, r) in rays.iter().enumerate() {
+        let start = at;
+        while at < tickets.len() && usize::try_from(tickets[at].record).ok() == Some(i) {
+            at += 1;
+        }
+        let n = at - start;
+        if r.flags & FLAG_TICKETED != 0 {
+            if n == 0 {
+                return Err(format!("record {i} is ticketed but has no ticket"));
+            }
+            if n > MAX_TICKETS {
+                return Err(format!(
+                    "record {i} has {n} tickets, more than {MAX_TICKETS}"
+                ));
+            }
+        } else if n > 0 {
+            return Err(format!("ticket for record {i}, which is not ticketed"));
+        }
+        if let Some(t) = tickets.get(at)
+            && usize::try_from(t.record).ok().is_none_or(|rec| rec <= i)
+        {
+            return Err(format!(
+                "ticket for record {} out of order after record {i}",
+                t.record
+            ));
+        }
+    }
+    match tickets.get(at) {
+        Some(t) => Err(format!(
+            "ticket for record {}, beyond the batch's {} records",
+            t.record,
+            rays.len()
+        )),
+        None => Ok(()),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,5 +1,5 @@
 //! One job attempt on this worker, as the worker's other parts see it: a handle to the
-//! job's actor ([`super::actor`]).
+//! job's actor ([`crate::job_actor`]).
 //!
 //! The handle holds what never changes once the job is set up (its key, tracer, domain
 //! source and span), the views the actor publishes (the routing table in force, the
@@ -156,7 +156,7 @@ impl Job {
 
     /// Publish `routes` if it is newer than the table in force; returns the table it
     /// replaced. Only the actor calls this.
-    pub(super) fn publish_routes(&self, routes: Routes) -> Option<Arc<Routes>> {
+    pub(crate) fn publish_routes(&self, routes: Routes) -> Option<Arc<Routes>> {
         let mut g = dray_sync::write(&self.routes);
         if routes.version <= g.version {
             return None;
@@ -243,7 +243,7 @@ impl Job {
 }
 
 /// A tile of the job as the coordinator dealt it.
-pub(super) fn tile_ref(t: &dray_proto::v1::Tile) -> TileRef {
+pub(crate) fn tile_ref(t: &dray_proto::v1::Tile) -> TileRef {
     TileRef {
         index: t.index,
         x0: t.x0,

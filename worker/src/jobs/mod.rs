@@ -1,5 +1,5 @@
 //! The jobs this worker runs: one [`Job`] per job id (its current attempt), each with
-//! its actor ([`actor`]), and which attempts were released.
+//! its actor ([`crate::job_actor`]), and which attempts were released.
 //!
 //! A job is set up from the coordinator's `JobSetup`, swaps routing tables as the
 //! scheduler sends them, and is released by a `JobRelease` (finished, cancelled, or
@@ -7,19 +7,19 @@
 //! its queued rays, its resident domains, rays still arriving for it — is dropped.
 //!
 //! - [`job`]: the handle the worker's parts hold, and the events they post.
-//! - [`actor`]: the one owner of a job's report, routing table and tiles.
 //! - [`ahead`]: what a job tracing passes ahead holds back of later passes.
 //! - [`report`]: what a job has to report.
 //! - [`tiles`]: the tiles whose camera rays are still to be made.
 
-pub(crate) mod actor;
 pub(crate) mod ahead;
 pub mod job;
 pub mod report;
 pub mod tiles;
 
 use std::collections::HashMap;
+use std::future::Future;
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
 use dray_sync::lock;
 use tokio::task::JoinSet;
@@ -27,6 +27,9 @@ use tokio::task::JoinSet;
 pub use job::Job;
 pub(crate) use job::JobEvent;
 pub use report::Report;
+
+/// How long a job's actor waits for the worker to stop before it is aborted.
+pub(crate) const STOP_GRACE: Duration = Duration::from_secs(2);
 
 /// The jobs of this worker.
 #[derive(Default)]
@@ -107,10 +110,14 @@ impl Jobs {
         matches!(self.standing(id, attempt), Standing::Gone)
     }
 
-    /// Start `job` with `actor` (which must be its actor). An older attempt of the
-    /// same job is released first and returned; a job whose attempt was already released
-    /// is refused (false).
-    pub(crate) fn start(&self, job: Arc<Job>, actor: actor::JobActor) -> (bool, Option<Arc<Job>>) {
+    /// Start `job` with `actor` (which must be its actor's run, `JobActor::supervised`:
+    /// it ends when the job is released). An older attempt of the same job is released
+    /// first and returned; a job whose attempt was already released is refused (false).
+    pub(crate) fn start(
+        &self,
+        job: Arc<Job>,
+        actor: impl Future<Output = ()> + Send + 'static,
+    ) -> (bool, Option<Arc<Job>>) {
         if self.is_released(&job.key.id, job.key.attempt) {
             return (false, None);
         }
@@ -118,7 +125,7 @@ impl Jobs {
         let mut actors = lock(&self.actors);
         // Actors of released jobs are done: let go of them.
         while actors.try_join_next().is_some() {}
-        actors.spawn(tracing::Instrument::instrument(actor.supervised(), span));
+        actors.spawn(tracing::Instrument::instrument(actor, span));
         drop(actors);
         let mut jobs = lock(&self.jobs);
         let old = jobs.insert(job.key.id.clone(), job.clone());
@@ -164,10 +171,10 @@ impl Jobs {
     }
 
     /// Wait for every job's actor to end (they end once their jobs are released), at
-    /// most [`actor::STOP_GRACE`]; the rest are aborted.
+    /// most [`STOP_GRACE`]; the rest are aborted.
     pub async fn join_actors(&self) {
         let mut actors = std::mem::take(&mut *lock(&self.actors));
-        let joined = tokio::time::timeout(actor::STOP_GRACE, async {
+        let joined = tokio::time::timeout(STOP_GRACE, async {
             while actors.join_next().await.is_some() {}
         })
         .await;

@@ -3,7 +3,7 @@
 //!
 //! The parts that produce results (tracing steps, the peer and cache links) never touch
 //! the job's report: each posts its own [`Report`] to the job's actor
-//! ([`super::actor`]), which adds it to the one it is gathering ([`Report::absorb`]). A
+//! ([`crate::job_actor`]), which adds it to the one it is gathering ([`Report::absorb`]). A
 //! tracing step's results travel as one `Report`, so they always land in the same report
 //! to the coordinator: no credit arrives there before the contributions of its rays.
 

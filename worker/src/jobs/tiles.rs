@@ -1,7 +1,7 @@
 //! The tiles of a job attempt whose camera rays are still to be made here.
 //!
 //! The job's actor deals tiles in as the coordinator sends them
-//! ([`super::actor`]); tracing threads take camera rays from the front tile, a chunk at
+//! ([`crate::job_actor`]); tracing threads take camera rays from the front tile, a chunk at
 //! a time, so several threads share a tile. Tiles wait by pass: a job tracing passes
 //! ahead (`JobSetup.passes_ahead`) queues every later pass of a tile it is dealt, and
 //! threads take from the earliest pass open to them, so a later pass's camera rays

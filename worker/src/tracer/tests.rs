@@ -22,8 +22,8 @@ use dray_scene::partition::{DomainLayout, LayoutSpec, partition_in_memory};
 use glam::Vec3;
 
 use super::{JobTracer, NoDomains, Outbox, Residency, TileRef, TraceError};
+use crate::domain_sources::memory_domains;
 use crate::domain_store::LoadedDomain;
-use crate::plan::memory_domains;
 use crate::tickets::Lineage;
 
 const TILE: u32 = 8;

@@ -10,24 +10,24 @@
 //! the coordinator (or for cache actors to take back their tickets first), so what it
 //! holds stays merged per pixel however long the network takes. Routing tables are
 //! applied here, deltas to the whole table the actor keeps. The actor ends when the job
-//! is released; the worker holds every actor in one join set ([`super::Jobs`]).
+//! is released; the worker holds every actor in one join set ([`crate::jobs::Jobs`]).
 
 use std::future::Future;
 use std::pin::Pin;
 use std::sync::Arc;
-use std::time::Duration;
 
 use dray_proto::v1::RoutingTable;
 use tokio::time::MissedTickBehavior;
 
 use crate::domain_store::StoreCounters;
-use crate::node::Shared;
+use crate::jobs::ahead::Ahead;
+use crate::jobs::job::{Job, JobEvent, Mailbox, tile_ref};
+use crate::jobs::report::Report;
+use crate::links::Links;
+use crate::member::Member;
 use crate::reporter::{self, QUEUE_REPORT_INTERVAL, REPORT_INTERVAL, Sent};
 use crate::routing::Routes;
-
-use super::ahead::Ahead;
-use super::job::{Job, JobEvent, Mailbox, tile_ref};
-use super::report::Report;
+use crate::workload::Workload;
 
 /// A report on its way: first its tickets back to their cache actors, then its
 /// messages to the coordinator.
@@ -43,7 +43,12 @@ type InFlight = Pin<Box<dyn Future<Output = Flight> + Send>>;
 
 /// One job attempt's actor.
 pub(crate) struct JobActor {
-    shared: Arc<Shared>,
+    /// Who reports (the job's reports and queues speak for this member).
+    member: Arc<Member>,
+    /// The queues and domains the job's rays and reports are about.
+    workload: Arc<Workload>,
+    /// Where the report's tickets go back to their cache hosts.
+    links: Arc<Links>,
     job: Arc<Job>,
     mailbox: Mailbox,
     /// Results gathered since the last report left.
@@ -62,7 +67,9 @@ pub(crate) struct JobActor {
 
 impl JobActor {
     pub(crate) fn new(
-        shared: Arc<Shared>,
+        member: Arc<Member>,
+        workload: Arc<Workload>,
+        links: Arc<Links>,
         job: Arc<Job>,
         mailbox: Mailbox,
         table: Option<RoutingTable>,
@@ -72,7 +79,9 @@ impl JobActor {
             job.tiles().open_through(a.open_through());
         }
         JobActor {
-            shared,
+            member,
+            workload,
+            links,
             job,
             mailbox,
             report: Report::default(),
@@ -89,14 +98,14 @@ impl JobActor {
     /// credit that never comes. The failure goes under the largest sequence number, which
     /// no report of the job uses.
     pub(crate) async fn supervised(self) {
-        let (shared, job) = (self.shared.clone(), self.job.clone());
+        let (member, job) = (self.member.clone(), self.job.clone());
         if let Err(panic) = dray_net::contain::contained(self.run()).await {
             let message = format!(
                 "worker {}: internal error (a panic in the job's actor, contained): {panic}",
-                shared.id()
+                member.id()
             );
             tracing::error!(job = %job.key.id, "{message}");
-            reporter::report_failure(&shared, &job.key.id, job.key.attempt, u64::MAX, message)
+            reporter::report_failure(&member, &job.key.id, job.key.attempt, u64::MAX, message)
                 .await;
         }
     }
@@ -134,8 +143,8 @@ impl JobActor {
                         Flight::Sent(Sent::Delivered | Sent::GaveUp) => None,
                         Flight::Sent(Sent::JobOver) => {
                             tracing::info!(job = %job.key.id, attempt = job.key.attempt, "the coordinator says the job is over");
-                            if let Some(j) = self.shared.jobs.release(&job.key.id, job.key.attempt) {
-                                self.shared.forget(&j.key.id, j.key.attempt);
+                            if let Some(j) = self.workload.jobs().release(&job.key.id, job.key.attempt) {
+                                self.workload.forget(&j.key.id, j.key.attempt);
                             }
                             return;
                         }
@@ -152,7 +161,11 @@ impl JobActor {
                         flight = self.start(true);
                     }
                     if queue_flight.is_none() {
-                        queue_flight = Some(Box::pin(reporter::report_queues(self.shared.clone(), job.clone())));
+                        queue_flight = Some(Box::pin(reporter::report_queues(
+                            self.member.clone(),
+                            self.workload.clone(),
+                            job.clone(),
+                        )));
                     }
                 }
             }
@@ -216,13 +229,13 @@ impl JobActor {
             job.fail(format!(
                 "worker {}: more tiles dealt than the job's {limit} ({} queued, {} more dealt; \
                  refused)",
-                self.shared.id(),
+                self.member.id(),
                 e.queued,
                 e.dealt
             ));
             return;
         }
-        self.shared.notify();
+        self.workload.notify();
     }
 
     /// A new routing table: swap it in, and let go of domains this worker no longer
@@ -231,7 +244,7 @@ impl JobActor {
     /// delta's base, the whole table is asked of the coordinator.
     async fn route(&mut self, table: RoutingTable) {
         let job = self.job.clone();
-        let me = self.shared.id();
+        let me = self.member.id();
         if table.attempt != job.key.attempt {
             return;
         }
@@ -250,7 +263,7 @@ impl JobActor {
             match patched {
                 Some(t) => t,
                 None => {
-                    match crate::coordinator_link::whole_table(&self.shared, &table.job_id).await {
+                    match self.member.whole_table(&table.job_id).await {
                         Some(t) if t.attempt == job.key.attempt && t.base_version == 0 => t,
                         // The job ended or moved to another attempt: its release is on the way.
                         _ => return,
@@ -278,12 +291,12 @@ impl JobActor {
         let mut dropped = Vec::new();
         for d in old.owned() {
             if !new.owns(d) {
-                self.shared.store.evict(&job.key, d);
+                self.workload.store().evict(&job.key, d);
                 dropped.push(d);
             }
         }
         tracing::debug!(job = %job.key.id, version, owned = ?new.owned(), ?dropped, "routing table changed");
-        self.shared.notify();
+        self.workload.notify();
     }
 
     /// Whether the report should go on the short tick ([`REPORT_INTERVAL`]) rather than
@@ -307,14 +320,14 @@ impl JobActor {
     /// rays.
     fn start(&mut self, force: bool) -> Option<InFlight> {
         let queued: u64 = self
-            .shared
-            .queues
+            .workload
+            .queues()
             .job_lengths(&self.job.key.id, self.job.key.attempt)
             .iter()
             .map(|(_, n)| *n as u64)
             .sum();
         self.queue_peak = self.queue_peak.max(queued + self.job.outgoing() as u64);
-        let store = self.shared.store.take_counters(&self.job.key);
+        let store = self.workload.store().take_counters(&self.job.key);
         let r = &self.report;
         if r.is_empty()
             && store.loads == 0
@@ -329,9 +342,9 @@ impl JobActor {
             return Some(self.send(report, store));
         }
         let returns = report.tickets.drain();
-        let (shared, job) = (self.shared.clone(), self.job.clone());
+        let (links, job) = (self.links.clone(), self.job.clone());
         Some(Box::pin(async move {
-            crate::cache_link::return_tickets(&shared, &job, returns).await;
+            links.return_tickets(&job, returns).await;
             Flight::Returned(Box::new(report), store)
         }))
     }
@@ -342,15 +355,15 @@ impl JobActor {
         // Bytes and lost hosts noted while the tickets went back ride along.
         report.take_link_counters(&mut self.report);
         let requests = reporter::requests(
-            &self.shared,
+            &self.member,
             &self.job,
             report,
             store,
             self.queue_peak,
             &mut self.sequence,
         );
-        let (shared, job) = (self.shared.clone(), self.job.clone());
-        Box::pin(async move { Flight::Sent(reporter::send_all(&shared, &job, requests).await) })
+        let (member, job) = (self.member.clone(), self.job.clone());
+        Box::pin(async move { Flight::Sent(reporter::send_all(&member, &job, requests).await) })
     }
 }
 
@@ -361,6 +374,3 @@ async fn wait<T>(slot: &mut Option<Pin<Box<dyn Future<Output = T> + Send>>>) -> 
         None => std::future::pending().await,
     }
 }
-
-/// How long a job's actor waits for the worker to stop before it is aborted.
-pub(crate) const STOP_GRACE: Duration = Duration::from_secs(2);
