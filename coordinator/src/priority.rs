@@ -6,7 +6,7 @@
 //! pre-empted.
 //!
 //! Two queues use it. The coordinator's own renderer (no worker registered) has one slot
-//! (`JobTable::start`), replacing the first-come semaphore it had. Jobs on workers have
+//! (`LocalRenderer::start`, `crate::local_render`), replacing the first-come semaphore it had. Jobs on workers have
 //! `--max-running-jobs` slots when that is given (`Cluster::queue`, taken in
 //! `Coordinator::launch`); without it they start at once and never wait here, except a
 //! job a restarted coordinator took back PAUSED: it waits for ResumeJob
