@@ -282,7 +282,6 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
             .context("cannot read the bound address")?;
         // One line on stdout, so scripts and tests can find the port.
         println!("dray coordinator listening on {addr}");
-        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
         let client_certs = a.member.tls.tls_ca.is_some();
         let dashboard = match &a.http_listen {
             Some(http) => Some(
@@ -293,7 +292,6 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
                     client_certs,
                     server.connection_limits(),
                     server.max_calls,
-                    stop_rx,
                 )
                 .await?,
             ),
@@ -323,36 +321,32 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
                  to keep them across restarts)"
             ),
         }
-        let sealing = store.clone();
-        let (stopping_tx, stopping_rx) = tokio::sync::oneshot::channel::<()>();
-        let cleanup = coordinator.clone();
-        let stopping = coordinator.clone();
-        let shutdown = async move {
-            stop_signal().await;
-            // Jobs stopped by the shutdown itself are not recorded as ended: they are
-            // resumed by the next coordinator on this state directory.
-            if let Some(s) = sealing {
-                s.seal();
-            }
-            // Cuts stop now, while the server winds down, not after.
-            stopping.stop_preparations();
-            let _ = stop_tx.send(true);
-            let _ = stopping_tx.send(());
+        let options = server.clone();
+        let serving = coordinator.clone();
+        // Stopped by `Coordinator::shutdown`, which also waits for it.
+        let mut served = tokio::spawn(async move {
+            dray_coordinator::serve_with(&options, listener, serving, std::future::pending()).await
+        });
+        // Serve until a signal (or the server ends on its own, with an error).
+        let ended = tokio::select! {
+            r = &mut served => Some(r),
+            () = stop_signal() => None,
         };
-        let served = dray_coordinator::serve_with(&server, listener, coordinator, shutdown);
-        tokio::pin!(served);
-        // Serve until a signal; then give the graceful shutdown a bounded time.
-        let result = tokio::select! {
-            r = &mut served => r,
-            _ = async {
-                let _ = stopping_rx.await;
-                tokio::time::sleep(SHUTDOWN_GRACE).await;
-            } => {
+        // One shutdown, the library's (the embedded mode runs the same): new jobs
+        // refused, the store sealed once (jobs stopped by the shutdown itself are not
+        // recorded as ended: the next coordinator on this state directory resumes them),
+        // cuts stopped, the servers given a bounded time to end.
+        let stopped = coordinator.shutdown(SHUTDOWN_GRACE).await;
+        let result = match ended {
+            Some(r) => r,
+            None if stopped || served.is_finished() => served.await,
+            None => {
                 eprintln!(
                     "dray coordinator: clients still connected after {SHUTDOWN_GRACE:?}; \
                      exiting anyway"
                 );
-                Ok(())
+                served.abort();
+                Ok(Ok(()))
             }
         };
         if let Some(d) = dashboard {
@@ -360,19 +354,19 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
         }
         // No job's package outlives the coordinator: cuts in progress are stopped and
         // every job folder removed (a large preparation's partial package included).
-        cleanup.remove_packages_on_stop(PACKAGE_GRACE).await;
-        result.context("the gRPC server stopped")
+        coordinator.remove_packages_on_stop(PACKAGE_GRACE).await;
+        result
+            .context("the gRPC server task died")?
+            .context("the gRPC server stopped")
     });
-    if let Some(s) = &store {
-        s.seal();
-    }
     // A scene still loading or a job still rendering runs on a blocking thread, which
     // dropping the runtime would wait for: a stop signal must not wait minutes for it.
     rt.shutdown_timeout(BLOCKING_GRACE);
     result
 }
 
-/// Bind `--http-listen` and serve the dashboard there until `stop` turns true; says
+/// Bind `--http-listen` and serve the dashboard there until the coordinator's shutdown
+/// stops its servers; says
 /// where on stdout (`dray coordinator dashboard on http://ADDR`).
 async fn start_dashboard(
     http: &str,
@@ -381,7 +375,6 @@ async fn start_dashboard(
     client_certs: bool,
     limits: dray_net::connections::ConnectionLimits,
     max_calls: usize,
-    mut stop: tokio::sync::watch::Receiver<bool>,
 ) -> Result<tokio::task::JoinHandle<()>> {
     let listener = tokio::net::TcpListener::bind(http)
         .await
@@ -406,9 +399,8 @@ async fn start_dashboard(
     if let Some(w) = warning {
         eprintln!("dray coordinator: WARNING: {w}");
     }
-    let shutdown = async move {
-        let _ = stop.wait_for(|s| *s).await;
-    };
+    // It stops with the gRPC server, once the coordinator's shutdown has sealed the store.
+    let shutdown = coordinator.stopped();
     Ok(tokio::spawn(async move {
         if let Err(e) = dray_coordinator::http::serve(listener, dashboard, limits, shutdown).await {
             eprintln!("dray coordinator: {e}");

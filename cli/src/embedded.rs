@@ -47,6 +47,9 @@ fn absolute_scene(spec: &str) -> String {
     }
 }
 
+/// How long the actors get to stop once the image is in hand.
+const STOP_GRACE: Duration = Duration::from_secs(5);
+
 /// What a render on in-process actors gives back.
 pub struct ActorsOutput {
     /// The image, rays by kind and the render time.
@@ -134,7 +137,6 @@ pub struct Actors {
     nodes: Vec<tokio::task::JoinHandle<Result<(), dray_worker::NodeError>>>,
     caches: Vec<LocalCacheHost>,
     server: tokio::task::JoinHandle<Result<(), dray_net::server::ServeError>>,
-    stop_tx: tokio::sync::watch::Sender<bool>,
     stop_workers_tx: tokio::sync::watch::Sender<bool>,
 }
 
@@ -182,9 +184,9 @@ impl Actors {
             .enable_all()
             .build()
             .context("cannot start the async runtime")?;
-        // Workers stop first, then the coordinator: a worker that saw its coordinator go
-        // first would warn that it lost it and try to register again.
-        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        // Workers stop first, then the coordinator (`Coordinator::shutdown`): a worker
+        // that saw its coordinator go first would warn that it lost it and try to
+        // register again.
         let (stop_workers_tx, stop_workers_rx) = tokio::sync::watch::channel(false);
         let stopped = |mut rx: tokio::sync::watch::Receiver<bool>| async move {
             let _ = rx.wait_for(|s| *s).await;
@@ -198,9 +200,15 @@ impl Actors {
                 .context("cannot read the bound address")?;
             let coordinator_server = server_options.clone();
             let serving = coordinator.clone();
-            let stop = stopped(stop_rx.clone());
+            // Stopped by `Coordinator::shutdown`, which waits for it.
             let server = tokio::spawn(async move {
-                dray_coordinator::serve_with(&coordinator_server, listener, serving, stop).await
+                dray_coordinator::serve_with(
+                    &coordinator_server,
+                    listener,
+                    serving,
+                    std::future::pending(),
+                )
+                .await
             });
             let mut nodes = Vec::new();
             let mut caches = Vec::new();
@@ -259,7 +267,9 @@ impl Actors {
             Ok(s) => s,
             Err(e) => {
                 let _ = stop_workers_tx.send(true);
-                let _ = stop_tx.send(true);
+                // The server is told to stop; the runtime, dropped with the error, ends
+                // it (no grace: nothing ran).
+                rt.block_on(coordinator.shutdown(Duration::ZERO));
                 return Err(e);
             }
         };
@@ -270,7 +280,6 @@ impl Actors {
             nodes,
             caches,
             server,
-            stop_tx,
             stop_workers_tx,
         })
     }
@@ -332,10 +341,10 @@ impl Actors {
     pub fn stop(self) {
         let Actors {
             rt,
+            coordinator,
             nodes,
             caches,
             server,
-            stop_tx,
             stop_workers_tx,
             ..
         } = self;
@@ -348,11 +357,12 @@ impl Actors {
             for c in caches {
                 c.stop().await;
             }
-            let _ = stop_tx.send(true);
+            // The library's shutdown, as `dray coordinator` runs it (no store here).
+            coordinator.shutdown(STOP_GRACE).await;
             let _ = server.await;
         };
         rt.block_on(async {
-            let _ = tokio::time::timeout(Duration::from_secs(5), stop_all).await;
+            let _ = tokio::time::timeout(STOP_GRACE, stop_all).await;
         });
     }
 }

@@ -266,7 +266,7 @@ impl Sim {
             .iter()
             .map(|w| w.endpoint.worker_id.clone())
             .collect();
-        let entry = JobTable::new(1).insert(JobSpec {
+        let entry = JobTable::new().insert(JobSpec {
             scene: "sim".into(),
             width: WIDTH,
             height: HEIGHT,
@@ -294,7 +294,13 @@ impl Sim {
             resume: None,
             scene: dray_coordinator::scheduler::auto::SceneSize::default(),
         });
-        running.start(&membership).expect("start");
+        // No store: the start awaits nothing, but it is async (a new attempt is made
+        // durable by awaiting the store when there is one).
+        tokio::runtime::Builder::new_current_thread()
+            .build()
+            .expect("runtime")
+            .block_on(running.start(&membership))
+            .expect("start");
         Sim {
             membership,
             running,

@@ -17,6 +17,8 @@
 
 use tonic::Status;
 
+/// The default `--max-job-bytes`, defined with the limits it is one of.
+pub use crate::validate::default_max_job_bytes;
 use crate::validate::{Limits, Validated};
 
 /// Bytes per pixel: 3 x i64 sums, plus room for an encoded EXR (RGB f32) of the image.
@@ -30,20 +32,6 @@ pub const IMPORT_FACTOR: u64 = 16;
 /// triangle gyroid: 450 B; 1.9M-triangle city: 670 B). The soup's (no shared
 /// vertices) is the bound.
 pub const PROCEDURAL_BYTES_PER_TRIANGLE: u64 = 800;
-
-/// The default `--max-job-bytes`: half the machine's memory (or 8 GiB when it cannot
-/// be read).
-pub fn default_max_job_bytes() -> u64 {
-    physical_memory().map_or(8 << 30, |m| m / 2)
-}
-
-/// Total memory from /proc/meminfo.
-fn physical_memory() -> Option<u64> {
-    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
-    let line = text.lines().find(|l| l.starts_with("MemTotal:"))?;
-    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    kb.checked_mul(1024)
-}
 
 /// The estimate, in bytes, of what job `v` needs at the coordinator.
 pub fn estimate(v: &Validated) -> u64 {
@@ -95,7 +83,7 @@ pub fn admit(v: &Validated, limits: &Limits) -> Result<(), Status> {
             need >> 20,
             v.spec.width,
             v.spec.height,
-            crate::validate::bounded(&v.spec.scene),
+            crate::text::bounded(&v.spec.scene),
             limits.max_job_bytes >> 20
         )));
     }

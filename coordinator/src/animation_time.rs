@@ -11,7 +11,7 @@ use dray_proto::v1::JobSpec;
 use dray_scene::animation::AnimationTime;
 use tonic::Status;
 
-use crate::validate::bounded;
+use crate::text::bounded;
 
 /// Check `time`, `animation`, `frames` and `fps` of a single job's spec: the moment to
 /// load, or `None` for the rest pose.

@@ -211,7 +211,7 @@ impl ClusterService for ClusterApi {
         let Some(w) = self.cluster.membership.get(id) else {
             return Err(Status::not_found(format!(
                 "worker_id: {} is not registered (register again)",
-                crate::validate::bounded(id)
+                crate::text::bounded(id)
             )));
         };
         self.cluster.membership.touch(id);
@@ -228,7 +228,7 @@ impl ClusterService for ClusterApi {
             Some(t) => Ok(Response::new(GetRoutingTableResponse { routing: Some(t) })),
             None => Err(Status::not_found(format!(
                 "job_id: no running job {} on this cluster",
-                crate::validate::bounded(id)
+                crate::text::bounded(id)
             ))),
         }
     }
@@ -307,7 +307,7 @@ impl ClusterService for ClusterApi {
         if membership.get(id).is_none() {
             return Err(Status::not_found(format!(
                 "worker_id: {} is not registered (register again)",
-                crate::validate::bounded(id)
+                crate::text::bounded(id)
             )));
         }
         // A registered caller must prove it is `id`.
@@ -315,7 +315,7 @@ impl ClusterService for ClusterApi {
         let Some(p) = membership.get(peer) else {
             return Err(Status::not_found(format!(
                 "peer_id: {} is not registered",
-                crate::validate::bounded(peer)
+                crate::text::bounded(peer)
             )));
         };
         Ok(Response::new(GetPeerPassResponse {

@@ -590,7 +590,7 @@ async fn run(
                 Ok(c) => {
                     // The statistics from the start (hosts lost while opening), before
                     // any worker hears of the job: GetJob must not show less than they did.
-                    c.tally.publish(entry);
+                    entry.update_stats(|s| c.tally.fill(s));
                     Some(c)
                 }
                 Err(e) => {
@@ -706,8 +706,8 @@ async fn run(
             remove_package(owned.as_ref());
             if let Some((o, tally, net)) = opened {
                 let closed = lifecycle::close(&entry.id, o.attempt, &o.placement, &net).await;
-                tally.add_closed(&closed);
-                tally.publish(entry);
+                closed.add_to(&tally);
+                entry.update_stats(|s| tally.fill(s));
             }
             if entry.is_terminal() {
                 return Ok(());

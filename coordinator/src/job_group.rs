@@ -8,10 +8,12 @@
 //! with no column added to the store, and `Job.group` is read from the id
 //! ([`member_of`]).
 //!
-//! The group is submitted whole or not at all: the range and the frame rate are checked
-//! and room for every frame under `--max-jobs` is made sure of before the first frame is
-//! accepted, and should a later frame be refused (a store that cannot write), the
-//! frames accepted before it are cancelled.
+//! The group is submitted whole or not at all (`Coordinator::submit_group`, in
+//! `crate::service`, beside the SubmitJob it repeats per frame): the range and the frame
+//! rate are checked and room for every frame under `--max-jobs` is made sure of before
+//! the first frame is accepted, and should a later frame be refused (a store that cannot
+//! write), the frames accepted before it are cancelled. This file holds what groups are
+//! made of (ids, frames, the shared layout) and depends on no service.
 //!
 //! **Static geometry stays warm.** The frames of a group are cut with one layout
 //! ([`GroupLayouts`]): the first frame cut makes it, and every later frame whose bounds
@@ -29,14 +31,11 @@ use std::sync::{Arc, Mutex, MutexGuard};
 
 use dray_core::frames::{FrameRange, check_fps, frame_time};
 use dray_core::scene::Scene;
-use dray_proto::v1::render_service_server::RenderService;
-use dray_proto::v1::{CancelJobRequest, JobGroupMember, JobSpec};
+use dray_proto::v1::{JobGroupMember, JobSpec};
 use dray_scene::partition::{DomainLayout, LayoutSpec};
-use tonic::{Request, Status};
-use tracing::Instrument;
+use tonic::Status;
 
-use crate::service::Coordinator;
-use crate::validate::bounded;
+use crate::text::bounded;
 
 const GROUP_PREFIX: &str = "grp-";
 const FRAME_INFIX: &str = "-f";
@@ -168,51 +167,6 @@ pub fn expand(spec: &JobSpec) -> Result<Vec<(u32, JobSpec)>, Status> {
         .collect())
 }
 
-impl Coordinator {
-    /// SubmitJob of a spec with `frames`: one job per frame, in frame order. Returns the
-    /// group's id and its jobs' ids.
-    pub(crate) async fn submit_group(
-        &self,
-        spec: JobSpec,
-    ) -> Result<(String, Vec<String>), Status> {
-        let frames = expand(&spec)?;
-        let (active, max) = self.job_room();
-        if active + frames.len() > max {
-            return Err(Status::resource_exhausted(format!(
-                "frames: {} makes {} jobs, and with the {active} queued or running that \
-                 is more than the coordinator's --max-jobs {max}: submit a shorter range, \
-                 or again when jobs have finished",
-                bounded(&spec.frames),
-                frames.len()
-            )));
-        }
-        let group = self.new_group_id();
-        let span = tracing::info_span!("job_group", group = %group, frames = frames.len());
-        async move {
-            let mut ids = Vec::with_capacity(frames.len());
-            for (frame, one) in frames {
-                match self
-                    .submit_as(one, None, Some(frame_id(&group, frame)))
-                    .await
-                {
-                    Ok(id) => ids.push(id),
-                    Err(e) => {
-                        for id in ids {
-                            let cancel = Request::new(CancelJobRequest { job_id: id });
-                            let _ = self.cancel_job(cancel).await;
-                        }
-                        return Err(e);
-                    }
-                }
-            }
-            tracing::info!(jobs = ids.len(), "job group accepted");
-            Ok((group, ids))
-        }
-        .instrument(span)
-        .await
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -239,7 +193,7 @@ mod tests {
     #[test]
     fn a_frame_taken_back_from_the_store_is_in_its_group() {
         use dray_proto::v1::{JobState, JobStats};
-        let table = crate::jobs::JobTable::new(1);
+        let table = crate::jobs::JobTable::new();
         let stored = |id: &str| crate::store::StoredJob {
             id: id.into(),
             spec: JobSpec {

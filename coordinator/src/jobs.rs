@@ -2,32 +2,23 @@
 //! film (fixed-point sums, so GetImage can encode PNG at any exposure and tone curve, or
 //! EXR).
 //!
-//! With workers registered, a job runs on them (`dispatch`, `job`). With none, jobs
-//! run one at a time in this process, by priority then submission order: a job waits
-//! QUEUED (or PAUSED) in the deal queue (`priority`), builds its geometry (PREPARING), then traces tiles on a blocking thread
-//! (RUNNING). Cancellation is cooperative: a flag the
-//! render loop checks before each tile.
+//! With workers registered, a job runs on them (`dispatch`, `job`). With none, it runs
+//! in this process (`crate::local_render`). Either way its record is here, and the
+//! table knows nothing of where jobs run.
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
 use std::time::{Duration, Instant, SystemTime};
 
-use dray_core::bvh::Accel;
 use dray_core::display::Display;
 use dray_core::exposure::Exposure;
 use dray_core::film::Film;
-use dray_core::integrator::Integrator;
-use dray_core::render;
-use dray_core::scene::Scene;
 use dray_core::tiles::TileGrid;
 use dray_core::tonemap::Tonemap;
-use dray_core::trace::Trace;
-use dray_proto::v1::{Job, JobEventKind, JobProgress, JobSpec, JobState, JobStats, RayCounts};
-use dray_scene::partition::LayoutSpec;
+use dray_proto::v1::{Job, JobEventKind, JobProgress, JobSpec, JobState, JobStats};
 
 use crate::store::{JobStore, Op, StoredJob, to_millis};
-use crate::validate::{Prepared, Validated};
 
 /// One job.
 pub struct JobEntry {
@@ -236,6 +227,12 @@ impl JobEntry {
         self.tiles_done.store(done, Ordering::Relaxed);
     }
 
+    /// Raise the number of committed tiles to `done` if it is below (the in-process
+    /// render's progress, reported from several threads).
+    pub(crate) fn raise_tiles_done(&self, done: u32) {
+        self.tiles_done.fetch_max(done, Ordering::Relaxed);
+    }
+
     /// Set the rays waiting at workers (from their latest queue reports).
     pub(crate) fn set_rays_in_flight(&self, n: u64) {
         self.rays_in_flight.store(n, Ordering::Relaxed);
@@ -380,9 +377,6 @@ pub struct JobTable {
     /// Makes this coordinator's job ids differ from an earlier run's: a worker that
     /// outlived a coordinator restart must not take a new `job-1` for the old one.
     nonce: u32,
-    /// Jobs waiting for the one in-process render slot, by priority (`priority`).
-    queue: Arc<crate::priority::DealQueue>,
-    threads: usize,
     retention: Retention,
     /// Where jobs are kept across restarts, once set ([`JobTable::keep_in`]).
     store: OnceLock<Arc<JobStore>>,
@@ -410,6 +404,12 @@ impl Retention {
     pub const TTL: Duration = Duration::from_secs(24 * 3600);
 }
 
+impl Default for JobTable {
+    fn default() -> JobTable {
+        JobTable::new()
+    }
+}
+
 impl Default for Retention {
     fn default() -> Retention {
         Retention {
@@ -421,8 +421,8 @@ impl Default for Retention {
 }
 
 impl JobTable {
-    /// An empty table whose renders use `threads` threads (0 = all cores).
-    pub fn new(threads: usize) -> JobTable {
+    /// An empty table.
+    pub fn new() -> JobTable {
         JobTable {
             jobs: Mutex::new(Vec::new()),
             next_id: AtomicU64::new(1),
@@ -433,8 +433,6 @@ impl JobTable {
                 (t.subsec_nanos() ^ (t.as_secs() as u32).rotate_left(13))
                     ^ std::process::id().rotate_left(7)
             },
-            queue: Arc::new(crate::priority::DealQueue::new("process", 1)),
-            threads,
             retention: Retention::default(),
             store: OnceLock::new(),
         }
@@ -529,16 +527,6 @@ impl JobTable {
         self
     }
 
-    /// The queue of jobs waiting to render in this process.
-    pub(crate) fn queue(&self) -> &Arc<crate::priority::DealQueue> {
-        &self.queue
-    }
-
-    /// Render threads for jobs in this process (0 = all cores).
-    pub fn threads(&self) -> usize {
-        self.threads
-    }
-
     /// Jobs not yet in a terminal state (queued, preparing or running).
     pub fn active(&self) -> usize {
         self.jobs().iter().filter(|j| !terminal(j.state())).count()
@@ -602,18 +590,21 @@ impl JobTable {
     }
 
     /// Wait until every job record posted so far (a new job's included) is on disk, at
-    /// most 10 s, off the runtime's threads. False when the store could not write it.
-    /// True without a store.
+    /// most 10 s, without holding a runtime thread. False when the store could not
+    /// write it. True without a store.
     pub async fn confirm_kept(&self) -> bool {
         let Some(store) = self.store.get().cloned() else {
             return true;
         };
         // Everything posted before is confirmed with it, the entry's Insert included.
-        tokio::task::spawn_blocking(move || {
-            store.post_durable(Op::Nothing, std::time::Duration::from_secs(10))
-        })
-        .await
-        .unwrap_or(false)
+        store
+            .post_durable(Op::Nothing, std::time::Duration::from_secs(10))
+            .await
+    }
+
+    /// The job store jobs are kept in, if any.
+    pub fn store(&self) -> Option<&Arc<JobStore>> {
+        self.store.get()
     }
 
     /// A new job group's id, unique as job ids are (`crate::job_group`).
@@ -679,39 +670,6 @@ impl JobTable {
         entry
     }
 
-    /// Accept a validated, prepared job: add it QUEUED and start its in-process render
-    /// task. Must be called within a tokio runtime.
-    pub fn submit(&self, v: Validated, prepared: Prepared) -> Arc<JobEntry> {
-        let entry = self.insert(v.spec);
-        self.start(&entry, prepared);
-        entry
-    }
-
-    /// Start the in-process render of `entry`, a job already in the table whose scene
-    /// has been prepared. Must be called within a tokio runtime.
-    pub fn start(&self, entry: &Arc<JobEntry>, prepared: Prepared) {
-        let (queue, threads, job) = (self.queue.clone(), self.threads, entry.clone());
-        // Waiting for the slot is QUEUED (a scene file was loaded PREPARING).
-        let waiting = queue.join(&job);
-        if job.state() == JobState::Preparing {
-            job.set_state(JobState::Queued);
-        }
-        tokio::spawn(async move {
-            let Some(_slot) = waiting.turn().await else {
-                return;
-            };
-            if job.cancel.load(Ordering::Relaxed) {
-                return;
-            }
-            job.set_state(JobState::Preparing);
-            let worker = job.clone();
-            let joined = tokio::task::spawn_blocking(move || run(&worker, prepared, threads)).await;
-            if let Err(e) = joined {
-                job.finish(JobState::Failed, format!("render task died: {e}"), None);
-            }
-        });
-    }
-
     /// The job with id `id`.
     pub fn get(&self, id: &str) -> Option<Arc<JobEntry>> {
         self.jobs().iter().find(|j| j.id == id).cloned()
@@ -721,92 +679,6 @@ impl JobTable {
     pub fn list(&self) -> Vec<Arc<JobEntry>> {
         self.jobs().iter().rev().cloned().collect()
     }
-}
-
-/// Build the geometry, trace the image, and record the outcome. Blocking.
-fn run(job: &JobEntry, p: Prepared, threads: usize) {
-    let _span = tracing::info_span!("job", id = %job.id, scene = %job.spec.scene).entered();
-    let geometry = match build_geometry(&p.scene, job.spec.domains, &job.spec.layout) {
-        Ok(g) => g,
-        Err(e) => return job.finish(JobState::Failed, e, None),
-    };
-    {
-        let mut g = job.lock();
-        g.stats.triangles = p.scene.mesh.triangle_count() as u64;
-        g.stats.domains = job.spec.domains;
-        g.stats.effects = p
-            .settings
-            .effects
-            .names()
-            .into_iter()
-            .map(String::from)
-            .collect();
-    }
-    job.set_state(JobState::Running);
-    let integrator = Integrator::new(&p.scene, p.camera, p.settings);
-    let progress = |done: usize, _total: usize| {
-        job.tiles_done.fetch_max(done as u32, Ordering::Relaxed);
-    };
-    let passes = job.passes.ranges();
-    let on_pass = |film: &Film, k: usize| {
-        // The last pass's image is the job's final one (`finish`).
-        if k + 1 < passes.len() {
-            job.passes.publish(Arc::new(film.clone()), k as u32 + 1);
-            job.note(
-                JobEventKind::PassFinished,
-                format!("pass {} of {} finished", k + 1, passes.len()),
-            );
-            job.tiles_done.store(0, Ordering::Relaxed);
-        }
-    };
-    let out = render::render_passes(
-        &integrator,
-        geometry.as_ref(),
-        threads,
-        passes,
-        job.spec.noise_threshold,
-        &progress,
-        &on_pass,
-        &job.cancel,
-    );
-    match out {
-        Err(e) => job.finish(
-            JobState::Failed,
-            format!("cannot start the thread pool: {e}"),
-            None,
-        ),
-        Ok(_) if job.cancel.load(Ordering::Relaxed) => {
-            job.finish(JobState::Cancelled, String::new(), None)
-        }
-        Ok(out) => {
-            {
-                let mut g = job.lock();
-                g.stats.rays = Some(RayCounts::from_kinds(out.rays.0));
-                g.stats.nonfinite = out.film.nonfinite;
-                g.stats.clamped = out.film.clamped;
-                g.stats.clamped_indirect = out.film.clamped_indirect;
-                let saved = dray_core::adaptive::Saved::of(&out.film, job.spec.spp);
-                g.stats.tiles_stopped = saved.tiles_stopped;
-                g.stats.samples_saved = saved.samples_saved;
-            }
-            job.finish(JobState::Succeeded, String::new(), Some(out.film));
-        }
-    }
-}
-
-/// One BVH over the scene, or with `domains > 1` a BVH per spatial domain walked front to
-/// back, as `dray render --domains` does (the image is the same bits either way).
-pub fn build_geometry(scene: &Scene, domains: u32, layout: &str) -> Result<Box<dyn Trace>, String> {
-    if domains <= 1 {
-        return Ok(Box::new(Accel::build(&scene.mesh)));
-    }
-    let spec = match layout {
-        "grid" => LayoutSpec::GridCount(domains),
-        _ => LayoutSpec::Kd(domains),
-    };
-    let set = dray_scene::partition::resident::domain_set(scene, &spec)
-        .map_err(|e| format!("cannot cut the scene into domains: {e}"))?;
-    Ok(Box::new(set))
 }
 
 /// The film as an 8-bit sRGB PNG through `display` (exposure, tone curve): the same
@@ -894,7 +766,7 @@ mod tests {
         let (old, new) = {
             let (store, _) = JobStore::open(dir.path()).unwrap();
             let store = Arc::new(store);
-            let table = JobTable::new(1);
+            let table = JobTable::new();
             table.keep_in(store.clone());
             let old = table.insert(spec(1));
             old.finish(JobState::Succeeded, String::new(), Some(film(3)));
@@ -908,7 +780,7 @@ mod tests {
 
         let (store, stored) = JobStore::open(dir.path()).unwrap();
         let store = Arc::new(store);
-        let table = JobTable::new(1).with_retention(Retention {
+        let table = JobTable::new().with_retention(Retention {
             keep_finished: 1,
             ..Retention::default()
         });

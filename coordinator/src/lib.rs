@@ -13,11 +13,14 @@
 //! took with it (see [`dispatch`] for exactly what a worker receives).
 //!
 //! - [`validate`]: checks a [`JobSpec`](dray_proto::v1::JobSpec) against the limits and
-//!   the scene root; every rejection is `INVALID_ARGUMENT` naming the field.
+//!   the scene root; every rejection is `INVALID_ARGUMENT` naming the field, quoting
+//!   what was sent as [`text`] bounds it.
 //! - [`job_group`]: a spec with `frames` made into one job per frame (a job group);
 //!   [`animation_time`]: the moment of the animation a job's scene is loaded at.
-//! - [`jobs`]: the job table, the in-process render task, cancellation, image encoding.
-//! - [`membership`]: registered workers, heartbeats, per-worker command outboxes.
+//! - [`jobs`]: the job table (every job's record), cancellation, image encoding.
+//! - [`local_render`]: jobs rendered in this process while no worker is registered.
+//! - [`membership`]: registered workers, heartbeats, per-worker command outboxes;
+//!   [`registration`]: what a registering worker or cache host must present.
 //! - [`dispatch`]: a job's package, JobSetup and tiles: the plan a job starts from.
 //! - [`job`]: one actor per running job, routed to by job id: credit per tile, the
 //!   exact fixed-point film, attempts (restarting a job's unfinished tiles without a lost
@@ -35,7 +38,8 @@
 //! - [`operator`]: the operator actions (retry, requeue, pause, resume), over
 //!   [`priority`] (the deal queue: priorities, paused jobs) and [`job_events`] (each
 //!   job's event log, lineage and attempts, kept in the job store).
-//! - [`service`]: the tonic `RenderService` and [`serve`].
+//! - [`service`]: the tonic `RenderService` and [`serve`]; [`shutdown`]: the one way a
+//!   coordinator stops ([`Coordinator::shutdown`]), for the CLI and the embedded mode.
 //! - [`http`]: the web dashboard (`--http-listen`): a page and JSON endpoints over the
 //!   same RenderService methods, live updates by server-sent events.
 
@@ -52,6 +56,7 @@ pub mod job_events;
 pub mod job_group;
 pub mod jobs;
 pub mod lighting;
+pub mod local_render;
 pub mod membership;
 pub mod metrics;
 pub mod operator;
@@ -59,9 +64,12 @@ pub mod owned_package;
 pub mod package_service;
 pub mod pass_images;
 pub mod priority;
+pub mod registration;
 pub mod scheduler;
 pub mod service;
+pub mod shutdown;
 pub mod store;
+pub mod text;
 pub mod traffic;
 pub mod validate;
 pub mod view;

@@ -123,7 +123,7 @@ pub fn resolve_env_map_path(given: &str, root: &Path) -> Result<PathBuf, Status>
     let bad = |why: String| {
         Status::invalid_argument(format!(
             "lighting.env_map.path: {}: {why}",
-            crate::validate::bounded(given)
+            crate::text::bounded(given)
         ))
     };
     let canon = root.join(given).canonicalize().map_err(|e| {
@@ -156,7 +156,7 @@ pub fn load_env_map(spec: &EnvMapSpec, path: &Path, field: &str) -> Result<Loade
     let _span = tracing::info_span!("env_map_load", path = %spec.path).entered();
     let bad = |e: env_map_file::EnvMapFileError| {
         let canonical = path.display().to_string();
-        let msg = crate::validate::as_given(&e.to_string(), &canonical, &spec.path);
+        let msg = crate::text::as_given(&e.to_string(), &canonical, &spec.path);
         Status::invalid_argument(format!("{field}: {msg}"))
     };
     let format = EnvMapFormat::of(path).map_err(bad)?;

@@ -23,10 +23,10 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::Status;
 
 use crate::caches::hosts::CacheHosts;
-
-/// The dray version every worker must have been built from: rays, packages and settings
-/// are only guaranteed bit-compatible within one build of the workspace.
-pub const VERSION: &str = env!("CARGO_PKG_VERSION");
+pub use crate::registration::{
+    MAX_ENDPOINT_BYTES, MAX_HOSTNAME_BYTES, VERSION, check_endpoint, check_hostname,
+    version_mismatch,
+};
 
 /// Commands buffered between a worker's outbox and its gRPC stream. Small, so that
 /// commands stay in the outbox (where a reconnecting stream finds them) rather than in
@@ -216,54 +216,6 @@ impl LostWorker {
     }
 }
 
-/// The longest endpoint URL a member may announce (a host name is at most 253 bytes).
-pub const MAX_ENDPOINT_BYTES: usize = 1024;
-/// The longest host name a member may announce (it is only logged).
-pub const MAX_HOSTNAME_BYTES: usize = 256;
-
-/// `version` as a member announced it, for an error: cut (it is input).
-pub fn version_mismatch(what: &str, version: &str) -> Status {
-    Status::failed_precondition(format!(
-        "version: the {what} is dray {} but the coordinator is dray {VERSION:?}; \
-         rays are only compatible within one build, so run the same dray everywhere",
-        crate::validate::bounded(version)
-    ))
-}
-
-/// Check the host name a member announced: at most [`MAX_HOSTNAME_BYTES`].
-pub fn check_hostname(hostname: &str) -> Result<(), Status> {
-    if hostname.len() > MAX_HOSTNAME_BYTES {
-        return Err(Status::invalid_argument(format!(
-            "hostname: {} bytes is longer than {MAX_HOSTNAME_BYTES}",
-            hostname.len()
-        )));
-    }
-    Ok(())
-}
-
-/// Check an endpoint a peer announced (`field` names it in the error): an http(s) URL
-/// with a host, such as `http://10.0.0.7:7001`. Returns it trimmed. INVALID_ARGUMENT
-/// otherwise: the caller must fix its flags, retrying cannot help.
-pub fn check_endpoint(field: &str, raw: &str) -> Result<String, Status> {
-    if raw.len() > MAX_ENDPOINT_BYTES {
-        return Err(Status::invalid_argument(format!(
-            "{field}: {} bytes is longer than {MAX_ENDPOINT_BYTES}",
-            raw.len()
-        )));
-    }
-    let endpoint = raw.trim();
-    let host = endpoint
-        .strip_prefix("http://")
-        .or_else(|| endpoint.strip_prefix("https://"));
-    if host.is_none_or(|h| h.is_empty() || h.starts_with('/')) {
-        return Err(Status::invalid_argument(format!(
-            "{field}: {} is not a URL such as http://10.0.0.7:7001 that peers can reach",
-            crate::validate::bounded(raw)
-        )));
-    }
-    Ok(endpoint.to_string())
-}
-
 /// The registered workers.
 /// The metadata key of a worker's own secret (RegisterWorkerResponse.member_token).
 pub const MEMBER_HEADER: &str = "x-dray-member";
@@ -311,7 +263,7 @@ impl Membership {
         }
         check_hostname(&r.hostname)?;
         dray_proto::worker_name::check_worker_name(&r.name).map_err(|e| {
-            Status::invalid_argument(format!("name: {} {e}", crate::validate::bounded(&r.name)))
+            Status::invalid_argument(format!("name: {} {e}", crate::text::bounded(&r.name)))
         })?;
         if r.record_format != dray_proto::RAY_RECORD_FORMAT {
             return Err(Status::failed_precondition(format!(
@@ -402,7 +354,7 @@ impl Membership {
         } else {
             Err(Status::permission_denied(format!(
                 "worker_id {}: the call does not carry that worker's member credential",
-                crate::validate::bounded(id)
+                crate::text::bounded(id)
             )))
         }
     }

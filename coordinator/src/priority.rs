@@ -6,7 +6,7 @@
 //! pre-empted.
 //!
 //! Two queues use it. The coordinator's own renderer (no worker registered) has one slot
-//! (`JobTable::start`), replacing the first-come semaphore it had. Jobs on workers have
+//! (`LocalRenderer::start`, `crate::local_render`), replacing the first-come semaphore it had. Jobs on workers have
 //! `--max-running-jobs` slots when that is given (`Cluster::queue`, taken in
 //! `Coordinator::launch`); without it they start at once and never wait here, except a
 //! job a restarted coordinator took back PAUSED: it waits for ResumeJob
@@ -241,7 +241,7 @@ mod tests {
     /// slot given back goes to the next dealable job.
     #[tokio::test]
     async fn slots_go_by_priority_skip_paused_jobs_and_come_back() {
-        let table = JobTable::new(1);
+        let table = JobTable::new();
         let q = Arc::new(DealQueue::new("cluster", 2));
         let [a, b, c, d] = [0, 0, 0, 5].map(|p| table.insert(spec(p)));
         let [wa, wb, wc, wd] = [&a, &b, &c, &d].map(|j| q.join(j));
@@ -283,7 +283,7 @@ mod tests {
     /// cancelled one stops waiting.
     #[tokio::test]
     async fn a_paused_job_waits_for_its_resume_or_its_end() {
-        let table = JobTable::new(1);
+        let table = JobTable::new();
         let q = Arc::new(DealQueue::new("process", 1));
         let a = table.insert(spec(0));
         a.set_state(JobState::Paused);

@@ -29,7 +29,8 @@ use crate::jobs::{JobEntry, JobTable, encode_exr, encode_png, requested_display}
 use crate::package_service::PackageApi;
 use crate::scheduler::Schedule;
 use crate::store::{JobStore, Resume, StoredJob};
-use crate::validate::{Limits, bounded, prepare, validate};
+use crate::text::bounded;
+use crate::validate::{Limits, prepare, validate};
 
 /// Default least time between two WatchImage messages.
 pub const DEFAULT_IMAGE_INTERVAL: Duration = Duration::from_millis(500);
@@ -46,12 +47,16 @@ const MAX_PAGE_SIZE: usize = 1000;
 #[derive(Clone)]
 pub struct Coordinator {
     table: Arc<JobTable>,
+    /// The in-process render slot, for jobs while no worker is registered.
+    local: Arc<crate::local_render::LocalRenderer>,
     limits: Limits,
     scene_root: PathBuf,
     cluster: Arc<Cluster>,
     loads: Arc<SceneLoads>,
     /// Rays per second per worker, between ListWorkers calls.
     rates: Arc<crate::worker_list::RateWindow>,
+    /// Whether [`Coordinator::shutdown`] has begun, and the servers it stops.
+    shutdown: Arc<crate::shutdown::Shutdown>,
 }
 
 /// Scene loads running off the request path, and how many a CancelJob stopped before
@@ -69,13 +74,46 @@ impl Coordinator {
     pub fn new(scene_root: &Path, threads: usize) -> std::io::Result<Coordinator> {
         let scene_root = scene_root.canonicalize()?;
         Ok(Coordinator {
-            table: Arc::new(JobTable::new(threads)),
+            table: Arc::new(JobTable::new()),
+            local: Arc::new(crate::local_render::LocalRenderer::new(threads)),
             limits: Limits::default(),
             scene_root,
             cluster: Arc::new(Cluster::new(ClusterOptions::default())),
             loads: Arc::default(),
             rates: Arc::default(),
+            shutdown: Arc::default(),
         })
+    }
+
+    /// Stop this coordinator (see [`crate::shutdown`] for the order): refuse new jobs,
+    /// seal the job store once (what running jobs posted is written; the jobs the
+    /// shutdown stops are resumed by the next coordinator, not recorded as ended), stop
+    /// scene loads and package cuts, and tell every server started by [`serve_with`]
+    /// for it to stop. Then wait up to `grace` for those servers to end: false when some
+    /// still ran (clients still connected). Calling it again only waits again. The
+    /// caller removes the jobs' packages after (see
+    /// [`Coordinator::remove_packages_on_stop`]).
+    pub async fn shutdown(&self, grace: Duration) -> bool {
+        if self.shutdown.begin() {
+            if let Some(store) = self.table.store().cloned() {
+                // The writer drains what is queued, then its thread is joined: a wait
+                // for the disk, off the runtime's threads.
+                if let Err(e) = tokio::task::spawn_blocking(move || store.seal()).await {
+                    tracing::error!("sealing the job store failed: {e}");
+                }
+            }
+            // Cuts stop now, while the servers wind down, not after.
+            self.stop_preparations();
+            self.shutdown.stop_servers();
+        }
+        self.shutdown.servers_ended(grace).await
+    }
+
+    /// Completes once [`Coordinator::shutdown`] has sealed the store and told the
+    /// servers to stop: for a server beside the coordinator's (the dashboard) to stop
+    /// with them.
+    pub fn stopped(&self) -> impl Future<Output = ()> + Send + 'static {
+        self.shutdown.stopped()
     }
 
     /// Scene loads running now on blocking threads, and loads that a CancelJob stopped
@@ -149,7 +187,7 @@ impl Coordinator {
             max_bytes: Some(retention.max_bytes.unwrap_or(max_job_bytes)),
             ..retention
         };
-        self.table = Arc::new(JobTable::new(self.table.threads()).with_retention(retention));
+        self.table = Arc::new(JobTable::new().with_retention(retention));
         self
     }
 
@@ -315,6 +353,11 @@ impl Coordinator {
         loaded: Option<Scene>,
         id: Option<String>,
     ) -> Result<String, Status> {
+        if self.shutdown.begun() {
+            return Err(Status::unavailable(
+                "the coordinator is stopping: submit the job to the next one",
+            ));
+        }
         let active = self.table.active();
         if active >= self.limits.max_jobs {
             return Err(Status::resource_exhausted(format!(
@@ -470,7 +513,7 @@ impl Coordinator {
         tokio::spawn(
             async move {
                 tracing::info!("held PAUSED until it is resumed");
-                if !this.table.queue().resumed(&job).await {
+                if !this.local.queue().resumed(&job).await {
                     return;
                 }
                 if let Err(e) = this.start_now(&job, &v, prepared, resume) {
@@ -494,7 +537,7 @@ impl Coordinator {
         // Workers may have come or gone while the scene loaded or the job waited.
         self.check_placement(v)?;
         if self.cluster.membership.is_empty() {
-            self.table.start(job, prepared);
+            self.local.start(job, prepared);
             tracing::info!(id = %job.id, scene = %job.spec.scene, workers = 0, "job started");
             return Ok(());
         }
@@ -555,10 +598,53 @@ impl Coordinator {
         self.table.new_group_id()
     }
 
+    /// SubmitJob of a spec with `frames`: one job per frame, in frame order. Returns the
+    /// group's id and its jobs' ids.
+    pub(crate) async fn submit_group(
+        &self,
+        spec: JobSpec,
+    ) -> Result<(String, Vec<String>), Status> {
+        let frames = crate::job_group::expand(&spec)?;
+        let (active, max) = self.job_room();
+        if active + frames.len() > max {
+            return Err(Status::resource_exhausted(format!(
+                "frames: {} makes {} jobs, and with the {active} queued or running that \
+                 is more than the coordinator's --max-jobs {max}: submit a shorter range, \
+                 or again when jobs have finished",
+                bounded(&spec.frames),
+                frames.len()
+            )));
+        }
+        let group = self.new_group_id();
+        let span = tracing::info_span!("job_group", group = %group, frames = frames.len());
+        async move {
+            let mut ids = Vec::with_capacity(frames.len());
+            for (frame, one) in frames {
+                match self
+                    .submit_as(one, None, Some(crate::job_group::frame_id(&group, frame)))
+                    .await
+                {
+                    Ok(id) => ids.push(id),
+                    Err(e) => {
+                        for id in ids {
+                            let cancel = Request::new(CancelJobRequest { job_id: id });
+                            let _ = self.cancel_job(cancel).await;
+                        }
+                        return Err(e);
+                    }
+                }
+            }
+            tracing::info!(jobs = ids.len(), "job group accepted");
+            Ok((group, ids))
+        }
+        .instrument(span)
+        .await
+    }
+
     /// The deal queues (`priority`): jobs waiting to render in this process, and, under
     /// `--max-running-jobs`, jobs waiting for a slot on the workers.
     pub(crate) fn queues(&self) -> impl Iterator<Item = &Arc<crate::priority::DealQueue>> {
-        std::iter::once(self.table.queue()).chain(self.cluster.queue.as_ref())
+        std::iter::once(self.local.queue()).chain(self.cluster.queue.as_ref())
     }
 
     pub(crate) fn job(&self, id: &str) -> Result<Arc<JobEntry>, Status> {
@@ -1019,17 +1105,26 @@ pub async fn serve(
 /// shedding (dray-net's one server builder). GetImage replies may exceed 4 MiB, so the
 /// encoding limit is raised. On shutdown the workers' assignment streams are ended, so
 /// a graceful shutdown does not wait for them forever.
+///
+/// The server stops when `shutdown` completes or when [`Coordinator::shutdown`] is
+/// called, which waits for it to end.
 pub async fn serve_with(
     options: &dray_net::ServerOptions,
     listener: TcpListener,
     coordinator: Coordinator,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), dray_net::server::ServeError> {
+    let stop = coordinator.shutdown.clone();
+    let _serving = stop.serving();
+    let stopped = stop.stopped();
     let cluster = coordinator.cluster.clone();
     let work_dir = cluster.options.work_dir.clone();
     let _reaper = AbortOnDrop(tokio::spawn(cluster.clone().reaper()));
     let shutdown = async move {
-        shutdown.await;
+        tokio::select! {
+            () = shutdown => {}
+            () = stopped => {}
+        }
         cluster.membership.close_all();
     };
     let cluster_api = ClusterServiceServer::new(ClusterApi {

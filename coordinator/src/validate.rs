@@ -76,7 +76,7 @@ impl Default for Limits {
             max_domains: Limits::MAX_DOMAINS,
             max_label: Limits::MAX_LABEL,
             max_jobs: Limits::MAX_JOBS,
-            max_job_bytes: crate::admission::default_max_job_bytes(),
+            max_job_bytes: default_max_job_bytes(),
         }
     }
 }
@@ -138,10 +138,23 @@ fn bad(msg: String) -> Status {
     Status::invalid_argument(msg)
 }
 
+/// The default `--max-job-bytes` ([`crate::admission`]): half the machine's memory (or
+/// 8 GiB when it cannot be read).
+pub fn default_max_job_bytes() -> u64 {
+    physical_memory().map_or(8 << 30, |m| m / 2)
+}
+
+/// Total memory from /proc/meminfo.
+fn physical_memory() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemTotal:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    kb.checked_mul(1024)
+}
+
 /// The longest `scene` (a path or a procedural spec): Linux's PATH_MAX.
 pub const MAX_SCENE_BYTES: usize = 4096;
-/// The longest of every other free-text field (names, modes, lists of names).
-pub const MAX_NAME_BYTES: usize = 256;
+pub use crate::text::{MAX_NAME_BYTES, as_given, bounded};
 
 /// Refuse a text field longer than `max` bytes, without echoing it: every later error
 /// may quote a field, so bounding the fields here bounds every message.
@@ -153,18 +166,6 @@ fn check_text(field: &str, v: &str, max: usize) -> Result<(), Status> {
         )));
     }
     Ok(())
-}
-
-/// `text` quoted for an error message, cut to 80 characters: errors name the input
-/// that was wrong but never echo an unbounded request (a 4 MiB field would become a
-/// 4 MiB error in the caller's logs and ours).
-pub fn bounded(text: &str) -> String {
-    const ECHO_CHARS: usize = 80;
-    if text.chars().count() <= ECHO_CHARS {
-        return format!("{text:?}");
-    }
-    let head: String = text.chars().take(ECHO_CHARS).collect();
-    format!("{head:?}... ({} bytes)", text.len())
 }
 
 fn check_range(field: &str, v: u32, max: u32) -> Result<(), Status> {
@@ -756,16 +757,6 @@ pub fn prepare(
         settings,
         env_map,
     })
-}
-
-/// `message` with the scene's canonical path (which starts with the coordinator's
-/// scene root, a detail of its file system) written as the client gave it (issue 45,
-/// item 11: API errors showed the absolute scene root).
-pub(crate) fn as_given(message: &str, canonical: &str, given: &str) -> String {
-    if canonical.is_empty() {
-        return message.to_string();
-    }
-    message.replace(canonical, given)
 }
 
 /// A package's scene without its triangles, for the checks and the effect analysis

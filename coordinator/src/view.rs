@@ -56,11 +56,11 @@ fn parallel(up: Vec3, dir: Vec3) -> bool {
 /// The checks that need no scene, each refusal naming its field. `camera` is the
 /// spec's `camera`: a view that places the camera itself cannot also pick one.
 pub fn check(v: &CameraSpec, camera: Option<&str>) -> Result<(), Status> {
-    if v.aperture.len() > crate::validate::MAX_NAME_BYTES {
+    if v.aperture.len() > crate::text::MAX_NAME_BYTES {
         return Err(bad(format!(
             "view.aperture: {} bytes is longer than {}",
             v.aperture.len(),
-            crate::validate::MAX_NAME_BYTES
+            crate::text::MAX_NAME_BYTES
         )));
     }
     let from = finite("look_from", v.look_from.as_ref())?;
@@ -124,7 +124,7 @@ pub fn check(v: &CameraSpec, camera: Option<&str>) -> Result<(), Status> {
         let which = if from.is_some() { "look_from" } else { "orbit" };
         return Err(bad(format!(
             "view.{which}: not with camera {} (pick a scene camera or place one, not both)",
-            crate::validate::bounded(c)
+            crate::text::bounded(c)
         )));
     }
     let lens = match v.aperture.trim() {

@@ -103,7 +103,7 @@ impl PageRequest {
             return Err(format!(
                 "page_token: {} is not a ListWorkers page token; pass the previous page's \
                  next_page_token, or none for the first page",
-                crate::validate::bounded(page_token)
+                crate::text::bounded(page_token)
             ));
         }
         Ok(PageRequest {

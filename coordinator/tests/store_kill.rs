@@ -6,7 +6,6 @@
 
 use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
-use std::time::Duration;
 
 use dray_coordinator::store::{CommittedTile, JobStore, Op};
 use dray_core::film::Film;
@@ -81,7 +80,7 @@ fn child(dir: &str) {
             });
         }
         if job % 8 == 7 {
-            assert!(store.post_durable(Op::Nothing, Duration::from_secs(30)));
+            assert!(store.flush(), "the writes so far are on disk");
             println!("confirmed {job}");
         }
     }

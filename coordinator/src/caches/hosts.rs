@@ -19,7 +19,7 @@ use std::time::{Duration, Instant};
 use dray_proto::v1::{CacheHost, RegisterCacheHostRequest};
 use tonic::Status;
 
-use crate::membership::{VERSION, check_endpoint, check_hostname, version_mismatch};
+use crate::registration::{VERSION, check_endpoint, check_hostname, version_mismatch};
 
 /// The most stand-alone hosts listed at once (each is a placement candidate for every
 /// job): a member flooding registrations cannot grow the list without bound.
@@ -80,7 +80,7 @@ impl CacheHosts {
                 return Err(Status::permission_denied(format!(
                     "endpoint: {} is already registered as {}, and this call does not \
                      carry its member secret",
-                    crate::validate::bounded(&endpoint),
+                    crate::text::bounded(&endpoint),
                     h.host.host_id
                 )));
             }

@@ -79,6 +79,16 @@ pub struct Closed {
     pub host_entries_max: u64,
 }
 
+impl Closed {
+    /// Add what closing an attempt's walls returned to the job's `tally`: the hosts'
+    /// ray-cache and hit-map statistics, and the most entries one host held.
+    pub fn add_to(&self, tally: &tally::CacheTally) {
+        tally.add_host(&self.stats);
+        tally.add_host_phm(&self.phm);
+        tally.note_host_entries(self.host_entries_max);
+    }
+}
+
 /// A client for the host at `endpoint`, with the connect and call deadlines.
 async fn client(
     net: &dray_net::ClientOptions,

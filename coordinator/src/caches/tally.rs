@@ -12,10 +12,7 @@ use std::collections::BTreeSet;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Mutex, MutexGuard};
 
-use dray_proto::v1::{PhmStats, RayCacheStats, WorkerCounters};
-
-use super::lifecycle::Closed;
-use crate::jobs::JobEntry;
+use dray_proto::v1::{JobStats, PhmStats, RayCacheStats, WorkerCounters};
 
 /// Bytes a ray takes on the wire at most (records are 32 to 64 bytes, rays.proto): what
 /// a ray not sent saves, as an upper bound (the ray was never encoded, so its own size is
@@ -153,13 +150,9 @@ impl CacheTally {
         add(&mut self.both().0, s);
     }
 
-    /// Add what closing an attempt's walls returned: the hosts' ray-cache and hit-map
-    /// statistics, and the most entries one host held.
-    pub fn add_closed(&self, closed: &Closed) {
-        self.add_host(&closed.stats);
-        self.add_host_phm(&closed.phm);
-        self.host_entries_max
-            .fetch_max(closed.host_entries_max, Ordering::Relaxed);
+    /// Note that one host held `entries` ray-cache entries (an attempt's walls closed).
+    pub fn note_host_entries(&self, entries: u64) {
+        self.host_entries_max.fetch_max(entries, Ordering::Relaxed);
     }
 
     /// The most memory one cache host's entries took (bytes, estimated:
@@ -180,30 +173,28 @@ impl CacheTally {
         self.both().0.clone()
     }
 
-    /// Write the sums into the job's statistics (`JobStats.ray_cache`).
-    pub fn publish(&self, entry: &JobEntry) {
+    /// Write the sums into a job's statistics `s` (`JobStats.ray_cache`, `phm`), as
+    /// `entry.update_stats(|s| tally.fill(s))`: ours is a leaf lock taken under the
+    /// entry's, which orders the writes. Savings are net of what consulting caches and
+    /// maps cost between processes, from the traffic the job published first (zero
+    /// before any worker reported).
+    pub fn fill(&self, s: &mut JobStats) {
         let g = self.both();
-        // The entry's lock is a leaf (nothing is locked under it), so holding ours
-        // across it cannot deadlock, and orders the writes.
-        // Savings net of what consulting caches and maps cost between processes, from
-        // the traffic the job publishes first (zero before any worker reported).
-        entry.update_stats(|s| {
-            let traffic = s.traffic.unwrap_or_default();
-            s.cache_bytes_per_process = if self.caches {
-                self.bytes_per_process()
-            } else {
-                0
-            };
-            s.ray_cache = self.caches.then(|| {
-                let mut c = g.0.clone();
-                c.bytes_not_sent_net = crate::traffic::cache_net(c.bytes_not_sent, &traffic);
-                c
-            });
-            s.phm = self.phm.then(|| {
-                let mut p = g.1;
-                p.bytes_not_sent_net = crate::traffic::phm_net(p.bytes_not_sent, &traffic);
-                p
-            });
+        let traffic = s.traffic.unwrap_or_default();
+        s.cache_bytes_per_process = if self.caches {
+            self.bytes_per_process()
+        } else {
+            0
+        };
+        s.ray_cache = self.caches.then(|| {
+            let mut c = g.0.clone();
+            c.bytes_not_sent_net = crate::traffic::cache_net(c.bytes_not_sent, &traffic);
+            c
+        });
+        s.phm = self.phm.then(|| {
+            let mut p = g.1;
+            p.bytes_not_sent_net = crate::traffic::phm_net(p.bytes_not_sent, &traffic);
+            p
         });
     }
 }

@@ -9,62 +9,13 @@ use axum::extract::{Path, State};
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use dray_proto::v1::render_service_server::RenderService;
-use dray_proto::v1::{
-    GetImageRequest, ImageFormat, Job, JobEventKind, PauseJobRequest, RetryJobRequest,
-};
+use dray_proto::v1::{GetImageRequest, ImageFormat, PauseJobRequest, RetryJobRequest};
 use serde::{Deserialize, Serialize};
 use tonic::Request;
 
 use super::Dashboard;
 use super::dto::JobDetail;
 use super::error::ApiError;
-
-/// What the page shows of a job's operator side: priority, attempts, lineage, events.
-#[derive(Serialize, Debug, Clone, PartialEq, Default)]
-pub struct OperatorView {
-    pub priority: i32,
-    pub attempts: u32,
-    /// The job this one runs again; empty for a submitted job.
-    pub retried_from: String,
-    pub events: Vec<EventRow>,
-}
-
-/// One event of a job's log.
-#[derive(Serialize, Debug, Clone, PartialEq)]
-pub struct EventRow {
-    /// Unix milliseconds.
-    pub at_ms: Option<i64>,
-    /// `"WORKER_LOST"` for `JOB_EVENT_KIND_WORKER_LOST`.
-    pub kind: &'static str,
-    pub message: String,
-}
-
-impl From<&Job> for OperatorView {
-    fn from(j: &Job) -> OperatorView {
-        OperatorView {
-            priority: j.spec.as_ref().map_or(0, |s| s.priority),
-            attempts: j.attempts,
-            retried_from: j.retried_from.clone(),
-            events: j
-                .events
-                .iter()
-                .map(|e| {
-                    let name = JobEventKind::try_from(e.kind)
-                        .unwrap_or(JobEventKind::Unspecified)
-                        .as_str_name();
-                    EventRow {
-                        at_ms: e
-                            .at
-                            .as_ref()
-                            .map(|t| t.seconds * 1000 + i64::from(t.nanos / 1_000_000)),
-                        kind: name.strip_prefix("JOB_EVENT_KIND_").unwrap_or(name),
-                        message: e.message.clone(),
-                    }
-                })
-                .collect(),
-        }
-    }
-}
 
 /// The body of a retry or requeue: an optional new priority.
 #[derive(Deserialize, Debug, Default)]

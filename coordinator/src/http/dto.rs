@@ -5,8 +5,9 @@
 
 use dray_proto::v1::camera_spec::Orbit;
 use dray_proto::v1::{
-    CameraSpec, EnvMapSpec, Job, JobProgress, JobSpec, JobState, JobStats, LightingSpec,
-    ListJobsResponse, ListWorkersResponse, Rgb, SunSpec, Vec3, WorkerJobStats, WorkerStatus,
+    CameraSpec, EnvMapSpec, Job, JobEventKind, JobProgress, JobSpec, JobState, JobStats,
+    LightingSpec, ListJobsResponse, ListWorkersResponse, Rgb, SunSpec, Vec3, WorkerJobStats,
+    WorkerStatus,
 };
 use serde::{Deserialize, Serialize};
 
@@ -76,7 +77,7 @@ pub struct JobDetail {
     pub stats: Option<Stats>,
     /// Its priority, attempts, lineage and event log (`super::actions`).
     #[serde(flatten)]
-    pub operator: super::actions::OperatorView,
+    pub operator: OperatorView,
 }
 
 /// A job's statistics (JobStats), the fields a person reads.
@@ -354,7 +355,7 @@ impl From<&Job> for JobDetail {
         JobDetail {
             job: JobSummary::from(j),
             stats: j.stats.as_ref().map(Stats::from),
-            operator: super::actions::OperatorView::from(j),
+            operator: OperatorView::from(j),
         }
     }
 }
@@ -519,6 +520,53 @@ impl From<&WorkerStatus> for WorkerRow {
                 })
                 .collect(),
             since_heartbeat_s: seconds(w.since_heartbeat.as_ref()),
+        }
+    }
+}
+
+/// What the page shows of a job's operator side: priority, attempts, lineage, events.
+#[derive(Serialize, Debug, Clone, PartialEq, Default)]
+pub struct OperatorView {
+    pub priority: i32,
+    pub attempts: u32,
+    /// The job this one runs again; empty for a submitted job.
+    pub retried_from: String,
+    pub events: Vec<EventRow>,
+}
+
+/// One event of a job's log.
+#[derive(Serialize, Debug, Clone, PartialEq)]
+pub struct EventRow {
+    /// Unix milliseconds.
+    pub at_ms: Option<i64>,
+    /// `"WORKER_LOST"` for `JOB_EVENT_KIND_WORKER_LOST`.
+    pub kind: &'static str,
+    pub message: String,
+}
+
+impl From<&Job> for OperatorView {
+    fn from(j: &Job) -> OperatorView {
+        OperatorView {
+            priority: j.spec.as_ref().map_or(0, |s| s.priority),
+            attempts: j.attempts,
+            retried_from: j.retried_from.clone(),
+            events: j
+                .events
+                .iter()
+                .map(|e| {
+                    let name = JobEventKind::try_from(e.kind)
+                        .unwrap_or(JobEventKind::Unspecified)
+                        .as_str_name();
+                    EventRow {
+                        at_ms: e
+                            .at
+                            .as_ref()
+                            .map(|t| t.seconds * 1000 + i64::from(t.nanos / 1_000_000)),
+                        kind: name.strip_prefix("JOB_EVENT_KIND_").unwrap_or(name),
+                        message: e.message.clone(),
+                    }
+                })
+                .collect(),
         }
     }
 }

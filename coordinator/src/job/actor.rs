@@ -31,8 +31,7 @@ use tokio::sync::mpsc;
 use tokio::task::{JoinError, JoinSet};
 use tracing::Instrument;
 
-use super::event::{JobEvent, ReportReply};
-use super::registry::JobHandle;
+use super::event::{JobEvent, JobHandle, ReportReply};
 use super::report::{self, Applied, ReportOutcome};
 use super::running::{Release, RunningJob, command};
 use crate::caches::job::{self as cache_job, OpenAttempt};
@@ -131,7 +130,7 @@ impl JobActor {
         started: tokio::sync::oneshot::Sender<Result<(), String>>,
         guard: &mut Guard,
     ) {
-        let start = self.start();
+        let start = self.start().await;
         let ok = start.is_ok();
         let _ = started.send(start);
         if !ok {
@@ -160,10 +159,10 @@ impl JobActor {
             let stall_at = self
                 .config
                 .stall_timeout
-                .map(|t| self.job.last_progress + t + Duration::from_millis(1));
+                .map(|t| self.job.ledger.last_progress() + t + Duration::from_millis(1));
             tokio::select! {
                 ev = rx.recv() => match ev {
-                    Some(ev) => self.on_event(ev),
+                    Some(ev) => self.on_event(ev).await,
                     None => self.fail("the coordinator dropped the job's mailbox".into()),
                 },
                 () = sleep_until(round_at) => {
@@ -190,8 +189,8 @@ impl JobActor {
     }
 
     /// Start the job on its workers (see [`RunningJob::start`]).
-    fn start(&mut self) -> Result<(), String> {
-        self.job.start(&self.membership)
+    async fn start(&mut self) -> Result<(), String> {
+        self.job.start(&self.membership).await
     }
 
     /// Run the scheduling round if one is due at `now`; arm the timer when it is due
@@ -213,7 +212,7 @@ impl JobActor {
         self.job.join(&self.membership, w);
     }
 
-    fn on_event(&mut self, ev: JobEvent) {
+    async fn on_event(&mut self, ev: JobEvent) {
         match ev {
             JobEvent::Report(r, reply) => {
                 let _ = reply.send(self.report(&r));
@@ -226,7 +225,7 @@ impl JobActor {
                     self.round(Instant::now());
                 }
             }
-            JobEvent::WorkerLost(lost) => self.worker_lost(&lost),
+            JobEvent::WorkerLost(lost) => self.worker_lost(&lost).await,
             JobEvent::WorkerJoined(w) => {
                 if self.job.takes_joiners() && !self.job.entry.is_terminal() {
                     self.join(&w);
@@ -298,7 +297,7 @@ impl JobActor {
                     self.start_next_pass();
                 }
                 if self.job.all_complete() {
-                    tracing::info!(tiles = self.job.tiles.len(), "job complete");
+                    tracing::info!(tiles = self.job.ledger.tile_count(), "job complete");
                     self.send_all(self.job.releases(Release::Finish, "completed"));
                     self.end(JobState::Succeeded, String::new());
                     ReportOutcome::Completed
@@ -327,8 +326,10 @@ impl JobActor {
             job.entry.update_stats(|s| s.coarse_seconds = seconds);
             tracing::info!(seconds, "coarse pass time");
         }
-        let coarse = job.tiles.len() - job.image_tiles;
-        let rays: u64 = job.tiles[job.image_tiles..]
+        let coarse = job.ledger.coarse_tiles().len();
+        let rays: u64 = job
+            .ledger
+            .coarse_tiles()
             .iter()
             .map(|t| u64::from(t.width) * u64::from(t.height))
             .sum();
@@ -379,7 +380,7 @@ impl JobActor {
         let Some(timeout) = self.config.stall_timeout else {
             return;
         };
-        let quiet = now.saturating_duration_since(self.job.last_progress);
+        let quiet = now.saturating_duration_since(self.job.ledger.last_progress());
         if quiet <= timeout {
             return;
         }
@@ -400,7 +401,7 @@ impl JobActor {
     /// dealt by the job's schedule. With no survivor the job fails, naming the worker. A
     /// worker that joined a dynamic job and was never given a domain held no credit: the
     /// others only get a table without it.
-    fn worker_lost(&mut self, lost: &LostWorker) {
+    async fn worker_lost(&mut self, lost: &LostWorker) {
         if self.job.entry.is_terminal() || !self.job.sched.has_worker(&lost.id) {
             return;
         }
@@ -420,7 +421,7 @@ impl JobActor {
         }
         let old = self.job.sched.attempt();
         if self.job.sched.restart_without(&lost.id).is_some() {
-            self.retrace(old, lost);
+            self.retrace(old, lost).await;
             return;
         }
         let msg = format!(
@@ -435,9 +436,9 @@ impl JobActor {
 
     /// Clear and re-deal the incomplete tiles, the schedule having just moved to a new
     /// attempt without `lost` (`old` is the attempt dropped).
-    fn retrace(&mut self, old: u32, lost: &LostWorker) {
+    async fn retrace(&mut self, old: u32, lost: &LostWorker) {
         self.job.persist_committed();
-        self.job.persist_attempt();
+        self.job.persist_attempt().await;
         let n = self.job.clear_for_retry();
         let attempt = self.job.sched.attempt();
         let reason = format!(
@@ -492,7 +493,7 @@ impl JobActor {
             if let Some(p) = prev {
                 let closed =
                     lifecycle::close(&walls.job_id, p.attempt, &p.placement, &walls.net).await;
-                tally.add_closed(&closed);
+                closed.add_to(&tally);
                 tally.lose(closed.failed.iter().map(|f| f.host.endpoint.as_str()));
             }
             let opened = if placement.is_empty() {
@@ -549,7 +550,7 @@ impl JobActor {
         self.walls.spawn(async move {
             let closed =
                 lifecycle::close(&walls.job_id, walls.attempt, &placement, &walls.net).await;
-            tally.add_closed(&closed);
+            closed.add_to(&tally);
             WallsDone::Closed
         });
     }
@@ -632,7 +633,7 @@ impl JobActor {
         if let Some((open, tally, net)) = open {
             let id = &self.job.entry.id;
             let closed = lifecycle::close(id, open.attempt, &open.placement, &net).await;
-            tally.add_closed(&closed);
+            closed.add_to(&tally);
             tally.lose(closed.failed.iter().map(|f| f.host.endpoint.as_str()));
         }
         while let Some(done) = self.walls.join_next().await {
@@ -642,27 +643,24 @@ impl JobActor {
                     lifecycle::close(&walls.job_id, walls.attempt, &opened.placement, &walls.net)
                         .await;
                 if let Some(c) = &self.job.caches {
-                    c.tally.add_closed(&closed);
+                    closed.add_to(&c.tally);
                 }
             }
         }
         let RunningJob {
             entry,
             owned_package,
-            mut film,
-            nonfinite,
-            clamped,
-            clamped_indirect,
+            film,
+            stats,
             caches,
             ..
         } = self.job;
         if let Some(c) = &caches {
-            c.tally.publish(&entry);
+            entry.update_stats(|s| c.tally.fill(s));
         }
-        film.nonfinite = nonfinite;
-        film.clamped = clamped;
-        film.clamped_indirect = clamped_indirect;
-        let film = (state == JobState::Succeeded).then_some(film);
+        let (nonfinite, clamped, clamped_indirect) = stats.film_counts();
+        let film = (state == JobState::Succeeded)
+            .then(|| film.into_film(nonfinite, clamped, clamped_indirect));
         entry.finish(state, error, film);
         remove_package(owned_package.as_ref());
     }

@@ -15,9 +15,12 @@
 //! with a noise threshold does not trace passes ahead (`super::ahead`): a worker holding
 //! a tile's later passes would trace them before the decision.
 
-use dray_core::adaptive;
+use std::ops::Range;
 
-use super::running::RunningJob;
+use dray_core::adaptive;
+use dray_proto::v1::Tile;
+
+use super::film::JobFilm;
 
 /// What adaptive sampling saved a job so far (`JobStats.tiles_stopped`,
 /// `samples_saved`).
@@ -27,49 +30,15 @@ pub struct Stopped {
     pub samples: u64,
 }
 
-impl RunningJob {
-    /// Image tile `t` has just finished the current pass: with a noise threshold, and a
-    /// pass after which the job decides, stop it when its error is below the threshold.
-    /// Returns whether it stopped.
-    pub(super) fn maybe_stop(&mut self, t: usize) -> bool {
-        let Some(threshold) = self.entry.spec.noise_threshold else {
-            return false;
-        };
-        let Some(range) = self.entry.passes.ranges().get(self.pass).cloned() else {
-            return false;
-        };
-        if !adaptive::decides_after(&range, self.last_pass()) {
-            return false;
-        }
-        let _span = tracing::trace_span!("adaptive_decision", tile = t).entered();
-        let tile = self.tiles[t];
-        let width = self.film.width;
-        let (x1, y1) = (
-            tile.x0.saturating_add(tile.width).min(width),
-            tile.y0.saturating_add(tile.height).min(self.film.height),
-        );
-        let pixels = (tile.y0..y1).flat_map(|y| (tile.x0..x1).map(move |x| y * width + x));
-        let base = self.pass_base.as_deref();
-        let error = adaptive::tile_error(
-            &range,
-            pixels.clone().map(|p| {
-                (
-                    base.map_or([0; 3], |b| b.sum_fixed(p)),
-                    self.film.sum_fixed(p),
-                )
-            }),
-        );
-        if !adaptive::stops(error, threshold) {
-            return false;
-        }
-        let mut n = 0u64;
-        for p in pixels {
-            self.film.set_stop(p, range.end);
-            n += 1;
-        }
-        self.tile_passes[t] = self.passes_total();
-        self.stopped.tiles += 1;
-        self.stopped.samples += n * u64::from(self.entry.spec.spp.saturating_sub(range.end));
-        true
+/// Whether image tile `tile`, which has just finished the pass of samples `range`
+/// (`last`: the job's last pass), stops under `threshold`: only after a pass the job
+/// decides after, when the tile's error, from its exact sums before and after the pass
+/// in `film`, is below the threshold. The caller stops it ([`JobFilm::stop_tile`]) and
+/// counts it.
+pub fn stops(film: &JobFilm, tile: &Tile, range: &Range<u32>, last: bool, threshold: f32) -> bool {
+    if !adaptive::decides_after(range, last) {
+        return false;
     }
+    let _span = tracing::trace_span!("adaptive_decision", tile = tile.index).entered();
+    adaptive::stops(adaptive::tile_error(range, film.tile_sums(tile)), threshold)
 }

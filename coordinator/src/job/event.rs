@@ -4,13 +4,27 @@
 //! that open and close cache walls are the actor's own, not events.
 
 use dray_proto::v1::{ReportContributionsRequest, ReportQueuesRequest, RoutingTable};
-use tokio::sync::oneshot;
+use tokio::sync::{mpsc, oneshot};
 use tonic::Status;
 
 use super::report::ReportOutcome;
 use super::view::JobView;
 use crate::membership::{LostWorker, WorkerRecord};
 use crate::scheduler::state::JobSchedule;
+
+/// How the registry reaches one job's actor: its mailbox, and what the PackageService
+/// may serve for the job. Here, beside the events, so the actor (which removes its own
+/// handle when its job ends) and the registry both name it without naming each other.
+#[derive(Clone, Debug)]
+pub struct JobHandle {
+    pub(super) tx: mpsc::Sender<JobEvent>,
+    /// The job's package path and checksum (fixed for its life): what the
+    /// PackageService may serve for it.
+    pub(super) package: (String, String),
+    /// The job's environment map file (`JobSetup.env_map`), which the PackageService
+    /// serves with the package.
+    pub(super) env_map: Option<dray_proto::v1::EnvMapFile>,
+}
 
 /// One message to a job's actor.
 #[derive(Debug)]

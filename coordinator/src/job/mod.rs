@@ -6,19 +6,27 @@
 //! - [`ahead`]: when a job's workers trace passes ahead, and the tiles they hold.
 //! - [`backlog`]: a replicated job's tiles dealt on demand, so joiners take a share.
 //! - [`event`]: what an actor is told.
-//! - [`running`]: what an actor owns: tiles and credit, the film, the schedule, the
-//!   caches, the counters it publishes; and the commands they cause.
+//! - [`running`]: what an actor owns: the ledger, the film and the statistics below,
+//!   the schedule, the passes, the caches; and the commands they cause.
+//! - [`credit`]: the credit ledger: every tile's credit and which tiles are complete.
+//! - [`film`]: the exact fixed-point film and the pass images.
+//! - [`statistics`]: the counters the reports carry, published as `JobStats`.
 //! - [`report`]: a contribution report, checked and applied.
+//! - [`sequences`]: which report sequences of the current attempt were applied.
 //! - [`view`]: the snapshot of domains and queues a job gives `ListWorkers`.
 
 pub mod actor;
 pub mod adaptive;
 pub mod ahead;
 pub mod backlog;
+pub mod credit;
 pub mod event;
+pub mod film;
 pub mod registry;
 pub mod report;
 pub mod running;
+pub mod sequences;
+pub mod statistics;
 pub mod view;
 
 pub use actor::ActorConfig;

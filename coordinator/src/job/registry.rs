@@ -17,7 +17,7 @@ use tokio::task::JoinSet;
 use tonic::Status;
 
 use super::actor::{ActorConfig, JobActor};
-use super::event::{JobEvent, ReportReply};
+use super::event::{JobEvent, JobHandle, ReportReply};
 use super::running::{JobPlan, RunningJob};
 use super::view::JobView;
 use crate::membership::{LostWorker, Membership, WorkerRecord};
@@ -25,18 +25,6 @@ use crate::scheduler::state::JobSchedule;
 
 /// Events a job's mailbox holds before senders wait.
 pub const MAILBOX: usize = 256;
-
-/// How the registry reaches one job's actor.
-#[derive(Clone, Debug)]
-pub struct JobHandle {
-    tx: mpsc::Sender<JobEvent>,
-    /// The job's package path and checksum (fixed for its life): what the
-    /// PackageService may serve for it.
-    package: (String, String),
-    /// The job's environment map file (`JobSetup.env_map`), which the PackageService
-    /// serves with the package.
-    env_map: Option<dray_proto::v1::EnvMapFile>,
-}
 
 /// Every job running on workers, each served by its own actor.
 pub struct JobRegistry {

@@ -16,12 +16,7 @@
 //! beyond a tile's start means something was counted twice, which would silently
 //! brighten the image, so it fails the job instead.
 
-use std::collections::BTreeSet;
-use std::time::Instant;
-
-use dray_core::aov::AOV_WORDS;
-use dray_core::credit::Credit;
-use dray_proto::v1::{RayCounts, ReportContributionsRequest};
+use dray_proto::v1::ReportContributionsRequest;
 use tonic::Status;
 
 use super::running::RunningJob;
@@ -57,32 +52,6 @@ impl ReportOutcome {
     }
 }
 
-/// Sequences of one (worker, job) already applied: everything up to `upto`, plus the
-/// ones above it that arrived out of order. Stays small when reports arrive in order.
-#[derive(Default, Debug)]
-pub struct SeqWindow {
-    upto: u64,
-    above: BTreeSet<u64>,
-}
-
-impl SeqWindow {
-    /// Whether sequence `s` was applied.
-    pub fn contains(&self, s: u64) -> bool {
-        s <= self.upto || self.above.contains(&s)
-    }
-
-    /// Record sequence `s` as applied.
-    pub fn insert(&mut self, s: u64) {
-        if s <= self.upto {
-            return;
-        }
-        self.above.insert(s);
-        while self.above.remove(&(self.upto + 1)) {
-            self.upto += 1;
-        }
-    }
-}
-
 /// Whether `r` may be applied to `job`: `Ok(None)` when it may, `Ok(Some(outcome))` when
 /// it is answered without being applied (stale attempt, duplicate sequence), an error
 /// naming the field when it is malformed or from a worker that is not the job's.
@@ -106,7 +75,7 @@ pub fn check(
     if !job.sched.has_worker(&r.worker_id) {
         return Err(Status::permission_denied(format!(
             "worker_id: {} is not a worker of job {:?}",
-            crate::validate::bounded(&r.worker_id),
+            crate::text::bounded(&r.worker_id),
             r.job_id
         )));
     }
@@ -115,91 +84,15 @@ pub fn check(
             "sequence: must start at 1 (0 is the unset value)",
         ));
     }
-    if job
-        .seen
-        .get(&r.worker_id)
-        .is_some_and(|s| s.contains(r.sequence))
-    {
+    if job.seen.contains(&r.worker_id, r.sequence) {
         return Ok(Some(ReportOutcome::Duplicate));
     }
-    if r.sums.len() != 3 * r.pixels.len() {
-        return Err(Status::invalid_argument(format!(
-            "sums: {} values for {} pixels (three per pixel expected)",
-            r.sums.len(),
-            r.pixels.len()
-        )));
-    }
-    let npix = u64::from(job.film.width) * u64::from(job.film.height);
-    if let Some(p) = r.pixels.iter().find(|&&p| u64::from(p) >= npix) {
-        return Err(Status::invalid_argument(format!(
-            "pixels: {p} is outside the {}x{} image",
-            job.film.width, job.film.height
-        )));
-    }
-    // Contributions are non-negative (`dray_core::film::to_fixed`) and every sum of them
-    // saturates, which is what makes the film's sums independent of the order reports
-    // arrive in; a negative value can only come from a broken or hostile worker.
-    if let Some(i) = r.sums.iter().position(|&v| v < 0) {
-        return Err(Status::invalid_argument(format!(
-            "sums: {} for pixel {} is negative (contributions never are)",
-            r.sums[i],
-            r.pixels[i / 3]
-        )));
-    }
-    check_aovs(job, r)?;
-    if let Some(c) = r
-        .credits
-        .iter()
-        .find(|c| c.tile as usize >= job.tiles.len())
-    {
-        return Err(Status::invalid_argument(format!(
-            "credits: tile {} does not exist (the job has {} tiles)",
-            c.tile,
-            job.tiles.len()
-        )));
-    }
+    job.film.check(r)?;
+    job.ledger.check(&r.credits)?;
     if let Some(c) = &r.counters {
         metrics::check(c).map_err(|e| Status::invalid_argument(e.to_string()))?;
     }
     Ok(None)
-}
-
-/// A report's AOV sums: only for a job that writes AOVs, eight words per pixel, every
-/// pixel inside the film, and the words that cannot be negative (albedo, depth, hits)
-/// not negative.
-fn check_aovs(job: &RunningJob, r: &ReportContributionsRequest) -> Result<(), Status> {
-    if r.aov_pixels.is_empty() && r.aov_sums.is_empty() {
-        return Ok(());
-    }
-    if job.film.aovs.is_none() {
-        return Err(Status::invalid_argument(format!(
-            "aov_pixels: job {:?} writes no AOVs",
-            r.job_id
-        )));
-    }
-    if r.aov_sums.len() != AOV_WORDS * r.aov_pixels.len() {
-        return Err(Status::invalid_argument(format!(
-            "aov_sums: {} values for {} pixels ({AOV_WORDS} per pixel expected)",
-            r.aov_sums.len(),
-            r.aov_pixels.len()
-        )));
-    }
-    let npix = u64::from(job.film.width) * u64::from(job.film.height);
-    if let Some(p) = r.aov_pixels.iter().find(|&&p| u64::from(p) >= npix) {
-        return Err(Status::invalid_argument(format!(
-            "aov_pixels: {p} is outside the {}x{} image",
-            job.film.width, job.film.height
-        )));
-    }
-    for (i, v) in r.aov_sums.chunks_exact(AOV_WORDS).enumerate() {
-        if [0, 1, 2, 6, 7].iter().any(|&w| v[w] < 0) {
-            return Err(Status::invalid_argument(format!(
-                "aov_sums: pixel {}'s albedo, depth or hit count is negative",
-                r.aov_pixels[i]
-            )));
-        }
-    }
-    Ok(())
 }
 
 /// What applying a report found, for the actor's transitions.
@@ -216,12 +109,9 @@ pub enum Applied {
 /// Apply `r`, which [`check`] accepted, to `job`: its sequence, pixels, credit and
 /// counters. A worker's failure is recorded (its sequence) and nothing else.
 pub fn apply(job: &mut RunningJob, r: &ReportContributionsRequest) -> Applied {
-    job.seen
-        .entry(r.worker_id.clone())
-        .or_default()
-        .insert(r.sequence);
+    job.seen.insert(&r.worker_id, r.sequence);
     // Counted once per sequence, as everything else in it is.
-    crate::traffic::add_report(&mut job.reports, r);
+    job.stats.count_report(r);
     if !r.failure.is_empty() {
         // Workers often name themselves already ("worker w1: ..."): say it once.
         let failure = r.failure.trim();
@@ -230,67 +120,23 @@ pub fn apply(job: &mut RunningJob, r: &ReportContributionsRequest) -> Applied {
             .unwrap_or(failure);
         return Applied::WorkerFailed(format!("worker {} failed: {failure}", r.worker_id));
     }
-    // `check` made it three sums per pixel, every pixel inside the film.
-    job.film.add_fixed_run(&r.pixels, &r.sums);
-    // `check_aovs` made them eight words per pixel, every pixel inside the film.
-    if let Some(a) = job.film.aovs.as_mut() {
-        for (&p, v) in r.aov_pixels.iter().zip(r.aov_sums.chunks_exact(AOV_WORDS)) {
-            a.add_fixed(p, &std::array::from_fn(|w| v[w]));
-        }
+    // `check` made the sums fit the film; the credits name the job's tiles.
+    job.film.add(r);
+    let credited = job.ledger.add(&r.credits);
+    // The film holds the whole report already: a tile finished by it is final.
+    for t in credited.finished {
+        job.tile_finished(t);
     }
-    let mut overdrawn = None;
-    for c in &r.credits {
-        let t = c.tile as usize;
-        // Credit arrives, and is kept per tile, as the wire carries it; the sums are
-        // made on [`Credit`] (docs/architecture.md "Credit").
-        let start = Credit::from_wire(job.tiles[t].credit);
-        let back = Credit::from_wire(job.tile_back[t]);
-        let credit = Credit::from_wire(c.credit);
-        match back.checked_add(credit) {
-            Some(b) if b <= start => {
-                if !credit.is_zero() {
-                    job.last_progress = Instant::now();
-                }
-                job.tile_back[t] = b.to_wire();
-                if back != start && b == start && t < job.image_tiles {
-                    job.tile_finished(t);
-                }
-            }
-            _ => {
-                overdrawn = Some((c.tile, credit));
-                break;
-            }
-        }
-    }
-    if let Some(t) = &r.traced {
-        let (sum, add) = (job.rays.by_kind(), t.by_kind());
-        job.rays = RayCounts::from_kinds(std::array::from_fn(|k| sum[k] + add[k]));
-    }
-    job.nonfinite += r.nonfinite;
-    job.clamped = job.clamped.saturating_add(r.clamped);
-    job.clamped_indirect = job.clamped_indirect.saturating_add(r.clamped_indirect);
-    job.ray_bytes_sent += r.ray_bytes_sent;
-    if let Some(t) = r.counters.as_ref().and_then(|c| c.traffic.as_ref()) {
-        crate::traffic::add(&mut job.traffic, t);
-    }
-    if let Some(c) = r.counters.as_ref().and_then(|c| c.cpu.as_ref()) {
-        job.cpu.note(c);
-    }
-    job.cpu.note_here();
-    job.metrics
-        .add(&r.worker_id, r.counters.as_ref(), r.traced.as_ref());
+    job.stats.add(r);
     if let (Some(c), Some(caches)) = (&r.counters, &job.caches) {
         caches.tally.add_worker(c);
     }
-    match overdrawn {
-        Some((tile, credit)) => {
-            let t = tile as usize;
-            Applied::Overdrawn(format!(
-                "credit accounting error: worker {} returned {credit} credit to tile {tile}, \
-                 which already had {} of its {} back; rays were counted twice",
-                r.worker_id, job.tile_back[t], job.tiles[t].credit
-            ))
-        }
+    match credited.overdrawn {
+        Some(o) => Applied::Overdrawn(format!(
+            "credit accounting error: worker {} returned {} credit to tile {}, which already \
+             had {} of its {} back; rays were counted twice",
+            r.worker_id, o.credit, o.tile, o.back, o.start
+        )),
         None => Applied::Counted,
     }
 }
@@ -303,19 +149,6 @@ pub(super) mod tests {
     use crate::scheduler::Schedule;
     use crate::scheduler::state::{JobSchedule, JobWorker};
     use dray_proto::v1::{JobSetup, JobSpec, Tile, TileCredit};
-
-    #[test]
-    fn seq_window_dedupes_in_and_out_of_order() {
-        let mut w = SeqWindow::default();
-        assert!(!w.contains(1));
-        w.insert(1);
-        w.insert(3);
-        assert!(w.contains(1) && w.contains(3) && !w.contains(2));
-        w.insert(2);
-        assert_eq!(w.upto, 3);
-        assert!(w.above.is_empty());
-        assert!(w.contains(2) && !w.contains(4));
-    }
 
     /// A 4x2 job of two 2x2 tiles (credit 10 each) on workers w1 and w2.
     fn job() -> RunningJob {
@@ -340,7 +173,7 @@ pub(super) mod tests {
         setup: JobSetup,
         schedule: Schedule,
     ) -> RunningJob {
-        let table = JobTable::new(1);
+        let table = JobTable::new();
         let entry = table.insert(JobSpec {
             width: 2 * tiles,
             height: 2,
@@ -448,18 +281,18 @@ pub(super) mod tests {
             apply(&mut j, &report("w1", 1, &[(0, 4), (1, 10)])),
             Applied::Counted
         );
-        assert_eq!(j.tiles_done, 1, "tile 1 has all its credit back");
+        assert_eq!(j.ledger.done(), 1, "tile 1 has all its credit back");
         assert!(!j.all_complete());
         assert_eq!(apply(&mut j, &report("w2", 1, &[(0, 6)])), Applied::Counted);
         assert!(j.all_complete());
         assert_eq!(
-            j.film.sum_fixed(1),
+            j.film.film().sum_fixed(1),
             [10, 12, 14],
             "two reports' sums of pixel 1"
         );
         j.clear_tile(0);
-        assert_eq!(j.film.sum_fixed(1), [0, 0, 0], "cleared exactly");
-        assert_eq!(j.tile_back[0], 0);
+        assert_eq!(j.film.film().sum_fixed(1), [0, 0, 0], "cleared exactly");
+        assert!(!j.ledger.complete(0));
     }
 
     #[test]

@@ -1,15 +1,11 @@
-//! What one running job holds: its tiles and their credit, the exact film, the attempts'
-//! schedule, the ray caches, and the counters it publishes. Owned by the job's actor
-//! ([`super::actor`]) and by nothing else, so none of it is behind a lock; the methods
-//! here change it and say what to send, and the actor sends it.
+//! What one running job holds: its credit ledger ([`super::credit`]), its exact film
+//! ([`super::film`]), its statistics ([`super::statistics`]), the attempts' schedule, the
+//! passes, and the ray caches. Owned by the job's actor ([`super::actor`]) and by nothing
+//! else, so none of it is behind a lock; the methods here change it and say what to
+//! send, and the actor sends it. The ledger, the film and the statistics keep their
+//! state private: a report ([`super::report`]) is applied through their methods.
 //!
-//! **Credit** (docs/architecture.md "Credit"): every tile starts with a fixed credit;
-//! workers hand credit back with the contributions of terminated rays. A tile is complete
-//! when all of its credit is back, and a job when all its tiles are.
-//!
-//! **The film.** Pixel sums arrive in fixed point and are added with integer arithmetic
-//! into one [`Film`]: addition is associative, so the image does not depend on which
-//! worker reported what, or in which order.
+//! A tile is complete when all of its credit is back, and a job when all its tiles are.
 //!
 //! **Attempts.** When a worker of the job is lost, the job starts its next attempt on the
 //! survivors: every tile whose credit is not all back is cleared (its pixels set back to
@@ -19,22 +15,23 @@
 //! Since a pixel belongs to one tile and its rays only add to that tile's pixels, the
 //! final film is bit for bit that of an undisturbed run.
 
-use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use dray_core::aov::AovSet;
 use dray_core::film::Film;
 use dray_proto::v1::{
-    Assignment, JobRelease, JobSetup, JobState, RayCounts, ReportQueuesRequest, Tile,
-    TileAssignment, assignment::Command,
+    Assignment, JobRelease, JobSetup, JobState, ReportQueuesRequest, Tile, TileAssignment,
+    assignment::Command,
 };
 
-use super::report::SeqWindow;
+use super::credit::CreditLedger;
+use super::film::JobFilm;
+use super::sequences::Sequences;
+use super::statistics::JobStatistics;
 use crate::caches::job::JobCaches;
 use crate::jobs::JobEntry;
 use crate::membership::{Membership, WorkerRecord};
-use crate::metrics::JobMetrics;
 use crate::owned_package::OwnedPackage;
 use crate::scheduler::Schedule;
 use crate::scheduler::auto::SceneSize;
@@ -78,13 +75,12 @@ pub struct RunningJob {
     pub owned_package: Option<OwnedPackage>,
     pub(super) setup: JobSetup,
     pub(super) sched: JobSchedule,
-    pub(super) tiles: Vec<Tile>,
-    /// Credit returned per tile.
-    pub(super) tile_back: Vec<u64>,
-    /// Image tiles complete (coarse tiles are not counted: progress is the image's).
-    pub(super) tiles_done: u32,
-    /// The image's tiles: `tiles[..image_tiles]`; the rest are the coarse pass's.
-    pub(super) image_tiles: usize,
+    /// Every tile and the credit back on each.
+    pub(super) ledger: CreditLedger,
+    /// The exact film and the pass images.
+    pub(super) film: JobFilm,
+    /// The counters the reports carry.
+    pub(super) stats: JobStatistics,
     /// Whether the coarse pass (if any) is complete: until it is, only coarse tiles go
     /// out, so every image ray's lookup sees caches the coarse pass has filled (and,
     /// with `fill=false`, only those: the same bits every run).
@@ -92,28 +88,9 @@ pub struct RunningJob {
     /// When the current attempt's coarse tiles went out (None without a coarse pass, or
     /// once it is complete): `JobStats.coarse_seconds` is measured from here.
     pub(super) coarse_started: Option<Instant>,
-    pub(super) tiles_retried: u32,
-    pub(super) film: Film,
     /// Sequences applied per worker, this attempt.
-    pub(super) seen: HashMap<String, SeqWindow>,
-    pub(super) rays: RayCounts,
-    pub(super) nonfinite: u64,
-    /// Contributions the workers clamped to the film's largest.
-    pub(super) clamped: u64,
-    /// Contributions the workers scaled down by `--clamp-indirect`.
-    pub(super) clamped_indirect: u64,
-    pub(super) ray_bytes_sent: u64,
-    /// Bytes between processes by kind, summed over the workers' reports.
-    pub(super) traffic: dray_proto::v1::TrafficStats,
-    /// The reports themselves: messages applied, their bytes and the AOVs' part.
-    pub(super) reports: dray_proto::v1::ReportStats,
-    /// CPU seconds of the processes that ran the job.
-    pub(super) cpu: crate::cpu_tally::CpuTally,
-    pub(super) metrics: JobMetrics,
+    pub(super) seen: Sequences,
     pub(super) caches: Option<JobCaches>,
-    /// When a worker last returned credit (or the job or its latest attempt started):
-    /// a job with none for the stall timeout fails.
-    pub(super) last_progress: Instant,
     /// Whether the per-worker detail in the public record is older than the totals
     /// (see [`RunningJob::publish_detail`]).
     detail_stale: std::cell::Cell<bool>,
@@ -128,20 +105,6 @@ pub struct RunningJob {
     pub(super) tile_passes: Vec<u32>,
     /// Tiles adaptive sampling stopped, and the samples they did not take.
     pub(super) stopped: super::adaptive::Stopped,
-    /// The film as the current pass started (the previous pass's image): a tile traced
-    /// again after a lost worker goes back to it. None in the first pass (zero).
-    pub(super) pass_base: Option<Arc<Film>>,
-    /// The image after the current pass, built a tile at a time: each tile's pixels are
-    /// copied in when its credit of the pass is all back (they are final for the pass
-    /// then: by the workers' contract, [`super::report`], no contribution of the pass
-    /// comes after its credit). When the pass ends every tile is in it, and it becomes
-    /// the pass image without a copy of the film: a copy of a whole film (50 MB at
-    /// 1080p) inside the report that ends a pass would stall every report of the job
-    /// behind it. None in the last pass (no image follows it).
-    pass_next: Option<Film>,
-    /// Pixels copied into pass images so far (what a report may cost beyond its own
-    /// sums; tests hold it to the tiles a report finishes).
-    pub(super) pass_copied: u64,
     /// For a job whose workers trace passes ahead (`JobSetup.passes_ahead`): the image
     /// tiles a worker of the current attempt holds, which are not dealt again.
     held: Option<super::ahead::Held>,
@@ -177,12 +140,10 @@ impl RunningJob {
         let (w, h) = (entry.spec.width, entry.spec.height);
         // Validated when the job was accepted.
         let aovs = AovSet::parse(&entry.spec.aovs).unwrap_or(AovSet::NONE);
-        let mut metrics = JobMetrics::default();
-        for id in sched.worker_ids() {
-            metrics.add_worker(&id);
-        }
-        let image_tiles = tiles.iter().filter(|t| !t.coarse).count();
-        let pass_next = (entry.passes.total() > 1).then(|| Film::with_aovs(w, h, aovs));
+        let stats = JobStatistics::new(sched.worker_ids());
+        let ledger = CreditLedger::new(tiles);
+        let image_tiles = ledger.image_tiles();
+        let film = JobFilm::new(w, h, aovs, entry.passes.total());
         let held = (setup.passes_ahead > 0).then(|| super::ahead::Held::new(image_tiles));
         let backlog =
             (sched.schedule() == Schedule::Replicated).then(super::backlog::Backlog::default);
@@ -192,34 +153,18 @@ impl RunningJob {
             owned_package,
             setup,
             sched,
-            image_tiles,
-            coarse_done: image_tiles == tiles.len(),
+            coarse_done: !ledger.has_coarse(),
             coarse_started: None,
-            tile_back: vec![0; tiles.len()],
-            tiles,
-            tiles_done: 0,
-            tiles_retried: 0,
-            film: Film::with_aovs(w, h, aovs),
-            seen: HashMap::new(),
-            rays: RayCounts::default(),
-            nonfinite: 0,
-            clamped: 0,
-            clamped_indirect: 0,
-            ray_bytes_sent: 0,
-            traffic: Default::default(),
-            reports: Default::default(),
-            cpu: crate::cpu_tally::CpuTally::here(),
-            metrics,
+            ledger,
+            film,
+            stats,
+            seen: Sequences::default(),
             caches,
-            last_progress: Instant::now(),
             detail_stale: std::cell::Cell::new(true),
             committed: Vec::new(),
             pass: 0,
             tile_passes: vec![0; image_tiles],
             stopped: Default::default(),
-            pass_base: None,
-            pass_next,
-            pass_copied: 0,
             held,
             backlog,
             scene,
@@ -247,12 +192,11 @@ impl RunningJob {
                 Some(_) => total,
                 None => c.passes.unwrap_or(total).min(total),
             };
-            let fits = self.tiles.get(t).is_some_and(|x| {
-                let n = u64::from(x.width) * u64::from(x.height);
-                !x.coarse
-                    && c.sums.len() as u64 == n
-                    && c.aovs.as_ref().map(|a| a.len() as u64) == self.film.aovs.as_ref().map(|_| n)
-            });
+            let fits = self
+                .ledger
+                .tiles()
+                .get(t)
+                .is_some_and(|x| !x.coarse && self.film.fits(x, &c));
             if !fits || passes == 0 || self.tile_passes[t] > 0 {
                 tracing::warn!(
                     tile = c.tile,
@@ -260,25 +204,12 @@ impl RunningJob {
                 );
                 continue;
             }
-            let x = self.tiles[t];
-            let pixels = (x.y0..x.y0 + x.height)
-                .flat_map(|y| (x.x0..x.x0 + x.width).map(move |xx| (y, xx)))
-                .map(|(y, xx)| y * self.film.width + xx)
-                .collect::<Vec<u32>>();
-            for (&p, s) in pixels.iter().zip(c.sums) {
-                self.film.add_fixed(p, s);
-            }
-            if let (Some(film), Some(aovs)) = (self.film.aovs.as_mut(), c.aovs) {
-                for (&p, v) in pixels.iter().zip(aovs) {
-                    film.add_fixed(p, &v);
-                }
-            }
-            if let Some(n) = c.stopped_at {
-                for &p in &pixels {
-                    self.film.set_stop(p, n);
-                }
+            let x = self.ledger.tile(t);
+            let stopped_at = c.stopped_at;
+            let pixels = self.film.keep(&x, c);
+            if let Some(n) = stopped_at {
                 self.stopped.tiles += 1;
-                self.stopped.samples += pixels.len() as u64 * u64::from(spp.saturating_sub(n));
+                self.stopped.samples += pixels * u64::from(spp.saturating_sub(n));
             }
             self.tile_passes[t] = passes;
             kept += 1;
@@ -287,7 +218,7 @@ impl RunningJob {
             job = %self.entry.id,
             kept,
             stopped = self.stopped.tiles,
-            aovs = self.film.aovs.is_some(),
+            aovs = self.film.has_aovs(),
             "committed tiles put back"
         );
         if kept == 0 {
@@ -296,7 +227,7 @@ impl RunningJob {
         let first_open = self.tile_passes.iter().copied().min().unwrap_or(0);
         // Taken back at a job's start, not on a report: the film as it is now is the
         // base of the pass it goes on from.
-        let image = Arc::new(self.film.clone());
+        let image = self.film.snapshot();
         self.enter_pass(
             (first_open as usize).min(total.saturating_sub(1) as usize),
             image,
@@ -317,44 +248,17 @@ impl RunningJob {
                 format!("pass {pass} of {} finished", self.entry.passes.total()),
             );
         }
-        let previous = self.pass_base.replace(image);
-        self.pass_next = (!self.last_pass()).then(|| {
-            // Every tile of the next image is written before it is shown, so the image
-            // before this one can hold it when no reader has it any more (no new
-            // allocation, and its pages are already mapped).
-            let (w, h, aovs) = (self.film.width, self.film.height, self.film.aov_set());
-            previous
-                .and_then(|p| Arc::try_unwrap(p).ok())
-                .filter(|f| (f.width, f.height, f.aov_set()) == (w, h, aovs))
-                .unwrap_or_else(|| Film::with_aovs(w, h, aovs))
-        });
-        self.tiles_done = 0;
-        for t in 0..self.image_tiles {
-            if self.tile_passes[t] as usize > pass {
-                self.tile_back[t] = self.tiles[t].credit;
-                self.tiles_done += 1;
-                self.copy_to_next(t);
-            } else {
-                self.tile_back[t] = 0;
-            }
+        let last = self.last_pass();
+        self.film.enter_pass(image, last);
+        let passes = &self.tile_passes;
+        for t in self.ledger.enter_pass(|t| passes[t] as usize > pass) {
+            self.copy_to_next(t);
         }
     }
 
     /// Copy image tile `t`'s pixels into the next pass image, if one is being built.
     fn copy_to_next(&mut self, t: usize) {
-        let Some(next) = self.pass_next.as_mut() else {
-            return;
-        };
-        let x = self.tiles[t];
-        let width = self.film.width;
-        for y in x.y0..x.y0.saturating_add(x.height).min(self.film.height) {
-            for xx in x.x0..x.x0.saturating_add(x.width).min(width) {
-                // The next image's pixel may hold an older pass's sums (a reused
-                // buffer): it is set, not added to.
-                next.set_pixel_from(y * width + xx, Some(&self.film));
-                self.pass_copied += 1;
-            }
-        }
+        self.film.copy_to_next(&self.ledger.tile(t));
     }
 
     /// Passes in the job.
@@ -367,12 +271,11 @@ impl RunningJob {
         self.pass + 1 >= self.passes_total() as usize
     }
 
-    /// Image tile `t`'s credit is all back: it has one more pass complete (every pass,
-    /// if adaptive sampling stops it), and is committed with it (kept in the job store
-    /// when there is one), with its AOV sums and, if it stopped, the samples it stopped
-    /// at (docs/noise.md).
+    /// Image tile `t`'s credit is all back (the ledger counted it): it has one more pass
+    /// complete (every pass, if adaptive sampling stops it), and is committed with it
+    /// (kept in the job store when there is one), with its AOV sums and, if it stopped,
+    /// the samples it stopped at (docs/noise.md).
     pub(super) fn tile_finished(&mut self, t: usize) {
-        self.tiles_done += 1;
         self.tile_passes[t] = self.pass as u32 + 1;
         self.maybe_stop(t);
         self.copy_to_next(t);
@@ -381,19 +284,39 @@ impl RunningJob {
         }
     }
 
+    /// Image tile `t` has just finished the current pass: with a noise threshold, and a
+    /// pass after which the job decides, stop it when its error is below the threshold
+    /// ([`super::adaptive`]): its pixels keep the samples they stopped at, and it is
+    /// complete in every later pass. Returns whether it stopped.
+    fn maybe_stop(&mut self, t: usize) -> bool {
+        let Some(threshold) = self.entry.spec.noise_threshold else {
+            return false;
+        };
+        let Some(range) = self.entry.passes.ranges().get(self.pass).cloned() else {
+            return false;
+        };
+        let tile = self.ledger.tile(t);
+        if !super::adaptive::stops(&self.film, &tile, &range, self.last_pass(), threshold) {
+            return false;
+        }
+        let n = self.film.stop_tile(&tile, range.end);
+        self.tile_passes[t] = self.passes_total();
+        self.stopped.tiles += 1;
+        self.stopped.samples += n * u64::from(self.entry.spec.spp.saturating_sub(range.end));
+        true
+    }
+
     /// Whether every image tile has finished a pass that is not the last: the next
     /// one can start.
     pub(super) fn pass_complete(&self) -> bool {
-        self.coarse_done && !self.last_pass() && self.tiles_done as usize == self.image_tiles
+        self.coarse_done && !self.last_pass() && self.ledger.image_complete()
     }
 
     /// Start the next pass: the image so far becomes the pass image (shown by GetImage,
     /// and the base a retried tile returns to); every tile that has not finished it yet
     /// goes out again with the next samples. Returns the tiles to deal.
     pub(super) fn next_pass(&mut self) -> Vec<Tile> {
-        // (There is always a next image before the last pass; a copy is the right
-        // image should there not be.)
-        let image = Arc::new(self.pass_next.take().unwrap_or_else(|| self.film.clone()));
+        let image = self.film.take_pass_image();
         self.enter_pass(self.pass + 1, image);
         self.publish();
         let mut tiles = self.incomplete_tiles();
@@ -427,32 +350,12 @@ impl RunningJob {
             self.committed.clear();
             return;
         };
-        let film = &self.film;
         let tiles = self
             .committed
             .drain(..)
             .map(|t| {
-                let x = self.tiles[t];
-                let pixels = (x.y0..x.y0 + x.height)
-                    .flat_map(|y| (x.x0..x.x0 + x.width).map(move |xx| y * film.width + xx));
-                let sums = pixels.clone().map(|p| film.sum_fixed(p)).collect();
-                let aovs = film
-                    .aovs
-                    .as_ref()
-                    .map(|a| pixels.clone().map(|p| a.sum_fixed(p)).collect());
-                // A stopped tile's pixels all stopped at the same count (`maybe_stop`).
-                let stopped_at = film
-                    .stops()
-                    .and_then(|s| s.get((x.y0 * film.width + x.x0) as usize))
-                    .copied()
-                    .filter(|&n| n > 0);
-                CommittedTile {
-                    tile: t as u32,
-                    sums,
-                    passes: Some(self.tile_passes[t]),
-                    aovs,
-                    stopped_at,
-                }
+                self.film
+                    .committed(t as u32, &self.ledger.tile(t), self.tile_passes[t])
             })
             .collect();
         store.post(Op::Tiles {
@@ -464,14 +367,23 @@ impl RunningJob {
     /// Record in the job store that the current attempt has started, and wait until it
     /// is on disk: a job taken back after a restart must start past every attempt its
     /// workers may have seen (they refuse an attempt they released). Rare (a start, a
-    /// lost worker), so the short wait is not on any hot path.
-    pub(super) fn persist_attempt(&self) {
-        if let Some(store) = self.entry.store() {
+    /// lost worker), so the short wait is not on any hot path; it is awaited, so the
+    /// actor's task waits and the runtime's thread serves other jobs meanwhile.
+    pub(super) fn persist_attempt(&self) -> impl std::future::Future<Output = ()> + Send + use<> {
+        // Taken now: the future holds no borrow of the job (which is not `Sync`).
+        let durable = self.entry.store().cloned().map(|store| {
             let op = Op::Attempt {
                 id: self.entry.id.clone(),
                 attempt: self.sched.attempt(),
             };
-            if !store.post_durable(op, std::time::Duration::from_secs(10)) {
+            (store, op)
+        });
+        async move {
+            if let Some((store, op)) = durable
+                && !store
+                    .post_durable(op, std::time::Duration::from_secs(10))
+                    .await
+            {
                 tracing::warn!("the job store did not confirm the job's new attempt");
             }
         }
@@ -505,7 +417,7 @@ impl RunningJob {
     /// RUNNING. Fails (sending nothing) when the job was cancelled meanwhile, or names
     /// the first worker that is gone. A dynamic job also takes on the workers that
     /// registered after its workers were chosen.
-    pub fn start(&mut self, membership: &Membership) -> Result<(), String> {
+    pub async fn start(&mut self, membership: &Membership) -> Result<(), String> {
         if self.entry.is_terminal() {
             return Err(format!("job {} ended before it started", self.entry.id));
         }
@@ -515,7 +427,7 @@ impl RunningJob {
                 "worker {w} left the cluster while the job was being prepared"
             ));
         }
-        self.persist_attempt();
+        self.persist_attempt().await;
         for (w, a) in self.attempt_commands() {
             if !membership.send_shared(&w, a) {
                 // The worker expired between the check above and here; the job cannot
@@ -642,7 +554,7 @@ impl RunningJob {
         }) else {
             return;
         };
-        self.metrics.add_worker(&w.id);
+        self.stats.add_worker(&w.id);
         let others: Vec<String> = self
             .sched
             .worker_ids()
@@ -677,11 +589,8 @@ impl RunningJob {
         let Some(backlog) = self.backlog.as_mut() else {
             return Vec::new();
         };
-        let (tiles, back) = (&self.tiles, &self.tile_back);
-        let more = backlog.top_up(worker, |t| {
-            let t = t as usize;
-            tiles.get(t).is_some_and(|x| back.get(t) == Some(&x.credit))
-        });
+        let ledger = &self.ledger;
+        let more = backlog.top_up(worker, |t| ledger.complete_if_any(t as usize));
         if more.is_empty() {
             return Vec::new();
         }
@@ -809,40 +718,41 @@ impl RunningJob {
     }
 
     pub(super) fn tile_complete(&self, t: usize) -> bool {
-        self.tile_back[t] == self.tiles[t].credit
+        self.ledger.complete(t)
     }
 
     /// The tiles whose credit is not all back, of the phase the job is in: the coarse
     /// pass's until it is complete, then the image's, in the current pass's samples.
     pub(super) fn incomplete_tiles(&self) -> Vec<Tile> {
+        let image_tiles = self.ledger.image_tiles();
         let range = if self.coarse_done {
-            0..self.image_tiles
+            0..image_tiles
         } else {
-            self.image_tiles..self.tiles.len()
+            image_tiles..self.ledger.tile_count()
         };
         let samples = self.entry.passes.ranges().get(self.pass).cloned();
         range
             .filter(|&t| !self.tile_complete(t))
             .map(|t| match &samples {
-                Some(s) if !self.tiles[t].coarse => Tile {
+                Some(s) if !self.ledger.tile(t).coarse => Tile {
                     first_sample: s.start,
                     samples: s.len() as u32,
-                    ..self.tiles[t]
+                    ..self.ledger.tile(t)
                 },
-                _ => self.tiles[t],
+                _ => self.ledger.tile(t),
             })
             .collect()
     }
 
     /// Whether every tile, image and coarse, is complete in the last pass.
     pub(super) fn all_complete(&self) -> bool {
-        self.coarse_done && self.last_pass() && self.tiles_done as usize == self.image_tiles
+        self.coarse_done && self.last_pass() && self.ledger.image_complete()
     }
 
     /// Whether the coarse pass has just completed (every coarse tile's credit is back
     /// while the job still waits for it).
     pub(super) fn coarse_pass_complete(&self) -> bool {
-        !self.coarse_done && (self.image_tiles..self.tiles.len()).all(|t| self.tile_complete(t))
+        !self.coarse_done && self.ledger.coarse_complete()
     }
 
     /// Whether the current attempt waits for its cache walls to open.
@@ -854,68 +764,45 @@ impl RunningJob {
     /// (zero in the first), exactly: wrapping integer sums, adding the difference gives
     /// the base whatever the sum was.
     pub(super) fn clear_tile(&mut self, t: usize) {
-        let tile = self.tiles[t];
-        if tile.coarse {
-            // Coarse rays add nothing to the image.
-            self.tile_back[t] = 0;
-            return;
+        let tile = self.ledger.tile(t);
+        // Coarse rays add nothing to the image.
+        if !tile.coarse {
+            self.film.clear_tile(&tile);
         }
-        let width = self.film.width;
-        for y in tile.y0..tile.y0.saturating_add(tile.height).min(self.film.height) {
-            for x in tile.x0..tile.x0.saturating_add(tile.width).min(width) {
-                self.film
-                    .set_pixel_from(y * width + x, self.pass_base.as_deref());
-            }
-        }
-        self.tile_back[t] = 0;
+        self.ledger.clear(t);
     }
 
     /// Clear the tiles a new attempt traces again (every incomplete tile, and the whole
     /// coarse pass when the job has one: the new attempt's walls open empty), forget the
     /// old attempt's sequences, and return how many tiles go out again.
     pub(super) fn clear_for_retry(&mut self) -> usize {
-        let mut incomplete: Vec<usize> = (0..self.tiles.len())
-            .filter(|&t| !self.tile_complete(t))
-            .collect();
-        if self.image_tiles < self.tiles.len() {
+        if self.ledger.has_coarse() {
             self.coarse_done = false;
-            incomplete
-                .extend((self.image_tiles..self.tiles.len()).filter(|&t| self.tile_complete(t)));
-            incomplete.sort_unstable();
         }
-        for &t in &incomplete {
+        let again = self.ledger.for_retry();
+        for &t in &again {
             self.clear_tile(t);
         }
         self.seen.clear();
-        self.tiles_retried = self.tiles_retried.saturating_add(incomplete.len() as u32);
-        self.last_progress = Instant::now();
-        incomplete.len()
+        again.len()
     }
 
     /// Copy counters and scheduling figures into the public job record: O(1) in the
     /// number of workers, so a job can publish with every report. The per-worker detail
     /// is left for [`RunningJob::publish_detail`] (the actor runs it a little later).
     pub fn publish(&self) {
-        self.entry.set_tiles_done(self.tiles_done);
+        self.entry.set_tiles_done(self.ledger.done());
         self.entry.update_stats(|s| {
-            s.rays = Some(self.rays);
-            s.nonfinite = self.nonfinite;
-            s.clamped = self.clamped;
-            s.clamped_indirect = self.clamped_indirect;
+            self.stats.fill_totals(s);
             s.tiles_stopped = self.stopped.tiles;
             s.samples_saved = self.stopped.samples;
-            s.ray_bytes_sent = self.ray_bytes_sent;
-            s.traffic = Some(self.traffic);
-            s.reports = Some(self.reports);
-            s.cpu_seconds = self.cpu.seconds();
-            self.metrics.fill_totals(s);
-            s.tiles_retried = self.tiles_retried;
+            s.tiles_retried = self.ledger.retried();
             s.scheduler_rounds = self.sched.rounds();
             s.routing_version = self.sched.version();
             s.schedule = self.sched.schedule().name().to_string();
         });
         if let Some(c) = &self.caches {
-            c.tally.publish(&self.entry);
+            self.entry.update_stats(|s| c.tally.fill(s));
         }
         self.detail_stale.set(true);
     }
@@ -934,14 +821,14 @@ impl RunningJob {
             owners: routes.all_owners().to_vec(),
             workers: self.sched.worker_ids(),
             queues: self.sched.reports().clone(),
-            traced: self.metrics.traced().collect(),
+            traced: self.stats.traced().collect(),
         }
     }
 
     /// Copy the per-worker detail (`JobStats.workers_detail`) into the public record:
     /// O(workers), so the actor does it at most a few times a second and at the end.
     pub fn publish_detail(&self) {
-        self.entry.update_stats(|s| self.metrics.fill_detail(s));
+        self.entry.update_stats(|s| self.stats.fill_detail(s));
         self.detail_stale.set(false);
     }
 
@@ -1143,8 +1030,9 @@ mod tests {
     fn assert_image_is_film(j: &super::RunningJob, passes_done: u32) {
         let img = j.entry.passes.latest().expect("a pass image");
         assert_eq!(img.passes_done, passes_done);
-        for p in 0..j.film.width * j.film.height {
-            assert_eq!(img.film.sum_fixed(p), j.film.sum_fixed(p), "pixel {p}");
+        let film = j.film.film();
+        for p in 0..film.width * film.height {
+            assert_eq!(img.film.sum_fixed(p), film.sum_fixed(p), "pixel {p}");
         }
     }
 
@@ -1176,12 +1064,12 @@ mod tests {
                 // One pixel in each row of tile t.
                 r.pixels = vec![2 * t, 6 + 2 * t + 1];
                 r.sums = vec![i64::from(pass) + 1, i64::from(t), 7, 1, 2, 3];
-                let before = j.pass_copied;
+                let before = j.film.pass_copied();
                 assert_eq!(apply(&mut j, &r), Applied::Counted);
                 if j.pass_complete() {
                     j.next_pass();
                 }
-                let copied = j.pass_copied - before;
+                let copied = j.film.pass_copied() - before;
                 assert!(
                     copied <= TILE_PIXELS,
                     "the report finishing tile {t} of pass {pass} copied {copied} pixels, \
@@ -1195,7 +1083,7 @@ mod tests {
         }
         assert!(j.all_complete());
         assert_eq!(
-            j.film.sum_fixed(0),
+            j.film.film().sum_fixed(0),
             [10, 0, 28],
             "four passes' sums of pixel 0"
         );

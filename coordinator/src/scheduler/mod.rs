@@ -10,7 +10,8 @@
 //!   functions: the first
 //!   ownership, how tiles are dealt, the ownership after a loss, and the dynamic round
 //!   ([`policy::rebalance`]).
-//! - [`table`]: ownership ([`table::Ownership`]) and the versioned table workers receive.
+//! - [`ownership`]: who owns which domain ([`ownership::Ownership`]).
+//! - [`table`]: the versioned table workers receive.
 //! - [`state`]: one job's scheduling state (table, budgets, latest queue reports).
 //!
 //! Every table change is a new version (never reused, across attempts too) sent to every
@@ -18,6 +19,7 @@
 //! number of rounds.
 
 pub mod auto;
+pub mod ownership;
 pub mod policy;
 pub mod state;
 pub mod table;

@@ -20,7 +20,7 @@ use rusqlite::{Connection, ErrorCode, OpenFlags};
 use dray_core::aov::AOV_WORDS;
 use dray_core::film::Film;
 
-use super::writer::{Health, Op, Writer, image_name};
+use super::writer::{Confirm, Health, Op, Writer, image_name};
 use super::{CommittedTile, StoreError, StoredJob, from_millis};
 use super::{image_file, state_dir};
 
@@ -139,16 +139,31 @@ impl JobStore {
     /// Post `op` and wait (at most `timeout`) until it is in the database: for the rare
     /// writes that must be on disk before the coordinator acts on them (a new attempt,
     /// which workers remember; a new job, before SubmitJob answers). False when it could
-    /// not be confirmed: the transaction failed, or `timeout` passed.
-    pub fn post_durable(&self, op: Op, timeout: Duration) -> bool {
-        let (tx, rx) = std::sync::mpsc::sync_channel(1);
-        {
-            let g = self.lock();
-            let Some(w) = g.as_ref() else { return false };
-            w.post(op);
-            w.post(Op::Flush(tx));
-        }
-        rx.recv_timeout(timeout).unwrap_or(false)
+    /// not be confirmed: the transaction failed, the store is sealed, or `timeout`
+    /// passed. The wait is a oneshot awaited, so the caller's task is suspended and the
+    /// runtime's thread stays free for other jobs (it used to block a runtime thread up
+    /// to 10 s on a `recv_timeout`).
+    pub async fn post_durable(&self, op: Op, timeout: Duration) -> bool {
+        let Some(confirmed) = self.post_confirmed(op) else {
+            return false;
+        };
+        matches!(tokio::time::timeout(timeout, confirmed).await, Ok(Ok(true)))
+    }
+
+    /// Post `op` and a flush after it: the receiver is answered once `op` is committed.
+    /// None once the store is sealed.
+    fn post_confirmed(&self, op: Op) -> Option<tokio::sync::oneshot::Receiver<bool>> {
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        self.post_flushed(op, Confirm::Task(tx)).then_some(rx)
+    }
+
+    /// Post `op`, then a flush answered on `confirm`; false once the store is sealed.
+    fn post_flushed(&self, op: Op, confirm: Confirm) -> bool {
+        let g = self.lock();
+        let Some(w) = g.as_ref() else { return false };
+        w.post(op);
+        w.post(Op::Flush(confirm));
+        true
     }
 
     /// `Err(why)` while the store's last transaction failed (a full or read-only disk):
@@ -185,9 +200,13 @@ impl JobStore {
         }
     }
 
-    /// Wait until everything posted so far is in the database.
-    pub fn flush(&self) {
-        self.post_durable(Op::Nothing, Duration::from_secs(30));
+    /// Wait (at most 30 s) until everything posted so far is in the database; false when
+    /// it could not be confirmed. Blocks the calling thread: for tests and threads
+    /// outside the runtime (a task awaits [`JobStore::post_durable`] instead).
+    pub fn flush(&self) -> bool {
+        let (tx, rx) = std::sync::mpsc::sync_channel(1);
+        self.post_flushed(Op::Nothing, Confirm::Thread(tx))
+            && rx.recv_timeout(Duration::from_secs(30)).unwrap_or(false)
     }
 
     /// Write what is pending, then stop writing and release the directory's lock: for a
@@ -561,13 +580,11 @@ mod tests {
                 id: "job-2-x".into(),
                 tiles: vec![plain_tile(), tile_with_aovs()],
             });
-            assert!(store.post_durable(
-                Op::Attempt {
-                    id: "job-2-x".into(),
-                    attempt: 4
-                },
-                Duration::from_secs(10)
-            ));
+            store.post(Op::Attempt {
+                id: "job-2-x".into(),
+                attempt: 4,
+            });
+            assert!(store.flush());
         }
         let (_store, jobs) = JobStore::open(dir.path()).unwrap();
         let ids: Vec<&str> = jobs.iter().map(|j| j.id.as_str()).collect();
@@ -577,6 +594,38 @@ mod tests {
         assert_eq!(jobs[0].spec, spec());
         assert_eq!(jobs[0].tiles, [plain_tile(), tile_with_aovs()]);
         assert_eq!(jobs[1].state, JobState::Queued);
+    }
+
+    /// A durable write is awaited on the runtime (a oneshot, not a blocked thread): it
+    /// confirms what it posted, and a sealed store confirms nothing.
+    #[tokio::test]
+    async fn a_durable_write_is_awaited_and_a_sealed_store_confirms_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let (store, _) = JobStore::open(dir.path()).unwrap();
+        store.post(Op::Insert {
+            id: "job-1-x".into(),
+            spec: spec(),
+            submitted_ms: 5,
+        });
+        let attempt = |attempt| Op::Attempt {
+            id: "job-1-x".into(),
+            attempt,
+        };
+        assert!(
+            store
+                .post_durable(attempt(2), Duration::from_secs(10))
+                .await
+        );
+        store.seal();
+        assert!(
+            !store
+                .post_durable(attempt(3), Duration::from_secs(10))
+                .await,
+            "nothing is written once sealed"
+        );
+        drop(store);
+        let (_store, jobs) = JobStore::open(dir.path()).unwrap();
+        assert_eq!(jobs[0].attempt, Some(2));
     }
 
     /// A store as an older dray wrote it at `db`: `schema`, `version`, job `job-1-x` and

@@ -31,7 +31,7 @@ use dray_core::aov::AOV_WORDS;
 use dray_proto::v1::{JobEvent, JobSpec, JobState, JobStats};
 
 pub use db::{JobStore, SCHEMA_VERSION};
-pub use writer::Op;
+pub use writer::{Confirm, Op};
 
 /// Why the store cannot be opened or used. Every message is one line naming the file.
 #[derive(Debug, thiserror::Error)]

@@ -12,7 +12,9 @@
 use std::fs::File;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::sync::mpsc::{Receiver, Sender, SyncSender};
+use std::sync::mpsc::{Receiver, Sender};
+
+use tokio::sync::oneshot;
 
 use dray_proto::v1::{JobSpec, JobState, JobStats};
 use prost::Message;
@@ -111,7 +113,30 @@ pub enum Op {
     },
     /// Answered once every earlier operation is committed (`true`), or with `false`
     /// when the transaction holding them failed (a full disk).
-    Flush(SyncSender<bool>),
+    Flush(Confirm),
+}
+
+/// Where a flush is answered: a oneshot a task on the runtime awaits without holding a
+/// runtime thread, or a channel a plain thread (a test, a tool) blocks on.
+#[derive(Debug)]
+pub enum Confirm {
+    /// Awaited by a task ([`super::JobStore::post_durable`]).
+    Task(oneshot::Sender<bool>),
+    /// Blocked on by a thread ([`super::JobStore::flush`]).
+    Thread(std::sync::mpsc::SyncSender<bool>),
+}
+
+impl Confirm {
+    fn send(self, ok: bool) {
+        match self {
+            Confirm::Task(tx) => {
+                let _ = tx.send(ok);
+            }
+            Confirm::Thread(tx) => {
+                let _ = tx.send(ok);
+            }
+        }
+    }
 }
 
 /// The writer thread and its mailbox.
@@ -176,7 +201,7 @@ fn run(mut conn: Connection, path: &Path, images: &Path, rx: &Receiver<Op>, heal
         failed_since_flush |= failed.is_some();
         if !flushes.is_empty() {
             for f in flushes {
-                let _ = f.send(!failed_since_flush);
+                f.send(!failed_since_flush);
             }
             failed_since_flush = false;
         }
@@ -196,7 +221,7 @@ fn write_batch(
     path: &Path,
     images: &Path,
     batch: Vec<Op>,
-) -> (Option<String>, Vec<SyncSender<bool>>) {
+) -> (Option<String>, Vec<Confirm>) {
     let mut flushes = Vec::new();
     let mut removed = Vec::new();
     let result = (|| -> rusqlite::Result<()> {
