@@ -216,10 +216,9 @@ impl LostWorker {
     }
 }
 
-/// The registered workers.
-/// The metadata key of a worker's own secret (RegisterWorkerResponse.member_token).
-pub const MEMBER_HEADER: &str = "x-dray-member";
+pub use dray_net::auth::MEMBER_HEADER;
 
+/// The registered workers.
 pub struct Membership {
     workers: Mutex<BTreeMap<String, WorkerRecord>>,
     next: AtomicU64,

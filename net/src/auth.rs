@@ -13,6 +13,11 @@ use tower::{Layer, Service};
 
 use crate::credential::Token;
 
+/// The metadata key of a worker's own secret (RegisterWorkerResponse.member_token),
+/// sent by the worker with every call that speaks for it and checked by the
+/// coordinator: one constant for both sides.
+pub const MEMBER_HEADER: &str = "x-dray-member";
+
 /// Who may call a method.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Access {

@@ -12,9 +12,7 @@ use dray_net::AuthChannel;
 use dray_proto::v1::cluster_service_client::ClusterServiceClient;
 use dray_proto::v1::{GetPeerPassRequest, GetRoutingTableRequest, RoutingTable};
 
-/// The request header that carries the member secret (the coordinator's
-/// `membership::MEMBER_HEADER`: the two must agree).
-pub(crate) const MEMBER_HEADER: &str = "x-dray-member";
+use dray_net::auth::MEMBER_HEADER;
 
 /// The worker's membership: who it is at the coordinator, and its client there.
 pub(crate) struct Member {

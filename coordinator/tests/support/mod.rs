@@ -161,8 +161,10 @@ pub struct FakeWorker {
 /// `msg` as a call speaking for the worker whose secret is `token`.
 pub fn as_member<T>(token: &str, msg: T) -> tonic::Request<T> {
     let mut req = tonic::Request::new(msg);
-    req.metadata_mut()
-        .insert("x-dray-member", token.parse().expect("token metadata"));
+    req.metadata_mut().insert(
+        dray_net::auth::MEMBER_HEADER,
+        token.parse().expect("token metadata"),
+    );
     req
 }
 
