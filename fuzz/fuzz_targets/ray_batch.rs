@@ -21,8 +21,7 @@ use dray_core::credit::Credit;
 use dray_core::integrator::RayKind;
 use dray_core::ray::{RayRecord, check_count, decode_rays, decode_rays_into, encode_rays};
 use dray_proto::v1::{CacheRequest, RayBatch, RayStreamRequest, cache_request, ray_stream_request};
-use dray_worker::peer_client::check_tickets;
-use dray_worker::tickets::{RayBundle, with_lineage};
+use dray_worker::tickets::{RayBundle, check_tickets, with_lineage};
 use libfuzzer_sys::fuzz_target;
 use prost::Message;
 
