@@ -58,8 +58,8 @@ async fn headers_only(
             .send_request(grpc_request(addr, path), false)
             .expect("headers sent");
         if i % 2 == 1 {
-            send.send_data(empty_message(), false)
-                .expect("message sent");
+            // A shed call may already be answered and reset: its status says so.
+            let _ = send.send_data(empty_message(), false);
         }
         open.push(send);
         let tx = tx.clone();
@@ -167,7 +167,8 @@ async fn unread_streams_are_bounded_and_free_their_places_when_they_end() {
             let (response, mut send) = ready
                 .send_request(grpc_request(addr, WATCH_JOB), false)
                 .expect("headers sent");
-            send.send_data(empty_message(), true).expect("request sent");
+            // A shed stream may be answered and reset before its body goes out.
+            let _ = send.send_data(empty_message(), true);
             let response = tokio::time::timeout(Duration::from_secs(60), response)
                 .await
                 .expect("response headers (safety deadline)")
