@@ -200,8 +200,13 @@ def simulate(trace, a):
     per_weight = overhead * t["step_cpu_s"] * 1e9 / total_weight if total_weight else 0.0
     load_delay = (a.load_delay_ms if a.load_delay_ms is not None else trace.job.get("load_delay_ms", 0)) / 1e3
 
-    e = Engine([sys.argv[0], "--log=root.thresh:critical", "--cfg=contexts/stack-size:256"])
-    zone = NetZone.create_star_zone("cluster")
+    e = Engine([sys.argv[0], "--log=root.thresh:critical", "--cfg=contexts/stack-size:256",
+                f"--cfg=network/model:{a.network_model}"])
+    pairs = a.topology == "pairs" and not a.one_host
+    # `star`: each node has one link (its NIC, each direction) to a switch, as a cluster
+    # has; `pairs`: each ordered pair of nodes has a link of its own, as `--emulate-link`
+    # shapes every connection separately.
+    zone = NetZone.create_full_zone("cluster") if pairs else NetZone.create_star_zone("cluster")
     speed = 1e9 * a.speed
     if model:
         # Each process's background CPU (heartbeats, timers, its runtime's polling) taken
@@ -214,14 +219,26 @@ def simulate(trace, a):
     for i in range(host_count):
         h = zone.create_host(f"node{i}", speed)
         h.core_count = a.cores if a.one_host else threads
-        link = zone.create_split_duplex_link(f"nic{i}", a.bandwidth).set_latency(a.latency)
-        zone.add_route(h.netpoint, None, None, None, [LinkInRoute(link, LinkInRoute.Direction.UP)], True)
+        if not pairs:
+            link = zone.create_split_duplex_link(f"nic{i}", a.bandwidth).set_latency(a.latency)
+            zone.add_route(h.netpoint, None, None, None, [LinkInRoute(link, LinkInRoute.Direction.UP)], True)
         hosts.append(h)
+    if pairs:
+        for i, hi in enumerate(hosts):
+            for j, hj in enumerate(hosts):
+                if i != j:
+                    link = zone.create_link(f"link{i}-{j}", a.bandwidth).set_latency(a.latency)
+                    zone.add_route(hi.netpoint, hj.netpoint, None, None, [LinkInRoute(link)], False)
     fs = None
     if a.fs_bandwidth:
         fs = zone.create_host("fs", speed)
-        link = zone.create_split_duplex_link("fs-nic", a.fs_bandwidth).set_latency(a.latency)
-        zone.add_route(fs.netpoint, None, None, None, [LinkInRoute(link, LinkInRoute.Direction.UP)], True)
+        if pairs:
+            link = zone.create_link("fs-link", a.fs_bandwidth).set_latency(a.latency)
+            for h in hosts:
+                zone.add_route(fs.netpoint, h.netpoint, None, None, [LinkInRoute(link)], True)
+        else:
+            link = zone.create_split_duplex_link("fs-nic", a.fs_bandwidth).set_latency(a.latency)
+            zone.add_route(fs.netpoint, None, None, None, [LinkInRoute(link, LinkInRoute.Direction.UP)], True)
     zone.seal()
 
     dynamic = a.schedule == "dynamic"
@@ -485,6 +502,8 @@ def simulate(trace, a):
         "one_host": a.one_host,
         "cores": a.cores if a.one_host else threads,
         "bandwidth_Bps": a.bandwidth,
+        "network_model": a.network_model,
+        "topology": a.topology,
         "latency_s": a.latency,
         "speed": a.speed,
         "cpu_overhead_ratio": overhead,
@@ -545,6 +564,13 @@ def main(argv=None):
     ap.add_argument("--round-ms", type=float, default=50.0, help="--schedule dynamic: the scheduler's round")
     ap.add_argument("--min-queue", type=float, default=1000.0,
                     help="--schedule dynamic: rays waiting per holder below which no replica is made")
+    ap.add_argument("--network-model", choices=["LV08", "CM02"], default="LV08",
+                    help="SimGrid's network model: LV08 (its default, TCP over real links: latency x13.01, "
+                         "bandwidth x0.97) or CM02 (a message takes latency + size / bandwidth, as "
+                         "`--emulate-link` shapes it)")
+    ap.add_argument("--topology", choices=["star", "pairs"], default="star",
+                    help="star: one link per node to a switch (a cluster's NICs); pairs: a link per ordered "
+                         "pair of nodes (how `--emulate-link` shapes each connection)")
     ap.add_argument("--json", action="store_true", help="print the result as JSON")
     a = ap.parse_args(argv)
     a.bandwidth = parse_rate(a.bandwidth, "--bandwidth")

@@ -219,6 +219,31 @@ fn replay_checks(trace: &Path, traced: u64, sent: u64) {
         slow["makespan_s"].as_f64().expect("time"),
     );
     assert!(s > f, "a slower link gives a longer time: {s} s vs {f} s");
+    // The emulation's links (`validate.py --link`): one per ordered pair of nodes, no TCP
+    // factors. Every step replayed, and no slower than one link per node with TCP's
+    // factors on the same bandwidth (more capacity, less latency).
+    let pairs = replay(
+        trace,
+        &[
+            "--bandwidth",
+            "10Mbps",
+            "--latency",
+            "1ms",
+            "--topology",
+            "pairs",
+            "--network-model",
+            "CM02",
+        ],
+    )
+    .expect("replayed");
+    assert_eq!(u(&pairs["steps"]), u(&pairs["trace"]["steps"]));
+    assert_eq!(u(&pairs["rays_sent"]), sent);
+    assert_eq!(pairs["topology"], "pairs", "{pairs}");
+    let p = pairs["makespan_s"].as_f64().expect("time");
+    assert!(
+        p > 0.0 && p <= s,
+        "links per pair without TCP factors: {p} s, one link per node with them: {s} s"
+    );
     // More nodes than the trace had: domains re-dealt, every step still replayed.
     let wide = replay(trace, &["--nodes", "8"]).expect("replayed");
     assert_eq!(u(&wide["steps"]), u(&wide["trace"]["steps"]));
