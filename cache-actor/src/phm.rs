@@ -93,6 +93,11 @@ pub enum Learned {
 /// stored. Allocated on the first outcome: a map that never learns costs nothing.
 type DenseCells = Arc<OnceLock<Box<[AtomicU64]>>>;
 
+/// The memory of one dense cell: its counts packed in a `u64` ([`Cells`]). A job's
+/// maps hold at most their cells times this (a dense map's counts, allocated on its first
+/// outcome; a sparse map holds only the cells that learned, with a hash table's overhead).
+pub const BYTES_PER_CELL: u64 = std::mem::size_of::<u64>() as u64;
+
 fn pack(c: Counts) -> u64 {
     u64::from(c.hits) | u64::from(c.misses) << 32
 }

@@ -120,6 +120,10 @@ pub struct PhmSummary {
     pub cells_decided_hit: u64,
     pub cells_decided_miss: u64,
     pub cells: u64,
+    /// The maps' memory, every copy: `cells` times the bytes of a dense cell
+    /// (`dray_cache::phm::BYTES_PER_CELL`), an upper estimate (a map that never learned
+    /// holds none).
+    pub map_bytes: u64,
     /// Rays not sent to another worker because a map answered or skipped them.
     pub rays_not_sent: u64,
     pub bytes_not_sent: u64,
@@ -141,6 +145,7 @@ impl PhmSummary {
             cells_decided_hit: p.cells_decided_hit,
             cells_decided_miss: p.cells_decided_miss,
             cells: p.cells,
+            map_bytes: p.cells.saturating_mul(dray_cache::phm::BYTES_PER_CELL),
             rays_not_sent: p.rays_not_sent,
             bytes_not_sent: p.bytes_not_sent,
             bytes_not_sent_net: p.bytes_not_sent_net,

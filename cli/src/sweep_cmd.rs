@@ -30,6 +30,7 @@ use crate::sweep::metrics::{self, Picture};
 use crate::sweep::pareto::{self, Point};
 use crate::sweep::plan::{Job, Plan, Setting, Target};
 use crate::sweep::report::{self, Row};
+use crate::sweep::spread::Spread;
 use crate::warm::WarmProcess;
 
 /// The flag's long help.
@@ -409,6 +410,7 @@ fn row(s: &Setting, o: &Output, errors: metrics::Errors) -> Row {
         cpu_s: o.cpu_s,
         bytes_total: o.bytes_total(),
         stats: o.stats.clone(),
+        spread: Spread::first(o.render_s, o.bytes_total(), &errors),
         errors,
         image: s.file.clone(),
         args: shell_line(&s.tokens),
@@ -418,6 +420,9 @@ fn row(s: &Setting, o: &Output, errors: metrics::Errors) -> Row {
 /// What the sweep's loop shares: the renderer, where images go, how to label a render.
 struct Sweeper<'a> {
     renderer: Renderer,
+    /// The first round's exact image, which every later round's renders are compared
+    /// with (the spread of their errors).
+    exact: Option<Picture>,
     out: &'a Path,
     total: usize,
     show: bool,
@@ -493,11 +498,13 @@ impl Sweeper<'_> {
             }
             rows.push(row(s, &o, errors));
         }
+        self.exact = Some(exact.picture);
         Ok((rows, None))
     }
 
-    /// More rounds, interleaved, for the times only: each row's times become the
-    /// medians over the rounds, its bytes too (rounded: counts are whole).
+    /// More rounds, interleaved: each row's times become the medians over the rounds,
+    /// its bytes too (rounded: counts are whole); its spread takes in every round's
+    /// time, bytes and error against the first round's exact image.
     fn more_rounds(&mut self, plan: &Plan, rows: &mut [Row], repeat: u32) -> Option<anyhow::Error> {
         let mut walls: Vec<Vec<f64>> = rows.iter().map(|r| vec![r.wall_s]).collect();
         let mut renders: Vec<Vec<f64>> = rows.iter().map(|r| vec![r.render_s]).collect();
@@ -513,6 +520,19 @@ impl Sweeper<'_> {
                 let what = format!("{} (round {round}/{repeat})", self.label(i, s));
                 match self.renderer.render(s, &png, &what, self.show) {
                     Ok(o) => {
+                        if let Some(exact) = &self.exact {
+                            match metrics::compare(exact, &o.picture) {
+                                Ok(errors) => {
+                                    rows[i].spread.add(o.render_s, o.bytes_total(), &errors)
+                                }
+                                Err(e) => {
+                                    failure = Some(
+                                        e.context(format!("setting {} in round {round}", s.name)),
+                                    );
+                                    break 'rounds;
+                                }
+                            }
+                        }
                         walls[i].push(o.wall_s);
                         renders[i].push(o.render_s);
                         cpus[i].push(o.cpu_s);
@@ -591,6 +611,7 @@ fn sweep(
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let mut sweeper = Sweeper {
         renderer: Renderer::new(plan, target, net)?,
+        exact: None,
         out,
         total: plan.settings.len() + 1,
         show: !quiet && std::io::stderr().is_terminal(),

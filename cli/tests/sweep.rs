@@ -13,7 +13,7 @@ use std::process::Output;
 use support::{WorkerCluster, dray};
 
 /// The columns every results.csv has (besides one per varied key).
-const COLUMNS: [&str; 48] = [
+const COLUMNS: [&str; 57] = [
     "setting",
     "domain_loads",
     "domains_warm",
@@ -44,6 +44,7 @@ const COLUMNS: [&str; 48] = [
     "phm_probes",
     "phm_cells_decided_hit",
     "phm_cells_decided_miss",
+    "phm_map_bytes",
     "rmse",
     "rmse_linear",
     "psnr",
@@ -62,6 +63,14 @@ const COLUMNS: [&str; 48] = [
     "bytes_map_merges",
     "pareto",
     "args",
+    "render_s_min",
+    "render_s_max",
+    "bytes_total_min",
+    "bytes_total_max",
+    "rmse_min",
+    "rmse_max",
+    "flip_min",
+    "flip_max",
 ];
 
 fn sweep(args: &[&str], out: &Path, env: &[(&str, &str)]) -> Output {
@@ -338,6 +347,8 @@ fn sweeps_hit_map_thresholds() {
                 "phm.miss=0",
                 "--vary",
                 "max-depth=5",
+                "--repeat",
+                "2",
             ],
         ]
         .concat(),
@@ -346,11 +357,28 @@ fn sweeps_hit_map_thresholds() {
     );
     assert!(o.status.success(), "{}", stderr(&o));
     let rows = check_outputs(&out, &["phm.miss", "max-depth"], 1);
+    // Two rounds: each median lies within its spread; maps that never decide give the
+    // exact image in every round, and so does the exact render.
+    for r in &rows {
+        for m in ["render_s", "bytes_total"] {
+            let (lo, mid, hi) = (
+                num(r, &format!("{m}_min")),
+                num(r, m),
+                num(r, &format!("{m}_max")),
+            );
+            assert!(lo <= mid && mid <= hi, "{m}: {lo} {mid} {hi} in {r:?}");
+        }
+        assert_eq!(num(r, "rmse_max"), 0.0, "{r:?}");
+        assert_eq!(num(r, "flip_max"), 0.0, "{r:?}");
+    }
     assert_eq!(rows[0]["phm_lookups"], "", "the exact render has no maps");
     let r = &rows[1];
     assert_eq!(r["setting"], "phm.miss=0 max-depth=5");
     assert_eq!(rows[0]["max-depth"], "5");
     assert!(num(r, "phm_lookups") > 0.0, "{r:?}");
+    // The maps' memory: 8 bytes a cell, every wall's map having cells.
+    let map_bytes: u64 = r["phm_map_bytes"].parse().expect("a byte count");
+    assert!(map_bytes > 0 && map_bytes.is_multiple_of(8), "{r:?}");
     assert_eq!(num(r, "phm_rays_skipped"), 0.0, "{r:?}");
     assert_eq!(num(r, "phm_cells_decided_hit"), 0.0, "{r:?}");
     assert_eq!(num(r, "rmse"), 0.0, "{r:?}");

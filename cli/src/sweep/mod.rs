@@ -4,3 +4,4 @@ pub mod metrics;
 pub mod pareto;
 pub mod plan;
 pub mod report;
+pub mod spread;

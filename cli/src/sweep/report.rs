@@ -10,6 +10,7 @@ use std::fmt::Write as _;
 use serde_json::Value;
 
 use super::metrics::Errors;
+use super::spread::{self, Spread};
 
 /// The ray-cache statistics, as `--stats` names them under `ray_cache` (and the CSV).
 pub const RAY_CACHE_COLUMNS: [&str; 16] = [
@@ -45,13 +46,14 @@ pub const TRAFFIC_COLUMNS: [(&str, &str); 7] = [
 ];
 
 /// The hit-map statistics: CSV column and key under `--stats`' `phm`.
-pub const PHM_COLUMNS: [(&str, &str); 6] = [
+pub const PHM_COLUMNS: [(&str, &str); 7] = [
     ("phm_lookups", "lookups"),
     ("phm_rays_skipped", "rays_skipped"),
     ("phm_rays_occluded", "rays_occluded"),
     ("phm_probes", "probes"),
     ("phm_cells_decided_hit", "cells_decided_hit"),
     ("phm_cells_decided_miss", "cells_decided_miss"),
+    ("phm_map_bytes", "map_bytes"),
 ];
 
 /// One render's line.
@@ -77,6 +79,8 @@ pub struct Row {
     /// The render's `--stats` JSON.
     pub stats: Value,
     pub errors: Errors,
+    /// Render time, bytes and errors over the rounds: their least and most.
+    pub spread: Spread,
     /// The image's file name in the output directory.
     pub image: String,
     /// The render's arguments as a shell would take them (after `dray render`, or `dray
@@ -168,18 +172,9 @@ pub fn header(keys: &[String]) -> Vec<String> {
     h.extend(TRAFFIC_COLUMNS.map(|(c, _)| c.to_string()));
     h.extend(RAY_CACHE_COLUMNS.map(String::from));
     h.extend(PHM_COLUMNS.map(|(c, _)| c.to_string()));
-    h.extend(
-        [
-            "rmse",
-            "rmse_linear",
-            "psnr",
-            "flip",
-            "pareto",
-            "image",
-            "args",
-        ]
-        .map(String::from),
-    );
+    h.extend(["rmse", "rmse_linear", "psnr", "flip"].map(String::from));
+    h.extend(spread::COLUMNS.map(String::from));
+    h.extend(["pareto", "image", "args"].map(String::from));
     h
 }
 
@@ -218,6 +213,7 @@ pub fn csv(keys: &[String], rows: &[Row], front: &[bool]) -> String {
         c.push(num(r.errors.rmse_linear));
         c.push(num(r.errors.psnr));
         c.push(num(r.errors.flip));
+        c.extend(spread::cells(&r.spread));
         c.push(front.get(i).copied().unwrap_or(false).to_string());
         c.push(r.image.clone());
         c.push(r.args.clone());
@@ -266,7 +262,8 @@ pub fn table(title: &str, base: &str, rows: &[Row], front: &[bool], repeat: u32)
         let _ = writeln!(
             out,
             "Times, CPU seconds and total bytes are medians of {repeat} interleaved rounds; \
-             errors and other counts are the first round's.\n"
+             errors and other counts are the first round's (results.csv gives each setting's \
+             least and most render time, bytes and error over the rounds: `*_min`, `*_max`).\n"
         );
     }
     let _ = writeln!(
@@ -326,6 +323,12 @@ mod tests {
     use serde_json::json;
 
     fn row(setting: &str, wall: f64, stats: Value, rmse: f64) -> Row {
+        let errors = Errors {
+            rmse,
+            rmse_linear: rmse,
+            psnr: super::super::metrics::psnr(rmse),
+            flip: rmse,
+        };
         Row {
             setting: setting.into(),
             values: vec!["0.1".into()],
@@ -334,12 +337,8 @@ mod tests {
             cpu_s: wall * 1.5,
             bytes_total: 1000,
             stats,
-            errors: Errors {
-                rmse,
-                rmse_linear: rmse,
-                psnr: super::super::metrics::psnr(rmse),
-                flip: rmse,
-            },
+            spread: Spread::first(wall / 2.0, 1000, &errors),
+            errors,
             image: format!("{setting}.png"),
             args: "cornell --spp 2".into(),
         }
