@@ -266,7 +266,7 @@ impl Sim {
             .iter()
             .map(|w| w.endpoint.worker_id.clone())
             .collect();
-        let entry = JobTable::new().insert(JobSpec {
+        let record = JobTable::new().insert(JobSpec {
             scene: "sim".into(),
             width: WIDTH,
             height: HEIGHT,
@@ -277,7 +277,7 @@ impl Sim {
             schedule: "dynamic".into(),
             ..Default::default()
         });
-        let job = entry.id.clone();
+        let job = record.id.clone();
         let sched = JobSchedule::new(&job, Schedule::Dynamic { replicate: false }, d, &workers);
         let setup = JobSetup {
             job_id: job.clone(),
@@ -285,7 +285,7 @@ impl Sim {
             ..Default::default()
         };
         let mut running = RunningJob::new(JobPlan {
-            entry,
+            record,
             setup,
             sched,
             tiles: image_tiles(WIDTH, HEIGHT),

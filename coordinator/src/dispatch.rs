@@ -56,12 +56,12 @@ use dray_scene::partition::{LayoutSpec, write_scene_package_with};
 use tracing::Instrument;
 
 use crate::caches::geometry::WallGeometry;
-use crate::caches::job::{self as cache_job, JobCaches, OpenAttempt};
 use crate::caches::lifecycle;
 use crate::cluster::Cluster;
 use crate::job::JobPlan;
+use crate::job::JobRecord;
+use crate::job::caches::{self as cache_job, JobCaches, OpenAttempt};
 use crate::job_group::GroupLayouts;
-use crate::jobs::JobEntry;
 use crate::lighting::LoadedEnvMap;
 use crate::membership::Membership;
 use crate::owned_package::{OwnedPackage, remove_package};
@@ -481,26 +481,27 @@ impl Drop for Cutting<'_> {
     }
 }
 
-/// Run job `entry` on the cluster's workers: make the package, then queue the setup and
+/// Run the job whose record (its one writer, handed on to its actor) is `record` on the
+/// cluster's workers: make the package, then queue the setup and
 /// tiles on the workers' streams. Returns at once; the work runs on a task.
 pub fn spawn(
     cluster: Arc<Cluster>,
-    entry: Arc<JobEntry>,
+    record: Arc<JobRecord>,
     planned: Planned,
     resume: Option<Resume>,
 ) {
-    let span = tracing::info_span!("job", id = %entry.id, scene = %entry.spec.scene);
+    let span = tracing::info_span!("job", id = %record.id, scene = %record.spec.scene);
     tokio::spawn(
         async move {
-            match run(&cluster, &entry, planned, resume).await {
+            match run(&cluster, &record, planned, resume).await {
                 Ok(()) => {}
                 // CANCELLED already; the package was stopped part-way and removed.
-                Err(e) if entry.is_cancelled() => {
+                Err(e) if record.is_cancelled() => {
                     tracing::info!("job cancelled before it started: {e}");
                 }
                 Err(e) => {
                     tracing::warn!("job failed before it started: {e}");
-                    entry.finish(JobState::Failed, e.to_string(), None);
+                    record.finish(JobState::Failed, e.to_string(), None);
                 }
             }
         }
@@ -510,7 +511,7 @@ pub fn spawn(
 
 async fn run(
     cluster: &Arc<Cluster>,
-    entry: &Arc<JobEntry>,
+    record: &Arc<JobRecord>,
     planned: Planned,
     resume: Option<Resume>,
 ) -> Result<(), DispatchError> {
@@ -522,20 +523,20 @@ async fn run(
         placement,
         scene,
     } = planned;
-    entry.set_state(JobState::Preparing);
+    record.set_state(JobState::Preparing);
     // Counted until the cut has ended and, on failure, its folder is gone.
     let cutting = Cutting::start(cluster);
-    let dir = cluster.options.work_dir.join(&entry.id);
+    let dir = cluster.options.work_dir.join(&record.id);
     let dir2 = dir.clone();
     let memory = cluster.options.memory_packages.clone();
     let walls = setup_spec.ray_cache.is_some() || setup_spec.phm.is_some();
     // A frame of a job group is cut with its group's layout.
-    let group = entry
+    let group = record
         .group
         .as_ref()
         .map(|g| (cluster.group_layouts.clone(), g.group_id.clone()));
     // CancelJob stops the cut part-way (its files are removed below).
-    let cancel = entry.cancel_flag().clone();
+    let cancel = record.cancel_flag().clone();
     let info = tokio::task::spawn_blocking(move || {
         dray_scene::cancel::with_cancel(&cancel, || {
             make_package(package, &dir2, memory.as_ref(), walls, group)
@@ -555,7 +556,7 @@ async fn run(
     };
     drop(cutting);
     let owned = info.owned.clone();
-    if entry.is_terminal() {
+    if record.is_terminal() {
         // Cancelled while the package was being written.
         remove_package(owned.as_ref());
         return Ok(());
@@ -573,7 +574,7 @@ async fn run(
         remove_package(owned.as_ref());
         return Err(DispatchError::NoWorkers);
     }
-    let mut sched = JobSchedule::new(&entry.id, schedule, info.domains, &workers);
+    let mut sched = JobSchedule::new(&record.id, schedule, info.domains, &workers);
     if let Some(r) = &resume {
         sched.set_first_attempt(r.attempt);
     }
@@ -586,11 +587,11 @@ async fn run(
                 Arc::new(geometry),
                 cluster.options.clients.clone(),
             );
-            match open_first_attempt(cluster, entry, &mut sched, caches).await {
+            match open_first_attempt(cluster, record, &mut sched, caches).await {
                 Ok(c) => {
                     // The statistics from the start (hosts lost while opening), before
                     // any worker hears of the job: GetJob must not show less than they did.
-                    entry.update_stats(|s| c.tally.fill(s));
+                    record.update_stats(|s| c.tally.fill(s));
                     Some(c)
                 }
                 Err(e) => {
@@ -619,7 +620,7 @@ async fn run(
         (e, _) => (e.map(|e| e.file), owned),
     };
     let setup = JobSetup {
-        job_id: entry.id.clone(),
+        job_id: record.id.clone(),
         spec: Some(setup_spec),
         environment: Some(Rgb {
             r: env.x,
@@ -644,7 +645,7 @@ async fn run(
         env_map,
     };
     let mut setup = setup;
-    let mut tiles = image_tiles(entry.spec.width, entry.spec.height);
+    let mut tiles = image_tiles(record.spec.width, record.spec.height);
     // The coarse pass's tiles come after the image's: traced first, they fill the caches
     // before any image ray looks them up (see `crate::job::running`).
     let coarse = setup
@@ -657,15 +658,15 @@ async fn run(
         tiles.extend(coarse_tiles(coarse, first));
     }
     setup.passes_ahead = crate::job::ahead::passes_ahead(
-        entry.passes.total(),
-        u64::from(entry.spec.width) * u64::from(entry.spec.height),
+        record.passes.total(),
+        u64::from(record.spec.width) * u64::from(record.spec.height),
         tiles.len(),
         workers.iter().any(|w| w.budget > 0) || schedule == Schedule::Replicated,
         walled,
-        entry.spec.noise_threshold.is_some(),
+        record.spec.noise_threshold.is_some(),
     );
     let n = workers.len();
-    entry.update_stats(|s| {
+    record.update_stats(|s| {
         s.triangles = prepared.triangles;
         s.domains = info.domains;
         s.workers = n as u32;
@@ -681,7 +682,7 @@ async fn run(
             .map(|o| (o, c.tally.clone(), c.net.clone()))
     });
     let plan = JobPlan {
-        entry: entry.clone(),
+        record: record.clone(),
         setup,
         sched,
         tiles,
@@ -705,14 +706,14 @@ async fn run(
         Err(msg) => {
             remove_package(owned.as_ref());
             if let Some((o, tally, net)) = opened {
-                let closed = lifecycle::close(&entry.id, o.attempt, &o.placement, &net).await;
+                let closed = lifecycle::close(&record.id, o.attempt, &o.placement, &net).await;
                 closed.add_to(&tally);
-                entry.update_stats(|s| tally.fill(s));
+                record.update_stats(|s| tally.fill(s));
             }
-            if entry.is_terminal() {
+            if record.is_terminal() {
                 return Ok(());
             }
-            entry.finish(JobState::Failed, msg, None);
+            record.finish(JobState::Failed, msg, None);
             Ok(())
         }
     }
@@ -724,7 +725,7 @@ async fn run(
 /// there is no host at all.
 async fn open_first_attempt(
     cluster: &Arc<Cluster>,
-    entry: &Arc<JobEntry>,
+    record: &Arc<JobRecord>,
     sched: &mut JobSchedule,
     mut caches: JobCaches,
 ) -> Result<JobCaches, DispatchError> {
@@ -733,7 +734,7 @@ async fn open_first_attempt(
         return Err(DispatchError::NoCacheHost);
     }
     let placement = cache_job::place(&candidates, sched, sched.domains(), &caches);
-    let walls = caches.attempt_walls(&entry.id, sched.attempt());
+    let walls = caches.attempt_walls(&record.id, sched.attempt());
     let opened = lifecycle::open(&walls, placement).await;
     caches
         .tally

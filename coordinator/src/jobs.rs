@@ -4,375 +4,32 @@
 //!
 //! With workers registered, a job runs on them (`dispatch`, `job`). With none, it runs
 //! in this process (`crate::local_render`). Either way its record is here, and the
-//! table knows nothing of where jobs run.
+//! table knows nothing of where jobs run. Each job is a
+//! [`JobRecord`](crate::job::record::JobRecord), its one writer, which the table hands
+//! to what runs the job, and the read-only [`JobEntry`] it publishes to, which the table
+//! hands to readers.
 
-use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
-use std::time::{Duration, Instant, SystemTime};
+use std::time::{Duration, SystemTime};
 
 use dray_core::display::Display;
 use dray_core::exposure::Exposure;
 use dray_core::film::Film;
 use dray_core::tiles::TileGrid;
 use dray_core::tonemap::Tonemap;
-use dray_proto::v1::{Job, JobEventKind, JobProgress, JobSpec, JobState, JobStats};
+use dray_proto::v1::{JobEventKind, JobSpec, JobState};
 
+pub use crate::job::entry::JobEntry;
+use crate::job::record::{JobRecord, JobStatus, terminal};
 use crate::store::{JobStore, Op, StoredJob, to_millis};
-
-/// One job.
-pub struct JobEntry {
-    /// Opaque id.
-    pub id: String,
-    /// The spec with defaults filled in.
-    pub spec: JobSpec,
-    /// When SubmitJob accepted it.
-    pub submitted_at: SystemTime,
-    /// Tiles in the image.
-    pub tiles_total: u32,
-    /// Shared with the scene load, which stops when it is set.
-    cancel: Arc<AtomicBool>,
-    tiles_done: AtomicU32,
-    rays_in_flight: AtomicU64,
-    inner: Mutex<Inner>,
-    /// Woken when the job reaches a terminal state, so watchers see the end at once
-    /// rather than at their next interval.
-    ended: tokio::sync::Notify,
-    /// Where its changes are kept across restarts (None: in memory only).
-    store: Option<Arc<JobStore>>,
-    /// Its progressive passes and the image after the last complete one.
-    pub passes: crate::pass_images::PassImages,
-    /// Its images as last encoded, shared by every caller (`image_memo`).
-    pub images: crate::image_memo::ImageMemo,
-    /// The job group it is a frame of (read from its id: `crate::job_group`).
-    pub group: Option<dray_proto::v1::JobGroupMember>,
-    /// What happened to it, its lineage and attempts (`job_events`).
-    pub log: crate::job_events::EventLog,
-}
-
-struct Inner {
-    state: JobState,
-    started: Option<Instant>,
-    elapsed_final: Option<Duration>,
-    finished_at: Option<SystemTime>,
-    error: String,
-    stats: JobStats,
-    film: Option<Arc<Film>>,
-    /// Why the image is gone, once the retention policy dropped it.
-    dropped: Option<String>,
-    /// The image in the job store, for a job that finished before this coordinator
-    /// started (its film is read from there when asked for).
-    image_file: Option<PathBuf>,
-    /// The spec as it runs, once the scene is prepared: on workers the domain count and
-    /// layout come from the scene (or its package), so GetJob says what ran.
-    resolved: Option<JobSpec>,
-}
-
-fn terminal(s: JobState) -> bool {
-    matches!(
-        s,
-        JobState::Succeeded | JobState::Failed | JobState::Cancelled
-    )
-}
-
-impl JobEntry {
-    fn lock(&self) -> MutexGuard<'_, Inner> {
-        dray_sync::lock(&self.inner)
-    }
-
-    /// Current state.
-    pub fn state(&self) -> JobState {
-        self.lock().state
-    }
-
-    /// The finished film, once the job SUCCEEDED.
-    pub fn film(&self) -> Option<Arc<Film>> {
-        self.lock().film.clone()
-    }
-
-    /// Why the finished job's image was dropped, if it was ([`Retention`]).
-    pub fn dropped(&self) -> Option<String> {
-        self.lock().dropped.clone()
-    }
-
-    /// The finished image's file in the job store, for a job that finished before this
-    /// coordinator started (see [`crate::store::image_file::read`]).
-    pub fn image_file(&self) -> Option<PathBuf> {
-        self.lock().image_file.clone()
-    }
-
-    /// The job store this job is kept in, if any.
-    pub fn store(&self) -> Option<&Arc<JobStore>> {
-        self.store.as_ref()
-    }
-
-    /// Progress as WatchJob and GetJob report it.
-    pub fn progress(&self) -> JobProgress {
-        let g = self.lock();
-        let done = self.tiles_done.load(Ordering::Relaxed);
-        let elapsed = g
-            .elapsed_final
-            .or_else(|| g.started.map(|s| s.elapsed()))
-            .unwrap_or_default();
-        // Passes differ in size: the ETA is from the fraction of samples traced.
-        let fraction = self.passes.fraction(done, self.tiles_total);
-        let eta = (g.state == JobState::Running && fraction > 0.0 && fraction < 1.0)
-            .then(|| elapsed.mul_f64((1.0 - fraction) / fraction));
-        let passes_done = if g.state == JobState::Succeeded {
-            self.passes.total()
-        } else {
-            self.passes.done()
-        };
-        let rays = g.stats.rays.unwrap_or_default();
-        JobProgress {
-            job_id: self.id.clone(),
-            state: g.state as i32,
-            tiles_done: done,
-            tiles_total: self.tiles_total,
-            rays_traced: crate::metrics::total_rays(&rays),
-            rays_in_flight: if terminal(g.state) {
-                0
-            } else {
-                self.rays_in_flight.load(Ordering::Relaxed)
-            },
-            elapsed: prost_types::Duration::try_from(elapsed).ok(),
-            eta: eta.and_then(|d| prost_types::Duration::try_from(d).ok()),
-            error: g.error.clone(),
-            stats: None,
-            samples_done: self.passes.samples_after(passes_done),
-            passes_done,
-            passes_total: self.passes.total(),
-        }
-    }
-
-    /// The job as GetJob, ListJobs and CancelJob report it.
-    pub fn to_job(&self) -> Job {
-        let progress = self.progress();
-        let g = self.lock();
-        Job {
-            job_id: self.id.clone(),
-            spec: Some(g.resolved.clone().unwrap_or_else(|| self.spec.clone())),
-            progress: Some(progress),
-            stats: Some(g.stats.clone()),
-            submitted_at: Some(self.submitted_at.into()),
-            finished_at: g.finished_at.map(Into::into),
-            group: self.group.clone(),
-            retried_from: self.log.retried_from(),
-            attempts: self.log.attempts(),
-            events: self.log.events(),
-        }
-    }
-
-    /// Record an event in the job's log (and its store).
-    pub(crate) fn note(&self, kind: JobEventKind, message: String) {
-        self.log
-            .record(&self.id, self.store.as_ref(), kind, message);
-    }
-
-    /// Hold a QUEUED job (`paused`) or put a PAUSED one back in the queue: the state
-    /// it had when the move is refused. The caller checks that the job waits in the
-    /// deal queue.
-    pub(crate) fn hold(&self, paused: bool) -> Result<(), JobState> {
-        let (from, to) = if paused {
-            (JobState::Queued, JobState::Paused)
-        } else {
-            (JobState::Paused, JobState::Queued)
-        };
-        let mut g = self.lock();
-        if g.state != from {
-            return Err(g.state);
-        }
-        g.state = to;
-        drop(g);
-        if let Some(store) = &self.store {
-            store.post(Op::State {
-                id: self.id.clone(),
-                state: to,
-            });
-        }
-        Ok(())
-    }
-
-    /// Ask the job to stop. A queued or running job becomes CANCELLED at once (a running
-    /// render stops before its next tile); a finished job keeps its state.
-    pub fn cancel(&self) {
-        self.cancel.store(true, Ordering::Relaxed);
-        self.finish(JobState::Cancelled, String::new(), None);
-    }
-
-    /// Record the spec as it runs (see [`JobEntry::to_job`]).
-    pub(crate) fn resolve(&self, spec: JobSpec) {
-        if let Some(store) = &self.store {
-            store.post(Op::Resolved {
-                id: self.id.clone(),
-                spec: spec.clone(),
-            });
-        }
-        self.lock().resolved = Some(spec);
-    }
-
-    /// Whether CancelJob (or the server's shutdown) asked the job to stop.
-    pub fn is_cancelled(&self) -> bool {
-        self.cancel.load(Ordering::Relaxed)
-    }
-
-    /// The flag [`JobEntry::cancel`] sets, for work that runs apart from the job (its
-    /// scene load) and stops when it is set.
-    pub(crate) fn cancel_flag(&self) -> &Arc<AtomicBool> {
-        &self.cancel
-    }
-
-    /// Set the number of committed tiles (distributed jobs count them in their actor).
-    pub(crate) fn set_tiles_done(&self, done: u32) {
-        self.tiles_done.store(done, Ordering::Relaxed);
-    }
-
-    /// Raise the number of committed tiles to `done` if it is below (the in-process
-    /// render's progress, reported from several threads).
-    pub(crate) fn raise_tiles_done(&self, done: u32) {
-        self.tiles_done.fetch_max(done, Ordering::Relaxed);
-    }
-
-    /// Set the rays waiting at workers (from their latest queue reports).
-    pub(crate) fn set_rays_in_flight(&self, n: u64) {
-        self.rays_in_flight.store(n, Ordering::Relaxed);
-    }
-
-    /// Update the statistics in place.
-    pub(crate) fn update_stats(&self, f: impl FnOnce(&mut JobStats)) {
-        f(&mut self.lock().stats);
-    }
-
-    /// Whether the job reached SUCCEEDED, FAILED or CANCELLED.
-    pub fn is_terminal(&self) -> bool {
-        terminal(self.lock().state)
-    }
-
-    pub(crate) fn set_state(&self, s: JobState) {
-        let mut g = self.lock();
-        if !terminal(g.state) {
-            if g.state != s
-                && let Some(store) = &self.store
-            {
-                store.post(Op::State {
-                    id: self.id.clone(),
-                    state: s,
-                });
-            }
-            let started = s == JobState::Running && g.state != JobState::Running;
-            g.state = s;
-            if g.started.is_none() {
-                g.started = Some(Instant::now());
-            }
-            drop(g);
-            if started {
-                let n = self.log.attempts() + 1;
-                self.note(JobEventKind::Started, format!("started: attempt {n}"));
-            }
-        }
-    }
-
-    /// Move to a terminal state unless the job is already in one. With a job store, a
-    /// job succeeds only once its image is on disk: one whose image cannot be written
-    /// (a full disk) ends FAILED naming the write (issue 45, item 7: it was SUCCEEDED
-    /// with no image, and "not found" after a restart), as a render farm fails a frame
-    /// whose output cannot be saved: the render is lost either way, and a client told
-    /// SUCCEEDED would fetch nothing.
-    pub(crate) fn finish(&self, s: JobState, error: String, film: Option<Film>) {
-        let (s, error, film, image) = match (s, film, &self.store) {
-            (JobState::Succeeded, Some(film), Some(store)) if !self.is_terminal() => {
-                match blocking(|| store.keep_image(&self.id, &film)) {
-                    Ok(()) => (s, error, Some(film), true),
-                    Err(e) => {
-                        tracing::error!(job = %self.id, "cannot keep the finished image: {e}");
-                        (
-                            JobState::Failed,
-                            format!(
-                                "the render finished but its image could not be written to \
-                                 the state directory ({e}); free space in the --state-dir \
-                                 and submit the job again"
-                            ),
-                            None,
-                            false,
-                        )
-                    }
-                }
-            }
-            (s, film, _) => (s, error, film, false),
-        };
-        let mut g = self.lock();
-        if terminal(g.state) {
-            if image && let Some(store) = &self.store {
-                // A cancel came while the image was written: it is nobody's.
-                store.forget_image(&self.id);
-            }
-            return;
-        }
-        g.state = s;
-        let error_copy = error.clone();
-        g.error = error;
-        g.film = film.map(Arc::new);
-        let elapsed = g.started.map(|t| t.elapsed()).unwrap_or_default();
-        g.elapsed_final = Some(elapsed);
-        let now = SystemTime::now();
-        g.finished_at = Some(now);
-        if let Some(store) = &self.store {
-            store.post(Op::Finish {
-                id: self.id.clone(),
-                state: s,
-                error: g.error.clone(),
-                finished_ms: to_millis(now),
-                elapsed_ms: i64::try_from(elapsed.as_millis()).unwrap_or(i64::MAX),
-                stats: Box::new(g.stats.clone()),
-                image,
-            });
-        }
-        drop(g);
-        let (kind, message) = match s {
-            JobState::Succeeded => (JobEventKind::Succeeded, "succeeded".to_string()),
-            JobState::Cancelled => (JobEventKind::Cancelled, "cancelled".to_string()),
-            _ => (JobEventKind::Failed, format!("failed: {error_copy}")),
-        };
-        self.note(kind, message);
-        if s == JobState::Succeeded {
-            self.passes.complete();
-        } else {
-            self.passes.drop_image();
-        }
-        crate::metrics::otel::job_ended(s, elapsed);
-        self.ended.notify_waiters();
-    }
-
-    /// Completes once the job is in a terminal state (at once if it already is).
-    pub async fn wait_ended(&self) {
-        loop {
-            let notified = self.ended.notified();
-            tokio::pin!(notified);
-            notified.as_mut().enable();
-            if terminal(self.lock().state) {
-                return;
-            }
-            notified.await;
-        }
-    }
-}
-
-/// Run `f`, which blocks (a file write), where blocking is allowed: on a worker of the
-/// multi-threaded runtime through `block_in_place` (its other tasks move to other
-/// workers meanwhile); elsewhere (a blocking thread, a current-thread runtime, no
-/// runtime) as it is.
-fn blocking<T>(f: impl FnOnce() -> T) -> T {
-    match tokio::runtime::Handle::try_current() {
-        Ok(h) if h.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread => {
-            tokio::task::block_in_place(f)
-        }
-        _ => f(),
-    }
-}
 
 /// All jobs the server knows, and the gate that runs them one at a time.
 pub struct JobTable {
-    jobs: Mutex<Vec<Arc<JobEntry>>>,
+    /// Every job's record: the table hands out their entries to readers, and the
+    /// records themselves to what runs a job or asks it to stop, pause or drop its
+    /// image.
+    jobs: Mutex<Vec<Arc<JobRecord>>>,
     next_id: AtomicU64,
     /// Makes this coordinator's job ids differ from an earlier run's: a worker that
     /// outlived a coordinator restart must not take a new `job-1` for the old one.
@@ -448,7 +105,7 @@ impl JobTable {
     /// jobs come back as they ended, with their images in the store; the others come
     /// back QUEUED and are returned, in order, with what they had stored, for the caller
     /// to run again.
-    pub fn restore(&self, stored: Vec<StoredJob>) -> Vec<(Arc<JobEntry>, StoredJob)> {
+    pub fn restore(&self, stored: Vec<StoredJob>) -> Vec<(Arc<JobRecord>, StoredJob)> {
         let mut resumable = Vec::new();
         for j in stored {
             let ended = terminal(j.state);
@@ -458,41 +115,34 @@ impl JobTable {
                 JobState::Paused => JobState::Paused,
                 _ => JobState::Queued,
             };
-            let entry = Arc::new(JobEntry {
-                group: crate::job_group::member_of(&j.id),
-                id: j.id.clone(),
-                tiles_total: TileGrid::image(j.spec.width, j.spec.height).count(),
-                spec: j.spec.clone(),
-                submitted_at: j.submitted_at,
-                cancel: Arc::new(AtomicBool::new(false)),
-                tiles_done: AtomicU32::new(0),
-                rays_in_flight: AtomicU64::new(0),
-                inner: Mutex::new(Inner {
-                    state,
-                    started: None,
-                    elapsed_final: ended.then(|| j.elapsed.unwrap_or_default()),
-                    finished_at: j.finished_at,
-                    error: j.error.clone(),
-                    stats: j.stats.clone(),
-                    film: None,
-                    dropped: j.dropped.clone(),
-                    image_file: j.image.clone(),
-                    resolved: j.resolved.clone(),
-                }),
-                ended: tokio::sync::Notify::new(),
-                store: self.store.get().cloned(),
-                passes: crate::pass_images::PassImages::new(&j.spec.passes, j.spec.spp),
-                images: Default::default(),
-                log: crate::job_events::EventLog::restored(
-                    j.events.clone(),
-                    j.retried_from.clone(),
-                ),
-            });
-            if ended {
-                if state == JobState::Succeeded {
-                    entry.set_tiles_done(entry.tiles_total);
-                }
-            } else {
+            let tiles_total = TileGrid::image(j.spec.width, j.spec.height).count();
+            let status = JobStatus {
+                state,
+                elapsed_final: ended.then(|| j.elapsed.unwrap_or_default()),
+                finished_at: j.finished_at,
+                error: j.error.clone(),
+                stats: j.stats.clone(),
+                dropped: j.dropped.clone(),
+                image_file: j.image.clone(),
+                resolved: j.resolved.clone(),
+                tiles_done: if state == JobState::Succeeded {
+                    tiles_total
+                } else {
+                    0
+                },
+                ..JobStatus::default()
+            };
+            let log =
+                crate::job_events::EventLog::restored(j.events.clone(), j.retried_from.clone());
+            let entry = Arc::new(JobRecord::new(
+                j.id.clone(),
+                j.spec.clone(),
+                j.submitted_at,
+                log,
+                status,
+                self.store.get().cloned(),
+            ));
+            if !ended {
                 entry.note(
                     JobEventKind::Restored,
                     format!(
@@ -506,7 +156,7 @@ impl JobTable {
                     ),
                 );
                 if j.state != state
-                    && let Some(store) = &entry.store
+                    && let Some(store) = entry.store()
                 {
                     store.post(Op::State {
                         id: j.id.clone(),
@@ -542,16 +192,20 @@ impl JobTable {
         let mut kept_bytes = 0u64;
         let budget = self.retention.max_bytes.unwrap_or(u64::MAX);
         for j in self.jobs().iter().rev() {
-            let mut g = j.lock();
-            if !terminal(g.state) || (g.film.is_none() && g.image_file.is_none()) {
+            if !j.is_terminal() {
+                continue;
+            }
+            let film = j.film();
+            if film.is_none() && j.image_file().is_none() {
                 continue;
             }
             // A stored image holds exactly the sums the film would.
-            let bytes = g.film.as_ref().map_or_else(
+            let bytes = film.as_ref().map_or_else(
                 || u64::from(j.spec.width) * u64::from(j.spec.height) * 24,
                 |f| f.heap_bytes(),
             );
-            let expired = match (self.retention.ttl, g.finished_at) {
+            let finished_at = j.finished_at();
+            let expired = match (self.retention.ttl, finished_at) {
                 (Some(ttl), Some(at)) => now.duration_since(at).is_ok_and(|age| age > ttl),
                 _ => false,
             };
@@ -567,19 +221,11 @@ impl JobTable {
                 kept_bytes = kept_bytes.saturating_add(bytes);
                 continue;
             };
-            g.film = None;
-            g.image_file = None;
-            g.dropped = Some(why.to_string());
-            if let Some(store) = &j.store {
-                store.post(Op::Dropped {
-                    id: j.id.clone(),
-                    why: why.to_string(),
-                });
-            }
+            j.drop_image(why);
         }
     }
 
-    fn jobs(&self) -> MutexGuard<'_, Vec<Arc<JobEntry>>> {
+    fn jobs(&self) -> MutexGuard<'_, Vec<Arc<JobRecord>>> {
         dray_sync::lock(&self.jobs)
     }
 
@@ -613,71 +259,71 @@ impl JobTable {
         crate::job_group::group_id(n, self.nonce)
     }
 
-    /// Add a job QUEUED, without starting anything: the caller runs it (in process with
-    /// [`JobTable::submit`], or on workers through the dispatcher).
-    pub fn insert(&self, spec: JobSpec) -> Arc<JobEntry> {
+    /// Add a job QUEUED, without starting anything: the caller runs it with the record
+    /// returned, the job's one writer (in process, or on workers through the
+    /// dispatcher).
+    pub fn insert(&self, spec: JobSpec) -> Arc<JobRecord> {
         self.insert_as(spec, None)
     }
 
     /// [`JobTable::insert`] under `id` when given (a frame of a job group, whose id
     /// [`JobTable::new_group_id`] and `crate::job_group::frame_id` made), else a new id.
-    pub fn insert_as(&self, spec: JobSpec, id: Option<String>) -> Arc<JobEntry> {
+    pub fn insert_as(&self, spec: JobSpec, id: Option<String>) -> Arc<JobRecord> {
         self.sweep();
         let id = id.unwrap_or_else(|| {
             let n = self.next_id.fetch_add(1, Ordering::Relaxed);
             format!("job-{n}-{:08x}", self.nonce)
         });
-        let entry = Arc::new(JobEntry {
-            group: crate::job_group::member_of(&id),
+        let record = Arc::new(JobRecord::new(
             id,
-            tiles_total: TileGrid::image(spec.width, spec.height).count(),
-            submitted_at: SystemTime::now(),
-            cancel: Arc::new(AtomicBool::new(false)),
-            tiles_done: AtomicU32::new(0),
-            rays_in_flight: AtomicU64::new(0),
-            inner: Mutex::new(Inner {
-                state: JobState::Queued,
-                started: None,
-                elapsed_final: None,
-                finished_at: None,
-                error: String::new(),
-                stats: JobStats::default(),
-                film: None,
-                dropped: None,
-                image_file: None,
-                resolved: None,
-            }),
-            ended: tokio::sync::Notify::new(),
-            store: self.store.get().cloned(),
-            passes: crate::pass_images::PassImages::new(&spec.passes, spec.spp),
-            images: Default::default(),
-            log: Default::default(),
             spec,
-        });
-        if let Some(store) = &entry.store {
+            SystemTime::now(),
+            Default::default(),
+            JobStatus::queued(),
+            self.store.get().cloned(),
+        ));
+        if let Some(store) = record.store() {
             store.post(Op::Insert {
-                id: entry.id.clone(),
-                spec: entry.spec.clone(),
-                submitted_ms: to_millis(entry.submitted_at),
+                id: record.id.clone(),
+                spec: record.spec.clone(),
+                submitted_ms: to_millis(record.submitted_at),
             });
         }
-        self.jobs().push(entry.clone());
-        entry.note(
+        self.jobs().push(record.clone());
+        record.note(
             JobEventKind::Queued,
-            format!("queued at priority {}", entry.spec.priority),
+            format!("queued at priority {}", record.spec.priority),
         );
         crate::metrics::otel::job_accepted();
-        entry
+        record
     }
 
-    /// The job with id `id`.
+    /// The job with id `id`, to read.
     pub fn get(&self, id: &str) -> Option<Arc<JobEntry>> {
+        self.record(id).map(|r| r.entry().clone())
+    }
+
+    /// The record of job `id`, to change it from outside what runs it: cancel, pause or
+    /// resume it, note an operator's action.
+    pub(crate) fn record(&self, id: &str) -> Option<Arc<JobRecord>> {
         self.jobs().iter().find(|j| j.id == id).cloned()
+    }
+
+    /// Set every job's cancel flag, leaving its state as it is: scene loads and package
+    /// cuts stop at their next look at it (a stopping coordinator).
+    pub(crate) fn stop_preparations(&self) {
+        for r in self.jobs().iter() {
+            r.cancel_flag().store(true, Ordering::SeqCst);
+        }
     }
 
     /// All jobs, newest first.
     pub fn list(&self) -> Vec<Arc<JobEntry>> {
-        self.jobs().iter().rev().cloned().collect()
+        self.jobs()
+            .iter()
+            .rev()
+            .map(|r| r.entry().clone())
+            .collect()
     }
 }
 

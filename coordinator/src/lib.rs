@@ -26,7 +26,8 @@
 //!   exact fixed-point film, attempts (restarting a job's unfinished tiles without a lost
 //!   worker), round pacing, cache walls, releases.
 //! - [`scheduler`]: the schedules as pure policies, each job's scheduling state,
-//!   versioned routing tables.
+//!   versioned routing tables; [`ownership`]: who owns which domain, which the
+//!   scheduler computes and cache placement reads.
 //! - [`metrics`]: the workers' scheduling counters summed into JobStats.
 //! - [`pass_images`]: a job's progressive passes and the image after the last one.
 //! - [`worker_list`]: ListWorkers, from the membership and the running jobs' views.
@@ -61,6 +62,7 @@ pub mod membership;
 pub mod metrics;
 pub mod operator;
 pub mod owned_package;
+pub mod ownership;
 pub mod package_service;
 pub mod pass_images;
 pub mod priority;

@@ -7,9 +7,9 @@
 //! before each tile. The image is the same, bit for bit, as `dray render` with the same
 //! settings.
 //!
-//! The job's record ([`crate::jobs::JobEntry`]) is where it publishes its progress, as
-//! a job on workers publishes from its actor; the record does not know which of the two
-//! runs it.
+//! The job's record ([`crate::job::JobRecord`], handed here by the submission path) is
+//! where it publishes its progress, as a job on workers publishes from its actor; the
+//! record does not know which of the two runs it.
 
 use std::sync::Arc;
 
@@ -22,7 +22,7 @@ use dray_core::trace::Trace;
 use dray_proto::v1::{JobEventKind, JobState, RayCounts};
 use dray_scene::partition::LayoutSpec;
 
-use crate::jobs::JobEntry;
+use crate::job::JobRecord;
 use crate::priority::DealQueue;
 use crate::validate::Prepared;
 
@@ -50,10 +50,10 @@ impl LocalRenderer {
 
     /// Start the in-process render of `entry`, a job already in the table whose scene
     /// has been prepared. Must be called within a tokio runtime.
-    pub fn start(&self, entry: &Arc<JobEntry>, prepared: Prepared) {
+    pub fn start(&self, entry: &Arc<JobRecord>, prepared: Prepared) {
         let (queue, threads, job) = (self.queue.clone(), self.threads, entry.clone());
         // Waiting for the slot is QUEUED (a scene file was loaded PREPARING).
-        let waiting = queue.join(&job);
+        let waiting = queue.join(job.entry());
         if job.state() == JobState::Preparing {
             job.set_state(JobState::Queued);
         }
@@ -75,7 +75,7 @@ impl LocalRenderer {
 }
 
 /// Build the geometry, trace the image, and record the outcome. Blocking.
-fn run(job: &JobEntry, p: Prepared, threads: usize) {
+fn run(job: &JobRecord, p: Prepared, threads: usize) {
     let _span = tracing::info_span!("job", id = %job.id, scene = %job.spec.scene).entered();
     let geometry = match build_geometry(&p.scene, job.spec.domains, &job.spec.layout) {
         Ok(g) => g,
@@ -101,7 +101,7 @@ fn run(job: &JobEntry, p: Prepared, threads: usize) {
     let on_pass = |film: &Film, k: usize| {
         // The last pass's image is the job's final one (`finish`).
         if k + 1 < passes.len() {
-            job.passes.publish(Arc::new(film.clone()), k as u32 + 1);
+            job.publish_pass(Arc::new(film.clone()), k as u32 + 1);
             job.note(
                 JobEventKind::PassFinished,
                 format!("pass {} of {} finished", k + 1, passes.len()),

@@ -18,7 +18,7 @@ impl Coordinator {
         r: RetryJobRequest,
         requeue: bool,
     ) -> Result<RetryJobResponse, Status> {
-        let old = self.job(&r.job_id)?;
+        let old = self.record(&r.job_id)?;
         let state = old.state();
         let call = if requeue { "RequeueJob" } else { "RetryJob" };
         match state {
@@ -49,8 +49,8 @@ impl Coordinator {
             spec.priority = p;
         }
         let id = self.submit(spec, None).await?;
-        let new = self.job(&id)?;
-        new.log.set_retried_from(&new.id, new.store(), &old.id);
+        let new = self.record(&id)?;
+        new.set_retried_from(&old.id);
         let verb = if requeue { "requeued" } else { "retried" };
         new.note(
             JobEventKind::Retried,
@@ -67,7 +67,7 @@ impl Coordinator {
     /// paused (the coordinator's own, or the cluster's under `--max-running-jobs`; without
     /// that limit jobs on workers start at once), and a started job is not held.
     pub(crate) fn hold_job(&self, id: &str, paused: bool) -> Result<PauseJobResponse, Status> {
-        let job = self.job(id)?;
+        let job = self.record(id)?;
         let held = if paused {
             self.queues()
                 .find(|q| q.is_waiting(&job.id))

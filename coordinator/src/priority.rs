@@ -18,6 +18,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use dray_proto::v1::JobState;
 use tokio::sync::Notify;
 
+use crate::job::JobRecord;
 use crate::jobs::JobEntry;
 
 /// Jobs waiting for one of `slots` slots.
@@ -85,7 +86,7 @@ impl DealQueue {
 
     /// Pause (`paused`) or resume `job` if it waits here: under the queue's lock, so a
     /// job is never paused just as it is dealt. The job's state when it cannot be.
-    pub fn hold(&self, job: &JobEntry, paused: bool) -> Result<(), JobState> {
+    pub fn hold(&self, job: &JobRecord, paused: bool) -> Result<(), JobState> {
         let g = self.lock();
         if !g.waiting.iter().any(|w| w.job.id == job.id) {
             return Err(job.state());
@@ -232,7 +233,7 @@ mod tests {
         }
     }
 
-    fn ids(jobs: &[&Arc<JobEntry>]) -> Vec<String> {
+    fn ids(jobs: &[&Arc<JobRecord>]) -> Vec<String> {
         jobs.iter().map(|j| j.id.clone()).collect()
     }
 
@@ -244,7 +245,7 @@ mod tests {
         let table = JobTable::new();
         let q = Arc::new(DealQueue::new("cluster", 2));
         let [a, b, c, d] = [0, 0, 0, 5].map(|p| table.insert(spec(p)));
-        let [wa, wb, wc, wd] = [&a, &b, &c, &d].map(|j| q.join(j));
+        let [wa, wb, wc, wd] = [&a, &b, &c, &d].map(|j| q.join(j.entry()));
         assert_eq!(q.order(), ids(&[&d, &a, &b, &c]));
         let sd = wd.turn().await.expect("the priority-5 job is dealt first");
         let sa = wa.turn().await.expect("then the first come");
@@ -268,11 +269,11 @@ mod tests {
         let e = table.insert(spec(0));
         let f = table.insert(spec(0));
         let (s1, s2) = (
-            q.join(&e).turn().await.expect("slot 1"),
-            q.join(&f).turn().await.expect("slot 2"),
+            q.join(e.entry()).turn().await.expect("slot 1"),
+            q.join(f.entry()).turn().await.expect("slot 2"),
         );
         let g = table.insert(spec(9));
-        let wg = q.join(&g);
+        let wg = q.join(g.entry());
         g.cancel();
         assert!(wg.turn().await.is_none());
         assert!(!q.is_waiting(&g.id));

@@ -25,6 +25,7 @@ use tracing::Instrument;
 
 use crate::cluster::{Cluster, ClusterApi, ClusterOptions};
 use crate::dispatch;
+use crate::job::JobRecord;
 use crate::jobs::{JobEntry, JobTable, encode_exr, encode_png, requested_display};
 use crate::package_service::PackageApi;
 use crate::scheduler::Schedule;
@@ -129,9 +130,7 @@ impl Coordinator {
     /// package cut in progress stops at its next look at its job's cancel flag (the
     /// jobs' states are left as they are: the process is ending).
     pub fn stop_preparations(&self) {
-        for e in self.table.list() {
-            e.cancel_flag().store(true, Ordering::SeqCst);
-        }
+        self.table.stop_preparations();
     }
 
     /// For a stopping coordinator: stop every scene load and package cut in progress (as
@@ -242,7 +241,7 @@ impl Coordinator {
     }
 
     /// Validate, prepare and launch a job taken back from the store, as at submission.
-    async fn run_again(&self, entry: &Arc<JobEntry>, job: StoredJob) -> Result<(), String> {
+    async fn run_again(&self, entry: &Arc<JobRecord>, job: StoredJob) -> Result<(), String> {
         let v = validate(&job.spec, &self.limits, &self.scene_root)
             .map_err(|s| s.message().to_string())?;
         // Admission again, under this coordinator's limits (which may be lower than the
@@ -286,7 +285,7 @@ impl Coordinator {
     /// A job just inserted is answered to its client only once the store has it: a
     /// store that cannot write (a full disk) fails the job, named, and SubmitJob says
     /// UNAVAILABLE, instead of accepting a job a restart would lose.
-    async fn confirm_kept(&self, job: &Arc<JobEntry>) -> Result<(), Status> {
+    async fn confirm_kept(&self, job: &Arc<JobRecord>) -> Result<(), Status> {
         if self.table.confirm_kept().await {
             return Ok(());
         }
@@ -450,7 +449,7 @@ impl Coordinator {
     /// cluster's deal queue gives it a slot.
     fn launch(
         &self,
-        job: &Arc<JobEntry>,
+        job: &Arc<JobRecord>,
         v: &crate::validate::Validated,
         prepared: crate::validate::Prepared,
         resume: Option<Resume>,
@@ -469,7 +468,7 @@ impl Coordinator {
             return self.start_now(job, v, prepared, resume);
         };
         // Waiting for a slot is QUEUED, and PauseJob can hold it there.
-        let waiting = queue.join(job);
+        let waiting = queue.join(job.entry());
         if job.state() == JobState::Preparing {
             job.set_state(JobState::Queued);
         }
@@ -503,7 +502,7 @@ impl Coordinator {
     /// meanwhile, it never starts).
     fn start_when_resumed(
         &self,
-        job: &Arc<JobEntry>,
+        job: &Arc<JobRecord>,
         v: &crate::validate::Validated,
         prepared: crate::validate::Prepared,
         resume: Option<Resume>,
@@ -529,7 +528,7 @@ impl Coordinator {
     /// for a cluster slot).
     fn start_now(
         &self,
-        job: &Arc<JobEntry>,
+        job: &Arc<JobRecord>,
         v: &crate::validate::Validated,
         prepared: crate::validate::Prepared,
         resume: Option<Resume>,
@@ -547,7 +546,7 @@ impl Coordinator {
     /// Plan `job` on the registered workers (at least one) and start it.
     fn start_on_workers(
         &self,
-        job: &Arc<JobEntry>,
+        job: &Arc<JobRecord>,
         v: &crate::validate::Validated,
         prepared: crate::validate::Prepared,
         resume: Option<Resume>,
@@ -647,9 +646,15 @@ impl Coordinator {
         std::iter::once(self.local.queue()).chain(self.cluster.queue.as_ref())
     }
 
+    /// Job `id`, to read.
     pub(crate) fn job(&self, id: &str) -> Result<Arc<JobEntry>, Status> {
+        self.record(id).map(|r| r.entry().clone())
+    }
+
+    /// Job `id`'s record, to change it: cancel, pause, resume, note an operator's action.
+    pub(crate) fn record(&self, id: &str) -> Result<Arc<JobRecord>, Status> {
         self.table
-            .get(id)
+            .record(id)
             .ok_or_else(|| Status::not_found(format!("no job {}", bounded(id))))
     }
 }
@@ -786,7 +791,7 @@ impl RenderService for Coordinator {
         &self,
         r: Request<CancelJobRequest>,
     ) -> Result<Response<CancelJobResponse>, Status> {
-        let job = self.job(&r.get_ref().job_id)?;
+        let job = self.record(&r.get_ref().job_id)?;
         // Mark it first: a dispatch racing with this sees the state and does not start.
         job.cancel();
         self.cluster.jobs.cancel(&job.id).await;

@@ -11,7 +11,9 @@
 //!   else round robin), and the re-placement when a host fails.
 //! - [`lifecycle`]: OpenWalls before an attempt's tiles go out (re-placing around hosts
 //!   that fail), CloseWalls when it ends, with deadlines.
-//! - [`job`]: a job's caches as its actor holds them: knobs, boxes, which attempt is open.
+//! - a job's caches as its actor holds them (knobs, boxes, which attempt is open) are
+//!   `crate::job::caches`, with the actor: they read the membership and the job's
+//!   schedule, which read this folder.
 //! - [`geometry`]: the scene and domain boxes OpenWalls carries.
 //! - [`tally`]: the job's `RayCacheStats`, from the hosts and the workers.
 //!
@@ -21,7 +23,6 @@
 
 pub mod geometry;
 pub mod hosts;
-pub mod job;
 pub mod lifecycle;
 pub mod placement;
 pub mod tally;

@@ -27,7 +27,7 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 use dray_core::wall::FACES;
 use dray_proto::v1::CacheHost;
 
-use crate::scheduler::ownership::Ownership;
+use crate::ownership::Ownership;
 
 /// The hosts a job attempt may place cache actors on, and which of them sits beside
 /// which worker.

@@ -174,8 +174,8 @@ impl CacheTally {
     }
 
     /// Write the sums into a job's statistics `s` (`JobStats.ray_cache`, `phm`), as
-    /// `entry.update_stats(|s| tally.fill(s))`: ours is a leaf lock taken under the
-    /// entry's, which orders the writes. Savings are net of what consulting caches and
+    /// `record.update_stats(|s| tally.fill(s))`: ours is a leaf lock taken under the
+    /// job record's, which orders the writes. Savings are net of what consulting caches and
     /// maps cost between processes, from the traffic the job published first (zero
     /// before any worker reported).
     pub fn fill(&self, s: &mut JobStats) {

@@ -31,10 +31,10 @@ use tokio::sync::mpsc;
 use tokio::task::{JoinError, JoinSet};
 use tracing::Instrument;
 
+use super::caches::{self as cache_job, OpenAttempt};
 use super::event::{JobEvent, JobHandle, ReportReply};
 use super::report::{self, Applied, ReportOutcome};
 use super::running::{Release, RunningJob, command};
-use crate::caches::job::{self as cache_job, OpenAttempt};
 use crate::caches::lifecycle::{self, AttemptWalls, Opened};
 use crate::caches::placement::Placement;
 use crate::membership::{LostWorker, Membership, WorkerRecord};
@@ -114,11 +114,11 @@ impl JobActor {
         rx: mpsc::Receiver<JobEvent>,
         started: tokio::sync::oneshot::Sender<Result<(), String>>,
     ) {
-        let span = tracing::info_span!("job", id = %self.job.entry.id);
+        let span = tracing::info_span!("job", id = %self.job.record.id);
         let mut guard = Guard {
-            id: self.job.entry.id.clone(),
+            id: self.job.record.id.clone(),
             registry: self.registry.clone(),
-            entry: self.job.entry.clone(),
+            record: self.job.record.clone(),
             armed: true,
         };
         self.serve(rx, started, &mut guard).instrument(span).await;
@@ -227,7 +227,7 @@ impl JobActor {
             }
             JobEvent::WorkerLost(lost) => self.worker_lost(&lost).await,
             JobEvent::WorkerJoined(w) => {
-                if self.job.takes_joiners() && !self.job.entry.is_terminal() {
+                if self.job.takes_joiners() && !self.job.record.is_terminal() {
                     self.join(&w);
                 }
             }
@@ -323,7 +323,7 @@ impl JobActor {
         job.coarse_done = true;
         if let Some(t0) = job.coarse_started.take() {
             let seconds = t0.elapsed().as_secs_f64();
-            job.entry.update_stats(|s| s.coarse_seconds = seconds);
+            job.record.update_stats(|s| s.coarse_seconds = seconds);
             tracing::info!(seconds, "coarse pass time");
         }
         let coarse = job.ledger.coarse_tiles().len();
@@ -402,7 +402,7 @@ impl JobActor {
     /// worker that joined a dynamic job and was never given a domain held no credit: the
     /// others only get a table without it.
     async fn worker_lost(&mut self, lost: &LostWorker) {
-        if self.job.entry.is_terminal() || !self.job.sched.has_worker(&lost.id) {
+        if self.job.record.is_terminal() || !self.job.sched.has_worker(&lost.id) {
             return;
         }
         if let Some(table) = self.job.sched.remove_unused(&lost.id) {
@@ -456,10 +456,10 @@ impl JobActor {
             workers = self.job.sched.worker_ids().len(),
             "{reason}"
         );
-        let entry = &self.job.entry;
-        entry.note(dray_proto::v1::JobEventKind::WorkerLost, reason.clone());
-        let n = entry.log.attempts() + 1;
-        entry.note(
+        let record = &self.job.record;
+        record.note(dray_proto::v1::JobEventKind::WorkerLost, reason.clone());
+        let n = record.log.attempts() + 1;
+        record.note(
             dray_proto::v1::JobEventKind::Started,
             format!(
                 "started: attempt {n}, on the {} workers left",
@@ -467,7 +467,7 @@ impl JobActor {
             ),
         );
         self.send_all(self.job.releases_of(old, Release::Cancel, &reason));
-        self.job.entry.set_rays_in_flight(0);
+        self.job.record.set_rays_in_flight(0);
         if !self.reopen_caches() {
             self.send_attempt();
         }
@@ -487,7 +487,7 @@ impl JobActor {
         let candidates = cache_job::candidates(&self.membership, &self.job.sched);
         let placement = cache_job::place(&candidates, &self.job.sched, self.job.sched.domains(), c);
         c.pending = Some(attempt);
-        let walls = c.attempt_walls(&self.job.entry.id, attempt);
+        let walls = c.attempt_walls(&self.job.record.id, attempt);
         let tally = c.tally.clone();
         self.walls.spawn(async move {
             if let Some(p) = prev {
@@ -561,7 +561,7 @@ impl JobActor {
     /// ended or moved on to another attempt meanwhile (the caller closes the walls).
     fn caches_opened(&mut self, attempt: u32, placement: Placement) -> bool {
         if self.ending.is_some()
-            || self.job.entry.is_terminal()
+            || self.job.record.is_terminal()
             || self.job.sched.attempt() != attempt
         {
             return false;
@@ -606,7 +606,7 @@ impl JobActor {
         if self.ending.is_some() {
             return;
         }
-        self.registry.remove(&self.job.entry.id);
+        self.registry.remove(&self.job.record.id);
         self.ending = Some(Ending { state, error });
     }
 
@@ -631,7 +631,7 @@ impl JobActor {
             .as_mut()
             .and_then(|c| c.opened.take().map(|o| (o, c.tally.clone(), c.net.clone())));
         if let Some((open, tally, net)) = open {
-            let id = &self.job.entry.id;
+            let id = &self.job.record.id;
             let closed = lifecycle::close(id, open.attempt, &open.placement, &net).await;
             closed.add_to(&tally);
             tally.lose(closed.failed.iter().map(|f| f.host.endpoint.as_str()));
@@ -648,7 +648,7 @@ impl JobActor {
             }
         }
         let RunningJob {
-            entry,
+            record,
             owned_package,
             film,
             stats,
@@ -656,12 +656,12 @@ impl JobActor {
             ..
         } = self.job;
         if let Some(c) = &caches {
-            entry.update_stats(|s| c.tally.fill(s));
+            record.update_stats(|s| c.tally.fill(s));
         }
         let (nonfinite, clamped, clamped_indirect) = stats.film_counts();
         let film = (state == JobState::Succeeded)
             .then(|| film.into_film(nonfinite, clamped, clamped_indirect));
-        entry.finish(state, error, film);
+        record.finish(state, error, film);
         remove_package(owned_package.as_ref());
     }
 }
@@ -700,15 +700,15 @@ async fn sleep_until(at: Option<Instant>) {
 struct Guard {
     id: String,
     registry: Arc<DashMap<String, JobHandle>>,
-    entry: Arc<crate::jobs::JobEntry>,
+    record: Arc<super::record::JobRecord>,
     armed: bool,
 }
 
 impl Drop for Guard {
     fn drop(&mut self) {
         self.registry.remove(&self.id);
-        if self.armed && !self.entry.is_terminal() {
-            self.entry.finish(
+        if self.armed && !self.record.is_terminal() {
+            self.record.finish(
                 JobState::Failed,
                 "internal error: the coordinator stopped serving this job (its actor \
                  stopped; see the coordinator's log)"

@@ -59,7 +59,7 @@ pub fn check(
     job: &RunningJob,
     r: &ReportContributionsRequest,
 ) -> Result<Option<ReportOutcome>, Status> {
-    if job.entry.is_terminal() {
+    if job.record.is_terminal() {
         return Ok(Some(ReportOutcome::Inactive));
     }
     let attempt = job.sched.attempt();
@@ -174,7 +174,7 @@ pub(super) mod tests {
         schedule: Schedule,
     ) -> RunningJob {
         let table = JobTable::new();
-        let entry = table.insert(JobSpec {
+        let record = table.insert(JobSpec {
             width: 2 * tiles,
             height: 2,
             spp,
@@ -187,7 +187,7 @@ pub(super) mod tests {
             },
             budget: 0,
         });
-        let sched = JobSchedule::new(&entry.id, schedule, 2, &workers);
+        let sched = JobSchedule::new(&record.id, schedule, 2, &workers);
         let tile = |i: u32| Tile {
             index: i,
             x0: 2 * i,
@@ -198,7 +198,7 @@ pub(super) mod tests {
             ..Default::default()
         };
         RunningJob::new(JobPlan {
-            entry,
+            record,
             setup,
             sched,
             tiles: (0..tiles).map(tile).collect(),

@@ -25,12 +25,12 @@ use dray_proto::v1::{
     assignment::Command,
 };
 
+use super::caches::JobCaches;
 use super::credit::CreditLedger;
 use super::film::JobFilm;
+use super::record::JobRecord;
 use super::sequences::Sequences;
 use super::statistics::JobStatistics;
-use crate::caches::job::JobCaches;
-use crate::jobs::JobEntry;
 use crate::membership::{Membership, WorkerRecord};
 use crate::owned_package::OwnedPackage;
 use crate::scheduler::Schedule;
@@ -44,8 +44,9 @@ pub const TILES_PER_MESSAGE: usize = 4096;
 
 /// What a job is started with: everything [`crate::dispatch`] prepared.
 pub struct JobPlan {
-    /// The public job record (state, progress, stats, film when done).
-    pub entry: Arc<JobEntry>,
+    /// The job's record (state, progress, stats, film when done), which the actor
+    /// takes over: it publishes what readers of the job's entry see.
+    pub record: Arc<JobRecord>,
     /// What every worker of the job is told to set up; `attempt`, `routing` and
     /// `schedule` are filled from the schedule each time it is sent.
     pub setup: JobSetup,
@@ -69,8 +70,9 @@ pub struct JobPlan {
 
 /// A job running on workers: the state its actor owns.
 pub struct RunningJob {
-    /// The public job record, where the job publishes its progress.
-    pub entry: Arc<JobEntry>,
+    /// The job's record, where the actor publishes its progress (the job's one writer
+    /// while it runs: `super::record`).
+    pub record: Arc<JobRecord>,
     /// Package to delete when the job ends.
     pub owned_package: Option<OwnedPackage>,
     pub(super) setup: JobSetup,
@@ -128,7 +130,7 @@ impl RunningJob {
     /// The state of a job about to start from `plan`.
     pub fn new(plan: JobPlan) -> RunningJob {
         let JobPlan {
-            entry,
+            record,
             setup,
             sched,
             tiles,
@@ -137,19 +139,19 @@ impl RunningJob {
             resume,
             scene,
         } = plan;
-        let (w, h) = (entry.spec.width, entry.spec.height);
+        let (w, h) = (record.spec.width, record.spec.height);
         // Validated when the job was accepted.
-        let aovs = AovSet::parse(&entry.spec.aovs).unwrap_or(AovSet::NONE);
+        let aovs = AovSet::parse(&record.spec.aovs).unwrap_or(AovSet::NONE);
         let stats = JobStatistics::new(sched.worker_ids());
         let ledger = CreditLedger::new(tiles);
         let image_tiles = ledger.image_tiles();
-        let film = JobFilm::new(w, h, aovs, entry.passes.total());
+        let film = JobFilm::new(w, h, aovs, record.passes.total());
         let held = (setup.passes_ahead > 0).then(|| super::ahead::Held::new(image_tiles));
         let backlog =
             (sched.schedule() == Schedule::Replicated).then(super::backlog::Backlog::default);
-        entry.update_stats(|s| s.passes_ahead = setup.passes_ahead);
+        record.update_stats(|s| s.passes_ahead = setup.passes_ahead);
         let mut job = RunningJob {
-            entry,
+            record,
             owned_package,
             setup,
             sched,
@@ -184,7 +186,7 @@ impl RunningJob {
     /// schema 4), is left to be traced again.
     fn keep(&mut self, tiles: Vec<CommittedTile>) {
         let total = self.passes_total();
-        let spp = self.entry.spec.spp;
+        let spp = self.record.spec.spp;
         let mut kept = 0usize;
         for c in tiles {
             let t = c.tile as usize;
@@ -215,7 +217,7 @@ impl RunningJob {
             kept += 1;
         }
         tracing::info!(
-            job = %self.entry.id,
+            job = %self.record.id,
             kept,
             stopped = self.stopped.tiles,
             aovs = self.film.has_aovs(),
@@ -242,10 +244,10 @@ impl RunningJob {
     fn enter_pass(&mut self, pass: usize, image: Arc<Film>) {
         self.pass = pass;
         if pass > 0 {
-            self.entry.passes.publish(image.clone(), pass as u32);
-            self.entry.note(
+            self.record.publish_pass(image.clone(), pass as u32);
+            self.record.note(
                 dray_proto::v1::JobEventKind::PassFinished,
-                format!("pass {pass} of {} finished", self.entry.passes.total()),
+                format!("pass {pass} of {} finished", self.record.passes.total()),
             );
         }
         let last = self.last_pass();
@@ -263,7 +265,7 @@ impl RunningJob {
 
     /// Passes in the job.
     pub(super) fn passes_total(&self) -> u32 {
-        self.entry.passes.total()
+        self.record.passes.total()
     }
 
     /// Whether the image's tiles are in the last pass.
@@ -279,7 +281,7 @@ impl RunningJob {
         self.tile_passes[t] = self.pass as u32 + 1;
         self.maybe_stop(t);
         self.copy_to_next(t);
-        if self.entry.store().is_some() {
+        if self.record.store().is_some() {
             self.committed.push(t);
         }
     }
@@ -289,10 +291,10 @@ impl RunningJob {
     /// ([`super::adaptive`]): its pixels keep the samples they stopped at, and it is
     /// complete in every later pass. Returns whether it stopped.
     fn maybe_stop(&mut self, t: usize) -> bool {
-        let Some(threshold) = self.entry.spec.noise_threshold else {
+        let Some(threshold) = self.record.spec.noise_threshold else {
             return false;
         };
-        let Some(range) = self.entry.passes.ranges().get(self.pass).cloned() else {
+        let Some(range) = self.record.passes.ranges().get(self.pass).cloned() else {
             return false;
         };
         let tile = self.ledger.tile(t);
@@ -302,7 +304,7 @@ impl RunningJob {
         let n = self.film.stop_tile(&tile, range.end);
         self.tile_passes[t] = self.passes_total();
         self.stopped.tiles += 1;
-        self.stopped.samples += n * u64::from(self.entry.spec.spp.saturating_sub(range.end));
+        self.stopped.samples += n * u64::from(self.record.spec.spp.saturating_sub(range.end));
         true
     }
 
@@ -333,7 +335,7 @@ impl RunningJob {
     pub(super) fn pass_markers(&self) -> Option<(Vec<String>, Arc<Assignment>)> {
         self.held.as_ref()?;
         let marker = Arc::new(command(Command::Tiles(TileAssignment {
-            job_id: self.entry.id.clone(),
+            job_id: self.record.id.clone(),
             tiles: Vec::new(),
             pass: self.pass as u32,
         })));
@@ -346,7 +348,7 @@ impl RunningJob {
         if self.committed.is_empty() {
             return;
         }
-        let Some(store) = self.entry.store() else {
+        let Some(store) = self.record.store() else {
             self.committed.clear();
             return;
         };
@@ -359,7 +361,7 @@ impl RunningJob {
             })
             .collect();
         store.post(Op::Tiles {
-            id: self.entry.id.clone(),
+            id: self.record.id.clone(),
             tiles,
         });
     }
@@ -371,9 +373,9 @@ impl RunningJob {
     /// actor's task waits and the runtime's thread serves other jobs meanwhile.
     pub(super) fn persist_attempt(&self) -> impl std::future::Future<Output = ()> + Send + use<> {
         // Taken now: the future holds no borrow of the job (which is not `Sync`).
-        let durable = self.entry.store().cloned().map(|store| {
+        let durable = self.record.store().cloned().map(|store| {
             let op = Op::Attempt {
-                id: self.entry.id.clone(),
+                id: self.record.id.clone(),
                 attempt: self.sched.attempt(),
             };
             (store, op)
@@ -391,7 +393,7 @@ impl RunningJob {
 
     /// The job's id.
     pub fn id(&self) -> &str {
-        &self.entry.id
+        &self.record.id
     }
 
     /// The scheduling state.
@@ -418,8 +420,8 @@ impl RunningJob {
     /// the first worker that is gone. A dynamic job also takes on the workers that
     /// registered after its workers were chosen.
     pub async fn start(&mut self, membership: &Membership) -> Result<(), String> {
-        if self.entry.is_terminal() {
-            return Err(format!("job {} ended before it started", self.entry.id));
+        if self.record.is_terminal() {
+            return Err(format!("job {} ended before it started", self.record.id));
         }
         let workers = self.sched.worker_ids();
         if let Some(w) = workers.iter().find(|w| membership.get(w).is_none()) {
@@ -437,11 +439,11 @@ impl RunningJob {
                 }
                 return Err(format!(
                     "worker {w} left the cluster while job {} was being set up",
-                    self.entry.id
+                    self.record.id
                 ));
             }
         }
-        self.entry.set_state(JobState::Running);
+        self.record.set_state(JobState::Running);
         self.publish();
         if self.takes_joiners() {
             // Workers that registered before the job's actor existed: this is their join.
@@ -455,7 +457,7 @@ impl RunningJob {
     /// Store a queue report; the job's routing version, or None when the job is not
     /// running at the report's attempt (or the worker is not one of its workers).
     pub fn queue_report(&mut self, r: &ReportQueuesRequest) -> Option<u64> {
-        if self.entry.is_terminal()
+        if self.record.is_terminal()
             || r.attempt != self.sched.attempt()
             || !self.sched.has_worker(&r.worker_id)
         {
@@ -464,7 +466,7 @@ impl RunningJob {
         self.sched.record_queues(r);
         // Rays queued at the job's workers, as of each one's latest report: what
         // JobProgress.rays_in_flight shows (rays on the wire are not counted).
-        self.entry.set_rays_in_flight(self.sched.rays_queued());
+        self.record.set_rays_in_flight(self.sched.rays_queued());
         Some(self.sched.version())
     }
 
@@ -477,7 +479,7 @@ impl RunningJob {
         now: Instant,
         interval: Duration,
     ) -> RoundOutcome {
-        if self.entry.is_terminal() {
+        if self.record.is_terminal() {
             return RoundOutcome::Waiting;
         }
         let out = self.sched.round(now, interval);
@@ -583,7 +585,7 @@ impl RunningJob {
     /// ([`super::backlog::Backlog::top_up`]: after its reports complete tiles, or as it
     /// joins); nothing otherwise.
     pub(super) fn top_up(&mut self, worker: &str) -> Vec<(String, Arc<Assignment>)> {
-        if !self.sched.has_worker(worker) || self.entry.is_terminal() {
+        if !self.sched.has_worker(worker) || self.record.is_terminal() {
             return Vec::new();
         }
         let Some(backlog) = self.backlog.as_mut() else {
@@ -604,7 +606,7 @@ impl RunningJob {
             dealt_later = later,
             "tiles dealt on demand"
         );
-        self.entry.update_stats(|s| s.tiles_dealt_later = later);
+        self.record.update_stats(|s| s.tiles_dealt_later = later);
         self.tile_messages(worker, &more)
     }
 
@@ -678,7 +680,7 @@ impl RunningJob {
                 (
                     worker.to_string(),
                     Arc::new(command(Command::Tiles(TileAssignment {
-                        job_id: self.entry.id.clone(),
+                        job_id: self.record.id.clone(),
                         tiles: chunk.to_vec(),
                         pass,
                     }))),
@@ -704,7 +706,7 @@ impl RunningJob {
             .into_iter()
             .map(|w| {
                 let release = JobRelease {
-                    job_id: self.entry.id.clone(),
+                    job_id: self.record.id.clone(),
                     reason: reason.to_string(),
                     attempt,
                 };
@@ -730,7 +732,7 @@ impl RunningJob {
         } else {
             image_tiles..self.ledger.tile_count()
         };
-        let samples = self.entry.passes.ranges().get(self.pass).cloned();
+        let samples = self.record.passes.ranges().get(self.pass).cloned();
         range
             .filter(|&t| !self.tile_complete(t))
             .map(|t| match &samples {
@@ -787,12 +789,11 @@ impl RunningJob {
         again.len()
     }
 
-    /// Copy counters and scheduling figures into the public job record: O(1) in the
+    /// Publish counters and scheduling figures through the job's record: O(1) in the
     /// number of workers, so a job can publish with every report. The per-worker detail
     /// is left for [`RunningJob::publish_detail`] (the actor runs it a little later).
     pub fn publish(&self) {
-        self.entry.set_tiles_done(self.ledger.done());
-        self.entry.update_stats(|s| {
+        self.record.publish(self.ledger.done(), |s| {
             self.stats.fill_totals(s);
             s.tiles_stopped = self.stopped.tiles;
             s.samples_saved = self.stopped.samples;
@@ -800,10 +801,10 @@ impl RunningJob {
             s.scheduler_rounds = self.sched.rounds();
             s.routing_version = self.sched.version();
             s.schedule = self.sched.schedule().name().to_string();
+            if let Some(c) = &self.caches {
+                c.tally.fill(s);
+            }
         });
-        if let Some(c) = &self.caches {
-            self.entry.update_stats(|s| c.tally.fill(s));
-        }
         self.detail_stale.set(true);
     }
 
@@ -811,8 +812,8 @@ impl RunningJob {
     pub(super) fn view(&self) -> super::view::JobView {
         let routes = self.sched.routing().routes();
         super::view::JobView {
-            job_id: self.entry.id.clone(),
-            submitted_at: Some(self.entry.submitted_at),
+            job_id: self.record.id.clone(),
+            submitted_at: Some(self.record.submitted_at),
             schedule: self.sched.schedule().name().to_string(),
             version: self.sched.version(),
             attempt: self.sched.attempt(),
@@ -828,7 +829,7 @@ impl RunningJob {
     /// Copy the per-worker detail (`JobStats.workers_detail`) into the public record:
     /// O(workers), so the actor does it at most a few times a second and at the end.
     pub fn publish_detail(&self) {
-        self.entry.update_stats(|s| self.stats.fill_detail(s));
+        self.record.update_stats(|s| self.stats.fill_detail(s));
         self.detail_stale.set(false);
     }
 
@@ -989,7 +990,7 @@ mod tests {
         let joined = by_worker(&j.top_up("w3"));
         assert_eq!(joined["w3"], (20..28).collect::<Vec<u32>>());
         let mut later = 0;
-        j.entry.update_stats(|s| later = s.tiles_dealt_later);
+        j.record.update_stats(|s| later = s.tiles_dealt_later);
         assert_eq!(later, 12, "JobStats.tiles_dealt_later");
         // w2 is lost: the new attempt deals every incomplete tile afresh over w1 and w3
         // (36 of them: windows of max(8, 36 / 8) = 8 each, 16 at once).
@@ -1028,7 +1029,7 @@ mod tests {
 
     /// The film and the latest pass image hold the same sums in every pixel.
     fn assert_image_is_film(j: &super::RunningJob, passes_done: u32) {
-        let img = j.entry.passes.latest().expect("a pass image");
+        let img = j.record.passes.latest().expect("a pass image");
         assert_eq!(img.passes_done, passes_done);
         let film = j.film.film();
         for p in 0..film.width * film.height {

@@ -10,7 +10,8 @@
 //!   functions: the first
 //!   ownership, how tiles are dealt, the ownership after a loss, and the dynamic round
 //!   ([`policy::rebalance`]).
-//! - [`ownership`]: who owns which domain ([`ownership::Ownership`]).
+//! - who owns which domain is [`crate::ownership::Ownership`], outside this folder
+//!   because cache placement reads it too.
 //! - [`table`]: the versioned table workers receive.
 //! - [`state`]: one job's scheduling state (table, budgets, latest queue reports).
 //!
@@ -19,7 +20,6 @@
 //! number of rounds.
 
 pub mod auto;
-pub mod ownership;
 pub mod policy;
 pub mod state;
 pub mod table;

@@ -28,7 +28,7 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 use dray_proto::v1::DomainQueue;
 use dray_scene::partition::resident::load_reserve;
 
-use super::ownership::Ownership;
+use crate::ownership::Ownership;
 
 /// The schedule names a job may ask for (JobSpec.schedule; empty means auto).
 pub const SCHEDULE_NAMES: [&str; 6] = [

@@ -10,8 +10,8 @@ use std::collections::BTreeSet;
 
 use dray_proto::v1::{DomainRoute, RoutingTable, WorkerEndpoint};
 
-pub use super::ownership::Ownership;
 use crate::caches::placement::Placement;
+pub use crate::ownership::Ownership;
 
 /// A job's current routing table: [`Ownership`] plus the job, the attempt, the version,
 /// the workers' endpoints and the attempt's cache placement.

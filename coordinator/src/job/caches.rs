@@ -14,10 +14,10 @@ use std::sync::Arc;
 
 use dray_proto::v1::{PhmSettings, RayCacheSettings};
 
-use super::geometry::WallGeometry;
-use super::lifecycle::AttemptWalls;
-use super::placement::{Candidates, Placement};
-use super::tally::CacheTally;
+use crate::caches::geometry::WallGeometry;
+use crate::caches::lifecycle::AttemptWalls;
+use crate::caches::placement::{Candidates, Placement};
+use crate::caches::tally::CacheTally;
 use crate::membership::Membership;
 use crate::scheduler::state::JobSchedule;
 

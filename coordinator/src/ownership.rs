@@ -1,7 +1,9 @@
-//! Who owns which domain of a job: the value a [`policy`](super::policy) computes, before
-//! it is a versioned table ([`super::table::JobRouting`]). Its own file so that what
-//! reads ownership alone (cache placement, `crate::caches::placement`) does not depend
-//! on the tables, which carry that placement.
+//! Who owns which domain of a job: the value a scheduling policy
+//! ([`crate::scheduler::policy`]) computes, before it is a versioned table
+//! ([`crate::scheduler::table::JobRouting`]). A leaf module beside `scheduler/` and
+//! `caches/`, both of which read it: cache placement (`crate::caches::placement`) reads
+//! ownership alone, and the scheduler's tables carry that placement, so with this type
+//! inside either folder the two would import each other.
 
 use dray_proto::v1::DomainRoute;
 
