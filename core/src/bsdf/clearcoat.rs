@@ -31,9 +31,12 @@ impl Coat {
         let strength = sat(params.clearcoat);
         let roughness = sat(params.clearcoat_roughness);
         let a = roughness * roughness;
-        let n = unit(params.clearcoat_normal)
-            .filter(|_| strength > 0.0)
-            .map(|c| if c.dot(ng) < 0.0 { -c } else { c });
+        // Without a coat its normal is not normalised (no square root and division per hit).
+        let n = if strength > 0.0 {
+            unit(params.clearcoat_normal).map(|c| if c.dot(ng) < 0.0 { -c } else { c })
+        } else {
+            None
+        };
         Coat {
             strength,
             alpha: a.max(MIN_ALPHA),

@@ -53,7 +53,12 @@ impl Bsdf {
             n = ng;
         }
         // An anisotropic lobe is stretched along its direction: the frame follows it.
-        let along = unit(self.ggx.aniso_t - n * n.dot(self.ggx.aniso_t)).filter(|_| self.ggx.aniso);
+        // (Isotropic lobes skip the projection: a square root and a division per hit.)
+        let along = if self.ggx.aniso {
+            unit(self.ggx.aniso_t - n * n.dot(self.ggx.aniso_t))
+        } else {
+            None
+        };
         let (t, b) = match along {
             Some(t) => (t, n.cross(t)),
             None => n.any_orthonormal_pair(),

@@ -54,6 +54,26 @@ impl Fresnel {
     }
 }
 
+impl Fresnel {
+    /// The layer of a diffuse-only BSDF (`specular` and `metallic` 0): it reflects
+    /// nothing and passes everything to the base whatever its F0 and film, so neither is
+    /// computed (F0 0, no film). [`Bsdf::new`] uses it only when `lambert` is set, and then
+    /// nothing reads it.
+    pub(super) fn inert(base: Vec3, metallic: f32, specular: f32) -> Fresnel {
+        Fresnel {
+            base,
+            metallic,
+            specular,
+            f0: Vec3::ZERO,
+            film: Film {
+                strength: 0.0,
+                ior: crate::iridescence::DEFAULT_IOR,
+                thickness: 0.0,
+            },
+        }
+    }
+}
+
 /// The thin film of `KHR_materials_iridescence` over the base.
 #[derive(Clone, Copy, Debug)]
 pub(super) struct Film {

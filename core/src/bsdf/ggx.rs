@@ -31,7 +31,12 @@ impl Ggx {
         let roughness = sat(params.roughness);
         let a_iso = roughness * roughness;
         let strength = sat(params.anisotropy);
-        let aniso_t = unit(params.anisotropy_direction).unwrap_or(Vec3::ZERO);
+        // Without anisotropy the direction is not normalised: only `aniso` lobes read it.
+        let aniso_t = if strength > 0.0 {
+            unit(params.anisotropy_direction).unwrap_or(Vec3::ZERO)
+        } else {
+            Vec3::ZERO
+        };
         let aniso = strength > 0.0 && aniso_t != Vec3::ZERO;
         // alpha_t = mix(alpha, 1, strength^2), as the extension gives it.
         let a = if aniso {

@@ -237,22 +237,32 @@ impl Bsdf {
         };
         let coat = Coat::new(params, ng);
         let sheen = Sheen::new(params);
+        let lambert = !reflection.on
+            && transmission.tint.max_element() <= 0.0
+            && coat.strength <= 0.0
+            && sheen.max <= 0.0;
+        // A diffuse-only BSDF never evaluates its Fresnel layer (`Bsdf::at` and
+        // `BsdfAt::eval_pdf` skip the weights, `mirror` and `refraction` return before
+        // them), so it is not built: the F0 division and the film's clamps cost about a
+        // tenth of a Lambert hit's set-up.
+        let fresnel = if lambert {
+            Fresnel::inert(base, metallic, specular)
+        } else {
+            Fresnel::new(params, base, metallic, specular, Film::new(params))
+        };
         Bsdf {
             n_in,
             n,
             ng,
             valid,
-            fresnel: Fresnel::new(params, base, metallic, specular, Film::new(params)),
+            fresnel,
             ggx,
             diffuse,
             reflection,
             transmission,
             coat,
             sheen,
-            lambert: !reflection.on
-                && transmission.tint.max_element() <= 0.0
-                && coat.strength <= 0.0
-                && sheen.max <= 0.0,
+            lambert,
         }
     }
 

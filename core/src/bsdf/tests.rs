@@ -98,11 +98,23 @@ fn lambert_fast_path_gives_the_general_bits() {
             let ng = (n + rng.sphere() * 0.3).normalize_or(n);
             let fast = Bsdf::new(&params, n, ng);
             assert!(fast.lambert);
+            // The general path with the Fresnel layer `Bsdf::new` leaves out of a
+            // diffuse-only BSDF (`Fresnel::inert`): built here as for any material.
+            let fresnel = Fresnel::new(
+                &params,
+                sat3(params.base_color),
+                sat(params.metallic),
+                sat(params.specular),
+                Film::new(&params),
+            );
             let general = Bsdf {
                 lambert: false,
+                fresnel,
                 ..fast
             };
             let wo = rng.sphere();
+            assert_eq!(fast.mirror(wo), general.mirror(wo));
+            assert_eq!(fast.refraction(wo), general.refraction(wo));
             let (Some(a), Some(b)) = (fast.at(wo), general.at(wo)) else {
                 assert!(fast.at(wo).is_none() && general.at(wo).is_none());
                 continue;
