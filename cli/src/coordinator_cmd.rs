@@ -19,7 +19,7 @@ use clap::Args;
 use dray_coordinator::cluster::{ClusterOptions, DEFAULT_STALL_TIMEOUT};
 use dray_coordinator::jobs::Retention;
 use dray_coordinator::membership::HeartbeatConfig;
-use dray_coordinator::store::JobStore;
+use dray_coordinator::store::{JobStore, StoredJob};
 use dray_coordinator::validate::Limits;
 
 use crate::net_flags::{self, ApiTokenArgs, MemberArgs};
@@ -252,19 +252,7 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
     let server = net_flags::server_options(api.clone(), cluster_token, &a.member)?;
     let heartbeat = options.heartbeat;
     let work_dir = options.work_dir.clone();
-    let coordinator = dray_coordinator::Coordinator::new(&a.scene_root, a.threads)
-        .with_context(|| format!("--scene-root {}", a.scene_root.display()))?
-        .with_cluster_options(options)
-        .with_admission(
-            a.max_jobs.max(1),
-            a.max_job_bytes
-                .unwrap_or_else(dray_coordinator::admission::default_max_job_bytes),
-            Retention {
-                keep_finished: a.keep_finished,
-                ttl: (a.finished_ttl > 0).then(|| Duration::from_secs(a.finished_ttl)),
-                max_bytes: a.keep_finished_bytes,
-            },
-        );
+    let coordinator = new_coordinator(&a, options)?;
     let (coordinator, stored, store) = match store {
         Some((store, jobs)) => (coordinator.with_store(store.clone()), jobs, Some(store)),
         None => (coordinator, Vec::new(), None),
@@ -307,62 +295,105 @@ pub fn run(a: CoordinatorArgs) -> Result<()> {
             heartbeat.timeout.as_millis(),
         );
         eprintln!("dray coordinator: {access}");
-        match &store {
-            Some(s) => {
-                let again = coordinator.resume(stored, resume_grace);
-                eprintln!(
-                    "dray coordinator: jobs kept in {} ({} taken back, {again} to run again)",
-                    s.dir().display(),
-                    coordinator.job_count(),
-                );
-            }
-            None => eprintln!(
-                "dray coordinator: jobs are kept in memory only (set --state-dir or --work-dir \
-                 to keep them across restarts)"
-            ),
-        }
-        let options = server.clone();
-        let serving = coordinator.clone();
-        // Stopped by `Coordinator::shutdown`, which also waits for it.
-        let mut served = tokio::spawn(async move {
-            dray_coordinator::serve_with(&options, listener, serving, std::future::pending()).await
-        });
-        // Serve until a signal (or the server ends on its own, with an error).
-        let ended = tokio::select! {
-            r = &mut served => Some(r),
-            () = stop_signal() => None,
-        };
-        // One shutdown, the library's (the embedded mode runs the same): new jobs
-        // refused, the store sealed once (jobs stopped by the shutdown itself are not
-        // recorded as ended: the next coordinator on this state directory resumes them),
-        // cuts stopped, the servers given a bounded time to end.
-        let stopped = coordinator.shutdown(SHUTDOWN_GRACE).await;
-        let result = match ended {
-            Some(r) => r,
-            None if stopped || served.is_finished() => served.await,
-            None => {
-                eprintln!(
-                    "dray coordinator: clients still connected after {SHUTDOWN_GRACE:?}; \
-                     exiting anyway"
-                );
-                served.abort();
-                Ok(Ok(()))
-            }
-        };
-        if let Some(d) = dashboard {
-            d.abort();
-        }
-        // No job's package outlives the coordinator: cuts in progress are stopped and
-        // every job folder removed (a large preparation's partial package included).
-        coordinator.remove_packages_on_stop(PACKAGE_GRACE).await;
-        result
-            .context("the gRPC server task died")?
-            .context("the gRPC server stopped")
+        take_back(&coordinator, store.as_deref(), stored, resume_grace);
+        serve_until_stopped(&coordinator, &server, listener, dashboard).await
     });
     // A scene still loading or a job still rendering runs on a blocking thread, which
     // dropping the runtime would wait for: a stop signal must not wait minutes for it.
     rt.shutdown_timeout(BLOCKING_GRACE);
     result
+}
+
+/// The coordinator the flags describe (without its store), on the cluster `options`.
+fn new_coordinator(
+    a: &CoordinatorArgs,
+    options: ClusterOptions,
+) -> Result<dray_coordinator::Coordinator> {
+    Ok(dray_coordinator::Coordinator::new(&a.scene_root, a.threads)
+        .with_context(|| format!("--scene-root {}", a.scene_root.display()))?
+        .with_cluster_options(options)
+        .with_admission(
+            a.max_jobs.max(1),
+            a.max_job_bytes
+                .unwrap_or_else(dray_coordinator::admission::default_max_job_bytes),
+            Retention {
+                keep_finished: a.keep_finished,
+                ttl: (a.finished_ttl > 0).then(|| Duration::from_secs(a.finished_ttl)),
+                max_bytes: a.keep_finished_bytes,
+            },
+        ))
+}
+
+/// Take back the jobs `stored` in `store` (those that had not ended run again, waiting
+/// up to `grace` for a worker), and say where jobs are kept.
+fn take_back(
+    coordinator: &dray_coordinator::Coordinator,
+    store: Option<&JobStore>,
+    stored: Vec<StoredJob>,
+    grace: Duration,
+) {
+    match store {
+        Some(s) => {
+            let again = coordinator.resume(stored, grace);
+            eprintln!(
+                "dray coordinator: jobs kept in {} ({} taken back, {again} to run again)",
+                s.dir().display(),
+                coordinator.job_count(),
+            );
+        }
+        None => eprintln!(
+            "dray coordinator: jobs are kept in memory only (set --state-dir or --work-dir \
+             to keep them across restarts)"
+        ),
+    }
+}
+
+/// Serve gRPC on `listener` until a stop signal (or until the server ends on its own,
+/// with an error), then shut the coordinator down: the library's one shutdown, then
+/// the dashboard, then every job's package.
+async fn serve_until_stopped(
+    coordinator: &dray_coordinator::Coordinator,
+    server: &dray_net::ServerOptions,
+    listener: tokio::net::TcpListener,
+    dashboard: Option<tokio::task::JoinHandle<()>>,
+) -> Result<()> {
+    let options = server.clone();
+    let serving = coordinator.clone();
+    // Stopped by `Coordinator::shutdown`, which also waits for it.
+    let mut served = tokio::spawn(async move {
+        dray_coordinator::serve_with(&options, listener, serving, std::future::pending()).await
+    });
+    // Serve until a signal (or the server ends on its own, with an error).
+    let ended = tokio::select! {
+        r = &mut served => Some(r),
+        () = stop_signal() => None,
+    };
+    // One shutdown, the library's (the embedded mode runs the same): new jobs
+    // refused, the store sealed once (jobs stopped by the shutdown itself are not
+    // recorded as ended: the next coordinator on this state directory resumes them),
+    // cuts stopped, the servers given a bounded time to end.
+    let stopped = coordinator.shutdown(SHUTDOWN_GRACE).await;
+    let result = match ended {
+        Some(r) => r,
+        None if stopped || served.is_finished() => served.await,
+        None => {
+            eprintln!(
+                "dray coordinator: clients still connected after {SHUTDOWN_GRACE:?}; \
+                 exiting anyway"
+            );
+            served.abort();
+            Ok(Ok(()))
+        }
+    };
+    if let Some(d) = dashboard {
+        d.abort();
+    }
+    // No job's package outlives the coordinator: cuts in progress are stopped and
+    // every job folder removed (a large preparation's partial package included).
+    coordinator.remove_packages_on_stop(PACKAGE_GRACE).await;
+    result
+        .context("the gRPC server task died")?
+        .context("the gRPC server stopped")
 }
 
 /// Bind `--http-listen` and serve the dashboard there until the coordinator's shutdown

@@ -144,41 +144,12 @@ impl Actors {
     /// Start the actors of `shape` and wait until every worker has registered.
     pub fn start(shape: ActorsShape, keep_package: bool) -> Result<Actors> {
         let workers = shape.workers;
-        let threads = shape.threads;
-        let per_worker = threads.div_ceil(workers).max(1);
         // A private directory (random name, 0700, never one made beforehand by another
         // user), removed however the render ends.
         let work_dir = dray_coordinator::cluster::WorkDir::private("dray-embedded-")
             .context("cannot create the coordinator's work directory")?;
-        // The coordinator cuts the scene into this store and the workers read it: no
-        // package is written to disk for a scene this process already holds.
-        let memory = Arc::new(if keep_package {
-            MemoryPackages::keeping_last()
-        } else {
-            MemoryPackages::default()
-        });
-        // The actors listen on loopback ports: a token made for this run keeps other
-        // local users' processes from joining or injecting rays.
-        let token = dray_net::Token::generate()?;
-        let clients = dray_net::ClientOptions::plain().with_token(Some(token.clone()));
-        let server_options = dray_net::ServerOptions {
-            auth: dray_net::AuthPolicy {
-                api: None,
-                cluster: Some(token),
-            },
-            ..dray_net::ServerOptions::default()
-        };
-        let coordinator = Coordinator::new(Path::new("/"), threads)
-            .context("cannot start the coordinator")?
-            .with_cluster_options(ClusterOptions {
-                work_dir,
-                memory_packages: Some(memory.clone()),
-                clients: clients.clone(),
-                // Its workers are its own threads: no member to distrust, and a slow
-                // render (a huge scene, --load-delay-ms) is not a stuck one.
-                stall_timeout: None,
-                ..ClusterOptions::default()
-            });
+        let wiring = Wiring::new(keep_package)?;
+        let coordinator = wiring.coordinator(shape.threads, work_dir)?;
         let rt = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
             .enable_all()
@@ -188,9 +159,6 @@ impl Actors {
         // that saw its coordinator go first would warn that it lost it and try to
         // register again.
         let (stop_workers_tx, stop_workers_rx) = tokio::sync::watch::channel(false);
-        let stopped = |mut rx: tokio::sync::watch::Receiver<bool>| async move {
-            let _ = rx.wait_for(|s| *s).await;
-        };
         let started = rt.block_on(async {
             let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
                 .await
@@ -198,7 +166,7 @@ impl Actors {
             let addr = listener
                 .local_addr()
                 .context("cannot read the bound address")?;
-            let coordinator_server = server_options.clone();
+            let coordinator_server = wiring.server.clone();
             let serving = coordinator.clone();
             // Stopped by `Coordinator::shutdown`, which waits for it.
             let server = tokio::spawn(async move {
@@ -213,54 +181,12 @@ impl Actors {
             let mut nodes = Vec::new();
             let mut caches = Vec::new();
             for i in 0..workers {
-                let l = tokio::net::TcpListener::bind("127.0.0.1:0")
-                    .await
-                    .context("cannot listen on a loopback port")?;
-                let cache = if shape.cache_hosts {
-                    let h =
-                        LocalCacheHost::start("127.0.0.1:0", None, None, &server_options).await?;
-                    let endpoint = (h.endpoint.clone(), h.host.clone());
-                    caches.push(h);
-                    Some(endpoint)
-                } else {
-                    None
-                };
-                let (cache, cache_host) = cache.unzip();
-                let config = dray_worker::WorkerConfig {
-                    coordinator: format!("http://{addr}"),
-                    threads: per_worker,
-                    memory_packages: Some(memory.clone()),
-                    memory_budget: shape.memory_budget,
-                    load_delay: Duration::from_millis(shape.load_delay_ms),
-                    cache_endpoint: cache,
-                    cache_host,
-                    net: clients.clone(),
-                    server: server_options.clone(),
-                    // The workers read the coordinator's in-memory packages: nothing to
-                    // fetch.
-                    package_fetch: dray_worker::package_fetch::FetchMode::Never,
-                    trace_dir: shape.trace_dir.clone(),
-                    // Named as `dray cluster` names its workers (the host name would be
-                    // the same for all of them).
-                    name: Some(format!("worker-{}", i + 1)),
-                    ..dray_worker::WorkerConfig::default()
-                };
-                nodes.push(tokio::spawn(dray_worker::run(
-                    config,
-                    l,
-                    stopped(stop_workers_rx.clone()),
-                )));
+                let stop = stopped(stop_workers_rx.clone());
+                let (node, cache) = wiring.start_worker(&shape, i, addr, stop).await?;
+                caches.extend(cache);
+                nodes.push(node);
             }
-            let deadline = Instant::now() + Duration::from_secs(20);
-            while coordinator.cluster().membership.workers().len() < workers {
-                if Instant::now() > deadline {
-                    bail!("the in-process workers did not register within 20 s");
-                }
-                if let Some(n) = nodes.iter().position(|n| n.is_finished()) {
-                    bail!("in-process worker {} stopped while starting", n + 1);
-                }
-                tokio::time::sleep(Duration::from_millis(5)).await;
-            }
+            wait_for_registration(&coordinator, &nodes).await?;
             anyhow::Ok((server, nodes, caches))
         });
         let (server, nodes, caches) = match started {
@@ -364,6 +290,136 @@ impl Actors {
         rt.block_on(async {
             let _ = tokio::time::timeout(STOP_GRACE, stop_all).await;
         });
+    }
+}
+
+/// Completes once `rx` says to stop (or its sender is gone): a worker's shutdown.
+async fn stopped(mut rx: tokio::sync::watch::Receiver<bool>) {
+    let _ = rx.wait_for(|s| *s).await;
+}
+
+/// Wait until each of `nodes` has registered with `coordinator`: an error when one
+/// stopped first, or after 20 s.
+async fn wait_for_registration(
+    coordinator: &Coordinator,
+    nodes: &[tokio::task::JoinHandle<Result<(), dray_worker::NodeError>>],
+) -> Result<()> {
+    let workers = nodes.len();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while coordinator.cluster().membership.workers().len() < workers {
+        if Instant::now() > deadline {
+            bail!("the in-process workers did not register within 20 s");
+        }
+        if let Some(n) = nodes.iter().position(|n| n.is_finished()) {
+            bail!("in-process worker {} stopped while starting", n + 1);
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    Ok(())
+}
+
+/// What the in-process actors share: the packages the coordinator cuts into memory
+/// and the workers read, and the loopback network's credentials.
+struct Wiring {
+    memory: Arc<MemoryPackages>,
+    clients: dray_net::ClientOptions,
+    server: dray_net::ServerOptions,
+}
+
+impl Wiring {
+    /// A package store (keeping the last package for the next job, with
+    /// `keep_package`) and a token made for this run: the actors listen on loopback
+    /// ports, and the token keeps other local users' processes from joining or
+    /// injecting rays.
+    fn new(keep_package: bool) -> Result<Wiring> {
+        // The coordinator cuts the scene into this store and the workers read it: no
+        // package is written to disk for a scene this process already holds.
+        let memory = Arc::new(if keep_package {
+            MemoryPackages::keeping_last()
+        } else {
+            MemoryPackages::default()
+        });
+        let token = dray_net::Token::generate()?;
+        let clients = dray_net::ClientOptions::plain().with_token(Some(token.clone()));
+        let server = dray_net::ServerOptions {
+            auth: dray_net::AuthPolicy {
+                api: None,
+                cluster: Some(token),
+            },
+            ..dray_net::ServerOptions::default()
+        };
+        Ok(Wiring {
+            memory,
+            clients,
+            server,
+        })
+    }
+
+    /// The coordinator, with `threads` for a job it renders itself, its packages in
+    /// memory (and `work_dir` for anything else).
+    fn coordinator(
+        &self,
+        threads: usize,
+        work_dir: dray_coordinator::cluster::WorkDir,
+    ) -> Result<Coordinator> {
+        Ok(Coordinator::new(Path::new("/"), threads)
+            .context("cannot start the coordinator")?
+            .with_cluster_options(ClusterOptions {
+                work_dir,
+                memory_packages: Some(self.memory.clone()),
+                clients: self.clients.clone(),
+                // Its workers are its own threads: no member to distrust, and a slow
+                // render (a huge scene, --load-delay-ms) is not a stuck one.
+                stall_timeout: None,
+                ..ClusterOptions::default()
+            }))
+    }
+
+    /// Start worker `i` of `shape` (and its cache host, when the shape has them) on a
+    /// loopback port, registering with the coordinator at `addr`, until `stop`.
+    async fn start_worker(
+        &self,
+        shape: &ActorsShape,
+        i: usize,
+        addr: std::net::SocketAddr,
+        stop: impl std::future::Future<Output = ()> + Send + 'static,
+    ) -> Result<(
+        tokio::task::JoinHandle<Result<(), dray_worker::NodeError>>,
+        Option<LocalCacheHost>,
+    )> {
+        let l = tokio::net::TcpListener::bind("127.0.0.1:0")
+            .await
+            .context("cannot listen on a loopback port")?;
+        let host = if shape.cache_hosts {
+            Some(LocalCacheHost::start("127.0.0.1:0", None, None, &self.server).await?)
+        } else {
+            None
+        };
+        let (cache_endpoint, cache_host) = host
+            .as_ref()
+            .map(|h| (h.endpoint.clone(), h.host.clone()))
+            .unzip();
+        let config = dray_worker::WorkerConfig {
+            coordinator: format!("http://{addr}"),
+            threads: shape.threads.div_ceil(shape.workers).max(1),
+            memory_packages: Some(self.memory.clone()),
+            memory_budget: shape.memory_budget,
+            load_delay: Duration::from_millis(shape.load_delay_ms),
+            cache_endpoint,
+            cache_host,
+            net: self.clients.clone(),
+            server: self.server.clone(),
+            // The workers read the coordinator's in-memory packages: nothing to
+            // fetch.
+            package_fetch: dray_worker::package_fetch::FetchMode::Never,
+            trace_dir: shape.trace_dir.clone(),
+            // Named as `dray cluster` names its workers (the host name would be
+            // the same for all of them).
+            name: Some(format!("worker-{}", i + 1)),
+            ..dray_worker::WorkerConfig::default()
+        };
+        let node = tokio::spawn(dray_worker::run(config, l, stop));
+        Ok((node, host))
     }
 }
 

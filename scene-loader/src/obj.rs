@@ -45,12 +45,72 @@ use crate::validate::{self, Origin, Primitive};
 /// material); a malformed one, or a missing or undecodable texture, is an error naming
 /// the file.
 pub fn load_obj(path: &Path) -> Result<Scene> {
+    let bytes = crate::reference::read_scene_file(path)?;
+    let parsed = parse(path, &bytes)?;
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "obj".to_string());
+    let mut scene = Scene {
+        name: stem.clone(),
+        ..Scene::default()
+    };
+    for mtl in parsed.missing_mtl {
+        scene.stats.warnings.push(format!(
+            "material library {} not found; using a default material",
+            display_reference(&mtl)
+        ));
+    }
+
+    let mut builder = MaterialBuilder {
+        path,
+        obj_materials: &parsed.materials,
+        converted: HashMap::new(),
+        textures: HashMap::new(),
+        default: None,
+    };
+    let mut primitive_of_name: HashMap<String, usize> = HashMap::new();
+    for model in &parsed.models {
+        let name = if model.name.is_empty() {
+            stem.as_str()
+        } else {
+            model.name.as_str()
+        };
+        let primitive = primitive_of_name.entry(name.to_string()).or_insert(0);
+        let origin = Origin {
+            path,
+            mesh: name,
+            primitive: *primitive,
+        };
+        *primitive += 1;
+        if model.mesh.indices.is_empty() {
+            continue;
+        }
+        add_mesh(&model.mesh, origin, &mut builder, &mut scene)?;
+    }
+    if scene.mesh.indices.is_empty() {
+        return Err(SceneError::Empty {
+            path: path.to_path_buf(),
+        });
+    }
+    Ok(scene)
+}
+
+/// What `tobj` made of an OBJ file and its MTL libraries.
+struct Parsed {
+    models: Vec<tobj::Model>,
+    materials: Vec<tobj::Material>,
+    /// MTL libraries named but not found (a warning each).
+    missing_mtl: Vec<String>,
+}
+
+/// Parse the OBJ file at `path` (its `bytes`) and the MTL libraries it names, with
+/// `tobj`; a refused or malformed library is an error naming it.
+fn parse(path: &Path, bytes: &[u8]) -> Result<Parsed> {
     let format_err = |message: String| SceneError::Format {
         path: path.to_path_buf(),
         message,
     };
-    let bytes = crate::reference::read_scene_file(path)?;
-
     // tobj reports MTL trouble only as a bare error code; record which library failed
     // and how, so the warning or error can name it. A library must be a regular file
     // inside the OBJ's folder: one that is missing there is a warning, one that is
@@ -68,20 +128,14 @@ pub fn load_obj(path: &Path) -> Result<Scene> {
     let loader = |mtl: &Path| {
         let name = mtl.to_string_lossy().into_owned();
         match open_reference(path, &name) {
-            Ok(opened) => {
-                let result = match opened.read_all() {
-                    Ok(text) => match precheck_mtl(&text) {
-                        Ok(()) => tobj::load_mtl_buf(&mut std::io::Cursor::new(text))
-                            .map_err(|e| e.to_string()),
-                        Err(m) => Err(m),
-                    },
-                    Err(e) => Err(format!("cannot read: {}", e.kind())),
-                };
-                result.map_err(|m| {
+            Ok(opened) => checked_mtl(opened.read_all())
+                .and_then(|text| {
+                    tobj::load_mtl_buf(&mut std::io::Cursor::new(text)).map_err(|e| e.to_string())
+                })
+                .map_err(|m| {
                     bad_mtl.borrow_mut().push((name, m));
                     tobj::LoadError::MaterialParseError
-                })
-            }
+                }),
             Err(RefError::NotFound) => {
                 missing_mtl.borrow_mut().push(name);
                 Err(tobj::LoadError::OpenFileFailed)
@@ -94,11 +148,11 @@ pub fn load_obj(path: &Path) -> Result<Scene> {
     };
     // tobj does index arithmetic on face indices without overflow checks (a huge or
     // zero index wraps and then indexes out of bounds): refuse such faces first.
-    precheck_faces(&bytes).map_err(format_err)?;
+    precheck_faces(bytes).map_err(format_err)?;
     // tobj is fuzzed but third-party; a panic on hostile input must still surface as a
     // load error rather than take down the renderer.
     let parsed = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        tobj::load_obj_buf(&mut std::io::Cursor::new(&bytes), &options, loader)
+        tobj::load_obj_buf(&mut std::io::Cursor::new(bytes), &options, loader)
     }))
     .map_err(|_| format_err("the OBJ parser failed on this file".to_string()))?;
     let (models, materials) = parsed.map_err(|e| format_err(format!("cannot parse OBJ: {e}")))?;
@@ -108,113 +162,90 @@ pub fn load_obj(path: &Path) -> Result<Scene> {
             display_reference(&mtl)
         )));
     }
-    let obj_materials = materials.unwrap_or_default();
+    Ok(Parsed {
+        models,
+        materials: materials.unwrap_or_default(),
+        missing_mtl: missing_mtl.into_inner(),
+    })
+}
 
-    let stem = path
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "obj".to_string());
-    let mut scene = Scene {
-        name: stem.clone(),
-        ..Scene::default()
-    };
-    for mtl in missing_mtl.into_inner() {
-        scene.stats.warnings.push(format!(
-            "material library {} not found; using a default material",
-            display_reference(&mtl)
-        ));
-    }
+/// An MTL library's contents as read, checked first for what `tobj`'s MTL parser
+/// would panic on ([`precheck_mtl`]), or why they cannot be used.
+fn checked_mtl(read: std::io::Result<Vec<u8>>) -> std::result::Result<Vec<u8>, String> {
+    let text = read.map_err(|e| format!("cannot read: {}", e.kind()))?;
+    precheck_mtl(&text)?;
+    Ok(text)
+}
 
-    let mut builder = MaterialBuilder {
-        path,
-        obj_materials: &obj_materials,
-        converted: HashMap::new(),
-        textures: HashMap::new(),
-        default: None,
-    };
-    let mut primitive_of_name: HashMap<String, usize> = HashMap::new();
-    for model in &models {
-        let name = if model.name.is_empty() {
-            stem.as_str()
-        } else {
-            model.name.as_str()
-        };
-        let primitive = primitive_of_name.entry(name.to_string()).or_insert(0);
-        let origin = Origin {
-            path,
-            mesh: name,
-            primitive: *primitive,
-        };
-        *primitive += 1;
-        let mesh = &model.mesh;
-        if mesh.indices.is_empty() {
-            continue;
-        }
-        if !mesh.positions.len().is_multiple_of(3) {
-            return Err(origin.error("position array is not a multiple of 3"));
-        }
-        let positions: Vec<Vec3> = mesh
-            .positions
-            .chunks_exact(3)
-            .map(|p| Vec3::new(p[0], p[1], p[2]))
-            .collect();
-        let n = positions.len();
-        // With one index per vertex, tobj fills normals and UVs only for vertices that
-        // had them; a partial set cannot be matched to vertices, so it is dropped.
-        let normals: Option<Vec<Vec3>> = if mesh.normals.len() == n * 3 {
-            Some(
-                mesh.normals
-                    .chunks_exact(3)
-                    .map(|v| Vec3::new(v[0], v[1], v[2]))
-                    .collect(),
-            )
-        } else {
-            if !mesh.normals.is_empty() {
-                scene.stats.warnings.push(format!(
-                    "{name}: only some vertices have normals; normals ignored"
-                ));
-            }
-            None
-        };
-        let uvs: Option<Vec<Vec2>> = if mesh.texcoords.len() == n * 2 {
-            Some(
-                mesh.texcoords
-                    .chunks_exact(2)
-                    .map(|t| Vec2::new(t[0], 1.0 - t[1]))
-                    .collect(),
-            )
-        } else {
-            if !mesh.texcoords.is_empty() {
-                scene.stats.warnings.push(format!(
-                    "{name}: only some vertices have texture coordinates; they are ignored"
-                ));
-            }
-            None
-        };
-        let material = builder.material(mesh.material_id, &mut scene)?;
-        validate::add_primitive(
-            &mut scene.mesh,
-            &mut scene.stats,
-            origin,
-            Primitive {
-                positions: &positions,
-                normals: normals.as_deref(),
-                tangents: None,
-                uvs: uvs.as_deref(),
-                uvs2: None,
-                uv_sets: [0, 1],
-                colors: None,
-                indices: &mesh.indices,
-                material,
-            },
-        )?;
+/// One model's mesh into `scene`, with its material (converted on first use).
+fn add_mesh(
+    mesh: &tobj::Mesh,
+    origin: Origin,
+    builder: &mut MaterialBuilder,
+    scene: &mut Scene,
+) -> Result<()> {
+    if !mesh.positions.len().is_multiple_of(3) {
+        return Err(origin.error("position array is not a multiple of 3"));
     }
-    if scene.mesh.indices.is_empty() {
-        return Err(SceneError::Empty {
-            path: path.to_path_buf(),
-        });
+    let positions: Vec<Vec3> = mesh
+        .positions
+        .chunks_exact(3)
+        .map(|p| Vec3::new(p[0], p[1], p[2]))
+        .collect();
+    let n = positions.len();
+    let name = origin.mesh;
+    let warnings = &mut scene.stats.warnings;
+    let normals = per_vertex::<3, _>(
+        &mesh.normals,
+        n,
+        |v| Vec3::new(v[0], v[1], v[2]),
+        || format!("{name}: only some vertices have normals; normals ignored"),
+        warnings,
+    );
+    let uvs = per_vertex::<2, _>(
+        &mesh.texcoords,
+        n,
+        |t| Vec2::new(t[0], 1.0 - t[1]),
+        || format!("{name}: only some vertices have texture coordinates; they are ignored"),
+        warnings,
+    );
+    let material = builder.material(mesh.material_id, scene)?;
+    validate::add_primitive(
+        &mut scene.mesh,
+        &mut scene.stats,
+        origin,
+        Primitive {
+            positions: &positions,
+            normals: normals.as_deref(),
+            tangents: None,
+            uvs: uvs.as_deref(),
+            uvs2: None,
+            uv_sets: [0, 1],
+            colors: None,
+            indices: &mesh.indices,
+            material,
+        },
+    )
+}
+
+/// A per-vertex attribute of `W` floats a vertex (`values`), made by `make`, for `n`
+/// vertices. With one index per vertex, tobj fills normals and UVs only for vertices
+/// that had them; a partial set cannot be matched to vertices, so it is dropped: `None`,
+/// with the `partial` warning (none when no vertex had the attribute).
+fn per_vertex<const W: usize, T>(
+    values: &[f32],
+    n: usize,
+    make: impl Fn(&[f32]) -> T,
+    partial: impl FnOnce() -> String,
+    warnings: &mut Vec<String>,
+) -> Option<Vec<T>> {
+    if values.len() == n * W {
+        return Some(values.chunks_exact(W).map(make).collect());
     }
-    Ok(scene)
+    if !values.is_empty() {
+        warnings.push(partial());
+    }
+    None
 }
 
 /// Converts MTL materials on first use, so unused materials (and their textures) cost

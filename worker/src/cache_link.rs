@@ -26,17 +26,12 @@ use std::sync::Arc;
 use std::sync::Mutex;
 use std::time::Duration;
 
-use dray_cache::entry_record::{ENTRY_RECORD_BYTES, decode_entries, encode_entry};
-use dray_cache::wire::{
-    CODE_HIT, CODE_MISS, CODE_OCCLUDED, CODE_SKIP, CODE_TICKET, OPTION_ANSWER, OPTION_PHM,
-    OPTION_TICKET, PROBE,
-};
+use dray_cache::entry_record::{ENTRY_RECORD_BYTES, decode_entries};
+use dray_cache::wire::{CODE_HIT, CODE_MISS, CODE_OCCLUDED, CODE_SKIP, CODE_TICKET, PROBE};
 use dray_cache::{CacheHost, Entry, LookupRay, Outcome, Return, WallLookup};
-use dray_core::ray::{FLAG_COARSE, RayRecord, encode_rays};
 use dray_proto::v1::cache_service_client::CacheServiceClient;
 use dray_proto::v1::{
-    CacheAnswers, CacheLookups, CacheRequest, PhmMerge, PhmOutcomes, TicketAck, TicketReturn,
-    TicketReturns, WallEntries, cache_request, cache_response,
+    CacheAnswers, CacheRequest, CacheResponse, TicketAck, TicketReturn, cache_response,
 };
 use glam::Vec3;
 use prost::Message;
@@ -44,6 +39,10 @@ use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinSet;
 use tokio_stream::wrappers::ReceiverStream;
 
+use crate::cache_requests::{
+    entries_request, lookup_options, lookup_payload, lookup_record, lookups_request, merge_request,
+    outcomes_request, returns_request,
+};
 use crate::jobs::{Job, Report};
 use crate::member::Member;
 use crate::tracer::{Lookup, NoDomains, Outbox};
@@ -522,277 +521,289 @@ enum Pending {
     },
 }
 
+/// The task of the link to a host in another process: one `Exchange` stream, opened
+/// first; messages go out as they come and answers are matched to them in order. The
+/// first failure (unreachable, a broken or ended stream, an answer that does not fit)
+/// makes the host dead for this worker ([`link_failed`]).
 async fn link_loop(ctx: Ctx, endpoint: String, mut rx: mpsc::UnboundedReceiver<CacheMessage>) {
     let (req_tx, req_rx) = mpsc::channel::<CacheRequest>(64);
-    let opened = async {
-        let channel = ctx
-            .state
-            .net
-            .endpoint(&endpoint)
-            .map_err(|e| e.to_string())?
-            .connect_timeout(Duration::from_secs(5))
-            .tcp_nodelay(true)
-            .connect()
-            .await
-            .map_err(|e| e.to_string())?;
-        let mut client = CacheServiceClient::new(ctx.state.net.wrap(channel))
-            .max_decoding_message_size(64 << 20)
-            .max_encoding_message_size(64 << 20);
-        client
-            .exchange(ReceiverStream::new(req_rx))
-            .await
-            .map(|r| r.into_inner())
-            .map_err(|s| s.message().to_string())
-    }
-    .await;
-    let mut answers = match opened {
+    let mut answers = match open_stream(&ctx.state.net, &endpoint, req_rx).await {
         Ok(a) => a,
         Err(e) => {
             link_failed(&ctx, &endpoint, &mut rx, VecDeque::new(), &e);
             return;
         }
     };
-    let mut pending: VecDeque<(u64, Pending)> = VecDeque::new();
-    let mut sequence = 0u64;
-    // Entries acknowledged returns stored, until the ack that ends their message.
-    let mut carried: Vec<(u32, Entry)> = Vec::new();
-    loop {
+    let mut stream = Stream {
+        ctx,
+        endpoint,
+        requests: req_tx,
+        pending: VecDeque::new(),
+        sequence: 0,
+        carried: Vec::new(),
+    };
+    let error = loop {
         tokio::select! {
             msg = rx.recv() => {
                 let Some(msg) = msg else { return };
-                let sent = match msg {
-                    CacheMessage::Lookups { job, lookups } => {
-                        let mut rest = lookups;
-                        let mut ok = true;
-                        while !rest.is_empty() {
-                            let tail = rest.split_off(rest.len().min(LOOKUPS_PER_MESSAGE));
-                            let chunk = std::mem::replace(&mut rest, tail);
-                            sequence += 1;
-                            let request = lookups_request(&job, sequence, &chunk);
-                            count(&job, lookup_payload(&request, chunk.len()), Some((Kind::Lookups, request.encoded_len())));
-                            pending.push_back((sequence, Pending::Lookups { job: job.clone(), lookups: chunk }));
-                            if req_tx.send(request).await.is_err() {
-                                ok = false;
-                                if !rest.is_empty() {
-                                    pending.push_back((0, Pending::Lookups { job: job.clone(), lookups: rest }));
-                                }
-                                break;
-                            }
-                        }
-                        ok
-                    }
-                    CacheMessage::Returns { job, returns, done } => {
-                        count(&job, returns.len() as u64 * RETURN_BYTES, None);
-                        let mut ok = true;
-                        let mut rest = returns;
-                        let mut dones = Some(done);
-                        while !rest.is_empty() || dones.is_some() {
-                            let tail = rest.split_off(rest.len().min(RETURNS_PER_MESSAGE));
-                            let chunk = std::mem::replace(&mut rest, tail);
-                            sequence += 1;
-                            let request = CacheRequest {
-                                msg: Some(cache_request::Msg::Returns(TicketReturns {
-                                    job_id: job.key.id.to_string(),
-                                    attempt: job.key.attempt,
-                                    sequence,
-                                    returns: chunk,
-                                })),
-                            };
-                            // The last chunk carries the caller's wait.
-                            let done = if rest.is_empty() {
-                                match dones.take() {
-                                    Some(done) => Some(done),
-                                    None => break,
-                                }
-                            } else {
-                                None
-                            };
-                            count(&job, 0, Some((Kind::TicketReturns, request.encoded_len())));
-                            let p = Pending::Ack { job: job.clone(), kind: Kind::TicketReturns, done };
-                            pending.push_back((sequence, p));
-                            if req_tx.send(request).await.is_err() {
-                                ok = false;
-                                break;
-                            }
-                        }
-                        ok
-                    }
-                    CacheMessage::Outcomes { job, outcomes } => {
-                        count(&job, outcomes.len() as u64 * OUTCOME_BYTES, None);
-                        sequence += 1;
-                        let request = CacheRequest {
-                            msg: Some(cache_request::Msg::Outcomes(PhmOutcomes {
-                                job_id: job.key.id.to_string(),
-                                attempt: job.key.attempt,
-                                sequence,
-                                walls: outcomes.iter().map(|o| o.0).collect(),
-                                cells: outcomes.iter().map(|o| o.1).collect(),
-                                hits: outcomes.iter().map(|o| u8::from(o.2)).collect(),
-                            })),
-                        };
-                        count(&job, 0, Some((Kind::MapOutcomes, request.encoded_len())));
-                        pending.push_back((sequence, Pending::Ack { job: job.clone(), kind: Kind::MapOutcomes, done: None }));
-                        req_tx.send(request).await.is_ok()
-                    }
-                    CacheMessage::Merge { job, cells } => {
-                        sequence += 1;
-                        let request = CacheRequest {
-                            msg: Some(cache_request::Msg::Merge(PhmMerge {
-                                job_id: job.key.id.to_string(),
-                                attempt: job.key.attempt,
-                                sequence,
-                                walls: cells.iter().map(|c| c.0).collect(),
-                                cells: cells.iter().map(|c| c.1).collect(),
-                                hits: cells.iter().map(|c| c.2).collect(),
-                                misses: cells.iter().map(|c| c.3).collect(),
-                            })),
-                        };
-                        let bytes = request.encoded_len();
-                        count(&job, bytes as u64, Some((Kind::MapMerges, bytes)));
-                        pending.push_back((sequence, Pending::Ack { job: job.clone(), kind: Kind::MapMerges, done: None }));
-                        req_tx.send(request).await.is_ok()
-                    }
-                    CacheMessage::Entries { job, entries, done } => {
-                        count(&job, entries.len() as u64 * (ENTRY_RECORD_BYTES as u64 + 4), None);
-                        let mut ok = true;
-                        let mut chunks = entries.chunks(ENTRIES_PER_MESSAGE).peekable();
-                        let mut dones = Some(done);
-                        while let Some(chunk) = chunks.next() {
-                            sequence += 1;
-                            let mut records = Vec::with_capacity(chunk.len() * ENTRY_RECORD_BYTES);
-                            for (_, e) in chunk {
-                                encode_entry(e, &mut records);
-                            }
-                            let request = CacheRequest {
-                                msg: Some(cache_request::Msg::Entries(WallEntries {
-                                    job_id: job.key.id.to_string(),
-                                    attempt: job.key.attempt,
-                                    sequence,
-                                    walls: chunk.iter().map(|(w, _)| *w).collect(),
-                                    entries: records,
-                                })),
-                            };
-                            let done = if chunks.peek().is_none() { dones.take() } else { None };
-                            count(&job, 0, Some((Kind::EntryCopies, request.encoded_len())));
-                            pending.push_back((sequence, Pending::Ack { job: job.clone(), kind: Kind::EntryCopies, done }));
-                            if req_tx.send(request).await.is_err() {
-                                ok = false;
-                                break;
-                            }
-                        }
-                        if let Some(done) = dones {
-                            // Nothing to send (no entries): done at once.
-                            let _ = done.send(Some(Vec::new()));
-                        }
-                        ok
-                    }
-                };
-                if !sent {
-                    link_failed(&ctx, &endpoint, &mut rx, pending, "the stream closed");
-                    return;
+                if !stream.send(msg).await {
+                    break "the stream closed".to_string();
                 }
             }
             answer = answers.message() => {
-                let response = match answer {
-                    Ok(Some(r)) => r,
-                    Ok(None) => {
-                        link_failed(&ctx, &endpoint, &mut rx, pending, "the host ended the stream");
-                        return;
-                    }
-                    Err(s) => {
-                        link_failed(&ctx, &endpoint, &mut rx, pending, s.message());
-                        return;
-                    }
+                let received = match answer {
+                    Ok(Some(response)) => stream.receive(response),
+                    Ok(None) => Err("the host ended the stream".to_string()),
+                    Err(s) => Err(s.message().to_string()),
                 };
-                let size = response.encoded_len();
-                let Some((seq, p)) = pending.pop_front() else {
-                    link_failed(&ctx, &endpoint, &mut rx, pending, "an answer to nothing sent");
-                    return;
-                };
-                match (response.msg, p) {
-                    (Some(cache_response::Msg::Answers(a)), Pending::Lookups { job, lookups })
-                        if a.sequence == seq =>
-                    {
-                        count(&job, 0, Some((Kind::Answers, size)));
-                        apply_answers(&ctx, &job, lookups, answers_of(&a));
-                    }
-                    (Some(cache_response::Msg::Ack(a)), Pending::Ack { job, kind, done }) if a.sequence == seq => {
-                        let kind = if a.entries.is_empty() { kind } else { Kind::EntryCopies };
-                        count(&job, 0, Some((kind, size)));
-                        match entries_of(&a) {
-                            Ok(entries) => carried.extend(entries),
-                            Err(e) => {
-                                link_failed(&ctx, &endpoint, &mut rx, pending, &e);
-                                return;
-                            }
-                        }
-                        if let Some(done) = done {
-                            let _ = done.send(Some(std::mem::take(&mut carried)));
-                        }
-                    }
-                    (_, p) => {
-                        pending.push_front((seq, p));
-                        link_failed(&ctx, &endpoint, &mut rx, pending, "answers out of order");
-                        return;
-                    }
+                if let Err(e) = received {
+                    break e;
                 }
             }
         }
-    }
-}
-
-/// The ray as its wall's actor sees it: the actor reads the coarse flag from the
-/// record (a coarse ray's ticket stores even when the main pass does not fill).
-fn lookup_record(l: &Lookup) -> RayRecord {
-    let mut r = l.ray;
-    if l.lineage.coarse {
-        r.flags |= FLAG_COARSE;
-    }
-    r
-}
-
-/// A lookup's option bits (cache.proto `CacheLookups.options`).
-fn lookup_options(job: &Job, l: &Lookup) -> u32 {
-    let mut o = 0;
-    if l.cache {
-        // The coarse pass is exact: its rays fill the caches, never ask.
-        if !l.lineage.coarse {
-            o |= OPTION_ANSWER;
-        }
-        if job.tracer.opens_ticket(&l.lineage) {
-            o |= OPTION_TICKET;
-        }
-    }
-    if l.phm {
-        o |= OPTION_PHM;
-    }
-    o
-}
-
-/// Payload of a lookups message for `cache_bytes`: its ray records (32 to 64 bytes each)
-/// and 8 bytes a ray for its wall and options.
-fn lookup_payload(request: &CacheRequest, rays: usize) -> u64 {
-    let records = match &request.msg {
-        Some(cache_request::Msg::Lookups(l)) => l.records.len(),
-        _ => 0,
     };
-    (records + 8 * rays) as u64
+    link_failed(
+        &stream.ctx,
+        &stream.endpoint,
+        &mut rx,
+        stream.pending,
+        &error,
+    );
 }
 
-fn lookups_request(job: &Job, sequence: u64, lookups: &[Lookup]) -> CacheRequest {
-    let rays: Vec<_> = lookups.iter().map(lookup_record).collect();
-    let mut records = Vec::new();
-    encode_rays(&rays, &mut records);
-    CacheRequest {
-        msg: Some(cache_request::Msg::Lookups(CacheLookups {
-            job_id: job.key.id.to_string(),
-            attempt: job.key.attempt,
-            sequence,
-            count: lookups.len() as u32,
-            records,
-            walls: lookups.iter().map(|l| l.wall).collect(),
-            options: lookups.iter().map(|l| lookup_options(job, l)).collect(),
-        })),
+/// Connect to the host at `endpoint` and open its `Exchange` stream, fed by `requests`.
+async fn open_stream(
+    net: &dray_net::ClientOptions,
+    endpoint: &str,
+    requests: mpsc::Receiver<CacheRequest>,
+) -> Result<tonic::Streaming<CacheResponse>, String> {
+    let channel = net
+        .endpoint(endpoint)
+        .map_err(|e| e.to_string())?
+        .connect_timeout(Duration::from_secs(5))
+        .tcp_nodelay(true)
+        .connect()
+        .await
+        .map_err(|e| e.to_string())?;
+    let mut client = CacheServiceClient::new(net.wrap(channel))
+        .max_decoding_message_size(64 << 20)
+        .max_encoding_message_size(64 << 20);
+    client
+        .exchange(ReceiverStream::new(requests))
+        .await
+        .map(|r| r.into_inner())
+        .map_err(|s| s.message().to_string())
+}
+
+/// An open stream's state, owned by [`link_loop`]: what was sent and awaits an answer,
+/// in order, so each answer is matched to its message by position and sequence.
+struct Stream {
+    ctx: Ctx,
+    endpoint: String,
+    /// Into the stream.
+    requests: mpsc::Sender<CacheRequest>,
+    pending: VecDeque<(u64, Pending)>,
+    /// The last request's sequence number.
+    sequence: u64,
+    /// Entries acknowledged returns stored, until the ack that ends their message.
+    carried: Vec<(u32, Entry)>,
+}
+
+impl Stream {
+    /// The next request's sequence number.
+    fn next_sequence(&mut self) -> u64 {
+        self.sequence += 1;
+        self.sequence
+    }
+
+    /// Send `msg` (in as many requests as it takes); false when the stream closed.
+    async fn send(&mut self, msg: CacheMessage) -> bool {
+        match msg {
+            CacheMessage::Lookups { job, lookups } => self.send_lookups(job, lookups).await,
+            CacheMessage::Returns { job, returns, done } => {
+                self.send_returns(job, returns, done).await
+            }
+            CacheMessage::Outcomes { job, outcomes } => self.send_outcomes(job, outcomes).await,
+            CacheMessage::Merge { job, cells } => self.send_merge(job, cells).await,
+            CacheMessage::Entries { job, entries, done } => {
+                self.send_entries(job, entries, done).await
+            }
+        }
+    }
+
+    /// Lookups in messages of at most [`LOOKUPS_PER_MESSAGE`] rays. Those that could
+    /// not be sent stay pending, to be failed with the rest.
+    async fn send_lookups(&mut self, job: Arc<Job>, lookups: Vec<Lookup>) -> bool {
+        let mut rest = lookups;
+        while !rest.is_empty() {
+            let tail = rest.split_off(rest.len().min(LOOKUPS_PER_MESSAGE));
+            let chunk = std::mem::replace(&mut rest, tail);
+            let sequence = self.next_sequence();
+            let request = lookups_request(&job, sequence, &chunk);
+            count(
+                &job,
+                lookup_payload(&request, chunk.len()),
+                Some((Kind::Lookups, request.encoded_len())),
+            );
+            let p = Pending::Lookups {
+                job: job.clone(),
+                lookups: chunk,
+            };
+            self.pending.push_back((sequence, p));
+            if self.requests.send(request).await.is_err() {
+                if !rest.is_empty() {
+                    let p = Pending::Lookups {
+                        job: job.clone(),
+                        lookups: rest,
+                    };
+                    self.pending.push_back((0, p));
+                }
+                return false;
+            }
+        }
+        true
+    }
+
+    /// Returns in messages of at most [`RETURNS_PER_MESSAGE`]; the last carries the
+    /// caller's wait (an empty one is sent for no returns, so the wait is answered in
+    /// order).
+    async fn send_returns(
+        &mut self,
+        job: Arc<Job>,
+        returns: Vec<TicketReturn>,
+        done: oneshot::Sender<Acked>,
+    ) -> bool {
+        count(&job, returns.len() as u64 * RETURN_BYTES, None);
+        let mut rest = returns;
+        let mut dones = Some(done);
+        while !rest.is_empty() || dones.is_some() {
+            let tail = rest.split_off(rest.len().min(RETURNS_PER_MESSAGE));
+            let chunk = std::mem::replace(&mut rest, tail);
+            let sequence = self.next_sequence();
+            let request = returns_request(&job, sequence, chunk);
+            // The last chunk carries the caller's wait.
+            let done = if rest.is_empty() {
+                match dones.take() {
+                    Some(done) => Some(done),
+                    None => break,
+                }
+            } else {
+                None
+            };
+            count(&job, 0, Some((Kind::TicketReturns, request.encoded_len())));
+            self.expect_ack(&job, sequence, Kind::TicketReturns, done);
+            if self.requests.send(request).await.is_err() {
+                return false;
+            }
+        }
+        true
+    }
+
+    /// Hit-map probe outcomes, in one message.
+    async fn send_outcomes(&mut self, job: Arc<Job>, outcomes: Vec<(u32, u32, bool)>) -> bool {
+        count(&job, outcomes.len() as u64 * OUTCOME_BYTES, None);
+        let sequence = self.next_sequence();
+        let request = outcomes_request(&job, sequence, &outcomes);
+        count(&job, 0, Some((Kind::MapOutcomes, request.encoded_len())));
+        self.expect_ack(&job, sequence, Kind::MapOutcomes, None);
+        self.requests.send(request).await.is_ok()
+    }
+
+    /// A merge of hit-map outcomes, in one message.
+    async fn send_merge(&mut self, job: Arc<Job>, cells: crate::map_merge::Merge) -> bool {
+        let sequence = self.next_sequence();
+        let request = merge_request(&job, sequence, &cells);
+        let bytes = request.encoded_len();
+        count(&job, bytes as u64, Some((Kind::MapMerges, bytes)));
+        self.expect_ack(&job, sequence, Kind::MapMerges, None);
+        self.requests.send(request).await.is_ok()
+    }
+
+    /// Entries in messages of at most [`ENTRIES_PER_MESSAGE`]; the last carries the
+    /// caller's wait, answered at once when there is nothing to send.
+    async fn send_entries(
+        &mut self,
+        job: Arc<Job>,
+        entries: Vec<(u32, Entry)>,
+        done: oneshot::Sender<Acked>,
+    ) -> bool {
+        count(
+            &job,
+            entries.len() as u64 * (ENTRY_RECORD_BYTES as u64 + 4),
+            None,
+        );
+        let mut ok = true;
+        let mut chunks = entries.chunks(ENTRIES_PER_MESSAGE).peekable();
+        let mut dones = Some(done);
+        while let Some(chunk) = chunks.next() {
+            let sequence = self.next_sequence();
+            let request = entries_request(&job, sequence, chunk);
+            let done = if chunks.peek().is_none() {
+                dones.take()
+            } else {
+                None
+            };
+            count(&job, 0, Some((Kind::EntryCopies, request.encoded_len())));
+            self.expect_ack(&job, sequence, Kind::EntryCopies, done);
+            if self.requests.send(request).await.is_err() {
+                ok = false;
+                break;
+            }
+        }
+        if let Some(done) = dones {
+            // Nothing to send (no entries): done at once.
+            let _ = done.send(Some(Vec::new()));
+        }
+        ok
+    }
+
+    /// Remember that the request `sequence` of `job` (a `kind` message) awaits an ack.
+    fn expect_ack(
+        &mut self,
+        job: &Arc<Job>,
+        sequence: u64,
+        kind: Kind,
+        done: Option<oneshot::Sender<Acked>>,
+    ) {
+        let job = job.clone();
+        self.pending
+            .push_back((sequence, Pending::Ack { job, kind, done }));
+    }
+
+    /// Apply the host's next answer to the oldest message pending; an error (the
+    /// host's answers do not fit what was sent) fails the link.
+    fn receive(&mut self, response: CacheResponse) -> Result<(), String> {
+        let size = response.encoded_len();
+        let Some((seq, p)) = self.pending.pop_front() else {
+            return Err("an answer to nothing sent".to_string());
+        };
+        match (response.msg, p) {
+            (Some(cache_response::Msg::Answers(a)), Pending::Lookups { job, lookups })
+                if a.sequence == seq =>
+            {
+                count(&job, 0, Some((Kind::Answers, size)));
+                apply_answers(&self.ctx, &job, lookups, answers_of(&a));
+            }
+            (Some(cache_response::Msg::Ack(a)), Pending::Ack { job, kind, done })
+                if a.sequence == seq =>
+            {
+                let kind = if a.entries.is_empty() {
+                    kind
+                } else {
+                    Kind::EntryCopies
+                };
+                count(&job, 0, Some((kind, size)));
+                self.carried.extend(entries_of(&a)?);
+                if let Some(done) = done {
+                    let _ = done.send(Some(std::mem::take(&mut self.carried)));
+                }
+            }
+            (_, p) => {
+                self.pending.push_front((seq, p));
+                return Err("answers out of order".to_string());
+            }
+        }
+        Ok(())
     }
 }
 

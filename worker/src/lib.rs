@@ -18,6 +18,7 @@
 //!   so a worker needs no shared volume with it.
 
 pub(crate) mod cache_link;
+pub(crate) mod cache_requests;
 pub mod config;
 pub(crate) mod contain;
 pub(crate) mod coordinator_link;

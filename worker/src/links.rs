@@ -21,6 +21,7 @@ use crate::member::Member;
 use crate::peers::{PeerMessage, Peers};
 use crate::queue::QueuedBatch;
 use crate::routing::{Peer, Routes};
+use crate::tickets::RayBundle;
 use crate::tracer::Outbox;
 use crate::traffic_trace::{Sent, StepRecord, thread_cpu_ns};
 use crate::wake::Wake;
@@ -214,30 +215,10 @@ impl Links {
         mut report: Report,
         timing: Option<StepTiming>,
     ) {
-        let mut record = job.trace.as_ref().map(|t| {
-            let now = t.now_ns();
-            let (domain, rays_in, t0_ns, cpu_ns) = match &timing {
-                Some(s) => (
-                    s.domain,
-                    s.rays_in,
-                    s.t0_ns,
-                    thread_cpu_ns().saturating_sub(s.cpu0_ns),
-                ),
-                None => (None, 0, now, 0),
-            };
-            StepRecord {
-                domain,
-                rays_in,
-                t0_ns,
-                t1_ns: now,
-                cpu_ns,
-                traced: out.traced.iter().sum(),
-                lookups: out.lookups.len() as u64,
-                cache_not_sent: report.cache_rays_not_sent + out.cache_not_sent,
-                phm_not_sent: report.phm_rays_not_sent + out.phm_not_sent,
-                out: Vec::new(),
-            }
-        });
+        let mut step = Departures {
+            record: begin_record(job, timing.as_ref(), &out, &report),
+            ..Departures::default()
+        };
         report.phm_rays_not_sent += std::mem::take(&mut out.phm_not_sent);
         report.cache_rays_not_sent += std::mem::take(&mut out.cache_not_sent);
         let onward = self.onward();
@@ -248,43 +229,37 @@ impl Links {
             let outcomes = std::mem::take(&mut out.outcomes);
             cache_link::send_outcomes(&self.caches, &onward, job, outcomes);
         }
+        let rays = std::mem::take(&mut out.rays);
+        if !self.route_rays(job, rays, &mut step) {
+            return;
+        }
+        add_results(&mut report, out, &step);
+        job.post(report);
+        if let (Some(t), Some(rec)) = (&job.trace, step.record) {
+            t.step(&rec);
+        }
+    }
+
+    /// Each batch of a step's `rays` to its domain's destination under the job's table:
+    /// this worker's queues or a peer. False when a batch has none (the job failed: the
+    /// step's results are not reported).
+    fn route_rays(
+        &self,
+        job: &Arc<Job>,
+        rays: impl IntoIterator<Item = (u32, RayBundle)>,
+        step: &mut Departures,
+    ) -> bool {
         let routes = job.routes();
-        let mut sent = 0u64;
-        let mut bytes = 0u64;
-        let mut traffic = crate::traffic::Traffic::default();
-        for (d, bundle) in out.rays {
+        for (d, bundle) in rays {
             if bundle.is_empty() {
                 continue;
             }
-            let (rays, tickets) = (bundle.rays, bundle.tickets);
-            let peer = match destination(&routes, d, 0, job.spread()) {
-                Ok(Destination::Peer(peer)) => peer,
-                Ok(Destination::Here) => {
-                    if let Some(r) = &mut record {
-                        let bytes = crate::traffic::ray_bytes(encoded_len(&rays) as u64, &tickets);
-                        r.out.push((
-                            Sent {
-                                domain: d,
-                                rays: rays.len() as u64,
-                                bytes,
-                            },
-                            false,
-                        ));
-                    }
-                    // Traced here, or held here until a worker is given the domain.
-                    self.workload.queues().push_local(
-                        d,
-                        QueuedBatch {
-                            job_id: job.key.id.clone(),
-                            attempt: job.key.attempt,
-                            routing_version: routes.version,
-                            forwards: 0,
-                            rays,
-                            tickets,
-                        },
-                    );
-                    continue;
+            match destination(&routes, d, 0, job.spread()) {
+                Ok(Destination::Peer(peer)) => {
+                    self.send_to_peer(job, &routes, &peer, d, bundle, step)
                 }
+                // Traced here, or held here until a worker is given the domain.
+                Ok(Destination::Here) => self.keep_here(job, &routes, d, bundle, step),
                 // Never forwarded yet: only a table without an owner gets here.
                 Err(Unroutable::NoOwner | Unroutable::Forwarded) => {
                     job.fail(format!(
@@ -292,54 +267,149 @@ impl Links {
                         self.member.id(),
                         routes.version
                     ));
-                    return;
+                    return false;
                 }
-            };
-            let n = encoded_len(&rays) as u64;
-            sent += rays.len() as u64;
-            bytes += n;
-            if let Some(r) = &mut record {
-                r.out.push((
-                    Sent {
-                        domain: d,
-                        rays: rays.len() as u64,
-                        bytes: crate::traffic::ray_bytes(n, &tickets),
-                    },
-                    true,
-                ));
             }
-            traffic.rays(n, &tickets);
-            self.peers.send(
-                &peer,
-                PeerMessage {
-                    job: job.clone(),
-                    domain: d,
-                    rays,
-                    tickets,
-                    forwards: 0,
-                    routing_version: routes.version,
-                },
-            );
         }
-        let r = &mut report;
-        r.sums.extend(&out.sums);
-        r.aovs.extend(&out.aovs);
-        r.credits.append(&mut out.credits);
-        for (k, n) in out.traced.iter().enumerate() {
-            r.traced[k] += n;
-        }
-        r.nonfinite += out.nonfinite;
-        r.clamped += out.clamped;
-        r.clamped_indirect += out.clamped_indirect;
-        r.tickets.merge(std::mem::take(&mut out.tickets));
-        r.bytes += bytes;
-        r.rays_sent += sent;
-        r.traffic.add(&traffic);
-        job.post(report);
-        if let (Some(t), Some(rec)) = (&job.trace, record) {
-            t.step(&rec);
-        }
+        true
     }
+
+    /// A step's rays for domain `d` into this worker's queue (noted in the step's
+    /// record, as not remote).
+    fn keep_here(
+        &self,
+        job: &Job,
+        routes: &Routes,
+        d: u32,
+        bundle: RayBundle,
+        step: &mut Departures,
+    ) {
+        let (rays, tickets) = (bundle.rays, bundle.tickets);
+        if let Some(r) = &mut step.record {
+            let bytes = crate::traffic::ray_bytes(encoded_len(&rays) as u64, &tickets);
+            r.out.push((
+                Sent {
+                    domain: d,
+                    rays: rays.len() as u64,
+                    bytes,
+                },
+                false,
+            ));
+        }
+        self.workload.queues().push_local(
+            d,
+            QueuedBatch {
+                job_id: job.key.id.clone(),
+                attempt: job.key.attempt,
+                routing_version: routes.version,
+                forwards: 0,
+                rays,
+                tickets,
+            },
+        );
+    }
+
+    /// A step's rays for domain `d` to `peer`, counted in the step's departures (and
+    /// noted in its record, as remote).
+    fn send_to_peer(
+        &self,
+        job: &Arc<Job>,
+        routes: &Routes,
+        peer: &Peer,
+        d: u32,
+        bundle: RayBundle,
+        step: &mut Departures,
+    ) {
+        let (rays, tickets) = (bundle.rays, bundle.tickets);
+        let n = encoded_len(&rays) as u64;
+        step.rays += rays.len() as u64;
+        step.bytes += n;
+        if let Some(r) = &mut step.record {
+            r.out.push((
+                Sent {
+                    domain: d,
+                    rays: rays.len() as u64,
+                    bytes: crate::traffic::ray_bytes(n, &tickets),
+                },
+                true,
+            ));
+        }
+        step.traffic.rays(n, &tickets);
+        self.peers.send(
+            peer,
+            PeerMessage {
+                job: job.clone(),
+                domain: d,
+                rays,
+                tickets,
+                forwards: 0,
+                routing_version: routes.version,
+            },
+        );
+    }
+}
+
+/// Where one step's rays went: what it sent to peers, for its report, and the traffic
+/// trace's record of the step (when the job has a trace).
+#[derive(Default)]
+struct Departures {
+    record: Option<StepRecord>,
+    /// Rays sent to peers.
+    rays: u64,
+    /// Their encoded bytes.
+    bytes: u64,
+    traffic: crate::traffic::Traffic,
+}
+
+/// The traffic trace's record of a step, begun before its rays leave (where they go
+/// is added as they go); `None` when the job has no trace.
+fn begin_record(
+    job: &Job,
+    timing: Option<&StepTiming>,
+    out: &Outbox,
+    report: &Report,
+) -> Option<StepRecord> {
+    let t = job.trace.as_ref()?;
+    let now = t.now_ns();
+    let (domain, rays_in, t0_ns, cpu_ns) = match timing {
+        Some(s) => (
+            s.domain,
+            s.rays_in,
+            s.t0_ns,
+            thread_cpu_ns().saturating_sub(s.cpu0_ns),
+        ),
+        None => (None, 0, now, 0),
+    };
+    Some(StepRecord {
+        domain,
+        rays_in,
+        t0_ns,
+        t1_ns: now,
+        cpu_ns,
+        traced: out.traced.iter().sum(),
+        lookups: out.lookups.len() as u64,
+        cache_not_sent: report.cache_rays_not_sent + out.cache_not_sent,
+        phm_not_sent: report.phm_rays_not_sent + out.phm_not_sent,
+        out: Vec::new(),
+    })
+}
+
+/// A step's results (what is left of its outbox once its rays left) and what it `sent`
+/// to peers into its report.
+fn add_results(r: &mut Report, mut out: Outbox, sent: &Departures) {
+    r.sums.extend(&out.sums);
+    r.aovs.extend(&out.aovs);
+    r.credits.append(&mut out.credits);
+    for (k, n) in out.traced.iter().enumerate() {
+        r.traced[k] += n;
+    }
+    r.nonfinite += out.nonfinite;
+    r.clamped += out.clamped;
+    r.clamped_indirect += out.clamped_indirect;
+    r.tickets.merge(std::mem::take(&mut out.tickets));
+    r.bytes += sent.bytes;
+    r.rays_sent += sent.rays;
+    r.traffic.add(&sent.traffic);
 }
 
 impl Onward for Links {

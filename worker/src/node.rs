@@ -19,7 +19,7 @@
 //! (the report messages the job actors send). This file only composes them: no module
 //! imports it.
 //!
-//! Shutdown is in one place, [`run`]: a stop signal every task watches, the tracing
+//! Shutdown is in one place, `Running::stop`: a stop signal every task watches, the tracing
 //! threads joined, every job released and its actor joined, the peer and cache links
 //! ended, the server stopped.
 
@@ -30,6 +30,7 @@ use std::time::Duration;
 use tokio::net::TcpListener;
 use tokio::sync::watch;
 
+use crate::config::Limits;
 pub use crate::config::{NodeError, WorkerConfig};
 use crate::coordinator_link::{self, Owners};
 use crate::domain_store::DomainStore;
@@ -58,30 +59,15 @@ pub async fn run(
     // A bad --name is refused before anything is dialled.
     let name = config.resolved_name(&hostname())?;
     let channel = coordinator_link::connect(&config, config.connect_timeout).await?;
-    let threads = if config.threads == 0 {
-        std::thread::available_parallelism().map_or(1, |n| n.get())
-    } else {
-        config.threads
-    };
+    let threads = tracing_threads(&config);
     let limits = config.limits();
     let site = Site::new(&config, name, threads, &channel)?;
     let member = Arc::new(Member::new(channel));
     let wake = Arc::new(Wake::default());
     let queues = Arc::new(RayQueues::new(limits.queue_capacity));
-    let store = DomainStore::new(limits.domain_bytes, config.load_delay).with_note(
-        if config.memory_budget > 0 {
-            format!(
-                " of the --memory-budget of {} bytes; the rest holds up to {} queued rays",
-                config.memory_budget,
-                limits.queue_capacity + limits.in_flight_limit
-            )
-        } else {
-            String::new()
-        },
-    );
     let workload = Arc::new(Workload::new(
         queues.clone(),
-        store,
+        domain_store(&config, &limits),
         wake.clone(),
         limits.in_flight_limit,
     ));
@@ -100,13 +86,7 @@ pub async fn run(
              streams are open to anyone who reaches its ports"
         );
     }
-    let weak = Arc::downgrade(&wake);
-    queues.on_data(move || {
-        if let Some(w) = weak.upgrade() {
-            w.notify();
-        }
-    });
-
+    wake_on_data(&queues, &wake);
     let peer_server = PeerServer::new(
         queues.clone(),
         PeerServerConfig {
@@ -121,20 +101,18 @@ pub async fn run(
         peer_server.clone(),
         stop_rx.clone(),
     ));
-
-    let mut tracers = Vec::new();
-    for i in 0..threads {
-        let (w, l, m) = (workload.clone(), links.clone(), member.clone());
-        let t = std::thread::Builder::new()
-            .name(format!("dray-trace-{i}"))
-            .spawn(move || crate::work::tracer_thread(&w, &l, &m))
-            .map_err(|e| NodeError::Threads(e.to_string()))?;
-        tracers.push(t);
-    }
-    let owners = Owners {
-        member,
+    let tracers = spawn_tracers(threads, &workload, &links, &member)?;
+    let running = Running {
+        stop: stop_tx,
         workload: workload.clone(),
         links: links.clone(),
+        tracers,
+        server,
+    };
+    let owners = Owners {
+        member,
+        workload,
+        links,
         site,
     };
     let session = coordinator_link::sessions(
@@ -149,24 +127,96 @@ pub async fn run(
         r = session => r,
         _ = shutdown => Ok(()),
     };
-    // The one place the worker stops.
-    let _ = stop_tx.send(true);
-    workload.stop();
-    for t in tracers {
-        let _ = t.join();
+    running.stop(result).await
+}
+
+/// Tracing threads: `--threads`, or one per core when it is 0.
+fn tracing_threads(config: &WorkerConfig) -> usize {
+    if config.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        config.threads
     }
-    for j in workload.jobs().release_all() {
-        workload.forget(&j.key.id, j.key.attempt);
+}
+
+/// The store of resident domains, within `limits`; its refusals name the memory
+/// budget they come from, when there is one.
+fn domain_store(config: &WorkerConfig, limits: &Limits) -> DomainStore {
+    DomainStore::new(limits.domain_bytes, config.load_delay).with_note(
+        if config.memory_budget > 0 {
+            format!(
+                " of the --memory-budget of {} bytes; the rest holds up to {} queued rays",
+                config.memory_budget,
+                limits.queue_capacity + limits.in_flight_limit
+            )
+        } else {
+            String::new()
+        },
+    )
+}
+
+/// Rays pushed into `queues` wake an idle tracing thread (the hook holds the wake
+/// weakly: the queues never keep it alive).
+fn wake_on_data(queues: &RayQueues, wake: &Arc<Wake>) {
+    let weak = Arc::downgrade(wake);
+    queues.on_data(move || {
+        if let Some(w) = weak.upgrade() {
+            w.notify();
+        }
+    });
+}
+
+/// Start `threads` tracing threads over `workload`, their rays leaving through `links`.
+fn spawn_tracers(
+    threads: usize,
+    workload: &Arc<Workload>,
+    links: &Arc<Links>,
+    member: &Arc<Member>,
+) -> Result<Vec<std::thread::JoinHandle<()>>, NodeError> {
+    let mut tracers = Vec::new();
+    for i in 0..threads {
+        let (w, l, m) = (workload.clone(), links.clone(), member.clone());
+        let t = std::thread::Builder::new()
+            .name(format!("dray-trace-{i}"))
+            .spawn(move || crate::work::tracer_thread(&w, &l, &m))
+            .map_err(|e| NodeError::Threads(e.to_string()))?;
+        tracers.push(t);
     }
-    workload.jobs().join_actors().await;
-    // End the streams to peers, so their servers can stop too, then our own server,
-    // giving it a moment to finish its streams.
-    links.close().await;
-    match tokio::time::timeout(Duration::from_secs(2), server).await {
-        Ok(Ok(Err(e))) if result.is_ok() => return Err(NodeError::Serve(e.to_string())),
-        _ => {}
+    Ok(tracers)
+}
+
+/// What a started worker stops: the stop signal every task watches, the tracing
+/// threads, the jobs, the links and the server.
+struct Running {
+    stop: watch::Sender<bool>,
+    workload: Arc<Workload>,
+    links: Arc<Links>,
+    tracers: Vec<std::thread::JoinHandle<()>>,
+    server: tokio::task::JoinHandle<Result<(), String>>,
+}
+
+impl Running {
+    /// The one place the worker stops, after its session ended with `result`; a server
+    /// that failed is the error when the session was not.
+    async fn stop(self, result: Result<(), NodeError>) -> Result<(), NodeError> {
+        let _ = self.stop.send(true);
+        self.workload.stop();
+        for t in self.tracers {
+            let _ = t.join();
+        }
+        for j in self.workload.jobs().release_all() {
+            self.workload.forget(&j.key.id, j.key.attempt);
+        }
+        self.workload.jobs().join_actors().await;
+        // End the streams to peers, so their servers can stop too, then our own server,
+        // giving it a moment to finish its streams.
+        self.links.close().await;
+        match tokio::time::timeout(Duration::from_secs(2), self.server).await {
+            Ok(Ok(Err(e))) if result.is_ok() => return Err(NodeError::Serve(e.to_string())),
+            _ => {}
+        }
+        result
     }
-    result
 }
 
 /// The worker's gRPC server (ray streams, health, reflection) until `stop`.
