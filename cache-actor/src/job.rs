@@ -15,7 +15,7 @@ use glam::Vec3;
 
 use crate::actor::WallHandle;
 use crate::error::HostError;
-use crate::settings::{CacheSettings, HitMapSettings, SettingsError};
+use crate::settings::{CacheSettings, HitMapSettings, SettingsError, WallSettings};
 use crate::ticket_id;
 
 /// Walls one job attempt may open on one host: an actor each, so this bounds the tasks
@@ -72,16 +72,10 @@ pub(crate) fn plan(req: &OpenWallsRequest) -> Result<OpenPlan, HostError> {
     if req.settings.is_none() && req.phm.is_none() {
         return Err(SettingsError::Neither.into());
     }
-    let settings = req
-        .settings
-        .as_ref()
-        .map(|s| CacheSettings::from_proto(Some(s)))
-        .transpose()?;
-    let phm = req
-        .phm
-        .as_ref()
-        .map(HitMapSettings::from_proto)
-        .transpose()?;
+    let WallSettings {
+        ray_cache: settings,
+        phm,
+    } = WallSettings::from_proto(req.settings.as_ref(), req.phm.as_ref())?;
     if req.scene_bounds.len() != 6 {
         return Err(HostError::SceneBounds(format!(
             "expected 6 floats, got {}",

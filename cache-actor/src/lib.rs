@@ -13,7 +13,10 @@
 //! outcomes teach the map.
 //!
 //! How the parts fit:
-//! - [`settings`]: the job's knobs, validated once.
+//! - [`settings`]: the job's cache knobs, parsed once into typed values (the
+//!   coordinator, the workers and the hosts all read them there).
+//! - [`bounds`]: the largest values a job may ask for, shared by the coordinator and
+//!   the workers.
 //! - [`store`]: one wall's crossings over a k-d tree, with answers that do not depend
 //!   on the order entries arrived in.
 //! - [`tickets`]: one wall's open tickets, closed exactly once by credit.
@@ -29,6 +32,7 @@
 //! [`CacheHost::close_walls`] directly.
 
 pub mod actor;
+pub mod bounds;
 pub mod entry_record;
 pub mod error;
 mod exchange;
@@ -52,7 +56,10 @@ pub use job::MAX_WALLS_PER_JOB;
 pub use phm::MapView;
 pub use phm::{Advice, Decision, HitMap};
 pub use server::{ServeError, serve};
-pub use settings::{CacheSettings, HitMapSettings, PhmMode, Retrieve, SettingsError};
+pub use settings::{
+    CacheSettings, CoarseSampling, HitMapSettings, Named, PhmMode, Placement, Retrieve,
+    SettingsError, WallSettings,
+};
 pub use stats::{MapStats, WallStats};
 pub use store::Entry;
 pub use store_view::StoreView;

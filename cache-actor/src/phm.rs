@@ -479,7 +479,7 @@ mod tests {
     fn settings(edit: impl FnOnce(&mut PhmSettings)) -> HitMapSettings {
         let mut p = PhmSettings::default();
         edit(&mut p);
-        HitMapSettings::from_proto(&p).unwrap()
+        HitMapSettings::from_proto(&p, crate::settings::Placement::DEFAULT).unwrap()
     }
 
     /// Wall 4: face -z of domain 0, the unit cube.

@@ -46,7 +46,7 @@ pub struct ClusterArgs {
     /// The coordinator listens on 127.0.0.1:P, worker i on 127.0.0.1:P+i. With 0 each
     /// member binds a port the system chooses (the coordinator first, whose address the
     /// workers are then given); the lines printed before the ready line name them.
-    #[arg(long, default_value_t = 50051)]
+    #[arg(long, default_value_t = dray_net::DEFAULT_PORT)]
     pub base_port: u16,
     /// The coordinator's scene root (scene paths in jobs are resolved against it).
     #[arg(long)]

@@ -471,10 +471,10 @@ fn dashboard_exposure(
     )))
 }
 
-/// `--max-jobs`: 1..=[`MAX_COORDINATOR_JOBS`](dray_worker::setup_bounds::MAX_COORDINATOR_JOBS),
+/// `--max-jobs`: 1..=[`MAX_COORDINATOR_JOBS`](dray_cache::bounds::MAX_COORDINATOR_JOBS),
 /// so a worker never refuses a job the coordinator admitted.
 fn parse_max_jobs(s: &str) -> Result<usize, String> {
-    let max = dray_worker::setup_bounds::MAX_COORDINATOR_JOBS;
+    let max = dray_cache::bounds::MAX_COORDINATOR_JOBS;
     match s.parse::<usize>() {
         Ok(n) if (1..=max).contains(&n) => Ok(n),
         _ => Err(format!("expected a whole number in 1..={max}")),

@@ -18,14 +18,17 @@ use tonic_health::pb::health_client::HealthClient;
 
 use crate::net_flags::TlsArgs;
 
-/// The address checked when none is given: the coordinator's conventional port on this
-/// host (the image sets `DRAY_HEALTH_ADDR`; a worker's container sets it to its port).
-pub const DEFAULT_ADDR: &str = "127.0.0.1:50051";
+/// The address checked when none is given: the coordinator's conventional port
+/// ([`dray_net::DEFAULT_PORT`]) on this host (the image sets `DRAY_HEALTH_ADDR`; a
+/// worker's container sets it to its port).
+pub fn default_addr() -> String {
+    format!("127.0.0.1:{}", dray_net::DEFAULT_PORT)
+}
 
 #[derive(Args, Debug)]
 pub struct HealthArgs {
     /// The server: host:port, http://host:port or https://host:port.
-    #[arg(value_name = "ADDR", env = "DRAY_HEALTH_ADDR", default_value = DEFAULT_ADDR)]
+    #[arg(value_name = "ADDR", env = "DRAY_HEALTH_ADDR", default_value_t = default_addr())]
     pub addr: String,
     /// The service whose status to ask for, e.g. dray.v1.RenderService (default: the
     /// server as a whole).

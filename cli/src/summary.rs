@@ -7,6 +7,7 @@ use dray_core::display::Display;
 use dray_core::integrator::{RayKind, RenderSettings};
 use dray_core::render::{RayCounts, RenderOutput};
 use dray_core::scene::Scene;
+use dray_net::traffic::TrafficKind;
 use dray_proto::v1::{JobStats, PhmStats, RayCacheStats, TrafficStats};
 use serde::Serialize;
 
@@ -363,41 +364,33 @@ pub struct Scheduling {
 }
 
 /// Bytes between processes by kind (`JobStats.traffic`; docs/caches.md "Statistics"
-/// says what each covers), as the `--stats` JSON spells them.
-#[derive(Serialize, Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct TrafficSummary {
-    /// Ray batches between workers (records and their tickets).
-    pub rays: u64,
-    /// Cache lookups sent, and their answers received.
-    pub lookups: u64,
-    pub answers: u64,
-    /// Ticket returns sent and acknowledged.
-    pub ticket_returns: u64,
-    /// Sender placement's replica copies, both directions.
-    pub entry_copies: u64,
-    /// Hit-map outcomes sent and acknowledged.
-    pub map_outcomes: u64,
-    /// Sender placement's hit-map merges sent and acknowledged.
-    pub map_merges: u64,
-    /// The sum of the kinds.
-    pub total: u64,
-    /// Cache-link messages, both directions (ray batches not counted).
-    pub cache_messages: u64,
-}
+/// says what each covers), as the `--stats` JSON spells them: each kind under its name
+/// ([`TrafficKind::name`]), in the proto's order, then `total` (the sum of the kinds)
+/// and `cache_messages` (cache-link messages, both directions; ray batches not counted).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct TrafficSummary(TrafficStats);
 
 impl TrafficSummary {
     pub fn of(t: &TrafficStats) -> TrafficSummary {
-        TrafficSummary {
-            rays: t.rays,
-            lookups: t.lookups,
-            answers: t.answers,
-            ticket_returns: t.ticket_returns,
-            entry_copies: t.entry_copies,
-            map_outcomes: t.map_outcomes,
-            map_merges: t.map_merges,
-            total: t.total,
-            cache_messages: t.cache_messages,
+        TrafficSummary(*t)
+    }
+
+    /// The sum of the kinds.
+    pub fn total(&self) -> u64 {
+        self.0.total
+    }
+}
+
+impl Serialize for TrafficSummary {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        use serde::ser::SerializeMap;
+        let mut m = s.serialize_map(Some(TrafficKind::COUNT + 2))?;
+        for k in TrafficKind::ALL {
+            m.serialize_entry(k.name(), &k.get(&self.0))?;
         }
+        m.serialize_entry("total", &self.0.total)?;
+        m.serialize_entry("cache_messages", &self.0.cache_messages)?;
+        m.end()
     }
 }
 
@@ -531,7 +524,7 @@ impl Scheduling {
                 } else {
                     String::new()
                 },
-                self.traffic.total,
+                self.traffic.total(),
                 self.cpu_seconds
             )
         })

@@ -178,7 +178,8 @@ impl Coordinator {
         max_job_bytes: u64,
         retention: crate::jobs::Retention,
     ) -> Coordinator {
-        self.limits.max_jobs = max_jobs;
+        // Never more than a worker holds (`dray_cache::bounds::MAX_COORDINATOR_JOBS`).
+        self.limits.max_jobs = max_jobs.min(dray_cache::bounds::MAX_COORDINATOR_JOBS);
         self.limits.max_job_bytes = max_job_bytes;
         // Finished images count against a memory budget too: by default the same bytes
         // one job may take.

@@ -4,6 +4,7 @@
 //! reports themselves (`JobStats.reports`), which the coordinator measures as it
 //! applies each one, since a report cannot carry its own size.
 
+use dray_net::traffic::TrafficKind;
 use dray_proto::v1::{ReportContributionsRequest, ReportStats, TrafficStats};
 use prost::Message;
 
@@ -24,49 +25,31 @@ pub fn add_report(a: &mut ReportStats, r: &ReportContributionsRequest) {
 /// Add the worker's delta `b` into `a` (saturating), and make `a.total` the sum of its
 /// kinds (a worker's `total` is ignored: the coordinator sums).
 pub fn add(a: &mut TrafficStats, b: &TrafficStats) {
-    let sum = |x: &mut u64, y: u64| *x = x.saturating_add(y);
-    sum(&mut a.rays, b.rays);
-    sum(&mut a.lookups, b.lookups);
-    sum(&mut a.answers, b.answers);
-    sum(&mut a.ticket_returns, b.ticket_returns);
-    sum(&mut a.entry_copies, b.entry_copies);
-    sum(&mut a.map_outcomes, b.map_outcomes);
-    sum(&mut a.map_merges, b.map_merges);
-    sum(&mut a.cache_messages, b.cache_messages);
-    a.total = [
-        a.rays,
-        a.lookups,
-        a.answers,
-        a.ticket_returns,
-        a.entry_copies,
-        a.map_outcomes,
-        a.map_merges,
-    ]
-    .iter()
-    .fold(0u64, |s, x| s.saturating_add(*x));
+    for k in TrafficKind::ALL {
+        let x = k.get_mut(a);
+        *x = x.saturating_add(k.get(b));
+    }
+    a.cache_messages = a.cache_messages.saturating_add(b.cache_messages);
+    a.total = TrafficKind::sum(&TrafficKind::ALL, a);
 }
 
-/// `saved` bytes less the `costs`, as a signed count (clamped to i64's range).
-fn net(saved: u64, costs: &[u64]) -> i64 {
-    let cost = costs.iter().fold(0u64, |s, x| s.saturating_add(*x));
+/// `saved` bytes less the `costs` kinds of `t`, as a signed count (clamped to i64's
+/// range).
+fn net(saved: u64, costs: &[TrafficKind], t: &TrafficStats) -> i64 {
     let clamp = |x: u64| i64::try_from(x).unwrap_or(i64::MAX);
-    clamp(saved).saturating_sub(clamp(cost))
+    clamp(saved).saturating_sub(clamp(TrafficKind::sum(costs, t)))
 }
 
-/// Ray caches' `bytes_not_sent` less lookups, answers, ticket returns and entry copies.
+/// Ray caches' `bytes_not_sent` less what they cost ([`TrafficKind::CACHE_COSTS`]:
+/// lookups, answers, ticket returns and entry copies).
 pub fn cache_net(bytes_not_sent: u64, t: &TrafficStats) -> i64 {
-    net(
-        bytes_not_sent,
-        &[t.lookups, t.answers, t.ticket_returns, t.entry_copies],
-    )
+    net(bytes_not_sent, &TrafficKind::CACHE_COSTS, t)
 }
 
-/// Hit maps' `bytes_not_sent` less lookups, answers, map outcomes and map merges.
+/// Hit maps' `bytes_not_sent` less what they cost ([`TrafficKind::PHM_COSTS`]: lookups,
+/// answers, map outcomes and map merges).
 pub fn phm_net(bytes_not_sent: u64, t: &TrafficStats) -> i64 {
-    net(
-        bytes_not_sent,
-        &[t.lookups, t.answers, t.map_outcomes, t.map_merges],
-    )
+    net(bytes_not_sent, &TrafficKind::PHM_COSTS, t)
 }
 
 #[cfg(test)]

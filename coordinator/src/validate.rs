@@ -10,14 +10,15 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
+use dray_cache::bounds;
+use dray_cache::settings::{CoarseSampling, WallSettings};
 use dray_core::aov::AovSet;
 use dray_core::camera::Camera;
 use dray_core::effects::Effect;
-use dray_core::integrator::{IntegratorKind, RayKind, RenderSettings};
-use dray_core::kind_set::KindSet;
+use dray_core::integrator::{IntegratorKind, RenderSettings};
 use dray_core::lighting::Lighting;
 use dray_core::scene::{Mesh, Scene};
-use dray_proto::v1::{JobSpec, PhmSettings, RayCacheSettings};
+use dray_proto::v1::JobSpec;
 use dray_scene::partition::manifest::MANIFEST_FILE;
 use dray_scene::partition::open_package;
 use glam::Vec3;
@@ -48,23 +49,44 @@ pub struct Limits {
 }
 
 impl Limits {
-    /// The default [`Limits::max_side`], and `dray render`'s.
-    pub const MAX_SIDE: u32 = 16384;
+    /// The default [`Limits::max_side`], and `dray render`'s: the bound workers hold
+    /// jobs to ([`dray_cache::bounds`]), which also caps a configured limit.
+    pub const MAX_SIDE: u32 = bounds::MAX_SIDE;
     /// The default [`Limits::max_spp`], and `dray render`'s.
     /// The film is sized for it (`dray_core::film::MAX_SPP`).
-    pub const MAX_SPP: u32 = dray_core::film::MAX_SPP;
+    pub const MAX_SPP: u32 = bounds::MAX_SPP;
     /// The default [`Limits::max_depth`], and `dray render`'s.
     /// Tiles' credit is sized for it (`dray_core::integrator::MAX_DEPTH`).
-    pub const MAX_DEPTH: u32 = dray_core::integrator::MAX_DEPTH;
+    pub const MAX_DEPTH: u32 = bounds::MAX_DEPTH;
     /// The default [`Limits::max_ao_samples`], and `dray render`'s.
-    pub const MAX_AO_SAMPLES: u32 = 4096;
+    pub const MAX_AO_SAMPLES: u32 = bounds::MAX_AO_SAMPLES;
     /// The default [`Limits::max_domains`], and `dray render`'s.
-    pub const MAX_DOMAINS: u32 = 65536;
+    pub const MAX_DOMAINS: u32 = bounds::MAX_DOMAINS;
     /// The default [`Limits::max_label`].
     pub const MAX_LABEL: usize = 256;
-    /// The default [`Limits::max_jobs`] (`dray coordinator --max-jobs`).
+    /// The default [`Limits::max_jobs`] (`dray coordinator --max-jobs`), within
+    /// [`bounds::MAX_COORDINATOR_JOBS`].
     pub const MAX_JOBS: usize = 64;
+
+    /// These limits, each capped by the bound the workers hold jobs to
+    /// ([`dray_cache::bounds`]): a coordinator configured beyond them could otherwise
+    /// admit jobs every worker refuses.
+    pub fn capped(&self) -> Limits {
+        Limits {
+            max_side: self.max_side.min(bounds::MAX_SIDE),
+            max_spp: self.max_spp.min(bounds::MAX_SPP),
+            max_depth: self.max_depth.min(bounds::MAX_DEPTH),
+            max_ao_samples: self.max_ao_samples.min(bounds::MAX_AO_SAMPLES),
+            max_domains: self.max_domains.min(bounds::MAX_DOMAINS),
+            max_jobs: self.max_jobs.min(bounds::MAX_COORDINATOR_JOBS),
+            ..self.clone()
+        }
+    }
 }
+
+// Tiles are never larger than a worker accepts (`dray_worker::setup_bounds`).
+const _: () = assert!(crate::dispatch::TILE_SIZE <= bounds::MAX_SIDE);
+const _: () = assert!(Limits::MAX_JOBS <= bounds::MAX_COORDINATOR_JOBS);
 
 impl Default for Limits {
     fn default() -> Limits {
@@ -90,14 +112,6 @@ pub const DEFAULT_MAX_DEPTH: u32 = 5;
 pub const DEFAULT_AO_SAMPLES: u32 = 16;
 /// Default domain layout.
 pub const DEFAULT_LAYOUT: &str = "kd";
-/// Default `ray_cache.angle_deg`, degrees.
-pub const DEFAULT_CACHE_ANGLE_DEG: f32 = 10.0;
-/// Default `ray_cache.retrieve`.
-pub const DEFAULT_CACHE_RETRIEVE: &str = "nearest";
-/// The `ray_cache.retrieve` modes.
-pub const CACHE_RETRIEVE_MODES: [&str; 3] = ["first", "nearest", "average"];
-/// Largest `ray_cache.coarse` (a coarse pass of N x N rays).
-pub const MAX_CACHE_COARSE: u32 = 4096;
 
 /// A spec that passed [`validate`]: the spec with defaults filled in, plus parsed values.
 #[derive(Clone, Debug)]
@@ -205,6 +219,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         check_text("ray_cache.kinds", &rc.kinds, MAX_NAME_BYTES)?;
     }
     let mut spec = spec.clone();
+    let limits = &limits.capped();
     check_range("width", spec.width, limits.max_side)?;
     check_range("height", spec.height, limits.max_side)?;
     check_range("spp", spec.spp, limits.max_spp)?;
@@ -315,14 +330,7 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
     let schedule =
         ScheduleRequest::parse(&spec.schedule, spec.replicate).map_err(|e| bad(e.to_string()))?;
     spec.schedule = schedule.name().to_string();
-    if let Some(rc) = spec.ray_cache.as_mut() {
-        check_ray_cache(rc)?;
-    }
-    check_coarse_sampling(&mut spec)?;
-    if let Some(p) = spec.phm.as_mut() {
-        check_phm(p)?;
-        check_phm_placement(p, spec.ray_cache.as_ref())?;
-    }
+    check_caches(&mut spec)?;
     if spec.label.len() > limits.max_label {
         return Err(bad(format!(
             "label: {} bytes is longer than {}",
@@ -363,194 +371,32 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
     })
 }
 
-/// Check the hit-map knobs and fill in their defaults in place (docs/caches.md): res 4
-/// (1..=64), dirs 12 (1..=256), prior 100 (finite, >= 0), miss 0.1 and hit 0.9
-/// (0 <= miss <= 0.5 <= hit <= 1), mode consistent, reprobe 0.1 ([0, 1]), kinds shadow,
-/// merge 4096 (>= 1).
-pub fn check_phm(p: &mut PhmSettings) -> Result<(), Status> {
-    let res = *p.res.get_or_insert(4);
-    if !(1..=64).contains(&res) {
-        return Err(bad(format!("phm.res must be in 1..=64 texels, got {res}")));
-    }
-    let dirs = *p.dirs.get_or_insert(12);
-    if !(1..=256).contains(&dirs) {
-        return Err(bad(format!("phm.dirs must be in 1..=256 bins, got {dirs}")));
-    }
-    let prior = *p.prior.get_or_insert(100.0);
-    if !(prior.is_finite() && prior >= 0.0) {
-        return Err(bad(format!(
-            "phm.prior must be finite and >= 0, got {prior}"
-        )));
-    }
-    let miss = *p.miss.get_or_insert(0.1);
-    let hit = *p.hit.get_or_insert(0.9);
-    if !(0.0..=0.5).contains(&miss) {
-        return Err(bad(format!("phm.miss must be in [0, 0.5], got {miss}")));
-    }
-    if !(0.5..=1.0).contains(&hit) {
-        return Err(bad(format!("phm.hit must be in [0.5, 1], got {hit}")));
-    }
-    if p.mode.is_empty() {
-        p.mode = "consistent".into();
-    }
-    if p.mode != "consistent" && p.mode != "inconsistent" {
-        return Err(bad(format!(
-            "phm.mode must be consistent or inconsistent, got {:?}",
-            p.mode
-        )));
-    }
-    let reprobe = *p.reprobe.get_or_insert(0.1);
-    if !(0.0..=1.0).contains(&reprobe) {
-        return Err(bad(format!("phm.reprobe must be in [0, 1], got {reprobe}")));
-    }
-    let merge = *p.merge.get_or_insert(4096);
-    if merge == 0 {
-        return Err(bad("phm.merge must be at least 1 outcome, got 0".into()));
-    }
-    let kinds = if p.kinds.trim().is_empty() {
-        KindSet::phm_default()
-    } else {
-        KindSet::parse(&p.kinds, &RayKind::ALL).map_err(|e| {
-            bad(format!(
-                "phm.kinds: unknown ray kind {:?} (expected one of {})",
-                e.name, e.allowed
-            ))
-        })?
-    };
-    p.kinds = kinds.names();
-    if p.kinds.is_empty() {
-        return Err(bad("phm.kinds: no ray kind given".into()));
+/// Check the ray-cache and hit-map knobs and `coarse_sampling`, and write them back
+/// resolved (every default filled in, kinds in canonical order), so the workers, the
+/// cache hosts and GetJob all read the same settings. The parsing, the defaults, the
+/// bounds and the messages are [`dray_cache::settings`]'s, which the workers and the
+/// cache hosts parse the spec with too.
+pub fn check_caches(spec: &mut JobSpec) -> Result<WallSettings, Status> {
+    let walls = WallSettings::from_proto(spec.ray_cache.as_ref(), spec.phm.as_ref())
+        .map_err(|e| bad(e.to_string()))?;
+    (spec.ray_cache, spec.phm) = walls.to_proto();
+    check_coarse_sampling(spec, walls.coarse())?;
+    Ok(walls)
+}
+
+/// Check `coarse_sampling` and fill in its default ([`CoarseSampling::DEFAULT`]) for a
+/// job with a coarse pass (`coarse` > 0). It places the coarse pass's rays, so without
+/// one it changes nothing (it is still checked, and kept: `dray sweep` checks each
+/// varied value on its own, and a sweep over samplings and coarse sizes includes
+/// coarse 0).
+fn check_coarse_sampling(spec: &mut JobSpec, coarse: u32) -> Result<(), Status> {
+    let sampling =
+        CoarseSampling::from_proto(&spec.coarse_sampling).map_err(|e| bad(e.to_string()))?;
+    if !spec.coarse_sampling.is_empty() || coarse > 0 {
+        spec.coarse_sampling = sampling.name().into();
     }
     Ok(())
 }
-
-/// Check `phm.placement` (after [`check_ray_cache`]) and fill in its default: the ray
-/// cache's placement when the job has one, else sender. A wall's actor holds both its
-/// cache and its map, so the two must agree.
-pub fn check_phm_placement(
-    p: &mut PhmSettings,
-    ray_cache: Option<&RayCacheSettings>,
-) -> Result<(), Status> {
-    if p.placement.is_empty() {
-        p.placement = ray_cache
-            .map_or(CACHE_PLACEMENT_SENDER, |rc| rc.placement.as_str())
-            .to_string();
-    }
-    if ![CACHE_PLACEMENT_SENDER, CACHE_PLACEMENT_REMOTE].contains(&p.placement.as_str()) {
-        return Err(bad(format!(
-            "phm.placement must be sender or remote, got {:?}",
-            p.placement
-        )));
-    }
-    if let Some(rc) = ray_cache
-        && rc.placement != p.placement
-    {
-        return Err(bad(format!(
-            "phm.placement {:?} and ray_cache.placement {:?} must agree: a wall's actor \
-             holds its cache and its map",
-            p.placement, rc.placement
-        )));
-    }
-    Ok(())
-}
-
-/// Check the ray-cache knobs and fill in their defaults in place, so the workers, the
-/// cache hosts and GetJob all read the same resolved settings: `angle_deg` 10,
-/// `retrieve` "nearest", `kinds` all four cacheable kinds (read and written back by
-/// [`KindSet`]: canonical order, no duplicates; shadow and AO rays carry no radiance of
-/// their own, so there is nothing to cache), `fill` true without a coarse pass and false with
-/// one.
-pub fn check_ray_cache(rc: &mut RayCacheSettings) -> Result<(), Status> {
-    if !(rc.radius.is_finite() && rc.radius >= 0.0) {
-        return Err(bad(format!(
-            "ray_cache.radius must be finite and >= 0, got {}",
-            rc.radius
-        )));
-    }
-    let angle = *rc.angle_deg.get_or_insert(DEFAULT_CACHE_ANGLE_DEG);
-    // Written so that NaN fails too.
-    if !(angle > 0.0 && angle <= 90.0) {
-        return Err(bad(format!(
-            "ray_cache.angle_deg must be in (0, 90] degrees, got {angle}"
-        )));
-    }
-    if rc.retrieve.is_empty() {
-        rc.retrieve = DEFAULT_CACHE_RETRIEVE.into();
-    }
-    if !CACHE_RETRIEVE_MODES.contains(&rc.retrieve.as_str()) {
-        return Err(bad(format!(
-            "ray_cache.retrieve must be first, nearest or average, got {:?}",
-            rc.retrieve
-        )));
-    }
-    if rc.coarse > MAX_CACHE_COARSE {
-        return Err(bad(format!(
-            "ray_cache.coarse must be in 0..={MAX_CACHE_COARSE}, got {}",
-            rc.coarse
-        )));
-    }
-    let kinds = KindSet::parse(&rc.kinds, &RayKind::RADIANCE).map_err(|e| {
-        bad(format!(
-            "ray_cache.kinds: {:?} cannot be cached (expected one of {}; shadow and \
-             ao rays carry no radiance of their own)",
-            e.name, e.allowed
-        ))
-    })?;
-    rc.kinds = if kinds.is_empty() {
-        KindSet::cache_default()
-    } else {
-        kinds
-    }
-    .names();
-    // A coarse pass fills the caches, which then stay frozen (the same bits every run;
-    // dray's default, where Little 2011 keeps inserting during the render, which
-    // `fill=true` does); without one, the main pass must fill them or they stay empty.
-    rc.fill.get_or_insert(rc.coarse == 0);
-    if rc.placement.is_empty() {
-        rc.placement = CACHE_PLACEMENT_SENDER.into();
-    }
-    if ![CACHE_PLACEMENT_SENDER, CACHE_PLACEMENT_REMOTE].contains(&rc.placement.as_str()) {
-        return Err(bad(format!(
-            "ray_cache.placement must be sender or remote, got {:?}",
-            rc.placement
-        )));
-    }
-    Ok(())
-}
-
-/// `coarse_sampling`: each coarse-pass ray through its coarse pixel's centre (the
-/// default).
-pub const COARSE_SAMPLING_CENTRES: &str = "centres";
-/// `coarse_sampling`: each coarse-pass ray through a random point of its coarse pixel
-/// (Little 2011's recommendation).
-pub const COARSE_SAMPLING_RANDOM: &str = "random";
-
-/// Check `coarse_sampling` and fill in its default ("centres") for a job with a coarse
-/// pass. It places the coarse pass's rays, so without one it changes nothing (it is
-/// still checked, and kept: `dray sweep` checks each varied value on its own, and a
-/// sweep over samplings and coarse sizes includes coarse 0).
-pub fn check_coarse_sampling(spec: &mut JobSpec) -> Result<(), Status> {
-    let coarse = spec.ray_cache.as_ref().map_or(0, |rc| rc.coarse);
-    let s = &mut spec.coarse_sampling;
-    if s.is_empty() {
-        if coarse > 0 {
-            *s = COARSE_SAMPLING_CENTRES.into();
-        }
-        return Ok(());
-    }
-    if s != COARSE_SAMPLING_CENTRES && s != COARSE_SAMPLING_RANDOM {
-        return Err(bad(format!(
-            "coarse_sampling must be {COARSE_SAMPLING_CENTRES} or {COARSE_SAMPLING_RANDOM}, \
-             got {s:?}"
-        )));
-    }
-    Ok(())
-}
-
-/// `ray_cache.placement`: every worker holds a replica of every wall (the default).
-pub const CACHE_PLACEMENT_SENDER: &str = "sender";
-/// `ray_cache.placement`: each wall once, beside its domain's owner.
-pub const CACHE_PLACEMENT_REMOTE: &str = "remote";
 
 /// Parse effect overrides such as "+specular,-transmission" (a bare name means on).
 pub fn parse_effects(spec: &str) -> Result<Vec<(Effect, bool)>, Status> {
@@ -798,6 +644,7 @@ pub fn choose_camera(scene: &Scene, which: Option<&str>, aspect: f32) -> Result<
 mod tests {
     use super::*;
     use crate::scheduler::Schedule;
+    use dray_proto::v1::{PhmSettings, RayCacheSettings};
 
     fn spec() -> JobSpec {
         JobSpec {
@@ -822,17 +669,17 @@ mod tests {
             ..spec()
         };
         let mut s = with_coarse(16, "");
-        check_coarse_sampling(&mut s).unwrap();
-        assert_eq!(s.coarse_sampling, COARSE_SAMPLING_CENTRES);
+        check_caches(&mut s).unwrap();
+        assert_eq!(s.coarse_sampling, "centres");
         let mut s = with_coarse(0, "");
-        check_coarse_sampling(&mut s).unwrap();
+        check_caches(&mut s).unwrap();
         assert_eq!(s.coarse_sampling, "");
-        for ok in [COARSE_SAMPLING_RANDOM, COARSE_SAMPLING_CENTRES] {
+        for ok in ["random", "centres"] {
             let mut s = with_coarse(16, ok);
-            check_coarse_sampling(&mut s).unwrap();
+            check_caches(&mut s).unwrap();
             assert_eq!(s.coarse_sampling, ok);
         }
-        let e = check_coarse_sampling(&mut with_coarse(16, "jitter")).unwrap_err();
+        let e = check_caches(&mut with_coarse(16, "jitter")).unwrap_err();
         assert!(e.message().starts_with("coarse_sampling must be"), "{e:?}");
     }
 

@@ -63,6 +63,17 @@ impl KindSet {
         Ok(set)
     }
 
+    /// The kinds of `list`, or `default` when it names none (empty, or separators
+    /// only): the one rule every kinds knob follows.
+    pub fn parse_or(
+        list: &str,
+        allowed: &[RayKind],
+        default: KindSet,
+    ) -> Result<KindSet, NotAKind> {
+        let set = KindSet::parse(list, allowed)?;
+        Ok(if set.is_empty() { default } else { set })
+    }
+
     /// Whether `kind` is in the set.
     pub fn contains(self, kind: RayKind) -> bool {
         self.0 & (1 << kind as u8) != 0
@@ -115,6 +126,17 @@ mod tests {
             e.name, "camera+diffuse",
             "the command line's joiner is not the JobSpec's"
         );
+    }
+
+    #[test]
+    fn a_list_naming_no_kind_means_the_default() {
+        let shadow = KindSet::phm_default();
+        for empty in ["", " ", " , ,"] {
+            assert_eq!(KindSet::parse_or(empty, &RayKind::ALL, shadow), Ok(shadow));
+        }
+        let camera = KindSet::parse_or("camera", &RayKind::ALL, shadow).expect("kinds");
+        assert_eq!(camera, KindSet::of(&[RayKind::Camera]));
+        assert!(KindSet::parse_or("light", &RayKind::ALL, shadow).is_err());
     }
 
     #[test]

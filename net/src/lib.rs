@@ -20,6 +20,7 @@
 //! - [`tls`]: certificate files for both sides.
 //! - [`trace`]: W3C trace context in gRPC metadata (when the process exports traces).
 //! - [`contain`]: panics in handlers and tasks become errors with their message.
+//! - [`traffic`]: the kinds of bytes between processes a job's traffic counts.
 
 pub mod admission;
 pub mod auth;
@@ -34,6 +35,11 @@ pub mod peer_pass;
 pub mod server;
 pub mod tls;
 pub mod trace;
+pub mod traffic;
+
+/// The coordinator's conventional port: where `dray cluster` puts it (`--base-port`),
+/// what `dray health` asks by default, and where a worker looks for it by default.
+pub const DEFAULT_PORT: u16 = 50051;
 
 pub use auth::{Access, AuthPolicy};
 pub use client::{AuthChannel, ClientOptions};

@@ -69,7 +69,7 @@ pub struct WorkerConfig {
 impl Default for WorkerConfig {
     fn default() -> Self {
         WorkerConfig {
-            coordinator: "http://127.0.0.1:50051".into(),
+            coordinator: format!("http://127.0.0.1:{}", dray_net::DEFAULT_PORT),
             advertise: None,
             threads: 0,
             memory_budget: 0,

@@ -264,17 +264,11 @@ async fn setup_job(owners: &Owners, setup: JobSetup) {
     workload.store().open(&key, plan.content);
     let span = tracing::info_span!("job", id = %job_id, attempt);
     dray_net::trace::set_parent(&span, &setup.trace_context);
-    let merge_every = setup
-        .spec
-        .as_ref()
-        .and_then(|s| s.phm.as_ref())
-        .and_then(|p| p.merge)
-        .unwrap_or(crate::map_merge::DEFAULT_MERGE_EVERY);
     let trace = owners.site.traffic_trace(&setup, &me);
     let (job, mailbox) = Job::new(key, plan.tracer, plan.source, routes);
     let job = Arc::new(
         job.with_span(span)
-            .with_merges_every(merge_every)
+            .with_merges_every(plan.merge_every)
             .with_trace(trace),
     );
     // Tracing passes ahead when the coordinator asks and the tracer tags them (see

@@ -181,7 +181,7 @@ impl Links {
             t.forward(Sent {
                 domain,
                 rays: n,
-                bytes: report.traffic.rays,
+                bytes: report.traffic.get(crate::traffic::Kind::Rays),
             });
         }
         job.post(report);

@@ -14,9 +14,6 @@
 use std::collections::BTreeMap;
 use std::sync::Mutex;
 
-/// Outcomes gathered before a merge when the job does not say (`PhmSettings.merge`).
-pub const DEFAULT_MERGE_EVERY: u32 = 4096;
-
 /// One merge: per (wall, cell), the hits and misses gathered, in (wall, cell) order.
 pub(crate) type Merge = Vec<(u32, u32, u32, u32)>;
 
@@ -91,7 +88,8 @@ impl MapMerges {
 
 impl Default for MapMerges {
     fn default() -> Self {
-        MapMerges::new(DEFAULT_MERGE_EVERY)
+        // Outcomes gathered before a merge when the job does not say.
+        MapMerges::new(dray_cache::settings::DEFAULT_PHM_MERGE)
     }
 }
 

@@ -5,16 +5,18 @@
 //!
 //! The coordinator resolves every default before it sends the setup, so this file only
 //! reads fields; any disagreement (another manifest, an unknown integrator or effect) is
-//! an error that fails the job rather than a different image.
+//! an error that fails the job rather than a different image. The cache knobs are
+//! parsed by [`dray_cache::settings`], as the coordinator and the cache hosts parse
+//! them.
 
 use std::path::Path;
 use std::sync::Arc;
 
+use dray_cache::settings::{CoarseSampling, DEFAULT_PHM_MERGE, WallSettings};
 use dray_core::aov::AovSet;
 use dray_core::camera::Camera;
 use dray_core::effects::{Effect, Effects};
-use dray_core::integrator::{IntegratorKind, RayKind, RenderSettings};
-use dray_core::kind_set::KindSet;
+use dray_core::integrator::{IntegratorKind, RenderSettings};
 use dray_core::lighting::Lighting;
 use dray_core::sun::Sun;
 use dray_core::wall::PhmBins;
@@ -124,6 +126,9 @@ pub struct JobPlan {
     ///
     /// [`DomainStore::open`]: crate::DomainStore::open
     pub content: Contents,
+    /// Sender placement: outcomes gathered before a hit-map merge (`PhmSettings.merge`,
+    /// see [`crate::map_merge`]).
+    pub merge_every: u32,
 }
 
 /// The content key of a package's domains loaded for `settings`: the package's
@@ -169,9 +174,10 @@ pub fn plan_job_with(
     fetcher: Option<&Arc<PackageFetcher>>,
 ) -> Result<JobPlan, JobError> {
     let mut settings = settings(setup)?;
+    let walls = walls(setup)?;
     settings.lighting.env_map = crate::env_map::job_env_map(setup, memory, fetcher)?;
     if is_memory_package(&setup.package_path) {
-        return memory_plan(setup, settings, memory);
+        return memory_plan(setup, settings, &walls, memory);
     }
     let pkg_err = |message: String| JobError::Package {
         path: setup.package_path.clone(),
@@ -214,13 +220,21 @@ pub fn plan_job_with(
         .iter()
         .map(|d| d.triangles)
         .collect();
-    let tracer = tracer(settings.clone(), camera, package.layout(), &counts, setup)?;
+    let tracer = tracer(
+        settings.clone(),
+        camera,
+        package.layout(),
+        &counts,
+        setup,
+        &walls,
+    )?;
     let contents = disk_contents(&package, &found, &settings);
     let source = domains_of(package, &settings, remote).map_err(|e| pkg_err(e.to_string()))?;
     Ok(JobPlan {
         content: contents,
         tracer,
         source,
+        merge_every: merge_every(&walls),
     })
 }
 
@@ -228,6 +242,7 @@ pub fn plan_job_with(
 fn memory_plan(
     setup: &JobSetup,
     settings: RenderSettings,
+    walls: &WallSettings,
     memory: Option<&MemoryPackages>,
 ) -> Result<JobPlan, JobError> {
     let pkg_err = |message: String| JobError::Package {
@@ -252,7 +267,7 @@ fn memory_plan(
         layout.scene_bounds(),
     )?;
     let counts = package.triangle_counts();
-    let tracer = tracer(settings.clone(), camera, layout, &counts, setup)?;
+    let tracer = tracer(settings.clone(), camera, layout, &counts, setup, walls)?;
     let domains = package
         .domain_contents()
         .iter()
@@ -262,6 +277,7 @@ fn memory_plan(
         content: Contents::per_domain(content(&setup.package_path, &settings), domains),
         tracer,
         source: memory_domains(package, &settings),
+        merge_every: merge_every(walls),
     })
 }
 
@@ -272,8 +288,9 @@ fn tracer(
     layout: &DomainLayout,
     counts: &[u64],
     setup: &JobSetup,
+    walls: &WallSettings,
 ) -> Result<JobTracer, JobError> {
-    let tracer = plain_tracer(settings, camera, layout, counts, setup)?;
+    let tracer = plain_tracer(settings, camera, layout, counts, setup, walls)?;
     if setup.passes_ahead == 0 {
         return Ok(tracer);
     }
@@ -311,7 +328,23 @@ fn plain_tracer(
     layout: &DomainLayout,
     counts: &[u64],
     setup: &JobSetup,
+    walls: &WallSettings,
 ) -> Result<JobTracer, JobError> {
+    let sampling = CoarseSampling::from_proto(
+        setup
+            .spec
+            .as_ref()
+            .map_or("", |s| s.coarse_sampling.as_str()),
+    )
+    .map_err(|e| JobError::Invalid(e.to_string()))?;
+    // Without hit maps no ray consults one, and the binning is the default's.
+    let bins = walls.phm.as_ref().map_or(
+        PhmBins::new(
+            dray_cache::settings::DEFAULT_PHM_RES,
+            dray_cache::settings::DEFAULT_PHM_DIRS,
+        ),
+        |p| p.bins,
+    );
     Ok(JobTracer::new(
         settings,
         camera,
@@ -320,83 +353,27 @@ fn plain_tracer(
         counts,
         setup.tile_size,
     )
-    .with_cached_kinds(cached_kinds(setup)?)
-    .with_phm(phm_kinds(setup)?, phm_bins(setup))
-    .with_fill(
-        setup
-            .spec
-            .as_ref()
-            .and_then(|s| s.ray_cache.as_ref())
-            .map(|rc| rc.fill.unwrap_or(rc.coarse == 0))
-            .unwrap_or(true),
+    .with_cached_kinds(walls.cached_kinds().to_flags())
+    .with_phm(walls.phm_kinds().to_flags(), bins)
+    .with_fill(walls.ray_cache.as_ref().is_none_or(|c| c.fill))
+    .with_coarse(walls.coarse(), sampling == CoarseSampling::Random))
+}
+
+/// The job's ray-cache and hit-map knobs (none without walls), as the coordinator
+/// resolved them.
+fn walls(setup: &JobSetup) -> Result<WallSettings, JobError> {
+    let spec = setup.spec.as_ref();
+    WallSettings::from_proto(
+        spec.and_then(|s| s.ray_cache.as_ref()),
+        spec.and_then(|s| s.phm.as_ref()),
     )
-    .with_coarse(
-        setup
-            .spec
-            .as_ref()
-            .and_then(|s| s.ray_cache.as_ref())
-            .map_or(0, |rc| rc.coarse),
-        coarse_random(setup)?,
-    ))
+    .map_err(|e| JobError::Invalid(e.to_string()))
 }
 
-/// Whether the coarse pass's rays go through random points of their coarse pixels
-/// (`JobSpec.coarse_sampling`, which the coordinator checked and filled in: "centres"
-/// or "random"; empty, for a job without a coarse pass, means centres).
-fn coarse_random(setup: &JobSetup) -> Result<bool, JobError> {
-    match setup
-        .spec
-        .as_ref()
-        .map_or("", |s| s.coarse_sampling.as_str())
-    {
-        "" | "centres" => Ok(false),
-        "random" => Ok(true),
-        other => Err(JobError::Invalid(format!(
-            "coarse_sampling: {other:?} is neither centres nor random"
-        ))),
-    }
-}
-
-/// The ray kinds the job's hit maps serve (none without maps); an empty list means
-/// shadow rays ([`KindSet::phm_default`]).
-fn phm_kinds(setup: &JobSetup) -> Result<[bool; RayKind::COUNT], JobError> {
-    let Some(p) = setup.spec.as_ref().and_then(|s| s.phm.as_ref()) else {
-        return Ok([false; RayKind::COUNT]);
-    };
-    let kinds = KindSet::parse(&p.kinds, &RayKind::ALL)
-        .map_err(|e| JobError::Invalid(format!("phm.kinds: {e}")))?;
-    Ok(if kinds.is_empty() {
-        KindSet::phm_default()
-    } else {
-        kinds
-    }
-    .to_flags())
-}
-
-/// The binning of the job's hit maps (defaults as the coordinator fills them).
-fn phm_bins(setup: &JobSetup) -> PhmBins {
-    let p = setup.spec.as_ref().and_then(|s| s.phm.as_ref());
-    PhmBins::new(
-        p.and_then(|p| p.res).unwrap_or(4),
-        p.and_then(|p| p.dirs).unwrap_or(12),
-    )
-}
-
-/// The ray kinds the job's ray caches look up (none without caches). The coordinator
-/// validated the names and filled in the default; an empty list here still means all
-/// the kinds that carry radiance ([`KindSet::cache_default`]).
-fn cached_kinds(setup: &JobSetup) -> Result<[bool; RayKind::COUNT], JobError> {
-    let Some(rc) = setup.spec.as_ref().and_then(|s| s.ray_cache.as_ref()) else {
-        return Ok([false; RayKind::COUNT]);
-    };
-    let kinds = KindSet::parse(&rc.kinds, &RayKind::RADIANCE)
-        .map_err(|e| JobError::Invalid(format!("ray_cache.kinds: {e}")))?;
-    Ok(if kinds.is_empty() {
-        KindSet::cache_default()
-    } else {
-        kinds
-    }
-    .to_flags())
+/// Outcomes gathered before a hit-map merge (the default without maps, where none is
+/// ever gathered).
+fn merge_every(walls: &WallSettings) -> u32 {
+    walls.phm.as_ref().map_or(DEFAULT_PHM_MERGE, |p| p.merge)
 }
 
 /// The package must be cut as the coordinator said.

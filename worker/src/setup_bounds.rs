@@ -5,32 +5,23 @@
 //! per-domain table of 103 GB and abort (docs/security.md "Hardening, second round", item
 //! 5). Every field that sizes
 //! something (a table, a loop, an image, a string kept with the job) is held here to
-//! the largest value a legitimate coordinator sends: the coordinator's own defaults in
-//! `dray_coordinator::validate::Limits` (a test in `cli/tests/hostile.rs` keeps the two
-//! in step), or a generous bound where the coordinator has none. A setup or routing
-//! table beyond them is refused with an error naming the field and the bound; the job
-//! fails (reported to the coordinator) and the worker goes on serving.
+//! the largest value a legitimate coordinator sends: the bounds of a job
+//! ([`dray_cache::bounds`], the same definition that caps the coordinator's limits, so
+//! nothing the coordinator accepts is refused here), or a generous bound where the
+//! coordinator has none. A setup or routing table beyond them is refused with an error
+//! naming the field and the bound; the job fails (reported to the coordinator) and the
+//! worker goes on serving.
 //!
 //! The number of jobs a worker holds at once is bounded too ([`MAX_JOBS`], see
 //! [`crate::jobs::Jobs::admit`]).
 
 use dray_proto::v1::{JobSetup, RoutingTable};
 
-/// Largest image side (the coordinator's `Limits::max_side`).
-pub const MAX_SIDE: u32 = 16384;
-/// Largest samples per pixel (`Limits::max_spp`).
-pub const MAX_SPP: u32 = 1 << 16;
-/// Largest `max_depth` (`Limits::max_depth`).
-pub const MAX_DEPTH: u32 = 1024;
-/// Largest `ao_samples` (`Limits::max_ao_samples`).
-pub const MAX_AO_SAMPLES: u32 = 4096;
-/// Largest domain count (`Limits::max_domains`).
-pub const MAX_DOMAINS: u32 = 65536;
-/// Largest `ray_cache.coarse` (the coordinator's `MAX_CACHE_COARSE`).
-pub const MAX_COARSE: u32 = 4096;
-/// Largest `phm.res` and `phm.dirs` (the coordinator's `check_phm`).
-pub const MAX_PHM_RES: u32 = 64;
-pub const MAX_PHM_DIRS: u32 = 256;
+pub use dray_cache::bounds::{
+    MAX_AO_SAMPLES, MAX_COARSE, MAX_DEPTH, MAX_DOMAINS, MAX_PHM_DIRS, MAX_PHM_RES, MAX_SIDE,
+    MAX_SPP, MAX_WORKER_JOBS as MAX_JOBS,
+};
+
 /// Largest tile edge: a tile is never larger than the image.
 pub const MAX_TILE_SIZE: u32 = MAX_SIDE;
 /// Most workers and cache hosts a routing table may list (far beyond any cluster).
@@ -43,14 +34,6 @@ pub const MAX_ID_BYTES: usize = 256;
 pub const MAX_PATH_BYTES: usize = 4096;
 /// Most effect names and trace-context entries.
 pub const MAX_NAMES: usize = 64;
-/// Jobs (setups being planned and jobs running) a worker holds at once; more are
-/// refused. A coordinator's `--max-jobs` is at most half of it ([`MAX_COORDINATOR_JOBS`]),
-/// leaving room for jobs that ended at the coordinator while the worker has not yet
-/// released them. About 10 KB a setup: 2.5 MB at the bound.
-pub const MAX_JOBS: usize = 256;
-
-/// The largest `--max-jobs` a coordinator accepts (see [`MAX_JOBS`]).
-pub const MAX_COORDINATOR_JOBS: usize = MAX_JOBS / 2;
 
 /// A field beyond its bound.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

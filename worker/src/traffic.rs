@@ -8,32 +8,20 @@
 //! the bytes the messages take, not estimates; gRPC's 5-byte frame header and HTTP/2
 //! and TLS framing are left out.
 
+use dray_net::traffic::TrafficKind;
 use dray_proto::v1::{RayTicket, TrafficStats};
 use prost::Message;
 
-/// The kind a cache-link message's bytes count as.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum Kind {
-    Lookups,
-    Answers,
-    TicketReturns,
-    EntryCopies,
-    MapOutcomes,
-    MapMerges,
-}
+/// The kind a message's bytes count as (one definition: [`dray_net::traffic`]).
+pub(crate) use dray_net::traffic::TrafficKind as Kind;
 
 /// Byte counters by kind, accumulated between reports.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Traffic {
-    pub rays: u64,
-    pub lookups: u64,
-    pub answers: u64,
-    pub ticket_returns: u64,
-    pub entry_copies: u64,
-    pub map_outcomes: u64,
-    pub map_merges: u64,
+    /// Bytes by kind, indexed by [`TrafficKind::index`].
+    bytes: [u64; TrafficKind::COUNT],
     /// Cache-link messages counted, both directions.
-    pub cache_messages: u64,
+    cache_messages: u64,
 }
 
 impl Traffic {
@@ -42,51 +30,46 @@ impl Traffic {
         *self == Traffic::default()
     }
 
+    /// The bytes counted as `kind`.
+    pub fn get(&self, kind: TrafficKind) -> u64 {
+        self.bytes[kind.index()]
+    }
+
+    /// Cache-link messages counted, both directions (ray batches are not).
+    pub fn cache_messages(&self) -> u64 {
+        self.cache_messages
+    }
+
     /// One cache-link message of `bytes`, as `kind`.
     pub(crate) fn message(&mut self, kind: Kind, bytes: usize) {
-        let b = bytes as u64;
-        match kind {
-            Kind::Lookups => self.lookups += b,
-            Kind::Answers => self.answers += b,
-            Kind::TicketReturns => self.ticket_returns += b,
-            Kind::EntryCopies => self.entry_copies += b,
-            Kind::MapOutcomes => self.map_outcomes += b,
-            Kind::MapMerges => self.map_merges += b,
-        }
+        self.bytes[kind.index()] += bytes as u64;
         self.cache_messages += 1;
     }
 
     /// Ray records of `records` bytes (`dray_core::ray::encoded_len`) and their
     /// `tickets` handed to a peer stream.
     pub(crate) fn rays(&mut self, records: u64, tickets: &[RayTicket]) {
-        self.rays += ray_bytes(records, tickets);
+        self.bytes[Kind::Rays.index()] += ray_bytes(records, tickets);
     }
 
     /// Add `other` into this.
     pub fn add(&mut self, other: &Traffic) {
-        self.rays += other.rays;
-        self.lookups += other.lookups;
-        self.answers += other.answers;
-        self.ticket_returns += other.ticket_returns;
-        self.entry_copies += other.entry_copies;
-        self.map_outcomes += other.map_outcomes;
-        self.map_merges += other.map_merges;
+        for (a, b) in self.bytes.iter_mut().zip(other.bytes) {
+            *a += b;
+        }
         self.cache_messages += other.cache_messages;
     }
 
     /// The counters as a report carries them (`total` is the coordinator's to sum).
     pub fn to_proto(self) -> TrafficStats {
-        TrafficStats {
-            rays: self.rays,
-            lookups: self.lookups,
-            answers: self.answers,
-            ticket_returns: self.ticket_returns,
-            entry_copies: self.entry_copies,
-            map_outcomes: self.map_outcomes,
-            map_merges: self.map_merges,
-            total: 0,
+        let mut t = TrafficStats {
             cache_messages: self.cache_messages,
+            ..TrafficStats::default()
+        };
+        for k in TrafficKind::ALL {
+            *k.get_mut(&mut t) = self.get(k);
         }
+        t
     }
 }
 
@@ -123,17 +106,18 @@ mod tests {
         u.add(&t);
         u.add(&t);
         assert_eq!(
-            (
-                u.lookups,
-                u.answers,
-                u.ticket_returns,
-                u.entry_copies,
-                u.map_outcomes
-            ),
-            (202, 20, 14, 10, 6)
+            [
+                Kind::Lookups,
+                Kind::Answers,
+                Kind::TicketReturns,
+                Kind::EntryCopies,
+                Kind::MapOutcomes,
+            ]
+            .map(|k| u.get(k)),
+            [202, 20, 14, 10, 6]
         );
-        assert_eq!(u.map_merges, 8);
-        assert_eq!(u.cache_messages, 14);
+        assert_eq!(u.get(Kind::MapMerges), 8);
+        assert_eq!(u.cache_messages(), 14);
         let p = u.to_proto();
         assert_eq!(
             (p.lookups, p.map_merges, p.total, p.cache_messages),
@@ -153,7 +137,7 @@ mod tests {
         assert_eq!(ray_bytes(2 * 64, &[t]), 2 * 64 + 15);
         let mut tr = Traffic::default();
         tr.rays(2 * 50, &[t, t]);
-        assert_eq!(tr.rays, 2 * 50 + 30);
-        assert_eq!(tr.cache_messages, 0, "ray batches are not cache messages");
+        assert_eq!(tr.get(Kind::Rays), 2 * 50 + 30);
+        assert_eq!(tr.cache_messages(), 0, "ray batches are not cache messages");
     }
 }

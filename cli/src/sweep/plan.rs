@@ -549,16 +549,7 @@ pub fn check(tokens: &[String], target: &Target) -> Result<Job, String> {
     let mut spec = f
         .job_spec(f.scene.clone(), 0, "", "")
         .map_err(|e| one_line(&e))?;
-    if let Some(rc) = spec.ray_cache.as_mut() {
-        dray_coordinator::validate::check_ray_cache(rc).map_err(|s| s.message().to_string())?;
-    }
-    dray_coordinator::validate::check_coarse_sampling(&mut spec)
-        .map_err(|s| s.message().to_string())?;
-    if let Some(p) = spec.phm.as_mut() {
-        dray_coordinator::validate::check_phm(p).map_err(|s| s.message().to_string())?;
-        dray_coordinator::validate::check_phm_placement(p, spec.ray_cache.as_ref())
-            .map_err(|s| s.message().to_string())?;
-    }
+    dray_coordinator::validate::check_caches(&mut spec).map_err(|s| s.message().to_string())?;
     Ok(job)
 }
 

@@ -7,6 +7,7 @@
 
 use std::fmt::Write as _;
 
+use dray_net::traffic::TrafficKind;
 use serde_json::Value;
 
 use super::metrics::Errors;
@@ -32,18 +33,13 @@ pub const RAY_CACHE_COLUMNS: [&str; 16] = [
     "rays_bypassed",
 ];
 
-/// Bytes between processes by kind: CSV column and key under `--stats`' `traffic`
-/// (docs/caches.md "Statistics"). With `--repeat`, from the round whose stats the row
-/// keeps (byte counts hardly move between rounds); `bytes_total` is the median.
-pub const TRAFFIC_COLUMNS: [(&str, &str); 7] = [
-    ("bytes_rays", "rays"),
-    ("bytes_lookups", "lookups"),
-    ("bytes_answers", "answers"),
-    ("bytes_ticket_returns", "ticket_returns"),
-    ("bytes_entry_copies", "entry_copies"),
-    ("bytes_map_outcomes", "map_outcomes"),
-    ("bytes_map_merges", "map_merges"),
-];
+/// Bytes between processes by kind (`dray_net::traffic::TrafficKind`): CSV column
+/// `bytes_<kind>` for key `<kind>` under `--stats`' `traffic` (docs/caches.md
+/// "Statistics"). With `--repeat`, from the round whose stats the row keeps (byte counts
+/// hardly move between rounds); `bytes_total` is the median.
+fn traffic_column(k: TrafficKind) -> String {
+    format!("bytes_{}", k.name())
+}
 
 /// The hit-map statistics: CSV column and key under `--stats`' `phm`.
 pub const PHM_COLUMNS: [(&str, &str); 7] = [
@@ -169,7 +165,7 @@ pub fn header(keys: &[String]) -> Vec<String> {
         ]
         .map(String::from),
     );
-    h.extend(TRAFFIC_COLUMNS.map(|(c, _)| c.to_string()));
+    h.extend(TrafficKind::ALL.map(traffic_column));
     h.extend(RAY_CACHE_COLUMNS.map(String::from));
     h.extend(PHM_COLUMNS.map(|(c, _)| c.to_string()));
     h.extend(["rmse", "rmse_linear", "psnr", "flip"].map(String::from));
@@ -206,7 +202,7 @@ pub fn csv(keys: &[String], rows: &[Row], front: &[bool]) -> String {
         c.push(format!("{:.4}", r.cpu_s));
         c.push(cell(r.stats.get("domain_loads")));
         c.push(cell(r.stats.get("domains_warm")));
-        c.extend(TRAFFIC_COLUMNS.iter().map(|(_, k)| r.traffic(k)));
+        c.extend(TrafficKind::ALL.iter().map(|k| r.traffic(k.name())));
         c.extend(RAY_CACHE_COLUMNS.iter().map(|k| r.ray_cache(k)));
         c.extend(PHM_COLUMNS.iter().map(|(_, k)| r.phm(k)));
         c.push(num(r.errors.rmse));

@@ -12,6 +12,7 @@
 
 use std::sync::Arc;
 
+use dray_cache::settings::{Placement as WallPlacement, WallSettings};
 use dray_proto::v1::{PhmSettings, RayCacheSettings};
 
 use crate::caches::geometry::WallGeometry;
@@ -47,6 +48,9 @@ pub struct JobCaches {
     pub pending: Option<u32>,
     /// How to reach the cache hosts (the cluster token, TLS).
     pub net: dray_net::ClientOptions,
+    /// Where the walls are, parsed from the knobs (`None`: no walls, or knobs that
+    /// failed to parse, which validation keeps from happening).
+    placement: Option<WallPlacement>,
 }
 
 impl JobCaches {
@@ -57,7 +61,12 @@ impl JobCaches {
         geometry: Arc<WallGeometry>,
         net: dray_net::ClientOptions,
     ) -> JobCaches {
+        let placement = WallSettings::from_proto(settings.as_ref(), phm.as_ref())
+            .inspect_err(|e| tracing::warn!("a job's cache settings do not parse: {e}"))
+            .ok()
+            .and_then(|w| w.placement());
         JobCaches {
+            placement,
             tally: Arc::new(CacheTally::new(settings.is_some(), phm.is_some())),
             settings,
             phm,
@@ -73,15 +82,7 @@ impl JobCaches {
     /// does not replicate; after Bolstad 2017's per-server map proxies for hit maps).
     /// Validation made the two settings agree when the job has both.
     pub fn sender_placement(&self) -> bool {
-        let sender = crate::validate::CACHE_PLACEMENT_SENDER;
-        let cache = self.settings.as_ref().map(|s| s.placement == sender);
-        let phm = self.phm.as_ref().map(|p| p.placement == sender);
-        match (cache, phm) {
-            (None, None) => false,
-            (Some(c), None) => c,
-            (None, Some(p)) => p,
-            (Some(c), Some(p)) => c && p,
-        }
+        self.placement == Some(WallPlacement::Sender)
     }
 
     /// What opening attempt `attempt` of `job_id` sends.
