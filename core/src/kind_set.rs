@@ -88,11 +88,6 @@ impl KindSet {
         self.0
     }
 
-    /// Membership by kind, indexed by `kind as usize`.
-    pub fn to_flags(self) -> [bool; RayKind::COUNT] {
-        RayKind::ALL.map(|k| self.contains(k))
-    }
-
     /// The set written as a list: names in [`RayKind::ALL`]'s order, joined with `,`
     /// (the JobSpec's canonical form, without duplicates).
     pub fn names(self) -> String {
@@ -115,7 +110,6 @@ mod tests {
         assert_eq!(s.names(), "camera,diffuse");
         assert!(s.contains(RayKind::Camera) && !s.contains(RayKind::Shadow));
         assert_eq!(s, KindSet::of(&[RayKind::Diffuse, RayKind::Camera]));
-        assert_eq!(s.to_flags(), [true, false, false, false, true, false]);
         assert!(
             KindSet::parse(" , ,", &RayKind::ALL)
                 .expect("empty")

@@ -353,8 +353,8 @@ fn plain_tracer(
         counts,
         setup.tile_size,
     )
-    .with_cached_kinds(walls.cached_kinds().to_flags())
-    .with_phm(walls.phm_kinds().to_flags(), bins)
+    .with_cached_kinds(walls.cached_kinds())
+    .with_phm(walls.phm_kinds(), bins)
     .with_fill(walls.ray_cache.as_ref().is_none_or(|c| c.fill))
     .with_coarse(walls.coarse(), sampling == CoarseSampling::Random))
 }

@@ -55,7 +55,8 @@ use std::sync::Arc;
 use dray_core::camera::Camera;
 use dray_core::credit::{Credit, CreditError};
 use dray_core::domain::{DomainTree, Hop};
-use dray_core::integrator::{Integrator, RayKind, RayState, RenderSettings};
+use dray_core::integrator::{Integrator, RayState, RenderSettings};
+use dray_core::kind_set::KindSet;
 use dray_core::light_sampler::LightSampler;
 use dray_core::scene::Scene;
 use dray_core::tiles::TileGrid;
@@ -132,14 +133,14 @@ pub struct JobTracer {
     bare_lights: Arc<LightSampler>,
     /// Per domain, its box: where walls are.
     bounds: Vec<(Vec3, Vec3)>,
-    /// Per ray kind, whether the job's ray caches look it up (all false: caches off).
-    cached_kinds: [bool; RayKind::COUNT],
+    /// The ray kinds the job's ray caches look up (empty: caches off).
+    cached_kinds: KindSet,
     /// Whether rays of the main pass fill the caches (`ray_cache.fill`); if not, only
     /// the coarse pass's rays take tickets.
     fill: bool,
-    /// Per ray kind, whether the job's hit maps serve it, and the maps' binning (no
-    /// kinds: maps off).
-    phm_kinds: [bool; RayKind::COUNT],
+    /// The ray kinds the job's hit maps serve, and the maps' binning (no kinds: maps
+    /// off).
+    phm_kinds: KindSet,
     phm_bins: PhmBins,
     /// The coarse pass's image edge N (0: no coarse pass), and its tiles (numbered
     /// after the image's).
@@ -174,9 +175,9 @@ impl JobTracer {
         let bare_lights = Arc::new(LightSampler::with_bounds(&bare, false, (tree.lo, tree.hi)));
         JobTracer {
             bounds: tree.domain_bounds(),
-            cached_kinds: [false; RayKind::COUNT],
+            cached_kinds: KindSet::default(),
             fill: true,
-            phm_kinds: [false; RayKind::COUNT],
+            phm_kinds: KindSet::default(),
             phm_bins: PhmBins::new(1, 1),
             coarse: 0,
             coarse_tiles: TileGrid::new(0, 0, tile_size),
@@ -195,7 +196,7 @@ impl JobTracer {
     }
 
     /// Look rays of these kinds up in wall caches (the job's `ray_cache.kinds`).
-    pub fn with_cached_kinds(mut self, kinds: [bool; RayKind::COUNT]) -> JobTracer {
+    pub fn with_cached_kinds(mut self, kinds: KindSet) -> JobTracer {
         self.cached_kinds = kinds;
         self
     }
@@ -213,7 +214,7 @@ impl JobTracer {
     }
 
     /// Consult hit maps binned by `bins` for rays of these kinds (the job's `phm`).
-    pub fn with_phm(mut self, kinds: [bool; RayKind::COUNT], bins: PhmBins) -> JobTracer {
+    pub fn with_phm(mut self, kinds: KindSet, bins: PhmBins) -> JobTracer {
         self.phm_kinds = kinds;
         self.phm_bins = bins;
         self

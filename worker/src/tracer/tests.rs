@@ -13,6 +13,7 @@ use dray_core::camera::Camera;
 use dray_core::credit::Credit;
 use dray_core::film::to_fixed;
 use dray_core::integrator::{IntegratorKind, RayKind, RenderSettings};
+use dray_core::kind_set::KindSet;
 use dray_core::material::Material;
 use dray_core::ray::RayRecord;
 use dray_core::scene::{Mesh, Scene};
@@ -490,8 +491,7 @@ impl Residency for WithWalls {
 fn with_ray_caches_a_crossing_ray_asks_the_wall_first() {
     let f = Fixture::two_domains();
     let (a, b) = f.a_and_b();
-    let mut diffuse = [false; RayKind::COUNT];
-    diffuse[RayKind::Diffuse as usize] = true;
+    let diffuse = KindSet::of(&[RayKind::Diffuse]);
     let tracer = JobTracer::new(
         f.settings.clone(),
         f.camera.clone(),

@@ -107,8 +107,11 @@ impl JobTracer {
         out: &mut Outbox,
     ) {
         let f = &flight;
-        let k = f.ray.kind as usize;
-        let (cache, phm) = (self.cached_kinds[k], self.phm_kinds[k] && !f.lineage.coarse);
+        let k = f.ray.kind;
+        let (cache, phm) = (
+            self.cached_kinds.contains(k),
+            self.phm_kinds.contains(k) && !f.lineage.coarse,
+        );
         if ctx.pins.walls() && (cache || phm) {
             let face = self
                 .bounds
