@@ -7,6 +7,9 @@
 //!   positive and finite time, and a slower link giving a longer time. SimGrid is
 //!   fetched by `benches/sim/setup.sh`; when it cannot be, the test says so and fails
 //!   under `CI=true` (it is skipped, loudly, elsewhere);
+//! - cache-link messages (`cache` records) add up, kind by kind, to the job's traffic
+//!   between processes under both placements, with ray caches and with hit maps, and the
+//!   replay sends every one of them between two nodes;
 //! - bad uses are refused, naming the flag (`--trace-out` without workers, a
 //!   `dray worker --trace-dir` that is no directory).
 
@@ -60,15 +63,26 @@ const JOB: [&str; 13] = [
 /// Render a small path-traced job on `workers` in-process workers with a trace; the
 /// trace's records and the `--stats` JSON.
 fn record(dir: &Path, workers: u32) -> (PathBuf, Vec<Value>, Value) {
-    let trace = dir.join(format!("trace-{workers}.jsonl"));
-    let stats = dir.join(format!("stats-{workers}.json"));
+    record_with(dir, &workers.to_string(), workers, &[])
+}
+
+/// [`record`] with more flags, in files named by `tag`.
+fn record_with(
+    dir: &Path,
+    tag: &str,
+    workers: u32,
+    flags: &[&str],
+) -> (PathBuf, Vec<Value>, Value) {
+    let trace = dir.join(format!("trace-{tag}.jsonl"));
+    let stats = dir.join(format!("stats-{tag}.json"));
     let mut cmd = dray();
     cmd.args(["render", "-q"])
         .args(JOB)
+        .args(flags)
         .arg("--workers")
         .arg(workers.to_string())
         .arg("--output")
-        .arg(dir.join(format!("img-{workers}.png")))
+        .arg(dir.join(format!("img-{tag}.png")))
         .arg("--stats")
         .arg(&stats)
         .arg("--trace-out")
@@ -85,7 +99,7 @@ fn a_trace_adds_up_to_the_jobs_statistics_and_replays_in_simgrid() {
     let (path, recs, stats) = record(&dir, 2);
     assert!(!recs.is_empty());
     assert!(
-        recs.iter().all(|r| r["v"] == 1),
+        recs.iter().all(|r| r["v"] == 2),
         "every line carries the schema version"
     );
     let of = |kind: &str| -> Vec<&Value> { recs.iter().filter(|r| r["rec"] == kind).collect() };
@@ -161,6 +175,130 @@ fn a_trace_adds_up_to_the_jobs_statistics_and_replays_in_simgrid() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Jobs with ray caches and hit maps on 3 in-process workers, under both placements:
+/// the trace's `cache` lines add up to the job's traffic between processes kind by kind
+/// (bytes, and messages to `cache_messages`), each kind the placement sends is there,
+/// and each worker that sent one declared its own cache host. The replay sends every
+/// message between two nodes at the trace's node count, and takes longer with them
+/// on slow links.
+///
+/// "Add up" allows one thing: a message counted after its worker's last report reached
+/// the coordinator is on the wire, so in the trace, but not in `--stats` (2 runs of 36
+/// on 2026-11-30: a lookup and its answer, or the 2 merges and 2 acks a worker flushes
+/// as the job ends). So the trace may exceed the stats by at most [`LATE`] messages per
+/// worker, and never fall short.
+#[test]
+fn cache_link_messages_add_up_to_the_traffic_by_kind_and_replay() {
+    let dir = common::tmp("traffic-trace-caches");
+    let cache = "radius=15,angle-deg=20,coarse=24,fill=true";
+    let remote = format!("{cache},placement=remote");
+    for (tag, flags, sent) in [
+        (
+            "cache-remote",
+            vec!["--ray-cache", remote.as_str()],
+            &["lookups", "answers", "ticket_returns"][..],
+        ),
+        (
+            "cache-sender",
+            vec!["--ray-cache", cache],
+            &["ticket_returns", "entry_copies"][..],
+        ),
+        (
+            "phm-remote",
+            vec!["--phm", "miss=0.2,hit=0.8,placement=remote"],
+            &["lookups", "answers"][..],
+        ),
+        (
+            "phm-sender",
+            vec!["--phm", "miss=0.2,hit=0.8,merge=64"],
+            &["map_merges"][..],
+        ),
+    ] {
+        let workers = 3;
+        let (path, recs, stats) = record_with(&dir, tag, workers, &flags);
+        let t = &stats["traffic"];
+        let cache: Vec<&Value> = recs.iter().filter(|r| r["rec"] == "cache").collect();
+        let msgs: u64 = cache.iter().map(|r| u(&r["msgs"])).sum();
+        let late = msgs
+            .checked_sub(u(&t["cache_messages"]))
+            .unwrap_or_else(|| {
+                panic!("{tag}: {msgs} messages in the trace, fewer than --stats counts: {t}")
+            });
+        assert!(
+            late <= LATE * workers as u64,
+            "{tag}: {late} messages in the trace beyond --stats: {t}"
+        );
+        // Every kind of cache-link message `--stats` names (all but ray batches).
+        let kinds = t.as_object().expect("traffic by kind").keys();
+        for kind in kinds.filter(|k| !["rays", "total", "cache_messages"].contains(&k.as_str())) {
+            let kind = kind.as_str();
+            let of_kind: Vec<u64> = cache
+                .iter()
+                .filter(|r| r["kind"] == kind)
+                .map(|r| u(&r["bytes"]))
+                .collect();
+            let (bytes, counted) = (of_kind.iter().sum::<u64>(), u(&t[kind]));
+            // At most the `late` largest messages of the kind beyond --stats.
+            let mut largest = of_kind.clone();
+            largest.sort_unstable_by(|a, b| b.cmp(a));
+            let slack: u64 = largest.iter().take(late as usize).sum();
+            assert!(
+                bytes >= counted && bytes - counted <= slack,
+                "{tag}: {kind}: {bytes} bytes in the trace, {counted} in --stats ({late} late messages): {t}"
+            );
+            if late == 0 {
+                assert_eq!(bytes, counted, "{tag}: {kind} bytes: trace against --stats");
+            }
+            if sent.contains(&kind) {
+                assert!(bytes > 0, "{tag}: no {kind} between processes: {t}");
+            }
+        }
+        for r in &cache {
+            assert!(r["dir"] == "sent" || r["dir"] == "received", "{tag}: {r}");
+            assert!(r["host"].is_string() && u(&r["t"]) > 0, "{tag}: {r}");
+        }
+        let senders: std::collections::BTreeSet<&str> =
+            cache.iter().filter_map(|r| r["worker"].as_str()).collect();
+        let declared: std::collections::BTreeSet<&str> = recs
+            .iter()
+            .filter(|r| r["rec"] == "cache_host")
+            .filter_map(|r| r["worker"].as_str())
+            .collect();
+        assert_eq!(
+            senders, declared,
+            "{tag}: a cache_host line per worker that sent"
+        );
+        if tag != "cache-remote" {
+            continue;
+        }
+        let Some(r) = replay(&path, &[]) else {
+            continue;
+        };
+        assert_eq!(u(&r["steps"]), u(&r["trace"]["steps"]), "{tag}: every step");
+        assert_eq!(
+            (u(&r["cache_messages"]), u(&r["cache_local"])),
+            (msgs, 0),
+            "{tag}: every message between two nodes"
+        );
+        let slow = |extra: &[&str]| {
+            let args = [&["--bandwidth", "1Mbps", "--latency", "1ms"][..], extra].concat();
+            let r = replay(&path, &args).expect("replayed");
+            r["makespan_s"].as_f64().expect("a time")
+        };
+        let (with, without) = (slow(&[]), slow(&["--no-cache-messages"]));
+        assert!(
+            with > without,
+            "{tag}: cache messages on 1 Mbit/s links take time: {with} s with, {without} s without"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Cache-link messages per worker that may be on the wire after its last report reached
+/// the coordinator (so in a trace, not in `--stats`): a lookup and its answer, or the
+/// merges and acks flushed as a job ends (2 merges, 2 acks on 3 workers).
+const LATE: u64 = 4;
+
 /// `benches/sim/run.sh replay.py` on `trace` with `args`, as JSON; None when SimGrid
 /// cannot be had outside CI.
 fn replay(trace: &Path, args: &[&str]) -> Option<Value> {
@@ -222,20 +360,17 @@ fn replay_checks(trace: &Path, traced: u64, sent: u64) {
     // The emulation's links (`validate.py --link`): one per ordered pair of nodes, no TCP
     // factors. Every step replayed, and no slower than one link per node with TCP's
     // factors on the same bandwidth (more capacity, less latency).
-    let pairs = replay(
-        trace,
-        &[
-            "--bandwidth",
-            "10Mbps",
-            "--latency",
-            "1ms",
-            "--topology",
-            "pairs",
-            "--network-model",
-            "CM02",
-        ],
-    )
-    .expect("replayed");
+    let emulated = [
+        "--bandwidth",
+        "10Mbps",
+        "--latency",
+        "1ms",
+        "--topology",
+        "pairs",
+        "--network-model",
+        "CM02",
+    ];
+    let pairs = replay(trace, &emulated).expect("replayed");
     assert_eq!(u(&pairs["steps"]), u(&pairs["trace"]["steps"]));
     assert_eq!(u(&pairs["rays_sent"]), sent);
     assert_eq!(pairs["topology"], "pairs", "{pairs}");
@@ -243,6 +378,25 @@ fn replay_checks(trace: &Path, traced: u64, sent: u64) {
     assert!(
         p > 0.0 && p <= s,
         "links per pair without TCP factors: {p} s, one link per node with them: {s} s"
+    );
+    // The same links, every node computing on one shared host of one core (worker
+    // processes of `dray cluster --emulate-link` sharing a machine).
+    let shared = replay(
+        trace,
+        &[&emulated[..], &["--one-host", "--cores", "1"]].concat(),
+    )
+    .expect("replayed");
+    assert_eq!(u(&shared["steps"]), u(&shared["trace"]["steps"]));
+    assert_eq!(u(&shared["rays_sent"]), sent);
+    assert_eq!(
+        (&shared["topology"], &shared["shared_cores"]),
+        (&Value::from("pairs"), &Value::from(true)),
+        "{shared}"
+    );
+    assert!(
+        shared["predicted_s"]
+            .as_f64()
+            .is_some_and(|t| t > 0.0 && t.is_finite())
     );
     // More nodes than the trace had: domains re-dealt, every step still replayed.
     let wide = replay(trace, &["--nodes", "8"]).expect("replayed");

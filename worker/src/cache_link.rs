@@ -645,6 +645,7 @@ impl Stream {
                 lookup_payload(&request, chunk.len()),
                 Some((Kind::Lookups, request.encoded_len())),
             );
+            self.trace(&job, Kind::Lookups, true, || request.encoded_len());
             let p = Pending::Lookups {
                 job: job.clone(),
                 lookups: chunk,
@@ -691,6 +692,7 @@ impl Stream {
                 None
             };
             count(&job, 0, Some((Kind::TicketReturns, request.encoded_len())));
+            self.trace(&job, Kind::TicketReturns, true, || request.encoded_len());
             self.expect_ack(&job, sequence, Kind::TicketReturns, done);
             if self.requests.send(request).await.is_err() {
                 return false;
@@ -705,6 +707,7 @@ impl Stream {
         let sequence = self.next_sequence();
         let request = outcomes_request(&job, sequence, &outcomes);
         count(&job, 0, Some((Kind::MapOutcomes, request.encoded_len())));
+        self.trace(&job, Kind::MapOutcomes, true, || request.encoded_len());
         self.expect_ack(&job, sequence, Kind::MapOutcomes, None);
         self.requests.send(request).await.is_ok()
     }
@@ -715,6 +718,7 @@ impl Stream {
         let request = merge_request(&job, sequence, &cells);
         let bytes = request.encoded_len();
         count(&job, bytes as u64, Some((Kind::MapMerges, bytes)));
+        self.trace(&job, Kind::MapMerges, true, || bytes);
         self.expect_ack(&job, sequence, Kind::MapMerges, None);
         self.requests.send(request).await.is_ok()
     }
@@ -744,6 +748,7 @@ impl Stream {
                 None
             };
             count(&job, 0, Some((Kind::EntryCopies, request.encoded_len())));
+            self.trace(&job, Kind::EntryCopies, true, || request.encoded_len());
             self.expect_ack(&job, sequence, Kind::EntryCopies, done);
             if self.requests.send(request).await.is_err() {
                 ok = false;
@@ -755,6 +760,15 @@ impl Stream {
             let _ = done.send(Some(Vec::new()));
         }
         ok
+    }
+
+    /// A `kind` message of `bytes()` to (`sent`) or from this host in `job`'s traffic
+    /// trace, when it records one (`bytes` is not computed otherwise).
+    fn trace(&self, job: &Job, kind: Kind, sent: bool, bytes: impl FnOnce() -> usize) {
+        if let Some(t) = &job.trace {
+            let mine = self.ctx.state.local.as_ref().map(|(e, _)| e.as_str());
+            t.cache(mine, &self.endpoint, kind, sent, bytes() as u64);
+        }
     }
 
     /// Remember that the request `sequence` of `job` (a `kind` message) awaits an ack.
@@ -782,6 +796,7 @@ impl Stream {
                 if a.sequence == seq =>
             {
                 count(&job, 0, Some((Kind::Answers, size)));
+                self.trace(&job, Kind::Answers, false, || size);
                 apply_answers(&self.ctx, &job, lookups, answers_of(&a));
             }
             (Some(cache_response::Msg::Ack(a)), Pending::Ack { job, kind, done })
@@ -793,6 +808,7 @@ impl Stream {
                     Kind::EntryCopies
                 };
                 count(&job, 0, Some((kind, size)));
+                self.trace(&job, kind, false, || size);
                 self.carried.extend(entries_of(&a)?);
                 if let Some(done) = done {
                     let _ = done.send(Some(std::mem::take(&mut self.carried)));

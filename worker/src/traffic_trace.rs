@@ -1,6 +1,7 @@
-//! A job's traffic as a trace: one JSON line per traced step, per domain load and per
-//! forwarded batch on this worker, for replay in a simulator (docs/caches.md
-//! "Simulation at scale", `benches/sim/replay.py`).
+//! A job's traffic as a trace: one JSON line per traced step, per domain load, per
+//! forwarded batch and per cache-link message to or from another process on this
+//! worker, for replay in a simulator (docs/caches.md "Simulation at scale",
+//! `benches/sim/replay.py`).
 //!
 //! Recorded only for a job that asks (`JobSpec.trace`) on a worker given a directory
 //! for traces (`WorkerConfig::trace_dir`, `dray worker --trace-dir`): a job spec names no
@@ -21,8 +22,11 @@ use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::Instant;
 
-/// The trace schema's version, in every line (`"v"`).
-pub const TRACE_VERSION: u32 = 1;
+use dray_net::traffic::TrafficKind;
+
+/// The trace schema's version, in every line (`"v"`). 2 added the `cache` record; the
+/// replay reads 1 and 2.
+pub const TRACE_VERSION: u32 = 2;
 
 /// Buffered bytes written out at once.
 const FLUSH_AT: usize = 64 * 1024;
@@ -72,6 +76,8 @@ pub struct TrafficTrace {
     start: Instant,
     path: PathBuf,
     out: Mutex<(std::fs::File, Vec<u8>)>,
+    /// Whether this worker's own cache host was declared ([`TrafficTrace::cache`]).
+    declared: std::sync::atomic::AtomicBool,
 }
 
 impl TrafficTrace {
@@ -98,6 +104,7 @@ impl TrafficTrace {
             start: Instant::now(),
             path,
             out: Mutex::new((file, Vec::new())),
+            declared: Default::default(),
         };
         let mut line = String::new();
         let _ = write!(
@@ -166,6 +173,42 @@ impl TrafficTrace {
             sent.domain,
             sent.rays,
             sent.bytes
+        ));
+    }
+
+    /// One cache-link message of `kind` and `bytes` (encoded, as `TrafficStats` counts
+    /// it), to (`sent`) or from the cache host at `endpoint`: one line per message (a
+    /// batch of up to 4,096 lookups, of returns or of entries, a merge, an answer, an
+    /// ack), not per ray. `mine` is the endpoint of the cache host beside this worker:
+    /// the first message declares it in a `cache_host` line, so that the replay can
+    /// place a host's messages on the node of the worker it runs beside (a host no
+    /// worker declares is a stand-alone one, or beside a worker that sent nothing).
+    pub fn cache(
+        &self,
+        mine: Option<&str>,
+        endpoint: &str,
+        kind: TrafficKind,
+        sent: bool,
+        bytes: u64,
+    ) {
+        if let Some(mine) = mine
+            && !self
+                .declared
+                .swap(true, std::sync::atomic::Ordering::Relaxed)
+        {
+            self.push(format!(
+                r#"{{"v":{TRACE_VERSION},"rec":"cache_host","worker":{},"host":{}}}"#,
+                json_str(&self.worker),
+                json_str(mine)
+            ));
+        }
+        self.push(format!(
+            r#"{{"v":{TRACE_VERSION},"rec":"cache","worker":{},"t":{},"host":{},"dir":"{}","kind":"{}","msgs":1,"bytes":{bytes}}}"#,
+            json_str(&self.worker),
+            self.now_ns(),
+            json_str(endpoint),
+            if sent { "sent" } else { "received" },
+            kind.name(),
         ));
     }
 
@@ -283,18 +326,34 @@ mod tests {
             rays: 2,
             bytes: 80,
         });
+        let mine = Some("http://127.0.0.1:7000");
+        t.cache(
+            mine,
+            "http://127.0.0.1:7001",
+            TrafficKind::Lookups,
+            true,
+            300,
+        );
+        t.cache(
+            mine,
+            "http://127.0.0.1:7001",
+            TrafficKind::Answers,
+            false,
+            20,
+        );
         let path = t.path().to_path_buf();
         drop(t);
         let text = std::fs::read_to_string(&path).expect("read");
         let _ = std::fs::remove_dir_all(&dir);
         let lines: Vec<&str> = text.lines().collect();
-        assert_eq!(lines.len(), 5);
+        assert_eq!(lines.len(), 8);
         assert!(
             lines[0].contains(r#""worker":"w\"1","job":"job/1""#),
             "{}",
             lines[0]
         );
-        assert!(lines.iter().all(|l| l.starts_with(r#"{"v":1,"rec":""#)));
+        let head = format!(r#"{{"v":{TRACE_VERSION},"rec":""#);
+        assert!(lines.iter().all(|l| l.starts_with(&head)), "{text}");
         assert!(lines[1].ends_with(
             r#""out":[{"domain":1,"rays":2,"bytes":80,"remote":true},{"domain":2,"rays":1,"bytes":40,"remote":false}]}"#
         ));
@@ -304,8 +363,24 @@ mod tests {
                 .iter()
                 .map(|l| l.matches('{').count())
                 .collect::<Vec<_>>(),
-            [1, 3, 1, 1, 1],
+            [1, 3, 1, 1, 1, 1, 1, 1],
             "balanced records"
+        );
+        assert!(
+            lines[5]
+                .ends_with(r#""rec":"cache_host","worker":"w\"1","host":"http://127.0.0.1:7000"}"#),
+            "the first message declares the worker's own host, once: {}",
+            lines[5]
+        );
+        assert!(
+            lines[6].ends_with(r#""host":"http://127.0.0.1:7001","dir":"sent","kind":"lookups","msgs":1,"bytes":300}"#),
+            "{}",
+            lines[6]
+        );
+        assert!(
+            lines[7].ends_with(r#""host":"http://127.0.0.1:7001","dir":"received","kind":"answers","msgs":1,"bytes":20}"#),
+            "{}",
+            lines[7]
         );
     }
 }
