@@ -25,7 +25,17 @@ The model, one SimGrid actor per tracing thread of each node (a node stands for 
   receiver on its mailbox, as a TCP stream does), not one after another;
 - a domain's first step on a node loads it first: its bytes from a file-system host
   (`--fs-bandwidth`; reads are free without it, as for the in-memory packages of the
-  recording), then its build CPU, plus the recording's `--load-delay-ms`.
+  recording), then its build CPU, plus the recording's `--load-delay-ms`;
+- a cache-link message (a `cache` line, trace version 2) goes between its worker's node
+  and its cache host's node (the worker that declared the host in a `cache_host` line;
+  an undeclared host is a stand-alone one, a host of its own) when the replay ends the
+  step of its worker that ended first at or after it; nothing waits for it but the
+  job's end (`--no-cache-messages` leaves them out);
+- where nodes compute: a host of their own each (one core per tracing thread); with
+  `--one-host` alone every node on one host of `--cores` cores, messages looping through
+  its link; with `--one-host` and a `--topology`, each node keeps its own host and links
+  but computes on one shared host of `--cores` cores (worker processes sharing one
+  machine behind emulated links).
 
 With the trace's own worker count (the default) each domain stays where the trace had
 it and each step on its worker. With `--nodes N` otherwise, domains are re-dealt round
@@ -51,7 +61,9 @@ class TraceError(Exception):
     pass
 
 
-VERSION = 1
+# The trace versions this replay reads: 1, and 2, which added the cache-link messages
+# (`cache` and `cache_host` records; worker/src/traffic_trace.rs).
+VERSIONS = (1, 2)
 
 
 def parse_rate(text, unit_name):
@@ -83,6 +95,8 @@ class Trace:
         self.steps = []
         self.loads = []
         self.forwards = []
+        self.caches = []  # cache-link messages (v2)
+        self.cache_hosts = {}  # cache host endpoint -> the worker it runs beside (v2)
         try:
             f = open(path, encoding="utf-8")
         except OSError as e:
@@ -95,8 +109,8 @@ class Trace:
                     r = json.loads(line)
                 except json.JSONDecodeError as e:
                     raise TraceError(f"{path}:{n}: not JSON ({e})") from e
-                if r.get("v") != VERSION:
-                    raise TraceError(f"{path}:{n}: trace version {r.get('v')!r}, this replay reads {VERSION}")
+                if r.get("v") not in VERSIONS:
+                    raise TraceError(f"{path}:{n}: trace version {r.get('v')!r}, this replay reads {VERSIONS}")
                 kind = r.get("rec")
                 if kind == "job":
                     self.job = r
@@ -108,13 +122,17 @@ class Trace:
                     self.loads.append(r)
                 elif kind == "forward":
                     self.forwards.append(r)
+                elif kind == "cache":
+                    self.caches.append(r)
+                elif kind == "cache_host":
+                    self.cache_hosts[r["host"]] = r["worker"]
                 else:
                     raise TraceError(f"{path}:{n}: unknown record {kind!r}")
         if self.job is None:
             raise TraceError(f"{path}: no `job` line (was it written by `dray render --trace-out`?)")
         if not self.workers:
             raise TraceError(f"{path}: no worker wrote records (did the job run on workers?)")
-        for s in self.steps + self.loads:
+        for s in self.steps + self.loads + self.caches:
             if s["worker"] not in self.workers:
                 raise TraceError(f"{path}: a record of worker {s['worker']!r}, which has no `worker` line")
 
@@ -130,6 +148,8 @@ class Trace:
             "step_cpu_s": sum(s["cpu_ns"] for s in self.steps) / 1e9,
             "load_cpu_s": sum(l["cpu_ns"] for l in self.loads) / 1e9,
             "busy_span_s": max((s["t1"] for s in self.steps), default=0) / 1e9,
+            "cache_messages": sum(c["msgs"] for c in self.caches),
+            "cache_bytes": sum(c["bytes"] for c in self.caches),
         }
 
 
@@ -137,7 +157,7 @@ class Plan:
     """Who does what in the replay: the owner node of every domain, the node of every
     step, the loads' costs."""
 
-    def __init__(self, trace, nodes):
+    def __init__(self, trace, nodes, cache_messages=True):
         workers = sorted(trace.workers)
         self.nodes = nodes
         self.same = nodes == len(workers)
@@ -171,6 +191,44 @@ class Plan:
         for l in sorted(trace.loads, key=lambda l: l["t0"]):
             self.load.setdefault(l["domain"], (l["bytes"], l["cpu_ns"]))
         self.single = domains[0] if len(domains) == 1 else None
+        # A worker's node, for its cache host's messages: its own at the trace's node
+        # count; re-dealt, the owner of the domain it traced most rays of (under remote
+        # placement a wall's cache host is beside its domain's owner).
+        self.worker_node = {}
+        for w in workers:
+            mine = {d: by[w] for d, by in traced_at.items() if w in by}
+            if self.same or not mine:
+                self.worker_node[w] = index[w] % nodes
+            else:
+                self.worker_node[w] = self.owner[max(mine.items(), key=lambda kv: (kv[1], -kv[0]))[0]]
+        # Cache hosts no worker declared (stand-alone hosts): a node of their own each,
+        # after the workers' nodes.
+        self.caches = trace.caches if cache_messages else []
+        self.standalone = sorted({c["host"] for c in self.caches} - set(trace.cache_hosts))
+        host_node = {h: nodes + i for i, h in enumerate(self.standalone)}
+        for h, w in trace.cache_hosts.items():
+            host_node[h] = self.worker_node[w]
+        # Each cache message goes with the step of its worker that ended first at or
+        # after it (sent as that step ends in the replay, so it keeps its place in the
+        # worker's work however the replay's times stretch), or at the start if the worker
+        # traced no step: (from node, to node, bytes) per step index, or in `cache_first`.
+        by_worker = defaultdict(list)
+        for k, s in enumerate(trace.steps):
+            by_worker[s["worker"]].append((s["t1"], k))
+        for v in by_worker.values():
+            v.sort()
+        self.cache_after = defaultdict(list)
+        self.cache_first = []
+        import bisect
+        for c in self.caches:
+            me, peer = self.worker_node[c["worker"]], host_node[c["host"]]
+            msg = (me, peer, c["bytes"]) if c["dir"] == "sent" else (peer, me, c["bytes"])
+            steps = by_worker.get(c["worker"])
+            if not steps:
+                self.cache_first.append(msg)
+                continue
+            j = bisect.bisect_left(steps, (c["t"], -1))
+            self.cache_after[steps[min(j, len(steps) - 1)][1]].append(msg)
 
 
 def simulate(trace, a):
@@ -178,7 +236,7 @@ def simulate(trace, a):
     from simgrid import Actor, Comm, Engine, LinkInRoute, Mailbox, NetZone, Semaphore, this_actor
 
     nodes = a.nodes or len(trace.workers)
-    plan = Plan(trace, nodes)
+    plan = Plan(trace, nodes, not a.no_cache_messages)
     threads = a.threads or max(trace.workers.values())
     t = trace.totals()
     stats = trace.job.get("stats", {})
@@ -202,10 +260,16 @@ def simulate(trace, a):
 
     e = Engine([sys.argv[0], "--log=root.thresh:critical", "--cfg=contexts/stack-size:256",
                 f"--cfg=network/model:{a.network_model}"])
-    pairs = a.topology == "pairs" and not a.one_host
     # `star`: each node has one link (its NIC, each direction) to a switch, as a cluster
     # has; `pairs`: each ordered pair of nodes has a link of its own, as `--emulate-link`
-    # shapes every connection separately.
+    # shapes every connection separately. `--one-host` alone: every node on the one
+    # host, no links (loopback, as `dray render --workers N`); `--one-host` with a
+    # topology: each node keeps a host of its own for its links and computes on the
+    # shared one (`dray cluster --emulate-link` on one machine: processes sharing its
+    # cores, each connection shaped).
+    topology = a.topology or ("none" if a.one_host else "star")
+    shared_cores = a.one_host and topology != "none"
+    pairs = topology == "pairs"
     zone = NetZone.create_full_zone("cluster") if pairs else NetZone.create_star_zone("cluster")
     speed = 1e9 * a.speed
     if model:
@@ -215,10 +279,14 @@ def simulate(trace, a):
         cores = a.cores if a.one_host else threads
         speed *= 1.0 - min(0.9, per_host * a.process_cpu / cores)
     hosts = []
-    host_count = 1 if a.one_host else nodes
+    # The nodes' hosts, then one per stand-alone cache host (no tracing threads).
+    members = nodes + len(plan.standalone)
+    host_count = 1 if topology == "none" else members
     for i in range(host_count):
-        h = zone.create_host(f"node{i}", speed)
+        h = zone.create_host(f"node{i}" if i < nodes else f"cache{i - nodes}", speed)
         h.core_count = a.cores if a.one_host else threads
+        # (The one host of `--one-host` alone has its star link too: its nodes' messages
+        # to each other loop through it.)
         if not pairs:
             link = zone.create_split_duplex_link(f"nic{i}", a.bandwidth).set_latency(a.latency)
             zone.add_route(h.netpoint, None, None, None, [LinkInRoute(link, LinkInRoute.Direction.UP)], True)
@@ -229,6 +297,15 @@ def simulate(trace, a):
                 if i != j:
                     link = zone.create_link(f"link{i}-{j}", a.bandwidth).set_latency(a.latency)
                     zone.add_route(hi.netpoint, hj.netpoint, None, None, [LinkInRoute(link)], False)
+    # Where nodes compute: their own hosts, or (`--one-host` with a topology) one host
+    # of `--cores` cores that every node's tracing threads, loads and runtime share,
+    # reached by no link (SimGrid 3.32's Python `Exec.host` setter, which would move an
+    # execution to another host, hangs; the actors live there instead and hand their
+    # messages to a sender on their node's host).
+    cpu_host = None
+    if shared_cores:
+        cpu_host = zone.create_host("cores", speed)
+        cpu_host.core_count = a.cores
     fs = None
     if a.fs_bandwidth:
         fs = zone.create_host("fs", speed)
@@ -246,7 +323,10 @@ def simulate(trace, a):
     class Node:
         def __init__(self, i):
             self.i = i
-            self.host = hosts[0 if a.one_host else i]
+            self.host = hosts[0 if topology == "none" else i]  # its links
+            self.cpu_host = cpu_host or self.host  # its cores
+            self.outbox = []  # messages for the sender (shared cores): (mailbox, payload, bytes)
+            self.outbox_sem = Semaphore(0)
             self.domains = []  # the domains this node holds (may trace), in the order given
             self.free = []  # camera and other steps that need no rays, in trace order
             self.free_next = 0
@@ -268,7 +348,7 @@ def simulate(trace, a):
     # A domain's queue is one, whichever of its holders the rays were sent to (with one
     # holder, the static schedules, that is the owner's queue; with replicas, rays sent to
     # one holder may be traced by another: optimistic by the time to forward them).
-    ns = [Node(i) for i in range(nodes)]
+    ns = [Node(i) for i in range(members)]
     steps_of = defaultdict(list)  # domain -> [step index], in trace order
     next_step = defaultdict(int)
     arrived = defaultdict(int)
@@ -283,6 +363,10 @@ def simulate(trace, a):
         else:
             steps_of[s["domain"]].append(k)
         for dest in {plan.owner[o["domain"]] for o in s["out"]} - {plan.step_node[k]}:
+            ns[dest].expected += 1
+    # Cache-link messages: each between two nodes (a node's own stay inside it).
+    for src, dest, size in plan.cache_first + [m for ms in plan.cache_after.values() for m in ms]:
+        if src != dest:
             ns[dest].expected += 1
     incoming = defaultdict(int)
     for s in trace.steps:
@@ -302,7 +386,7 @@ def simulate(trace, a):
         need[d] = [min(x, incoming[d]) for x in cum]
     untaken = {"steps": sum(len(ks) for ks in steps_of.values())}
     result = {"finish": 0.0, "steps_done": 0, "rays_in": 0, "messages": 0, "bytes_sent": 0, "rays_sent": 0,
-              "replicas": 0, "loads": 0}
+              "replicas": 0, "loads": 0, "cache_messages": 0, "cache_bytes": 0, "cache_local": 0}
 
     def ready_domain(n):
         """The domain with the most rays waiting whose next step can start, resident
@@ -371,9 +455,43 @@ def simulate(trace, a):
             result["messages"] += 1
             result["bytes_sent"] += size
             result["rays_sent"] += sum(o["rays"] for o in os_)
-            c = Mailbox.by_name(f"n{i}").put_init([(o["domain"], o["rays"]) for o in os_], max(1, size))
-            c.detach()
+            send(n, Mailbox.by_name(f"n{i}"), [(o["domain"], o["rays"]) for o in os_], max(1, size))
         return batches
+
+    def send_cache(msgs):
+        """Cache-link messages (from node, to node, bytes), each from its sender's host
+        by that node's sender actor; a node's own stay inside it."""
+        for src, dest, size in msgs:
+            if src == dest:
+                result["cache_local"] += 1
+                continue
+            result["cache_messages"] += 1
+            result["cache_bytes"] += size
+            m = ns[src]
+            m.outbox.append((Mailbox.by_name(f"n{dest}"), None, max(1, size)))
+            m.outbox_sem.release()
+
+    def send(n, box, payload, size):
+        """A message from node n, sent from its host (its sender's, when n computes on the
+        shared host: no simulated time passes in the hand-over)."""
+        if n.cpu_host is n.host:
+            box.put_init(payload, size).detach()
+        else:
+            n.outbox.append((box, payload, size))
+            n.outbox_sem.release()
+
+    def sender(n):
+        # A daemon: the receivers wait for every message, so none is left unsent.
+        Actor.self().daemonize()
+        for _ in range(len(n.outbox)):
+            # Queued before the simulation started (cache messages of a worker with no
+            # step), with no release of the semaphore.
+            box, payload, size = n.outbox.pop(0)
+            box.put_init(payload, size).detach()
+        while True:
+            n.outbox_sem.acquire()
+            box, payload, size = n.outbox.pop(0)
+            box.put_init(payload, size).detach()
 
     def executor(n):
         while True:
@@ -412,6 +530,8 @@ def simulate(trace, a):
             result["steps_done"] += 1
             result["rays_in"] += s["rays_in"]
             batches = deliver(n, s)
+            if plan.cache_after.get(k):
+                send_cache(plan.cache_after[k])
             # The step's share of the process CPU outside steps (`--overhead`).
             extra = per_weight * weight(s) if a.overhead_on == "runtime" else 0.0
             if model:
@@ -454,8 +574,13 @@ def simulate(trace, a):
             # receiver lives as long as the simulation (a daemon).
             Actor.self().daemonize()
         while dynamic or n.received < n.expected:
-            for d, rays in box.get():
-                arrive(d, rays)
+            payload = box.get()
+            if payload is None:
+                # A cache-link message: the job is not over before it arrives.
+                result["finish"] = max(result["finish"], Engine.clock)
+            else:
+                for d, rays in payload:
+                    arrive(d, rays)
             n.received += 1
 
     def scheduler():
@@ -479,13 +604,24 @@ def simulate(trace, a):
                     result["replicas"] += 1
                     m.wake()
 
+    for src, dest, size in plan.cache_first:
+        if src != dest:
+            result["cache_messages"] += 1
+            result["cache_bytes"] += size
+            ns[src].outbox.append((Mailbox.by_name(f"n{dest}"), None, max(1, size)))
+        else:
+            result["cache_local"] += 1
     for n in ns:
         if n.expected or dynamic:
             Actor.create(f"recv{n.i}", n.host, receiver, n)
+        if n.cpu_host is not n.host or plan.caches:
+            Actor.create(f"send{n.i}", n.host, sender, n)
+        if n.i >= nodes:
+            continue  # a stand-alone cache host: no tracing threads
         for th in range(threads):
-            Actor.create(f"node{n.i}.t{th}", n.host, executor, n)
+            Actor.create(f"node{n.i}.t{th}", n.cpu_host, executor, n)
         if a.overhead_on == "runtime":
-            Actor.create(f"node{n.i}.runtime", n.host, runtime, n)
+            Actor.create(f"node{n.i}.runtime", n.cpu_host, runtime, n)
     if dynamic:
         Actor.create("scheduler", hosts[0], scheduler)
     e.run()
@@ -503,7 +639,8 @@ def simulate(trace, a):
         "cores": a.cores if a.one_host else threads,
         "bandwidth_Bps": a.bandwidth,
         "network_model": a.network_model,
-        "topology": a.topology,
+        "topology": topology,
+        "shared_cores": shared_cores,
         "latency_s": a.latency,
         "speed": a.speed,
         "cpu_overhead_ratio": overhead,
@@ -521,6 +658,9 @@ def simulate(trace, a):
         "rays_sent": result["rays_sent"],
         "bytes_sent": result["bytes_sent"],
         "messages": result["messages"],
+        "cache_messages": result["cache_messages"],
+        "cache_bytes": result["cache_bytes"],
+        "cache_local": result["cache_local"],
         "schedule": a.schedule,
         "replicas": result["replicas"],
         "loads": result["loads"],
@@ -539,7 +679,9 @@ def main(argv=None):
     ap.add_argument("--fs-bandwidth", help="a shared file system's link for domain loads (default: loads read nothing)")
     ap.add_argument("--load-delay-ms", type=float, help="added to every load (default: the recording's)")
     ap.add_argument("--one-host", action="store_true",
-                    help="every node on one host of --cores cores (validation against `dray render --workers N`)")
+                    help="every node computes on one host of --cores cores: alone, with no links between "
+                         "nodes (validation against `dray render --workers N`); with --topology, each node "
+                         "keeps its links (validation against `dray cluster --emulate-link` on one machine)")
     ap.add_argument("--cores", type=int, help="cores of the one host (default: the recording machine's)")
     ap.add_argument("--overhead", choices=["trace", "model", "none"], default="trace",
                     help="the process CPU outside steps and loads: the trace's total spread over the steps "
@@ -568,9 +710,12 @@ def main(argv=None):
                     help="SimGrid's network model: LV08 (its default, TCP over real links: latency x13.01, "
                          "bandwidth x0.97) or CM02 (a message takes latency + size / bandwidth, as "
                          "`--emulate-link` shapes it)")
-    ap.add_argument("--topology", choices=["star", "pairs"], default="star",
-                    help="star: one link per node to a switch (a cluster's NICs); pairs: a link per ordered "
-                         "pair of nodes (how `--emulate-link` shapes each connection)")
+    ap.add_argument("--topology", choices=["star", "pairs"],
+                    help="star: one link per node to a switch (a cluster's NICs; the default without "
+                         "--one-host); pairs: a link per ordered pair of nodes (how `--emulate-link` shapes "
+                         "each connection)")
+    ap.add_argument("--no-cache-messages", action="store_true",
+                    help="leave out the trace's cache-link messages (as a version 1 trace has none)")
     ap.add_argument("--json", action="store_true", help="print the result as JSON")
     a = ap.parse_args(argv)
     a.bandwidth = parse_rate(a.bandwidth, "--bandwidth")
@@ -594,7 +739,8 @@ def main(argv=None):
     else:
         print(f"predicted {r['predicted_s']:.3f} s (simulated {r['makespan_s']:.3f} s + fixed {r['fixed_s']:.3f} s) "
               f"on {r['nodes']} nodes; recorded {r['measured_s']:.3f} s on {r['recorded_workers']} workers; "
-              f"{r['rays_sent']} rays in {r['messages']} messages, {r['bytes_sent']} bytes")
+              f"{r['rays_sent']} rays in {r['messages']} messages, {r['bytes_sent']} bytes; "
+              f"{r['cache_messages']} cache-link messages, {r['cache_bytes']} bytes")
     return 0
 
 
