@@ -18,8 +18,10 @@ every other N (domains re-dealt), against those N's medians.
 `dray submit --trace` per round after an untraced warm-up job), joins each job's
 per-worker files into one trace whose `job` line holds the workers' busy span as the
 measured time (the cluster has no single clock; every worker's times start at its own
-set-up of the job), and replays it on N nodes of one core each behind links of SPEC's
-bandwidth and latency (`--overhead model`, `--network-model CM02`: a message takes the
+set-up of the job), and replays it on N nodes behind links of SPEC's bandwidth and
+latency that compute on one host of this machine's cores (`--one-host --topology pairs`,
+as the cluster's worker processes share them; `--link-cores own` gives each node a core
+of its own instead, the model before 2026-11-30) (`--overhead model`, `--network-model CM02`: a message takes the
 latency plus its size over the bandwidth, as the emulation shapes it; SimGrid's default
 LV08 adds TCP's factors, which a real cluster has and the emulation does not; `--topology
 pairs`: a link per ordered pair of nodes, as the emulation shapes each connection on its
@@ -180,6 +182,9 @@ def main():
     ap.add_argument("--link", metavar="SPEC",
                     help="record on a local dray cluster behind --emulate-link SPEC (e.g. bandwidth=100mbit,latency=1ms)")
     ap.add_argument("--port", type=int, default=52100, help="--link: the clusters' first port")
+    ap.add_argument("--link-cores", choices=["shared", "own"], default="shared",
+                    help="--link: the replay's nodes compute on one host of this machine's cores (shared, "
+                         "as the cluster's processes do) or on a core each (own)")
     a = ap.parse_args()
     REPLAY_ARGS.extend(a.replay_args.split())
     job = a.job or DEFAULT_JOB
@@ -227,6 +232,9 @@ def main():
     if a.link:
         PLACEMENT_ARGS[:] = link_args(a.link) + ["--threads", "1", "--overhead", "model", "--network-model", "CM02",
                                                "--topology", "pairs"]
+        if a.link_cores == "shared":
+            # The machine's cores (the trace's `job` line: os.cpu_count() when recorded).
+            PLACEMENT_ARGS.append("--one-host")
     big = max(ns)
     rows = []
     pct = lambda p, m: 100 * (p - m) / m
@@ -245,7 +253,8 @@ def main():
                      max(o["predicted_s"] for o in own), statistics.median(loo), max(loo, key=abs),
                      statistics.median(self_err), cross_p, pct(cross_p, statistics.median(w)),
                      statistics.median(free[n])))
-    how = f"dray submit to dray cluster --workers N --threads 1 --emulate-link {a.link}" if a.link else "dray render --workers N"
+    how = (f"dray submit to dray cluster --workers N --threads 1 --emulate-link {a.link} (replay: cores "
+           f"{a.link_cores})") if a.link else "dray render --workers N"
     print(f"job: {' '.join(job)} by {how}; {len(walls[ns[0]])} rounds; machine cores: {os.cpu_count()}; "
           f"replay flags: {' '.join(REPLAY_ARGS) or 'defaults'}")
     print()
