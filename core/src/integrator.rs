@@ -27,7 +27,7 @@ use crate::material::Material;
 use crate::sampling::{PathKey, PathStream, Purpose, cosine_hemisphere};
 use crate::scene::Scene;
 use crate::sun::Sun;
-use crate::surface::{Surface, alpha_passes};
+use crate::surface::{ShadingValues, Surface, alpha_passes};
 use crate::trace::Trace;
 
 /// The kinds of rays, counted separately in every summary.
@@ -306,6 +306,30 @@ fn power_heuristic(a: f32, b: f32) -> f32 {
         1.0
     } else {
         0.0
+    }
+}
+
+/// The BSDF's parameters at a hit: the material's shading values, the coat's normal, and
+/// `ior` (the material's, or one colour channel's under dispersion).
+fn bsdf_params(sv: &ShadingValues, surf: &Surface, ior: f32) -> BsdfParams {
+    BsdfParams {
+        base_color: sv.base_color,
+        metallic: sv.metallic,
+        roughness: sv.roughness,
+        specular: sv.specular,
+        specular_color: sv.specular_color,
+        transmission: sv.transmission,
+        ior,
+        clearcoat: sv.clearcoat,
+        clearcoat_roughness: sv.clearcoat_roughness,
+        sheen_color: sv.sheen_color,
+        sheen_roughness: sv.sheen_roughness,
+        anisotropy: sv.anisotropy,
+        anisotropy_direction: sv.anisotropy_direction,
+        clearcoat_normal: surf.coat_n,
+        iridescence: sv.iridescence,
+        iridescence_ior: sv.iridescence_ior,
+        iridescence_thickness: sv.iridescence_thickness,
     }
 }
 
@@ -672,101 +696,26 @@ impl<'a> Integrator<'a> {
             None => ray,
         };
 
-        // Emission seen directly (or by a bounce, weighted against light sampling).
-        if sv.emission != Vec3::ZERO {
-            let mut w = 1.0;
-            if ray.bsdf_pdf > 0.0 {
-                let pl = self
-                    .lights
-                    .pdf_triangle(self.scene, surf.tri, ray.origin, surf.p);
-                w = power_heuristic(ray.bsdf_pdf, pl);
-            }
-            self.emit(ray.pixel, ray.depth, ray.weight * sv.emission * w, sink);
-        }
+        self.emission_seen(ray, &surf, sv.emission, sink);
 
         if self.settings.integrator == IntegratorKind::Ao {
-            let n = self.settings.ao_samples.max(1);
-            let origin = offset_ray_origin(surf.p, surf.p_err, surf.ng);
-            for i in 0..n {
-                let u = key.uniform2(ray.depth, Purpose::AmbientOcclusion, i);
-                let dir = cosine_hemisphere(surf.ng, u);
-                sink.spawn(RayState {
-                    origin,
-                    dir,
-                    tmax: self.settings.ao_distance,
-                    depth: ray.depth + 1,
-                    kind: RayKind::AmbientOcclusion,
-                    weight: ray.weight / n as f32,
-                    bsdf_pdf: 0.0,
-                    ..*ray
-                });
-            }
+            self.ao_rays(ray, &surf, key, sink);
             return;
         }
 
-        // KHR_materials_dispersion: the path follows one colour channel from here, with
-        // that channel's index (core/src/dispersion.rs).
-        let mut ior = sv.ior;
-        let dispersed;
-        let ray = match (sv.dispersion > 0.0 && sv.transmission > 0.0)
-            .then(|| {
-                let u = key.uniform(ray.depth, Purpose::Dispersion, 0);
-                crate::dispersion::pick_channel(ray.weight, u)
-            })
-            .flatten()
-        {
-            Some((channel, weight)) => {
-                ior = crate::dispersion::channel_ior(sv.ior, sv.dispersion, channel);
-                dispersed = RayState { weight, ..*ray };
-                &dispersed
-            }
-            None => ray,
+        let dispersed = self.disperse(ray, &sv, key);
+        let (ray, ior) = match &dispersed {
+            Some((r, ior)) => (r, *ior),
+            None => (ray, sv.ior),
         };
-        let params = BsdfParams {
-            base_color: sv.base_color,
-            metallic: sv.metallic,
-            roughness: sv.roughness,
-            specular: sv.specular,
-            specular_color: sv.specular_color,
-            transmission: sv.transmission,
-            ior,
-            clearcoat: sv.clearcoat,
-            clearcoat_roughness: sv.clearcoat_roughness,
-            sheen_color: sv.sheen_color,
-            sheen_roughness: sv.sheen_roughness,
-            anisotropy: sv.anisotropy,
-            anisotropy_direction: sv.anisotropy_direction,
-            clearcoat_normal: surf.coat_n,
-            iridescence: sv.iridescence,
-            iridescence_ior: sv.iridescence_ior,
-            iridescence_thickness: sv.iridescence_thickness,
-        };
+        let params = bsdf_params(&sv, &surf, ior);
         // The BSDF tells inside from outside by the outward (winding) normal.
         let outward = if surf.front { surf.ng } else { -surf.ng };
         let bsdf = Bsdf::new(&params, surf.n, outward);
         match self.settings.integrator {
             IntegratorKind::Path => self.path_step(ray, &surf, &bsdf, wo, key, sink),
             IntegratorKind::Raycast | IntegratorKind::Whitted => {
-                if self.settings.effects.contains(Effect::DirectLight)
-                    && !bsdf.is_delta_only()
-                    && let Some(at) = bsdf.at(wo)
-                {
-                    self.direct_light(ray, &surf, &at, key, DirectMode::FULL_WEIGHT, sink);
-                }
-                // Unshadowed ambient light from the constant environment: raycast and
-                // Whitted trace no rays toward the sky, so this keeps unlit scenes legible.
-                let env = self.env();
-                if env != Vec3::ZERO {
-                    let facing = surf.n.dot(wo).abs();
-                    let ambient = bsdf.diffuse_albedo() * env * (0.25 + 0.75 * facing);
-                    // Reflected here too: one surface more than the ray's depth.
-                    self.emit(ray.pixel, ray.depth + 1, ray.weight * ambient, sink);
-                }
-                if self.settings.integrator == IntegratorKind::Whitted
-                    && ray.depth + 1 < self.settings.max_depth
-                {
-                    self.whitted_children(ray, &surf, &bsdf, wo, sink);
-                }
+                self.raycast_step(ray, &surf, &bsdf, wo, key, sink)
             }
             IntegratorKind::Primary => {
                 // First-hit shading (Little 2011's ray caster): every light's sample taken
@@ -780,6 +729,93 @@ impl<'a> Integrator<'a> {
                 }
             }
             IntegratorKind::Ao => {}
+        }
+    }
+
+    /// Emission seen directly, or by a bounce weighted (power heuristic) against the
+    /// light sampling that could have found the same emitter.
+    fn emission_seen(&self, ray: &RayState, surf: &Surface, emission: Vec3, sink: &mut impl Sink) {
+        if emission != Vec3::ZERO {
+            let mut w = 1.0;
+            if ray.bsdf_pdf > 0.0 {
+                let pl = self
+                    .lights
+                    .pdf_triangle(self.scene, surf.tri, ray.origin, surf.p);
+                w = power_heuristic(ray.bsdf_pdf, pl);
+            }
+            self.emit(ray.pixel, ray.depth, ray.weight * emission * w, sink);
+        }
+    }
+
+    /// The `ao` integrator's rays at a hit: `ao_samples` cosine-weighted occlusion rays of
+    /// length `ao_distance`, each carrying its share of the ray's weight.
+    fn ao_rays(&self, ray: &RayState, surf: &Surface, key: PathStream, sink: &mut impl Sink) {
+        let n = self.settings.ao_samples.max(1);
+        let origin = offset_ray_origin(surf.p, surf.p_err, surf.ng);
+        for i in 0..n {
+            let u = key.uniform2(ray.depth, Purpose::AmbientOcclusion, i);
+            let dir = cosine_hemisphere(surf.ng, u);
+            sink.spawn(RayState {
+                origin,
+                dir,
+                tmax: self.settings.ao_distance,
+                depth: ray.depth + 1,
+                kind: RayKind::AmbientOcclusion,
+                weight: ray.weight / n as f32,
+                bsdf_pdf: 0.0,
+                ..*ray
+            });
+        }
+    }
+
+    /// `KHR_materials_dispersion`: at a transmissive hit whose material disperses, the
+    /// path follows one colour channel from here (core/src/dispersion.rs): the ray with
+    /// that channel's weight, and the channel's index of refraction. None elsewhere.
+    fn disperse(
+        &self,
+        ray: &RayState,
+        sv: &ShadingValues,
+        key: PathStream,
+    ) -> Option<(RayState, f32)> {
+        if !(sv.dispersion > 0.0 && sv.transmission > 0.0) {
+            return None;
+        }
+        let u = key.uniform(ray.depth, Purpose::Dispersion, 0);
+        let (channel, weight) = crate::dispersion::pick_channel(ray.weight, u)?;
+        let ior = crate::dispersion::channel_ior(sv.ior, sv.dispersion, channel);
+        Some((RayState { weight, ..*ray }, ior))
+    }
+
+    /// `raycast` and `whitted` at a hit: direct light at full weight, unshadowed ambient
+    /// light from the constant environment, and Whitted's mirror and refraction rays.
+    fn raycast_step(
+        &self,
+        ray: &RayState,
+        surf: &Surface,
+        bsdf: &Bsdf,
+        wo: Vec3,
+        key: PathStream,
+        sink: &mut impl Sink,
+    ) {
+        if self.settings.effects.contains(Effect::DirectLight)
+            && !bsdf.is_delta_only()
+            && let Some(at) = bsdf.at(wo)
+        {
+            self.direct_light(ray, surf, &at, key, DirectMode::FULL_WEIGHT, sink);
+        }
+        // Unshadowed ambient light from the constant environment: raycast and Whitted
+        // trace no rays toward the sky, so this keeps unlit scenes legible.
+        let env = self.env();
+        if env != Vec3::ZERO {
+            let facing = surf.n.dot(wo).abs();
+            let ambient = bsdf.diffuse_albedo() * env * (0.25 + 0.75 * facing);
+            // Reflected here too: one surface more than the ray's depth.
+            self.emit(ray.pixel, ray.depth + 1, ray.weight * ambient, sink);
+        }
+        if self.settings.integrator == IntegratorKind::Whitted
+            && ray.depth + 1 < self.settings.max_depth
+        {
+            self.whitted_children(ray, surf, bsdf, wo, sink);
         }
     }
 

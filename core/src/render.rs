@@ -179,84 +179,15 @@ pub fn render_passes(
                     return;
                 }
                 let _span = tracing::trace_span!("tile", x = tile.x0, y = tile.y0).entered();
-                let mut sink = TileSink {
-                    tile: *tile,
-                    width,
-                    sums: vec![[0; 3]; (tile.w * tile.h) as usize],
-                    nonfinite: 0,
-                    clamped: 0,
-                    clamped_indirect: 0,
-                    aovs: if records_hits {
-                        vec![[0; AOV_WORDS]; (tile.w * tile.h) as usize]
-                    } else {
-                        Vec::new()
-                    },
-                    stack: Vec::with_capacity(64),
-                };
-                let mut local = [0u64; RayKind::COUNT];
-                for y in tile.y0..tile.y0 + tile.h {
-                    for x in tile.x0..tile.x0 + tile.w {
-                        for sample in samples.clone() {
-                            sink.stack.push(integrator.camera_ray_xy(x, y, sample));
-                            while let Some(ray) = sink.stack.pop() {
-                                local[ray.kind as usize] += 1;
-                                if ray.kind.is_occlusion() {
-                                    let occ = integrator.occluded(geometry, &ray);
-                                    integrator.shadow_result(&ray, occ, &mut sink);
-                                } else {
-                                    match integrator.intersect(geometry, &ray) {
-                                        Some(hit) => integrator.shade_hit(&ray, &hit, &mut sink),
-                                        None => integrator.shade_miss(&ray, &mut sink),
-                                    }
-                                }
-                            }
-                        }
-                    }
-                }
+                let (sink, local) = trace_tile(integrator, geometry, tile, samples, records_hits);
                 for (c, n) in counts.iter().zip(local) {
                     c.fetch_add(n, Ordering::Relaxed);
                 }
-                {
-                    let mut f = dray_sync::lock(&film);
-                    if let Some(threshold) = decides {
-                        let _span = tracing::trace_span!("adaptive_decision").entered();
-                        let pixels = (0..tile.h).flat_map(|ly| {
-                            (0..tile.w).map(move |lx| {
-                                (ly * tile.w + lx, (tile.y0 + ly) * width + tile.x0 + lx)
-                            })
-                        });
-                        let error = crate::adaptive::tile_error(
-                            samples,
-                            pixels.clone().map(|(i, p)| {
-                                let before = f.sum_fixed(p);
-                                let mut after = before;
-                                add_sums(&mut after, sink.sums[i as usize]);
-                                (before, after)
-                            }),
-                        );
-                        if crate::adaptive::stops(error, threshold) {
-                            stopped[t].store(true, Ordering::Relaxed);
-                            for (_, p) in pixels {
-                                f.set_stop(p, samples.end);
-                            }
-                        }
-                    }
-                    for ly in 0..tile.h {
-                        for lx in 0..tile.w {
-                            let pixel = (tile.y0 + ly) * width + tile.x0 + lx;
-                            f.add_fixed(pixel, sink.sums[(ly * tile.w + lx) as usize]);
-                        }
-                    }
-                    f.nonfinite += sink.nonfinite;
-                    f.clamped += sink.clamped;
-                    f.clamped_indirect += sink.clamped_indirect;
-                    if let Some(a) = f.aovs.as_mut() {
-                        for (i, s) in sink.aovs.iter().enumerate() {
-                            let (lx, ly) = (i as u32 % tile.w, i as u32 / tile.w);
-                            a.add_fixed((tile.y0 + ly) * width + tile.x0 + lx, s);
-                        }
-                    }
+                let mut f = dray_sync::lock(&film);
+                if add_tile(&mut f, &sink, samples, decides) {
+                    stopped[t].store(true, Ordering::Relaxed);
                 }
+                drop(f);
                 let d = done.fetch_add(1, Ordering::Relaxed) + 1;
                 progress(d as usize, tiles.len());
             });
@@ -276,4 +207,101 @@ pub fn render_passes(
         rays,
         render_time,
     })
+}
+
+/// Traces every camera ray of samples `samples` of `tile`'s pixels, each ray's tree
+/// depth first, into a sink of the tile's own: its sums, and the rays traced by kind.
+fn trace_tile(
+    integrator: &Integrator<'_>,
+    geometry: &dyn Trace,
+    tile: &Tile,
+    samples: &std::ops::Range<u32>,
+    records_hits: bool,
+) -> (TileSink, [u64; RayKind::COUNT]) {
+    let mut sink = TileSink {
+        tile: *tile,
+        width: integrator.settings.width,
+        sums: vec![[0; 3]; (tile.w * tile.h) as usize],
+        nonfinite: 0,
+        clamped: 0,
+        clamped_indirect: 0,
+        aovs: if records_hits {
+            vec![[0; AOV_WORDS]; (tile.w * tile.h) as usize]
+        } else {
+            Vec::new()
+        },
+        stack: Vec::with_capacity(64),
+    };
+    let mut local = [0u64; RayKind::COUNT];
+    for y in tile.y0..tile.y0 + tile.h {
+        for x in tile.x0..tile.x0 + tile.w {
+            for sample in samples.clone() {
+                sink.stack.push(integrator.camera_ray_xy(x, y, sample));
+                while let Some(ray) = sink.stack.pop() {
+                    local[ray.kind as usize] += 1;
+                    if ray.kind.is_occlusion() {
+                        let occ = integrator.occluded(geometry, &ray);
+                        integrator.shadow_result(&ray, occ, &mut sink);
+                    } else {
+                        match integrator.intersect(geometry, &ray) {
+                            Some(hit) => integrator.shade_hit(&ray, &hit, &mut sink),
+                            None => integrator.shade_miss(&ray, &mut sink),
+                        }
+                    }
+                }
+            }
+        }
+    }
+    (sink, local)
+}
+
+/// Adds a traced tile's sums to the film. With `decides` (the pass after which adaptive
+/// sampling decides, and its threshold), first decides whether the tile stops, from the
+/// same integer sums before and after the pass as the coordinator's decision; a tile that
+/// stops has its pixels' stop recorded at the pass's end. Returns whether it stopped.
+fn add_tile(
+    f: &mut Film,
+    sink: &TileSink,
+    samples: &std::ops::Range<u32>,
+    decides: Option<f32>,
+) -> bool {
+    let (tile, width) = (sink.tile, sink.width);
+    let mut stopped = false;
+    if let Some(threshold) = decides {
+        let _span = tracing::trace_span!("adaptive_decision").entered();
+        let pixels = (0..tile.h).flat_map(|ly| {
+            (0..tile.w).map(move |lx| (ly * tile.w + lx, (tile.y0 + ly) * width + tile.x0 + lx))
+        });
+        let error = crate::adaptive::tile_error(
+            samples,
+            pixels.clone().map(|(i, p)| {
+                let before = f.sum_fixed(p);
+                let mut after = before;
+                add_sums(&mut after, sink.sums[i as usize]);
+                (before, after)
+            }),
+        );
+        if crate::adaptive::stops(error, threshold) {
+            stopped = true;
+            for (_, p) in pixels {
+                f.set_stop(p, samples.end);
+            }
+        }
+    }
+    for ly in 0..tile.h {
+        for lx in 0..tile.w {
+            let pixel = (tile.y0 + ly) * width + tile.x0 + lx;
+            f.add_fixed(pixel, sink.sums[(ly * tile.w + lx) as usize]);
+        }
+    }
+    f.nonfinite += sink.nonfinite;
+    f.clamped += sink.clamped;
+    f.clamped_indirect += sink.clamped_indirect;
+    if let Some(a) = f.aovs.as_mut() {
+        for (i, s) in sink.aovs.iter().enumerate() {
+            let (lx, ly) = (i as u32 % tile.w, i as u32 / tile.w);
+            a.add_fixed((tile.y0 + ly) * width + tile.x0 + lx, s);
+        }
+    }
+    stopped
 }

@@ -132,6 +132,78 @@ impl JobTracer {
         residency: &dyn Residency,
         out: &mut Outbox,
     ) -> Result<(), TraceError> {
+        let total = self.check_tile(tile)?;
+        let spp = u64::from(tile.samples_per_pixel(self.settings.spp));
+        let pins = Pins::new(residency, self.nonempty.len());
+        let ctx = StepCtx::new(self, &pins);
+        let bare = &ctx.bare;
+        let mut step = Step::default();
+        // A layout of one domain, traced here: every ray of a camera ray's tree stays in
+        // it, and the trees are traced with no routing.
+        let whole = self.single.and_then(|d| {
+            ctx.domain(d)
+                .map(|(loaded, integrator)| (d, loaded, integrator))
+        });
+        let end = start.saturating_add(count).min(total);
+        if start >= end {
+            return Ok(());
+        }
+        // Every ray but the tile's first has the same share.
+        let (first_share, share_rest) = (
+            tile.credit.camera_share(total, 0).unwrap_or(Credit::ZERO),
+            tile.credit.camera_share(total, 1).unwrap_or(Credit::ZERO),
+        );
+        let mut at = TileCursor::new(start, spp, tile.width);
+        // One lineage for the tile's rays: a camera ray has no tickets, and is coarse
+        // when its tile is.
+        let lin = Lineage {
+            tickets: None,
+            coarse: tile.coarse,
+            probe: false,
+        };
+        // The ray in flight, rewritten in place for each camera ray: a one-domain tree
+        // is traced from here without the ray being copied through temporaries (each
+        // copy of a just-written ray stalled on store forwarding).
+        let key = self.tile_key(tile);
+        let mut f = InFlight {
+            ray: RayState::default(),
+            credit: first_share,
+            tile: key,
+            lineage: &lin,
+        };
+        for i in start..end {
+            f.credit = if i == 0 { first_share } else { share_rest };
+            f.ray = if tile.coarse {
+                self.coarse_camera_ray(bare, tile, at.x, at.y)
+            } else {
+                bare.camera_ray_xy(tile.x0 + at.x, tile.y0 + at.y, tile.first_sample + at.s)
+            };
+            at.advance();
+            out.traced[RayKind::Camera as usize] += 1;
+            if let Some(whole) = whole {
+                self.trace_tree(whole, &mut f, &mut step, out)?;
+                continue;
+            }
+            let flight = InFlight {
+                ray: f.ray,
+                credit: f.credit,
+                tile: key,
+                lineage: &lin,
+            };
+            self.route_new(&ctx, bare, flight, out);
+            // Depth first, one camera ray's tree at a time: the stack of local rays stays
+            // a few entries deep and in cache, where making the whole chunk's camera rays
+            // first stacked thousands of them (half a megabyte).
+            self.trace_local(&ctx, &mut step, out)?;
+        }
+        Ok(())
+    }
+
+    /// Checks `tile` against the job before any of its rays is made: its pass lies within
+    /// the job's samples, its credit gives every camera ray a share, and every pixel is in
+    /// the image (or the coarse image), so the rays made from it and their descendants
+    /// need no check of their own. Returns the tile's camera-ray count.
+    fn check_tile(&self, tile: &TileRef) -> Result<u64, TraceError> {
         let spp = u64::from(tile.samples_per_pixel(self.settings.spp));
         let job_spp = self.settings.spp.max(1);
         if !tile.coarse
@@ -155,8 +227,6 @@ impl JobTracer {
                 credit: tile.credit,
             });
         }
-        // Every pixel of the tile is in the image (or the coarse image), so the rays made
-        // here and their descendants need no check of their own.
         let (width, height) = if tile.coarse {
             (self.coarse, self.coarse)
         } else {
@@ -175,100 +245,68 @@ impl JobTracer {
                 height,
             });
         }
-        let pins = Pins::new(residency, self.nonempty.len());
-        let ctx = StepCtx::new(self, &pins);
-        let bare = &ctx.bare;
-        let mut step = Step::default();
-        // A layout of one domain, traced here: every ray of a camera ray's tree stays in
-        // it, and the trees are traced with no routing.
-        let whole = self.single.and_then(|d| {
-            ctx.domain(d)
-                .map(|(loaded, integrator)| (d, loaded, integrator))
-        });
-        let end = start.saturating_add(count).min(total);
-        if start >= end {
-            return Ok(());
-        }
-        // Ray `i` is sample `i % spp` of the tile's pixel `i / spp`, row-major: found by
-        // division for the first ray, then stepped, with no division per ray (a 64-bit
-        // division costs as much as making the camera ray). Every ray but the tile's
-        // first has the same share.
-        let (first_share, share_rest) = (
-            tile.credit.camera_share(total, 0).unwrap_or(Credit::ZERO),
-            tile.credit.camera_share(total, 1).unwrap_or(Credit::ZERO),
-        );
+        Ok(total)
+    }
+
+    /// The coarse-pass ray of coarse pixel (`tile.x0 + lx`, `tile.y0 + ly`), its random
+    /// numbers keyed apart from every sample of the image: through the pixel's centre,
+    /// or through a point drawn from the job's seed and the coarse pixel (Little 2011's
+    /// randomized positions; the same point on every worker).
+    fn coarse_camera_ray(
+        &self,
+        bare: &dray_core::integrator::Integrator<'_>,
+        tile: &TileRef,
+        lx: u32,
+        ly: u32,
+    ) -> RayState {
+        let n = self.coarse.max(1);
+        let (cx, cy) = (tile.x0 + lx, tile.y0 + ly);
+        let pixel = cy * n + cx;
+        let at = if self.coarse_random {
+            coarse_jitter(self.settings.seed, pixel)
+        } else {
+            glam::Vec2::splat(0.5)
+        };
+        let film = glam::Vec2::new((cx as f32 + at.x) / n as f32, (cy as f32 + at.y) / n as f32);
+        bare.camera_ray_through(film, pixel, COARSE_SAMPLE)
+    }
+}
+
+/// Where a run of a tile's camera rays is: ray `i` is sample `i % spp` of the tile's pixel
+/// `i / spp`, row-major. Found by division for the first ray, then stepped, with no
+/// division per ray (a 64-bit division costs as much as making the camera ray).
+struct TileCursor {
+    /// The pixel's column and row within the tile.
+    x: u32,
+    y: u32,
+    /// The sample within the tile's pass.
+    s: u32,
+    spp: u32,
+    width: u32,
+}
+
+impl TileCursor {
+    fn new(start: u64, spp: u64, width: u32) -> TileCursor {
         let p = start / spp;
-        let mut s = start % spp;
-        let (mut lx, mut ly) = (
-            (p % tile.width as u64) as u32,
-            (p / tile.width as u64) as u32,
-        );
-        // One lineage for the tile's rays: a camera ray has no tickets, and is coarse
-        // when its tile is.
-        let lin = Lineage {
-            tickets: None,
-            coarse: tile.coarse,
-            probe: false,
-        };
-        // The ray in flight, rewritten in place for each camera ray: a one-domain tree
-        // is traced from here without the ray being copied through temporaries (each
-        // copy of a just-written ray stalled on store forwarding).
-        let key = self.tile_key(tile);
-        let mut f = InFlight {
-            ray: RayState::default(),
-            credit: first_share,
-            tile: key,
-            lineage: &lin,
-        };
-        for i in start..end {
-            let sample = tile.first_sample + s as u32;
-            f.credit = if i == 0 { first_share } else { share_rest };
-            f.ray = if tile.coarse {
-                // One ray through the coarse pixel, its random numbers keyed apart from
-                // every sample of the image: through its centre, or through a point
-                // drawn from the job's seed and the coarse pixel (Little 2011's
-                // randomized positions; the same point on every worker).
-                let n = self.coarse.max(1);
-                let (cx, cy) = (tile.x0 + lx, tile.y0 + ly);
-                let pixel = cy * n + cx;
-                let at = if self.coarse_random {
-                    coarse_jitter(self.settings.seed, pixel)
-                } else {
-                    glam::Vec2::splat(0.5)
-                };
-                let film =
-                    glam::Vec2::new((cx as f32 + at.x) / n as f32, (cy as f32 + at.y) / n as f32);
-                bare.camera_ray_through(film, pixel, COARSE_SAMPLE)
-            } else {
-                bare.camera_ray_xy(tile.x0 + lx, tile.y0 + ly, sample)
-            };
-            // The next ray's sample and pixel.
-            s += 1;
-            if s == spp {
-                s = 0;
-                lx += 1;
-                if lx == tile.width {
-                    lx = 0;
-                    ly += 1;
-                }
-            }
-            out.traced[RayKind::Camera as usize] += 1;
-            if let Some(whole) = whole {
-                self.trace_tree(whole, &mut f, &mut step, out)?;
-                continue;
-            }
-            let flight = InFlight {
-                ray: f.ray,
-                credit: f.credit,
-                tile: key,
-                lineage: &lin,
-            };
-            self.route_new(&ctx, bare, flight, out);
-            // Depth first, one camera ray's tree at a time: the stack of local rays stays
-            // a few entries deep and in cache, where making the whole chunk's camera rays
-            // first stacked thousands of them (half a megabyte).
-            self.trace_local(&ctx, &mut step, out)?;
+        TileCursor {
+            x: (p % u64::from(width)) as u32,
+            y: (p / u64::from(width)) as u32,
+            s: (start % spp) as u32,
+            spp: spp as u32,
+            width,
         }
-        Ok(())
+    }
+
+    /// Steps to the next ray's sample and pixel.
+    fn advance(&mut self) {
+        self.s += 1;
+        if self.s == self.spp {
+            self.s = 0;
+            self.x += 1;
+            if self.x == self.width {
+                self.x = 0;
+                self.y += 1;
+            }
+        }
     }
 }
