@@ -1036,6 +1036,181 @@ mod tests {
         assert!(serde_json::from_str::<Real>("\"lots\"").is_err());
     }
 
+    /// The JSON of a material as a manifest stores it: the function the pinned bytes
+    /// below go through.
+    fn material_json(m: &Material) -> String {
+        serde_json::to_string(&MaterialDesc::from(m)).unwrap()
+    }
+
+    fn material_from_json(json: &str) -> Material {
+        serde_json::from_str::<MaterialDesc>(json)
+            .unwrap()
+            .to_core()
+    }
+
+    /// A material with every field set away from its default: textures on both UV sets
+    /// with and without transforms, every extension, a masked alpha, and the non-finite
+    /// factors only `Real` can write.
+    fn everything_material() -> Material {
+        let tex = |texture: u32, second: bool, transform: Option<Affine2>| TexRef {
+            texture,
+            tex_coord: u32::from(second),
+            second_uv: second,
+            transform,
+        };
+        let turned = Affine2::from_scale_angle_translation(
+            glam::Vec2::new(2.0, 0.5),
+            0.3,
+            glam::Vec2::new(0.25, -1.0),
+        );
+        Material {
+            name: "every \"field\"".to_string(),
+            base_color: Vec4::new(0.1, 0.2, 0.3, 0.4),
+            base_color_tex: Some(tex(0, false, Some(turned))),
+            metallic: 0.7,
+            roughness: 0.35,
+            metallic_roughness_tex: Some(tex(1, true, None)),
+            normal_tex: Some(tex(2, false, None)),
+            normal_scale: 0.9,
+            emissive: Vec3::new(1.5, 2.5, f32::INFINITY),
+            emissive_tex: Some(tex(3, true, Some(Affine2::from_translation(glam::Vec2::X)))),
+            transmission: 0.6,
+            transmission_tex: Some(tex(4, false, None)),
+            ior: 1.45,
+            specular: 0.8,
+            specular_tex: Some(tex(5, false, None)),
+            specular_color: Vec3::new(0.9, 0.8, 0.7),
+            specular_color_tex: Some(tex(6, false, None)),
+            alpha_mode: AlphaMode::Mask { cutoff: 0.33 },
+            double_sided: true,
+            unlit: true,
+            clearcoat: Some(Clearcoat {
+                factor: 0.5,
+                tex: Some(tex(7, false, None)),
+                roughness: 0.125,
+                roughness_tex: Some(tex(8, false, None)),
+                normal_tex: Some(tex(9, false, Some(turned))),
+                normal_scale: 0.75,
+            }),
+            sheen: Some(Sheen {
+                color: Vec3::new(0.5, 0.25, 1.0),
+                color_tex: Some(tex(10, false, None)),
+                roughness: 0.6,
+                roughness_tex: Some(tex(11, false, None)),
+            }),
+            anisotropy: Some(Anisotropy {
+                strength: 0.4,
+                rotation: f32::NAN,
+                tex: Some(tex(12, false, None)),
+            }),
+            volume: Some(Volume {
+                attenuation_color: Vec3::new(0.5, 0.9, 1.0),
+                attenuation_distance: f32::NEG_INFINITY,
+            }),
+            iridescence: Some(Iridescence {
+                factor: 0.75,
+                tex: Some(tex(13, false, None)),
+                ior: 1.8,
+                thickness_min: 120.0,
+                thickness_max: 650.0,
+                thickness_tex: Some(tex(14, true, None)),
+            }),
+            dispersion: 0.05,
+        }
+    }
+
+    const EVERYTHING_JSON: &str = concat!(
+        r#"{"name":"every \"field\"","#,
+        r#""base_color":[0.10000000149011612,0.20000000298023224,0.30000001192092896,"#,
+        r#"0.4000000059604645],"#,
+        r#""base_color_tex":{"texture":0,"tex_coord":0,"transform":[1.9106730222702026,"#,
+        r#"0.5910404324531555,-0.14776010811328888,0.47766825556755066,0.25,"#,
+        r#"-1.0]},"#,
+        r#""metallic":0.699999988079071,"#,
+        r#""roughness":0.3499999940395355,"#,
+        r#""metallic_roughness_tex":{"texture":1,"tex_coord":1,"second_uv":true},"#,
+        r#""normal_tex":{"texture":2,"tex_coord":0},"#,
+        r#""normal_scale":0.8999999761581421,"#,
+        r#""emissive":[1.5,2.5,"inf"],"#,
+        r#""emissive_tex":{"texture":3,"tex_coord":1,"second_uv":true,"transform":[1.0,"#,
+        r#"0.0,0.0,1.0,1.0,0.0]},"#,
+        r#""transmission":0.6000000238418579,"#,
+        r#""transmission_tex":{"texture":4,"tex_coord":0},"#,
+        r#""ior":1.4500000476837158,"#,
+        r#""specular":0.800000011920929,"#,
+        r#""specular_tex":{"texture":5,"tex_coord":0},"#,
+        r#""specular_color":[0.8999999761581421,0.800000011920929,0.699999988079071],"#,
+        r#""specular_color_tex":{"texture":6,"tex_coord":0},"#,
+        r#""alpha_mode":{"mode":"mask","cutoff":0.33000001311302185},"#,
+        r#""double_sided":true,"#,
+        r#""unlit":true,"#,
+        r#""clearcoat":{"factor":0.5,"tex":{"texture":7,"tex_coord":0},"roughness":0.125,"#,
+        r#""roughness_tex":{"texture":8,"tex_coord":0},"normal_tex":{"texture":9,"#,
+        r#""tex_coord":0,"transform":[1.9106730222702026,0.5910404324531555,"#,
+        r#"-0.14776010811328888,0.47766825556755066,0.25,-1.0]},"normal_scale":0.75},"#,
+        r#""sheen":{"color":[0.5,0.25,1.0],"color_tex":{"texture":10,"tex_coord":0},"#,
+        r#""roughness":0.6000000238418579,"roughness_tex":{"texture":11,"#,
+        r#""tex_coord":0}},"#,
+        r#""anisotropy":{"strength":0.4000000059604645,"rotation":"nan","#,
+        r#""tex":{"texture":12,"tex_coord":0}},"#,
+        r#""volume":{"attenuation_color":[0.5,0.8999999761581421,1.0],"#,
+        r#""attenuation_distance":"-inf"},"#,
+        r#""iridescence":{"factor":0.75,"tex":{"texture":13,"tex_coord":0},"#,
+        r#""ior":1.7999999523162842,"thickness_min":120.0,"thickness_max":650.0,"#,
+        r#""thickness_tex":{"texture":14,"tex_coord":1,"second_uv":true}},"#,
+        r#""dispersion":0.05000000074505806}"#,
+    );
+
+    const DEFAULT_JSON: &str = concat!(
+        r#"{"name":"default","#,
+        r#""base_color":[1.0,1.0,1.0,1.0],"#,
+        r#""base_color_tex":null,"#,
+        r#""metallic":1.0,"#,
+        r#""roughness":1.0,"#,
+        r#""metallic_roughness_tex":null,"#,
+        r#""normal_tex":null,"#,
+        r#""normal_scale":1.0,"#,
+        r#""emissive":[0.0,0.0,0.0],"#,
+        r#""emissive_tex":null,"#,
+        r#""transmission":0.0,"#,
+        r#""transmission_tex":null,"#,
+        r#""ior":1.5,"#,
+        r#""specular":1.0,"#,
+        r#""specular_tex":null,"#,
+        r#""specular_color":[1.0,1.0,1.0],"#,
+        r#""specular_color_tex":null,"#,
+        r#""alpha_mode":{"mode":"opaque"},"#,
+        r#""double_sided":false}"#,
+    );
+
+    /// The bytes a manifest stores for a material are pinned: the package checksums of
+    /// scenes already partitioned depend on them.
+    #[test]
+    fn material_json_is_pinned() {
+        let every = everything_material();
+        let json = material_json(&every);
+        assert_eq!(json, EVERYTHING_JSON);
+        // Read back, it writes the same bytes (NaN has no equality to compare with).
+        assert_eq!(material_json(&material_from_json(&json)), EVERYTHING_JSON);
+        assert!(
+            material_from_json(&json)
+                .anisotropy
+                .unwrap()
+                .rotation
+                .is_nan()
+        );
+        let mut finite = every.clone();
+        finite.anisotropy = finite.anisotropy.map(|a| Anisotropy {
+            rotation: 1.25,
+            ..a
+        });
+        assert_eq!(material_from_json(&material_json(&finite)), finite);
+        assert_eq!(material_json(&Material::default()), DEFAULT_JSON);
+        // A manifest from before the extensions (the default material's JSON has none of
+        // their fields) loads with every extension absent.
+        assert_eq!(material_from_json(DEFAULT_JSON), Material::default());
+    }
+
     #[test]
     fn core_types_round_trip() {
         let mut m = Material::glass("g", 1.33);
