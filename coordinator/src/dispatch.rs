@@ -509,6 +509,10 @@ pub fn spawn(
     );
 }
 
+/// Run a planned job: cut (or check) its package, set its schedule up over the
+/// registered workers (and open its first attempt's cache walls when it has any), then
+/// hand it to its actor. A job cancelled while its package was cut ends here, its
+/// package removed; an error is the job's failure before it started.
 async fn run(
     cluster: &Arc<Cluster>,
     record: &Arc<JobRecord>,
@@ -523,13 +527,83 @@ async fn run(
         placement,
         scene,
     } = planned;
+    let walled = setup_spec.ray_cache.is_some() || setup_spec.phm.is_some();
+    let mut info = cut_package(cluster, record, package, walled).await?;
+    let owned = info.owned.clone();
+    if record.is_terminal() {
+        // Cancelled while the package was being written.
+        remove_package(owned.as_ref());
+        return Ok(());
+    }
+    let workers = job_workers(&cluster.membership);
+    if workers.is_empty() {
+        remove_package(owned.as_ref());
+        return Err(DispatchError::NoWorkers);
+    }
+    let mut sched = JobSchedule::new(&record.id, schedule, info.domains, &workers);
+    if let Some(r) = &resume {
+        sched.set_first_attempt(r.attempt);
+    }
+    let caches = match info.geometry.take() {
+        Some(geometry) if walled => {
+            match open_caches(cluster, record, &mut sched, &setup_spec, geometry).await {
+                Ok(c) => Some(c),
+                Err(e) => {
+                    remove_package(owned.as_ref());
+                    return Err(e);
+                }
+            }
+        }
+        _ => None,
+    };
+    let (env_map, owned) = env_map_for_workers(cluster, prepared.env_map.clone(), owned);
+    let tiles = job_tiles(record, &setup_spec);
+    let mut setup = job_setup(record, setup_spec, &prepared, &info, schedule, env_map);
+    setup.passes_ahead = crate::job::ahead::passes_ahead(
+        record.passes.total(),
+        u64::from(record.spec.width) * u64::from(record.spec.height),
+        tiles.len(),
+        workers.iter().any(|w| w.budget > 0) || schedule == Schedule::Replicated,
+        walled,
+        record.spec.noise_threshold.is_some(),
+    );
+    record.update_stats(|s| {
+        s.triangles = prepared.triangles;
+        s.domains = info.domains;
+        s.workers = workers.len() as u32;
+        s.effects = prepared.effects.clone();
+        s.schedule = schedule.name().to_string();
+        s.placement = placement;
+    });
+    let plan = JobPlan {
+        record: record.clone(),
+        setup,
+        sched,
+        tiles,
+        owned_package: owned,
+        caches,
+        resume,
+        scene,
+    };
+    start_job(cluster, plan, workers.len()).await;
+    Ok(())
+}
+
+/// The job's package, cut on a blocking task (or checked, for an existing one) while
+/// the job reads PREPARING and counts in [`Cluster::cuts`]. CancelJob stops the cut
+/// part-way; on any failure the folder the job made is removed again.
+async fn cut_package(
+    cluster: &Arc<Cluster>,
+    record: &Arc<JobRecord>,
+    package: PackageSource,
+    walls: bool,
+) -> Result<PackageInfo, DispatchError> {
     record.set_state(JobState::Preparing);
     // Counted until the cut has ended and, on failure, its folder is gone.
-    let cutting = Cutting::start(cluster);
+    let _cutting = Cutting::start(cluster);
     let dir = cluster.options.work_dir.join(&record.id);
     let dir2 = dir.clone();
     let memory = cluster.options.memory_packages.clone();
-    let walls = setup_spec.ray_cache.is_some() || setup_spec.phm.is_some();
     // A frame of a job group is cut with its group's layout.
     let group = record
         .group
@@ -544,67 +618,62 @@ async fn run(
     })
     .await
     .map_err(|e| DispatchError::Task(e.to_string()));
-    let info = match info {
-        Ok(Ok(i)) => i,
+    match info {
+        Ok(Ok(i)) => Ok(i),
         Ok(Err(e)) | Err(e) => {
             // A folder the job could not make is not the job's to remove.
             if !matches!(e, DispatchError::WorkDir { .. }) {
                 remove_package(Some(&OwnedPackage::Dir(dir)));
             }
-            return Err(e);
+            Err(e)
         }
-    };
-    drop(cutting);
-    let owned = info.owned.clone();
-    if record.is_terminal() {
-        // Cancelled while the package was being written.
-        remove_package(owned.as_ref());
-        return Ok(());
     }
-    let workers: Vec<JobWorker> = cluster
-        .membership
+}
+
+/// The registered workers as the job's schedule starts over them, in membership order.
+fn job_workers(membership: &Membership) -> Vec<JobWorker> {
+    membership
         .workers()
         .iter()
         .map(|w| JobWorker {
             endpoint: w.endpoint(),
             budget: w.memory_budget_bytes,
         })
-        .collect();
-    if workers.is_empty() {
-        remove_package(owned.as_ref());
-        return Err(DispatchError::NoWorkers);
-    }
-    let mut sched = JobSchedule::new(&record.id, schedule, info.domains, &workers);
-    if let Some(r) = &resume {
-        sched.set_first_attempt(r.attempt);
-    }
-    let walled = setup_spec.ray_cache.is_some() || setup_spec.phm.is_some();
-    let caches = match info.geometry {
-        Some(geometry) if walled => {
-            let caches = JobCaches::new(
-                setup_spec.ray_cache.clone(),
-                setup_spec.phm.clone(),
-                Arc::new(geometry),
-                cluster.options.clients.clone(),
-            );
-            match open_first_attempt(cluster, record, &mut sched, caches).await {
-                Ok(c) => {
-                    // The statistics from the start (hosts lost while opening), before
-                    // any worker hears of the job: GetJob must not show less than they did.
-                    record.update_stats(|s| c.tally.fill(s));
-                    Some(c)
-                }
-                Err(e) => {
-                    remove_package(owned.as_ref());
-                    return Err(e);
-                }
-            }
-        }
-        _ => None,
-    };
-    let env = prepared.environment;
-    // Workers in this process take the decoded map from memory, the others the file.
-    let (env_map, owned) = match (prepared.env_map.clone(), &cluster.options.memory_packages) {
+        .collect()
+}
+
+/// The ray caches and hit maps of a job with walls (`spec`'s knobs over the package's
+/// `geometry`), their first attempt's walls placed and opened ([`open_first_attempt`]),
+/// and the job's statistics filled from them before any worker hears of the job.
+async fn open_caches(
+    cluster: &Arc<Cluster>,
+    record: &Arc<JobRecord>,
+    sched: &mut JobSchedule,
+    spec: &JobSpec,
+    geometry: WallGeometry,
+) -> Result<JobCaches, DispatchError> {
+    let caches = JobCaches::new(
+        spec.ray_cache.clone(),
+        spec.phm.clone(),
+        Arc::new(geometry),
+        cluster.options.clients.clone(),
+    );
+    let c = open_first_attempt(cluster, record, sched, caches).await?;
+    // The statistics from the start (hosts lost while opening), before any worker
+    // hears of the job: GetJob must not show less than they did.
+    record.update_stats(|s| c.tally.fill(s));
+    Ok(c)
+}
+
+/// The environment map as the job's workers get it, and the packages the job owns with
+/// it: workers in this process take the decoded map from memory (an entry of the
+/// in-memory store, which the job then owns too), the others the file.
+fn env_map_for_workers(
+    cluster: &Cluster,
+    env_map: Option<LoadedEnvMap>,
+    owned: Option<OwnedPackage>,
+) -> (Option<EnvMapFile>, Option<OwnedPackage>) {
+    match (env_map, &cluster.options.memory_packages) {
         (Some(e), Some(store)) => {
             let name = store.insert_env_map(e.map);
             let owned_map = OwnedPackage::Memory {
@@ -618,10 +687,37 @@ async fn run(
             (Some(file), OwnedPackage::with(owned, owned_map))
         }
         (e, _) => (e.map(|e| e.file), owned),
-    };
-    let setup = JobSetup {
+    }
+}
+
+/// Every tile of the job: the image's, then the ray-cache coarse pass's, which come
+/// after the image's so that, traced first, they fill the caches before any image ray
+/// looks them up (see `crate::job::running`).
+fn job_tiles(record: &JobRecord, spec: &JobSpec) -> Vec<Tile> {
+    let mut tiles = image_tiles(record.spec.width, record.spec.height);
+    let coarse = spec.ray_cache.as_ref().map_or(0, |rc| rc.coarse);
+    if coarse > 0 {
+        let first = tiles.len() as u32;
+        tiles.extend(coarse_tiles(coarse, first));
+    }
+    tiles
+}
+
+/// The JobSetup every worker of the job is sent (see the module's step 1), with
+/// `routing` and `attempt` left for the actor to fill from the schedule and
+/// `passes_ahead` for the caller, once the tiles are known.
+fn job_setup(
+    record: &JobRecord,
+    spec: JobSpec,
+    prepared: &PreparedSummary,
+    info: &PackageInfo,
+    schedule: Schedule,
+    env_map: Option<EnvMapFile>,
+) -> JobSetup {
+    let env = prepared.environment;
+    JobSetup {
         job_id: record.id.clone(),
-        spec: Some(setup_spec),
+        spec: Some(spec),
         environment: Some(Rgb {
             r: env.x,
             g: env.y,
@@ -639,69 +735,37 @@ async fn run(
         schedule: schedule.name().to_string(),
         // The job's span (this task runs in it): the workers' spans join its trace.
         trace_context: dray_net::trace::inject(&tracing::Span::current()),
-        // Set below, once the tiles are known.
+        // Set by the caller, once the tiles are known.
         passes_ahead: 0,
         pass: 0,
         env_map,
-    };
-    let mut setup = setup;
-    let mut tiles = image_tiles(record.spec.width, record.spec.height);
-    // The coarse pass's tiles come after the image's: traced first, they fill the caches
-    // before any image ray looks them up (see `crate::job::running`).
-    let coarse = setup
-        .spec
-        .as_ref()
-        .and_then(|s| s.ray_cache.as_ref())
-        .map_or(0, |rc| rc.coarse);
-    if coarse > 0 {
-        let first = tiles.len() as u32;
-        tiles.extend(coarse_tiles(coarse, first));
     }
-    setup.passes_ahead = crate::job::ahead::passes_ahead(
-        record.passes.total(),
-        u64::from(record.spec.width) * u64::from(record.spec.height),
-        tiles.len(),
-        workers.iter().any(|w| w.budget > 0) || schedule == Schedule::Replicated,
-        walled,
-        record.spec.noise_threshold.is_some(),
-    );
-    let n = workers.len();
-    record.update_stats(|s| {
-        s.triangles = prepared.triangles;
-        s.domains = info.domains;
-        s.workers = n as u32;
-        s.effects = prepared.effects.clone();
-        s.schedule = schedule.name().to_string();
-        s.placement = placement;
-    });
-    let tile_count = tiles.len();
+}
+
+/// Hand `plan` to the job table, which starts the job's actor. If it cannot start, the
+/// job's package is removed, the walls it opened are closed (their statistics kept),
+/// and the job fails unless it has ended already (cancelled while its walls opened).
+async fn start_job(cluster: &Arc<Cluster>, plan: JobPlan, workers: usize) {
+    let record = plan.record.clone();
+    let owned = plan.owned_package.clone();
     // What to close if the job never starts (cancelled while its walls opened).
-    let opened = caches.as_ref().and_then(|c| {
+    let opened = plan.caches.as_ref().and_then(|c| {
         c.opened
             .clone()
             .map(|o| (o, c.tally.clone(), c.net.clone()))
     });
-    let plan = JobPlan {
-        record: record.clone(),
-        setup,
-        sched,
-        tiles,
-        owned_package: owned.clone(),
-        caches,
-        resume,
-        scene,
-    };
+    let (domains, tiles) = (plan.setup.domain_count, plan.tiles.len());
+    let (schedule, package) = (plan.setup.schedule.clone(), plan.setup.package_path.clone());
     match cluster.jobs.start(plan).await {
         Ok(()) => {
             tracing::info!(
-                workers = n,
-                domains = info.domains,
-                tiles = tile_count,
-                schedule = schedule.name(),
-                package = %info.path,
+                workers,
+                domains,
+                tiles,
+                schedule = schedule.as_str(),
+                package = %package,
                 "job dispatched"
             );
-            Ok(())
         }
         Err(msg) => {
             remove_package(owned.as_ref());
@@ -711,10 +775,9 @@ async fn run(
                 record.update_stats(|s| tally.fill(s));
             }
             if record.is_terminal() {
-                return Ok(());
+                return;
             }
             record.finish(JobState::Failed, msg, None);
-            Ok(())
         }
     }
 }

@@ -16,6 +16,7 @@ pub mod clamp;
 pub mod effects;
 pub mod light;
 pub mod material;
+pub mod material_serde;
 pub mod scene;
 pub mod texture;
 

@@ -2,8 +2,15 @@
 //!
 //! Factors are stored as glTF gives them; textures multiply them at shading time.
 //! Emission is stored already multiplied by `KHR_materials_emissive_strength`.
+//!
+//! These types are also what a scene package's manifest stores, through serde: the
+//! field attributes (and [`crate::material_serde`]) keep the JSON what it has always
+//! been, so read that module before adding a field.
 
 use glam::{Affine2, Vec2, Vec3, Vec4};
+use serde::{Deserialize, Serialize};
+
+use crate::material_serde::{affine2_opt, is_one, is_zero, one, real, vec3, vec4};
 
 /// The texture coordinates of a surface point: the mesh's first UV set
 /// ([`crate::scene::Mesh::uvs`]) and its second ([`crate::scene::Mesh::uvs2`], zero when
@@ -25,7 +32,7 @@ impl TexCoords {
 }
 
 /// A reference from a material slot to a texture in [`crate::scene::Scene::textures`].
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TexRef {
     /// Index into `Scene::textures`.
     pub texture: u32,
@@ -37,10 +44,17 @@ pub struct TexRef {
     /// rather than its first ([`crate::scene::Mesh::uvs`]). A mesh keeps per triangle the
     /// set its material reads first and, only for materials whose slots name two sets,
     /// the other one (docs/gltf.md, "Texture coordinates").
+    ///
+    /// Written only when true (package format version 3), so manifests of scenes whose
+    /// materials read one UV set each are what they were.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub second_uv: bool,
     /// `KHR_texture_transform`: the affine map from the mesh's UV to the texture's UV
     /// (offset, rotation and scale composed), `None` for the identity. Kept as `None`
     /// rather than an identity matrix so untransformed lookups keep their bits.
+    /// Written as the map's columns, and left out when there is none, so manifests of
+    /// scenes without transforms are unchanged.
+    #[serde(default, skip_serializing_if = "Option::is_none", with = "affine2_opt")]
     pub transform: Option<Affine2>,
 }
 
@@ -68,39 +82,48 @@ impl TexRef {
 }
 
 /// `KHR_materials_clearcoat`: a clear dielectric coat (ior 1.5, GGX) over the material.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Clearcoat {
     /// Coat strength in [0, 1] (texture R multiplies it).
+    #[serde(with = "real")]
     pub factor: f32,
     pub tex: Option<TexRef>,
     /// Coat perceptual roughness (texture G multiplies it).
+    #[serde(with = "real")]
     pub roughness: f32,
     pub roughness_tex: Option<TexRef>,
     /// `clearcoatNormalTexture`: the coat's own normal map, read in the same tangent
-    /// frame as the material's normal map, its XY scaled by `normal_scale`.
+    /// frame as the material's normal map, its XY scaled by `normal_scale`. Both left
+    /// out of a manifest without a map (older manifests keep their bytes).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub normal_tex: Option<TexRef>,
+    #[serde(default = "one", skip_serializing_if = "is_one", with = "real")]
     pub normal_scale: f32,
 }
 
 /// `KHR_materials_sheen`: a velvet-like layer of fibres (the Charlie distribution)
 /// over the material, below a clear coat.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Sheen {
     /// Linear sheen colour (texture RGB, sRGB, multiplies it).
+    #[serde(with = "vec3")]
     pub color: Vec3,
     pub color_tex: Option<TexRef>,
     /// Sheen perceptual roughness (texture A multiplies it).
+    #[serde(with = "real")]
     pub roughness: f32,
     pub roughness_tex: Option<TexRef>,
 }
 
 /// `KHR_materials_anisotropy`: the specular lobe stretched along a direction in the
 /// tangent plane (brushed metal).
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Anisotropy {
     /// In [0, 1] (texture B multiplies it).
+    #[serde(with = "real")]
     pub strength: f32,
     /// Radians, counter-clockwise from the tangent, applied to the direction.
+    #[serde(with = "real")]
     pub rotation: f32,
     /// RG: the direction in tangent space in [-1, 1]; B: strength.
     pub tex: Option<TexRef>,
@@ -108,27 +131,33 @@ pub struct Anisotropy {
 
 /// `KHR_materials_iridescence`: a thin dielectric film over the material whose
 /// interference colours its specular reflection (soap bubbles, oil, beetles).
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Iridescence {
     /// Strength in [0, 1] mixing the film's Fresnel term in (texture R multiplies it).
+    #[serde(with = "real")]
     pub factor: f32,
     pub tex: Option<TexRef>,
     /// Refraction index of the film.
+    #[serde(with = "real")]
     pub ior: f32,
     /// Film thickness in nanometres: `thickness_max` without a texture, else
     /// `mix(thickness_min, thickness_max, texture G)`.
+    #[serde(with = "real")]
     pub thickness_min: f32,
+    #[serde(with = "real")]
     pub thickness_max: f32,
     pub thickness_tex: Option<TexRef>,
 }
 
 /// `KHR_materials_volume`: the medium inside a transmissive object, attenuating light
 /// by Beer-Lambert over the distance travelled inside.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Volume {
     /// Linear colour white light becomes after `attenuation_distance` in the medium.
+    #[serde(with = "vec3")]
     pub attenuation_color: Vec3,
     /// Distance at which white light has become `attenuation_color` (infinite: clear).
+    #[serde(with = "real")]
     pub attenuation_distance: f32,
 }
 
@@ -156,12 +185,15 @@ impl Volume {
     }
 }
 
-/// How alpha is interpreted (glTF `alphaMode`).
-#[derive(Clone, Copy, Debug, PartialEq)]
+/// How alpha is interpreted (glTF `alphaMode`). In a manifest, an object tagged by
+/// `mode` (`{"mode":"mask","cutoff":0.5}`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "mode", rename_all = "snake_case")]
 pub enum AlphaMode {
     Opaque,
     /// Cut-out: the surface exists where alpha >= cutoff.
     Mask {
+        #[serde(with = "real")]
         cutoff: f32,
     },
     /// Blend is rendered as stochastic transparency: a hit is kept with probability alpha,
@@ -171,44 +203,63 @@ pub enum AlphaMode {
 }
 
 /// A glTF PBR metallic-roughness material.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Material {
     pub name: String,
     /// Linear RGBA base colour factor.
+    #[serde(with = "vec4")]
     pub base_color: Vec4,
     pub base_color_tex: Option<TexRef>,
+    #[serde(with = "real")]
     pub metallic: f32,
+    #[serde(with = "real")]
     pub roughness: f32,
     /// Roughness in G, metallic in B (glTF packing).
     pub metallic_roughness_tex: Option<TexRef>,
     pub normal_tex: Option<TexRef>,
+    #[serde(with = "real")]
     pub normal_scale: f32,
     /// Linear emitted radiance factor, already multiplied by emissive strength.
+    #[serde(with = "vec3")]
     pub emissive: Vec3,
     pub emissive_tex: Option<TexRef>,
     /// `KHR_materials_transmission` factor (0 = opaque).
+    #[serde(with = "real")]
     pub transmission: f32,
     pub transmission_tex: Option<TexRef>,
     /// `KHR_materials_ior` (default 1.5).
+    #[serde(with = "real")]
     pub ior: f32,
     /// `KHR_materials_specular` factor (default 1; 0 gives pure Lambert for dielectrics).
+    #[serde(with = "real")]
     pub specular: f32,
     pub specular_tex: Option<TexRef>,
     /// `KHR_materials_specular` colour factor (linear).
+    #[serde(with = "vec3")]
     pub specular_color: Vec3,
     pub specular_color_tex: Option<TexRef>,
     pub alpha_mode: AlphaMode,
     pub double_sided: bool,
+    // The glTF extensions below are left out of a manifest when absent, so manifests
+    // of scenes without them keep their bytes (and their checksums), and manifests
+    // written before them load.
     /// `KHR_materials_unlit`: the surface shows its base colour as is, lit by nothing
     /// and lighting nothing.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub unlit: bool,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub clearcoat: Option<Clearcoat>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sheen: Option<Sheen>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub anisotropy: Option<Anisotropy>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub volume: Option<Volume>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub iridescence: Option<Iridescence>,
     /// `KHR_materials_dispersion`: 20 / Abbe number (0: the index is the same for every
     /// wavelength). Only transmission shows it.
+    #[serde(default, skip_serializing_if = "is_zero", with = "real")]
     pub dispersion: f32,
 }
 

@@ -385,8 +385,67 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
     if input.routes.is_local() || input.workers.is_empty() {
         return None;
     }
-    let n = input.domains as usize;
-    let mut view = vec![DomainView::default(); n];
+    let mut round = Round {
+        input,
+        view: domain_views(input),
+        owners: (0..input.domains)
+            .map(|d| input.routes.owners(d).to_vec())
+            .collect(),
+        changes: Vec::new(),
+    };
+    let kept = round.bound_owners();
+    let mut idle = IdleWorkers::new(input, &round.view, &round.owners);
+    if idle.left > 0 {
+        round.move_unloaded(&mut idle);
+    }
+    if input.replicate && idle.left > 0 {
+        round.replicate_hot(&mut idle);
+    }
+    let Round {
+        view,
+        mut owners,
+        mut changes,
+        ..
+    } = round;
+    release_for_gifts(&mut owners, &mut changes, kept, &view, input);
+    if changes.is_empty() {
+        return None;
+    }
+    Some(Decision {
+        routes: Ownership::from_owners(owners),
+        changes,
+    })
+}
+
+/// A dynamic round in progress: what the reports say about each domain, the owners as
+/// decided so far, and the changes in the order decided.
+struct Round<'i, 'a> {
+    input: &'i RoundInput<'a>,
+    view: Vec<DomainView>,
+    owners: Vec<Vec<String>>,
+    changes: Vec<Change>,
+}
+
+impl RoundInput<'_> {
+    /// Whether domain `d` was given to worker `w` by an earlier round and is still
+    /// loading there.
+    fn loading_at(&self, d: usize, w: &str) -> bool {
+        self.loading.contains(&(d as u32, w.to_string()))
+    }
+}
+
+impl DomainView {
+    /// Whether any worker has rays queued for the domain.
+    fn wanted(&self) -> bool {
+        self.want > 0
+    }
+}
+
+/// What the workers' reports say about each domain of the job: the rays queued for it
+/// everywhere, where it is resident, and its largest resident size. A report naming a
+/// domain out of range is left out (reports come from the network).
+fn domain_views(input: &RoundInput<'_>) -> Vec<DomainView> {
+    let mut view = vec![DomainView::default(); input.domains as usize];
     for w in input.workers {
         for q in w.queues {
             // Reports come from the network: a domain out of range is not ours to judge.
@@ -400,153 +459,121 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
             }
         }
     }
-    let mut owners: Vec<Vec<String>> = (0..input.domains)
-        .map(|d| input.routes.owners(d).to_vec())
-        .collect();
-    let wanted = |d: usize| view[d].want > 0;
-    let loading_at = |d: usize, w: &str| input.loading.contains(&(d as u32, w.to_string()));
-    let mut changes = Vec::new();
-    // Ownership bounded by what a worker can hold (Navratil et al.): a worker that owns
-    // more domains than it can hold keeps those loaded (or loading) there and the
-    // most wanted of the rest, and lets the others go; their rays wait where they are
-    // until a worker with nothing to do is given them, so one load serves them all
-    // instead of the owner swapping its domains in and out.
-    let size = view.iter().map(|v| v.bytes).max().unwrap_or(0);
-    // Each worker's domains it owns alone, ascending, from one pass over the
-    // domains (not one pass per worker: that is N x D at 10,000 workers). A worker's
-    // releases below touch only its own domains, so the lists stay true as it goes.
-    let mut sole: HashMap<String, Vec<usize>> = HashMap::new();
-    for (d, o) in owners.iter().enumerate() {
-        if let [only] = o.as_slice() {
-            sole.entry(only.clone()).or_default().push(d);
+    view
+}
+
+/// Domains `ds` most wanted first: descending want, then ascending index, a total
+/// order, so no tie is left to the sort's stability or to map iteration.
+fn by_want(view: &[DomainView], mut ds: Vec<usize>) -> Vec<usize> {
+    ds.sort_by(|&a, &b| view[b].want.cmp(&view[a].want).then(a.cmp(&b)));
+    ds
+}
+
+impl<'a> Round<'_, 'a> {
+    /// The round's first step, ownership bounded by what a worker can hold (Navratil et
+    /// al.): a worker that owns alone more domains than it can hold keeps those loaded (or
+    /// loading) there and the most wanted of the rest, and lets the others go; their rays
+    /// wait where they are until a worker with nothing to do is given them, so one load
+    /// serves them all instead of the owner swapping its domains in and out. Returns what
+    /// each bounded worker keeps of the domains it owns alone, with its capacity, for the
+    /// bound after the moves ([`release_for_gifts`]).
+    fn bound_owners(&mut self) -> HashMap<&'a str, (usize, Vec<usize>)> {
+        let (input, view) = (self.input, &self.view);
+        let (owners, changes) = (&mut self.owners, &mut self.changes);
+        let size = view.iter().map(|v| v.bytes).max().unwrap_or(0);
+        // Each worker's domains it owns alone, ascending, from one pass over the
+        // domains (not one pass per worker: that is N x D at 10,000 workers). A worker's
+        // releases below touch only its own domains, so the lists stay true as it goes.
+        let mut sole: HashMap<String, Vec<usize>> = HashMap::new();
+        for (d, o) in owners.iter().enumerate() {
+            if let [only] = o.as_slice() {
+                sole.entry(only.clone()).or_default().push(d);
+            }
         }
-    }
-    // What each bounded worker keeps of the domains it owns alone, for the bound after
-    // the moves below.
-    let mut kept: HashMap<&str, (usize, Vec<usize>)> = HashMap::new();
-    for w in input.workers {
-        let Some(cap) = capacity(w, size) else {
-            continue;
-        };
-        let here = |d: usize| view[d].resident_at.contains(w.id) || loading_at(d, w.id);
-        let mut mine: Vec<usize> = sole.remove(w.id).unwrap_or_default();
-        if mine.len() <= cap {
-            kept.insert(w.id, (cap, mine));
-            continue;
-        }
-        mine.sort_by(|&a, &b| {
-            here(b)
-                .cmp(&here(a))
-                .then(view[b].want.cmp(&view[a].want))
-                .then(a.cmp(&b))
-        });
-        for &d in &mine[cap..] {
-            if here(d) {
+        let mut kept: HashMap<&'a str, (usize, Vec<usize>)> = HashMap::new();
+        for w in input.workers {
+            let Some(cap) = capacity(w, size) else {
+                continue;
+            };
+            let here = |d: usize| view[d].resident_at.contains(w.id) || input.loading_at(d, w.id);
+            let mut mine: Vec<usize> = sole.remove(w.id).unwrap_or_default();
+            if mine.len() <= cap {
+                kept.insert(w.id, (cap, mine));
                 continue;
             }
-            owners[d].clear();
-            changes.push(Change::Release {
-                domain: d as u32,
-                from: w.id.to_string(),
+            mine.sort_by(|&a, &b| {
+                here(b)
+                    .cmp(&here(a))
+                    .then(view[b].want.cmp(&view[a].want))
+                    .then(a.cmp(&b))
             });
+            for &d in &mine[cap..] {
+                if here(d) {
+                    continue;
+                }
+                owners[d].clear();
+                changes.push(Change::Release {
+                    domain: d as u32,
+                    from: w.id.to_string(),
+                });
+            }
+            mine.retain(|&d| !owners[d].is_empty());
+            kept.insert(w.id, (cap, mine));
         }
-        mine.retain(|&d| !owners[d].is_empty());
-        kept.insert(w.id, (cap, mine));
-    }
-    // Owners of a wanted domain are busy; one pass over the domains, not one per worker.
-    let busy: BTreeSet<&str> = owners
-        .iter()
-        .enumerate()
-        .filter(|&(d, _)| wanted(d))
-        .flat_map(|(_, o)| o.iter().map(String::as_str))
-        .collect();
-    // Idle workers in job order; a worker given a domain leaves its slot empty, so the
-    // order of the others (which decides ties) never changes.
-    let mut idle: Vec<Option<&WorkerView<'_>>> = input
-        .workers
-        .iter()
-        .filter(|w| !busy.contains(w.id))
-        .map(Some)
-        .collect();
-    let mut idle_left = idle.len();
-    if idle_left == 0 {
-        return (!changes.is_empty()).then(|| Decision {
-            routes: Ownership::from_owners(owners.clone()),
-            changes,
-        });
-    }
-    let slot_of: HashMap<&str, usize> = idle
-        .iter()
-        .enumerate()
-        .filter_map(|(i, w)| w.map(|w| (w.id, i)))
-        .collect();
-    // Every slot before this one is empty.
-    let mut first_live = 0usize;
-    let by_want = |mut ds: Vec<usize>| {
-        // Descending want, then ascending index: a total order, so no tie is left to
-        // the sort's stability or to map iteration.
-        ds.sort_by(|&a, &b| view[b].want.cmp(&view[a].want).then(a.cmp(&b)));
-        ds
-    };
-    let fits = |w: &WorkerView<'_>, d: usize| w.budget == 0 || view[d].bytes <= w.budget;
-    // The idle worker for domain `d`: the first (in job order) that fits and still holds
-    // it, else the first that fits. The holders are few: they are looked up, not
-    // searched for, so a round costs O(moves x holders) plus the scan for a fit.
-    let pick = |idle: &[Option<&WorkerView<'_>>], first: usize, d: usize, skip: &[String]| {
-        let ok = |w: &WorkerView<'_>| fits(w, d) && !skip.iter().any(|s| s == w.id);
-        view[d]
-            .resident_at
-            .iter()
-            .filter_map(|id| slot_of.get(id.as_str()).copied())
-            .filter(|&i| idle[i].is_some_and(ok))
-            .min()
-            .or_else(|| (first..idle.len()).find(|&i| idle[i].is_some_and(ok)))
-    };
-    let unloaded: Vec<usize> = (0..n)
-        .filter(|&d| wanted(d))
-        .filter(|&d| {
-            !owners[d]
-                .iter()
-                .any(|o| view[d].resident_at.contains(o) || loading_at(d, o))
-        })
-        .collect();
-    for d in by_want(unloaded) {
-        if idle_left == 0 {
-            break;
-        }
-        let Some(i) = pick(&idle, first_live, d, &[]) else {
-            continue;
-        };
-        let Some(w) = take_slot(&mut idle, i, &mut first_live, &mut idle_left) else {
-            continue;
-        };
-        let from = std::mem::replace(&mut owners[d], vec![w.id.to_string()]);
-        changes.push(Change::Move {
-            domain: d as u32,
-            from,
-            to: w.id.to_string(),
-        });
+        kept
     }
 
-    if input.replicate && idle_left > 0 {
+    /// The round's moves: the most-wanted unloaded domains (wanted, and neither resident
+    /// nor loading at any of their owners) each go to one idle worker
+    /// ([`IdleWorkers::pick`]) as its only owner, leaving their previous owners.
+    fn move_unloaded(&mut self, idle: &mut IdleWorkers<'_>) {
+        let (input, view) = (self.input, &self.view);
+        let (owners, changes) = (&mut self.owners, &mut self.changes);
+        let unloaded: Vec<usize> = (0..view.len())
+            .filter(|&d| view[d].wanted())
+            .filter(|&d| {
+                !owners[d]
+                    .iter()
+                    .any(|o| view[d].resident_at.contains(o) || input.loading_at(d, o))
+            })
+            .collect();
+        for d in by_want(view, unloaded) {
+            if idle.left == 0 {
+                break;
+            }
+            let Some(w) = idle.give(view, d, &[]) else {
+                continue;
+            };
+            let from = std::mem::replace(&mut owners[d], vec![w.id.to_string()]);
+            changes.push(Change::Move {
+                domain: d as u32,
+                from,
+                to: w.id.to_string(),
+            });
+        }
+    }
+
+    /// With `replicate`, after the moves: idle workers left over become extra owners of
+    /// the most-wanted domains resident somewhere, one new replica per domain per round,
+    /// none for a domain moved or loading this round, never more owners than workers.
+    fn replicate_hot(&mut self, idle: &mut IdleWorkers<'_>) {
+        let (input, view) = (self.input, &self.view);
+        let (owners, changes) = (&mut self.owners, &mut self.changes);
         let moved: BTreeSet<u32> = changes
             .iter()
             .filter_map(|c| c.given().map(|g| g.0))
             .collect();
-        let hot: Vec<usize> = (0..n)
-            .filter(|&d| wanted(d) && !view[d].resident_at.is_empty())
+        let hot: Vec<usize> = (0..view.len())
+            .filter(|&d| view[d].wanted() && !view[d].resident_at.is_empty())
             .filter(|&d| !moved.contains(&(d as u32)))
-            .filter(|&d| !owners[d].iter().any(|o| loading_at(d, o)))
+            .filter(|&d| !owners[d].iter().any(|o| input.loading_at(d, o)))
             .filter(|&d| owners[d].len() < input.workers.len())
             .collect();
-        for d in by_want(hot) {
-            if idle_left == 0 {
+        for d in by_want(view, hot) {
+            if idle.left == 0 {
                 break;
             }
-            let Some(i) = pick(&idle, first_live, d, &owners[d]) else {
-                continue;
-            };
-            let Some(w) = take_slot(&mut idle, i, &mut first_live, &mut idle_left) else {
+            let Some(w) = idle.give(view, d, &owners[d]) else {
                 continue;
             };
             owners[d].push(w.id.to_string());
@@ -556,16 +583,6 @@ pub fn rebalance(input: &RoundInput<'_>) -> Option<Decision> {
             });
         }
     }
-
-    release_for_gifts(&mut owners, &mut changes, kept, &view, input);
-
-    if changes.is_empty() {
-        return None;
-    }
-    Some(Decision {
-        routes: Ownership::from_owners(owners),
-        changes,
-    })
 }
 
 /// The end of `dynamic-from-image-plane`'s image-plane phase: the first ownership, made
@@ -677,22 +694,90 @@ fn release_for_gifts(
     }
 }
 
-/// Empty slot `i` of `idle` and return its worker, keeping `first` at the first slot
-/// still holding one and `left` at how many do.
-fn take_slot<'a, 'b>(
-    idle: &mut [Option<&'a WorkerView<'b>>],
-    i: usize,
-    first: &mut usize,
-    left: &mut usize,
-) -> Option<&'a WorkerView<'b>> {
-    let w = idle.get_mut(i)?.take();
-    if w.is_some() {
-        *left -= 1;
+/// A round's idle workers (those owning no wanted domain), in job order. A worker given
+/// a domain leaves its slot empty, so the order of the others (which decides ties)
+/// never changes.
+struct IdleWorkers<'r> {
+    slots: Vec<Option<&'r WorkerView<'r>>>,
+    /// Each idle worker's slot, so a domain's holders are looked up, not searched for.
+    slot_of: HashMap<&'r str, usize>,
+    /// Every slot before this one is empty.
+    first_live: usize,
+    /// Slots still holding a worker.
+    left: usize,
+}
+
+impl<'r> IdleWorkers<'r> {
+    /// The workers owning no wanted domain in `owners` (the owners of a wanted domain
+    /// are busy; found in one pass over the domains, not one per worker).
+    fn new(input: &RoundInput<'r>, view: &[DomainView], owners: &[Vec<String>]) -> Self {
+        let busy: BTreeSet<&str> = owners
+            .iter()
+            .enumerate()
+            .filter(|&(d, _)| view[d].wanted())
+            .flat_map(|(_, o)| o.iter().map(String::as_str))
+            .collect();
+        let slots: Vec<Option<&'r WorkerView<'r>>> = input
+            .workers
+            .iter()
+            .filter(|w| !busy.contains(w.id))
+            .map(Some)
+            .collect();
+        let slot_of = slots
+            .iter()
+            .enumerate()
+            .filter_map(|(i, w)| w.map(|w| (w.id, i)))
+            .collect();
+        IdleWorkers {
+            left: slots.len(),
+            slots,
+            slot_of,
+            first_live: 0,
+        }
     }
-    while *first < idle.len() && idle[*first].is_none() {
-        *first += 1;
+
+    /// The slot of the idle worker for domain `d`: the first (in job order) whose
+    /// budget the domain's resident size fits (0 = unlimited; the budget, not the free
+    /// memory, since a worker evicts domains nobody wants), not in `skip`, that still
+    /// holds it, else the first that fits. The holders are few: they are looked up, so
+    /// a round costs O(moves x holders) plus the scan for a fit.
+    fn pick(&self, view: &[DomainView], d: usize, skip: &[String]) -> Option<usize> {
+        let fits = |w: &WorkerView<'_>| w.budget == 0 || view[d].bytes <= w.budget;
+        let ok = |w: &WorkerView<'_>| fits(w) && !skip.iter().any(|s| s == w.id);
+        view[d]
+            .resident_at
+            .iter()
+            .filter_map(|id| self.slot_of.get(id.as_str()).copied())
+            .filter(|&i| self.slots[i].is_some_and(ok))
+            .min()
+            .or_else(|| {
+                (self.first_live..self.slots.len()).find(|&i| self.slots[i].is_some_and(ok))
+            })
     }
-    w
+
+    /// The idle worker for domain `d` ([`IdleWorkers::pick`]), its slot emptied.
+    fn give(
+        &mut self,
+        view: &[DomainView],
+        d: usize,
+        skip: &[String],
+    ) -> Option<&'r WorkerView<'r>> {
+        let i = self.pick(view, d, skip)?;
+        self.take(i)
+    }
+
+    /// Empty slot `i` and return its worker, keeping `first_live` at the first slot
+    /// still holding one and `left` at how many do.
+    fn take(&mut self, i: usize) -> Option<&'r WorkerView<'r>> {
+        let w = self.slots.get_mut(i)?.take();
+        if w.is_some() {
+            self.left -= 1;
+        }
+        while self.first_live < self.slots.len() && self.slots[self.first_live].is_none() {
+            self.first_live += 1;
+        }
+        w
+    }
 }
 
 /// The latest queue report of each worker, as [`WorkerView`]s in `order`, with budgets.

@@ -18,24 +18,24 @@
 //! domain file with its triangle and vertex counts, size and checksum, so the domain files
 //! are covered too.
 //!
-//! The body uses mirror structs of the core types (`MaterialDesc` for `Material`, …)
-//! rather than serde derives in `dray-core`: the on-disk format is this module's promise,
-//! versioned here, and core stays free to change its in-memory types.
+//! Materials are written by the serde derives of `dray-core`'s own types
+//! (`dray_core::material`, with the field helpers of `dray_core::material_serde`), so
+//! one type holds a material on both sides of a package; their JSON is pinned byte for
+//! byte by this module's `material_json_is_pinned` test, because the on-disk format is
+//! this module's promise, versioned here. Lights, cameras and samplers go through mirror
+//! structs here (`LightDesc` for `Light`, …).
 //!
 //! Every `f32` is written through [`Real`], exactly: see there.
 
-use std::fmt;
 use std::path::Path;
 
 use dray_core::camera::{Camera, Projection};
 use dray_core::light::Light;
-use dray_core::material::{
-    AlphaMode, Anisotropy, Clearcoat, Iridescence, Material, Sheen, TexRef, Volume,
-};
+use dray_core::material::Material;
+pub use dray_core::material_serde::Real;
 use dray_core::texture::{Filter, Sampler, Wrap};
-use glam::{Affine2, Mat4, Vec3, Vec4};
-use serde::de::{self, Visitor};
-use serde::{Deserialize, Deserializer, Serialize, Serializer};
+use glam::{Mat4, Vec3};
+use serde::{Deserialize, Serialize};
 use serde_json::value::RawValue;
 
 use super::checksum::{checksum, from_hex, to_hex};
@@ -61,370 +61,12 @@ pub const UVS2_VERSION: u32 = 3;
 /// The manifest's file name inside a package directory.
 pub const MANIFEST_FILE: &str = "manifest.json";
 
-/// An `f32` that survives JSON exactly.
-///
-/// Written as the f64 of the same value (exact), so any JSON reader, even one that rounds
-/// the last f64 digit, gets back a double within a few f64 ulps of an f32, which rounds
-/// back to that very f32. Non-finite values, which JSON numbers cannot hold, are written
-/// as the strings `"inf"`, `"-inf"` and `"nan"`. Exactness matters: workers that load a
-/// package must shade with the same bits as the embedded renderer that never wrote one.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Real(pub f32);
-
-impl Serialize for Real {
-    fn serialize<S: Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
-        let v = self.0;
-        if v.is_finite() {
-            s.serialize_f64(v as f64)
-        } else if v.is_nan() {
-            s.serialize_str("nan")
-        } else if v > 0.0 {
-            s.serialize_str("inf")
-        } else {
-            s.serialize_str("-inf")
-        }
-    }
-}
-
-impl<'de> Deserialize<'de> for Real {
-    fn deserialize<D: Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
-        struct V;
-        impl Visitor<'_> for V {
-            type Value = Real;
-            fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
-                f.write_str("a number, \"inf\", \"-inf\" or \"nan\"")
-            }
-            fn visit_f64<E: de::Error>(self, v: f64) -> std::result::Result<Real, E> {
-                let r = v as f32;
-                if v.is_finite() && !r.is_finite() {
-                    return Err(E::custom(format!("{v} is out of f32 range")));
-                }
-                Ok(Real(r))
-            }
-            fn visit_u64<E: de::Error>(self, v: u64) -> std::result::Result<Real, E> {
-                Ok(Real(v as f32))
-            }
-            fn visit_i64<E: de::Error>(self, v: i64) -> std::result::Result<Real, E> {
-                Ok(Real(v as f32))
-            }
-            fn visit_str<E: de::Error>(self, v: &str) -> std::result::Result<Real, E> {
-                match v {
-                    "inf" => Ok(Real(f32::INFINITY)),
-                    "-inf" => Ok(Real(f32::NEG_INFINITY)),
-                    "nan" => Ok(Real(f32::NAN)),
-                    _ => Err(E::invalid_value(de::Unexpected::Str(v), &self)),
-                }
-            }
-        }
-        d.deserialize_any(V)
-    }
-}
-
 fn v3(v: Vec3) -> [Real; 3] {
     v.to_array().map(Real)
 }
 
 fn from_v3(v: [Real; 3]) -> Vec3 {
     Vec3::from_array(v.map(|r| r.0))
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct TexRefDesc {
-    pub texture: u32,
-    pub tex_coord: u32,
-    /// [`TexRef::second_uv`]: written only when true (format version 3), so manifests of
-    /// scenes whose materials read one UV set each are what they were.
-    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
-    pub second_uv: bool,
-    /// `KHR_texture_transform` as the affine map's columns (`x_axis`, `y_axis`,
-    /// `translation`); left out when there is none, so manifests of scenes without
-    /// transforms are unchanged.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub transform: Option<[Real; 6]>,
-}
-
-/// Mirror of [`Clearcoat`].
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ClearcoatDesc {
-    pub factor: Real,
-    pub tex: Option<TexRefDesc>,
-    pub roughness: Real,
-    pub roughness_tex: Option<TexRefDesc>,
-    /// The coat's normal map and its scale, left out without a map (older manifests
-    /// keep their bytes).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub normal_tex: Option<TexRefDesc>,
-    #[serde(default = "one", skip_serializing_if = "is_one")]
-    pub normal_scale: Real,
-}
-
-fn one() -> Real {
-    Real(1.0)
-}
-
-fn is_one(r: &Real) -> bool {
-    r.0.to_bits() == 1f32.to_bits()
-}
-
-fn zero() -> Real {
-    Real(0.0)
-}
-
-fn is_zero(r: &Real) -> bool {
-    r.0.to_bits() == 0f32.to_bits()
-}
-
-/// Mirror of [`Sheen`].
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct SheenDesc {
-    pub color: [Real; 3],
-    pub color_tex: Option<TexRefDesc>,
-    pub roughness: Real,
-    pub roughness_tex: Option<TexRefDesc>,
-}
-
-/// Mirror of [`Anisotropy`].
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct AnisotropyDesc {
-    pub strength: Real,
-    pub rotation: Real,
-    pub tex: Option<TexRefDesc>,
-}
-
-/// Mirror of [`Volume`].
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct VolumeDesc {
-    pub attenuation_color: [Real; 3],
-    pub attenuation_distance: Real,
-}
-
-/// Mirror of [`Iridescence`].
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct IridescenceDesc {
-    pub factor: Real,
-    pub tex: Option<TexRefDesc>,
-    pub ior: Real,
-    pub thickness_min: Real,
-    pub thickness_max: Real,
-    pub thickness_tex: Option<TexRefDesc>,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "mode", rename_all = "snake_case")]
-pub enum AlphaModeDesc {
-    Opaque,
-    Mask { cutoff: Real },
-    Blend,
-}
-
-/// Mirror of [`Material`].
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct MaterialDesc {
-    pub name: String,
-    pub base_color: [Real; 4],
-    pub base_color_tex: Option<TexRefDesc>,
-    pub metallic: Real,
-    pub roughness: Real,
-    pub metallic_roughness_tex: Option<TexRefDesc>,
-    pub normal_tex: Option<TexRefDesc>,
-    pub normal_scale: Real,
-    pub emissive: [Real; 3],
-    pub emissive_tex: Option<TexRefDesc>,
-    pub transmission: Real,
-    pub transmission_tex: Option<TexRefDesc>,
-    pub ior: Real,
-    pub specular: Real,
-    pub specular_tex: Option<TexRefDesc>,
-    pub specular_color: [Real; 3],
-    pub specular_color_tex: Option<TexRefDesc>,
-    pub alpha_mode: AlphaModeDesc,
-    pub double_sided: bool,
-    // The glTF extensions below are left out when absent, so manifests of scenes
-    // without them keep their bytes (and their checksums).
-    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
-    pub unlit: bool,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub clearcoat: Option<ClearcoatDesc>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub sheen: Option<SheenDesc>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub anisotropy: Option<AnisotropyDesc>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub volume: Option<VolumeDesc>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub iridescence: Option<IridescenceDesc>,
-    #[serde(default = "zero", skip_serializing_if = "is_zero")]
-    pub dispersion: Real,
-}
-
-fn tex_out(t: Option<TexRef>) -> Option<TexRefDesc> {
-    t.map(|t| TexRefDesc {
-        texture: t.texture,
-        tex_coord: t.tex_coord,
-        second_uv: t.second_uv,
-        transform: t.transform.map(|a| a.to_cols_array().map(Real)),
-    })
-}
-
-fn tex_in(t: Option<TexRefDesc>) -> Option<TexRef> {
-    t.map(|t| TexRef {
-        texture: t.texture,
-        tex_coord: t.tex_coord,
-        second_uv: t.second_uv,
-        transform: t
-            .transform
-            .map(|a| Affine2::from_cols_array(&a.map(|r| r.0))),
-    })
-}
-
-impl From<&Material> for MaterialDesc {
-    fn from(m: &Material) -> Self {
-        MaterialDesc {
-            name: m.name.clone(),
-            base_color: m.base_color.to_array().map(Real),
-            base_color_tex: tex_out(m.base_color_tex),
-            metallic: Real(m.metallic),
-            roughness: Real(m.roughness),
-            metallic_roughness_tex: tex_out(m.metallic_roughness_tex),
-            normal_tex: tex_out(m.normal_tex),
-            normal_scale: Real(m.normal_scale),
-            emissive: v3(m.emissive),
-            emissive_tex: tex_out(m.emissive_tex),
-            transmission: Real(m.transmission),
-            transmission_tex: tex_out(m.transmission_tex),
-            ior: Real(m.ior),
-            specular: Real(m.specular),
-            specular_tex: tex_out(m.specular_tex),
-            specular_color: v3(m.specular_color),
-            specular_color_tex: tex_out(m.specular_color_tex),
-            alpha_mode: match m.alpha_mode {
-                AlphaMode::Opaque => AlphaModeDesc::Opaque,
-                AlphaMode::Mask { cutoff } => AlphaModeDesc::Mask {
-                    cutoff: Real(cutoff),
-                },
-                AlphaMode::Blend => AlphaModeDesc::Blend,
-            },
-            double_sided: m.double_sided,
-            unlit: m.unlit,
-            clearcoat: m.clearcoat.map(|c| ClearcoatDesc {
-                factor: Real(c.factor),
-                tex: tex_out(c.tex),
-                roughness: Real(c.roughness),
-                roughness_tex: tex_out(c.roughness_tex),
-                normal_tex: tex_out(c.normal_tex),
-                normal_scale: Real(c.normal_scale),
-            }),
-            sheen: m.sheen.map(|s| SheenDesc {
-                color: v3(s.color),
-                color_tex: tex_out(s.color_tex),
-                roughness: Real(s.roughness),
-                roughness_tex: tex_out(s.roughness_tex),
-            }),
-            anisotropy: m.anisotropy.map(|a| AnisotropyDesc {
-                strength: Real(a.strength),
-                rotation: Real(a.rotation),
-                tex: tex_out(a.tex),
-            }),
-            volume: m.volume.map(|v| VolumeDesc {
-                attenuation_color: v3(v.attenuation_color),
-                attenuation_distance: Real(v.attenuation_distance),
-            }),
-            iridescence: m.iridescence.map(|i| IridescenceDesc {
-                factor: Real(i.factor),
-                tex: tex_out(i.tex),
-                ior: Real(i.ior),
-                thickness_min: Real(i.thickness_min),
-                thickness_max: Real(i.thickness_max),
-                thickness_tex: tex_out(i.thickness_tex),
-            }),
-            dispersion: Real(m.dispersion),
-        }
-    }
-}
-
-impl MaterialDesc {
-    pub fn to_core(&self) -> Material {
-        Material {
-            name: self.name.clone(),
-            base_color: Vec4::from_array(self.base_color.map(|r| r.0)),
-            base_color_tex: tex_in(self.base_color_tex),
-            metallic: self.metallic.0,
-            roughness: self.roughness.0,
-            metallic_roughness_tex: tex_in(self.metallic_roughness_tex),
-            normal_tex: tex_in(self.normal_tex),
-            normal_scale: self.normal_scale.0,
-            emissive: from_v3(self.emissive),
-            emissive_tex: tex_in(self.emissive_tex),
-            transmission: self.transmission.0,
-            transmission_tex: tex_in(self.transmission_tex),
-            ior: self.ior.0,
-            specular: self.specular.0,
-            specular_tex: tex_in(self.specular_tex),
-            specular_color: from_v3(self.specular_color),
-            specular_color_tex: tex_in(self.specular_color_tex),
-            alpha_mode: match self.alpha_mode {
-                AlphaModeDesc::Opaque => AlphaMode::Opaque,
-                AlphaModeDesc::Mask { cutoff } => AlphaMode::Mask { cutoff: cutoff.0 },
-                AlphaModeDesc::Blend => AlphaMode::Blend,
-            },
-            double_sided: self.double_sided,
-            unlit: self.unlit,
-            clearcoat: self.clearcoat.map(|c| Clearcoat {
-                factor: c.factor.0,
-                tex: tex_in(c.tex),
-                roughness: c.roughness.0,
-                roughness_tex: tex_in(c.roughness_tex),
-                normal_tex: tex_in(c.normal_tex),
-                normal_scale: c.normal_scale.0,
-            }),
-            sheen: self.sheen.map(|s| Sheen {
-                color: from_v3(s.color),
-                color_tex: tex_in(s.color_tex),
-                roughness: s.roughness.0,
-                roughness_tex: tex_in(s.roughness_tex),
-            }),
-            anisotropy: self.anisotropy.map(|a| Anisotropy {
-                strength: a.strength.0,
-                rotation: a.rotation.0,
-                tex: tex_in(a.tex),
-            }),
-            volume: self.volume.map(|v| Volume {
-                attenuation_color: from_v3(v.attenuation_color),
-                attenuation_distance: v.attenuation_distance.0,
-            }),
-            iridescence: self.iridescence.map(|i| Iridescence {
-                factor: i.factor.0,
-                tex: tex_in(i.tex),
-                ior: i.ior.0,
-                thickness_min: i.thickness_min.0,
-                thickness_max: i.thickness_max.0,
-                thickness_tex: tex_in(i.thickness_tex),
-            }),
-            dispersion: self.dispersion.0,
-        }
-    }
-
-    fn tex_refs(&self) -> impl Iterator<Item = TexRefDesc> + '_ {
-        [
-            self.base_color_tex,
-            self.metallic_roughness_tex,
-            self.normal_tex,
-            self.emissive_tex,
-            self.transmission_tex,
-            self.specular_tex,
-            self.specular_color_tex,
-            self.clearcoat.and_then(|c| c.tex),
-            self.clearcoat.and_then(|c| c.roughness_tex),
-            self.clearcoat.and_then(|c| c.normal_tex),
-            self.sheen.and_then(|s| s.color_tex),
-            self.sheen.and_then(|s| s.roughness_tex),
-            self.anisotropy.and_then(|a| a.tex),
-            self.iridescence.and_then(|i| i.tex),
-            self.iridescence.and_then(|i| i.thickness_tex),
-        ]
-        .into_iter()
-        .flatten()
-    }
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -710,7 +352,7 @@ pub struct Manifest {
     /// Per material, how many source triangles use it (effect analysis ignores unused
     /// materials, and a package has no single mesh to count them in).
     pub material_triangles: Vec<u64>,
-    pub materials: Vec<MaterialDesc>,
+    pub materials: Vec<Material>,
     pub textures: Vec<TextureDesc>,
     /// `textures.bin`, present when there are textures.
     pub textures_file: Option<FileEntry>,
@@ -874,7 +516,7 @@ impl Manifest {
             || self
                 .materials
                 .iter()
-                .any(|m| m.tex_refs().any(|t| t.second_uv));
+                .any(|m| m.texture_refs().any(|t| t.second_uv));
         if uvs2 {
             UVS2_VERSION
         } else {
@@ -948,7 +590,7 @@ impl Manifest {
         }
         let tex_count = self.textures.len();
         for (i, m) in self.materials.iter().enumerate() {
-            if let Some(t) = m.tex_refs().find(|t| t.texture as usize >= tex_count) {
+            if let Some(t) = m.texture_refs().find(|t| t.texture as usize >= tex_count) {
                 return Err(format!(
                     "material {i} ({:?}) refers to texture {} but there are {tex_count}",
                     m.name, t.texture
@@ -980,7 +622,7 @@ impl Manifest {
     }
 
     pub fn materials(&self) -> Vec<Material> {
-        self.materials.iter().map(MaterialDesc::to_core).collect()
+        self.materials.clone()
     }
 
     pub fn lights(&self) -> Vec<Light> {
@@ -998,6 +640,11 @@ impl Manifest {
 
 #[cfg(test)]
 mod tests {
+    use dray_core::material::{
+        AlphaMode, Anisotropy, Clearcoat, Iridescence, Sheen, TexRef, Volume,
+    };
+    use glam::{Affine2, Vec4};
+
     use super::*;
 
     #[test]
@@ -1036,15 +683,188 @@ mod tests {
         assert!(serde_json::from_str::<Real>("\"lots\"").is_err());
     }
 
+    /// The JSON of a material as a manifest stores it: the function the pinned bytes
+    /// below go through.
+    fn material_json(m: &Material) -> String {
+        serde_json::to_string(m).unwrap()
+    }
+
+    fn material_from_json(json: &str) -> Material {
+        serde_json::from_str::<Material>(json).unwrap()
+    }
+
+    /// A material with every field set away from its default: textures on both UV sets
+    /// with and without transforms, every extension, a masked alpha, and the non-finite
+    /// factors only `Real` can write.
+    fn everything_material() -> Material {
+        let tex = |texture: u32, second: bool, transform: Option<Affine2>| TexRef {
+            texture,
+            tex_coord: u32::from(second),
+            second_uv: second,
+            transform,
+        };
+        let turned = Affine2::from_scale_angle_translation(
+            glam::Vec2::new(2.0, 0.5),
+            0.3,
+            glam::Vec2::new(0.25, -1.0),
+        );
+        Material {
+            name: "every \"field\"".to_string(),
+            base_color: Vec4::new(0.1, 0.2, 0.3, 0.4),
+            base_color_tex: Some(tex(0, false, Some(turned))),
+            metallic: 0.7,
+            roughness: 0.35,
+            metallic_roughness_tex: Some(tex(1, true, None)),
+            normal_tex: Some(tex(2, false, None)),
+            normal_scale: 0.9,
+            emissive: Vec3::new(1.5, 2.5, f32::INFINITY),
+            emissive_tex: Some(tex(3, true, Some(Affine2::from_translation(glam::Vec2::X)))),
+            transmission: 0.6,
+            transmission_tex: Some(tex(4, false, None)),
+            ior: 1.45,
+            specular: 0.8,
+            specular_tex: Some(tex(5, false, None)),
+            specular_color: Vec3::new(0.9, 0.8, 0.7),
+            specular_color_tex: Some(tex(6, false, None)),
+            alpha_mode: AlphaMode::Mask { cutoff: 0.33 },
+            double_sided: true,
+            unlit: true,
+            clearcoat: Some(Clearcoat {
+                factor: 0.5,
+                tex: Some(tex(7, false, None)),
+                roughness: 0.125,
+                roughness_tex: Some(tex(8, false, None)),
+                normal_tex: Some(tex(9, false, Some(turned))),
+                normal_scale: 0.75,
+            }),
+            sheen: Some(Sheen {
+                color: Vec3::new(0.5, 0.25, 1.0),
+                color_tex: Some(tex(10, false, None)),
+                roughness: 0.6,
+                roughness_tex: Some(tex(11, false, None)),
+            }),
+            anisotropy: Some(Anisotropy {
+                strength: 0.4,
+                rotation: f32::NAN,
+                tex: Some(tex(12, false, None)),
+            }),
+            volume: Some(Volume {
+                attenuation_color: Vec3::new(0.5, 0.9, 1.0),
+                attenuation_distance: f32::NEG_INFINITY,
+            }),
+            iridescence: Some(Iridescence {
+                factor: 0.75,
+                tex: Some(tex(13, false, None)),
+                ior: 1.8,
+                thickness_min: 120.0,
+                thickness_max: 650.0,
+                thickness_tex: Some(tex(14, true, None)),
+            }),
+            dispersion: 0.05,
+        }
+    }
+
+    const EVERYTHING_JSON: &str = concat!(
+        r#"{"name":"every \"field\"","#,
+        r#""base_color":[0.10000000149011612,0.20000000298023224,0.30000001192092896,"#,
+        r#"0.4000000059604645],"#,
+        r#""base_color_tex":{"texture":0,"tex_coord":0,"transform":[1.9106730222702026,"#,
+        r#"0.5910404324531555,-0.14776010811328888,0.47766825556755066,0.25,"#,
+        r#"-1.0]},"#,
+        r#""metallic":0.699999988079071,"#,
+        r#""roughness":0.3499999940395355,"#,
+        r#""metallic_roughness_tex":{"texture":1,"tex_coord":1,"second_uv":true},"#,
+        r#""normal_tex":{"texture":2,"tex_coord":0},"#,
+        r#""normal_scale":0.8999999761581421,"#,
+        r#""emissive":[1.5,2.5,"inf"],"#,
+        r#""emissive_tex":{"texture":3,"tex_coord":1,"second_uv":true,"transform":[1.0,"#,
+        r#"0.0,0.0,1.0,1.0,0.0]},"#,
+        r#""transmission":0.6000000238418579,"#,
+        r#""transmission_tex":{"texture":4,"tex_coord":0},"#,
+        r#""ior":1.4500000476837158,"#,
+        r#""specular":0.800000011920929,"#,
+        r#""specular_tex":{"texture":5,"tex_coord":0},"#,
+        r#""specular_color":[0.8999999761581421,0.800000011920929,0.699999988079071],"#,
+        r#""specular_color_tex":{"texture":6,"tex_coord":0},"#,
+        r#""alpha_mode":{"mode":"mask","cutoff":0.33000001311302185},"#,
+        r#""double_sided":true,"#,
+        r#""unlit":true,"#,
+        r#""clearcoat":{"factor":0.5,"tex":{"texture":7,"tex_coord":0},"roughness":0.125,"#,
+        r#""roughness_tex":{"texture":8,"tex_coord":0},"normal_tex":{"texture":9,"#,
+        r#""tex_coord":0,"transform":[1.9106730222702026,0.5910404324531555,"#,
+        r#"-0.14776010811328888,0.47766825556755066,0.25,-1.0]},"normal_scale":0.75},"#,
+        r#""sheen":{"color":[0.5,0.25,1.0],"color_tex":{"texture":10,"tex_coord":0},"#,
+        r#""roughness":0.6000000238418579,"roughness_tex":{"texture":11,"#,
+        r#""tex_coord":0}},"#,
+        r#""anisotropy":{"strength":0.4000000059604645,"rotation":"nan","#,
+        r#""tex":{"texture":12,"tex_coord":0}},"#,
+        r#""volume":{"attenuation_color":[0.5,0.8999999761581421,1.0],"#,
+        r#""attenuation_distance":"-inf"},"#,
+        r#""iridescence":{"factor":0.75,"tex":{"texture":13,"tex_coord":0},"#,
+        r#""ior":1.7999999523162842,"thickness_min":120.0,"thickness_max":650.0,"#,
+        r#""thickness_tex":{"texture":14,"tex_coord":1,"second_uv":true}},"#,
+        r#""dispersion":0.05000000074505806}"#,
+    );
+
+    const DEFAULT_JSON: &str = concat!(
+        r#"{"name":"default","#,
+        r#""base_color":[1.0,1.0,1.0,1.0],"#,
+        r#""base_color_tex":null,"#,
+        r#""metallic":1.0,"#,
+        r#""roughness":1.0,"#,
+        r#""metallic_roughness_tex":null,"#,
+        r#""normal_tex":null,"#,
+        r#""normal_scale":1.0,"#,
+        r#""emissive":[0.0,0.0,0.0],"#,
+        r#""emissive_tex":null,"#,
+        r#""transmission":0.0,"#,
+        r#""transmission_tex":null,"#,
+        r#""ior":1.5,"#,
+        r#""specular":1.0,"#,
+        r#""specular_tex":null,"#,
+        r#""specular_color":[1.0,1.0,1.0],"#,
+        r#""specular_color_tex":null,"#,
+        r#""alpha_mode":{"mode":"opaque"},"#,
+        r#""double_sided":false}"#,
+    );
+
+    /// The bytes a manifest stores for a material are pinned: the package checksums of
+    /// scenes already partitioned depend on them.
+    #[test]
+    fn material_json_is_pinned() {
+        let every = everything_material();
+        let json = material_json(&every);
+        assert_eq!(json, EVERYTHING_JSON);
+        // Read back, it writes the same bytes (NaN has no equality to compare with).
+        assert_eq!(material_json(&material_from_json(&json)), EVERYTHING_JSON);
+        assert!(
+            material_from_json(&json)
+                .anisotropy
+                .unwrap()
+                .rotation
+                .is_nan()
+        );
+        let mut finite = every.clone();
+        finite.anisotropy = finite.anisotropy.map(|a| Anisotropy {
+            rotation: 1.25,
+            ..a
+        });
+        assert_eq!(material_from_json(&material_json(&finite)), finite);
+        assert_eq!(material_json(&Material::default()), DEFAULT_JSON);
+        // A manifest from before the extensions (the default material's JSON has none of
+        // their fields) loads with every extension absent.
+        assert_eq!(material_from_json(DEFAULT_JSON), Material::default());
+    }
+
     #[test]
     fn core_types_round_trip() {
         let mut m = Material::glass("g", 1.33);
         m.alpha_mode = AlphaMode::Mask { cutoff: 0.25 };
         m.normal_tex = Some(TexRef::new(2));
-        assert_eq!(MaterialDesc::from(&m).to_core(), m);
-        // Without glTF extensions the description has no field for them (old manifests
-        // keep their bytes); with them, they round-trip.
-        let plain = serde_json::to_string(&MaterialDesc::from(&m)).unwrap();
+        assert_eq!(material_from_json(&material_json(&m)), m);
+        // Without glTF extensions the JSON has no field for them (old manifests keep
+        // their bytes); with them, they round-trip.
+        let plain = material_json(&m);
         for absent in [
             "unlit",
             "clearcoat",
@@ -1099,16 +919,14 @@ mod tests {
         });
         m.dispersion = 0.5;
         // A coat without a normal map writes what it wrote before coat normals existed.
-        let bare = ClearcoatDesc {
+        let bare = Clearcoat {
             normal_tex: None,
-            normal_scale: Real(1.0),
-            ..MaterialDesc::from(&m).clearcoat.unwrap()
+            normal_scale: 1.0,
+            ..m.clearcoat.unwrap()
         };
         let bare = serde_json::to_string(&bare).unwrap();
         assert!(!bare.contains("normal"), "{bare}");
-        let json = serde_json::to_string(&MaterialDesc::from(&m)).unwrap();
-        let back: MaterialDesc = serde_json::from_str(&json).unwrap();
-        assert_eq!(back.to_core(), m);
+        assert_eq!(material_from_json(&material_json(&m)), m);
         let c = Camera::look_at("c", Vec3::new(1.0, 2.0, 3.0), Vec3::ZERO, Vec3::Y, 0.7);
         assert_eq!(CameraDesc::from(&c).to_core(), c);
         let l = Light::Spot {

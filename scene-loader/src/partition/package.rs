@@ -548,7 +548,7 @@ pub fn write_package(
         source_triangles: s.triangles,
         assigned_triangles: assigned,
         material_triangles: s.material_triangles,
-        materials: parts.materials.iter().map(Into::into).collect(),
+        materials: parts.materials.to_vec(),
         textures,
         textures_file,
         lights: parts.lights.iter().map(Into::into).collect(),
