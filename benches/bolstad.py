@@ -15,14 +15,17 @@ setting, `--repeat` interleaved rounds: bytes and times are medians, and results
 depend on which outcomes arrive first, so its bytes and image move between runs).
 
 Bolstad reports 7.3-18.2% less traffic with hit maps (rays transmitted between servers,
-up to 32 servers, 16 spp, 10-100 area-light samples per hit). dray's path integrator
-takes one light sample per bounce, so a hit sends one shadow ray, not 10-100: the maps
-see fewer outcomes per cell.
+up to 32 servers, 16 spp, 10-100 area-light samples per hit). By default dray's path
+integrator takes one light sample per bounce, so a hit sends one shadow ray: the maps
+see fewer outcomes per cell. `--light-samples N` passes `dray sweep --light-samples N`
+(N shadow rays to the area light per hit, each carrying 1/N of its light; 10 is
+Bolstad's least), and writes under `cornell-SIZE-lsN`.
 
 Usage (from the repository root; builds nothing: `cargo build --release -p dray` first or
 set DRAY_BIN):
     python3 benches/bolstad.py                 # 256^2, 16 spp, 5 rounds
     python3 benches/bolstad.py --size 128 --repeat 2
+    python3 benches/bolstad.py --light-samples 10 --repeat 2
 """
 
 from __future__ import annotations
@@ -50,12 +53,17 @@ def main() -> int:
     ap.add_argument("--modes", nargs="+", default=["consistent", "inconsistent"])
     ap.add_argument("--priors", type=float, nargs="+", default=[100])
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--light-samples", type=int, default=1,
+                    help="samples of the area light per hit (dray --light-samples; default 1)")
     ap.add_argument("--work", type=Path, default=Path("benches/out/bolstad"))
     a = ap.parse_args()
     if a.repeat < 2:
         raise SystemExit("--repeat: at least 2 (the spread needs more than one run)")
     dray = env.dray_binary()
-    out = a.work / f"cornell-{a.size}"
+    # One light sample keeps the command (and the output directory) of the runs before
+    # the option existed.
+    ls = a.light_samples
+    out = a.work / (f"cornell-{a.size}" if ls == 1 else f"cornell-{a.size}-ls{ls}")
     cmd = [str(dray), "sweep", "cornell", "--integrator", "path", "--width", str(a.size),
            "--height", str(a.size), "--spp", str(a.spp), "--domains", str(a.domains),
            "--workers", str(a.workers), "--schedule", "domain",
@@ -63,17 +71,21 @@ def main() -> int:
            "--vary", "phm.prior=" + ",".join(f"{p:g}" for p in a.priors),
            "--vary", "phm.mode=" + ",".join(a.modes),
            "--repeat", str(a.repeat), "--out", str(out)]
+    if ls != 1:
+        cmd += ["--light-samples", str(ls)]
     print("+", " ".join(cmd), flush=True)
     subprocess.run(cmd, check=True)
     with open(out / "results.csv") as f:
         rows = list(csv.DictReader(f))
-    (a.work / "results.json").write_text(json.dumps(
-        {"size": a.size, "spp": a.spp, "domains": a.domains, "workers": a.workers, "repeat": a.repeat,
+    (a.work / "results.json" if ls == 1 else out / "results.json").write_text(json.dumps(
+        {"size": a.size, "spp": a.spp, "light_samples": ls, "domains": a.domains, "workers": a.workers,
+         "repeat": a.repeat,
          "machine": env.machine_info(), "rows": rows}, indent=1))
     exact = next(r for r in rows if r["setting"] == "exact")
     e_bytes, e_render = float(exact["bytes_total"]), float(exact["render_s"])
     pct = lambda b: 100.0 * (float(b) - e_bytes) / e_bytes
-    print(f"\ncornell, path, {a.size}^2, {a.spp} spp, {a.domains} domains, {a.workers} in-process workers, "
+    print(f"\ncornell, path, {a.size}^2, {a.spp} spp, {ls} light sample(s) per hit, {a.domains} domains, "
+          f"{a.workers} in-process workers, "
           f"schedule domain; maps on shadow rays, thresholds 0.1 / 0.9; medians (least-most) of {a.repeat} rounds\n")
     print("| setting | bytes between processes | vs exact (least-most) | render s (least-most) | "
           "vs exact | FLIP (least-most) | rays skipped | occluded | map memory | Bolstad |")

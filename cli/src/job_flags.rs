@@ -345,6 +345,7 @@ impl JobFlags {
             view: self.view.spec()?,
             lighting: self.lights.lighting_spec(),
             sun_color: self.lights.sun_color_spec(),
+            light_samples: self.lights.light_samples_spec(),
             clamp_indirect: self.noise.clamp_indirect,
             aovs: self.noise.aov.clone(),
             time: self.anim.time,

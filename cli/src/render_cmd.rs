@@ -374,6 +374,7 @@ fn resolve_lighting(a: &RenderArgs) -> Result<dray_core::lighting::Lighting> {
         .map_err(flag_err)?;
         lighting.env_map = Some(loaded.map);
     }
+    lighting.samples = a.job.lights.light_samples();
     Ok(lighting)
 }
 

@@ -47,7 +47,9 @@ fn every_flag_has_a_topic() {
             .iter()
             .find(|(h, _)| h.starts_with("Lights"))
             .expect("lights");
-        assert!(lights.1.contains(&"--sun".to_string()), "{sub}: {lights:?}");
+        for flag in ["--sun", "--light-samples"] {
+            assert!(lights.1.contains(&flag.to_string()), "{sub}: {lights:?}");
+        }
         let camera = s
             .iter()
             .find(|(h, _)| h.starts_with("Camera"))

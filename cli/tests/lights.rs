@@ -1,8 +1,9 @@
-//! Lights added from the command line (`--sun`, `--sun-size`, `--sun-color`) end to
-//! end: the same bits from the reference renderer (`--workers 0`), from in-process
-//! workers and from a `dray cluster` reached by `dray submit` (the sun reaches them
-//! through `JobSpec.lighting` and `JobSpec.sun_color`), the effect reported only when
-//! used, and bad values refused with the flag's name.
+//! Lights added from the command line (`--sun`, `--sun-size`, `--sun-color`) and the
+//! samples each takes (`--light-samples`) end to end: the same bits from the reference
+//! renderer (`--workers 0`), from in-process workers and from a `dray cluster` reached
+//! by `dray submit` (the sun reaches them through `JobSpec.lighting` and
+//! `JobSpec.sun_color`, the count through `JobSpec.light_samples`), the effect reported
+//! only when used, and bad values refused with the flag's name.
 
 mod common;
 mod support;
@@ -25,12 +26,24 @@ fn render(
     if !ply.exists() {
         common::write_box_ply(&ply);
     }
+    render_scene(dir, tag, &ply.to_string_lossy(), integrator, workers, extra)
+}
+
+/// `scene` with `extra`, on `workers`: its EXR's bytes and its stats.
+fn render_scene(
+    dir: &Path,
+    tag: &str,
+    scene: &str,
+    integrator: &str,
+    workers: &str,
+    extra: &[&str],
+) -> (Vec<u8>, serde_json::Value) {
     let exr = dir.join(format!("{tag}.exr"));
     let exr_arg = exr.to_string_lossy().into_owned();
     let r = common::render(
         dir,
         tag,
-        &ply.to_string_lossy(),
+        scene,
         &[
             &[
                 "--width",
@@ -89,6 +102,63 @@ fn a_sun_gives_the_same_bits_on_workers_as_in_the_reference_renderer() {
         assert!(
             other != want,
             "{integrator}: the sun's direction changed nothing"
+        );
+    }
+}
+
+/// `--light-samples 8`: the same bits from the reference renderer and on 1 and 3
+/// in-process workers (the count reaches them through `JobSpec.light_samples`), with
+/// the Cornell box's area light and with a wide sun, and another image than one
+/// sample's; out of range refused naming the flag and the bound.
+#[test]
+fn light_samples_give_the_same_bits_on_1_and_3_workers() {
+    let dir = common::tmp("lights-samples");
+    let sun = ["--sun", "200,30,3", "--sun-size", "6"];
+    let eight = ["--light-samples", "8"];
+    for (what, scene, extra) in [("cornell", "cornell", &[][..]), ("sun", "", &sun[..])] {
+        let run = |tag: &str, workers: &str, flags: &[&str]| {
+            let flags = [extra, flags].concat();
+            if scene.is_empty() {
+                render(&dir, &format!("{what}-{tag}"), "path", workers, &flags).0
+            } else {
+                render_scene(
+                    &dir,
+                    &format!("{what}-{tag}"),
+                    scene,
+                    "path",
+                    workers,
+                    &flags,
+                )
+                .0
+            }
+        };
+        let want = run("ref", "0", &eight);
+        for workers in ["1", "3"] {
+            let got = run(&format!("w{workers}"), workers, &eight);
+            assert!(
+                got == want,
+                "{what}: {workers} workers differ from --workers 0 at 8 light samples"
+            );
+        }
+        let one = run("one", "0", &[]);
+        assert!(one != want, "{what}: --light-samples 8 changed nothing");
+        assert!(
+            run("one-explicit", "0", &["--light-samples", "1"]) == one,
+            "{what}: --light-samples 1 is not the image without the flag"
+        );
+    }
+    for bad in ["0", "257", "x"] {
+        let r = common::render(
+            &dir,
+            "bad",
+            "cornell",
+            &["--light-samples", bad, "--workers", "0"],
+        );
+        assert!(!r.ok, "--light-samples {bad} was accepted");
+        assert!(
+            r.stderr.contains("--light-samples") && r.stderr.contains("1..=256"),
+            "--light-samples {bad}: {}",
+            r.stderr
         );
     }
 }

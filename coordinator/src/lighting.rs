@@ -37,7 +37,8 @@ pub const DEFAULT_SUN_COLOR: Rgb = Rgb {
 
 /// Check `spec` and the sun's colour (`JobSpec.sun_color`, which needs a sun) and fill
 /// in their defaults in place; errors name the field. The environment map's file is not
-/// read here ([`load_env_map`]): the lighting returned has no map yet.
+/// read here ([`load_env_map`]): the lighting returned has no map yet, and one sample
+/// per light (`JobSpec.light_samples` is read by `crate::validate::light_samples`).
 pub fn check_lighting(
     spec: &mut Option<LightingSpec>,
     sun_color: &mut Option<Rgb>,
@@ -78,7 +79,10 @@ pub fn check_lighting(
             Some(sun)
         }
     };
-    Ok(Lighting { sun, env_map: None })
+    Ok(Lighting {
+        sun,
+        ..Lighting::default()
+    })
 }
 
 /// Check `lighting.env_map`'s fields and fill in its defaults (rotation 0, intensity 1).

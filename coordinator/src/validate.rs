@@ -16,6 +16,7 @@ use dray_core::aov::AovSet;
 use dray_core::camera::Camera;
 use dray_core::effects::Effect;
 use dray_core::integrator::{IntegratorKind, RenderSettings};
+use dray_core::light_samples::LightSamples;
 use dray_core::lighting::Lighting;
 use dray_core::scene::{Mesh, Scene};
 use dray_proto::v1::JobSpec;
@@ -150,6 +151,16 @@ pub struct Validated {
 
 fn bad(msg: String) -> Status {
     Status::invalid_argument(msg)
+}
+
+/// `light_samples` (`dray render --light-samples`): 1..=[`MAX_LIGHT_SAMPLES`], absent
+/// meaning 1. Left absent in the spec when absent, so a job that does not ask reads as
+/// it did before the field existed. The bound is core's, not a configurable limit: tiles'
+/// credit is sized for it.
+///
+/// [`MAX_LIGHT_SAMPLES`]: dray_core::light_samples::MAX_LIGHT_SAMPLES
+pub fn light_samples(n: Option<u32>) -> Result<LightSamples, Status> {
+    LightSamples::from_spec(n).map_err(|e| bad(format!("light_samples: {e}")))
 }
 
 /// The default `--max-job-bytes` ([`crate::admission`]): half the machine's memory (or
@@ -287,6 +298,10 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         .transpose()?;
     let effects = parse_effects(&spec.effects)?;
     let lighting = crate::lighting::check_lighting(&mut spec.lighting, &mut spec.sun_color)?;
+    let lighting = Lighting {
+        samples: light_samples(spec.light_samples)?,
+        ..lighting
+    };
     if let Some(c) = spec.clamp_indirect {
         dray_core::clamp::check_limit(c).map_err(|e| bad(format!("clamp_indirect: {e}")))?;
     }
@@ -860,6 +875,37 @@ mod tests {
         };
         let v = validate(&s, &l, &root).unwrap();
         assert_eq!(v.schedule, ScheduleRequest::Auto { replicate: true });
+    }
+
+    /// `light_samples`: absent means one sample (and stays absent), 1..=256 reach the
+    /// settings, 0 and 257 are refused naming the field and the bound.
+    #[test]
+    fn light_samples_are_checked_against_their_bound() {
+        use dray_core::light_samples::MAX_LIGHT_SAMPLES;
+        let root = std::env::temp_dir().canonicalize().unwrap();
+        let l = Limits::default();
+        let with = |n| JobSpec {
+            light_samples: n,
+            ..spec()
+        };
+        let v = validate(&with(None), &l, &root).unwrap();
+        assert_eq!((v.lighting.samples.get(), v.spec.light_samples), (1, None));
+        for n in [1, 10, MAX_LIGHT_SAMPLES] {
+            let v = validate(&with(Some(n)), &l, &root).unwrap();
+            assert_eq!(
+                (v.lighting.samples.get(), v.spec.light_samples),
+                (n, Some(n))
+            );
+        }
+        assert_eq!(MAX_LIGHT_SAMPLES, 256);
+        for n in [0, 257, u32::MAX] {
+            let e = validate(&with(Some(n)), &l, &root).unwrap_err();
+            assert_eq!(e.code(), tonic::Code::InvalidArgument);
+            assert_eq!(
+                e.message(),
+                format!("light_samples: {n} is out of range (1..=256)")
+            );
+        }
     }
 
     fn cache(rc: RayCacheSettings) -> Result<RayCacheSettings, String> {

@@ -378,18 +378,20 @@ impl<'a> Integrator<'a> {
     /// The least credit a camera ray needs so that every ray of its tree, down to the
     /// job's maximum depth, can give each of its children a share (docs/architecture.md
     /// "Credit"): the credit of the largest tree the integrator can make, with a shadow
-    /// ray to every punctual light and one to an emitter at every hit. [`MAX_DEPTH`],
-    /// `film::MAX_SPP`, `light::MAX_PUNCTUAL_LIGHTS` and the tile size are chosen so
-    /// that this always fits a camera ray's share of a tile (tested below); were a limit
-    /// raised past that, a share too small would still fail the job with
-    /// [`crate::credit::CreditError`], never give a wrong image.
+    /// ray to every punctual light and N (`--light-samples`) to each of an emitter, the
+    /// sun and the environment map at every hit. [`MAX_DEPTH`], `film::MAX_SPP`,
+    /// `light::MAX_PUNCTUAL_LIGHTS`, `light_samples::MAX_LIGHT_SAMPLES` and the tile
+    /// size are chosen so that this always fits a camera ray's share of a tile (tested
+    /// below); were a limit raised past that, a share too small would still fail the
+    /// job with [`crate::credit::CreditError`], never give a wrong image.
     pub fn credit_needed(&self) -> Credit {
         let s = &self.settings;
         let punctual = self.lights.punctual_entries().len() as u128;
         let area = u128::from(self.lights.choose_area(0.0).is_some());
         let sun = u128::from(self.sun().is_some()) + u128::from(self.env_map().is_some());
+        let per_light = u128::from(s.lighting.samples.get());
         let shadows = if s.effects.contains(Effect::DirectLight) {
-            punctual + area + sun
+            punctual + per_light * (area + sun)
         } else {
             0
         };
@@ -878,11 +880,22 @@ impl<'a> Integrator<'a> {
     }
 
     /// Direct light: every punctual light with its own shadow ray (they are few and
-    /// cheap, and sampling one by power starves dim-but-near lights), one sample of the
-    /// sun's disk, plus one emissive-triangle sample chosen by power. With `mode.mis`, the area sample is weighted
-    /// against BSDF sampling (path tracing); raycast and Whitted take it at full weight.
-    /// Without `mode.shadowed` (the `primary` integrator) no shadow ray is cast: each
-    /// sample's contribution is added unoccluded.
+    /// cheap, and sampling one by power starves dim-but-near lights), N samples of the
+    /// sun's disk, N of the environment map, and N emissive-triangle samples, each
+    /// chosen by power, where N is the job's `--light-samples` (1 by default). Sample k
+    /// of a light draws its numbers with index k, so each is independent of the others
+    /// and the same wherever the hit is shaded; each carries 1/N of its contribution.
+    /// Punctual lights take one sample whatever N is: it is exact. With `mode.mis`, the
+    /// area and distant samples are weighted against BSDF sampling (path tracing) as one
+    /// sample is: the light samples' mean and the BSDF sample still weigh every
+    /// direction by one in all, so the estimate is unbiased, and only the light-sampled
+    /// part's variance falls (by 1/N) while the BSDF sample keeps its share. Weights
+    /// counting the N samples (Veach's `n p`) would hand that share to the light too,
+    /// which is worse where BSDF sampling is the better strategy: on a diffuse plane
+    /// under a sky map they made 16 samples noisier than one (docs/lights.md "Light
+    /// samples per hit"). Raycast and Whitted take them at full weight. Without
+    /// `mode.shadowed` (the `primary` integrator) no shadow ray is cast: each sample's
+    /// contribution is added unoccluded.
     #[allow(clippy::too_many_arguments)]
     fn direct_light(
         &self,
@@ -902,21 +915,30 @@ impl<'a> Integrator<'a> {
                 self.light_out(self.shadow_ray(ray, surf, &ls, c), mode, sink);
             }
         }
+        let n = self.settings.lighting.samples.get();
         if let Some(sun) = self.sun() {
-            let wi = sun.sample(key.uniform2(ray.depth, Purpose::SunPoint, 0));
-            self.distant_sample(ray, surf, bsdf, (wi, sun.radiance(), sun.pdf()), mode, sink);
+            for k in 0..n {
+                let wi = sun.sample(key.uniform2(ray.depth, Purpose::SunPoint, k));
+                let sample = (wi, sun.radiance(), sun.pdf());
+                self.distant_sample(ray, surf, bsdf, sample, mode, sink);
+            }
         }
-        if let Some(map) = self.env_map()
-            && let Some(sample) = map.sample(key.uniform2(ray.depth, Purpose::EnvMapPoint, 0))
-        {
-            self.distant_sample(ray, surf, bsdf, sample, mode, sink);
+        if let Some(map) = self.env_map() {
+            for k in 0..n {
+                if let Some(sample) = map.sample(key.uniform2(ray.depth, Purpose::EnvMapPoint, k)) {
+                    self.distant_sample(ray, surf, bsdf, sample, mode, sink);
+                }
+            }
         }
         if !self.lights.has_area() {
             return;
         }
-        let u_sel = key.uniform(ray.depth, Purpose::LightSelect, 0);
-        if let Some((e, p)) = self.lights.choose_area(u_sel) {
-            let u = key.uniform2(ray.depth, Purpose::LightPoint, 0);
+        for k in 0..n {
+            let u_sel = key.uniform(ray.depth, Purpose::LightSelect, k);
+            let Some((e, p)) = self.lights.choose_area(u_sel) else {
+                continue;
+            };
+            let u = key.uniform2(ray.depth, Purpose::LightPoint, k);
             if let Some(ls) = self.lights.sample_entry(self.scene, e, p, surf.p, u) {
                 let (f, pdf) = bsdf.eval_pdf(ls.wi);
                 let w = if mode.mis {
@@ -924,16 +946,27 @@ impl<'a> Integrator<'a> {
                 } else {
                     1.0
                 };
-                let c = ray.weight * f * surf.n.dot(ls.wi).abs() * ls.li * (w / ls.pdf);
+                let c = ray.weight
+                    * f
+                    * surf.n.dot(ls.wi).abs()
+                    * ls.li
+                    * (w / ls.pdf * self.per_light_sample());
                 self.light_out(self.shadow_ray(ray, surf, &ls, c), mode, sink);
             }
         }
     }
 
+    /// The share of a light's contribution one of its N samples carries, 1/N. At N = 1,
+    /// 1.0, and a product by 1.0 is exact in IEEE 754, so one sample's contribution
+    /// keeps the bits it had before N existed.
+    fn per_light_sample(&self) -> f32 {
+        1.0 / self.settings.lighting.samples.get() as f32
+    }
+
     /// A shadow ray toward a light at infinity (the sun, the environment map) along
-    /// `wi`, of radiance `li` sampled with solid-angle density `pdf_l`; with `mode.mis`,
-    /// weighted against BSDF sampling, as the miss that finds the same light is
-    /// ([`Integrator::shade_miss`]).
+    /// `wi`, of radiance `li` sampled with solid-angle density `pdf_l`, carrying its
+    /// share of the light's N samples; with `mode.mis`, weighted against BSDF sampling,
+    /// as the miss that finds the same light is ([`Integrator::shade_miss`]).
     fn distant_sample(
         &self,
         ray: &RayState,
@@ -959,7 +992,7 @@ impl<'a> Integrator<'a> {
             light_p_err: Vec3::ZERO,
             light_n: -wi,
         };
-        let c = ray.weight * f * surf.n.dot(wi).abs() * li * (w / pdf_l);
+        let c = ray.weight * f * surf.n.dot(wi).abs() * li * (w / pdf_l * self.per_light_sample());
         self.light_out(self.shadow_ray(ray, surf, &ls, c), mode, sink);
     }
 
@@ -1039,8 +1072,8 @@ impl<'a> Integrator<'a> {
         });
     }
 
-    /// Path tracing: one light sample (MIS-weighted), then one BSDF sample with Russian
-    /// roulette.
+    /// Path tracing: the light samples of [`Integrator::direct_light`] (MIS-weighted),
+    /// then one BSDF sample with Russian roulette.
     fn path_step(
         &self,
         ray: &RayState,
@@ -1113,6 +1146,7 @@ mod tests {
         use crate::credit::Credit;
         use crate::film::MAX_SPP;
         use crate::light::{Light, MAX_PUNCTUAL_LIGHTS};
+        use crate::light_samples::{LightSamples, MAX_LIGHT_SAMPLES};
         use crate::tiles::TILE_SIZE;
         // The most punctual lights a scene may have, and an emitter.
         let mut scene = Scene::default();
@@ -1145,12 +1179,15 @@ mod tests {
                 effects: Effect::ALL.into_iter().fold(Effects::NONE, Effects::with),
                 ao_samples: 4096,
                 ao_distance: f32::INFINITY,
-                // And a sun: one more shadow ray per hit.
+                // And a sun and an environment map; these and the emitter each take
+                // the most samples a job may ask for, MAX_LIGHT_SAMPLES shadow rays per
+                // hit.
                 lighting: Lighting {
                     sun: Some(Sun::new(0.0, 45.0, 1.0, crate::sun::SUN_DIAMETER_DEG).expect("sun")),
                     env_map: Some(Arc::new(
                         EnvMap::new(1, 1, vec![Vec3::ONE], 0.0, 1.0).expect("map"),
                     )),
+                    samples: LightSamples::new(MAX_LIGHT_SAMPLES).expect("the bound"),
                 },
                 clamp_indirect: None,
                 aovs: Default::default(),
@@ -1163,9 +1200,10 @@ mod tests {
             );
             deepest = deepest.max(need.to_wire());
         }
-        // Whitted's tree: 2^8 chains of 1024 hits, each hit with a shadow ray per light.
+        // Whitted's tree: 2^8 chains of 1024 hits, each hit with a shadow ray per
+        // punctual light and MAX_LIGHT_SAMPLES to each of the other three.
         assert!(
-            deepest > (1 << 8) * 1000 * u64::from(MAX_PUNCTUAL_LIGHTS),
+            deepest > (1 << 8) * 1000 * u64::from(MAX_PUNCTUAL_LIGHTS + 3 * MAX_LIGHT_SAMPLES),
             "{deepest}"
         );
     }

@@ -36,6 +36,7 @@ pub mod intersect;
 pub mod iridescence;
 pub mod kind_set;
 pub mod light_sampler;
+pub mod light_samples;
 pub mod lighting;
 pub mod passes;
 pub mod ray;

@@ -86,8 +86,8 @@ fn a_constant_map_lights_the_scene_as_the_constant_environment_does() {
         Vec3::ZERO,
         Effects::NONE.with(Effect::DirectLight).with(Effect::EnvMap),
         Lighting {
-            sun: None,
             env_map: Some(Arc::new(map)),
+            ..Lighting::default()
         },
     );
     // Pixels that see the sky see the same radiance; the image means agree to well
@@ -127,10 +127,10 @@ fn a_constant_map_lights_the_scene_as_the_constant_environment_does() {
         Vec3::ZERO,
         Effects::NONE.with(Effect::DirectLight),
         Lighting {
-            sun: None,
             env_map: Some(Arc::new(
                 EnvMap::new(1, 1, vec![Vec3::splat(SKY)], 0.0, 1.0).expect("map"),
             )),
+            ..Lighting::default()
         },
     );
     assert!(off.iter().all(|v| *v == Vec3::ZERO));

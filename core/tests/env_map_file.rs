@@ -113,8 +113,8 @@ fn a_bright_upper_hemisphere_lights_an_upward_plane_as_the_analytic_answer() {
     for (path, rotation, intensity) in [(&hdr, 0.0, 1.0), (&exr, 70.0, 1.0), (&exr, 0.0, 3.0)] {
         let map = read_env_map(path, rotation, intensity).expect("read map");
         let im = image(Lighting {
-            sun: None,
             env_map: Some(Arc::new(map)),
+            ..Lighting::default()
         });
         let want = ALBEDO * SKY * intensity;
         let m = mean(&im);

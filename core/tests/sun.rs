@@ -3,6 +3,8 @@
 //! that; a bar above the plane casts a shadow, black where the whole disk is hidden and
 //! graded across a penumbra as wide as the disk's angle makes it.
 
+mod support;
+
 use dray_core::bvh::Accel;
 use dray_core::camera::Camera;
 use dray_core::effects::{Effect, Effects};
@@ -13,6 +15,7 @@ use dray_core::render::render;
 use dray_core::scene::Scene;
 use dray_core::sun::{SUN_DIAMETER_DEG, Sun};
 use glam::Vec3;
+use support::quad;
 
 const ALBEDO: f32 = 0.5;
 const ELEVATION: f32 = 40.0;
@@ -21,13 +24,6 @@ const IRRADIANCE: f32 = 2.0;
 const BAR_Y: f32 = 1.0;
 const BAR_HALF: f32 = 0.25;
 const SIZE: u32 = 96;
-
-fn quad(scene: &mut Scene, corners: [Vec3; 4], material: u32) {
-    let base = scene.mesh.push_vertices(&corners);
-    scene.mesh.indices.push([base, base + 1, base + 2]);
-    scene.mesh.indices.push([base, base + 2, base + 3]);
-    scene.mesh.material.extend([material, material]);
-}
 
 /// A ground plane y = 0 and a bar above it, both grey Lambert.
 fn scene() -> Scene {
@@ -78,7 +74,7 @@ fn render_sun(integrator: IntegratorKind, diameter: f32, spp: u32) -> Vec<(f32, 
         ao_distance: f32::INFINITY,
         lighting: Lighting {
             sun: Some(sun),
-            env_map: None,
+            ..Lighting::default()
         },
         clamp_indirect: None,
         aovs: Default::default(),

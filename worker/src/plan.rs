@@ -17,6 +17,7 @@ use dray_core::aov::AovSet;
 use dray_core::camera::Camera;
 use dray_core::effects::{Effect, Effects};
 use dray_core::integrator::{IntegratorKind, RenderSettings};
+use dray_core::light_samples::LightSamples;
 use dray_core::lighting::Lighting;
 use dray_core::sun::Sun;
 use dray_core::wall::PhmBins;
@@ -83,12 +84,18 @@ pub fn settings(setup: &JobSetup) -> Result<RenderSettings, JobError> {
 }
 
 /// The lights the spec adds, as the coordinator resolved them (every default filled
-/// in, so nothing here can pick another value than the coordinator's renderer did).
-/// The environment map, which needs its file, is added by [`plan_job_with`]
-/// (`crate::env_map`).
+/// in, so nothing here can pick another value than the coordinator's renderer did),
+/// and the samples each light takes per hit (`spec.light_samples`, absent meaning 1 as
+/// for the coordinator). The environment map, which needs its file, is added by
+/// [`plan_job_with`] (`crate::env_map`).
 fn lighting(spec: &dray_proto::v1::JobSpec) -> Result<Lighting, JobError> {
+    let samples = LightSamples::from_spec(spec.light_samples)
+        .map_err(|e| JobError::Invalid(format!("light_samples: {e}")))?;
     let Some(sun) = spec.lighting.as_ref().and_then(|l| l.sun.as_ref()) else {
-        return Ok(Lighting::default());
+        return Ok(Lighting {
+            samples,
+            ..Lighting::default()
+        });
     };
     let sun = Sun::new(
         sun.azimuth_deg,
@@ -111,6 +118,7 @@ fn lighting(spec: &dray_proto::v1::JobSpec) -> Result<Lighting, JobError> {
     Ok(Lighting {
         sun: Some(sun),
         env_map: None,
+        samples,
     })
 }
 
@@ -496,5 +504,35 @@ mod tests {
         assert!(wrong.contains("3 domains"), "{wrong}");
         store.remove(&name);
         assert!(plan_job(&s, Some(&store)).is_err());
+    }
+
+    /// `spec.light_samples` reaches the settings with and without a sun; absent means
+    /// one sample; out of range fails the job naming the field.
+    #[test]
+    fn light_samples_reach_the_settings_and_absent_means_one() {
+        use dray_proto::v1::{LightingSpec, SunSpec};
+        let samples = |n: Option<u32>, sun: bool| {
+            let mut s = setup("", 1);
+            let spec = s.spec.as_mut().expect("spec");
+            spec.light_samples = n;
+            if sun {
+                spec.lighting = Some(LightingSpec {
+                    sun: Some(SunSpec {
+                        azimuth_deg: 10.0,
+                        elevation_deg: 30.0,
+                        irradiance: Some(1.0),
+                        angular_diameter_deg: Some(0.53),
+                    }),
+                    ..LightingSpec::default()
+                });
+            }
+            settings(&s).map(|st| (st.lighting.samples.get(), st.lighting.sun.is_some()))
+        };
+        for sun in [false, true] {
+            assert_eq!(samples(None, sun).expect("absent"), (1, sun));
+            assert_eq!(samples(Some(8), sun).expect("8"), (8, sun));
+            let e = samples(Some(0), sun).expect_err("0").to_string();
+            assert!(e.contains("light_samples") && e.contains("1..=256"), "{e}");
+        }
     }
 }

@@ -22,6 +22,8 @@ pub use dray_cache::bounds::{
     MAX_SPP, MAX_WORKER_JOBS as MAX_JOBS,
 };
 
+pub use dray_core::light_samples::MAX_LIGHT_SAMPLES;
+
 /// Largest tile edge: a tile is never larger than the image.
 pub const MAX_TILE_SIZE: u32 = MAX_SIDE;
 /// Most workers and cache hosts a routing table may list (far beyond any cluster).
@@ -108,6 +110,11 @@ pub fn check_setup(setup: &JobSetup) -> Result<(), BoundError> {
         }
         if let Some(n) = spec.ao_samples {
             within("spec.ao_samples", n.into(), 0, MAX_AO_SAMPLES.into())?;
+        }
+        // Shadow rays per hit (a loop per light); core's bound, which tiles' credit is
+        // sized for and the coordinator holds jobs to.
+        if let Some(n) = spec.light_samples {
+            within("spec.light_samples", n.into(), 1, MAX_LIGHT_SAMPLES.into())?;
         }
         if let Some(rc) = &spec.ray_cache {
             within(
@@ -231,6 +238,7 @@ mod tests {
         spec.width = MAX_SIDE;
         spec.height = MAX_SIDE;
         spec.spp = MAX_SPP;
+        spec.light_samples = Some(MAX_LIGHT_SAMPLES);
         s.domain_count = MAX_DOMAINS;
         check_setup(&s).unwrap();
     }
@@ -255,6 +263,11 @@ mod tests {
         refused(spec(&|p| p.spp = u32::MAX), "spec.spp");
         refused(spec(&|p| p.max_depth = Some(u32::MAX)), "spec.max_depth");
         refused(spec(&|p| p.ao_samples = Some(u32::MAX)), "spec.ao_samples");
+        refused(spec(&|p| p.light_samples = Some(0)), "spec.light_samples");
+        refused(
+            spec(&|p| p.light_samples = Some(MAX_LIGHT_SAMPLES + 1)),
+            "spec.light_samples",
+        );
         refused(
             spec(&|p| {
                 p.ray_cache = Some(RayCacheSettings {

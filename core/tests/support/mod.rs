@@ -1,10 +1,10 @@
-//! What the geometry tests share: a mesh from a list of triangles, and cutting a mesh
-//! into per-domain BVHs. Each test crate uses part of it.
+//! What the geometry tests share: a mesh from a list of triangles, a quad added to a
+//! scene, and cutting a mesh into per-domain BVHs. Each test crate uses part of it.
 #![allow(dead_code)]
 
 use dray_core::bvh::Accel;
 use dray_core::domain::DomainTree;
-use dray_core::scene::Mesh;
+use dray_core::scene::{Mesh, Scene};
 use glam::Vec3;
 
 /// Per-domain BVHs with scene-wide ids: each triangle goes to every domain whose box,
@@ -41,4 +41,13 @@ pub fn mesh(tris: &[[Vec3; 3]]) -> Mesh {
         m.material.push(0);
     }
     m
+}
+
+/// Add a quad of `material` to `scene`, corners in order (counter-clockwise seen from
+/// its front), as two triangles.
+pub fn quad(scene: &mut Scene, corners: [Vec3; 4], material: u32) {
+    let base = scene.mesh.push_vertices(&corners);
+    scene.mesh.indices.push([base, base + 1, base + 2]);
+    scene.mesh.indices.push([base, base + 2, base + 3]);
+    scene.mesh.material.extend([material, material]);
 }
