@@ -157,7 +157,56 @@ pub fn run(a: BenchArgs) -> Result<()> {
     let t0 = Instant::now();
     let mut accel = Accel::build(&scene.mesh);
     let build_s = t0.elapsed().as_secs_f64();
-    let want = match a.simd {
+    select_simd(&mut accel, a.simd)?;
+    let (lo, hi) = scene.bounds();
+    let rays = make_rays(&a, lo, hi);
+    dump(&a, &scene.mesh, &rays)?;
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(a.threads)
+        .build()
+        .context("cannot start the thread pool")?;
+    let threads = pool.current_num_threads();
+    let Timed {
+        mut times,
+        hits,
+        t_sum,
+    } = time_rays(&a, &accel, &pool, &rays);
+    let counts = a.count.then(|| {
+        let mut c = TraversalCounts::default();
+        for r in &rays {
+            accel.closest_counted(&query(r), |_, _| true, &mut c);
+        }
+        c
+    });
+    times.sort_by(f64::total_cmp);
+    let median_s = times[times.len() / 2];
+    let report = Report {
+        mesh: &a.mesh,
+        triangles: scene.mesh.triangle_count(),
+        build_s,
+        kind: a.kind,
+        rays: rays.len(),
+        threads,
+        repeat: a.repeat,
+        median_s,
+        mrays_per_s: rays.len() as f64 / median_s / 1e6,
+        hits,
+        t_sum,
+        simd: format!("{:?}", accel.simd()).to_lowercase(),
+        batch: a.batch,
+        nodes_per_ray: counts.map(|c| c.nodes as f64 / rays.len() as f64),
+        triangles_per_ray: counts.map(|c| c.triangles as f64 / rays.len() as f64),
+    };
+    println!(
+        "{}",
+        serde_json::to_string(&report).context("cannot encode the report")?
+    );
+    Ok(())
+}
+
+/// Pins the node test to `--simd` unless it is `auto`.
+fn select_simd(accel: &mut Accel, simd: SimdArg) -> Result<()> {
+    let want = match simd {
         SimdArg::Auto => None,
         SimdArg::Avx512 => Some(Simd::Avx512),
         SimdArg::Avx2 => Some(Simd::Avx2),
@@ -169,8 +218,12 @@ pub fn run(a: BenchArgs) -> Result<()> {
     {
         bail!("this CPU cannot run the {s:?} node test");
     }
-    let (lo, hi) = scene.bounds();
-    let rays = make_rays(&a, lo, hi);
+    Ok(())
+}
+
+/// Writes the rays and the mesh's triangles as raw little-endian f32s, when asked
+/// (`--dump-rays`, `--dump-mesh`), so another tracer (`benches/`, Embree) traces the same.
+fn dump(a: &BenchArgs, m: &dray_core::scene::Mesh, rays: &[(Vec3, Vec3)]) -> Result<()> {
     if let Some(p) = &a.dump_rays {
         write_f32s(
             p,
@@ -179,18 +232,30 @@ pub fn run(a: BenchArgs) -> Result<()> {
         )?;
     }
     if let Some(p) = &a.dump_mesh {
-        let m = &scene.mesh;
         write_f32s(
             p,
             (0..m.indices.len())
                 .flat_map(|t| m.corners(t).into_iter().flat_map(|v| [v.x, v.y, v.z])),
         )?;
     }
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(a.threads)
-        .build()
-        .context("cannot start the thread pool")?;
-    let threads = pool.current_num_threads();
+    Ok(())
+}
+
+/// `--repeat` timed rounds over the rays: each round's seconds, and the last round's hit
+/// count and sum of hit distances (the same every round: a check that rounds agree with
+/// another tracer, not a timing).
+struct Timed {
+    times: Vec<f64>,
+    hits: u64,
+    t_sum: f64,
+}
+
+fn time_rays(
+    a: &BenchArgs,
+    accel: &Accel,
+    pool: &rayon::ThreadPool,
+    rays: &[(Vec3, Vec3)],
+) -> Timed {
     let mut times = Vec::with_capacity(a.repeat);
     let hits = AtomicU64::new(0);
     let mut t_sum = 0.0;
@@ -207,12 +272,6 @@ pub fn run(a: BenchArgs) -> Result<()> {
                             h += 1;
                             s += hit.t as f64;
                         }
-                    };
-                    let query = |(o, d): &(Vec3, Vec3)| QueryRay {
-                        origin: *o,
-                        dir: *d,
-                        tmin: 0.0,
-                        tmax: f32::INFINITY,
                     };
                     if a.batch {
                         let queries: Vec<QueryRay> = chunk.iter().map(query).collect();
@@ -232,41 +291,19 @@ pub fn run(a: BenchArgs) -> Result<()> {
         times.push(start.elapsed().as_secs_f64());
         t_sum = sum;
     }
-    let counts = a.count.then(|| {
-        let mut c = TraversalCounts::default();
-        for (o, d) in &rays {
-            let q = QueryRay {
-                origin: *o,
-                dir: *d,
-                tmin: 0.0,
-                tmax: f32::INFINITY,
-            };
-            accel.closest_counted(&q, |_, _| true, &mut c);
-        }
-        c
-    });
-    times.sort_by(f64::total_cmp);
-    let median_s = times[times.len() / 2];
-    let report = Report {
-        mesh: &a.mesh,
-        triangles: scene.mesh.triangle_count(),
-        build_s,
-        kind: a.kind,
-        rays: rays.len(),
-        threads,
-        repeat: a.repeat,
-        median_s,
-        mrays_per_s: rays.len() as f64 / median_s / 1e6,
+    Timed {
+        times,
         hits: hits.load(Ordering::Relaxed),
         t_sum,
-        simd: format!("{:?}", accel.simd()).to_lowercase(),
-        batch: a.batch,
-        nodes_per_ray: counts.map(|c| c.nodes as f64 / rays.len() as f64),
-        triangles_per_ray: counts.map(|c| c.triangles as f64 / rays.len() as f64),
-    };
-    println!(
-        "{}",
-        serde_json::to_string(&report).context("cannot encode the report")?
-    );
-    Ok(())
+    }
+}
+
+/// A benchmark ray as a query: from its origin, unbounded.
+fn query((o, d): &(Vec3, Vec3)) -> QueryRay {
+    QueryRay {
+        origin: *o,
+        dir: *d,
+        tmin: 0.0,
+        tmax: f32::INFINITY,
+    }
 }

@@ -204,6 +204,71 @@ fn check_range(field: &str, v: u32, max: u32) -> Result<(), Status> {
 /// be canonical). Procedural scene names are accepted as they are; a path must name an
 /// existing file inside the root.
 pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Validated, Status> {
+    check_texts(spec)?;
+    let mut spec = spec.clone();
+    let limits = &limits.capped();
+    let integrator = check_sampling(&mut spec, limits)?;
+    if let Some(v) = &spec.view {
+        crate::view::check(v, spec.camera.as_deref())?;
+    }
+    if let Some(c) = &spec.camera
+        && c.trim().is_empty()
+    {
+        return Err(bad(
+            "camera: empty camera name (omit the field for the scene's first camera)".into(),
+        ));
+    }
+    let env = env_of(&spec)?;
+    let translate = translate_of(&spec)?;
+    let effects = parse_effects(&spec.effects)?;
+    let lighting = crate::lighting::check_lighting(&mut spec.lighting, &mut spec.sun_color)?;
+    let lighting = Lighting {
+        samples: light_samples(spec.light_samples)?,
+        ..lighting
+    };
+    check_noise(&spec)?;
+    let aovs = AovSet::parse(&spec.aovs).map_err(|e| bad(format!("aovs: {e}")))?;
+    // In one order, so equal sets read alike in GetJob.
+    spec.aovs = aovs.names();
+    let env_map_path = spec
+        .lighting
+        .as_ref()
+        .and_then(|l| l.env_map.as_ref())
+        .map(|e| crate::lighting::resolve_env_map_path(&e.path, scene_root))
+        .transpose()?;
+    let (domains_auto, schedule) = check_layout(&mut spec, limits)?;
+    check_caches(&mut spec)?;
+    if spec.label.len() > limits.max_label {
+        return Err(bad(format!(
+            "label: {} bytes is longer than {}",
+            spec.label.len(),
+            limits.max_label
+        )));
+    }
+    let time = crate::animation_time::check(&spec)?;
+    let scene_spec = resolve_scene(&spec.scene, scene_root)?;
+    crate::animation_time::check_named(time.as_ref(), &scene_spec, &spec.scene)?;
+    let package = Some(PathBuf::from(&scene_spec)).filter(|p| p.is_dir());
+    check_package(package.is_some(), time.is_some(), translate.is_some())?;
+    Ok(Validated {
+        package,
+        spec,
+        scene_spec,
+        integrator,
+        effects,
+        env,
+        lighting,
+        aovs,
+        env_map_path,
+        translate,
+        domains_auto,
+        schedule,
+        time,
+    })
+}
+
+/// The length of every free-text field, before anything else reads them.
+fn check_texts(spec: &JobSpec) -> Result<(), Status> {
     check_text("scene", &spec.scene, MAX_SCENE_BYTES)?;
     let names = [
         ("integrator", &spec.integrator),
@@ -229,8 +294,12 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
         check_text("ray_cache.retrieve", &rc.retrieve, MAX_NAME_BYTES)?;
         check_text("ray_cache.kinds", &rc.kinds, MAX_NAME_BYTES)?;
     }
-    let mut spec = spec.clone();
-    let limits = &limits.capped();
+    Ok(())
+}
+
+/// The image's size and samples, the passes, the integrator and its depth and AO knobs;
+/// defaults written into `spec`.
+fn check_sampling(spec: &mut JobSpec, limits: &Limits) -> Result<IntegratorKind, Status> {
     check_range("width", spec.width, limits.max_side)?;
     check_range("height", spec.height, limits.max_side)?;
     check_range("spp", spec.spp, limits.max_spp)?;
@@ -258,18 +327,12 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
     {
         return Err(bad(format!("ao_distance: must be positive, got {d}")));
     }
-    if let Some(v) = &spec.view {
-        crate::view::check(v, spec.camera.as_deref())?;
-    }
-    if let Some(c) = &spec.camera
-        && c.trim().is_empty()
-    {
-        return Err(bad(
-            "camera: empty camera name (omit the field for the scene's first camera)".into(),
-        ));
-    }
-    let env = spec
-        .env
+    Ok(integrator)
+}
+
+/// The constant environment's radiance: finite and non-negative.
+fn env_of(spec: &JobSpec) -> Result<Option<Vec3>, Status> {
+    spec.env
         .map(|e| {
             let v = Vec3::new(e.r, e.g, e.b);
             if !v.is_finite() || v.min_element() < 0.0 {
@@ -281,9 +344,12 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
                 Ok(v)
             }
         })
-        .transpose()?;
-    let translate = spec
-        .translate
+        .transpose()
+}
+
+/// The scene's translation: finite.
+fn translate_of(spec: &JobSpec) -> Result<Option<Vec3>, Status> {
+    spec.translate
         .map(|t| {
             let v = Vec3::new(t.x, t.y, t.z);
             if v.is_finite() {
@@ -295,13 +361,12 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
                 )))
             }
         })
-        .transpose()?;
-    let effects = parse_effects(&spec.effects)?;
-    let lighting = crate::lighting::check_lighting(&mut spec.lighting, &mut spec.sun_color)?;
-    let lighting = Lighting {
-        samples: light_samples(spec.light_samples)?,
-        ..lighting
-    };
+        .transpose()
+}
+
+/// `clamp_indirect` and `noise_threshold`: adaptive sampling decides between passes, so
+/// it needs more than one.
+fn check_noise(spec: &JobSpec) -> Result<(), Status> {
     if let Some(c) = spec.clamp_indirect {
         dray_core::clamp::check_limit(c).map_err(|e| bad(format!("clamp_indirect: {e}")))?;
     }
@@ -319,15 +384,12 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
             )));
         }
     }
-    let aovs = AovSet::parse(&spec.aovs).map_err(|e| bad(format!("aovs: {e}")))?;
-    // In one order, so equal sets read alike in GetJob.
-    spec.aovs = aovs.names();
-    let env_map_path = spec
-        .lighting
-        .as_ref()
-        .and_then(|l| l.env_map.as_ref())
-        .map(|e| crate::lighting::resolve_env_map_path(&e.path, scene_root))
-        .transpose()?;
+    Ok(())
+}
+
+/// The domain count (0: chosen for the job; returned as `domains_auto`), the layout and
+/// the schedule, written back resolved.
+fn check_layout(spec: &mut JobSpec, limits: &Limits) -> Result<(bool, ScheduleRequest), Status> {
     let domains_auto = spec.domains == 0;
     if spec.domains == 0 {
         spec.domains = 1;
@@ -345,45 +407,24 @@ pub fn validate(spec: &JobSpec, limits: &Limits, scene_root: &Path) -> Result<Va
     let schedule =
         ScheduleRequest::parse(&spec.schedule, spec.replicate).map_err(|e| bad(e.to_string()))?;
     spec.schedule = schedule.name().to_string();
-    check_caches(&mut spec)?;
-    if spec.label.len() > limits.max_label {
-        return Err(bad(format!(
-            "label: {} bytes is longer than {}",
-            spec.label.len(),
-            limits.max_label
-        )));
-    }
-    let time = crate::animation_time::check(&spec)?;
-    let scene_spec = resolve_scene(&spec.scene, scene_root)?;
-    crate::animation_time::check_named(time.as_ref(), &scene_spec, &spec.scene)?;
-    let package = Some(PathBuf::from(&scene_spec)).filter(|p| p.is_dir());
-    if package.is_some() && time.is_some() {
+    Ok((domains_auto, schedule))
+}
+
+/// A scene package's geometry is cut already: it can be neither posed nor moved.
+fn check_package(package: bool, time: bool, translate: bool) -> Result<(), Status> {
+    if package && time {
         return Err(bad(
             "time: a scene package has no animation (its geometry is cut already): \
              partition the posed scene, or submit the glTF file"
                 .into(),
         ));
     }
-    if package.is_some() && translate.is_some() {
+    if package && translate {
         return Err(bad(
             "translate: a scene package cannot be moved (partition the moved scene instead)".into(),
         ));
     }
-    Ok(Validated {
-        package,
-        spec,
-        scene_spec,
-        integrator,
-        effects,
-        env,
-        lighting,
-        aovs,
-        env_map_path,
-        translate,
-        domains_auto,
-        schedule,
-        time,
-    })
+    Ok(())
 }
 
 /// Check the ray-cache and hit-map knobs and `coarse_sampling`, and write them back

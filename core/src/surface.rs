@@ -248,6 +248,22 @@ impl Surface {
             iridescence_thickness: 0.0,
             dispersion: 0.0,
         };
+        self.extension_layers(m, effects, &t, &mut v);
+        switch_off(&mut v, m, self.front, effects);
+        v
+    }
+
+    /// The glTF extensions' layers the job's effects keep (anisotropy, clear coat, sheen,
+    /// iridescence, dispersion), written into `v`; `t` looks a texture up (white with
+    /// textures off).
+    fn extension_layers(
+        &self,
+        m: &Material,
+        effects: Effects,
+        t: &impl Fn(Option<TexRef>, bool) -> Vec4,
+        v: &mut ShadingValues,
+    ) {
+        let textured = effects.contains(Effect::Textures);
         if let Some(a) = m.anisotropy
             && effects.contains(Effect::Anisotropy)
             && self.tangent != Vec3::ZERO
@@ -295,38 +311,42 @@ impl Surface {
         if m.has_dispersion() && effects.contains(Effect::Dispersion) {
             v.dispersion = m.dispersion;
         }
+    }
+}
 
-        if !m.double_sided && !self.front {
-            // Back faces of single-sided surfaces do not emit.
-            v.emission = Vec3::ZERO;
-        }
-        if !effects.contains(Effect::Emission) {
-            v.emission = Vec3::ZERO;
-        }
-        if !effects.contains(Effect::Specular) {
-            v.metallic = 0.0;
-            v.specular = 0.0;
-        }
-        if !effects.contains(Effect::Transmission) {
-            v.transmission = 0.0;
-            v.dispersion = 0.0;
-        }
-        if m.unlit && effects.contains(Effect::Unlit) {
-            // The base colour is what the eye (or a bounce) sees, unlit and lighting
-            // nothing: shown as emission over a black, lobeless BSDF, so every
-            // integrator shows it and none spawns a ray from it. Unlit triangles are
-            // not in the light sampler, so a bounce that finds one weighs it fully.
-            v.emission = v.base_color;
-            v.base_color = Vec3::ZERO;
-            v.metallic = 0.0;
-            v.specular = 0.0;
-            v.transmission = 0.0;
-            v.clearcoat = 0.0;
-            v.sheen_color = Vec3::ZERO;
-            v.iridescence = 0.0;
-            v.dispersion = 0.0;
-        }
-        v
+/// Takes out of `v` what the material or the job switches off: emission from the back of
+/// a single-sided surface, and each effect the job leaves out; an unlit material
+/// (`KHR_materials_unlit`) shows its base colour as emission over a lobeless BSDF.
+fn switch_off(v: &mut ShadingValues, m: &Material, front: bool, effects: Effects) {
+    if !m.double_sided && !front {
+        // Back faces of single-sided surfaces do not emit.
+        v.emission = Vec3::ZERO;
+    }
+    if !effects.contains(Effect::Emission) {
+        v.emission = Vec3::ZERO;
+    }
+    if !effects.contains(Effect::Specular) {
+        v.metallic = 0.0;
+        v.specular = 0.0;
+    }
+    if !effects.contains(Effect::Transmission) {
+        v.transmission = 0.0;
+        v.dispersion = 0.0;
+    }
+    if m.unlit && effects.contains(Effect::Unlit) {
+        // The base colour is what the eye (or a bounce) sees, unlit and lighting
+        // nothing: shown as emission over a black, lobeless BSDF, so every
+        // integrator shows it and none spawns a ray from it. Unlit triangles are
+        // not in the light sampler, so a bounce that finds one weighs it fully.
+        v.emission = v.base_color;
+        v.base_color = Vec3::ZERO;
+        v.metallic = 0.0;
+        v.specular = 0.0;
+        v.transmission = 0.0;
+        v.clearcoat = 0.0;
+        v.sheen_color = Vec3::ZERO;
+        v.iridescence = 0.0;
+        v.dispersion = 0.0;
     }
 }
 
