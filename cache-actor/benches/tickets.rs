@@ -202,6 +202,8 @@ fn ask(
         weight: ray.weight,
         credit: ray.credit,
         coarse: true,
+        cache: true,
+        cell: None,
     })
     .ok()
 }
@@ -241,7 +243,7 @@ fn returns(tickets: &[u64]) -> Vec<(u32, Return)> {
 /// radiance of a ticket that closes.
 fn apply(book: &mut TicketBook, store: &mut WallStore, slot: u32, ret: Return) -> bool {
     match book.apply(slot, ret, true) {
-        Applied::Closed(Some(e)) => store.insert(e).is_ok(),
+        Applied::Closed { entry: Some(e), .. } => store.insert(e).is_ok(),
         _ => false,
     }
 }

@@ -27,8 +27,8 @@ use crate::store_view::{SharedStore, StoreConsults, StoreView};
 use crate::tickets::{Applied, Return, TicketBook, TicketRay};
 
 use crate::wire::{
-    CODE_HIT, CODE_MISS, CODE_OCCLUDED, CODE_SKIP, CODE_TICKET, OPTION_ANSWER, OPTION_PHM,
-    OPTION_TICKET, PROBE,
+    CODE_HIT, CODE_MISS, CODE_OCCLUDED, CODE_SHADED, CODE_SKIP, CODE_TICKET, OPTION_ANSWER,
+    OPTION_PHM, OPTION_ROOM, OPTION_TICKET, PROBE,
 };
 
 /// Rays an actor handles between yields, so one huge lookup does not hold a runtime
@@ -55,6 +55,9 @@ pub enum Outcome {
     Skip,
     /// The hit map predicts a hit for an occlusion ray: it is occluded.
     Occluded,
+    /// The hit map predicts a hit and shades (`phm.shade`): the ray is answered with
+    /// the cell's mean radiance.
+    Shaded([f32; 3]),
     /// As [`Outcome::Miss`], and the ray goes on as a probe.
     Probe,
     /// As [`Outcome::Ticket`], and the ray goes on as a probe.
@@ -70,6 +73,7 @@ impl Outcome {
             Outcome::Ticket(_) => CODE_TICKET,
             Outcome::Skip => CODE_SKIP,
             Outcome::Occluded => CODE_OCCLUDED,
+            Outcome::Shaded(_) => CODE_SHADED,
             Outcome::Probe => CODE_MISS + PROBE,
             Outcome::ProbeTicket(_) => CODE_TICKET + PROBE,
         }
@@ -89,7 +93,7 @@ impl Outcome {
         match self {
             Outcome::Miss | Outcome::Probe => Some(Outcome::Probe),
             Outcome::Ticket(t) | Outcome::ProbeTicket(t) => Some(Outcome::ProbeTicket(t)),
-            Outcome::Hit(_) | Outcome::Skip | Outcome::Occluded => None,
+            Outcome::Hit(_) | Outcome::Skip | Outcome::Occluded | Outcome::Shaded(_) => None,
         }
     }
 }
@@ -301,17 +305,20 @@ impl WallActor {
         stats
     }
 
-    /// Answer one ray. The hit map speaks first (a ray it skips or occludes never
-    /// reaches the ray cache, so it is not a cache lookup); every other ray gets the
-    /// ray cache's answer, marked as a probe when the map wants to learn from it and
-    /// the ray goes on into the domain.
+    /// Answer one ray. The hit map speaks first (a ray it skips, occludes or shades
+    /// never reaches the ray cache, so it is not a cache lookup); every other ray gets
+    /// the ray cache's answer, marked as a probe when the map wants to learn from it and
+    /// the ray goes on into the domain. A map that shades asks for a ticket on such a
+    /// ray of a kind it shades (when the ray has room for one), to learn the radiance it
+    /// returns; the ray cache's ticket, if it asks for one too, is the same ticket.
     fn lookup(&mut self, r: &LookupRay) -> Outcome {
         let mut probe = false;
+        let mut shade_cell = None;
         if r.options & OPTION_PHM != 0
-            && let Some(map) = &self.map
+            && let Some(map) = &mut self.map
         {
             self.stats.phm.lookups += 1;
-            match map.advise(&r.ray) {
+            let traced = match map.advise(&r.ray) {
                 Advice::Skip => {
                     self.stats.phm.skipped += 1;
                     return Outcome::Skip;
@@ -320,12 +327,25 @@ impl WallActor {
                     self.stats.phm.occluded += 1;
                     return Outcome::Occluded;
                 }
-                Advice::Probe => probe = true,
-                Advice::Trace => {}
-                Advice::Unplaced => self.stats.phm.unplaced += 1,
+                Advice::Shade(rgb) => {
+                    self.stats.phm.shaded += 1;
+                    return Outcome::Shaded(rgb);
+                }
+                Advice::Probe => {
+                    probe = true;
+                    true
+                }
+                Advice::Trace => true,
+                Advice::Unplaced => {
+                    self.stats.phm.unplaced += 1;
+                    false
+                }
+            };
+            if traced && r.options & OPTION_ROOM != 0 && map.shades(r.ray.kind) {
+                shade_cell = map.ask_shading(&r.ray);
             }
         }
-        let outcome = self.cache_lookup(r);
+        let outcome = self.cache_lookup(r, shade_cell);
         if !probe {
             return outcome;
         }
@@ -338,18 +358,17 @@ impl WallActor {
         }
     }
 
-    /// The ray cache's answer: a hit from the store, else a ticket if asked for, else a
-    /// miss. Always a miss on a wall without a ray cache.
-    fn cache_lookup(&mut self, r: &LookupRay) -> Outcome {
-        let Some(settings) = self.spec.settings.as_deref() else {
-            return Outcome::Miss;
-        };
-        let answer = r.options & OPTION_ANSWER != 0;
-        let ticket = r.options & OPTION_TICKET != 0;
+    /// The ray cache's answer: a hit from the store, else a ticket if asked for (by
+    /// the ray cache, or by the map for `shade_cell`), else a miss. On a wall without a
+    /// ray cache, a ticket for the map or a miss.
+    fn cache_lookup(&mut self, r: &LookupRay, shade_cell: Option<u32>) -> Outcome {
+        let settings = self.spec.settings.as_deref();
+        let answer = settings.is_some() && r.options & OPTION_ANSWER != 0;
+        let cache_ticket = settings.is_some() && r.options & OPTION_TICKET != 0;
         if answer {
             self.stats.lookups += 1;
         }
-        if !answer && !ticket {
+        if !answer && !cache_ticket && shade_cell.is_none() {
             return Outcome::Miss;
         }
         let ray = &r.ray;
@@ -360,10 +379,12 @@ impl WallActor {
             self.spec.frame.crossing(ray.origin, ray.dir),
             ray.dir.try_normalize(),
         ) else {
-            self.stats.skipped += 1;
+            if answer || cache_ticket {
+                self.stats.skipped += 1;
+            }
             return Outcome::Miss;
         };
-        if answer {
+        if answer && let Some(settings) = settings {
             let q = Query {
                 point,
                 dir,
@@ -377,7 +398,7 @@ impl WallActor {
                 return Outcome::Hit(radiance);
             }
         }
-        if !ticket {
+        if !cache_ticket && shade_cell.is_none() {
             return Outcome::Miss;
         }
         let opened = self.tickets.open(TicketRay {
@@ -387,6 +408,8 @@ impl WallActor {
             weight: ray.weight,
             credit: ray.credit,
             coarse: ray.flags & FLAG_COARSE != 0,
+            cache: cache_ticket,
+            cell: shade_cell,
         });
         match opened {
             Ok(id) => {
@@ -495,15 +518,21 @@ impl WallActor {
     }
 
     /// Apply one return to its ticket; a ticket whose credit is whole closes and, when
-    /// the job fills the caches or the ray was of the coarse pass, stores its radiance
-    /// (returned, so other replicas of the wall can store it too). Without a ray cache
-    /// no ticket was ever issued, so every return is a stray.
+    /// the ray cache asked for it and the job fills the caches or the ray was of the
+    /// coarse pass, stores its radiance (returned, so other replicas of the wall can
+    /// store it too); when the hit map asked for it (`phm.shade`), the radiance is
+    /// added to the averaged shading of the ray's cell. A tainted ticket does neither.
     fn apply(&mut self, slot: u32, ret: Return) -> Option<Entry> {
         let fill = self.spec.settings.as_ref().is_some_and(|s| s.fill);
         match self.tickets.apply(slot, ret, fill) {
             Applied::Pending => None,
-            Applied::Closed(entry) => {
+            Applied::Closed { entry, shading } => {
                 self.stats.tickets_closed += 1;
+                if let (Some((cell, rgb)), Some(map)) = (shading, &mut self.map)
+                    && map.learn_shading(cell, rgb)
+                {
+                    self.stats.phm.shading_learned += 1;
+                }
                 let entry = entry?;
                 if self.store_entry(entry) {
                     self.stats.tickets_stored += 1;

@@ -372,7 +372,7 @@ impl CacheHost {
             tickets: Vec::new(),
         };
         for o in &outcomes {
-            if let Outcome::Hit(rgb) = o {
+            if let Outcome::Hit(rgb) | Outcome::Shaded(rgb) = o {
                 answers.radiance.extend_from_slice(rgb);
             }
             if let Some(t) = o.ticket() {

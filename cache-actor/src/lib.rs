@@ -21,6 +21,7 @@
 //!   on the order entries arrived in.
 //! - [`tickets`]: one wall's open tickets, closed exactly once by credit.
 //! - [`phm`]: one wall's hit map: counts per cell, decisions, deterministic re-probes.
+//! - [`shading`]: the radiance a hit map's probes returned, per cell (`phm.shade`).
 //! - [`actor`]: the wall actor, a task with a mailbox owning a store, its tickets and
 //!   its hit map.
 //! - [`host`]: the job table and `CacheService`; `exchange` runs one worker's stream.
@@ -41,6 +42,7 @@ pub(crate) mod job;
 pub mod phm;
 pub mod server;
 pub mod settings;
+pub mod shading;
 pub mod stats;
 pub mod store;
 pub mod store_view;

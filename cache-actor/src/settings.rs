@@ -221,6 +221,12 @@ pub enum SettingsError {
         phm: Placement,
         ray_cache: Placement,
     },
+    #[error(
+        "phm.shade needs phm.placement \"remote\", got {p:?}: the cells' radiance sums are \
+         not merged between the copies of sender placement",
+        p = .0.name()
+    )]
+    PhmShadePlacement(Placement),
 }
 
 /// Validated ray-cache settings of one job attempt.
@@ -388,6 +394,10 @@ pub struct HitMapSettings {
     /// Sender placement: outcomes a worker gathers before it merges them into the
     /// other copies of the maps (at least 1).
     pub merge: u32,
+    /// A predicted hit answers non-occlusion rays too, with the mean radiance the cell's
+    /// probes returned (Bolstad 2017's averaged shading; docs/caches.md "Averaged
+    /// shading"). Remote placement only: the sums live in the wall's one map.
+    pub shade: bool,
 }
 
 impl HitMapSettings {
@@ -398,7 +408,7 @@ impl HitMapSettings {
 
     /// Parse and check `PhmSettings`, filling in the defaults of absent fields
     /// (docs/caches.md): res 4, dirs 12, prior 100, miss 0.1, hit 0.9, mode consistent,
-    /// reprobe 0.1, kinds shadow, merge 4096, and `placement` (absent) the
+    /// reprobe 0.1, kinds shadow, merge 4096, shade off, and `placement` (absent) the
     /// `default_placement` (see [`WallSettings::from_proto`]).
     pub fn from_proto(
         s: &PhmSettings,
@@ -439,6 +449,10 @@ impl HitMapSettings {
             .map_err(|e| SettingsError::PhmKinds(e.name))?;
         let placement = named_or(&s.placement, default_placement)
             .ok_or_else(|| SettingsError::PhmPlacement(s.placement.clone()))?;
+        let shade = s.shade.unwrap_or(false);
+        if shade && placement != Placement::Remote {
+            return Err(SettingsError::PhmShadePlacement(placement));
+        }
         Ok(HitMapSettings {
             bins: PhmBins::new(res, dirs),
             dirs,
@@ -450,6 +464,7 @@ impl HitMapSettings {
             kinds,
             placement,
             merge,
+            shade,
         })
     }
 
@@ -467,6 +482,8 @@ impl HitMapSettings {
             kinds: self.kinds.names(),
             placement: self.placement.name().into(),
             merge: Some(self.merge),
+            // Absent when off, so a job without it reads back as it was submitted.
+            shade: self.shade.then_some(true),
         }
     }
 
@@ -799,11 +816,67 @@ mod tests {
                 },
                 "phm.kinds",
             ),
+            (
+                PhmSettings {
+                    shade: Some(true),
+                    ..base()
+                },
+                "phm.shade",
+            ),
+            (
+                PhmSettings {
+                    shade: Some(true),
+                    placement: "sender".into(),
+                    ..base()
+                },
+                "phm.shade",
+            ),
         ];
         for (p, field) in bad {
             let e = HitMapSettings::from_proto(&p, Placement::DEFAULT).unwrap_err();
             assert!(e.to_string().starts_with(field), "{field}: {e}");
         }
+    }
+
+    #[test]
+    fn shade_is_off_unless_asked_and_needs_remote_placement() {
+        let off = HitMapSettings::from_proto(&PhmSettings::default(), Placement::Remote).unwrap();
+        assert!(!off.shade);
+        assert_eq!(off.to_proto().shade, None, "absent when off");
+        let p = PhmSettings {
+            shade: Some(true),
+            placement: "remote".into(),
+            ..Default::default()
+        };
+        let on = HitMapSettings::from_proto(&p, Placement::Sender).unwrap();
+        assert!(on.shade);
+        assert_eq!(on.to_proto().shade, Some(true));
+        assert_eq!(
+            HitMapSettings::from_proto(&on.to_proto(), Placement::Sender),
+            Ok(on)
+        );
+        // The ray cache's remote placement is the maps' default: shade is accepted.
+        let rc = RayCacheSettings {
+            placement: "remote".into(),
+            ..Default::default()
+        };
+        let p = PhmSettings {
+            shade: Some(true),
+            ..Default::default()
+        };
+        assert!(
+            WallSettings::from_proto(Some(&rc), Some(&p))
+                .unwrap()
+                .phm
+                .unwrap()
+                .shade
+        );
+        let e = WallSettings::from_proto(None, Some(&p)).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "phm.shade needs phm.placement \"remote\", got \"sender\": the cells' radiance \
+             sums are not merged between the copies of sender placement"
+        );
     }
 
     /// What the coordinator writes back reads as the same settings: the resolved spec

@@ -51,6 +51,10 @@ pub struct MapStats {
     pub skipped: u64,
     /// Occlusion rays answered as occluded (outcome 4).
     pub occluded: u64,
+    /// `shade`: rays answered with a cell's averaged shading (outcome 5).
+    pub shaded: u64,
+    /// `shade`: closed tickets whose radiance a cell's averaged shading took.
+    pub shading_learned: u64,
     /// Rays sent on as probes (+8).
     pub probes: u64,
     /// Outcomes received for a cell of the map (including those a decided cell of an
@@ -78,6 +82,8 @@ impl MapStats {
         self.unplaced += o.unplaced;
         self.skipped += o.skipped;
         self.occluded += o.occluded;
+        self.shaded += o.shaded;
+        self.shading_learned += o.shading_learned;
         self.probes += o.probes;
         self.outcomes += o.outcomes;
         self.outcomes_frozen += o.outcomes_frozen;
@@ -94,6 +100,8 @@ impl MapStats {
         stats.lookups += self.lookups;
         stats.rays_skipped += self.skipped;
         stats.rays_occluded += self.occluded;
+        stats.rays_shaded += self.shaded;
+        stats.shading_learned += self.shading_learned;
         stats.probes += self.probes;
         stats.outcomes += self.outcomes;
         stats.outcomes_merged += self.outcomes_merged;
@@ -196,6 +204,8 @@ mod tests {
             unplaced: 1,
             skipped: 3,
             occluded: 2,
+            shaded: 8,
+            shading_learned: 9,
             probes: 4,
             outcomes: 4,
             outcomes_frozen: 1,
@@ -223,6 +233,8 @@ mod tests {
                 lookups: 10,
                 rays_skipped: 3,
                 rays_occluded: 2,
+                rays_shaded: 8,
+                shading_learned: 9,
                 probes: 4,
                 outcomes: 4,
                 outcomes_merged: 6,

@@ -1,7 +1,9 @@
 //! One wall's open tickets: a ray that missed the cache leaves with a ticket, its
 //! descendants hand contributions and credit back to it, and when the credit is whole
 //! the radiance along the ray is known: `sum / weight at the wall`
-//! (docs/architecture.md "Credit").
+//! (docs/architecture.md "Credit"). The same tickets teach a shading hit map
+//! (`phm.shade`) what its probes returned: a ticket may serve the wall's ray cache, its
+//! hit map's cell, or both, and closes once for both.
 //!
 //! Credit is the only completion signal that survives reordering and retries: returns
 //! can arrive in any order, from any worker, split any way, and the ticket closes
@@ -42,6 +44,11 @@ pub struct TicketRay {
     /// The ray belongs to the coarse pass, whose tickets store even when the job's main
     /// pass does not fill the caches.
     pub coarse: bool,
+    /// The ray cache asked for the ticket: its radiance is an entry for the store.
+    pub cache: bool,
+    /// The hit map's cell the ray entered by, when the map asked for the ticket
+    /// (`phm.shade`): its radiance is added to the cell's averaged shading.
+    pub cell: Option<u32>,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -79,9 +86,14 @@ impl From<&TicketReturn> for Return {
 pub enum Applied {
     /// Added; the ticket waits for more credit.
     Pending,
-    /// The ticket closed; `Some` carries the entry to store, `None` when the radiance
-    /// must not or cannot be stored.
-    Closed(Option<Entry>),
+    /// The ticket closed. `entry` is the entry to store, `None` when the ray cache did
+    /// not ask for the ticket or the radiance must not or cannot be stored; `shading`
+    /// the hit map's cell and the radiance to add to its averaged shading, under the
+    /// same rule.
+    Closed {
+        entry: Option<Entry>,
+        shading: Option<(u32, [f32; 3])>,
+    },
     /// The ticket is not open (never issued here, or already closed).
     Unknown,
     /// The return carried more credit than the ticket still waited for; ignored, and
@@ -238,19 +250,27 @@ impl TicketBook {
         if returned < t.ray.credit {
             return Applied::Pending;
         }
-        let store = fill || t.ray.coarse;
-        let entry = if store { radiance_entry(t) } else { None };
+        let store = t.ray.cache && (fill || t.ray.coarse);
+        let wanted = store || t.ray.cell.is_some();
+        let radiance = if wanted { radiance(t) } else { None };
+        let entry = radiance.filter(|_| store).map(|radiance| Entry {
+            key: t.ray.key,
+            point: t.ray.point,
+            dir: t.ray.dir,
+            radiance,
+        });
+        let shading = t.ray.cell.zip(radiance);
         self.close(slot);
-        Applied::Closed(entry)
+        Applied::Closed { entry, shading }
     }
 }
 
-/// The entry a cleanly closed ticket stores: radiance = (sum / 2^24) / weight per
-/// channel. `None` when a cache answered some descendant (its radiance is already an
-/// approximation and must not be cached again), when a weight channel is not a finite
-/// positive number (the radiance cannot be recovered from the sum), or when the result
-/// is not a finite non-negative radiance.
-fn radiance_entry(t: &Ticket) -> Option<Entry> {
+/// The radiance along a cleanly closed ticket's ray: (sum / 2^24) / weight per channel.
+/// `None` when a cache or a hit map answered some descendant (tainted: its radiance
+/// rests on an approximation and must not be learned again), when a weight channel is
+/// not a finite positive number (the radiance cannot be recovered from the sum), or
+/// when the result is not a finite non-negative radiance.
+fn radiance(t: &Ticket) -> Option<[f32; 3]> {
     if t.tainted {
         return None;
     }
@@ -266,12 +286,7 @@ fn radiance_entry(t: &Ticket) -> Option<Entry> {
         }
         *out = r;
     }
-    Some(Entry {
-        key: t.ray.key,
-        point: t.ray.point,
-        dir: t.ray.dir,
-        radiance,
-    })
+    Some(radiance)
 }
 
 #[cfg(test)]
@@ -301,6 +316,8 @@ mod tests {
             weight,
             credit: Credit::from_wire(credit),
             coarse: false,
+            cache: true,
+            cell: None,
         }
     }
 
@@ -332,7 +349,8 @@ mod tests {
             book.apply(slot, ret([one, 0, 0], 6), true),
             Applied::Pending
         );
-        let Applied::Closed(Some(e)) = book.apply(slot, ret([0, one, one], 1), true) else {
+        let Applied::Closed { entry: Some(e), .. } = book.apply(slot, ret([0, one, one], 1), true)
+        else {
             panic!("should close and store");
         };
         // Sums are (2, 2, 2); divided by the weight.
@@ -364,27 +382,125 @@ mod tests {
         );
         assert_eq!(
             book.apply(a, ret([5, 5, 5], 1), true),
-            Applied::Closed(None)
+            Applied::Closed {
+                entry: None,
+                shading: None
+            }
         );
         assert_eq!(
             book.apply(b, ret([5, 5, 5], 2), true),
-            Applied::Closed(None)
+            Applied::Closed {
+                entry: None,
+                shading: None
+            }
         );
         assert_eq!(
             book.apply(c, ret([5, 5, 5], 2), true),
-            Applied::Closed(None)
+            Applied::Closed {
+                entry: None,
+                shading: None
+            }
         );
         // The job does not fill: a clean close still stores nothing, unless the ray was
         // of the coarse pass.
         assert_eq!(
             book.apply(d, ret([5, 5, 5], 1), false),
-            Applied::Closed(None)
+            Applied::Closed {
+                entry: None,
+                shading: None
+            }
         );
         let e = ticket_slot(book.open(coarse_ray(1)).unwrap());
         assert!(matches!(
             book.apply(e, ret([5, 5, 5], 1), false),
-            Applied::Closed(Some(_))
+            Applied::Closed { entry: Some(_), .. }
         ));
+    }
+
+    /// A ticket a hit map asked for (`phm.shade`) hands its radiance to the map's cell
+    /// when it closes cleanly, whether or not the ray cache asked for it too and
+    /// whether or not the job fills the caches; a tainted one (a cache or a map answered
+    /// a descendant) hands over nothing, and stores nothing either.
+    #[test]
+    fn map_tickets_teach_their_cell_unless_tainted() {
+        let mut book = TicketBook::new(2, 16);
+        let map_only = TicketRay {
+            cache: false,
+            cell: Some(17),
+            ..ray(2, Vec3::new(0.5, 1.0, 2.0))
+        };
+        let one = 1i64 << 24;
+        // Clean, map only: the cell learns, no entry is stored even though the job fills.
+        let a = ticket_slot(book.open(map_only).unwrap());
+        assert_eq!(book.apply(a, ret([one, one, 0], 1), true), Applied::Pending);
+        assert_eq!(
+            book.apply(a, ret([0, one, one], 1), true),
+            Applied::Closed {
+                entry: None,
+                shading: Some((17, [2.0, 2.0, 0.5]))
+            }
+        );
+        // Both asked: one close serves both; the entry follows `fill`, the cell does not.
+        let both = TicketRay {
+            cache: true,
+            ..map_only
+        };
+        let b = ticket_slot(book.open(both).unwrap());
+        let Applied::Closed {
+            entry: Some(e),
+            shading: Some((17, rgb)),
+        } = book.apply(b, ret([one, one, one], 2), true)
+        else {
+            panic!("should store and shade");
+        };
+        assert_eq!(e.radiance, rgb);
+        let c = ticket_slot(book.open(both).unwrap());
+        assert_eq!(
+            book.apply(c, ret([one, one, one], 2), false),
+            Applied::Closed {
+                entry: None,
+                shading: Some((17, [2.0, 1.0, 0.5]))
+            }
+        );
+        // Tainted by an answered descendant (a zero-credit return, as a map's skip
+        // sends, or the credit of a shaded or cached answer): nothing for anyone.
+        for both in [false, true] {
+            let t = ticket_slot(
+                book.open(TicketRay {
+                    cache: both,
+                    ..map_only
+                })
+                .unwrap(),
+            );
+            let taint = Return {
+                tainted: true,
+                ..ret([one, one, one], 0)
+            };
+            assert_eq!(book.apply(t, taint, true), Applied::Pending);
+            assert_eq!(
+                book.apply(t, ret([one, one, one], 2), true),
+                Applied::Closed {
+                    entry: None,
+                    shading: None
+                }
+            );
+        }
+        // A weight that cannot be divided by: nothing either.
+        let d = ticket_slot(
+            book.open(TicketRay {
+                weight: Vec3::new(1.0, 0.0, 1.0),
+                ..map_only
+            })
+            .unwrap(),
+        );
+        assert_eq!(
+            book.apply(d, ret([one, 0, one], 2), true),
+            Applied::Closed {
+                entry: None,
+                shading: None
+            }
+        );
+        assert_eq!(book.open_count(), 0);
     }
 
     #[test]
@@ -397,7 +513,7 @@ mod tests {
             book.apply(s, ret([9, 9, 9], u64::MAX), true),
             Applied::OverCredit
         );
-        let Applied::Closed(Some(e)) = book.apply(s, ret([1, 1, 1], 1), true) else {
+        let Applied::Closed { entry: Some(e), .. } = book.apply(s, ret([1, 1, 1], 1), true) else {
             panic!("should close");
         };
         assert_eq!(e.radiance, [2.0 / FIXED_SCALE as f32; 3]);
@@ -416,7 +532,10 @@ mod tests {
         // Infinite radiance (tiny weight) and negative sums are not stored.
         assert_eq!(
             book.apply(s, ret([i64::MAX, 0, 0], 1), true),
-            Applied::Closed(None)
+            Applied::Closed {
+                entry: None,
+                shading: None
+            }
         );
     }
 
@@ -434,7 +553,7 @@ mod tests {
             } else {
                 assert!(matches!(
                     book.apply(s, ret([1, 1, 1], 1), true),
-                    Applied::Closed(Some(_))
+                    Applied::Closed { entry: Some(_), .. }
                 ));
             }
         }
@@ -447,16 +566,16 @@ mod tests {
         );
         assert!(matches!(
             book.apply(early, ret([1, 1, 1], 1), true),
-            Applied::Closed(Some(_))
+            Applied::Closed { entry: Some(_), .. }
         ));
         assert!(matches!(
             book.apply(straggler, ret([1, 1, 1], 1), true),
-            Applied::Closed(Some(_))
+            Applied::Closed { entry: Some(_), .. }
         ));
         for &s in &open {
             assert!(matches!(
                 book.apply(s, ret([1, 1, 1], 1), true),
-                Applied::Closed(Some(_))
+                Applied::Closed { entry: Some(_), .. }
             ));
         }
         assert_eq!(book.open_count(), 0);

@@ -15,7 +15,8 @@ pub fn help() -> String {
         "Probability hit maps on domain walls (Bolstad 2017): a ray \
 entering a domain whose map predicts a miss skips it, and an occlusion ray whose map \
 predicts a hit is occluded, without tracing (an approximation; the image is no longer \
-exact). Comma-separated KEY=VALUE pairs: res=N (texels per wall edge, 1..=64, default 4), \
+exact); with shade=true, other rays at a predicted hit are answered with the mean radiance \
+the cell's probes returned. Comma-separated KEY=VALUE pairs: res=N (texels per wall edge, 1..=64, default 4), \
 dirs=N (direction bins over the hemisphere, 1..=256, default 12), prior=W (weight of the \
 prior 0.5 in rays, default 100), miss=P and hit=P (thresholds, 0 <= miss <= 0.5 <= hit <= \
 1, default 0.1 and 0.9; miss=0,hit=1 never decides: the exact image), \
@@ -27,14 +28,16 @@ placement=sender|remote (sender: every worker holds a copy of every wall's map a
 consults it in its own process, and outcomes are merged into the other copies in \
 batches; remote: each map once, beside its domain's owner, a round trip per ray; default \
 the ray cache's placement, else sender), merge=N (sender placement: outcomes a worker \
-gathers before merging them into the other copies, default 4096). `--phm on` takes every \
-default. Maps live on the cache hosts, beside the ray caches.",
+gathers before merging them into the other copies, default 4096), shade=true|false (a \
+predicted hit answers camera, reflection, refraction and diffuse rays of the given kinds \
+with the mean radiance that probes entering there returned, Bolstad's averaged shading; \
+needs placement=remote; default false). `--phm on` takes every default. Maps live on the cache hosts, beside the ray caches.",
         RayKind::help_list(&RayKind::ALL)
     )
 }
 
 /// The keys, in the order the help gives them.
-pub const KEYS: [&str; 10] = [
+pub const KEYS: [&str; 11] = [
     "res",
     "dirs",
     "prior",
@@ -45,6 +48,7 @@ pub const KEYS: [&str; 10] = [
     "kinds",
     "placement",
     "merge",
+    "shade",
 ];
 
 /// Parse `--phm` into settings; errors name the key (clap prefixes the flag).
@@ -62,6 +66,7 @@ pub fn parse_phm(s: &str) -> Result<PhmSettings, String> {
             "hit" => p.hit = Some(number()?),
             "reprobe" => p.reprobe = Some(number()?),
             "merge" => p.merge = Some(whole()?),
+            "shade" => p.shade = Some(value.parse::<bool>().map_err(|_| not("true or false"))?),
             "placement" => {
                 if value.is_empty() {
                     return Err(format!("{key}: empty (sender or remote)"));
@@ -91,7 +96,7 @@ mod tests {
     fn pairs_and_defaults() {
         assert_eq!(parse_phm("on"), Ok(PhmSettings::default()));
         let all = parse_phm(
-            "res=8,dirs=32,prior=50,miss=0.05,hit=0.95,mode=inconsistent,reprobe=0.2,kinds=shadow+camera,placement=remote,merge=100",
+            "res=8,dirs=32,prior=50,miss=0.05,hit=0.95,mode=inconsistent,reprobe=0.2,kinds=shadow+camera,placement=remote,merge=100,shade=true",
         )
         .unwrap();
         assert_eq!(
@@ -107,10 +112,13 @@ mod tests {
                 kinds: "shadow,camera".into(),
                 placement: "remote".into(),
                 merge: Some(100),
+                shade: Some(true),
             }
         );
         // Ranges are the coordinator's to check: these parse.
         assert_eq!(parse_phm("miss=0.9").unwrap().miss, Some(0.9));
+        assert_eq!(parse_phm("shade=false").unwrap().shade, Some(false));
+        assert_eq!(parse_phm("on").unwrap().shade, None, "absent: off");
     }
 
     #[test]
@@ -123,6 +131,8 @@ mod tests {
             ("mode=", "mode:"),
             ("placement=", "placement:"),
             ("merge=many", "merge:"),
+            ("shade=yes", "shade: \"yes\" is not true or false"),
+            ("shade=", "shade:"),
             ("kinds=shadow+", "kinds:"),
             ("miss", "miss: missing =VALUE"),
             ("res=1,res=2", "res: given twice"),

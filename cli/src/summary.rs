@@ -110,6 +110,10 @@ pub struct PhmSummary {
     /// (predicted hit).
     pub rays_skipped: u64,
     pub rays_occluded: u64,
+    /// `shade`: rays answered with a cell's averaged shading (predicted hit), and the
+    /// probes whose radiance the cells learned.
+    pub rays_shaded: u64,
+    pub shading_learned: u64,
     /// Rays traced to learn, and outcomes reported back.
     pub probes: u64,
     pub outcomes: u64,
@@ -140,6 +144,8 @@ impl PhmSummary {
             lookups: p.lookups,
             rays_skipped: p.rays_skipped,
             rays_occluded: p.rays_occluded,
+            rays_shaded: p.rays_shaded,
+            shading_learned: p.shading_learned,
             probes: p.probes,
             outcomes: p.outcomes,
             outcomes_merged: p.outcomes_merged,

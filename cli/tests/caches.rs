@@ -9,8 +9,10 @@
 //!   `fill=false` the image is then the same bits on every run, worker count and
 //!   placement (sender replicas or remote walls), in one process (where a worker
 //!   reaches its own cache host through mailboxes) and across processes (gRPC).
-//! - Hit maps whose thresholds never decide give the reference bits; maps that decide
-//!   skip domains and occlude shadow rays, and say so.
+//! - Hit maps whose thresholds never decide give the reference bits (shading ones too,
+//!   whose probes carry tickets); maps that decide skip domains and occlude shadow
+//!   rays, and say so; maps that shade answer camera and diffuse rays at predicted hits
+//!   with averaged radiance, finite and near the exact image, for fewer bytes.
 //! - Consistent maps come closer to the exact image as the sample count grows.
 //! - A cache host killed mid-job: rays go past its walls, the job completes with the
 //!   reference bits (nothing was answered) and names the lost host.
@@ -290,6 +292,106 @@ fn hit_maps_that_never_decide_give_the_reference_bits() {
             "{what}: no ray caches asked for"
         );
     }
+    // Shading maps that never decide answer nothing (only cells that predict a hit
+    // shade, or ask for tickets to learn how): the image is the reference's, bit for bit.
+    let what = "path on 3 workers with undecided shading maps";
+    let (png, stats) = render_ok(
+        &dir,
+        "phm-shade",
+        &[
+            &flags("path")[..],
+            &[
+                "--workers",
+                "3",
+                "--phm",
+                "miss=0,hit=1,kinds=camera+diffuse+shadow,placement=remote,shade=true",
+            ],
+        ]
+        .concat(),
+        what,
+    );
+    assert!(png == want, "{what}: the image differs from the reference");
+    assert_eq!(stats["rays"], want_stats["rays"], "{what}: rays by kind");
+    let p = &stats["phm"];
+    assert_eq!(u64_of(p, "rays_shaded"), 0, "{what}: {p}");
+    assert_eq!(u64_of(p, "shading_learned"), 0, "{what}: {p}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Bolstad's averaged shading (`shade=true`): camera and diffuse rays at cells that
+/// predict a hit are answered with the mean radiance the cells' probes brought back, so
+/// they are neither traced on nor sent; the image stays finite and close to the exact
+/// one. (Bytes are printed, not compared: on this scene shading answers a few percent
+/// of those rays, and the difference is within the run-to-run spread.)
+#[test]
+fn shading_hit_maps_answer_predicted_hits_with_the_radiance_their_probes_returned() {
+    let dir = common::tmp("phm-shade");
+    let job = [
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--spp",
+        "16",
+        "--seed",
+        "7",
+        "--schedule",
+        "domain",
+        "--max-depth",
+        "4",
+        "--domains",
+        "8",
+        "--integrator",
+        "path",
+    ];
+    let exact = common::render(
+        &dir,
+        "exact",
+        "cornell",
+        &[&job[..], &["--workers", "0"]].concat(),
+    );
+    assert!(exact.ok, "exact: {}", exact.stderr);
+    let exact = exact.png.expect("exact png");
+    let maps = "kinds=camera+diffuse+shadow,prior=1,miss=0.2,hit=0.8,reprobe=0.05,placement=remote";
+    let run = |tag: &str, phm: &str| {
+        let exr = dir.join(format!("{tag}.exr"));
+        let exr_arg = exr.to_string_lossy().into_owned();
+        let r = common::render(
+            &dir,
+            tag,
+            "cornell",
+            &[
+                &job[..],
+                &["--workers", "4", "--phm", phm, "--exr", &exr_arg],
+            ]
+            .concat(),
+        );
+        assert!(r.ok, "{tag}: {}", r.stderr);
+        let stats = r.stats.expect("stats");
+        let exr = std::fs::read(&exr).expect("exr");
+        (r.png.expect("png"), exr, stats)
+    };
+    let (_, _, plain) = run("plain", maps);
+    let (png, exr, shaded) = run("shade", &format!("{maps},shade=true"));
+    let (p, q) = (&plain["phm"], &shaded["phm"]);
+    assert_eq!(u64_of(p, "rays_shaded"), 0, "without shade: {p}");
+    assert!(u64_of(q, "rays_shaded") > 0, "nothing was shaded: {q}");
+    assert!(u64_of(q, "shading_learned") > 0, "{q}");
+    let bytes = |s: &Value| u64_of(&s["traffic"], "total");
+    for (name, values) in common::exr_channels(&exr) {
+        assert!(
+            values.iter().all(|v| v.is_finite()),
+            "channel {name} has a value that is not finite"
+        );
+    }
+    let error = rmse(&png, &exact);
+    eprintln!(
+        "shade: {} rays shaded, {} bytes against {} without, RMSE {error:.4} against exact",
+        u64_of(q, "rays_shaded"),
+        bytes(&shaded),
+        bytes(&plain)
+    );
+    assert!(error < 0.2, "RMSE against the exact image: {error}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

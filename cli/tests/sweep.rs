@@ -13,7 +13,7 @@ use std::process::Output;
 use support::{WorkerCluster, dray};
 
 /// The columns every results.csv has (besides one per varied key).
-const COLUMNS: [&str; 57] = [
+const COLUMNS: [&str; 58] = [
     "setting",
     "domain_loads",
     "domains_warm",
@@ -41,6 +41,7 @@ const COLUMNS: [&str; 57] = [
     "phm_lookups",
     "phm_rays_skipped",
     "phm_rays_occluded",
+    "phm_rays_shaded",
     "phm_probes",
     "phm_cells_decided_hit",
     "phm_cells_decided_miss",

@@ -27,7 +27,9 @@ use std::sync::Mutex;
 use std::time::Duration;
 
 use dray_cache::entry_record::{ENTRY_RECORD_BYTES, decode_entries};
-use dray_cache::wire::{CODE_HIT, CODE_MISS, CODE_OCCLUDED, CODE_SKIP, CODE_TICKET, PROBE};
+use dray_cache::wire::{
+    CODE_HIT, CODE_MISS, CODE_OCCLUDED, CODE_SHADED, CODE_SKIP, CODE_TICKET, PROBE,
+};
 use dray_cache::{CacheHost, Entry, LookupRay, Outcome, Return, WallLookup};
 use dray_proto::v1::cache_service_client::CacheServiceClient;
 use dray_proto::v1::{
@@ -837,7 +839,7 @@ fn entries_of(a: &TicketAck) -> Result<Vec<(u32, Entry)>, String> {
 struct Answer {
     /// cache.proto's outcome code (with [`PROBE`] added for probes).
     code: u8,
-    /// The cached radiance of a hit.
+    /// The cached radiance of a hit, or the averaged shading of a shaded ray.
     radiance: Option<[f32; 3]>,
     /// The ticket of a ticketed miss.
     ticket: Option<u64>,
@@ -848,7 +850,7 @@ impl From<Outcome> for Answer {
         Answer {
             code: o.code(),
             radiance: match o {
-                Outcome::Hit(rgb) => Some(rgb),
+                Outcome::Hit(rgb) | Outcome::Shaded(rgb) => Some(rgb),
                 _ => None,
             },
             ticket: o.ticket(),
@@ -856,14 +858,14 @@ impl From<Outcome> for Answer {
     }
 }
 
-/// A `CacheAnswers` ray for ray: the radiance of each hit and the ticket of each
-/// ticketed miss taken in order from their lists (missing ones stay `None`).
+/// A `CacheAnswers` ray for ray: the radiance of each hit or shaded ray and the ticket
+/// of each ticketed miss taken in order from their lists (missing ones stay `None`).
 fn answers_of(a: &CacheAnswers) -> impl Iterator<Item = Answer> + '_ {
     let mut radiance = a.radiance.chunks_exact(3);
     let mut tickets = a.tickets.iter();
     a.outcomes.iter().map(move |&code| Answer {
         code,
-        radiance: if code & !PROBE == CODE_HIT {
+        radiance: if matches!(code & !PROBE, CODE_HIT | CODE_SHADED) {
             radiance.next().map(|c| [c[0], c[1], c[2]])
         } else {
             None
@@ -944,12 +946,16 @@ fn apply_answers(
         let mut lin = l.lineage;
         lin.probe = code & PROBE != 0 && matches!(code & !PROBE, CODE_MISS | CODE_TICKET);
         match code & !PROBE {
-            CODE_HIT => {
+            // A cache's hit, or a map's averaged shading (`phm.shade`).
+            answered @ (CODE_HIT | CODE_SHADED) => {
                 if let Some(c) = answer.and_then(|a| a.radiance) {
                     job.tracer
                         .answer_hit(&l.ray, &lin, Vec3::from_array(c), &mut out);
                     if !routes.owns(l.domain) {
-                        cache_not_sent += 1;
+                        match answered {
+                            CODE_HIT => cache_not_sent += 1,
+                            _ => phm_not_sent += 1,
+                        }
                     }
                     continue;
                 }

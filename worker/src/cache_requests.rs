@@ -5,7 +5,7 @@
 
 use dray_cache::Entry;
 use dray_cache::entry_record::{ENTRY_RECORD_BYTES, encode_entry};
-use dray_cache::wire::{OPTION_ANSWER, OPTION_PHM, OPTION_TICKET};
+use dray_cache::wire::{OPTION_ANSWER, OPTION_PHM, OPTION_ROOM, OPTION_TICKET};
 use dray_core::ray::{FLAG_COARSE, RayRecord, encode_rays};
 use dray_proto::v1::{
     CacheLookups, CacheRequest, PhmMerge, PhmOutcomes, TicketReturn, TicketReturns, WallEntries,
@@ -13,6 +13,7 @@ use dray_proto::v1::{
 };
 
 use crate::jobs::Job;
+use crate::tickets::MAX_TICKETS;
 use crate::tracer::Lookup;
 
 /// The ray as its wall's actor sees it: the actor reads the coarse flag from the
@@ -39,6 +40,11 @@ pub(crate) fn lookup_options(job: &Job, l: &Lookup) -> u32 {
     }
     if l.phm {
         o |= OPTION_PHM;
+        // A map that shades may ticket the ray to learn its radiance (the ray cache's
+        // ticket at this wall, if any, is the same one).
+        if l.lineage.ticket_count() < MAX_TICKETS {
+            o |= OPTION_ROOM;
+        }
     }
     o
 }

@@ -16,7 +16,7 @@ use crate::submit_cmd::SubmitArgs;
 /// The knobs of `--ray-cache`, as `ray-cache.<knob>` keys vary them.
 pub const RAY_CACHE_KNOBS: [&str; 8] = crate::ray_cache_flag::KEYS;
 /// The knobs of `--phm`, as `phm.<knob>` keys vary them.
-pub const PHM_KNOBS: [&str; 10] = crate::phm_flag::KEYS;
+pub const PHM_KNOBS: [&str; crate::phm_flag::KEYS.len()] = crate::phm_flag::KEYS;
 
 /// Flags a sweep sets itself or that make no sense to vary: the files a render writes
 /// (the sweep writes its own into `--out`), the whole `--ray-cache`/`--phm` values (their

@@ -42,10 +42,11 @@ fn traffic_column(k: TrafficKind) -> String {
 }
 
 /// The hit-map statistics: CSV column and key under `--stats`' `phm`.
-pub const PHM_COLUMNS: [(&str, &str); 7] = [
+pub const PHM_COLUMNS: [(&str, &str); 8] = [
     ("phm_lookups", "lookups"),
     ("phm_rays_skipped", "rays_skipped"),
     ("phm_rays_occluded", "rays_occluded"),
+    ("phm_rays_shaded", "rays_shaded"),
     ("phm_probes", "probes"),
     ("phm_cells_decided_hit", "cells_decided_hit"),
     ("phm_cells_decided_miss", "cells_decided_miss"),

@@ -48,6 +48,8 @@ pub fn add_phm(a: &mut PhmStats, b: &PhmStats) {
     sum(&mut a.lookups, b.lookups);
     sum(&mut a.rays_skipped, b.rays_skipped);
     sum(&mut a.rays_occluded, b.rays_occluded);
+    sum(&mut a.rays_shaded, b.rays_shaded);
+    sum(&mut a.shading_learned, b.shading_learned);
     sum(&mut a.probes, b.probes);
     sum(&mut a.outcomes, b.outcomes);
     sum(&mut a.outcomes_merged, b.outcomes_merged);

@@ -126,10 +126,11 @@ impl Outbox {
         }
     }
 
-    /// Mark the ray's tickets as met by an approximation (their radiance is not stored).
-    pub(super) fn taint(&mut self, lin: &Lineage) {
+    /// Settle the ray's tickets: hand them `credit` (all the ray still holds), marked
+    /// as met by an approximation (their radiance is neither stored nor learned).
+    pub(super) fn settle_tainted(&mut self, lin: &Lineage, credit: Credit) {
         if let Some(t) = &lin.tickets {
-            self.tickets.credit(t, Credit::ZERO, true);
+            self.tickets.credit(t, credit, true);
         }
     }
 

@@ -56,8 +56,15 @@ impl JobTracer {
     }
 
     /// A ray a hit map predicts to miss the domain it was entering goes on past it, to
-    /// `next` (or out of the scene): its tickets tainted, since what it sees now rests on
-    /// a prediction, and its probe flag dropped.
+    /// `next` (or out of the scene), its probe flag dropped. What it sees from now on
+    /// rests on a prediction, so its tickets must not learn from it: they are settled
+    /// here, tainted, with the ray's whole credit, and the ray goes on without them.
+    ///
+    /// Why settle rather than send a taint (zero credit) and let the ray carry them on:
+    /// the ray may finish on another worker, whose returns can reach a ticket, and close
+    /// it clean, before this worker's taint does (which then finds the ticket closed).
+    /// A return that carries credit cannot be overtaken: the ticket cannot close without
+    /// it.
     fn go_past(
         &self,
         ctx: &StepCtx<'_>,
@@ -65,10 +72,13 @@ impl JobTracer {
         flight: InFlight<'_>,
         out: &mut Outbox,
     ) {
-        out.taint(flight.lineage);
-        let inherited = flight.lineage.inherited();
+        out.settle_tainted(flight.lineage, flight.credit);
+        let untied = Lineage {
+            tickets: None,
+            ..flight.lineage.inherited()
+        };
         let flight = InFlight {
-            lineage: &inherited,
+            lineage: &untied,
             ..flight
         };
         self.go_on(ctx, &ctx.bare, next, flight, out);
@@ -81,9 +91,10 @@ impl JobTracer {
         out.give_back(tile, ray.credit, lineage, true);
     }
 
-    /// A ray answered by a wall's cache with `radiance`: its contribution (weight x
-    /// radiance) and its credit, both also owed to its tickets, marked as coming from
-    /// a cache.
+    /// A ray answered by a wall's cache with `radiance`, or by its hit map with a
+    /// cell's averaged shading (`phm.shade`): its contribution (weight x radiance) and
+    /// its credit, both also owed to its tickets, marked as coming from a cache (the
+    /// tickets are tainted: what they carry rests on an approximation).
     pub fn answer_hit(&self, ray: &RayRecord, lineage: &Lineage, radiance: Vec3, out: &mut Outbox) {
         let pixels = self.settings.width as u64 * self.settings.height as u64;
         let tile = self.tile_of(ray.pixel, ray.sample, lineage.coarse);
@@ -123,12 +134,15 @@ impl JobTracer {
                 } = flight;
                 let wall = wall_index(domain, face);
                 // In place when the ray opens no ticket (nothing for the actor to
-                // record) and every view it needs is in this process.
+                // record), its map does not shade its kind (the radiance sums, and the
+                // tickets that teach them, are the actor's) and every view it needs is
+                // in this process.
                 let answer = cache && !lin.coarse;
                 let ticket = cache && self.opens_ticket(lin);
                 let map = if phm { ctx.pins.map(wall) } else { None };
                 let store = if answer { ctx.pins.cache(wall) } else { None };
-                if !ticket && map.is_some() == phm && store.is_some() == answer {
+                let shades = map.is_some_and(|m| m.shades(k));
+                if !ticket && !shades && map.is_some() == phm && store.is_some() == answer {
                     let at = AtWall {
                         record: r,
                         lineage: lin,
