@@ -21,7 +21,8 @@ use dray_core::tonemap::Tonemap;
 use dray_proto::v1::{JobEventKind, JobSpec, JobState};
 
 pub use crate::job::entry::JobEntry;
-use crate::job::record::{JobRecord, JobStatus, terminal};
+use crate::job::record::JobRecord;
+use crate::job::status::{JobStatus, terminal};
 use crate::store::{JobStore, Op, StoredJob, to_millis};
 
 /// All jobs the server knows, and the gate that runs them one at a time.

@@ -86,7 +86,7 @@ impl Limits {
 }
 
 // Tiles are never larger than a worker accepts (`dray_worker::setup_bounds`).
-const _: () = assert!(crate::dispatch::TILE_SIZE <= bounds::MAX_SIDE);
+const _: () = assert!(dray_core::tiles::TILE_SIZE <= bounds::MAX_SIDE);
 const _: () = assert!(Limits::MAX_JOBS <= bounds::MAX_COORDINATOR_JOBS);
 
 impl Default for Limits {

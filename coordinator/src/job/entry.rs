@@ -12,7 +12,7 @@ use dray_core::tiles::TileGrid;
 use dray_proto::v1::{Job, JobProgress, JobSpec, JobState};
 use tokio::sync::watch;
 
-use super::record::{JobStatus, terminal};
+use super::status::{JobStatus, terminal};
 
 /// One job, as its readers see it: what it is (fixed at submission) and the status its
 /// record last published. Nothing here writes: the job's

@@ -35,6 +35,7 @@ pub mod report;
 pub mod running;
 pub mod sequences;
 pub mod statistics;
+pub mod status;
 pub mod view;
 
 pub use actor::ActorConfig;

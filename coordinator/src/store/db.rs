@@ -20,7 +20,8 @@ use rusqlite::{Connection, ErrorCode, OpenFlags};
 use dray_core::aov::AOV_WORDS;
 use dray_core::film::Film;
 
-use super::writer::{Confirm, Health, Op, Writer, image_name};
+use super::op::{Confirm, Op};
+use super::writer::{Health, Writer, image_name};
 use super::{CommittedTile, StoreError, StoredJob, from_millis};
 use super::{image_file, state_dir};
 

@@ -6,7 +6,7 @@
 use dray_proto::v1::JobEvent;
 use rusqlite::{Connection, Transaction, params};
 
-use super::{StoredJob, from_millis, writer::Op};
+use super::{StoredJob, from_millis, op::Op};
 
 /// From schema 2 to 3 (also run on a new database, after the schema of version 2): the
 /// events table and the lineage column.

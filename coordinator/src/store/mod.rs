@@ -21,6 +21,7 @@
 pub mod db;
 pub mod events;
 pub mod image_file;
+pub mod op;
 pub mod state_dir;
 pub mod writer;
 
@@ -31,7 +32,7 @@ use dray_core::aov::AOV_WORDS;
 use dray_proto::v1::{JobEvent, JobSpec, JobState, JobStats};
 
 pub use db::{JobStore, SCHEMA_VERSION};
-pub use writer::{Confirm, Op};
+pub use op::{Confirm, Op};
 
 /// Why the store cannot be opened or used. Every message is one line naming the file.
 #[derive(Debug, thiserror::Error)]
