@@ -29,6 +29,18 @@ if [ -f "$dest/ok" ] && works; then
     env_lines
     exit 0
 fi
+# Tests replay in parallel and each calls this script: the first to get here fetches, the
+# others wait on the lock and then find the fetched copy. Without the lock a second caller
+# removed the first one's downloads from under it (CI, 2026-11-30: dpkg-deb on '*.deb').
+mkdir -p "$dest"
+exec 9>"$dest/.lock"
+if command -v flock >/dev/null; then
+    flock 9
+fi
+if [ -f "$dest/ok" ] && works; then
+    env_lines
+    exit 0
+fi
 # The package and what it needs beyond a base Debian bookworm (apt-cache depends, checked
 # on 2026-11-29).
 debs="python3-simgrid libsimgrid3.32 libns3.37 libgsl27 libgslcblas0 libboost-context1.74.0 libboost-stacktrace1.74.0 libgfortran5"
@@ -36,16 +48,27 @@ if ! command -v apt-get >/dev/null || ! command -v dpkg >/dev/null; then
     echo "benches/sim/setup.sh: SimGrid is not installed and this is no Debian system (no apt-get/dpkg) to fetch python3-simgrid from" >&2
     exit 3
 fi
-rm -rf "$dest/debs" "$dest/root"
-mkdir -p "$dest/debs" "$dest/root"
-if ! (cd "$dest/debs" && apt-get download $debs >"$dest/download.log" 2>&1); then
+# Fetch and unpack in a scratch directory, then move the result into place whole.
+work="$(mktemp -d "$dest/fetch.XXXXXX")"
+trap 'rm -rf "$work"' EXIT
+mkdir -p "$work/debs" "$work/root"
+if ! (cd "$work/debs" && apt-get download $debs >"$dest/download.log" 2>&1); then
     echo "benches/sim/setup.sh: apt-get download of SimGrid's packages failed ($dest/download.log):" >&2
     tail -5 "$dest/download.log" >&2
     exit 3
 fi
-for f in "$dest"/debs/*.deb; do
-    dpkg -x "$f" "$dest/root"
+shopt -s nullglob
+fetched=("$work"/debs/*.deb)
+if [ "${#fetched[@]}" -eq 0 ]; then
+    echo "benches/sim/setup.sh: apt-get download of SimGrid's packages printed success but left no .deb ($dest/download.log):" >&2
+    tail -5 "$dest/download.log" >&2
+    exit 3
+fi
+for f in "${fetched[@]}"; do
+    dpkg -x "$f" "$work/root"
 done
+rm -rf "$dest/root"
+mv "$work/root" "$dest/root"
 if ! works; then
     echo "benches/sim/setup.sh: SimGrid was unpacked into $dest but \`import simgrid\` fails with $("$py" --version 2>&1) (the bindings are built for Debian's Python 3.11):" >&2
     PYTHONPATH="$pkgs" LD_LIBRARY_PATH="$lib" "$py" -c 'import simgrid' 2>&1 | tail -3 >&2
