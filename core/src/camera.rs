@@ -73,7 +73,7 @@ pub struct Frustum {
     /// The near clip distance, at least 0.
     znear: f32,
     /// The scene's box, when rays start at it (see [`Frustum::clipped_to`]).
-    scene: Option<(Vec3, Vec3)>,
+    scene: Option<SceneBox>,
     /// The camera's thin lens, if any (see [`Frustum::generate_through_lens`]).
     lens: Option<Lens>,
 }
@@ -133,8 +133,8 @@ impl Frustum {
             .transform
             .transform_vector3(d_local)
             .normalize_or_zero();
-        let origin = match self.scene {
-            Some((lo, hi)) => advance_to_box(origin, dir, lo, hi),
+        let origin = match &self.scene {
+            Some(b) => b.advance(origin, dir),
             None => origin,
         };
         CameraRay { origin, dir }
@@ -152,7 +152,7 @@ impl Frustum {
     pub fn clipped_to(self, lo: Vec3, hi: Vec3) -> Frustum {
         let ok = lo.is_finite() && hi.is_finite() && lo.cmple(hi).all();
         Frustum {
-            scene: ok.then_some((lo, hi)),
+            scene: ok.then(|| SceneBox::new(lo, hi)),
             ..self
         }
     }
@@ -189,31 +189,64 @@ const BOX_STANDOFF: f32 = 1.0 / 64.0;
 /// of the scalar loop in the tests, so the bits are too: an axis the ray runs parallel
 /// to either rejects the ray (origin outside its slab) or bounds nothing.
 pub fn advance_to_box(origin: Vec3, dir: Vec3, lo: Vec3, hi: Vec3) -> Vec3 {
-    let d = Vec3A::from(dir);
-    let (lo, hi) = (Vec3A::from(lo), Vec3A::from(hi));
-    let size = lo.abs().max(hi.abs()).max_element();
-    let standoff = (hi - lo).max_element() * BOX_STANDOFF;
-    let parallel = d.cmpeq(Vec3A::ZERO);
-    // Infinite on a parallel axis, whose distances are replaced below.
-    let inv = Vec3A::ONE / d;
-    let mut o = Vec3A::from(origin);
-    for _ in 0..2 {
-        let m = ((o.abs().max_element() + size) * BOX_MARGIN).max(standoff);
-        let (blo, bhi) = (lo - m, hi + m);
-        if (parallel & (o.cmplt(blo) | o.cmpgt(bhi))).any() {
-            return o.into();
+    SceneBox::new(lo, hi).advance(origin, dir)
+}
+
+/// The box camera rays start at, with what [`advance_to_box`] derives from the box
+/// alone worked out once per frustum rather than once per camera ray (the same
+/// values, so the same origins bit for bit).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct SceneBox {
+    lo: Vec3A,
+    hi: Vec3A,
+    /// The largest magnitude of the box's coordinates.
+    size: f32,
+    /// [`BOX_STANDOFF`] of the box's largest extent.
+    standoff: f32,
+}
+
+impl SceneBox {
+    fn new(lo: Vec3, hi: Vec3) -> SceneBox {
+        let (lo, hi) = (Vec3A::from(lo), Vec3A::from(hi));
+        SceneBox {
+            lo,
+            hi,
+            size: lo.abs().max(hi.abs()).max_element(),
+            standoff: (hi - lo).max_element() * BOX_STANDOFF,
         }
-        let (ta, tb) = ((blo - o) * inv, (bhi - o) * inv);
-        let near = Vec3A::select(parallel, Vec3A::ZERO, ta.min(tb));
-        let far = Vec3A::select(parallel, Vec3A::INFINITY, ta.max(tb));
-        let t0 = near.max_element().max(0.0);
-        let t1 = far.min_element();
-        if !(t0 > 0.0 && t0 <= t1 && t0.is_finite()) {
-            return o.into();
-        }
-        o += d * t0;
     }
-    o.into()
+
+    /// [`advance_to_box`] of this box.
+    fn advance(&self, origin: Vec3, dir: Vec3) -> Vec3 {
+        let SceneBox {
+            lo,
+            hi,
+            size,
+            standoff,
+        } = *self;
+        let d = Vec3A::from(dir);
+        let parallel = d.cmpeq(Vec3A::ZERO);
+        // Infinite on a parallel axis, whose distances are replaced below.
+        let inv = Vec3A::ONE / d;
+        let mut o = Vec3A::from(origin);
+        for _ in 0..2 {
+            let m = ((o.abs().max_element() + size) * BOX_MARGIN).max(standoff);
+            let (blo, bhi) = (lo - m, hi + m);
+            if (parallel & (o.cmplt(blo) | o.cmpgt(bhi))).any() {
+                return o.into();
+            }
+            let (ta, tb) = ((blo - o) * inv, (bhi - o) * inv);
+            let near = Vec3A::select(parallel, Vec3A::ZERO, ta.min(tb));
+            let far = Vec3A::select(parallel, Vec3A::INFINITY, ta.max(tb));
+            let t0 = near.max_element().max(0.0);
+            let t1 = far.min_element();
+            if !(t0 > 0.0 && t0 <= t1 && t0.is_finite()) {
+                return o.into();
+            }
+            o += d * t0;
+        }
+        o.into()
+    }
 }
 
 /// Where a camera with vertical field of view `yfov` (radians) must stand, on the side

@@ -153,6 +153,8 @@ impl JobTracer {
             tile.credit.camera_share(total, 0).unwrap_or(Credit::ZERO),
             tile.credit.camera_share(total, 1).unwrap_or(Credit::ZERO),
         );
+        // Counted once for the run, where each ray was counted as it was made.
+        out.traced[RayKind::Camera as usize] += end - start;
         let mut at = TileCursor::new(start, spp, tile.width);
         // One lineage for the tile's rays: a camera ray has no tickets, and is coarse
         // when its tile is.
@@ -179,7 +181,6 @@ impl JobTracer {
                 bare.camera_ray_xy(tile.x0 + at.x, tile.y0 + at.y, tile.first_sample + at.s)
             };
             at.advance();
-            out.traced[RayKind::Camera as usize] += 1;
             if let Some(whole) = whole {
                 self.trace_tree(whole, &mut f, &mut step, out)?;
                 continue;

@@ -46,13 +46,16 @@ pub(super) struct Entering {
 }
 
 /// The sink of a hit's shading: contributions go straight to the outbox (and the ray's
-/// tickets), the rays it makes to the step's buffer, to be given credit and routed.
+/// tickets), the rays it makes onto the step's stack, to be given credit and routed.
 struct HitSink<'a> {
     out: &'a mut Outbox,
     lineage: &'a Lineage,
     /// The shaded ray's tile key (its pass, for a job tracing passes ahead).
     tile: u32,
     children: &'a mut Vec<RayState>,
+    /// The kinds of the rays made, noted as they are made: the credit split reads them,
+    /// with no second pass over the rays.
+    kinds: &'a mut Vec<RayKind>,
 }
 
 impl Sink for HitSink<'_> {
@@ -60,6 +63,7 @@ impl Sink for HitSink<'_> {
         self.out.add(pixel, self.tile, value, self.lineage, false);
     }
     fn spawn(&mut self, ray: RayState) {
+        self.kinds.push(ray.kind);
         self.children.push(ray);
     }
     fn clamped_indirect(&mut self) {
@@ -95,11 +99,18 @@ impl Sink for ContributionsOnly<'_> {
 /// Scratch space reused across the rays of one step.
 #[derive(Default)]
 pub(super) struct Step {
+    /// The rays a hit made, on top of the rays still waiting: in the routed loop
+    /// ([`JobTracer::trace_one`]) it holds one hit's rays at a time; in the one-domain
+    /// loop ([`JobTracer::trace_tree`]) it is the stack of the tree's waiting rays, the
+    /// hit's rays pushed onto it where the shading makes them (each ray is copied into
+    /// the stack once and out of it once, with no second buffer in between).
     children: Vec<RayState>,
-    /// Rays of one tree waiting in [`JobTracer::trace_tree`], with their credit (the
+    /// The credit of each ray of `children` waiting in [`JobTracer::trace_tree`] (the
     /// tree's tile and lineage are its camera ray's).
-    tree: Vec<(RayState, Credit)>,
+    credits: Vec<Credit>,
+    /// The kinds of the last hit's rays, in spawn order.
     kinds: Vec<RayKind>,
+    /// The last hit's rays' shares of its credit, in spawn order.
     shares: Vec<Credit>,
 }
 
@@ -107,9 +118,9 @@ pub(super) struct Step {
 pub(super) enum InSpan {
     /// An occlusion ray was blocked: it ends, handing back all of its credit.
     Blocked,
-    /// A hit, shaded: its contributions are in the outbox, the rays it made in
-    /// `Step::children` with their credit in `Step::shares`, and the ray hands back
-    /// what the split left.
+    /// A hit, shaded: its contributions are in the outbox, the rays it made on top of
+    /// `Step::children` (their kinds in `Step::kinds`) with their credit in
+    /// `Step::shares`, and the ray hands back what the split left.
     Shaded { back: Credit },
     /// Nothing in the span stopped it: it goes on past the span.
     Through,
@@ -142,9 +153,9 @@ fn in_span(
     Ok(InSpan::Shaded { back })
 }
 
-/// Shade `hit`: its contributions go to the outbox, the rays it makes to
-/// `step.children` with their credit in `step.shares`. Returns the credit the ray
-/// hands back itself.
+/// Shade `hit`: its contributions go to the outbox, the rays it makes onto
+/// `step.children` (pushed after what it holds) with their kinds in `step.kinds` and
+/// their credit in `step.shares`. Returns the credit the ray hands back itself.
 #[inline]
 fn shade(
     integrator: &Integrator<'_>,
@@ -153,7 +164,7 @@ fn shade(
     step: &mut Step,
     out: &mut Outbox,
 ) -> Result<Credit, TraceError> {
-    step.children.clear();
+    step.kinds.clear();
     integrator.shade_hit(
         &flight.ray,
         hit,
@@ -162,10 +173,9 @@ fn shade(
             lineage: flight.lineage,
             tile: flight.tile,
             children: &mut step.children,
+            kinds: &mut step.kinds,
         },
     );
-    step.kinds.clear();
-    step.kinds.extend(step.children.iter().map(|c| c.kind));
     Ok(flight.credit.split_into(&step.kinds, &mut step.shares)?)
 }
 
@@ -322,14 +332,17 @@ impl JobTracer {
             .ok_or(TraceError::NotResident { domain })?;
         // One ray of the tree at a time in `f`, the caller's slot, rewritten in place:
         // the tile and lineage are the root's. The root is traced where the caller made
-        // it; only its descendants go through `step.tree` (a push and a pop per camera
-        // ray, or a copy of a ray just made, cost stalls on loads of what was just
-        // stored).
-        step.tree.clear();
+        // it; only its descendants go through the stack `step.children` (a push and a
+        // pop per camera ray, or a copy of a ray just made, cost stalls on loads of what
+        // was just stored). A hit's rays are shaded straight onto the stack, in spawn
+        // order, and popped last first, as they were when they went through a second
+        // buffer.
+        step.children.clear();
+        step.credits.clear();
         let mut first = true;
         loop {
             if !std::mem::take(&mut first) {
-                let Some((ray, credit)) = step.tree.pop() else {
+                let (Some(ray), Some(credit)) = (step.children.pop(), step.credits.pop()) else {
                     break;
                 };
                 (f.ray, f.credit) = (ray, credit);
@@ -352,10 +365,11 @@ impl JobTracer {
                 InSpan::Through => finish_unblocked(integrator, f, out),
                 InSpan::Shaded { back } => {
                     out.give_back(f.tile, back, f.lineage, false);
-                    for (child, &share) in step.children.drain(..).zip(&step.shares) {
-                        out.traced[child.kind as usize] += 1;
-                        step.tree.push((child, share));
+                    // The hit's rays are already on the stack, one share each.
+                    for &kind in &step.kinds {
+                        out.traced[kind as usize] += 1;
                     }
+                    step.credits.extend_from_slice(&step.shares);
                 }
             }
         }
@@ -421,6 +435,8 @@ impl JobTracer {
             tile,
             lineage: &lineage,
         };
+        // This hit's rays alone, when it makes any.
+        step.children.clear();
         let outcome = in_span(integrator, &geometry, &f, step, out)?;
         if probe {
             let hit = !matches!(outcome, InSpan::Through);
