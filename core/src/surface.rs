@@ -205,38 +205,55 @@ impl Surface {
     /// Evaluate the material at this point. Effects switched off are removed here, so
     /// no integrator can spawn their rays.
     pub fn shading(&self, scene: &Scene, effects: Effects) -> ShadingValues {
-        let fallback = Material::default();
-        let m = scene
-            .materials
-            .get(self.material as usize)
-            .unwrap_or(&fallback);
-        let textured = effects.contains(Effect::Textures);
-        let t = |r: Option<TexRef>, srgb: bool| {
-            if textured {
-                tex(scene, r, self.uv, srgb)
-            } else {
-                Vec4::ONE
+        // The glTF default stands in for a missing material; it is built only then (its
+        // name is a `String`: building it for every hit cost an allocation per hit).
+        let fallback;
+        let m = match scene.materials.get(self.material as usize) {
+            Some(m) => m,
+            None => {
+                fallback = Material::default();
+                &fallback
             }
         };
+        let textured = effects.contains(Effect::Textures);
+        // A slot's texture value, `None` when the slot is empty or textures are off. A
+        // factor times an absent texture's white (1) is the factor itself, exactly, so
+        // empty slots take the factor as it is: no lookup and no product per slot.
+        let lookup = |r: Option<TexRef>, srgb: bool| {
+            r.filter(|_| textured)
+                .map(|r| tex(scene, Some(r), self.uv, srgb))
+        };
+        let t = |r: Option<TexRef>, srgb: bool| lookup(r, srgb).unwrap_or(Vec4::ONE);
         // glTF: base colour = factor x texture x COLOR_0 (white without vertex colours,
         // and x * 1 is exact, so such scenes keep their bits).
-        let bc = m.base_color * t(m.base_color_tex, true) * self.color;
-        let mr = t(m.metallic_roughness_tex, false);
+        let bc =
+            lookup(m.base_color_tex, true).map_or(m.base_color, |s| m.base_color * s) * self.color;
+        let (metallic, roughness) = lookup(m.metallic_roughness_tex, false)
+            .map_or((m.metallic, m.roughness), |s| {
+                (m.metallic * s.z, m.roughness * s.y)
+            });
         let mut v = ShadingValues {
             base_color: bc.truncate().max(Vec3::ZERO),
             alpha: bc.w,
-            metallic: (m.metallic * mr.z).clamp(0.0, 1.0),
-            roughness: (m.roughness * mr.y).clamp(0.0, 1.0),
-            specular: (m.specular * t(m.specular_tex, false).w).clamp(0.0, 1.0),
-            specular_color: (m.specular_color * t(m.specular_color_tex, true).truncate())
+            metallic: metallic.clamp(0.0, 1.0),
+            roughness: roughness.clamp(0.0, 1.0),
+            specular: lookup(m.specular_tex, false)
+                .map_or(m.specular, |s| m.specular * s.w)
+                .clamp(0.0, 1.0),
+            specular_color: lookup(m.specular_color_tex, true)
+                .map_or(m.specular_color, |s| m.specular_color * s.truncate())
                 .max(Vec3::ZERO),
-            transmission: (m.transmission * t(m.transmission_tex, false).x).clamp(0.0, 1.0),
+            transmission: lookup(m.transmission_tex, false)
+                .map_or(m.transmission, |s| m.transmission * s.x)
+                .clamp(0.0, 1.0),
             ior: if m.ior.is_finite() && m.ior >= 1.0 {
                 m.ior
             } else {
                 1.5
             },
-            emission: (m.emissive * t(m.emissive_tex, true).truncate()).max(Vec3::ZERO),
+            emission: lookup(m.emissive_tex, true)
+                .map_or(m.emissive, |s| m.emissive * s.truncate())
+                .max(Vec3::ZERO),
             clearcoat: 0.0,
             clearcoat_roughness: 0.0,
             sheen_color: Vec3::ZERO,

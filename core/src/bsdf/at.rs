@@ -218,12 +218,14 @@ impl BsdfAt<'_> {
         let Some(wi) = unit(wi) else {
             return zero;
         };
+        if b.lambert {
+            // Only the cosine to the shading normal is read: `fr.local(wi).z` is this
+            // same product, so the tangent components are not computed.
+            return self.lambert_eval_pdf(wi.dot(fr.n), wi.dot(fr.ng));
+        }
         let wi_l = fr.local(wi);
         let gi = wi.dot(fr.ng);
         let (cos_o, cos_i) = (wo_l.z, wi_l.z);
-        if b.lambert {
-            return self.lambert_eval_pdf(cos_i, gi);
-        }
         let mut f = Vec3::ZERO;
         let mut pdf = 0.0;
         if cos_i >= COS_EPS && gi > 0.0 {
@@ -277,8 +279,17 @@ impl BsdfAt<'_> {
     pub fn sample(&self, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
         let b = self.bsdf;
         let sel = &self.sel;
-        let ul = sanitize_u(u_lobe);
         let u = Vec2::new(sanitize_u(u.x), sanitize_u(u.y));
+        if b.lambert {
+            // The selection of `Bsdf::at_lambert`: only `p_diffuse`, 1 or 0. The general
+            // test below is then `p_diffuse + 0 + 0 + 0 > 0`, and every `u_lobe` (below
+            // 1 once sanitised) picks the diffuse lobe: the lobe number is not read.
+            if !(sel.p_diffuse > 0.0) {
+                return None;
+            }
+            return self.sample_diffuse(u);
+        }
+        let ul = sanitize_u(u_lobe);
         if !(sel.p_diffuse + sel.p_spec + sel.p_coat + sel.p_sheen > 0.0) {
             return None;
         }
