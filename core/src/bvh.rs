@@ -251,7 +251,7 @@ impl Accel {
             .collect();
         // The build's primitives are references: each triangle's own, and, pre-split,
         // the further fragments of some (`refs.primitive`).
-        let mut refs = presplit::presplit(aabbs, &corners, options.presplit);
+        let mut refs = presplit::presplit(aabbs, corners, options.presplit);
         let references = refs.boxes.len();
         let split = !refs.extra.is_empty();
         let bvh2 = build::build(std::mem::take(&mut refs.boxes));
@@ -944,7 +944,7 @@ mod tests {
             let u = |d: u32| k.uniform(8, Purpose::Film, d);
             let o = Vec3::new(u(0), u(1), u(2)) * 1.6 - 0.3;
             let ray = unbounded(o, uniform_sphere(k.uniform2(9, Purpose::Film, 0)));
-            let filter = |t: u32, _: &TriangleHit| i % 2 == 0 || t % 3 != 0;
+            let filter = |t: u32, _: &TriangleHit| i.is_multiple_of(2) || !t.is_multiple_of(3);
             let (mut a, mut b) = (TraversalCounts::default(), TraversalCounts::default());
             let want = plain.closest_counted(&ray, filter, &mut a);
             for simd in traverse::testable_levels() {

@@ -132,7 +132,7 @@ fn priority(grid: &Grid, b: &Aabb, tri: &[DVec3; 3]) -> f32 {
     let box_area = 2.0 * (d.x * d.y + d.y * d.z + d.z * d.x);
     let n = (tri[1] - tri[0]).cross(tri[2] - tri[0]);
     let tri_area = n.x.abs() + n.y.abs() + n.z.abs();
-    if !(tri_area > 0.0) || !box_area.is_finite() {
+    if tri_area.is_nan() || tri_area <= 0.0 || !box_area.is_finite() {
         return 0.0;
     }
     let level = 31 - (lo ^ hi).leading_zeros();
