@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use dray_core::bvh::{Accel, Hit, QueryRay, Simd, TraversalCounts};
+use dray_core::bvh::{Accel, AccelOptions, Hit, QueryRay, Simd, TraversalCounts};
 use dray_core::camera::Camera;
 use dray_core::sampling::{PathKey, Purpose, uniform_sphere};
 use glam::{Vec2, Vec3};
@@ -36,6 +36,19 @@ pub enum SimdArg {
     Sse2,
     /// Plain Rust, one child at a time.
     Portable,
+}
+
+/// Whether the tree is built with pre-split triangles (`--presplit`).
+#[derive(Clone, Copy, Debug, ValueEnum, Serialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum PresplitArg {
+    /// The renderer's default ([`AccelOptions::default`]).
+    Default,
+    /// No pre-splitting: one reference per triangle.
+    Off,
+    /// Pre-splitting, with Embree's budget ([`AccelOptions::PRESPLIT`]) unless
+    /// `--presplit-budget` says otherwise.
+    On,
 }
 
 #[derive(Args, Debug)]
@@ -74,6 +87,13 @@ pub struct BenchArgs {
     /// their memory loads overlapped) instead of one ray at a time; same answers.
     #[arg(long)]
     pub batch: bool,
+    /// Build the tree with or without pre-split triangles (same hits either way).
+    #[arg(long, value_enum, default_value = "default")]
+    pub presplit: PresplitArg,
+    /// With `--presplit on`: the budget, extra references per triangle (default
+    /// Embree's 0.2).
+    #[arg(long)]
+    pub presplit_budget: Option<f32>,
 }
 
 #[derive(Serialize)]
@@ -81,6 +101,10 @@ struct Report<'a> {
     mesh: &'a str,
     triangles: usize,
     build_s: f64,
+    /// Extra references pre-splitting added, per triangle.
+    presplit_refs_per_triangle: f64,
+    /// Bytes of the tree (nodes and leaves) per triangle.
+    bvh_bytes_per_triangle: f64,
     kind: RayKindArg,
     rays: usize,
     threads: usize,
@@ -99,6 +123,8 @@ struct Report<'a> {
     nodes_per_ray: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     triangles_per_ray: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    leaves_per_ray: Option<f64>,
 }
 
 fn make_rays(a: &BenchArgs, lo: Vec3, hi: Vec3) -> Vec<(Vec3, Vec3)> {
@@ -149,14 +175,31 @@ pub fn run(a: BenchArgs) -> Result<()> {
     if a.repeat == 0 || a.rays == 0 || a.res == 0 {
         bail!("--repeat, --rays and --res must be positive");
     }
+    if a.presplit_budget.is_some() && a.presplit != PresplitArg::On {
+        bail!("--presplit-budget needs --presplit on");
+    }
+    if a.presplit_budget
+        .is_some_and(|b| !(b.is_finite() && b >= 0.0))
+    {
+        bail!("--presplit-budget must be a finite number at least 0");
+    }
     if a.rays > u32::MAX as usize {
         bail!("--rays must be below 2^32");
     }
     let scene =
         dray_scene::load(&a.mesh).with_context(|| format!("cannot load mesh {:?}", a.mesh))?;
     let t0 = Instant::now();
-    let mut accel = Accel::build(&scene.mesh);
+    let options = match a.presplit {
+        PresplitArg::Default => AccelOptions::default(),
+        PresplitArg::Off => AccelOptions::UNSPLIT,
+        PresplitArg::On => AccelOptions {
+            presplit: a.presplit_budget.unwrap_or(AccelOptions::PRESPLIT),
+        },
+    };
+    let mut accel = Accel::build_with(&scene.mesh, None, options);
     let build_s = t0.elapsed().as_secs_f64();
+    let triangles = accel.triangle_count().max(1) as f64;
+    let per_triangle = |x: usize| x as f64 / triangles;
     select_simd(&mut accel, a.simd)?;
     let (lo, hi) = scene.bounds();
     let rays = make_rays(&a, lo, hi);
@@ -184,6 +227,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
         mesh: &a.mesh,
         triangles: scene.mesh.triangle_count(),
         build_s,
+        presplit_refs_per_triangle: per_triangle(accel.reference_count() - accel.triangle_count()),
+        bvh_bytes_per_triangle: per_triangle(accel.bytes()),
         kind: a.kind,
         rays: rays.len(),
         threads,
@@ -196,6 +241,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         batch: a.batch,
         nodes_per_ray: counts.map(|c| c.nodes as f64 / rays.len() as f64),
         triangles_per_ray: counts.map(|c| c.triangles as f64 / rays.len() as f64),
+        leaves_per_ray: counts.map(|c| c.leaves as f64 / rays.len() as f64),
     };
     println!(
         "{}",

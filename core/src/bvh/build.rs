@@ -479,7 +479,7 @@ fn bins_of(c: Vec3A, lo: Vec3A, to_bin: Vec3A) -> [usize; 3] {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
 
     /// One axis's bin with `as`, which saturates and maps NaN to 0 (the form `bins_of`
@@ -534,7 +534,8 @@ mod tests {
         assert_eq!(checked, 20_000);
     }
 
-    fn depth(bvh: &Bvh2) -> u32 {
+    /// The deepest leaf's depth (the root's is 0).
+    pub(in crate::bvh) fn depth(bvh: &Bvh2) -> u32 {
         let mut deepest = 0;
         let mut stack = vec![(0usize, 0u32)];
         while let Some((i, d)) = stack.pop() {
@@ -548,7 +549,8 @@ mod tests {
         deepest
     }
 
-    fn leaves(bvh: &Bvh2) -> Vec<u32> {
+    /// The primitive of every leaf, sorted.
+    pub(in crate::bvh) fn leaves(bvh: &Bvh2) -> Vec<u32> {
         let mut out: Vec<u32> = bvh
             .nodes
             .iter()

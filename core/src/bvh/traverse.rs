@@ -614,7 +614,7 @@ mod tests {
                 Tri4::new(&tris)
             })
             .collect();
-        let nodes = wide::from_cwbvh(&bvh, &packed);
+        let nodes = wide::from_cwbvh(&bvh, &packed, None);
         let levels: Vec<Simd> = testable_levels();
         let (mut visits, mut hits, mut tested) = (0, 0, 0);
         let mut ours = vec![(0usize, 0usize); levels.len()];

@@ -57,11 +57,11 @@ impl Default for WideNode {
 }
 
 /// An axis-aligned box as (lower, upper) corners.
-type Bounds = ([f32; 3], [f32; 3]);
+pub(crate) type Bounds = ([f32; 3], [f32; 3]);
 
-const EMPTY: Bounds = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+pub(crate) const EMPTY: Bounds = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
 
-fn union(a: Bounds, b: Bounds) -> Bounds {
+pub(crate) fn union(a: Bounds, b: Bounds) -> Bounds {
     (
         [0, 1, 2].map(|k| a.0[k].min(b.0[k])),
         [0, 1, 2].map(|k| a.1[k].max(b.1[k])),
@@ -97,12 +97,18 @@ pub(crate) fn leaves(bvh: &CwBvh) -> Vec<(u32, u32)> {
 }
 
 /// The wide nodes of `bvh`, index for index (child indices keep their meaning), with
-/// each child's box the exact bounds of its triangles. `leaves` are `bvh`'s leaves in the
-/// order of [`leaves`].
+/// each child's box the exact bounds of its triangles, or, with `leaf_boxes`, each leaf
+/// child's box its entry there (a pre-split leaf's: the bounds of its triangles' parts it
+/// was built for). `leaves` (and `leaf_boxes`) are `bvh`'s leaves in the order of
+/// [`leaves`].
 ///
 /// A node's children always come after it in obvhs's numbering (and in `convert`'s), so
 /// one pass from the last node to the first sees every child's box before its parent.
-pub(crate) fn from_cwbvh(bvh: &CwBvh, leaves: &[Tri4]) -> Vec<WideNode> {
+pub(crate) fn from_cwbvh(
+    bvh: &CwBvh,
+    leaves: &[Tri4],
+    leaf_boxes: Option<&[Bounds]>,
+) -> Vec<WideNode> {
     let n = bvh.nodes.len();
     let mut out = vec![WideNode::default(); n];
     let mut node_bounds = vec![EMPTY; n];
@@ -117,6 +123,7 @@ pub(crate) fn from_cwbvh(bvh: &CwBvh, leaves: &[Tri4]) -> Vec<WideNode> {
         next += (0..8).filter(|&s| is_leaf(cw, s)).count() as u32;
     }
     assert_eq!(next as usize, leaves.len(), "one Tri4 per leaf child");
+    assert!(leaf_boxes.is_none_or(|b| b.len() == leaves.len()));
     for i in (0..n).rev() {
         let cw = &bvh.nodes[i];
         let node = &mut out[i];
@@ -133,7 +140,8 @@ pub(crate) fn from_cwbvh(bvh: &CwBvh, leaves: &[Tri4]) -> Vec<WideNode> {
                 );
                 (node_bounds[c], c as u32 | INTERNAL)
             } else if is_leaf(cw, slot) {
-                let b = leaf_bounds(&leaves[(leaf_base[i] + leaf) as usize]);
+                let k = (leaf_base[i] + leaf) as usize;
+                let b = leaf_boxes.map_or_else(|| leaf_bounds(&leaves[k]), |b| b[k]);
                 leaf += 1;
                 (b, 1 << (leaf - 1))
             } else {
