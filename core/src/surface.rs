@@ -25,7 +25,10 @@ pub struct Surface {
     /// The clear coat's own shading normal (`clearcoatNormalTexture`), on the same side
     /// as `ng`; zero when the coat has no normal map (it then uses `n`).
     pub coat_n: Vec3,
-    /// Texture coordinates (both UV sets; each texture reads the one it names).
+    /// Texture coordinates (both UV sets; each texture reads the one it names). Zero
+    /// when nothing at this hit reads them (textures off, or a material without
+    /// textures): interpolating them then cost a cache miss per hit on the mesh's UV
+    /// rows and changed no value the render uses.
     pub uv: TexCoords,
     /// Interpolated vertex colour (white when the mesh has none).
     pub color: Vec4,
@@ -128,9 +131,19 @@ impl Surface {
         }
         let ns = idx.map(|i| mesh.normals[i as usize]);
         let mut n = (ns[0] * bary[0] + ns[1] * bary[1] + ns[2] * bary[2]).normalize_or_zero();
-        let uv = interpolate_uv(scene, hit.tri, bary);
-        let color = interpolate_color(scene, hit.tri, bary);
         let material = mesh.material[hit.tri as usize];
+        // A missing material stands in as the glTF default, which has no textures.
+        let reads_uv = effects.contains(Effect::Textures)
+            && scene
+                .materials
+                .get(material as usize)
+                .is_some_and(|m| m.has_textures());
+        let uv = if reads_uv {
+            interpolate_uv(scene, hit.tri, bary)
+        } else {
+            TexCoords::default()
+        };
+        let color = interpolate_color(scene, hit.tri, bary);
         let mut coat_n = Vec3::ZERO;
         if let Some(m) = scene.materials.get(material as usize)
             && effects.contains(Effect::Textures)
