@@ -310,8 +310,6 @@ fn power_heuristic(a: f32, b: f32) -> f32 {
     }
 }
 
-/// The BSDF's parameters at a hit: the material's shading values, the coat's normal, and
-/// `ior` (the material's, or one colour channel's under dispersion).
 /// A hit's [`Surface`] with the origins of the rays that leave it, each side's
 /// computed once: a path-traced hit casts its shadow ray and its bounce from the same
 /// point, nearly always to the same side, and `offset_ray_origin` (about 80
@@ -355,6 +353,8 @@ impl std::ops::Deref for HitPoint<'_> {
     }
 }
 
+/// The BSDF's parameters at a hit: the material's shading values, the coat's normal, and
+/// `ior` (the material's, or one colour channel's under dispersion).
 fn bsdf_params(sv: &ShadingValues, surf: &Surface, ior: f32) -> BsdfParams {
     BsdfParams {
         base_color: sv.base_color,
