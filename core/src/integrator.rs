@@ -8,6 +8,7 @@
 //!
 //! Only the ray kinds the scene's [`Effects`] call for are ever spawned.
 
+use std::cell::Cell;
 use std::sync::Arc;
 
 use glam::{Vec2, Vec3};
@@ -306,6 +307,49 @@ fn power_heuristic(a: f32, b: f32) -> f32 {
         1.0
     } else {
         0.0
+    }
+}
+
+/// A hit's [`Surface`] with the origins of the rays that leave it, each side's
+/// computed once: a path-traced hit casts its shadow ray and its bounce from the same
+/// point, nearly always to the same side, and `offset_ray_origin` (about 80
+/// instructions) gives the same bits for the same point and side. Dereferences to the
+/// surface, so the shading steps read it as before.
+struct HitPoint<'a> {
+    surf: &'a Surface,
+    /// The origin on `ng`'s side and on the other, once computed.
+    origins: [Cell<Option<Vec3>>; 2],
+}
+
+impl<'a> HitPoint<'a> {
+    fn new(surf: &'a Surface) -> HitPoint<'a> {
+        HitPoint {
+            surf,
+            origins: [Cell::new(None), Cell::new(None)],
+        }
+    }
+
+    /// The origin of a ray leaving along `dir`: offset to the side of the geometric
+    /// normal `dir` is on ([`offset_ray_origin`]).
+    fn origin_toward(&self, dir: Vec3) -> Vec3 {
+        let s = self.surf;
+        let front = s.ng.dot(dir) >= 0.0;
+        let cached = &self.origins[usize::from(!front)];
+        if let Some(origin) = cached.get() {
+            return origin;
+        }
+        let side = if front { s.ng } else { -s.ng };
+        let origin = offset_ray_origin(s.p, s.p_err, side);
+        cached.set(Some(origin));
+        origin
+    }
+}
+
+impl std::ops::Deref for HitPoint<'_> {
+    type Target = Surface;
+
+    fn deref(&self) -> &Surface {
+        self.surf
     }
 }
 
@@ -714,6 +758,7 @@ impl<'a> Integrator<'a> {
         // The BSDF tells inside from outside by the outward (winding) normal.
         let outward = if surf.front { surf.ng } else { -surf.ng };
         let bsdf = Bsdf::new(&params, surf.n, outward);
+        let surf = HitPoint::new(&surf);
         match self.settings.integrator {
             IntegratorKind::Path => self.path_step(ray, &surf, &bsdf, wo, key, sink),
             IntegratorKind::Raycast | IntegratorKind::Whitted => {
@@ -793,7 +838,7 @@ impl<'a> Integrator<'a> {
     fn raycast_step(
         &self,
         ray: &RayState,
-        surf: &Surface,
+        surf: &HitPoint,
         bsdf: &Bsdf,
         wo: Vec3,
         key: PathStream,
@@ -839,19 +884,14 @@ impl<'a> Integrator<'a> {
     fn shadow_ray(
         &self,
         ray: &RayState,
-        surf: &Surface,
+        surf: &HitPoint,
         ls: &LightSample,
         contribution: Vec3,
     ) -> Option<RayState> {
         if !contribution.is_finite() || contribution.max_element() <= 0.0 {
             return None;
         }
-        let side = if surf.ng.dot(ls.wi) >= 0.0 {
-            surf.ng
-        } else {
-            -surf.ng
-        };
-        let origin = offset_ray_origin(surf.p, surf.p_err, side);
+        let origin = surf.origin_toward(ls.wi);
         let (dir, tmax) = if ls.dist.is_finite() {
             let target = if ls.delta {
                 ls.light_p
@@ -900,7 +940,7 @@ impl<'a> Integrator<'a> {
     fn direct_light(
         &self,
         ray: &RayState,
-        surf: &Surface,
+        surf: &HitPoint,
         bsdf: &BsdfAt,
         key: PathStream,
         mode: DirectMode,
@@ -970,7 +1010,7 @@ impl<'a> Integrator<'a> {
     fn distant_sample(
         &self,
         ray: &RayState,
-        surf: &Surface,
+        surf: &HitPoint,
         bsdf: &BsdfAt,
         (wi, li, pdf_l): (Vec3, Vec3, f32),
         mode: DirectMode,
@@ -1005,7 +1045,7 @@ impl<'a> Integrator<'a> {
     fn whitted_children(
         &self,
         ray: &RayState,
-        surf: &Surface,
+        surf: &HitPoint,
         bsdf: &Bsdf,
         wo: Vec3,
         sink: &mut impl Sink,
@@ -1045,7 +1085,7 @@ impl<'a> Integrator<'a> {
     fn spawn_bounce(
         &self,
         ray: &RayState,
-        surf: &Surface,
+        surf: &HitPoint,
         wi: Vec3,
         weight: Vec3,
         kind: RayKind,
@@ -1055,13 +1095,8 @@ impl<'a> Integrator<'a> {
         if !weight.is_finite() || weight.max_element() <= 0.0 || !wi.is_finite() {
             return;
         }
-        let side = if surf.ng.dot(wi) >= 0.0 {
-            surf.ng
-        } else {
-            -surf.ng
-        };
         sink.spawn(RayState {
-            origin: offset_ray_origin(surf.p, surf.p_err, side),
+            origin: surf.origin_toward(wi),
             dir: wi,
             tmax: f32::INFINITY,
             depth: ray.depth + 1,
@@ -1077,7 +1112,7 @@ impl<'a> Integrator<'a> {
     fn path_step(
         &self,
         ray: &RayState,
-        surf: &Surface,
+        surf: &HitPoint,
         bsdf: &Bsdf,
         wo: Vec3,
         key: PathStream,

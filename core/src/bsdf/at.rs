@@ -139,12 +139,13 @@ impl Bsdf {
                 p_spec: 0.0,
                 pr_macro: 1.0,
             },
-            a2: self.ggx.alpha * self.ggx.alpha,
+            // Not read by the diffuse lobe: the inert alphas are not squared.
+            a2: 0.0,
             lambda_o: 0.0,
             coat_on: false,
             att_o: 1.0,
             coat_w: 0.0,
-            coat_a2: self.coat.alpha * self.coat.alpha,
+            coat_a2: 0.0,
             coat_lambda_o: 0.0,
             coat_fr: None,
             coat_wo_l: wo_l,
@@ -157,6 +158,7 @@ impl Bsdf {
     /// floors; `att_o` is what a clear coat passes to the lobes under it and `coat_w` the
     /// coat's own reflectance (1 and 0 without a coat, which leave the values unchanged).
     fn selection_from(&self, w: &Weights, att_o: f32, coat_w: f32, sheen_w: f32) -> Selection {
+        self.layers_read();
         let wd = lum(self.diffuse.tint) * w.base_scale.max(SELECT_FLOOR) * att_o;
         let r0 = if self.reflection.on {
             lum(w.refl).max(SELECT_FLOOR * self.reflection.max)
@@ -318,6 +320,7 @@ impl BsdfAt<'_> {
     /// A sample of the rough specular group: a visible GGX normal, then reflection or
     /// refraction on it by their Fresnel weights (`u2` picks).
     fn sample_microfacet(&self, u: Vec2, u2: f32) -> Option<BsdfSample> {
+        self.bsdf.layers_read();
         let b = self.bsdf;
         let (fr, wo_l) = (&self.fr, self.wo_l);
         let m = sample_vndf(wo_l, b.ggx.alpha, b.ggx.alpha_b, u)?;

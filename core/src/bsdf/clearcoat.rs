@@ -69,6 +69,7 @@ impl Bsdf {
     /// side, or the geometric normal when `wo` is below it (as [`Bsdf::frame`] does for
     /// the shading normal). Otherwise `None` and `wo_l`: the coat uses `fr`.
     pub(super) fn coat_frame(&self, fr: &Frame, wo_l: Vec3) -> (Option<Frame>, Vec3) {
+        self.layers_read();
         let wo = fr.world(wo_l);
         let cf = self.coat.n.filter(|_| self.coat_on(fr)).and_then(|nc| {
             let nc = if fr.outside { nc } else { -nc };
@@ -136,6 +137,7 @@ impl BsdfAt<'_> {
     /// A sample of the clear coat: its mirror when smooth, else a GGX reflection through
     /// the coat's visible normals.
     pub(super) fn sample_coat(&self, u: Vec2) -> Option<BsdfSample> {
+        self.bsdf.layers_read();
         let b = self.bsdf;
         // In the coat's own frame when it has a normal of its own.
         let (fr, wo_l) = (self.coat_fr.as_ref().unwrap_or(&self.fr), self.coat_wo_l);

@@ -56,22 +56,20 @@ impl Fresnel {
 
 impl Fresnel {
     /// The layer of a diffuse-only BSDF (`specular` and `metallic` 0): it reflects
-    /// nothing and passes everything to the base whatever its F0 and film, so neither is
-    /// computed (F0 0, no film). [`Bsdf::new`] uses it only when `lambert` is set, and then
-    /// nothing reads it.
-    pub(super) fn inert(base: Vec3, metallic: f32, specular: f32) -> Fresnel {
-        Fresnel {
-            base,
-            metallic,
-            specular,
-            f0: Vec3::ZERO,
-            film: Film {
-                strength: 0.0,
-                ior: crate::iridescence::DEFAULT_IOR,
-                thickness: 0.0,
-            },
-        }
-    }
+    /// nothing and passes everything to the base whatever its F0 and film, so none of
+    /// them is computed. [`super::Bsdf::new`] uses it only when `lambert` is set, and
+    /// then nothing reads it ([`Bsdf::weights`] asserts so in debug builds).
+    pub(super) const INERT: Fresnel = Fresnel {
+        base: Vec3::ZERO,
+        metallic: 0.0,
+        specular: 0.0,
+        f0: Vec3::ZERO,
+        film: Film {
+            strength: 0.0,
+            ior: 1.0,
+            thickness: 0.0,
+        },
+    };
 }
 
 /// The thin film of `KHR_materials_iridescence` over the base.
@@ -144,6 +142,7 @@ impl Bsdf {
 
     /// The layer's weights at microfacet cosine `c` (`etap` as in the frame).
     pub(super) fn weights(&self, c: f32, etap: f32) -> Weights {
+        debug_assert!(!self.lambert, "a diffuse-only BSDF has no Fresnel layer");
         let fr = &self.fresnel;
         let c = c.clamp(0.0, 1.0);
         let outer = self.outer_cos(c, etap);

@@ -30,14 +30,7 @@ impl Ggx {
     pub(super) fn new(params: &BsdfParams) -> Ggx {
         let roughness = sat(params.roughness);
         let a_iso = roughness * roughness;
-        let strength = sat(params.anisotropy);
-        // Without anisotropy the direction is not normalised: only `aniso` lobes read it.
-        let aniso_t = if strength > 0.0 {
-            unit(params.anisotropy_direction).unwrap_or(Vec3::ZERO)
-        } else {
-            Vec3::ZERO
-        };
-        let aniso = strength > 0.0 && aniso_t != Vec3::ZERO;
+        let (strength, aniso, aniso_t) = Ggx::direction(params);
         // alpha_t = mix(alpha, 1, strength^2), as the extension gives it.
         let a = if aniso {
             a_iso + (1.0 - a_iso) * strength * strength
@@ -56,6 +49,20 @@ impl Ggx {
             aniso_t,
             delta: a < DELTA_ALPHA,
         }
+    }
+
+    /// The anisotropy strength (sanitised), whether the lobe is anisotropic and its
+    /// direction (unit; zero when isotropic). A diffuse-only BSDF needs these alone:
+    /// its frame's tangent follows the direction ([`super::Bsdf::frame`]).
+    pub(super) fn direction(params: &BsdfParams) -> (f32, bool, Vec3) {
+        let strength = sat(params.anisotropy);
+        // Without anisotropy the direction is not normalised: only `aniso` lobes read it.
+        let aniso_t = if strength > 0.0 {
+            unit(params.anisotropy_direction).unwrap_or(Vec3::ZERO)
+        } else {
+            Vec3::ZERO
+        };
+        (strength, strength > 0.0 && aniso_t != Vec3::ZERO, aniso_t)
     }
 
     /// The distribution at local microfacet normal `m` (`a2` = alpha^2).

@@ -196,6 +196,7 @@ pub struct Bsdf {
     /// [`BsdfAt::eval_pdf`] then skip the layers' Fresnel weights and lobe selection,
     /// whose values are known (base scale 1, diffuse probability 1 or 0): the bits are
     /// those of the general path (test `lambert_fast_path_gives_the_general_bits`).
+    /// The other lobes then hold inert values ([`Bsdf::lambert`]).
     lambert: bool,
 }
 
@@ -211,59 +212,126 @@ impl Bsdf {
     /// spec-gloss conversion of `KHR_materials_specular`) and bend rays with ior 1 resp.
     /// [`MAX_IOR`].
     pub fn new(params: &BsdfParams, n: Vec3, ng: Vec3) -> Bsdf {
-        let (n_u, ng_u) = (unit(n), unit(ng));
-        let (valid, n_in, ng) = match (n_u, ng_u) {
-            (Some(n), Some(ng)) => (true, n, ng),
-            (Some(n), None) => (true, n, n),
-            (None, Some(ng)) => (true, ng, ng),
-            (None, None) => (false, Vec3::Z, Vec3::Z),
-        };
-        let n = if n_in.dot(ng) < 0.0 { -n_in } else { n_in };
-
-        let base = sat3(params.base_color);
-        let metallic = sat(params.metallic);
-        let specular = sat(params.specular);
-        let transmission = sat(params.transmission);
-        let ggx = Ggx::new(params);
-        let dielectric = (1.0 - metallic) * specular;
-        let diffuse = Diffuse {
-            tint: base * ((1.0 - metallic) * (1.0 - transmission)),
-        };
-        let transmission =
-            Transmission::new(params, base * ((1.0 - metallic) * transmission), ggx.delta);
-        let reflection = Reflection {
-            on: dielectric > 0.0 || metallic > 0.0,
-            max: dielectric + metallic,
-        };
-        let coat = Coat::new(params, ng);
-        let sheen = Sheen::new(params);
-        let lambert = !reflection.on
-            && transmission.tint.max_element() <= 0.0
-            && coat.strength <= 0.0
-            && sheen.max <= 0.0;
-        // A diffuse-only BSDF never evaluates its Fresnel layer (`Bsdf::at` and
-        // `BsdfAt::eval_pdf` skip the weights, `mirror` and `refraction` return before
-        // them), so it is not built: the F0 division and the film's clamps cost about a
-        // tenth of a Lambert hit's set-up.
-        let fresnel = if lambert {
-            Fresnel::inert(base, metallic, specular)
+        let normals = Normals::new(n, ng);
+        let base = BaseLobes::new(params);
+        if base.diffuse_only(params) {
+            Bsdf::lambert(params, normals, &base)
         } else {
-            Fresnel::new(params, base, metallic, specular, Film::new(params))
-        };
-        Bsdf {
-            n_in,
-            n,
-            ng,
-            valid,
-            fresnel,
-            ggx,
-            diffuse,
-            reflection,
-            transmission,
-            coat,
-            sheen,
-            lambert,
+            Bsdf::general(params, normals, &base)
         }
+    }
+
+    /// A diffuse-only BSDF (`lambert` set): only what its paths read is built from
+    /// `params` (the normals, the diffuse tint and, for the frame's tangent, the
+    /// anisotropy direction); the other lobes hold the inert values of
+    /// [`Bsdf::LAMBERT_INERT`]. The general construction sanitises every parameter,
+    /// builds every lobe and clamps its roughness and index (about 200 instructions
+    /// a hit), which a Lambert hit never reads: `Bsdf::at`, `BsdfAt::eval_pdf` and
+    /// `BsdfAt::sample` take their `lambert` branches, `mirror` and `refraction` return
+    /// before any lobe parameter, and the functions that read them assert (in debug
+    /// builds) that the BSDF is not diffuse-only. The test
+    /// `lambert_fast_path_gives_the_general_bits` compares every public result against
+    /// [`Bsdf::general`].
+    fn lambert(params: &BsdfParams, normals: Normals, base: &BaseLobes) -> Bsdf {
+        let inert = Bsdf::LAMBERT_INERT;
+        Bsdf {
+            n_in: normals.n_in,
+            n: normals.n,
+            ng: normals.ng,
+            valid: normals.valid,
+            diffuse: base.diffuse,
+            // `Bsdf::frame` follows the anisotropy direction whatever the lobes: the
+            // diffuse sample's tangent frame, hence its bits, depend on it.
+            ggx: {
+                let (_, aniso, aniso_t) = Ggx::direction(params);
+                Ggx {
+                    aniso,
+                    aniso_t,
+                    ..inert.ggx
+                }
+            },
+            lambert: true,
+            ..inert
+        }
+    }
+
+    /// What a diffuse-only BSDF holds in the lobes it never reads: no reflection,
+    /// transmission, coat or sheen (the values its predicates `has_specular_lobe`,
+    /// `has_transmission`, `is_delta_only` and `mirror` test, as the general
+    /// construction has them for such a material), zero roughness, F0, tints and an
+    /// index-matched interface: nearly all zeros, so building it is a few wide stores.
+    const LAMBERT_INERT: Bsdf = Bsdf {
+        n_in: Vec3::Z,
+        n: Vec3::Z,
+        ng: Vec3::Z,
+        valid: false,
+        fresnel: Fresnel::INERT,
+        ggx: Ggx {
+            roughness: 0.0,
+            alpha: 0.0,
+            alpha_b: 0.0,
+            aniso: false,
+            aniso_t: Vec3::ZERO,
+            delta: false,
+        },
+        diffuse: Diffuse { tint: Vec3::ZERO },
+        reflection: Reflection {
+            on: false,
+            max: 0.0,
+        },
+        transmission: Transmission {
+            tint: Vec3::ZERO,
+            on: false,
+            delta: false,
+            eta: 1.0,
+        },
+        coat: Coat {
+            strength: 0.0,
+            alpha: 0.0,
+            roughness: 0.0,
+            delta: false,
+            n: None,
+        },
+        sheen: Sheen {
+            color: Vec3::ZERO,
+            max: 0.0,
+            roughness: 0.0,
+        },
+        lambert: true,
+    };
+
+    /// Every lobe built and sanitised from `params`, and `lambert` unset: the
+    /// construction of any material that is not diffuse-only, and the reference the
+    /// tests compare the diffuse-only one against.
+    fn general(params: &BsdfParams, normals: Normals, base: &BaseLobes) -> Bsdf {
+        let ggx = Ggx::new(params);
+        let transmission = Transmission::new(params, base.transmission_tint, ggx.delta);
+        Bsdf {
+            n_in: normals.n_in,
+            n: normals.n,
+            ng: normals.ng,
+            valid: normals.valid,
+            fresnel: Fresnel::new(
+                params,
+                base.base,
+                base.metallic,
+                base.specular,
+                Film::new(params),
+            ),
+            ggx,
+            diffuse: base.diffuse,
+            reflection: base.reflection,
+            transmission,
+            coat: Coat::new(params, normals.ng),
+            sheen: Sheen::new(params),
+            lambert: false,
+        }
+    }
+
+    /// [`Bsdf::general`] from the inputs of [`Bsdf::new`], for the tests.
+    #[cfg(test)]
+    fn new_general(params: &BsdfParams, n: Vec3, ng: Vec3) -> Bsdf {
+        Bsdf::general(params, Normals::new(n, ng), &BaseLobes::new(params))
     }
 
     /// `f(wo, wi)` of the non-delta lobes, without the cosine.
@@ -326,8 +394,17 @@ impl Bsdf {
         self.diffuse.tint
     }
 
+    /// The lobes beyond the diffuse one are about to be read. A diffuse-only BSDF holds
+    /// inert values there ([`Bsdf::LAMBERT_INERT`]), so reaching such a read with one
+    /// would change the image: checked in debug builds (and so in the tests).
+    #[inline]
+    fn layers_read(&self) {
+        debug_assert!(!self.lambert, "a diffuse-only BSDF reached its inert lobes");
+    }
+
     /// A delta sample with throughput `weight / prob`.
     fn delta_sample(&self, wi: Vec3, weight: Vec3, prob: f32, lobe: Lobe) -> Option<BsdfSample> {
+        self.layers_read();
         let wi = unit(wi)?;
         let cos = wi.dot(self.n_in).abs();
         if !(cos >= COS_EPS) || !(prob > 0.0) || !(weight.max_element() > 0.0) {
@@ -344,6 +421,78 @@ impl Bsdf {
             lobe,
             delta: true,
         })
+    }
+}
+
+/// The normals of [`Bsdf::new`], made unit and oriented.
+#[derive(Clone, Copy, Debug)]
+struct Normals {
+    valid: bool,
+    /// Shading normal as passed (unit), shading normal on `ng`'s side, geometric normal.
+    n_in: Vec3,
+    n: Vec3,
+    ng: Vec3,
+}
+
+impl Normals {
+    fn new(n: Vec3, ng: Vec3) -> Normals {
+        let (valid, n_in, ng) = match (unit(n), unit(ng)) {
+            (Some(n), Some(ng)) => (true, n, ng),
+            (Some(n), None) => (true, n, n),
+            (None, Some(ng)) => (true, ng, ng),
+            (None, None) => (false, Vec3::Z, Vec3::Z),
+        };
+        let n = if n_in.dot(ng) < 0.0 { -n_in } else { n_in };
+        Normals { valid, n_in, n, ng }
+    }
+}
+
+/// The sanitised parameters both constructions share, from which [`Bsdf::new`] tells a
+/// diffuse-only material: the base colour, metallic, specular and transmission factors
+/// and the diffuse, transmission and reflection weights made of them.
+#[derive(Clone, Copy, Debug)]
+struct BaseLobes {
+    base: Vec3,
+    metallic: f32,
+    specular: f32,
+    diffuse: Diffuse,
+    transmission_tint: Vec3,
+    reflection: Reflection,
+}
+
+impl BaseLobes {
+    fn new(params: &BsdfParams) -> BaseLobes {
+        let base = sat3(params.base_color);
+        let metallic = sat(params.metallic);
+        let specular = sat(params.specular);
+        let transmission = sat(params.transmission);
+        let dielectric = (1.0 - metallic) * specular;
+        BaseLobes {
+            base,
+            metallic,
+            specular,
+            diffuse: Diffuse {
+                tint: base * ((1.0 - metallic) * (1.0 - transmission)),
+            },
+            transmission_tint: base * ((1.0 - metallic) * transmission),
+            reflection: Reflection {
+                on: dielectric > 0.0 || metallic > 0.0,
+                max: dielectric + metallic,
+            },
+        }
+    }
+
+    /// Only the diffuse lobe: no dielectric or metal reflection, no transmission (its
+    /// tint as [`Transmission`] holds it), no coat or sheen. `sat(x) > 0` exactly when
+    /// `x > 0` (NaN and negatives become 0, `-0.0` stays), so the coat's strength and the
+    /// sheen's largest channel are tested on the raw parameters without sanitising
+    /// them; test `lambert_flag_is_the_general_lobes_test` holds it to the lobes'
+    /// own test.
+    fn diffuse_only(&self, params: &BsdfParams) -> bool {
+        let sheen = params.sheen_color;
+        let no_coat = !(params.clearcoat > 0.0);
+        let no_sheen = !(sheen.x > 0.0 || sheen.y > 0.0 || sheen.z > 0.0);
+        !self.reflection.on && self.transmission_tint.max_element() <= 0.0 && no_coat && no_sheen
     }
 }
 

@@ -28,6 +28,7 @@ impl BsdfAt<'_> {
         cos_i: f32,
         att: f32,
     ) -> (Vec3, f32) {
+        self.bsdf.layers_read();
         let b = self.bsdf;
         let (cos_o, a2, sel) = (self.wo_l.z, self.a2, &self.sel);
         let w = b.weights(c, self.fr.etap);
@@ -51,6 +52,7 @@ impl BsdfAt<'_> {
     /// A sample of the smooth reflection: the mirror direction, weighted by the layer's
     /// Fresnel at `wo` and by what the coat and sheen above pass.
     pub(super) fn sample_mirror(&self) -> Option<BsdfSample> {
+        self.bsdf.layers_read();
         let b = self.bsdf;
         let (fr, wo_l, sel) = (&self.fr, self.wo_l, &self.sel);
         let wi = fr.world(Vec3::new(-wo_l.x, -wo_l.y, wo_l.z));
@@ -78,14 +80,16 @@ impl Bsdf {
     /// (roughness < [`WHITTED_MAX_ROUGHNESS`]; rougher lobes are left to the diffuse/ambient
     /// term) and the mirror direction is above the geometric surface.
     pub fn mirror(&self, wo: Vec3) -> Option<(Vec3, Vec3)> {
-        // An anisotropic lobe is as rough as its stretched axis.
-        let stretched = if self.ggx.aniso {
-            self.ggx.alpha.sqrt()
-        } else {
-            0.0
+        // An anisotropic lobe is as rough as its stretched axis. (The roughness is
+        // read only when the lobes exist: a diffuse-only BSDF holds inert values.)
+        let base_ok = self.reflection.on && {
+            let stretched = if self.ggx.aniso {
+                self.ggx.alpha.sqrt()
+            } else {
+                0.0
+            };
+            self.ggx.roughness.max(stretched) < WHITTED_MAX_ROUGHNESS
         };
-        let base_ok =
-            self.reflection.on && self.ggx.roughness.max(stretched) < WHITTED_MAX_ROUGHNESS;
         let coat_ok = self.coat.strength > 0.0 && self.coat.roughness < WHITTED_MAX_ROUGHNESS;
         if !base_ok && !coat_ok {
             return None;

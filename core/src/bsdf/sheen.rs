@@ -45,6 +45,7 @@ impl Bsdf {
     /// The sheen seen from `wo` (local cosine `cos_o`) under a coat passing `att_o`:
     /// whether it faces `wo`, what it passes down at `wo`, and its selection weight.
     pub(super) fn sheen_at(&self, fr: &Frame, cos_o: f32, att_o: f32) -> (bool, f32, f32) {
+        self.layers_read();
         let on = self.sheen_on(fr);
         let (att, w) = if on {
             let e = crate::sheen::albedo(cos_o, self.sheen.roughness);
@@ -81,6 +82,7 @@ impl BsdfAt<'_> {
 
     /// A cosine-weighted sample for the sheen lobe.
     pub(super) fn sample_sheen(&self, u: Vec2) -> Option<BsdfSample> {
+        self.bsdf.layers_read();
         self.finish(self.fr.world(cosine_hemisphere(u)), Lobe::Sheen)
     }
 }

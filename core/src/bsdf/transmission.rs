@@ -94,6 +94,7 @@ impl BsdfAt<'_> {
         wi_l: Vec3,
         cos_i: f32,
     ) -> Option<(Vec3, f32)> {
+        self.bsdf.layers_read();
         let b = self.bsdf;
         let (fr, wo_l, a2) = (&self.fr, self.wo_l, self.a2);
         let cos_o = wo_l.z;
@@ -132,6 +133,7 @@ impl BsdfAt<'_> {
     /// A sample of the smooth refraction through the macro surface, weighted by the
     /// layer's transmission at `wo` and what the layers on the outside pass.
     pub(super) fn sample_refraction(&self) -> Option<BsdfSample> {
+        self.bsdf.layers_read();
         let b = self.bsdf;
         let (fr, wo_l, sel) = (&self.fr, self.wo_l, &self.sel);
         let wi_l = refract(wo_l, Vec3::Z, fr.etap)?;
