@@ -489,7 +489,7 @@ pub(super) mod tests {
     }
 
     /// Uniform floats in [0, 1) from a xorshift generator.
-    fn uniforms(mut seed: u64) -> impl FnMut() -> f32 {
+    pub(in crate::bvh) fn uniforms(mut seed: u64) -> impl FnMut() -> f32 {
         move || {
             seed ^= seed << 13;
             seed ^= seed >> 7;

@@ -372,19 +372,9 @@ pub(super) fn presplit(
 
 #[cfg(test)]
 mod tests {
-    use super::super::build::tests::{depth, leaves};
+    use super::super::build::tests::{depth, leaves, uniforms};
     use super::super::build::{MAX_DEPTH, build};
     use super::*;
-
-    /// Uniform floats in [0, 1) from a xorshift generator.
-    fn uniforms(mut seed: u64) -> impl FnMut() -> f32 {
-        move || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            (seed >> 40) as f32 / (1u64 << 24) as f32
-        }
-    }
 
     fn tri_box(t: &[Vec3; 3]) -> Aabb {
         let lo = t[0].min(t[1]).min(t[2]);
